@@ -1,0 +1,1 @@
+"""SciPy adjustment stage (bundle blocks, Gauss-Helmert, error propagation): not yet implemented."""

@@ -1,0 +1,73 @@
+"""Digital elevation model sampling, device code.
+
+A DEM is a north-up regular grid in the horizontal coordinates of the geometry mode (longitude
+and latitude in degrees for geocentric poses, map x and y for map-Cartesian poses). Cell (i, j)
+has its centre at (x0 + (j + 0.5) dx, y0 + (i + 0.5) dy). Heights are float32 metres with NaN
+for nodata; bilinear interpolation between cell centres; NaN outside the grid.
+"""
+
+import warp as wp
+
+
+@wp.struct
+class DemData:
+    """Grid heights and georeferencing. A constant DEM has ``constant = 1`` and ``value``."""
+
+    data: wp.array2d(dtype=wp.float32)
+    x0: wp.float64
+    dx: wp.float64
+    y0: wp.float64
+    dy: wp.float64
+    constant: wp.int32
+    value: wp.float64
+    hmin: wp.float64
+    hmax: wp.float64
+
+
+@wp.func
+def dem_grid(dem: DemData, x: wp.float64, y: wp.float64):
+    """Horizontal coordinates -> fractional cell-centre grid coordinates (col, row)."""
+    half = wp.float64(0.5)
+    return wp.vec2d((x - dem.x0) / dem.dx - half, (y - dem.y0) / dem.dy - half)
+
+
+@wp.func
+def dem_sample_grid(dem: DemData, g: wp.vec2d):
+    """Bilinear height (m) at grid coordinates g; NaN outside the grid or next to nodata."""
+    if dem.constant != 0:
+        return dem.value
+    nan = wp.float64(wp.nan)
+    if not (wp.isfinite(g[0]) and wp.isfinite(g[1])):
+        return nan
+    h = dem.data.shape[0]
+    w = dem.data.shape[1]
+    half = wp.float64(0.5)
+    # Cells are valid out to their outer edges; clamp to the outermost centres there.
+    if g[0] < -half or g[1] < -half or g[0] > wp.float64(w) - half or g[1] > wp.float64(h) - half:
+        return nan
+    gx = wp.clamp(g[0], wp.float64(0.0), wp.float64(w - 1))
+    gy = wp.clamp(g[1], wp.float64(0.0), wp.float64(h - 1))
+    j = wp.min(wp.int32(gx), wp.max(w - 2, 0))
+    i = wp.min(wp.int32(gy), wp.max(h - 2, 0))
+    j1 = wp.min(j + 1, w - 1)
+    i1 = wp.min(i + 1, h - 1)
+    ax = gx - wp.float64(j)
+    ay = gy - wp.float64(i)
+    one = wp.float64(1.0)
+    z00 = wp.float64(dem.data[i, j])
+    z01 = wp.float64(dem.data[i, j1])
+    z10 = wp.float64(dem.data[i1, j])
+    z11 = wp.float64(dem.data[i1, j1])
+    return (one - ay) * ((one - ax) * z00 + ax * z01) + ay * ((one - ax) * z10 + ax * z11)
+
+
+@wp.func
+def dem_sample(dem: DemData, x: wp.float64, y: wp.float64):
+    """Bilinear height (m) at horizontal coordinates (x, y); NaN outside or at nodata."""
+    return dem_sample_grid(dem, dem_grid(dem, x, y))
+
+
+@wp.kernel
+def dem_sample_kernel(dem: DemData, xy: wp.array(dtype=wp.vec2d), out: wp.array(dtype=wp.float64)):
+    i = wp.tid()
+    out[i] = dem_sample(dem, xy[i][0], xy[i][1])

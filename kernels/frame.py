@@ -1,0 +1,259 @@
+"""The frame-camera chain of seed 003 (direct georeferencing), device code.
+
+Forward (pixel -> ground): pixel -> distortion correction -> camera ray -> object frame
+(ECEF for geocentric poses, the map CRS for map-Cartesian poses) -> refraction -> surface
+intersection at a trial height -> DEM relief search. Backward (ground -> pixel): collinearity,
+then refraction, then distortion.
+
+"Geo triples" are the points kernels exchange with the host: (lon deg, lat deg, ellipsoidal
+height m) in geocentric mode, (x, y, z) of the map CRS in map-Cartesian mode.
+"""
+
+import warp as wp
+
+from .camera import FrameCameraData, camera_to_pixel, pixel_to_camera
+from .dem import DemData, dem_grid, dem_sample_grid
+from .geodesy import DEG, WGS84_A, WGS84_B, ecef_to_geodetic, geodetic_to_ecef
+from .refraction import RefractionTable, nadir_angle, refraction_delta, tilt_from_nadir
+
+MODE_GEOCENTRIC = wp.constant(0)
+MODE_MAP = wp.constant(1)
+
+
+@wp.struct
+class FramePoseData:
+    """Exterior orientation packed for kernels.
+
+    mode: 0 geocentric (object frame ECEF), 1 map-Cartesian (object frame = projected CRS with
+    height as z); center: projection centre in the object frame (m); rot: R_object<-camera;
+    up: unit local vertical at the projection centre (object frame); height: ellipsoidal
+    height (geocentric) or z (map) of the projection centre (m).
+    """
+
+    mode: wp.int32
+    center: wp.vec3d
+    rot: wp.mat33d
+    up: wp.vec3d
+    height: wp.float64
+
+
+@wp.struct
+class SearchParams:
+    """Controls of the DEM relief search: height tolerance (m), march step cap."""
+
+    htol: wp.float64
+    max_steps: wp.int32
+
+
+@wp.func
+def point_at_height(pose: FramePoseData, d: wp.vec3d, h: wp.float64):
+    """Geo triple where the ray (center, unit d) meets the surface of height h; NaN if it misses.
+
+    Geocentric: the ellipsoid of semi-axes a + h, b + h (seed 003 eqs. 10-12), solved in the
+    cancellation-free form of the quadratic; the returned height is the exact geodetic height
+    of the intersection, which differs from h by millimetres. Map mode: the plane z = h.
+    """
+    nan = wp.float64(wp.nan)
+    miss = wp.vec3d(nan, nan, nan)
+    c = pose.center
+    if pose.mode == MODE_MAP:
+        if d[2] >= wp.float64(0.0):
+            return miss
+        s = (h - c[2]) / d[2]
+        if s <= wp.float64(0.0):
+            return miss
+        return wp.vec3d(c[0] + s * d[0], c[1] + s * d[1], h)
+    ah = WGS84_A + h
+    bh = WGS84_B + h
+    cs = wp.vec3d(c[0] / ah, c[1] / ah, c[2] / bh)
+    ds = wp.vec3d(d[0] / ah, d[1] / ah, d[2] / bh)
+    qa = wp.dot(ds, ds)
+    qb = wp.dot(cs, ds)
+    qc = wp.dot(cs, cs) - wp.float64(1.0)
+    disc = qb * qb - qa * qc
+    if qc <= wp.float64(0.0) or qb >= wp.float64(0.0) or disc < wp.float64(0.0):
+        return miss
+    s = qc / (wp.sqrt(disc) - qb)
+    g = ecef_to_geodetic(c + s * d)
+    return wp.vec3d(g[1] / DEG, g[0] / DEG, g[2])
+
+
+@wp.func
+def chord_direction(pose: FramePoseData, refr: RefractionTable, d_app: wp.vec3d, theta: wp.float64, h: wp.float64):
+    """Straight chord from the sensor to ground at height h for the apparent ray d_app."""
+    delta = refraction_delta(refr, theta, h)
+    if delta == wp.float64(0.0):
+        return d_app
+    return tilt_from_nadir(d_app, pose.up, -delta)
+
+
+@wp.func
+def surface_gap(pose: FramePoseData, refr: RefractionTable, dem: DemData, d_app: wp.vec3d, theta: wp.float64, h: wp.float64):
+    """Ground point at trial height h and the gap DEM(point) - height(point) (m, NaN if none)."""
+    g = point_at_height(pose, chord_direction(pose, refr, d_app, theta, h), h)
+    z = dem_sample_grid(dem, dem_grid(dem, g[0], g[1]))
+    return g, z - g[2]
+
+
+@wp.func
+def geolocate_ray(
+    pose: FramePoseData, refr: RefractionTable, dem: DemData, search: SearchParams, d_app: wp.vec3d
+):
+    """First intersection of an apparent ray (unit, object frame) with the DEM, as a geo triple.
+
+    Relief search (replaces the fixed-point iteration of seed 003 eqs. 18-21, which diverges
+    where slope x tan(off-nadir) > 1): between the DEM's highest and lowest heights the ray's
+    track is marched in steps of at most one DEM cell until the gap DEM - height changes sign,
+    which brackets the first surface crossing seen from the sensor; the Illinois variant of
+    regula falsi then refines it to ``search.htol``. Rays that miss the Earth, leave the DEM
+    before reaching it or start below it give NaN.
+    """
+    nan = wp.float64(wp.nan)
+    miss = wp.vec3d(nan, nan, nan)
+    theta = nadir_angle(d_app, pose.up)
+    margin = wp.float64(1.0)
+    h_hi = wp.min(dem.hmax + margin, pose.height - wp.float64(0.01))
+    h_lo = dem.hmin - margin
+    if h_hi <= h_lo:
+        return miss
+    g_hi = point_at_height(pose, chord_direction(pose, refr, d_app, theta, h_hi), h_hi)
+    g_lo = point_at_height(pose, chord_direction(pose, refr, d_app, theta, h_lo), h_lo)
+    if not (wp.isfinite(g_hi[0]) and wp.isfinite(g_lo[0])):
+        return miss
+    # March along the (nearly straight) track in grid space; exact evaluation follows.
+    ga = dem_grid(dem, g_hi[0], g_hi[1])
+    gb = dem_grid(dem, g_lo[0], g_lo[1])
+    n = wp.int32(wp.ceil(wp.length(gb - ga))) + 1
+    if dem.constant != 0:
+        n = 1
+    n = wp.clamp(n, 1, search.max_steps)
+    prev = dem_sample_grid(dem, ga) - g_hi[2]
+    if prev >= wp.float64(0.0):
+        return miss  # terrain above the start: the sensor is below the surface
+    found = wp.int32(0)
+    for k in range(1, n + 1):
+        t = wp.float64(k) / wp.float64(n)
+        f = dem_sample_grid(dem, ga + t * (gb - ga)) - (g_hi[2] + t * (g_lo[2] - g_hi[2]))
+        if f >= wp.float64(0.0):
+            if wp.isfinite(prev):
+                found = k
+            break  # a finite prev < 0 brackets the crossing; otherwise it entered the DEM underground
+        prev = f
+    if found == 0:
+        return miss
+    hstep = (h_hi - h_lo) / wp.float64(n)
+    a = h_hi - wp.float64(found - 1) * hstep
+    b = a - hstep
+    ga3, fa = surface_gap(pose, refr, dem, d_app, theta, a)
+    for _ in range(4):  # the march is approximate: widen if the exact gaps do not bracket
+        if not (fa >= wp.float64(0.0)):
+            break
+        a = wp.min(a + hstep, h_hi)
+        ga3, fa = surface_gap(pose, refr, dem, d_app, theta, a)
+    gb3, fb = surface_gap(pose, refr, dem, d_app, theta, b)
+    for _ in range(4):
+        if not (fb < wp.float64(0.0)):
+            break
+        b = wp.max(b - hstep, h_lo)
+        gb3, fb = surface_gap(pose, refr, dem, d_app, theta, b)
+    if not (fa < wp.float64(0.0) and fb >= wp.float64(0.0)):
+        return miss
+    best = gb3
+    side = wp.int32(0)
+    for _ in range(100):
+        c = b - fb * (b - a) / (fb - fa)
+        gc, fc = surface_gap(pose, refr, dem, d_app, theta, c)
+        if not wp.isfinite(fc):
+            return miss
+        best = gc
+        if fc >= wp.float64(0.0):
+            b = c
+            fb = fc
+            if side == 1:
+                fa = fa * wp.float64(0.5)
+            side = 1
+        else:
+            a = c
+            fa = fc
+            if side == -1:
+                fb = fb * wp.float64(0.5)
+            side = -1
+        if wp.abs(fc) < search.htol or a - b < search.htol:
+            break
+    return best
+
+
+@wp.func
+def geolocate_pixel(
+    cam: FrameCameraData,
+    pose: FramePoseData,
+    refr: RefractionTable,
+    dem: DemData,
+    search: SearchParams,
+    pix: wp.vec2d,
+):
+    """Pixel (col, row) -> geo triple of its ground point (NaN where there is none)."""
+    d_app = pose.rot * pixel_to_camera(cam, pix)
+    return geolocate_ray(pose, refr, dem, search, d_app)
+
+
+@wp.func
+def project_point(cam: FrameCameraData, pose: FramePoseData, refr: RefractionTable, geo: wp.vec3d):
+    """Geo triple -> pixel (col, row); NaN behind the camera."""
+    x = geo
+    if pose.mode == MODE_GEOCENTRIC:
+        x = geodetic_to_ecef(geo[1] * DEG, geo[0] * DEG, geo[2])
+    d = wp.normalize(x - pose.center)
+    if refr.enabled != 0:
+        tc = nadir_angle(d, pose.up)
+        ta = tc
+        for _ in range(4):  # apparent angle = chord angle + delta(apparent angle)
+            ta = tc + refraction_delta(refr, ta, geo[2])
+        d = tilt_from_nadir(d, pose.up, ta - tc)
+    return camera_to_pixel(cam, wp.transpose(pose.rot) * d)
+
+
+@wp.kernel
+def geolocate_kernel(
+    cam: FrameCameraData,
+    pose: FramePoseData,
+    refr: RefractionTable,
+    dem: DemData,
+    search: SearchParams,
+    pixels: wp.array(dtype=wp.vec2d),
+    out: wp.array(dtype=wp.vec3d),
+):
+    """Geolocate a list of pixels (N,) -> geo triples (N,)."""
+    i = wp.tid()
+    out[i] = geolocate_pixel(cam, pose, refr, dem, search, pixels[i])
+
+
+@wp.kernel
+def geolocate_grid_kernel(
+    cam: FrameCameraData,
+    pose: FramePoseData,
+    refr: RefractionTable,
+    dem: DemData,
+    search: SearchParams,
+    col0: wp.float64,
+    row0: wp.float64,
+    step: wp.float64,
+    out: wp.array2d(dtype=wp.vec3d),
+):
+    """Geolocate the pixel-centre grid (row0 + i step, col0 + j step) -> out[i, j]."""
+    i, j = wp.tid()
+    pix = wp.vec2d(col0 + wp.float64(j) * step, row0 + wp.float64(i) * step)
+    out[i, j] = geolocate_pixel(cam, pose, refr, dem, search, pix)
+
+
+@wp.kernel
+def project_kernel(
+    cam: FrameCameraData,
+    pose: FramePoseData,
+    refr: RefractionTable,
+    points: wp.array(dtype=wp.vec3d),
+    out: wp.array(dtype=wp.vec2d),
+):
+    """Project geo triples (N,) -> pixels (N,)."""
+    i = wp.tid()
+    out[i] = project_point(cam, pose, refr, points[i])

@@ -1,0 +1,54 @@
+"""Argument validation helpers shared by the host classes."""
+
+import math
+
+import numpy as np
+from pyproj import CRS
+from pyproj.exceptions import CRSError
+
+from .errors import CrsError, ParamError
+
+
+def finite(name, value):
+    """``float(value)``, or ParamError naming ``name`` if it is not a finite number."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError) as e:
+        raise ParamError(f"{name} must be a number, got {value!r}") from e
+    if not math.isfinite(v):
+        raise ParamError(f"{name} must be finite, got {value!r}")
+    return v
+
+
+def finite_vector(name, value, n):
+    """A finite float64 vector of length n, or ParamError naming ``name``."""
+    try:
+        arr = np.asarray(value, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError) as e:
+        raise ParamError(f"{name} must be {n} numbers, got {value!r}") from e
+    if arr.shape != (n,) or not np.all(np.isfinite(arr)):
+        raise ParamError(f"{name} must be {n} finite numbers, got {value!r}")
+    return arr
+
+
+def points(values, ncol, name):
+    """A C-contiguous float64 array of shape (N, ncol); a single point (ncol,) becomes (1, ncol)."""
+    try:
+        arr = np.ascontiguousarray(values, dtype=np.float64)
+    except (TypeError, ValueError) as e:
+        raise ParamError(f"{name} must be a numeric array of shape (N, {ncol}): {e}") from e
+    if arr.ndim == 1 and arr.shape[0] == ncol:
+        arr = arr[None, :]
+    if arr.ndim != 2 or arr.shape[1] != ncol:
+        raise ParamError(f"{name} must have shape (N, {ncol}), got {arr.shape}")
+    return arr
+
+
+def as_crs(value, name="crs"):
+    """A pyproj CRS from anything pyproj accepts, or CrsError naming ``name``."""
+    if value is None:
+        raise CrsError(f"{name} is required")
+    try:
+        return CRS.from_user_input(value)
+    except CRSError as e:
+        raise CrsError(f"{name}: unknown coordinate reference system {value!r}: {e}") from e

@@ -1,0 +1,206 @@
+"""Frame camera interior orientation (:class:`FrameCamera`)."""
+
+import numpy as np
+import warp as wp
+
+from ._device import resolve_device
+from ._validate import finite as _finite
+from ._validate import points as _as_points
+from .errors import GeometryError, ParamError
+from .kernels.camera import FrameCameraData, camera_to_pixel_kernel, pixel_to_camera_kernel
+
+__all__ = ["FrameCamera"]
+
+
+class FrameCamera:
+    """Interior orientation of a frame camera (PATB axes, OpenCV-normalised Brown distortion).
+
+    Parameters
+    ----------
+    focal_length : float
+        Focal length (mm), > 0.
+    pixel_size : float or (float, float)
+        Pixel pitch (mm) in x and y, > 0.
+    image_size : (int, int)
+        (width, height) in pixels.
+    principal_point : (float, float), optional
+        Principal point offset (mm) from the image centre, x right, y up.
+    k1, k2, k3, p1, p2 : float, optional
+        Brown-Conrady coefficients acting on OpenCV-normalised coordinates
+        ``(u, v) = (x / f, -y / f)``, undistorted -> distorted (as OpenCV, OpenSfM, ODM and
+        orthority define them). Use :meth:`from_mm_coefficients` for mm-based y-up sets.
+
+    Raises
+    ------
+    ParamError
+        A parameter is not finite or out of range.
+    GeometryError
+        The distortion cannot be inverted everywhere in the image.
+
+    Notes
+    -----
+    Pixel (col, row) coordinates have their origin at the top-left corner of the top-left
+    pixel; the centre of pixel (i, j) is (j + 0.5, i + 0.5). The undistorted ray of an image
+    point (x, y) is (x, y, -f) in the camera frame (x right, y up, z backwards).
+    """
+
+    def __init__(self, focal_length, pixel_size, image_size, *, principal_point=(0.0, 0.0),
+                 k1=0.0, k2=0.0, k3=0.0, p1=0.0, p2=0.0):
+        self.focal_length = _finite("focal_length", focal_length)
+        if self.focal_length <= 0.0:
+            raise ParamError(f"focal_length must be > 0 mm, got {focal_length!r}")
+        ps = np.broadcast_to(np.asarray(pixel_size, dtype=np.float64), (2,)).copy()
+        if not np.all(np.isfinite(ps)) or np.any(ps <= 0.0):
+            raise ParamError(f"pixel_size must be finite and > 0 mm, got {pixel_size!r}")
+        self.pixel_size = (float(ps[0]), float(ps[1]))
+        try:
+            w, h = (int(v) for v in image_size)
+        except (TypeError, ValueError) as e:
+            raise ParamError(f"image_size must be (width, height), got {image_size!r}") from e
+        if w <= 0 or h <= 0:
+            raise ParamError(f"image_size must be positive, got {image_size!r}")
+        self.image_size = (w, h)
+        pp = tuple(_finite("principal_point", v) for v in principal_point)
+        if len(pp) != 2:
+            raise ParamError(f"principal_point must be (x0, y0) in mm, got {principal_point!r}")
+        self.principal_point = pp
+        self.k1, self.k2, self.k3 = (_finite(n, v) for n, v in (("k1", k1), ("k2", k2), ("k3", k3)))
+        self.p1, self.p2 = (_finite(n, v) for n, v in (("p1", p1), ("p2", p2)))
+        self._check_invertible()
+
+    @classmethod
+    def from_mm_coefficients(cls, focal_length, pixel_size, image_size, *, principal_point=(0.0, 0.0),
+                             k1=0.0, k2=0.0, k3=0.0, p1=0.0, p2=0.0):
+        """Build from Brown coefficients in mm units for a y-up image frame (seed 003, Australis).
+
+        They convert to the normalised form by ``k1n = k1 f^2``, ``k2n = k2 f^4``,
+        ``k3n = k3 f^6``, ``p1n = -p1 f``, ``p2n = p2 f`` (f in mm).
+        """
+        f = _finite("focal_length", focal_length)
+        return cls(focal_length, pixel_size, image_size, principal_point=principal_point,
+                   k1=k1 * f**2, k2=k2 * f**4, k3=k3 * f**6, p1=-p1 * f, p2=p2 * f)
+
+    def __repr__(self):
+        return (f"FrameCamera(focal_length={self.focal_length!r}, pixel_size={self.pixel_size!r}, "
+                f"image_size={self.image_size!r}, principal_point={self.principal_point!r}, "
+                f"k1={self.k1!r}, k2={self.k2!r}, k3={self.k3!r}, p1={self.p1!r}, p2={self.p2!r})")
+
+    @property
+    def has_distortion(self):
+        return any(v != 0.0 for v in (self.k1, self.k2, self.k3, self.p1, self.p2))
+
+    # -- host reference (float64 NumPy) ------------------------------------------------------
+    def distort(self, uv):
+        """Undistorted -> distorted normalised coordinates, (N, 2) -> (N, 2), closed form."""
+        uv = np.asarray(uv, dtype=np.float64)
+        u, v = uv[..., 0], uv[..., 1]
+        r2 = u * u + v * v
+        rad = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3))
+        return np.stack([u * rad + 2 * self.p1 * u * v + self.p2 * (r2 + 2 * u * u),
+                         v * rad + self.p1 * (r2 + 2 * v * v) + 2 * self.p2 * u * v], axis=-1)
+
+    def _jacobian(self, uv):
+        u, v = uv[..., 0], uv[..., 1]
+        r2 = u * u + v * v
+        rad = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3))
+        drad = self.k1 + r2 * (2 * self.k2 + 3 * r2 * self.k3)
+        j00 = rad + 2 * u * u * drad + 2 * self.p1 * v + 6 * self.p2 * u
+        j01 = 2 * u * v * drad + 2 * self.p1 * u + 2 * self.p2 * v
+        j11 = rad + 2 * v * v * drad + 6 * self.p1 * v + 2 * self.p2 * u
+        return j00, j01, j01, j11
+
+    def undistort(self, uvd, *, iterations=30):
+        """Distorted -> undistorted normalised coordinates, (N, 2) -> (N, 2), Newton's method."""
+        uvd = np.asarray(uvd, dtype=np.float64)
+        uv = uvd.copy()
+        for _ in range(iterations):
+            f = self.distort(uv) - uvd
+            j00, j01, j10, j11 = self._jacobian(uv)
+            det = j00 * j11 - j01 * j10
+            step = np.stack([(j11 * f[..., 0] - j01 * f[..., 1]) / det,
+                             (j00 * f[..., 1] - j10 * f[..., 0]) / det], axis=-1)
+            uv = uv - step
+            if np.all(np.abs(step) < 1e-15):
+                break
+        return uv
+
+    def pixel_to_normalized(self, pixels):
+        """Pixel (col, row) (N, 2) -> distorted normalised (u, v) (N, 2)."""
+        p = np.asarray(pixels, dtype=np.float64)
+        x = (p[..., 0] - 0.5 * self.image_size[0]) * self.pixel_size[0] - self.principal_point[0]
+        y = (0.5 * self.image_size[1] - p[..., 1]) * self.pixel_size[1] - self.principal_point[1]
+        return np.stack([x / self.focal_length, -y / self.focal_length], axis=-1)
+
+    def normalized_to_pixel(self, uv):
+        """Distorted normalised (u, v) (N, 2) -> pixel (col, row) (N, 2)."""
+        uv = np.asarray(uv, dtype=np.float64)
+        x = uv[..., 0] * self.focal_length
+        y = -uv[..., 1] * self.focal_length
+        return np.stack([(x + self.principal_point[0]) / self.pixel_size[0] + 0.5 * self.image_size[0],
+                         0.5 * self.image_size[1] - (y + self.principal_point[1]) / self.pixel_size[1]],
+                        axis=-1)
+
+    def _check_invertible(self):
+        """Check that distortion is a one-to-one map over the whole image.
+
+        The inverse is solved on a grid of distorted points (dense along the border, where
+        distortion is strongest); every solution must reproduce its point to 1e-6 px with a
+        positive Jacobian determinant, and the determinant must stay positive along the
+        segment from the principal point to the solution (no fold in between).
+        """
+        if not self.has_distortion:
+            return
+        w, h = self.image_size
+        edge = np.linspace(0.0, 1.0, 129)
+        grid = np.linspace(0.0, 1.0, 17)
+        gx, gy = np.meshgrid(grid, grid)
+        frac = np.concatenate([
+            np.stack([edge, np.zeros_like(edge)], 1), np.stack([edge, np.ones_like(edge)], 1),
+            np.stack([np.zeros_like(edge), edge], 1), np.stack([np.ones_like(edge), edge], 1),
+            np.stack([gx.ravel(), gy.ravel()], 1),
+        ])
+        pix = frac * np.array([w, h], dtype=np.float64)
+        uvd = self.pixel_to_normalized(pix)
+        with np.errstate(all="ignore"):
+            uv = self.undistort(uvd)
+            back = self.normalized_to_pixel(self.distort(uv))
+            err = np.hypot(*(back - pix).T)
+            t = np.linspace(0.0, 1.0, 33)[:, None, None]
+            j00, j01, j10, j11 = self._jacobian(t * uv[None])
+            det = j00 * j11 - j01 * j10
+        bad = ~(np.isfinite(err) & (err <= 1e-6)) | ~np.all(det > 0.0, axis=0)
+        if np.any(bad):
+            c, r = pix[np.argmax(bad)]
+            raise GeometryError(
+                f"Lens distortion (k1={self.k1}, k2={self.k2}, k3={self.k3}, p1={self.p1}, p2={self.p2}) "
+                f"is not invertible over the {w}x{h} image (first failure at pixel ({c:.1f}, {r:.1f}))")
+
+    # -- device --------------------------------------------------------------------------------
+    def to_struct(self):
+        """Pack into :class:`orthowarp.kernels.camera.FrameCameraData`."""
+        s = FrameCameraData()
+        s.focal = self.focal_length
+        s.pixel_size = wp.vec2d(*self.pixel_size)
+        s.size = wp.vec2d(*map(float, self.image_size))
+        s.pp = wp.vec2d(*self.principal_point)
+        s.k1, s.k2, s.k3, s.p1, s.p2 = self.k1, self.k2, self.k3, self.p1, self.p2
+        return s
+
+    def pixel_to_camera(self, pixels, *, device=None):
+        """Pixels (N, 2) (col, row) -> unit rays (N, 3) in the camera frame (kernel)."""
+        pix = _as_points(pixels, 2, "pixels")
+        dev = resolve_device(device)
+        out = wp.empty(len(pix), dtype=wp.vec3d, device=dev)
+        wp.launch(pixel_to_camera_kernel, dim=len(pix), device=dev,
+                  inputs=[self.to_struct(), wp.array(pix, dtype=wp.vec2d, device=dev), out])
+        return out.numpy()
+
+    def camera_to_pixel(self, vectors, *, device=None):
+        """Camera-frame directions (N, 3) -> pixels (N, 2); NaN rows for directions not in front."""
+        vec = _as_points(vectors, 3, "vectors")
+        dev = resolve_device(device)
+        out = wp.empty(len(vec), dtype=wp.vec2d, device=dev)
+        wp.launch(camera_to_pixel_kernel, dim=len(vec), device=dev,
+                  inputs=[self.to_struct(), wp.array(vec, dtype=wp.vec3d, device=dev), out])
+        return out.numpy()
+

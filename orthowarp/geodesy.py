@@ -1,0 +1,120 @@
+"""Host-side (NumPy float64) geodesy on WGS84 and elementary rotations.
+
+The kernels in :mod:`orthowarp.kernels.geodesy` implement the same formulas on the device;
+both are checked against pyproj in the tests. Angles are degrees at this interface.
+"""
+
+import numpy as np
+
+__all__ = [
+    "WGS84_A",
+    "WGS84_F",
+    "WGS84_B",
+    "WGS84_E2",
+    "geodetic_to_ecef",
+    "ecef_to_geodetic",
+    "ned_to_ecef_matrix",
+    "enu_to_ecef_matrix",
+    "rx",
+    "ry",
+    "rz",
+    "r1",
+    "r2",
+    "r3",
+]
+
+WGS84_A = 6378137.0
+WGS84_F = 1.0 / 298.257223563
+WGS84_B = WGS84_A * (1.0 - WGS84_F)
+WGS84_E2 = WGS84_F * (2.0 - WGS84_F)
+
+
+def geodetic_to_ecef(lat, lon, h):
+    """Geodetic latitude, longitude (deg) and ellipsoidal height (m) -> ECEF x, y, z (m).
+
+    Parameters
+    ----------
+    lat, lon, h : array_like
+        Broadcastable arrays, degrees and metres.
+
+    Returns
+    -------
+    ndarray, shape (..., 3)
+    """
+    lat = np.radians(np.asarray(lat, dtype=np.float64))
+    lon = np.radians(np.asarray(lon, dtype=np.float64))
+    h = np.asarray(h, dtype=np.float64)
+    s = np.sin(lat)
+    n = WGS84_A / np.sqrt(1.0 - WGS84_E2 * s * s)
+    c = np.cos(lat)
+    return np.stack(
+        np.broadcast_arrays((n + h) * c * np.cos(lon), (n + h) * c * np.sin(lon), (n * (1.0 - WGS84_E2) + h) * s),
+        axis=-1,
+    )
+
+
+def ecef_to_geodetic(xyz):
+    """ECEF (..., 3) (m) -> latitude, longitude (deg), ellipsoidal height (m), each (...,).
+
+    Same fixed-point iteration as the kernel (see :func:`orthowarp.kernels.geodesy.ecef_to_geodetic`).
+    """
+    xyz = np.asarray(xyz, dtype=np.float64)
+    x, y, z = xyz[..., 0], xyz[..., 1], xyz[..., 2]
+    r = np.hypot(x, y)
+    lon = np.arctan2(y, x)
+    lat = np.arctan2(z, r * (1.0 - WGS84_E2))
+    for _ in range(6):
+        s = np.sin(lat)
+        w = np.sqrt(1.0 - WGS84_E2 * s * s)
+        n = WGS84_A / w
+        h = r * np.cos(lat) + z * s - WGS84_A * w
+        lat = np.arctan2(z, r * (1.0 - WGS84_E2 * n / (n + h)))
+    s = np.sin(lat)
+    h = r * np.cos(lat) + z * s - WGS84_A * np.sqrt(1.0 - WGS84_E2 * s * s)
+    return np.degrees(lat), np.degrees(lon), h
+
+
+def ned_to_ecef_matrix(lat, lon):
+    """R_ecef<-ned (3, 3) at latitude, longitude (deg): columns north, east, down."""
+    la, lo = np.radians(lat), np.radians(lon)
+    sl, cl, so, co = np.sin(la), np.cos(la), np.sin(lo), np.cos(lo)
+    return np.array([[-sl * co, -so, -cl * co], [-sl * so, co, -cl * so], [cl, 0.0, -sl]])
+
+
+def enu_to_ecef_matrix(lat, lon):
+    """R_ecef<-enu (3, 3) at latitude, longitude (deg): columns east, north, up (seed 003 eq. 9)."""
+    m = ned_to_ecef_matrix(lat, lon)
+    return np.stack([m[:, 1], m[:, 0], -m[:, 2]], axis=1)
+
+
+def rx(angle):
+    """Active rotation (3, 3) by angle (deg) about x: rotates vectors counter-clockwise."""
+    c, s = np.cos(np.radians(angle)), np.sin(np.radians(angle))
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def ry(angle):
+    """Active rotation (3, 3) by angle (deg) about y."""
+    c, s = np.cos(np.radians(angle)), np.sin(np.radians(angle))
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def rz(angle):
+    """Active rotation (3, 3) by angle (deg) about z."""
+    c, s = np.cos(np.radians(angle)), np.sin(np.radians(angle))
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def r1(angle):
+    """Seed 003's elementary rotation R1 (3, 3): a passive (frame) rotation, ``R1(a) = rx(-a)``."""
+    return rx(-angle)
+
+
+def r2(angle):
+    """Seed 003's elementary rotation R2 (3, 3): ``R2(a) = ry(-a)``."""
+    return ry(-angle)
+
+
+def r3(angle):
+    """Seed 003's elementary rotation R3 (3, 3): ``R3(a) = rz(-a)``."""
+    return rz(-angle)

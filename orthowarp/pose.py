@@ -1,0 +1,140 @@
+"""Exterior orientation (:class:`Pose`) in the two conventions of DESIGN.md."""
+
+import numpy as np
+import warp as wp
+
+from . import geodesy
+from ._validate import as_crs, finite, finite_vector
+from .errors import CrsError, ParamError
+from .kernels.frame import FramePoseData
+
+__all__ = ["Pose"]
+
+# R_body<-cam for the standard mount: body x = camera y, body y = camera x, body z = -camera z
+# (seed 003: R3(-90 deg) R1(180 deg)).
+MOUNT = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+
+GEOCENTRIC = "geocentric"
+MAP = "map"
+
+
+class Pose:
+    """Position and attitude of a frame camera.
+
+    Build with :meth:`from_ins` (GNSS/INS, geocentric rigorous mode) or :meth:`from_opk`
+    (photogrammetric omega-phi-kappa, map-Cartesian mode).
+
+    Attributes
+    ----------
+    mode : {"geocentric", "map"}
+    center : ndarray, shape (3,)
+        Projection centre in the object frame: ECEF (m) or map x, y, z (m).
+    rotation : ndarray, shape (3, 3)
+        R_object<-camera (camera-frame vectors to object-frame vectors).
+    crs : pyproj.CRS
+        The object frame: EPSG:4978 (ECEF) or the map CRS.
+    """
+
+    def __init__(self, mode, center, rotation, crs, *, params=None):
+        if mode not in (GEOCENTRIC, MAP):
+            raise ParamError(f"mode must be 'geocentric' or 'map', got {mode!r}")
+        self.mode = mode
+        self.center = finite_vector("center", center, 3)
+        rot = np.asarray(rotation, dtype=np.float64)
+        if rot.shape != (3, 3) or not np.all(np.isfinite(rot)):
+            raise ParamError("rotation must be a finite 3x3 matrix")
+        if not np.allclose(rot.T @ rot, np.eye(3), atol=1e-9) or np.linalg.det(rot) < 0:
+            raise ParamError("rotation must be a proper rotation matrix")
+        self.rotation = rot
+        self.crs = crs
+        self.params = dict(params or {})
+
+    @classmethod
+    def from_ins(cls, lat, lon, h, roll, pitch, yaw, *, boresight=(0.0, 0.0, 0.0), lever_arm=(0.0, 0.0, 0.0)):
+        """GNSS/INS pose, geocentric (rigorous) mode.
+
+        Parameters
+        ----------
+        lat, lon, h : float
+            Latitude, longitude (deg, WGS84) and ellipsoidal height (m) of the navigation
+            reference point (the projection centre when ``lever_arm`` is zero).
+        roll, pitch, yaw : float
+            IMU attitude (deg): ``R_nav<-body = Rz(yaw) Ry(pitch) Rx(roll)``, navigation frame
+            NED, body x forward, y right, z down.
+        boresight : (float, float, float), optional
+            Misalignment (deg) about body x, y, z: ``R_boresight = Rz(ez) Ry(ey) Rx(ex)`` and
+            ``R_body<-cam = R_boresight R_mount``.
+        lever_arm : (float, float, float), optional
+            Vector (m) from the navigation reference point to the projection centre, body axes.
+        """
+        lat, lon, h = finite("lat", lat), finite("lon", lon), finite("h", h)
+        roll, pitch, yaw = finite("roll", roll), finite("pitch", pitch), finite("yaw", yaw)
+        if abs(lat) > 90.0:
+            raise ParamError(f"lat must be within [-90, 90] degrees, got {lat}")
+        bs = finite_vector("boresight", boresight, 3)
+        la = finite_vector("lever_arm", lever_arm, 3)
+        r_nav_body = geodesy.rz(yaw) @ geodesy.ry(pitch) @ geodesy.rx(roll)
+        r_body_cam = geodesy.rz(bs[2]) @ geodesy.ry(bs[1]) @ geodesy.rx(bs[0]) @ MOUNT
+        r_ecef_nav = geodesy.ned_to_ecef_matrix(lat, lon)
+        center = geodesy.geodetic_to_ecef(lat, lon, h) + r_ecef_nav @ r_nav_body @ la
+        params = dict(lat=lat, lon=lon, h=h, roll=roll, pitch=pitch, yaw=yaw,
+                      boresight=tuple(bs), lever_arm=tuple(la))
+        return cls(GEOCENTRIC, center, r_ecef_nav @ r_nav_body @ r_body_cam, as_crs("EPSG:4978"),
+                   params=params)
+
+    @classmethod
+    def from_opk(cls, x, y, z, omega, phi, kappa, *, crs):
+        """Photogrammetric pose (PATB, seed 002 eq. 2), map-Cartesian mode.
+
+        Parameters
+        ----------
+        x, y, z : float
+            Projection centre in the projected CRS ``crs`` (m), z the height.
+        omega, phi, kappa : float
+            Angles (deg): ``R = Rx(omega) Ry(phi) Rz(kappa)`` maps camera to object vectors.
+        crs : str, int or pyproj.CRS
+            A projected CRS, treated as Cartesian.
+        """
+        vals = [finite(n, v) for n, v in (("x", x), ("y", y), ("z", z),
+                                          ("omega", omega), ("phi", phi), ("kappa", kappa))]
+        crs = as_crs(crs)
+        if not crs.is_projected:
+            raise CrsError(f"crs must be a projected CRS for omega-phi-kappa poses, got {crs.name!r}")
+        rot = geodesy.rx(vals[3]) @ geodesy.ry(vals[4]) @ geodesy.rz(vals[5])
+        params = dict(zip(("x", "y", "z", "omega", "phi", "kappa"), vals))
+        return cls(MAP, vals[:3], rot, crs, params=params)
+
+    def __repr__(self):
+        args = ", ".join(f"{k}={v!r}" for k, v in self.params.items())
+        return f"Pose({self.mode}: {args})"
+
+    @property
+    def center_geodetic(self):
+        """(lat deg, lon deg, h m) of the projection centre; geocentric mode only."""
+        if self.mode != GEOCENTRIC:
+            raise ParamError("center_geodetic is defined for geocentric poses only")
+        lat, lon, h = geodesy.ecef_to_geodetic(self.center)
+        return float(lat), float(lon), float(h)
+
+    @property
+    def up(self):
+        """Unit local vertical (3,) at the projection centre, object frame."""
+        if self.mode == MAP:
+            return np.array([0.0, 0.0, 1.0])
+        lat, lon, _ = self.center_geodetic
+        return -geodesy.ned_to_ecef_matrix(lat, lon)[:, 2]
+
+    @property
+    def height(self):
+        """Ellipsoidal height (geocentric) or z (map) of the projection centre (m)."""
+        return self.center_geodetic[2] if self.mode == GEOCENTRIC else float(self.center[2])
+
+    def to_struct(self):
+        """Pack into :class:`orthowarp.kernels.frame.FramePoseData`."""
+        s = FramePoseData()
+        s.mode = 0 if self.mode == GEOCENTRIC else 1
+        s.center = wp.vec3d(*self.center)
+        s.rot = wp.mat33d(*self.rotation.ravel())
+        s.up = wp.vec3d(*self.up)
+        s.height = self.height
+        return s

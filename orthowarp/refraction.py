@@ -1,0 +1,216 @@
+"""Atmospheric refraction: a layered standard atmosphere traced with Snell's law.
+
+The atmosphere is the U.S. Standard Atmosphere 1976 (pressure and temperature by geopotential
+layers up to 86 km, vacuum above), and its refractivity the dry-air Smith-Weintraub/Essen form
+``N = 77.6 P / T`` (P in hPa, T in K; n = 1 + 1e-6 N), as in seed 003's eq. 13 sense of a
+refractive index per layer. Layers are 50 m thick below 20 km (seed 003 uses 1 km), 250 m to
+50 km and 1 km above. Inside a layer the index is constant and the ray straight; across
+spherical layer boundaries Snell's law makes ``n r sin(z)`` invariant (Bouguer), so the central
+angle a ray sweeps is the sum over layers of ``acos(b / r_top) - acos(b / r_bottom)`` with the
+layer's impact parameter ``b = n_C r_C sin(theta_C) / n``.
+
+The quantity the kernels use is ``delta(theta, h)``: the angle at the sensor between the
+apparent ray (nadir angle theta) and the straight chord to the point where the traced ray
+reaches ellipsoidal height h. The ASPRS closed form (Manual of Photogrammetry) is provided as a
+cross-check.
+"""
+
+import numpy as np
+import warp as wp
+
+from .errors import ParamError
+from .kernels.refraction import RefractionTable
+
+__all__ = [
+    "standard_atmosphere",
+    "refractive_index",
+    "trace_delta",
+    "asprs_delta",
+    "saastamoinen_delta",
+    "RefractionModel",
+]
+
+EARTH_RADIUS = 6371000.0  # mean radius of the spherical shells (m)
+_R0 = 6356766.0  # radius used by the 1976 standard atmosphere for geopotential height (m)
+_G0M_R = 9.80665 * 0.0289644 / 8.3144598  # g0 M / R* (K/m)
+# (base geopotential height m, base temperature K, lapse rate K/m) of the 1976 layers
+_LAYERS = [(0.0, 288.15, -0.0065), (11000.0, 216.65, 0.0), (20000.0, 216.65, 0.001),
+           (32000.0, 228.65, 0.0028), (47000.0, 270.65, 0.0), (51000.0, 270.65, -0.0028),
+           (71000.0, 214.65, -0.002)]
+_TOP = 86000.0  # geometric altitude above which the index is taken as 1
+
+
+def _layer_base_pressures():
+    p = [101325.0]
+    for (hb, tb, lr), (hn, _, _) in zip(_LAYERS[:-1], _LAYERS[1:]):
+        dh = hn - hb
+        if lr == 0.0:
+            p.append(p[-1] * np.exp(-_G0M_R * dh / tb))
+        else:
+            p.append(p[-1] * (tb / (tb + lr * dh)) ** (_G0M_R / lr))
+    return np.array(p)
+
+
+_PB = _layer_base_pressures()
+
+
+def standard_atmosphere(z):
+    """Pressure (Pa) and temperature (K) of the U.S. Standard Atmosphere 1976.
+
+    Parameters
+    ----------
+    z : array_like
+        Geometric altitude above sea level (m); the lowest layer extends below 0.
+    """
+    z = np.asarray(z, dtype=np.float64)
+    hgp = _R0 * z / (_R0 + z)
+    hb = np.array([la[0] for la in _LAYERS])
+    k = np.clip(np.searchsorted(hb, hgp, side="right") - 1, 0, len(_LAYERS) - 1)
+    base, tb, lr = hb[k], np.array([la[1] for la in _LAYERS])[k], np.array([la[2] for la in _LAYERS])[k]
+    t = tb + lr * (hgp - base)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        p_grad = _PB[k] * (tb / t) ** (_G0M_R / np.where(lr == 0.0, 1.0, lr))
+    p_iso = _PB[k] * np.exp(-_G0M_R * (hgp - base) / tb)
+    return np.where(lr == 0.0, p_iso, p_grad), t
+
+
+def refractive_index(z):
+    """Refractive index n of dry air at geometric altitude z (m), 1 above 86 km."""
+    p, t = standard_atmosphere(z)
+    n = 1.0 + 77.6e-6 * (p / 100.0) / t
+    return np.where(np.asarray(z) >= _TOP, 1.0, n)
+
+
+def _boundaries(top):
+    """Layer boundaries (descending, m) from ``top`` down to -2 km."""
+    b = np.concatenate([np.arange(-2000.0, 20000.0, 50.0), np.arange(20000.0, 50000.0, 250.0),
+                        np.arange(50000.0, _TOP, 1000.0), [_TOP]])
+    b = b[b < top]
+    return np.concatenate([[top], b[::-1]])
+
+
+def trace_delta(theta, sensor_height, ground_height, *, radius=EARTH_RADIUS):
+    """Refraction angle delta (rad) by tracing through spherical layers.
+
+    Parameters
+    ----------
+    theta : array_like
+        Apparent nadir angle of the ray at the sensor (rad), shape (T,) or broadcastable with
+        ``ground_height``.
+    sensor_height : float
+        Sensor height above the sphere (m).
+    ground_height : array_like
+        Height (m) where the ray is stopped, < sensor_height.
+    radius : float, optional
+        Radius of the spherical shells (m).
+
+    Returns
+    -------
+    ndarray
+        delta = theta - (nadir angle of the chord from the sensor to the stopped point), rad;
+        NaN where the ray never descends to ``ground_height``.
+    """
+    theta, hg = np.broadcast_arrays(np.asarray(theta, dtype=np.float64),
+                                    np.asarray(ground_height, dtype=np.float64))
+    hs = float(sensor_height)
+    if np.any(hg >= hs):
+        raise ParamError("ground_height must be below sensor_height")
+    rc = radius + hs
+    p = refractive_index(hs) * rc * np.sin(theta)  # Bouguer invariant n r sin z
+    phi = np.zeros_like(theta)
+    bnd = _boundaries(hs)
+    with np.errstate(invalid="ignore"):
+        for top, bot in zip(bnd[:-1], bnd[1:]):
+            active = top > hg
+            if not np.any(active):
+                break
+            lo = np.maximum(bot, hg)
+            n = refractive_index(0.5 * (top + lo))
+            b = p / n
+            seg = np.arccos(b / (radius + top)) - np.arccos(b / (radius + lo))
+            phi += np.where(active, seg, 0.0)
+        rg = radius + hg
+        chord = np.arctan2(rg * np.sin(phi), rc - rg * np.cos(phi))
+    return theta - chord
+
+
+def asprs_delta(theta, sensor_height, ground_height=0.0):
+    """ASPRS closed form of the refraction angle (rad): ``K tan(theta)``.
+
+    ``K = 2410 H / (H^2 - 6 H + 250) - 2410 h^2 / ((h^2 - 6 h + 250) H)`` microradians with
+    H and h in km (Manual of Photogrammetry); valid for aircraft heights.
+    """
+    big_h = np.asarray(sensor_height, dtype=np.float64) / 1000.0
+    h = np.asarray(ground_height, dtype=np.float64) / 1000.0
+    k = 2410.0 * big_h / (big_h**2 - 6.0 * big_h + 250.0) - 2410.0 * h**2 / ((h**2 - 6.0 * h + 250.0) * big_h)
+    return 1e-6 * k * np.tan(theta)
+
+
+def saastamoinen_delta(theta, sensor_height, ground_height=0.0):
+    """Saastamoinen's (1972) closed form of the refraction angle (rad) for aerial photographs.
+
+    ``13 (H - h) (1 - 0.02 (2 H + h)) tan(theta)`` microradians with H and h in km.
+    """
+    big_h = np.asarray(sensor_height, dtype=np.float64) / 1000.0
+    h = np.asarray(ground_height, dtype=np.float64) / 1000.0
+    return 13e-6 * (big_h - h) * (1.0 - 0.02 * (2.0 * big_h + h)) * np.tan(theta)
+
+
+class RefractionModel:
+    """Per-image refraction table for the kernels.
+
+    Parameters
+    ----------
+    sensor_height : float
+        Ellipsoidal height (m) of the sensor.
+    h_min, h_max : float
+        Range of ground heights (m) the table must cover.
+    theta_max : float, optional
+        Largest apparent nadir angle tabulated (deg); larger angles use its value of
+        ``delta / tan(theta)``.
+    enabled : bool, optional
+        False gives a table that the kernels read as "no refraction".
+    """
+
+    N_THETA = 181
+    N_H = 17
+
+    def __init__(self, sensor_height, h_min, h_max, *, theta_max=89.0, enabled=True):
+        self.enabled = bool(enabled)
+        self.sensor_height = float(sensor_height)
+        lo = float(h_min) - 10.0
+        hi = min(float(h_max) + 10.0, self.sensor_height - 1.0)
+        if hi <= lo:
+            lo = hi - 20.0
+        self.theta = np.radians(np.linspace(0.0, theta_max, self.N_THETA))
+        self.heights = np.linspace(lo, hi, self.N_H)
+        if self.enabled:
+            th = np.maximum(self.theta, 1e-3)[:, None]
+            self.q = trace_delta(th, self.sensor_height, self.heights[None, :]) / np.tan(th)
+        else:
+            self.q = np.zeros((self.N_THETA, self.N_H))
+
+    def delta(self, theta, h):
+        """Refraction angle (rad) at apparent nadir angle theta (rad) and ground height h (m).
+
+        Host twin of the kernel lookup (bilinear in the table), for tests and planning.
+        """
+        ft = np.clip(np.asarray(theta) / (self.theta[1] - self.theta[0]), 0, self.N_THETA - 1)
+        fh = np.clip((np.asarray(h) - self.heights[0]) / (self.heights[1] - self.heights[0]), 0, self.N_H - 1)
+        it = np.minimum(ft.astype(int), self.N_THETA - 2)
+        ih = np.minimum(fh.astype(int), self.N_H - 2)
+        at, ah = ft - it, fh - ih
+        q = ((1 - at) * ((1 - ah) * self.q[it, ih] + ah * self.q[it, ih + 1])
+             + at * ((1 - ah) * self.q[it + 1, ih] + ah * self.q[it + 1, ih + 1]))
+        return q * np.tan(theta) if self.enabled else np.zeros_like(q)
+
+    def to_struct(self, device):
+        """Pack into :class:`orthowarp.kernels.refraction.RefractionTable` on ``device``."""
+        s = RefractionTable()
+        s.enabled = 1 if self.enabled else 0
+        s.theta0 = 0.0
+        s.dtheta = float(self.theta[1] - self.theta[0])
+        s.h0 = float(self.heights[0])
+        s.dh = float(self.heights[1] - self.heights[0])
+        s.q = wp.array(np.ascontiguousarray(self.q), dtype=wp.float64, device=device)
+        return s

@@ -1,0 +1,1 @@
+"""Host orchestration: DEM preparation, kernel launches, tiling and file I/O."""

@@ -1,0 +1,216 @@
+"""Point-wise geolocation (pixel -> ground) and projection (ground -> pixel) of frame images."""
+
+import numbers
+
+import numpy as np
+import warp as wp
+from pyproj import Transformer
+
+from .._device import resolve_device
+from .._validate import as_crs, points
+from ..camera import FrameCamera
+from ..errors import ParamError
+from ..kernels.frame import SearchParams, geolocate_grid_kernel, geolocate_kernel, project_kernel
+from ..pose import GEOCENTRIC, Pose
+from ..refraction import RefractionModel
+from .dem import Dem
+
+__all__ = ["geolocate", "project", "FrameGeometry"]
+
+LLH = "EPSG:4979"
+
+
+def _check_sensor(camera, pose):
+    if not isinstance(camera, FrameCamera):
+        raise ParamError(f"camera must be a FrameCamera, got {type(camera).__name__}")
+    if not isinstance(pose, Pose):
+        raise ParamError(f"pose must be a Pose, got {type(pose).__name__}")
+
+
+def _as_dem(dem):
+    if isinstance(dem, Dem):
+        return dem
+    if isinstance(dem, numbers.Real):
+        return Dem.constant(dem)
+    raise ParamError(f"dem must be a Dem or a constant height in metres, got {type(dem).__name__}")
+
+
+def _frame_crs(pose):
+    """CRS of the geo triples the kernels exchange for this pose (3-D)."""
+    return as_crs(LLH) if pose.mode == GEOCENTRIC else pose.crs.to_3d()
+
+
+def _transform(xyz, src, dst):
+    """Transform (N, 3) points between CRSs (x/y as lon/lat order); identity when equal."""
+    if src.equals(dst):
+        return xyz
+    tr = Transformer.from_crs(src, dst, always_xy=True)
+    x, y, z = tr.transform(xyz[:, 0], xyz[:, 1], xyz[:, 2])
+    return np.stack([x, y, z], axis=1)
+
+
+class FrameGeometry:
+    """A frame camera + pose + DEM packed for the kernels on one device.
+
+    This is the host object the pipeline keeps per image: it prepares the DEM in the pose's
+    frame (reprojected and cropped to the footprint), builds the refraction table and holds the
+    device structs, so repeated launches pay nothing more.
+
+    Parameters
+    ----------
+    camera : FrameCamera
+    pose : Pose
+    dem : Dem or float
+        Terrain: a DEM or a constant ellipsoidal height (m).
+    refraction : bool, optional
+        Model atmospheric refraction (layered standard atmosphere).
+    device : str, optional
+        Warp device; None picks the first CUDA device, else the CPU.
+    region : (col0, row0, col1, row1), optional
+        Pixel region the rays will come from (default: the whole image); the DEM is cropped to
+        its footprint.
+    tolerance : float, optional
+        Height tolerance (m) of the relief search.
+    """
+
+    def __init__(self, camera, pose, dem, *, refraction=True, device=None, region=None, tolerance=1e-4):
+        _check_sensor(camera, pose)
+        self.camera, self.pose = camera, pose
+        self.device = resolve_device(device)
+        dem = _as_dem(dem).for_frame(None if pose.mode == GEOCENTRIC else pose.crs)
+        if region is None:
+            region = (0.0, 0.0, float(camera.image_size[0]), float(camera.image_size[1]))
+        self.dem = self._crop_to_footprint(dem, region) if not dem.is_constant else dem
+        self.refraction = RefractionModel(pose.height, self.dem.hmin, self.dem.hmax, enabled=refraction)
+        self.search = SearchParams()
+        self.search.htol = float(tolerance)
+        self.search.max_steps = 1 << 20
+        self._structs = None
+
+    def structs(self):
+        """(camera, pose, refraction, dem, search) structs on the device."""
+        if self._structs is None:
+            self._structs = (self.camera.to_struct(), self.pose.to_struct(),
+                             self.refraction.to_struct(self.device), self.dem.to_struct(self.device),
+                             self.search)
+        return self._structs
+
+    def _crop_to_footprint(self, dem, region):
+        """Crop the DEM to the ground footprint of a pixel region at the DEM's extreme heights."""
+        c0, r0, c1, r1 = region
+        t = np.linspace(0.0, 1.0, 65)
+        border = np.concatenate([
+            np.stack([c0 + t * (c1 - c0), np.full_like(t, r0)], 1),
+            np.stack([c0 + t * (c1 - c0), np.full_like(t, r1)], 1),
+            np.stack([np.full_like(t, c0), r0 + t * (r1 - r0)], 1),
+            np.stack([np.full_like(t, c1), r0 + t * (r1 - r0)], 1),
+        ])
+        feet = []
+        for h in (dem.hmin, dem.hmax):
+            probe = FrameGeometry(self.camera, self.pose, Dem.constant(h), refraction=True,
+                                  device="cpu")
+            feet.append(probe.geolocate_frame(border))
+        feet = np.concatenate(feet)
+        if not np.all(np.isfinite(feet)):
+            return dem  # some border rays miss the Earth: keep the whole DEM
+        cropped = dem.crop(feet[:, 0].min(), feet[:, 1].min(), feet[:, 0].max(), feet[:, 1].max())
+        return dem if cropped is None else cropped
+
+    def geolocate_frame(self, pixels):
+        """Pixels (N, 2) -> geo triples (N, 3) of the pose's frame (lon/lat/h or map x/y/z)."""
+        pix = points(pixels, 2, "pixels")
+        out = wp.empty(len(pix), dtype=wp.vec3d, device=self.device)
+        if len(pix):
+            wp.launch(geolocate_kernel, dim=len(pix), device=self.device,
+                      inputs=[*self.structs(), wp.array(pix, dtype=wp.vec2d, device=self.device), out])
+        return out.numpy().reshape(-1, 3)
+
+    def geolocate_grid(self, out, *, col0=0.5, row0=0.5, step=1.0):
+        """Geolocate a regular pixel grid into a device array ``out`` (rows, cols) of vec3d.
+
+        Pixel (i, j) of ``out`` is image pixel (col0 + j step, row0 + i step). Runs
+        asynchronously on the device's current stream.
+        """
+        wp.launch(geolocate_grid_kernel, dim=out.shape, device=self.device,
+                  inputs=[*self.structs(), float(col0), float(row0), float(step), out])
+        return out
+
+    def project_frame(self, geo):
+        """Geo triples (N, 3) of the pose's frame -> pixels (N, 2)."""
+        geo = points(geo, 3, "points")
+        cam, pose, refr, _, _ = self.structs()
+        out = wp.empty(len(geo), dtype=wp.vec2d, device=self.device)
+        if len(geo):
+            wp.launch(project_kernel, dim=len(geo), device=self.device,
+                      inputs=[cam, pose, refr, wp.array(geo, dtype=wp.vec3d, device=self.device), out])
+        return out.numpy().reshape(-1, 2)
+
+
+def geolocate(camera, pose, pixels, *, dem, crs=LLH, refraction=True, device=None):
+    """Ground coordinates of image pixels (forward, pixel -> ground).
+
+    Parameters
+    ----------
+    camera : FrameCamera
+    pose : Pose
+    pixels : array_like, shape (N, 2)
+        (col, row) pixel coordinates; the centre of pixel (i, j) is (j + 0.5, i + 0.5).
+    dem : Dem or float
+        Terrain model, or a constant ellipsoidal height (m).
+    crs : str, int or pyproj.CRS, optional
+        CRS of the result; default EPSG:4979 (longitude, latitude in degrees, ellipsoidal
+        height in metres).
+    refraction : bool, optional
+        Correct for atmospheric refraction.
+    device : str, optional
+        Warp device; None picks the first CUDA device, else the CPU.
+
+    Returns
+    -------
+    ndarray, shape (N, 3)
+        (x, y, h) in ``crs``; NaN rows where the ray meets no ground (it misses the Earth or
+        the DEM).
+    """
+    pix = points(pixels, 2, "pixels")
+    dst = as_crs(crs)
+    region = None
+    finite = np.all(np.isfinite(pix), axis=1)
+    if np.any(finite):
+        lo, hi = pix[finite].min(axis=0), pix[finite].max(axis=0)
+        region = (lo[0], lo[1], hi[0], hi[1])
+    geom = FrameGeometry(camera, pose, dem, refraction=refraction, device=device, region=region)
+    geo = geom.geolocate_frame(pix)
+    return _transform(geo, _frame_crs(pose), dst)
+
+
+def project(camera, pose, points_, *, crs=LLH, refraction=True, device=None):
+    """Pixel coordinates of ground points (backward, ground -> pixel).
+
+    Parameters
+    ----------
+    camera : FrameCamera
+    pose : Pose
+    points_ : array_like, shape (N, 3)
+        (x, y, h) in ``crs``; by default longitude, latitude (deg), ellipsoidal height (m).
+    crs : str, int or pyproj.CRS, optional
+        CRS of the points; default EPSG:4979.
+    refraction : bool, optional
+        Correct for atmospheric refraction.
+    device : str, optional
+        Warp device; None picks the first CUDA device, else the CPU.
+
+    Returns
+    -------
+    ndarray, shape (N, 2)
+        (col, row); NaN rows for points behind the camera. Points outside the image get
+        pixel coordinates outside [0, width] x [0, height].
+    """
+    _check_sensor(camera, pose)
+    pts = points(points_, 3, "points")
+    geo = _transform(pts, as_crs(crs), _frame_crs(pose))
+    ok = np.all(np.isfinite(geo), axis=1)
+    hmin, hmax = (float(geo[ok, 2].min()), float(geo[ok, 2].max())) if np.any(ok) else (0.0, 0.0)
+    dem = Dem.constant(0.5 * (hmin + hmax))
+    dem.hmin, dem.hmax = hmin, hmax
+    geom = FrameGeometry(camera, pose, dem, refraction=refraction, device=device)
+    return geom.project_frame(geo)
