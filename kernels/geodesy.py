@@ -29,23 +29,26 @@ def geodetic_to_ecef(lat: wp.float64, lon: wp.float64, h: wp.float64):
 def ecef_to_geodetic(p: wp.vec3d):
     """Geodetic (lat rad, lon rad, h m) of an ECEF position (m).
 
-    Fixed-point iteration on latitude with the height written as
-    ``h = p cos(lat) + z sin(lat) - a sqrt(1 - e2 sin^2 lat)``, which stays well conditioned at
-    the poles. Each iteration divides the latitude error by ~1/e2 (about 150); six iterations
-    reach < 1e-12 rad from -1 km to beyond geostationary heights.
+    Bowring's (1976) parametric-latitude formula as the first guess, then one step of the
+    fixed-point iteration ``lat = atan2(z, r (1 - e2 N / (N + h)))`` with the height written as
+    ``h = r cos(lat) + z sin(lat) - a sqrt(1 - e2 sin^2 lat)``, which stays well conditioned at
+    the poles. Measured against PROJ: < 1e-8 m from -2 km to 900 km, poles included.
     """
     r = wp.sqrt(p[0] * p[0] + p[1] * p[1])
     lon = wp.atan2(p[1], p[0])
     one = wp.float64(1.0)
-    lat = wp.atan2(p[2], r * (one - WGS84_E2))
-    h = wp.float64(0.0)
-    for _ in range(6):
-        slat = wp.sin(lat)
-        clat = wp.cos(lat)
-        w = wp.sqrt(one - WGS84_E2 * slat * slat)
-        n = WGS84_A / w
-        h = r * clat + p[2] * slat - WGS84_A * w
-        lat = wp.atan2(p[2], r * (one - WGS84_E2 * n / (n + h)))
+    ep2 = WGS84_E2 / (one - WGS84_E2)
+    rb = r * WGS84_B
+    za = p[2] * WGS84_A
+    den = wp.sqrt(rb * rb + za * za)
+    cu = rb / den
+    su = za / den
+    lat = wp.atan2(p[2] + ep2 * WGS84_B * su * su * su, r - WGS84_E2 * WGS84_A * cu * cu * cu)
+    slat = wp.sin(lat)
+    w = wp.sqrt(one - WGS84_E2 * slat * slat)
+    n = WGS84_A / w
+    h = r * wp.cos(lat) + p[2] * slat - WGS84_A * w
+    lat = wp.atan2(p[2], r * (one - WGS84_E2 * n / (n + h)))
     slat = wp.sin(lat)
     h = r * wp.cos(lat) + p[2] * slat - WGS84_A * wp.sqrt(one - WGS84_E2 * slat * slat)
     return wp.vec3d(lat, lon, h)

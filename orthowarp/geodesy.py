@@ -56,19 +56,22 @@ def geodetic_to_ecef(lat, lon, h):
 def ecef_to_geodetic(xyz):
     """ECEF (..., 3) (m) -> latitude, longitude (deg), ellipsoidal height (m), each (...,).
 
-    Same fixed-point iteration as the kernel (see :func:`orthowarp.kernels.geodesy.ecef_to_geodetic`).
+    Same formulas as the kernel (see :func:`orthowarp.kernels.geodesy.ecef_to_geodetic`):
+    Bowring's first guess and one fixed-point step.
     """
     xyz = np.asarray(xyz, dtype=np.float64)
     x, y, z = xyz[..., 0], xyz[..., 1], xyz[..., 2]
     r = np.hypot(x, y)
     lon = np.arctan2(y, x)
-    lat = np.arctan2(z, r * (1.0 - WGS84_E2))
-    for _ in range(6):
-        s = np.sin(lat)
-        w = np.sqrt(1.0 - WGS84_E2 * s * s)
-        n = WGS84_A / w
-        h = r * np.cos(lat) + z * s - WGS84_A * w
-        lat = np.arctan2(z, r * (1.0 - WGS84_E2 * n / (n + h)))
+    ep2 = WGS84_E2 / (1.0 - WGS84_E2)
+    den = np.hypot(r * WGS84_B, z * WGS84_A)
+    cu, su = r * WGS84_B / den, z * WGS84_A / den
+    lat = np.arctan2(z + ep2 * WGS84_B * su**3, r - WGS84_E2 * WGS84_A * cu**3)
+    s = np.sin(lat)
+    w = np.sqrt(1.0 - WGS84_E2 * s * s)
+    n = WGS84_A / w
+    h = r * np.cos(lat) + z * s - WGS84_A * w
+    lat = np.arctan2(z, r * (1.0 - WGS84_E2 * n / (n + h)))
     s = np.sin(lat)
     h = r * np.cos(lat) + z * s - WGS84_A * np.sqrt(1.0 - WGS84_E2 * s * s)
     return np.degrees(lat), np.degrees(lon), h

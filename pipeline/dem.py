@@ -115,6 +115,30 @@ class Dem:
             return f"Dem.constant({self.value!r})"
         return f"Dem(shape={self.shape}, crs={self.crs.to_string()!r}, heights=[{self.hmin:.1f}, {self.hmax:.1f}])"
 
+    def sample(self, x, y):
+        """Bilinear heights (m) at horizontal coordinates x, y of the DEM's CRS (host, float64).
+
+        Same rule as the kernels: between cell centres, NaN outside the grid or next to
+        nodata. Returns an array of the broadcast shape of x and y.
+        """
+        x, y = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
+        if self.is_constant:
+            return np.full(x.shape, self.value)
+        rows, cols = self.shape
+        t = self.transform
+        gx = (x - t.c) / t.a - 0.5
+        gy = (y - t.f) / t.e - 0.5
+        inside = (gx >= -0.5) & (gy >= -0.5) & (gx <= cols - 0.5) & (gy <= rows - 0.5)
+        gx = np.clip(np.nan_to_num(gx), 0.0, cols - 1)
+        gy = np.clip(np.nan_to_num(gy), 0.0, rows - 1)
+        j = np.minimum(gx.astype(int), max(cols - 2, 0))
+        i = np.minimum(gy.astype(int), max(rows - 2, 0))
+        j1, i1 = np.minimum(j + 1, cols - 1), np.minimum(i + 1, rows - 1)
+        ax, ay = gx - j, gy - i
+        z = self.array.astype(np.float64)
+        h = ((1 - ay) * ((1 - ax) * z[i, j] + ax * z[i, j1]) + ay * ((1 - ax) * z[i1, j] + ax * z[i1, j1]))
+        return np.where(inside, h, np.nan)
+
     # -- preparation for the kernels ------------------------------------------------------------
     def for_frame(self, crs):
         """This DEM on a grid in the horizontal coordinates of a geometry frame.

@@ -1,6 +1,8 @@
 """Point-wise geolocation (pixel -> ground) and projection (ground -> pixel) of frame images."""
 
 import numbers
+import os
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import warp as wp
@@ -10,6 +12,7 @@ from .._device import resolve_device
 from .._validate import as_crs, points
 from ..camera import FrameCamera
 from ..errors import ParamError
+from ..kernels import frame as frame_kernels
 from ..kernels.frame import SearchParams, geolocate_grid_kernel, geolocate_kernel, project_kernel
 from ..pose import GEOCENTRIC, Pose
 from ..refraction import RefractionModel
@@ -134,6 +137,45 @@ class FrameGeometry:
         wp.launch(geolocate_grid_kernel, dim=out.shape, device=self.device,
                   inputs=[*self.structs(), float(col0), float(row0), float(step), out])
         return out
+
+    def geolocate_image(self, *, step=1.0, band_rows=64, workers=None):
+        """Geo triples of a regular grid of pixel centres over the whole image.
+
+        Parameters
+        ----------
+        step : float, optional
+            Grid spacing in pixels; pixel (i, j) of the result is image pixel
+            ((j + 0.5) step, (i + 0.5) step).
+        band_rows : int, optional
+            Rows per launch on the CPU, where bands run on a thread pool (Warp's CPU launches
+            release the GIL); a GPU gets one launch.
+        workers : int, optional
+            CPU threads (default: the number of cores).
+
+        Returns
+        -------
+        ndarray, shape (rows, cols, 3)
+        """
+        w, h = self.camera.image_size
+        cols, rows = int(np.ceil(w / step)), int(np.ceil(h / step))
+        c0 = r0 = 0.5 * step
+        if self.device.is_cuda:
+            out = wp.empty((rows, cols), dtype=wp.vec3d, device=self.device)
+            return self.geolocate_grid(out, col0=c0, row0=r0, step=step).numpy()
+        result = np.empty((rows, cols, 3))
+        structs = self.structs()
+        wp.load_module(frame_kernels, device=self.device)  # compile once, before the threads
+
+        def band(i0):
+            i1 = min(i0 + band_rows, rows)
+            out = wp.empty((i1 - i0, cols), dtype=wp.vec3d, device=self.device)
+            wp.launch(geolocate_grid_kernel, dim=out.shape, device=self.device,
+                      inputs=[*structs, c0, r0 + i0 * step, float(step), out])
+            result[i0:i1] = out.numpy()
+
+        with ThreadPoolExecutor(max_workers=workers or os.cpu_count() or 1) as pool:
+            list(pool.map(band, range(0, rows, band_rows)))
+        return result
 
     def project_frame(self, geo):
         """Geo triples (N, 3) of the pose's frame -> pixels (N, 2)."""
