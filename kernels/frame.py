@@ -14,7 +14,7 @@ import warp as wp
 from .camera import FrameCameraData, camera_to_pixel, pixel_to_camera
 from .dem import DemData, dem_grid, dem_sample_grid
 from .geodesy import DEG, WGS84_A, WGS84_B, ecef_to_geodetic, geodetic_to_ecef
-from .refraction import RefractionTable, nadir_angle, refraction_delta, tilt_from_nadir
+from .refraction import RefractionTable, nadir_angle, refraction_delta, refraction_q, tilt_from_nadir
 
 MODE_GEOCENTRIC = wp.constant(0)
 MODE_MAP = wp.constant(1)
@@ -78,19 +78,53 @@ def point_at_height(pose: FramePoseData, d: wp.vec3d, h: wp.float64):
     return wp.vec3d(g[1] / DEG, g[0] / DEG, g[2])
 
 
-@wp.func
-def chord_direction(pose: FramePoseData, refr: RefractionTable, d_app: wp.vec3d, theta: wp.float64, h: wp.float64):
-    """Straight chord from the sensor to ground at height h for the apparent ray d_app."""
-    delta = refraction_delta(refr, theta, h)
-    if delta == wp.float64(0.0):
-        return d_app
-    return tilt_from_nadir(d_app, pose.up, -delta)
+@wp.struct
+class RayData:
+    """An apparent ray (object frame) and what refraction needs of it, computed once per pixel.
+
+    d: unit apparent direction; w: unit vector perpendicular to d in its vertical plane,
+    pointing towards the nadir; theta, tan_theta: apparent nadir angle (rad) and its tangent.
+    """
+
+    d: wp.vec3d
+    w: wp.vec3d
+    theta: wp.float64
+    tan_theta: wp.float64
 
 
 @wp.func
-def surface_gap(pose: FramePoseData, refr: RefractionTable, dem: DemData, d_app: wp.vec3d, theta: wp.float64, h: wp.float64):
+def make_ray(pose: FramePoseData, d_app: wp.vec3d):
+    r = RayData()
+    r.d = d_app
+    c = -wp.dot(d_app, pose.up)
+    perp = -(pose.up + c * d_app)  # component of the nadir direction perpendicular to d
+    s = wp.length(perp)
+    r.theta = wp.atan2(s, c)
+    r.tan_theta = wp.tan(r.theta)
+    if s > wp.float64(1.0e-12):
+        r.w = perp / s
+    else:
+        r.w = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+    return r
+
+
+@wp.func
+def chord_direction(refr: RefractionTable, ray: RayData, h: wp.float64):
+    """Unit chord from the sensor to ground at height h: the apparent ray turned towards the
+    nadir by the refraction angle delta(theta, h)."""
+    if refr.enabled == 0:
+        return ray.d
+    delta = refraction_q(refr, ray.theta, h) * ray.tan_theta
+    d2 = delta * delta
+    # cos and sin by their series: |delta| < 1e-2 rad, so the error is < 1e-14
+    return (wp.float64(1.0) - wp.float64(0.5) * d2) * ray.d + delta * (
+        wp.float64(1.0) - d2 / wp.float64(6.0)) * ray.w
+
+
+@wp.func
+def surface_gap(pose: FramePoseData, refr: RefractionTable, dem: DemData, ray: RayData, h: wp.float64):
     """Ground point at trial height h and the gap DEM(point) - height(point) (m, NaN if none)."""
-    g = point_at_height(pose, chord_direction(pose, refr, d_app, theta, h), h)
+    g = point_at_height(pose, chord_direction(refr, ray, h), h)
     z = dem_sample_grid(dem, dem_grid(dem, g[0], g[1]))
     return g, z - g[2]
 
@@ -102,25 +136,32 @@ def geolocate_ray(
     """First intersection of an apparent ray (unit, object frame) with the DEM, as a geo triple.
 
     Relief search (replaces the fixed-point iteration of seed 003 eqs. 18-21, which diverges
-    where slope x tan(off-nadir) > 1): between the DEM's highest and lowest heights the ray's
-    track is marched in steps of at most one DEM cell until the gap DEM - height changes sign,
-    which brackets the first surface crossing seen from the sensor; the Illinois variant of
-    regula falsi then refines it to ``search.htol``. Rays that miss the Earth, leave the DEM
-    before reaching it or start below it give NaN.
+    where slope x tan(off-nadir) > 1):
+
+    1. the ray's ground track between the DEM's highest and lowest heights is computed
+       exactly at both ends and marched, linearly in grid space, in steps of at most one DEM
+       cell until the gap DEM - height changes sign: this brackets the first surface crossing
+       seen from the sensor;
+    2. the Illinois variant of regula falsi refines the bracket with exact evaluations to
+       ``search.htol``, starting from the march's (approximate) gaps; if it ends on a bracket
+       whose ends were never evaluated exactly, both ends are evaluated exactly (and widened
+       by a step where the approximation misjudged a sign) and the refinement runs again.
+
+    Rays that miss the Earth, leave the DEM before reaching it, enter it underground or start
+    below it give NaN.
     """
     nan = wp.float64(wp.nan)
     miss = wp.vec3d(nan, nan, nan)
-    theta = nadir_angle(d_app, pose.up)
+    ray = make_ray(pose, d_app)
     margin = wp.float64(1.0)
     h_hi = wp.min(dem.hmax + margin, pose.height - wp.float64(0.01))
     h_lo = dem.hmin - margin
     if h_hi <= h_lo:
         return miss
-    g_hi = point_at_height(pose, chord_direction(pose, refr, d_app, theta, h_hi), h_hi)
-    g_lo = point_at_height(pose, chord_direction(pose, refr, d_app, theta, h_lo), h_lo)
+    g_hi = point_at_height(pose, chord_direction(refr, ray, h_hi), h_hi)
+    g_lo = point_at_height(pose, chord_direction(refr, ray, h_lo), h_lo)
     if not (wp.isfinite(g_hi[0]) and wp.isfinite(g_lo[0])):
         return miss
-    # March along the (nearly straight) track in grid space; exact evaluation follows.
     ga = dem_grid(dem, g_hi[0], g_hi[1])
     gb = dem_grid(dem, g_lo[0], g_lo[1])
     n = wp.int32(wp.ceil(wp.length(gb - ga))) + 1
@@ -131,6 +172,7 @@ def geolocate_ray(
     if prev >= wp.float64(0.0):
         return miss  # terrain above the start: the sensor is below the surface
     found = wp.int32(0)
+    f = nan
     for k in range(1, n + 1):
         t = wp.float64(k) / wp.float64(n)
         f = dem_sample_grid(dem, ga + t * (gb - ga)) - (g_hi[2] + t * (g_lo[2] - g_hi[2]))
@@ -144,42 +186,57 @@ def geolocate_ray(
     hstep = (h_hi - h_lo) / wp.float64(n)
     a = h_hi - wp.float64(found - 1) * hstep
     b = a - hstep
-    ga3, fa = surface_gap(pose, refr, dem, d_app, theta, a)
-    for _ in range(4):  # the march is approximate: widen if the exact gaps do not bracket
-        if not (fa >= wp.float64(0.0)):
-            break
-        a = wp.min(a + hstep, h_hi)
-        ga3, fa = surface_gap(pose, refr, dem, d_app, theta, a)
-    gb3, fb = surface_gap(pose, refr, dem, d_app, theta, b)
-    for _ in range(4):
-        if not (fb < wp.float64(0.0)):
-            break
-        b = wp.max(b - hstep, h_lo)
-        gb3, fb = surface_gap(pose, refr, dem, d_app, theta, b)
-    if not (fa < wp.float64(0.0) and fb >= wp.float64(0.0)):
-        return miss
-    best = gb3
-    side = wp.int32(0)
-    for _ in range(100):
-        c = b - fb * (b - a) / (fb - fa)
-        gc, fc = surface_gap(pose, refr, dem, d_app, theta, c)
-        if not wp.isfinite(fc):
-            return miss
-        best = gc
-        if fc >= wp.float64(0.0):
-            b = c
-            fb = fc
-            if side == 1:
-                fa = fa * wp.float64(0.5)
-            side = 1
-        else:
-            a = c
-            fa = fc
-            if side == -1:
-                fb = fb * wp.float64(0.5)
-            side = -1
-        if wp.abs(fc) < search.htol or a - b < search.htol:
-            break
+    fa = prev
+    fb = f
+    exact_a = found == 1  # the track's end points were evaluated exactly
+    exact_b = found == n
+    best = miss
+    for attempt in range(2):
+        if attempt == 1:
+            # Exact gaps at the bracket ends, widened where the approximate march misjudged.
+            ga3, fa = surface_gap(pose, refr, dem, ray, a)
+            for _ in range(4):
+                if not (fa >= wp.float64(0.0)):
+                    break
+                a = wp.min(a + hstep, h_hi)
+                ga3, fa = surface_gap(pose, refr, dem, ray, a)
+            gb3, fb = surface_gap(pose, refr, dem, ray, b)
+            for _ in range(4):
+                if not (fb < wp.float64(0.0)):
+                    break
+                b = wp.max(b - hstep, h_lo)
+                gb3, fb = surface_gap(pose, refr, dem, ray, b)
+            if not (fa < wp.float64(0.0) and fb >= wp.float64(0.0)):
+                return miss
+            exact_a = True
+            exact_b = True
+        side = wp.int32(0)
+        for _ in range(100):
+            c = b - fb * (b - a) / (fb - fa)
+            gc, fc = surface_gap(pose, refr, dem, ray, c)
+            if not wp.isfinite(fc):
+                return miss
+            best = gc
+            if wp.abs(fc) < search.htol:
+                return best
+            if fc >= wp.float64(0.0):
+                b = c
+                fb = fc
+                exact_b = True
+                if side == 1:
+                    fa = fa * wp.float64(0.5)
+                side = 1
+            else:
+                a = c
+                fa = fc
+                exact_a = True
+                if side == -1:
+                    fb = fb * wp.float64(0.5)
+                side = -1
+            if a - b < search.htol:
+                break
+        if exact_a and exact_b:
+            return best
     return best
 
 

@@ -26,8 +26,8 @@ class RefractionTable:
 
 
 @wp.func
-def refraction_delta(tab: RefractionTable, theta: wp.float64, h: wp.float64):
-    """Angle (rad) between the apparent ray and the chord to ground at height h (m)."""
+def refraction_q(tab: RefractionTable, theta: wp.float64, h: wp.float64):
+    """delta / tan(theta) at apparent nadir angle theta (rad) and ground height h (m)."""
     if tab.enabled == 0:
         return wp.float64(0.0)
     nt = tab.q.shape[0]
@@ -42,7 +42,13 @@ def refraction_delta(tab: RefractionTable, theta: wp.float64, h: wp.float64):
     q = (one - at) * ((one - ah) * tab.q[it, ih] + ah * tab.q[it, ih + 1]) + at * (
         (one - ah) * tab.q[it + 1, ih] + ah * tab.q[it + 1, ih + 1]
     )
-    return q * wp.tan(theta)
+    return q
+
+
+@wp.func
+def refraction_delta(tab: RefractionTable, theta: wp.float64, h: wp.float64):
+    """Angle (rad) between the apparent ray and the chord to ground at height h (m)."""
+    return refraction_q(tab, theta, h) * wp.tan(theta)
 
 
 @wp.func

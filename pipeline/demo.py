@@ -152,7 +152,7 @@ def run_demo(out_dir="orthowarp-demo", *, device=None, seed=0):
         "check_max_m": float(err_m.max()),
         "check_max_px": float(err_m.max() / gsd),
         "round_trip_max_px": float(err_px.max()),
-        "outputs": sorted(os.listdir(out_dir)) + ["summary.json"],
+        "outputs": sorted(set(os.listdir(out_dir)) | {"summary.json"}),
     }
     write_json(os.path.join(out_dir, "summary.json"), summary)
     return summary
