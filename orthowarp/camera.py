@@ -71,10 +71,17 @@ class FrameCamera:
     @classmethod
     def from_mm_coefficients(cls, focal_length, pixel_size, image_size, *, principal_point=(0.0, 0.0),
                              k1=0.0, k2=0.0, k3=0.0, p1=0.0, p2=0.0):
-        """Build from Brown coefficients in mm units for a y-up image frame (seed 003, Australis).
+        """Build from Brown coefficients in mm units for a y-up image frame (seed 003).
 
-        They convert to the normalised form by ``k1n = k1 f^2``, ``k2n = k2 f^4``,
-        ``k3n = k3 f^6``, ``p1n = -p1 f``, ``p2n = p2 f`` (f in mm).
+        The mm model maps undistorted (x, y) (mm from the principal point, y up) to distorted::
+
+            xd = x + x (k1 r^2 + k2 r^4 + k3 r^6) + 2 p1 x y + p2 (r^2 + 2 x^2)
+            yd = y + y (k1 r^2 + k2 r^4 + k3 r^6) + p1 (r^2 + 2 y^2) + 2 p2 x y
+
+        and converts exactly (DESIGN.md) by ``k1n = k1 f^2``, ``k2n = k2 f^4``,
+        ``k3n = k3 f^6``, ``p1n = -p1 f``, ``p2n = p2 f`` (f in mm). Coefficient sets in the
+        Fraser/Australis ordering, where P1 goes with ``r^2 + 2 x^2`` in x, are passed as
+        ``p1=P2, p2=P1``.
         """
         f = _finite("focal_length", focal_length)
         return cls(focal_length, pixel_size, image_size, principal_point=principal_point,

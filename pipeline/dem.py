@@ -185,8 +185,8 @@ class Dem:
             return self
         rows, cols = self.shape
         inv = ~self.transform
-        c0, r0 = inv * (xmin, ymax)
-        c1, r1 = inv * (xmax, ymin)
+        c0, r0 = inv @ (xmin, ymax)
+        c1, r1 = inv @ (xmax, ymin)
         ca, cb = sorted((c0, c1))
         ra, rb = sorted((r0, r1))
         j0 = max(int(math.floor(ca)) - margin, 0)
@@ -198,7 +198,7 @@ class Dem:
         sub = self.array[i0:i1, j0:j1]
         if not np.any(np.isfinite(sub)):
             return None
-        return Dem(sub, self.transform * Affine.translation(j0, i0), self.crs)
+        return Dem(sub, self.transform @ Affine.translation(j0, i0), self.crs)
 
     def to_struct(self, device):
         """Pack into :class:`orthowarp.kernels.dem.DemData` on ``device``."""
