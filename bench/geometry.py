@@ -51,17 +51,21 @@ def scene(width, height):
     return cam, pose, dem
 
 
-def time_cuda(geom, width, height, repeats):
+def time_cuda(geom, width, height, repeats, block_dims):
     dev = geom.device
     out = wp.empty((height, width), dtype=wp.vec3d, device=dev)
     geom.geolocate_grid(out)  # compile + warm-up
     wp.synchronize_device(dev)
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        geom.geolocate_grid(out)
-        wp.synchronize_device(dev)
-        times.append(time.perf_counter() - t)
+    per_block = {}
+    for bd in block_dims:
+        times = []
+        for _ in range(repeats):
+            t = time.perf_counter()
+            geom.geolocate_grid(out, block_dim=bd)
+            wp.synchronize_device(dev)
+            times.append(time.perf_counter() - t)
+        per_block[bd] = min(times)
+    best_bd = min(per_block, key=per_block.get)
     flat = out.flatten()
     cam, pose, refr, _, _ = geom.structs()
     pix = wp.empty(flat.shape[0], dtype=wp.vec2d, device=dev)
@@ -78,7 +82,9 @@ def time_cuda(geom, width, height, repeats):
     jj, ii = np.meshgrid(np.arange(width)[::89] + 0.5, np.arange(height)[::97] + 0.5)
     rt = np.hypot(p[..., 0] - jj, p[..., 1] - ii)
     sample = out.numpy()[::97, ::89]
-    return dict(forward_s=min(times), backward_s=min(btimes), pixels=width * height,
+    return dict(forward_s=per_block[best_bd], block_dim=best_bd,
+                forward_s_by_block_dim={str(k): v for k, v in per_block.items()},
+                backward_s=min(btimes), pixels=width * height,
                 round_trip_max_px=float(np.nanmax(rt)), nan_pixels_in_sample=int(np.isnan(sample[..., 0]).sum())), sample
 
 
@@ -114,6 +120,7 @@ def main(argv=None):
     ap.add_argument("--devices", default=None, help="comma list; default cpu + cuda:0 if present")
     ap.add_argument("--cpu-step", type=float, default=20.0, help="sub-grid step on the CPU (pixels)")
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--block-dims", default="256", help="comma list of CUDA block sizes to try")
     ap.add_argument("--out", default="bench/results/geometry.json")
     args = ap.parse_args(argv)
     wp.config.log_level = wp.LOG_WARNING
@@ -130,7 +137,8 @@ def main(argv=None):
             geom = FrameGeometry(cam, pose, dem, refraction=refraction, device=name)
             dev = geom.device
             if dev.is_cuda:
-                r, sample = time_cuda(geom, args.width, args.height, args.repeats)
+                r, sample = time_cuda(geom, args.width, args.height, args.repeats,
+                                      [int(b) for b in args.block_dims.split(",")])
             else:
                 r, sample = time_cpu(geom, args.width, args.height, args.cpu_step, os.cpu_count() or 1)
             r.update(device=str(dev), device_name=dev.name, refraction=refraction,

@@ -11,9 +11,19 @@ import warp as wp
 
 @wp.struct
 class DemData:
-    """Grid heights and georeferencing. A constant DEM has ``constant = 1`` and ``value``."""
+    """Grid heights and georeferencing. A constant DEM has ``constant = 1`` and ``value``.
+
+    ``bmax`` accelerates ray marching: ``bmax[I, J]`` bounds every bilinear height sampled at
+    a grid point within ``block`` cells of any point of block (I, J) (cells
+    ``[I block, (I + 1) block)`` x ``[J block, (J + 1) block)``), and -inf where that
+    neighbourhood holds no data at all. Skipping a run of march steps whose heights all lie
+    above the bound changes nothing: no sample in it can be at or above the terrain, and the
+    run's last sample is taken as the marcher would.
+    """
 
     data: wp.array2d(dtype=wp.float32)
+    bmax: wp.array2d(dtype=wp.float32)
+    block: wp.int32
     x0: wp.float64
     dx: wp.float64
     y0: wp.float64
@@ -59,6 +69,19 @@ def dem_sample_grid(dem: DemData, g: wp.vec2d):
     z10 = wp.float64(dem.data[i1, j])
     z11 = wp.float64(dem.data[i1, j1])
     return (one - ay) * ((one - ax) * z00 + ax * z01) + ay * ((one - ax) * z10 + ax * z11)
+
+
+@wp.func
+def dem_block_bound(dem: DemData, g: wp.vec2d):
+    """Upper bound (m) of the heights sampled within ``dem.block`` cells of grid point g."""
+    if not (wp.isfinite(g[0]) and wp.isfinite(g[1])):
+        return wp.float64(wp.inf)
+    half = wp.float64(0.5)
+    bj = wp.int32(wp.floor((g[0] + half) / wp.float64(dem.block)))
+    bi = wp.int32(wp.floor((g[1] + half) / wp.float64(dem.block)))
+    if bi < 0 or bj < 0 or bi >= dem.bmax.shape[0] or bj >= dem.bmax.shape[1]:
+        return wp.float64(wp.inf)
+    return wp.float64(dem.bmax[bi, bj])
 
 
 @wp.func

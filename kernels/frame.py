@@ -12,7 +12,7 @@ height m) in geocentric mode, (x, y, z) of the map CRS in map-Cartesian mode.
 import warp as wp
 
 from .camera import FrameCameraData, camera_to_pixel, pixel_to_camera
-from .dem import DemData, dem_grid, dem_sample_grid
+from .dem import DemData, dem_block_bound, dem_grid, dem_sample_grid
 from .geodesy import DEG, WGS84_A, WGS84_B, ecef_to_geodetic, geodetic_to_ecef
 from .refraction import RefractionTable, nadir_angle, refraction_delta, refraction_q, tilt_from_nadir
 
@@ -141,7 +141,8 @@ def geolocate_ray(
     1. the ray's ground track between the DEM's highest and lowest heights is computed
        exactly at both ends and marched, linearly in grid space, in steps of at most one DEM
        cell until the gap DEM - height changes sign: this brackets the first surface crossing
-       seen from the sensor;
+       seen from the sensor. Runs of ``dem.block`` steps whose lowest point lies above the
+       DEM's block-wise upper bound are skipped whole (a max-pyramid of one level);
     2. the Illinois variant of regula falsi refines the bracket with exact evaluations to
        ``search.htol``, starting from the march's (approximate) gaps; if it ends on a bracket
        whose ends were never evaluated exactly, both ends are evaluated exactly (and widened
@@ -173,14 +174,27 @@ def geolocate_ray(
         return miss  # terrain above the start: the sensor is below the surface
     found = wp.int32(0)
     f = nan
-    for k in range(1, n + 1):
-        t = wp.float64(k) / wp.float64(n)
-        f = dem_sample_grid(dem, ga + t * (gb - ga)) - (g_hi[2] + t * (g_lo[2] - g_hi[2]))
-        if f >= wp.float64(0.0):
-            if wp.isfinite(prev):
-                found = k
-            break  # a finite prev < 0 brackets the crossing; otherwise it entered the DEM underground
-        prev = f
+    k0 = wp.int32(0)
+    while k0 < n and found == 0:
+        # Coarse step over dem.block cells: skipped when its lowest point is above the block
+        # bound (no crossing possible), else marched cell by cell.
+        k1 = wp.min(k0 + dem.block, n)
+        t1 = wp.float64(k1) / wp.float64(n)
+        h1 = g_hi[2] + t1 * (g_lo[2] - g_hi[2])
+        if dem.constant == 0 and h1 > dem_block_bound(dem, ga + (wp.float64(k0) / wp.float64(n)) * (gb - ga)):
+            prev = dem_sample_grid(dem, ga + t1 * (gb - ga)) - h1
+        else:
+            for k in range(k0 + 1, k1 + 1):
+                t = wp.float64(k) / wp.float64(n)
+                f = dem_sample_grid(dem, ga + t * (gb - ga)) - (g_hi[2] + t * (g_lo[2] - g_hi[2]))
+                if f >= wp.float64(0.0):
+                    # a finite prev < 0 brackets the crossing; otherwise it entered the DEM underground
+                    if not wp.isfinite(prev):
+                        return miss
+                    found = k
+                    break
+                prev = f
+        k0 = k1
     if found == 0:
         return miss
     hstep = (h_hi - h_lo) / wp.float64(n)

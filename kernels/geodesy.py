@@ -30,28 +30,35 @@ def ecef_to_geodetic(p: wp.vec3d):
     """Geodetic (lat rad, lon rad, h m) of an ECEF position (m).
 
     Bowring's (1976) parametric-latitude formula as the first guess, then one step of the
-    fixed-point iteration ``lat = atan2(z, r (1 - e2 N / (N + h)))`` with the height written as
+    fixed-point iteration ``tan(lat) = z / (r (1 - e2 N / (N + h)))`` with the height written as
     ``h = r cos(lat) + z sin(lat) - a sqrt(1 - e2 sin^2 lat)``, which stays well conditioned at
-    the poles. Measured against PROJ: < 1e-8 m from -2 km to 900 km, poles included.
+    the poles. Sines and cosines come from the tangent's numerator and denominator, so only
+    two arc tangents are evaluated. Measured against PROJ: < 1e-8 m from -2 km to 900 km,
+    poles included.
     """
-    r = wp.sqrt(p[0] * p[0] + p[1] * p[1])
-    lon = wp.atan2(p[1], p[0])
     one = wp.float64(1.0)
+    r = wp.sqrt(p[0] * p[0] + p[1] * p[1])
+    z = p[2]
     ep2 = WGS84_E2 / (one - WGS84_E2)
     rb = r * WGS84_B
-    za = p[2] * WGS84_A
+    za = z * WGS84_A
     den = wp.sqrt(rb * rb + za * za)
     cu = rb / den
     su = za / den
-    lat = wp.atan2(p[2] + ep2 * WGS84_B * su * su * su, r - WGS84_E2 * WGS84_A * cu * cu * cu)
-    slat = wp.sin(lat)
+    num = z + ep2 * WGS84_B * su * su * su
+    dnm = r - WGS84_E2 * WGS84_A * cu * cu * cu
+    norm = wp.sqrt(num * num + dnm * dnm)
+    slat = num / norm
+    clat = dnm / norm
     w = wp.sqrt(one - WGS84_E2 * slat * slat)
     n = WGS84_A / w
-    h = r * wp.cos(lat) + p[2] * slat - WGS84_A * w
-    lat = wp.atan2(p[2], r * (one - WGS84_E2 * n / (n + h)))
-    slat = wp.sin(lat)
-    h = r * wp.cos(lat) + p[2] * slat - WGS84_A * wp.sqrt(one - WGS84_E2 * slat * slat)
-    return wp.vec3d(lat, lon, h)
+    h = r * clat + z * slat - WGS84_A * w
+    dnm = r * (one - WGS84_E2 * n / (n + h))
+    norm = wp.sqrt(z * z + dnm * dnm)
+    slat = z / norm
+    clat = dnm / norm
+    h = r * clat + z * slat - WGS84_A * wp.sqrt(one - WGS84_E2 * slat * slat)
+    return wp.vec3d(wp.atan2(z, dnm), wp.atan2(p[1], p[0]), h)
 
 
 @wp.func

@@ -62,19 +62,21 @@ def ecef_to_geodetic(xyz):
     xyz = np.asarray(xyz, dtype=np.float64)
     x, y, z = xyz[..., 0], xyz[..., 1], xyz[..., 2]
     r = np.hypot(x, y)
-    lon = np.arctan2(y, x)
     ep2 = WGS84_E2 / (1.0 - WGS84_E2)
     den = np.hypot(r * WGS84_B, z * WGS84_A)
     cu, su = r * WGS84_B / den, z * WGS84_A / den
-    lat = np.arctan2(z + ep2 * WGS84_B * su**3, r - WGS84_E2 * WGS84_A * cu**3)
-    s = np.sin(lat)
+    num = z + ep2 * WGS84_B * su**3
+    dnm = r - WGS84_E2 * WGS84_A * cu**3
+    norm = np.hypot(num, dnm)
+    s, c = num / norm, dnm / norm
     w = np.sqrt(1.0 - WGS84_E2 * s * s)
     n = WGS84_A / w
-    h = r * np.cos(lat) + z * s - WGS84_A * w
-    lat = np.arctan2(z, r * (1.0 - WGS84_E2 * n / (n + h)))
-    s = np.sin(lat)
-    h = r * np.cos(lat) + z * s - WGS84_A * np.sqrt(1.0 - WGS84_E2 * s * s)
-    return np.degrees(lat), np.degrees(lon), h
+    h = r * c + z * s - WGS84_A * w
+    dnm = r * (1.0 - WGS84_E2 * n / (n + h))
+    norm = np.hypot(z, dnm)
+    s, c = z / norm, dnm / norm
+    h = r * c + z * s - WGS84_A * np.sqrt(1.0 - WGS84_E2 * s * s)
+    return np.degrees(np.arctan2(z, dnm)), np.degrees(np.arctan2(y, x)), h
 
 
 def ned_to_ecef_matrix(lat, lon):

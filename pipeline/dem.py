@@ -17,6 +17,7 @@ from ..kernels.dem import DemData
 __all__ = ["Dem"]
 
 GEOGRAPHIC = "EPSG:4326"
+BLOCK = 8  # cells per block of the ray-marching bounds
 
 
 class Dem:
@@ -200,10 +201,32 @@ class Dem:
             return None
         return Dem(sub, self.transform @ Affine.translation(j0, i0), self.crs)
 
+    def block_bounds(self, block=BLOCK):
+        """Upper bounds of sampled heights per block of ``block`` x ``block`` cells (float32).
+
+        Entry (I, J) bounds the bilinear height at any grid point within ``block`` cells of
+        block (I, J): the maximum over the block grown by ``block + 1`` cells on every side
+        (nodata and cells beyond the border count as no terrain, -inf; see
+        :class:`orthowarp.kernels.dem.DemData`).
+        """
+        rows, cols = self.shape
+        nbi, nbj = -(-rows // block), -(-cols // block)
+        grow = block + 1
+        padded = np.full((nbi * block + 2 * grow, nbj * block + 2 * grow), -np.inf, dtype=np.float32)
+        padded[grow:grow + rows, grow:grow + cols] = np.where(np.isfinite(self.array), self.array, -np.inf)
+        # running maximum over windows of 3 block + 2 cells, taken at block starts
+        win = 3 * block + 2
+        colmax = np.lib.stride_tricks.sliding_window_view(padded, win, axis=1)[:, ::block][:, :nbj].max(axis=2)
+        return np.ascontiguousarray(
+            np.lib.stride_tricks.sliding_window_view(colmax, win, axis=0)[::block][:nbi].max(axis=2))
+
     def to_struct(self, device):
         """Pack into :class:`orthowarp.kernels.dem.DemData` on ``device``."""
         s = DemData()
         s.data = wp.array(self.array, dtype=wp.float32, device=device)
+        s.block = BLOCK
+        s.bmax = wp.array(self.block_bounds() if not self.is_constant else np.zeros((1, 1), np.float32),
+                          dtype=wp.float32, device=device)
         t = self.transform
         s.x0, s.dx, s.y0, s.dy = float(t.c), float(t.a), float(t.f), float(t.e)
         s.constant = 1 if self.is_constant else 0

@@ -20,7 +20,7 @@ from ..camera import FrameCamera
 from ..pose import Pose
 from .dem import Dem
 from .geometry import FrameGeometry, geolocate, project
-from .io import write_json, write_raster, write_text
+from .io import ensure_folder, write_json, write_raster, write_text
 
 LAT0, LON0 = 46.5, 8.0
 M_PER_DEG_LAT = 111132.954 - 559.822 * np.cos(2 * np.radians(LAT0))
@@ -87,7 +87,7 @@ def run_demo(out_dir="orthowarp-demo", *, device=None, seed=0):
     dict
         The summary also written to ``out_dir/summary.json``.
     """
-    os.makedirs(out_dir, exist_ok=True)
+    ensure_folder(out_dir)
     camera, pose, dem = synthetic_scene()
     w, h = camera.image_size
     write_raster(os.path.join(out_dir, "dem.tif"), dem.array, transform=dem.transform,

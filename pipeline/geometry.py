@@ -128,17 +128,17 @@ class FrameGeometry:
                       inputs=[*self.structs(), wp.array(pix, dtype=wp.vec2d, device=self.device), out])
         return out.numpy().reshape(-1, 3)
 
-    def geolocate_grid(self, out, *, col0=0.5, row0=0.5, step=1.0):
+    def geolocate_grid(self, out, *, col0=0.5, row0=0.5, step=1.0, block_dim=256):
         """Geolocate a regular pixel grid into a device array ``out`` (rows, cols) of vec3d.
 
         Pixel (i, j) of ``out`` is image pixel (col0 + j step, row0 + i step). Runs
         asynchronously on the device's current stream.
         """
-        wp.launch(geolocate_grid_kernel, dim=out.shape, device=self.device,
+        wp.launch(geolocate_grid_kernel, dim=out.shape, device=self.device, block_dim=block_dim,
                   inputs=[*self.structs(), float(col0), float(row0), float(step), out])
         return out
 
-    def geolocate_image(self, *, step=1.0, band_rows=64, workers=None):
+    def geolocate_image(self, *, step=1.0, band_rows=None, workers=None):
         """Geo triples of a regular grid of pixel centres over the whole image.
 
         Parameters
@@ -148,7 +148,7 @@ class FrameGeometry:
             ((j + 0.5) step, (i + 0.5) step).
         band_rows : int, optional
             Rows per launch on the CPU, where bands run on a thread pool (Warp's CPU launches
-            release the GIL); a GPU gets one launch.
+            release the GIL); default: four bands per thread. A GPU gets one launch.
         workers : int, optional
             CPU threads (default: the number of cores).
 
@@ -163,6 +163,8 @@ class FrameGeometry:
             out = wp.empty((rows, cols), dtype=wp.vec3d, device=self.device)
             return self.geolocate_grid(out, col0=c0, row0=r0, step=step).numpy()
         result = np.empty((rows, cols, 3))
+        workers = workers or os.cpu_count() or 1
+        band_rows = band_rows or max(1, -(-rows // (4 * workers)))
         structs = self.structs()
         wp.load_module(frame_kernels, device=self.device)  # compile once, before the threads
 
@@ -173,7 +175,7 @@ class FrameGeometry:
                       inputs=[*structs, c0, r0 + i0 * step, float(step), out])
             result[i0:i1] = out.numpy()
 
-        with ThreadPoolExecutor(max_workers=workers or os.cpu_count() or 1) as pool:
+        with ThreadPoolExecutor(max_workers=workers) as pool:
             list(pool.map(band, range(0, rows, band_rows)))
         return result
 

@@ -11,6 +11,16 @@ import rasterio
 from ..errors import RasterIOError
 
 
+def ensure_folder(path):
+    """Create an output folder (and parents) if needed, or raise RasterIOError naming it."""
+    try:
+        os.makedirs(path, exist_ok=True)
+    except OSError as e:
+        raise RasterIOError(f"Cannot create output folder '{path}': {e.strerror or e}") from e
+    if not os.access(path, os.W_OK):
+        raise RasterIOError(f"Output folder '{path}' is not writable")
+
+
 @contextlib.contextmanager
 def atomic_path(path):
     """Yield a temporary path beside ``path``; rename it to ``path`` only if the block succeeds."""
