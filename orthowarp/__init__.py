@@ -13,6 +13,15 @@ pixel (col, row) with the origin at the top-left corner of the top-left pixel.
 """
 
 import logging
+import os
+
+# DESIGN.md's layout keeps kernels/, pipeline/ and adjust/ at the repository's top level; an
+# install maps them into this package. When this folder is imported straight from a source
+# checkout (e.g. ``python -m pytest`` puts the checkout first on sys.path), find them there.
+_checkout = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+if not os.path.isdir(os.path.join(os.path.dirname(os.path.abspath(__file__)), "kernels")) and os.path.isfile(
+        os.path.join(_checkout, "kernels", "__init__.py")):
+    __path__.append(_checkout)
 
 from .camera import FrameCamera
 from .errors import (
