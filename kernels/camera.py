@@ -65,9 +65,9 @@ def undistort(cam: FrameCameraData, uvd: wp.vec2d):
         j01 = two * u * v * dradial + two * cam.p1 * u + two * cam.p2 * v
         j10 = two * u * v * dradial + two * cam.p1 * u + two * cam.p2 * v
         j11 = radial + two * v * v * dradial + wp.float64(6.0) * cam.p1 * v + two * cam.p2 * u
-        det = j00 * j11 - j01 * j10
-        du = (j11 * fu - j01 * fv) / det
-        dv = (j00 * fv - j10 * fu) / det
+        inv_det = one / (j00 * j11 - j01 * j10)
+        du = (j11 * fu - j01 * fv) * inv_det
+        dv = (j00 * fv - j10 * fu) * inv_det
         u = u - du
         v = v - dv
         if wp.abs(du) + wp.abs(dv) < wp.float64(1.0e-15):

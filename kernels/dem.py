@@ -28,6 +28,8 @@ class DemData:
     dx: wp.float64
     y0: wp.float64
     dy: wp.float64
+    inv_dx: wp.float64
+    inv_dy: wp.float64
     constant: wp.int32
     value: wp.float64
     hmin: wp.float64
@@ -38,7 +40,7 @@ class DemData:
 def dem_grid(dem: DemData, x: wp.float64, y: wp.float64):
     """Horizontal coordinates -> fractional cell-centre grid coordinates (col, row)."""
     half = wp.float64(0.5)
-    return wp.vec2d((x - dem.x0) / dem.dx - half, (y - dem.y0) / dem.dy - half)
+    return wp.vec2d((x - dem.x0) * dem.inv_dx - half, (y - dem.y0) * dem.inv_dy - half)
 
 
 @wp.func
@@ -77,8 +79,9 @@ def dem_block_bound(dem: DemData, g: wp.vec2d):
     if not (wp.isfinite(g[0]) and wp.isfinite(g[1])):
         return wp.float64(wp.inf)
     half = wp.float64(0.5)
-    bj = wp.int32(wp.floor((g[0] + half) / wp.float64(dem.block)))
-    bi = wp.int32(wp.floor((g[1] + half) / wp.float64(dem.block)))
+    inv_b = wp.float64(1.0) / wp.float64(dem.block)
+    bj = wp.int32(wp.floor((g[0] + half) * inv_b))
+    bi = wp.int32(wp.floor((g[1] + half) * inv_b))
     if bi < 0 or bj < 0 or bi >= dem.bmax.shape[0] or bj >= dem.bmax.shape[1]:
         return wp.float64(wp.inf)
     return wp.float64(dem.bmax[bi, bj])

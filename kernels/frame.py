@@ -13,7 +13,7 @@ import warp as wp
 
 from .camera import FrameCameraData, camera_to_pixel, pixel_to_camera
 from .dem import DemData, dem_block_bound, dem_grid, dem_sample_grid
-from .geodesy import DEG, WGS84_A, WGS84_B, ecef_to_geodetic, geodetic_to_ecef
+from .geodesy import DEG, RAD2DEG, WGS84_A, WGS84_B, ecef_to_geodetic, geodetic_to_ecef
 from .refraction import RefractionTable, nadir_angle, refraction_delta, refraction_q, tilt_from_nadir
 
 MODE_GEOCENTRIC = wp.constant(0)
@@ -63,10 +63,10 @@ def point_at_height(pose: FramePoseData, d: wp.vec3d, h: wp.float64):
         if s <= wp.float64(0.0):
             return miss
         return wp.vec3d(c[0] + s * d[0], c[1] + s * d[1], h)
-    ah = WGS84_A + h
-    bh = WGS84_B + h
-    cs = wp.vec3d(c[0] / ah, c[1] / ah, c[2] / bh)
-    ds = wp.vec3d(d[0] / ah, d[1] / ah, d[2] / bh)
+    ia = wp.float64(1.0) / (WGS84_A + h)
+    ib = wp.float64(1.0) / (WGS84_B + h)
+    cs = wp.vec3d(c[0] * ia, c[1] * ia, c[2] * ib)
+    ds = wp.vec3d(d[0] * ia, d[1] * ia, d[2] * ib)
     qa = wp.dot(ds, ds)
     qb = wp.dot(cs, ds)
     qc = wp.dot(cs, cs) - wp.float64(1.0)
@@ -75,7 +75,7 @@ def point_at_height(pose: FramePoseData, d: wp.vec3d, h: wp.float64):
         return miss
     s = qc / (wp.sqrt(disc) - qb)
     g = ecef_to_geodetic(c + s * d)
-    return wp.vec3d(g[1] / DEG, g[0] / DEG, g[2])
+    return wp.vec3d(g[1] * RAD2DEG, g[0] * RAD2DEG, g[2])
 
 
 @wp.struct
@@ -118,7 +118,7 @@ def chord_direction(refr: RefractionTable, ray: RayData, h: wp.float64):
     d2 = delta * delta
     # cos and sin by their series: |delta| < 1e-2 rad, so the error is < 1e-14
     return (wp.float64(1.0) - wp.float64(0.5) * d2) * ray.d + delta * (
-        wp.float64(1.0) - d2 / wp.float64(6.0)) * ray.w
+        wp.float64(1.0) - d2 * wp.float64(1.0 / 6.0)) * ray.w
 
 
 @wp.func
@@ -174,18 +174,19 @@ def geolocate_ray(
         return miss  # terrain above the start: the sensor is below the surface
     found = wp.int32(0)
     f = nan
+    inv_n = wp.float64(1.0) / wp.float64(n)
     k0 = wp.int32(0)
     while k0 < n and found == 0:
         # Coarse step over dem.block cells: skipped when its lowest point is above the block
         # bound (no crossing possible), else marched cell by cell.
         k1 = wp.min(k0 + dem.block, n)
-        t1 = wp.float64(k1) / wp.float64(n)
+        t1 = wp.float64(k1) * inv_n
         h1 = g_hi[2] + t1 * (g_lo[2] - g_hi[2])
-        if dem.constant == 0 and h1 > dem_block_bound(dem, ga + (wp.float64(k0) / wp.float64(n)) * (gb - ga)):
+        if dem.constant == 0 and h1 > dem_block_bound(dem, ga + (wp.float64(k0) * inv_n) * (gb - ga)):
             prev = dem_sample_grid(dem, ga + t1 * (gb - ga)) - h1
         else:
             for k in range(k0 + 1, k1 + 1):
-                t = wp.float64(k) / wp.float64(n)
+                t = wp.float64(k) * inv_n
                 f = dem_sample_grid(dem, ga + t * (gb - ga)) - (g_hi[2] + t * (g_lo[2] - g_hi[2]))
                 if f >= wp.float64(0.0):
                     # a finite prev < 0 brackets the crossing; otherwise it entered the DEM underground
@@ -197,7 +198,7 @@ def geolocate_ray(
         k0 = k1
     if found == 0:
         return miss
-    hstep = (h_hi - h_lo) / wp.float64(n)
+    hstep = (h_hi - h_lo) * inv_n
     a = h_hi - wp.float64(found - 1) * hstep
     b = a - hstep
     fa = prev

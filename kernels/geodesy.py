@@ -9,7 +9,10 @@ WGS84_A = wp.constant(wp.float64(6378137.0))
 WGS84_F = wp.constant(wp.float64(1.0 / 298.257223563))
 WGS84_B = wp.constant(wp.float64(6378137.0 * (1.0 - 1.0 / 298.257223563)))
 WGS84_E2 = wp.constant(wp.float64((1.0 / 298.257223563) * (2.0 - 1.0 / 298.257223563)))
+WGS84_EP2 = wp.constant(wp.float64((1.0 / 298.257223563) * (2.0 - 1.0 / 298.257223563)
+                                   / (1.0 - (1.0 / 298.257223563) * (2.0 - 1.0 / 298.257223563))))
 DEG = wp.constant(wp.float64(0.017453292519943295))
+RAD2DEG = wp.constant(wp.float64(57.29577951308232))
 
 
 @wp.func
@@ -39,24 +42,22 @@ def ecef_to_geodetic(p: wp.vec3d):
     one = wp.float64(1.0)
     r = wp.sqrt(p[0] * p[0] + p[1] * p[1])
     z = p[2]
-    ep2 = WGS84_E2 / (one - WGS84_E2)
     rb = r * WGS84_B
     za = z * WGS84_A
-    den = wp.sqrt(rb * rb + za * za)
-    cu = rb / den
-    su = za / den
-    num = z + ep2 * WGS84_B * su * su * su
+    inv = one / wp.sqrt(rb * rb + za * za)
+    cu = rb * inv
+    su = za * inv
+    num = z + WGS84_EP2 * WGS84_B * su * su * su
     dnm = r - WGS84_E2 * WGS84_A * cu * cu * cu
-    norm = wp.sqrt(num * num + dnm * dnm)
-    slat = num / norm
-    clat = dnm / norm
+    inv = one / wp.sqrt(num * num + dnm * dnm)
+    slat = num * inv
+    clat = dnm * inv
     w = wp.sqrt(one - WGS84_E2 * slat * slat)
-    n = WGS84_A / w
     h = r * clat + z * slat - WGS84_A * w
-    dnm = r * (one - WGS84_E2 * n / (n + h))
-    norm = wp.sqrt(z * z + dnm * dnm)
-    slat = z / norm
-    clat = dnm / norm
+    dnm = r * (one - WGS84_E2 * WGS84_A / (WGS84_A + h * w))  # e2 N / (N + h), N = a / w
+    inv = one / wp.sqrt(z * z + dnm * dnm)
+    slat = z * inv
+    clat = dnm * inv
     h = r * clat + z * slat - WGS84_A * wp.sqrt(one - WGS84_E2 * slat * slat)
     return wp.vec3d(wp.atan2(z, dnm), wp.atan2(p[1], p[0]), h)
 
@@ -95,4 +96,4 @@ def ecef_to_geodetic_kernel(xyz: wp.array(dtype=wp.vec3d), out: wp.array(dtype=w
     """ECEF (m) -> (lat deg, lon deg, h m), element-wise."""
     i = wp.tid()
     g = ecef_to_geodetic(xyz[i])
-    out[i] = wp.vec3d(g[0] / DEG, g[1] / DEG, g[2])
+    out[i] = wp.vec3d(g[0] * RAD2DEG, g[1] * RAD2DEG, g[2])

@@ -22,6 +22,8 @@ class RefractionTable:
     dtheta: wp.float64
     h0: wp.float64
     dh: wp.float64
+    inv_dtheta: wp.float64
+    inv_dh: wp.float64
     q: wp.array2d(dtype=wp.float64)
 
 
@@ -32,8 +34,8 @@ def refraction_q(tab: RefractionTable, theta: wp.float64, h: wp.float64):
         return wp.float64(0.0)
     nt = tab.q.shape[0]
     nh = tab.q.shape[1]
-    ft = wp.clamp((theta - tab.theta0) / tab.dtheta, wp.float64(0.0), wp.float64(nt - 1))
-    fh = wp.clamp((h - tab.h0) / tab.dh, wp.float64(0.0), wp.float64(nh - 1))
+    ft = wp.clamp((theta - tab.theta0) * tab.inv_dtheta, wp.float64(0.0), wp.float64(nt - 1))
+    fh = wp.clamp((h - tab.h0) * tab.inv_dh, wp.float64(0.0), wp.float64(nh - 1))
     it = wp.min(wp.int32(ft), nt - 2)
     ih = wp.min(wp.int32(fh), nh - 2)
     at = ft - wp.float64(it)

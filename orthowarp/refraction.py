@@ -212,5 +212,6 @@ class RefractionModel:
         s.dtheta = float(self.theta[1] - self.theta[0])
         s.h0 = float(self.heights[0])
         s.dh = float(self.heights[1] - self.heights[0])
+        s.inv_dtheta, s.inv_dh = 1.0 / s.dtheta, 1.0 / s.dh
         s.q = wp.array(np.ascontiguousarray(self.q), dtype=wp.float64, device=device)
         return s

@@ -229,6 +229,7 @@ class Dem:
                           dtype=wp.float32, device=device)
         t = self.transform
         s.x0, s.dx, s.y0, s.dy = float(t.c), float(t.a), float(t.f), float(t.e)
+        s.inv_dx, s.inv_dy = 1.0 / s.dx, 1.0 / s.dy
         s.constant = 1 if self.is_constant else 0
         s.value = float(self.value) if self.is_constant else 0.0
         s.hmin, s.hmax = self.hmin, self.hmax
