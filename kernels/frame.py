@@ -11,8 +11,10 @@ height m) in geocentric mode, (x, y, z) of the map CRS in map-Cartesian mode.
 
 import warp as wp
 
+wp.set_module_options({"enable_backward": False})  # forward-only kernels: halves compile time
+
 from .camera import FrameCameraData, camera_to_pixel, pixel_to_camera
-from .dem import DemData, dem_block_bound, dem_grid, dem_sample_grid
+from .dem import DemData, dem_block_bound, dem_grid, dem_sample_grid, dem_sample_grid_f32
 from .geodesy import DEG, RAD2DEG, WGS84_A, WGS84_B, ecef_to_geodetic, geodetic_to_ecef
 from .refraction import RefractionTable, nadir_angle, refraction_delta, refraction_q, tilt_from_nadir
 
@@ -149,7 +151,8 @@ def geolocate_ray(
        by a step where the approximation misjudged a sign) and the refinement runs again.
 
     Rays that miss the Earth, leave the DEM before reaching it, enter it underground or start
-    below it give NaN.
+    below it give NaN. The march itself runs in float32 (bracketing only); every number that
+    reaches the result is float64.
     """
     nan = wp.float64(wp.nan)
     miss = wp.vec3d(nan, nan, nan)
@@ -172,37 +175,49 @@ def geolocate_ray(
     prev = dem_sample_grid(dem, ga) - g_hi[2]
     if prev >= wp.float64(0.0):
         return miss  # terrain above the start: the sensor is below the surface
+    # The march runs in float32 (grid coordinates and heights); the bracket it finds is
+    # re-sampled in float64 below.
     found = wp.int32(0)
-    f = nan
-    inv_n = wp.float64(1.0) / wp.float64(n)
+    inv_n = wp.float32(1.0) / wp.float32(n)
+    x0 = wp.float32(ga[0])
+    y0 = wp.float32(ga[1])
+    z0 = wp.float32(g_hi[2])
+    dx = wp.float32(gb[0] - ga[0])
+    dy = wp.float32(gb[1] - ga[1])
+    dz = wp.float32(g_lo[2] - g_hi[2])
+    prev32 = wp.float32(prev)
     k0 = wp.int32(0)
     while k0 < n and found == 0:
         # Coarse step over dem.block cells: skipped when its lowest point is above the block
         # bound (no crossing possible), else marched cell by cell.
         k1 = wp.min(k0 + dem.block, n)
-        t1 = wp.float64(k1) * inv_n
-        h1 = g_hi[2] + t1 * (g_lo[2] - g_hi[2])
-        if dem.constant == 0 and h1 > dem_block_bound(dem, ga + (wp.float64(k0) * inv_n) * (gb - ga)):
-            prev = dem_sample_grid(dem, ga + t1 * (gb - ga)) - h1
+        t0 = wp.float32(k0) * inv_n
+        t1 = wp.float32(k1) * inv_n
+        h1 = z0 + t1 * dz
+        if dem.constant == 0 and h1 > dem_block_bound(dem, x0 + t0 * dx, y0 + t0 * dy):
+            prev32 = dem_sample_grid_f32(dem, x0 + t1 * dx, y0 + t1 * dy) - h1
         else:
             for k in range(k0 + 1, k1 + 1):
-                t = wp.float64(k) * inv_n
-                f = dem_sample_grid(dem, ga + t * (gb - ga)) - (g_hi[2] + t * (g_lo[2] - g_hi[2]))
-                if f >= wp.float64(0.0):
+                t = wp.float32(k) * inv_n
+                f32 = dem_sample_grid_f32(dem, x0 + t * dx, y0 + t * dy) - (z0 + t * dz)
+                if f32 >= wp.float32(0.0):
                     # a finite prev < 0 brackets the crossing; otherwise it entered the DEM underground
-                    if not wp.isfinite(prev):
+                    if not wp.isfinite(prev32):
                         return miss
                     found = k
                     break
-                prev = f
+                prev32 = f32
         k0 = k1
     if found == 0:
         return miss
-    hstep = (h_hi - h_lo) * inv_n
+    # float64 gaps at the bracket ends, on the linear track (exact at the track's ends)
+    ta = wp.float64(found - 1) / wp.float64(n)
+    tb = wp.float64(found) / wp.float64(n)
+    fa = dem_sample_grid(dem, ga + ta * (gb - ga)) - (g_hi[2] + ta * (g_lo[2] - g_hi[2]))
+    fb = dem_sample_grid(dem, ga + tb * (gb - ga)) - (g_hi[2] + tb * (g_lo[2] - g_hi[2]))
+    hstep = (h_hi - h_lo) / wp.float64(n)
     a = h_hi - wp.float64(found - 1) * hstep
     b = a - hstep
-    fa = prev
-    fb = f
     exact_a = found == 1  # the track's end points were evaluated exactly
     exact_b = found == n
     best = miss
@@ -225,6 +240,8 @@ def geolocate_ray(
                 return miss
             exact_a = True
             exact_b = True
+        elif not (fa < wp.float64(0.0) and fb >= wp.float64(0.0)):
+            continue  # the float32 march misjudged a sign: go straight to exact ends
         side = wp.int32(0)
         for _ in range(100):
             c = b - fb * (b - a) / (fb - fa)
