@@ -74,9 +74,12 @@ class FrameGeometry:
         its footprint.
     tolerance : float, optional
         Height tolerance (m) of the relief search.
+    height_range : (float, float), optional
+        Ground heights (m) the refraction table must cover; default: the DEM's range.
     """
 
-    def __init__(self, camera, pose, dem, *, refraction=True, device=None, region=None, tolerance=1e-4):
+    def __init__(self, camera, pose, dem, *, refraction=True, device=None, region=None, tolerance=1e-4,
+                 height_range=None):
         _check_sensor(camera, pose)
         self.camera, self.pose = camera, pose
         self.device = resolve_device(device)
@@ -84,7 +87,8 @@ class FrameGeometry:
         if region is None:
             region = (0.0, 0.0, float(camera.image_size[0]), float(camera.image_size[1]))
         self.dem = self._crop_to_footprint(dem, region) if not dem.is_constant else dem
-        self.refraction = RefractionModel(pose.height, self.dem.hmin, self.dem.hmax, enabled=refraction)
+        hmin, hmax = height_range if height_range is not None else (self.dem.hmin, self.dem.hmax)
+        self.refraction = RefractionModel(pose.height, hmin, hmax, enabled=refraction)
         self.search = SearchParams()
         self.search.htol = float(tolerance)
         self.search.max_steps = 1 << 20
@@ -111,7 +115,7 @@ class FrameGeometry:
         feet = []
         for h in (dem.hmin, dem.hmax):
             probe = FrameGeometry(self.camera, self.pose, Dem.constant(h), refraction=True,
-                                  device="cpu")
+                                  device=self.device)
             feet.append(probe.geolocate_frame(border))
         feet = np.concatenate(feet)
         if not np.all(np.isfinite(feet)):
@@ -254,7 +258,6 @@ def project(camera, pose, points_, *, crs=LLH, refraction=True, device=None):
     geo = _transform(pts, as_crs(crs), _frame_crs(pose))
     ok = np.all(np.isfinite(geo), axis=1)
     hmin, hmax = (float(geo[ok, 2].min()), float(geo[ok, 2].max())) if np.any(ok) else (0.0, 0.0)
-    dem = Dem.constant(0.5 * (hmin + hmax))
-    dem.hmin, dem.hmax = hmin, hmax
-    geom = FrameGeometry(camera, pose, dem, refraction=refraction, device=device)
+    geom = FrameGeometry(camera, pose, Dem.constant(hmin), refraction=refraction, device=device,
+                         height_range=(hmin, hmax))
     return geom.project_frame(geo)
