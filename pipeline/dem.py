@@ -168,8 +168,8 @@ class Dem:
 
     def reproject(self, crs):
         """Bilinear reprojection onto a north-up grid in ``crs`` (pyproj/rasterio CRS)."""
-        dst_crs = rasterio.crs.CRS.from_user_input(as_crs(crs).to_wkt())
-        src_crs = rasterio.crs.CRS.from_user_input(self.crs.to_wkt())
+        dst_crs = rasterio.crs.CRS.from_user_input(_horizontal(as_crs(crs)).to_wkt())
+        src_crs = rasterio.crs.CRS.from_user_input(_horizontal(self.crs).to_wkt())
         rows, cols = self.shape
         bounds = rasterio.transform.array_bounds(rows, cols, self.transform)
         transform, width, height = rasterio.warp.calculate_default_transform(

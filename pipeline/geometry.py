@@ -17,6 +17,7 @@ from ..kernels.frame import SearchParams, geolocate_grid_kernel, geolocate_kerne
 from ..pose import GEOCENTRIC, Pose
 from ..refraction import RefractionModel
 from .dem import Dem
+from .vertical import reconcile_dem
 
 __all__ = ["geolocate", "project", "FrameGeometry"]
 
@@ -76,14 +77,20 @@ class FrameGeometry:
         Height tolerance (m) of the relief search.
     height_range : (float, float), optional
         Ground heights (m) the refraction table must cover; default: the DEM's range.
+    geoid : Dem or str, optional
+        Geoid undulation grid, used when the DEM's and the positions' vertical datums differ
+        (see :func:`orthowarp.pipeline.vertical.reconcile_dem`).
+    same_vertical_datum : bool, optional
+        Take DEM and position heights as the same datum whatever their CRSs declare.
     """
 
     def __init__(self, camera, pose, dem, *, refraction=True, device=None, region=None, tolerance=1e-4,
-                 height_range=None):
+                 height_range=None, geoid=None, same_vertical_datum=False):
         _check_sensor(camera, pose)
         self.camera, self.pose = camera, pose
         self.device = resolve_device(device)
-        dem = _as_dem(dem).for_frame(None if pose.mode == GEOCENTRIC else pose.crs)
+        dem = reconcile_dem(_as_dem(dem), pose, geoid=geoid, same_vertical_datum=same_vertical_datum)
+        dem = dem.for_frame(None if pose.mode == GEOCENTRIC else pose.crs)
         if region is None:
             region = (0.0, 0.0, float(camera.image_size[0]), float(camera.image_size[1]))
         self.dem = self._crop_to_footprint(dem, region) if not dem.is_constant else dem
@@ -194,7 +201,8 @@ class FrameGeometry:
         return out.numpy().reshape(-1, 2)
 
 
-def geolocate(camera, pose, pixels, *, dem, crs=LLH, refraction=True, device=None):
+def geolocate(camera, pose, pixels, *, dem, crs=LLH, refraction=True, device=None, geoid=None,
+              same_vertical_datum=False):
     """Ground coordinates of image pixels (forward, pixel -> ground).
 
     Parameters
@@ -212,6 +220,10 @@ def geolocate(camera, pose, pixels, *, dem, crs=LLH, refraction=True, device=Non
         Correct for atmospheric refraction.
     device : str, optional
         Warp device; None picks the first CUDA device, else the CPU.
+    geoid : Dem or str, optional
+        Geoid grid for a DEM whose vertical datum differs from the positions'.
+    same_vertical_datum : bool, optional
+        Take DEM and position heights as the same datum whatever their CRSs declare.
 
     Returns
     -------
@@ -226,7 +238,8 @@ def geolocate(camera, pose, pixels, *, dem, crs=LLH, refraction=True, device=Non
     if np.any(finite):
         lo, hi = pix[finite].min(axis=0), pix[finite].max(axis=0)
         region = (lo[0], lo[1], hi[0], hi[1])
-    geom = FrameGeometry(camera, pose, dem, refraction=refraction, device=device, region=region)
+    geom = FrameGeometry(camera, pose, dem, refraction=refraction, device=device, region=region,
+                         geoid=geoid, same_vertical_datum=same_vertical_datum)
     geo = geom.geolocate_frame(pix)
     return _transform(geo, _frame_crs(pose), dst)
 

@@ -1,0 +1,462 @@
+"""Orthorectification of frame images: output grid, tiling, streaming, GeoTIFF/COG writing.
+
+Per output tile (see :mod:`orthowarp.kernels.ortho`): the host transforms a coarse grid of the
+tile's pixel centres into the pose's frame with PROJ, a kernel computes the source pixel of
+every output pixel and the bounding box of them, the host reads exactly that source window
+(all bands and its mask), a second kernel resamples it, and the host writes the tile. Tiles run
+on a thread pool: each worker has its own source handle and, on a GPU, its own Warp stream, so
+reads, transfers, kernels and writes of different tiles overlap. Neither the source nor the
+output is ever held whole in memory.
+"""
+
+import logging
+import math
+import os
+import threading
+import time
+import warnings
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+import rasterio
+import rasterio.shutil
+import warp as wp
+from affine import Affine
+from pyproj import CRS, Transformer
+from rasterio.errors import RasterioIOError
+from rasterio.windows import Window
+
+from .._validate import as_crs, finite, points
+from ..camera import FrameCamera
+from ..errors import GeometryError, ParamError, RasterIOError
+from ..kernels import ortho as ortho_kernels
+from ..pose import GEOCENTRIC, Pose
+from .dem import Dem
+from .geometry import FrameGeometry
+from .io import atomic_path, ensure_folder
+
+__all__ = ["orthorectify", "OrthoResult", "RESAMPLING", "output_grid"]
+
+log = logging.getLogger(__name__)
+
+RESAMPLING = {"nearest": 0, "bilinear": 1, "bicubic": 2, "lanczos": 3}
+_RADIUS = {"nearest": 1, "bilinear": 1, "bicubic": 2, "lanczos": 3}
+DRIVERS = ("COG", "GTiff")
+COMPRESS = ("deflate", "zstd", "lzw", "jpeg", "none")
+DTYPES = ("uint8", "uint16", "float32")
+COARSE_STEP = 16  # output pixels between nodes of the exactly transformed coarse grid
+
+
+@dataclass
+class OrthoResult:
+    """What :func:`orthorectify` wrote.
+
+    Attributes
+    ----------
+    path : str
+    crs : pyproj.CRS
+    transform : affine.Affine
+    shape : (int, int)
+        (rows, cols) of the orthoimage.
+    resolution : float
+        Pixel size in CRS units.
+    timings : dict
+        Seconds per stage summed over tiles (read, h2d, kernel, d2h, write, finish) and wall.
+    """
+
+    path: str
+    crs: CRS
+    transform: Affine
+    shape: tuple
+    resolution: float
+    timings: dict = field(default_factory=dict)
+
+
+def _utm_crs(lon, lat):
+    zone = int(math.floor((lon + 180.0) / 6.0)) % 60 + 1
+    return CRS.from_epsg((32600 if lat >= 0 else 32700) + zone)
+
+
+def _pose_horizontal_crs(pose):
+    """CRS of the horizontal coordinates the kernels use for this pose (lon/lat or map x/y)."""
+    return CRS.from_epsg(4326) if pose.mode == GEOCENTRIC else pose.crs
+
+
+def _border(camera, n=64):
+    w, h = camera.image_size
+    t = np.linspace(0.0, 1.0, n + 1)[:-1]
+    return np.concatenate([np.stack([t * w, 0 * t], 1), np.stack([0 * t + w, t * h], 1),
+                           np.stack([w - t * w, 0 * t + h], 1), np.stack([0 * t, h - t * h], 1)])
+
+
+def output_grid(geom, *, crs=None, resolution=None):
+    """Output CRS, resolution and pixel-aligned grid of one image's orthoimage.
+
+    Parameters
+    ----------
+    geom : FrameGeometry
+    crs : CRS-like, optional
+        Default: the CRS of map-Cartesian poses, else the UTM zone of the image centre.
+    resolution : float, optional
+        Pixel size in CRS units; default: the mean ground sample distance.
+
+    Returns
+    -------
+    crs : pyproj.CRS, transform : affine.Affine, shape : (rows, cols), resolution : float
+
+    Raises
+    ------
+    GeometryError
+        The camera sees the horizon, or the DEM does not cover the image footprint at all.
+    """
+    cam, pose = geom.camera, geom.pose
+    frame_crs = _pose_horizontal_crs(pose)
+    border = _border(cam)
+    # Rays that miss even the lowest ground height see the horizon (or the sky).
+    low = FrameGeometry(cam, pose, geom.dem.hmin, refraction=geom.refraction.enabled,
+                        device=geom.device).geolocate_frame(border)
+    if not np.all(np.isfinite(low)):
+        raise GeometryError("The camera sees the horizon: part of the image border has no ground "
+                            "below it, so its footprint is unbounded")
+    feet = geom.geolocate_frame(border)
+    ok = np.all(np.isfinite(feet), axis=1)
+    if not np.any(ok):
+        raise GeometryError("The DEM does not cover the image footprint")
+    if not np.all(ok):
+        log.warning("The DEM covers the image footprint only partly (%d of %d border rays miss it); "
+                    "the rest of the orthoimage is nodata", int((~ok).sum()), len(ok))
+    if crs is None:
+        if pose.mode == GEOCENTRIC:
+            centre = geom.geolocate_frame([[cam.image_size[0] / 2, cam.image_size[1] / 2]])[0]
+            if not np.all(np.isfinite(centre)):
+                centre = np.nanmean(feet, axis=0)
+            crs = _utm_crs(centre[0], centre[1])
+        else:
+            crs = pose.crs
+    crs = as_crs(crs)
+    if crs.is_geocentric:
+        raise ParamError("crs must be a projected or geographic CRS for orthoimages")
+    to_out = Transformer.from_crs(frame_crs, crs, always_xy=True)
+    # the footprint on the DEM where rays hit it, else the bounds of the heights' range
+    pts = feet[ok]
+    if not np.all(ok):
+        high = FrameGeometry(cam, pose, geom.dem.hmax, refraction=geom.refraction.enabled,
+                             device=geom.device).geolocate_frame(border)
+        pts = np.concatenate([pts, low, high])
+    x, y = to_out.transform(pts[:, 0], pts[:, 1])
+    if resolution is None:
+        resolution = _mean_gsd(geom, to_out)
+    res = finite("resolution", resolution)
+    if res <= 0:
+        raise ParamError(f"resolution must be > 0, got {resolution}")
+    x0, x1 = math.floor(min(x) / res) * res, math.ceil(max(x) / res) * res
+    y0, y1 = math.floor(min(y) / res) * res, math.ceil(max(y) / res) * res
+    shape = (max(int(round((y1 - y0) / res)), 1), max(int(round((x1 - x0) / res)), 1))
+    if shape[0] * shape[1] > 2**34:
+        raise ParamError(f"The orthoimage would have {shape[1]} x {shape[0]} pixels at resolution {res}: "
+                         "check the resolution and the CRS units")
+    return crs, Affine(res, 0.0, x0, 0.0, -res, y1), shape, res
+
+
+def _mean_gsd(geom, to_out):
+    """Mean ground sample distance (output CRS units): sqrt of pixel footprint area, 5 x 5 grid."""
+    w, h = geom.camera.image_size
+    c, r = np.meshgrid(np.linspace(0.1, 0.9, 5) * w, np.linspace(0.1, 0.9, 5) * h)
+    base = np.stack([c.ravel(), r.ravel()], 1)
+    pts = np.concatenate([base, base + [1.0, 0.0], base + [0.0, 1.0]])
+    g = geom.geolocate_frame(pts)
+    x, y = to_out.transform(g[:, 0], g[:, 1])
+    n = len(base)
+    p0 = np.stack([x[:n], y[:n]], 1)
+    dc = np.stack([x[n:2 * n], y[n:2 * n]], 1) - p0
+    dr = np.stack([x[2 * n:], y[2 * n:]], 1) - p0
+    area = np.abs(dc[:, 0] * dr[:, 1] - dc[:, 1] * dr[:, 0])
+    gsd = np.sqrt(area[np.isfinite(area)])
+    if gsd.size == 0:
+        raise GeometryError("Could not estimate the ground sample distance: no ground under the image")
+    return float(np.mean(gsd))
+
+
+def _as_dem(dem):
+    if isinstance(dem, (str, os.PathLike)):
+        return Dem.from_file(dem)
+    return dem
+
+
+class _Timer:
+    """Thread-safe accumulation of per-stage seconds."""
+
+    def __init__(self):
+        self.lock = threading.Lock()
+        self.t = {k: 0.0 for k in ("read", "h2d", "kernel", "d2h", "write")}
+
+    def add(self, key, dt):
+        with self.lock:
+            self.t[key] += dt
+
+
+def orthorectify(src, camera, pose, dst, *, dem, crs=None, resolution=None, resampling="bilinear",
+                 refraction=True, dtype=None, driver="COG", compress="deflate", overviews=True,
+                 tile_size=1024, overwrite=False, device=None, progress=False, workers=None,
+                 geoid=None, same_vertical_datum=False):
+    """Orthorectify one frame image into a GeoTIFF / cloud-optimized GeoTIFF.
+
+    Parameters
+    ----------
+    src : str or os.PathLike
+        Source image (any raster GDAL reads; any band count; uint8, uint16 or float32).
+    camera : FrameCamera
+        Interior orientation; its image_size must match the source.
+    pose : Pose
+        Exterior orientation.
+    dst : str or os.PathLike
+        Output file. Written under a temporary name in the same folder and renamed when
+        complete; an existing file is an error unless ``overwrite``.
+    dem : Dem, str or float
+        Terrain: a Dem, a DEM file, or a constant ellipsoidal height (m).
+    crs : CRS-like, optional
+        Output CRS; default: the CRS of map-Cartesian poses, else the UTM zone of the image
+        centre.
+    resolution : float, optional
+        Output pixel size (CRS units); default: the image's mean ground sample distance.
+    resampling : {"nearest", "bilinear", "bicubic", "lanczos"}, optional
+    refraction : bool, optional
+    dtype : {"uint8", "uint16", "float32"}, optional
+        Output data type; default: the source's. Float outputs use NaN as nodata, integer
+        outputs an internal mask.
+    driver : {"COG", "GTiff"}, optional
+        Cloud-optimized GeoTIFF (default) or tiled GeoTIFF.
+    compress : {"deflate", "zstd", "lzw", "jpeg", "none"}, optional
+    overviews : bool, optional
+        Build internal overviews (always for COG).
+    tile_size : int, optional
+        Output tile edge in pixels (multiple of 16).
+    overwrite : bool, optional
+    device : str, optional
+        Warp device; None picks the first CUDA device, else the CPU.
+    progress : bool, optional
+        Show a progress bar (tqdm) over tiles.
+    workers : int, optional
+        Tiles in flight at once (default: CPU cores on the CPU, 4 on a GPU).
+    geoid : Dem or str, optional
+        Geoid undulation grid, used when the DEM's and the positions' vertical datums differ.
+    same_vertical_datum : bool, optional
+        Take DEM and position heights as the same datum whatever their CRSs declare.
+
+    Returns
+    -------
+    OrthoResult
+    """
+    t_wall = time.perf_counter()
+    if not isinstance(camera, FrameCamera) or not isinstance(pose, Pose):
+        raise ParamError("camera must be a FrameCamera and pose a Pose")
+    if resampling not in RESAMPLING:
+        raise ParamError(f"resampling must be one of {sorted(RESAMPLING)}, got {resampling!r}")
+    if driver not in DRIVERS:
+        raise ParamError(f"driver must be one of {DRIVERS}, got {driver!r}")
+    if compress not in COMPRESS:
+        raise ParamError(f"compress must be one of {COMPRESS}, got {compress!r}")
+    if dtype is not None and dtype not in DTYPES:
+        raise ParamError(f"dtype must be one of {DTYPES}, got {dtype!r}")
+    tile_size = int(tile_size)
+    if tile_size < 16 or tile_size % 16:
+        raise ParamError(f"tile_size must be a positive multiple of 16, got {tile_size}")
+    src, dst = os.fspath(src), os.fspath(dst)
+    if os.path.exists(dst) and not overwrite:
+        raise RasterIOError(f"Output '{dst}' exists (pass overwrite=True / --overwrite to replace it)")
+    ensure_folder(os.path.dirname(os.path.abspath(dst)))
+    if not os.path.exists(src):
+        raise RasterIOError(f"Image '{src}' does not exist")
+    try:
+        with _open_source(src) as ds:
+            width, height, count, src_dtype = ds.width, ds.height, ds.count, ds.dtypes[0]
+    except RasterioIOError as e:
+        raise RasterIOError(f"Could not open image '{src}': {e}") from e
+    if (width, height) != tuple(camera.image_size):
+        raise ParamError(f"Image '{src}' is {width} x {height} pixels but its camera says "
+                         f"{camera.image_size[0]} x {camera.image_size[1]}")
+    out_dtype = dtype or (src_dtype if src_dtype in DTYPES else "float32")
+    if compress == "jpeg" and out_dtype != "uint8":
+        raise ParamError("jpeg compression needs uint8 output")
+
+    geom = FrameGeometry(camera, pose, _as_dem(dem), refraction=refraction, device=device, geoid=geoid,
+                         same_vertical_datum=same_vertical_datum)
+    out_crs, transform, shape, res = output_grid(geom, crs=crs, resolution=resolution)
+    log.info("%s -> %s: %d x %d pixels at %.4g %s", src, dst, shape[1], shape[0], res,
+             out_crs.axis_info[0].unit_name if out_crs.axis_info else "")
+    timer = _Timer()
+    with atomic_path(dst) as tmp_final:
+        work = tmp_final if driver == "GTiff" else tmp_final + ".work.tif"
+        try:
+            _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, work,
+                    resampling, tile_size, progress, workers, timer)
+            t0 = time.perf_counter()
+            _finish(work, tmp_final, driver, compress, overviews, out_dtype)
+            timer.t["finish"] = time.perf_counter() - t0
+        finally:
+            if work != tmp_final and os.path.exists(work):
+                os.remove(work)
+    timer.t["wall"] = time.perf_counter() - t_wall
+    return OrthoResult(dst, out_crs, transform, shape, res, dict(timer.t))
+
+
+def _creation_options(compress, dtype):
+    opts = dict(tiled=True, blockxsize=512, blockysize=512, compress=compress.upper() if compress != "none" else None,
+                BIGTIFF="IF_SAFER")
+    if compress in ("deflate", "zstd", "lzw") and dtype != "float32":
+        opts["predictor"] = 2
+    return {k: v for k, v in opts.items() if v is not None}
+
+
+def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, path, resampling,
+            tile_size, progress, workers, timer):
+    rows, cols = shape
+    is_float = out_dtype == "float32"
+    profile = dict(driver="GTiff", width=cols, height=rows, count=count, dtype=out_dtype,
+                   crs=rasterio.crs.CRS.from_wkt(out_crs.to_wkt()), transform=transform,
+                   **_creation_options("deflate" if compress == "jpeg" else compress, out_dtype))
+    if is_float:
+        profile["nodata"] = float("nan")
+    frame_crs = _pose_horizontal_crs(geom.pose)
+    to_frame = Transformer.from_crs(out_crs, frame_crs, always_xy=True)
+    cam, pose, refr, dem, _ = geom.structs()
+    device = geom.device
+    method = RESAMPLING[resampling]
+    radius = _RADIUS[resampling]
+    tiles = [(r0, c0, min(tile_size, rows - r0), min(tile_size, cols - c0))
+             for r0 in range(0, rows, tile_size) for c0 in range(0, cols, tile_size)]
+    local = threading.local()
+    handles = []
+    write_lock = threading.Lock()
+    info = np.iinfo(out_dtype) if not is_float else None
+    wp.load_module(ortho_kernels, device=device)
+
+    def source():
+        if not hasattr(local, "ds"):
+            local.ds = _open_source(src)
+            local.stream = wp.Stream(device) if device.is_cuda else None
+            with write_lock:
+                handles.append(local.ds)
+        return local.ds, local.stream
+
+    def run(tile):
+        r0, c0, th, tw = tile
+        ds, stream = source()
+        with wp.ScopedStream(stream) if stream is not None else _null():
+            t = time.perf_counter()
+            ki = np.arange(max(2, -(-(th - 1) // COARSE_STEP) + 1)) * COARSE_STEP
+            kj = np.arange(max(2, -(-(tw - 1) // COARSE_STEP) + 1)) * COARSE_STEP
+            jj, ii = np.meshgrid(c0 + kj + 0.5, r0 + ki + 0.5)
+            x, y = transform @ (jj, ii)
+            u, v = to_frame.transform(x, y)
+            coarse = wp.array(np.ascontiguousarray(np.stack([u, v], -1)), dtype=wp.vec2d, device=device)
+            bounds = wp.array(np.full(4, np.inf, np.float32), dtype=wp.float32, device=device)
+            coords = wp.empty((th, tw), dtype=wp.vec2d, device=device)
+            timer.add("h2d", time.perf_counter() - t)
+            t = time.perf_counter()
+            wp.launch(ortho_kernels.ortho_coords_kernel, dim=(th, tw), device=device,
+                      inputs=[cam, pose, refr, dem, coarse, COARSE_STEP,
+                              float(geom.camera.image_size[0]), float(geom.camera.image_size[1]), coords, bounds])
+            b = bounds.numpy()
+            timer.add("kernel", time.perf_counter() - t)
+            out = None
+            if np.all(np.isfinite(b)):
+                w_img, h_img = geom.camera.image_size
+                wc0 = max(int(math.floor(b[0])) - radius - 1, 0)
+                wr0 = max(int(math.floor(b[1])) - radius - 1, 0)
+                wc1 = min(int(math.ceil(-b[2])) + radius + 1, w_img)
+                wr1 = min(int(math.ceil(-b[3])) + radius + 1, h_img)
+                t = time.perf_counter()
+                win = Window(wc0, wr0, wc1 - wc0, wr1 - wr0)
+                data = ds.read(window=win, out_dtype="float32")
+                valid = (ds.dataset_mask(window=win) > 0).astype(np.uint8)
+                timer.add("read", time.perf_counter() - t)
+                t = time.perf_counter()
+                sw = ortho_kernels.SourceWindow()
+                sw.data = wp.array(data, dtype=wp.float32, device=device)
+                sw.valid = wp.array(valid, dtype=wp.uint8, device=device)
+                sw.col0, sw.row0 = wc0, wr0
+                sw.width, sw.height = float(w_img), float(h_img)
+                res = wp.empty((count, th, tw), dtype=wp.float32, device=device)
+                res_valid = wp.empty((th, tw), dtype=wp.uint8, device=device)
+                timer.add("h2d", time.perf_counter() - t)
+                t = time.perf_counter()
+                wp.launch(ortho_kernels.ortho_resample_kernel, dim=(th, tw), device=device,
+                          inputs=[sw, coords, method, res, res_valid])
+                if stream is not None:
+                    wp.synchronize_stream(stream)
+                timer.add("kernel", time.perf_counter() - t)
+                t = time.perf_counter()
+                out, mask = res.numpy(), res_valid.numpy().astype(bool)
+                timer.add("d2h", time.perf_counter() - t)
+            else:
+                mask = np.zeros((th, tw), bool)
+            t = time.perf_counter()
+            if is_float:
+                block = np.full((count, th, tw), np.nan, np.float32) if out is None else np.where(mask, out, np.nan).astype(np.float32)
+            else:
+                block = np.zeros((count, th, tw), out_dtype)
+                if out is not None:
+                    block[:, mask] = np.clip(np.rint(out[:, mask]), info.min, info.max).astype(out_dtype)
+            with write_lock:
+                dst.write(block, window=Window(c0, r0, tw, th))
+                if not is_float:
+                    dst.write_mask(mask.astype(np.uint8) * 255, window=Window(c0, r0, tw, th))
+            timer.add("write", time.perf_counter() - t)
+
+    n_workers = workers or (4 if device.is_cuda else (os.cpu_count() or 1))
+    try:
+        with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True), rasterio.open(path, "w", **profile) as dst:
+            bar = _progress(len(tiles)) if progress else None
+            with ThreadPoolExecutor(max_workers=n_workers) as pool:
+                for _ in pool.map(run, tiles):
+                    if bar is not None:
+                        bar.update(1)
+            if bar is not None:
+                bar.close()
+    except RasterioIOError as e:
+        raise RasterIOError(f"Could not write '{path}': {e}") from e
+    finally:
+        for ds in handles:
+            ds.close()
+
+
+def _open_source(path):
+    """Open a source image for reading; frame images are usually not georeferenced."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+        return rasterio.open(path)
+
+
+class _null:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+
+def _progress(total):
+    from tqdm import tqdm
+
+    return tqdm(total=total, unit="tile", leave=False)
+
+
+def _finish(work, final, driver, compress, overviews, dtype):
+    """Overviews, then (for COG) a copy in the cloud-optimized layout."""
+    if driver == "COG" or overviews:
+        with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True), rasterio.open(work, "r+") as ds:
+            factors, size = [], max(ds.width, ds.height)
+            while size / (2 ** (len(factors) + 1)) >= 256:
+                factors.append(2 ** (len(factors) + 1))
+            if factors:
+                ds.build_overviews(factors, rasterio.enums.Resampling.average)
+    if driver == "COG":
+        opts = dict(compress=compress.upper() if compress != "none" else "NONE", blocksize=512,
+                    overviews="FORCE_USE_EXISTING", BIGTIFF="IF_SAFER")
+        if compress in ("deflate", "zstd", "lzw") and dtype != "float32":
+            opts["predictor"] = "YES"
+        if compress == "jpeg":
+            opts["quality"] = 90
+        rasterio.shutil.copy(work, final, driver="COG", **opts)

@@ -1,0 +1,91 @@
+"""Vertical datums: reconcile DEM heights with the heights of the positions.
+
+The kernels need the DEM in the vertical datum of the poses: ellipsoidal (WGS84) for
+geocentric GNSS/INS poses, the z of the map CRS for map-Cartesian poses. A CRS declares its
+heights when it is 3-D geographic/projected (ellipsoidal) or compound with a vertical part
+(gravity-related, "orthometric"); a 2-D CRS declares nothing.
+
+Rules: equal declarations need nothing; orthometric against ellipsoidal needs a geoid grid
+(``N`` such that ellipsoidal = orthometric + N), else :class:`ParamError` unless the user
+states that the datums are the same; when one side declares nothing it is taken to share the
+other's datum, and the log says so.
+"""
+
+import logging
+
+import numpy as np
+from pyproj import Transformer
+
+from ..errors import ParamError
+from ..pose import GEOCENTRIC
+from .dem import Dem
+
+__all__ = ["height_kind", "reconcile_dem"]
+
+log = logging.getLogger(__name__)
+
+ELLIPSOIDAL = "ellipsoidal"
+ORTHOMETRIC = "orthometric"
+
+
+def height_kind(crs):
+    """"ellipsoidal", "orthometric" or None (undeclared) for the heights of a pyproj CRS."""
+    if crs is None:
+        return None
+    if crs.is_compound:
+        return ORTHOMETRIC if any(sub.is_vertical for sub in crs.sub_crs_list) else None
+    if crs.is_vertical:
+        return ORTHOMETRIC
+    if len(crs.axis_info) == 3 and not crs.is_geocentric:
+        return ELLIPSOIDAL
+    if crs.is_geocentric:
+        return ELLIPSOIDAL
+    return None
+
+
+def _pose_kind(pose):
+    return ELLIPSOIDAL if pose.mode == GEOCENTRIC else height_kind(pose.crs)
+
+
+def reconcile_dem(dem, pose, *, geoid=None, same_vertical_datum=False, name="DEM"):
+    """The DEM with heights in the vertical datum of the pose.
+
+    Parameters
+    ----------
+    dem : Dem
+    pose : Pose
+    geoid : Dem or str, optional
+        Geoid undulation grid N (m), any raster GDAL reads (e.g. egm08_25.gtx / .tif).
+    same_vertical_datum : bool, optional
+        Take the DEM's and the positions' heights as the same datum whatever they declare.
+    name : str, optional
+        How to name the DEM in messages (its file name).
+
+    Returns
+    -------
+    Dem
+    """
+    if dem.is_constant or same_vertical_datum:
+        return dem
+    dk, pk = height_kind(dem.crs), _pose_kind(pose)
+    if dk is None or pk is None or dk == pk:
+        if dk != pk:
+            log.info("%s heights are %s, positions %s: taken as the same vertical datum", name,
+                     dk or "undeclared", pk or "undeclared")
+        return dem
+    if geoid is None:
+        raise ParamError(
+            f"{name} has {dk} heights ({dem.crs.name}) but the positions are {pk}: pass a geoid grid "
+            "(--geoid FILE, e.g. egm08_25.gtx) to convert, or --same-vertical-datum if they agree")
+    grid = Dem.from_file(geoid) if not isinstance(geoid, Dem) else geoid
+    rows, cols = dem.shape
+    jj, ii = np.meshgrid(np.arange(cols) + 0.5, np.arange(rows) + 0.5)
+    x, y = dem.transform @ (jj, ii)
+    horizontal = dem.crs.sub_crs_list[0] if dem.crs.is_compound else dem.crs
+    gx, gy = Transformer.from_crs(horizontal, grid.crs, always_xy=True).transform(x, y)
+    n = grid.sample(gx, gy)
+    if np.any(np.isfinite(dem.array) & ~np.isfinite(n)):
+        raise ParamError(f"The geoid grid '{geoid}' does not cover {name}")
+    heights = dem.array + (n if dk == ORTHOMETRIC else -n)
+    log.info("%s heights converted from %s to %s with the geoid grid %s", name, dk, pk, geoid)
+    return Dem(heights, dem.transform, horizontal)

@@ -1,0 +1,65 @@
+"""Vertical datums: what CRSs declare, and reconciling DEM heights with the positions'."""
+
+import logging
+
+import numpy as np
+import pytest
+import rasterio
+from affine import Affine
+from pyproj import CRS
+
+import orthowarp as ow
+from orthowarp.errors import ParamError
+from orthowarp.pipeline.vertical import height_kind, reconcile_dem
+
+GEOCENTRIC_POSE = ow.Pose.from_ins(47.0, 8.0, 2000.0, 0.0, 0.0, 0.0)
+
+
+@pytest.mark.parametrize("crs, kind", [
+    ("EPSG:4326", None), ("EPSG:32632", None), ("EPSG:4979", "ellipsoidal"),
+    ("EPSG:4978", "ellipsoidal"), ("EPSG:32632+3855", "orthometric"), ("EPSG:4326+5773", "orthometric"),
+])
+def test_height_kind(crs, kind):
+    assert height_kind(CRS.from_user_input(crs)) == kind
+
+
+def dem_in(crs, value=400.0):
+    return ow.Dem(np.full((20, 20), value), Affine(0.001, 0, 7.99, 0, -0.001, 47.01), crs)
+
+
+def test_orthometric_dem_with_ellipsoidal_positions_needs_a_geoid():
+    with pytest.raises(ParamError, match="--geoid") as e:
+        reconcile_dem(dem_in("EPSG:4326+3855"), GEOCENTRIC_POSE, name="'dem.tif'")
+    assert "'dem.tif'" in str(e.value) and "--same-vertical-datum" in str(e.value)
+
+
+def test_geoid_grid_converts_orthometric_to_ellipsoidal(tmp_path):
+    path = tmp_path / "geoid.tif"
+    lon = np.arange(40) * 0.01 + 7.8
+    n = 47.0 + 0.5 * (lon - 8.0)[None, :].repeat(30, 0)  # undulation varying with longitude
+    with rasterio.open(path, "w", driver="GTiff", width=40, height=30, count=1, dtype="float32",
+                       crs="EPSG:4326", transform=Affine(0.01, 0, 7.795, 0, -0.01, 47.15)) as dst:
+        dst.write(n.astype(np.float32), 1)
+    dem = dem_in("EPSG:4326+3855")
+    out = reconcile_dem(dem, GEOCENTRIC_POSE, geoid=str(path))
+    x, _ = dem.transform @ (np.arange(20) + 0.5, np.zeros(20))
+    np.testing.assert_allclose(out.array[0], 400.0 + 47.0 + 0.5 * (x - 8.0), atol=1e-3)
+    assert height_kind(out.crs) is None and not out.crs.is_compound
+
+
+def test_undeclared_side_is_taken_as_the_other(caplog):
+    dem = dem_in("EPSG:4326")
+    with caplog.at_level(logging.INFO, logger="orthowarp"):
+        assert reconcile_dem(dem, GEOCENTRIC_POSE) is dem
+    assert "same vertical datum" in caplog.text
+
+
+def test_same_vertical_datum_overrides():
+    dem = dem_in("EPSG:4326+3855")
+    assert reconcile_dem(dem, GEOCENTRIC_POSE, same_vertical_datum=True) is dem
+
+
+def test_geolocate_applies_the_rule():
+    with pytest.raises(ParamError, match="geoid"):
+        ow.geolocate(ow.FrameCamera(50.0, 0.01, (100, 100)), GEOCENTRIC_POSE, [[50, 50]],
+                     dem=dem_in("EPSG:4326+3855"), device="cpu")
