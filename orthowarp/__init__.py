@@ -34,6 +34,7 @@ from .errors import (
 )
 from .pipeline.dem import Dem
 from .pipeline.geometry import geolocate, project
+from .pipeline.ortho import orthorectify
 from .pose import Pose
 
 __version__ = "0.1.0"
@@ -44,6 +45,7 @@ __all__ = [
     "Dem",
     "geolocate",
     "project",
+    "orthorectify",
     "OrthowarpError",
     "ParamError",
     "CrsError",

@@ -25,11 +25,13 @@ class _Group(click.Group):
 @click.group(cls=_Group)
 @click.version_option(package_name="orthowarp")
 @click.option("-v", "--verbose", count=True, help="More log output (-vv for debug).")
-@click.option("-q", "--quiet", is_flag=True, help="Only errors.")
-def main(verbose, quiet):
+@click.option("-q", "--quiet", is_flag=True, help="Only errors; no progress bars.")
+@click.pass_context
+def main(ctx, verbose, quiet):
     """orthowarp: rigorous orthorectification on the GPU with NVIDIA Warp."""
     import warp as wp
 
+    ctx.obj = {"quiet": quiet}
     level = logging.ERROR if quiet else (logging.DEBUG if verbose > 1 else logging.INFO if verbose else logging.WARNING)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
     if verbose < 2:  # Warp's own banner and module-load messages only with -vv
@@ -56,6 +58,73 @@ def demo(out_dir, device):
                f"max {s['check_max_m'] * 1000:.3f} mm ({s['check_max_px']:.2e} px)")
     click.echo(f"  ground -> pixel -> ground -> pixel round trip: max {s['round_trip_max_px']:.2e} px")
     click.echo(f"  outputs in {out_dir}/: {', '.join(s['outputs'])}")
+
+
+@main.command()
+@click.argument("images", nargs=-1, required=True, type=click.Path(dir_okay=False))
+@click.option("--int-param", "int_param", type=click.Path(dir_okay=False),
+              help="Interior orientation: orthority/ODM camera file (YAML/JSON) or reconstruction.json.")
+@click.option("--ext-param", "ext_param", required=True, type=click.Path(dir_okay=False),
+              help="Exterior orientation: CSV (x,y,z,omega,phi,kappa or latitude,longitude,altitude,roll,pitch,yaw), "
+                   "orthority GeoJSON or OpenSfM reconstruction.json.")
+@click.option("--dem", type=click.Path(dir_okay=False), help="DEM file (any CRS).")
+@click.option("--height", type=float, help="Constant terrain height (m) instead of a DEM.")
+@click.option("--crs", help="Output CRS, and the CRS of x,y,z poses that have no .prj (EPSG code, WKT or PROJ string).")
+@click.option("--resolution", type=float, help="Output pixel size in CRS units (default: mean GSD).")
+@click.option("--resampling", type=click.Choice(["nearest", "bilinear", "bicubic", "lanczos"]), default="bilinear",
+              show_default=True)
+@click.option("--driver", type=click.Choice(["cog", "gtiff"], case_sensitive=False), default="cog", show_default=True)
+@click.option("--compress", type=click.Choice(["deflate", "zstd", "lzw", "jpeg", "none"]), default="deflate",
+              show_default=True)
+@click.option("--dtype", type=click.Choice(["uint8", "uint16", "float32"]), help="Output data type (default: the source's).")
+@click.option("--out-dir", type=click.Path(file_okay=False), default=".", show_default=True)
+@click.option("--overwrite", is_flag=True, help="Replace existing outputs.")
+@click.option("--no-refraction", is_flag=True, help="Do not correct atmospheric refraction.")
+@click.option("--geoid", type=click.Path(dir_okay=False), help="Geoid grid for converting between DEM and position heights.")
+@click.option("--same-vertical-datum", is_flag=True, help="Take DEM and position heights as the same vertical datum.")
+@click.option("--device", default=None, help="Warp device (cpu, cuda, cuda:N); default: first GPU, else CPU.")
+@click.option("--tile-size", type=int, default=1024, show_default=True, help="Output tile edge (pixels).")
+@click.pass_context
+def ortho(ctx, images, int_param, ext_param, dem, height, crs, resolution, resampling, driver, compress, dtype,
+          out_dir, overwrite, no_refraction, geoid, same_vertical_datum, device, tile_size):
+    """Orthorectify frame IMAGES into (cloud-optimized) GeoTIFFs named <image>_ORTHO.tif."""
+    import os
+
+    from .errors import ParamError
+    from .pipeline.dem import Dem
+    from .pipeline.formats import read_cameras, read_exterior
+    from .pipeline.ortho import orthorectify
+
+    if (dem is None) == (height is None):
+        raise ParamError("Give exactly one of --dem FILE and --height METRES")
+    terrain = Dem.from_file(dem) if dem is not None else height
+    exterior = read_exterior(ext_param, crs=crs)
+    cameras = read_cameras(int_param) if int_param else read_cameras(ext_param)
+    jobs = []
+    for image in images:
+        key = os.path.splitext(os.path.basename(image))[0]
+        if key not in exterior:
+            raise ParamError(f"Image '{image}' is not in the exterior orientation file '{ext_param}'")
+        orient = exterior[key]
+        cam_id = orient.camera_id
+        if cam_id is None:
+            if len(cameras) != 1:
+                raise ParamError(f"'{ext_param}' names no camera for '{key}' and '{int_param}' holds "
+                                 f"{len(cameras)} cameras: add a camera column")
+            cam_id = next(iter(cameras))
+        if cam_id not in cameras:
+            raise ParamError(f"Camera '{cam_id}' of image '{key}' is not in '{int_param or ext_param}'")
+        jobs.append((image, cameras[cam_id], orient.pose, os.path.join(out_dir, f"{key}_ORTHO.tif")))
+    quiet = ctx.obj["quiet"]
+    for image, camera, pose, dst in jobs:
+        r = orthorectify(image, camera, pose, dst, dem=terrain, crs=crs, resolution=resolution,
+                         resampling=resampling, refraction=not no_refraction, dtype=dtype,
+                         driver="COG" if driver.lower() == "cog" else "GTiff", compress=compress,
+                         overwrite=overwrite, device=device, progress=not quiet, tile_size=tile_size,
+                         geoid=geoid, same_vertical_datum=same_vertical_datum)
+        if not quiet:
+            click.echo(f"{dst}: {r.shape[1]} x {r.shape[0]} px at {r.resolution:.4g}, {r.crs.name}, "
+                       f"{r.timings['wall']:.2f} s")
 
 
 if __name__ == "__main__":  # pragma: no cover

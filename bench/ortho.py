@@ -1,0 +1,180 @@
+"""Benchmark: orthorectification of a large frame, end to end and kernel-only, CPU and CUDA.
+
+Scene: the camera and pose of bench/geometry.py (f = 100.5 mm, 5.2 um pixels, 1930 m above
+ground, 1 m DEM, ~10 cm GSD) and a procedural 3-band uint8 source of 20000 x 13000 pixels
+written once as a tiled GeoTIFF. For each device:
+
+- end to end: ``orthowarp ortho`` in a subprocess (wall time and the child's peak RSS);
+- stages: ``orthowarp.orthorectify`` in process (seconds per stage summed over tiles);
+- kernel only: the coordinate and resampling kernels over the whole output with the source
+  resident on the device (output Gpix/s and Gpix/s per band).
+
+usage: python3 bench/ortho.py [--width W --height H] [--devices cpu,cuda:0] [--out FILE]
+"""
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+import rasterio
+import warp as wp
+import yaml
+from rasterio.windows import Window
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from geometry import scene  # noqa: E402
+
+from orthowarp.kernels import ortho as ok  # noqa: E402
+from orthowarp.pipeline.geometry import FrameGeometry  # noqa: E402
+from orthowarp.pipeline.ortho import RESAMPLING, orthorectify, output_grid  # noqa: E402
+
+
+# Runs the CLI in a child that reports its own peak resident memory when it exits.
+CLI_WRAPPER = """
+import atexit, resource, sys
+atexit.register(lambda: sys.stderr.write("\\nPEAK_RSS_KB %d\\n" % resource.getrusage(resource.RUSAGE_SELF).ru_maxrss))
+sys.argv = ["orthowarp"] + sys.argv[1:]
+from orthowarp.cli import main
+main()
+"""
+
+
+def write_source(path, width, height):
+    """Procedural 3-band uint8 image, written by row blocks (never whole in memory)."""
+    prof = dict(driver="GTiff", width=width, height=height, count=3, dtype="uint8", tiled=True,
+                blockxsize=512, blockysize=512)
+    with rasterio.open(path, "w", **prof) as dst:
+        for r0 in range(0, height, 512):
+            h = min(512, height - r0)
+            y, x = np.mgrid[r0:r0 + h, 0:width].astype(np.float32)
+            base = 128 + 60 * np.sin(x / 37.0) * np.cos(y / 53.0) + 40 * np.sin((x + y) / 11.0)
+            block = np.stack([base, np.roll(base, 7, axis=1), 255 - base]).clip(0, 255).astype(np.uint8)
+            dst.write(block, window=Window(0, r0, width, h))
+
+
+def write_orientation(folder, cam, pose, name):
+    p = pose.params
+    with open(os.path.join(folder, "camera.yaml"), "w") as f:
+        yaml.safe_dump({"bench": {"type": "brown", "im_size": list(cam.image_size), "focal_len": cam.focal_length,
+                                  "sensor_size": [cam.image_size[0] * cam.pixel_size[0], cam.image_size[1] * cam.pixel_size[1]],
+                                  "cx": 0.0, "cy": 0.0, "k1": cam.k1, "k2": cam.k2, "k3": cam.k3, "p1": cam.p1, "p2": cam.p2}}, f)
+    with open(os.path.join(folder, "ext.csv"), "w") as f:
+        f.write("filename,latitude,longitude,altitude,roll,pitch,yaw\n")
+        f.write(f"{name},{p['lat']},{p['lon']},{p['h']},{p['roll']},{p['pitch']},{p['yaw']}\n")
+
+
+def kernel_only(geom, src_path, resampling, repeats=3):
+    """Coordinate + resampling kernels over the whole output, source resident on the device."""
+    dev = geom.device
+    crs, transform, shape, res = output_grid(geom)
+    from pyproj import Transformer
+    step = 16
+    rows, cols = shape
+    ki = np.arange(-(-(rows - 1) // step) + 1) * step
+    kj = np.arange(-(-(cols - 1) // step) + 1) * step
+    jj, ii = np.meshgrid(kj + 0.5, ki + 0.5)
+    x, y = transform @ (jj, ii)
+    u, v = Transformer.from_crs(crs, "EPSG:4326", always_xy=True).transform(x, y)
+    coarse = wp.array(np.ascontiguousarray(np.stack([u, v], -1)), dtype=wp.vec2d, device=dev)
+    with rasterio.open(src_path) as ds:
+        data = ds.read(out_dtype="float32")
+    sw = ok.SourceWindow()
+    sw.data = wp.array(data, dtype=wp.float32, device=dev)
+    del data
+    sw.valid = wp.array(np.ones(sw.data.shape[1:], np.uint8), dtype=wp.uint8, device=dev)
+    sw.col0 = sw.row0 = 0
+    sw.width, sw.height = float(geom.camera.image_size[0]), float(geom.camera.image_size[1])
+    cam, pose, refr, dem, _ = geom.structs()
+    coords = wp.empty(shape, dtype=wp.vec2d, device=dev)
+    bounds = wp.empty(4, dtype=wp.float32, device=dev)
+    out = wp.empty((3, rows, cols), dtype=wp.float32, device=dev)
+    valid = wp.empty(shape, dtype=wp.uint8, device=dev)
+    method = RESAMPLING[resampling]
+    args_c = [cam, pose, refr, dem, coarse, step, sw.width, sw.height, coords, bounds]
+
+    def run():
+        bounds.fill_(np.inf)
+        wp.launch(ok.ortho_coords_kernel, dim=shape, inputs=args_c, device=dev)
+        wp.launch(ok.ortho_resample_kernel, dim=shape, inputs=[sw, coords, method, out, valid], device=dev)
+        wp.synchronize_device(dev)
+
+    run()
+    best = 1e9
+    for _ in range(repeats):
+        t = time.perf_counter()
+        run()
+        best = min(best, time.perf_counter() - t)
+    npx = rows * cols
+    return dict(output_pixels=npx, kernel_s=best, kernel_gpix_s=npx / best / 1e9,
+                kernel_gpix_s_per_band=3 * npx / best / 1e9)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--width", type=int, default=20000)
+    ap.add_argument("--height", type=int, default=13000)
+    ap.add_argument("--devices", default=None)
+    ap.add_argument("--resampling", default="bilinear")
+    ap.add_argument("--workdir", default=None)
+    ap.add_argument("--skip-cli", action="store_true", help="skip the end-to-end CLI runs")
+    ap.add_argument("--out", default="bench/results/ortho.json")
+    args = ap.parse_args(argv)
+    wp.config.log_level = wp.LOG_WARNING
+    wp.init()
+    devices = args.devices.split(",") if args.devices else (["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() else []))
+    work = args.workdir or tempfile.mkdtemp(prefix="orthowarp-bench-")
+    os.makedirs(work, exist_ok=True)
+    cam, pose, dem = scene(args.width, args.height)
+    src = os.path.join(work, "frame.tif")
+    dem_path = os.path.join(work, "dem.tif")
+    t = time.perf_counter()
+    if not os.path.exists(src):
+        write_source(src, args.width, args.height)
+    with rasterio.open(dem_path, "w", driver="GTiff", width=dem.shape[1], height=dem.shape[0], count=1,
+                       dtype="float32", crs="EPSG:4326", transform=dem.transform, tiled=True) as dst:
+        dst.write(dem.array, 1)
+    write_orientation(work, cam, pose, "frame")
+    report = dict(benchmark="ortho", image=[args.width, args.height, 3], dtype="uint8", resampling=args.resampling,
+                  dem_shape=list(dem.shape), setup_s=time.perf_counter() - t, cpu_count=os.cpu_count(),
+                  warp=wp.__version__, results=[])
+    for name in devices:
+        geom = FrameGeometry(cam, pose, dem, device=name)
+        r = dict(device=str(geom.device), device_name=geom.device.name)
+        r.update(kernel_only(geom, src, args.resampling))
+        t = time.perf_counter()
+        res = orthorectify(src, cam, pose, os.path.join(work, f"inproc_{r['device'].replace(':', '')}.tif"),
+                           dem=dem, resampling=args.resampling, overwrite=True, device=name)
+        r["in_process_wall_s"] = time.perf_counter() - t
+        r["stages_s"] = res.timings
+        r["ortho_shape"] = list(res.shape)
+        r["kernel_fraction_of_wall"] = res.timings["kernel"] / res.timings["wall"]
+        if not args.skip_cli:
+            cmd = [sys.executable, "-c", CLI_WRAPPER, "-q", "ortho", src, "--int-param", os.path.join(work, "camera.yaml"),
+                   "--ext-param", os.path.join(work, "ext.csv"), "--dem", dem_path, "--out-dir", work, "--overwrite",
+                   "--resampling", args.resampling, "--device", name]
+            t = time.perf_counter()
+            proc = subprocess.run(cmd, capture_output=True, text=True)
+            r["cli_wall_s"] = time.perf_counter() - t
+            r["cli_returncode"] = proc.returncode
+            peak = [line for line in proc.stderr.splitlines() if line.startswith("PEAK_RSS_KB ")]
+            r["cli_peak_rss_mb"] = int(peak[-1].split()[1]) / 1024 if peak else None
+            if proc.returncode:
+                r["cli_stderr"] = proc.stderr[-2000:]
+        report["results"].append(r)
+        print(f"{r['device_name']:>24s} kernel {r['kernel_gpix_s']:.3f} Gpix/s ({r['kernel_gpix_s_per_band']:.3f} per band) "
+              f"in-process {r['in_process_wall_s']:.1f} s  cli {r.get('cli_wall_s', float('nan')):.1f} s "
+              f"peak {r.get('cli_peak_rss_mb') or float('nan'):.0f} MB  stages {({k: round(v, 2) for k, v in res.timings.items()})}",
+              flush=True)
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+    with open(args.out, "w") as f:
+        json.dump(report, f, indent=2)
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
