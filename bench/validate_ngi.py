@@ -1,0 +1,153 @@
+"""Real-data validation: the four NGI aerial frames of orthority's test data.
+
+Orthorectifies the frames with their DEM and orientation files, then measures by tile-wise
+phase correlation (orthowarp.pipeline.registration):
+
+1. overlapping orthowarp orthos against each other (shift and correlation in the overlaps);
+2. each orthowarp ortho against orthority's ortho of the same frame (``oty frame`` run with the
+   same resolution, bilinear resampling, bilinear DEM interpolation and aligned pixels).
+
+orthority models no refraction, so the comparison uses ``refraction=False``; the refraction
+effect is reported separately. Reads the shared sample data, which tests must not.
+
+usage: python3 bench/validate_ngi.py [--data ../shared/data/orthority] [--oty PATH/TO/oty]
+                                     [--oty-dir DIR] [--out bench/results/validate_ngi.json]
+"""
+
+import argparse
+import glob
+import itertools
+import json
+import os
+import subprocess
+import sys
+import tempfile
+
+import numpy as np
+import rasterio
+import warp as wp
+from rasterio.windows import from_bounds
+
+import orthowarp as ow
+from orthowarp.pipeline.formats import read_cameras, read_exterior
+from orthowarp.pipeline.registration import misregistration
+
+RES = 5.0
+
+
+def gray(ds, window):
+    data = ds.read(window=window, boundless=True, fill_value=0).astype(np.float64)
+    mask = ds.read_masks(1, window=window, boundless=True) > 0
+    return data.mean(axis=0), mask
+
+
+def overlap(path_a, path_b):
+    """Grey-level arrays and common validity of two orthos over their common bounds."""
+    with rasterio.open(path_a) as a, rasterio.open(path_b) as b:
+        left, right = max(a.bounds.left, b.bounds.left), min(a.bounds.right, b.bounds.right)
+        bottom, top = max(a.bounds.bottom, b.bounds.bottom), min(a.bounds.top, b.bounds.top)
+        if right - left < 64 * RES or top - bottom < 64 * RES:
+            return None
+        wa = from_bounds(left, bottom, right, top, a.transform).round_offsets().round_lengths()
+        wb = from_bounds(left, bottom, right, top, b.transform).round_offsets().round_lengths()
+        wb = rasterio.windows.Window(wb.col_off, wb.row_off, wa.width, wa.height)
+        ga, ma = gray(a, wa)
+        gb, mb = gray(b, wb)
+    return ga, gb, ma & mb
+
+
+def compare(path_ref, path_mov):
+    o = overlap(path_ref, path_mov)
+    if o is None:
+        return None
+    ga, gb, valid = o
+    if valid.sum() < 64 * 64:
+        return None
+    m = misregistration(ga, gb, valid=valid, tile=64, min_valid=0.9)
+    corr = float(np.corrcoef(ga[valid], gb[valid])[0, 1])
+    return dict(valid_pixels=int(valid.sum()), tiles=m["n_tiles"], rms_px=m["rms"], max_px=m["max"],
+                mean_dy_px=float(m["mean"][0]), mean_dx_px=float(m["mean"][1]), peak=m["peak"], correlation=corr)
+
+
+def main(argv=None):
+    here = os.path.dirname(os.path.abspath(__file__))
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", default=os.path.join(here, "..", "..", "shared", "data", "orthority"))
+    ap.add_argument("--oty", default=None, help="orthority's oty executable (runs it)")
+    ap.add_argument("--oty-dir", default=None, help="folder with orthority orthos already made")
+    ap.add_argument("--work", default=None)
+    ap.add_argument("--device", default=None)
+    ap.add_argument("--out", default="bench/results/validate_ngi.json")
+    args = ap.parse_args(argv)
+    wp.config.log_level = wp.LOG_WARNING
+    data = os.path.abspath(args.data)
+    work = args.work or tempfile.mkdtemp(prefix="orthowarp-ngi-")
+    images = sorted(glob.glob(os.path.join(data, "ngi", "*_RGB.tif")))
+    int_param = os.path.join(data, "io", "ngi_int_param.yaml")
+    ext_param = os.path.join(data, "io", "ngi_xyz_opk.csv")
+    dem_path = os.path.join(data, "ngi", "dem.tif")
+    cams = read_cameras(int_param)
+    ext = read_exterior(ext_param)
+    dem = ow.Dem.from_file(dem_path)
+    camera = next(iter(cams.values()))
+    ours = {}
+    for refraction in (False, True):
+        for img in images:
+            key = os.path.splitext(os.path.basename(img))[0]
+            dst = os.path.join(work, f"{key}_{'refr' if refraction else 'norefr'}.tif")
+            ow.orthorectify(img, cams.get(ext[key].camera_id, camera), ext[key].pose, dst, dem=dem, resolution=RES,
+                            resampling="bilinear", refraction=refraction, overwrite=True, device=args.device)
+            ours[(key, refraction)] = dst
+    report = dict(data=data, resolution=RES, pairs=[], orthority=[], refraction_effect=[])
+    keys = [os.path.splitext(os.path.basename(p))[0] for p in images]
+    print("overlapping orthowarp orthos (refraction off):")
+    for a, b in itertools.combinations(keys, 2):
+        r = compare(ours[(a, False)], ours[(b, False)])
+        if r is None:
+            continue
+        r.update(a=a, b=b)
+        report["pairs"].append(r)
+        print(f"  {a[-8:]} / {b[-8:]}: {r['tiles']:3d} tiles, shift RMS {r['rms_px']:.3f} px, mean "
+              f"({r['mean_dx_px']:+.3f}, {r['mean_dy_px']:+.3f}) px, peak {r['peak']:.2f}, correlation {r['correlation']:.3f}")
+    oty_dir = args.oty_dir
+    if oty_dir is None and args.oty:
+        oty_dir = os.path.join(work, "orthority")
+        os.makedirs(oty_dir, exist_ok=True)
+        subprocess.run([args.oty, "frame", "--dem", dem_path, "--int-param", int_param, "--ext-param", ext_param,
+                        "--res", str(RES), "--aligned-pixels", "--interp", "bilinear", "--dem-interp", "bilinear",
+                        "--out-dir", oty_dir, "--overwrite", *images], check=True, capture_output=True)
+    if oty_dir:
+        print("orthowarp vs orthority 0.7.0 (same frame):")
+        for k in keys:
+            r = compare(os.path.join(oty_dir, f"{k}_ORTHO.tif"), ours[(k, False)])
+            r.update(image=k)
+            report["orthority"].append(r)
+            print(f"  {k[-8:]}: {r['tiles']:3d} tiles, shift RMS {r['rms_px']:.3f} px, max {r['max_px']:.3f}, mean "
+                  f"({r['mean_dx_px']:+.3f}, {r['mean_dy_px']:+.3f}) px, correlation {r['correlation']:.3f}")
+        print("overlapping orthority orthos, for reference (same statistics):")
+        report["orthority_pairs"] = []
+        for a, b in itertools.combinations(keys, 2):
+            r = compare(os.path.join(oty_dir, f"{a}_ORTHO.tif"), os.path.join(oty_dir, f"{b}_ORTHO.tif"))
+            if r is None:
+                continue
+            r.update(a=a, b=b)
+            report["orthority_pairs"].append(r)
+            print(f"  {a[-8:]} / {b[-8:]}: {r['tiles']:3d} tiles, shift RMS {r['rms_px']:.3f} px, mean "
+                  f"({r['mean_dx_px']:+.3f}, {r['mean_dy_px']:+.3f}) px, peak {r['peak']:.2f}, correlation {r['correlation']:.3f}")
+    print("refraction on vs off (orthowarp):")
+    for k in keys:
+        r = compare(ours[(k, False)], ours[(k, True)])
+        r.update(image=k)
+        report["refraction_effect"].append(r)
+        print(f"  {k[-8:]}: mean shift ({r['mean_dx_px']:+.3f}, {r['mean_dy_px']:+.3f}) px, RMS {r['rms_px']:.3f} px")
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+    with open(args.out, "w") as f:
+        json.dump(report, f, indent=2)
+    print(f"wrote {args.out}")
+    worst_pair = max((r["rms_px"] for r in report["pairs"]), default=float("nan"))
+    worst_oty = max((r["rms_px"] for r in report["orthority"]), default=float("nan"))
+    return 0 if (worst_pair <= 0.3 and (not report["orthority"] or worst_oty <= 0.25)) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
