@@ -57,6 +57,10 @@ def demo(out_dir, device):
     click.echo(f"  accuracy vs scene truth ({s['check_points']} points on the terrain): RMS {s['check_rms_m'] * 1000:.3f} mm, "
                f"max {s['check_max_m'] * 1000:.3f} mm ({s['check_max_px']:.2e} px)")
     click.echo(f"  ground -> pixel -> ground -> pixel round trip: max {s['round_trip_max_px']:.2e} px")
+    click.echo(f"  orthoimage {s['ortho_size'][0]}x{s['ortho_size'][1]} at {s['ortho_resolution_m']:.2f} m ({s['ortho_crs']}), "
+               f"{s['ortho_seconds']:.2f} s; misregistration vs truth texture over {s['ortho_misregistration_tiles']} tiles: "
+               f"RMS {s['ortho_misregistration_rms_px']:.3f} px, mean ({s['ortho_misregistration_mean_px'][0]:+.3f}, "
+               f"{s['ortho_misregistration_mean_px'][1]:+.3f}) px")
     click.echo(f"  outputs in {out_dir}/: {', '.join(s['outputs'])}")
 
 
