@@ -34,14 +34,29 @@ from orthowarp.pipeline.geometry import FrameGeometry  # noqa: E402
 from orthowarp.pipeline.ortho import RESAMPLING, orthorectify, output_grid  # noqa: E402
 
 
-# Runs the CLI in a child that reports its own peak resident memory when it exits.
+# Runs a click CLI (module, function) in a child that reports its own peak resident memory when it
+# exits: VmHWM of /proc/self/status (ru_maxrss would include the forking parent's pages).
 CLI_WRAPPER = """
-import atexit, resource, sys
-atexit.register(lambda: sys.stderr.write("\\nPEAK_RSS_KB %d\\n" % resource.getrusage(resource.RUSAGE_SELF).ru_maxrss))
-sys.argv = ["orthowarp"] + sys.argv[1:]
-from orthowarp.cli import main
-main()
+import atexit, importlib, sys
+def _peak():
+    with open("/proc/self/status") as f:
+        kb = [int(line.split()[1]) for line in f if line.startswith("VmHWM:")][0]
+    sys.stderr.write("\\nPEAK_RSS_KB %d\\n" % kb)
+atexit.register(_peak)
+module, func = sys.argv[1].split(":")
+sys.argv = [module] + sys.argv[2:]
+getattr(importlib.import_module(module), func)()
 """
+
+
+def run_cli(python, entry, args):
+    """Wall time (s), peak RSS (MB), return code and stderr tail of a CLI run."""
+    t = time.perf_counter()
+    proc = subprocess.run([python, "-c", CLI_WRAPPER, entry, *args], capture_output=True, text=True)
+    wall = time.perf_counter() - t
+    peak = [line for line in proc.stderr.splitlines() if line.startswith("PEAK_RSS_KB ")]
+    return dict(wall_s=wall, peak_rss_mb=int(peak[-1].split()[1]) / 1024 if peak else None,
+                returncode=proc.returncode, stderr=proc.stderr[-1500:] if proc.returncode else "")
 
 
 def write_source(path, width, height):
@@ -114,6 +129,12 @@ def kernel_only(geom, src_path, resampling, repeats=3):
                 kernel_gpix_s_per_band=3 * npx / best / 1e9)
 
 
+def _save(report, path):
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    with open(path, "w") as f:
+        json.dump(report, f, indent=2)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--width", type=int, default=20000)
@@ -122,6 +143,7 @@ def main(argv=None):
     ap.add_argument("--resampling", default="bilinear")
     ap.add_argument("--workdir", default=None)
     ap.add_argument("--skip-cli", action="store_true", help="skip the end-to-end CLI runs")
+    ap.add_argument("--oty-python", default=None, help="a Python with orthority 0.7.0: run it side by side")
     ap.add_argument("--out", default="bench/results/ortho.json")
     args = ap.parse_args(argv)
     wp.config.log_level = wp.LOG_WARNING
@@ -145,7 +167,7 @@ def main(argv=None):
     for name in devices:
         geom = FrameGeometry(cam, pose, dem, device=name)
         r = dict(device=str(geom.device), device_name=geom.device.name)
-        r.update(kernel_only(geom, src, args.resampling))
+        r.update(kernel_only(geom, src, args.resampling, repeats=3 if geom.device.is_cuda else 1))
         t = time.perf_counter()
         res = orthorectify(src, cam, pose, os.path.join(work, f"inproc_{r['device'].replace(':', '')}.tif"),
                            dem=dem, resampling=args.resampling, overwrite=True, device=name)
@@ -154,22 +176,32 @@ def main(argv=None):
         r["ortho_shape"] = list(res.shape)
         r["kernel_fraction_of_wall"] = res.timings["kernel"] / res.timings["wall"]
         if not args.skip_cli:
-            cmd = [sys.executable, "-c", CLI_WRAPPER, "-q", "ortho", src, "--int-param", os.path.join(work, "camera.yaml"),
-                   "--ext-param", os.path.join(work, "ext.csv"), "--dem", dem_path, "--out-dir", work, "--overwrite",
-                   "--resampling", args.resampling, "--device", name]
-            t = time.perf_counter()
-            proc = subprocess.run(cmd, capture_output=True, text=True)
-            r["cli_wall_s"] = time.perf_counter() - t
-            r["cli_returncode"] = proc.returncode
-            peak = [line for line in proc.stderr.splitlines() if line.startswith("PEAK_RSS_KB ")]
-            r["cli_peak_rss_mb"] = int(peak[-1].split()[1]) / 1024 if peak else None
-            if proc.returncode:
-                r["cli_stderr"] = proc.stderr[-2000:]
+            r["cli"] = run_cli(sys.executable, "orthowarp.cli:main", [
+                "-q", "ortho", src, "--int-param", os.path.join(work, "camera.yaml"), "--ext-param",
+                os.path.join(work, "ext.csv"), "--dem", dem_path, "--out-dir", work, "--overwrite", "--resolution",
+                repr(res.resolution), "--resampling", args.resampling, "--device", name])
         report["results"].append(r)
+        _save(report, args.out)
+        cli = r.get("cli", {})
         print(f"{r['device_name']:>24s} kernel {r['kernel_gpix_s']:.3f} Gpix/s ({r['kernel_gpix_s_per_band']:.3f} per band) "
-              f"in-process {r['in_process_wall_s']:.1f} s  cli {r.get('cli_wall_s', float('nan')):.1f} s "
-              f"peak {r.get('cli_peak_rss_mb') or float('nan'):.0f} MB  stages {({k: round(v, 2) for k, v in res.timings.items()})}",
+              f"in-process {r['in_process_wall_s']:.1f} s  cli {cli.get('wall_s', float('nan')):.1f} s "
+              f"peak {cli.get('peak_rss_mb') or float('nan'):.0f} MB  stages {({k: round(v, 2) for k, v in res.timings.items()})}",
               flush=True)
+        resolution = res.resolution
+    if args.oty_python:
+        oty_dir = os.path.join(work, "orthority")
+        os.makedirs(oty_dir, exist_ok=True)
+        interp = {"bilinear": "bilinear", "bicubic": "cubic", "lanczos": "lanczos", "nearest": "nearest"}[args.resampling]
+        o = run_cli(args.oty_python, "orthority.cli:cli", [
+            "frame", "--dem", dem_path, "--int-param", os.path.join(work, "camera.yaml"), "--ext-param",
+            os.path.join(work, "ext.csv"), "--res", repr(resolution), "--interp", interp, "--dem-interp", "bilinear",
+            "--compress", "deflate", "--out-dir", oty_dir, "--overwrite", src])
+        report["orthority"] = o
+        print(f"{'orthority 0.7.0 (CPU)':>24s} cli {o['wall_s']:.1f} s peak {o['peak_rss_mb'] or float('nan'):.0f} MB "
+              f"rc {o['returncode']} {o['stderr'][-300:]}", flush=True)
+        for r in report["results"]:
+            if "cli" in r and o["returncode"] == 0:
+                r["speedup_vs_orthority"] = o["wall_s"] / r["cli"]["wall_s"]
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     with open(args.out, "w") as f:
         json.dump(report, f, indent=2)

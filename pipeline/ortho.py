@@ -303,7 +303,7 @@ def orthorectify(src, camera, pose, dst, *, dem, crs=None, resolution=None, resa
 
 def _creation_options(compress, dtype):
     opts = dict(tiled=True, blockxsize=512, blockysize=512, compress=compress.upper() if compress != "none" else None,
-                BIGTIFF="IF_SAFER")
+                BIGTIFF="IF_SAFER", NUM_THREADS="ALL_CPUS")  # GDAL compresses blocks on all cores
     if compress in ("deflate", "zstd", "lzw") and dtype != "float32":
         opts["predictor"] = 2
     return {k: v for k, v in opts.items() if v is not None}
@@ -422,9 +422,12 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
             ds.close()
 
 
+_OPEN_LOCK = threading.Lock()  # warnings.catch_warnings is not thread-safe
+
+
 def _open_source(path):
     """Open a source image for reading; frame images are usually not georeferenced."""
-    with warnings.catch_warnings():
+    with _OPEN_LOCK, warnings.catch_warnings():
         warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
         return rasterio.open(path)
 
@@ -454,7 +457,7 @@ def _finish(work, final, driver, compress, overviews, dtype):
                 ds.build_overviews(factors, rasterio.enums.Resampling.average)
     if driver == "COG":
         opts = dict(compress=compress.upper() if compress != "none" else "NONE", blocksize=512,
-                    overviews="FORCE_USE_EXISTING", BIGTIFF="IF_SAFER")
+                    overviews="FORCE_USE_EXISTING", BIGTIFF="IF_SAFER", NUM_THREADS="ALL_CPUS")
         if compress in ("deflate", "zstd", "lzw") and dtype != "float32":
             opts["predictor"] = "YES"
         if compress == "jpeg":
