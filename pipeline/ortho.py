@@ -290,7 +290,7 @@ def orthorectify(src, camera, pose, dst, *, dem, crs=None, resolution=None, resa
         work = tmp_final if driver == "GTiff" else tmp_final + ".work.tif"
         try:
             _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, work,
-                    resampling, tile_size, progress, workers, timer)
+                    resampling, tile_size, progress, workers, timer, dst)
             t0 = time.perf_counter()
             _finish(work, tmp_final, driver, compress, overviews, out_dtype)
             timer.t["finish"] = time.perf_counter() - t0
@@ -310,7 +310,7 @@ def _creation_options(compress, dtype):
 
 
 def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, path, resampling,
-            tile_size, progress, workers, timer):
+            tile_size, progress, workers, timer, final_name):
     rows, cols = shape
     is_float = out_dtype == "float32"
     profile = dict(driver="GTiff", width=cols, height=rows, count=count, dtype=out_dtype,
@@ -369,8 +369,11 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
                 wr1 = min(int(math.ceil(-b[3])) + radius + 1, h_img)
                 t = time.perf_counter()
                 win = Window(wc0, wr0, wc1 - wc0, wr1 - wr0)
-                data = ds.read(window=win, out_dtype="float32")
-                valid = (ds.dataset_mask(window=win) > 0).astype(np.uint8)
+                try:
+                    data = ds.read(window=win, out_dtype="float32")
+                    valid = (ds.dataset_mask(window=win) > 0).astype(np.uint8)
+                except RasterioIOError as e:
+                    raise RasterIOError(f"Could not read image '{src}': {e}") from e
                 timer.add("read", time.perf_counter() - t)
                 t = time.perf_counter()
                 sw = ortho_kernels.SourceWindow()
@@ -399,15 +402,21 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
                 block = np.zeros((count, th, tw), out_dtype)
                 if out is not None:
                     block[:, mask] = np.clip(np.rint(out[:, mask]), info.min, info.max).astype(out_dtype)
-            with write_lock:
-                dst.write(block, window=Window(c0, r0, tw, th))
-                if not is_float:
-                    dst.write_mask(mask.astype(np.uint8) * 255, window=Window(c0, r0, tw, th))
+            try:
+                with write_lock:
+                    dst.write(block, window=Window(c0, r0, tw, th))
+                    if not is_float:
+                        dst.write_mask(mask.astype(np.uint8) * 255, window=Window(c0, r0, tw, th))
+            except RasterioIOError as e:
+                raise RasterIOError(f"Could not write the orthoimage '{final_name}': {e}") from e
             timer.add("write", time.perf_counter() - t)
 
     n_workers = workers or (4 if device.is_cuda else (os.cpu_count() or 1))
     try:
-        with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True), rasterio.open(path, "w", **profile) as dst:
+        # A bounded GDAL block cache: the default (5 % of RAM) would hold gigabytes of written
+        # blocks before flushing them.
+        with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True, GDAL_CACHEMAX=256), \
+                rasterio.open(path, "w", **profile) as dst:
             bar = _progress(len(tiles)) if progress else None
             with ThreadPoolExecutor(max_workers=n_workers) as pool:
                 for _ in pool.map(run, tiles):
@@ -416,7 +425,7 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
             if bar is not None:
                 bar.close()
     except RasterioIOError as e:
-        raise RasterIOError(f"Could not write '{path}': {e}") from e
+        raise RasterIOError(f"Could not write the orthoimage '{final_name}': {e}") from e
     finally:
         for ds in handles:
             ds.close()
@@ -449,7 +458,7 @@ def _progress(total):
 def _finish(work, final, driver, compress, overviews, dtype):
     """Overviews, then (for COG) a copy in the cloud-optimized layout."""
     if driver == "COG" or overviews:
-        with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True), rasterio.open(work, "r+") as ds:
+        with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True, GDAL_CACHEMAX=256), rasterio.open(work, "r+") as ds:
             factors, size = [], max(ds.width, ds.height)
             while size / (2 ** (len(factors) + 1)) >= 256:
                 factors.append(2 ** (len(factors) + 1))
