@@ -289,8 +289,10 @@ def orthorectify(src, camera, pose, dst, *, dem, crs=None, resolution=None, resa
     with atomic_path(dst) as tmp_final:
         work = tmp_final if driver == "GTiff" else tmp_final + ".work.tif"
         try:
-            _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, work,
-                    resampling, tile_size, progress, workers, timer, dst)
+            # a COG is compressed once, by the final copy; its work file stays uncompressed
+            _render(src, geom, out_crs, transform, shape, count, out_dtype,
+                    compress if driver == "GTiff" else "none", work, resampling, tile_size, progress,
+                    workers, timer, dst)
             t0 = time.perf_counter()
             _finish(work, tmp_final, driver, compress, overviews, out_dtype)
             timer.t["finish"] = time.perf_counter() - t0
@@ -315,7 +317,9 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
     is_float = out_dtype == "float32"
     profile = dict(driver="GTiff", width=cols, height=rows, count=count, dtype=out_dtype,
                    crs=rasterio.crs.CRS.from_wkt(out_crs.to_wkt()), transform=transform,
-                   **_creation_options("deflate" if compress == "jpeg" else compress, out_dtype))
+                   **_creation_options(compress, out_dtype))
+    if compress == "jpeg":
+        profile.update(JPEG_QUALITY=90, **({"photometric": "YCBCR"} if count == 3 else {}))
     if is_float:
         profile["nodata"] = float("nan")
     frame_crs = _pose_horizontal_crs(geom.pose)
