@@ -1,4 +1,4 @@
-"""Real-data validation: the four NGI aerial frames of orthority's test data.
+"""Real-data validation on orthority's test data: the NGI aerial frames or the ODM drone frames.
 
 Orthorectifies the frames with their DEM and orientation files, then measures by tile-wise
 phase correlation (orthowarp.pipeline.registration):
@@ -10,8 +10,8 @@ phase correlation (orthowarp.pipeline.registration):
 orthority models no refraction, so the comparison uses ``refraction=False``; the refraction
 effect is reported separately. Reads the shared sample data, which tests must not.
 
-usage: python3 bench/validate_ngi.py [--data ../shared/data/orthority] [--oty PATH/TO/oty]
-                                     [--oty-dir DIR] [--out bench/results/validate_ngi.json]
+usage: python3 bench/validate_orthority.py [--dataset ngi|odm] [--data ../shared/data/orthority]
+                                           [--oty PATH/TO/oty] [--oty-dir DIR] [--out FILE]
 """
 
 import argparse
@@ -32,6 +32,12 @@ import orthowarp as ow
 from orthowarp.pipeline.formats import read_cameras, read_exterior
 from orthowarp.pipeline.registration import misregistration
 
+# images, interior and exterior orientation, DEM (relative to the data folder), resolution (m)
+DATASETS = {
+    "ngi": ("ngi/*_RGB.tif", "io/ngi_int_param.yaml", "io/ngi_xyz_opk.csv", "ngi/dem.tif", 5.0),
+    "odm": ("odm/images/*.tif", "odm/opensfm/reconstruction.json", "odm/opensfm/reconstruction.json",
+            "odm/odm_dem/dsm.tif", 0.25),
+}
 RES = 5.0
 
 
@@ -72,20 +78,24 @@ def compare(path_ref, path_mov):
 def main(argv=None):
     here = os.path.dirname(os.path.abspath(__file__))
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--dataset", choices=sorted(DATASETS), default="ngi")
     ap.add_argument("--data", default=os.path.join(here, "..", "..", "shared", "data", "orthority"))
     ap.add_argument("--oty", default=None, help="orthority's oty executable (runs it)")
     ap.add_argument("--oty-dir", default=None, help="folder with orthority orthos already made")
     ap.add_argument("--work", default=None)
     ap.add_argument("--device", default=None)
-    ap.add_argument("--out", default="bench/results/validate_ngi.json")
+    ap.add_argument("--out", default=None, help="default: bench/results/validate_<dataset>.json")
     args = ap.parse_args(argv)
+    global RES
+    pattern, int_rel, ext_rel, dem_rel, RES = DATASETS[args.dataset]
+    args.out = args.out or f"bench/results/validate_{args.dataset}.json"
     wp.config.log_level = wp.LOG_WARNING
     data = os.path.abspath(args.data)
-    work = args.work or tempfile.mkdtemp(prefix="orthowarp-ngi-")
-    images = sorted(glob.glob(os.path.join(data, "ngi", "*_RGB.tif")))
-    int_param = os.path.join(data, "io", "ngi_int_param.yaml")
-    ext_param = os.path.join(data, "io", "ngi_xyz_opk.csv")
-    dem_path = os.path.join(data, "ngi", "dem.tif")
+    work = args.work or tempfile.mkdtemp(prefix=f"orthowarp-{args.dataset}-")
+    images = sorted(glob.glob(os.path.join(data, pattern)))
+    int_param = os.path.join(data, int_rel)
+    ext_param = os.path.join(data, ext_rel)
+    dem_path = os.path.join(data, dem_rel)
     cams = read_cameras(int_param)
     ext = read_exterior(ext_param)
     dem = ow.Dem.from_file(dem_path)
@@ -98,7 +108,7 @@ def main(argv=None):
             ow.orthorectify(img, cams.get(ext[key].camera_id, camera), ext[key].pose, dst, dem=dem, resolution=RES,
                             resampling="bilinear", refraction=refraction, overwrite=True, device=args.device)
             ours[(key, refraction)] = dst
-    report = dict(data=data, resolution=RES, pairs=[], orthority=[], refraction_effect=[])
+    report = dict(dataset=args.dataset, data=data, resolution=RES, pairs=[], orthority=[], refraction_effect=[])
     keys = [os.path.splitext(os.path.basename(p))[0] for p in images]
     print("overlapping orthowarp orthos (refraction off):")
     for a, b in itertools.combinations(keys, 2):
