@@ -87,7 +87,7 @@ def demo(out_dir, device):
 @click.option("--geoid", type=click.Path(dir_okay=False), help="Geoid grid for converting between DEM and position heights.")
 @click.option("--same-vertical-datum", is_flag=True, help="Take DEM and position heights as the same vertical datum.")
 @click.option("--device", default=None, help="Warp device (cpu, cuda, cuda:N); default: first GPU, else CPU.")
-@click.option("--tile-size", type=int, default=1024, show_default=True, help="Output tile edge (pixels).")
+@click.option("--tile-size", type=int, default=None, help="Output tile edge (pixels); default 1024 on the CPU, up to 4096 on a GPU.")
 @click.pass_context
 def ortho(ctx, images, int_param, ext_param, dem, height, crs, resolution, resampling, driver, compress, dtype,
           out_dir, overwrite, no_refraction, geoid, same_vertical_datum, device, tile_size):

@@ -27,7 +27,7 @@ from pyproj import CRS, Transformer
 from rasterio.errors import RasterioIOError
 from rasterio.windows import Window
 
-from .._validate import as_crs, finite, points
+from .._validate import as_crs, finite
 from ..camera import FrameCamera
 from ..errors import GeometryError, ParamError, RasterIOError
 from ..kernels import ortho as ortho_kernels
@@ -198,7 +198,7 @@ class _Timer:
 
 def orthorectify(src, camera, pose, dst, *, dem, crs=None, resolution=None, resampling="bilinear",
                  refraction=True, dtype=None, driver="COG", compress="deflate", overviews=True,
-                 tile_size=1024, overwrite=False, device=None, progress=False, workers=None,
+                 tile_size=None, overwrite=False, device=None, progress=False, workers=None,
                  geoid=None, same_vertical_datum=False):
     """Orthorectify one frame image into a GeoTIFF / cloud-optimized GeoTIFF.
 
@@ -231,7 +231,9 @@ def orthorectify(src, camera, pose, dst, *, dem, crs=None, resolution=None, resa
     overviews : bool, optional
         Build internal overviews (always for COG).
     tile_size : int, optional
-        Output tile edge in pixels (multiple of 16).
+        Output tile edge in pixels (multiple of 16); default: 1024 on the CPU, on a GPU the
+        largest power of two up to 4096 whose tiles in flight use at most a quarter of the
+        device's free memory.
     overwrite : bool, optional
     device : str, optional
         Warp device; None picks the first CUDA device, else the CPU.
@@ -259,9 +261,10 @@ def orthorectify(src, camera, pose, dst, *, dem, crs=None, resolution=None, resa
         raise ParamError(f"compress must be one of {COMPRESS}, got {compress!r}")
     if dtype is not None and dtype not in DTYPES:
         raise ParamError(f"dtype must be one of {DTYPES}, got {dtype!r}")
-    tile_size = int(tile_size)
-    if tile_size < 16 or tile_size % 16:
-        raise ParamError(f"tile_size must be a positive multiple of 16, got {tile_size}")
+    if tile_size is not None:
+        tile_size = int(tile_size)
+        if tile_size < 16 or tile_size % 16:
+            raise ParamError(f"tile_size must be a positive multiple of 16, got {tile_size}")
     src, dst = os.fspath(src), os.fspath(dst)
     if os.path.exists(dst) and not overwrite:
         raise RasterIOError(f"Output '{dst}' exists (pass overwrite=True / --overwrite to replace it)")
@@ -282,6 +285,8 @@ def orthorectify(src, camera, pose, dst, *, dem, crs=None, resolution=None, resa
 
     geom = FrameGeometry(camera, pose, _as_dem(dem), refraction=refraction, device=device, geoid=geoid,
                          same_vertical_datum=same_vertical_datum)
+    if tile_size is None:
+        tile_size = _default_tile_size(geom.device, count, workers)
     out_crs, transform, shape, res = output_grid(geom, crs=crs, resolution=resolution)
     log.info("%s -> %s: %d x %d pixels at %.4g %s", src, dst, shape[1], shape[0], res,
              out_crs.axis_info[0].unit_name if out_crs.axis_info else "")
@@ -301,6 +306,20 @@ def orthorectify(src, camera, pose, dst, *, dem, crs=None, resolution=None, resa
                 os.remove(work)
     timer.t["wall"] = time.perf_counter() - t_wall
     return OrthoResult(dst, out_crs, transform, shape, res, dict(timer.t))
+
+
+def _default_tile_size(device, bands, workers):
+    """Output tile edge for a device: see :func:`orthorectify`'s ``tile_size``."""
+    if not device.is_cuda:
+        return 1024
+    # per output pixel: coordinates (16 B), result (4 B per band), mask (1 B), and a source
+    # window of about the same size (5 B per band): ~ 17 + 9 * bands bytes
+    per_pixel = 17 + 9 * bands
+    budget = 0.25 * device.free_memory / max(workers or 4, 1)
+    size = 4096
+    while size > 1024 and size * size * per_pixel > budget:
+        size //= 2
+    return size
 
 
 def _creation_options(compress, dtype):
