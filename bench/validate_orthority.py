@@ -75,6 +75,20 @@ def compare(path_ref, path_mov):
                 mean_dy_px=float(m["mean"][0]), mean_dx_px=float(m["mean"][1]), peak=m["peak"], correlation=corr)
 
 
+def pairwise(keys, path_of):
+    """Compare every overlapping pair of orthos; print and return the rows."""
+    rows = []
+    for a, b in itertools.combinations(keys, 2):
+        r = compare(path_of(a), path_of(b))
+        if r is None:
+            continue
+        r.update(a=a, b=b)
+        rows.append(r)
+        print(f"  {a[-8:]} / {b[-8:]}: {r['tiles']:3d} tiles, shift RMS {r['rms_px']:.3f} px, mean "
+              f"({r['mean_dx_px']:+.3f}, {r['mean_dy_px']:+.3f}) px, peak {r['peak']:.2f}, correlation {r['correlation']:.3f}")
+    return rows
+
+
 def main(argv=None):
     here = os.path.dirname(os.path.abspath(__file__))
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -108,17 +122,10 @@ def main(argv=None):
             ow.orthorectify(img, cams.get(ext[key].camera_id, camera), ext[key].pose, dst, dem=dem, resolution=RES,
                             resampling="bilinear", refraction=refraction, overwrite=True, device=args.device)
             ours[(key, refraction)] = dst
-    report = dict(dataset=args.dataset, data=data, resolution=RES, pairs=[], orthority=[], refraction_effect=[])
+    report = dict(dataset=args.dataset, data=data, resolution=RES, orthority=[], refraction_effect=[])
     keys = [os.path.splitext(os.path.basename(p))[0] for p in images]
     print("overlapping orthowarp orthos (refraction off):")
-    for a, b in itertools.combinations(keys, 2):
-        r = compare(ours[(a, False)], ours[(b, False)])
-        if r is None:
-            continue
-        r.update(a=a, b=b)
-        report["pairs"].append(r)
-        print(f"  {a[-8:]} / {b[-8:]}: {r['tiles']:3d} tiles, shift RMS {r['rms_px']:.3f} px, mean "
-              f"({r['mean_dx_px']:+.3f}, {r['mean_dy_px']:+.3f}) px, peak {r['peak']:.2f}, correlation {r['correlation']:.3f}")
+    report["pairs"] = pairwise(keys, lambda k: ours[(k, False)])
     oty_dir = args.oty_dir
     if oty_dir is None and args.oty:
         oty_dir = os.path.join(work, "orthority")
@@ -135,15 +142,7 @@ def main(argv=None):
             print(f"  {k[-8:]}: {r['tiles']:3d} tiles, shift RMS {r['rms_px']:.3f} px, max {r['max_px']:.3f}, mean "
                   f"({r['mean_dx_px']:+.3f}, {r['mean_dy_px']:+.3f}) px, correlation {r['correlation']:.3f}")
         print("overlapping orthority orthos, for reference (same statistics):")
-        report["orthority_pairs"] = []
-        for a, b in itertools.combinations(keys, 2):
-            r = compare(os.path.join(oty_dir, f"{a}_ORTHO.tif"), os.path.join(oty_dir, f"{b}_ORTHO.tif"))
-            if r is None:
-                continue
-            r.update(a=a, b=b)
-            report["orthority_pairs"].append(r)
-            print(f"  {a[-8:]} / {b[-8:]}: {r['tiles']:3d} tiles, shift RMS {r['rms_px']:.3f} px, mean "
-                  f"({r['mean_dx_px']:+.3f}, {r['mean_dy_px']:+.3f}) px, peak {r['peak']:.2f}, correlation {r['correlation']:.3f}")
+        report["orthority_pairs"] = pairwise(keys, lambda k: os.path.join(oty_dir, f"{k}_ORTHO.tif"))
     print("refraction on vs off (orthowarp):")
     for k in keys:
         r = compare(ours[(k, False)], ours[(k, True)])

@@ -32,6 +32,8 @@ from affine import Affine
 from pyproj import Transformer
 
 import orthowarp as ow
+import scenes
+from scenes import geo_dem
 from orthowarp.errors import GeometryError, ParamError, RasterIOError
 from orthowarp.pipeline.ortho import orthorectify
 from orthowarp.pipeline.registration import misregistration
@@ -76,24 +78,7 @@ def gentle(e, n):
 
 def map_dem(func, xc, yc, ncells, cell):
     """(ow.Dem, reference.GridDem) of func(x - xc, y - yc) in UTM 32N, centred at (xc, yc)."""
-    x0, y0 = xc - ncells * cell / 2.0, yc + ncells * cell / 2.0
-    xs = x0 + (np.arange(ncells) + 0.5) * cell
-    ys = y0 - (np.arange(ncells) + 0.5) * cell
-    z = func(xs[None, :] - xc, ys[:, None] - yc).astype(np.float32)
-    return ow.Dem(z, Affine(cell, 0.0, x0, 0.0, -cell, y0), UTM32), ref.GridDem(z, x0, cell, y0, -cell)
-
-
-def geo_dem(func, lonc, latc, ncells, cell_m):
-    """(ow.Dem, reference.GridDem) in EPSG:4326 of func(east m, north m) around (lonc, latc)."""
-    my = 111132.0
-    mx = 111320.0 * np.cos(np.radians(latc))
-    dlat, dlon = cell_m / my, cell_m / mx
-    lon0, lat0 = lonc - ncells * dlon / 2.0, latc + ncells * dlat / 2.0
-    lons = lon0 + (np.arange(ncells) + 0.5) * dlon
-    lats = lat0 - (np.arange(ncells) + 0.5) * dlat
-    z = func((lons[None, :] - lonc) * mx, (lats[:, None] - latc) * my).astype(np.float32)
-    return (ow.Dem(z, Affine(dlon, 0.0, lon0, 0.0, -dlat, lat0), "EPSG:4326"),
-            ref.GridDem(z, lon0, dlon, lat0, -dlat))
+    return scenes.map_dem(func, xc, yc, ncells, ncells, cell, crs=UTM32)
 
 
 # A small aerial frame camera: 0.6 mrad pixels, ~0.57 m GSD from ~950 m above ground, a few
