@@ -16,7 +16,7 @@ wp.set_module_options({"enable_backward": False})  # forward-only kernels: halve
 from .camera import FrameCameraData, camera_to_pixel, pixel_to_camera
 from .dem import DemData, dem_block_bound, dem_grid, dem_sample_grid, dem_sample_grid_f32
 from .geodesy import DEG, RAD2DEG, WGS84_A, WGS84_B, WGS84_E2, ecef_to_geodetic, ecef_to_geodetic_sc, geodetic_to_ecef
-from .refraction import RefractionTable, nadir_angle, refraction_delta, refraction_q, tilt_from_nadir
+from .refraction import RefractionTable, refraction_q
 
 MODE_GEOCENTRIC = wp.constant(0)
 MODE_MAP = wp.constant(1)
@@ -347,11 +347,17 @@ def project_point(cam: FrameCameraData, pose: FramePoseData, refr: RefractionTab
         x = geodetic_to_ecef(geo[1] * DEG, geo[0] * DEG, geo[2])
     d = wp.normalize(x - pose.center)
     if refr.enabled != 0:
-        tc = nadir_angle(d, pose.up)
-        ta = tc
-        for _ in range(4):  # apparent angle = chord angle + delta(apparent angle)
-            ta = tc + refraction_delta(refr, ta, geo[2])
-        d = tilt_from_nadir(d, pose.up, ta - tc)
+        # The apparent ray is the chord turned away from the nadir by delta, where
+        # delta = q(theta_a, h) tan(theta_a) at the apparent angle theta_a = theta_c + delta;
+        # tan(theta_a) is linearised about the chord's angle (error ~ delta^2, < 1e-12 rad).
+        chord = make_ray(pose, d)
+        sec2 = wp.float64(1.0) + chord.tan_theta * chord.tan_theta
+        delta = wp.float64(0.0)
+        for _ in range(3):
+            delta = refraction_q(refr, chord.theta + delta, geo[2]) * (chord.tan_theta + delta * sec2)
+        d2 = delta * delta
+        d = (wp.float64(1.0) - wp.float64(0.5) * d2) * d - delta * (
+            wp.float64(1.0) - d2 * wp.float64(1.0 / 6.0)) * chord.w
     return camera_to_pixel(cam, wp.transpose(pose.rot) * d)
 
 
