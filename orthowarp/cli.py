@@ -94,7 +94,7 @@ def ortho(ctx, images, int_param, ext_param, dem, height, crs, resolution, resam
     """Orthorectify frame IMAGES into (cloud-optimized) GeoTIFFs named <image>_ORTHO.tif."""
     import os
 
-    from .errors import ParamError
+    from .errors import ParamError, RasterIOError
     from .pipeline.dem import Dem
     from .pipeline.formats import read_cameras, read_exterior
     from .pipeline.ortho import orthorectify
@@ -106,6 +106,8 @@ def ortho(ctx, images, int_param, ext_param, dem, height, crs, resolution, resam
     cameras = read_cameras(int_param) if int_param else read_cameras(ext_param)
     jobs = []
     for image in images:
+        if not os.path.exists(image):
+            raise RasterIOError(f"Image '{image}' does not exist")
         key = os.path.splitext(os.path.basename(image))[0]
         if key not in exterior:
             raise ParamError(f"Image '{image}' is not in the exterior orientation file '{ext_param}'")

@@ -58,6 +58,7 @@ class Dem:
         self.array = arr
         self.transform = t
         self.crs = as_crs(crs, "DEM crs")
+        self.source = None  # the file it was read from, for messages
         self.value = None
         self.hmin = float(np.nanmin(arr))
         self.hmax = float(np.nanmax(arr))
@@ -70,6 +71,7 @@ class Dem:
         dem.array = np.full((1, 1), h, dtype=np.float32)
         dem.transform = Affine.identity()
         dem.crs = None
+        dem.source = None
         dem.value = h
         dem.hmin = dem.hmax = h
         return dem
@@ -99,9 +101,11 @@ class Dem:
         except RasterioIOError as e:
             raise RasterIOError(f"Could not read DEM file '{path}': {e}") from e
         try:
-            return cls(arr, transform, crs, nodata=nodata)
+            dem = cls(arr, transform, crs, nodata=nodata)
         except ParamError as e:
             raise ParamError(f"DEM file '{path}': {e}") from e
+        dem.source = path
+        return dem
 
     @property
     def is_constant(self):

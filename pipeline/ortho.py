@@ -287,7 +287,12 @@ def orthorectify(src, camera, pose, dst, *, dem, crs=None, resolution=None, resa
                          same_vertical_datum=same_vertical_datum)
     if tile_size is None:
         tile_size = _default_tile_size(geom.device, count, workers)
-    out_crs, transform, shape, res = output_grid(geom, crs=crs, resolution=resolution)
+    try:
+        out_crs, transform, shape, res = output_grid(geom, crs=crs, resolution=resolution)
+    except GeometryError as e:
+        terrain = getattr(dem, "source", None) or (dem if isinstance(dem, (str, os.PathLike)) else None)
+        where = f" with DEM '{os.fspath(terrain)}'" if terrain else ""
+        raise GeometryError(f"Image '{src}'{where}: {e}") from e
     log.info("%s -> %s: %d x %d pixels at %.4g %s", src, dst, shape[1], shape[0], res,
              out_crs.axis_info[0].unit_name if out_crs.axis_info else "")
     timer = _Timer()

@@ -35,3 +35,52 @@ def test_unwritable_output_folder(tmp_path):
     res = CliRunner().invoke(main, ["demo", "--out", str(blocker / "sub"), "--device", "cpu"])
     assert res.exit_code != 0
     assert "Error:" in res.output and "Traceback" not in res.output
+
+
+def _ortho_inputs(tmp_path):
+    """A tiny frame with orthority-style camera and CSV exterior files, and a constant height."""
+    import numpy as np
+    import rasterio
+    from pyproj import CRS
+
+    (tmp_path / "camera.yaml").write_text(
+        "cam:\n  type: pinhole\n  im_size: [64, 48]\n  focal_len: 50.0\n  sensor_size: [0.64, 0.48]\n")
+    (tmp_path / "ext.csv").write_text("filename,x,y,z,omega,phi,kappa\nimg,500000,5200000,600,1,-2,30\n")
+    (tmp_path / "ext.prj").write_text(CRS.from_epsg(32632).to_wkt())
+    data = np.random.default_rng(0).integers(1, 255, (1, 48, 64), dtype=np.uint8)
+    with rasterio.open(tmp_path / "img.tif", "w", driver="GTiff", width=64, height=48, count=1, dtype="uint8") as dst:
+        dst.write(data)
+    return ["--int-param", str(tmp_path / "camera.yaml"), "--ext-param", str(tmp_path / "ext.csv")]
+
+
+def test_ortho_command(tmp_path):
+    import rasterio
+
+    args = _ortho_inputs(tmp_path)
+    out = tmp_path / "out"
+    res = CliRunner().invoke(main, ["-q", "ortho", str(tmp_path / "img.tif"), *args, "--height", "100",
+                                    "--out-dir", str(out), "--device", "cpu"])
+    assert res.exit_code == 0, res.output
+    with rasterio.open(out / "img_ORTHO.tif") as ds:
+        assert ds.crs.to_epsg() == 32632 and ds.count == 1 and ds.dtypes[0] == "uint8"
+        assert (ds.dataset_mask() > 0).mean() > 0.3
+    # a second run without --overwrite refuses and leaves the file
+    res = CliRunner().invoke(main, ["ortho", str(tmp_path / "img.tif"), *args, "--height", "100",
+                                    "--out-dir", str(out), "--device", "cpu"])
+    assert res.exit_code == 1 and "--overwrite" in res.output
+
+
+def test_ortho_command_errors(tmp_path):
+    args = _ortho_inputs(tmp_path)
+    (tmp_path / "other.tif").write_bytes((tmp_path / "img.tif").read_bytes())
+    cases = [
+        ([str(tmp_path / "missing.tif"), *args, "--height", "100"], "does not exist"),
+        ([str(tmp_path / "other.tif"), *args, "--height", "100"], "not in the exterior orientation file"),
+        ([str(tmp_path / "img.tif"), *args], "exactly one of --dem"),
+        ([str(tmp_path / "img.tif"), *args, "--dem", str(tmp_path / "nodem.tif")], "nodem.tif"),
+    ]
+    for argv, message in cases:
+        res = CliRunner().invoke(main, ["ortho", *argv, "--out-dir", str(tmp_path / "o"), "--device", "cpu"])
+        lines = res.output.strip().splitlines()
+        assert res.exit_code == 1 and len(lines) == 1 and message in lines[0], res.output
+    assert not (tmp_path / "o").exists() or not list((tmp_path / "o").iterdir())
