@@ -1,6 +1,6 @@
 """Backward (indirect) orthorectification, device code.
 
-Per output tile, two kernels:
+Backward (default), per output tile, two kernels:
 
 1. :func:`ortho_coords_kernel`: output pixel centre -> horizontal coordinates of the pose's
    frame (bilinear in a coarse grid the host transforms exactly with PROJ) -> DEM height ->
@@ -12,13 +12,18 @@ Per output tile, two kernels:
    coordinates with nearest, bilinear, bicubic (Keys, a = -0.5) or Lanczos-3 weights, skipping
    source pixels marked invalid and renormalising the remaining weights (an output pixel whose
    valid weight is under half of the total is nodata).
+
+Forward (seed 003's direct method): :func:`forward_nodes_kernel` runs the forward chain for
+every source pixel of the window that maps into the tile, and :func:`forward_scatter_kernel`
+inverts that map quad by quad into the same per-output-pixel source coordinates, which the
+same resampling kernel then uses.
 """
 
 import warp as wp
 
 from .camera import FrameCameraData
 from .dem import DemData, dem_sample
-from .frame import FramePoseData, project_point
+from .frame import FramePoseData, SearchParams, geolocate_pixel, project_point
 from .refraction import RefractionTable
 
 wp.set_module_options({"enable_backward": False})
@@ -177,3 +182,114 @@ def ortho_resample_kernel(
     for b in range(nb):
         out[b, i, j] = out[b, i, j] * inv
     out_valid[i, j] = wp.uint8(1)
+
+
+# -- forward (direct) method, seed 003 ----------------------------------------------------------
+
+
+@wp.struct
+class FrameToOutput:
+    """Bilinear lookup from the pose frame's horizontal coordinates (lon/lat deg or map x/y) to
+    output-tile pixel coordinates (col, row), on a regular grid whose nodes the host transformed
+    exactly: node (i, j) is at (x0 + j dx, y0 + i dy)."""
+
+    grid: wp.array2d(dtype=wp.vec2d)
+    x0: wp.float64
+    dx: wp.float64
+    y0: wp.float64
+    dy: wp.float64
+
+
+@wp.func
+def frame_to_output(f: FrameToOutput, u: wp.float64, v: wp.float64):
+    fj = (u - f.x0) / f.dx
+    fi = (v - f.y0) / f.dy
+    j0 = wp.clamp(wp.int32(wp.floor(fj)), 0, f.grid.shape[1] - 2)
+    i0 = wp.clamp(wp.int32(wp.floor(fi)), 0, f.grid.shape[0] - 2)
+    aj = fj - wp.float64(j0)
+    ai = fi - wp.float64(i0)
+    one = wp.float64(1.0)
+    return (one - ai) * ((one - aj) * f.grid[i0, j0] + aj * f.grid[i0, j0 + 1]) + ai * (
+        (one - aj) * f.grid[i0 + 1, j0] + aj * f.grid[i0 + 1, j0 + 1])
+
+
+@wp.kernel
+def forward_nodes_kernel(
+    cam: FrameCameraData,
+    pose: FramePoseData,
+    refr: RefractionTable,
+    dem: DemData,
+    search: SearchParams,
+    f2o: FrameToOutput,
+    col0: wp.int32,
+    row0: wp.int32,
+    nodes: wp.array2d(dtype=wp.vec2d),
+):
+    """Forward chain for every source pixel centre of a window: its ground point, as
+    output-tile pixel coordinates (NaN where the ray meets no ground)."""
+    i, j = wp.tid()
+    half = wp.float64(0.5)
+    g = geolocate_pixel(cam, pose, refr, dem, search, wp.vec2d(wp.float64(col0 + j) + half, wp.float64(row0 + i) + half))
+    if wp.isfinite(g[0]):
+        nodes[i, j] = frame_to_output(f2o, g[0], g[1])
+    else:
+        nan = wp.float64(wp.nan)
+        nodes[i, j] = wp.vec2d(nan, nan)
+
+
+@wp.func
+def cross2(a: wp.vec2d, b: wp.vec2d):
+    return a[0] * b[1] - a[1] * b[0]
+
+
+@wp.kernel
+def forward_scatter_kernel(
+    nodes: wp.array2d(dtype=wp.vec2d),
+    col0: wp.int32,
+    row0: wp.int32,
+    max_edge: wp.float64,
+    coords: wp.array2d(dtype=wp.vec2d),
+):
+    """Invert the forward map quad by quad: every output pixel centre inside the ground quad of
+    four neighbouring source pixel centres gets its source position by inverse bilinear
+    interpolation. Quads longer than ``max_edge`` output pixels (spanning an occlusion) or folded
+    are skipped, so hidden ground stays nodata."""
+    i, j = wp.tid()
+    p00 = nodes[i, j]
+    p01 = nodes[i, j + 1]
+    p10 = nodes[i + 1, j]
+    p11 = nodes[i + 1, j + 1]
+    if not (wp.isfinite(p00[0]) and wp.isfinite(p01[0]) and wp.isfinite(p10[0]) and wp.isfinite(p11[0])):
+        return
+    if wp.length(p01 - p00) > max_edge or wp.length(p10 - p00) > max_edge or wp.length(p11 - p01) > max_edge or wp.length(
+            p11 - p10) > max_edge:
+        return
+    # both triangles must keep the orientation of the source grid (no fold)
+    if cross2(p01 - p00, p10 - p00) * cross2(p10 - p11, p01 - p11) <= wp.float64(0.0):
+        return
+    half = wp.float64(0.5)
+    xmin = wp.min(wp.min(p00[0], p01[0]), wp.min(p10[0], p11[0]))
+    xmax = wp.max(wp.max(p00[0], p01[0]), wp.max(p10[0], p11[0]))
+    ymin = wp.min(wp.min(p00[1], p01[1]), wp.min(p10[1], p11[1]))
+    ymax = wp.max(wp.max(p00[1], p01[1]), wp.max(p10[1], p11[1]))
+    c_lo = wp.max(wp.int32(wp.ceil(xmin - half)), 0)
+    c_hi = wp.min(wp.int32(wp.floor(xmax - half)), coords.shape[1] - 1)
+    r_lo = wp.max(wp.int32(wp.ceil(ymin - half)), 0)
+    r_hi = wp.min(wp.int32(wp.floor(ymax - half)), coords.shape[0] - 1)
+    eps = wp.float64(1.0e-9)
+    for r in range(r_lo, r_hi + 1):
+        for c in range(c_lo, c_hi + 1):
+            p = wp.vec2d(wp.float64(c) + half, wp.float64(r) + half)
+            s = half
+            t = half
+            for _ in range(8):  # Newton on the bilinear map (s along the row, t down the column)
+                one = wp.float64(1.0)
+                q = (one - s) * (one - t) * p00 + s * (one - t) * p01 + (one - s) * t * p10 + s * t * p11
+                ds = (one - t) * (p01 - p00) + t * (p11 - p10)
+                dt = (one - s) * (p10 - p00) + s * (p11 - p01)
+                det = cross2(ds, dt)
+                e = p - q
+                s = s + cross2(e, dt) / det
+                t = t + cross2(ds, e) / det
+            if s >= -eps and s <= wp.float64(1.0) + eps and t >= -eps and t <= wp.float64(1.0) + eps:
+                coords[r, c] = wp.vec2d(wp.float64(col0 + j) + half + s, wp.float64(row0 + i) + half + t)

@@ -77,6 +77,9 @@ def demo(out_dir, device):
 @click.option("--resolution", type=float, help="Output pixel size in CRS units (default: mean GSD).")
 @click.option("--resampling", type=click.Choice(["nearest", "bilinear", "bicubic", "lanczos"]), default="bilinear",
               show_default=True)
+@click.option("--method", type=click.Choice(["backward", "forward"]), default="backward", show_default=True,
+              help="backward: project each output pixel into the source; forward: seed 003's direct method "
+                   "(geolocate each source pixel; hidden ground stays nodata).")
 @click.option("--driver", type=click.Choice(["cog", "gtiff"], case_sensitive=False), default="cog", show_default=True)
 @click.option("--compress", type=click.Choice(["deflate", "zstd", "lzw", "jpeg", "none"]), default="deflate",
               show_default=True)
@@ -89,7 +92,7 @@ def demo(out_dir, device):
 @click.option("--device", default=None, help="Warp device (cpu, cuda, cuda:N); default: first GPU, else CPU.")
 @click.option("--tile-size", type=int, default=None, help="Output tile edge (pixels); default 1024 on the CPU, up to 4096 on a GPU.")
 @click.pass_context
-def ortho(ctx, images, int_param, ext_param, dem, height, crs, resolution, resampling, driver, compress, dtype,
+def ortho(ctx, images, int_param, ext_param, dem, height, crs, resolution, resampling, method, driver, compress, dtype,
           out_dir, overwrite, no_refraction, geoid, same_vertical_datum, device, tile_size):
     """Orthorectify frame IMAGES into (cloud-optimized) GeoTIFFs named <image>_ORTHO.tif."""
     import os
@@ -124,7 +127,7 @@ def ortho(ctx, images, int_param, ext_param, dem, height, crs, resolution, resam
     quiet = ctx.obj["quiet"]
     for image, camera, pose, dst in jobs:
         r = orthorectify(image, camera, pose, dst, dem=terrain, crs=crs, resolution=resolution,
-                         resampling=resampling, refraction=not no_refraction, dtype=dtype,
+                         resampling=resampling, method=method, refraction=not no_refraction, dtype=dtype,
                          driver="COG" if driver.lower() == "cog" else "GTiff", compress=compress,
                          overwrite=overwrite, device=device, progress=not quiet, tile_size=tile_size,
                          geoid=geoid, same_vertical_datum=same_vertical_datum)

@@ -196,7 +196,7 @@ class _Timer:
             self.t[key] += dt
 
 
-def orthorectify(src, camera, pose, dst, *, dem, crs=None, resolution=None, resampling="bilinear",
+def orthorectify(src, camera, pose, dst, *, dem, crs=None, resolution=None, resampling="bilinear", method="backward",
                  refraction=True, dtype=None, driver="COG", compress="deflate", overviews=True,
                  tile_size=None, overwrite=False, device=None, progress=False, workers=None,
                  geoid=None, same_vertical_datum=False):
@@ -221,6 +221,11 @@ def orthorectify(src, camera, pose, dst, *, dem, crs=None, resolution=None, resa
     resolution : float, optional
         Output pixel size (CRS units); default: the image's mean ground sample distance.
     resampling : {"nearest", "bilinear", "bicubic", "lanczos"}, optional
+    method : {"backward", "forward"}, optional
+        Backward (indirect): every output pixel is projected into the source. Forward (seed
+        003's direct method): every source pixel is geolocated with the forward chain and the
+        map is inverted quad by quad; ground hidden from the camera stays nodata, and so does
+        the outer half source pixel of the footprint.
     refraction : bool, optional
     dtype : {"uint8", "uint16", "float32"}, optional
         Output data type; default: the source's. Float outputs use NaN as nodata, integer
@@ -253,6 +258,8 @@ def orthorectify(src, camera, pose, dst, *, dem, crs=None, resolution=None, resa
     t_wall = time.perf_counter()
     if not isinstance(camera, FrameCamera) or not isinstance(pose, Pose):
         raise ParamError("camera must be a FrameCamera and pose a Pose")
+    if method not in ("backward", "forward"):
+        raise ParamError(f"method must be 'backward' or 'forward', got {method!r}")
     if resampling not in RESAMPLING:
         raise ParamError(f"resampling must be one of {sorted(RESAMPLING)}, got {resampling!r}")
     if driver not in DRIVERS:
@@ -302,7 +309,7 @@ def orthorectify(src, camera, pose, dst, *, dem, crs=None, resolution=None, resa
             # a COG is compressed once, by the final copy; its work file stays uncompressed
             _render(src, geom, out_crs, transform, shape, count, out_dtype,
                     compress if driver == "GTiff" else "none", work, resampling, tile_size, progress,
-                    workers, timer, dst)
+                    workers, timer, dst, method)
             t0 = time.perf_counter()
             _finish(work, tmp_final, driver, compress, overviews, out_dtype)
             timer.t["finish"] = time.perf_counter() - t0
@@ -336,7 +343,7 @@ def _creation_options(compress, dtype):
 
 
 def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, path, resampling,
-            tile_size, progress, workers, timer, final_name):
+            tile_size, progress, workers, timer, final_name, method_name):
     rows, cols = shape
     is_float = out_dtype == "float32"
     profile = dict(driver="GTiff", width=cols, height=rows, count=count, dtype=out_dtype,
@@ -368,33 +375,41 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
                 handles.append(local.ds)
         return local.ds, local.stream
 
+    w_img, h_img = geom.camera.image_size
+
+    def backward_coords(r0, c0, th, tw):
+        """Source coordinates of the tile's pixels by the backward chain, and their window."""
+        t = time.perf_counter()
+        ki = np.arange(max(2, -(-(th - 1) // COARSE_STEP) + 1)) * COARSE_STEP
+        kj = np.arange(max(2, -(-(tw - 1) // COARSE_STEP) + 1)) * COARSE_STEP
+        jj, ii = np.meshgrid(c0 + kj + 0.5, r0 + ki + 0.5)
+        x, y = transform @ (jj, ii)
+        u, v = to_frame.transform(x, y)
+        coarse = wp.array(np.ascontiguousarray(np.stack([u, v], -1)), dtype=wp.vec2d, device=device)
+        bounds = wp.array(np.full(4, np.inf, np.float32), dtype=wp.float32, device=device)
+        coords = wp.empty((th, tw), dtype=wp.vec2d, device=device)
+        timer.add("h2d", time.perf_counter() - t)
+        t = time.perf_counter()
+        wp.launch(ortho_kernels.ortho_coords_kernel, dim=(th, tw), device=device,
+                  inputs=[cam, pose, refr, dem, coarse, COARSE_STEP, float(w_img), float(h_img), coords, bounds])
+        b = bounds.numpy()
+        timer.add("kernel", time.perf_counter() - t)
+        if not np.all(np.isfinite(b)):
+            return coords, None
+        return coords, (max(int(math.floor(b[0])) - radius - 1, 0), max(int(math.floor(b[1])) - radius - 1, 0),
+                        min(int(math.ceil(-b[2])) + radius + 1, w_img), min(int(math.ceil(-b[3])) + radius + 1, h_img))
+
+    run_coords = backward_coords if method_name == "backward" else _forward_coords(
+        geom, transform, out_crs, frame_crs, device, timer, radius)
+
     def run(tile):
         r0, c0, th, tw = tile
         ds, stream = source()
         with wp.ScopedStream(stream) if stream is not None else _null():
-            t = time.perf_counter()
-            ki = np.arange(max(2, -(-(th - 1) // COARSE_STEP) + 1)) * COARSE_STEP
-            kj = np.arange(max(2, -(-(tw - 1) // COARSE_STEP) + 1)) * COARSE_STEP
-            jj, ii = np.meshgrid(c0 + kj + 0.5, r0 + ki + 0.5)
-            x, y = transform @ (jj, ii)
-            u, v = to_frame.transform(x, y)
-            coarse = wp.array(np.ascontiguousarray(np.stack([u, v], -1)), dtype=wp.vec2d, device=device)
-            bounds = wp.array(np.full(4, np.inf, np.float32), dtype=wp.float32, device=device)
-            coords = wp.empty((th, tw), dtype=wp.vec2d, device=device)
-            timer.add("h2d", time.perf_counter() - t)
-            t = time.perf_counter()
-            wp.launch(ortho_kernels.ortho_coords_kernel, dim=(th, tw), device=device,
-                      inputs=[cam, pose, refr, dem, coarse, COARSE_STEP,
-                              float(geom.camera.image_size[0]), float(geom.camera.image_size[1]), coords, bounds])
-            b = bounds.numpy()
-            timer.add("kernel", time.perf_counter() - t)
+            coords, window = run_coords(r0, c0, th, tw)
             out = None
-            if np.all(np.isfinite(b)):
-                w_img, h_img = geom.camera.image_size
-                wc0 = max(int(math.floor(b[0])) - radius - 1, 0)
-                wr0 = max(int(math.floor(b[1])) - radius - 1, 0)
-                wc1 = min(int(math.ceil(-b[2])) + radius + 1, w_img)
-                wr1 = min(int(math.ceil(-b[3])) + radius + 1, h_img)
+            if window is not None:
+                wc0, wr0, wc1, wr1 = window
                 t = time.perf_counter()
                 win = Window(wc0, wr0, wc1 - wc0, wr1 - wr0)
                 try:
@@ -467,6 +482,69 @@ def _open_source(path):
     with _OPEN_LOCK, warnings.catch_warnings():
         warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
         return rasterio.open(path)
+
+
+def _forward_coords(geom, transform, out_crs, frame_crs, device, timer, radius, step=16, margin=32):
+    """The forward method's per-tile source coordinates (see :func:`orthorectify`).
+
+    Once per image, a coarse grid of source pixels (every ``step``) is geolocated and mapped to
+    output pixels; a tile's source window is then the bounding box of the coarse nodes that
+    land within ``margin`` output pixels of it, grown by ``step + margin`` source pixels.
+    """
+    w_img, h_img = geom.camera.image_size
+    cam, pose, refr, dem, search = geom.structs()
+    sc = np.unique(np.append(np.arange(0, w_img, step), w_img - 1)) + 0.5
+    sr = np.unique(np.append(np.arange(0, h_img, step), h_img - 1)) + 0.5
+    cc, rr = np.meshgrid(sc, sr)
+    g = geom.geolocate_frame(np.stack([cc.ravel(), rr.ravel()], 1))
+    ok = np.all(np.isfinite(g), axis=1)
+    to_out = Transformer.from_crs(frame_crs, out_crs, always_xy=True)
+    x, y = to_out.transform(g[ok, 0], g[ok, 1])
+    oc, orow = ~transform @ (np.asarray(x), np.asarray(y))
+    node_src = np.stack([cc.ravel()[ok], rr.ravel()[ok]], 1)
+    node_out = np.stack([oc, orow], 1)
+    node_frame = g[ok, :2]
+    # output pixels per source pixel, for rejecting quads that span occlusions
+    scale = float(np.median(np.hypot(*np.diff(node_out.reshape(-1, 2), axis=0).T))) / step if len(node_out) > 1 else 1.0
+    max_edge = 4.0 * max(scale, 1.0)
+
+    def coords_for(r0, c0, th, tw):
+        t = time.perf_counter()
+        coords = wp.full((th, tw), wp.vec2d(np.nan, np.nan), dtype=wp.vec2d, device=device)
+        sel = ((node_out[:, 0] >= c0 - margin) & (node_out[:, 0] <= c0 + tw + margin)
+               & (node_out[:, 1] >= r0 - margin) & (node_out[:, 1] <= r0 + th + margin))
+        if not np.any(sel):
+            return coords, None
+        grow = step + margin
+        wc0 = max(int(node_src[sel, 0].min()) - grow, 0)
+        wr0 = max(int(node_src[sel, 1].min()) - grow, 0)
+        wc1 = min(int(node_src[sel, 0].max()) + grow, w_img)
+        wr1 = min(int(node_src[sel, 1].max()) + grow, h_img)
+        # frame -> output-tile pixel lookup grid over the selected ground
+        lo = node_frame[sel].min(axis=0)
+        hi = node_frame[sel].max(axis=0)
+        pad = 0.25 * (hi - lo) + 1e-6
+        gu = np.linspace(lo[0] - pad[0], hi[0] + pad[0], 33)
+        gv = np.linspace(lo[1] - pad[1], hi[1] + pad[1], 33)
+        uu, vv = np.meshgrid(gu, gv)
+        x, y = to_out.transform(uu, vv)
+        pc, pr = ~transform @ (np.asarray(x), np.asarray(y))
+        f2o = ortho_kernels.FrameToOutput()
+        f2o.grid = wp.array(np.ascontiguousarray(np.stack([pc - c0, pr - r0], -1)), dtype=wp.vec2d, device=device)
+        f2o.x0, f2o.dx, f2o.y0, f2o.dy = float(gu[0]), float(gu[1] - gu[0]), float(gv[0]), float(gv[1] - gv[0])
+        nodes = wp.empty((wr1 - wr0, wc1 - wc0), dtype=wp.vec2d, device=device)
+        timer.add("h2d", time.perf_counter() - t)
+        t = time.perf_counter()
+        wp.launch(ortho_kernels.forward_nodes_kernel, dim=nodes.shape, device=device,
+                  inputs=[cam, pose, refr, dem, search, f2o, wc0, wr0, nodes])
+        wp.launch(ortho_kernels.forward_scatter_kernel, dim=(nodes.shape[0] - 1, nodes.shape[1] - 1), device=device,
+                  inputs=[nodes, wc0, wr0, max_edge, coords])
+        timer.add("kernel", time.perf_counter() - t)
+        # the resampling window must hold the kernel's support around every coordinate
+        return coords, (max(wc0 - radius - 1, 0), max(wr0 - radius - 1, 0), min(wc1 + radius + 1, w_img),
+                        min(wr1 + radius + 1, h_img))
+
+    return coords_for
 
 
 class _null:

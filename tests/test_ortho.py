@@ -306,6 +306,52 @@ def test_ortho_matches_truth(name, tmp_path, device):
     assert np.sqrt(np.mean(err**2)) < 0.15 * sc.texture.std
 
 
+@pytest.mark.parametrize("name", ["ins", "opk", "ins_oblique"])
+def test_forward_method_matches_truth_and_backward(name, tmp_path, device):
+    """Seed 003's direct method: forward-geolocated source pixels, map inverted quad by quad."""
+    sc = scene(name)
+    refr = name.endswith("oblique")
+    back = ortho(sc, tmp_path, refraction_image=refr, refraction=refr, name="back.tif", device=device)
+    fwd = ortho(sc, tmp_path, refraction_image=refr, refraction=refr, name="fwd.tif", method="forward", device=device)
+    assert fwd.shape == back.shape and fwd.transform == back.transform
+    m, data_f, valid_f, _ = measure(sc, fwd)
+    print(f"\n[{name}, forward] {describe(m)}")
+    assert m["n_tiles"] >= 8 and m["rms"] <= RMS_MAX, describe(m)
+    data_b, valid_b, _ = read_ortho(back.path)
+    both = valid_f & valid_b
+    # the forward footprint lacks only the outer half source pixel of the backward one
+    assert both.sum() == valid_f.sum() and valid_f.sum() > 0.98 * valid_b.sum()
+    mb = misregistration(data_b, data_f, valid=both, tile=TILE)
+    print(f"[{name}, forward vs backward] {describe(mb)}")
+    assert mb["rms"] <= 0.01 and abs(mb["mean"][0]) < 0.005 and abs(mb["mean"][1]) < 0.005, describe(mb)
+
+
+def test_forward_method_leaves_hidden_ground_nodata(tmp_path):
+    """A tall narrow ridge seen obliquely hides the ground behind it: the forward method leaves
+    that ground nodata, the backward method fills it with the ridge (a ghost)."""
+    cam = ow.FrameCamera(50.0, 0.1, (200, 150))  # +-11 degrees across
+    pose = ow.Pose.from_opk(OPK_X - 500.0, OPK_Y, 1000.0, 0.0, -40.0, 0.0, crs=UTM32)  # looking east, 40 deg
+    ridge = lambda e, n: 400.0 + 120.0 * np.exp(-0.5 * ((e - 0.0) / 6.0) ** 2) + 0.0 * n  # noqa: E731
+    dem, _ = map_dem(ridge, OPK_X, OPK_Y, 700, 2.0)
+    src = write_image(tmp_path / "src.tif", np.random.default_rng(1).integers(1, 255, (150, 200)), "uint8")
+    kw = dict(dem=dem, refraction=False, device="cpu", resolution=4.0)
+    back = orthorectify(src, cam, pose, tmp_path / "back.tif", **kw)
+    fwd = orthorectify(src, cam, pose, tmp_path / "fwd.tif", method="forward", **kw)
+    _, vb, _ = read_ortho(back.path)
+    _, vf, _ = read_ortho(fwd.path)
+    x, _ = pixel_centres(fwd)
+    behind = (x > OPK_X + 20.0) & (x < OPK_X + 60.0)  # in the ridge's shadow as seen from the west
+    assert vb[behind].mean() > 0.7  # the footprint is a trapezoid: not every row reaches there
+    assert vf[behind].mean() < 0.05
+    assert np.all(vb[vf])  # nothing the forward method keeps is missing from the backward one
+
+
+def test_forward_method_rejects_bad_method(tmp_path):
+    sc = scene("opk")
+    with pytest.raises(ParamError, match="method"):
+        ortho(sc, tmp_path, refraction_image=False, refraction=False, method="sideways")
+
+
 def source_position(sc, result):
     """Source pixel (col, row) of every orthoimage pixel centre by the reference's closed-form
     collinearity (no refraction) onto the DEM: (rows, cols, 2)."""
