@@ -9,6 +9,7 @@ reads, transfers, kernels and writes of different tiles overlap. Neither the sou
 output is ever held whole in memory.
 """
 
+import contextlib
 import logging
 import math
 import os
@@ -357,7 +358,7 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
     to_frame = Transformer.from_crs(out_crs, frame_crs, always_xy=True)
     cam, pose, refr, dem, _ = geom.structs()
     device = geom.device
-    method = RESAMPLING[resampling]
+    resampling_code = RESAMPLING[resampling]
     radius = _RADIUS[resampling]
     tiles = [(r0, c0, min(tile_size, rows - r0), min(tile_size, cols - c0))
              for r0 in range(0, rows, tile_size) for c0 in range(0, cols, tile_size)]
@@ -405,7 +406,7 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
     def run(tile):
         r0, c0, th, tw = tile
         ds, stream = source()
-        with wp.ScopedStream(stream) if stream is not None else _null():
+        with wp.ScopedStream(stream) if stream is not None else contextlib.nullcontext():
             coords, window = run_coords(r0, c0, th, tw)
             out = None
             if window is not None:
@@ -429,7 +430,7 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
                 timer.add("h2d", time.perf_counter() - t)
                 t = time.perf_counter()
                 wp.launch(ortho_kernels.ortho_resample_kernel, dim=(th, tw), device=device,
-                          inputs=[sw, coords, method, res, res_valid])
+                          inputs=[sw, coords, resampling_code, res, res_valid])
                 if stream is not None:
                     wp.synchronize_stream(stream)
                 timer.add("kernel", time.perf_counter() - t)
@@ -545,14 +546,6 @@ def _forward_coords(geom, transform, out_crs, frame_crs, device, timer, radius, 
                         min(wr1 + radius + 1, h_img))
 
     return coords_for
-
-
-class _null:
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return False
 
 
 def _progress(total):
