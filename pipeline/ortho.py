@@ -139,12 +139,15 @@ def output_grid(geom, *, crs=None, resolution=None):
     if crs.is_geocentric:
         raise ParamError("crs must be a projected or geographic CRS for orthoimages")
     to_out = Transformer.from_crs(frame_crs, crs, always_xy=True)
-    # the footprint on the DEM where rays hit it, else the bounds of the heights' range
+    # The extent is the footprint on the DEM. Where the DEM covers it only partly, the border
+    # alone does not bound the ground seen, so every ray of a 65 x 65 grid over the image that
+    # meets the DEM counts; ground beyond them would only be hidden or outside the DEM.
     pts = feet[ok]
     if not np.all(ok):
-        high = FrameGeometry(cam, pose, geom.dem.hmax, refraction=geom.refraction.enabled,
-                             device=geom.device).geolocate_frame(border)
-        pts = np.concatenate([pts, low, high])
+        w, h = cam.image_size
+        gc, gr = np.meshgrid(np.linspace(0.0, w, 65), np.linspace(0.0, h, 65))
+        inner = geom.geolocate_frame(np.stack([gc.ravel(), gr.ravel()], 1))
+        pts = np.concatenate([pts, inner[np.all(np.isfinite(inner), axis=1)]])
     x, y = to_out.transform(pts[:, 0], pts[:, 1])
     if resolution is None:
         resolution = _mean_gsd(geom, to_out)
