@@ -165,6 +165,7 @@ def main(argv=None):
     ap.add_argument("--devices", default=None)
     ap.add_argument("--resampling", default="bilinear")
     ap.add_argument("--method", default="backward", choices=["backward", "forward"])
+    ap.add_argument("--no-refraction", action="store_true", help="as orthority, which models none")
     ap.add_argument("--workdir", default=None)
     ap.add_argument("--skip-cli", action="store_true", help="skip the end-to-end CLI runs")
     ap.add_argument("--oty-python", default=None, help="a Python with orthority 0.7.0: run it side by side")
@@ -187,16 +188,17 @@ def main(argv=None):
         dst.write(dem.array, 1)
     write_orientation(work, cam, pose, "frame")
     report = dict(benchmark="ortho", image=[args.width, args.height, 3], dtype="uint8", resampling=args.resampling,
-                  method=args.method,
+                  method=args.method, refraction=not args.no_refraction,
                   dem_shape=list(dem.shape), setup_s=time.perf_counter() - t, cpu_count=os.cpu_count(),
                   warp=wp.__version__, results=[])
     for name in devices:
-        geom = FrameGeometry(cam, pose, dem, device=name)
+        geom = FrameGeometry(cam, pose, dem, device=name, refraction=not args.no_refraction)
         r = dict(device=str(geom.device), device_name=geom.device.name)
         r.update(kernel_only(geom, src, args.resampling, repeats=3 if geom.device.is_cuda else 1))
         t = time.perf_counter()
         res = orthorectify(src, cam, pose, os.path.join(work, f"inproc_{r['device'].replace(':', '')}.tif"),
-                           dem=dem, resampling=args.resampling, method=args.method, overwrite=True, device=name)
+                           dem=dem, resampling=args.resampling, method=args.method, overwrite=True, device=name,
+                           refraction=not args.no_refraction)
         r["in_process_wall_s"] = time.perf_counter() - t
         r["stages_s"] = res.timings
         r["ortho_shape"] = list(res.shape)
@@ -205,7 +207,8 @@ def main(argv=None):
             r["cli"] = run_cli(sys.executable, "orthowarp.cli:main", [
                 "-q", "ortho", src, "--int-param", os.path.join(work, "camera.yaml"), "--ext-param",
                 os.path.join(work, "ext.csv"), "--dem", dem_path, "--out-dir", work, "--overwrite", "--resolution",
-                repr(res.resolution), "--resampling", args.resampling, "--method", args.method, "--device", name])
+                repr(res.resolution), "--resampling", args.resampling, "--method", args.method, "--device", name,
+                *(["--no-refraction"] if args.no_refraction else [])])
         report["results"].append(r)
         _save(report, args.out)
         cli = r.get("cli", {})
