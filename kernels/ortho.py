@@ -49,18 +49,23 @@ class SourceWindow:
 
 
 @wp.func
-def coarse_position(coarse: wp.array2d(dtype=wp.vec2d), step: wp.int32, i: wp.int32, j: wp.int32):
-    """Bilinear interpolation of the coarse grid (nodes every ``step`` pixels, the last node
-    at the tile's last pixel) at tile pixel (i, j)."""
-    fi = wp.float64(i) / wp.float64(step)
-    fj = wp.float64(j) / wp.float64(step)
-    i0 = wp.min(wp.int32(fi), coarse.shape[0] - 2)
-    j0 = wp.min(wp.int32(fj), coarse.shape[1] - 2)
+def grid_bilinear(grid: wp.array2d(dtype=wp.vec2d), fi: wp.float64, fj: wp.float64):
+    """Bilinear interpolation of a grid of vec2d at fractional (row, col) index (fi, fj),
+    extrapolating linearly from the border cells outside it."""
+    i0 = wp.clamp(wp.int32(wp.floor(fi)), 0, grid.shape[0] - 2)
+    j0 = wp.clamp(wp.int32(wp.floor(fj)), 0, grid.shape[1] - 2)
     ai = fi - wp.float64(i0)
     aj = fj - wp.float64(j0)
     one = wp.float64(1.0)
-    return (one - ai) * ((one - aj) * coarse[i0, j0] + aj * coarse[i0, j0 + 1]) + ai * (
-        (one - aj) * coarse[i0 + 1, j0] + aj * coarse[i0 + 1, j0 + 1])
+    return (one - ai) * ((one - aj) * grid[i0, j0] + aj * grid[i0, j0 + 1]) + ai * (
+        (one - aj) * grid[i0 + 1, j0] + aj * grid[i0 + 1, j0 + 1])
+
+
+@wp.func
+def coarse_position(coarse: wp.array2d(dtype=wp.vec2d), step: wp.int32, i: wp.int32, j: wp.int32):
+    """The coarse grid (nodes every ``step`` pixels, the last node at or past the tile's last
+    pixel) at tile pixel (i, j)."""
+    return grid_bilinear(coarse, wp.float64(i) / wp.float64(step), wp.float64(j) / wp.float64(step))
 
 
 @wp.kernel
@@ -202,15 +207,7 @@ class FrameToOutput:
 
 @wp.func
 def frame_to_output(f: FrameToOutput, u: wp.float64, v: wp.float64):
-    fj = (u - f.x0) / f.dx
-    fi = (v - f.y0) / f.dy
-    j0 = wp.clamp(wp.int32(wp.floor(fj)), 0, f.grid.shape[1] - 2)
-    i0 = wp.clamp(wp.int32(wp.floor(fi)), 0, f.grid.shape[0] - 2)
-    aj = fj - wp.float64(j0)
-    ai = fi - wp.float64(i0)
-    one = wp.float64(1.0)
-    return (one - ai) * ((one - aj) * f.grid[i0, j0] + aj * f.grid[i0, j0 + 1]) + ai * (
-        (one - aj) * f.grid[i0 + 1, j0] + aj * f.grid[i0 + 1, j0 + 1])
+    return grid_bilinear(f.grid, (v - f.y0) / f.dy, (u - f.x0) / f.dx)
 
 
 @wp.kernel
