@@ -30,3 +30,18 @@ def geo_dem(func, lonc, latc, ncells, cell_m):
     z = func((lons[None, :] - lonc) * mx, (lats[:, None] - latc) * my).astype(np.float32)
     return (ow.Dem(z, Affine(dlon, 0.0, lon0, 0.0, -dlat, lat0), "EPSG:4326"),
             ref.GridDem(z, lon0, dlon, lat0, -dlat))
+
+
+def make_poses(kind, pose_kw):
+    """(orthowarp Pose, reference RefPose) of the same pose.
+
+    kind "ins": pose_kw has lat, lon, h, roll, pitch, yaw and optionally boresight, lever_arm;
+    kind "opk": x, y, z, omega, phi, kappa, and optionally crs (default UTM 32N).
+    """
+    if kind == "ins":
+        p = dict(pose_kw)
+        bs, la = p.pop("boresight", (0.0, 0.0, 0.0)), p.pop("lever_arm", (0.0, 0.0, 0.0))
+        args = [p[n] for n in ("lat", "lon", "h", "roll", "pitch", "yaw")]
+        return ow.Pose.from_ins(*args, boresight=bs, lever_arm=la), ref.RefPose.ins(*args, boresight=bs, lever_arm=la)
+    args = [pose_kw[n] for n in ("x", "y", "z", "omega", "phi", "kappa")]
+    return ow.Pose.from_opk(*args, crs=pose_kw.get("crs", UTM32)), ref.RefPose.opk(*args)

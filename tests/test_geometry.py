@@ -17,7 +17,7 @@ from affine import Affine
 from pyproj import Transformer
 
 import orthowarp as ow
-from scenes import UTM32, geo_dem, map_dem
+from scenes import UTM32, geo_dem, make_poses, map_dem
 
 try:
     from . import reference as ref  # tests/ as a package
@@ -56,18 +56,8 @@ class Scene:
         self.ref_camera = ref.RefCamera(f, ps, size, pp, **k)
         self.size = size
         self.kind = pose_kind
-        if pose_kind == "ins":
-            p = dict(pose_kw)
-            bs, la = p.pop("boresight", (0.0, 0.0, 0.0)), p.pop("lever_arm", (0.0, 0.0, 0.0))
-            args = [p[n] for n in ("lat", "lon", "h", "roll", "pitch", "yaw")]
-            self.pose = ow.Pose.from_ins(*args, boresight=bs, lever_arm=la)
-            self.ref_pose = ref.RefPose.ins(*args, boresight=bs, lever_arm=la)
-            self.crs = "EPSG:4979"
-        else:
-            args = [pose_kw[n] for n in ("x", "y", "z", "omega", "phi", "kappa")]
-            self.pose = ow.Pose.from_opk(*args, crs=pose_kw.get("crs", UTM32))
-            self.ref_pose = ref.RefPose.opk(*args)
-            self.crs = pose_kw.get("crs", UTM32)
+        self.pose, self.ref_pose = make_poses(pose_kind, pose_kw)
+        self.crs = "EPSG:4979" if pose_kind == "ins" else pose_kw.get("crs", UTM32)
         self.dem, self.ref_dem = dem_pair
 
     def geolocate_object(self, pixels, *, refraction, device, dem=None):

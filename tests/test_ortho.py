@@ -98,16 +98,7 @@ class Scene:
         self.camera = ow.FrameCamera(cam_kw["f"], cam_kw["pixel"], cam_kw["size"], principal_point=cam_kw["pp"], **k)
         self.ref_camera = ref.RefCamera(cam_kw["f"], cam_kw["pixel"], cam_kw["size"], cam_kw["pp"], **k)
         self.size = cam_kw["size"]
-        if kind == "ins":
-            p = dict(pose_kw)
-            bs, la = p.pop("boresight", (0.0, 0.0, 0.0)), p.pop("lever_arm", (0.0, 0.0, 0.0))
-            args = [p[n] for n in ("lat", "lon", "h", "roll", "pitch", "yaw")]
-            self.pose = ow.Pose.from_ins(*args, boresight=bs, lever_arm=la)
-            self.ref_pose = ref.RefPose.ins(*args, boresight=bs, lever_arm=la)
-        else:
-            args = [pose_kw[n] for n in ("x", "y", "z", "omega", "phi", "kappa")]
-            self.pose = ow.Pose.from_opk(*args, crs=UTM32)
-            self.ref_pose = ref.RefPose.opk(*args)
+        self.pose, self.ref_pose = scenes.make_poses(kind, pose_kw)
         # the DEM: centred where the central ray meets the terrain's base height
         centre = self._centre_ray_foot(terrain(0.0, 0.0))
         if kind == "ins":
