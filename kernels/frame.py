@@ -114,7 +114,10 @@ def make_ray(pose: FramePoseData, d_app: wp.vec3d):
     perp = -(pose.up + c * d_app)  # component of the nadir direction perpendicular to d
     s = wp.length(perp)
     r.theta = wp.atan2(s, c)
-    r.tan_theta = wp.tan(r.theta)
+    if c > wp.float64(0.0):
+        r.tan_theta = s / c
+    else:
+        r.tan_theta = wp.tan(r.theta)
     if s > wp.float64(1.0e-12):
         r.w = perp / s
     else:
@@ -348,13 +351,15 @@ def project_point(cam: FrameCameraData, pose: FramePoseData, refr: RefractionTab
     d = wp.normalize(x - pose.center)
     if refr.enabled != 0:
         # The apparent ray is the chord turned away from the nadir by delta, where
-        # delta = q(theta_a, h) tan(theta_a) at the apparent angle theta_a = theta_c + delta;
-        # tan(theta_a) is linearised about the chord's angle (error ~ delta^2, < 1e-12 rad).
+        # delta = q(theta_a, h) tan(theta_a) at the apparent angle theta_a = theta_c + delta.
+        # q varies by ~1e-5 of itself over delta, so it is read once at theta_c; tan(theta_a)
+        # is linearised about theta_c (error ~ delta^2); two steps of the fixed point then
+        # leave < 1e-12 rad.
         chord = make_ray(pose, d)
         sec2 = wp.float64(1.0) + chord.tan_theta * chord.tan_theta
-        delta = wp.float64(0.0)
-        for _ in range(3):
-            delta = refraction_q(refr, chord.theta + delta, geo[2]) * (chord.tan_theta + delta * sec2)
+        q = refraction_q(refr, chord.theta, geo[2])
+        delta = q * chord.tan_theta
+        delta = q * (chord.tan_theta + delta * sec2)
         d2 = delta * delta
         d = (wp.float64(1.0) - wp.float64(0.5) * d2) * d - delta * (
             wp.float64(1.0) - d2 * wp.float64(1.0 / 6.0)) * chord.w
