@@ -31,7 +31,7 @@ from geometry import scene  # noqa: E402
 
 from orthowarp.kernels import ortho as ok  # noqa: E402
 from orthowarp.pipeline.geometry import FrameGeometry  # noqa: E402
-from orthowarp.pipeline.ortho import RESAMPLING, orthorectify, output_grid  # noqa: E402
+from orthowarp.pipeline.ortho import COARSE_STEP, RESAMPLING, coarse_grid, orthorectify, output_grid  # noqa: E402
 
 
 # Runs a click CLI (module, function) in a child that reports its own peak resident memory when it
@@ -94,14 +94,9 @@ def kernel_only(geom, src_path, resampling, repeats=3):
     from concurrent.futures import ThreadPoolExecutor
 
     from pyproj import Transformer
-    step = 16
+    step = COARSE_STEP
     rows, cols = shape
-    ki = np.arange(-(-(rows - 1) // step) + 1) * step
-    kj = np.arange(-(-(cols - 1) // step) + 1) * step
-    jj, ii = np.meshgrid(kj + 0.5, ki + 0.5)
-    x, y = transform @ (jj, ii)
-    u, v = Transformer.from_crs(crs, "EPSG:4326", always_xy=True).transform(x, y)
-    coarse_all = np.ascontiguousarray(np.stack([u, v], -1))
+    coarse_all = coarse_grid(transform, Transformer.from_crs(crs, "EPSG:4326", always_xy=True), 0, 0, rows, cols)
     with rasterio.open(src_path) as ds:
         data = ds.read(out_dtype="float32")
     sw = ok.SourceWindow()

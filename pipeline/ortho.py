@@ -324,6 +324,18 @@ def orthorectify(src, camera, pose, dst, *, dem, crs=None, resolution=None, resa
     return OrthoResult(dst, out_crs, transform, shape, res, dict(timer.t))
 
 
+def coarse_grid(transform, to_frame, r0, c0, th, tw, step=COARSE_STEP):
+    """Pose-frame horizontal coordinates (rows, cols, 2) of the output pixel centres every
+    ``step`` pixels of the tile (r0, c0, th, tw), the last node at or past its last pixel,
+    transformed exactly (``to_frame``: output CRS -> pose frame, a pyproj Transformer)."""
+    ki = np.arange(max(2, -(-(th - 1) // step) + 1)) * step
+    kj = np.arange(max(2, -(-(tw - 1) // step) + 1)) * step
+    jj, ii = np.meshgrid(c0 + kj + 0.5, r0 + ki + 0.5)
+    x, y = transform @ (jj, ii)
+    u, v = to_frame.transform(x, y)
+    return np.ascontiguousarray(np.stack([u, v], -1))
+
+
 def _default_tile_size(device, bands, workers):
     """Output tile edge for a device: see :func:`orthorectify`'s ``tile_size``."""
     if not device.is_cuda:
@@ -384,12 +396,7 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
     def backward_coords(r0, c0, th, tw):
         """Source coordinates of the tile's pixels by the backward chain, and their window."""
         t = time.perf_counter()
-        ki = np.arange(max(2, -(-(th - 1) // COARSE_STEP) + 1)) * COARSE_STEP
-        kj = np.arange(max(2, -(-(tw - 1) // COARSE_STEP) + 1)) * COARSE_STEP
-        jj, ii = np.meshgrid(c0 + kj + 0.5, r0 + ki + 0.5)
-        x, y = transform @ (jj, ii)
-        u, v = to_frame.transform(x, y)
-        coarse = wp.array(np.ascontiguousarray(np.stack([u, v], -1)), dtype=wp.vec2d, device=device)
+        coarse = wp.array(coarse_grid(transform, to_frame, r0, c0, th, tw), dtype=wp.vec2d, device=device)
         bounds = wp.array(np.full(4, np.inf, np.float32), dtype=wp.float32, device=device)
         coords = wp.empty((th, tw), dtype=wp.vec2d, device=device)
         timer.add("h2d", time.perf_counter() - t)
