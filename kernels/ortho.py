@@ -19,6 +19,8 @@ inverts that map quad by quad into the same per-output-pixel source coordinates,
 same resampling kernel then uses.
 """
 
+from typing import Any
+
 import warp as wp
 
 from .camera import FrameCameraData
@@ -290,3 +292,54 @@ def forward_scatter_kernel(
                 t = t + cross2(ds, e) / det
             if s >= -eps and s <= wp.float64(1.0) + eps and t >= -eps and t <= wp.float64(1.0) + eps:
                 coords[r, c] = wp.vec2d(wp.float64(col0 + j) + half + s, wp.float64(row0 + i) + half + t)
+
+
+# -- source widening and output packing ----------------------------------------------------------
+
+
+@wp.kernel
+def widen_kernel(src: wp.array3d(dtype=Any), dst: wp.array3d(dtype=wp.float32)):
+    """Integer source window (bands, rows, cols) -> float32, for the resampler."""
+    b, i, j = wp.tid()
+    dst[b, i, j] = wp.float32(src[b, i, j])
+
+
+wp.overload(widen_kernel, {"src": wp.array3d(dtype=wp.uint8)})
+wp.overload(widen_kernel, {"src": wp.array3d(dtype=wp.uint16)})
+
+
+@wp.kernel
+def pack_uint8_kernel(values: wp.array3d(dtype=wp.float32), valid: wp.array2d(dtype=wp.uint8),
+                      out: wp.array3d(dtype=wp.uint8)):
+    """Resampled (bands, rows, cols) float32 -> pixel-interleaved (rows, cols, bands) uint8:
+    rounded half to even and clipped; 0 where invalid."""
+    i, j = wp.tid()
+    for b in range(out.shape[2]):
+        v = wp.float32(0.0)
+        if valid[i, j] != wp.uint8(0):
+            v = wp.clamp(wp.rint(values[b, i, j]), wp.float32(0.0), wp.float32(255.0))
+        out[i, j, b] = wp.uint8(v)
+
+
+@wp.kernel
+def pack_uint16_kernel(values: wp.array3d(dtype=wp.float32), valid: wp.array2d(dtype=wp.uint8),
+                       out: wp.array3d(dtype=wp.uint16)):
+    """As :func:`pack_uint8_kernel`, for uint16."""
+    i, j = wp.tid()
+    for b in range(out.shape[2]):
+        v = wp.float32(0.0)
+        if valid[i, j] != wp.uint8(0):
+            v = wp.clamp(wp.rint(values[b, i, j]), wp.float32(0.0), wp.float32(65535.0))
+        out[i, j, b] = wp.uint16(v)
+
+
+@wp.kernel
+def pack_float32_kernel(values: wp.array3d(dtype=wp.float32), valid: wp.array2d(dtype=wp.uint8),
+                        out: wp.array3d(dtype=wp.float32)):
+    """As :func:`pack_uint8_kernel`, for float32: NaN where invalid."""
+    i, j = wp.tid()
+    for b in range(out.shape[2]):
+        v = wp.float32(wp.nan)
+        if valid[i, j] != wp.uint8(0):
+            v = values[b, i, j]
+        out[i, j, b] = v

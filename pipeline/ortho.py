@@ -35,6 +35,7 @@ from ..kernels import ortho as ortho_kernels
 from ..pose import GEOCENTRIC, Pose
 from .dem import Dem
 from .geometry import FrameGeometry
+from .cog import CogWriter
 from .io import atomic_path, ensure_folder
 
 __all__ = ["orthorectify", "OrthoResult", "RESAMPLING", "output_grid"]
@@ -46,6 +47,7 @@ _RADIUS = {"nearest": 1, "bilinear": 1, "bicubic": 2, "lanczos": 3}
 DRIVERS = ("COG", "GTiff")
 COMPRESS = ("deflate", "zstd", "lzw", "jpeg", "none")
 DTYPES = ("uint8", "uint16", "float32")
+_WP_TYPES = {"uint8": wp.uint8, "uint16": wp.uint16, "float32": wp.float32}
 COARSE_STEP = 16  # output pixels between nodes of the exactly transformed coarse grid
 
 
@@ -193,7 +195,7 @@ class _Timer:
 
     def __init__(self):
         self.lock = threading.Lock()
-        self.t = {k: 0.0 for k in ("read", "h2d", "kernel", "d2h", "write")}
+        self.t = {k: 0.0 for k in ("read", "h2d", "kernel", "d2h", "write", "finish")}
 
     def add(self, key, dt):
         with self.lock:
@@ -240,7 +242,7 @@ def orthorectify(src, camera, pose, dst, *, dem, crs=None, resolution=None, resa
     overviews : bool, optional
         Build internal overviews (always for COG).
     tile_size : int, optional
-        Output tile edge in pixels (multiple of 16); default: 1024 on the CPU, on a GPU the
+        Output tile edge in pixels (multiple of 16); default: 512 on the CPU, on a GPU the
         largest power of two up to 4096 whose tiles in flight use at most a quarter of the
         device's free memory.
     overwrite : bool, optional
@@ -307,16 +309,20 @@ def orthorectify(src, camera, pose, dst, *, dem, crs=None, resolution=None, resa
     log.info("%s -> %s: %d x %d pixels at %.4g %s", src, dst, shape[1], shape[0], res,
              out_crs.axis_info[0].unit_name if out_crs.axis_info else "")
     timer = _Timer()
+    # A deflate or uncompressed COG streams through CogWriter (blocks compressed and overviews
+    # reduced as tiles arrive); other COGs are written uncompressed and copied by GDAL's COG
+    # driver, which compresses once.
+    streamed = driver == "COG" and compress in ("deflate", "none")
     with atomic_path(dst) as tmp_final:
-        work = tmp_final if driver == "GTiff" else tmp_final + ".work.tif"
+        work = tmp_final if driver == "GTiff" or streamed else tmp_final + ".work.tif"
         try:
-            # a COG is compressed once, by the final copy; its work file stays uncompressed
             _render(src, geom, out_crs, transform, shape, count, out_dtype,
                     compress if driver == "GTiff" else "none", work, resampling, tile_size, progress,
-                    workers, timer, dst, method)
-            t0 = time.perf_counter()
-            _finish(work, tmp_final, driver, compress, overviews, out_dtype)
-            timer.t["finish"] = time.perf_counter() - t0
+                    workers, timer, dst, method, cog=dict(compress=compress) if streamed else None)
+            if not streamed:
+                t0 = time.perf_counter()
+                _finish(work, tmp_final, driver, compress, overviews, out_dtype)
+                timer.t["finish"] = time.perf_counter() - t0
         finally:
             if work != tmp_final and os.path.exists(work):
                 os.remove(work)
@@ -339,7 +345,7 @@ def coarse_grid(transform, to_frame, r0, c0, th, tw, step=COARSE_STEP):
 def _default_tile_size(device, bands, workers):
     """Output tile edge for a device: see :func:`orthorectify`'s ``tile_size``."""
     if not device.is_cuda:
-        return 1024
+        return 512  # one COG block; tiles in flight (one per core) stay small in host memory
     # per output pixel: coordinates (16 B), result (4 B per band), mask (1 B), and a source
     # window of about the same size (5 B per band): ~ 17 + 9 * bands bytes
     per_pixel = 17 + 9 * bands
@@ -359,7 +365,7 @@ def _creation_options(compress, dtype):
 
 
 def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, path, resampling,
-            tile_size, progress, workers, timer, final_name, method_name):
+            tile_size, progress, workers, timer, final_name, method_name, cog=None):
     rows, cols = shape
     is_float = out_dtype == "float32"
     profile = dict(driver="GTiff", width=cols, height=rows, count=count, dtype=out_dtype,
@@ -380,7 +386,6 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
     local = threading.local()
     handles = []
     write_lock = threading.Lock()
-    info = np.iinfo(out_dtype) if not is_float else None
     wp.load_module(ortho_kernels, device=device)
 
     def source():
@@ -413,64 +418,66 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
     run_coords = backward_coords if method_name == "backward" else _forward_coords(
         geom, transform, out_crs, frame_crs, device, timer, radius)
 
+    pack = {"uint8": ortho_kernels.pack_uint8_kernel, "uint16": ortho_kernels.pack_uint16_kernel,
+            "float32": ortho_kernels.pack_float32_kernel}[out_dtype]
+
+    def read_window(ds, wc0, wr0, wc1, wr1):
+        """The source window on the device as float32 (bands, rows, cols), and its mask."""
+        t = time.perf_counter()
+        win = Window(wc0, wr0, wc1 - wc0, wr1 - wr0)
+        try:
+            native = ds.dtypes[0] in ("uint8", "uint16", "float32")
+            data = ds.read(window=win) if native else ds.read(window=win, out_dtype="float32")
+            valid = ds.dataset_mask(window=win)  # 0 / 255
+        except RasterioIOError as e:
+            raise RasterIOError(f"Could not read image '{src}': {e}") from e
+        timer.add("read", time.perf_counter() - t)
+        t = time.perf_counter()
+        sw = ortho_kernels.SourceWindow()
+        if data.dtype == np.float32:
+            sw.data = wp.array(data, dtype=wp.float32, device=device)
+        else:
+            raw = wp.array(data, dtype=_WP_TYPES[data.dtype.name], device=device)
+            sw.data = wp.empty(data.shape, dtype=wp.float32, device=device)
+            wp.launch(ortho_kernels.widen_kernel, dim=data.shape, inputs=[raw], outputs=[sw.data], device=device)
+        sw.valid = wp.array(valid, dtype=wp.uint8, device=device)
+        sw.col0, sw.row0 = wc0, wr0
+        sw.width, sw.height = float(w_img), float(h_img)
+        timer.add("h2d", time.perf_counter() - t)
+        return sw
+
     def run(tile):
         r0, c0, th, tw = tile
         ds, stream = source()
         with wp.ScopedStream(stream) if stream is not None else contextlib.nullcontext():
             coords, window = run_coords(r0, c0, th, tw)
-            out = None
-            if window is not None:
-                wc0, wr0, wc1, wr1 = window
+            if window is None:
+                block = np.zeros((th, tw, count), out_dtype) if not is_float else np.full((th, tw, count), np.nan, np.float32)
+                mask = np.zeros((th, tw), bool)
+            else:
+                sw = read_window(ds, *window)
                 t = time.perf_counter()
-                win = Window(wc0, wr0, wc1 - wc0, wr1 - wr0)
-                try:
-                    data = ds.read(window=win, out_dtype="float32")
-                    valid = (ds.dataset_mask(window=win) > 0).astype(np.uint8)
-                except RasterioIOError as e:
-                    raise RasterIOError(f"Could not read image '{src}': {e}") from e
-                timer.add("read", time.perf_counter() - t)
-                t = time.perf_counter()
-                sw = ortho_kernels.SourceWindow()
-                sw.data = wp.array(data, dtype=wp.float32, device=device)
-                sw.valid = wp.array(valid, dtype=wp.uint8, device=device)
-                sw.col0, sw.row0 = wc0, wr0
-                sw.width, sw.height = float(w_img), float(h_img)
                 res = wp.empty((count, th, tw), dtype=wp.float32, device=device)
                 res_valid = wp.empty((th, tw), dtype=wp.uint8, device=device)
-                timer.add("h2d", time.perf_counter() - t)
-                t = time.perf_counter()
+                packed = wp.empty((th, tw, count), dtype=_WP_TYPES[out_dtype], device=device)
                 wp.launch(ortho_kernels.ortho_resample_kernel, dim=(th, tw), device=device,
                           inputs=[sw, coords, resampling_code, res, res_valid])
+                wp.launch(pack, dim=(th, tw), device=device, inputs=[res, res_valid, packed])
                 if stream is not None:
                     wp.synchronize_stream(stream)
                 timer.add("kernel", time.perf_counter() - t)
                 t = time.perf_counter()
-                out, mask = res.numpy(), res_valid.numpy().astype(bool)
+                block, mask = packed.numpy(), res_valid.numpy().view(bool)
                 timer.add("d2h", time.perf_counter() - t)
-            else:
-                mask = np.zeros((th, tw), bool)
             t = time.perf_counter()
-            if is_float:
-                block = np.full((count, th, tw), np.nan, np.float32) if out is None else np.where(mask, out, np.nan).astype(np.float32)
-            else:
-                block = np.zeros((count, th, tw), out_dtype)
-                if out is not None:
-                    block[:, mask] = np.clip(np.rint(out[:, mask]), info.min, info.max).astype(out_dtype)
-            try:
-                with write_lock:
-                    dst.write(block, window=Window(c0, r0, tw, th))
-                    if not is_float:
-                        dst.write_mask(mask.astype(np.uint8) * 255, window=Window(c0, r0, tw, th))
-            except RasterioIOError as e:
-                raise RasterIOError(f"Could not write the orthoimage '{final_name}': {e}") from e
+            sink(r0, c0, block, mask)
             timer.add("write", time.perf_counter() - t)
 
     n_workers = workers or (4 if device.is_cuda else (os.cpu_count() or 1))
     try:
-        # A bounded GDAL block cache: the default (5 % of RAM) would hold gigabytes of written
-        # blocks before flushing them.
-        with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True, GDAL_CACHEMAX=256), \
-                rasterio.open(path, "w", **profile) as dst:
+        # A bounded GDAL block cache for the source reads and GDAL-written outputs: the default
+        # (5 % of RAM) would hold gigabytes of blocks.
+        with rasterio.Env(GDAL_CACHEMAX=256), _open_sink(path, profile, cog, final_name, timer) as sink:
             bar = _progress(len(tiles)) if progress else None
             with ThreadPoolExecutor(max_workers=n_workers) as pool:
                 for _ in pool.map(run, tiles):
@@ -483,6 +490,37 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
     finally:
         for ds in handles:
             ds.close()
+
+
+@contextlib.contextmanager
+def _open_sink(path, profile, cog, final_name, timer):
+    """A function sink(row, col, block (rows, cols, bands), mask (rows, cols) bool) writing
+    tiles: through :class:`CogWriter` (``cog``: its options) or GDAL's GTiff driver."""
+    if cog is not None:
+        w = CogWriter(path, width=profile["width"], height=profile["height"], count=profile["count"],
+                      dtype=profile["dtype"], crs=profile["crs"], transform=profile["transform"], **cog)
+        try:
+            yield w.write
+        except BaseException:
+            w.abort()
+            raise
+        t = time.perf_counter()
+        w.close()  # the last blocks, then the file's IFDs and block copy
+        timer.add("finish", time.perf_counter() - t)
+        return
+    lock = threading.Lock()
+    is_float = profile["dtype"] == "float32"
+    with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True), rasterio.open(path, "w", **profile) as dst:
+        def sink(r0, c0, block, mask):
+            win = Window(c0, r0, block.shape[1], block.shape[0])
+            try:
+                with lock:
+                    dst.write(np.moveaxis(block, 2, 0), window=win)
+                    if not is_float:
+                        dst.write_mask(mask.astype(np.uint8) * 255, window=win)
+            except RasterioIOError as e:
+                raise RasterIOError(f"Could not write the orthoimage '{final_name}': {e}") from e
+        yield sink
 
 
 _OPEN_LOCK = threading.Lock()  # warnings.catch_warnings is not thread-safe

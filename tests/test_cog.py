@@ -1,0 +1,178 @@
+"""The streaming COG writer, read back by GDAL and compared with GDAL's own COG driver."""
+
+import os
+
+import numpy as np
+import pytest
+import rasterio
+import rasterio.shutil
+from affine import Affine
+
+from orthowarp.errors import ParamError
+from orthowarp.pipeline.cog import CogWriter, overview_count
+
+CRS = "EPSG:32632"
+TRANSFORM = Affine(0.25, 0, 500000.0, 0, -0.25, 5100000.0)
+
+
+def reference_pyramid(data, mask, levels):
+    """Overview levels by repeated 2 x 2 means of the valid pixels (float64, independent of
+    blocks and tiles); a pixel is valid when any of its four is."""
+    out = []
+    d, m = data.astype(np.float64), mask.copy()
+    for _ in range(levels):
+        h, w = m.shape
+        H, W = -(-h // 2), -(-w // 2)
+        dp = np.zeros((2 * H, 2 * W) + d.shape[2:])
+        mp = np.zeros((2 * H, 2 * W), bool)
+        dp[:h, :w], mp[:h, :w] = d, m
+        mm = mp.reshape(H, 2, W, 2)
+        n = mm.sum(axis=(1, 3))
+        s = np.where(mp[..., None], dp, 0.0).reshape(H, 2, W, 2, -1).sum(axis=(1, 3))
+        d = s / np.maximum(n, 1)[..., None]
+        m = n > 0
+        out.append((d, m))
+    return out
+
+
+def scene(shape, count, dtype, seed=0):
+    rng = np.random.default_rng(seed)
+    h, w = shape
+    y, x = np.mgrid[0:h, 0:w]
+    base = 0.5 + 0.4 * np.sin(x / 17.0) * np.cos(y / 23.0)
+    if dtype == "float32":
+        data = np.stack([base * (k + 1) for k in range(count)], -1).astype(np.float32)
+    else:
+        top = np.iinfo(dtype).max
+        data = np.stack([np.clip(base * top + rng.normal(0, 3, base.shape), 0, top) for _ in range(count)], -1).astype(dtype)
+    mask = (x - w / 2) ** 2 / (0.45 * w) ** 2 + (y - h / 2) ** 2 / (0.5 * h) ** 2 < 1  # an ellipse of data
+    if dtype == "float32":
+        data[~mask] = np.nan
+    return data, mask
+
+
+def write_tiles(writer, data, mask, tile, seed=1):
+    """Feed the writer misaligned tiles in a random order."""
+    h, w = mask.shape
+    tiles = [(r, c) for r in range(0, h, tile) for c in range(0, w, tile)]
+    for k in np.random.default_rng(seed).permutation(len(tiles)):
+        r, c = tiles[k]
+        writer.write(r, c, data[r:r + tile, c:c + tile], mask[r:r + tile, c:c + tile])
+
+
+@pytest.mark.parametrize("count,dtype,compress,bigtiff", [
+    (3, "uint8", "deflate", None), (1, "uint16", "deflate", None), (4, "uint8", "none", True),
+    (2, "float32", "deflate", None), (1, "float32", "none", True)])
+def test_cog_reads_back_exactly(tmp_path, count, dtype, compress, bigtiff):
+    shape = (1100, 1500)
+    data, mask = scene(shape, count, dtype)
+    path = str(tmp_path / "out.tif")
+    with CogWriter(path, width=shape[1], height=shape[0], count=count, dtype=dtype, crs=CRS, transform=TRANSFORM,
+                   compress=compress, block_size=256, overviews=3, threads=3, bigtiff=bigtiff) as w:
+        write_tiles(w, data, mask, tile=300)
+    assert os.listdir(tmp_path) == ["out.tif"]  # the side file is gone
+    with open(path, "rb") as f:
+        assert f.read(4) == (b"II+\0" if bigtiff else b"II*\0")
+    with rasterio.open(path) as ds:
+        assert ds.tags(ns="IMAGE_STRUCTURE")["LAYOUT"] == "COG"
+        assert ds.compression is None if compress == "none" else ds.compression.value == "DEFLATE"
+        assert ds.count == count and ds.dtypes[0] == dtype and ds.block_shapes[0] == (256, 256)
+        assert ds.crs == rasterio.crs.CRS.from_string(CRS) and ds.transform == TRANSFORM
+        assert ds.overviews(1) == [2, 4, 8]
+        got = ds.read()
+        expected = np.moveaxis(data, 2, 0)
+        if dtype == "float32":
+            np.testing.assert_array_equal(np.isnan(got), np.isnan(expected))
+            np.testing.assert_array_equal(got[~np.isnan(got)], expected[~np.isnan(expected)])
+        else:
+            np.testing.assert_array_equal(ds.dataset_mask() > 0, mask)
+            np.testing.assert_array_equal(got, np.where(mask, expected, 0))
+        for k, (ref, ref_mask) in enumerate(reference_pyramid(data, mask, 3), start=1):
+            f = 2 ** k
+            ovr = ds.read(out_shape=(count, -(-shape[0] // f), -(-shape[1] // f)), resampling=rasterio.enums.Resampling.nearest)
+            ref = np.moveaxis(ref, 2, 0)
+            if dtype == "float32":
+                np.testing.assert_array_equal(np.isfinite(ovr[0]), ref_mask)
+                np.testing.assert_allclose(ovr[:, ref_mask], ref[:, ref_mask], rtol=1e-6)
+            else:
+                with rasterio.open(path, overview_level=k - 1) as o:
+                    np.testing.assert_array_equal(o.dataset_mask() > 0, ref_mask)
+                # each level is rounded from the level before: at most half a count per level
+                assert np.abs(ovr[:, ref_mask] - ref[:, ref_mask]).max() <= 0.5 * k + 1e-9
+
+
+def test_layout_is_cloud_optimized(tmp_path):
+    """IFDs first, then blocks from the smallest overview to the full resolution, row-major,
+    each mask block after its image block (GDAL's block offsets, read through GDAL)."""
+    shape = (700, 900)
+    data, mask = scene(shape, 3, "uint8")
+    path = str(tmp_path / "out.tif")
+    with CogWriter(path, width=shape[1], height=shape[0], count=3, dtype="uint8", crs=CRS, transform=TRANSFORM,
+                   block_size=128, overviews=2) as w:
+        write_tiles(w, data, mask, tile=200)
+    with rasterio.open(path) as ds:
+        def offsets(level):
+            nby, nbx = -(-shape[0] // (128 * 2 ** level)), -(-shape[1] // (128 * 2 ** level))
+            ovr = None if level == 0 else level - 1
+            return [int(ds.get_tag_item(f"BLOCK_OFFSET_{j}_{i}", "TIFF", bidx=1, ovr=ovr)) for i in range(nby) for j in range(nbx)]
+        levels = [offsets(k) for k in (2, 1, 0)]
+    flat = [o for lvl in levels for o in lvl]
+    assert flat == sorted(flat)
+    assert min(flat) < 4096 + os.path.getsize(path) // 100  # data starts right after the IFDs
+    with open(path, "rb") as f:
+        head = f.read(300)
+    assert b"LAYOUT=IFDS_BEFORE_DATA" in head and b"MASK_INTERLEAVED_WITH_IMAGERY=YES" in head
+
+
+def test_matches_gdal_cog_driver(tmp_path):
+    """Same pixels, mask, georeferencing and colour interpretation as GDAL's COG driver; the
+    overviews agree within rounding (GDAL weights the partial pixels of odd edges)."""
+    shape = (1000, 1200)
+    data, mask = scene(shape, 3, "uint8")
+    ours = str(tmp_path / "ours.tif")
+    with CogWriter(ours, width=shape[1], height=shape[0], count=3, dtype="uint8", crs=CRS, transform=TRANSFORM,
+                   block_size=256) as w:
+        write_tiles(w, data, mask, tile=256)
+    plain = str(tmp_path / "plain.tif")
+    with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True), rasterio.open(
+            plain, "w", driver="GTiff", width=shape[1], height=shape[0], count=3, dtype="uint8", crs=CRS,
+            transform=TRANSFORM, tiled=True, blockxsize=256, blockysize=256) as dst:
+        dst.write(np.moveaxis(np.where(mask[..., None], data, 0), 2, 0))
+        dst.write_mask(mask.astype(np.uint8) * 255)
+    gdal = str(tmp_path / "gdal.tif")
+    with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True):
+        rasterio.shutil.copy(plain, gdal, driver="COG", compress="DEFLATE", blocksize=256, predictor="YES",
+                             overview_resampling="average")
+    with rasterio.open(ours) as a, rasterio.open(gdal) as b:
+        assert a.profile["crs"] == b.profile["crs"] and a.transform == b.transform
+        assert a.colorinterp == b.colorinterp and a.overviews(1) == b.overviews(1)[:2]  # (ours stop at 256 px)
+        np.testing.assert_array_equal(a.read(), b.read())
+        np.testing.assert_array_equal(a.dataset_mask(), b.dataset_mask())
+        oa, ob = (x.read(out_shape=(3, 250, 300)).astype(float) for x in (a, b))
+        valid = reference_pyramid(data, mask, 2)[1][1]
+        assert np.mean(np.abs(oa - ob)[:, valid]) < 0.5
+
+
+def test_bad_tiles_and_incomplete_rasters(tmp_path):
+    path = str(tmp_path / "out.tif")
+    kw = dict(width=600, height=500, count=1, dtype="uint8", crs=CRS, transform=TRANSFORM, block_size=256)
+    with pytest.raises(ParamError, match="outside"):
+        with CogWriter(path, **kw) as w:
+            w.write(400, 0, np.zeros((200, 100, 1), np.uint8))
+    with pytest.raises(ParamError, match="uint8"):
+        with CogWriter(path, **kw) as w:
+            w.write(0, 0, np.zeros((100, 100, 1), np.float32))
+    with pytest.raises(ParamError, match="never written"):
+        with CogWriter(path, **kw) as w:
+            w.write(0, 0, np.zeros((100, 100, 1), np.uint8))
+    assert os.listdir(tmp_path) in ([], ["out.tif"])  # no side file left; callers write atomically
+    with pytest.raises(ParamError, match="dtype"):
+        CogWriter(path, **{**kw, "dtype": "int16"})
+    with pytest.raises(ParamError, match="compress"):
+        CogWriter(path, **kw, compress="lzw")
+
+
+def test_overview_count():
+    assert overview_count(23310, 19297) == 6
+    assert overview_count(500, 300) == 0
+    assert overview_count(512, 100) == 1
