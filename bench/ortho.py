@@ -49,14 +49,30 @@ getattr(importlib.import_module(module), func)()
 """
 
 
-def run_cli(python, entry, args):
-    """Wall time (s), peak RSS (MB), return code and stderr tail of a CLI run."""
+def run_cli(python, entry, args, gpu_index=None):
+    """Wall time (s), peak RSS (MB), return code and stderr tail of a CLI run; with
+    ``gpu_index``, also the GPU's busy fraction over the run: the mean of nvidia-smi's
+    utilization.gpu (percent of each sample period in which a kernel ran), sampled every 50 ms."""
+    smi = None
+    if gpu_index is not None:
+        try:
+            smi = subprocess.Popen(["nvidia-smi", "-i", str(gpu_index), "--query-gpu=utilization.gpu",
+                                    "--format=csv,noheader,nounits", "-lms", "50"],
+                                   stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+        except OSError:
+            smi = None
     t = time.perf_counter()
     proc = subprocess.run([python, "-c", CLI_WRAPPER, entry, *args], capture_output=True, text=True)
     wall = time.perf_counter() - t
     peak = [line for line in proc.stderr.splitlines() if line.startswith("PEAK_RSS_KB ")]
-    return dict(wall_s=wall, peak_rss_mb=int(peak[-1].split()[1]) / 1024 if peak else None,
-                returncode=proc.returncode, stderr=proc.stderr[-1500:] if proc.returncode else "")
+    out = dict(wall_s=wall, peak_rss_mb=int(peak[-1].split()[1]) / 1024 if peak else None,
+               returncode=proc.returncode, stderr=proc.stderr[-1500:] if proc.returncode else "")
+    if smi is not None:
+        smi.terminate()
+        util = [float(v) for v in smi.communicate()[0].split() if v.replace(".", "", 1).isdigit()]
+        if util:
+            out.update(gpu_busy_fraction=sum(util) / len(util) / 100, gpu_util_samples=len(util))
+    return out
 
 
 def write_source(path, width, height):
@@ -186,6 +202,22 @@ def main(argv=None):
                   method=args.method, refraction=not args.no_refraction,
                   dem_shape=list(dem.shape), setup_s=time.perf_counter() - t, cpu_count=os.cpu_count(),
                   warp=wp.__version__, results=[])
+
+    def run_orthority(resolution):
+        """orthority 0.7.0 on the same job (right after the first device: the GPU's figures and
+        orthority's are the ones that matter if a run is cut short)."""
+        oty_dir = os.path.join(work, "orthority")
+        os.makedirs(oty_dir, exist_ok=True)
+        interp = {"bilinear": "bilinear", "bicubic": "cubic", "lanczos": "lanczos", "nearest": "nearest"}[args.resampling]
+        o = run_cli(args.oty_python, "orthority.cli:cli", [
+            "frame", "--dem", dem_path, "--int-param", os.path.join(work, "camera.yaml"), "--ext-param",
+            os.path.join(work, "ext.csv"), "--res", repr(resolution), "--interp", interp, "--dem-interp", "bilinear",
+            "--compress", "deflate", "--out-dir", oty_dir, "--overwrite", src])
+        report["orthority"] = o
+        _save(report, args.out)
+        print(f"{'orthority 0.7.0 (CPU)':>24s} cli {o['wall_s']:.1f} s peak {o['peak_rss_mb'] or float('nan'):.0f} MB "
+              f"rc {o['returncode']} {o['stderr'][-300:]}", flush=True)
+
     for name in devices:
         geom = FrameGeometry(cam, pose, dem, device=name, refraction=not args.no_refraction)
         r = dict(device=str(geom.device), device_name=geom.device.name)
@@ -203,7 +235,8 @@ def main(argv=None):
                 "-q", "ortho", src, "--int-param", os.path.join(work, "camera.yaml"), "--ext-param",
                 os.path.join(work, "ext.csv"), "--dem", dem_path, "--out-dir", work, "--overwrite", "--resolution",
                 repr(res.resolution), "--resampling", args.resampling, "--method", args.method, "--device", name,
-                *(["--no-refraction"] if args.no_refraction else [])])
+                *(["--no-refraction"] if args.no_refraction else [])],
+                gpu_index=geom.device.ordinal if geom.device.is_cuda else None)
         report["results"].append(r)
         _save(report, args.out)
         cli = r.get("cli", {})
@@ -212,20 +245,12 @@ def main(argv=None):
               f"peak {cli.get('peak_rss_mb') or float('nan'):.0f} MB  stages {({k: round(v, 2) for k, v in res.timings.items()})}",
               flush=True)
         resolution = res.resolution
-    if args.oty_python:
-        oty_dir = os.path.join(work, "orthority")
-        os.makedirs(oty_dir, exist_ok=True)
-        interp = {"bilinear": "bilinear", "bicubic": "cubic", "lanczos": "lanczos", "nearest": "nearest"}[args.resampling]
-        o = run_cli(args.oty_python, "orthority.cli:cli", [
-            "frame", "--dem", dem_path, "--int-param", os.path.join(work, "camera.yaml"), "--ext-param",
-            os.path.join(work, "ext.csv"), "--res", repr(resolution), "--interp", interp, "--dem-interp", "bilinear",
-            "--compress", "deflate", "--out-dir", oty_dir, "--overwrite", src])
-        report["orthority"] = o
-        print(f"{'orthority 0.7.0 (CPU)':>24s} cli {o['wall_s']:.1f} s peak {o['peak_rss_mb'] or float('nan'):.0f} MB "
-              f"rc {o['returncode']} {o['stderr'][-300:]}", flush=True)
-        for r in report["results"]:
-            if "cli" in r and o["returncode"] == 0:
-                r["speedup_vs_orthority"] = o["wall_s"] / r["cli"]["wall_s"]
+        if args.oty_python and "orthority" not in report:
+            run_orthority(resolution)
+    for r in report["results"]:
+        o = report.get("orthority", {})
+        if "cli" in r and o.get("returncode") == 0:
+            r["speedup_vs_orthority"] = o["wall_s"] / r["cli"]["wall_s"]
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     with open(args.out, "w") as f:
         json.dump(report, f, indent=2)
