@@ -31,7 +31,7 @@ from geometry import scene  # noqa: E402
 
 from orthowarp.kernels import ortho as ok  # noqa: E402
 from orthowarp.pipeline.geometry import FrameGeometry  # noqa: E402
-from orthowarp.pipeline.ortho import COARSE_STEP, RESAMPLING, coarse_grid, orthorectify, output_grid  # noqa: E402
+from orthowarp.pipeline.ortho import COARSE_STEP, RESAMPLING, coarse_grid, coarse_struct, orthorectify, output_grid  # noqa: E402
 
 
 # Runs a click CLI (module, function) in a child that reports its own peak resident memory when it
@@ -131,7 +131,7 @@ def kernel_only(geom, src_path, resampling, repeats=3):
         c0, c1 = r0 // step, -(-(r1 - 1) // step) + 1
         bands.append(dict(
             shape=(r1 - r0, cols),
-            coarse=wp.array(coarse_all[c0:max(c1, c0 + 2)], dtype=wp.vec2d, device=dev),
+            coarse=coarse_struct(np.ascontiguousarray(coarse_all[c0:max(c1, c0 + 2)]), geom.pose.mode == "geocentric", dev),
             coords=wp.empty((r1 - r0, cols), dtype=wp.vec2d, device=dev),
             bounds=wp.empty(4, dtype=wp.float32, device=dev),
             out=wp.empty((3, r1 - r0, cols), dtype=wp.float32, device=dev),
@@ -140,7 +140,7 @@ def kernel_only(geom, src_path, resampling, repeats=3):
     def launch(b):
         b["bounds"].fill_(np.inf)
         wp.launch(ok.ortho_coords_kernel, dim=b["shape"], device=dev,
-                  inputs=[cam, pose, refr, dem, b["coarse"], step, sw.width, sw.height, b["coords"], b["bounds"]])
+                  inputs=[cam, pose, refr, dem, b["coarse"], sw.width, sw.height, b["coords"], b["bounds"]])
         wp.launch(ok.ortho_resample_kernel, dim=b["shape"], device=dev,
                   inputs=[sw, b["coords"], method, b["out"], b["valid"]])
 

@@ -113,7 +113,8 @@ def make_ray(pose: FramePoseData, d_app: wp.vec3d):
     c = -wp.dot(d_app, pose.up)
     perp = -(pose.up + c * d_app)  # component of the nadir direction perpendicular to d
     s = wp.length(perp)
-    r.theta = wp.atan2(s, c)
+    # theta only indexes the refraction table, whose q changes by ~1e-4 per radian: float32 will do
+    r.theta = wp.float64(wp.atan2(wp.float32(s), wp.float32(c)))
     if c > wp.float64(0.0):
         r.tan_theta = s / c
     else:
@@ -343,11 +344,9 @@ def geolocate_pixel(
 
 
 @wp.func
-def project_point(cam: FrameCameraData, pose: FramePoseData, refr: RefractionTable, geo: wp.vec3d):
-    """Geo triple -> pixel (col, row); NaN behind the camera."""
-    x = geo
-    if pose.mode == MODE_GEOCENTRIC:
-        x = geodetic_to_ecef(geo[1] * DEG, geo[0] * DEG, geo[2])
+def project_xyz(cam: FrameCameraData, pose: FramePoseData, refr: RefractionTable, x: wp.vec3d, h: wp.float64):
+    """Point of the pose's Cartesian frame (ECEF for geocentric poses, else the map frame) at
+    ellipsoidal/map height h -> pixel (col, row); NaN behind the camera."""
     d = wp.normalize(x - pose.center)
     if refr.enabled != 0:
         # The apparent ray is the chord turned away from the nadir by delta, where
@@ -357,13 +356,22 @@ def project_point(cam: FrameCameraData, pose: FramePoseData, refr: RefractionTab
         # leave < 1e-12 rad.
         chord = make_ray(pose, d)
         sec2 = wp.float64(1.0) + chord.tan_theta * chord.tan_theta
-        q = refraction_q(refr, chord.theta, geo[2])
+        q = refraction_q(refr, chord.theta, h)
         delta = q * chord.tan_theta
         delta = q * (chord.tan_theta + delta * sec2)
         d2 = delta * delta
         d = (wp.float64(1.0) - wp.float64(0.5) * d2) * d - delta * (
             wp.float64(1.0) - d2 * wp.float64(1.0 / 6.0)) * chord.w
     return camera_to_pixel(cam, wp.transpose(pose.rot) * d)
+
+
+@wp.func
+def project_point(cam: FrameCameraData, pose: FramePoseData, refr: RefractionTable, geo: wp.vec3d):
+    """Geo triple -> pixel (col, row); NaN behind the camera."""
+    x = geo
+    if pose.mode == MODE_GEOCENTRIC:
+        x = geodetic_to_ecef(geo[1] * DEG, geo[0] * DEG, geo[2])
+    return project_xyz(cam, pose, refr, x, geo[2])
 
 
 @wp.kernel

@@ -32,6 +32,7 @@ from .._validate import as_crs, finite
 from ..camera import FrameCamera
 from ..errors import GeometryError, ParamError, RasterIOError
 from ..kernels import ortho as ortho_kernels
+from ..geodesy import geodetic_to_ecef
 from ..pose import GEOCENTRIC, Pose
 from .dem import Dem
 from .geometry import FrameGeometry
@@ -342,6 +343,23 @@ def coarse_grid(transform, to_frame, r0, c0, th, tw, step=COARSE_STEP):
     return np.ascontiguousarray(np.stack([u, v], -1))
 
 
+def coarse_struct(uv, geocentric, device, step=COARSE_STEP):
+    """The kernels' :class:`~orthowarp.kernels.ortho.CoarseGrid` of a coarse grid ``uv``
+    (rows, cols, 2) from :func:`coarse_grid`; for geocentric poses with the ECEF points on
+    the ellipsoid and their normals, computed here in float64."""
+    g = ortho_kernels.CoarseGrid()
+    g.uv = wp.array(uv, dtype=wp.vec2d, device=device)
+    g.step = float(step)
+    g.geocentric = int(bool(geocentric))
+    if geocentric:
+        g.xyz0 = wp.array(np.ascontiguousarray(geodetic_to_ecef(uv[..., 1], uv[..., 0], 0.0)), dtype=wp.vec3d,
+                          device=device)
+        lat, lon = np.radians(uv[..., 1]), np.radians(uv[..., 0])
+        up = np.stack([np.cos(lat) * np.cos(lon), np.cos(lat) * np.sin(lon), np.sin(lat)], -1)
+        g.up = wp.array(up, dtype=wp.vec3d, device=device)
+    return g
+
+
 def _default_tile_size(device, bands, workers):
     """Output tile edge for a device: see :func:`orthorectify`'s ``tile_size``."""
     if not device.is_cuda:
@@ -397,17 +415,18 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
         return local.ds, local.stream
 
     w_img, h_img = geom.camera.image_size
+    geocentric = geom.pose.mode == GEOCENTRIC
 
     def backward_coords(r0, c0, th, tw):
         """Source coordinates of the tile's pixels by the backward chain, and their window."""
         t = time.perf_counter()
-        coarse = wp.array(coarse_grid(transform, to_frame, r0, c0, th, tw), dtype=wp.vec2d, device=device)
+        grid = coarse_struct(coarse_grid(transform, to_frame, r0, c0, th, tw), geocentric, device)
         bounds = wp.array(np.full(4, np.inf, np.float32), dtype=wp.float32, device=device)
         coords = wp.empty((th, tw), dtype=wp.vec2d, device=device)
         timer.add("h2d", time.perf_counter() - t)
         t = time.perf_counter()
         wp.launch(ortho_kernels.ortho_coords_kernel, dim=(th, tw), device=device,
-                  inputs=[cam, pose, refr, dem, coarse, COARSE_STEP, float(w_img), float(h_img), coords, bounds])
+                  inputs=[cam, pose, refr, dem, grid, float(w_img), float(h_img), coords, bounds])
         b = bounds.numpy()
         timer.add("kernel", time.perf_counter() - t)
         if not np.all(np.isfinite(b)):
