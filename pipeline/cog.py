@@ -124,6 +124,7 @@ class _Level:
         self.records = [None] * (self.nbx * self.nby)  # (offset, image bytes, mask bytes) in the side file
         self.pending = {}  # block index -> [data (B, B, C), mask (B, B), pixels still missing]
         self.block, self.count, self.dtype = block, count, dtype
+        self.lock = threading.Lock()
 
     def block_shape(self, bi, bj):
         b = self.block
@@ -222,23 +223,36 @@ class CogWriter:
             self._futures.append(fut)
 
     def _insert(self, li, row, col, data, mask):
-        """Copy a piece into the level's waiting blocks; yield the blocks it completes."""
+        """Copy a piece into the level's blocks; return the blocks it completes.
+
+        Blocks the piece covers whole are cut out directly; only partly covered ones wait in
+        the level's table (under the level's lock) for their other pieces."""
         lvl, b = self.levels[li], self.block
+        fill = np.nan if self.is_float else 0
         done = []
-        with self._lock:
-            for bi in range(row // b, (row + data.shape[0] - 1) // b + 1):
-                r0, r1 = max(row, bi * b), min(row + data.shape[0], (bi + 1) * b)
-                for bj in range(col // b, (col + data.shape[1] - 1) // b + 1):
-                    c0, c1 = max(col, bj * b), min(col + data.shape[1], (bj + 1) * b)
-                    key = bi * lvl.nbx + bj
+        for bi in range(row // b, (row + data.shape[0] - 1) // b + 1):
+            r0, r1 = max(row, bi * b), min(row + data.shape[0], (bi + 1) * b)
+            for bj in range(col // b, (col + data.shape[1] - 1) // b + 1):
+                c0, c1 = max(col, bj * b), min(col + data.shape[1], (bj + 1) * b)
+                bh, bw = lvl.block_shape(bi, bj)
+                piece = data[r0 - row:r1 - row, c0 - col:c1 - col]
+                piece_mask = mask[r0 - row:r1 - row, c0 - col:c1 - col]
+                if (r1 - r0, c1 - c0) == (bh, bw):  # the whole block
+                    if (bh, bw) == (b, b):
+                        done.append((bi, bj, (piece.copy(), piece_mask.copy())))
+                    else:
+                        blk, blk_mask = np.full((b, b, self.count), fill, self.dtype), np.zeros((b, b), bool)
+                        blk[:bh, :bw], blk_mask[:bh, :bw] = piece, piece_mask
+                        done.append((bi, bj, (blk, blk_mask)))
+                    continue
+                key = bi * lvl.nbx + bj
+                with lvl.lock:
                     entry = lvl.pending.get(key)
                     if entry is None:
-                        bh, bw = lvl.block_shape(bi, bj)
-                        fill = np.nan if self.is_float else 0
                         entry = lvl.pending[key] = [np.full((b, b, self.count), fill, self.dtype),
                                                     np.zeros((b, b), bool), bh * bw]
-                    entry[0][r0 - bi * b:r1 - bi * b, c0 - bj * b:c1 - bj * b] = data[r0 - row:r1 - row, c0 - col:c1 - col]
-                    entry[1][r0 - bi * b:r1 - bi * b, c0 - bj * b:c1 - bj * b] = mask[r0 - row:r1 - row, c0 - col:c1 - col]
+                    entry[0][r0 - bi * b:r1 - bi * b, c0 - bj * b:c1 - bj * b] = piece
+                    entry[1][r0 - bi * b:r1 - bi * b, c0 - bj * b:c1 - bj * b] = piece_mask
                     entry[2] -= (r1 - r0) * (c1 - c0)
                     if entry[2] == 0:
                         del lvl.pending[key]
@@ -250,8 +264,8 @@ class CogWriter:
         try:
             lvl = self.levels[li]
             bh, bw = lvl.block_shape(bi, bj)
-            if not self.is_float:
-                data[~mask] = 0
+            if not self.is_float and not mask.all():
+                np.multiply(data, mask[..., None], out=data)  # nodata pixels hold 0
             img = self._encode(data)
             rec = self._record(img)
             if self.mask:
