@@ -83,6 +83,8 @@ def demo(out_dir, device):
 @click.option("--driver", type=click.Choice(["cog", "gtiff"], case_sensitive=False), default="cog", show_default=True)
 @click.option("--compress", type=click.Choice(["deflate", "zstd", "lzw", "jpeg", "none"]), default="deflate",
               show_default=True)
+@click.option("--compress-level", type=int, default=None,
+              help="Deflate level 1-12 (default 6) or zstd level 1-22 (default 9).")
 @click.option("--dtype", type=click.Choice(["uint8", "uint16", "float32"]), help="Output data type (default: the source's).")
 @click.option("--out-dir", type=click.Path(file_okay=False), default=".", show_default=True)
 @click.option("--overwrite", is_flag=True, help="Replace existing outputs.")
@@ -90,9 +92,10 @@ def demo(out_dir, device):
 @click.option("--geoid", type=click.Path(dir_okay=False), help="Geoid grid for converting between DEM and position heights.")
 @click.option("--same-vertical-datum", is_flag=True, help="Take DEM and position heights as the same vertical datum.")
 @click.option("--device", default=None, help="Warp device (cpu, cuda, cuda:N); default: first GPU, else CPU.")
-@click.option("--tile-size", type=int, default=None, help="Output tile edge (pixels); default 1024 on the CPU, up to 4096 on a GPU.")
+@click.option("--tile-size", type=int, default=None, help="Output tile edge (pixels); default 512 on the CPU, up to 4096 on a GPU.")
 @click.pass_context
-def ortho(ctx, images, int_param, ext_param, dem, height, crs, resolution, resampling, method, driver, compress, dtype,
+def ortho(ctx, images, int_param, ext_param, dem, height, crs, resolution, resampling, method, driver, compress,
+          compress_level, dtype,
           out_dir, overwrite, no_refraction, geoid, same_vertical_datum, device, tile_size):
     """Orthorectify frame IMAGES into (cloud-optimized) GeoTIFFs named <image>_ORTHO.tif."""
     import os
@@ -129,6 +132,7 @@ def ortho(ctx, images, int_param, ext_param, dem, height, crs, resolution, resam
         r = orthorectify(image, camera, pose, dst, dem=terrain, crs=crs, resolution=resolution,
                          resampling=resampling, method=method, refraction=not no_refraction, dtype=dtype,
                          driver="COG" if driver.lower() == "cog" else "GTiff", compress=compress,
+                         compress_level=compress_level,
                          overwrite=overwrite, device=device, progress=not quiet, tile_size=tile_size,
                          geoid=geoid, same_vertical_datum=same_vertical_datum)
         if not quiet:

@@ -204,7 +204,7 @@ class _Timer:
 
 
 def orthorectify(src, camera, pose, dst, *, dem, crs=None, resolution=None, resampling="bilinear", method="backward",
-                 refraction=True, dtype=None, driver="COG", compress="deflate", overviews=True,
+                 refraction=True, dtype=None, driver="COG", compress="deflate", compress_level=None, overviews=True,
                  tile_size=None, overwrite=False, device=None, progress=False, workers=None,
                  geoid=None, same_vertical_datum=False):
     """Orthorectify one frame image into a GeoTIFF / cloud-optimized GeoTIFF.
@@ -240,6 +240,9 @@ def orthorectify(src, camera, pose, dst, *, dem, crs=None, resolution=None, resa
     driver : {"COG", "GTiff"}, optional
         Cloud-optimized GeoTIFF (default) or tiled GeoTIFF.
     compress : {"deflate", "zstd", "lzw", "jpeg", "none"}, optional
+    compress_level : int, optional
+        Deflate level 1-12 (default 6; libdeflate's scale, whose 7 makes blocks the size of
+        GDAL's default) or zstd level 1-22 (default GDAL's, 9).
     overviews : bool, optional
         Build internal overviews (always for COG).
     tile_size : int, optional
@@ -273,6 +276,12 @@ def orthorectify(src, camera, pose, dst, *, dem, crs=None, resolution=None, resa
         raise ParamError(f"driver must be one of {DRIVERS}, got {driver!r}")
     if compress not in COMPRESS:
         raise ParamError(f"compress must be one of {COMPRESS}, got {compress!r}")
+    if compress_level is not None:
+        top = {"deflate": 12, "zstd": 22}.get(compress)
+        if top is None or not (1 <= int(compress_level) <= top):
+            raise ParamError(f"compress_level must be 1-12 for deflate or 1-22 for zstd, got {compress_level!r} "
+                             f"with {compress!r}")
+        compress_level = int(compress_level)
     if dtype is not None and dtype not in DTYPES:
         raise ParamError(f"dtype must be one of {DTYPES}, got {dtype!r}")
     if tile_size is not None:
@@ -319,10 +328,11 @@ def orthorectify(src, camera, pose, dst, *, dem, crs=None, resolution=None, resa
         try:
             _render(src, geom, out_crs, transform, shape, count, out_dtype,
                     compress if driver == "GTiff" else "none", work, resampling, tile_size, progress,
-                    workers, timer, dst, method, cog=dict(compress=compress) if streamed else None)
+                    workers, timer, dst, method, compress_level,
+                    cog=dict(compress=compress, level=compress_level or 6) if streamed else None)
             if not streamed:
                 t0 = time.perf_counter()
-                _finish(work, tmp_final, driver, compress, overviews, out_dtype)
+                _finish(work, tmp_final, driver, compress, overviews, out_dtype, compress_level)
                 timer.t["finish"] = time.perf_counter() - t0
         finally:
             if work != tmp_final and os.path.exists(work):
@@ -374,21 +384,23 @@ def _default_tile_size(device, bands, workers):
     return size
 
 
-def _creation_options(compress, dtype):
+def _creation_options(compress, dtype, level=None):
     opts = dict(tiled=True, blockxsize=512, blockysize=512, compress=compress.upper() if compress != "none" else None,
                 BIGTIFF="IF_SAFER", NUM_THREADS="ALL_CPUS")  # GDAL compresses blocks on all cores
+    if level is not None and compress in ("deflate", "zstd"):
+        opts["ZLEVEL" if compress == "deflate" else "ZSTD_LEVEL"] = level
     if compress in ("deflate", "zstd", "lzw") and dtype != "float32":
         opts["predictor"] = 2
     return {k: v for k, v in opts.items() if v is not None}
 
 
 def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, path, resampling,
-            tile_size, progress, workers, timer, final_name, method_name, cog=None):
+            tile_size, progress, workers, timer, final_name, method_name, compress_level=None, cog=None):
     rows, cols = shape
     is_float = out_dtype == "float32"
     profile = dict(driver="GTiff", width=cols, height=rows, count=count, dtype=out_dtype,
                    crs=rasterio.crs.CRS.from_wkt(out_crs.to_wkt()), transform=transform,
-                   **_creation_options(compress, out_dtype))
+                   **_creation_options(compress, out_dtype, compress_level))
     if compress == "jpeg":
         profile.update(JPEG_QUALITY=90, **({"photometric": "YCBCR"} if count == 3 else {}))
     if is_float:
@@ -621,7 +633,7 @@ def _progress(total):
     return tqdm(total=total, unit="tile", leave=False)
 
 
-def _finish(work, final, driver, compress, overviews, dtype):
+def _finish(work, final, driver, compress, overviews, dtype, level=None):
     """Overviews, then (for COG) a copy in the cloud-optimized layout."""
     if driver == "COG" or overviews:
         with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True, GDAL_CACHEMAX=256), rasterio.open(work, "r+") as ds:
@@ -637,4 +649,6 @@ def _finish(work, final, driver, compress, overviews, dtype):
             opts["predictor"] = "YES"
         if compress == "jpeg":
             opts["quality"] = 90
+        if level is not None:
+            opts["level"] = level
         rasterio.shutil.copy(work, final, driver="COG", **opts)

@@ -591,6 +591,26 @@ def test_gtiff_driver_matches_cog(tmp_path):
     assert sorted(os.listdir(tmp_path)) == ["a.tif", "b.tif", "src.tif"]
 
 
+@pytest.mark.parametrize("driver,compress", [("COG", "deflate"), ("GTiff", "deflate"), ("COG", "zstd")])
+def test_compress_level(driver, compress, tmp_path):
+    """The level reaches the codec (other bytes, the same pixels); out-of-range levels and
+    levels for codecs without one are errors."""
+    sc = scene("opk")
+    src = write_image(tmp_path / "src.tif", sc.image(False) * 20.0, "uint16")
+    kw = dict(dem=sc.dem, refraction=False, device="cpu", driver=driver, compress=compress)
+    a = orthorectify(src, sc.camera, sc.pose, tmp_path / "a.tif", compress_level=1, **kw)
+    b = orthorectify(src, sc.camera, sc.pose, tmp_path / "b.tif", compress_level=12 if compress == "deflate" else 22,
+                     **kw)
+    assert os.path.getsize(b.path) != os.path.getsize(a.path)
+    with rasterio.open(a.path) as da, rasterio.open(b.path) as db:
+        np.testing.assert_array_equal(da.read(), db.read())
+    for level, comp in [(0, "deflate"), (13, "deflate"), (23, "zstd"), (5, "lzw")]:
+        with pytest.raises(ParamError, match="compress_level"):
+            orthorectify(src, sc.camera, sc.pose, tmp_path / "c.tif", compress_level=level,
+                         **{**kw, "compress": comp})
+    assert not os.path.exists(tmp_path / "c.tif")
+
+
 def test_source_nodata_is_honoured(tmp_path):
     """Source pixels marked nodata (here 0 in a uint16 image with nodata=0) give nodata in the
     orthoimage wherever they would be sampled, and never a 0 value."""
