@@ -36,12 +36,14 @@ from .pipeline.dem import Dem
 from .pipeline.geometry import geolocate, project
 from .pipeline.ortho import orthorectify
 from .pose import Pose
+from .pushbroom import PushbroomScene
 
 __version__ = "0.1.0"
 
 __all__ = [
     "FrameCamera",
     "Pose",
+    "PushbroomScene",
     "Dem",
     "geolocate",
     "project",

@@ -1,0 +1,254 @@
+"""Rigorous pushbroom model of SPOT level-1A scenes (seed 000; DESIGN.md, "Pushbroom").
+
+Float64 NumPy on the host: the reference the kernels are checked against, and the place where
+the exterior orientation is fitted as polynomials in line time.
+
+Pixel (col, row) (GDAL convention, centre of the top-left pixel at (0.5, 0.5)) ->
+line time ``t = (row + 0.5 - center_line) * line_period`` (s from the scene-centre time; DIMAP
+line L is at row L - 0.5) and detector ``col + 0.5`` (1-based, fractional: look angles are
+interpolated linearly between detectors) ->
+
+- satellite position P and velocity V (ECEF) by 8-point Lagrange interpolation of the
+  ephemeris;
+- yaw, pitch, roll linearly interpolated in time;
+- orbital frame ``Z2 = P/|P|, X2 = (V x Z2)/|V x Z2|, Y2 = Z2 x X2``;
+- attitude ``M = Mp Mr My`` (SPOT geometry handbook eq. 11), or seed 000's first-order form;
+- look vector ``u1 = normalize(-tan psi_y, tan psi_x, -1)``;
+- ray ``P + s [X2 Y2 Z2] M u1`` intersected with the ellipsoid (or the DEM).
+
+Reference: SPOT Image, "SPOT Satellite Geometry Handbook", S-NT-73-12-SI, 2002.
+"""
+
+import numpy as np
+
+from .errors import GeometryError, ParamError
+from .geodesy import WGS84_A, WGS84_B, ecef_to_geodetic
+
+__all__ = ["PushbroomScene", "attitude_matrix", "lagrange"]
+
+ATTITUDE_MODELS = ("full", "first_order")
+
+
+def _array(name, value, shape):
+    """A finite float64 array of the given shape (None: any length), or ParamError naming it."""
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as e:
+        raise ParamError(f"{name} must be numbers, got {type(value).__name__}") from e
+    if arr.ndim != len(shape) or any(n is not None and n != k for n, k in zip(shape, arr.shape)):
+        want = " x ".join("n" if n is None else str(n) for n in shape)
+        raise ParamError(f"{name} must have shape ({want}), got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ParamError(f"{name} holds NaN or infinite values")
+    return arr
+
+
+def lagrange(t, times, values, order=8):
+    """Lagrange interpolation with the ``order`` samples around each time.
+
+    Parameters
+    ----------
+    t : ndarray, shape (n,)
+        Times (s), within ``times``' span.
+    times : ndarray, shape (m,)
+        Sample times, increasing.
+    values : ndarray, shape (m, k)
+
+    Returns
+    -------
+    ndarray, shape (n, k)
+    """
+    t = np.atleast_1d(np.asarray(t, dtype=np.float64))
+    m = len(times)
+    i0 = np.clip(np.searchsorted(times, t) - order // 2, 0, m - order)
+    idx = i0[:, None] + np.arange(order)  # (n, order)
+    tt = times[idx]
+    out = np.zeros((len(t), values.shape[1]))
+    for j in range(order):
+        w = np.ones(len(t))
+        for k in range(order):
+            if k != j:
+                w *= (t - tt[:, k]) / (tt[:, j] - tt[:, k])
+        out += w[:, None] * values[idx[:, j]]
+    return out
+
+
+def attitude_matrix(yaw, pitch, roll, *, first_order=False):
+    """M = Mp Mr My (handbook eq. 11) for arrays of angles (rad) -> (n, 3, 3); with
+    ``first_order``, seed 000's eq. 4 (angles to first order)."""
+    y, p, r = (np.atleast_1d(np.asarray(a, dtype=np.float64)) for a in (yaw, pitch, roll))
+    if first_order:
+        one, zero = np.ones_like(y), np.zeros_like(y)
+        rows = [[one, -y, -r], [y, one, p], [r, -p, one]]
+        return np.stack([np.stack(row, -1) for row in rows], -2) + zero[:, None, None]
+    cy, sy, cp, sp, cr, sr = np.cos(y), np.sin(y), np.cos(p), np.sin(p), np.cos(r), np.sin(r)
+    rows = [[cr * cy, -cr * sy, -sr],
+            [cp * sy + sp * sr * cy, cp * cy - sp * sr * sy, sp * cr],
+            [-sp * sy + cp * sr * cy, -sp * cy - cp * sr * sy, cp * cr]]
+    return np.stack([np.stack(row, -1) for row in rows], -2)
+
+
+def ellipsoid_distance(p, d, h):
+    """Distance (m) along unit rays (p, d) (n, 3) to the ellipsoid of semi-axes a + h, b + h;
+    NaN where a ray misses."""
+    ia, ib = 1.0 / (WGS84_A + h), 1.0 / (WGS84_B + h)
+    scale = np.stack(np.broadcast_arrays(ia, ia, ib), -1)
+    cs, ds = p * scale, d * scale
+    qa = np.sum(ds * ds, -1)
+    qb = np.sum(cs * ds, -1)
+    qc = np.sum(cs * cs, -1) - 1.0
+    disc = qb * qb - qa * qc
+    ok = (qc > 0) & (qb < 0) & (disc >= 0)
+    with np.errstate(invalid="ignore"):
+        return np.where(ok, qc / (np.sqrt(np.where(ok, disc, 0.0)) - qb), np.nan)
+
+
+class PushbroomScene:
+    """A pushbroom scene's rigorous sensor model (see the module doc).
+
+    Parameters
+    ----------
+    width, height : int
+        Detectors per line and lines.
+    line_period : float
+        Seconds per line.
+    center_line : float
+        DIMAP line (1-based, pixel centre) imaged at t = 0.
+    eph_time : array_like, shape (n,), n >= 8
+        Ephemeris times (s from the scene-centre time).
+    eph_position, eph_velocity : array_like, shape (n, 3)
+        ECEF (m, m/s).
+    att_time : array_like, shape (m,), m >= 2
+    att_angles : array_like, shape (m, 3)
+        Yaw, pitch, roll (rad).
+    psi_x, psi_y : array_like, shape (width,)
+        Look angles (rad) of every detector.
+    attitude_model : {"full", "first_order"}, optional
+    epoch : numpy.datetime64, optional
+        UTC of t = 0 (informative).
+    attitude_extrapolation : float, optional
+        Seconds the attitudes may be extrapolated past their first/last sample (default 0.5:
+        level-1A files start the attitudes a few lines after the first line).
+    """
+
+    def __init__(self, *, width, height, line_period, center_line, eph_time, eph_position, eph_velocity,
+                 att_time, att_angles, psi_x, psi_y, attitude_model="full", epoch=None,
+                 attitude_extrapolation=0.5, source=None):
+        if attitude_model not in ATTITUDE_MODELS:
+            raise ParamError(f"attitude_model must be one of {ATTITUDE_MODELS}, got {attitude_model!r}")
+        self.width, self.height = int(width), int(height)
+        self.line_period = float(line_period)
+        self.center_line = float(center_line)
+        self.eph_time = _array("eph_time", eph_time, (None,))
+        self.eph_position = _array("eph_position", eph_position, (len(self.eph_time), 3))
+        self.eph_velocity = _array("eph_velocity", eph_velocity, (len(self.eph_time), 3))
+        self.att_time = _array("att_time", att_time, (None,))
+        self.att_angles = _array("att_angles", att_angles, (len(self.att_time), 3))
+        self.psi_x = _array("psi_x", psi_x, (self.width,))
+        self.psi_y = _array("psi_y", psi_y, (self.width,))
+        if len(self.eph_time) < 8 or np.any(np.diff(self.eph_time) <= 0):
+            raise ParamError("the ephemeris needs at least 8 points at increasing times")
+        if len(self.att_time) < 2 or np.any(np.diff(self.att_time) <= 0):
+            raise ParamError("the attitudes need at least 2 samples at increasing times")
+        if self.line_period <= 0 or self.width < 1 or self.height < 1:
+            raise ParamError("line_period, width and height must be positive")
+        self.attitude_model = attitude_model
+        self.epoch = epoch
+        self.attitude_extrapolation = float(attitude_extrapolation)
+        self.source = source
+
+    @classmethod
+    def from_dimap(cls, path, *, attitude_model="full"):
+        """The scene of a SPOT level-1A DIMAP metadata file (see
+        :func:`orthowarp.pipeline.dimap.read_dimap`)."""
+        from .pipeline.dimap import read_dimap
+
+        m = read_dimap(path)
+        return cls(width=m.ncols, height=m.nrows, line_period=m.line_period, center_line=m.center_line,
+                   eph_time=m.eph_time, eph_position=m.eph_position, eph_velocity=m.eph_velocity,
+                   att_time=m.att_time, att_angles=m.att_angles, psi_x=m.psi_x, psi_y=m.psi_y,
+                   attitude_model=attitude_model, epoch=m.epoch, source=m.path)
+
+    def __repr__(self):
+        return (f"PushbroomScene({self.width} x {self.height}, line period {self.line_period:.6g} s, "
+                f"{len(self.eph_time)} ephemeris points, {len(self.att_time)} attitudes, {self.attitude_model})")
+
+    # -- the model, float64 ------------------------------------------------------------------
+
+    def line_time(self, row):
+        """Seconds from the scene-centre time of the (continuous) row coordinate."""
+        return (np.asarray(row, dtype=np.float64) + 0.5 - self.center_line) * self.line_period
+
+    def _check_times(self, t):
+        if np.any((t < self.eph_time[0]) | (t > self.eph_time[-1])):
+            raise GeometryError(f"line times {t.min():.3f}..{t.max():.3f} s fall outside the ephemeris "
+                                f"({self.eph_time[0]:.3f}..{self.eph_time[-1]:.3f} s)")
+        e = self.attitude_extrapolation
+        if np.any((t < self.att_time[0] - e) | (t > self.att_time[-1] + e)):
+            raise GeometryError(f"line times {t.min():.3f}..{t.max():.3f} s fall outside the attitudes "
+                                f"({self.att_time[0]:.3f}..{self.att_time[-1]:.3f} s, +-{e} s)")
+
+    def orbit(self, t):
+        """Position and velocity (n, 3) (ECEF, m and m/s) at times t (s)."""
+        t = np.atleast_1d(np.asarray(t, dtype=np.float64))
+        self._check_times(t)
+        return lagrange(t, self.eph_time, self.eph_position), lagrange(t, self.eph_time, self.eph_velocity)
+
+    def attitude(self, t):
+        """Yaw, pitch, roll (n, 3) (rad), linear in time (extrapolated past the ends)."""
+        t = np.atleast_1d(np.asarray(t, dtype=np.float64))
+        tt, a = self.att_time, self.att_angles
+        i = np.clip(np.searchsorted(tt, t) - 1, 0, len(tt) - 2)
+        w = ((t - tt[i]) / (tt[i + 1] - tt[i]))[:, None]
+        return (1 - w) * a[i] + w * a[i + 1]
+
+    def look_vector(self, col):
+        """Unit look vectors u1 (n, 3) of (continuous) column coordinates, navigation frame."""
+        det = np.asarray(col, dtype=np.float64) + 0.5  # 1-based detector number
+        ids = np.arange(1, self.width + 1, dtype=np.float64)
+        px = np.interp(det, ids, self.psi_x, left=np.nan, right=np.nan)
+        py = np.interp(det, ids, self.psi_y, left=np.nan, right=np.nan)
+        # beyond the ends: extend the first/last detector pair linearly (half a pixel at most)
+        for side, (i0, i1) in (("lo", (0, 1)), ("hi", (-1, -2))):
+            sel = det < 1 if side == "lo" else det > self.width
+            if np.any(sel) and self.width > 1:
+                f = det[sel] - ids[i0]
+                px[sel] = self.psi_x[i0] + f * (self.psi_x[i1] - self.psi_x[i0]) / (ids[i1] - ids[i0])
+                py[sel] = self.psi_y[i0] + f * (self.psi_y[i1] - self.psi_y[i0]) / (ids[i1] - ids[i0])
+        u = np.stack([-np.tan(py), np.tan(px), -np.ones_like(px)], -1)
+        return u / np.linalg.norm(u, axis=-1, keepdims=True)
+
+    def orbital_frame(self, p, v):
+        """Columns X2, Y2, Z2 of the orbital frame at positions/velocities (n, 3) -> (n, 3, 3)."""
+        z2 = p / np.linalg.norm(p, axis=-1, keepdims=True)
+        x2 = np.cross(v, z2)
+        x2 /= np.linalg.norm(x2, axis=-1, keepdims=True)
+        y2 = np.cross(z2, x2)
+        return np.stack([x2, y2, z2], -1)
+
+    def rays(self, pixels):
+        """Satellite positions and unit look directions (ECEF) of pixels (n, 2) (col, row)."""
+        pixels = _array("pixels", pixels, (None, 2))
+        t = self.line_time(pixels[:, 1])
+        p, v = self.orbit(t)
+        ypr = self.attitude(t)
+        m = attitude_matrix(ypr[:, 0], ypr[:, 1], ypr[:, 2], first_order=self.attitude_model == "first_order")
+        u = self.look_vector(pixels[:, 0])
+        d = np.einsum("nij,nj->ni", self.orbital_frame(p, v), np.einsum("nij,nj->ni", m, u))
+        return p, d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+    def geolocate_ellipsoid(self, pixels, h=0.0):
+        """Ground points (n, 3) (lon, lat in degrees, h in m) of pixels (n, 2) on the surface
+        of ellipsoidal height h: the closed form on the ellipsoid of semi-axes a + h, b + h,
+        then a Newton correction along the ray to the exact geodetic height."""
+        p, d = self.rays(pixels)
+        h = np.broadcast_to(np.asarray(h, dtype=np.float64), (len(p),))
+        s = ellipsoid_distance(p, d, h)
+        for _ in range(3):
+            lat, lon, hh = ecef_to_geodetic(p + s[:, None] * d)
+            # d(height)/ds = d . n (n: the ellipsoid normal there)
+            n = np.stack([np.cos(np.radians(lat)) * np.cos(np.radians(lon)),
+                          np.cos(np.radians(lat)) * np.sin(np.radians(lon)), np.sin(np.radians(lat))], -1)
+            s = s - (hh - h) / np.sum(d * n, -1)
+        lat, lon, hh = ecef_to_geodetic(p + s[:, None] * d)
+        return np.stack([lon, lat, hh], -1)
