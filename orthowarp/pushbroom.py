@@ -252,3 +252,81 @@ class PushbroomScene:
             s = s - (hh - h) / np.sum(d * n, -1)
         lat, lon, hh = ecef_to_geodetic(p + s[:, None] * d)
         return np.stack([lon, lat, hh], -1)
+
+    # -- packing and the backward reference --------------------------------------------------
+
+    def to_struct(self, device):
+        """Pack into :class:`orthowarp.kernels.pushbroom.PushbroomData` on a Warp device."""
+        import warp as wp
+
+        from .kernels.pushbroom import PushbroomData
+
+        s = PushbroomData()
+        s.eph_t = wp.array(self.eph_time, dtype=wp.float64, device=device)
+        s.eph_p = wp.array(self.eph_position, dtype=wp.vec3d, device=device)
+        s.eph_v = wp.array(self.eph_velocity, dtype=wp.vec3d, device=device)
+        s.att_t = wp.array(self.att_time, dtype=wp.float64, device=device)
+        s.att = wp.array(self.att_angles, dtype=wp.vec3d, device=device)
+        s.psi = wp.array(np.stack([self.psi_x, self.psi_y], -1), dtype=wp.vec2d, device=device)
+        s.line_period = self.line_period
+        s.center_line = self.center_line
+        s.first_order = int(self.attitude_model == "first_order")
+        s.att_extra = self.attitude_extrapolation
+        return s
+
+    def mean_height(self):
+        """Mean ellipsoidal height (m) of the satellite over the scene."""
+        t = self.line_time(np.linspace(0, self.height, 9))
+        p, _ = self.orbit(t)
+        return float(np.mean(ecef_to_geodetic(p)[2]))
+
+    def project_ecef(self, xyz, *, t0=None, tol=1e-6, max_iter=40):
+        """Ground points (n, 3) (ECEF, m) -> pixels (n, 2), without refraction: the secant
+        iteration of the kernels in float64 NumPy (the reference they are checked against).
+
+        The line time t solves tan psi_x(q(t)) = tan psi_x(column(q(t))) where q(t) is the
+        direction to the point in the instrument frame at t; ``tol`` is in lines."""
+        xyz = _array("xyz", xyz, (None, 3))
+        n = len(xyz)
+        ids = np.arange(1, self.width + 1, dtype=np.float64)
+        order = np.argsort(self.psi_y)
+
+        def residual(t):
+            ok = (t >= self.eph_time[0]) & (t <= self.eph_time[-1])
+            tt = np.where(ok, t, 0.0)
+            p = lagrange(tt, self.eph_time, self.eph_position)
+            v = lagrange(tt, self.eph_time, self.eph_velocity)
+            ypr = self.attitude(tt)
+            r = self.orbital_frame(p, v) @ attitude_matrix(*ypr.T, first_order=self.attitude_model == "first_order")
+            d = xyz - p
+            q = np.einsum("nji,nj->ni", r, d / np.linalg.norm(d, axis=1, keepdims=True))
+            psi_y = np.arctan(q[:, 0] / q[:, 2])
+            det = np.interp(psi_y, self.psi_y[order], ids[order])
+            # linear extension beyond the end detectors
+            for end in (0, -1):
+                sel = (psi_y - self.psi_y[end]) * np.sign(self.psi_y[-1] - self.psi_y[0]) * (1 if end else -1) > 0
+                if np.any(sel) and self.width > 1:
+                    nb = 1 if end == 0 else -2
+                    det[sel] = ids[end] + (psi_y[sel] - self.psi_y[end]) * (ids[nb] - ids[end]) / (
+                        self.psi_y[nb] - self.psi_y[end])
+            px = np.interp(det, ids, self.psi_x)
+            f = q[:, 1] / -q[:, 2] - np.tan(px)
+            return np.where(ok & (q[:, 2] < 0), f, np.nan), det - 0.5
+
+        ta = np.zeros(n) if t0 is None else np.asarray(t0, dtype=np.float64).copy()
+        tb = ta + 100 * self.line_period
+        fa, _ = residual(ta)
+        fb, col = residual(tb)
+        done = np.zeros(n, bool)
+        for _ in range(max_iter):
+            with np.errstate(invalid="ignore", divide="ignore"):
+                tc = tb - fb * (tb - ta) / (fb - fa)
+            tc = np.where(done, tb, np.clip(tc, self.eph_time[0], self.eph_time[-1]))
+            ta, fa = tb, fb
+            tb = tc
+            fb, col = residual(tb)
+            done |= np.abs(tb - ta) < tol * self.line_period
+            if done.all():
+                break
+        row = tb / self.line_period + self.center_line - 0.5
+        return np.where(done[:, None], np.stack([col, row], -1), np.nan)

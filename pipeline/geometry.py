@@ -14,12 +14,14 @@ from ..camera import FrameCamera
 from ..errors import ParamError
 from ..kernels import frame as frame_kernels
 from ..kernels.frame import SearchParams, geolocate_grid_kernel, geolocate_kernel, project_kernel
+from ..kernels import pushbroom as pb_kernels
 from ..pose import GEOCENTRIC, Pose
+from ..pushbroom import PushbroomScene
 from ..refraction import RefractionModel
 from .dem import Dem
 from .vertical import reconcile_dem
 
-__all__ = ["geolocate", "project", "FrameGeometry"]
+__all__ = ["geolocate", "project", "FrameGeometry", "PushbroomGeometry"]
 
 LLH = "EPSG:4979"
 
@@ -199,6 +201,111 @@ class FrameGeometry:
             wp.launch(project_kernel, dim=len(geo), device=self.device,
                       inputs=[cam, pose, refr, wp.array(geo, dtype=wp.vec3d, device=self.device), out])
         return out.numpy().reshape(-1, 2)
+
+
+class PushbroomGeometry:
+    """A pushbroom scene + DEM packed for the kernels on one device (the pushbroom twin of
+    :class:`FrameGeometry`; the object frame is ECEF, geo triples are lon, lat, h).
+
+    Parameters
+    ----------
+    scene : PushbroomScene
+    dem : Dem or float
+    refraction : bool, optional
+    device : str, optional
+    region : (col0, row0, col1, row1), optional
+        Pixel region the rays will come from (default: the whole scene); the DEM is cropped
+        to its footprint.
+    tolerance : float, optional
+        Height tolerance (m) of the relief search.
+    height_range : (float, float), optional
+    geoid, same_vertical_datum : optional
+        As :class:`FrameGeometry`.
+    """
+
+    def __init__(self, scene, dem, *, refraction=True, device=None, region=None, tolerance=1e-4,
+                 height_range=None, geoid=None, same_vertical_datum=False):
+        if not isinstance(scene, PushbroomScene):
+            raise ParamError(f"scene must be a PushbroomScene, got {type(scene).__name__}")
+        self.scene = scene
+        self.device = resolve_device(device)
+        dem = _as_dem(dem)
+        if not dem.is_constant:
+            dem = reconcile_dem(dem, _GeocentricPositions(), geoid=geoid, same_vertical_datum=same_vertical_datum)
+        dem = dem.for_frame(None)
+        if region is None:
+            region = (0.0, 0.0, float(scene.width), float(scene.height))
+        self.dem = self._crop_to_footprint(dem, region) if not dem.is_constant else dem
+        hmin, hmax = height_range if height_range is not None else (self.dem.hmin, self.dem.hmax)
+        self.refraction = RefractionModel(scene.mean_height(), hmin, hmax, enabled=refraction)
+        self.search = SearchParams()
+        self.search.htol = float(tolerance)
+        self.search.max_steps = 1 << 20
+        self._structs = None
+
+    def structs(self):
+        """(scene, refraction, dem, search) structs on the device."""
+        if self._structs is None:
+            self._structs = (self.scene.to_struct(self.device), self.refraction.to_struct(self.device),
+                             self.dem.to_struct(self.device), self.search)
+        return self._structs
+
+    def _crop_to_footprint(self, dem, region):
+        c0, r0, c1, r1 = region
+        t = np.linspace(0.0, 1.0, 65)
+        border = np.concatenate([
+            np.stack([c0 + t * (c1 - c0), np.full_like(t, r0)], 1),
+            np.stack([c0 + t * (c1 - c0), np.full_like(t, r1)], 1),
+            np.stack([np.full_like(t, c0), r0 + t * (r1 - r0)], 1),
+            np.stack([np.full_like(t, c1), r0 + t * (r1 - r0)], 1),
+        ])
+        feet = np.concatenate([
+            PushbroomGeometry(self.scene, Dem.constant(h), device=self.device).geolocate_frame(border)
+            for h in (dem.hmin, dem.hmax)])
+        if not np.all(np.isfinite(feet)):
+            return dem
+        cropped = dem.crop(feet[:, 0].min(), feet[:, 1].min(), feet[:, 0].max(), feet[:, 1].max())
+        return dem if cropped is None else cropped
+
+    def geolocate_frame(self, pixels):
+        """Pixels (N, 2) -> geo triples (N, 3) (lon, lat deg, ellipsoidal h m)."""
+        pix = points(pixels, 2, "pixels")
+        out = wp.empty(len(pix), dtype=wp.vec3d, device=self.device)
+        if len(pix):
+            wp.launch(pb_kernels.pb_geolocate_kernel, dim=len(pix), device=self.device,
+                      inputs=[*self.structs(), wp.array(pix, dtype=wp.vec2d, device=self.device), out])
+        return out.numpy().reshape(-1, 3)
+
+    def geolocate_grid(self, out, *, col0=0.5, row0=0.5, step=1.0):
+        """Geolocate a regular pixel grid into a device array ``out`` (rows, cols) of vec3d."""
+        wp.launch(pb_kernels.pb_geolocate_grid_kernel, dim=out.shape, device=self.device,
+                  inputs=[*self.structs(), float(col0), float(row0), float(step), out])
+        return out
+
+    def project_frame(self, geo):
+        """Geo triples (N, 3) (lon, lat, h) -> pixels (N, 2); NaN where the line-time
+        iteration finds no line within the ephemeris and attitude span."""
+        geo = points(geo, 3, "points")
+        from ..geodesy import geodetic_to_ecef
+
+        xyz = geodetic_to_ecef(geo[:, 1], geo[:, 0], geo[:, 2])
+        out = wp.empty(len(geo), dtype=wp.vec2d, device=self.device)
+        if len(geo):
+            sc, refr, _, _ = self.structs()
+            d = self.device
+            wp.launch(pb_kernels.pb_project_kernel, dim=len(geo), device=d,
+                      inputs=[sc, refr, wp.array(xyz, dtype=wp.vec3d, device=d),
+                              wp.array(np.ascontiguousarray(geo[:, 2]), dtype=wp.float64, device=d),
+                              wp.zeros(len(geo), dtype=wp.float64, device=d), out])
+        return out.numpy().reshape(-1, 2)
+
+
+class _GeocentricPositions:
+    """Stands for a pose in :func:`reconcile_dem`: satellite positions are ECEF, so their
+    heights are ellipsoidal."""
+
+    mode = GEOCENTRIC
+    crs = as_crs("EPSG:4978")
 
 
 def geolocate(camera, pose, pixels, *, dem, crs=LLH, refraction=True, device=None, geoid=None,
