@@ -274,6 +274,14 @@ class PushbroomScene:
         s.att_extra = self.attitude_extrapolation
         return s
 
+    def _psi_x_at(self, det):
+        """psi_x at fractional 1-based detector numbers, linear (and linearly extended)."""
+        if self.width == 1:
+            return np.full_like(det, self.psi_x[0])
+        i = np.clip(np.floor(det).astype(int) - 1, 0, self.width - 2)
+        a = det - (i + 1)
+        return (1 - a) * self.psi_x[i] + a * self.psi_x[i + 1]
+
     def mean_height(self):
         """Mean ellipsoidal height (m) of the satellite over the scene."""
         t = self.line_time(np.linspace(0, self.height, 9))
@@ -309,7 +317,7 @@ class PushbroomScene:
                     nb = 1 if end == 0 else -2
                     det[sel] = ids[end] + (psi_y[sel] - self.psi_y[end]) * (ids[nb] - ids[end]) / (
                         self.psi_y[nb] - self.psi_y[end])
-            px = np.interp(det, ids, self.psi_x)
+            px = self._psi_x_at(det)
             f = q[:, 1] / -q[:, 2] - np.tan(px)
             return np.where(ok & (q[:, 2] < 0), f, np.nan), det - 0.5
 

@@ -308,14 +308,29 @@ class _GeocentricPositions:
     crs = as_crs("EPSG:4978")
 
 
-def geolocate(camera, pose, pixels, *, dem, crs=LLH, refraction=True, device=None, geoid=None,
+def _sensor_args(name, sensor, args, what):
+    """Split geolocate / project's positional arguments: (camera, pose, X) or (scene, X)."""
+    if isinstance(sensor, PushbroomScene):
+        if len(args) != 1:
+            raise ParamError(f"{name}(scene, {what}, ...) takes a PushbroomScene and the {what}")
+        return sensor, None, args[0]
+    if len(args) != 2:
+        raise ParamError(f"{name}(camera, pose, {what}, ...) takes a FrameCamera, a Pose and the {what}")
+    return sensor, args[0], args[1]
+
+
+def geolocate(sensor, *args, dem, crs=LLH, refraction=True, device=None, geoid=None,
               same_vertical_datum=False):
     """Ground coordinates of image pixels (forward, pixel -> ground).
 
+    Called as ``geolocate(camera, pose, pixels, ...)`` for a frame image or
+    ``geolocate(scene, pixels, ...)`` for a pushbroom scene.
+
     Parameters
     ----------
-    camera : FrameCamera
+    sensor : FrameCamera or PushbroomScene
     pose : Pose
+        Frame images only.
     pixels : array_like, shape (N, 2)
         (col, row) pixel coordinates; the centre of pixel (i, j) is (j + 0.5, i + 0.5).
     dem : Dem or float
@@ -338,6 +353,7 @@ def geolocate(camera, pose, pixels, *, dem, crs=LLH, refraction=True, device=Non
         (x, y, h) in ``crs``; NaN rows where the ray meets no ground (it misses the Earth or
         the DEM).
     """
+    camera, pose, pixels = _sensor_args("geolocate", sensor, args, "pixels")
     pix = points(pixels, 2, "pixels")
     dst = as_crs(crs)
     region = None
@@ -345,20 +361,28 @@ def geolocate(camera, pose, pixels, *, dem, crs=LLH, refraction=True, device=Non
     if np.any(finite):
         lo, hi = pix[finite].min(axis=0), pix[finite].max(axis=0)
         region = (lo[0], lo[1], hi[0], hi[1])
+    if pose is None:
+        geom = PushbroomGeometry(camera, dem, refraction=refraction, device=device, region=region, geoid=geoid,
+                                 same_vertical_datum=same_vertical_datum)
+        return _transform(geom.geolocate_frame(pix), as_crs(LLH), dst)
     geom = FrameGeometry(camera, pose, dem, refraction=refraction, device=device, region=region,
                          geoid=geoid, same_vertical_datum=same_vertical_datum)
     geo = geom.geolocate_frame(pix)
     return _transform(geo, _frame_crs(pose), dst)
 
 
-def project(camera, pose, points_, *, crs=LLH, refraction=True, device=None):
+def project(sensor, *args, crs=LLH, refraction=True, device=None):
     """Pixel coordinates of ground points (backward, ground -> pixel).
+
+    Called as ``project(camera, pose, points, ...)`` for a frame image or
+    ``project(scene, points, ...)`` for a pushbroom scene.
 
     Parameters
     ----------
-    camera : FrameCamera
+    sensor : FrameCamera or PushbroomScene
     pose : Pose
-    points_ : array_like, shape (N, 3)
+        Frame images only.
+    points : array_like, shape (N, 3)
         (x, y, h) in ``crs``; by default longitude, latitude (deg), ellipsoidal height (m).
     crs : str, int or pyproj.CRS, optional
         CRS of the points; default EPSG:4979.
@@ -370,11 +394,19 @@ def project(camera, pose, points_, *, crs=LLH, refraction=True, device=None):
     Returns
     -------
     ndarray, shape (N, 2)
-        (col, row); NaN rows for points behind the camera. Points outside the image get
-        pixel coordinates outside [0, width] x [0, height].
+        (col, row); NaN rows for points behind the camera (pushbroom: points no line of the
+        ephemeris span sees). Points outside the image get pixel coordinates outside
+        [0, width] x [0, height].
     """
-    _check_sensor(camera, pose)
+    camera, pose, points_ = _sensor_args("project", sensor, args, "points")
     pts = points(points_, 3, "points")
+    if pose is None:
+        geo = _transform(pts, as_crs(crs), as_crs(LLH))
+        ok = np.all(np.isfinite(geo), axis=1)
+        hr = (float(geo[ok, 2].min()), float(geo[ok, 2].max())) if np.any(ok) else (0.0, 0.0)
+        geom = PushbroomGeometry(camera, Dem.constant(hr[0]), refraction=refraction, device=device, height_range=hr)
+        return geom.project_frame(geo)
+    _check_sensor(camera, pose)
     geo = _transform(pts, as_crs(crs), _frame_crs(pose))
     ok = np.all(np.isfinite(geo), axis=1)
     hmin, hmax = (float(geo[ok, 2].min()), float(geo[ok, 2].max())) if np.any(ok) else (0.0, 0.0)
