@@ -26,6 +26,7 @@ import warp as wp
 from .camera import FrameCameraData
 from .dem import DemData, dem_sample
 from .frame import FramePoseData, SearchParams, geolocate_pixel, project_xyz
+from .pushbroom import PushbroomData, pb_line_time, pb_project
 from .refraction import RefractionTable
 
 wp.set_module_options({"enable_backward": False})
@@ -105,6 +106,65 @@ def ortho_coords_kernel(
         if grid.geocentric != 0:
             x = grid_bilinear(grid.xyz0, fi, fj) + h * grid_bilinear(grid.up, fi, fj)
         pix = project_xyz(cam, pose, refr, x, h)
+        zero = wp.float64(0.0)
+        if not (pix[0] >= zero and pix[1] >= zero and pix[0] <= width and pix[1] <= height):
+            pix = wp.vec2d(nan, nan)
+    coords[i, j] = pix
+    if wp.isfinite(pix[0]):
+        wp.atomic_min(bounds, 0, wp.float32(pix[0]))
+        wp.atomic_min(bounds, 1, wp.float32(pix[1]))
+        wp.atomic_min(bounds, 2, -wp.float32(pix[0]))
+        wp.atomic_min(bounds, 3, -wp.float32(pix[1]))
+
+
+@wp.kernel
+def pb_node_times_kernel(
+    pb: PushbroomData,
+    refr: RefractionTable,
+    dem: DemData,
+    grid: CoarseGrid,
+    h_default: wp.float64,
+    times: wp.array2d(dtype=wp.float64),
+):
+    """Line time (s) of every node of a pushbroom tile's coarse grid (at its DEM height, or
+    h_default off the DEM), the first guess of the per-pixel iteration; NaN where none."""
+    i, j = wp.tid()
+    uv = grid.uv[i, j]
+    h = dem_sample(dem, uv[0], uv[1])
+    if not wp.isfinite(h):
+        h = h_default
+    x = grid.xyz0[i, j] + h * grid.up[i, j]
+    pix = pb_project(pb, refr, x, h, wp.float64(0.0))
+    times[i, j] = pb_line_time(pb, pix[1])
+
+
+@wp.kernel
+def pb_ortho_coords_kernel(
+    pb: PushbroomData,
+    refr: RefractionTable,
+    dem: DemData,
+    grid: CoarseGrid,
+    times: wp.array2d(dtype=wp.float64),
+    width: wp.float64,
+    height: wp.float64,
+    coords: wp.array2d(dtype=wp.vec2d),
+    bounds: wp.array(dtype=wp.float32),
+):
+    """:func:`ortho_coords_kernel` for a pushbroom scene: the backward projection solves the
+    line time from the coarse grid's interpolated time."""
+    i, j = wp.tid()
+    fi = wp.float64(i) / grid.step
+    fj = wp.float64(j) / grid.step
+    uv = grid_bilinear(grid.uv, fi, fj)
+    nan = wp.float64(wp.nan)
+    h = dem_sample(dem, uv[0], uv[1])
+    pix = wp.vec2d(nan, nan)
+    if wp.isfinite(h):
+        x = grid_bilinear(grid.xyz0, fi, fj) + h * grid_bilinear(grid.up, fi, fj)
+        t0 = grid_bilinear(times, fi, fj)
+        if not wp.isfinite(t0):
+            t0 = wp.float64(0.0)
+        pix = pb_project(pb, refr, x, h, t0)
         zero = wp.float64(0.0)
         if not (pix[0] >= zero and pix[1] >= zero and pix[0] <= width and pix[1] <= height):
             pix = wp.vec2d(nan, nan)

@@ -338,3 +338,58 @@ class PushbroomScene:
                 break
         row = tb / self.line_period + self.center_line - 0.5
         return np.where(done[:, None], np.stack([col, row], -1), np.nan)
+
+
+GM = 3.986004418e14  # m^3/s^2, WGS84
+OMEGA_E = 7.292115e-5  # rad/s, WGS84
+
+
+def synthetic_scene(*, width=12000, height=12000, gsd=5.0, altitude=832e3, view_angle=0.0, lat=44.0, lon=5.0,
+                    inclination=98.7, yaw=1.0e-3, pitch=-5.0e-4, smile=1.0e-4):
+    """A SPOT-like scene with known geometry, for tests and benchmarks.
+
+    A circular orbit (``altitude`` above the equatorial radius, ``inclination`` deg) whose
+    sub-satellite point at t = 0 is (``lat``, ``lon``), in ECEF with the Earth's rotation;
+    ephemeris every 10 s, attitudes every 0.125 s (roll = ``view_angle`` deg across the track,
+    small constant yaw and pitch plus a slow drift); a linear array of ``width`` detectors of
+    ``gsd`` m at nadir, its along-track look angle bent by ``smile`` rad at the ends; the line
+    period gives ``gsd`` m along the track.
+
+    Returns
+    -------
+    PushbroomScene
+    """
+    r = WGS84_A + float(altitude)
+    n = np.sqrt(GM / r**3)
+    inc, lat0, lon0 = np.radians([inclination, lat, lon])
+    u0 = np.arcsin(np.sin(lat0) / np.sin(inc))
+    raan = lon0 - np.arctan2(np.cos(inc) * np.sin(u0), np.cos(u0))
+    e1 = np.array([np.cos(raan), np.sin(raan), 0.0])
+    e2 = np.array([-np.sin(raan) * np.cos(inc), np.cos(raan) * np.cos(inc), np.sin(inc)])
+    ground_speed = n * r * WGS84_A / r - OMEGA_E * WGS84_A * np.cos(lat0) * np.cos(inc)
+    line_period = gsd / ground_speed
+    half = 0.5 * height * line_period
+    t_eph = np.arange(-np.ceil((half + 40) / 10) * 10, half + 50, 10.0)
+
+    def state(t):
+        u = u0 + n * t
+        p_in = r * (np.cos(u)[:, None] * e1 + np.sin(u)[:, None] * e2)
+        v_in = r * n * (-np.sin(u)[:, None] * e1 + np.cos(u)[:, None] * e2)
+        c, s = np.cos(OMEGA_E * t), np.sin(OMEGA_E * t)
+        rot = np.stack([np.stack([c, s, 0 * c], -1), np.stack([-s, c, 0 * c], -1),
+                        np.stack([0 * c, 0 * c, 1 + 0 * c], -1)], -2)  # Rz(-omega t)
+        p = np.einsum("nij,nj->ni", rot, p_in)
+        v = np.einsum("nij,nj->ni", rot, v_in) - np.cross([0.0, 0.0, OMEGA_E], p)
+        return p, v
+
+    p, v = state(t_eph)
+    t_att = np.arange(-half - 1.0, half + 1.125, 0.125)
+    drift = 2e-6 * t_att
+    att = np.stack([yaw + drift, pitch - drift, np.radians(view_angle) + 0.5 * drift], -1)
+    ifov = gsd / float(altitude)
+    k = np.arange(width) - 0.5 * (width - 1)
+    psi_y = np.arctan(k * ifov)
+    psi_x = smile * (k / max(0.5 * (width - 1), 1)) ** 2
+    return PushbroomScene(width=width, height=height, line_period=line_period, center_line=0.5 * height + 0.5,
+                          eph_time=t_eph, eph_position=p, eph_velocity=v, att_time=t_att, att_angles=att,
+                          psi_x=psi_x, psi_y=psi_y)

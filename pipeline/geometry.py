@@ -103,6 +103,31 @@ class FrameGeometry:
         self.search.max_steps = 1 << 20
         self._structs = None
 
+    @property
+    def image_size(self):
+        """(width, height) of the image in pixels."""
+        return tuple(self.camera.image_size)
+
+    @property
+    def geocentric(self):
+        """True when the object frame is ECEF and geo triples are lon, lat, h."""
+        return self.pose.mode == GEOCENTRIC
+
+    @property
+    def horizontal_crs(self):
+        """CRS of the horizontal coordinates of the geo triples (lon/lat or map x/y)."""
+        return as_crs("EPSG:4326") if self.geocentric else self.pose.crs
+
+    def at_height(self, h):
+        """The same sensor over a constant height h (m)."""
+        return FrameGeometry(self.camera, self.pose, Dem.constant(h), refraction=self.refraction.enabled,
+                             device=self.device)
+
+    def sensor_structs(self):
+        """The structs the ortho coordinate kernel takes before the DEM: (camera, pose, refraction)."""
+        cam, pose, refr, _, _ = self.structs()
+        return cam, pose, refr
+
     def structs(self):
         """(camera, pose, refraction, dem, search) structs on the device."""
         if self._structs is None:
@@ -242,6 +267,14 @@ class PushbroomGeometry:
         self.search.htol = float(tolerance)
         self.search.max_steps = 1 << 20
         self._structs = None
+
+    image_size = property(lambda self: (self.scene.width, self.scene.height), doc="(width, height) in pixels.")
+    geocentric = True
+    horizontal_crs = property(lambda self: as_crs("EPSG:4326"), doc="lon/lat (EPSG:4326).")
+
+    def at_height(self, h):
+        """The same scene over a constant height h (m)."""
+        return PushbroomGeometry(self.scene, Dem.constant(h), refraction=self.refraction.enabled, device=self.device)
 
     def structs(self):
         """(scene, refraction, dem, search) structs on the device."""

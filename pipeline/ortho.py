@@ -33,9 +33,10 @@ from ..camera import FrameCamera
 from ..errors import GeometryError, ParamError, RasterIOError
 from ..kernels import ortho as ortho_kernels
 from ..geodesy import geodetic_to_ecef
-from ..pose import GEOCENTRIC, Pose
+from ..pose import Pose
+from ..pushbroom import PushbroomScene
 from .dem import Dem
-from .geometry import FrameGeometry
+from .geometry import FrameGeometry, PushbroomGeometry
 from .cog import CogWriter
 from .io import atomic_path, ensure_folder
 
@@ -82,13 +83,8 @@ def _utm_crs(lon, lat):
     return CRS.from_epsg((32600 if lat >= 0 else 32700) + zone)
 
 
-def _pose_horizontal_crs(pose):
-    """CRS of the horizontal coordinates the kernels use for this pose (lon/lat or map x/y)."""
-    return CRS.from_epsg(4326) if pose.mode == GEOCENTRIC else pose.crs
-
-
-def _border(camera, n=64):
-    w, h = camera.image_size
+def _border(size, n=64):
+    w, h = size
     t = np.linspace(0.0, 1.0, n + 1)[:-1]
     return np.concatenate([np.stack([t * w, 0 * t], 1), np.stack([0 * t + w, t * h], 1),
                            np.stack([w - t * w, 0 * t + h], 1), np.stack([0 * t, h - t * h], 1)])
@@ -99,7 +95,7 @@ def output_grid(geom, *, crs=None, resolution=None):
 
     Parameters
     ----------
-    geom : FrameGeometry
+    geom : FrameGeometry or PushbroomGeometry
     crs : CRS-like, optional
         Default: the CRS of map-Cartesian poses, else the UTM zone of the image centre.
     resolution : float, optional
@@ -114,12 +110,11 @@ def output_grid(geom, *, crs=None, resolution=None):
     GeometryError
         The camera sees the horizon, or the DEM does not cover the image footprint at all.
     """
-    cam, pose = geom.camera, geom.pose
-    frame_crs = _pose_horizontal_crs(pose)
-    border = _border(cam)
+    frame_crs = geom.horizontal_crs
+    size = geom.image_size
+    border = _border(size)
     # Rays that miss even the lowest ground height see the horizon (or the sky).
-    low = FrameGeometry(cam, pose, geom.dem.hmin, refraction=geom.refraction.enabled,
-                        device=geom.device).geolocate_frame(border)
+    low = geom.at_height(geom.dem.hmin).geolocate_frame(border)
     if not np.all(np.isfinite(low)):
         raise GeometryError("The camera sees the horizon: part of the image border has no ground "
                             "below it, so its footprint is unbounded")
@@ -131,13 +126,13 @@ def output_grid(geom, *, crs=None, resolution=None):
         log.warning("The DEM covers the image footprint only partly (%d of %d border rays miss it); "
                     "the rest of the orthoimage is nodata", int((~ok).sum()), len(ok))
     if crs is None:
-        if pose.mode == GEOCENTRIC:
-            centre = geom.geolocate_frame([[cam.image_size[0] / 2, cam.image_size[1] / 2]])[0]
+        if geom.geocentric:
+            centre = geom.geolocate_frame([[size[0] / 2, size[1] / 2]])[0]
             if not np.all(np.isfinite(centre)):
                 centre = np.nanmean(feet, axis=0)
             crs = _utm_crs(centre[0], centre[1])
         else:
-            crs = pose.crs
+            crs = geom.pose.crs
     crs = as_crs(crs)
     if crs.is_geocentric:
         raise ParamError("crs must be a projected or geographic CRS for orthoimages")
@@ -147,7 +142,7 @@ def output_grid(geom, *, crs=None, resolution=None):
     # meets the DEM counts; ground beyond them would only be hidden or outside the DEM.
     pts = feet[ok]
     if not np.all(ok):
-        w, h = cam.image_size
+        w, h = size
         gc, gr = np.meshgrid(np.linspace(0.0, w, 65), np.linspace(0.0, h, 65))
         inner = geom.geolocate_frame(np.stack([gc.ravel(), gr.ravel()], 1))
         pts = np.concatenate([pts, inner[np.all(np.isfinite(inner), axis=1)]])
@@ -168,7 +163,7 @@ def output_grid(geom, *, crs=None, resolution=None):
 
 def _mean_gsd(geom, to_out):
     """Mean ground sample distance (output CRS units): sqrt of pixel footprint area, 5 x 5 grid."""
-    w, h = geom.camera.image_size
+    w, h = geom.image_size
     c, r = np.meshgrid(np.linspace(0.1, 0.9, 5) * w, np.linspace(0.1, 0.9, 5) * h)
     base = np.stack([c.ravel(), r.ravel()], 1)
     pts = np.concatenate([base, base + [1.0, 0.0], base + [0.0, 1.0]])
@@ -203,20 +198,24 @@ class _Timer:
             self.t[key] += dt
 
 
-def orthorectify(src, camera, pose, dst, *, dem, crs=None, resolution=None, resampling="bilinear", method="backward",
+def orthorectify(src, sensor, *args, dem, crs=None, resolution=None, resampling="bilinear", method="backward",
                  refraction=True, dtype=None, driver="COG", compress="deflate", compress_level=None, overviews=True,
                  tile_size=None, overwrite=False, device=None, progress=False, workers=None,
                  geoid=None, same_vertical_datum=False):
-    """Orthorectify one frame image into a GeoTIFF / cloud-optimized GeoTIFF.
+    """Orthorectify one frame image or pushbroom scene into a GeoTIFF / cloud-optimized GeoTIFF.
+
+    Called as ``orthorectify(src, camera, pose, dst, ...)`` for a frame image or
+    ``orthorectify(src, scene, dst, ...)`` for a pushbroom scene.
 
     Parameters
     ----------
     src : str or os.PathLike
         Source image (any raster GDAL reads; any band count; uint8, uint16 or float32).
-    camera : FrameCamera
-        Interior orientation; its image_size must match the source.
+    sensor : FrameCamera or PushbroomScene
+        Frame interior orientation (its image_size must match the source), or a pushbroom
+        scene (its width x height must match the source).
     pose : Pose
-        Exterior orientation.
+        Exterior orientation of a frame image.
     dst : str or os.PathLike
         Output file. Written under a temporary name in the same folder and renamed when
         complete; an existing file is an error unless ``overwrite``.
@@ -266,8 +265,19 @@ def orthorectify(src, camera, pose, dst, *, dem, crs=None, resolution=None, resa
     OrthoResult
     """
     t_wall = time.perf_counter()
-    if not isinstance(camera, FrameCamera) or not isinstance(pose, Pose):
-        raise ParamError("camera must be a FrameCamera and pose a Pose")
+    if isinstance(sensor, PushbroomScene):
+        if len(args) != 1:
+            raise ParamError("orthorectify(src, scene, dst, ...) takes the source, a PushbroomScene and the output")
+        camera, pose, dst = sensor, None, args[0]
+        if method != "backward":
+            raise ParamError("pushbroom scenes are orthorectified by the backward method only")
+    else:
+        if len(args) != 2:
+            raise ParamError("orthorectify(src, camera, pose, dst, ...) takes the source, a FrameCamera, a Pose "
+                             "and the output")
+        camera, (pose, dst) = sensor, args
+        if not isinstance(camera, FrameCamera) or not isinstance(pose, Pose):
+            raise ParamError("camera must be a FrameCamera and pose a Pose")
     if method not in ("backward", "forward"):
         raise ParamError(f"method must be 'backward' or 'forward', got {method!r}")
     if resampling not in RESAMPLING:
@@ -299,15 +309,20 @@ def orthorectify(src, camera, pose, dst, *, dem, crs=None, resolution=None, resa
             width, height, count, src_dtype = ds.width, ds.height, ds.count, ds.dtypes[0]
     except RasterioIOError as e:
         raise RasterIOError(f"Could not open image '{src}': {e}") from e
-    if (width, height) != tuple(camera.image_size):
-        raise ParamError(f"Image '{src}' is {width} x {height} pixels but its camera says "
-                         f"{camera.image_size[0]} x {camera.image_size[1]}")
+    size = (camera.width, camera.height) if pose is None else tuple(camera.image_size)
+    if (width, height) != size:
+        raise ParamError(f"Image '{src}' is {width} x {height} pixels but its "
+                         f"{'scene' if pose is None else 'camera'} says {size[0]} x {size[1]}")
     out_dtype = dtype or (src_dtype if src_dtype in DTYPES else "float32")
     if compress == "jpeg" and out_dtype != "uint8":
         raise ParamError("jpeg compression needs uint8 output")
 
-    geom = FrameGeometry(camera, pose, _as_dem(dem), refraction=refraction, device=device, geoid=geoid,
-                         same_vertical_datum=same_vertical_datum)
+    if pose is None:
+        geom = PushbroomGeometry(camera, _as_dem(dem), refraction=refraction, device=device, geoid=geoid,
+                                 same_vertical_datum=same_vertical_datum)
+    else:
+        geom = FrameGeometry(camera, pose, _as_dem(dem), refraction=refraction, device=device, geoid=geoid,
+                             same_vertical_datum=same_vertical_datum)
     if tile_size is None:
         tile_size = _default_tile_size(geom.device, count, workers)
     try:
@@ -405,9 +420,12 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
         profile.update(JPEG_QUALITY=90, **({"photometric": "YCBCR"} if count == 3 else {}))
     if is_float:
         profile["nodata"] = float("nan")
-    frame_crs = _pose_horizontal_crs(geom.pose)
+    frame_crs = geom.horizontal_crs
     to_frame = Transformer.from_crs(out_crs, frame_crs, always_xy=True)
-    cam, pose, refr, dem, _ = geom.structs()
+    pushbroom = isinstance(geom, PushbroomGeometry)
+    sensor = geom.structs()[:2] if pushbroom else geom.sensor_structs()
+    dem = geom.structs()[2] if pushbroom else geom.structs()[3]
+    h_mid = 0.5 * (geom.dem.hmin + geom.dem.hmax)
     device = geom.device
     resampling_code = RESAMPLING[resampling]
     radius = _RADIUS[resampling]
@@ -426,8 +444,8 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
                 handles.append(local.ds)
         return local.ds, local.stream
 
-    w_img, h_img = geom.camera.image_size
-    geocentric = geom.pose.mode == GEOCENTRIC
+    w_img, h_img = geom.image_size
+    geocentric = geom.geocentric
 
     def backward_coords(r0, c0, th, tw):
         """Source coordinates of the tile's pixels by the backward chain, and their window."""
@@ -437,8 +455,15 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
         coords = wp.empty((th, tw), dtype=wp.vec2d, device=device)
         timer.add("h2d", time.perf_counter() - t)
         t = time.perf_counter()
-        wp.launch(ortho_kernels.ortho_coords_kernel, dim=(th, tw), device=device,
-                  inputs=[cam, pose, refr, dem, grid, float(w_img), float(h_img), coords, bounds])
+        if pushbroom:
+            times = wp.empty(grid.uv.shape, dtype=wp.float64, device=device)
+            wp.launch(ortho_kernels.pb_node_times_kernel, dim=grid.uv.shape, device=device,
+                      inputs=[*sensor, dem, grid, h_mid, times])
+            wp.launch(ortho_kernels.pb_ortho_coords_kernel, dim=(th, tw), device=device,
+                      inputs=[*sensor, dem, grid, times, float(w_img), float(h_img), coords, bounds])
+        else:
+            wp.launch(ortho_kernels.ortho_coords_kernel, dim=(th, tw), device=device,
+                      inputs=[*sensor, dem, grid, float(w_img), float(h_img), coords, bounds])
         b = bounds.numpy()
         timer.add("kernel", time.perf_counter() - t)
         if not np.all(np.isfinite(b)):
