@@ -68,9 +68,13 @@ def demo(out_dir, device):
 @click.argument("images", nargs=-1, required=True, type=click.Path(dir_okay=False))
 @click.option("--int-param", "int_param", type=click.Path(dir_okay=False),
               help="Interior orientation: orthority/ODM camera file (YAML/JSON) or reconstruction.json.")
-@click.option("--ext-param", "ext_param", required=True, type=click.Path(dir_okay=False),
+@click.option("--ext-param", "ext_param", type=click.Path(dir_okay=False),
               help="Exterior orientation: CSV (x,y,z,omega,phi,kappa or latitude,longitude,altitude,roll,pitch,yaw), "
                    "orthority GeoJSON or OpenSfM reconstruction.json.")
+@click.option("--dimap", type=click.Path(dir_okay=False),
+              help="SPOT level-1A DIMAP metadata of a pushbroom scene (instead of --int-param/--ext-param; one image).")
+@click.option("--attitude-model", type=click.Choice(["full", "first_order"]), default="full", show_default=True,
+              help="Pushbroom attitude matrix: full, or seed 000's first-order form.")
 @click.option("--dem", type=click.Path(dir_okay=False), help="DEM file (any CRS).")
 @click.option("--height", type=float, help="Constant terrain height (m) instead of a DEM.")
 @click.option("--crs", help="Output CRS, and the CRS of x,y,z poses that have no .prj (EPSG code, WKT or PROJ string).")
@@ -94,10 +98,11 @@ def demo(out_dir, device):
 @click.option("--device", default=None, help="Warp device (cpu, cuda, cuda:N); default: first GPU, else CPU.")
 @click.option("--tile-size", type=int, default=None, help="Output tile edge (pixels); default 512 on the CPU, up to 4096 on a GPU.")
 @click.pass_context
-def ortho(ctx, images, int_param, ext_param, dem, height, crs, resolution, resampling, method, driver, compress,
-          compress_level, dtype,
+def ortho(ctx, images, int_param, ext_param, dimap, attitude_model, dem, height, crs, resolution, resampling, method,
+          driver, compress, compress_level, dtype,
           out_dir, overwrite, no_refraction, geoid, same_vertical_datum, device, tile_size):
-    """Orthorectify frame IMAGES into (cloud-optimized) GeoTIFFs named <image>_ORTHO.tif."""
+    """Orthorectify frame IMAGES, or one pushbroom scene (--dimap), into (cloud-optimized)
+    GeoTIFFs named <image>_ORTHO.tif."""
     import os
 
     from .errors import ParamError, RasterIOError
@@ -108,6 +113,30 @@ def ortho(ctx, images, int_param, ext_param, dem, height, crs, resolution, resam
     if (dem is None) == (height is None):
         raise ParamError("Give exactly one of --dem FILE and --height METRES")
     terrain = Dem.from_file(dem) if dem is not None else height
+    quiet = ctx.obj["quiet"]
+    options = dict(dem=terrain, crs=crs, resolution=resolution, resampling=resampling, method=method,
+                   refraction=not no_refraction, dtype=dtype, driver="COG" if driver.lower() == "cog" else "GTiff",
+                   compress=compress, compress_level=compress_level, overwrite=overwrite, device=device,
+                   progress=not quiet, tile_size=tile_size, geoid=geoid, same_vertical_datum=same_vertical_datum)
+    if dimap is not None:
+        from .pushbroom import PushbroomScene
+
+        if int_param or ext_param:
+            raise ParamError("--dimap replaces --int-param and --ext-param: give one or the other")
+        if len(images) != 1:
+            raise ParamError(f"--dimap describes one scene: give its one image, not {len(images)}")
+        if not os.path.exists(images[0]):
+            raise RasterIOError(f"Image '{images[0]}' does not exist")
+        scene = PushbroomScene.from_dimap(dimap, attitude_model=attitude_model)
+        key = os.path.splitext(os.path.basename(images[0]))[0]
+        dst = os.path.join(out_dir, f"{key}_ORTHO.tif")
+        r = orthorectify(images[0], scene, dst, **options)
+        if not quiet:
+            click.echo(f"{dst}: {r.shape[1]} x {r.shape[0]} px at {r.resolution:.4g}, {r.crs.name}, "
+                       f"{r.timings['wall']:.2f} s")
+        return
+    if not ext_param:
+        raise ParamError("Give --ext-param (frame images) or --dimap (a pushbroom scene)")
     exterior = read_exterior(ext_param, crs=crs)
     cameras = read_cameras(int_param) if int_param else read_cameras(ext_param)
     jobs = []
@@ -127,14 +156,8 @@ def ortho(ctx, images, int_param, ext_param, dem, height, crs, resolution, resam
         if cam_id not in cameras:
             raise ParamError(f"Camera '{cam_id}' of image '{key}' is not in '{int_param or ext_param}'")
         jobs.append((image, cameras[cam_id], orient.pose, os.path.join(out_dir, f"{key}_ORTHO.tif")))
-    quiet = ctx.obj["quiet"]
     for image, camera, pose, dst in jobs:
-        r = orthorectify(image, camera, pose, dst, dem=terrain, crs=crs, resolution=resolution,
-                         resampling=resampling, method=method, refraction=not no_refraction, dtype=dtype,
-                         driver="COG" if driver.lower() == "cog" else "GTiff", compress=compress,
-                         compress_level=compress_level,
-                         overwrite=overwrite, device=device, progress=not quiet, tile_size=tile_size,
-                         geoid=geoid, same_vertical_datum=same_vertical_datum)
+        r = orthorectify(image, camera, pose, dst, **options)
         if not quiet:
             click.echo(f"{dst}: {r.shape[1]} x {r.shape[0]} px at {r.resolution:.4g}, {r.crs.name}, "
                        f"{r.timings['wall']:.2f} s")

@@ -22,7 +22,7 @@ import numpy as np
 
 from ..errors import ParamError, RasterIOError
 
-__all__ = ["DimapMetadata", "read_dimap", "MAX_BYTES"]
+__all__ = ["DimapMetadata", "read_dimap", "write_dimap", "MAX_BYTES"]
 
 MAX_BYTES = 64 << 20
 
@@ -244,3 +244,58 @@ def read_dimap(path):
                          center_line=center_line, eph_time=eph_t, eph_position=eph_p, eph_velocity=eph_v,
                          att_time=att_t, att_angles=att_a, attitude_source=source, psi_x=px, psi_y=py,
                          look_angles_interpolated=interpolated, frame=frame, scene_center=center, mission=mission)
+
+
+def write_dimap(scene, path, *, epoch="2020-06-01T10:30:00.000000"):
+    """Write a minimal SPOT level-1A DIMAP file of a :class:`~orthowarp.PushbroomScene` (the
+    elements :func:`read_dimap` reads), atomically; for synthetic scenes in tests and benchmarks.
+
+    Parameters
+    ----------
+    scene : PushbroomScene
+    path : str or os.PathLike
+    epoch : str, optional
+        UTC of the scene-centre time (ISO 8601).
+    """
+    from xml.sax.saxutils import escape
+
+    from .io import write_text
+
+    t0 = np.datetime64(epoch, "us")
+
+    def iso(seconds):
+        return str(t0 + np.timedelta64(int(round(seconds * 1e6)), "us"))
+
+    def num(v):
+        return repr(float(v))
+
+    eph = "".join(
+        f"<Point><Location><X>{num(p[0])}</X><Y>{num(p[1])}</Y><Z>{num(p[2])}</Z></Location>"
+        f"<Velocity><X>{num(v[0])}</X><Y>{num(v[1])}</Y><Z>{num(v[2])}</Z></Velocity><TIME>{iso(t)}</TIME></Point>\n"
+        for t, p, v in zip(scene.eph_time, scene.eph_position, scene.eph_velocity))
+    att = "".join(
+        f"<Angles><TIME>{iso(t)}</TIME><YAW>{num(a[0])}</YAW><PITCH>{num(a[1])}</PITCH><ROLL>{num(a[2])}</ROLL>"
+        f"<OUT_OF_RANGE>N</OUT_OF_RANGE></Angles>\n" for t, a in zip(scene.att_time, scene.att_angles))
+    looks = "".join(
+        f"<Look_Angles><DETECTOR_ID>{i + 1}</DETECTOR_ID><PSI_X>{num(x)}</PSI_X><PSI_Y>{num(y)}</PSI_Y></Look_Angles>\n"
+        for i, (x, y) in enumerate(zip(scene.psi_x, scene.psi_y)))
+    text = f"""<?xml version="1.0" encoding="UTF-8"?>
+<Dimap_Document name="{escape(os.path.basename(os.fspath(path)))}">
+<Metadata_Id><METADATA_FORMAT version="1.1">DIMAP</METADATA_FORMAT><METADATA_PROFILE>SPOTSCENE_1A</METADATA_PROFILE></Metadata_Id>
+<Dataset_Sources><Source_Information><Scene_Source><MISSION>SYNTHETIC</MISSION><MISSION_INDEX>1</MISSION_INDEX></Scene_Source></Source_Information></Dataset_Sources>
+<Raster_Dimensions><NCOLS>{scene.width}</NCOLS><NROWS>{scene.height}</NROWS><NBANDS>1</NBANDS></Raster_Dimensions>
+<Data_Strip>
+<Ephemeris><Points>
+{eph}</Points></Ephemeris>
+<Satellite_Attitudes><Corrected_Attitudes><Corrected_Attitude>
+{att}</Corrected_Attitude></Corrected_Attitudes></Satellite_Attitudes>
+<Sensor_Configuration>
+<Time_Stamp><LINE_PERIOD>{num(scene.line_period)}</LINE_PERIOD><SCENE_CENTER_TIME>{iso(0.0)}</SCENE_CENTER_TIME>
+<SCENE_CENTER_LINE>{num(scene.center_line)}</SCENE_CENTER_LINE></Time_Stamp>
+<Instrument_Look_Angles_List><Instrument_Look_Angles><BAND_INDEX>1</BAND_INDEX><Look_Angles_List>
+{looks}</Look_Angles_List></Instrument_Look_Angles></Instrument_Look_Angles_List>
+</Sensor_Configuration>
+</Data_Strip>
+</Dimap_Document>
+"""
+    write_text(path, text)

@@ -84,3 +84,30 @@ def test_ortho_command_errors(tmp_path):
         lines = res.output.strip().splitlines()
         assert res.exit_code == 1 and len(lines) == 1 and message in lines[0], res.output
     assert not (tmp_path / "o").exists() or not list((tmp_path / "o").iterdir())
+
+
+def test_ortho_command_with_dimap(tmp_path):
+    import numpy as np
+    import rasterio
+
+    from orthowarp.pipeline.dimap import write_dimap
+    from orthowarp.pushbroom import synthetic_scene
+
+    sc = synthetic_scene(width=120, height=150, view_angle=5.0)
+    write_dimap(sc, tmp_path / "scene.dim")
+    with rasterio.open(tmp_path / "scene.tif", "w", driver="GTiff", width=120, height=150, count=1,
+                       dtype="uint8") as ds:
+        ds.write(np.full((1, 150, 120), 77, np.uint8))
+    out = tmp_path / "out"
+    r = CliRunner().invoke(main, ["-q", "ortho", "--dimap", str(tmp_path / "scene.dim"), str(tmp_path / "scene.tif"),
+                                  "--height", "100", "--out-dir", str(out), "--device", "cpu"])
+    assert r.exit_code == 0, r.output
+    with rasterio.open(out / "scene_ORTHO.tif") as ds:
+        data, mask = ds.read(1), ds.dataset_mask() > 0
+        assert ds.crs.to_epsg() == 32631 and mask.mean() > 0.3 and np.all(data[mask] == 77)
+    r = CliRunner().invoke(main, ["ortho", "--dimap", str(tmp_path / "scene.dim"), str(tmp_path / "scene.tif"),
+                                  str(tmp_path / "scene.tif"), "--height", "100", "--out-dir", str(out)])
+    assert r.exit_code == 1 and "one scene" in r.output
+    r = CliRunner().invoke(main, ["ortho", "--dimap", str(tmp_path / "missing.dim"), str(tmp_path / "scene.tif"),
+                                  "--height", "100", "--out-dir", str(out), "--overwrite"])
+    assert r.exit_code == 1 and "missing.dim" in r.output

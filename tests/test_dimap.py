@@ -116,3 +116,20 @@ def test_entities_and_size_are_refused(tmp_path, text, monkeypatch):
     monkeypatch.setattr(dimap, "MAX_BYTES", 1000)
     with pytest.raises(ParamError, match="over the"):
         read_dimap(SAMPLE)
+
+
+def test_written_synthetic_scene_reads_back(tmp_path):
+    from orthowarp import PushbroomScene
+    from orthowarp.pipeline.dimap import write_dimap
+    from orthowarp.pushbroom import synthetic_scene
+
+    sc = synthetic_scene(width=50, height=80, view_angle=10.0)
+    path = tmp_path / "scene.dim"
+    write_dimap(sc, path)
+    back = PushbroomScene.from_dimap(path)
+    for name in ("eph_time", "eph_position", "eph_velocity", "att_time", "att_angles", "psi_x", "psi_y"):
+        np.testing.assert_allclose(getattr(back, name), getattr(sc, name), rtol=1e-15, atol=1e-6 if "time" in name else 0)
+    assert (back.width, back.height, back.line_period, back.center_line) == (sc.width, sc.height, sc.line_period,
+                                                                              sc.center_line)
+    pix = np.array([[0.5, 0.5], [25.0, 40.0]])
+    np.testing.assert_allclose(back.geolocate_ellipsoid(pix), sc.geolocate_ellipsoid(pix), atol=1e-9)
