@@ -24,7 +24,13 @@ class PushbroomData:
     """A scene packed for kernels: ephemeris (times s, ECEF positions m, velocities m/s),
     attitudes (times s; yaw, pitch, roll rad), look angles per detector (psi_x, psi_y rad),
     line period (s), DIMAP centre line, first_order (1: seed 000's eq. 4 attitude matrix),
-    and the extrapolation (s) allowed past the attitudes."""
+    and the extrapolation (s) allowed past the attitudes.
+
+    line_p, line_r: the satellite position and the rotation R = [X2 Y2 Z2] M of the rows
+    line_row0, line_row0 + 1, ... (the scene's line centres and a margin), computed by the
+    rigorous model on the host; between them P and R are linear in the row (errors ~ a dt^2 / 8
+    = 6e-7 m and 1e-12 rad at SPOT's line period), outside them the rigorous model runs here.
+    det_u: the unit look vector u1 of every detector, likewise linear between detectors."""
 
     eph_t: wp.array(dtype=wp.float64)
     eph_p: wp.array(dtype=wp.vec3d)
@@ -36,6 +42,10 @@ class PushbroomData:
     center_line: wp.float64
     first_order: wp.int32
     att_extra: wp.float64
+    line_p: wp.array(dtype=wp.vec3d)
+    line_r: wp.array(dtype=wp.mat33d)
+    line_row0: wp.float64
+    det_u: wp.array(dtype=wp.vec3d)
 
 
 @wp.func
@@ -135,6 +145,40 @@ def pb_frame(pb: PushbroomData, t: wp.float64, p: wp.vec3d):
 
 
 @wp.func
+def pb_state(pb: PushbroomData, row: wp.float64, strict: bool):
+    """Satellite position and R = [X2 Y2 Z2] M at a (continuous) row, from the line table where
+    it covers the row, else from the rigorous model; with ``strict``, NaN outside the
+    ephemeris/attitude span (else the attitudes extrapolate freely: the backward iteration may
+    pass there on its way)."""
+    n = pb.line_p.shape[0]
+    f = row - pb.line_row0
+    if n > 1 and f >= wp.float64(0.0) and f <= wp.float64(n - 1):
+        k = wp.min(wp.int32(f), n - 2)
+        a = f - wp.float64(k)
+        b = wp.float64(1.0) - a
+        return b * pb.line_p[k] + a * pb.line_p[k + 1], b * pb.line_r[k] + a * pb.line_r[k + 1]
+    t = pb_line_time(pb, row)
+    nan = wp.float64(wp.nan)
+    if strict and not pb_time_ok(pb, t):
+        return wp.vec3d(nan, nan, nan), wp.mat33d()
+    p = pb_orbit_position(pb, t)
+    return p, pb_frame(pb, t, p)
+
+
+@wp.func
+def pb_look(pb: PushbroomData, col: wp.float64):
+    """Unit look vector u1 of a continuous column (linear between detectors, extended past the
+    ends; the table of u1 makes it free of tangents)."""
+    n = pb.det_u.shape[0]
+    if n == 1:
+        return pb.det_u[0]
+    f = col - wp.float64(0.5)
+    i = wp.clamp(wp.int32(wp.floor(f)), 0, n - 2)
+    a = f - wp.float64(i)
+    return wp.normalize((wp.float64(1.0) - a) * pb.det_u[i] + a * pb.det_u[i + 1])
+
+
+@wp.func
 def pb_psi(pb: PushbroomData, col: wp.float64):
     """(psi_x, psi_y) of a continuous column: linear in the detector number col + 0.5,
     extended linearly past the first and last detectors."""
@@ -151,14 +195,10 @@ def pb_psi(pb: PushbroomData, col: wp.float64):
 def pb_ray(pb: PushbroomData, pix: wp.vec2d):
     """Satellite position and unit look direction (ECEF) of pixel (col, row); NaN outside
     the ephemeris or attitude span."""
-    t = pb_line_time(pb, pix[1])
-    nan = wp.float64(wp.nan)
-    if not pb_time_ok(pb, t):
-        return wp.vec3d(nan, nan, nan), wp.vec3d(nan, nan, nan)
-    p = pb_orbit_position(pb, t)
-    psi = pb_psi(pb, pix[0])
-    u = wp.normalize(wp.vec3d(-wp.tan(psi[1]), wp.tan(psi[0]), wp.float64(-1.0)))
-    return p, wp.normalize(pb_frame(pb, t, p) * u)
+    p, r = pb_state(pb, pix[1], True)
+    if not wp.isfinite(p[0]):
+        return p, p
+    return p, wp.normalize(r * pb_look(pb, pix[0]))
 
 
 @wp.func
@@ -229,9 +269,11 @@ def pb_column(pb: PushbroomData, tan_psi_y: wp.float64):
 @wp.func
 def pb_residual(pb: PushbroomData, refr: RefractionTable, x: wp.vec3d, h: wp.float64, t: wp.float64):
     """(tan psi_x of the apparent direction - tan psi_x of its detector, column) at time t."""
-    p = pb_orbit_position(pb, t)
-    q = wp.transpose(pb_frame(pb, t, p)) * pb_apparent(refr, pb_pose(p), x, h)
+    p, r = pb_state(pb, t / pb.line_period + pb.center_line - wp.float64(0.5), False)
     nan = wp.float64(wp.nan)
+    if not wp.isfinite(p[0]):
+        return nan, nan
+    q = wp.transpose(r) * pb_apparent(refr, pb_pose(p), x, h)
     if q[2] >= wp.float64(0.0):
         return nan, nan
     col, tx = pb_column(pb, q[0] / q[2])

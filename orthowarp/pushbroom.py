@@ -272,7 +272,30 @@ class PushbroomScene:
         s.center_line = self.center_line
         s.first_order = int(self.attitude_model == "first_order")
         s.att_extra = self.attitude_extrapolation
+        p, r, row0 = self.line_table()
+        s.line_p = wp.array(p, dtype=wp.vec3d, device=device)
+        s.line_r = wp.array(r, dtype=wp.mat33d, device=device)
+        s.line_row0 = row0
+        s.det_u = wp.array(self.look_vector(np.arange(self.width) + 0.5), dtype=wp.vec3d, device=device)
         return s
+
+    def line_table(self, margin=256):
+        """Satellite positions (n, 3) and rotations R = [X2 Y2 Z2] M (n, 3, 3) at the line
+        centres of the scene and ``margin`` lines each side, as far as the ephemeris and the
+        attitudes reach, and the row coordinate of the first (see the kernels' PushbroomData)."""
+        rows = np.arange(-margin, self.height + margin) + 0.5
+        t = self.line_time(rows)
+        e = self.attitude_extrapolation
+        ok = ((t >= self.eph_time[0]) & (t <= self.eph_time[-1]) & (t >= self.att_time[0] - e)
+              & (t <= self.att_time[-1] + e))
+        idx = np.flatnonzero(ok)
+        if len(idx) < 2:
+            return np.zeros((0, 3)), np.zeros((0, 3, 3)), 0.0
+        rows, t = rows[idx[0]:idx[-1] + 1], t[idx[0]:idx[-1] + 1]
+        p, v = self.orbit(t)
+        ypr = self.attitude(t)
+        m = attitude_matrix(ypr[:, 0], ypr[:, 1], ypr[:, 2], first_order=self.attitude_model == "first_order")
+        return p, self.orbital_frame(p, v) @ m, float(rows[0])
 
     def _psi_x_at(self, det):
         """psi_x at fractional 1-based detector numbers, linear (and linearly extended)."""
