@@ -165,6 +165,11 @@ def main(argv=None):
         print(f"{r['device_name']:>24s} forward {r['forward_gpix_s']:.4f} Gpix/s backward {r['backward_gpix_s']:.4f} "
               f"Gpix/s round trip {r['round_trip_max_px']:.2e} px", flush=True)
         if geom.device.is_cuda or not args.skip_ortho_cpu:
+            from orthowarp.kernels import ortho as ortho_kernels
+
+            t = time.perf_counter()
+            wp.load_module(ortho_kernels, device=geom.device)  # JIT compilation, not part of the run
+            r["ortho_module_load_s"] = time.perf_counter() - t
             t = time.perf_counter()
             res = ow.orthorectify(src, scene, os.path.join(work, f"ortho_{r['device'].replace(':', '')}.tif"),
                                   dem=dem, overwrite=True, device=name)
