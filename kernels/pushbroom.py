@@ -30,7 +30,10 @@ class PushbroomData:
     line_row0, line_row0 + 1, ... (the scene's line centres and a margin), computed by the
     rigorous model on the host; between them P and R are linear in the row (errors ~ a dt^2 / 8
     = 6e-7 m and 1e-12 rad at SPOT's line period), outside them the rigorous model runs here.
-    det_u: the unit look vector u1 of every detector, likewise linear between detectors."""
+    det_u: the unit look vector u1 of every detector, likewise linear between detectors.
+    poly, use_poly: seed 000's 27 coefficients (position, velocity, attitude as 2nd-degree
+    polynomials in t; entry 3 q + k holds the power-k coefficients of quantity q), used instead
+    of the ephemeris and attitude samples when use_poly is 1."""
 
     eph_t: wp.array(dtype=wp.float64)
     eph_p: wp.array(dtype=wp.vec3d)
@@ -46,6 +49,8 @@ class PushbroomData:
     line_r: wp.array(dtype=wp.mat33d)
     line_row0: wp.float64
     det_u: wp.array(dtype=wp.vec3d)
+    poly: wp.array(dtype=wp.vec3d)
+    use_poly: wp.int32
 
 
 @wp.func
@@ -76,8 +81,15 @@ def search_sorted(a: wp.array(dtype=wp.float64), t: wp.float64):
 
 
 @wp.func
+def pb_poly(pb: PushbroomData, q: wp.int32, t: wp.float64):
+    return pb.poly[3 * q] + t * pb.poly[3 * q + 1] + (t * t) * pb.poly[3 * q + 2]
+
+
+@wp.func
 def pb_orbit_position(pb: PushbroomData, t: wp.float64):
-    """8-point Lagrange interpolation of the ephemeris positions at t."""
+    """8-point Lagrange interpolation of the ephemeris positions at t (or the polynomial)."""
+    if pb.use_poly != 0:
+        return pb_poly(pb, 0, t)
     n = pb.eph_t.shape[0]
     i0 = wp.clamp(search_sorted(pb.eph_t, t) - 4, 0, n - 8)
     p = wp.vec3d()
@@ -94,7 +106,9 @@ def pb_orbit_position(pb: PushbroomData, t: wp.float64):
 
 @wp.func
 def pb_orbit_velocity(pb: PushbroomData, t: wp.float64):
-    """8-point Lagrange interpolation of the ephemeris velocities at t."""
+    """8-point Lagrange interpolation of the ephemeris velocities at t (or the polynomial)."""
+    if pb.use_poly != 0:
+        return pb_poly(pb, 1, t)
     n = pb.eph_t.shape[0]
     i0 = wp.clamp(search_sorted(pb.eph_t, t) - 4, 0, n - 8)
     v = wp.vec3d()
@@ -116,6 +130,8 @@ def pb_attitude_matrix(pb: PushbroomData, t: wp.float64):
     i = wp.clamp(search_sorted(pb.att_t, t) - 1, 0, m - 2)
     w = (t - pb.att_t[i]) / (pb.att_t[i + 1] - pb.att_t[i])
     a = (wp.float64(1.0) - w) * pb.att[i] + w * pb.att[i + 1]
+    if pb.use_poly != 0:
+        a = pb_poly(pb, 2, t)
     y = a[0]
     p = a[1]
     r = a[2]

@@ -43,6 +43,11 @@ def _array(name, value, shape):
     return arr
 
 
+def _poly(c, t):
+    """Evaluate (3, 3) [axis][power] coefficients at times t (n,) -> (n, 3)."""
+    return c[None, :, 0] + t[:, None] * c[None, :, 1] + (t * t)[:, None] * c[None, :, 2]
+
+
 def lagrange(t, times, values, order=8):
     """Lagrange interpolation with the ``order`` samples around each time.
 
@@ -129,11 +134,16 @@ class PushbroomScene:
     attitude_extrapolation : float, optional
         Seconds the attitudes may be extrapolated past their first/last sample (default 0.5:
         level-1A files start the attitudes a few lines after the first line).
+    polynomials : array_like, shape (3, 3, 3), optional
+        Seed 000's exterior orientation as 2nd-degree polynomials in line time t (s):
+        ``[quantity][axis][power]`` for quantity position (m), velocity (m/s), attitude (yaw,
+        pitch, roll, rad): 27 coefficients that replace the ephemeris interpolation and the
+        attitude samples when given (see :meth:`fit_polynomials`); the adjustment refines them.
     """
 
     def __init__(self, *, width, height, line_period, center_line, eph_time, eph_position, eph_velocity,
                  att_time, att_angles, psi_x, psi_y, attitude_model="full", epoch=None,
-                 attitude_extrapolation=0.5, source=None):
+                 attitude_extrapolation=0.5, source=None, polynomials=None):
         if attitude_model not in ATTITUDE_MODELS:
             raise ParamError(f"attitude_model must be one of {ATTITUDE_MODELS}, got {attitude_model!r}")
         self.width, self.height = int(width), int(height)
@@ -156,6 +166,7 @@ class PushbroomScene:
         self.epoch = epoch
         self.attitude_extrapolation = float(attitude_extrapolation)
         self.source = source
+        self.polynomials = None if polynomials is None else _array("polynomials", polynomials, (3, 3, 3))
 
     @classmethod
     def from_dimap(cls, path, *, attitude_model="full"):
@@ -192,11 +203,15 @@ class PushbroomScene:
         """Position and velocity (n, 3) (ECEF, m and m/s) at times t (s)."""
         t = np.atleast_1d(np.asarray(t, dtype=np.float64))
         self._check_times(t)
+        if self.polynomials is not None:
+            return _poly(self.polynomials[0], t), _poly(self.polynomials[1], t)
         return lagrange(t, self.eph_time, self.eph_position), lagrange(t, self.eph_time, self.eph_velocity)
 
     def attitude(self, t):
         """Yaw, pitch, roll (n, 3) (rad), linear in time (extrapolated past the ends)."""
         t = np.atleast_1d(np.asarray(t, dtype=np.float64))
+        if self.polynomials is not None:
+            return _poly(self.polynomials[2], t)
         tt, a = self.att_time, self.att_angles
         i = np.clip(np.searchsorted(tt, t) - 1, 0, len(tt) - 2)
         w = ((t - tt[i]) / (tt[i + 1] - tt[i]))[:, None]
@@ -272,6 +287,10 @@ class PushbroomScene:
         s.center_line = self.center_line
         s.first_order = int(self.attitude_model == "first_order")
         s.att_extra = self.attitude_extrapolation
+        poly = np.zeros((3, 3, 3)) if self.polynomials is None else self.polynomials
+        # [quantity * 3 + power] -> vec3 over the axes
+        s.poly = wp.array(np.ascontiguousarray(poly.transpose(0, 2, 1).reshape(9, 3)), dtype=wp.vec3d, device=device)
+        s.use_poly = int(self.polynomials is not None)
         p, r, row0 = self.line_table()
         s.line_p = wp.array(p, dtype=wp.vec3d, device=device)
         s.line_r = wp.array(r, dtype=wp.mat33d, device=device)
@@ -305,11 +324,49 @@ class PushbroomScene:
         a = det - (i + 1)
         return (1 - a) * self.psi_x[i] + a * self.psi_x[i + 1]
 
+    def fit_polynomials(self, *, samples=201):
+        """Fit seed 000's 27 coefficients: position, velocity and attitude as 2nd-degree
+        polynomials in line time, by least squares over the scene's lines (the metadata's
+        interpolated orbit and attitudes, ``samples`` lines evenly spread).
+
+        Returns
+        -------
+        coefficients : ndarray, shape (3, 3, 3)
+            [position | velocity | attitude][axis][power of t].
+        rms : dict
+            Fit residual RMS of position (m), velocity (m/s) and attitude (rad).
+        """
+        t = self.line_time(np.linspace(0.0, self.height, samples))
+        p, v = self.orbit(t)
+        a = self.attitude(t)
+        design = np.stack([np.ones_like(t), t, t * t], 1)
+        coef, rms = np.zeros((3, 3, 3)), {}
+        for q, (name, y) in enumerate((("position", p), ("velocity", v), ("attitude", a))):
+            c, *_ = np.linalg.lstsq(design, y, rcond=None)
+            coef[q] = c.T
+            rms[name] = float(np.sqrt(np.mean((design @ c - y) ** 2)))
+        return coef, rms
+
+    def with_polynomials(self, coefficients):
+        """This scene with its exterior orientation given by 27 polynomial coefficients."""
+        return PushbroomScene(width=self.width, height=self.height, line_period=self.line_period,
+                              center_line=self.center_line, eph_time=self.eph_time, eph_position=self.eph_position,
+                              eph_velocity=self.eph_velocity, att_time=self.att_time, att_angles=self.att_angles,
+                              psi_x=self.psi_x, psi_y=self.psi_y, attitude_model=self.attitude_model, epoch=self.epoch,
+                              attitude_extrapolation=self.attitude_extrapolation, source=self.source,
+                              polynomials=coefficients)
+
     def mean_height(self):
         """Mean ellipsoidal height (m) of the satellite over the scene."""
         t = self.line_time(np.linspace(0, self.height, 9))
         p, _ = self.orbit(t)
         return float(np.mean(ecef_to_geodetic(p)[2]))
+
+    def _orbit_any(self, t):
+        """Position and velocity without the span check (the iteration may pass outside)."""
+        if self.polynomials is not None:
+            return _poly(self.polynomials[0], t), _poly(self.polynomials[1], t)
+        return lagrange(t, self.eph_time, self.eph_position), lagrange(t, self.eph_time, self.eph_velocity)
 
     def project_ecef(self, xyz, *, t0=None, tol=1e-6, max_iter=40):
         """Ground points (n, 3) (ECEF, m) -> pixels (n, 2), without refraction: the secant
@@ -325,8 +382,7 @@ class PushbroomScene:
         def residual(t):
             ok = (t >= self.eph_time[0]) & (t <= self.eph_time[-1])
             tt = np.where(ok, t, 0.0)
-            p = lagrange(tt, self.eph_time, self.eph_position)
-            v = lagrange(tt, self.eph_time, self.eph_velocity)
+            p, v = self._orbit_any(tt)
             ypr = self.attitude(tt)
             r = self.orbital_frame(p, v) @ attitude_matrix(*ypr.T, first_order=self.attitude_model == "first_order")
             d = xyz - p
