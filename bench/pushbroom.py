@@ -58,6 +58,14 @@ def write_source(path, width, height):
             dst.write(v.clip(0, 255).astype(np.uint8)[None], window=Window(0, r0, width, h))
 
 
+def banded(n, fn):
+    """fn(i0, i1) over bands of range(n) on a thread pool (Warp's CPU launches release the GIL)."""
+    workers = os.cpu_count() or 1
+    band = max(1, n // (4 * workers))
+    with ThreadPoolExecutor(workers) as pool:
+        list(pool.map(lambda i0: fn(i0, min(i0 + band, n)), range(0, n, band)))
+
+
 def forward_backward(geom, size, cpu_step, repeats):
     dev = geom.device
     pb, refr, dem, search = geom.structs()
@@ -76,17 +84,13 @@ def forward_backward(geom, size, cpu_step, repeats):
             wp.launch(pb_kernels.pb_geolocate_grid_kernel, dim=out.shape, device=dev,
                       inputs=[pb, refr, dem, search, c0, r0, step, out])
         else:
-            band = max(1, rows // (4 * (os.cpu_count() or 1)))
-
-            def run(i0):
-                i1 = min(i0 + band, rows)
+            def run(i0, i1):
                 part = wp.empty((i1 - i0, cols), dtype=wp.vec3d, device=dev)
                 wp.launch(pb_kernels.pb_geolocate_grid_kernel, dim=part.shape, device=dev,
                           inputs=[pb, refr, dem, search, c0, r0 + i0 * step, step, part])
                 wp.copy(out, part, dest_offset=i0 * cols, count=part.size)
 
-            with ThreadPoolExecutor(os.cpu_count() or 1) as pool:
-                list(pool.map(run, range(0, rows, band)))
+            banded(rows, run)
         wp.synchronize_device(dev)
 
     launch_forward()
@@ -108,15 +112,8 @@ def forward_backward(geom, size, cpu_step, repeats):
         if dev.is_cuda:
             wp.launch(pb_kernels.pb_project_kernel, dim=n, device=dev, inputs=[pb, refr, xyz_d, h_d, t0, pix])
         else:
-            chunk = max(1, n // (4 * (os.cpu_count() or 1)))
-
-            def run(i0):
-                i1 = min(i0 + chunk, n)
-                wp.launch(pb_kernels.pb_project_kernel, dim=i1 - i0, device=dev,
-                          inputs=[pb, refr, xyz_d[i0:i1], h_d[i0:i1], t0[i0:i1], pix[i0:i1]])
-
-            with ThreadPoolExecutor(os.cpu_count() or 1) as pool:
-                list(pool.map(run, range(0, n, chunk)))
+            banded(n, lambda i0, i1: wp.launch(pb_kernels.pb_project_kernel, dim=i1 - i0, device=dev, inputs=[
+                pb, refr, xyz_d[i0:i1], h_d[i0:i1], t0[i0:i1], pix[i0:i1]]))
         wp.synchronize_device(dev)
 
     launch_backward()

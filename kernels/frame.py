@@ -344,24 +344,31 @@ def geolocate_pixel(
 
 
 @wp.func
+def apparent_direction(refr: RefractionTable, pose: FramePoseData, d: wp.vec3d, h: wp.float64):
+    """The apparent (refracted) unit direction at the sensor of the unit chord d towards a
+    ground point at height h: the chord turned away from the nadir by delta.
+
+    delta = q(theta_a, h) tan(theta_a) at the apparent angle theta_a = theta_c + delta. q varies
+    by ~1e-5 of itself over delta, so it is read once at theta_c; tan(theta_a) is linearised
+    about theta_c (error ~ delta^2); two steps of the fixed point then leave < 1e-12 rad.
+    """
+    if refr.enabled == 0:
+        return d
+    chord = make_ray(pose, d)
+    sec2 = wp.float64(1.0) + chord.tan_theta * chord.tan_theta
+    q = refraction_q(refr, chord.theta, h)
+    delta = q * chord.tan_theta
+    delta = q * (chord.tan_theta + delta * sec2)
+    d2 = delta * delta
+    return (wp.float64(1.0) - wp.float64(0.5) * d2) * d - delta * (
+        wp.float64(1.0) - d2 * wp.float64(1.0 / 6.0)) * chord.w
+
+
+@wp.func
 def project_xyz(cam: FrameCameraData, pose: FramePoseData, refr: RefractionTable, x: wp.vec3d, h: wp.float64):
     """Point of the pose's Cartesian frame (ECEF for geocentric poses, else the map frame) at
     ellipsoidal/map height h -> pixel (col, row); NaN behind the camera."""
-    d = wp.normalize(x - pose.center)
-    if refr.enabled != 0:
-        # The apparent ray is the chord turned away from the nadir by delta, where
-        # delta = q(theta_a, h) tan(theta_a) at the apparent angle theta_a = theta_c + delta.
-        # q varies by ~1e-5 of itself over delta, so it is read once at theta_c; tan(theta_a)
-        # is linearised about theta_c (error ~ delta^2); two steps of the fixed point then
-        # leave < 1e-12 rad.
-        chord = make_ray(pose, d)
-        sec2 = wp.float64(1.0) + chord.tan_theta * chord.tan_theta
-        q = refraction_q(refr, chord.theta, h)
-        delta = q * chord.tan_theta
-        delta = q * (chord.tan_theta + delta * sec2)
-        d2 = delta * delta
-        d = (wp.float64(1.0) - wp.float64(0.5) * d2) * d - delta * (
-            wp.float64(1.0) - d2 * wp.float64(1.0 / 6.0)) * chord.w
+    d = apparent_direction(refr, pose, wp.normalize(x - pose.center), h)
     return camera_to_pixel(cam, wp.transpose(pose.rot) * d)
 
 

@@ -388,17 +388,22 @@ wp.overload(widen_kernel, {"src": wp.array3d(dtype=wp.uint8)})
 wp.overload(widen_kernel, {"src": wp.array3d(dtype=wp.uint16)})
 
 
+@wp.func
+def rounded(values: wp.array3d(dtype=wp.float32), valid: wp.array2d(dtype=wp.uint8), b: wp.int32, i: wp.int32,
+            j: wp.int32, top: wp.float32):
+    """Band b of pixel (i, j) rounded half to even and clipped to [0, top]; 0 where invalid."""
+    if valid[i, j] == wp.uint8(0):
+        return wp.float32(0.0)
+    return wp.clamp(wp.rint(values[b, i, j]), wp.float32(0.0), top)
+
+
 @wp.kernel
 def pack_uint8_kernel(values: wp.array3d(dtype=wp.float32), valid: wp.array2d(dtype=wp.uint8),
                       out: wp.array3d(dtype=wp.uint8)):
-    """Resampled (bands, rows, cols) float32 -> pixel-interleaved (rows, cols, bands) uint8:
-    rounded half to even and clipped; 0 where invalid."""
+    """Resampled (bands, rows, cols) float32 -> pixel-interleaved (rows, cols, bands) uint8."""
     i, j = wp.tid()
     for b in range(out.shape[2]):
-        v = wp.float32(0.0)
-        if valid[i, j] != wp.uint8(0):
-            v = wp.clamp(wp.rint(values[b, i, j]), wp.float32(0.0), wp.float32(255.0))
-        out[i, j, b] = wp.uint8(v)
+        out[i, j, b] = wp.uint8(rounded(values, valid, b, i, j, wp.float32(255.0)))
 
 
 @wp.kernel
@@ -407,10 +412,7 @@ def pack_uint16_kernel(values: wp.array3d(dtype=wp.float32), valid: wp.array2d(d
     """As :func:`pack_uint8_kernel`, for uint16."""
     i, j = wp.tid()
     for b in range(out.shape[2]):
-        v = wp.float32(0.0)
-        if valid[i, j] != wp.uint8(0):
-            v = wp.clamp(wp.rint(values[b, i, j]), wp.float32(0.0), wp.float32(65535.0))
-        out[i, j, b] = wp.uint16(v)
+        out[i, j, b] = wp.uint16(rounded(values, valid, b, i, j, wp.float32(65535.0)))
 
 
 @wp.kernel

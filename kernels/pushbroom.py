@@ -12,9 +12,9 @@
 import warp as wp
 
 from .dem import DemData
-from .frame import MODE_GEOCENTRIC, FramePoseData, SearchParams, geolocate_ray, make_ray
+from .frame import MODE_GEOCENTRIC, FramePoseData, SearchParams, apparent_direction, geolocate_ray
 from .geodesy import ecef_to_geodetic_sc
-from .refraction import RefractionTable, refraction_q
+from .refraction import RefractionTable
 
 wp.set_module_options({"enable_backward": False})
 
@@ -86,13 +86,11 @@ def pb_poly(pb: PushbroomData, q: wp.int32, t: wp.float64):
 
 
 @wp.func
-def pb_orbit_position(pb: PushbroomData, t: wp.float64):
-    """8-point Lagrange interpolation of the ephemeris positions at t (or the polynomial)."""
-    if pb.use_poly != 0:
-        return pb_poly(pb, 0, t)
+def pb_lagrange(pb: PushbroomData, values: wp.array(dtype=wp.vec3d), t: wp.float64):
+    """8-point Lagrange interpolation of ephemeris samples (positions or velocities) at t."""
     n = pb.eph_t.shape[0]
     i0 = wp.clamp(search_sorted(pb.eph_t, t) - 4, 0, n - 8)
-    p = wp.vec3d()
+    out = wp.vec3d()
     for j in range(8):
         w = wp.float64(1.0)
         tj = pb.eph_t[i0 + j]
@@ -100,27 +98,24 @@ def pb_orbit_position(pb: PushbroomData, t: wp.float64):
             if k != j:
                 tk = pb.eph_t[i0 + k]
                 w = w * (t - tk) / (tj - tk)
-        p = p + w * pb.eph_p[i0 + j]
-    return p
+        out = out + w * values[i0 + j]
+    return out
+
+
+@wp.func
+def pb_orbit_position(pb: PushbroomData, t: wp.float64):
+    """Satellite position at t: the ephemeris interpolated, or the polynomial."""
+    if pb.use_poly != 0:
+        return pb_poly(pb, 0, t)
+    return pb_lagrange(pb, pb.eph_p, t)
 
 
 @wp.func
 def pb_orbit_velocity(pb: PushbroomData, t: wp.float64):
-    """8-point Lagrange interpolation of the ephemeris velocities at t (or the polynomial)."""
+    """Satellite velocity at t: the ephemeris interpolated, or the polynomial."""
     if pb.use_poly != 0:
         return pb_poly(pb, 1, t)
-    n = pb.eph_t.shape[0]
-    i0 = wp.clamp(search_sorted(pb.eph_t, t) - 4, 0, n - 8)
-    v = wp.vec3d()
-    for j in range(8):
-        w = wp.float64(1.0)
-        tj = pb.eph_t[i0 + j]
-        for k in range(8):
-            if k != j:
-                tk = pb.eph_t[i0 + k]
-                w = w * (t - tk) / (tj - tk)
-        v = v + w * pb.eph_v[i0 + j]
-    return v
+    return pb_lagrange(pb, pb.eph_v, t)
 
 
 @wp.func
@@ -241,23 +236,6 @@ def pb_geolocate(pb: PushbroomData, refr: RefractionTable, dem: DemData, search:
 
 
 @wp.func
-def pb_apparent(refr: RefractionTable, pose: FramePoseData, x: wp.vec3d, h: wp.float64):
-    """Unit apparent direction from the satellite to the ground point x (ECEF, height h):
-    the chord turned away from the nadir by the refraction angle (as the frame model)."""
-    d = wp.normalize(x - pose.center)
-    if refr.enabled != 0:
-        chord = make_ray(pose, d)
-        sec2 = wp.float64(1.0) + chord.tan_theta * chord.tan_theta
-        q = refraction_q(refr, chord.theta, h)
-        delta = q * chord.tan_theta
-        delta = q * (chord.tan_theta + delta * sec2)
-        d2 = delta * delta
-        d = (wp.float64(1.0) - wp.float64(0.5) * d2) * d - delta * (
-            wp.float64(1.0) - d2 * wp.float64(1.0 / 6.0)) * chord.w
-    return d
-
-
-@wp.func
 def pb_column(pb: PushbroomData, tan_psi_y: wp.float64):
     """Continuous column whose detector has this tan(psi_y) (psi_y monotonic in the detector
     number), and that detector's tan(psi_x)."""
@@ -289,7 +267,7 @@ def pb_residual(pb: PushbroomData, refr: RefractionTable, x: wp.vec3d, h: wp.flo
     nan = wp.float64(wp.nan)
     if not wp.isfinite(p[0]):
         return nan, nan
-    q = wp.transpose(r) * pb_apparent(refr, pb_pose(p), x, h)
+    q = wp.transpose(r) * apparent_direction(refr, pb_pose(p), wp.normalize(x - p), h)
     if q[2] >= wp.float64(0.0):
         return nan, nan
     col, tx = pb_column(pb, q[0] / q[2])

@@ -46,6 +46,27 @@ def _frame_crs(pose):
     return as_crs(LLH) if pose.mode == GEOCENTRIC else pose.crs.to_3d()
 
 
+def _region_border(region, n=65):
+    """Pixels (4 n, 2) along the border of a pixel region (col0, row0, col1, row1)."""
+    c0, r0, c1, r1 = region
+    t = np.linspace(0.0, 1.0, n)
+    return np.concatenate([
+        np.stack([c0 + t * (c1 - c0), np.full_like(t, r0)], 1),
+        np.stack([c0 + t * (c1 - c0), np.full_like(t, r1)], 1),
+        np.stack([np.full_like(t, c0), r0 + t * (r1 - r0)], 1),
+        np.stack([np.full_like(t, c1), r0 + t * (r1 - r0)], 1),
+    ])
+
+
+def _crop_to_feet(dem, feet):
+    """The DEM cropped to the bounding box of ground points (N, 3); the whole DEM when some
+    border rays miss the Earth."""
+    if not np.all(np.isfinite(feet)):
+        return dem
+    cropped = dem.crop(feet[:, 0].min(), feet[:, 1].min(), feet[:, 0].max(), feet[:, 1].max())
+    return dem if cropped is None else cropped
+
+
 def _transform(xyz, src, dst):
     """Transform (N, 3) points between CRSs (x/y as lon/lat order); identity when equal."""
     if src.equals(dst):
@@ -138,24 +159,13 @@ class FrameGeometry:
 
     def _crop_to_footprint(self, dem, region):
         """Crop the DEM to the ground footprint of a pixel region at the DEM's extreme heights."""
-        c0, r0, c1, r1 = region
-        t = np.linspace(0.0, 1.0, 65)
-        border = np.concatenate([
-            np.stack([c0 + t * (c1 - c0), np.full_like(t, r0)], 1),
-            np.stack([c0 + t * (c1 - c0), np.full_like(t, r1)], 1),
-            np.stack([np.full_like(t, c0), r0 + t * (r1 - r0)], 1),
-            np.stack([np.full_like(t, c1), r0 + t * (r1 - r0)], 1),
-        ])
+        border = _region_border(region)
         feet = []
         for h in (dem.hmin, dem.hmax):
             probe = FrameGeometry(self.camera, self.pose, Dem.constant(h), refraction=True,
                                   device=self.device)
             feet.append(probe.geolocate_frame(border))
-        feet = np.concatenate(feet)
-        if not np.all(np.isfinite(feet)):
-            return dem  # some border rays miss the Earth: keep the whole DEM
-        cropped = dem.crop(feet[:, 0].min(), feet[:, 1].min(), feet[:, 0].max(), feet[:, 1].max())
-        return dem if cropped is None else cropped
+        return _crop_to_feet(dem, np.concatenate(feet))
 
     def geolocate_frame(self, pixels):
         """Pixels (N, 2) -> geo triples (N, 3) of the pose's frame (lon/lat/h or map x/y/z)."""
@@ -284,21 +294,11 @@ class PushbroomGeometry:
         return self._structs
 
     def _crop_to_footprint(self, dem, region):
-        c0, r0, c1, r1 = region
-        t = np.linspace(0.0, 1.0, 65)
-        border = np.concatenate([
-            np.stack([c0 + t * (c1 - c0), np.full_like(t, r0)], 1),
-            np.stack([c0 + t * (c1 - c0), np.full_like(t, r1)], 1),
-            np.stack([np.full_like(t, c0), r0 + t * (r1 - r0)], 1),
-            np.stack([np.full_like(t, c1), r0 + t * (r1 - r0)], 1),
-        ])
+        border = _region_border(region)
         feet = np.concatenate([
             PushbroomGeometry(self.scene, Dem.constant(h), device=self.device).geolocate_frame(border)
             for h in (dem.hmin, dem.hmax)])
-        if not np.all(np.isfinite(feet)):
-            return dem
-        cropped = dem.crop(feet[:, 0].min(), feet[:, 1].min(), feet[:, 0].max(), feet[:, 1].max())
-        return dem if cropped is None else cropped
+        return _crop_to_feet(dem, feet)
 
     def geolocate_frame(self, pixels):
         """Pixels (N, 2) -> geo triples (N, 3) (lon, lat deg, ellipsoidal h m)."""
