@@ -167,6 +167,15 @@ class PushbroomScene:
         self.attitude_extrapolation = float(attitude_extrapolation)
         self.source = source
         self.polynomials = None if polynomials is None else _array("polynomials", polynomials, (3, 3, 3))
+        t = self.line_time(np.array([0.0, float(self.height)]))
+        where = f" of '{source}'" if source else ""
+        e = self.attitude_extrapolation
+        if t[0] < self.eph_time[0] or t[1] > self.eph_time[-1]:
+            raise GeometryError(f"The scene's line times{where} ({t[0]:.3f}..{t[1]:.3f} s from its centre) fall "
+                                f"outside its ephemeris ({self.eph_time[0]:.3f}..{self.eph_time[-1]:.3f} s)")
+        if t[0] < self.att_time[0] - e or t[1] > self.att_time[-1] + e:
+            raise GeometryError(f"The scene's line times{where} ({t[0]:.3f}..{t[1]:.3f} s from its centre) fall "
+                                f"outside its attitudes ({self.att_time[0]:.3f}..{self.att_time[-1]:.3f} s)")
 
     @classmethod
     def from_dimap(cls, path, *, attitude_model="full"):

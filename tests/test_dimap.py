@@ -133,3 +133,16 @@ def test_written_synthetic_scene_reads_back(tmp_path):
                                                                               sc.center_line)
     pix = np.array([[0.5, 0.5], [25.0, 40.0]])
     np.testing.assert_allclose(back.geolocate_ellipsoid(pix), sc.geolocate_ellipsoid(pix), atol=1e-9)
+
+
+def test_lines_outside_the_ephemeris_are_refused(tmp_path, text):
+    """A scene-centre time 200 s late puts every line after the last ephemeris point."""
+    from orthowarp import PushbroomScene
+    from orthowarp.errors import GeometryError
+
+    late = text.replace("<SCENE_CENTER_TIME>2008-03-04T12:31:39.349737", "<SCENE_CENTER_TIME>2008-03-04T12:34:59.349737")
+    with pytest.raises(GeometryError, match="outside its ephemeris"):
+        PushbroomScene.from_dimap(variant(tmp_path, late))
+    early = text.replace("<SCENE_CENTER_LINE>48085", "<SCENE_CENTER_LINE>148085")
+    with pytest.raises(GeometryError, match="outside its attitudes.*v.xml|v.xml.*outside its attitudes"):
+        PushbroomScene.from_dimap(variant(tmp_path, early))
