@@ -1,0 +1,135 @@
+"""Collinearity observation equations of frame images, map-Cartesian mode (seed 002 eqs. 4-6).
+
+Pure functions of arrays (float64 NumPy), vectorised over observations:
+
+- the camera -> object rotation ``R = Rx(omega) Ry(phi) Rz(kappa)`` (DESIGN.md, PATB) and its
+  derivatives by the three angles;
+- a ground point X seen from the projection centre X0: camera-frame vector
+  ``Xc = R^T (X - X0)``, OpenCV-normalised coordinates ``u = -Xc/Zc, v = Yc/Zc`` (the camera
+  looks along -z), Brown distortion, pixel (col, row);
+- the analytic Jacobians of the pixel by the six pose parameters (X0, Y0, Z0 in m; omega, phi,
+  kappa in radians) and by the point (m).
+
+Camera parameters per observation, array (m, 10): f (mm), x0, y0 (mm, principal point from the
+image centre, y up), k1, k2, k3, p1, p2 (OpenCV-normalised), and the pixel pitch px, py (mm);
+image size (m, 2) in pixels.
+"""
+
+import numpy as np
+
+__all__ = ["rotation", "project", "jacobians", "CAMERA_COLUMNS"]
+
+CAMERA_COLUMNS = ("f", "x0", "y0", "k1", "k2", "k3", "p1", "p2", "px", "py")
+
+
+def _rx(a):
+    c, s, o, z = np.cos(a), np.sin(a), np.ones_like(a), np.zeros_like(a)
+    return np.stack([np.stack([o, z, z], -1), np.stack([z, c, -s], -1), np.stack([z, s, c], -1)], -2)
+
+
+def _ry(a):
+    c, s, o, z = np.cos(a), np.sin(a), np.ones_like(a), np.zeros_like(a)
+    return np.stack([np.stack([c, z, s], -1), np.stack([z, o, z], -1), np.stack([-s, z, c], -1)], -2)
+
+
+def _rz(a):
+    c, s, o, z = np.cos(a), np.sin(a), np.ones_like(a), np.zeros_like(a)
+    return np.stack([np.stack([c, -s, z], -1), np.stack([s, c, z], -1), np.stack([z, z, o], -1)], -2)
+
+
+# derivative of an elementary rotation by its angle: G R with G the generator of the axis
+_GX = np.array([[0.0, 0, 0], [0, 0, -1], [0, 1, 0]])
+_GY = np.array([[0.0, 0, 1], [0, 0, 0], [-1, 0, 0]])
+_GZ = np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 0]])
+
+
+def rotation(angles):
+    """R = Rx(omega) Ry(phi) Rz(kappa) and its derivatives.
+
+    Parameters
+    ----------
+    angles : ndarray, shape (n, 3)
+        omega, phi, kappa (rad).
+
+    Returns
+    -------
+    r : ndarray, shape (n, 3, 3)
+    dr : ndarray, shape (n, 3, 3, 3)
+        dr[:, k] = dR / d(angle k).
+    """
+    a = np.asarray(angles, dtype=np.float64)
+    rx, ry, rz = _rx(a[:, 0]), _ry(a[:, 1]), _rz(a[:, 2])
+    r = rx @ ry @ rz
+    dr = np.stack([_GX @ r, rx @ (_GY @ ry) @ rz, r @ _GZ], 1)
+    return r, dr
+
+
+def _normalised(cam, xc):
+    """(u, v) (m, 2) and the camera-frame vector's Jacobian d(u, v)/d(Xc) (m, 2, 3)."""
+    x, y, z = xc[:, 0], xc[:, 1], xc[:, 2]
+    iz = 1.0 / z
+    uv = np.stack([-x * iz, y * iz], -1)
+    d = np.zeros((len(xc), 2, 3))
+    d[:, 0, 0] = -iz
+    d[:, 0, 2] = x * iz * iz
+    d[:, 1, 1] = iz
+    d[:, 1, 2] = -y * iz * iz
+    return uv, d
+
+
+def _distort(cam, uv):
+    """Distorted (ud, vd) (m, 2) and d(ud, vd)/d(u, v) (m, 2, 2) (Brown, OpenCV normalised)."""
+    k1, k2, k3, p1, p2 = cam[:, 3], cam[:, 4], cam[:, 5], cam[:, 6], cam[:, 7]
+    u, v = uv[:, 0], uv[:, 1]
+    r2 = u * u + v * v
+    rad = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    drad = k1 + r2 * (2 * k2 + 3 * r2 * k3)  # d rad / d r2
+    ud = u * rad + 2 * p1 * u * v + p2 * (r2 + 2 * u * u)
+    vd = v * rad + p1 * (r2 + 2 * v * v) + 2 * p2 * u * v
+    j = np.empty((len(uv), 2, 2))
+    j[:, 0, 0] = rad + 2 * u * u * drad + 2 * p1 * v + 6 * p2 * u
+    j[:, 0, 1] = 2 * u * v * drad + 2 * p1 * u + 2 * p2 * v
+    j[:, 1, 0] = j[:, 0, 1]
+    j[:, 1, 1] = rad + 2 * v * v * drad + 6 * p1 * v + 2 * p2 * u
+    return np.stack([ud, vd], -1), j
+
+
+def _to_pixel(cam, size, uvd):
+    f, x0, y0, px, py = cam[:, 0], cam[:, 1], cam[:, 2], cam[:, 8], cam[:, 9]
+    col = (uvd[:, 0] * f + x0) / px + 0.5 * size[:, 0]
+    row = 0.5 * size[:, 1] + (uvd[:, 1] * f - y0) / py
+    return np.stack([col, row], -1)
+
+
+def project(poses, points, cam, size):
+    """Pixels (m, 2) of points (m, 3) seen from poses (m, 6) (X0, Y0, Z0 m; omega, phi, kappa
+    rad) by cameras (m, 10) of image sizes (m, 2); NaN for points behind the camera."""
+    r, _ = rotation(poses[:, 3:])
+    xc = np.einsum("nji,nj->ni", r, points - poses[:, :3])
+    uv, _ = _normalised(cam, xc)
+    pix = _to_pixel(cam, size, _distort(cam, uv)[0])
+    pix[xc[:, 2] >= 0] = np.nan
+    return pix
+
+
+def jacobians(poses, points, cam, size):
+    """Pixels (m, 2) and their Jacobians by the pose (m, 2, 6) and by the point (m, 2, 3).
+
+    The pose Jacobian's angle columns are per radian.
+    """
+    r, dr = rotation(poses[:, 3:])
+    d = points - poses[:, :3]
+    xc = np.einsum("nji,nj->ni", r, d)
+    uv, duv = _normalised(cam, xc)
+    uvd, dd = _distort(cam, uv)
+    pix = _to_pixel(cam, size, uvd)
+    scale = np.stack([cam[:, 0] / cam[:, 8], cam[:, 0] / cam[:, 9]], -1)  # d pixel / d (ud, vd)
+    chain = scale[:, :, None] * np.einsum("nij,njk->nik", dd, duv)  # d pixel / d Xc (m, 2, 3)
+    rt = np.transpose(r, (0, 2, 1))
+    j_point = chain @ rt  # dXc/dX = R^T
+    j_pose = np.empty((len(d), 2, 6))
+    j_pose[:, :, :3] = -j_point
+    for k in range(3):
+        dxc = np.einsum("nji,nj->ni", dr[:, k], d)  # d(R^T d)/d angle = (dR/d angle)^T d
+        j_pose[:, :, 3 + k] = np.einsum("nij,nj->ni", chain, dxc)
+    return pix, j_pose, j_point
