@@ -1,1 +1,29 @@
-"""SciPy adjustment stage (bundle blocks, Gauss-Helmert, error propagation): not yet implemented."""
+"""SciPy adjustment stage: bundle block adjustment of frame images (seed 002).
+
+- :class:`Block`: a block as arrays; :func:`read_block` / :func:`write_block` (JSON, see
+  :mod:`orthowarp.pipeline.blockio`);
+- :func:`bundle_adjust` -> :class:`AdjustResult`;
+- :mod:`~orthowarp.adjust.collinearity`: the observation equations and their Jacobians;
+- :func:`synthetic_block`: blocks with known truth.
+"""
+
+from .block import ROLES, Block
+from .bundle import AdjustResult, bundle_adjust, intersect
+from .synthetic import CONTROL_LAYOUTS, synthetic_block
+
+__all__ = ["Block", "ROLES", "AdjustResult", "bundle_adjust", "intersect", "synthetic_block", "CONTROL_LAYOUTS",
+           "read_block", "write_block"]
+
+
+def read_block(path):
+    """Read a block file (JSON; see :mod:`orthowarp.pipeline.blockio`)."""
+    from ..pipeline.blockio import read_block as _read
+
+    return _read(path)
+
+
+def write_block(block, path):
+    """Write a block file (JSON), atomically."""
+    from ..pipeline.blockio import write_block as _write
+
+    return _write(block, path)

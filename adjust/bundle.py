@@ -1,0 +1,603 @@
+"""Bundle block adjustment of frame images (seed 002), map-Cartesian mode.
+
+Unknowns: six pose parameters per image (X0, Y0, Z0 in m; omega, phi, kappa in radians inside,
+degrees at the interface) and three coordinates per tie and control point (control points with
+sigma 0 are constants). Observations: image coordinates (collinearity, seed 002 eqs. 4-6,
+weights 1/sigma^2), control coordinates, GNSS projection centres and INS attitudes as weighted
+direct observations. Check points never enter; they are intersected afterwards with the
+adjusted poses.
+
+Solution: Levenberg-Marquardt on the normal equations partitioned into 6x6 image blocks U,
+3x3 point blocks V and the image-point blocks W (seed 002 eq. 10); the point blocks are
+eliminated (Schur complement ``S = U - W V^-1 W^T``, the reduced camera system), S is factorised
+sparse (SuperLU) and the points back-substituted. Statistics (seed 002 eq. 11 and the usual
+photogrammetric set): sigma0, covariances ``sigma0^2 Q`` of every pose (6x6) and point (3x3) from
+solves with the factorisation (no dense inverse), residuals, redundancy numbers, Baarda's
+w-test with optional iterative rejection, an optional Huber loss, high-correlation warnings,
+RMSE per axis at control and check points.
+"""
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from ..errors import GeometryError, ParamError
+from .block import Block
+from .collinearity import jacobians, project
+
+__all__ = ["bundle_adjust", "AdjustResult", "intersect"]
+
+log = logging.getLogger(__name__)
+
+POSE_NAMES = ("x", "y", "z", "omega", "phi", "kappa")
+
+
+@dataclass
+class AdjustResult:
+    """What :func:`bundle_adjust` found (units: m and degrees; pixels for image residuals).
+
+    Attributes
+    ----------
+    status : int
+        1 converged on the parameter change, 2 on the cost change, 0 iteration limit.
+    message : str
+    success : bool
+    sigma0 : float
+        A-posteriori standard deviation of unit weight.
+    redundancy : int
+    iterations : int
+    cost : float
+        Weighted sum of squared residuals, v^T P v.
+    poses : dict
+        image id -> (x, y, z, omega, phi, kappa).
+    pose_std : dict
+        image id -> the six sigmas (sigma0 sqrt(Qii)).
+    pose_cov : ndarray, shape (n, 6, 6)
+        sigma0^2 Q blocks (m, deg).
+    points, point_std : dict
+        point id -> (x, y, z) / sigmas, for tie and control points (and check points, from their
+        intersection).
+    point_cov : ndarray, shape (p, 3, 3) or None
+    residuals : ndarray, shape (m, 2)
+        Observed - computed image coordinates (px) of the observations used.
+    redundancy_numbers : ndarray, shape (m, 2) or None
+    w_tests : ndarray, shape (m, 2) or None
+        Baarda's normalised residuals v / (sigma sqrt(r)).
+    used : ndarray of bool, shape (m,)
+        Observations that entered the final adjustment.
+    rejected : list of (image id, point id, w)
+    control_rmse, check_rmse : ndarray, shape (3,)
+        RMSE per axis (NaN without such points).
+    check_errors : ndarray, shape (c, 3)
+    correlation_warnings : list of (image id, name, name, correlation)
+    """
+
+    status: int
+    message: str
+    success: bool
+    sigma0: float
+    redundancy: int
+    iterations: int
+    cost: float
+    poses: dict
+    pose_std: dict
+    pose_cov: np.ndarray
+    points: dict
+    point_std: dict
+    point_cov: np.ndarray
+    residuals: np.ndarray
+    redundancy_numbers: np.ndarray
+    w_tests: np.ndarray
+    used: np.ndarray
+    rejected: list = field(default_factory=list)
+    control_rmse: np.ndarray = None
+    check_rmse: np.ndarray = None
+    check_errors: np.ndarray = None
+    correlation_warnings: list = field(default_factory=list)
+
+
+def _inv3(m):
+    return np.linalg.inv(m)
+
+
+def _datum_check(block, used_points, control_free):
+    known = [block.xyz[j] for j in np.flatnonzero(used_points & control_free)]
+    known += [block.gnss_xyz[k] for k in range(block.n_images) if np.all(np.isfinite(block.gnss_xyz[k]))]
+    if len(known) >= 3:
+        pts = np.asarray(known)
+        s = np.linalg.svd(pts - pts.mean(axis=0), compute_uv=False)
+        if s[1] > 1e-6 * max(s[0], 1e-9):
+            return
+    raise GeometryError(f"Block '{block.name}': datum defect: {len(known)} known positions (control points "
+                        "with coordinates, GNSS projection centres), which do not fix a 3-D similarity "
+                        "transformation; give at least 3 non-collinear ones")
+
+
+class _Problem:
+    """The adjustment's arrays: unknowns, observations, priors (see bundle_adjust)."""
+
+    def __init__(self, block, fix_control, use_gnss, use_ins):
+        self.block = block
+        n, p = block.n_images, block.n_points
+        roles = np.array(block.roles)
+        self.cam, self.size = block.camera_arrays()
+        sig = block.xyz_sigma
+        control = roles == "control"
+        fixed = control & (fix_control | np.all(np.nan_to_num(sig, nan=1.0) == 0, axis=1))
+        self.point_free = (roles != "check") & ~fixed
+        self.point_fixed = fixed
+        self.prior_point = control & ~fixed
+        self.prior_sigma = np.where(self.prior_point[:, None], np.maximum(np.nan_to_num(sig, nan=1.0), 1e-6), np.inf)
+        self.gnss = use_gnss & np.all(np.isfinite(block.gnss_xyz), axis=1)
+        self.ins = use_ins & np.all(np.isfinite(block.ins_opk), axis=1)
+        self.poses0 = block.poses.copy()
+        self.poses0[:, 3:] = np.radians(self.poses0[:, 3:])
+
+    def cost(self, poses, pts, sel, weights):
+        """Weighted squared residuals of the selected observations and the priors."""
+        b = self.block
+        i, j = b.obs_image[sel], b.obs_point[sel]
+        v = b.obs_xy[sel] - project(poses[i], pts[j], self.cam[i], self.size[i])
+        c = np.sum(weights[sel, None] * (v / b.obs_sigma[sel, None]) ** 2)
+        c += self._prior_cost(poses, pts)
+        return c if np.isfinite(c) else np.inf
+
+    def _prior_cost(self, poses, pts):
+        b = self.block
+        c = 0.0
+        if np.any(self.gnss):
+            c += np.sum(((b.gnss_xyz[self.gnss] - poses[self.gnss, :3]) / b.gnss_sigma[self.gnss]) ** 2)
+        if np.any(self.ins):
+            d = _wrap(np.radians(b.ins_opk[self.ins]) - poses[self.ins, 3:])
+            c += np.sum((d / np.radians(b.ins_sigma[self.ins])) ** 2)
+        if np.any(self.prior_point):
+            c += np.sum(((b.xyz[self.prior_point] - pts[self.prior_point]) / self.prior_sigma[self.prior_point]) ** 2)
+        return c
+
+
+def _wrap(a):
+    return (a + np.pi) % (2 * np.pi) - np.pi
+
+
+def _normal_blocks(pr, poses, pts, sel, weights):
+    """U (n,6,6), V (p,3,3), W per observation (m_sel,6,3), g_c (n,6), g_p (p,3)."""
+    b = pr.block
+    n, p = b.n_images, b.n_points
+    i, j = b.obs_image[sel], b.obs_point[sel]
+    pix, jp, jx = jacobians(poses[i], pts[j], pr.cam[i], pr.size[i])
+    w = weights[sel] / b.obs_sigma[sel] ** 2
+    r = b.obs_xy[sel] - pix
+    jpt = np.transpose(jp, (0, 2, 1)) * w[:, None, None]
+    jxt = np.transpose(jx, (0, 2, 1)) * w[:, None, None]
+    u = np.zeros((n, 6, 6))
+    np.add.at(u, i, jpt @ jp)
+    gc = np.zeros((n, 6))
+    np.add.at(gc, i, np.einsum("nij,nj->ni", jpt, r))
+    v = np.zeros((p, 3, 3))
+    np.add.at(v, j, jxt @ jx)
+    gp = np.zeros((p, 3))
+    np.add.at(gp, j, np.einsum("nij,nj->ni", jxt, r))
+    wij = jpt @ jx
+    # priors
+    k = np.flatnonzero(pr.gnss)
+    if len(k):
+        s2 = 1.0 / b.gnss_sigma[k] ** 2
+        u[k[:, None], [0, 1, 2], [0, 1, 2]] += s2
+        gc[k, :3] += s2 * (b.gnss_xyz[k] - poses[k, :3])
+    k = np.flatnonzero(pr.ins)
+    if len(k):
+        s2 = 1.0 / np.radians(b.ins_sigma[k]) ** 2
+        u[k[:, None], [3, 4, 5], [3, 4, 5]] += s2
+        gc[k, 3:] += s2 * _wrap(np.radians(b.ins_opk[k]) - poses[k, 3:])
+    k = np.flatnonzero(pr.prior_point)
+    if len(k):
+        s2 = 1.0 / pr.prior_sigma[k] ** 2
+        v[k[:, None], [0, 1, 2], [0, 1, 2]] += s2
+        gp[k] += s2 * (b.xyz[k] - pts[k])
+    return u, v, wij, gc, gp
+
+
+def _pairs(point_of_obs):
+    """All ordered pairs (a, b) of observations of the same point (a == b included)."""
+    order = np.argsort(point_of_obs, kind="stable")
+    pts_sorted = point_of_obs[order]
+    starts = np.flatnonzero(np.r_[True, pts_sorted[1:] != pts_sorted[:-1]])
+    counts = np.diff(np.r_[starts, len(order)])
+    group = np.repeat(np.arange(len(starts)), counts)  # group of each sorted obs
+    reps = counts[group]
+    a = np.repeat(np.arange(len(order)), reps)
+    first = np.repeat(starts[group], reps)
+    within = np.arange(len(a)) - np.repeat(np.cumsum(reps) - reps, reps)
+    return order[a], order[first + within]
+
+
+class _Reduced:
+    """The reduced camera system of one set of normal blocks (factorised)."""
+
+    def __init__(self, pr, sel, u, v, wij, gc, gp, lam):
+        b = pr.block
+        n = b.n_images
+        free = pr.point_free
+        self.i, self.j = b.obs_image[sel], b.obs_point[sel]
+        keep = free[self.j]  # observations of fixed points only touch U
+        ud = u + lam * np.einsum("nii->ni", u)[:, :, None] * np.eye(6)
+        vd = v + lam * np.einsum("nii->ni", v)[:, :, None] * np.eye(3)
+        vd[~free] = np.eye(3)
+        self.vinv = _inv3(vd)
+        self.vinv[~free] = 0.0
+        y = wij @ self.vinv[self.j]  # (m, 6, 3)
+        y[~keep] = 0.0
+        a, c = _pairs(self.j[keep])
+        idx = np.flatnonzero(keep)
+        a, c = idx[a], idx[c]
+        blocks = -(y[a] @ np.transpose(wij[c], (0, 2, 1)))
+        ka, kc = self.i[a], self.i[c]
+        rr, cc = np.meshgrid(np.arange(6), np.arange(6), indexing="ij")
+        rows = np.concatenate([(6 * ka)[:, None, None] + rr, (6 * np.arange(n))[:, None, None] + rr])
+        cols = np.concatenate([(6 * kc)[:, None, None] + cc, (6 * np.arange(n))[:, None, None] + cc])
+        vals = np.concatenate([blocks, ud])
+        self.s = sp.csc_matrix((vals.ravel(), (rows.ravel(), cols.ravel())), shape=(6 * n, 6 * n))
+        rhs = gc.copy()
+        np.add.at(rhs, self.i, -np.einsum("nij,nj->ni", y, gp[self.j]))
+        self.rhs = rhs.ravel()
+        self.y, self.wij, self.gp = y, wij, gp
+        try:
+            self.lu = spla.splu(self.s)
+        except RuntimeError as e:
+            raise GeometryError(f"Block '{b.name}': the reduced normal equations are singular "
+                                f"(insufficient geometry or datum): {e}") from e
+
+    def solve(self):
+        dc = self.lu.solve(self.rhs).reshape(-1, 6)
+        t = self.gp.copy()
+        np.add.at(t, self.j, -np.einsum("nji,nj->ni", self.wij, dc[self.i]))
+        dp = np.einsum("nij,nj->ni", self.vinv, t)
+        return dc, dp
+
+
+def intersect(block, poses_deg, point_index, *, iterations=10):
+    """Least-squares (collinearity) intersection of points from their observations with the
+    poses fixed.
+
+    Parameters
+    ----------
+    block : Block
+    poses_deg : ndarray, shape (n, 6)
+        Poses (m, deg).
+    point_index : array_like of int
+        Points to intersect (each seen in >= 2 images).
+
+    Returns
+    -------
+    xyz : ndarray, shape (k, 3)
+    cov : ndarray, shape (k, 3, 3)
+        Unit-weight cofactor matrices (N^-1) of the intersections.
+    """
+    poses = poses_deg.copy()
+    poses[:, 3:] = np.radians(poses[:, 3:])
+    cam, size = block.camera_arrays()
+    out, cov = [], []
+    for j in np.asarray(point_index, dtype=int):
+        sel = np.flatnonzero(block.obs_point == j)
+        if len(sel) < 2:
+            raise ParamError(f"point '{block.point_ids[j]}' is observed in {len(sel)} image(s): it cannot be intersected")
+        i = block.obs_image[sel]
+        x = _ray_intersection(poses[i], block.obs_xy[sel], cam[i], size[i], block, i)
+        n_mat = np.eye(3)
+        for _ in range(iterations):
+            pix, _, jx = jacobians(poses[i], np.tile(x, (len(i), 1)), cam[i], size[i])
+            w = 1.0 / block.obs_sigma[sel] ** 2
+            r = block.obs_xy[sel] - pix
+            n_mat = np.einsum("n,nki,nkj->ij", w, jx, jx)
+            dx = np.linalg.solve(n_mat, np.einsum("n,nki,nk->i", w, jx, r))
+            x = x + dx
+            if np.max(np.abs(dx)) < 1e-9:
+                break
+        out.append(x)
+        cov.append(np.linalg.inv(n_mat))
+    return np.array(out).reshape(-1, 3), np.array(cov).reshape(-1, 3, 3)
+
+
+def _ray_intersection(poses, pix, cam, size, block, images):
+    """Closed-form least-squares intersection of the observation rays (a first value)."""
+    a, rhs = np.zeros((3, 3)), np.zeros(3)
+    from .collinearity import rotation
+
+    r, _ = rotation(poses[:, 3:])
+    for k in range(len(poses)):
+        c = block.cameras[block.image_camera[images[k]]]
+        uv = c.undistort(c.pixel_to_normalized(pix[k:k + 1]))[0]
+        d = r[k] @ np.array([uv[0], -uv[1], -1.0])  # camera ray (x/f, y/f, -1), y up
+        d /= np.linalg.norm(d)
+        m = np.eye(3) - np.outer(d, d)
+        a += m
+        rhs += m @ poses[k, :3]
+    return np.linalg.solve(a, rhs)
+
+
+def bundle_adjust(block, *, fix_control=False, use_gnss=True, use_ins=True, max_iterations=50, xtol=1e-8,
+                  ftol=1e-12, robust=None, huber_k=2.0, snooping=False, critical_w=3.29, max_rejections=None,
+                  covariance="auto", correlation_limit=0.95):
+    """Adjust a block (see the module doc).
+
+    Parameters
+    ----------
+    block : Block
+    fix_control : bool, optional
+        Hold control points fixed instead of weighting them by their sigma.
+    use_gnss, use_ins : bool, optional
+        Use the images' GNSS positions / INS attitudes as weighted observations.
+    max_iterations : int, optional
+    xtol : float, optional
+        Stop when the largest parameter change is below xtol (m; and xtol / 1000 rad).
+    ftol : float, optional
+        Stop when the cost changes by less than ftol relatively.
+    robust : {None, "huber"}, optional
+        Huber loss by iterative reweighting (k = ``huber_k`` sigmas).
+    snooping : bool, optional
+        Baarda data snooping: reject the observation with the largest |w| above
+        ``critical_w`` (3.29: alpha = 0.1 %, two-sided) and adjust again, until none is left.
+    max_rejections : int, optional
+        Cap on the observations snooping may reject (default: 5 % of them).
+    covariance : {"auto", "full", "poses", "none"}, optional
+        What to compute: "full" adds point covariances, redundancy numbers and w-tests to the
+        pose covariances ("poses"); "auto" is "full" for blocks up to 200 images.
+    correlation_limit : float, optional
+        Warn about pose parameters correlated more strongly than this.
+
+    Returns
+    -------
+    AdjustResult
+
+    Raises
+    ------
+    ParamError
+        Images without observations, points observed in one image only, missing initial values.
+    GeometryError
+        A datum defect, or singular normal equations.
+    """
+    if not isinstance(block, Block):
+        raise ParamError(f"block must be a Block, got {type(block).__name__}")
+    if covariance not in ("auto", "full", "poses", "none"):
+        raise ParamError(f"covariance must be 'auto', 'full', 'poses' or 'none', got {covariance!r}")
+    if robust not in (None, "huber"):
+        raise ParamError(f"robust must be None or 'huber', got {robust!r}")
+    b = block
+    roles = np.array(b.roles)
+    if not np.all(np.isfinite(b.poses)):
+        k = int(np.flatnonzero(~np.all(np.isfinite(b.poses), axis=1))[0])
+        raise ParamError(f"image '{b.image_ids[k]}' has no initial pose (space resection is not available yet: "
+                         "give one, e.g. from GNSS/INS)")
+    adj_obs = roles[b.obs_point] != "check"
+    per_image = np.bincount(b.obs_image[adj_obs], minlength=b.n_images)
+    if np.any(per_image == 0):
+        raise ParamError(f"image '{b.image_ids[int(np.flatnonzero(per_image == 0)[0])]}' has no observations")
+    per_point = np.bincount(b.obs_point, minlength=b.n_points)
+    single = np.flatnonzero((per_point < 2) & (roles != "control"))
+    if len(single):
+        raise ParamError(f"point '{b.point_ids[single[0]]}' is observed in {per_point[single[0]]} image(s); "
+                         "tie and check points need at least 2")
+    pr = _Problem(b, fix_control, use_gnss, use_ins)
+    _datum_check(b, roles != "check", roles == "control")
+    if covariance == "auto":
+        covariance = "full" if b.n_images <= 200 else "poses"
+    # initial point values: given coordinates, else intersection from the initial poses
+    pts = b.xyz.copy()
+    missing = np.flatnonzero(pr.point_free & ~np.all(np.isfinite(pts), axis=1))
+    if len(missing):
+        pts[missing] = intersect(b, b.poses, missing)[0]
+    pts[roles == "check"] = 0.0
+    used = adj_obs.copy()
+    rejected = []
+    cap = max_rejections if max_rejections is not None else max(1, int(0.05 * used.sum()))
+    poses = pr.poses0.copy()
+    while True:
+        weights = np.ones(len(used))
+        poses, pts, status, it, cost = _solve(pr, poses, pts, used, weights, robust, huber_k, max_iterations,
+                                              xtol, ftol)
+        stats = _statistics(pr, poses, pts, used, weights, cost, covariance)
+        if not snooping or stats["w"] is None or len(rejected) >= cap:
+            break
+        w_abs = np.where(used[:, None], np.abs(stats["w"]), 0.0).max(axis=1)
+        worst = int(np.argmax(w_abs))
+        if w_abs[worst] <= critical_w:
+            break
+        used[worst] = False
+        rejected.append((b.image_ids[b.obs_image[worst]], b.point_ids[b.obs_point[worst]], float(w_abs[worst])))
+        log.info("rejected point %s in image %s (|w| = %.2f)", *rejected[-1][1::-1], w_abs[worst])
+        j = b.obs_point[worst]
+        left = np.flatnonzero(used & (b.obs_point == j))
+        if roles[j] == "tie" and len(left) < 2:  # a tie point seen once is undetermined: drop it
+            used[left] = False
+            pr.point_free[j] = False
+            log.info("dropped tie point %s: too few rays left", b.point_ids[j])
+    return _result(pr, poses, pts, used, stats, status, it, cost, rejected, correlation_limit)
+
+
+def _solve(pr, poses, pts, used, weights, robust, huber_k, max_iterations, xtol, ftol):
+    b = pr.block
+    lam = 1e-3
+    sel = np.flatnonzero(used)
+    cost = pr.cost(poses, pts, sel, weights)
+    status, it = 0, 0
+    for it in range(1, max_iterations + 1):
+        if robust == "huber" and it > 1:
+            v = b.obs_xy[sel] - project(poses[b.obs_image[sel]], pts[b.obs_point[sel]], pr.cam[b.obs_image[sel]],
+                                        pr.size[b.obs_image[sel]])
+            e = np.linalg.norm(v, axis=1) / b.obs_sigma[sel]
+            weights[sel] = np.minimum(1.0, huber_k / np.maximum(e, 1e-12))
+            cost = pr.cost(poses, pts, sel, weights)
+        u, v, wij, gc, gp = _normal_blocks(pr, poses, pts, sel, weights)
+        while True:
+            red = _Reduced(pr, sel, u, v, wij, gc, gp, lam)
+            dc, dp = red.solve()
+            dp[~pr.point_free] = 0.0
+            new_poses, new_pts = poses + dc, pts + dp
+            new_cost = pr.cost(new_poses, new_pts, sel, weights)
+            if new_cost <= cost or lam > 1e8:
+                break
+            lam *= 10.0
+        step = max(np.abs(dc[:, :3]).max(initial=0), np.abs(dp).max(initial=0), 1000 * np.abs(dc[:, 3:]).max(initial=0))
+        rel = (cost - new_cost) / max(cost, 1e-300)
+        if new_cost <= cost:
+            poses, pts, cost = new_poses, new_pts, new_cost
+            lam = max(lam / 10.0, 1e-12)
+        if step < xtol:
+            status = 1
+            break
+        if 0 <= rel < ftol:
+            status = 2
+            break
+    return poses, pts, status, it, cost
+
+
+def _statistics(pr, poses, pts, used, weights, cost, covariance):
+    """sigma0, redundancy, covariances, residuals, redundancy numbers, w-tests."""
+    b = pr.block
+    sel = np.flatnonzero(used)
+    n_rows = 2 * len(sel) + 3 * int(pr.gnss.sum()) + 3 * int(pr.ins.sum()) + 3 * int(pr.prior_point.sum())
+    n_unknowns = 6 * b.n_images + 3 * int(pr.point_free.sum())
+    redundancy = n_rows - n_unknowns
+    if redundancy <= 0:
+        raise GeometryError(f"Block '{b.name}': no redundancy ({n_rows} observations for {n_unknowns} unknowns)")
+    s0 = float(np.sqrt(cost / redundancy))
+    u, v, wij, gc, gp = _normal_blocks(pr, poses, pts, sel, weights)
+    red = _Reduced(pr, sel, u, v, wij, gc, gp, 0.0)
+    n = b.n_images
+    out = dict(sigma0=s0, redundancy=redundancy, pose_q=None, point_q=None, w=None, rnum=None)
+    resid = np.full((len(used), 2), np.nan)
+    i, j = b.obs_image, b.obs_point
+    okp = np.flatnonzero(roles_not_check(b))
+    resid[okp] = b.obs_xy[okp] - project(poses[i[okp]], pts[j[okp]], pr.cam[i[okp]], pr.size[i[okp]])
+    out["residuals"] = resid
+    check = np.flatnonzero(np.array(b.roles) == "check")
+    if len(check):
+        pd = poses.copy()
+        pd[:, 3:] = np.degrees(pd[:, 3:])
+        xyz, n_inv = intersect(b, pd, check)
+        out["check_xyz"], out["check_q"] = xyz, n_inv
+        if covariance != "none":
+            # the poses' uncertainty, propagated: dx = N^-1 sum_i Jx_i^T P_i (dl_i - Jp_i dp), so
+            # Q_x = N^-1 + M^T S^-1 M with M = sum_i e_k(i) (Jp_i^T P_i Jx_i N^-1)
+            m = np.zeros((6 * n, 3 * len(check)))
+            for c, jj in enumerate(check):
+                sel_c = np.flatnonzero(b.obs_point == jj)
+                k = b.obs_image[sel_c]
+                _, jp, jx = jacobians(poses[k], np.tile(xyz[c], (len(k), 1)), pr.cam[k], pr.size[k])
+                wt = 1.0 / b.obs_sigma[sel_c] ** 2
+                blocks = np.einsum("n,nki,nkj->nij", wt, jp, jx) @ n_inv[c]
+                for a, kk in enumerate(k):
+                    m[6 * kk:6 * kk + 6, 3 * c:3 * c + 3] += blocks[a]
+            z = red.lu.solve(m)
+            out["check_q"] = np.array([n_inv[c] + m[:, 3 * c:3 * c + 3].T @ z[:, 3 * c:3 * c + 3]
+                                       for c in range(len(check))])
+    if covariance == "none":
+        return out
+    # pose blocks of S^-1, by solves on identity columns in batches
+    pose_q = np.zeros((n, 6, 6))
+    batch = max(1, 3000 // 6)
+    for k0 in range(0, n, batch):
+        k1 = min(k0 + batch, n)
+        e = np.zeros((6 * n, 6 * (k1 - k0)))
+        e[np.arange(6 * k0, 6 * k1), np.arange(6 * (k1 - k0))] = 1.0
+        z = red.lu.solve(e)
+        for k in range(k0, k1):
+            pose_q[k] = z[6 * k:6 * k + 6, 6 * (k - k0):6 * (k - k0) + 6]
+    out["pose_q"] = pose_q
+    if covariance != "full":
+        return out
+    # point blocks: Q_pp = V^-1 + B^T S^-1 B with B_j = sum_i e_k(i) Y_i (Y = W V^-1); the
+    # same solves give the pose-point blocks Q_cp = -S^-1 B
+    y = red.y  # per selected observation (m_sel, 6, 3)
+    p = b.n_points
+    point_q = np.zeros((p, 3, 3))
+    free = np.flatnonzero(pr.point_free)
+    rows_of = {}
+    for a, (ii, jj) in enumerate(zip(red.i, red.j)):
+        rows_of.setdefault(jj, []).append(a)
+    qcp = np.zeros((len(sel), 6, 3))
+    pbatch = max(1, 1500 // 3)
+    for s0_ in range(0, len(free), pbatch):
+        chunk = free[s0_:s0_ + pbatch]
+        bm = np.zeros((6 * n, 3 * len(chunk)))
+        for c, jj in enumerate(chunk):
+            for a in rows_of.get(jj, []):
+                k = red.i[a]
+                bm[6 * k:6 * k + 6, 3 * c:3 * c + 3] += y[a]
+        z = red.lu.solve(bm)
+        for c, jj in enumerate(chunk):
+            zc = z[:, 3 * c:3 * c + 3]
+            point_q[jj] = red.vinv[jj] + bm[:, 3 * c:3 * c + 3].T @ zc
+            for a in rows_of.get(jj, []):
+                k = red.i[a]
+                qcp[a] = -zc[6 * k:6 * k + 6]
+    out["point_q"] = point_q
+    # redundancy numbers and w-tests of the image observations
+    pix, jp, jx = jacobians(poses[red.i], pts[red.j], pr.cam[red.i], pr.size[red.i])
+    q_hat = (jp @ pose_q[red.i] @ np.transpose(jp, (0, 2, 1)) + jx @ point_q[red.j] @ np.transpose(jx, (0, 2, 1))
+             + jp @ qcp @ np.transpose(jx, (0, 2, 1)) + jx @ np.transpose(qcp, (0, 2, 1)) @ np.transpose(jp, (0, 2, 1)))
+    sig2 = (b.obs_sigma[sel] ** 2 / weights[sel])[:, None]
+    rnum = np.full((len(used), 2), np.nan)
+    rnum[sel] = 1.0 - np.einsum("nii->ni", q_hat) / sig2
+    w = np.full((len(used), 2), np.nan)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        w[sel] = resid[sel] / np.sqrt(sig2 * np.clip(rnum[sel], 1e-12, None))
+    out["rnum"], out["w"] = rnum, w
+    return out
+
+
+def roles_not_check(block):
+    return np.array(block.roles)[block.obs_point] != "check"
+
+
+def _result(pr, poses, pts, used, st, status, it, cost, rejected, corr_limit):
+    b = pr.block
+    s2 = st["sigma0"] ** 2
+    deg = np.r_[np.ones(3), np.full(3, np.degrees(1.0))]
+    out_poses = poses.copy()
+    out_poses[:, 3:] = np.degrees(out_poses[:, 3:])
+    pose_cov = None if st["pose_q"] is None else s2 * st["pose_q"] * np.outer(deg, deg)
+    warnings = []
+    if pose_cov is not None:
+        for k in range(b.n_images):
+            d = np.sqrt(np.diag(pose_cov[k]))
+            corr = pose_cov[k] / np.outer(d, d)
+            for a in range(6):
+                for c in range(a + 1, 6):
+                    if abs(corr[a, c]) > corr_limit:
+                        warnings.append((b.image_ids[k], POSE_NAMES[a], POSE_NAMES[c], float(corr[a, c])))
+    roles = np.array(b.roles)
+    point_cov = None if st["point_q"] is None else s2 * st["point_q"]
+    points, point_std = {}, {}
+    for j in np.flatnonzero(roles != "check"):
+        value = b.xyz[j] if pr.point_fixed[j] else (pts[j] if pr.point_free[j] or pr.prior_point[j] else np.full(3, np.nan))
+        points[b.point_ids[j]] = tuple(value)
+        if point_cov is not None:
+            point_std[b.point_ids[j]] = tuple(np.sqrt(np.diag(point_cov[j])))
+    control = np.flatnonzero(roles == "control")
+    control_rmse = (np.sqrt(np.mean((np.where(pr.point_fixed[control, None], b.xyz[control], pts[control])
+                                     - b.xyz[control]) ** 2, axis=0)) if len(control) else np.full(3, np.nan))
+    check = np.flatnonzero(roles == "check")
+    check_err, check_rmse = np.zeros((0, 3)), np.full(3, np.nan)
+    if len(check):
+        xyz, cov = st["check_xyz"], st["check_q"]
+        for c, j in enumerate(check):
+            points[b.point_ids[j]] = tuple(xyz[c])
+            point_std[b.point_ids[j]] = tuple(st["sigma0"] * np.sqrt(np.diag(cov[c])))
+        check_err = xyz - b.xyz[check]
+        check_rmse = np.sqrt(np.mean(check_err**2, axis=0))
+    messages = {0: "the iteration limit was reached", 1: "converged: parameter change below xtol",
+                2: "converged: relative cost change below ftol"}
+    return AdjustResult(
+        status=status, message=messages[status], success=status > 0, sigma0=st["sigma0"], redundancy=st["redundancy"],
+        iterations=it, cost=float(cost),
+        poses={b.image_ids[k]: tuple(out_poses[k]) for k in range(b.n_images)},
+        pose_std={} if pose_cov is None else {b.image_ids[k]: tuple(np.sqrt(np.diag(pose_cov[k])))
+                                              for k in range(b.n_images)},
+        pose_cov=pose_cov, points=points, point_std=point_std, point_cov=point_cov,
+        residuals=st["residuals"], redundancy_numbers=st["rnum"], w_tests=st["w"], used=used, rejected=rejected,
+        control_rmse=control_rmse, check_rmse=check_rmse, check_errors=check_err,
+        correlation_warnings=warnings)

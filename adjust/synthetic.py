@@ -1,0 +1,155 @@
+"""Synthetic blocks with known truth, for tests and benchmarks.
+
+Strips flown along +x with ``forward`` (default 60 %) overlap along the track and ``side``
+(30 %) between strips, kappa = 0; tie points at the standard (von Gruber) positions of every
+image: three across the track (the image's centre and the two side-overlap bands... see
+``ties_per_image``) at the three along-track positions of the stereo models (-base, 0, +base),
+so that neighbouring images share them; a smooth terrain; control-point layouts in the spirit of
+seed 002's groups (``A`` well spread: corners, edge midpoints and centre; ``B`` the four
+corners; ``C`` clustered at one end of the block; ``D`` none, for GNSS-supported blocks);
+check points scattered over the block. Image observations carry Gaussian noise of
+``sigma_px``; GNSS/INS observations, when asked for, theirs.
+"""
+
+import numpy as np
+
+from ..camera import FrameCamera
+from ..errors import ParamError
+from .block import Block
+from .collinearity import project
+
+__all__ = ["synthetic_block", "CONTROL_LAYOUTS"]
+
+CONTROL_LAYOUTS = ("A", "B", "C", "D")
+
+
+def _terrain(x, y):
+    return 300.0 + 40.0 * np.sin(x / 700.0) * np.cos(y / 900.0) + 15.0 * np.sin((x + 2 * y) / 350.0)
+
+
+def synthetic_block(*, strips=3, images_per_strip=8, ties_per_image=12, control="A", n_check=12, sigma_px=0.5,
+                    sigma_control=0.02, gnss_sigma=None, ins_sigma=None, flying_height=1500.0, forward=0.6, side=0.3,
+                    pose_noise=(1.0, 0.05), seed=0, geometry_seed=None, crs="EPSG:32632"):
+    """A block and its truth.
+
+    Parameters
+    ----------
+    strips, images_per_strip : int
+    ties_per_image : {6, 12}
+        Tie points per image position column: 6 puts them in two rows in the side-overlap
+        bands, 12 in four rows (the bands and the image's middle third).
+    control : {"A", "B", "C", "D"}
+    n_check : int
+    sigma_px : float
+        Image observation noise (px) and their stated sigma.
+    sigma_control : float
+        Control coordinate sigma (m) (noise and stated sigma).
+    gnss_sigma, ins_sigma : float, optional
+        Add GNSS projection centres (m) / INS attitudes (deg) with this noise and sigma.
+    flying_height : float
+        Above the mean terrain (m).
+    pose_noise : (float, float)
+        Perturbation of the initial poses: m and deg.
+    seed : int
+        Seeds the noise (and the geometry unless ``geometry_seed`` is given).
+    geometry_seed : int, optional
+        Seeds the geometry (tilts, point positions, check points) apart from the noise, so that
+        Monte Carlo runs share one block.
+
+    Returns
+    -------
+    block : Block
+    truth : dict
+        ``poses`` (n, 6) (m, deg) and ``xyz`` (p, 3).
+    """
+    if ties_per_image not in (6, 12):
+        raise ParamError(f"ties_per_image must be 6 or 12, got {ties_per_image!r}")
+    if control not in CONTROL_LAYOUTS:
+        raise ParamError(f"control must be one of {CONTROL_LAYOUTS}, got {control!r}")
+    geo = np.random.default_rng(seed if geometry_seed is None else geometry_seed)
+    rng = np.random.default_rng(seed) if geometry_seed is not None else geo
+    cam = FrameCamera(100.0, 0.009, (7000, 10000))  # 7000 px along the track (x), 10000 across
+    scale = flying_height / 100.0 * 0.009
+    along, across = 7000 * scale, 10000 * scale  # footprint (m)
+    base, spacing = (1 - forward) * along, (1 - side) * across
+    z0 = 300.0 + flying_height
+    centres = [(k * base, s * spacing) for s in range(strips) for k in range(images_per_strip)]
+    poses = np.array([[x, y, z0, 0.0, 0.0, 0.0] for x, y in centres])
+    poses[:, 3:5] = geo.normal(0, 0.5, (len(poses), 2))  # small tilts (deg)
+    poses[:, 5] = geo.normal(0, 0.5, len(poses))
+    rows = [-0.5, 0.5] if ties_per_image == 6 else [-0.5, -1 / 6, 1 / 6, 0.5]
+    pts = {}
+    for s in range(strips):
+        for k in range(-1, images_per_strip + 1):
+            for r in rows:
+                key = (k, round((s + r) * 6))
+                if key not in pts:
+                    x = k * base + geo.uniform(-0.05, 0.05) * base
+                    y = (s + r) * spacing + geo.uniform(-0.03, 0.03) * spacing
+                    pts[key] = (x, y)
+    tie_xy = np.array(list(pts.values()))
+    x0, x1 = -0.4 * along, (images_per_strip - 1) * base + 0.4 * along
+    y0, y1 = -0.4 * across, (strips - 1) * spacing + 0.4 * across
+    inside = (tie_xy[:, 0] > x0) & (tie_xy[:, 0] < x1) & (tie_xy[:, 1] > y0) & (tie_xy[:, 1] < y1)
+    tie_xy = tie_xy[inside]
+    # control: nearest tie points to the layout's target positions
+    xa, xb = 0.0, (images_per_strip - 1) * base
+    ya, yb = -0.5 * spacing, (strips - 0.5) * spacing
+    targets = {"A": [(xa, ya), (xb, ya), (xa, yb), (xb, yb), ((xa + xb) / 2, ya), ((xa + xb) / 2, yb),
+                     (xa, (ya + yb) / 2), (xb, (ya + yb) / 2), ((xa + xb) / 2, (ya + yb) / 2)],
+               "B": [(xa, ya), (xb, ya), (xa, yb), (xb, yb)],
+               "C": [(xa, ya), (xa + base, ya), (xa, ya + spacing), (xa + base, ya + spacing)],
+               "D": []}[control]
+    roles = ["tie"] * len(tie_xy)
+    for tx, ty in targets:
+        d = np.hypot(tie_xy[:, 0] - tx, tie_xy[:, 1] - ty)
+        d[np.array(roles) != "tie"] = np.inf
+        roles[int(np.argmin(d))] = "control"
+    check_xy = np.stack([geo.uniform(xa, xb, n_check), geo.uniform(0.0, (strips - 1) * spacing, n_check)], 1)
+    all_xy = np.concatenate([tie_xy, check_xy]) if n_check else tie_xy
+    roles += ["check"] * n_check
+    xyz = np.column_stack([all_xy, _terrain(all_xy[:, 0], all_xy[:, 1])])
+    # observations: every point in every image it falls in
+    n, p = len(poses), len(xyz)
+    ii, jj = np.meshgrid(np.arange(n), np.arange(p), indexing="ij")
+    ii, jj = ii.ravel(), jj.ravel()
+    pr = poses.copy()
+    pr[:, 3:] = np.radians(pr[:, 3:])
+    cam_row = np.array([[cam.focal_length, *cam.principal_point, cam.k1, cam.k2, cam.k3, cam.p1, cam.p2,
+                         *cam.pixel_size]])
+    size = np.array([cam.image_size], float)
+    pix = project(pr[ii], xyz[jj], np.repeat(cam_row, len(ii), 0), np.repeat(size, len(ii), 0))
+    margin = 50
+    ok = ((pix[:, 0] > margin) & (pix[:, 0] < cam.image_size[0] - margin) & (pix[:, 1] > margin)
+          & (pix[:, 1] < cam.image_size[1] - margin))
+    ii, jj, pix = ii[ok], jj[ok], pix[ok]
+    counts = np.bincount(jj, minlength=p)
+    keep = counts >= 2
+    remap = -np.ones(p, int)
+    remap[keep] = np.arange(keep.sum())
+    sel = keep[jj]
+    ii, jj, pix = ii[sel], remap[jj[sel]], pix[sel]
+    xyz, roles = xyz[keep], [r for r, k in zip(roles, keep) if k]
+    obs = pix + rng.normal(0, sigma_px, pix.shape)
+    given = xyz.copy()
+    rl = np.array(roles)
+    given[rl == "control"] += rng.normal(0, sigma_control, ((rl == "control").sum(), 3))
+    given[rl == "tie"] = np.nan
+    sig = np.full((len(xyz), 3), np.nan)
+    sig[rl == "control"] = sigma_control
+    init = poses.copy()
+    init[:, :3] += rng.normal(0, pose_noise[0], (n, 3))
+    init[:, 3:] += rng.normal(0, pose_noise[1], (n, 3))
+    kw = {}
+    if gnss_sigma:
+        kw["gnss_xyz"] = poses[:, :3] + rng.normal(0, gnss_sigma, (n, 3))
+        kw["gnss_sigma"] = np.full((n, 3), float(gnss_sigma))
+    if ins_sigma:
+        kw["ins_opk"] = poses[:, 3:] + rng.normal(0, ins_sigma, (n, 3))
+        kw["ins_sigma"] = np.full((n, 3), float(ins_sigma))
+    ids = [f"s{s}_{k:03d}" for s in range(strips) for k in range(images_per_strip)]
+    block = Block(crs=crs, cameras={"cam": cam}, image_ids=ids, image_camera=["cam"] * n, poses=init,
+                  point_ids=[f"{r[0]}{j:05d}" for j, r in enumerate(roles)], roles=roles, xyz=given,
+                  xyz_sigma=sig, obs_image=ii, obs_point=jj, obs_xy=obs, obs_sigma=np.full(len(ii), float(sigma_px)),
+                  name=f"synthetic {strips}x{images_per_strip} control {control}", **kw)
+    return block, dict(poses=poses, xyz=xyz)

@@ -1,0 +1,147 @@
+"""Bundle block adjustment: truth recovery, statistical honesty (Monte Carlo), blunders,
+robust loss, GNSS support and bad input."""
+
+import numpy as np
+import pytest
+
+from orthowarp.adjust import bundle_adjust, synthetic_block
+from orthowarp.adjust.block import Block
+from orthowarp.errors import GeometryError, ParamError
+
+
+def estimates(res, block):
+    return np.array([res.poses[i] for i in block.image_ids])
+
+
+def test_noise_free_block_recovers_the_truth():
+    block, truth = synthetic_block(strips=2, images_per_strip=5, sigma_px=1e-6, sigma_control=1e-7, seed=2)
+    res = bundle_adjust(block)
+    assert res.success
+    np.testing.assert_allclose(estimates(res, block)[:, :3], truth["poses"][:, :3], atol=1e-4)
+    np.testing.assert_allclose(estimates(res, block)[:, 3:], truth["poses"][:, 3:], atol=1e-6)  # 2e-4 px
+    xyz = np.array([res.points[p] for p in block.point_ids])
+    np.testing.assert_allclose(xyz, truth["xyz"], atol=1e-4)
+    assert np.all(res.check_rmse < 1e-4)
+
+
+def test_redundancy_numbers_add_up():
+    block, _ = synthetic_block(strips=2, images_per_strip=5, seed=4)
+    res = bundle_adjust(block, covariance="full")
+    rn = res.redundancy_numbers[res.used]
+    assert np.all((rn > 0) & (rn < 1))
+    # the image rows' share of the total redundancy (the control priors hold the rest)
+    assert rn.sum() <= res.redundancy
+    assert rn.sum() > 0.9 * res.redundancy
+
+
+@pytest.mark.slow
+def test_reported_precision_is_honest():
+    """200 Monte Carlo runs of one block geometry with fresh noise: the empirical covariance of
+    the poses matches the reported one (mean variance ratio within 10 %), sigma0 averages 1,
+    and the normalised check-point errors pass a chi-square test."""
+    runs, est, cov, s0, chi2, dof = 200, [], [], [], 0.0, 0
+    truth = None
+    for r in range(runs):
+        block, truth = synthetic_block(strips=2, images_per_strip=4, ties_per_image=12, control="A",
+                                       sigma_px=0.5, sigma_control=0.02, n_check=6, seed=1000 + r,
+                                       geometry_seed=7)
+        res = bundle_adjust(block, covariance="full")
+        assert res.success
+        est.append(estimates(res, block))
+        cov.append(res.pose_cov)
+        s0.append(res.sigma0)
+        check = np.flatnonzero(np.array(block.roles) == "check")
+        for c, j in enumerate(check):
+            e = res.check_errors[c]
+            q = np.diag(res.point_std[block.point_ids[j]]) ** 2
+            chi2 += float(e @ np.linalg.solve(q, e))
+            dof += 3
+    est, cov = np.array(est), np.array(cov)
+    emp = est.var(axis=0, ddof=1)  # (n, 6)
+    rep = np.mean(np.einsum("rnii->rni", cov), axis=0)
+    ratio = emp / rep
+    print("variance ratio mean", ratio.mean(), "per parameter", ratio.mean(axis=0), "sigma0", np.mean(s0))
+    assert abs(ratio.mean() - 1) < 0.10
+    assert abs(np.mean(s0) - 1) < 0.03
+    # chi-square with dof degrees of freedom (mean dof, sd sqrt(2 dof)); the check points'
+    # covariances carry the intersection and the propagated pose covariance
+    z = (chi2 - dof) / np.sqrt(2 * dof)
+    print("check chi2", chi2, "dof", dof, "z", z)
+    assert abs(z) < 3.0
+
+
+def test_a_blunder_is_found_and_rejected():
+    """A 30-sigma error on a tie point seen in 4+ images (with 2 rays a blunder cannot be told
+    from its partner) is the one rejected."""
+    block, truth = synthetic_block(strips=2, images_per_strip=5, seed=5)
+    rays = np.bincount(block.obs_point)[block.obs_point]
+    tie = np.flatnonzero((np.array(block.roles)[block.obs_point] == "tie") & (rays >= 4))
+    bad = int(tie[len(tie) // 2])
+    block.obs_xy[bad] += [12.0, -9.0]  # 30 sigma
+    plain = bundle_adjust(block)
+    assert np.nanmax(np.abs(plain.w_tests)) > 3.29
+    res = bundle_adjust(block, snooping=True)
+    assert len(res.rejected) >= 1
+    assert res.rejected[0][:2] == (block.image_ids[block.obs_image[bad]], block.point_ids[block.obs_point[bad]])
+    assert not res.used[bad]
+    assert res.sigma0 < plain.sigma0
+
+
+def test_huber_loss_limits_a_blunder():
+    block, truth = synthetic_block(strips=2, images_per_strip=5, seed=6)
+    bad = int(np.flatnonzero(np.array(block.roles)[block.obs_point] == "tie")[3])
+    block.obs_xy[bad] += [25.0, 0.0]
+    plain = bundle_adjust(block)
+    robust = bundle_adjust(block, robust="huber")
+    err = lambda r: np.abs(estimates(r, block)[:, :3] - truth["poses"][:, :3]).max()  # noqa: E731
+    assert err(robust) < err(plain)
+
+
+def test_gnss_supported_block_without_control():
+    block, truth = synthetic_block(strips=3, images_per_strip=5, control="D", gnss_sigma=0.05, ins_sigma=0.005,
+                                   seed=7)
+    res = bundle_adjust(block)
+    assert res.success and 0.7 < res.sigma0 < 1.3
+    assert np.all(np.abs(estimates(res, block)[:, :3] - truth["poses"][:, :3]) < 0.3)
+    assert np.all(res.check_rmse < 0.5)
+
+
+def test_fixed_control():
+    block, truth = synthetic_block(strips=2, images_per_strip=5, seed=8)
+    res = bundle_adjust(block, fix_control=True)
+    control = [p for p, r in zip(block.point_ids, block.roles) if r == "control"]
+    for p in control:
+        np.testing.assert_array_equal(res.points[p], block.xyz[block.point_ids.index(p)])
+    np.testing.assert_array_equal(res.control_rmse, 0.0)
+
+
+def test_datum_defect_and_bad_blocks():
+    block, _ = synthetic_block(strips=2, images_per_strip=4, control="D", seed=9)
+    with pytest.raises(GeometryError, match="datum defect"):
+        bundle_adjust(block)
+    block, _ = synthetic_block(strips=2, images_per_strip=4, seed=9)
+    keep = block.obs_image != 3
+    b2 = Block(crs=block.crs, cameras=block.cameras, image_ids=block.image_ids, image_camera=block.image_camera,
+               poses=block.poses, point_ids=block.point_ids, roles=block.roles, xyz=block.xyz,
+               xyz_sigma=block.xyz_sigma, obs_image=block.obs_image[keep], obs_point=block.obs_point[keep],
+               obs_xy=block.obs_xy[keep], obs_sigma=block.obs_sigma[keep])
+    with pytest.raises(ParamError, match=f"image '{block.image_ids[3]}' has no observations"):
+        bundle_adjust(b2)
+    tie = int(np.flatnonzero(np.array(block.roles) == "tie")[0])
+    first = int(np.flatnonzero(block.obs_point == tie)[0])
+    drop = (block.obs_point == tie) & (np.arange(len(block.obs_point)) != first)
+    b3 = Block(crs=block.crs, cameras=block.cameras, image_ids=block.image_ids, image_camera=block.image_camera,
+               poses=block.poses, point_ids=block.point_ids, roles=block.roles, xyz=block.xyz,
+               xyz_sigma=block.xyz_sigma, obs_image=block.obs_image[~drop], obs_point=block.obs_point[~drop],
+               obs_xy=block.obs_xy[~drop], obs_sigma=block.obs_sigma[~drop])
+    with pytest.raises(ParamError, match=f"point '{block.point_ids[tie]}' is observed in 1 image"):
+        bundle_adjust(b3)
+    xy = block.obs_xy.copy()
+    xy[0, 0] = np.nan
+    with pytest.raises(ParamError, match="non-finite"):
+        Block(crs=block.crs, cameras=block.cameras, image_ids=block.image_ids, image_camera=block.image_camera,
+              poses=block.poses, point_ids=block.point_ids, roles=block.roles, xyz=block.xyz,
+              xyz_sigma=block.xyz_sigma, obs_image=block.obs_image, obs_point=block.obs_point, obs_xy=xy,
+              obs_sigma=block.obs_sigma)
+    with pytest.raises(ParamError, match="covariance"):
+        bundle_adjust(block, covariance="some")
