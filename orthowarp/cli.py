@@ -4,9 +4,11 @@ Library errors become one-line messages on stderr and a non-zero exit code.
 """
 
 import logging
+import os
 import sys
 
 import click
+import numpy as np
 
 from .errors import OrthowarpError
 
@@ -161,6 +163,33 @@ def ortho(ctx, images, int_param, ext_param, dimap, attitude_model, dem, height,
         if not quiet:
             click.echo(f"{dst}: {r.shape[1]} x {r.shape[0]} px at {r.resolution:.4g}, {r.crs.name}, "
                        f"{r.timings['wall']:.2f} s")
+
+
+@main.command()
+@click.argument("block_file", type=click.Path(dir_okay=False))
+@click.option("--out", "out_dir", type=click.Path(file_okay=False), required=True, help="Output folder.")
+@click.option("--fix-control", is_flag=True, help="Hold control points fixed instead of weighting them.")
+@click.option("--no-gnss", is_flag=True, help="Ignore the images' GNSS positions.")
+@click.option("--no-ins", is_flag=True, help="Ignore the images' INS attitudes.")
+@click.option("--snooping", is_flag=True, help="Baarda data snooping with iterative rejection.")
+@click.option("--robust", type=click.Choice(["huber"]), default=None, help="Robust loss.")
+@click.option("--covariance", type=click.Choice(["auto", "full", "poses", "none"]), default="auto", show_default=True)
+@click.option("--no-plots", is_flag=True, help="Skip the PNG plots.")
+@click.pass_context
+def adjust(ctx, block_file, out_dir, fix_control, no_gnss, no_ins, snooping, robust, covariance, no_plots):
+    """Bundle-adjust the block in BLOCK_FILE (JSON) and write the refined orientation, points and
+    reports into --out."""
+    from .adjust import bundle_adjust, read_block
+    from .pipeline.adjust_report import write_adjustment
+
+    block = read_block(block_file)
+    result = bundle_adjust(block, fix_control=fix_control, use_gnss=not no_gnss, use_ins=not no_ins,
+                           snooping=snooping, robust=robust, covariance=covariance)
+    paths = write_adjustment(result, block, out_dir, plots=not no_plots)
+    if not ctx.obj["quiet"]:
+        click.echo(f"{result.message}; sigma0 {result.sigma0:.4f}, redundancy {result.redundancy}; "
+                   f"check RMSE (m) {np.array2string(result.check_rmse, precision=4)}; outputs: "
+                   + ", ".join(os.path.basename(p) for p in paths.values()))
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -111,3 +111,31 @@ def test_ortho_command_with_dimap(tmp_path):
     r = CliRunner().invoke(main, ["ortho", "--dimap", str(tmp_path / "missing.dim"), str(tmp_path / "scene.tif"),
                                   "--height", "100", "--out-dir", str(out), "--overwrite"])
     assert r.exit_code == 1 and "missing.dim" in r.output
+
+
+def test_adjust_command(tmp_path):
+    """orthowarp adjust writes orientation the ortho reads, points, and reports with plots."""
+    import numpy as np
+
+    from orthowarp.adjust import synthetic_block, write_block
+    from orthowarp.pipeline.formats import read_cameras, read_exterior
+
+    block, truth = synthetic_block(strips=2, images_per_strip=4, seed=11)
+    write_block(block, tmp_path / "block.json")
+    out = tmp_path / "adj"
+    r = CliRunner().invoke(main, ["adjust", str(tmp_path / "block.json"), "--out", str(out), "--snooping"])
+    assert r.exit_code == 0, r.output
+    for name in ("exterior.csv", "exterior.prj", "cameras.yaml", "points.csv", "report.json", "report.md",
+                 "residuals.png", "errors.png"):
+        assert (out / name).stat().st_size > 0, name
+    report = json.loads((out / "report.json").read_text())
+    assert report["success"] and 0.7 < report["sigma0"] < 1.3
+    ext = read_exterior(out / "exterior.csv")
+    cams = read_cameras(out / "cameras.yaml")
+    assert set(ext) == set(block.image_ids)
+    p = ext[block.image_ids[0]].pose.params
+    np.testing.assert_allclose([p["x"], p["y"], p["z"]], truth["poses"][0, :3], atol=0.5)
+    c0, c1 = block.cameras["cam"], cams["cam"]
+    assert c1.focal_length == c0.focal_length and c1.image_size == c0.image_size
+    r = CliRunner().invoke(main, ["adjust", str(tmp_path / "missing.json"), "--out", str(out)])
+    assert r.exit_code == 1 and "missing.json" in r.output

@@ -1,0 +1,153 @@
+"""Outputs of a bundle adjustment: refined orientation in the formats ``orthowarp ortho``
+reads, adjusted points, a JSON report, and a readable report with plots (matplotlib).
+
+Files written into the output folder (each atomically):
+
+- ``exterior.csv`` + ``exterior.prj``: ``filename,x,y,z,omega,phi,kappa`` (m, deg) in the
+  block's CRS: ``orthowarp ortho --ext-param exterior.csv``;
+- ``cameras.yaml``: the cameras in orthority's format: ``--int-param cameras.yaml``;
+- ``points.csv``: ``point,role,x,y,z,sx,sy,sz``;
+- ``report.json``: statistics (sigma0, redundancy, RMSE per axis, pose sigmas, rejections,
+  correlation warnings, residual summary);
+- ``report.md``, ``residuals.png`` (image residual vectors of every image, seed 000 Figures
+  5-7 style) and ``errors.png`` (planimetric error vectors and height errors at control and
+  check points).
+"""
+
+import io
+import os
+
+import numpy as np
+import yaml
+from pyproj import CRS
+
+from .blockio import _camera_dict
+from .io import atomic_path, ensure_folder, write_json, write_text
+
+__all__ = ["write_adjustment"]
+
+
+def _csv(rows):
+    return "\n".join(",".join(str(v) for v in r) for r in rows) + "\n"
+
+
+def write_adjustment(result, block, out_dir, *, plots=True):
+    """Write the adjustment's outputs (see the module doc) into ``out_dir``; returns the paths."""
+    ensure_folder(out_dir)
+    paths = {}
+    b = block
+    rows = [("filename", "x", "y", "z", "omega", "phi", "kappa")]
+    for iid in b.image_ids:
+        rows.append((iid, *(f"{v:.6f}" if k < 3 else f"{v:.9f}" for k, v in enumerate(result.poses[iid]))))
+    paths["exterior"] = os.path.join(out_dir, "exterior.csv")
+    write_text(paths["exterior"], _csv(rows))
+    write_text(os.path.join(out_dir, "exterior.prj"), CRS.from_user_input(b.crs).to_wkt())
+    paths["cameras"] = os.path.join(out_dir, "cameras.yaml")
+    write_text(paths["cameras"], yaml.safe_dump({cid: _camera_dict(c) for cid, c in b.cameras.items()}))
+    prow = [("point", "role", "x", "y", "z", "sx", "sy", "sz")]
+    for pid, role in zip(b.point_ids, b.roles):
+        xyz = result.points.get(pid, (np.nan,) * 3)
+        sd = result.point_std.get(pid, (np.nan,) * 3)
+        prow.append((pid, role, *(f"{v:.4f}" for v in xyz), *(f"{v:.4f}" for v in sd)))
+    paths["points"] = os.path.join(out_dir, "points.csv")
+    write_text(paths["points"], _csv(prow))
+    used = result.used
+    res = result.residuals[used]
+    report = dict(
+        block=b.name, status=result.status, message=result.message, success=result.success,
+        sigma0=result.sigma0, redundancy=result.redundancy, iterations=result.iterations, cost=result.cost,
+        images=b.n_images, points=b.n_points, observations=int(len(used)), observations_used=int(used.sum()),
+        residual_rms_px=[float(v) for v in np.sqrt(np.nanmean(res**2, axis=0))] if len(res) else None,
+        control_rmse=[float(v) for v in result.control_rmse], check_rmse=[float(v) for v in result.check_rmse],
+        pose_std={k: [float(x) for x in v] for k, v in result.pose_std.items()},
+        rejected=[dict(image=i, point=p, w=w) for i, p, w in result.rejected],
+        correlation_warnings=[dict(image=i, a=a, b=c, r=r) for i, a, c, r in result.correlation_warnings],
+        max_abs_w=float(np.nanmax(np.abs(result.w_tests))) if result.w_tests is not None else None)
+    paths["report"] = os.path.join(out_dir, "report.json")
+    write_json(paths["report"], report)
+    if plots:
+        paths.update(_plots(result, block, out_dir))
+    paths["markdown"] = os.path.join(out_dir, "report.md")
+    write_text(paths["markdown"], _markdown(report, plots))
+    return paths
+
+
+def _markdown(r, plots):
+    axes = ("x", "y", "z")
+    lines = [f"# Bundle adjustment: {r['block']}", "",
+             f"- {r['message']} after {r['iterations']} iterations",
+             f"- sigma0 = {r['sigma0']:.4f} (redundancy {r['redundancy']})",
+             f"- {r['images']} images, {r['points']} points, {r['observations_used']} of {r['observations']} "
+             "image observations used"]
+    if r["residual_rms_px"]:
+        lines.append(f"- image residual RMS: col {r['residual_rms_px'][0]:.3f} px, row {r['residual_rms_px'][1]:.3f} px")
+    for name in ("control", "check"):
+        v = r[f"{name}_rmse"]
+        if np.all(np.isfinite(v)):
+            lines.append(f"- {name} point RMSE: " + ", ".join(f"{a} {x:.4f} m" for a, x in zip(axes, v)))
+    if r["rejected"]:
+        lines += ["", "## Rejected observations (data snooping)", ""]
+        lines += [f"- point {x['point']} in image {x['image']}: |w| = {x['w']:.2f}" for x in r["rejected"]]
+    if r["correlation_warnings"]:
+        lines += ["", "## High correlations", ""]
+        lines += [f"- {x['image']}: {x['a']} / {x['b']} r = {x['r']:+.3f}" for x in r["correlation_warnings"][:50]]
+    if plots:
+        lines += ["", "![image residuals](residuals.png)", "", "![control and check errors](errors.png)"]
+    return "\n".join(lines) + "\n"
+
+
+def _save(fig, path):
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            f.write(buf.getvalue())
+
+
+def _plots(result, block, out_dir):
+    from matplotlib.figure import Figure  # no pyplot: no global backend state
+
+    b = block
+    out = {}
+    n = b.n_images
+    cols = int(np.ceil(np.sqrt(n)))
+    rows = int(np.ceil(n / cols))
+    fig = Figure(figsize=(3 * cols, 3 * rows))
+    res = result.residuals
+    scale = 0.05 * max(c.image_size[0] for c in b.cameras.values()) / max(float(np.nanmax(np.abs(res))), 1e-9)
+    for k, iid in enumerate(b.image_ids):
+        ax = fig.add_subplot(rows, cols, k + 1)
+        sel = (b.obs_image == k) & np.isfinite(res[:, 0])
+        w, h = b.cameras[b.image_camera[k]].image_size
+        ax.quiver(b.obs_xy[sel, 0], b.obs_xy[sel, 1], res[sel, 0] * scale, -res[sel, 1] * scale, angles="xy",
+                  scale_units="xy", scale=1, color=np.where(result.used[sel], "tab:blue", "tab:red"), width=0.006)
+        ax.set_xlim(0, w)
+        ax.set_ylim(h, 0)
+        ax.set_title(iid, fontsize=8)
+        ax.set_xticks([])
+        ax.set_yticks([])
+    fig.suptitle(f"image residuals x {scale:.0f} (red: rejected)")
+    out["residuals_png"] = os.path.join(out_dir, "residuals.png")
+    _save(fig, out["residuals_png"])
+    fig = Figure(figsize=(8, 6))
+    ax = fig.add_subplot(1, 1, 1)
+    centres = np.array([result.poses[i][:2] for i in b.image_ids])
+    ax.plot(centres[:, 0], centres[:, 1], "k+", label="projection centres")
+    roles = np.array(b.roles)
+    for role, colour in (("control", "tab:green"), ("check", "tab:red")):
+        idx = np.flatnonzero(roles == role)
+        if not len(idx):
+            continue
+        got = np.array([result.points[b.point_ids[j]] for j in idx])
+        err = got - b.xyz[idx]
+        s = 0.05 * np.ptp(centres[:, 0]) / max(float(np.nanmax(np.hypot(err[:, 0], err[:, 1]))), 1e-9)
+        ax.quiver(b.xyz[idx, 0], b.xyz[idx, 1], err[:, 0] * s, err[:, 1] * s, angles="xy", scale_units="xy",
+                  scale=1, color=colour, label=f"{role} (planimetric error x {s:.0f})")
+        for j, e in zip(idx, err):
+            ax.annotate(f"{e[2] * 100:+.1f} cm", b.xyz[j, :2], fontsize=6, color=colour)
+    ax.set_aspect("equal")
+    ax.legend(fontsize=8)
+    ax.set_title("errors at control and check points (labels: height error)")
+    out["errors_png"] = os.path.join(out_dir, "errors.png")
+    _save(fig, out["errors_png"])
+    return out
