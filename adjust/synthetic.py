@@ -7,7 +7,8 @@ image: three across the track (the image's centre and the two side-overlap bands
 so that neighbouring images share them; a smooth terrain; control-point layouts in the spirit of
 seed 002's groups (``A`` well spread: corners, edge midpoints and centre; ``B`` the four
 corners; ``C`` clustered at one end of the block; ``D`` none, for GNSS-supported blocks);
-check points scattered over the block. Image observations carry Gaussian noise of
+check points scattered over the block. Control and check points are ground points of their
+own, placed independently of the tie layout (so layouts can be compared on the same points). Image observations carry Gaussian noise of
 ``sigma_px``; GNSS/INS observations, when asked for, theirs.
 """
 
@@ -66,8 +67,10 @@ def synthetic_block(*, strips=3, images_per_strip=8, ties_per_image=12, control=
         raise ParamError(f"ties_per_image must be 6 or 12, got {ties_per_image!r}")
     if control not in CONTROL_LAYOUTS:
         raise ParamError(f"control must be one of {CONTROL_LAYOUTS}, got {control!r}")
-    geo = np.random.default_rng(seed if geometry_seed is None else geometry_seed)
-    rng = np.random.default_rng(seed) if geometry_seed is not None else geo
+    gseed = seed if geometry_seed is None else geometry_seed
+    geo = np.random.default_rng([gseed, 0])  # tilts and tie points
+    chk = np.random.default_rng([gseed, 1])  # check points: the same whatever the tie layout
+    rng = np.random.default_rng([seed, 2])  # noise
     cam = FrameCamera(100.0, 0.009, (7000, 10000))  # 7000 px along the track (x), 10000 across
     scale = flying_height / 100.0 * 0.009
     along, across = 7000 * scale, 10000 * scale  # footprint (m)
@@ -92,7 +95,7 @@ def synthetic_block(*, strips=3, images_per_strip=8, ties_per_image=12, control=
     y0, y1 = -0.4 * across, (strips - 1) * spacing + 0.4 * across
     inside = (tie_xy[:, 0] > x0) & (tie_xy[:, 0] < x1) & (tie_xy[:, 1] > y0) & (tie_xy[:, 1] < y1)
     tie_xy = tie_xy[inside]
-    # control: nearest tie points to the layout's target positions
+    # the control layouts' target positions
     xa, xb = 0.0, (images_per_strip - 1) * base
     ya, yb = -0.5 * spacing, (strips - 0.5) * spacing
     targets = {"A": [(xa, ya), (xb, ya), (xa, yb), (xb, yb), ((xa + xb) / 2, ya), ((xa + xb) / 2, yb),
@@ -100,14 +103,12 @@ def synthetic_block(*, strips=3, images_per_strip=8, ties_per_image=12, control=
                "B": [(xa, ya), (xb, ya), (xa, yb), (xb, yb)],
                "C": [(xa, ya), (xa + base, ya), (xa, ya + spacing), (xa + base, ya + spacing)],
                "D": []}[control]
-    roles = ["tie"] * len(tie_xy)
-    for tx, ty in targets:
-        d = np.hypot(tie_xy[:, 0] - tx, tie_xy[:, 1] - ty)
-        d[np.array(roles) != "tie"] = np.inf
-        roles[int(np.argmin(d))] = "control"
-    check_xy = np.stack([geo.uniform(xa, xb, n_check), geo.uniform(0.0, (strips - 1) * spacing, n_check)], 1)
-    all_xy = np.concatenate([tie_xy, check_xy]) if n_check else tie_xy
-    roles += ["check"] * n_check
+    # control and check points are ground points of their own (signalised), placed whatever
+    # the tie layout, and measured in every image that sees them
+    control_xy = np.array(targets, float).reshape(-1, 2) + chk.uniform(-0.02, 0.02, (len(targets), 2)) * base
+    check_xy = np.stack([chk.uniform(xa, xb, n_check), chk.uniform(0.0, (strips - 1) * spacing, n_check)], 1)
+    all_xy = np.concatenate([tie_xy, control_xy, check_xy])
+    roles = ["tie"] * len(tie_xy) + ["control"] * len(control_xy) + ["check"] * n_check
     xyz = np.column_stack([all_xy, _terrain(all_xy[:, 0], all_xy[:, 1])])
     # observations: every point in every image it falls in
     n, p = len(poses), len(xyz)
