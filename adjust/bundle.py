@@ -9,8 +9,8 @@ adjusted poses.
 
 Solution: Levenberg-Marquardt on the normal equations partitioned into 6x6 image blocks U,
 3x3 point blocks V and the image-point blocks W (seed 002 eq. 10); the point blocks are
-eliminated (Schur complement ``S = U - W V^-1 W^T``, the reduced camera system), S is factorised
-sparse (SuperLU) and the points back-substituted. Statistics (seed 002 eq. 11 and the usual
+eliminated (Schur complement ``S = U - W V^-1 W^T``, the reduced camera system, formed as one
+sparse product), S is factorised sparse (SuperLU) and the points back-substituted. Statistics (seed 002 eq. 11 and the usual
 photogrammetric set): sigma0, covariances ``sigma0^2 Q`` of every pose (6x6) and point (3x3) from
 solves with the factorisation (no dense inverse), residuals, redundancy numbers, Baarda's
 w-test with optional iterative rejection, an optional Huber loss, high-correlation warnings,
@@ -200,27 +200,33 @@ def _normal_blocks(pr, poses, pts, sel, weights):
     return u, v, wij, gc, gp
 
 
-def _pairs(point_of_obs):
-    """All ordered pairs (a, b) of observations of the same point (a == b included)."""
-    order = np.argsort(point_of_obs, kind="stable")
-    pts_sorted = point_of_obs[order]
-    starts = np.flatnonzero(np.r_[True, pts_sorted[1:] != pts_sorted[:-1]])
-    counts = np.diff(np.r_[starts, len(order)])
-    group = np.repeat(np.arange(len(starts)), counts)  # group of each sorted obs
-    reps = counts[group]
-    a = np.repeat(np.arange(len(order)), reps)
-    first = np.repeat(starts[group], reps)
-    within = np.arange(len(a)) - np.repeat(np.cumsum(reps) - reps, reps)
-    return order[a], order[first + within]
+class _Structure:
+    """Index arrays of the sparse image-point matrix W (6n x 3p) for one set of observations,
+    built once per adjustment; S's point part is then one sparse product (W V^-1) W^T."""
+
+    def __init__(self, pr, sel):
+        b = pr.block
+        i, j = b.obs_image[sel], b.obs_point[sel]
+        self.keep = np.flatnonzero(pr.point_free[j])
+        ii, jj = i[self.keep], j[self.keep]
+        rr, cc = np.meshgrid(np.arange(6), np.arange(3), indexing="ij")
+        self.rows = ((6 * ii)[:, None, None] + rr).ravel()
+        self.cols = ((3 * jj)[:, None, None] + cc).ravel()
+        self.shape = (6 * b.n_images, 3 * b.n_points)
+        n = b.n_images
+        r6, c6 = np.meshgrid(np.arange(6), np.arange(6), indexing="ij")
+        self.u_rows = ((6 * np.arange(n))[:, None, None] + r6).ravel()
+        self.u_cols = ((6 * np.arange(n))[:, None, None] + c6).ravel()
 
 
 class _Reduced:
     """The reduced camera system of one set of normal blocks (factorised)."""
 
-    def __init__(self, pr, sel, u, v, wij, gc, gp, lam):
+    def __init__(self, pr, sel, u, v, wij, gc, gp, lam, structure=None):
         b = pr.block
         n = b.n_images
         free = pr.point_free
+        st = structure or _Structure(pr, sel)
         self.i, self.j = b.obs_image[sel], b.obs_point[sel]
         keep = free[self.j]  # observations of fixed points only touch U
         ud = u + lam * np.einsum("nii->ni", u)[:, :, None] * np.eye(6)
@@ -230,16 +236,10 @@ class _Reduced:
         self.vinv[~free] = 0.0
         y = wij @ self.vinv[self.j]  # (m, 6, 3)
         y[~keep] = 0.0
-        a, c = _pairs(self.j[keep])
-        idx = np.flatnonzero(keep)
-        a, c = idx[a], idx[c]
-        blocks = -(y[a] @ np.transpose(wij[c], (0, 2, 1)))
-        ka, kc = self.i[a], self.i[c]
-        rr, cc = np.meshgrid(np.arange(6), np.arange(6), indexing="ij")
-        rows = np.concatenate([(6 * ka)[:, None, None] + rr, (6 * np.arange(n))[:, None, None] + rr])
-        cols = np.concatenate([(6 * kc)[:, None, None] + cc, (6 * np.arange(n))[:, None, None] + cc])
-        vals = np.concatenate([blocks, ud])
-        self.s = sp.csc_matrix((vals.ravel(), (rows.ravel(), cols.ravel())), shape=(6 * n, 6 * n))
+        w_sp = sp.csr_matrix((wij[st.keep].ravel(), (st.rows, st.cols)), shape=st.shape)
+        y_sp = sp.csr_matrix((y[st.keep].ravel(), (st.rows, st.cols)), shape=st.shape)
+        u_sp = sp.csr_matrix((ud.ravel(), (st.u_rows, st.u_cols)), shape=(6 * n, 6 * n))
+        self.s = (u_sp - y_sp @ w_sp.T).tocsc()
         rhs = gc.copy()
         np.add.at(rhs, self.i, -np.einsum("nij,nj->ni", y, gp[self.j]))
         self.rhs = rhs.ravel()
@@ -260,7 +260,7 @@ class _Reduced:
 
 def intersect(block, poses_deg, point_index, *, iterations=10):
     """Least-squares (collinearity) intersection of points from their observations with the
-    poses fixed.
+    poses fixed, vectorised over the points.
 
     Parameters
     ----------
@@ -276,46 +276,53 @@ def intersect(block, poses_deg, point_index, *, iterations=10):
     cov : ndarray, shape (k, 3, 3)
         Unit-weight cofactor matrices (N^-1) of the intersections.
     """
+    idx = np.asarray(point_index, dtype=int)
+    if len(idx) == 0:
+        return np.zeros((0, 3)), np.zeros((0, 3, 3))
     poses = poses_deg.copy()
     poses[:, 3:] = np.radians(poses[:, 3:])
     cam, size = block.camera_arrays()
-    out, cov = [], []
-    for j in np.asarray(point_index, dtype=int):
-        sel = np.flatnonzero(block.obs_point == j)
-        if len(sel) < 2:
-            raise ParamError(f"point '{block.point_ids[j]}' is observed in {len(sel)} image(s): it cannot be intersected")
-        i = block.obs_image[sel]
-        x = _ray_intersection(poses[i], block.obs_xy[sel], cam[i], size[i], block, i)
-        n_mat = np.eye(3)
-        for _ in range(iterations):
-            pix, _, jx = jacobians(poses[i], np.tile(x, (len(i), 1)), cam[i], size[i])
-            w = 1.0 / block.obs_sigma[sel] ** 2
-            r = block.obs_xy[sel] - pix
-            n_mat = np.einsum("n,nki,nkj->ij", w, jx, jx)
-            dx = np.linalg.solve(n_mat, np.einsum("n,nki,nk->i", w, jx, r))
-            x = x + dx
-            if np.max(np.abs(dx)) < 1e-9:
-                break
-        out.append(x)
-        cov.append(np.linalg.inv(n_mat))
-    return np.array(out).reshape(-1, 3), np.array(cov).reshape(-1, 3, 3)
-
-
-def _ray_intersection(poses, pix, cam, size, block, images):
-    """Closed-form least-squares intersection of the observation rays (a first value)."""
-    a, rhs = np.zeros((3, 3)), np.zeros(3)
+    local = -np.ones(block.n_points, int)
+    local[idx] = np.arange(len(idx))
+    sel = np.flatnonzero(local[block.obs_point] >= 0)
+    counts = np.bincount(local[block.obs_point[sel]], minlength=len(idx))
+    if np.any(counts < 2):
+        j = idx[int(np.flatnonzero(counts < 2)[0])]
+        raise ParamError(f"point '{block.point_ids[j]}' is observed in {int(np.sum(block.obs_point == j))} image(s): "
+                         "it cannot be intersected")
+    i, jl = block.obs_image[sel], local[block.obs_point[sel]]
+    # closed-form first value: the point nearest to all rays
     from .collinearity import rotation
 
-    r, _ = rotation(poses[:, 3:])
-    for k in range(len(poses)):
-        c = block.cameras[block.image_camera[images[k]]]
-        uv = c.undistort(c.pixel_to_normalized(pix[k:k + 1]))[0]
-        d = r[k] @ np.array([uv[0], -uv[1], -1.0])  # camera ray (x/f, y/f, -1), y up
-        d /= np.linalg.norm(d)
-        m = np.eye(3) - np.outer(d, d)
-        a += m
-        rhs += m @ poses[k, :3]
-    return np.linalg.solve(a, rhs)
+    r, _ = rotation(poses[i, 3:])
+    uv = np.empty((len(sel), 2))
+    for cid, c in block.cameras.items():
+        m = np.array([block.image_camera[k] == cid for k in i], dtype=bool)
+        if np.any(m):
+            uv[m] = c.undistort(c.pixel_to_normalized(block.obs_xy[sel[m]]))
+    d = np.einsum("nij,nj->ni", r, np.stack([uv[:, 0], -uv[:, 1], -np.ones(len(uv))], -1))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    proj = np.eye(3) - d[:, :, None] * d[:, None, :]
+    a = np.zeros((len(idx), 3, 3))
+    np.add.at(a, jl, proj)
+    rhs = np.zeros((len(idx), 3))
+    np.add.at(rhs, jl, np.einsum("nij,nj->ni", proj, poses[i, :3]))
+    x = np.linalg.solve(a, rhs[..., None])[..., 0]
+    w = 1.0 / block.obs_sigma[sel] ** 2
+    n_mat = np.tile(np.eye(3), (len(idx), 1, 1))
+    for _ in range(iterations):
+        pix, _, jx = jacobians(poses[i], x[jl], cam[i], size[i])
+        res = block.obs_xy[sel] - pix
+        jxt = np.transpose(jx, (0, 2, 1)) * w[:, None, None]
+        n_mat = np.zeros((len(idx), 3, 3))
+        np.add.at(n_mat, jl, jxt @ jx)
+        g = np.zeros((len(idx), 3))
+        np.add.at(g, jl, np.einsum("nij,nj->ni", jxt, res))
+        dx = np.linalg.solve(n_mat, g[..., None])[..., 0]
+        x = x + dx
+        if np.max(np.abs(dx)) < 1e-9:
+            break
+    return x, np.linalg.inv(n_mat)
 
 
 def bundle_adjust(block, *, fix_control=False, use_gnss=True, use_ins=True, max_iterations=50, xtol=1e-8,
@@ -423,6 +430,7 @@ def _solve(pr, poses, pts, used, weights, robust, huber_k, max_iterations, xtol,
     sel = np.flatnonzero(used)
     cost = pr.cost(poses, pts, sel, weights)
     status, it = 0, 0
+    structure = _Structure(pr, sel)
     for it in range(1, max_iterations + 1):
         if robust == "huber" and it > 1:
             v = b.obs_xy[sel] - project(poses[b.obs_image[sel]], pts[b.obs_point[sel]], pr.cam[b.obs_image[sel]],
@@ -432,7 +440,7 @@ def _solve(pr, poses, pts, used, weights, robust, huber_k, max_iterations, xtol,
             cost = pr.cost(poses, pts, sel, weights)
         u, v, wij, gc, gp = _normal_blocks(pr, poses, pts, sel, weights)
         while True:
-            red = _Reduced(pr, sel, u, v, wij, gc, gp, lam)
+            red = _Reduced(pr, sel, u, v, wij, gc, gp, lam, structure)
             dc, dp = red.solve()
             dp[~pr.point_free] = 0.0
             new_poses, new_pts = poses + dc, pts + dp

@@ -22,29 +22,8 @@ __all__ = ["rotation", "project", "jacobians", "CAMERA_COLUMNS"]
 CAMERA_COLUMNS = ("f", "x0", "y0", "k1", "k2", "k3", "p1", "p2", "px", "py")
 
 
-def _rx(a):
-    c, s, o, z = np.cos(a), np.sin(a), np.ones_like(a), np.zeros_like(a)
-    return np.stack([np.stack([o, z, z], -1), np.stack([z, c, -s], -1), np.stack([z, s, c], -1)], -2)
-
-
-def _ry(a):
-    c, s, o, z = np.cos(a), np.sin(a), np.ones_like(a), np.zeros_like(a)
-    return np.stack([np.stack([c, z, s], -1), np.stack([z, o, z], -1), np.stack([-s, z, c], -1)], -2)
-
-
-def _rz(a):
-    c, s, o, z = np.cos(a), np.sin(a), np.ones_like(a), np.zeros_like(a)
-    return np.stack([np.stack([c, -s, z], -1), np.stack([s, c, z], -1), np.stack([z, z, o], -1)], -2)
-
-
-# derivative of an elementary rotation by its angle: G R with G the generator of the axis
-_GX = np.array([[0.0, 0, 0], [0, 0, -1], [0, 1, 0]])
-_GY = np.array([[0.0, 0, 1], [0, 0, 0], [-1, 0, 0]])
-_GZ = np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 0]])
-
-
 def rotation(angles):
-    """R = Rx(omega) Ry(phi) Rz(kappa) and its derivatives.
+    """R = Rx(omega) Ry(phi) Rz(kappa) and its derivatives, element by element.
 
     Parameters
     ----------
@@ -58,9 +37,22 @@ def rotation(angles):
         dr[:, k] = dR / d(angle k).
     """
     a = np.asarray(angles, dtype=np.float64)
-    rx, ry, rz = _rx(a[:, 0]), _ry(a[:, 1]), _rz(a[:, 2])
-    r = rx @ ry @ rz
-    dr = np.stack([_GX @ r, rx @ (_GY @ ry) @ rz, r @ _GZ], 1)
+    so, co = np.sin(a[:, 0]), np.cos(a[:, 0])
+    sp, cp = np.sin(a[:, 1]), np.cos(a[:, 1])
+    sk, ck = np.sin(a[:, 2]), np.cos(a[:, 2])
+    r = np.empty((len(a), 3, 3))
+    r[:, 0, 0], r[:, 0, 1], r[:, 0, 2] = cp * ck, -cp * sk, sp
+    r[:, 1, 0], r[:, 1, 1], r[:, 1, 2] = co * sk + so * sp * ck, co * ck - so * sp * sk, -so * cp
+    r[:, 2, 0], r[:, 2, 1], r[:, 2, 2] = so * sk - co * sp * ck, so * ck + co * sp * sk, co * cp
+    dr = np.zeros((len(a), 3, 3, 3))
+    # d/d omega = Gx R (Gx the generator of x): rows (0, -R2, R1)
+    dr[:, 0, 1], dr[:, 0, 2] = -r[:, 2], r[:, 1]
+    # d/d phi = Rx (Gy Ry) Rz
+    dr[:, 1, 0, 0], dr[:, 1, 0, 1], dr[:, 1, 0, 2] = -sp * ck, sp * sk, cp
+    dr[:, 1, 1, 0], dr[:, 1, 1, 1], dr[:, 1, 1, 2] = so * cp * ck, -so * cp * sk, so * sp
+    dr[:, 1, 2, 0], dr[:, 1, 2, 1], dr[:, 1, 2, 2] = -co * cp * ck, co * cp * sk, -co * sp
+    # d/d kappa = R Gz: columns (R1, -R0, 0)
+    dr[:, 2, :, 0], dr[:, 2, :, 1] = r[:, :, 1], -r[:, :, 0]
     return r, dr
 
 

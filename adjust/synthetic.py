@@ -30,7 +30,7 @@ def _terrain(x, y):
 
 def synthetic_block(*, strips=3, images_per_strip=8, ties_per_image=12, control="A", n_check=12, sigma_px=0.5,
                     sigma_control=0.02, gnss_sigma=None, ins_sigma=None, flying_height=1500.0, forward=0.6, side=0.3,
-                    pose_noise=(1.0, 0.05), seed=0, geometry_seed=None, crs="EPSG:32632"):
+                    pose_noise=(1.0, 0.05), seed=0, geometry_seed=None, random_ties=None, crs="EPSG:32632"):
     """A block and its truth.
 
     Parameters
@@ -56,6 +56,9 @@ def synthetic_block(*, strips=3, images_per_strip=8, ties_per_image=12, control=
     geometry_seed : int, optional
         Seeds the geometry (tilts, point positions, check points) apart from the noise, so that
         Monte Carlo runs share one block.
+    random_ties : int, optional
+        Instead of the standard positions, this many tie points spread uniformly over the block
+        (large blocks for benchmarks).
 
     Returns
     -------
@@ -91,6 +94,9 @@ def synthetic_block(*, strips=3, images_per_strip=8, ties_per_image=12, control=
                     y = (s + r) * spacing + geo.uniform(-0.03, 0.03) * spacing
                     pts[key] = (x, y)
     tie_xy = np.array(list(pts.values()))
+    if random_ties:
+        tie_xy = np.stack([geo.uniform(-0.4 * along, (images_per_strip - 1) * base + 0.4 * along, int(random_ties)),
+                           geo.uniform(-0.4 * across, (strips - 1) * spacing + 0.4 * across, int(random_ties))], 1)
     x0, x1 = -0.4 * along, (images_per_strip - 1) * base + 0.4 * along
     y0, y1 = -0.4 * across, (strips - 1) * spacing + 0.4 * across
     inside = (tie_xy[:, 0] > x0) & (tie_xy[:, 0] < x1) & (tie_xy[:, 1] > y0) & (tie_xy[:, 1] < y1)
@@ -112,8 +118,18 @@ def synthetic_block(*, strips=3, images_per_strip=8, ties_per_image=12, control=
     xyz = np.column_stack([all_xy, _terrain(all_xy[:, 0], all_xy[:, 1])])
     # observations: every point in every image it falls in
     n, p = len(poses), len(xyz)
-    ii, jj = np.meshgrid(np.arange(n), np.arange(p), indexing="ij")
-    ii, jj = ii.ravel(), jj.ravel()
+    # candidate images of each point: the grid neighbours of its nearest image centre
+    kk = np.rint(xyz[:, 0] / base).astype(int)
+    ss = np.rint(xyz[:, 1] / spacing).astype(int)
+    reach_k, reach_s = int(np.ceil(0.5 * along / base)) + 1, int(np.ceil(0.5 * across / spacing)) + 1
+    cand_i, cand_j = [], []
+    for dk in range(-reach_k, reach_k + 1):
+        for ds in range(-reach_s, reach_s + 1):
+            k, s_ = kk + dk, ss + ds
+            ok = (k >= 0) & (k < images_per_strip) & (s_ >= 0) & (s_ < strips)
+            cand_i.append((s_ * images_per_strip + k)[ok])
+            cand_j.append(np.flatnonzero(ok))
+    ii, jj = np.concatenate(cand_i), np.concatenate(cand_j)
     pr = poses.copy()
     pr[:, 3:] = np.radians(pr[:, 3:])
     cam_row = np.array([[cam.focal_length, *cam.principal_point, cam.k1, cam.k2, cam.k3, cam.p1, cam.p2,
