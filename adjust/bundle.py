@@ -24,9 +24,10 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from ..camera import FrameCamera
 from ..errors import GeometryError, ParamError
 from .block import Block
-from .collinearity import jacobians, project
+from .collinearity import CALIBRATION, camera_jacobian, jacobians, project
 
 __all__ = ["bundle_adjust", "AdjustResult", "intersect"]
 
@@ -73,6 +74,11 @@ class AdjustResult:
         RMSE per axis (NaN without such points).
     check_errors : ndarray, shape (c, 3)
     correlation_warnings : list of (image id, name, name, correlation)
+    cameras : dict
+        camera id -> FrameCamera with the adjusted parameters (the given ones without
+        self-calibration).
+    camera_std : dict
+        camera id -> {parameter: sigma} of the self-calibrated parameters.
     """
 
     status: int
@@ -97,6 +103,8 @@ class AdjustResult:
     check_rmse: np.ndarray = None
     check_errors: np.ndarray = None
     correlation_warnings: list = field(default_factory=list)
+    cameras: dict = field(default_factory=dict)
+    camera_std: dict = field(default_factory=dict)
 
 
 def _inv3(m):
@@ -119,11 +127,17 @@ def _datum_check(block, used_points, control_free):
 class _Problem:
     """The adjustment's arrays: unknowns, observations, priors (see bundle_adjust)."""
 
-    def __init__(self, block, fix_control, use_gnss, use_ins):
+    def __init__(self, block, fix_control, use_gnss, use_ins, self_calibration=()):
         self.block = block
-        n, p = block.n_images, block.n_points
         roles = np.array(block.roles)
-        self.cam, self.size = block.camera_arrays()
+        self.cam_ids = list(block.cameras)
+        self.img_cam = np.array([self.cam_ids.index(c) for c in block.image_camera], dtype=np.int64)
+        rows, self.size = block.camera_arrays()
+        self.cams = np.array([rows[int(np.flatnonzero(self.img_cam == c)[0])] if np.any(self.img_cam == c)
+                              else np.zeros(10) for c in range(len(self.cam_ids))]).reshape(-1, 10)
+        self.calib = np.array([CALIBRATION.index(n) for n in self_calibration], dtype=np.int64)
+        self.calib_names = tuple(self_calibration)
+        self.q = len(self.calib)
         sig = block.xyz_sigma
         control = roles == "control"
         fixed = control & (fix_control | np.all(np.nan_to_num(sig, nan=1.0) == 0, axis=1))
@@ -136,11 +150,17 @@ class _Problem:
         self.poses0 = block.poses.copy()
         self.poses0[:, 3:] = np.radians(self.poses0[:, 3:])
 
-    def cost(self, poses, pts, sel, weights):
+    @property
+    def cam(self):
+        """Per-image camera rows (n, 10) of the current camera state."""
+        return self.cams[self.img_cam]
+
+    def cost(self, poses, pts, sel, weights, cams=None):
         """Weighted squared residuals of the selected observations and the priors."""
         b = self.block
         i, j = b.obs_image[sel], b.obs_point[sel]
-        v = b.obs_xy[sel] - project(poses[i], pts[j], self.cam[i], self.size[i])
+        rows = (self.cams if cams is None else cams)[self.img_cam[i]]
+        v = b.obs_xy[sel] - project(poses[i], pts[j], rows, self.size[i])
         c = np.sum(weights[sel, None] * (v / b.obs_sigma[sel, None]) ** 2)
         c += self._prior_cost(poses, pts)
         return c if np.isfinite(c) else np.inf
@@ -163,7 +183,9 @@ def _wrap(a):
 
 
 def _normal_blocks(pr, poses, pts, sel, weights):
-    """U (n,6,6), V (p,3,3), W per observation (m_sel,6,3), g_c (n,6), g_p (p,3)."""
+    """Normal-equation blocks: U (n,6,6), V (p,3,3), W per observation (m_sel,6,3), g_c (n,6),
+    g_p (p,3), and with self-calibration the image-camera blocks upc (n,6,q), the camera
+    blocks ucc (nc,q,q), g_cam (nc,q) and the camera-point blocks per observation (m_sel,q,3)."""
     b = pr.block
     n, p = b.n_images, b.n_points
     i, j = b.obs_image[sel], b.obs_point[sel]
@@ -181,6 +203,17 @@ def _normal_blocks(pr, poses, pts, sel, weights):
     gp = np.zeros((p, 3))
     np.add.at(gp, j, np.einsum("nij,nj->ni", jxt, r))
     wij = jpt @ jx
+    q = pr.q
+    nc = len(pr.cam_ids)
+    upc, ucc, gcam, wcj = np.zeros((n, 6, q)), np.zeros((nc, q, q)), np.zeros((nc, q)), np.zeros((len(i), q, 3))
+    if q:
+        jc = camera_jacobian(poses[i], pts[j], pr.cam[i], pr.size[i], pr.calib_names)
+        jct = np.transpose(jc, (0, 2, 1)) * w[:, None, None]
+        ci = pr.img_cam[i]
+        np.add.at(upc, i, jpt @ jc)
+        np.add.at(ucc, ci, jct @ jc)
+        np.add.at(gcam, ci, np.einsum("nij,nj->ni", jct, r))
+        wcj = jct @ jx
     # priors
     k = np.flatnonzero(pr.gnss)
     if len(k):
@@ -197,53 +230,84 @@ def _normal_blocks(pr, poses, pts, sel, weights):
         s2 = 1.0 / pr.prior_sigma[k] ** 2
         v[k[:, None], [0, 1, 2], [0, 1, 2]] += s2
         gp[k] += s2 * (b.xyz[k] - pts[k])
-    return u, v, wij, gc, gp
+    return dict(u=u, v=v, wij=wij, gc=gc, gp=gp, upc=upc, ucc=ucc, gcam=gcam, wcj=wcj)
 
 
 class _Structure:
-    """Index arrays of the sparse image-point matrix W (6n x 3p) for one set of observations,
-    built once per adjustment; S's point part is then one sparse product (W V^-1) W^T."""
+    """Index arrays of the sparse matrices of the reduced system for one set of observations,
+    built once per adjustment: W (camera side x 3p; the camera side is 6 per image, then q per
+    camera under self-calibration) and U; S's point part is one sparse product (W V^-1) W^T."""
 
     def __init__(self, pr, sel):
         b = pr.block
+        n, q, nc = b.n_images, pr.q, len(pr.cam_ids)
+        self.dim = 6 * n + q * nc
         i, j = b.obs_image[sel], b.obs_point[sel]
         self.keep = np.flatnonzero(pr.point_free[j])
         ii, jj = i[self.keep], j[self.keep]
         rr, cc = np.meshgrid(np.arange(6), np.arange(3), indexing="ij")
-        self.rows = ((6 * ii)[:, None, None] + rr).ravel()
-        self.cols = ((3 * jj)[:, None, None] + cc).ravel()
-        self.shape = (6 * b.n_images, 3 * b.n_points)
-        n = b.n_images
+        rows = [((6 * ii)[:, None, None] + rr).ravel()]
+        cols = [((3 * jj)[:, None, None] + cc).ravel()]
+        if q:
+            rq, cq = np.meshgrid(np.arange(q), np.arange(3), indexing="ij")
+            rows.append(((6 * n + q * pr.img_cam[ii])[:, None, None] + rq).ravel())
+            cols.append(((3 * jj)[:, None, None] + cq).ravel())
+        self.rows, self.cols = np.concatenate(rows), np.concatenate(cols)
+        self.shape = (self.dim, 3 * b.n_points)
         r6, c6 = np.meshgrid(np.arange(6), np.arange(6), indexing="ij")
-        self.u_rows = ((6 * np.arange(n))[:, None, None] + r6).ravel()
-        self.u_cols = ((6 * np.arange(n))[:, None, None] + c6).ravel()
+        ur = [((6 * np.arange(n))[:, None, None] + r6).ravel()]
+        uc = [((6 * np.arange(n))[:, None, None] + c6).ravel()]
+        if q:
+            a6, bq = np.meshgrid(np.arange(6), np.arange(q), indexing="ij")
+            camcol = (6 * n + q * pr.img_cam)[:, None, None] + bq
+            ur += [((6 * np.arange(n))[:, None, None] + a6).ravel(), camcol.ravel()]
+            uc += [camcol.ravel(), ((6 * np.arange(n))[:, None, None] + a6).ravel()]
+            aq, bq2 = np.meshgrid(np.arange(q), np.arange(q), indexing="ij")
+            ur.append(((6 * n + q * np.arange(nc))[:, None, None] + aq).ravel())
+            uc.append(((6 * n + q * np.arange(nc))[:, None, None] + bq2).ravel())
+        self.u_rows, self.u_cols = np.concatenate(ur), np.concatenate(uc)
 
 
 class _Reduced:
     """The reduced camera system of one set of normal blocks (factorised)."""
 
-    def __init__(self, pr, sel, u, v, wij, gc, gp, lam, structure=None):
+    def __init__(self, pr, sel, nb, lam, structure=None):
         b = pr.block
-        n = b.n_images
+        n, q = b.n_images, pr.q
         free = pr.point_free
         st = structure or _Structure(pr, sel)
+        self.n, self.q = n, q
         self.i, self.j = b.obs_image[sel], b.obs_point[sel]
         keep = free[self.j]  # observations of fixed points only touch U
+        u, v = nb["u"], nb["v"]
         ud = u + lam * np.einsum("nii->ni", u)[:, :, None] * np.eye(6)
         vd = v + lam * np.einsum("nii->ni", v)[:, :, None] * np.eye(3)
         vd[~free] = np.eye(3)
         self.vinv = _inv3(vd)
         self.vinv[~free] = 0.0
+        wij, wcj, gp = nb["wij"], nb["wcj"], nb["gp"]
         y = wij @ self.vinv[self.j]  # (m, 6, 3)
         y[~keep] = 0.0
-        w_sp = sp.csr_matrix((wij[st.keep].ravel(), (st.rows, st.cols)), shape=st.shape)
-        y_sp = sp.csr_matrix((y[st.keep].ravel(), (st.rows, st.cols)), shape=st.shape)
-        u_sp = sp.csr_matrix((ud.ravel(), (st.u_rows, st.u_cols)), shape=(6 * n, 6 * n))
+        yc = wcj @ self.vinv[self.j]  # (m, q, 3)
+        yc[~keep] = 0.0
+        wv = [wij[st.keep].ravel()] + ([wcj[st.keep].ravel()] if q else [])
+        yv = [y[st.keep].ravel()] + ([yc[st.keep].ravel()] if q else [])
+        w_sp = sp.csr_matrix((np.concatenate(wv), (st.rows, st.cols)), shape=st.shape)
+        y_sp = sp.csr_matrix((np.concatenate(yv), (st.rows, st.cols)), shape=st.shape)
+        uv_ = [ud.ravel()]
+        if q:
+            ucc = nb["ucc"] + lam * np.einsum("nii->ni", nb["ucc"])[:, :, None] * np.eye(q)
+            uv_ += [nb["upc"].ravel(), nb["upc"].ravel(), ucc.ravel()]  # U_pc and its transpose U_cp
+        u_sp = sp.csr_matrix((np.concatenate(uv_), (st.u_rows, st.u_cols)), shape=(st.dim, st.dim))
         self.s = (u_sp - y_sp @ w_sp.T).tocsc()
-        rhs = gc.copy()
+        rhs = nb["gc"].copy()
         np.add.at(rhs, self.i, -np.einsum("nij,nj->ni", y, gp[self.j]))
-        self.rhs = rhs.ravel()
-        self.y, self.wij, self.gp = y, wij, gp
+        rhs_c = nb["gcam"].copy()
+        if q:
+            np.add.at(rhs_c, pr.img_cam[self.i], -np.einsum("nij,nj->ni", yc, gp[self.j]))
+        self.rhs = np.concatenate([rhs.ravel(), rhs_c.ravel()])
+        self.y, self.yc, self.wij, self.wcj, self.gp = y, yc, wij, wcj, gp
+        self.img_cam = pr.img_cam
         try:
             self.lu = spla.splu(self.s)
         except RuntimeError as e:
@@ -251,14 +315,19 @@ class _Reduced:
                                 f"(insufficient geometry or datum): {e}") from e
 
     def solve(self):
-        dc = self.lu.solve(self.rhs).reshape(-1, 6)
+        d = self.lu.solve(self.rhs)
+        dc = d[:6 * self.n].reshape(-1, 6)
+        dcam = d[6 * self.n:].reshape(-1, self.q) if self.q else np.zeros((0, 0))
         t = self.gp.copy()
-        np.add.at(t, self.j, -np.einsum("nji,nj->ni", self.wij, dc[self.i]))
+        back = np.einsum("nji,nj->ni", self.wij, dc[self.i])
+        if self.q:
+            back += np.einsum("nji,nj->ni", self.wcj, dcam[self.img_cam[self.i]])
+        np.add.at(t, self.j, -back)
         dp = np.einsum("nij,nj->ni", self.vinv, t)
-        return dc, dp
+        return dc, dcam, dp
 
 
-def intersect(block, poses_deg, point_index, *, iterations=10):
+def intersect(block, poses_deg, point_index, *, iterations=10, cam_rows=None):
     """Least-squares (collinearity) intersection of points from their observations with the
     poses fixed, vectorised over the points.
 
@@ -269,6 +338,9 @@ def intersect(block, poses_deg, point_index, *, iterations=10):
         Poses (m, deg).
     point_index : array_like of int
         Points to intersect (each seen in >= 2 images).
+    cam_rows : ndarray, shape (n, 10), optional
+        Per-image camera parameters (see :mod:`~orthowarp.adjust.collinearity`); default the
+        block's cameras.
 
     Returns
     -------
@@ -282,6 +354,8 @@ def intersect(block, poses_deg, point_index, *, iterations=10):
     poses = poses_deg.copy()
     poses[:, 3:] = np.radians(poses[:, 3:])
     cam, size = block.camera_arrays()
+    if cam_rows is not None:
+        cam = cam_rows
     local = -np.ones(block.n_points, int)
     local[idx] = np.arange(len(idx))
     sel = np.flatnonzero(local[block.obs_point] >= 0)
@@ -325,9 +399,9 @@ def intersect(block, poses_deg, point_index, *, iterations=10):
     return x, np.linalg.inv(n_mat)
 
 
-def bundle_adjust(block, *, fix_control=False, use_gnss=True, use_ins=True, max_iterations=50, xtol=1e-8,
-                  ftol=1e-12, robust=None, huber_k=2.0, snooping=False, critical_w=3.29, max_rejections=None,
-                  covariance="auto", correlation_limit=0.95):
+def bundle_adjust(block, *, fix_control=False, use_gnss=True, use_ins=True, self_calibration=None,
+                  max_iterations=50, xtol=1e-8, ftol=1e-12, robust=None, huber_k=2.0, snooping=False,
+                  critical_w=3.29, max_rejections=None, covariance="auto", correlation_limit=0.95):
     """Adjust a block (see the module doc).
 
     Parameters
@@ -337,6 +411,9 @@ def bundle_adjust(block, *, fix_control=False, use_gnss=True, use_ins=True, max_
         Hold control points fixed instead of weighting them by their sigma.
     use_gnss, use_ins : bool, optional
         Use the images' GNSS positions / INS attitudes as weighted observations.
+    self_calibration : sequence of str or True, optional
+        Camera parameters to estimate per camera, from ``f, x0, y0, k1, k2, k3, p1, p2``
+        (True: ``f, x0, y0, k1, k2, p1, p2``); default none.
     max_iterations : int, optional
     xtol : float, optional
         Stop when the largest parameter change is below xtol (m; and xtol / 1000 rad).
@@ -387,7 +464,13 @@ def bundle_adjust(block, *, fix_control=False, use_gnss=True, use_ins=True, max_
     if len(single):
         raise ParamError(f"point '{b.point_ids[single[0]]}' is observed in {per_point[single[0]]} image(s); "
                          "tie and check points need at least 2")
-    pr = _Problem(b, fix_control, use_gnss, use_ins)
+    if self_calibration is True:
+        self_calibration = ("f", "x0", "y0", "k1", "k2", "p1", "p2")
+    self_calibration = tuple(self_calibration or ())
+    unknown = [c for c in self_calibration if c not in CALIBRATION]
+    if unknown or len(set(self_calibration)) != len(self_calibration):
+        raise ParamError(f"self_calibration must name distinct parameters among {CALIBRATION}, got {self_calibration!r}")
+    pr = _Problem(b, fix_control, use_gnss, use_ins, self_calibration)
     _datum_check(b, roles != "check", roles == "control")
     if covariance == "auto":
         covariance = "full" if b.n_images <= 200 else "poses"
@@ -438,20 +521,25 @@ def _solve(pr, poses, pts, used, weights, robust, huber_k, max_iterations, xtol,
             e = np.linalg.norm(v, axis=1) / b.obs_sigma[sel]
             weights[sel] = np.minimum(1.0, huber_k / np.maximum(e, 1e-12))
             cost = pr.cost(poses, pts, sel, weights)
-        u, v, wij, gc, gp = _normal_blocks(pr, poses, pts, sel, weights)
+        nb = _normal_blocks(pr, poses, pts, sel, weights)
         while True:
-            red = _Reduced(pr, sel, u, v, wij, gc, gp, lam, structure)
-            dc, dp = red.solve()
+            red = _Reduced(pr, sel, nb, lam, structure)
+            dc, dcam, dp = red.solve()
             dp[~pr.point_free] = 0.0
             new_poses, new_pts = poses + dc, pts + dp
-            new_cost = pr.cost(new_poses, new_pts, sel, weights)
+            new_cams = pr.cams.copy()
+            if pr.q:
+                new_cams[:, pr.calib] += dcam
+            new_cost = pr.cost(new_poses, new_pts, sel, weights, cams=new_cams)
             if new_cost <= cost or lam > 1e8:
                 break
             lam *= 10.0
-        step = max(np.abs(dc[:, :3]).max(initial=0), np.abs(dp).max(initial=0), 1000 * np.abs(dc[:, 3:]).max(initial=0))
+        step = max(np.abs(dc[:, :3]).max(initial=0), np.abs(dp).max(initial=0), 1000 * np.abs(dc[:, 3:]).max(initial=0),
+                   np.abs(dcam).max(initial=0) * 1e3)
         rel = (cost - new_cost) / max(cost, 1e-300)
         if new_cost <= cost:
             poses, pts, cost = new_poses, new_pts, new_cost
+            pr.cams = new_cams
             lam = max(lam / 10.0, 1e-12)
         if step < xtol:
             status = 1
@@ -466,16 +554,17 @@ def _statistics(pr, poses, pts, used, weights, cost, covariance):
     """sigma0, redundancy, covariances, residuals, redundancy numbers, w-tests."""
     b = pr.block
     sel = np.flatnonzero(used)
+    n, q, nc = b.n_images, pr.q, len(pr.cam_ids)
     n_rows = 2 * len(sel) + 3 * int(pr.gnss.sum()) + 3 * int(pr.ins.sum()) + 3 * int(pr.prior_point.sum())
-    n_unknowns = 6 * b.n_images + 3 * int(pr.point_free.sum())
+    n_unknowns = 6 * n + q * nc + 3 * int(pr.point_free.sum())
     redundancy = n_rows - n_unknowns
     if redundancy <= 0:
         raise GeometryError(f"Block '{b.name}': no redundancy ({n_rows} observations for {n_unknowns} unknowns)")
     s0 = float(np.sqrt(cost / redundancy))
-    u, v, wij, gc, gp = _normal_blocks(pr, poses, pts, sel, weights)
-    red = _Reduced(pr, sel, u, v, wij, gc, gp, 0.0)
-    n = b.n_images
-    out = dict(sigma0=s0, redundancy=redundancy, pose_q=None, point_q=None, w=None, rnum=None)
+    nb = _normal_blocks(pr, poses, pts, sel, weights)
+    red = _Reduced(pr, sel, nb, 0.0)
+    dim = 6 * n + q * nc
+    out = dict(sigma0=s0, redundancy=redundancy, pose_q=None, point_q=None, cam_q=None, w=None, rnum=None)
     resid = np.full((len(used), 2), np.nan)
     i, j = b.obs_image, b.obs_point
     okp = np.flatnonzero(roles_not_check(b))
@@ -485,20 +574,27 @@ def _statistics(pr, poses, pts, used, weights, cost, covariance):
     if len(check):
         pd = poses.copy()
         pd[:, 3:] = np.degrees(pd[:, 3:])
-        xyz, n_inv = intersect(b, pd, check)
+        xyz, n_inv = intersect(b, pd, check, cam_rows=pr.cam)
         out["check_xyz"], out["check_q"] = xyz, n_inv
         if covariance != "none":
-            # the poses' uncertainty, propagated: dx = N^-1 sum_i Jx_i^T P_i (dl_i - Jp_i dp), so
-            # Q_x = N^-1 + M^T S^-1 M with M = sum_i e_k(i) (Jp_i^T P_i Jx_i N^-1)
-            m = np.zeros((6 * n, 3 * len(check)))
+            # the orientation's uncertainty, propagated: dx = N^-1 sum_i Jx_i^T P_i (dl_i - Jc_i dc),
+            # so Q_x = N^-1 + M^T S^-1 M with M = sum_i e_c(i) (Jc_i^T P_i Jx_i N^-1), Jc = [Jpose Jcam]
+            m = np.zeros((dim, 3 * len(check)))
             for c, jj in enumerate(check):
                 sel_c = np.flatnonzero(b.obs_point == jj)
                 k = b.obs_image[sel_c]
-                _, jp, jx = jacobians(poses[k], np.tile(xyz[c], (len(k), 1)), pr.cam[k], pr.size[k])
+                xs = np.tile(xyz[c], (len(k), 1))
+                _, jp, jx = jacobians(poses[k], xs, pr.cam[k], pr.size[k])
                 wt = 1.0 / b.obs_sigma[sel_c] ** 2
                 blocks = np.einsum("n,nki,nkj->nij", wt, jp, jx) @ n_inv[c]
                 for a, kk in enumerate(k):
                     m[6 * kk:6 * kk + 6, 3 * c:3 * c + 3] += blocks[a]
+                if q:
+                    jc = camera_jacobian(poses[k], xs, pr.cam[k], pr.size[k], pr.calib_names)
+                    cblocks = np.einsum("n,nki,nkj->nij", wt, jc, jx) @ n_inv[c]
+                    for a, kk in enumerate(k):
+                        r0 = 6 * n + q * pr.img_cam[kk]
+                        m[r0:r0 + q, 3 * c:3 * c + 3] += cblocks[a]
             z = red.lu.solve(m)
             out["check_q"] = np.array([n_inv[c] + m[:, 3 * c:3 * c + 3].T @ z[:, 3 * c:3 * c + 3]
                                        for c in range(len(check))])
@@ -509,44 +605,68 @@ def _statistics(pr, poses, pts, used, weights, cost, covariance):
     batch = max(1, 3000 // 6)
     for k0 in range(0, n, batch):
         k1 = min(k0 + batch, n)
-        e = np.zeros((6 * n, 6 * (k1 - k0)))
+        e = np.zeros((dim, 6 * (k1 - k0)))
         e[np.arange(6 * k0, 6 * k1), np.arange(6 * (k1 - k0))] = 1.0
         z = red.lu.solve(e)
         for k in range(k0, k1):
             pose_q[k] = z[6 * k:6 * k + 6, 6 * (k - k0):6 * (k - k0) + 6]
     out["pose_q"] = pose_q
+    zc = None
+    if q:
+        e = np.zeros((dim, q * nc))
+        e[np.arange(6 * n, dim), np.arange(q * nc)] = 1.0
+        zc = red.lu.solve(e)  # the camera columns of S^-1 (pose-camera and camera blocks)
+        out["cam_q"] = np.array([zc[6 * n + q * c:6 * n + q * c + q, q * c:q * c + q] for c in range(nc)])
     if covariance != "full":
         return out
-    # point blocks: Q_pp = V^-1 + B^T S^-1 B with B_j = sum_i e_k(i) Y_i (Y = W V^-1); the
-    # same solves give the pose-point blocks Q_cp = -S^-1 B
-    y = red.y  # per selected observation (m_sel, 6, 3)
+    # point blocks: Q_pp = V^-1 + B^T S^-1 B with B_j = sum_i e_c(i) Y_i (Y = W V^-1); the same
+    # solves give the orientation-point blocks Q_cp = -S^-1 B
+    y, yc = red.y, red.yc
     p = b.n_points
     point_q = np.zeros((p, 3, 3))
     free = np.flatnonzero(pr.point_free)
     rows_of = {}
-    for a, (ii, jj) in enumerate(zip(red.i, red.j)):
+    for a, jj in enumerate(red.j):
         rows_of.setdefault(jj, []).append(a)
-    qcp = np.zeros((len(sel), 6, 3))
+    qcp = np.zeros((len(sel), 6 + q, 3))
     pbatch = max(1, 1500 // 3)
     for s0_ in range(0, len(free), pbatch):
         chunk = free[s0_:s0_ + pbatch]
-        bm = np.zeros((6 * n, 3 * len(chunk)))
+        bm = np.zeros((dim, 3 * len(chunk)))
         for c, jj in enumerate(chunk):
             for a in rows_of.get(jj, []):
                 k = red.i[a]
                 bm[6 * k:6 * k + 6, 3 * c:3 * c + 3] += y[a]
+                if q:
+                    r0 = 6 * n + q * pr.img_cam[k]
+                    bm[r0:r0 + q, 3 * c:3 * c + 3] += yc[a]
         z = red.lu.solve(bm)
         for c, jj in enumerate(chunk):
-            zc = z[:, 3 * c:3 * c + 3]
-            point_q[jj] = red.vinv[jj] + bm[:, 3 * c:3 * c + 3].T @ zc
+            zj = z[:, 3 * c:3 * c + 3]
+            point_q[jj] = red.vinv[jj] + bm[:, 3 * c:3 * c + 3].T @ zj
             for a in rows_of.get(jj, []):
                 k = red.i[a]
-                qcp[a] = -zc[6 * k:6 * k + 6]
+                qcp[a, :6] = -zj[6 * k:6 * k + 6]
+                if q:
+                    r0 = 6 * n + q * pr.img_cam[k]
+                    qcp[a, 6:] = -zj[r0:r0 + q]
     out["point_q"] = point_q
     # redundancy numbers and w-tests of the image observations
     pix, jp, jx = jacobians(poses[red.i], pts[red.j], pr.cam[red.i], pr.size[red.i])
-    q_hat = (jp @ pose_q[red.i] @ np.transpose(jp, (0, 2, 1)) + jx @ point_q[red.j] @ np.transpose(jx, (0, 2, 1))
-             + jp @ qcp @ np.transpose(jx, (0, 2, 1)) + jx @ np.transpose(qcp, (0, 2, 1)) @ np.transpose(jp, (0, 2, 1)))
+    qc = np.zeros((len(sel), 6 + q, 6 + q))
+    qc[:, :6, :6] = pose_q[red.i]
+    jfull = jp
+    if q:
+        jc = camera_jacobian(poses[red.i], pts[red.j], pr.cam[red.i], pr.size[red.i], pr.calib_names)
+        jfull = np.concatenate([jp, jc], axis=2)
+        ci = pr.img_cam[red.i]
+        for a in range(len(sel)):
+            k, c = red.i[a], ci[a]
+            qkc = zc[6 * k:6 * k + 6, q * c:q * c + q]
+            qc[a, :6, 6:], qc[a, 6:, :6], qc[a, 6:, 6:] = qkc, qkc.T, out["cam_q"][c]
+    jft = np.transpose(jfull, (0, 2, 1))
+    cross = jfull @ qcp @ np.transpose(jx, (0, 2, 1))
+    q_hat = jfull @ qc @ jft + jx @ point_q[red.j] @ np.transpose(jx, (0, 2, 1)) + cross + np.transpose(cross, (0, 2, 1))
     sig2 = (b.obs_sigma[sel] ** 2 / weights[sel])[:, None]
     rnum = np.full((len(used), 2), np.nan)
     rnum[sel] = 1.0 - np.einsum("nii->ni", q_hat) / sig2
@@ -597,6 +717,14 @@ def _result(pr, poses, pts, used, st, status, it, cost, rejected, corr_limit):
             point_std[b.point_ids[j]] = tuple(st["sigma0"] * np.sqrt(np.diag(cov[c])))
         check_err = xyz - b.xyz[check]
         check_rmse = np.sqrt(np.mean(check_err**2, axis=0))
+    cameras, camera_std = {}, {}
+    for c, cid in enumerate(pr.cam_ids):
+        base = b.cameras[cid]
+        f, x0, y0, k1, k2, k3, p1, p2 = pr.cams[c, :8]
+        cameras[cid] = FrameCamera(f, base.pixel_size, base.image_size, principal_point=(x0, y0), k1=k1, k2=k2,
+                                   k3=k3, p1=p1, p2=p2) if pr.q else base
+        if pr.q and st.get("cam_q") is not None:
+            camera_std[cid] = dict(zip(pr.calib_names, (float(v) for v in st["sigma0"] * np.sqrt(np.diag(st["cam_q"][c])))))
     messages = {0: "the iteration limit was reached", 1: "converged: parameter change below xtol",
                 2: "converged: relative cost change below ftol"}
     return AdjustResult(
@@ -608,4 +736,4 @@ def _result(pr, poses, pts, used, st, status, it, cost, rejected, corr_limit):
         pose_cov=pose_cov, points=points, point_std=point_std, point_cov=point_cov,
         residuals=st["residuals"], redundancy_numbers=st["rnum"], w_tests=st["w"], used=used, rejected=rejected,
         control_rmse=control_rmse, check_rmse=check_rmse, check_errors=check_err,
-        correlation_warnings=warnings)
+        correlation_warnings=warnings, cameras=cameras, camera_std=camera_std)

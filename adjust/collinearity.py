@@ -125,3 +125,29 @@ def jacobians(poses, points, cam, size):
         dxc = np.einsum("nji,nj->ni", dr[:, k], d)  # d(R^T d)/d angle = (dR/d angle)^T d
         j_pose[:, :, 3 + k] = np.einsum("nij,nj->ni", chain, dxc)
     return pix, j_pose, j_point
+
+
+CALIBRATION = ("f", "x0", "y0", "k1", "k2", "k3", "p1", "p2")
+
+
+def camera_jacobian(poses, points, cam, size, which):
+    """Jacobian (m, 2, q) of the pixels by the camera parameters named in ``which`` (a subset
+    of :data:`CALIBRATION`; f, x0, y0 in mm, the Brown coefficients as defined on OpenCV
+    normalised coordinates). The normalised coordinates do not depend on them: only the
+    distortion and the scaling to pixels do."""
+    r, _ = rotation(poses[:, 3:])
+    xc = np.einsum("nji,nj->ni", r, points - poses[:, :3])
+    uv, _ = _normalised(cam, xc)
+    uvd, _ = _distort(cam, uv)
+    u, v = uv[:, 0], uv[:, 1]
+    r2 = u * u + v * v
+    fx, fy = cam[:, 0] / cam[:, 8], cam[:, 0] / cam[:, 9]
+    cols = {"f": (uvd[:, 0] / cam[:, 8], uvd[:, 1] / cam[:, 9]),
+            "x0": (1.0 / cam[:, 8], 0.0 * u), "y0": (0.0 * u, -1.0 / cam[:, 9]),
+            "k1": (fx * u * r2, fy * v * r2), "k2": (fx * u * r2**2, fy * v * r2**2),
+            "k3": (fx * u * r2**3, fy * v * r2**3),
+            "p1": (fx * 2 * u * v, fy * (r2 + 2 * v * v)), "p2": (fx * (r2 + 2 * u * u), fy * 2 * u * v)}
+    out = np.empty((len(poses), 2, len(which)))
+    for k, name in enumerate(which):
+        out[:, 0, k], out[:, 1, k] = cols[name]
+    return out

@@ -30,7 +30,8 @@ def _terrain(x, y):
 
 def synthetic_block(*, strips=3, images_per_strip=8, ties_per_image=12, control="A", n_check=12, sigma_px=0.5,
                     sigma_control=0.02, gnss_sigma=None, ins_sigma=None, flying_height=1500.0, forward=0.6, side=0.3,
-                    pose_noise=(1.0, 0.05), seed=0, geometry_seed=None, random_ties=None, crs="EPSG:32632"):
+                    pose_noise=(1.0, 0.05), seed=0, geometry_seed=None, random_ties=None, true_camera=None,
+                    crs="EPSG:32632"):
     """A block and its truth.
 
     Parameters
@@ -59,6 +60,9 @@ def synthetic_block(*, strips=3, images_per_strip=8, ties_per_image=12, control=
     random_ties : int, optional
         Instead of the standard positions, this many tie points spread uniformly over the block
         (large blocks for benchmarks).
+    true_camera : FrameCamera, optional
+        The camera that takes the images (for self-calibration tests); the block keeps the
+        nominal one (f = 100 mm, 9 um pixels, no distortion). Its image size must be 7000 x 10000.
 
     Returns
     -------
@@ -132,8 +136,11 @@ def synthetic_block(*, strips=3, images_per_strip=8, ties_per_image=12, control=
     ii, jj = np.concatenate(cand_i), np.concatenate(cand_j)
     pr = poses.copy()
     pr[:, 3:] = np.radians(pr[:, 3:])
-    cam_row = np.array([[cam.focal_length, *cam.principal_point, cam.k1, cam.k2, cam.k3, cam.p1, cam.p2,
-                         *cam.pixel_size]])
+    shoot = true_camera or cam
+    if tuple(shoot.image_size) != tuple(cam.image_size):
+        raise ParamError(f"true_camera must be {cam.image_size[0]} x {cam.image_size[1]} pixels")
+    cam_row = np.array([[shoot.focal_length, *shoot.principal_point, shoot.k1, shoot.k2, shoot.k3, shoot.p1,
+                         shoot.p2, *shoot.pixel_size]])
     size = np.array([cam.image_size], float)
     pix = project(pr[ii], xyz[jj], np.repeat(cam_row, len(ii), 0), np.repeat(size, len(ii), 0))
     margin = 50

@@ -43,7 +43,8 @@ def write_adjustment(result, block, out_dir, *, plots=True):
     write_text(paths["exterior"], _csv(rows))
     write_text(os.path.join(out_dir, "exterior.prj"), CRS.from_user_input(b.crs).to_wkt())
     paths["cameras"] = os.path.join(out_dir, "cameras.yaml")
-    write_text(paths["cameras"], yaml.safe_dump({cid: _camera_dict(c) for cid, c in b.cameras.items()}))
+    cams = result.cameras or b.cameras
+    write_text(paths["cameras"], yaml.safe_dump({cid: _camera_dict(c) for cid, c in cams.items()}))
     prow = [("point", "role", "x", "y", "z", "sx", "sy", "sz")]
     for pid, role in zip(b.point_ids, b.roles):
         xyz = result.points.get(pid, (np.nan,) * 3)
@@ -62,7 +63,8 @@ def write_adjustment(result, block, out_dir, *, plots=True):
         pose_std={k: [float(x) for x in v] for k, v in result.pose_std.items()},
         rejected=[dict(image=i, point=p, w=w) for i, p, w in result.rejected],
         correlation_warnings=[dict(image=i, a=a, b=c, r=r) for i, a, c, r in result.correlation_warnings],
-        max_abs_w=float(np.nanmax(np.abs(result.w_tests))) if result.w_tests is not None else None)
+        max_abs_w=float(np.nanmax(np.abs(result.w_tests))) if result.w_tests is not None else None,
+        camera_std=result.camera_std)
     paths["report"] = os.path.join(out_dir, "report.json")
     write_json(paths["report"], report)
     if plots:

@@ -70,3 +70,18 @@ def test_points_behind_the_camera_are_nan(setup):
     above = ground[:1].copy()
     above[0, 2] = 3000.0
     assert np.all(np.isnan(project(pose[None], above, c, s)))
+
+
+def test_camera_jacobian_matches_finite_differences(setup):
+    from orthowarp.adjust.collinearity import CALIBRATION, camera_jacobian
+
+    cam, pose, _, _, ground = setup
+    n = len(ground)
+    poses = np.tile(pose, (n, 1))
+    c, s = camera_rows(cam, n)
+    jc = camera_jacobian(poses, ground, c, s, CALIBRATION)
+    for k, h in enumerate([1e-4, 1e-4, 1e-4, 1e-5, 1e-5, 1e-5, 1e-6, 1e-6]):
+        dc = np.zeros(10)
+        dc[k] = h
+        num = (project(poses, ground, c + dc, s) - project(poses, ground, c - dc, s)) / (2 * h)
+        np.testing.assert_allclose(jc[:, :, k], num, rtol=1e-5, atol=1e-6, err_msg=str(k))  # px per unit
