@@ -77,7 +77,7 @@ class Cookbook:
         cols = np.repeat(cols, 2, axis=0).ravel()
         a = sp.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(2 * m, 6 * self.n + 3 * len(self.free)))
         k = len(self.ctrl)
-        crow = 2 * m + np.arange(3 * k)
+        crow = np.arange(3 * k)
         ccol = (6 * self.n + 3 * self.col[self.ctrl][:, None] + np.arange(3)).ravel()
         c = sp.coo_matrix((np.ones(3 * k), (crow, ccol)), shape=(3 * k, a.shape[1]))
         return sp.vstack([a, c]).tocsr()

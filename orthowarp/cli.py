@@ -174,17 +174,20 @@ def ortho(ctx, images, int_param, ext_param, dimap, attitude_model, dem, height,
 @click.option("--snooping", is_flag=True, help="Baarda data snooping with iterative rejection.")
 @click.option("--robust", type=click.Choice(["huber"]), default=None, help="Robust loss.")
 @click.option("--covariance", type=click.Choice(["auto", "full", "poses", "none"]), default="auto", show_default=True)
+@click.option("--self-calibration", "self_cal", default=None,
+              help="Camera parameters to estimate: 'all' (f,x0,y0,k1,k2,p1,p2) or a comma list of f,x0,y0,k1,k2,k3,p1,p2.")
 @click.option("--no-plots", is_flag=True, help="Skip the PNG plots.")
 @click.pass_context
-def adjust(ctx, block_file, out_dir, fix_control, no_gnss, no_ins, snooping, robust, covariance, no_plots):
+def adjust(ctx, block_file, out_dir, fix_control, no_gnss, no_ins, snooping, robust, covariance, self_cal, no_plots):
     """Bundle-adjust the block in BLOCK_FILE (JSON) and write the refined orientation, points and
     reports into --out."""
     from .adjust import bundle_adjust, read_block
     from .pipeline.adjust_report import write_adjustment
 
     block = read_block(block_file)
+    calib = None if not self_cal else (True if self_cal == "all" else tuple(x.strip() for x in self_cal.split(",")))
     result = bundle_adjust(block, fix_control=fix_control, use_gnss=not no_gnss, use_ins=not no_ins,
-                           snooping=snooping, robust=robust, covariance=covariance)
+                           snooping=snooping, robust=robust, covariance=covariance, self_calibration=calib)
     paths = write_adjustment(result, block, out_dir, plots=not no_plots)
     if not ctx.obj["quiet"]:
         click.echo(f"{result.message}; sigma0 {result.sigma0:.4f}, redundancy {result.redundancy}; "

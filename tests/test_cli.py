@@ -123,7 +123,8 @@ def test_adjust_command(tmp_path):
     block, truth = synthetic_block(strips=2, images_per_strip=4, seed=11)
     write_block(block, tmp_path / "block.json")
     out = tmp_path / "adj"
-    r = CliRunner().invoke(main, ["adjust", str(tmp_path / "block.json"), "--out", str(out), "--snooping"])
+    r = CliRunner().invoke(main, ["adjust", str(tmp_path / "block.json"), "--out", str(out), "--snooping",
+                                  "--self-calibration", "k1,p1"])
     assert r.exit_code == 0, r.output
     for name in ("exterior.csv", "exterior.prj", "cameras.yaml", "points.csv", "report.json", "report.md",
                  "residuals.png", "errors.png"):
@@ -135,11 +136,12 @@ def test_adjust_command(tmp_path):
     assert set(ext) == set(block.image_ids)
     from orthowarp.adjust import read_block, bundle_adjust
 
-    res = bundle_adjust(read_block(tmp_path / "block.json"), snooping=True)
+    res = bundle_adjust(read_block(tmp_path / "block.json"), snooping=True, self_calibration=("k1", "p1"))
     for iid in block.image_ids:
         p = ext[iid].pose.params
         np.testing.assert_allclose([p[k] for k in ("x", "y", "z", "omega", "phi", "kappa")], res.poses[iid], atol=1e-5)
-    c0, c1 = block.cameras["cam"], cams["cam"]
-    assert c1.focal_length == c0.focal_length and c1.image_size == c0.image_size
+    c0, c1 = res.cameras["cam"], cams["cam"]  # the self-calibrated camera, as the ortho reads it
+    assert c1.image_size == c0.image_size
+    np.testing.assert_allclose([c1.focal_length, c1.k1, c1.p1], [c0.focal_length, c0.k1, c0.p1], rtol=1e-12, atol=1e-15)
     r = CliRunner().invoke(main, ["adjust", str(tmp_path / "missing.json"), "--out", str(out)])
     assert r.exit_code == 1 and "missing.json" in r.output
