@@ -211,43 +211,38 @@ def _csv_rows(path):
     return [c.strip().lower() for c in rows[0]], rows[1:]
 
 
-def read_image_points_csv(path, *, sigma=1.0):
-    """Image points ``image,point,col,row[,sigma]`` -> list of observation dicts."""
+def _csv_records(path, need, make):
+    """make(row, column index) for every data row of a CSV whose header names ``need``."""
     path = os.fspath(path)
     head, rows = _csv_rows(path)
-    need = ["image", "point", "col", "row"]
     if any(h not in head for h in need):
         raise _fail(path, f"the header must name {', '.join(need)} (got {', '.join(head)})")
     idx = {h: head.index(h) for h in head}
     out = []
     for n, r in enumerate(rows, start=2):
         try:
-            ob = {"image": r[idx["image"]], "point": r[idx["point"]], "col": float(r[idx["col"]]),
-                  "row": float(r[idx["row"]]), "sigma": float(r[idx["sigma"]]) if "sigma" in idx else float(sigma)}
+            out.append(make(r, idx))
         except (IndexError, ValueError) as e:
             raise _fail(path, f"line {n}: {e}") from e
-        out.append(ob)
     return out
+
+
+def read_image_points_csv(path, *, sigma=1.0):
+    """Image points ``image,point,col,row[,sigma]`` -> list of observation dicts."""
+    return _csv_records(path, ["image", "point", "col", "row"], lambda r, idx: {
+        "image": r[idx["image"]], "point": r[idx["point"]], "col": float(r[idx["col"]]), "row": float(r[idx["row"]]),
+        "sigma": float(r[idx["sigma"]]) if "sigma" in idx else float(sigma)})
 
 
 def read_ground_points_csv(path, *, sigma=None, role="control"):
     """Ground points ``point,x,y,z[,sx,sy,sz][,role]`` -> list of point dicts."""
-    path = os.fspath(path)
-    head, rows = _csv_rows(path)
-    need = ["point", "x", "y", "z"]
-    if any(h not in head for h in need):
-        raise _fail(path, f"the header must name {', '.join(need)} (got {', '.join(head)})")
-    idx = {h: head.index(h) for h in head}
-    out = []
-    for n, r in enumerate(rows, start=2):
-        try:
-            pt = {"id": r[idx["point"]], "role": r[idx["role"]].strip() if "role" in idx else role,
-                  "xyz": [float(r[idx[a]]) for a in "xyz"]}
-            if all(f"s{a}" in idx for a in "xyz"):
-                pt["sigma"] = [float(r[idx[f"s{a}"]]) for a in "xyz"]
-            elif sigma is not None:
-                pt["sigma"] = [float(sigma)] * 3
-        except (IndexError, ValueError) as e:
-            raise _fail(path, f"line {n}: {e}") from e
-        out.append(pt)
-    return out
+    def make(r, idx):
+        pt = {"id": r[idx["point"]], "role": r[idx["role"]].strip() if "role" in idx else role,
+              "xyz": [float(r[idx[a]]) for a in "xyz"]}
+        if all(f"s{a}" in idx for a in "xyz"):
+            pt["sigma"] = [float(r[idx[f"s{a}"]]) for a in "xyz"]
+        elif sigma is not None:
+            pt["sigma"] = [float(sigma)] * 3
+        return pt
+
+    return _csv_records(path, ["point", "x", "y", "z"], make)
