@@ -399,6 +399,78 @@ def intersect(block, poses_deg, point_index, *, iterations=10, cam_rows=None):
     return x, np.linalg.inv(n_mat)
 
 
+def resect(block, k, xyz, obs_idx, *, iterations=15):
+    """Space resection of image k from ground points xyz (m, 3) measured at observations
+    obs_idx (m,): a 2-D similarity between the image and the ground (near-vertical imagery)
+    gives kappa, scale and position, then Gauss-Newton on the six parameters. Returns the pose
+    (6,) in m and radians, or None when it does not converge."""
+    cam_rows, size = block.camera_arrays()
+    c = block.cameras[block.image_camera[k]]
+    uv = c.undistort(c.pixel_to_normalized(block.obs_xy[obs_idx]))
+    img = np.stack([uv[:, 0], -uv[:, 1]], 1) * c.focal_length  # image mm, y up
+    gi, gg = img - img.mean(axis=0), xyz[:, :2] - xyz[:, :2].mean(axis=0)
+    zi, zg = gi[:, 0] + 1j * gi[:, 1], gg[:, 0] + 1j * gg[:, 1]
+    a = np.sum(np.conj(zi) * zg) / np.sum(np.abs(zi) ** 2)  # ground = a * image (complex similarity)
+    scale, kappa = abs(a), np.angle(a)
+    t = xyz[:, :2].mean(axis=0) - np.array([(a * (img.mean(axis=0) @ [1, 1j])).real,
+                                            (a * (img.mean(axis=0) @ [1, 1j])).imag])
+    pose = np.array([t[0], t[1], xyz[:, 2].mean() + scale * c.focal_length, 0.0, 0.0, kappa])
+    rows = np.repeat(cam_rows[k:k + 1], len(xyz), 0)
+    sz = np.repeat(size[k:k + 1], len(xyz), 0)
+    for _ in range(iterations):
+        pix, jp, _ = jacobians(np.tile(pose, (len(xyz), 1)), xyz, rows, sz)
+        r = (block.obs_xy[obs_idx] - pix).ravel()
+        jm = jp.reshape(-1, 6)
+        if not np.all(np.isfinite(r)):
+            return None
+        d = np.linalg.lstsq(jm, r, rcond=None)[0]
+        pose = pose + d
+        if np.max(np.abs(d[:3])) < 1e-6 and np.max(np.abs(d[3:])) < 1e-10:
+            return pose
+    return pose if np.all(np.isfinite(pose)) else None
+
+
+def _initial_poses(block):
+    """Initial poses (n, 6; m, deg): given ones; else GNSS position + INS attitude; else
+    space resection on control points and on tie points intersected from images already
+    oriented, repeated until every image is oriented (ParamError naming those that cannot)."""
+    b = block
+    poses = b.poses.copy()
+    missing = ~np.all(np.isfinite(poses), axis=1)
+    both = missing & np.all(np.isfinite(b.gnss_xyz), axis=1) & np.all(np.isfinite(b.ins_opk), axis=1)
+    poses[both] = np.concatenate([b.gnss_xyz[both], b.ins_opk[both]], axis=1)
+    missing &= ~both
+    roles = np.array(b.roles)
+    known = np.where((roles == "control")[:, None], b.xyz, np.nan)
+    while np.any(missing):
+        # tie points seen by >= 2 oriented images
+        oriented = ~missing
+        ok_obs = oriented[b.obs_image]
+        counts = np.bincount(b.obs_point[ok_obs], minlength=b.n_points)
+        new = np.flatnonzero((counts >= 2) & (roles == "tie") & ~np.all(np.isfinite(known), axis=1))
+        if len(new):
+            sub = Block(crs=b.crs, cameras=b.cameras, image_ids=b.image_ids, image_camera=b.image_camera,
+                        poses=np.where(oriented[:, None], poses, 0.0), point_ids=b.point_ids, roles=b.roles,
+                        xyz=b.xyz, xyz_sigma=b.xyz_sigma, obs_image=b.obs_image[ok_obs], obs_point=b.obs_point[ok_obs],
+                        obs_xy=b.obs_xy[ok_obs], obs_sigma=b.obs_sigma[ok_obs], name=b.name)
+            known[new] = intersect(sub, sub.poses, new)[0]
+        progress = False
+        for k in np.flatnonzero(missing):
+            obs = np.flatnonzero((b.obs_image == k) & np.all(np.isfinite(known[b.obs_point]), axis=1))
+            if len(obs) < 4:
+                continue
+            pose = resect(b, k, known[b.obs_point[obs]], obs)
+            if pose is not None:
+                poses[k] = np.r_[pose[:3], np.degrees(pose[3:])]
+                missing[k] = False
+                progress = True
+        if not progress:
+            names = ", ".join(b.image_ids[k] for k in np.flatnonzero(missing)[:5])
+            raise ParamError(f"no initial pose for image(s) {names}: give one (or GNSS/INS), or measure at least 4 "
+                             "control points or tie points shared with oriented images in each")
+    return poses
+
+
 def bundle_adjust(block, *, fix_control=False, use_gnss=True, use_ins=True, self_calibration=None,
                   max_iterations=50, xtol=1e-8, ftol=1e-12, robust=None, huber_k=2.0, snooping=False,
                   critical_w=3.29, max_rejections=None, covariance="auto", correlation_limit=0.95):
@@ -451,10 +523,6 @@ def bundle_adjust(block, *, fix_control=False, use_gnss=True, use_ins=True, self
         raise ParamError(f"robust must be None or 'huber', got {robust!r}")
     b = block
     roles = np.array(b.roles)
-    if not np.all(np.isfinite(b.poses)):
-        k = int(np.flatnonzero(~np.all(np.isfinite(b.poses), axis=1))[0])
-        raise ParamError(f"image '{b.image_ids[k]}' has no initial pose (space resection is not available yet: "
-                         "give one, e.g. from GNSS/INS)")
     adj_obs = roles[b.obs_point] != "check"
     per_image = np.bincount(b.obs_image[adj_obs], minlength=b.n_images)
     if np.any(per_image == 0):
@@ -470,7 +538,10 @@ def bundle_adjust(block, *, fix_control=False, use_gnss=True, use_ins=True, self
     unknown = [c for c in self_calibration if c not in CALIBRATION]
     if unknown or len(set(self_calibration)) != len(self_calibration):
         raise ParamError(f"self_calibration must name distinct parameters among {CALIBRATION}, got {self_calibration!r}")
+    init = _initial_poses(b)
     pr = _Problem(b, fix_control, use_gnss, use_ins, self_calibration)
+    pr.poses0 = init.copy()
+    pr.poses0[:, 3:] = np.radians(pr.poses0[:, 3:])
     _datum_check(b, roles != "check", roles == "control")
     if covariance == "auto":
         covariance = "full" if b.n_images <= 200 else "poses"
@@ -478,7 +549,7 @@ def bundle_adjust(block, *, fix_control=False, use_gnss=True, use_ins=True, self
     pts = b.xyz.copy()
     missing = np.flatnonzero(pr.point_free & ~np.all(np.isfinite(pts), axis=1))
     if len(missing):
-        pts[missing] = intersect(b, b.poses, missing)[0]
+        pts[missing] = intersect(b, init, missing)[0]
     pts[roles == "check"] = 0.0
     used = adj_obs.copy()
     rejected = []

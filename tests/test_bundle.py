@@ -172,3 +172,23 @@ def test_self_calibration_recovers_the_camera():
     assert np.all((rn > 0) & (rn < 1))
     with pytest.raises(ParamError, match="self_calibration"):
         bundle_adjust(block, self_calibration=("f", "zoom"))
+
+
+def test_missing_initial_poses_come_from_resection():
+    """Images without an initial pose are oriented by space resection on control points and on
+    tie points intersected from oriented images; the adjustment then matches the one started
+    from the given poses."""
+    block, truth = synthetic_block(strips=2, images_per_strip=6, ties_per_image=12, seed=13)
+    ref = bundle_adjust(block)
+    block.poses[[1, 2, 3, 7, 9]] = np.nan
+    res = bundle_adjust(block)
+    np.testing.assert_allclose(estimates(res, block), estimates(ref, block), atol=1e-5)
+    block.poses[:] = np.nan
+    with pytest.raises(ParamError, match="no initial pose for image"):
+        keep = np.array(block.roles)[block.obs_point] != "control"  # nothing to start from
+        Block_ = type(block)
+        bare = Block_(crs=block.crs, cameras=block.cameras, image_ids=block.image_ids, image_camera=block.image_camera,
+                      poses=block.poses, point_ids=block.point_ids, roles=block.roles, xyz=block.xyz,
+                      xyz_sigma=block.xyz_sigma, obs_image=block.obs_image[keep], obs_point=block.obs_point[keep],
+                      obs_xy=block.obs_xy[keep], obs_sigma=block.obs_sigma[keep])
+        bundle_adjust(bare)
