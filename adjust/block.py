@@ -19,12 +19,18 @@ ROLES = ("control", "check", "tie")
 
 @dataclass
 class Block:
-    """A block of frame images in a projected CRS (map-Cartesian mode).
+    """A block of frame images: map-Cartesian (projected CRS) or geocentric (GNSS/INS).
+
+    In ``mode="geocentric"`` poses are latitude, longitude (deg), ellipsoidal height (m),
+    roll, pitch, yaw (deg, DESIGN.md's GNSS/INS convention), points and GNSS positions are
+    latitude, longitude, height, INS observations roll, pitch, yaw, and sigmas of positions
+    are east, north, up (m); see :mod:`orthowarp.adjust.geocentric`.
 
     Attributes
     ----------
     crs : str
-        The projected CRS of poses and points.
+        The projected CRS of poses and points (map mode), or a geographic 3-D CRS such as
+        EPSG:4979 (geocentric mode).
     cameras : dict of str -> FrameCamera
     image_ids : list of str, length n
     image_camera : list of str, length n
@@ -70,8 +76,11 @@ class Block:
     ins_opk: np.ndarray = None
     ins_sigma: np.ndarray = None
     name: str = field(default="block")
+    mode: str = field(default="map")
 
     def __post_init__(self):
+        if self.mode not in ("map", "geocentric"):
+            raise ParamError(f"block mode must be 'map' or 'geocentric', got {self.mode!r}")
         n, p = len(self.image_ids), len(self.point_ids)
         nan3 = np.full((n, 3), np.nan)
         for attr in ("gnss_xyz", "gnss_sigma", "ins_opk", "ins_sigma"):

@@ -79,6 +79,10 @@ class AdjustResult:
         self-calibration).
     camera_std : dict
         camera id -> {parameter: sigma} of the self-calibrated parameters.
+    local_frame : LocalFrame or None
+        Geocentric blocks: the east-north-up frame the adjustment ran in; poses and points are
+        given back as (lat, lon, h, roll, pitch, yaw) and (lat, lon, h), sigmas and RMSEs in
+        that frame (m, deg).
     """
 
     status: int
@@ -105,6 +109,7 @@ class AdjustResult:
     correlation_warnings: list = field(default_factory=list)
     cameras: dict = field(default_factory=dict)
     camera_std: dict = field(default_factory=dict)
+    local_frame: object = None
 
 
 def _inv3(m):
@@ -517,6 +522,15 @@ def bundle_adjust(block, *, fix_control=False, use_gnss=True, use_ins=True, self
     """
     if not isinstance(block, Block):
         raise ParamError(f"block must be a Block, got {type(block).__name__}")
+    if block.mode == "geocentric":
+        from .geocentric import from_local, to_local
+
+        local, frame = to_local(block)
+        res = bundle_adjust(local, fix_control=fix_control, use_gnss=use_gnss, use_ins=use_ins,
+                            self_calibration=self_calibration, max_iterations=max_iterations, xtol=xtol, ftol=ftol,
+                            robust=robust, huber_k=huber_k, snooping=snooping, critical_w=critical_w,
+                            max_rejections=max_rejections, covariance=covariance, correlation_limit=correlation_limit)
+        return from_local(res, frame)
     if covariance not in ("auto", "full", "poses", "none"):
         raise ParamError(f"covariance must be 'auto', 'full', 'poses' or 'none', got {covariance!r}")
     if robust not in (None, "huber"):

@@ -4,7 +4,8 @@ reads, adjusted points, a JSON report, and a readable report with plots (matplot
 Files written into the output folder (each atomically):
 
 - ``exterior.csv`` + ``exterior.prj``: ``filename,x,y,z,omega,phi,kappa`` (m, deg) in the
-  block's CRS: ``orthowarp ortho --ext-param exterior.csv``;
+  block's CRS (geocentric blocks: ``filename,latitude,longitude,altitude,roll,pitch,yaw``, no
+  .prj): ``orthowarp ortho --ext-param exterior.csv``;
 - ``cameras.yaml``: the cameras in orthority's format: ``--int-param cameras.yaml``;
 - ``points.csv``: ``point,role,x,y,z,sx,sy,sz``;
 - ``report.json``: statistics (sigma0, redundancy, RMSE per axis, pose sigmas, rejections,
@@ -36,12 +37,17 @@ def write_adjustment(result, block, out_dir, *, plots=True):
     ensure_folder(out_dir)
     paths = {}
     b = block
-    rows = [("filename", "x", "y", "z", "omega", "phi", "kappa")]
+    geo = b.mode == "geocentric"
+    rows = [("filename", "latitude", "longitude", "altitude", "roll", "pitch", "yaw") if geo
+            else ("filename", "x", "y", "z", "omega", "phi", "kappa")]
     for iid in b.image_ids:
-        rows.append((iid, *(f"{v:.6f}" if k < 3 else f"{v:.9f}" for k, v in enumerate(result.poses[iid]))))
+        fmt = (lambda k, v: f"{v:.10f}" if k < 2 or k > 2 else f"{v:.4f}") if geo else \
+            (lambda k, v: f"{v:.6f}" if k < 3 else f"{v:.9f}")
+        rows.append((iid, *(fmt(k, v) for k, v in enumerate(result.poses[iid]))))
     paths["exterior"] = os.path.join(out_dir, "exterior.csv")
     write_text(paths["exterior"], _csv(rows))
-    write_text(os.path.join(out_dir, "exterior.prj"), CRS.from_user_input(b.crs).to_wkt())
+    if not geo:
+        write_text(os.path.join(out_dir, "exterior.prj"), CRS.from_user_input(b.crs).to_wkt())
     paths["cameras"] = os.path.join(out_dir, "cameras.yaml")
     cams = result.cameras or b.cameras
     write_text(paths["cameras"], yaml.safe_dump({cid: _camera_dict(c) for cid, c in cams.items()}))

@@ -22,6 +22,11 @@ JSON (``orthowarp-block`` version 1)::
       ]
     }
 
+Geocentric blocks (GNSS/INS, ``crs`` a geographic 3-D CRS such as "EPSG:4979"): poses
+``{"lat", "lon", "h", "roll", "pitch", "yaw"}`` (deg, m; DESIGN.md's GNSS/INS convention),
+``"gnss": {"lla": [lat, lon, h], "sigma": [east, north, up]}``, ``"ins": {"rpy": [...],
+"sigma": [...]}``, points ``"xyz": [lat, lon, h]`` with sigmas east, north, up (m).
+
 CSV imports: image points ``image,point,col,row[,sigma]`` and ground points
 ``point,x,y,z[,sx,sy,sz][,role]`` (role defaults to control), each with a header row.
 """
@@ -33,6 +38,7 @@ import math
 import os
 
 import numpy as np
+from pyproj import CRS
 
 from ..adjust.block import ROLES, Block
 from ..errors import ParamError, RasterIOError
@@ -88,6 +94,15 @@ def read_block(path):
     for key in ("crs", "cameras", "images", "points", "observations"):
         if key not in data:
             raise _fail(path, f"missing '{key}'")
+    try:
+        crs = CRS.from_user_input(data["crs"])
+    except Exception as e:  # pyproj raises CRSError and others
+        raise _fail(path, f"crs {data['crs']!r} is not a CRS: {e}") from e
+    geocentric = crs.is_geographic and len(crs.axis_info) == 3
+    if not geocentric and not crs.is_projected:
+        raise _fail(path, f"crs must be projected (map blocks) or geographic 3-D (GNSS/INS blocks), got {crs.name!r}")
+    pose_keys = ("lat", "lon", "h", "roll", "pitch", "yaw") if geocentric else ("x", "y", "z", "omega", "phi", "kappa")
+    gnss_key, ins_key = ("lla", "rpy") if geocentric else ("xyz", "opk")
     cameras = {}
     if not isinstance(data["cameras"], dict) or not data["cameras"]:
         raise _fail(path, "'cameras' must map camera ids to parameters")
@@ -110,10 +125,10 @@ def read_block(path):
         if pose is None:
             poses.append([np.nan] * 6)
         else:
-            if not isinstance(pose, dict) or any(k_ not in pose for k_ in ("x", "y", "z", "omega", "phi", "kappa")):
-                raise _fail(path, f"image '{iid}': 'pose' needs x, y, z, omega, phi, kappa")
-            poses.append([_num(path, pose[k_], f"image '{iid}' pose {k_}") for k_ in ("x", "y", "z", "omega", "phi", "kappa")])
-        for key, vkey, arr, sarr in (("gnss", "xyz", gx, gs), ("ins", "opk", io_, is_)):
+            if not isinstance(pose, dict) or any(k_ not in pose for k_ in pose_keys):
+                raise _fail(path, f"image '{iid}': 'pose' needs {', '.join(pose_keys)}")
+            poses.append([_num(path, pose[k_], f"image '{iid}' pose {k_}") for k_ in pose_keys])
+        for key, vkey, arr, sarr in (("gnss", gnss_key, gx, gs), ("ins", ins_key, io_, is_)):
             if img.get(key) is not None:
                 g = img[key]
                 if not isinstance(g, dict) or vkey not in g or "sigma" not in g:
@@ -152,7 +167,7 @@ def read_block(path):
                      xyz=np.array(xyz, float).reshape(-1, 3), xyz_sigma=np.array(sig, float).reshape(-1, 3),
                      obs_image=np.array(oi, int), obs_point=np.array(op, int), obs_xy=np.array(oxy, float).reshape(-1, 2),
                      obs_sigma=np.array(osig, float), gnss_xyz=gx, gnss_sigma=gs, ins_opk=io_, ins_sigma=is_,
-                     name=os.path.basename(path))
+                     name=os.path.basename(path), mode="geocentric" if geocentric else "map")
     except ParamError as e:
         raise ParamError(f"'{path}': {e}") from e
 
@@ -174,15 +189,17 @@ def _list(v):
 def write_block(block, path):
     """Write a block as JSON (see the module doc), atomically."""
     b = block
+    geo = b.mode == "geocentric"
+    pose_keys = ("lat", "lon", "h", "roll", "pitch", "yaw") if geo else ("x", "y", "z", "omega", "phi", "kappa")
     images = []
     for k, iid in enumerate(b.image_ids):
         img = {"id": iid, "camera": b.image_camera[k]}
         if np.all(np.isfinite(b.poses[k])):
-            img["pose"] = dict(zip(("x", "y", "z", "omega", "phi", "kappa"), (float(v) for v in b.poses[k])))
+            img["pose"] = dict(zip(pose_keys, (float(v) for v in b.poses[k])))
         if np.all(np.isfinite(b.gnss_xyz[k])):
-            img["gnss"] = {"xyz": _list(b.gnss_xyz[k]), "sigma": _list(b.gnss_sigma[k])}
+            img["gnss"] = {"lla" if geo else "xyz": _list(b.gnss_xyz[k]), "sigma": _list(b.gnss_sigma[k])}
         if np.all(np.isfinite(b.ins_opk[k])):
-            img["ins"] = {"opk": _list(b.ins_opk[k]), "sigma": _list(b.ins_sigma[k])}
+            img["ins"] = {"rpy" if geo else "opk": _list(b.ins_opk[k]), "sigma": _list(b.ins_sigma[k])}
         images.append(img)
     points = []
     for j, pid in enumerate(b.point_ids):

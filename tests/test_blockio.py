@@ -74,3 +74,26 @@ def test_csv_imports(tmp_path):
     (tmp_path / "bad2.csv").write_text("image,point,col,row\nA,P1,x,2\n")
     with pytest.raises(ParamError, match="line 2"):
         read_image_points_csv(tmp_path / "bad2.csv")
+
+
+def test_geocentric_block_round_trip(tmp_path):
+    from orthowarp.adjust.block import Block
+
+    b = synthetic_block(strips=2, images_per_strip=3, gnss_sigma=0.05, ins_sigma=0.01, seed=4)[0]
+    geo = Block(crs="EPSG:4979", cameras=b.cameras, image_ids=b.image_ids, image_camera=b.image_camera,
+                poses=np.tile([46.5, 8.0, 1800.0, 0.5, -0.3, 90.0], (b.n_images, 1)), point_ids=b.point_ids,
+                roles=b.roles, xyz=np.where(np.isfinite(b.xyz), [46.5, 8.0, 300.0], np.nan), xyz_sigma=b.xyz_sigma,
+                obs_image=b.obs_image, obs_point=b.obs_point, obs_xy=b.obs_xy, obs_sigma=b.obs_sigma,
+                gnss_xyz=np.tile([46.5, 8.0, 1800.0], (b.n_images, 1)), gnss_sigma=b.gnss_sigma,
+                ins_opk=np.tile([0.5, -0.3, 90.0], (b.n_images, 1)), ins_sigma=b.ins_sigma, mode="geocentric")
+    write_block(geo, tmp_path / "g.json")
+    data = json.loads((tmp_path / "g.json").read_text())
+    assert set(data["images"][0]["pose"]) == {"lat", "lon", "h", "roll", "pitch", "yaw"} and "lla" in data["images"][0]["gnss"]
+    back = read_block(tmp_path / "g.json")
+    assert back.mode == "geocentric"
+    np.testing.assert_allclose(back.poses, geo.poses)
+    np.testing.assert_allclose(back.ins_opk, geo.ins_opk)
+    data["crs"] = "EPSG:4326"
+    (tmp_path / "g2.json").write_text(json.dumps(data))
+    with pytest.raises(ParamError, match="geographic 3-D"):
+        read_block(tmp_path / "g2.json")

@@ -1,0 +1,105 @@
+"""Geocentric blocks (GNSS/INS poses in latitude, longitude, ellipsoidal height, roll, pitch,
+yaw; points in latitude, longitude, height): adjusted rigorously in a local east-north-up
+frame at the block's centre, which is ECEF rotated and shifted (exact: no map projection, the
+Earth's curvature stays in the coordinates).
+
+:func:`to_local` turns such a block into a map-Cartesian one in that frame (poses as
+R_enu<-cam = Rx(omega) Ry(phi) Rz(kappa), near-vertical there, so no singularity);
+:func:`from_local` turns the adjustment's result back (poses as lat, lon, h, roll, pitch,
+yaw with DESIGN.md's NED navigation frame and standard mount; points as lat, lon, h).
+Sigmas of GNSS positions and control points are read as east, north, up (m); INS sigmas as
+the attitude angles' (deg), applied to omega, phi, kappa of the local frame; the result's pose
+sigmas are east, north, up (m) and the rotations about the local axes (deg).
+"""
+
+import numpy as np
+
+from .. import geodesy
+from ..pose import MOUNT, Pose
+
+__all__ = ["to_local", "from_local"]
+
+
+def _opk(r):
+    """omega, phi, kappa (deg) of R = Rx(omega) Ry(phi) Rz(kappa)."""
+    phi = np.arcsin(np.clip(r[0, 2], -1.0, 1.0))
+    return np.degrees([np.arctan2(-r[1, 2], r[2, 2]), phi, np.arctan2(-r[0, 1], r[0, 0])])
+
+
+def _rpy(r_nav_body):
+    """roll, pitch, yaw (deg) of R_nav<-body = Rz(yaw) Ry(pitch) Rx(roll)."""
+    r = r_nav_body
+    return np.degrees([np.arctan2(r[2, 1], r[2, 2]), -np.arcsin(np.clip(r[2, 0], -1.0, 1.0)), np.arctan2(r[1, 0], r[0, 0])])
+
+
+class LocalFrame:
+    """East-north-up frame at an origin (lat, lon, h in deg, m)."""
+
+    def __init__(self, lat, lon, h):
+        self.lat, self.lon, self.h = float(lat), float(lon), float(h)
+        self.origin = geodesy.geodetic_to_ecef(lat, lon, h)
+        self.r = geodesy.enu_to_ecef_matrix(lat, lon).T  # R_enu<-ecef
+
+    def from_lla(self, lla):
+        lla = np.atleast_2d(lla)
+        x = geodesy.geodetic_to_ecef(lla[:, 0], lla[:, 1], lla[:, 2])
+        return (x - self.origin) @ self.r.T
+
+    def to_lla(self, enu):
+        x = np.atleast_2d(enu) @ self.r + self.origin
+        lat, lon, h = geodesy.ecef_to_geodetic(x)
+        return np.stack([lat, lon, h], -1)
+
+    def pose_to_local(self, lat, lon, h, roll, pitch, yaw):
+        p = Pose.from_ins(lat, lon, h, roll, pitch, yaw)
+        c = (p.center - self.origin) @ self.r.T
+        return np.r_[c, _opk(self.r @ p.rotation)]
+
+    def pose_from_local(self, pose):
+        r_ecef_cam = self.r.T @ (geodesy.rx(pose[3]) @ geodesy.ry(pose[4]) @ geodesy.rz(pose[5]))
+        lla = self.to_lla(pose[:3])[0]
+        r_nav_body = geodesy.ned_to_ecef_matrix(lla[0], lla[1]).T @ r_ecef_cam @ MOUNT.T
+        return np.r_[lla, _rpy(r_nav_body)]
+
+
+def to_local(block):
+    """The block in the local ENU frame of its centre, and that frame (see the module doc)."""
+    from .block import Block
+
+    b = block
+    known = np.all(np.isfinite(b.poses), axis=1)
+    src = b.poses[known, :3] if np.any(known) else b.gnss_xyz[np.all(np.isfinite(b.gnss_xyz), axis=1)]
+    if len(src) == 0:
+        src = b.xyz[np.all(np.isfinite(b.xyz), axis=1)]
+    centre = src.mean(axis=0)
+    frame = LocalFrame(*centre)
+    poses = np.full((b.n_images, 6), np.nan)
+    for k in np.flatnonzero(known):
+        poses[k] = frame.pose_to_local(*b.poses[k])
+    gnss = np.full((b.n_images, 3), np.nan)
+    g = np.all(np.isfinite(b.gnss_xyz), axis=1)
+    gnss[g] = frame.from_lla(b.gnss_xyz[g])
+    ins = np.full((b.n_images, 3), np.nan)
+    for k in np.flatnonzero(np.all(np.isfinite(b.ins_opk), axis=1)):
+        where = b.poses[k, :3] if known[k] else b.gnss_xyz[k]
+        if np.all(np.isfinite(where)):
+            ins[k] = frame.pose_to_local(*where, *b.ins_opk[k])[3:]
+    xyz = np.full((b.n_points, 3), np.nan)
+    ok = np.all(np.isfinite(b.xyz), axis=1)
+    xyz[ok] = frame.from_lla(b.xyz[ok])
+    local = Block(crs=f"ENU at ({frame.lat:.8f}, {frame.lon:.8f}, {frame.h:.3f})", cameras=b.cameras,
+                  image_ids=b.image_ids, image_camera=b.image_camera, poses=poses, point_ids=b.point_ids,
+                  roles=b.roles, xyz=xyz, xyz_sigma=b.xyz_sigma, obs_image=b.obs_image, obs_point=b.obs_point,
+                  obs_xy=b.obs_xy, obs_sigma=b.obs_sigma, gnss_xyz=gnss, gnss_sigma=b.gnss_sigma, ins_opk=ins,
+                  ins_sigma=np.where(np.isfinite(ins), b.ins_sigma, np.nan), name=b.name)
+    return local, frame
+
+
+def from_local(result, frame):
+    """The adjustment result of a local block with poses (lat, lon, h, roll, pitch, yaw) and
+    points (lat, lon, h); sigmas, residuals and RMSEs stay in the local frame (m, deg)."""
+    result.poses = {k: tuple(frame.pose_from_local(np.asarray(v))) for k, v in result.poses.items()}
+    result.points = {k: tuple(frame.to_lla(np.asarray(v))[0]) if np.all(np.isfinite(v)) else v
+                     for k, v in result.points.items()}
+    result.local_frame = frame
+    return result
