@@ -782,6 +782,9 @@ def _result(pr, poses, pts, used, st, status, it, cost, rejected, corr_limit):
                 for c in range(a + 1, 6):
                     if abs(corr[a, c]) > corr_limit:
                         warnings.append((b.image_ids[k], POSE_NAMES[a], POSE_NAMES[c], float(corr[a, c])))
+    if warnings:
+        log.warning("%d pose parameter pairs are correlated beyond %.2f (first: image %s, %s/%s r = %+.3f)",
+                    len(warnings), corr_limit, *warnings[0])
     roles = np.array(b.roles)
     point_cov = None if st["point_q"] is None else s2 * st["point_q"]
     points, point_std = {}, {}
