@@ -652,7 +652,7 @@ def _statistics(pr, poses, pts, used, weights, cost, covariance):
     out = dict(sigma0=s0, redundancy=redundancy, pose_q=None, point_q=None, cam_q=None, w=None, rnum=None)
     resid = np.full((len(used), 2), np.nan)
     i, j = b.obs_image, b.obs_point
-    okp = np.flatnonzero(roles_not_check(b))
+    okp = np.flatnonzero(_roles_not_check(b))
     resid[okp] = b.obs_xy[okp] - project(poses[i[okp]], pts[j[okp]], pr.cam[i[okp]], pr.size[i[okp]])
     out["residuals"] = resid
     check = np.flatnonzero(np.array(b.roles) == "check")
@@ -762,7 +762,7 @@ def _statistics(pr, poses, pts, used, weights, cost, covariance):
     return out
 
 
-def roles_not_check(block):
+def _roles_not_check(block):
     return np.array(block.roles)[block.obs_point] != "check"
 
 
