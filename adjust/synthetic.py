@@ -1,15 +1,15 @@
 """Synthetic blocks with known truth, for tests and benchmarks.
 
 Strips flown along +x with ``forward`` (default 60 %) overlap along the track and ``side``
-(30 %) between strips, kappa = 0; tie points at the standard (von Gruber) positions of every
-image: three across the track (the image's centre and the two side-overlap bands... see
-``ties_per_image``) at the three along-track positions of the stereo models (-base, 0, +base),
-so that neighbouring images share them; a smooth terrain; control-point layouts in the spirit of
-seed 002's groups (``A`` well spread: corners, edge midpoints and centre; ``B`` the four
-corners; ``C`` clustered at one end of the block; ``D`` none, for GNSS-supported blocks);
-check points scattered over the block. Control and check points are ground points of their
-own, placed independently of the tie layout (so layouts can be compared on the same points). Image observations carry Gaussian noise of
-``sigma_px``; GNSS/INS observations, when asked for, theirs.
+(30 %) between strips, kappa = 0; tie points at the standard (von Gruber) positions of the
+images: three along the track (-base, 0, +base, so that neighbouring images share them) by
+two to four rows across (see ``ties_per_image``; 9 is the classic 3 x 3 layout), or spread at
+random; a smooth terrain; control-point layouts in the spirit of seed 002's groups (``A`` well
+spread: corners, edge midpoints and centre; ``B`` the four corners; ``C`` clustered at one end
+of the block; ``D`` none, for GNSS-supported blocks); check points scattered over the block.
+Control and check points are ground points of their own, placed independently of the tie
+layout (so layouts can be compared on the same points). Image observations carry Gaussian
+noise of ``sigma_px``; GNSS/INS observations, when asked for, theirs.
 """
 
 import numpy as np
@@ -37,9 +37,10 @@ def synthetic_block(*, strips=3, images_per_strip=8, ties_per_image=12, control=
     Parameters
     ----------
     strips, images_per_strip : int
-    ties_per_image : {6, 12}
-        Tie points per image position column: 6 puts them in two rows in the side-overlap
-        bands, 12 in four rows (the bands and the image's middle third).
+    ties_per_image : {6, 9, 12}
+        9: the nine standard positions (three along the track: -base, 0, +base; three across:
+        the two side-overlap bands and the centre); 6: the bands only; 12: the bands and two
+        rows in the image's middle third.
     control : {"A", "B", "C", "D"}
     n_check : int
     sigma_px : float
@@ -70,8 +71,8 @@ def synthetic_block(*, strips=3, images_per_strip=8, ties_per_image=12, control=
     truth : dict
         ``poses`` (n, 6) (m, deg) and ``xyz`` (p, 3).
     """
-    if ties_per_image not in (6, 12):
-        raise ParamError(f"ties_per_image must be 6 or 12, got {ties_per_image!r}")
+    if ties_per_image not in (6, 9, 12):
+        raise ParamError(f"ties_per_image must be 6, 9 or 12, got {ties_per_image!r}")
     if control not in CONTROL_LAYOUTS:
         raise ParamError(f"control must be one of {CONTROL_LAYOUTS}, got {control!r}")
     gseed = seed if geometry_seed is None else geometry_seed
@@ -87,7 +88,7 @@ def synthetic_block(*, strips=3, images_per_strip=8, ties_per_image=12, control=
     poses = np.array([[x, y, z0, 0.0, 0.0, 0.0] for x, y in centres])
     poses[:, 3:5] = geo.normal(0, 0.5, (len(poses), 2))  # small tilts (deg)
     poses[:, 5] = geo.normal(0, 0.5, len(poses))
-    rows = [-0.5, 0.5] if ties_per_image == 6 else [-0.5, -1 / 6, 1 / 6, 0.5]
+    rows = {6: [-0.5, 0.5], 9: [-0.5, 0.0, 0.5], 12: [-0.5, -1 / 6, 1 / 6, 0.5]}[ties_per_image]
     pts = {}
     for s in range(strips):
         for k in range(-1, images_per_strip + 1):
