@@ -118,12 +118,12 @@ def _pack(fmt, values):
 class _Level:
     """One resolution level: its size, its blocks' records, and blocks waiting for pixels."""
 
-    def __init__(self, width, height, block, count, dtype):
+    def __init__(self, width, height, block):
         self.width, self.height = width, height
         self.nbx, self.nby = -(-width // block), -(-height // block)
-        self.records = [None] * (self.nbx * self.nby)  # (offset, image bytes, mask bytes) in the side file
+        self.records = [None] * (self.nbx * self.nby)  # (offset, image bytes, record bytes) in the side file
         self.pending = {}  # block index -> [data (B, B, C), mask (B, B), pixels still missing]
-        self.block, self.count, self.dtype = block, count, dtype
+        self.block = block
         self.lock = threading.Lock()
 
     def block_shape(self, bi, bj):
@@ -177,7 +177,7 @@ class CogWriter:
         self.levels = []
         w, h = self.width, self.height
         for _ in range(n_ovr + 1):
-            self.levels.append(_Level(w, h, self.block, self.count, dtype))
+            self.levels.append(_Level(w, h, self.block))
             w, h = -(-w // 2), -(-h // 2)
         self.tags = _template_tags(self.count, dtype, crs, transform, float("nan") if self.is_float else None)
         self._side_path = self.path + ".blocks"

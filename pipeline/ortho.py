@@ -37,7 +37,7 @@ from ..pose import Pose
 from ..pushbroom import PushbroomScene
 from .dem import Dem
 from .geometry import FrameGeometry, PushbroomGeometry
-from .cog import CogWriter
+from .cog import DTYPES, CogWriter, overview_count
 from .io import atomic_path, ensure_folder
 
 __all__ = ["orthorectify", "OrthoResult", "RESAMPLING", "output_grid"]
@@ -48,7 +48,6 @@ RESAMPLING = {"nearest": 0, "bilinear": 1, "bicubic": 2, "lanczos": 3}
 _RADIUS = {"nearest": 1, "bilinear": 1, "bicubic": 2, "lanczos": 3}
 DRIVERS = ("COG", "GTiff")
 COMPRESS = ("deflate", "zstd", "lzw", "jpeg", "none")
-DTYPES = ("uint8", "uint16", "float32")
 _WP_TYPES = {"uint8": wp.uint8, "uint16": wp.uint16, "float32": wp.float32}
 COARSE_STEP = 16  # output pixels between nodes of the exactly transformed coarse grid
 
@@ -662,9 +661,7 @@ def _finish(work, final, driver, compress, overviews, dtype, level=None):
     """Overviews, then (for COG) a copy in the cloud-optimized layout."""
     if driver == "COG" or overviews:
         with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True, GDAL_CACHEMAX=256), rasterio.open(work, "r+") as ds:
-            factors, size = [], max(ds.width, ds.height)
-            while size / (2 ** (len(factors) + 1)) >= 256:
-                factors.append(2 ** (len(factors) + 1))
+            factors = [2 ** (k + 1) for k in range(overview_count(ds.width, ds.height))]
             if factors:
                 ds.build_overviews(factors, rasterio.enums.Resampling.average)
     if driver == "COG":
