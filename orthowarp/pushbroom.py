@@ -229,16 +229,7 @@ class PushbroomScene:
     def look_vector(self, col):
         """Unit look vectors u1 (n, 3) of (continuous) column coordinates, navigation frame."""
         det = np.asarray(col, dtype=np.float64) + 0.5  # 1-based detector number
-        ids = np.arange(1, self.width + 1, dtype=np.float64)
-        px = np.interp(det, ids, self.psi_x, left=np.nan, right=np.nan)
-        py = np.interp(det, ids, self.psi_y, left=np.nan, right=np.nan)
-        # beyond the ends: extend the first/last detector pair linearly (half a pixel at most)
-        for side, (i0, i1) in (("lo", (0, 1)), ("hi", (-1, -2))):
-            sel = det < 1 if side == "lo" else det > self.width
-            if np.any(sel) and self.width > 1:
-                f = det[sel] - ids[i0]
-                px[sel] = self.psi_x[i0] + f * (self.psi_x[i1] - self.psi_x[i0]) / (ids[i1] - ids[i0])
-                py[sel] = self.psi_y[i0] + f * (self.psi_y[i1] - self.psi_y[i0]) / (ids[i1] - ids[i0])
+        px, py = self._psi_at(self.psi_x, det), self._psi_at(self.psi_y, det)
         u = np.stack([-np.tan(py), np.tan(px), -np.ones_like(px)], -1)
         return u / np.linalg.norm(u, axis=-1, keepdims=True)
 
@@ -325,13 +316,16 @@ class PushbroomScene:
         m = attitude_matrix(ypr[:, 0], ypr[:, 1], ypr[:, 2], first_order=self.attitude_model == "first_order")
         return p, self.orbital_frame(p, v) @ m, float(rows[0])
 
-    def _psi_x_at(self, det):
-        """psi_x at fractional 1-based detector numbers, linear (and linearly extended)."""
+    def _psi_at(self, values, det):
+        """A look angle (psi_x or psi_y, (width,)) at fractional 1-based detector numbers:
+        linear between detectors, and extended linearly past the first and last (as the
+        kernels do)."""
+        det = np.asarray(det, dtype=np.float64)
         if self.width == 1:
-            return np.full_like(det, self.psi_x[0])
+            return np.full_like(det, values[0])
         i = np.clip(np.floor(det).astype(int) - 1, 0, self.width - 2)
         a = det - (i + 1)
-        return (1 - a) * self.psi_x[i] + a * self.psi_x[i + 1]
+        return (1 - a) * values[i] + a * values[i + 1]
 
     def fit_polynomials(self, *, samples=201):
         """Fit seed 000's 27 coefficients: position, velocity and attitude as 2nd-degree
@@ -405,7 +399,7 @@ class PushbroomScene:
                     nb = 1 if end == 0 else -2
                     det[sel] = ids[end] + (psi_y[sel] - self.psi_y[end]) * (ids[nb] - ids[end]) / (
                         self.psi_y[nb] - self.psi_y[end])
-            px = self._psi_x_at(det)
+            px = self._psi_at(self.psi_x, det)
             f = q[:, 1] / -q[:, 2] - np.tan(px)
             return np.where(ok & (q[:, 2] < 0), f, np.nan), det - 0.5
 
