@@ -112,10 +112,6 @@ class AdjustResult:
     local_frame: object = None
 
 
-def _inv3(m):
-    return np.linalg.inv(m)
-
-
 def _datum_check(block, used_points, control_free):
     known = [block.xyz[j] for j in np.flatnonzero(used_points & control_free)]
     known += [block.gnss_xyz[k] for k in range(block.n_images) if np.all(np.isfinite(block.gnss_xyz[k]))]
@@ -152,8 +148,6 @@ class _Problem:
         self.prior_sigma = np.where(self.prior_point[:, None], np.maximum(np.nan_to_num(sig, nan=1.0), 1e-6), np.inf)
         self.gnss = use_gnss & np.all(np.isfinite(block.gnss_xyz), axis=1)
         self.ins = use_ins & np.all(np.isfinite(block.ins_opk), axis=1)
-        self.poses0 = block.poses.copy()
-        self.poses0[:, 3:] = np.radians(self.poses0[:, 3:])
 
     @property
     def cam(self):
@@ -288,7 +282,7 @@ class _Reduced:
         ud = u + lam * np.einsum("nii->ni", u)[:, :, None] * np.eye(6)
         vd = v + lam * np.einsum("nii->ni", v)[:, :, None] * np.eye(3)
         vd[~free] = np.eye(3)
-        self.vinv = _inv3(vd)
+        self.vinv = np.linalg.inv(vd)
         self.vinv[~free] = 0.0
         wij, wcj, gp = nb["wij"], nb["wcj"], nb["gp"]
         y = wij @ self.vinv[self.j]  # (m, 6, 3)
@@ -552,11 +546,9 @@ def bundle_adjust(block, *, fix_control=False, use_gnss=True, use_ins=True, self
     unknown = [c for c in self_calibration if c not in CALIBRATION]
     if unknown or len(set(self_calibration)) != len(self_calibration):
         raise ParamError(f"self_calibration must name distinct parameters among {CALIBRATION}, got {self_calibration!r}")
+    _datum_check(b, roles != "check", roles == "control")
     init = _initial_poses(b)
     pr = _Problem(b, fix_control, use_gnss, use_ins, self_calibration)
-    pr.poses0 = init.copy()
-    pr.poses0[:, 3:] = np.radians(pr.poses0[:, 3:])
-    _datum_check(b, roles != "check", roles == "control")
     if covariance == "auto":
         covariance = "full" if b.n_images <= 200 else "poses"
     # initial point values: given coordinates, else intersection from the initial poses
@@ -568,7 +560,8 @@ def bundle_adjust(block, *, fix_control=False, use_gnss=True, use_ins=True, self
     used = adj_obs.copy()
     rejected = []
     cap = max_rejections if max_rejections is not None else max(1, int(0.05 * used.sum()))
-    poses = pr.poses0.copy()
+    poses = init.copy()
+    poses[:, 3:] = np.radians(poses[:, 3:])  # radians inside
     while True:
         weights = np.ones(len(used))
         poses, pts, status, it, cost = _solve(pr, poses, pts, used, weights, robust, huber_k, max_iterations,
