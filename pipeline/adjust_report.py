@@ -40,10 +40,9 @@ def write_adjustment(result, block, out_dir, *, plots=True):
     geo = b.mode == "geocentric"
     rows = [("filename", "latitude", "longitude", "altitude", "roll", "pitch", "yaw") if geo
             else ("filename", "x", "y", "z", "omega", "phi", "kappa")]
+    digits = (10, 10, 4, 9, 9, 9) if geo else (6, 6, 6, 9, 9, 9)  # deg / m: 0.1 mm either way
     for iid in b.image_ids:
-        fmt = (lambda k, v: f"{v:.10f}" if k < 2 or k > 2 else f"{v:.4f}") if geo else \
-            (lambda k, v: f"{v:.6f}" if k < 3 else f"{v:.9f}")
-        rows.append((iid, *(fmt(k, v) for k, v in enumerate(result.poses[iid]))))
+        rows.append((iid, *(f"{v:.{d}f}" for d, v in zip(digits, result.poses[iid]))))
     paths["exterior"] = os.path.join(out_dir, "exterior.csv")
     write_text(paths["exterior"], _csv(rows))
     if not geo:
