@@ -146,8 +146,11 @@ class FrameGeometry:
 
     def sensor_structs(self):
         """The structs the ortho coordinate kernel takes before the DEM: (camera, pose, refraction)."""
-        cam, pose, refr, _, _ = self.structs()
-        return cam, pose, refr
+        return self.structs()[:3]
+
+    def dem_struct(self):
+        """The DEM's struct on the device."""
+        return self.structs()[3]
 
     def structs(self):
         """(camera, pose, refraction, dem, search) structs on the device."""
@@ -285,6 +288,14 @@ class PushbroomGeometry:
     def at_height(self, h):
         """The same scene over a constant height h (m)."""
         return PushbroomGeometry(self.scene, Dem.constant(h), refraction=self.refraction.enabled, device=self.device)
+
+    def sensor_structs(self):
+        """The structs the ortho coordinate kernels take before the DEM: (scene, refraction)."""
+        return self.structs()[:2]
+
+    def dem_struct(self):
+        """The DEM's struct on the device."""
+        return self.structs()[2]
 
     def structs(self):
         """(scene, refraction, dem, search) structs on the device."""

@@ -422,8 +422,7 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
     frame_crs = geom.horizontal_crs
     to_frame = Transformer.from_crs(out_crs, frame_crs, always_xy=True)
     pushbroom = isinstance(geom, PushbroomGeometry)
-    sensor = geom.structs()[:2] if pushbroom else geom.sensor_structs()
-    dem = geom.structs()[2] if pushbroom else geom.structs()[3]
+    sensor, dem = geom.sensor_structs(), geom.dem_struct()
     h_mid = 0.5 * (geom.dem.hmin + geom.dem.hmax)
     device = geom.device
     resampling_code = RESAMPLING[resampling]
@@ -432,14 +431,14 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
              for r0 in range(0, rows, tile_size) for c0 in range(0, cols, tile_size)]
     local = threading.local()
     handles = []
-    write_lock = threading.Lock()
+    handles_lock = threading.Lock()
     wp.load_module(ortho_kernels, device=device)
 
     def source():
         if not hasattr(local, "ds"):
             local.ds = _open_source(src)
             local.stream = wp.Stream(device) if device.is_cuda else None
-            with write_lock:
+            with handles_lock:
                 handles.append(local.ds)
         return local.ds, local.stream
 
