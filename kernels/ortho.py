@@ -80,6 +80,36 @@ class CoarseGrid:
     geocentric: wp.int32
 
 
+@wp.func
+def grid_ground(grid: CoarseGrid, dem: DemData, fi: wp.float64, fj: wp.float64):
+    """The ground point at fractional grid index (fi, fj): its position in the pose's
+    Cartesian frame (ECEF for geocentric grids: x0 + h up; else map x, y, h) and its DEM
+    height h (NaN off the DEM)."""
+    uv = grid_bilinear(grid.uv, fi, fj)
+    h = dem_sample(dem, uv[0], uv[1])
+    x = wp.vec3d(uv[0], uv[1], h)
+    if grid.geocentric != 0:
+        x = grid_bilinear(grid.xyz0, fi, fj) + h * grid_bilinear(grid.up, fi, fj)
+    return x, h
+
+
+@wp.func
+def store_coords(coords: wp.array2d(dtype=wp.vec2d), bounds: wp.array(dtype=wp.float32), i: wp.int32, j: wp.int32,
+                 pix: wp.vec2d, width: wp.float64, height: wp.float64):
+    """Store a tile pixel's source coordinates (NaN outside the image) and fold them into the
+    bounds (min col, min row, -max col, -max row; atomic minima)."""
+    zero = wp.float64(0.0)
+    p = pix
+    if not (p[0] >= zero and p[1] >= zero and p[0] <= width and p[1] <= height):
+        p = wp.vec2d(wp.float64(wp.nan), wp.float64(wp.nan))
+    coords[i, j] = p
+    if wp.isfinite(p[0]):
+        wp.atomic_min(bounds, 0, wp.float32(p[0]))
+        wp.atomic_min(bounds, 1, wp.float32(p[1]))
+        wp.atomic_min(bounds, 2, -wp.float32(p[0]))
+        wp.atomic_min(bounds, 3, -wp.float32(p[1]))
+
+
 @wp.kernel
 def ortho_coords_kernel(
     cam: FrameCameraData,
@@ -97,24 +127,11 @@ def ortho_coords_kernel(
     i, j = wp.tid()
     fi = wp.float64(i) / grid.step
     fj = wp.float64(j) / grid.step
-    uv = grid_bilinear(grid.uv, fi, fj)
-    nan = wp.float64(wp.nan)
-    h = dem_sample(dem, uv[0], uv[1])
-    pix = wp.vec2d(nan, nan)
+    x, h = grid_ground(grid, dem, fi, fj)
+    pix = wp.vec2d(wp.float64(wp.nan), wp.float64(wp.nan))
     if wp.isfinite(h):
-        x = wp.vec3d(uv[0], uv[1], h)
-        if grid.geocentric != 0:
-            x = grid_bilinear(grid.xyz0, fi, fj) + h * grid_bilinear(grid.up, fi, fj)
         pix = project_xyz(cam, pose, refr, x, h)
-        zero = wp.float64(0.0)
-        if not (pix[0] >= zero and pix[1] >= zero and pix[0] <= width and pix[1] <= height):
-            pix = wp.vec2d(nan, nan)
-    coords[i, j] = pix
-    if wp.isfinite(pix[0]):
-        wp.atomic_min(bounds, 0, wp.float32(pix[0]))
-        wp.atomic_min(bounds, 1, wp.float32(pix[1]))
-        wp.atomic_min(bounds, 2, -wp.float32(pix[0]))
-        wp.atomic_min(bounds, 3, -wp.float32(pix[1]))
+    store_coords(coords, bounds, i, j, pix, width, height)
 
 
 @wp.kernel
@@ -155,25 +172,14 @@ def pb_ortho_coords_kernel(
     i, j = wp.tid()
     fi = wp.float64(i) / grid.step
     fj = wp.float64(j) / grid.step
-    uv = grid_bilinear(grid.uv, fi, fj)
-    nan = wp.float64(wp.nan)
-    h = dem_sample(dem, uv[0], uv[1])
-    pix = wp.vec2d(nan, nan)
+    x, h = grid_ground(grid, dem, fi, fj)
+    pix = wp.vec2d(wp.float64(wp.nan), wp.float64(wp.nan))
     if wp.isfinite(h):
-        x = grid_bilinear(grid.xyz0, fi, fj) + h * grid_bilinear(grid.up, fi, fj)
         t0 = grid_bilinear(times, fi, fj)
         if not wp.isfinite(t0):
             t0 = wp.float64(0.0)
         pix = pb_project(pb, refr, x, h, t0)
-        zero = wp.float64(0.0)
-        if not (pix[0] >= zero and pix[1] >= zero and pix[0] <= width and pix[1] <= height):
-            pix = wp.vec2d(nan, nan)
-    coords[i, j] = pix
-    if wp.isfinite(pix[0]):
-        wp.atomic_min(bounds, 0, wp.float32(pix[0]))
-        wp.atomic_min(bounds, 1, wp.float32(pix[1]))
-        wp.atomic_min(bounds, 2, -wp.float32(pix[0]))
-        wp.atomic_min(bounds, 3, -wp.float32(pix[1]))
+    store_coords(coords, bounds, i, j, pix, width, height)
 
 
 @wp.func
