@@ -6,8 +6,9 @@ written once as a tiled GeoTIFF. For each device:
 
 - end to end: ``orthowarp ortho`` in a subprocess (wall time and the child's peak RSS);
 - stages: ``orthowarp.orthorectify`` in process (seconds per stage summed over tiles);
-- kernel only: the coordinate and resampling kernels over the whole output with the source
-  resident on the device (output Gpix/s and Gpix/s per band).
+- kernel only: the coordinate and resampling kernels over the whole output with the uint8
+  source resident on the device, into the packed uint8 output (output Gpix/s and Gpix/s per
+  band; on a GPU also each kernel alone, at several thread-block sizes).
 
 usage: python3 bench/ortho.py [--width W --height H] [--devices cpu,cuda:0] [--out FILE]
 """
@@ -46,6 +47,17 @@ atexit.register(_peak)
 module, func = sys.argv[1].split(":")
 sys.argv = [module] + sys.argv[2:]
 getattr(importlib.import_module(module), func)()
+"""
+
+
+STARTUP = """
+import sys
+import warp as wp
+import orthowarp.cli
+from orthowarp.kernels import ortho, frame
+wp.config.log_level = wp.LOG_WARNING
+wp.load_module(ortho, device=sys.argv[1])
+wp.load_module(frame, device=sys.argv[1])
 """
 
 
@@ -100,10 +112,13 @@ def write_orientation(folder, cam, pose, name):
 
 
 def kernel_only(geom, src_path, resampling, repeats=3):
-    """Coordinate + resampling kernels over the whole output, source resident on the device.
+    """The pipeline's kernels over the whole output with the source resident on the device:
+    the coordinate kernel, then the resampling kernel from the uint8 source into the packed
+    uint8 output and its mask, as the pipeline launches them per tile.
 
     On a GPU one launch of each kernel covers the output; on the CPU the output is cut into
-    row bands launched from a thread pool (one band per core, as the pipeline does).
+    row bands launched from a thread pool (one band per core, as the pipeline does). Times:
+    the best of ``repeats`` for both kernels together, and on the GPU for each alone.
     """
     dev = geom.device
     crs, transform, shape, res = output_grid(geom)
@@ -114,13 +129,12 @@ def kernel_only(geom, src_path, resampling, repeats=3):
     rows, cols = shape
     coarse_all = coarse_grid(transform, Transformer.from_crs(crs, "EPSG:4326", always_xy=True), 0, 0, rows, cols)
     with rasterio.open(src_path) as ds:
-        data = ds.read(out_dtype="float32")
+        data = wp.array(ds.read(), dtype=wp.uint8, device=dev)
+    count = data.shape[0]
     sw = ok.SourceWindow()
-    sw.data = wp.array(data, dtype=wp.float32, device=dev)
-    del data
-    sw.valid = wp.array(np.ones(sw.data.shape[1:], np.uint8), dtype=wp.uint8, device=dev)
+    sw.valid = wp.array(np.ones(data.shape[1:], np.uint8), dtype=wp.uint8, device=dev)
     sw.col0 = sw.row0 = 0
-    sw.width, sw.height = float(geom.camera.image_size[0]), float(geom.camera.image_size[1])
+    width, height = float(geom.camera.image_size[0]), float(geom.camera.image_size[1])
     cam, pose, refr, dem, _ = geom.structs()
     method = RESAMPLING[resampling]
     n_bands = 1 if dev.is_cuda else 4 * (os.cpu_count() or 1)
@@ -134,33 +148,51 @@ def kernel_only(geom, src_path, resampling, repeats=3):
             coarse=coarse_struct(np.ascontiguousarray(coarse_all[c0:max(c1, c0 + 2)]), geom.pose.mode == "geocentric", dev),
             coords=wp.empty((r1 - r0, cols), dtype=wp.vec2d, device=dev),
             bounds=wp.empty(4, dtype=wp.float32, device=dev),
-            out=wp.empty((3, r1 - r0, cols), dtype=wp.float32, device=dev),
+            out=wp.empty((r1 - r0, cols, count), dtype=wp.uint8, device=dev),
             valid=wp.empty((r1 - r0, cols), dtype=wp.uint8, device=dev)))
 
-    def launch(b):
+    block_dim = [256]  # the pipeline's (Warp's default)
+
+    def coords(b):
         b["bounds"].fill_(np.inf)
-        wp.launch(ok.ortho_coords_kernel, dim=b["shape"], device=dev,
-                  inputs=[cam, pose, refr, dem, b["coarse"], sw.width, sw.height, b["coords"], b["bounds"]])
-        wp.launch(ok.ortho_resample_kernel, dim=b["shape"], device=dev,
-                  inputs=[sw, b["coords"], method, b["out"], b["valid"]])
+        wp.launch(ok.ortho_coords_kernel, dim=b["shape"], device=dev, block_dim=block_dim[0],
+                  inputs=[cam, pose, refr, dem, b["coarse"], width, height, b["coords"], b["bounds"]])
 
-    def run():
-        if dev.is_cuda:
-            launch(bands[0])
-        else:
-            with ThreadPoolExecutor(os.cpu_count() or 1) as pool:
-                list(pool.map(launch, bands))
-        wp.synchronize_device(dev)
+    def resample(b):
+        wp.launch(ok.ortho_resample_kernel, dim=b["shape"], device=dev, block_dim=block_dim[0],
+                  inputs=[sw, data, b["coords"], method, 255.0, b["out"], b["valid"]])
 
-    run()
-    best = 1e9
-    for _ in range(repeats):
-        t = time.perf_counter()
+    def both(b):
+        coords(b)
+        resample(b)
+
+    def best_of(fn):
+        def run():
+            if dev.is_cuda:
+                fn(bands[0])
+            else:
+                with ThreadPoolExecutor(os.cpu_count() or 1) as pool:
+                    list(pool.map(fn, bands))
+            wp.synchronize_device(dev)
         run()
-        best = min(best, time.perf_counter() - t)
+        best = 1e9
+        for _ in range(repeats):
+            t = time.perf_counter()
+            run()
+            best = min(best, time.perf_counter() - t)
+        return best
+
+    best = best_of(both)
     npx = rows * cols
-    return dict(kernel_method="backward", output_pixels=npx, kernel_s=best, kernel_gpix_s=npx / best / 1e9,
-                kernel_gpix_s_per_band=3 * npx / best / 1e9, kernel_launch_bands=len(bands))
+    out = dict(kernel_method="backward", output_pixels=npx, kernel_s=best, kernel_gpix_s=npx / best / 1e9,
+               kernel_gpix_s_per_band=count * npx / best / 1e9, kernel_launch_bands=len(bands))
+    if dev.is_cuda:
+        out.update(coords_kernel_s=best_of(coords), resample_kernel_s=best_of(resample))
+        scan = {}
+        for block_dim[0] in (64, 128, 512):  # other thread-block sizes, each kernel alone
+            scan[block_dim[0]] = dict(coords_s=best_of(coords), resample_s=best_of(resample))
+        out["block_dim_scan"] = scan
+    return out
 
 
 def _save(report, path):
@@ -237,6 +269,10 @@ def main(argv=None):
                 repr(res.resolution), "--resampling", args.resampling, "--method", args.method, "--device", name,
                 *(["--no-refraction"] if args.no_refraction else [])],
                 gpu_index=geom.device.ordinal if geom.device.is_cuda else None)
+            # the fixed cost inside that: interpreter, imports, Warp and device set-up, kernels loaded
+            t = time.perf_counter()
+            subprocess.run([sys.executable, "-c", STARTUP, name], check=True)
+            r["cli"]["startup_s"] = time.perf_counter() - t
         report["results"].append(r)
         _save(report, args.out)
         cli = r.get("cli", {})

@@ -8,10 +8,11 @@ Backward (default), per output tile, two kernels:
    float64; NaN where there is no DEM height or the point falls outside the source image.
    It also reduces the bounding box of the valid source coordinates, so that the host reads
    exactly the source window the tile needs.
-2. :func:`ortho_resample_kernel`: samples every band of that window at the source
-   coordinates with nearest, bilinear, bicubic (Keys, a = -0.5) or Lanczos-3 weights, skipping
-   source pixels marked invalid and renormalising the remaining weights (an output pixel whose
-   valid weight is under half of the total is nodata).
+2. :func:`ortho_resample_kernel`: samples every band of that window (read in its own dtype)
+   at the source coordinates with nearest, bilinear, bicubic (Keys, a = -0.5) or Lanczos-3
+   weights, skipping source pixels marked invalid and renormalising the remaining weights (an
+   output pixel whose valid weight is under half of the total is nodata), and stores the
+   result in the output's dtype, pixel-interleaved, as the file wants it.
 
 Forward (seed 003's direct method): :func:`forward_nodes_kernel` runs the forward chain for
 every source pixel of the window that maps into the tile, and :func:`forward_scatter_kernel`
@@ -39,16 +40,13 @@ LANCZOS = wp.constant(3)
 
 @wp.struct
 class SourceWindow:
-    """A window of the source image: data (bands, rows, cols) float32, valid (rows, cols)
-    uint8 (1 = valid), its top-left pixel (col0, row0) in the full image, and the full image
-    size (width, height) in pixels."""
+    """Where a window of the source image lies: valid (rows, cols) uint8 (1 = valid), its
+    top-left pixel (col0, row0) in the full image. The window's pixels travel beside the
+    struct as an array (bands, rows, cols) of the source's own dtype."""
 
-    data: wp.array3d(dtype=wp.float32)
     valid: wp.array2d(dtype=wp.uint8)
     col0: wp.int32
     row0: wp.int32
-    width: wp.float64
-    height: wp.float64
 
 
 @wp.func
@@ -210,22 +208,48 @@ def kernel_weight(method: wp.int32, t: wp.float32):
     return wp.float32(0.0)
 
 
+@wp.func
+def store_pixel(out: wp.array3d(dtype=Any), i: wp.int32, j: wp.int32, b: wp.int32, v: wp.float32, top: wp.float32):
+    """Band b of output pixel (i, j): for integer outputs (top > 0) v rounded half to even and
+    clipped to [0, top]; float outputs take v as it is."""
+    if top > wp.float32(0.0):
+        v = wp.clamp(wp.rint(v), wp.float32(0.0), top)
+    out[i, j, b] = out.dtype(v)
+
+
+@wp.func
+def store_nodata(out: wp.array3d(dtype=Any), valid: wp.array2d(dtype=wp.uint8), i: wp.int32, j: wp.int32,
+                 top: wp.float32):
+    """An output pixel without data: 0 in integer outputs (the mask says it), NaN in float ones."""
+    v = wp.float32(wp.nan)
+    if top > wp.float32(0.0):
+        v = wp.float32(0.0)
+    for b in range(out.shape[2]):
+        out[i, j, b] = out.dtype(v)
+    valid[i, j] = wp.uint8(0)
+
+
 @wp.kernel
 def ortho_resample_kernel(
     src: SourceWindow,
+    data: wp.array3d(dtype=Any),
     coords: wp.array2d(dtype=wp.vec2d),
     method: wp.int32,
-    out: wp.array3d(dtype=wp.float32),
+    top: wp.float32,
+    out: wp.array3d(dtype=Any),
     out_valid: wp.array2d(dtype=wp.uint8),
 ):
-    """Resample all bands of the source window at the tile's source coordinates."""
+    """Resample all bands of a source window (data: bands, rows, cols, any dtype) at the tile's
+    source coordinates straight into the output's dtype, pixel-interleaved (rows, cols, bands):
+    ``top`` is the largest value of an integer output (values are rounded half to even and
+    clipped to [0, top]) and 0 for float outputs (NaN where there is no data)."""
     i, j = wp.tid()
     pix = coords[i, j]
-    nb = out.shape[0]
-    rows = src.data.shape[1]
-    cols = src.data.shape[2]
-    out_valid[i, j] = wp.uint8(0)
+    nb = out.shape[2]
+    rows = data.shape[1]
+    cols = data.shape[2]
     if not wp.isfinite(pix[0]):
+        store_nodata(out, out_valid, i, j, top)
         return
     if method == NEAREST:
         c = wp.int32(wp.floor(pix[0])) - src.col0
@@ -233,9 +257,10 @@ def ortho_resample_kernel(
         c = wp.clamp(c, 0, cols - 1)  # the image's right/bottom edge belongs to the last pixel
         r = wp.clamp(r, 0, rows - 1)
         if src.valid[r, c] == wp.uint8(0):
+            store_nodata(out, out_valid, i, j, top)
             return
         for b in range(nb):
-            out[b, i, j] = src.data[b, r, c]
+            store_pixel(out, i, j, b, wp.float32(data[b, r, c]), top)
         out_valid[i, j] = wp.uint8(1)
         return
     radius = 1
@@ -267,14 +292,22 @@ def ortho_resample_kernel(
                         wsum += w
                         for k in range(4):
                             if b0 + k < nb:
-                                acc[k] = acc[k] + w * src.data[b0 + k, r, c]
+                                acc[k] = acc[k] + w * wp.float32(data[b0 + k, r, c])
         if wsum < wp.float32(0.5) * wtotal or wsum <= wp.float32(0.0):
+            store_nodata(out, out_valid, i, j, top)
             return
         inv = wp.float32(1.0) / wsum
         for k in range(4):
             if b0 + k < nb:
-                out[b0 + k, i, j] = acc[k] * inv
+                store_pixel(out, i, j, b0 + k, acc[k] * inv, top)
     out_valid[i, j] = wp.uint8(1)
+
+
+# the source's dtype and the output's: the same, or a float32 source (a widened integer source,
+# or one of another dtype read as float32) resampled into an integer output
+for _src, _out in ((wp.uint8, wp.uint8), (wp.uint16, wp.uint16), (wp.float32, wp.float32), (wp.float32, wp.uint8),
+                   (wp.float32, wp.uint16)):
+    wp.overload(ortho_resample_kernel, {"data": wp.array3d(dtype=_src), "out": wp.array3d(dtype=_out)})
 
 
 # -- forward (direct) method, seed 003 ----------------------------------------------------------
@@ -380,7 +413,7 @@ def forward_scatter_kernel(
                 coords[r, c] = wp.vec2d(wp.float64(col0 + j) + half + s, wp.float64(row0 + i) + half + t)
 
 
-# -- source widening and output packing ----------------------------------------------------------
+# -- source widening ----------------------------------------------------------------------------
 
 
 @wp.kernel
@@ -392,42 +425,3 @@ def widen_kernel(src: wp.array3d(dtype=Any), dst: wp.array3d(dtype=wp.float32)):
 
 wp.overload(widen_kernel, {"src": wp.array3d(dtype=wp.uint8)})
 wp.overload(widen_kernel, {"src": wp.array3d(dtype=wp.uint16)})
-
-
-@wp.func
-def rounded(values: wp.array3d(dtype=wp.float32), valid: wp.array2d(dtype=wp.uint8), b: wp.int32, i: wp.int32,
-            j: wp.int32, top: wp.float32):
-    """Band b of pixel (i, j) rounded half to even and clipped to [0, top]; 0 where invalid."""
-    if valid[i, j] == wp.uint8(0):
-        return wp.float32(0.0)
-    return wp.clamp(wp.rint(values[b, i, j]), wp.float32(0.0), top)
-
-
-@wp.kernel
-def pack_uint8_kernel(values: wp.array3d(dtype=wp.float32), valid: wp.array2d(dtype=wp.uint8),
-                      out: wp.array3d(dtype=wp.uint8)):
-    """Resampled (bands, rows, cols) float32 -> pixel-interleaved (rows, cols, bands) uint8."""
-    i, j = wp.tid()
-    for b in range(out.shape[2]):
-        out[i, j, b] = wp.uint8(rounded(values, valid, b, i, j, wp.float32(255.0)))
-
-
-@wp.kernel
-def pack_uint16_kernel(values: wp.array3d(dtype=wp.float32), valid: wp.array2d(dtype=wp.uint8),
-                       out: wp.array3d(dtype=wp.uint16)):
-    """As :func:`pack_uint8_kernel`, for uint16."""
-    i, j = wp.tid()
-    for b in range(out.shape[2]):
-        out[i, j, b] = wp.uint16(rounded(values, valid, b, i, j, wp.float32(65535.0)))
-
-
-@wp.kernel
-def pack_float32_kernel(values: wp.array3d(dtype=wp.float32), valid: wp.array2d(dtype=wp.uint8),
-                        out: wp.array3d(dtype=wp.float32)):
-    """As :func:`pack_uint8_kernel`, for float32: NaN where invalid."""
-    i, j = wp.tid()
-    for b in range(out.shape[2]):
-        v = wp.float32(wp.nan)
-        if valid[i, j] != wp.uint8(0):
-            v = values[b, i, j]
-        out[i, j, b] = v

@@ -388,8 +388,8 @@ def _default_tile_size(device, bands, workers):
     """Output tile edge for a device: see :func:`orthorectify`'s ``tile_size``."""
     if not device.is_cuda:
         return 512  # one COG block; tiles in flight (one per core) stay small in host memory
-    # per output pixel: coordinates (16 B), result (4 B per band), mask (1 B), and a source
-    # window of about the same size (5 B per band): ~ 17 + 9 * bands bytes
+    # per output pixel: coordinates (16 B), result (at most 4 B per band), mask (1 B), and a
+    # source window of about the same size (at most 5 B per band, mask included)
     per_pixel = 17 + 9 * bands
     budget = 0.25 * device.free_memory / max(workers or 4, 1)
     size = 4096
@@ -472,11 +472,11 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
     run_coords = backward_coords if method_name == "backward" else _forward_coords(
         geom, transform, out_crs, frame_crs, device, timer, radius)
 
-    pack = {"uint8": ortho_kernels.pack_uint8_kernel, "uint16": ortho_kernels.pack_uint16_kernel,
-            "float32": ortho_kernels.pack_float32_kernel}[out_dtype]
+    top = {"uint8": 255.0, "uint16": 65535.0, "float32": 0.0}[out_dtype]
 
     def read_window(ds, wc0, wr0, wc1, wr1):
-        """The source window on the device as float32 (bands, rows, cols), and its mask."""
+        """The source window on the device, (bands, rows, cols) in the output's dtype or float32,
+        and where it lies (its mask and origin)."""
         t = time.perf_counter()
         win = Window(wc0, wr0, wc1 - wc0, wr1 - wr0)
         try:
@@ -487,18 +487,16 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
             raise RasterIOError(f"Could not read image '{src}': {e}") from e
         timer.add("read", time.perf_counter() - t)
         t = time.perf_counter()
+        arr = wp.array(data, dtype=_WP_TYPES[data.dtype.name], device=device)
+        if data.dtype.name not in (out_dtype, "float32"):  # e.g. uint8 into float32: widen on the device
+            wide = wp.empty(data.shape, dtype=wp.float32, device=device)
+            wp.launch(ortho_kernels.widen_kernel, dim=data.shape, inputs=[arr], outputs=[wide], device=device)
+            arr = wide
         sw = ortho_kernels.SourceWindow()
-        if data.dtype == np.float32:
-            sw.data = wp.array(data, dtype=wp.float32, device=device)
-        else:
-            raw = wp.array(data, dtype=_WP_TYPES[data.dtype.name], device=device)
-            sw.data = wp.empty(data.shape, dtype=wp.float32, device=device)
-            wp.launch(ortho_kernels.widen_kernel, dim=data.shape, inputs=[raw], outputs=[sw.data], device=device)
         sw.valid = wp.array(valid, dtype=wp.uint8, device=device)
         sw.col0, sw.row0 = wc0, wr0
-        sw.width, sw.height = float(w_img), float(h_img)
         timer.add("h2d", time.perf_counter() - t)
-        return sw
+        return sw, arr
 
     def run(tile):
         r0, c0, th, tw = tile
@@ -509,14 +507,12 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
                 block = np.zeros((th, tw, count), out_dtype) if not is_float else np.full((th, tw, count), np.nan, np.float32)
                 mask = np.zeros((th, tw), bool)
             else:
-                sw = read_window(ds, *window)
+                sw, data = read_window(ds, *window)
                 t = time.perf_counter()
-                res = wp.empty((count, th, tw), dtype=wp.float32, device=device)
                 res_valid = wp.empty((th, tw), dtype=wp.uint8, device=device)
                 packed = wp.empty((th, tw, count), dtype=_WP_TYPES[out_dtype], device=device)
                 wp.launch(ortho_kernels.ortho_resample_kernel, dim=(th, tw), device=device,
-                          inputs=[sw, coords, resampling_code, res, res_valid])
-                wp.launch(pack, dim=(th, tw), device=device, inputs=[res, res_valid, packed])
+                          inputs=[sw, data, coords, resampling_code, top, packed, res_valid])
                 if stream is not None:
                     wp.synchronize_stream(stream)
                 timer.add("kernel", time.perf_counter() - t)
