@@ -32,7 +32,7 @@ from geometry import scene  # noqa: E402
 
 from orthowarp.kernels import ortho as ok  # noqa: E402
 from orthowarp.pipeline.geometry import FrameGeometry  # noqa: E402
-from orthowarp.pipeline.ortho import COARSE_STEP, RESAMPLING, coarse_grid, coarse_struct, orthorectify, output_grid  # noqa: E402
+from orthowarp.pipeline.ortho import COARSE_STEP, RESAMPLE_BLOCK_DIM, RESAMPLING, coarse_grid, coarse_struct, orthorectify, output_grid  # noqa: E402
 
 
 # Runs a click CLI (module, function) in a child that reports its own peak resident memory when it
@@ -132,7 +132,8 @@ def kernel_only(geom, src_path, resampling, repeats=3):
         data = wp.array(ds.read(), dtype=wp.uint8, device=dev)
     count = data.shape[0]
     sw = ok.SourceWindow()
-    sw.valid = wp.array(np.ones(data.shape[1:], np.uint8), dtype=wp.uint8, device=dev)
+    sw.masked = 0  # the bench image has no nodata (as the pipeline finds)
+    sw.valid = wp.array(np.ones((1, 1), np.uint8), dtype=wp.uint8, device=dev)
     sw.col0 = sw.row0 = 0
     width, height = float(geom.camera.image_size[0]), float(geom.camera.image_size[1])
     cam, pose, refr, dem, _ = geom.structs()
@@ -151,7 +152,7 @@ def kernel_only(geom, src_path, resampling, repeats=3):
             out=wp.empty((r1 - r0, cols, count), dtype=wp.uint8, device=dev),
             valid=wp.empty((r1 - r0, cols), dtype=wp.uint8, device=dev)))
 
-    block_dim = [256]  # the pipeline's (Warp's default)
+    block_dim = [256, RESAMPLE_BLOCK_DIM]  # the pipeline's: Warp's default, and its own
 
     def coords(b):
         b["bounds"].fill_(np.inf)
@@ -159,7 +160,7 @@ def kernel_only(geom, src_path, resampling, repeats=3):
                   inputs=[cam, pose, refr, dem, b["coarse"], width, height, b["coords"], b["bounds"]])
 
     def resample(b):
-        wp.launch(ok.ortho_resample_kernel, dim=b["shape"], device=dev, block_dim=block_dim[0],
+        wp.launch(ok.ortho_resample_kernel, dim=b["shape"], device=dev, block_dim=block_dim[1],
                   inputs=[sw, data, b["coords"], method, 255.0, b["out"], b["valid"]])
 
     def both(b):
@@ -189,8 +190,9 @@ def kernel_only(geom, src_path, resampling, repeats=3):
     if dev.is_cuda:
         out.update(coords_kernel_s=best_of(coords), resample_kernel_s=best_of(resample))
         scan = {}
-        for block_dim[0] in (64, 128, 512):  # other thread-block sizes, each kernel alone
-            scan[block_dim[0]] = dict(coords_s=best_of(coords), resample_s=best_of(resample))
+        for size in (64, 128, 256, 512):  # thread-block sizes, each kernel alone
+            block_dim[:] = [size, size]
+            scan[size] = dict(coords_s=best_of(coords), resample_s=best_of(resample))
         out["block_dim_scan"] = scan
     return out
 
@@ -245,6 +247,9 @@ def main(argv=None):
             "frame", "--dem", dem_path, "--int-param", os.path.join(work, "camera.yaml"), "--ext-param",
             os.path.join(work, "ext.csv"), "--res", repr(resolution), "--interp", interp, "--dem-interp", "bilinear",
             "--compress", "deflate", "--out-dir", oty_dir, "--overwrite", src])
+        if o["returncode"] == 0:
+            o["output_mb"] = sum(os.path.getsize(os.path.join(oty_dir, f)) for f in os.listdir(oty_dir)
+                                 if f.endswith(".tif")) / 1e6
         report["orthority"] = o
         _save(report, args.out)
         print(f"{'orthority 0.7.0 (CPU)':>24s} cli {o['wall_s']:.1f} s peak {o['peak_rss_mb'] or float('nan'):.0f} MB "
@@ -263,12 +268,19 @@ def main(argv=None):
         r["ortho_shape"] = list(res.shape)
         r["kernel_fraction_of_wall"] = res.timings["kernel"] / res.timings["wall"]
         if not args.skip_cli:
-            r["cli"] = run_cli(sys.executable, "orthowarp.cli:main", [
-                "-q", "ortho", src, "--int-param", os.path.join(work, "camera.yaml"), "--ext-param",
-                os.path.join(work, "ext.csv"), "--dem", dem_path, "--out-dir", work, "--overwrite", "--resolution",
-                repr(res.resolution), "--resampling", args.resampling, "--method", args.method, "--device", name,
-                *(["--no-refraction"] if args.no_refraction else [])],
-                gpu_index=geom.device.ordinal if geom.device.is_cuda else None)
+            def cli(*extra):
+                o = run_cli(sys.executable, "orthowarp.cli:main", [
+                    "-q", "ortho", src, "--int-param", os.path.join(work, "camera.yaml"), "--ext-param",
+                    os.path.join(work, "ext.csv"), "--dem", dem_path, "--out-dir", work, "--overwrite", "--resolution",
+                    repr(res.resolution), "--resampling", args.resampling, "--method", args.method, "--device", name,
+                    *(["--no-refraction"] if args.no_refraction else []), *extra],
+                    gpu_index=geom.device.ordinal if geom.device.is_cuda else None)
+                if o["returncode"] == 0:
+                    o["output_mb"] = os.path.getsize(os.path.join(work, "frame_ORTHO.tif")) / 1e6
+                return o
+            r["cli"] = cli()
+            if geom.device.is_cuda:  # what the CPU's deflate costs: the fastest level, labelled apart
+                r["cli_deflate_level1"] = cli("--compress-level", "1")
             # the fixed cost inside that: interpreter, imports, Warp and device set-up, kernels loaded
             t = time.perf_counter()
             subprocess.run([sys.executable, "-c", STARTUP, name], check=True)

@@ -15,13 +15,15 @@ wp.set_module_options({"enable_backward": False})  # forward-only kernels: halve
 class FrameCameraData:
     """Interior orientation packed for kernels (all float64).
 
-    focal: focal length (mm); pixel_size: (x, y) pixel pitch (mm); size: (width, height) in
+    focal: focal length (mm); pixel_size: (x, y) pixel pitch (mm) and inv_pixel_size its
+    reciprocal (1/mm, so that kernels multiply); size: (width, height) in
     pixels; pp: principal point offset (mm) from the image centre, x right, y up; k1, k2, k3,
     p1, p2: OpenCV-normalised Brown coefficients.
     """
 
     focal: wp.float64
     pixel_size: wp.vec2d
+    inv_pixel_size: wp.vec2d
     size: wp.vec2d
     pp: wp.vec2d
     k1: wp.float64
@@ -93,8 +95,8 @@ def normalized_to_pixel(cam: FrameCameraData, uv: wp.vec2d):
     x = uv[0] * cam.focal
     y = -uv[1] * cam.focal
     return wp.vec2d(
-        (x + cam.pp[0]) / cam.pixel_size[0] + half * cam.size[0],
-        half * cam.size[1] - (y + cam.pp[1]) / cam.pixel_size[1],
+        (x + cam.pp[0]) * cam.inv_pixel_size[0] + half * cam.size[0],
+        half * cam.size[1] - (y + cam.pp[1]) * cam.inv_pixel_size[1],
     )
 
 
@@ -111,7 +113,8 @@ def camera_to_pixel(cam: FrameCameraData, vec: wp.vec3d):
     if vec[2] >= wp.float64(0.0):
         nan = wp.float64(wp.nan)
         return wp.vec2d(nan, nan)
-    uv = wp.vec2d(vec[0] / -vec[2], vec[1] / vec[2])
+    iz = wp.float64(1.0) / vec[2]
+    uv = wp.vec2d(-vec[0] * iz, vec[1] * iz)
     return normalized_to_pixel(cam, distort(cam, uv))
 
 

@@ -344,32 +344,51 @@ def geolocate_pixel(
 
 
 @wp.func
-def apparent_direction(refr: RefractionTable, pose: FramePoseData, d: wp.vec3d, h: wp.float64):
-    """The apparent (refracted) unit direction at the sensor of the unit chord d towards a
-    ground point at height h: the chord turned away from the nadir by delta.
+def apparent_direction(refr: RefractionTable, pose: FramePoseData, v: wp.vec3d, h: wp.float64):
+    """A vector along the apparent (refracted) direction at the sensor of the chord v (sensor
+    to a ground point at height h, any length): the chord turned away from the nadir by delta.
+    Its length is not 1: callers use ratios of its components only.
 
     delta = q(theta_a, h) tan(theta_a) at the apparent angle theta_a = theta_c + delta. q varies
     by ~1e-5 of itself over delta, so it is read once at theta_c; tan(theta_a) is linearised
     about theta_c (error ~ delta^2); two steps of the fixed point then leave < 1e-12 rad.
+
+    The turn is computed in float32 and applied to the float64 chord as v - |v| k w, with w
+    the unit vector towards the nadir perpendicular to v and k = delta (1 - delta^2/6) /
+    (1 - delta^2/2): the term moves v by |v| delta (~0.1 m for aircraft, ~1 m from orbit), so
+    its float32 rounding stays below 1e-6 m; the rounding of w, which grows as 1/sin(theta)
+    towards the nadir, is multiplied by delta, which shrinks as tan(theta).
     """
     if refr.enabled == 0:
-        return d
-    chord = make_ray(pose, d)
-    sec2 = wp.float64(1.0) + chord.tan_theta * chord.tan_theta
-    q = refraction_q(refr, chord.theta, h)
-    delta = q * chord.tan_theta
-    delta = q * (chord.tan_theta + delta * sec2)
+        return v
+    v32 = wp.vec3f(wp.float32(v[0]), wp.float32(v[1]), wp.float32(v[2]))
+    n = wp.length(v32)
+    d = v32 / n
+    up = wp.vec3f(wp.float32(pose.up[0]), wp.float32(pose.up[1]), wp.float32(pose.up[2]))
+    c = -wp.dot(d, up)
+    perp = -(up + c * d)  # component of the nadir direction perpendicular to v
+    s = wp.length(perp)
+    theta = wp.atan2(s, c)
+    tan_theta = wp.tan(theta)
+    if c > wp.float32(0.0):
+        tan_theta = s / c
+    w = wp.vec3f(0.0)
+    if s > wp.float32(1.0e-12):
+        w = perp / s
+    q = wp.float32(refraction_q(refr, wp.float64(theta), h))
+    one = wp.float32(1.0)
+    delta = q * tan_theta
+    delta = q * (tan_theta + delta * (one + tan_theta * tan_theta))
     d2 = delta * delta
-    return (wp.float64(1.0) - wp.float64(0.5) * d2) * d - delta * (
-        wp.float64(1.0) - d2 * wp.float64(1.0 / 6.0)) * chord.w
+    k = n * delta * (one - d2 / wp.float32(6.0)) / (one - wp.float32(0.5) * d2)
+    return v - wp.vec3d(wp.float64(k * w[0]), wp.float64(k * w[1]), wp.float64(k * w[2]))
 
 
 @wp.func
 def project_xyz(cam: FrameCameraData, pose: FramePoseData, refr: RefractionTable, x: wp.vec3d, h: wp.float64):
     """Point of the pose's Cartesian frame (ECEF for geocentric poses, else the map frame) at
     ellipsoidal/map height h -> pixel (col, row); NaN behind the camera."""
-    d = apparent_direction(refr, pose, wp.normalize(x - pose.center), h)
-    return camera_to_pixel(cam, wp.transpose(pose.rot) * d)
+    return camera_to_pixel(cam, wp.transpose(pose.rot) * apparent_direction(refr, pose, x - pose.center, h))
 
 
 @wp.func

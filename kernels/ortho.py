@@ -40,11 +40,13 @@ LANCZOS = wp.constant(3)
 
 @wp.struct
 class SourceWindow:
-    """Where a window of the source image lies: valid (rows, cols) uint8 (1 = valid), its
-    top-left pixel (col0, row0) in the full image. The window's pixels travel beside the
-    struct as an array (bands, rows, cols) of the source's own dtype."""
+    """Where a window of the source image lies: valid (rows, cols) uint8 (1 = valid; read only
+    when ``masked`` is non-zero, else every pixel is valid), its top-left pixel (col0, row0) in
+    the full image. The window's pixels travel beside the struct as an array (bands, rows,
+    cols) of the source's own dtype."""
 
     valid: wp.array2d(dtype=wp.uint8)
+    masked: wp.int32
     col0: wp.int32
     row0: wp.int32
 
@@ -229,6 +231,17 @@ def store_nodata(out: wp.array3d(dtype=Any), valid: wp.array2d(dtype=wp.uint8), 
     valid[i, j] = wp.uint8(0)
 
 
+@wp.func
+def tap_weight(src: SourceWindow, r: wp.int32, c: wp.int32, rows: wp.int32, cols: wp.int32, w: wp.float32):
+    """w where source pixel (r, c) of the window exists and is valid, else 0."""
+    if r < 0 or r >= rows or c < 0 or c >= cols:
+        return wp.float32(0.0)
+    if src.masked != 0:
+        if src.valid[r, c] == wp.uint8(0):
+            return wp.float32(0.0)
+    return w
+
+
 @wp.kernel
 def ortho_resample_kernel(
     src: SourceWindow,
@@ -256,7 +269,7 @@ def ortho_resample_kernel(
         r = wp.int32(wp.floor(pix[1])) - src.row0
         c = wp.clamp(c, 0, cols - 1)  # the image's right/bottom edge belongs to the last pixel
         r = wp.clamp(r, 0, rows - 1)
-        if src.valid[r, c] == wp.uint8(0):
+        if tap_weight(src, r, c, rows, cols, wp.float32(1.0)) == wp.float32(0.0):
             store_nodata(out, out_valid, i, j, top)
             return
         for b in range(nb):
@@ -275,6 +288,30 @@ def ortho_resample_kernel(
     y0 = wp.int32(wp.floor(y))
     fx = wp.float32(x - wp.float64(x0))  # in [0, 1): exact enough in float32
     fy = wp.float32(y - wp.float64(y0))
+    one = wp.float32(1.0)
+    if method == BILINEAR:  # the common case, unrolled: four taps, weights zero where no data
+        x1 = x0 + 1
+        y1 = y0 + 1
+        w00 = tap_weight(src, y0, x0, rows, cols, (one - fx) * (one - fy))
+        w01 = tap_weight(src, y0, x1, rows, cols, fx * (one - fy))
+        w10 = tap_weight(src, y1, x0, rows, cols, (one - fx) * fy)
+        w11 = tap_weight(src, y1, x1, rows, cols, fx * fy)
+        wsum = (w00 + w01) + (w10 + w11)
+        if wsum < wp.float32(0.5) or wsum <= wp.float32(0.0):
+            store_nodata(out, out_valid, i, j, top)
+            return
+        # taps outside the window carry no weight: read an inside neighbour instead
+        ca = wp.clamp(x0, 0, cols - 1)
+        cb = wp.clamp(x1, 0, cols - 1)
+        ra = wp.clamp(y0, 0, rows - 1)
+        rb = wp.clamp(y1, 0, rows - 1)
+        inv = one / wsum
+        for b in range(nb):
+            v = (w00 * wp.float32(data[b, ra, ca]) + w01 * wp.float32(data[b, ra, cb])) + (
+                w10 * wp.float32(data[b, rb, ca]) + w11 * wp.float32(data[b, rb, cb]))
+            store_pixel(out, i, j, b, v * inv, top)
+        out_valid[i, j] = wp.uint8(1)
+        return
     # bands in groups of four, accumulated in registers
     for b0 in range(0, nb, 4):
         acc = wp.vec4f(0.0)
@@ -287,8 +324,9 @@ def ortho_resample_kernel(
                 w = wy * kernel_weight(method, fx - wp.float32(dx))
                 wtotal += w
                 c = x0 + dx
-                if w != wp.float32(0.0) and r >= 0 and r < rows and c >= 0 and c < cols:
-                    if src.valid[r, c] != wp.uint8(0):
+                if w != wp.float32(0.0):
+                    w = tap_weight(src, r, c, rows, cols, w)
+                    if w != wp.float32(0.0):
                         wsum += w
                         for k in range(4):
                             if b0 + k < nb:

@@ -188,6 +188,7 @@ class FrameCamera:
         s = FrameCameraData()
         s.focal = self.focal_length
         s.pixel_size = wp.vec2d(*self.pixel_size)
+        s.inv_pixel_size = wp.vec2d(1.0 / self.pixel_size[0], 1.0 / self.pixel_size[1])
         s.size = wp.vec2d(*map(float, self.image_size))
         s.pp = wp.vec2d(*self.principal_point)
         s.k1, s.k2, s.k3, s.p1, s.p2 = self.k1, self.k2, self.k3, self.p1, self.p2

@@ -25,6 +25,7 @@ import rasterio.shutil
 import warp as wp
 from affine import Affine
 from pyproj import CRS, Transformer
+from rasterio.enums import MaskFlags
 from rasterio.errors import RasterioIOError
 from rasterio.windows import Window
 
@@ -48,6 +49,9 @@ RESAMPLING = {"nearest": 0, "bilinear": 1, "bicubic": 2, "lanczos": 3}
 _RADIUS = {"nearest": 1, "bilinear": 1, "bicubic": 2, "lanczos": 3}
 DRIVERS = ("COG", "GTiff")
 COMPRESS = ("deflate", "zstd", "lzw", "jpeg", "none")
+# threads per block of the resampling kernel: on an H100, 128 ran ~20 % faster than Warp's
+# default 256 (bench/ortho.py's block-size scan)
+RESAMPLE_BLOCK_DIM = 128
 _WP_TYPES = {"uint8": wp.uint8, "uint16": wp.uint16, "float32": wp.float32}
 COARSE_STEP = 16  # output pixels between nodes of the exactly transformed coarse grid
 
@@ -473,6 +477,8 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
         geom, transform, out_crs, frame_crs, device, timer, radius)
 
     top = {"uint8": 255.0, "uint16": 65535.0, "float32": 0.0}[out_dtype]
+    with _open_source(src) as ds:  # a source without nodata, mask or alpha needs no mask reads
+        masked = any(flags != [MaskFlags.all_valid] for flags in ds.mask_flag_enums)
 
     def read_window(ds, wc0, wr0, wc1, wr1):
         """The source window on the device, (bands, rows, cols) in the output's dtype or float32,
@@ -482,7 +488,7 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
         try:
             native = ds.dtypes[0] in ("uint8", "uint16", "float32")
             data = ds.read(window=win) if native else ds.read(window=win, out_dtype="float32")
-            valid = ds.dataset_mask(window=win)  # 0 / 255
+            valid = ds.dataset_mask(window=win) if masked else None  # 0 / 255
         except RasterioIOError as e:
             raise RasterIOError(f"Could not read image '{src}': {e}") from e
         timer.add("read", time.perf_counter() - t)
@@ -493,7 +499,8 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
             wp.launch(ortho_kernels.widen_kernel, dim=data.shape, inputs=[arr], outputs=[wide], device=device)
             arr = wide
         sw = ortho_kernels.SourceWindow()
-        sw.valid = wp.array(valid, dtype=wp.uint8, device=device)
+        sw.masked = int(masked)
+        sw.valid = wp.array(valid if masked else np.ones((1, 1), np.uint8), dtype=wp.uint8, device=device)
         sw.col0, sw.row0 = wc0, wr0
         timer.add("h2d", time.perf_counter() - t)
         return sw, arr
@@ -511,7 +518,7 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
                 t = time.perf_counter()
                 res_valid = wp.empty((th, tw), dtype=wp.uint8, device=device)
                 packed = wp.empty((th, tw, count), dtype=_WP_TYPES[out_dtype], device=device)
-                wp.launch(ortho_kernels.ortho_resample_kernel, dim=(th, tw), device=device,
+                wp.launch(ortho_kernels.ortho_resample_kernel, dim=(th, tw), device=device, block_dim=RESAMPLE_BLOCK_DIM,
                           inputs=[sw, data, coords, resampling_code, top, packed, res_valid])
                 if stream is not None:
                     wp.synchronize_stream(stream)
