@@ -52,16 +52,30 @@ class SourceWindow:
 
 
 @wp.func
-def grid_bilinear(grid: wp.array2d(dtype=Any), fi: wp.float64, fj: wp.float64):
-    """Bilinear interpolation of a grid of vec2d / vec3d at fractional (row, col) index
-    (fi, fj), extrapolating linearly from the border cells outside it."""
-    i0 = wp.clamp(wp.int32(wp.floor(fi)), 0, grid.shape[0] - 2)
-    j0 = wp.clamp(wp.int32(wp.floor(fj)), 0, grid.shape[1] - 2)
-    ai = fi - wp.float64(i0)
-    aj = fj - wp.float64(j0)
+def grid_cell(rows: wp.int32, cols: wp.int32, fi: wp.float64, fj: wp.float64):
+    """The cell (i0, j0) of a rows x cols grid that bilinear interpolation at fractional
+    (row, col) index (fi, fj) uses (a border cell outside the grid: linear extrapolation),
+    and the fractions (ai, aj) within it."""
+    i0 = wp.clamp(wp.int32(wp.floor(fi)), 0, rows - 2)
+    j0 = wp.clamp(wp.int32(wp.floor(fj)), 0, cols - 2)
+    return i0, j0, fi - wp.float64(i0), fj - wp.float64(j0)
+
+
+@wp.func
+def grid_lerp(grid: wp.array2d(dtype=Any), i0: wp.int32, j0: wp.int32, ai: wp.float64, aj: wp.float64):
+    """Bilinear interpolation of a grid of vec2d / vec3d / float64 in cell (i0, j0) at
+    fractions (ai, aj)."""
     one = wp.float64(1.0)
     return (one - ai) * ((one - aj) * grid[i0, j0] + aj * grid[i0, j0 + 1]) + ai * (
         (one - aj) * grid[i0 + 1, j0] + aj * grid[i0 + 1, j0 + 1])
+
+
+@wp.func
+def grid_bilinear(grid: wp.array2d(dtype=Any), fi: wp.float64, fj: wp.float64):
+    """Bilinear interpolation of a grid at fractional (row, col) index (fi, fj), extrapolating
+    linearly from the border cells outside it."""
+    i0, j0, ai, aj = grid_cell(grid.shape[0], grid.shape[1], fi, fj)
+    return grid_lerp(grid, i0, j0, ai, aj)
 
 
 @wp.struct
@@ -85,11 +99,12 @@ def grid_ground(grid: CoarseGrid, dem: DemData, fi: wp.float64, fj: wp.float64):
     """The ground point at fractional grid index (fi, fj): its position in the pose's
     Cartesian frame (ECEF for geocentric grids: x0 + h up; else map x, y, h) and its DEM
     height h (NaN off the DEM)."""
-    uv = grid_bilinear(grid.uv, fi, fj)
+    i0, j0, ai, aj = grid_cell(grid.uv.shape[0], grid.uv.shape[1], fi, fj)  # one cell for all three grids
+    uv = grid_lerp(grid.uv, i0, j0, ai, aj)
     h = dem_sample(dem, uv[0], uv[1])
     x = wp.vec3d(uv[0], uv[1], h)
     if grid.geocentric != 0:
-        x = grid_bilinear(grid.xyz0, fi, fj) + h * grid_bilinear(grid.up, fi, fj)
+        x = grid_lerp(grid.xyz0, i0, j0, ai, aj) + h * grid_lerp(grid.up, i0, j0, ai, aj)
     return x, h
 
 
