@@ -191,22 +191,26 @@ class CogWriter:
         self._pool = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="cog")
         self._slots = threading.BoundedSemaphore(4 * threads)  # blocks queued or being compressed
         self._futures = []
+        self._local = threading.local()
         self._error = None
         self._closed = False
         self.bigtiff = bigtiff
 
     # -- streaming -------------------------------------------------------------------------
 
-    def write(self, row, col, data, mask=None):
+    def write(self, row, col, data, mask=None, *, copy=True):
         """Add the tile whose top-left full-resolution pixel is (``row``, ``col``).
 
         Parameters
         ----------
         data : ndarray, shape (rows, cols, count), the writer's dtype
-            Pixel-interleaved values (NaN = nodata for float rasters). Copied: the caller may
-            reuse it when the call returns.
+            Pixel-interleaved values (NaN = nodata for float rasters).
         mask : ndarray of bool, shape (rows, cols), optional
             Valid pixels (integer rasters; default: all valid).
+        copy : bool, optional
+            True: the tile is copied, and the caller may reuse its arrays when the call returns.
+            False: the writer reads them until their blocks are compressed, and the caller
+            must leave them unchanged (they are not written to).
         """
         self._raise_pending()
         h, w = data.shape[:2]
@@ -216,17 +220,18 @@ class CogWriter:
             raise ParamError(f"tile at ({row}, {col}) of {h} x {w} falls outside the {self.height} x {self.width} raster")
         if mask is None:
             mask = np.ones((h, w), bool) if not self.is_float else np.isfinite(data).any(axis=2)
-        for bi, bj, blk in self._insert(0, row, col, data, mask):
+        for bi, bj, blk in self._insert(0, row, col, data, mask, copy=copy):
             self._slots.acquire()
             fut = self._pool.submit(self._emit, 0, bi, bj, *blk)
             fut.add_done_callback(lambda f: self._slots.release())
             self._futures.append(fut)
 
-    def _insert(self, li, row, col, data, mask):
+    def _insert(self, li, row, col, data, mask, copy=True):
         """Copy a piece into the level's blocks; return the blocks it completes.
 
-        Blocks the piece covers whole are cut out directly; only partly covered ones wait in
-        the level's table (under the level's lock) for their other pieces."""
+        Blocks the piece covers whole are cut out directly (as views of it when ``copy`` is
+        False and they are full-size); only partly covered ones wait in the level's table
+        (under the level's lock) for their other pieces."""
         lvl, b = self.levels[li], self.block
         fill = np.nan if self.is_float else 0
         done = []
@@ -239,7 +244,7 @@ class CogWriter:
                 piece_mask = mask[r0 - row:r1 - row, c0 - col:c1 - col]
                 if (r1 - r0, c1 - c0) == (bh, bw):  # the whole block
                     if (bh, bw) == (b, b):
-                        done.append((bi, bj, (piece.copy(), piece_mask.copy())))
+                        done.append((bi, bj, (piece.copy(), piece_mask.copy()) if copy else (piece, piece_mask)))
                     else:
                         blk, blk_mask = np.full((b, b, self.count), fill, self.dtype), np.zeros((b, b), bool)
                         blk[:bh, :bw], blk_mask[:bh, :bw] = piece, piece_mask
@@ -259,24 +264,36 @@ class CogWriter:
                         done.append((bi, bj, entry[:2]))
         return done
 
+    def _scratch(self, name, shape, dtype):
+        """A buffer of this thread's, reused from block to block (no allocation, no page
+        faults on fresh memory in the hot path)."""
+        bufs = self._local.__dict__
+        buf = bufs.get(name)
+        if buf is None or buf.shape != shape or buf.dtype != dtype:
+            buf = bufs[name] = np.empty(shape, dtype)
+        return buf
+
     def _emit(self, li, bi, bj, data, mask):
-        """Compress and store a complete block, then feed its reduction to the next level."""
+        """Compress and store a complete block (B, B, C), then feed its reduction to the next
+        level. ``data`` and ``mask`` are only read."""
         try:
             lvl = self.levels[li]
             bh, bw = lvl.block_shape(bi, bj)
-            if not self.is_float and not mask.all():
-                np.multiply(data, mask[..., None], out=data)  # nodata pixels hold 0
-            img = self._encode(data)
-            rec = self._record(img)
+            full = bool(mask.all())
+            parts = [self._encode(data, None if full or self.is_float else mask)]
             if self.mask:
-                msk = np.packbits(mask, axis=1)  # 1 bit per pixel, rows padded to bytes, MSB first
-                rec += self._record(self._compress(msk.tobytes()))
+                bits = np.packbits(mask, axis=1)  # 1 bit per pixel, rows padded to bytes, MSB first
+                parts.append(self._compress(bits))
+            bufs = []
+            for payload in parts:  # GDAL's record: uint32 size, the bytes, their last 4 repeated
+                bufs += [struct.pack("<I", len(payload)), payload, bytes(payload[-4:]).rjust(4, b"\0")]
+            size = sum(len(x) for x in bufs)
             with self._lock:
-                off, self._end = self._end, self._end + len(rec)
-            os.pwrite(self._fd, rec, off)
-            lvl.records[bi * lvl.nbx + bj] = (off, len(img), len(rec))
+                off, self._end = self._end, self._end + size
+            os.pwritev(self._fd, bufs, off)
+            lvl.records[bi * lvl.nbx + bj] = (off, len(parts[0]), size)
             if li + 1 < len(self.levels):
-                red, red_mask = self._reduce(data[:bh, :bw], mask[:bh, :bw])
+                red, red_mask = self._reduce(data[:bh, :bw], mask[:bh, :bw], full and (bh, bw) == data.shape[:2])
                 half = self.block // 2
                 for ci, cj, blk in self._insert(li + 1, bi * half, bj * half, red, red_mask):
                     self._emit(li + 1, ci, cj, *blk)
@@ -284,10 +301,23 @@ class CogWriter:
             self._error = self._error or e
             raise
 
-    def _reduce(self, data, mask):
-        """2 x 2 mean of the valid pixels of a (h, w, C) block; odd edges use what exists."""
+    def _reduce(self, data, mask, full=False):
+        """2 x 2 mean of the valid pixels of a (h, w, C) block; odd edges use what exists.
+        ``full``: every pixel is valid and h, w are even (the common case, summed in this
+        thread's buffers; the result is one of them, copied by the caller)."""
         h, w = mask.shape
         H, W = -(-h // 2), -(-w // 2)
+        if full and not self.is_float:
+            acc_t = np.uint16 if self.dtype == "uint8" else np.uint32
+            acc = self._scratch("acc", (H, W, self.count), acc_t)
+            np.add(data[0::2, 0::2], data[0::2, 1::2], out=acc, dtype=acc_t)
+            np.add(acc, data[1::2, 0::2], out=acc)
+            np.add(acc, data[1::2, 1::2], out=acc)
+            acc += 2
+            acc >>= 2
+            out = self._scratch("red", (H, W, self.count), np.dtype(self.dtype))
+            np.copyto(out, acc, casting="unsafe")
+            return out, self._scratch_true(H, W)
         if h % 2 or w % 2:
             pad = ((0, H * 2 - h), (0, W * 2 - w))
             data = np.pad(data, pad + ((0, 0),))
@@ -302,27 +332,35 @@ class CogWriter:
             out[~valid] = np.nan
             return out, valid
         acc = np.uint16 if self.dtype == "uint8" else np.uint32
-        if (n == 4).all():  # the common case: no mask to weigh
-            total = sum(data[q].astype(acc) for q in quads)
-            return ((total + 2) >> 2).astype(self.dtype), valid
-        total = sum(data[q].astype(acc) * mask[q][..., None] for q in quads)  # masked pixels hold 0 anyway
+        # masked pixels count as 0 in the sums (the data need not hold 0 there)
+        total = sum(data[q].astype(acc) * mask[q][..., None] for q in quads)
         nn = np.maximum(n, 1).astype(acc)[..., None]
         return ((total + nn // 2) // nn).astype(self.dtype), valid  # rounded mean
 
-    def _encode(self, data):
+    def _scratch_true(self, h, w):
+        buf = self._scratch("true", (h, w), np.dtype(bool))
+        buf.fill(True)
+        return buf
+
+    def _encode(self, data, mask=None):
+        """The compressed bytes of a block (B, B, C): pixels where ``mask`` is False set to 0,
+        then, for compressed integer rasters, TIFF predictor 2 (horizontal differencing per
+        sample, modulo the type's range)."""
+        if mask is not None:
+            zeroed = self._scratch("zeroed", data.shape, data.dtype)
+            np.multiply(data, mask[..., None], out=zeroed)
+            data = zeroed
         if self.compress != "none" and not self.is_float:
-            d = data.copy()
-            d[:, 1:] -= data[:, :-1]  # TIFF predictor 2: horizontal differencing per sample
-            data = d
-        return self._compress(np.ascontiguousarray(data).tobytes())
+            diff = self._scratch("diff", data.shape, data.dtype)
+            np.subtract(data[:, 1:], data[:, :-1], out=diff[:, 1:])
+            diff[:, 0] = data[:, 0]
+            data = diff
+        if self.compress == "none":
+            return np.ascontiguousarray(data).tobytes()
+        return self._compress(np.ascontiguousarray(data))
 
     def _compress(self, raw):
-        return _zlib_compress(raw, self.zlevel) if self.compress == "deflate" else raw
-
-    @staticmethod
-    def _record(payload):
-        """A block as GDAL's COG lays it out: uint32 size, the bytes, their last 4 repeated."""
-        return struct.pack("<I", len(payload)) + payload + payload[-4:].rjust(4, b"\0")
+        return _zlib_compress(raw, self.zlevel) if self.compress == "deflate" else bytes(raw)
 
     def _raise_pending(self):
         if self._error is not None:

@@ -10,6 +10,7 @@ output is ever held whole in memory.
 """
 
 import contextlib
+import functools
 import logging
 import math
 import os
@@ -557,7 +558,8 @@ def _open_sink(path, profile, cog, final_name, timer):
         w = CogWriter(path, width=profile["width"], height=profile["height"], count=profile["count"],
                       dtype=profile["dtype"], crs=profile["crs"], transform=profile["transform"], **cog)
         try:
-            yield w.write
+            # the tiles are fresh arrays the pipeline drops after the call: no copy
+            yield functools.partial(w.write, copy=False)
         except BaseException:
             w.abort()
             raise
