@@ -6,9 +6,9 @@ written once as a tiled GeoTIFF. For each device:
 
 - end to end: ``orthowarp ortho`` in a subprocess (wall time and the child's peak RSS);
 - stages: ``orthowarp.orthorectify`` in process (seconds per stage summed over tiles);
-- kernel only: the coordinate and resampling kernels over the whole output with the uint8
-  source resident on the device, into the packed uint8 output (output Gpix/s and Gpix/s per
-  band; on a GPU also each kernel alone, at several thread-block sizes).
+- kernel only: the pipeline's per-pixel kernel (backward chain and resampling) over the whole
+  output with the uint8 source resident on the device, into the packed uint8 output (output
+  Gpix/s and Gpix/s per band; on a GPU also at several thread-block sizes).
 
 usage: python3 bench/ortho.py [--width W --height H] [--devices cpu,cuda:0] [--out FILE]
 """
@@ -32,7 +32,7 @@ from geometry import scene  # noqa: E402
 
 from orthowarp.kernels import ortho as ok  # noqa: E402
 from orthowarp.pipeline.geometry import FrameGeometry  # noqa: E402
-from orthowarp.pipeline.ortho import COARSE_STEP, RESAMPLE_BLOCK_DIM, RESAMPLING, coarse_grid, coarse_struct, orthorectify, output_grid  # noqa: E402
+from orthowarp.pipeline.ortho import COARSE_STEP, ORTHO_BLOCK_DIM, RESAMPLING, coarse_grid, coarse_struct, orthorectify, output_grid  # noqa: E402
 
 
 # Runs a click CLI (module, function) in a child that reports its own peak resident memory when it
@@ -112,13 +112,13 @@ def write_orientation(folder, cam, pose, name):
 
 
 def kernel_only(geom, src_path, resampling, repeats=3):
-    """The pipeline's kernels over the whole output with the source resident on the device:
-    the coordinate kernel, then the resampling kernel from the uint8 source into the packed
-    uint8 output and its mask, as the pipeline launches them per tile.
+    """The pipeline's per-pixel kernel over the whole output with the uint8 source resident on
+    the device: source coordinates by the backward chain, then resampling into the packed uint8
+    output and its mask (:func:`orthowarp.kernels.ortho.ortho_frame_kernel`).
 
-    On a GPU one launch of each kernel covers the output; on the CPU the output is cut into
-    row bands launched from a thread pool (one band per core, as the pipeline does). Times:
-    the best of ``repeats`` for both kernels together, and on the GPU for each alone.
+    On a GPU one launch covers the output; on the CPU the output is cut into row bands launched
+    from a thread pool (one band per core, as the pipeline does). Time: the best of
+    ``repeats``; on a GPU also at several thread-block sizes.
     """
     dev = geom.device
     crs, transform, shape, res = output_grid(geom)
@@ -147,33 +147,21 @@ def kernel_only(geom, src_path, resampling, repeats=3):
         bands.append(dict(
             shape=(r1 - r0, cols),
             coarse=coarse_struct(np.ascontiguousarray(coarse_all[c0:max(c1, c0 + 2)]), geom.pose.mode == "geocentric", dev),
-            coords=wp.empty((r1 - r0, cols), dtype=wp.vec2d, device=dev),
-            bounds=wp.empty(4, dtype=wp.float32, device=dev),
             out=wp.empty((r1 - r0, cols, count), dtype=wp.uint8, device=dev),
             valid=wp.empty((r1 - r0, cols), dtype=wp.uint8, device=dev)))
+    block_dim = [ORTHO_BLOCK_DIM]
 
-    block_dim = [256, RESAMPLE_BLOCK_DIM]  # the pipeline's: Warp's default, and its own
+    def launch(b):
+        wp.launch(ok.ortho_frame_kernel, dim=b["shape"], device=dev, block_dim=block_dim[0],
+                  inputs=[cam, pose, refr, dem, b["coarse"], wp.float64(width), wp.float64(height), sw, data, method, 255.0, b["out"], b["valid"]])
 
-    def coords(b):
-        b["bounds"].fill_(np.inf)
-        wp.launch(ok.ortho_coords_kernel, dim=b["shape"], device=dev, block_dim=block_dim[0],
-                  inputs=[cam, pose, refr, dem, b["coarse"], width, height, b["coords"], b["bounds"]])
-
-    def resample(b):
-        wp.launch(ok.ortho_resample_kernel, dim=b["shape"], device=dev, block_dim=block_dim[1],
-                  inputs=[sw, data, b["coords"], method, 255.0, b["out"], b["valid"]])
-
-    def both(b):
-        coords(b)
-        resample(b)
-
-    def best_of(fn):
+    def best_of():
         def run():
             if dev.is_cuda:
-                fn(bands[0])
+                launch(bands[0])
             else:
                 with ThreadPoolExecutor(os.cpu_count() or 1) as pool:
-                    list(pool.map(fn, bands))
+                    list(pool.map(launch, bands))
             wp.synchronize_device(dev)
         run()
         best = 1e9
@@ -183,17 +171,16 @@ def kernel_only(geom, src_path, resampling, repeats=3):
             best = min(best, time.perf_counter() - t)
         return best
 
-    best = best_of(both)
+    best = best_of()
     npx = rows * cols
     out = dict(kernel_method="backward", output_pixels=npx, kernel_s=best, kernel_gpix_s=npx / best / 1e9,
-               kernel_gpix_s_per_band=count * npx / best / 1e9, kernel_launch_bands=len(bands))
+               kernel_gpix_s_per_band=count * npx / best / 1e9, kernel_launch_bands=len(bands),
+               kernel_block_dim=ORTHO_BLOCK_DIM)
     if dev.is_cuda:
-        out.update(coords_kernel_s=best_of(coords), resample_kernel_s=best_of(resample))
         scan = {}
-        for size in (64, 128, 256, 512):  # thread-block sizes, each kernel alone
-            block_dim[:] = [size, size]
-            scan[size] = dict(coords_s=best_of(coords), resample_s=best_of(resample))
-        out["block_dim_scan"] = scan
+        for block_dim[0] in (64, 128, 256, 512):  # thread-block sizes
+            scan[block_dim[0]] = best_of()
+        out["block_dim_scan_s"] = scan
     return out
 
 

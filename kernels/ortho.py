@@ -1,23 +1,27 @@
 """Backward (indirect) orthorectification, device code.
 
-Backward (default), per output tile, two kernels:
+Backward (default), per output tile:
 
-1. :func:`ortho_coords_kernel`: output pixel centre -> horizontal coordinates of the pose's
-   frame (bilinear in a coarse grid the host transforms exactly with PROJ) -> DEM height ->
-   backward projection (collinearity, refraction, distortion) -> source pixel (col, row),
-   float64; NaN where there is no DEM height or the point falls outside the source image.
-   It also reduces the bounding box of the valid source coordinates, so that the host reads
-   exactly the source window the tile needs.
-2. :func:`ortho_resample_kernel`: samples every band of that window (read in its own dtype)
-   at the source coordinates with nearest, bilinear, bicubic (Keys, a = -0.5) or Lanczos-3
-   weights, skipping source pixels marked invalid and renormalising the remaining weights (an
-   output pixel whose valid weight is under half of the total is nodata), and stores the
-   result in the output's dtype, pixel-interleaved, as the file wants it.
+1. :func:`frame_node_pixels_kernel` / :func:`pb_node_pixels_kernel`: the source pixels of
+   the nodes of the tile's coarse grid at the lowest and the highest DEM height under the
+   tile. Each output pixel's ground point lies on the vertical between those heights of a
+   point inside a grid cell, so its source pixel lies in the nodes' bounding box (grown by a
+   margin for the projection's curvature within a cell): the host reads that window.
+2. :func:`ortho_frame_kernel` / :func:`ortho_pb_kernel`, one thread per output pixel: pixel
+   centre -> horizontal coordinates of the pose's frame (bilinear in the coarse grid the host
+   transforms exactly with PROJ) -> DEM height -> backward projection (collinearity,
+   refraction, distortion; or the pushbroom's line-time iteration) -> source pixel (col,
+   row), float64; NaN where there is no DEM height or the point falls outside the image ->
+   :func:`resample_at`: every band of the window (read in its own dtype) sampled with
+   nearest, bilinear, bicubic (Keys, a = -0.5) or Lanczos-3 weights, skipping source pixels
+   marked invalid and renormalising the remaining weights (an output pixel whose valid
+   weight is under half of the total is nodata), stored in the output's dtype,
+   pixel-interleaved, as the file wants it. The source coordinates never leave registers.
 
 Forward (seed 003's direct method): :func:`forward_nodes_kernel` runs the forward chain for
 every source pixel of the window that maps into the tile, and :func:`forward_scatter_kernel`
-inverts that map quad by quad into the same per-output-pixel source coordinates, which the
-same resampling kernel then uses.
+inverts that map quad by quad into per-output-pixel source coordinates, which
+:func:`ortho_resample_kernel` resamples with the same :func:`resample_at`.
 """
 
 from typing import Any
@@ -109,44 +113,81 @@ def grid_ground(grid: CoarseGrid, dem: DemData, fi: wp.float64, fj: wp.float64):
 
 
 @wp.func
-def store_coords(coords: wp.array2d(dtype=wp.vec2d), bounds: wp.array(dtype=wp.float32), i: wp.int32, j: wp.int32,
-                 pix: wp.vec2d, width: wp.float64, height: wp.float64):
-    """Store a tile pixel's source coordinates (NaN outside the image) and fold them into the
-    bounds (min col, min row, -max col, -max row; atomic minima)."""
+def in_image(pix: wp.vec2d, width: wp.float64, height: wp.float64):
+    """pix where it lies on the image (0 <= col <= width, 0 <= row <= height), else NaN."""
     zero = wp.float64(0.0)
-    p = pix
-    if not (p[0] >= zero and p[1] >= zero and p[0] <= width and p[1] <= height):
-        p = wp.vec2d(wp.float64(wp.nan), wp.float64(wp.nan))
-    coords[i, j] = p
-    if wp.isfinite(p[0]):
-        wp.atomic_min(bounds, 0, wp.float32(p[0]))
-        wp.atomic_min(bounds, 1, wp.float32(p[1]))
-        wp.atomic_min(bounds, 2, -wp.float32(p[0]))
-        wp.atomic_min(bounds, 3, -wp.float32(p[1]))
+    if pix[0] >= zero and pix[1] >= zero and pix[0] <= width and pix[1] <= height:
+        return pix
+    return wp.vec2d(wp.float64(wp.nan), wp.float64(wp.nan))
 
 
-@wp.kernel
-def ortho_coords_kernel(
-    cam: FrameCameraData,
-    pose: FramePoseData,
-    refr: RefractionTable,
-    dem: DemData,
-    grid: CoarseGrid,
-    width: wp.float64,
-    height: wp.float64,
-    coords: wp.array2d(dtype=wp.vec2d),
-    bounds: wp.array(dtype=wp.float32),
-):
-    """Source pixel (col, row) of every pixel of an output tile; bounds = (min col, min row,
-    -max col, -max row) of the valid ones (atomic minima)."""
-    i, j = wp.tid()
+@wp.func
+def frame_source_pixel(cam: FrameCameraData, pose: FramePoseData, refr: RefractionTable, dem: DemData,
+                       grid: CoarseGrid, i: wp.int32, j: wp.int32, width: wp.float64, height: wp.float64):
+    """Source pixel (col, row) of output-tile pixel (i, j) by the frame's backward chain; NaN
+    where there is no DEM height or the point falls outside the image."""
+    x, h = grid_ground(grid, dem, wp.float64(i) / grid.step, wp.float64(j) / grid.step)
+    if not wp.isfinite(h):
+        return wp.vec2d(wp.float64(wp.nan), wp.float64(wp.nan))
+    return in_image(project_xyz(cam, pose, refr, x, h), width, height)
+
+
+@wp.func
+def pb_source_pixel(pb: PushbroomData, refr: RefractionTable, dem: DemData, grid: CoarseGrid,
+                    times: wp.array2d(dtype=wp.float64), i: wp.int32, j: wp.int32, width: wp.float64,
+                    height: wp.float64):
+    """:func:`frame_source_pixel` for a pushbroom scene: the line time is solved from the
+    coarse grid's interpolated time (``times``, s)."""
     fi = wp.float64(i) / grid.step
     fj = wp.float64(j) / grid.step
     x, h = grid_ground(grid, dem, fi, fj)
-    pix = wp.vec2d(wp.float64(wp.nan), wp.float64(wp.nan))
-    if wp.isfinite(h):
-        pix = project_xyz(cam, pose, refr, x, h)
-    store_coords(coords, bounds, i, j, pix, width, height)
+    if not wp.isfinite(h):
+        return wp.vec2d(wp.float64(wp.nan), wp.float64(wp.nan))
+    t0 = grid_bilinear(times, fi, fj)
+    if not wp.isfinite(t0):
+        t0 = wp.float64(0.0)
+    return in_image(pb_project(pb, refr, x, h, t0), width, height)
+
+
+@wp.func
+def node_point(grid: CoarseGrid, i: wp.int32, j: wp.int32, h: wp.float64):
+    """The point of coarse node (i, j) at height h in the pose's Cartesian frame."""
+    uv = grid.uv[i, j]
+    if grid.geocentric != 0:
+        return grid.xyz0[i, j] + h * grid.up[i, j]
+    return wp.vec3d(uv[0], uv[1], h)
+
+
+@wp.kernel
+def frame_node_pixels_kernel(
+    cam: FrameCameraData,
+    pose: FramePoseData,
+    refr: RefractionTable,
+    grid: CoarseGrid,
+    heights: wp.vec2d,
+    pixels: wp.array3d(dtype=wp.vec2d),
+):
+    """Source pixel of every node of a tile's coarse grid at the two heights (k = 0, 1) that
+    bound the tile's DEM: the tile's source pixels lie in their bounding box, but for the
+    curvature of the projection within a grid cell."""
+    k, i, j = wp.tid()
+    h = heights[k]
+    pixels[k, i, j] = project_xyz(cam, pose, refr, node_point(grid, i, j, h), h)
+
+
+@wp.kernel
+def pb_node_pixels_kernel(
+    pb: PushbroomData,
+    refr: RefractionTable,
+    grid: CoarseGrid,
+    heights: wp.vec2d,
+    pixels: wp.array3d(dtype=wp.vec2d),
+):
+    """:func:`frame_node_pixels_kernel` for a pushbroom scene (NaN where the line time falls
+    outside the ephemeris)."""
+    k, i, j = wp.tid()
+    h = heights[k]
+    pixels[k, i, j] = pb_project(pb, refr, node_point(grid, i, j, h), h, wp.float64(0.0))
 
 
 @wp.kernel
@@ -165,36 +206,8 @@ def pb_node_times_kernel(
     h = dem_sample(dem, uv[0], uv[1])
     if not wp.isfinite(h):
         h = h_default
-    x = grid.xyz0[i, j] + h * grid.up[i, j]
-    pix = pb_project(pb, refr, x, h, wp.float64(0.0))
+    pix = pb_project(pb, refr, node_point(grid, i, j, h), h, wp.float64(0.0))
     times[i, j] = pb_line_time(pb, pix[1])
-
-
-@wp.kernel
-def pb_ortho_coords_kernel(
-    pb: PushbroomData,
-    refr: RefractionTable,
-    dem: DemData,
-    grid: CoarseGrid,
-    times: wp.array2d(dtype=wp.float64),
-    width: wp.float64,
-    height: wp.float64,
-    coords: wp.array2d(dtype=wp.vec2d),
-    bounds: wp.array(dtype=wp.float32),
-):
-    """:func:`ortho_coords_kernel` for a pushbroom scene: the backward projection solves the
-    line time from the coarse grid's interpolated time."""
-    i, j = wp.tid()
-    fi = wp.float64(i) / grid.step
-    fj = wp.float64(j) / grid.step
-    x, h = grid_ground(grid, dem, fi, fj)
-    pix = wp.vec2d(wp.float64(wp.nan), wp.float64(wp.nan))
-    if wp.isfinite(h):
-        t0 = grid_bilinear(times, fi, fj)
-        if not wp.isfinite(t0):
-            t0 = wp.float64(0.0)
-        pix = pb_project(pb, refr, x, h, t0)
-    store_coords(coords, bounds, i, j, pix, width, height)
 
 
 @wp.func
@@ -257,22 +270,14 @@ def tap_weight(src: SourceWindow, r: wp.int32, c: wp.int32, rows: wp.int32, cols
     return w
 
 
-@wp.kernel
-def ortho_resample_kernel(
-    src: SourceWindow,
-    data: wp.array3d(dtype=Any),
-    coords: wp.array2d(dtype=wp.vec2d),
-    method: wp.int32,
-    top: wp.float32,
-    out: wp.array3d(dtype=Any),
-    out_valid: wp.array2d(dtype=wp.uint8),
-):
-    """Resample all bands of a source window (data: bands, rows, cols, any dtype) at the tile's
-    source coordinates straight into the output's dtype, pixel-interleaved (rows, cols, bands):
-    ``top`` is the largest value of an integer output (values are rounded half to even and
-    clipped to [0, top]) and 0 for float outputs (NaN where there is no data)."""
-    i, j = wp.tid()
-    pix = coords[i, j]
+@wp.func
+def resample_at(src: SourceWindow, data: wp.array3d(dtype=Any), pix: wp.vec2d, method: wp.int32, top: wp.float32,
+                out: wp.array3d(dtype=Any), out_valid: wp.array2d(dtype=wp.uint8), i: wp.int32, j: wp.int32):
+    """Resample all bands of a source window (data: bands, rows, cols, any dtype) at source
+    pixel ``pix`` (NaN: no data) into output pixel (i, j), in the output's dtype,
+    pixel-interleaved (rows, cols, bands): ``top`` is the largest value of an integer output
+    (values are rounded half to even and clipped to [0, top]) and 0 for float outputs (NaN
+    where there is no data)."""
     nb = out.shape[2]
     rows = data.shape[1]
     cols = data.shape[2]
@@ -356,11 +361,72 @@ def ortho_resample_kernel(
     out_valid[i, j] = wp.uint8(1)
 
 
+@wp.kernel
+def ortho_frame_kernel(
+    cam: FrameCameraData,
+    pose: FramePoseData,
+    refr: RefractionTable,
+    dem: DemData,
+    grid: CoarseGrid,
+    width: wp.float64,
+    height: wp.float64,
+    src: SourceWindow,
+    data: wp.array3d(dtype=Any),
+    method: wp.int32,
+    top: wp.float32,
+    out: wp.array3d(dtype=Any),
+    out_valid: wp.array2d(dtype=wp.uint8),
+):
+    """Backward ortho of a frame image, one thread per output-tile pixel: its source pixel
+    (:func:`frame_source_pixel`), then :func:`resample_at`."""
+    i, j = wp.tid()
+    pix = frame_source_pixel(cam, pose, refr, dem, grid, i, j, width, height)
+    resample_at(src, data, pix, method, top, out, out_valid, i, j)
+
+
+@wp.kernel
+def ortho_pb_kernel(
+    pb: PushbroomData,
+    refr: RefractionTable,
+    dem: DemData,
+    grid: CoarseGrid,
+    times: wp.array2d(dtype=wp.float64),
+    width: wp.float64,
+    height: wp.float64,
+    src: SourceWindow,
+    data: wp.array3d(dtype=Any),
+    method: wp.int32,
+    top: wp.float32,
+    out: wp.array3d(dtype=Any),
+    out_valid: wp.array2d(dtype=wp.uint8),
+):
+    """:func:`ortho_frame_kernel` for a pushbroom scene (:func:`pb_source_pixel`)."""
+    i, j = wp.tid()
+    pix = pb_source_pixel(pb, refr, dem, grid, times, i, j, width, height)
+    resample_at(src, data, pix, method, top, out, out_valid, i, j)
+
+
+@wp.kernel
+def ortho_resample_kernel(
+    src: SourceWindow,
+    data: wp.array3d(dtype=Any),
+    coords: wp.array2d(dtype=wp.vec2d),
+    method: wp.int32,
+    top: wp.float32,
+    out: wp.array3d(dtype=Any),
+    out_valid: wp.array2d(dtype=wp.uint8),
+):
+    """:func:`resample_at` at given source coordinates per output pixel (the forward method)."""
+    i, j = wp.tid()
+    resample_at(src, data, coords[i, j], method, top, out, out_valid, i, j)
+
+
 # the source's dtype and the output's: the same, or a float32 source (a widened integer source,
 # or one of another dtype read as float32) resampled into an integer output
 for _src, _out in ((wp.uint8, wp.uint8), (wp.uint16, wp.uint16), (wp.float32, wp.float32), (wp.float32, wp.uint8),
                    (wp.float32, wp.uint16)):
-    wp.overload(ortho_resample_kernel, {"data": wp.array3d(dtype=_src), "out": wp.array3d(dtype=_out)})
+    for _kernel in (ortho_frame_kernel, ortho_pb_kernel, ortho_resample_kernel):
+        wp.overload(_kernel, {"data": wp.array3d(dtype=_src), "out": wp.array3d(dtype=_out)})
 
 
 # -- forward (direct) method, seed 003 ----------------------------------------------------------

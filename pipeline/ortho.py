@@ -50,9 +50,9 @@ RESAMPLING = {"nearest": 0, "bilinear": 1, "bicubic": 2, "lanczos": 3}
 _RADIUS = {"nearest": 1, "bilinear": 1, "bicubic": 2, "lanczos": 3}
 DRIVERS = ("COG", "GTiff")
 COMPRESS = ("deflate", "zstd", "lzw", "jpeg", "none")
-# threads per block of the resampling kernel: on an H100, 128 ran ~20 % faster than Warp's
-# default 256 (bench/ortho.py's block-size scan)
-RESAMPLE_BLOCK_DIM = 128
+# threads per block of the per-pixel ortho kernels: on an H100, 128 ran a few per cent faster
+# than Warp's default 256 (bench/ortho.py's block-size scan)
+ORTHO_BLOCK_DIM = 128
 _WP_TYPES = {"uint8": wp.uint8, "uint16": wp.uint16, "float32": wp.float32}
 COARSE_STEP = 16  # output pixels between nodes of the exactly transformed coarse grid
 
@@ -450,32 +450,55 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
     w_img, h_img = geom.image_size
     geocentric = geom.geocentric
 
-    def backward_coords(r0, c0, th, tw):
-        """Source coordinates of the tile's pixels by the backward chain, and their window."""
+    def backward(r0, c0, th, tw):
+        """The backward method's source window for a tile (see :mod:`orthowarp.kernels.ortho`)
+        and the launch of its fused kernel."""
         t = time.perf_counter()
-        grid = coarse_struct(coarse_grid(transform, to_frame, r0, c0, th, tw), geocentric, device)
-        bounds = wp.array(np.full(4, np.inf, np.float32), dtype=wp.float32, device=device)
-        coords = wp.empty((th, tw), dtype=wp.vec2d, device=device)
+        uv = coarse_grid(transform, to_frame, r0, c0, th, tw)
+        heights = _height_range(geom.dem, uv)
+        if heights is None:  # no DEM under the tile
+            return None, None
+        grid = coarse_struct(uv, geocentric, device)
+        nodes = wp.empty((2, *uv.shape[:2]), dtype=wp.vec2d, device=device)
         timer.add("h2d", time.perf_counter() - t)
         t = time.perf_counter()
         if pushbroom:
+            wp.launch(ortho_kernels.pb_node_pixels_kernel, dim=nodes.shape, device=device,
+                      inputs=[*sensor, grid, wp.vec2d(*heights), nodes])
             times = wp.empty(grid.uv.shape, dtype=wp.float64, device=device)
             wp.launch(ortho_kernels.pb_node_times_kernel, dim=grid.uv.shape, device=device,
                       inputs=[*sensor, dem, grid, h_mid, times])
-            wp.launch(ortho_kernels.pb_ortho_coords_kernel, dim=(th, tw), device=device,
-                      inputs=[*sensor, dem, grid, times, float(w_img), float(h_img), coords, bounds])
         else:
-            wp.launch(ortho_kernels.ortho_coords_kernel, dim=(th, tw), device=device,
-                      inputs=[*sensor, dem, grid, float(w_img), float(h_img), coords, bounds])
-        b = bounds.numpy()
+            wp.launch(ortho_kernels.frame_node_pixels_kernel, dim=nodes.shape, device=device,
+                      inputs=[*sensor, grid, wp.vec2d(*heights), nodes])
+        window = _node_window(nodes.numpy(), radius, w_img, h_img)
         timer.add("kernel", time.perf_counter() - t)
-        if not np.all(np.isfinite(b)):
-            return coords, None
-        return coords, (max(int(math.floor(b[0])) - radius - 1, 0), max(int(math.floor(b[1])) - radius - 1, 0),
-                        min(int(math.ceil(-b[2])) + radius + 1, w_img), min(int(math.ceil(-b[3])) + radius + 1, h_img))
 
-    run_coords = backward_coords if method_name == "backward" else _forward_coords(
-        geom, transform, out_crs, frame_crs, device, timer, radius)
+        def launch(sw, data, out, out_valid):
+            if pushbroom:
+                kernel, args = ortho_kernels.ortho_pb_kernel, [*sensor, dem, grid, times]
+            else:
+                kernel, args = ortho_kernels.ortho_frame_kernel, [*sensor, dem, grid]
+            wp.launch(kernel, dim=(th, tw), device=device, block_dim=ORTHO_BLOCK_DIM,
+                      inputs=[*args, wp.float64(w_img), wp.float64(h_img), sw, data, resampling_code, top, out, out_valid])
+
+        return launch, window
+
+    def forward(r0, c0, th, tw):
+        """The forward method's coordinates and window for a tile, and the resampling launch."""
+        coords, window = forward_coords(r0, c0, th, tw)
+
+        def launch(sw, data, out, out_valid):
+            wp.launch(ortho_kernels.ortho_resample_kernel, dim=(th, tw), device=device, block_dim=ORTHO_BLOCK_DIM,
+                      inputs=[sw, data, coords, resampling_code, top, out, out_valid])
+
+        return launch, window
+
+    if method_name == "backward":
+        prepare = backward
+    else:
+        forward_coords = _forward_coords(geom, transform, out_crs, frame_crs, device, timer, radius)
+        prepare = forward
 
     top = {"uint8": 255.0, "uint16": 65535.0, "float32": 0.0}[out_dtype]
     with _open_source(src) as ds:  # a source without nodata, mask or alpha needs no mask reads
@@ -510,7 +533,7 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
         r0, c0, th, tw = tile
         ds, stream = source()
         with wp.ScopedStream(stream) if stream is not None else contextlib.nullcontext():
-            coords, window = run_coords(r0, c0, th, tw)
+            launch, window = prepare(r0, c0, th, tw)
             if window is None:
                 block = np.zeros((th, tw, count), out_dtype) if not is_float else np.full((th, tw, count), np.nan, np.float32)
                 mask = np.zeros((th, tw), bool)
@@ -519,8 +542,7 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
                 t = time.perf_counter()
                 res_valid = wp.empty((th, tw), dtype=wp.uint8, device=device)
                 packed = wp.empty((th, tw, count), dtype=_WP_TYPES[out_dtype], device=device)
-                wp.launch(ortho_kernels.ortho_resample_kernel, dim=(th, tw), device=device, block_dim=RESAMPLE_BLOCK_DIM,
-                          inputs=[sw, data, coords, resampling_code, top, packed, res_valid])
+                launch(sw, data, packed, res_valid)
                 if stream is not None:
                     wp.synchronize_stream(stream)
                 timer.add("kernel", time.perf_counter() - t)
@@ -548,6 +570,49 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
     finally:
         for ds in handles:
             ds.close()
+
+
+def _height_range(dem, uv):
+    """(lowest, highest) DEM height (m) under a tile whose coarse-grid nodes have horizontal
+    coordinates ``uv`` (..., 2) in the DEM's frame: over the DEM cells of their bounding box
+    and one cell around (bilinear heights never leave the range of their four cells); None
+    where the DEM has no height there."""
+    if dem.is_constant:
+        return dem.value, dem.value
+    u, v = uv[..., 0], uv[..., 1]
+    corners = [(u.min(), v.min()), (u.min(), v.max()), (u.max(), v.min()), (u.max(), v.max())]
+    cr = np.array([~dem.transform @ c for c in corners])
+    rows, cols = dem.array.shape
+    c0, c1 = max(int(np.floor(cr[:, 0].min())) - 1, 0), min(int(np.ceil(cr[:, 0].max())) + 1, cols)
+    r0, r1 = max(int(np.floor(cr[:, 1].min())) - 1, 0), min(int(np.ceil(cr[:, 1].max())) + 1, rows)
+    win = dem.array[r0:r1, c0:c1]
+    if win.size == 0 or not np.isfinite(win).any():
+        return None
+    return float(np.nanmin(win)), float(np.nanmax(win))
+
+
+def _node_window(nodes, radius, width, height, margin=2):
+    """The source window (col0, row0, col1, row1) a tile needs, from its coarse nodes' source
+    pixels at its lowest and highest DEM heights (``nodes`` (2, rows, cols, 2)): their
+    bounding box grown by the resampling ``radius`` + 1 and ``margin`` pixels (the
+    projection's curvature within a cell is far below a pixel), and by one cell's extent
+    where some nodes have no pixel (a tile pixel near them may still have one), clipped to
+    the image; None where that is empty."""
+    pix = nodes.reshape(-1, 2)
+    ok = np.isfinite(pix).all(axis=1)
+    if not ok.any():
+        return None
+    lo, hi = pix[ok].min(axis=0), pix[ok].max(axis=0)
+    grow = radius + 1 + margin
+    if not ok.all():
+        steps = [np.hypot(*np.diff(nodes, axis=ax).reshape(-1, 2).T) for ax in (1, 2)]
+        steps = np.concatenate(steps)
+        grow += float(np.nanmax(steps)) if np.isfinite(steps).any() else 0.0
+    c0, r0 = max(int(np.floor(lo[0] - grow)), 0), max(int(np.floor(lo[1] - grow)), 0)
+    c1, r1 = min(int(np.ceil(hi[0] + grow)), width), min(int(np.ceil(hi[1] + grow)), height)
+    if c0 >= c1 or r0 >= r1:
+        return None
+    return c0, r0, c1, r1
 
 
 @contextlib.contextmanager

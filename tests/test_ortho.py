@@ -357,9 +357,10 @@ def test_footprint_is_the_images(name, resampling, tmp_path):
     """Valid orthoimage pixels are those that see the image: none outside it, all that are
     0.5 px or more inside it (a kernel may drop a pixel whose valid taps weigh < 1/2 within
     half a pixel of the border), every one of them for nearest. And the orthoimage's
-    bounds hold the whole footprint."""
+    bounds hold the whole footprint. Small tiles: many source windows, each bounded by its
+    coarse nodes at the tile's extreme DEM heights, must each hold all their pixels' taps."""
     sc = scene(name)
-    res = ortho(sc, tmp_path, refraction_image=False, refraction=False, resampling=resampling)
+    res = ortho(sc, tmp_path, refraction_image=False, refraction=False, resampling=resampling, tile_size=48)
     _, valid, _ = read_ortho(res.path)
     pix = source_position(sc, res)
     w, h = sc.size
@@ -374,6 +375,53 @@ def test_footprint_is_the_images(name, resampling, tmp_path):
     _, txy = sc.renderer(False).ground(border)
     col, row = ~res.transform @ (txy[:, 0], txy[:, 1])
     assert np.all((col >= 0) & (col <= res.shape[1]) & (row >= 0) & (row <= res.shape[0]))
+
+
+@pytest.mark.parametrize("name", ["ins", "opk"])
+def test_tile_windows_hold_every_source_pixel(name):
+    """The source window of a tile (its coarse nodes projected at the lowest and highest DEM
+    height under it, then a 1 px margin: no resampling radius, no curvature margin) holds the
+    exact source pixel of every pixel of the tile: the ground point on the DEM projected by
+    ``orthowarp.project``. Over these hills a tile spans up to ~25 m of relief, which moves
+    source pixels by several pixels."""
+    import warp as wp
+    from orthowarp.kernels import ortho as ok
+    from orthowarp.pipeline.geometry import FrameGeometry
+    from orthowarp.pipeline.ortho import _height_range, _node_window, coarse_grid, coarse_struct, output_grid
+
+    sc = scene(name)
+    geom = FrameGeometry(sc.camera, sc.pose, sc.dem, device="cpu", refraction=True)
+    out_crs, transform, shape, _ = output_grid(geom)
+    frame_crs = geom.horizontal_crs
+    to_frame = Transformer.from_crs(out_crs, frame_crs, always_xy=True)
+    cam, pose, refr, _, _ = geom.structs()
+    size, spans, checked = 64, [], 0
+    for r0 in range(0, shape[0] - size, 3 * size):
+        for c0 in range(0, shape[1] - size, 3 * size):
+            uv = coarse_grid(transform, to_frame, r0, c0, size, size)
+            heights = _height_range(geom.dem, uv)
+            if heights is None:  # off the DEM
+                continue
+            nodes = wp.empty((2, *uv.shape[:2]), dtype=wp.vec2d, device="cpu")
+            wp.launch(ok.frame_node_pixels_kernel, dim=nodes.shape, device="cpu",
+                      inputs=[cam, pose, refr, coarse_struct(uv, geom.geocentric, "cpu"), wp.vec2d(*heights), nodes])
+            w, h_img = sc.size
+            window = _node_window(nodes.numpy(), 0, w, h_img, margin=0)
+            jj, ii = np.meshgrid(np.arange(c0, c0 + size) + 0.5, np.arange(r0, r0 + size) + 0.5)
+            u, v = to_frame.transform(*(transform @ (jj.ravel(), ii.ravel())))
+            h = geom.dem.sample(np.asarray(u), np.asarray(v))
+            pix = ow.project(sc.camera, sc.pose, np.stack([u, v, h], 1), crs=frame_crs, refraction=True, device="cpu")
+            pix = pix[np.isfinite(pix).all(axis=1)]
+            pix = pix[(pix[:, 0] >= 0) & (pix[:, 0] <= w) & (pix[:, 1] >= 0) & (pix[:, 1] <= h_img)]  # on the image
+            if window is None:
+                assert len(pix) == 0, (r0, c0)
+                continue
+            c_lo, r_lo, c_hi, r_hi = window
+            assert np.all((pix[:, 0] >= c_lo) & (pix[:, 0] <= c_hi) & (pix[:, 1] >= r_lo) & (pix[:, 1] <= r_hi)), (r0, c0)
+            n = nodes.numpy()
+            spans.append(np.nanmax(np.hypot(*(n[1] - n[0]).reshape(-1, 2).T)))  # px between the two heights
+            checked += len(pix)
+    assert checked > 10000 and max(spans) > 3.0, (checked, max(spans))
 
 
 @pytest.mark.parametrize("name,crs,resolution", [("ins", "EPSG:32633", 0.56), ("opk", "EPSG:4326", 0.56 / 111000.0)])
