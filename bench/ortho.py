@@ -146,7 +146,8 @@ def kernel_only(geom, src_path, resampling, repeats=3):
         c0, c1 = r0 // step, -(-(r1 - 1) // step) + 1
         bands.append(dict(
             shape=(r1 - r0, cols),
-            coarse=coarse_struct(np.ascontiguousarray(coarse_all[c0:max(c1, c0 + 2)]), geom.pose.mode == "geocentric", dev),
+            coarse=coarse_struct(np.ascontiguousarray(coarse_all[c0:max(c1, c0 + 2)]), geom.geocentric, dev,
+                                 pose=geom.pose),
             out=wp.empty((r1 - r0, cols, count), dtype=wp.uint8, device=dev),
             valid=wp.empty((r1 - r0, cols), dtype=wp.uint8, device=dev)))
     block_dim = [ORTHO_BLOCK_DIM]

@@ -344,10 +344,12 @@ def geolocate_pixel(
 
 
 @wp.func
-def apparent_direction(refr: RefractionTable, pose: FramePoseData, v: wp.vec3d, h: wp.float64):
+def apparent_direction(refr: RefractionTable, up: wp.vec3d, v: wp.vec3d, h: wp.float64):
     """A vector along the apparent (refracted) direction at the sensor of the chord v (sensor
     to a ground point at height h, any length): the chord turned away from the nadir by delta.
-    Its length is not 1: callers use ratios of its components only.
+    ``up`` is the unit local vertical at the sensor, in the same frame as v (any frame: only
+    angles and combinations of the two are taken). The result's length is not 1: callers use
+    ratios of its components only.
 
     delta = q(theta_a, h) tan(theta_a) at the apparent angle theta_a = theta_c + delta. q varies
     by ~1e-5 of itself over delta, so it is read once at theta_c; tan(theta_a) is linearised
@@ -364,9 +366,9 @@ def apparent_direction(refr: RefractionTable, pose: FramePoseData, v: wp.vec3d, 
     v32 = wp.vec3f(wp.float32(v[0]), wp.float32(v[1]), wp.float32(v[2]))
     n = wp.length(v32)
     d = v32 / n
-    up = wp.vec3f(wp.float32(pose.up[0]), wp.float32(pose.up[1]), wp.float32(pose.up[2]))
-    c = -wp.dot(d, up)
-    perp = -(up + c * d)  # component of the nadir direction perpendicular to v
+    up32 = wp.vec3f(wp.float32(up[0]), wp.float32(up[1]), wp.float32(up[2]))
+    c = -wp.dot(d, up32)
+    perp = -(up32 + c * d)  # component of the nadir direction perpendicular to v
     s = wp.length(perp)
     theta = wp.atan2(s, c)
     tan_theta = wp.tan(theta)
@@ -388,7 +390,7 @@ def apparent_direction(refr: RefractionTable, pose: FramePoseData, v: wp.vec3d, 
 def project_xyz(cam: FrameCameraData, pose: FramePoseData, refr: RefractionTable, x: wp.vec3d, h: wp.float64):
     """Point of the pose's Cartesian frame (ECEF for geocentric poses, else the map frame) at
     ellipsoidal/map height h -> pixel (col, row); NaN behind the camera."""
-    return camera_to_pixel(cam, wp.transpose(pose.rot) * apparent_direction(refr, pose, x - pose.center, h))
+    return camera_to_pixel(cam, wp.transpose(pose.rot) * apparent_direction(refr, pose.up, x - pose.center, h))
 
 
 @wp.func

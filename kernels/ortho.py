@@ -28,9 +28,9 @@ from typing import Any
 
 import warp as wp
 
-from .camera import FrameCameraData
+from .camera import FrameCameraData, camera_to_pixel
 from .dem import DemData, dem_sample
-from .frame import FramePoseData, SearchParams, geolocate_pixel, project_xyz
+from .frame import FramePoseData, SearchParams, apparent_direction, geolocate_pixel, project_xyz
 from .pushbroom import PushbroomData, pb_line_time, pb_project
 from .refraction import RefractionTable
 
@@ -89,11 +89,20 @@ class CoarseGrid:
     poses, else map x, y), transformed exactly on the host; for geocentric poses also xyz0,
     the ECEF point (m) of (lon, lat) on the ellipsoid, and up, its unit normal, so that a
     pixel's ECEF point at height h is xyz0 + h up (exact for the ellipsoid; interpolating
-    over a cell of size s costs ~ s^2 / 8R, 5e-8 m at s = 1.6 m) without float64 sines."""
+    over a cell of size s costs ~ s^2 / 8R, 5e-8 m at s = 1.6 m) without float64 sines.
+
+    For a frame camera the nodes also carry that line in the camera frame: cam_a =
+    R^T (x(0) - C) and cam_b = R^T dx/dh (R, C: the pose's rotation and projection centre;
+    dx/dh = up, or (0, 0, 1) for map poses), with cam_up = R^T up(C): a pixel's camera-frame
+    chord is a + h b, interpolated like the rest (exactly: the map is affine), with no
+    rotation or subtraction per pixel."""
 
     uv: wp.array2d(dtype=wp.vec2d)
     xyz0: wp.array2d(dtype=wp.vec3d)
     up: wp.array2d(dtype=wp.vec3d)
+    cam_a: wp.array2d(dtype=wp.vec3d)
+    cam_b: wp.array2d(dtype=wp.vec3d)
+    cam_up: wp.vec3d
     step: wp.float64
     geocentric: wp.int32
 
@@ -124,12 +133,17 @@ def in_image(pix: wp.vec2d, width: wp.float64, height: wp.float64):
 @wp.func
 def frame_source_pixel(cam: FrameCameraData, pose: FramePoseData, refr: RefractionTable, dem: DemData,
                        grid: CoarseGrid, i: wp.int32, j: wp.int32, width: wp.float64, height: wp.float64):
-    """Source pixel (col, row) of output-tile pixel (i, j) by the frame's backward chain; NaN
-    where there is no DEM height or the point falls outside the image."""
-    x, h = grid_ground(grid, dem, wp.float64(i) / grid.step, wp.float64(j) / grid.step)
+    """Source pixel (col, row) of output-tile pixel (i, j) by the frame's backward chain, in
+    the camera frame (see :class:`CoarseGrid`; ``pose`` is not read); NaN where there is no
+    DEM height or the point falls outside the image."""
+    i0, j0, ai, aj = grid_cell(grid.uv.shape[0], grid.uv.shape[1], wp.float64(i) / grid.step,
+                               wp.float64(j) / grid.step)
+    uv = grid_lerp(grid.uv, i0, j0, ai, aj)
+    h = dem_sample(dem, uv[0], uv[1])
     if not wp.isfinite(h):
         return wp.vec2d(wp.float64(wp.nan), wp.float64(wp.nan))
-    return in_image(project_xyz(cam, pose, refr, x, h), width, height)
+    v = grid_lerp(grid.cam_a, i0, j0, ai, aj) + h * grid_lerp(grid.cam_b, i0, j0, ai, aj)
+    return in_image(camera_to_pixel(cam, apparent_direction(refr, grid.cam_up, v, h)), width, height)
 
 
 @wp.func
@@ -172,7 +186,7 @@ def frame_node_pixels_kernel(
     curvature of the projection within a grid cell."""
     k, i, j = wp.tid()
     h = heights[k]
-    pixels[k, i, j] = project_xyz(cam, pose, refr, node_point(grid, i, j, h), h)
+    pixels[k, i, j] = project_xyz(cam, pose, refr, node_point(grid, i, j, h), h)  # the object-frame chain
 
 
 @wp.kernel

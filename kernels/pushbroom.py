@@ -267,7 +267,7 @@ def pb_residual(pb: PushbroomData, refr: RefractionTable, x: wp.vec3d, h: wp.flo
     nan = wp.float64(wp.nan)
     if not wp.isfinite(p[0]):
         return nan, nan
-    q = wp.transpose(r) * apparent_direction(refr, pb_pose(p), x - p, h)
+    q = wp.transpose(r) * apparent_direction(refr, pb_pose(p).up, x - p, h)
     if q[2] >= wp.float64(0.0):
         return nan, nan
     col, tx = pb_column(pb, q[0] / q[2])

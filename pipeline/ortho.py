@@ -372,20 +372,30 @@ def coarse_grid(transform, to_frame, r0, c0, th, tw, step=COARSE_STEP):
     return np.ascontiguousarray(np.stack([u, v], -1))
 
 
-def coarse_struct(uv, geocentric, device, step=COARSE_STEP):
+def coarse_struct(uv, geocentric, device, step=COARSE_STEP, pose=None):
     """The kernels' :class:`~orthowarp.kernels.ortho.CoarseGrid` of a coarse grid ``uv``
     (rows, cols, 2) from :func:`coarse_grid`; for geocentric poses with the ECEF points on
-    the ellipsoid and their normals, computed here in float64."""
+    the ellipsoid and their normals, and given a frame ``pose``, with the nodes' lines in its
+    camera frame, computed here in float64."""
     g = ortho_kernels.CoarseGrid()
     g.uv = wp.array(uv, dtype=wp.vec2d, device=device)
     g.step = float(step)
     g.geocentric = int(bool(geocentric))
     if geocentric:
-        g.xyz0 = wp.array(np.ascontiguousarray(geodetic_to_ecef(uv[..., 1], uv[..., 0], 0.0)), dtype=wp.vec3d,
-                          device=device)
+        x0 = np.ascontiguousarray(geodetic_to_ecef(uv[..., 1], uv[..., 0], 0.0))
         lat, lon = np.radians(uv[..., 1]), np.radians(uv[..., 0])
         up = np.stack([np.cos(lat) * np.cos(lon), np.cos(lat) * np.sin(lon), np.sin(lat)], -1)
+        g.xyz0 = wp.array(x0, dtype=wp.vec3d, device=device)
         g.up = wp.array(up, dtype=wp.vec3d, device=device)
+    else:
+        x0 = np.concatenate([uv, np.zeros(uv.shape[:-1] + (1,))], -1)
+        up = np.broadcast_to([0.0, 0.0, 1.0], x0.shape)
+    if pose is not None:  # rows of R^T (x - C) are (x - C) @ R
+        rot = np.asarray(pose.rotation, float)
+        g.cam_a = wp.array(np.ascontiguousarray((x0 - np.asarray(pose.center, float)) @ rot), dtype=wp.vec3d,
+                           device=device)
+        g.cam_b = wp.array(np.ascontiguousarray(up @ rot), dtype=wp.vec3d, device=device)
+        g.cam_up = wp.vec3d(*(np.asarray(pose.up, float) @ rot))
     return g
 
 
@@ -458,7 +468,7 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
         heights = _height_range(geom.dem, uv)
         if heights is None:  # no DEM under the tile
             return None, None
-        grid = coarse_struct(uv, geocentric, device)
+        grid = coarse_struct(uv, geocentric, device, pose=None if pushbroom else geom.pose)
         nodes = wp.empty((2, *uv.shape[:2]), dtype=wp.vec2d, device=device)
         timer.add("h2d", time.perf_counter() - t)
         t = time.perf_counter()
