@@ -4,15 +4,15 @@
   :mod:`orthowarp.pipeline.blockio`);
 - :func:`bundle_adjust` -> :class:`AdjustResult`;
 - :mod:`~orthowarp.adjust.collinearity`: the observation equations and their Jacobians;
-- :func:`synthetic_block`: blocks with known truth.
+- :func:`synthetic_block`: blocks with known truth (:func:`film_camera`: seed 002's kind of camera).
 """
 
 from .block import ROLES, Block
 from .bundle import AdjustResult, bundle_adjust, intersect
-from .synthetic import CONTROL_LAYOUTS, synthetic_block
+from .synthetic import CONTROL_LAYOUTS, film_camera, synthetic_block
 
-__all__ = ["Block", "ROLES", "AdjustResult", "bundle_adjust", "intersect", "synthetic_block", "CONTROL_LAYOUTS",
-           "read_block", "write_block"]
+__all__ = ["Block", "ROLES", "AdjustResult", "bundle_adjust", "intersect", "synthetic_block", "film_camera",
+           "CONTROL_LAYOUTS", "read_block", "write_block"]
 
 
 def read_block(path):

@@ -19,9 +19,15 @@ from ..errors import ParamError
 from .block import Block
 from .collinearity import project
 
-__all__ = ["synthetic_block", "CONTROL_LAYOUTS"]
+__all__ = ["synthetic_block", "film_camera", "CONTROL_LAYOUTS"]
 
 CONTROL_LAYOUTS = ("A", "B", "C", "D")
+
+
+def film_camera():
+    """A wide-angle film camera of the kind seed 002's blocks were flown with: f = 153 mm,
+    230 x 230 mm format scanned at 20 um (11500 x 11500 pixels), no distortion."""
+    return FrameCamera(153.0, 0.020, (11500, 11500))
 
 
 def _terrain(x, y):
@@ -30,8 +36,8 @@ def _terrain(x, y):
 
 def synthetic_block(*, strips=3, images_per_strip=8, ties_per_image=12, control="A", n_check=12, sigma_px=0.5,
                     sigma_control=0.02, gnss_sigma=None, ins_sigma=None, flying_height=1500.0, forward=0.6, side=0.3,
-                    pose_noise=(1.0, 0.05), seed=0, geometry_seed=None, random_ties=None, true_camera=None,
-                    crs="EPSG:32632"):
+                    pose_noise=(1.0, 0.05), seed=0, geometry_seed=None, random_ties=None, camera=None,
+                    true_camera=None, crs="EPSG:32632"):
     """A block and its truth.
 
     Parameters
@@ -61,9 +67,14 @@ def synthetic_block(*, strips=3, images_per_strip=8, ties_per_image=12, control=
     random_ties : int, optional
         Instead of the standard positions, this many tie points spread uniformly over the block
         (large blocks for benchmarks).
+    camera : FrameCamera, optional
+        The block's (nominal) camera; its image's first axis lies along the track. Default: a
+        digital frame camera, f = 100 mm, 9 um pixels, 7000 x 10000 pixels, no distortion
+        (base-to-height ratio 0.25 at 60 % overlap); :func:`film_camera` gives seed 002's
+        kind of wide-angle film camera (0.6).
     true_camera : FrameCamera, optional
         The camera that takes the images (for self-calibration tests); the block keeps the
-        nominal one (f = 100 mm, 9 um pixels, no distortion). Its image size must be 7000 x 10000.
+        nominal one. Its image size must be the nominal camera's.
 
     Returns
     -------
@@ -79,9 +90,9 @@ def synthetic_block(*, strips=3, images_per_strip=8, ties_per_image=12, control=
     geo = np.random.default_rng([gseed, 0])  # tilts and tie points
     chk = np.random.default_rng([gseed, 1])  # check points: the same whatever the tie layout
     rng = np.random.default_rng([seed, 2])  # noise
-    cam = FrameCamera(100.0, 0.009, (7000, 10000))  # 7000 px along the track (x), 10000 across
-    scale = flying_height / 100.0 * 0.009
-    along, across = 7000 * scale, 10000 * scale  # footprint (m)
+    cam = camera or FrameCamera(100.0, 0.009, (7000, 10000))  # 7000 px along the track (x), 10000 across
+    scale = flying_height / cam.focal_length * cam.pixel_size[0]  # m per pixel
+    along, across = cam.image_size[0] * scale, cam.image_size[1] * scale  # footprint (m)
     base, spacing = (1 - forward) * along, (1 - side) * across
     z0 = 300.0 + flying_height
     centres = [(k * base, s * spacing) for s in range(strips) for k in range(images_per_strip)]

@@ -1,0 +1,147 @@
+"""Benchmark: the fused frame-ortho kernel under register caps (CUDA ``__maxnreg__``).
+
+Uncapped, the kernel (:func:`orthowarp.kernels.ortho.ortho_frame_kernel`) takes ~115 registers
+per thread; this script times copies of it capped at 64, 72, 80 and 96 registers, at several
+thread-block sizes, on the frame of bench/ortho.py (20000 x 13000 x 3 uint8 source resident on
+the device, 23310 x 19297 output, bilinear, refraction on), and checks that every copy writes the
+same bytes as the library's kernel. JSON output.
+
+usage: python3 bench/ortho_registers.py [--device cuda:0] [--width W --height H] [--out FILE]
+"""
+
+import argparse
+import json
+import os
+import sys
+import time
+
+import numpy as np
+import rasterio
+import warp as wp
+from pyproj import Transformer
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from geometry import scene  # noqa: E402
+from ortho import write_source  # noqa: E402
+
+from orthowarp.kernels import ortho as ok  # noqa: E402
+from orthowarp.kernels.camera import FrameCameraData  # noqa: E402
+from orthowarp.kernels.dem import DemData  # noqa: E402
+from orthowarp.kernels.frame import FramePoseData  # noqa: E402
+from orthowarp.kernels.refraction import RefractionTable  # noqa: E402
+from orthowarp.pipeline.geometry import FrameGeometry  # noqa: E402
+from orthowarp.pipeline.ortho import coarse_grid, coarse_struct, output_grid  # noqa: E402
+
+
+@wp.func
+def fused(cam: FrameCameraData, pose: FramePoseData, refr: RefractionTable, dem: DemData, grid: ok.CoarseGrid,
+          width: wp.float64, height: wp.float64, src: ok.SourceWindow, data: wp.array3d(dtype=wp.uint8),
+          method: wp.int32, top: wp.float32, out: wp.array3d(dtype=wp.uint8), out_valid: wp.array2d(dtype=wp.uint8),
+          i: wp.int32, j: wp.int32):
+    pix = ok.frame_source_pixel(cam, pose, refr, dem, grid, i, j, width, height)
+    ok.resample_at(src, data, pix, method, top, out, out_valid, i, j)
+
+
+@wp.kernel(cuda_max_registers=64)
+def capped_64(cam: FrameCameraData, pose: FramePoseData, refr: RefractionTable, dem: DemData, grid: ok.CoarseGrid,
+              width: wp.float64, height: wp.float64, src: ok.SourceWindow, data: wp.array3d(dtype=wp.uint8),
+              method: wp.int32, top: wp.float32, out: wp.array3d(dtype=wp.uint8), out_valid: wp.array2d(dtype=wp.uint8)):
+    i, j = wp.tid()
+    fused(cam, pose, refr, dem, grid, width, height, src, data, method, top, out, out_valid, i, j)
+
+
+@wp.kernel(cuda_max_registers=72)
+def capped_72(cam: FrameCameraData, pose: FramePoseData, refr: RefractionTable, dem: DemData, grid: ok.CoarseGrid,
+              width: wp.float64, height: wp.float64, src: ok.SourceWindow, data: wp.array3d(dtype=wp.uint8),
+              method: wp.int32, top: wp.float32, out: wp.array3d(dtype=wp.uint8), out_valid: wp.array2d(dtype=wp.uint8)):
+    i, j = wp.tid()
+    fused(cam, pose, refr, dem, grid, width, height, src, data, method, top, out, out_valid, i, j)
+
+
+@wp.kernel(cuda_max_registers=80)
+def capped_80(cam: FrameCameraData, pose: FramePoseData, refr: RefractionTable, dem: DemData, grid: ok.CoarseGrid,
+              width: wp.float64, height: wp.float64, src: ok.SourceWindow, data: wp.array3d(dtype=wp.uint8),
+              method: wp.int32, top: wp.float32, out: wp.array3d(dtype=wp.uint8), out_valid: wp.array2d(dtype=wp.uint8)):
+    i, j = wp.tid()
+    fused(cam, pose, refr, dem, grid, width, height, src, data, method, top, out, out_valid, i, j)
+
+
+@wp.kernel(cuda_max_registers=96)
+def capped_96(cam: FrameCameraData, pose: FramePoseData, refr: RefractionTable, dem: DemData, grid: ok.CoarseGrid,
+              width: wp.float64, height: wp.float64, src: ok.SourceWindow, data: wp.array3d(dtype=wp.uint8),
+              method: wp.int32, top: wp.float32, out: wp.array3d(dtype=wp.uint8), out_valid: wp.array2d(dtype=wp.uint8)):
+    i, j = wp.tid()
+    fused(cam, pose, refr, dem, grid, width, height, src, data, method, top, out, out_valid, i, j)
+
+
+@wp.kernel
+def uncapped(cam: FrameCameraData, pose: FramePoseData, refr: RefractionTable, dem: DemData, grid: ok.CoarseGrid,
+             width: wp.float64, height: wp.float64, src: ok.SourceWindow, data: wp.array3d(dtype=wp.uint8),
+             method: wp.int32, top: wp.float32, out: wp.array3d(dtype=wp.uint8), out_valid: wp.array2d(dtype=wp.uint8)):
+    i, j = wp.tid()
+    fused(cam, pose, refr, dem, grid, width, height, src, data, method, top, out, out_valid, i, j)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--device", default="cuda:0")
+    ap.add_argument("--width", type=int, default=20000)
+    ap.add_argument("--height", type=int, default=13000)
+    ap.add_argument("--workdir", default="/tmp/bo")
+    ap.add_argument("--out", default="bench/results/ortho_registers.json")
+    args = ap.parse_args(argv)
+    wp.config.log_level = wp.LOG_WARNING
+    wp.init()
+    dev = wp.get_device(args.device)
+    cam, pose, dem = scene(args.width, args.height)
+    os.makedirs(args.workdir, exist_ok=True)
+    src_path = os.path.join(args.workdir, "frame.tif")
+    if not os.path.exists(src_path):
+        write_source(src_path, args.width, args.height)
+    geom = FrameGeometry(cam, pose, dem, device=dev, refraction=True)
+    crs, transform, shape, _ = output_grid(geom)
+    rows, cols = shape
+    uv = coarse_grid(transform, Transformer.from_crs(crs, "EPSG:4326", always_xy=True), 0, 0, rows, cols)
+    grid = coarse_struct(uv, geom.geocentric, dev, pose=geom.pose)
+    with rasterio.open(src_path) as ds:
+        data = wp.array(ds.read(), dtype=wp.uint8, device=dev)
+    sw = ok.SourceWindow()
+    sw.masked, sw.col0, sw.row0 = 0, 0, 0
+    sw.valid = wp.array(np.ones((1, 1), np.uint8), dtype=wp.uint8, device=dev)
+    c, p, r, d, _ = geom.structs()
+    inputs = [c, p, r, d, grid, wp.float64(args.width), wp.float64(args.height), sw, data, 1, 255.0]
+    ref = wp.empty((rows, cols, 3), dtype=wp.uint8, device=dev)
+    out = wp.empty_like(ref)
+    valid = wp.empty((rows, cols), dtype=wp.uint8, device=dev)
+    wp.launch(ok.ortho_frame_kernel, dim=(rows, cols), device=dev, inputs=[*inputs, ref, valid])
+    reference = ref.numpy()
+
+    def best(kernel, block_dim, repeats=3):
+        wp.launch(kernel, dim=(rows, cols), device=dev, block_dim=block_dim, inputs=[*inputs, out, valid])
+        wp.synchronize_device(dev)
+        t_best = 1e9
+        for _ in range(repeats):
+            t = time.perf_counter()
+            wp.launch(kernel, dim=(rows, cols), device=dev, block_dim=block_dim, inputs=[*inputs, out, valid])
+            wp.synchronize_device(dev)
+            t_best = min(t_best, time.perf_counter() - t)
+        return t_best
+
+    results = []
+    for block_dim in (64, 128, 256):
+        for name, kernel in (("library", ok.ortho_frame_kernel), ("uncapped", uncapped), ("64", capped_64),
+                             ("72", capped_72), ("80", capped_80), ("96", capped_96)):
+            t = best(kernel, block_dim)
+            same = bool(np.array_equal(out.numpy(), reference))
+            results.append(dict(kernel=name, block_dim=block_dim, seconds=t,
+                                gpix_s_per_band=3 * rows * cols / t / 1e9, identical=same))
+            print(f"block {block_dim:3d}  max registers {name:>8s}: {t * 1e3:6.2f} ms  "
+                  f"{3 * rows * cols / t / 1e9:5.1f} Gpix/s per band  identical {same}", flush=True)
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+    with open(args.out, "w") as f:
+        json.dump(dict(benchmark="ortho_registers", device=dev.name, output=[rows, cols], results=results), f, indent=2)
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
