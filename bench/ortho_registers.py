@@ -3,8 +3,8 @@
 Uncapped, the kernel (:func:`orthowarp.kernels.ortho.ortho_frame_kernel`) takes ~115 registers
 per thread; this script times copies of it capped at 64, 72, 80 and 96 registers, at several
 thread-block sizes, on the frame of bench/ortho.py (20000 x 13000 x 3 uint8 source resident on
-the device, 23310 x 19297 output, bilinear, refraction on), and checks that every copy writes the
-same bytes as the library's kernel. JSON output.
+the device, 23310 x 19297 output, bilinear, refraction on), and counts the bytes in which each
+copy's output differs from the library kernel's. JSON output.
 
 usage: python3 bench/ortho_registers.py [--device cuda:0] [--width W --height H] [--out FILE]
 """
@@ -33,53 +33,49 @@ from orthowarp.pipeline.geometry import FrameGeometry  # noqa: E402
 from orthowarp.pipeline.ortho import coarse_grid, coarse_struct, output_grid  # noqa: E402
 
 
-@wp.func
-def fused(cam: FrameCameraData, pose: FramePoseData, refr: RefractionTable, dem: DemData, grid: ok.CoarseGrid,
-          width: wp.float64, height: wp.float64, src: ok.SourceWindow, data: wp.array3d(dtype=wp.uint8),
-          method: wp.int32, top: wp.float32, out: wp.array3d(dtype=wp.uint8), out_valid: wp.array2d(dtype=wp.uint8),
-          i: wp.int32, j: wp.int32):
-    pix = ok.frame_source_pixel(cam, pose, refr, dem, grid, i, j, width, height)
-    ok.resample_at(src, data, pix, method, top, out, out_valid, i, j)
-
-
 @wp.kernel(cuda_max_registers=64)
 def capped_64(cam: FrameCameraData, pose: FramePoseData, refr: RefractionTable, dem: DemData, grid: ok.CoarseGrid,
               width: wp.float64, height: wp.float64, src: ok.SourceWindow, data: wp.array3d(dtype=wp.uint8),
               method: wp.int32, top: wp.float32, out: wp.array3d(dtype=wp.uint8), out_valid: wp.array2d(dtype=wp.uint8)):
-    i, j = wp.tid()
-    fused(cam, pose, refr, dem, grid, width, height, src, data, method, top, out, out_valid, i, j)
+    i, j = wp.tid()  # the body of the library's kernel
+    pix = ok.frame_source_pixel(cam, pose, refr, dem, grid, i, j, width, height)
+    ok.resample_at(src, data, pix, method, top, out, out_valid, i, j)
 
 
 @wp.kernel(cuda_max_registers=72)
 def capped_72(cam: FrameCameraData, pose: FramePoseData, refr: RefractionTable, dem: DemData, grid: ok.CoarseGrid,
               width: wp.float64, height: wp.float64, src: ok.SourceWindow, data: wp.array3d(dtype=wp.uint8),
               method: wp.int32, top: wp.float32, out: wp.array3d(dtype=wp.uint8), out_valid: wp.array2d(dtype=wp.uint8)):
-    i, j = wp.tid()
-    fused(cam, pose, refr, dem, grid, width, height, src, data, method, top, out, out_valid, i, j)
+    i, j = wp.tid()  # the body of the library's kernel
+    pix = ok.frame_source_pixel(cam, pose, refr, dem, grid, i, j, width, height)
+    ok.resample_at(src, data, pix, method, top, out, out_valid, i, j)
 
 
 @wp.kernel(cuda_max_registers=80)
 def capped_80(cam: FrameCameraData, pose: FramePoseData, refr: RefractionTable, dem: DemData, grid: ok.CoarseGrid,
               width: wp.float64, height: wp.float64, src: ok.SourceWindow, data: wp.array3d(dtype=wp.uint8),
               method: wp.int32, top: wp.float32, out: wp.array3d(dtype=wp.uint8), out_valid: wp.array2d(dtype=wp.uint8)):
-    i, j = wp.tid()
-    fused(cam, pose, refr, dem, grid, width, height, src, data, method, top, out, out_valid, i, j)
+    i, j = wp.tid()  # the body of the library's kernel
+    pix = ok.frame_source_pixel(cam, pose, refr, dem, grid, i, j, width, height)
+    ok.resample_at(src, data, pix, method, top, out, out_valid, i, j)
 
 
 @wp.kernel(cuda_max_registers=96)
 def capped_96(cam: FrameCameraData, pose: FramePoseData, refr: RefractionTable, dem: DemData, grid: ok.CoarseGrid,
               width: wp.float64, height: wp.float64, src: ok.SourceWindow, data: wp.array3d(dtype=wp.uint8),
               method: wp.int32, top: wp.float32, out: wp.array3d(dtype=wp.uint8), out_valid: wp.array2d(dtype=wp.uint8)):
-    i, j = wp.tid()
-    fused(cam, pose, refr, dem, grid, width, height, src, data, method, top, out, out_valid, i, j)
+    i, j = wp.tid()  # the body of the library's kernel
+    pix = ok.frame_source_pixel(cam, pose, refr, dem, grid, i, j, width, height)
+    ok.resample_at(src, data, pix, method, top, out, out_valid, i, j)
 
 
 @wp.kernel
 def uncapped(cam: FrameCameraData, pose: FramePoseData, refr: RefractionTable, dem: DemData, grid: ok.CoarseGrid,
              width: wp.float64, height: wp.float64, src: ok.SourceWindow, data: wp.array3d(dtype=wp.uint8),
              method: wp.int32, top: wp.float32, out: wp.array3d(dtype=wp.uint8), out_valid: wp.array2d(dtype=wp.uint8)):
-    i, j = wp.tid()
-    fused(cam, pose, refr, dem, grid, width, height, src, data, method, top, out, out_valid, i, j)
+    i, j = wp.tid()  # the body of the library's kernel
+    pix = ok.frame_source_pixel(cam, pose, refr, dem, grid, i, j, width, height)
+    ok.resample_at(src, data, pix, method, top, out, out_valid, i, j)
 
 
 def main(argv=None):
@@ -114,7 +110,7 @@ def main(argv=None):
     out = wp.empty_like(ref)
     valid = wp.empty((rows, cols), dtype=wp.uint8, device=dev)
     wp.launch(ok.ortho_frame_kernel, dim=(rows, cols), device=dev, inputs=[*inputs, ref, valid])
-    reference = ref.numpy()
+    reference = ref.numpy().astype(np.int16)
 
     def best(kernel, block_dim, repeats=3):
         wp.launch(kernel, dim=(rows, cols), device=dev, block_dim=block_dim, inputs=[*inputs, out, valid])
@@ -132,11 +128,12 @@ def main(argv=None):
         for name, kernel in (("library", ok.ortho_frame_kernel), ("uncapped", uncapped), ("64", capped_64),
                              ("72", capped_72), ("80", capped_80), ("96", capped_96)):
             t = best(kernel, block_dim)
-            same = bool(np.array_equal(out.numpy(), reference))
-            results.append(dict(kernel=name, block_dim=block_dim, seconds=t,
-                                gpix_s_per_band=3 * rows * cols / t / 1e9, identical=same))
+            diff = np.abs(out.numpy().astype(np.int16) - reference)
+            results.append(dict(kernel=name, block_dim=block_dim, seconds=t, gpix_s_per_band=3 * rows * cols / t / 1e9,
+                                bytes_differing=int(np.count_nonzero(diff)), max_difference_dn=int(diff.max())))
             print(f"block {block_dim:3d}  max registers {name:>8s}: {t * 1e3:6.2f} ms  "
-                  f"{3 * rows * cols / t / 1e9:5.1f} Gpix/s per band  identical {same}", flush=True)
+                  f"{3 * rows * cols / t / 1e9:5.1f} Gpix/s per band  bytes differing from the library's "
+                  f"{np.count_nonzero(diff)} (max {diff.max()} DN)", flush=True)
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     with open(args.out, "w") as f:
         json.dump(dict(benchmark="ortho_registers", device=dev.name, output=[rows, cols], results=results), f, indent=2)
