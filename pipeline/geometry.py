@@ -145,7 +145,7 @@ class FrameGeometry:
                              device=self.device)
 
     def sensor_structs(self):
-        """The structs the ortho coordinate kernel takes before the DEM: (camera, pose, refraction)."""
+        """The structs the per-pixel ortho kernels take before the DEM: (camera, pose, refraction)."""
         return self.structs()[:3]
 
     def dem_struct(self):
@@ -290,7 +290,7 @@ class PushbroomGeometry:
         return PushbroomGeometry(self.scene, Dem.constant(h), refraction=self.refraction.enabled, device=self.device)
 
     def sensor_structs(self):
-        """The structs the ortho coordinate kernels take before the DEM: (scene, refraction)."""
+        """The structs the per-pixel ortho kernels take before the DEM: (scene, refraction)."""
         return self.structs()[:2]
 
     def dem_struct(self):

@@ -403,8 +403,9 @@ def _default_tile_size(device, bands, workers):
     """Output tile edge for a device: see :func:`orthorectify`'s ``tile_size``."""
     if not device.is_cuda:
         return 512  # one COG block; tiles in flight (one per core) stay small in host memory
-    # per output pixel: coordinates (16 B), result (at most 4 B per band), mask (1 B), and a
-    # source window of about the same size (at most 5 B per band, mask included)
+    # per output pixel: source coordinates (16 B, forward method only), result (at most 4 B
+    # per band), mask (1 B), and a source window of about the same size (at most 5 B per band,
+    # mask included)
     per_pixel = 17 + 9 * bands
     budget = 0.25 * device.free_memory / max(workers or 4, 1)
     size = 4096
