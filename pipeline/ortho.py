@@ -461,12 +461,14 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
     w_img, h_img = geom.image_size
     geocentric = geom.geocentric
 
+    dem_blocks = _dem_blocks(geom.dem) if method_name == "backward" else None
+
     def backward(r0, c0, th, tw):
         """The backward method's source window for a tile (see :mod:`orthowarp.kernels.ortho`)
         and the launch of its fused kernel."""
         t = time.perf_counter()
         uv = coarse_grid(transform, to_frame, r0, c0, th, tw)
-        heights = _height_range(geom.dem, uv)
+        heights = _height_range(geom.dem, dem_blocks, uv)
         if heights is None:  # no DEM under the tile
             return None, None
         grid = coarse_struct(uv, geocentric, device, pose=None if pushbroom else geom.pose)
@@ -583,23 +585,45 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
             ds.close()
 
 
-def _height_range(dem, uv):
+def _dem_blocks(dem, block=32):
+    """Heights of a DEM reduced to blocks of ``block`` x ``block`` cells: (lowest, highest) per
+    block, NaN where a block has none, and the block size; None for a constant DEM. Computed
+    once per image, so that a tile's height range costs a few blocks, whatever the DEM's
+    resolution."""
+    if dem.is_constant:
+        return None
+    a = dem.array
+    rows, cols = a.shape
+    nr, nc = -(-rows // block), -(-cols // block)
+    padded = np.full((nr * block, nc * block), np.nan, np.float32)
+    padded[:rows, :cols] = a
+    cells = padded.reshape(nr, block, nc, block)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # blocks without heights
+        return np.nanmin(cells, axis=(1, 3)), np.nanmax(cells, axis=(1, 3)), block
+
+
+def _height_range(dem, blocks, uv):
     """(lowest, highest) DEM height (m) under a tile whose coarse-grid nodes have horizontal
-    coordinates ``uv`` (..., 2) in the DEM's frame: over the DEM cells of their bounding box
-    and one cell around (bilinear heights never leave the range of their four cells); None
-    where the DEM has no height there."""
+    coordinates ``uv`` (..., 2) in the DEM's frame: over the DEM blocks (:func:`_dem_blocks`)
+    that hold the cells of their bounding box and one cell around (bilinear heights never
+    leave the range of their four cells); None where the DEM has no height there."""
     if dem.is_constant:
         return dem.value, dem.value
+    lo, hi, block = blocks
     u, v = uv[..., 0], uv[..., 1]
     corners = [(u.min(), v.min()), (u.min(), v.max()), (u.max(), v.min()), (u.max(), v.max())]
     cr = np.array([~dem.transform @ c for c in corners])
     rows, cols = dem.array.shape
     c0, c1 = max(int(np.floor(cr[:, 0].min())) - 1, 0), min(int(np.ceil(cr[:, 0].max())) + 1, cols)
     r0, r1 = max(int(np.floor(cr[:, 1].min())) - 1, 0), min(int(np.ceil(cr[:, 1].max())) + 1, rows)
-    win = dem.array[r0:r1, c0:c1]
-    if win.size == 0 or not np.isfinite(win).any():
+    if c0 >= c1 or r0 >= r1:
         return None
-    return float(np.nanmin(win)), float(np.nanmax(win))
+    wlo = lo[r0 // block:-(-r1 // block), c0 // block:-(-c1 // block)]
+    whi = hi[r0 // block:-(-r1 // block), c0 // block:-(-c1 // block)]
+    if not np.isfinite(wlo).any():
+        return None
+    return float(np.nanmin(wlo)), float(np.nanmax(whi))
 
 
 def _node_window(nodes, radius, width, height, margin=2):

@@ -377,6 +377,30 @@ def test_footprint_is_the_images(name, resampling, tmp_path):
     assert np.all((col >= 0) & (col <= res.shape[1]) & (row >= 0) & (row <= res.shape[0]))
 
 
+def test_tile_height_range_from_dem_blocks():
+    """A tile's height range from the DEM's block minima and maxima holds the exact range of
+    the cells under it (and one around); no heights there -> None; a constant DEM -> its
+    height."""
+    from orthowarp.pipeline.dem import Dem
+    from orthowarp.pipeline.ortho import _dem_blocks, _height_range
+
+    rng = np.random.default_rng(3)
+    z = rng.normal(500.0, 80.0, (150, 230)).astype(np.float32)
+    z[100:, 150:] = np.nan
+    dem = Dem(z, Affine(2.0, 0.0, 1000.0, 0.0, -2.0, 5000.0), "EPSG:32632")
+    blocks = _dem_blocks(dem, block=16)
+    for _ in range(200):
+        c0, r0 = rng.uniform(0, 220), rng.uniform(0, 140)
+        c1, r1 = c0 + rng.uniform(0.5, 40), r0 + rng.uniform(0.5, 40)
+        uv = np.array([[[1000 + 2 * c0, 5000 - 2 * r0], [1000 + 2 * c1, 5000 - 2 * r1]]])
+        exact = z[max(int(np.floor(r0)) - 1, 0):int(np.ceil(r1)) + 1, max(int(np.floor(c0)) - 1, 0):int(np.ceil(c1)) + 1]
+        got = _height_range(dem, blocks, uv)
+        if np.isfinite(exact).any():
+            assert got[0] <= np.nanmin(exact) and got[1] >= np.nanmax(exact)
+    assert _height_range(dem, blocks, np.array([[[1000 + 2 * 200, 5000 - 2 * 130]]])) is None
+    assert _height_range(Dem.constant(250.0), None, np.zeros((2, 2, 2))) == (250.0, 250.0)
+
+
 @pytest.mark.parametrize("name", ["ins", "opk"])
 def test_tile_windows_hold_every_source_pixel(name):
     """The source window of a tile (its coarse nodes projected at the lowest and highest DEM
@@ -387,7 +411,7 @@ def test_tile_windows_hold_every_source_pixel(name):
     import warp as wp
     from orthowarp.kernels import ortho as ok
     from orthowarp.pipeline.geometry import FrameGeometry
-    from orthowarp.pipeline.ortho import _height_range, _node_window, coarse_grid, coarse_struct, output_grid
+    from orthowarp.pipeline.ortho import _dem_blocks, _height_range, _node_window, coarse_grid, coarse_struct, output_grid
 
     sc = scene(name)
     geom = FrameGeometry(sc.camera, sc.pose, sc.dem, device="cpu", refraction=True)
@@ -396,10 +420,11 @@ def test_tile_windows_hold_every_source_pixel(name):
     to_frame = Transformer.from_crs(out_crs, frame_crs, always_xy=True)
     cam, pose, refr, _, _ = geom.structs()
     size, spans, checked = 64, [], 0
+    blocks = _dem_blocks(geom.dem, block=4)
     for r0 in range(0, shape[0] - size, 3 * size):
         for c0 in range(0, shape[1] - size, 3 * size):
             uv = coarse_grid(transform, to_frame, r0, c0, size, size)
-            heights = _height_range(geom.dem, uv)
+            heights = _height_range(geom.dem, blocks, uv)
             if heights is None:  # off the DEM
                 continue
             nodes = wp.empty((2, *uv.shape[:2]), dtype=wp.vec2d, device="cpu")
