@@ -185,7 +185,8 @@ def kernel_only(geom, src_path, resampling, repeats=3):
     return out
 
 
-def _save(report, path):
+def save_report(report, path):
+    """Write a benchmark report as JSON (folders created)."""
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     with open(path, "w") as f:
         json.dump(report, f, indent=2)
@@ -239,7 +240,7 @@ def main(argv=None):
             o["output_mb"] = sum(os.path.getsize(os.path.join(oty_dir, f)) for f in os.listdir(oty_dir)
                                  if f.endswith(".tif")) / 1e6
         report["orthority"] = o
-        _save(report, args.out)
+        save_report(report, args.out)
         print(f"{'orthority 0.7.0 (CPU)':>24s} cli {o['wall_s']:.1f} s peak {o['peak_rss_mb'] or float('nan'):.0f} MB "
               f"rc {o['returncode']} {o['stderr'][-300:]}", flush=True)
 
@@ -274,7 +275,7 @@ def main(argv=None):
             subprocess.run([sys.executable, "-c", STARTUP, name], check=True)
             r["cli"]["startup_s"] = time.perf_counter() - t
         report["results"].append(r)
-        _save(report, args.out)
+        save_report(report, args.out)
         cli = r.get("cli", {})
         print(f"{r['device_name']:>24s} kernel {r['kernel_gpix_s']:.3f} Gpix/s ({r['kernel_gpix_s_per_band']:.3f} per band) "
               f"in-process {r['in_process_wall_s']:.1f} s  cli {cli.get('wall_s', float('nan')):.1f} s "
@@ -287,9 +288,7 @@ def main(argv=None):
         o = report.get("orthority", {})
         if "cli" in r and o.get("returncode") == 0:
             r["speedup_vs_orthority"] = o["wall_s"] / r["cli"]["wall_s"]
-    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    with open(args.out, "w") as f:
-        json.dump(report, f, indent=2)
+    save_report(report, args.out)
     print(f"wrote {args.out}")
 
 

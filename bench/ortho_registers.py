@@ -10,7 +10,6 @@ usage: python3 bench/ortho_registers.py [--device cuda:0] [--width W --height H]
 """
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -22,7 +21,7 @@ from pyproj import Transformer
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from geometry import scene  # noqa: E402
-from ortho import write_source  # noqa: E402
+from ortho import save_report, write_source  # noqa: E402
 
 from orthowarp.kernels import ortho as ok  # noqa: E402
 from orthowarp.kernels.camera import FrameCameraData  # noqa: E402
@@ -33,49 +32,17 @@ from orthowarp.pipeline.geometry import FrameGeometry  # noqa: E402
 from orthowarp.pipeline.ortho import coarse_grid, coarse_struct, output_grid  # noqa: E402
 
 
-@wp.kernel(cuda_max_registers=64)
-def capped_64(cam: FrameCameraData, pose: FramePoseData, refr: RefractionTable, dem: DemData, grid: ok.CoarseGrid,
-              width: wp.float64, height: wp.float64, src: ok.SourceWindow, data: wp.array3d(dtype=wp.uint8),
-              method: wp.int32, top: wp.float32, out: wp.array3d(dtype=wp.uint8), out_valid: wp.array2d(dtype=wp.uint8)):
+def _fused(cam: FrameCameraData, pose: FramePoseData, refr: RefractionTable, dem: DemData, grid: ok.CoarseGrid,
+           width: wp.float64, height: wp.float64, src: ok.SourceWindow, data: wp.array3d(dtype=wp.uint8),
+           method: wp.int32, top: wp.float32, out: wp.array3d(dtype=wp.uint8), out_valid: wp.array2d(dtype=wp.uint8)):
     i, j = wp.tid()  # the body of the library's kernel
     pix = ok.frame_source_pixel(cam, pose, refr, dem, grid, i, j, width, height)
     ok.resample_at(src, data, pix, method, top, out, out_valid, i, j)
 
 
-@wp.kernel(cuda_max_registers=72)
-def capped_72(cam: FrameCameraData, pose: FramePoseData, refr: RefractionTable, dem: DemData, grid: ok.CoarseGrid,
-              width: wp.float64, height: wp.float64, src: ok.SourceWindow, data: wp.array3d(dtype=wp.uint8),
-              method: wp.int32, top: wp.float32, out: wp.array3d(dtype=wp.uint8), out_valid: wp.array2d(dtype=wp.uint8)):
-    i, j = wp.tid()  # the body of the library's kernel
-    pix = ok.frame_source_pixel(cam, pose, refr, dem, grid, i, j, width, height)
-    ok.resample_at(src, data, pix, method, top, out, out_valid, i, j)
-
-
-@wp.kernel(cuda_max_registers=80)
-def capped_80(cam: FrameCameraData, pose: FramePoseData, refr: RefractionTable, dem: DemData, grid: ok.CoarseGrid,
-              width: wp.float64, height: wp.float64, src: ok.SourceWindow, data: wp.array3d(dtype=wp.uint8),
-              method: wp.int32, top: wp.float32, out: wp.array3d(dtype=wp.uint8), out_valid: wp.array2d(dtype=wp.uint8)):
-    i, j = wp.tid()  # the body of the library's kernel
-    pix = ok.frame_source_pixel(cam, pose, refr, dem, grid, i, j, width, height)
-    ok.resample_at(src, data, pix, method, top, out, out_valid, i, j)
-
-
-@wp.kernel(cuda_max_registers=96)
-def capped_96(cam: FrameCameraData, pose: FramePoseData, refr: RefractionTable, dem: DemData, grid: ok.CoarseGrid,
-              width: wp.float64, height: wp.float64, src: ok.SourceWindow, data: wp.array3d(dtype=wp.uint8),
-              method: wp.int32, top: wp.float32, out: wp.array3d(dtype=wp.uint8), out_valid: wp.array2d(dtype=wp.uint8)):
-    i, j = wp.tid()  # the body of the library's kernel
-    pix = ok.frame_source_pixel(cam, pose, refr, dem, grid, i, j, width, height)
-    ok.resample_at(src, data, pix, method, top, out, out_valid, i, j)
-
-
-@wp.kernel
-def uncapped(cam: FrameCameraData, pose: FramePoseData, refr: RefractionTable, dem: DemData, grid: ok.CoarseGrid,
-             width: wp.float64, height: wp.float64, src: ok.SourceWindow, data: wp.array3d(dtype=wp.uint8),
-             method: wp.int32, top: wp.float32, out: wp.array3d(dtype=wp.uint8), out_valid: wp.array2d(dtype=wp.uint8)):
-    i, j = wp.tid()  # the body of the library's kernel
-    pix = ok.frame_source_pixel(cam, pose, refr, dem, grid, i, j, width, height)
-    ok.resample_at(src, data, pix, method, top, out, out_valid, i, j)
+# one kernel per register cap (None: nvcc's choice), all from the same body
+CAPS = (None, 64, 72, 80, 96)
+KERNELS = {cap: wp.kernel(_fused, name=f"fused_{cap or 'uncapped'}", cuda_max_registers=cap) for cap in CAPS}
 
 
 def main(argv=None):
@@ -125,8 +92,8 @@ def main(argv=None):
 
     results = []
     for block_dim in (64, 128, 256):
-        for name, kernel in (("library", ok.ortho_frame_kernel), ("uncapped", uncapped), ("64", capped_64),
-                             ("72", capped_72), ("80", capped_80), ("96", capped_96)):
+        for name, kernel in (("library", ok.ortho_frame_kernel),
+                             *((str(cap) if cap else "uncapped", KERNELS[cap]) for cap in CAPS)):
             t = best(kernel, block_dim)
             diff = np.abs(out.numpy().astype(np.int16) - reference)
             results.append(dict(kernel=name, block_dim=block_dim, seconds=t, gpix_s_per_band=3 * rows * cols / t / 1e9,
@@ -134,9 +101,7 @@ def main(argv=None):
             print(f"block {block_dim:3d}  max registers {name:>8s}: {t * 1e3:6.2f} ms  "
                   f"{3 * rows * cols / t / 1e9:5.1f} Gpix/s per band  bytes differing from the library's "
                   f"{np.count_nonzero(diff)} (max {diff.max()} DN)", flush=True)
-    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    with open(args.out, "w") as f:
-        json.dump(dict(benchmark="ortho_registers", device=dev.name, output=[rows, cols], results=results), f, indent=2)
+    save_report(dict(benchmark="ortho_registers", device=dev.name, output=[rows, cols], results=results), args.out)
     print(f"wrote {args.out}")
 
 
