@@ -2,6 +2,7 @@
 
 import math
 import os
+import warnings
 
 import numpy as np
 import rasterio
@@ -184,22 +185,28 @@ class Dem:
                                 dst_nodata=np.nan, resampling=rasterio.warp.Resampling.bilinear)
         return Dem(out, transform, crs)
 
+    def window(self, xmin, ymin, xmax, ymax, *, margin=2):
+        """Cell index ranges (i0, i1, j0, j1) covering the given bounds plus ``margin`` cells,
+        clipped to the grid; None where they leave it."""
+        rows, cols = self.shape
+        inv = ~self.transform
+        corners = np.array([inv @ (x, y) for x in (xmin, xmax) for y in (ymin, ymax)])
+        j0 = max(int(math.floor(corners[:, 0].min())) - margin, 0)
+        j1 = min(int(math.ceil(corners[:, 0].max())) + margin, cols)
+        i0 = max(int(math.floor(corners[:, 1].min())) - margin, 0)
+        i1 = min(int(math.ceil(corners[:, 1].max())) + margin, rows)
+        if j1 <= j0 or i1 <= i0:
+            return None
+        return i0, i1, j0, j1
+
     def crop(self, xmin, ymin, xmax, ymax, *, margin=2):
         """The part of the grid covering the given bounds plus ``margin`` cells, or None if none."""
         if self.is_constant:
             return self
-        rows, cols = self.shape
-        inv = ~self.transform
-        c0, r0 = inv @ (xmin, ymax)
-        c1, r1 = inv @ (xmax, ymin)
-        ca, cb = sorted((c0, c1))
-        ra, rb = sorted((r0, r1))
-        j0 = max(int(math.floor(ca)) - margin, 0)
-        j1 = min(int(math.ceil(cb)) + margin, cols)
-        i0 = max(int(math.floor(ra)) - margin, 0)
-        i1 = min(int(math.ceil(rb)) + margin, rows)
-        if j1 <= j0 or i1 <= i0:
+        win = self.window(xmin, ymin, xmax, ymax, margin=margin)
+        if win is None:
             return None
+        i0, i1, j0, j1 = win
         sub = self.array[i0:i1, j0:j1]
         if not np.any(np.isfinite(sub)):
             return None
@@ -223,6 +230,18 @@ class Dem:
         colmax = np.lib.stride_tricks.sliding_window_view(padded, win, axis=1)[:, ::block][:, :nbj].max(axis=2)
         return np.ascontiguousarray(
             np.lib.stride_tricks.sliding_window_view(colmax, win, axis=0)[::block][:nbi].max(axis=2))
+
+    def block_range(self, block=32):
+        """Lowest and highest height per block of ``block`` x ``block`` cells (float32, NaN
+        where a block has none), for bounding the heights under a region cheaply."""
+        rows, cols = self.shape
+        nbi, nbj = -(-rows // block), -(-cols // block)
+        padded = np.full((nbi * block, nbj * block), np.nan, np.float32)
+        padded[:rows, :cols] = self.array
+        cells = padded.reshape(nbi, block, nbj, block)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # blocks without heights
+            return np.nanmin(cells, axis=(1, 3)), np.nanmax(cells, axis=(1, 3))
 
     def to_struct(self, device):
         """Pack into :class:`orthowarp.kernels.dem.DemData` on ``device``."""

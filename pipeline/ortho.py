@@ -311,6 +311,8 @@ def orthorectify(src, sensor, *args, dem, crs=None, resolution=None, resampling=
     try:
         with _open_source(src) as ds:
             width, height, count, src_dtype = ds.width, ds.height, ds.count, ds.dtypes[0]
+            # a source without nodata, mask or alpha needs no mask reads
+            masked = any(flags != [MaskFlags.all_valid] for flags in ds.mask_flag_enums)
     except RasterioIOError as e:
         raise RasterIOError(f"Could not open image '{src}': {e}") from e
     size = (camera.width, camera.height) if pose is None else tuple(camera.image_size)
@@ -347,7 +349,7 @@ def orthorectify(src, sensor, *args, dem, crs=None, resolution=None, resampling=
         try:
             _render(src, geom, out_crs, transform, shape, count, out_dtype,
                     compress if driver == "GTiff" else "none", work, resampling, tile_size, progress,
-                    workers, timer, dst, method, compress_level,
+                    workers, timer, dst, method, masked, compress_level,
                     cog=dict(compress=compress, level=compress_level or 6) if streamed else None)
             if not streamed:
                 t0 = time.perf_counter()
@@ -425,7 +427,7 @@ def _creation_options(compress, dtype, level=None):
 
 
 def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, path, resampling,
-            tile_size, progress, workers, timer, final_name, method_name, compress_level=None, cog=None):
+            tile_size, progress, workers, timer, final_name, method_name, masked, compress_level=None, cog=None):
     rows, cols = shape
     is_float = out_dtype == "float32"
     profile = dict(driver="GTiff", width=cols, height=rows, count=count, dtype=out_dtype,
@@ -461,7 +463,8 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
     w_img, h_img = geom.image_size
     geocentric = geom.geocentric
 
-    dem_blocks = _dem_blocks(geom.dem) if method_name == "backward" else None
+    # heights per DEM block, once per image: a tile's height range then costs a few blocks
+    dem_blocks = (32, geom.dem.block_range(32)) if method_name == "backward" and not geom.dem.is_constant else None
 
     def backward(r0, c0, th, tw):
         """The backward method's source window for a tile (see :mod:`orthowarp.kernels.ortho`)
@@ -514,8 +517,6 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
         prepare = forward
 
     top = {"uint8": 255.0, "uint16": 65535.0, "float32": 0.0}[out_dtype]
-    with _open_source(src) as ds:  # a source without nodata, mask or alpha needs no mask reads
-        masked = any(flags != [MaskFlags.all_valid] for flags in ds.mask_flag_enums)
 
     def read_window(ds, wc0, wr0, wc1, wr1):
         """The source window on the device, (bands, rows, cols) in the output's dtype or float32,
@@ -585,42 +586,21 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
             ds.close()
 
 
-def _dem_blocks(dem, block=32):
-    """Heights of a DEM reduced to blocks of ``block`` x ``block`` cells: (lowest, highest) per
-    block, NaN where a block has none, and the block size; None for a constant DEM. Computed
-    once per image, so that a tile's height range costs a few blocks, whatever the DEM's
-    resolution."""
-    if dem.is_constant:
-        return None
-    a = dem.array
-    rows, cols = a.shape
-    nr, nc = -(-rows // block), -(-cols // block)
-    padded = np.full((nr * block, nc * block), np.nan, np.float32)
-    padded[:rows, :cols] = a
-    cells = padded.reshape(nr, block, nc, block)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # blocks without heights
-        return np.nanmin(cells, axis=(1, 3)), np.nanmax(cells, axis=(1, 3)), block
-
-
 def _height_range(dem, blocks, uv):
     """(lowest, highest) DEM height (m) under a tile whose coarse-grid nodes have horizontal
-    coordinates ``uv`` (..., 2) in the DEM's frame: over the DEM blocks (:func:`_dem_blocks`)
-    that hold the cells of their bounding box and one cell around (bilinear heights never
-    leave the range of their four cells); None where the DEM has no height there."""
+    coordinates ``uv`` (..., 2) in the DEM's frame: over the DEM blocks ``blocks`` = (block
+    size, :meth:`Dem.block_range`) that hold the cells of their bounding box and one cell
+    around (bilinear heights never leave the range of their four cells); None where the DEM
+    has no height there."""
     if dem.is_constant:
         return dem.value, dem.value
-    lo, hi, block = blocks
-    u, v = uv[..., 0], uv[..., 1]
-    corners = [(u.min(), v.min()), (u.min(), v.max()), (u.max(), v.min()), (u.max(), v.max())]
-    cr = np.array([~dem.transform @ c for c in corners])
-    rows, cols = dem.array.shape
-    c0, c1 = max(int(np.floor(cr[:, 0].min())) - 1, 0), min(int(np.ceil(cr[:, 0].max())) + 1, cols)
-    r0, r1 = max(int(np.floor(cr[:, 1].min())) - 1, 0), min(int(np.ceil(cr[:, 1].max())) + 1, rows)
-    if c0 >= c1 or r0 >= r1:
+    block, (lo, hi) = blocks
+    win = dem.window(uv[..., 0].min(), uv[..., 1].min(), uv[..., 0].max(), uv[..., 1].max(), margin=1)
+    if win is None:
         return None
-    wlo = lo[r0 // block:-(-r1 // block), c0 // block:-(-c1 // block)]
-    whi = hi[r0 // block:-(-r1 // block), c0 // block:-(-c1 // block)]
+    i0, i1, j0, j1 = win
+    wlo = lo[i0 // block:-(-i1 // block), j0 // block:-(-j1 // block)]
+    whi = hi[i0 // block:-(-i1 // block), j0 // block:-(-j1 // block)]
     if not np.isfinite(wlo).any():
         return None
     return float(np.nanmin(wlo)), float(np.nanmax(whi))

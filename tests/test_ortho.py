@@ -382,13 +382,13 @@ def test_tile_height_range_from_dem_blocks():
     the cells under it (and one around); no heights there -> None; a constant DEM -> its
     height."""
     from orthowarp.pipeline.dem import Dem
-    from orthowarp.pipeline.ortho import _dem_blocks, _height_range
+    from orthowarp.pipeline.ortho import _height_range
 
     rng = np.random.default_rng(3)
     z = rng.normal(500.0, 80.0, (150, 230)).astype(np.float32)
     z[100:, 150:] = np.nan
     dem = Dem(z, Affine(2.0, 0.0, 1000.0, 0.0, -2.0, 5000.0), "EPSG:32632")
-    blocks = _dem_blocks(dem, block=16)
+    blocks = (16, dem.block_range(16))
     for _ in range(200):
         c0, r0 = rng.uniform(0, 220), rng.uniform(0, 140)
         c1, r1 = c0 + rng.uniform(0.5, 40), r0 + rng.uniform(0.5, 40)
@@ -411,7 +411,7 @@ def test_tile_windows_hold_every_source_pixel(name):
     import warp as wp
     from orthowarp.kernels import ortho as ok
     from orthowarp.pipeline.geometry import FrameGeometry
-    from orthowarp.pipeline.ortho import _dem_blocks, _height_range, _node_window, coarse_grid, coarse_struct, output_grid
+    from orthowarp.pipeline.ortho import _height_range, _node_window, coarse_grid, coarse_struct, output_grid
 
     sc = scene(name)
     geom = FrameGeometry(sc.camera, sc.pose, sc.dem, device="cpu", refraction=True)
@@ -420,7 +420,7 @@ def test_tile_windows_hold_every_source_pixel(name):
     to_frame = Transformer.from_crs(out_crs, frame_crs, always_xy=True)
     cam, pose, refr, _, _ = geom.structs()
     size, spans, checked = 64, [], 0
-    blocks = _dem_blocks(geom.dem, block=4)
+    blocks = (4, geom.dem.block_range(4))
     for r0 in range(0, shape[0] - size, 3 * size):
         for c0 in range(0, shape[1] - size, 3 * size):
             uv = coarse_grid(transform, to_frame, r0, c0, size, size)
