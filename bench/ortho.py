@@ -136,7 +136,7 @@ def kernel_only(geom, src_path, resampling, repeats=3):
     sw.valid = wp.array(np.ones((1, 1), np.uint8), dtype=wp.uint8, device=dev)
     sw.col0 = sw.row0 = 0
     width, height = float(geom.camera.image_size[0]), float(geom.camera.image_size[1])
-    cam, pose, refr, dem, _ = geom.structs()
+    cam, _, refr, dem, _ = geom.structs()
     method = RESAMPLING[resampling]
     n_bands = 1 if dev.is_cuda else 4 * (os.cpu_count() or 1)
     band_rows = -(-rows // n_bands // step) * step
@@ -154,7 +154,7 @@ def kernel_only(geom, src_path, resampling, repeats=3):
 
     def launch(b):
         wp.launch(ok.ortho_frame_kernel, dim=b["shape"], device=dev, block_dim=block_dim[0],
-                  inputs=[cam, pose, refr, dem, b["coarse"], wp.float64(width), wp.float64(height), sw, data, method, 255.0, b["out"], b["valid"]])
+                  inputs=[cam, refr, dem, b["coarse"], wp.float64(width), wp.float64(height), sw, data, method, 255.0, b["out"], b["valid"]])
 
     def best_of():
         def run():

@@ -26,17 +26,16 @@ from ortho import save_report, write_source  # noqa: E402
 from orthowarp.kernels import ortho as ok  # noqa: E402
 from orthowarp.kernels.camera import FrameCameraData  # noqa: E402
 from orthowarp.kernels.dem import DemData  # noqa: E402
-from orthowarp.kernels.frame import FramePoseData  # noqa: E402
 from orthowarp.kernels.refraction import RefractionTable  # noqa: E402
 from orthowarp.pipeline.geometry import FrameGeometry  # noqa: E402
 from orthowarp.pipeline.ortho import coarse_grid, coarse_struct, output_grid  # noqa: E402
 
 
-def _fused(cam: FrameCameraData, pose: FramePoseData, refr: RefractionTable, dem: DemData, grid: ok.CoarseGrid,
+def _fused(cam: FrameCameraData, refr: RefractionTable, dem: DemData, grid: ok.CoarseGrid,
            width: wp.float64, height: wp.float64, src: ok.SourceWindow, data: wp.array3d(dtype=wp.uint8),
            method: wp.int32, top: wp.float32, out: wp.array3d(dtype=wp.uint8), out_valid: wp.array2d(dtype=wp.uint8)):
     i, j = wp.tid()  # the body of the library's kernel
-    pix = ok.frame_source_pixel(cam, pose, refr, dem, grid, i, j, width, height)
+    pix = ok.frame_source_pixel(cam, refr, dem, grid, i, j, width, height)
     ok.resample_at(src, data, pix, method, top, out, out_valid, i, j)
 
 
@@ -71,8 +70,8 @@ def main(argv=None):
     sw = ok.SourceWindow()
     sw.masked, sw.col0, sw.row0 = 0, 0, 0
     sw.valid = wp.array(np.ones((1, 1), np.uint8), dtype=wp.uint8, device=dev)
-    c, p, r, d, _ = geom.structs()
-    inputs = [c, p, r, d, grid, wp.float64(args.width), wp.float64(args.height), sw, data, 1, 255.0]
+    c, _, r, d, _ = geom.structs()
+    inputs = [c, r, d, grid, wp.float64(args.width), wp.float64(args.height), sw, data, 1, 255.0]
     ref = wp.empty((rows, cols, 3), dtype=wp.uint8, device=dev)
     out = wp.empty_like(ref)
     valid = wp.empty((rows, cols), dtype=wp.uint8, device=dev)

@@ -131,10 +131,10 @@ def in_image(pix: wp.vec2d, width: wp.float64, height: wp.float64):
 
 
 @wp.func
-def frame_source_pixel(cam: FrameCameraData, pose: FramePoseData, refr: RefractionTable, dem: DemData,
-                       grid: CoarseGrid, i: wp.int32, j: wp.int32, width: wp.float64, height: wp.float64):
+def frame_source_pixel(cam: FrameCameraData, refr: RefractionTable, dem: DemData, grid: CoarseGrid, i: wp.int32,
+                       j: wp.int32, width: wp.float64, height: wp.float64):
     """Source pixel (col, row) of output-tile pixel (i, j) by the frame's backward chain, in
-    the camera frame (see :class:`CoarseGrid`; ``pose`` is not read); NaN where there is no
+    the camera frame (the pose is in the grid: see :class:`CoarseGrid`); NaN where there is no
     DEM height or the point falls outside the image."""
     i0, j0, ai, aj = grid_cell(grid.uv.shape[0], grid.uv.shape[1], wp.float64(i) / grid.step,
                                wp.float64(j) / grid.step)
@@ -384,7 +384,6 @@ FUSED_MAX_REGISTERS = 64
 @wp.kernel(cuda_max_registers=FUSED_MAX_REGISTERS)
 def ortho_frame_kernel(
     cam: FrameCameraData,
-    pose: FramePoseData,
     refr: RefractionTable,
     dem: DemData,
     grid: CoarseGrid,
@@ -398,9 +397,9 @@ def ortho_frame_kernel(
     out_valid: wp.array2d(dtype=wp.uint8),
 ):
     """Backward ortho of a frame image, one thread per output-tile pixel: its source pixel
-    (:func:`frame_source_pixel`), then :func:`resample_at`."""
+    (:func:`frame_source_pixel`; the grid carries the pose), then :func:`resample_at`."""
     i, j = wp.tid()
-    pix = frame_source_pixel(cam, pose, refr, dem, grid, i, j, width, height)
+    pix = frame_source_pixel(cam, refr, dem, grid, i, j, width, height)
     resample_at(src, data, pix, method, top, out, out_valid, i, j)
 
 

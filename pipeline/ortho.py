@@ -493,8 +493,9 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
         def launch(sw, data, out, out_valid):
             if pushbroom:
                 kernel, args = ortho_kernels.ortho_pb_kernel, [*sensor, dem, grid, times]
-            else:
-                kernel, args = ortho_kernels.ortho_frame_kernel, [*sensor, dem, grid]
+            else:  # the grid carries the pose
+                cam, _, refr = sensor
+                kernel, args = ortho_kernels.ortho_frame_kernel, [cam, refr, dem, grid]
             wp.launch(kernel, dim=(th, tw), device=device, block_dim=ORTHO_BLOCK_DIM,
                       inputs=[*args, wp.float64(w_img), wp.float64(h_img), sw, data, resampling_code, top, out, out_valid])
 
