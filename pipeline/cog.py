@@ -355,8 +355,6 @@ class CogWriter:
             np.subtract(data[:, 1:], data[:, :-1], out=diff[:, 1:])
             diff[:, 0] = data[:, 0]
             data = diff
-        if self.compress == "none":
-            return np.ascontiguousarray(data).tobytes()
         return self._compress(np.ascontiguousarray(data))
 
     def _compress(self, raw):
