@@ -5,6 +5,7 @@ Library errors become one-line messages on stderr and a non-zero exit code.
 
 import logging
 import os
+import signal
 import sys
 
 import click
@@ -13,15 +14,33 @@ import numpy as np
 from .errors import OrthowarpError
 
 
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread so that a run stops as on Ctrl-C: the tiles in
+    flight finish, nothing new starts, and every temporary is removed."""
+
+
+def _on_sigterm(signum, frame):
+    raise _Terminated()
+
+
 class _Group(click.Group):
-    """Turn library errors into a one-line message and exit code 1."""
+    """Turn library errors into a one-line message and exit code 1; SIGINT and SIGTERM into a
+    clean stop with exit code 130 or 143."""
 
     def invoke(self, ctx):
+        previous = signal.signal(signal.SIGTERM, _on_sigterm)
         try:
             return super().invoke(ctx)
         except OrthowarpError as e:
             click.echo(f"Error: {e}", err=True)
             sys.exit(1)
+        except KeyboardInterrupt as e:
+            terminated = isinstance(e, _Terminated)
+            click.echo(f"Error: {'terminated' if terminated else 'interrupted'}; no output was left half-written",
+                       err=True)
+            sys.exit(128 + (signal.SIGTERM if terminated else signal.SIGINT))
+        finally:
+            signal.signal(signal.SIGTERM, previous)
 
 
 @click.group(cls=_Group)
@@ -110,16 +129,28 @@ def ortho(ctx, images, int_param, ext_param, dimap, attitude_model, dem, height,
     from .errors import ParamError, RasterIOError
     from .pipeline.dem import Dem
     from .pipeline.formats import read_cameras, read_exterior
+    from .pipeline.io import check_destination
     from .pipeline.ortho import orthorectify
 
     if (dem is None) == (height is None):
         raise ParamError("Give exactly one of --dem FILE and --height METRES")
-    terrain = Dem.from_file(dem) if dem is not None else height
     quiet = ctx.obj["quiet"]
-    options = dict(dem=terrain, crs=crs, resolution=resolution, resampling=resampling, method=method,
+    options = dict(crs=crs, resolution=resolution, resampling=resampling, method=method,
                    refraction=not no_refraction, dtype=dtype, driver="COG" if driver.lower() == "cog" else "GTiff",
                    compress=compress, compress_level=compress_level, overwrite=overwrite, device=device,
                    progress=not quiet, tile_size=tile_size, geoid=geoid, same_vertical_datum=same_vertical_datum)
+
+    def run(jobs):
+        """Check every destination, then read the terrain and write the orthos one by one."""
+        for *_, dst in jobs:
+            check_destination(dst, overwrite=overwrite)
+        terrain = Dem.from_file(dem) if dem is not None else height
+        for image, *sensor, dst in jobs:
+            r = orthorectify(image, *sensor, dst, dem=terrain, **options)
+            if not quiet:
+                click.echo(f"{dst}: {r.shape[1]} x {r.shape[0]} px at {r.resolution:.4g}, {r.crs.name}, "
+                           f"{r.timings['wall']:.2f} s")
+
     if dimap is not None:
         from .pushbroom import PushbroomScene
 
@@ -131,17 +162,13 @@ def ortho(ctx, images, int_param, ext_param, dimap, attitude_model, dem, height,
             raise RasterIOError(f"Image '{images[0]}' does not exist")
         scene = PushbroomScene.from_dimap(dimap, attitude_model=attitude_model)
         key = os.path.splitext(os.path.basename(images[0]))[0]
-        dst = os.path.join(out_dir, f"{key}_ORTHO.tif")
-        r = orthorectify(images[0], scene, dst, **options)
-        if not quiet:
-            click.echo(f"{dst}: {r.shape[1]} x {r.shape[0]} px at {r.resolution:.4g}, {r.crs.name}, "
-                       f"{r.timings['wall']:.2f} s")
+        run([(images[0], scene, os.path.join(out_dir, f"{key}_ORTHO.tif"))])
         return
     if not ext_param:
         raise ParamError("Give --ext-param (frame images) or --dimap (a pushbroom scene)")
     exterior = read_exterior(ext_param, crs=crs)
     cameras = read_cameras(int_param) if int_param else read_cameras(ext_param)
-    jobs = []
+    jobs, seen = [], {}
     for image in images:
         if not os.path.exists(image):
             raise RasterIOError(f"Image '{image}' does not exist")
@@ -157,12 +184,12 @@ def ortho(ctx, images, int_param, ext_param, dimap, attitude_model, dem, height,
             cam_id = next(iter(cameras))
         if cam_id not in cameras:
             raise ParamError(f"Camera '{cam_id}' of image '{key}' is not in '{int_param or ext_param}'")
-        jobs.append((image, cameras[cam_id], orient.pose, os.path.join(out_dir, f"{key}_ORTHO.tif")))
-    for image, camera, pose, dst in jobs:
-        r = orthorectify(image, camera, pose, dst, **options)
-        if not quiet:
-            click.echo(f"{dst}: {r.shape[1]} x {r.shape[0]} px at {r.resolution:.4g}, {r.crs.name}, "
-                       f"{r.timings['wall']:.2f} s")
+        dst = os.path.join(out_dir, f"{key}_ORTHO.tif")
+        if dst in seen:
+            raise ParamError(f"Images '{seen[dst]}' and '{image}' would both be written to '{dst}'")
+        seen[dst] = image
+        jobs.append((image, cameras[cam_id], orient.pose, dst))
+    run(jobs)
 
 
 @main.command()

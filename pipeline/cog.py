@@ -24,6 +24,8 @@ TIFF 6.0 and BigTIFF structures: Adobe, "TIFF Revision 6.0" (1992); the BigTIFF 
 (www.awaresystems.be/imaging/tiff/bigtiff.html).
 """
 
+import errno
+import io
 import os
 import struct
 import tempfile
@@ -40,7 +42,7 @@ except ImportError:  # pragma: no cover
 
 from ..errors import ParamError, RasterIOError
 
-__all__ = ["CogWriter", "overview_count"]
+__all__ = ["CogWriter", "overview_count", "verify_tiff"]
 
 _TYPE_SIZE = {1: 1, 2: 1, 3: 2, 4: 4, 5: 8, 6: 1, 7: 1, 8: 2, 9: 4, 10: 8, 11: 4, 12: 8, 13: 4, 16: 8, 17: 8, 18: 8}
 SHORT, LONG, LONG8 = 3, 4, 16
@@ -61,6 +63,51 @@ def overview_count(width, height, *, min_size=256):
     return n
 
 
+def _tiff_header(f):
+    """(big, offset of the first IFD) of the little-endian TIFF or BigTIFF open in ``f``."""
+    f.seek(0)
+    head = f.read(16)
+    if head[:2] != b"II" or len(head) < 8:
+        raise ParamError("not a little-endian TIFF file")
+    version = struct.unpack_from("<H", head, 2)[0]
+    if version not in (42, 43):
+        raise ParamError(f"not a TIFF file (version {version})")
+    big = version == 43
+    return big, struct.unpack_from("<Q", head, 8)[0] if big else struct.unpack_from("<I", head, 4)[0]
+
+
+def _read_ifd(f, ifd, big, size):
+    """Tags of the IFD at ``ifd`` of the TIFF open in ``f`` (``size`` bytes long): (tags, next
+    IFD offset), tags as tag -> (type, count, raw value bytes)."""
+    fmt_n, entry, inline = ("<Q", 20, 8) if big else ("<H", 12, 4)
+    if not 0 < ifd < size:
+        raise ParamError(f"IFD offset {ifd} outside the file ({size} bytes)")
+    f.seek(ifd)
+    n = struct.unpack(fmt_n, f.read(struct.calcsize(fmt_n)))[0]
+    if n * entry > size:
+        raise ParamError(f"IFD at {ifd} claims {n} entries")
+    table = f.read(n * entry + inline)
+    if len(table) < n * entry + inline:
+        raise ParamError(f"IFD at {ifd} is truncated")
+    tags = {}
+    for k in range(n):
+        e = k * entry
+        tag, typ = struct.unpack_from("<HH", table, e)
+        count = struct.unpack_from("<Q" if big else "<I", table, e + 4)[0]
+        nbytes = _TYPE_SIZE.get(typ, 1) * count
+        if nbytes <= inline:
+            raw = table[e + 4 + inline: e + 4 + inline + nbytes]
+        else:
+            off = struct.unpack_from("<Q" if big else "<I", table, e + 4 + inline)[0]
+            if off + nbytes > size:
+                raise ParamError(f"tag {tag} at IFD {ifd} points past the end of the file")
+            f.seek(off)
+            raw = f.read(nbytes)
+        tags[tag] = (typ, count, bytes(raw))
+    nxt = struct.unpack_from("<Q" if big else "<I", table, n * entry)[0]
+    return tags, nxt
+
+
 def read_tiff_tags(data):
     """Tags of the first IFD of a little-endian TIFF or BigTIFF held in ``data`` (bytes).
 
@@ -69,28 +116,61 @@ def read_tiff_tags(data):
     dict
         tag -> (type, count, raw value bytes).
     """
-    if data[:2] != b"II":
-        raise ParamError("only little-endian TIFF templates are supported")
-    version = struct.unpack_from("<H", data, 2)[0]
-    big = version == 43
-    if version not in (42, 43):
-        raise ParamError(f"not a TIFF file (version {version})")
-    ifd = struct.unpack_from("<Q", data, 8)[0] if big else struct.unpack_from("<I", data, 4)[0]
-    n = struct.unpack_from("<Q" if big else "<H", data, ifd)[0]
-    pos, entry, inline = ifd + (8 if big else 2), (20 if big else 12), (8 if big else 4)
-    tags = {}
-    for k in range(n):
-        e = pos + k * entry
-        tag, typ = struct.unpack_from("<HH", data, e)
-        count = struct.unpack_from("<Q" if big else "<I", data, e + 4)[0]
-        size = _TYPE_SIZE.get(typ, 1) * count
-        if size <= inline:
-            raw = data[e + 4 + inline: e + 4 + inline + size]
-        else:
-            off = struct.unpack_from("<Q" if big else "<I", data, e + 4 + inline)[0]
-            raw = data[off: off + size]
-        tags[tag] = (typ, count, bytes(raw))
-    return tags
+    f = io.BytesIO(data)
+    big, ifd = _tiff_header(f)
+    return _read_ifd(f, ifd, big, len(data))[0]
+
+
+def _values(typ, raw):
+    fmt = {SHORT: "H", LONG: "I", LONG8: "Q"}.get(typ)
+    if fmt is None:
+        raise ParamError(f"unexpected TIFF field type {typ} for block offsets or sizes")
+    return struct.unpack("<%d%s" % (len(raw) // struct.calcsize(fmt), fmt), raw)
+
+
+def verify_tiff(path, *, name=None):
+    """Check that every image of a written TIFF has all its blocks stored in the file: each
+    block's offset and size are non-zero and within the file. GDAL's close does not report a
+    failed flush (a full disk leaves blocks with zero offsets, which readers take for empty
+    blocks); this structural check finds them.
+
+    Parameters
+    ----------
+    path : str
+    name : str, optional
+        The file named in messages (the destination, where ``path`` is its temporary).
+
+    Raises
+    ------
+    RasterIOError
+        Naming the file and the first missing or truncated block.
+    """
+    name = path if name is None else name
+    try:
+        size = os.path.getsize(path)
+        with open(path, "rb") as f:
+            big, ifd = _tiff_header(f)
+            seen, k = set(), 0
+            while ifd:
+                if ifd in seen or len(seen) > 10000:
+                    raise ParamError("the IFD chain loops")
+                seen.add(ifd)
+                tags, nxt = _read_ifd(f, ifd, big, size)
+                off_tag, len_tag = (324, 325) if 324 in tags else (273, 279)
+                if off_tag not in tags or len_tag not in tags:
+                    raise ParamError(f"image {k} has no block offsets")
+                offsets, lengths = _values(*tags[off_tag][::2]), _values(*tags[len_tag][::2])
+                if len(offsets) != len(lengths):
+                    raise ParamError(f"image {k} has {len(offsets)} block offsets but {len(lengths)} sizes")
+                for b, (o, n) in enumerate(zip(offsets, lengths)):
+                    if o == 0 or n == 0 or o + n > size:
+                        raise ParamError(f"block {b} of image {k} is missing or truncated (offset {o}, "
+                                         f"{n} bytes, file {size} bytes)")
+                ifd, k = nxt, k + 1
+    except (ParamError, struct.error) as e:
+        raise RasterIOError(f"Could not write '{name}': the file is incomplete ({e})") from e
+    except OSError as e:
+        raise RasterIOError(f"Could not check '{name}': {e.strerror or e}") from e
 
 
 def _template_tags(count, dtype, crs, transform, nodata):
@@ -158,10 +238,19 @@ class CogWriter:
     bigtiff : bool, optional
         Force BigTIFF (True) or classic TIFF (False); default: BigTIFF only when the file could
         pass 4 GiB.
+    name : str, optional
+        The file named in error messages (the destination, where ``path`` is its temporary);
+        default ``path``.
+
+    Raises
+    ------
+    RasterIOError
+        From :meth:`write` or :meth:`close`, when a write of the block file or of the output
+        fails (full disk, file size limit, I/O error), naming ``name`` and the cause.
     """
 
     def __init__(self, path, *, width, height, count, dtype, crs=None, transform, mask=True, compress="deflate",
-                 level=6, block_size=512, overviews=None, threads=None, bigtiff=None):
+                 level=6, block_size=512, overviews=None, threads=None, bigtiff=None, name=None):
         if dtype not in DTYPES:
             raise ParamError(f"CogWriter dtype must be one of {DTYPES}, got {dtype!r}")
         if compress not in ("deflate", "none"):
@@ -169,6 +258,7 @@ class CogWriter:
         if block_size % 16 or block_size < 16:
             raise ParamError(f"block_size must be a positive multiple of 16, got {block_size}")
         self.path = os.fspath(path)
+        self.name = self.path if name is None else os.fspath(name)
         self.width, self.height, self.count, self.dtype = int(width), int(height), int(count), dtype
         self.is_float = dtype == "float32"
         self.mask = bool(mask) and not self.is_float
@@ -184,13 +274,12 @@ class CogWriter:
         try:
             self._fd = os.open(self._side_path, os.O_RDWR | os.O_CREAT | os.O_TRUNC, 0o600)
         except OSError as e:
-            raise RasterIOError(f"Cannot write '{self._side_path}': {e.strerror or e}") from e
+            raise RasterIOError(f"Cannot write '{self.name}': {e.strerror or e}") from e
         self._end = 0
         self._lock = threading.Lock()
         threads = threads or os.cpu_count() or 1
         self._pool = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="cog")
         self._slots = threading.BoundedSemaphore(4 * threads)  # blocks queued or being compressed
-        self._futures = []
         self._local = threading.local()
         self._error = None
         self._closed = False
@@ -224,7 +313,6 @@ class CogWriter:
             self._slots.acquire()
             fut = self._pool.submit(self._emit, 0, bi, bj, *blk)
             fut.add_done_callback(lambda f: self._slots.release())
-            self._futures.append(fut)
 
     def _insert(self, li, row, col, data, mask, copy=True):
         """Copy a piece into the level's blocks; return the blocks it completes.
@@ -290,7 +378,7 @@ class CogWriter:
             size = sum(len(x) for x in bufs)
             with self._lock:
                 off, self._end = self._end, self._end + size
-            os.pwritev(self._fd, bufs, off)
+            _pwrite_all(self._fd, bufs, off)
             lvl.records[bi * lvl.nbx + bj] = (off, len(parts[0]), size)
             if li + 1 < len(self.levels):
                 red, red_mask = self._reduce(data[:bh, :bw], mask[:bh, :bw], full and (bh, bw) == data.shape[:2])
@@ -361,8 +449,11 @@ class CogWriter:
         return _zlib_compress(raw, self.zlevel) if self.compress == "deflate" else bytes(raw)
 
     def _raise_pending(self):
-        if self._error is not None:
-            raise self._error
+        e = self._error
+        if isinstance(e, OSError) and not isinstance(e, RasterIOError):
+            raise RasterIOError(f"Could not write '{self.name}': {e.strerror or e}") from e
+        if e is not None:
+            raise e
 
     # -- finishing ---------------------------------------------------------------------------
 
@@ -372,8 +463,6 @@ class CogWriter:
             return
         try:
             self._pool.shutdown(wait=True)
-            for f in self._futures:
-                f.result()
             self._raise_pending()
             for li, lvl in enumerate(self.levels):
                 if lvl.pending or any(r is None for r in lvl.records):
@@ -506,16 +595,40 @@ class CogWriter:
                 for src_off, dst_off, n in order:
                     _copy_range(self._fd, fd_out, src_off, dst_off, n)
         except OSError as e:
-            raise RasterIOError(f"Could not write '{self.path}': {e.strerror or e}") from e
+            raise RasterIOError(f"Could not write '{self.name}': {e.strerror or e}") from e
+
+
+def _pwrite_all(fd, bufs, offset):
+    """Write the buffers at ``offset``, resuming short writes (a short write is followed by a
+    failing one, e.g. ENOSPC or EFBIG, which raises)."""
+    n = os.pwritev(fd, bufs, offset)
+    data = memoryview(b"".join(bufs))[n:] if n < sum(len(b) for b in bufs) else b""
+    offset += n
+    while len(data):
+        n = os.pwrite(fd, data, offset)
+        if n <= 0:
+            raise OSError(f"write returned {n} at offset {offset}")
+        data, offset = data[n:], offset + n
 
 
 def _copy_range(fd_in, fd_out, src, dst, n):
     """Copy n bytes between files at the given offsets (in the kernel where it can)."""
+    kernel_copy = hasattr(os, "copy_file_range")
     while n > 0:
-        try:
-            k = os.copy_file_range(fd_in, fd_out, n, src, dst)
-        except (AttributeError, OSError):
-            k = os.pwrite(fd_out, os.pread(fd_in, n, src), dst)
+        if kernel_copy:
+            try:
+                k = os.copy_file_range(fd_in, fd_out, n, src, dst)
+            except OSError as e:
+                if e.errno not in (errno.EXDEV, errno.EINVAL, errno.ENOSYS, errno.EOPNOTSUPP, errno.EBADF):
+                    raise  # ENOSPC, EFBIG, EIO: a real write error
+                kernel_copy = False
+                continue
+        else:
+            chunk = os.pread(fd_in, min(n, 1 << 24), src)
+            if not chunk:
+                raise OSError(f"the block file ends before offset {src}")
+            _pwrite_all(fd_out, [chunk], dst)
+            k = len(chunk)
         if k <= 0:
             raise OSError(f"short copy at offset {src}")
         src, dst, n = src + k, dst + k, n - k

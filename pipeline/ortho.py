@@ -39,8 +39,8 @@ from ..pose import Pose
 from ..pushbroom import PushbroomScene
 from .dem import Dem
 from .geometry import FrameGeometry, PushbroomGeometry
-from .cog import DTYPES, CogWriter, overview_count
-from .io import atomic_path, ensure_folder
+from .cog import DTYPES, CogWriter, overview_count, verify_tiff
+from .io import atomic_path, check_destination, gdal_reason
 
 __all__ = ["orthorectify", "OrthoResult", "RESAMPLING", "output_grid"]
 
@@ -303,18 +303,18 @@ def orthorectify(src, sensor, *args, dem, crs=None, resolution=None, resampling=
         if tile_size < 16 or tile_size % 16:
             raise ParamError(f"tile_size must be a positive multiple of 16, got {tile_size}")
     src, dst = os.fspath(src), os.fspath(dst)
-    if os.path.exists(dst) and not overwrite:
-        raise RasterIOError(f"Output '{dst}' exists (pass overwrite=True / --overwrite to replace it)")
-    ensure_folder(os.path.dirname(os.path.abspath(dst)))
+    check_destination(dst, overwrite=overwrite)
     if not os.path.exists(src):
         raise RasterIOError(f"Image '{src}' does not exist")
+    if os.path.abspath(src) == os.path.abspath(dst):
+        raise ParamError(f"Output '{dst}' is the source image: choose another name")
     try:
         with _open_source(src) as ds:
             width, height, count, src_dtype = ds.width, ds.height, ds.count, ds.dtypes[0]
             # a source without nodata, mask or alpha needs no mask reads
             masked = any(flags != [MaskFlags.all_valid] for flags in ds.mask_flag_enums)
     except RasterioIOError as e:
-        raise RasterIOError(f"Could not open image '{src}': {e}") from e
+        raise RasterIOError(f"Could not open image '{src}': {gdal_reason(e)}") from e
     size = (camera.width, camera.height) if pose is None else tuple(camera.image_size)
     if (width, height) != size:
         raise ParamError(f"Image '{src}' is {width} x {height} pixels but its "
@@ -344,20 +344,22 @@ def orthorectify(src, sensor, *args, dem, crs=None, resolution=None, resampling=
     # reduced as tiles arrive); other COGs are written uncompressed and copied by GDAL's COG
     # driver, which compresses once.
     streamed = driver == "COG" and compress in ("deflate", "none")
-    with atomic_path(dst) as tmp_final:
+    # the temporary's helper files (a COG's block file, GDAL's intermediate) are named after it
+    # and removed with it whatever happens
+    with atomic_path(dst, overwrite=overwrite) as tmp_final:
         work = tmp_final if driver == "GTiff" or streamed else tmp_final + ".work.tif"
-        try:
-            _render(src, geom, out_crs, transform, shape, count, out_dtype,
-                    compress if driver == "GTiff" else "none", work, resampling, tile_size, progress,
-                    workers, timer, dst, method, masked, compress_level,
-                    cog=dict(compress=compress, level=compress_level or 6) if streamed else None)
-            if not streamed:
-                t0 = time.perf_counter()
+        _render(src, geom, out_crs, transform, shape, count, out_dtype,
+                compress if driver == "GTiff" else "none", work, resampling, tile_size, progress,
+                workers, timer, dst, method, masked, compress_level,
+                cog=dict(compress=compress, level=compress_level or 6) if streamed else None)
+        t0 = time.perf_counter()
+        if not streamed:
+            try:
                 _finish(work, tmp_final, driver, compress, overviews, out_dtype, compress_level)
-                timer.t["finish"] = time.perf_counter() - t0
-        finally:
-            if work != tmp_final and os.path.exists(work):
-                os.remove(work)
+            except RasterioIOError as e:
+                raise RasterIOError(f"Could not write the orthoimage '{dst}': {gdal_reason(e)}") from e
+            verify_tiff(tmp_final, name=dst)  # GDAL's close does not report failed writes
+        timer.t["finish"] += time.perf_counter() - t0
     timer.t["wall"] = time.perf_counter() - t_wall
     return OrthoResult(dst, out_crs, transform, shape, res, dict(timer.t))
 
@@ -529,7 +531,7 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
             data = ds.read(window=win) if native else ds.read(window=win, out_dtype="float32")
             valid = ds.dataset_mask(window=win) if masked else None  # 0 / 255
         except RasterioIOError as e:
-            raise RasterIOError(f"Could not read image '{src}': {e}") from e
+            raise RasterIOError(f"Could not read image '{src}': {gdal_reason(e)}") from e
         timer.add("read", time.perf_counter() - t)
         t = time.perf_counter()
         arr = wp.array(data, dtype=_WP_TYPES[data.dtype.name], device=device)
@@ -574,14 +576,17 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
         # (5 % of RAM) would hold gigabytes of blocks.
         with rasterio.Env(GDAL_CACHEMAX=256), _open_sink(path, profile, cog, final_name, timer) as sink:
             bar = _progress(len(tiles)) if progress else None
-            with ThreadPoolExecutor(max_workers=n_workers) as pool:
+            pool = ThreadPoolExecutor(max_workers=n_workers)
+            try:
                 for _ in pool.map(run, tiles):
                     if bar is not None:
                         bar.update(1)
+            finally:  # on an error or an interruption, the tiles not yet started are dropped
+                pool.shutdown(wait=True, cancel_futures=True)
             if bar is not None:
                 bar.close()
     except RasterioIOError as e:
-        raise RasterIOError(f"Could not write the orthoimage '{final_name}': {e}") from e
+        raise RasterIOError(f"Could not write the orthoimage '{final_name}': {gdal_reason(e)}") from e
     finally:
         for ds in handles:
             ds.close()
@@ -637,7 +642,8 @@ def _open_sink(path, profile, cog, final_name, timer):
     tiles: through :class:`CogWriter` (``cog``: its options) or GDAL's GTiff driver."""
     if cog is not None:
         w = CogWriter(path, width=profile["width"], height=profile["height"], count=profile["count"],
-                      dtype=profile["dtype"], crs=profile["crs"], transform=profile["transform"], **cog)
+                      dtype=profile["dtype"], crs=profile["crs"], transform=profile["transform"], name=final_name,
+                      **cog)
         try:
             # the tiles are fresh arrays the pipeline drops after the call: no copy
             yield functools.partial(w.write, copy=False)
@@ -659,7 +665,7 @@ def _open_sink(path, profile, cog, final_name, timer):
                     if not is_float:
                         dst.write_mask(mask.astype(np.uint8) * 255, window=win)
             except RasterioIOError as e:
-                raise RasterIOError(f"Could not write the orthoimage '{final_name}': {e}") from e
+                raise RasterIOError(f"Could not write the orthoimage '{final_name}': {gdal_reason(e)}") from e
         yield sink
 
 
