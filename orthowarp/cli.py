@@ -7,6 +7,8 @@ import logging
 import os
 import signal
 import sys
+import threading
+import time
 
 import click
 import numpy as np
@@ -14,33 +16,83 @@ import numpy as np
 from .errors import OrthowarpError
 
 
-class _Terminated(KeyboardInterrupt):
-    """SIGTERM, raised in the main thread so that a run stops as on Ctrl-C: the tiles in
-    flight finish, nothing new starts, and every temporary is removed."""
-
-
-def _on_sigterm(signum, frame):
-    raise _Terminated()
-
-
 class _Group(click.Group):
-    """Turn library errors into a one-line message and exit code 1; SIGINT and SIGTERM into a
-    clean stop with exit code 130 or 143."""
+    """Run a command so that it can be stopped cleanly, and report its end: library errors
+    become a one-line message and exit code 1; SIGINT and SIGTERM a clean stop with exit code
+    130 or 143.
+
+    The command runs in a worker thread. A signal only sets the event
+    ``ctx.meta["orthowarp.stop"]``, which the commands pass to the library as ``cancel``: the
+    ortho stops before its next tile, and nothing is published. The main thread waits; if the
+    command has not ended ``STOP_GRACE`` seconds after the signal (a stage that does not look
+    at the event), or at a second signal, it removes this process's temporaries and exits at
+    once. No exception is ever raised asynchronously into library code (where it could leave
+    a lock held)."""
+
+    STOP_GRACE = 10.0
 
     def invoke(self, ctx):
-        previous = signal.signal(signal.SIGTERM, _on_sigterm)
+        stop = ctx.meta["orthowarp.stop"] = threading.Event()
+        if threading.current_thread() is not threading.main_thread():  # no signals: run here
+            return self._report(lambda: super(_Group, self).invoke(ctx))
+        outcome, received = {}, []
+
+        def work():
+            try:
+                outcome["value"] = super(_Group, self).invoke(ctx)
+            except BaseException as e:  # handed to the main thread
+                outcome["error"] = e
+
+        def handle(signum, frame):
+            if received:
+                _exit_now(signum)
+            received.append((signum, time.monotonic()))
+            stop.set()
+
+        previous = {sig: signal.signal(sig, handle) for sig in (signal.SIGINT, signal.SIGTERM)}
         try:
-            return super().invoke(ctx)
+            worker = threading.Thread(target=work, name="orthowarp-command")
+            worker.start()
+            while worker.is_alive():
+                worker.join(0.1)
+                if received and time.monotonic() - received[0][1] > self.STOP_GRACE:
+                    _exit_now(received[0][0])
+        finally:
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
+        if received:
+            terminated = received[0][0] == signal.SIGTERM
+            click.echo(f"Error: {'terminated' if terminated else 'interrupted'}; no output was left half-written",
+                       err=True)
+            sys.exit(128 + received[0][0])
+
+        def result():
+            if "error" in outcome:
+                raise outcome["error"]
+            return outcome.get("value")
+
+        return self._report(result)
+
+    @staticmethod
+    def _report(call):
+        try:
+            return call()
         except OrthowarpError as e:
             click.echo(f"Error: {e}", err=True)
             sys.exit(1)
-        except KeyboardInterrupt as e:
-            terminated = isinstance(e, _Terminated)
-            click.echo(f"Error: {'terminated' if terminated else 'interrupted'}; no output was left half-written",
-                       err=True)
-            sys.exit(128 + (signal.SIGTERM if terminated else signal.SIGINT))
-        finally:
-            signal.signal(signal.SIGTERM, previous)
+        except KeyboardInterrupt:
+            click.echo("Error: interrupted; no output was left half-written", err=True)
+            sys.exit(128 + signal.SIGINT)
+
+
+def _exit_now(signum):
+    """Last resort of a stop: remove the temporaries, exit without waiting for anything."""
+    from .pipeline.io import remove_own_temporaries
+
+    remove_own_temporaries()
+    sys.stderr.write(f"Error: stopped by signal {signum}; temporaries removed\n")
+    sys.stderr.flush()
+    os._exit(128 + signum)
 
 
 @click.group(cls=_Group)
@@ -142,6 +194,7 @@ def ortho(ctx, images, int_param, ext_param, dimap, attitude_model, dem, height,
 
     def run(jobs):
         """Check every destination, then read the terrain and write the orthos one by one."""
+        options["cancel"] = ctx.meta.get("orthowarp.stop")
         for *_, dst in jobs:
             check_destination(dst, overwrite=overwrite)
         terrain = Dem.from_file(dem) if dem is not None else height

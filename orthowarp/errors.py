@@ -12,6 +12,7 @@ __all__ = [
     "RasterIOError",
     "GeometryError",
     "DeviceError",
+    "Cancelled",
 ]
 
 
@@ -37,3 +38,7 @@ class GeometryError(OrthowarpError, ValueError):
 
 class DeviceError(OrthowarpError, RuntimeError):
     """A Warp device is unknown or unusable."""
+
+
+class Cancelled(OrthowarpError):
+    """A run was stopped through its ``cancel`` event; it wrote nothing."""

@@ -1,7 +1,7 @@
 """Outputs of a bundle adjustment: refined orientation in the formats ``orthowarp ortho``
 reads, adjusted points, a JSON report, and a readable report with plots (matplotlib).
 
-Files written into the output folder (each atomically):
+Files written into the output folder, all together or none (:func:`~orthowarp.pipeline.io.write_files`):
 
 - ``exterior.csv`` + ``exterior.prj``: ``filename,x,y,z,omega,phi,kappa`` (m, deg) in the
   block's CRS (geocentric blocks: ``filename,latitude,longitude,altitude,roll,pitch,yaw``, no
@@ -16,6 +16,7 @@ Files written into the output folder (each atomically):
 """
 
 import io
+import json
 import os
 
 import numpy as np
@@ -23,7 +24,7 @@ import yaml
 from pyproj import CRS
 
 from .blockio import _camera_dict
-from .io import atomic_path, ensure_folder, write_json, write_text
+from .io import ensure_folder, write_files
 
 __all__ = ["write_adjustment"]
 
@@ -33,9 +34,13 @@ def _csv(rows):
 
 
 def write_adjustment(result, block, out_dir, *, plots=True):
-    """Write the adjustment's outputs (see the module doc) into ``out_dir``; returns the paths."""
+    """Write the adjustment's outputs (see the module doc) into ``out_dir``; returns the paths.
+
+    The files are made in memory and published together: a failure (full disk, say) leaves
+    the folder's earlier outputs as they were.
+    """
     ensure_folder(out_dir)
-    paths = {}
+    paths, files = {}, {}
     b = block
     geo = b.mode == "geocentric"
     rows = [("filename", "latitude", "longitude", "altitude", "roll", "pitch", "yaw") if geo
@@ -44,19 +49,19 @@ def write_adjustment(result, block, out_dir, *, plots=True):
     for iid in b.image_ids:
         rows.append((iid, *(f"{v:.{d}f}" for d, v in zip(digits, result.poses[iid]))))
     paths["exterior"] = os.path.join(out_dir, "exterior.csv")
-    write_text(paths["exterior"], _csv(rows))
+    files[paths["exterior"]] = _csv(rows)
     if not geo:
-        write_text(os.path.join(out_dir, "exterior.prj"), CRS.from_user_input(b.crs).to_wkt())
+        files[os.path.join(out_dir, "exterior.prj")] = CRS.from_user_input(b.crs).to_wkt()
     paths["cameras"] = os.path.join(out_dir, "cameras.yaml")
     cams = result.cameras or b.cameras
-    write_text(paths["cameras"], yaml.safe_dump({cid: _camera_dict(c) for cid, c in cams.items()}))
+    files[paths["cameras"]] = yaml.safe_dump({cid: _camera_dict(c) for cid, c in cams.items()})
     prow = [("point", "role", "x", "y", "z", "sx", "sy", "sz")]
     for pid, role in zip(b.point_ids, b.roles):
         xyz = result.points.get(pid, (np.nan,) * 3)
         sd = result.point_std.get(pid, (np.nan,) * 3)
         prow.append((pid, role, *(f"{v:.4f}" for v in xyz), *(f"{v:.4f}" for v in sd)))
     paths["points"] = os.path.join(out_dir, "points.csv")
-    write_text(paths["points"], _csv(prow))
+    files[paths["points"]] = _csv(prow)
     used = result.used
     res = result.residuals[used]
     report = dict(
@@ -71,11 +76,13 @@ def write_adjustment(result, block, out_dir, *, plots=True):
         max_abs_w=float(np.nanmax(np.abs(result.w_tests))) if result.w_tests is not None else None,
         camera_std=result.camera_std)
     paths["report"] = os.path.join(out_dir, "report.json")
-    write_json(paths["report"], report)
+    files[paths["report"]] = json.dumps(report, indent=2) + "\n"
     if plots:
-        paths.update(_plots(result, block, out_dir))
+        for key, (path, png) in _plots(result, block, out_dir).items():
+            paths[key], files[path] = path, png
     paths["markdown"] = os.path.join(out_dir, "report.md")
-    write_text(paths["markdown"], _markdown(report, plots))
+    files[paths["markdown"]] = _markdown(report, plots)
+    write_files(files)
     return paths
 
 
@@ -103,12 +110,10 @@ def _markdown(r, plots):
     return "\n".join(lines) + "\n"
 
 
-def _save(fig, path):
+def _png(fig):
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110)
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as f:
-            f.write(buf.getvalue())
+    return buf.getvalue()
 
 
 def _plots(result, block, out_dir):
@@ -134,8 +139,7 @@ def _plots(result, block, out_dir):
         ax.set_xticks([])
         ax.set_yticks([])
     fig.suptitle(f"image residuals x {scale:.0f} (red: rejected)")
-    out["residuals_png"] = os.path.join(out_dir, "residuals.png")
-    _save(fig, out["residuals_png"])
+    out["residuals_png"] = os.path.join(out_dir, "residuals.png"), _png(fig)
     fig = Figure(figsize=(8, 6))
     ax = fig.add_subplot(1, 1, 1)
     centres = np.array([result.poses[i][:2] for i in b.image_ids])
@@ -155,6 +159,5 @@ def _plots(result, block, out_dir):
     ax.set_aspect("equal")
     ax.legend(fontsize=8)
     ax.set_title("errors at control and check points (labels: height error)")
-    out["errors_png"] = os.path.join(out_dir, "errors.png")
-    _save(fig, out["errors_png"])
+    out["errors_png"] = os.path.join(out_dir, "errors.png"), _png(fig)
     return out

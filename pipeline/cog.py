@@ -168,7 +168,9 @@ def verify_tiff(path, *, name=None):
                                          f"{n} bytes, file {size} bytes)")
                 ifd, k = nxt, k + 1
     except (ParamError, struct.error) as e:
-        raise RasterIOError(f"Could not write '{name}': the file is incomplete ({e})") from e
+        from .io import storage_facts
+
+        raise RasterIOError(f"Could not write '{name}': the file is incomplete ({e}){storage_facts(path)}") from e
     except OSError as e:
         raise RasterIOError(f"Could not check '{name}': {e.strerror or e}") from e
 

@@ -20,17 +20,23 @@ import errno
 import fcntl
 import json
 import os
+import resource
 import secrets
+import threading
 import warnings
 
 import rasterio
+from rasterio._err import CPLE_BaseError
 
 from ..errors import RasterIOError
 
-__all__ = ["ensure_folder", "check_destination", "atomic_path", "atomic_files", "remove_stale_temporaries",
-           "write_raster", "write_text", "write_json", "describe_os_error", "gdal_reason"]
+__all__ = ["ensure_folder", "check_destination", "atomic_path", "atomic_files", "remove_stale_temporaries", "remove_own_temporaries",
+           "write_raster", "write_text", "write_files", "write_json", "describe_os_error", "gdal_reason", "storage_facts", "write_error"]
 
 TMP_TAG = ".orthowarp-tmp-"
+# what rasterio raises for GDAL's errors: its own classes, and GDAL's CPLE_* ones where it
+# passes them through (e.g. from rasterio.shutil.copy)
+GDAL_ERRORS = (rasterio.errors.RasterioError, CPLE_BaseError)
 
 
 def describe_os_error(e):
@@ -44,10 +50,39 @@ def gdal_reason(e):
     reasons = []
     while e is not None and len(reasons) < 4:
         text = str(e).strip()
-        if text and "previous exception" not in text and text not in reasons:
+        if text and "previous exception" not in text and not any(text in r for r in reasons):
             reasons.append(text)
         e = e.__cause__ or e.__context__
     return "; ".join(reasons) or "unknown GDAL error"
+
+
+def storage_facts(path):
+    """What the system says about room for writing ``path``: "; the file reached the
+    process's file-size limit (ulimit -f) of N bytes" or "; the file system has N bytes free",
+    or "" when neither applies. For errors from GDAL, which reports a failed write without its
+    cause (errno)."""
+    facts = []
+    try:
+        soft = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+        if soft != resource.RLIM_INFINITY and os.path.getsize(path) >= soft - (1 << 16):
+            facts.append(f"the file reached the process's file-size limit (ulimit -f) of {soft} bytes")
+    except OSError:
+        pass
+    try:
+        st = os.statvfs(os.path.dirname(os.path.abspath(path)))
+        free = st.f_bavail * st.f_frsize
+        if free < (1 << 24):
+            facts.append(f"the file system has {free} bytes free")
+    except OSError:
+        pass
+    return "".join(f"; {f}" for f in facts)
+
+
+def write_error(name, tmp, e):
+    """The :class:`RasterIOError` for a failed write of ``name`` (written as ``tmp``): the cause
+    (OS or GDAL) and :func:`storage_facts`."""
+    reason = gdal_reason(e) if isinstance(e, GDAL_ERRORS) else describe_os_error(e)
+    return RasterIOError(f"Could not write '{name}': {reason}{storage_facts(tmp)}")
 
 
 def ensure_folder(path):
@@ -153,6 +188,19 @@ def _publish(tmp, path, overwrite):
     os.remove(tmp)
 
 
+_LIVE = set()  # this process's temporaries, for remove_own_temporaries
+_LIVE_LOCK = threading.Lock()
+
+
+def remove_own_temporaries():
+    """Remove every temporary this process holds (and their helper files): for a last-resort
+    exit (os._exit) that skips the normal clean-up."""
+    with _LIVE_LOCK:
+        live = list(_LIVE)
+    for tmp in live:
+        _remove_job(tmp)
+
+
 def _new_temporary(path):
     """Create and lock the temporary of ``path``: (fd, temporary path)."""
     folder, base = os.path.split(os.path.abspath(path))
@@ -164,6 +212,8 @@ def _new_temporary(path):
         except FileExistsError:
             continue
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        with _LIVE_LOCK:
+            _LIVE.add(tmp)
         return fd, tmp
     raise FileExistsError(errno.EEXIST, "no free temporary name", tmp)
 
@@ -218,6 +268,8 @@ def atomic_path(path, *, overwrite=True, durable=True):
 
 
 def _remove_job(tmp):
+    with _LIVE_LOCK:
+        _LIVE.discard(tmp)
     folder, base = os.path.split(tmp)
     with contextlib.suppress(OSError):
         for name in os.listdir(folder):
@@ -313,8 +365,8 @@ def write_raster(path, array, *, transform=None, crs=None, nodata=None, compress
                 with rasterio.open(tmp, "w", **profile) as dst:
                     dst.write(arr)
             verify_tiff(tmp)
-        except (rasterio.errors.RasterioIOError, OSError) as e:
-            raise RasterIOError(f"Could not write '{path}': {gdal_reason(e)}") from e
+        except (*GDAL_ERRORS, OSError) as e:
+            raise write_error(path, tmp, e) from e
 
 
 def write_text(path, text):
@@ -329,6 +381,26 @@ def _write_text_to(tmp, text, name):
             f.write(text)
     except OSError as e:
         raise RasterIOError(f"Could not write '{name}': {describe_os_error(e)}") from e
+
+
+def write_files(contents, *, durable=True):
+    """Write several files together (see :func:`atomic_files`).
+
+    Parameters
+    ----------
+    contents : dict
+        path -> str (written as UTF-8) or bytes.
+    """
+    paths = list(contents)
+    with atomic_files(paths, durable=durable) as tmps:
+        for path, tmp in zip(paths, tmps):
+            data = contents[path]
+            try:
+                with open(tmp, "wb") as f:
+                    f.write(data.encode("utf-8") if isinstance(data, str) else data)
+            except OSError as e:
+                raise RasterIOError(f"Could not write '{path}': {describe_os_error(e)}; "
+                                    "none of the outputs was changed") from e
 
 
 def write_json(path, obj):

@@ -27,12 +27,11 @@ import warp as wp
 from affine import Affine
 from pyproj import CRS, Transformer
 from rasterio.enums import MaskFlags
-from rasterio.errors import RasterioIOError
 from rasterio.windows import Window
 
 from .._validate import as_crs, finite
 from ..camera import FrameCamera
-from ..errors import GeometryError, ParamError, RasterIOError
+from ..errors import Cancelled, GeometryError, ParamError, RasterIOError
 from ..kernels import ortho as ortho_kernels
 from ..geodesy import geodetic_to_ecef
 from ..pose import Pose
@@ -40,7 +39,7 @@ from ..pushbroom import PushbroomScene
 from .dem import Dem
 from .geometry import FrameGeometry, PushbroomGeometry
 from .cog import DTYPES, CogWriter, overview_count, verify_tiff
-from .io import atomic_path, check_destination, gdal_reason
+from .io import GDAL_ERRORS, atomic_path, check_destination, gdal_reason, write_error
 
 __all__ = ["orthorectify", "OrthoResult", "RESAMPLING", "output_grid"]
 
@@ -205,7 +204,7 @@ class _Timer:
 def orthorectify(src, sensor, *args, dem, crs=None, resolution=None, resampling="bilinear", method="backward",
                  refraction=True, dtype=None, driver="COG", compress="deflate", compress_level=None, overviews=True,
                  tile_size=None, overwrite=False, device=None, progress=False, workers=None,
-                 geoid=None, same_vertical_datum=False):
+                 geoid=None, same_vertical_datum=False, cancel=None):
     """Orthorectify one frame image or pushbroom scene into a GeoTIFF / cloud-optimized GeoTIFF.
 
     Called as ``orthorectify(src, camera, pose, dst, ...)`` for a frame image or
@@ -263,6 +262,9 @@ def orthorectify(src, sensor, *args, dem, crs=None, resolution=None, resampling=
         Geoid undulation grid, used when the DEM's and the positions' vertical datums differ.
     same_vertical_datum : bool, optional
         Take DEM and position heights as the same datum whatever their CRSs declare.
+    cancel : threading.Event, optional
+        Set from another thread (or a signal handler) to stop the run: no tile starts after
+        it, nothing is published, and :class:`~orthowarp.errors.Cancelled` is raised.
 
     Returns
     -------
@@ -313,7 +315,7 @@ def orthorectify(src, sensor, *args, dem, crs=None, resolution=None, resampling=
             width, height, count, src_dtype = ds.width, ds.height, ds.count, ds.dtypes[0]
             # a source without nodata, mask or alpha needs no mask reads
             masked = any(flags != [MaskFlags.all_valid] for flags in ds.mask_flag_enums)
-    except RasterioIOError as e:
+    except GDAL_ERRORS as e:
         raise RasterIOError(f"Could not open image '{src}': {gdal_reason(e)}") from e
     size = (camera.width, camera.height) if pose is None else tuple(camera.image_size)
     if (width, height) != size:
@@ -351,15 +353,16 @@ def orthorectify(src, sensor, *args, dem, crs=None, resolution=None, resampling=
         _render(src, geom, out_crs, transform, shape, count, out_dtype,
                 compress if driver == "GTiff" else "none", work, resampling, tile_size, progress,
                 workers, timer, dst, method, masked, compress_level,
-                cog=dict(compress=compress, level=compress_level or 6) if streamed else None)
+                cog=dict(compress=compress, level=compress_level or 6) if streamed else None, cancel=cancel)
         t0 = time.perf_counter()
         if not streamed:
             try:
                 _finish(work, tmp_final, driver, compress, overviews, out_dtype, compress_level)
-            except RasterioIOError as e:
-                raise RasterIOError(f"Could not write the orthoimage '{dst}': {gdal_reason(e)}") from e
+            except GDAL_ERRORS as e:
+                raise write_error(dst, tmp_final, e) from e
             verify_tiff(tmp_final, name=dst)  # GDAL's close does not report failed writes
         timer.t["finish"] += time.perf_counter() - t0
+        _check_cancel(cancel, dst)
     timer.t["wall"] = time.perf_counter() - t_wall
     return OrthoResult(dst, out_crs, transform, shape, res, dict(timer.t))
 
@@ -429,7 +432,8 @@ def _creation_options(compress, dtype, level=None):
 
 
 def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, path, resampling,
-            tile_size, progress, workers, timer, final_name, method_name, masked, compress_level=None, cog=None):
+            tile_size, progress, workers, timer, final_name, method_name, masked, compress_level=None, cog=None,
+            cancel=None):
     rows, cols = shape
     is_float = out_dtype == "float32"
     profile = dict(driver="GTiff", width=cols, height=rows, count=count, dtype=out_dtype,
@@ -530,7 +534,7 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
             native = ds.dtypes[0] in ("uint8", "uint16", "float32")
             data = ds.read(window=win) if native else ds.read(window=win, out_dtype="float32")
             valid = ds.dataset_mask(window=win) if masked else None  # 0 / 255
-        except RasterioIOError as e:
+        except GDAL_ERRORS as e:
             raise RasterIOError(f"Could not read image '{src}': {gdal_reason(e)}") from e
         timer.add("read", time.perf_counter() - t)
         t = time.perf_counter()
@@ -547,6 +551,7 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
         return sw, arr
 
     def run(tile):
+        _check_cancel(cancel, final_name)
         r0, c0, th, tw = tile
         ds, stream = source()
         with wp.ScopedStream(stream) if stream is not None else contextlib.nullcontext():
@@ -583,13 +588,18 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
                         bar.update(1)
             finally:  # on an error or an interruption, the tiles not yet started are dropped
                 pool.shutdown(wait=True, cancel_futures=True)
-            if bar is not None:
-                bar.close()
-    except RasterioIOError as e:
-        raise RasterIOError(f"Could not write the orthoimage '{final_name}': {gdal_reason(e)}") from e
+                if bar is not None:
+                    bar.close()
+    except GDAL_ERRORS as e:
+        raise write_error(final_name, path, e) from e
     finally:
         for ds in handles:
             ds.close()
+
+
+def _check_cancel(cancel, name):
+    if cancel is not None and cancel.is_set():
+        raise Cancelled(f"The orthoimage '{name}' was cancelled; nothing was written")
 
 
 def _height_range(dem, blocks, uv):
@@ -664,8 +674,8 @@ def _open_sink(path, profile, cog, final_name, timer):
                     dst.write(np.moveaxis(block, 2, 0), window=win)
                     if not is_float:
                         dst.write_mask(mask.astype(np.uint8) * 255, window=win)
-            except RasterioIOError as e:
-                raise RasterIOError(f"Could not write the orthoimage '{final_name}': {gdal_reason(e)}") from e
+            except GDAL_ERRORS as e:
+                raise write_error(final_name, path, e) from e
         yield sink
 
 

@@ -14,7 +14,7 @@ def test_demo_runs_end_to_end(tmp_path):
     assert "accuracy vs scene truth" in res.output
     names = {p.name for p in out.iterdir()}
     assert {"dem.tif", "image.tif", "footprint.geojson", "check_points.csv", "summary.json"} <= names
-    assert not [n for n in names if n.startswith(".tmp-")]  # no half-written files left
+    assert not [n for n in names if ".orthowarp-tmp-" in n]  # no half-written files left
     s = json.loads((out / "summary.json").read_text())
     assert s["check_points"] >= 500
     assert s["check_max_m"] < 0.005  # 5 mm against the scene's truth

@@ -1,0 +1,216 @@
+"""The fault suite: real ``orthowarp`` runs (subprocesses) under a file-size limit, SIGTERM,
+SIGKILL, concurrent writers and bad batches. Each case checks the exit status, the message,
+that no temporary is left and that the earlier output is intact; where output is made, that
+it is right.
+
+A full disk is simulated without root by RLIMIT_FSIZE: writes past the limit fail with EFBIG
+("File too large"), as they fail with ENOSPC on a full file system (Python ignores SIGXFSZ).
+"""
+
+import os
+import resource
+import shutil
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import rasterio
+from click.testing import CliRunner
+from pyproj import CRS
+
+from orthowarp.cli import main
+from orthowarp.pipeline.io import TMP_TAG
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def _frame_job(folder, name="img"):
+    """A 64 x 48 frame with orthority-style camera and CSV exterior files; its CLI arguments.
+    A small ``--resolution`` makes its ortho as large (and slow) as a case needs."""
+    (folder / "camera.yaml").write_text(
+        "cam:\n  type: pinhole\n  im_size: [64, 48]\n  focal_len: 50.0\n  sensor_size: [0.64, 0.48]\n")
+    (folder / "ext.csv").write_text(f"filename,x,y,z,omega,phi,kappa\n{name},500000,5200000,600,1,-2,30\n")
+    (folder / "ext.prj").write_text(CRS.from_epsg(32632).to_wkt())
+    data = np.random.default_rng(0).integers(1, 255, (3, 48, 64), dtype=np.uint8)
+    with rasterio.open(folder / f"{name}.tif", "w", driver="GTiff", width=64, height=48, count=3,
+                       dtype="uint8") as dst:
+        dst.write(data)
+    return [str(folder / f"{name}.tif"), "--int-param", str(folder / "camera.yaml"), "--ext-param",
+            str(folder / "ext.csv"), "--height", "100", "--device", "cpu"]
+
+
+def _temporaries(folder):
+    return [n for n in os.listdir(folder) if TMP_TAG in n]
+
+
+def _cli(args, *, fsize=None, **kw):
+    """Start ``orthowarp ARGS`` in a subprocess (optionally under RLIMIT_FSIZE = fsize bytes)."""
+    def limit():
+        if fsize is not None:
+            resource.setrlimit(resource.RLIMIT_FSIZE, (fsize, fsize))
+
+    return subprocess.Popen([sys.executable, "-m", "orthowarp.cli", *args], cwd=ROOT, preexec_fn=limit,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw)
+
+
+def _error_line(stderr):
+    lines = [ln.split("\r")[-1] for ln in stderr.strip().splitlines() if "Error:" in ln]
+    lines = [ln for ln in lines if ln.startswith("Error:")]
+    assert len(lines) == 1 and "Traceback" not in stderr, stderr
+    return lines[0]
+
+
+def _pixels(path):
+    with rasterio.open(path) as ds:
+        return ds.read(), ds.dataset_mask()
+
+
+@pytest.mark.parametrize("options", [["--driver", "cog"], ["--driver", "cog", "--compress", "zstd"],
+                                     ["--driver", "gtiff"], ["--driver", "gtiff", "--compress", "none"]],
+                         ids=["cog-deflate", "cog-zstd", "gtiff-deflate", "gtiff-none"])
+def test_full_disk_keeps_the_earlier_output(tmp_path, options):
+    args = _frame_job(tmp_path) + ["--resolution", "0.01", "--out-dir", str(tmp_path / "out"), *options]
+    res = CliRunner().invoke(main, ["-q", "ortho", *args])  # the earlier, good output
+    assert res.exit_code == 0, res.output
+    dst = tmp_path / "out" / "img_ORTHO.tif"
+    before = dst.read_bytes()
+    assert len(before) > 300_000
+    p = _cli(["-q", "ortho", *args, "--overwrite"], fsize=100_000)
+    _, err = p.communicate(timeout=300)
+    assert p.returncode == 1, err
+    line = _error_line(err)
+    # the OS's errno where orthowarp writes, GDAL's message and the limit where GDAL writes
+    assert f"'{dst}'" in line and ("File too large" in line or "file-size limit (ulimit -f) of 100000" in line), line
+    assert dst.read_bytes() == before
+    assert _temporaries(tmp_path / "out") == []
+
+
+def test_full_disk_in_adjust_changes_no_output(tmp_path):
+    from orthowarp.adjust import synthetic_block, write_block
+
+    block, _ = synthetic_block(strips=2, images_per_strip=4, seed=11)
+    write_block(block, tmp_path / "block.json")
+    out = tmp_path / "adj"
+    res = CliRunner().invoke(main, ["-q", "adjust", str(tmp_path / "block.json"), "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    before = {n: (out / n).read_bytes() for n in os.listdir(out)}
+    assert {"exterior.csv", "cameras.yaml", "points.csv", "report.json", "report.md", "residuals.png"} <= set(before)
+    # the plots are the largest files: the limit lets the text outputs through but not them
+    small = max(len(v) for k, v in before.items() if not k.endswith(".png"))
+    p = _cli(["-q", "adjust", str(tmp_path / "block.json"), "--out", str(out), "--snooping"], fsize=small + 1000)
+    _, err = p.communicate(timeout=300)
+    assert p.returncode == 1, err
+    assert "File too large" in _error_line(err) and "none of the outputs was changed" in err
+    assert {n: (out / n).read_bytes() for n in os.listdir(out)} == before
+
+
+def _wait_for_temporary(p, folder, timeout=120):
+    t0 = time.time()
+    while time.time() - t0 < timeout:
+        if p.poll() is not None:
+            pytest.fail(f"the run ended before it could be interrupted: {p.communicate()}")
+        if os.path.isdir(folder) and any(n.endswith(".blocks") for n in _temporaries(folder)):
+            return
+        time.sleep(0.05)
+    pytest.fail("no temporary appeared")
+
+
+# 64 x 48 source pixels at 0.1 m -> about 1000 x 800 output pixels in 16-pixel tiles: seconds
+_SLOW = ["--resolution", "0.006", "--tile-size", "16"]
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_interrupted_run_stops_cleanly(tmp_path, sig):
+    args = _frame_job(tmp_path) + ["--out-dir", str(tmp_path / "out")]
+    res = CliRunner().invoke(main, ["-q", "ortho", *args, "--resolution", "0.05"])
+    assert res.exit_code == 0, res.output
+    dst = tmp_path / "out" / "img_ORTHO.tif"
+    before = dst.read_bytes()
+    p = _cli(["-q", "ortho", *args, *_SLOW, "--overwrite"])
+    _wait_for_temporary(p, tmp_path / "out")
+    p.send_signal(sig)
+    _, err = p.communicate(timeout=120)
+    assert p.returncode == 128 + sig, err
+    assert ("terminated" if sig == signal.SIGTERM else "interrupted") in _error_line(err)
+    assert dst.read_bytes() == before
+    assert _temporaries(tmp_path / "out") == []
+
+
+def test_killed_run_leaves_temporaries_the_next_run_removes(tmp_path):
+    args = _frame_job(tmp_path) + ["--out-dir", str(tmp_path / "out")]
+    p = _cli(["-q", "ortho", *args, *_SLOW])
+    _wait_for_temporary(p, tmp_path / "out")
+    p.kill()
+    p.wait()
+    stale = _temporaries(tmp_path / "out")
+    assert len(stale) == 2  # the COG temporary and its block file
+    assert not (tmp_path / "out" / "img_ORTHO.tif").exists()
+    res = CliRunner().invoke(main, ["-q", "ortho", *args, "--resolution", "0.05"])
+    assert res.exit_code == 0, res.output
+    assert _temporaries(tmp_path / "out") == []
+    data, mask = _pixels(tmp_path / "out" / "img_ORTHO.tif")
+    assert mask.mean() > 0.3 and data[:, mask > 0].min() >= 1  # the source's values are 1-254
+
+
+def test_concurrent_writers_never_replace_silently(tmp_path):
+    args = _frame_job(tmp_path) + ["--out-dir", str(tmp_path / "out"), "--resolution", "0.01", "--tile-size", "64"]
+    runs = [_cli(["-q", "ortho", *args]) for _ in range(2)]
+    outs = [p.communicate(timeout=300) for p in runs]
+    codes = sorted(p.returncode for p in runs)
+    assert codes == [0, 1], outs
+    err = outs[[p.returncode for p in runs].index(1)][1]
+    line = _error_line(err)
+    assert "img_ORTHO.tif" in line and ("exists" in line or "created by someone else" in line), line
+    assert _temporaries(tmp_path / "out") == []
+    data, mask = _pixels(tmp_path / "out" / "img_ORTHO.tif")
+    ref = tmp_path / "ref"
+    res = CliRunner().invoke(main, ["-q", "ortho", *args[:-6], "--out-dir", str(ref), "--resolution", "0.01",
+                                    "--tile-size", "64"])
+    assert res.exit_code == 0, res.output
+    ref_data, ref_mask = _pixels(ref / "img_ORTHO.tif")
+    np.testing.assert_array_equal(data, ref_data)
+    np.testing.assert_array_equal(mask, ref_mask)
+
+
+def test_batch_destinations_are_checked_before_any_work(tmp_path):
+    args = _frame_job(tmp_path)
+    shutil.copy(tmp_path / "img.tif", tmp_path / "img.png")  # the same output name
+    out = tmp_path / "out"
+    res = CliRunner().invoke(main, ["ortho", *args, str(tmp_path / "img.png"), "--out-dir", str(out)])
+    assert res.exit_code == 1
+    assert "would both be written to" in res.output and "img_ORTHO.tif" in res.output
+    assert not out.exists() or os.listdir(out) == []
+    # a second image whose output exists: nothing is written, also not the first's
+    (tmp_path / "b.tif").write_bytes((tmp_path / "img.tif").read_bytes())
+    with open(tmp_path / "ext.csv", "a") as f:
+        f.write("b,500010,5200000,600,1,-2,30\n")
+    out.mkdir(exist_ok=True)
+    (out / "b_ORTHO.tif").write_text("earlier")
+    res = CliRunner().invoke(main, ["ortho", *args, str(tmp_path / "b.tif"), "--out-dir", str(out)])
+    assert res.exit_code == 1 and "b_ORTHO.tif' exists" in res.output
+    assert sorted(os.listdir(out)) == ["b_ORTHO.tif"] and (out / "b_ORTHO.tif").read_text() == "earlier"
+    # an output name that is a folder, also with --overwrite
+    (out / "img_ORTHO.tif").mkdir()
+    res = CliRunner().invoke(main, ["ortho", *args, "--out-dir", str(out), "--overwrite"])
+    assert res.exit_code == 1 and "img_ORTHO.tif' is an existing folder" in res.output
+
+
+@pytest.mark.parametrize("damage", ["empty", "header", "truncated"])
+def test_corrupt_source_names_the_file_and_the_reason(tmp_path, damage):
+    args = _frame_job(tmp_path)
+    src = tmp_path / "img.tif"
+    with rasterio.open(src, "w", driver="GTiff", width=64, height=48, count=3, dtype="uint8", tiled=True,
+                       blockxsize=16, blockysize=16, compress="deflate") as dst:
+        dst.write(np.random.default_rng(1).integers(1, 255, (3, 48, 64), dtype=np.uint8))
+    data = src.read_bytes()
+    src.write_bytes({"empty": b"", "header": data[:8], "truncated": data[:len(data) // 2]}[damage])
+    res = CliRunner().invoke(main, ["ortho", *args, "--out-dir", str(tmp_path / "out")])
+    assert res.exit_code == 1, res.output
+    line = _error_line(res.output)
+    assert f"'{src}'" in line and "previous exception" not in line, line
+    reason = {"empty": "not recognized", "header": "TIFFReadDirectory", "truncated": "TIFFRead"}[damage]
+    assert reason in line, line
+    assert _temporaries(tmp_path / "out") == [] and not (tmp_path / "out" / "img_ORTHO.tif").exists()
