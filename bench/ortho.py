@@ -135,6 +135,7 @@ def kernel_only(geom, src_path, resampling, repeats=3):
     sw.masked = 0  # the bench image has no nodata (as the pipeline finds)
     sw.valid = wp.array(np.ones((1, 1), np.uint8), dtype=wp.uint8, device=dev)
     sw.col0 = sw.row0 = 0
+    sw.inv_sx = sw.inv_sy = 1.0
     width, height = float(geom.camera.image_size[0]), float(geom.camera.image_size[1])
     cam, _, refr, dem, _ = geom.structs()
     method = RESAMPLING[resampling]

@@ -69,6 +69,7 @@ def main(argv=None):
         data = wp.array(ds.read(), dtype=wp.uint8, device=dev)
     sw = ok.SourceWindow()
     sw.masked, sw.col0, sw.row0 = 0, 0, 0
+    sw.inv_sx = sw.inv_sy = 1.0
     sw.valid = wp.array(np.ones((1, 1), np.uint8), dtype=wp.uint8, device=dev)
     c, _, r, d, _ = geom.structs()
     inputs = [c, r, d, grid, wp.float64(args.width), wp.float64(args.height), sw, data, 1, 255.0]

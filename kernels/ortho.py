@@ -46,13 +46,16 @@ LANCZOS = wp.constant(3)
 class SourceWindow:
     """Where a window of the source image lies: valid (rows, cols) uint8 (1 = valid; read only
     when ``masked`` is non-zero, else every pixel is valid), its top-left pixel (col0, row0) in
-    the full image. The window's pixels travel beside the struct as an array (bands, rows,
+    the full image, and its pixels per image pixel (inv_sx, inv_sy: 1, or less for a window
+    read reduced). The window's pixels travel beside the struct as an array (bands, rows,
     cols) of the source's own dtype."""
 
     valid: wp.array2d(dtype=wp.uint8)
     masked: wp.int32
     col0: wp.int32
     row0: wp.int32
+    inv_sx: wp.float64
+    inv_sy: wp.float64
 
 
 @wp.func
@@ -298,9 +301,12 @@ def resample_at(src: SourceWindow, data: wp.array3d(dtype=Any), pix: wp.vec2d, m
     if not wp.isfinite(pix[0]):
         store_nodata(out, out_valid, i, j, top)
         return
+    # the pixel in window coordinates (corner-based; exact when the window is not reduced)
+    px = (pix[0] - wp.float64(src.col0)) * src.inv_sx
+    py = (pix[1] - wp.float64(src.row0)) * src.inv_sy
     if method == NEAREST:
-        c = wp.int32(wp.floor(pix[0])) - src.col0
-        r = wp.int32(wp.floor(pix[1])) - src.row0
+        c = wp.int32(wp.floor(px))
+        r = wp.int32(wp.floor(py))
         c = wp.clamp(c, 0, cols - 1)  # the image's right/bottom edge belongs to the last pixel
         r = wp.clamp(r, 0, rows - 1)
         if tap_weight(src, r, c, rows, cols, wp.float32(1.0)) == wp.float32(0.0):
@@ -316,8 +322,8 @@ def resample_at(src: SourceWindow, data: wp.array3d(dtype=Any), pix: wp.vec2d, m
     elif method == LANCZOS:
         radius = 3
     # centre-based coordinates inside the window
-    x = pix[0] - wp.float64(0.5) - wp.float64(src.col0)
-    y = pix[1] - wp.float64(0.5) - wp.float64(src.row0)
+    x = px - wp.float64(0.5)
+    y = py - wp.float64(0.5)
     x0 = wp.int32(wp.floor(x))
     y0 = wp.int32(wp.floor(y))
     fx = wp.float32(x - wp.float64(x0))  # in [0, 1): exact enough in float32

@@ -9,11 +9,12 @@ import signal
 import sys
 import threading
 import time
+import warnings
 
 import click
 import numpy as np
 
-from .errors import OrthowarpError
+from .errors import OrthowarpError, OrthowarpWarning
 
 
 class _Group(click.Group):
@@ -32,6 +33,21 @@ class _Group(click.Group):
     STOP_GRACE = 10.0
 
     def invoke(self, ctx):
+        shown = warnings.showwarning
+
+        def show(message, category, *args, **kwargs):  # the library's warnings as one line each
+            if issubclass(category, OrthowarpWarning):
+                click.echo(f"Warning: {message}", err=True)
+            else:
+                shown(message, category, *args, **kwargs)
+
+        warnings.showwarning = show
+        try:
+            return self._invoke(ctx)
+        finally:
+            warnings.showwarning = shown
+
+    def _invoke(self, ctx):
         stop = ctx.meta["orthowarp.stop"] = threading.Event()
         if threading.current_thread() is not threading.main_thread():  # no signals: run here
             return self._report(lambda: super(_Group, self).invoke(ctx))

@@ -13,6 +13,7 @@ __all__ = [
     "GeometryError",
     "DeviceError",
     "Cancelled",
+    "OrthowarpWarning",
 ]
 
 
@@ -42,3 +43,8 @@ class DeviceError(OrthowarpError, RuntimeError):
 
 class Cancelled(OrthowarpError):
     """A run was stopped through its ``cancel`` event; it wrote nothing."""
+
+
+class OrthowarpWarning(UserWarning):
+    """Something the user should know about a result that is still written (values clipped,
+    say)."""

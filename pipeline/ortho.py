@@ -26,12 +26,12 @@ import rasterio.shutil
 import warp as wp
 from affine import Affine
 from pyproj import CRS, Transformer
-from rasterio.enums import MaskFlags
+from rasterio.enums import MaskFlags, Resampling
 from rasterio.windows import Window
 
 from .._validate import as_crs, finite
 from ..camera import FrameCamera
-from ..errors import Cancelled, GeometryError, ParamError, RasterIOError
+from ..errors import Cancelled, GeometryError, OrthowarpWarning, ParamError, RasterIOError
 from ..kernels import ortho as ortho_kernels
 from ..geodesy import geodetic_to_ecef
 from ..pose import Pose
@@ -189,6 +189,19 @@ def _as_dem(dem):
     return dem
 
 
+class _Counter:
+    """Thread-safe count of values (n of total)."""
+
+    def __init__(self):
+        self.lock = threading.Lock()
+        self.n = self.total = 0
+
+    def add(self, n, total):
+        with self.lock:
+            self.n += n
+            self.total += total
+
+
 class _Timer:
     """Thread-safe accumulation of per-stage seconds."""
 
@@ -342,6 +355,7 @@ def orthorectify(src, sensor, *args, dem, crs=None, resolution=None, resampling=
     log.info("%s -> %s: %d x %d pixels at %.4g %s", src, dst, shape[1], shape[0], res,
              out_crs.axis_info[0].unit_name if out_crs.axis_info else "")
     timer = _Timer()
+    clipped = _Counter()
     # A deflate or uncompressed COG streams through CogWriter (blocks compressed and overviews
     # reduced as tiles arrive); other COGs are written uncompressed and copied by GDAL's COG
     # driver, which compresses once.
@@ -353,7 +367,8 @@ def orthorectify(src, sensor, *args, dem, crs=None, resolution=None, resampling=
         _render(src, geom, out_crs, transform, shape, count, out_dtype,
                 compress if driver == "GTiff" else "none", work, resampling, tile_size, progress,
                 workers, timer, dst, method, masked, compress_level,
-                cog=dict(compress=compress, level=compress_level or 6) if streamed else None, cancel=cancel)
+                cog=dict(compress=compress, level=compress_level or 6) if streamed else None, cancel=cancel,
+                src_dtype=src_dtype, clipped=clipped)
         t0 = time.perf_counter()
         if not streamed:
             try:
@@ -363,6 +378,10 @@ def orthorectify(src, sensor, *args, dem, crs=None, resolution=None, resampling=
             verify_tiff(tmp_final, name=dst)  # GDAL's close does not report failed writes
         timer.t["finish"] += time.perf_counter() - t0
         _check_cancel(cancel, dst)
+    if clipped.n:
+        warnings.warn(f"Image '{src}': {clipped.n / clipped.total:.3%} of the {src_dtype} source values read lie "
+                      f"outside the {out_dtype} range [0, {int(np.iinfo(out_dtype).max)}] and were clipped in "
+                      f"'{dst}'", OrthowarpWarning, stacklevel=2)
     timer.t["wall"] = time.perf_counter() - t_wall
     return OrthoResult(dst, out_crs, transform, shape, res, dict(timer.t))
 
@@ -433,7 +452,7 @@ def _creation_options(compress, dtype, level=None):
 
 def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, path, resampling,
             tile_size, progress, workers, timer, final_name, method_name, masked, compress_level=None, cog=None,
-            cancel=None):
+            cancel=None, src_dtype=None, clipped=None):
     rows, cols = shape
     is_float = out_dtype == "float32"
     profile = dict(driver="GTiff", width=cols, height=rows, count=count, dtype=out_dtype,
@@ -493,8 +512,12 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
         else:
             wp.launch(ortho_kernels.frame_node_pixels_kernel, dim=nodes.shape, device=device,
                       inputs=[*sensor, grid, wp.vec2d(*heights), nodes])
-        window = _node_window(nodes.numpy(), radius, w_img, h_img)
+        pixels = nodes.numpy()
+        factor = _decimation(pixels[0])
+        window = _node_window(pixels, radius, w_img, h_img, factor=factor)
         timer.add("kernel", time.perf_counter() - t)
+        if window is not None:
+            window = (*window, factor)
 
         def launch(sw, data, out, out_valid):
             if pushbroom:
@@ -524,18 +547,31 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
         prepare = forward
 
     top = {"uint8": 255.0, "uint16": 65535.0, "float32": 0.0}[out_dtype]
+    # source values outside an integer output's range are clipped: count them
+    narrowing = top > 0 and (np.dtype(src_dtype).kind in "fi" or np.iinfo(src_dtype).max > top)
 
-    def read_window(ds, wc0, wr0, wc1, wr1):
+    def read_window(ds, wc0, wr0, wc1, wr1, factor):
         """The source window on the device, (bands, rows, cols) in the output's dtype or float32,
-        and where it lies (its mask and origin)."""
+        and where it lies (its mask, origin and scale). ``factor`` > 1: read reduced by that
+        factor with area averaging (from the source's overviews where it has them), so that a
+        coarse output is neither aliased nor costs full-resolution reads."""
         t = time.perf_counter()
         win = Window(wc0, wr0, wc1 - wc0, wr1 - wr0)
+        shape = (-(-(wr1 - wr0) // factor), -(-(wc1 - wc0) // factor))
+        read = dict(window=win, out_dtype=None if ds.dtypes[0] in ("uint8", "uint16", "float32") else "float32")
+        if factor > 1:
+            read.update(out_shape=(count, *shape), resampling=Resampling.average)
         try:
-            native = ds.dtypes[0] in ("uint8", "uint16", "float32")
-            data = ds.read(window=win) if native else ds.read(window=win, out_dtype="float32")
-            valid = ds.dataset_mask(window=win) if masked else None  # 0 / 255
+            data = ds.read(**read)
+            valid = None
+            if masked:  # 0 / 255; reduced, valid where the nearest full-resolution pixel is
+                valid = ds.dataset_mask(window=win, out_shape=shape) if factor > 1 else ds.dataset_mask(window=win)
         except GDAL_ERRORS as e:
             raise RasterIOError(f"Could not read image '{src}': {gdal_reason(e)}") from e
+        if narrowing:
+            n_out = int(np.count_nonzero((data > top) | (data < 0))) if data.dtype.kind == "f" else \
+                int(np.count_nonzero(data > top))
+            clipped.add(n_out, data.size)
         timer.add("read", time.perf_counter() - t)
         t = time.perf_counter()
         arr = wp.array(data, dtype=_WP_TYPES[data.dtype.name], device=device)
@@ -547,6 +583,7 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
         sw.masked = int(masked)
         sw.valid = wp.array(valid if masked else np.ones((1, 1), np.uint8), dtype=wp.uint8, device=device)
         sw.col0, sw.row0 = wc0, wr0
+        sw.inv_sx, sw.inv_sy = shape[1] / (wc1 - wc0), shape[0] / (wr1 - wr0)  # window pixels per image pixel
         timer.add("h2d", time.perf_counter() - t)
         return sw, arr
 
@@ -622,19 +659,33 @@ def _height_range(dem, blocks, uv):
     return float(np.nanmin(wlo)), float(np.nanmax(whi))
 
 
-def _node_window(nodes, radius, width, height, margin=2):
+def _decimation(pixels, step=COARSE_STEP):
+    """Reduction factor of a tile's source reads: the whole number of source pixels per output
+    pixel (at least 1) along the coarse grid's rows and columns, from its nodes' source pixels
+    ``pixels`` (rows, cols, 2) every ``step`` output pixels; the smaller of the two, so that the
+    reduced source is never coarser than the output."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows or columns
+        d = [np.nanmin(np.hypot(*np.diff(pixels, axis=ax).reshape(-1, 2).T)) if pixels.shape[ax] > 1 else np.nan
+             for ax in (0, 1)]
+    ratio = np.nanmin(d) / step if np.isfinite(d).any() else 1.0
+    return max(int(np.floor(ratio)), 1)
+
+
+def _node_window(nodes, radius, width, height, margin=2, factor=1):
     """The source window (col0, row0, col1, row1) a tile needs, from its coarse nodes' source
     pixels at its lowest and highest DEM heights (``nodes`` (2, rows, cols, 2)): their
     bounding box grown by the resampling ``radius`` + 1 and ``margin`` pixels (the
     projection's curvature within a cell is far below a pixel), and by one cell's extent
     where some nodes have no pixel (a tile pixel near them may still have one), clipped to
-    the image; None where that is empty."""
+    the image; None where that is empty. Read reduced by ``factor``, the resampling's reach
+    and the margin are in reduced pixels."""
     pix = nodes.reshape(-1, 2)
     ok = np.isfinite(pix).all(axis=1)
     if not ok.any():
         return None
     lo, hi = pix[ok].min(axis=0), pix[ok].max(axis=0)
-    grow = radius + 1 + margin
+    grow = (radius + 1 + margin) * factor
     if not ok.all():
         steps = [np.hypot(*np.diff(nodes, axis=ax).reshape(-1, 2).T) for ax in (1, 2)]
         steps = np.concatenate(steps)
@@ -712,6 +763,7 @@ def _forward_coords(geom, transform, out_crs, frame_crs, device, timer, radius, 
     # output pixels per source pixel, for rejecting quads that span occlusions
     scale = float(np.median(np.hypot(*np.diff(node_out.reshape(-1, 2), axis=0).T))) / step if len(node_out) > 1 else 1.0
     max_edge = 4.0 * max(scale, 1.0)
+    factor = max(int(np.floor(1.0 / scale)), 1) if scale > 0 else 1  # reduced reads: see _decimation
 
     def coords_for(r0, c0, th, tw):
         t = time.perf_counter()
@@ -746,8 +798,9 @@ def _forward_coords(geom, transform, out_crs, frame_crs, device, timer, radius, 
                   inputs=[nodes, wc0, wr0, max_edge, coords])
         timer.add("kernel", time.perf_counter() - t)
         # the resampling window must hold the kernel's support around every coordinate
-        return coords, (max(wc0 - radius - 1, 0), max(wr0 - radius - 1, 0), min(wc1 + radius + 1, w_img),
-                        min(wr1 + radius + 1, h_img))
+        reach = (radius + 1) * factor
+        return coords, (max(wc0 - reach, 0), max(wr0 - reach, 0), min(wc1 + reach, w_img), min(wr1 + reach, h_img),
+                        factor)
 
     return coords_for
 

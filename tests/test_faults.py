@@ -214,3 +214,15 @@ def test_corrupt_source_names_the_file_and_the_reason(tmp_path, damage):
     reason = {"empty": "not recognized", "header": "TIFFReadDirectory", "truncated": "TIFFRead"}[damage]
     assert reason in line, line
     assert _temporaries(tmp_path / "out") == [] and not (tmp_path / "out" / "img_ORTHO.tif").exists()
+
+
+def test_narrowing_dtype_warns_in_one_line(tmp_path):
+    args = _frame_job(tmp_path)
+    with rasterio.open(tmp_path / "img.tif", "w", driver="GTiff", width=64, height=48, count=1,
+                       dtype="uint16") as dst:
+        dst.write(np.full((1, 48, 64), 1000, np.uint16))
+    res = CliRunner().invoke(main, ["-q", "ortho", *args, "--dtype", "uint8", "--out-dir", str(tmp_path / "o")])
+    assert res.exit_code == 0, res.output
+    lines = res.output.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("Warning: Image '") and "100.000% of the uint16 source values" \
+        in lines[0] and "uint8 range [0, 255]" in lines[0], res.output

@@ -228,7 +228,7 @@ def describe(m):
 
 
 def assert_no_leftovers(folder, name):
-    left = [f for f in os.listdir(folder) if f.startswith(name) or f.startswith(".tmp-")]
+    left = [f for f in os.listdir(folder) if f.startswith(name) or ".orthowarp-tmp-" in f]
     assert not left, f"left behind: {left}"
 
 
@@ -724,7 +724,7 @@ def test_small_setup_works(tmp_path):
     cam, pose, dem, src = small_setup(tmp_path)
     res = orthorectify(src, cam, pose, tmp_path / "out.tif", dem=dem, device="cpu")
     assert os.path.exists(res.path)
-    assert not [f for f in os.listdir(tmp_path) if f.startswith(".tmp-")]
+    assert not [f for f in os.listdir(tmp_path) if ".orthowarp-tmp-" in f]
 
 
 def test_missing_source(tmp_path):
@@ -754,7 +754,7 @@ def test_truncated_source(tmp_path):
         orthorectify(tmp_path / "trunc.tif", sc.camera, sc.pose, tmp_path / "out.tif", dem=sc.dem,
                      refraction=False, device="cpu")
     assert_no_leftovers(tmp_path, "out.tif")
-    assert "trunc.tif" in str(info.value) and ".tmp-" not in str(info.value), str(info.value)
+    assert "trunc.tif" in str(info.value) and ".orthowarp-tmp-" not in str(info.value), str(info.value)
 
 
 def test_image_size_mismatch(tmp_path):
@@ -772,7 +772,7 @@ def test_existing_output_needs_overwrite(tmp_path):
     with pytest.raises(RasterIOError, match="out.tif"):
         orthorectify(src, cam, pose, dst, dem=dem, device="cpu")
     assert dst.read_bytes() == b"precious"
-    assert not [f for f in os.listdir(tmp_path) if f.startswith(".tmp-")]
+    assert not [f for f in os.listdir(tmp_path) if ".orthowarp-tmp-" in f]
     orthorectify(src, cam, pose, dst, dem=dem, device="cpu", overwrite=True)
     with rasterio.open(dst) as ds:
         assert ds.width > 0
@@ -824,3 +824,89 @@ def test_camera_seeing_the_horizon(tmp_path):
     with pytest.raises(GeometryError, match="horizon"):
         orthorectify(src, cam, pose, tmp_path / "out.tif", dem=dem, device="cpu")
     assert_no_leftovers(tmp_path, "out.tif")
+
+
+def _checkerboard_job(tmp_path, size=(1600, 1200)):
+    """A nadir frame over flat ground (GSD 0.12 m) whose source is a one-pixel 0/200
+    checkerboard: any output coarser than the source aliases it unless it is area-averaged."""
+    cam = ow.FrameCamera(focal_length=50.0, pixel_size=0.01, image_size=size)
+    pose = ow.Pose.from_opk(OPK_X, OPK_Y, 700.0, 0.0, 0.0, 0.0, crs=UTM32)
+    jj, ii = np.meshgrid(np.arange(size[0]), np.arange(size[1]))
+    src = write_image(tmp_path / "checker.tif", ((ii + jj) % 2) * 200, "uint8")
+    return cam, pose, src
+
+
+@pytest.mark.parametrize("method", ["backward", "forward"])
+@pytest.mark.parametrize("resampling", ["nearest", "bilinear", "lanczos"])
+def test_coarse_output_reads_reduced_and_area_averaged(tmp_path, monkeypatch, method, resampling):
+    cam, pose, src = _checkerboard_job(tmp_path)
+    reads = []
+    real_read = rasterio.io.DatasetReader.read
+
+    def read(self, *args, **kwargs):
+        out = real_read(self, *args, **kwargs)
+        reads.append(out.nbytes)
+        return out
+
+    monkeypatch.setattr(rasterio.io.DatasetReader, "read", read)
+    res = orthorectify(src, cam, pose, tmp_path / "coarse.tif", dem=100.0, resolution=1.2, refraction=False,
+                       method=method, resampling=resampling, device="cpu")
+    monkeypatch.undo()
+    data, valid, _ = read_ortho(res.path)
+    assert abs(res.shape[0] - 120) <= 2 and abs(res.shape[1] - 160) <= 2  # 192 m x 144 m at 1.2 m
+    inner = valid & np.roll(valid, 2, 0) & np.roll(valid, -2, 0) & np.roll(valid, 2, 1) & np.roll(valid, -2, 1)
+    assert inner.mean() > 0.8
+    # the checkerboard's mean, 100, everywhere: 10 x 10 source pixels per output pixel,
+    # averaged (without it, the output is all 0 or all 200 or a moire of them)
+    np.testing.assert_allclose(data[inner], 100.0, atol=3.0)
+    # the one 512 x 512 output tile covers the whole 1600 x 1200 image (1.9 MB at full
+    # resolution): read reduced 10 x, about 20 kB (plus the resampling's margin)
+    assert reads and max(reads) < 40_000, reads
+
+
+def test_coarse_output_of_a_float_source_matches_block_means(tmp_path):
+    """Area averaging is the mean of the source pixels under an output pixel: a smooth ramp
+    plus the checkerboard, at 8 source pixels per output pixel."""
+    cam = ow.FrameCamera(focal_length=50.0, pixel_size=0.01, image_size=(800, 640))
+    pose = ow.Pose.from_opk(OPK_X, OPK_Y, 700.0, 0.0, 0.0, 0.0, crs=UTM32)
+    jj, ii = np.meshgrid(np.arange(800), np.arange(640))
+    image = 0.25 * jj + ((ii + jj) % 2) * 40.0
+    src = write_image(tmp_path / "ramp.tif", image, "float32")
+    res = orthorectify(src, cam, pose, tmp_path / "o.tif", dem=100.0, resolution=0.96, refraction=False,
+                       resampling="bilinear", device="cpu", tile_size=32)
+    data, valid, _ = read_ortho(res.path)
+    inner = valid & np.roll(valid, 2, 0) & np.roll(valid, -2, 0) & np.roll(valid, 2, 1) & np.roll(valid, -2, 1)
+    # the truth at an output pixel centre: the ramp there plus the checkerboard's mean; the
+    # source column of an output pixel comes from projecting its centre (nadir, kappa 0:
+    # x = east, source col = (x - X0) / GSD + width / 2)
+    x, _ = res.transform @ (np.arange(res.shape[1]) + 0.5, np.zeros(res.shape[1]))
+    col = (np.asarray(x) - OPK_X) / 0.12 + 400.0
+    expected = np.broadcast_to(0.25 * (col - 0.5) + 20.0, res.shape)
+    np.testing.assert_allclose(data[inner], expected[inner], atol=0.8)
+
+
+@pytest.mark.parametrize("src_dtype,dtype,values,clipped", [
+    ("uint16", "uint8", [10, 300], 0.5), ("float32", "uint8", [-5.0, 100.0], 0.5),
+    ("float32", "uint16", [1.0, 70000.0], 0.5), ("uint16", "uint8", [10, 250], 0.0),
+    ("uint8", "uint8", [10, 250], 0.0)])
+def test_narrowing_dtype_warns_with_the_clipped_fraction(tmp_path, src_dtype, dtype, values, clipped):
+    cam = ow.FrameCamera(focal_length=50.0, pixel_size=0.01, image_size=(64, 48))
+    pose = ow.Pose.from_opk(OPK_X, OPK_Y, 700.0, 0.0, 0.0, 0.0, crs=UTM32)
+    jj, _ = np.meshgrid(np.arange(64), np.arange(48))
+    src = write_image(tmp_path / "s.tif", np.where(jj < 32, values[0], values[1]), src_dtype)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        res = orthorectify(src, cam, pose, tmp_path / "o.tif", dem=100.0, refraction=False, dtype=dtype,
+                           resampling="nearest", device="cpu")
+    ours = [w for w in caught if issubclass(w.category, ow.errors.OrthowarpWarning)]
+    if not clipped:
+        assert ours == []
+        return
+    assert len(ours) == 1
+    msg = str(ours[0].message)
+    assert "s.tif" in msg and f"outside the {dtype} range [0, {np.iinfo(dtype).max}]" in msg and "o.tif" in msg
+    frac = float(msg.split("%")[0].split(": ")[-1]) / 100
+    assert abs(frac - clipped) < 0.08, msg  # source windows overlap a little at tile edges
+    data, valid, _ = read_ortho(res.path)
+    top = np.iinfo(dtype).max
+    assert data[valid].min() == np.clip(values[0], 0, top) and data[valid].max() == np.clip(values[1], 0, top)
