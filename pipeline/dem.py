@@ -6,6 +6,7 @@ for (:meth:`Dem.crop`, :meth:`Dem.sample`), or whole when :attr:`Dem.array` is a
 read checks the size it would allocate against :func:`memory_budget` first.
 """
 
+import contextlib
 import logging
 import math
 import os
@@ -79,6 +80,26 @@ def memory_budget():
     except (AttributeError, ValueError, OSError):
         phys = 16 << 30
     return max(int(phys) // MEMORY_SHARE, 1 << 20)
+
+
+class _Collect(logging.Handler):
+    def __init__(self):
+        super().__init__(logging.WARNING)
+        self.messages = []
+
+    def emit(self, record):
+        self.messages.append(record.getMessage())
+
+
+@contextlib.contextmanager
+def _gdal_warnings():
+    """The warnings GDAL reports (through rasterio's logger) within the block, as a list."""
+    handler, logger = _Collect(), logging.getLogger("rasterio._env")
+    logger.addHandler(handler)
+    try:
+        yield handler.messages
+    finally:
+        logger.removeHandler(handler)
 
 
 def _gib(nbytes):
@@ -248,6 +269,21 @@ class Dem:
         return dem
 
     @classmethod
+    def without_heights(cls, bounds, crs, hmin, hmax):
+        """A DEM with no heights (2 x 2 cells without data) over ``bounds`` (xmin, ymin, xmax,
+        ymax) in ``crs``, nominally from ``hmin`` to ``hmax`` m: rays meet no ground on it.
+        What the geometry classes use where a DEM file has no heights under a footprint."""
+        xmin, ymin, xmax, ymax = (float(v) for v in bounds)
+        dem = cls.__new__(cls)
+        dem._array = np.full((2, 2), np.nan, np.float32)
+        dem._file = dem._grid = None
+        dem.transform = Affine(max(xmax - xmin, 1e-9) / 2, 0.0, xmin, 0.0, -max(ymax - ymin, 1e-9) / 2, ymax)
+        dem.crs = as_crs(crs, "DEM crs")
+        dem.source = dem.value = None
+        dem._hmin, dem._hmax = finite("hmin", hmin), finite("hmax", hmax)
+        return dem
+
+    @classmethod
     def from_file(cls, path, *, band=1):
         """Open a DEM band of a raster file (GeoTIFF or anything GDAL reads), lazily.
 
@@ -274,8 +310,11 @@ class Dem:
         if not os.path.exists(path):
             raise RasterIOError(f"DEM file '{path}' does not exist")
         try:
-            with rasterio.open(path) as src:
+            with _gdal_warnings() as gdal_says, rasterio.open(path) as src:
                 if src.crs is None:
+                    damage = [m for m in gdal_says if "error" in m.lower()]
+                    if damage:  # a damaged file whose georeferencing tags could not be read
+                        raise RasterIOError(f"Could not read DEM file '{path}': {damage[0]}")
                     raise CrsError(f"DEM file '{path}' has no coordinate reference system")
                 if band < 1 or band > src.count:
                     raise ParamError(f"DEM file '{path}' has no band {band}")
@@ -563,9 +602,13 @@ class _DemFile:
         self.width, self.height = src.width, src.height
         self.transform = src.transform
         self.crs = as_crs(src.crs.to_wkt(), f"DEM file '{path}' crs")
-        self.dtype = np.dtype(src.dtypes[band - 1])
-        if self.dtype.kind not in "iuf":
-            raise ParamError(f"DEM file '{path}': band {band} holds {self.dtype} values, not real numbers")
+        name = src.dtypes[band - 1]
+        try:
+            self.dtype = np.dtype(name)
+        except TypeError:  # GDAL types NumPy lacks (complex_int16)
+            self.dtype = None
+        if self.dtype is None or self.dtype.kind not in "iuf":
+            raise ParamError(f"DEM file '{path}': band {band} holds {name} values, not real numbers")
         self.nodata = src.nodatavals[band - 1]
         flags = src.mask_flag_enums[band - 1]
         self.masked = MaskFlags.per_dataset in flags or MaskFlags.alpha in flags

@@ -20,7 +20,7 @@ from ..kernels import pushbroom as pb_kernels
 from ..pose import GEOCENTRIC, Pose
 from ..pushbroom import PushbroomScene
 from ..refraction import RefractionModel
-from .dem import Dem, _horizontal
+from .dem import Dem, _horizontal, memory_budget
 from .vertical import reconcile_dem
 
 __all__ = ["geolocate", "project", "FrameGeometry", "PushbroomGeometry"]
@@ -97,9 +97,11 @@ def _prepared_dem(dem, prepare, probe, region, frame_crs, height_range=None):
     than all of it (a ridge between an oblique sensor and its footprint) is not seen: give a
     ``height_range`` up to that height, or load the DEM whole (``dem.array``) first.
 
-    The whole DEM is read (and must fit :func:`orthowarp.pipeline.dem.memory_budget`) where
-    the footprint is unbounded (border rays see no ground) or the window has no heights, as
-    for a DEM in memory.
+    Where the footprint is unbounded (border rays see no ground) the whole DEM is read, as
+    for a DEM in memory, and must fit :func:`orthowarp.pipeline.dem.memory_budget`
+    (:class:`ParamError` saying why it is needed whole otherwise). Where the window has no
+    heights the whole DEM is read if it fits (as before), else the DEM is taken as having no
+    ground under the footprint (rays give NaN, an ortho says the DEM does not cover it).
     """
     if dem.is_constant or dem.loaded:
         return prepare(dem)
@@ -130,7 +132,13 @@ def _prepared_dem(dem, prepare, probe, region, frame_crs, height_range=None):
             return last[1]  # the same window: its heights lie within [lo, hi] now
         sub = dem.crop(*bounds, margin=4) if win is not None else None
         if sub is None:
-            return whole(f"it has no heights under the image footprint at heights {lo:.6g} to {hi:.6g} m")
+            rows, cols = dem.shape
+            if 4 * rows * cols <= memory_budget():
+                return whole("it has no heights under the image footprint")
+            empty = Dem.without_heights((feet[:, 0].min(), feet[:, 1].min(), feet[:, 0].max(), feet[:, 1].max()),
+                                        _horizontal(as_crs(frame_crs)), lo, hi)
+            empty.source = dem.source
+            return empty
         ready = prepare(sub)
         if lo <= ready.hmin and ready.hmax <= hi:
             return ready

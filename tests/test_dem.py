@@ -424,3 +424,142 @@ def test_memory_budget_setting(tmp_path, monkeypatch):
             memory_budget()
     monkeypatch.setenv(MEMORY_ENV, "2.5G")
     assert memory_budget() == int(2.5 * 2**30)
+
+
+def test_huge_sparse_dem_without_heights_under_the_footprint(tmp_path):
+    """Over an empty part of the huge DEM, as over a DEM in memory that does not cover the
+    footprint: geolocate() gives NaN rows, an ortho a GeometryError; nothing is read whole."""
+    path, _ = huge_sparse_dem(tmp_path / "huge.tif")
+    dem = ow.Dem.from_file(path)
+    cam = ow.FrameCamera(100.0, 0.06, (64, 48))
+    pose = ow.Pose.from_opk(OPK_X + 20000.0, OPK_Y - 7000.0, 1400.0, 0.0, 0.0, 0.0, crs=UTM32)
+    got = ow.geolocate(cam, pose, [[0.5, 0.5], [32.0, 24.0], [63.5, 47.5]], dem=dem, crs=UTM32, device="cpu")
+    assert got.shape == (3, 3) and np.all(np.isnan(got))
+    src = tmp_path / "src.tif"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+        with rasterio.open(src, "w", driver="GTiff", width=64, height=48, count=1, dtype="uint8") as dst:
+            dst.write(np.ones((48, 64), np.uint8), 1)
+    with pytest.raises(ow.GeometryError, match=r"huge\.tif.*does not cover"):
+        orthorectify(src, cam, pose, tmp_path / "out.tif", dem=dem, device="cpu")
+    assert not dem.loaded
+
+
+@pytest.mark.parametrize("dtype", ["complex64", "complex_int16"])
+def test_dem_band_of_complex_numbers_is_an_error(dtype, tmp_path):
+    path = tmp_path / "complex.tif"
+    with rasterio.open(path, "w", driver="GTiff", width=4, height=4, count=1, dtype=dtype, crs=UTM32,
+                       transform=T_SMALL) as dst:
+        dst.write(np.ones((4, 4), dtype="complex64"), 1)
+    with pytest.raises(ParamError, match=r"complex\.tif.*not real numbers"):
+        ow.Dem.from_file(path)
+
+
+# -- a hostile user's DEM files: each gives the metre heights or a clean, named error ---------
+def _campaign():
+    """(id, writer(tmp_path) -> path, expected): expected is the heights (m) the file must give,
+    or (error class, text the message must hold besides the file name)."""
+    z = relief().astype(np.float64)
+    m32 = relief()
+    us, ft = z / US_FOOT, z / 0.3048
+    ok = []
+    for unit in ("", "m", "metre", "metres", "meter", "Meters", " METRE "):
+        ok.append((f"unit {unit!r}", dict(z=m32, unit=unit or None), m32))
+    for unit in ("ft", "foot", "feet", "international foot", "Foot"):
+        ok.append((f"unit {unit!r}", dict(z=ft, unit=unit), m32))
+    for unit in ("US survey foot", "us-ft", "ftUS", "US survey feet", "survey foot"):
+        ok.append((f"unit {unit!r}", dict(z=us, unit=unit), m32))
+    ok += [
+        ("unit cm", dict(z=z * 100, unit="cm"), m32),
+        ("int32 mm", dict(z=np.rint(z * 1000), dtype="int32", unit="mm"), np.rint(z * 1000) / 1000),
+        ("float64", dict(z=z, dtype="float64"), m32),
+        ("int16 scale 0.1 offset -100", dict(z=np.rint((z + 100) / 0.1), dtype="int16", scale=0.1, offset=-100.0),
+         np.rint((z + 100) / 0.1) * 0.1 - 100),
+        ("uint16 cm by scale, nodata 65535", dict(z=np.rint(z / 0.01), dtype="uint16", scale=0.01, nodata=65535),
+         np.rint(z / 0.01) * 0.01),
+        ("int16 negative scale", dict(z=np.rint(-z / 0.1), dtype="int16", scale=-0.1), np.rint(-z / 0.1) * -0.1),
+        ("int16 scale 0.5 in ft", dict(z=np.rint(ft / 0.5), dtype="int16", scale=0.5, unit="ft"),
+         np.rint(ft / 0.5) * 0.5 * 0.3048),
+        ("compound ftUS", dict(z=us, crs="EPSG:32632+6360"), m32),
+        ("compound ft", dict(z=ft, crs="EPSG:32632+8228"), m32),
+        ("compound metre", dict(z=m32, crs="EPSG:32632+5773"), m32),
+        ("compound ftUS + unit US survey foot", dict(z=us, crs="EPSG:32632+6360", unit="US survey foot"), m32),
+        ("compound ftUS + unit ft (2 ppm)", dict(z=us, crs="EPSG:32632+6360", unit="ft"), m32),
+        ("compound metre + unit metre", dict(z=m32, crs="EPSG:32632+5773", unit="metre"), m32),
+        ("3-D geographic CRS", dict(z=m32, crs="EPSG:4979", transform=Affine(1e-4, 0, 8.0, 0, -1e-4, 47.0)), m32),
+        ("geographic + unit ft", dict(z=ft, crs="EPSG:4326", unit="ft", transform=Affine(1e-4, 0, 8, 0, -1e-4, 47)),
+         m32),
+        ("float nodata NaN", dict(z=m32, nodata=float("nan")), m32),
+        ("float nodata -3.4e38", dict(z=m32, nodata=-3.4028234663852886e38), m32),
+        ("uint8 offset 400, nodata 255", dict(z=np.clip(np.rint(z - 400), 0, 254), dtype="uint8", offset=400.0,
+                                              nodata=255), np.clip(np.rint(z - 400), 0, 254) + 400),
+    ]
+    bad_units = ["furlong", "degree", "banana", "m/s", "10 m", "°C", "pixel", "dB", "metre²", "ft^2", "1"]
+    errors = [(f"unit {u!r}", dict(z=m32, unit=u), (ParamError, repr(u))) for u in bad_units]
+    errors += [
+        ("compound ftUS + unit metre", dict(z=us, crs="EPSG:32632+6360", unit="metre"), (ParamError, "disagrees")),
+        ("compound metre + unit ft", dict(z=m32, crs="EPSG:32632+5773", unit="ft"), (ParamError, "disagrees")),
+        ("compound ft + unit US survey mile", dict(z=ft, crs="EPSG:32632+8228", unit="US survey mile"),
+         (ParamError, "disagrees")),
+        ("scale 0", dict(z=m32, scale=0.0), (ParamError, "scale")),
+        ("scale NaN", dict(z=m32, scale=float("nan")), (ParamError, "scale")),
+        ("scale inf", dict(z=m32, scale=float("inf")), (ParamError, "scale")),
+        ("offset NaN", dict(z=m32, offset=float("nan")), (ParamError, "offset")),
+        ("offset -inf", dict(z=m32, offset=float("-inf")), (ParamError, "offset")),
+        ("no CRS", dict(z=m32, crs=None), (CrsError, "coordinate reference system")),
+        ("rotated", dict(z=m32, transform=Affine(2, 0.5, OPK_X, 0.5, -2, OPK_Y)), (ParamError, "rotation")),
+        ("all nodata", dict(z=np.full((4, 4), -9999.0), nodata=-9999.0), (ParamError, "no valid heights")),
+        ("all NaN", dict(z=np.full((4, 4), np.nan)), (ParamError, "no valid heights")),
+    ]
+    return ok, errors
+
+
+CAMPAIGN_OK, CAMPAIGN_ERRORS = _campaign()
+
+
+def _campaign_file(tmp_path, spec):
+    spec = dict(spec)
+    z = np.asarray(spec.pop("z"))
+    crs = spec.pop("crs", UTM32)
+    path = tmp_path / "campaign.tif"
+    if crs is None:
+        with rasterio.open(path, "w", driver="GTiff", width=z.shape[1], height=z.shape[0], count=1,
+                           dtype="float32", transform=T_SMALL) as dst:
+            dst.write(z.astype("float32"), 1)
+        return path
+    return write_dem(path, z, crs=crs, **spec)
+
+
+@pytest.mark.parametrize("case", CAMPAIGN_OK, ids=[c[0] for c in CAMPAIGN_OK])
+def test_campaign_dem_files_give_metre_heights(case, tmp_path):
+    _, spec, expected = case
+    dem = ow.Dem.from_file(_campaign_file(tmp_path, spec))
+    expected = np.asarray(expected, np.float64)
+    np.testing.assert_allclose(dem.array, expected, rtol=2e-7, atol=1e-4)
+    rows = np.arange(3, 97, 31)
+    xs, ys = dem.transform @ (rows + 0.5, rows[::-1] + 0.5)  # cell centres, by window reads
+    np.testing.assert_allclose(ow.Dem.from_file(dem.source).sample(xs, ys), expected[rows[::-1], rows],
+                               rtol=2e-7, atol=1e-4)
+
+
+@pytest.mark.parametrize("case", CAMPAIGN_ERRORS, ids=[c[0] for c in CAMPAIGN_ERRORS])
+def test_campaign_bad_dem_files_give_clean_errors(case, tmp_path):
+    _, spec, (cls, text) = case
+    path = _campaign_file(tmp_path, spec)
+    with pytest.raises(ow.OrthowarpError) as info:
+        ow.Dem.from_file(path).array  # noqa: B018 (some errors come at the first read)
+    assert isinstance(info.value, cls), repr(info.value)
+    msg = str(info.value)
+    assert "campaign.tif" in msg and text in msg and "\n" not in msg, msg
+
+
+@pytest.mark.parametrize("damage", ["zero bytes", "junk", "header only", "tiles cut"])
+def test_damaged_dem_files_give_raster_io_errors(damage, tmp_path):
+    good = write_dem(tmp_path / "good.tif", relief(), tiled=True, blockxsize=16, blockysize=16, compress="deflate")
+    data = good.read_bytes()
+    bad = tmp_path / "damaged.tif"
+    bad.write_bytes({"zero bytes": b"", "junk": b"II*\0garbage" * 10, "header only": data[:300],
+                     "tiles cut": data[:len(data) // 2]}[damage])
+    with pytest.raises(RasterIOError) as info:
+        ow.Dem.from_file(bad).array  # noqa: B018
+    assert "damaged.tif" in str(info.value)
