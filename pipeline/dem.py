@@ -7,6 +7,7 @@ read checks the size it would allocate against :func:`memory_budget` first.
 """
 
 import contextlib
+import functools
 import logging
 import math
 import os
@@ -117,14 +118,20 @@ def _check_fits(cells, what):
 def _unit_factor(unit):
     """Metres per ``unit`` (a name), or None when the name is not known."""
     key = " ".join(str(unit).strip().lower().split())
-    if key in _UNITS:
-        return _UNITS[key]
+    return _UNITS.get(key, _proj_units().get(key))
+
+
+@functools.lru_cache(maxsize=1)
+def _proj_units():
+    """PROJ's linear units, by lower-case name and short name, in metres."""
     from pyproj.database import get_units_map
 
+    out = {}
     for name, u in get_units_map(category="linear").items():
-        if key in (name.lower(), (u.proj_short_name or "").lower()):
-            return float(u.conv_factor)
-    return None
+        for key in (name.lower(), (u.proj_short_name or "").lower()):
+            if key:
+                out.setdefault(key, float(u.conv_factor))
+    return out
 
 
 def _crs_height_unit(crs):

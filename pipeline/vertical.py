@@ -58,6 +58,8 @@ def reconcile_dem(dem, pose, *, geoid=None, same_vertical_datum=False, name="DEM
     Parameters
     ----------
     dem : Dem
+        A DEM file not read whole is read whole here (the geometry classes pass the window
+        under a footprint instead).
     pose : Pose
     geoid : Dem or str, optional
         Geoid undulation grid N (m, or a file whose band unit / vertical CRS says otherwise),

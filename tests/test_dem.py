@@ -125,6 +125,7 @@ def test_block_bounds_bound_every_sample_near_the_block():
 # DEM semantics of files: band scale and offset, height units, lazy windowed reads, memory
 # ------------------------------------------------------------------------------------------
 import logging  # noqa: E402
+import math  # noqa: E402
 import os  # noqa: E402
 import resource  # noqa: E402
 import tracemalloc  # noqa: E402
@@ -563,3 +564,82 @@ def test_damaged_dem_files_give_raster_io_errors(damage, tmp_path):
     with pytest.raises(RasterIOError) as info:
         ow.Dem.from_file(bad).array  # noqa: B018
     assert "damaged.tif" in str(info.value)
+
+
+# -- property-based fuzzing: unit names and DEM files -----------------------------------------
+import functools  # noqa: E402
+
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+# examples per property: 300 unit names and 100 DEM files by default (about 3 s together);
+# ORTHOWARP_FUZZ_EXAMPLES=N runs N of each (e.g. 5000 for a long run)
+FUZZ_N = os.environ.get("ORTHOWARP_FUZZ_EXAMPLES")
+FUZZ_OPTS = dict(deadline=None, derandomize=True,
+                 suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+UNIT_POOL = {"": None, "m": 1.0, "metre": 1.0, "Meters": 1.0, "ft": 0.3048, "foot": 0.3048, "feet": 0.3048,
+             "US survey foot": US_FOOT, "us-ft": US_FOOT, "cm": 0.01, "mm": 0.001, "km": 1000.0,
+             "furlong": "bad", "degree": "bad", "m/s": "bad", "pixel": "bad", "μm²": "bad", "ft ft": "bad"}
+CRS_POOL = {"EPSG:32632": None, "EPSG:32632+5773": 1.0, "EPSG:32632+6360": US_FOOT, "EPSG:32632+8228": 0.3048,
+            "EPSG:2263": None}
+
+
+@functools.lru_cache(maxsize=None)
+def _crs(text):
+    return CRS.from_user_input(text)
+
+
+@settings(max_examples=int(FUZZ_N or 300), **FUZZ_OPTS)
+@given(text=st.text(max_size=40), crs=st.sampled_from(sorted(CRS_POOL)))
+def test_fuzz_unit_names_give_a_length_or_a_param_error(text, crs):
+    try:
+        factor = height_unit_factor(_crs(crs), text, name="DEM 'fuzz.tif'")
+    except ParamError as e:
+        assert "fuzz.tif" in str(e)
+        return
+    assert math.isfinite(factor) and factor > 0
+    if not text.strip():
+        assert factor == pytest.approx(CRS_POOL[crs] or 1.0, rel=1e-12)
+
+
+@settings(max_examples=int(FUZZ_N or 100), **FUZZ_OPTS)
+@given(dtype=st.sampled_from(["uint8", "int16", "uint16", "int32", "float32", "float64"]),
+       scale=st.one_of(st.none(), st.sampled_from([0.0, 0.001, 0.1, -0.5, 1.0, 2.5, float("nan"), float("inf")])),
+       offset=st.one_of(st.none(), st.sampled_from([0.0, -100.0, 1000.0, float("nan")])),
+       nodata=st.one_of(st.none(), st.sampled_from([0, 255, -9999, 65535, float("nan")])),
+       unit=st.sampled_from(sorted(UNIT_POOL)), crs=st.sampled_from(sorted(CRS_POOL)),
+       seed=st.integers(0, 2**16))
+def test_fuzz_dem_files_give_their_heights_or_a_clean_error(tmp_path, dtype, scale, offset, nodata, unit, crs, seed):
+    """Random small DEM files: the heights must be (raw * scale + offset) * metres-per-unit by
+    the documented rules, NaN exactly where raw == nodata, or a ParamError naming the file."""
+    info = np.iinfo(dtype) if dtype[0] in "ui" else None
+    if nodata is not None and info is not None and not (
+            isinstance(nodata, int) and info.min <= nodata <= info.max):
+        nodata = None  # rasterio refuses to write a nodata value the type cannot hold
+    rng = np.random.default_rng(seed)
+    lo, hi = (max(info.min, -2000), min(info.max, 5000)) if info else (-2000, 5000)
+    raw = rng.integers(lo, hi + 1, (12, 9)).astype(dtype)
+    if nodata is not None:
+        raw[rng.random(raw.shape) < 0.2] = np.array(nodata).astype(dtype)
+    path = tmp_path / f"fuzz_{seed}.tif"
+    path.unlink(missing_ok=True)
+    write_dem(path, raw, crs=crs, dtype=dtype, nodata=nodata, scale=scale, offset=offset, unit=unit or None)
+    with rasterio.open(path) as ds:  # what GDAL kept of them (it drops a NaN offset, for one)
+        s, o = ds.scales[0], ds.offsets[0]
+    band, declared = UNIT_POOL[unit], CRS_POOL[crs]
+    fails = (not (math.isfinite(s) and s != 0 and math.isfinite(o)) or band == "bad"
+             or (band is not None and declared is not None and abs(band - declared) > 1e-5 * declared)
+             or (nodata is not None and np.all(raw == np.array(nodata).astype(dtype))))
+    if nodata is not None and isinstance(nodata, float) and math.isnan(nodata):
+        fails = fails or bool(np.all(np.isnan(raw.astype(float))))
+    try:
+        got = ow.Dem.from_file(path).array
+    except ow.OrthowarpError as e:
+        assert fails and isinstance(e, ParamError) and path.name in str(e), repr(e)
+        return
+    assert not fails
+    factor = declared if declared is not None else (band or 1.0)
+    want = ((raw.astype(np.float64) * s + o) * factor).astype(np.float32)
+    if nodata is not None and not (isinstance(nodata, float) and math.isnan(nodata)):
+        want[raw == np.array(nodata).astype(dtype)] = np.nan
+    np.testing.assert_array_equal(got, want)
