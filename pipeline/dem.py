@@ -1,24 +1,213 @@
-"""Digital elevation models (:class:`Dem`): reading, reprojection, cropping, packing."""
+"""Digital elevation models (:class:`Dem`): reading, reprojection, cropping, packing.
 
+A DEM file is opened lazily (:meth:`Dem.from_file`): its size, georeferencing, band scale and
+offset, height unit and nodata are read at once, its heights only over the windows a job asks
+for (:meth:`Dem.crop`, :meth:`Dem.sample`), or whole when :attr:`Dem.array` is asked for. Every
+read checks the size it would allocate against :func:`memory_budget` first.
+"""
+
+import contextlib
+import functools
+import logging
 import math
 import os
+import re
 import warnings
 
 import numpy as np
 import rasterio
+import rasterio.errors
 import rasterio.warp
 import warp as wp
 from affine import Affine
+from rasterio.enums import MaskFlags
 from rasterio.errors import RasterioIOError
+from rasterio.windows import Window
 
 from .._validate import as_crs, finite
 from ..errors import CrsError, ParamError, RasterIOError
 from ..kernels.dem import DemData
 
-__all__ = ["Dem"]
+__all__ = ["Dem", "memory_budget", "height_unit_factor"]
+
+log = logging.getLogger(__name__)
 
 GEOGRAPHIC = "EPSG:4326"
 BLOCK = 8  # cells per block of the ray-marching bounds
+MEMORY_ENV = "ORTHOWARP_DEM_MEMORY"
+MEMORY_SHARE = 32  # default budget: this share of the physical memory for a float32 grid
+US_FOOT = 1200.0 / 3937.0
+
+# Height units by name (case-insensitive), in metres: GDAL's own names ("m", "metre", "ft",
+# "foot", "US survey foot"), their plurals and spellings, and PROJ's short names. Other names
+# are looked up in PROJ's database of linear units (EPSG names such as "Clarke's foot").
+_UNITS = {
+    **dict.fromkeys(["m", "metre", "metres", "meter", "meters", "metre(s)", "meter(s)"], 1.0),
+    **dict.fromkeys(["ft", "foot", "feet", "international foot", "international feet", "foot (international)",
+                     "ft (international)", "intl foot", "int'l foot", "ft-intl", "ft_intl"], 0.3048),
+    **dict.fromkeys(["us survey foot", "us survey feet", "us-ft", "us_ft", "usft", "ftus", "ft_us", "ft-us",
+                     "ft (us)", "ft (us survey)", "foot (us survey)", "foot_us", "us foot", "us feet",
+                     "survey foot", "survey feet", "us survey ft"], US_FOOT),
+    **dict.fromkeys(["dm", "decimetre", "decimetres", "decimeter", "decimeters"], 0.1),
+    **dict.fromkeys(["cm", "centimetre", "centimetres", "centimeter", "centimeters"], 0.01),
+    **dict.fromkeys(["mm", "millimetre", "millimetres", "millimeter", "millimeters"], 0.001),
+    **dict.fromkeys(["km", "kilometre", "kilometres", "kilometer", "kilometers"], 1000.0),
+}
+
+
+def memory_budget():
+    """Bytes a DEM grid may take in memory as float32 heights.
+
+    The environment variable ``ORTHOWARP_DEM_MEMORY`` sets it (bytes, or with a suffix K, M,
+    G or T: powers of 1024); by default it is a thirty-second of the machine's physical
+    memory (``os.sysconf``; 16 GiB assumed where that is unknown), since preparing a grid
+    for the kernels (reprojection, geoid conversion, float64 sampling, ray-marching bounds)
+    makes working copies of up to about that many times its float32 size.
+
+    Raises
+    ------
+    ParamError
+        ``ORTHOWARP_DEM_MEMORY`` is set but is no positive size.
+    """
+    text = os.environ.get(MEMORY_ENV, "").strip()
+    if text:
+        m = re.fullmatch(r"(\d+(?:\.\d*)?)\s*([kmgt]?)i?b?", text, re.IGNORECASE)
+        if not m or float(m.group(1)) <= 0:
+            raise ParamError(f"{MEMORY_ENV} must be a positive size in bytes (e.g. 2G), got {text!r}")
+        power = "kmgt".find(m.group(2).lower()) + 1 if m.group(2) else 0
+        return int(float(m.group(1)) * 1024 ** power)
+    try:
+        phys = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (AttributeError, ValueError, OSError):
+        phys = 16 << 30
+    return max(int(phys) // MEMORY_SHARE, 1 << 20)
+
+
+class _Collect(logging.Handler):
+    def __init__(self):
+        super().__init__(logging.WARNING)
+        self.messages = []
+
+    def emit(self, record):
+        self.messages.append(record.getMessage())
+
+
+@contextlib.contextmanager
+def _gdal_warnings():
+    """The warnings GDAL reports (through rasterio's logger) within the block, as a list."""
+    handler, logger = _Collect(), logging.getLogger("rasterio._env")
+    logger.addHandler(handler)
+    try:
+        yield handler.messages
+    finally:
+        logger.removeHandler(handler)
+
+
+def _gib(nbytes):
+    return f"{nbytes / 2**30:.3g} GiB"
+
+
+def _check_fits(cells, what):
+    """ParamError unless ``cells`` float32 heights fit the memory budget."""
+    need, budget = 4 * int(cells), memory_budget()
+    if need > budget:
+        raise ParamError(f"{what} needs {_gib(need)} as float32 heights, more than the DEM memory budget "
+                         f"of {_gib(budget)} (set {MEMORY_ENV} to change it)")
+
+
+def _unit_factor(unit):
+    """Metres per ``unit`` (a name), or None when the name is not known."""
+    key = " ".join(str(unit).strip().lower().split())
+    return _UNITS.get(key, _proj_units().get(key))
+
+
+@functools.lru_cache(maxsize=1)
+def _proj_units():
+    """PROJ's linear units, by lower-case name and short name, in metres."""
+    from pyproj.database import get_units_map
+
+    out = {}
+    for name, u in get_units_map(category="linear").items():
+        for key in (name.lower(), (u.proj_short_name or "").lower()):
+            if key:
+                out.setdefault(key, float(u.conv_factor))
+    return out
+
+
+def _crs_height_unit(crs):
+    """(metres per unit, unit name) of the height axis a CRS declares, or None for a 2-D CRS."""
+    if crs is None:
+        return None
+    if crs.is_compound:
+        vertical = [c for c in crs.sub_crs_list if c.is_vertical]
+        axes = vertical[0].axis_info if vertical else []
+    elif crs.is_vertical:
+        axes = crs.axis_info
+    elif len(crs.axis_info) == 3 and not crs.is_geocentric:
+        axes = crs.axis_info[2:]
+    else:
+        return None
+    if not axes or not axes[0].unit_conversion_factor:
+        return None
+    return float(axes[0].unit_conversion_factor), axes[0].unit_name
+
+
+def height_unit_factor(crs, band_unit, *, name="DEM"):
+    """Metres per height unit of a DEM band, from its CRS and its band unit.
+
+    Rules (GDAL's, made strict): the band's unit (GDAL's ``GetUnitType``: "m", "metre",
+    "ft", "foot", "US survey foot", and their usual spellings; see ``_UNITS``) is the
+    authority for heights; where it is empty, the height axis of the CRS (the vertical part
+    of a compound CRS, or the third axis of a 3-D CRS) gives the unit; where neither says
+    anything the heights are metres. A 2-D CRS declares nothing about heights, even one whose
+    horizontal unit is feet (as in PROJ, which passes heights through 2-D CRSs unchanged):
+    its heights are metres unless the band says otherwise, and the log warns about it. When
+    both the band and the CRS give a unit and they disagree by more than 10 ppm, the DEM is
+    refused; where they agree within that (a band unit "ft" on a CRS in US survey feet),
+    the CRS's exact factor is used.
+
+    Parameters
+    ----------
+    crs : pyproj.CRS or None
+    band_unit : str or None
+        The band's unit ("" or None: none).
+    name : str, optional
+        How to name the DEM in messages.
+
+    Returns
+    -------
+    float
+        Metres per unit of the stored heights (after scale and offset).
+
+    Raises
+    ------
+    ParamError
+        The band unit cannot be interpreted as a length, or it disagrees with the CRS's.
+    """
+    declared = _crs_height_unit(crs)
+    band = None
+    if band_unit is not None and str(band_unit).strip():
+        band = _unit_factor(band_unit)
+        if band is None or not (math.isfinite(band) and band > 0):
+            raise ParamError(f"{name}: cannot interpret the band's height unit {str(band_unit)!r} (use a length "
+                             "such as 'm', 'ft' or 'US survey foot', e.g. with gdal_edit.py -units)")
+    if band is not None and declared is not None:
+        factor, unit_name = declared
+        if abs(band - factor) > 1e-5 * factor:
+            raise ParamError(f"{name}: the band's height unit {str(band_unit)!r} ({band:.10g} m) disagrees with "
+                             f"the vertical unit of its CRS, {unit_name} ({factor:.10g} m): correct one of them")
+        return factor
+    if band is not None:
+        return band
+    if declared is not None:
+        return declared[0]
+    horizontal = crs.axis_info[0] if crs is not None and crs.axis_info else None
+    if (horizontal is not None and crs.is_projected and horizontal.unit_conversion_factor
+            and abs(horizontal.unit_conversion_factor - 1.0) > 1e-9):
+        log.warning("%s: its CRS is in %s horizontally and declares no height unit, nor does its band: "
+                    "heights taken as metres (declare them with a band unit or a compound CRS)", name,
+                    horizontal.unit_name)
+    return 1.0
 
 
 class Dem:
@@ -27,7 +216,9 @@ class Dem:
     Parameters
     ----------
     array : array_like, shape (rows, cols)
-        Heights (m). NaN (or ``nodata``) marks cells without data.
+        Heights (m, whatever unit the height axis of ``crs`` names: convert before, or read
+        the grid with :meth:`from_file`, which converts). NaN (or ``nodata``) marks cells
+        without data.
     transform : affine.Affine or sequence of 6 floats
         Pixel-corner affine transform (rasterio order a, b, c, d, e, f); no rotation.
     crs : str, int or pyproj.CRS
@@ -39,6 +230,10 @@ class Dem:
     -----
     Heights are taken as ellipsoidal (WGS84) in geocentric mode and as the z of map-Cartesian
     poses in map mode. Sampling is bilinear between cell centres.
+
+    A DEM from :meth:`from_file` is lazy: :attr:`array`, :attr:`hmin` and :attr:`hmax` read
+    the whole grid on first use (if it fits :func:`memory_budget`), while :meth:`crop`,
+    :meth:`sample` and the geometry classes read only the windows they need.
     """
 
     def __init__(self, array, transform, crs, *, nodata=None):
@@ -56,30 +251,56 @@ class Dem:
             raise ParamError(f"DEM transform must be an affine transform: {e}") from e
         if t.b != 0.0 or t.d != 0.0 or t.a == 0.0 or t.e == 0.0:
             raise ParamError(f"DEM transform must be north-up without rotation, got {tuple(t)[:6]}")
-        self.array = arr
+        self._array = arr
+        self._file = None
+        self._grid = None  # ((rows, cols), transform) of the file grid a window was read from
         self.transform = t
         self.crs = as_crs(crs, "DEM crs")
         self.source = None  # the file it was read from, for messages
         self.value = None
-        self.hmin = float(np.nanmin(arr))
-        self.hmax = float(np.nanmax(arr))
+        self._hmin = float(np.nanmin(arr))
+        self._hmax = float(np.nanmax(arr))
 
     @classmethod
     def constant(cls, height):
         """A DEM of constant height (m) everywhere."""
         h = finite("height", height)
         dem = cls.__new__(cls)
-        dem.array = np.full((1, 1), h, dtype=np.float32)
+        dem._array = np.full((1, 1), h, dtype=np.float32)
+        dem._file = dem._grid = None
         dem.transform = Affine.identity()
         dem.crs = None
         dem.source = None
         dem.value = h
-        dem.hmin = dem.hmax = h
+        dem._hmin = dem._hmax = h
+        return dem
+
+    @classmethod
+    def without_heights(cls, bounds, crs, hmin, hmax):
+        """A DEM with no heights (2 x 2 cells without data) over ``bounds`` (xmin, ymin, xmax,
+        ymax) in ``crs``, nominally from ``hmin`` to ``hmax`` m: rays meet no ground on it.
+        What the geometry classes use where a DEM file has no heights under a footprint."""
+        xmin, ymin, xmax, ymax = (float(v) for v in bounds)
+        dem = cls.__new__(cls)
+        dem._array = np.full((2, 2), np.nan, np.float32)
+        dem._file = dem._grid = None
+        dem.transform = Affine(max(xmax - xmin, 1e-9) / 2, 0.0, xmin, 0.0, -max(ymax - ymin, 1e-9) / 2, ymax)
+        dem.crs = as_crs(crs, "DEM crs")
+        dem.source = dem.value = None
+        dem._hmin, dem._hmax = finite("hmin", hmin), finite("hmax", hmax)
         return dem
 
     @classmethod
     def from_file(cls, path, *, band=1):
-        """Read a DEM band from a raster file (GeoTIFF or anything GDAL reads).
+        """Open a DEM band of a raster file (GeoTIFF or anything GDAL reads), lazily.
+
+        The file's size, georeferencing, CRS, nodata, band scale and offset and height unit
+        are read now; heights are read when needed, over the windows asked for (see the class
+        notes). Heights are ``raw * scale + offset`` (GDAL's band scale and offset; nodata is
+        compared with the raw values), converted to metres by the height unit that
+        :func:`height_unit_factor` finds (the band's unit first, else the height axis of a
+        compound or 3-D CRS; metres where neither declares one). Cells equal to nodata, not
+        finite, or masked by the file's per-dataset mask or alpha band have no height.
 
         Raises
         ------
@@ -87,26 +308,80 @@ class Dem:
             The file does not exist or cannot be read.
         CrsError
             The file has no CRS.
+        ParamError
+            No such band, a band that holds no real numbers, a non-finite or zero scale or
+            offset, a height unit that cannot be interpreted (or that contradicts the CRS),
+            or a transform with rotation.
         """
         path = os.fspath(path)
         if not os.path.exists(path):
             raise RasterIOError(f"DEM file '{path}' does not exist")
         try:
-            with rasterio.open(path) as src:
+            with _gdal_warnings() as gdal_says, rasterio.open(path) as src:
                 if src.crs is None:
+                    damage = [m for m in gdal_says if "error" in m.lower()]
+                    if damage:  # a damaged file whose georeferencing tags could not be read
+                        raise RasterIOError(f"Could not read DEM file '{path}': {damage[0]}")
                     raise CrsError(f"DEM file '{path}' has no coordinate reference system")
                 if band < 1 or band > src.count:
                     raise ParamError(f"DEM file '{path}' has no band {band}")
-                arr = src.read(band, out_dtype="float32")
-                nodata, transform, crs = src.nodata, src.transform, src.crs.to_wkt()
+                info = _DemFile(path, src, band)
         except RasterioIOError as e:
             raise RasterIOError(f"Could not read DEM file '{path}': {e}") from e
-        try:
-            dem = cls(arr, transform, crs, nodata=nodata)
-        except ParamError as e:
-            raise ParamError(f"DEM file '{path}': {e}") from e
+        t = info.transform
+        if t.b != 0.0 or t.d != 0.0 or t.a == 0.0 or t.e == 0.0:
+            raise ParamError(f"DEM file '{path}': DEM transform must be north-up without rotation, "
+                             f"got {tuple(t)[:6]}")
+        dem = cls.__new__(cls)
+        dem._array = None
+        dem._file = info
+        dem._grid = None
+        dem.transform = t
+        dem.crs = info.crs
         dem.source = path
+        dem.value = None
+        dem._hmin = dem._hmax = None
         return dem
+
+    # -- lazy state -----------------------------------------------------------------------------
+    @property
+    def loaded(self):
+        """True when the heights are in memory (always, but for a DEM file not read whole)."""
+        return self._array is not None
+
+    @property
+    def array(self):
+        """Heights (rows, cols) float32, NaN without data; a DEM file is read whole on first use.
+
+        Raises
+        ------
+        ParamError
+            The whole grid does not fit :func:`memory_budget` (checked before reading), or it
+            has no valid heights.
+        """
+        if self._array is None:
+            rows, cols = self.shape
+            _check_fits(rows * cols, f"Reading DEM file '{self.source}' whole ({cols} x {rows} cells)")
+            arr = self._file.read(0, rows, 0, cols)
+            if not np.any(np.isfinite(arr)):
+                raise ParamError(f"DEM file '{self.source}': DEM has no valid heights")
+            self._array = arr
+            self._hmin, self._hmax = float(np.nanmin(arr)), float(np.nanmax(arr))
+        return self._array
+
+    @property
+    def hmin(self):
+        """Lowest height (m); a DEM file is read whole on first use (see :attr:`array`)."""
+        if self._hmin is None:
+            self.array  # noqa: B018 (reads the file)
+        return self._hmin
+
+    @property
+    def hmax(self):
+        """Highest height (m); a DEM file is read whole on first use (see :attr:`array`)."""
+        if self._hmax is None:
+            self.array  # noqa: B018 (reads the file)
+        return self._hmax
 
     @property
     def is_constant(self):
@@ -114,22 +389,31 @@ class Dem:
 
     @property
     def shape(self):
-        return self.array.shape
+        if self._array is None:
+            return self._file.height, self._file.width
+        return self._array.shape
 
     def __repr__(self):
         if self.is_constant:
             return f"Dem.constant({self.value!r})"
+        if not self.loaded:
+            return f"Dem.from_file({self.source!r}, shape={self.shape}, crs={self.crs.to_string()!r})"
         return f"Dem(shape={self.shape}, crs={self.crs.to_string()!r}, heights=[{self.hmin:.1f}, {self.hmax:.1f}])"
 
     def sample(self, x, y):
         """Bilinear heights (m) at horizontal coordinates x, y of the DEM's CRS (host, float64).
 
         Same rule as the kernels: between cell centres, NaN outside the grid or next to
-        nodata. Returns an array of the broadcast shape of x and y.
+        nodata. Returns an array of the broadcast shape of x and y. A DEM file not read whole
+        is read over the window of the points (which must fit :func:`memory_budget`).
         """
         x, y = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
         if self.is_constant:
             return np.full(x.shape, self.value)
+        if not self.loaded:
+            ok = np.isfinite(x) & np.isfinite(y)
+            sub = self.crop(x[ok].min(), y[ok].min(), x[ok].max(), y[ok].max()) if np.any(ok) else None
+            return np.full(x.shape, np.nan) if sub is None else sub.sample(x, y)
         rows, cols = self.shape
         t = self.transform
         gx = (x - t.c) / t.a - 0.5
@@ -175,15 +459,23 @@ class Dem:
         """Bilinear reprojection onto a north-up grid in ``crs`` (pyproj/rasterio CRS)."""
         dst_crs = rasterio.crs.CRS.from_user_input(_horizontal(as_crs(crs)).to_wkt())
         src_crs = rasterio.crs.CRS.from_user_input(_horizontal(self.crs).to_wkt())
+        array = self.array  # a DEM file is read whole here (if it fits)
         rows, cols = self.shape
         bounds = rasterio.transform.array_bounds(rows, cols, self.transform)
         transform, width, height = rasterio.warp.calculate_default_transform(
             src_crs, dst_crs, cols, rows, *bounds)
+        if self._grid is not None:  # a window of a file: the cells of the whole file's reprojection
+            transform, width, height = _subgrid(src_crs, dst_crs, self._grid, bounds, transform) or (
+                transform, width, height)
+        _check_fits(width * height, f"Reprojecting {'DEM file ' + repr(self.source) if self.source else 'a DEM'} "
+                    f"to {width} x {height} cells")
         out = np.full((height, width), np.nan, dtype=np.float32)
-        rasterio.warp.reproject(self.array, out, src_transform=self.transform, src_crs=src_crs,
+        rasterio.warp.reproject(array, out, src_transform=self.transform, src_crs=src_crs,
                                 src_nodata=np.nan, dst_transform=transform, dst_crs=dst_crs,
                                 dst_nodata=np.nan, resampling=rasterio.warp.Resampling.bilinear)
-        return Dem(out, transform, crs)
+        dem = Dem(out, transform, crs)
+        dem.source = self.source
+        return dem
 
     def window(self, xmin, ymin, xmax, ymax, *, margin=2):
         """Cell index ranges (i0, i1, j0, j1) covering the given bounds plus ``margin`` cells,
@@ -200,17 +492,30 @@ class Dem:
         return i0, i1, j0, j1
 
     def crop(self, xmin, ymin, xmax, ymax, *, margin=2):
-        """The part of the grid covering the given bounds plus ``margin`` cells, or None if none."""
+        """The part of the grid covering the given bounds plus ``margin`` cells, or None if none
+        (or if it has no heights).
+
+        A DEM file not read whole is read over that window only; its size is checked against
+        :func:`memory_budget` before anything is read (:class:`ParamError` if it does not fit).
+        """
         if self.is_constant:
             return self
         win = self.window(xmin, ymin, xmax, ymax, margin=margin)
         if win is None:
             return None
         i0, i1, j0, j1 = win
-        sub = self.array[i0:i1, j0:j1]
+        if self.loaded:
+            sub = self.array[i0:i1, j0:j1]
+        else:
+            _check_fits((i1 - i0) * (j1 - j0), f"A window of {j1 - j0} x {i1 - i0} cells of DEM file '{self.source}'")
+            sub = self._file.read(i0, i1, j0, j1)
         if not np.any(np.isfinite(sub)):
             return None
-        return Dem(sub, self.transform @ Affine.translation(j0, i0), self.crs)
+        dem = Dem(sub, self.transform @ Affine.translation(j0, i0), self.crs)
+        dem.source = self.source
+        if not self.loaded:
+            dem._grid = self._grid or (self.shape, self.transform)
+        return dem
 
     def block_bounds(self, block=BLOCK):
         """Upper bounds of sampled heights per block of ``block`` x ``block`` cells (float32).
@@ -259,6 +564,32 @@ class Dem:
         return s
 
 
+def _subgrid(src_crs, dst_crs, grid, bounds, own):
+    """The part covering ``bounds`` (of a window, in ``src_crs``) of the grid that the
+    reprojection of the whole file grid ``grid`` = ((rows, cols), transform) would get, so that
+    a window's reprojection has that reprojection's cells; None where that grid is no good
+    here (its cells more than 25 % larger or smaller than the window's own, ``own``, as for
+    a file spanning a large part of the globe) or cannot be computed."""
+    (rows, cols), transform = grid
+    try:
+        whole, width, height = rasterio.warp.calculate_default_transform(
+            src_crs, dst_crs, cols, rows, *rasterio.transform.array_bounds(rows, cols, transform))
+        xmin, ymin, xmax, ymax = rasterio.warp.transform_bounds(src_crs, dst_crs, *bounds, densify_pts=21)
+    except (rasterio.errors.RasterioError, rasterio.errors.CRSError, ValueError):
+        return None
+    if not (0.8 < abs(whole.a / own.a) < 1.25 and 0.8 < abs(whole.e / own.e) < 1.25):
+        return None
+    inv = ~whole
+    cols_, rows_ = zip(*(inv @ (x, y) for x in (xmin, xmax) for y in (ymin, ymax)))
+    if not np.all(np.isfinite(cols_ + rows_)):
+        return None
+    c0, c1 = max(math.floor(min(cols_)), 0), min(math.ceil(max(cols_)), width)
+    r0, r1 = max(math.floor(min(rows_)), 0), min(math.ceil(max(rows_)), height)
+    if c1 <= c0 or r1 <= r0:
+        return None
+    return whole @ Affine.translation(c0, r0), c1 - c0, r1 - r0
+
+
 def _is_wgs84(crs):
     ell = crs.ellipsoid
     return ell is not None and abs(ell.semi_major_metre - 6378137.0) < 1e-3 and abs(ell.inverse_flattening - 298.257223563) < 1e-6
@@ -267,3 +598,66 @@ def _is_wgs84(crs):
 def _horizontal(crs):
     """The horizontal part of a (possibly compound) CRS."""
     return crs.sub_crs_list[0] if crs.is_compound else crs
+
+
+class _DemFile:
+    """What a lazy :class:`Dem` keeps of its file: path, band, size, georeferencing, nodata,
+    mask, scale, offset and metres per height unit; :meth:`read` reads a window."""
+
+    def __init__(self, path, src, band):
+        self.path, self.band = path, band
+        self.width, self.height = src.width, src.height
+        self.transform = src.transform
+        self.crs = as_crs(src.crs.to_wkt(), f"DEM file '{path}' crs")
+        name = src.dtypes[band - 1]
+        try:
+            self.dtype = np.dtype(name)
+        except TypeError:  # GDAL types NumPy lacks (complex_int16)
+            self.dtype = None
+        if self.dtype is None or self.dtype.kind not in "iuf":
+            raise ParamError(f"DEM file '{path}': band {band} holds {name} values, not real numbers")
+        self.nodata = src.nodatavals[band - 1]
+        flags = src.mask_flag_enums[band - 1]
+        self.masked = MaskFlags.per_dataset in flags or MaskFlags.alpha in flags
+        scale, offset = src.scales[band - 1], src.offsets[band - 1]
+        self.scale = 1.0 if scale is None else float(scale)
+        self.offset = 0.0 if offset is None else float(offset)
+        if not (math.isfinite(self.scale) and self.scale != 0.0 and math.isfinite(self.offset)):
+            raise ParamError(f"DEM file '{path}': band {band} has scale {scale} and offset {offset}; the scale "
+                             "must be finite and non-zero and the offset finite")
+        self.unit = src.units[band - 1] if src.units else None
+        self.factor = height_unit_factor(self.crs, self.unit, name=f"DEM file '{path}'")
+
+    def read(self, i0, i1, j0, j1):
+        """Heights (m, float32, NaN without data) of rows i0:i1, columns j0:j1."""
+        window = Window(j0, i0, j1 - j0, i1 - i0)
+        try:
+            with rasterio.open(self.path) as src:
+                raw = src.read(self.band, window=window)
+                valid = src.read_masks(self.band, window=window) != 0 if self.masked else None
+        except RasterioIOError as e:
+            raise RasterIOError(f"Could not read DEM file '{self.path}': {e}") from e
+        bad = _nodata_cells(raw, self.nodata)
+        if valid is not None:
+            bad = ~valid if bad is None else bad | ~valid
+        if self.scale == 1.0 and self.offset == 0.0 and self.factor == 1.0:
+            arr = raw.astype(np.float32)
+        else:  # in float64: scale, offset and unit applied once, rounded once
+            arr = ((raw.astype(np.float64) * self.scale + self.offset) * self.factor).astype(np.float32)
+        del raw
+        if bad is not None:
+            arr[bad] = np.nan
+        arr[~np.isfinite(arr)] = np.nan
+        return arr
+
+
+def _nodata_cells(raw, nodata):
+    """Boolean mask of the raw cells equal to ``nodata`` (None where there can be none)."""
+    if nodata is None:
+        return None
+    if raw.dtype.kind == "f":
+        return None if math.isnan(nodata) else raw == raw.dtype.type(nodata)  # non-finite cells go anyway
+    info = np.iinfo(raw.dtype)
+    if not (math.isfinite(nodata) and nodata == int(nodata) and info.min <= nodata <= info.max):
+        return None  # a nodata value the band cannot hold marks no cell
+    return raw == raw.dtype.type(int(nodata))

@@ -1,5 +1,7 @@
 """Point-wise geolocation (pixel -> ground) and projection (ground -> pixel) of frame images."""
 
+import copy
+import math
 import numbers
 import os
 from concurrent.futures import ThreadPoolExecutor
@@ -18,7 +20,7 @@ from ..kernels import pushbroom as pb_kernels
 from ..pose import GEOCENTRIC, Pose
 from ..pushbroom import PushbroomScene
 from ..refraction import RefractionModel
-from .dem import Dem
+from .dem import Dem, _horizontal, memory_budget
 from .vertical import reconcile_dem
 
 __all__ = ["geolocate", "project", "FrameGeometry", "PushbroomGeometry"]
@@ -67,6 +69,114 @@ def _crop_to_feet(dem, feet):
     return dem if cropped is None else cropped
 
 
+PROBE_HEIGHTS = (-1000.0, 9000.0)  # m: the refraction table of footprint probes covers Earth's terrain
+
+
+def _at_constant(base, h):
+    """A copy of a geometry over a constant DEM, over the constant height h (m) instead: its
+    refraction table (built once, over PROBE_HEIGHTS) shared, its device structs rebuilt."""
+    probe = copy.copy(base)
+    probe.dem, probe._structs = Dem.constant(h), None
+    return probe
+
+
+def _dem_name(dem):
+    return f"DEM '{dem.source}'" if dem.source else "DEM"
+
+
+def _prepared_dem(dem, prepare, probe, region, frame_crs, height_range=None):
+    """The DEM ready for a geometry: ``prepare(dem)`` (vertical datum reconciled, in the frame's
+    horizontal coordinates), for a DEM file not read whole over the window the job needs only.
+
+    That window is found by iteration: the ground footprint of the pixel region's border at
+    constant heights lo and hi (``probe(h)``: the sensor over a constant height h) bounds
+    every ray's ground point whose height lies in [lo, hi]; the window under it is read and
+    prepared, and [lo, hi] grown to its heights until they lie within [lo, hi]. It starts from
+    ``height_range`` when given, else from the height under the region's centre. The footprint
+    is then the one the whole DEM would give, except that terrain outside the window higher
+    than all of it (a ridge between an oblique sensor and its footprint) is not seen: give a
+    ``height_range`` up to that height, or load the DEM whole (``dem.array``) first.
+
+    Where the footprint is unbounded (border rays see no ground) the whole DEM is read, as
+    for a DEM in memory, and must fit :func:`orthowarp.pipeline.dem.memory_budget`
+    (:class:`ParamError` saying why it is needed whole otherwise). Where the window has no
+    heights the whole DEM is read if it fits (as before), else the DEM is taken as having no
+    ground under the footprint (rays give NaN, an ortho says the DEM does not cover it).
+    """
+    if dem.is_constant or dem.loaded:
+        return prepare(dem)
+    border = _region_border(region)
+    to_dem = Transformer.from_crs(_horizontal(frame_crs), _horizontal(dem.crs), always_xy=True)
+
+    def whole(why):
+        try:
+            dem.array  # noqa: B018 (reads the file, or says why it cannot)
+        except ParamError as e:
+            raise ParamError(f"{e}; the job needs the whole DEM because {why}") from e
+        return prepare(dem)
+
+    if height_range is not None:
+        lo, hi = sorted(float(h) for h in height_range)
+    else:
+        lo = hi = _centre_height(dem, probe, region, to_dem)
+    grown = height_range is not None  # else the first window's heights replace the guess
+    last = None  # (index window, prepared DEM) of the previous round
+    for _ in range(32):
+        feet = np.concatenate([probe(h).geolocate_frame(border) for h in sorted({lo, hi})])
+        if not np.all(np.isfinite(feet)):
+            return whole(f"part of the image border sees no ground at heights {lo:.6g} to {hi:.6g} m, so the "
+                         "footprint is unbounded")
+        bounds = _bounds_in(to_dem, feet[:, 0].min(), feet[:, 1].min(), feet[:, 0].max(), feet[:, 1].max())
+        win = dem.window(*bounds, margin=4) if np.all(np.isfinite(bounds)) else None
+        if last is not None and win == last[0]:
+            return last[1]  # the same window: its heights lie within [lo, hi] now
+        sub = dem.crop(*bounds, margin=4) if win is not None else None
+        if sub is None:
+            rows, cols = dem.shape
+            if 4 * rows * cols <= memory_budget():
+                return whole("it has no heights under the image footprint")
+            empty = Dem.without_heights((feet[:, 0].min(), feet[:, 1].min(), feet[:, 0].max(), feet[:, 1].max()),
+                                        _horizontal(as_crs(frame_crs)), lo, hi)
+            empty.source = dem.source
+            return empty
+        ready = prepare(sub)
+        if lo <= ready.hmin and ready.hmax <= hi:
+            return ready
+        last = win, ready
+        lo, hi = (min(lo, ready.hmin), max(hi, ready.hmax)) if grown else (ready.hmin, ready.hmax)
+        grown = True
+    return whole("the window under the image footprint did not settle")  # not seen: windows grow
+
+
+def _centre_height(dem, probe, region, to_dem):
+    """The DEM height under the centre of a pixel region (0 where it has none there)."""
+    centre = [[0.5 * (region[0] + region[2]), 0.5 * (region[1] + region[3])]]
+    h = 0.0
+    for _ in range(6):
+        foot = probe(h).geolocate_frame(centre)[0]
+        if not np.all(np.isfinite(foot)):
+            break
+        x, y = to_dem.transform(foot[0], foot[1])
+        z = float(dem.sample(x, y)) if np.isfinite(x) and np.isfinite(y) else math.nan
+        if not math.isfinite(z):
+            break
+        h, done = z, abs(z - h) < 0.5
+        if done:
+            break
+    return h
+
+
+def _bounds_in(tr, xmin, ymin, xmax, ymax, n=17):
+    """Bounds (xmin, ymin, xmax, ymax) in a transformer's target CRS of a rectangle, from
+    ``n`` points along each side."""
+    t = np.linspace(0.0, 1.0, n)
+    xs = np.concatenate([xmin + t * (xmax - xmin), np.full(n, xmax), xmax - t * (xmax - xmin), np.full(n, xmin)])
+    ys = np.concatenate([np.full(n, ymin), ymin + t * (ymax - ymin), np.full(n, ymax), ymax - t * (ymax - ymin)])
+    x, y = tr.transform(xs, ys)
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    return x.min(), y.min(), x.max(), y.max()
+
+
 def _transform(xyz, src, dst):
     """Transform (N, 3) points between CRSs (x/y as lon/lat order); identity when equal."""
     if src.equals(dst):
@@ -88,7 +198,9 @@ class FrameGeometry:
     camera : FrameCamera
     pose : Pose
     dem : Dem or float
-        Terrain: a DEM or a constant ellipsoidal height (m).
+        Terrain: a DEM or a constant ellipsoidal height (m). A DEM file not read whole
+        (:meth:`Dem.from_file`) is read over the region's footprint only (see
+        ``_prepared_dem``).
     refraction : bool, optional
         Model atmospheric refraction (layered standard atmosphere).
     device : str, optional
@@ -99,7 +211,8 @@ class FrameGeometry:
     tolerance : float, optional
         Height tolerance (m) of the relief search.
     height_range : (float, float), optional
-        Ground heights (m) the refraction table must cover; default: the DEM's range.
+        Ground heights (m) the refraction table must cover; default: the DEM's range. For a
+        DEM file not read whole, also the heights its window starts from.
     geoid : Dem or str, optional
         Geoid undulation grid, used when the DEM's and the positions' vertical datums differ
         (see :func:`orthowarp.pipeline.vertical.reconcile_dem`).
@@ -112,10 +225,13 @@ class FrameGeometry:
         _check_sensor(camera, pose)
         self.camera, self.pose = camera, pose
         self.device = resolve_device(device)
-        dem = reconcile_dem(_as_dem(dem), pose, geoid=geoid, same_vertical_datum=same_vertical_datum)
-        dem = dem.for_frame(None if pose.mode == GEOCENTRIC else pose.crs)
+        self._probe_base = None
         if region is None:
             region = (0.0, 0.0, float(camera.image_size[0]), float(camera.image_size[1]))
+        frame = None if pose.mode == GEOCENTRIC else pose.crs
+        dem = _prepared_dem(_as_dem(dem), lambda d: reconcile_dem(
+            d, pose, geoid=geoid, same_vertical_datum=same_vertical_datum, name=_dem_name(d)).for_frame(frame),
+            self._probe, region, self.horizontal_crs, height_range)
         self.dem = self._crop_to_footprint(dem, region) if not dem.is_constant else dem
         hmin, hmax = height_range if height_range is not None else (self.dem.hmin, self.dem.hmax)
         self.refraction = RefractionModel(pose.height, hmin, hmax, enabled=refraction)
@@ -160,14 +276,17 @@ class FrameGeometry:
                              self.search)
         return self._structs
 
+    def _probe(self, h):
+        """This sensor over a constant height h (m), with refraction, for footprints."""
+        if self._probe_base is None:
+            self._probe_base = FrameGeometry(self.camera, self.pose, Dem.constant(0.0), refraction=True,
+                                             device=self.device, height_range=PROBE_HEIGHTS)
+        return _at_constant(self._probe_base, h)
+
     def _crop_to_footprint(self, dem, region):
         """Crop the DEM to the ground footprint of a pixel region at the DEM's extreme heights."""
         border = _region_border(region)
-        feet = []
-        for h in (dem.hmin, dem.hmax):
-            probe = FrameGeometry(self.camera, self.pose, Dem.constant(h), refraction=True,
-                                  device=self.device)
-            feet.append(probe.geolocate_frame(border))
+        feet = [self._probe(h).geolocate_frame(border) for h in (dem.hmin, dem.hmax)]
         return _crop_to_feet(dem, np.concatenate(feet))
 
     def geolocate_frame(self, pixels):
@@ -249,6 +368,7 @@ class PushbroomGeometry:
     ----------
     scene : PushbroomScene
     dem : Dem or float
+        As :class:`FrameGeometry`.
     refraction : bool, optional
     device : str, optional
     region : (col0, row0, col1, row1), optional
@@ -257,6 +377,7 @@ class PushbroomGeometry:
     tolerance : float, optional
         Height tolerance (m) of the relief search.
     height_range : (float, float), optional
+        As :class:`FrameGeometry`.
     geoid, same_vertical_datum : optional
         As :class:`FrameGeometry`.
     """
@@ -267,12 +388,12 @@ class PushbroomGeometry:
             raise ParamError(f"scene must be a PushbroomScene, got {type(scene).__name__}")
         self.scene = scene
         self.device = resolve_device(device)
-        dem = _as_dem(dem)
-        if not dem.is_constant:
-            dem = reconcile_dem(dem, _GeocentricPositions(), geoid=geoid, same_vertical_datum=same_vertical_datum)
-        dem = dem.for_frame(None)
+        self._probe_base = None
         if region is None:
             region = (0.0, 0.0, float(scene.width), float(scene.height))
+        dem = _prepared_dem(_as_dem(dem), lambda d: (d if d.is_constant else reconcile_dem(
+            d, _GeocentricPositions(), geoid=geoid, same_vertical_datum=same_vertical_datum,
+            name=_dem_name(d))).for_frame(None), self._probe, region, self.horizontal_crs, height_range)
         self.dem = self._crop_to_footprint(dem, region) if not dem.is_constant else dem
         hmin, hmax = height_range if height_range is not None else (self.dem.hmin, self.dem.hmax)
         self.refraction = RefractionModel(scene.mean_height(), hmin, hmax, enabled=refraction)
@@ -304,11 +425,16 @@ class PushbroomGeometry:
                              self.dem.to_struct(self.device), self.search)
         return self._structs
 
+    def _probe(self, h):
+        """This scene over a constant height h (m), with refraction, for footprints."""
+        if self._probe_base is None:
+            self._probe_base = PushbroomGeometry(self.scene, Dem.constant(0.0), device=self.device,
+                                                 height_range=PROBE_HEIGHTS)
+        return _at_constant(self._probe_base, h)
+
     def _crop_to_footprint(self, dem, region):
         border = _region_border(region)
-        feet = np.concatenate([
-            PushbroomGeometry(self.scene, Dem.constant(h), device=self.device).geolocate_frame(border)
-            for h in (dem.hmin, dem.hmax)])
+        feet = np.concatenate([self._probe(h).geolocate_frame(border) for h in (dem.hmin, dem.hmax)])
         return _crop_to_feet(dem, feet)
 
     def geolocate_frame(self, pixels):

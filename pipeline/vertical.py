@@ -9,6 +9,11 @@ Rules: equal declarations need nothing; orthometric against ellipsoidal needs a 
 (``N`` such that ellipsoidal = orthometric + N), else :class:`ParamError` unless the user
 states that the datums are the same; when one side declares nothing it is taken to share the
 other's datum, and the log says so.
+
+Units: a :class:`Dem` holds metres whatever its CRS's height axis says (:meth:`Dem.from_file`
+converts a file's heights by its band unit or its CRS's vertical unit, after the band's scale
+and offset), and so does a geoid grid read from a file. A grid file not read whole is read over
+the DEM's window only.
 """
 
 import logging
@@ -53,9 +58,12 @@ def reconcile_dem(dem, pose, *, geoid=None, same_vertical_datum=False, name="DEM
     Parameters
     ----------
     dem : Dem
+        A DEM file not read whole is read whole here (the geometry classes pass the window
+        under a footprint instead).
     pose : Pose
     geoid : Dem or str, optional
-        Geoid undulation grid N (m), any raster GDAL reads (e.g. egm08_25.gtx / .tif).
+        Geoid undulation grid N (m, or a file whose band unit / vertical CRS says otherwise),
+        any raster GDAL reads (e.g. egm08_25.gtx / .tif).
     same_vertical_datum : bool, optional
         Take the DEM's and the positions' heights as the same datum whatever they declare.
     name : str, optional
@@ -88,4 +96,6 @@ def reconcile_dem(dem, pose, *, geoid=None, same_vertical_datum=False, name="DEM
         raise ParamError(f"The geoid grid '{geoid}' does not cover {name}")
     heights = dem.array + (n if dk == ORTHOMETRIC else -n)
     log.info("%s heights converted from %s to %s with the geoid grid %s", name, dk, pk, geoid)
-    return Dem(heights, dem.transform, horizontal)
+    out = Dem(heights, dem.transform, horizontal)
+    out.source = dem.source
+    return out

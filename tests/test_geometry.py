@@ -543,3 +543,114 @@ def test_dem_of_wrong_type(dem):
     sc = scene("opk")
     with pytest.raises(ow.ParamError):
         ow.geolocate(sc.camera, sc.pose, [[10.0, 10.0]], dem=dem, device="cpu")
+
+
+# ------------------------------------------------------------------------------------------
+# DEM files read over the footprint window only (lazy Dem.from_file)
+# ------------------------------------------------------------------------------------------
+def _dem_file(path, dem, *, dtype="float32", scale=None, offset=None):
+    """Write a Dem's heights to a GeoTIFF (optionally as scaled integers)."""
+    z = dem.array if scale is None else np.rint((dem.array.astype(np.float64) - offset) / scale)
+    with rasterio.open(path, "w", driver="GTiff", width=z.shape[1], height=z.shape[0], count=1, dtype=dtype,
+                       crs=dem.crs.to_wkt(), transform=dem.transform, tiled=True, blockxsize=64,
+                       blockysize=64) as dst:
+        dst.write(z.astype(dtype), 1)
+        if scale is not None:
+            dst.scales, dst.offsets = (scale,), (offset,)
+    return path
+
+
+def _reads(monkeypatch):
+    """A list that collects the (rows, cols) of every window read from a DEM file."""
+    from orthowarp.pipeline import dem as dem_module
+
+    reads, read = [], dem_module._DemFile.read
+
+    def counting(self, i0, i1, j0, j1):
+        reads.append((i1 - i0, j1 - j0))
+        return read(self, i0, i1, j0, j1)
+
+    monkeypatch.setattr(dem_module._DemFile, "read", counting)
+    return reads
+
+
+@pytest.mark.parametrize("name", ["opk", "ins47"])
+def test_dem_file_read_by_window_matches_reference(name, tmp_path, monkeypatch):
+    """geolocate() with a DEM file (read over a window of the footprint only) agrees with the
+    independent reference as the DEM in memory does, for a part of the image."""
+    sc = scene(name)
+    path = _dem_file(tmp_path / "dem.tif", sc.dem)
+    reads = _reads(monkeypatch)
+    w, h = sc.size
+    pix = sample_pixels(sc.size)
+    part = pix[(pix[:, 0] <= w / 2) & (pix[:, 1] <= h / 2)]  # the top-left quarter: a smaller window
+    dem = ow.Dem.from_file(path)
+    got = sc.geolocate_object(part, refraction=False, device="cpu", dem=dem)
+    expected = sc.reference(part, refraction=False)
+    err = np.linalg.norm(got - expected, axis=1)
+    assert len(part) >= 6 and err.max() <= TOL_REF, f"max error {err.max() * 1e3:.3f} mm"
+    assert not dem.loaded and reads
+    rows, cols = dem.shape
+    assert max(r * c for r, c in reads) < 0.5 * rows * cols, reads
+
+
+@pytest.mark.parametrize("refraction", [False, True], ids=["no-refraction", "refraction"])
+def test_dem_file_window_sees_the_ridge(refraction, tmp_path):
+    """The occlusion case (an oblique camera, a ridge in front of a valley) from a scaled int16
+    DEM file gives the reference's first surface."""
+    sc = _ridge_scene()
+    dem = ow.Dem.from_file(_dem_file(tmp_path / "ridge.tif", sc.dem, dtype="int16", scale=0.01, offset=300.0))
+    w, h = sc.size
+    cols = np.linspace(0.0, w, 21)
+    pix = np.concatenate([np.stack([cols, np.full_like(cols, h / 2)], 1),
+                          np.stack([cols, np.full_like(cols, 0.5)], 1)])
+    expected = ref.RayTracer(sc.ref_pose, sc.ref_dem, refraction).geolocate(sc.ref_camera, pix)
+    got = sc.geolocate_object(pix, refraction=refraction, device="cpu", dem=dem)
+    err = np.linalg.norm(got - expected, axis=1)
+    assert (expected[:, 2] > 300.0).sum() >= 4
+    assert err.max() <= TOL_REF + 0.01, f"max error {err.max() * 1e3:.3f} mm"  # + int16 steps of 1 cm
+    assert not dem.loaded
+
+
+def test_dem_file_in_another_crs_is_reprojected_over_its_window(tmp_path):
+    """A geocentric pose over a UTM DEM file: the window is reprojected, not the whole DEM;
+    ground points agree with the whole DEM reprojected in memory to a few cm (two bilinear
+    resamplings on different grids)."""
+    sc = scene("ins47")
+    e0, n0 = Transformer.from_crs(4326, 32632, always_xy=True).transform(8.3, 47.1)
+    utm, _ = map_dem(hills, e0, n0, 300, 300, 5.0)
+    path = _dem_file(tmp_path / "utm.tif", utm)
+    w, h = sc.size
+    pix = sample_pixels(sc.size)
+    lazy = ow.Dem.from_file(path)
+    got = ow.geolocate(sc.camera, sc.pose, pix, dem=lazy, crs=UTM32, refraction=False, device="cpu")
+    whole = ow.geolocate(sc.camera, sc.pose, pix, dem=utm, crs=UTM32, refraction=False, device="cpu")
+    assert np.all(np.isfinite(got)) and not lazy.loaded
+    np.testing.assert_allclose(got, whole, rtol=0, atol=0.1)
+    geom = ow.pipeline.geometry.FrameGeometry(sc.camera, sc.pose, ow.Dem.from_file(path), refraction=False,
+                                              device="cpu", region=(0, 0, w / 4, h / 4))
+    assert geom.dem.crs.is_geographic and geom.dem.shape[0] * geom.dem.shape[1] < 0.25 * 300 * 300
+
+
+def test_pushbroom_dem_file_read_by_window(tmp_path):
+    """A pushbroom scene 20 deg off nadir over relief: a DEM file read by window gives the
+    ground points of the same DEM in memory."""
+    from orthowarp.pushbroom import synthetic_scene
+
+    sc = synthetic_scene(width=400, height=400, gsd=10.0, view_angle=20.0)
+    g = sc.geolocate_ellipsoid(np.array([[0, 0], [400, 0], [0, 400], [400, 400]], float), 0.0)
+    cell = 0.0005
+    lon0, lat1 = g[:, 0].min() - 0.2, g[:, 1].max() + 0.1
+    nx = int((g[:, 0].max() + 0.2 - lon0) / cell)
+    ny = int((lat1 - g[:, 1].min() + 0.1) / cell)
+    lon = lon0 + (np.arange(nx) + 0.5) * cell
+    lat = lat1 - (np.arange(ny) + 0.5) * cell
+    z = (900.0 + 500.0 * np.sin(np.radians(lon)[None, :] * 3000) * np.cos(np.radians(lat)[:, None] * 2000)
+         ).astype(np.float32)
+    dem = ow.Dem(z, Affine(cell, 0, lon0, 0, -cell, lat1), "EPSG:4326")
+    lazy = ow.Dem.from_file(_dem_file(tmp_path / "pb.tif", dem))
+    pix = np.random.default_rng(1).uniform(0, 400, (40, 2))
+    got = ow.geolocate(sc, pix, dem=lazy, device="cpu")
+    want = ow.geolocate(sc, pix, dem=dem, device="cpu")
+    assert np.all(np.isfinite(want)) and not lazy.loaded
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-6)

@@ -63,3 +63,29 @@ def test_geolocate_applies_the_rule():
     with pytest.raises(ParamError, match="geoid"):
         ow.geolocate(ow.FrameCamera(50.0, 0.01, (100, 100)), GEOCENTRIC_POSE, [[50, 50]],
                      dem=dem_in("EPSG:4326+3855"), device="cpu")
+
+
+def test_scaled_geoid_grid_file_read_over_the_dem_window_only(tmp_path, monkeypatch):
+    """A geoid grid stored as int16 centimetres (band scale 0.01) converts as the float grid
+    does, and only the grid's window under the DEM is read."""
+    from orthowarp.pipeline import dem as dem_module
+
+    lon = np.arange(400) * 0.001 + 7.8
+    n = (47.0 + 0.5 * (lon - 8.0))[None, :].repeat(300, 0)
+    t = Affine(0.001, 0, 7.7995, 0, -0.001, 47.15)
+    paths = {}
+    for name, dtype, values, scale in (("float", "float32", n, 1.0), ("cm", "int16", np.rint(n / 0.01), 0.01)):
+        paths[name] = tmp_path / f"geoid_{name}.tif"
+        with rasterio.open(paths[name], "w", driver="GTiff", width=400, height=300, count=1, dtype=dtype,
+                           crs="EPSG:4326", transform=t) as dst:
+            dst.write(values.astype(dtype), 1)
+            dst.scales = (scale,)
+    reads, read = [], dem_module._DemFile.read
+    monkeypatch.setattr(dem_module._DemFile, "read",
+                        lambda self, i0, i1, j0, j1: reads.append((i1 - i0) * (j1 - j0)) or read(self, i0, i1, j0, j1))
+    dem = dem_in("EPSG:4326+3855")
+    out = {k: reconcile_dem(dem, GEOCENTRIC_POSE, geoid=str(p)).array for k, p in paths.items()}
+    x, _ = dem.transform @ (np.arange(20) + 0.5, np.zeros(20))
+    np.testing.assert_allclose(out["cm"][0], 400.0 + 47.0 + 0.5 * (x - 8.0), atol=0.006)
+    np.testing.assert_allclose(out["cm"], out["float"], atol=0.006)  # half a centimetre of rounding
+    assert len(reads) == 2 and max(reads) < 0.01 * 400 * 300
