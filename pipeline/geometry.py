@@ -365,19 +365,23 @@ def _sensor_args(name, sensor, args, what):
 
 # Plausibility bounds of the inputs (see _check_ground_points and check_camera_above_terrain).
 MAX_GROUND_HEIGHT = 1e7  # m: |h| of ground points and constant terrain heights
+MAX_MAP_COORDINATE = 1e8  # m: |x|, |y| of points in a projected CRS
 
 
 def _check_refraction(refraction):
-    if not isinstance(refraction, (bool, np.bool_)):
-        raise ParamError(f"refraction must be True or False, got {refraction!r}")
-    return bool(refraction)
+    """True or False (0 and 1 too); anything else, a string such as "no" included, is an error."""
+    if isinstance(refraction, (bool, np.bool_)) or (isinstance(refraction, numbers.Integral) and refraction in (0, 1)):
+        return bool(refraction)
+    raise ParamError(f"refraction must be True or False, got {refraction!r}")
 
 
 def _check_dem_arg(dem):
     """A constant terrain height must be a plausible number (a bool is not a height)."""
     if isinstance(dem, (bool, np.bool_)):
         raise ParamError(f"dem must be a Dem or a constant height in metres, got {dem!r}")
-    if isinstance(dem, numbers.Real) and np.isfinite(dem) and abs(float(dem)) > MAX_GROUND_HEIGHT:
+    if isinstance(dem, numbers.Real) and not np.isfinite(dem):
+        raise ParamError(f"dem: a constant terrain height must be finite, got {dem!r}")
+    if isinstance(dem, numbers.Real) and abs(float(dem)) > MAX_GROUND_HEIGHT:
         raise ParamError(f"dem: a constant terrain height of {float(dem):g} m is beyond +-{MAX_GROUND_HEIGHT:g} m")
 
 
@@ -385,23 +389,37 @@ def _horizontal_crs(crs):
     return crs.sub_crs_list[0] if crs.is_compound else crs
 
 
+def _bad_row(name, values, limit, what, unit, crs, ok, hint=""):
+    bad = ok & (np.abs(values) > limit)
+    if np.any(bad):
+        i = int(np.argmax(bad))
+        raise ParamError(f"{name} row {i}: {what} {values[i]:g} is beyond +-{limit:g} {unit} in {crs.name!r}{hint}")
+
+
 def _check_ground_points(pts, crs, name="points"):
-    """ParamError naming the argument and the first offending row: +-inf anywhere, latitudes
-    beyond +-90 deg or longitudes beyond +-360 deg in a geographic CRS, heights beyond
-    +-MAX_GROUND_HEIGHT. NaN rows are missing rows (they give NaN results)."""
+    """ParamError naming the argument and the first offending row: +-inf anywhere; in a
+    geographic CRS a latitude beyond +-90 deg or a longitude beyond +-360 deg; in a projected
+    CRS an x or y beyond 1e8 m (2.5 times round the Earth). NaN rows are missing rows."""
     no_infinite_rows(name, pts)
     ok = np.all(np.isfinite(pts), axis=1)
-    if _horizontal_crs(crs).is_geographic:
-        checks = [(1, 90.0, "latitude", "degrees"), (0, 360.0, "longitude", "degrees")]
-    else:
-        checks = []
-    checks.append((2, MAX_GROUND_HEIGHT, "height", "m"))
-    for col, limit, what, unit in checks:
-        bad = ok & (np.abs(pts[:, col]) > limit)
-        if np.any(bad):
-            i = int(np.argmax(bad))
-            raise ParamError(f"{name} row {i}: {what} {pts[i, col]:g} is beyond +-{limit:g} {unit} "
-                             f"(columns are x/longitude, y/latitude, height in {crs.name!r})")
+    horizontal = _horizontal_crs(crs)
+    if horizontal.is_geographic:
+        hint = " (the columns are longitude, latitude, height)"
+        _bad_row(name, pts[:, 1], 90.0, "latitude", "degrees", crs, ok, hint)
+        _bad_row(name, pts[:, 0], 360.0, "longitude", "degrees", crs, ok, hint)
+    elif horizontal.is_projected:
+        axes = horizontal.axis_info
+        per_unit = axes[0].unit_conversion_factor if axes and axes[0].unit_conversion_factor else 1.0
+        limit = MAX_MAP_COORDINATE / per_unit
+        unit = axes[0].unit_name if axes else "units"
+        _bad_row(name, pts[:, 0], limit, "x", unit, crs, ok)
+        _bad_row(name, pts[:, 1], limit, "y", unit, crs, ok)
+
+
+def _check_heights(geo, frame_crs, name="points"):
+    """ParamError for a height (in the pose's frame, m) beyond +-MAX_GROUND_HEIGHT."""
+    ok = np.all(np.isfinite(geo), axis=1)
+    _bad_row(name, geo[:, 2], MAX_GROUND_HEIGHT, "height", "m", frame_crs, ok)
 
 
 def _transform_checked(xyz, src, dst, name):
@@ -414,7 +432,7 @@ def _transform_checked(xyz, src, dst, name):
     return out
 
 
-def check_camera_above_terrain(pose, dem):
+def check_camera_above_terrain(pose, dem, *, name=None):
     """GeometryError when the projection centre is not above the terrain under it.
 
     Parameters
@@ -424,6 +442,14 @@ def check_camera_above_terrain(pose, dem):
         Terrain in the pose's frame and vertical datum (as :class:`FrameGeometry` holds it:
         lon/lat for geocentric poses, the map CRS for map poses). Where the DEM has no height
         under the camera nothing is checked.
+    name : str, optional
+        The DEM's file, for the message.
+
+    Notes
+    -----
+    A camera below the surface sees no ground: every ray would start underground, and the
+    kernels return NaN for it. Call this before cropping the DEM to the footprint, so that
+    the cell under the camera is still there.
     """
     if pose.mode == GEOCENTRIC:
         lat, lon, h = pose.center_geodetic
@@ -440,7 +466,8 @@ def check_camera_above_terrain(pose, dem):
         terrain = float(dem.sample(x, y))
         if not np.isfinite(terrain):
             return
-        place = f"the terrain ({'DEM ' + repr(dem.source) if dem.source else 'DEM'}) under it"
+        name = name or dem.source
+        place = f"the terrain under it (DEM {name!r})" if name else "the terrain (DEM) under it"
     if h <= terrain:
         rel = "below" if h < terrain else "at"
         raise GeometryError(f"The camera is {rel} the terrain: its {kind} is h={h:.3f} m at {where}, and "
@@ -511,7 +538,7 @@ def geolocate(sensor, *args, dem, crs=LLH, refraction=True, device=None, geoid=N
         else:
             geom = FrameGeometry(camera, pose, dem, refraction=refraction, device=device, region=region,
                                  geoid=geoid, same_vertical_datum=same_vertical_datum)
-            check_camera_above_terrain(pose, geom.dem)
+            check_camera_above_terrain(pose, geom.dem, name=getattr(dem, "source", None))
             out = _transform(geom.geolocate_frame(pix), _frame_crs(pose), dst)
     out[~finite] = np.nan
     return out
@@ -550,8 +577,8 @@ def project(sensor, *args, crs=LLH, refraction=True, device=None):
     ------
     ParamError
         Malformed points; a row with +-inf, a latitude beyond +-90 deg or a longitude beyond
-        +-360 deg (geographic ``crs``), a height beyond +-1e7 m, or a position ``crs`` cannot
-        transform (the message names the row).
+        +-360 deg (geographic ``crs``), x or y beyond 1e8 m (projected ``crs``), a height
+        beyond +-1e7 m, or a position ``crs`` cannot transform (the message names the row).
     """
     camera, pose, points_ = _sensor_args("project", sensor, args, "points")
     if pose is not None:
@@ -564,6 +591,7 @@ def project(sensor, *args, crs=LLH, refraction=True, device=None):
     with quiet_warp():
         if pose is None:
             geo = _transform_checked(pts, src, as_crs(LLH), "points")
+            _check_heights(geo, as_crs(LLH))
             ok = ~missing
             hr = (float(geo[ok, 2].min()), float(geo[ok, 2].max())) if np.any(ok) else (0.0, 0.0)
             geom = PushbroomGeometry(camera, Dem.constant(hr[0]), refraction=refraction, device=device,
@@ -571,6 +599,7 @@ def project(sensor, *args, crs=LLH, refraction=True, device=None):
             out = geom.project_frame(geo)
         else:
             geo = _transform_checked(pts, src, _frame_crs(pose), "points")
+            _check_heights(geo, _frame_crs(pose))
             ok = ~missing
             hmin, hmax = (float(geo[ok, 2].min()), float(geo[ok, 2].max())) if np.any(ok) else (0.0, 0.0)
             geom = FrameGeometry(camera, pose, Dem.constant(hmin), refraction=refraction, device=device,
