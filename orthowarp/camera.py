@@ -260,7 +260,10 @@ class FrameCamera:
         return s
 
     def pixel_to_camera(self, pixels, *, device=None):
-        """Pixels (N, 2) (col, row) -> unit rays (N, 3) in the camera frame (kernel)."""
+        """Pixels (N, 2) (col, row) -> unit rays (N, 3) in the camera frame (kernel).
+
+        Rows with NaN, or masked in a NumPy masked array, give NaN rays.
+        """
         pix = _as_points(pixels, 2, "pixels")
         with quiet_warp():
             dev = resolve_device(device)
@@ -268,10 +271,13 @@ class FrameCamera:
             if len(pix):
                 wp.launch(pixel_to_camera_kernel, dim=len(pix), device=dev,
                           inputs=[self.to_struct(), wp.array(pix, dtype=wp.vec2d, device=dev), out])
-            return out.numpy().reshape(-1, 3)
+            rays = out.numpy().reshape(-1, 3)
+        rays[~np.all(np.isfinite(pix), axis=1)] = np.nan  # missing pixels (NaN or masked)
+        return rays
 
     def camera_to_pixel(self, vectors, *, device=None):
-        """Camera-frame directions (N, 3) -> pixels (N, 2); NaN rows for directions not in front."""
+        """Camera-frame directions (N, 3) -> pixels (N, 2); NaN rows for directions not in front
+        and for rows with NaN or masked in a NumPy masked array."""
         vec = _as_points(vectors, 3, "vectors")
         with quiet_warp():
             dev = resolve_device(device)
@@ -279,5 +285,7 @@ class FrameCamera:
             if len(vec):
                 wp.launch(camera_to_pixel_kernel, dim=len(vec), device=dev,
                           inputs=[self.to_struct(), wp.array(vec, dtype=wp.vec3d, device=dev), out])
-            return out.numpy().reshape(-1, 2)
+            pix = out.numpy().reshape(-1, 2)
+        pix[~np.all(np.isfinite(vec), axis=1)] = np.nan  # missing directions (NaN or masked)
+        return pix
 
