@@ -23,6 +23,17 @@ MAX_OFF_AXIS = 85.0  # deg: the image corner farthest from the principal point
 MAX_IMAGE_SIDE = 2**31 - 1  # pixels: Warp launches index with 32-bit integers
 
 
+def _focal_length(value):
+    """The focal length (mm) as a float: finite, > 0 and at most MAX_FOCAL_LENGTH."""
+    f = _finite("focal_length", value)
+    if f <= 0.0:
+        raise ParamError(f"focal_length must be > 0 mm, got {value!r}")
+    if f > MAX_FOCAL_LENGTH:
+        raise ParamError(f"focal_length {f:g} mm is implausible: more than {MAX_FOCAL_LENGTH:g} mm (1 km); "
+                         "focal lengths are in mm")
+    return f
+
+
 def _image_side(name, v):
     """A positive integer image dimension (integral floats such as 4000.0 are accepted)."""
     if isinstance(v, (bool, np.bool_)) or not isinstance(v, (numbers.Integral, numbers.Real)):
@@ -76,9 +87,7 @@ class FrameCamera:
 
     def __init__(self, focal_length, pixel_size, image_size, *, principal_point=(0.0, 0.0),
                  k1=0.0, k2=0.0, k3=0.0, p1=0.0, p2=0.0):
-        self.focal_length = _finite("focal_length", focal_length)
-        if self.focal_length <= 0.0:
-            raise ParamError(f"focal_length must be > 0 mm, got {focal_length!r}")
+        self.focal_length = _focal_length(focal_length)
         try:
             ps = np.broadcast_to(np.asarray(pixel_size, dtype=np.float64), (2,)).copy()
         except (TypeError, ValueError) as e:
@@ -120,9 +129,16 @@ class FrameCamera:
         Fraser/Australis ordering, where P1 goes with ``r^2 + 2 x^2`` in x, are passed as
         ``p1=P2, p2=P1``.
         """
-        f = _finite("focal_length", focal_length)
-        return cls(focal_length, pixel_size, image_size, principal_point=principal_point,
-                   k1=k1 * f**2, k2=k2 * f**4, k3=k3 * f**6, p1=-p1 * f, p2=p2 * f)
+        f = _focal_length(focal_length)
+        mm = {n: _finite(n, v) for n, v in (("k1", k1), ("k2", k2), ("k3", k3), ("p1", p1), ("p2", p2))}
+        powers = {"k1": f**2, "k2": f**4, "k3": f**6, "p1": -f, "p2": f}
+        norm = {}
+        for n, v in mm.items():
+            norm[n] = v * powers[n]
+            if not math.isfinite(norm[n]):
+                raise ParamError(f"{n}={v:g} (mm units) with focal_length {f:g} mm is beyond the range of "
+                                 "normalised coefficients")
+        return cls(focal_length, pixel_size, image_size, principal_point=principal_point, **norm)
 
     def __repr__(self):
         return (f"FrameCamera(focal_length={self.focal_length!r}, pixel_size={self.pixel_size!r}, "
@@ -193,9 +209,6 @@ class FrameCamera:
         ground in front of it).
         """
         f = self.focal_length
-        if f > MAX_FOCAL_LENGTH:
-            raise ParamError(f"focal_length {f:g} mm is implausible: more than {MAX_FOCAL_LENGTH:g} mm (1 km); "
-                             "focal lengths are in mm")
         ps = min(self.pixel_size)
         if ps / f < MIN_PIXEL_ANGLE:
             raise ParamError(f"focal_length {f:g} mm with pixel_size {ps:g} mm is implausible: a pixel would "

@@ -412,3 +412,36 @@ def test_masked_pixels_give_nan_rays(device):
 def test_complex_or_boolean_pixels_are_refused(bad):
     with pytest.raises(ParamError, match="pixels"):
         make(AERIAL).pixel_to_camera(bad, device="cpu")
+
+
+# -- fuzzing: only orthowarp's own errors escape the constructor ------------------------------
+
+import math  # noqa: E402
+import os  # noqa: E402
+
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+FUZZ = settings(max_examples=int(os.environ.get("ORTHOWARP_FUZZ_EXAMPLES", "300")), deadline=None,
+                derandomize=True, suppress_health_check=[HealthCheck.too_slow])
+_number = st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.floats(-1e4, 1e4),
+                    st.floats(1e-6, 1e3), st.integers(-10**15, 10**15))
+_anything = st.one_of(_number, st.none(), st.booleans(), st.text(max_size=4),
+                      st.lists(_number, max_size=3), st.tuples(_number, _number))
+
+
+@FUZZ
+@given(f=_anything, ps=_anything, size=_anything, pp=_anything,
+       k=st.lists(st.one_of(_number, st.floats(-1.0, 1.0)), min_size=5, max_size=5))
+def test_fuzz_frame_camera_arguments(f, ps, size, pp, k):
+    """Any argument values: a camera within the plausibility bounds, or an orthowarp error."""
+    try:
+        cam = FrameCamera(f, ps, size, principal_point=pp, **dict(zip(("k1", "k2", "k3", "p1", "p2"), k)))
+    except OrthowarpError:
+        return
+    w, h = cam.image_size
+    assert 0.0 < cam.focal_length <= 1e6 and min(cam.pixel_size) / cam.focal_length >= 1e-8
+    assert 1 <= w <= 2**31 - 1 and 1 <= h <= 2**31 - 1
+    r = math.hypot(0.5 * w * cam.pixel_size[0] + abs(cam.principal_point[0]),
+                   0.5 * h * cam.pixel_size[1] + abs(cam.principal_point[1]))
+    assert math.degrees(math.atan2(r, cam.focal_length)) <= 85.0

@@ -21,8 +21,9 @@ from orthowarp import _device
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
-# Every public call that launches kernels, on the CPU: geolocate over a constant height and over
-# a DEM (probes, relief search, refraction), project, and the camera's own two kernels.
+# Every public call that launches kernels but orthorectify, on the CPU: frame geolocate over a
+# constant height and over a DEM (probes, relief search, refraction), project, the camera's own
+# two kernels, and the pushbroom model (the real SPOT-5 sample) both ways.
 CALLS = textwrap.dedent("""
     import numpy as np
     import orthowarp as ow
@@ -38,8 +39,11 @@ CALLS = textwrap.dedent("""
         "pixel_to_camera": cam.pixel_to_camera([[500, 400]], device="cpu"),
         "camera_to_pixel": cam.camera_to_pixel([[0.0, 0.0, -1.0]], device="cpu"),
     }
+    scene = ow.PushbroomScene.from_dimap("tests/data/spot5/spot_example1.xml")
+    results["pushbroom_geolocate"] = ow.geolocate(scene, [[150.0, 1000.0]], dem=100.0, device="cpu")
+    results["pushbroom_project"] = ow.project(scene, results["pushbroom_geolocate"], device="cpu")
 """)
-N_CALLS = 6
+N_CALLS = 8
 
 
 def _run(script, *, env=None):
@@ -83,7 +87,8 @@ def test_library_calls_print_nothing(tmp_path):
     script = ("import warp as wp\nlevel0 = wp.config.log_level\n" + CALLS
               + _report("dict(level0=level0, level=wp.config.log_level, n=len(results),"
                         " finite={k: bool(np.all(np.isfinite(v))) for k, v in results.items()},"
-                        " gc=results['geolocate_constant'].tolist(), pr=results['project'].tolist())"))
+                        " gc=results['geolocate_constant'].tolist(), pr=results['project'].tolist(),"
+                        " pb=results['pushbroom_project'].tolist())"))
     rc, stdout, stderr = _run(script, env={"OW_RESULT": str(out)})
     assert rc == 0, stderr
     assert stdout == ""
@@ -99,6 +104,7 @@ def test_library_calls_print_nothing(tmp_path):
     np.testing.assert_allclose(r["gc"], ow.geolocate(cam, pose, [[0.5, 0.5], [500, 400]], dem=400.0, device="cpu"),
                                rtol=0, atol=1e-9)
     np.testing.assert_allclose(r["pr"], ow.project(cam, pose, [[8.0, 47.0, 400.0]], device="cpu"), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(r["pb"], [[150.0, 1000.0]], rtol=0, atol=1e-3)  # pushbroom round trip
 
 
 @pytest.mark.parametrize("level", ["LOG_DEBUG", "LOG_WARNING", "LOG_ERROR"])

@@ -717,3 +717,71 @@ def test_poses_at_the_bounds_are_accepted():
     np.testing.assert_allclose(ow.geolocate(cam, low, [[50.0, 40.0]], dem=-400.0, device="cpu")[0],
                                [35.5, 31.5, -400.0], rtol=0, atol=1e-6)
     assert ow.Pose.from_ins(47.0, 8.0, 900.0, 0.0, 95.0, 0.0).params["pitch"] == 95.0
+
+
+# ------------------------------------------------------------------------------------------
+# 8. Fuzzing: only orthowarp's own errors escape; missing rows stay missing
+# ------------------------------------------------------------------------------------------
+import os  # noqa: E402
+
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+from hypothesis.extra import numpy as hnp  # noqa: E402
+
+FUZZ = settings(max_examples=int(os.environ.get("ORTHOWARP_FUZZ_EXAMPLES", "300")), deadline=None,
+                derandomize=True, suppress_health_check=[HealthCheck.too_slow])
+FUZZ_SLOW = settings(FUZZ, max_examples=max(1, FUZZ.max_examples // 3))  # a DEM geometry per example
+_value = st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.floats(-400.0, 400.0),
+                   st.floats(-1e5, 1e8), st.integers(-10**12, 10**12), st.none(), st.text(max_size=3))
+
+
+@FUZZ
+@given(vals=st.lists(_value, min_size=6, max_size=6), opk=st.booleans())
+def test_fuzz_pose_arguments(vals, opk):
+    try:
+        pose = (ow.Pose.from_opk(*vals, crs=UTM32) if opk else ow.Pose.from_ins(*vals))
+    except ow.OrthowarpError:
+        return
+    assert -1e5 <= pose.height <= 1e8 and np.all(np.isfinite(pose.rotation))
+
+
+_coords = hnp.arrays(np.float64, st.tuples(st.integers(0, 6), st.just(3)),
+                     elements=st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.floats(-100.0, 100.0),
+                                        st.sampled_from([8.3, 47.1, 400.0, 2e7, 1e308])))
+
+
+@FUZZ
+@given(pts=_coords, mask=st.lists(st.booleans(), min_size=6 * 3, max_size=6 * 3), masked=st.booleans())
+def test_fuzz_project_points(pts, mask, masked):
+    """Random points (huge, infinite, NaN), plain or masked: a ParamError naming a row, or one
+    row out per row in, NaN for every missing (NaN or masked) row."""
+    sc = scene("ins47")
+    m = np.array(mask[:pts.size], bool).reshape(pts.shape)
+    arg = np.ma.masked_array(pts, mask=m) if masked else pts
+    try:
+        got = ow.project(sc.camera, sc.pose, arg, device="cpu")
+    except ow.ParamError as e:
+        assert "points row" in str(e)
+        return
+    assert got.shape == (len(pts), 2)
+    missing = ~np.all(np.isfinite(pts), axis=1) | (m.any(axis=1) if masked else False)
+    assert np.all(np.isnan(got[missing]))
+    present = ~missing
+    assert np.all(np.abs(pts[present, 1]) <= 90.0) and np.all(np.abs(pts[present, 2]) <= 1e7)
+
+
+@FUZZ_SLOW
+@given(pix=hnp.arrays(np.float64, st.tuples(st.integers(0, 6), st.just(2)),
+                      elements=st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.floats(0.0, 4000.0))))
+def test_fuzz_geolocate_pixels(pix):
+    sc = scene("opk")
+    try:
+        got = ow.geolocate(sc.camera, sc.pose, pix, dem=400.0, crs=UTM32, device="cpu")
+    except ow.ParamError as e:
+        assert "pixels row" in str(e) and np.any(np.isinf(pix))
+        return
+    assert got.shape == (len(pix), 3)
+    finite = np.all(np.isfinite(pix), axis=1)
+    assert np.all(np.isnan(got[~finite]))
+    inside = finite & np.all((pix >= 0.0) & (pix <= [4000.0, 3000.0]), axis=1)
+    np.testing.assert_allclose(got[inside, 2], 400.0, rtol=0, atol=1e-3)
