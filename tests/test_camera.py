@@ -419,7 +419,7 @@ def test_complex_or_boolean_pixels_are_refused(bad):
 import math  # noqa: E402
 import os  # noqa: E402
 
-from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import HealthCheck, event, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
 FUZZ = settings(max_examples=int(os.environ.get("ORTHOWARP_FUZZ_EXAMPLES", "300")), deadline=None,
@@ -431,17 +431,44 @@ _anything = st.one_of(_number, st.none(), st.booleans(), st.text(max_size=4),
 
 
 @FUZZ
-@given(f=_anything, ps=_anything, size=_anything, pp=_anything,
+@given(f=st.one_of(_anything, st.floats(0.5, 2e3)), ps=st.one_of(_anything, st.floats(1e-4, 0.05)),
+       size=st.one_of(_anything, st.tuples(st.integers(1, 30000), st.integers(1, 30000))),
+       pp=st.one_of(_anything, st.tuples(st.floats(-5.0, 5.0), st.floats(-5.0, 5.0))),
        k=st.lists(st.one_of(_number, st.floats(-1.0, 1.0)), min_size=5, max_size=5))
 def test_fuzz_frame_camera_arguments(f, ps, size, pp, k):
     """Any argument values: a camera within the plausibility bounds, or an orthowarp error."""
     try:
         cam = FrameCamera(f, ps, size, principal_point=pp, **dict(zip(("k1", "k2", "k3", "p1", "p2"), k)))
-    except OrthowarpError:
+    except OrthowarpError as e:
+        event(f"refused: {type(e).__name__}")
         return
+    event("accepted")
     w, h = cam.image_size
     assert 0.0 < cam.focal_length <= 1e6 and min(cam.pixel_size) / cam.focal_length >= 1e-8
     assert 1 <= w <= 2**31 - 1 and 1 <= h <= 2**31 - 1
     r = math.hypot(0.5 * w * cam.pixel_size[0] + abs(cam.principal_point[0]),
                    0.5 * h * cam.pixel_size[1] + abs(cam.principal_point[1]))
     assert math.degrees(math.atan2(r, cam.focal_length)) <= 85.0
+
+
+@FUZZ
+@given(f=st.floats(0.05, 2e6), ps=st.floats(1e-6, 2.0), size=st.tuples(st.integers(1, 60000), st.integers(1, 60000)),
+       pp=st.tuples(st.floats(-50.0, 50.0), st.floats(-50.0, 50.0)), k1=st.floats(-0.5, 0.5))
+def test_fuzz_frame_camera_near_the_bounds(f, ps, size, pp, k1):
+    """Values around the plausibility bounds: accepted exactly when the bounds hold (or the
+    distortion is not invertible, a GeometryError), refused with a message naming a parameter."""
+    w, h = size
+    r = math.hypot(0.5 * w * ps + abs(pp[0]), 0.5 * h * ps + abs(pp[1]))
+    plausible = f <= 1e6 and ps / f >= 1e-8 and math.degrees(math.atan2(r, f)) <= 85.0
+    try:
+        FrameCamera(f, ps, size, principal_point=pp, k1=k1)
+    except ParamError as e:
+        event("refused")
+        assert not plausible and ("focal_length" in str(e) or "pixel_size" in str(e))
+        return
+    except GeometryError as e:
+        event("distortion not invertible")
+        assert plausible and "invertible" in str(e)
+        return
+    event("accepted")
+    assert plausible

@@ -724,7 +724,7 @@ def test_poses_at_the_bounds_are_accepted():
 # ------------------------------------------------------------------------------------------
 import os  # noqa: E402
 
-from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import HealthCheck, event, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 from hypothesis.extra import numpy as hnp  # noqa: E402
 
@@ -735,13 +735,18 @@ _value = st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.floats(-40
                    st.floats(-1e5, 1e8), st.integers(-10**12, 10**12), st.none(), st.text(max_size=3))
 
 
+_PLAUSIBLE_POSE = ((-89.0, 89.0), (-179.0, 179.0), (0.0, 9000.0), (-30.0, 30.0), (-30.0, 30.0), (-180.0, 360.0))
+
+
 @FUZZ
-@given(vals=st.lists(_value, min_size=6, max_size=6), opk=st.booleans())
+@given(vals=st.tuples(*(st.one_of(_value, st.floats(lo, hi)) for lo, hi in _PLAUSIBLE_POSE)), opk=st.booleans())
 def test_fuzz_pose_arguments(vals, opk):
     try:
         pose = (ow.Pose.from_opk(*vals, crs=UTM32) if opk else ow.Pose.from_ins(*vals))
-    except ow.OrthowarpError:
+    except ow.OrthowarpError as e:
+        event(f"refused: {type(e).__name__}")
         return
+    event("accepted")
     assert -1e5 <= pose.height <= 1e8 and np.all(np.isfinite(pose.rotation))
 
 
@@ -762,7 +767,9 @@ def test_fuzz_project_points(pts, mask, masked):
         got = ow.project(sc.camera, sc.pose, arg, device="cpu")
     except ow.ParamError as e:
         assert "points row" in str(e)
+        event("refused")
         return
+    event("projected")
     assert got.shape == (len(pts), 2)
     missing = ~np.all(np.isfinite(pts), axis=1) | (m.any(axis=1) if masked else False)
     assert np.all(np.isnan(got[missing]))
@@ -779,7 +786,9 @@ def test_fuzz_geolocate_pixels(pix):
         got = ow.geolocate(sc.camera, sc.pose, pix, dem=400.0, crs=UTM32, device="cpu")
     except ow.ParamError as e:
         assert "pixels row" in str(e) and np.any(np.isinf(pix))
+        event("refused")
         return
+    event("geolocated")
     assert got.shape == (len(pix), 3)
     finite = np.all(np.isfinite(pix), axis=1)
     assert np.all(np.isnan(got[~finite]))
