@@ -1,21 +1,237 @@
-"""Device selection shared by everything that launches kernels."""
+"""Device selection and Warp's console output, shared by everything that launches kernels.
+
+Quiet by default
+----------------
+A library call prints nothing. Warp itself prints a start-up banner (version, devices, kernel
+cache) when it initialises, a "Module ... load on device ... took ..." line the first time a
+module is loaded on a device (both at ``warp.LOG_INFO``, through Python), and, on a machine
+without an NVIDIA driver, its native library writes "Warp CUDA warning: Could not find or load
+the NVIDIA CUDA driver" straight to the process's stderr file descriptor while initialising.
+
+orthowarp leaves Warp's settings as the user has them. Its own calls run inside
+:func:`quiet_warp`, which raises ``warp.config.log_level`` from ``LOG_INFO`` to
+``LOG_WARNING`` for as long as one of them is running and then puts back the value it found
+(Warp's warnings, and its errors, still come through). When orthowarp is the first to use Warp,
+:func:`ensure_warp_initialized` initialises it inside that scope with the native stderr
+diverted to a temporary file; what the native library wrote there comes back on stderr,
+except the notice that no CUDA driver was found.
+
+* A user who set ``warp.config.log_level`` to ``LOG_DEBUG`` (or ``LOG_WARNING``/``LOG_ERROR``)
+  keeps it: only the default level, ``LOG_INFO``, is raised, and only while orthowarp works.
+* A user who initialised Warp before calling orthowarp already saw (or chose not to see) the
+  banner; orthowarp does not initialise it again.
+* :func:`set_warp_messages` (the CLI's ``-v``) turns all of this off: Warp prints as it would
+  without orthowarp.
+
+The level is process-wide in Warp, so while an orthowarp call runs, another thread's own Warp
+modules also load without their ``LOG_INFO`` line; nothing else changes for them. Nested and
+concurrent orthowarp calls share one scope (reference counted): the first to enter saves the
+level, the last to leave restores it, unless someone set another level in between (that one
+is kept).
+"""
+
+import contextlib
+import importlib
+import os
+import sys
+import tempfile
+import threading
 
 import warp as wp
 
 from .errors import DeviceError
 
+__all__ = ["resolve_device", "quiet_warp", "ensure_warp_initialized", "load_modules", "set_warp_messages"]
+
+# What Warp's native library writes to fd 2 when no CUDA driver can be loaded (CPU-only
+# machines): an informational notice for orthowarp, whose CPU backend is a supported target.
+_NO_DRIVER_NOTICE = b"Warp CUDA warning: Could not find or load the NVIDIA CUDA driver"
+
+_lock = threading.RLock()
+_depth = 0  # orthowarp calls inside quiet_warp(), all threads
+_saved = None  # (attribute, value found, value set) while _depth > 0 and a setting was changed
+_show = False  # set_warp_messages(True): leave Warp's output alone
+
+
+def set_warp_messages(enabled):
+    """Show Warp's own messages during orthowarp calls (``True``) or keep them quiet (default).
+
+    The CLI's ``-v`` calls this with ``True``. It changes nothing in Warp's configuration.
+    """
+    global _show
+    _show = bool(enabled)
+
+
+def _level_setting():
+    """(attribute of warp.config, value that silences Warp's info output, or None to leave it).
+
+    Warp >= 1.10 has ``config.log_level``; older releases a boolean ``config.quiet``.
+    """
+    if hasattr(wp, "LOG_WARNING") and hasattr(wp.config, "log_level"):
+        level = wp.config.log_level
+        # LOG_DEBUG (below LOG_INFO) is the user asking for more; WARNING and above is quiet already
+        if wp.LOG_INFO <= level < wp.LOG_WARNING:
+            return "log_level", wp.LOG_WARNING
+        return "log_level", None
+    if hasattr(wp.config, "quiet"):
+        return "quiet", (None if wp.config.quiet else True)
+    return None, None
+
+
+def _wants_messages():
+    """True when Warp's messages must come through: set_warp_messages(True), or a Warp log
+    level below LOG_INFO (the user asked for debug output)."""
+    if _show:
+        return True
+    if hasattr(wp, "LOG_INFO") and hasattr(wp.config, "log_level"):
+        return wp.config.log_level < wp.LOG_INFO
+    return bool(getattr(wp.config, "verbose", False))  # Warp < 1.10: its compile-verbose switch
+
+
+@contextlib.contextmanager
+def quiet_warp():
+    """Context in which Warp prints no informational messages (see the module notes).
+
+    Thread-safe and re-entrant; restores the level found on entry when the last orthowarp
+    call leaves it.
+    """
+    global _depth, _saved
+    with _lock:
+        if _depth == 0:
+            _saved = None
+            if not _show:
+                name, value = _level_setting()
+                if value is not None:
+                    _saved = (name, getattr(wp.config, name), value)
+                    setattr(wp.config, name, value)
+        _depth += 1
+    try:
+        yield
+    finally:
+        with _lock:
+            _depth -= 1
+            if _depth == 0 and _saved is not None:
+                name, found, value = _saved
+                if getattr(wp.config, name) == value:  # unless someone chose another level meanwhile
+                    setattr(wp.config, name, found)
+                _saved = None
+
+
+def _warp_runtime():
+    """Warp's runtime object, or None while Warp is not initialised (never initialises it)."""
+    for mod in ("warp._src.context", "warp.context"):
+        try:
+            return getattr(importlib.import_module(mod), "runtime", None)
+        except ImportError:
+            continue
+    return None
+
+
+@contextlib.contextmanager
+def _native_stderr_to_file():
+    """Divert file descriptor 2 (where Warp's native library writes) to a temporary file;
+    yields the file, or None where fd 2 cannot be diverted (then nothing is)."""
+    try:
+        sys.stderr.flush()
+    except (AttributeError, OSError, ValueError):
+        pass
+    try:
+        saved = os.dup(2)
+    except OSError:
+        yield None
+        return
+    try:
+        tmp = tempfile.TemporaryFile()
+    except OSError:
+        os.close(saved)
+        yield None
+        return
+    try:
+        os.dup2(tmp.fileno(), 2)
+        yield tmp
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
+def _replay(tmp):
+    """Write back to stderr what was diverted, less Warp's no-CUDA-driver notice."""
+    if tmp is None:
+        return
+    with tmp:
+        tmp.seek(0)
+        data = tmp.read()
+    rest = b"".join(line for line in data.splitlines(keepends=True) if not line.startswith(_NO_DRIVER_NOTICE))
+    if not rest:
+        return
+    try:
+        sys.stderr.write(rest.decode("utf-8", "replace"))
+        sys.stderr.flush()
+    except (AttributeError, OSError, ValueError):
+        os.write(2, rest)
+
+
+def ensure_warp_initialized():
+    """Initialise Warp if nobody has, without its banner or the CPU-only driver notice.
+
+    Does nothing when Warp is already initialised, and initialises it as Warp would
+    (messages included) under :func:`set_warp_messages` or a debug log level.
+    """
+    if _warp_runtime() is not None:
+        return
+    with _lock:
+        if _warp_runtime() is not None:
+            return
+        if _wants_messages():
+            wp.init()
+            return
+        with quiet_warp():
+            tmp = None
+            try:
+                with _native_stderr_to_file() as tmp:
+                    wp.init()
+            finally:
+                _replay(tmp)  # also when init failed: its native messages explain why
+
 
 def resolve_device(device=None):
     """Return a Warp device: ``None`` picks the first CUDA device if any, else the CPU.
+
+    Initialises Warp quietly if needed (see :func:`ensure_warp_initialized`).
 
     Parameters
     ----------
     device : str or warp.context.Device, optional
         ``"cpu"``, ``"cuda"``, ``"cuda:N"`` or a Warp device.
+
+    Raises
+    ------
+    DeviceError
+        The device is unknown or unavailable.
     """
+    ensure_warp_initialized()
     if device is None:
         return wp.get_device("cuda:0") if wp.get_cuda_device_count() > 0 else wp.get_device("cpu")
     try:
         return wp.get_device(device)
     except Exception as e:  # Warp raises plain exceptions for unknown aliases
         raise DeviceError(f"Unknown or unavailable Warp device {device!r}: {e}") from e
+
+
+def load_modules(device, *modules, block_dim=None):
+    """Load (compile if needed) Warp modules on a device, quietly, before launching from threads.
+
+    Parameters
+    ----------
+    device : warp.context.Device
+    *modules : module
+        Python modules holding Warp kernels (e.g. ``orthowarp.kernels.ortho``).
+    block_dim : int, optional
+        The block size the launches will use (a module is loaded per block size).
+    """
+    with quiet_warp():
+        for m in modules:
+            if block_dim is None:
+                wp.load_module(m, device=device)
+            else:
+                wp.load_module(m, device=device, block_dim=block_dim)

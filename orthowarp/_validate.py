@@ -32,16 +32,42 @@ def finite_vector(name, value, n):
 
 
 def points(values, ncol, name):
-    """A C-contiguous float64 array of shape (N, ncol); a single point (ncol,) becomes (1, ncol)."""
+    """A C-contiguous float64 array of shape (N, ncol); a single point (ncol,) becomes (1, ncol).
+
+    The mask of a NumPy masked array is honoured: a row with any masked value becomes a NaN
+    row (its fill values are never used). NaN marks a missing row. Complex and boolean arrays
+    are refused rather than cast.
+    """
+    mask = None
+    if np.ma.isMaskedArray(values):
+        mask = np.ma.getmaskarray(values)
+        values = np.ma.getdata(values)
     try:
-        arr = np.ascontiguousarray(values, dtype=np.float64)
+        raw = np.asarray(values)
+    except (TypeError, ValueError) as e:
+        raise ParamError(f"{name} must be a numeric array of shape (N, {ncol}): {e}") from e
+    if raw.dtype.kind in "cb":
+        kind = "complex" if raw.dtype.kind == "c" else "boolean"
+        raise ParamError(f"{name} must be real numbers of shape (N, {ncol}), got a {kind} array")
+    try:
+        arr = np.array(raw, dtype=np.float64) if mask is not None else np.ascontiguousarray(raw, dtype=np.float64)
     except (TypeError, ValueError) as e:
         raise ParamError(f"{name} must be a numeric array of shape (N, {ncol}): {e}") from e
     if arr.ndim == 1 and arr.shape[0] == ncol:
         arr = arr[None, :]
     if arr.ndim != 2 or arr.shape[1] != ncol:
         raise ParamError(f"{name} must have shape (N, {ncol}), got {arr.shape}")
+    if mask is not None and np.any(mask):
+        arr[mask.reshape(arr.shape).any(axis=1)] = np.nan
     return arr
+
+
+def no_infinite_rows(name, arr):
+    """ParamError naming ``name`` and the first row holding +-inf (NaN rows are missing rows)."""
+    bad = np.isinf(arr).any(axis=1)
+    if np.any(bad):
+        i = int(np.argmax(bad))
+        raise ParamError(f"{name} row {i} is not finite: {arr[i].tolist()}")
 
 
 def as_crs(value, name="crs"):

@@ -1,15 +1,53 @@
 """Frame camera interior orientation (:class:`FrameCamera`)."""
 
+import math
+import numbers
+
 import numpy as np
 import warp as wp
 
-from ._device import resolve_device
+from ._device import quiet_warp, resolve_device
 from ._validate import finite as _finite
 from ._validate import points as _as_points
 from .errors import GeometryError, ParamError
 from .kernels.camera import FrameCameraData, camera_to_pixel_kernel, pixel_to_camera_kernel
 
 __all__ = ["FrameCamera"]
+
+# Plausibility bounds (see FrameCamera._check_plausible): they catch unit mix-ups (a focal
+# length in metres or micrometres, a pixel pitch in micrometres) before they turn into a
+# misleading geometry message downstream.
+MAX_FOCAL_LENGTH = 1e6  # mm (1 km; the longest Earth-imaging telescopes have ~10-60 m)
+MIN_PIXEL_ANGLE = 1e-8  # rad (2 milliarcseconds): pixel_size / focal_length
+MAX_OFF_AXIS = 85.0  # deg: the image corner farthest from the principal point
+MAX_IMAGE_SIDE = 2**31 - 1  # pixels: Warp launches index with 32-bit integers
+
+
+def _focal_length(value):
+    """The focal length (mm) as a float: finite, > 0 and at most MAX_FOCAL_LENGTH."""
+    f = _finite("focal_length", value)
+    if f <= 0.0:
+        raise ParamError(f"focal_length must be > 0 mm, got {value!r}")
+    if f > MAX_FOCAL_LENGTH:
+        raise ParamError(f"focal_length {f:g} mm is implausible: more than {MAX_FOCAL_LENGTH:g} mm (1 km); "
+                         "focal lengths are in mm")
+    return f
+
+
+def _image_side(name, v):
+    """A positive integer image dimension (integral floats such as 4000.0 are accepted)."""
+    if isinstance(v, (bool, np.bool_)) or not isinstance(v, (numbers.Integral, numbers.Real)):
+        raise ParamError(f"{name} must be an integer number of pixels, got {v!r}")
+    if isinstance(v, numbers.Integral):
+        n = int(v)
+    else:
+        f = float(v)
+        if not math.isfinite(f) or not f.is_integer():
+            raise ParamError(f"{name} must be an integer number of pixels, got {v!r}")
+        n = int(f)
+    if not 1 <= n <= MAX_IMAGE_SIDE:
+        raise ParamError(f"{name} must be between 1 and {MAX_IMAGE_SIDE} pixels, got {v!r}")
+    return n
 
 
 class FrameCamera:
@@ -33,7 +71,10 @@ class FrameCamera:
     Raises
     ------
     ParamError
-        A parameter is not finite or out of range.
+        A parameter is not finite or out of range, or the parameters describe no camera: a
+        focal length over 1 km, a pixel subtending less than 1e-8 rad, an image corner more
+        than 85 deg off the optical axis (usually a unit mix-up: all lengths are in mm), an
+        image size that is not a positive integer.
     GeometryError
         The distortion cannot be inverted everywhere in the image.
 
@@ -46,24 +87,29 @@ class FrameCamera:
 
     def __init__(self, focal_length, pixel_size, image_size, *, principal_point=(0.0, 0.0),
                  k1=0.0, k2=0.0, k3=0.0, p1=0.0, p2=0.0):
-        self.focal_length = _finite("focal_length", focal_length)
-        if self.focal_length <= 0.0:
-            raise ParamError(f"focal_length must be > 0 mm, got {focal_length!r}")
-        ps = np.broadcast_to(np.asarray(pixel_size, dtype=np.float64), (2,)).copy()
+        self.focal_length = _focal_length(focal_length)
+        try:
+            ps = np.broadcast_to(np.asarray(pixel_size, dtype=np.float64), (2,)).copy()
+        except (TypeError, ValueError) as e:
+            raise ParamError(f"pixel_size must be a number or (x, y) in mm, got {pixel_size!r}") from e
         if not np.all(np.isfinite(ps)) or np.any(ps <= 0.0):
             raise ParamError(f"pixel_size must be finite and > 0 mm, got {pixel_size!r}")
         self.pixel_size = (float(ps[0]), float(ps[1]))
         try:
-            w, h = (int(v) for v in image_size)
-        except (TypeError, ValueError) as e:
+            size = tuple(image_size)
+        except TypeError as e:
             raise ParamError(f"image_size must be (width, height), got {image_size!r}") from e
-        if w <= 0 or h <= 0:
-            raise ParamError(f"image_size must be positive, got {image_size!r}")
-        self.image_size = (w, h)
-        pp = tuple(_finite("principal_point", v) for v in principal_point)
+        if len(size) != 2 or isinstance(image_size, (str, bytes)):
+            raise ParamError(f"image_size must be (width, height), got {image_size!r}")
+        self.image_size = (_image_side("image_size width", size[0]), _image_side("image_size height", size[1]))
+        try:
+            pp = tuple(principal_point)
+        except TypeError as e:
+            raise ParamError(f"principal_point must be (x0, y0) in mm, got {principal_point!r}") from e
         if len(pp) != 2:
             raise ParamError(f"principal_point must be (x0, y0) in mm, got {principal_point!r}")
-        self.principal_point = pp
+        self.principal_point = tuple(_finite("principal_point", v) for v in pp)
+        self._check_plausible()
         self.k1, self.k2, self.k3 = (_finite(n, v) for n, v in (("k1", k1), ("k2", k2), ("k3", k3)))
         self.p1, self.p2 = (_finite(n, v) for n, v in (("p1", p1), ("p2", p2)))
         self._check_invertible()
@@ -83,9 +129,16 @@ class FrameCamera:
         Fraser/Australis ordering, where P1 goes with ``r^2 + 2 x^2`` in x, are passed as
         ``p1=P2, p2=P1``.
         """
-        f = _finite("focal_length", focal_length)
-        return cls(focal_length, pixel_size, image_size, principal_point=principal_point,
-                   k1=k1 * f**2, k2=k2 * f**4, k3=k3 * f**6, p1=-p1 * f, p2=p2 * f)
+        f = _focal_length(focal_length)
+        mm = {n: _finite(n, v) for n, v in (("k1", k1), ("k2", k2), ("k3", k3), ("p1", p1), ("p2", p2))}
+        powers = {"k1": f**2, "k2": f**4, "k3": f**6, "p1": -f, "p2": f}
+        norm = {}
+        for n, v in mm.items():
+            norm[n] = v * powers[n]
+            if not math.isfinite(norm[n]):
+                raise ParamError(f"{n}={v:g} (mm units) with focal_length {f:g} mm is beyond the range of "
+                                 "normalised coefficients")
+        return cls(focal_length, pixel_size, image_size, principal_point=principal_point, **norm)
 
     def __repr__(self):
         return (f"FrameCamera(focal_length={self.focal_length!r}, pixel_size={self.pixel_size!r}, "
@@ -147,6 +200,31 @@ class FrameCamera:
                          0.5 * self.image_size[1] - (y + self.principal_point[1]) / self.pixel_size[1]],
                         axis=-1)
 
+    def _check_plausible(self):
+        """ParamError for a focal length, pixel pitch or principal point no camera has.
+
+        Checks, in this order: the focal length is at most 1 km; a pixel subtends at least
+        1e-8 rad (``pixel_size / focal_length``); the image corner farthest from the principal
+        point is less than 85 deg off the optical axis (a frame camera's rays must reach the
+        ground in front of it).
+        """
+        f = self.focal_length
+        ps = min(self.pixel_size)
+        if ps / f < MIN_PIXEL_ANGLE:
+            raise ParamError(f"focal_length {f:g} mm with pixel_size {ps:g} mm is implausible: a pixel would "
+                             f"subtend {ps / f:.3g} rad (less than {MIN_PIXEL_ANGLE:g}); both are in mm")
+        w, h = self.image_size
+        x0, y0 = self.principal_point
+        half_w, half_h = 0.5 * w * self.pixel_size[0], 0.5 * h * self.pixel_size[1]
+        r = math.hypot(half_w + abs(x0), half_h + abs(y0))  # farthest corner from the principal point
+        off_axis = math.degrees(math.atan2(r, f))
+        if off_axis > MAX_OFF_AXIS:
+            raise ParamError(
+                f"The {w}x{h} image with pixel_size {self.pixel_size[0]:g} x {self.pixel_size[1]:g} mm and "
+                f"principal_point ({x0:g}, {y0:g}) mm has a corner {r:.4g} mm from the principal point, "
+                f"{off_axis:.2f} deg off the axis for focal_length {f:g} mm (more than {MAX_OFF_AXIS:g}): "
+                "check that focal_length, pixel_size and principal_point are all in mm")
+
     def _check_invertible(self):
         """Check that distortion is a one-to-one map over the whole image.
 
@@ -195,20 +273,32 @@ class FrameCamera:
         return s
 
     def pixel_to_camera(self, pixels, *, device=None):
-        """Pixels (N, 2) (col, row) -> unit rays (N, 3) in the camera frame (kernel)."""
+        """Pixels (N, 2) (col, row) -> unit rays (N, 3) in the camera frame (kernel).
+
+        Rows with NaN, or masked in a NumPy masked array, give NaN rays.
+        """
         pix = _as_points(pixels, 2, "pixels")
-        dev = resolve_device(device)
-        out = wp.empty(len(pix), dtype=wp.vec3d, device=dev)
-        wp.launch(pixel_to_camera_kernel, dim=len(pix), device=dev,
-                  inputs=[self.to_struct(), wp.array(pix, dtype=wp.vec2d, device=dev), out])
-        return out.numpy()
+        with quiet_warp():
+            dev = resolve_device(device)
+            out = wp.empty(len(pix), dtype=wp.vec3d, device=dev)
+            if len(pix):
+                wp.launch(pixel_to_camera_kernel, dim=len(pix), device=dev,
+                          inputs=[self.to_struct(), wp.array(pix, dtype=wp.vec2d, device=dev), out])
+            rays = out.numpy().reshape(-1, 3)
+        rays[~np.all(np.isfinite(pix), axis=1)] = np.nan  # missing pixels (NaN or masked)
+        return rays
 
     def camera_to_pixel(self, vectors, *, device=None):
-        """Camera-frame directions (N, 3) -> pixels (N, 2); NaN rows for directions not in front."""
+        """Camera-frame directions (N, 3) -> pixels (N, 2); NaN rows for directions not in front
+        and for rows with NaN or masked in a NumPy masked array."""
         vec = _as_points(vectors, 3, "vectors")
-        dev = resolve_device(device)
-        out = wp.empty(len(vec), dtype=wp.vec2d, device=dev)
-        wp.launch(camera_to_pixel_kernel, dim=len(vec), device=dev,
-                  inputs=[self.to_struct(), wp.array(vec, dtype=wp.vec3d, device=dev), out])
-        return out.numpy()
+        with quiet_warp():
+            dev = resolve_device(device)
+            out = wp.empty(len(vec), dtype=wp.vec2d, device=dev)
+            if len(vec):
+                wp.launch(camera_to_pixel_kernel, dim=len(vec), device=dev,
+                          inputs=[self.to_struct(), wp.array(vec, dtype=wp.vec3d, device=dev), out])
+            pix = out.numpy().reshape(-1, 2)
+        pix[~np.all(np.isfinite(vec), axis=1)] = np.nan  # missing directions (NaN or masked)
+        return pix
 

@@ -113,17 +113,26 @@ def _exit_now(signum):
 
 @click.group(cls=_Group)
 @click.version_option(package_name="orthowarp")
-@click.option("-v", "--verbose", count=True, help="More log output (-vv for debug).")
+@click.option("-v", "--verbose", count=True,
+              help="More log output, Warp's own messages included (-vv for debug).")
 @click.option("-q", "--quiet", is_flag=True, help="Only errors; no progress bars.")
 @click.pass_context
 def main(ctx, verbose, quiet):
     """orthowarp: rigorous orthorectification on the GPU with NVIDIA Warp."""
     import warp as wp
 
+    from ._device import set_warp_messages
+
     ctx.obj = {"quiet": quiet}
     level = logging.ERROR if quiet else (logging.DEBUG if verbose > 1 else logging.INFO if verbose else logging.WARNING)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
-    if verbose < 2:  # Warp's own banner and module-load messages only with -vv
+    # Warp's banner, module-load lines and driver notices only with -v; the library keeps them
+    # quiet during its calls, and this process is the CLI's own, so its Warp level is set too.
+    show = bool(verbose) and not quiet
+    set_warp_messages(show)
+    if show and hasattr(wp, "LOG_INFO") and wp.config.log_level > wp.LOG_INFO:
+        wp.config.log_level = wp.LOG_INFO
+    elif not show:
         if hasattr(wp, "LOG_WARNING"):
             wp.config.log_level = wp.LOG_WARNING
         else:  # warp-lang < 1.10

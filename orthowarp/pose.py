@@ -17,6 +17,27 @@ MOUNT = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
 GEOCENTRIC = "geocentric"
 MAP = "map"
 
+# Plausible projection centres: from 100 km below the ellipsoid (inside the Earth already) to
+# 100,000 km above it (beyond any Earth-imaging orbit but the Lagrange points; the refraction
+# model and the float64 ray intersection are exact up to there).
+MIN_HEIGHT = -1e5
+MAX_HEIGHT = 1e8
+# Angles beyond one turn are not attitudes but a unit or column mix-up.
+MAX_ANGLE = 360.0
+
+
+def _height(name, h):
+    if not MIN_HEIGHT <= h <= MAX_HEIGHT:
+        raise ParamError(f"{name} must be within [{MIN_HEIGHT:g}, {MAX_HEIGHT:g}] m for a camera, got {h:g}")
+    return h
+
+
+def _angle(name, value):
+    v = finite(name, value)
+    if abs(v) > MAX_ANGLE:
+        raise ParamError(f"{name} must be within [-{MAX_ANGLE:g}, {MAX_ANGLE:g}] degrees, got {v:g}")
+    return v
+
 
 class Pose:
     """Position and attitude of a frame camera.
@@ -46,6 +67,14 @@ class Pose:
         if not np.allclose(rot.T @ rot, np.eye(3), atol=1e-9) or np.linalg.det(rot) < 0:
             raise ParamError("rotation must be a proper rotation matrix")
         self.rotation = rot
+        if mode == GEOCENTRIC:
+            with np.errstate(all="ignore"):
+                h = float(geodesy.ecef_to_geodetic(self.center)[2])
+            if not np.isfinite(h):
+                raise ParamError(f"center {self.center.tolist()} has no geodetic height (it is at the Earth's centre)")
+            _height("the ellipsoidal height of center", h)
+        else:
+            _height("the z of center", float(self.center[2]))
         self.crs = crs
         self.params = dict(params or {})
 
@@ -57,21 +86,26 @@ class Pose:
         ----------
         lat, lon, h : float
             Latitude, longitude (deg, WGS84) and ellipsoidal height (m) of the navigation
-            reference point (the projection centre when ``lever_arm`` is zero).
+            reference point (the projection centre when ``lever_arm`` is zero); latitude
+            within +-90, longitude within +-360, height within [-1e5, 1e8] m.
         roll, pitch, yaw : float
-            IMU attitude (deg): ``R_nav<-body = Rz(yaw) Ry(pitch) Rx(roll)``, navigation frame
-            NED, body x forward, y right, z down.
+            IMU attitude (deg, each within +-360): ``R_nav<-body = Rz(yaw) Ry(pitch) Rx(roll)``,
+            navigation frame NED, body x forward, y right, z down.
         boresight : (float, float, float), optional
             Misalignment (deg) about body x, y, z: ``R_boresight = Rz(ez) Ry(ey) Rx(ex)`` and
             ``R_body<-cam = R_boresight R_mount``.
         lever_arm : (float, float, float), optional
             Vector (m) from the navigation reference point to the projection centre, body axes.
         """
-        lat, lon, h = finite("lat", lat), finite("lon", lon), finite("h", h)
-        roll, pitch, yaw = finite("roll", roll), finite("pitch", pitch), finite("yaw", yaw)
+        lat, lon, h = finite("lat", lat), finite("lon", lon), _height("h", finite("h", h))
+        roll, pitch, yaw = _angle("roll", roll), _angle("pitch", pitch), _angle("yaw", yaw)
         if abs(lat) > 90.0:
             raise ParamError(f"lat must be within [-90, 90] degrees, got {lat}")
+        if abs(lon) > 360.0:
+            raise ParamError(f"lon must be within [-360, 360] degrees, got {lon}")
         bs = finite_vector("boresight", boresight, 3)
+        if np.any(np.abs(bs) > MAX_ANGLE):
+            raise ParamError(f"boresight angles must be within +-{MAX_ANGLE:g} degrees, got {tuple(bs.tolist())}")
         la = finite_vector("lever_arm", lever_arm, 3)
         r_nav_body = geodesy.rz(yaw) @ geodesy.ry(pitch) @ geodesy.rx(roll)
         r_body_cam = geodesy.rz(bs[2]) @ geodesy.ry(bs[1]) @ geodesy.rx(bs[0]) @ MOUNT
@@ -89,14 +123,16 @@ class Pose:
         Parameters
         ----------
         x, y, z : float
-            Projection centre in the projected CRS ``crs`` (m), z the height.
+            Projection centre in the projected CRS ``crs`` (m), z the height (within
+            [-1e5, 1e8] m).
         omega, phi, kappa : float
-            Angles (deg): ``R = Rx(omega) Ry(phi) Rz(kappa)`` maps camera to object vectors.
+            Angles (deg, each within +-360): ``R = Rx(omega) Ry(phi) Rz(kappa)`` maps camera
+            to object vectors.
         crs : str, int or pyproj.CRS
             A projected CRS, treated as Cartesian.
         """
-        vals = [finite(n, v) for n, v in (("x", x), ("y", y), ("z", z),
-                                          ("omega", omega), ("phi", phi), ("kappa", kappa))]
+        vals = [finite("x", x), finite("y", y), _height("z", finite("z", z)),
+                _angle("omega", omega), _angle("phi", phi), _angle("kappa", kappa)]
         crs = as_crs(crs)
         if not crs.is_projected:
             raise CrsError(f"crs must be a projected CRS for omega-phi-kappa poses, got {crs.name!r}")

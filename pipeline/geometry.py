@@ -10,10 +10,10 @@ import numpy as np
 import warp as wp
 from pyproj import Transformer
 
-from .._device import resolve_device
-from .._validate import as_crs, points
+from .._device import quiet_warp, resolve_device
+from .._validate import as_crs, no_infinite_rows, points
 from ..camera import FrameCamera
-from ..errors import ParamError
+from ..errors import GeometryError, ParamError
 from ..kernels import frame as frame_kernels
 from ..kernels.frame import SearchParams, geolocate_grid_kernel, geolocate_kernel, project_kernel
 from ..kernels import pushbroom as pb_kernels
@@ -23,7 +23,7 @@ from ..refraction import RefractionModel
 from .dem import Dem, _horizontal, memory_budget
 from .vertical import reconcile_dem
 
-__all__ = ["geolocate", "project", "FrameGeometry", "PushbroomGeometry"]
+__all__ = ["geolocate", "project", "FrameGeometry", "PushbroomGeometry", "check_camera_above_terrain"]
 
 LLH = "EPSG:4979"
 
@@ -489,6 +489,117 @@ def _sensor_args(name, sensor, args, what):
     return sensor, args[0], args[1]
 
 
+# Plausibility bounds of the inputs (see _check_ground_points and check_camera_above_terrain).
+MAX_GROUND_HEIGHT = 1e7  # m: |h| of ground points and constant terrain heights
+MAX_MAP_COORDINATE = 1e8  # m: |x|, |y| of points in a projected CRS
+
+
+def _check_refraction(refraction):
+    """True or False (0 and 1 too); anything else, a string such as "no" included, is an error."""
+    if isinstance(refraction, (bool, np.bool_)) or (isinstance(refraction, numbers.Integral) and refraction in (0, 1)):
+        return bool(refraction)
+    raise ParamError(f"refraction must be True or False, got {refraction!r}")
+
+
+def _check_dem_arg(dem):
+    """A constant terrain height must be a plausible number (a bool is not a height)."""
+    if isinstance(dem, (bool, np.bool_)):
+        raise ParamError(f"dem must be a Dem or a constant height in metres, got {dem!r}")
+    if isinstance(dem, numbers.Real) and not np.isfinite(dem):
+        raise ParamError(f"dem: a constant terrain height must be finite, got {dem!r}")
+    if isinstance(dem, numbers.Real) and abs(float(dem)) > MAX_GROUND_HEIGHT:
+        raise ParamError(f"dem: a constant terrain height of {float(dem):g} m is beyond +-{MAX_GROUND_HEIGHT:g} m")
+
+
+def _horizontal_crs(crs):
+    return crs.sub_crs_list[0] if crs.is_compound else crs
+
+
+def _bad_row(name, values, limit, what, unit, crs, ok, hint=""):
+    bad = ok & (np.abs(values) > limit)
+    if np.any(bad):
+        i = int(np.argmax(bad))
+        raise ParamError(f"{name} row {i}: {what} {values[i]:g} is beyond +-{limit:g} {unit} in {crs.name!r}{hint}")
+
+
+def _check_ground_points(pts, crs, name="points"):
+    """ParamError naming the argument and the first offending row: +-inf anywhere; in a
+    geographic CRS a latitude beyond +-90 deg or a longitude beyond +-360 deg; in a projected
+    CRS an x or y beyond 1e8 m (2.5 times round the Earth). NaN rows are missing rows."""
+    no_infinite_rows(name, pts)
+    ok = np.all(np.isfinite(pts), axis=1)
+    horizontal = _horizontal_crs(crs)
+    if horizontal.is_geographic:
+        hint = " (the columns are longitude, latitude, height)"
+        _bad_row(name, pts[:, 1], 90.0, "latitude", "degrees", crs, ok, hint)
+        _bad_row(name, pts[:, 0], 360.0, "longitude", "degrees", crs, ok, hint)
+    elif horizontal.is_projected:
+        axes = horizontal.axis_info
+        per_unit = axes[0].unit_conversion_factor if axes and axes[0].unit_conversion_factor else 1.0
+        limit = MAX_MAP_COORDINATE / per_unit
+        unit = axes[0].unit_name if axes else "units"
+        _bad_row(name, pts[:, 0], limit, "x", unit, crs, ok)
+        _bad_row(name, pts[:, 1], limit, "y", unit, crs, ok)
+
+
+def _check_heights(geo, frame_crs, name="points"):
+    """ParamError for a height (in the pose's frame, m) beyond +-MAX_GROUND_HEIGHT."""
+    ok = np.all(np.isfinite(geo), axis=1)
+    _bad_row(name, geo[:, 2], MAX_GROUND_HEIGHT, "height", "m", frame_crs, ok)
+
+
+def _transform_checked(xyz, src, dst, name):
+    """:func:`_transform`, with ParamError for a finite row the transformation cannot map."""
+    out = _transform(xyz, src, dst)
+    lost = np.all(np.isfinite(xyz), axis=1) & ~np.all(np.isfinite(out), axis=1)
+    if np.any(lost):
+        i = int(np.argmax(lost))
+        raise ParamError(f"{name} row {i} {xyz[i].tolist()} cannot be transformed from {src.name!r} to {dst.name!r}")
+    return out
+
+
+def check_camera_above_terrain(pose, dem, *, name=None):
+    """GeometryError when the projection centre is not above the terrain under it.
+
+    Parameters
+    ----------
+    pose : Pose
+    dem : Dem
+        Terrain in the pose's frame and vertical datum (as :class:`FrameGeometry` holds it:
+        lon/lat for geocentric poses, the map CRS for map poses). Where the DEM has no height
+        under the camera nothing is checked.
+    name : str, optional
+        The DEM's file, for the message.
+
+    Notes
+    -----
+    A camera below the surface sees no ground: every ray would start underground, and the
+    kernels return NaN for it. Call this before cropping the DEM to the footprint, so that
+    the cell under the camera is still there.
+    """
+    if pose.mode == GEOCENTRIC:
+        lat, lon, h = pose.center_geodetic
+        x, y = lon, lat
+        where = f"lat {lat:.6f}, lon {lon:.6f}"
+        kind = "ellipsoidal height"
+    else:
+        x, y, h = (float(v) for v in pose.center)
+        where = f"x {x:.3f}, y {y:.3f} in {pose.crs.name!r}"
+        kind = "height"
+    if dem.is_constant:
+        terrain, place = float(dem.value), "the constant terrain height"
+    else:
+        terrain = float(dem.sample(x, y))
+        if not np.isfinite(terrain):
+            return
+        name = name or dem.source
+        place = f"the terrain under it (DEM {name!r})" if name else "the terrain (DEM) under it"
+    if h <= terrain:
+        rel = "below" if h < terrain else "at"
+        raise GeometryError(f"The camera is {rel} the terrain: its {kind} is h={h:.3f} m at {where}, and "
+                            f"{place} is {terrain:.3f} m (check the pose's height and the DEM's vertical datum)")
+
+
 def geolocate(sensor, *args, dem, crs=LLH, refraction=True, device=None, geoid=None,
               same_vertical_datum=False):
     """Ground coordinates of image pixels (forward, pixel -> ground).
@@ -502,7 +613,9 @@ def geolocate(sensor, *args, dem, crs=LLH, refraction=True, device=None, geoid=N
     pose : Pose
         Frame images only.
     pixels : array_like, shape (N, 2)
-        (col, row) pixel coordinates; the centre of pixel (i, j) is (j + 0.5, i + 0.5).
+        (col, row) pixel coordinates; the centre of pixel (i, j) is (j + 0.5, i + 0.5). A row
+        with NaN, or with a masked value in a NumPy masked array, is missing: its result row
+        is NaN.
     dem : Dem or float
         Terrain model, or a constant ellipsoidal height (m).
     crs : str, int or pyproj.CRS, optional
@@ -521,24 +634,40 @@ def geolocate(sensor, *args, dem, crs=LLH, refraction=True, device=None, geoid=N
     -------
     ndarray, shape (N, 3)
         (x, y, h) in ``crs``; NaN rows where the ray meets no ground (it misses the Earth or
-        the DEM).
+        the DEM) and for missing pixels.
+
+    Raises
+    ------
+    ParamError
+        Malformed or infinite pixels, a bad argument.
+    GeometryError
+        The frame camera is not above the terrain under it.
     """
     camera, pose, pixels = _sensor_args("geolocate", sensor, args, "pixels")
+    if pose is not None:
+        _check_sensor(camera, pose)
     pix = points(pixels, 2, "pixels")
+    no_infinite_rows("pixels", pix)
+    refraction = _check_refraction(refraction)
+    _check_dem_arg(dem)
     dst = as_crs(crs)
     region = None
     finite = np.all(np.isfinite(pix), axis=1)
     if np.any(finite):
         lo, hi = pix[finite].min(axis=0), pix[finite].max(axis=0)
         region = (lo[0], lo[1], hi[0], hi[1])
-    if pose is None:
-        geom = PushbroomGeometry(camera, dem, refraction=refraction, device=device, region=region, geoid=geoid,
-                                 same_vertical_datum=same_vertical_datum)
-        return _transform(geom.geolocate_frame(pix), as_crs(LLH), dst)
-    geom = FrameGeometry(camera, pose, dem, refraction=refraction, device=device, region=region,
-                         geoid=geoid, same_vertical_datum=same_vertical_datum)
-    geo = geom.geolocate_frame(pix)
-    return _transform(geo, _frame_crs(pose), dst)
+    with quiet_warp():
+        if pose is None:
+            geom = PushbroomGeometry(camera, dem, refraction=refraction, device=device, region=region, geoid=geoid,
+                                     same_vertical_datum=same_vertical_datum)
+            out = _transform(geom.geolocate_frame(pix), as_crs(LLH), dst)
+        else:
+            geom = FrameGeometry(camera, pose, dem, refraction=refraction, device=device, region=region,
+                                 geoid=geoid, same_vertical_datum=same_vertical_datum)
+            check_camera_above_terrain(pose, geom.dem, name=getattr(dem, "source", None))
+            out = _transform(geom.geolocate_frame(pix), _frame_crs(pose), dst)
+    out[~finite] = np.nan
+    return out
 
 
 def project(sensor, *args, crs=LLH, refraction=True, device=None):
@@ -554,6 +683,8 @@ def project(sensor, *args, crs=LLH, refraction=True, device=None):
         Frame images only.
     points : array_like, shape (N, 3)
         (x, y, h) in ``crs``; by default longitude, latitude (deg), ellipsoidal height (m).
+        A row with NaN, or with a masked value in a NumPy masked array, is missing: its result
+        row is NaN.
     crs : str, int or pyproj.CRS, optional
         CRS of the points; default EPSG:4979.
     refraction : bool, optional
@@ -565,21 +696,40 @@ def project(sensor, *args, crs=LLH, refraction=True, device=None):
     -------
     ndarray, shape (N, 2)
         (col, row); NaN rows for points behind the camera (pushbroom: points no line of the
-        ephemeris span sees). Points outside the image get pixel coordinates outside
-        [0, width] x [0, height].
+        ephemeris span sees) and for missing points. Points outside the image get pixel
+        coordinates outside [0, width] x [0, height].
+
+    Raises
+    ------
+    ParamError
+        Malformed points; a row with +-inf, a latitude beyond +-90 deg or a longitude beyond
+        +-360 deg (geographic ``crs``), x or y beyond 1e8 m (projected ``crs``), a height
+        beyond +-1e7 m, or a position ``crs`` cannot transform (the message names the row).
     """
     camera, pose, points_ = _sensor_args("project", sensor, args, "points")
+    if pose is not None:
+        _check_sensor(camera, pose)
     pts = points(points_, 3, "points")
-    if pose is None:
-        geo = _transform(pts, as_crs(crs), as_crs(LLH))
-        ok = np.all(np.isfinite(geo), axis=1)
-        hr = (float(geo[ok, 2].min()), float(geo[ok, 2].max())) if np.any(ok) else (0.0, 0.0)
-        geom = PushbroomGeometry(camera, Dem.constant(hr[0]), refraction=refraction, device=device, height_range=hr)
-        return geom.project_frame(geo)
-    _check_sensor(camera, pose)
-    geo = _transform(pts, as_crs(crs), _frame_crs(pose))
-    ok = np.all(np.isfinite(geo), axis=1)
-    hmin, hmax = (float(geo[ok, 2].min()), float(geo[ok, 2].max())) if np.any(ok) else (0.0, 0.0)
-    geom = FrameGeometry(camera, pose, Dem.constant(hmin), refraction=refraction, device=device,
-                         height_range=(hmin, hmax))
-    return geom.project_frame(geo)
+    refraction = _check_refraction(refraction)
+    src = as_crs(crs)
+    _check_ground_points(pts, src)
+    missing = ~np.all(np.isfinite(pts), axis=1)
+    with quiet_warp():
+        if pose is None:
+            geo = _transform_checked(pts, src, as_crs(LLH), "points")
+            _check_heights(geo, as_crs(LLH))
+            ok = ~missing
+            hr = (float(geo[ok, 2].min()), float(geo[ok, 2].max())) if np.any(ok) else (0.0, 0.0)
+            geom = PushbroomGeometry(camera, Dem.constant(hr[0]), refraction=refraction, device=device,
+                                     height_range=hr)
+            out = geom.project_frame(geo)
+        else:
+            geo = _transform_checked(pts, src, _frame_crs(pose), "points")
+            _check_heights(geo, _frame_crs(pose))
+            ok = ~missing
+            hmin, hmax = (float(geo[ok, 2].min()), float(geo[ok, 2].max())) if np.any(ok) else (0.0, 0.0)
+            geom = FrameGeometry(camera, pose, Dem.constant(hmin), refraction=refraction, device=device,
+                                 height_range=(hmin, hmax))
+            out = geom.project_frame(geo)
+    out[missing] = np.nan
+    return out

@@ -326,3 +326,149 @@ def test_non_invertible_distortion():
     # and the same k1 over a narrow image is fine (r < 0.26 there)
     narrow = FrameCamera(**dict(AERIAL, k1=-5.0, k2=0.0, k3=0.0))
     assert narrow.k1 == -5.0
+
+
+# -- implausible interior orientations: the message names what is wrong -----------------------
+
+@pytest.mark.parametrize("kwargs,words", [
+    # a focal length given in metres-as-mm or micrometres: 1e6 m = 1e9 mm on 5 um pixels
+    (dict(focal_length=1e9, pixel_size=0.005), ["focal_length", "1e+09 mm", "implausible"]),
+    (dict(focal_length=1e300), ["focal_length", "implausible"]),
+    (dict(focal_length=2e6, pixel_size=1.0), ["focal_length", "implausible"]),
+    # a pixel pitch far below any sensor's (1e-9 mm = 1 pm)
+    (dict(pixel_size=1e-9), ["pixel_size", "subtend"]),
+    (dict(focal_length=1e5, pixel_size=5e-4), ["pixel_size", "subtend"]),
+    # a focal length in metres (0.1 for 100 mm): the image corners would be ~90 deg off axis
+    (dict(focal_length=0.1, pixel_size=0.006, image_size=(11310, 17310)), ["focal_length 0.1 mm", "deg off the axis"]),
+    (dict(focal_length=1e-300), ["focal_length", "deg off the axis"]),
+    # a pixel pitch in micrometres (5 instead of 0.005 mm)
+    (dict(pixel_size=5.0, image_size=(4000, 3000)), ["pixel_size 5 x 5 mm", "deg off the axis"]),
+    (dict(pixel_size=1e300), ["pixel_size", "deg off the axis"]),
+    # a principal point a kilometre off the image
+    (dict(principal_point=(1e6, 0.0)), ["principal_point (1e+06, 0)", "deg off the axis"]),
+    # image sizes that are no number of pixels
+    (dict(image_size=(1.5, 10)), ["image_size width", "integer"]),
+    (dict(image_size=(10, float("nan"))), ["image_size height", "integer"]),
+    (dict(image_size=(True, 10)), ["image_size width", "integer"]),
+    (dict(image_size=("100", 10)), ["image_size width", "integer"]),
+    (dict(image_size=(10**12, 10)), ["image_size width", "2147483647"]),
+    (dict(image_size=(0, 0)), ["image_size width", "between 1"]),
+    (dict(image_size="ab"), ["image_size"]),
+    (dict(image_size=(1, 2, 3)), ["image_size"]),
+    (dict(image_size=7), ["image_size"]),
+    (dict(pixel_size=(0.005, 0.005, 0.005)), ["pixel_size"]),
+    (dict(pixel_size="small"), ["pixel_size"]),
+    (dict(principal_point=(0.0, 0.0, 0.0)), ["principal_point"]),
+    (dict(principal_point=0.0), ["principal_point"]),
+])
+def test_implausible_parameters_say_what_is_wrong(kwargs, words):
+    params = dict(focal_length=50.0, pixel_size=0.005, image_size=(100, 80))
+    params.update(kwargs)
+    with pytest.raises(ParamError) as exc:
+        FrameCamera(**params)
+    for w in words:
+        assert w in str(exc.value), (w, str(exc.value))
+
+
+# Real cameras at the edges of the bounds stay accepted: (focal mm, pixel mm, size).
+REAL_CAMERAS = {
+    "large-format aerial (UltraCam Eagle class)": (100.5, 0.0046, (26460, 17004)),
+    "drone 1-inch (8.8 mm)": (8.8, 0.0024, (5472, 3648)),
+    "action camera (2.92 mm, 122 deg diagonal)": (2.92, 0.00155, (4000, 3000)),
+    "satellite frame (3.6 m telescope)": (3600.0, 0.0065, (2560, 1080)),
+    "space telescope (57.6 m, 15 um)": (57600.0, 0.015, (4096, 4096)),
+    "OpenSfM nominal 1 um pixels": (0.5 * 4000 * 1e-3, 1e-3, (4000, 3000)),
+    "unit test camera (1 mm, 1 mm pixels)": (1.0, 1.0, (4, 3)),
+}
+
+
+@pytest.mark.parametrize("name", sorted(REAL_CAMERAS))
+def test_real_cameras_are_plausible(name):
+    f, ps, size = REAL_CAMERAS[name]
+    cam = FrameCamera(f, ps, size)
+    assert cam.focal_length == f and cam.pixel_size == (ps, ps) and cam.image_size == size
+    assert all(isinstance(v, int) for v in cam.image_size)
+
+
+def test_integral_float_image_size_is_accepted():
+    cam = FrameCamera(50.0, 0.005, (4000.0, np.int64(3000)))
+    assert cam.image_size == (4000, 3000) and all(type(v) is int for v in cam.image_size)
+
+
+def test_masked_pixels_give_nan_rays(device):
+    cam = make(AERIAL)
+    pix = np.array([[10.0, 20.0], [1e300, -1e300], [1500.0, 900.0]])
+    masked = np.ma.masked_array(pix, mask=[[False, False], [True, False], [False, False]])
+    got = cam.pixel_to_camera(masked, device=device)
+    assert np.all(np.isnan(got[1]))
+    np.testing.assert_allclose(got[[0, 2]], cam.pixel_to_camera(pix[[0, 2]], device=device), rtol=0, atol=0)
+    vec = np.ma.masked_array([[0.0, 0.0, -1.0], [0.0, 0.0, 1.0]], mask=[[False] * 3, [False, False, True]])
+    out = cam.camera_to_pixel(vec, device=device)
+    assert np.all(np.isnan(out[1]))
+    np.testing.assert_allclose(out[0], cam.camera_to_pixel([[0.0, 0.0, -1.0]], device=device)[0], rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("bad", [np.zeros((2, 2), complex), np.zeros((2, 2), bool)])
+def test_complex_or_boolean_pixels_are_refused(bad):
+    with pytest.raises(ParamError, match="pixels"):
+        make(AERIAL).pixel_to_camera(bad, device="cpu")
+
+
+# -- fuzzing: only orthowarp's own errors escape the constructor ------------------------------
+
+import math  # noqa: E402
+import os  # noqa: E402
+
+from hypothesis import HealthCheck, event, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+FUZZ = settings(max_examples=int(os.environ.get("ORTHOWARP_FUZZ_EXAMPLES", "300")), deadline=None,
+                derandomize=True, suppress_health_check=[HealthCheck.too_slow])
+_number = st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.floats(-1e4, 1e4),
+                    st.floats(1e-6, 1e3), st.integers(-10**15, 10**15))
+_anything = st.one_of(_number, st.none(), st.booleans(), st.text(max_size=4),
+                      st.lists(_number, max_size=3), st.tuples(_number, _number))
+
+
+@FUZZ
+@given(f=st.one_of(_anything, st.floats(0.5, 2e3)), ps=st.one_of(_anything, st.floats(1e-4, 0.05)),
+       size=st.one_of(_anything, st.tuples(st.integers(1, 30000), st.integers(1, 30000))),
+       pp=st.one_of(_anything, st.tuples(st.floats(-5.0, 5.0), st.floats(-5.0, 5.0))),
+       k=st.lists(st.one_of(_number, st.floats(-1.0, 1.0)), min_size=5, max_size=5))
+def test_fuzz_frame_camera_arguments(f, ps, size, pp, k):
+    """Any argument values: a camera within the plausibility bounds, or an orthowarp error."""
+    try:
+        cam = FrameCamera(f, ps, size, principal_point=pp, **dict(zip(("k1", "k2", "k3", "p1", "p2"), k)))
+    except OrthowarpError as e:
+        event(f"refused: {type(e).__name__}")
+        return
+    event("accepted")
+    w, h = cam.image_size
+    assert 0.0 < cam.focal_length <= 1e6 and min(cam.pixel_size) / cam.focal_length >= 1e-8
+    assert 1 <= w <= 2**31 - 1 and 1 <= h <= 2**31 - 1
+    r = math.hypot(0.5 * w * cam.pixel_size[0] + abs(cam.principal_point[0]),
+                   0.5 * h * cam.pixel_size[1] + abs(cam.principal_point[1]))
+    assert math.degrees(math.atan2(r, cam.focal_length)) <= 85.0
+
+
+@FUZZ
+@given(f=st.floats(0.05, 2e6), ps=st.floats(1e-6, 2.0), size=st.tuples(st.integers(1, 60000), st.integers(1, 60000)),
+       pp=st.tuples(st.floats(-50.0, 50.0), st.floats(-50.0, 50.0)), k1=st.floats(-0.5, 0.5))
+def test_fuzz_frame_camera_near_the_bounds(f, ps, size, pp, k1):
+    """Values around the plausibility bounds: accepted exactly when the bounds hold (or the
+    distortion is not invertible, a GeometryError), refused with a message naming a parameter."""
+    w, h = size
+    r = math.hypot(0.5 * w * ps + abs(pp[0]), 0.5 * h * ps + abs(pp[1]))
+    plausible = f <= 1e6 and ps / f >= 1e-8 and math.degrees(math.atan2(r, f)) <= 85.0
+    try:
+        FrameCamera(f, ps, size, principal_point=pp, k1=k1)
+    except ParamError as e:
+        event("refused")
+        assert not plausible and ("focal_length" in str(e) or "pixel_size" in str(e))
+        return
+    except GeometryError as e:
+        event("distortion not invertible")
+        assert plausible and "invertible" in str(e)
+        return
+    event("accepted")
+    assert plausible

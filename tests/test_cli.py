@@ -145,3 +145,33 @@ def test_adjust_command(tmp_path):
     np.testing.assert_allclose([c1.focal_length, c1.k1, c1.p1], [c0.focal_length, c0.k1, c0.p1], rtol=1e-12, atol=1e-15)
     r = CliRunner().invoke(main, ["adjust", str(tmp_path / "missing.json"), "--out", str(out)])
     assert r.exit_code == 1 and "missing.json" in r.output
+
+
+def _cli_subprocess(argv):
+    """Run the CLI in a fresh interpreter (Warp initialised by this run only); (rc, stdout, stderr)."""
+    import os
+    import subprocess
+    import sys
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    p = subprocess.run([sys.executable, "-c", "from orthowarp.cli import main; main()", *argv], cwd=root,
+                       capture_output=True, text=True, timeout=300)
+    return p.returncode, p.stdout, p.stderr
+
+
+def test_warp_messages_only_with_verbose(tmp_path):
+    """Without -v an ortho run shows none of Warp's banner, module-load lines or no-driver
+    notice; with -v they come through as Warp prints them."""
+    args = _ortho_inputs(tmp_path)
+    base = ["ortho", str(tmp_path / "img.tif"), *args, "--height", "100", "--device", "cpu"]
+    rc, out, err = _cli_subprocess(["-q", *base, "--out-dir", str(tmp_path / "quiet")])
+    assert rc == 0, err
+    assert "Warp" not in out + err and "Module " not in out + err
+    assert (tmp_path / "quiet" / "img_ORTHO.tif").exists()
+    rc, out, err = _cli_subprocess([*base, "--out-dir", str(tmp_path / "plain")])
+    assert rc == 0, err
+    assert "Warp" not in out + err and "Module " not in out + err
+    rc, out, err = _cli_subprocess(["-v", *base, "--out-dir", str(tmp_path / "verbose")])
+    assert rc == 0, err
+    assert "Warp " in out and "initialized" in out  # the start-up banner
+    assert "Module orthowarp.kernels." in out  # module-load lines

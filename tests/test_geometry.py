@@ -654,3 +654,253 @@ def test_pushbroom_dem_file_read_by_window(tmp_path):
     want = ow.geolocate(sc, pix, dem=dem, device="cpu")
     assert np.all(np.isfinite(want)) and not lazy.loaded
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-6)
+
+
+# 7. Messages that tell the truth, and validation of the API's arrays
+# ------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("name", ["ins47", "opk"])
+def test_camera_below_the_terrain_says_so(name):
+    """A pose under the DEM gives a GeometryError naming both heights, not NaN everywhere."""
+    sc = scene(name)
+    w, h = sc.size
+    pix = [[w / 2, h / 2], [0.5, 0.5]]
+    if sc.kind == "ins":
+        lat, lon = 47.1, 8.3
+        pose = ow.Pose.from_ins(lat, lon, 350.0, 0.0, 0.0, 30.0)
+        terrain = float(sc.dem.sample(lon, lat))
+    else:
+        pose = ow.Pose.from_opk(OPK_X, OPK_Y, 350.0, 0.0, 0.0, 30.0, crs=UTM32)
+        terrain = float(sc.dem.sample(OPK_X, OPK_Y))
+    assert terrain > 400.0
+    with pytest.raises(ow.GeometryError) as info:
+        ow.geolocate(sc.camera, pose, pix, dem=sc.dem, crs=sc.crs, device="cpu")
+    msg = str(info.value)
+    assert "below the terrain" in msg and "h=350.000 m" in msg and f"{terrain:.3f} m" in msg
+    # over a constant height too, and exactly at it
+    with pytest.raises(ow.GeometryError, match="below the terrain.*constant terrain height is 500.000 m"):
+        ow.geolocate(sc.camera, pose, pix, dem=500.0, crs=sc.crs, device="cpu")
+    with pytest.raises(ow.GeometryError, match="at the terrain"):
+        ow.geolocate(sc.camera, pose, pix, dem=350.0, crs=sc.crs, device="cpu")
+    # control: 1 m above a constant height the same pose geolocates to that height
+    got = ow.geolocate(sc.camera, pose, pix, dem=349.0, crs=sc.crs, device="cpu")
+    np.testing.assert_allclose(got[:, 2], 349.0, rtol=0, atol=1e-3)
+
+
+def test_camera_below_a_dem_file_names_the_file(tmp_path):
+    path = tmp_path / "terrain.tif"
+    z = np.full((40, 40), 800.0, dtype=np.float32)
+    with rasterio.open(path, "w", driver="GTiff", width=40, height=40, count=1, dtype="float32", crs=UTM32,
+                       transform=Affine(10.0, 0.0, OPK_X - 200.0, 0.0, -10.0, OPK_Y + 200.0)) as dst:
+        dst.write(z, 1)
+    cam = ow.FrameCamera(50.0, 0.01, (100, 80))
+    pose = ow.Pose.from_opk(OPK_X, OPK_Y, 700.0, 0.0, 0.0, 0.0, crs=UTM32)
+    with pytest.raises(ow.GeometryError, match="terrain.tif") as info:
+        ow.geolocate(cam, pose, [[50.0, 40.0]], dem=ow.Dem.from_file(path), crs=UTM32, device="cpu")
+    assert "h=700.000 m" in str(info.value) and "800.000 m" in str(info.value)
+
+
+def test_camera_beside_the_dem_is_not_checked():
+    """Where the DEM has no height under the camera, nothing is claimed: a camera 1.5 km west
+    of a DEM it looks at obliquely geolocates onto it, and one lower than that DEM (a
+    terrestrial camera in a valley, say) gets NaN rows, not an error."""
+    dem, _ = map_dem(lambda e, n: 300.0 + 0.0 * e + 0.0 * n, OPK_X + 1500.0, OPK_Y, 100, 100, 5.0)
+    cam = ow.FrameCamera(50.0, 0.01, (100, 80))
+    pose = ow.Pose.from_opk(OPK_X, OPK_Y, 1300.0, 0.0, -56.3, 0.0, crs=UTM32)  # looks ~1.5 km east
+    got = ow.geolocate(cam, pose, [[50.0, 40.0]], dem=dem, crs=UTM32, device="cpu")
+    assert np.all(np.isfinite(got))
+    np.testing.assert_allclose(got[0, 2], 300.0, rtol=0, atol=1e-3)
+    low = ow.Pose.from_opk(OPK_X, OPK_Y, 200.0, 0.0, -80.0, 0.0, crs=UTM32)
+    assert np.all(np.isnan(ow.geolocate(cam, low, [[50.0, 40.0]], dem=dem, crs=UTM32, device="cpu")))
+
+
+@pytest.mark.parametrize("pts,crs,words", [
+    ([[8.3, 47.1, 400.0], [8.3, 91.0, 400.0]], "EPSG:4979", ["points row 1", "latitude 91", "+-90"]),
+    ([[8.3, -90.5, 400.0]], "EPSG:4979", ["points row 0", "latitude -90.5"]),
+    ([[8.3, 1e308, 400.0]], "EPSG:4979", ["points row 0", "latitude 1e+308"]),
+    ([[8.3, 47.1, 400.0]] * 3 + [[8.3, 95.0, 0.0]], "EPSG:4326", ["points row 3", "latitude 95"]),
+    ([[8.3, 91.0, 400.0]], "EPSG:4326+5773", ["points row 0", "latitude 91"]),
+    ([[400.0, 47.1, 400.0]], "EPSG:4979", ["points row 0", "longitude 400"]),
+    ([[8.3, 47.1, 1e308]], "EPSG:4979", ["points row 0", "height 1e+308"]),
+    ([[8.3, 47.1, 2e7]], "EPSG:4979", ["points row 0", "height 2e+07"]),
+    ([[8.3, 47.1, float("inf")]], "EPSG:4979", ["points row 0", "not finite"]),
+    ([[OPK_X, 1e300, 400.0]], UTM32, ["points row 0", "y 1e+300"]),
+    ([[-1e308, OPK_Y, 400.0]], UTM32, ["points row 0", "x -1e+308"]),
+])
+def test_project_refuses_points_off_the_earth(pts, crs, words):
+    sc = scene("ins47")
+    with pytest.raises(ow.ParamError) as info:
+        ow.project(sc.camera, sc.pose, pts, crs=crs, device="cpu")
+    for word in words:
+        assert word in str(info.value), (word, str(info.value))
+
+
+def test_project_latitude_at_the_poles_is_accepted():
+    sc = scene("ins80")
+    got = ow.project(sc.camera, sc.pose, [[0.0, 90.0, 0.0], [0.0, -90.0, 0.0]], device="cpu")
+    assert got.shape == (2, 2)  # far outside the image or behind the camera, but not refused
+
+
+def test_masked_pixels_and_points_give_nan_rows():
+    """The mask of a masked array is honoured: a masked row gives a NaN row whatever its fill
+    values (here values that would be errors or garbage), the others what plain input gives."""
+    sc = scene("ins47")
+    pix = sample_pixels(sc.size)[:6].copy()
+    plain = ow.geolocate(sc.camera, sc.pose, pix, dem=sc.dem, device="cpu")
+    data = pix.copy()
+    data[1] = [np.inf, -1e308]
+    data[4] = [1e9, 3.0]
+    mask = np.zeros(pix.shape, bool)
+    mask[1, 0] = mask[1, 1] = mask[4, 0] = True
+    got = ow.geolocate(sc.camera, sc.pose, np.ma.masked_array(data, mask=mask), dem=sc.dem, device="cpu")
+    assert np.all(np.isnan(got[[1, 4]]))
+    keep = [0, 2, 3, 5]
+    np.testing.assert_allclose(got[keep], plain[keep], rtol=0, atol=1e-9)
+
+    pts = plain.copy()
+    back = ow.project(sc.camera, sc.pose, pts, device="cpu")
+    data = pts.copy()
+    data[2] = [8.3, 1000.0, 1e300]  # would be a ParamError unmasked
+    got = ow.project(sc.camera, sc.pose, np.ma.masked_array(data, mask=[[0, 0, 0], [0, 0, 0], [0, 1, 0],
+                                                                        [0, 0, 0], [0, 0, 0], [0, 0, 0]]),
+                     device="cpu")
+    assert np.all(np.isnan(got[2]))
+    keep = [0, 1, 3, 4, 5]
+    np.testing.assert_allclose(got[keep], back[keep], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(got[keep], pix[keep], rtol=0, atol=TOL_RT)
+    # an unmasked masked array is plain input; NaN rows are missing rows as well
+    np.testing.assert_allclose(ow.project(sc.camera, sc.pose, np.ma.masked_array(pts), device="cpu"), back,
+                               rtol=0, atol=0)
+    pts[3] = np.nan
+    got = ow.project(sc.camera, sc.pose, pts, device="cpu")
+    assert np.all(np.isnan(got[3])) and np.all(np.isfinite(got[[0, 1, 2, 4, 5]]))
+
+
+@pytest.mark.parametrize("kwargs,words", [
+    (dict(pixels=[[np.inf, 1.0]]), ["pixels row 0", "not finite"]),
+    (dict(pixels=np.zeros((2, 2), complex)), ["pixels", "complex"]),
+    (dict(pixels=np.zeros((2, 2), bool)), ["pixels", "boolean"]),
+    (dict(dem=True), ["dem", "True"]),
+    (dict(dem=1e308), ["dem", "1e+308"]),
+    (dict(dem=float("nan")), ["dem", "finite"]),
+    (dict(refraction="no"), ["refraction", "'no'"]),
+    (dict(refraction=2), ["refraction"]),
+])
+def test_geolocate_arguments(kwargs, words):
+    sc = scene("opk")
+    args = dict(pixels=[[10.0, 10.0]], dem=400.0, refraction=True)
+    args.update(kwargs)
+    with pytest.raises(ow.ParamError) as info:
+        ow.geolocate(sc.camera, sc.pose, args["pixels"], dem=args["dem"], refraction=args["refraction"],
+                     crs=UTM32, device="cpu")
+    for word in words:
+        assert word in str(info.value), (word, str(info.value))
+
+
+@pytest.mark.parametrize("build,words", [
+    (lambda: ow.Pose.from_ins(47.0, 8.0, 1e12, 0.0, 0.0, 0.0), ["h must be within", "1e+12"]),
+    (lambda: ow.Pose.from_ins(47.0, 8.0, -1e7, 0.0, 0.0, 0.0), ["h must be within", "-1e+07"]),
+    (lambda: ow.Pose.from_ins(47.0, 1000.0, 900.0, 0.0, 0.0, 0.0), ["lon must be within", "1000"]),
+    (lambda: ow.Pose.from_ins(91.0, 8.0, 900.0, 0.0, 0.0, 0.0), ["lat must be within", "91"]),
+    (lambda: ow.Pose.from_ins(47.0, 8.0, 900.0, 0.0, 0.0, 1e20), ["yaw must be within", "1e+20"]),
+    (lambda: ow.Pose.from_ins(47.0, 8.0, 900.0, -400.0, 0.0, 0.0), ["roll must be within", "-400"]),
+    (lambda: ow.Pose.from_ins(47.0, 8.0, 900.0, 0.0, 0.0, 0.0, boresight=(0.0, 500.0, 0.0)), ["boresight"]),
+    (lambda: ow.Pose.from_opk(OPK_X, OPK_Y, 1e9, 0.0, 0.0, 0.0, crs=UTM32), ["z must be within", "1e+09"]),
+    (lambda: ow.Pose.from_opk(OPK_X, OPK_Y, 900.0, 0.0, 0.0, 3600.0, crs=UTM32), ["kappa must be within"]),
+    (lambda: ow.Pose("geocentric", (0.0, 0.0, 0.0), np.eye(3), None), ["Earth's centre"]),
+    (lambda: ow.Pose("geocentric", (1e12, 0.0, 0.0), np.eye(3), None), ["ellipsoidal height of center"]),
+])
+def test_implausible_poses_say_what_is_wrong(build, words):
+    with pytest.raises(ow.ParamError) as info:
+        build()
+    for word in words:
+        assert word in str(info.value), (word, str(info.value))
+
+
+def test_poses_at_the_bounds_are_accepted():
+    """A geostationary camera, a camera 50 m below the ellipsoid (Dead Sea), pitch beyond 90
+    (a valid rotation: looking back over the top) and angles of a full turn."""
+    cam = ow.FrameCamera(1000.0, 0.006, (100, 80))
+    geo = ow.Pose.from_ins(0.0, 8.0, 35786e3, 0.0, 0.0, 0.0)
+    np.testing.assert_allclose(ow.geolocate(cam, geo, [[50.0, 40.0]], dem=0.0, device="cpu")[0],
+                               [8.0, 0.0, 0.0], rtol=0, atol=1e-6)
+    low = ow.Pose.from_ins(31.5, 35.5, -50.0, 360.0, 0.0, -360.0)
+    np.testing.assert_allclose(ow.geolocate(cam, low, [[50.0, 40.0]], dem=-400.0, device="cpu")[0],
+                               [35.5, 31.5, -400.0], rtol=0, atol=1e-6)
+    assert ow.Pose.from_ins(47.0, 8.0, 900.0, 0.0, 95.0, 0.0).params["pitch"] == 95.0
+
+
+# ------------------------------------------------------------------------------------------
+# 8. Fuzzing: only orthowarp's own errors escape; missing rows stay missing
+# ------------------------------------------------------------------------------------------
+import os  # noqa: E402
+
+from hypothesis import HealthCheck, event, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+from hypothesis.extra import numpy as hnp  # noqa: E402
+
+FUZZ = settings(max_examples=int(os.environ.get("ORTHOWARP_FUZZ_EXAMPLES", "300")), deadline=None,
+                derandomize=True, suppress_health_check=[HealthCheck.too_slow])
+FUZZ_SLOW = settings(FUZZ, max_examples=max(1, FUZZ.max_examples // 3))  # a DEM geometry per example
+_value = st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.floats(-400.0, 400.0),
+                   st.floats(-1e5, 1e8), st.integers(-10**12, 10**12), st.none(), st.text(max_size=3))
+
+
+_PLAUSIBLE_POSE = ((-89.0, 89.0), (-179.0, 179.0), (0.0, 9000.0), (-30.0, 30.0), (-30.0, 30.0), (-180.0, 360.0))
+
+
+@FUZZ
+@given(vals=st.tuples(*(st.one_of(_value, st.floats(lo, hi)) for lo, hi in _PLAUSIBLE_POSE)), opk=st.booleans())
+def test_fuzz_pose_arguments(vals, opk):
+    try:
+        pose = (ow.Pose.from_opk(*vals, crs=UTM32) if opk else ow.Pose.from_ins(*vals))
+    except ow.OrthowarpError as e:
+        event(f"refused: {type(e).__name__}")
+        return
+    event("accepted")
+    assert -1e5 <= pose.height <= 1e8 and np.all(np.isfinite(pose.rotation))
+
+
+_coords = hnp.arrays(np.float64, st.tuples(st.integers(0, 6), st.just(3)),
+                     elements=st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.floats(-100.0, 100.0),
+                                        st.sampled_from([8.3, 47.1, 400.0, 2e7, 1e308])))
+
+
+@FUZZ
+@given(pts=_coords, mask=st.lists(st.booleans(), min_size=6 * 3, max_size=6 * 3), masked=st.booleans())
+def test_fuzz_project_points(pts, mask, masked):
+    """Random points (huge, infinite, NaN), plain or masked: a ParamError naming a row, or one
+    row out per row in, NaN for every missing (NaN or masked) row."""
+    sc = scene("ins47")
+    m = np.array(mask[:pts.size], bool).reshape(pts.shape)
+    arg = np.ma.masked_array(pts, mask=m) if masked else pts
+    try:
+        got = ow.project(sc.camera, sc.pose, arg, device="cpu")
+    except ow.ParamError as e:
+        assert "points row" in str(e)
+        event("refused")
+        return
+    event("projected")
+    assert got.shape == (len(pts), 2)
+    missing = ~np.all(np.isfinite(pts), axis=1) | (m.any(axis=1) if masked else False)
+    assert np.all(np.isnan(got[missing]))
+    present = ~missing
+    assert np.all(np.abs(pts[present, 1]) <= 90.0) and np.all(np.abs(pts[present, 2]) <= 1e7)
+
+
+@FUZZ_SLOW
+@given(pix=hnp.arrays(np.float64, st.tuples(st.integers(0, 6), st.just(2)),
+                      elements=st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.floats(0.0, 4000.0))))
+def test_fuzz_geolocate_pixels(pix):
+    sc = scene("opk")
+    try:
+        got = ow.geolocate(sc.camera, sc.pose, pix, dem=400.0, crs=UTM32, device="cpu")
+    except ow.ParamError as e:
+        assert "pixels row" in str(e) and np.any(np.isinf(pix))
+        event("refused")
+        return
+    event("geolocated")
+    assert got.shape == (len(pix), 3)
+    finite = np.all(np.isfinite(pix), axis=1)
+    assert np.all(np.isnan(got[~finite]))
+    inside = finite & np.all((pix >= 0.0) & (pix <= [4000.0, 3000.0]), axis=1)
+    np.testing.assert_allclose(got[inside, 2], 400.0, rtol=0, atol=1e-3)

@@ -1,0 +1,214 @@
+"""Device selection and Warp's console output: a library call prints nothing by default, and a
+user's own Warp settings are left as they were.
+
+Warp prints its start-up banner and module-load lines through Python (``warp.config.log_level``)
+and, on a machine without an NVIDIA driver, a notice from its native library straight to file
+descriptor 2; so the checks run real calls in fresh interpreters and read both streams.
+"""
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+import threading
+
+import pytest
+import warp as wp
+
+import orthowarp as ow
+from orthowarp import _device
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+# Every public call that launches kernels but orthorectify, on the CPU: frame geolocate over a
+# constant height and over a DEM (probes, relief search, refraction), project, the camera's own
+# two kernels, and the pushbroom model (the real SPOT-5 sample) both ways.
+CALLS = textwrap.dedent("""
+    import numpy as np
+    import orthowarp as ow
+    from affine import Affine
+    cam = ow.FrameCamera(focal_length=100.0, pixel_size=0.006, image_size=(1000, 800))
+    pose = ow.Pose.from_ins(47.0, 8.0, 2500.0, roll=0.5, pitch=-0.3, yaw=90.0)
+    dem = ow.Dem(np.full((60, 60), 420.0, np.float32), Affine(0.0005, 0, 7.985, 0, -0.0005, 47.015), "EPSG:4326")
+    results = {
+        "geolocate_constant": ow.geolocate(cam, pose, [[0.5, 0.5], [500, 400]], dem=400.0, device="cpu"),
+        "geolocate_dem": ow.geolocate(cam, pose, [[500, 400]], dem=dem, device="cpu"),
+        "geolocate_default_device": ow.geolocate(cam, pose, [[500, 400]], dem=400.0),
+        "project": ow.project(cam, pose, [[8.0, 47.0, 400.0]], device="cpu"),
+        "pixel_to_camera": cam.pixel_to_camera([[500, 400]], device="cpu"),
+        "camera_to_pixel": cam.camera_to_pixel([[0.0, 0.0, -1.0]], device="cpu"),
+    }
+    scene = ow.PushbroomScene.from_dimap("tests/data/spot5/spot_example1.xml")
+    results["pushbroom_geolocate"] = ow.geolocate(scene, [[150.0, 1000.0]], dem=100.0, device="cpu")
+    results["pushbroom_project"] = ow.project(scene, results["pushbroom_geolocate"], device="cpu")
+""")
+N_CALLS = 8
+
+
+def _run(script, *, env=None):
+    """Run a Python script in a fresh interpreter from the repository root; (rc, stdout, stderr)."""
+    e = dict(os.environ)
+    e.pop("PYTHONWARNINGS", None)
+    e.update(env or {})
+    p = subprocess.run([sys.executable, "-c", script], cwd=ROOT, env=e, capture_output=True, text=True, timeout=300)
+    return p.returncode, p.stdout, p.stderr
+
+
+def _report(expr):
+    """Script tail writing ``expr`` (JSON-able) to the file named by $OW_RESULT, so that the
+    script's stdout stays what the library printed."""
+    return f"\nimport json, os\nopen(os.environ['OW_RESULT'], 'w').write(json.dumps({expr}))\n"
+
+
+def test_import_initialises_nothing_and_prints_nothing(tmp_path):
+    out = tmp_path / "r.json"
+    script = textwrap.dedent("""
+        import warp as wp, warp.config as c
+        before = {k: repr(getattr(c, k)) for k in dir(c) if not k.startswith("_")}
+        import orthowarp
+        from orthowarp import _device
+        after = {k: repr(getattr(c, k)) for k in dir(c) if not k.startswith("_")}
+    """) + _report("dict(changed=sorted(k for k in set(before) | set(after) if before.get(k) != after.get(k)),"
+                   " initialised=_device._warp_runtime() is not None)")
+    rc, stdout, stderr = _run(script, env={"OW_RESULT": str(out)})
+    assert rc == 0, stderr
+    assert (stdout, stderr) == ("", "")
+    r = json.loads(out.read_text())
+    assert r == {"changed": [], "initialised": False}
+
+
+def test_library_calls_print_nothing(tmp_path):
+    """Fresh process, Warp untouched by the user: the first call initialises Warp (banner,
+    device list, kernel cache, the no-CUDA-driver notice on a CPU machine) and loads three
+    kernel modules; none of it may reach stdout or stderr, and Warp's level is back at its
+    default afterwards."""
+    out = tmp_path / "r.json"
+    script = ("import warp as wp\nlevel0 = wp.config.log_level\n" + CALLS
+              + _report("dict(level0=level0, level=wp.config.log_level, n=len(results),"
+                        " finite={k: bool(np.all(np.isfinite(v))) for k, v in results.items()},"
+                        " gc=results['geolocate_constant'].tolist(), pr=results['project'].tolist(),"
+                        " pb=results['pushbroom_project'].tolist())"))
+    rc, stdout, stderr = _run(script, env={"OW_RESULT": str(out)})
+    assert rc == 0, stderr
+    assert stdout == ""
+    assert stderr == ""
+    r = json.loads(out.read_text())
+    assert r["n"] == N_CALLS and all(r["finite"].values())
+    assert r["level"] == r["level0"] == wp.LOG_INFO
+    # the calls computed what they compute in this process too
+    cam = ow.FrameCamera(focal_length=100.0, pixel_size=0.006, image_size=(1000, 800))
+    pose = ow.Pose.from_ins(47.0, 8.0, 2500.0, roll=0.5, pitch=-0.3, yaw=90.0)
+    import numpy as np
+
+    np.testing.assert_allclose(r["gc"], ow.geolocate(cam, pose, [[0.5, 0.5], [500, 400]], dem=400.0, device="cpu"),
+                               rtol=0, atol=1e-9)
+    np.testing.assert_allclose(r["pr"], ow.project(cam, pose, [[8.0, 47.0, 400.0]], device="cpu"), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(r["pb"], [[150.0, 1000.0]], rtol=0, atol=1e-3)  # pushbroom round trip
+
+
+@pytest.mark.parametrize("level", ["LOG_DEBUG", "LOG_WARNING", "LOG_ERROR"])
+def test_user_log_level_is_kept(tmp_path, level):
+    """A level the user chose stays theirs: during the calls (a debug level still shows Warp's
+    banner and module loads) and after them."""
+    out = tmp_path / "r.json"
+    script = (f"import warp as wp\nwp.config.log_level = wp.{level}\n" + CALLS
+              + _report("dict(level=wp.config.log_level)"))
+    rc, stdout, stderr = _run(script, env={"OW_RESULT": str(out)})
+    assert rc == 0, stderr
+    assert json.loads(out.read_text())["level"] == getattr(wp, level)
+    if level == "LOG_DEBUG":
+        assert "initialized" in stdout and "Module orthowarp.kernels" in stdout
+    else:
+        assert (stdout, stderr) == ("", "")
+
+
+def test_warp_initialised_by_the_user_first(tmp_path):
+    """Warp initialised (and its banner printed) before orthowarp is imported: orthowarp adds
+    no line of its own, Warp is not initialised again and its level stays the user's."""
+    out = tmp_path / "r.json"
+    script = ("import sys, warp as wp\nwp.init()\nfrom orthowarp import _device\nrt = _device._warp_runtime()\n"
+              "print('--marker--', flush=True)\nprint('--marker--', file=sys.stderr, flush=True)\n"
+              + CALLS + _report("dict(level=wp.config.log_level, same=_device._warp_runtime() is rt)"))
+    rc, stdout, stderr = _run(script, env={"OW_RESULT": str(out)})
+    assert rc == 0, stderr
+    head, _, tail = stdout.partition("--marker--\n")
+    assert "initialized" in head  # the user's own init printed Warp's banner, as Warp does
+    assert tail == ""
+    assert stderr.partition("--marker--\n")[2] == ""
+    assert json.loads(out.read_text()) == {"level": wp.LOG_INFO, "same": True}
+
+
+# ------------------------------------------------------------------------------------------
+# quiet_warp() in this process
+# ------------------------------------------------------------------------------------------
+@pytest.fixture
+def info_level():
+    """Warp at its default level for the test (the suite's conftest runs it at LOG_WARNING)."""
+    saved = wp.config.log_level
+    wp.config.log_level = wp.LOG_INFO
+    yield
+    wp.config.log_level = saved
+
+
+def test_quiet_scope_nests_and_restores(info_level):
+    with _device.quiet_warp():
+        assert wp.config.log_level == wp.LOG_WARNING
+        with _device.quiet_warp():
+            assert wp.config.log_level == wp.LOG_WARNING
+        assert wp.config.log_level == wp.LOG_WARNING
+    assert wp.config.log_level == wp.LOG_INFO
+
+
+def test_quiet_scope_keeps_a_level_set_inside_it(info_level):
+    with _device.quiet_warp():
+        wp.config.log_level = wp.LOG_DEBUG  # e.g. the user's other thread
+    assert wp.config.log_level == wp.LOG_DEBUG
+
+
+def test_quiet_scope_across_threads(info_level):
+    """Overlapping calls from several threads: quiet while any runs, restored after the last."""
+    start, go = threading.Barrier(5), threading.Event()
+    seen = []
+
+    def work():
+        with _device.quiet_warp():
+            start.wait()
+            go.wait()
+            seen.append(wp.config.log_level)
+
+    threads = [threading.Thread(target=work) for _ in range(4)]
+    for t in threads:
+        t.start()
+    start.wait()
+    assert wp.config.log_level == wp.LOG_WARNING
+    go.set()
+    for t in threads:
+        t.join()
+    assert seen == [wp.LOG_WARNING] * 4
+    assert wp.config.log_level == wp.LOG_INFO
+
+
+def test_quiet_scope_restores_after_an_error(info_level):
+    with pytest.raises(ow.ParamError):
+        with _device.quiet_warp():
+            ow.geolocate(ow.FrameCamera(50.0, 0.01, (10, 10)), ow.Pose.from_ins(47, 8, 900, 0, 0, 0),
+                         [[float("inf"), 1.0]], dem=0.0, device="cpu")
+    assert wp.config.log_level == wp.LOG_INFO
+
+
+def test_warp_messages_switch_leaves_warp_alone(info_level):
+    try:
+        _device.set_warp_messages(True)
+        with _device.quiet_warp():
+            assert wp.config.log_level == wp.LOG_INFO
+    finally:
+        _device.set_warp_messages(False)
+    with _device.quiet_warp():
+        assert wp.config.log_level == wp.LOG_WARNING
+
+
+def test_unknown_device_is_device_error():
+    with pytest.raises(ow.DeviceError, match="no-such-device"):
+        _device.resolve_device("no-such-device")
+    assert _device.resolve_device("cpu").is_cpu
