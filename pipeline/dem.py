@@ -237,9 +237,12 @@ class Dem:
     """
 
     def __init__(self, array, transform, crs, *, nodata=None):
-        arr = np.array(array, dtype=np.float32)  # a copy: the caller's array is never modified
+        # a copy: the caller's array is never modified; a masked array's masked cells are nodata
+        arr = np.array(np.ma.getdata(array), dtype=np.float32)
         if arr.ndim != 2 or min(arr.shape) < 1:
             raise ParamError(f"DEM array must be 2-D and non-empty, got shape {arr.shape}")
+        if np.ma.isMaskedArray(array):
+            arr[np.ma.getmaskarray(array)] = np.nan
         if nodata is not None and not (isinstance(nodata, float) and math.isnan(nodata)):
             arr[arr == np.float32(nodata)] = np.nan
         arr[~np.isfinite(arr)] = np.nan

@@ -229,9 +229,11 @@ class FrameGeometry:
         if region is None:
             region = (0.0, 0.0, float(camera.image_size[0]), float(camera.image_size[1]))
         frame = None if pose.mode == GEOCENTRIC else pose.crs
-        dem = _prepared_dem(_as_dem(dem), lambda d: reconcile_dem(
+        terrain = _as_dem(dem)
+        dem = _prepared_dem(terrain, lambda d: reconcile_dem(
             d, pose, geoid=geoid, same_vertical_datum=same_vertical_datum, name=_dem_name(d)).for_frame(frame),
             self._probe, region, self.horizontal_crs, height_range)
+        check_camera_above_terrain(pose, dem, name=terrain.source)
         self.dem = self._crop_to_footprint(dem, region) if not dem.is_constant else dem
         hmin, hmax = height_range if height_range is not None else (self.dem.hmin, self.dem.hmax)
         self.refraction = RefractionModel(pose.height, hmin, hmax, enabled=refraction)
@@ -664,7 +666,6 @@ def geolocate(sensor, *args, dem, crs=LLH, refraction=True, device=None, geoid=N
         else:
             geom = FrameGeometry(camera, pose, dem, refraction=refraction, device=device, region=region,
                                  geoid=geoid, same_vertical_datum=same_vertical_datum)
-            check_camera_above_terrain(pose, geom.dem, name=getattr(dem, "source", None))
             out = _transform(geom.geolocate_frame(pix), _frame_crs(pose), dst)
     out[~finite] = np.nan
     return out

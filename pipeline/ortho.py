@@ -29,6 +29,7 @@ from pyproj import CRS, Transformer
 from rasterio.enums import MaskFlags, Resampling
 from rasterio.windows import Window
 
+from .._device import quiet_warp
 from .._validate import as_crs, finite
 from ..camera import FrameCamera
 from ..errors import Cancelled, GeometryError, OrthowarpWarning, ParamError, RasterIOError
@@ -214,6 +215,7 @@ class _Timer:
             self.t[key] += dt
 
 
+@quiet_warp()  # Warp's informational messages only where the user asked for them
 def orthorectify(src, sensor, *args, dem, crs=None, resolution=None, resampling="bilinear", method="backward",
                  refraction=True, dtype=None, driver="COG", compress="deflate", compress_level=None, overviews=True,
                  tile_size=None, overwrite=False, device=None, progress=False, workers=None,
