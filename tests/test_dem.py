@@ -648,6 +648,6 @@ def test_fuzz_dem_files_give_their_heights_or_a_clean_error(tmp_path, dtype, sca
 def test_masked_array_cells_are_nodata():
     """The mask of a NumPy masked array is honoured: masked cells are nodata, whatever they hold."""
     z = np.ma.masked_array(np.array([[1.0, -9999.0], [3.0, 4.0]]), mask=[[False, True], [False, False]])
-    dem = Dem(z, (1.0, 0.0, 0.0, 0.0, -1.0, 2.0), "EPSG:32632")
+    dem = ow.Dem(z, (1.0, 0.0, 0.0, 0.0, -1.0, 2.0), "EPSG:32632")
     assert (dem.hmin, dem.hmax) == (1.0, 4.0) and np.isnan(dem.array[0, 1])
     assert z.data[0, 1] == -9999.0  # the caller's array is untouched
