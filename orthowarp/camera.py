@@ -277,28 +277,23 @@ class FrameCamera:
 
         Rows with NaN, or masked in a NumPy masked array, give NaN rays.
         """
-        pix = _as_points(pixels, 2, "pixels")
-        with quiet_warp():
-            dev = resolve_device(device)
-            out = wp.empty(len(pix), dtype=wp.vec3d, device=dev)
-            if len(pix):
-                wp.launch(pixel_to_camera_kernel, dim=len(pix), device=dev,
-                          inputs=[self.to_struct(), wp.array(pix, dtype=wp.vec2d, device=dev), out])
-            rays = out.numpy().reshape(-1, 3)
-        rays[~np.all(np.isfinite(pix), axis=1)] = np.nan  # missing pixels (NaN or masked)
-        return rays
+        return self._per_row(pixel_to_camera_kernel, _as_points(pixels, 2, "pixels"), wp.vec2d, wp.vec3d, device)
 
     def camera_to_pixel(self, vectors, *, device=None):
         """Camera-frame directions (N, 3) -> pixels (N, 2); NaN rows for directions not in front
         and for rows with NaN or masked in a NumPy masked array."""
-        vec = _as_points(vectors, 3, "vectors")
+        return self._per_row(camera_to_pixel_kernel, _as_points(vectors, 3, "vectors"), wp.vec3d, wp.vec2d, device)
+
+    def _per_row(self, kernel, rows, in_type, out_type, device):
+        """Launch ``kernel`` (camera struct, rows in, rows out) over ``rows`` (N, k) float64;
+        NaN output rows where an input row is missing (NaN or masked)."""
         with quiet_warp():
             dev = resolve_device(device)
-            out = wp.empty(len(vec), dtype=wp.vec2d, device=dev)
-            if len(vec):
-                wp.launch(camera_to_pixel_kernel, dim=len(vec), device=dev,
-                          inputs=[self.to_struct(), wp.array(vec, dtype=wp.vec3d, device=dev), out])
-            pix = out.numpy().reshape(-1, 2)
-        pix[~np.all(np.isfinite(vec), axis=1)] = np.nan  # missing directions (NaN or masked)
-        return pix
+            out = wp.empty(len(rows), dtype=out_type, device=dev)
+            if len(rows):
+                wp.launch(kernel, dim=len(rows), device=dev,
+                          inputs=[self.to_struct(), wp.array(rows, dtype=in_type, device=dev), out])
+            res = out.numpy().reshape(len(rows), out_type._length_)
+        res[~np.all(np.isfinite(rows), axis=1)] = np.nan
+        return res
 

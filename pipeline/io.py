@@ -240,31 +240,28 @@ def atomic_path(path, *, overwrite=True, durable=True):
     :class:`RasterIOError` naming ``path``.
     """
     path = os.fspath(path)
-    folder = os.path.dirname(os.path.abspath(path))
-    remove_stale_temporaries(folder)
-    try:
-        fd, tmp = _new_temporary(path)
-    except OSError as e:
-        raise RasterIOError(f"Cannot write into '{folder}': {describe_os_error(e)}") from e
-    try:
+    with _kept_temporary(path) as tmp:
         yield tmp
         try:
-            if durable:
-                _fsync_path(tmp)
-            umask = os.umask(0)
-            os.umask(umask)
-            os.chmod(tmp, 0o666 & ~umask)  # the temporary was made 0600; give the usual permissions
+            _finalise(tmp, durable)
             _publish(tmp, path, overwrite)
             if durable:
-                _fsync_path(folder, directory=True)
+                _fsync_path(os.path.dirname(os.path.abspath(path)), directory=True)
         except FileExistsError as e:
             raise RasterIOError(f"Output '{path}' was created by someone else while this run wrote it; "
                                 "it was left as it is (pass overwrite=True / --overwrite to replace it)") from e
         except OSError as e:
             raise RasterIOError(f"Could not write '{path}': {describe_os_error(e)}") from e
-    finally:
-        _remove_job(tmp)
-        os.close(fd)
+
+
+def _finalise(tmp, durable):
+    """Sync a complete temporary (if ``durable``) and give it the usual permissions (it was
+    made 0600)."""
+    if durable:
+        _fsync_path(tmp)
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o666 & ~umask)
 
 
 def _remove_job(tmp):
@@ -295,12 +292,8 @@ def atomic_files(paths, *, durable=True):
         yield tmps
         backups, done = [], []
         try:
-            for p, t in zip(paths, tmps):
-                if durable:
-                    _fsync_path(t)
-                umask = os.umask(0)
-                os.umask(umask)
-                os.chmod(t, 0o666 & ~umask)
+            for t in tmps:
+                _finalise(t, durable)
             for p, t in zip(paths, tmps):
                 if os.path.lexists(p):
                     b = t + ".previous"
