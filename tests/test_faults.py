@@ -46,14 +46,30 @@ def _temporaries(folder):
     return [n for n in os.listdir(folder) if TMP_TAG in n]
 
 
+_STARTED = []
+
+
+@pytest.fixture(autouse=True)
+def _no_stray_processes():
+    """Every run a test started is gone when it ends, whatever the test's outcome."""
+    yield
+    while _STARTED:
+        p = _STARTED.pop()
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+
+
 def _cli(args, *, fsize=None, **kw):
     """Start ``orthowarp ARGS`` in a subprocess (optionally under RLIMIT_FSIZE = fsize bytes)."""
     def limit():
         if fsize is not None:
             resource.setrlimit(resource.RLIMIT_FSIZE, (fsize, fsize))
 
-    return subprocess.Popen([sys.executable, "-m", "orthowarp.cli", *args], cwd=ROOT, preexec_fn=limit,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw)
+    p = subprocess.Popen([sys.executable, "-m", "orthowarp.cli", *args], cwd=ROOT, preexec_fn=limit,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw)
+    _STARTED.append(p)
+    return p
 
 
 def _error_line(stderr):
