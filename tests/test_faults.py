@@ -8,7 +8,6 @@ A full disk is simulated without root by RLIMIT_FSIZE: writes past the limit fai
 """
 
 import os
-import resource
 import shutil
 import signal
 import subprocess
@@ -61,13 +60,13 @@ def _no_stray_processes():
 
 
 def _cli(args, *, fsize=None, **kw):
-    """Start ``orthowarp ARGS`` in a subprocess (optionally under RLIMIT_FSIZE = fsize bytes)."""
-    def limit():
-        if fsize is not None:
-            resource.setrlimit(resource.RLIMIT_FSIZE, (fsize, fsize))
-
-    p = subprocess.Popen([sys.executable, "-m", "orthowarp.cli", *args], cwd=ROOT, preexec_fn=limit,
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw)
+    """Start ``orthowarp ARGS`` in a subprocess (optionally under RLIMIT_FSIZE = fsize bytes,
+    set by the child itself: no preexec_fn in this threaded process)."""
+    start = [sys.executable, "-m", "orthowarp.cli"] if fsize is None else [
+        sys.executable, "-c", "import resource, runpy, sys; "
+        f"resource.setrlimit(resource.RLIMIT_FSIZE, ({fsize}, {fsize})); "
+        "sys.argv[0] = 'orthowarp'; runpy.run_module('orthowarp.cli', run_name='__main__')"]
+    p = subprocess.Popen([*start, *args], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw)
     _STARTED.append(p)
     return p
 
