@@ -43,7 +43,7 @@ def edit(small, tmp_path, fn):
     (lambda d: d["observations"][0].update(point="nope"), "unknown point 'nope'"),
     (lambda d: d["images"][0].update(camera="nope"), "unknown camera 'nope'"),
     (lambda d: d["points"][0].update(role="gcp"), "role 'gcp'"),
-    (lambda d: d["observations"][0].update(col=float("nan")), "NaN or infinite"),
+    (lambda d: d["observations"][0].update(col=float("nan")), "col must be a finite number, got nan"),
     (lambda d: d.pop("crs"), "missing 'crs'"),
     (lambda d: d["images"].append(dict(d["images"][0])), "appears twice"),
     (lambda d: d["observations"].append(dict(d["observations"][0])), "measured twice"),
