@@ -42,7 +42,7 @@ import reprlib
 import numpy as np
 from pyproj import CRS
 
-from ..adjust.block import ROLES, Block
+from ..adjust.block import MAX_COORDINATE, MAX_IMAGE_SIZE, ROLES, SIGMA_RANGE, Block
 from ..errors import ParamError, RasterIOError
 from .formats import _camera_from_entry
 from .io import write_json
@@ -357,48 +357,152 @@ def write_block(block, path):
 
 def _csv_rows(path):
     try:
-        with open(path, encoding="utf-8", newline="") as f:
-            text = f.read()
+        with open(path, "rb") as f:
+            raw = f.read()
     except OSError as e:
         raise RasterIOError(f"Cannot read '{path}': {e.strerror or e}") from e
-    rows = [r for r in csv.reader(io.StringIO(text)) if r and any(c.strip() for c in r)]
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise _fail(path, f"not UTF-8 text ({e.reason} at byte {e.start})") from e
+    if "\0" in text:
+        raise _fail(path, "holds NUL bytes: not a text CSV file")
+    try:
+        rows = [r for r in csv.reader(io.StringIO(text, newline="")) if r and any(c.strip() for c in r)]
+    except csv.Error as e:
+        raise _fail(path, f"not a readable CSV file: {e}") from e
     if not rows:
         raise _fail(path, "empty file")
     return [c.strip().lower() for c in rows[0]], rows[1:]
 
 
-def _csv_records(path, need, make):
-    """make(row, column index) for every data row of a CSV whose header names ``need``."""
+def _csv_records(path, need, optional, make):
+    """make(cells by column name, what) for every data row of a CSV whose header names ``need``
+    (and maybe ``optional``); other columns are refused."""
     path = os.fspath(path)
     head, rows = _csv_rows(path)
     if any(h not in head for h in need):
-        raise _fail(path, f"the header must name {', '.join(need)} (got {', '.join(head)})")
-    idx = {h: head.index(h) for h in head}
+        raise _fail(path, f"the header must name {', '.join(need)} (got {', '.join(map(_show, head))})")
+    dup = _first_duplicate(head)
+    if dup is not None:
+        raise _fail(path, f"the header names column {_show(dup)} twice")
+    unknown = [h for h in head if h not in need and h not in optional]
+    if unknown:
+        raise _fail(path, f"unknown column(s) {', '.join(map(_show, unknown))} (known: "
+                          f"{', '.join(need + optional)})")
     out = []
     for n, r in enumerate(rows, start=2):
+        if len(r) != len(head):
+            raise _fail(path, f"line {n}: {len(r)} fields, the header names {len(head)}")
+        cells = {h: c.strip() for h, c in zip(head, r)}
         try:
-            out.append(make(r, idx))
-        except (IndexError, ValueError) as e:
-            raise _fail(path, f"line {n}: {e}") from e
+            out.append(make(cells, f"line {n}"))
+        except ValueError as e:
+            raise _fail(path, str(e)) from None
     return out
 
 
+def _csv_id(cells, key, what):
+    v = cells[key]
+    if not v:
+        raise ValueError(f"{what}: {key} is empty")
+    return v
+
+
+def _csv_num(cells, key, what, *, low=None, high=None, positive=False, nonneg=False):
+    text = cells[key]
+    try:
+        v = float(text)
+    except ValueError:
+        raise ValueError(f"{what}: {key} {_show(text)} is not a number") from None
+    if not math.isfinite(v):
+        raise ValueError(f"{what}: {key} {_show(text)} is not a finite number")
+    if positive and not v > 0:
+        raise ValueError(f"{what}: {key} must be > 0, got {_show(text)}")
+    if nonneg and v < 0:
+        raise ValueError(f"{what}: {key} must be >= 0, got {_show(text)}")
+    if (low is not None and v < low) or (high is not None and v > high):
+        raise ValueError(f"{what}: {key} = {v:g} is not plausible (expected {low:g} .. {high:g})")
+    return v
+
+
 def read_image_points_csv(path, *, sigma=1.0):
-    """Image points ``image,point,col,row[,sigma]`` -> list of observation dicts."""
-    return _csv_records(path, ["image", "point", "col", "row"], lambda r, idx: {
-        "image": r[idx["image"]], "point": r[idx["point"]], "col": float(r[idx["col"]]), "row": float(r[idx["row"]]),
-        "sigma": float(r[idx["sigma"]]) if "sigma" in idx else float(sigma)})
+    """Image points ``image,point,col,row[,sigma]`` (px) -> list of observation dicts
+    ``{"image", "point", "col", "row", "sigma"}``, as in the block JSON.
+
+    Raises
+    ------
+    ParamError
+        Malformed content (the file and line named): a header without image, point, col, row,
+        unknown or repeated columns, rows of the wrong length, empty ids, values that are not
+        finite numbers, sigmas <= 0.
+    RasterIOError
+        The file cannot be read.
+    """
+    _sigma_arg(sigma, "sigma", zero=False)
+
+    def make(c, what):
+        return {"image": _csv_id(c, "image", what), "point": _csv_id(c, "point", what),
+                "col": _csv_num(c, "col", what, low=-MAX_IMAGE_SIZE, high=MAX_IMAGE_SIZE),
+                "row": _csv_num(c, "row", what, low=-MAX_IMAGE_SIZE, high=MAX_IMAGE_SIZE),
+                "sigma": (_csv_num(c, "sigma", what, positive=True, low=SIGMA_RANGE[0], high=SIGMA_RANGE[1])
+                          if "sigma" in c else float(sigma))}
+
+    return _csv_records(path, ["image", "point", "col", "row"], ["sigma"], make)
 
 
 def read_ground_points_csv(path, *, sigma=None, role="control"):
-    """Ground points ``point,x,y,z[,sx,sy,sz][,role]`` -> list of point dicts."""
-    def make(r, idx):
-        pt = {"id": r[idx["point"]], "role": r[idx["role"]].strip() if "role" in idx else role,
-              "xyz": [float(r[idx[a]]) for a in "xyz"]}
-        if all(f"s{a}" in idx for a in "xyz"):
-            pt["sigma"] = [float(r[idx[f"s{a}"]]) for a in "xyz"]
+    """Ground points ``point,x,y,z[,sx,sy,sz][,role]`` (m) -> list of point dicts
+    ``{"id", "role", "xyz"[, "sigma"]}``, as in the block JSON (role defaults to ``role``;
+    sigmas to ``sigma`` when given; a sigma 0 fixes a control point).
+
+    Raises
+    ------
+    ParamError
+        Malformed content (the file and line named): a header without point, x, y, z, unknown
+        or repeated columns, some but not all of sx, sy, sz, rows of the wrong length, empty ids,
+        values that are not finite numbers, absurd coordinates, negative sigmas, unknown roles.
+    RasterIOError
+        The file cannot be read.
+    """
+    if role not in ROLES:
+        raise ParamError(f"role must be one of {ROLES}, got {role!r}")
+    if sigma is not None:
+        _sigma_arg(sigma, "sigma", zero=True)
+    head_sigma = ("sx", "sy", "sz")
+
+    def make(c, what):
+        r = c["role"].lower() if "role" in c else role
+        if r not in ROLES:
+            raise ValueError(f"{what}: role {_show(c['role'])}, expected one of {', '.join(ROLES)}")
+        pt = {"id": _csv_id(c, "point", what), "role": r,
+              "xyz": [_csv_num(c, a, what, low=-MAX_COORDINATE, high=MAX_COORDINATE) for a in "xyz"]}
+        if any(k in c for k in head_sigma):
+            if not all(k in c for k in head_sigma):
+                raise ValueError(f"{what}: give all of sx, sy, sz or none")
+            pt["sigma"] = [_csv_num(c, k, what, nonneg=True, high=SIGMA_RANGE[1]) for k in head_sigma]
+            _sigma_zero(pt, what)
         elif sigma is not None:
             pt["sigma"] = [float(sigma)] * 3
+            _sigma_zero(pt, what)
         return pt
 
-    return _csv_records(path, ["point", "x", "y", "z"], make)
+    return _csv_records(path, ["point", "x", "y", "z"], ["sx", "sy", "sz", "role"], make)
+
+
+def _sigma_zero(pt, what):
+    s = pt["sigma"]
+    if pt["role"] != "control" and 0.0 in s:
+        raise ValueError(f"{what}: sigma 0 for a {pt['role']} point (only control points can be fixed)")
+    if any(0 < v < SIGMA_RANGE[0] for v in s):
+        raise ValueError(f"{what}: sigma {s} is not plausible (>= {SIGMA_RANGE[0]:g}, or 0 to fix a control point)")
+
+
+def _sigma_arg(value, name, *, zero):
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ParamError(f"{name} must be a number, got {value!r}") from None
+    lo, hi = SIGMA_RANGE
+    if not (v == 0 and zero) and not (lo <= v <= hi):
+        raise ParamError(f"{name} must be {'0 or ' if zero else ''}within [{lo:g}, {hi:g}], got {value!r}")
