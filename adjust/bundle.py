@@ -27,7 +27,7 @@ import scipy.sparse.linalg as spla
 from ..camera import FrameCamera
 from ..errors import GeometryError, ParamError
 from .block import Block
-from .collinearity import CALIBRATION, camera_jacobian, jacobians, project
+from .collinearity import CALIBRATION, camera_jacobian, jacobians, project, rotation
 
 __all__ = ["bundle_adjust", "AdjustResult", "intersect"]
 
@@ -43,9 +43,15 @@ class AdjustResult:
     Attributes
     ----------
     status : int
-        1 converged on the parameter change, 2 on the cost change, 0 iteration limit.
+        1 converged on the parameter change, 2 on the cost change; failures: 0 iteration limit,
+        -1 singular normal equations, -2 diverged to non-finite values, -3 more gross blunders
+        than ``max_rejections``.
     message : str
+        What happened, in words (for failures: what is wrong, naming images or points where
+        it can).
     success : bool
+        ``status > 0``. A failed result carries the last poses but no statistics (sigma0 NaN,
+        no covariances): it must not be written out as an orientation.
     sigma0 : float
         A-posteriori standard deviation of unit weight.
     redundancy : int
@@ -815,10 +821,45 @@ def _spans_3d(known):
     return bool(s[1] > 1e-6 * max(s[0], 1e-9))
 
 
+def _parallel_check(b, poses_deg, idx, pts, min_angle=0.1):
+    """Points intersected from rays that are nearly parallel (or that do not meet): GeometryError
+    saying so (e.g. images with the same initial position)."""
+    poses = np.array(poses_deg, dtype=np.float64)
+    poses[:, 3:] = np.radians(poses[:, 3:])
+    local = -np.ones(b.n_points, int)
+    local[idx] = np.arange(len(idx))
+    sel = np.flatnonzero(local[b.obs_point] >= 0)
+    i, jl = b.obs_image[sel], local[b.obs_point[sel]]
+    r, _ = rotation(poses[i, 3:])
+    uv = np.empty((len(sel), 2))
+    for cid, c in b.cameras.items():
+        m = np.array([b.image_camera[k] == cid for k in i], dtype=bool)
+        if np.any(m):
+            uv[m] = c.undistort(c.pixel_to_normalized(b.obs_xy[sel[m]]))
+    d = np.einsum("nij,nj->ni", r, np.stack([uv[:, 0], -uv[:, 1], -np.ones(len(uv))], -1))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    mean = np.zeros((len(idx), 3))
+    np.add.at(mean, jl, d)
+    mean /= np.linalg.norm(mean, axis=1, keepdims=True)
+    ang = np.degrees(np.arccos(np.clip(np.einsum("ni,ni->n", d, mean[jl]), -1.0, 1.0)))
+    spread = np.zeros(len(idx))
+    np.maximum.at(spread, jl, np.nan_to_num(ang, nan=0.0))
+    bad = np.flatnonzero((spread < min_angle) | ~np.all(np.isfinite(pts[idx]), axis=1))
+    if len(bad):
+        j = idx[bad[0]]
+        imgs = np.unique(b.obs_image[b.obs_point == j])
+        gap = max(float(np.linalg.norm(poses[a, :3] - poses[c, :3])) for a in imgs for c in imgs)
+        raise GeometryError(f"Block '{b.name}': tie point '{b.point_ids[j]}' cannot be intersected from the initial "
+                            f"poses: its rays from images {', '.join(b.image_ids[k] for k in imgs[:5])} are nearly "
+                            f"parallel (within {2 * spread[bad[0]]:.3g} deg; their initial positions are at most "
+                            f"{gap:.3g} m apart)")
+
+
 def _front_check(pr, poses, pts, used, robust):
     """Observations whose point lies behind its camera at the start. Control points behind a
-    camera: GeometryError (the pose or the coordinates are wrong); tie points: GeometryError
-    too, unless ``robust`` (then they are returned, to be set aside as blunders)."""
+    camera: GeometryError saying what is wrong (the pose's height or attitude, or the point's
+    position); tie points: GeometryError too, unless ``robust`` (then they are returned, to be
+    set aside as blunders)."""
     b = pr.block
     sel = np.flatnonzero(used)
     i, j = b.obs_image[sel], b.obs_point[sel]
@@ -832,14 +873,31 @@ def _front_check(pr, poses, pts, used, robust):
     if np.any(ctrl) or not robust:
         a = int(np.flatnonzero(ctrl)[0]) if np.any(ctrl) else int(np.flatnonzero(bad)[0])
         k, p = i[a], j[a]
-        zc = poses[k, 2]
-        what = (f"{roles[p]} point '{b.point_ids[p]}' (z = {pts[p, 2]:.6g} m)" if roles[p] == "control"
-                else f"tie point '{b.point_ids[p]}' (intersected at z = {pts[p, 2]:.6g} m)")
-        raise GeometryError(f"Block '{b.name}': {what} lies behind image '{b.image_ids[k]}' (camera at z = "
-                            f"{zc:.6g} m, omega {np.degrees(poses[k, 3]):.4g}, phi {np.degrees(poses[k, 4]):.4g} deg) "
-                            "at its initial pose: the pose is wrong (below the terrain, or looking up?)"
-                            + (" or the point's coordinates are" if roles[p] == "control" else "")
-                            + f" ({int(bad.sum())} observation(s) of points behind their camera)")
+        img, pid = b.image_ids[k], b.point_ids[p]
+        cz, pz = poses[k, 2], pts[p, 2]
+        horiz = float(np.hypot(*(pts[p, :2] - poses[k, :2])))
+        count = f" ({int(bad.sum())} observation(s) of points behind their camera)"
+        if roles[p] != "control":
+            imgs = np.unique(b.obs_image[b.obs_point == p])
+            gap = min(float(np.linalg.norm(poses[a, :3] - poses[c, :3])) for a in imgs for c in imgs if a != c)
+            raise GeometryError(f"Block '{b.name}': tie point '{pid}', intersected from the initial poses at z = "
+                                f"{pz:.6g} m, lies behind image '{img}' (camera at z = {cz:.6g} m): its rays do not "
+                                "meet in front of the cameras, so its image measurements (blunders? try snooping or "
+                                f"the robust estimation) or the initial poses of images "
+                                f"{', '.join(b.image_ids[k] for k in imgs[:5])} (as close as {gap:.3g} m to each "
+                                "other) are wrong" + count)
+        if cz <= pz:
+            raise GeometryError(f"Block '{b.name}': image '{img}' has its initial position at z = {cz:.6g} m, below "
+                                f"control point '{pid}' (z = {pz:.6g} m) that it measures: the pose's height (or the "
+                                "point's) is wrong" + count)
+        if horiz > 3.0 * (cz - pz):
+            raise GeometryError(f"Block '{b.name}': control point '{pid}' lies {horiz:.6g} m (horizontally) from image "
+                                f"'{img}', which measures it from {cz - pz:.6g} m above: the point's coordinates, the "
+                                "image's initial position or their CRS are wrong" + count)
+        raise GeometryError(f"Block '{b.name}': image '{img}' looks away from control point '{pid}' that it measures "
+                            f"at its initial attitude (omega {np.degrees(poses[k, 3]):.4g}, phi "
+                            f"{np.degrees(poses[k, 4]):.4g} deg): the attitude is wrong (radians given as degrees, or "
+                            "off by 180 deg?)" + count)
     behind[sel[bad]] = True
     return behind
 
@@ -858,8 +916,38 @@ def _diagnose(pr, used):
     weak = np.flatnonzero(free & ~pr.prior_point & (rays < 2))
     if len(weak):
         return f"point '{b.point_ids[weak[0]]}' has {rays[weak[0]]} ray(s) left: too few to intersect it"
+    spread = _sigma_spread(pr)
+    if spread:
+        return spread
     return ("the block's geometry does not determine every unknown (an image whose points are collinear or "
             "bunched, nearly parallel rays, or too little control)")
+
+
+def _sigma_spread(pr, limit=1e6):
+    """A sentence when the stated sigmas, as ground metres, span more than ``limit`` (the
+    normal equations are then too ill-conditioned for double precision); else ''."""
+    b = pr.block
+    height = float(np.nanmedian(np.abs(b.poses[:, 2] - np.nanmedian(b.xyz[:, 2])))) if b.n_points else np.nan
+    if not np.isfinite(height) or height <= 0:
+        height = 1000.0
+    cam = pr.cam
+    gsd = height / cam[:, 0] * cam[:, 8]  # m per pixel, per image
+    groups = {"image observations": np.median(b.obs_sigma * gsd[b.obs_image]) if len(b.obs_sigma) else np.nan}
+    if np.any(pr.prior_point):
+        groups["control points"] = np.median(pr.prior_sigma[pr.prior_point])
+    if np.any(pr.gnss):
+        groups["GNSS positions"] = np.median(b.gnss_sigma[pr.gnss])
+    if np.any(pr.ins):
+        groups["INS attitudes"] = np.median(np.radians(b.ins_sigma[pr.ins])) * height
+    vals = {k: v for k, v in groups.items() if np.isfinite(v) and v > 0}
+    if len(vals) < 2:
+        return ""
+    lo, hi = min(vals, key=vals.get), max(vals, key=vals.get)
+    if vals[hi] / vals[lo] <= limit:
+        return ""
+    return (f"the stated sigmas span a factor of {vals[hi] / vals[lo]:.2g} ({lo} about {vals[lo]:.2g} m on the "
+            f"ground, {hi} {vals[hi]:.2g} m): the normal equations are too ill-conditioned for double precision; "
+            "give realistic sigmas")
 
 
 def _normalised_residuals(pr, poses, pts, idx, *, norm=True):
@@ -892,11 +980,8 @@ def _adjust(b, *, fix_control, use_gnss, use_ins, self_calibration, max_iteratio
     pts[roles == "check"] = 0.0
     poses = init.copy()
     poses[:, 3:] = np.radians(poses[:, 3:])  # radians inside
-    undetermined = np.flatnonzero(pr.point_free & ~np.all(np.isfinite(pts), axis=1))
-    if len(undetermined):
-        j = int(undetermined[0])
-        raise GeometryError(f"Block '{b.name}': point '{b.point_ids[j]}' cannot be intersected from the initial "
-                            "poses (parallel rays?)")
+    if len(missing):
+        _parallel_check(b, init, missing, pts)
     n_adj = int(used.sum())
     cap = max_rejections if max_rejections is not None else max(1, int(0.05 * n_adj))
     aside = _front_check(pr, poses, pts, used, screening)
@@ -1290,10 +1375,23 @@ def _result(pr, poses, pts, used, st, status, it, cost, rejected, corr_limit):
                                    k3=k3, p1=p1, p2=p2) if pr.q else base
         if pr.q and st.get("cam_q") is not None:
             camera_std[cid] = dict(zip(pr.calib_names, (float(v) for v in st["sigma0"] * np.sqrt(np.diag(st["cam_q"][c])))))
-    messages = {0: "the iteration limit was reached", 1: "converged: parameter change below xtol",
+    messages = {0: f"did not converge: the iteration limit ({it}) was reached", 1: "converged: parameter change below xtol",
                 2: "converged: relative cost change below ftol"}
+    message = messages[status]
+    r = st["redundancy"]
+    if status > 0 and st["sigma0"] > 1.0 + 4.0 * np.sqrt(1.0 / (2.0 * r)):
+        # sigma0 fails the global test (alpha ~ 0.01 %): say where the worst residual is
+        hint = ""
+        if st["w"] is not None and np.any(np.isfinite(st["w"][used])):
+            wa = np.where(used[:, None], np.abs(np.nan_to_num(st["w"], nan=0.0)), 0.0).max(axis=1)
+            a = int(np.argmax(wa))
+            hint = (f"; the largest |w| is {wa[a]:.3g} at point '{b.point_ids[b.obs_point[a]]}' in image "
+                    f"'{b.image_ids[b.obs_image[a]]}'")
+        message += (f"; sigma0 = {st['sigma0']:.4g} fails the global test: the observations do not fit their "
+                    f"sigmas (blunders? try snooping or robust estimation){hint}")
+        log.warning("block '%s': %s", b.name, message)
     return AdjustResult(
-        status=status, message=messages[status], success=status > 0, sigma0=st["sigma0"], redundancy=st["redundancy"],
+        status=status, message=message, success=status > 0, sigma0=st["sigma0"], redundancy=st["redundancy"],
         iterations=it, cost=float(cost),
         poses={b.image_ids[k]: tuple(out_poses[k]) for k in range(b.n_images)},
         pose_std={} if pose_cov is None else {b.image_ids[k]: tuple(np.sqrt(np.diag(pose_cov[k])))
