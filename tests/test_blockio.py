@@ -97,3 +97,179 @@ def test_geocentric_block_round_trip(tmp_path):
     (tmp_path / "g2.json").write_text(json.dumps(data))
     with pytest.raises(ParamError, match="geographic 3-D"):
         read_block(tmp_path / "g2.json")
+
+
+# --- bad block inputs: each gives a ParamError naming the file and what is wrong -------------
+
+def _set(*keys, value):
+    def fn(d):
+        for k in keys[:-1]:
+            d = d[k]
+        d[keys[-1]] = value
+    return fn
+
+
+def _first_control(d):
+    return next(p for p in d["points"] if p["role"] == "control")
+
+
+BAD_DOCUMENTS = [
+    (_set("images", value=5), r"'images' must be a list, got the number 5"),
+    (_set("points", value=None), r"'points' must be a list, got null"),
+    (_set("observations", value="abc"), r"'observations' must be a list, got a string 'abc'"),
+    (_set("cameras", value=[1]), r"'cameras' must be a JSON object, got a list"),
+    (_set("cameras", value={}), r"'cameras' must map camera ids to parameters; it is empty"),
+    (_set("crs", value=32632), r"'crs' must be a string such as \"EPSG:32632\", got the number 32632"),
+    (_set("crs", value="EPSG:4326"), r"crs must be projected \(map blocks\) or geographic 3-D"),
+    (_set("crs", value="no such crs"), r"crs 'no such crs' is not a CRS"),
+    (_set("observations", 0, "col", value="12.5"), r"observation #1 \(point '.*' in image '.*'\) col must be a number, "
+                                                   r"got a string '12.5'"),
+    (_set("observations", 0, "row", value=True), r"observation #1 .* row must be a number, got the boolean true"),
+    (_set("observations", 0, "sigma", value=False), r"observation #1 .* sigma must be a number, got the boolean false"),
+    (_set("observations", 0, "col", value=[1.0]), r"col must be a number, got a list \[1.0\]"),
+    (_set("observations", 0, "col", value=10**400), r"col is too large for a float \(401 digits\)"),
+    (_set("observations", 0, "sigma", value=0), r"sigma 0 px must be > 0"),
+    (_set("observations", 0, "sigma", value=-0.5), r"sigma -0.5 px must be > 0"),
+    (_set("observations", 0, "col", value=-3.0), r"at \(col, row\) = \(-3, .*\) lies outside the image"),
+    (_set("observations", 0, value=None), r"observation #1 must be a JSON object, got null"),
+    (_set("observations", 0, "image", value={"id": 1}), r"observation #1 image must be a string, got an object"),
+    (_set("images", 0, "id", value=[1]), r"image #1 id must be a string, got a list"),
+    (_set("images", 0, "id", value=" "), r"image #1 id is empty"),
+    (_set("images", 0, "pose", value="abc"), r"image 's0_000' pose must be a JSON object, got a string"),
+    (_set("images", 0, "pose", "z", value=None), r"image 's0_000' pose z must be a number, got null"),
+    (_set("images", 0, "pose", "kappa", value=1e5), r"image 's0_000': initial attitude: angles .* must lie within"),
+    (_set("images", 0, "gnss", value={"xyz": [1, 2, 3], "sigma": [0, 1, 1]}),
+     r"image 's0_000': the GNSS position observation needs a sigma > 0 per axis"),
+    (_set("images", 0, "ins", value={"opk": [0, 0, 0], "sigma": [0.01, -0.01, 0.01]}),
+     r"image 's0_000': the INS attitude observation needs a sigma > 0"),
+    (_set("images", 0, "gnss", value={"xyz": [1, 2, 3]}), r"image 's0_000': 'gnss' needs 'xyz' and 'sigma'"),
+    (_set("images", 0, "gnss", value={"xyz": [1, 2], "sigma": [1, 1, 1]}),
+     r"image 's0_000' gnss xyz must be a list of 3 numbers"),
+    (lambda d: _first_control(d).update(sigma=[-0.02, 0.02, 0.02]), r"control point '.*' needs a sigma >= 0 per axis"),
+    (lambda d: _first_control(d).update(xyz=[1e308, 5e6, 300.0]),
+     r"control point '.*': x = 1e\+308 m is not a plausible coordinate in EPSG:32632"),
+    (lambda d: _first_control(d).update(xyz=["1", 2, 3]), r"point 'c.*' xyz\[0\] must be a number, got a string '1'"),
+    (lambda d: d["points"][0].update(role=5), r"point '.*': role 5, expected one of"),
+    (lambda d: d["points"][0].update(id=None), r"point #1 id must be a string, got null"),
+    (lambda d: d["points"].append(dict(d["points"][0])), r"point id '.*' appears twice"),
+    (_set("cameras", "cam", "focal_len", value="100"), r"camera 'cam' focal_len must be a number, got a string"),
+    (_set("cameras", "cam", "focal_len", value=10**400), r"camera 'cam' focal_len is too large for a float"),
+    (_set("cameras", "cam", "type", value=7), r"camera 'cam' type must be a string, got the number 7"),
+    (_set("cameras", "cam", "im_size", value=[10**9, 10**9]), r"camera 'cam': an image of 1e\+09 x 1e\+09 pixels"),
+    (_set("cameras", "cam", value="pinhole"), r"camera 'cam' must be a JSON object"),
+]
+
+
+@pytest.mark.parametrize("fn,message", BAD_DOCUMENTS)
+def test_bad_block_documents_are_named(small, tmp_path, fn, message):
+    path = edit(small, tmp_path, fn)
+    with pytest.raises(ParamError, match=message) as info:
+        read_block(path)
+    assert str(path) in str(info.value) and "\n" not in str(info.value)
+
+
+BAD_TEXTS = [
+    ("[" * 100000 + "]" * 100000, r"nested too deeply"),
+    ('{"a":' * 100000 + "1" + "}" * 100000, r"nested too deeply"),
+    ('{"crs": "EPSG:32632", "crs": "EPSG:4326"}', r"key 'crs' appears twice in one object"),
+    ('{"sigma": ' + "1" * 5000 + "}", r"Could not parse block file"),
+    ("", r"Could not parse block file .*: Expecting value"),
+    ("[]", r"the file's content must be a JSON object, got a list"),
+    ("NaN", r"the file's content must be a JSON object, got the number nan"),
+    ('{"crs": "EPSG:32632"}', r"missing 'cameras'"),
+]
+
+
+@pytest.mark.parametrize("text,message", BAD_TEXTS)
+def test_bad_block_texts_are_named(tmp_path, text, message):
+    path = tmp_path / "b.json"
+    path.write_text(text)
+    with pytest.raises(ParamError, match=message):
+        read_block(path)
+
+
+def test_nan_and_infinity_literals_are_named(small, tmp_path):
+    path = tmp_path / "b.json"
+    write_block(small, path)
+    text = path.read_text()
+    for literal in ("NaN", "Infinity", "-Infinity"):
+        bad = text.replace('"sigma": 0.5', f'"sigma": {literal}', 1)
+        (tmp_path / "n.json").write_text(bad)
+        with pytest.raises(ParamError, match=r"observation #1 .* sigma must be a finite number, got (nan|-?inf)"):
+            read_block(tmp_path / "n.json")
+
+
+def test_non_utf8_is_named(tmp_path):
+    (tmp_path / "b.json").write_bytes(b'{"crs": "\xff\xfe"}')
+    with pytest.raises(ParamError, match=r"not UTF-8 text \(invalid start byte at byte 9\)"):
+        read_block(tmp_path / "b.json")
+
+
+def test_observations_outside_their_image_are_refused_or_dropped(small, tmp_path, caplog):
+    def outside(d):
+        d["observations"][0]["col"] = -3.0
+        d["observations"][5]["row"] = 1e6
+    path = edit(small, tmp_path, outside)
+    data = json.loads(path.read_text())
+    o0, o5 = data["observations"][0], data["observations"][5]
+    with pytest.raises(ParamError, match=rf"'{path}': observation of point '{o0['point']}' in image '{o0['image']}' "
+                                         r"at \(col, row\) = \(-3, .*\) lies outside the image \(0..7000 x 0..10000 "
+                                         r"px\); 1 more observation\(s\) do too"):
+        read_block(path)
+    with caplog.at_level("WARNING", logger="orthowarp.pipeline.blockio"):
+        b = read_block(path, drop_outside=True)
+    assert len(b.obs_xy) == len(small.obs_xy) - 2
+    msg = " ".join(r.getMessage() for r in caplog.records)
+    assert "dropped 2 image observation(s) outside their image" in msg
+    assert f"{o0['point']}@{o0['image']}" in msg and f"{o5['point']}@{o5['image']}" in msg
+    keep = np.ones(len(small.obs_xy), bool)
+    keep[[0, 5]] = False
+    np.testing.assert_array_equal(b.obs_xy, small.obs_xy[keep])
+    np.testing.assert_array_equal(b.obs_point, small.obs_point[keep])
+
+
+BAD_CSV = [
+    ("image_points", "image,point,col,row\nA,P1,nan,2\n", r"line 2: col 'nan' is not a finite number"),
+    ("image_points", "image,point,col,row\nA,P1,1e400,2\n", r"line 2: col '1e400' is not a finite number"),
+    ("image_points", "image,point,col,row,sigma\nA,P1,1,2,0\n", r"line 2: sigma must be > 0, got '0'"),
+    ("image_points", "image,point,col,row,sigma\nA,P1,1,2,-1\n", r"line 2: sigma must be > 0, got '-1'"),
+    ("image_points", "image,point,col,row\n,P1,1,2\n", r"line 2: image is empty"),
+    ("image_points", "image,point,col,row\nA,P1,1\n", r"line 2: 3 fields, the header names 4"),
+    ("image_points", "image,point,col,row,col\nA,P1,1,2,3\n", r"the header names column 'col' twice"),
+    ("image_points", "image,point,col,row,size\nA,P1,1,2,3\n", r"unknown column\(s\) 'size'"),
+    ("image_points", "image,point,col,row\nA,P1,1,2\x00\n", r"holds NUL bytes"),
+    ("image_points", "image,point,col,row\nA,P1,1e9,2\n", r"line 2: col = 1e\+09 is not plausible"),
+    ("ground_points", "point,x,y,z\nP1,1e308,2,3\n", r"line 2: x = 1e\+308 is not plausible"),
+    ("ground_points", "point,x,y,z,sx,sy,sz\nP1,1,2,3,-1,1,1\n", r"line 2: sx must be >= 0, got '-1'"),
+    ("ground_points", "point,x,y,z,sx,sy\nP1,1,2,3,1,1\n", r"line 2: give all of sx, sy, sz or none"),
+    ("ground_points", "point,x,y,z,role\nP1,1,2,3,gcp\n", r"line 2: role 'gcp', expected one of"),
+    ("ground_points", "point,x,y,z,sx,sy,sz,role\nP1,1,2,3,0,0,0,check\n", r"sigma 0 for a check point"),
+    ("ground_points", "point,x,y\nP1,1,2\n", r"the header must name point, x, y, z"),
+    ("ground_points", "", r"empty file"),
+]
+
+
+@pytest.mark.parametrize("kind,text,message", BAD_CSV)
+def test_bad_csv_is_named(tmp_path, kind, text, message):
+    path = tmp_path / "p.csv"
+    path.write_text(text)
+    reader = read_image_points_csv if kind == "image_points" else read_ground_points_csv
+    with pytest.raises(ParamError, match=message) as info:
+        reader(path)
+    assert str(path) in str(info.value)
+
+
+def test_csv_bytes_and_arguments(tmp_path):
+    (tmp_path / "b.csv").write_bytes(b"image,point,col,row\nA,P\xff,1,2\n")
+    with pytest.raises(ParamError, match=r"not UTF-8 text"):
+        read_image_points_csv(tmp_path / "b.csv")
+    # a UTF-8 byte-order mark (spreadsheets write one) is not part of the first column's name
+    (tmp_path / "bom.csv").write_bytes("\ufeffpoint,x,y,z\nP1,1,2,3\n".encode())
+    assert read_ground_points_csv(tmp_path / "bom.csv", sigma=0) == [
+        {"id": "P1", "role": "control", "xyz": [1.0, 2.0, 3.0], "sigma": [0.0, 0.0, 0.0]}]
+    with pytest.raises(ParamError, match=r"sigma must be within"):
+        read_image_points_csv(tmp_path / "bom.csv", sigma=0)
+    with pytest.raises(ParamError, match=r"role must be one of"):
+        read_ground_points_csv(tmp_path / "bom.csv", role="gcp")
+    with pytest.raises(RasterIOError, match="missing.csv"):
+        read_ground_points_csv(tmp_path / "missing.csv")
