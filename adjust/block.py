@@ -5,6 +5,7 @@ The file formats live in :mod:`orthowarp.pipeline.blockio`; this module only hol
 the data.
 """
 
+import unicodedata
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -91,8 +92,8 @@ class Block:
     def __post_init__(self):
         if self.mode not in ("map", "geocentric"):
             raise ParamError(f"block mode must be 'map' or 'geocentric', got {self.mode!r}")
-        self.image_ids, self.image_camera = list(self.image_ids), list(self.image_camera)
-        self.point_ids, self.roles = list(self.point_ids), list(self.roles)
+        self.image_ids, self.image_camera = _ids("image_ids", self.image_ids), _ids("image_camera", self.image_camera)
+        self.point_ids, self.roles = _ids("point_ids", self.point_ids), list(self.roles)
         n, p = len(self.image_ids), len(self.point_ids)
         if len(self.image_camera) != n:
             raise ParamError(f"image_camera has {len(self.image_camera)} entries for {n} images")
@@ -286,3 +287,17 @@ def _array(name, value, dtype, shape):
 
 def _fmt(v):
     return "(" + ", ".join(f"{float(x):g}" for x in np.ravel(v)) + ")"
+
+
+def _ids(name, values):
+    """Ids as strings (integers are taken as their decimal string); no empty ones, none with
+    control characters (they would break messages and files)."""
+    out = []
+    for v in values:
+        if isinstance(v, (bool, np.bool_)) or not isinstance(v, (str, int, np.integer)):
+            raise ParamError(f"{name} must hold strings, got {type(v).__name__} {v!r}")
+        v = str(v)
+        if not v.strip() or any(unicodedata.category(c) == "Cc" for c in v):
+            raise ParamError(f"{name} holds {v!r}: ids must be non-empty and free of control characters")
+        out.append(v)
+    return out

@@ -38,6 +38,7 @@ import logging
 import math
 import os
 import reprlib
+import unicodedata
 
 import numpy as np
 from pyproj import CRS
@@ -107,7 +108,13 @@ def _ident(path, value, what):
     v = str(value)
     if not v.strip():
         raise _fail(path, f"{what} is empty")
+    if _has_control(v):
+        raise _fail(path, f"{what} {_show(v)} holds control characters (line breaks, tabs, NUL...)")
     return v
+
+
+def _has_control(text):
+    return any(unicodedata.category(c) == "Cc" for c in text)
 
 
 def _obj(path, value, what):
@@ -165,7 +172,7 @@ def _camera(path, cid, params):
     """Check a camera's JSON types (numbers are JSON numbers), then build it."""
     params = _obj(path, params, f"camera '{cid}'")
     for key, value in params.items():
-        what = f"camera '{cid}' {key}"
+        what = f"camera '{cid}' parameter {_show(key)}"
         if key in _CAMERA_TEXT_KEYS:
             if not isinstance(value, str):
                 raise _fail(path, f"{what} must be a string, {_got(value)}")
@@ -216,7 +223,10 @@ def read_block(path, *, drop_outside=False):
     cams = _obj(path, data["cameras"], "'cameras'")
     if not cams:
         raise _fail(path, "'cameras' must map camera ids to parameters; it is empty")
-    cameras = {cid: _camera(path, cid, params) for cid, params in cams.items()}
+    cameras = {}
+    for cid, params in cams.items():
+        cid = _ident(path, cid, "camera id")
+        cameras[cid] = _camera(path, cid, params)
     images = _jlist(path, data["images"], "'images'")
     image_ids, image_camera, poses = [], [], []
     n = len(images)
@@ -406,6 +416,8 @@ def _csv_id(cells, key, what):
     v = cells[key]
     if not v:
         raise ValueError(f"{what}: {key} is empty")
+    if _has_control(v):
+        raise ValueError(f"{what}: {key} {_show(v)} holds control characters (line breaks, tabs, NUL...)")
     return v
 
 

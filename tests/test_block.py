@@ -76,10 +76,18 @@ def test_several_outside_observations_are_counted():
     (dict(image_ids=["a", "a"]), r"image id 'a' appears twice"),
     (dict(xyz=[[10, 20, 0], [np.nan, 40, 0], [np.nan] * 3]), r"check point 'k' needs finite coordinates"),
     (dict(cameras=[1]), r"cameras must be a dict"),
+    (dict(image_ids=["a", "b\nc"]), r"image_ids holds 'b\\nc': ids must be non-empty and free of control characters"),
+    (dict(point_ids=["c", "", "t"]), r"point_ids holds '': ids must be non-empty"),
+    (dict(point_ids=["c", 1.5, "t"]), r"point_ids must hold strings, got float 1.5"),
 ])
 def test_bad_blocks_are_refused_with_what_is_wrong(kw, message):
     with pytest.raises(ParamError, match=message):
         tiny(**kw)
+
+
+def test_integer_ids_become_strings():
+    b = tiny(image_ids=[1, 2], point_ids=[10, "k", np.int64(7)])
+    assert b.image_ids == ["1", "2"] and b.point_ids == ["10", "k", "7"]
 
 
 def test_geocentric_coordinates_are_checked():

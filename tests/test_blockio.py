@@ -152,9 +152,9 @@ BAD_DOCUMENTS = [
     (lambda d: d["points"][0].update(role=5), r"point '.*': role 5, expected one of"),
     (lambda d: d["points"][0].update(id=None), r"point #1 id must be a string, got null"),
     (lambda d: d["points"].append(dict(d["points"][0])), r"point id '.*' appears twice"),
-    (_set("cameras", "cam", "focal_len", value="100"), r"camera 'cam' focal_len must be a number, got a string"),
-    (_set("cameras", "cam", "focal_len", value=10**400), r"camera 'cam' focal_len is too large for a float"),
-    (_set("cameras", "cam", "type", value=7), r"camera 'cam' type must be a string, got the number 7"),
+    (_set("cameras", "cam", "focal_len", value="100"), r"camera 'cam' parameter 'focal_len' must be a number, got a string"),
+    (_set("cameras", "cam", "focal_len", value=10**400), r"camera 'cam' parameter 'focal_len' is too large for a float"),
+    (_set("cameras", "cam", "type", value=7), r"camera 'cam' parameter 'type' must be a string, got the number 7"),
     (_set("cameras", "cam", "im_size", value=[10**9, 10**9]), r"camera 'cam': an image of 1e\+09 x 1e\+09 pixels"),
     (_set("cameras", "cam", value="pinhole"), r"camera 'cam' must be a JSON object"),
 ]
@@ -273,3 +273,245 @@ def test_csv_bytes_and_arguments(tmp_path):
         read_ground_points_csv(tmp_path / "bom.csv", role="gcp")
     with pytest.raises(RasterIOError, match="missing.csv"):
         read_ground_points_csv(tmp_path / "missing.csv")
+
+
+# --- property-based fuzzing (Hypothesis) ----------------------------------------------------
+# A few hundred documents per parser by default; ORTHOWARP_FUZZ_EXAMPLES=5000 for a long run.
+# Only orthowarp's own errors may escape, and whatever parses must be a valid block (or valid
+# records) that survives a round trip.
+
+import copy  # noqa: E402
+import math  # noqa: E402
+import os  # noqa: E402
+
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+from orthowarp.adjust.block import Block  # noqa: E402
+from orthowarp.errors import OrthowarpError  # noqa: E402
+
+FUZZ = settings(max_examples=int(os.environ.get("ORTHOWARP_FUZZ_EXAMPLES", "150")), deadline=None,
+                derandomize=not os.environ.get("ORTHOWARP_FUZZ_RANDOM"), database=None,
+                suppress_health_check=list(HealthCheck))
+
+
+@pytest.fixture(scope="module")
+def fuzz_dir(tmp_path_factory):
+    return tmp_path_factory.mktemp("fuzz")
+
+
+@pytest.fixture(scope="module")
+def seed_doc(fuzz_dir):
+    """A tiny valid block (2 images, 4 points, 8 observations) as a JSON document."""
+    from orthowarp import FrameCamera
+
+    cam = FrameCamera(50.0, 0.01, (1000, 800))
+    b = Block(crs="EPSG:32632", cameras={"cam": cam}, image_ids=["a", "b"], image_camera=["cam", "cam"],
+              poses=[[500000, 5e6, 800, 0, 0, 0], [500100, 5e6, 800, 0.1, -0.2, 1]], point_ids=["c1", "c2", "k", "t"],
+              roles=["control", "control", "check", "tie"], xyz=[[500010, 5e6, 300], [500090, 5e6 + 10, 300],
+                                                                  [500050, 5e6 - 10, 300], [np.nan] * 3],
+              xyz_sigma=[[0.02] * 3, [0.0] * 3, [np.nan] * 3, [np.nan] * 3],
+              obs_image=[0, 1, 0, 1, 0, 1, 0, 1], obs_point=[0, 0, 1, 1, 2, 2, 3, 3],
+              obs_xy=[[120, 400], [20, 400], [700, 380], [610, 390], [400, 420], [300, 410], [1, 799], [999, 0]],
+              obs_sigma=[0.5] * 8, gnss_xyz=[[500000, 5e6, 800], [np.nan] * 3],
+              gnss_sigma=[[0.05] * 3, [np.nan] * 3], ins_opk=[[0, 0, 0], [np.nan] * 3],
+              ins_sigma=[[0.01] * 3, [np.nan] * 3])
+    write_block(b, fuzz_dir / "seed.json")
+    return json.loads((fuzz_dir / "seed.json").read_text())
+
+
+def _valid_block(b):
+    """Everything a parsed block must satisfy (beyond Block.validate)."""
+    assert isinstance(b, Block)
+    b.validate()
+    assert all(isinstance(i, str) and i.strip() for i in b.image_ids + b.point_ids)
+    assert not np.any(b.outside_observations())
+    assert np.all(np.isfinite(b.obs_xy)) and np.all(b.obs_sigma > 0)
+    for arr in (b.poses, b.xyz, b.xyz_sigma, b.gnss_xyz, b.gnss_sigma, b.ins_opk, b.ins_sigma):
+        assert not np.any(np.isinf(arr))
+
+
+def _read_or_own_error(path):
+    """read_block(path): a valid block, or an orthowarp error (anything else fails the test)."""
+    try:
+        b = read_block(path)
+    except OrthowarpError as e:
+        assert str(e) and "\n" not in str(e).strip()
+        return None
+    _valid_block(b)
+    return b
+
+
+# values that have broken parsers: wrong types, extremes, non-finite, huge and tiny numbers
+_EXTREME = st.sampled_from([None, True, False, 0, -1, 1, 10**400, -(10**30), 1e308, -1e308, 5e-324, 1e-320,
+                            float("nan"), float("inf"), float("-inf"), "", " ", "x", "12.5", "NaN", "\u00e9\u6f22",
+                            [], {}, [1, 2, 3], [[[[1]]]], {"a": 1}, "EPSG:32632", "control", "tie", 0.5, -0.0,
+                            7000.0, 1000, 800, 799.9999999, 1000.0000001])
+_JSON = st.recursive(st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=8),
+                     lambda c: st.lists(c, max_size=4) | st.dictionaries(st.text(max_size=6), c, max_size=4),
+                     max_leaves=12)
+_VALUE = _EXTREME | _JSON
+
+
+def _paths(node, prefix=()):
+    """Every (path, node) of a JSON document, the root included."""
+    yield prefix, node
+    if isinstance(node, dict):
+        for k, v in node.items():
+            yield from _paths(v, prefix + (k,))
+    elif isinstance(node, list):
+        for i, v in enumerate(node):
+            yield from _paths(v, prefix + (i,))
+
+
+def _mutate(doc, data):
+    """One structure-aware mutation: drop, retype or replace a field, duplicate or drop a list
+    entry, copy a node elsewhere, rename a key."""
+    paths = [p for p, _ in _paths(doc) if p]
+    path = data.draw(st.sampled_from(paths), label="path")
+    parent = doc
+    for k in path[:-1]:
+        parent = parent[k]
+    key = path[-1]
+    op = data.draw(st.sampled_from(["delete", "replace", "replace", "duplicate", "copy", "rename", "scale"]),
+                   label="op")
+    if op == "delete":
+        del parent[key]
+    elif op == "replace":
+        parent[key] = data.draw(_VALUE, label="value")
+    elif op == "duplicate" and isinstance(parent, list):
+        parent.insert(key, copy.deepcopy(parent[key]))
+    elif op == "copy":
+        other = data.draw(st.sampled_from(paths), label="from")
+        node = doc
+        for k in other:
+            node = node[k]
+        parent[key] = copy.deepcopy(node)
+    elif op == "rename" and isinstance(parent, dict):
+        parent[data.draw(st.text(max_size=6), label="name")] = parent.pop(key)
+    elif op == "scale" and isinstance(parent[key], (int, float)) and not isinstance(parent[key], bool):
+        parent[key] = parent[key] * data.draw(st.sampled_from([-1, 0, 1e-300, 1e300, 1.0000001, 10]), label="by")
+
+
+@FUZZ
+@given(data=st.data())
+def test_fuzz_block_json_structured(seed_doc, fuzz_dir, data):
+    """Mutations of a valid block (1-4 per document), written with NaN/Infinity literals as they
+    come: only orthowarp errors, and what parses is a valid block that round-trips."""
+    doc = copy.deepcopy(seed_doc)
+    for _ in range(data.draw(st.integers(1, 4), label="mutations")):
+        _mutate(doc, data)
+    path = fuzz_dir / "mutated.json"
+    path.write_text(json.dumps(doc))
+    b = _read_or_own_error(path)
+    if b is not None:
+        write_block(b, fuzz_dir / "again.json")
+        c = read_block(fuzz_dir / "again.json")
+        assert c.image_ids == b.image_ids and c.point_ids == b.point_ids and c.roles == b.roles
+        for name in ("poses", "xyz", "xyz_sigma", "obs_xy", "obs_sigma", "gnss_xyz", "gnss_sigma", "ins_opk"):
+            np.testing.assert_array_equal(getattr(c, name), getattr(b, name))
+
+
+@FUZZ
+@given(doc=st.dictionaries(st.sampled_from(["format", "version", "crs", "cameras", "images", "points",
+                                            "observations", "extra"]), _VALUE, max_size=8))
+def test_fuzz_block_json_random_documents(fuzz_dir, doc):
+    path = fuzz_dir / "random.json"
+    path.write_text(json.dumps(doc))
+    _read_or_own_error(path)
+
+
+@FUZZ
+@given(raw=st.binary(max_size=300) | st.text(max_size=300).map(lambda t: t.encode("utf-8", "surrogatepass")))
+def test_fuzz_block_json_random_bytes(fuzz_dir, raw):
+    path = fuzz_dir / "bytes.json"
+    path.write_bytes(raw)
+    _read_or_own_error(path)
+
+
+@FUZZ
+@given(data=st.data())
+def test_fuzz_block_json_text_mutations(seed_doc, fuzz_dir, data):
+    """Text-level damage to a valid file: truncation, a byte flipped, a span repeated or
+    removed, deep nesting, a duplicated key."""
+    text = json.dumps(seed_doc)
+    op = data.draw(st.sampled_from(["truncate", "flip", "repeat", "remove", "nest", "dupkey"]), label="op")
+    a = data.draw(st.integers(0, len(text)), label="a")
+    b = data.draw(st.integers(a, min(len(text), a + 40)), label="b")
+    if op == "truncate":
+        text = text[:a]
+    elif op == "flip":
+        text = text[:a] + data.draw(st.characters(), label="char") + text[a + 1:]
+    elif op == "repeat":
+        text = text[:b] + text[a:b] + text[b:]
+    elif op == "remove":
+        text = text[:a] + text[b:]
+    elif op == "nest":
+        depth = data.draw(st.sampled_from([10, 1000, 50000]), label="depth")
+        text = text.replace('"images": ', '"images": ' + "[" * depth, 1).replace(', "points"', "]" * depth
+                                                                               + ', "points"', 1)
+    else:
+        text = text[:-1] + ', "crs": "EPSG:32633"}'
+    path = fuzz_dir / "text.json"
+    path.write_text(text, encoding="utf-8", errors="surrogatepass")
+    _read_or_own_error(path)
+
+
+_CSV_CELL = st.one_of(st.sampled_from(["", " ", "1", "-1", "0", "0.5", "1e400", "nan", "inf", "-inf", "1e308",
+                                       "1e-320", "A", "P1", "control", "check", "tie", "gcp", '"', '"a,b"', "\x00",
+                                       "\u00e9", "1,5", "0x10", "1_000", "\ufeff1"]),
+                      st.floats().map(repr), st.text(max_size=6))
+
+
+def _csv_text(data, columns):
+    head = data.draw(st.lists(st.sampled_from(columns + ["extra", "X", ""]), min_size=1, max_size=9), label="head")
+    if data.draw(st.booleans(), label="valid head"):
+        head = list(dict.fromkeys(head + columns[:4]))
+    rows = data.draw(st.lists(st.lists(_CSV_CELL, min_size=0, max_size=len(head) + 1), max_size=5), label="rows")
+    sep = data.draw(st.sampled_from(["\n", "\r\n", "\r"]), label="newline")
+    return sep.join(",".join(r) for r in [head] + rows) + sep
+
+
+def _read_csv_or_own_error(reader, path):
+    try:
+        return reader(path)
+    except OrthowarpError as e:
+        assert str(e)
+        return None
+
+
+@FUZZ
+@given(data=st.data())
+def test_fuzz_image_points_csv(fuzz_dir, data):
+    path = fuzz_dir / "img.csv"
+    path.write_text(_csv_text(data, ["image", "point", "col", "row", "sigma"]), encoding="utf-8",
+                    errors="surrogatepass")
+    out = _read_csv_or_own_error(read_image_points_csv, path)
+    for r in out or []:
+        assert set(r) == {"image", "point", "col", "row", "sigma"}
+        assert isinstance(r["image"], str) and r["image"] and isinstance(r["point"], str) and r["point"]
+        assert all(isinstance(r[k], float) and math.isfinite(r[k]) for k in ("col", "row", "sigma"))
+        assert r["sigma"] > 0
+
+
+@FUZZ
+@given(data=st.data())
+def test_fuzz_ground_points_csv(fuzz_dir, data):
+    path = fuzz_dir / "gcp.csv"
+    path.write_text(_csv_text(data, ["point", "x", "y", "z", "sx", "sy", "sz", "role"]), encoding="utf-8",
+                    errors="surrogatepass")
+    out = _read_csv_or_own_error(read_ground_points_csv, path)
+    for r in out or []:
+        assert r["role"] in ("control", "check", "tie") and isinstance(r["id"], str) and r["id"]
+        assert len(r["xyz"]) == 3 and all(isinstance(v, float) and math.isfinite(v) for v in r["xyz"])
+        if "sigma" in r:
+            assert all(math.isfinite(v) and v >= 0 for v in r["sigma"])
+
+
+@FUZZ
+@given(raw=st.binary(max_size=200))
+def test_fuzz_csv_random_bytes(fuzz_dir, raw):
+    path = fuzz_dir / "raw.csv"
+    path.write_bytes(raw)
+    _read_csv_or_own_error(read_image_points_csv, path)
+    _read_csv_or_own_error(read_ground_points_csv, path)
