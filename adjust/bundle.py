@@ -606,21 +606,48 @@ def _initial_poses(block):
                         xyz=b.xyz, xyz_sigma=b.xyz_sigma, obs_image=b.obs_image[ok_obs], obs_point=b.obs_point[ok_obs],
                         obs_xy=b.obs_xy[ok_obs], obs_sigma=b.obs_sigma[ok_obs], name=b.name)
             known[new] = intersect(sub, sub.poses, new, robust=True)[0]
-        progress = False
+        progress, doubtful = False, {}
         for k in np.flatnonzero(missing):
             obs = np.flatnonzero((b.obs_image == k) & np.all(np.isfinite(known[b.obs_point]), axis=1))
             if len(obs) < 4:
                 continue
             pose = resect(b, k, known[b.obs_point[obs]], obs)
-            if pose is not None:
+            if pose is None:
+                continue
+            verdict = _resection_check(b, k, pose, known[b.obs_point[obs]], obs)
+            if verdict == "ok":
+                poses[k] = np.r_[pose[:3], np.degrees(pose[3:])]
+                missing[k] = False
+                progress = True
+            else:
+                doubtful[k] = (pose, verdict)
+        if not progress:
+            # a resection that does not fit its points is taken only when nothing better will
+            # come (more tie points from other images), and never with points behind the camera
+            usable = {k: v for k, v in doubtful.items() if v[1] == "poor fit"}
+            for k, (pose, _) in usable.items():
                 poses[k] = np.r_[pose[:3], np.degrees(pose[3:])]
                 missing[k] = False
                 progress = True
         if not progress:
             names = ", ".join(b.image_ids[k] for k in np.flatnonzero(missing)[:5])
+            why = "; ".join(f"{b.image_ids[k]}: {v[1]}" for k, v in list(doubtful.items())[:3])
             raise ParamError(f"no initial pose for image(s) {names}: give one (or GNSS/INS), or measure at least 4 "
-                             "control points or tie points shared with oriented images in each")
+                             "control points or tie points shared with oriented images in each"
+                             + (f" (space resection failed: {why})" if why else ""))
     return poses
+
+
+def _resection_check(b, k, pose, xyz, obs):
+    """'ok' when a resected pose sees its points in front and fits them within 1 % of the image
+    diagonal; else what is wrong ('points behind the camera' or 'poor fit')."""
+    cam_rows, size = b.camera_arrays()
+    pix = project(np.tile(pose, (len(xyz), 1)), xyz, np.repeat(cam_rows[k:k + 1], len(xyz), 0),
+                  np.repeat(size[k:k + 1], len(xyz), 0))
+    if not np.all(np.isfinite(pix)):
+        return "points behind the camera"
+    err = np.hypot(*(b.obs_xy[obs] - pix).T)
+    return "ok" if np.max(err) <= 0.01 * np.hypot(*size[k]) else "poor fit"
 
 
 GROSS_FACTOR = 20.0
