@@ -15,6 +15,16 @@ photogrammetric set): sigma0, covariances ``sigma0^2 Q`` of every pose (6x6) and
 solves with the factorisation (no dense inverse), residuals, redundancy numbers, Baarda's
 w-test with optional iterative rejection, an optional Huber loss, high-correlation warnings,
 RMSE per axis at control and check points.
+
+Gross blunders (hundreds to tens of thousands of pixels): initial tie points come from a
+consensus of ray pairs and resections are trimmed, so one blunder does not spoil the start;
+with snooping or the robust estimation, an iteratively reweighted (Huber, cut off beyond
+``ROBUST_CUT`` scales) adjustment comes first, gross blunders are set aside, and least squares
+runs on the rest; set-aside observations are tested again with their predicted residuals.
+Bad input is refused before iterating, with what is wrong (images with too few observations,
+groups of images without a datum, points behind their camera at the start, parallel rays);
+a run that fails (iteration limit, singular, diverged, too many blunders) returns a result
+with ``success`` False, a status and a message, never a numpy error.
 """
 
 import logging
@@ -23,6 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+from scipy.sparse.csgraph import connected_components
 
 from ..camera import FrameCamera
 from ..errors import GeometryError, ParamError
@@ -804,25 +815,13 @@ def _structure_check(b, pr, used):
         raise ParamError(f"point '{b.point_ids[single[0]]}' is observed in {per_point[single[0]]} image(s); "
                          "tie and check points need at least 2")
     _datum_check(b, roles != "check", roles == "control")
-    # images tied together through shared points; each group needs its own datum
-    parent = np.arange(b.n_images)
-
-    def find(a):
-        while parent[a] != a:
-            parent[a] = parent[parent[a]]
-            a = parent[a]
-        return a
-
+    # images tied together through shared points (graph of images and points); each group
+    # needs its own datum
     shared = used & ~pr.point_fixed[b.obs_point]
-    first = {}
-    for i, j in zip(b.obs_image[shared], b.obs_point[shared]):
-        if j in first:
-            ra, rb = find(first[j]), find(i)
-            if ra != rb:
-                parent[ra] = rb
-        else:
-            first[j] = i
-    groups = np.array([find(k) for k in range(b.n_images)])
+    n_nodes = b.n_images + b.n_points
+    graph = sp.coo_matrix((np.ones(int(shared.sum())), (b.obs_image[shared], b.n_images + b.obs_point[shared])),
+                          shape=(n_nodes, n_nodes))
+    groups = connected_components(graph, directed=False)[1][:b.n_images]
     if len(np.unique(groups)) > 1:
         for g in np.unique(groups):
             members = groups == g
@@ -1137,7 +1136,6 @@ def _solve(pr, poses, pts, used, weights, robust, huber_k, max_iterations, xtol,
     scale (>= 1), and 1e-6 beyond ROBUST_CUT scales.
     Returns poses, points, status (1, 2 converged; 0 iteration limit; -2 non-finite), the
     iterations and the cost; raises _Singular."""
-    b = pr.block
     lam = 1e-3
     sel = np.flatnonzero(used)
 
@@ -1332,8 +1330,7 @@ def _statistics(pr, poses, pts, used, weights, cost, covariance, withheld=()):
 def _prediction_cov(pr, poses, pts, i, j, pose_q, zc, cam_q, point_q, qcp):
     """Cofactor matrices (m, 2, 2) of the adjusted (predicted) image coordinates of the
     observations (i, j): J_c Q_cc J_c^T + J_x Q_xx J_x^T + the pose-point cross terms."""
-    b = pr.block
-    n, q = b.n_images, pr.q
+    q = pr.q
     _, jp, jx = jacobians(poses[i], pts[j], pr.cam[i], pr.size[i])
     qc = np.zeros((len(i), 6 + q, 6 + q))
     qc[:, :6, :6] = pose_q[i]

@@ -280,9 +280,11 @@ def test_csv_bytes_and_arguments(tmp_path):
 # Only orthowarp's own errors may escape, and whatever parses must be a valid block (or valid
 # records) that survives a round trip.
 
+import collections  # noqa: E402
 import copy  # noqa: E402
 import math  # noqa: E402
 import os  # noqa: E402
+import time  # noqa: E402
 
 from hypothesis import HealthCheck, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
@@ -295,9 +297,20 @@ FUZZ = settings(max_examples=int(os.environ.get("ORTHOWARP_FUZZ_EXAMPLES", "150"
                 suppress_health_check=list(HealthCheck))
 
 
+OUTCOMES = collections.Counter()  # (parser, "parsed" | "refused") -> count
+
+
 @pytest.fixture(scope="module")
 def fuzz_dir(tmp_path_factory):
-    return tmp_path_factory.mktemp("fuzz")
+    """A folder for the fuzzers' files; with ORTHOWARP_FUZZ_REPORT=<file>, the outcome counts
+    are written there as JSON at the end."""
+    t0 = time.perf_counter()
+    yield tmp_path_factory.mktemp("fuzz")
+    report = os.environ.get("ORTHOWARP_FUZZ_REPORT")
+    if report:
+        with open(report, "w") as f:
+            json.dump({"seconds": time.perf_counter() - t0,
+                       "outcomes": {f"{k[0]} {k[1]}": v for k, v in sorted(OUTCOMES.items())}}, f, indent=1)
 
 
 @pytest.fixture(scope="module")
@@ -331,14 +344,16 @@ def _valid_block(b):
         assert not np.any(np.isinf(arr))
 
 
-def _read_or_own_error(path):
+def _read_or_own_error(path, kind):
     """read_block(path): a valid block, or an orthowarp error (anything else fails the test)."""
     try:
         b = read_block(path)
     except OrthowarpError as e:
         assert str(e) and "\n" not in str(e).strip()
+        OUTCOMES[kind, "refused"] += 1
         return None
     _valid_block(b)
+    OUTCOMES[kind, "parsed"] += 1
     return b
 
 
@@ -403,7 +418,7 @@ def test_fuzz_block_json_structured(seed_doc, fuzz_dir, data):
         _mutate(doc, data)
     path = fuzz_dir / "mutated.json"
     path.write_text(json.dumps(doc))
-    b = _read_or_own_error(path)
+    b = _read_or_own_error(path, "json structured")
     if b is not None:
         write_block(b, fuzz_dir / "again.json")
         c = read_block(fuzz_dir / "again.json")
@@ -418,7 +433,7 @@ def test_fuzz_block_json_structured(seed_doc, fuzz_dir, data):
 def test_fuzz_block_json_random_documents(fuzz_dir, doc):
     path = fuzz_dir / "random.json"
     path.write_text(json.dumps(doc))
-    _read_or_own_error(path)
+    _read_or_own_error(path, "json random documents")
 
 
 @FUZZ
@@ -426,7 +441,7 @@ def test_fuzz_block_json_random_documents(fuzz_dir, doc):
 def test_fuzz_block_json_random_bytes(fuzz_dir, raw):
     path = fuzz_dir / "bytes.json"
     path.write_bytes(raw)
-    _read_or_own_error(path)
+    _read_or_own_error(path, "json random bytes")
 
 
 @FUZZ
@@ -454,7 +469,7 @@ def test_fuzz_block_json_text_mutations(seed_doc, fuzz_dir, data):
         text = text[:-1] + ', "crs": "EPSG:32633"}'
     path = fuzz_dir / "text.json"
     path.write_text(text, encoding="utf-8", errors="surrogatepass")
-    _read_or_own_error(path)
+    _read_or_own_error(path, "json text damage")
 
 
 _CSV_CELL = st.one_of(st.sampled_from(["", " ", "1", "-1", "0", "0.5", "1e400", "nan", "inf", "-inf", "1e308",
@@ -472,12 +487,15 @@ def _csv_text(data, columns):
     return sep.join(",".join(r) for r in [head] + rows) + sep
 
 
-def _read_csv_or_own_error(reader, path):
+def _read_csv_or_own_error(reader, path, kind):
     try:
-        return reader(path)
+        out = reader(path)
     except OrthowarpError as e:
-        assert str(e)
+        assert str(e) and "\n" not in str(e).strip()
+        OUTCOMES[kind, "refused"] += 1
         return None
+    OUTCOMES[kind, "parsed"] += 1
+    return out
 
 
 @FUZZ
@@ -486,7 +504,7 @@ def test_fuzz_image_points_csv(fuzz_dir, data):
     path = fuzz_dir / "img.csv"
     path.write_text(_csv_text(data, ["image", "point", "col", "row", "sigma"]), encoding="utf-8",
                     errors="surrogatepass")
-    out = _read_csv_or_own_error(read_image_points_csv, path)
+    out = _read_csv_or_own_error(read_image_points_csv, path, "csv image points")
     for r in out or []:
         assert set(r) == {"image", "point", "col", "row", "sigma"}
         assert isinstance(r["image"], str) and r["image"] and isinstance(r["point"], str) and r["point"]
@@ -500,7 +518,7 @@ def test_fuzz_ground_points_csv(fuzz_dir, data):
     path = fuzz_dir / "gcp.csv"
     path.write_text(_csv_text(data, ["point", "x", "y", "z", "sx", "sy", "sz", "role"]), encoding="utf-8",
                     errors="surrogatepass")
-    out = _read_csv_or_own_error(read_ground_points_csv, path)
+    out = _read_csv_or_own_error(read_ground_points_csv, path, "csv ground points")
     for r in out or []:
         assert r["role"] in ("control", "check", "tie") and isinstance(r["id"], str) and r["id"]
         assert len(r["xyz"]) == 3 and all(isinstance(v, float) and math.isfinite(v) for v in r["xyz"])
@@ -513,5 +531,5 @@ def test_fuzz_ground_points_csv(fuzz_dir, data):
 def test_fuzz_csv_random_bytes(fuzz_dir, raw):
     path = fuzz_dir / "raw.csv"
     path.write_bytes(raw)
-    _read_csv_or_own_error(read_image_points_csv, path)
-    _read_csv_or_own_error(read_ground_points_csv, path)
+    _read_csv_or_own_error(read_image_points_csv, path, "csv image points (bytes)")
+    _read_csv_or_own_error(read_ground_points_csv, path, "csv ground points (bytes)")
