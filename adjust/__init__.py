@@ -15,11 +15,11 @@ __all__ = ["Block", "ROLES", "AdjustResult", "bundle_adjust", "intersect", "synt
            "CONTROL_LAYOUTS", "read_block", "write_block"]
 
 
-def read_block(path):
-    """Read a block file (JSON; see :mod:`orthowarp.pipeline.blockio`)."""
+def read_block(path, *, drop_outside=False):
+    """Read a block file (JSON; see :func:`orthowarp.pipeline.blockio.read_block`)."""
     from ..pipeline.blockio import read_block as _read
 
-    return _read(path)
+    return _read(path, drop_outside=drop_outside)
 
 
 def write_block(block, path):

@@ -5,6 +5,7 @@ The file formats live in :mod:`orthowarp.pipeline.blockio`; this module only hol
 the data.
 """
 
+import unicodedata
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -12,9 +13,19 @@ import numpy as np
 from ..camera import FrameCamera
 from ..errors import ParamError
 
-__all__ = ["Block", "ROLES"]
+__all__ = ["Block", "ROLES", "MAX_COORDINATE", "MAX_IMAGE_SIZE", "MAX_ANGLE", "SIGMA_RANGE"]
 
 ROLES = ("control", "check", "tie")
+
+MAX_COORDINATE = 1e8
+"""Largest plausible map coordinate or height (m): 100 000 km, beyond any projected CRS of the Earth."""
+MAX_IMAGE_SIZE = 1e6
+"""Largest plausible frame image side (px)."""
+MAX_ANGLE = 720.0
+"""Largest plausible attitude angle (deg)."""
+SIGMA_RANGE = (1e-9, 1e9)
+"""Plausible sigmas (px, m or deg): beyond them the weights 1/sigma^2 under- or overflow the
+normal equations."""
 
 
 @dataclass
@@ -81,18 +92,27 @@ class Block:
     def __post_init__(self):
         if self.mode not in ("map", "geocentric"):
             raise ParamError(f"block mode must be 'map' or 'geocentric', got {self.mode!r}")
+        self.image_ids, self.image_camera = _ids("image_ids", self.image_ids), _ids("image_camera", self.image_camera)
+        self.point_ids, self.roles = _ids("point_ids", self.point_ids), list(self.roles)
         n, p = len(self.image_ids), len(self.point_ids)
-        nan3 = np.full((n, 3), np.nan)
+        if len(self.image_camera) != n:
+            raise ParamError(f"image_camera has {len(self.image_camera)} entries for {n} images")
+        if len(self.roles) != p:
+            raise ParamError(f"roles has {len(self.roles)} entries for {p} points")
+        if not isinstance(self.cameras, dict):
+            raise ParamError(f"cameras must be a dict of camera id -> FrameCamera, got {type(self.cameras).__name__}")
         for attr in ("gnss_xyz", "gnss_sigma", "ins_opk", "ins_sigma"):
             if getattr(self, attr) is None:
-                setattr(self, attr, nan3.copy())
-        self.poses = np.asarray(self.poses, dtype=np.float64).reshape(n, 6)
-        self.xyz = np.asarray(self.xyz, dtype=np.float64).reshape(p, 3)
-        self.xyz_sigma = np.asarray(self.xyz_sigma, dtype=np.float64).reshape(p, 3)
-        self.obs_image = np.asarray(self.obs_image, dtype=np.int64)
-        self.obs_point = np.asarray(self.obs_point, dtype=np.int64)
-        self.obs_xy = np.asarray(self.obs_xy, dtype=np.float64).reshape(-1, 2)
-        self.obs_sigma = np.asarray(self.obs_sigma, dtype=np.float64).reshape(-1)
+                setattr(self, attr, np.full((n, 3), np.nan))
+        shapes = dict(poses=(n, 6), xyz=(p, 3), xyz_sigma=(p, 3), obs_xy=(-1, 2), obs_sigma=(-1,),
+                      gnss_xyz=(n, 3), gnss_sigma=(n, 3), ins_opk=(n, 3), ins_sigma=(n, 3))
+        for attr, shape in shapes.items():
+            setattr(self, attr, _array(attr, getattr(self, attr), np.float64, shape))
+        for attr in ("obs_image", "obs_point"):
+            a = _array(attr, getattr(self, attr), None, (-1,))
+            if a.size and not np.issubdtype(a.dtype, np.integer):
+                raise ParamError(f"{attr} must hold integer indices, got dtype {a.dtype}")
+            setattr(self, attr, a.astype(np.int64))
         self.validate()
 
     @property
@@ -119,6 +139,10 @@ class Block:
                 raise ParamError(f"image '{img}' names camera '{cam}', which the block does not define")
             if not isinstance(self.cameras[cam], FrameCamera):
                 raise ParamError(f"camera '{cam}' must be a FrameCamera")
+            w, h = self.cameras[cam].image_size
+            if not (1 <= w <= MAX_IMAGE_SIZE and 1 <= h <= MAX_IMAGE_SIZE):
+                raise ParamError(f"camera '{cam}': an image of {w:g} x {h:g} pixels is not plausible for a frame "
+                                 f"camera (at most {MAX_IMAGE_SIZE:g} per side)")
         for pid, role in zip(self.point_ids, self.roles):
             if role not in ROLES:
                 raise ParamError(f"point '{pid}' has role {role!r}; expected one of {ROLES}")
@@ -129,11 +153,29 @@ class Block:
             raise ParamError("an observation refers to an unknown image index")
         if m and (self.obs_point.min() < 0 or self.obs_point.max() >= self.n_points):
             raise ParamError("an observation refers to an unknown point index")
-        bad = ~np.all(np.isfinite(self.obs_xy), axis=1) | ~np.isfinite(self.obs_sigma) | (self.obs_sigma <= 0)
+        bad = ~np.all(np.isfinite(self.obs_xy), axis=1)
         if np.any(bad):
             k = int(np.flatnonzero(bad)[0])
             raise ParamError(f"observation of point '{self.point_ids[self.obs_point[k]]}' in image "
-                             f"'{self.image_ids[self.obs_image[k]]}' has a non-finite value or a sigma <= 0")
+                             f"'{self.image_ids[self.obs_image[k]]}' has a non-finite col/row {_fmt(self.obs_xy[k])}")
+        lo, hi = SIGMA_RANGE
+        bad = ~((self.obs_sigma >= lo) & (self.obs_sigma <= hi))
+        if np.any(bad):
+            k = int(np.flatnonzero(bad)[0])
+            raise ParamError(f"observation of point '{self.point_ids[self.obs_point[k]]}' in image "
+                             f"'{self.image_ids[self.obs_image[k]]}': sigma {self.obs_sigma[k]:g} px "
+                             f"{_sigma_problem(self.obs_sigma[k])}")
+        outside = self.outside_observations()
+        if np.any(outside):
+            k = int(np.flatnonzero(outside)[0])
+            w, h = self.cameras[self.image_camera[self.obs_image[k]]].image_size
+            more = int(outside.sum()) - 1
+            raise ParamError(f"observation of point '{self.point_ids[self.obs_point[k]]}' in image "
+                             f"'{self.image_ids[self.obs_image[k]]}' at (col, row) = ({self.obs_xy[k, 0]:.6g}, "
+                             f"{self.obs_xy[k, 1]:.6g}) lies outside the image (0..{w} x 0..{h} px)"
+                             + (f"; {more} more observation(s) do too" if more else "")
+                             + ": a blunder or the wrong camera? (read_block(..., drop_outside=True) or "
+                             "--drop-outside-observations drops such rows)")
         pair = self.obs_image * max(self.n_points, 1) + self.obs_point
         uniq, counts = np.unique(pair, return_counts=True)
         if np.any(counts > 1):
@@ -147,15 +189,74 @@ class Block:
             if self.roles[i] == "control":
                 s = self.xyz_sigma[i]
                 if not np.all(np.isfinite(s)) or np.any(s < 0):
-                    raise ParamError(f"control point '{pid}' needs a sigma >= 0 per axis (0 fixes it)")
+                    raise ParamError(f"control point '{pid}' needs a sigma >= 0 per axis (0 fixes it), "
+                                     f"got {_fmt(s)}")
+            s = self.xyz_sigma[i]
+            given = np.isfinite(s)
+            if np.any(np.isinf(s)) or np.any(s[given] < 0):
+                raise ParamError(f"{self.roles[i]} point '{pid}': sigma {_fmt(s)} m: sigmas must be finite and >= 0")
+            pos = s[given & (s != 0)]
+            if self.roles[i] != "control" and np.any(s[given] == 0):
+                raise ParamError(f"{self.roles[i]} point '{pid}': sigma 0 (only a control point can be fixed)")
+            if np.any((pos < SIGMA_RANGE[0]) | (pos > SIGMA_RANGE[1])):
+                raise ParamError(f"{self.roles[i]} point '{pid}': sigma {_fmt(s)} m "
+                                 f"{_sigma_problem(pos[(pos < SIGMA_RANGE[0]) | (pos > SIGMA_RANGE[1])][0])}")
+            self._check_position(self.xyz[i], f"{self.roles[i]} point '{pid}'")
         for k, img in enumerate(self.image_ids):
             for name, val, sig in (("GNSS position", self.gnss_xyz[k], self.gnss_sigma[k]),
                                    ("INS attitude", self.ins_opk[k], self.ins_sigma[k])):
                 given = np.isfinite(val)
                 if np.any(given & ~(np.isfinite(sig) & (sig > 0))):
-                    raise ParamError(f"image '{img}': the {name} observation needs a sigma > 0 per axis")
+                    raise ParamError(f"image '{img}': the {name} observation needs a sigma > 0 per axis, "
+                                     f"got {_fmt(sig)}")
+                bad = given & ((sig < SIGMA_RANGE[0]) | (sig > SIGMA_RANGE[1]))
+                if np.any(bad):
+                    raise ParamError(f"image '{img}': the {name} observation's sigma {_fmt(sig)} "
+                                     f"{_sigma_problem(sig[bad][0])}")
             if np.any(~np.isfinite(self.poses[k])) and not np.all(~np.isfinite(self.poses[k])):
                 raise ParamError(f"image '{img}': give the whole initial pose or none of it")
+            self._check_position(self.poses[k, :3], f"image '{img}': initial position")
+            self._check_angles(self.poses[k, 3:], f"image '{img}': initial attitude")
+            self._check_position(self.gnss_xyz[k], f"image '{img}': GNSS position")
+            self._check_angles(self.ins_opk[k], f"image '{img}': INS attitude")
+
+    def _check_position(self, v, what):
+        """Refuse absurd coordinates (1e308, a latitude of 200 deg...) with what is wrong."""
+        v = np.asarray(v, dtype=np.float64)
+        if not np.all(np.isfinite(v)):
+            return
+        if self.mode == "geocentric":
+            names = ("latitude", "longitude", "height")
+            limits = (90.0, 360.0, MAX_COORDINATE)
+            units = ("deg", "deg", "m")
+        else:
+            names, limits, units = ("x", "y", "z"), (MAX_COORDINATE,) * 3, ("m",) * 3
+        for name, val, lim, unit in zip(names, v, limits, units):
+            if abs(val) > lim:
+                where = "in a geographic 3-D block" if self.mode == "geocentric" else f"in {self.crs}"
+                raise ParamError(f"{what}: {name} = {val:.6g} {unit} is not a plausible coordinate {where} "
+                                 f"(|{name}| <= {lim:g} {unit}): a wrong value, unit or CRS?")
+
+    @staticmethod
+    def _check_angles(v, what):
+        v = np.asarray(v, dtype=np.float64)
+        if np.all(np.isfinite(v)) and np.any(np.abs(v) > MAX_ANGLE):
+            raise ParamError(f"{what}: angles {_fmt(v)} deg; each must lie within "
+                             f"+-{MAX_ANGLE:g} deg")
+
+    def image_sizes(self):
+        """Width and height (px) of each image, array (n, 2)."""
+        return np.array([self.cameras[c].image_size for c in self.image_camera], dtype=np.float64).reshape(-1, 2)
+
+    def outside_observations(self):
+        """Observations whose (col, row) lies outside their image, [0, width] x [0, height]:
+        bool array (m,)."""
+        if len(self.obs_image) == 0:
+            return np.zeros(0, dtype=bool)
+        size = self.image_sizes()[self.obs_image]
+        xy = self.obs_xy
+        with np.errstate(invalid="ignore"):
+            return ~((xy[:, 0] >= 0) & (xy[:, 0] <= size[:, 0]) & (xy[:, 1] >= 0) & (xy[:, 1] <= size[:, 1]))
 
     def camera_arrays(self):
         """Per-image camera rows (n, 10) and image sizes (n, 2) for the collinearity functions."""
@@ -165,3 +266,38 @@ class Block:
             rows.append([c.focal_length, *c.principal_point, c.k1, c.k2, c.k3, c.p1, c.p2, *c.pixel_size])
             sizes.append(c.image_size)
         return np.array(rows, dtype=np.float64).reshape(-1, 10), np.array(sizes, dtype=np.float64).reshape(-1, 2)
+
+
+def _sigma_problem(s):
+    lo, hi = SIGMA_RANGE
+    if not np.isfinite(s):
+        return "is not finite"
+    if s <= 0:
+        return "must be > 0"
+    return f"is not plausible (outside [{lo:g}, {hi:g}]: the weights 1/sigma^2 would under- or overflow)"
+
+
+def _array(name, value, dtype, shape):
+    try:
+        a = np.asarray(value, dtype=dtype)
+        return a.reshape(shape)
+    except (TypeError, ValueError) as e:
+        raise ParamError(f"{name} must be an array of shape {shape} (-1: any length): {e}") from e
+
+
+def _fmt(v):
+    return "(" + ", ".join(f"{float(x):g}" for x in np.ravel(v)) + ")"
+
+
+def _ids(name, values):
+    """Ids as strings (integers are taken as their decimal string); no empty ones, none with
+    control characters (they would break messages and files)."""
+    out = []
+    for v in values:
+        if isinstance(v, (bool, np.bool_)) or not isinstance(v, (str, int, np.integer)):
+            raise ParamError(f"{name} must hold strings, got {type(v).__name__} {v!r}")
+        v = str(v)
+        if not v.strip() or any(unicodedata.category(c) == "Cc" for c in v):
+            raise ParamError(f"{name} holds {v!r}: ids must be non-empty and free of control characters")
+        out.append(v)
+    return out

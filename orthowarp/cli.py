@@ -282,17 +282,25 @@ def ortho(ctx, images, int_param, ext_param, dimap, attitude_model, dem, height,
 @click.option("--self-calibration", "self_cal", default=None,
               help="Camera parameters to estimate: 'all' (f,x0,y0,k1,k2,p1,p2) or a comma list of f,x0,y0,k1,k2,k3,p1,p2.")
 @click.option("--no-plots", is_flag=True, help="Skip the PNG plots.")
+@click.option("--drop-outside-observations", "drop_outside", is_flag=True,
+              help="Drop image observations outside their image (logged) instead of refusing the block.")
 @click.pass_context
-def adjust(ctx, block_file, out_dir, fix_control, no_gnss, no_ins, snooping, robust, covariance, self_cal, no_plots):
+def adjust(ctx, block_file, out_dir, fix_control, no_gnss, no_ins, snooping, robust, covariance, self_cal, no_plots,
+           drop_outside):
     """Bundle-adjust the block in BLOCK_FILE (JSON) and write the refined orientation, points and
-    reports into --out."""
+    reports into --out. A run that does not converge, or ends singular, writes nothing and exits
+    with status 1."""
     from .adjust import bundle_adjust, read_block
+    from .errors import GeometryError
     from .pipeline.adjust_report import write_adjustment
 
-    block = read_block(block_file)
+    block = read_block(block_file, drop_outside=drop_outside)
     calib = None if not self_cal else (True if self_cal == "all" else tuple(x.strip() for x in self_cal.split(",")))
     result = bundle_adjust(block, fix_control=fix_control, use_gnss=not no_gnss, use_ins=not no_ins,
                            snooping=snooping, robust=robust, covariance=covariance, self_calibration=calib)
+    if not result.success:
+        raise GeometryError(f"adjustment of '{block_file}' failed (status {result.status}): {result.message}; "
+                            f"nothing written to '{out_dir}'")
     paths = write_adjustment(result, block, out_dir, plots=not no_plots)
     if not ctx.obj["quiet"]:
         click.echo(f"{result.message}; sigma0 {result.sigma0:.4f}, redundancy {result.redundancy}; "

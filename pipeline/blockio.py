@@ -34,13 +34,16 @@ CSV imports: image points ``image,point,col,row[,sigma]`` and ground points
 import csv
 import io
 import json
+import logging
 import math
 import os
+import reprlib
+import unicodedata
 
 import numpy as np
 from pyproj import CRS
 
-from ..adjust.block import ROLES, Block
+from ..adjust.block import MAX_COORDINATE, MAX_IMAGE_SIZE, ROLES, SIGMA_RANGE, Block
 from ..errors import ParamError, RasterIOError
 from .formats import _camera_from_entry
 from .io import write_json
@@ -49,127 +52,273 @@ __all__ = ["read_block", "write_block", "read_image_points_csv", "read_ground_po
 
 FORMAT = "orthowarp-block"
 
+log = logging.getLogger(__name__)
+
 
 def _fail(path, msg):
     return ParamError(f"'{path}': {msg}")
 
 
-def _nums(path, value, n, what):
-    if not isinstance(value, (list, tuple)) or len(value) != n:
-        raise _fail(path, f"{what} must be a list of {n} numbers, got {value!r}")
+_REPR = reprlib.Repr()
+_REPR.maxstring, _REPR.maxother, _REPR.maxlist, _REPR.maxdict, _REPR.maxlevel = 40, 40, 4, 4, 3
+
+
+def _show(value):
+    """A short repr for messages (safe on deeply nested or huge values)."""
     try:
-        out = [float(v) for v in value]
-    except (TypeError, ValueError):
-        raise _fail(path, f"{what} must be numbers, got {value!r}") from None
-    if not all(math.isfinite(v) for v in out):
-        raise _fail(path, f"{what} holds NaN or infinite values: {value!r}")
-    return out
+        return _REPR.repr(value)
+    except Exception:  # noqa: BLE001 - a message must never fail
+        return f"<{type(value).__name__}>"
+
+
+def _got(value):
+    """'got ...' for messages: the JSON type and a short repr of a value."""
+    if value is None:
+        return "got null"
+    if isinstance(value, bool):
+        return f"got the boolean {str(value).lower()}"
+    kind = {dict: "an object", list: "a list", str: "a string", int: "the number", float: "the number"}.get(
+        type(value), type(value).__name__)
+    return f"got {kind} {_show(value)}"
 
 
 def _num(path, value, what):
-    return _nums(path, [value], 1, what)[0]
+    """A finite float from a JSON number (not a string, a boolean or null)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise _fail(path, f"{what} must be a number, {_got(value)}")
+    try:
+        v = float(value)
+    except OverflowError:
+        raise _fail(path, f"{what} is too large for a float ({len(str(abs(value)))} digits)") from None
+    if not math.isfinite(v):
+        raise _fail(path, f"{what} must be a finite number, got {_show(value)}")
+    return v
 
 
-def read_block(path):
+def _nums(path, value, n, what):
+    if not isinstance(value, list) or len(value) != n:
+        raise _fail(path, f"{what} must be a list of {n} numbers, {_got(value)}")
+    return [_num(path, v, f"{what}[{i}]") for i, v in enumerate(value)]
+
+
+def _ident(path, value, what):
+    """An id: a non-empty string (or an integer, kept as its decimal string)."""
+    if isinstance(value, bool) or not isinstance(value, (str, int)):
+        raise _fail(path, f"{what} must be a string, {_got(value)}")
+    v = str(value)
+    if not v.strip():
+        raise _fail(path, f"{what} is empty")
+    if _has_control(v):
+        raise _fail(path, f"{what} {_show(v)} holds control characters (line breaks, tabs, NUL...)")
+    return v
+
+
+def _has_control(text):
+    return any(unicodedata.category(c) == "Cc" for c in text)
+
+
+def _obj(path, value, what):
+    if not isinstance(value, dict):
+        raise _fail(path, f"{what} must be a JSON object, {_got(value)}")
+    return value
+
+
+def _jlist(path, value, what):
+    if not isinstance(value, list):
+        raise _fail(path, f"{what} must be a list, {_got(value)}")
+    return value
+
+
+def _no_duplicates(pairs):
+    out = {}
+    for k, v in pairs:
+        if k in out:
+            raise _Duplicate(k)
+        out[k] = v
+    return out
+
+
+class _Duplicate(Exception):
+    pass
+
+
+def _load_json(path):
+    try:
+        with open(path, "rb") as f:
+            raw = f.read()
+    except OSError as e:
+        raise RasterIOError(f"Cannot read block file '{path}': {e.strerror or e}") from e
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise ParamError(f"Could not parse block file '{path}': not UTF-8 text ({e.reason} at byte {e.start})") from e
+    try:
+        return json.loads(text, object_pairs_hook=_no_duplicates)
+    except json.JSONDecodeError as e:
+        raise ParamError(f"Could not parse block file '{path}': {e}") from e
+    except _Duplicate as e:
+        raise ParamError(f"Could not parse block file '{path}': key {_show(e.args[0])} appears twice in one "
+                         "object") from None
+    except RecursionError:
+        raise ParamError(f"Could not parse block file '{path}': nested too deeply") from None
+    except ValueError as e:  # e.g. integers beyond Python's digit limit
+        raise ParamError(f"Could not parse block file '{path}': {e}") from e
+
+
+_CAMERA_TEXT_KEYS = ("type", "projection_type")
+
+
+def _camera(path, cid, params):
+    """Check a camera's JSON types (numbers are JSON numbers), then build it."""
+    params = _obj(path, params, f"camera '{cid}'")
+    for key, value in params.items():
+        what = f"camera '{cid}' parameter {_show(key)}"
+        if key in _CAMERA_TEXT_KEYS:
+            if not isinstance(value, str):
+                raise _fail(path, f"{what} must be a string, {_got(value)}")
+        elif isinstance(value, list):
+            for i, v in enumerate(value):
+                _num(path, v, f"{what}[{i}]")
+        elif value is not None:
+            _num(path, value, what)
+    return _camera_from_entry(path, cid, params)
+
+
+def read_block(path, *, drop_outside=False):
     """Read a block (JSON, see the module doc) -> :class:`~orthowarp.adjust.Block`.
+
+    Parameters
+    ----------
+    path : str or path-like
+    drop_outside : bool, optional
+        Drop image observations whose (col, row) lies outside their image ([0, width] x
+        [0, height] px) instead of refusing the file; the dropped rows are logged (warning,
+        logger ``orthowarp.pipeline.blockio``) with their count and ids.
 
     Raises
     ------
     ParamError
         Malformed content: the message names the file and the item (unknown ids, missing
-        fields, non-finite numbers...).
+        fields, wrong JSON types, non-finite or absurd numbers, sigmas <= 0, observations
+        outside their image...).
     RasterIOError
         The file cannot be read.
     """
     path = os.fspath(path)
-    try:
-        with open(path, encoding="utf-8") as f:
-            data = json.load(f)
-    except OSError as e:
-        raise RasterIOError(f"Cannot read block file '{path}': {e.strerror or e}") from e
-    except json.JSONDecodeError as e:
-        raise ParamError(f"Could not parse block file '{path}': {e}") from e
-    if not isinstance(data, dict):
-        raise _fail(path, "expected a JSON object")
+    data = _obj(path, _load_json(path), "the file's content")
     for key in ("crs", "cameras", "images", "points", "observations"):
         if key not in data:
             raise _fail(path, f"missing '{key}'")
+    if not isinstance(data["crs"], str):
+        raise _fail(path, f"'crs' must be a string such as \"EPSG:32632\", {_got(data['crs'])}")
     try:
         crs = CRS.from_user_input(data["crs"])
-    except Exception as e:  # pyproj raises CRSError and others
-        raise _fail(path, f"crs {data['crs']!r} is not a CRS: {e}") from e
+    except Exception as e:  # noqa: BLE001 - pyproj raises CRSError and others
+        raise _fail(path, f"crs {_show(data['crs'])} is not a CRS: {e}") from e
     geocentric = crs.is_geographic and len(crs.axis_info) == 3
     if not geocentric and not crs.is_projected:
         raise _fail(path, f"crs must be projected (map blocks) or geographic 3-D (GNSS/INS blocks), got {crs.name!r}")
     pose_keys = ("lat", "lon", "h", "roll", "pitch", "yaw") if geocentric else ("x", "y", "z", "omega", "phi", "kappa")
     gnss_key, ins_key = ("lla", "rpy") if geocentric else ("xyz", "opk")
+    cams = _obj(path, data["cameras"], "'cameras'")
+    if not cams:
+        raise _fail(path, "'cameras' must map camera ids to parameters; it is empty")
     cameras = {}
-    if not isinstance(data["cameras"], dict) or not data["cameras"]:
-        raise _fail(path, "'cameras' must map camera ids to parameters")
-    for cid, params in data["cameras"].items():
-        if not isinstance(params, dict):
-            raise _fail(path, f"camera '{cid}': expected a mapping of parameters")
-        cameras[str(cid)] = _camera_from_entry(path, str(cid), params)
+    for cid, params in cams.items():
+        cid = _ident(path, cid, "camera id")
+        cameras[cid] = _camera(path, cid, params)
+    images = _jlist(path, data["images"], "'images'")
     image_ids, image_camera, poses = [], [], []
-    n = len(data["images"])
+    n = len(images)
     gx, gs, io_, is_ = (np.full((n, 3), np.nan) for _ in range(4))
-    for k, img in enumerate(data["images"]):
-        if not isinstance(img, dict) or "id" not in img or "camera" not in img:
+    for k, img in enumerate(images):
+        img = _obj(path, img, f"image #{k + 1}")
+        if "id" not in img or "camera" not in img:
             raise _fail(path, f"image #{k + 1}: needs 'id' and 'camera'")
-        iid = str(img["id"])
+        iid = _ident(path, img["id"], f"image #{k + 1} id")
+        cam = _ident(path, img["camera"], f"image '{iid}' camera")
+        if cam not in cameras:
+            raise _fail(path, f"image '{iid}' names unknown camera '{cam}'")
         image_ids.append(iid)
-        if str(img["camera"]) not in cameras:
-            raise _fail(path, f"image '{iid}' names unknown camera '{img['camera']}'")
-        image_camera.append(str(img["camera"]))
+        image_camera.append(cam)
         pose = img.get("pose")
         if pose is None:
             poses.append([np.nan] * 6)
         else:
-            if not isinstance(pose, dict) or any(k_ not in pose for k_ in pose_keys):
+            pose = _obj(path, pose, f"image '{iid}' pose")
+            if any(k_ not in pose for k_ in pose_keys):
                 raise _fail(path, f"image '{iid}': 'pose' needs {', '.join(pose_keys)}")
             poses.append([_num(path, pose[k_], f"image '{iid}' pose {k_}") for k_ in pose_keys])
         for key, vkey, arr, sarr in (("gnss", gnss_key, gx, gs), ("ins", ins_key, io_, is_)):
             if img.get(key) is not None:
-                g = img[key]
-                if not isinstance(g, dict) or vkey not in g or "sigma" not in g:
+                g = _obj(path, img[key], f"image '{iid}' {key}")
+                if vkey not in g or "sigma" not in g:
                     raise _fail(path, f"image '{iid}': '{key}' needs '{vkey}' and 'sigma'")
                 arr[k] = _nums(path, g[vkey], 3, f"image '{iid}' {key} {vkey}")
                 sarr[k] = _nums(path, g["sigma"], 3, f"image '{iid}' {key} sigma")
     point_ids, roles, xyz, sig = [], [], [], []
-    for k, pt in enumerate(data["points"]):
-        if not isinstance(pt, dict) or "id" not in pt:
+    for k, pt in enumerate(_jlist(path, data["points"], "'points'")):
+        pt = _obj(path, pt, f"point #{k + 1}")
+        if "id" not in pt:
             raise _fail(path, f"point #{k + 1}: needs an 'id'")
-        pid = str(pt["id"])
-        role = str(pt.get("role", "tie"))
+        pid = _ident(path, pt["id"], f"point #{k + 1} id")
+        role = pt.get("role", "tie")
         if role not in ROLES:
-            raise _fail(path, f"point '{pid}': role {role!r}, expected one of {ROLES}")
+            raise _fail(path, f"point '{pid}': role {_show(role)}, expected one of {ROLES}")
         point_ids.append(pid)
         roles.append(role)
         xyz.append(_nums(path, pt["xyz"], 3, f"point '{pid}' xyz") if pt.get("xyz") is not None else [np.nan] * 3)
         sig.append(_nums(path, pt["sigma"], 3, f"point '{pid}' sigma") if pt.get("sigma") is not None else [np.nan] * 3)
     img_index = {iid: k for k, iid in enumerate(image_ids)}
     pt_index = {pid: k for k, pid in enumerate(point_ids)}
+    if len(img_index) < len(image_ids):
+        raise _fail(path, f"image id '{_first_duplicate(image_ids)}' appears twice")
+    if len(pt_index) < len(point_ids):
+        raise _fail(path, f"point id '{_first_duplicate(point_ids)}' appears twice")
     oi, op, oxy, osig = [], [], [], []
-    for k, ob in enumerate(data["observations"]):
-        if not isinstance(ob, dict) or any(k_ not in ob for k_ in ("image", "point", "col", "row")):
+    for k, ob in enumerate(_jlist(path, data["observations"], "'observations'")):
+        ob = _obj(path, ob, f"observation #{k + 1}")
+        if any(k_ not in ob for k_ in ("image", "point", "col", "row")):
             raise _fail(path, f"observation #{k + 1}: needs image, point, col, row")
-        if str(ob["image"]) not in img_index:
-            raise _fail(path, f"observation #{k + 1} names unknown image '{ob['image']}'")
-        if str(ob["point"]) not in pt_index:
-            raise _fail(path, f"observation #{k + 1} names unknown point '{ob['point']}'")
-        oi.append(img_index[str(ob["image"])])
-        op.append(pt_index[str(ob["point"])])
-        oxy.append(_nums(path, [ob["col"], ob["row"]], 2, f"observation #{k + 1} col/row"))
-        osig.append(_num(path, ob.get("sigma", 1.0), f"observation #{k + 1} sigma"))
+        iid = _ident(path, ob["image"], f"observation #{k + 1} image")
+        pid = _ident(path, ob["point"], f"observation #{k + 1} point")
+        if iid not in img_index:
+            raise _fail(path, f"observation #{k + 1} names unknown image '{iid}'")
+        if pid not in pt_index:
+            raise _fail(path, f"observation #{k + 1} names unknown point '{pid}'")
+        what = f"observation #{k + 1} (point '{pid}' in image '{iid}')"
+        oi.append(img_index[iid])
+        op.append(pt_index[pid])
+        oxy.append([_num(path, ob["col"], f"{what} col"), _num(path, ob["row"], f"{what} row")])
+        osig.append(_num(path, ob.get("sigma", 1.0), f"{what} sigma"))
+    oi, op = np.array(oi, np.int64), np.array(op, np.int64)
+    oxy, osig = np.array(oxy, float).reshape(-1, 2), np.array(osig, float)
+    if drop_outside and len(oi):
+        size = np.array([cameras[image_camera[k]].image_size for k in oi], float).reshape(-1, 2)
+        out = ~((oxy >= 0) & (oxy <= size)).all(axis=1)
+        if np.any(out):
+            ids = [f"{point_ids[j]}@{image_ids[i]}" for i, j in zip(oi[out], op[out])]
+            log.warning("'%s': dropped %d image observation(s) outside their image: %s%s", path, len(ids),
+                        ", ".join(ids[:20]), f" and {len(ids) - 20} more" if len(ids) > 20 else "")
+            oi, op, oxy, osig = oi[~out], op[~out], oxy[~out], osig[~out]
     try:
-        return Block(crs=str(data["crs"]), cameras=cameras, image_ids=image_ids, image_camera=image_camera,
+        return Block(crs=data["crs"], cameras=cameras, image_ids=image_ids, image_camera=image_camera,
                      poses=np.array(poses, float).reshape(-1, 6), point_ids=point_ids, roles=roles,
                      xyz=np.array(xyz, float).reshape(-1, 3), xyz_sigma=np.array(sig, float).reshape(-1, 3),
-                     obs_image=np.array(oi, int), obs_point=np.array(op, int), obs_xy=np.array(oxy, float).reshape(-1, 2),
-                     obs_sigma=np.array(osig, float), gnss_xyz=gx, gnss_sigma=gs, ins_opk=io_, ins_sigma=is_,
-                     name=os.path.basename(path), mode="geocentric" if geocentric else "map")
+                     obs_image=oi, obs_point=op, obs_xy=oxy, obs_sigma=osig, gnss_xyz=gx, gnss_sigma=gs,
+                     ins_opk=io_, ins_sigma=is_, name=os.path.basename(path),
+                     mode="geocentric" if geocentric else "map")
     except ParamError as e:
         raise ParamError(f"'{path}': {e}") from e
+
+
+def _first_duplicate(ids):
+    seen = set()
+    for i in ids:
+        if i in seen:
+            return i
+        seen.add(i)
+    return None
 
 
 def _camera_dict(cam):
@@ -218,48 +367,154 @@ def write_block(block, path):
 
 def _csv_rows(path):
     try:
-        with open(path, encoding="utf-8", newline="") as f:
-            text = f.read()
+        with open(path, "rb") as f:
+            raw = f.read()
     except OSError as e:
         raise RasterIOError(f"Cannot read '{path}': {e.strerror or e}") from e
-    rows = [r for r in csv.reader(io.StringIO(text)) if r and any(c.strip() for c in r)]
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise _fail(path, f"not UTF-8 text ({e.reason} at byte {e.start})") from e
+    if "\0" in text:
+        raise _fail(path, "holds NUL bytes: not a text CSV file")
+    try:
+        rows = [r for r in csv.reader(io.StringIO(text, newline="")) if r and any(c.strip() for c in r)]
+    except csv.Error as e:
+        raise _fail(path, f"not a readable CSV file: {e}") from e
     if not rows:
         raise _fail(path, "empty file")
     return [c.strip().lower() for c in rows[0]], rows[1:]
 
 
-def _csv_records(path, need, make):
-    """make(row, column index) for every data row of a CSV whose header names ``need``."""
+def _csv_records(path, need, optional, make):
+    """make(cells by column name, what) for every data row of a CSV whose header names ``need``
+    (and maybe ``optional``); other columns are refused."""
     path = os.fspath(path)
     head, rows = _csv_rows(path)
     if any(h not in head for h in need):
-        raise _fail(path, f"the header must name {', '.join(need)} (got {', '.join(head)})")
-    idx = {h: head.index(h) for h in head}
+        raise _fail(path, f"the header must name {', '.join(need)} (got {', '.join(map(_show, head))})")
+    dup = _first_duplicate(head)
+    if dup is not None:
+        raise _fail(path, f"the header names column {_show(dup)} twice")
+    unknown = [h for h in head if h not in need and h not in optional]
+    if unknown:
+        raise _fail(path, f"unknown column(s) {', '.join(map(_show, unknown))} (known: "
+                          f"{', '.join(need + optional)})")
     out = []
     for n, r in enumerate(rows, start=2):
+        if len(r) != len(head):
+            raise _fail(path, f"line {n}: {len(r)} fields, the header names {len(head)}")
+        cells = {h: c.strip() for h, c in zip(head, r)}
         try:
-            out.append(make(r, idx))
-        except (IndexError, ValueError) as e:
-            raise _fail(path, f"line {n}: {e}") from e
+            out.append(make(cells, f"line {n}"))
+        except ValueError as e:
+            raise _fail(path, str(e)) from None
     return out
 
 
+def _csv_id(cells, key, what):
+    v = cells[key]
+    if not v:
+        raise ValueError(f"{what}: {key} is empty")
+    if _has_control(v):
+        raise ValueError(f"{what}: {key} {_show(v)} holds control characters (line breaks, tabs, NUL...)")
+    return v
+
+
+def _csv_num(cells, key, what, *, low=None, high=None, positive=False, nonneg=False):
+    text = cells[key]
+    try:
+        v = float(text)
+    except ValueError:
+        raise ValueError(f"{what}: {key} {_show(text)} is not a number") from None
+    if not math.isfinite(v):
+        raise ValueError(f"{what}: {key} {_show(text)} is not a finite number")
+    if positive and not v > 0:
+        raise ValueError(f"{what}: {key} must be > 0, got {_show(text)}")
+    if nonneg and v < 0:
+        raise ValueError(f"{what}: {key} must be >= 0, got {_show(text)}")
+    if (low is not None and v < low) or (high is not None and v > high):
+        raise ValueError(f"{what}: {key} = {v:g} is not plausible (expected {low:g} .. {high:g})")
+    return v
+
+
 def read_image_points_csv(path, *, sigma=1.0):
-    """Image points ``image,point,col,row[,sigma]`` -> list of observation dicts."""
-    return _csv_records(path, ["image", "point", "col", "row"], lambda r, idx: {
-        "image": r[idx["image"]], "point": r[idx["point"]], "col": float(r[idx["col"]]), "row": float(r[idx["row"]]),
-        "sigma": float(r[idx["sigma"]]) if "sigma" in idx else float(sigma)})
+    """Image points ``image,point,col,row[,sigma]`` (px) -> list of observation dicts
+    ``{"image", "point", "col", "row", "sigma"}``, as in the block JSON.
+
+    Raises
+    ------
+    ParamError
+        Malformed content (the file and line named): a header without image, point, col, row,
+        unknown or repeated columns, rows of the wrong length, empty ids, values that are not
+        finite numbers, sigmas <= 0.
+    RasterIOError
+        The file cannot be read.
+    """
+    _sigma_arg(sigma, "sigma", zero=False)
+
+    def make(c, what):
+        return {"image": _csv_id(c, "image", what), "point": _csv_id(c, "point", what),
+                "col": _csv_num(c, "col", what, low=-MAX_IMAGE_SIZE, high=MAX_IMAGE_SIZE),
+                "row": _csv_num(c, "row", what, low=-MAX_IMAGE_SIZE, high=MAX_IMAGE_SIZE),
+                "sigma": (_csv_num(c, "sigma", what, positive=True, low=SIGMA_RANGE[0], high=SIGMA_RANGE[1])
+                          if "sigma" in c else float(sigma))}
+
+    return _csv_records(path, ["image", "point", "col", "row"], ["sigma"], make)
 
 
 def read_ground_points_csv(path, *, sigma=None, role="control"):
-    """Ground points ``point,x,y,z[,sx,sy,sz][,role]`` -> list of point dicts."""
-    def make(r, idx):
-        pt = {"id": r[idx["point"]], "role": r[idx["role"]].strip() if "role" in idx else role,
-              "xyz": [float(r[idx[a]]) for a in "xyz"]}
-        if all(f"s{a}" in idx for a in "xyz"):
-            pt["sigma"] = [float(r[idx[f"s{a}"]]) for a in "xyz"]
+    """Ground points ``point,x,y,z[,sx,sy,sz][,role]`` (m) -> list of point dicts
+    ``{"id", "role", "xyz"[, "sigma"]}``, as in the block JSON (role defaults to ``role``;
+    sigmas to ``sigma`` when given; a sigma 0 fixes a control point).
+
+    Raises
+    ------
+    ParamError
+        Malformed content (the file and line named): a header without point, x, y, z, unknown
+        or repeated columns, some but not all of sx, sy, sz, rows of the wrong length, empty ids,
+        values that are not finite numbers, absurd coordinates, negative sigmas, unknown roles.
+    RasterIOError
+        The file cannot be read.
+    """
+    if role not in ROLES:
+        raise ParamError(f"role must be one of {ROLES}, got {role!r}")
+    if sigma is not None:
+        _sigma_arg(sigma, "sigma", zero=True)
+    head_sigma = ("sx", "sy", "sz")
+
+    def make(c, what):
+        r = c["role"].lower() if "role" in c else role
+        if r not in ROLES:
+            raise ValueError(f"{what}: role {_show(c['role'])}, expected one of {', '.join(ROLES)}")
+        pt = {"id": _csv_id(c, "point", what), "role": r,
+              "xyz": [_csv_num(c, a, what, low=-MAX_COORDINATE, high=MAX_COORDINATE) for a in "xyz"]}
+        if any(k in c for k in head_sigma):
+            if not all(k in c for k in head_sigma):
+                raise ValueError(f"{what}: give all of sx, sy, sz or none")
+            pt["sigma"] = [_csv_num(c, k, what, nonneg=True, high=SIGMA_RANGE[1]) for k in head_sigma]
+            _sigma_zero(pt, what)
         elif sigma is not None:
             pt["sigma"] = [float(sigma)] * 3
+            _sigma_zero(pt, what)
         return pt
 
-    return _csv_records(path, ["point", "x", "y", "z"], make)
+    return _csv_records(path, ["point", "x", "y", "z"], ["sx", "sy", "sz", "role"], make)
+
+
+def _sigma_zero(pt, what):
+    s = pt["sigma"]
+    if pt["role"] != "control" and 0.0 in s:
+        raise ValueError(f"{what}: sigma 0 for a {pt['role']} point (only control points can be fixed)")
+    if any(0 < v < SIGMA_RANGE[0] for v in s):
+        raise ValueError(f"{what}: sigma {s} is not plausible (>= {SIGMA_RANGE[0]:g}, or 0 to fix a control point)")
+
+
+def _sigma_arg(value, name, *, zero):
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ParamError(f"{name} must be a number, got {value!r}") from None
+    lo, hi = SIGMA_RANGE
+    if not (v == 0 and zero) and not (lo <= v <= hi):
+        raise ParamError(f"{name} must be {'0 or ' if zero else ''}within [{lo:g}, {hi:g}], got {value!r}")

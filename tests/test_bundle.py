@@ -259,3 +259,227 @@ def test_geocentric_block_matches_its_local_twin():
         for k, iid in enumerate(geo.image_ids):
             assert ext[iid].pose.mode == "geocentric"
             np.testing.assert_allclose(ext[iid].pose.center, Pose.from_ins(*est[k]).center, atol=1e-3)
+
+
+# --- gross blunders, failures and bad starts ----------------------------------------------------
+
+LARGE_FORMAT = dict(focal=100.5, pixel=0.0046, size=(26000, 17000))  # a large-format digital frame camera
+
+
+def _copy(block, **kw):
+    d = dict(crs=block.crs, cameras=block.cameras, image_ids=block.image_ids, image_camera=block.image_camera,
+             poses=block.poses, point_ids=block.point_ids, roles=block.roles, xyz=block.xyz,
+             xyz_sigma=block.xyz_sigma, obs_image=block.obs_image, obs_point=block.obs_point, obs_xy=block.obs_xy,
+             obs_sigma=block.obs_sigma, gnss_xyz=block.gnss_xyz, gnss_sigma=block.gnss_sigma, ins_opk=block.ins_opk,
+             ins_sigma=block.ins_sigma, name=block.name)
+    d.update(kw)
+    return Block(**d)
+
+
+def _without(block, k):
+    keep = np.arange(len(block.obs_xy)) != k
+    return _copy(block, obs_image=block.obs_image[keep], obs_point=block.obs_point[keep],
+                 obs_xy=block.obs_xy[keep], obs_sigma=block.obs_sigma[keep])
+
+
+@pytest.fixture(scope="module", params=["tie", "control"])
+def blunder_case(request):
+    """A block of a large-format camera (so that a 20000 px blunder can stay inside its image),
+    one observation of a point seen in 4+ images (with fewer rays a blunder along the base
+    cannot be told from its partners) chosen with a direction in which 20000 px stay inside the
+    image, and the adjustment of the block without that observation (the right answer)."""
+    from orthowarp import FrameCamera
+
+    cam = FrameCamera(LARGE_FORMAT["focal"], LARGE_FORMAT["pixel"], LARGE_FORMAT["size"])
+    block, truth = synthetic_block(strips=2, images_per_strip=5, camera=cam, seed=2)
+    rays = np.bincount(block.obs_point)[block.obs_point]
+    w, h = cam.image_size
+    for k in np.flatnonzero((np.array(block.roles)[block.obs_point] == request.param) & (rays >= 4)):
+        for a in np.radians(np.arange(20, 380, 40)):
+            u = np.array([np.cos(a), np.sin(a)])
+            end = block.obs_xy[k] + 20000 * u
+            if 0 < end[0] < w and 0 < end[1] < h:
+                break
+        else:
+            continue
+        break
+    ref = bundle_adjust(_without(block, k))
+    # the premise: without the blunder, no observation fails the w-test (else snooping would
+    # rightly reject it too)
+    assert ref.success and np.nanmax(np.abs(ref.w_tests)) < 3.29
+    return block, truth, int(k), u, ref
+
+
+@pytest.mark.parametrize("method", ["snooping", "huber"])
+@pytest.mark.parametrize("magnitude", [200, 2000, 20000])
+def test_a_gross_blunder_is_rejected_and_nothing_else(blunder_case, magnitude, method):
+    """A single blunder of 200, 2000 or 20000 px, on a tie or a control point: snooping and the
+    robust estimation reject it and only it, sigma0 and the poses are those of the block
+    without it, and the poses are within their sigmas of the truth."""
+    block, truth, k, u, ref = blunder_case
+    xy = block.obs_xy.copy()
+    xy[k] += magnitude * u
+    bad_block = _copy(block, obs_xy=xy)
+    res = bundle_adjust(bad_block, snooping=method == "snooping", robust="huber" if method == "huber" else None)
+    assert res.success, res.message
+    assert [r[:2] for r in res.rejected] == [(block.image_ids[block.obs_image[k]], block.point_ids[block.obs_point[k]])]
+    assert res.rejected[0][2] > 0.1 * magnitude / block.obs_sigma[k]  # its w-test (predicted residual)
+    assert not res.used[k] and res.used.sum() == ref.used.sum()
+    assert 0.8 < res.sigma0 < 1.25
+    assert res.sigma0 == pytest.approx(ref.sigma0, rel=1e-6)
+    std = np.array([ref.pose_std[i] for i in block.image_ids])
+    assert np.all(np.abs(estimates(res, block) - estimates(ref, block)) < 1e-3 * std)
+    assert np.all(np.abs(estimates(res, block) - truth["poses"]) < 4.5 * std)
+
+
+def test_a_blunder_in_an_image_without_initial_pose():
+    """Images without initial poses are resected; a 2000 px blunder on a control point of one
+    of them neither spoils the resection nor survives snooping."""
+    block, truth = synthetic_block(strips=2, images_per_strip=6, ties_per_image=12, seed=14)
+    poses = block.poses.copy()
+    poses[[1, 2, 3, 7, 9]] = np.nan
+    control = np.flatnonzero((np.array(block.roles)[block.obs_point] == "control") & (block.obs_image == 2))
+    k = int(control[0])
+    ref = bundle_adjust(_without(_copy(block, poses=poses), k))
+    assert np.nanmax(np.abs(ref.w_tests)) < 3.29  # the premise: nothing else to reject
+    xy = block.obs_xy.copy()
+    xy[k] += np.sign(3500 - xy[k]) * [1600, 1200]
+    res = bundle_adjust(_copy(block, poses=poses, obs_xy=xy), snooping=True)
+    assert res.success and [r[:2] for r in res.rejected] == [(block.image_ids[2], block.point_ids[block.obs_point[k]])]
+    np.testing.assert_allclose(estimates(res, block), estimates(ref, block), atol=1e-5)
+
+
+def test_failed_runs_carry_a_status_and_a_message():
+    block, _ = synthetic_block(strips=2, images_per_strip=4, seed=9)
+    res = bundle_adjust(block, max_iterations=1)
+    assert (res.status, res.success) == (0, False) and "did not converge" in res.message
+    # sigmas that span 1e8 (1e-9 px against 2 cm control): singular in double precision, and said so
+    res = bundle_adjust(_copy(block, obs_sigma=np.full(len(block.obs_sigma), 1e-9)))
+    assert (res.status, res.success) == (-1, False)
+    assert "singular normal equations" in res.message and "the stated sigmas span a factor of" in res.message
+    assert np.isnan(res.sigma0) and res.pose_cov is None and res.pose_std == {}
+    # more gross blunders than max_rejections
+    noisy = np.clip(block.obs_xy + np.random.default_rng(0).normal(0, 1000, block.obs_xy.shape), 1, 6999)
+    res = bundle_adjust(_copy(block, obs_xy=noisy), snooping=True)
+    assert res.status == -3 and "gross blunders" in res.message and "more than max_rejections" in res.message
+    with pytest.raises(ParamError, match="max_iterations must be a whole number >= 1"):
+        bundle_adjust(block, max_iterations=0)
+    with pytest.raises(ParamError, match="critical_w must be a finite number"):
+        bundle_adjust(block, critical_w=float("nan"))
+
+
+def test_sigma0_failing_the_global_test_is_flagged():
+    block, _ = synthetic_block(strips=2, images_per_strip=4, seed=9)
+    xyz = block.xyz.copy()
+    c = int(np.flatnonzero(np.array(block.roles) == "control")[0])
+    xyz[c, 2] += 500.0
+    res = bundle_adjust(_copy(block, xyz=xyz))
+    assert res.success and res.sigma0 > 10
+    assert "fails the global test" in res.message and "the largest |w| is" in res.message
+    res = bundle_adjust(_copy(block, xyz=xyz), robust="huber")
+    assert res.success and 0.8 < res.sigma0 < 1.25 and "global test" not in res.message
+    assert {r[1] for r in res.rejected} == {block.point_ids[c]}
+
+
+def test_bad_starts_get_messages_about_what_is_wrong():
+    block, _ = synthetic_block(strips=2, images_per_strip=4, seed=9)
+    roles = np.array(block.roles)
+    c = int(np.flatnonzero(roles == "control")[0])
+    poses = block.poses.copy()
+    poses[2, 2] = 100.0  # below the terrain
+    with pytest.raises(GeometryError, match=r"image 's0_002' has its initial position at z = 100 m, below control "
+                                            r"point"):
+        bundle_adjust(_copy(block, poses=poses))
+    poses = block.poses.copy()
+    poses[2, 3] = 180.0
+    with pytest.raises(GeometryError, match=r"image 's0_002' looks away from control point .*\(omega 180"):
+        bundle_adjust(_copy(block, poses=poses))
+    xyz = block.xyz.copy()
+    xyz[c, 0] += 1e7
+    with pytest.raises(GeometryError, match=rf"control point '{block.point_ids[c]}' lies 1e\+07 m \(horizontally\) "
+                                            r"from image .* the point's coordinates, the image's initial position "
+                                            r"or their CRS are wrong"):
+        bundle_adjust(_copy(block, xyz=xyz), snooping=True)
+    poses = block.poses.copy()
+    poses[1] = poses[0]  # two images at the same initial position
+    with pytest.raises(GeometryError, match=r"rays do not meet in front of the cameras.*as close as 0 m"):
+        bundle_adjust(_copy(block, poses=poses))
+    keep = ~((block.obs_image == 0) & (np.cumsum(block.obs_image == 0) > 2))
+    two = _copy(block, obs_image=block.obs_image[keep], obs_point=block.obs_point[keep], obs_xy=block.obs_xy[keep],
+                obs_sigma=block.obs_sigma[keep])
+    with pytest.raises(ParamError, match=r"image 's0_000' has 2 observation\(s\) of tie or control points: too few"):
+        bundle_adjust(_drop_single(two))
+
+
+def _drop_single(block):
+    """The block without the observations of tie and check points left with fewer than 2 rays."""
+    rays = np.bincount(block.obs_point, minlength=block.n_points)
+    keep = (rays[block.obs_point] >= 2) | (np.array(block.roles)[block.obs_point] == "control")
+    return _copy(block, obs_image=block.obs_image[keep], obs_point=block.obs_point[keep], obs_xy=block.obs_xy[keep],
+                 obs_sigma=block.obs_sigma[keep])
+
+
+def test_a_group_of_images_without_its_own_datum():
+    """Two blocks side by side that share no tie point: the one without control is named."""
+    a, _ = synthetic_block(strips=2, images_per_strip=4, control="A", n_check=0, seed=9)
+    b, _ = synthetic_block(strips=2, images_per_strip=4, control="D", n_check=0, seed=10)
+    shift = np.array([1e5, 0, 0])
+    joined = Block(crs=a.crs, cameras=a.cameras, image_ids=a.image_ids + ["B" + i for i in b.image_ids],
+                   image_camera=a.image_camera + b.image_camera,
+                   poses=np.vstack([a.poses, b.poses + np.r_[shift, 0, 0, 0]]),
+                   point_ids=a.point_ids + ["B" + p for p in b.point_ids], roles=a.roles + b.roles,
+                   xyz=np.vstack([a.xyz, b.xyz + shift]), xyz_sigma=np.vstack([a.xyz_sigma, b.xyz_sigma]),
+                   obs_image=np.r_[a.obs_image, b.obs_image + a.n_images],
+                   obs_point=np.r_[a.obs_point, b.obs_point + a.n_points], obs_xy=np.vstack([a.obs_xy, b.obs_xy]),
+                   obs_sigma=np.r_[a.obs_sigma, b.obs_sigma])
+    with pytest.raises(GeometryError, match=r"datum defect: image\(s\) Bs0_000, .* and 3 more share no tie point with "
+                                            r"the rest of the block and have 0 known positions"):
+        bundle_adjust(joined)
+
+
+# the command line's adjust (here, with the adjustment's own tests)
+
+def test_cli_adjust_refuses_outside_observations_unless_asked(tmp_path, caplog):
+    import json
+
+    from click.testing import CliRunner
+
+    from orthowarp.adjust import write_block
+    from orthowarp.cli import main
+
+    block, _ = synthetic_block(strips=2, images_per_strip=4, seed=11)
+    write_block(block, tmp_path / "ok.json")
+    data = json.loads((tmp_path / "ok.json").read_text())
+    data["observations"][3]["col"] = -40.0
+    (tmp_path / "b.json").write_text(json.dumps(data))
+    out = tmp_path / "out"
+    r = CliRunner().invoke(main, ["adjust", str(tmp_path / "b.json"), "--out", str(out), "--no-plots"])
+    assert r.exit_code == 1 and len(r.output.strip().splitlines()) == 1
+    assert r.output.startswith("Error: ") and "b.json" in r.output and "lies outside the image" in r.output
+    assert not out.exists()
+    with caplog.at_level("WARNING", logger="orthowarp.pipeline.blockio"):
+        r = CliRunner().invoke(main, ["adjust", str(tmp_path / "b.json"), "--out", str(out), "--no-plots",
+                                      "--drop-outside-observations"])
+    assert r.exit_code == 0, r.output
+    ob = data["observations"][3]
+    assert f"dropped 1 image observation(s) outside their image: {ob['point']}@{ob['image']}" in caplog.text
+    assert (out / "exterior.csv").exists()
+
+
+def test_cli_adjust_failure_writes_nothing(tmp_path):
+    from click.testing import CliRunner
+
+    from orthowarp.adjust import write_block
+    from orthowarp.cli import main
+
+    block, _ = synthetic_block(strips=2, images_per_strip=4, seed=9)
+    noisy = np.clip(block.obs_xy + np.random.default_rng(0).normal(0, 1000, block.obs_xy.shape), 1, 6999)
+    write_block(_copy(block, obs_xy=noisy), tmp_path / "b.json")
+    out = tmp_path / "out"
+    for extra in ([], ["--snooping"]):
+        r = CliRunner().invoke(main, ["adjust", str(tmp_path / "b.json"), "--out", str(out), "--no-plots", *extra])
+        assert r.exit_code == 1
+        errors = [ln for ln in r.output.splitlines() if ln.startswith("Error:")]
+        assert len(errors) == 1 and "failed (status" in errors[0] and "nothing written" in errors[0]
+        assert "Traceback" not in r.output
+        assert not out.exists()
