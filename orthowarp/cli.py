@@ -291,7 +291,7 @@ def adjust(ctx, block_file, out_dir, fix_control, no_gnss, no_ins, snooping, rob
     reports into --out. A run that does not converge, or ends singular, writes nothing and exits
     with status 1."""
     from .adjust import bundle_adjust, read_block
-    from .errors import GeometryError
+    from .errors import Cancelled, GeometryError
     from .pipeline.adjust_report import write_adjustment
 
     block = read_block(block_file, drop_outside=drop_outside)
@@ -301,6 +301,8 @@ def adjust(ctx, block_file, out_dir, fix_control, no_gnss, no_ins, snooping, rob
     if not result.success:
         raise GeometryError(f"adjustment of '{block_file}' failed (status {result.status}): {result.message}; "
                             f"nothing written to '{out_dir}'")
+    if ctx.meta["orthowarp.stop"].is_set():  # stopped by a signal while adjusting: publish nothing
+        raise Cancelled(f"adjustment of '{block_file}' cancelled; nothing written to '{out_dir}'")
     paths = write_adjustment(result, block, out_dir, plots=not no_plots)
     if not ctx.obj["quiet"]:
         click.echo(f"{result.message}; sigma0 {result.sigma0:.4f}, redundancy {result.redundancy}; "

@@ -24,6 +24,7 @@ import yaml
 from pyproj import CRS
 
 from .blockio import _camera_dict
+from ..errors import GeometryError
 from .io import ensure_folder, write_files
 
 __all__ = ["write_adjustment"]
@@ -38,7 +39,15 @@ def write_adjustment(result, block, out_dir, *, plots=True):
 
     The files are made in memory and published together: a failure (full disk, say) leaves
     the folder's earlier outputs as they were.
+
+    Raises
+    ------
+    GeometryError
+        The adjustment failed (``result.success`` is False): its orientation is not written,
+        so that nothing takes it for a good one.
     """
+    if not result.success:
+        raise GeometryError(f"The adjustment of '{block.name}' failed ({result.message}); no outputs written")
     ensure_folder(out_dir)
     paths, files = {}, {}
     b = block
@@ -76,7 +85,7 @@ def write_adjustment(result, block, out_dir, *, plots=True):
         max_abs_w=float(np.nanmax(np.abs(result.w_tests))) if result.w_tests is not None else None,
         camera_std=result.camera_std)
     paths["report"] = os.path.join(out_dir, "report.json")
-    files[paths["report"]] = json.dumps(report, indent=2) + "\n"
+    files[paths["report"]] = json.dumps(_finite_or_null(report), indent=2, allow_nan=False) + "\n"
     if plots:
         for key, (path, png) in _plots(result, block, out_dir).items():
             paths[key], files[path] = path, png
@@ -84,6 +93,19 @@ def write_adjustment(result, block, out_dir, *, plots=True):
     files[paths["markdown"]] = _markdown(report, plots)
     write_files(files)
     return paths
+
+
+def _finite_or_null(obj):
+    """``obj`` with every non-finite float replaced by None (JSON has no NaN or infinity)."""
+    if isinstance(obj, dict):
+        return {k: _finite_or_null(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite_or_null(v) for v in obj]
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if np.isfinite(obj) else None
+    if isinstance(obj, np.integer):
+        return int(obj)
+    return obj
 
 
 def _markdown(r, plots):

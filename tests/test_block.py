@@ -66,7 +66,8 @@ def test_several_outside_observations_are_counted():
     (dict(poses=[[0, 0, 1e12, 0, 0, 0], [100, 0, 500, 0, 0, 0]]), r"image 'a': initial position: z = 1e\+12 m"),
     (dict(poses=[[0, 0, 500, 0, 0, 1e5], [100, 0, 500, 0, 0, 0]]), r"image 'a': initial attitude: angles .* within"),
     (dict(poses=[[0, 0, 500, 0, 0, np.nan], [100, 0, 500, 0, 0, 0]]), r"give the whole initial pose or none"),
-    (dict(cameras={"cam": FrameCamera(50.0, 0.01, (10**7, 800))}), r"camera 'cam': an image of 1e\+07 x 800 pixels"),
+    # a camera FrameCamera accepts (its angles are plausible) but no block image is that large
+    (dict(cameras={"cam": FrameCamera(5000.0, 0.0001, (2 * 10**6, 800))}), r"camera 'cam': an image of 2e\+06 x 800 pixels"),
     (dict(image_camera=["cam"]), r"image_camera has 1 entries for 2 images"),
     (dict(roles=["control", "tie", "gcp"]), r"point 't' has role 'gcp'"),
     (dict(poses=[[0, 0, 500, 0, 0]]), r"poses must be an array of shape \(2, 6\)"),

@@ -155,7 +155,9 @@ BAD_DOCUMENTS = [
     (_set("cameras", "cam", "focal_len", value="100"), r"camera 'cam' parameter 'focal_len' must be a number, got a string"),
     (_set("cameras", "cam", "focal_len", value=10**400), r"camera 'cam' parameter 'focal_len' is too large for a float"),
     (_set("cameras", "cam", "type", value=7), r"camera 'cam' parameter 'type' must be a string, got the number 7"),
-    (_set("cameras", "cam", "im_size", value=[10**9, 10**9]), r"camera 'cam': an image of 1e\+09 x 1e\+09 pixels"),
+    # sensor_size fixed: 1e9 pixels across it are 6.3e-8 mm each, which the camera refuses
+    (_set("cameras", "cam", "im_size", value=[10**9, 10**9]), r"camera 'cam': focal_length 100 mm with pixel_size "
+     r"6.3e-08 mm is implausible"),
     (_set("cameras", "cam", value="pinhole"), r"camera 'cam' must be a JSON object"),
 ]
 

@@ -241,3 +241,21 @@ def test_narrowing_dtype_warns_in_one_line(tmp_path):
     lines = res.output.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("Warning: Image '") and "100.000% of the uint16 source values" \
         in lines[0] and "uint8 range [0, 255]" in lines[0], res.output
+
+
+def test_a_failed_adjustment_is_never_written(tmp_path):
+    import dataclasses
+
+    from orthowarp.adjust import bundle_adjust, synthetic_block
+    from orthowarp.errors import GeometryError
+    from orthowarp.pipeline.adjust_report import write_adjustment
+
+    block, _ = synthetic_block(strips=2, images_per_strip=4, seed=11)
+    res = bundle_adjust(block)
+    failed = dataclasses.replace(res, success=False, status=0, message="iteration limit reached")
+    with pytest.raises(GeometryError, match="failed \\(iteration limit reached\\); no outputs written"):
+        write_adjustment(failed, block, tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+    paths = write_adjustment(res, block, tmp_path / "out", plots=False)
+    report = (tmp_path / "out" / "report.json").read_text()
+    assert "NaN" not in report and "Infinity" not in report and os.path.exists(paths["exterior"])
