@@ -569,3 +569,20 @@ def widen_kernel(src: wp.array3d(dtype=Any), dst: wp.array3d(dtype=wp.float32)):
 
 wp.overload(widen_kernel, {"src": wp.array3d(dtype=wp.uint8)})
 wp.overload(widen_kernel, {"src": wp.array3d(dtype=wp.uint16)})
+
+
+@wp.kernel
+def frame_source_coords_kernel(
+    cam: FrameCameraData,
+    refr: RefractionTable,
+    dem: DemData,
+    grid: CoarseGrid,
+    width: wp.float64,
+    height: wp.float64,
+    out: wp.array2d(dtype=wp.vec2d),
+):
+    """The source pixel (col, row) of every output pixel of a tile, as the fused frame kernel
+    computes it (:func:`frame_source_pixel`), stored: for checking the backends against each
+    other and against independent references."""
+    i, j = wp.tid()
+    out[i, j] = frame_source_pixel(cam, refr, dem, grid, i, j, width, height)
