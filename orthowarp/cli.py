@@ -209,6 +209,7 @@ def ortho(ctx, images, int_param, ext_param, dimap, attitude_model, dem, height,
     import os
 
     t_command = time.perf_counter()
+    _spare_final_collection()
     from .errors import ParamError, RasterIOError
     from .pipeline.dem import Dem
     from .pipeline.formats import read_cameras, read_exterior
@@ -287,6 +288,24 @@ def ortho(ctx, images, int_param, ext_param, dimap, attitude_model, dem, height,
         seen[dst] = image
         jobs.append((image, cameras[cam_id], orient.pose, dst))
     run(jobs)
+
+
+_SPARED = []
+
+
+def _spare_final_collection():
+    """At the process's exit, freeze the objects then alive (``gc.freeze``), so that the
+    interpreter's final garbage collections do not traverse the tens of thousands of objects
+    Warp, its kernels and the pipeline's modules hold: that saves ~0.25 s at the end of every
+    ``orthowarp ortho`` on the 2-core machine. Runs after the command (outputs published,
+    datasets closed), as an atexit handler, so in-process callers (tests) are unaffected until
+    they exit too. Cyclic garbage left at exit is then reclaimed by the OS, not finalised."""
+    if not _SPARED:
+        import atexit
+        import gc
+
+        atexit.register(gc.freeze)
+        _SPARED.append(True)
 
 
 def _report_profile(profiles, batch_wall, marks, *, show, path):
