@@ -127,7 +127,8 @@ class StageTimer:
         -------
         dict
             ``wall_s``; ``stages``: per stage ``sum_s``, ``union_s``, ``fraction`` (union / wall)
-            and ``count`` (intervals); ``device_busy_s`` and ``device_busy_fraction`` (union
+            and ``count`` (intervals); ``other_s``, the wall-clock time in no stage at all
+            (between tiles, waiting for the pool); ``device_busy_s`` and ``device_busy_fraction`` (union
             of the kernel intervals, and that over the wall time); ``bound_by`` (the stage with
             the largest union, ``queue`` excepted) and ``bound`` (it in words);
             ``first_kernel_s`` (from the call to the first kernel launch, None without one);
@@ -146,7 +147,8 @@ class StageTimer:
                              fraction=float(union / wall) if wall > 0 else 0.0, count=len(spans[k]))
         kernels = spans["kernel"]
         p0 = process_start()
-        prof = dict(wall_s=float(wall), stages=stages)
+        covered = min(union_length([iv for v in spans.values() for iv in v]), wall)
+        prof = dict(wall_s=float(wall), stages=stages, other_s=float(wall - covered))
         prof.update(_busy_and_bound(stages, wall))
         prof["first_kernel_s"] = float(min(s for s, _ in kernels) - self.start) if kernels else None
         prof["call_start_s"] = float(self.start - p0) if p0 is not None else None
@@ -189,7 +191,8 @@ def merge_profiles(profiles, *, wall=None):
         stages[k] = dict(sum_s=float(sum(p["stages"][k]["sum_s"] for p in profiles)), union_s=float(union),
                          fraction=float(union / wall) if wall > 0 else 0.0,
                          count=int(sum(p["stages"][k]["count"] for p in profiles)))
-    out = dict(wall_s=float(wall), stages=stages, images=len(profiles))
+    other = wall - sum(p["wall_s"] - p["other_s"] for p in profiles)  # between the calls too
+    out = dict(wall_s=float(wall), stages=stages, other_s=float(other), images=len(profiles))
     out.update(_busy_and_bound(stages, wall))
     first = profiles[0] if profiles else {}
     out["first_kernel_s"] = first.get("first_kernel_s")
@@ -228,6 +231,7 @@ def format_profile(prof, title):
     for k in STAGES:
         s = prof["stages"][k]
         lines.append(f"  {_LABELS[k]:<20s}{s['sum_s']:>10.3f}{s['union_s']:>14.3f}{100 * s['fraction']:>10.1f}%")
+    lines.append(f"  {'in no stage':<20s}{'':>10s}{prof['other_s']:>14.3f}{100 * prof['other_s'] / wall if wall > 0 else 0.0:>10.1f}%")
     lines.append(f"  device busy {100 * prof['device_busy_fraction']:.1f} % of the wall "
                  f"({prof['device_busy_s']:.3f} s with a kernel running)")
     b = prof["stages"][prof["bound_by"]]

@@ -54,6 +54,7 @@ def test_stage_timer_profile_numbers():
     np.testing.assert_allclose(s["write"]["fraction"], 2.5 / 6.0)
     assert s["kernel"]["count"] == 2 and s["h2d"]["count"] == 0 and s["h2d"]["sum_s"] == 0.0
     np.testing.assert_allclose([p["device_busy_s"], p["device_busy_fraction"]], [2.0, 2.0 / 6.0])
+    np.testing.assert_allclose(p["other_s"], 0.5)  # 5.5 .. 6.0 in no stage
     # the hand-off (waiting on the writer) is the longest but never the bound: the work is
     assert p["bound_by"] == "write" and p["bound"] == "bound by compress+write on the host"
     np.testing.assert_allclose(p["first_kernel_s"], 1.0)
@@ -94,12 +95,12 @@ def test_merge_profiles():
     a = _timer_with([("kernel", 0.0, 1.0), ("write", 1.0, 3.0)], start=0.0).profile(end=4.0)
     b = _timer_with([("kernel", 0.0, 3.0), ("write", 0.5, 1.0)], start=10.0).profile(end=16.0)
     m = merge_profiles([a, b])
-    np.testing.assert_allclose(m["wall_s"], 10.0)
+    np.testing.assert_allclose([m["wall_s"], a["other_s"], b["other_s"], m["other_s"]], [10.0, 1.0, 3.0, 4.0])
     np.testing.assert_allclose([m["stages"]["kernel"]["union_s"], m["stages"]["write"]["union_s"]], [4.0, 2.5])
     np.testing.assert_allclose(m["device_busy_fraction"], 0.4)
     assert m["images"] == 2 and m["bound_by"] == "kernel" and m["first_kernel_s"] == a["first_kernel_s"]
     m = merge_profiles([a, b], wall=20.0)  # the batch's own wall-clock (time between the images too)
-    np.testing.assert_allclose([m["wall_s"], m["device_busy_fraction"]], [20.0, 0.2])
+    np.testing.assert_allclose([m["wall_s"], m["device_busy_fraction"], m["other_s"]], [20.0, 0.2, 14.0])
     assert json.loads(json.dumps(m)) == m
 
 
@@ -113,6 +114,7 @@ def test_format_profile():
     assert list(rows) == ["set-up", "tile set-up", "read", "host->device", "kernel", "device->host",
                           "hand-off to writer", "compress+write", "finish"]
     assert rows["kernel"] == ["1.000", "1.000", "50.0%"] and rows["compress+write"] == ["0.250", "0.250", "12.5%"]
+    assert lines[-3].split() == ["in", "no", "stage", "0.500", "25.0%"]
     assert lines[-2] == "  device busy 50.0 % of the wall (1.000 s with a kernel running)"
     assert lines[-1] == "  bound by kernels on the device: 1.000 s wall-clock, 50.0 % of the wall"
 
@@ -151,6 +153,7 @@ def _check_consistent(p, result):
         np.testing.assert_allclose(s["fraction"], s["union_s"] / wall)
     assert 0.0 < p["device_busy_fraction"] <= 1.0
     np.testing.assert_allclose(p["device_busy_s"], p["stages"]["kernel"]["union_s"])
+    assert 0.0 <= p["other_s"] <= wall - max(s["union_s"] for s in p["stages"].values()) + 1e-9
     assert p["bound_by"] in STAGES and p["bound_by"] != "queue" and p["bound"].startswith("bound by ")
     assert p["stages"][p["bound_by"]]["union_s"] == max(s["union_s"] for k, s in p["stages"].items() if k != "queue")
     assert p["stages"]["setup"]["count"] == 1 and p["stages"]["finish"]["count"] >= 1
