@@ -4,8 +4,11 @@ Scene: the camera and pose of bench/geometry.py (f = 100.5 mm, 5.2 um pixels, 19
 ground, 1 m DEM, ~10 cm GSD) and a procedural 3-band uint8 source of 20000 x 13000 pixels
 written once as a tiled GeoTIFF. For each device:
 
-- end to end: ``orthowarp ortho`` in a subprocess (wall time and the child's peak RSS);
-- stages: ``orthowarp.orthorectify`` in process (seconds per stage summed over tiles);
+- end to end: ``orthowarp ortho`` in a subprocess (wall time and the child's peak RSS), with its
+  ``--profile-json`` (``cli.profile``) and, apart, its start-up (``cli.startup_s``: from the
+  process start to the first kernel, and ``cli.startup``: where that time went);
+- stages: ``orthowarp.orthorectify`` in process (``stages_s``: seconds per stage summed over
+  threads; ``profile``: the same with wall-clock unions, device busy fraction and bound);
 - kernel only: the pipeline's per-pixel kernel (backward chain and resampling) over the whole
   output with the uint8 source resident on the device, into the packed uint8 output (output
   Gpix/s and Gpix/s per band; on a GPU also at several thread-block sizes).
@@ -255,32 +258,48 @@ def main(argv=None):
                            refraction=not args.no_refraction)
         r["in_process_wall_s"] = time.perf_counter() - t
         r["stages_s"] = res.timings
+        r["profile"] = res.profile
         r["ortho_shape"] = list(res.shape)
         r["kernel_fraction_of_wall"] = res.timings["kernel"] / res.timings["wall"]
         if not args.skip_cli:
             def cli(*extra):
+                prof_path = os.path.join(work, f"cli_profile_{r['device'].replace(':', '')}.json")
+                if os.path.exists(prof_path):
+                    os.remove(prof_path)
                 o = run_cli(sys.executable, "orthowarp.cli:main", [
                     "-q", "ortho", src, "--int-param", os.path.join(work, "camera.yaml"), "--ext-param",
                     os.path.join(work, "ext.csv"), "--dem", dem_path, "--out-dir", work, "--overwrite", "--resolution",
                     repr(res.resolution), "--resampling", args.resampling, "--method", args.method, "--device", name,
-                    *(["--no-refraction"] if args.no_refraction else []), *extra],
+                    "--profile-json", prof_path, *(["--no-refraction"] if args.no_refraction else []), *extra],
                     gpu_index=geom.device.ordinal if geom.device.is_cuda else None)
                 if o["returncode"] == 0:
                     o["output_mb"] = os.path.getsize(os.path.join(work, "frame_ORTHO.tif")) / 1e6
+                    with open(prof_path) as f:
+                        doc = json.load(f)
+                    # start-up apart: from the process start to the first kernel, and where it went
+                    o["startup_s"] = doc["startup"]["startup_s"]
+                    o["startup"] = doc["startup"]
+                    o["profile"] = doc["images"][0]["profile"]
                 return o
             r["cli"] = cli()
             if geom.device.is_cuda:  # what the CPU's deflate costs: the fastest level, labelled apart
                 r["cli_deflate_level1"] = cli("--compress-level", "1")
-            # the fixed cost inside that: interpreter, imports, Warp and device set-up, kernels loaded
+            # the floor of that start-up: interpreter, imports, Warp and device set-up, kernels loaded, no job
             t = time.perf_counter()
             subprocess.run([sys.executable, "-c", STARTUP, name], check=True)
-            r["cli"]["startup_s"] = time.perf_counter() - t
+            r["cli"]["startup_floor_s"] = time.perf_counter() - t
+            # and of ``import orthowarp`` alone (lazy: Warp, GDAL, PROJ and SciPy load on first use)
+            t = time.perf_counter()
+            subprocess.run([sys.executable, "-c", "import orthowarp"], check=True)
+            r["cli"]["import_orthowarp_process_s"] = time.perf_counter() - t
         report["results"].append(r)
         save_report(report, args.out)
         cli = r.get("cli", {})
         print(f"{r['device_name']:>24s} kernel {r['kernel_gpix_s']:.3f} Gpix/s ({r['kernel_gpix_s_per_band']:.3f} per band) "
               f"in-process {r['in_process_wall_s']:.1f} s  cli {cli.get('wall_s', float('nan')):.1f} s "
-              f"peak {cli.get('peak_rss_mb') or float('nan'):.0f} MB  stages {({k: round(v, 2) for k, v in res.timings.items()})}",
+              f"(start-up {cli.get('startup_s') or float('nan'):.2f} s) "
+              f"peak {cli.get('peak_rss_mb') or float('nan'):.0f} MB  stages {({k: round(v, 2) for k, v in res.timings.items()})}  "
+              f"device busy {100 * res.profile['device_busy_fraction']:.1f} %, {res.profile['bound']}",
               flush=True)
         resolution = res.resolution
         if args.oty_python and "orthority" not in report:

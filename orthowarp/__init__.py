@@ -23,7 +23,6 @@ if not os.path.isdir(os.path.join(os.path.dirname(os.path.abspath(__file__)), "k
         os.path.join(_checkout, "kernels", "__init__.py")):
     __path__.append(_checkout)
 
-from .camera import FrameCamera
 from .errors import (
     CrsError,
     DeviceError,
@@ -32,13 +31,22 @@ from .errors import (
     ParamError,
     RasterIOError,
 )
-from .pipeline.dem import Dem
-from .pipeline.geometry import geolocate, project
-from .pipeline.ortho import orthorectify
-from .pose import Pose
-from .pushbroom import PushbroomScene
 
 __version__ = "0.1.0"
+
+# The public names below the errors are imported when first used (PEP 562): ``import
+# orthowarp`` loads neither Warp nor GDAL, PROJ or SciPy, and initialises nothing; a job pays
+# only for the modules it uses.
+_LAZY = {
+    "FrameCamera": ".camera",
+    "Pose": ".pose",
+    "PushbroomScene": ".pushbroom",
+    "Dem": ".pipeline.dem",
+    "geolocate": ".pipeline.geometry",
+    "project": ".pipeline.geometry",
+    "orthorectify": ".pipeline.ortho",
+}
+_SUBPACKAGES = ("adjust", "kernels", "pipeline")  # ``ow.adjust.bundle_adjust`` etc. without an import
 
 __all__ = [
     "FrameCamera",
@@ -55,5 +63,23 @@ __all__ = [
     "GeometryError",
     "DeviceError",
 ]
+
+
+def __getattr__(name):
+    import importlib
+
+    if name in _LAZY:
+        value = getattr(importlib.import_module(_LAZY[name], __name__), name)
+    elif name in _SUBPACKAGES:
+        value = importlib.import_module(f".{name}", __name__)
+    else:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    globals()[name] = value  # later look-ups skip this function
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_LAZY) | set(_SUBPACKAGES))
+
 
 logging.getLogger(__name__).addHandler(logging.NullHandler())

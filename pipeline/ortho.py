@@ -41,6 +41,7 @@ from .dem import Dem
 from .geometry import FrameGeometry, PushbroomGeometry
 from .cog import DTYPES, CogWriter, overview_count, verify_tiff
 from .io import GDAL_ERRORS, atomic_path, check_destination, gdal_reason, write_error
+from .profile import StageTimer
 
 __all__ = ["orthorectify", "OrthoResult", "RESAMPLING", "output_grid"]
 
@@ -71,7 +72,13 @@ class OrthoResult:
     resolution : float
         Pixel size in CRS units.
     timings : dict
-        Seconds per stage summed over tiles (read, h2d, kernel, d2h, write, finish) and wall.
+        Seconds per stage summed over tiles and threads (the stages of
+        :mod:`orthowarp.pipeline.profile`: setup, prepare, read, h2d, kernel, d2h, queue, write,
+        finish) and ``wall``, the call's wall-clock seconds.
+    profile : dict
+        Per stage the summed and the wall-clock (union of intervals) seconds, the device busy
+        fraction, what bounds the run and the start-up figures: see
+        :meth:`orthowarp.pipeline.profile.StageTimer.profile`. JSON-serialisable.
     """
 
     path: str
@@ -80,6 +87,7 @@ class OrthoResult:
     shape: tuple
     resolution: float
     timings: dict = field(default_factory=dict)
+    profile: dict = field(default_factory=dict)
 
 
 def _utm_crs(lon, lat):
@@ -203,18 +211,6 @@ class _Counter:
             self.total += total
 
 
-class _Timer:
-    """Thread-safe accumulation of per-stage seconds."""
-
-    def __init__(self):
-        self.lock = threading.Lock()
-        self.t = {k: 0.0 for k in ("read", "h2d", "kernel", "d2h", "write", "finish")}
-
-    def add(self, key, dt):
-        with self.lock:
-            self.t[key] += dt
-
-
 @quiet_warp()  # Warp's informational messages only where the user asked for them
 def orthorectify(src, sensor, *args, dem, crs=None, resolution=None, resampling="bilinear", method="backward",
                  refraction=True, dtype=None, driver="COG", compress="deflate", compress_level=None, overviews=True,
@@ -286,6 +282,7 @@ def orthorectify(src, sensor, *args, dem, crs=None, resolution=None, resampling=
     OrthoResult
     """
     t_wall = time.perf_counter()
+    timer = StageTimer(t_wall)  # intervals per stage and thread: see orthowarp.pipeline.profile
     if isinstance(sensor, PushbroomScene):
         if len(args) != 1:
             raise ParamError("orthorectify(src, scene, dst, ...) takes the source, a PushbroomScene and the output")
@@ -356,7 +353,6 @@ def orthorectify(src, sensor, *args, dem, crs=None, resolution=None, resampling=
         raise GeometryError(f"Image '{src}'{where}: {e}") from e
     log.info("%s -> %s: %d x %d pixels at %.4g %s", src, dst, shape[1], shape[0], res,
              out_crs.axis_info[0].unit_name if out_crs.axis_info else "")
-    timer = _Timer()
     clipped = _Counter()
     # A deflate or uncompressed COG streams through CogWriter (blocks compressed and overviews
     # reduced as tiles arrive); other COGs are written uncompressed and copied by GDAL's COG
@@ -378,14 +374,15 @@ def orthorectify(src, sensor, *args, dem, crs=None, resolution=None, resampling=
             except GDAL_ERRORS as e:
                 raise write_error(dst, tmp_final, e) from e
             verify_tiff(tmp_final, name=dst)  # GDAL's close does not report failed writes
-        timer.t["finish"] += time.perf_counter() - t0
+        timer.span("finish", t0)
         _check_cancel(cancel, dst)
     if clipped.n:
         warnings.warn(f"Image '{src}': {clipped.n / clipped.total:.3%} of the {src_dtype} source values read lie "
                       f"outside the {out_dtype} range [0, {int(np.iinfo(out_dtype).max)}] and were clipped in "
                       f"'{dst}'", OrthowarpWarning, stacklevel=2)
-    timer.t["wall"] = time.perf_counter() - t_wall
-    return OrthoResult(dst, out_crs, transform, shape, res, dict(timer.t))
+    prof = timer.profile()
+    timings = dict(timer.sums, wall=prof["wall_s"])
+    return OrthoResult(dst, out_crs, transform, shape, res, timings, prof)
 
 
 def coarse_grid(transform, to_frame, r0, c0, th, tw, step=COARSE_STEP):
@@ -499,11 +496,13 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
         t = time.perf_counter()
         uv = coarse_grid(transform, to_frame, r0, c0, th, tw)
         heights = _height_range(geom.dem, dem_blocks, uv)
+        timer.span("prepare", t)
         if heights is None:  # no DEM under the tile
             return None, None
+        t = time.perf_counter()
         grid = coarse_struct(uv, geocentric, device, pose=None if pushbroom else geom.pose)
         nodes = wp.empty((2, *uv.shape[:2]), dtype=wp.vec2d, device=device)
-        timer.add("h2d", time.perf_counter() - t)
+        timer.span("h2d", t)
         t = time.perf_counter()
         if pushbroom:
             wp.launch(ortho_kernels.pb_node_pixels_kernel, dim=nodes.shape, device=device,
@@ -514,10 +513,12 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
         else:
             wp.launch(ortho_kernels.frame_node_pixels_kernel, dim=nodes.shape, device=device,
                       inputs=[*sensor, grid, wp.vec2d(*heights), nodes])
-        pixels = nodes.numpy()
+        pixels = nodes.numpy()  # waits for the kernels
+        timer.span("kernel", t)
+        t = time.perf_counter()
         factor = _decimation(pixels[0])
         window = _node_window(pixels, radius, w_img, h_img, factor=factor)
-        timer.add("kernel", time.perf_counter() - t)
+        timer.span("prepare", t)
         if window is not None:
             window = (*window, factor)
 
@@ -574,19 +575,23 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
             n_out = int(np.count_nonzero((data > top) | (data < 0))) if data.dtype.kind == "f" else \
                 int(np.count_nonzero(data > top))
             clipped.add(n_out, data.size)
-        timer.add("read", time.perf_counter() - t)
+        timer.span("read", t)
         t = time.perf_counter()
         arr = wp.array(data, dtype=_WP_TYPES[data.dtype.name], device=device)
         if data.dtype.name not in (out_dtype, "float32"):  # e.g. uint8 into float32: widen on the device
             wide = wp.empty(data.shape, dtype=wp.float32, device=device)
+            timer.span("h2d", t)
+            t = time.perf_counter()
             wp.launch(ortho_kernels.widen_kernel, dim=data.shape, inputs=[arr], outputs=[wide], device=device)
+            timer.span("kernel", t)
+            t = time.perf_counter()
             arr = wide
         sw = ortho_kernels.SourceWindow()
         sw.masked = int(masked)
         sw.valid = wp.array(valid if masked else np.ones((1, 1), np.uint8), dtype=wp.uint8, device=device)
         sw.col0, sw.row0 = wc0, wr0
         sw.inv_sx, sw.inv_sy = shape[1] / (wc1 - wc0), shape[0] / (wr1 - wr0)  # window pixels per image pixel
-        timer.add("h2d", time.perf_counter() - t)
+        timer.span("h2d", t)
         return sw, arr
 
     def run(tile):
@@ -606,13 +611,14 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
                 launch(sw, data, packed, res_valid)
                 if stream is not None:
                     wp.synchronize_stream(stream)
-                timer.add("kernel", time.perf_counter() - t)
+                timer.span("kernel", t)
                 t = time.perf_counter()
                 block, mask = packed.numpy(), res_valid.numpy().view(bool)
-                timer.add("d2h", time.perf_counter() - t)
+                timer.span("d2h", t)
             t = time.perf_counter()
             sink(r0, c0, block, mask)
-            timer.add("write", time.perf_counter() - t)
+            # the COG writer compresses in its own threads (timed there as "write"): here the hand-off
+            timer.span("queue" if cog is not None else "write", t)
 
     n_workers = workers or (4 if device.is_cuda else (os.cpu_count() or 1))
     try:
@@ -620,6 +626,8 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
         # (5 % of RAM) would hold gigabytes of blocks.
         with rasterio.Env(GDAL_CACHEMAX=256), _open_sink(path, profile, cog, final_name, timer) as sink:
             bar = _progress(len(tiles)) if progress else None
+            timer.info.update(device=str(device), tiles=len(tiles), threads=n_workers)
+            timer.span("setup", timer.start)  # from the call to the first tile
             pool = ThreadPoolExecutor(max_workers=n_workers)
             try:
                 for _ in pool.map(run, tiles):
@@ -699,14 +707,32 @@ def _node_window(nodes, radius, width, height, margin=2, factor=1):
     return c0, r0, c1, r1
 
 
+class _TimedCogWriter(CogWriter):
+    """A :class:`CogWriter` whose compression and writing of each block, with the overview
+    blocks it completes, is timed as the ``write`` stage (in the writer's own threads)."""
+
+    def __init__(self, *args, timer, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._timer = timer
+
+    def _emit(self, li, *args, **kwargs):
+        if li:  # an overview block: within the interval of the full-resolution block completing it
+            return super()._emit(li, *args, **kwargs)
+        t = time.perf_counter()
+        try:
+            return super()._emit(li, *args, **kwargs)
+        finally:
+            self._timer.span("write", t)
+
+
 @contextlib.contextmanager
 def _open_sink(path, profile, cog, final_name, timer):
     """A function sink(row, col, block (rows, cols, bands), mask (rows, cols) bool) writing
     tiles: through :class:`CogWriter` (``cog``: its options) or GDAL's GTiff driver."""
     if cog is not None:
-        w = CogWriter(path, width=profile["width"], height=profile["height"], count=profile["count"],
-                      dtype=profile["dtype"], crs=profile["crs"], transform=profile["transform"], name=final_name,
-                      **cog)
+        w = _TimedCogWriter(path, width=profile["width"], height=profile["height"], count=profile["count"],
+                            dtype=profile["dtype"], crs=profile["crs"], transform=profile["transform"],
+                            name=final_name, timer=timer, **cog)
         try:
             # the tiles are fresh arrays the pipeline drops after the call: no copy
             yield functools.partial(w.write, copy=False)
@@ -715,7 +741,7 @@ def _open_sink(path, profile, cog, final_name, timer):
             raise
         t = time.perf_counter()
         w.close()  # the last blocks, then the file's IFDs and block copy
-        timer.add("finish", time.perf_counter() - t)
+        timer.span("finish", t)
         return
     lock = threading.Lock()
     is_float = profile["dtype"] == "float32"
@@ -730,6 +756,8 @@ def _open_sink(path, profile, cog, final_name, timer):
             except GDAL_ERRORS as e:
                 raise write_error(final_name, path, e) from e
         yield sink
+        t = time.perf_counter()
+    timer.span("finish", t)  # GDAL's close: its last blocks compressed and written
 
 
 _OPEN_LOCK = threading.Lock()  # warnings.catch_warnings is not thread-safe
@@ -773,6 +801,7 @@ def _forward_coords(geom, transform, out_crs, frame_crs, device, timer, radius, 
         sel = ((node_out[:, 0] >= c0 - margin) & (node_out[:, 0] <= c0 + tw + margin)
                & (node_out[:, 1] >= r0 - margin) & (node_out[:, 1] <= r0 + th + margin))
         if not np.any(sel):
+            timer.span("prepare", t)
             return coords, None
         grow = step + margin
         wc0 = max(int(node_src[sel, 0].min()) - grow, 0)
@@ -788,17 +817,19 @@ def _forward_coords(geom, transform, out_crs, frame_crs, device, timer, radius, 
         uu, vv = np.meshgrid(gu, gv)
         x, y = to_out.transform(uu, vv)
         pc, pr = ~transform @ (np.asarray(x), np.asarray(y))
+        timer.span("prepare", t)
+        t = time.perf_counter()
         f2o = ortho_kernels.FrameToOutput()
         f2o.grid = wp.array(np.ascontiguousarray(np.stack([pc - c0, pr - r0], -1)), dtype=wp.vec2d, device=device)
         f2o.x0, f2o.dx, f2o.y0, f2o.dy = float(gu[0]), float(gu[1] - gu[0]), float(gv[0]), float(gv[1] - gv[0])
         nodes = wp.empty((wr1 - wr0, wc1 - wc0), dtype=wp.vec2d, device=device)
-        timer.add("h2d", time.perf_counter() - t)
+        timer.span("h2d", t)
         t = time.perf_counter()
         wp.launch(ortho_kernels.forward_nodes_kernel, dim=nodes.shape, device=device,
                   inputs=[cam, pose, refr, dem, search, f2o, wc0, wr0, nodes])
         wp.launch(ortho_kernels.forward_scatter_kernel, dim=(nodes.shape[0] - 1, nodes.shape[1] - 1), device=device,
                   inputs=[nodes, wc0, wr0, max_edge, coords])
-        timer.add("kernel", time.perf_counter() - t)
+        timer.span("kernel", t)
         # the resampling window must hold the kernel's support around every coordinate
         reach = (radius + 1) * factor
         return coords, (max(wc0 - reach, 0), max(wr0 - reach, 0), min(wc1 + reach, w_img), min(wr1 + reach, h_img),
