@@ -371,7 +371,7 @@ HEAD = "filename,x,y,z,omega,phi,kappa\n"
     (HEAD + "a,1,2,3,4,5,inf\n", r"line 2: image 'a': column 'kappa' is not finite"),
     (HEAD + "a,1,2,3,4,5\n", r"line 2: expected 7 fields, got 6"),
     (HEAD + "a.tif,1,2,3,4,5,6\na.jpg,1,2,3,4,5,6\n", r"line 3: image 'a' already given on line 2"),
-    ("filename,latitude,longitude,altitude,roll,pitch,yaw\na,95,2,3,4,5,6\n", r"line 2: image 'a': lat must be within"),
+    ("filename,latitude,longitude,altitude,roll,pitch,yaw\na,95,2,3,4,5,6\n", r"line 2: image 'a': latitude must be within"),
 ])
 def test_csv_errors(tmp_path, body, match):
     path = write(tmp_path / "bad.csv", body)
@@ -582,3 +582,177 @@ def test_reconstruction_errors(tmp_path, mutate, match):
 def test_json_that_is_neither(tmp_path):
     with pytest.raises(ParamError, match="not an orthority GeoJSON"):
         read_exterior(write(tmp_path / "x.json", '{"a": 1}'))
+
+
+# =============================================================================================
+# property-based fuzzing (Hypothesis). Strategies and checks: tests/fuzz_strategies.py; the
+# number of documents per test: ORTHOWARP_FUZZ_EXAMPLES (a few hundred by default, thousands in
+# the long run). Property: only orthowarp's own errors escape, as one line naming the file, and
+# every successful parse gives valid objects.
+# =============================================================================================
+
+import warnings  # noqa: E402
+
+import yaml  # noqa: E402
+from hypothesis import given  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+import fuzz_strategies as fz  # noqa: E402
+
+CAM_KEYS = ["type", "im_size", "focal_len", "sensor_size", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "name",
+            "projection_type", "width", "height", "focal", "focal_x", "focal_y", "c_x", "c_y", "camera", "cameras",
+            "shots", "reference_lla"]
+EXT_KEYS = ["filename", "camera", "xyz", "opk", "features", "properties", "world_crs", "type", "shots", "rotation",
+            "translation", "reference_lla", "latitude", "longitude", "altitude", "cameras"]
+OTY_DOC = yaml.safe_load(OTY_YAML)
+ODM_CAMERAS = {
+    "v2 dji fc6310r 5472 3648 brown 0.6666": {"projection_type": "brown", "width": 5472, "height": 3648,
+                                              "focal_x": 0.667, "focal_y": 0.668, "c_x": 0.001, "c_y": -0.002,
+                                              "k1": -0.01, "k2": 0.02, "p1": 1e-4, "p2": -2e-4, "k3": 1e-3},
+    "v2 other": {"projection_type": "perspective", "width": 4000, "height": 3000, "focal": 0.85, "k1": 0.01,
+                 "k2": 0.0}}
+
+
+def clean_parse(fn, path, *args, names=(), **kwargs):
+    """fn(path, ...) with warnings as errors; None on an OrthowarpError, which must be one line
+    naming the file (or one of ``names``)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        try:
+            return fn(path, *args, **kwargs)
+        except OrthowarpError as e:
+            msg = str(e)
+            assert "\n" not in msg and len(msg) < 3000, msg[:3000]
+            assert any(str(n) in msg for n in (path, *names)), msg
+            return None
+
+
+def write_bytes_or_text(path, content):
+    if isinstance(content, bytes):
+        path.write_bytes(content)
+    else:
+        path.write_text(content, encoding="utf-8", errors="surrogatepass")
+    return path
+
+
+@fz.fuzz_settings()
+@given(text=st.sampled_from([OTY_DOC, OTY_DOC["Brown camera"], {"camera": OTY_DOC["OpenCV camera"], "dem": {}}])
+       .flatmap(lambda b: fz.document(b, syntax="yaml", keys=CAM_KEYS)))
+def test_fuzz_cameras_yaml(tmp_path, text):
+    path = write_bytes_or_text(tmp_path / "int_param.yaml", text)
+    cams = clean_parse(read_cameras, path)
+    if cams is not None:
+        fz.check_cameras(cams)
+
+
+@fz.fuzz_settings()
+@given(text=st.sampled_from([OTY_DOC, ODM_CAMERAS, [{"cameras": ODM_CAMERAS, "shots": {}}]])
+       .flatmap(lambda b: fz.document(b, syntax="json", keys=CAM_KEYS)))
+def test_fuzz_cameras_json(tmp_path, text):
+    path = write_bytes_or_text(tmp_path / "cameras.json", text)
+    cams = clean_parse(read_cameras, path)
+    if cams is not None:
+        fz.check_cameras(cams)
+
+
+def _csv_base(kind):
+    """(header, rows) of one CSV layout."""
+    if kind == "legacy":
+        return None, [row[:7] for row in OPK_ROWS]
+    if kind in ("xyz_opk", "xyz_rpy"):
+        head = ["filename", "x", "y", "z", *(("omega", "phi", "kappa") if kind == "xyz_opk" else ("roll", "pitch",
+                                                                                                 "yaw")), "camera"]
+        return head, [list(row) for row in OPK_ROWS]
+    head = ["filename", "latitude", "longitude", "altitude",
+            *(("roll", "pitch", "yaw") if kind == "lla_rpy" else ("omega", "phi", "kappa"))]
+    return head, [list(row) for row in INS_ROWS]
+
+
+UTM32_WKT = CRS.from_user_input(UTM32).to_wkt()
+PRJ_COMMON = [None, UTM32_WKT, PROJ_TM, "EPSG:4326", ""]
+# PROJ searches its database for a name like "not a crs" for up to 0.3 s: garbage it refuses at once
+PRJ_GARBAGE = [b"\xff\xfe\x00garbage", "EPSG:0", "+proj=nope", "PROJCRS[", "{}", "\x00"]
+
+
+@fz.fuzz_settings()
+@given(data=st.data())
+def test_fuzz_exterior_csv(tmp_path, data):
+    kind = data.draw(st.sampled_from(["xyz_opk", "xyz_opk", "lla_rpy", "xyz_rpy", "lla_opk", "legacy"]))
+    table = fz.csv_tables(*_csv_base(kind))
+    text = data.draw(st.one_of(table, table, table, table, table.flatmap(fz.damaged_text), st.text(max_size=300)))
+    path = write_bytes_or_text(tmp_path / "ext.csv", text)
+    prj = data.draw(st.one_of(*[st.sampled_from(PRJ_COMMON)] * 8, st.sampled_from(PRJ_GARBAGE)))
+    (tmp_path / "ext.prj").unlink(missing_ok=True)
+    if prj is not None:
+        write_bytes_or_text(tmp_path / "ext.prj", prj)
+    crs = data.draw(st.sampled_from([None, UTM32, UTM32, PROJ_TM]))
+    radians = data.draw(st.booleans())
+    cams = data.draw(st.sampled_from([None, {"cam, A": None, "cam B": None}]))
+    if cams is not None:
+        cams = {k: CAMERA for k in cams}
+    got = clean_parse(read_exterior, path, crs=crs, radians=radians, cameras=cams, names=(tmp_path / "ext.prj",))
+    if got is not None:
+        fz.check_exterior(got)
+
+
+CAMERA = None  # set below: any valid FrameCamera for the cameras argument
+
+
+def _camera():
+    from orthowarp.camera import FrameCamera
+    return FrameCamera(10.0, 0.01, (100, 100))
+
+
+CAMERA = _camera()
+
+
+@fz.fuzz_settings()
+@given(data=st.data())
+def test_fuzz_exterior_geojson(tmp_path, data):
+    base = data.draw(st.sampled_from([geojson_doc(), geojson_doc(None), geojson_doc(UTM32)]))
+    text = data.draw(fz.document(base, syntax="json", keys=EXT_KEYS))
+    path = write_bytes_or_text(tmp_path / data.draw(st.sampled_from(["ext.geojson", "ext.json"])), text)
+    crs = data.draw(st.sampled_from([None, UTM32, PROJ_TM]))
+    got = clean_parse(read_exterior, path, crs=crs)
+    if got is not None:
+        fz.check_exterior(got)
+
+
+TOPO_DOC, ODM_DOC = topocentric_doc(), odm_doc()
+
+
+@fz.fuzz_settings()
+@given(data=st.data())
+def test_fuzz_opensfm_reconstruction(tmp_path, data):
+    base = data.draw(st.sampled_from([TOPO_DOC, ODM_DOC, topocentric_doc(with_ref=False), TOPO_DOC[0]]))
+    text = data.draw(fz.document(base, syntax="json", keys=EXT_KEYS + CAM_KEYS))
+    path = write_bytes_or_text(tmp_path / "reconstruction.json", text)
+    sidecar = tmp_path / "reference_lla.json"
+    sidecar.unlink(missing_ok=True)
+    if data.draw(st.booleans()):
+        write_bytes_or_text(sidecar, data.draw(fz.document(REF, syntax="json", keys=EXT_KEYS)))
+    twin = tmp_path / "reconstruction.topocentric.json"
+    twin.unlink(missing_ok=True)
+    if data.draw(st.booleans()):
+        twin.write_text("[]")
+    frame = data.draw(st.sampled_from(["auto", "topocentric", "projected"]))
+    crs = data.draw(st.sampled_from([None, None, UTM32, PROJ_TM]))
+    got = clean_parse(read_exterior, path, crs=crs, opensfm_frame=frame, names=(sidecar,))
+    if got is not None:
+        fz.check_exterior(got)
+    cams = clean_parse(read_cameras, path)
+    if cams is not None:
+        fz.check_cameras(cams)
+
+
+@fz.fuzz_settings()
+@given(content=st.binary(max_size=400) | st.text(max_size=400),
+       name=st.sampled_from(["c.yaml", "c.json", "e.csv", "e.geojson", "reconstruction.json", "e.txt"]))
+def test_fuzz_random_bytes(tmp_path, content, name):
+    path = write_bytes_or_text(tmp_path / name, content)
+    cams = clean_parse(read_cameras, path)
+    if cams is not None:
+        fz.check_cameras(cams)
+    got = clean_parse(read_exterior, path, crs=UTM32)
+    if got is not None:
+        fz.check_exterior(got)
