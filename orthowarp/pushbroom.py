@@ -51,6 +51,8 @@ MAX_LINE_PERIOD = 1.0
 
 def _count(name, value, bound, what):
     """A whole number in 1..bound, or ParamError saying what is wrong (never truncated)."""
+    if isinstance(value, (bool, np.bool_)):
+        raise ParamError(f"{name} must be a whole number, got {value!r}")
     try:
         v = operator.index(value)
     except TypeError:

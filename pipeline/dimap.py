@@ -133,6 +133,8 @@ def _parse(path):
                                      "metadata of one scene (orthowarp.pipeline.dimap.MAX_ELEMENTS)")
     except (ParseError, DefusedXmlException) as e:
         raise ParamError(f"Could not parse DIMAP file '{path}': {_one_line(e)}") from e
+    except (LookupError, UnicodeError) as e:  # an unknown or wrong encoding in the XML declaration
+        raise ParamError(f"Could not parse DIMAP file '{path}': {type(e).__name__}: {_one_line(e)}") from e
     except OSError as e:
         raise RasterIOError(f"Cannot read DIMAP file '{path}': {e.strerror or e}") from e
     if root is None:
@@ -251,8 +253,9 @@ def read_dimap(path):
         raise ParamError(f"DIMAP file '{path}': <Ephemeris/Points> holds {len(points)} <Point>s; "
                          "the 8-point Lagrange interpolation needs at least 8")
     eph_t = np.array([_seconds(doc.time("TIME", p), epoch) for p in points])
-    eph_p = np.array([[doc.number(f"Location/{a}", p) for a in "XYZ"] for p in points])
-    eph_v = np.array([[doc.number(f"Velocity/{a}", p) for a in "XYZ"] for p in points])
+    # each coordinate bounded first: the norms of 1e308s overflow
+    eph_p = np.array([[doc.number(f"Location/{a}", p, bound=MAX_ORBIT_RADIUS) for a in "XYZ"] for p in points])
+    eph_v = np.array([[doc.number(f"Velocity/{a}", p, bound=MAX_SPEED) for a in "XYZ"] for p in points])
     order = np.argsort(eph_t)
     eph_t, eph_p, eph_v = eph_t[order], eph_p[order], eph_v[order]
     if np.any(np.diff(eph_t) <= 0):

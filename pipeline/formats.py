@@ -11,8 +11,18 @@ Formats read (the conventions, and where they come from, are in each function's 
   the ``shots`` of an OpenSfM/ODM ``reconstruction.json``.
 
 Every problem with a file's content raises :class:`~orthowarp.errors.ParamError` (a missing file
-too) whose message names the file, and the line or image where there is one; a missing or unusable
-coordinate reference system raises :class:`~orthowarp.errors.CrsError`.
+too) whose message, one line, names the file, and the line or image where there is one; a missing
+or unusable coordinate reference system raises :class:`~orthowarp.errors.CrsError`. Nothing else
+escapes, whatever the content (property-based fuzzing in tests/test_formats.py).
+
+Values are checked, not only parsed: numbers must be finite (integers beyond the float range,
+NaN and infinities are refused), lists must be lists of the right length, ids and names strings;
+image sizes whole numbers up to :data:`MAX_IMAGE_SIZE`; focal lengths and sensor sizes positive
+and giving a focal length and pixel pitch within the floating-point range; positions within
+:data:`MAX_COORDINATE` (latitudes within +-90 degrees, longitudes within +-:data:`MAX_ANGLE`);
+attitude angles within +-:data:`MAX_ANGLE` degrees (+-2 pi radians). Deeply nested documents,
+YAML values that cannot be built (``2001-02-30``) and fields over the csv module's size limit are
+parse errors.
 
 The formats' conventions were established from orthority's documentation (file formats, camera
 models, coordinates: https://orthority.readthedocs.io/en/latest/file_formats/index.html and
@@ -117,6 +127,18 @@ _SHOW.maxlist = _SHOW.maxtuple = _SHOW.maxdict = _SHOW.maxset = 4
 def _show(value):
     """A short, one-line repr of a file value (bounded however large or deep the value)."""
     return _one_line(_SHOW.repr(value))
+
+
+def _q(name):
+    """A camera id or image name quoted for a message: as it is when short and printable, else
+    its repr, shortened (ids may hold line breaks or run to megabytes)."""
+    name = str(name)
+    return f"'{name}'" if len(name) <= 80 and name.isprintable() else _show(name)
+
+
+def _names(names, limit=8):
+    names = [_q(n) for n in names]
+    return ", ".join(names[:limit]) + (f", ... ({len(names)} in all)" if len(names) > limit else "")
 
 
 def _one_line(text, limit=300):
@@ -315,9 +337,9 @@ def read_cameras(path):
         except ValueError as e:
             raise _fail(path, str(e), e) from e
         if not isinstance(params, dict):
-            raise _fail(path, f"camera '{cam_id}': expected a mapping of parameters, got {_show(params)}")
+            raise _fail(path, f"camera {_q(cam_id)}: expected a mapping of parameters, got {_show(params)}")
         if cam_id in cameras:
-            raise _fail(path, f"camera '{cam_id}' is defined twice")
+            raise _fail(path, f"camera {_q(cam_id)} is defined twice")
         cameras[cam_id] = _camera_from_entry(path, cam_id, params)
     if not cameras:
         raise _fail(path, "no camera found")
@@ -359,13 +381,13 @@ def _camera_from_entry(path, cam_id, params):
         else:
             raise ValueError("has neither 'type' (orthority) nor 'projection_type' (OpenSfM)")
     except ValueError as e:
-        raise _fail(path, f"camera '{cam_id}': {e}", e) from e
+        raise _fail(path, f"camera {_q(cam_id)}: {e}", e) from e
     try:
         return _build_camera(**args)
     except ParamError as e:
-        raise _fail(path, f"camera '{cam_id}': {e}", e) from e
+        raise _fail(path, f"camera {_q(cam_id)}: {e}", e) from e
     except GeometryError as e:
-        raise GeometryError(f"'{path}': camera '{cam_id}': {e}") from e
+        raise GeometryError(f"'{path}': camera {_q(cam_id)}: {e}") from e
 
 
 def _image_size(value, what):
@@ -395,7 +417,7 @@ def _oty_camera_args(p):
         allowed |= set(_OTY_OPENCV_UNSUPPORTED)
     unknown = sorted(set(p) - allowed)
     if unknown:
-        raise ValueError(f"unknown parameter(s) {', '.join(map(repr, unknown))} for type '{cam_type}'")
+        raise ValueError(f"unknown parameter(s) {_names(unknown)} for type '{cam_type}'")
     if cam_type == "opencv":
         extra = [k for k in _OTY_OPENCV_UNSUPPORTED if p.get(k) not in (None, 0, 0.0)]
         if extra:
@@ -462,7 +484,7 @@ def _build_camera(size, focal, pixel, cx, cy, coeffs):
     usable = all(math.isfinite(v) and v > 0 for v in (focal, *pixel))
     if usable:
         fpx = [focal / v for v in pixel]
-        usable = all(math.isfinite(v) and v > 0 and math.isfinite(1.0 / v) and math.isfinite(m / f)
+        usable = all(math.isfinite(1.0 / v) and math.isfinite(f) and f > 0 and math.isfinite(m / f)
                      for v, f in zip(pixel, fpx))
     if not usable:
         raise ParamError(f"its focal length, image size and sensor size give a focal length of {focal:.6g} mm "
@@ -608,12 +630,12 @@ def _attach_cameras(path, result, cameras):
         cam_id = io.camera_id
         if cam_id is None:
             if only is None:
-                raise _fail(path, f"image '{name}' names no camera and the camera file defines "
-                                  f"{len(cameras)} ({', '.join(map(repr, cameras))}): add a 'camera' column")
+                raise _fail(path, f"image {_q(name)} names no camera and the camera file defines "
+                                  f"{len(cameras)} ({_names(cameras)}): add a 'camera' column")
             cam_id = only
         elif cam_id not in cameras:
-            raise _fail(path, f"image '{name}': unknown camera '{cam_id}' "
-                              f"(known: {', '.join(map(repr, cameras))})")
+            raise _fail(path, f"image {_q(name)}: unknown camera {_q(cam_id)} "
+                              f"(known: {_names(cameras)})")
         out[name] = ImageOrientation(io.pose, cam_id)
     return out
 
@@ -707,10 +729,10 @@ def _csv_number(path, lineno, name, column, value, delim):
     try:
         x = float(v)
     except ValueError:
-        raise _fail(path, f"line {lineno}: image '{name}': column '{column}': "
+        raise _fail(path, f"line {lineno}: image {_q(name)}: column '{column}': "
                           f"{_show(value)} is not a number") from None
     if not math.isfinite(x):
-        raise _fail(path, f"line {lineno}: image '{name}': column '{column}' is not finite ({_show(value)})")
+        raise _fail(path, f"line {lineno}: image {_q(name)}: column '{column}' is not finite ({_show(value)})")
     return x
 
 
@@ -785,17 +807,20 @@ def _read_csv(path, text, crs, radians):
         if not name:
             raise _fail(path, f"line {lineno}: empty filename")
         if name in seen:
-            raise _fail(path, f"line {lineno}: image '{name}' already given on line {seen[name]}")
+            raise _fail(path, f"line {lineno}: image {_q(name)} already given on line {seen[name]}")
         seen[name] = lineno
         pos = [_csv_number(path, lineno, name, c, vals[col[c]], delim) for c in position]
         ang = [_csv_number(path, lineno, name, c, vals[col[c]], delim) for c in attitude]
-        if radians:
-            ang = [math.degrees(a) for a in ang]
         cam = vals[col["camera"]].strip() if "camera" in col and col["camera"] < len(vals) else ""
         try:
             _check_position(pos, position)
             for a, c in zip(ang, attitude):
-                _bounded(a, MAX_ANGLE, c, " deg")
+                if radians:
+                    _bounded(a, math.radians(MAX_ANGLE), c, " rad")
+                else:
+                    _bounded(a, MAX_ANGLE, c, " deg")
+            if radians:
+                ang = [math.degrees(a) for a in ang]
             if is_map and is_opk:
                 pose = Pose.from_opk(*pos, *ang, crs=map_crs)
             elif not is_map and not is_opk:
@@ -813,7 +838,7 @@ def _read_csv(path, text, crs, radians):
                     raise ValueError(f"position {tuple(pos)} cannot be converted to {map_crs.name!r}")
                 pose = Pose.from_opk(x, y, z, *ang, crs=map_crs)
         except (ParamError, ValueError) as e:
-            raise _fail(path, f"line {lineno}: image '{name}': {e}", e) from e
+            raise _fail(path, f"line {lineno}: image {_q(name)}: {e}", e) from e
         result[name] = ImageOrientation(pose, cam or None)
     return result
 
@@ -837,7 +862,7 @@ def _read_geojson(path, data, crs):
     file_crs = source = None
     world = data.get("world_crs")
     if world not in (None, ""):
-        if not isinstance(world, str):
+        if isinstance(world, bool) or not isinstance(world, (str, int)):
             raise _fail(path, f"'world_crs' must be a string (WKT, PROJ or EPSG code), got {_show(world)}")
         file_crs, source = _as_crs(world, f"'{path}' (world_crs)"), f"'{path}' (world_crs)"
     map_crs = _resolve_crs(path, file_crs, source, crs, "map positions")
@@ -852,7 +877,7 @@ def _read_geojson(path, data, crs):
         name = _image_key(filename) if isinstance(filename, str) else ""
         if not name:
             raise _fail(path, f"feature {i}: 'filename' {_show(filename)} is not an image file name")
-        where = f"feature {i} (image '{name}')"
+        where = f"feature {i} (image {_q(name)})"
         if name in result:
             raise _fail(path, f"{where}: image given twice")
         for key in ("xyz", "opk"):
@@ -955,7 +980,7 @@ def _read_opensfm(path, recs, crs, frame):
             name = _image_key(shot_id)
             if not name:
                 raise _fail(path, f"reconstruction {index}: shot id {_show(shot_id)} is not an image file name")
-            where = f"reconstruction {index}, image '{name}'"
+            where = f"reconstruction {index}, image {_q(name)}"
             if name in result:
                 raise _fail(path, f"{where}: image given twice")
             if not isinstance(shot, dict):
@@ -965,8 +990,12 @@ def _read_opensfm(path, recs, crs, frame):
                     if key not in shot:
                         raise ValueError(f"'{key}' is missing")
                 rvec = np.array(_numbers(shot["rotation"], 3, "rotation"))
+                for i, v in enumerate(rvec):  # each first: the norm of 1e308s overflows
+                    _bounded(v, math.radians(MAX_ANGLE), f"rotation[{i}]", " rad")
                 _bounded(float(np.linalg.norm(rvec)), math.radians(MAX_ANGLE), "rotation angle", " rad")
                 t = np.array(_numbers(shot["translation"], 3, "translation"))
+                for i, v in enumerate(t):
+                    _bounded(v, MAX_COORDINATE, f"translation[{i}]", " m")
                 r_cam_world = Rotation.from_rotvec(rvec).as_matrix()
                 centre = -r_cam_world.T @ t
                 _bounded(float(np.linalg.norm(centre)), MAX_COORDINATE, "distance of the camera from the reference",

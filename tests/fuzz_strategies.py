@@ -213,6 +213,13 @@ def _retype(v):
     return {"value": v}
 
 
+def _scaled(value, factor):
+    try:
+        return value * factor
+    except OverflowError:  # an integer beyond the float range
+        return value
+
+
 OPS = ["number"] * 6 + ["drop", "replace", "replace", "retype", "duplicate", "wrap", "rename", "add", "extreme",
                        "deep", "huge", "copy", "raw"]
 numbers = st.one_of(st.floats(-1e4, 1e4), st.floats(-1e12, 1e12), st.integers(-10, 10**6), st.sampled_from(ODD_NUMBERS))
@@ -236,7 +243,7 @@ def mutations(draw, base, *, raw=JSON_RAW, keys=(), max_ops=4, huge=(HUGE, "\U00
             if nums:
                 q = draw(st.sampled_from(nums))
                 old = _get(doc, q)
-                doc = _set(doc, q, draw(numbers | st.floats(0.5, 2.0).map(lambda f, o=old: o * f) |
+                doc = _set(doc, q, draw(numbers | st.floats(0.5, 2.0).map(lambda f, o=old: _scaled(o, f)) |
                                         st.just(-old) | st.just(str(old))))
         elif op == "drop" and path:
             del parent[path[-1]]

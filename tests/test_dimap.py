@@ -169,7 +169,7 @@ SMALL = small_text()
 
 
 def with_value(text, tag, value, count=1):
-    out, n = re.subn(rf"<{tag}>[^<]*</{tag}>", f"<{tag}>{value}</{tag}>", text, count=count)
+    out, n = re.subn(rf"<{tag}>[^<]*</{tag}>", lambda m: f"<{tag}>{value}</{tag}>", text, count=count)
     assert n >= 1, tag
     return out
 
@@ -210,8 +210,15 @@ DECLARATIONS = [
     ("PSI_X", "-2", r"look angle .* beyond \+-90 degrees"),
     ("YAW", "7", r"<YAW> 7 is beyond \+-3.14159"),
     ("X", "0.0", r"ephemeris point 1 is .* m from the Earth's centre"),
-    ("X", "1e12", r"ephemeris point 1 is .* m from the Earth's centre"),
+    ("X", "1e12", r"<Location/X> 1e\+12 is beyond \+-1e\+08"),
+    ("X", "1e308", r"<Location/X> 1e\+308 is beyond"),  # was an overflow warning in the norm
 ]
+
+
+def test_unknown_encoding_is_a_parse_error(tmp_path):
+    text = SMALL.replace('encoding="UTF-8"', 'encoding="UTNaNF-8"')  # was LookupError
+    with pytest.raises(ParamError, match=r"Could not parse DIMAP file .*unknown encoding: UTNaNF-8"):
+        read_dimap(variant(tmp_path, text))
 
 
 @pytest.mark.parametrize("tag, value, message", DECLARATIONS, ids=[f"{t}={v[:12]}" for t, v, _ in DECLARATIONS])

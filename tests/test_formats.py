@@ -756,3 +756,146 @@ def test_fuzz_random_bytes(tmp_path, content, name):
     got = clean_parse(read_exterior, path, crs=UTM32)
     if got is not None:
         fz.check_exterior(got)
+
+
+# =============================================================================================
+# hand cases for what the fuzzing found (each one failed before: a traceback, a silent wrong
+# value, a misleading or unbounded message, or a quadratic slowdown)
+# =============================================================================================
+
+BILLION_LAUGHS = "c: [" + ", ".join(["&l0 [1,1,1,1,1,1,1,1,1]"] + [
+    f"&l{i} [" + ",".join([f"*l{i - 1}"] * 9) + "]" for i in range(1, 8)]) + "]\n"
+
+
+@pytest.mark.parametrize("name, text, match", [
+    ("deep.json", "[" * 100_000 + "]" * 100_000, r"invalid JSON: nested too deeply"),  # was RecursionError
+    ("deep.yaml", "c: " + "[" * 2000 + "]" * 2000, r"invalid YAML: nested too deeply"),  # was RecursionError
+    ("digits.json", '{"c": {"type": "pinhole", "im_size": [10, 10], "focal_len": ' + "1" * 5000 + "}}",
+     r"invalid JSON: Exceeds the limit \(4300 digits\)"),  # was ValueError
+    ("date.yaml", "c:\n  type: pinhole\n  im_size: [10, 10]\n  focal_len: 2001-02-30\n",
+     r"invalid YAML: ValueError: day is out of range"),  # was ValueError
+    ("bool.yaml", "c:\n  type: !!bool maybe\n", r"invalid YAML: KeyError"),  # was KeyError
+    ("big.json", '{"c": {"type": "pinhole", "im_size": [10, 10], "focal_len": 1' + "0" * 400 + "}}",
+     r"camera 'c': focal_len must be finite, got 1000"),  # was OverflowError
+    ("int.json", '[{"cameras": {"v2 a": -1}, "shots": {}}]',
+     r"camera 'a': expected a mapping of parameters, got -1"),  # was TypeError
+    ("str.json", '[{"cameras": {"v2 a": "type"}, "shots": {}}]',
+     r"camera 'a': expected a mapping of parameters, got 'type'"),  # was TypeError
+    ("dict.yaml", "c:\n  type: pinhole\n  im_size: {100: a, 200: b}\n  focal_len: 1.0\n",
+     r"im_size must be a list of 2 numbers"),  # a mapping's keys were read as the size
+    ("name.yaml", "type: pinhole\nim_size: [10, 10]\nfocal_len: 1.0\nname: [a, b]\n",
+     r"camera id must be a string, got \['a', 'b'\]"),  # was the id "['a', 'b']"
+    ("empty.yaml", "'': {type: pinhole, im_size: [10, 10], focal_len: 1.0}\n", r"camera id is empty"),
+    ("huge.yaml", "c: {type: pinhole, im_size: [3000000000, 10], focal_len: 1.0}\n",
+     r"im_size \[3000000000, 10\] is larger than any raster"),
+    ("range.yaml", "c: {type: pinhole, im_size: [100, 100], focal_len: 1e300, sensor_size: [1e-300, 1e-300]}\n",
+     r"camera 'c': its focal length, image size and sensor size give .* out of the floating-point range"),
+    ("laughs.yaml", BILLION_LAUGHS, r"camera 'c': expected a mapping of parameters, got \[\[1, 1, 1, 1, \.\.\.\]"),
+])
+def test_camera_file_hand_cases(tmp_path, name, text, match):
+    path = write(tmp_path / name, text)
+    with pytest.raises(ParamError, match=match) as info:
+        read_cameras(path)
+    msg = str(info.value)
+    assert str(path) in msg and "\n" not in msg and len(msg) < 500
+
+
+def test_camera_messages_are_bounded_and_one_line(tmp_path):
+    text = "c:\n  type: pinhole\n  im_size: [10, 10]\n  focal_len: '" + "x" * 200_000 + "'\n"
+    with pytest.raises(ParamError, match=r"focal_len must be a number, got 'xxxx.*\.\.\.") as info:
+        read_cameras(write(tmp_path / "long.yaml", text))
+    assert len(str(info.value)) < 400
+    with pytest.raises(ParamError, match=r"invalid YAML: unacceptable character") as info:
+        read_cameras(write(tmp_path / "ctl.yaml", "c: \x81\n"))
+    assert "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize("body, match", [
+    (HEAD + "a" * 200_000 + ",1,2,3,4,5,6\n", r"line 2: field larger than field limit"),  # was _csv.Error
+    (HEAD + "a,1e300,2,3,4,5,6\n", r"line 2: image 'a': x 1e\+300 is beyond \+-1e\+08"),  # was accepted
+    (HEAD + "a,431250,5150320,2650,0.5,-1.2,5213.9\n", r"line 2: image 'a': kappa 5213.9 deg is beyond \+-360 deg"),
+    ("filename,latitude,longitude,altitude,roll,pitch,yaw\na,45,1e300,3,4,5,6\n",
+     r"image 'a': longitude 1e\+300 deg is beyond \+-360 deg"),  # was accepted (cos(1e300) of garbage)
+])
+def test_csv_hand_cases(tmp_path, body, match):
+    path = write(tmp_path / "bad.csv", body)
+    with pytest.raises(ParamError, match=match) as info:
+        read_exterior(path, crs=UTM32)
+    assert str(path) in str(info.value) and len(str(info.value)) < 500
+
+
+def test_csv_degrees_read_as_radians_are_refused(tmp_path):
+    path = write(tmp_path / "deg.csv", HEAD + "a,431250,5150320,2650,0.5,-1.2,91.0\n")
+    assert read_exterior(path, crs=UTM32)["a"].pose.params["kappa"] == 91.0
+    with pytest.raises(ParamError, match=r"image 'a': kappa 91 rad is beyond \+-6.28319 rad"):
+        read_exterior(path, crs=UTM32, radians=True)
+
+
+def test_csv_quote_detection_is_linear(tmp_path):
+    """A line with a long run of blanks took quadratic time to scan for quotes (0.7 s for
+    20 000 blanks, minutes for 200 000): now linear."""
+    import time
+
+    text = "filename x y z omega phi kappa\nimg" + " " * 200_000 + "431250.5 5150320.25 2650.0 0.5 -1.25 91.0\n"
+    t0 = time.perf_counter()
+    got = read_exterior(write(tmp_path / "blanks.csv", text), crs=UTM32)
+    assert time.perf_counter() - t0 < 5.0
+    assert_same_pose(got["img"].pose, Pose.from_opk(431250.5, 5150320.25, 2650.0, 0.5, -1.25, 91.0, crs=UTM32))
+
+
+def test_csv_semicolons_with_decimal_commas_without_header(tmp_path):
+    """The delimiter count tied between decimal commas and semicolons (6 each): the commas won."""
+    path = write(tmp_path / "legacy.txt", "img_1;431250,5;5150320,25;2650,0;0,5;-1,25;91,0\n")
+    got = read_exterior(path, crs=UTM32)
+    assert_same_pose(got["img_1"].pose, Pose.from_opk(431250.5, 5150320.25, 2650.0, 0.5, -1.25, 91.0, crs=UTM32))
+
+
+def test_empty_prj_is_named(tmp_path):
+    path = write(tmp_path / "ext.csv", csv_text(",", '"'))
+    write(tmp_path / "ext.prj", "\n")
+    with pytest.raises(CrsError, match=r"ext.prj' is empty"):
+        read_exterior(path)
+
+
+@pytest.mark.parametrize("mutate, match", [
+    (lambda d: d["features"][0]["properties"].__setitem__("filename", ["a.tif"]),
+     r"feature 0: 'filename' \['a.tif'\] is not an image file name"),  # was the image "['a"
+    (lambda d: d["features"][0]["properties"].__setitem__("filename", "sub/"),
+     r"feature 0: 'filename' 'sub/' is not an image file name"),  # was the image ""
+    (lambda d: d["features"][1]["properties"].__setitem__("camera", {"id": 1}),
+     r"image 'img_002'\): camera must be a camera id \(a string\), got \{'id': 1\}"),  # was "{'id': 1}"
+    (lambda d: d["features"][0]["properties"]["opk"].__setitem__(2, 1e308),
+     r"kappa 1e\+308 rad is beyond"),  # was an overflow warning, then "kappa must be finite"
+    (lambda d: d["features"][0]["properties"]["xyz"].__setitem__(1, -1e200), r"y -1e\+200 is beyond"),
+    (lambda d: d.__setitem__("world_crs", {"proj": "utm"}), r"'world_crs' must be a string"),
+])
+def test_geojson_hand_cases(tmp_path, mutate, match):
+    doc = geojson_doc()
+    mutate(doc)
+    path = write(tmp_path / "bad.geojson", json.dumps(doc))
+    with pytest.raises(ParamError, match=match) as info:
+        read_exterior(path)
+    assert str(path) in str(info.value)
+
+
+@pytest.mark.parametrize("mutate, match", [
+    (lambda d: d[0]["shots"].__setitem__("dir/", d[0]["shots"]["IMG_1.JPG"]),
+     r"shot id 'dir/' is not an image file name"),  # was the image ""
+    (lambda d: d[0]["shots"]["IMG_1.JPG"].__setitem__("rotation", [1e308, 0.0, 0.0]),
+     r"image 'IMG_1': rotation\[0\] 1e\+308 rad is beyond"),  # was "rotation must be a finite 3x3 matrix"
+    (lambda d: d[0]["shots"]["IMG_1.JPG"]["translation"].__setitem__(1, -1e308),
+     r"image 'IMG_1': translation\[1\] -1e\+308 m is beyond"),  # was an overflow warning
+    (lambda d: d[0]["shots"]["IMG_2.JPG"].__setitem__("camera", ["v2 test cam"]),
+     r"image 'IMG_2': camera must be a camera id"),  # was the camera "['v2 test cam']"
+    (lambda d: d[0]["reference_lla"].__setitem__("longitude", 1e300),
+     r"reference_lla of reconstruction 0: longitude 1e\+300 deg is beyond"),
+])
+def test_reconstruction_hand_cases(tmp_path, mutate, match):
+    doc = topocentric_doc()
+    mutate(doc)
+    path = write(tmp_path / "reconstruction.json", json.dumps(doc))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(ParamError, match=match) as info:
+            read_exterior(path)
+    assert str(path) in str(info.value)
