@@ -19,14 +19,68 @@ interpolated linearly between detectors) ->
 Reference: SPOT Image, "SPOT Satellite Geometry Handbook", S-NT-73-12-SI, 2002.
 """
 
+import math
+import operator
+
 import numpy as np
 
 from .errors import GeometryError, ParamError
 from .geodesy import WGS84_A, WGS84_B, ecef_to_geodetic
 
-__all__ = ["PushbroomScene", "attitude_matrix", "lagrange"]
+__all__ = ["PushbroomScene", "attitude_matrix", "lagrange", "MAX_LINES", "MAX_DETECTORS", "MIN_LINE_PERIOD",
+           "MAX_LINE_PERIOD"]
 
 ATTITUDE_MODELS = ("full", "first_order")
+
+#: Most lines a scene may have. The kernels' line table holds a position and a rotation (96
+#: bytes) for every line and 256 lines each side, built on the host at about 360 bytes a line
+#: at its peak: 2**20 lines need about 0.1 GB on the device and 0.4 GB on the host. A SPOT-5
+#: level-1A scene has 12 000 to 24 000 lines, an HRS strip about 120 000.
+MAX_LINES = 1 << 20
+
+#: Most detectors (columns) a scene may have (a look vector of 24 bytes each on the device, the
+#: look angles on the host); SPOT-5 has 12 000 (24 000 in supermode).
+MAX_DETECTORS = 1 << 20
+
+#: Range of the line period (s). SPOT-5 HRG/HRS take 0.75 ms per line, SPOT 1-4 1.5 ms; the
+#: bounds leave two to three orders of magnitude either way. A shorter period makes the
+#: line-time iteration's tolerance (1e-6 lines) fall below float64's resolution of the times.
+MIN_LINE_PERIOD = 1e-6
+MAX_LINE_PERIOD = 1.0
+
+
+def _count(name, value, bound, what):
+    """A whole number in 1..bound, or ParamError saying what is wrong (never truncated)."""
+    if isinstance(value, (bool, np.bool_)):
+        raise ParamError(f"{name} must be a whole number, got {value!r}")
+    try:
+        v = operator.index(value)
+    except TypeError:
+        try:
+            f = float(value)
+        except (TypeError, ValueError) as e:
+            raise ParamError(f"{name} must be a whole number, got {value!r}") from e
+        if not math.isfinite(f) or f != int(f):
+            raise ParamError(f"{name} must be a whole number, got {value!r}") from None
+        v = int(f)
+    if v < 1:
+        raise ParamError(f"{name} must be positive, got {v}")
+    if v > bound:
+        raise ParamError(f"{name} {v} is over the limit of {bound} {what} (orthowarp.pushbroom.MAX_{what.upper()})")
+    return v
+
+
+def check_line_period(value, name="line_period"):
+    """``value`` (s) as a float if finite and within [MIN_LINE_PERIOD, MAX_LINE_PERIOD], else
+    ParamError saying so."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError) as e:
+        raise ParamError(f"{name} must be a number of seconds, got {value!r}") from e
+    if not (math.isfinite(v) and MIN_LINE_PERIOD <= v <= MAX_LINE_PERIOD):
+        raise ParamError(f"{name} must be within [{MIN_LINE_PERIOD:g}, {MAX_LINE_PERIOD:g}] s "
+                         f"(SPOT-5: 0.00075 s), got {value!r}")
+    return v
 
 
 def _array(name, value, shape):
@@ -146,9 +200,13 @@ class PushbroomScene:
                  attitude_extrapolation=0.5, source=None, polynomials=None):
         if attitude_model not in ATTITUDE_MODELS:
             raise ParamError(f"attitude_model must be one of {ATTITUDE_MODELS}, got {attitude_model!r}")
-        self.width, self.height = int(width), int(height)
-        self.line_period = float(line_period)
+        # sizes first: every array below is allocated from them
+        self.width = _count("width", width, MAX_DETECTORS, "detectors")
+        self.height = _count("height", height, MAX_LINES, "lines")
+        self.line_period = check_line_period(line_period)
         self.center_line = float(center_line)
+        if not math.isfinite(self.center_line):
+            raise ParamError(f"center_line must be finite, got {center_line!r}")
         self.eph_time = _array("eph_time", eph_time, (None,))
         self.eph_position = _array("eph_position", eph_position, (len(self.eph_time), 3))
         self.eph_velocity = _array("eph_velocity", eph_velocity, (len(self.eph_time), 3))
@@ -160,8 +218,6 @@ class PushbroomScene:
             raise ParamError("the ephemeris needs at least 8 points at increasing times")
         if len(self.att_time) < 2 or np.any(np.diff(self.att_time) <= 0):
             raise ParamError("the attitudes need at least 2 samples at increasing times")
-        if self.line_period <= 0 or self.width < 1 or self.height < 1:
-            raise ParamError("line_period, width and height must be positive")
         self.attitude_model = attitude_model
         self.epoch = epoch
         self.attitude_extrapolation = float(attitude_extrapolation)

@@ -9,22 +9,51 @@ detector index) and the ``Dataset_Frame`` vertices.
 Conventions: times are seconds from the scene-centre time (``epoch``, UTC); DIMAP counts rows
 and columns from 1 at pixel centres, kept here as they are (``frame`` holds DIMAP's numbers);
 the model converts them. The XML is parsed with defusedxml (no DTDs, entities or external
-references) and files over 64 MiB are refused.
+references); files over :data:`MAX_BYTES` or with more than :data:`MAX_ELEMENTS` elements are
+refused while they are read.
+
+What the file declares is checked before anything is allocated from it, and values that would
+give a wrong geometry rather than an error are refused: ``NCOLS`` and ``NROWS`` must be written
+as whole numbers (``12000.5``, ``1e4`` or ``abc`` are errors, never truncated) within
+:data:`orthowarp.pushbroom.MAX_DETECTORS` and :data:`~orthowarp.pushbroom.MAX_LINES`; the line
+period within [:data:`~orthowarp.pushbroom.MIN_LINE_PERIOD`,
+:data:`~orthowarp.pushbroom.MAX_LINE_PERIOD`]; detector ids whole numbers within 1..NCOLS; look
+angles within +-90 degrees; attitude angles within +-pi; ephemeris positions between the
+Earth's polar radius and :data:`MAX_ORBIT_RADIUS`, with velocities not parallel to them and
+below :data:`MAX_SPEED`; times ISO 8601 (``YYYY-MM-DDThh:mm:ss[.ffffff][Z]``).
 
 Reference: SPOT Image, "SPOT Satellite Geometry Handbook", S-NT-73-12-SI, 2002 (the DIMAP
 elements and the model); seed 000 of this project.
 """
 
 import os
+import re
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..errors import ParamError, RasterIOError
+from ..geodesy import WGS84_B
+from ..pushbroom import MAX_DETECTORS, MAX_LINES, check_line_period
 
-__all__ = ["DimapMetadata", "read_dimap", "write_dimap", "MAX_BYTES"]
+__all__ = ["DimapMetadata", "read_dimap", "write_dimap", "MAX_BYTES", "MAX_ELEMENTS"]
 
+#: Largest DIMAP file read (bytes).
 MAX_BYTES = 64 << 20
+
+#: Most XML elements a DIMAP file may hold, counted while it is parsed (the parsed tree takes a
+#: few hundred bytes an element: at most a few hundred MB). A SPOT-5 scene's file has about
+#: 60 000 (12 000 detectors of 4 elements, about 1 000 attitudes); the sample of tests/data 9 638.
+MAX_ELEMENTS = 1_000_000
+
+#: Farthest a satellite may be from the Earth's centre (m): beyond geostationary orbit.
+MAX_ORBIT_RADIUS = 1e8
+
+#: Highest satellite speed accepted (m/s), Earth-fixed.
+MAX_SPEED = 2e4
+
+_ISO_TIME = re.compile(r"\d{4}-\d{2}-\d{2}T\d{2}:\d{2}:\d{2}(\.\d{1,12})?Z?")
+_WHOLE = re.compile(r"\+?[0-9]+")
 
 
 @dataclass
@@ -92,12 +121,30 @@ def _parse(path):
         raise RasterIOError(f"Cannot read DIMAP file '{path}': {e.strerror or e}") from e
     if size > MAX_BYTES:
         raise ParamError(f"DIMAP file '{path}' is {size} bytes, over the {MAX_BYTES >> 20} MiB limit")
+    root, count = None, 0
     try:
-        return safe_et.parse(path, forbid_dtd=True).getroot()
+        with open(path, "rb") as f:
+            for _, elem in safe_et.iterparse(f, events=("start",), forbid_dtd=True):
+                if root is None:
+                    root = elem
+                count += 1
+                if count > MAX_ELEMENTS:
+                    raise ParamError(f"DIMAP file '{path}' holds more than {MAX_ELEMENTS} XML elements: not the "
+                                     "metadata of one scene (orthowarp.pipeline.dimap.MAX_ELEMENTS)")
     except (ParseError, DefusedXmlException) as e:
-        raise ParamError(f"Could not parse DIMAP file '{path}': {e}") from e
+        raise ParamError(f"Could not parse DIMAP file '{path}': {_one_line(e)}") from e
+    except (LookupError, UnicodeError) as e:  # an unknown or wrong encoding in the XML declaration
+        raise ParamError(f"Could not parse DIMAP file '{path}': {type(e).__name__}: {_one_line(e)}") from e
     except OSError as e:
         raise RasterIOError(f"Cannot read DIMAP file '{path}': {e.strerror or e}") from e
+    if root is None:
+        raise ParamError(f"Could not parse DIMAP file '{path}': no root element")
+    return root
+
+
+def _one_line(text, limit=200):
+    text = " ".join(str(text).split())
+    return text if len(text) <= limit else text[:limit] + "..."
 
 
 class _Doc:
@@ -112,28 +159,51 @@ class _Doc:
             raise ParamError(f"DIMAP file '{self.path}': missing <{xpath}>")
         return node
 
+    def fail(self, msg):
+        return ParamError(f"DIMAP file '{self.path}': {msg}")
+
     def text(self, xpath, where=None):
         node = self.find(xpath, where)
         if node.text is None or not node.text.strip():
-            raise ParamError(f"DIMAP file '{self.path}': empty <{xpath}>")
+            raise self.fail(f"empty <{xpath}>")
         return node.text.strip()
 
-    def number(self, xpath, where=None):
+    def number(self, xpath, where=None, *, bound=None):
         s = self.text(xpath, where)
         try:
             v = float(s)
         except ValueError:
-            raise ParamError(f"DIMAP file '{self.path}': <{xpath}> is not a number: {s!r}") from None
+            raise self.fail(f"<{xpath}> is not a number: {_show(s)}") from None
         if not np.isfinite(v):
-            raise ParamError(f"DIMAP file '{self.path}': <{xpath}> is not finite: {s!r}")
+            raise self.fail(f"<{xpath}> is not finite: {_show(s)}")
+        if bound is not None and abs(v) > bound:
+            raise self.fail(f"<{xpath}> {v:g} is beyond +-{bound:g}")
+        return v
+
+    def whole(self, xpath, where=None, *, bound, what):
+        """A count or an index written as a whole number (never truncated) within 1..bound."""
+        s = self.text(xpath, where)
+        if not _WHOLE.fullmatch(s):
+            raise self.fail(f"<{xpath}> must be a whole number, got {_show(s)}")
+        v = int(s) if len(s) <= 30 else bound + 1  # (no int() of thousands of digits)
+        if v < 1:
+            raise self.fail(f"<{xpath}> must be positive, got {s}")
+        if v > bound:
+            raise self.fail(f"<{xpath}> {s if len(s) <= 30 else _show(s)} is over the limit of {bound} {what}")
         return v
 
     def time(self, xpath, where=None):
         s = self.text(xpath, where)
-        try:
-            return np.datetime64(s.rstrip("Z"), "us")
-        except ValueError:
-            raise ParamError(f"DIMAP file '{self.path}': <{xpath}> is not an ISO time: {s!r}") from None
+        if _ISO_TIME.fullmatch(s):
+            try:
+                return np.datetime64(s.rstrip("Z"), "us")
+            except ValueError as e:
+                raise self.fail(f"<{xpath}> is not a valid time: {_show(s)} ({e})") from None
+        raise self.fail(f"<{xpath}> is not an ISO time (YYYY-MM-DDThh:mm:ss[.ffffff][Z]): {_show(s)}")
+
+
+def _show(s, limit=60):
+    return repr(s) if len(s) <= limit else repr(s[:limit]) + "..."
 
 
 def _seconds(t, epoch):
@@ -163,15 +233,18 @@ def read_dimap(path):
     if root.tag != "Dimap_Document":
         raise ParamError(f"DIMAP file '{path}': the root element is <{root.tag}>, not <Dimap_Document>")
     doc = _Doc(root, path)
-    ncols = int(doc.number("Raster_Dimensions/NCOLS"))
-    nrows = int(doc.number("Raster_Dimensions/NROWS"))
-    if ncols < 1 or nrows < 1:
-        raise ParamError(f"DIMAP file '{path}': image size {ncols} x {nrows}")
+    # sizes first, against the model's bounds: the look angles and the kernels' line table are
+    # allocated from them
+    ncols = doc.whole("Raster_Dimensions/NCOLS", bound=MAX_DETECTORS, what="detectors (pushbroom.MAX_DETECTORS)")
+    nrows = doc.whole("Raster_Dimensions/NROWS", bound=MAX_LINES, what="lines (pushbroom.MAX_LINES)")
     strip = doc.find("Data_Strip")
     stamp = doc.find("Sensor_Configuration/Time_Stamp", strip)
-    line_period = doc.number("LINE_PERIOD", stamp)
-    if line_period <= 0:
-        raise ParamError(f"DIMAP file '{path}': <LINE_PERIOD> must be positive, got {line_period}")
+    try:
+        line_period = check_line_period(doc.number("LINE_PERIOD", stamp), "<LINE_PERIOD>")
+    except ParamError as e:
+        if str(e).startswith("DIMAP file"):
+            raise
+        raise doc.fail(str(e)) from None
     epoch = doc.time("SCENE_CENTER_TIME", stamp)
     center_line = doc.number("SCENE_CENTER_LINE", stamp)
 
@@ -180,12 +253,25 @@ def read_dimap(path):
         raise ParamError(f"DIMAP file '{path}': <Ephemeris/Points> holds {len(points)} <Point>s; "
                          "the 8-point Lagrange interpolation needs at least 8")
     eph_t = np.array([_seconds(doc.time("TIME", p), epoch) for p in points])
-    eph_p = np.array([[doc.number(f"Location/{a}", p) for a in "XYZ"] for p in points])
-    eph_v = np.array([[doc.number(f"Velocity/{a}", p) for a in "XYZ"] for p in points])
+    # each coordinate bounded first: the norms of 1e308s overflow
+    eph_p = np.array([[doc.number(f"Location/{a}", p, bound=MAX_ORBIT_RADIUS) for a in "XYZ"] for p in points])
+    eph_v = np.array([[doc.number(f"Velocity/{a}", p, bound=MAX_SPEED) for a in "XYZ"] for p in points])
     order = np.argsort(eph_t)
     eph_t, eph_p, eph_v = eph_t[order], eph_p[order], eph_v[order]
     if np.any(np.diff(eph_t) <= 0):
         raise ParamError(f"DIMAP file '{path}': ephemeris times repeat")
+    radius, speed = np.linalg.norm(eph_p, axis=1), np.linalg.norm(eph_v, axis=1)
+    bad = np.flatnonzero((radius <= WGS84_B) | (radius > MAX_ORBIT_RADIUS))
+    if len(bad):
+        raise ParamError(f"DIMAP file '{path}': ephemeris point {order[bad[0]] + 1} is {radius[bad[0]]:.6g} m from "
+                         f"the Earth's centre: not an orbit (between {WGS84_B:.0f} and {MAX_ORBIT_RADIUS:g} m)")
+    with np.errstate(all="ignore"):
+        sine = np.linalg.norm(np.cross(eph_p, eph_v), axis=1) / (radius * speed)
+    bad = np.flatnonzero(~(speed <= MAX_SPEED) | ~(sine > 1e-3))
+    if len(bad):
+        raise ParamError(f"DIMAP file '{path}': the velocity of ephemeris point {order[bad[0]] + 1} "
+                         f"({speed[bad[0]]:.6g} m/s) is not an orbital velocity (zero, parallel to the position "
+                         f"or over {MAX_SPEED:g} m/s)")
 
     att = strip.find("Satellite_Attitudes/Corrected_Attitudes/Corrected_Attitude")
     source = "corrected"
@@ -198,7 +284,7 @@ def read_dimap(path):
         raise ParamError(f"DIMAP file '{path}': missing <Satellite_Attitudes> angles (neither "
                          "Corrected_Attitudes/Corrected_Attitude/Angles nor Raw_Attitudes/Aocs_Attitude/Angles_List/Angles)")
     att_t = np.array([_seconds(doc.time("TIME", a), epoch) for a in angles])
-    att_a = np.array([[doc.number(k, a) for k in ("YAW", "PITCH", "ROLL")] for a in angles])
+    att_a = np.array([[doc.number(k, a, bound=np.pi) for k in ("YAW", "PITCH", "ROLL")] for a in angles])
     order = np.argsort(att_t)
     att_t, att_a = att_t[order], att_a[order]
     if np.any(np.diff(att_t) <= 0):
@@ -208,9 +294,11 @@ def read_dimap(path):
     looks = looks.findall("Look_Angles") if looks is not None else []
     if not looks:
         raise ParamError(f"DIMAP file '{path}': missing <Instrument_Look_Angles/Look_Angles_List/Look_Angles>")
-    det = np.array([doc.number("DETECTOR_ID", la) for la in looks])
+    det = np.array([doc.whole("DETECTOR_ID", la, bound=ncols, what=f"detectors (NCOLS {ncols})") for la in looks])
     px = np.array([doc.number("PSI_X", la) for la in looks])
     py = np.array([doc.number("PSI_Y", la) for la in looks])
+    if np.any(np.abs(px) >= np.pi / 2) or np.any(np.abs(py) >= np.pi / 2):
+        raise ParamError(f"DIMAP file '{path}': a look angle (PSI_X, PSI_Y) is beyond +-90 degrees")
     order = np.argsort(det)
     det, px, py = det[order], px[order], py[order]
     if np.any(np.diff(det) <= 0) or det[0] < 1 or det[-1] > ncols:
@@ -228,11 +316,11 @@ def read_dimap(path):
     if fr is not None:
         for v in fr.findall("Vertex"):
             frame.append(dict(row=doc.number("FRAME_ROW", v), col=doc.number("FRAME_COL", v),
-                              lon=doc.number("FRAME_LON", v), lat=doc.number("FRAME_LAT", v)))
+                              lon=doc.number("FRAME_LON", v, bound=360.0), lat=doc.number("FRAME_LAT", v, bound=90.0)))
         c = fr.find("Scene_Center")
         if c is not None:
             center = dict(row=doc.number("FRAME_ROW", c), col=doc.number("FRAME_COL", c),
-                          lon=doc.number("FRAME_LON", c), lat=doc.number("FRAME_LAT", c))
+                          lon=doc.number("FRAME_LON", c, bound=360.0), lat=doc.number("FRAME_LAT", c, bound=90.0))
     mission = ""
     m = root.find("Dataset_Sources/Source_Information/Scene_Source/MISSION")
     if m is not None and m.text:

@@ -11,8 +11,18 @@ Formats read (the conventions, and where they come from, are in each function's 
   the ``shots`` of an OpenSfM/ODM ``reconstruction.json``.
 
 Every problem with a file's content raises :class:`~orthowarp.errors.ParamError` (a missing file
-too) whose message names the file, and the line or image where there is one; a missing or unusable
-coordinate reference system raises :class:`~orthowarp.errors.CrsError`.
+too) whose message, one line, names the file, and the line or image where there is one; a missing
+or unusable coordinate reference system raises :class:`~orthowarp.errors.CrsError`. Nothing else
+escapes, whatever the content (property-based fuzzing in tests/test_formats.py).
+
+Values are checked, not only parsed: numbers must be finite (integers beyond the float range,
+NaN and infinities are refused), lists must be lists of the right length, ids and names strings;
+image sizes whole numbers up to :data:`MAX_IMAGE_SIZE`; focal lengths and sensor sizes positive
+and giving a focal length and pixel pitch within the floating-point range; positions within
+:data:`MAX_COORDINATE` (latitudes within +-90 degrees, longitudes within +-:data:`MAX_ANGLE`);
+attitude angles within +-:data:`MAX_ANGLE` degrees (+-2 pi radians). Deeply nested documents,
+YAML values that cannot be built (``2001-02-30``) and fields over the csv module's size limit are
+parse errors.
 
 The formats' conventions were established from orthority's documentation (file formats, camera
 models, coordinates: https://orthority.readthedocs.io/en/latest/file_formats/index.html and
@@ -28,6 +38,7 @@ import json
 import math
 import os
 import re
+import reprlib
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -43,7 +54,22 @@ from ..camera import FrameCamera
 from ..errors import CrsError, GeometryError, ParamError
 from ..pose import GEOCENTRIC, MAP, Pose
 
-__all__ = ["ImageOrientation", "read_cameras", "read_exterior"]
+__all__ = ["ImageOrientation", "read_cameras", "read_exterior", "MAX_IMAGE_SIZE", "MAX_COORDINATE", "MAX_ANGLE"]
+
+#: Largest image width or height (pixels) a camera file may declare: GDAL's limit on a raster
+#: dimension (a C int).
+MAX_IMAGE_SIZE = 2**31 - 1
+
+#: Largest magnitude of a position read from an exterior file: map coordinates and heights (in
+#: the CRS's unit) and geocentric coordinates (m). 1e8 m is a quarter of the way to the Moon,
+#: far beyond any frame camera; larger values are typing or unit errors, refused rather than
+#: carried into the ortho as overflowing arithmetic.
+MAX_COORDINATE = 1e8
+
+#: Largest magnitude (degrees) of an attitude angle, a longitude or an OpenSfM rotation angle
+#: (the norm of its rotation vector). Every convention these files use fits in +-360 degrees; a
+#: larger value is usually degrees read as radians.
+MAX_ANGLE = 360.0
 
 #: Nominal pixel pitch (mm) given to cameras whose file has no physical sensor size: one pixel
 #: is 1 µm and the focal length is expressed in the same scaled unit. The geometry depends only
@@ -93,6 +119,33 @@ class ImageOrientation:
 # shared helpers
 # ---------------------------------------------------------------------------------------------
 
+_SHOW = reprlib.Repr()
+_SHOW.maxlevel, _SHOW.maxstring, _SHOW.maxother, _SHOW.maxlong = 2, 60, 60, 40
+_SHOW.maxlist = _SHOW.maxtuple = _SHOW.maxdict = _SHOW.maxset = 4
+
+
+def _show(value):
+    """A short, one-line repr of a file value (bounded however large or deep the value)."""
+    return _one_line(_SHOW.repr(value))
+
+
+def _q(name):
+    """A camera id or image name quoted for a message: as it is when short and printable, else
+    its repr, shortened (ids may hold line breaks or run to megabytes)."""
+    name = str(name)
+    return f"'{name}'" if len(name) <= 80 and name.isprintable() else _show(name)
+
+
+def _names(names, limit=8):
+    names = [_q(n) for n in names]
+    return ", ".join(names[:limit]) + (f", ... ({len(names)} in all)" if len(names) > limit else "")
+
+
+def _one_line(text, limit=300):
+    text = " ".join(str(text).split())
+    return text if len(text) <= limit else text[:limit] + "..."
+
+
 def _fail(path, msg, cause=None):
     err = ParamError(f"Could not parse '{path}': {msg}")
     if cause is not None:
@@ -120,39 +173,73 @@ def _looks_like_json(path, text):
     return path.suffix.lower() in (".json", ".geojson") or text.lstrip()[:1] in ("{", "[")
 
 
+# PyYAML's pure-Python safe loader: libyaml's (CSafeLoader) is faster but overflows the C stack
+# (a crash, not an exception) on a document nested 100 000 deep
+_YAML_LOADER = yaml.SafeLoader
+
+
 def _load_structured(path, text):
     """Parse a JSON or YAML document; ParamError naming the file and the line."""
     if _looks_like_json(path, text):
         try:
             return json.loads(text)
         except json.JSONDecodeError as e:
-            raise _fail(path, f"invalid JSON at line {e.lineno}, column {e.colno}: {e.msg}", e) from e
+            raise _fail(path, f"invalid JSON at line {e.lineno}, column {e.colno}: {_one_line(e.msg)}", e) from e
+        except RecursionError as e:
+            raise _fail(path, "invalid JSON: nested too deeply", e) from None
+        except ValueError as e:  # e.g. an integer of more than 4300 digits
+            raise _fail(path, f"invalid JSON: {_one_line(e)}", e) from e
     try:
-        return yaml.safe_load(text)
+        return yaml.load(text, Loader=_YAML_LOADER)  # noqa: S506 - a safe loader
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
         problem = getattr(e, "problem", None) or str(e)
-        raise _fail(path, f"invalid YAML{where}: {problem}", e) from e
+        raise _fail(path, f"invalid YAML{where}: {_one_line(problem)}", e) from e
+    except RecursionError as e:
+        raise _fail(path, "invalid YAML: nested too deeply", e) from None
+    except Exception as e:  # noqa: BLE001 - a value PyYAML resolves but cannot build: 2001-02-30 (ValueError),
+        # !!bool maybe (KeyError), ...: whatever the constructor raises, the document is unreadable
+        raise _fail(path, f"invalid YAML: {type(e).__name__}: {_one_line(e)}", e) from e
 
 
 def _number(value, what):
     """A finite float from a file value (numbers, or strings such as PyYAML's '1.2e2')."""
-    if isinstance(value, bool) or value is None:
-        raise ValueError(f"{what} must be a number, got {value!r}")
+    if not isinstance(value, (int, float, str)) or isinstance(value, bool):
+        raise ValueError(f"{what} must be a number, got {_show(value)}")
     try:
         v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{what} must be a number, got {value!r}") from None
+    except ValueError:
+        raise ValueError(f"{what} must be a number, got {_show(value)}") from None
+    except OverflowError:  # an integer beyond the float range
+        raise ValueError(f"{what} must be finite, got {_show(value)}") from None
     if not math.isfinite(v):
-        raise ValueError(f"{what} must be finite, got {value!r}")
+        raise ValueError(f"{what} must be finite, got {_show(value)}")
     return v
 
 
 def _numbers(value, n, what):
-    if isinstance(value, (str, bytes)) or not hasattr(value, "__len__") or len(value) != n:
-        raise ValueError(f"{what} must be a list of {n} numbers, got {value!r}")
+    if not isinstance(value, (list, tuple)) or len(value) != n:
+        raise ValueError(f"{what} must be a list of {n} numbers, got {_show(value)}")
     return [_number(v, f"{what}[{i}]") for i, v in enumerate(value)]
+
+
+def _bounded(value, bound, what, unit=""):
+    """``value`` if ``|value| <= bound``, else ValueError saying so."""
+    if abs(value) > bound:
+        raise ValueError(f"{what} {value:.6g}{unit} is beyond +-{bound:g}{unit}: not a plausible value "
+                         "(a typing or unit error?)")
+    return value
+
+
+def _identifier(value, what):
+    """A camera id or image name from a file: a non-empty string (numbers are taken as text)."""
+    if isinstance(value, bool) or not isinstance(value, (str, int, float)):
+        raise ValueError(f"{what} must be a string, got {_show(value)}")
+    text = str(value)
+    if not text.strip():
+        raise ValueError(f"{what} is empty")
+    return text
 
 
 def _image_key(name):
@@ -165,9 +252,9 @@ def _image_key(name):
 
 
 def _osfm_camera_id(cam_id):
-    """OpenSfM/ODM camera ids carry a 'v2 ' version prefix that other files omit: drop it."""
-    cam_id = str(cam_id)
-    return cam_id[3:] if cam_id.startswith("v2 ") else cam_id
+    """OpenSfM/ODM camera ids carry a 'v2 ' version prefix that other files omit: drop it
+    (other values are returned as they are, for the caller to check)."""
+    return cam_id[3:] if isinstance(cam_id, str) and cam_id.startswith("v2 ") else cam_id
 
 
 # ---------------------------------------------------------------------------------------------
@@ -245,8 +332,14 @@ def read_cameras(path):
     entries = _camera_entries(path, data)
     cameras = {}
     for cam_id, params in entries:
+        try:
+            cam_id = _identifier(cam_id, "camera id")
+        except ValueError as e:
+            raise _fail(path, str(e), e) from e
+        if not isinstance(params, dict):
+            raise _fail(path, f"camera {_q(cam_id)}: expected a mapping of parameters, got {_show(params)}")
         if cam_id in cameras:
-            raise _fail(path, f"camera '{cam_id}' is defined twice")
+            raise _fail(path, f"camera {_q(cam_id)} is defined twice")
         cameras[cam_id] = _camera_from_entry(path, cam_id, params)
     if not cameras:
         raise _fail(path, "no camera found")
@@ -258,7 +351,7 @@ def _is_camera_dict(value):
 
 
 def _camera_entries(path, data):
-    """[(id, params)] from any of the accepted layouts."""
+    """[(id, params)] from any of the accepted layouts (ids as found: checked by the caller)."""
     if isinstance(data, list):  # OpenSfM reconstruction.json: a list of reconstructions
         entries = []
         for i, rec in enumerate(data):
@@ -271,16 +364,12 @@ def _camera_entries(path, data):
     if isinstance(data.get("cameras"), dict) and "shots" in data:  # one reconstruction
         return [(_osfm_camera_id(k), v) for k, v in data["cameras"].items()]
     if _is_camera_dict(data):  # a single camera without an id
-        return [(str(data.get("name", "unknown")), data)]
+        return [(data.get("name", "unknown"), data)]
     legacy = data.get("camera")
     if isinstance(legacy, dict) and not any(_is_camera_dict(v) for k, v in data.items() if k != "camera"):
-        return [(str(legacy.get("name", "camera")), legacy)]
-    entries = []
-    for k, v in data.items():
-        if not isinstance(v, dict):
-            raise _fail(path, f"camera '{k}': expected a mapping of parameters, got {v!r}")
-        entries.append((_osfm_camera_id(k) if "projection_type" in v else str(k), v))
-    return entries
+        return [(legacy.get("name", "camera"), legacy)]
+    return [(_osfm_camera_id(k) if isinstance(v, dict) and "projection_type" in v else k, v)
+            for k, v in data.items()]
 
 
 def _camera_from_entry(path, cam_id, params):
@@ -292,19 +381,21 @@ def _camera_from_entry(path, cam_id, params):
         else:
             raise ValueError("has neither 'type' (orthority) nor 'projection_type' (OpenSfM)")
     except ValueError as e:
-        raise _fail(path, f"camera '{cam_id}': {e}", e) from e
+        raise _fail(path, f"camera {_q(cam_id)}: {e}", e) from e
     try:
         return _build_camera(**args)
     except ParamError as e:
-        raise _fail(path, f"camera '{cam_id}': {e}", e) from e
+        raise _fail(path, f"camera {_q(cam_id)}: {e}", e) from e
     except GeometryError as e:
-        raise GeometryError(f"'{path}': camera '{cam_id}': {e}") from e
+        raise GeometryError(f"'{path}': camera {_q(cam_id)}: {e}") from e
 
 
 def _image_size(value, what):
     w, h = _numbers(value, 2, what)
     if w != int(w) or h != int(h) or w <= 0 or h <= 0:
-        raise ValueError(f"{what} must be two positive integers [width, height], got {value!r}")
+        raise ValueError(f"{what} must be two positive integers [width, height], got {_show(value)}")
+    if max(w, h) > MAX_IMAGE_SIZE:
+        raise ValueError(f"{what} {_show(value)} is larger than any raster can be ({MAX_IMAGE_SIZE} pixels a side)")
     return int(w), int(h)
 
 
@@ -317,7 +408,7 @@ def _oty_camera_args(p):
     if cam_type == "fisheye":
         raise ValueError("camera type 'fisheye' is not supported yet")
     if cam_type not in _OTY_TYPES:
-        raise ValueError(f"unknown camera type {p['type']!r} (expected one of {', '.join(_OTY_TYPES)})")
+        raise ValueError(f"unknown camera type {_show(p['type'])} (expected one of {', '.join(_OTY_TYPES)})")
     for key in ("im_size", "focal_len"):
         if key not in p:
             raise ValueError(f"'{key}' is missing")
@@ -326,7 +417,7 @@ def _oty_camera_args(p):
         allowed |= set(_OTY_OPENCV_UNSUPPORTED)
     unknown = sorted(set(p) - allowed)
     if unknown:
-        raise ValueError(f"unknown parameter(s) {', '.join(map(repr, unknown))} for type '{cam_type}'")
+        raise ValueError(f"unknown parameter(s) {_names(unknown)} for type '{cam_type}'")
     if cam_type == "opencv":
         extra = [k for k in _OTY_OPENCV_UNSUPPORTED if p.get(k) not in (None, 0, 0.0)]
         if extra:
@@ -339,13 +430,13 @@ def _oty_camera_args(p):
     else:
         fx = fy = _number(focal, "focal_len")
     if fx <= 0 or fy <= 0:
-        raise ValueError(f"focal_len must be > 0, got {focal!r}")
+        raise ValueError(f"focal_len must be > 0, got {_show(focal)}")
     cx = _number(p["cx"], "cx") if p.get("cx") is not None else 0.0
     cy = _number(p["cy"], "cy") if p.get("cy") is not None else 0.0
     if p.get("sensor_size") is not None:
         sw, sh = _numbers(p["sensor_size"], 2, "sensor_size")
         if sw <= 0 or sh <= 0:
-            raise ValueError(f"sensor_size must be > 0, got {p['sensor_size']!r}")
+            raise ValueError(f"sensor_size must be > 0, got {_show(p['sensor_size'])}")
         # pixels per focal length: fx * w / sw and fy * h / sh; focal fx in the sensor unit
         focal, pixel = fx, (sw / w, (sh / h) * (fx / fy))
     else:
@@ -359,7 +450,7 @@ def _osfm_camera_args(p):
     if proj in _FISHEYE:
         raise ValueError(f"projection type '{proj}' is not supported yet")
     if proj not in _OSFM_COEFFS:
-        raise ValueError(f"unknown projection type {p['projection_type']!r} "
+        raise ValueError(f"unknown projection type {_show(p['projection_type'])} "
                          f"(expected one of {', '.join(_OSFM_COEFFS)})")
     for key in ("width", "height"):
         if key not in p:
@@ -389,8 +480,20 @@ def _build_camera(size, focal, pixel, cx, cy, coeffs):
     """
     w, h = size
     m = max(w, h)
+    # the file's numbers are each finite; their products and ratios may not be
+    usable = all(math.isfinite(v) and v > 0 for v in (focal, *pixel))
+    if usable:
+        fpx = [focal / v for v in pixel]
+        usable = all(math.isfinite(1.0 / v) and math.isfinite(f) and f > 0 and math.isfinite(m / f)
+                     for v, f in zip(pixel, fpx))
+    if not usable:
+        raise ParamError(f"its focal length, image size and sensor size give a focal length of {focal:.6g} mm "
+                         f"and pixels of {pixel[0]:.6g} x {pixel[1]:.6g} mm: out of the floating-point range")
     x0 = cx * m * pixel[0] + 0.0   # OpenSfM x right -> orthowarp x right
     y0 = -cy * m * pixel[1] + 0.0  # OpenSfM y down -> orthowarp y up (+ 0.0: no negative zero)
+    if not (math.isfinite(x0) and math.isfinite(y0)):
+        raise ParamError(f"its principal point offset ({cx:.6g}, {cy:.6g} image sizes) is out of the "
+                         "floating-point range")
     return FrameCamera(focal, pixel, (w, h), principal_point=(x0, y0), **coeffs)
 
 
@@ -527,12 +630,12 @@ def _attach_cameras(path, result, cameras):
         cam_id = io.camera_id
         if cam_id is None:
             if only is None:
-                raise _fail(path, f"image '{name}' names no camera and the camera file defines "
-                                  f"{len(cameras)} ({', '.join(map(repr, cameras))}): add a 'camera' column")
+                raise _fail(path, f"image {_q(name)} names no camera and the camera file defines "
+                                  f"{len(cameras)} ({_names(cameras)}): add a 'camera' column")
             cam_id = only
         elif cam_id not in cameras:
-            raise _fail(path, f"image '{name}': unknown camera '{cam_id}' "
-                              f"(known: {', '.join(map(repr, cameras))})")
+            raise _fail(path, f"image {_q(name)}: unknown camera {_q(cam_id)} "
+                              f"(known: {_names(cameras)})")
         out[name] = ImageOrientation(io.pose, cam_id)
     return out
 
@@ -541,7 +644,7 @@ def _as_crs(value, source):
     try:
         return CRS.from_user_input(value)
     except CRSError as e:
-        raise CrsError(f"Could not interpret the CRS of {source}: {e}") from e
+        raise CrsError(f"Could not interpret the CRS of {source}: {_one_line(e)}") from e
 
 
 def _resolve_crs(path, file_crs, file_source, crs, need):
@@ -565,6 +668,19 @@ def _resolve_crs(path, file_crs, file_source, crs, need):
     return result
 
 
+def _check_position(values, names):
+    """ValueError unless a position is plausible: a latitude within +-90 degrees, a longitude
+    within +-MAX_ANGLE, other coordinates within +-MAX_COORDINATE."""
+    for v, name in zip(values, names):
+        if name == "latitude":
+            if abs(v) > 90.0:
+                raise ValueError(f"latitude must be within [-90, 90] degrees, got {v}")
+        elif name == "longitude":
+            _bounded(v, MAX_ANGLE, name, " deg")
+        else:
+            _bounded(v, MAX_COORDINATE, name)
+
+
 # -- CSV ------------------------------------------------------------------------------------------
 
 _LEGACY_FIELDS = ["filename", "x", "y", "z", "omega", "phi", "kappa"]
@@ -574,17 +690,24 @@ def _csv_dialect(line, sample):
     """(delimiter, quotechar): the quote from the first lines, the delimiter from the first."""
     quote = '"'
     for q in ('"', "'"):
-        if any(re.search(rf"(^|[,;\t ])\s*{q}", ln) for ln in sample):
+        # a field (after the start or a delimiter, and blanks) that opens with q; linear in the
+        # line's length (a regex with a repeated blank run backtracks quadratically)
+        if any(f.lstrip().startswith(q) for ln in sample for f in re.split(r"[,;\t ]", ln)):
             quote = q
             break
     bare = re.sub(rf"{quote}[^{quote}]*{quote}", "", line)
     counts = {d: bare.count(d) for d in (",", ";", "\t")}
+    if (counts[";"] or counts["\t"]) and not re.search(r"(?<!\d),|,(?!\d)", bare):
+        counts[","] = 0  # every comma sits between digits: decimal commas of a ';' or tab file
     delim = max(counts, key=counts.get)
     return (delim if counts[delim] else " "), quote
 
 
-def _split(line, delim, quote):
-    row = next(csv.reader([line], delimiter=delim, quotechar=quote, skipinitialspace=True))
+def _split(path, lineno, line, delim, quote):
+    try:
+        row = next(csv.reader([line], delimiter=delim, quotechar=quote, skipinitialspace=True))
+    except csv.Error as e:  # e.g. a field over the csv module's size limit
+        raise _fail(path, f"line {lineno}: {_one_line(e)}", e) from e
     row = [f.strip() for f in row]
     if delim == " ":
         row = [f for f in row if f != ""]
@@ -606,10 +729,10 @@ def _csv_number(path, lineno, name, column, value, delim):
     try:
         x = float(v)
     except ValueError:
-        raise _fail(path, f"line {lineno}: image '{name}': column '{column}': "
-                          f"{value!r} is not a number") from None
+        raise _fail(path, f"line {lineno}: image {_q(name)}: column '{column}': "
+                          f"{_show(value)} is not a number") from None
     if not math.isfinite(x):
-        raise _fail(path, f"line {lineno}: image '{name}': column '{column}' is not finite ({value!r})")
+        raise _fail(path, f"line {lineno}: image {_q(name)}: column '{column}' is not finite ({_show(value)})")
     return x
 
 
@@ -621,6 +744,8 @@ def _read_prj(path):
         text = prj.read_text(encoding="utf-8-sig").strip()
     except (OSError, UnicodeDecodeError) as e:
         raise CrsError(f"Could not read '{prj}': {e}") from e
+    if not text:
+        raise CrsError(f"'{prj}' is empty: it should hold the CRS of '{path}' (WKT, PROJ string or EPSG code)")
     return _as_crs(text, f"'{prj}'"), f"'{prj}'"
 
 
@@ -630,12 +755,12 @@ def _read_csv(path, text, crs, radians):
     if not lines:
         return {}
     delim, quote = _csv_dialect(lines[0][1], [ln for _, ln in lines[:5]])
-    first = [f.lower() for f in _split(lines[0][1], delim, quote)]
+    first = [f.lower() for f in _split(path, lines[0][0], lines[0][1], delim, quote)]
     if "filename" in first:
         fields, rows = first, lines[1:]
     else:
         fields, rows = _LEGACY_FIELDS, lines
-        vals = _split(lines[0][1], delim, quote)
+        vals = _split(path, lines[0][0], lines[0][1], delim, quote)
         if len(vals) < 7 or not all(_is_number(v) for v in vals[1:7]):
             raise _fail(path, f"line {lines[0][0]}: no header with a 'filename' column, and not the "
                               "header-less layout 'filename x y z omega phi kappa'")
@@ -675,38 +800,57 @@ def _read_csv(path, text, crs, radians):
     ncols = max(needed + ([col["camera"]] if "camera" in col else [])) + 1
     result, seen = {}, {}
     for lineno, line in rows:
-        vals = _split(line, delim, quote)
+        vals = _split(path, lineno, line, delim, quote)
         if len(vals) < max(needed) + 1:
             raise _fail(path, f"line {lineno}: expected {ncols} fields, got {len(vals)}")
         name = _image_key(vals[col["filename"]])
         if not name:
             raise _fail(path, f"line {lineno}: empty filename")
         if name in seen:
-            raise _fail(path, f"line {lineno}: image '{name}' already given on line {seen[name]}")
+            raise _fail(path, f"line {lineno}: image {_q(name)} already given on line {seen[name]}")
         seen[name] = lineno
         pos = [_csv_number(path, lineno, name, c, vals[col[c]], delim) for c in position]
         ang = [_csv_number(path, lineno, name, c, vals[col[c]], delim) for c in attitude]
-        if radians:
-            ang = [math.degrees(a) for a in ang]
         cam = vals[col["camera"]].strip() if "camera" in col and col["camera"] < len(vals) else ""
         try:
+            _check_position(pos, position)
+            for a, c in zip(ang, attitude):
+                if radians:
+                    _bounded(a, math.radians(MAX_ANGLE), c, " rad")
+                else:
+                    _bounded(a, MAX_ANGLE, c, " deg")
+            if radians:
+                ang = [math.degrees(a) for a in ang]
             if is_map and is_opk:
                 pose = Pose.from_opk(*pos, *ang, crs=map_crs)
             elif not is_map and not is_opk:
                 pose = Pose.from_ins(*pos, *ang)
             elif is_map:
                 lon, lat, h = to_llh.transform(*pos)
+                if not all(map(math.isfinite, (lon, lat, h))):
+                    raise ValueError(f"position {tuple(pos)} cannot be converted from {map_crs.name!r} to "
+                                     "latitude, longitude and height")
                 pose = Pose.from_ins(lat, lon, h, *ang)
             else:
                 lat, lon, alt = pos
-                if abs(lat) > 90.0:
-                    raise ParamError(f"latitude must be within [-90, 90] degrees, got {lat}")
                 x, y, z = to_map.transform(lon, lat, alt)
+                if not all(map(math.isfinite, (x, y, z))):
+                    raise ValueError(f"position {tuple(pos)} cannot be converted to {map_crs.name!r}")
                 pose = Pose.from_opk(x, y, z, *ang, crs=map_crs)
         except (ParamError, ValueError) as e:
-            raise _fail(path, f"line {lineno}: image '{name}': {e}", e) from e
+            raise _fail(path, f"line {lineno}: image {_q(name)}: {e}", e) from e
         result[name] = ImageOrientation(pose, cam or None)
     return result
+
+
+def _camera_ref(value, *, opensfm=False):
+    """The camera id an image names (None when absent or blank); OpenSfM's without its 'v2 '."""
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (str, int, float)):
+        raise ValueError(f"camera must be a camera id (a string), got {_show(value)}")
+    text = _osfm_camera_id(str(value)) if opensfm else str(value)
+    return text if text.strip() else None
 
 
 # -- GeoJSON --------------------------------------------------------------------------------------
@@ -716,18 +860,24 @@ def _read_geojson(path, data, crs):
     if not isinstance(features, list):
         raise _fail(path, "'features' must be a list")
     file_crs = source = None
-    if data.get("world_crs") not in (None, ""):
-        file_crs, source = _as_crs(data["world_crs"], f"'{path}' (world_crs)"), f"'{path}' (world_crs)"
+    world = data.get("world_crs")
+    if world not in (None, ""):
+        if isinstance(world, bool) or not isinstance(world, (str, int)):
+            raise _fail(path, f"'world_crs' must be a string (WKT, PROJ or EPSG code), got {_show(world)}")
+        file_crs, source = _as_crs(world, f"'{path}' (world_crs)"), f"'{path}' (world_crs)"
     map_crs = _resolve_crs(path, file_crs, source, crs, "map positions")
     result = {}
     for i, feat in enumerate(features):
         props = feat.get("properties") if isinstance(feat, dict) else None
         if not isinstance(props, dict):
             raise _fail(path, f"feature {i} has no 'properties'")
-        if not props.get("filename"):
+        if props.get("filename") in (None, ""):
             raise _fail(path, f"feature {i} has no 'filename' property")
-        name = _image_key(props["filename"])
-        where = f"feature {i} (image '{name}')"
+        filename = props["filename"]
+        name = _image_key(filename) if isinstance(filename, str) else ""
+        if not name:
+            raise _fail(path, f"feature {i}: 'filename' {_show(filename)} is not an image file name")
+        where = f"feature {i} (image {_q(name)})"
         if name in result:
             raise _fail(path, f"{where}: image given twice")
         for key in ("xyz", "opk"):
@@ -735,12 +885,15 @@ def _read_geojson(path, data, crs):
                 raise _fail(path, f"{where}: property '{key}' is missing")
         try:
             xyz = _numbers(props["xyz"], 3, "xyz")
+            _check_position(xyz, ("x", "y", "z"))
             opk = _numbers(props["opk"], 3, "opk")
+            for a, c in zip(opk, ("omega", "phi", "kappa")):
+                _bounded(a, math.radians(MAX_ANGLE), c, " rad")
             pose = Pose.from_opk(*xyz, *np.degrees(opk), crs=map_crs)
+            cam = _camera_ref(props.get("camera"))
         except (ParamError, ValueError) as e:
             raise _fail(path, f"{where}: {e}", e) from e
-        cam = props.get("camera")
-        result[name] = ImageOrientation(pose, str(cam) if cam not in (None, "") else None)
+        result[name] = ImageOrientation(pose, cam)
     return result
 
 
@@ -757,12 +910,11 @@ def _reference_lla(path, rec, index):
         source = f"'{sidecar}'"
     try:
         if not isinstance(ref, dict):
-            raise ValueError(f"expected a mapping, got {ref!r}")
+            raise ValueError(f"expected a mapping, got {_show(ref)}")
         lat = _number(ref.get("latitude"), "latitude")
         lon = _number(ref.get("longitude"), "longitude")
         alt = _number(ref.get("altitude", 0.0), "altitude")
-        if abs(lat) > 90.0:
-            raise ValueError(f"latitude must be within [-90, 90] degrees, got {lat}")
+        _check_position((lat, lon, alt), ("latitude", "longitude", "altitude"))
     except ValueError as e:
         raise _fail(path, f"reference_lla of {source}: {e}", e) from e
     return lat, lon, alt
@@ -774,7 +926,7 @@ def _utm_crs(zone, south):
 
 def _whole_metres(crs, lat, lon, tol=1e-4):
     e, n = Transformer.from_crs("EPSG:4326", crs, always_xy=True).transform(lon, lat)
-    if abs(e - round(e)) < tol and abs(n - round(n)) < tol:
+    if math.isfinite(e) and math.isfinite(n) and abs(e - round(e)) < tol and abs(n - round(n)) < tol:
         return e, n
     return None
 
@@ -803,6 +955,8 @@ def _projected_frame(path, lat, lon, crs, frame):
             return c, en[0], en[1]
     if forced:
         e, n = Transformer.from_crs("EPSG:4326", candidates[0], always_xy=True).transform(lon, lat)
+        if not (math.isfinite(e) and math.isfinite(n)):
+            raise _fail(path, f"reference_lla ({lat}, {lon}) cannot be projected to {candidates[0].name!r}")
         return candidates[0], e, n
     return None
 
@@ -824,7 +978,9 @@ def _read_opensfm(path, recs, crs, frame):
             r_ecef_enu = geodesy.enu_to_ecef_matrix(lat, lon)
         for shot_id, shot in shots.items():
             name = _image_key(shot_id)
-            where = f"reconstruction {index}, image '{name}'"
+            if not name:
+                raise _fail(path, f"reconstruction {index}: shot id {_show(shot_id)} is not an image file name")
+            where = f"reconstruction {index}, image {_q(name)}"
             if name in result:
                 raise _fail(path, f"{where}: image given twice")
             if not isinstance(shot, dict):
@@ -834,9 +990,16 @@ def _read_opensfm(path, recs, crs, frame):
                     if key not in shot:
                         raise ValueError(f"'{key}' is missing")
                 rvec = np.array(_numbers(shot["rotation"], 3, "rotation"))
+                for i, v in enumerate(rvec):  # each first: the norm of 1e308s overflows
+                    _bounded(v, math.radians(MAX_ANGLE), f"rotation[{i}]", " rad")
+                _bounded(float(np.linalg.norm(rvec)), math.radians(MAX_ANGLE), "rotation angle", " rad")
                 t = np.array(_numbers(shot["translation"], 3, "translation"))
+                for i, v in enumerate(t):
+                    _bounded(v, MAX_COORDINATE, f"translation[{i}]", " m")
                 r_cam_world = Rotation.from_rotvec(rvec).as_matrix()
                 centre = -r_cam_world.T @ t
+                _bounded(float(np.linalg.norm(centre)), MAX_COORDINATE, "distance of the camera from the reference",
+                         " m")
                 r_world_patb = r_cam_world.T @ _CV_FROM_PATB
                 if proj is None:
                     c_ecef = origin + r_ecef_enu @ centre
@@ -849,10 +1012,10 @@ def _read_opensfm(path, recs, crs, frame):
                     pose = Pose(MAP, xyz, r_world_patb, map_crs,
                                 params=dict(zip(("x", "y", "z"), map(float, xyz)),
                                             **dict(zip(("omega", "phi", "kappa"), _opk(r_world_patb)))))
+                cam = _camera_ref(shot.get("camera"), opensfm=True)
             except (ParamError, ValueError) as e:
                 raise _fail(path, f"{where}: {e}", e) from e
-            cam = shot.get("camera")
-            result[name] = ImageOrientation(pose, _osfm_camera_id(cam) if cam not in (None, "") else None)
+            result[name] = ImageOrientation(pose, cam)
     return result
 
 

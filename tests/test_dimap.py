@@ -146,3 +146,213 @@ def test_lines_outside_the_ephemeris_are_refused(tmp_path, text):
     early = text.replace("<SCENE_CENTER_LINE>48085", "<SCENE_CENTER_LINE>148085")
     with pytest.raises(GeometryError, match="outside its attitudes.*v.xml|v.xml.*outside its attitudes"):
         PushbroomScene.from_dimap(variant(tmp_path, early))
+
+
+# =============================================================================================
+# declared sizes and values (issue 10, items 6 and 8): refused before anything is allocated
+# =============================================================================================
+
+def small_text():
+    """A small, valid DIMAP document (a synthetic 20 x 30 scene)."""
+    from orthowarp.pipeline.dimap import write_dimap
+    from orthowarp.pushbroom import synthetic_scene
+
+    import tempfile
+    with tempfile.TemporaryDirectory() as d:
+        path = os.path.join(d, "s.dim")
+        write_dimap(synthetic_scene(width=20, height=30, view_angle=5.0), path)
+        with open(path, encoding="utf-8") as f:
+            return f.read()
+
+
+SMALL = small_text()
+
+
+def with_value(text, tag, value, count=1):
+    out, n = re.subn(rf"<{tag}>[^<]*</{tag}>", lambda m: f"<{tag}>{value}</{tag}>", text, count=count)
+    assert n >= 1, tag
+    return out
+
+
+# (tag, value, message): every one a ParamError naming the file and the element
+DECLARATIONS = [
+    ("NCOLS", "12000.5", r"<Raster_Dimensions/NCOLS> must be a whole number, got '12000.5'"),
+    ("NCOLS", "1e4", r"NCOLS> must be a whole number, got '1e4'"),
+    ("NCOLS", "abc", r"NCOLS> must be a whole number, got 'abc'"),
+    ("NCOLS", "20.0", r"NCOLS> must be a whole number"),
+    ("NCOLS", "0", r"NCOLS> must be positive"),
+    ("NCOLS", "-20", r"NCOLS> must be a whole number"),
+    ("NCOLS", "nan", r"NCOLS> must be a whole number"),
+    ("NCOLS", "2000000", r"NCOLS> 2000000 is over the limit of 1048576 detectors"),
+    ("NCOLS", "9" * 5000, r"NCOLS> '9999.*is over the limit"),
+    ("NCOLS", "\u0661\u0662", r"NCOLS> must be a whole number"),
+    ("NROWS", "30.5", r"NROWS> must be a whole number, got '30.5'"),
+    ("NROWS", "3e1", r"NROWS> must be a whole number, got '3e1'"),
+    ("NROWS", "1000000000000", r"NROWS> 1000000000000 is over the limit of 1048576 lines"),
+    ("NROWS", "inf", r"NROWS> must be a whole number"),
+    ("NROWS", "", r"empty <Raster_Dimensions/NROWS>"),
+    ("LINE_PERIOD", "1e-30", r"<LINE_PERIOD> must be within \[1e-06, 1\] s"),
+    ("LINE_PERIOD", "0", r"<LINE_PERIOD> must be within"),
+    ("LINE_PERIOD", "-0.00075", r"<LINE_PERIOD> must be within"),
+    ("LINE_PERIOD", "1e30", r"<LINE_PERIOD> must be within"),
+    ("LINE_PERIOD", "nan", r"<LINE_PERIOD> is not finite"),
+    ("LINE_PERIOD", "-inf", r"<LINE_PERIOD> is not finite"),
+    ("LINE_PERIOD", "fast", r"<LINE_PERIOD> is not a number"),
+    ("SCENE_CENTER_LINE", "nan", r"<SCENE_CENTER_LINE> is not finite"),
+    ("SCENE_CENTER_TIME", "NaT", r"<SCENE_CENTER_TIME> is not an ISO time"),
+    ("SCENE_CENTER_TIME", "2020-02-30T10:30:00", r"<SCENE_CENTER_TIME> is not a valid time"),
+    ("SCENE_CENTER_TIME", "2020-06-01T10:30:00+05:00", r"<SCENE_CENTER_TIME> is not an ISO time"),
+    ("SCENE_CENTER_TIME", "99999-06-01T10:30:00", r"<SCENE_CENTER_TIME> is not an ISO time"),
+    ("TIME", "NaT", r"<TIME> is not an ISO time"),
+    ("DETECTOR_ID", "1.5", r"<DETECTOR_ID> must be a whole number, got '1.5'"),
+    ("DETECTOR_ID", "21", r"<DETECTOR_ID> 21 is over the limit of 20 detectors"),
+    ("PSI_Y", "1.5707963267948966", r"look angle .* beyond \+-90 degrees"),
+    ("PSI_X", "-2", r"look angle .* beyond \+-90 degrees"),
+    ("YAW", "7", r"<YAW> 7 is beyond \+-3.14159"),
+    ("X", "0.0", r"ephemeris point 1 is .* m from the Earth's centre"),
+    ("X", "1e12", r"<Location/X> 1e\+12 is beyond \+-1e\+08"),
+    ("X", "1e308", r"<Location/X> 1e\+308 is beyond"),  # was an overflow warning in the norm
+]
+
+
+def test_unknown_encoding_is_a_parse_error(tmp_path):
+    text = SMALL.replace('encoding="UTF-8"', 'encoding="UTNaNF-8"')  # was LookupError
+    with pytest.raises(ParamError, match=r"Could not parse DIMAP file .*unknown encoding: UTNaNF-8"):
+        read_dimap(variant(tmp_path, text))
+
+
+@pytest.mark.parametrize("tag, value, message", DECLARATIONS, ids=[f"{t}={v[:12]}" for t, v, _ in DECLARATIONS])
+def test_odd_declarations_are_refused(tmp_path, tag, value, message):
+    path = variant(tmp_path, with_value(SMALL, tag, value))
+    with pytest.raises(ParamError, match=message) as info:
+        read_dimap(path)
+    assert path in str(info.value) and "\n" not in str(info.value)
+
+
+def test_sizes_are_checked_before_allocation(tmp_path, monkeypatch):
+    """NCOLS of 10**12 with the look angles of detectors 1 and N only (SPOT 1-4 files) would
+    interpolate 10**12 angles; the declared size is refused before (np.arange is never reached)."""
+    two = re.sub(r"<Look_Angles_List>.*</Look_Angles_List>",
+                 "<Look_Angles_List><Look_Angles><DETECTOR_ID>1</DETECTOR_ID><PSI_X>0</PSI_X><PSI_Y>-0.01</PSI_Y>"
+                 "</Look_Angles><Look_Angles><DETECTOR_ID>1000000000000</DETECTOR_ID><PSI_X>0</PSI_X>"
+                 "<PSI_Y>0.01</PSI_Y></Look_Angles></Look_Angles_List>", SMALL, flags=re.S)
+    path = variant(tmp_path, with_value(two, "NCOLS", "1000000000000"))
+
+    def no_arange(*args, **kwargs):
+        raise AssertionError("allocated")
+    monkeypatch.setattr(dimap.np, "arange", no_arange)
+    with pytest.raises(ParamError, match="NCOLS> 1000000000000 is over the limit"):
+        read_dimap(path)
+
+
+def test_element_count_is_bounded_while_parsing(tmp_path, monkeypatch):
+    """The tree is not built past MAX_ELEMENTS: the count is checked during the parse."""
+    monkeypatch.setattr(dimap, "MAX_ELEMENTS", 500)
+    many = SMALL.replace("</Dimap_Document>", "<Pad/>" * 1000 + "</Dimap_Document>")
+    with pytest.raises(ParamError, match="more than 500 XML elements"):
+        read_dimap(variant(tmp_path, many))
+    assert read_dimap(variant(tmp_path, SMALL)).ncols == 20  # 20 x 30: fewer than 500 elements
+
+
+def test_plain_and_padded_whole_numbers_are_read(tmp_path):
+    m = read_dimap(variant(tmp_path, with_value(with_value(SMALL, "NCOLS", " 020 "), "NROWS", "+30")))
+    assert (m.ncols, m.nrows) == (20, 30)
+    m = read_dimap(variant(tmp_path, with_value(SMALL, "SCENE_CENTER_TIME", "2020-06-01T10:30:00Z")))
+    assert m.epoch == np.datetime64("2020-06-01T10:30:00", "us")
+
+
+def test_scene_refuses_odd_sizes_and_periods():
+    """PushbroomScene takes the same bounds from the API: never truncates a size."""
+    from orthowarp.pushbroom import MAX_LINES, synthetic_scene
+
+    sc = synthetic_scene(width=20, height=30)
+    args = dict(width=sc.width, height=sc.height, line_period=sc.line_period, center_line=sc.center_line,
+                eph_time=sc.eph_time, eph_position=sc.eph_position, eph_velocity=sc.eph_velocity,
+                att_time=sc.att_time, att_angles=sc.att_angles, psi_x=sc.psi_x, psi_y=sc.psi_y)
+    from orthowarp import PushbroomScene
+    for key, value, message in [("height", 30.5, "height must be a whole number, got 30.5"),
+                                ("width", "abc", "width must be a whole number"),
+                                ("height", MAX_LINES + 1, f"height {MAX_LINES + 1} is over the limit"),
+                                ("height", 0, "height must be positive"),
+                                ("width", float("nan"), "width must be a whole number"),
+                                ("line_period", 1e-30, "line_period must be within"),
+                                ("line_period", float("inf"), "line_period must be within"),
+                                ("center_line", float("nan"), "center_line must be finite")]:
+        with pytest.raises(ParamError, match=message):
+            PushbroomScene(**{**args, key: value})
+    assert PushbroomScene(**{**args, "height": 30.0}).height == 30  # a whole float is fine
+
+
+# =============================================================================================
+# property-based fuzzing of the reader (Hypothesis; tests/fuzz_strategies.py;
+# ORTHOWARP_FUZZ_EXAMPLES): only orthowarp's errors escape, as one line naming the file; a
+# successful read gives valid metadata and a valid PushbroomScene
+# =============================================================================================
+
+import warnings  # noqa: E402
+
+from hypothesis import given  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+import fuzz_strategies as fz  # noqa: E402
+from orthowarp.errors import OrthowarpError  # noqa: E402
+
+
+def clean_read(path):
+    """(metadata, scene) of a DIMAP file, None for each an OrthowarpError refused."""
+    from orthowarp import PushbroomScene
+
+    out = []
+    for fn in (read_dimap, PushbroomScene.from_dimap):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            try:
+                out.append(fn(path))
+            except OrthowarpError as e:
+                msg = str(e)
+                assert "\n" not in msg and len(msg) < 1000 and path in msg, msg[:1000]
+                out.append(None)
+    return out
+
+
+@fz.fuzz_settings()
+@given(data=st.data())
+def test_fuzz_dimap(tmp_path, data):
+    base = data.draw(st.sampled_from([SMALL] * 9 + [SAMPLE_TEXT]))
+    text = data.draw(fz.xml_documents(base))
+    path = str(tmp_path / "fuzz.dim")
+    with open(path, "w", encoding="utf-8", errors="surrogatepass") as f:
+        f.write(text)
+    meta, scene = clean_read(path)
+    if meta is not None:
+        fz.check_dimap(meta, text)
+    if scene is not None:
+        fz.check_scene(scene)
+
+
+SIZE_VALUES = ["20", "30", "12000.5", "1e4", "abc", "0", "-5", "1000000000000", "1048576", "1048577", "+20", " 20 ",
+               "020", "20.0", "2e1", "nan", "inf", "", "\u0661\u0662", "9" * 400, "1e-30", "1e30", "7.5e-4", "-0.0"]
+
+
+@fz.fuzz_settings()
+@given(data=st.data())
+def test_fuzz_dimap_declarations(tmp_path, data):
+    """NCOLS, NROWS, LINE_PERIOD and SCENE_CENTER_LINE replaced by odd or random values."""
+    text = SMALL
+    value = st.one_of(st.sampled_from(SIZE_VALUES), st.integers(-10, 2**64).map(str),
+                      st.floats(allow_nan=True, allow_infinity=True).map(repr), st.text(max_size=8))
+    for tag in ("NCOLS", "NROWS", "LINE_PERIOD", "SCENE_CENTER_LINE"):
+        if data.draw(st.booleans()):
+            text = with_value(text, tag, data.draw(value))
+    path = str(tmp_path / "decl.dim")
+    with open(path, "w", encoding="utf-8", errors="surrogatepass") as f:
+        f.write(text)
+    meta, scene = clean_read(path)
+    if meta is not None:
+        fz.check_dimap(meta, text)
+    if scene is not None:
+        fz.check_scene(scene)
+
+
+with open(SAMPLE, encoding="utf-8") as _f:
+    SAMPLE_TEXT = _f.read()

@@ -371,7 +371,7 @@ HEAD = "filename,x,y,z,omega,phi,kappa\n"
     (HEAD + "a,1,2,3,4,5,inf\n", r"line 2: image 'a': column 'kappa' is not finite"),
     (HEAD + "a,1,2,3,4,5\n", r"line 2: expected 7 fields, got 6"),
     (HEAD + "a.tif,1,2,3,4,5,6\na.jpg,1,2,3,4,5,6\n", r"line 3: image 'a' already given on line 2"),
-    ("filename,latitude,longitude,altitude,roll,pitch,yaw\na,95,2,3,4,5,6\n", r"line 2: image 'a': lat must be within"),
+    ("filename,latitude,longitude,altitude,roll,pitch,yaw\na,95,2,3,4,5,6\n", r"line 2: image 'a': latitude must be within"),
 ])
 def test_csv_errors(tmp_path, body, match):
     path = write(tmp_path / "bad.csv", body)
@@ -582,3 +582,320 @@ def test_reconstruction_errors(tmp_path, mutate, match):
 def test_json_that_is_neither(tmp_path):
     with pytest.raises(ParamError, match="not an orthority GeoJSON"):
         read_exterior(write(tmp_path / "x.json", '{"a": 1}'))
+
+
+# =============================================================================================
+# property-based fuzzing (Hypothesis). Strategies and checks: tests/fuzz_strategies.py; the
+# number of documents per test: ORTHOWARP_FUZZ_EXAMPLES (a few hundred by default, thousands in
+# the long run). Property: only orthowarp's own errors escape, as one line naming the file, and
+# every successful parse gives valid objects.
+# =============================================================================================
+
+import warnings  # noqa: E402
+
+import yaml  # noqa: E402
+from hypothesis import given  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+import fuzz_strategies as fz  # noqa: E402
+
+CAM_KEYS = ["type", "im_size", "focal_len", "sensor_size", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "name",
+            "projection_type", "width", "height", "focal", "focal_x", "focal_y", "c_x", "c_y", "camera", "cameras",
+            "shots", "reference_lla"]
+EXT_KEYS = ["filename", "camera", "xyz", "opk", "features", "properties", "world_crs", "type", "shots", "rotation",
+            "translation", "reference_lla", "latitude", "longitude", "altitude", "cameras"]
+OTY_DOC = yaml.safe_load(OTY_YAML)
+ODM_CAMERAS = {
+    "v2 dji fc6310r 5472 3648 brown 0.6666": {"projection_type": "brown", "width": 5472, "height": 3648,
+                                              "focal_x": 0.667, "focal_y": 0.668, "c_x": 0.001, "c_y": -0.002,
+                                              "k1": -0.01, "k2": 0.02, "p1": 1e-4, "p2": -2e-4, "k3": 1e-3},
+    "v2 other": {"projection_type": "perspective", "width": 4000, "height": 3000, "focal": 0.85, "k1": 0.01,
+                 "k2": 0.0}}
+
+
+def clean_parse(fn, path, *args, names=(), **kwargs):
+    """fn(path, ...) with warnings as errors; None on an OrthowarpError, which must be one line
+    naming the file (or one of ``names``)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        try:
+            return fn(path, *args, **kwargs)
+        except OrthowarpError as e:
+            msg = str(e)
+            assert "\n" not in msg and len(msg) < 3000, msg[:3000]
+            assert any(str(n) in msg for n in (path, *names)), msg
+            return None
+
+
+def write_bytes_or_text(path, content):
+    if isinstance(content, bytes):
+        path.write_bytes(content)
+    else:
+        path.write_text(content, encoding="utf-8", errors="surrogatepass")
+    return path
+
+
+@fz.fuzz_settings()
+@given(text=st.sampled_from([OTY_DOC, OTY_DOC["Brown camera"], {"camera": OTY_DOC["OpenCV camera"], "dem": {}}])
+       .flatmap(lambda b: fz.document(b, syntax="yaml", keys=CAM_KEYS)))
+def test_fuzz_cameras_yaml(tmp_path, text):
+    path = write_bytes_or_text(tmp_path / "int_param.yaml", text)
+    cams = clean_parse(read_cameras, path)
+    if cams is not None:
+        fz.check_cameras(cams)
+
+
+@fz.fuzz_settings()
+@given(text=st.sampled_from([OTY_DOC, ODM_CAMERAS, [{"cameras": ODM_CAMERAS, "shots": {}}]])
+       .flatmap(lambda b: fz.document(b, syntax="json", keys=CAM_KEYS)))
+def test_fuzz_cameras_json(tmp_path, text):
+    path = write_bytes_or_text(tmp_path / "cameras.json", text)
+    cams = clean_parse(read_cameras, path)
+    if cams is not None:
+        fz.check_cameras(cams)
+
+
+def _csv_base(kind):
+    """(header, rows) of one CSV layout."""
+    if kind == "legacy":
+        return None, [row[:7] for row in OPK_ROWS]
+    if kind in ("xyz_opk", "xyz_rpy"):
+        head = ["filename", "x", "y", "z", *(("omega", "phi", "kappa") if kind == "xyz_opk" else ("roll", "pitch",
+                                                                                                 "yaw")), "camera"]
+        return head, [list(row) for row in OPK_ROWS]
+    head = ["filename", "latitude", "longitude", "altitude",
+            *(("roll", "pitch", "yaw") if kind == "lla_rpy" else ("omega", "phi", "kappa"))]
+    return head, [list(row) for row in INS_ROWS]
+
+
+UTM32_WKT = CRS.from_user_input(UTM32).to_wkt()
+PRJ_COMMON = [None, UTM32_WKT, PROJ_TM, "EPSG:4326", ""]
+# PROJ searches its database for a name like "not a crs" for up to 0.3 s: garbage it refuses at once
+PRJ_GARBAGE = [b"\xff\xfe\x00garbage", "EPSG:0", "+proj=nope", "PROJCRS[", "{}", "\x00"]
+
+
+@fz.fuzz_settings()
+@given(data=st.data())
+def test_fuzz_exterior_csv(tmp_path, data):
+    kind = data.draw(st.sampled_from(["xyz_opk", "xyz_opk", "lla_rpy", "xyz_rpy", "lla_opk", "legacy"]))
+    table = fz.csv_tables(*_csv_base(kind))
+    text = data.draw(st.one_of(table, table, table, table, table.flatmap(fz.damaged_text), st.text(max_size=300)))
+    path = write_bytes_or_text(tmp_path / "ext.csv", text)
+    prj = data.draw(st.one_of(*[st.sampled_from(PRJ_COMMON)] * 8, st.sampled_from(PRJ_GARBAGE)))
+    (tmp_path / "ext.prj").unlink(missing_ok=True)
+    if prj is not None:
+        write_bytes_or_text(tmp_path / "ext.prj", prj)
+    crs = data.draw(st.sampled_from([None, UTM32, UTM32, PROJ_TM]))
+    radians = data.draw(st.booleans())
+    cams = data.draw(st.sampled_from([None, {"cam, A": None, "cam B": None}]))
+    if cams is not None:
+        cams = {k: CAMERA for k in cams}
+    got = clean_parse(read_exterior, path, crs=crs, radians=radians, cameras=cams, names=(tmp_path / "ext.prj",))
+    if got is not None:
+        fz.check_exterior(got)
+
+
+CAMERA = None  # set below: any valid FrameCamera for the cameras argument
+
+
+def _camera():
+    from orthowarp.camera import FrameCamera
+    return FrameCamera(10.0, 0.01, (100, 100))
+
+
+CAMERA = _camera()
+
+
+@fz.fuzz_settings()
+@given(data=st.data())
+def test_fuzz_exterior_geojson(tmp_path, data):
+    base = data.draw(st.sampled_from([geojson_doc(), geojson_doc(None), geojson_doc(UTM32)]))
+    text = data.draw(fz.document(base, syntax="json", keys=EXT_KEYS))
+    path = write_bytes_or_text(tmp_path / data.draw(st.sampled_from(["ext.geojson", "ext.json"])), text)
+    crs = data.draw(st.sampled_from([None, UTM32, PROJ_TM]))
+    got = clean_parse(read_exterior, path, crs=crs)
+    if got is not None:
+        fz.check_exterior(got)
+
+
+TOPO_DOC, ODM_DOC = topocentric_doc(), odm_doc()
+
+
+@fz.fuzz_settings()
+@given(data=st.data())
+def test_fuzz_opensfm_reconstruction(tmp_path, data):
+    base = data.draw(st.sampled_from([TOPO_DOC, ODM_DOC, topocentric_doc(with_ref=False), TOPO_DOC[0]]))
+    text = data.draw(fz.document(base, syntax="json", keys=EXT_KEYS + CAM_KEYS))
+    path = write_bytes_or_text(tmp_path / "reconstruction.json", text)
+    sidecar = tmp_path / "reference_lla.json"
+    sidecar.unlink(missing_ok=True)
+    if data.draw(st.booleans()):
+        write_bytes_or_text(sidecar, data.draw(fz.document(REF, syntax="json", keys=EXT_KEYS)))
+    twin = tmp_path / "reconstruction.topocentric.json"
+    twin.unlink(missing_ok=True)
+    if data.draw(st.booleans()):
+        twin.write_text("[]")
+    frame = data.draw(st.sampled_from(["auto", "topocentric", "projected"]))
+    crs = data.draw(st.sampled_from([None, None, UTM32, PROJ_TM]))
+    got = clean_parse(read_exterior, path, crs=crs, opensfm_frame=frame, names=(sidecar,))
+    if got is not None:
+        fz.check_exterior(got)
+    cams = clean_parse(read_cameras, path)
+    if cams is not None:
+        fz.check_cameras(cams)
+
+
+@fz.fuzz_settings()
+@given(content=st.binary(max_size=400) | st.text(max_size=400),
+       name=st.sampled_from(["c.yaml", "c.json", "e.csv", "e.geojson", "reconstruction.json", "e.txt"]))
+def test_fuzz_random_bytes(tmp_path, content, name):
+    path = write_bytes_or_text(tmp_path / name, content)
+    cams = clean_parse(read_cameras, path)
+    if cams is not None:
+        fz.check_cameras(cams)
+    got = clean_parse(read_exterior, path, crs=UTM32)
+    if got is not None:
+        fz.check_exterior(got)
+
+
+# =============================================================================================
+# hand cases for what the fuzzing found (each one failed before: a traceback, a silent wrong
+# value, a misleading or unbounded message, or a quadratic slowdown)
+# =============================================================================================
+
+BILLION_LAUGHS = "c: [" + ", ".join(["&l0 [1,1,1,1,1,1,1,1,1]"] + [
+    f"&l{i} [" + ",".join([f"*l{i - 1}"] * 9) + "]" for i in range(1, 8)]) + "]\n"
+
+
+@pytest.mark.parametrize("name, text, match", [
+    ("deep.json", "[" * 100_000 + "]" * 100_000, r"invalid JSON: nested too deeply"),  # was RecursionError
+    ("deep.yaml", "c: " + "[" * 2000 + "]" * 2000, r"invalid YAML: nested too deeply"),  # was RecursionError
+    ("digits.json", '{"c": {"type": "pinhole", "im_size": [10, 10], "focal_len": ' + "1" * 5000 + "}}",
+     r"invalid JSON: Exceeds the limit \(4300 digits\)"),  # was ValueError
+    ("date.yaml", "c:\n  type: pinhole\n  im_size: [10, 10]\n  focal_len: 2001-02-30\n",
+     r"invalid YAML: ValueError: day is out of range"),  # was ValueError
+    ("bool.yaml", "c:\n  type: !!bool maybe\n", r"invalid YAML: KeyError"),  # was KeyError
+    ("big.json", '{"c": {"type": "pinhole", "im_size": [10, 10], "focal_len": 1' + "0" * 400 + "}}",
+     r"camera 'c': focal_len must be finite, got 1000"),  # was OverflowError
+    ("int.json", '[{"cameras": {"v2 a": -1}, "shots": {}}]',
+     r"camera 'a': expected a mapping of parameters, got -1"),  # was TypeError
+    ("str.json", '[{"cameras": {"v2 a": "type"}, "shots": {}}]',
+     r"camera 'a': expected a mapping of parameters, got 'type'"),  # was TypeError
+    ("dict.yaml", "c:\n  type: pinhole\n  im_size: {100: a, 200: b}\n  focal_len: 1.0\n",
+     r"im_size must be a list of 2 numbers"),  # a mapping's keys were read as the size
+    ("name.yaml", "type: pinhole\nim_size: [10, 10]\nfocal_len: 1.0\nname: [a, b]\n",
+     r"camera id must be a string, got \['a', 'b'\]"),  # was the id "['a', 'b']"
+    ("empty.yaml", "'': {type: pinhole, im_size: [10, 10], focal_len: 1.0}\n", r"camera id is empty"),
+    ("huge.yaml", "c: {type: pinhole, im_size: [3000000000, 10], focal_len: 1.0}\n",
+     r"im_size \[3000000000, 10\] is larger than any raster"),
+    ("range.yaml", "c: {type: pinhole, im_size: [100, 100], focal_len: 1e300, sensor_size: [1e-300, 1e-300]}\n",
+     r"camera 'c': its focal length, image size and sensor size give .* out of the floating-point range"),
+    ("laughs.yaml", BILLION_LAUGHS, r"camera 'c': expected a mapping of parameters, got \[\[1, 1, 1, 1, \.\.\.\]"),
+])
+def test_camera_file_hand_cases(tmp_path, name, text, match):
+    path = write(tmp_path / name, text)
+    with pytest.raises(ParamError, match=match) as info:
+        read_cameras(path)
+    msg = str(info.value)
+    assert str(path) in msg and "\n" not in msg and len(msg) < 500
+
+
+def test_camera_messages_are_bounded_and_one_line(tmp_path):
+    text = "c:\n  type: pinhole\n  im_size: [10, 10]\n  focal_len: '" + "x" * 200_000 + "'\n"
+    with pytest.raises(ParamError, match=r"focal_len must be a number, got 'xxxx.*\.\.\.") as info:
+        read_cameras(write(tmp_path / "long.yaml", text))
+    assert len(str(info.value)) < 400
+    with pytest.raises(ParamError, match=r"invalid YAML: unacceptable character") as info:
+        read_cameras(write(tmp_path / "ctl.yaml", "c: \x81\n"))
+    assert "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize("body, match", [
+    (HEAD + "a" * 200_000 + ",1,2,3,4,5,6\n", r"line 2: field larger than field limit"),  # was _csv.Error
+    (HEAD + "a,1e300,2,3,4,5,6\n", r"line 2: image 'a': x 1e\+300 is beyond \+-1e\+08"),  # was accepted
+    (HEAD + "a,431250,5150320,2650,0.5,-1.2,5213.9\n", r"line 2: image 'a': kappa 5213.9 deg is beyond \+-360 deg"),
+    ("filename,latitude,longitude,altitude,roll,pitch,yaw\na,45,1e300,3,4,5,6\n",
+     r"image 'a': longitude 1e\+300 deg is beyond \+-360 deg"),  # was accepted (cos(1e300) of garbage)
+])
+def test_csv_hand_cases(tmp_path, body, match):
+    path = write(tmp_path / "bad.csv", body)
+    with pytest.raises(ParamError, match=match) as info:
+        read_exterior(path, crs=UTM32)
+    assert str(path) in str(info.value) and len(str(info.value)) < 500
+
+
+def test_csv_degrees_read_as_radians_are_refused(tmp_path):
+    path = write(tmp_path / "deg.csv", HEAD + "a,431250,5150320,2650,0.5,-1.2,91.0\n")
+    assert read_exterior(path, crs=UTM32)["a"].pose.params["kappa"] == 91.0
+    with pytest.raises(ParamError, match=r"image 'a': kappa 91 rad is beyond \+-6.28319 rad"):
+        read_exterior(path, crs=UTM32, radians=True)
+
+
+def test_csv_quote_detection_is_linear(tmp_path):
+    """A line with a long run of blanks took quadratic time to scan for quotes (0.7 s for
+    20 000 blanks, minutes for 200 000): now linear."""
+    import time
+
+    text = "filename x y z omega phi kappa\nimg" + " " * 200_000 + "431250.5 5150320.25 2650.0 0.5 -1.25 91.0\n"
+    t0 = time.perf_counter()
+    got = read_exterior(write(tmp_path / "blanks.csv", text), crs=UTM32)
+    assert time.perf_counter() - t0 < 5.0
+    assert_same_pose(got["img"].pose, Pose.from_opk(431250.5, 5150320.25, 2650.0, 0.5, -1.25, 91.0, crs=UTM32))
+
+
+def test_csv_semicolons_with_decimal_commas_without_header(tmp_path):
+    """The delimiter count tied between decimal commas and semicolons (6 each): the commas won."""
+    path = write(tmp_path / "legacy.txt", "img_1;431250,5;5150320,25;2650,0;0,5;-1,25;91,0\n")
+    got = read_exterior(path, crs=UTM32)
+    assert_same_pose(got["img_1"].pose, Pose.from_opk(431250.5, 5150320.25, 2650.0, 0.5, -1.25, 91.0, crs=UTM32))
+
+
+def test_empty_prj_is_named(tmp_path):
+    path = write(tmp_path / "ext.csv", csv_text(",", '"'))
+    write(tmp_path / "ext.prj", "\n")
+    with pytest.raises(CrsError, match=r"ext.prj' is empty"):
+        read_exterior(path)
+
+
+@pytest.mark.parametrize("mutate, match", [
+    (lambda d: d["features"][0]["properties"].__setitem__("filename", ["a.tif"]),
+     r"feature 0: 'filename' \['a.tif'\] is not an image file name"),  # was the image "['a"
+    (lambda d: d["features"][0]["properties"].__setitem__("filename", "sub/"),
+     r"feature 0: 'filename' 'sub/' is not an image file name"),  # was the image ""
+    (lambda d: d["features"][1]["properties"].__setitem__("camera", {"id": 1}),
+     r"image 'img_002'\): camera must be a camera id \(a string\), got \{'id': 1\}"),  # was "{'id': 1}"
+    (lambda d: d["features"][0]["properties"]["opk"].__setitem__(2, 1e308),
+     r"kappa 1e\+308 rad is beyond"),  # was an overflow warning, then "kappa must be finite"
+    (lambda d: d["features"][0]["properties"]["xyz"].__setitem__(1, -1e200), r"y -1e\+200 is beyond"),
+    (lambda d: d.__setitem__("world_crs", {"proj": "utm"}), r"'world_crs' must be a string"),
+])
+def test_geojson_hand_cases(tmp_path, mutate, match):
+    doc = geojson_doc()
+    mutate(doc)
+    path = write(tmp_path / "bad.geojson", json.dumps(doc))
+    with pytest.raises(ParamError, match=match) as info:
+        read_exterior(path)
+    assert str(path) in str(info.value)
+
+
+@pytest.mark.parametrize("mutate, match", [
+    (lambda d: d[0]["shots"].__setitem__("dir/", d[0]["shots"]["IMG_1.JPG"]),
+     r"shot id 'dir/' is not an image file name"),  # was the image ""
+    (lambda d: d[0]["shots"]["IMG_1.JPG"].__setitem__("rotation", [1e308, 0.0, 0.0]),
+     r"image 'IMG_1': rotation\[0\] 1e\+308 rad is beyond"),  # was "rotation must be a finite 3x3 matrix"
+    (lambda d: d[0]["shots"]["IMG_1.JPG"]["translation"].__setitem__(1, -1e308),
+     r"image 'IMG_1': translation\[1\] -1e\+308 m is beyond"),  # was an overflow warning
+    (lambda d: d[0]["shots"]["IMG_2.JPG"].__setitem__("camera", ["v2 test cam"]),
+     r"image 'IMG_2': camera must be a camera id"),  # was the camera "['v2 test cam']"
+    (lambda d: d[0]["reference_lla"].__setitem__("longitude", 1e300),
+     r"reference_lla of reconstruction 0: longitude 1e\+300 deg is beyond"),
+])
+def test_reconstruction_hand_cases(tmp_path, mutate, match):
+    doc = topocentric_doc()
+    mutate(doc)
+    path = write(tmp_path / "reconstruction.json", json.dumps(doc))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(ParamError, match=match) as info:
+            read_exterior(path)
+    assert str(path) in str(info.value)
