@@ -142,16 +142,22 @@ class _Duplicate(Exception):
     pass
 
 
-def _load_json(path):
+def _read_utf8(path, what):
+    """The text of the UTF-8 file ``path`` (a byte-order mark allowed); ``what`` names it in
+    messages ("block file ", or "")."""
     try:
         with open(path, "rb") as f:
             raw = f.read()
     except OSError as e:
-        raise RasterIOError(f"Cannot read block file '{path}': {e.strerror or e}") from e
+        raise RasterIOError(f"Cannot read {what}'{path}': {e.strerror or e}") from e
     try:
-        text = raw.decode("utf-8-sig")
+        return raw.decode("utf-8-sig")
     except UnicodeDecodeError as e:
-        raise ParamError(f"Could not parse block file '{path}': not UTF-8 text ({e.reason} at byte {e.start})") from e
+        raise ParamError(f"Could not parse {what}'{path}': not UTF-8 text ({e.reason} at byte {e.start})") from e
+
+
+def _load_json(path):
+    text = _read_utf8(path, "block file ")
     try:
         return json.loads(text, object_pairs_hook=_no_duplicates)
     except json.JSONDecodeError as e:
@@ -366,15 +372,7 @@ def write_block(block, path):
 
 
 def _csv_rows(path):
-    try:
-        with open(path, "rb") as f:
-            raw = f.read()
-    except OSError as e:
-        raise RasterIOError(f"Cannot read '{path}': {e.strerror or e}") from e
-    try:
-        text = raw.decode("utf-8-sig")
-    except UnicodeDecodeError as e:
-        raise _fail(path, f"not UTF-8 text ({e.reason} at byte {e.start})") from e
+    text = _read_utf8(path, "")
     if "\0" in text:
         raise _fail(path, "holds NUL bytes: not a text CSV file")
     try:
