@@ -53,7 +53,7 @@ MAX_ORBIT_RADIUS = 1e8
 MAX_SPEED = 2e4
 
 _ISO_TIME = re.compile(r"\d{4}-\d{2}-\d{2}T\d{2}:\d{2}:\d{2}(\.\d{1,12})?Z?")
-_WHOLE = re.compile(r"\+?[0-9]+")
+_WHOLE = re.compile(r"[+-]?[0-9]+")
 
 
 @dataclass
@@ -185,7 +185,7 @@ class _Doc:
         s = self.text(xpath, where)
         if not _WHOLE.fullmatch(s):
             raise self.fail(f"<{xpath}> must be a whole number, got {_show(s)}")
-        v = int(s) if len(s) <= 30 else bound + 1  # (no int() of thousands of digits)
+        v = int(s) if len(s) <= 30 else (-1 if s.startswith("-") else bound + 1)  # no int() of 5000 digits
         if v < 1:
             raise self.fail(f"<{xpath}> must be positive, got {s}")
         if v > bound:

@@ -177,11 +177,12 @@ def with_value(text, tag, value, count=1):
 # (tag, value, message): every one a ParamError naming the file and the element
 DECLARATIONS = [
     ("NCOLS", "12000.5", r"<Raster_Dimensions/NCOLS> must be a whole number, got '12000.5'"),
+    ("NCOLS", "20.5", r"NCOLS> must be a whole number, got '20.5'"),  # was truncated to 20
     ("NCOLS", "1e4", r"NCOLS> must be a whole number, got '1e4'"),
     ("NCOLS", "abc", r"NCOLS> must be a whole number, got 'abc'"),
     ("NCOLS", "20.0", r"NCOLS> must be a whole number"),
     ("NCOLS", "0", r"NCOLS> must be positive"),
-    ("NCOLS", "-20", r"NCOLS> must be a whole number"),
+    ("NCOLS", "-20", r"NCOLS> must be positive, got -20"),
     ("NCOLS", "nan", r"NCOLS> must be a whole number"),
     ("NCOLS", "2000000", r"NCOLS> 2000000 is over the limit of 1048576 detectors"),
     ("NCOLS", "9" * 5000, r"NCOLS> '9999.*is over the limit"),
