@@ -289,8 +289,10 @@ class CogWriter:
 
     # -- streaming -------------------------------------------------------------------------
 
-    def write(self, row, col, data, mask=None, *, copy=True):
-        """Add the tile whose top-left full-resolution pixel is (``row``, ``col``).
+    def write(self, row, col, data, mask=None, *, copy=True, level=0):
+        """Add the tile whose top-left pixel is (``row``, ``col``) of resolution level ``level``
+        (0: full resolution; an overview level for pieces reduced elsewhere, see
+        :class:`~orthowarp.pipeline.cog_device.DeviceCogEncoder`).
 
         Parameters
         ----------
@@ -305,16 +307,33 @@ class CogWriter:
         """
         self._raise_pending()
         h, w = data.shape[:2]
+        if not 0 <= level < len(self.levels):
+            raise ParamError(f"level {level} outside 0-{len(self.levels) - 1}")
+        lvl = self.levels[level]
         if data.ndim != 3 or data.shape[2] != self.count or data.dtype != np.dtype(self.dtype):
             raise ParamError(f"tile must be (rows, cols, {self.count}) {self.dtype}, got {data.shape} {data.dtype}")
-        if row < 0 or col < 0 or row + h > self.height or col + w > self.width:
-            raise ParamError(f"tile at ({row}, {col}) of {h} x {w} falls outside the {self.height} x {self.width} raster")
+        if row < 0 or col < 0 or row + h > lvl.height or col + w > lvl.width:
+            raise ParamError(f"tile at ({row}, {col}) of {h} x {w} falls outside the {lvl.height} x {lvl.width} raster")
         if mask is None:
             mask = np.ones((h, w), bool) if not self.is_float else np.isfinite(data).any(axis=2)
-        for bi, bj, blk in self._insert(0, row, col, data, mask, copy=copy):
+        for bi, bj, blk in self._insert(level, row, col, data, mask, copy=copy):
             self._slots.acquire()
-            fut = self._pool.submit(self._emit, 0, bi, bj, *blk)
+            fut = self._pool.submit(self._emit, level, bi, bj, *blk)
             fut.add_done_callback(lambda f: self._slots.release())
+
+    def put_block(self, level, bi, bj, payloads):
+        """Store a block compressed elsewhere: ``payloads`` = [image bytes] or, with a mask,
+        [image bytes, mask bytes], each as the file stores it (see
+        :class:`~orthowarp.pipeline.cog_device.DeviceCogEncoder`). No overview is derived
+        from it: the caller gives the next levels too."""
+        self._raise_pending()
+        lvl = self.levels[level]
+        if not (0 <= bi < lvl.nby and 0 <= bj < lvl.nbx) or len(payloads) != 1 + self.mask:
+            raise ParamError(f"block ({bi}, {bj}) of level {level} with {len(payloads)} payload(s) does not fit")
+        try:
+            self._store(level, bi, bj, payloads)
+        except OSError as e:
+            raise RasterIOError(f"Could not write '{self.name}': {e.strerror or e}") from e
 
     def _insert(self, li, row, col, data, mask, copy=True):
         """Copy a piece into the level's blocks; return the blocks it completes.
@@ -374,14 +393,7 @@ class CogWriter:
             if self.mask:
                 bits = np.packbits(mask, axis=1)  # 1 bit per pixel, rows padded to bytes, MSB first
                 parts.append(self._compress(bits))
-            bufs = []
-            for payload in parts:  # GDAL's record: uint32 size, the bytes, their last 4 repeated
-                bufs += [struct.pack("<I", len(payload)), payload, bytes(payload[-4:]).rjust(4, b"\0")]
-            size = sum(len(x) for x in bufs)
-            with self._lock:
-                off, self._end = self._end, self._end + size
-            _pwrite_all(self._fd, bufs, off)
-            lvl.records[bi * lvl.nbx + bj] = (off, len(parts[0]), size)
+            self._store(li, bi, bj, parts)
             if li + 1 < len(self.levels):
                 red, red_mask = self._reduce(data[:bh, :bw], mask[:bh, :bw], full and (bh, bw) == data.shape[:2])
                 half = self.block // 2
@@ -390,6 +402,19 @@ class CogWriter:
         except BaseException as e:  # re-raised in the caller's thread
             self._error = self._error or e
             raise
+
+    def _store(self, li, bi, bj, parts):
+        """Append a block's record to the block file (GDAL's record per part: uint32 size, the
+        bytes, their last 4 repeated)."""
+        lvl = self.levels[li]
+        bufs = []
+        for payload in parts:
+            bufs += [struct.pack("<I", len(payload)), payload, bytes(payload[-4:]).rjust(4, b"\0")]
+        size = sum(len(x) for x in bufs)
+        with self._lock:
+            off, self._end = self._end, self._end + size
+        _pwrite_all(self._fd, bufs, off)
+        lvl.records[bi * lvl.nbx + bj] = (off, len(parts[0]), size)
 
     def _reduce(self, data, mask, full=False):
         """2 x 2 mean of the valid pixels of a (h, w, C) block; odd edges use what exists.

@@ -1,0 +1,315 @@
+"""Feed a :class:`~orthowarp.pipeline.cog.CogWriter` from tiles that are on the device.
+
+The host writer (:mod:`orthowarp.pipeline.cog`) takes each tile to host memory and does the
+per-block work there: mask zeroing, TIFF predictor 2, mask bits, the 2 x 2 overview
+reduction, deflate. :class:`DeviceCogEncoder` does all of it where the tile already is
+(:mod:`orthowarp.kernels.cog`), level after level while the reduced piece still covers whole
+blocks, and only compressed blocks cross to the host:
+
+1. the tile's blocks, their mask blocks and their Adler-32 checksums on the device;
+2. the next level's piece reduced on the device, and the same again, down to the level at
+   which the piece no longer covers whole blocks (e.g. 4096-pixel tiles, 512-pixel blocks:
+   levels 0-3 here, 85 blocks per tile); that last small piece goes to the host writer, which
+   reduces it with the pieces of the neighbouring tiles;
+3. all those blocks compressed in one batch by a raw-deflate codec: :class:`NvcompDeflate`
+   (nvCOMP's Deflate on the GPU, package ``nvidia-nvcomp-cu13``, ``pip install
+   orthowarp[gpu]``) or :class:`HostDeflate` (libdeflate on host threads, after one copy of
+   the predicted blocks); each raw stream is wrapped as the zlib stream TIFF's deflate
+   compression (code 8) stores: header 78 9C, the stream, the Adler-32 big-endian (RFC 1950);
+4. the records handed to the writer, which lays the file out as before.
+
+Every path decodes to the same pixels as the host writer's (the block contents before
+compression are identical bit for bit; only the deflate streams differ).
+"""
+
+import os
+import struct
+import threading
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import warp as wp
+
+from ..errors import DeviceError, ParamError
+from ..kernels import cog as kc
+
+__all__ = ["DeviceCogEncoder", "HostDeflate", "NvcompDeflate", "nvcomp_available", "zlib_stream"]
+
+_WP = {"uint8": wp.uint8, "uint16": wp.uint16, "float32": wp.float32}
+_ZLIB_HEADER = b"\x78\x9c"
+_CHUNK = 1 << 14  # bytes per thread in the checksum and gather kernels
+
+
+def zlib_stream(raw, adler):
+    """The zlib stream (RFC 1950) of a raw deflate stream ``raw`` of data whose Adler-32 is
+    ``adler``: what TIFF's deflate compression stores per block."""
+    return b"".join((_ZLIB_HEADER, raw, struct.pack(">I", adler & 0xFFFFFFFF)))
+
+
+def nvcomp_available():
+    """True where nvCOMP's Python package can be imported (it still needs a CUDA device)."""
+    try:
+        from nvidia import nvcomp  # noqa: F401
+    except Exception:  # noqa: BLE001 - missing package, or its libraries failing to load
+        return False
+    return True
+
+
+def _bytes_view(arr):
+    """A flat uint8 view of a contiguous Warp array (same memory, kept alive by ``arr``)."""
+    n = arr.size * wp.types.type_size_in_bytes(arr.dtype)
+    view = wp.array(ptr=arr.ptr, shape=(n,), dtype=wp.uint8, device=arr.device)
+    view._ref = arr  # noqa: SLF001 - the view does not own its memory
+    return view
+
+
+class HostDeflate:
+    """Raw deflate of device-resident buffers on host threads (libdeflate, GIL-free).
+
+    Parameters
+    ----------
+    level : int
+        libdeflate level 1-12.
+    threads : int, optional
+        Default: CPU cores.
+    """
+
+    name = "libdeflate"
+
+    def __init__(self, level=6, *, threads=None):
+        from deflate import deflate_compress
+
+        self._compress = deflate_compress
+        self.level = int(level)
+        self._pool = ThreadPoolExecutor(max_workers=threads or os.cpu_count() or 1, thread_name_prefix="deflate")
+
+    def compress(self, buf, offsets, sizes, stream=None):
+        """Raw deflate streams (list of bytes) of the buffers (``offsets``, ``sizes``: byte
+        lists) of the uint8 Warp array ``buf``."""
+        host = buf.numpy()  # a copy from a GPU, a view on the CPU
+        return list(self._pool.map(lambda k: self._compress(host[offsets[k]:offsets[k] + sizes[k]], self.level),
+                                   range(len(offsets))))
+
+    def close(self):
+        self._pool.shutdown(wait=True)
+
+
+class NvcompDeflate:
+    """Raw deflate of device-resident buffers on the GPU with nvCOMP (one batch per call).
+
+    Parameters
+    ----------
+    algorithm_type : int
+        nvCOMP's Deflate variant: 1 high throughput, 2 medium ratio, 4 high ratio, 5 highest
+        ratio (bench/deflate_codecs.py measures each against libdeflate).
+    device : warp Device
+        A CUDA device.
+    """
+
+    name = "nvcomp"
+
+    def __init__(self, algorithm_type, device):
+        if not device.is_cuda:
+            raise ParamError("nvCOMP compresses on CUDA devices only")
+        try:
+            from nvidia import nvcomp
+        except Exception as e:  # noqa: BLE001
+            raise DeviceError(f"nvCOMP is not available ({e}); install orthowarp[gpu]") from e
+        self._nvcomp = nvcomp
+        self.algorithm_type = int(algorithm_type)
+        self.device = device
+        self._local = threading.local()
+
+    def _codec(self):
+        codec = getattr(self._local, "codec", None)
+        if codec is None:
+            nv = self._nvcomp
+            codec = self._local.codec = nv.Codec(algorithm="Deflate", bitstream_kind=nv.BitstreamKind.RAW,
+                                                 algorithm_type=self.algorithm_type, device_id=self.device.ordinal)
+        return codec
+
+    def _capacity(self, codec, size):
+        """Bytes reserved for one compressed stream of ``size`` input bytes (16-byte aligned)."""
+        try:
+            cap = int(codec.get_max_comp_buffer_size(int(size)))
+        except Exception:  # noqa: BLE001 - an older signature: deflate's worst case, generously
+            cap = size + (size >> 3) + 65536
+        return -(-cap // 16) * 16
+
+    def compress(self, buf, offsets, sizes, stream=None):
+        """Raw deflate streams (list of bytes) of the buffers of the uint8 Warp array ``buf``
+        (on this codec's device; the work that wrote it must be complete or on ``stream``)."""
+        if stream is not None:
+            wp.synchronize_stream(stream)
+        nv, n = self._nvcomp, len(offsets)
+        codec = self._codec()
+        cap = self._capacity(codec, max(sizes))
+        if n * cap >= 2**31:
+            raise ParamError(f"a batch of {n} blocks of {max(sizes)} bytes is too large for one nvCOMP call")
+        out_buf = wp.empty(n * cap, dtype=wp.uint8, device=self.device)
+        src_off = np.arange(n, dtype=np.int32) * cap
+        batch = nv.as_arrays(buf, [int(o) for o in offsets], [int(x) for x in sizes])
+        out = nv.as_arrays(out_buf, src_off.tolist(), [cap] * n)
+        enc = codec.encode(batch, out=out)
+        comp = np.asarray([int(x) for x in enc.buffer_sizes], np.int32)  # waits for the compression
+        # pack the streams on the device and copy them to the host in one transfer
+        dst_off = np.concatenate([[0], np.cumsum(comp)[:-1]]).astype(np.int32)
+        dst = wp.empty(max(int(comp.sum()), 1), dtype=wp.uint8, device=self.device)
+        with wp.ScopedStream(stream) if stream is not None else _nullcontext():
+            wp.launch(kc.gather_kernel, dim=(n, -(-int(comp.max()) // _CHUNK)), device=self.device,
+                      inputs=[out_buf, wp.array(src_off, dtype=wp.int32, device=self.device), dst,
+                              wp.array(dst_off, dtype=wp.int32, device=self.device),
+                              wp.array(comp, dtype=wp.int32, device=self.device), wp.int32(_CHUNK)])
+            host = dst.numpy()
+        return [host[o:o + k].tobytes() for o, k in zip(dst_off, comp)]
+
+    def close(self):
+        pass
+
+
+class _nullcontext:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+
+class DeviceCogEncoder:
+    """Encode tiles on the device into a :class:`~orthowarp.pipeline.cog.CogWriter`.
+
+    Parameters
+    ----------
+    writer : CogWriter
+        With ``compress="deflate"``; it receives compressed blocks (:meth:`CogWriter.put_block`)
+        and the small pieces of the upper overview levels (:meth:`CogWriter.write`).
+    device : warp Device
+    codecs : list
+        Raw-deflate codecs (:class:`NvcompDeflate`, :class:`HostDeflate`), tried in order: a
+        tile goes to the first that is not busy with another tile, else waits for the first.
+        [nvcomp, host] shares the work between the GPU and the host cores.
+    """
+
+    def __init__(self, writer, device, codecs):
+        if writer.compress != "deflate":
+            raise ParamError("DeviceCogEncoder needs a deflate CogWriter")
+        if not codecs:
+            raise ParamError("DeviceCogEncoder needs at least one codec")
+        self.writer, self.device, self.codecs = writer, device, list(codecs)
+        self._busy = [threading.Lock() for _ in self.codecs]
+        self.blocks_by_codec = {c.name: 0 for c in self.codecs}
+        self._count_lock = threading.Lock()
+        wp.load_module(kc, device=device)
+
+    def _device_level(self, li, row, col, h, w):
+        """Whether a piece at level ``li`` with top-left (row, col), h x w pixels, covers whole
+        blocks of that level (its blocks can be encoded on the device)."""
+        lvl, b = self.writer.levels[li], self.writer.block
+        return (row % b == 0 and col % b == 0 and (h % b == 0 or row + h == lvl.height)
+                and (w % b == 0 or col + w == lvl.width))
+
+    def write(self, row, col, tile, valid, *, stream=None):
+        """Add a full-resolution tile.
+
+        Parameters
+        ----------
+        row, col : int
+            Its top-left pixel in the raster.
+        tile : warp array, shape (rows, cols, bands), the writer's dtype
+            On this encoder's device (not modified).
+        valid : warp array of uint8, shape (rows, cols)
+            1 where the pixel is valid.
+        stream : warp Stream, optional
+            The stream the tile was written on (work is queued on it).
+        """
+        wr = self.writer
+        wr._raise_pending()  # noqa: SLF001
+        li, piece, pvalid = 0, tile, valid
+        images, masks, where = [], [], []  # per level: block arrays and their (li, bi, bj)
+        b = wr.block
+        with wp.ScopedStream(stream) if stream is not None else _nullcontext():
+            while True:
+                h, w = piece.shape[0], piece.shape[1]
+                if not self._device_level(li, row, col, h, w):
+                    self._to_host(li, row, col, piece, pvalid)
+                    break
+                nby, nbx = -(-h // b), -(-w // b)
+                blocks = wp.empty((nby * nbx, b, b, wr.count), dtype=_WP[wr.dtype], device=self.device)
+                wp.launch(kc.encode_blocks_kernel, dim=(nby * nbx, b, b), inputs=[piece, pvalid, nbx], outputs=[blocks],
+                          device=self.device)
+                images.append(blocks)
+                if wr.mask:
+                    bits = wp.empty((nby * nbx, b, b // 8), dtype=wp.uint8, device=self.device)
+                    wp.launch(kc.mask_bits_kernel, dim=bits.shape, inputs=[pvalid, nbx], outputs=[bits],
+                              device=self.device)
+                    masks.append(bits)
+                where.append([(li, row // b + k // nbx, col // b + k % nbx) for k in range(nby * nbx)])
+                if li + 1 >= len(wr.levels):
+                    break
+                hh, ww = -(-h // 2), -(-w // 2)
+                nxt = wp.empty((hh, ww, wr.count), dtype=_WP[wr.dtype], device=self.device)
+                nxt_valid = wp.empty((hh, ww), dtype=wp.uint8, device=self.device)
+                wp.launch(kc.reduce_kernel, dim=(hh, ww), inputs=[piece, pvalid], outputs=[nxt, nxt_valid],
+                          device=self.device)
+                li, row, col, piece, pvalid = li + 1, row // 2, col // 2, nxt, nxt_valid
+            if not images:
+                return
+            payloads = self._compress(images + masks, stream)
+        n_img = sum(len(x) for x in where)
+        keys = [k for level in where for k in level]
+        for k, key in enumerate(keys):
+            parts = [payloads[k]] + ([payloads[n_img + k]] if wr.mask else [])
+            wr.put_block(*key, parts)
+
+    def _to_host(self, li, row, col, piece, pvalid):
+        """Hand a piece that does not cover whole blocks to the host writer at its level."""
+        self.writer.write(row, col, piece.numpy(), pvalid.numpy().view(bool), level=li, copy=False)
+
+    def _compress(self, arrays, stream):
+        """zlib streams of every block of ``arrays`` (list of block arrays (nb, ...)), in order."""
+        views = [_bytes_view(a) for a in arrays]
+        sizes, offsets, lens = [], [], []
+        for a, v in zip(arrays, views):
+            per = v.shape[0] // a.shape[0]
+            lens.append(per)
+        # one buffer per kind of block (image, mask); codecs take (buffer, offsets, sizes)
+        adlers = []
+        for a, v, per in zip(arrays, views, lens):
+            n = a.shape[0]
+            offs = np.arange(n, dtype=np.int32) * per
+            size = np.full(n, per, np.int32)
+            nchunk = -(-per // _CHUNK)
+            s1 = wp.empty((n, nchunk), dtype=wp.int64, device=self.device)
+            s2 = wp.empty((n, nchunk), dtype=wp.int64, device=self.device)
+            d_offs = wp.array(offs, dtype=wp.int32, device=self.device)
+            d_size = wp.array(size, dtype=wp.int32, device=self.device)
+            wp.launch(kc.adler_partials_kernel, dim=(n, nchunk), inputs=[v, d_offs, d_size, wp.int32(_CHUNK)],
+                      outputs=[s1, s2], device=self.device)
+            out = wp.empty(n, dtype=wp.int64, device=self.device)
+            wp.launch(kc.adler_finish_kernel, dim=n, inputs=[s1, s2, d_size], outputs=[out], device=self.device)
+            adlers.append(out)
+            offsets.append(offs)
+            sizes.append(size)
+        adler = np.concatenate([a.numpy() for a in adlers])
+        codec_index = self._acquire()
+        try:
+            codec = self.codecs[codec_index]
+            raws = []
+            for v, offs, size in zip(views, offsets, sizes):
+                raws += codec.compress(v, offs.tolist(), size.tolist(), stream)
+        finally:
+            self._busy[codec_index].release()
+        with self._count_lock:
+            self.blocks_by_codec[codec.name] += len(raws)
+        return [zlib_stream(r, int(a)) for r, a in zip(raws, adler)]
+
+    def _acquire(self):
+        for k, lock in enumerate(self._busy):
+            if lock.acquire(blocking=False):
+                return k
+        self._busy[0].acquire()
+        return 0
+
+    def close(self):
+        for c in self.codecs:
+            c.close()

@@ -1,0 +1,146 @@
+"""COG blocks encoded on the device (pipeline/cog_device.py, kernels/cog.py): checksums, zlib
+streams, and files that decode to exactly the host writer's pixels at every level."""
+
+import os
+import zlib
+
+import numpy as np
+import pytest
+import rasterio
+import warp as wp
+from affine import Affine
+from test_cog import CRS, TRANSFORM, scene
+
+from orthowarp.errors import ParamError
+from orthowarp.kernels import cog as kc
+from orthowarp.pipeline.cog import CogWriter
+from orthowarp.pipeline.cog_device import (DeviceCogEncoder, HostDeflate, NvcompDeflate, _bytes_view,
+                                           nvcomp_available, zlib_stream)
+
+
+def test_adler32_matches_zlib(device):
+    rng = np.random.default_rng(3)
+    sizes = [1, 7, 16384, 16385, 100000, 786432]
+    bufs = [rng.integers(0, 256, n, dtype=np.uint8) for n in sizes]
+    bufs[-1][:] = 255  # the largest sums
+    data = np.concatenate(bufs)
+    offs = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int32)
+    chunk = 16384
+    nchunk = -(-max(sizes) // chunk)
+    d = wp.array(data, dtype=wp.uint8, device=device)
+    s1 = wp.empty((len(sizes), nchunk), dtype=wp.int64, device=device)
+    s2 = wp.empty((len(sizes), nchunk), dtype=wp.int64, device=device)
+    size = wp.array(np.asarray(sizes, np.int32), dtype=wp.int32, device=device)
+    wp.launch(kc.adler_partials_kernel, dim=s1.shape, inputs=[d, wp.array(offs, dtype=wp.int32, device=device), size,
+                                                                wp.int32(chunk)], outputs=[s1, s2], device=device)
+    out = wp.empty(len(sizes), dtype=wp.int64, device=device)
+    wp.launch(kc.adler_finish_kernel, dim=len(sizes), inputs=[s1, s2, size], outputs=[out], device=device)
+    assert out.numpy().tolist() == [zlib.adler32(b.tobytes()) for b in bufs]
+
+
+def test_zlib_stream_inflates():
+    from deflate import deflate_compress
+
+    data = np.random.default_rng(0).integers(0, 4, 50000, dtype=np.uint8).tobytes()
+    stream = zlib_stream(deflate_compress(data, 6), zlib.adler32(data))
+    assert zlib.decompress(stream) == data
+    with pytest.raises(zlib.error):  # a wrong checksum is caught by any reader
+        zlib.decompress(zlib_stream(deflate_compress(data, 6), zlib.adler32(data) ^ 1))
+
+
+def test_bytes_view_shares_memory(device):
+    a = wp.array(np.arange(6, dtype=np.uint16).reshape(2, 3), device=device)
+    v = _bytes_view(a)
+    assert v.shape == (12,) and v.numpy().view(np.uint16).tolist() == list(range(6))
+
+
+def _write(path, shape, count, dtype, tile, *, device=None, overviews=3, block=256):
+    """One file from the scene, through the device encoder (``device``) or the host writer."""
+    data, mask = scene(shape, count, dtype)
+    w = CogWriter(path, width=shape[1], height=shape[0], count=count, dtype=dtype, crs=CRS, transform=TRANSFORM,
+                  block_size=block, overviews=overviews, threads=2)
+    enc = DeviceCogEncoder(w, wp.get_device(device), [HostDeflate(6, threads=2)]) if device else None
+    with w:
+        tiles = [(r, c) for r in range(0, shape[0], tile) for c in range(0, shape[1], tile)]
+        for k in np.random.default_rng(1).permutation(len(tiles)):
+            r, c = tiles[k]
+            piece, m = data[r:r + tile, c:c + tile], mask[r:r + tile, c:c + tile]
+            if enc is None:
+                w.write(r, c, piece, m)
+            else:
+                enc.write(r, c, wp.array(np.ascontiguousarray(piece), dtype=kc_types[dtype], device=device),
+                          wp.array(m.astype(np.uint8), dtype=wp.uint8, device=device))
+    if enc is not None:
+        enc.close()
+    return enc
+
+
+kc_types = {"uint8": wp.uint8, "uint16": wp.uint16, "float32": wp.float32}
+
+
+def _levels(path, count):
+    out = []
+    with rasterio.open(path) as ds:
+        n = len(ds.overviews(1))
+    for k in range(n + 1):
+        with rasterio.open(path, overview_level=k - 1) if k else rasterio.open(path) as ds:
+            out.append((ds.read(), ds.dataset_mask(), ds.block_shapes[0], ds.compression))
+    return out
+
+
+@pytest.mark.parametrize("count,dtype,tile,shape", [
+    (3, "uint8", 512, (1100, 1500)),    # device levels 0-1, the rest on the host
+    (1, "uint16", 1024, (1300, 1029)),  # odd edges
+    (2, "float32", 512, (900, 700)),
+    (4, "uint8", 384, (800, 800)),      # tiles that are not whole blocks: the host takes them
+])
+def test_device_encoded_file_has_the_host_writers_pixels(tmp_path, device, count, dtype, tile, shape):
+    host, dev = str(tmp_path / "host.tif"), str(tmp_path / "dev.tif")
+    _write(host, shape, count, dtype, tile)
+    enc = _write(dev, shape, count, dtype, tile, device=device)
+    assert sorted(os.listdir(tmp_path)) == ["dev.tif", "host.tif"]  # no block file left
+    a, b = _levels(host, count), _levels(dev, count)
+    assert len(a) == len(b) == 4
+    for (da, ma, bs_a, ca), (db, mb, bs_b, cb) in zip(a, b):
+        np.testing.assert_array_equal(ma, mb)
+        np.testing.assert_array_equal(da, db)  # NaN == NaN here
+        assert bs_a == bs_b == (256, 256) and ca == cb
+    with rasterio.open(dev) as ds:
+        assert ds.tags(ns="IMAGE_STRUCTURE")["LAYOUT"] == "COG"
+    # blocks encoded on the device: all of level 0 when tiles are whole blocks, else only the
+    # tiles that happen to cover whole blocks (here the corner one)
+    nb0 = -(-shape[0] // 256) * -(-shape[1] // 256)
+    assert enc.blocks_by_codec["libdeflate"] >= (nb0 if tile % 256 == 0 else 1)
+
+
+def test_device_encoder_refuses_uncompressed_writers(tmp_path, device):
+    w = CogWriter(str(tmp_path / "x.tif"), width=10, height=10, count=1, dtype="uint8", crs=CRS,
+                  transform=Affine.identity(), compress="none")
+    with w:
+        w.write(0, 0, np.zeros((10, 10, 1), np.uint8))
+        with pytest.raises(ParamError, match="deflate"):
+            DeviceCogEncoder(w, wp.get_device(device), [HostDeflate()])
+        with pytest.raises(ParamError, match="CUDA"):
+            NvcompDeflate(4, wp.get_device("cpu"))
+
+
+@pytest.mark.skipif(not (nvcomp_available() and wp.get_cuda_device_count()), reason="needs nvCOMP and a CUDA device")
+@pytest.mark.parametrize("algorithm_type", [1, 2, 4, 5])
+def test_nvcomp_file_has_the_host_writers_pixels(tmp_path, algorithm_type):
+    shape, count, dtype = (1100, 1500), 3, "uint8"
+    host, dev = str(tmp_path / "host.tif"), str(tmp_path / "dev.tif")
+    _write(host, shape, count, dtype, 512)
+    data, mask = scene(shape, count, dtype)
+    w = CogWriter(dev, width=shape[1], height=shape[0], count=count, dtype=dtype, crs=CRS, transform=TRANSFORM,
+                  block_size=256, overviews=3, threads=2)
+    device = wp.get_device("cuda:0")
+    enc = DeviceCogEncoder(w, device, [NvcompDeflate(algorithm_type, device)])
+    with w:
+        for r in range(0, shape[0], 512):
+            for c in range(0, shape[1], 512):
+                enc.write(r, c, wp.array(np.ascontiguousarray(data[r:r + 512, c:c + 512]), dtype=wp.uint8, device=device),
+                          wp.array(mask[r:r + 512, c:c + 512].astype(np.uint8), dtype=wp.uint8, device=device))
+    assert enc.blocks_by_codec["nvcomp"] > 0
+    for (da, ma, _, _), (db, mb, _, _) in zip(_levels(host, count), _levels(dev, count)):
+        np.testing.assert_array_equal(ma, mb)
+        np.testing.assert_array_equal(da, db)
