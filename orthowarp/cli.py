@@ -187,6 +187,9 @@ def demo(out_dir, device):
               show_default=True)
 @click.option("--compress-level", type=int, default=None,
               help="Deflate level 1-12 (default 6) or zstd level 1-22 (default 9).")
+@click.option("--block-codec", type=click.Choice(["auto", "host", "nvcomp", "hybrid"]), default="auto", show_default=True,
+              help="Who deflates a COG's blocks: host (libdeflate on all cores), nvcomp (the GPU; needs "
+                   "orthowarp[gpu]), hybrid (both, whichever is free); auto: hybrid on a GPU with nvCOMP, else host.")
 @click.option("--dtype", type=click.Choice(["uint8", "uint16", "float32"]), help="Output data type (default: the source's).")
 @click.option("--out-dir", type=click.Path(file_okay=False), default=".", show_default=True)
 @click.option("--overwrite", is_flag=True, help="Replace existing outputs.")
@@ -202,7 +205,7 @@ def demo(out_dir, device):
               help="Write the same profile as JSON to this file.")
 @click.pass_context
 def ortho(ctx, images, int_param, ext_param, dimap, attitude_model, dem, height, crs, resolution, resampling, method,
-          driver, compress, compress_level, dtype,
+          driver, compress, compress_level, block_codec, dtype,
           out_dir, overwrite, no_refraction, geoid, same_vertical_datum, device, tile_size, show_profile, profile_json):
     """Orthorectify frame IMAGES, or one pushbroom scene (--dimap), into (cloud-optimized)
     GeoTIFFs named <image>_ORTHO.tif."""
@@ -225,7 +228,8 @@ def ortho(ctx, images, int_param, ext_param, dimap, attitude_model, dem, height,
     quiet = ctx.obj["quiet"]
     options = dict(crs=crs, resolution=resolution, resampling=resampling, method=method,
                    refraction=not no_refraction, dtype=dtype, driver="COG" if driver.lower() == "cog" else "GTiff",
-                   compress=compress, compress_level=compress_level, overwrite=overwrite, device=device,
+                   compress=compress, compress_level=compress_level, block_codec=block_codec, overwrite=overwrite,
+                   device=device,
                    progress=not quiet, tile_size=tile_size, geoid=geoid, same_vertical_datum=same_vertical_datum)
 
     def run(jobs):

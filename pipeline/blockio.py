@@ -56,7 +56,8 @@ log = logging.getLogger(__name__)
 
 
 def _fail(path, msg):
-    return ParamError(f"'{path}': {msg}")
+    # one line whatever the cause says (pyproj's CRS messages hold newlines)
+    return ParamError(f"'{path}': {' '.join(str(msg).split())}")
 
 
 _REPR = reprlib.Repr()

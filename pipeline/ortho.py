@@ -32,7 +32,7 @@ from rasterio.windows import Window
 from .._device import quiet_warp
 from .._validate import as_crs, finite
 from ..camera import FrameCamera
-from ..errors import Cancelled, GeometryError, OrthowarpWarning, ParamError, RasterIOError
+from ..errors import Cancelled, DeviceError, GeometryError, OrthowarpWarning, ParamError, RasterIOError
 from ..kernels import ortho as ortho_kernels
 from ..geodesy import geodetic_to_ecef
 from ..pose import Pose
@@ -40,6 +40,7 @@ from ..pushbroom import PushbroomScene
 from .dem import Dem
 from .geometry import FrameGeometry, PushbroomGeometry
 from .cog import DTYPES, CogWriter, overview_count, verify_tiff
+from .cog_device import DeviceCogEncoder, HostDeflate, NvcompDeflate, nvcomp_available
 from .io import GDAL_ERRORS, atomic_path, check_destination, gdal_reason, write_error
 from .profile import StageTimer
 
@@ -51,6 +52,7 @@ RESAMPLING = {"nearest": 0, "bilinear": 1, "bicubic": 2, "lanczos": 3}
 _RADIUS = {"nearest": 1, "bilinear": 1, "bicubic": 2, "lanczos": 3}
 DRIVERS = ("COG", "GTiff")
 COMPRESS = ("deflate", "zstd", "lzw", "jpeg", "none")
+BLOCK_CODECS = ("auto", "host", "nvcomp", "hybrid")
 # threads per block of the per-pixel ortho kernels: on an H100, 128 ran a few per cent faster
 # than Warp's default 256 (bench/ortho.py's block-size scan)
 ORTHO_BLOCK_DIM = 128
@@ -215,7 +217,7 @@ class _Counter:
 def orthorectify(src, sensor, *args, dem, crs=None, resolution=None, resampling="bilinear", method="backward",
                  refraction=True, dtype=None, driver="COG", compress="deflate", compress_level=None, overviews=True,
                  tile_size=None, overwrite=False, device=None, progress=False, workers=None,
-                 geoid=None, same_vertical_datum=False, cancel=None):
+                 geoid=None, same_vertical_datum=False, cancel=None, block_codec="auto"):
     """Orthorectify one frame image or pushbroom scene into a GeoTIFF / cloud-optimized GeoTIFF.
 
     Called as ``orthorectify(src, camera, pose, dst, ...)`` for a frame image or
@@ -276,6 +278,17 @@ def orthorectify(src, sensor, *args, dem, crs=None, resolution=None, resampling=
     cancel : threading.Event, optional
         Set from another thread (or a signal handler) to stop the run: no tile starts after
         it, nothing is published, and :class:`~orthowarp.errors.Cancelled` is raised.
+    block_codec : {"auto", "host", "nvcomp", "hybrid"}, optional
+        Who compresses a deflate COG's blocks. "host": each tile goes to host memory, where
+        the writer applies the predictor, builds the overviews and deflates (libdeflate, all
+        cores). "nvcomp" (CUDA, needs ``orthowarp[gpu]``): predictor, masks and the overview
+        levels that cover whole blocks are computed on the device and nvCOMP deflates them
+        there, in one batch per tile; only compressed blocks cross to the host. "hybrid": the
+        same device work, each tile's batch deflated by nvCOMP or by libdeflate on the host
+        cores, whichever is free. "auto": "hybrid" on a CUDA device where nvCOMP can be
+        imported, else "host". The files decode to the same pixels whichever path wrote
+        them; nvCOMP's streams differ in size (``compress_level`` 1-4: its medium-ratio
+        variant, 5-7: high, 8-12: highest).
 
     Returns
     -------
@@ -312,6 +325,8 @@ def orthorectify(src, sensor, *args, dem, crs=None, resolution=None, resampling=
         compress_level = int(compress_level)
     if dtype is not None and dtype not in DTYPES:
         raise ParamError(f"dtype must be one of {DTYPES}, got {dtype!r}")
+    if block_codec not in BLOCK_CODECS:
+        raise ParamError(f"block_codec must be one of {BLOCK_CODECS}, got {block_codec!r}")
     if tile_size is not None:
         tile_size = int(tile_size)
         if tile_size < 16 or tile_size % 16:
@@ -366,6 +381,7 @@ def orthorectify(src, sensor, *args, dem, crs=None, resolution=None, resampling=
                 compress if driver == "GTiff" else "none", work, resampling, tile_size, progress,
                 workers, timer, dst, method, masked, compress_level,
                 cog=dict(compress=compress, level=compress_level or 6) if streamed else None, cancel=cancel,
+                block_codec=_block_codec(block_codec, geom.device, streamed and compress == "deflate"),
                 src_dtype=src_dtype, clipped=clipped)
         t0 = time.perf_counter()
         if not streamed:
@@ -449,9 +465,30 @@ def _creation_options(compress, dtype, level=None):
     return {k: v for k, v in opts.items() if v is not None}
 
 
+def _block_codec(choice, device, deflate_cog):
+    """The block codec a run uses (see :func:`orthorectify`'s ``block_codec``)."""
+    if choice == "host" or not deflate_cog:
+        return "host"
+    if not device.is_cuda:
+        if choice == "auto":
+            return "host"
+        raise ParamError(f"block_codec {choice!r} needs a CUDA device (the run is on {device})")
+    if not nvcomp_available():
+        if choice == "auto":
+            return "host"
+        raise DeviceError(f"block_codec {choice!r} needs nvCOMP: pip install 'orthowarp[gpu]' "
+                          "(package nvidia-nvcomp-cu13)")
+    return "hybrid" if choice == "auto" else choice
+
+
+def _nvcomp_type(level):
+    """nvCOMP Deflate variant for a libdeflate level (see bench/deflate_codecs.py)."""
+    return 2 if level <= 4 else 4 if level <= 7 else 5
+
+
 def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, path, resampling,
             tile_size, progress, workers, timer, final_name, method_name, masked, compress_level=None, cog=None,
-            cancel=None, src_dtype=None, clipped=None):
+            cancel=None, src_dtype=None, clipped=None, block_codec="host"):
     rows, cols = shape
     is_float = out_dtype == "float32"
     profile = dict(driver="GTiff", width=cols, height=rows, count=count, dtype=out_dtype,
@@ -600,6 +637,19 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
         ds, stream = source()
         with wp.ScopedStream(stream) if stream is not None else contextlib.nullcontext():
             launch, window = prepare(r0, c0, th, tw)
+            if sink.device is not None:  # the tile stays on the device: blocks encoded there
+                t = time.perf_counter()
+                packed = wp.full((th, tw, count), np.nan if is_float else 0, dtype=_WP_TYPES[out_dtype], device=device)
+                res_valid = wp.zeros((th, tw), dtype=wp.uint8, device=device)
+                if window is not None:
+                    sw, data = read_window(ds, *window)
+                    t = time.perf_counter()
+                    launch(sw, data, packed, res_valid)
+                timer.span("kernel", t)
+                t = time.perf_counter()
+                sink.device(r0, c0, packed, res_valid, stream=stream)
+                timer.span("write", t)
+                return
             if window is None:
                 block = np.zeros((th, tw, count), out_dtype) if not is_float else np.full((th, tw, count), np.nan, np.float32)
                 mask = np.zeros((th, tw), bool)
@@ -624,9 +674,10 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
     try:
         # A bounded GDAL block cache for the source reads and GDAL-written outputs: the default
         # (5 % of RAM) would hold gigabytes of blocks.
-        with rasterio.Env(GDAL_CACHEMAX=256), _open_sink(path, profile, cog, final_name, timer) as sink:
+        with rasterio.Env(GDAL_CACHEMAX=256), _open_sink(path, profile, cog, final_name, timer, device,
+                                                         block_codec) as sink:
             bar = _progress(len(tiles)) if progress else None
-            timer.info.update(device=str(device), tiles=len(tiles), threads=n_workers)
+            timer.info.update(device=str(device), tiles=len(tiles), threads=n_workers, block_codec=block_codec)
             timer.span("setup", timer.start)  # from the call to the first tile
             pool = ThreadPoolExecutor(max_workers=n_workers)
             try:
@@ -725,20 +776,42 @@ class _TimedCogWriter(CogWriter):
             self._timer.span("write", t)
 
 
+class _Sink:
+    """Where tiles go: ``host(row, col, block (rows, cols, bands), mask (rows, cols) bool)``
+    takes host arrays; ``device(row, col, tile, valid, stream=)``, where not None, takes
+    device arrays (see :class:`~orthowarp.pipeline.cog_device.DeviceCogEncoder`)."""
+
+    def __init__(self, host, device=None):
+        self.host, self.device = host, device
+
+    def __call__(self, *args):
+        return self.host(*args)
+
+
 @contextlib.contextmanager
-def _open_sink(path, profile, cog, final_name, timer):
-    """A function sink(row, col, block (rows, cols, bands), mask (rows, cols) bool) writing
-    tiles: through :class:`CogWriter` (``cog``: its options) or GDAL's GTiff driver."""
+def _open_sink(path, profile, cog, final_name, timer, device=None, block_codec="host"):
+    """A :class:`_Sink` writing tiles through :class:`CogWriter` (``cog``: its options; with
+    ``block_codec`` other than "host", fed from the device) or GDAL's GTiff driver."""
     if cog is not None:
         w = _TimedCogWriter(path, width=profile["width"], height=profile["height"], count=profile["count"],
                             dtype=profile["dtype"], crs=profile["crs"], transform=profile["transform"],
                             name=final_name, timer=timer, **cog)
+        encoder = None
         try:
+            if block_codec != "host":
+                codecs = [NvcompDeflate(_nvcomp_type(cog["level"]), device)]
+                if block_codec == "hybrid":
+                    codecs.append(HostDeflate(cog["level"]))
+                encoder = DeviceCogEncoder(w, device, codecs)
             # the tiles are fresh arrays the pipeline drops after the call: no copy
-            yield functools.partial(w.write, copy=False)
+            yield _Sink(functools.partial(w.write, copy=False), encoder.write if encoder is not None else None)
         except BaseException:
             w.abort()
             raise
+        finally:
+            if encoder is not None:
+                encoder.close()
+                timer.info["blocks_by_codec"] = dict(encoder.blocks_by_codec)
         t = time.perf_counter()
         w.close()  # the last blocks, then the file's IFDs and block copy
         timer.span("finish", t)
@@ -755,7 +828,7 @@ def _open_sink(path, profile, cog, final_name, timer):
                         dst.write_mask(mask.astype(np.uint8) * 255, window=win)
             except GDAL_ERRORS as e:
                 raise write_error(final_name, path, e) from e
-        yield sink
+        yield _Sink(sink)
         t = time.perf_counter()
     timer.span("finish", t)  # GDAL's close: its last blocks compressed and written
 

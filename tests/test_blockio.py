@@ -122,6 +122,7 @@ BAD_DOCUMENTS = [
     (_set("crs", value=32632), r"'crs' must be a string such as \"EPSG:32632\", got the number 32632"),
     (_set("crs", value="EPSG:4326"), r"crs must be projected \(map blocks\) or geographic 3-D"),
     (_set("crs", value="no such crs"), r"crs 'no such crs' is not a CRS"),
+    (_set("crs", value="\n"), r"crs '\\n' is not a CRS: Invalid projection: : \(Internal Proj Error"),  # found by the long fuzz run
     (_set("observations", 0, "col", value="12.5"), r"observation #1 \(point '.*' in image '.*'\) col must be a number, "
                                                    r"got a string '12.5'"),
     (_set("observations", 0, "row", value=True), r"observation #1 .* row must be a number, got the boolean true"),
