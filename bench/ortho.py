@@ -189,6 +189,35 @@ def kernel_only(geom, src_path, resampling, repeats=3):
     return out
 
 
+def compare_outputs(paths, reference):
+    """Each file against ``reference``: GDAL's LAYOUT tag, identical pixels and masks at full
+    resolution and at every overview level, and the size relative to the reference."""
+    out = {}
+    ref = paths.get(reference)
+    if ref is None:
+        return out
+    for key, path in paths.items():
+        row = {"output_mb": os.path.getsize(path) / 1e6, "size_vs_reference": os.path.getsize(path) / os.path.getsize(ref)}
+        with rasterio.open(path) as a, rasterio.open(ref) as b:
+            row["layout"] = a.tags(ns="IMAGE_STRUCTURE").get("LAYOUT")
+            n = len(a.overviews(1))
+            row["levels"] = n + 1
+        same = True
+        for level in range(n + 1):
+            kw = {"overview_level": level - 1} if level else {}
+            with rasterio.open(path, **kw) as a, rasterio.open(ref, **kw) as b:
+                for _, win in a.block_windows(1) if level == 0 else [(None, None)]:
+                    if not (np.array_equal(a.read(window=win), b.read(window=win))
+                            and np.array_equal(a.dataset_mask(window=win), b.dataset_mask(window=win))):
+                        same = False
+                        break
+            if not same:
+                break
+        row["pixels_identical_all_levels"] = same
+        out[key] = row
+    return out
+
+
 def save_report(report, path):
     """Write a benchmark report as JSON (folders created)."""
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
@@ -207,6 +236,8 @@ def main(argv=None):
     ap.add_argument("--workdir", default=None)
     ap.add_argument("--skip-cli", action="store_true", help="skip the end-to-end CLI runs")
     ap.add_argument("--oty-python", default=None, help="a Python with orthority 0.7.0: run it side by side")
+    ap.add_argument("--variants", action="store_true", help="block-codec variants on the CPU too (a check of the bench)")
+    ap.add_argument("--batch", type=int, default=0, help="also run N copies of the frame in one CLI call (GPU)")
     ap.add_argument("--out", default="bench/results/ortho.json")
     args = ap.parse_args(argv)
     wp.config.log_level = wp.LOG_WARNING
@@ -262,6 +293,35 @@ def main(argv=None):
         r["ortho_shape"] = list(res.shape)
         r["kernel_fraction_of_wall"] = res.timings["kernel"] / res.timings["wall"]
         if not args.skip_cli:
+            def cli_batch(n, device_name, resolution, gpu_index):
+                """N copies of the frame (links) in one call: wall time, peak memory, GPU busy."""
+                bdir = os.path.join(work, "batch")
+                os.makedirs(bdir, exist_ok=True)
+                names = []
+                for k in range(n):
+                    link = os.path.join(bdir, f"frame{k:03d}.tif")
+                    if not os.path.exists(link):
+                        os.symlink(src, link)
+                    names.append(link)
+                with open(os.path.join(work, "ext.csv")) as f:
+                    head, row = f.read().splitlines()[:2]
+                with open(os.path.join(bdir, "ext.csv"), "w") as f:
+                    f.write(head + "\n" + "".join(row.replace("frame,", f"frame{k:03d},", 1) + "\n" for k in range(n)))
+                prof_path = os.path.join(work, "cli_profile_batch.json")
+                o = run_cli(sys.executable, "orthowarp.cli:main", [
+                    "-q", "ortho", *names, "--int-param", os.path.join(work, "camera.yaml"), "--ext-param",
+                    os.path.join(bdir, "ext.csv"), "--dem", dem_path, "--out-dir", bdir, "--overwrite",
+                    "--resolution", repr(resolution), "--resampling", args.resampling, "--device", device_name,
+                    "--profile-json", prof_path, *(["--no-refraction"] if args.no_refraction else [])],
+                    gpu_index=gpu_index)
+                o["images"] = n
+                if o["returncode"] == 0:
+                    with open(prof_path) as f:
+                        o["profile"] = json.load(f).get("total")
+                print(f"batch of {n}: {o['wall_s']:.1f} s, peak {o['peak_rss_mb']} MB, gpu busy "
+                      f"{o.get('gpu_busy_fraction')}", flush=True)
+                return o
+
             def cli(*extra):
                 prof_path = os.path.join(work, f"cli_profile_{r['device'].replace(':', '')}.json")
                 if os.path.exists(prof_path):
@@ -282,8 +342,23 @@ def main(argv=None):
                     o["profile"] = doc["images"][0]["profile"]
                 return o
             r["cli"] = cli()
-            if geom.device.is_cuda:  # what the CPU's deflate costs: the fastest level, labelled apart
-                r["cli_deflate_level1"] = cli("--compress-level", "1")
+            if geom.device.is_cuda or args.variants:
+                # who deflates the blocks (--block-codec): the default (auto = hybrid with nvCOMP) above;
+                # each variant's file kept and compared with the host path's, pixel for pixel
+                outputs = {"auto": os.path.join(work, "ortho_auto.tif")}
+                os.replace(os.path.join(work, "frame_ORTHO.tif"), outputs["auto"])
+                for codec, level in (("host", None), ("nvcomp", None), ("hybrid", None), ("host", "1"),
+                                     ("nvcomp", "1")):
+                    key = f"cli_{codec}" + (f"_level{level}" if level else "")
+                    r[key] = cli("--block-codec", codec, *(["--compress-level", level] if level else []))
+                    if r[key]["returncode"] == 0:
+                        outputs[key] = os.path.join(work, f"ortho_{key}.tif")
+                        os.replace(os.path.join(work, "frame_ORTHO.tif"), outputs[key])
+                    print(key, r[key]["wall_s"], r[key].get("output_mb"), r[key]["returncode"], flush=True)
+                r["codec_agreement"] = compare_outputs(outputs, "cli_host")
+                if args.batch:
+                    r["cli_batch"] = cli_batch(args.batch, name, res.resolution,
+                                               geom.device.ordinal if geom.device.is_cuda else None)
             # the floor of that start-up: interpreter, imports, Warp and device set-up, kernels loaded, no job
             t = time.perf_counter()
             subprocess.run([sys.executable, "-c", STARTUP, name], check=True)

@@ -285,8 +285,9 @@ def orthorectify(src, sensor, *args, dem, crs=None, resolution=None, resampling=
         levels that cover whole blocks are computed on the device and nvCOMP deflates them
         there, in one batch per tile; only compressed blocks cross to the host. "hybrid": the
         same device work, each tile's batch deflated by nvCOMP or by libdeflate on the host
-        cores, whichever is free. "auto": "hybrid" on a CUDA device where nvCOMP can be
-        imported, else "host". The files decode to the same pixels whichever path wrote
+        cores, whichever is free (on the CPU device or without nvCOMP: libdeflate alone, after
+        the same per-block work in Warp kernels). "auto": "hybrid" on a CUDA device where
+        nvCOMP can be imported, else "host". The files decode to the same pixels whichever path wrote
         them; nvCOMP's streams differ in size (``compress_level`` 1-4: its medium-ratio
         variant, 5-7: high, 8-12: highest).
 
@@ -466,19 +467,21 @@ def _creation_options(compress, dtype, level=None):
 
 
 def _block_codec(choice, device, deflate_cog):
-    """The block codec a run uses (see :func:`orthorectify`'s ``block_codec``)."""
+    """The block codec a run uses (see :func:`orthorectify`'s ``block_codec``): "host",
+    "nvcomp", "hybrid" (nvCOMP and libdeflate) or "device" (device work, libdeflate only)."""
     if choice == "host" or not deflate_cog:
         return "host"
+    gpu = device.is_cuda and nvcomp_available()
+    if choice == "auto":
+        return "hybrid" if gpu else "host"
+    if choice == "hybrid":
+        return "hybrid" if gpu else "device"
     if not device.is_cuda:
-        if choice == "auto":
-            return "host"
-        raise ParamError(f"block_codec {choice!r} needs a CUDA device (the run is on {device})")
-    if not nvcomp_available():
-        if choice == "auto":
-            return "host"
-        raise DeviceError(f"block_codec {choice!r} needs nvCOMP: pip install 'orthowarp[gpu]' "
-                          "(package nvidia-nvcomp-cu13)")
-    return "hybrid" if choice == "auto" else choice
+        raise ParamError(f"block_codec 'nvcomp' needs a CUDA device (the run is on {device})")
+    if not gpu:
+        raise DeviceError("block_codec 'nvcomp' needs nvCOMP: pip install 'orthowarp[gpu]' (package "
+                          "nvidia-nvcomp-cu13)")
+    return "nvcomp"
 
 
 def _nvcomp_type(level):
@@ -799,8 +802,8 @@ def _open_sink(path, profile, cog, final_name, timer, device=None, block_codec="
         encoder = None
         try:
             if block_codec != "host":
-                codecs = [NvcompDeflate(_nvcomp_type(cog["level"]), device)]
-                if block_codec == "hybrid":
+                codecs = [NvcompDeflate(_nvcomp_type(cog["level"]), device)] if block_codec in ("nvcomp", "hybrid") else []
+                if block_codec in ("hybrid", "device"):
                     codecs.append(HostDeflate(cog["level"]))
                 encoder = DeviceCogEncoder(w, device, codecs)
             # the tiles are fresh arrays the pipeline drops after the call: no copy

@@ -197,10 +197,16 @@ def merge_profiles(profiles, *, wall=None):
     first = profiles[0] if profiles else {}
     out["first_kernel_s"] = first.get("first_kernel_s")
     out["call_start_s"] = first.get("call_start_s")
-    for key in ("device", "threads"):
+    for key in ("device", "threads", "block_codec"):
         if key in first:
             out[key] = first[key]
     out["tiles"] = int(sum(p.get("tiles", 0) for p in profiles))
+    blocks = {}
+    for p in profiles:
+        for name, n in p.get("blocks_by_codec", {}).items():
+            blocks[name] = blocks.get(name, 0) + int(n)
+    if blocks:
+        out["blocks_by_codec"] = blocks
     return out
 
 
