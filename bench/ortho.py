@@ -283,10 +283,16 @@ def main(argv=None):
         geom = FrameGeometry(cam, pose, dem, device=name, refraction=not args.no_refraction)
         r = dict(device=str(geom.device), device_name=geom.device.name)
         r.update(kernel_only(geom, src, args.resampling, repeats=3 if geom.device.is_cuda else 1))
-        t = time.perf_counter()
-        res = orthorectify(src, cam, pose, os.path.join(work, f"inproc_{r['device'].replace(':', '')}.tif"),
-                           dem=dem, resampling=args.resampling, method=args.method, overwrite=True, device=name,
-                           refraction=not args.no_refraction)
+        for codec in ("auto", "host"):  # the default; the host path if the default fails
+            t = time.perf_counter()
+            try:
+                res = orthorectify(src, cam, pose, os.path.join(work, f"inproc_{r['device'].replace(':', '')}.tif"),
+                                   dem=dem, resampling=args.resampling, method=args.method, overwrite=True,
+                                   device=name, refraction=not args.no_refraction, block_codec=codec)
+                break
+            except Exception as e:  # noqa: BLE001 - recorded in the report
+                r[f"in_process_error_{codec}"] = f"{type(e).__name__}: {e}"
+                print(r[f"in_process_error_{codec}"], flush=True)
         r["in_process_wall_s"] = time.perf_counter() - t
         r["stages_s"] = res.timings
         r["profile"] = res.profile
@@ -345,8 +351,10 @@ def main(argv=None):
             if geom.device.is_cuda or args.variants:
                 # who deflates the blocks (--block-codec): the default (auto = hybrid with nvCOMP) above;
                 # each variant's file kept and compared with the host path's, pixel for pixel
-                outputs = {"auto": os.path.join(work, "ortho_auto.tif")}
-                os.replace(os.path.join(work, "frame_ORTHO.tif"), outputs["auto"])
+                outputs = {}
+                if r["cli"]["returncode"] == 0:
+                    outputs["auto"] = os.path.join(work, "ortho_auto.tif")
+                    os.replace(os.path.join(work, "frame_ORTHO.tif"), outputs["auto"])
                 for codec, level in (("host", None), ("nvcomp", None), ("hybrid", None), ("host", "1"),
                                      ("nvcomp", "1")):
                     key = f"cli_{codec}" + (f"_level{level}" if level else "")
