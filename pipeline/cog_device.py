@@ -149,10 +149,13 @@ class NvcompDeflate:
             raise ParamError(f"a batch of {n} blocks of {max(sizes)} bytes is too large for one nvCOMP call")
         out_buf = wp.empty(n * cap, dtype=wp.uint8, device=self.device)
         src_off = np.arange(n, dtype=np.int32) * cap
-        batch = nv.as_arrays(buf, [int(o) for o in offsets], [int(x) for x in sizes])
-        out = nv.as_arrays(out_buf, src_off.tolist(), [cap] * n)
-        enc = codec.encode(batch, out=out)
-        comp = np.asarray([int(x) for x in enc.buffer_sizes], np.int32)  # waits for the compression
+        try:
+            batch = nv.as_arrays(buf, [int(o) for o in offsets], [int(x) for x in sizes])
+            out = nv.as_arrays(out_buf, src_off.tolist(), [cap] * n)
+            enc = codec.encode(batch, out=out)
+            comp = np.asarray([int(x) for x in enc.buffer_sizes], np.int32)  # waits for the compression
+        except Exception as e:  # noqa: BLE001 - nvCOMP raises ValueError, RuntimeError and its own
+            raise DeviceError(f"nvCOMP could not compress a batch of {n} blocks on {self.device}: {e}") from e
         # pack the streams on the device and copy them to the host in one transfer
         dst_off = np.concatenate([[0], np.cumsum(comp)[:-1]]).astype(np.int32)
         dst = wp.empty(max(int(comp.sum()), 1), dtype=wp.uint8, device=self.device)
