@@ -140,8 +140,8 @@ class NvcompDeflate:
     def compress(self, buf, offsets, sizes, stream=None):
         """Raw deflate streams (list of bytes) of the buffers of the uint8 Warp array ``buf``
         (on this codec's device; the work that wrote it must be complete or on ``stream``)."""
-        if stream is not None:
-            wp.synchronize_stream(stream)
+        # nvCOMP works on its own stream: the blocks must be complete
+        wp.synchronize_stream(stream if stream is not None else self.device.stream)
         nv, n = self._nvcomp, len(offsets)
         codec = self._codec()
         cap = self._capacity(codec, max(sizes))

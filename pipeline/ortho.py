@@ -4,9 +4,10 @@ Per output tile (see :mod:`orthowarp.kernels.ortho`): the host transforms a coar
 tile's pixel centres into the pose's frame with PROJ, a kernel computes the source pixel of
 every output pixel and the bounding box of them, the host reads exactly that source window
 (all bands and its mask), a second kernel resamples it, and the host writes the tile. Tiles run
-on a thread pool: each worker has its own source handle and, on a GPU, its own Warp stream, so
-reads, transfers, kernels and writes of different tiles overlap. Neither the source nor the
-output is ever held whole in memory.
+on a thread pool: each worker has its own source handle, so the reads, preparation and
+compression of different tiles overlap with each other and with the device work (which goes to
+the device's one stream in submission order). Neither the source nor the output is ever held
+whole in memory.
 """
 
 import contextlib
@@ -519,7 +520,12 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
     def source():
         if not hasattr(local, "ds"):
             local.ds = _open_source(src)
-            local.stream = wp.Stream(device) if device.is_cuda else None
+            # No stream per worker: Warp's current stream belongs to the device, not to a
+            # thread (wp.ScopedStream in several threads would send one thread's launches,
+            # copies and allocations to another's stream). All device work of all workers goes
+            # to the device's stream, in the order it is submitted; the workers overlap their
+            # host work (reading, preparing, compressing) with it.
+            local.stream = None
             with handles_lock:
                 handles.append(local.ds)
         return local.ds, local.stream
