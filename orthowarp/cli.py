@@ -233,22 +233,60 @@ def ortho(ctx, images, int_param, ext_param, dimap, attitude_model, dem, height,
                    progress=not quiet, tile_size=tile_size, geoid=geoid, same_vertical_datum=same_vertical_datum)
 
     def run(jobs):
-        """Check every destination, then read the terrain and write the orthos one by one."""
-        options["cancel"] = ctx.meta.get("orthowarp.stop")
+        """Check every destination, then read the terrain and write the orthos, two at a time:
+        the next image's set-up and first tiles overlap the finishing of the one before (its
+        last tiles, overview tail and file assembly), so the device is not left idle between
+        images. Results are reported in order; after a failure the image in flight is
+        cancelled (nothing of it is written) and the first error is raised."""
+        import collections
+        import threading
+        from concurrent.futures import ThreadPoolExecutor
+
+        from .errors import Cancelled
+
+        stop, failed = ctx.meta.get("orthowarp.stop"), threading.Event()
+        options["cancel"] = _Either(stop, failed)
         for *_, dst in jobs:
             check_destination(dst, overwrite=overwrite)
         terrain = Dem.from_file(dem) if dem is not None else height
-        profiles, t_first = [], None
-        for image, *sensor, dst in jobs:
-            t_call = time.perf_counter()
-            t_first = t_call if t_first is None else t_first
-            r = orthorectify(image, *sensor, dst, dem=terrain, **options)
+        profiles = []
+
+        def one(job):
+            image, *sensor, dst = job
+            return dst, orthorectify(image, *sensor, dst, dem=terrain, **options)
+
+        def report(dst, r):
             if not quiet:
                 click.echo(f"{dst}: {r.shape[1]} x {r.shape[0]} px at {r.resolution:.4g}, {r.crs.name}, "
                            f"{r.timings['wall']:.2f} s")
             profiles.append((dst, r.profile))
             if show_profile:
                 click.echo(format_profile(r.profile, dst), err=True)
+
+        pending, error = collections.deque(), None
+
+        def collect(future):
+            nonlocal error
+            try:
+                report(*future.result())
+            except Cancelled as e:  # a stop, or the image in flight when another failed
+                error = error or e
+            except BaseException as e:  # noqa: BLE001 - raised below, after the image in flight stops
+                failed.set()
+                error = e if error is None or isinstance(error, Cancelled) else error
+
+        t_first = time.perf_counter()
+        with ThreadPoolExecutor(max_workers=min(2, len(jobs)), thread_name_prefix="image") as pool:
+            for job in jobs:
+                if error is not None:
+                    break
+                pending.append(pool.submit(one, job))
+                if len(pending) == 2:
+                    collect(pending.popleft())
+            while pending:
+                collect(pending.popleft())
+        if error is not None:
+            raise error
         if show_profile or profile_json:
             _report_profile(profiles, time.perf_counter() - t_first, (t_command, t_imported, t_first),
                             show=show_profile, path=profile_json)
@@ -292,6 +330,16 @@ def ortho(ctx, images, int_param, ext_param, dimap, attitude_model, dem, height,
         seen[dst] = image
         jobs.append((image, cameras[cam_id], orient.pose, dst))
     run(jobs)
+
+
+class _Either:
+    """Set when any of the events is (the ``cancel`` the library polls with ``is_set()``)."""
+
+    def __init__(self, *events):
+        self.events = [e for e in events if e is not None]
+
+    def is_set(self):
+        return any(e.is_set() for e in self.events)
 
 
 _SPARED = []

@@ -166,7 +166,8 @@ def _busy_and_bound(stages, wall):
 def merge_profiles(profiles, *, wall=None):
     """The profile of calls that ran one after another (a batch), from theirs.
 
-    Sums add; so do unions, the calls' intervals being disjoint in time.
+    Sums add; so do unions (exact for calls disjoint in time, an upper bound, at most the
+    wall time, for calls that overlap).
 
     Parameters
     ----------
@@ -187,11 +188,12 @@ def merge_profiles(profiles, *, wall=None):
     wall = max(float(wall), walls) if wall is not None else walls
     stages = {}
     for k in STAGES:
-        union = sum(p["stages"][k]["union_s"] for p in profiles)
+        # images that overlap in time (the CLI runs two at once) make this an upper bound
+        union = min(sum(p["stages"][k]["union_s"] for p in profiles), wall)
         stages[k] = dict(sum_s=float(sum(p["stages"][k]["sum_s"] for p in profiles)), union_s=float(union),
                          fraction=float(union / wall) if wall > 0 else 0.0,
                          count=int(sum(p["stages"][k]["count"] for p in profiles)))
-    other = wall - sum(p["wall_s"] - p["other_s"] for p in profiles)  # between the calls too
+    other = max(wall - sum(p["wall_s"] - p["other_s"] for p in profiles), 0.0)  # between the calls too
     out = dict(wall_s=float(wall), stages=stages, other_s=float(other), images=len(profiles))
     out.update(_busy_and_bound(stages, wall))
     first = profiles[0] if profiles else {}

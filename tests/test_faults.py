@@ -231,6 +231,34 @@ def test_corrupt_source_names_the_file_and_the_reason(tmp_path, damage):
     assert _temporaries(tmp_path / "out") == [] and not (tmp_path / "out" / "img_ORTHO.tif").exists()
 
 
+def test_a_failing_image_of_a_batch_stops_the_batch_cleanly(tmp_path):
+    """Two images run at once: when the second fails, the first is published, the third
+    (started while the second ran, or not yet) leaves nothing, and the error is the second's."""
+    args = _frame_job(tmp_path, "a")
+    for name in ("b", "c"):
+        shutil.copy(tmp_path / "a.tif", tmp_path / f"{name}.tif")
+    with open(tmp_path / "ext.csv", "a") as f:
+        f.write("b,500010,5200000,600,1,-2,30\nc,500020,5200000,600,1,-2,30\n")
+    (tmp_path / "b.tif").write_bytes((tmp_path / "b.tif").read_bytes()[:300])  # truncated
+    out = tmp_path / "out"
+    res = CliRunner().invoke(main, ["ortho", *args, str(tmp_path / "b.tif"), str(tmp_path / "c.tif"),
+                                    "--out-dir", str(out), "--resolution", "0.02"])
+    assert res.exit_code == 1, res.output
+    line = _error_line(res.output)
+    assert f"'{tmp_path / 'b.tif'}'" in line and "cancelled" not in line, line
+    assert sorted(os.listdir(out)) == ["a_ORTHO.tif"]
+    with rasterio.open(out / "a_ORTHO.tif") as ds:
+        assert ds.dataset_mask().any()
+    # and a batch that succeeds writes every image, reported in order
+    (tmp_path / "b.tif").write_bytes((tmp_path / "a.tif").read_bytes())
+    res = CliRunner().invoke(main, ["ortho", *args, str(tmp_path / "b.tif"), str(tmp_path / "c.tif"),
+                                    "--out-dir", str(out), "--overwrite"])
+    assert res.exit_code == 0, res.output
+    assert sorted(os.listdir(out)) == ["a_ORTHO.tif", "b_ORTHO.tif", "c_ORTHO.tif"]
+    lines = [ln for ln in res.output.splitlines() if "_ORTHO.tif:" in ln]
+    assert [os.path.basename(ln.split(":")[0]) for ln in lines] == ["a_ORTHO.tif", "b_ORTHO.tif", "c_ORTHO.tif"]
+
+
 def test_narrowing_dtype_warns_in_one_line(tmp_path):
     args = _frame_job(tmp_path)
     with rasterio.open(tmp_path / "img.tif", "w", driver="GTiff", width=64, height=48, count=1,
