@@ -396,7 +396,8 @@ def _mutate(doc, data):
     if op == "delete":
         del parent[key]
     elif op == "replace":
-        parent[key] = data.draw(_VALUE, label="value")
+        # a copy: _EXTREME's lists and dicts are shared objects, which later mutations must not change
+        parent[key] = copy.deepcopy(data.draw(_VALUE, label="value"))
     elif op == "duplicate" and isinstance(parent, list):
         parent.insert(key, copy.deepcopy(parent[key]))
     elif op == "copy":
