@@ -75,6 +75,7 @@ class HostDeflate:
     """
 
     name = "libdeflate"
+    batched = False  # called per tile
 
     def __init__(self, level=6, *, threads=None):
         from deflate import deflate_compress
@@ -107,6 +108,7 @@ class NvcompDeflate:
     """
 
     name = "nvcomp"
+    batched = True  # called with batches gathered over tiles (see DeviceCogEncoder)
 
     def __init__(self, algorithm_type, device):
         if not device.is_cuda:
@@ -142,16 +144,24 @@ class NvcompDeflate:
         (on this codec's device; the work that wrote it must be complete or on ``stream``)."""
         # nvCOMP works on its own stream: the blocks must be complete
         wp.synchronize_stream(stream if stream is not None else self.device.stream)
-        nv, n = self._nvcomp, len(offsets)
         codec = self._codec()
-        cap = self._capacity(codec, max(sizes))
-        if n * cap >= 2**31:
-            raise ParamError(f"a batch of {n} blocks of {max(sizes)} bytes is too large for one nvCOMP call")
-        out_buf = wp.empty(n * cap, dtype=wp.uint8, device=self.device)
-        src_off = np.arange(n, dtype=np.int32) * cap
+        caps = [self._capacity(codec, int(x)) for x in sizes]
+        out, start, room = [], 0, 0
+        for k, cap in enumerate(caps):  # calls whose output stays under 2 GiB (int32 offsets)
+            if room + cap >= 2**31 - 2**20 and k > start:
+                out += self._compress(codec, buf, offsets[start:k], sizes[start:k], caps[start:k], stream)
+                start, room = k, 0
+            room += cap
+        return out + self._compress(codec, buf, offsets[start:], sizes[start:], caps[start:], stream)
+
+    def _compress(self, codec, buf, offsets, sizes, caps, stream):
+        nv, n = self._nvcomp, len(offsets)
+        caps = np.asarray(caps, np.int64)
+        src_off = np.concatenate([[0], np.cumsum(caps)[:-1]]).astype(np.int32)
+        out_buf = wp.empty(int(caps.sum()), dtype=wp.uint8, device=self.device)
         try:
             batch = nv.as_arrays(buf, [int(o) for o in offsets], [int(x) for x in sizes])
-            out = nv.as_arrays(out_buf, src_off.tolist(), [cap] * n)
+            out = nv.as_arrays(out_buf, src_off.tolist(), caps.tolist())
             enc = codec.encode(batch, out=out)
             comp = np.asarray([int(x) for x in enc.buffer_sizes], np.int32)  # waits for the compression
         except Exception as e:  # noqa: BLE001 - nvCOMP raises ValueError, RuntimeError and its own
@@ -179,6 +189,15 @@ class _nullcontext:
         return False
 
 
+class _Tile:
+    """A tile's encoded blocks on the device: their (level, bi, bj) keys, the block arrays
+    (image blocks per level, then mask blocks per level) and the blocks' Adler-32s."""
+
+    def __init__(self, keys, arrays, adlers):
+        self.keys, self.arrays, self.adlers = keys, arrays, adlers
+        self.nbytes = sum(a.size * wp.types.type_size_in_bytes(a.dtype) for a in arrays)
+
+
 class DeviceCogEncoder:
     """Encode tiles on the device into a :class:`~orthowarp.pipeline.cog.CogWriter`.
 
@@ -189,20 +208,31 @@ class DeviceCogEncoder:
         and the small pieces of the upper overview levels (:meth:`CogWriter.write`).
     device : warp Device
     codecs : list
-        Raw-deflate codecs (:class:`NvcompDeflate`, :class:`HostDeflate`), tried in order: a
-        tile goes to the first that is not busy with another tile, else waits for the first.
-        [nvcomp, host] shares the work between the GPU and the host cores.
+        One or two raw-deflate codecs: :class:`NvcompDeflate` and/or :class:`HostDeflate`.
+        nvCOMP gets blocks in batches of at least ``batch_bytes`` gathered over
+        several tiles (its Deflate compresses one stream per block, and a batch of a single
+        tile's blocks would leave most of the GPU idle); with a host codec too, tiles that
+        arrive while the GPU is compressing a batch go to the host cores instead.
+    batch_bytes : int, optional
+        Uncompressed bytes per nvCOMP batch (default 512 MiB: about 680 blocks of 512 x 512 x 3
+        bytes; nvCOMP reserves about 2.3 times that for its output).
+
+    Call :meth:`flush` after the last tile, before the writer's ``close``.
     """
 
-    def __init__(self, writer, device, codecs):
+    def __init__(self, writer, device, codecs, *, batch_bytes=512 << 20):
         if writer.compress != "deflate":
             raise ParamError("DeviceCogEncoder needs a deflate CogWriter")
-        if not codecs:
-            raise ParamError("DeviceCogEncoder needs at least one codec")
-        self.writer, self.device, self.codecs = writer, device, list(codecs)
-        self._busy = [threading.Lock() for _ in self.codecs]
-        self.blocks_by_codec = {c.name: 0 for c in self.codecs}
-        self._count_lock = threading.Lock()
+        gpu = [c for c in codecs if c.batched]
+        host = [c for c in codecs if not c.batched]
+        if not codecs or len(gpu) > 1 or len(host) > 1:
+            raise ParamError("DeviceCogEncoder takes one nvCOMP codec, one host codec, or one of each")
+        self.writer, self.device = writer, device
+        self.gpu, self.host = (gpu or [None])[0], (host or [None])[0]
+        self.batch_bytes = int(batch_bytes)
+        self.blocks_by_codec = {c.name: 0 for c in codecs}
+        self._lock = threading.Condition()
+        self._batch, self._batch_n, self._gpu_busy = [], 0, False
         wp.load_module(kc, device=device)
 
     def _device_level(self, li, row, col, h, w):
@@ -224,30 +254,74 @@ class DeviceCogEncoder:
         valid : warp array of uint8, shape (rows, cols)
             1 where the pixel is valid.
         stream : warp Stream, optional
-            The stream the tile was written on (work is queued on it).
+            The stream the tile was written on. Warp's current stream belongs to the device,
+            not to a thread: callers in several threads leave this None.
         """
-        wr = self.writer
-        wr._raise_pending()  # noqa: SLF001
+        self.writer._raise_pending()  # noqa: SLF001
+        job = self._encode(row, col, tile, valid, stream)
+        if job is None:
+            return
+        if self.gpu is None:
+            self._compress([job], self.host, stream)
+            return
+        take = None
+        with self._lock:
+            if self._gpu_busy and self.host is not None:
+                pass  # the GPU is busy: this tile goes to the host cores
+            else:
+                while self._gpu_busy and self._batch_n >= 2 * self.batch_bytes:
+                    self._lock.wait()  # bounded device memory: wait for the batch in flight
+                self._batch.append(job)
+                self._batch_n += job.nbytes
+                job = None
+                if self._batch_n >= self.batch_bytes and not self._gpu_busy:
+                    take, self._batch, self._batch_n, self._gpu_busy = self._batch, [], 0, True
+        if job is not None:
+            self._compress([job], self.host, stream)
+        if take:
+            self._compress_gpu(take, stream)
+
+    def flush(self):
+        """Compress the blocks still waiting for a batch."""
+        with self._lock:
+            while self._gpu_busy:
+                self._lock.wait()
+            take, self._batch, self._batch_n = self._batch, [], 0
+            self._gpu_busy = bool(take)
+        if take:
+            self._compress_gpu(take, None)
+
+    def _compress_gpu(self, jobs, stream):
+        try:
+            self._compress(jobs, self.gpu, stream)
+        finally:
+            with self._lock:
+                self._gpu_busy = False
+                self._lock.notify_all()
+
+    def _encode(self, row, col, tile, valid, stream):
+        """The device work of a tile: blocks, mask blocks and overview levels while they cover
+        whole blocks (the rest to the host writer), and the blocks' checksums."""
+        wr, b = self.writer, self.writer.block
         li, piece, pvalid = 0, tile, valid
-        images, masks, where = [], [], []  # per level: block arrays and their (li, bi, bj)
-        b = wr.block
+        images, masks, keys = [], [], []
         with wp.ScopedStream(stream) if stream is not None else _nullcontext():
             while True:
                 h, w = piece.shape[0], piece.shape[1]
                 if not self._device_level(li, row, col, h, w):
-                    self._to_host(li, row, col, piece, pvalid)
+                    self.writer.write(row, col, piece.numpy(), pvalid.numpy().view(bool), level=li, copy=False)
                     break
                 nby, nbx = -(-h // b), -(-w // b)
                 blocks = wp.empty((nby * nbx, b, b, wr.count), dtype=_WP[wr.dtype], device=self.device)
-                wp.launch(kc.encode_blocks_kernel, dim=(nby * nbx, b, b), inputs=[piece, pvalid, nbx], outputs=[blocks],
-                          device=self.device)
+                wp.launch(kc.encode_blocks_kernel, dim=(nby * nbx, b, b), inputs=[piece, pvalid, nbx],
+                          outputs=[blocks], device=self.device)
                 images.append(blocks)
                 if wr.mask:
                     bits = wp.empty((nby * nbx, b, b // 8), dtype=wp.uint8, device=self.device)
                     wp.launch(kc.mask_bits_kernel, dim=bits.shape, inputs=[pvalid, nbx], outputs=[bits],
                               device=self.device)
                     masks.append(bits)
-                where.append([(li, row // b + k // nbx, col // b + k % nbx) for k in range(nby * nbx)])
+                keys += [(li, row // b + k // nbx, col // b + k % nbx) for k in range(nby * nbx)]
                 if li + 1 >= len(wr.levels):
                     break
                 hh, ww = -(-h // 2), -(-w // 2)
@@ -257,63 +331,56 @@ class DeviceCogEncoder:
                           device=self.device)
                 li, row, col, piece, pvalid = li + 1, row // 2, col // 2, nxt, nxt_valid
             if not images:
-                return
-            payloads = self._compress(images + masks, stream)
-        n_img = sum(len(x) for x in where)
-        keys = [k for level in where for k in level]
-        for k, key in enumerate(keys):
-            parts = [payloads[k]] + ([payloads[n_img + k]] if wr.mask else [])
-            wr.put_block(*key, parts)
+                return None
+            arrays = images + masks
+            adlers = np.concatenate([self._adler(_bytes_view(a), a.shape[0]) for a in arrays])
+        return _Tile(keys, arrays, adlers)
 
-    def _to_host(self, li, row, col, piece, pvalid):
-        """Hand a piece that does not cover whole blocks to the host writer at its level."""
-        self.writer.write(row, col, piece.numpy(), pvalid.numpy().view(bool), level=li, copy=False)
+    def _adler(self, view, n):
+        """Adler-32 of each of the ``n`` equal parts of the uint8 array ``view`` (int64, n)."""
+        per = view.shape[0] // n
+        nchunk = -(-per // _CHUNK)
+        offs = wp.array(np.arange(n, dtype=np.int32) * per, dtype=wp.int32, device=self.device)
+        size = wp.array(np.full(n, per, np.int32), dtype=wp.int32, device=self.device)
+        s1 = wp.empty((n, nchunk), dtype=wp.int64, device=self.device)
+        s2 = wp.empty((n, nchunk), dtype=wp.int64, device=self.device)
+        wp.launch(kc.adler_partials_kernel, dim=(n, nchunk), inputs=[view, offs, size, wp.int32(_CHUNK)],
+                  outputs=[s1, s2], device=self.device)
+        out = wp.empty(n, dtype=wp.int64, device=self.device)
+        wp.launch(kc.adler_finish_kernel, dim=n, inputs=[s1, s2, size], outputs=[out], device=self.device)
+        return out.numpy()
 
-    def _compress(self, arrays, stream):
-        """zlib streams of every block of ``arrays`` (list of block arrays (nb, ...)), in order."""
-        views = [_bytes_view(a) for a in arrays]
-        sizes, offsets, lens = [], [], []
-        for a, v in zip(arrays, views):
-            per = v.shape[0] // a.shape[0]
-            lens.append(per)
-        # one buffer per kind of block (image, mask); codecs take (buffer, offsets, sizes)
-        adlers = []
-        for a, v, per in zip(arrays, views, lens):
-            n = a.shape[0]
-            offs = np.arange(n, dtype=np.int32) * per
-            size = np.full(n, per, np.int32)
-            nchunk = -(-per // _CHUNK)
-            s1 = wp.empty((n, nchunk), dtype=wp.int64, device=self.device)
-            s2 = wp.empty((n, nchunk), dtype=wp.int64, device=self.device)
-            d_offs = wp.array(offs, dtype=wp.int32, device=self.device)
-            d_size = wp.array(size, dtype=wp.int32, device=self.device)
-            wp.launch(kc.adler_partials_kernel, dim=(n, nchunk), inputs=[v, d_offs, d_size, wp.int32(_CHUNK)],
-                      outputs=[s1, s2], device=self.device)
-            out = wp.empty(n, dtype=wp.int64, device=self.device)
-            wp.launch(kc.adler_finish_kernel, dim=n, inputs=[s1, s2, d_size], outputs=[out], device=self.device)
-            adlers.append(out)
-            offsets.append(offs)
-            sizes.append(size)
-        adler = np.concatenate([a.numpy() for a in adlers])
-        codec_index = self._acquire()
-        try:
-            codec = self.codecs[codec_index]
-            raws = []
-            for v, offs, size in zip(views, offsets, sizes):
-                raws += codec.compress(v, offs.tolist(), size.tolist(), stream)
-        finally:
-            self._busy[codec_index].release()
-        with self._count_lock:
-            self.blocks_by_codec[codec.name] += len(raws)
-        return [zlib_stream(r, int(a)) for r, a in zip(raws, adler)]
-
-    def _acquire(self):
-        for k, lock in enumerate(self._busy):
-            if lock.acquire(blocking=False):
-                return k
-        self._busy[0].acquire()
-        return 0
+    def _compress(self, jobs, codec, stream):
+        """Deflate the blocks of ``jobs`` with ``codec`` in one call and store them."""
+        parts, offsets, sizes, pos = [], [], [], 0
+        for job in jobs:
+            for a in job.arrays:
+                v = _bytes_view(a)
+                per = v.shape[0] // a.shape[0]
+                parts.append((v, pos))
+                offsets += [pos + k * per for k in range(a.shape[0])]
+                sizes += [per] * a.shape[0]
+                pos += v.shape[0]
+        with wp.ScopedStream(stream) if stream is not None else _nullcontext():
+            if len(parts) == 1:
+                buf = parts[0][0]
+            else:  # one contiguous buffer for the codec (a copy on the device)
+                buf = wp.empty(pos, dtype=wp.uint8, device=self.device)
+                for v, at in parts:
+                    wp.copy(buf, v, dest_offset=at, count=v.shape[0])
+            raws = codec.compress(buf, offsets, sizes, stream)
+        with self._lock:
+            self.blocks_by_codec[codec.name] += sum(len(j.keys) for j in jobs)
+        k = 0
+        wr = self.writer
+        for job in jobs:
+            n_img = len(job.keys)
+            streams = [zlib_stream(r, int(a)) for r, a in zip(raws[k:k + len(job.adlers)], job.adlers)]
+            k += len(job.adlers)
+            for i, key in enumerate(job.keys):
+                wr.put_block(*key, [streams[i]] + ([streams[n_img + i]] if wr.mask else []))
 
     def close(self):
-        for c in self.codecs:
-            c.close()
+        for c in (self.gpu, self.host):
+            if c is not None:
+                c.close()

@@ -814,6 +814,9 @@ def _open_sink(path, profile, cog, final_name, timer, device=None, block_codec="
                 encoder = DeviceCogEncoder(w, device, codecs)
             # the tiles are fresh arrays the pipeline drops after the call: no copy
             yield _Sink(functools.partial(w.write, copy=False), encoder.write if encoder is not None else None)
+            t = time.perf_counter()
+            if encoder is not None:
+                encoder.flush()  # the last nvCOMP batch
         except BaseException:
             w.abort()
             raise
@@ -821,7 +824,6 @@ def _open_sink(path, profile, cog, final_name, timer, device=None, block_codec="
             if encoder is not None:
                 encoder.close()
                 timer.info["blocks_by_codec"] = dict(encoder.blocks_by_codec)
-        t = time.perf_counter()
         w.close()  # the last blocks, then the file's IFDs and block copy
         timer.span("finish", t)
         return

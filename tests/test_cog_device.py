@@ -70,6 +70,8 @@ def _write(path, shape, count, dtype, tile, *, device=None, overviews=3, block=2
             else:
                 enc.write(r, c, wp.array(np.ascontiguousarray(piece), dtype=kc_types[dtype], device=device),
                           wp.array(m.astype(np.uint8), dtype=wp.uint8, device=device))
+        if enc is not None:
+            enc.flush()
     if enc is not None:
         enc.close()
     return enc
@@ -125,8 +127,8 @@ def test_device_encoder_refuses_uncompressed_writers(tmp_path, device):
 
 
 @pytest.mark.skipif(not (nvcomp_available() and wp.get_cuda_device_count()), reason="needs nvCOMP and a CUDA device")
-@pytest.mark.parametrize("algorithm_type", [1, 2, 4, 5])
-def test_nvcomp_file_has_the_host_writers_pixels(tmp_path, algorithm_type):
+@pytest.mark.parametrize("algorithm_type,batch_bytes", [(1, 1), (2, 1 << 20), (4, 512 << 20), (5, 1 << 20)])
+def test_nvcomp_file_has_the_host_writers_pixels(tmp_path, algorithm_type, batch_bytes):
     shape, count, dtype = (1100, 1500), 3, "uint8"
     host, dev = str(tmp_path / "host.tif"), str(tmp_path / "dev.tif")
     _write(host, shape, count, dtype, 512)
@@ -134,13 +136,64 @@ def test_nvcomp_file_has_the_host_writers_pixels(tmp_path, algorithm_type):
     w = CogWriter(dev, width=shape[1], height=shape[0], count=count, dtype=dtype, crs=CRS, transform=TRANSFORM,
                   block_size=256, overviews=3, threads=2)
     device = wp.get_device("cuda:0")
-    enc = DeviceCogEncoder(w, device, [NvcompDeflate(algorithm_type, device)])
+    enc = DeviceCogEncoder(w, device, [NvcompDeflate(algorithm_type, device)], batch_bytes=batch_bytes)
     with w:
         for r in range(0, shape[0], 512):
             for c in range(0, shape[1], 512):
                 enc.write(r, c, wp.array(np.ascontiguousarray(data[r:r + 512, c:c + 512]), dtype=wp.uint8, device=device),
                           wp.array(mask[r:r + 512, c:c + 512].astype(np.uint8), dtype=wp.uint8, device=device))
+        enc.flush()
     assert enc.blocks_by_codec["nvcomp"] > 0
     for (da, ma, _, _), (db, mb, _, _) in zip(_levels(host, count), _levels(dev, count)):
+        np.testing.assert_array_equal(ma, mb)
+        np.testing.assert_array_equal(da, db)
+
+
+class _SlowBatchedDeflate(HostDeflate):
+    """libdeflate posing as a batched (GPU-like) codec, slow enough that tiles arrive while it
+    works: exercises the encoder's batches, the hand-over to the host codec and the flush."""
+
+    name, batched = "batched", True
+
+    def __init__(self):
+        super().__init__(6, threads=2)
+        self.calls = []
+
+    def compress(self, buf, offsets, sizes, stream=None):
+        import time
+
+        self.calls.append(len(offsets))
+        time.sleep(0.05)
+        return super().compress(buf, offsets, sizes, stream)
+
+
+@pytest.mark.parametrize("with_host", [False, True])
+def test_batches_over_tiles_and_the_hand_over_to_the_host(tmp_path, with_host):
+    from concurrent.futures import ThreadPoolExecutor
+
+    shape, count = (1536, 2048), 3
+    data, mask = scene(shape, count, "uint8")
+    ref, out = str(tmp_path / "ref.tif"), str(tmp_path / "out.tif")
+    _write(ref, shape, count, "uint8", 512)
+    batched = _SlowBatchedDeflate()
+    codecs = [batched] + ([HostDeflate(6, threads=2)] if with_host else [])
+    w = CogWriter(out, width=shape[1], height=shape[0], count=count, dtype="uint8", crs=CRS, transform=TRANSFORM,
+                  block_size=256, overviews=3, threads=2)
+    enc = DeviceCogEncoder(w, wp.get_device("cpu"), codecs, batch_bytes=3 * 512 * 512 * 3)
+    with w:
+        def one(rc):
+            r, c = rc
+            enc.write(r, c, wp.array(np.ascontiguousarray(data[r:r + 512, c:c + 512]), dtype=wp.uint8, device="cpu"),
+                      wp.array(mask[r:r + 512, c:c + 512].astype(np.uint8), dtype=wp.uint8, device="cpu"))
+        with ThreadPoolExecutor(4) as pool:
+            list(pool.map(one, [(r, c) for r in range(0, shape[0], 512) for c in range(0, shape[1], 512)]))
+        enc.flush()
+    enc.close()
+    n_blocks = sum(enc.blocks_by_codec.values())
+    assert n_blocks >= 6 * 8 + 3 * 4  # levels 0 and 1 whole on the device (upper levels partly)
+    assert len(batched.calls) >= 2 and max(batched.calls) > 2 * 12  # batches span several tiles
+    if with_host:
+        assert enc.blocks_by_codec["libdeflate"] > 0  # tiles went to the host while the batch ran
+    for (da, ma, _, _), (db, mb, _, _) in zip(_levels(ref, count), _levels(out, count)):
         np.testing.assert_array_equal(ma, mb)
         np.testing.assert_array_equal(da, db)
