@@ -145,14 +145,20 @@ class NvcompDeflate:
         # nvCOMP works on its own stream: the blocks must be complete
         wp.synchronize_stream(stream if stream is not None else self.device.stream)
         codec = self._codec()
-        caps = [self._capacity(codec, int(x)) for x in sizes]
-        out, start, room = [], 0, 0
-        for k, cap in enumerate(caps):  # calls whose output stays under 2 GiB (int32 offsets)
-            if room + cap >= 2**31 - 2**20 and k > start:
-                out += self._compress(codec, buf, offsets[start:k], sizes[start:k], caps[start:k], stream)
-                start, room = k, 0
-            room += cap
-        return out + self._compress(codec, buf, offsets[start:], sizes[start:], caps[start:], stream)
+        out = [None] * len(sizes)
+        # one call per size of buffer: nvCOMP sizes every output of a batch for its largest
+        # input (image blocks and mask blocks apart), each call's output under 2 GiB
+        for size in sorted(set(int(x) for x in sizes)):
+            idx = [k for k, x in enumerate(sizes) if int(x) == size]
+            cap = self._capacity(codec, size)
+            per_call = max(1, (2**31 - 2**20) // cap)
+            for i in range(0, len(idx), per_call):
+                part = idx[i:i + per_call]
+                raws = self._compress(codec, buf, [offsets[k] for k in part], [size] * len(part), [cap] * len(part),
+                                      stream)
+                for k, raw in zip(part, raws):
+                    out[k] = raw
+        return out
 
     def _compress(self, codec, buf, offsets, sizes, caps, stream):
         nv, n = self._nvcomp, len(offsets)
