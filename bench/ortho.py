@@ -237,6 +237,8 @@ def main(argv=None):
     ap.add_argument("--skip-cli", action="store_true", help="skip the end-to-end CLI runs")
     ap.add_argument("--oty-python", default=None, help="a Python with orthority 0.7.0: run it side by side")
     ap.add_argument("--variants", action="store_true", help="block-codec variants on the CPU too (a check of the bench)")
+    ap.add_argument("--skip-variants", action="store_true", help="no block-codec variants")
+    ap.add_argument("--batch-levels", default="6", help="deflate levels of the batch runs, e.g. 6,1")
     ap.add_argument("--batch", type=int, default=0, help="also run N copies of the frame in one CLI call (GPU)")
     ap.add_argument("--out", default="bench/results/ortho.json")
     args = ap.parse_args(argv)
@@ -299,7 +301,7 @@ def main(argv=None):
         r["ortho_shape"] = list(res.shape)
         r["kernel_fraction_of_wall"] = res.timings["kernel"] / res.timings["wall"]
         if not args.skip_cli:
-            def cli_batch(n, device_name, resolution, gpu_index):
+            def cli_batch(n, device_name, resolution, gpu_index, level="6"):
                 """N copies of the frame (links) in one call: wall time, peak memory, GPU busy."""
                 bdir = os.path.join(work, "batch")
                 os.makedirs(bdir, exist_ok=True)
@@ -318,9 +320,9 @@ def main(argv=None):
                     "-q", "ortho", *names, "--int-param", os.path.join(work, "camera.yaml"), "--ext-param",
                     os.path.join(bdir, "ext.csv"), "--dem", dem_path, "--out-dir", bdir, "--overwrite",
                     "--resolution", repr(resolution), "--resampling", args.resampling, "--device", device_name,
-                    "--profile-json", prof_path, *(["--no-refraction"] if args.no_refraction else [])],
-                    gpu_index=gpu_index)
-                o["images"] = n
+                    "--profile-json", prof_path, "--compress-level", level,
+                    *(["--no-refraction"] if args.no_refraction else [])], gpu_index=gpu_index)
+                o["images"], o["compress_level"] = n, int(level)
                 if o["returncode"] == 0:
                     with open(prof_path) as f:
                         o["profile"] = json.load(f).get("total")
@@ -348,7 +350,7 @@ def main(argv=None):
                     o["profile"] = doc["images"][0]["profile"]
                 return o
             r["cli"] = cli()
-            if geom.device.is_cuda or args.variants:
+            if (geom.device.is_cuda or args.variants) and not args.skip_variants:
                 # who deflates the blocks (--block-codec): the default (auto = hybrid with nvCOMP) above;
                 # each variant's file kept and compared with the host path's, pixel for pixel
                 outputs = {}
@@ -364,9 +366,12 @@ def main(argv=None):
                         os.replace(os.path.join(work, "frame_ORTHO.tif"), outputs[key])
                     print(key, r[key]["wall_s"], r[key].get("output_mb"), r[key]["returncode"], flush=True)
                 r["codec_agreement"] = compare_outputs(outputs, "cli_host")
-                if args.batch:
-                    r["cli_batch"] = cli_batch(args.batch, name, res.resolution,
-                                               geom.device.ordinal if geom.device.is_cuda else None)
+            if args.batch and (geom.device.is_cuda or args.variants):
+                for level in args.batch_levels.split(","):
+                    key = "cli_batch" if level == "6" else f"cli_batch_level{level}"
+                    r[key] = cli_batch(args.batch, name, res.resolution,
+                                       geom.device.ordinal if geom.device.is_cuda else None, level)
+                    save_report(report, args.out)
             # the floor of that start-up: interpreter, imports, Warp and device set-up, kernels loaded, no job
             t = time.perf_counter()
             subprocess.run([sys.executable, "-c", STARTUP, name], check=True)

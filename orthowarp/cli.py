@@ -189,7 +189,8 @@ def demo(out_dir, device):
               help="Deflate level 1-12 (default 6) or zstd level 1-22 (default 9).")
 @click.option("--block-codec", type=click.Choice(["auto", "host", "nvcomp", "hybrid"]), default="auto", show_default=True,
               help="Who deflates a COG's blocks: host (libdeflate on all cores), nvcomp (the GPU; needs "
-                   "orthowarp[gpu]), hybrid (both, whichever is free); auto: hybrid on a GPU with nvCOMP, else host.")
+                   "orthowarp[gpu]), hybrid (both); auto: nvcomp on a GPU with nvCOMP at --compress-level 1-4, "
+                   "else host.")
 @click.option("--dtype", type=click.Choice(["uint8", "uint16", "float32"]), help="Output data type (default: the source's).")
 @click.option("--out-dir", type=click.Path(file_okay=False), default=".", show_default=True)
 @click.option("--overwrite", is_flag=True, help="Replace existing outputs.")

@@ -287,10 +287,12 @@ def orthorectify(src, sensor, *args, dem, crs=None, resolution=None, resampling=
         there, in one batch per tile; only compressed blocks cross to the host. "hybrid": the
         same device work, each tile's batch deflated by nvCOMP or by libdeflate on the host
         cores, whichever is free (on the CPU device or without nvCOMP: libdeflate alone, after
-        the same per-block work in Warp kernels). "auto": "hybrid" on a CUDA device where
-        nvCOMP can be imported, else "host". The files decode to the same pixels whichever path wrote
+        the same per-block work in Warp kernels). The files decode to the same pixels whichever path wrote
         them; nvCOMP's streams differ in size (``compress_level`` 1-4: its medium-ratio
-        variant, 5-7: high, 8-12: highest).
+        variant, 5-7: high, 8-12: highest). On an H100 with 16 host cores, nvCOMP at level
+        6's ratio was slower than libdeflate on the cores, and faster at levels 1-4, so
+        "auto" is "nvcomp" for ``compress_level`` 1-4 on a CUDA device with nvCOMP, else
+        "host".
 
     Returns
     -------
@@ -383,7 +385,8 @@ def orthorectify(src, sensor, *args, dem, crs=None, resolution=None, resampling=
                 compress if driver == "GTiff" else "none", work, resampling, tile_size, progress,
                 workers, timer, dst, method, masked, compress_level,
                 cog=dict(compress=compress, level=compress_level or 6) if streamed else None, cancel=cancel,
-                block_codec=_block_codec(block_codec, geom.device, streamed and compress == "deflate"),
+                block_codec=_block_codec(block_codec, geom.device, streamed and compress == "deflate",
+                                         compress_level or 6),
                 src_dtype=src_dtype, clipped=clipped)
         t0 = time.perf_counter()
         if not streamed:
@@ -467,14 +470,18 @@ def _creation_options(compress, dtype, level=None):
     return {k: v for k, v in opts.items() if v is not None}
 
 
-def _block_codec(choice, device, deflate_cog):
+def _block_codec(choice, device, deflate_cog, level=6):
     """The block codec a run uses (see :func:`orthorectify`'s ``block_codec``): "host",
     "nvcomp", "hybrid" (nvCOMP and libdeflate) or "device" (device work, libdeflate only)."""
     if choice == "host" or not deflate_cog:
         return "host"
     gpu = device.is_cuda and nvcomp_available()
     if choice == "auto":
-        return "hybrid" if gpu else "host"
+        # measured on an H100 with 16 host cores (bench/reference/ortho-codecs-h100.json):
+        # nvCOMP's Deflate at libdeflate level 6's ratio runs at 0.2-0.4 GB/s, slower than
+        # libdeflate on the cores; its medium-ratio variant (levels 1-4) is faster than any
+        # host level
+        return "nvcomp" if gpu and level <= 4 else "host"
     if choice == "hybrid":
         return "hybrid" if gpu else "device"
     if not device.is_cuda:
