@@ -174,8 +174,8 @@ def merge_profiles(profiles, *, wall=None):
     profiles : sequence of dict
         Profiles from :meth:`StageTimer.profile` (``OrthoResult.profile``).
     wall : float, optional
-        Wall-clock seconds of the whole batch (at least the calls' walls added up, which is
-        the default).
+        Wall-clock seconds of the whole batch (default: the calls' walls added up, right for
+        calls one after another; less where they overlapped).
 
     Returns
     -------
@@ -185,7 +185,7 @@ def merge_profiles(profiles, *, wall=None):
     """
     profiles = list(profiles)
     walls = sum(p["wall_s"] for p in profiles)
-    wall = max(float(wall), walls) if wall is not None else walls
+    wall = float(wall) if wall is not None else walls  # less than the calls' sum where they overlap
     stages = {}
     for k in STAGES:
         # images that overlap in time (the CLI runs two at once) make this an upper bound

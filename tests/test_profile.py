@@ -226,8 +226,9 @@ def test_cli_profile_output(tmp_path):
     assert [d["path"] for d in doc["images"]] == [str(out / "img_ORTHO.tif"), str(out / "img2_ORTHO.tif")]
     total = doc["total"]
     assert total["images"] == 2 and list(total["stages"]) == list(STAGES)
-    walls = sum(d["profile"]["wall_s"] for d in doc["images"])
-    assert walls <= total["wall_s"] and 0.0 < total["device_busy_fraction"] <= 1.0
+    walls = [d["profile"]["wall_s"] for d in doc["images"]]
+    # the two images run partly at once: the batch lasts at least the longer, at most both
+    assert max(walls) <= total["wall_s"] <= sum(walls) + 1.0 and 0.0 < total["device_busy_fraction"] <= 1.0
     for k in STAGES:
         np.testing.assert_allclose(total["stages"][k]["sum_s"], sum(d["profile"]["stages"][k]["sum_s"]
                                                                     for d in doc["images"]))
