@@ -45,7 +45,7 @@ from .cog_device import DeviceCogEncoder, HostDeflate, NvcompDeflate, nvcomp_ava
 from .io import GDAL_ERRORS, atomic_path, check_destination, gdal_reason, write_error
 from .profile import StageTimer
 
-__all__ = ["orthorectify", "OrthoResult", "RESAMPLING", "output_grid"]
+__all__ = ["orthorectify", "OrthoResult", "RESAMPLING", "output_grid", "ImageTiles"]
 
 log = logging.getLogger(__name__)
 
@@ -509,182 +509,33 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
         profile.update(JPEG_QUALITY=90, **({"photometric": "YCBCR"} if count == 3 else {}))
     if is_float:
         profile["nodata"] = float("nan")
-    frame_crs = geom.horizontal_crs
-    to_frame = Transformer.from_crs(out_crs, frame_crs, always_xy=True)
-    pushbroom = isinstance(geom, PushbroomGeometry)
-    sensor, dem = geom.sensor_structs(), geom.dem_struct()
-    h_mid = 0.5 * (geom.dem.hmin + geom.dem.hmax)
     device = geom.device
-    resampling_code = RESAMPLING[resampling]
-    radius = _RADIUS[resampling]
     tiles = [(r0, c0, min(tile_size, rows - r0), min(tile_size, cols - c0))
              for r0 in range(0, rows, tile_size) for c0 in range(0, cols, tile_size)]
-    local = threading.local()
-    handles = []
-    handles_lock = threading.Lock()
-    wp.load_module(ortho_kernels, device=device)
-
-    def source():
-        if not hasattr(local, "ds"):
-            local.ds = _open_source(src)
-            # No stream per worker: Warp's current stream belongs to the device, not to a
-            # thread (wp.ScopedStream in several threads would send one thread's launches,
-            # copies and allocations to another's stream). All device work of all workers goes
-            # to the device's stream, in the order it is submitted; the workers overlap their
-            # host work (reading, preparing, compressing) with it.
-            local.stream = None
-            with handles_lock:
-                handles.append(local.ds)
-        return local.ds, local.stream
-
-    w_img, h_img = geom.image_size
-    geocentric = geom.geocentric
-
-    # heights per DEM block, once per image: a tile's height range then costs a few blocks
-    dem_blocks = (32, geom.dem.block_range(32)) if method_name == "backward" and not geom.dem.is_constant else None
-
-    def backward(r0, c0, th, tw):
-        """The backward method's source window for a tile (see :mod:`orthowarp.kernels.ortho`)
-        and the launch of its fused kernel."""
-        t = time.perf_counter()
-        uv = coarse_grid(transform, to_frame, r0, c0, th, tw)
-        heights = _height_range(geom.dem, dem_blocks, uv)
-        timer.span("prepare", t)
-        if heights is None:  # no DEM under the tile
-            return None, None
-        t = time.perf_counter()
-        grid = coarse_struct(uv, geocentric, device, pose=None if pushbroom else geom.pose)
-        nodes = wp.empty((2, *uv.shape[:2]), dtype=wp.vec2d, device=device)
-        timer.span("h2d", t)
-        t = time.perf_counter()
-        if pushbroom:
-            wp.launch(ortho_kernels.pb_node_pixels_kernel, dim=nodes.shape, device=device,
-                      inputs=[*sensor, grid, wp.vec2d(*heights), nodes])
-            times = wp.empty(grid.uv.shape, dtype=wp.float64, device=device)
-            wp.launch(ortho_kernels.pb_node_times_kernel, dim=grid.uv.shape, device=device,
-                      inputs=[*sensor, dem, grid, h_mid, times])
-        else:
-            wp.launch(ortho_kernels.frame_node_pixels_kernel, dim=nodes.shape, device=device,
-                      inputs=[*sensor, grid, wp.vec2d(*heights), nodes])
-        pixels = nodes.numpy()  # waits for the kernels
-        timer.span("kernel", t)
-        t = time.perf_counter()
-        factor = _decimation(pixels[0])
-        window = _node_window(pixels, radius, w_img, h_img, factor=factor)
-        timer.span("prepare", t)
-        if window is not None:
-            window = (*window, factor)
-
-        def launch(sw, data, out, out_valid):
-            if pushbroom:
-                kernel, args = ortho_kernels.ortho_pb_kernel, [*sensor, dem, grid, times]
-            else:  # the grid carries the pose
-                cam, _, refr = sensor
-                kernel, args = ortho_kernels.ortho_frame_kernel, [cam, refr, dem, grid]
-            wp.launch(kernel, dim=(th, tw), device=device, block_dim=ORTHO_BLOCK_DIM,
-                      inputs=[*args, wp.float64(w_img), wp.float64(h_img), sw, data, resampling_code, top, out, out_valid])
-
-        return launch, window
-
-    def forward(r0, c0, th, tw):
-        """The forward method's coordinates and window for a tile, and the resampling launch."""
-        coords, window = forward_coords(r0, c0, th, tw)
-
-        def launch(sw, data, out, out_valid):
-            wp.launch(ortho_kernels.ortho_resample_kernel, dim=(th, tw), device=device, block_dim=ORTHO_BLOCK_DIM,
-                      inputs=[sw, data, coords, resampling_code, top, out, out_valid])
-
-        return launch, window
-
-    if method_name == "backward":
-        prepare = backward
-    else:
-        forward_coords = _forward_coords(geom, transform, out_crs, frame_crs, device, timer, radius)
-        prepare = forward
-
-    top = {"uint8": 255.0, "uint16": 65535.0, "float32": 0.0}[out_dtype]
-    # source values outside an integer output's range are clipped: count them
-    narrowing = top > 0 and (np.dtype(src_dtype).kind in "fi" or np.iinfo(src_dtype).max > top)
-
-    def read_window(ds, wc0, wr0, wc1, wr1, factor):
-        """The source window on the device, (bands, rows, cols) in the output's dtype or float32,
-        and where it lies (its mask, origin and scale). ``factor`` > 1: read reduced by that
-        factor with area averaging (from the source's overviews where it has them), so that a
-        coarse output is neither aliased nor costs full-resolution reads."""
-        t = time.perf_counter()
-        win = Window(wc0, wr0, wc1 - wc0, wr1 - wr0)
-        shape = (-(-(wr1 - wr0) // factor), -(-(wc1 - wc0) // factor))
-        read = dict(window=win, out_dtype=None if ds.dtypes[0] in ("uint8", "uint16", "float32") else "float32")
-        if factor > 1:
-            read.update(out_shape=(count, *shape), resampling=Resampling.average)
-        try:
-            data = ds.read(**read)
-            valid = None
-            if masked:  # 0 / 255; reduced, valid where the nearest full-resolution pixel is
-                valid = ds.dataset_mask(window=win, out_shape=shape) if factor > 1 else ds.dataset_mask(window=win)
-        except GDAL_ERRORS as e:
-            raise RasterIOError(f"Could not read image '{src}': {gdal_reason(e)}") from e
-        if narrowing:
-            n_out = int(np.count_nonzero((data > top) | (data < 0))) if data.dtype.kind == "f" else \
-                int(np.count_nonzero(data > top))
-            clipped.add(n_out, data.size)
-        timer.span("read", t)
-        t = time.perf_counter()
-        arr = wp.array(data, dtype=_WP_TYPES[data.dtype.name], device=device)
-        if data.dtype.name not in (out_dtype, "float32"):  # e.g. uint8 into float32: widen on the device
-            wide = wp.empty(data.shape, dtype=wp.float32, device=device)
-            timer.span("h2d", t)
-            t = time.perf_counter()
-            wp.launch(ortho_kernels.widen_kernel, dim=data.shape, inputs=[arr], outputs=[wide], device=device)
-            timer.span("kernel", t)
-            t = time.perf_counter()
-            arr = wide
-        sw = ortho_kernels.SourceWindow()
-        sw.masked = int(masked)
-        sw.valid = wp.array(valid if masked else np.ones((1, 1), np.uint8), dtype=wp.uint8, device=device)
-        sw.col0, sw.row0 = wc0, wr0
-        sw.inv_sx, sw.inv_sy = shape[1] / (wc1 - wc0), shape[0] / (wr1 - wr0)  # window pixels per image pixel
-        timer.span("h2d", t)
-        return sw, arr
+    image = ImageTiles(src, geom, out_crs, transform, count=count, out_dtype=out_dtype, resampling=resampling,
+                       method=method_name, masked=masked, src_dtype=src_dtype, timer=timer, clipped=clipped)
 
     def run(tile):
         _check_cancel(cancel, final_name)
         r0, c0, th, tw = tile
-        ds, stream = source()
-        with wp.ScopedStream(stream) if stream is not None else contextlib.nullcontext():
-            launch, window = prepare(r0, c0, th, tw)
-            if sink.device is not None:  # the tile stays on the device: blocks encoded there
-                t = time.perf_counter()
-                packed = wp.full((th, tw, count), np.nan if is_float else 0, dtype=_WP_TYPES[out_dtype], device=device)
-                res_valid = wp.zeros((th, tw), dtype=wp.uint8, device=device)
-                if window is not None:
-                    sw, data = read_window(ds, *window)
-                    t = time.perf_counter()
-                    launch(sw, data, packed, res_valid)
-                timer.span("kernel", t)
-                t = time.perf_counter()
-                sink.device(r0, c0, packed, res_valid, stream=stream)
-                timer.span("write", t)
-                return
-            if window is None:
-                block = np.zeros((th, tw, count), out_dtype) if not is_float else np.full((th, tw, count), np.nan, np.float32)
-                mask = np.zeros((th, tw), bool)
-            else:
-                sw, data = read_window(ds, *window)
-                t = time.perf_counter()
-                res_valid = wp.empty((th, tw), dtype=wp.uint8, device=device)
-                packed = wp.empty((th, tw, count), dtype=_WP_TYPES[out_dtype], device=device)
-                launch(sw, data, packed, res_valid)
-                if stream is not None:
-                    wp.synchronize_stream(stream)
-                timer.span("kernel", t)
-                t = time.perf_counter()
-                block, mask = packed.numpy(), res_valid.numpy().view(bool)
-                timer.span("d2h", t)
+        if sink.device is not None:  # the tile stays on the device: blocks encoded there
+            packed, res_valid = image.render(r0, c0, th, tw, fill=True)
             t = time.perf_counter()
-            sink(r0, c0, block, mask)
-            # the COG writer compresses in its own threads (timed there as "write"): here the hand-off
-            timer.span("queue" if cog is not None else "write", t)
+            sink.device(r0, c0, packed, res_valid)
+            timer.span("write", t)
+            return
+        packed, res_valid = image.render(r0, c0, th, tw)
+        if packed is None:
+            block = np.zeros((th, tw, count), out_dtype) if not is_float else np.full((th, tw, count), np.nan, np.float32)
+            mask = np.zeros((th, tw), bool)
+        else:
+            t = time.perf_counter()
+            block, mask = packed.numpy(), res_valid.numpy().view(bool)
+            timer.span("d2h", t)
+        t = time.perf_counter()
+        sink(r0, c0, block, mask)
+        # the COG writer compresses in its own threads (timed there as "write"): here the hand-off
+        timer.span("queue" if cog is not None else "write", t)
 
     n_workers = workers or (4 if device.is_cuda else (os.cpu_count() or 1))
     try:
@@ -707,8 +558,219 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
     except GDAL_ERRORS as e:
         raise write_error(final_name, path, e) from e
     finally:
-        for ds in handles:
-            ds.close()
+        image.close()
+
+
+class ImageTiles:
+    """One image's pixels on output tiles: the tile function of the ortho (and of a mosaic).
+
+    :meth:`render` computes a tile (r0, c0, th, tw) of the output grid from this image alone:
+    the source window it needs (from the coarse grid's nodes at the tile's lowest and highest
+    DEM heights, or the forward method's map), read through a handle of the calling thread
+    (reduced and area-averaged where the output is coarser), and the per-pixel kernel, into
+    device arrays. A pure function of the tile and the inputs: tiles may run in any order and
+    on any thread.
+
+    Parameters
+    ----------
+    src : str
+        Source image (its size is the sensor's).
+    geom : FrameGeometry or PushbroomGeometry
+    out_crs : pyproj.CRS
+    transform : affine.Affine
+        Of the output grid.
+    count : int
+        Bands.
+    out_dtype : {"uint8", "uint16", "float32"}
+    resampling : str, optional
+    method : {"backward", "forward"}, optional
+    masked : bool, optional
+        The source has nodata, a mask or alpha (its mask is read with each window).
+    src_dtype : str, optional
+        The source's data type (for counting values an integer output clips).
+    timer : StageTimer, optional
+    clipped : object with ``add(n, total)``, optional
+        Counts clipped source values.
+    """
+
+    def __init__(self, src, geom, out_crs, transform, *, count, out_dtype, resampling="bilinear", method="backward",
+                 masked=True, src_dtype=None, timer=None, clipped=None):
+        self.src, self.geom, self.transform = src, geom, transform
+        self.count, self.out_dtype, self.masked = count, out_dtype, masked
+        self.timer = timer if timer is not None else StageTimer(time.perf_counter())
+        self.clipped = clipped
+        self.device = device = geom.device
+        self.pushbroom = isinstance(geom, PushbroomGeometry)
+        self.sensor, self.dem = geom.sensor_structs(), geom.dem_struct()
+        self.h_mid = 0.5 * (geom.dem.hmin + geom.dem.hmax)
+        self.resampling_code, self.radius = RESAMPLING[resampling], _RADIUS[resampling]
+        self.to_frame = Transformer.from_crs(out_crs, geom.horizontal_crs, always_xy=True)
+        self.image_size = geom.image_size
+        self.top = {"uint8": 255.0, "uint16": 65535.0, "float32": 0.0}[out_dtype]
+        # source values outside an integer output's range are clipped: count them
+        src_dtype = src_dtype or out_dtype
+        self.narrowing = self.top > 0 and (np.dtype(src_dtype).kind in "fi" or np.iinfo(src_dtype).max > self.top)
+        # heights per DEM block, once per image: a tile's height range then costs a few blocks
+        self.dem_blocks = (32, geom.dem.block_range(32)) if method == "backward" and not geom.dem.is_constant else None
+        self.method = method
+        if method == "forward":
+            self.forward_coords = _forward_coords(geom, transform, out_crs, geom.horizontal_crs, device, self.timer,
+                                                  self.radius)
+        self._local = threading.local()
+        self._handles, self._lock = [], threading.Lock()
+        wp.load_module(ortho_kernels, device=device)
+
+    def _source(self):
+        """This thread's handle of the source (rasterio is not thread-safe per handle)."""
+        ds = getattr(self._local, "ds", None)
+        if ds is None:
+            ds = self._local.ds = _open_source(self.src)
+            with self._lock:
+                self._handles.append(ds)
+        return ds
+
+    def close(self):
+        """Close the threads' source handles."""
+        with self._lock:
+            for ds in self._handles:
+                ds.close()
+            self._handles = []
+
+    def render(self, r0, c0, th, tw, *, fill=False):
+        """The tile's pixels from this image.
+
+        Parameters
+        ----------
+        r0, c0, th, tw : int
+            Top-left pixel and size of the tile on the output grid.
+        fill : bool, optional
+            Where the image has nothing for the tile, return arrays of nodata (0 / NaN,
+            invalid) instead of (None, None).
+
+        Returns
+        -------
+        values : warp array (th, tw, count) of the output dtype, or None
+            Pixel-interleaved, on the image's device.
+        valid : warp array of uint8 (th, tw), or None
+            1 where the image gives the pixel a value.
+        """
+        device, timer = self.device, self.timer
+        launch, window = self._backward(r0, c0, th, tw) if self.method == "backward" else self._forward(r0, c0, th, tw)
+        if window is None and not fill:
+            return None, None
+        t = time.perf_counter()
+        if window is None:
+            values = wp.full((th, tw, self.count), np.nan if self.out_dtype == "float32" else 0,
+                             dtype=_WP_TYPES[self.out_dtype], device=device)
+            valid = wp.zeros((th, tw), dtype=wp.uint8, device=device)
+            timer.span("kernel", t)
+            return values, valid
+        sw, data = self._read_window(self._source(), *window)
+        t = time.perf_counter()
+        valid = wp.empty((th, tw), dtype=wp.uint8, device=device)
+        values = wp.empty((th, tw, self.count), dtype=_WP_TYPES[self.out_dtype], device=device)
+        launch(sw, data, values, valid)  # every output pixel written (a value or nodata and 0)
+        timer.span("kernel", t)
+        return values, valid
+
+    def _backward(self, r0, c0, th, tw):
+        """The backward method's source window for a tile (see :mod:`orthowarp.kernels.ortho`)
+        and the launch of its fused kernel."""
+        geom, device, timer, sensor, dem = self.geom, self.device, self.timer, self.sensor, self.dem
+        t = time.perf_counter()
+        uv = coarse_grid(self.transform, self.to_frame, r0, c0, th, tw)
+        heights = _height_range(geom.dem, self.dem_blocks, uv)
+        timer.span("prepare", t)
+        if heights is None:  # no DEM under the tile
+            return None, None
+        t = time.perf_counter()
+        grid = coarse_struct(uv, geom.geocentric, device, pose=None if self.pushbroom else geom.pose)
+        nodes = wp.empty((2, *uv.shape[:2]), dtype=wp.vec2d, device=device)
+        timer.span("h2d", t)
+        t = time.perf_counter()
+        times = None
+        if self.pushbroom:
+            wp.launch(ortho_kernels.pb_node_pixels_kernel, dim=nodes.shape, device=device,
+                      inputs=[*sensor, grid, wp.vec2d(*heights), nodes])
+            times = wp.empty(grid.uv.shape, dtype=wp.float64, device=device)
+            wp.launch(ortho_kernels.pb_node_times_kernel, dim=grid.uv.shape, device=device,
+                      inputs=[*sensor, dem, grid, self.h_mid, times])
+        else:
+            wp.launch(ortho_kernels.frame_node_pixels_kernel, dim=nodes.shape, device=device,
+                      inputs=[*sensor, grid, wp.vec2d(*heights), nodes])
+        pixels = nodes.numpy()  # waits for the kernels
+        timer.span("kernel", t)
+        t = time.perf_counter()
+        w_img, h_img = self.image_size
+        factor = _decimation(pixels[0])
+        window = _node_window(pixels, self.radius, w_img, h_img, factor=factor)
+        timer.span("prepare", t)
+        if window is not None:
+            window = (*window, factor)
+
+        def launch(sw, data, out, out_valid):
+            if self.pushbroom:
+                kernel, args = ortho_kernels.ortho_pb_kernel, [*sensor, dem, grid, times]
+            else:  # the grid carries the pose
+                cam, _, refr = sensor
+                kernel, args = ortho_kernels.ortho_frame_kernel, [cam, refr, dem, grid]
+            wp.launch(kernel, dim=(th, tw), device=device, block_dim=ORTHO_BLOCK_DIM,
+                      inputs=[*args, wp.float64(w_img), wp.float64(h_img), sw, data, self.resampling_code, self.top,
+                              out, out_valid])
+
+        return launch, window
+
+    def _forward(self, r0, c0, th, tw):
+        """The forward method's coordinates and window for a tile, and the resampling launch."""
+        coords, window = self.forward_coords(r0, c0, th, tw)
+
+        def launch(sw, data, out, out_valid):
+            wp.launch(ortho_kernels.ortho_resample_kernel, dim=(th, tw), device=self.device, block_dim=ORTHO_BLOCK_DIM,
+                      inputs=[sw, data, coords, self.resampling_code, self.top, out, out_valid])
+
+        return launch, window
+
+    def _read_window(self, ds, wc0, wr0, wc1, wr1, factor):
+        """The source window on the device, (bands, rows, cols) in the output's dtype or float32,
+        and where it lies (its mask, origin and scale). ``factor`` > 1: read reduced by that
+        factor with area averaging (from the source's overviews where it has them), so that a
+        coarse output is neither aliased nor costs full-resolution reads."""
+        timer, device, top = self.timer, self.device, self.top
+        t = time.perf_counter()
+        win = Window(wc0, wr0, wc1 - wc0, wr1 - wr0)
+        shape = (-(-(wr1 - wr0) // factor), -(-(wc1 - wc0) // factor))
+        read = dict(window=win, out_dtype=None if ds.dtypes[0] in ("uint8", "uint16", "float32") else "float32")
+        if factor > 1:
+            read.update(out_shape=(self.count, *shape), resampling=Resampling.average)
+        try:
+            data = ds.read(**read)
+            valid = None
+            if self.masked:  # 0 / 255; reduced, valid where the nearest full-resolution pixel is
+                valid = ds.dataset_mask(window=win, out_shape=shape) if factor > 1 else ds.dataset_mask(window=win)
+        except GDAL_ERRORS as e:
+            raise RasterIOError(f"Could not read image '{self.src}': {gdal_reason(e)}") from e
+        if self.narrowing and self.clipped is not None:
+            n_out = int(np.count_nonzero((data > top) | (data < 0))) if data.dtype.kind == "f" else \
+                int(np.count_nonzero(data > top))
+            self.clipped.add(n_out, data.size)
+        timer.span("read", t)
+        t = time.perf_counter()
+        arr = wp.array(data, dtype=_WP_TYPES[data.dtype.name], device=device)
+        if data.dtype.name not in (self.out_dtype, "float32"):  # e.g. uint8 into float32: widen on the device
+            wide = wp.empty(data.shape, dtype=wp.float32, device=device)
+            timer.span("h2d", t)
+            t = time.perf_counter()
+            wp.launch(ortho_kernels.widen_kernel, dim=data.shape, inputs=[arr], outputs=[wide], device=device)
+            timer.span("kernel", t)
+            t = time.perf_counter()
+            arr = wide
+        sw = ortho_kernels.SourceWindow()
+        sw.masked = int(self.masked)
+        sw.valid = wp.array(valid if self.masked else np.ones((1, 1), np.uint8), dtype=wp.uint8, device=device)
+        sw.col0, sw.row0 = wc0, wr0
+        sw.inv_sx, sw.inv_sy = shape[1] / (wc1 - wc0), shape[0] / (wr1 - wr0)  # window pixels per image pixel
+        timer.span("h2d", t)
+        return sw, arr
 
 
 def _check_cancel(cancel, name):
