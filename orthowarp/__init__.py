@@ -45,6 +45,7 @@ _LAZY = {
     "geolocate": ".pipeline.geometry",
     "project": ".pipeline.geometry",
     "orthorectify": ".pipeline.ortho",
+    "mosaic": ".pipeline.mosaic",
 }
 _SUBPACKAGES = ("adjust", "kernels", "pipeline")  # ``ow.adjust.bundle_adjust`` etc. without an import
 
@@ -56,6 +57,7 @@ __all__ = [
     "geolocate",
     "project",
     "orthorectify",
+    "mosaic",
     "OrthowarpError",
     "ParamError",
     "CrsError",

@@ -216,7 +216,6 @@ def ortho(ctx, images, int_param, ext_param, dimap, attitude_model, dem, height,
     _spare_final_collection()
     from .errors import ParamError, RasterIOError
     from .pipeline.dem import Dem
-    from .pipeline.formats import read_cameras, read_exterior
     from .pipeline.io import check_destination
     from .pipeline.ortho import orthorectify
 
@@ -307,9 +306,35 @@ def ortho(ctx, images, int_param, ext_param, dimap, attitude_model, dem, height,
         return
     if not ext_param:
         raise ParamError("Give --ext-param (frame images) or --dimap (a pushbroom scene)")
+    jobs, seen = [], {}
+    for image, camera, pose in _frame_orientations(images, int_param, ext_param, crs):
+        key = os.path.splitext(os.path.basename(image))[0]
+        dst = os.path.join(out_dir, f"{key}_ORTHO.tif")
+        if dst in seen:
+            raise ParamError(f"Images '{seen[dst]}' and '{image}' would both be written to '{dst}'")
+        seen[dst] = image
+        jobs.append((image, camera, pose, dst))
+    run(jobs)
+
+
+class _Either:
+    """Set when any of the events is (the ``cancel`` the library polls with ``is_set()``)."""
+
+    def __init__(self, *events):
+        self.events = [e for e in events if e is not None]
+
+    def is_set(self):
+        return any(e.is_set() for e in self.events)
+
+
+def _frame_orientations(images, int_param, ext_param, crs):
+    """[(image, FrameCamera, Pose)] of frame images from the camera and exterior files."""
+    from .errors import ParamError, RasterIOError
+    from .pipeline.formats import read_cameras, read_exterior
+
     exterior = read_exterior(ext_param, crs=crs)
     cameras = read_cameras(int_param) if int_param else read_cameras(ext_param)
-    jobs, seen = [], {}
+    out = []
     for image in images:
         if not os.path.exists(image):
             raise RasterIOError(f"Image '{image}' does not exist")
@@ -325,22 +350,52 @@ def ortho(ctx, images, int_param, ext_param, dimap, attitude_model, dem, height,
             cam_id = next(iter(cameras))
         if cam_id not in cameras:
             raise ParamError(f"Camera '{cam_id}' of image '{key}' is not in '{int_param or ext_param}'")
-        dst = os.path.join(out_dir, f"{key}_ORTHO.tif")
-        if dst in seen:
-            raise ParamError(f"Images '{seen[dst]}' and '{image}' would both be written to '{dst}'")
-        seen[dst] = image
-        jobs.append((image, cameras[cam_id], orient.pose, dst))
-    run(jobs)
+        out.append((image, cameras[cam_id], orient.pose))
+    return out
 
 
-class _Either:
-    """Set when any of the events is (the ``cancel`` the library polls with ``is_set()``)."""
+@main.command()
+@click.argument("images", nargs=-1, required=True, type=click.Path(dir_okay=False))
+@click.option("--int-param", type=click.Path(dir_okay=False), help="Camera file (orthority/ODM YAML or JSON, OpenSfM).")
+@click.option("--ext-param", type=click.Path(dir_okay=False), required=True,
+              help="Exterior orientation (CSV, orthority GeoJSON, OpenSfM reconstruction.json).")
+@click.option("--dem", type=click.Path(dir_okay=False), help="DEM/DSM file.")
+@click.option("--height", type=float, help="Constant ellipsoidal height (m) instead of a DEM.")
+@click.option("--out", "out_path", type=click.Path(dir_okay=False), required=True, help="The mosaic (COG).")
+@click.option("--index", "index_path", type=click.Path(dir_okay=False),
+              help="Also write the per-pixel source index (uint16 COG: the image's position in IMAGES).")
+@click.option("--crs", default=None, help="Output CRS (default: that of the first image's ortho).")
+@click.option("--resolution", type=float, help="Pixel size in CRS units (default: the images' mean GSD).")
+@click.option("--resampling", type=click.Choice(["nearest", "bilinear", "bicubic", "lanczos"]), default="bilinear",
+              show_default=True)
+@click.option("--compress-level", type=int, default=None, help="Deflate level 1-12 (default 6).")
+@click.option("--dtype", type=click.Choice(["uint8", "uint16", "float32"]), help="Output data type (default: the sources').")
+@click.option("--overwrite", is_flag=True, help="Replace existing outputs.")
+@click.option("--no-refraction", is_flag=True, help="Do not correct atmospheric refraction.")
+@click.option("--geoid", type=click.Path(dir_okay=False), help="Geoid grid for converting between DEM and position heights.")
+@click.option("--same-vertical-datum", is_flag=True, help="Take DEM and position heights as the same vertical datum.")
+@click.option("--device", default=None, help="Warp device (cpu, cuda, cuda:N); default: first GPU, else CPU.")
+@click.pass_context
+def mosaic(ctx, images, int_param, ext_param, dem, height, out_path, index_path, crs, resolution, resampling,
+           compress_level, dtype, overwrite, no_refraction, geoid, same_vertical_datum, device):
+    """Mosaic frame IMAGES into one cloud-optimized GeoTIFF: each pixel from the image that sees
+    its ground most nearly from above (smallest off-nadir angle)."""
+    from .errors import ParamError
+    from .pipeline.dem import Dem
+    from .pipeline.mosaic import mosaic as make_mosaic
 
-    def __init__(self, *events):
-        self.events = [e for e in events if e is not None]
-
-    def is_set(self):
-        return any(e.is_set() for e in self.events)
+    if (dem is None) == (height is None):
+        raise ParamError("Give exactly one of --dem FILE and --height METRES")
+    jobs = _frame_orientations(images, int_param, ext_param, crs)
+    terrain = Dem.from_file(dem) if dem is not None else height
+    r = make_mosaic(jobs, out_path, dem=terrain, crs=crs, resolution=resolution, resampling=resampling,
+                    refraction=not no_refraction, dtype=dtype, index=index_path, compress_level=compress_level,
+                    overwrite=overwrite, device=device, geoid=geoid, same_vertical_datum=same_vertical_datum,
+                    cancel=ctx.meta.get("orthowarp.stop"))
+    if not ctx.obj["quiet"]:
+        counts = ", ".join(f"{os.path.basename(img)} {n}" for (img, *_), n in zip(jobs, r.pixels_per_image))
+        click.echo(f"{r.path}: {r.shape[1]} x {r.shape[0]} px at {r.resolution:.4g}, {r.crs.name}; pixels per "
+                   f"image: {counts}")
 
 
 _SPARED = []

@@ -1,0 +1,273 @@
+"""Orthomosaics: many frame images to one cloud-optimized GeoTIFF, tile by tile.
+
+First increment of the mosaic engine (see the README's status): the mosaic's grid is the
+union of the images' ortho grids at one resolution, cut into tiles; for each tile, every image
+whose footprint meets it is projected straight into the tile by
+:class:`~orthowarp.pipeline.ortho.ImageTiles` (the ortho's own tile function: no intermediate
+orthos), and each pixel takes its value from the image that sees its ground point most nearly
+from above: the smallest off-nadir angle, which minimises relief displacement (the seamlines
+are then the curves of equal off-nadir angle between neighbouring images). The angle is
+computed from the camera centre and the ground point on the DEM at the tile's coarse-grid
+nodes (every 16 output pixels) and interpolated bilinearly between them. A tile is a pure
+function of the tile and the inputs; memory is bounded by the tile size, whatever the number
+of images.
+
+Optionally a per-pixel source-index raster (uint16, the image's position in the input list;
+masked, by its internal mask, where no image has a value) is written beside the mosaic and
+published together with it.
+"""
+
+import logging
+import os
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import rasterio
+from affine import Affine
+from pyproj import Transformer
+from rasterio.enums import MaskFlags
+
+from .._device import quiet_warp
+from ..camera import FrameCamera
+from ..errors import GeometryError, ParamError, RasterIOError
+from ..geodesy import geodetic_to_ecef
+from ..pose import Pose
+from .cog import DTYPES, CogWriter
+from .io import GDAL_ERRORS, atomic_files, check_destination, gdal_reason
+from .ortho import COARSE_STEP, RESAMPLING, ImageTiles, _as_dem, _check_cancel, _open_source, coarse_grid, \
+    output_grid
+from .geometry import FrameGeometry
+from .profile import StageTimer
+
+__all__ = ["mosaic", "MosaicResult", "NO_SOURCE"]
+
+log = logging.getLogger(__name__)
+
+NO_SOURCE = 65535  # the index raster's value where no image has a pixel
+
+
+class MosaicResult:
+    """What :func:`mosaic` wrote: ``path``, ``index`` (path or None), ``crs``, ``transform``,
+    ``shape`` (rows, cols), ``resolution`` and ``pixels_per_image`` (list: output pixels each
+    image supplied)."""
+
+    def __init__(self, **kw):
+        self.__dict__.update(kw)
+
+
+def _off_nadir(geom, transform, to_frame, r0, c0, th, tw):
+    """Off-nadir angle (radians, (th, tw)) under which the image of ``geom`` sees the ground
+    point of each tile pixel: at the coarse-grid nodes from the camera centre and the ground
+    point on the DEM, bilinear in between; NaN where the DEM has no height."""
+    uv = coarse_grid(transform, to_frame, r0, c0, th, tw)
+    u, v = uv[..., 0], uv[..., 1]
+    h = geom.dem.sample(u, v)
+    if geom.geocentric:
+        ground = geodetic_to_ecef(v, u, h)
+        lat, lon = np.radians(v), np.radians(u)
+        up = np.stack([np.cos(lat) * np.cos(lon), np.cos(lat) * np.sin(lon), np.sin(lat)], -1)
+    else:
+        ground = np.stack([u, v, h], -1)
+        up = np.broadcast_to([0.0, 0.0, 1.0], ground.shape)
+    ray = np.asarray(geom.pose.center, float) - ground
+    cos = np.einsum("...i,...i->...", ray, up) / np.linalg.norm(ray, axis=-1)
+    node = np.arccos(np.clip(cos, -1.0, 1.0))
+    # bilinear between the nodes (every COARSE_STEP pixels from the tile's first pixel)
+    ki = np.arange(node.shape[0]) * COARSE_STEP
+    kj = np.arange(node.shape[1]) * COARSE_STEP
+    rows = np.arange(th, dtype=float)
+    cols = np.arange(tw, dtype=float)
+    along = np.stack([np.interp(cols, kj, node[i]) for i in range(node.shape[0])])  # (nodes_i, tw)
+    return np.stack([np.interp(rows, ki, along[:, j]) for j in range(tw)], axis=1)
+
+
+@quiet_warp()
+def mosaic(images, dst, *, dem, crs=None, resolution=None, resampling="bilinear", refraction=True, dtype=None,
+           index=None, compress_level=None, tile_size=512, overwrite=False, device=None, workers=None,
+           geoid=None, same_vertical_datum=False, cancel=None):
+    """Mosaic frame images into one cloud-optimized GeoTIFF (deflate, internal mask, overviews).
+
+    Parameters
+    ----------
+    images : sequence of (src, FrameCamera, Pose)
+        Source images (all with the same band count and data type) and their orientation.
+    dst : str or os.PathLike
+        The mosaic (written under a temporary name, published when complete).
+    dem : Dem, str or float
+        Terrain: a Dem, a DEM file, or a constant ellipsoidal height (m).
+    crs : CRS-like, optional
+        Output CRS; default: that of the first image's ortho.
+    resolution : float, optional
+        Pixel size (CRS units); default: the mean of the images' ground sample distances.
+    resampling : {"nearest", "bilinear", "bicubic", "lanczos"}, optional
+    refraction : bool, optional
+    dtype : {"uint8", "uint16", "float32"}, optional
+        Default: the sources'.
+    index : str or os.PathLike, optional
+        Also write the per-pixel source index (uint16 COG; masked where no image has a value).
+    compress_level : int, optional
+        Deflate level 1-12 (default 6).
+    tile_size : int, optional
+        Output tile edge (pixels, multiple of 16).
+    overwrite : bool, optional
+    device : str, optional
+    workers : int, optional
+        Tiles in flight (default: CPU cores on the CPU, 4 on a GPU).
+    geoid, same_vertical_datum :
+        As for :func:`~orthowarp.pipeline.ortho.orthorectify`.
+    cancel : threading.Event, optional
+
+    Returns
+    -------
+    MosaicResult
+    """
+    images = list(images)
+    if not images:
+        raise ParamError("mosaic needs at least one image")
+    for k, item in enumerate(images):
+        if len(item) != 3 or not isinstance(item[1], FrameCamera) or not isinstance(item[2], Pose):
+            raise ParamError(f"images[{k}] must be (source, FrameCamera, Pose)")
+    if len(images) >= NO_SOURCE:
+        raise ParamError(f"mosaic takes at most {NO_SOURCE - 1} images, got {len(images)}")
+    if resampling not in RESAMPLING:
+        raise ParamError(f"resampling must be one of {sorted(RESAMPLING)}, got {resampling!r}")
+    if dtype is not None and dtype not in DTYPES:
+        raise ParamError(f"dtype must be one of {DTYPES}, got {dtype!r}")
+    if int(tile_size) < 16 or int(tile_size) % 16:
+        raise ParamError(f"tile_size must be a positive multiple of 16, got {tile_size}")
+    tile_size = int(tile_size)
+    dst = os.fspath(dst)
+    outputs = [dst] + ([os.fspath(index)] if index is not None else [])
+    if len(set(map(os.path.abspath, outputs))) != len(outputs):
+        raise ParamError(f"The mosaic and its index are the same file '{dst}'")
+    for path in outputs:
+        check_destination(path, overwrite=overwrite)
+    t_wall = time.perf_counter()
+    timer = StageTimer(t_wall)
+    terrain = _as_dem(dem)
+
+    # the sources: one band count and data type
+    facts = []
+    for src, camera, _ in images:
+        src = os.fspath(src)
+        if not os.path.exists(src):
+            raise RasterIOError(f"Image '{src}' does not exist")
+        if os.path.abspath(src) in map(os.path.abspath, outputs):
+            raise ParamError(f"Output '{src}' is one of the source images: choose another name")
+        try:
+            with _open_source(src) as ds:
+                facts.append((src, ds.width, ds.height, ds.count, ds.dtypes[0],
+                              any(f != [MaskFlags.all_valid] for f in ds.mask_flag_enums)))
+        except GDAL_ERRORS as e:
+            raise RasterIOError(f"Could not open image '{src}': {gdal_reason(e)}") from e
+        if (facts[-1][1], facts[-1][2]) != tuple(camera.image_size):
+            raise ParamError(f"Image '{src}' is {facts[-1][1]} x {facts[-1][2]} pixels but its camera says "
+                             f"{camera.image_size[0]} x {camera.image_size[1]}")
+    counts, dtypes = {f[3] for f in facts}, {f[4] for f in facts}
+    if len(counts) > 1 or len(dtypes) > 1:
+        raise ParamError(f"The images of a mosaic must share their band count and data type; got bands "
+                         f"{sorted(counts)} and types {sorted(dtypes)}")
+    count, src_dtype = facts[0][3], facts[0][4]
+    out_dtype = dtype or (src_dtype if src_dtype in DTYPES else "float32")
+
+    geoms = [FrameGeometry(camera, pose, terrain, refraction=refraction, device=device, geoid=geoid,
+                           same_vertical_datum=same_vertical_datum) for _, camera, pose in images]
+    # the grid: the union of the images' grids at one resolution, aligned to it
+    grids = []
+    for (src, *_), geom in zip(images, geoms):
+        try:
+            grids.append(output_grid(geom, crs=crs if crs is not None else (grids[0][0] if grids else None),
+                                     resolution=resolution))
+        except GeometryError as e:
+            raise GeometryError(f"Image '{src}': {e}") from e
+    out_crs = grids[0][0]
+    res = float(resolution) if resolution is not None else float(np.mean([g[3] for g in grids]))
+    boxes = []
+    for _, tr, shape, _ in grids:
+        x0, y1 = tr.c, tr.f
+        boxes.append((x0, y1 + tr.e * shape[0], x0 + tr.a * shape[1], y1))
+    xmin = np.floor(min(b[0] for b in boxes) / res) * res
+    ymin = np.floor(min(b[1] for b in boxes) / res) * res
+    xmax = np.ceil(max(b[2] for b in boxes) / res) * res
+    ymax = np.ceil(max(b[3] for b in boxes) / res) * res
+    transform = Affine(res, 0.0, xmin, 0.0, -res, ymax)
+    rows, cols = int(round((ymax - ymin) / res)), int(round((xmax - xmin) / res))
+    # each image's footprint in mosaic pixels (rows r0-r1, cols c0-c1), one pixel of margin
+    foot = [(int(np.floor((ymax - b[3]) / res)) - 1, int(np.ceil((ymax - b[1]) / res)) + 1,
+             int(np.floor((b[0] - xmin) / res)) - 1, int(np.ceil((b[2] - xmin) / res)) + 1) for b in boxes]
+    log.info("mosaic of %d images -> %s: %d x %d pixels at %.4g", len(images), dst, cols, rows, res)
+
+    renderers = [ImageTiles(f[0], geom, out_crs, transform, count=count, out_dtype=out_dtype, resampling=resampling,
+                            masked=f[5], src_dtype=src_dtype, timer=timer) for f, geom in zip(facts, geoms)]
+    to_frames = [Transformer.from_crs(out_crs, geom.horizontal_crs, always_xy=True) for geom in geoms]
+    used = np.zeros(len(images), np.int64)
+    used_lock = threading.Lock()
+    is_float = out_dtype == "float32"
+    rio_crs = rasterio.crs.CRS.from_wkt(out_crs.to_wkt())
+    tiles = [(r0, c0, min(tile_size, rows - r0), min(tile_size, cols - c0))
+             for r0 in range(0, rows, tile_size) for c0 in range(0, cols, tile_size)]
+
+    def run(tile, writers):
+        _check_cancel(cancel, dst)
+        r0, c0, th, tw = tile
+        best = np.full((th, tw, count), np.nan if is_float else 0, out_dtype)
+        best_angle = np.full((th, tw), np.inf)
+        source = np.full((th, tw), NO_SOURCE, np.uint16)
+        for k, (fr0, fr1, fc0, fc1) in enumerate(foot):
+            if fr1 <= r0 or fr0 >= r0 + th or fc1 <= c0 or fc0 >= c0 + tw:
+                continue
+            values, valid = renderers[k].render(r0, c0, th, tw)
+            if values is None:
+                continue
+            t = time.perf_counter()
+            v, ok = values.numpy(), valid.numpy().view(bool)
+            timer.span("d2h", t)
+            t = time.perf_counter()
+            angle = _off_nadir(geoms[k], transform, to_frames[k], r0, c0, th, tw)
+            take = ok & (angle < best_angle)
+            best[take], best_angle[take], source[take] = v[take], angle[take], k
+            timer.span("prepare", t)
+        t = time.perf_counter()
+        valid = source != NO_SOURCE
+        writers[0].write(r0, c0, best, valid, copy=False)
+        if len(writers) > 1:
+            writers[1].write(r0, c0, source[..., None], valid, copy=False)
+        with used_lock:
+            np.add.at(used, source[valid], 1)
+        timer.span("queue", t)
+
+    n_workers = workers or (4 if geoms[0].device.is_cuda else (os.cpu_count() or 1))
+    try:
+        with rasterio.Env(GDAL_CACHEMAX=256), atomic_files(outputs) as tmps:
+            writers = [CogWriter(tmps[0], width=cols, height=rows, count=count, dtype=out_dtype, crs=rio_crs,
+                                 transform=transform, level=compress_level or 6, name=dst)]
+            if index is not None:
+                writers.append(CogWriter(tmps[1], width=cols, height=rows, count=1, dtype="uint16", crs=rio_crs,
+                                         transform=transform, level=compress_level or 6, name=outputs[1]))
+            try:
+                timer.span("setup", t_wall)
+                with ThreadPoolExecutor(max_workers=n_workers) as pool:
+                    futures = [pool.submit(run, tile, writers) for tile in tiles]
+                    try:
+                        for f in futures:
+                            f.result()
+                    except BaseException:
+                        for f in futures:
+                            f.cancel()
+                        raise
+                t = time.perf_counter()
+                for w in writers:
+                    w.close()
+                timer.span("finish", t)
+            except BaseException:
+                for w in writers:
+                    w.abort()
+                raise
+    finally:
+        for r in renderers:
+            r.close()
+    return MosaicResult(path=dst, index=outputs[1] if index is not None else None, crs=out_crs,
+                        transform=transform, shape=(rows, cols), resolution=res,
+                        pixels_per_image=used.tolist(), profile=timer.profile())

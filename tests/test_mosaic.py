@@ -1,0 +1,129 @@
+"""Mosaics (pipeline/mosaic.py): two overlapping frames of one synthetic scene against the
+scene's truth, the source index against an independent off-nadir rule, and bad input."""
+
+import os
+
+import numpy as np
+import pytest
+import rasterio
+
+import render
+import scenes
+from test_ortho import OPK_X, OPK_Y, RMS_MAX, SUPERSAMPLE, UTM32, describe, measure, pixel_centres, scene, \
+    write_image
+
+from orthowarp.errors import ParamError, RasterIOError
+from orthowarp.pipeline.mosaic import NO_SOURCE, mosaic
+
+
+def _second_view(sc):
+    """The scene seen from a second camera 80 m east (same camera, other attitude): its pose
+    (orthowarp, reference) and rendered image."""
+    pose, ref_pose = scenes.make_poses("opk", dict(x=OPK_X + 80.0, y=OPK_Y + 10.0, z=1390.0, omega=-1.0, phi=1.5,
+                                                   kappa=57.0))
+    r = render.Renderer(sc.ref_camera, ref_pose, sc.grid.sample, (sc.grid.hmin, sc.grid.hmax), sc.texture, UTM32,
+                        refraction=False)
+    return pose, ref_pose, r.render(SUPERSAMPLE)
+
+
+@pytest.fixture(scope="module")
+def pair(tmp_path_factory):
+    sc = scene("opk")
+    pose2, ref_pose2, img2 = _second_view(sc)
+    folder = tmp_path_factory.mktemp("pair")
+    a = write_image(folder / "a.tif", sc.image(False), "float32")
+    b = write_image(folder / "b.tif", img2, "float32")
+    return sc, [(a, sc.camera, sc.pose), (b, sc.camera, pose2)], [sc.ref_pose, ref_pose2], folder
+
+
+def test_mosaic_of_two_frames_matches_the_truth_and_the_nadir_rule(pair, tmp_path, device):
+    sc, images, ref_poses, _ = pair
+    res = mosaic(images, tmp_path / "m.tif", dem=sc.dem, refraction=False, index=tmp_path / "i.tif", device=device,
+                 tile_size=64)
+    assert sorted(os.listdir(tmp_path)) == ["i.tif", "m.tif"]
+    with rasterio.open(res.path) as ds:
+        assert ds.tags(ns="IMAGE_STRUCTURE")["LAYOUT"] == "COG" and ds.crs.to_epsg() == 32632
+        assert ds.transform == res.transform and ds.shape == res.shape
+    # geometry: registered to the truth like a single ortho
+    m, data, valid, t = measure(sc, res)
+    print(f"\n[mosaic of 2] {res.shape[1]} x {res.shape[0]} px at {res.resolution:.4f} m: {describe(m)}; "
+          f"pixels per image {res.pixels_per_image}")
+    assert m["rms"] <= RMS_MAX, describe(m)
+    assert np.sqrt(np.mean((data - t)[valid] ** 2)) < 0.15 * sc.texture.std
+    # both images used, each mosaic pixel from one of them, the index raster where the mosaic has data
+    with rasterio.open(res.index) as ds:
+        idx = ds.read(1)
+        np.testing.assert_array_equal(ds.dataset_mask() > 0, valid)
+    assert set(np.unique(idx[valid])) == {0, 1} and np.all(idx[~valid] == 0)
+    assert res.pixels_per_image == [int(np.sum(idx[valid] == 0)), int(np.sum(idx[valid] == 1))]
+    # the rule, computed independently (reference cameras, per pixel, truth DEM): where both
+    # images see the ground point, the one seeing it more nearly from above supplies it
+    x, y = pixel_centres(res)
+    g = sc.object_point(x.ravel(), y.ravel())
+    angles, inside = [], []
+    for p in ref_poses:
+        ray = p.center - g
+        angles.append(np.degrees(np.arccos(ray[:, 2] / np.linalg.norm(ray, axis=1))))
+        pix = sc.ref_camera.pixels((g - p.center) @ p.rotation)
+        inside.append((pix[:, 0] > 3) & (pix[:, 0] < sc.size[0] - 3) & (pix[:, 1] > 3) & (pix[:, 1] < sc.size[1] - 3))
+    both = inside[0] & inside[1] & valid.ravel() & (np.abs(angles[0] - angles[1]) > 0.05)
+    expected = np.where(angles[0] <= angles[1], 0, 1)
+    assert both.sum() > 1000
+    agree = np.mean(idx.ravel()[both] == expected[both])
+    assert agree > 0.995, agree
+
+
+def test_one_image_mosaic_is_its_ortho_where_grids_meet(pair, tmp_path):
+    sc, images, _, _ = pair
+    res = mosaic(images[:1], tmp_path / "m.tif", dem=sc.dem, refraction=False, device="cpu")
+    assert res.index is None and res.pixels_per_image[0] > 0
+    m, *_ = measure(sc, res)
+    assert m["rms"] <= RMS_MAX, describe(m)
+
+
+def test_bad_mosaic_inputs(pair, tmp_path):
+    sc, images, _, folder = pair
+    with pytest.raises(ParamError, match="at least one image"):
+        mosaic([], tmp_path / "m.tif", dem=sc.dem)
+    with pytest.raises(ParamError, match=r"images\[0\] must be"):
+        mosaic([(images[0][0], sc.camera)], tmp_path / "m.tif", dem=sc.dem)
+    with pytest.raises(ParamError, match="same file"):
+        mosaic(images, tmp_path / "m.tif", dem=sc.dem, index=tmp_path / "m.tif")
+    with pytest.raises(ParamError, match="one of the source images"):
+        mosaic(images, images[0][0], dem=sc.dem, overwrite=True)
+    rgb = folder / "rgb.tif"
+    with rasterio.open(rgb, "w", driver="GTiff", width=400, height=300, count=3, dtype="float32") as dst:
+        dst.write(np.zeros((3, 300, 400), np.float32))
+    with pytest.raises(ParamError, match=r"share their band count and data type; got bands \[1, 3\]"):
+        mosaic([images[0], (str(rgb), sc.camera, sc.pose)], tmp_path / "m.tif", dem=sc.dem)
+    with pytest.raises(RasterIOError, match="does not exist"):
+        mosaic([(str(folder / "none.tif"), sc.camera, sc.pose)], tmp_path / "m.tif", dem=sc.dem)
+    (tmp_path / "m.tif").write_text("earlier")
+    with pytest.raises(RasterIOError, match="exists"):
+        mosaic(images, tmp_path / "m.tif", dem=sc.dem)
+    assert (tmp_path / "m.tif").read_text() == "earlier"
+    assert NO_SOURCE == 65535
+
+
+def test_cli_mosaic(tmp_path):
+    from click.testing import CliRunner
+    from test_faults import _frame_job
+
+    from orthowarp.cli import main
+
+    args = _frame_job(tmp_path, "a")
+    import shutil
+
+    shutil.copy(tmp_path / "a.tif", tmp_path / "b.tif")
+    with open(tmp_path / "ext.csv", "a") as f:
+        f.write("b,500015,5200000,600,1,-2,30\n")
+    out, idx = tmp_path / "out" / "m.tif", tmp_path / "out" / "i.tif"
+    res = CliRunner().invoke(main, ["mosaic", args[0], str(tmp_path / "b.tif"), *args[1:], "--out", str(out),
+                                    "--index", str(idx), "--resolution", "0.5"])
+    assert res.exit_code == 0, res.output
+    assert "pixels per image: a.tif " in res.output and sorted(os.listdir(out.parent)) == ["i.tif", "m.tif"]
+    with rasterio.open(idx) as ds:
+        used = np.unique(ds.read(1)[ds.dataset_mask() > 0])
+    assert set(used) == {0, 1}
+    res = CliRunner().invoke(main, ["mosaic", args[0], *args[1:], "--out", str(out)])
+    assert res.exit_code == 1 and "exists" in res.output
