@@ -122,8 +122,33 @@ def test_cli_mosaic(tmp_path):
                                     "--index", str(idx), "--resolution", "0.5"])
     assert res.exit_code == 0, res.output
     assert "pixels per image: a.tif " in res.output and sorted(os.listdir(out.parent)) == ["i.tif", "m.tif"]
+    assert "Warp" not in res.output and "Module" not in res.output  # quiet without -v
     with rasterio.open(idx) as ds:
         used = np.unique(ds.read(1)[ds.dataset_mask() > 0])
     assert set(used) == {0, 1}
     res = CliRunner().invoke(main, ["mosaic", args[0], *args[1:], "--out", str(out)])
     assert res.exit_code == 1 and "exists" in res.output
+
+
+def test_a_failing_image_leaves_no_mosaic(tmp_path):
+    """A source that breaks while the tiles run: one-line error naming it, neither the mosaic
+    nor the index published, no temporary left."""
+    from click.testing import CliRunner
+    from test_faults import _frame_job
+
+    from orthowarp.cli import main
+
+    args = _frame_job(tmp_path, "a")
+    with rasterio.open(tmp_path / "b.tif", "w", driver="GTiff", width=64, height=48, count=3, dtype="uint8",
+                       tiled=True, blockxsize=16, blockysize=16, compress="deflate") as dst:
+        dst.write(np.random.default_rng(1).integers(1, 255, (3, 48, 64), dtype=np.uint8))
+    data = (tmp_path / "b.tif").read_bytes()
+    (tmp_path / "b.tif").write_bytes(data[:len(data) // 2])  # its header reads, its blocks do not
+    with open(tmp_path / "ext.csv", "a") as f:
+        f.write("b,500015,5200000,600,1,-2,30\n")
+    out = tmp_path / "out"
+    res = CliRunner().invoke(main, ["mosaic", args[0], str(tmp_path / "b.tif"), *args[1:], "--out",
+                                    str(out / "m.tif"), "--index", str(out / "i.tif"), "--resolution", "0.5"])
+    assert res.exit_code == 1, res.output
+    assert "b.tif'" in res.output and "Traceback" not in res.output
+    assert not out.exists() or os.listdir(out) == []
