@@ -368,6 +368,12 @@ def _frame_orientations(images, int_param, ext_param, crs):
 @click.option("--resolution", type=float, help="Pixel size in CRS units (default: the images' mean GSD).")
 @click.option("--resampling", type=click.Choice(["nearest", "bilinear", "bicubic", "lanczos"]), default="bilinear",
               show_default=True)
+@click.option("--blend", type=click.Choice(["feather", "none"]), default="feather", show_default=True,
+              help="Feather across seams (and towards image borders), or take each pixel from one image.")
+@click.option("--feather", type=float, default=32.0, show_default=True, help="Width of the blend, output pixels.")
+@click.option("--no-balance", is_flag=True, help="No radiometric balancing (gain and offset per image and band).")
+@click.option("--reference", type=int, default=None,
+              help="Balancing keeps this image's radiometry (its position in IMAGES, from 0); default: the mean.")
 @click.option("--compress-level", type=int, default=None, help="Deflate level 1-12 (default 6).")
 @click.option("--dtype", type=click.Choice(["uint8", "uint16", "float32"]), help="Output data type (default: the sources').")
 @click.option("--overwrite", is_flag=True, help="Replace existing outputs.")
@@ -377,9 +383,11 @@ def _frame_orientations(images, int_param, ext_param, crs):
 @click.option("--device", default=None, help="Warp device (cpu, cuda, cuda:N); default: first GPU, else CPU.")
 @click.pass_context
 def mosaic(ctx, images, int_param, ext_param, dem, height, out_path, index_path, crs, resolution, resampling,
-           compress_level, dtype, overwrite, no_refraction, geoid, same_vertical_datum, device):
+           blend, feather, no_balance, reference, compress_level, dtype, overwrite, no_refraction, geoid,
+           same_vertical_datum, device):
     """Mosaic frame IMAGES into one cloud-optimized GeoTIFF: each pixel from the image that sees
-    its ground most nearly from above (smallest off-nadir angle)."""
+    its ground most nearly from above (smallest off-nadir angle), feathered across the seams,
+    the images' radiometry balanced by gains and offsets from their overlaps."""
     from .errors import ParamError
     from .pipeline.dem import Dem
     from .pipeline.mosaic import mosaic as make_mosaic
@@ -389,7 +397,8 @@ def mosaic(ctx, images, int_param, ext_param, dem, height, out_path, index_path,
     jobs = _frame_orientations(images, int_param, ext_param, crs)
     terrain = Dem.from_file(dem) if dem is not None else height
     r = make_mosaic(jobs, out_path, dem=terrain, crs=crs, resolution=resolution, resampling=resampling,
-                    refraction=not no_refraction, dtype=dtype, index=index_path, compress_level=compress_level,
+                    refraction=not no_refraction, dtype=dtype, index=index_path, blend=blend, feather=feather,
+                    balance=not no_balance, reference=reference, compress_level=compress_level,
                     overwrite=overwrite, device=device, geoid=geoid, same_vertical_datum=same_vertical_datum,
                     cancel=ctx.meta.get("orthowarp.stop"))
     if not ctx.obj["quiet"]:

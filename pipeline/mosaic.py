@@ -1,20 +1,23 @@
 """Orthomosaics: many frame images to one cloud-optimized GeoTIFF, tile by tile.
 
-First increment of the mosaic engine (see the README's status): the mosaic's grid is the
-union of the images' ortho grids at one resolution, cut into tiles; for each tile, every image
-whose footprint meets it is projected straight into the tile by
+The mosaic's grid is the union of the images' ortho grids at one resolution, cut into tiles;
+for each tile, every image whose footprint meets it is projected straight into the tile by
 :class:`~orthowarp.pipeline.ortho.ImageTiles` (the ortho's own tile function: no intermediate
-orthos), and each pixel takes its value from the image that sees its ground point most nearly
+orthos). Each pixel takes its value from the image that sees its ground point most nearly
 from above: the smallest off-nadir angle, which minimises relief displacement (the seamlines
-are then the curves of equal off-nadir angle between neighbouring images). The angle is
-computed from the camera centre and the ground point on the DEM at the tile's coarse-grid
-nodes (every 16 output pixels) and interpolated bilinearly between them. A tile is a pure
-function of the tile and the inputs; memory is bounded by the tile size, whatever the number
-of images.
+are the curves of equal off-nadir angle between neighbouring images). The angle is computed
+from the camera centre and the ground point on the DEM at the tile's coarse-grid nodes (every
+16 output pixels) and interpolated bilinearly between them, so seams are continuous across
+tiles. With feathering, the images whose angle lies within a band of the smallest share a
+pixel, their weights falling linearly across the band (a chosen width in output pixels), and
+an image's weight falls to zero towards its border over the same width. Radiometric
+balancing applies per image and band a gain and an offset from one least-squares solve over
+the overlaps' statistics on a reduced grid. A tile is a pure function of the tile and the
+inputs; memory is bounded by the tile size, whatever the number of images.
 
-Optionally a per-pixel source-index raster (uint16, the image's position in the input list;
-masked, by its internal mask, where no image has a value) is written beside the mosaic and
-published together with it.
+Optionally a per-pixel source-index raster (uint16, the image's position in the input list,
+the one with the largest weight; masked, by its internal mask, where no image has a value) is
+written beside the mosaic and published together with it.
 """
 
 import logging
@@ -32,7 +35,7 @@ from rasterio.enums import MaskFlags
 from .._device import quiet_warp
 from ..camera import FrameCamera
 from ..errors import GeometryError, ParamError, RasterIOError
-from ..geodesy import geodetic_to_ecef
+from ..geodesy import ecef_to_geodetic, geodetic_to_ecef
 from ..pose import Pose
 from .cog import DTYPES, CogWriter
 from .io import GDAL_ERRORS, atomic_files, check_destination, gdal_reason
@@ -57,10 +60,22 @@ class MosaicResult:
         self.__dict__.update(kw)
 
 
-def _off_nadir(geom, transform, to_frame, r0, c0, th, tw):
-    """Off-nadir angle (radians, (th, tw)) under which the image of ``geom`` sees the ground
-    point of each tile pixel: at the coarse-grid nodes from the camera centre and the ground
-    point on the DEM, bilinear in between; NaN where the DEM has no height."""
+def _upsample(node, th, tw):
+    """Bilinear values (th, tw) between coarse-grid nodes (every COARSE_STEP pixels from the
+    tile's first pixel)."""
+    ki = np.arange(node.shape[0]) * COARSE_STEP
+    kj = np.arange(node.shape[1]) * COARSE_STEP
+    rows, cols = np.arange(th, dtype=float), np.arange(tw, dtype=float)
+    along = np.stack([np.interp(cols, kj, node[i]) for i in range(node.shape[0])])  # (nodes_i, tw)
+    return np.stack([np.interp(rows, ki, along[:, j]) for j in range(tw)], axis=1)
+
+
+def _fields(geom, transform, to_frame, r0, c0, th, tw):
+    """Per tile pixel, from the image of ``geom``: the off-nadir angle (radians) under which it
+    sees the pixel's ground point, the distance (source pixels) of that point's image from the
+    image's border, and the source pixels per output pixel (a scalar). Computed at the
+    coarse-grid nodes from the camera centre and the ground point on the DEM, bilinear in
+    between; NaN where the DEM has no height."""
     uv = coarse_grid(transform, to_frame, r0, c0, th, tw)
     u, v = uv[..., 0], uv[..., 1]
     h = geom.dem.sample(u, v)
@@ -73,20 +88,22 @@ def _off_nadir(geom, transform, to_frame, r0, c0, th, tw):
         up = np.broadcast_to([0.0, 0.0, 1.0], ground.shape)
     ray = np.asarray(geom.pose.center, float) - ground
     cos = np.einsum("...i,...i->...", ray, up) / np.linalg.norm(ray, axis=-1)
-    node = np.arccos(np.clip(cos, -1.0, 1.0))
-    # bilinear between the nodes (every COARSE_STEP pixels from the tile's first pixel)
-    ki = np.arange(node.shape[0]) * COARSE_STEP
-    kj = np.arange(node.shape[1]) * COARSE_STEP
-    rows = np.arange(th, dtype=float)
-    cols = np.arange(tw, dtype=float)
-    along = np.stack([np.interp(cols, kj, node[i]) for i in range(node.shape[0])])  # (nodes_i, tw)
-    return np.stack([np.interp(rows, ki, along[:, j]) for j in range(tw)], axis=1)
+    angle = np.arccos(np.clip(cos, -1.0, 1.0))
+    pix = geom.project_frame(np.stack([u, v, h], -1).reshape(-1, 3)).reshape(*u.shape, 2)
+    w, hh = geom.image_size
+    edge = np.minimum(np.minimum(pix[..., 0], w - pix[..., 0]), np.minimum(pix[..., 1], hh - pix[..., 1]))
+    with np.errstate(invalid="ignore"):
+        steps = np.concatenate([np.hypot(*np.diff(pix, axis=ax).reshape(-1, 2).T) for ax in (0, 1)])
+    steps = steps[np.isfinite(steps)]
+    scale = float(np.median(steps)) / COARSE_STEP if len(steps) else 1.0
+    return _upsample(angle, th, tw), _upsample(edge, th, tw), scale
 
 
 @quiet_warp()
 def mosaic(images, dst, *, dem, crs=None, resolution=None, resampling="bilinear", refraction=True, dtype=None,
-           index=None, compress_level=None, tile_size=512, overwrite=False, device=None, workers=None,
-           geoid=None, same_vertical_datum=False, cancel=None):
+           index=None, blend="feather", feather=32, balance=True, reference=None, compress_level=None,
+           tile_size=512, overwrite=False, device=None, workers=None, geoid=None, same_vertical_datum=False,
+           cancel=None):
     """Mosaic frame images into one cloud-optimized GeoTIFF (deflate, internal mask, overviews).
 
     Parameters
@@ -106,7 +123,23 @@ def mosaic(images, dst, *, dem, crs=None, resolution=None, resampling="bilinear"
     dtype : {"uint8", "uint16", "float32"}, optional
         Default: the sources'.
     index : str or os.PathLike, optional
-        Also write the per-pixel source index (uint16 COG; masked where no image has a value).
+        Also write the per-pixel source index (uint16 COG; masked where no image has a value):
+        the image with the largest weight.
+    blend : {"feather", "none"}, optional
+        "none": each pixel from the image with the smallest off-nadir angle. "feather": the
+        images whose angle is within the feather band of the smallest share the pixel, their
+        weights falling linearly across the band (``feather`` output pixels wide around each
+        seam); an image's weight also falls to zero over the same width towards its border, so
+        footprint edges inside another image's cover do not show.
+    feather : float, optional
+        Width of the blend across seams, output pixels.
+    balance : bool, optional
+        Radiometric balancing: per image and band a gain and an offset, estimated by least
+        squares from the images' overlaps (means and standard deviations on a reduced grid,
+        one global solve) and applied before blending.
+    reference : int, optional
+        With ``balance``: the image (position in ``images``) whose radiometry is kept; default:
+        the gains' geometric mean is 1 and the offsets' mean 0.
     compress_level : int, optional
         Deflate level 1-12 (default 6).
     tile_size : int, optional
@@ -135,6 +168,12 @@ def mosaic(images, dst, *, dem, crs=None, resolution=None, resampling="bilinear"
         raise ParamError(f"resampling must be one of {sorted(RESAMPLING)}, got {resampling!r}")
     if dtype is not None and dtype not in DTYPES:
         raise ParamError(f"dtype must be one of {DTYPES}, got {dtype!r}")
+    if blend not in ("feather", "none"):
+        raise ParamError(f"blend must be 'feather' or 'none', got {blend!r}")
+    if not np.isfinite(feather) or feather <= 0:
+        raise ParamError(f"feather must be a positive width in pixels, got {feather!r}")
+    if reference is not None and not (isinstance(reference, (int, np.integer)) and 0 <= reference < len(images)):
+        raise ParamError(f"reference must be an image's position 0-{len(images) - 1}, got {reference!r}")
     if int(tile_size) < 16 or int(tile_size) % 16:
         raise ParamError(f"tile_size must be a positive multiple of 16, got {tile_size}")
     tile_size = int(tile_size)
@@ -209,12 +248,26 @@ def mosaic(images, dst, *, dem, crs=None, resolution=None, resampling="bilinear"
     tiles = [(r0, c0, min(tile_size, rows - r0), min(tile_size, cols - c0))
              for r0 in range(0, rows, tile_size) for c0 in range(0, cols, tile_size)]
 
+    # camera heights above the ground (for the feather band's width in angle)
+    heights = []
+    for geom in geoms:
+        c = np.asarray(geom.pose.center, float)
+        z = float(ecef_to_geodetic(c)[2]) if geom.geocentric else float(c[2])
+        above = z - 0.5 * (geom.dem.hmin + geom.dem.hmax)
+        heights.append(max(float(above), 1.0))
+    gains = np.ones((len(images), count))
+    offsets = np.zeros((len(images), count))
+    if balance and len(images) > 1:
+        t = time.perf_counter()
+        gains, offsets = _balance(renderers, [(f[0], g) for f, g in zip(facts, geoms)], out_crs, transform,
+                                  rows, cols, foot, count, reference, cancel, dst, resampling, out_dtype, src_dtype)
+        timer.span("prepare", t)
+    top = None if is_float else float(np.iinfo(out_dtype).max)
+
     def run(tile, writers):
         _check_cancel(cancel, dst)
         r0, c0, th, tw = tile
-        best = np.full((th, tw, count), np.nan if is_float else 0, out_dtype)
-        best_angle = np.full((th, tw), np.inf)
-        source = np.full((th, tw), NO_SOURCE, np.uint16)
+        cand = []  # (k, values float64 (th, tw, count), valid, angle, edge, scale)
         for k, (fr0, fr1, fc0, fc1) in enumerate(foot):
             if fr1 <= r0 or fr0 >= r0 + th or fc1 <= c0 or fc0 >= c0 + tw:
                 continue
@@ -225,13 +278,42 @@ def mosaic(images, dst, *, dem, crs=None, resolution=None, resampling="bilinear"
             v, ok = values.numpy(), valid.numpy().view(bool)
             timer.span("d2h", t)
             t = time.perf_counter()
-            angle = _off_nadir(geoms[k], transform, to_frames[k], r0, c0, th, tw)
-            take = ok & (angle < best_angle)
-            best[take], best_angle[take], source[take] = v[take], angle[take], k
+            angle, edge, scale = _fields(geoms[k], transform, to_frames[k], r0, c0, th, tw)
+            ok = ok & np.isfinite(angle)
+            if ok.any():
+                cand.append((k, v.astype(np.float64) * gains[k] + offsets[k], ok, angle, edge, scale))
             timer.span("prepare", t)
         t = time.perf_counter()
+        source = np.full((th, tw), NO_SOURCE, np.uint16)
+        out = np.zeros((th, tw, count))
+        if cand:
+            bands = [res * feather / heights[k] for k, *_ in cand]  # the feather band, radians
+            eff = []
+            for (k, v, ok, angle, edge, scale), band in zip(cand, bands):
+                e = angle.copy()
+                if blend == "feather":  # fade towards the image's border over the same width
+                    e += band * np.clip(1.0 - np.nan_to_num(edge, nan=0.0) / (feather * scale), 0.0, 1.0)
+                eff.append(np.where(ok, e, np.inf))
+            eff = np.stack(eff)
+            best = np.argmin(eff, axis=0)
+            lo = np.take_along_axis(eff, best[None], 0)[0]
+            if blend == "none":
+                weights = (np.arange(len(cand))[:, None, None] == best[None]).astype(float)
+            else:
+                weights = np.stack([np.clip(1.0 - (e - lo) / b, 0.0, 1.0) for e, b in zip(eff, bands)])
+            weights[~np.isfinite(eff)] = 0.0
+            total = weights.sum(axis=0)
+            valid = total > 0
+            acc = sum(w[..., None] * np.nan_to_num(c[1]) for w, c in zip(weights, cand))
+            out[valid] = acc[valid] / total[valid][:, None]
+            ks = np.array([c[0] for c in cand])
+            source[valid] = ks[np.argmax(weights, axis=0)][valid]
         valid = source != NO_SOURCE
-        writers[0].write(r0, c0, best, valid, copy=False)
+        if top is not None:
+            block = np.clip(np.rint(out), 0, top).astype(out_dtype)
+        else:
+            block = np.where(valid[..., None], out, np.nan).astype(np.float32)
+        writers[0].write(r0, c0, block, valid, copy=False)
         if len(writers) > 1:
             writers[1].write(r0, c0, source[..., None], valid, copy=False)
         with used_lock:
@@ -270,4 +352,93 @@ def mosaic(images, dst, *, dem, crs=None, resolution=None, resampling="bilinear"
             r.close()
     return MosaicResult(path=dst, index=outputs[1] if index is not None else None, crs=out_crs,
                         transform=transform, shape=(rows, cols), resolution=res,
-                        pixels_per_image=used.tolist(), profile=timer.profile())
+                        pixels_per_image=used.tolist(), gains=gains, offsets=offsets, profile=timer.profile())
+
+
+def _balance(renderers, sources, out_crs, transform, rows, cols, foot, count, reference, cancel, name, resampling,
+             out_dtype, src_dtype, max_pixels=250_000):
+    """Per image and band, gain and offset (both (n_images, count)) that make the images agree
+    in their overlaps: each image rendered alone on a reduced grid of the mosaic (at most
+    ``max_pixels`` pixels; reduced, area-averaged reads), per overlapping pair and band the
+    mean and standard deviation over the pixels both cover, then one weighted least-squares
+    solve for log gains (log s_i + log a_i = log s_j + log a_j) and one for offsets
+    (a_i m_i + b_i = a_j m_j + b_j), the datum fixed by ``reference`` or by zero means; an
+    image without overlaps keeps gain 1, offset 0."""
+    n = len(renderers)
+    f = max(1, int(np.ceil(np.sqrt(rows * cols / max_pixels))))
+    crows, ccols = -(-rows // f), -(-cols // f)
+    ctr = transform * Affine.scale(f)
+    coarse = []
+    for (src, geom), (fr0, fr1, fc0, fc1) in zip(sources, foot):
+        _check_cancel(cancel, name)
+        r0, r1 = max(fr0 // f, 0), min(-(-fr1 // f), crows)
+        c0, c1 = max(fc0 // f, 0), min(-(-fc1 // f), ccols)
+        it = ImageTiles(src, geom, out_crs, ctr, count=count, out_dtype="float32", resampling=resampling,
+                        masked=True, src_dtype="float32")
+        try:
+            values, valid = it.render(r0, c0, r1 - r0, c1 - c0)
+        finally:
+            it.close()
+        if values is None:
+            coarse.append(None)
+            continue
+        coarse.append((r0, c0, values.numpy().astype(np.float64), valid.numpy().view(bool)))
+    eq_g, eq_b = [], []  # (i, j, weight, stats) per overlap
+    for i in range(n):
+        for j in range(i + 1, n):
+            if coarse[i] is None or coarse[j] is None:
+                continue
+            ri, ci, vi, oki = coarse[i]
+            rj, cj, vj, okj = coarse[j]
+            r0, r1 = max(ri, rj), min(ri + oki.shape[0], rj + okj.shape[0])
+            c0, c1 = max(ci, cj), min(ci + oki.shape[1], cj + okj.shape[1])
+            if r0 >= r1 or c0 >= c1:
+                continue
+            a = vi[r0 - ri:r1 - ri, c0 - ci:c1 - ci]
+            b = vj[r0 - rj:r1 - rj, c0 - cj:c1 - cj]
+            both = oki[r0 - ri:r1 - ri, c0 - ci:c1 - ci] & okj[r0 - rj:r1 - rj, c0 - cj:c1 - cj]
+            both &= np.isfinite(a).all(axis=-1) & np.isfinite(b).all(axis=-1)
+            m = int(both.sum())
+            if m < 50:
+                continue
+            eq_g.append((i, j, np.sqrt(m), a[both].mean(0), b[both].mean(0), a[both].std(0), b[both].std(0)))
+    gains, offsets = np.ones((n, count)), np.zeros((n, count))
+    if not eq_g:
+        return gains, offsets
+    for band in range(count):
+        rows_g, rhs_g = [], []
+        for i, j, w, mi, mj, si, sj in eq_g:
+            if si[band] > 0 and sj[band] > 0:
+                row = np.zeros(n)
+                row[i], row[j] = w, -w
+                rows_g.append(row)
+                rhs_g.append(w * (np.log(sj[band]) - np.log(si[band])))
+        x = _solve(rows_g, rhs_g, n, reference)
+        a = np.exp(x)
+        rows_b, rhs_b = [], []
+        for i, j, w, mi, mj, si, sj in eq_g:
+            row = np.zeros(n)
+            row[i], row[j] = w, -w
+            rows_b.append(row)
+            rhs_b.append(w * (a[j] * mj[band] - a[i] * mi[band]))
+        gains[:, band], offsets[:, band] = a, _solve(rows_b, rhs_b, n, reference)
+    return gains, offsets
+
+
+def _solve(rows, rhs, n, reference):
+    """Least squares for n unknowns from weighted difference equations, the datum fixed by
+    ``reference`` (its unknown 0) or by a zero sum, every unknown weakly held at 0 (images
+    without equations)."""
+    a = list(rows)
+    b = list(rhs)
+    datum = np.zeros(n)
+    if reference is None:
+        datum[:] = 1.0
+    else:
+        datum[reference] = 1.0
+    scale = max((np.abs(r).max() for r in rows), default=1.0)
+    a.append(datum * scale * 10.0)
+    b.append(0.0)
+    a += list(np.eye(n) * scale * 1e-6)
+    b += [0.0] * n
+    return np.linalg.lstsq(np.asarray(a), np.asarray(b), rcond=None)[0]

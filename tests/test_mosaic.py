@@ -39,7 +39,7 @@ def pair(tmp_path_factory):
 def test_mosaic_of_two_frames_matches_the_truth_and_the_nadir_rule(pair, tmp_path, device):
     sc, images, ref_poses, _ = pair
     res = mosaic(images, tmp_path / "m.tif", dem=sc.dem, refraction=False, index=tmp_path / "i.tif", device=device,
-                 tile_size=64)
+                 tile_size=64, blend="none")
     assert sorted(os.listdir(tmp_path)) == ["i.tif", "m.tif"]
     with rasterio.open(res.path) as ds:
         assert ds.tags(ns="IMAGE_STRUCTURE")["LAYOUT"] == "COG" and ds.crs.to_epsg() == 32632
@@ -73,6 +73,68 @@ def test_mosaic_of_two_frames_matches_the_truth_and_the_nadir_rule(pair, tmp_pat
     assert agree > 0.995, agree
 
 
+@pytest.fixture(scope="module")
+def brighter(pair):
+    """The pair with the second image 1.25 x brighter plus 0.3 (another exposure)."""
+    sc, images, ref_poses, folder = pair
+    with rasterio.open(images[1][0]) as ds:
+        img = ds.read(1).astype(np.float64)
+    b = write_image(folder / "b_bright.tif", 1.25 * img + 0.3, "float32")
+    return sc, [images[0], (b, images[1][1], images[1][2])], ref_poses
+
+
+def test_balancing_recovers_gain_and_offset(brighter, tmp_path):
+    sc, images, _ = brighter
+    res = mosaic(images, tmp_path / "m.tif", dem=sc.dem, refraction=False, reference=0, device="cpu")
+    # image 1 brought back to image 0's radiometry: gain 1 / 1.25, offset -0.3 / 1.25
+    np.testing.assert_allclose(res.gains[:, 0], [1.0, 0.8], rtol=0.01)
+    np.testing.assert_allclose(res.offsets[:, 0], [0.0, -0.24], atol=0.01 * sc.texture.std + 0.01)
+    m, data, valid, t = measure(sc, res)
+    assert m["rms"] <= RMS_MAX, describe(m)
+    balanced = np.sqrt(np.mean((data - t)[valid] ** 2))
+    plain = mosaic(images, tmp_path / "p.tif", dem=sc.dem, refraction=False, balance=False, device="cpu")
+    _, pdata, pvalid, pt = measure(sc, plain)
+    unbalanced = np.sqrt(np.mean((pdata - pt)[pvalid] ** 2))
+    print(f"\n[balancing] gains {res.gains[:, 0]}, offsets {res.offsets[:, 0]}; error vs truth "
+          f"{balanced:.4f} balanced, {unbalanced:.4f} not (texture std {sc.texture.std:.3f})")
+    assert balanced < 0.15 * sc.texture.std < unbalanced
+
+
+def test_feathering_smooths_the_seam(brighter, tmp_path):
+    """Without balancing, the brighter image's region differs by a step: feathering spreads it
+    over the band (the largest change between neighbouring pixels across the seam drops), and
+    the mosaic stays registered."""
+    sc, images, _ = brighter
+    jumps = {}
+    for blend in ("none", "feather"):
+        res = mosaic(images, tmp_path / f"{blend}.tif", dem=sc.dem, refraction=False, balance=False, blend=blend,
+                     feather=40, index=tmp_path / f"{blend}_i.tif", device="cpu")
+        _, data, valid, t = measure(sc, res)
+        with rasterio.open(res.index) as ds:
+            idx = ds.read(1)
+        # the step at the seam: mosaic minus truth, its change between horizontal neighbours
+        # on either side of the seam (index changes), as a median over the seam's rows
+        err = np.where(valid, data - t, np.nan)
+        seam = (idx[:, 1:] != idx[:, :-1]) & valid[:, 1:] & valid[:, :-1]
+        r, c = np.nonzero(seam)
+        k = 20  # pixels on either side
+        ok = (c - k >= 0) & (c + k + 1 < err.shape[1])
+        steps = [np.nanmean(err[i, j + 1:j + 1 + k]) - np.nanmean(err[i, j - k:j]) for i, j in zip(r[ok], c[ok])]
+        local = [np.nanmax(np.abs(np.diff(err[i, j - k:j + k + 1]))) for i, j in zip(r[ok], c[ok])]
+        jumps[blend] = (abs(np.nanmedian(steps)), np.nanmedian(local))
+        assert len(steps) > 50
+    print(f"\n[feathering] step across the seam (none, feather): {jumps['none'][0]:.3f}, {jumps['feather'][0]:.3f}; "
+          f"largest neighbour change: {jumps['none'][1]:.3f}, {jumps['feather'][1]:.3f}")
+    assert jumps["feather"][1] < 0.5 * jumps["none"][1]
+    # feathered and balanced (the defaults; image 0's radiometry kept, which is the truth's):
+    # registered and valued like the truth
+    res = mosaic(images, tmp_path / "default.tif", dem=sc.dem, refraction=False, reference=0, device="cpu")
+    m, data, valid, t = measure(sc, res)
+    print(f"[defaults] {describe(m)}, error vs truth {np.sqrt(np.mean((data - t)[valid] ** 2)):.4f}")
+    assert m["rms"] <= RMS_MAX, describe(m)
+    assert np.sqrt(np.mean((data - t)[valid] ** 2)) < 0.15 * sc.texture.std
+
+
 def test_one_image_mosaic_is_its_ortho_where_grids_meet(pair, tmp_path):
     sc, images, _, _ = pair
     res = mosaic(images[:1], tmp_path / "m.tif", dem=sc.dem, refraction=False, device="cpu")
@@ -87,6 +149,12 @@ def test_bad_mosaic_inputs(pair, tmp_path):
         mosaic([], tmp_path / "m.tif", dem=sc.dem)
     with pytest.raises(ParamError, match=r"images\[0\] must be"):
         mosaic([(images[0][0], sc.camera)], tmp_path / "m.tif", dem=sc.dem)
+    with pytest.raises(ParamError, match="blend must be"):
+        mosaic(images, tmp_path / "m.tif", dem=sc.dem, blend="laplacian")
+    with pytest.raises(ParamError, match="feather must be"):
+        mosaic(images, tmp_path / "m.tif", dem=sc.dem, feather=0)
+    with pytest.raises(ParamError, match="reference must be"):
+        mosaic(images, tmp_path / "m.tif", dem=sc.dem, reference=2)
     with pytest.raises(ParamError, match="same file"):
         mosaic(images, tmp_path / "m.tif", dem=sc.dem, index=tmp_path / "m.tif")
     with pytest.raises(ParamError, match="one of the source images"):
