@@ -368,6 +368,8 @@ def _frame_orientations(images, int_param, ext_param, crs):
 @click.option("--resolution", type=float, help="Pixel size in CRS units (default: the images' mean GSD).")
 @click.option("--resampling", type=click.Choice(["nearest", "bilinear", "bicubic", "lanczos"]), default="bilinear",
               show_default=True)
+@click.option("--seamlines", "seamlines_path", type=click.Path(dir_okay=False),
+              help="Also write each image's part of the mosaic as GeoJSON polygons (longitude/latitude).")
 @click.option("--blend", type=click.Choice(["feather", "none"]), default="feather", show_default=True,
               help="Feather across seams (and towards image borders), or take each pixel from one image.")
 @click.option("--feather", type=float, default=32.0, show_default=True, help="Width of the blend, output pixels.")
@@ -382,8 +384,8 @@ def _frame_orientations(images, int_param, ext_param, crs):
 @click.option("--same-vertical-datum", is_flag=True, help="Take DEM and position heights as the same vertical datum.")
 @click.option("--device", default=None, help="Warp device (cpu, cuda, cuda:N); default: first GPU, else CPU.")
 @click.pass_context
-def mosaic(ctx, images, int_param, ext_param, dem, height, out_path, index_path, crs, resolution, resampling,
-           blend, feather, no_balance, reference, compress_level, dtype, overwrite, no_refraction, geoid,
+def mosaic(ctx, images, int_param, ext_param, dem, height, out_path, index_path, seamlines_path, crs, resolution,
+           resampling, blend, feather, no_balance, reference, compress_level, dtype, overwrite, no_refraction, geoid,
            same_vertical_datum, device):
     """Mosaic frame IMAGES into one cloud-optimized GeoTIFF: each pixel from the image that sees
     its ground most nearly from above (smallest off-nadir angle), feathered across the seams,
@@ -397,7 +399,8 @@ def mosaic(ctx, images, int_param, ext_param, dem, height, out_path, index_path,
     jobs = _frame_orientations(images, int_param, ext_param, crs)
     terrain = Dem.from_file(dem) if dem is not None else height
     r = make_mosaic(jobs, out_path, dem=terrain, crs=crs, resolution=resolution, resampling=resampling,
-                    refraction=not no_refraction, dtype=dtype, index=index_path, blend=blend, feather=feather,
+                    refraction=not no_refraction, dtype=dtype, index=index_path, seamlines=seamlines_path,
+                    blend=blend, feather=feather,
                     balance=not no_balance, reference=reference, compress_level=compress_level,
                     overwrite=overwrite, device=device, geoid=geoid, same_vertical_datum=same_vertical_datum,
                     cancel=ctx.meta.get("orthowarp.stop"))

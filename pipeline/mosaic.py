@@ -52,9 +52,10 @@ NO_SOURCE = 65535  # the index raster's value where no image has a pixel
 
 
 class MosaicResult:
-    """What :func:`mosaic` wrote: ``path``, ``index`` (path or None), ``crs``, ``transform``,
-    ``shape`` (rows, cols), ``resolution`` and ``pixels_per_image`` (list: output pixels each
-    image supplied)."""
+    """What :func:`mosaic` wrote: ``path``, ``index`` and ``seamlines`` (paths or None),
+    ``crs``, ``transform``, ``shape`` (rows, cols), ``resolution``, ``pixels_per_image`` (list:
+    output pixels in which each image has the largest weight), ``gains`` and ``offsets``
+    ((images, bands): the radiometric balance applied) and ``profile``."""
 
     def __init__(self, **kw):
         self.__dict__.update(kw)
@@ -101,7 +102,7 @@ def _fields(geom, transform, to_frame, r0, c0, th, tw):
 
 @quiet_warp()
 def mosaic(images, dst, *, dem, crs=None, resolution=None, resampling="bilinear", refraction=True, dtype=None,
-           index=None, blend="feather", feather=32, balance=True, reference=None, compress_level=None,
+           index=None, seamlines=None, blend="feather", feather=32, balance=True, reference=None, compress_level=None,
            tile_size=512, overwrite=False, device=None, workers=None, geoid=None, same_vertical_datum=False,
            cancel=None):
     """Mosaic frame images into one cloud-optimized GeoTIFF (deflate, internal mask, overviews).
@@ -125,6 +126,10 @@ def mosaic(images, dst, *, dem, crs=None, resolution=None, resampling="bilinear"
     index : str or os.PathLike, optional
         Also write the per-pixel source index (uint16 COG; masked where no image has a value):
         the image with the largest weight.
+    seamlines : str or os.PathLike, optional
+        Also write the images' parts of the mosaic as GeoJSON (RFC 7946, longitude/latitude):
+        one feature per image, a (Multi)Polygon traced on the source index at a reduced
+        resolution (at most ~4 Mpix), with the image's path, position and pixel count.
     blend : {"feather", "none"}, optional
         "none": each pixel from the image with the smallest off-nadir angle. "feather": the
         images whose angle is within the feather band of the smallest share the pixel, their
@@ -178,9 +183,10 @@ def mosaic(images, dst, *, dem, crs=None, resolution=None, resampling="bilinear"
         raise ParamError(f"tile_size must be a positive multiple of 16, got {tile_size}")
     tile_size = int(tile_size)
     dst = os.fspath(dst)
-    outputs = [dst] + ([os.fspath(index)] if index is not None else [])
+    outputs = [dst] + ([os.fspath(index)] if index is not None else []) + \
+        ([os.fspath(seamlines)] if seamlines is not None else [])
     if len(set(map(os.path.abspath, outputs))) != len(outputs):
-        raise ParamError(f"The mosaic and its index are the same file '{dst}'")
+        raise ParamError(f"The mosaic, its index and its seamlines must be different files ('{dst}')")
     for path in outputs:
         check_destination(path, overwrite=overwrite)
     t_wall = time.perf_counter()
@@ -263,6 +269,8 @@ def mosaic(images, dst, *, dem, crs=None, resolution=None, resampling="bilinear"
                                   rows, cols, foot, count, reference, cancel, dst, resampling, out_dtype, src_dtype)
         timer.span("prepare", t)
     top = None if is_float else float(np.iinfo(out_dtype).max)
+    step = max(1, int(np.ceil(np.sqrt(rows * cols / 4e6))))  # the seamlines' reduced grid
+    coarse_index = np.full((-(-rows // step), -(-cols // step)), NO_SOURCE, np.uint16) if seamlines else None
 
     def run(tile, writers):
         _check_cancel(cancel, dst)
@@ -316,6 +324,11 @@ def mosaic(images, dst, *, dem, crs=None, resolution=None, resampling="bilinear"
         writers[0].write(r0, c0, block, valid, copy=False)
         if len(writers) > 1:
             writers[1].write(r0, c0, source[..., None], valid, copy=False)
+        if coarse_index is not None:  # every step-th pixel, aligned on the whole grid
+            i0, j0 = (-r0) % step, (-c0) % step
+            sub = source[i0::step, j0::step]
+            coarse_index[(r0 + i0) // step:(r0 + i0) // step + sub.shape[0],
+                         (c0 + j0) // step:(c0 + j0) // step + sub.shape[1]] = sub
         with used_lock:
             np.add.at(used, source[valid], 1)
         timer.span("queue", t)
@@ -342,6 +355,9 @@ def mosaic(images, dst, *, dem, crs=None, resolution=None, resampling="bilinear"
                 t = time.perf_counter()
                 for w in writers:
                     w.close()
+                if seamlines is not None:
+                    _write_seamlines(tmps[-1], coarse_index, transform * Affine.scale(step), out_crs,
+                                     [f[0] for f in facts], used, name=outputs[-1])
                 timer.span("finish", t)
             except BaseException:
                 for w in writers:
@@ -350,9 +366,41 @@ def mosaic(images, dst, *, dem, crs=None, resolution=None, resampling="bilinear"
     finally:
         for r in renderers:
             r.close()
-    return MosaicResult(path=dst, index=outputs[1] if index is not None else None, crs=out_crs,
+    return MosaicResult(path=dst, index=outputs[1] if index is not None else None,
+                        seamlines=outputs[-1] if seamlines is not None else None, crs=out_crs,
                         transform=transform, shape=(rows, cols), resolution=res,
                         pixels_per_image=used.tolist(), gains=gains, offsets=offsets, profile=timer.profile())
+
+
+def _write_seamlines(path, index, transform, crs, names, used, *, name):
+    """GeoJSON of each image's part of the mosaic (see :func:`mosaic`'s ``seamlines``)."""
+    import json
+
+    from rasterio.features import shapes
+
+    to_lonlat = Transformer.from_crs(crs, "EPSG:4326", always_xy=True)
+    parts = {}
+    for geom, value in shapes(index, mask=index != NO_SOURCE, transform=transform, connectivity=4):
+        rings = []
+        for ring in geom["coordinates"]:
+            xy = np.asarray(ring, float)
+            lon, lat = to_lonlat.transform(xy[:, 0], xy[:, 1])
+            rings.append([[round(float(a), 9), round(float(b), 9)] for a, b in zip(lon, lat)])
+        parts.setdefault(int(value), []).append(rings)
+    features = []
+    for k, polys in sorted(parts.items()):
+        geometry = {"type": "Polygon", "coordinates": polys[0]} if len(polys) == 1 else \
+            {"type": "MultiPolygon", "coordinates": polys}
+        features.append({"type": "Feature", "geometry": geometry,
+                         "properties": {"image": names[k], "index": k, "pixels": int(used[k])}})
+    text = json.dumps({"type": "FeatureCollection", "features": features})
+    try:
+        with open(path, "w", encoding="utf-8") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+    except OSError as e:
+        raise RasterIOError(f"Could not write '{name}': {e.strerror or e}") from e
 
 
 def _balance(renderers, sources, out_crs, transform, rows, cols, foot, count, reference, cancel, name, resampling,

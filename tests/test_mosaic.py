@@ -135,6 +135,33 @@ def test_feathering_smooths_the_seam(brighter, tmp_path):
     assert np.sqrt(np.mean((data - t)[valid] ** 2)) < 0.15 * sc.texture.std
 
 
+def test_seamlines_trace_each_images_part(pair, tmp_path):
+    import json
+
+    from pyproj import Transformer
+
+    sc, images, _, _ = pair
+    res = mosaic(images, tmp_path / "m.tif", dem=sc.dem, refraction=False, seamlines=tmp_path / "seams.geojson",
+                 device="cpu")
+    assert sorted(os.listdir(tmp_path)) == ["m.tif", "seams.geojson"] and res.seamlines.endswith("seams.geojson")
+    doc = json.loads((tmp_path / "seams.geojson").read_text())
+    feats = doc["features"]
+    assert [f["properties"]["index"] for f in feats] == [0, 1]
+    assert [f["properties"]["image"] for f in feats] == [str(images[0][0]), str(images[1][0])]
+    assert [f["properties"]["pixels"] for f in feats] == res.pixels_per_image
+    to_utm = Transformer.from_crs("EPSG:4326", UTM32, always_xy=True)
+    for f in feats:
+        polys = [f["geometry"]["coordinates"]] if f["geometry"]["type"] == "Polygon" else f["geometry"]["coordinates"]
+        area = 0.0
+        for rings in polys:
+            for k, ring in enumerate(rings):
+                x, y = to_utm.transform(*np.asarray(ring).T)
+                a = 0.5 * abs(np.dot(x, np.roll(y, 1)) - np.dot(y, np.roll(x, 1)))
+                area += a if k == 0 else -a
+        # the traced part's area is the image's pixels times the pixel area (within the trace's steps)
+        np.testing.assert_allclose(area, f["properties"]["pixels"] * res.resolution**2, rtol=0.01)
+
+
 def test_one_image_mosaic_is_its_ortho_where_grids_meet(pair, tmp_path):
     sc, images, _, _ = pair
     res = mosaic(images[:1], tmp_path / "m.tif", dem=sc.dem, refraction=False, device="cpu")
@@ -155,7 +182,7 @@ def test_bad_mosaic_inputs(pair, tmp_path):
         mosaic(images, tmp_path / "m.tif", dem=sc.dem, feather=0)
     with pytest.raises(ParamError, match="reference must be"):
         mosaic(images, tmp_path / "m.tif", dem=sc.dem, reference=2)
-    with pytest.raises(ParamError, match="same file"):
+    with pytest.raises(ParamError, match="must be different files"):
         mosaic(images, tmp_path / "m.tif", dem=sc.dem, index=tmp_path / "m.tif")
     with pytest.raises(ParamError, match="one of the source images"):
         mosaic(images, images[0][0], dem=sc.dem, overwrite=True)
@@ -187,9 +214,11 @@ def test_cli_mosaic(tmp_path):
         f.write("b,500015,5200000,600,1,-2,30\n")
     out, idx = tmp_path / "out" / "m.tif", tmp_path / "out" / "i.tif"
     res = CliRunner().invoke(main, ["mosaic", args[0], str(tmp_path / "b.tif"), *args[1:], "--out", str(out),
-                                    "--index", str(idx), "--resolution", "0.5"])
+                                    "--index", str(idx), "--resolution", "0.5", "--seamlines", str(out.parent / "s.json"),
+                                    "--blend", "none", "--no-balance"])
     assert res.exit_code == 0, res.output
-    assert "pixels per image: a.tif " in res.output and sorted(os.listdir(out.parent)) == ["i.tif", "m.tif"]
+    assert "pixels per image: a.tif " in res.output
+    assert sorted(os.listdir(out.parent)) == ["i.tif", "m.tif", "s.json"]
     assert "Warp" not in res.output and "Module" not in res.output  # quiet without -v
     with rasterio.open(idx) as ds:
         used = np.unique(ds.read(1)[ds.dataset_mask() > 0])
