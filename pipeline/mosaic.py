@@ -44,7 +44,7 @@ from .ortho import COARSE_STEP, RESAMPLING, ImageTiles, _as_dem, _check_cancel, 
 from .geometry import FrameGeometry
 from .profile import StageTimer
 
-__all__ = ["mosaic", "MosaicResult", "NO_SOURCE"]
+__all__ = ["mosaic", "mosaic_plan", "MosaicPlan", "MosaicResult", "NO_SOURCE"]
 
 log = logging.getLogger(__name__)
 
@@ -162,23 +162,7 @@ def mosaic(images, dst, *, dem, crs=None, resolution=None, resampling="bilinear"
     MosaicResult
     """
     images = list(images)
-    if not images:
-        raise ParamError("mosaic needs at least one image")
-    for k, item in enumerate(images):
-        if len(item) != 3 or not isinstance(item[1], FrameCamera) or not isinstance(item[2], Pose):
-            raise ParamError(f"images[{k}] must be (source, FrameCamera, Pose)")
-    if len(images) >= NO_SOURCE:
-        raise ParamError(f"mosaic takes at most {NO_SOURCE - 1} images, got {len(images)}")
-    if resampling not in RESAMPLING:
-        raise ParamError(f"resampling must be one of {sorted(RESAMPLING)}, got {resampling!r}")
-    if dtype is not None and dtype not in DTYPES:
-        raise ParamError(f"dtype must be one of {DTYPES}, got {dtype!r}")
-    if blend not in ("feather", "none"):
-        raise ParamError(f"blend must be 'feather' or 'none', got {blend!r}")
-    if not np.isfinite(feather) or feather <= 0:
-        raise ParamError(f"feather must be a positive width in pixels, got {feather!r}")
-    if reference is not None and not (isinstance(reference, (int, np.integer)) and 0 <= reference < len(images)):
-        raise ParamError(f"reference must be an image's position 0-{len(images) - 1}, got {reference!r}")
+    _check_images(images, resampling, dtype, blend, feather, reference)
     if int(tile_size) < 16 or int(tile_size) % 16:
         raise ParamError(f"tile_size must be a positive multiple of 16, got {tile_size}")
     tile_size = int(tile_size)
@@ -189,17 +173,261 @@ def mosaic(images, dst, *, dem, crs=None, resolution=None, resampling="bilinear"
         raise ParamError(f"The mosaic, its index and its seamlines must be different files ('{dst}')")
     for path in outputs:
         check_destination(path, overwrite=overwrite)
-    t_wall = time.perf_counter()
-    timer = StageTimer(t_wall)
-    terrain = _as_dem(dem)
+    plan = mosaic_plan(images, dem=dem, crs=crs, resolution=resolution, resampling=resampling,
+                       refraction=refraction, dtype=dtype, blend=blend, feather=feather, balance=balance,
+                       reference=reference, device=device, geoid=geoid, same_vertical_datum=same_vertical_datum,
+                       cancel=cancel, _outputs=outputs)
+    t0 = time.perf_counter()
+    tiles = plan.tiles(tile_size)
+    n_workers = workers or (4 if plan.device_is_cuda else (os.cpu_count() or 1))
 
+    def results():
+        """Tile results in grid order, at most 2 x workers tiles in flight (bounded memory)."""
+        import collections
+
+        with ThreadPoolExecutor(max_workers=n_workers) as pool:
+            pending = collections.deque()
+            try:
+                for tile in tiles:
+                    pending.append((tile, pool.submit(plan.tile, *tile, cancel=cancel, name=dst)))
+                    if len(pending) >= 2 * n_workers:
+                        tile0, f = pending.popleft()
+                        yield tile0, f.result()
+                while pending:
+                    tile0, f = pending.popleft()
+                    yield tile0, f.result()
+            except BaseException:
+                for _, f in pending:
+                    f.cancel()
+                raise
+
+    try:
+        return plan.write(dst, results(), index=index, seamlines=seamlines, compress_level=compress_level,
+                          overwrite=overwrite, t_start=t0)
+    finally:
+        plan.close()
+
+
+class MosaicPlan:
+    """A mosaic's grid, sources and radiometric balance, and its tile function (see
+    :func:`mosaic_plan`). Picklable: a copy sent to another process (e.g. a Dask worker)
+    rebuilds its geometry and source handles there on the first tile.
+
+    Attributes
+    ----------
+    crs : pyproj.CRS
+    transform : affine.Affine
+    shape : (int, int)
+        (rows, cols).
+    resolution : float
+    count : int
+        Bands.
+    dtype : str
+        Output data type.
+    gains, offsets : ndarray, shape (images, bands)
+        The radiometric balance applied to each image before blending.
+    """
+
+    def __init__(self, sources, terrain, options, crs, transform, shape, resolution, foot, heights, count, dtype,
+                 src_dtype):
+        self.sources, self.terrain, self.options = sources, terrain, options
+        self.crs_wkt = crs.to_wkt()
+        self.transform, self.shape, self.resolution = transform, tuple(shape), float(resolution)
+        self.foot, self.heights, self.count, self.dtype, self.src_dtype = foot, heights, count, dtype, src_dtype
+        self.gains = np.ones((len(sources), count))
+        self.offsets = np.zeros((len(sources), count))
+        self._state, self._lock = None, threading.Lock()
+
+    def __getstate__(self):
+        state = dict(self.__dict__)
+        state["_state"], state["_lock"] = None, None
+        return state
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        self._lock = threading.Lock()
+
+    @property
+    def crs(self):
+        from pyproj import CRS
+
+        return CRS.from_wkt(self.crs_wkt)
+
+    @property
+    def device_is_cuda(self):
+        return self._materialise()["geoms"][0].device.is_cuda
+
+    def _materialise(self):
+        """This process's geometry, tile functions and transformers (built on first use)."""
+        with self._lock:
+            if self._state is None:
+                o = self.options
+                geoms = [FrameGeometry(camera, pose, self.terrain, refraction=o["refraction"], device=o["device"],
+                                       geoid=o["geoid"], same_vertical_datum=o["same_vertical_datum"])
+                         for _, camera, pose, _ in self.sources]
+                timer = StageTimer(time.perf_counter())
+                crs = self.crs
+                self._state = dict(
+                    geoms=geoms, timer=timer,
+                    renderers=[ImageTiles(src, geom, crs, self.transform, count=self.count, out_dtype=self.dtype,
+                                          resampling=o["resampling"], masked=masked, src_dtype=self.src_dtype,
+                                          timer=timer) for (src, _, _, masked), geom in zip(self.sources, geoms)],
+                    to_frames=[Transformer.from_crs(crs, geom.horizontal_crs, always_xy=True) for geom in geoms])
+            return self._state
+
+    def close(self):
+        """Close this process's source handles."""
+        with self._lock:
+            if self._state is not None:
+                for r in self._state["renderers"]:
+                    r.close()
+                self._state = None
+
+    def tiles(self, tile_size=512):
+        """The grid's tiles (r0, c0, rows, cols), row-major."""
+        rows, cols = self.shape
+        return [(r0, c0, min(tile_size, rows - r0), min(tile_size, cols - c0))
+                for r0 in range(0, rows, tile_size) for c0 in range(0, cols, tile_size)]
+
+    def tile(self, r0, c0, th, tw, *, cancel=None, name=None):
+        """One output tile: a pure function of the tile and the plan.
+
+        Returns
+        -------
+        block : ndarray (th, tw, bands) of the output dtype
+        valid : ndarray of bool (th, tw)
+        source : ndarray of uint16 (th, tw)
+            The image with the largest weight (NO_SOURCE where none has a value).
+        """
+        _check_cancel(cancel, name)
+        st = self._materialise()
+        o, timer = self.options, st["timer"]
+        count, res, feather = self.count, self.resolution, o["feather"]
+        cand = []  # (k, values float64 (th, tw, count), valid, angle, edge, scale)
+        for k, (fr0, fr1, fc0, fc1) in enumerate(self.foot):
+            if fr1 <= r0 or fr0 >= r0 + th or fc1 <= c0 or fc0 >= c0 + tw:
+                continue
+            values, valid = st["renderers"][k].render(r0, c0, th, tw)
+            if values is None:
+                continue
+            t = time.perf_counter()
+            v, ok = values.numpy(), valid.numpy().view(bool)
+            timer.span("d2h", t)
+            t = time.perf_counter()
+            angle, edge, scale = _fields(st["geoms"][k], self.transform, st["to_frames"][k], r0, c0, th, tw)
+            ok = ok & np.isfinite(angle)
+            if ok.any():
+                cand.append((k, v.astype(np.float64) * self.gains[k] + self.offsets[k], ok, angle, edge, scale))
+            timer.span("prepare", t)
+        t = time.perf_counter()
+        source = np.full((th, tw), NO_SOURCE, np.uint16)
+        out = np.zeros((th, tw, count))
+        if cand:
+            bands = [res * feather / self.heights[k] for k, *_ in cand]  # the feather band, radians
+            eff = []
+            for (k, v, ok, angle, edge, scale), band in zip(cand, bands):
+                e = angle.copy()
+                if o["blend"] == "feather":  # fade towards the image's border over the same width
+                    e += band * np.clip(1.0 - np.nan_to_num(edge, nan=0.0) / (feather * scale), 0.0, 1.0)
+                eff.append(np.where(ok, e, np.inf))
+            eff = np.stack(eff)
+            best = np.argmin(eff, axis=0)
+            lo = np.take_along_axis(eff, best[None], 0)[0]
+            if o["blend"] == "none":
+                weights = (np.arange(len(cand))[:, None, None] == best[None]).astype(float)
+            else:
+                weights = np.stack([np.clip(1.0 - (e - lo) / b, 0.0, 1.0) for e, b in zip(eff, bands)])
+            weights[~np.isfinite(eff)] = 0.0
+            total = weights.sum(axis=0)
+            has = total > 0
+            acc = sum(w[..., None] * np.nan_to_num(c[1]) for w, c in zip(weights, cand))
+            out[has] = acc[has] / total[has][:, None]
+            ks = np.array([c[0] for c in cand])
+            source[has] = ks[np.argmax(weights, axis=0)][has]
+        valid = source != NO_SOURCE
+        if self.dtype == "float32":
+            block = np.where(valid[..., None], out, np.nan).astype(np.float32)
+        else:
+            block = np.clip(np.rint(out), 0, float(np.iinfo(self.dtype).max)).astype(self.dtype)
+        timer.span("queue", t)
+        return block, valid, source
+
+    def write(self, dst, results, *, index=None, seamlines=None, compress_level=None, overwrite=False,
+              t_start=None):
+        """Write the mosaic from tile results, in any order: ``results`` yields
+        ((r0, c0, rows, cols), (block, valid, source)) for every tile of the grid (e.g. from
+        :meth:`tile` on a thread pool or a distributed engine). The outputs (mosaic, optional
+        index COG and seamlines GeoJSON) are published together when all tiles are in.
+
+        Returns
+        -------
+        MosaicResult
+        """
+        dst = os.fspath(dst)
+        outputs = [dst] + ([os.fspath(index)] if index is not None else []) + \
+            ([os.fspath(seamlines)] if seamlines is not None else [])
+        for path in outputs:
+            check_destination(path, overwrite=overwrite)
+        rows, cols = self.shape
+        n = len(self.sources)
+        used = np.zeros(n, np.int64)
+        step = max(1, int(np.ceil(np.sqrt(rows * cols / 4e6))))  # the seamlines' reduced grid
+        coarse_index = np.full((-(-rows // step), -(-cols // step)), NO_SOURCE, np.uint16) if seamlines else None
+        rio_crs = rasterio.crs.CRS.from_wkt(self.crs_wkt)
+        t_start = time.perf_counter() if t_start is None else t_start
+        with rasterio.Env(GDAL_CACHEMAX=256), atomic_files(outputs) as tmps:
+            writers = [CogWriter(tmps[0], width=cols, height=rows, count=self.count, dtype=self.dtype, crs=rio_crs,
+                                 transform=self.transform, level=compress_level or 6, name=dst)]
+            if index is not None:
+                writers.append(CogWriter(tmps[1], width=cols, height=rows, count=1, dtype="uint16", crs=rio_crs,
+                                         transform=self.transform, level=compress_level or 6, name=outputs[1]))
+            try:
+                for (r0, c0, th, tw), (block, valid, source) in results:
+                    writers[0].write(r0, c0, block, valid, copy=False)
+                    if index is not None:
+                        writers[1].write(r0, c0, source[..., None], valid, copy=False)
+                    np.add.at(used, source[valid], 1)
+                    if coarse_index is not None:  # every step-th pixel, aligned on the whole grid
+                        i0, j0 = (-r0) % step, (-c0) % step
+                        sub = source[i0::step, j0::step]
+                        coarse_index[(r0 + i0) // step:(r0 + i0) // step + sub.shape[0],
+                                     (c0 + j0) // step:(c0 + j0) // step + sub.shape[1]] = sub
+                for w in writers:
+                    w.close()
+                if seamlines is not None:
+                    _write_seamlines(tmps[-1], coarse_index, self.transform * Affine.scale(step), self.crs,
+                                     [src for src, *_ in self.sources], used, name=outputs[-1])
+            except BaseException:
+                for w in writers:
+                    w.abort()
+                raise
+        timer = self._state["timer"] if self._state is not None else None
+        return MosaicResult(path=dst, index=outputs[1] if index is not None else None,
+                            seamlines=outputs[-1] if seamlines is not None else None, crs=self.crs,
+                            transform=self.transform, shape=self.shape, resolution=self.resolution,
+                            pixels_per_image=used.tolist(), gains=self.gains, offsets=self.offsets,
+                            wall_s=time.perf_counter() - t_start,
+                            profile=timer.profile() if timer is not None else None)
+
+
+@quiet_warp()
+def mosaic_plan(images, *, dem, crs=None, resolution=None, resampling="bilinear", refraction=True, dtype=None,
+                blend="feather", feather=32, balance=True, reference=None, device=None, geoid=None,
+                same_vertical_datum=False, cancel=None, _outputs=()):
+    """The grid, sources and radiometric balance of a mosaic, without writing it: a
+    :class:`MosaicPlan` whose :meth:`~MosaicPlan.tile` any scheduler can run (threads, a Dask
+    cluster) and whose :meth:`~MosaicPlan.write` assembles the results. Parameters as
+    :func:`mosaic`."""
+    images = list(images)
+    _check_images(images, resampling, dtype, blend, feather, reference)
+    terrain = _as_dem(dem)
     # the sources: one band count and data type
     facts = []
     for src, camera, _ in images:
         src = os.fspath(src)
         if not os.path.exists(src):
             raise RasterIOError(f"Image '{src}' does not exist")
-        if os.path.abspath(src) in map(os.path.abspath, outputs):
+        if os.path.abspath(src) in map(os.path.abspath, _outputs):
             raise ParamError(f"Output '{src}' is one of the source images: choose another name")
         try:
             with _open_source(src) as ds:
@@ -242,134 +470,41 @@ def mosaic(images, dst, *, dem, crs=None, resolution=None, resampling="bilinear"
     # each image's footprint in mosaic pixels (rows r0-r1, cols c0-c1), one pixel of margin
     foot = [(int(np.floor((ymax - b[3]) / res)) - 1, int(np.ceil((ymax - b[1]) / res)) + 1,
              int(np.floor((b[0] - xmin) / res)) - 1, int(np.ceil((b[2] - xmin) / res)) + 1) for b in boxes]
-    log.info("mosaic of %d images -> %s: %d x %d pixels at %.4g", len(images), dst, cols, rows, res)
-
-    renderers = [ImageTiles(f[0], geom, out_crs, transform, count=count, out_dtype=out_dtype, resampling=resampling,
-                            masked=f[5], src_dtype=src_dtype, timer=timer) for f, geom in zip(facts, geoms)]
-    to_frames = [Transformer.from_crs(out_crs, geom.horizontal_crs, always_xy=True) for geom in geoms]
-    used = np.zeros(len(images), np.int64)
-    used_lock = threading.Lock()
-    is_float = out_dtype == "float32"
-    rio_crs = rasterio.crs.CRS.from_wkt(out_crs.to_wkt())
-    tiles = [(r0, c0, min(tile_size, rows - r0), min(tile_size, cols - c0))
-             for r0 in range(0, rows, tile_size) for c0 in range(0, cols, tile_size)]
-
     # camera heights above the ground (for the feather band's width in angle)
     heights = []
     for geom in geoms:
         c = np.asarray(geom.pose.center, float)
         z = float(ecef_to_geodetic(c)[2]) if geom.geocentric else float(c[2])
-        above = z - 0.5 * (geom.dem.hmin + geom.dem.hmax)
-        heights.append(max(float(above), 1.0))
-    gains = np.ones((len(images), count))
-    offsets = np.zeros((len(images), count))
+        heights.append(max(z - 0.5 * (geom.dem.hmin + geom.dem.hmax), 1.0))
+    log.info("mosaic of %d images: %d x %d pixels at %.4g", len(images), cols, rows, res)
+    options = dict(resampling=resampling, refraction=refraction, blend=blend, feather=float(feather), device=device,
+                   geoid=geoid, same_vertical_datum=same_vertical_datum)
+    plan = MosaicPlan([(f[0], cam, pose, f[5]) for f, (_, cam, pose) in zip(facts, images)], terrain, options,
+                      out_crs, transform, (rows, cols), res, foot, heights, count, out_dtype, src_dtype)
     if balance and len(images) > 1:
-        t = time.perf_counter()
-        gains, offsets = _balance(renderers, [(f[0], g) for f, g in zip(facts, geoms)], out_crs, transform,
-                                  rows, cols, foot, count, reference, cancel, dst, resampling, out_dtype, src_dtype)
-        timer.span("prepare", t)
-    top = None if is_float else float(np.iinfo(out_dtype).max)
-    step = max(1, int(np.ceil(np.sqrt(rows * cols / 4e6))))  # the seamlines' reduced grid
-    coarse_index = np.full((-(-rows // step), -(-cols // step)), NO_SOURCE, np.uint16) if seamlines else None
+        plan.gains, plan.offsets = _balance([(f[0], g) for f, g in zip(facts, geoms)], out_crs, transform, rows,
+                                            cols, foot, count, reference, cancel, "the mosaic", resampling)
+    return plan
 
-    def run(tile, writers):
-        _check_cancel(cancel, dst)
-        r0, c0, th, tw = tile
-        cand = []  # (k, values float64 (th, tw, count), valid, angle, edge, scale)
-        for k, (fr0, fr1, fc0, fc1) in enumerate(foot):
-            if fr1 <= r0 or fr0 >= r0 + th or fc1 <= c0 or fc0 >= c0 + tw:
-                continue
-            values, valid = renderers[k].render(r0, c0, th, tw)
-            if values is None:
-                continue
-            t = time.perf_counter()
-            v, ok = values.numpy(), valid.numpy().view(bool)
-            timer.span("d2h", t)
-            t = time.perf_counter()
-            angle, edge, scale = _fields(geoms[k], transform, to_frames[k], r0, c0, th, tw)
-            ok = ok & np.isfinite(angle)
-            if ok.any():
-                cand.append((k, v.astype(np.float64) * gains[k] + offsets[k], ok, angle, edge, scale))
-            timer.span("prepare", t)
-        t = time.perf_counter()
-        source = np.full((th, tw), NO_SOURCE, np.uint16)
-        out = np.zeros((th, tw, count))
-        if cand:
-            bands = [res * feather / heights[k] for k, *_ in cand]  # the feather band, radians
-            eff = []
-            for (k, v, ok, angle, edge, scale), band in zip(cand, bands):
-                e = angle.copy()
-                if blend == "feather":  # fade towards the image's border over the same width
-                    e += band * np.clip(1.0 - np.nan_to_num(edge, nan=0.0) / (feather * scale), 0.0, 1.0)
-                eff.append(np.where(ok, e, np.inf))
-            eff = np.stack(eff)
-            best = np.argmin(eff, axis=0)
-            lo = np.take_along_axis(eff, best[None], 0)[0]
-            if blend == "none":
-                weights = (np.arange(len(cand))[:, None, None] == best[None]).astype(float)
-            else:
-                weights = np.stack([np.clip(1.0 - (e - lo) / b, 0.0, 1.0) for e, b in zip(eff, bands)])
-            weights[~np.isfinite(eff)] = 0.0
-            total = weights.sum(axis=0)
-            valid = total > 0
-            acc = sum(w[..., None] * np.nan_to_num(c[1]) for w, c in zip(weights, cand))
-            out[valid] = acc[valid] / total[valid][:, None]
-            ks = np.array([c[0] for c in cand])
-            source[valid] = ks[np.argmax(weights, axis=0)][valid]
-        valid = source != NO_SOURCE
-        if top is not None:
-            block = np.clip(np.rint(out), 0, top).astype(out_dtype)
-        else:
-            block = np.where(valid[..., None], out, np.nan).astype(np.float32)
-        writers[0].write(r0, c0, block, valid, copy=False)
-        if len(writers) > 1:
-            writers[1].write(r0, c0, source[..., None], valid, copy=False)
-        if coarse_index is not None:  # every step-th pixel, aligned on the whole grid
-            i0, j0 = (-r0) % step, (-c0) % step
-            sub = source[i0::step, j0::step]
-            coarse_index[(r0 + i0) // step:(r0 + i0) // step + sub.shape[0],
-                         (c0 + j0) // step:(c0 + j0) // step + sub.shape[1]] = sub
-        with used_lock:
-            np.add.at(used, source[valid], 1)
-        timer.span("queue", t)
 
-    n_workers = workers or (4 if geoms[0].device.is_cuda else (os.cpu_count() or 1))
-    try:
-        with rasterio.Env(GDAL_CACHEMAX=256), atomic_files(outputs) as tmps:
-            writers = [CogWriter(tmps[0], width=cols, height=rows, count=count, dtype=out_dtype, crs=rio_crs,
-                                 transform=transform, level=compress_level or 6, name=dst)]
-            if index is not None:
-                writers.append(CogWriter(tmps[1], width=cols, height=rows, count=1, dtype="uint16", crs=rio_crs,
-                                         transform=transform, level=compress_level or 6, name=outputs[1]))
-            try:
-                timer.span("setup", t_wall)
-                with ThreadPoolExecutor(max_workers=n_workers) as pool:
-                    futures = [pool.submit(run, tile, writers) for tile in tiles]
-                    try:
-                        for f in futures:
-                            f.result()
-                    except BaseException:
-                        for f in futures:
-                            f.cancel()
-                        raise
-                t = time.perf_counter()
-                for w in writers:
-                    w.close()
-                if seamlines is not None:
-                    _write_seamlines(tmps[-1], coarse_index, transform * Affine.scale(step), out_crs,
-                                     [f[0] for f in facts], used, name=outputs[-1])
-                timer.span("finish", t)
-            except BaseException:
-                for w in writers:
-                    w.abort()
-                raise
-    finally:
-        for r in renderers:
-            r.close()
-    return MosaicResult(path=dst, index=outputs[1] if index is not None else None,
-                        seamlines=outputs[-1] if seamlines is not None else None, crs=out_crs,
-                        transform=transform, shape=(rows, cols), resolution=res,
-                        pixels_per_image=used.tolist(), gains=gains, offsets=offsets, profile=timer.profile())
+def _check_images(images, resampling, dtype, blend, feather, reference):
+    if not images:
+        raise ParamError("mosaic needs at least one image")
+    for k, item in enumerate(images):
+        if len(item) != 3 or not isinstance(item[1], FrameCamera) or not isinstance(item[2], Pose):
+            raise ParamError(f"images[{k}] must be (source, FrameCamera, Pose)")
+    if len(images) >= NO_SOURCE:
+        raise ParamError(f"mosaic takes at most {NO_SOURCE - 1} images, got {len(images)}")
+    if resampling not in RESAMPLING:
+        raise ParamError(f"resampling must be one of {sorted(RESAMPLING)}, got {resampling!r}")
+    if dtype is not None and dtype not in DTYPES:
+        raise ParamError(f"dtype must be one of {DTYPES}, got {dtype!r}")
+    if blend not in ("feather", "none"):
+        raise ParamError(f"blend must be 'feather' or 'none', got {blend!r}")
+    if not np.isfinite(feather) or feather <= 0:
+        raise ParamError(f"feather must be a positive width in pixels, got {feather!r}")
+    if reference is not None and not (isinstance(reference, (int, np.integer)) and 0 <= reference < len(images)):
+        raise ParamError(f"reference must be an image's position 0-{len(images) - 1}, got {reference!r}")
 
 
 def _write_seamlines(path, index, transform, crs, names, used, *, name):
@@ -403,8 +538,8 @@ def _write_seamlines(path, index, transform, crs, names, used, *, name):
         raise RasterIOError(f"Could not write '{name}': {e.strerror or e}") from e
 
 
-def _balance(renderers, sources, out_crs, transform, rows, cols, foot, count, reference, cancel, name, resampling,
-             out_dtype, src_dtype, max_pixels=250_000):
+def _balance(sources, out_crs, transform, rows, cols, foot, count, reference, cancel, name, resampling,
+             max_pixels=250_000):
     """Per image and band, gain and offset (both (n_images, count)) that make the images agree
     in their overlaps: each image rendered alone on a reduced grid of the mosaic (at most
     ``max_pixels`` pixels; reduced, area-averaged reads), per overlapping pair and band the
@@ -412,7 +547,7 @@ def _balance(renderers, sources, out_crs, transform, rows, cols, foot, count, re
     solve for log gains (log s_i + log a_i = log s_j + log a_j) and one for offsets
     (a_i m_i + b_i = a_j m_j + b_j), the datum fixed by ``reference`` or by zero means; an
     image without overlaps keeps gain 1, offset 0."""
-    n = len(renderers)
+    n = len(sources)
     f = max(1, int(np.ceil(np.sqrt(rows * cols / max_pixels))))
     crows, ccols = -(-rows // f), -(-cols // f)
     ctr = transform * Affine.scale(f)

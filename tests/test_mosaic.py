@@ -249,3 +249,27 @@ def test_a_failing_image_leaves_no_mosaic(tmp_path):
     assert res.exit_code == 1, res.output
     assert "b.tif'" in res.output and "Traceback" not in res.output
     assert not out.exists() or os.listdir(out) == []
+
+
+@pytest.mark.slow
+def test_tiles_on_a_dask_cluster_give_the_same_mosaic_bytes(pair, tmp_path):
+    """The tile function is pure: the plan, pickled to two worker processes of a Dask
+    LocalCluster, gives tiles that assemble into exactly the bytes of the in-process mosaic."""
+    distributed = pytest.importorskip("distributed")
+    from orthowarp.pipeline.mosaic import mosaic_plan
+
+    sc, images, _, _ = pair
+    kw = dict(dem=sc.dem, refraction=False, device="cpu")
+    local = mosaic(images, tmp_path / "local.tif", tile_size=128, index=tmp_path / "local_i.tif", **kw)
+    plan = mosaic_plan(images, **kw)
+    tiles = plan.tiles(128)
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
+            distributed.Client(cluster) as client:
+        futures = client.map(lambda t, p=plan: p.tile(*t), tiles, pure=False)
+        results = client.gather(futures)
+        workers = {w for w in client.run(lambda: 1)}
+    assert len(workers) == 2
+    remote = plan.write(tmp_path / "dask.tif", zip(tiles[::-1], results[::-1]), index=tmp_path / "dask_i.tif")
+    assert (tmp_path / "dask.tif").read_bytes() == (tmp_path / "local.tif").read_bytes()
+    assert (tmp_path / "dask_i.tif").read_bytes() == (tmp_path / "local_i.tif").read_bytes()
+    assert remote.pixels_per_image == local.pixels_per_image
