@@ -374,6 +374,8 @@ def _frame_orientations(images, int_param, ext_param, crs):
               help="Feather across seams (and towards image borders), or take each pixel from one image.")
 @click.option("--feather", type=float, default=32.0, show_default=True, help="Width of the blend, output pixels.")
 @click.option("--no-balance", is_flag=True, help="No radiometric balancing (gain and offset per image and band).")
+@click.option("--no-occlusion", is_flag=True,
+              help="Project by the backward method (faster; ground hidden from an image is filled with what hides it).")
 @click.option("--reference", type=int, default=None,
               help="Balancing keeps this image's radiometry (its position in IMAGES, from 0); default: the mean.")
 @click.option("--compress-level", type=int, default=None, help="Deflate level 1-12 (default 6).")
@@ -385,7 +387,7 @@ def _frame_orientations(images, int_param, ext_param, crs):
 @click.option("--device", default=None, help="Warp device (cpu, cuda, cuda:N); default: first GPU, else CPU.")
 @click.pass_context
 def mosaic(ctx, images, int_param, ext_param, dem, height, out_path, index_path, seamlines_path, crs, resolution,
-           resampling, blend, feather, no_balance, reference, compress_level, dtype, overwrite, no_refraction, geoid,
+           resampling, blend, feather, no_balance, no_occlusion, reference, compress_level, dtype, overwrite, no_refraction, geoid,
            same_vertical_datum, device):
     """Mosaic frame IMAGES into one cloud-optimized GeoTIFF: each pixel from the image that sees
     its ground most nearly from above (smallest off-nadir angle), feathered across the seams,
@@ -401,7 +403,8 @@ def mosaic(ctx, images, int_param, ext_param, dem, height, out_path, index_path,
     r = make_mosaic(jobs, out_path, dem=terrain, crs=crs, resolution=resolution, resampling=resampling,
                     refraction=not no_refraction, dtype=dtype, index=index_path, seamlines=seamlines_path,
                     blend=blend, feather=feather,
-                    balance=not no_balance, reference=reference, compress_level=compress_level,
+                    balance=not no_balance, reference=reference, occlusion=not no_occlusion,
+                    compress_level=compress_level,
                     overwrite=overwrite, device=device, geoid=geoid, same_vertical_datum=same_vertical_datum,
                     cancel=ctx.meta.get("orthowarp.stop"))
     if not ctx.obj["quiet"]:

@@ -102,7 +102,8 @@ def _fields(geom, transform, to_frame, r0, c0, th, tw):
 
 @quiet_warp()
 def mosaic(images, dst, *, dem, crs=None, resolution=None, resampling="bilinear", refraction=True, dtype=None,
-           index=None, seamlines=None, blend="feather", feather=32, balance=True, reference=None, compress_level=None,
+           index=None, seamlines=None, blend="feather", feather=32, balance=True, reference=None, occlusion=True,
+           compress_level=None,
            tile_size=512, overwrite=False, device=None, workers=None, geoid=None, same_vertical_datum=False,
            cancel=None):
     """Mosaic frame images into one cloud-optimized GeoTIFF (deflate, internal mask, overviews).
@@ -145,6 +146,11 @@ def mosaic(images, dst, *, dem, crs=None, resolution=None, resampling="bilinear"
     reference : int, optional
         With ``balance``: the image (position in ``images``) whose radiometry is kept; default:
         the gains' geometric mean is 1 and the offsets' mean 0.
+    occlusion : bool, optional
+        Project each image by the forward method (seed 003's direct method), which leaves the
+        ground it cannot see (behind relief or objects on the DSM) without a value, so that
+        another image that sees it supplies it; False: the backward method, which fills hidden
+        ground with whatever hides it (faster).
     compress_level : int, optional
         Deflate level 1-12 (default 6).
     tile_size : int, optional
@@ -175,8 +181,8 @@ def mosaic(images, dst, *, dem, crs=None, resolution=None, resampling="bilinear"
         check_destination(path, overwrite=overwrite)
     plan = mosaic_plan(images, dem=dem, crs=crs, resolution=resolution, resampling=resampling,
                        refraction=refraction, dtype=dtype, blend=blend, feather=feather, balance=balance,
-                       reference=reference, device=device, geoid=geoid, same_vertical_datum=same_vertical_datum,
-                       cancel=cancel, _outputs=outputs)
+                       reference=reference, occlusion=occlusion, device=device, geoid=geoid,
+                       same_vertical_datum=same_vertical_datum, cancel=cancel, _outputs=outputs)
     t0 = time.perf_counter()
     tiles = plan.tiles(tile_size)
     n_workers = workers or (4 if plan.device_is_cuda else (os.cpu_count() or 1))
@@ -270,8 +276,9 @@ class MosaicPlan:
                 self._state = dict(
                     geoms=geoms, timer=timer,
                     renderers=[ImageTiles(src, geom, crs, self.transform, count=self.count, out_dtype=self.dtype,
-                                          resampling=o["resampling"], masked=masked, src_dtype=self.src_dtype,
-                                          timer=timer) for (src, _, _, masked), geom in zip(self.sources, geoms)],
+                                          resampling=o["resampling"], method=o["method"], masked=masked,
+                                          src_dtype=self.src_dtype, timer=timer)
+                               for (src, _, _, masked), geom in zip(self.sources, geoms)],
                     to_frames=[Transformer.from_crs(crs, geom.horizontal_crs, always_xy=True) for geom in geoms])
             return self._state
 
@@ -412,7 +419,7 @@ class MosaicPlan:
 
 @quiet_warp()
 def mosaic_plan(images, *, dem, crs=None, resolution=None, resampling="bilinear", refraction=True, dtype=None,
-                blend="feather", feather=32, balance=True, reference=None, device=None, geoid=None,
+                blend="feather", feather=32, balance=True, reference=None, occlusion=True, device=None, geoid=None,
                 same_vertical_datum=False, cancel=None, _outputs=()):
     """The grid, sources and radiometric balance of a mosaic, without writing it: a
     :class:`MosaicPlan` whose :meth:`~MosaicPlan.tile` any scheduler can run (threads, a Dask
@@ -478,7 +485,8 @@ def mosaic_plan(images, *, dem, crs=None, resolution=None, resampling="bilinear"
         heights.append(max(z - 0.5 * (geom.dem.hmin + geom.dem.hmax), 1.0))
     log.info("mosaic of %d images: %d x %d pixels at %.4g", len(images), cols, rows, res)
     options = dict(resampling=resampling, refraction=refraction, blend=blend, feather=float(feather), device=device,
-                   geoid=geoid, same_vertical_datum=same_vertical_datum)
+                   geoid=geoid, same_vertical_datum=same_vertical_datum,
+                   method="forward" if occlusion else "backward")
     plan = MosaicPlan([(f[0], cam, pose, f[5]) for f, (_, cam, pose) in zip(facts, images)], terrain, options,
                       out_crs, transform, (rows, cols), res, foot, heights, count, out_dtype, src_dtype)
     if balance and len(images) > 1:

@@ -273,3 +273,49 @@ def test_tiles_on_a_dask_cluster_give_the_same_mosaic_bytes(pair, tmp_path):
     assert (tmp_path / "dask.tif").read_bytes() == (tmp_path / "local.tif").read_bytes()
     assert (tmp_path / "dask_i.tif").read_bytes() == (tmp_path / "local_i.tif").read_bytes()
     assert remote.pixels_per_image == local.pixels_per_image
+
+
+def test_hidden_ground_comes_from_an_image_that_sees_it(tmp_path):
+    """A 120 m ridge: camera A (more nearly above the ground east of the ridge) cannot see its
+    foot there, camera B (far to the east, looking west) can. With occlusion handling the
+    mosaic takes that ground from B and matches the truth; without it, A's ghost of the ridge
+    is there."""
+    import reference as ref
+    from test_ortho import map_dem, read_ortho
+    import orthowarp as ow
+
+    ridge = lambda e, n: 400.0 + 120.0 * np.exp(-0.5 * (e / 8.0) ** 2) + 0.0 * n  # noqa: E731
+    dem, grid = map_dem(ridge, OPK_X, OPK_Y, 800, 1.0)
+    texture = render.Texture((OPK_X, OPK_Y), min_period=4.0, max_period=16.0, seed=5)
+    cam = ow.FrameCamera(50.0, 0.05, (300, 200))
+    ref_cam = ref.RefCamera(50.0, 0.05, (300, 200), (0.0, 0.0))
+    views = {"a": dict(x=OPK_X - 200.0, y=OPK_Y, z=1000.0, omega=0.0, phi=-22.0, kappa=0.0),
+             "b": dict(x=OPK_X + 700.0, y=OPK_Y, z=1000.0, omega=0.0, phi=45.0, kappa=0.0)}
+    images = []
+    for name, kw in views.items():
+        pose, ref_pose = scenes.make_poses("opk", kw)
+        img = render.Renderer(ref_cam, ref_pose, grid.sample, (grid.hmin, grid.hmax), texture, UTM32,
+                              refraction=False).render(SUPERSAMPLE)
+        images.append((write_image(tmp_path / f"{name}.tif", img, "float32"), cam, pose))
+    out = {}
+    for occlusion in (True, False):
+        res = mosaic(images, tmp_path / f"m{occlusion}.tif", dem=dem, refraction=False, resolution=1.0, blend="none",
+                     balance=False, occlusion=occlusion, index=tmp_path / f"i{occlusion}.tif", device="cpu")
+        data, valid, _ = read_ortho(res.path)
+        with rasterio.open(res.index) as ds:
+            idx = ds.read(1)
+        x, y = pixel_centres(res)
+        truth = texture(x, y)
+        out[occlusion] = (data, valid, idx, truth, x)
+    # the ridge's eastern foot: hidden from A (its rays pass under the crest), seen by B
+    data, valid, idx, truth, x = out[True]
+    foot = valid & (x > OPK_X + 22.0) & (x < OPK_X + 30.0)
+    assert foot.sum() > 100
+    assert np.mean(idx[foot] == 1) > 0.95
+    err = np.sqrt(np.mean((data - truth)[foot] ** 2))
+    data_b, valid_b, idx_b, truth_b, _ = out[False]
+    ghost = np.sqrt(np.mean((data_b - truth_b)[foot & valid_b] ** 2))
+    print(f"\n[occlusion] hidden foot from B: {np.mean(idx[foot] == 1):.3f}; error vs truth {err:.3f} with "
+          f"occlusion handling, {ghost:.3f} without (texture std {texture.std:.3f}); A chosen without: "
+          f"{np.mean(idx_b[foot & valid_b] == 0):.3f}")
+    assert err < 0.15 * texture.std < ghost
