@@ -280,13 +280,19 @@ class MosaicPlan:
                                           src_dtype=self.src_dtype, timer=timer)
                                for (src, _, _, masked), geom in zip(self.sources, geoms)],
                     to_frames=[Transformer.from_crs(crs, geom.horizontal_crs, always_xy=True) for geom in geoms])
+                if o["method"] == "forward":  # for ground that no image sees (holes of the forward method)
+                    self._state["fallback"] = [
+                        ImageTiles(src, geom, crs, self.transform, count=self.count, out_dtype=self.dtype,
+                                   resampling=o["resampling"], method="backward", masked=masked,
+                                   src_dtype=self.src_dtype, timer=timer)
+                        for (src, _, _, masked), geom in zip(self.sources, geoms)]
             return self._state
 
     def close(self):
         """Close this process's source handles."""
         with self._lock:
             if self._state is not None:
-                for r in self._state["renderers"]:
+                for r in self._state["renderers"] + self._state.get("fallback", []):
                     r.close()
                 self._state = None
 
@@ -308,13 +314,32 @@ class MosaicPlan:
         """
         _check_cancel(cancel, name)
         st = self._materialise()
+        out, source, has = self._select(st, st["renderers"], r0, c0, th, tw)
+        if "fallback" in st and not has.all():
+            # ground no image sees by the forward method (hidden, or where it drops folded
+            # quads on a rough DSM): the backward method's value, from the same rule
+            t = time.perf_counter()
+            out2, source2, has2 = self._select(st, st["fallback"], r0, c0, th, tw)
+            fill = has2 & ~has
+            out[fill], source[fill], has = out2[fill], source2[fill], has | has2
+            st["timer"].span("prepare", t)
+        valid = source != NO_SOURCE
+        if self.dtype == "float32":
+            block = np.where(valid[..., None], out, np.nan).astype(np.float32)
+        else:
+            block = np.clip(np.rint(out), 0, float(np.iinfo(self.dtype).max)).astype(self.dtype)
+        return block, valid, source
+
+    def _select(self, st, renderers, r0, c0, th, tw):
+        """(values float64 (th, tw, bands), source index (th, tw), has a value (th, tw)) of a
+        tile from the images of ``renderers`` (see :func:`mosaic`)."""
         o, timer = self.options, st["timer"]
         count, res, feather = self.count, self.resolution, o["feather"]
         cand = []  # (k, values float64 (th, tw, count), valid, angle, edge, scale)
         for k, (fr0, fr1, fc0, fc1) in enumerate(self.foot):
             if fr1 <= r0 or fr0 >= r0 + th or fc1 <= c0 or fc0 >= c0 + tw:
                 continue
-            values, valid = st["renderers"][k].render(r0, c0, th, tw)
+            values, valid = renderers[k].render(r0, c0, th, tw)
             if values is None:
                 continue
             t = time.perf_counter()
@@ -329,6 +354,7 @@ class MosaicPlan:
         t = time.perf_counter()
         source = np.full((th, tw), NO_SOURCE, np.uint16)
         out = np.zeros((th, tw, count))
+        has = np.zeros((th, tw), bool)
         if cand:
             bands = [res * feather / self.heights[k] for k, *_ in cand]  # the feather band, radians
             eff = []
@@ -343,7 +369,8 @@ class MosaicPlan:
             if o["blend"] == "none":
                 weights = (np.arange(len(cand))[:, None, None] == best[None]).astype(float)
             else:
-                weights = np.stack([np.clip(1.0 - (e - lo) / b, 0.0, 1.0) for e, b in zip(eff, bands)])
+                with np.errstate(invalid="ignore"):  # inf - inf where no image has the pixel
+                    weights = np.stack([np.clip(1.0 - (e - lo) / b, 0.0, 1.0) for e, b in zip(eff, bands)])
             weights[~np.isfinite(eff)] = 0.0
             total = weights.sum(axis=0)
             has = total > 0
@@ -351,13 +378,8 @@ class MosaicPlan:
             out[has] = acc[has] / total[has][:, None]
             ks = np.array([c[0] for c in cand])
             source[has] = ks[np.argmax(weights, axis=0)][has]
-        valid = source != NO_SOURCE
-        if self.dtype == "float32":
-            block = np.where(valid[..., None], out, np.nan).astype(np.float32)
-        else:
-            block = np.clip(np.rint(out), 0, float(np.iinfo(self.dtype).max)).astype(self.dtype)
         timer.span("queue", t)
-        return block, valid, source
+        return out, source, has
 
     def write(self, dst, results, *, index=None, seamlines=None, compress_level=None, overwrite=False,
               t_start=None):
