@@ -572,8 +572,9 @@ def _balance(sources, out_crs, transform, rows, cols, foot, count, reference, ca
              max_pixels=250_000):
     """Per image and band, gain and offset (both (n_images, count)) that make the images agree
     in their overlaps: each image rendered alone on a reduced grid of the mosaic (at most
-    ``max_pixels`` pixels; reduced, area-averaged reads), per overlapping pair and band the
-    mean and standard deviation over the pixels both cover, then one weighted least-squares
+    ``max_pixels`` pixels), per overlapping pair and band the mean and standard deviation over
+    the pixels both cover (the images read at full resolution and sampled at the reduced
+    grid's points), then one weighted least-squares
     solve for log gains (log s_i + log a_i = log s_j + log a_j) and one for offsets
     (a_i m_i + b_i = a_j m_j + b_j), the datum fixed by ``reference`` or by zero means; an
     image without overlaps keeps gain 1, offset 0."""
@@ -586,8 +587,10 @@ def _balance(sources, out_crs, transform, rows, cols, foot, count, reference, ca
         _check_cancel(cancel, name)
         r0, r1 = max(fr0 // f, 0), min(-(-fr1 // f), crows)
         c0, c1 = max(fc0 // f, 0), min(-(-fc1 // f), ccols)
+        # full-resolution reads: every image sampled the same way (reduced reads would smooth each
+        # image by its own factor and bias the standard deviations the gains come from)
         it = ImageTiles(src, geom, out_crs, ctr, count=count, out_dtype="float32", resampling=resampling,
-                        masked=True, src_dtype="float32")
+                        masked=True, src_dtype="float32", decimate=False)
         try:
             values, valid = it.render(r0, c0, r1 - r0, c1 - c0)
         finally:

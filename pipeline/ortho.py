@@ -591,10 +591,14 @@ class ImageTiles:
     timer : StageTimer, optional
     clipped : object with ``add(n, total)``, optional
         Counts clipped source values.
+    decimate : bool, optional
+        Read the source reduced (area-averaged) where the output is coarser than it (default);
+        False: always at full resolution (the output then samples the source without
+        averaging, the same way whatever the ratio of the resolutions).
     """
 
     def __init__(self, src, geom, out_crs, transform, *, count, out_dtype, resampling="bilinear", method="backward",
-                 masked=True, src_dtype=None, timer=None, clipped=None):
+                 masked=True, src_dtype=None, timer=None, clipped=None, decimate=True):
         self.src, self.geom, self.transform = src, geom, transform
         self.count, self.out_dtype, self.masked = count, out_dtype, masked
         self.timer = timer if timer is not None else StageTimer(time.perf_counter())
@@ -612,7 +616,7 @@ class ImageTiles:
         self.narrowing = self.top > 0 and (np.dtype(src_dtype).kind in "fi" or np.iinfo(src_dtype).max > self.top)
         # heights per DEM block, once per image: a tile's height range then costs a few blocks
         self.dem_blocks = (32, geom.dem.block_range(32)) if method == "backward" and not geom.dem.is_constant else None
-        self.method = method
+        self.method, self.decimate = method, decimate
         if method == "forward":
             self.forward_coords = _forward_coords(geom, transform, out_crs, geom.horizontal_crs, device, self.timer,
                                                   self.radius)
@@ -702,7 +706,7 @@ class ImageTiles:
         timer.span("kernel", t)
         t = time.perf_counter()
         w_img, h_img = self.image_size
-        factor = _decimation(pixels[0])
+        factor = _decimation(pixels[0]) if self.decimate else 1
         window = _node_window(pixels, self.radius, w_img, h_img, factor=factor)
         timer.span("prepare", t)
         if window is not None:
