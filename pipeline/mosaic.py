@@ -424,7 +424,7 @@ class MosaicPlan:
                 for w in writers:
                     w.close()
                 if seamlines is not None:
-                    _write_seamlines(tmps[-1], coarse_index, self.transform * Affine.scale(step), self.crs,
+                    _write_seamlines(tmps[-1], coarse_index, self.transform @ Affine.scale(step), self.crs,
                                      [src for src, *_ in self.sources], used, name=outputs[-1])
             except BaseException:
                 for w in writers:
@@ -581,7 +581,7 @@ def _balance(sources, out_crs, transform, rows, cols, foot, count, reference, ca
     n = len(sources)
     f = max(1, int(np.ceil(np.sqrt(rows * cols / max_pixels))))
     crows, ccols = -(-rows // f), -(-cols // f)
-    ctr = transform * Affine.scale(f)
+    ctr = transform @ Affine.scale(f)
     coarse = []
     for (src, geom), (fr0, fr1, fc0, fc1) in zip(sources, foot):
         _check_cancel(cancel, name)
