@@ -85,11 +85,11 @@ def main(argv=None):
     # each image alone on the mosaic's grid, raw and balanced
     plan = mosaic_plan(jobs, dem=dem, resolution=res, refraction=False, device="cpu", balance=False)
     assert plan.shape == m.shape and plan.transform == m.transform
-    st = plan._materialise()  # noqa: SLF001 - the bench reads the per-image tile functions
     rows, cols = m.shape
     alone = []
-    for k, r in enumerate(st["renderers"]):
-        values, valid = r.render(0, 0, rows, cols)
+    for k in range(len(jobs)):
+        with plan._image(k) as entry:  # noqa: SLF001 - the bench reads each image's tile function
+            values, valid = entry["renderer"].render(0, 0, rows, cols)
         v = values.numpy().astype(np.float64) if values is not None else np.zeros((rows, cols, plan.count))
         ok = valid.numpy().view(bool) if valid is not None else np.zeros((rows, cols), bool)
         alone.append((v, ok))

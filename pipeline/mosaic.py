@@ -20,6 +20,8 @@ the one with the largest weight; masked, by its internal mask, where no image ha
 written beside the mosaic and published together with it.
 """
 
+import collections
+import contextlib
 import logging
 import os
 import threading
@@ -261,39 +263,83 @@ class MosaicPlan:
 
     @property
     def device_is_cuda(self):
-        return self._materialise()["geoms"][0].device.is_cuda
+        with self._image(0) as entry:
+            return entry["geom"].device.is_cuda
+
+    def geometry(self, k):
+        """A new FrameGeometry of image ``k`` (its DEM cropped to the footprint)."""
+        o = self.options
+        _, camera, pose, _ = self.sources[k]
+        return FrameGeometry(camera, pose, self.terrain, refraction=o["refraction"], device=o["device"], geoid=o["geoid"],
+                             same_vertical_datum=o["same_vertical_datum"])
 
     def _materialise(self):
-        """This process's geometry, tile functions and transformers (built on first use)."""
+        """This process's state: the stage timer and the cache of images in use."""
         with self._lock:
             if self._state is None:
-                o = self.options
-                geoms = [FrameGeometry(camera, pose, self.terrain, refraction=o["refraction"], device=o["device"],
-                                       geoid=o["geoid"], same_vertical_datum=o["same_vertical_datum"])
-                         for _, camera, pose, _ in self.sources]
-                timer = StageTimer(time.perf_counter())
-                crs = self.crs
-                self._state = dict(
-                    geoms=geoms, timer=timer,
-                    renderers=[ImageTiles(src, geom, crs, self.transform, count=self.count, out_dtype=self.dtype,
-                                          resampling=o["resampling"], method=o["method"], masked=masked,
-                                          src_dtype=self.src_dtype, timer=timer)
-                               for (src, _, _, masked), geom in zip(self.sources, geoms)],
-                    to_frames=[Transformer.from_crs(crs, geom.horizontal_crs, always_xy=True) for geom in geoms])
-                if o["method"] == "forward":  # for ground that no image sees (holes of the forward method)
-                    self._state["fallback"] = [
-                        ImageTiles(src, geom, crs, self.transform, count=self.count, out_dtype=self.dtype,
-                                   resampling=o["resampling"], method="backward", masked=masked,
-                                   src_dtype=self.src_dtype, timer=timer)
-                        for (src, _, _, masked), geom in zip(self.sources, geoms)]
+                self._state = dict(timer=StageTimer(time.perf_counter()), images=collections.OrderedDict(), users={})
             return self._state
+
+    def _build(self, k, timer):
+        o = self.options
+        src, _, _, masked = self.sources[k]
+        geom = self.geometry(k)
+        crs = self.crs
+        entry = dict(geom=geom, to_frame=Transformer.from_crs(crs, geom.horizontal_crs, always_xy=True),
+                     renderer=ImageTiles(src, geom, crs, self.transform, count=self.count, out_dtype=self.dtype,
+                                         resampling=o["resampling"], method=o["method"], masked=masked,
+                                         src_dtype=self.src_dtype, timer=timer))
+        if o["method"] == "forward":  # for ground that no image sees (holes of the forward method)
+            entry["fallback"] = ImageTiles(src, geom, crs, self.transform, count=self.count, out_dtype=self.dtype,
+                                           resampling=o["resampling"], method="backward", masked=masked,
+                                           src_dtype=self.src_dtype, timer=timer)
+        return entry
+
+    @staticmethod
+    def _close_entry(entry):
+        entry["renderer"].close()
+        if "fallback" in entry:
+            entry["fallback"].close()
+
+    @contextlib.contextmanager
+    def _image(self, k):
+        """Image ``k``'s geometry, tile functions and transformer: built on first use and kept
+        in a cache of at most ``cache_images`` images (the least recently used one that no
+        tile is using goes first), so that memory does not grow with the number of images."""
+        st = self._materialise()
+        with self._lock:
+            entry = st["images"].get(k)
+            if entry is not None:
+                st["images"].move_to_end(k)
+            st["users"][k] = st["users"].get(k, 0) + 1
+        try:
+            if entry is None:
+                built = self._build(k, st["timer"])  # outside the lock: slow
+                to_close = []
+                with self._lock:
+                    if k in st["images"]:  # another thread built it meanwhile
+                        entry = st["images"][k]
+                        to_close.append(built)
+                    else:
+                        entry = st["images"][k] = built
+                    while len(st["images"]) > self.options["cache_images"]:
+                        victim = next((j for j in st["images"] if st["users"].get(j, 0) == 0), None)
+                        if victim is None:
+                            break
+                        to_close.append(st["images"].pop(victim))
+                for e in to_close:
+                    self._close_entry(e)
+            yield entry
+        finally:
+            with self._lock:
+                st["users"][k] -= 1
 
     def close(self):
         """Close this process's source handles."""
         with self._lock:
             if self._state is not None:
-                for r in self._state["renderers"] + self._state.get("fallback", []):
-                    r.close()
+                for entry in self._state["images"].values():
+                    self._close_entry(entry)
                 self._state = None
 
     def tiles(self, tile_size=512):
@@ -314,12 +360,12 @@ class MosaicPlan:
         """
         _check_cancel(cancel, name)
         st = self._materialise()
-        out, source, has = self._select(st, st["renderers"], r0, c0, th, tw)
-        if "fallback" in st and not has.all():
+        out, source, has = self._select(st, "renderer", r0, c0, th, tw)
+        if self.options["method"] == "forward" and not has.all():
             # ground no image sees by the forward method (hidden, or where it drops folded
             # quads on a rough DSM): the backward method's value, from the same rule
             t = time.perf_counter()
-            out2, source2, has2 = self._select(st, st["fallback"], r0, c0, th, tw)
+            out2, source2, has2 = self._select(st, "fallback", r0, c0, th, tw)
             fill = has2 & ~has
             out[fill], source[fill], has = out2[fill], source2[fill], has | has2
             st["timer"].span("prepare", t)
@@ -330,23 +376,25 @@ class MosaicPlan:
             block = np.clip(np.rint(out), 0, float(np.iinfo(self.dtype).max)).astype(self.dtype)
         return block, valid, source
 
-    def _select(self, st, renderers, r0, c0, th, tw):
+    def _select(self, st, which, r0, c0, th, tw):
         """(values float64 (th, tw, bands), source index (th, tw), has a value (th, tw)) of a
-        tile from the images of ``renderers`` (see :func:`mosaic`)."""
+        tile from the images' ``which`` tile functions ("renderer" or "fallback"; see
+        :func:`mosaic`)."""
         o, timer = self.options, st["timer"]
         count, res, feather = self.count, self.resolution, o["feather"]
         cand = []  # (k, values float64 (th, tw, count), valid, angle, edge, scale)
         for k, (fr0, fr1, fc0, fc1) in enumerate(self.foot):
             if fr1 <= r0 or fr0 >= r0 + th or fc1 <= c0 or fc0 >= c0 + tw:
                 continue
-            values, valid = renderers[k].render(r0, c0, th, tw)
-            if values is None:
-                continue
-            t = time.perf_counter()
-            v, ok = values.numpy(), valid.numpy().view(bool)
-            timer.span("d2h", t)
-            t = time.perf_counter()
-            angle, edge, scale = _fields(st["geoms"][k], self.transform, st["to_frames"][k], r0, c0, th, tw)
+            with self._image(k) as entry:
+                values, valid = entry[which].render(r0, c0, th, tw)
+                if values is None:
+                    continue
+                t = time.perf_counter()
+                v, ok = values.numpy(), valid.numpy().view(bool)
+                timer.span("d2h", t)
+                t = time.perf_counter()
+                angle, edge, scale = _fields(entry["geom"], self.transform, entry["to_frame"], r0, c0, th, tw)
             ok = ok & np.isfinite(angle)
             if ok.any():
                 cand.append((k, v.astype(np.float64) * self.gains[k] + self.offsets[k], ok, angle, edge, scale))
@@ -474,16 +522,22 @@ def mosaic_plan(images, *, dem, crs=None, resolution=None, resampling="bilinear"
     count, src_dtype = facts[0][3], facts[0][4]
     out_dtype = dtype or (src_dtype if src_dtype in DTYPES else "float32")
 
-    geoms = [FrameGeometry(camera, pose, terrain, refraction=refraction, device=device, geoid=geoid,
-                           same_vertical_datum=same_vertical_datum) for _, camera, pose in images]
-    # the grid: the union of the images' grids at one resolution, aligned to it
-    grids = []
-    for (src, *_), geom in zip(images, geoms):
+    # the grid: the union of the images' grids at one resolution, aligned to it (the images'
+    # geometry built one at a time: memory does not grow with their number)
+    grids, heights = [], []
+    for src, camera, pose in images:
+        geom = FrameGeometry(camera, pose, terrain, refraction=refraction, device=device, geoid=geoid,
+                             same_vertical_datum=same_vertical_datum)
         try:
             grids.append(output_grid(geom, crs=crs if crs is not None else (grids[0][0] if grids else None),
                                      resolution=resolution))
         except GeometryError as e:
             raise GeometryError(f"Image '{src}': {e}") from e
+        # camera height above the ground (for the feather band's width in angle)
+        c = np.asarray(geom.pose.center, float)
+        z = float(ecef_to_geodetic(c)[2]) if geom.geocentric else float(c[2])
+        heights.append(max(z - 0.5 * (geom.dem.hmin + geom.dem.hmax), 1.0))
+        del geom
     out_crs = grids[0][0]
     res = float(resolution) if resolution is not None else float(np.mean([g[3] for g in grids]))
     boxes = []
@@ -499,21 +553,15 @@ def mosaic_plan(images, *, dem, crs=None, resolution=None, resampling="bilinear"
     # each image's footprint in mosaic pixels (rows r0-r1, cols c0-c1), one pixel of margin
     foot = [(int(np.floor((ymax - b[3]) / res)) - 1, int(np.ceil((ymax - b[1]) / res)) + 1,
              int(np.floor((b[0] - xmin) / res)) - 1, int(np.ceil((b[2] - xmin) / res)) + 1) for b in boxes]
-    # camera heights above the ground (for the feather band's width in angle)
-    heights = []
-    for geom in geoms:
-        c = np.asarray(geom.pose.center, float)
-        z = float(ecef_to_geodetic(c)[2]) if geom.geocentric else float(c[2])
-        heights.append(max(z - 0.5 * (geom.dem.hmin + geom.dem.hmax), 1.0))
     log.info("mosaic of %d images: %d x %d pixels at %.4g", len(images), cols, rows, res)
     options = dict(resampling=resampling, refraction=refraction, blend=blend, feather=float(feather), device=device,
                    geoid=geoid, same_vertical_datum=same_vertical_datum,
-                   method="forward" if occlusion else "backward")
+                   method="forward" if occlusion else "backward", cache_images=16)
     plan = MosaicPlan([(f[0], cam, pose, f[5]) for f, (_, cam, pose) in zip(facts, images)], terrain, options,
                       out_crs, transform, (rows, cols), res, foot, heights, count, out_dtype, src_dtype)
     if balance and len(images) > 1:
-        plan.gains, plan.offsets = _balance([(f[0], g) for f, g in zip(facts, geoms)], out_crs, transform, rows,
-                                            cols, foot, count, reference, cancel, "the mosaic", resampling)
+        plan.gains, plan.offsets = _balance(plan, out_crs, transform, rows, cols, foot, count, reference, cancel,
+                                            "the mosaic", resampling)
     return plan
 
 
@@ -568,7 +616,7 @@ def _write_seamlines(path, index, transform, crs, names, used, *, name):
         raise RasterIOError(f"Could not write '{name}': {e.strerror or e}") from e
 
 
-def _balance(sources, out_crs, transform, rows, cols, foot, count, reference, cancel, name, resampling,
+def _balance(plan, out_crs, transform, rows, cols, foot, count, reference, cancel, name, resampling,
              max_pixels=250_000):
     """Per image and band, gain and offset (both (n_images, count)) that make the images agree
     in their overlaps: each image rendered alone on a reduced grid of the mosaic (at most
@@ -578,13 +626,14 @@ def _balance(sources, out_crs, transform, rows, cols, foot, count, reference, ca
     solve for log gains (log s_i + log a_i = log s_j + log a_j) and one for offsets
     (a_i m_i + b_i = a_j m_j + b_j), the datum fixed by ``reference`` or by zero means; an
     image without overlaps keeps gain 1, offset 0."""
-    n = len(sources)
+    n = len(plan.sources)
     f = max(1, int(np.ceil(np.sqrt(rows * cols / max_pixels))))
     crows, ccols = -(-rows // f), -(-cols // f)
     ctr = transform @ Affine.scale(f)
     coarse = []
-    for (src, geom), (fr0, fr1, fc0, fc1) in zip(sources, foot):
+    for k, (fr0, fr1, fc0, fc1) in enumerate(foot):
         _check_cancel(cancel, name)
+        src, geom = plan.sources[k][0], plan.geometry(k)
         r0, r1 = max(fr0 // f, 0), min(-(-fr1 // f), crows)
         c0, c1 = max(fc0 // f, 0), min(-(-fc1 // f), ccols)
         # full-resolution reads: every image sampled the same way (reduced reads would smooth each
