@@ -30,20 +30,23 @@ ADLER_MOD = wp.constant(wp.int64(65521))
 
 
 @wp.func
-def stored_value(v: wp.uint8, ok: wp.int32, prev: wp.uint8, prev_ok: wp.int32, first: wp.int32, inside: wp.int32) -> wp.uint8:
-    # the pixel zeroed where invalid or past the edge, minus its left neighbour likewise
-    a = wp.int32(v) * ok
+def predicted(v: wp.int32, ok: wp.int32, prev: wp.int32, prev_ok: wp.int32, first: wp.int32, top: wp.int32) -> wp.int32:
+    """TIFF predictor 2 of an integer sample: the pixel zeroed where invalid or past the edge,
+    minus its left neighbour likewise, modulo top + 1 (the first column as it is)."""
+    a = v * ok
     if first != 0:
-        return wp.uint8(a)
-    return wp.uint8((a - wp.int32(prev) * prev_ok) & 255)
+        return a
+    return (a - prev * prev_ok) & top
+
+
+@wp.func
+def stored_value(v: wp.uint8, ok: wp.int32, prev: wp.uint8, prev_ok: wp.int32, first: wp.int32, inside: wp.int32) -> wp.uint8:
+    return wp.uint8(predicted(wp.int32(v), ok, wp.int32(prev), prev_ok, first, 255))
 
 
 @wp.func
 def stored_value(v: wp.uint16, ok: wp.int32, prev: wp.uint16, prev_ok: wp.int32, first: wp.int32, inside: wp.int32) -> wp.uint16:
-    a = wp.int32(v) * ok
-    if first != 0:
-        return wp.uint16(a)
-    return wp.uint16((a - wp.int32(prev) * prev_ok) & 65535)
+    return wp.uint16(predicted(wp.int32(v), ok, wp.int32(prev), prev_ok, first, 65535))
 
 
 @wp.func
@@ -103,15 +106,19 @@ def mask_bits_kernel(valid: wp.array2d(dtype=wp.uint8), nbx: wp.int32, out: wp.a
 
 
 @wp.func
+def rounded_mean(total: wp.float64, n: wp.int32) -> wp.int64:
+    """Mean of n integer samples summing to ``total``, rounded half up (0 where n is 0)."""
+    return (wp.int64(total) + wp.int64(n // 2)) / wp.int64(wp.max(n, 1))
+
+
+@wp.func
 def mean_of(total: wp.float64, n: wp.int32, like: wp.uint8) -> wp.uint8:
-    t = wp.int64(total)
-    return wp.uint8((t + wp.int64(n // 2)) / wp.int64(wp.max(n, 1)))
+    return wp.uint8(rounded_mean(total, n))
 
 
 @wp.func
 def mean_of(total: wp.float64, n: wp.int32, like: wp.uint16) -> wp.uint16:
-    t = wp.int64(total)
-    return wp.uint16((t + wp.int64(n // 2)) / wp.int64(wp.max(n, 1)))
+    return wp.uint16(rounded_mean(total, n))
 
 
 @wp.func

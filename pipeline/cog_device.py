@@ -84,7 +84,7 @@ class HostDeflate:
         self.level = int(level)
         self._pool = ThreadPoolExecutor(max_workers=threads or os.cpu_count() or 1, thread_name_prefix="deflate")
 
-    def compress(self, buf, offsets, sizes, stream=None):
+    def compress(self, buf, offsets, sizes):
         """Raw deflate streams (list of bytes) of the buffers (``offsets``, ``sizes``: byte
         lists) of the uint8 Warp array ``buf``."""
         host = buf.numpy()  # a copy from a GPU, a view on the CPU
@@ -139,11 +139,11 @@ class NvcompDeflate:
             caps[size] = -(-int(codec.get_max_comp_buffer_size(probe)) // 16) * 16
         return caps[size]
 
-    def compress(self, buf, offsets, sizes, stream=None):
+    def compress(self, buf, offsets, sizes):
         """Raw deflate streams (list of bytes) of the buffers of the uint8 Warp array ``buf``
-        (on this codec's device; the work that wrote it must be complete or on ``stream``)."""
+        (on this codec's device, written on the device's current stream)."""
         # nvCOMP works on its own stream: the blocks must be complete
-        wp.synchronize_stream(stream if stream is not None else self.device.stream)
+        wp.synchronize_stream(self.device.stream)
         codec = self._codec()
         out = [None] * len(sizes)
         # one call per size of buffer: nvCOMP sizes every output of a batch for its largest
@@ -154,13 +154,12 @@ class NvcompDeflate:
             per_call = max(1, (2**31 - 2**20) // cap)
             for i in range(0, len(idx), per_call):
                 part = idx[i:i + per_call]
-                raws = self._compress(codec, buf, [offsets[k] for k in part], [size] * len(part), [cap] * len(part),
-                                      stream)
+                raws = self._compress(codec, buf, [offsets[k] for k in part], [size] * len(part), [cap] * len(part))
                 for k, raw in zip(part, raws):
                     out[k] = raw
         return out
 
-    def _compress(self, codec, buf, offsets, sizes, caps, stream):
+    def _compress(self, codec, buf, offsets, sizes, caps):
         nv, n = self._nvcomp, len(offsets)
         caps = np.asarray(caps, np.int64)
         src_off = np.concatenate([[0], np.cumsum(caps)[:-1]]).astype(np.int32)
@@ -175,24 +174,15 @@ class NvcompDeflate:
         # pack the streams on the device and copy them to the host in one transfer
         dst_off = np.concatenate([[0], np.cumsum(comp)[:-1]]).astype(np.int32)
         dst = wp.empty(max(int(comp.sum()), 1), dtype=wp.uint8, device=self.device)
-        with wp.ScopedStream(stream) if stream is not None else _nullcontext():
-            wp.launch(kc.gather_kernel, dim=(n, -(-int(comp.max()) // _CHUNK)), device=self.device,
-                      inputs=[out_buf, wp.array(src_off, dtype=wp.int32, device=self.device), dst,
-                              wp.array(dst_off, dtype=wp.int32, device=self.device),
-                              wp.array(comp, dtype=wp.int32, device=self.device), wp.int32(_CHUNK)])
-            host = dst.numpy()
+        wp.launch(kc.gather_kernel, dim=(n, -(-int(comp.max()) // _CHUNK)), device=self.device,
+                  inputs=[out_buf, wp.array(src_off, dtype=wp.int32, device=self.device), dst,
+                          wp.array(dst_off, dtype=wp.int32, device=self.device),
+                          wp.array(comp, dtype=wp.int32, device=self.device), wp.int32(_CHUNK)])
+        host = dst.numpy()
         return [host[o:o + k].tobytes() for o, k in zip(dst_off, comp)]
 
     def close(self):
         pass
-
-
-class _nullcontext:
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return False
 
 
 class _Tile:
@@ -248,7 +238,7 @@ class DeviceCogEncoder:
         return (row % b == 0 and col % b == 0 and (h % b == 0 or row + h == lvl.height)
                 and (w % b == 0 or col + w == lvl.width))
 
-    def write(self, row, col, tile, valid, *, stream=None):
+    def write(self, row, col, tile, valid):
         """Add a full-resolution tile.
 
         Parameters
@@ -259,16 +249,16 @@ class DeviceCogEncoder:
             On this encoder's device (not modified).
         valid : warp array of uint8, shape (rows, cols)
             1 where the pixel is valid.
-        stream : warp Stream, optional
-            The stream the tile was written on. Warp's current stream belongs to the device,
-            not to a thread: callers in several threads leave this None.
+
+        The tile must have been written on the device's current stream (Warp's current stream
+        belongs to the device, not to a thread, so callers in several threads share it).
         """
         self.writer._raise_pending()  # noqa: SLF001
-        job = self._encode(row, col, tile, valid, stream)
+        job = self._encode(row, col, tile, valid)
         if job is None:
             return
         if self.gpu is None:
-            self._compress([job], self.host, stream)
+            self._compress([job], self.host)
             return
         take = None
         with self._lock:
@@ -283,9 +273,9 @@ class DeviceCogEncoder:
                 if self._batch_n >= self.batch_bytes and not self._gpu_busy:
                     take, self._batch, self._batch_n, self._gpu_busy = self._batch, [], 0, True
         if job is not None:
-            self._compress([job], self.host, stream)
+            self._compress([job], self.host)
         if take:
-            self._compress_gpu(take, stream)
+            self._compress_gpu(take)
 
     def flush(self):
         """Compress the blocks still waiting for a batch."""
@@ -295,51 +285,50 @@ class DeviceCogEncoder:
             take, self._batch, self._batch_n = self._batch, [], 0
             self._gpu_busy = bool(take)
         if take:
-            self._compress_gpu(take, None)
+            self._compress_gpu(take)
 
-    def _compress_gpu(self, jobs, stream):
+    def _compress_gpu(self, jobs):
         try:
-            self._compress(jobs, self.gpu, stream)
+            self._compress(jobs, self.gpu)
         finally:
             with self._lock:
                 self._gpu_busy = False
                 self._lock.notify_all()
 
-    def _encode(self, row, col, tile, valid, stream):
+    def _encode(self, row, col, tile, valid):
         """The device work of a tile: blocks, mask blocks and overview levels while they cover
         whole blocks (the rest to the host writer), and the blocks' checksums."""
         wr, b = self.writer, self.writer.block
         li, piece, pvalid = 0, tile, valid
         images, masks, keys = [], [], []
-        with wp.ScopedStream(stream) if stream is not None else _nullcontext():
-            while True:
-                h, w = piece.shape[0], piece.shape[1]
-                if not self._device_level(li, row, col, h, w):
-                    self.writer.write(row, col, piece.numpy(), pvalid.numpy().view(bool), level=li, copy=False)
-                    break
-                nby, nbx = -(-h // b), -(-w // b)
-                blocks = wp.empty((nby * nbx, b, b, wr.count), dtype=_WP[wr.dtype], device=self.device)
-                wp.launch(kc.encode_blocks_kernel, dim=(nby * nbx, b, b), inputs=[piece, pvalid, nbx],
-                          outputs=[blocks], device=self.device)
-                images.append(blocks)
-                if wr.mask:
-                    bits = wp.empty((nby * nbx, b, b // 8), dtype=wp.uint8, device=self.device)
-                    wp.launch(kc.mask_bits_kernel, dim=bits.shape, inputs=[pvalid, nbx], outputs=[bits],
-                              device=self.device)
-                    masks.append(bits)
-                keys += [(li, row // b + k // nbx, col // b + k % nbx) for k in range(nby * nbx)]
-                if li + 1 >= len(wr.levels):
-                    break
-                hh, ww = -(-h // 2), -(-w // 2)
-                nxt = wp.empty((hh, ww, wr.count), dtype=_WP[wr.dtype], device=self.device)
-                nxt_valid = wp.empty((hh, ww), dtype=wp.uint8, device=self.device)
-                wp.launch(kc.reduce_kernel, dim=(hh, ww), inputs=[piece, pvalid], outputs=[nxt, nxt_valid],
+        while True:
+            h, w = piece.shape[0], piece.shape[1]
+            if not self._device_level(li, row, col, h, w):
+                self.writer.write(row, col, piece.numpy(), pvalid.numpy().view(bool), level=li, copy=False)
+                break
+            nby, nbx = -(-h // b), -(-w // b)
+            blocks = wp.empty((nby * nbx, b, b, wr.count), dtype=_WP[wr.dtype], device=self.device)
+            wp.launch(kc.encode_blocks_kernel, dim=(nby * nbx, b, b), inputs=[piece, pvalid, nbx],
+                      outputs=[blocks], device=self.device)
+            images.append(blocks)
+            if wr.mask:
+                bits = wp.empty((nby * nbx, b, b // 8), dtype=wp.uint8, device=self.device)
+                wp.launch(kc.mask_bits_kernel, dim=bits.shape, inputs=[pvalid, nbx], outputs=[bits],
                           device=self.device)
-                li, row, col, piece, pvalid = li + 1, row // 2, col // 2, nxt, nxt_valid
-            if not images:
-                return None
-            arrays = images + masks
-            adlers = np.concatenate([self._adler(_bytes_view(a), a.shape[0]) for a in arrays])
+                masks.append(bits)
+            keys += [(li, row // b + k // nbx, col // b + k % nbx) for k in range(nby * nbx)]
+            if li + 1 >= len(wr.levels):
+                break
+            hh, ww = -(-h // 2), -(-w // 2)
+            nxt = wp.empty((hh, ww, wr.count), dtype=_WP[wr.dtype], device=self.device)
+            nxt_valid = wp.empty((hh, ww), dtype=wp.uint8, device=self.device)
+            wp.launch(kc.reduce_kernel, dim=(hh, ww), inputs=[piece, pvalid], outputs=[nxt, nxt_valid],
+                      device=self.device)
+            li, row, col, piece, pvalid = li + 1, row // 2, col // 2, nxt, nxt_valid
+        if not images:
+            return None
+        arrays = images + masks
+        adlers = np.concatenate([self._adler(_bytes_view(a), a.shape[0]) for a in arrays])
         return _Tile(keys, arrays, adlers)
 
     def _adler(self, view, n):
@@ -356,7 +345,7 @@ class DeviceCogEncoder:
         wp.launch(kc.adler_finish_kernel, dim=n, inputs=[s1, s2, size], outputs=[out], device=self.device)
         return out.numpy()
 
-    def _compress(self, jobs, codec, stream):
+    def _compress(self, jobs, codec):
         """Deflate the blocks of ``jobs`` with ``codec`` in one call and store them."""
         parts, offsets, sizes, pos = [], [], [], 0
         for job in jobs:
@@ -367,14 +356,13 @@ class DeviceCogEncoder:
                 offsets += [pos + k * per for k in range(a.shape[0])]
                 sizes += [per] * a.shape[0]
                 pos += v.shape[0]
-        with wp.ScopedStream(stream) if stream is not None else _nullcontext():
-            if len(parts) == 1:
-                buf = parts[0][0]
-            else:  # one contiguous buffer for the codec (a copy on the device)
-                buf = wp.empty(pos, dtype=wp.uint8, device=self.device)
-                for v, at in parts:
-                    wp.copy(buf, v, dest_offset=at, count=v.shape[0])
-            raws = codec.compress(buf, offsets, sizes, stream)
+        if len(parts) == 1:
+            buf = parts[0][0]
+        else:  # one contiguous buffer for the codec (a copy on the device)
+            buf = wp.empty(pos, dtype=wp.uint8, device=self.device)
+            for v, at in parts:
+                wp.copy(buf, v, dest_offset=at, count=v.shape[0])
+        raws = codec.compress(buf, offsets, sizes)
         with self._lock:
             self.blocks_by_codec[codec.name] += sum(len(j.keys) for j in jobs)
         k = 0

@@ -32,7 +32,6 @@ import numpy as np
 import rasterio
 from affine import Affine
 from pyproj import Transformer
-from rasterio.enums import MaskFlags
 
 from .._device import quiet_warp
 from ..camera import FrameCamera
@@ -40,9 +39,9 @@ from ..errors import GeometryError, ParamError, RasterIOError
 from ..geodesy import ecef_to_geodetic, geodetic_to_ecef
 from ..pose import Pose
 from .cog import DTYPES, CogWriter
-from .io import GDAL_ERRORS, atomic_files, check_destination, gdal_reason
-from .ortho import COARSE_STEP, RESAMPLING, ImageTiles, _as_dem, _check_cancel, _open_source, coarse_grid, \
-    output_grid
+from .io import atomic_files, check_destination
+from .ortho import COARSE_STEP, RESAMPLING, ImageTiles, _as_dem, _check_cancel, coarse_grid, output_grid, \
+    source_facts
 from .geometry import FrameGeometry
 from .profile import StageTimer
 
@@ -175,12 +174,7 @@ def mosaic(images, dst, *, dem, crs=None, resolution=None, resampling="bilinear"
         raise ParamError(f"tile_size must be a positive multiple of 16, got {tile_size}")
     tile_size = int(tile_size)
     dst = os.fspath(dst)
-    outputs = [dst] + ([os.fspath(index)] if index is not None else []) + \
-        ([os.fspath(seamlines)] if seamlines is not None else [])
-    if len(set(map(os.path.abspath, outputs))) != len(outputs):
-        raise ParamError(f"The mosaic, its index and its seamlines must be different files ('{dst}')")
-    for path in outputs:
-        check_destination(path, overwrite=overwrite)
+    outputs = _outputs(dst, index, seamlines, overwrite)
     plan = mosaic_plan(images, dem=dem, crs=crs, resolution=resolution, resampling=resampling,
                        refraction=refraction, dtype=dtype, blend=blend, feather=feather, balance=balance,
                        reference=reference, occlusion=occlusion, device=device, geoid=geoid,
@@ -191,8 +185,6 @@ def mosaic(images, dst, *, dem, crs=None, resolution=None, resampling="bilinear"
 
     def results():
         """Tile results in grid order, at most 2 x workers tiles in flight (bounded memory)."""
-        import collections
-
         with ThreadPoolExecutor(max_workers=n_workers) as pool:
             pending = collections.deque()
             try:
@@ -441,10 +433,7 @@ class MosaicPlan:
         MosaicResult
         """
         dst = os.fspath(dst)
-        outputs = [dst] + ([os.fspath(index)] if index is not None else []) + \
-            ([os.fspath(seamlines)] if seamlines is not None else [])
-        for path in outputs:
-            check_destination(path, overwrite=overwrite)
+        outputs = _outputs(dst, index, seamlines, overwrite)
         rows, cols = self.shape
         n = len(self.sources)
         used = np.zeros(n, np.int64)
@@ -499,27 +488,19 @@ def mosaic_plan(images, *, dem, crs=None, resolution=None, resampling="bilinear"
     _check_images(images, resampling, dtype, blend, feather, reference)
     terrain = _as_dem(dem)
     # the sources: one band count and data type
-    facts = []
+    facts = []  # (path, bands, data type, masked)
     for src, camera, _ in images:
         src = os.fspath(src)
         if not os.path.exists(src):
             raise RasterIOError(f"Image '{src}' does not exist")
         if os.path.abspath(src) in map(os.path.abspath, _outputs):
             raise ParamError(f"Output '{src}' is one of the source images: choose another name")
-        try:
-            with _open_source(src) as ds:
-                facts.append((src, ds.width, ds.height, ds.count, ds.dtypes[0],
-                              any(f != [MaskFlags.all_valid] for f in ds.mask_flag_enums)))
-        except GDAL_ERRORS as e:
-            raise RasterIOError(f"Could not open image '{src}': {gdal_reason(e)}") from e
-        if (facts[-1][1], facts[-1][2]) != tuple(camera.image_size):
-            raise ParamError(f"Image '{src}' is {facts[-1][1]} x {facts[-1][2]} pixels but its camera says "
-                             f"{camera.image_size[0]} x {camera.image_size[1]}")
-    counts, dtypes = {f[3] for f in facts}, {f[4] for f in facts}
+        facts.append((src, *source_facts(src, camera.image_size)))
+    counts, dtypes = {f[1] for f in facts}, {f[2] for f in facts}
     if len(counts) > 1 or len(dtypes) > 1:
         raise ParamError(f"The images of a mosaic must share their band count and data type; got bands "
                          f"{sorted(counts)} and types {sorted(dtypes)}")
-    count, src_dtype = facts[0][3], facts[0][4]
+    count, src_dtype = facts[0][1], facts[0][2]
     out_dtype = dtype or (src_dtype if src_dtype in DTYPES else "float32")
 
     # the grid: the union of the images' grids at one resolution, aligned to it (the images'
@@ -557,12 +538,22 @@ def mosaic_plan(images, *, dem, crs=None, resolution=None, resampling="bilinear"
     options = dict(resampling=resampling, refraction=refraction, blend=blend, feather=float(feather), device=device,
                    geoid=geoid, same_vertical_datum=same_vertical_datum,
                    method="forward" if occlusion else "backward", cache_images=16)
-    plan = MosaicPlan([(f[0], cam, pose, f[5]) for f, (_, cam, pose) in zip(facts, images)], terrain, options,
+    plan = MosaicPlan([(f[0], cam, pose, f[3]) for f, (_, cam, pose) in zip(facts, images)], terrain, options,
                       out_crs, transform, (rows, cols), res, foot, heights, count, out_dtype, src_dtype)
     if balance and len(images) > 1:
-        plan.gains, plan.offsets = _balance(plan, out_crs, transform, rows, cols, foot, count, reference, cancel,
-                                            "the mosaic", resampling)
+        plan.gains, plan.offsets = _balance(plan, reference, cancel)
     return plan
+
+
+def _outputs(dst, index, seamlines, overwrite):
+    """The mosaic's output paths [mosaic, index?, seamlines?], checked before any work."""
+    outputs = [dst] + ([os.fspath(index)] if index is not None else []) + \
+        ([os.fspath(seamlines)] if seamlines is not None else [])
+    if len(set(map(os.path.abspath, outputs))) != len(outputs):
+        raise ParamError(f"The mosaic, its index and its seamlines must be different files ('{dst}')")
+    for path in outputs:
+        check_destination(path, overwrite=overwrite)
+    return outputs
 
 
 def _check_images(images, resampling, dtype, blend, feather, reference):
@@ -616,8 +607,7 @@ def _write_seamlines(path, index, transform, crs, names, used, *, name):
         raise RasterIOError(f"Could not write '{name}': {e.strerror or e}") from e
 
 
-def _balance(plan, out_crs, transform, rows, cols, foot, count, reference, cancel, name, resampling,
-             max_pixels=250_000):
+def _balance(plan, reference, cancel, max_pixels=250_000):
     """Per image and band, gain and offset (both (n_images, count)) that make the images agree
     in their overlaps: each image rendered alone on a reduced grid of the mosaic (at most
     ``max_pixels`` pixels), per overlapping pair and band the mean and standard deviation over
@@ -626,19 +616,20 @@ def _balance(plan, out_crs, transform, rows, cols, foot, count, reference, cance
     solve for log gains (log s_i + log a_i = log s_j + log a_j) and one for offsets
     (a_i m_i + b_i = a_j m_j + b_j), the datum fixed by ``reference`` or by zero means; an
     image without overlaps keeps gain 1, offset 0."""
-    n = len(plan.sources)
+    n, (rows, cols), count = len(plan.sources), plan.shape, plan.count
     f = max(1, int(np.ceil(np.sqrt(rows * cols / max_pixels))))
     crows, ccols = -(-rows // f), -(-cols // f)
-    ctr = transform @ Affine.scale(f)
+    ctr = plan.transform @ Affine.scale(f)
+    crs = plan.crs
     coarse = []
-    for k, (fr0, fr1, fc0, fc1) in enumerate(foot):
-        _check_cancel(cancel, name)
+    for k, (fr0, fr1, fc0, fc1) in enumerate(plan.foot):
+        _check_cancel(cancel, "the mosaic")
         src, geom = plan.sources[k][0], plan.geometry(k)
         r0, r1 = max(fr0 // f, 0), min(-(-fr1 // f), crows)
         c0, c1 = max(fc0 // f, 0), min(-(-fc1 // f), ccols)
         # full-resolution reads: every image sampled the same way (reduced reads would smooth each
         # image by its own factor and bias the standard deviations the gains come from)
-        it = ImageTiles(src, geom, out_crs, ctr, count=count, out_dtype="float32", resampling=resampling,
+        it = ImageTiles(src, geom, crs, ctr, count=count, out_dtype="float32", resampling=plan.options["resampling"],
                         masked=True, src_dtype="float32", decimate=False)
         try:
             values, valid = it.render(r0, c0, r1 - r0, c1 - c0)
@@ -648,7 +639,7 @@ def _balance(plan, out_crs, transform, rows, cols, foot, count, reference, cance
             coarse.append(None)
             continue
         coarse.append((r0, c0, values.numpy().astype(np.float64), valid.numpy().view(bool)))
-    eq_g, eq_b = [], []  # (i, j, weight, stats) per overlap
+    eq_g = []  # (i, j, weight, stats) per overlap
     for i in range(n):
         for j in range(i + 1, n):
             if coarse[i] is None or coarse[j] is None:

@@ -284,9 +284,9 @@ def orthorectify(src, sensor, *args, dem, crs=None, resolution=None, resampling=
         the writer applies the predictor, builds the overviews and deflates (libdeflate, all
         cores). "nvcomp" (CUDA, needs ``orthowarp[gpu]``): predictor, masks and the overview
         levels that cover whole blocks are computed on the device and nvCOMP deflates them
-        there, in one batch per tile; only compressed blocks cross to the host. "hybrid": the
-        same device work, each tile's batch deflated by nvCOMP or by libdeflate on the host
-        cores, whichever is free (on the CPU device or without nvCOMP: libdeflate alone, after
+        there, in batches gathered over tiles; only compressed blocks cross to the host.
+        "hybrid": the same device work, the blocks deflated by nvCOMP or, for tiles that
+        arrive while it compresses a batch, by libdeflate on the host cores (on the CPU device or without nvCOMP: libdeflate alone, after
         the same per-block work in Warp kernels). The files decode to the same pixels whichever path wrote
         them; nvCOMP's streams differ in size (``compress_level`` 1-4: its medium-ratio
         variant, 5-7: high, 8-12: highest). On an H100 with 16 host cores, nvCOMP at level
@@ -341,17 +341,8 @@ def orthorectify(src, sensor, *args, dem, crs=None, resolution=None, resampling=
         raise RasterIOError(f"Image '{src}' does not exist")
     if os.path.abspath(src) == os.path.abspath(dst):
         raise ParamError(f"Output '{dst}' is the source image: choose another name")
-    try:
-        with _open_source(src) as ds:
-            width, height, count, src_dtype = ds.width, ds.height, ds.count, ds.dtypes[0]
-            # a source without nodata, mask or alpha needs no mask reads
-            masked = any(flags != [MaskFlags.all_valid] for flags in ds.mask_flag_enums)
-    except GDAL_ERRORS as e:
-        raise RasterIOError(f"Could not open image '{src}': {gdal_reason(e)}") from e
-    size = (camera.width, camera.height) if pose is None else tuple(camera.image_size)
-    if (width, height) != size:
-        raise ParamError(f"Image '{src}' is {width} x {height} pixels but its "
-                         f"{'scene' if pose is None else 'camera'} says {size[0]} x {size[1]}")
+    count, src_dtype, masked = source_facts(src, (camera.width, camera.height) if pose is None else
+                                            tuple(camera.image_size), "scene" if pose is None else "camera")
     out_dtype = dtype or (src_dtype if src_dtype in DTYPES else "float32")
     if compress == "jpeg" and out_dtype != "uint8":
         raise ParamError("jpeg compression needs uint8 output")
@@ -592,9 +583,10 @@ class ImageTiles:
     clipped : object with ``add(n, total)``, optional
         Counts clipped source values.
     decimate : bool, optional
-        Read the source reduced (area-averaged) where the output is coarser than it (default);
-        False: always at full resolution (the output then samples the source without
-        averaging, the same way whatever the ratio of the resolutions).
+        Backward method: read the source reduced (area-averaged) where the output is coarser
+        than it (default); False: always at full resolution (the output then samples the
+        source without averaging, the same way whatever the ratio of the resolutions). The
+        forward method reduces its reads by the image's overall ratio either way.
     """
 
     def __init__(self, src, geom, out_crs, transform, *, count, out_dtype, resampling="bilinear", method="backward",
@@ -777,6 +769,29 @@ class ImageTiles:
         return sw, arr
 
 
+def source_facts(src, size, sensor="camera"):
+    """(band count, data type, masked) of a source image whose sensor says it is ``size``
+    (width, height) pixels; masked: it has nodata, a mask or alpha (a source without needs no
+    mask reads).
+
+    Raises
+    ------
+    RasterIOError
+        The file cannot be opened (GDAL's reason).
+    ParamError
+        Its size is not the ``sensor``'s.
+    """
+    try:
+        with _open_source(src) as ds:
+            width, height, count, dtype = ds.width, ds.height, ds.count, ds.dtypes[0]
+            masked = any(flags != [MaskFlags.all_valid] for flags in ds.mask_flag_enums)
+    except GDAL_ERRORS as e:
+        raise RasterIOError(f"Could not open image '{src}': {gdal_reason(e)}") from e
+    if (width, height) != tuple(size):
+        raise ParamError(f"Image '{src}' is {width} x {height} pixels but its {sensor} says {size[0]} x {size[1]}")
+    return count, dtype, masked
+
+
 def _check_cancel(cancel, name):
     if cancel is not None and cancel.is_set():
         raise Cancelled(f"The orthoimage '{name}' was cancelled; nothing was written")
@@ -860,7 +875,7 @@ class _TimedCogWriter(CogWriter):
 
 class _Sink:
     """Where tiles go: ``host(row, col, block (rows, cols, bands), mask (rows, cols) bool)``
-    takes host arrays; ``device(row, col, tile, valid, stream=)``, where not None, takes
+    takes host arrays; ``device(row, col, tile, valid)``, where not None, takes
     device arrays (see :class:`~orthowarp.pipeline.cog_device.DeviceCogEncoder`)."""
 
     def __init__(self, host, device=None):

@@ -159,12 +159,12 @@ class _SlowBatchedDeflate(HostDeflate):
         super().__init__(6, threads=2)
         self.calls = []
 
-    def compress(self, buf, offsets, sizes, stream=None):
+    def compress(self, buf, offsets, sizes):
         import time
 
         self.calls.append(len(offsets))
         time.sleep(0.05)
-        return super().compress(buf, offsets, sizes, stream)
+        return super().compress(buf, offsets, sizes)
 
 
 @pytest.mark.parametrize("with_host", [False, True])
