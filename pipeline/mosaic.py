@@ -3,17 +3,20 @@
 The mosaic's grid is the union of the images' ortho grids at one resolution, cut into tiles;
 for each tile, every image whose footprint meets it is projected straight into the tile by
 :class:`~orthowarp.pipeline.ortho.ImageTiles` (the ortho's own tile function: no intermediate
-orthos). Each pixel takes its value from the image that sees its ground point most nearly
-from above: the smallest off-nadir angle, which minimises relief displacement (the seamlines
-are the curves of equal off-nadir angle between neighbouring images). The angle is computed
-from the camera centre and the ground point on the DEM at the tile's coarse-grid nodes (every
-16 output pixels) and interpolated bilinearly between them, so seams are continuous across
-tiles. With feathering, the images whose angle lies within a band of the smallest share a
-pixel, their weights falling linearly across the band (a chosen width in output pixels), and
-an image's weight falls to zero towards its border over the same width. Radiometric
-balancing applies per image and band a gain and an offset from one least-squares solve over
-the overlaps' statistics on a reduced grid. A tile is a pure function of the tile and the
-inputs; memory is bounded by the tile size, whatever the number of images.
+orthos). The seams come first, from one reduced pass over the whole mosaic (each image
+rendered alone on a grid of at most ~4 Mpix): every reduced pixel goes to the image that sees
+its ground point most nearly from above (the smallest off-nadir angle, which minimises relief
+displacement), then each seam between two images is moved, within a corridor, onto the
+least-cost path where the two images agree (around buildings, trees and moving objects that
+look different in each). One labelling for the whole grid: seams never jump at tile borders.
+In a tile, each image's signed distance from its region (bilinear between reduced pixels)
+ranks the images; with feathering, those within a band of the nearest share a pixel, their
+weights falling linearly across the band (a chosen width in output pixels), and an image's
+weight falls to zero towards its border over the same width. Ground an image does not see (the
+forward method's holes behind relief) comes from the next image. Radiometric balancing applies
+per image and band a gain and an offset from one least-squares solve over the overlaps'
+statistics on the reduced grid. A tile is a pure function of the tile and the inputs; memory
+is bounded by the tile size and the reduced grid, whatever the number of images.
 
 Optionally a per-pixel source-index raster (uint16, the image's position in the input list,
 the one with the largest weight; masked, by its internal mask, where no image has a value) is
@@ -50,6 +53,7 @@ __all__ = ["mosaic", "mosaic_plan", "MosaicPlan", "MosaicResult", "NO_SOURCE"]
 log = logging.getLogger(__name__)
 
 NO_SOURCE = 65535  # the index raster's value where no image has a pixel
+SEAM_PIXELS = 4_000_000  # the largest reduced grid of the balance and the seams (pixels)
 
 
 class MosaicResult:
@@ -103,8 +107,8 @@ def _fields(geom, transform, to_frame, r0, c0, th, tw):
 
 @quiet_warp()
 def mosaic(images, dst, *, dem, crs=None, resolution=None, resampling="bilinear", refraction=True, dtype=None,
-           index=None, seamlines=None, blend="feather", feather=32, balance=True, reference=None, occlusion=True,
-           compress_level=None,
+           index=None, seamlines=None, seams="least-cost", seam_width=256, blend="feather", feather=32, balance=True,
+           reference=None, occlusion=True, compress_level=None,
            tile_size=512, overwrite=False, device=None, workers=None, geoid=None, same_vertical_datum=False,
            cancel=None):
     """Mosaic frame images into one cloud-optimized GeoTIFF (deflate, internal mask, overviews).
@@ -169,14 +173,15 @@ def mosaic(images, dst, *, dem, crs=None, resolution=None, resampling="bilinear"
     MosaicResult
     """
     images = list(images)
-    _check_images(images, resampling, dtype, blend, feather, reference)
+    _check_images(images, resampling, dtype, blend, feather, reference, seams, seam_width)
     if int(tile_size) < 16 or int(tile_size) % 16:
         raise ParamError(f"tile_size must be a positive multiple of 16, got {tile_size}")
     tile_size = int(tile_size)
     dst = os.fspath(dst)
     outputs = _outputs(dst, index, seamlines, overwrite)
     plan = mosaic_plan(images, dem=dem, crs=crs, resolution=resolution, resampling=resampling,
-                       refraction=refraction, dtype=dtype, blend=blend, feather=feather, balance=balance,
+                       refraction=refraction, dtype=dtype, seams=seams, seam_width=seam_width, blend=blend,
+                       feather=feather, balance=balance,
                        reference=reference, occlusion=occlusion, device=device, geoid=geoid,
                        same_vertical_datum=same_vertical_datum, cancel=cancel, _outputs=outputs)
     t0 = time.perf_counter()
@@ -236,6 +241,7 @@ class MosaicPlan:
         self.foot, self.heights, self.count, self.dtype, self.src_dtype = foot, heights, count, dtype, src_dtype
         self.gains = np.ones((len(sources), count))
         self.offsets = np.zeros((len(sources), count))
+        self.labels, self.seam_step = None, 1  # the seams' labelling, set by mosaic_plan
         self._state, self._lock = None, threading.Lock()
 
     def __getstate__(self):
@@ -369,12 +375,12 @@ class MosaicPlan:
         return block, valid, source
 
     def _select(self, st, which, r0, c0, th, tw):
-        """(values float64 (th, tw, bands), source index (th, tw), has a value (th, tw)) of a
+        """(values float32 (th, tw, bands), source index (th, tw), has a value (th, tw)) of a
         tile from the images' ``which`` tile functions ("renderer" or "fallback"; see
         :func:`mosaic`)."""
         o, timer = self.options, st["timer"]
-        count, res, feather = self.count, self.resolution, o["feather"]
-        cand = []  # (k, values float64 (th, tw, count), valid, angle, edge, scale)
+        count, feather = self.count, o["feather"]
+        cand = []  # (k, values float32 (th, tw, count), valid, edge fade (px) or 0)
         for k, (fr0, fr1, fc0, fc1) in enumerate(self.foot):
             if fr1 <= r0 or fr0 >= r0 + th or fc1 <= c0 or fc0 >= c0 + tw:
                 continue
@@ -386,35 +392,37 @@ class MosaicPlan:
                 v, ok = values.numpy(), valid.numpy().view(bool)
                 timer.span("d2h", t)
                 t = time.perf_counter()
-                angle, edge, scale = _fields(entry["geom"], self.transform, entry["to_frame"], r0, c0, th, tw)
-            ok = ok & np.isfinite(angle)
+                fade = 0.0
+                if o["blend"] == "feather" and ok.any():  # towards the image's border, over the same width
+                    _, edge, scale = _fields(entry["geom"], self.transform, entry["to_frame"], r0, c0, th, tw)
+                    fade = (feather * np.clip(1.0 - np.nan_to_num(edge, nan=0.0) / (feather * scale), 0.0, 1.0)
+                            ).astype(np.float32)
             if ok.any():
-                cand.append((k, v.astype(np.float64) * self.gains[k] + self.offsets[k], ok, angle, edge, scale))
+                cand.append((k, v.astype(np.float32) * self.gains[k].astype(np.float32)
+                             + self.offsets[k].astype(np.float32), ok, fade))
             timer.span("prepare", t)
         t = time.perf_counter()
         source = np.full((th, tw), NO_SOURCE, np.uint16)
-        out = np.zeros((th, tw, count))
+        out = np.zeros((th, tw, count), np.float32)
         has = np.zeros((th, tw), bool)
         if cand:
-            bands = [res * feather / self.heights[k] for k, *_ in cand]  # the feather band, radians
-            eff = []
-            for (k, v, ok, angle, edge, scale), band in zip(cand, bands):
-                e = angle.copy()
-                if o["blend"] == "feather":  # fade towards the image's border over the same width
-                    e += band * np.clip(1.0 - np.nan_to_num(edge, nan=0.0) / (feather * scale), 0.0, 1.0)
-                eff.append(np.where(ok, e, np.inf))
-            eff = np.stack(eff)
+            # each image's signed distance from its region of the seam labelling (+ the fade)
+            dist = _signed_distances(self.labels, self.seam_step, r0, c0, th, tw, [c[0] for c in cand],
+                                     clip=2.0 * feather + 4.0 * self.seam_step)
+            eff = np.stack([np.where(ok, dist[k] + fade, np.inf) for k, _, ok, fade in cand])
             best = np.argmin(eff, axis=0)
-            lo = np.take_along_axis(eff, best[None], 0)[0]
             if o["blend"] == "none":
-                weights = (np.arange(len(cand))[:, None, None] == best[None]).astype(float)
+                weights = (np.arange(len(cand))[:, None, None] == best[None]).astype(np.float32)
             else:
+                lo = np.take_along_axis(eff, best[None], 0)[0]
                 with np.errstate(invalid="ignore"):  # inf - inf where no image has the pixel
-                    weights = np.stack([np.clip(1.0 - (e - lo) / b, 0.0, 1.0) for e, b in zip(eff, bands)])
+                    weights = np.clip(1.0 - (eff - lo) / np.float32(feather), 0.0, 1.0)
             weights[~np.isfinite(eff)] = 0.0
             total = weights.sum(axis=0)
             has = total > 0
-            acc = sum(w[..., None] * np.nan_to_num(c[1]) for w, c in zip(weights, cand))
+            acc = np.zeros((th, tw, count), np.float32)
+            for wk, c in zip(weights, cand):
+                acc += wk[..., None] * np.nan_to_num(c[1])
             out[has] = acc[has] / total[has][:, None]
             ks = np.array([c[0] for c in cand])
             source[has] = ks[np.argmax(weights, axis=0)][has]
@@ -478,14 +486,15 @@ class MosaicPlan:
 
 @quiet_warp()
 def mosaic_plan(images, *, dem, crs=None, resolution=None, resampling="bilinear", refraction=True, dtype=None,
-                blend="feather", feather=32, balance=True, reference=None, occlusion=True, device=None, geoid=None,
-                same_vertical_datum=False, cancel=None, _outputs=()):
+                seams="least-cost", seam_width=256, blend="feather", feather=32, balance=True, reference=None,
+                occlusion=True, device=None, geoid=None, same_vertical_datum=False, cancel=None, _outputs=(),
+                _seam_pixels=SEAM_PIXELS):
     """The grid, sources and radiometric balance of a mosaic, without writing it: a
     :class:`MosaicPlan` whose :meth:`~MosaicPlan.tile` any scheduler can run (threads, a Dask
     cluster) and whose :meth:`~MosaicPlan.write` assembles the results. Parameters as
     :func:`mosaic`."""
     images = list(images)
-    _check_images(images, resampling, dtype, blend, feather, reference)
+    _check_images(images, resampling, dtype, blend, feather, reference, seams, seam_width)
     terrain = _as_dem(dem)
     # the sources: one band count and data type
     facts = []  # (path, bands, data type, masked)
@@ -540,8 +549,15 @@ def mosaic_plan(images, *, dem, crs=None, resolution=None, resampling="bilinear"
                    method="forward" if occlusion else "backward", cache_images=16)
     plan = MosaicPlan([(f[0], cam, pose, f[3]) for f, (_, cam, pose) in zip(facts, images)], terrain, options,
                       out_crs, transform, (rows, cols), res, foot, heights, count, out_dtype, src_dtype)
+    # one reduced pass: the images' overlaps for the balance and the seams' labelling
+    f, coarse, labels = _reduced_pass(plan, cancel, _seam_pixels)
     if balance and len(images) > 1:
-        plan.gains, plan.offsets = _balance(plan, reference, cancel)
+        plan.gains, plan.offsets = _balance(coarse, count, reference)
+    if seams == "least-cost" and len(images) > 1:
+        moved = _least_cost_seams(labels, coarse, plan.gains, plan.offsets, max(2.0, seam_width / f),
+                                  int(np.ceil(0.5 * feather / f)) if blend == "feather" else 1, cancel)
+        log.info("least-cost seams moved %d of %d reduced pixels (%d mosaic pixels each)", moved, labels.size, f * f)
+    plan.labels, plan.seam_step = labels, f
     return plan
 
 
@@ -556,7 +572,7 @@ def _outputs(dst, index, seamlines, overwrite):
     return outputs
 
 
-def _check_images(images, resampling, dtype, blend, feather, reference):
+def _check_images(images, resampling, dtype, blend, feather, reference, seams, seam_width):
     if not images:
         raise ParamError("mosaic needs at least one image")
     for k, item in enumerate(images):
@@ -570,6 +586,10 @@ def _check_images(images, resampling, dtype, blend, feather, reference):
         raise ParamError(f"dtype must be one of {DTYPES}, got {dtype!r}")
     if blend not in ("feather", "none"):
         raise ParamError(f"blend must be 'feather' or 'none', got {blend!r}")
+    if seams not in ("least-cost", "nadir"):
+        raise ParamError(f"seams must be 'least-cost' or 'nadir', got {seams!r}")
+    if not np.isfinite(seam_width) or seam_width < 0:
+        raise ParamError(f"seam_width must be a width in pixels >= 0, got {seam_width!r}")
     if not np.isfinite(feather) or feather <= 0:
         raise ParamError(f"feather must be a positive width in pixels, got {feather!r}")
     if reference is not None and not (isinstance(reference, (int, np.integer)) and 0 <= reference < len(images)):
@@ -607,28 +627,36 @@ def _write_seamlines(path, index, transform, crs, names, used, *, name):
         raise RasterIOError(f"Could not write '{name}': {e.strerror or e}") from e
 
 
-def _balance(plan, reference, cancel, max_pixels=250_000):
-    """Per image and band, gain and offset (both (n_images, count)) that make the images agree
-    in their overlaps: each image rendered alone on a reduced grid of the mosaic (at most
-    ``max_pixels`` pixels), per overlapping pair and band the mean and standard deviation over
-    the pixels both cover (the images read at full resolution and sampled at the reduced
-    grid's points), then one weighted least-squares
-    solve for log gains (log s_i + log a_i = log s_j + log a_j) and one for offsets
-    (a_i m_i + b_i = a_j m_j + b_j), the datum fixed by ``reference`` or by zero means; an
-    image without overlaps keeps gain 1, offset 0."""
-    n, (rows, cols), count = len(plan.sources), plan.shape, plan.count
+def _reduced_pass(plan, cancel, max_pixels):
+    """Each image rendered alone on a reduced grid of the mosaic (the mosaic's pixels
+    ``f`` x ``f``, at most ``max_pixels`` pixels), read at full resolution and sampled at the
+    reduced grid's points (reduced reads would smooth each image by its own factor), and the
+    most-nadir labelling of that grid.
+
+    Returns
+    -------
+    f : int
+        Mosaic pixels per reduced pixel (each way).
+    coarse : list, per image, of (r0, c0, values, ok) or None
+        The image's window on the reduced grid: first row and column, values float32
+        (rows, cols, bands), ok bool (rows, cols).
+    labels : ndarray of uint16 (rows, cols)
+        Per reduced pixel, the covering image with the smallest off-nadir angle (NO_SOURCE
+        where none covers it).
+    """
+    (rows, cols), count = plan.shape, plan.count
     f = max(1, int(np.ceil(np.sqrt(rows * cols / max_pixels))))
     crows, ccols = -(-rows // f), -(-cols // f)
     ctr = plan.transform @ Affine.scale(f)
     crs = plan.crs
+    labels = np.full((crows, ccols), NO_SOURCE, np.uint16)
+    best = np.full((crows, ccols), np.inf, np.float32)
     coarse = []
     for k, (fr0, fr1, fc0, fc1) in enumerate(plan.foot):
         _check_cancel(cancel, "the mosaic")
         src, geom = plan.sources[k][0], plan.geometry(k)
         r0, r1 = max(fr0 // f, 0), min(-(-fr1 // f), crows)
         c0, c1 = max(fc0 // f, 0), min(-(-fc1 // f), ccols)
-        # full-resolution reads: every image sampled the same way (reduced reads would smooth each
-        # image by its own factor and bias the standard deviations the gains come from)
         it = ImageTiles(src, geom, crs, ctr, count=count, out_dtype="float32", resampling=plan.options["resampling"],
                         masked=True, src_dtype="float32", decimate=False)
         try:
@@ -638,26 +666,32 @@ def _balance(plan, reference, cancel, max_pixels=250_000):
         if values is None:
             coarse.append(None)
             continue
-        coarse.append((r0, c0, values.numpy().astype(np.float64), valid.numpy().view(bool)))
+        to_frame = Transformer.from_crs(crs, geom.horizontal_crs, always_xy=True)
+        angle = _fields(geom, ctr, to_frame, r0, c0, r1 - r0, c1 - c0)[0]
+        v = values.numpy()
+        ok = valid.numpy().view(bool) & np.isfinite(angle) & np.isfinite(v).all(axis=-1)
+        coarse.append((r0, c0, v, ok))
+        win_best, win_labels = best[r0:r1, c0:c1], labels[r0:r1, c0:c1]
+        better = ok & (angle < win_best)
+        win_best[better], win_labels[better] = angle[better], k
+    return f, coarse, labels
+
+
+def _balance(coarse, count, reference):
+    """Per image and band, gain and offset (both (n_images, count)) that make the images agree
+    in their overlaps on the reduced grid (``coarse`` from :func:`_reduced_pass`): per
+    overlapping pair and band the mean and standard deviation over the pixels both cover,
+    then one weighted least-squares solve for log gains (log s_i + log a_i = log s_j +
+    log a_j) and one for offsets (a_i m_i + b_i = a_j m_j + b_j), the datum fixed by
+    ``reference`` or by zero means; an image without overlaps keeps gain 1, offset 0."""
+    n = len(coarse)
     eq_g = []  # (i, j, weight, stats) per overlap
-    for i in range(n):
-        for j in range(i + 1, n):
-            if coarse[i] is None or coarse[j] is None:
-                continue
-            ri, ci, vi, oki = coarse[i]
-            rj, cj, vj, okj = coarse[j]
-            r0, r1 = max(ri, rj), min(ri + oki.shape[0], rj + okj.shape[0])
-            c0, c1 = max(ci, cj), min(ci + oki.shape[1], cj + okj.shape[1])
-            if r0 >= r1 or c0 >= c1:
-                continue
-            a = vi[r0 - ri:r1 - ri, c0 - ci:c1 - ci]
-            b = vj[r0 - rj:r1 - rj, c0 - cj:c1 - cj]
-            both = oki[r0 - ri:r1 - ri, c0 - ci:c1 - ci] & okj[r0 - rj:r1 - rj, c0 - cj:c1 - cj]
-            both &= np.isfinite(a).all(axis=-1) & np.isfinite(b).all(axis=-1)
-            m = int(both.sum())
-            if m < 50:
-                continue
-            eq_g.append((i, j, np.sqrt(m), a[both].mean(0), b[both].mean(0), a[both].std(0), b[both].std(0)))
+    for i, j, _, a, b, both in _overlaps(coarse):
+        m = int(both.sum())
+        if m < 50:
+            continue
+        a, b = a[both].astype(np.float64), b[both].astype(np.float64)
+        eq_g.append((i, j, np.sqrt(m), a.mean(0), b.mean(0), a.std(0), b.std(0)))
     gains, offsets = np.ones((n, count)), np.zeros((n, count))
     if not eq_g:
         return gains, offsets
@@ -679,6 +713,195 @@ def _balance(plan, reference, cancel, max_pixels=250_000):
             rhs_b.append(w * (a[j] * mj[band] - a[i] * mi[band]))
         gains[:, band], offsets[:, band] = a, _solve(rows_b, rhs_b, n, reference)
     return gains, offsets
+
+
+def _least_cost_seams(labels, coarse, gains, offsets, width, reach, cancel=None):
+    """Move the seams of the reduced labelling ``labels`` (in place) onto least-cost paths
+    where the images agree.
+
+    For each pair of images whose regions meet, the corridor is the pixels of the two regions
+    that both images cover, within ``width`` pixels of the seam between them. The cost of a
+    pixel is 1 + min((d / 3m)^2, 400) + 4 (a / width)^2, d the largest (within ``reach``
+    pixels: half the blend's width) mean absolute difference of the two balanced images over
+    the bands, m the median difference over the corridor and a the pixel's
+    distance from the nadir seam: a seam through agreeing pixels near the nadir seam costs
+    about its length, one through a building, a tree or a moving car (where the images
+    disagree) much more, and one far from the nadir seam (more relief displacement) more
+    too. A shortest path (Dijkstra, 8-neighbours) between the two points where the nadir seam
+    leaves the corridor (at the edge of the cover, at a third image's region, or at the
+    corridor's width) splits it, each side going to the region its rim belongs to; a corridor
+    that no path separates keeps the nadir seam. Pairs are taken in order, each on the labels
+    the earlier ones left: one global labelling, so seams are consistent across output tiles.
+    (A seam refined within a buffer around an initial one by Dijkstra on a mismatch cost, as
+    in Chon et al., ISPRS J. Photogramm. 2010, here on a reduced grid.)
+
+    Returns
+    -------
+    int
+        Reduced pixels whose image changed.
+    """
+    from scipy import ndimage
+
+    crows, ccols = labels.shape
+    moved = 0
+    for i, j, (r0, c0), a, b, both in _overlaps(coarse, pad=1):
+        _check_cancel(cancel, "the mosaic")
+        h, w = both.shape
+        wr0, wc0 = r0 - 1, c0 - 1  # the pair's window, grown by one pixel
+        gr0, gr1, gc0, gc1 = max(wr0, 0), min(wr0 + h, crows), max(wc0, 0), min(wc0 + w, ccols)
+        lab = np.full((h, w), NO_SOURCE, np.uint16)  # beyond the grid: no image's
+        lab[gr0 - wr0:gr1 - wr0, gc0 - wc0:gc1 - wc0] = labels[gr0:gr1, gc0:gc1]
+        mi, mj = lab == i, lab == j
+        # the movable seam: pixels of either region next to the other where both images see
+        bi, bj = mi & both, mj & both
+        border = (bi & ndimage.binary_dilation(bj)) | (bj & ndimage.binary_dilation(bi))
+        if not border.any():
+            continue
+        away = ndimage.distance_transform_edt(~border)  # from the nadir seam, reduced pixels
+        corridor = both & (mi | mj) & (away <= width)
+        d = np.abs((a * gains[i].astype(np.float32) + offsets[i].astype(np.float32))
+                   - (b * gains[j].astype(np.float32) + offsets[j].astype(np.float32))).mean(axis=-1)
+        if not corridor.any():
+            continue
+        m = max(float(np.median(d[corridor])), 1e-6 * (float(np.abs(a[corridor]).max()) + 1.0))
+        # the largest disagreement within the blend's reach: a seam keeps that far from objects
+        d = ndimage.maximum_filter(np.where(both, d, 0.0), size=2 * reach + 1)
+        cost = 1.0 + np.minimum((d / (3.0 * m)) ** 2, 400.0) + 4.0 * (away / width) ** 2
+        to_i = _split_corridor(corridor, mi, mj, border, cost)
+        if to_i is None:
+            continue
+        new = np.where(corridor, np.where(to_i, i, j), lab).astype(np.uint16)
+        moved += int((new != lab).sum())
+        labels[gr0:gr1, gc0:gc1] = new[gr0 - wr0:gr1 - wr0, gc0 - wc0:gc1 - wc0]
+    return moved
+
+
+def _split_corridor(corridor, mi, mj, seam, cost, tries=4):
+    """Split a corridor around the nadir seam ``seam`` (bool: the pixels of either region
+    next to the other) between the two regions ``mi`` and ``mj`` by a least-cost pixel path
+    between the seam's two ends on the corridor's rim (see :func:`_least_cost_seams`).
+    Returns bool (h, w), True where the corridor goes to the first region, or None where no
+    path separates the rim's two sides."""
+    from scipy import ndimage
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.csgraph import dijkstra
+
+    rim = corridor & ndimage.binary_dilation(~corridor)
+    side_i, side_j = rim & mi, rim & mj  # the rim's parts that keep their region
+    eight = np.ones((3, 3), bool)
+    ends, n_ends = ndimage.label(rim & seam, structure=eight)  # where the nadir seam leaves the corridor
+    if n_ends < 2 or not side_i.any() or not side_j.any():
+        return None
+    # the corridor's 8-neighbour graph, an edge weighing the cost of the pixel it enters
+    h, w = corridor.shape
+    node = np.full((h, w), -1, np.int64)
+    node[corridor] = np.arange(int(corridor.sum()))
+    src, dst, wt = [], [], []
+    for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
+        a = node[max(0, -dr):h - max(0, dr), max(0, -dc):w - max(0, dc)]
+        b = node[max(0, dr):h - max(0, -dr), max(0, dc):w - max(0, -dc)]
+        ca = cost[max(0, -dr):h - max(0, dr), max(0, -dc):w - max(0, dc)]
+        cb = cost[max(0, dr):h - max(0, -dr), max(0, dc):w - max(0, -dc)]
+        ok = (a >= 0) & (b >= 0)
+        length = np.hypot(dr, dc)
+        src += [a[ok], b[ok]]
+        dst += [b[ok], a[ok]]
+        wt += [cb[ok] * length, ca[ok] * length]
+    n = int(corridor.sum())
+    graph = csr_matrix((np.concatenate(wt), (np.concatenate(src), np.concatenate(dst))), shape=(n, n))
+    sizes = np.bincount(ends.ravel())[1:]
+    order = np.argsort(-sizes, kind="stable")[:tries] + 1
+    for ka in range(len(order)):
+        for kb in range(ka + 1, len(order)):
+            starts, targets = node[ends == order[ka]], node[ends == order[kb]]
+            dist, pred, _ = dijkstra(graph, indices=starts, min_only=True, return_predecessors=True)
+            t = targets[np.argmin(dist[targets])]
+            if not np.isfinite(dist[t]):
+                continue
+            on_path = np.zeros(n, bool)
+            while t >= 0:
+                on_path[t] = True
+                t = pred[t]
+            path = np.zeros((h, w), bool)
+            path[corridor] = on_path
+            path |= (ends == order[ka]) | (ends == order[kb])
+            rest, _ = ndimage.label(corridor & ~path)
+            touch_i, touch_j = np.unique(rest[side_i & ~path]), np.unique(rest[side_j & ~path])
+            touch_i, touch_j = touch_i[touch_i > 0], touch_j[touch_j > 0]
+            if np.intersect1d(touch_i, touch_j).size:
+                continue
+            to_i = mi.copy()  # the path and parts touching neither side keep their labels
+            to_i[np.isin(rest, touch_i)] = True
+            to_i[np.isin(rest, touch_j)] = False
+            return to_i
+    return None
+
+
+def _signed_distances(labels, f, r0, c0, th, tw, ks, clip):
+    """Per image of ``ks``, the signed distance (output pixels, negative inside) of each pixel
+    of the tile (r0, c0, th, tw) from the image's region of the reduced labelling (``f``
+    output pixels per reduced pixel): exact up to ``clip`` and clipped there, so that it is
+    the same whichever tile computes it; bilinear between reduced pixel centres (seams
+    continuous across tiles).
+
+    Returns
+    -------
+    dict of int -> ndarray float32 (th, tw)
+    """
+    from scipy import ndimage
+
+    crows, ccols = labels.shape
+    yy = (np.arange(r0, r0 + th) + 0.5) / f - 0.5
+    xx = (np.arange(c0, c0 + tw) + 0.5) / f - 0.5
+    margin = int(np.ceil(clip / f)) + 2
+    wr0, wc0 = int(np.floor(yy[0])) - margin, int(np.floor(xx[0])) - margin
+    wr1, wc1 = int(np.floor(yy[-1])) + 2 + margin, int(np.floor(xx[-1])) + 2 + margin
+    rows = np.clip(np.arange(wr0, wr1), 0, crows - 1)  # beyond the grid: its edge repeated
+    cols = np.clip(np.arange(wc0, wc1), 0, ccols - 1)
+    win = labels[np.ix_(rows, cols)]
+    iy = np.clip(np.floor(yy).astype(int), 0, crows - 1) - wr0
+    ix = np.clip(np.floor(xx).astype(int), 0, ccols - 1) - wc0
+    fy = np.clip(yy - np.floor(yy), 0.0, 1.0)[:, None].astype(np.float32)
+    fx = np.clip(xx - np.floor(xx), 0.0, 1.0)[None, :].astype(np.float32)
+    fy[yy < 0], fx[:, xx < 0] = 0.0, 0.0
+    out = {}
+    for k in ks:
+        inside = win == k
+        if not inside.any():
+            out[k] = np.full((th, tw), clip, np.float32)
+            continue
+        if inside.all():
+            out[k] = np.full((th, tw), -clip, np.float32)
+            continue
+        sd = (ndimage.distance_transform_edt(~inside) - ndimage.distance_transform_edt(inside)) * f
+        sd = np.clip(sd, -clip, clip).astype(np.float32)
+        along = sd[iy] * (1 - fy) + sd[iy + 1] * fy
+        out[k] = along[:, ix] * (1 - fx) + along[:, ix + 1] * fx
+    return out
+
+
+def _overlaps(coarse, pad=0):
+    """Per pair of images whose reduced windows meet: (i, j, values of i, values of j, both
+    valid), cut to the intersection of the windows grown by ``pad`` pixels (the grown part
+    invalid)."""
+    for i in range(len(coarse)):
+        for j in range(i + 1, len(coarse)):
+            if coarse[i] is None or coarse[j] is None:
+                continue
+            ri, ci, vi, oki = coarse[i]
+            rj, cj, vj, okj = coarse[j]
+            r0, r1 = max(ri, rj), min(ri + oki.shape[0], rj + okj.shape[0])
+            c0, c1 = max(ci, cj), min(ci + oki.shape[1], cj + okj.shape[1])
+            if r0 >= r1 or c0 >= c1:
+                continue
+            a = vi[r0 - ri:r1 - ri, c0 - ci:c1 - ci]
+            b = vj[r0 - rj:r1 - rj, c0 - cj:c1 - cj]
+            both = oki[r0 - ri:r1 - ri, c0 - ci:c1 - ci] & okj[r0 - rj:r1 - rj, c0 - cj:c1 - cj]
+            if pad:
+                a = np.pad(a, ((pad, pad), (pad, pad), (0, 0)))
+                b = np.pad(b, ((pad, pad), (pad, pad), (0, 0)))
+                both = np.pad(both, pad)
+            yield i, j, (r0, c0), a, b, both
 
 
 def _solve(rows, rhs, n, reference):

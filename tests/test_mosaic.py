@@ -40,7 +40,7 @@ def pair(tmp_path_factory):
 def test_mosaic_of_two_frames_matches_the_truth_and_the_nadir_rule(pair, tmp_path, device):
     sc, images, ref_poses, _ = pair
     res = mosaic(images, tmp_path / "m.tif", dem=sc.dem, refraction=False, index=tmp_path / "i.tif", device=device,
-                 tile_size=64, blend="none")
+                 tile_size=64, blend="none", seams="nadir")
     assert sorted(os.listdir(tmp_path)) == ["i.tif", "m.tif"]
     with rasterio.open(res.path) as ds:
         assert ds.tags(ns="IMAGE_STRUCTURE")["LAYOUT"] == "COG" and ds.crs.to_epsg() == 32632
@@ -136,6 +136,64 @@ def test_feathering_smooths_the_seam(brighter, tmp_path):
     print(f"[defaults] {describe(m)}, error vs truth {np.sqrt(np.mean((data - t)[valid] ** 2)):.4f}")
     assert m["rms"] <= RMS_MAX, describe(m)
     assert np.sqrt(np.mean((data - t)[valid] ** 2)) < 0.15 * sc.texture.std
+
+
+def test_least_cost_seams_go_around_what_one_image_alone_shows(pair, tmp_path):
+    """A bright object (a parked car, say) only in the second image, painted where the nadir
+    seam crosses: the nadir seam cuts it in two, the least-cost seam goes around it (its
+    ground comes from one image), and both mosaics stay registered to the truth elsewhere."""
+    from scipy import ndimage
+
+    sc, images, ref_poses, folder = pair
+    kw = dict(dem=sc.dem, refraction=False, device="cpu", blend="none", balance=False, tile_size=64)
+    nadir = mosaic(images, tmp_path / "n.tif", seams="nadir", index=tmp_path / "n_i.tif", **kw)
+    with rasterio.open(nadir.index) as ds:
+        idx, valid = ds.read(1), ds.dataset_mask() > 0
+    seam = np.zeros_like(valid)
+    seam[:, 1:] = (idx[:, 1:] != idx[:, :-1]) & valid[:, 1:] & valid[:, :-1]
+    r, c = np.nonzero(seam)
+    mid = np.argsort(r)[len(r) // 2]
+    # the object's ground: a disc of 12 m around that seam point; painted in image 1's pixels
+    x, y = pixel_centres(nadir)
+    centre = np.array([x[r[mid], c[mid]], y[r[mid], c[mid]]])
+    with rasterio.open(images[1][0]) as ds:
+        img = ds.read(1).astype(np.float64)
+    rows, cols = np.mgrid[0:img.shape[0], 0:img.shape[1]]
+    g = sc.object_point(x.ravel(), y.ravel())
+    pix = sc.ref_camera.pixels((g - ref_poses[1].center) @ ref_poses[1].rotation).reshape(*x.shape, 2)
+    disc = np.hypot(x - centre[0], y - centre[1]) < 12.0
+    pc = pix[disc]
+    inside = np.zeros(img.shape, bool)
+    inside[np.clip(np.rint(pc[:, 1] - 0.5).astype(int), 0, img.shape[0] - 1),
+           np.clip(np.rint(pc[:, 0] - 0.5).astype(int), 0, img.shape[1] - 1)] = True
+    inside = ndimage.binary_closing(inside, iterations=2) | inside
+    img[inside] = img.max() + 5 * sc.texture.std
+    obj = write_image(folder / "b_object.tif", img, "float32")
+    images2 = [images[0], (obj, images[1][1], images[1][2])]
+    split = {}
+    core = ndimage.binary_erosion(disc, iterations=2)  # surely the object's ground
+    for seams in ("nadir", "least-cost"):
+        res = mosaic(images2, tmp_path / f"{seams}.tif", seams=seams, index=tmp_path / f"{seams}_i.tif", **kw)
+        with rasterio.open(res.index) as ds:
+            idx, valid = ds.read(1), ds.dataset_mask() > 0
+        split[seams] = (np.mean(idx[core & valid] == 0), np.mean(idx[core & valid] == 1))
+        m, data, ok, t = measure(sc, res)
+        far = ok & ~ndimage.binary_dilation(disc, iterations=10)
+        assert np.sqrt(np.mean((data - t)[far] ** 2)) < 0.15 * sc.texture.std
+    print(f"\n[least-cost seams] share of the object's ground from images 0 and 1: nadir {split['nadir']}, "
+          f"least-cost {split['least-cost']}")
+    assert min(split["nadir"]) > 0.2  # the nadir seam cuts the object
+    assert min(split["least-cost"]) == 0.0  # the least-cost seam does not
+    # feathered (the default), the seam keeps half the blend's width from the object: no
+    # half-transparent ghost of it, whichever image supplies its ground
+    res = mosaic(images2, tmp_path / "feather.tif", dem=sc.dem, refraction=False, device="cpu", balance=False,
+                 feather=16, tile_size=64)
+    m, data, ok, t = measure(sc, res)
+    err = np.abs(data - t)[core & ok]
+    bright = img.max() - 2 * sc.texture.std
+    print(f"[least-cost seams, feathered] object pixels near the truth {np.mean(err < 0.3 * sc.texture.std):.3f}, "
+          f"showing the object {np.mean(data[core & ok] > bright):.3f}")
+    assert np.mean(err < 0.3 * sc.texture.std) > 0.99 or np.mean(data[core & ok] > bright) > 0.99
 
 
 def test_seamlines_trace_each_images_part(pair, tmp_path):
