@@ -99,6 +99,7 @@ def run_mosaic(spec_path, out_path):
     m = ow.mosaic(jobs, out_path, dem=dem, refraction=False, reference=0, index=out_path + ".index.tif",
                   overwrite=True, device=spec["device"])
     wall = time.perf_counter() - t
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # before the evaluation below
     import rasterio
 
     with rasterio.open(out_path) as ds:
@@ -134,7 +135,7 @@ def run_mosaic(spec_path, out_path):
                           balance_error_max=float(max(balance_err)),
                           balance_error_rms=float(np.sqrt(np.mean(np.square(balance_err)))),
                           output_mpix_s=rows * cols / wall / 1e6,
-                          peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+                          peak_rss_mb=peak,
                           misregistration_rms_px=float(reg["rms"]), misregistration_worst_tile_px=float(reg["max"]),
                           tiles=int(reg["n_tiles"]), radiometric_rms=float(np.sqrt(np.mean(err**2))),
                           texture_std=float(texture.std), seam_pixels=int(seam.sum()),

@@ -370,6 +370,11 @@ def _frame_orientations(images, int_param, ext_param, crs):
               show_default=True)
 @click.option("--seamlines", "seamlines_path", type=click.Path(dir_okay=False),
               help="Also write each image's part of the mosaic as GeoJSON polygons (longitude/latitude).")
+@click.option("--seams", type=click.Choice(["least-cost", "nadir"]), default="least-cost", show_default=True,
+              help="Seams where the images agree (moved from the most-nadir seams around buildings, trees, "
+                   "moving objects), or the most-nadir seams.")
+@click.option("--seam-width", type=float, default=256.0, show_default=True,
+              help="How far a least-cost seam may move from the most-nadir seam, output pixels.")
 @click.option("--blend", type=click.Choice(["feather", "none"]), default="feather", show_default=True,
               help="Feather across seams (and towards image borders), or take each pixel from one image.")
 @click.option("--feather", type=float, default=32.0, show_default=True, help="Width of the blend, output pixels.")
@@ -387,11 +392,12 @@ def _frame_orientations(images, int_param, ext_param, crs):
 @click.option("--device", default=None, help="Warp device (cpu, cuda, cuda:N); default: first GPU, else CPU.")
 @click.pass_context
 def mosaic(ctx, images, int_param, ext_param, dem, height, out_path, index_path, seamlines_path, crs, resolution,
-           resampling, blend, feather, no_balance, no_occlusion, reference, compress_level, dtype, overwrite, no_refraction, geoid,
+           resampling, seams, seam_width, blend, feather, no_balance, no_occlusion, reference, compress_level, dtype, overwrite, no_refraction, geoid,
            same_vertical_datum, device):
     """Mosaic frame IMAGES into one cloud-optimized GeoTIFF: each pixel from the image that sees
-    its ground most nearly from above (smallest off-nadir angle), feathered across the seams,
-    the images' radiometry balanced by gains and offsets from their overlaps."""
+    its ground most nearly from above (smallest off-nadir angle), the seams moved to where the
+    images agree, feathered across the seams, the images' radiometry balanced by gains and
+    offsets from their overlaps."""
     from .errors import ParamError
     from .pipeline.dem import Dem
     from .pipeline.mosaic import mosaic as make_mosaic
@@ -402,7 +408,7 @@ def mosaic(ctx, images, int_param, ext_param, dem, height, out_path, index_path,
     terrain = Dem.from_file(dem) if dem is not None else height
     r = make_mosaic(jobs, out_path, dem=terrain, crs=crs, resolution=resolution, resampling=resampling,
                     refraction=not no_refraction, dtype=dtype, index=index_path, seamlines=seamlines_path,
-                    blend=blend, feather=feather,
+                    seams=seams, seam_width=seam_width, blend=blend, feather=feather,
                     balance=not no_balance, reference=reference, occlusion=not no_occlusion,
                     compress_level=compress_level,
                     overwrite=overwrite, device=device, geoid=geoid, same_vertical_datum=same_vertical_datum,

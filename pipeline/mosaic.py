@@ -33,6 +33,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import rasterio
+import warp as wp
 from affine import Affine
 from pyproj import Transformer
 
@@ -40,9 +41,11 @@ from .._device import quiet_warp
 from ..camera import FrameCamera
 from ..errors import GeometryError, ParamError, RasterIOError
 from ..geodesy import ecef_to_geodetic, geodetic_to_ecef
+from ..kernels import mosaic as mosaic_kernels
 from ..pose import Pose
 from .cog import DTYPES, CogWriter
 from .io import atomic_files, check_destination
+from .ortho import _WP_TYPES as WP_TYPES
 from .ortho import COARSE_STEP, RESAMPLING, ImageTiles, _as_dem, _check_cancel, coarse_grid, output_grid, \
     source_facts
 from .geometry import FrameGeometry
@@ -76,12 +79,13 @@ def _upsample(node, th, tw):
     return np.stack([np.interp(rows, ki, along[:, j]) for j in range(tw)], axis=1)
 
 
-def _fields(geom, transform, to_frame, r0, c0, th, tw):
-    """Per tile pixel, from the image of ``geom``: the off-nadir angle (radians) under which it
-    sees the pixel's ground point, the distance (source pixels) of that point's image from the
-    image's border, and the source pixels per output pixel (a scalar). Computed at the
-    coarse-grid nodes from the camera centre and the ground point on the DEM, bilinear in
-    between; NaN where the DEM has no height."""
+def _node_fields(geom, transform, to_frame, r0, c0, th, tw):
+    """At the coarse-grid nodes of the tile (every COARSE_STEP pixels from its first pixel,
+    see :func:`~orthowarp.pipeline.ortho.coarse_grid`), from the image of ``geom``: the
+    off-nadir angle (radians) under which it sees the node's ground point (from the camera
+    centre and the point on the DEM), the distance (source pixels) of that point's image from
+    the image's border (both NaN where the DEM has no height), and the source pixels per
+    output pixel (a scalar)."""
     uv = coarse_grid(transform, to_frame, r0, c0, th, tw)
     u, v = uv[..., 0], uv[..., 1]
     h = geom.dem.sample(u, v)
@@ -102,6 +106,13 @@ def _fields(geom, transform, to_frame, r0, c0, th, tw):
         steps = np.concatenate([np.hypot(*np.diff(pix, axis=ax).reshape(-1, 2).T) for ax in (0, 1)])
     steps = steps[np.isfinite(steps)]
     scale = float(np.median(steps)) / COARSE_STEP if len(steps) else 1.0
+    return angle, edge, scale
+
+
+def _fields(geom, transform, to_frame, r0, c0, th, tw):
+    """:func:`_node_fields`' angle and edge distance per tile pixel (th, tw), bilinear between
+    the nodes, and the scale."""
+    angle, edge, scale = _node_fields(geom, transform, to_frame, r0, c0, th, tw)
     return _upsample(angle, th, tw), _upsample(edge, th, tw), scale
 
 
@@ -367,12 +378,7 @@ class MosaicPlan:
             fill = has2 & ~has
             out[fill], source[fill], has = out2[fill], source2[fill], has | has2
             st["timer"].span("prepare", t)
-        valid = source != NO_SOURCE
-        if self.dtype == "float32":
-            block = np.where(valid[..., None], out, np.nan).astype(np.float32)
-        else:
-            block = np.clip(np.rint(out), 0, float(np.iinfo(self.dtype).max)).astype(self.dtype)
-        return block, valid, source
+        return out, has, source
 
     def _select(self, st, which, r0, c0, th, tw):
         """(values float32 (th, tw, bands), source index (th, tw), has a value (th, tw)) of a
@@ -380,7 +386,8 @@ class MosaicPlan:
         :func:`mosaic`)."""
         o, timer = self.options, st["timer"]
         count, feather = self.count, o["feather"]
-        cand = []  # (k, values float32 (th, tw, count), valid, edge fade (px) or 0)
+        rendered = []  # (k, values, valid, edge distance at the coarse nodes, fade width)
+        device = None
         for k, (fr0, fr1, fc0, fc1) in enumerate(self.foot):
             if fr1 <= r0 or fr0 >= r0 + th or fc1 <= c0 or fc0 >= c0 + tw:
                 continue
@@ -389,44 +396,45 @@ class MosaicPlan:
                 if values is None:
                     continue
                 t = time.perf_counter()
-                v, ok = values.numpy(), valid.numpy().view(bool)
-                timer.span("d2h", t)
-                t = time.perf_counter()
-                fade = 0.0
-                if o["blend"] == "feather" and ok.any():  # towards the image's border, over the same width
-                    _, edge, scale = _fields(entry["geom"], self.transform, entry["to_frame"], r0, c0, th, tw)
-                    fade = (feather * np.clip(1.0 - np.nan_to_num(edge, nan=0.0) / (feather * scale), 0.0, 1.0)
-                            ).astype(np.float32)
-            if ok.any():
-                cand.append((k, v.astype(np.float32) * self.gains[k].astype(np.float32)
-                             + self.offsets[k].astype(np.float32), ok, fade))
+                edge, fade = np.zeros((2, 2), np.float32), 0.0
+                if o["blend"] == "feather":  # towards the image's border, over the blend's width
+                    _, edge, scale = _node_fields(entry["geom"], self.transform, entry["to_frame"], r0, c0, th, tw)
+                    edge, fade = np.nan_to_num(edge, nan=0.0).astype(np.float32), feather * scale
+                rendered.append((k, values, valid, edge, fade))
+                device = values.device
             timer.span("prepare", t)
         t = time.perf_counter()
-        source = np.full((th, tw), NO_SOURCE, np.uint16)
-        out = np.zeros((th, tw, count), np.float32)
-        has = np.zeros((th, tw), bool)
-        if cand:
-            # each image's signed distance from its region of the seam labelling (+ the fade)
-            dist = _signed_distances(self.labels, self.seam_step, r0, c0, th, tw, [c[0] for c in cand],
-                                     clip=2.0 * feather + 4.0 * self.seam_step)
-            eff = np.stack([np.where(ok, dist[k] + fade, np.inf) for k, _, ok, fade in cand])
-            best = np.argmin(eff, axis=0)
-            if o["blend"] == "none":
-                weights = (np.arange(len(cand))[:, None, None] == best[None]).astype(np.float32)
-            else:
-                lo = np.take_along_axis(eff, best[None], 0)[0]
-                with np.errstate(invalid="ignore"):  # inf - inf where no image has the pixel
-                    weights = np.clip(1.0 - (eff - lo) / np.float32(feather), 0.0, 1.0)
-            weights[~np.isfinite(eff)] = 0.0
-            total = weights.sum(axis=0)
-            has = total > 0
-            acc = np.zeros((th, tw, count), np.float32)
-            for wk, c in zip(weights, cand):
-                acc += wk[..., None] * np.nan_to_num(c[1])
-            out[has] = acc[has] / total[has][:, None]
-            ks = np.array([c[0] for c in cand])
-            source[has] = ks[np.argmax(weights, axis=0)][has]
-        timer.span("queue", t)
+        top = {"uint8": 255.0, "uint16": 65535.0, "float32": 0.0}[self.dtype]
+        if not rendered:
+            out = np.full((th, tw, count), np.nan if top == 0.0 else 0, self.dtype)
+            return out, np.full((th, tw), NO_SOURCE, np.uint16), np.zeros((th, tw), bool)
+        # each image's signed distance from its region of the seam labelling, on the reduced grid
+        ks = [r[0] for r in rendered]
+        (wr0, wc0), windows = _distance_windows(self.labels, self.seam_step, r0, c0, th, tw, ks,
+                                                clip=2.0 * feather + 4.0 * self.seam_step)
+        n = len(rendered)
+        stack = wp.empty((n, th, tw, count), dtype=wp.float32, device=device)
+        rank = wp.empty((n, th, tw), dtype=wp.float32, device=device)
+        win = mosaic_kernels.ReducedWindow()
+        win.f, win.r0, win.c0, win.wr0, win.wc0 = float(self.seam_step), r0, c0, wr0, wc0
+        win.rows, win.cols = self.labels.shape
+        for slot, (k, values, valid, edge, fade) in enumerate(rendered):
+            win.field = wp.array(windows[k], dtype=wp.float32, device=device)
+            wp.launch(mosaic_kernels.mosaic_candidate_kernel, dim=(th, tw), device=device,
+                      inputs=[values, valid, wp.array(self.gains[k].astype(np.float32), device=device),
+                              wp.array(self.offsets[k].astype(np.float32), device=device), win,
+                              wp.array(edge, dtype=wp.float32, device=device), float(COARSE_STEP), float(fade),
+                              float(feather), slot, stack, rank])
+        out = wp.empty((th, tw, count), dtype=WP_TYPES[self.dtype], device=device)
+        has = wp.empty((th, tw), dtype=wp.uint8, device=device)
+        source = wp.empty((th, tw), dtype=wp.uint16, device=device)
+        wp.launch(mosaic_kernels.mosaic_blend_kernel, dim=(th, tw), device=device,
+                  inputs=[stack, rank, wp.array(np.array(ks, np.int32), device=device), n, float(feather),
+                          int(o["blend"] == "none"), top, out, has, source])
+        timer.span("kernel", t)
+        t = time.perf_counter()
+        out, source, has = out.numpy(), source.numpy(), has.numpy().view(bool)
+        timer.span("d2h", t)
         return out, source, has
 
     def write(self, dst, results, *, index=None, seamlines=None, compress_level=None, overwrite=False,
@@ -837,47 +845,37 @@ def _split_corridor(corridor, mi, mj, seam, cost, tries=4):
     return None
 
 
-def _signed_distances(labels, f, r0, c0, th, tw, ks, clip):
-    """Per image of ``ks``, the signed distance (output pixels, negative inside) of each pixel
-    of the tile (r0, c0, th, tw) from the image's region of the reduced labelling (``f``
-    output pixels per reduced pixel): exact up to ``clip`` and clipped there, so that it is
-    the same whichever tile computes it; bilinear between reduced pixel centres (seams
-    continuous across tiles).
+def _distance_windows(labels, f, r0, c0, th, tw, ks, clip):
+    """Per image of ``ks``, the signed distance (output pixels, negative inside) from the
+    image's region of the reduced labelling (``f`` output pixels per reduced pixel), on the
+    window of the reduced grid that the tile (r0, c0, th, tw) needs for bilinear sampling
+    (:class:`~orthowarp.kernels.mosaic.ReducedWindow`), exact up to ``clip`` and clipped
+    there, so that it is the same whichever tile computes it. Beyond the grid, its edge
+    repeated.
 
     Returns
     -------
-    dict of int -> ndarray float32 (th, tw)
+    (wr0, wc0) : the window's first reduced row and column
+    dict of int -> ndarray float32 (rows, cols)
     """
     from scipy import ndimage
 
     crows, ccols = labels.shape
-    yy = (np.arange(r0, r0 + th) + 0.5) / f - 0.5
-    xx = (np.arange(c0, c0 + tw) + 0.5) / f - 0.5
     margin = int(np.ceil(clip / f)) + 2
-    wr0, wc0 = int(np.floor(yy[0])) - margin, int(np.floor(xx[0])) - margin
-    wr1, wc1 = int(np.floor(yy[-1])) + 2 + margin, int(np.floor(xx[-1])) + 2 + margin
-    rows = np.clip(np.arange(wr0, wr1), 0, crows - 1)  # beyond the grid: its edge repeated
-    cols = np.clip(np.arange(wc0, wc1), 0, ccols - 1)
-    win = labels[np.ix_(rows, cols)]
-    iy = np.clip(np.floor(yy).astype(int), 0, crows - 1) - wr0
-    ix = np.clip(np.floor(xx).astype(int), 0, ccols - 1) - wc0
-    fy = np.clip(yy - np.floor(yy), 0.0, 1.0)[:, None].astype(np.float32)
-    fx = np.clip(xx - np.floor(xx), 0.0, 1.0)[None, :].astype(np.float32)
-    fy[yy < 0], fx[:, xx < 0] = 0.0, 0.0
+    wr0 = int(np.floor((r0 + 0.5) / f - 0.5)) - margin
+    wc0 = int(np.floor((c0 + 0.5) / f - 0.5)) - margin
+    wr1 = int(np.floor((r0 + th - 0.5) / f - 0.5)) + 2 + margin
+    wc1 = int(np.floor((c0 + tw - 0.5) / f - 0.5)) + 2 + margin
+    win = labels[np.ix_(np.clip(np.arange(wr0, wr1), 0, crows - 1), np.clip(np.arange(wc0, wc1), 0, ccols - 1))]
     out = {}
     for k in ks:
         inside = win == k
-        if not inside.any():
-            out[k] = np.full((th, tw), clip, np.float32)
-            continue
-        if inside.all():
-            out[k] = np.full((th, tw), -clip, np.float32)
+        if not inside.any() or inside.all():
+            out[k] = np.full(win.shape, clip if not inside.any() else -clip, np.float32)
             continue
         sd = (ndimage.distance_transform_edt(~inside) - ndimage.distance_transform_edt(inside)) * f
-        sd = np.clip(sd, -clip, clip).astype(np.float32)
-        along = sd[iy] * (1 - fy) + sd[iy + 1] * fy
-        out[k] = along[:, ix] * (1 - fx) + along[:, ix + 1] * fx
-    return out
+        out[k] = np.clip(sd, -clip, clip).astype(np.float32)
+    return (wr0, wc0), out
 
 
 def _overlaps(coarse, pad=0):

@@ -276,7 +276,7 @@ def test_cli_mosaic(tmp_path):
     out, idx = tmp_path / "out" / "m.tif", tmp_path / "out" / "i.tif"
     res = CliRunner().invoke(main, ["mosaic", args[0], str(tmp_path / "b.tif"), *args[1:], "--out", str(out),
                                     "--index", str(idx), "--resolution", "0.5", "--seamlines", str(out.parent / "s.json"),
-                                    "--blend", "none", "--no-balance"])
+                                    "--blend", "none", "--no-balance", "--seams", "least-cost", "--seam-width", "128"])
     assert res.exit_code == 0, res.output
     assert "pixels per image: a.tif " in res.output
     assert sorted(os.listdir(out.parent)) == ["i.tif", "m.tif", "s.json"]

@@ -1,0 +1,172 @@
+"""Mosaic tiles on the device: ranking the images of a tile and blending them.
+
+For one output tile, each image that has pixels in it was rendered by the ortho's tile
+function (:mod:`orthowarp.kernels.ortho`). Then:
+
+1. :func:`mosaic_candidate_kernel`, once per image: its values balanced (gain and offset per
+   band) into the tile's stack, and its rank per pixel: the signed distance (output pixels,
+   negative inside) from the image's region of the seam labelling, bilinear in a window of
+   the reduced grid the host computed, plus, with feathering, a fade towards the image's
+   border (bilinear in the edge distance at the tile's coarse-grid nodes); +inf where the
+   image has no value.
+2. :func:`mosaic_blend_kernel`, one thread per pixel: the image of smallest rank (blend
+   "none"), or every image within ``feather`` of it with weights falling linearly across
+   that band; the weighted mean stored in the output's dtype, the mask, and the index of the
+   image with the largest weight.
+"""
+
+from typing import Any
+
+import warp as wp
+
+from .ortho import store_nodata, store_pixel
+
+wp.set_module_options({"enable_backward": False})
+
+NO_SOURCE = wp.constant(wp.uint16(65535))
+
+
+@wp.struct
+class ReducedWindow:
+    """A window of a field on the mosaic's reduced grid (``f`` output pixels per reduced
+    pixel), and where the tile lies in it."""
+
+    field: wp.array2d(dtype=wp.float32)  # (rows, cols), the window
+    f: wp.float32  # output pixels per reduced pixel
+    r0: wp.int32  # the tile's first output row and column
+    c0: wp.int32
+    wr0: wp.int32  # the window's first reduced row and column
+    wc0: wp.int32
+    rows: wp.int32  # the reduced grid's size (positions clamped to it)
+    cols: wp.int32
+
+
+@wp.func
+def reduced_axis(p: wp.int32, f: wp.float32, n: wp.int32, w0: wp.int32):
+    """Output pixel index p -> (window index of the reduced pixel centre at or before it, the
+    fraction towards the next): bilinear between reduced pixel centres, clamped at the grid's
+    first and last centres."""
+    y = (wp.float32(p) + wp.float32(0.5)) / f - wp.float32(0.5)
+    fl = wp.floor(y)
+    frac = wp.clamp(y - fl, wp.float32(0.0), wp.float32(1.0))
+    if y < wp.float32(0.0):
+        frac = wp.float32(0.0)
+    return wp.clamp(wp.int32(fl), 0, n - 1) - w0, frac
+
+
+@wp.func
+def reduced_sample(win: ReducedWindow, i: wp.int32, j: wp.int32):
+    iy, fy = reduced_axis(win.r0 + i, win.f, win.rows, win.wr0)
+    ix, fx = reduced_axis(win.c0 + j, win.f, win.cols, win.wc0)
+    a = win.field[iy, ix] * (wp.float32(1.0) - fy) + win.field[iy + 1, ix] * fy
+    b = win.field[iy, ix + 1] * (wp.float32(1.0) - fy) + win.field[iy + 1, ix + 1] * fy
+    return a * (wp.float32(1.0) - fx) + b * fx
+
+
+@wp.func
+def node_sample(nodes: wp.array2d(dtype=wp.float32), step: wp.float32, i: wp.int32, j: wp.int32):
+    """Bilinear between coarse-grid nodes every ``step`` pixels from the tile's first pixel."""
+    fi = wp.float32(i) / step
+    fj = wp.float32(j) / step
+    i0 = wp.min(wp.int32(fi), nodes.shape[0] - 2)
+    j0 = wp.min(wp.int32(fj), nodes.shape[1] - 2)
+    ai = fi - wp.float32(i0)
+    aj = fj - wp.float32(j0)
+    a = nodes[i0, j0] * (wp.float32(1.0) - aj) + nodes[i0, j0 + 1] * aj
+    b = nodes[i0 + 1, j0] * (wp.float32(1.0) - aj) + nodes[i0 + 1, j0 + 1] * aj
+    return a * (wp.float32(1.0) - ai) + b * ai
+
+
+@wp.kernel
+def mosaic_candidate_kernel(
+    values: wp.array3d(dtype=Any),
+    valid: wp.array2d(dtype=wp.uint8),
+    gain: wp.array1d(dtype=wp.float32),
+    offset: wp.array1d(dtype=wp.float32),
+    dist: ReducedWindow,
+    edge: wp.array2d(dtype=wp.float32),
+    edge_step: wp.float32,
+    fade_width: wp.float32,
+    feather: wp.float32,
+    k: wp.int32,
+    stack: wp.array4d(dtype=wp.float32),
+    rank: wp.array3d(dtype=wp.float32),
+):
+    """Image k of the tile: its balanced values into ``stack[k]`` (th, tw, bands) and its rank
+    into ``rank[k]`` (th, tw). ``edge`` (coarse nodes): distance of the pixel's image from the
+    image's border, source pixels; the fade adds ``feather`` * (1 - edge / fade_width),
+    clipped to [0, feather], where ``fade_width`` > 0."""
+    i, j = wp.tid()
+    if valid[i, j] == wp.uint8(0):
+        rank[k, i, j] = wp.float32(wp.inf)
+        for b in range(stack.shape[3]):
+            stack[k, i, j, b] = wp.float32(0.0)
+        return
+    r = reduced_sample(dist, i, j)
+    if fade_width > wp.float32(0.0):
+        e = node_sample(edge, edge_step, i, j)
+        r = r + feather * wp.clamp(wp.float32(1.0) - e / fade_width, wp.float32(0.0), wp.float32(1.0))
+    rank[k, i, j] = r
+    for b in range(stack.shape[3]):
+        stack[k, i, j, b] = wp.float32(values[i, j, b]) * gain[b] + offset[b]
+
+
+@wp.func
+def blend_weight(e: wp.float32, lo: wp.float32, k: wp.int32, best: wp.int32, feather: wp.float32, hard: wp.int32):
+    if not (e < wp.float32(wp.inf)):
+        return wp.float32(0.0)
+    if hard != 0:
+        if k == best:
+            return wp.float32(1.0)
+        return wp.float32(0.0)
+    return wp.clamp(wp.float32(1.0) - (e - lo) / feather, wp.float32(0.0), wp.float32(1.0))
+
+
+@wp.kernel
+def mosaic_blend_kernel(
+    stack: wp.array4d(dtype=wp.float32),
+    rank: wp.array3d(dtype=wp.float32),
+    images: wp.array1d(dtype=wp.int32),
+    n: wp.int32,
+    feather: wp.float32,
+    hard: wp.int32,
+    top: wp.float32,
+    out: wp.array3d(dtype=Any),
+    valid: wp.array2d(dtype=wp.uint8),
+    source: wp.array2d(dtype=wp.uint16),
+):
+    """One output pixel from the tile's ``n`` images (see the module's description): ``hard``
+    != 0 takes the image of smallest rank alone; ``top`` as for
+    :func:`~orthowarp.kernels.ortho.store_pixel`; ``source`` gets ``images[k]`` of the image
+    with the largest weight (the first of equals), NO_SOURCE where none has a value."""
+    i, j = wp.tid()
+    lo = wp.float32(wp.inf)
+    best = wp.int32(-1)
+    for k in range(n):
+        e = rank[k, i, j]
+        if e < lo:
+            lo = e
+            best = k
+    total = wp.float32(0.0)
+    wmax = wp.float32(0.0)
+    arg = wp.int32(-1)
+    if best >= 0:
+        for k in range(n):
+            w = blend_weight(rank[k, i, j], lo, k, best, feather, hard)
+            total += w
+            if w > wmax:
+                wmax = w
+                arg = k
+    if total <= wp.float32(0.0):
+        store_nodata(out, valid, i, j, top)
+        source[i, j] = NO_SOURCE
+        return
+    for b in range(out.shape[2]):
+        acc = wp.float32(0.0)
+        for k in range(n):
+            w = blend_weight(rank[k, i, j], lo, k, best, feather, hard)
+            if w > wp.float32(0.0):
+                acc += w * stack[k, i, j, b]
+        store_pixel(out, i, j, b, acc / total, top)
+    valid[i, j] = wp.uint8(1)
+    source[i, j] = wp.uint16(images[arg])
