@@ -12,7 +12,18 @@ then ``orthowarp.mosaic`` with image 0 as the radiometric reference. Reported (J
   truth, grey levels), and across the seams the gradient energy of the mosaic relative to the
   truth texture's at the same pixels.
 
-usage: python3 bench/mosaic.py [--strips 5 --per-strip 8] [--sizes 10,40] [--device cpu] [--out FILE]
+Speed (``--speed``): a block of ``--sizes`` frames of ``--frame`` W x H 3-band uint8 pixels
+(procedural content, each frame with its own gain and offset, 60 % / 30 % overlap, 8 cm GSD),
+orientation files in orthority's formats (camera YAML, x/y/z/omega/phi/kappa CSV + .prj) and a
+DEM GeoTIFF; ``orthowarp mosaic`` (CLI, in a child: wall time, peak resident memory, GPU busy
+fraction sampled by nvidia-smi, its ``--profile-json``) for each size; with ``--oty-python``,
+side by side on the largest block, orthority 0.7.0's orthos (``oty frame``, deflate) + a VRT
+of them (what ``gdalbuildvrt`` writes: one ComplexSource per ortho, its mask used) + GDAL's
+COG driver (``gdal_translate -of COG``, deflate, all cores), run through rasterio's GDAL.
+
+usage: python3 bench/mosaic.py [--strips 5] [--sizes 10,40] [--device cpu] [--out FILE]
+       python3 bench/mosaic.py --speed [--frame 9600x8000] [--sizes 10,40] [--device cuda:0]
+                               [--oty-python PY] [--workdir DIR] [--out FILE]
 """
 
 import argparse
@@ -28,6 +39,7 @@ import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.join(HERE, "..", "tests"))  # the independent renderer and its reference
+sys.path.insert(0, HERE)
 
 UTM32 = "EPSG:32632"
 X0, Y0 = 463250.0, 5201480.0
@@ -143,6 +155,237 @@ def run_mosaic(spec_path, out_path):
                           gains=m.gains[:, 0].tolist(), offsets=m.offsets[:, 0].tolist())))
 
 
+def speed_terrain(e, n):
+    return 450.0 + 25.0 * np.sin(e / 400.0) * np.cos(n / 300.0) + 10.0 * np.sin((e + n) / 150.0)
+
+
+def build_speed(folder, n_images, strips, width, height):
+    """The speed block's frames, orientation files (orthority's formats) and DEM in ``folder``
+    (kept: a second run reuses them). Returns the frame paths."""
+    import rasterio
+    import yaml
+    from pyproj import CRS
+    from rasterio.transform import from_origin
+    from rasterio.windows import Window
+
+    pixel, focal, flying = 0.004, 50.0, 1000.0  # mm, mm, m above the mean ground
+    gsd = pixel / focal * flying
+    per_strip = -(-n_images // strips)
+    base_along, base_across = 0.4 * height * gsd, 0.7 * width * gsd
+    ext_e, ext_n = per_strip * base_along + height * gsd, strips * base_across + width * gsd
+    os.makedirs(folder, exist_ok=True)
+    # DEM: 2 m cells, 200 m beyond the block
+    cell = 2.0
+    x0, y1 = X0 - ext_e / 2 - 200.0, Y0 + ext_n / 2 + 200.0
+    ncols, nrows = int((ext_e + 400.0) / cell), int((ext_n + 400.0) / cell)
+    dem_path = os.path.join(folder, "dem.tif")
+    if not os.path.exists(dem_path):
+        e, nn = np.meshgrid(x0 + (np.arange(ncols) + 0.5) * cell - X0, y1 - (np.arange(nrows) + 0.5) * cell - Y0)
+        with rasterio.open(dem_path + ".part", "w", driver="GTiff", width=ncols, height=nrows, count=1,
+                           dtype="float32", crs=UTM32, transform=from_origin(x0, y1, cell, cell), tiled=True) as dst:
+            dst.write(speed_terrain(e, nn).astype(np.float32), 1)
+        os.replace(dem_path + ".part", dem_path)
+    with open(os.path.join(folder, "camera.yaml"), "w") as f:
+        yaml.safe_dump({"bench": {"type": "brown", "im_size": [width, height], "focal_len": focal,
+                                  "sensor_size": [width * pixel, height * pixel], "cx": 0.0, "cy": 0.0,
+                                  "k1": -0.02, "k2": 0.005, "k3": 0.0, "p1": 0.0, "p2": 0.0}}, f)
+    rng = np.random.default_rng(7)
+    rows, paths, gains = [], [], []
+    for k in range(n_images):
+        s, i = divmod(k, per_strip)
+        xk = X0 - ext_e / 2 + height * gsd / 2 + i * base_along
+        yk = Y0 + ext_n / 2 - width * gsd / 2 - s * base_across
+        zk = 450.0 + flying + rng.normal(0, 5)
+        opk = (rng.normal(0, 0.3), rng.normal(0, 0.3), 90.0 + rng.normal(0, 1.0))
+        name = f"f{k:03d}"
+        rows.append(f"{name},{xk:.3f},{yk:.3f},{zk:.3f},{opk[0]:.5f},{opk[1]:.5f},{opk[2]:.5f}")
+        paths.append(os.path.join(folder, name + ".tif"))
+        gains.append((rng.uniform(0.85, 1.15), rng.uniform(-15, 15)))
+    with open(os.path.join(folder, "ext.csv"), "w") as f:
+        f.write("filename,x,y,z,omega,phi,kappa\n" + "\n".join(rows) + "\n")
+    with open(os.path.join(folder, "ext.prj"), "w") as f:
+        f.write(CRS.from_user_input(UTM32).to_wkt())
+    # the frames: a ground texture seen through each frame's orientation (ground points of
+    # every 64th pixel by orthowarp.geolocate on the DEM, bilinear in between; frame content
+    # only needs to be consistent between overlapping frames for the mosaic's seams and
+    # balance to have something to work on), each frame with its own gain and offset
+    import orthowarp as ow
+    from orthowarp.pipeline.formats import read_cameras, read_exterior
+
+    try:
+        import cupy as xp  # the GPU host's CuPy, where there is one: 77 Mpix frames in seconds
+        xp.zeros(1)
+    except Exception:  # noqa: BLE001 - no CuPy or no GPU: NumPy
+        xp = np
+    camera = next(iter(read_cameras(os.path.join(folder, "camera.yaml")).values()))
+    exterior = read_exterior(os.path.join(folder, "ext.csv"))
+    dem = ow.Dem.from_file(dem_path)
+    step = 64
+    gc, gr = np.arange(0, width + step, step, dtype=float), np.arange(0, height + step, step, dtype=float)
+    for k, path in enumerate(paths):
+        if os.path.exists(path):
+            continue
+        pose = exterior[f"f{k:03d}"].pose
+        cc, rr = np.meshgrid(gc, gr)
+        xyz = ow.geolocate(camera, pose, np.stack([cc.ravel(), rr.ravel()], -1), dem=dem, crs=UTM32,
+                           refraction=False)
+        gx = xp.asarray(xyz[:, 0].reshape(cc.shape) - X0)
+        gy = xp.asarray(xyz[:, 1].reshape(cc.shape) - Y0)
+        gain, offset = gains[k]
+        with rasterio.open(path + ".part", "w", driver="GTiff", width=width, height=height, count=3, dtype="uint8",
+                           tiled=True, blockxsize=512, blockysize=512) as dst:
+            for r0 in range(0, height, 1024):
+                h = min(1024, height - r0)
+                fr = (xp.arange(r0, r0 + h, dtype=xp.float64) + 0.5) / step
+                fc = (xp.arange(width, dtype=xp.float64) + 0.5) / step
+                i0, j0 = xp.floor(fr).astype(xp.int64), xp.floor(fc).astype(xp.int64)
+                ai, aj = (fr - i0)[:, None], (fc - j0)[None, :]
+
+                def lerp(g):
+                    a = g[i0][:, j0] * (1 - aj) + g[i0][:, j0 + 1] * aj
+                    b = g[i0 + 1][:, j0] * (1 - aj) + g[i0 + 1][:, j0 + 1] * aj
+                    return a * (1 - ai) + b * ai
+
+                x, y = lerp(gx), lerp(gy)
+                base = (128 + 45 * xp.sin(x / 3.1) * xp.cos(y / 4.3) + 30 * xp.sin((x + 2 * y) / 1.3)
+                        + 25 * xp.cos(x / 23.0 - y / 17.0))
+                block = xp.stack([base, 128 + 60 * xp.sin(y / 2.3 + x / 7.0), 255 - base])
+                block = xp.clip(block * gain + offset, 0, 255).astype(xp.uint8)
+                dst.write(block.get() if xp is not np else block, window=Window(0, r0, width, h))
+        os.replace(path + ".part", path)
+    return paths, dem_path
+
+
+def write_vrt(path, orthos):
+    """A VRT of the orthos as gdalbuildvrt writes it: the union of their extents at the first
+    one's resolution, one ComplexSource per ortho and band (later ones on top), each ortho's
+    mask or nodata honoured, and a dataset mask."""
+    import rasterio
+
+    infos = []
+    for p in orthos:
+        with rasterio.open(p) as ds:
+            infos.append((p, ds.transform, ds.width, ds.height, ds.count, ds.dtypes[0], ds.nodata))
+    res = infos[0][1].a
+    x0 = min(t.c for _, t, *_ in infos)
+    y1 = max(t.f for _, t, *_ in infos)
+    x1 = max(t.c + t.a * w for _, t, w, *_ in infos)
+    y0 = min(t.f + t.e * h for _, t, w, h, *_ in infos)
+    width, height = int(round((x1 - x0) / res)), int(round((y1 - y0) / res))
+    with rasterio.open(infos[0][0]) as ds:
+        wkt = ds.crs.to_wkt()
+    count, dtype = infos[0][4], {"uint8": "Byte", "uint16": "UInt16", "float32": "Float32"}[infos[0][5]]
+
+    def src(p, t, w, h, band, nodata):
+        xo, yo = (t.c - x0) / res, (y1 - t.f) / res
+        nd = f"<NODATA>{nodata}</NODATA>" if nodata is not None else "<UseMaskBand>true</UseMaskBand>"
+        return (f'<ComplexSource><SourceFilename relativeToVRT="0">{p}</SourceFilename><SourceBand>{band}</SourceBand>'
+                f'<SrcRect xOff="0" yOff="0" xSize="{w}" ySize="{h}"/>'
+                f'<DstRect xOff="{xo:.6f}" yOff="{yo:.6f}" xSize="{w * t.a / res:.6f}" ySize="{h * -t.e / res:.6f}"/>'
+                f"{nd}</ComplexSource>")
+
+    parts = [f'<VRTDataset rasterXSize="{width}" rasterYSize="{height}"><SRS>{wkt.replace("<", "&lt;")}</SRS>'
+             f"<GeoTransform>{x0!r}, {res!r}, 0, {y1!r}, 0, {-res!r}</GeoTransform>"]
+    for b in range(1, count + 1):
+        parts.append(f'<VRTRasterBand dataType="{dtype}" band="{b}">')
+        parts += [src(p, t, w, h, b, nd) for p, t, w, h, _, _, nd in infos]
+        parts.append("</VRTRasterBand>")
+    parts.append('<MaskBand><VRTRasterBand dataType="Byte">')
+    parts += [src(p, t, w, h, "mask,1", None).replace("<UseMaskBand>true</UseMaskBand>", "")
+              for p, t, w, h, _, _, nd in infos]
+    parts.append("</VRTRasterBand></MaskBand></VRTDataset>")
+    with open(path, "w") as f:
+        f.write("\n".join(parts))
+
+
+def run_speed(args, sizes):
+    from ortho import run_cli  # noqa: E402 (bench/ortho.py: a CLI in a child, its peak memory and GPU use)
+
+    width, height = (int(v) for v in args.frame.split("x"))
+    work = args.workdir or tempfile.mkdtemp(prefix="orthowarp-mosaic-speed-")
+    t = time.perf_counter()
+    frames, dem_path = build_speed(work, max(sizes), args.strips, width, height)
+    report = dict(benchmark="mosaic_speed", frame=[width, height, 3], dtype="uint8", strips=args.strips,
+                  device=args.device, cpu_count=os.cpu_count(), build_s=time.perf_counter() - t, results=[])
+    gpu = int(args.device.split(":")[1]) if args.device.startswith("cuda:") else (0 if args.device == "cuda" else None)
+    try:
+        import subprocess as sp
+
+        report["gpu"] = sp.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader", "-i", str(gpu or 0)],
+                               capture_output=True, text=True).stdout.strip() if gpu is not None else None
+    except OSError:
+        report["gpu"] = None
+    orient = ["--int-param", os.path.join(work, "camera.yaml"), "--ext-param", os.path.join(work, "ext.csv")]
+
+    def save():
+        os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+        with open(args.out, "w") as f:
+            json.dump(report, f, indent=1)
+
+    for n in ([] if args.no_orthowarp else sizes):
+        out = os.path.join(work, f"mosaic{n}.tif")
+        prof = os.path.join(work, f"mosaic{n}.profile.json")
+        extra = ["--workers", str(args.workers)] if args.workers else []
+        r = run_cli(sys.executable, "orthowarp.cli:main",
+                    ["mosaic", *frames[:n], *orient, "--dem", dem_path, "--out", out, "--overwrite",
+                     "--device", args.device, "--profile-json", prof, *extra], gpu_index=gpu)
+        r["images"] = n
+        r["input_gpix"] = n * width * height / 1e9
+        if r["returncode"] == 0:
+            with open(prof) as f:
+                r["profile"] = json.load(f)
+            px = r["profile"]["output_pixels"]
+            r.update(output_gpix=px / 1e9, output_gpix_s=px / 1e9 / r["wall_s"],
+                     tiles_output_gpix_s=px / 1e9 / r["profile"]["wall_s"], output_mb=os.path.getsize(out) / 1e6)
+        report["results"].append(r)
+        save()
+        print(f"orthowarp mosaic {n} frames ({r['input_gpix']:.2f} Gpix in): {r['wall_s']:.1f} s, "
+              f"peak {r['peak_rss_mb'] or float('nan'):.0f} MB, GPU busy {r.get('gpu_busy_fraction', float('nan')):.2f}, "
+              f"{r.get('output_gpix', float('nan')):.3f} Gpix out, {r.get('output_gpix_s', float('nan')):.3f} Gpix/s "
+              f"end to end, {r.get('tiles_output_gpix_s', float('nan')):.3f} Gpix/s tiles+writing, "
+              f"rc {r['returncode']} {r['stderr'][-800:]}", flush=True)
+    if args.oty_python:
+        import rasterio
+        import rasterio.shutil
+
+        n = max(sizes)
+        oty_dir = os.path.join(work, "orthority")
+        os.makedirs(oty_dir, exist_ok=True)
+        res = args.resolution or report["results"][-1]["profile"]["resolution"]
+        o = run_cli(args.oty_python, "orthority.cli:cli", [
+            "frame", "--dem", dem_path, *orient, "--res", repr(res), "--interp", "bilinear", "--dem-interp",
+            "bilinear", "--compress", "deflate", "--out-dir", oty_dir, "--overwrite", *frames[:n]])
+        chain = dict(images=n, orthority=o)
+        if o["returncode"] == 0:
+            orthos = sorted(os.path.join(oty_dir, f) for f in os.listdir(oty_dir) if f.endswith(".tif"))
+            t = time.perf_counter()
+            vrt = os.path.join(work, "orthority.vrt")
+            write_vrt(vrt, orthos)
+            chain["buildvrt_s"] = time.perf_counter() - t
+            t = time.perf_counter()
+            cog = os.path.join(work, "orthority_mosaic.tif")
+            with rasterio.Env(GDAL_NUM_THREADS="ALL_CPUS"):
+                rasterio.shutil.copy(vrt, cog, driver="COG", compress="DEFLATE", num_threads="ALL_CPUS",
+                                     blocksize=512, overviews="AUTO")
+            chain["cog_s"] = time.perf_counter() - t
+            with rasterio.open(cog) as ds:
+                chain["shape"] = [ds.height, ds.width]
+            chain["output_mb"] = os.path.getsize(cog) / 1e6
+            chain["wall_s"] = o["wall_s"] + chain["buildvrt_s"] + chain["cog_s"]
+            ours = next((r for r in report["results"] if r["images"] == n), {})
+            if ours.get("returncode") == 0:
+                chain["speedup_of_orthowarp"] = chain["wall_s"] / ours["wall_s"]
+        report["orthority_gdal"] = chain
+        save()
+        print(f"orthority 0.7.0 + VRT + COG, {n} frames: {chain.get('wall_s', float('nan')):.1f} s "
+              f"(orthority {o['wall_s']:.1f} s, peak {o['peak_rss_mb'] or float('nan'):.0f} MB; VRT "
+              f"{chain.get('buildvrt_s', float('nan')):.2f} s; COG {chain.get('cog_s', float('nan')):.1f} s); "
+              f"orthowarp {chain.get('speedup_of_orthowarp', float('nan')):.1f}x; rc {o['returncode']} "
+              f"{o['stderr'][-500:]}", flush=True)
+    save()
+    print(f"wrote {args.out}")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--strips", type=int, default=5)
@@ -150,11 +393,20 @@ def main(argv=None):
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--workdir", default=None)
     ap.add_argument("--out", default="bench/results/mosaic.json")
+    ap.add_argument("--speed", action="store_true", help="the speed block (see above) instead of the truth block")
+    ap.add_argument("--frame", default="9600x8000", help="--speed: frame size W x H")
+    ap.add_argument("--workers", type=int, default=None, help="--speed: orthowarp mosaic --workers")
+    ap.add_argument("--oty-python", default=None, help="--speed: a Python with orthority 0.7.0: run it side by side")
+    ap.add_argument("--no-orthowarp", action="store_true", help="--speed: only the orthority chain (e.g. in a second run)")
+    ap.add_argument("--resolution", type=float, default=None,
+                    help="--speed: orthority's --res (default: the resolution of orthowarp's mosaic)")
     ap.add_argument("--child", nargs=2, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.child:
         return run_mosaic(*args.child)
     sizes = [int(s) for s in args.sizes.split(",")]
+    if args.speed:
+        return run_speed(args, sizes)
     work = args.workdir or tempfile.mkdtemp(prefix="orthowarp-mosaic-")
     os.makedirs(work, exist_ok=True)
     t = time.perf_counter()

@@ -63,7 +63,9 @@ class MosaicResult:
     """What :func:`mosaic` wrote: ``path``, ``index`` and ``seamlines`` (paths or None),
     ``crs``, ``transform``, ``shape`` (rows, cols), ``resolution``, ``pixels_per_image`` (list:
     output pixels in which each image has the largest weight), ``gains`` and ``offsets``
-    ((images, bands): the radiometric balance applied) and ``profile``."""
+    ((images, bands): the radiometric balance applied), ``setup_s`` (seconds of the plan's
+    steps: ``reduced_pass``, ``balance``, ``seams``, ``total``), ``wall_s`` (the tiles and the
+    writing) and ``profile`` (of the tiles and the writing)."""
 
     def __init__(self, **kw):
         self.__dict__.update(kw)
@@ -174,7 +176,7 @@ def mosaic(images, dst, *, dem, crs=None, resolution=None, resampling="bilinear"
     overwrite : bool, optional
     device : str, optional
     workers : int, optional
-        Tiles in flight (default: CPU cores on the CPU, 4 on a GPU).
+        Tiles in flight (default: CPU cores on the CPU, 8 on a GPU).
     geoid, same_vertical_datum :
         As for :func:`~orthowarp.pipeline.ortho.orthorectify`.
     cancel : threading.Event, optional
@@ -197,7 +199,7 @@ def mosaic(images, dst, *, dem, crs=None, resolution=None, resampling="bilinear"
                        same_vertical_datum=same_vertical_datum, cancel=cancel, _outputs=outputs)
     t0 = time.perf_counter()
     tiles = plan.tiles(tile_size)
-    n_workers = workers or (4 if plan.device_is_cuda else (os.cpu_count() or 1))
+    n_workers = workers or (8 if plan.device_is_cuda else (os.cpu_count() or 1))
 
     def results():
         """Tile results in grid order, at most 2 x workers tiles in flight (bounded memory)."""
@@ -253,6 +255,7 @@ class MosaicPlan:
         self.gains = np.ones((len(sources), count))
         self.offsets = np.zeros((len(sources), count))
         self.labels, self.seam_step = None, 1  # the seams' labelling, set by mosaic_plan
+        self.setup_s = {}  # seconds of mosaic_plan's steps
         self._state, self._lock = None, threading.Lock()
 
     def __getstate__(self):
@@ -488,7 +491,7 @@ class MosaicPlan:
                             seamlines=outputs[-1] if seamlines is not None else None, crs=self.crs,
                             transform=self.transform, shape=self.shape, resolution=self.resolution,
                             pixels_per_image=used.tolist(), gains=self.gains, offsets=self.offsets,
-                            wall_s=time.perf_counter() - t_start,
+                            wall_s=time.perf_counter() - t_start, setup_s=dict(self.setup_s),
                             profile=timer.profile() if timer is not None else None)
 
 
@@ -501,6 +504,7 @@ def mosaic_plan(images, *, dem, crs=None, resolution=None, resampling="bilinear"
     :class:`MosaicPlan` whose :meth:`~MosaicPlan.tile` any scheduler can run (threads, a Dask
     cluster) and whose :meth:`~MosaicPlan.write` assembles the results. Parameters as
     :func:`mosaic`."""
+    t_plan = time.perf_counter()
     images = list(images)
     _check_images(images, resampling, dtype, blend, feather, reference, seams, seam_width)
     terrain = _as_dem(dem)
@@ -558,14 +562,21 @@ def mosaic_plan(images, *, dem, crs=None, resolution=None, resampling="bilinear"
     plan = MosaicPlan([(f[0], cam, pose, f[3]) for f, (_, cam, pose) in zip(facts, images)], terrain, options,
                       out_crs, transform, (rows, cols), res, foot, heights, count, out_dtype, src_dtype)
     # one reduced pass: the images' overlaps for the balance and the seams' labelling
+    t = time.perf_counter()
     f, coarse, labels = _reduced_pass(plan, cancel, _seam_pixels)
+    plan.setup_s["reduced_pass"] = time.perf_counter() - t
     if balance and len(images) > 1:
+        t = time.perf_counter()
         plan.gains, plan.offsets = _balance(coarse, count, reference)
+        plan.setup_s["balance"] = time.perf_counter() - t
     if seams == "least-cost" and len(images) > 1:
+        t = time.perf_counter()
         moved = _least_cost_seams(labels, coarse, plan.gains, plan.offsets, max(2.0, seam_width / f),
                                   int(np.ceil(0.5 * feather / f)) if blend == "feather" else 1, cancel)
+        plan.setup_s["seams"] = time.perf_counter() - t
         log.info("least-cost seams moved %d of %d reduced pixels (%d mosaic pixels each)", moved, labels.size, f * f)
     plan.labels, plan.seam_step = labels, f
+    plan.setup_s["total"] = time.perf_counter() - t_plan
     return plan
 
 
