@@ -322,10 +322,18 @@ def run_speed(args, sizes):
         with open(args.out, "w") as f:
             json.dump(report, f, indent=1)
 
+    if not args.no_orthowarp:  # Warp compiles the kernels on first use: a 2-frame mosaic first, timed apart
+        r = run_cli(sys.executable, "orthowarp.cli:main",
+                    ["mosaic", *frames[:2], *orient, "--dem", dem_path, "--out", os.path.join(work, "warmup.tif"),
+                     "--overwrite", "--device", args.device])
+        report["warmup_2_frames"] = dict(wall_s=r["wall_s"], returncode=r["returncode"], stderr=r["stderr"])
+        print(f"warm-up (kernel compilation on a first run): 2 frames {r['wall_s']:.1f} s rc {r['returncode']}",
+              flush=True)
     for n in ([] if args.no_orthowarp else sizes):
         out = os.path.join(work, f"mosaic{n}.tif")
         prof = os.path.join(work, f"mosaic{n}.profile.json")
-        extra = ["--workers", str(args.workers)] if args.workers else []
+        extra = (["--workers", str(args.workers)] if args.workers else []) + \
+            (["--tile-size", str(args.tile_size)] if args.tile_size else [])
         r = run_cli(sys.executable, "orthowarp.cli:main",
                     ["mosaic", *frames[:n], *orient, "--dem", dem_path, "--out", out, "--overwrite",
                      "--device", args.device, "--profile-json", prof, *extra], gpu_index=gpu)
@@ -396,6 +404,7 @@ def main(argv=None):
     ap.add_argument("--speed", action="store_true", help="the speed block (see above) instead of the truth block")
     ap.add_argument("--frame", default="9600x8000", help="--speed: frame size W x H")
     ap.add_argument("--workers", type=int, default=None, help="--speed: orthowarp mosaic --workers")
+    ap.add_argument("--tile-size", type=int, default=None, help="--speed: orthowarp mosaic --tile-size")
     ap.add_argument("--oty-python", default=None, help="--speed: a Python with orthority 0.7.0: run it side by side")
     ap.add_argument("--no-orthowarp", action="store_true", help="--speed: only the orthority chain (e.g. in a second run)")
     ap.add_argument("--resolution", type=float, default=None,

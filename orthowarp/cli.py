@@ -391,13 +391,14 @@ def _frame_orientations(images, int_param, ext_param, crs):
 @click.option("--same-vertical-datum", is_flag=True, help="Take DEM and position heights as the same vertical datum.")
 @click.option("--device", default=None, help="Warp device (cpu, cuda, cuda:N); default: first GPU, else CPU.")
 @click.option("--workers", type=int, default=None, help="Tiles in flight (default: CPU cores on the CPU, 8 on a GPU).")
+@click.option("--tile-size", type=int, default=None, help="Output tile edge, pixels (default: 2048 on a GPU, 512 on the CPU).")
 @click.option("--profile", "show_profile", is_flag=True,
               help="Print where the time went: the plan's steps, per-stage times, GPU busy fraction, what bounds it.")
 @click.option("--profile-json", type=click.Path(dir_okay=False), help="Write the same profile as JSON to this file.")
 @click.pass_context
 def mosaic(ctx, images, int_param, ext_param, dem, height, out_path, index_path, seamlines_path, crs, resolution,
            resampling, seams, seam_width, blend, feather, no_balance, no_occlusion, reference, compress_level, dtype, overwrite, no_refraction, geoid,
-           same_vertical_datum, device, workers, show_profile, profile_json):
+           same_vertical_datum, device, workers, tile_size, show_profile, profile_json):
     """Mosaic frame IMAGES into one cloud-optimized GeoTIFF: each pixel from the image that sees
     its ground most nearly from above (smallest off-nadir angle), the seams moved to where the
     images agree, feathered across the seams, the images' radiometry balanced by gains and
@@ -416,7 +417,7 @@ def mosaic(ctx, images, int_param, ext_param, dem, height, out_path, index_path,
                     balance=not no_balance, reference=reference, occlusion=not no_occlusion,
                     compress_level=compress_level,
                     overwrite=overwrite, device=device, geoid=geoid, same_vertical_datum=same_vertical_datum,
-                    workers=workers, cancel=ctx.meta.get("orthowarp.stop"))
+                    workers=workers, tile_size=tile_size, cancel=ctx.meta.get("orthowarp.stop"))
     if show_profile or profile_json:
         from .pipeline.io import write_json
         from .pipeline.profile import format_profile
@@ -428,7 +429,8 @@ def mosaic(ctx, images, int_param, ext_param, dem, height, out_path, index_path,
         if profile_json:
             write_json(profile_json, dict(plan_s=r.setup_s, tiles=r.profile, wall_s=r.wall_s,
                                           output_pixels=int(r.shape[0]) * int(r.shape[1]),
-                                          shape=list(r.shape), resolution=r.resolution))
+                                          shape=list(r.shape), resolution=r.resolution, image_builds=r.image_builds,
+                                          images=len(jobs)))
     if not ctx.obj["quiet"]:
         counts = ", ".join(f"{os.path.basename(img)} {n}" for (img, *_), n in zip(jobs, r.pixels_per_image))
         click.echo(f"{r.path}: {r.shape[1]} x {r.shape[0]} px at {r.resolution:.4g}, {r.crs.name}; pixels per "

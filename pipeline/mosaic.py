@@ -65,7 +65,9 @@ class MosaicResult:
     output pixels in which each image has the largest weight), ``gains`` and ``offsets``
     ((images, bands): the radiometric balance applied), ``setup_s`` (seconds of the plan's
     steps: ``reduced_pass``, ``balance``, ``seams``, ``total``), ``wall_s`` (the tiles and the
-    writing) and ``profile`` (of the tiles and the writing)."""
+    writing), ``image_builds`` (times an image's geometry and tile functions were built in
+    this process: the number of images unless the cache evicted some) and ``profile`` (of the
+    tiles and the writing)."""
 
     def __init__(self, **kw):
         self.__dict__.update(kw)
@@ -122,7 +124,7 @@ def _fields(geom, transform, to_frame, r0, c0, th, tw):
 def mosaic(images, dst, *, dem, crs=None, resolution=None, resampling="bilinear", refraction=True, dtype=None,
            index=None, seamlines=None, seams="least-cost", seam_width=256, blend="feather", feather=32, balance=True,
            reference=None, occlusion=True, compress_level=None,
-           tile_size=512, overwrite=False, device=None, workers=None, geoid=None, same_vertical_datum=False,
+           tile_size=None, overwrite=False, device=None, workers=None, geoid=None, same_vertical_datum=False,
            cancel=None):
     """Mosaic frame images into one cloud-optimized GeoTIFF (deflate, internal mask, overviews).
 
@@ -172,7 +174,8 @@ def mosaic(images, dst, *, dem, crs=None, resolution=None, resampling="bilinear"
     compress_level : int, optional
         Deflate level 1-12 (default 6).
     tile_size : int, optional
-        Output tile edge (pixels, multiple of 16).
+        Output tile edge (pixels, multiple of 16); default 2048 on a GPU (fewer, larger
+        launches: the per-tile work on the host is what bounds a mosaic), 512 on the CPU.
     overwrite : bool, optional
     device : str, optional
     workers : int, optional
@@ -187,9 +190,8 @@ def mosaic(images, dst, *, dem, crs=None, resolution=None, resampling="bilinear"
     """
     images = list(images)
     _check_images(images, resampling, dtype, blend, feather, reference, seams, seam_width)
-    if int(tile_size) < 16 or int(tile_size) % 16:
+    if tile_size is not None and (int(tile_size) < 16 or int(tile_size) % 16):
         raise ParamError(f"tile_size must be a positive multiple of 16, got {tile_size}")
-    tile_size = int(tile_size)
     dst = os.fspath(dst)
     outputs = _outputs(dst, index, seamlines, overwrite)
     plan = mosaic_plan(images, dem=dem, crs=crs, resolution=resolution, resampling=resampling,
@@ -198,7 +200,7 @@ def mosaic(images, dst, *, dem, crs=None, resolution=None, resampling="bilinear"
                        reference=reference, occlusion=occlusion, device=device, geoid=geoid,
                        same_vertical_datum=same_vertical_datum, cancel=cancel, _outputs=outputs)
     t0 = time.perf_counter()
-    tiles = plan.tiles(tile_size)
+    tiles = plan.tiles(int(tile_size) if tile_size is not None else (2048 if plan.device_is_cuda else 512))
     n_workers = workers or (8 if plan.device_is_cuda else (os.cpu_count() or 1))
 
     def results():
@@ -289,7 +291,8 @@ class MosaicPlan:
         """This process's state: the stage timer and the cache of images in use."""
         with self._lock:
             if self._state is None:
-                self._state = dict(timer=StageTimer(time.perf_counter()), images=collections.OrderedDict(), users={})
+                self._state = dict(timer=StageTimer(time.perf_counter()), images=collections.OrderedDict(), users={},
+                                   builds=0)
             return self._state
 
     def _build(self, k, timer):
@@ -334,6 +337,7 @@ class MosaicPlan:
                         to_close.append(built)
                     else:
                         entry = st["images"][k] = built
+                        st["builds"] += 1
                     while len(st["images"]) > self.options["cache_images"]:
                         victim = next((j for j in st["images"] if st["users"].get(j, 0) == 0), None)
                         if victim is None:
@@ -492,6 +496,7 @@ class MosaicPlan:
                             transform=self.transform, shape=self.shape, resolution=self.resolution,
                             pixels_per_image=used.tolist(), gains=self.gains, offsets=self.offsets,
                             wall_s=time.perf_counter() - t_start, setup_s=dict(self.setup_s),
+                            image_builds=self._state["builds"] if self._state is not None else None,
                             profile=timer.profile() if timer is not None else None)
 
 
@@ -558,7 +563,7 @@ def mosaic_plan(images, *, dem, crs=None, resolution=None, resampling="bilinear"
     log.info("mosaic of %d images: %d x %d pixels at %.4g", len(images), cols, rows, res)
     options = dict(resampling=resampling, refraction=refraction, blend=blend, feather=float(feather), device=device,
                    geoid=geoid, same_vertical_datum=same_vertical_datum,
-                   method="forward" if occlusion else "backward", cache_images=16)
+                   method="forward" if occlusion else "backward", cache_images=24)
     plan = MosaicPlan([(f[0], cam, pose, f[3]) for f, (_, cam, pose) in zip(facts, images)], terrain, options,
                       out_crs, transform, (rows, cols), res, foot, heights, count, out_dtype, src_dtype)
     # one reduced pass: the images' overlaps for the balance and the seams' labelling
@@ -648,9 +653,11 @@ def _write_seamlines(path, index, transform, crs, names, used, *, name):
 
 def _reduced_pass(plan, cancel, max_pixels):
     """Each image rendered alone on a reduced grid of the mosaic (the mosaic's pixels
-    ``f`` x ``f``, at most ``max_pixels`` pixels), read at full resolution and sampled at the
-    reduced grid's points (reduced reads would smooth each image by its own factor), and the
-    most-nadir labelling of that grid.
+    ``f`` x ``f``, at most ``max_pixels`` pixels) and the most-nadir labelling of that grid.
+    Up to f = 3 the images are read at full resolution and sampled at the reduced grid's
+    points (reduced reads would smooth each image by its own factor, biasing the balance's
+    standard deviations where the images' scales differ); from f = 4 they are read reduced
+    and area-averaged (each source pixel read once instead of one in f^2 used).
 
     Returns
     -------
@@ -670,29 +677,41 @@ def _reduced_pass(plan, cancel, max_pixels):
     crs = plan.crs
     labels = np.full((crows, ccols), NO_SOURCE, np.uint16)
     best = np.full((crows, ccols), np.inf, np.float32)
-    coarse = []
-    for k, (fr0, fr1, fc0, fc1) in enumerate(plan.foot):
+
+    def one(k):
+        """Image k alone on its window of the reduced grid: (r0, c0, values, ok, angle) or None."""
         _check_cancel(cancel, "the mosaic")
+        fr0, fr1, fc0, fc1 = plan.foot[k]
         src, geom = plan.sources[k][0], plan.geometry(k)
         r0, r1 = max(fr0 // f, 0), min(-(-fr1 // f), crows)
         c0, c1 = max(fc0 // f, 0), min(-(-fc1 // f), ccols)
         it = ImageTiles(src, geom, crs, ctr, count=count, out_dtype="float32", resampling=plan.options["resampling"],
-                        masked=True, src_dtype="float32", decimate=False)
+                        masked=True, src_dtype="float32", decimate=f >= 4)
         try:
             values, valid = it.render(r0, c0, r1 - r0, c1 - c0)
         finally:
             it.close()
         if values is None:
-            coarse.append(None)
-            continue
+            return None
         to_frame = Transformer.from_crs(crs, geom.horizontal_crs, always_xy=True)
-        angle = _fields(geom, ctr, to_frame, r0, c0, r1 - r0, c1 - c0)[0]
+        angle = _fields(geom, ctr, to_frame, r0, c0, r1 - r0, c1 - c0)[0].astype(np.float32)
         v = values.numpy()
         ok = valid.numpy().view(bool) & np.isfinite(angle) & np.isfinite(v).all(axis=-1)
-        coarse.append((r0, c0, v, ok))
-        win_best, win_labels = best[r0:r1, c0:c1], labels[r0:r1, c0:c1]
-        better = ok & (angle < win_best)
-        win_best[better], win_labels[better] = angle[better], k
+        return r0, c0, v, ok, angle
+
+    # the images on threads (reads and kernels release the GIL), merged in their order
+    coarse = []
+    with ThreadPoolExecutor(max_workers=min(8, os.cpu_count() or 1, len(plan.foot))) as pool:
+        for k, item in enumerate(pool.map(one, range(len(plan.foot)))):
+            if item is None:
+                coarse.append(None)
+                continue
+            r0, c0, v, ok, angle = item
+            coarse.append((r0, c0, v, ok))
+            win_best, win_labels = best[r0:r0 + ok.shape[0], c0:c0 + ok.shape[1]], \
+                labels[r0:r0 + ok.shape[0], c0:c0 + ok.shape[1]]
+            better = ok & (angle < win_best)
+            win_best[better], win_labels[better] = angle[better], k
     return f, coarse, labels
 
 
