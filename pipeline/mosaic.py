@@ -758,17 +758,18 @@ def _least_cost_seams(labels, coarse, gains, offsets, width, reach, cancel=None)
     where the images agree.
 
     For each pair of images whose regions meet, the corridor is the pixels of the two regions
-    that both images cover, within ``width`` pixels of the seam between them. The cost of a
+    that both images cover, within ``width`` pixels of the seam between them (or, where the
+    seam runs along the edge of one image's cover, of its side within that cover). The cost of a
     pixel is 1 + min((d / 3m)^2, 400) + 4 (a / width)^2, d the largest (within ``reach``
     pixels: half the blend's width) mean absolute difference of the two balanced images over
     the bands, m the median difference over the corridor and a the pixel's
     distance from the nadir seam: a seam through agreeing pixels near the nadir seam costs
     about its length, one through a building, a tree or a moving car (where the images
     disagree) much more, and one far from the nadir seam (more relief displacement) more
-    too. A shortest path (Dijkstra, 8-neighbours) between the two points where the nadir seam
-    leaves the corridor (at the edge of the cover, at a third image's region, or at the
-    corridor's width) splits it, each side going to the region its rim belongs to; a corridor
-    that no path separates keeps the nadir seam. Pairs are taken in order, each on the labels
+    too. A shortest path (Dijkstra, 8-neighbours) between two free parts of the corridor's rim
+    (where the nadir seam leaves it, along the edge of one image's cover, at a third image's
+    region) splits it, each part going to the region whose side of the rim it touches (see
+    :func:`_split_corridor`); a corridor that no path separates keeps the nadir seam. Pairs are taken in order, each on the labels
     the earlier ones left: one global labelling, so seams are consistent across output tiles.
     (A seam refined within a buffer around an initial one by Dijkstra on a mismatch cost, as
     in Chon et al., ISPRS J. Photogramm. 2010, here on a reduced grid.)
@@ -791,8 +792,9 @@ def _least_cost_seams(labels, coarse, gains, offsets, width, reach, cancel=None)
         lab[gr0 - wr0:gr1 - wr0, gc0 - wc0:gc1 - wc0] = labels[gr0:gr1, gc0:gc1]
         mi, mj = lab == i, lab == j
         # the movable seam: pixels of either region next to the other where both images see
-        bi, bj = mi & both, mj & both
-        border = (bi & ndimage.binary_dilation(bj)) | (bj & ndimage.binary_dilation(bi))
+        # the movable seams: pixels of either region next to the other, where both images see
+        # (at the edge of one image's cover, the seam's side within it)
+        border = ((mi & ndimage.binary_dilation(mj)) | (mj & ndimage.binary_dilation(mi))) & both
         if not border.any():
             continue
         away = ndimage.distance_transform_edt(~border)  # from the nadir seam, reduced pixels
@@ -805,7 +807,7 @@ def _least_cost_seams(labels, coarse, gains, offsets, width, reach, cancel=None)
         # the largest disagreement within the blend's reach: a seam keeps that far from objects
         d = ndimage.maximum_filter(np.where(both, d, 0.0), size=2 * reach + 1)
         cost = 1.0 + np.minimum((d / (3.0 * m)) ** 2, 400.0) + 4.0 * (away / width) ** 2
-        to_i = _split_corridor(corridor, mi, mj, border, cost)
+        to_i = _split_corridor(corridor, mi, mj, cost)
         if to_i is None:
             continue
         new = np.where(corridor, np.where(to_i, i, j), lab).astype(np.uint16)
@@ -814,21 +816,34 @@ def _least_cost_seams(labels, coarse, gains, offsets, width, reach, cancel=None)
     return moved
 
 
-def _split_corridor(corridor, mi, mj, seam, cost, tries=4):
-    """Split a corridor around the nadir seam ``seam`` (bool: the pixels of either region
-    next to the other) between the two regions ``mi`` and ``mj`` by a least-cost pixel path
-    between the seam's two ends on the corridor's rim (see :func:`_least_cost_seams`).
-    Returns bool (h, w), True where the corridor goes to the first region, or None where no
-    path separates the rim's two sides."""
+def _split_corridor(corridor, mi, mj, cost, tries=4):
+    """Split a corridor between the two regions ``mi`` and ``mj`` by a least-cost pixel path
+    (see :func:`_least_cost_seams`).
+
+    The corridor's rim (its pixels next to the outside; holes excepted) has three kinds of
+    parts: a region's side, where the rim's pixels and their outside neighbours belong to that
+    region (they stay there), and free parts, where they differ or the outside is neither
+    region's (another image's region, no cover): there the seam may end. The path runs from
+    one free part to another (Dijkstra, 8-neighbours, from all of the first); each part of the
+    corridor it cuts off goes to the region whose side it touches; pixels on the path and parts
+    touching neither side keep their labels. Returns bool (h, w), True where the corridor
+    goes to the first region, or None where no path separates the two sides."""
     from scipy import ndimage
     from scipy.sparse import csr_matrix
     from scipy.sparse.csgraph import dijkstra
 
-    rim = corridor & ndimage.binary_dilation(~corridor)
-    side_i, side_j = rim & mi, rim & mj  # the rim's parts that keep their region
+    out_parts, _ = ndimage.label(~corridor)
+    edge_parts = np.unique(np.concatenate([out_parts[0], out_parts[-1], out_parts[:, 0], out_parts[:, -1]]))
+    outer = np.isin(out_parts, edge_parts[edge_parts > 0])
+    rim = corridor & ndimage.binary_dilation(outer)
+    out_i, out_j = ndimage.binary_dilation(mi & outer), ndimage.binary_dilation(mj & outer)
+    out_none = ndimage.binary_dilation(outer & ~mi & ~mj)
+    side_i = rim & mi & out_i & ~out_j & ~out_none
+    side_j = rim & mj & out_j & ~out_i & ~out_none
     eight = np.ones((3, 3), bool)
-    ends, n_ends = ndimage.label(rim & seam, structure=eight)  # where the nadir seam leaves the corridor
+    ends, n_ends = ndimage.label(rim & ~side_i & ~side_j, structure=eight)
     if n_ends < 2 or not side_i.any() or not side_j.any():
+        log.debug("seam corridor of %d px: %d free part(s) of its rim, kept", int(corridor.sum()), n_ends)
         return None
     # the corridor's 8-neighbour graph, an edge weighing the cost of the pixel it enters
     h, w = corridor.shape
@@ -862,11 +877,12 @@ def _split_corridor(corridor, mi, mj, seam, cost, tries=4):
                 t = pred[t]
             path = np.zeros((h, w), bool)
             path[corridor] = on_path
-            path |= (ends == order[ka]) | (ends == order[kb])
             rest, _ = ndimage.label(corridor & ~path)
             touch_i, touch_j = np.unique(rest[side_i & ~path]), np.unique(rest[side_j & ~path])
             touch_i, touch_j = touch_i[touch_i > 0], touch_j[touch_j > 0]
             if np.intersect1d(touch_i, touch_j).size:
+                log.debug("seam corridor of %d px: the path between ends %d and %d does not separate its sides",
+                          int(corridor.sum()), order[ka], order[kb])
                 continue
             to_i = mi.copy()  # the path and parts touching neither side keep their labels
             to_i[np.isin(rest, touch_i)] = True
