@@ -1,11 +1,16 @@
-"""Seed 002's findings on a synthetic analogue: check-point RMSE for 6 vs 12 tie points per image
-and for control layouts A (well spread), B (corners), C (clustered), D (none; GNSS-supported).
+"""Seed 002's questions asked of a synthetic block (not seed 002's experiment as published):
+check-point RMSE for 6 vs 12 tie points per image and for control layouts A (well spread),
+B (corners), C (clustered) and D (no control, GNSS/INS-supported poses: a variant of this
+bench's own; seed 002's group D is four control points).
+
+Seed 002 itself used an RMK A 30/23 (f = 305 mm, photo scale 1:4000, 21 um scan), one strip of 4
+photos and control subsets of 4 of 7 points; that block is not reproduced here.
 
 Each configuration is adjusted on ``--runs`` noise realisations of one block geometry (3 strips
 x 8 images, 60/30 % overlap, 0.5 px image noise, 2 cm control sigma); the table gives the RMSE
 per axis over all check points and runs. Cameras (``--camera``):
 
-- ``film`` (default, seed 002's kind of block): a wide-angle film camera, f = 153 mm, 230 mm
+- ``film`` (default): a wide-angle film camera (not seed 002's RMK A 30/23), f = 153 mm, 230 mm
   format scanned at 20 um, photo scale 1:4000 (612 m above ground, 8 cm pixels on the ground,
   base-to-height ratio 0.6);
 - ``digital``: a 100 mm digital frame camera, 9 um pixels, 7000 x 10000, 1500 m above ground

@@ -116,19 +116,47 @@ class FrameCamera:
 
     @classmethod
     def from_mm_coefficients(cls, focal_length, pixel_size, image_size, *, principal_point=(0.0, 0.0),
-                             k1=0.0, k2=0.0, k3=0.0, p1=0.0, p2=0.0):
-        """Build from Brown coefficients in mm units for a y-up image frame (seed 003).
+                             k1=0.0, k2=0.0, k3=0.0, p1=0.0, p2=0.0, decentring="fraser"):
+        """Build from Brown coefficients in mm units for a y-up image frame (seed 003's eq. 2).
 
-        The mm model maps undistorted (x, y) (mm from the principal point, y up) to distorted::
+        Parameters
+        ----------
+        focal_length, pixel_size, image_size, principal_point :
+            As for :class:`FrameCamera` (mm, mm, pixels, mm).
+        k1, k2, k3 : float, optional
+            Radial coefficients, mm^-2, mm^-4, mm^-6.
+        p1, p2 : float, optional
+            Decentring coefficients, mm^-1, in the order ``decentring`` names.
+        decentring : {"fraser", "opencv"}, optional
+            Which decentring term each coefficient carries. "fraser" (default: the
+            Fraser/Australis order of seed 003's eq. 2, and of most photogrammetric calibration
+            reports), with x, y in mm from the principal point, y up, r^2 = x^2 + y^2::
 
-            xd = x + x (k1 r^2 + k2 r^4 + k3 r^6) + 2 p1 x y + p2 (r^2 + 2 x^2)
-            yd = y + y (k1 r^2 + k2 r^4 + k3 r^6) + p1 (r^2 + 2 y^2) + 2 p2 x y
+                dx = x (k1 r^2 + k2 r^4 + k3 r^6) + p1 (r^2 + 2 x^2) + 2 p2 x y
+                dy = y (k1 r^2 + k2 r^4 + k3 r^6) + 2 p1 x y + p2 (r^2 + 2 y^2)
 
-        and converts exactly (DESIGN.md) by ``k1n = k1 f^2``, ``k2n = k2 f^4``,
-        ``k3n = k3 f^6``, ``p1n = -p1 f``, ``p2n = p2 f`` (f in mm). Coefficient sets in the
-        Fraser/Australis ordering, where P1 goes with ``r^2 + 2 x^2`` in x, are passed as
-        ``p1=P2, p2=P1``.
+            "opencv": the order OpenCV (and this class's normalised coefficients) use, p1 and p2
+            exchanged::
+
+                dx = x (k1 r^2 + k2 r^4 + k3 r^6) + 2 p1 x y + p2 (r^2 + 2 x^2)
+                dy = y (k1 r^2 + k2 r^4 + k3 r^6) + p1 (r^2 + 2 y^2) + 2 p2 x y
+
+        Notes
+        -----
+        The class applies (dx, dy) as forward distortion: a ray's undistorted image point (x, y)
+        lands at (x + dx, y + dy). Seed 003 writes its model as the correction of a measured
+        (distorted) point; the two readings agree to first order in the distortion only (they
+        differ by terms in the products of coefficients: for a calibration estimated as a
+        correction, re-estimate it as forward distortion, or expect differences of the order of
+        the distortion times its gradient). The conversion to normalised coefficients is exact
+        for the forward model: ``k1n = k1 f^2``, ``k2n = k2 f^4``, ``k3n = k3 f^6`` and, in
+        OpenCV's order, ``p1n = -p1 f``, ``p2n = p2 f`` (the sign from the y-down normalised
+        frame).
         """
+        if decentring not in ("fraser", "opencv"):
+            raise ParamError(f"decentring must be 'fraser' or 'opencv', got {decentring!r}")
+        if decentring == "fraser":
+            p1, p2 = p2, p1
         f = _focal_length(focal_length)
         mm = {n: _finite(n, v) for n, v in (("k1", k1), ("k2", k2), ("k3", k3), ("p1", p1), ("p2", p2))}
         powers = {"k1": f**2, "k2": f**4, "k3": f**6, "p1": -f, "p2": f}

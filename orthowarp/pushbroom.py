@@ -133,8 +133,13 @@ def lagrange(t, times, values, order=8):
 
 
 def attitude_matrix(yaw, pitch, roll, *, first_order=False):
-    """M = Mp Mr My (handbook eq. 11) for arrays of angles (rad) -> (n, 3, 3); with
-    ``first_order``, seed 000's eq. 4 (angles to first order)."""
+    """M = Mp Mr My (handbook eq. 11) for arrays of angles (rad) -> (n, 3, 3).
+
+    With ``first_order``, the handbook's linearisation (angles to first order), which is what
+    seed 000's eq. 4 stands for: with the roll and pitch signs the DIMAP angles need (the rows
+    above, the full matrix's first-order terms). Seed 000's eq. 4 as printed, fed the DIMAP
+    angles, moves ground points by ~1.9 km at the SPOT-5 sample scene; the seed's text says to
+    negate roll and pitch, which gives this form."""
     y, p, r = (np.atleast_1d(np.asarray(a, dtype=np.float64)) for a in (yaw, pitch, roll))
     if first_order:
         one, zero = np.ones_like(y), np.zeros_like(y)
@@ -183,6 +188,9 @@ class PushbroomScene:
     psi_x, psi_y : array_like, shape (width,)
         Look angles (rad) of every detector.
     attitude_model : {"full", "first_order"}, optional
+        "full": the attitude matrix of the three angles (handbook eq. 11); "first_order": its
+        linearisation (seed 000's eq. 4 with roll and pitch signed as the DIMAP angles need;
+        see :func:`attitude_matrix`).
     epoch : numpy.datetime64, optional
         UTC of t = 0 (informative).
     attitude_extrapolation : float, optional
@@ -192,7 +200,8 @@ class PushbroomScene:
         Seed 000's exterior orientation as 2nd-degree polynomials in line time t (s):
         ``[quantity][axis][power]`` for quantity position (m), velocity (m/s), attitude (yaw,
         pitch, roll, rad): 27 coefficients that replace the ephemeris interpolation and the
-        attitude samples when given (see :meth:`fit_polynomials`); the adjustment refines them.
+        attitude samples when given (see :meth:`fit_polynomials`). (No adjustment of them exists
+        yet: seed 000's Gauss-Helmert bundle adjustment of these groups is planned work.)
     """
 
     def __init__(self, *, width, height, line_period, center_line, eph_time, eph_position, eph_velocity,

@@ -1,4 +1,4 @@
-"""Point-wise geolocation (pixel -> ground) and projection (ground -> pixel) of frame images."""
+"""Point-wise geolocation (pixel -> ground) and projection (ground -> pixel) of frame images and pushbroom scenes."""
 
 import copy
 import math

@@ -1,4 +1,4 @@
-"""Orthorectification of frame images: output grid, tiling, streaming, GeoTIFF/COG writing.
+"""Orthorectification of frame images and pushbroom scenes: output grid, tiling, streaming, GeoTIFF/COG writing.
 
 Per output tile (see :mod:`orthowarp.kernels.ortho`): the host transforms a coarse grid of the
 tile's pixel centres into the pose's frame with PROJ, a kernel computes the source pixel of

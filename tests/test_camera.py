@@ -162,7 +162,7 @@ MM_COEFFS = dict(k1=-1.2e-5, k2=5e-9, k3=-1e-12, p1=5e-6, p2=-3e-6)  # mm^-2, mm
 
 def mm_model(x, y, k1=0.0, k2=0.0, k3=0.0, p1=0.0, p2=0.0):
     """Brown's model in mm, y-up image frame, undistorted -> distorted, with p1/p2 in OpenCV's
-    ordering (the model DESIGN.md's conversion is written for, see FrameCamera.from_mm_coefficients):
+    ordering (``decentring="opencv"`` of FrameCamera.from_mm_coefficients):
     x_d = x + x (k1 r² + k2 r⁴ + k3 r⁶) + 2 p1 x y + p2 (r² + 2x²),
     y_d = y + y (k1 r² + k2 r⁴ + k3 r⁶) + p1 (r² + 2y²) + 2 p2 x y."""
     r2 = x * x + y * y
@@ -190,7 +190,7 @@ def _normalised_model_mm(cam, x, y):
 
 
 def test_from_mm_coefficients_conversion_is_exact():
-    cam = FrameCamera.from_mm_coefficients(F_MM, 0.0052, (2000, 1300), **MM_COEFFS)
+    cam = FrameCamera.from_mm_coefficients(F_MM, 0.0052, (2000, 1300), **MM_COEFFS, decentring="opencv")
     f = F_MM
     np.testing.assert_allclose(
         [cam.k1, cam.k2, cam.k3, cam.p1, cam.p2],
@@ -211,7 +211,7 @@ def test_from_mm_coefficients_radial_matches_mm_model():
 
 
 def test_from_mm_coefficients_full_matches_mm_model():
-    cam = FrameCamera.from_mm_coefficients(F_MM, 0.0052, (2000, 1300), **MM_COEFFS)
+    cam = FrameCamera.from_mm_coefficients(F_MM, 0.0052, (2000, 1300), **MM_COEFFS, decentring="opencv")
     x, y = _mm_points()
     xd, yd = mm_model(x, y, **MM_COEFFS)
     xt, yt = mm_model(x, y, p1=MM_COEFFS["p1"], p2=MM_COEFFS["p2"])
@@ -221,16 +221,25 @@ def test_from_mm_coefficients_full_matches_mm_model():
     np.testing.assert_allclose(gy, yd, rtol=0, atol=1e-12)
 
 
-def test_fraser_ordering_converts_by_swapping_p_terms():
-    """Coefficients in the Fraser/Australis ordering pass as p1=P2, p2=P1 (documented)."""
+def test_a_fraser_order_calibration_goes_in_as_it_is_printed():
+    """Seed 003's eq. 2 (Fraser/Australis order: P1 with r² + 2x² in x) is the default: its
+    coefficients go in as printed; the OpenCV order is the other choice, and the two differ
+    by swapping p1 and p2."""
     c = MM_COEFFS
-    cam = FrameCamera.from_mm_coefficients(F_MM, 0.0052, (2000, 1300), k1=c["k1"], k2=c["k2"],
-                                           k3=c["k3"], p1=c["p2"], p2=c["p1"])
     x, y = _mm_points()
+    fraser = FrameCamera.from_mm_coefficients(F_MM, 0.0052, (2000, 1300), **c)
     xd, yd = fraser_model(x, y, **c)
-    gx, gy = _normalised_model_mm(cam, x, y)
+    gx, gy = _normalised_model_mm(fraser, x, y)
     np.testing.assert_allclose(gx, xd, rtol=0, atol=1e-12)
     np.testing.assert_allclose(gy, yd, rtol=0, atol=1e-12)
+    # the same calibration read in the wrong order lands elsewhere (the test is not vacuous)
+    xo, yo = mm_model(x, y, **c)
+    assert np.hypot(xo - xd, yo - yd).max() > 1e-4  # mm: ~0.03 px at the frame's corners
+    swapped = FrameCamera.from_mm_coefficients(F_MM, 0.0052, (2000, 1300), **{**c, "p1": c["p2"], "p2": c["p1"]},
+                                               decentring="opencv")
+    np.testing.assert_allclose([swapped.p1, swapped.p2], [fraser.p1, fraser.p2], rtol=1e-15, atol=0)
+    with pytest.raises(ParamError, match="decentring"):
+        FrameCamera.from_mm_coefficients(F_MM, 0.0052, (2000, 1300), decentring="australis")
 
 
 def test_mm_model_end_to_end_through_kernel(device):
