@@ -375,8 +375,9 @@ def _frame_orientations(images, int_param, ext_param, crs):
                    "moving objects), or the most-nadir seams.")
 @click.option("--seam-width", type=float, default=256.0, show_default=True,
               help="How far a least-cost seam may move from the most-nadir seam, output pixels.")
-@click.option("--blend", type=click.Choice(["feather", "none"]), default="feather", show_default=True,
-              help="Feather across seams (and towards image borders), or take each pixel from one image.")
+@click.option("--blend", type=click.Choice(["feather", "multiband", "none"]), default="feather", show_default=True,
+              help="Feather across seams (and towards image borders), blend by frequency bands (fine detail "
+                   "sharp, brightness over the feather width), or take each pixel from one image.")
 @click.option("--feather", type=float, default=32.0, show_default=True, help="Width of the blend, output pixels.")
 @click.option("--no-balance", is_flag=True, help="No radiometric balancing (gain and offset per image and band).")
 @click.option("--no-occlusion", is_flag=True,

@@ -102,12 +102,12 @@ def test_balancing_recovers_gain_and_offset(brighter, tmp_path):
 
 
 def test_feathering_smooths_the_seam(brighter, tmp_path):
-    """Without balancing, the brighter image's region differs by a step: feathering spreads it
-    over the band (the largest change between neighbouring pixels across the seam drops), and
-    the mosaic stays registered."""
+    """Without balancing, the brighter image's region differs by a step: feathering and
+    multi-band blending spread it over the band (the largest change between neighbouring
+    pixels across the seam drops), and the mosaic stays registered."""
     sc, images, _ = brighter
     jumps = {}
-    for blend in ("none", "feather"):
+    for blend in ("none", "feather", "multiband"):
         res = mosaic(images, tmp_path / f"{blend}.tif", dem=sc.dem, refraction=False, balance=False, blend=blend,
                      feather=40, index=tmp_path / f"{blend}_i.tif", device="cpu")
         _, data, valid, t = measure(sc, res)
@@ -126,16 +126,20 @@ def test_feathering_smooths_the_seam(brighter, tmp_path):
         local = [np.nanmax(np.abs(np.diff(err[i, j - k:j + k + 1]))) for i, j in zip(r[ok], c[ok])]
         jumps[blend] = (abs(np.nanmedian(steps)), np.nanmedian(local))
         assert len(steps) > 50
-    print(f"\n[feathering] step across the seam (none, feather): {jumps['none'][0]:.3f}, {jumps['feather'][0]:.3f}; "
-          f"largest neighbour change: {jumps['none'][1]:.3f}, {jumps['feather'][1]:.3f}")
+    print(f"\n[feathering] step across the seam (none, feather, multiband): {jumps['none'][0]:.3f}, "
+          f"{jumps['feather'][0]:.3f}, {jumps['multiband'][0]:.3f}; largest neighbour change: {jumps['none'][1]:.3f}, "
+          f"{jumps['feather'][1]:.3f}, {jumps['multiband'][1]:.3f}")
     assert jumps["feather"][1] < 0.5 * jumps["none"][1]
+    assert jumps["multiband"][1] < 0.5 * jumps["none"][1]
     # feathered and balanced (the defaults; image 0's radiometry kept, which is the truth's):
     # registered and valued like the truth
-    res = mosaic(images, tmp_path / "default.tif", dem=sc.dem, refraction=False, reference=0, device="cpu")
-    m, data, valid, t = measure(sc, res)
-    print(f"[defaults] {describe(m)}, error vs truth {np.sqrt(np.mean((data - t)[valid] ** 2)):.4f}")
-    assert m["rms"] <= RMS_MAX, describe(m)
-    assert np.sqrt(np.mean((data - t)[valid] ** 2)) < 0.15 * sc.texture.std
+    for blend in ("feather", "multiband"):
+        res = mosaic(images, tmp_path / f"default_{blend}.tif", dem=sc.dem, refraction=False, reference=0,
+                     device="cpu", blend=blend)
+        m, data, valid, t = measure(sc, res)
+        print(f"[balanced, {blend}] {describe(m)}, error vs truth {np.sqrt(np.mean((data - t)[valid] ** 2)):.4f}")
+        assert m["rms"] <= RMS_MAX, describe(m)
+        assert np.sqrt(np.mean((data - t)[valid] ** 2)) < 0.15 * sc.texture.std
 
 
 def test_least_cost_seams_go_around_what_one_image_alone_shows(pair, tmp_path):
@@ -196,8 +200,8 @@ def test_least_cost_seams_go_around_what_one_image_alone_shows(pair, tmp_path):
     assert np.mean(err < 0.3 * sc.texture.std) > 0.99 or np.mean(data[core & ok] > bright) > 0.99
 
 
-@pytest.mark.parametrize("occlusion", [False, True])
-def test_the_mosaic_does_not_depend_on_the_tiling(pair, tmp_path, occlusion):
+@pytest.mark.parametrize("occlusion, blend", [(False, "feather"), (True, "feather"), (True, "multiband")])
+def test_the_mosaic_does_not_depend_on_the_tiling(pair, tmp_path, occlusion, blend):
     """One seam labelling for the whole grid, each pixel's rank computed from it the same way
     whichever tile holds the pixel: the mosaic and its index are the same for 64- and 96-px
     tiles (tile borders in different places), up to the per-tile coarse grids (nodes every 16
@@ -207,14 +211,14 @@ def test_the_mosaic_does_not_depend_on_the_tiling(pair, tmp_path, occlusion):
     out = {}
     for size in (64, 96):
         res = mosaic(images, tmp_path / f"m{size}.tif", dem=sc.dem, refraction=False, device="cpu", tile_size=size,
-                     index=tmp_path / f"i{size}.tif", occlusion=occlusion)
+                     index=tmp_path / f"i{size}.tif", occlusion=occlusion, blend=blend)
         with rasterio.open(res.path) as ds, rasterio.open(res.index) as ix:
             out[size] = (ds.read(), ds.dataset_mask(), ix.read(1))
     np.testing.assert_array_equal(out[64][1], out[96][1])
     valid = out[64][1] > 0
     flips = np.mean(out[64][2][valid] != out[96][2][valid])
     diff = np.abs(out[64][0].astype(np.float64) - out[96][0])[:, valid]
-    print(f"\n[tiling, occlusion={occlusion}] index differs at {flips:.2e} of the pixels; values by at most "
+    print(f"\n[tiling, occlusion={occlusion}, {blend}] index differs at {flips:.2e} of the pixels; values by at most "
           f"{diff.max():.2e} ({diff.max() / sc.texture.std:.2e} texture std), mean {diff.mean():.2e}")
     assert flips < 1e-4
     assert diff.max() < 1e-3 * sc.texture.std
