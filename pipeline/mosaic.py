@@ -1,4 +1,4 @@
-"""Orthomosaics: many frame images to one cloud-optimized GeoTIFF, tile by tile.
+"""Orthomosaics: frame images, pushbroom scenes or a mix, to one cloud-optimized GeoTIFF, tile by tile.
 
 The mosaic's grid is the union of the images' ortho grids at one resolution, cut into tiles;
 for each tile, every image whose footprint meets it is projected straight into the tile by
@@ -40,15 +40,16 @@ from pyproj import Transformer
 from .._device import quiet_warp
 from ..camera import FrameCamera
 from ..errors import GeometryError, ParamError, RasterIOError
-from ..geodesy import ecef_to_geodetic, geodetic_to_ecef
+from ..geodesy import geodetic_to_ecef
 from ..kernels import mosaic as mosaic_kernels
 from ..pose import Pose
+from ..pushbroom import PushbroomScene
 from .cog import DTYPES, CogWriter
 from .io import atomic_files, check_destination
 from .ortho import _WP_TYPES as WP_TYPES
 from .ortho import COARSE_STEP, RESAMPLING, ImageTiles, _as_dem, _check_cancel, coarse_grid, output_grid, \
     source_facts
-from .geometry import FrameGeometry
+from .geometry import FrameGeometry, PushbroomGeometry
 from .profile import StageTimer
 
 __all__ = ["mosaic", "mosaic_plan", "MosaicPlan", "MosaicResult", "NO_SOURCE"]
@@ -87,7 +88,8 @@ def _node_fields(geom, transform, to_frame, r0, c0, th, tw):
     """At the coarse-grid nodes of the tile (every COARSE_STEP pixels from its first pixel,
     see :func:`~orthowarp.pipeline.ortho.coarse_grid`), from the image of ``geom``: the
     off-nadir angle (radians) under which it sees the node's ground point (from the camera
-    centre and the point on the DEM), the distance (source pixels) of that point's image from
+    centre, or a pushbroom scene's satellite position at the line that images the point, and
+    the point on the DEM), the distance (source pixels) of that point's image from
     the image's border (both NaN where the DEM has no height), and the source pixels per
     output pixel (a scalar)."""
     uv = coarse_grid(transform, to_frame, r0, c0, th, tw)
@@ -100,10 +102,21 @@ def _node_fields(geom, transform, to_frame, r0, c0, th, tw):
     else:
         ground = np.stack([u, v, h], -1)
         up = np.broadcast_to([0.0, 0.0, 1.0], ground.shape)
-    ray = np.asarray(geom.pose.center, float) - ground
-    cos = np.einsum("...i,...i->...", ray, up) / np.linalg.norm(ray, axis=-1)
-    angle = np.arccos(np.clip(cos, -1.0, 1.0))
     pix = geom.project_frame(np.stack([u, v, h], -1).reshape(-1, 3)).reshape(*u.shape, 2)
+    if isinstance(geom, PushbroomGeometry):  # the satellite where it images the point
+        centre = np.full(ground.shape, np.nan)
+        ok = np.isfinite(pix[..., 1])
+        if ok.any():
+            try:
+                centre[ok] = geom.scene.orbit(geom.scene.line_time(pix[..., 1][ok]))[0]
+            except GeometryError:  # rows beyond the ephemeris: no angle there
+                pass
+    else:
+        centre = np.broadcast_to(np.asarray(geom.pose.center, float), ground.shape)
+    ray = centre - ground
+    with np.errstate(invalid="ignore"):
+        cos = np.einsum("...i,...i->...", ray, up) / np.linalg.norm(ray, axis=-1)
+    angle = np.arccos(np.clip(cos, -1.0, 1.0))
     w, hh = geom.image_size
     edge = np.minimum(np.minimum(pix[..., 0], w - pix[..., 0]), np.minimum(pix[..., 1], hh - pix[..., 1]))
     with np.errstate(invalid="ignore"):
@@ -126,12 +139,14 @@ def mosaic(images, dst, *, dem, crs=None, resolution=None, resampling="bilinear"
            reference=None, occlusion=True, compress_level=None,
            tile_size=None, overwrite=False, device=None, workers=None, geoid=None, same_vertical_datum=False,
            cancel=None):
-    """Mosaic frame images into one cloud-optimized GeoTIFF (deflate, internal mask, overviews).
+    """Mosaic frame images and pushbroom scenes into one cloud-optimized GeoTIFF (deflate,
+    internal mask, overviews).
 
     Parameters
     ----------
-    images : sequence of (src, FrameCamera, Pose)
-        Source images (all with the same band count and data type) and their orientation.
+    images : sequence of (src, FrameCamera, Pose) or (src, PushbroomScene)
+        Source images (all with the same band count and data type) and their orientation:
+        frame images, pushbroom scenes, or a mix.
     dst : str or os.PathLike
         The mosaic (written under a temporary name, published when complete).
     dem : Dem, str or float
@@ -182,7 +197,8 @@ def mosaic(images, dst, *, dem, crs=None, resolution=None, resampling="bilinear"
         Project each image by the forward method (seed 003's direct method), which leaves the
         ground it cannot see (behind relief or objects on the DSM) without a value, so that
         another image that sees it supplies it; False: the backward method, which fills hidden
-        ground with whatever hides it (faster).
+        ground with whatever hides it (faster). Pushbroom scenes are always projected by the
+        backward method.
     compress_level : int, optional
         Deflate level 1-12 (default 6).
     tile_size : int, optional
@@ -200,8 +216,7 @@ def mosaic(images, dst, *, dem, crs=None, resolution=None, resampling="bilinear"
     -------
     MosaicResult
     """
-    images = list(images)
-    _check_images(images, resampling, dtype, blend, feather, reference, seams, seam_width)
+    images = _check_images(images, resampling, dtype, blend, feather, reference, seams, seam_width)
     if tile_size is not None and (int(tile_size) < 16 or int(tile_size) % 16):
         raise ParamError(f"tile_size must be a positive multiple of 16, got {tile_size}")
     dst = os.fspath(dst)
@@ -260,12 +275,11 @@ class MosaicPlan:
         The radiometric balance applied to each image before blending.
     """
 
-    def __init__(self, sources, terrain, options, crs, transform, shape, resolution, foot, heights, count, dtype,
-                 src_dtype):
+    def __init__(self, sources, terrain, options, crs, transform, shape, resolution, foot, count, dtype, src_dtype):
         self.sources, self.terrain, self.options = sources, terrain, options
         self.crs_wkt = crs.to_wkt()
         self.transform, self.shape, self.resolution = transform, tuple(shape), float(resolution)
-        self.foot, self.heights, self.count, self.dtype, self.src_dtype = foot, heights, count, dtype, src_dtype
+        self.foot, self.count, self.dtype, self.src_dtype = foot, count, dtype, src_dtype
         self.gains = np.ones((len(sources), count))
         self.offsets = np.zeros((len(sources), count))
         self.labels, self.seam_step = None, 1  # the seams' labelling, set by mosaic_plan
@@ -293,11 +307,12 @@ class MosaicPlan:
             return entry["geom"].device.is_cuda
 
     def geometry(self, k):
-        """A new FrameGeometry of image ``k`` (its DEM cropped to the footprint)."""
+        """A new FrameGeometry or PushbroomGeometry of image ``k`` (its DEM cropped to the
+        footprint)."""
         o = self.options
-        _, camera, pose, _ = self.sources[k]
-        return FrameGeometry(camera, pose, self.terrain, refraction=o["refraction"], device=o["device"], geoid=o["geoid"],
-                             same_vertical_datum=o["same_vertical_datum"])
+        _, sensor, pose, _ = self.sources[k]
+        return _geometry(sensor, pose, self.terrain, refraction=o["refraction"], device=o["device"], geoid=o["geoid"],
+                         same_vertical_datum=o["same_vertical_datum"])
 
     def _materialise(self):
         """This process's state: the stage timer and the cache of images in use."""
@@ -309,14 +324,15 @@ class MosaicPlan:
 
     def _build(self, k, timer):
         o = self.options
-        src, _, _, masked = self.sources[k]
+        src, _, pose, masked = self.sources[k]
         geom = self.geometry(k)
+        method = o["method"] if pose is not None else "backward"  # pushbroom: the backward method only
         crs = self.crs
         entry = dict(geom=geom, to_frame=Transformer.from_crs(crs, geom.horizontal_crs, always_xy=True),
                      renderer=ImageTiles(src, geom, crs, self.transform, count=self.count, out_dtype=self.dtype,
-                                         resampling=o["resampling"], method=o["method"], masked=masked,
+                                         resampling=o["resampling"], method=method, masked=masked,
                                          src_dtype=self.src_dtype, timer=timer))
-        if o["method"] == "forward":  # for ground that no image sees (holes of the forward method)
+        if method == "forward":  # for ground that no image sees (holes of the forward method)
             entry["fallback"] = ImageTiles(src, geom, crs, self.transform, count=self.count, out_dtype=self.dtype,
                                            resampling=o["resampling"], method="backward", masked=masked,
                                            src_dtype=self.src_dtype, timer=timer)
@@ -389,7 +405,7 @@ class MosaicPlan:
         _check_cancel(cancel, name)
         st = self._materialise()
         out, source, has = self._select(st, "renderer", r0, c0, th, tw)
-        if self.options["method"] == "forward" and not has.all():
+        if self.options["method"] == "forward" and not has.all() and any(s[2] is not None for s in self.sources):
             # ground no image sees by the forward method (hidden, or where it drops folded
             # quads on a rough DSM): the backward method's value, from the same rule
             t = time.perf_counter()
@@ -448,7 +464,8 @@ class MosaicPlan:
             if fr1 <= r0 or fr0 >= r0 + th or fc1 <= c0 or fc0 >= c0 + tw:
                 continue
             with self._image(k) as entry:
-                values, valid = entry[which].render(r0, c0, th, tw)
+                # (a pushbroom scene has no forward method: its backward tile function serves both)
+                values, valid = entry.get(which, entry["renderer"]).render(r0, c0, th, tw)
                 if values is None:
                     continue
                 t = time.perf_counter()
@@ -547,18 +564,18 @@ def mosaic_plan(images, *, dem, crs=None, resolution=None, resampling="bilinear"
     cluster) and whose :meth:`~MosaicPlan.write` assembles the results. Parameters as
     :func:`mosaic`."""
     t_plan = time.perf_counter()
-    images = list(images)
-    _check_images(images, resampling, dtype, blend, feather, reference, seams, seam_width)
+    images = _check_images(images, resampling, dtype, blend, feather, reference, seams, seam_width)
     terrain = _as_dem(dem)
     # the sources: one band count and data type
     facts = []  # (path, bands, data type, masked)
-    for src, camera, _ in images:
+    for src, sensor, pose in images:
         src = os.fspath(src)
         if not os.path.exists(src):
             raise RasterIOError(f"Image '{src}' does not exist")
         if os.path.abspath(src) in map(os.path.abspath, _outputs):
             raise ParamError(f"Output '{src}' is one of the source images: choose another name")
-        facts.append((src, *source_facts(src, camera.image_size)))
+        facts.append((src, *(source_facts(src, sensor.image_size) if pose is not None else
+                             source_facts(src, (sensor.width, sensor.height), "scene"))))
     counts, dtypes = {f[1] for f in facts}, {f[2] for f in facts}
     if len(counts) > 1 or len(dtypes) > 1:
         raise ParamError(f"The images of a mosaic must share their band count and data type; got bands "
@@ -568,19 +585,15 @@ def mosaic_plan(images, *, dem, crs=None, resolution=None, resampling="bilinear"
 
     # the grid: the union of the images' grids at one resolution, aligned to it (the images'
     # geometry built one at a time: memory does not grow with their number)
-    grids, heights = [], []
-    for src, camera, pose in images:
-        geom = FrameGeometry(camera, pose, terrain, refraction=refraction, device=device, geoid=geoid,
-                             same_vertical_datum=same_vertical_datum)
+    grids = []
+    for src, sensor, pose in images:
+        geom = _geometry(sensor, pose, terrain, refraction=refraction, device=device, geoid=geoid,
+                         same_vertical_datum=same_vertical_datum)
         try:
             grids.append(output_grid(geom, crs=crs if crs is not None else (grids[0][0] if grids else None),
                                      resolution=resolution))
         except GeometryError as e:
             raise GeometryError(f"Image '{src}': {e}") from e
-        # camera height above the ground (for the feather band's width in angle)
-        c = np.asarray(geom.pose.center, float)
-        z = float(ecef_to_geodetic(c)[2]) if geom.geocentric else float(c[2])
-        heights.append(max(z - 0.5 * (geom.dem.hmin + geom.dem.hmax), 1.0))
         del geom
     out_crs = grids[0][0]
     res = float(resolution) if resolution is not None else float(np.mean([g[3] for g in grids]))
@@ -601,8 +614,8 @@ def mosaic_plan(images, *, dem, crs=None, resolution=None, resampling="bilinear"
     options = dict(resampling=resampling, refraction=refraction, blend=blend, feather=float(feather), device=device,
                    geoid=geoid, same_vertical_datum=same_vertical_datum,
                    method="forward" if occlusion else "backward", cache_images=24)
-    plan = MosaicPlan([(f[0], cam, pose, f[3]) for f, (_, cam, pose) in zip(facts, images)], terrain, options,
-                      out_crs, transform, (rows, cols), res, foot, heights, count, out_dtype, src_dtype)
+    plan = MosaicPlan([(f[0], sensor, pose, f[3]) for f, (_, sensor, pose) in zip(facts, images)], terrain, options,
+                      out_crs, transform, (rows, cols), res, foot, count, out_dtype, src_dtype)
     # one reduced pass: the images' overlaps for the balance and the seams' labelling
     t = time.perf_counter()
     f, coarse, labels = _reduced_pass(plan, cancel, _seam_pixels)
@@ -633,12 +646,28 @@ def _outputs(dst, index, seamlines, overwrite):
     return outputs
 
 
+def _geometry(sensor, pose, terrain, **kw):
+    """The geometry of a frame image (camera + pose) or of a pushbroom scene (pose None)."""
+    if pose is None:
+        return PushbroomGeometry(sensor, terrain, **kw)
+    return FrameGeometry(sensor, pose, terrain, **kw)
+
+
 def _check_images(images, resampling, dtype, blend, feather, reference, seams, seam_width):
+    """Check the arguments; returns the images as (source, sensor, pose or None)."""
+    images = list(images)
     if not images:
         raise ParamError("mosaic needs at least one image")
+    out = []
     for k, item in enumerate(images):
-        if len(item) != 3 or not isinstance(item[1], FrameCamera) or not isinstance(item[2], Pose):
-            raise ParamError(f"images[{k}] must be (source, FrameCamera, Pose)")
+        item = tuple(item)
+        if len(item) in (2, 3) and isinstance(item[1], PushbroomScene) and (len(item) == 2 or item[2] is None):
+            out.append((item[0], item[1], None))
+        elif len(item) == 3 and isinstance(item[1], FrameCamera) and isinstance(item[2], Pose):
+            out.append(item)
+        else:
+            raise ParamError(f"images[{k}] must be (source, FrameCamera, Pose) or (source, PushbroomScene)")
+    images = out
     if len(images) >= NO_SOURCE:
         raise ParamError(f"mosaic takes at most {NO_SOURCE - 1} images, got {len(images)}")
     if resampling not in RESAMPLING:
@@ -655,6 +684,7 @@ def _check_images(images, resampling, dtype, blend, feather, reference, seams, s
         raise ParamError(f"feather must be a positive width in pixels, got {feather!r}")
     if reference is not None and not (isinstance(reference, (int, np.integer)) and 0 <= reference < len(images)):
         raise ParamError(f"reference must be an image's position 0-{len(images) - 1}, got {reference!r}")
+    return images
 
 
 def _write_seamlines(path, index, transform, crs, names, used, *, name):

@@ -224,6 +224,80 @@ def test_the_mosaic_does_not_depend_on_the_tiling(pair, tmp_path, occlusion, ble
     assert diff.max() < 1e-3 * sc.texture.std
 
 
+def test_mosaic_of_two_pushbroom_scenes_and_of_a_mix(tmp_path):
+    """Two synthetic SPOT-like scenes side by side (orbits ~1 km apart, both 15 deg off
+    nadir), rendered by the float64 host model from an analytic texture on a surface
+    of 250 m: their mosaic is registered to the texture like a single ortho, both scenes
+    supply pixels, the seam lies where the two scenes see the ground at equal off-nadir angle
+    (nadir seams), and a pushbroom scene mosaics with a frame image as well."""
+    from pyproj import Transformer
+
+    import orthowarp as ow
+    from orthowarp.pipeline.registration import misregistration
+    from orthowarp.pushbroom import synthetic_scene
+    from test_pushbroom import texture
+
+    utm = "EPSG:32631"
+    to_utm = Transformer.from_crs("EPSG:4326", utm, always_xy=True)
+    images = []
+    for k, (lon, angle) in enumerate(((5.0, 15.0), (5.012, 15.0))):
+        sc = synthetic_scene(width=400, height=500, view_angle=angle, lon=lon)
+        cc, rr = np.meshgrid(np.arange(sc.width) + 0.5, np.arange(sc.height) + 0.5)
+        g = sc.geolocate_ellipsoid(np.stack([cc.ravel(), rr.ravel()], 1), 250.0)
+        x, y = to_utm.transform(g[:, 0], g[:, 1])
+        images.append((write_image(tmp_path / f"s{k}.tif", texture(np.asarray(x), np.asarray(y)).reshape(
+            sc.height, sc.width), "float32"), sc))
+    res = mosaic(images, tmp_path / "m.tif", dem=250.0, crs=utm, resolution=5.0, refraction=False, device="cpu",
+                 index=tmp_path / "i.tif", seams="nadir", blend="none", tile_size=128)
+    with rasterio.open(res.path) as ds, rasterio.open(res.index) as ix:
+        data, valid, idx = ds.read(1).astype(np.float64), ds.dataset_mask() > 0, ix.read(1)
+    x, y = pixel_centres(res)
+    truth = texture(x, y)
+    m = misregistration(truth, np.where(valid, data, 0.0), valid=valid, tile=64)
+    print(f"\n[pushbroom mosaic] {res.shape[1]} x {res.shape[0]} px, pixels per scene {res.pixels_per_image}, "
+          f"misregistration {m['rms']:.4f} px RMS over {m['n_tiles']} tiles")
+    assert min(res.pixels_per_image) > 10000 and m["n_tiles"] >= 10
+    assert m["rms"] <= 0.1
+    assert np.sqrt(np.mean((data - truth)[valid] ** 2)) < 0.05 * truth[valid].std()
+    # the nadir rule, independently: per pixel the scene whose satellite (at the line that
+    # images the ground point) is closer to the vertical
+    lon, lat = Transformer.from_crs(utm, "EPSG:4326", always_xy=True).transform(x, y)
+    both, angles = np.ones(x.shape, bool), []
+    for _, sc in images:
+        gx = ow.geodesy.geodetic_to_ecef(lat.ravel(), lon.ravel(), 250.0)
+        pix = sc.project_ecef(gx)
+        inside = (pix[:, 0] > 2) & (pix[:, 0] < sc.width - 2) & (pix[:, 1] > 2) & (pix[:, 1] < sc.height - 2)
+        p = np.full(gx.shape, np.nan)
+        p[inside] = sc.orbit(sc.line_time(pix[inside, 1]))[0]
+        la, lo = np.radians(lat.ravel()), np.radians(lon.ravel())
+        up = np.stack([np.cos(la) * np.cos(lo), np.cos(la) * np.sin(lo), np.sin(la)], 1)  # the ellipsoid's normal
+        ray = p - gx
+        angles.append(np.degrees(np.arccos(np.sum(ray * up, 1) / np.linalg.norm(ray, axis=1))).reshape(x.shape))
+        both &= inside.reshape(x.shape)
+    sel = both & valid & (np.abs(angles[0] - angles[1]) > 0.005)
+    assert sel.sum() > 1000
+    agree = np.mean(idx[sel] == np.where(angles[0] <= angles[1], 0, 1)[sel])
+    assert agree > 0.99, agree
+    # a mix: scene 0 and a frame image (25 km up, 5 m pixels) over part of it; the frame's
+    # pixels from its own geolocation (this checks the mix, each sensor's geometry is tested
+    # on its own elsewhere)
+    cam = ow.FrameCamera(50.0, 0.01, (300, 300))
+    cx, cy = x[idx == 0].mean(), y[idx == 0].mean()
+    pose = ow.Pose.from_opk(x=cx + 400.0, y=cy, z=25250.0, omega=0.0, phi=0.0, kappa=20.0, crs=utm)
+    cc, rr = np.meshgrid(np.arange(300) + 0.5, np.arange(300) + 0.5)
+    g = ow.geolocate(cam, pose, np.stack([cc.ravel(), rr.ravel()], 1), dem=250.0, crs=utm, refraction=False)
+    frame = write_image(tmp_path / "frame.tif", texture(g[:, 0], g[:, 1]).reshape(300, 300), "float32")
+    res = mosaic([images[0], (frame, cam, pose)], tmp_path / "mix.tif", dem=250.0, crs=utm, resolution=5.0,
+                 refraction=False, device="cpu", tile_size=128)
+    with rasterio.open(res.path) as ds:
+        data, valid = ds.read(1).astype(np.float64), ds.dataset_mask() > 0
+    truth = texture(*pixel_centres(res))
+    m = misregistration(truth, np.where(valid, data, 0.0), valid=valid, tile=64)
+    print(f"[pushbroom + frame mosaic] pixels per image {res.pixels_per_image}, misregistration {m['rms']:.4f} px RMS "
+          f"over {m['n_tiles']} tiles")
+    assert min(res.pixels_per_image) > 10000 and m["rms"] <= 0.1
+
+
 def test_seamlines_trace_each_images_part(pair, tmp_path):
     import json
 
