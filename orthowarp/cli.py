@@ -355,10 +355,15 @@ def _frame_orientations(images, int_param, ext_param, crs):
 
 
 @main.command()
-@click.argument("images", nargs=-1, required=True, type=click.Path(dir_okay=False))
+@click.argument("images", nargs=-1, type=click.Path(dir_okay=False))
 @click.option("--int-param", type=click.Path(dir_okay=False), help="Camera file (orthority/ODM YAML or JSON, OpenSfM).")
-@click.option("--ext-param", type=click.Path(dir_okay=False), required=True,
-              help="Exterior orientation (CSV, orthority GeoJSON, OpenSfM reconstruction.json).")
+@click.option("--ext-param", type=click.Path(dir_okay=False),
+              help="Exterior orientation of the frame IMAGES (CSV, orthority GeoJSON, OpenSfM reconstruction.json).")
+@click.option("--scene", "scenes", nargs=2, multiple=True, type=(click.Path(dir_okay=False), click.Path(dir_okay=False)),
+              metavar="IMAGE DIMAP", help="A pushbroom scene: its image and its SPOT level-1A DIMAP metadata "
+                                          "(repeatable; numbered after IMAGES in the index).")
+@click.option("--attitude-model", type=click.Choice(["full", "first_order"]), default="full", show_default=True,
+              help="Attitude matrix of the pushbroom scenes (first_order: the linearised form).")
 @click.option("--dem", type=click.Path(dir_okay=False), help="DEM/DSM file.")
 @click.option("--height", type=float, help="Constant ellipsoidal height (m) instead of a DEM.")
 @click.option("--out", "out_path", type=click.Path(dir_okay=False), required=True, help="The mosaic (COG).")
@@ -397,20 +402,31 @@ def _frame_orientations(images, int_param, ext_param, crs):
               help="Print where the time went: the plan's steps, per-stage times, GPU busy fraction, what bounds it.")
 @click.option("--profile-json", type=click.Path(dir_okay=False), help="Write the same profile as JSON to this file.")
 @click.pass_context
-def mosaic(ctx, images, int_param, ext_param, dem, height, out_path, index_path, seamlines_path, crs, resolution,
+def mosaic(ctx, images, int_param, ext_param, scenes, attitude_model, dem, height, out_path, index_path, seamlines_path, crs, resolution,
            resampling, seams, seam_width, blend, feather, no_balance, no_occlusion, reference, compress_level, dtype, overwrite, no_refraction, geoid,
            same_vertical_datum, device, workers, tile_size, show_profile, profile_json):
-    """Mosaic frame IMAGES into one cloud-optimized GeoTIFF: each pixel from the image that sees
-    its ground most nearly from above (smallest off-nadir angle), the seams moved to where the
-    images agree, feathered across the seams, the images' radiometry balanced by gains and
-    offsets from their overlaps."""
-    from .errors import ParamError
+    """Mosaic frame IMAGES and pushbroom scenes (--scene) into one cloud-optimized GeoTIFF: each
+    pixel from the image that sees its ground most nearly from above (smallest off-nadir
+    angle), the seams moved to where the images agree, feathered across the seams, the images'
+    radiometry balanced by gains and offsets from their overlaps."""
+    from .errors import ParamError, RasterIOError
     from .pipeline.dem import Dem
     from .pipeline.mosaic import mosaic as make_mosaic
 
     if (dem is None) == (height is None):
         raise ParamError("Give exactly one of --dem FILE and --height METRES")
-    jobs = _frame_orientations(images, int_param, ext_param, crs)
+    if not images and not scenes:
+        raise ParamError("Give frame IMAGES (with --ext-param) or pushbroom scenes (--scene IMAGE DIMAP)")
+    if images and not ext_param:
+        raise ParamError("Frame IMAGES need --ext-param (their exterior orientation)")
+    jobs = _frame_orientations(images, int_param, ext_param, crs) if images else []
+    if scenes:
+        from .pushbroom import PushbroomScene
+
+        for image, dimap in scenes:
+            if not os.path.exists(image):
+                raise RasterIOError(f"Image '{image}' does not exist")
+            jobs.append((image, PushbroomScene.from_dimap(dimap, attitude_model=attitude_model)))
     terrain = Dem.from_file(dem) if dem is not None else height
     r = make_mosaic(jobs, out_path, dem=terrain, crs=crs, resolution=resolution, resampling=resampling,
                     refraction=not no_refraction, dtype=dtype, index=index_path, seamlines=seamlines_path,

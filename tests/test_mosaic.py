@@ -298,6 +298,42 @@ def test_mosaic_of_two_pushbroom_scenes_and_of_a_mix(tmp_path):
     assert min(res.pixels_per_image) > 10000 and m["rms"] <= 0.1
 
 
+def test_cli_mosaic_of_pushbroom_scenes(tmp_path, monkeypatch):
+    """--scene IMAGE DIMAP (repeatable) brings pushbroom scenes to the CLI; the DIMAP reader is
+    replaced by two synthetic scenes (its own parsing is tested in test_dimap.py)."""
+    from click.testing import CliRunner
+    from pyproj import Transformer
+
+    from orthowarp.cli import main
+    from orthowarp.pushbroom import PushbroomScene, synthetic_scene
+    from test_pushbroom import texture
+
+    scenes = {}
+    to_utm = Transformer.from_crs("EPSG:4326", "EPSG:32631", always_xy=True)
+    args = []
+    for k, lon in enumerate((5.0, 5.012)):
+        sc = synthetic_scene(width=200, height=240, view_angle=15.0, lon=lon)
+        cc, rr = np.meshgrid(np.arange(sc.width) + 0.5, np.arange(sc.height) + 0.5)
+        g = sc.geolocate_ellipsoid(np.stack([cc.ravel(), rr.ravel()], 1), 250.0)
+        x, y = to_utm.transform(g[:, 0], g[:, 1])
+        img = write_image(tmp_path / f"s{k}.tif", texture(np.asarray(x), np.asarray(y)).reshape(sc.height, sc.width))
+        (tmp_path / f"s{k}.dim").write_text("<Dimap_Document/>")
+        scenes[str(tmp_path / f"s{k}.dim")] = sc
+        args += ["--scene", str(img), str(tmp_path / f"s{k}.dim")]
+    monkeypatch.setattr(PushbroomScene, "from_dimap", classmethod(lambda cls, path, **kw: scenes[str(path)]))
+    out = tmp_path / "m.tif"
+    res = CliRunner().invoke(main, ["mosaic", *args, "--height", "250", "--crs", "EPSG:32631", "--resolution", "5",
+                                    "--no-refraction", "--out", str(out), "--index", str(tmp_path / "i.tif")])
+    assert res.exit_code == 0, res.output
+    assert "s0.tif" in res.output and "s1.tif" in res.output
+    with rasterio.open(tmp_path / "i.tif") as ds:
+        assert set(np.unique(ds.read(1)[ds.dataset_mask() > 0])) == {0, 1}
+    res = CliRunner().invoke(main, ["mosaic", "--height", "250", "--out", str(tmp_path / "n.tif")])
+    assert res.exit_code != 0 and "--scene" in res.output
+    res = CliRunner().invoke(main, ["mosaic", str(tmp_path / "s0.tif"), "--height", "250", "--out", str(tmp_path / "n.tif")])
+    assert res.exit_code != 0 and "--ext-param" in res.output
+
+
 def test_seamlines_trace_each_images_part(pair, tmp_path):
     import json
 
