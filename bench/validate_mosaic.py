@@ -73,6 +73,7 @@ def main(argv=None):
                     help="orthority's oty executable: also measure the seams of its orthos stacked as gdalbuildvrt "
                          "stacks them (each pixel from the last ortho that has it, no blending or balancing)")
     ap.add_argument("--seams", default="least-cost", choices=["least-cost", "nadir"])
+    ap.add_argument("--blend", default="feather", choices=["feather", "multiband", "none"])
     args = ap.parse_args(argv)
     images_glob, int_param, ext_param, dem_path, res = DATASETS[args.dataset]
     data = os.path.abspath(args.data)
@@ -88,7 +89,8 @@ def main(argv=None):
     name = os.path.join(args.out, f"{args.dataset}_mosaic")
     t = time.perf_counter()
     m = ow.mosaic(jobs, name + ".tif", dem=dem, resolution=res, refraction=False, index=name + "_index.tif",
-                  seamlines=name + "_seams.geojson", overwrite=True, device="cpu", seams=args.seams)
+                  seamlines=name + "_seams.geojson", overwrite=True, device="cpu", seams=args.seams,
+                  blend=args.blend)
     wall = time.perf_counter() - t
     preview(m.path, m.index, name + ".png")
     # each image alone on the mosaic's grid, raw and balanced
@@ -113,7 +115,7 @@ def main(argv=None):
     oty_pairs = None
     if args.oty:
         oty_pairs = _orthority_seams(args, jobs, data, int_param, ext_param, dem_path, res, m)
-    report = dict(dataset=args.dataset, seams_method=args.seams, images=len(jobs), shape=list(m.shape),
+    report = dict(dataset=args.dataset, seams_method=args.seams, blend=args.blend, images=len(jobs), shape=list(m.shape),
                   resolution=m.resolution, wall_s=wall, setup_s=m.setup_s, pixels_per_image=m.pixels_per_image, gains=m.gains.tolist(),
                   offsets=m.offsets.tolist(), seams=pairs, preview=name + ".png")
     if oty_pairs is not None:
