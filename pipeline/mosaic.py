@@ -875,6 +875,8 @@ def _least_cost_seams(labels, coarse, gains, offsets, width, reach, cancel=None)
         d = ndimage.maximum_filter(np.where(both, d, 0.0), size=2 * reach + 1)
         cost = 1.0 + np.minimum((d / (3.0 * m)) ** 2, 400.0) + 4.0 * (away / width) ** 2
         to_i = _split_corridor(corridor, mi, mj, cost)
+        if to_i is None:  # a rim no path splits (tangled footprints): a minimum cut instead
+            to_i = _cut_corridor(corridor, mi, mj, cost, away, width)
         if to_i is None:
             continue
         new = np.where(corridor, np.where(to_i, i, j), lab).astype(np.uint16)
@@ -956,6 +958,93 @@ def _split_corridor(corridor, mi, mj, cost, tries=4):
             to_i[np.isin(rest, touch_j)] = False
             return to_i
     return None
+
+
+def _cut_corridor(corridor, mi, mj, cost, away, width, max_nodes=40_000, unit=16):
+    """Label a corridor between the regions ``mi`` and ``mj`` by a minimum s-t cut, where
+    :func:`_split_corridor` finds no path (see :func:`_least_cost_seams`).
+
+    Two neighbours of different labels cost ``unit`` (c_p + c_q) / 2 (the pixel costs ``cost``),
+    also across the corridor's rim to the regions' fixed parts; a pixel given the other
+    region than its nadir one costs ``unit`` a / width (a: its distance from the nadir seam),
+    which keeps the seam at the nadir seam unless going round a disagreement costs less.
+    Corridors larger than ``max_nodes`` pixels are cut on blocks of s x s pixels (costs
+    averaged; s the smallest that fits) and the labels spread back. Max-flow by Dinic's
+    algorithm (scipy.sparse.csgraph.maximum_flow), the cut read off the residual graph.
+    Returns bool (h, w), True where the corridor goes to the first region, or None."""
+    from scipy import ndimage
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.csgraph import breadth_first_order, maximum_flow
+
+    h, w = corridor.shape
+    n_full = int(corridor.sum())
+    if n_full < 4:
+        return None
+    s = max(1, int(np.ceil(np.sqrt(n_full / max_nodes))))
+    hh, ww = -(-h // s), -(-w // s)
+
+    def blocks(a, fill, how):
+        pad = np.full((hh * s, ww * s), fill, dtype=a.dtype)
+        pad[:h, :w] = a
+        b = pad.reshape(hh, s, ww, s)
+        return b.all(axis=(1, 3)) if how == "all" else b.any(axis=(1, 3)) if how == "any" else b.mean(axis=(1, 3))
+
+    c_corr = blocks(corridor, False, "all") if s > 1 else corridor
+    if not c_corr.any():
+        return None
+    c_mi = blocks(mi, False, "any") if s > 1 else mi
+    c_mj = blocks(mj, False, "any") if s > 1 else mj
+    c_cost = blocks(np.where(corridor, cost, 0.0), 0.0, "mean") * (s * s) / np.maximum(
+        blocks(corridor.astype(float), 0.0, "mean") * (s * s), 1.0) if s > 1 else cost
+    c_away = blocks(np.where(corridor, away, 0.0), 0.0, "mean") if s > 1 else away
+    nadir_i = (blocks(mi & corridor, False, "any") if s > 1 else mi) & c_corr
+    outer = ~c_corr
+    fixed_i, fixed_j = c_mi & ~c_mj & outer, c_mj & ~c_mi & outer
+    node = np.full(c_corr.shape, -1, np.int64)
+    n = int(c_corr.sum())
+    node[c_corr] = np.arange(n)
+    src, dst, cap = [], [], []
+    for dr, dc in ((0, 1), (1, 0)):
+        a = node[:hh - dr, :ww - dc]
+        b = node[dr:, dc:]
+        ca, cb = c_cost[:hh - dr, :ww - dc], c_cost[dr:, dc:]
+        ok = (a >= 0) & (b >= 0)
+        c = np.maximum(np.rint(unit * s * 0.5 * (ca[ok] + cb[ok])), 1).astype(np.int64)
+        src += [a[ok], b[ok]]
+        dst += [b[ok], a[ok]]
+        cap += [c, c]
+    # terminal links: the rim's seams to the fixed parts, and the pull towards the nadir label
+    S, T = n, n + 1
+    four = ndimage.generate_binary_structure(2, 1)
+    touch_i = ndimage.convolve(fixed_i.astype(np.int64), four.astype(np.int64), mode="constant") - fixed_i
+    touch_j = ndimage.convolve(fixed_j.astype(np.int64), four.astype(np.int64), mode="constant") - fixed_j
+    pull = np.rint(unit * c_away / float(width) * s * s)
+    to_s = np.rint(unit * s * c_cost * touch_i) + np.where(nadir_i, pull, 0.0)
+    to_t = np.rint(unit * s * c_cost * touch_j) + np.where(~nadir_i, pull, 0.0)
+    idx = node[c_corr]
+    ts, tt = to_s[c_corr].astype(np.int64), to_t[c_corr].astype(np.int64)
+    src += [np.full(n, S), idx]
+    dst += [idx, np.full(n, T)]
+    cap += [ts, tt]
+    cap = np.concatenate(cap)
+    if cap.max() >= 2**31 - 1:
+        return None
+    graph = csr_matrix((cap.astype(np.int32), (np.concatenate(src), np.concatenate(dst))), shape=(n + 2, n + 2))
+    flow = maximum_flow(graph, S, T, method="dinic")
+    residual = (graph - flow.flow).tocsr()
+    residual.data[residual.data < 0] = 0
+    residual.eliminate_zeros()
+    reach = np.zeros(n + 2, bool)
+    reach[breadth_first_order(residual, S, directed=True, return_predecessors=False)] = True
+    lab = np.zeros(c_corr.shape, bool)
+    lab[c_corr] = reach[:n]
+    log.debug("seam corridor of %d px cut on %d-px blocks: %d of %d blocks change region (cut %d)", n_full, s,
+              int((lab != nadir_i)[c_corr].sum()), n, int(flow.flow_value))
+    if s > 1:  # spread back; pixels of blocks not wholly in the corridor keep their labels
+        full = np.repeat(np.repeat(lab, s, 0), s, 1)[:h, :w]
+        inside = np.repeat(np.repeat(c_corr, s, 0), s, 1)[:h, :w]
+        return np.where(inside & corridor, full, mi)
+    return np.where(corridor, lab, mi)
 
 
 def _multiband_halo(feather):

@@ -334,6 +334,33 @@ def test_cli_mosaic_of_pushbroom_scenes(tmp_path, monkeypatch):
     assert res.exit_code != 0 and "--ext-param" in res.output
 
 
+@pytest.mark.parametrize("max_nodes", [100_000, 1_000])
+def test_a_minimum_cut_takes_the_seam_round_a_disagreement(max_nodes):
+    """The minimum-cut labelling of a corridor (used where no path splits its rim): a straight
+    nadir seam through a blob where the images disagree moves round it, and stays where it
+    was elsewhere; also when the corridor is cut on 2 x 2 blocks."""
+    from orthowarp.pipeline.mosaic import _cut_corridor
+
+    h, w = 60, 80
+    cols = np.broadcast_to(np.arange(w), (h, w))
+    mi, mj = cols < 40, cols >= 40
+    corridor = (cols >= 10) & (cols < 70)
+    cost = np.ones((h, w))
+    rows = np.arange(h)[:, None]
+    blob = (np.abs(rows - 30) <= 10) & (np.abs(cols - 40) <= 6)
+    cost[blob] = 401.0
+    away = np.abs(cols - 39.5)
+    to_i = _cut_corridor(corridor, mi, mj, cost, away, 30.0, max_nodes=max_nodes)
+    assert to_i is not None
+    inner = blob & ~np.isin(cols, [33, 34, 46, 47])  # the blob, off its edge columns
+    assert to_i[inner].all() or not to_i[inner].any()  # the blob in one region
+    # rows away from the blob keep the nadir seam (within a pixel, or a block)
+    seam_col = to_i.sum(axis=1)  # the first column of the second region, row by row
+    far = np.abs(np.arange(h) - 30) > 20
+    assert np.all(np.abs(seam_col[far] - 40) <= 2), seam_col[far]
+    assert to_i[:, :30].all() and not to_i[:, 48:].any()  # the detour stays near the blob
+
+
 def test_seamlines_trace_each_images_part(pair, tmp_path):
     import json
 
