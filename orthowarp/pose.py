@@ -112,7 +112,7 @@ class Pose:
         r_ecef_nav = geodesy.ned_to_ecef_matrix(lat, lon)
         center = geodesy.geodetic_to_ecef(lat, lon, h) + r_ecef_nav @ r_nav_body @ la
         params = dict(lat=lat, lon=lon, h=h, roll=roll, pitch=pitch, yaw=yaw,
-                      boresight=tuple(bs), lever_arm=tuple(la))
+                      boresight=tuple(bs.tolist()), lever_arm=tuple(la.tolist()))
         return cls(GEOCENTRIC, center, r_ecef_nav @ r_nav_body @ r_body_cam, as_crs("EPSG:4978"),
                    params=params)
 
