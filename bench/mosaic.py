@@ -339,10 +339,8 @@ def run_speed(args, sizes):
                   device=args.device, cpu_count=os.cpu_count(), build_s=time.perf_counter() - t, results=[])
     gpu = int(args.device.split(":")[1]) if args.device.startswith("cuda:") else (0 if args.device == "cuda" else None)
     try:
-        import subprocess as sp
-
-        report["gpu"] = sp.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader", "-i", str(gpu or 0)],
-                               capture_output=True, text=True).stdout.strip() if gpu is not None else None
+        report["gpu"] = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader", "-i", str(gpu or 0)],
+                                       capture_output=True, text=True).stdout.strip() if gpu is not None else None
     except OSError:
         report["gpu"] = None
     orient = ["--int-param", os.path.join(work, "camera.yaml"), "--ext-param", os.path.join(work, "ext.csv")]

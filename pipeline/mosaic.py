@@ -46,6 +46,7 @@ from ..pose import Pose
 from ..pushbroom import PushbroomScene
 from .cog import DTYPES, CogWriter
 from .io import atomic_files, check_destination
+from .ortho import _TOP as TOP
 from .ortho import _WP_TYPES as WP_TYPES
 from .ortho import COARSE_STEP, RESAMPLING, ImageTiles, _as_dem, _check_cancel, coarse_grid, output_grid, \
     source_facts
@@ -84,17 +85,26 @@ def _upsample(node, th, tw):
     return np.stack([np.interp(rows, ki, along[:, j]) for j in range(tw)], axis=1)
 
 
-def _node_fields(geom, transform, to_frame, r0, c0, th, tw):
+def _node_fields(geom, transform, to_frame, r0, c0, th, tw, *, angle=True):
     """At the coarse-grid nodes of the tile (every COARSE_STEP pixels from its first pixel,
     see :func:`~orthowarp.pipeline.ortho.coarse_grid`), from the image of ``geom``: the
     off-nadir angle (radians) under which it sees the node's ground point (from the camera
     centre, or a pushbroom scene's satellite position at the line that images the point, and
-    the point on the DEM), the distance (source pixels) of that point's image from
-    the image's border (both NaN where the DEM has no height), and the source pixels per
-    output pixel (a scalar)."""
+    the point on the DEM; None without ``angle``), the distance (source pixels) of that
+    point's image from the image's border (both NaN where the DEM has no height), and the
+    source pixels per output pixel (a scalar)."""
     uv = coarse_grid(transform, to_frame, r0, c0, th, tw)
     u, v = uv[..., 0], uv[..., 1]
     h = geom.dem.sample(u, v)
+    pix = geom.project_frame(np.stack([u, v, h], -1).reshape(-1, 3)).reshape(*u.shape, 2)
+    w, hh = geom.image_size
+    edge = np.minimum(np.minimum(pix[..., 0], w - pix[..., 0]), np.minimum(pix[..., 1], hh - pix[..., 1]))
+    with np.errstate(invalid="ignore"):
+        steps = np.concatenate([np.hypot(*np.diff(pix, axis=ax).reshape(-1, 2).T) for ax in (0, 1)])
+    steps = steps[np.isfinite(steps)]
+    scale = float(np.median(steps)) / COARSE_STEP if len(steps) else 1.0
+    if not angle:
+        return None, edge, scale
     if geom.geocentric:
         ground = geodetic_to_ecef(v, u, h)
         lat, lon = np.radians(v), np.radians(u)
@@ -102,7 +112,6 @@ def _node_fields(geom, transform, to_frame, r0, c0, th, tw):
     else:
         ground = np.stack([u, v, h], -1)
         up = np.broadcast_to([0.0, 0.0, 1.0], ground.shape)
-    pix = geom.project_frame(np.stack([u, v, h], -1).reshape(-1, 3)).reshape(*u.shape, 2)
     if isinstance(geom, PushbroomGeometry):  # the satellite where it images the point
         centre = np.full(ground.shape, np.nan)
         ok = np.isfinite(pix[..., 1])
@@ -116,21 +125,13 @@ def _node_fields(geom, transform, to_frame, r0, c0, th, tw):
     ray = centre - ground
     with np.errstate(invalid="ignore"):
         cos = np.einsum("...i,...i->...", ray, up) / np.linalg.norm(ray, axis=-1)
-    angle = np.arccos(np.clip(cos, -1.0, 1.0))
-    w, hh = geom.image_size
-    edge = np.minimum(np.minimum(pix[..., 0], w - pix[..., 0]), np.minimum(pix[..., 1], hh - pix[..., 1]))
-    with np.errstate(invalid="ignore"):
-        steps = np.concatenate([np.hypot(*np.diff(pix, axis=ax).reshape(-1, 2).T) for ax in (0, 1)])
-    steps = steps[np.isfinite(steps)]
-    scale = float(np.median(steps)) / COARSE_STEP if len(steps) else 1.0
-    return angle, edge, scale
+    return np.arccos(np.clip(cos, -1.0, 1.0)), edge, scale
 
 
-def _fields(geom, transform, to_frame, r0, c0, th, tw):
-    """:func:`_node_fields`' angle and edge distance per tile pixel (th, tw), bilinear between
-    the nodes, and the scale."""
-    angle, edge, scale = _node_fields(geom, transform, to_frame, r0, c0, th, tw)
-    return _upsample(angle, th, tw), _upsample(edge, th, tw), scale
+def _angle_field(geom, transform, to_frame, r0, c0, th, tw):
+    """:func:`_node_fields`' off-nadir angle per tile pixel (th, tw), bilinear between the
+    nodes."""
+    return _upsample(_node_fields(geom, transform, to_frame, r0, c0, th, tw)[0], th, tw)
 
 
 @quiet_warp()
@@ -421,7 +422,7 @@ class MosaicPlan:
         "fallback"; see :func:`mosaic`)."""
         o, timer = self.options, st["timer"]
         count, feather = self.count, o["feather"]
-        top = {"uint8": 255.0, "uint16": 65535.0, "float32": 0.0}[self.dtype]
+        top = TOP[self.dtype]
         if o["blend"] == "multiband":
             halo = _multiband_halo(feather)
             got = self._stack(st, which, r0 - halo, c0 - halo, th + 2 * halo, tw + 2 * halo, fade=False)
@@ -471,7 +472,8 @@ class MosaicPlan:
                 t = time.perf_counter()
                 edge, width = np.zeros((2, 2), np.float32), 0.0
                 if fade:  # towards the image's border, over the blend's width
-                    _, edge, scale = _node_fields(entry["geom"], self.transform, entry["to_frame"], r0, c0, th, tw)
+                    _, edge, scale = _node_fields(entry["geom"], self.transform, entry["to_frame"], r0, c0, th, tw,
+                                                  angle=False)
                     edge, width = np.nan_to_num(edge, nan=0.0).astype(np.float32), feather * scale
                 rendered.append((k, values, valid, edge, width))
                 device = values.device
@@ -761,7 +763,7 @@ def _reduced_pass(plan, cancel, max_pixels):
         if values is None:
             return None
         to_frame = Transformer.from_crs(crs, geom.horizontal_crs, always_xy=True)
-        angle = _fields(geom, ctr, to_frame, r0, c0, r1 - r0, c1 - c0)[0].astype(np.float32)
+        angle = _angle_field(geom, ctr, to_frame, r0, c0, r1 - r0, c1 - c0).astype(np.float32)
         v = values.numpy()
         ok = valid.numpy().view(bool) & np.isfinite(angle) & np.isfinite(v).all(axis=-1)
         return r0, c0, v, ok, angle
@@ -836,8 +838,9 @@ def _least_cost_seams(labels, coarse, gains, offsets, width, reach, cancel=None)
     too. A shortest path (Dijkstra, 8-neighbours) between two free parts of the corridor's rim
     (where the nadir seam leaves it, along the edge of one image's cover, at a third image's
     region) splits it, each part going to the region whose side of the rim it touches (see
-    :func:`_split_corridor`); a corridor that no path separates keeps the nadir seam. Pairs are taken in order, each on the labels
-    the earlier ones left: one global labelling, so seams are consistent across output tiles.
+    :func:`_split_corridor`); a corridor that no path separates is labelled by a minimum cut
+    instead (:func:`_cut_corridor`). Pairs are taken in order, each on the labels the earlier
+    ones left: one global labelling, so seams are consistent across output tiles.
     (A seam refined within a buffer around an initial one by Dijkstra on a mismatch cost, as
     in Chon et al., ISPRS J. Photogramm. 2010, here on a reduced grid.)
 
@@ -858,7 +861,6 @@ def _least_cost_seams(labels, coarse, gains, offsets, width, reach, cancel=None)
         lab = np.full((h, w), NO_SOURCE, np.uint16)  # beyond the grid: no image's
         lab[gr0 - wr0:gr1 - wr0, gc0 - wc0:gc1 - wc0] = labels[gr0:gr1, gc0:gc1]
         mi, mj = lab == i, lab == j
-        # the movable seam: pixels of either region next to the other where both images see
         # the movable seams: pixels of either region next to the other, where both images see
         # (at the edge of one image's cover, the seam's side within it)
         border = ((mi & ndimage.binary_dilation(mj)) | (mj & ndimage.binary_dilation(mi))) & both
@@ -994,8 +996,7 @@ def _cut_corridor(corridor, mi, mj, cost, away, width, max_nodes=40_000, unit=16
         return None
     c_mi = blocks(mi, False, "any") if s > 1 else mi
     c_mj = blocks(mj, False, "any") if s > 1 else mj
-    c_cost = blocks(np.where(corridor, cost, 0.0), 0.0, "mean") * (s * s) / np.maximum(
-        blocks(corridor.astype(float), 0.0, "mean") * (s * s), 1.0) if s > 1 else cost
+    c_cost = blocks(np.where(corridor, cost, 0.0), 0.0, "mean") if s > 1 else cost  # blocks used lie wholly in it
     c_away = blocks(np.where(corridor, away, 0.0), 0.0, "mean") if s > 1 else away
     nadir_i = (blocks(mi & corridor, False, "any") if s > 1 else mi) & c_corr
     outer = ~c_corr
@@ -1084,8 +1085,8 @@ def _multiband(stack, rank, ks, feather, halo, top, dtype):
         return gaussian_filter(a, sigma=sigma, mode="nearest", truncate=3.0)
 
     inner = (slice(halo, stack.shape[1] - halo), slice(halo, stack.shape[2] - halo))
-    acc = np.zeros(stack.shape[1:], np.float64)
-    bands = []
+    acc = np.zeros(stack[0][inner].shape, np.float64)
+    bands = []  # per image, its three bands on the inner tile
     for k in range(len(ks)):
         m = valid[k].astype(np.float32)
         v = np.where(valid[k][..., None], stack[k], 0.0).astype(np.float32)
@@ -1095,16 +1096,16 @@ def _multiband(stack, rank, ks, feather, halo, top, dtype):
             with np.errstate(invalid="ignore", divide="ignore"):
                 lows.append(np.stack([blur(v[..., b], sigma) for b in range(v.shape[-1])], -1)
                             / np.where(norm > 1e-6, norm, np.nan)[..., None])
-        bands.append((v - lows[0], lows[0] - lows[1], lows[1]))
+        bands.append(((v - lows[0])[inner], (lows[0] - lows[1])[inner], lows[1][inner]))
     for level, sigma in enumerate((0.0, s_mid, s_low)):
-        weights = [np.where(valid[k], onehot[k] if sigma == 0.0 else blur(onehot[k], sigma), 0.0)
+        weights = [np.where(valid[k], onehot[k] if sigma == 0.0 else blur(onehot[k], sigma), 0.0)[inner]
                    for k in range(len(ks))]
         total = np.sum(weights, axis=0)
         with np.errstate(invalid="ignore", divide="ignore"):
             acc += np.nansum([w[..., None] * np.nan_to_num(b[level]) for w, b in zip(weights, bands)], axis=0) \
                 / np.where(total > 0, total, np.nan)[..., None]
     has = has_full[inner]
-    out = acc[inner]
+    out = acc
     if top > 0.0:
         out = np.where(has[..., None], np.clip(np.rint(out), 0.0, top), 0.0).astype(dtype)
     else:

@@ -58,6 +58,7 @@ BLOCK_CODECS = ("auto", "host", "nvcomp", "hybrid")
 # than Warp's default 256 (bench/ortho.py's block-size scan)
 ORTHO_BLOCK_DIM = 128
 _WP_TYPES = {"uint8": wp.uint8, "uint16": wp.uint16, "float32": wp.float32}
+_TOP = {"uint8": 255.0, "uint16": 65535.0, "float32": 0.0}  # the kernels' clipping top per output type (0: none)
 COARSE_STEP = 16  # output pixels between nodes of the exactly transformed coarse grid
 
 
@@ -602,7 +603,7 @@ class ImageTiles:
         self.resampling_code, self.radius = RESAMPLING[resampling], _RADIUS[resampling]
         self.to_frame = Transformer.from_crs(out_crs, geom.horizontal_crs, always_xy=True)
         self.image_size = geom.image_size
-        self.top = {"uint8": 255.0, "uint16": 65535.0, "float32": 0.0}[out_dtype]
+        self.top = _TOP[out_dtype]
         # source values outside an integer output's range are clipped: count them
         src_dtype = src_dtype or out_dtype
         self.narrowing = self.top > 0 and (np.dtype(src_dtype).kind in "fi" or np.iinfo(src_dtype).max > self.top)
