@@ -362,15 +362,25 @@ def run_speed(args, sizes):
         prof = os.path.join(work, f"mosaic{n}.profile.json")
         extra = (["--workers", str(args.workers)] if args.workers else []) + \
             (["--tile-size", str(args.tile_size)] if args.tile_size else [])
-        r = run_cli(sys.executable, "orthowarp.cli:main",
-                    ["mosaic", *frames[:n], *orient, "--dem", dem_path, "--out", out, "--overwrite",
-                     "--device", args.device, "--profile-json", prof, *extra], gpu_index=gpu)
+        cli = ["mosaic", *frames[:n], *orient, "--dem", dem_path, "--out", out, "--overwrite", "--device",
+               args.device, "--profile-json", prof, *extra]
+        if args.sample_stacks:  # the child under bench/stack_sampler.py (its own overhead included)
+            stacks = os.path.join(work, f"mosaic{n}.stacks.json")
+            here = os.path.dirname(os.path.abspath(__file__))
+            env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (here, os.environ.get("PYTHONPATH")) if p))
+            r = run_cli(sys.executable, "stack_sampler:main", [stacks, str(args.sample_stacks), "orthowarp.cli:main",
+                                                               *cli], gpu_index=gpu, env=env)
+        else:
+            r = run_cli(sys.executable, "orthowarp.cli:main", cli, gpu_index=gpu)
         r["images"] = n
         r["input_gpix"] = n * width * height / 1e9
         if r["returncode"] == 0:
             with open(prof) as f:
                 r["profile"] = json.load(f)
             px = r["profile"]["output_pixels"]
+            if args.sample_stacks and os.path.exists(stacks):
+                with open(stacks) as f:
+                    r["stacks"] = json.load(f)
             r.update(output_gpix=px / 1e9, output_gpix_s=px / 1e9 / r["wall_s"],
                      tiles_output_gpix_s=px / 1e9 / r["profile"]["wall_s"], output_mb=os.path.getsize(out) / 1e6)
         report["results"].append(r)
@@ -435,6 +445,9 @@ def main(argv=None):
     ap.add_argument("--workers", type=int, default=None, help="--speed: orthowarp mosaic --workers")
     ap.add_argument("--tile-size", type=int, default=None, help="--speed: orthowarp mosaic --tile-size")
     ap.add_argument("--oty-python", default=None, help="--speed: a Python with orthority 0.7.0: run it side by side")
+    ap.add_argument("--sample-stacks", type=float, default=None, metavar="SECONDS",
+                    help="--speed: sample the mosaic child's Python stacks at this interval "
+                         "(bench/stack_sampler.py; the report's 'stacks')")
     ap.add_argument("--no-orthowarp", action="store_true", help="--speed: only the orthority chain (e.g. in a second run)")
     ap.add_argument("--resolution", type=float, default=None,
                     help="--speed: orthority's --res (default: the resolution of orthowarp's mosaic)")

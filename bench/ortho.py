@@ -64,7 +64,7 @@ wp.load_module(frame, device=sys.argv[1])
 """
 
 
-def run_cli(python, entry, args, gpu_index=None):
+def run_cli(python, entry, args, gpu_index=None, env=None):
     """Wall time (s), peak RSS (MB), return code and stderr tail of a CLI run; with
     ``gpu_index``, also the GPU's busy fraction over the run: the mean of nvidia-smi's
     utilization.gpu (percent of each sample period in which a kernel ran), sampled every 50 ms."""
@@ -77,7 +77,7 @@ def run_cli(python, entry, args, gpu_index=None):
         except OSError:
             smi = None
     t = time.perf_counter()
-    proc = subprocess.run([python, "-c", CLI_WRAPPER, entry, *args], capture_output=True, text=True)
+    proc = subprocess.run([python, "-c", CLI_WRAPPER, entry, *args], capture_output=True, text=True, env=env)
     wall = time.perf_counter() - t
     peak = [line for line in proc.stderr.splitlines() if line.startswith("PEAK_RSS_KB ")]
     out = dict(wall_s=wall, peak_rss_mb=int(peak[-1].split()[1]) / 1024 if peak else None,

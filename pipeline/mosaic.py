@@ -58,6 +58,7 @@ __all__ = ["mosaic", "mosaic_plan", "MosaicPlan", "MosaicResult", "NO_SOURCE"]
 log = logging.getLogger(__name__)
 
 NO_SOURCE = 65535  # the index raster's value where no image has a pixel
+FALLBACK_BLOCK = 256  # blocks of a tile that the backward method fills where the forward one has no value
 SEAM_PIXELS = 4_000_000  # the largest reduced grid of the balance and the seams (pixels)
 
 
@@ -407,13 +408,15 @@ class MosaicPlan:
         st = self._materialise()
         out, source, has = self._select(st, "renderer", r0, c0, th, tw)
         if self.options["method"] == "forward" and not has.all() and any(s[2] is not None for s in self.sources):
-            # ground no image sees by the forward method (hidden, or where it drops folded
-            # quads on a rough DSM): the backward method's value, from the same rule
-            t = time.perf_counter()
-            out2, source2, has2 = self._select(st, "fallback", r0, c0, th, tw)
-            fill = has2 & ~has
-            out[fill], source[fill], has = out2[fill], source2[fill], has | has2
-            st["timer"].span("prepare", t)
+            # ground no image sees by the forward method (hidden, where it drops folded quads on
+            # a rough DSM, or the half pixel along a footprint's edge): the backward method's
+            # value, from the same rule, on the blocks of the tile that have such pixels
+            for br0, bc0, bh, bw in _fallback_blocks(~has, self.labels, self.seam_step, r0, c0):
+                out2, source2, has2 = self._select(st, "fallback", br0, bc0, bh, bw)
+                sl = np.s_[br0 - r0:br0 - r0 + bh, bc0 - c0:bc0 - c0 + bw]
+                fill = has2 & ~has[sl]
+                out[sl][fill], source[sl][fill] = out2[fill], source2[fill]
+                has[sl] |= fill
         return out, has, source
 
     def _select(self, st, which, r0, c0, th, tw):
@@ -1112,6 +1115,45 @@ def _multiband(stack, rank, ks, feather, halo, top, dtype):
         out = np.where(has[..., None], out, np.nan).astype(np.float32)
     source = np.where(has, ks[best[inner]], NO_SOURCE).astype(np.uint16)
     return out, source, has
+
+
+def _fallback_blocks(missing, labels, f, r0, c0, block=FALLBACK_BLOCK):
+    """The parts of a tile (r0, c0) that the backward method must fill: the ``block`` x
+    ``block`` pixel blocks (from the tile's first pixel) holding pixels ``missing`` (bool (th,
+    tw)) where the reduced labelling (``f`` output pixels per reduced pixel) has cover within
+    one reduced pixel, each block row's consecutive blocks merged. Returns a list of (r0, c0,
+    rows, cols) on the mosaic grid."""
+    th, tw = missing.shape
+    crows, ccols = labels.shape
+    rr = np.clip(np.arange(r0, r0 + th) // f, 0, crows - 1)
+    cc = np.clip(np.arange(c0, c0 + tw) // f, 0, ccols - 1)
+    i0, i1, j0, j1 = rr[0], rr[-1] + 1, cc[0], cc[-1] + 1
+    # cover on the tile's reduced window, grown by one reduced pixel (its rim from the grid)
+    win = labels[max(i0 - 1, 0):i1 + 1, max(j0 - 1, 0):j1 + 1] != NO_SOURCE
+    grown = win.copy()
+    grown[1:] |= win[:-1]
+    grown[:-1] |= win[1:]
+    grown[:, 1:] |= grown[:, :-1].copy()
+    grown[:, :-1] |= grown[:, 1:].copy()
+    need = missing & grown[np.ix_(rr - max(i0 - 1, 0), cc - max(j0 - 1, 0))]
+    nb_r, nb_c = -(-th // block), -(-tw // block)
+    pad = np.zeros((nb_r * block, nb_c * block), bool)
+    pad[:th, :tw] = need
+    marked = pad.reshape(nb_r, block, nb_c, block).any(axis=(1, 3))
+    out = []
+    for i in range(nb_r):
+        j = 0
+        while j < nb_c:
+            if not marked[i, j]:
+                j += 1
+                continue
+            k = j
+            while k < nb_c and marked[i, k]:
+                k += 1
+            br, bc = i * block, j * block
+            out.append((r0 + br, c0 + bc, min(block, th - br), min(k * block, tw) - bc))
+            j = k
+    return out
 
 
 def _distance_windows(labels, f, r0, c0, th, tw, ks, clip):

@@ -361,6 +361,32 @@ def test_a_minimum_cut_takes_the_seam_round_a_disagreement(max_nodes):
     assert to_i[:, :30].all() and not to_i[:, 48:].any()  # the detour stays near the blob
 
 
+def test_the_backward_fallback_covers_only_blocks_with_coverable_gaps():
+    """Pixels the forward method leaves without a value are filled on the tile's blocks that
+    hold them (each block row's consecutive blocks merged), and only where the reduced
+    labelling has cover within one reduced pixel: gaps beyond every image cost nothing."""
+    from orthowarp.pipeline.mosaic import _fallback_blocks
+
+    f = 4
+    labels = np.full((100, 100), NO_SOURCE, np.uint16)
+    labels[:, :60] = 3  # cover up to mosaic column 240
+    r0, c0, th, tw = 64, 32, 300, 400  # mosaic rows 64-363, columns 32-431
+    missing = np.zeros((th, tw), bool)
+    missing[5, 100:120] = True  # under cover: block row 0, block column 0
+    missing[280, 20] = True  # under cover: block row 2 (a short block), column 0
+    missing[150, 210] = True  # column 242, within one reduced pixel of the cover: block row 1, column 1
+    missing[150, 20] = True  # and block row 1, column 0: the two merged
+    missing[:, 260:] = True  # columns 292-431: beyond it, no block
+    blocks = _fallback_blocks(missing, labels, f, r0, c0, block=128)
+    assert blocks == [(64, 32, 128, 128), (192, 32, 128, 256), (320, 32, 44, 128)]
+    assert _fallback_blocks(np.zeros((th, tw), bool), labels, f, r0, c0, block=128) == []
+    # every coverable missing pixel lies in a block
+    cover = np.zeros((th, tw), bool)
+    for br, bc, bh, bw in blocks:
+        cover[br - r0:br - r0 + bh, bc - c0:bc - c0 + bw] = True
+    assert cover[5, 100:120].all() and cover[280, 20] and cover[150, 210] and cover[150, 20]
+
+
 def test_seamlines_trace_each_images_part(pair, tmp_path):
     import json
 
