@@ -52,6 +52,9 @@ def _layer_base_pressures():
 
 
 _PB = _layer_base_pressures()
+_HB = np.array([la[0] for la in _LAYERS])
+_TB = np.array([la[1] for la in _LAYERS])
+_LR = np.array([la[2] for la in _LAYERS])
 
 
 def standard_atmosphere(z):
@@ -64,9 +67,8 @@ def standard_atmosphere(z):
     """
     z = np.asarray(z, dtype=np.float64)
     hgp = _R0 * z / (_R0 + z)
-    hb = np.array([la[0] for la in _LAYERS])
-    k = np.clip(np.searchsorted(hb, hgp, side="right") - 1, 0, len(_LAYERS) - 1)
-    base, tb, lr = hb[k], np.array([la[1] for la in _LAYERS])[k], np.array([la[2] for la in _LAYERS])[k]
+    k = np.clip(np.searchsorted(_HB, hgp, side="right") - 1, 0, len(_LAYERS) - 1)
+    base, tb, lr = _HB[k], _TB[k], _LR[k]
     t = tb + lr * (hgp - base)
     with np.errstate(divide="ignore", invalid="ignore"):
         p_grad = _PB[k] * (tb / t) ** (_G0M_R / np.where(lr == 0.0, 1.0, lr))
@@ -116,22 +118,28 @@ def trace_delta(theta, sensor_height, ground_height, *, radius=EARTH_RADIUS):
     if np.any(hg >= hs):
         raise ParamError("ground_height must be below sensor_height")
     rc = radius + hs
-    p = refractive_index(hs) * rc * np.sin(theta)  # Bouguer invariant n r sin z
-    phi = np.zeros_like(theta)
+    p = (refractive_index(hs) * rc * np.sin(theta)).ravel()  # Bouguer invariant n r sin z
+    flat_hg = hg.ravel()
+    phi = np.zeros_like(p)
     bnd = _boundaries(hs)
+    bnd = bnd[: max(int(np.count_nonzero(bnd > flat_hg.min())) + 1, 2)] if flat_hg.size else bnd[:2]
+    top, bot = bnd[:-1], bnd[1:]
+    # the index of a layer the ray crosses whole is the layer's; of the layer where it stops,
+    # that of the part above the stop: one value per layer and one per ray
+    n_whole = refractive_index(0.5 * (top + bot))
+    stop = np.clip(np.searchsorted(-bnd, -flat_hg, side="left") - 1, 0, len(top) - 1)
+    n_stop = refractive_index(0.5 * (top[stop] + flat_hg))
+    chunk = max(1, (1 << 20) // max(p.size, 1))  # layers x rays arrays of bounded size
     with np.errstate(invalid="ignore"):
-        for top, bot in zip(bnd[:-1], bnd[1:]):
-            active = top > hg
-            if not np.any(active):
-                break
-            lo = np.maximum(bot, hg)
-            n = refractive_index(0.5 * (top + lo))
-            b = p / n
-            seg = np.arccos(b / (radius + top)) - np.arccos(b / (radius + lo))
-            phi += np.where(active, seg, 0.0)
-        rg = radius + hg
+        for i in range(0, len(top), chunk):
+            t, b0 = top[i:i + chunk, None], bot[i:i + chunk, None]
+            whole = b0 >= flat_hg
+            b = p / np.where(whole, n_whole[i:i + chunk, None], n_stop)
+            seg = np.arccos(b / (radius + t)) - np.arccos(b / (radius + np.where(whole, b0, flat_hg)))
+            phi += np.where(t > flat_hg, seg, 0.0).sum(axis=0)
+        rg = radius + flat_hg
         chord = np.arctan2(rg * np.sin(phi), rc - rg * np.cos(phi))
-    return theta - chord
+    return theta - chord.reshape(theta.shape)
 
 
 def asprs_delta(theta, sensor_height, ground_height=0.0):

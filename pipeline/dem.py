@@ -428,8 +428,9 @@ class Dem:
         i = np.minimum(gy.astype(int), max(rows - 2, 0))
         j1, i1 = np.minimum(j + 1, cols - 1), np.minimum(i + 1, rows - 1)
         ax, ay = gx - j, gy - i
-        z = self.array.astype(np.float64)
-        h = ((1 - ay) * ((1 - ax) * z[i, j] + ax * z[i, j1]) + ay * ((1 - ax) * z[i1, j] + ax * z[i1, j1]))
+        z = self.array  # the four neighbours gathered, then widened (not the whole grid per call)
+        z00, z01, z10, z11 = (z[a, b].astype(np.float64) for a, b in ((i, j), (i, j1), (i1, j), (i1, j1)))
+        h = ((1 - ay) * ((1 - ax) * z00 + ax * z01) + ay * ((1 - ax) * z10 + ax * z11))
         return np.where(inside, h, np.nan)
 
     # -- preparation for the kernels ------------------------------------------------------------

@@ -943,6 +943,46 @@ def _open_source(path):
         return rasterio.open(path)
 
 
+class _NodeBlocks:
+    """Bounds of the nodes of a grid that fall in a box, found by blocks.
+
+    ``fields`` (rows, cols, 2 + m): per node its position (x, y) and m more values, NaN
+    where the node has none. The grid is cut into ``block`` x ``block`` node blocks with the
+    bounding box of their positions and the range of their values: a query tests the blocks,
+    takes whole the ones inside the box and tests node by node only those across its edge.
+    """
+
+    def __init__(self, fields, block=8):
+        rows, cols, m = fields.shape
+        self.block = block
+        nb_r, nb_c = -(-rows // block), -(-cols // block)
+        pad = np.full((nb_r * block, nb_c * block, m), np.nan)
+        pad[:rows, :cols] = fields
+        self.blocks = pad.reshape(nb_r, block, nb_c, block, m).transpose(0, 2, 1, 3, 4).reshape(nb_r * nb_c, -1, m)
+        with warnings.catch_warnings():  # blocks with no node: NaN bounds, never selected
+            warnings.simplefilter("ignore", RuntimeWarning)
+            self.lo = np.nanmin(self.blocks, axis=1)
+            self.hi = np.nanmax(self.blocks, axis=1)
+
+    def bounds(self, x0, y0, x1, y1):
+        """(lo, hi): the smallest and largest values (m each) of the nodes with x0 <= x <= x1
+        and y0 <= y <= y1, or None where there is none."""
+        lo, hi = self.lo, self.hi
+        meets = (hi[:, 0] >= x0) & (lo[:, 0] <= x1) & (hi[:, 1] >= y0) & (lo[:, 1] <= y1)
+        inside = meets & (lo[:, 0] >= x0) & (hi[:, 0] <= x1) & (lo[:, 1] >= y0) & (hi[:, 1] <= y1)
+        parts_lo, parts_hi = [lo[inside, 2:]], [hi[inside, 2:]]
+        edge = self.blocks[meets & ~inside]
+        if len(edge):
+            edge = edge.reshape(-1, edge.shape[-1])
+            sel = (edge[:, 0] >= x0) & (edge[:, 0] <= x1) & (edge[:, 1] >= y0) & (edge[:, 1] <= y1)
+            parts_lo.append(edge[sel, 2:])
+            parts_hi.append(edge[sel, 2:])
+        lo_all, hi_all = np.concatenate(parts_lo), np.concatenate(parts_hi)
+        if not len(lo_all):
+            return None
+        return lo_all.min(axis=0), hi_all.max(axis=0)
+
+
 def _forward_coords(geom, transform, out_crs, frame_crs, device, timer, radius, step=16, margin=32):
     """The forward method's per-tile source coordinates (see :func:`orthorectify`).
 
@@ -960,30 +1000,34 @@ def _forward_coords(geom, transform, out_crs, frame_crs, device, timer, radius, 
     to_out = Transformer.from_crs(frame_crs, out_crs, always_xy=True)
     x, y = to_out.transform(g[ok, 0], g[ok, 1])
     oc, orow = ~transform @ (np.asarray(x), np.asarray(y))
-    node_src = np.stack([cc.ravel()[ok], rr.ravel()[ok]], 1)
     node_out = np.stack([oc, orow], 1)
-    node_frame = g[ok, :2]
     # output pixels per source pixel, for rejecting quads that span occlusions
     scale = float(np.median(np.hypot(*np.diff(node_out.reshape(-1, 2), axis=0).T))) / step if len(node_out) > 1 else 1.0
     max_edge = 4.0 * max(scale, 1.0)
     factor = max(int(np.floor(1.0 / scale)), 1) if scale > 0 else 1  # reduced reads: see _decimation
+    # the nodes on their grid (NaN where not geolocated): per node, output column and row,
+    # source column and row, frame u and v
+    fields = np.full((*cc.shape, 6), np.nan)
+    fields.reshape(-1, 6)[ok] = np.concatenate([node_out, np.stack([cc.ravel()[ok], rr.ravel()[ok]], 1), g[ok, :2]],
+                                               1)
+    node_blocks = _NodeBlocks(fields)
 
     def coords_for(r0, c0, th, tw):
         t = time.perf_counter()
         coords = wp.full((th, tw), wp.vec2d(np.nan, np.nan), dtype=wp.vec2d, device=device)
-        sel = ((node_out[:, 0] >= c0 - margin) & (node_out[:, 0] <= c0 + tw + margin)
-               & (node_out[:, 1] >= r0 - margin) & (node_out[:, 1] <= r0 + th + margin))
-        if not np.any(sel):
+        # the nodes within margin of the tile: bounds of their source and frame coordinates
+        bounds = node_blocks.bounds(c0 - margin, r0 - margin, c0 + tw + margin, r0 + th + margin)
+        if bounds is None:
             timer.span("prepare", t)
             return coords, None
+        lo, hi = bounds
         grow = step + margin
-        wc0 = max(int(node_src[sel, 0].min()) - grow, 0)
-        wr0 = max(int(node_src[sel, 1].min()) - grow, 0)
-        wc1 = min(int(node_src[sel, 0].max()) + grow, w_img)
-        wr1 = min(int(node_src[sel, 1].max()) + grow, h_img)
+        wc0 = max(int(lo[0]) - grow, 0)
+        wr0 = max(int(lo[1]) - grow, 0)
+        wc1 = min(int(hi[0]) + grow, w_img)
+        wr1 = min(int(hi[1]) + grow, h_img)
         # frame -> output-tile pixel lookup grid over the selected ground
-        lo = node_frame[sel].min(axis=0)
-        hi = node_frame[sel].max(axis=0)
+        lo, hi = lo[2:], hi[2:]
         pad = 0.25 * (hi - lo) + 1e-6
         gu = np.linspace(lo[0] - pad[0], hi[0] + pad[0], 33)
         gv = np.linspace(lo[1] - pad[1], hi[1] + pad[1], 33)

@@ -337,6 +337,34 @@ def test_forward_method_leaves_hidden_ground_nodata(tmp_path):
     assert np.all(vb[vf])  # nothing the forward method keeps is missing from the backward one
 
 
+def test_node_blocks_bound_the_nodes_in_a_box():
+    """The forward method's node search by blocks gives the bounds a node-by-node search
+    gives, for boxes inside, across and outside a rotated, warped node grid with holes."""
+    from orthowarp.pipeline.ortho import _NodeBlocks
+
+    rng = np.random.default_rng(3)
+    rows, cols = 53, 71  # not whole blocks
+    j, i = np.meshgrid(np.arange(cols, dtype=float), np.arange(rows, dtype=float))
+    a = np.radians(27.0)
+    x = 16 * (np.cos(a) * j - np.sin(a) * i) + 3 * np.sin(i / 5.0)
+    y = 16 * (np.sin(a) * j + np.cos(a) * i) + 2 * np.cos(j / 7.0)
+    fields = np.stack([x, y, 16 * j, 16 * i, 100 + x / 3, -y / 3], -1)
+    fields[rng.random((rows, cols)) < 0.1] = np.nan  # nodes that were not geolocated
+    fields[10:30, 20:45] = np.nan  # and a hole
+    nodes = _NodeBlocks(fields)
+    flat = fields.reshape(-1, 6)
+    for _ in range(200):
+        x0, y0 = rng.uniform(-900, 1300, 2)
+        x1, y1 = x0 + rng.uniform(0, 700), y0 + rng.uniform(0, 700)
+        sel = (flat[:, 0] >= x0) & (flat[:, 0] <= x1) & (flat[:, 1] >= y0) & (flat[:, 1] <= y1)
+        got = nodes.bounds(x0, y0, x1, y1)
+        if not sel.any():
+            assert got is None
+            continue
+        np.testing.assert_array_equal(got[0], flat[sel, 2:].min(axis=0))
+        np.testing.assert_array_equal(got[1], flat[sel, 2:].max(axis=0))
+
+
 def test_forward_method_rejects_bad_method(tmp_path):
     sc = scene("opk")
     with pytest.raises(ParamError, match="method"):
