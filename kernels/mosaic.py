@@ -31,7 +31,7 @@ class ReducedWindow:
     """A window of a field on the mosaic's reduced grid (``f`` output pixels per reduced
     pixel), and where the tile lies in it."""
 
-    field: wp.array2d(dtype=wp.float32)  # (rows, cols), the window
+    field: wp.array3d(dtype=wp.float32)  # (images, rows, cols), the window of each of the tile's images
     f: wp.float32  # output pixels per reduced pixel
     r0: wp.int32  # the tile's first output row and column
     c0: wp.int32
@@ -55,25 +55,27 @@ def reduced_axis(p: wp.int32, f: wp.float32, n: wp.int32, w0: wp.int32):
 
 
 @wp.func
-def reduced_sample(win: ReducedWindow, i: wp.int32, j: wp.int32):
+def reduced_sample(win: ReducedWindow, k: wp.int32, i: wp.int32, j: wp.int32):
+    """Image k's field, bilinear at the tile's pixel (i, j)."""
     iy, fy = reduced_axis(win.r0 + i, win.f, win.rows, win.wr0)
     ix, fx = reduced_axis(win.c0 + j, win.f, win.cols, win.wc0)
-    a = win.field[iy, ix] * (wp.float32(1.0) - fy) + win.field[iy + 1, ix] * fy
-    b = win.field[iy, ix + 1] * (wp.float32(1.0) - fy) + win.field[iy + 1, ix + 1] * fy
+    a = win.field[k, iy, ix] * (wp.float32(1.0) - fy) + win.field[k, iy + 1, ix] * fy
+    b = win.field[k, iy, ix + 1] * (wp.float32(1.0) - fy) + win.field[k, iy + 1, ix + 1] * fy
     return a * (wp.float32(1.0) - fx) + b * fx
 
 
 @wp.func
-def node_sample(nodes: wp.array2d(dtype=wp.float32), step: wp.float32, i: wp.int32, j: wp.int32):
-    """Bilinear between coarse-grid nodes every ``step`` pixels from the tile's first pixel."""
+def node_sample(nodes: wp.array3d(dtype=wp.float32), k: wp.int32, step: wp.float32, i: wp.int32, j: wp.int32):
+    """Image k's values at coarse-grid nodes every ``step`` pixels from the tile's first pixel,
+    bilinear at the tile's pixel (i, j)."""
     fi = wp.float32(i) / step
     fj = wp.float32(j) / step
-    i0 = wp.min(wp.int32(fi), nodes.shape[0] - 2)
-    j0 = wp.min(wp.int32(fj), nodes.shape[1] - 2)
+    i0 = wp.min(wp.int32(fi), nodes.shape[1] - 2)
+    j0 = wp.min(wp.int32(fj), nodes.shape[2] - 2)
     ai = fi - wp.float32(i0)
     aj = fj - wp.float32(j0)
-    a = nodes[i0, j0] * (wp.float32(1.0) - aj) + nodes[i0, j0 + 1] * aj
-    b = nodes[i0 + 1, j0] * (wp.float32(1.0) - aj) + nodes[i0 + 1, j0 + 1] * aj
+    a = nodes[k, i0, j0] * (wp.float32(1.0) - aj) + nodes[k, i0, j0 + 1] * aj
+    b = nodes[k, i0 + 1, j0] * (wp.float32(1.0) - aj) + nodes[k, i0 + 1, j0 + 1] * aj
     return a * (wp.float32(1.0) - ai) + b * ai
 
 
@@ -81,10 +83,11 @@ def node_sample(nodes: wp.array2d(dtype=wp.float32), step: wp.float32, i: wp.int
 def mosaic_candidate_kernel(
     values: wp.array3d(dtype=Any),
     valid: wp.array2d(dtype=wp.uint8),
-    gain: wp.array1d(dtype=wp.float32),
-    offset: wp.array1d(dtype=wp.float32),
+    gains: wp.array2d(dtype=wp.float32),
+    offsets: wp.array2d(dtype=wp.float32),
+    image: wp.int32,
     dist: ReducedWindow,
-    edge: wp.array2d(dtype=wp.float32),
+    edge: wp.array3d(dtype=wp.float32),
     edge_step: wp.float32,
     fade_width: wp.float32,
     feather: wp.float32,
@@ -92,23 +95,24 @@ def mosaic_candidate_kernel(
     stack: wp.array4d(dtype=wp.float32),
     rank: wp.array3d(dtype=wp.float32),
 ):
-    """Image k of the tile: its balanced values into ``stack[k]`` (th, tw, bands) and its rank
-    into ``rank[k]`` (th, tw). ``edge`` (coarse nodes): distance of the pixel's image from the
-    image's border, source pixels; the fade adds ``feather`` * (1 - edge / fade_width),
-    clipped to [0, feather], where ``fade_width`` > 0."""
+    """The tile's k-th image (``image`` among the mosaic's): its values balanced by
+    ``gains[image]`` and ``offsets[image]`` (images, bands) into ``stack[k]`` (th, tw, bands)
+    and its rank into ``rank[k]`` (th, tw). ``edge[k]`` (coarse nodes): distance of the
+    pixel's image from the image's border, source pixels; the fade adds ``feather`` * (1 -
+    edge / fade_width), clipped to [0, feather], where ``fade_width`` > 0."""
     i, j = wp.tid()
     if valid[i, j] == wp.uint8(0):
         rank[k, i, j] = wp.float32(wp.inf)
         for b in range(stack.shape[3]):
             stack[k, i, j, b] = wp.float32(0.0)
         return
-    r = reduced_sample(dist, i, j)
+    r = reduced_sample(dist, k, i, j)
     if fade_width > wp.float32(0.0):
-        e = node_sample(edge, edge_step, i, j)
+        e = node_sample(edge, k, edge_step, i, j)
         r = r + feather * wp.clamp(wp.float32(1.0) - e / fade_width, wp.float32(0.0), wp.float32(1.0))
     rank[k, i, j] = r
     for b in range(stack.shape[3]):
-        stack[k, i, j, b] = wp.float32(values[i, j, b]) * gain[b] + offset[b]
+        stack[k, i, j, b] = wp.float32(values[i, j, b]) * gains[image, b] + offsets[image, b]
 
 
 @wp.func

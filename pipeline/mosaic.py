@@ -487,21 +487,31 @@ class MosaicPlan:
         ks = [r[0] for r in rendered]
         (wr0, wc0), windows = _distance_windows(self.labels, self.seam_step, r0, c0, th, tw, ks,
                                                 clip=2.0 * feather + 4.0 * self.seam_step)
+        gains, offsets = self._balance_on(st, device)
         n = len(rendered)
         stack = wp.empty((n, th, tw, count), dtype=wp.float32, device=device)
         rank = wp.empty((n, th, tw), dtype=wp.float32, device=device)
         win = mosaic_kernels.ReducedWindow()
         win.f, win.r0, win.c0, win.wr0, win.wc0 = float(self.seam_step), r0, c0, wr0, wc0
         win.rows, win.cols = self.labels.shape
-        for slot, (k, values, valid, edge, width) in enumerate(rendered):
-            win.field = wp.array(windows[k], dtype=wp.float32, device=device)
+        win.field = wp.array(np.stack([windows[k] for k in ks]), dtype=wp.float32, device=device)  # one copy each
+        edges = wp.array(np.stack([r[3] for r in rendered]), dtype=wp.float32, device=device)
+        for slot, (k, values, valid, _, width) in enumerate(rendered):
             wp.launch(mosaic_kernels.mosaic_candidate_kernel, dim=(th, tw), device=device,
-                      inputs=[values, valid, wp.array(self.gains[k].astype(np.float32), device=device),
-                              wp.array(self.offsets[k].astype(np.float32), device=device), win,
-                              wp.array(edge, dtype=wp.float32, device=device), float(COARSE_STEP), float(width),
+                      inputs=[values, valid, gains, offsets, k, win, edges, float(COARSE_STEP), float(width),
                               float(feather), slot, stack, rank])
         timer.span("kernel", t)
         return ks, stack, rank, device
+
+    def _balance_on(self, st, device):
+        """The gains and offsets (images, bands) as float32 arrays on ``device``, copied once
+        per process."""
+        key = ("balance", str(device))
+        got = st.get(key)
+        if got is None:
+            got = st[key] = (wp.array(self.gains.astype(np.float32), device=device),
+                             wp.array(self.offsets.astype(np.float32), device=device))
+        return got
 
     def write(self, dst, results, *, index=None, seamlines=None, compress_level=None, overwrite=False,
               t_start=None):
