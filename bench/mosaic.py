@@ -336,7 +336,7 @@ def run_speed(args, sizes):
     t = time.perf_counter()
     frames, dem_path = build_speed(work, max(sizes), args.strips, width, height)
     report = dict(benchmark="mosaic_speed", frame=[width, height, 3], dtype="uint8", strips=args.strips,
-                  device=args.device, cpu_count=os.cpu_count(), build_s=time.perf_counter() - t, results=[])
+                  device=args.device, tile_size=args.tile_size, workers=args.workers, block_codec=args.block_codec, cpu_count=os.cpu_count(), build_s=time.perf_counter() - t, results=[])
     gpu = int(args.device.split(":")[1]) if args.device.startswith("cuda:") else (0 if args.device == "cuda" else None)
     try:
         report["gpu"] = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader", "-i", str(gpu or 0)],
@@ -361,7 +361,8 @@ def run_speed(args, sizes):
         out = os.path.join(work, f"mosaic{n}.tif")
         prof = os.path.join(work, f"mosaic{n}.profile.json")
         extra = (["--workers", str(args.workers)] if args.workers else []) + \
-            (["--tile-size", str(args.tile_size)] if args.tile_size else [])
+            (["--tile-size", str(args.tile_size)] if args.tile_size else []) + \
+            (["--block-codec", args.block_codec] if args.block_codec else [])
         cli = ["mosaic", *frames[:n], *orient, "--dem", dem_path, "--out", out, "--overwrite", "--device",
                args.device, "--profile-json", prof, *extra]
         if args.sample_stacks:  # the child under bench/stack_sampler.py (its own overhead included)
@@ -444,6 +445,7 @@ def main(argv=None):
     ap.add_argument("--frame", default="9600x8000", help="--speed: frame size W x H")
     ap.add_argument("--workers", type=int, default=None, help="--speed: orthowarp mosaic --workers")
     ap.add_argument("--tile-size", type=int, default=None, help="--speed: orthowarp mosaic --tile-size")
+    ap.add_argument("--block-codec", default=None, help="--speed: orthowarp mosaic --block-codec")
     ap.add_argument("--oty-python", default=None, help="--speed: a Python with orthority 0.7.0: run it side by side")
     ap.add_argument("--sample-stacks", type=float, default=None, metavar="SECONDS",
                     help="--speed: sample the mosaic child's Python stacks at this interval "

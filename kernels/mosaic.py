@@ -174,3 +174,25 @@ def mosaic_blend_kernel(
         store_pixel(out, i, j, b, acc / total, top)
     valid[i, j] = wp.uint8(1)
     source[i, j] = wp.uint16(images[arg])
+
+
+@wp.kernel
+def mosaic_fill_kernel(
+    out: wp.array3d(dtype=Any),
+    valid: wp.array2d(dtype=wp.uint8),
+    source: wp.array2d(dtype=wp.uint16),
+    part: wp.array3d(dtype=Any),
+    part_valid: wp.array2d(dtype=wp.uint8),
+    part_source: wp.array2d(dtype=wp.uint16),
+    r0: wp.int32,
+    c0: wp.int32,
+):
+    """Where the tile (``out``, ``valid``, ``source``) has no value, the value of ``part``, a
+    block of it whose first pixel is (r0, c0) of the tile, where that has one."""
+    i, j = wp.tid()
+    if valid[r0 + i, c0 + j] != wp.uint8(0) or part_valid[i, j] == wp.uint8(0):
+        return
+    for b in range(out.shape[2]):
+        out[r0 + i, c0 + j, b] = part[i, j, b]
+    valid[r0 + i, c0 + j] = wp.uint8(1)
+    source[r0 + i, c0 + j] = part_source[i, j]

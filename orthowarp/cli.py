@@ -390,6 +390,9 @@ def _frame_orientations(images, int_param, ext_param, crs):
 @click.option("--reference", type=int, default=None,
               help="Balancing keeps this image's radiometry (its position in IMAGES, from 0); default: the mean.")
 @click.option("--compress-level", type=int, default=None, help="Deflate level 1-12 (default 6).")
+@click.option("--block-codec", type=click.Choice(["auto", "host", "nvcomp", "hybrid"]), default="auto", show_default=True,
+              help="Who deflates the mosaic's blocks: host (libdeflate on all cores), nvcomp (the tiles stay on the "
+                   "GPU; needs orthowarp[gpu]), hybrid (both); auto: nvcomp on a GPU with nvCOMP, else host.")
 @click.option("--dtype", type=click.Choice(["uint8", "uint16", "float32"]), help="Output data type (default: the sources').")
 @click.option("--overwrite", is_flag=True, help="Replace existing outputs.")
 @click.option("--no-refraction", is_flag=True, help="Do not correct atmospheric refraction.")
@@ -403,7 +406,8 @@ def _frame_orientations(images, int_param, ext_param, crs):
 @click.option("--profile-json", type=click.Path(dir_okay=False), help="Write the same profile as JSON to this file.")
 @click.pass_context
 def mosaic(ctx, images, int_param, ext_param, scenes, attitude_model, dem, height, out_path, index_path, seamlines_path, crs, resolution,
-           resampling, seams, seam_width, blend, feather, no_balance, no_occlusion, reference, compress_level, dtype, overwrite, no_refraction, geoid,
+           resampling, seams, seam_width, blend, feather, no_balance, no_occlusion, reference, compress_level, block_codec, dtype,
+           overwrite, no_refraction, geoid,
            same_vertical_datum, device, workers, tile_size, show_profile, profile_json):
     """Mosaic frame IMAGES and pushbroom scenes (--scene) into one cloud-optimized GeoTIFF: each
     pixel from the image that sees its ground most nearly from above (smallest off-nadir
@@ -432,7 +436,7 @@ def mosaic(ctx, images, int_param, ext_param, scenes, attitude_model, dem, heigh
                     refraction=not no_refraction, dtype=dtype, index=index_path, seamlines=seamlines_path,
                     seams=seams, seam_width=seam_width, blend=blend, feather=feather,
                     balance=not no_balance, reference=reference, occlusion=not no_occlusion,
-                    compress_level=compress_level,
+                    compress_level=compress_level, block_codec=block_codec,
                     overwrite=overwrite, device=device, geoid=geoid, same_vertical_datum=same_vertical_datum,
                     workers=workers, tile_size=tile_size, cancel=ctx.meta.get("orthowarp.stop"))
     if show_profile or profile_json:

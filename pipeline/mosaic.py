@@ -45,11 +45,12 @@ from ..kernels import mosaic as mosaic_kernels
 from ..pose import Pose
 from ..pushbroom import PushbroomScene
 from .cog import DTYPES, CogWriter
+from .cog_device import DeviceCogEncoder, HostDeflate, NvcompDeflate, nvcomp_available
 from .io import atomic_files, check_destination
 from .ortho import _TOP as TOP
 from .ortho import _WP_TYPES as WP_TYPES
-from .ortho import COARSE_STEP, RESAMPLING, ImageTiles, _as_dem, _check_cancel, coarse_grid, output_grid, \
-    source_facts
+from .ortho import BLOCK_CODECS, COARSE_STEP, RESAMPLING, ImageTiles, _as_dem, _block_codec, _check_cancel, \
+    _nvcomp_type, coarse_grid, output_grid, source_facts
 from .geometry import FrameGeometry, PushbroomGeometry
 from .profile import StageTimer
 
@@ -138,7 +139,7 @@ def _angle_field(geom, transform, to_frame, r0, c0, th, tw):
 @quiet_warp()
 def mosaic(images, dst, *, dem, crs=None, resolution=None, resampling="bilinear", refraction=True, dtype=None,
            index=None, seamlines=None, seams="least-cost", seam_width=256, blend="feather", feather=32, balance=True,
-           reference=None, occlusion=True, compress_level=None,
+           reference=None, occlusion=True, compress_level=None, block_codec="auto",
            tile_size=None, overwrite=False, device=None, workers=None, geoid=None, same_vertical_datum=False,
            cancel=None):
     """Mosaic frame images and pushbroom scenes into one cloud-optimized GeoTIFF (deflate,
@@ -203,6 +204,14 @@ def mosaic(images, dst, *, dem, crs=None, resolution=None, resampling="bilinear"
         backward method.
     compress_level : int, optional
         Deflate level 1-12 (default 6).
+    block_codec : {"auto", "host", "nvcomp", "hybrid"}, optional
+        Who deflates the mosaic's blocks (as for
+        :func:`~orthowarp.pipeline.ortho.orthorectify`): "host" (the tiles copied to host
+        memory, blocks, overviews and libdeflate there), "nvcomp" (on a GPU: the tiles stay
+        there, blocks and overview levels made there and deflated by nvCOMP; ``pip install
+        'orthowarp[gpu]'``), "hybrid" (the same, libdeflate on the host cores taking the
+        tiles that arrive while nvCOMP is busy); "auto": "nvcomp" on a GPU where nvCOMP is
+        installed, else "host". Every choice decodes to the same pixels.
     tile_size : int, optional
         Output tile edge (pixels, multiple of 16); default 2048 on a GPU (fewer, larger
         launches: the per-tile work on the host is what bounds a mosaic), 512 on the CPU.
@@ -219,6 +228,8 @@ def mosaic(images, dst, *, dem, crs=None, resolution=None, resampling="bilinear"
     MosaicResult
     """
     images = _check_images(images, resampling, dtype, blend, feather, reference, seams, seam_width)
+    if block_codec not in BLOCK_CODECS:
+        raise ParamError(f"block_codec must be one of {BLOCK_CODECS}, got {block_codec!r}")
     if tile_size is not None and (int(tile_size) < 16 or int(tile_size) % 16):
         raise ParamError(f"tile_size must be a positive multiple of 16, got {tile_size}")
     dst = os.fspath(dst)
@@ -229,8 +240,20 @@ def mosaic(images, dst, *, dem, crs=None, resolution=None, resampling="bilinear"
                        reference=reference, occlusion=occlusion, device=device, geoid=geoid,
                        same_vertical_datum=same_vertical_datum, cancel=cancel, _outputs=outputs)
     t0 = time.perf_counter()
-    tiles = plan.tiles(int(tile_size) if tile_size is not None else (2048 if plan.device_is_cuda else 512))
-    n_workers = workers or (8 if plan.device_is_cuda else (os.cpu_count() or 1))
+    on = plan.warp_device
+    codec = _mosaic_block_codec(block_codec, on, compress_level or 6)
+    tiles = plan.tiles(int(tile_size) if tile_size is not None else (2048 if on.is_cuda else 512))
+    n_workers = workers or (8 if on.is_cuda else (os.cpu_count() or 1))
+
+    def run(r0, c0, th, tw):
+        if codec == "host":
+            return plan.tile(r0, c0, th, tw, cancel=cancel, name=dst)
+        # the tile stays on the device: blocks, overview levels and checksums made there
+        _check_cancel(cancel, dst)
+        out, has, source = plan._tile(r0, c0, th, tw, device=on)
+        plan._encoder.write(r0, c0, out, has)
+        source = source.numpy()
+        return None, source != NO_SOURCE, source
 
     def results():
         """Tile results in grid order, at most 2 x workers tiles in flight (bounded memory)."""
@@ -238,7 +261,7 @@ def mosaic(images, dst, *, dem, crs=None, resolution=None, resampling="bilinear"
             pending = collections.deque()
             try:
                 for tile in tiles:
-                    pending.append((tile, pool.submit(plan.tile, *tile, cancel=cancel, name=dst)))
+                    pending.append((tile, pool.submit(run, *tile)))
                     if len(pending) >= 2 * n_workers:
                         tile0, f = pending.popleft()
                         yield tile0, f.result()
@@ -252,7 +275,7 @@ def mosaic(images, dst, *, dem, crs=None, resolution=None, resampling="bilinear"
 
     try:
         return plan.write(dst, results(), index=index, seamlines=seamlines, compress_level=compress_level,
-                          overwrite=overwrite, t_start=t0)
+                          overwrite=overwrite, t_start=t0, _block_codec=codec)
     finally:
         plan.close()
 
@@ -287,10 +310,11 @@ class MosaicPlan:
         self.labels, self.seam_step = None, 1  # the seams' labelling, set by mosaic_plan
         self.setup_s = {}  # seconds of mosaic_plan's steps
         self._state, self._lock = None, threading.Lock()
+        self._encoder = None  # while writing with a device block codec
 
     def __getstate__(self):
         state = dict(self.__dict__)
-        state["_state"], state["_lock"] = None, None
+        state["_state"], state["_lock"], state["_encoder"] = None, None, None
         return state
 
     def __setstate__(self, state):
@@ -304,9 +328,14 @@ class MosaicPlan:
         return CRS.from_wkt(self.crs_wkt)
 
     @property
-    def device_is_cuda(self):
+    def warp_device(self):
+        """The warp Device the tiles are computed on."""
         with self._image(0) as entry:
-            return entry["geom"].device.is_cuda
+            return entry["geom"].device
+
+    @property
+    def device_is_cuda(self):
+        return self.warp_device.is_cuda
 
     def geometry(self, k):
         """A new FrameGeometry or PushbroomGeometry of image ``k`` (its DEM cropped to the
@@ -405,24 +434,35 @@ class MosaicPlan:
             The image with the largest weight (NO_SOURCE where none has a value).
         """
         _check_cancel(cancel, name)
+        return self._tile(r0, c0, th, tw)
+
+    def _tile(self, r0, c0, th, tw, device=None):
+        """:meth:`tile`'s arrays; with ``device``, warp arrays there (valid as uint8) from a
+        tile computed on that device."""
         st = self._materialise()
-        out, source, has = self._select(st, "renderer", r0, c0, th, tw)
-        if self.options["method"] == "forward" and not has.all() and any(s[2] is not None for s in self.sources):
+        out, source, has = self._select(st, "renderer", r0, c0, th, tw, device=device)
+        missing = ~(has.numpy().view(bool) if device is not None else has)
+        if self.options["method"] == "forward" and missing.any() and any(s[2] is not None for s in self.sources):
             # ground no image sees by the forward method (hidden, where it drops folded quads on
             # a rough DSM, or the half pixel along a footprint's edge): the backward method's
             # value, from the same rule, on the blocks of the tile that have such pixels
-            for br0, bc0, bh, bw in _fallback_blocks(~has, self.labels, self.seam_step, r0, c0):
-                out2, source2, has2 = self._select(st, "fallback", br0, bc0, bh, bw)
+            for br0, bc0, bh, bw in _fallback_blocks(missing, self.labels, self.seam_step, r0, c0):
+                out2, source2, has2 = self._select(st, "fallback", br0, bc0, bh, bw, device=device)
+                if device is not None:
+                    wp.launch(mosaic_kernels.mosaic_fill_kernel, dim=(bh, bw), device=device,
+                              inputs=[out, has, source, out2, has2, source2, br0 - r0, bc0 - c0])
+                    continue
                 sl = np.s_[br0 - r0:br0 - r0 + bh, bc0 - c0:bc0 - c0 + bw]
                 fill = has2 & ~has[sl]
                 out[sl][fill], source[sl][fill] = out2[fill], source2[fill]
                 has[sl] |= fill
         return out, has, source
 
-    def _select(self, st, which, r0, c0, th, tw):
+    def _select(self, st, which, r0, c0, th, tw, *, device=None):
         """(values of the output dtype (th, tw, bands), source index (th, tw), has a value
         (th, tw)) of a tile from the images' ``which`` tile functions ("renderer" or
-        "fallback"; see :func:`mosaic`)."""
+        "fallback"; see :func:`mosaic`): host arrays (has: bool), or with ``device`` warp
+        arrays there (has: uint8)."""
         o, timer = self.options, st["timer"]
         count, feather = self.count, o["feather"]
         top = TOP[self.dtype]
@@ -433,22 +473,25 @@ class MosaicPlan:
             got = self._stack(st, which, r0, c0, th, tw, fade=o["blend"] == "feather")
         if got is None:
             out = np.full((th, tw, count), np.nan if top == 0.0 else 0, self.dtype)
-            return out, np.full((th, tw), NO_SOURCE, np.uint16), np.zeros((th, tw), bool)
-        ks, stack, rank, device = got
+            source, has = np.full((th, tw), NO_SOURCE, np.uint16), np.zeros((th, tw), bool)
+            return (out, source, has) if device is None else _to_device(device, out, source, has)
+        ks, stack, rank, on = got
         t = time.perf_counter()
         if o["blend"] == "multiband":
             out, source, has = _multiband(stack.numpy(), rank.numpy(), np.asarray(ks), feather, halo, top,
                                           self.dtype)
             timer.span("prepare", t)
-            return out, source, has
+            return (out, source, has) if device is None else _to_device(device, out, source, has)
         n = len(ks)
-        out = wp.empty((th, tw, count), dtype=WP_TYPES[self.dtype], device=device)
-        has = wp.empty((th, tw), dtype=wp.uint8, device=device)
-        source = wp.empty((th, tw), dtype=wp.uint16, device=device)
-        wp.launch(mosaic_kernels.mosaic_blend_kernel, dim=(th, tw), device=device,
-                  inputs=[stack, rank, wp.array(np.array(ks, np.int32), device=device), n, float(feather),
+        out = wp.empty((th, tw, count), dtype=WP_TYPES[self.dtype], device=on)
+        has = wp.empty((th, tw), dtype=wp.uint8, device=on)
+        source = wp.empty((th, tw), dtype=wp.uint16, device=on)
+        wp.launch(mosaic_kernels.mosaic_blend_kernel, dim=(th, tw), device=on,
+                  inputs=[stack, rank, wp.array(np.array(ks, np.int32), device=on), n, float(feather),
                           int(o["blend"] == "none"), top, out, has, source])
         timer.span("kernel", t)
+        if device is not None:
+            return out, source, has
         t = time.perf_counter()
         out, source, has = out.numpy(), source.numpy(), has.numpy().view(bool)
         timer.span("d2h", t)
@@ -514,11 +557,13 @@ class MosaicPlan:
         return got
 
     def write(self, dst, results, *, index=None, seamlines=None, compress_level=None, overwrite=False,
-              t_start=None):
+              t_start=None, _block_codec="host"):
         """Write the mosaic from tile results, in any order: ``results`` yields
         ((r0, c0, rows, cols), (block, valid, source)) for every tile of the grid (e.g. from
         :meth:`tile` on a thread pool or a distributed engine). The outputs (mosaic, optional
         index COG and seamlines GeoJSON) are published together when all tiles are in.
+        (Internally, with a ``_block_codec`` other than "host", the tiles' pixels go to the
+        mosaic's file through ``self._encoder`` on the device and ``block`` is None.)
 
         Returns
         -------
@@ -539,17 +584,27 @@ class MosaicPlan:
             if index is not None:
                 writers.append(CogWriter(tmps[1], width=cols, height=rows, count=1, dtype="uint16", crs=rio_crs,
                                          transform=self.transform, level=compress_level or 6, name=outputs[1]))
+            encoder = None
             try:
+                if _block_codec != "host":
+                    codecs = [NvcompDeflate(_nvcomp_type(compress_level or 6), self.warp_device)] \
+                        if _block_codec in ("nvcomp", "hybrid") else []
+                    if _block_codec in ("hybrid", "device"):
+                        codecs.append(HostDeflate(compress_level or 6))
+                    encoder = self._encoder = DeviceCogEncoder(writers[0], self.warp_device, codecs)
                 for (r0, c0, th, tw), (block, valid, source) in results:
-                    writers[0].write(r0, c0, block, valid, copy=False)
+                    if block is not None:
+                        writers[0].write(r0, c0, block, valid, copy=False)
                     if index is not None:
                         writers[1].write(r0, c0, source[..., None], valid, copy=False)
-                    np.add.at(used, source[valid], 1)
+                    used += np.bincount(source[valid], minlength=n)[:n]
                     if coarse_index is not None:  # every step-th pixel, aligned on the whole grid
                         i0, j0 = (-r0) % step, (-c0) % step
                         sub = source[i0::step, j0::step]
                         coarse_index[(r0 + i0) // step:(r0 + i0) // step + sub.shape[0],
                                      (c0 + j0) // step:(c0 + j0) // step + sub.shape[1]] = sub
+                if encoder is not None:
+                    encoder.flush()  # the last nvCOMP batch
                 for w in writers:
                     w.close()
                 if seamlines is not None:
@@ -559,6 +614,14 @@ class MosaicPlan:
                 for w in writers:
                     w.abort()
                 raise
+            finally:
+                if encoder is not None:
+                    encoder.close()
+                    self._encoder = None
+                    if self._state is not None:
+                        self._state["timer"].info["blocks_by_codec"] = dict(encoder.blocks_by_codec)
+                if self._state is not None:
+                    self._state["timer"].info["block_codec"] = _block_codec
         timer = self._state["timer"] if self._state is not None else None
         return MosaicResult(path=dst, index=outputs[1] if index is not None else None,
                             seamlines=outputs[-1] if seamlines is not None else None, crs=self.crs,
@@ -648,6 +711,16 @@ def mosaic_plan(images, *, dem, crs=None, resolution=None, resampling="bilinear"
     plan.labels, plan.seam_step = labels, f
     plan.setup_s["total"] = time.perf_counter() - t_plan
     return plan
+
+
+def _mosaic_block_codec(choice, device, level):
+    """The block codec a mosaic uses (see :func:`mosaic`'s ``block_codec``). Unlike a single
+    ortho, whose host cores are otherwise idle while it compresses, a mosaic's tiles keep the
+    host busy (reads, seam windows, the writer): "auto" hands the blocks to the GPU wherever
+    nvCOMP is there."""
+    if choice == "auto":
+        return "nvcomp" if device.is_cuda and nvcomp_available() else "host"
+    return _block_codec(choice, device, True, level)
 
 
 def _outputs(dst, index, seamlines, overwrite):
@@ -1125,6 +1198,12 @@ def _multiband(stack, rank, ks, feather, halo, top, dtype):
         out = np.where(has[..., None], out, np.nan).astype(np.float32)
     source = np.where(has, ks[best[inner]], NO_SOURCE).astype(np.uint16)
     return out, source, has
+
+
+def _to_device(device, out, source, has):
+    """Host tile arrays as warp arrays on ``device`` (has as uint8)."""
+    return (wp.array(out, dtype=WP_TYPES[out.dtype.name], device=device), wp.array(source, dtype=wp.uint16, device=device),
+            wp.array(has.view(np.uint8), dtype=wp.uint8, device=device))
 
 
 def _fallback_blocks(missing, labels, f, r0, c0, block=FALLBACK_BLOCK):

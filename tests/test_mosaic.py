@@ -224,6 +224,34 @@ def test_the_mosaic_does_not_depend_on_the_tiling(pair, tmp_path, occlusion, ble
     assert diff.max() < 1e-3 * sc.texture.std
 
 
+@pytest.mark.parametrize("occlusion, blend", [(True, "feather"), (False, "multiband")])
+def test_tiles_kept_on_the_device_give_the_same_file(pair, tmp_path, occlusion, blend):
+    """block_codec="hybrid": the tiles stay on the device (the forward method's gaps filled
+    there by the backward one's blocks), their blocks and overview levels are made there and
+    deflated by the host codec (on the CPU, as nvCOMP would on a GPU): the file decodes to the
+    host path's pixels and mask at every level, and the index and the pixel counts agree."""
+    sc, images, _, _ = pair
+    got = {}
+    for codec in ("host", "hybrid"):
+        res = mosaic(images, tmp_path / f"m-{codec}.tif", dem=sc.dem, refraction=False, device="cpu", tile_size=512,
+                     index=tmp_path / f"i-{codec}.tif", occlusion=occlusion, blend=blend, block_codec=codec)
+        levels = []
+        with rasterio.open(res.path) as ds, rasterio.open(res.index) as ix:
+            assert ds.width > 512 or ds.height > 512  # whole blocks made on the device
+            levels.append((ds.read(), ds.dataset_mask()))
+            for f in ds.overviews(1):
+                with rasterio.open(res.path, overview_level=ds.overviews(1).index(f)) as ov:
+                    levels.append((ov.read(), ov.dataset_mask()))
+            got[codec] = (levels, ix.read(1), res.pixels_per_image)
+    (host, index_h, px_h), (dev, index_d, px_d) = got["host"], got["hybrid"]
+    assert len(host) == len(dev) > 1
+    for (a, ma), (b, mb) in zip(host, dev):
+        np.testing.assert_array_equal(ma, mb)
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(index_h, index_d)
+    assert px_h == px_d and sum(px_h) > 0
+
+
 def test_mosaic_of_two_pushbroom_scenes_and_of_a_mix(tmp_path):
     """Two synthetic SPOT-like scenes side by side (orbits ~1 km apart, both 15 deg off
     nadir), rendered by the float64 host model from an analytic texture on a surface
