@@ -229,6 +229,18 @@ class DeviceCogEncoder:
         self.blocks_by_codec = {c.name: 0 for c in codecs}
         self._lock = threading.Condition()
         self._batch, self._batch_n, self._gpu_busy = [], 0, False
+        self._threshold = None
+        if self.gpu is not None and wp.is_mempool_enabled(device):
+            # nvCOMP allocates its scratch outside Warp's memory pool: have the pool give back
+            # what it holds beyond half the device at each synchronisation (Warp keeps it all
+            # by default; on a long run of varied tiles it filled the H100 and nvCOMP failed
+            # with "out of memory"); restored by close()
+            self._threshold = wp.get_mempool_release_threshold(device)
+            half = device.total_memory // 2
+            if self._threshold > half:
+                wp.set_mempool_release_threshold(device, half)
+            else:
+                self._threshold = None
         wp.load_module(kc, device=device)
 
     def _device_level(self, li, row, col, h, w):
@@ -378,3 +390,6 @@ class DeviceCogEncoder:
         for c in (self.gpu, self.host):
             if c is not None:
                 c.close()
+        if self._threshold is not None:
+            wp.set_mempool_release_threshold(self.device, self._threshold)
+            self._threshold = None
