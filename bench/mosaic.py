@@ -349,6 +349,17 @@ def run_speed(args, sizes):
         os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
         with open(args.out, "w") as f:
             json.dump(report, f, indent=1)
+        if args.oty_stage == "orthos":  # for the second call (--oty-stage cog)
+            with open(os.path.join(work, "speed_report.json"), "w") as f:
+                json.dump(report, f, indent=1)
+
+    if args.oty_stage == "cog" and args.no_orthowarp:  # the first call's orthowarp results
+        with open(os.path.join(work, "speed_report.json")) as f:
+            first = json.load(f)
+        report["results"] = first["results"]
+        report["warmup_2_frames"] = first.get("warmup_2_frames")
+        report["note"] = "orthowarp results and orthority's orthos from the first call (--oty-stage orthos), " \
+                         "VRT + COG in this second call on the same machine"
 
     if not args.no_orthowarp:  # Warp compiles the kernels on first use: a 2-frame mosaic first, timed apart
         r = run_cli(sys.executable, "orthowarp.cli:main",
@@ -399,11 +410,18 @@ def run_speed(args, sizes):
         oty_dir = os.path.join(work, "orthority")
         os.makedirs(oty_dir, exist_ok=True)
         res = args.resolution or report["results"][-1]["profile"]["resolution"]
-        o = run_cli(args.oty_python, "orthority.cli:cli", [
-            "frame", "--dem", dem_path, *orient, "--res", repr(res), "--interp", "bilinear", "--dem-interp",
-            "bilinear", "--compress", "deflate", "--out-dir", oty_dir, "--overwrite", *frames[:n]])
+        oty_run = os.path.join(work, "orthority_run.json")
+        if args.oty_stage == "cog":  # the orthos of an earlier --oty-stage orthos run (a second call)
+            with open(oty_run) as f:
+                o = json.load(f)
+        else:
+            o = run_cli(args.oty_python, "orthority.cli:cli", [
+                "frame", "--dem", dem_path, *orient, "--res", repr(res), "--interp", "bilinear", "--dem-interp",
+                "bilinear", "--compress", "deflate", "--out-dir", oty_dir, "--overwrite", *frames[:n]])
+            with open(oty_run, "w") as f:
+                json.dump(o, f)
         chain = dict(images=n, orthority=o)
-        if o["returncode"] == 0:
+        if o["returncode"] == 0 and args.oty_stage != "orthos":
             orthos = sorted(os.path.join(oty_dir, f) for f in os.listdir(oty_dir) if f.endswith(".tif"))
             t = time.perf_counter()
             vrt = os.path.join(work, "orthority.vrt")
@@ -450,6 +468,9 @@ def main(argv=None):
     ap.add_argument("--sample-stacks", type=float, default=None, metavar="SECONDS",
                     help="--speed: sample the mosaic child's Python stacks at this interval "
                          "(bench/stack_sampler.py; the report's 'stacks')")
+    ap.add_argument("--oty-stage", choices=["all", "orthos", "cog"], default="all",
+                    help="--speed with --oty-python: the whole chain, or its orthos and its VRT + COG in two runs "
+                         "(same --workdir; each within a device call's time limit)")
     ap.add_argument("--no-orthowarp", action="store_true", help="--speed: only the orthority chain (e.g. in a second run)")
     ap.add_argument("--resolution", type=float, default=None,
                     help="--speed: orthority's --res (default: the resolution of orthowarp's mosaic)")

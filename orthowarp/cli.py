@@ -392,7 +392,7 @@ def _frame_orientations(images, int_param, ext_param, crs):
 @click.option("--compress-level", type=int, default=None, help="Deflate level 1-12 (default 6).")
 @click.option("--block-codec", type=click.Choice(["auto", "host", "nvcomp", "hybrid"]), default="auto", show_default=True,
               help="Who deflates the mosaic's blocks: host (libdeflate on all cores), nvcomp (the tiles stay on the "
-                   "GPU; needs orthowarp[gpu]), hybrid (both); auto: nvcomp on a GPU with nvCOMP, else host.")
+                   "GPU; needs orthowarp[gpu]), hybrid (both); auto: host.")
 @click.option("--dtype", type=click.Choice(["uint8", "uint16", "float32"]), help="Output data type (default: the sources').")
 @click.option("--overwrite", is_flag=True, help="Replace existing outputs.")
 @click.option("--no-refraction", is_flag=True, help="Do not correct atmospheric refraction.")

@@ -120,28 +120,34 @@ class NvcompDeflate:
         self._nvcomp = nvcomp
         self.algorithm_type = int(algorithm_type)
         self.device = device
-        self._local = threading.local()
+        # one codec, one batch at a time: a codec keeps scratch sized for its largest batch,
+        # and one per calling thread (the tile workers take turns filling batches) held
+        # several of them at once until a 40-frame mosaic ran the H100 out of memory
+        self._codec_lock = threading.Lock()
+        self._codec_obj, self._caps = None, {}
 
     def _codec(self):
-        codec = getattr(self._local, "codec", None)
-        if codec is None:
+        if self._codec_obj is None:
             nv = self._nvcomp
-            codec = self._local.codec = nv.Codec(algorithm="Deflate", bitstream_kind=nv.BitstreamKind.RAW,
-                                                 algorithm_type=self.algorithm_type, device_id=self.device.ordinal)
-        return codec
+            self._codec_obj = nv.Codec(algorithm="Deflate", bitstream_kind=nv.BitstreamKind.RAW,
+                                       algorithm_type=self.algorithm_type, device_id=self.device.ordinal)
+        return self._codec_obj
 
     def _capacity(self, codec, size):
         """Bytes nvCOMP reserves for one compressed stream of ``size`` input bytes (its upper
         bound, about 2.3 x the input for Deflate in nvCOMP 6; 16-byte aligned)."""
-        caps = self._local.__dict__.setdefault("caps", {})
-        if size not in caps:
+        if size not in self._caps:
             probe = self._nvcomp.as_array(np.empty(int(size), np.uint8))
-            caps[size] = -(-int(codec.get_max_comp_buffer_size(probe)) // 16) * 16
-        return caps[size]
+            self._caps[size] = -(-int(codec.get_max_comp_buffer_size(probe)) // 16) * 16
+        return self._caps[size]
 
     def compress(self, buf, offsets, sizes):
         """Raw deflate streams (list of bytes) of the buffers of the uint8 Warp array ``buf``
         (on this codec's device, written on the device's current stream)."""
+        with self._codec_lock:
+            return self._compress_all(buf, offsets, sizes)
+
+    def _compress_all(self, buf, offsets, sizes):
         # nvCOMP works on its own stream: the blocks must be complete
         wp.synchronize_stream(self.device.stream)
         codec = self._codec()
@@ -182,7 +188,7 @@ class NvcompDeflate:
         return [host[o:o + k].tobytes() for o, k in zip(dst_off, comp)]
 
     def close(self):
-        pass
+        self._codec_obj = None
 
 
 class _Tile:

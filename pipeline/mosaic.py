@@ -45,7 +45,7 @@ from ..kernels import mosaic as mosaic_kernels
 from ..pose import Pose
 from ..pushbroom import PushbroomScene
 from .cog import DTYPES, CogWriter
-from .cog_device import DeviceCogEncoder, HostDeflate, NvcompDeflate, nvcomp_available
+from .cog_device import DeviceCogEncoder, HostDeflate, NvcompDeflate
 from .io import atomic_files, check_destination
 from .ortho import _TOP as TOP
 from .ortho import _WP_TYPES as WP_TYPES
@@ -210,8 +210,9 @@ def mosaic(images, dst, *, dem, crs=None, resolution=None, resampling="bilinear"
         memory, blocks, overviews and libdeflate there), "nvcomp" (on a GPU: the tiles stay
         there, blocks and overview levels made there and deflated by nvCOMP; ``pip install
         'orthowarp[gpu]'``), "hybrid" (the same, libdeflate on the host cores taking the
-        tiles that arrive while nvCOMP is busy); "auto": "nvcomp" on a GPU where nvCOMP is
-        installed, else "host". Every choice decodes to the same pixels.
+        tiles that arrive while nvCOMP is busy); "auto": "host" (the fastest measured for a
+        mosaic, whose host cores are busy with the tiles). Every choice decodes to the same
+        pixels.
     tile_size : int, optional
         Output tile edge (pixels, multiple of 16); default 2048 on a GPU (fewer, larger
         launches: the per-tile work on the host is what bounds a mosaic), 512 on the CPU.
@@ -714,12 +715,11 @@ def mosaic_plan(images, *, dem, crs=None, resolution=None, resampling="bilinear"
 
 
 def _mosaic_block_codec(choice, device, level):
-    """The block codec a mosaic uses (see :func:`mosaic`'s ``block_codec``). Unlike a single
-    ortho, whose host cores are otherwise idle while it compresses, a mosaic's tiles keep the
-    host busy (reads, seam windows, the writer): "auto" hands the blocks to the GPU wherever
-    nvCOMP is there."""
+    """The block codec a mosaic uses (see :func:`mosaic`'s ``block_codec``): "auto" is
+    "host" (on the H100 host the host codec was the fastest for the 40-frame speed block,
+    bench/reference/mosaic-speed-h100.json)."""
     if choice == "auto":
-        return "nvcomp" if device.is_cuda and nvcomp_available() else "host"
+        return "host"
     return _block_codec(choice, device, True, level)
 
 
