@@ -23,7 +23,9 @@ COG driver (``gdal_translate -of COG``, deflate, all cores), run through rasteri
 
 usage: python3 bench/mosaic.py [--strips 5] [--sizes 10,40] [--buildings N] [--device cpu] [--out FILE]
        python3 bench/mosaic.py --speed [--frame 9600x8000] [--sizes 10,40] [--device cuda:0]
-                               [--oty-python PY] [--workdir DIR] [--out FILE]
+                               [--oty-python PY [--oty-stage all|orthos|cog] [--no-orthowarp --resolution R]]
+                               [--block-codec auto|host|nvcomp|hybrid] [--tile-size PX] [--workers N]
+                               [--sample-stacks SECONDS] [--workdir DIR] [--out FILE]
 """
 
 import argparse
