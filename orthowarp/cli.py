@@ -175,7 +175,8 @@ def demo(out_dir, device):
               help="Pushbroom attitude matrix: full, or seed 000's first-order form.")
 @click.option("--dem", type=click.Path(dir_okay=False), help="DEM file (any CRS).")
 @click.option("--height", type=float, help="Constant terrain height (m) instead of a DEM.")
-@click.option("--crs", help="Output CRS, and the CRS of x,y,z poses that have no .prj (EPSG code, WKT or PROJ string).")
+@click.option("--crs", help="Output CRS (EPSG code, WKT or PROJ string); also the CRS of x,y,z poses in a file that "
+                           "names none (no .prj; without --crs the images' own CRS, if they have one).")
 @click.option("--resolution", type=float, help="Output pixel size in CRS units (default: mean GSD).")
 @click.option("--resampling", type=click.Choice(["nearest", "bilinear", "bicubic", "lanczos"]), default="bilinear",
               show_default=True)
@@ -257,7 +258,7 @@ def ortho(ctx, images, int_param, ext_param, dimap, attitude_model, dem, height,
 
         def report(dst, r):
             if not quiet:
-                click.echo(f"{dst}: {r.shape[1]} x {r.shape[0]} px at {r.resolution:.4g}, {r.crs.name}, "
+                click.echo(f"{dst}: {r.shape[1]} x {r.shape[0]} px at {r.resolution:.4g} ({_crs_label(r.crs)}), "
                            f"{r.timings['wall']:.2f} s")
             profiles.append((dst, r.profile))
             if show_profile:
@@ -327,12 +328,61 @@ class _Either:
         return any(e.is_set() for e in self.events)
 
 
+def _expand_globs(images):
+    """IMAGES with wildcards (``*``, ``?``, ``[...]``) the shell left unexpanded (quoted, or a
+    shell that does not expand them) expanded, sorted; a pattern matching nothing is an error."""
+    import glob
+
+    from .errors import RasterIOError
+
+    out = []
+    for image in images:
+        if glob.has_magic(image) and not os.path.exists(image):
+            found = sorted(glob.glob(image))
+            if not found:
+                raise RasterIOError(f"No image matches '{image}'")
+            out += found
+        else:
+            out.append(image)
+    return out
+
+
+def _image_crs(images):
+    """The CRS of the first image that has one (a georeferenced frame), else None."""
+    import rasterio
+
+    for image in images:
+        try:
+            with rasterio.open(image) as ds:
+                if ds.crs is not None:
+                    return ds.crs.to_wkt()
+        except rasterio.errors.RasterioIOError:
+            continue
+    return None
+
+
+def _crs_label(crs):
+    """A CRS's name and its horizontal unit for a summary line ("WGS 84 / UTM zone 32N, metre");
+    its PROJ string where it has no name."""
+    name = crs.name if crs.name and crs.name.lower() != "unknown" else crs.to_string()
+    unit = crs.axis_info[0].unit_name if crs.axis_info else None
+    return f"{name}, {unit}" if unit else name
+
+
 def _frame_orientations(images, int_param, ext_param, crs):
     """[(image, FrameCamera, Pose)] of frame images from the camera and exterior files."""
-    from .errors import ParamError, RasterIOError
+    from .errors import CrsError, ParamError, RasterIOError
     from .pipeline.formats import read_cameras, read_exterior
 
-    exterior = read_exterior(ext_param, crs=crs)
+    images = _expand_globs(images)
+    try:  # the poses in their file's own CRS (a .prj beside a CSV, a GeoJSON's, ...)
+        exterior = read_exterior(ext_param)
+    except CrsError:
+        # a file of map positions that names no CRS: --crs, else the first image's own CRS
+        pose_crs = crs if crs is not None else _image_crs(images)
+        if pose_crs is None:
+            raise
+        exterior = read_exterior(ext_param, crs=pose_crs)
     cameras = read_cameras(int_param) if int_param else read_cameras(ext_param)
     out = []
     for image in images:
@@ -369,7 +419,8 @@ def _frame_orientations(images, int_param, ext_param, crs):
 @click.option("--out", "out_path", type=click.Path(dir_okay=False), required=True, help="The mosaic (COG).")
 @click.option("--index", "index_path", type=click.Path(dir_okay=False),
               help="Also write the per-pixel source index (uint16 COG: the image's position in IMAGES).")
-@click.option("--crs", default=None, help="Output CRS (default: that of the first image's ortho).")
+@click.option("--crs", default=None, help="Output CRS (default: that of the first image's ortho); also the CRS of "
+                                         "x,y,z poses in a file that names none (as for ortho).")
 @click.option("--resolution", type=float, help="Pixel size in CRS units (default: the images' mean GSD).")
 @click.option("--resampling", type=click.Choice(["nearest", "bilinear", "bicubic", "lanczos"]), default="bilinear",
               show_default=True)
@@ -454,7 +505,7 @@ def mosaic(ctx, images, int_param, ext_param, scenes, attitude_model, dem, heigh
                                           images=len(jobs)))
     if not ctx.obj["quiet"]:
         counts = ", ".join(f"{os.path.basename(img)} {n}" for (img, *_), n in zip(jobs, r.pixels_per_image))
-        click.echo(f"{r.path}: {r.shape[1]} x {r.shape[0]} px at {r.resolution:.4g}, {r.crs.name}; pixels per "
+        click.echo(f"{r.path}: {r.shape[1]} x {r.shape[0]} px at {r.resolution:.4g} ({_crs_label(r.crs)}); pixels per "
                    f"image: {counts}")
 
 

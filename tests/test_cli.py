@@ -70,6 +70,36 @@ def test_ortho_command(tmp_path):
     assert res.exit_code == 1 and "--overwrite" in res.output
 
 
+def test_ortho_crs_options_and_quoted_globs(tmp_path):
+    """--crs is the output CRS also where the poses' file has a .prj (which keeps its CRS for
+    the poses); without a .prj the poses take the image's own CRS; a quoted glob is expanded
+    (and one that matches nothing is an error naming it); the summary line names the CRS and
+    its unit."""
+    import rasterio
+    from rasterio.transform import from_origin
+
+    args = _ortho_inputs(tmp_path)
+    out = tmp_path / "out"
+    res = CliRunner().invoke(main, ["ortho", str(tmp_path / "im*.tif"), *args, "--height", "100", "--crs",
+                                    "EPSG:3857", "--out-dir", str(out), "--device", "cpu"])
+    assert res.exit_code == 0, res.output
+    assert "WGS 84 / Pseudo-Mercator, metre" in res.output
+    with rasterio.open(out / "img_ORTHO.tif") as ds:
+        assert ds.crs.to_epsg() == 3857 and (ds.dataset_mask() > 0).mean() > 0.3
+    # no .prj: the CRS of the (georeferenced) image
+    (tmp_path / "ext.prj").unlink()
+    with rasterio.open(tmp_path / "img.tif", "r+") as ds:
+        ds.crs, ds.transform = "EPSG:32632", from_origin(499000, 5201000, 10, 10)
+    res = CliRunner().invoke(main, ["ortho", str(tmp_path / "img.tif"), *args, "--height", "100", "--out-dir",
+                                    str(tmp_path / "out2"), "--device", "cpu"])
+    assert res.exit_code == 0, res.output
+    with rasterio.open(tmp_path / "out2" / "img_ORTHO.tif") as ds:
+        assert ds.crs.to_epsg() == 32632
+    res = CliRunner().invoke(main, ["ortho", str(tmp_path / "nothing*.tif"), *args, "--height", "100",
+                                    "--out-dir", str(tmp_path / "out3"), "--device", "cpu"])
+    assert res.exit_code == 1 and "No image matches" in res.output and "nothing*.tif" in res.output
+
+
 def test_ortho_command_errors(tmp_path):
     args = _ortho_inputs(tmp_path)
     (tmp_path / "other.tif").write_bytes((tmp_path / "img.tif").read_bytes())
