@@ -17,6 +17,8 @@ image size (m, 2) in pixels.
 
 import numpy as np
 
+from ..brown import distort, normalized_to_pixel
+
 __all__ = ["rotation", "project", "jacobians", "CAMERA_COLUMNS"]
 
 CAMERA_COLUMNS = ("f", "x0", "y0", "k1", "k2", "k3", "p1", "p2", "px", "py")
@@ -71,26 +73,11 @@ def _normalised(cam, xc):
 
 def _distort(cam, uv):
     """Distorted (ud, vd) (m, 2) and d(ud, vd)/d(u, v) (m, 2, 2) (Brown, OpenCV normalised)."""
-    k1, k2, k3, p1, p2 = cam[:, 3], cam[:, 4], cam[:, 5], cam[:, 6], cam[:, 7]
-    u, v = uv[:, 0], uv[:, 1]
-    r2 = u * u + v * v
-    rad = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    drad = k1 + r2 * (2 * k2 + 3 * r2 * k3)  # d rad / d r2
-    ud = u * rad + 2 * p1 * u * v + p2 * (r2 + 2 * u * u)
-    vd = v * rad + p1 * (r2 + 2 * v * v) + 2 * p2 * u * v
-    j = np.empty((len(uv), 2, 2))
-    j[:, 0, 0] = rad + 2 * u * u * drad + 2 * p1 * v + 6 * p2 * u
-    j[:, 0, 1] = 2 * u * v * drad + 2 * p1 * u + 2 * p2 * v
-    j[:, 1, 0] = j[:, 0, 1]
-    j[:, 1, 1] = rad + 2 * v * v * drad + 6 * p1 * v + 2 * p2 * u
-    return np.stack([ud, vd], -1), j
+    return distort(uv, cam[:, 3], cam[:, 4], cam[:, 5], cam[:, 6], cam[:, 7])
 
 
 def _to_pixel(cam, size, uvd):
-    f, x0, y0, px, py = cam[:, 0], cam[:, 1], cam[:, 2], cam[:, 8], cam[:, 9]
-    col = (uvd[:, 0] * f + x0) / px + 0.5 * size[:, 0]
-    row = 0.5 * size[:, 1] + (uvd[:, 1] * f - y0) / py
-    return np.stack([col, row], -1)
+    return normalized_to_pixel(uvd, cam[:, 0], (cam[:, 1], cam[:, 2]), (cam[:, 8], cam[:, 9]), (size[:, 0], size[:, 1]))
 
 
 def project(poses, points, cam, size):

@@ -6,6 +6,7 @@ import numbers
 import numpy as np
 import warp as wp
 
+from . import brown
 from ._device import quiet_warp, resolve_device
 from ._validate import finite as _finite
 from ._validate import points as _as_points
@@ -180,22 +181,11 @@ class FrameCamera:
     # -- host reference (float64 NumPy) ------------------------------------------------------
     def distort(self, uv):
         """Undistorted -> distorted normalised coordinates, (N, 2) -> (N, 2), closed form."""
-        uv = np.asarray(uv, dtype=np.float64)
-        u, v = uv[..., 0], uv[..., 1]
-        r2 = u * u + v * v
-        rad = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3))
-        return np.stack([u * rad + 2 * self.p1 * u * v + self.p2 * (r2 + 2 * u * u),
-                         v * rad + self.p1 * (r2 + 2 * v * v) + 2 * self.p2 * u * v], axis=-1)
+        return brown.distort(uv, self.k1, self.k2, self.k3, self.p1, self.p2)[0]
 
     def _jacobian(self, uv):
-        u, v = uv[..., 0], uv[..., 1]
-        r2 = u * u + v * v
-        rad = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3))
-        drad = self.k1 + r2 * (2 * self.k2 + 3 * r2 * self.k3)
-        j00 = rad + 2 * u * u * drad + 2 * self.p1 * v + 6 * self.p2 * u
-        j01 = 2 * u * v * drad + 2 * self.p1 * u + 2 * self.p2 * v
-        j11 = rad + 2 * v * v * drad + 6 * self.p1 * v + 2 * self.p2 * u
-        return j00, j01, j01, j11
+        j = brown.distort(uv, self.k1, self.k2, self.k3, self.p1, self.p2)[1]
+        return j[..., 0, 0], j[..., 0, 1], j[..., 1, 0], j[..., 1, 1]
 
     def undistort(self, uvd, *, iterations=30):
         """Distorted -> undistorted normalised coordinates, (N, 2) -> (N, 2), Newton's method."""
@@ -214,19 +204,13 @@ class FrameCamera:
 
     def pixel_to_normalized(self, pixels):
         """Pixel (col, row) (N, 2) -> distorted normalised (u, v) (N, 2)."""
-        p = np.asarray(pixels, dtype=np.float64)
-        x = (p[..., 0] - 0.5 * self.image_size[0]) * self.pixel_size[0] - self.principal_point[0]
-        y = (0.5 * self.image_size[1] - p[..., 1]) * self.pixel_size[1] - self.principal_point[1]
-        return np.stack([x / self.focal_length, -y / self.focal_length], axis=-1)
+        return brown.pixel_to_normalized(pixels, self.focal_length, self.principal_point, self.pixel_size,
+                                         self.image_size)
 
     def normalized_to_pixel(self, uv):
         """Distorted normalised (u, v) (N, 2) -> pixel (col, row) (N, 2)."""
-        uv = np.asarray(uv, dtype=np.float64)
-        x = uv[..., 0] * self.focal_length
-        y = -uv[..., 1] * self.focal_length
-        return np.stack([(x + self.principal_point[0]) / self.pixel_size[0] + 0.5 * self.image_size[0],
-                         0.5 * self.image_size[1] - (y + self.principal_point[1]) / self.pixel_size[1]],
-                        axis=-1)
+        return brown.normalized_to_pixel(uv, self.focal_length, self.principal_point, self.pixel_size,
+                                         self.image_size)
 
     def _check_plausible(self):
         """ParamError for a focal length, pixel pitch or principal point no camera has.
