@@ -20,12 +20,6 @@ from ..pose import MOUNT, Pose
 __all__ = ["to_local", "from_local"]
 
 
-def _opk(r):
-    """omega, phi, kappa (deg) of R = Rx(omega) Ry(phi) Rz(kappa)."""
-    phi = np.arcsin(np.clip(r[0, 2], -1.0, 1.0))
-    return np.degrees([np.arctan2(-r[1, 2], r[2, 2]), phi, np.arctan2(-r[0, 1], r[0, 0])])
-
-
 def _rpy(r_nav_body):
     """roll, pitch, yaw (deg) of R_nav<-body = Rz(yaw) Ry(pitch) Rx(roll)."""
     r = r_nav_body
@@ -53,7 +47,7 @@ class LocalFrame:
     def pose_to_local(self, lat, lon, h, roll, pitch, yaw):
         p = Pose.from_ins(lat, lon, h, roll, pitch, yaw)
         c = (p.center - self.origin) @ self.r.T
-        return np.r_[c, _opk(self.r @ p.rotation)]
+        return np.r_[c, geodesy.opk_angles(self.r @ p.rotation)]
 
     def pose_from_local(self, pose):
         r_ecef_cam = self.r.T @ (geodesy.rx(pose[3]) @ geodesy.ry(pose[4]) @ geodesy.rz(pose[5]))

@@ -18,6 +18,7 @@ __all__ = [
     "rx",
     "ry",
     "rz",
+    "opk_angles",
     "r1",
     "r2",
     "r3",
@@ -108,6 +109,14 @@ def rz(angle):
     """Active rotation (3, 3) by angle (deg) about z."""
     c, s = np.cos(np.radians(angle)), np.sin(np.radians(angle))
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def opk_angles(r):
+    """(omega, phi, kappa) (deg, Python floats) of ``R = rx(omega) @ ry(phi) @ rz(kappa)`` (3, 3): the
+    inverse of that product, phi within +-90 degrees."""
+    phi = np.arcsin(np.clip(r[0, 2], -1.0, 1.0))
+    angles = np.degrees([np.arctan2(-r[1, 2], r[2, 2]), phi, np.arctan2(-r[0, 1], r[0, 0])])
+    return tuple(float(a) for a in angles)
 
 
 def r1(angle):

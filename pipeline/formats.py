@@ -1012,7 +1012,7 @@ def _read_opensfm(path, recs, crs, frame):
                     xyz = centre + np.array([e0, n0, 0.0])
                     pose = Pose(MAP, xyz, r_world_patb, map_crs,
                                 params=dict(zip(("x", "y", "z"), map(float, xyz)),
-                                            **dict(zip(("omega", "phi", "kappa"), _opk(r_world_patb)))))
+                                            **dict(zip(("omega", "phi", "kappa"), geodesy.opk_angles(r_world_patb)))))
                 cam = _camera_ref(shot.get("camera"), opensfm=True)
             except (ParamError, ValueError) as e:
                 raise _fail(path, f"{where}: {e}", e) from e
@@ -1020,9 +1020,3 @@ def _read_opensfm(path, recs, crs, frame):
     return result
 
 
-def _opk(r):
-    """(omega, phi, kappa) in degrees of ``R = Rx(omega) Ry(phi) Rz(kappa)``."""
-    omega = math.atan2(-r[1, 2], r[2, 2])
-    phi = math.asin(max(-1.0, min(1.0, r[0, 2])))
-    kappa = math.atan2(-r[0, 1], r[0, 0])
-    return math.degrees(omega), math.degrees(phi), math.degrees(kappa)

@@ -435,3 +435,16 @@ def test_error_tree():
     assert issubclass(orthowarp.GeometryError, ValueError)
     for e in (orthowarp.ParamError, orthowarp.CrsError, orthowarp.GeometryError):
         assert issubclass(e, orthowarp.OrthowarpError)
+
+
+def test_opk_angles_invert_the_rotation_product():
+    """geodesy.opk_angles inverts R = rx(omega) ry(phi) rz(kappa) (the one inverse the
+    orientation readers and the geocentric adjustment share), phi within +-90 degrees."""
+    from orthowarp import geodesy
+
+    rng = np.random.default_rng(5)
+    for omega, phi, kappa in np.column_stack([rng.uniform(-180, 180, 200), rng.uniform(-89.9, 89.9, 200),
+                                              rng.uniform(-180, 180, 200)]):
+        got = geodesy.opk_angles(geodesy.rx(omega) @ geodesy.ry(phi) @ geodesy.rz(kappa))
+        assert all(isinstance(a, float) for a in got)
+        np.testing.assert_allclose(got, (omega, phi, kappa), atol=1e-9)
