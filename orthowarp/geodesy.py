@@ -15,6 +15,7 @@ __all__ = [
     "ecef_to_geodetic",
     "ned_to_ecef_matrix",
     "enu_to_ecef_matrix",
+    "geodetic_up",
     "rx",
     "ry",
     "rz",
@@ -85,6 +86,13 @@ def ned_to_ecef_matrix(lat, lon):
     la, lo = np.radians(lat), np.radians(lon)
     sl, cl, so, co = np.sin(la), np.cos(la), np.sin(lo), np.cos(lo)
     return np.array([[-sl * co, -so, -cl * co], [-sl * so, co, -cl * so], [cl, 0.0, -sl]])
+
+
+def geodetic_up(lat, lon):
+    """Unit ellipsoid normal (local vertical, ECEF) (..., 3) at latitude, longitude (deg,
+    arrays of one shape or scalars)."""
+    la, lo = np.radians(lat), np.radians(lon)
+    return np.stack([np.cos(la) * np.cos(lo), np.cos(la) * np.sin(lo), np.sin(la) * np.ones_like(lo)], -1)
 
 
 def enu_to_ecef_matrix(lat, lon):

@@ -40,7 +40,7 @@ from pyproj import Transformer
 from .._device import quiet_warp
 from ..camera import FrameCamera
 from ..errors import GeometryError, ParamError, RasterIOError
-from ..geodesy import geodetic_to_ecef
+from ..geodesy import geodetic_to_ecef, geodetic_up
 from ..kernels import mosaic as mosaic_kernels
 from ..pose import Pose
 from ..pushbroom import PushbroomScene
@@ -109,8 +109,7 @@ def _node_fields(geom, transform, to_frame, r0, c0, th, tw, *, angle=True):
         return None, edge, scale
     if geom.geocentric:
         ground = geodetic_to_ecef(v, u, h)
-        lat, lon = np.radians(v), np.radians(u)
-        up = np.stack([np.cos(lat) * np.cos(lon), np.cos(lat) * np.sin(lon), np.sin(lat)], -1)
+        up = geodetic_up(v, u)
     else:
         ground = np.stack([u, v, h], -1)
         up = np.broadcast_to([0.0, 0.0, 1.0], ground.shape)

@@ -35,7 +35,7 @@ from .._validate import as_crs, finite
 from ..camera import FrameCamera
 from ..errors import Cancelled, DeviceError, GeometryError, OrthowarpWarning, ParamError, RasterIOError
 from ..kernels import ortho as ortho_kernels
-from ..geodesy import geodetic_to_ecef
+from ..geodesy import geodetic_to_ecef, geodetic_up
 from ..pose import Pose
 from ..pushbroom import PushbroomScene
 from .dem import Dem
@@ -421,8 +421,7 @@ def coarse_struct(uv, geocentric, device, step=COARSE_STEP, pose=None):
     g.geocentric = int(bool(geocentric))
     if geocentric:
         x0 = np.ascontiguousarray(geodetic_to_ecef(uv[..., 1], uv[..., 0], 0.0))
-        lat, lon = np.radians(uv[..., 1]), np.radians(uv[..., 0])
-        up = np.stack([np.cos(lat) * np.cos(lon), np.cos(lat) * np.sin(lon), np.sin(lat)], -1)
+        up = geodetic_up(uv[..., 1], uv[..., 0])
         g.xyz0 = wp.array(x0, dtype=wp.vec3d, device=device)
         g.up = wp.array(up, dtype=wp.vec3d, device=device)
     else:

@@ -448,3 +448,17 @@ def test_opk_angles_invert_the_rotation_product():
         got = geodesy.opk_angles(geodesy.rx(omega) @ geodesy.ry(phi) @ geodesy.rz(kappa))
         assert all(isinstance(a, float) for a in got)
         np.testing.assert_allclose(got, (omega, phi, kappa), atol=1e-9)
+
+
+def test_geodetic_up_is_the_ellipsoid_normal():
+    """geodesy.geodetic_up: the unit normal, the up column of the ENU frame, for arrays and
+    scalars."""
+    from orthowarp import geodesy
+
+    lat, lon = np.array([[-89.0, -30.0], [0.0, 60.0]]), np.array([[170.0, 5.0], [-120.0, 0.0]])
+    up = geodesy.geodetic_up(lat, lon)
+    assert up.shape == (2, 2, 3)
+    for i in range(2):
+        for j in range(2):
+            np.testing.assert_allclose(up[i, j], geodesy.enu_to_ecef_matrix(lat[i, j], lon[i, j])[:, 2], atol=1e-15)
+    np.testing.assert_allclose(geodesy.geodetic_up(90.0, 0.0), [0.0, 0.0, 1.0], atol=1e-15)
