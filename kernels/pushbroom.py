@@ -55,7 +55,14 @@ class PushbroomData:
 
 @wp.func
 def pb_line_time(pb: PushbroomData, row: wp.float64):
+    """Seconds from the scene-centre time of the (continuous) row coordinate."""
     return (row + wp.float64(0.5) - pb.center_line) * pb.line_period
+
+
+@wp.func
+def pb_line_row(pb: PushbroomData, t: wp.float64):
+    """The row coordinate of line time t (the inverse of :func:`pb_line_time`)."""
+    return t / pb.line_period + pb.center_line - wp.float64(0.5)
 
 
 @wp.func
@@ -263,7 +270,7 @@ def pb_column(pb: PushbroomData, tan_psi_y: wp.float64):
 @wp.func
 def pb_residual(pb: PushbroomData, refr: RefractionTable, x: wp.vec3d, h: wp.float64, t: wp.float64):
     """(tan psi_x of the apparent direction - tan psi_x of its detector, column) at time t."""
-    p, r = pb_state(pb, t / pb.line_period + pb.center_line - wp.float64(0.5), False)
+    p, r = pb_state(pb, pb_line_row(pb, t), False)
     nan = wp.float64(wp.nan)
     if not wp.isfinite(p[0]):
         return nan, nan
@@ -297,7 +304,7 @@ def pb_project(pb: PushbroomData, refr: RefractionTable, x: wp.vec3d, h: wp.floa
         if wp.abs(tb - ta) < tol:
             if not pb_time_ok(pb, tb):
                 return wp.vec2d(nan, nan)
-            return wp.vec2d(cb, tb / pb.line_period + pb.center_line - wp.float64(0.5))
+            return wp.vec2d(cb, pb_line_row(pb, tb))
     return wp.vec2d(nan, nan)
 
 

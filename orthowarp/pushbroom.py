@@ -264,6 +264,11 @@ class PushbroomScene:
         """Seconds from the scene-centre time of the (continuous) row coordinate."""
         return (np.asarray(row, dtype=np.float64) + 0.5 - self.center_line) * self.line_period
 
+    def line_row(self, t):
+        """The (continuous) row coordinate of line time ``t`` (s from the scene-centre time):
+        the inverse of :meth:`line_time`."""
+        return np.asarray(t, dtype=np.float64) / self.line_period + self.center_line - 0.5
+
     def _check_times(self, t):
         if np.any((t < self.eph_time[0]) | (t > self.eph_time[-1])):
             raise GeometryError(f"line times {t.min():.3f}..{t.max():.3f} s fall outside the ephemeris "
@@ -483,7 +488,7 @@ class PushbroomScene:
             done |= np.abs(tb - ta) < tol * self.line_period
             if done.all():
                 break
-        row = tb / self.line_period + self.center_line - 0.5
+        row = self.line_row(tb)
         return np.where(done[:, None], np.stack([col, row], -1), np.nan)
 
 

@@ -285,3 +285,12 @@ def test_polynomials_of_the_real_segment(scene):
     assert 0.1 < rms["position"] < 100.0
     with pytest.raises(ParamError, match="polynomials"):
         scene.with_polynomials(np.zeros((3, 3)))
+
+
+def test_line_row_inverts_line_time():
+    """Row <-> line time: PushbroomScene.line_row is the inverse of line_time (the one host
+    pair; the kernels' twins are pb_line_time / pb_line_row)."""
+    scene = ow.PushbroomScene.from_dimap(SAMPLE)
+    rows = np.array([-0.5, 0.0, 0.5, 1234.25, scene.height - 0.5])
+    np.testing.assert_allclose(scene.line_row(scene.line_time(rows)), rows, atol=1e-7)
+    assert scene.line_time(scene.center_line - 0.5) == 0.0
