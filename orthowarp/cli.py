@@ -172,7 +172,7 @@ def demo(out_dir, device):
 @click.option("--dimap", type=click.Path(dir_okay=False),
               help="SPOT level-1A DIMAP metadata of a pushbroom scene (instead of --int-param/--ext-param; one image).")
 @click.option("--attitude-model", type=click.Choice(["full", "first_order"]), default="full", show_default=True,
-              help="Pushbroom attitude matrix: full, or seed 000's first-order form.")
+              help="Pushbroom attitude matrix: full, or its first-order (linearised) form.")
 @click.option("--dem", type=click.Path(dir_okay=False), help="DEM file (any CRS).")
 @click.option("--height", type=float, help="Constant terrain height (m) instead of a DEM.")
 @click.option("--crs", help="Output CRS (EPSG code, WKT or PROJ string); also the CRS of x,y,z poses in a file that "
@@ -181,7 +181,7 @@ def demo(out_dir, device):
 @click.option("--resampling", type=click.Choice(["nearest", "bilinear", "bicubic", "lanczos"]), default="bilinear",
               show_default=True)
 @click.option("--method", type=click.Choice(["backward", "forward"]), default="backward", show_default=True,
-              help="backward: project each output pixel into the source; forward: seed 003's direct method "
+              help="backward: project each output pixel into the source; forward: the direct method "
                    "(geolocate each source pixel; hidden ground stays nodata).")
 @click.option("--driver", type=click.Choice(["cog", "gtiff"], case_sensitive=False), default="cog", show_default=True)
 @click.option("--compress", type=click.Choice(["deflate", "zstd", "lzw", "jpeg", "none"]), default="deflate",
