@@ -669,7 +669,7 @@ def mosaic_plan(images, *, dem, crs=None, resolution=None, resampling="bilinear"
                          same_vertical_datum=same_vertical_datum)
         try:
             grids.append(output_grid(geom, crs=crs if crs is not None else (grids[0][0] if grids else None),
-                                     resolution=resolution))
+                                     resolution=resolution, name=src))
         except GeometryError as e:
             raise GeometryError(f"Image '{src}': {e}") from e
         del geom

@@ -106,7 +106,7 @@ def _border(size, n=64):
                            np.stack([w - t * w, 0 * t + h], 1), np.stack([0 * t, h - t * h], 1)])
 
 
-def output_grid(geom, *, crs=None, resolution=None):
+def output_grid(geom, *, crs=None, resolution=None, name=None):
     """Output CRS, resolution and pixel-aligned grid of one image's orthoimage.
 
     Parameters
@@ -116,6 +116,8 @@ def output_grid(geom, *, crs=None, resolution=None):
         Default: the CRS of map-Cartesian poses, else the UTM zone of the image centre.
     resolution : float, optional
         Pixel size in CRS units; default: the mean ground sample distance.
+    name : str, optional
+        The image's name, for the warning that the DEM covers its footprint only partly.
 
     Returns
     -------
@@ -139,8 +141,9 @@ def output_grid(geom, *, crs=None, resolution=None):
     if not np.any(ok):
         raise GeometryError("The DEM does not cover the image footprint")
     if not np.all(ok):
-        log.warning("The DEM covers the image footprint only partly (%d of %d border rays miss it); "
-                    "the rest of the orthoimage is nodata", int((~ok).sum()), len(ok))
+        log.warning("%sthe DEM covers the image footprint only partly (%d of %d border rays miss it); "
+                    "the rest of the orthoimage is nodata", f"Image '{name}': " if name else "",
+                    int((~ok).sum()), len(ok))
     if crs is None:
         if geom.geocentric:
             centre = geom.geolocate_frame([[size[0] / 2, size[1] / 2]])[0]
@@ -357,7 +360,7 @@ def orthorectify(src, sensor, *args, dem, crs=None, resolution=None, resampling=
     if tile_size is None:
         tile_size = _default_tile_size(geom.device, count, workers)
     try:
-        out_crs, transform, shape, res = output_grid(geom, crs=crs, resolution=resolution)
+        out_crs, transform, shape, res = output_grid(geom, crs=crs, resolution=resolution, name=src)
     except GeometryError as e:
         terrain = getattr(dem, "source", None) or (dem if isinstance(dem, (str, os.PathLike)) else None)
         where = f" with DEM '{os.fspath(terrain)}'" if terrain else ""

@@ -962,3 +962,23 @@ def test_narrowing_dtype_warns_with_the_clipped_fraction(tmp_path, src_dtype, dt
     data, valid, _ = read_ortho(res.path)
     top = np.iinfo(dtype).max
     assert data[valid].min() == np.clip(values[0], 0, top) and data[valid].max() == np.clip(values[1], 0, top)
+
+
+def test_partial_dem_cover_warning_names_the_image(tmp_path, caplog):
+    """A DEM that covers only part of the footprint: the ortho is written, and the warning
+    says which image."""
+    from rasterio.transform import from_origin
+
+    cam = ow.FrameCamera(50.0, 0.01, (64, 48))
+    pose = ow.Pose.from_opk(500000.0, 5200000.0, 600.0, 1.0, -2.0, 30.0, crs="EPSG:32632")
+    src = tmp_path / "tiny.tif"
+    with rasterio.open(src, "w", driver="GTiff", width=64, height=48, count=1, dtype="uint8") as dst:
+        dst.write(np.full((1, 48, 64), 100, np.uint8))
+    dem = tmp_path / "half.tif"  # 0.5 m cells over x < 500017.5 only (the footprint: x 500013.5-500021.4)
+    with rasterio.open(dem, "w", driver="GTiff", width=40, height=40, count=1, dtype="float32", crs="EPSG:32632",
+                       transform=from_origin(499997.5, 5200020.0, 0.5, 0.5)) as dst:
+        dst.write(np.full((1, 40, 40), 100.0, np.float32))
+    with caplog.at_level(logging.WARNING, logger="orthowarp"):
+        orthorectify(src, cam, pose, tmp_path / "o.tif", dem=str(dem), device="cpu", refraction=False)
+    msgs = [r.getMessage() for r in caplog.records if "only partly" in r.getMessage()]
+    assert msgs and "tiny.tif" in msgs[0], [r.getMessage() for r in caplog.records]
