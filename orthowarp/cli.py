@@ -177,7 +177,9 @@ def demo(out_dir, device):
 @click.option("--height", type=float, help="Constant terrain height (m) instead of a DEM.")
 @click.option("--crs", help="Output CRS (EPSG code, WKT or PROJ string); also the CRS of x,y,z poses in a file that "
                            "names none (no .prj; without --crs the images' own CRS, if they have one).")
-@click.option("--resolution", type=float, help="Output pixel size in CRS units (default: mean GSD).")
+@click.option("--resolution", type=float,
+              help="Output pixel size in CRS units (default: the mean GSD in those units, so it carries the CRS's "
+                   "scale: e.g. 1/cos(latitude) times the metres on the ground in Web Mercator).")
 @click.option("--resampling", type=click.Choice(["nearest", "bilinear", "bicubic", "lanczos"]), default="bilinear",
               show_default=True)
 @click.option("--method", type=click.Choice(["backward", "forward"]), default="backward", show_default=True,
@@ -421,7 +423,8 @@ def _frame_orientations(images, int_param, ext_param, crs):
               help="Also write the per-pixel source index (uint16 COG: the image's position in IMAGES).")
 @click.option("--crs", default=None, help="Output CRS (default: that of the first image's ortho); also the CRS of "
                                          "x,y,z poses in a file that names none (as for ortho).")
-@click.option("--resolution", type=float, help="Pixel size in CRS units (default: the images' mean GSD).")
+@click.option("--resolution", type=float,
+              help="Pixel size in CRS units (default: the images' mean GSD in those units, with the CRS's scale).")
 @click.option("--resampling", type=click.Choice(["nearest", "bilinear", "bicubic", "lanczos"]), default="bilinear",
               show_default=True)
 @click.option("--seamlines", "seamlines_path", type=click.Path(dir_okay=False),
