@@ -163,7 +163,11 @@ def demo(out_dir, device):
 
 
 @main.command()
-@click.argument("images", nargs=-1, required=True, type=click.Path(dir_okay=False))
+@click.argument("images", nargs=-1, type=click.Path(dir_okay=False))
+@click.option("--odm-dataset", type=click.Path(file_okay=False),
+              help="An OpenDroneMap dataset folder: its opensfm/reconstruction.json for --int-param and --ext-param, "
+                   "its odm_dem/dsm.tif for --dem (unless --dem or --height is given) and, without IMAGES, "
+                   "its images/.")
 @click.option("--int-param", "int_param", type=click.Path(dir_okay=False),
               help="Interior orientation: orthority/ODM camera file (YAML/JSON) or reconstruction.json.")
 @click.option("--ext-param", "ext_param", type=click.Path(dir_okay=False),
@@ -208,7 +212,7 @@ def demo(out_dir, device):
 @click.option("--profile-json", type=click.Path(dir_okay=False),
               help="Write the same profile as JSON to this file.")
 @click.pass_context
-def ortho(ctx, images, int_param, ext_param, dimap, attitude_model, dem, height, crs, resolution, resampling, method,
+def ortho(ctx, images, odm_dataset, int_param, ext_param, dimap, attitude_model, dem, height, crs, resolution, resampling, method,
           driver, compress, compress_level, block_codec, dtype,
           out_dir, overwrite, no_refraction, geoid, same_vertical_datum, device, tile_size, show_profile, profile_json):
     """Orthorectify frame IMAGES, or one pushbroom scene (--dimap), into (cloud-optimized)
@@ -224,6 +228,10 @@ def ortho(ctx, images, int_param, ext_param, dimap, attitude_model, dem, height,
 
     t_imported = time.perf_counter()
 
+    if odm_dataset is not None:
+        images, int_param, ext_param, dem = _odm_dataset(odm_dataset, images, int_param, ext_param, dem, height)
+    if not images:
+        raise ParamError("Give IMAGES (or --odm-dataset DIR)")
     if (dem is None) == (height is None):
         raise ParamError("Give exactly one of --dem FILE and --height METRES")
     if show_profile or profile_json:
@@ -330,6 +338,31 @@ class _Either:
         return any(e.is_set() for e in self.events)
 
 
+def _odm_dataset(folder, images, int_param, ext_param, dem, height):
+    """(images, int_param, ext_param, dem) from an OpenDroneMap dataset folder: what the caller
+    gave, else the folder's opensfm/reconstruction.json, odm_dem/dsm.tif and images/."""
+    from .errors import ParamError
+
+    if not os.path.isdir(folder):
+        raise ParamError(f"--odm-dataset '{folder}' is not a folder")
+    recon = os.path.join(folder, "opensfm", "reconstruction.json")
+    if (int_param is None or ext_param is None) and not os.path.isfile(recon):
+        raise ParamError(f"--odm-dataset '{folder}' has no opensfm/reconstruction.json")
+    int_param, ext_param = int_param or recon, ext_param or recon
+    if dem is None and height is None:
+        dem = os.path.join(folder, "odm_dem", "dsm.tif")
+        if not os.path.isfile(dem):
+            raise ParamError(f"--odm-dataset '{folder}' has no odm_dem/dsm.tif: give --dem or --height")
+    if not images:
+        folder_images = os.path.join(folder, "images")
+        images = sorted(os.path.join(folder_images, f) for f in os.listdir(folder_images)
+                        if os.path.splitext(f)[1].lower() in (".tif", ".tiff", ".jpg", ".jpeg", ".png")) \
+            if os.path.isdir(folder_images) else []
+        if not images:
+            raise ParamError(f"--odm-dataset '{folder}' has no images in images/: give IMAGES")
+    return images, int_param, ext_param, dem
+
+
 def _expand_globs(images):
     """IMAGES with wildcards (``*``, ``?``, ``[...]``) the shell left unexpanded (quoted, or a
     shell that does not expand them) expanded, sorted; a pattern matching nothing is an error."""
@@ -411,6 +444,9 @@ def _frame_orientations(images, int_param, ext_param, crs):
 @click.option("--int-param", type=click.Path(dir_okay=False), help="Camera file (orthority/ODM YAML or JSON, OpenSfM).")
 @click.option("--ext-param", type=click.Path(dir_okay=False),
               help="Exterior orientation of the frame IMAGES (CSV, orthority GeoJSON, OpenSfM reconstruction.json).")
+@click.option("--odm-dataset", type=click.Path(file_okay=False),
+              help="An OpenDroneMap dataset folder (as for ortho): its reconstruction.json, odm_dem/dsm.tif and, "
+                   "without IMAGES, its images/.")
 @click.option("--scene", "scenes", nargs=2, multiple=True, type=(click.Path(dir_okay=False), click.Path(dir_okay=False)),
               metavar="IMAGE DIMAP", help="A pushbroom scene: its image and its SPOT level-1A DIMAP metadata "
                                           "(repeatable; numbered after IMAGES in the index).")
@@ -459,7 +495,7 @@ def _frame_orientations(images, int_param, ext_param, crs):
               help="Print where the time went: the plan's steps, per-stage times, GPU busy fraction, what bounds it.")
 @click.option("--profile-json", type=click.Path(dir_okay=False), help="Write the same profile as JSON to this file.")
 @click.pass_context
-def mosaic(ctx, images, int_param, ext_param, scenes, attitude_model, dem, height, out_path, index_path, seamlines_path, crs, resolution,
+def mosaic(ctx, images, int_param, ext_param, odm_dataset, scenes, attitude_model, dem, height, out_path, index_path, seamlines_path, crs, resolution,
            resampling, seams, seam_width, blend, feather, no_balance, no_occlusion, reference, compress_level, block_codec, dtype,
            overwrite, no_refraction, geoid,
            same_vertical_datum, device, workers, tile_size, show_profile, profile_json):
@@ -471,6 +507,8 @@ def mosaic(ctx, images, int_param, ext_param, scenes, attitude_model, dem, heigh
     from .pipeline.dem import Dem
     from .pipeline.mosaic import mosaic as make_mosaic
 
+    if odm_dataset is not None:
+        images, int_param, ext_param, dem = _odm_dataset(odm_dataset, images, int_param, ext_param, dem, height)
     if (dem is None) == (height is None):
         raise ParamError("Give exactly one of --dem FILE and --height METRES")
     if not images and not scenes:

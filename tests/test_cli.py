@@ -205,3 +205,42 @@ def test_warp_messages_only_with_verbose(tmp_path):
     assert rc == 0, err
     assert "Warp " in out and "initialized" in out  # the start-up banner
     assert "Module orthowarp.kernels." in out  # module-load lines
+
+
+def test_an_odm_dataset_folder_in_one_option(tmp_path):
+    """--odm-dataset DIR: the folder's reconstruction.json, odm_dem/dsm.tif and images/ (ortho
+    and mosaic); what it lacks is named in a one-line error."""
+    import json
+
+    import numpy as np
+    import rasterio
+    from rasterio.transform import from_origin
+    from test_formats import ODM_E0, ODM_N0, UTM32, odm_doc
+
+    odm = tmp_path / "odm"
+    (odm / "opensfm").mkdir(parents=True)
+    (odm / "odm_dem").mkdir()
+    (odm / "images").mkdir()
+    (odm / "opensfm" / "reconstruction.json").write_text(json.dumps(odm_doc()))
+    with rasterio.open(odm / "odm_dem" / "dsm.tif", "w", driver="GTiff", width=200, height=200, count=1,
+                       dtype="float32", crs=UTM32, transform=from_origin(ODM_E0 - 500, ODM_N0 + 500, 5, 5)) as dst:
+        dst.write(np.full((1, 200, 200), 100.0, np.float32))
+    for name in ("DJI_1", "DJI_2"):
+        with rasterio.open(odm / "images" / f"{name}.tif", "w", driver="GTiff", width=400, height=300, count=3,
+                           dtype="uint8") as dst:
+            dst.write(np.random.default_rng(1).integers(1, 255, (3, 300, 400), dtype=np.uint8))
+    res = CliRunner().invoke(main, ["-q", "ortho", "--odm-dataset", str(odm), "--out-dir", str(tmp_path / "o"),
+                                    "--device", "cpu"])
+    assert res.exit_code == 0, res.output
+    assert sorted(p.name for p in (tmp_path / "o").iterdir()) == ["DJI_1_ORTHO.tif", "DJI_2_ORTHO.tif"]
+    res = CliRunner().invoke(main, ["-q", "mosaic", "--odm-dataset", str(odm), "--out", str(tmp_path / "m.tif"),
+                                    "--device", "cpu"])
+    assert res.exit_code == 0, res.output
+    with rasterio.open(tmp_path / "m.tif") as ds:
+        assert ds.count == 3 and (ds.dataset_mask() > 0).any()
+    (odm / "odm_dem" / "dsm.tif").unlink()
+    for argv, message in [(["--odm-dataset", str(tmp_path / "none")], "is not a folder"),
+                          (["--odm-dataset", str(odm)], "odm_dem/dsm.tif")]:
+        res = CliRunner().invoke(main, ["ortho", *argv, "--out-dir", str(tmp_path / "o2"), "--device", "cpu"])
+        lines = res.output.strip().splitlines()
+        assert res.exit_code != 0 and message in res.output and len(lines) == 1, res.output
