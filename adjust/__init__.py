@@ -4,15 +4,19 @@
   :mod:`orthowarp.pipeline.blockio`);
 - :func:`bundle_adjust` -> :class:`AdjustResult`;
 - :mod:`~orthowarp.adjust.collinearity`: the observation equations and their Jacobians;
-- :func:`synthetic_block`: blocks with known truth (:func:`film_camera`: seed 002's kind of camera).
+- :func:`synthetic_block`: blocks with known truth (:func:`film_camera`: seed 002's kind of camera);
+- :func:`monoplot_covariance`, :func:`intersection_covariance`: ground points' precision by
+  error propagation (seed 004; :mod:`~orthowarp.adjust.precision`).
 """
 
 from .block import ROLES, Block
 from .bundle import AdjustResult, bundle_adjust, intersect
+from .precision import PrecisionResult, intersection_covariance, monoplot_covariance
 from .synthetic import CONTROL_LAYOUTS, film_camera, synthetic_block
 
 __all__ = ["Block", "ROLES", "AdjustResult", "bundle_adjust", "intersect", "synthetic_block", "film_camera",
-           "CONTROL_LAYOUTS", "read_block", "write_block"]
+           "CONTROL_LAYOUTS", "read_block", "write_block", "PrecisionResult", "monoplot_covariance",
+           "intersection_covariance"]
 
 
 def read_block(path, *, drop_outside=False):

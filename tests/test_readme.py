@@ -86,5 +86,6 @@ def test_readme_python_examples_run_as_written(tmp_path, monkeypatch):
     assert sum(ns["m"].pixels_per_image) > 0
     assert np.all(np.isfinite(ns["g"])) and np.all(np.isfinite(ns["px"]))
     assert np.isfinite(ns["res"].sigma0)
+    assert np.all(np.isfinite(ns["prec"].sigma)) and np.all(ns["prec"].sigma_xy > 0)
     with open(tmp_path / "seams.geojson") as f:
         assert json.load(f)["type"] == "FeatureCollection"

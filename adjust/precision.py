@@ -1,0 +1,242 @@
+"""Precision of ground points by error propagation ([P4]: C_f = A C_l A^T).
+
+A ground point is a function of the orientation and the measurements: X = X(l). Linearised,
+its covariance is ``C_X = A C_l A^T`` with ``A = dX/dl``. The point is defined implicitly by
+conditions ``F(X, l) = 0`` written with the bundle adjustment's collinearity equations
+(:mod:`orthowarp.adjust.collinearity`, whose distortion and pixel mapping are
+:class:`~orthowarp.camera.FrameCamera`'s own, :mod:`orthowarp.brown`), so ``A = -(F_X^+) F_l``:
+
+- **monoplotting** (one image and a DEM): the point's pixel is the measured one (two
+  conditions) and its height is the DEM's at its position, ``Z - DEM(X, Y) - e_h = 0`` (the
+  DEM's local slope from its bilinear surface; ``e_h`` the DEM height error);
+- **intersection** (two or more images): the least-squares point of the rays, ``A = -(F_X^T
+  F_X)^-1 F_X^T F_l``.
+
+The inputs l per image: the pose (X0, Y0, Z0 in m, omega, phi, kappa in degrees), the camera
+parameters named in ``camera_params`` (f, x0, y0 in mm; k1, k2, k3, p1, p2 on OpenCV-normalised
+coordinates), the measured pixel (col, row); for monoplotting also the DEM height. Poses are
+photogrammetric (omega-phi-kappa in a projected CRS, treated as Cartesian). Images are taken as
+independent of one another (block covariances between poses: pass a full ``pose_cov`` of the
+stacked poses to :func:`intersection_covariance`).
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import ParamError
+from . import collinearity as col
+
+__all__ = ["PrecisionResult", "monoplot_covariance", "intersection_covariance"]
+
+CAMERA_PARAMS = col.CALIBRATION  # f, x0, y0, k1, k2, k3, p1, p2
+
+
+@dataclass
+class PrecisionResult:
+    """Ground points and their precision.
+
+    Attributes
+    ----------
+    points : ndarray (n, 3)
+        X, Y, Z (m) in the poses' CRS.
+    cov : ndarray (n, 3, 3)
+        Their covariances (m^2).
+    sigma : ndarray (n, 3)
+        Standard deviations of X, Y, Z (m).
+    sigma_xy : ndarray (n,)
+        sqrt((sigma_X^2 + sigma_Y^2) / 2) (m), the mean horizontal standard deviation.
+    """
+
+    points: np.ndarray
+    cov: np.ndarray
+
+    @property
+    def sigma(self):
+        return np.sqrt(np.maximum(np.diagonal(self.cov, axis1=1, axis2=2), 0.0))
+
+    @property
+    def sigma_xy(self):
+        s = self.sigma
+        return np.sqrt(0.5 * (s[:, 0] ** 2 + s[:, 1] ** 2))
+
+
+def _camera_row(camera):
+    return np.array([camera.focal_length, *camera.principal_point, camera.k1, camera.k2, camera.k3, camera.p1,
+                     camera.p2, *camera.pixel_size], dtype=np.float64)
+
+
+def _pose_row(pose):
+    if pose.mode != "map":
+        raise ParamError("precision is computed for photogrammetric (omega-phi-kappa) poses; got a "
+                         f"{pose.mode} pose")
+    p = pose.params
+    return np.array([p["x"], p["y"], p["z"], np.radians(p["omega"]), np.radians(p["phi"]),
+                     np.radians(p["kappa"])])
+
+
+def _square(name, value, n):
+    c = np.asarray(value, dtype=np.float64)
+    if c.shape != (n, n) or not np.all(np.isfinite(c)):
+        raise ParamError(f"{name} must be a finite {n} x {n} matrix, got shape {c.shape}")
+    if not np.allclose(c, c.T, rtol=1e-9, atol=1e-15) or np.linalg.eigvalsh(0.5 * (c + c.T)).min() < -1e-12 * max(
+            1.0, np.abs(c).max()):
+        raise ParamError(f"{name} must be symmetric positive semi-definite")
+    return c
+
+
+def _image_terms(camera, pose, points, camera_params):
+    """Per point: the collinearity Jacobians by the point (n, 2, 3) and by the image's inputs
+    (n, 2, 6 + q + 2): pose (angles per degree), camera parameters, measured pixel."""
+    n = len(points)
+    cam = np.broadcast_to(_camera_row(camera), (n, 10))
+    size = np.broadcast_to(np.asarray(camera.image_size, dtype=np.float64), (n, 2))
+    poses = np.broadcast_to(_pose_row(pose), (n, 6))
+    _, j_pose, j_point = col.jacobians(poses, points, cam, size)
+    j_pose = j_pose.copy()
+    j_pose[:, :, 3:] *= np.pi / 180.0  # per degree, as the poses and their sigmas are stated
+    blocks = [j_pose]
+    if camera_params:
+        blocks.append(col.camera_jacobian(poses, points, cam, size, list(camera_params)))
+    blocks.append(np.broadcast_to(-np.eye(2), (n, 2, 2)))  # F = project(X) - measured pixel
+    return j_point, np.concatenate(blocks, axis=2)
+
+
+def _input_cov(pose_cov, camera_cov, pixel_cov, q):
+    m = 6 + q + 2
+    c = np.zeros((m, m))
+    c[:6, :6] = pose_cov
+    if q:
+        c[6:6 + q, 6:6 + q] = camera_cov
+    c[6 + q:, 6 + q:] = pixel_cov
+    return c
+
+
+def monoplot_covariance(camera, pose, points, slopes, *, pose_cov, pixel_sigma=0.5, camera_cov=None,
+                        camera_params=(), dem_sigma=0.0):
+    """Covariance of ground points geolocated from one image on a DEM.
+
+    Parameters
+    ----------
+    camera : FrameCamera
+    pose : Pose
+        Photogrammetric (omega-phi-kappa) pose.
+    points : array_like (n, 3)
+        The ground points (X, Y, Z m, the pose's CRS), e.g. from :func:`orthowarp.geolocate`.
+    slopes : array_like (n, 2)
+        The DEM's slopes dZ/dX, dZ/dY there (its bilinear surface).
+    pose_cov : array_like (6, 6)
+        Covariance of X0, Y0, Z0 (m) and omega, phi, kappa (deg).
+    pixel_sigma : float, optional
+        Standard deviation of the measured pixel, each axis (px).
+    camera_cov : array_like (q, q), optional
+        Covariance of the camera parameters ``camera_params`` (units as in the module's
+        description).
+    camera_params : sequence of str, optional
+        Names from ("f", "x0", "y0", "k1", "k2", "k3", "p1", "p2").
+    dem_sigma : float, optional
+        Standard deviation of the DEM's heights (m).
+
+    Returns
+    -------
+    PrecisionResult
+    """
+    pts, slopes, q, pose_cov, camera_cov = _check(points, pose_cov, camera_cov, camera_params, slopes=slopes)
+    if not (np.isfinite(pixel_sigma) and pixel_sigma >= 0 and np.isfinite(dem_sigma) and dem_sigma >= 0):
+        raise ParamError(f"pixel_sigma and dem_sigma must be finite and >= 0, got {pixel_sigma}, {dem_sigma}")
+    n = len(pts)
+    j_point, j_in = _image_terms(camera, pose, pts, camera_params)
+    m = j_in.shape[2]
+    f_x = np.zeros((n, 3, 3))
+    f_x[:, :2] = j_point
+    f_x[:, 2] = np.stack([-slopes[:, 0], -slopes[:, 1], np.ones(n)], -1)  # Z - DEM(X, Y) - e_h
+    f_l = np.zeros((n, 3, m + 1))
+    f_l[:, :2, :m] = j_in
+    f_l[:, 2, m] = -1.0
+    c_in = np.zeros((m + 1, m + 1))
+    c_in[:m, :m] = _input_cov(pose_cov, camera_cov, pixel_sigma**2 * np.eye(2), q)
+    c_in[m, m] = dem_sigma**2
+    a = -np.linalg.solve(f_x, f_l)  # dX/dl (n, 3, m + 1)
+    return PrecisionResult(pts, a @ c_in @ np.transpose(a, (0, 2, 1)))
+
+
+def intersection_covariance(cameras, poses, points, *, pose_cov, pixel_sigma=0.5, camera_cov=None,
+                            camera_params=()):
+    """Covariance of ground points intersected from two or more images (least squares).
+
+    Parameters
+    ----------
+    cameras : sequence of FrameCamera, one per image (the same object for a shared camera:
+        its parameters are then one set of inputs)
+    poses : sequence of Pose
+        Photogrammetric poses, one per image (k images).
+    points : array_like (n, 3)
+        The intersected ground points.
+    pose_cov : array_like (6, 6) or (6k, 6k)
+        Each pose's covariance (the same for all), or that of the stacked poses (correlated
+        poses, e.g. from an adjustment).
+    pixel_sigma : float, optional
+    camera_cov, camera_params :
+        As for :func:`monoplot_covariance`, per distinct camera.
+
+    Returns
+    -------
+    PrecisionResult
+    """
+    if len(cameras) != len(poses) or len(poses) < 2:
+        raise ParamError(f"intersection needs two or more images with one camera each; got {len(poses)} poses "
+                         f"and {len(cameras)} cameras")
+    k = len(poses)
+    pc = np.asarray(pose_cov, dtype=np.float64)
+    pts, _, q, _, camera_cov = _check(points, pc if pc.shape == (6, 6) else np.eye(6), camera_cov, camera_params)
+    pose_block = _square("pose_cov", pc, 6) if pc.shape == (6, 6) else None
+    stacked = None if pose_block is not None else _square("pose_cov", pc, 6 * k)
+    distinct = []
+    for c in cameras:
+        if not any(c is d for d in distinct):
+            distinct.append(c)
+    n_in = 6 * k + q * len(distinct) + 2 * k
+    c_in = np.zeros((n_in, n_in))
+    c_in[:6 * k, :6 * k] = stacked if stacked is not None else np.kron(np.eye(k), pose_block)
+    for d in range(len(distinct)):
+        if q:
+            c_in[6 * k + q * d:6 * k + q * (d + 1), 6 * k + q * d:6 * k + q * (d + 1)] = camera_cov
+    c_in[6 * k + q * len(distinct):, 6 * k + q * len(distinct):] = pixel_sigma**2 * np.eye(2 * k)
+    n = len(pts)
+    f_x = np.zeros((n, 2 * k, 3))
+    f_l = np.zeros((n, 2 * k, n_in))
+    for i, (camera, pose) in enumerate(zip(cameras, poses)):
+        j_point, j_in = _image_terms(camera, pose, pts, camera_params)
+        rows = slice(2 * i, 2 * i + 2)
+        f_x[:, rows] = j_point
+        f_l[:, rows, 6 * i:6 * i + 6] = j_in[:, :, :6]
+        d = next(t for t, c in enumerate(distinct) if c is camera)
+        if q:
+            f_l[:, rows, 6 * k + q * d:6 * k + q * (d + 1)] = j_in[:, :, 6:6 + q]
+        px = 6 * k + q * len(distinct) + 2 * i
+        f_l[:, rows, px:px + 2] = j_in[:, :, 6 + q:]
+    ft = np.transpose(f_x, (0, 2, 1))
+    a = -np.linalg.solve(ft @ f_x, ft @ f_l)  # (n, 3, n_in)
+    return PrecisionResult(pts, a @ c_in @ np.transpose(a, (0, 2, 1)))
+
+
+def _check(points, pose_cov, camera_cov, camera_params, slopes=None):
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3 or not np.all(np.isfinite(pts)):
+        raise ParamError(f"points must be a finite (n, 3) array, got shape {pts.shape}")
+    bad = [p for p in camera_params if p not in CAMERA_PARAMS]
+    if bad or len(set(camera_params)) != len(camera_params):
+        raise ParamError(f"camera_params must be distinct names from {CAMERA_PARAMS}, got {list(camera_params)}")
+    q = len(camera_params)
+    pose_cov = _square("pose_cov", pose_cov, 6)
+    if q:
+        if camera_cov is None:
+            raise ParamError("camera_params given without camera_cov")
+        camera_cov = _square("camera_cov", camera_cov, q)
+    elif camera_cov is not None:
+        raise ParamError("camera_cov given without camera_params")
+    if slopes is not None:
+        slopes = np.asarray(slopes, dtype=np.float64)
+        if slopes.shape != (len(pts), 2) or not np.all(np.isfinite(slopes)):
+            raise ParamError(f"slopes must be a finite ({len(pts)}, 2) array, got shape {slopes.shape}")
+    return pts, slopes, q, pose_cov, camera_cov

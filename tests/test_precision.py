@@ -1,0 +1,182 @@
+"""Error propagation (adjust/precision.py) against Monte Carlo on an independent model.
+
+The reference here is written from first principles in float64 NumPy (pinhole camera, omega-phi-
+kappa rotation, ray-plane intersection, image-space least-squares intersection by Gauss-Newton
+with numerical derivatives): the inputs are drawn from their covariances, the points recomputed
+exactly, and the empirical covariances compared with the propagated ones.
+"""
+
+import numpy as np
+import pytest
+
+import orthowarp as ow
+from orthowarp.adjust.precision import intersection_covariance, monoplot_covariance
+from orthowarp.errors import ParamError
+
+E0, N0 = 500000.0, 5200000.0
+PLANE = (100.0, 0.05, 0.02)  # Z = a + b (X - E0) + c (Y - N0)
+SIZE = (2000, 1500)
+PIX = 0.01  # mm
+
+
+def rot(omega, phi, kappa):
+    """R = Rx(omega) Ry(phi) Rz(kappa) (deg), batched."""
+    o, p, k = (np.radians(np.asarray(v, dtype=np.float64)) for v in (omega, phi, kappa))
+    one, zero = np.ones_like(o), np.zeros_like(o)
+    rx = np.stack([np.stack([one, zero, zero], -1), np.stack([zero, np.cos(o), -np.sin(o)], -1),
+                   np.stack([zero, np.sin(o), np.cos(o)], -1)], -2)
+    ry = np.stack([np.stack([np.cos(p), zero, np.sin(p)], -1), np.stack([zero, one, zero], -1),
+                   np.stack([-np.sin(p), zero, np.cos(p)], -1)], -2)
+    rz = np.stack([np.stack([np.cos(k), -np.sin(k), zero], -1), np.stack([np.sin(k), np.cos(k), zero], -1),
+                   np.stack([zero, zero, one], -1)], -2)
+    return rx @ ry @ rz
+
+
+def ray_plane(pose, cam, pix, dz=0.0):
+    """Ground points (t, n, 3) of pixels (t, n, 2) seen by poses (t, 6: X0, Y0, Z0, omega, phi,
+    kappa deg) with cameras (t, 3: f, x0, y0 mm), on the plane shifted by dz (t,)."""
+    f, x0, y0 = cam[:, 0, None], cam[:, 1, None], cam[:, 2, None]
+    x = (pix[..., 0] - SIZE[0] / 2) * PIX - x0
+    y = (SIZE[1] / 2 - pix[..., 1]) * PIX - y0
+    d = np.einsum("tij,tnj->tni", rot(pose[:, 3], pose[:, 4], pose[:, 5]), np.stack([x, y, -f * np.ones_like(x)], -1))
+    c = pose[:, None, :3]
+    a, b, cc = PLANE
+    t = (a + np.asarray(dz)[..., None] + b * (c[..., 0] - E0) + cc * (c[..., 1] - N0) - c[..., 2]) / (
+        d[..., 2] - b * d[..., 0] - cc * d[..., 1])
+    return c + t[..., None] * d
+
+
+def project(pose, cam, pts):
+    """Pixels (t, n, 2) of points (t, n, 3)."""
+    r = rot(pose[:, 3], pose[:, 4], pose[:, 5])
+    xc = np.einsum("tji,tnj->tni", r, pts - pose[:, None, :3])
+    f, x0, y0 = cam[:, 0, None], cam[:, 1, None], cam[:, 2, None]
+    x, y = -f * xc[..., 0] / xc[..., 2], -f * xc[..., 1] / xc[..., 2]
+    return np.stack([(x + x0) / PIX + SIZE[0] / 2, SIZE[1] / 2 - (y + y0) / PIX], -1)
+
+
+def intersect(poses, cams, pixs, start, iters=6):
+    """Image-space least-squares points (t, n, 3) from the images' poses, cameras and pixels."""
+    x = start.copy()
+    for _ in range(iters):
+        res = np.concatenate([project(p, c, x) - m for p, c, m in zip(poses, cams, pixs)], -1)  # (t, n, 2k)
+        jac = np.empty(res.shape + (3,))
+        for a in range(3):
+            h = np.zeros(3)
+            h[a] = 1e-4
+            hi = np.concatenate([project(p, c, x + h) - m for p, c, m in zip(poses, cams, pixs)], -1)
+            lo = np.concatenate([project(p, c, x - h) - m for p, c, m in zip(poses, cams, pixs)], -1)
+            jac[..., a] = (hi - lo) / 2e-4
+        jt = np.swapaxes(jac, -1, -2)
+        step = np.linalg.solve(jt @ jac, jt @ res[..., None])[..., 0]
+        x = x - step
+    return x
+
+
+def sample(rng, cov, n):
+    return rng.multivariate_normal(np.zeros(len(cov)), cov, size=n)
+
+
+POSE = np.array([E0 + 20.0, N0 - 30.0, 1100.0, 1.5, -2.0, 35.0])
+POSE_COV = np.diag([0.05, 0.05, 0.08, 0.004, 0.004, 0.006]) ** 2
+POSE_COV[0, 4] = POSE_COV[4, 0] = 0.5 * 0.05 * 0.004  # a correlation, as an adjustment gives
+CAM = np.array([100.0, 0.02, -0.01])
+CAM_COV = np.diag([0.005, 0.003, 0.003]) ** 2
+PIXELS = np.array([[100.0, 120.0], [1000.0, 750.0], [1900.0, 1400.0], [300.0, 1300.0], [1700.0, 200.0]])
+
+
+def camera_and_pose(pose, cam):
+    camera = ow.FrameCamera(cam[0], PIX, SIZE, principal_point=(cam[1], cam[2]))
+    return camera, ow.Pose.from_opk(*pose[:3], *pose[3:], crs="EPSG:32632")
+
+
+def assert_cov_close(pred, emp, rel):
+    """Per point: the Frobenius norm of the difference within ``rel`` of the empirical one."""
+    for p, e in zip(pred, emp):
+        assert np.linalg.norm(p - e) <= rel * np.linalg.norm(e), (p, e)
+
+
+def test_monoplotting_covariance_matches_monte_carlo():
+    rng = np.random.default_rng(11)
+    n = 6000
+    pixel_sigma, dem_sigma = 0.5, 0.3
+    pts = ray_plane(POSE[None], CAM[None], PIXELS[None])[0]
+    camera, pose = camera_and_pose(POSE, CAM)
+    # the points agree with orthowarp's own geolocation on the plane (as a DEM)
+    from affine import Affine
+
+    cols, rows = np.meshgrid(np.arange(400) + 0.5, np.arange(400) + 0.5)
+    xs, ys = E0 - 1000 + cols * 5.0, N0 + 1000 - rows * 5.0
+    dem = ow.Dem(PLANE[0] + PLANE[1] * (xs - E0) + PLANE[2] * (ys - N0), Affine(5.0, 0, E0 - 1000, 0, -5.0, N0 + 1000),
+                 "EPSG:32632")
+    np.testing.assert_allclose(ow.geolocate(camera, pose, PIXELS, dem=dem, crs="EPSG:32632", device="cpu", refraction=False), pts,
+                               atol=2e-3)
+    res = monoplot_covariance(camera, pose, pts, np.tile(PLANE[1:], (len(pts), 1)), pose_cov=POSE_COV,
+                              pixel_sigma=pixel_sigma, camera_cov=CAM_COV, camera_params=("f", "x0", "y0"),
+                              dem_sigma=dem_sigma)
+    poses = POSE + sample(rng, POSE_COV, n)
+    cams = CAM + sample(rng, CAM_COV, n)
+    pixs = PIXELS + rng.normal(0, pixel_sigma, (n, len(PIXELS), 2))
+    mc = ray_plane(poses, cams, pixs, dz=rng.normal(0, dem_sigma, n))
+    emp = np.stack([np.cov((mc[:, k] - pts[k]).T) for k in range(len(pts))])
+    print("\n[monoplot] predicted sigma (m):", np.round(res.sigma, 4).tolist(), "\n[monoplot] Monte Carlo:",
+          np.round(np.sqrt(np.diagonal(emp, axis1=1, axis2=2)), 4).tolist())
+    assert_cov_close(res.cov, emp, 0.1)
+    assert res.sigma.shape == (5, 3) and np.all(res.sigma_xy > 0)
+    # each input alone: zero covariance in, zero out
+    zero = monoplot_covariance(camera, pose, pts, np.tile(PLANE[1:], (len(pts), 1)), pose_cov=np.zeros((6, 6)),
+                               pixel_sigma=0.0)
+    np.testing.assert_allclose(zero.cov, 0.0, atol=1e-20)
+
+
+def test_intersection_covariance_matches_monte_carlo():
+    rng = np.random.default_rng(12)
+    n = 3000
+    pixel_sigma = 0.5
+    pose2 = POSE + [80.0, 10.0, 5.0, -1.0, 1.0, 2.0]  # a 200 m footprint: ~60 % overlap
+    grid = np.stack(np.meshgrid(np.linspace(100, 1900, 6), np.linspace(100, 1400, 5)), -1).reshape(-1, 2)
+    pts = ray_plane(POSE[None], CAM[None], grid[None])[0]
+    px2 = project(pose2[None], CAM[None], pts[None])[0]
+    keep = np.all((px2 > 50) & (px2 < np.subtract(SIZE, 50)), axis=1)
+    pts, px1, px2 = pts[keep], grid[keep], px2[keep]
+    assert len(pts) >= 6
+    cam1, p1 = camera_and_pose(POSE, CAM)
+    _, p2 = camera_and_pose(pose2, CAM)
+    res = intersection_covariance([cam1, cam1], [p1, p2], pts, pose_cov=POSE_COV, pixel_sigma=pixel_sigma,
+                                  camera_cov=CAM_COV, camera_params=("f", "x0", "y0"))
+    cams = CAM + sample(rng, CAM_COV, n)  # one camera for both images
+    poses = [POSE + sample(rng, POSE_COV, n), pose2 + sample(rng, POSE_COV, n)]
+    pixs = [px1 + rng.normal(0, pixel_sigma, (n, len(pts), 2)), px2 + rng.normal(0, pixel_sigma, (n, len(pts), 2))]
+    mc = intersect(poses, [cams, cams], pixs, np.broadcast_to(pts, (n, len(pts), 3)).copy())
+    emp = np.stack([np.cov((mc[:, k] - pts[k]).T) for k in range(len(pts))])
+    print("\n[intersection] predicted sigma (m):", np.round(res.sigma, 4).tolist(), "\n[intersection] Monte Carlo:",
+          np.round(np.sqrt(np.diagonal(emp, axis1=1, axis2=2)), 4).tolist())
+    assert_cov_close(res.cov, emp, 0.1)
+    # stacked pose covariance: the same result when it is block diagonal
+    stacked = np.kron(np.eye(2), POSE_COV)
+    again = intersection_covariance([cam1, cam1], [p1, p2], pts, pose_cov=stacked, pixel_sigma=pixel_sigma,
+                                    camera_cov=CAM_COV, camera_params=("f", "x0", "y0"))
+    np.testing.assert_allclose(again.cov, res.cov, rtol=1e-12, atol=1e-18)
+
+
+def test_bad_precision_inputs():
+    camera, pose = camera_and_pose(POSE, CAM)
+    pts = ray_plane(POSE[None], CAM[None], PIXELS[None])[0]
+    slopes = np.zeros((len(pts), 2))
+    cases = [
+        (dict(pose_cov=np.eye(5)), "pose_cov"),
+        (dict(pose_cov=-np.eye(6)), "positive semi-definite"),
+        (dict(pose_cov=np.eye(6), camera_params=("f",)), "camera_cov"),
+        (dict(pose_cov=np.eye(6), camera_params=("focal",), camera_cov=np.eye(1)), "camera_params"),
+        (dict(pose_cov=np.eye(6), pixel_sigma=-1.0), "pixel_sigma"),
+    ]
+    for kw, message in cases:
+        with pytest.raises(ParamError, match=message):
+            monoplot_covariance(camera, pose, pts, slopes, **kw)
+    with pytest.raises(ParamError, match="slopes"):
+        monoplot_covariance(camera, pose, pts, slopes[:2], pose_cov=np.eye(6))
+    with pytest.raises(ParamError, match="two or more"):
+        intersection_covariance([camera], [pose], pts, pose_cov=np.eye(6))
+    geo = ow.Pose.from_ins(46.5, 8.0, 2000.0, 0.0, 0.0, 0.0)
+    with pytest.raises(ParamError, match="omega-phi-kappa"):
+        monoplot_covariance(camera, geo, pts, slopes, pose_cov=np.eye(6))
