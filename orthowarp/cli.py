@@ -206,6 +206,16 @@ def demo(out_dir, device):
 @click.option("--same-vertical-datum", is_flag=True, help="Take DEM and position heights as the same vertical datum.")
 @click.option("--device", default=None, help="Warp device (cpu, cuda, cuda:N); default: first GPU, else CPU.")
 @click.option("--tile-size", type=int, default=None, help="Output tile edge (pixels); default 512 on the CPU, up to 4096 on a GPU.")
+@click.option("--accuracy", is_flag=True,
+              help="Also write <image>_ACCURACY.tif: the predicted accuracy of each ground position (sigma east, "
+                   "north, up in m, by error propagation from --pose-sigma, --pixel-sigma and --dem-sigma), one "
+                   "pixel per 16 x 16 ortho pixels; frame images with omega-phi-kappa poses.")
+@click.option("--pose-sigma", default="0.05,0.05,0.1,0.005,0.005,0.01", show_default=True,
+              metavar="SX,SY,SZ,SOMEGA,SPHI,SKAPPA", help="With --accuracy: the poses' standard deviations (m, deg).")
+@click.option("--pixel-sigma", type=float, default=0.5, show_default=True,
+              help="With --accuracy: standard deviation of an image position (px).")
+@click.option("--dem-sigma", type=float, default=0.5, show_default=True,
+              help="With --accuracy: standard deviation of the DEM's heights (m).")
 @click.option("--profile", "show_profile", is_flag=True,
               help="Print on stderr, per image and in total: seconds per stage (summed over threads and "
                    "wall-clock), the device busy fraction, what bounds the run, and the start-up time.")
@@ -214,7 +224,8 @@ def demo(out_dir, device):
 @click.pass_context
 def ortho(ctx, images, odm_dataset, int_param, ext_param, dimap, attitude_model, dem, height, crs, resolution, resampling, method,
           driver, compress, compress_level, block_codec, dtype,
-          out_dir, overwrite, no_refraction, geoid, same_vertical_datum, device, tile_size, show_profile, profile_json):
+          out_dir, overwrite, no_refraction, geoid, same_vertical_datum, device, tile_size, accuracy, pose_sigma,
+          pixel_sigma, dem_sigma, show_profile, profile_json):
     """Orthorectify frame IMAGES, or one pushbroom scene (--dimap), into (cloud-optimized)
     GeoTIFFs named <image>_ORTHO.tif."""
     import os
@@ -232,6 +243,18 @@ def ortho(ctx, images, odm_dataset, int_param, ext_param, dimap, attitude_model,
         images, int_param, ext_param, dem = _odm_dataset(odm_dataset, images, int_param, ext_param, dem, height)
     if not images:
         raise ParamError("Give IMAGES (or --odm-dataset DIR)")
+    sigmas = None
+    if accuracy:
+        if dimap:
+            raise ParamError("--accuracy is computed for frame images (omega-phi-kappa poses), not --dimap scenes")
+        try:
+            sigmas = [float(v) for v in pose_sigma.split(",")]
+        except ValueError:
+            sigmas = []
+        if len(sigmas) != 6 or not all(np.isfinite(v) and v >= 0 for v in sigmas):
+            raise ParamError(f"--pose-sigma must be six numbers >= 0 (m, m, m, deg, deg, deg), got {pose_sigma!r}")
+        if not (np.isfinite(pixel_sigma) and pixel_sigma >= 0 and np.isfinite(dem_sigma) and dem_sigma >= 0):
+            raise ParamError("--pixel-sigma and --dem-sigma must be >= 0")
     if (dem is None) == (height is None):
         raise ParamError("Give exactly one of --dem FILE and --height METRES")
     if show_profile or profile_json:
@@ -259,12 +282,21 @@ def ortho(ctx, images, odm_dataset, int_param, ext_param, dimap, attitude_model,
         options["cancel"] = _Either(stop, failed)
         for *_, dst in jobs:
             check_destination(dst, overwrite=overwrite)
+            if accuracy:
+                check_destination(_accuracy_name(dst), overwrite=overwrite)
         terrain = Dem.from_file(dem) if dem is not None else height
         profiles = []
 
         def one(job):
             image, *sensor, dst = job
-            return dst, orthorectify(image, *sensor, dst, dem=terrain, **options)
+            r = orthorectify(image, *sensor, dst, dem=terrain, **options)
+            if accuracy:
+                from .pipeline.precision import accuracy_raster
+
+                camera, pose = sensor
+                accuracy_raster(_accuracy_name(dst), camera, pose, terrain, r.crs, r.transform, r.shape,
+                                pose_cov=np.diag(sigmas) ** 2, pixel_sigma=pixel_sigma, dem_sigma=dem_sigma)
+            return dst, r
 
         def report(dst, r):
             if not quiet:
@@ -319,6 +351,8 @@ def ortho(ctx, images, odm_dataset, int_param, ext_param, dimap, attitude_model,
         raise ParamError("Give --ext-param (frame images) or --dimap (a pushbroom scene)")
     jobs, seen = [], {}
     for image, camera, pose in _frame_orientations(images, int_param, ext_param, crs):
+        if accuracy and pose.mode != "map":
+            raise ParamError(f"--accuracy is computed for omega-phi-kappa poses; '{image}' has a {pose.mode} pose")
         key = os.path.splitext(os.path.basename(image))[0]
         dst = os.path.join(out_dir, f"{key}_ORTHO.tif")
         if dst in seen:
@@ -336,6 +370,12 @@ class _Either:
 
     def is_set(self):
         return any(e.is_set() for e in self.events)
+
+
+def _accuracy_name(dst):
+    """<image>_ACCURACY.tif beside <image>_ORTHO.tif."""
+    base = dst[:-len("_ORTHO.tif")] if dst.endswith("_ORTHO.tif") else os.path.splitext(dst)[0]
+    return base + "_ACCURACY.tif"
 
 
 def _odm_dataset(folder, images, int_param, ext_param, dem, height):

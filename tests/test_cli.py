@@ -244,3 +244,26 @@ def test_an_odm_dataset_folder_in_one_option(tmp_path):
         res = CliRunner().invoke(main, ["ortho", *argv, "--out-dir", str(tmp_path / "o2"), "--device", "cpu"])
         lines = res.output.strip().splitlines()
         assert res.exit_code != 0 and message in res.output and len(lines) == 1, res.output
+
+
+def test_ortho_accuracy_raster(tmp_path):
+    """--accuracy writes <image>_ACCURACY.tif beside the ortho (sigma east, north, up, one
+    pixel per 16 x 16 ortho pixels, finite where the image sees the ground); bad sigmas and
+    GNSS/INS poses are refused before anything is written."""
+    import numpy as np
+    import rasterio
+
+    args = _ortho_inputs(tmp_path)
+    out = tmp_path / "out"
+    res = CliRunner().invoke(main, ["-q", "ortho", str(tmp_path / "img.tif"), *args, "--height", "100",
+                                    "--out-dir", str(out), "--device", "cpu", "--accuracy", "--dem-sigma", "0.3"])
+    assert res.exit_code == 0, res.output
+    with rasterio.open(out / "img_ORTHO.tif") as o, rasterio.open(out / "img_ACCURACY.tif") as a:
+        assert a.count == 3 and a.crs == o.crs and a.transform.a == 16 * o.transform.a
+        data = a.read()
+        assert np.isfinite(data).any() and np.all(data[np.isfinite(data)] > 0)
+        assert np.nanmax(data[2]) >= 0.3  # the DEM's sigma at least, vertically
+    res = CliRunner().invoke(main, ["ortho", str(tmp_path / "img.tif"), *args, "--height", "100", "--out-dir",
+                                    str(tmp_path / "o2"), "--device", "cpu", "--accuracy", "--pose-sigma", "1,2"])
+    assert res.exit_code == 1 and "--pose-sigma" in res.output
+    assert not (tmp_path / "o2").exists() or not list((tmp_path / "o2").iterdir())

@@ -180,3 +180,35 @@ def test_bad_precision_inputs():
     geo = ow.Pose.from_ins(46.5, 8.0, 2000.0, 0.0, 0.0, 0.0)
     with pytest.raises(ParamError, match="omega-phi-kappa"):
         monoplot_covariance(camera, geo, pts, slopes, pose_cov=np.eye(6))
+
+
+def test_accuracy_raster_is_the_propagation_at_its_cells(tmp_path):
+    """pipeline.precision.accuracy_raster: one pixel per 16 x 16 ortho pixels, aligned with the
+    ortho; at each seen cell the monoplot sigmas of the cell centre's ground point; NaN where
+    the image does not see it."""
+    import rasterio
+    from affine import Affine
+    from pyproj import CRS
+
+    from orthowarp.pipeline.precision import accuracy_raster
+
+    camera, pose = camera_and_pose(POSE, CAM)
+    cols, rows = np.meshgrid(np.arange(200) + 0.5, np.arange(200) + 0.5)
+    xs, ys = E0 - 500 + cols * 5.0, N0 + 500 - rows * 5.0
+    dem = ow.Dem(PLANE[0] + PLANE[1] * (xs - E0) + PLANE[2] * (ys - N0), Affine(5.0, 0, E0 - 500, 0, -5.0, N0 + 500),
+                 "EPSG:32632")
+    transform, shape = Affine(0.5, 0, E0 - 150, 0, -0.5, N0 + 150), (600, 640)
+    out = accuracy_raster(tmp_path / "acc.tif", camera, pose, dem, CRS(32632), transform, shape, pose_cov=POSE_COV,
+                          pixel_sigma=0.5, dem_sigma=0.3)
+    assert out.shape == (3, 38, 40)
+    with rasterio.open(tmp_path / "acc.tif") as ds:
+        assert ds.count == 3 and ds.transform == transform * Affine.scale(16) and ds.crs.to_epsg() == 32632
+        np.testing.assert_array_equal(ds.read(), out)
+    seen = np.isfinite(out[0])
+    assert 0.2 < seen.mean() < 1.0  # the footprint, not the whole grid
+    i, j = np.argwhere(seen)[len(np.argwhere(seen)) // 2]
+    x, y = transform * Affine.scale(16) * (j + 0.5, i + 0.5)
+    z = PLANE[0] + PLANE[1] * (x - E0) + PLANE[2] * (y - N0)
+    ref = monoplot_covariance(camera, pose, [[x, y, z]], [PLANE[1:]], pose_cov=POSE_COV, pixel_sigma=0.5,
+                              dem_sigma=0.3)
+    np.testing.assert_allclose(out[:, i, j], ref.sigma[0], rtol=1e-5)
