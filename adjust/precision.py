@@ -12,12 +12,24 @@ conditions ``F(X, l) = 0`` written with the bundle adjustment's collinearity equ
 - **intersection** (two or more images): the least-squares point of the rays, ``A = -(F_X^T
   F_X)^-1 F_X^T F_l``.
 
-The inputs l per image: the pose (X0, Y0, Z0 in m, omega, phi, kappa in degrees), the camera
-parameters named in ``camera_params`` (f, x0, y0 in mm; k1, k2, k3, p1, p2 on OpenCV-normalised
-coordinates), the measured pixel (col, row); for monoplotting also the DEM height. Poses are
-photogrammetric (omega-phi-kappa in a projected CRS, treated as Cartesian). Images are taken as
-independent of one another (block covariances between poses: pass a full ``pose_cov`` of the
-stacked poses to :func:`intersection_covariance`).
+The inputs l per image: the pose, the camera parameters named in ``camera_params`` (f, x0, y0
+in mm; k1, k2, k3, p1, p2 on OpenCV-normalised coordinates), the measured pixel (col, row); for
+monoplotting also the DEM height. Images are taken as independent of one another (block
+covariances between poses: pass a full ``pose_cov`` of the stacked poses to
+:func:`intersection_covariance`).
+
+Poses:
+
+- photogrammetric (omega-phi-kappa in a projected CRS, treated as Cartesian): the pose inputs
+  are X0, Y0, Z0 (m) and omega, phi, kappa (deg); points are X, Y, Z in that CRS and their
+  covariance is in its axes;
+- GNSS/INS (:meth:`~orthowarp.Pose.from_ins`): the pose inputs are the reference point's
+  offsets east, north, up (m) and roll, pitch, yaw (deg), as a GNSS/INS specification states
+  them; points are (longitude, latitude, height) as :func:`orthowarp.geolocate` returns them.
+  The equations are written in an east-north-up frame at the (first) pose's nadir (exactly:
+  ECEF rotated and shifted, :mod:`orthowarp.adjust.geocentric`), the pose inputs mapped into
+  it by their Jacobian (boresight and lever arm included), and the points' covariance is in
+  east, north, up (m).
 """
 
 from dataclasses import dataclass
@@ -75,6 +87,69 @@ def _pose_row(pose):
                      np.radians(p["kappa"])])
 
 
+class _Frame:
+    """Where the equations are written: the map CRS of photogrammetric poses (identity), or an
+    east-north-up frame at the first GNSS/INS pose's nadir."""
+
+    def __init__(self, poses):
+        modes = {p.mode for p in poses}
+        if len(modes) != 1:
+            raise ParamError(f"the poses must be all photogrammetric or all GNSS/INS, got {sorted(modes)}")
+        self.local = None
+        if modes == {"geocentric"}:
+            from .geocentric import LocalFrame
+
+            lat, lon, _ = poses[0].center_geodetic
+            self.local = LocalFrame(lat, lon, 0.0)
+        elif modes != {"map"}:
+            raise ParamError(f"precision is computed for photogrammetric or GNSS/INS poses, got {sorted(modes)}")
+
+    def points(self, points):
+        """Points (n, 3) of the poses' kind -> the frame's coordinates."""
+        if self.local is None:
+            return points
+        return self.local.from_lla(np.stack([points[:, 1], points[:, 0], points[:, 2]], -1))
+
+    def _row(self, pose):
+        from .. import geodesy
+
+        c = (pose.center - self.local.origin) @ self.local.r.T
+        return np.r_[c, np.radians(geodesy.opk_angles(self.local.r @ pose.rotation))]
+
+    def pose(self, pose):
+        """The pose's row in the frame (X0, Y0, Z0 m, omega, phi, kappa rad) and the Jacobian
+        (6, 6) of that row (angles in deg) by the pose's inputs (see the module's
+        description): the identity for photogrammetric poses, numerical (central differences)
+        for GNSS/INS ones, through :meth:`Pose.from_ins` with the pose's boresight and lever
+        arm."""
+        if self.local is None:
+            return _pose_row(pose), np.eye(6)
+        from ..pose import Pose
+        from .geocentric import LocalFrame
+
+        p = pose.params
+        lla0 = np.array([p["lat"], p["lon"], p["h"]], dtype=np.float64)
+        att0 = np.array([p["roll"], p["pitch"], p["yaw"]], dtype=np.float64)
+        here = LocalFrame(*lla0)  # the reference point's own east, north, up
+        jac = np.empty((6, 6))
+        for k in range(6):
+            d = 1e-3 if k < 3 else 1e-5  # m, deg
+            moved = []
+            for sign in (1.0, -1.0):
+                lla, att = lla0, att0.copy()
+                if k < 3:
+                    off = np.zeros(3)
+                    off[k] = sign * d
+                    lla = here.to_lla(off)[0]
+                else:
+                    att[k - 3] += sign * d
+                moved.append(self._row(Pose.from_ins(*lla, *att, boresight=p["boresight"], lever_arm=p["lever_arm"])))
+            diff = moved[0] - moved[1]
+            diff[3:] = np.degrees(diff[3:])  # angles per degree, as the equations' columns are
+            jac[:, k] = diff / (2 * d)
+        return self._row(pose), jac
+
+
 def _square(name, value, n):
     c = np.asarray(value, dtype=np.float64)
     if c.shape != (n, n) or not np.all(np.isfinite(c)):
@@ -85,13 +160,14 @@ def _square(name, value, n):
     return c
 
 
-def _image_terms(camera, pose, points, camera_params):
+def _image_terms(camera, pose_row, points, camera_params):
     """Per point: the collinearity Jacobians by the point (n, 2, 3) and by the image's inputs
-    (n, 2, 6 + q + 2): pose (angles per degree), camera parameters, measured pixel."""
+    (n, 2, 6 + q + 2): pose (X0, Y0, Z0 m, angles per degree), camera parameters, measured
+    pixel. ``pose_row``: X0, Y0, Z0, omega, phi, kappa (rad) in the points' frame."""
     n = len(points)
     cam = np.broadcast_to(_camera_row(camera), (n, 10))
     size = np.broadcast_to(np.asarray(camera.image_size, dtype=np.float64), (n, 2))
-    poses = np.broadcast_to(_pose_row(pose), (n, 6))
+    poses = np.broadcast_to(pose_row, (n, 6))
     _, j_pose, j_point = col.jacobians(poses, points, cam, size)
     j_pose = j_pose.copy()
     j_pose[:, :, 3:] *= np.pi / 180.0  # per degree, as the poses and their sigmas are stated
@@ -120,13 +196,16 @@ def monoplot_covariance(camera, pose, points, slopes, *, pose_cov, pixel_sigma=0
     ----------
     camera : FrameCamera
     pose : Pose
-        Photogrammetric (omega-phi-kappa) pose.
+        Photogrammetric (omega-phi-kappa) or GNSS/INS pose.
     points : array_like (n, 3)
-        The ground points (X, Y, Z m, the pose's CRS), e.g. from :func:`orthowarp.geolocate`.
+        The ground points (X, Y, Z m in the pose's CRS; longitude, latitude, height for GNSS/INS
+        poses), e.g. from :func:`orthowarp.geolocate`.
     slopes : array_like (n, 2)
-        The DEM's slopes dZ/dX, dZ/dY there (its bilinear surface).
+        The DEM's slopes there (its bilinear surface): dZ/dX, dZ/dY, or for GNSS/INS poses
+        dh/d(east), dh/d(north).
     pose_cov : array_like (6, 6)
-        Covariance of X0, Y0, Z0 (m) and omega, phi, kappa (deg).
+        Covariance of the pose's inputs (see the module's description: X0, Y0, Z0 or east,
+        north, up in m; omega, phi, kappa or roll, pitch, yaw in deg).
     pixel_sigma : float, optional
         Standard deviation of the measured pixel, each axis (px).
     camera_cov : array_like (q, q), optional
@@ -145,7 +224,10 @@ def monoplot_covariance(camera, pose, points, slopes, *, pose_cov, pixel_sigma=0
     if not (np.isfinite(pixel_sigma) and pixel_sigma >= 0 and np.isfinite(dem_sigma) and dem_sigma >= 0):
         raise ParamError(f"pixel_sigma and dem_sigma must be finite and >= 0, got {pixel_sigma}, {dem_sigma}")
     n = len(pts)
-    j_point, j_in = _image_terms(camera, pose, pts, camera_params)
+    frame = _Frame([pose])
+    row, jac = frame.pose(pose)
+    pose_cov = jac @ pose_cov @ jac.T
+    j_point, j_in = _image_terms(camera, row, frame.points(pts), camera_params)
     m = j_in.shape[2]
     f_x = np.zeros((n, 3, 3))
     f_x[:, :2] = j_point
@@ -169,7 +251,7 @@ def intersection_covariance(cameras, poses, points, *, pose_cov, pixel_sigma=0.5
     cameras : sequence of FrameCamera, one per image (the same object for a shared camera:
         its parameters are then one set of inputs)
     poses : sequence of Pose
-        Photogrammetric poses, one per image (k images).
+        Photogrammetric or GNSS/INS poses (all of one kind), one per image (k images).
     points : array_like (n, 3)
         The intersected ground points.
     pose_cov : array_like (6, 6) or (6k, 6k)
@@ -203,10 +285,18 @@ def intersection_covariance(cameras, poses, points, *, pose_cov, pixel_sigma=0.5
             c_in[6 * k + q * d:6 * k + q * (d + 1), 6 * k + q * d:6 * k + q * (d + 1)] = camera_cov
     c_in[6 * k + q * len(distinct):, 6 * k + q * len(distinct):] = pixel_sigma**2 * np.eye(2 * k)
     n = len(pts)
+    frame = _Frame(poses)
+    local = frame.points(pts)
+    pose_rows, big = [], np.zeros((6 * k, 6 * k))
+    for i, pose in enumerate(poses):  # each pose's row in the frame, its inputs mapped there
+        row, jac = frame.pose(pose)
+        pose_rows.append(row)
+        big[6 * i:6 * i + 6, 6 * i:6 * i + 6] = jac
+    c_in[:6 * k, :6 * k] = big @ c_in[:6 * k, :6 * k] @ big.T
     f_x = np.zeros((n, 2 * k, 3))
     f_l = np.zeros((n, 2 * k, n_in))
     for i, (camera, pose) in enumerate(zip(cameras, poses)):
-        j_point, j_in = _image_terms(camera, pose, pts, camera_params)
+        j_point, j_in = _image_terms(camera, pose_rows[i], local, camera_params)
         rows = slice(2 * i, 2 * i + 2)
         f_x[:, rows] = j_point
         f_l[:, rows, 6 * i:6 * i + 6] = j_in[:, :, :6]

@@ -178,8 +178,44 @@ def test_bad_precision_inputs():
     with pytest.raises(ParamError, match="two or more"):
         intersection_covariance([camera], [pose], pts, pose_cov=np.eye(6))
     geo = ow.Pose.from_ins(46.5, 8.0, 2000.0, 0.0, 0.0, 0.0)
-    with pytest.raises(ParamError, match="omega-phi-kappa"):
-        monoplot_covariance(camera, geo, pts, slopes, pose_cov=np.eye(6))
+    with pytest.raises(ParamError, match="all photogrammetric or all GNSS/INS"):
+        intersection_covariance([camera, camera], [pose, geo], pts, pose_cov=np.eye(6))
+
+
+def test_gnss_ins_monoplotting_matches_monte_carlo_through_the_kernels():
+    """A GNSS/INS pose (boresight and lever arm set) stated as east/north/up and roll/pitch/yaw
+    sigmas: the propagated east/north/up covariance of points on a DEM against Monte Carlo
+    through orthowarp.geolocate itself (the Warp kernels: another implementation of the chain
+    than the adjustment's collinearity), 3000 draws, within 10 %."""
+    from orthowarp.adjust.geocentric import LocalFrame
+
+    rng = np.random.default_rng(13)
+    camera = ow.FrameCamera(100.5, 0.0052, (4000, 3000), principal_point=(0.08, -0.05), k1=-0.03)
+    kw = dict(boresight=(0.02, -0.01, 0.05), lever_arm=(0.12, 0.0, -0.35))
+    truth = dict(lat=46.501, lon=7.998, h=2650.0, roll=1.2, pitch=-0.8, yaw=35.0)
+    pose = ow.Pose.from_ins(*truth.values(), **kw)
+    pixels = np.array([[200.0, 300.0], [2000.0, 1500.0], [3800.0, 2800.0]])
+    pose_cov = np.diag([0.05, 0.05, 0.1, 0.005, 0.005, 0.01]) ** 2
+    pixel_sigma, dem_sigma, height = 0.5, 0.4, 500.0
+    pts = ow.geolocate(camera, pose, pixels, dem=height, device="cpu", refraction=False)  # lon, lat, h
+    res = monoplot_covariance(camera, pose, pts, np.zeros((len(pts), 2)), pose_cov=pose_cov, pixel_sigma=pixel_sigma,
+                              dem_sigma=dem_sigma)
+    lat0, lon0, _ = pose.center_geodetic
+    frame, here = LocalFrame(lat0, lon0, 0.0), LocalFrame(truth["lat"], truth["lon"], truth["h"])
+    n = 3000
+    d = rng.multivariate_normal(np.zeros(6), pose_cov, size=n)
+    enu = []
+    for t in range(n):
+        lla = here.to_lla(d[t, :3])[0]
+        p = ow.Pose.from_ins(*lla, truth["roll"] + d[t, 3], truth["pitch"] + d[t, 4], truth["yaw"] + d[t, 5], **kw)
+        g = ow.geolocate(camera, p, pixels + rng.normal(0, pixel_sigma, pixels.shape),
+                         dem=height + rng.normal(0, dem_sigma), device="cpu", refraction=False)
+        enu.append(frame.from_lla(np.stack([g[:, 1], g[:, 0], g[:, 2]], -1)))
+    enu = np.array(enu)
+    emp = np.stack([np.cov(enu[:, k].T) for k in range(len(pts))])
+    print("\n[GNSS/INS monoplot] predicted sigma E, N, U (m):", np.round(res.sigma, 4).tolist(),
+          "\n[GNSS/INS monoplot] Monte Carlo:", np.round(np.sqrt(np.diagonal(emp, axis1=1, axis2=2)), 4).tolist())
+    assert_cov_close(res.cov, emp, 0.1)
 
 
 def test_accuracy_raster_is_the_propagation_at_its_cells(tmp_path):
