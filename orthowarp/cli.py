@@ -190,8 +190,11 @@ def demo(out_dir, device):
               help="backward: project each output pixel into the source; forward: the direct method "
                    "(geolocate each source pixel; hidden ground stays nodata).")
 @click.option("--driver", type=click.Choice(["cog", "gtiff"], case_sensitive=False), default="cog", show_default=True)
-@click.option("--compress", type=click.Choice(["deflate", "zstd", "lzw", "jpeg", "none"]), default="deflate",
-              show_default=True)
+@click.option("--compress", type=click.Choice(["deflate", "zstd", "lzw", "jpeg", "webp", "none"]), default="deflate",
+              show_default=True, help="Lossless (deflate, zstd, lzw, none) or lossy for uint8 RGB (jpeg, webp: "
+                                      "files 10-40 times smaller; see --quality).")
+@click.option("--quality", type=click.IntRange(1, 100), default=None,
+              help="JPEG / WebP quality 1-100 (default 90; orthority's JPEG default is 75).")
 @click.option("--compress-level", type=int, default=None,
               help="Deflate level 1-12 (default 6) or zstd level 1-22 (default 9).")
 @click.option("--block-codec", type=click.Choice(["auto", "host", "nvcomp", "hybrid"]), default="auto", show_default=True,
@@ -223,7 +226,7 @@ def demo(out_dir, device):
               help="Write the same profile as JSON to this file.")
 @click.pass_context
 def ortho(ctx, images, odm_dataset, int_param, ext_param, dimap, attitude_model, dem, height, crs, resolution, resampling, method,
-          driver, compress, compress_level, block_codec, dtype,
+          driver, compress, compress_level, quality, block_codec, dtype,
           out_dir, overwrite, no_refraction, geoid, same_vertical_datum, device, tile_size, accuracy, pose_sigma,
           pixel_sigma, dem_sigma, show_profile, profile_json):
     """Orthorectify frame IMAGES, or one pushbroom scene (--dimap), into (cloud-optimized)
@@ -262,7 +265,8 @@ def ortho(ctx, images, odm_dataset, int_param, ext_param, dimap, attitude_model,
     quiet = ctx.obj["quiet"]
     options = dict(crs=crs, resolution=resolution, resampling=resampling, method=method,
                    refraction=not no_refraction, dtype=dtype, driver="COG" if driver.lower() == "cog" else "GTiff",
-                   compress=compress, compress_level=compress_level, block_codec=block_codec, overwrite=overwrite,
+                   compress=compress, compress_level=compress_level, quality=quality, block_codec=block_codec,
+                   overwrite=overwrite,
                    device=device,
                    progress=not quiet, tile_size=tile_size, geoid=geoid, same_vertical_datum=same_vertical_datum)
 

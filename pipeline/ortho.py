@@ -52,7 +52,9 @@ log = logging.getLogger(__name__)
 RESAMPLING = {"nearest": 0, "bilinear": 1, "bicubic": 2, "lanczos": 3}
 _RADIUS = {"nearest": 1, "bilinear": 1, "bicubic": 2, "lanczos": 3}
 DRIVERS = ("COG", "GTiff")
-COMPRESS = ("deflate", "zstd", "lzw", "jpeg", "none")
+COMPRESS = ("deflate", "zstd", "lzw", "jpeg", "webp", "none")
+LOSSY = ("jpeg", "webp")
+DEFAULT_QUALITY = 90  # JPEG / WebP quality of lossy outputs (orthority's JPEG default is 75)
 BLOCK_CODECS = ("auto", "host", "nvcomp", "hybrid")
 # threads per block of the per-pixel ortho kernels: on an H100, 128 ran a few per cent faster
 # than Warp's default 256 (bench/ortho.py's block-size scan)
@@ -220,7 +222,8 @@ class _Counter:
 
 @quiet_warp()  # Warp's informational messages only where the user asked for them
 def orthorectify(src, sensor, *args, dem, crs=None, resolution=None, resampling="bilinear", method="backward",
-                 refraction=True, dtype=None, driver="COG", compress="deflate", compress_level=None, overviews=True,
+                 refraction=True, dtype=None, driver="COG", compress="deflate", compress_level=None, quality=None,
+                 overviews=True,
                  tile_size=None, overwrite=False, device=None, progress=False, workers=None,
                  geoid=None, same_vertical_datum=False, cancel=None, block_codec="auto"):
     """Orthorectify one frame image or pushbroom scene into a GeoTIFF / cloud-optimized GeoTIFF.
@@ -259,10 +262,15 @@ def orthorectify(src, sensor, *args, dem, crs=None, resolution=None, resampling=
         outputs an internal mask.
     driver : {"COG", "GTiff"}, optional
         Cloud-optimized GeoTIFF (default) or tiled GeoTIFF.
-    compress : {"deflate", "zstd", "lzw", "jpeg", "none"}, optional
+    compress : {"deflate", "zstd", "lzw", "jpeg", "webp", "none"}, optional
+        Lossless (deflate, the default; zstd, lzw; none) or lossy for uint8 outputs: "jpeg"
+        (1 or 3 bands; 3 bands in YCbCr) or "webp" (3 or 4 bands), both with an internal mask
+        for nodata.
     compress_level : int, optional
         Deflate level 1-12 (default 6; libdeflate's scale, whose 7 makes blocks the size of
         GDAL's default) or zstd level 1-22 (default GDAL's, 9).
+    quality : int, optional
+        JPEG / WebP quality 1-100 (default 90).
     overviews : bool, optional
         Build internal overviews (always for COG).
     tile_size : int, optional
@@ -331,6 +339,14 @@ def orthorectify(src, sensor, *args, dem, crs=None, resolution=None, resampling=
             raise ParamError(f"compress_level must be 1-12 for deflate or 1-22 for zstd, got {compress_level!r} "
                              f"with {compress!r}")
         compress_level = int(compress_level)
+    if quality is not None:
+        if compress not in LOSSY:
+            raise ParamError(f"quality applies to jpeg and webp compression, not {compress!r}")
+        if not (isinstance(quality, (int, np.integer)) and 1 <= int(quality) <= 100):
+            raise ParamError(f"quality must be an integer 1-100, got {quality!r}")
+        quality = int(quality)
+    if compress in LOSSY and quality is None:
+        quality = DEFAULT_QUALITY
     if dtype is not None and dtype not in DTYPES:
         raise ParamError(f"dtype must be one of {DTYPES}, got {dtype!r}")
     if block_codec not in BLOCK_CODECS:
@@ -348,8 +364,12 @@ def orthorectify(src, sensor, *args, dem, crs=None, resolution=None, resampling=
     count, src_dtype, masked = source_facts(src, (camera.width, camera.height) if pose is None else
                                             tuple(camera.image_size), "scene" if pose is None else "camera")
     out_dtype = dtype or (src_dtype if src_dtype in DTYPES else "float32")
-    if compress == "jpeg" and out_dtype != "uint8":
-        raise ParamError("jpeg compression needs uint8 output")
+    if compress in LOSSY and out_dtype != "uint8":
+        raise ParamError(f"{compress} compression needs uint8 output")
+    if compress == "jpeg" and count not in (1, 3):
+        raise ParamError(f"jpeg compression takes 1 or 3 bands; '{src}' has {count}")
+    if compress == "webp" and count not in (3, 4):
+        raise ParamError(f"webp compression takes 3 or 4 bands; '{src}' has {count}")
 
     if pose is None:
         geom = PushbroomGeometry(camera, _as_dem(dem), refraction=refraction, device=device, geoid=geoid,
@@ -378,7 +398,7 @@ def orthorectify(src, sensor, *args, dem, crs=None, resolution=None, resampling=
         work = tmp_final if driver == "GTiff" or streamed else tmp_final + ".work.tif"
         _render(src, geom, out_crs, transform, shape, count, out_dtype,
                 compress if driver == "GTiff" else "none", work, resampling, tile_size, progress,
-                workers, timer, dst, method, masked, compress_level,
+                workers, timer, dst, method, masked, compress_level, quality=quality,
                 cog=dict(compress=compress, level=compress_level or 6) if streamed else None, cancel=cancel,
                 block_codec=_block_codec(block_codec, geom.device, streamed and compress == "deflate",
                                          compress_level or 6),
@@ -386,7 +406,7 @@ def orthorectify(src, sensor, *args, dem, crs=None, resolution=None, resampling=
         t0 = time.perf_counter()
         if not streamed:
             try:
-                _finish(work, tmp_final, driver, compress, overviews, out_dtype, compress_level)
+                _finish(work, tmp_final, driver, compress, overviews, out_dtype, compress_level, quality=quality)
             except GDAL_ERRORS as e:
                 raise write_error(dst, tmp_final, e) from e
             verify_tiff(tmp_final, name=dst)  # GDAL's close does not report failed writes
@@ -493,14 +513,16 @@ def _nvcomp_type(level):
 
 def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, path, resampling,
             tile_size, progress, workers, timer, final_name, method_name, masked, compress_level=None, cog=None,
-            cancel=None, src_dtype=None, clipped=None, block_codec="host"):
+            cancel=None, src_dtype=None, clipped=None, block_codec="host", quality=None):
     rows, cols = shape
     is_float = out_dtype == "float32"
     profile = dict(driver="GTiff", width=cols, height=rows, count=count, dtype=out_dtype,
                    crs=rasterio.crs.CRS.from_wkt(out_crs.to_wkt()), transform=transform,
                    **_creation_options(compress, out_dtype, compress_level))
     if compress == "jpeg":
-        profile.update(JPEG_QUALITY=90, **({"photometric": "YCBCR"} if count == 3 else {}))
+        profile.update(JPEG_QUALITY=quality or DEFAULT_QUALITY, **({"photometric": "YCBCR"} if count == 3 else {}))
+    elif compress == "webp":
+        profile.update(WEBP_LEVEL=quality or DEFAULT_QUALITY)
     if is_float:
         profile["nodata"] = float("nan")
     device = geom.device
@@ -1063,7 +1085,7 @@ def _progress(total):
     return tqdm(total=total, unit="tile", leave=False)
 
 
-def _finish(work, final, driver, compress, overviews, dtype, level=None):
+def _finish(work, final, driver, compress, overviews, dtype, level=None, quality=None):
     """Overviews, then (for COG) a copy in the cloud-optimized layout."""
     if driver == "COG" or overviews:
         with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True, GDAL_CACHEMAX=256), rasterio.open(work, "r+") as ds:
@@ -1075,8 +1097,8 @@ def _finish(work, final, driver, compress, overviews, dtype, level=None):
                     overviews="FORCE_USE_EXISTING", BIGTIFF="IF_SAFER", NUM_THREADS="ALL_CPUS")
         if compress in ("deflate", "zstd", "lzw") and dtype != "float32":
             opts["predictor"] = "YES"
-        if compress == "jpeg":
-            opts["quality"] = 90
+        if compress in LOSSY:
+            opts["quality"] = quality or DEFAULT_QUALITY
         if level is not None:
             opts["level"] = level
         rasterio.shutil.copy(work, final, driver="COG", **opts)

@@ -982,3 +982,36 @@ def test_partial_dem_cover_warning_names_the_image(tmp_path, caplog):
         orthorectify(src, cam, pose, tmp_path / "o.tif", dem=str(dem), device="cpu", refraction=False)
     msgs = [r.getMessage() for r in caplog.records if "only partly" in r.getMessage()]
     assert msgs and "tiny.tif" in msgs[0], [r.getMessage() for r in caplog.records]
+
+
+@pytest.mark.parametrize("compress, quality", [("jpeg", None), ("jpeg", 75), ("webp", 60)])
+def test_lossy_outputs_for_rgb(tmp_path, compress, quality):
+    """JPEG / WebP in a COG for uint8 RGB: the quality stated (default 90), an internal mask,
+    the pixels close to the lossless ortho's, the file much smaller; refused for other data."""
+    cam = ow.FrameCamera(50.0, 0.01, (320, 240))
+    pose = ow.Pose.from_opk(500000.0, 5200000.0, 600.0, 1.0, -2.0, 30.0, crs="EPSG:32632")
+    src = tmp_path / "rgb.tif"
+    y, x = np.mgrid[0:240, 0:320]
+    rgb = np.stack([128 + 60 * np.sin(x / 9.0), 128 + 60 * np.cos(y / 7.0), 128 + 40 * np.sin((x + y) / 13.0)])
+    with rasterio.open(src, "w", driver="GTiff", width=320, height=240, count=3, dtype="uint8") as dst:
+        dst.write(rgb.astype(np.uint8))
+    kw = dict(dem=100.0, device="cpu", refraction=False)
+    ref = orthorectify(src, cam, pose, tmp_path / "lossless.tif", **kw)
+    lossy = orthorectify(src, cam, pose, tmp_path / "lossy.tif", compress=compress, quality=quality, **kw)
+    assert lossy.shape == ref.shape
+    with rasterio.open(tmp_path / "lossless.tif") as a, rasterio.open(tmp_path / "lossy.tif") as b:
+        tags = b.tags(ns="IMAGE_STRUCTURE")
+        assert b.profile["compress"] == compress and tags.get("LAYOUT") == "COG"
+        if compress == "jpeg":
+            assert tags["JPEG_QUALITY"] == str(quality or 90)
+        else:
+            assert tags["WEBP_LEVEL"] == str(quality)
+        ma, mb = a.dataset_mask() > 0, b.dataset_mask() > 0
+        assert (ma == mb).mean() > 0.999
+        diff = np.abs(a.read().astype(float) - b.read())[:, ma & mb]
+        assert np.mean(diff) < (3.0 if (quality or 90) >= 75 else 6.0), np.mean(diff)
+    assert os.path.getsize(tmp_path / "lossy.tif") < 0.6 * os.path.getsize(tmp_path / "lossless.tif")
+    with pytest.raises(ParamError, match="quality"):
+        orthorectify(src, cam, pose, tmp_path / "q.tif", quality=80, **kw)  # deflate has no quality
+    with pytest.raises(ParamError, match="uint8"):
+        orthorectify(src, cam, pose, tmp_path / "f.tif", compress=compress, dtype="float32", **kw)
