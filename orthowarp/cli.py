@@ -209,6 +209,9 @@ def demo(out_dir, device):
 @click.option("--same-vertical-datum", is_flag=True, help="Take DEM and position heights as the same vertical datum.")
 @click.option("--device", default=None, help="Warp device (cpu, cuda, cuda:N); default: first GPU, else CPU.")
 @click.option("--tile-size", type=int, default=None, help="Output tile edge (pixels); default 512 on the CPU, up to 4096 on a GPU.")
+@click.option("--export-params", is_flag=True,
+              help="Write the frame IMAGES' orientation in orthority's formats (int_param.yaml, ext_param.csv "
+                   "and .prj) into --out-dir, and stop (no orthos).")
 @click.option("--accuracy", is_flag=True,
               help="Also write <image>_ACCURACY.tif: the predicted accuracy of each ground position (sigma east, "
                    "north, up in m, by error propagation from --pose-sigma, --pixel-sigma and --dem-sigma), one "
@@ -227,7 +230,8 @@ def demo(out_dir, device):
 @click.pass_context
 def ortho(ctx, images, odm_dataset, int_param, ext_param, dimap, attitude_model, dem, height, crs, resolution, resampling, method,
           driver, compress, compress_level, quality, block_codec, dtype,
-          out_dir, overwrite, no_refraction, geoid, same_vertical_datum, device, tile_size, accuracy, pose_sigma,
+          out_dir, overwrite, no_refraction, geoid, same_vertical_datum, device, tile_size, export_params, accuracy,
+          pose_sigma,
           pixel_sigma, dem_sigma, show_profile, profile_json):
     """Orthorectify frame IMAGES, or one pushbroom scene (--dimap), into (cloud-optimized)
     GeoTIFFs named <image>_ORTHO.tif."""
@@ -246,6 +250,17 @@ def ortho(ctx, images, odm_dataset, int_param, ext_param, dimap, attitude_model,
         images, int_param, ext_param, dem = _odm_dataset(odm_dataset, images, int_param, ext_param, dem, height)
     if not images:
         raise ParamError("Give IMAGES (or --odm-dataset DIR)")
+    if export_params:
+        if dimap or not ext_param:
+            raise ParamError("--export-params writes frame images' orientations: give --ext-param (not --dimap)")
+        from .pipeline.formats import export_params as export
+
+        ids = {}
+        jobs = _frame_orientations(images, int_param, ext_param, crs, ids)
+        for path in export(jobs, out_dir, camera_ids=ids, overwrite=overwrite):
+            if not ctx.obj["quiet"]:
+                click.echo(path)
+        return
     sigmas = None
     if accuracy:
         if dimap:
@@ -448,7 +463,7 @@ def _crs_label(crs):
     return f"{name}, {unit}" if unit else name
 
 
-def _frame_orientations(images, int_param, ext_param, crs):
+def _frame_orientations(images, int_param, ext_param, crs, ids=None):
     """[(image, FrameCamera, Pose)] of frame images from the camera and exterior files."""
     from .errors import CrsError, ParamError, RasterIOError
     from .pipeline.formats import read_cameras, read_exterior
@@ -480,6 +495,8 @@ def _frame_orientations(images, int_param, ext_param, crs):
         if cam_id not in cameras:
             raise ParamError(f"Camera '{cam_id}' of image '{key}' is not in '{int_param or ext_param}'")
         out.append((image, cameras[cam_id], orient.pose))
+        if ids is not None:
+            ids[id(cameras[cam_id])] = cam_id
     return out
 
 

@@ -1020,3 +1020,64 @@ def _read_opensfm(path, recs, crs, frame):
     return result
 
 
+
+
+def export_params(jobs, folder, *, camera_ids=None, overwrite=False):
+    """Write frame images' orientations in orthority's formats: ``int_param.yaml`` (a camera
+    per distinct FrameCamera, Brown model) and ``ext_param.csv`` (x, y, z, omega, phi, kappa
+    with an ``ext_param.prj``, or latitude, longitude, altitude, roll, pitch, yaw), published
+    together. Numbers are written exactly (``repr``).
+
+    Parameters
+    ----------
+    jobs : sequence of (image path, FrameCamera, Pose)
+        One pose kind for all (map or geocentric).
+    folder : str or os.PathLike
+    camera_ids : dict of id(FrameCamera) -> str, optional
+        The cameras' names (default cam0, cam1, ...).
+    overwrite : bool, optional
+
+    Returns
+    -------
+    list of str
+        The files written.
+    """
+    from .blockio import _camera_dict
+    from .io import check_destination, ensure_folder, write_files
+
+    if not jobs:
+        raise ParamError("No images to export")
+    modes = {pose.mode for _, _, pose in jobs}
+    if len(modes) != 1:
+        raise ParamError(f"The images' poses must be of one kind to export, got {sorted(modes)}")
+    geo = modes == {GEOCENTRIC}
+    cams, names = [], {}
+    for _, cam, _ in jobs:
+        if id(cam) not in names:
+            names[id(cam)] = (camera_ids or {}).get(id(cam)) or f"cam{len(cams)}"
+            cams.append(cam)
+    rows = [("filename", "latitude", "longitude", "altitude", "roll", "pitch", "yaw", "camera") if geo
+            else ("filename", "x", "y", "z", "omega", "phi", "kappa", "camera")]
+    for image, cam, pose in jobs:
+        p = pose.params
+        if geo:
+            if any(p["boresight"]) or any(p["lever_arm"]):
+                raise ParamError(f"'{image}': orthority's CSV has no boresight or lever arm; its pose cannot be "
+                                 f"exported exactly")
+            vals = (p["lat"], p["lon"], p["h"], p["roll"], p["pitch"], p["yaw"])
+        else:
+            vals = (p["x"], p["y"], p["z"], p["omega"], p["phi"], p["kappa"])
+        rows.append((os.path.splitext(os.path.basename(image))[0], *(repr(float(v)) for v in vals), names[id(cam)]))
+    folder = os.fspath(folder)
+    ensure_folder(folder)
+    files = {os.path.join(folder, "int_param.yaml"): yaml.safe_dump({names[id(c)]: _camera_dict(c) for c in cams}),
+             os.path.join(folder, "ext_param.csv"): "\n".join(",".join(r) for r in rows) + "\n"}
+    if not geo:
+        crs = jobs[0][2].crs
+        if any(not pose.crs.equals(crs) for _, _, pose in jobs):
+            raise ParamError("The images' poses are in different CRSs: export them apart")
+        files[os.path.join(folder, "ext_param.prj")] = crs.to_wkt()
+    for path in files:
+        check_destination(path, overwrite=overwrite)
+    write_files(files)
+    return list(files)

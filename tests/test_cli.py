@@ -267,3 +267,30 @@ def test_ortho_accuracy_raster(tmp_path):
                                     str(tmp_path / "o2"), "--device", "cpu", "--accuracy", "--pose-sigma", "1,2"])
     assert res.exit_code == 1 and "--pose-sigma" in res.output
     assert not (tmp_path / "o2").exists() or not list((tmp_path / "o2").iterdir())
+
+
+def test_export_params_round_trip(tmp_path):
+    """--export-params writes orthority-format files that give the same ortho back."""
+    import numpy as np
+    import rasterio
+
+    args = _ortho_inputs(tmp_path)
+    res = CliRunner().invoke(main, ["ortho", str(tmp_path / "img.tif"), *args, "--export-params", "--out-dir",
+                                    str(tmp_path / "params")])
+    assert res.exit_code == 0, res.output
+    names = sorted(p.name for p in (tmp_path / "params").iterdir())
+    assert names == ["ext_param.csv", "ext_param.prj", "int_param.yaml"]
+    assert "cam" in (tmp_path / "params" / "ext_param.csv").read_text().splitlines()[1]  # the camera's own id
+    outs = []
+    for k, orient in enumerate([args, ["--int-param", str(tmp_path / "params" / "int_param.yaml"), "--ext-param",
+                                       str(tmp_path / "params" / "ext_param.csv")]]):
+        res = CliRunner().invoke(main, ["-q", "ortho", str(tmp_path / "img.tif"), *orient, "--height", "100",
+                                        "--out-dir", str(tmp_path / f"o{k}"), "--device", "cpu"])
+        assert res.exit_code == 0, res.output
+        with rasterio.open(tmp_path / f"o{k}" / "img_ORTHO.tif") as ds:
+            outs.append((ds.read(), ds.transform))
+    assert outs[0][1] == outs[1][1]
+    np.testing.assert_array_equal(outs[0][0], outs[1][0])
+    res = CliRunner().invoke(main, ["ortho", str(tmp_path / "img.tif"), *args, "--export-params", "--out-dir",
+                                    str(tmp_path / "params")])
+    assert res.exit_code == 1 and "--overwrite" in res.output
