@@ -665,8 +665,18 @@ def _report_profile(profiles, batch_wall, marks, *, show, path):
 
 
 @main.command()
-@click.argument("block_file", type=click.Path(dir_okay=False))
+@click.argument("block_file", required=False, type=click.Path(dir_okay=False))
 @click.option("--out", "out_dir", type=click.Path(file_okay=False), required=True, help="Output folder.")
+@click.option("--write-example", is_flag=True,
+              help="First write a synthetic example block (3 strips of 8 images, control at the corners and "
+                   "centre, 0.5 px image noise) to BLOCK_FILE, which must not exist, then adjust it.")
+@click.option("--cameras", type=click.Path(dir_okay=False),
+              help="Instead of BLOCK_FILE: cameras (orthority/ODM camera file) ...")
+@click.option("--exterior", type=click.Path(dir_okay=False),
+              help="... initial exterior orientation (CSV + .prj, GeoJSON, reconstruction.json) ...")
+@click.option("--image-points", type=click.Path(dir_okay=False), help="... image points CSV (image,point,col,row[,sigma]) ...")
+@click.option("--ground-points", type=click.Path(dir_okay=False),
+              help="... and ground points CSV (point,x,y,z[,sx,sy,sz][,role]).")
 @click.option("--fix-control", is_flag=True, help="Hold control points fixed instead of weighting them.")
 @click.option("--no-gnss", is_flag=True, help="Ignore the images' GNSS positions.")
 @click.option("--no-ins", is_flag=True, help="Ignore the images' INS attitudes.")
@@ -679,16 +689,39 @@ def _report_profile(profiles, batch_wall, marks, *, show, path):
 @click.option("--drop-outside-observations", "drop_outside", is_flag=True,
               help="Drop image observations outside their image (logged) instead of refusing the block.")
 @click.pass_context
-def adjust(ctx, block_file, out_dir, fix_control, no_gnss, no_ins, snooping, robust, covariance, self_cal, no_plots,
-           drop_outside):
-    """Bundle-adjust the block in BLOCK_FILE (JSON) and write the refined orientation, points and
-    reports into --out. A run that does not converge, or ends singular, writes nothing and exits
-    with status 1."""
+def adjust(ctx, block_file, out_dir, write_example, cameras, exterior, image_points, ground_points, fix_control, no_gnss,
+           no_ins, snooping, robust, covariance, self_cal, no_plots, drop_outside):
+    """Bundle-adjust the block in BLOCK_FILE (JSON; or from --cameras, --exterior, --image-points
+    and --ground-points) and write the refined orientation, points and reports into --out. A run
+    that does not converge, or ends singular, writes nothing and exits with status 1. Try it:
+    orthowarp adjust block.json --write-example --out adjusted"""
     from .adjust import bundle_adjust, read_block
-    from .errors import Cancelled, GeometryError
+    from .errors import Cancelled, GeometryError, ParamError
     from .pipeline.adjust_report import write_adjustment
 
-    block = read_block(block_file, drop_outside=drop_outside)
+    parts = (cameras, exterior, image_points, ground_points)
+    if any(parts):
+        if block_file or write_example:
+            raise ParamError("Give BLOCK_FILE or --cameras/--exterior/--image-points/--ground-points, not both")
+        if not all(parts):
+            raise ParamError("A block from files needs all of --cameras, --exterior, --image-points, --ground-points")
+        from .pipeline.blockio import block_from_files
+
+        block = block_from_files(cameras, exterior, image_points, ground_points, drop_outside=drop_outside)
+        block_file = exterior
+    else:
+        if not block_file:
+            raise ParamError("Give BLOCK_FILE (a block JSON; --write-example writes one) or the four CSV/orientation "
+                             "files")
+        if write_example:
+            from .adjust import synthetic_block, write_block
+            from .pipeline.io import check_destination
+
+            check_destination(block_file, overwrite=False)
+            write_block(synthetic_block()[0], block_file)
+            if not ctx.obj["quiet"]:
+                click.echo(f"wrote the example block {block_file}")
+        block = read_block(block_file, drop_outside=drop_outside)
     calib = None if not self_cal else (True if self_cal == "all" else tuple(x.strip() for x in self_cal.split(",")))
     result = bundle_adjust(block, fix_control=fix_control, use_gnss=not no_gnss, use_ins=not no_ins,
                            snooping=snooping, robust=robust, covariance=covariance, self_calibration=calib)

@@ -48,7 +48,8 @@ from ..errors import ParamError, RasterIOError
 from .formats import _camera_from_entry
 from .io import write_json
 
-__all__ = ["read_block", "write_block", "read_image_points_csv", "read_ground_points_csv", "FORMAT"]
+__all__ = ["read_block", "write_block", "read_image_points_csv", "read_ground_points_csv", "block_from_files",
+           "FORMAT"]
 
 FORMAT = "orthowarp-block"
 
@@ -189,6 +190,57 @@ def _camera(path, cid, params):
         elif value is not None:
             _num(path, value, what)
     return _camera_from_entry(path, cid, params)
+
+
+def block_from_files(cameras, exterior, image_points, ground_points, *, drop_outside=False, name=None):
+    """A block assembled from the formats the ortho reads and the CSV imports: cameras
+    (orthority/ODM camera file), exterior orientation (CSV + .prj, GeoJSON, reconstruction.json:
+    the initial poses), image points CSV and ground points CSV (see the module doc; points
+    measured in the images but not in the ground points are tie points). It goes through
+    :func:`read_block`'s checks, as a block JSON would.
+
+    Returns
+    -------
+    Block
+    """
+    import tempfile
+
+    from .formats import read_cameras, read_exterior
+
+    cams = read_cameras(cameras)
+    orients = read_exterior(exterior)
+    kinds = {o.pose.mode for o in orients.values()}
+    if len(kinds) != 1:
+        raise ParamError(f"'{exterior}': the poses must be of one kind (map or GNSS/INS), got {sorted(kinds)}")
+    geo = kinds == {"geocentric"}
+    if len(cams) != 1 and any(o.camera_id is None for o in orients.values()):
+        raise ParamError(f"'{exterior}' names no camera for some images and '{cameras}' holds {len(cams)}: add a "
+                         "camera column")
+    images = []
+    for iid, o in orients.items():
+        p = o.pose.params
+        keys = ("lat", "lon", "h", "roll", "pitch", "yaw") if geo else ("x", "y", "z", "omega", "phi", "kappa")
+        images.append({"id": iid, "camera": o.camera_id if o.camera_id is not None else next(iter(cams)),
+                       "pose": {k: float(p[k]) for k in keys}})
+    crs = "EPSG:4979" if geo else next(iter(orients.values())).pose.crs.to_wkt()
+    points, observations = read_ground_points_csv(ground_points), read_image_points_csv(image_points)
+    known = {pt["id"] for pt in points}
+    for ob in observations:  # points measured in the images only: tie points
+        if ob["point"] not in known:
+            known.add(ob["point"])
+            points.append({"id": ob["point"], "role": "tie"})
+    doc = {"format": FORMAT, "version": 1, "crs": crs,
+           "cameras": {cid: _camera_dict(c) for cid, c in cams.items()}, "images": images,
+           "points": points, "observations": observations}
+    with tempfile.TemporaryDirectory(prefix="orthowarp-block-") as tmp:
+        path = os.path.join(tmp, (name or "block") + ".json")
+        with open(path, "w", encoding="utf-8") as f:
+            json.dump(doc, f)
+        try:
+            return read_block(path, drop_outside=drop_outside)
+        except ParamError as e:  # name the inputs, not the temporary
+            raise ParamError(f"The block from '{exterior}', '{image_points}', '{ground_points}': "
+                             f"{str(e).split(': ', 1)[-1]}") from e
 
 
 def read_block(path, *, drop_outside=False):

@@ -294,3 +294,43 @@ def test_export_params_round_trip(tmp_path):
     res = CliRunner().invoke(main, ["ortho", str(tmp_path / "img.tif"), *args, "--export-params", "--out-dir",
                                     str(tmp_path / "params")])
     assert res.exit_code == 1 and "--overwrite" in res.output
+
+
+def test_adjust_can_be_tried_without_a_block_file(tmp_path):
+    """adjust --write-example writes a synthetic block and adjusts it; the same block given as
+    camera, exterior, image-point and ground-point files adjusts to the same result."""
+    import json
+
+    import yaml
+
+    block = tmp_path / "block.json"
+    res = CliRunner().invoke(main, ["adjust", str(block), "--write-example", "--out", str(tmp_path / "a"),
+                                    "--no-plots"])
+    assert res.exit_code == 0, res.output
+    assert block.is_file() and (tmp_path / "a" / "exterior.csv").is_file() and "sigma0" in res.output
+    sigma0 = res.output.split("sigma0 ")[1].split(",")[0]
+    res = CliRunner().invoke(main, ["adjust", str(block), "--write-example", "--out", str(tmp_path / "b")])
+    assert res.exit_code == 1 and "exists" in res.output
+    # the same block as files
+    doc = json.loads(block.read_text())
+    (tmp_path / "cams.yaml").write_text(yaml.safe_dump(doc["cameras"]))
+    keys = ("x", "y", "z", "omega", "phi", "kappa")
+    (tmp_path / "ext.csv").write_text("filename,x,y,z,omega,phi,kappa,camera\n" + "".join(
+        f"{im['id']},{','.join(repr(im['pose'][k]) for k in keys)},{im['camera']}\n" for im in doc["images"]))
+    from pyproj import CRS
+
+    (tmp_path / "ext.prj").write_text(CRS.from_user_input(doc["crs"]).to_wkt())
+    (tmp_path / "obs.csv").write_text("image,point,col,row,sigma\n" + "".join(
+        f"{o['image']},{o['point']},{o['col']!r},{o['row']!r},{o['sigma']!r}\n" for o in doc["observations"]))
+    (tmp_path / "gcp.csv").write_text("point,x,y,z,sx,sy,sz,role\n" + "".join(
+        f"{p['id']},{','.join(repr(v) for v in p['xyz'])},{','.join(repr(v) for v in p.get('sigma', (1.0,) * 3))},"
+        f"{p['role']}\n"
+        for p in doc["points"] if p["role"] != "tie"))
+    res = CliRunner().invoke(main, ["adjust", "--cameras", str(tmp_path / "cams.yaml"), "--exterior",
+                                    str(tmp_path / "ext.csv"), "--image-points", str(tmp_path / "obs.csv"),
+                                    "--ground-points", str(tmp_path / "gcp.csv"), "--out", str(tmp_path / "c"),
+                                    "--no-plots"])
+    assert res.exit_code == 0, res.output
+    assert res.output.split("sigma0 ")[1].split(",")[0] == sigma0
+    res = CliRunner().invoke(main, ["adjust", "--cameras", str(tmp_path / "cams.yaml"), "--out", str(tmp_path / "d")])
+    assert res.exit_code == 1 and "needs all of" in res.output
