@@ -83,7 +83,26 @@ def write_adjustment(result, block, out_dir, *, plots=True):
         rejected=[dict(image=i, point=p, w=w) for i, p, w in result.rejected],
         correlation_warnings=[dict(image=i, a=a, b=c, r=r) for i, a, c, r in result.correlation_warnings],
         max_abs_w=float(np.nanmax(np.abs(result.w_tests))) if result.w_tests is not None else None,
-        camera_std=result.camera_std)
+        camera_std=result.camera_std,
+        cameras={cid: dict(f=c.focal_length, x0=c.principal_point[0], y0=c.principal_point[1], k1=c.k1, k2=c.k2,
+                           k3=c.k3, p1=c.p1, p2=c.p2) for cid, c in (result.cameras or b.cameras).items()},
+        check_observations=int(np.sum(np.asarray(b.roles)[b.obs_point] == "check")))
+    # why observations are not in the adjustment: check points, rejected, the rest of tie
+    # points left with fewer than two rays (undetermined)
+    roles = np.asarray(b.roles)
+    rej = {(i, p) for i, p, _ in result.rejected}
+    out = ~used & (roles[b.obs_point] != "check")
+    rays = np.bincount(b.obs_point[used], minlength=b.n_points)
+    lonely = out & (roles[b.obs_point] == "tie") & (rays[b.obs_point] < 2) & np.array(
+        [(b.image_ids[i], b.point_ids[p]) not in rej for i, p in zip(b.obs_image, b.obs_point)], dtype=bool)
+    report["unused"] = dict(check=report["check_observations"], rejected=len(result.rejected),
+                            lonely_ties=int(lonely.sum()), other=int(out.sum()) - len(result.rejected) - int(lonely.sum()))
+    res_all = result.residuals
+    index = {(b.image_ids[i], b.point_ids[p]): k for k, (i, p) in enumerate(zip(b.obs_image, b.obs_point))}
+    for x in report["rejected"]:  # the rejected observation's residual (px) in the final solution
+        k = index.get((x["image"], x["point"]))
+        x["residual_px"] = [float(v) for v in res_all[k]] if k is not None and np.all(np.isfinite(res_all[k])) \
+            else None
     paths["report"] = os.path.join(out_dir, "report.json")
     files[paths["report"]] = json.dumps(_finite_or_null(report), indent=2, allow_nan=False) + "\n"
     if plots:
@@ -121,12 +140,39 @@ def _markdown(r, plots):
         v = r[f"{name}_rmse"]
         if np.all(np.isfinite(v)):
             lines.append(f"- {name} point RMSE: " + ", ".join(f"{a} {x:.4f} m" for a, x in zip(axes, v)))
+    u = r["unused"]
+    if r["observations"] > r["observations_used"]:
+        parts = [f"{u['check']} of check points (they only intersect those points afterwards)"] if u["check"] else []
+        if u["rejected"]:
+            parts.append(f"{u['rejected']} rejected (below)")
+        if u["lonely_ties"]:
+            parts.append(f"{u['lonely_ties']} of tie points left with fewer than two rays (undetermined)")
+        if u["other"]:
+            parts.append(f"{u['other']} set aside by the robust start")
+        lines.append("- not in the adjustment: " + ", ".join(parts))
+    if r["cameras"]:
+        lines += ["", "## Cameras", "", "| camera | parameter | value | sigma |", "|---|---|---|---|"]
+        units = dict(f="mm", x0="mm", y0="mm")
+        for cid, params in r["cameras"].items():
+            std = (r["camera_std"] or {}).get(cid, {})
+            for name, value in params.items():
+                sigma = f"{std[name]:.3g}" if name in std else "held"
+                lines.append(f"| {cid} | {name} {units.get(name, '')} | {value:.6g} | {sigma} |")
     if r["rejected"]:
-        lines += ["", "## Rejected observations (data snooping)", ""]
-        lines += [f"- point {x['point']} in image {x['image']}: |w| = {x['w']:.2f}" for x in r["rejected"]]
+        lines += ["", "## Rejected observations (data snooping)", "",
+                  "Observations whose normalised residual (Baarda's w-test) exceeded the critical value (3.29: "
+                  "alpha 0.1 %, two-sided, unless set otherwise), largest first, with their residual in the final "
+                  "solution (col, row px):", ""]
+        for x in sorted(r["rejected"], key=lambda x: -abs(x["w"])):
+            res = x.get("residual_px")
+            tail = f", residual ({res[0]:+.2f}, {res[1]:+.2f}) px" if res else ""
+            lines.append(f"- point {x['point']} in image {x['image']}: |w| = {abs(x['w']):.2f}{tail}")
     if r["correlation_warnings"]:
-        lines += ["", "## High correlations", ""]
-        lines += [f"- {x['image']}: {x['a']} / {x['b']} r = {x['r']:+.3f}" for x in r["correlation_warnings"][:50]]
+        worst = sorted(r["correlation_warnings"], key=lambda x: -abs(x["r"]))
+        lines += ["", "## High correlations", "",
+                  f"{len(worst)} pose parameter pairs correlated beyond the limit; the "
+                  f"{min(10, len(worst))} strongest (all in report.json):", ""]
+        lines += [f"- {x['image']}: {x['a']} / {x['b']} r = {x['r']:+.3f}" for x in worst[:10]]
     if plots:
         lines += ["", "![image residuals](residuals.png)", "", "![control and check errors](errors.png)"]
     return "\n".join(lines) + "\n"

@@ -334,3 +334,25 @@ def test_adjust_can_be_tried_without_a_block_file(tmp_path):
     assert res.output.split("sigma0 ")[1].split(",")[0] == sigma0
     res = CliRunner().invoke(main, ["adjust", "--cameras", str(tmp_path / "cams.yaml"), "--out", str(tmp_path / "d")])
     assert res.exit_code == 1 and "needs all of" in res.output
+
+
+def test_adjust_report_explains_itself(tmp_path):
+    """report.md: the cameras' values with sigmas where self-calibrated ('held' otherwise), why
+    observations are not in the adjustment (the counts add up), the rejected ones explained
+    with their residuals, strongest first."""
+    import json
+    import re
+
+    block = tmp_path / "block.json"
+    res = CliRunner().invoke(main, ["-q", "adjust", str(block), "--write-example", "--out", str(tmp_path / "a"),
+                                    "--snooping", "--self-calibration", "f,x0,y0", "--no-plots"])
+    assert res.exit_code == 0, res.output
+    md = (tmp_path / "a" / "report.md").read_text()
+    rep = json.loads((tmp_path / "a" / "report.json").read_text())
+    assert "## Cameras" in md and re.search(r"\| cam \| f mm \| [0-9.]+ \| [0-9.e-]+ \|", md)
+    assert "| cam | k1  | " in md and md.split("| cam | k1  | ")[1].split("\n")[0].endswith("| held |")
+    u = rep["unused"]
+    assert u["check"] + u["rejected"] + u["lonely_ties"] + u["other"] == rep["observations"] - rep["observations_used"]
+    assert u["rejected"] == len(rep["rejected"]) > 0 and "w-test" in md
+    ws = [float(v) for v in re.findall(r"\|w\| = ([0-9.]+)", md)]
+    assert ws == sorted(ws, reverse=True) and "residual (" in md
