@@ -215,9 +215,11 @@ def demo(out_dir, device):
 @click.option("--accuracy", is_flag=True,
               help="Also write <image>_ACCURACY.tif: the predicted accuracy of each ground position (sigma east, "
                    "north, up in m, by error propagation from --pose-sigma, --pixel-sigma and --dem-sigma), one "
-                   "pixel per 16 x 16 ortho pixels; frame images with omega-phi-kappa poses.")
+                   "pixel per 16 x 16 ortho pixels; frame images.")
 @click.option("--pose-sigma", default="0.05,0.05,0.1,0.005,0.005,0.01", show_default=True,
-              metavar="SX,SY,SZ,SOMEGA,SPHI,SKAPPA", help="With --accuracy: the poses' standard deviations (m, deg).")
+              metavar="SX,SY,SZ,SA,SB,SC",
+              help="With --accuracy: the poses' standard deviations: x, y, z (or east, north, up for GNSS/INS "
+                   "poses) in m, omega, phi, kappa (or roll, pitch, yaw) in deg.")
 @click.option("--pixel-sigma", type=float, default=0.5, show_default=True,
               help="With --accuracy: standard deviation of an image position (px).")
 @click.option("--dem-sigma", type=float, default=0.5, show_default=True,
@@ -264,7 +266,7 @@ def ortho(ctx, images, odm_dataset, int_param, ext_param, dimap, attitude_model,
     sigmas = None
     if accuracy:
         if dimap:
-            raise ParamError("--accuracy is computed for frame images (omega-phi-kappa poses), not --dimap scenes")
+            raise ParamError("--accuracy is computed for frame images, not --dimap scenes")
         try:
             sigmas = [float(v) for v in pose_sigma.split(",")]
         except ValueError:
@@ -370,8 +372,6 @@ def ortho(ctx, images, odm_dataset, int_param, ext_param, dimap, attitude_model,
         raise ParamError("Give --ext-param (frame images) or --dimap (a pushbroom scene)")
     jobs, seen = [], {}
     for image, camera, pose in _frame_orientations(images, int_param, ext_param, crs):
-        if accuracy and pose.mode != "map":
-            raise ParamError(f"--accuracy is computed for omega-phi-kappa poses; '{image}' has a {pose.mode} pose")
         key = os.path.splitext(os.path.basename(image))[0]
         dst = os.path.join(out_dir, f"{key}_ORTHO.tif")
         if dst in seen:

@@ -248,8 +248,8 @@ def test_an_odm_dataset_folder_in_one_option(tmp_path):
 
 def test_ortho_accuracy_raster(tmp_path):
     """--accuracy writes <image>_ACCURACY.tif beside the ortho (sigma east, north, up, one
-    pixel per 16 x 16 ortho pixels, finite where the image sees the ground); bad sigmas and
-    GNSS/INS poses are refused before anything is written."""
+    pixel per 16 x 16 ortho pixels, finite where the image sees the ground); bad sigmas are
+    refused before anything is written."""
     import numpy as np
     import rasterio
 

@@ -248,3 +248,32 @@ def test_accuracy_raster_is_the_propagation_at_its_cells(tmp_path):
     ref = monoplot_covariance(camera, pose, [[x, y, z]], [PLANE[1:]], pose_cov=POSE_COV, pixel_sigma=0.5,
                               dem_sigma=0.3)
     np.testing.assert_allclose(out[:, i, j], ref.sigma[0], rtol=1e-5)
+
+
+def test_accuracy_raster_for_a_gnss_ins_pose(tmp_path):
+    """A GNSS/INS pose: the raster's sigmas at a seen cell are the propagation's east/north/up
+    ones turned into the output CRS (UTM: a rotation by the meridian convergence and a scale
+    factor near 1, so sigma_xy and sigma_up agree to ~1 %)."""
+    from pyproj import CRS, Transformer
+
+    from orthowarp.pipeline.precision import accuracy_raster
+
+    camera = ow.FrameCamera(100.5, 0.0052, (4000, 3000))
+    pose = ow.Pose.from_ins(46.501, 7.998, 2650.0, 1.2, -0.8, 35.0)
+    pose_cov = np.diag([0.05, 0.05, 0.1, 0.005, 0.005, 0.01]) ** 2
+    utm = CRS(32632)
+    centre = ow.geolocate(camera, pose, [[2000.0, 1500.0]], dem=500.0, crs=utm, device="cpu", refraction=False)[0]
+    from affine import Affine
+
+    transform, shape = Affine(0.2, 0, centre[0] - 200, 0, -0.2, centre[1] + 200), (2000, 2000)
+    out = accuracy_raster(tmp_path / "acc.tif", camera, pose, 500.0, utm, transform, shape, pose_cov=pose_cov,
+                          pixel_sigma=0.5, dem_sigma=0.4)
+    seen = np.isfinite(out[0])
+    assert seen.mean() > 0.5
+    i, j = np.argwhere(seen)[len(np.argwhere(seen)) // 2]
+    x, y = transform * Affine.scale(16) * (j + 0.5, i + 0.5)
+    lon, lat = Transformer.from_crs(utm, "EPSG:4326", always_xy=True).transform(x, y)
+    ref = monoplot_covariance(camera, pose, [[lon, lat, 500.0]], [[0.0, 0.0]], pose_cov=pose_cov, pixel_sigma=0.5,
+                              dem_sigma=0.4)
+    np.testing.assert_allclose(np.hypot(out[0, i, j], out[1, i, j]), np.hypot(*ref.sigma[0, :2]), rtol=0.01)
+    np.testing.assert_allclose(out[2, i, j], ref.sigma[0, 2], rtol=1e-6)
