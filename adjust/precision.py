@@ -32,12 +32,21 @@ Poses:
   east, north, up (m).
 """
 
+from __future__ import annotations
+
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from ..errors import ParamError
 from . import collinearity as col
+
+if TYPE_CHECKING:  # annotations only
+    from ..camera import FrameCamera
+    from ..pose import Pose
 
 __all__ = ["PrecisionResult", "monoplot_covariance", "intersection_covariance"]
 
@@ -188,8 +197,9 @@ def _input_cov(pose_cov, camera_cov, pixel_cov, q):
     return c
 
 
-def monoplot_covariance(camera, pose, points, slopes, *, pose_cov, pixel_sigma=0.5, camera_cov=None,
-                        camera_params=(), dem_sigma=0.0):
+def monoplot_covariance(camera: FrameCamera, pose: Pose, points: ArrayLike, slopes: ArrayLike, *,
+                        pose_cov: ArrayLike, pixel_sigma: float = 0.5, camera_cov: ArrayLike | None = None,
+                        camera_params: Sequence[str] = (), dem_sigma: float = 0.0) -> PrecisionResult:
     """Covariance of ground points geolocated from one image on a DEM.
 
     Parameters
@@ -242,8 +252,9 @@ def monoplot_covariance(camera, pose, points, slopes, *, pose_cov, pixel_sigma=0
     return PrecisionResult(pts, a @ c_in @ np.transpose(a, (0, 2, 1)))
 
 
-def intersection_covariance(cameras, poses, points, *, pose_cov, pixel_sigma=0.5, camera_cov=None,
-                            camera_params=()):
+def intersection_covariance(cameras: Sequence[FrameCamera], poses: Sequence[Pose], points: ArrayLike, *,
+                            pose_cov: ArrayLike, pixel_sigma: float = 0.5, camera_cov: ArrayLike | None = None,
+                            camera_params: Sequence[str] = ()) -> PrecisionResult:
     """Covariance of ground points intersected from two or more images (least squares).
 
     Parameters

@@ -1,5 +1,7 @@
 """Point-wise geolocation (pixel -> ground) and projection (ground -> pixel) of frame images and pushbroom scenes."""
 
+from __future__ import annotations
+
 import copy
 import math
 import numbers
@@ -8,7 +10,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import warp as wp
-from pyproj import Transformer
+from pyproj import CRS, Transformer
 
 from .._device import quiet_warp, resolve_device
 from .._validate import as_crs, no_infinite_rows, points
@@ -602,8 +604,9 @@ def check_camera_above_terrain(pose, dem, *, name=None):
                             f"{place} is {terrain:.3f} m (check the pose's height and the DEM's vertical datum)")
 
 
-def geolocate(sensor, *args, dem, crs=LLH, refraction=True, device=None, geoid=None,
-              same_vertical_datum=False):
+def geolocate(sensor: FrameCamera | PushbroomScene, *args, dem: Dem | str | os.PathLike | float,
+              crs: str | int | CRS = LLH, refraction: bool = True, device: str | None = None,
+              geoid: str | os.PathLike | None = None, same_vertical_datum: bool = False) -> np.ndarray:
     """Ground coordinates of image pixels (forward, pixel -> ground).
 
     Called as ``geolocate(camera, pose, pixels, ...)`` for a frame image or
@@ -671,7 +674,8 @@ def geolocate(sensor, *args, dem, crs=LLH, refraction=True, device=None, geoid=N
     return out
 
 
-def project(sensor, *args, crs=LLH, refraction=True, device=None):
+def project(sensor: FrameCamera | PushbroomScene, *args, crs: str | int | CRS = LLH, refraction: bool = True,
+            device: str | None = None) -> np.ndarray:
     """Pixel coordinates of ground points (backward, ground -> pixel).
 
     Called as ``project(camera, pose, points, ...)`` for a frame image or

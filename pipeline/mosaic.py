@@ -23,19 +23,22 @@ the one with the largest weight; masked, by its internal mask, where no image ha
 written beside the mosaic and published together with it.
 """
 
+from __future__ import annotations
+
 import collections
 import contextlib
 import logging
 import os
 import threading
 import time
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import rasterio
 import warp as wp
 from affine import Affine
-from pyproj import Transformer
+from pyproj import CRS, Transformer
 
 from .._device import quiet_warp
 from ..camera import FrameCamera
@@ -45,6 +48,7 @@ from ..kernels import mosaic as mosaic_kernels
 from ..pose import Pose
 from ..pushbroom import PushbroomScene
 from .cog import DTYPES, CogWriter
+from .dem import Dem
 from .cog_device import DeviceCogEncoder, HostDeflate, NvcompDeflate
 from .io import atomic_files, check_destination
 from .ortho import _TOP as TOP
@@ -136,11 +140,15 @@ def _angle_field(geom, transform, to_frame, r0, c0, th, tw):
 
 
 @quiet_warp()
-def mosaic(images, dst, *, dem, crs=None, resolution=None, resampling="bilinear", refraction=True, dtype=None,
-           index=None, seamlines=None, seams="least-cost", seam_width=256, blend="feather", feather=32, balance=True,
-           reference=None, occlusion=True, compress_level=None, block_codec="auto",
-           tile_size=None, overwrite=False, device=None, workers=None, geoid=None, same_vertical_datum=False,
-           cancel=None):
+def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | os.PathLike | float,
+           crs: str | int | CRS | None = None, resolution: float | None = None, resampling: str = "bilinear",
+           refraction: bool = True, dtype: str | None = None, index: str | os.PathLike | None = None,
+           seamlines: str | os.PathLike | None = None, seams: str = "least-cost", seam_width: float = 256,
+           blend: str = "feather", feather: float = 32, balance: bool = True, reference: int | None = None,
+           occlusion: bool = True, compress_level: int | None = None, block_codec: str = "auto",
+           tile_size: int | None = None, overwrite: bool = False, device: str | None = None,
+           workers: int | None = None, geoid: str | os.PathLike | None = None, same_vertical_datum: bool = False,
+           cancel: threading.Event | None = None) -> MosaicResult:
     """Mosaic frame images and pushbroom scenes into one cloud-optimized GeoTIFF (deflate,
     internal mask, overviews).
 

@@ -10,6 +10,8 @@ the device's one stream in submission order). Neither the source nor the output 
 whole in memory.
 """
 
+from __future__ import annotations
+
 import contextlib
 import functools
 import logging
@@ -221,11 +223,15 @@ class _Counter:
 
 
 @quiet_warp()  # Warp's informational messages only where the user asked for them
-def orthorectify(src, sensor, *args, dem, crs=None, resolution=None, resampling="bilinear", method="backward",
-                 refraction=True, dtype=None, driver="COG", compress="deflate", compress_level=None, quality=None,
-                 overviews=True,
-                 tile_size=None, overwrite=False, device=None, progress=False, workers=None,
-                 geoid=None, same_vertical_datum=False, cancel=None, block_codec="auto"):
+def orthorectify(src: str | os.PathLike, sensor: FrameCamera | PushbroomScene, *args,
+                 dem: Dem | str | os.PathLike | float, crs: str | int | CRS | None = None,
+                 resolution: float | None = None, resampling: str = "bilinear", method: str = "backward",
+                 refraction: bool = True, dtype: str | None = None, driver: str = "COG", compress: str = "deflate",
+                 compress_level: int | None = None, quality: int | None = None, overviews: bool = True,
+                 tile_size: int | None = None, overwrite: bool = False, device: str | None = None,
+                 progress: bool = False, workers: int | None = None, geoid: str | os.PathLike | None = None,
+                 same_vertical_datum: bool = False, cancel: threading.Event | None = None,
+                 block_codec: str = "auto") -> OrthoResult:
     """Orthorectify one frame image or pushbroom scene into a GeoTIFF / cloud-optimized GeoTIFF.
 
     Called as ``orthorectify(src, camera, pose, dst, ...)`` for a frame image or
