@@ -47,7 +47,10 @@ def synthetic_block(*, strips=3, images_per_strip=8, ties_per_image=12, control=
         9: the nine standard positions (three along the track: -base, 0, +base; three across:
         the two side-overlap bands and the centre); 6: the bands only; 12: the bands and two
         rows in the image's middle third.
-    control : {"A", "B", "C", "D"}
+    control : {"A", "B", "C", "D"} or array_like (m, 2)
+        A layout, or the control points' positions as fractions of the block's extent (0 at
+        the first image centre / the outer edge of the first strip's side overlap, 1 at the
+        last), e.g. a chosen subset of surveyed points.
     n_check : int
     sigma_px : float
         Image observation noise (px) and their stated sigma.
@@ -84,8 +87,13 @@ def synthetic_block(*, strips=3, images_per_strip=8, ties_per_image=12, control=
     """
     if ties_per_image not in (6, 9, 12):
         raise ParamError(f"ties_per_image must be 6, 9 or 12, got {ties_per_image!r}")
-    if control not in CONTROL_LAYOUTS:
-        raise ParamError(f"control must be one of {CONTROL_LAYOUTS}, got {control!r}")
+    fractions = None
+    if not isinstance(control, str):
+        fractions = np.asarray(control, dtype=np.float64).reshape(-1, 2)
+        if not np.all(np.isfinite(fractions)) or np.any(np.abs(fractions - 0.5) > 1.0):
+            raise ParamError(f"control positions must be finite fractions of the block's extent, got {control!r}")
+    elif control not in CONTROL_LAYOUTS:
+        raise ParamError(f"control must be one of {CONTROL_LAYOUTS} or positions, got {control!r}")
     gseed = seed if geometry_seed is None else geometry_seed
     geo = np.random.default_rng([gseed, 0])  # tilts and tie points
     chk = np.random.default_rng([gseed, 1])  # check points: the same whatever the tie layout
@@ -124,7 +132,8 @@ def synthetic_block(*, strips=3, images_per_strip=8, ties_per_image=12, control=
                      (xa, (ya + yb) / 2), (xb, (ya + yb) / 2), ((xa + xb) / 2, (ya + yb) / 2)],
                "B": [(xa, ya), (xb, ya), (xa, yb), (xb, yb)],
                "C": [(xa, ya), (xa + base, ya), (xa, ya + spacing), (xa + base, ya + spacing)],
-               "D": []}[control]
+               "D": []}[control] if fractions is None else \
+        [(xa + fx * (xb - xa), ya + fy * (yb - ya)) for fx, fy in fractions]
     # control and check points are ground points of their own (signalised), placed whatever
     # the tie layout, and measured in every image that sees them
     control_xy = np.array(targets, float).reshape(-1, 2) + chk.uniform(-0.02, 0.02, (len(targets), 2)) * base
@@ -187,5 +196,6 @@ def synthetic_block(*, strips=3, images_per_strip=8, ties_per_image=12, control=
     block = Block(crs=crs, cameras={"cam": cam}, image_ids=ids, image_camera=["cam"] * n, poses=init,
                   point_ids=[f"{r[0]}{j:05d}" for j, r in enumerate(roles)], roles=roles, xyz=given,
                   xyz_sigma=sig, obs_image=ii, obs_point=jj, obs_xy=obs, obs_sigma=np.full(len(ii), float(sigma_px)),
-                  name=f"synthetic {strips}x{images_per_strip} control {control}", **kw)
+                  name=f"synthetic {strips}x{images_per_strip} control "
+                       f"{control if fractions is None else f'{len(fractions)} points'}", **kw)
     return block, dict(poses=poses, xyz=xyz)

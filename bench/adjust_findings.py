@@ -4,7 +4,15 @@ B (corners), C (clustered) and D (no control, GNSS/INS-supported poses: a varian
 bench's own; seed 002's group D is four control points).
 
 Seed 002 itself used an RMK A 30/23 (f = 305 mm, photo scale 1:4000, 21 um scan), one strip of 4
-photos and control subsets of 4 of 7 points; that block is not reproduced here.
+photos and control subsets of 4 of 7 points. ``--published`` runs that configuration: the
+camera (230 mm format scanned at 21 um: 10952 x 10952 pixels), 1220 m above the ground, one strip
+of 4 photos at 60 % overlap, 7 control points (the strip's four corners, the middles of its long
+sides and its centre: the paper's point positions are not available here), every subset of 4 of
+them as control (35), ties at 6 and at 12 positions per photo; per configuration sigma0 and
+each photo's pose standard deviations from the adjustment's covariance (Qxx; the layout of the
+paper's Tables 2-3), averaged over ``--runs`` noise realisations, and the check RMSE at the
+other 3 points plus 12 check points. The paper's own table values are not available here, so
+they are not printed beside these.
 
 Each configuration is adjusted on ``--runs`` noise realisations of one block geometry (3 strips
 x 8 images, 60/30 % overlap, 0.5 px image noise, 2 cm control sigma); the table gives the RMSE
@@ -17,6 +25,7 @@ per axis over all check points and runs. Cameras (``--camera``):
   (13.5 cm pixels, base-to-height ratio 0.25): a weaker block.
 
 usage: python3 bench/adjust_findings.py [--runs 20] [--camera film|digital] [--out FILE]
+       python3 bench/adjust_findings.py --published [--runs 5] [--out FILE]
 """
 
 import argparse
@@ -26,15 +35,77 @@ import time
 
 import numpy as np
 
+from orthowarp import FrameCamera
 from orthowarp.adjust import bundle_adjust, film_camera, synthetic_block
+
+SEVEN = [(0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (1.0, 1.0), (0.5, 0.0), (0.5, 1.0), (0.5, 0.5)]  # fractions of the strip
+
+
+def published(args):
+    """Seed 002's configuration (see the module doc)."""
+    import itertools
+
+    cam = FrameCamera(305.0, 0.021, (10952, 10952))
+    rows = []
+    for ties in (6, 12):
+        for subset in itertools.combinations(range(7), 4):
+            rest = [SEVEN[i] for i in range(7) if i not in subset]
+            s0, pose_std, errs = [], [], []
+            for r in range(args.runs):
+                block, _ = synthetic_block(strips=1, images_per_strip=4, ties_per_image=ties,
+                                           control=[SEVEN[i] for i in subset], n_check=12, camera=cam,
+                                           flying_height=1220.0, geometry_seed=42, seed=200 + r)
+                res = bundle_adjust(block, covariance="poses")
+                if not res.success:
+                    raise RuntimeError(f"subset {subset}, ties {ties}, run {r}: {res.message}")
+                s0.append(res.sigma0)
+                pose_std.append([[float(v) for v in res.pose_std[i]] for i in block.image_ids])
+                errs.append(res.check_errors)
+            e = np.concatenate(errs)
+            rows.append(dict(ties_per_image=ties, control_subset=list(subset), other_surveyed=rest,
+                             sigma0_mean=float(np.mean(s0)),
+                             pose_std_mean=np.mean(pose_std, axis=0).tolist(),  # per photo: X0 Y0 Z0 m, o p k deg
+                             check_rmse_m=np.sqrt(np.mean(e**2, axis=0)).tolist()))
+        sub = [x for x in rows if x["ties_per_image"] == ties]
+        ps = np.array([x["pose_std_mean"] for x in sub])  # (subsets, photos, 6)
+        ck = np.array([x["check_rmse_m"] for x in sub])
+        print(f"ties {ties:2d} per photo, 35 control subsets of 4 of 7, {args.runs} runs each: sigma0 "
+              f"{np.mean([x['sigma0_mean'] for x in sub]):.3f}")
+        print("  photo   sX0 cm  sY0 cm  sZ0 cm   so mgon  sp mgon  sk mgon   (median over subsets)")
+        for k in range(ps.shape[1]):
+            med = np.median(ps[:, k], axis=0)
+            print(f"  {k + 1:5d}  {med[0] * 100:7.2f} {med[1] * 100:7.2f} {med[2] * 100:7.2f}  "
+                  f"{med[3] / 0.9 * 1000:8.2f} {med[4] / 0.9 * 1000:8.2f} {med[5] / 0.9 * 1000:8.2f}")
+        best, worst = np.argmin(np.linalg.norm(ck, axis=1)), np.argmax(np.linalg.norm(ck, axis=1))
+        for label, i in (("best", best), ("worst", worst)):
+            print(f"  check RMSE, {label} subset {sub[i]['control_subset']}: x {ck[i, 0] * 100:.2f}  "
+                  f"y {ck[i, 1] * 100:.2f}  z {ck[i, 2] * 100:.2f} cm")
+    return dict(benchmark="adjust_findings_published", runs=args.runs,
+                camera=dict(focal_mm=305.0, pixel_mm=0.021, size=[10952, 10952]), flying_height_m=1220.0,
+                control_points=SEVEN, rows=rows,
+                note="seed 002's configuration; the paper's point positions and table values are not available "
+                     "here, so they are not compared")
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--runs", type=int, default=20)
+    ap.add_argument("--runs", type=int, default=None, help="noise realisations per configuration (20; 5 with "
+                                                           "--published)")
     ap.add_argument("--camera", default="film", choices=["film", "digital"])
-    ap.add_argument("--out", default="bench/results/adjust_findings.json")
+    ap.add_argument("--published", action="store_true", help="seed 002's configuration as published")
+    ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
+    if args.published:
+        args.runs = args.runs or 5
+        report = published(args)
+        out = args.out or "bench/reference/adjust-published-seed002.json"
+        os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
+        with open(out, "w") as f:
+            json.dump(report, f, indent=1)
+        print(f"wrote {out}")
+        return
+    args.runs = args.runs or 20
+    args.out = args.out or "bench/results/adjust_findings.json"
     setup = dict(camera=film_camera(), flying_height=612.0) if args.camera == "film" else dict(flying_height=1500.0)
     rows = []
     for control in ("A", "B", "C", "D"):

@@ -492,3 +492,24 @@ def test_cli_adjust_failure_writes_nothing(tmp_path):
         assert len(errors) == 1 and "failed (status" in errors[0] and "nothing written" in errors[0]
         assert "Traceback" not in r.output
         assert not out.exists()
+
+
+def test_synthetic_block_with_control_at_given_positions():
+    """synthetic_block(control=positions): control points where asked (fractions of the block's
+    extent), e.g. seed 002's single strip of 4 photos with 4 of 7 surveyed points; such a block
+    adjusts; positions outside the block are refused."""
+    from orthowarp import FrameCamera
+    from orthowarp.errors import ParamError
+
+    cam = FrameCamera(305.0, 0.021, (10952, 10952))
+    block, truth = synthetic_block(strips=1, images_per_strip=4, ties_per_image=6, camera=cam, flying_height=1220.0,
+                                   control=[(0, 0), (1, 0), (0, 1), (1, 1)], n_check=5, geometry_seed=42)
+    roles = np.array(block.roles)
+    ctrl = truth["xyz"][roles == "control"]
+    assert len(ctrl) == 4 and block.n_images == 4
+    base = (1 - 0.6) * 10952 * 1220.0 / 305.0 * 0.021
+    assert abs(ctrl[:, 0].min()) < 0.03 * base and abs(ctrl[:, 0].max() - 3 * base) < 0.03 * base
+    res = bundle_adjust(block, covariance="poses")
+    assert res.success and 0.5 < res.sigma0 < 1.5 and len(res.pose_std) == 4
+    with pytest.raises(ParamError, match="fractions"):
+        synthetic_block(control=[(0.5, 3.0)])
