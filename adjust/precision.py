@@ -154,7 +154,8 @@ class _Frame:
                     att[k - 3] += sign * d
                 moved.append(self._row(Pose.from_ins(*lla, *att, boresight=p["boresight"], lever_arm=p["lever_arm"])))
             diff = moved[0] - moved[1]
-            diff[3:] = np.degrees(diff[3:])  # angles per degree, as the equations' columns are
+            # angles per degree, as the equations' columns are (a step across +-180 deg wrapped)
+            diff[3:] = (np.degrees(diff[3:]) + 180.0) % 360.0 - 180.0
             jac[:, k] = diff / (2 * d)
         return self._row(pose), jac
 
