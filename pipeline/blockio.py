@@ -197,14 +197,12 @@ def block_from_files(cameras, exterior, image_points, ground_points, *, drop_out
     (orthority/ODM camera file), exterior orientation (CSV + .prj, GeoJSON, reconstruction.json:
     the initial poses), image points CSV and ground points CSV (see the module doc; points
     measured in the images but not in the ground points are tie points). It goes through
-    :func:`read_block`'s checks, as a block JSON would.
+    the block reader's checks, as a block JSON would.
 
     Returns
     -------
     Block
     """
-    import tempfile
-
     from .formats import read_cameras, read_exterior
 
     cams = read_cameras(cameras)
@@ -232,15 +230,9 @@ def block_from_files(cameras, exterior, image_points, ground_points, *, drop_out
     doc = {"format": FORMAT, "version": 1, "crs": crs,
            "cameras": {cid: _camera_dict(c) for cid, c in cams.items()}, "images": images,
            "points": points, "observations": observations}
-    with tempfile.TemporaryDirectory(prefix="orthowarp-block-") as tmp:
-        path = os.path.join(tmp, (name or "block") + ".json")
-        with open(path, "w", encoding="utf-8") as f:
-            json.dump(doc, f)
-        try:
-            return read_block(path, drop_outside=drop_outside)
-        except ParamError as e:  # name the inputs, not the temporary
-            raise ParamError(f"The block from '{exterior}', '{image_points}', '{ground_points}': "
-                             f"{str(e).split(': ', 1)[-1]}") from e
+    label = " + ".join(os.fspath(p) for p in (cameras, exterior, image_points, ground_points))
+    return _block_from_data(doc, label, name or os.path.splitext(os.path.basename(os.fspath(exterior)))[0],
+                            drop_outside=drop_outside)
 
 
 def read_block(path, *, drop_outside=False):
@@ -264,7 +256,13 @@ def read_block(path, *, drop_outside=False):
         The file cannot be read.
     """
     path = os.fspath(path)
-    data = _obj(path, _load_json(path), "the file's content")
+    return _block_from_data(_load_json(path), path, os.path.basename(path), drop_outside=drop_outside)
+
+
+def _block_from_data(data, path, name, *, drop_outside=False):
+    """:func:`read_block`'s work on a parsed document ``data``; ``path`` is how the messages
+    name its source, ``name`` the block's name."""
+    data = _obj(path, data, "the file's content")
     for key in ("crs", "cameras", "images", "points", "observations"):
         if key not in data:
             raise _fail(path, f"missing '{key}'")
@@ -365,7 +363,7 @@ def read_block(path, *, drop_outside=False):
                      poses=np.array(poses, float).reshape(-1, 6), point_ids=point_ids, roles=roles,
                      xyz=np.array(xyz, float).reshape(-1, 3), xyz_sigma=np.array(sig, float).reshape(-1, 3),
                      obs_image=oi, obs_point=op, obs_xy=oxy, obs_sigma=osig, gnss_xyz=gx, gnss_sigma=gs,
-                     ins_opk=io_, ins_sigma=is_, name=os.path.basename(path),
+                     ins_opk=io_, ins_sigma=is_, name=name,
                      mode="geocentric" if geocentric else "map")
     except ParamError as e:
         raise ParamError(f"'{path}': {e}") from e
