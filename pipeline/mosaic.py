@@ -1225,12 +1225,10 @@ def _fallback_blocks(missing, labels, f, r0, c0, block=FALLBACK_BLOCK):
     cc = np.clip(np.arange(c0, c0 + tw) // f, 0, ccols - 1)
     i0, i1, j0, j1 = rr[0], rr[-1] + 1, cc[0], cc[-1] + 1
     # cover on the tile's reduced window, grown by one reduced pixel (its rim from the grid)
+    from scipy import ndimage
+
     win = labels[max(i0 - 1, 0):i1 + 1, max(j0 - 1, 0):j1 + 1] != NO_SOURCE
-    grown = win.copy()
-    grown[1:] |= win[:-1]
-    grown[:-1] |= win[1:]
-    grown[:, 1:] |= grown[:, :-1].copy()
-    grown[:, :-1] |= grown[:, 1:].copy()
+    grown = ndimage.binary_dilation(win, structure=np.ones((3, 3), bool))
     need = missing & grown[np.ix_(rr - max(i0 - 1, 0), cc - max(j0 - 1, 0))]
     nb_r, nb_c = -(-th // block), -(-tw // block)
     pad = np.zeros((nb_r * block, nb_c * block), bool)
