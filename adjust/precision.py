@@ -281,17 +281,16 @@ def intersection_covariance(cameras: Sequence[FrameCamera], poses: Sequence[Pose
         raise ParamError(f"intersection needs two or more images with one camera each; got {len(poses)} poses "
                          f"and {len(cameras)} cameras")
     k = len(poses)
-    pc = np.asarray(pose_cov, dtype=np.float64)
-    pts, _, q, _, camera_cov = _check(points, pc if pc.shape == (6, 6) else np.eye(6), camera_cov, camera_params)
-    pose_block = _square("pose_cov", pc, 6) if pc.shape == (6, 6) else None
-    stacked = None if pose_block is not None else _square("pose_cov", pc, 6 * k)
+    shared = np.shape(pose_cov) == (6, 6)  # one covariance for every pose, or the stacked poses'
+    pts, _, q, pose_cov, camera_cov = _check(points, pose_cov, camera_cov, camera_params,
+                                             pose_size=6 if shared else 6 * k)
     distinct = []
     for c in cameras:
         if not any(c is d for d in distinct):
             distinct.append(c)
     n_in = 6 * k + q * len(distinct) + 2 * k
     c_in = np.zeros((n_in, n_in))
-    c_in[:6 * k, :6 * k] = stacked if stacked is not None else np.kron(np.eye(k), pose_block)
+    c_in[:6 * k, :6 * k] = np.kron(np.eye(k), pose_cov) if shared else pose_cov
     for d in range(len(distinct)):
         if q:
             c_in[6 * k + q * d:6 * k + q * (d + 1), 6 * k + q * d:6 * k + q * (d + 1)] = camera_cov
@@ -322,7 +321,7 @@ def intersection_covariance(cameras: Sequence[FrameCamera], poses: Sequence[Pose
     return PrecisionResult(pts, a @ c_in @ np.transpose(a, (0, 2, 1)))
 
 
-def _check(points, pose_cov, camera_cov, camera_params, slopes=None):
+def _check(points, pose_cov, camera_cov, camera_params, slopes=None, pose_size=6):
     pts = np.asarray(points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3 or not np.all(np.isfinite(pts)):
         raise ParamError(f"points must be a finite (n, 3) array, got shape {pts.shape}")
@@ -330,7 +329,7 @@ def _check(points, pose_cov, camera_cov, camera_params, slopes=None):
     if bad or len(set(camera_params)) != len(camera_params):
         raise ParamError(f"camera_params must be distinct names from {CAMERA_PARAMS}, got {list(camera_params)}")
     q = len(camera_params)
-    pose_cov = _square("pose_cov", pose_cov, 6)
+    pose_cov = _square("pose_cov", pose_cov, pose_size)
     if q:
         if camera_cov is None:
             raise ParamError("camera_params given without camera_cov")
