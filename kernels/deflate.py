@@ -1,0 +1,506 @@
+"""Deflate (RFC 1951) on the device: LZ77 with hash chains and lazy matching, dynamic Huffman.
+
+Each thread compresses one *chunk* (at most 32 KiB) of one stream into a self-contained piece
+of deflate data that ends on a byte boundary, so that the pieces of a stream concatenate into
+the stream without any bit shifting:
+
+- :func:`lz77_kernel`: hash chains over 3-byte prefixes (head table per chunk, links per
+  position), a bounded chain walk (``depth`` candidates, stop at ``nice`` bytes) and one-step
+  lazy evaluation as in zlib's ``deflate_slow`` (a match is deferred by one byte when the next
+  position matches longer). Matches end inside the chunk and may start up to ``prime`` bytes
+  before it, in data of the same stream that the decoder has already produced (the window of
+  a single-threaded deflate, cut to what one thread hashes). Tokens and symbol frequencies
+  per chunk.
+- :func:`huffman_kernel`: per chunk, length-limited Huffman code lengths for the literal/length
+  (15 bits), distance (15 bits) and code-length (7 bits) alphabets, from a two-queue Huffman tree
+  (van Leeuwen 1976) whose depth histogram is brought under the limit by the adjustment of
+  ITU-T T.81 (JPEG) Annex K.3; the run-length coding of the code lengths (symbols 16, 17, 18);
+  the exact size of the piece in bytes; a stored block instead where that is not larger.
+- :func:`emit_kernel`: canonical codes (RFC 1951 section 3.2.2) and the piece's bits at the
+  offset a prefix sum of the sizes gives it. A piece that does not end its stream is a dynamic
+  block followed by an empty stored block (``BFINAL`` 0: the same byte alignment as zlib's
+  ``Z_SYNC_FLUSH``); the last piece of a stream is a final block padded to a byte.
+
+Chunk-local tables live in scratch arrays, one row per chunk (the ``(positions, chunks)``
+arrays are transposed so that threads of a warp walking their chunks in step touch
+neighbouring words). The host side is :class:`orthowarp.pipeline.cog_device.WarpDeflate`.
+"""
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+GOLDEN = wp.constant(wp.uint32(2654435761))  # Knuth's multiplicative hash
+HASH_SIZE = wp.constant(1 << 13)  # head table entries per chunk (13-bit hash of 3 bytes)
+MAX_CHUNK = 32768  # bytes: a stored block holds at most 65535, a match reaches 32768 back
+NSYM = wp.constant(336)  # per-chunk symbol row: literal/length 0-285, distance 286-315, code length 316-334
+DIST0 = wp.constant(286)
+CL0 = wp.constant(316)
+CL_ROW = 320  # run-length coded code lengths per chunk: at most 286 + 30 entries
+
+
+@wp.func
+def hash3(buf: wp.array(dtype=wp.uint8), p: wp.int32) -> wp.int32:
+    v = (wp.uint32(buf[p]) << wp.uint32(16)) | (wp.uint32(buf[p + 1]) << wp.uint32(8)) | wp.uint32(buf[p + 2])
+    return wp.int32((v * GOLDEN) >> wp.uint32(32 - 13))
+
+
+@wp.func
+def dist_code(d: wp.int32) -> wp.vec3i:
+    """(code, extra bits, extra value) of a match distance 1-32768."""
+    code = d - 1
+    nx = int(0)
+    xv = int(0)
+    if d > 4:
+        t = d - 1
+        nb = int(0)
+        v = t
+        while v > 1:
+            v = v >> 1
+            nb = nb + 1
+        code = 2 * nb + ((t >> (nb - 1)) & 1)
+        nx = nb - 1
+        xv = t & ((1 << nx) - 1)
+    return wp.vec3i(code, nx, xv)
+
+
+@wp.func
+def insert(buf: wp.array(dtype=wp.uint8), base: wp.int32, j: wp.int32, pr: wp.int32, c: wp.int32,
+           head: wp.array2d(dtype=wp.int32), prev: wp.array2d(dtype=wp.int32)):
+    """Chain position j (chunk-relative, from -pr) in: links are stored as j + pr + 1, 0 ends."""
+    h = hash3(buf, base + j)
+    prev[j + pr, c] = head[c, h]
+    head[c, h] = j + pr + 1
+
+
+@wp.func
+def add_literal(v: wp.int32, nt: wp.int32, c: wp.int32, tokens: wp.array2d(dtype=wp.uint32),
+                freq: wp.array2d(dtype=wp.int32)):
+    tokens[nt, c] = wp.uint32(v)
+    freq[c, v] = freq[c, v] + 1
+
+
+@wp.func
+def add_match(length: wp.int32, dist: wp.int32, nt: wp.int32, c: wp.int32, tokens: wp.array2d(dtype=wp.uint32),
+              freq: wp.array2d(dtype=wp.int32), len_sym: wp.array(dtype=wp.int32),
+              len_xbits: wp.array(dtype=wp.int32)) -> wp.int32:
+    """Store a match token; its extra bits returned."""
+    tokens[nt, c] = (wp.uint32(length - 2) << wp.uint32(16)) | wp.uint32(dist - 1)
+    s = len_sym[length]
+    freq[c, s] = freq[c, s] + 1
+    dc = dist_code(dist)
+    freq[c, DIST0 + dc[0]] = freq[c, DIST0 + dc[0]] + 1
+    return len_xbits[length] + dc[1]
+
+
+@wp.kernel
+def lz77_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.int32),
+                chunk_len: wp.array(dtype=wp.int32), prime: wp.array(dtype=wp.int32), depth: wp.int32, nice: wp.int32, lazy: wp.int32,
+                len_sym: wp.array(dtype=wp.int32), len_xbits: wp.array(dtype=wp.int32),
+                head: wp.array2d(dtype=wp.int32), prev: wp.array2d(dtype=wp.int32),
+                tokens: wp.array2d(dtype=wp.uint32), ntok: wp.array(dtype=wp.int32),
+                freq: wp.array2d(dtype=wp.int32), extra: wp.array(dtype=wp.int32)):
+    """Tokens of chunk ``c``: (length - 2) << 16 | (distance - 1) for a match, the byte for a
+    literal; the literal/length and distance frequencies (end of block counted) and the total
+    of the length and distance extra bits. Matches may reach ``prime[c]`` bytes before the
+    chunk (the end of the stream's previous chunk, which a decoder has already produced)."""
+    c = wp.tid()
+    base = chunk_off[c]
+    n = chunk_len[c]
+    pr = prime[c]
+    for h in range(HASH_SIZE):
+        head[c, h] = 0
+    for s in range(NSYM):
+        freq[c, s] = 0
+    jp = -pr
+    while jp < 0:
+        if jp + 2 < n:
+            insert(buf, base, jp, pr, c, head, prev)
+        jp = jp + 1
+    i = int(0)
+    nt = int(0)
+    xb = int(0)
+    pl = int(0)  # length of the match deferred from position i - 1 (lazy evaluation)
+    pd = int(0)
+    while i < n:
+        best = int(0)
+        bd = int(0)
+        if i + 2 < n:
+            h = hash3(buf, base + i)
+            cand = head[c, h] - 1 - pr
+            prev[i + pr, c] = head[c, h]
+            head[c, h] = i + pr + 1
+            maxl = wp.min(258, n - i)
+            best = wp.max(pl, 2)  # only a longer match than the deferred one matters
+            left = depth
+            while cand >= -pr and left > 0 and best < maxl:
+                if buf[base + cand + best] == buf[base + i + best]:
+                    m = int(0)
+                    while m < maxl:
+                        if buf[base + cand + m] != buf[base + i + m]:
+                            break
+                        m = m + 1
+                    if m > best:
+                        best = m
+                        bd = i - cand
+                        if m >= nice:
+                            break
+                cand = prev[cand + pr, c] - 1 - pr
+                left = left - 1
+            if bd == 0:
+                best = 0
+        if pl >= 3:
+            if best > pl:  # the match one byte later is longer: the byte before it goes literal
+                add_literal(wp.int32(buf[base + i - 1]), nt, c, tokens, freq)
+                nt = nt + 1
+                pl = best
+                pd = bd
+                i = i + 1
+            else:
+                xb = xb + add_match(pl, pd, nt, c, tokens, freq, len_sym, len_xbits)
+                nt = nt + 1
+                end = i - 1 + pl
+                j = i + 1
+                while j < end:
+                    if j + 2 < n:
+                        insert(buf, base, j, pr, c, head, prev)
+                    j = j + 1
+                i = end
+                pl = 0
+        elif best >= 3:
+            if lazy == 0 or best >= nice:
+                xb = xb + add_match(best, bd, nt, c, tokens, freq, len_sym, len_xbits)
+                nt = nt + 1
+                j = i + 1
+                while j < i + best:
+                    if j + 2 < n:
+                        insert(buf, base, j, pr, c, head, prev)
+                    j = j + 1
+                i = i + best
+            else:
+                pl = best
+                pd = bd
+                i = i + 1
+        else:
+            add_literal(wp.int32(buf[base + i]), nt, c, tokens, freq)
+            nt = nt + 1
+            i = i + 1
+    if pl >= 3:
+        xb = xb + add_match(pl, pd, nt, c, tokens, freq, len_sym, len_xbits)
+        nt = nt + 1
+    freq[c, 256] = freq[c, 256] + 1
+    ntok[c] = nt
+    extra[c] = xb
+
+
+@wp.func
+def code_lengths(freq: wp.array2d(dtype=wp.int32), lens: wp.array2d(dtype=wp.int32), c: wp.int32,
+                 first: wp.int32, nsym: wp.int32, limit: wp.int32, srt: wp.array2d(dtype=wp.int32),
+                 node: wp.array2d(dtype=wp.int32), pleaf: wp.array2d(dtype=wp.int32),
+                 pnode: wp.array2d(dtype=wp.int32), bits: wp.array2d(dtype=wp.int32)):
+    """Huffman code lengths, at most ``limit`` bits, of symbols first .. first + nsym - 1 of
+    row ``c`` of ``freq`` into the same places of ``lens`` (0 for unused symbols; with fewer
+    than two used symbols, the first unused ones get a code too, as a decoder needs a complete
+    code)."""
+    n = int(0)
+    for s in range(nsym):
+        lens[c, first + s] = 0
+        f = freq[c, first + s]
+        if f > 0:
+            srt[c, n] = f * 512 + s  # key: weight, then symbol
+            n = n + 1
+    s = int(0)
+    while n < 2:
+        if freq[c, first + s] == 0:
+            srt[c, n] = 512 + s
+            n = n + 1
+        s = s + 1
+    for a in range(1, n):  # insertion sort, ascending (n <= 286)
+        key = srt[c, a]
+        b = a - 1
+        while b >= 0:
+            if srt[c, b] <= key:
+                break
+            srt[c, b + 1] = srt[c, b]
+            b = b - 1
+        srt[c, b + 1] = key
+    # two-queue Huffman tree: leaves in weight order, internal nodes in creation order
+    li = int(0)
+    qi = int(0)
+    for m in range(n - 1):
+        w = int(0)
+        for t in range(2):
+            take_leaf = int(0)
+            if li < n:
+                if qi >= m:
+                    take_leaf = int(1)
+                elif (srt[c, li] >> 9) <= node[c, qi]:
+                    take_leaf = int(1)
+            if take_leaf != 0:
+                w = w + (srt[c, li] >> 9)
+                pleaf[c, li] = m
+                li = li + 1
+            else:
+                w = w + node[c, qi]
+                pnode[c, qi] = m
+                qi = qi + 1
+        node[c, m] = w
+    # depths (node[] reused): the root, created last, at 0
+    node[c, n - 2] = 0
+    q = n - 3
+    while q >= 0:
+        node[c, q] = node[c, pnode[c, q]] + 1
+        q = q - 1
+    for z in range(32):
+        bits[c, z] = 0
+    maxd = int(0)
+    for k in range(n):
+        dk = node[c, pleaf[c, k]] + 1
+        bits[c, dk] = bits[c, dk] + 1
+        maxd = wp.max(maxd, dk)
+    # ITU-T T.81 Annex K.3: move pairs of the deepest leaves up until no code is too long
+    d = maxd
+    while d > limit:
+        while bits[c, d] > 0:
+            j = d - 2
+            while bits[c, j] == 0:
+                j = j - 1
+            bits[c, d] = bits[c, d] - 2
+            bits[c, d - 1] = bits[c, d - 1] + 1
+            bits[c, j + 1] = bits[c, j + 1] + 2
+            bits[c, j] = bits[c, j] - 1
+        d = d - 1
+    # the rarest symbols get the longest codes
+    k = int(0)
+    d = wp.min(maxd, limit)
+    while d >= 1:
+        for t in range(bits[c, d]):
+            lens[c, first + (srt[c, k] & 511)] = d
+            k = k + 1
+        d = d - 1
+
+
+@wp.func
+def seq_len(lens: wp.array2d(dtype=wp.int32), c: wp.int32, k: wp.int32, hlit: wp.int32) -> wp.int32:
+    """Entry k of the code-length sequence: hlit literal/length lengths, then the distances'."""
+    if k < hlit:
+        return lens[c, k]
+    return lens[c, DIST0 + k - hlit]
+
+
+@wp.func
+def add_cl(sym: wp.int32, xv: wp.int32, k: wp.int32, c: wp.int32, clsym: wp.array2d(dtype=wp.int32),
+           freq: wp.array2d(dtype=wp.int32)):
+    clsym[c, k] = sym | (xv << 8)
+    freq[c, CL0 + sym] = freq[c, CL0 + sym] + 1
+
+
+@wp.kernel
+def huffman_kernel(chunk_len: wp.array(dtype=wp.int32), last: wp.array(dtype=wp.int32),
+                   extra: wp.array(dtype=wp.int32), cl_order: wp.array(dtype=wp.int32),
+                   freq: wp.array2d(dtype=wp.int32), lens: wp.array2d(dtype=wp.int32),
+                   clsym: wp.array2d(dtype=wp.int32), srt: wp.array2d(dtype=wp.int32),
+                   node: wp.array2d(dtype=wp.int32), pleaf: wp.array2d(dtype=wp.int32),
+                   pnode: wp.array2d(dtype=wp.int32), bits: wp.array2d(dtype=wp.int32),
+                   header: wp.array2d(dtype=wp.int32), size: wp.array(dtype=wp.int32)):
+    """Code lengths and the piece's size in bytes; header[c] = (hlit, hdist, hclen, number of
+    run-length coded code lengths, stored)."""
+    c = wp.tid()
+    n = chunk_len[c]
+    code_lengths(freq, lens, c, 0, 286, 15, srt, node, pleaf, pnode, bits)
+    code_lengths(freq, lens, c, DIST0, 30, 15, srt, node, pleaf, pnode, bits)
+    hlit = int(286)
+    while hlit > 257 and lens[c, hlit - 1] == 0:
+        hlit = hlit - 1
+    hdist = int(30)
+    while hdist > 1 and lens[c, DIST0 + hdist - 1] == 0:
+        hdist = hdist - 1
+    # run-length coding of the hlit + hdist code lengths (RFC 1951 3.2.7)
+    for s in range(19):
+        freq[c, CL0 + s] = 0
+    total = hlit + hdist
+    k = int(0)
+    ncl = int(0)
+    while k < total:
+        v = seq_len(lens, c, k, hlit)
+        run = int(1)
+        while k + run < total:
+            if seq_len(lens, c, k + run, hlit) != v:
+                break
+            run = run + 1
+        r = run
+        if v == 0:
+            while r >= 11:
+                m = wp.min(r, 138)
+                add_cl(18, m - 11, ncl, c, clsym, freq)
+                ncl = ncl + 1
+                r = r - m
+            if r >= 3:
+                add_cl(17, r - 3, ncl, c, clsym, freq)
+                ncl = ncl + 1
+                r = 0
+        else:
+            add_cl(v, 0, ncl, c, clsym, freq)
+            ncl = ncl + 1
+            r = r - 1
+            while r >= 3:
+                m = wp.min(r, 6)
+                add_cl(16, m - 3, ncl, c, clsym, freq)
+                ncl = ncl + 1
+                r = r - m
+        while r > 0:
+            add_cl(v, 0, ncl, c, clsym, freq)
+            ncl = ncl + 1
+            r = r - 1
+        k = k + run
+    code_lengths(freq, lens, c, CL0, 19, 7, srt, node, pleaf, pnode, bits)
+    hclen = int(19)
+    while hclen > 4 and lens[c, CL0 + cl_order[hclen - 1]] == 0:
+        hclen = hclen - 1
+    nbits = wp.int64(3 + 14 + 3 * hclen)
+    for s in range(19):
+        nbits = nbits + wp.int64(freq[c, CL0 + s] * lens[c, CL0 + s])
+    nbits = nbits + wp.int64(2 * freq[c, CL0 + 16] + 3 * freq[c, CL0 + 17] + 7 * freq[c, CL0 + 18])
+    for s in range(286):
+        nbits = nbits + wp.int64(freq[c, s] * lens[c, s])
+    for s in range(30):
+        nbits = nbits + wp.int64(freq[c, DIST0 + s] * lens[c, DIST0 + s])
+    nbits = nbits + wp.int64(extra[c])
+    dyn = int(0)
+    if last[c] != 0:
+        dyn = wp.int32((nbits + wp.int64(7)) >> wp.int64(3))
+    else:  # then an empty stored block: 3 bits, pad, LEN and NLEN
+        dyn = wp.int32((nbits + wp.int64(3 + 7)) >> wp.int64(3)) + 4
+    stored = int(0)
+    if n == 0 or n + 5 <= dyn:
+        stored = 1
+        size[c] = n + 5
+    else:
+        size[c] = dyn
+    header[c, 0] = hlit
+    header[c, 1] = hdist
+    header[c, 2] = hclen
+    header[c, 3] = ncl
+    header[c, 4] = stored
+
+
+@wp.func
+def put(out: wp.array(dtype=wp.uint8), pos: wp.int32, acc: wp.uint64, nb: wp.int32, v: wp.int32,
+        n: wp.int32):
+    """Append the n low bits of v (least significant first) to the bit buffer ``acc`` holding
+    ``nb`` bits; whole bytes go to out[pos...]. Returns (pos, acc, nb)."""
+    a = acc | (wp.uint64(v) << wp.uint64(nb))
+    k = nb + n
+    p = pos
+    while k >= 8:
+        out[p] = wp.uint8(a & wp.uint64(255))
+        a = a >> wp.uint64(8)
+        k = k - 8
+        p = p + 1
+    return p, a, k
+
+
+@wp.func
+def canonical(lens: wp.array2d(dtype=wp.int32), codes: wp.array2d(dtype=wp.int32), c: wp.int32,
+              first: wp.int32, nsym: wp.int32, bits: wp.array2d(dtype=wp.int32)):
+    """Canonical Huffman codes (RFC 1951 3.2.2) of the lengths, bit-reversed for output least
+    significant bit first."""
+    for z in range(32):
+        bits[c, z] = 0
+    for s in range(nsym):
+        ls = lens[c, first + s]
+        if ls > 0:
+            bits[c, ls] = bits[c, ls] + 1
+    code = int(0)
+    for z in range(1, 16):
+        code = (code + bits[c, z - 1]) << 1
+        bits[c, 16 + z] = code
+    for s in range(nsym):
+        d = lens[c, first + s]
+        if d > 0:
+            v = bits[c, 16 + d]
+            bits[c, 16 + d] = v + 1
+            r = int(0)
+            for t in range(d):
+                r = (r << 1) | (v & 1)
+                v = v >> 1
+            codes[c, first + s] = r
+
+
+@wp.kernel
+def emit_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.int32),
+                chunk_len: wp.array(dtype=wp.int32), last: wp.array(dtype=wp.int32),
+                out_off: wp.array(dtype=wp.int32), cl_order: wp.array(dtype=wp.int32),
+                len_sym: wp.array(dtype=wp.int32), len_xbits: wp.array(dtype=wp.int32),
+                len_xval: wp.array(dtype=wp.int32), tokens: wp.array2d(dtype=wp.uint32),
+                ntok: wp.array(dtype=wp.int32), lens: wp.array2d(dtype=wp.int32),
+                codes: wp.array2d(dtype=wp.int32), clsym: wp.array2d(dtype=wp.int32),
+                bits: wp.array2d(dtype=wp.int32), header: wp.array2d(dtype=wp.int32),
+                out: wp.array(dtype=wp.uint8), end: wp.array(dtype=wp.int32)):
+    """Write chunk c's piece at out[out_off[c]:]; end[c] = the offset after its last byte."""
+    c = wp.tid()
+    p = out_off[c]
+    n = chunk_len[c]
+    fin = last[c]
+    if header[c, 4] != 0:  # stored block
+        out[p] = wp.uint8(fin)
+        out[p + 1] = wp.uint8(n & 255)
+        out[p + 2] = wp.uint8(n >> 8)
+        out[p + 3] = wp.uint8((n & 255) ^ 255)
+        out[p + 4] = wp.uint8((n >> 8) ^ 255)
+        base = chunk_off[c]
+        for k in range(n):
+            out[p + 5 + k] = buf[base + k]
+        end[c] = p + 5 + n
+        return
+    canonical(lens, codes, c, 0, 286, bits)
+    canonical(lens, codes, c, DIST0, 30, bits)
+    canonical(lens, codes, c, CL0, 19, bits)
+    hlit = header[c, 0]
+    hdist = header[c, 1]
+    hclen = header[c, 2]
+    acc = wp.uint64(0)
+    nb = int(0)
+    p, acc, nb = put(out, p, acc, nb, fin | (2 << 1), 3)
+    p, acc, nb = put(out, p, acc, nb, (hlit - 257) | ((hdist - 1) << 5) | ((hclen - 4) << 10), 14)
+    for k in range(hclen):
+        p, acc, nb = put(out, p, acc, nb, lens[c, CL0 + cl_order[k]], 3)
+    for k in range(header[c, 3]):
+        e = clsym[c, k]
+        sym = e & 255
+        p, acc, nb = put(out, p, acc, nb, codes[c, CL0 + sym], lens[c, CL0 + sym])
+        if sym == 16:
+            p, acc, nb = put(out, p, acc, nb, e >> 8, 2)
+        elif sym == 17:
+            p, acc, nb = put(out, p, acc, nb, e >> 8, 3)
+        elif sym == 18:
+            p, acc, nb = put(out, p, acc, nb, e >> 8, 7)
+    for k in range(ntok[c]):
+        t = tokens[k, c]
+        top = wp.int32(t >> wp.uint32(16))
+        if top == 0:
+            v = wp.int32(t)
+            p, acc, nb = put(out, p, acc, nb, codes[c, v], lens[c, v])
+        else:
+            length = top + 2
+            ls = len_sym[length]
+            p, acc, nb = put(out, p, acc, nb, codes[c, ls], lens[c, ls])
+            if len_xbits[length] > 0:
+                p, acc, nb = put(out, p, acc, nb, len_xval[length], len_xbits[length])
+            dc = dist_code(wp.int32(t & wp.uint32(65535)) + 1)
+            p, acc, nb = put(out, p, acc, nb, codes[c, DIST0 + dc[0]], lens[c, DIST0 + dc[0]])
+            if dc[1] > 0:
+                p, acc, nb = put(out, p, acc, nb, dc[2], dc[1])
+    p, acc, nb = put(out, p, acc, nb, codes[c, 256], lens[c, 256])
+    if fin == 0:  # an empty stored block brings the piece to a byte boundary
+        p, acc, nb = put(out, p, acc, nb, 0, 3)
+    if nb > 0:
+        p, acc, nb = put(out, p, acc, nb, 0, 8 - nb)
+    q = p
+    if fin == 0:
+        out[q] = wp.uint8(0)
+        out[q + 1] = wp.uint8(0)
+        out[q + 2] = wp.uint8(255)
+        out[q + 3] = wp.uint8(255)
+        q = q + 4
+    end[c] = q
