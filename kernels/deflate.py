@@ -11,7 +11,9 @@ the stream without any bit shifting:
   before it, in data of the same stream that the decoder has already produced (the window of
   a single-threaded deflate, cut to what one thread hashes). Tokens and symbol frequencies
   per chunk.
-- :func:`huffman_kernel`: per chunk, length-limited Huffman code lengths for the literal/length
+- :func:`huffman_kernel`: per chunk, the cheaper of the tokens and the bytes as literals (as
+  libdeflate avoids short matches on data with few distinct literals; chosen here by the
+  exact sizes of both blocks), length-limited Huffman code lengths for the literal/length
   (15 bits), distance (15 bits) and code-length (7 bits) alphabets, from a two-queue Huffman tree
   (van Leeuwen 1976) whose depth histogram is brought under the limit by the adjustment of
   ITU-T T.81 (JPEG) Annex K.3; the run-length coding of the code lengths (symbols 16, 17, 18);
@@ -99,7 +101,8 @@ def lz77_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.int3
                 len_sym: wp.array(dtype=wp.int32), len_xbits: wp.array(dtype=wp.int32),
                 head: wp.array2d(dtype=wp.int32), prev: wp.array2d(dtype=wp.int32),
                 tokens: wp.array2d(dtype=wp.uint32), ntok: wp.array(dtype=wp.int32),
-                freq: wp.array2d(dtype=wp.int32), extra: wp.array(dtype=wp.int32)):
+                freq: wp.array2d(dtype=wp.int32), extra: wp.array(dtype=wp.int32),
+                entropy: wp.array(dtype=wp.float32)):
     """Tokens of chunk ``c``: (length - 2) << 16 | (distance - 1) for a match, the byte for a
     literal; the literal/length and distance frequencies (end of block counted) and the total
     of the length and distance extra bits. Matches may reach ``prime[c]`` bytes before the
@@ -112,6 +115,19 @@ def lz77_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.int3
         head[c, h] = 0
     for s in range(NSYM):
         freq[c, s] = 0
+    # the bytes' order-0 entropy (bits per byte), for huffman_kernel's choice between tokens
+    # and literals; the histogram borrows the frequency row
+    for k in range(n):
+        v = wp.int32(buf[base + k])
+        freq[c, v] = freq[c, v] + 1
+    ent = float(0.0)
+    for s in range(256):
+        f = freq[c, s]
+        if f > 0:
+            q = float(f) / float(n)
+            ent = ent - q * wp.log2(q)
+        freq[c, s] = 0
+    entropy[c] = ent
     jp = -pr
     while jp < 0:
         if jp + 2 < n:
@@ -295,18 +311,16 @@ def add_cl(sym: wp.int32, xv: wp.int32, k: wp.int32, c: wp.int32, clsym: wp.arra
     freq[c, CL0 + sym] = freq[c, CL0 + sym] + 1
 
 
-@wp.kernel
-def huffman_kernel(chunk_len: wp.array(dtype=wp.int32), last: wp.array(dtype=wp.int32),
-                   extra: wp.array(dtype=wp.int32), cl_order: wp.array(dtype=wp.int32),
-                   freq: wp.array2d(dtype=wp.int32), lens: wp.array2d(dtype=wp.int32),
-                   clsym: wp.array2d(dtype=wp.int32), srt: wp.array2d(dtype=wp.int32),
-                   node: wp.array2d(dtype=wp.int32), pleaf: wp.array2d(dtype=wp.int32),
-                   pnode: wp.array2d(dtype=wp.int32), bits: wp.array2d(dtype=wp.int32),
-                   header: wp.array2d(dtype=wp.int32), size: wp.array(dtype=wp.int32)):
-    """Code lengths and the piece's size in bytes; header[c] = (hlit, hdist, hclen, number of
-    run-length coded code lengths, stored)."""
-    c = wp.tid()
-    n = chunk_len[c]
+@wp.func
+def plan_block(c: wp.int32, xbits: wp.int32, cl_order: wp.array(dtype=wp.int32), freq: wp.array2d(dtype=wp.int32),
+               lens: wp.array2d(dtype=wp.int32), clsym: wp.array2d(dtype=wp.int32), srt: wp.array2d(dtype=wp.int32),
+               node: wp.array2d(dtype=wp.int32), pleaf: wp.array2d(dtype=wp.int32),
+               pnode: wp.array2d(dtype=wp.int32), bits: wp.array2d(dtype=wp.int32),
+               header: wp.array2d(dtype=wp.int32)) -> wp.int64:
+    """Code lengths of a dynamic block for the frequencies in row c (literal/length and
+    distance symbols; ``xbits`` extra bits in all), the run-length coded code lengths and
+    header[c, 0:4] = (hlit, hdist, hclen, number of coded code lengths). Returns the block's
+    size in bits."""
     code_lengths(freq, lens, c, 0, 286, 15, srt, node, pleaf, pnode, bits)
     code_lengths(freq, lens, c, DIST0, 30, 15, srt, node, pleaf, pnode, bits)
     hlit = int(286)
@@ -365,7 +379,72 @@ def huffman_kernel(chunk_len: wp.array(dtype=wp.int32), last: wp.array(dtype=wp.
         nbits = nbits + wp.int64(freq[c, s] * lens[c, s])
     for s in range(30):
         nbits = nbits + wp.int64(freq[c, DIST0 + s] * lens[c, DIST0 + s])
-    nbits = nbits + wp.int64(extra[c])
+    header[c, 0] = hlit
+    header[c, 1] = hdist
+    header[c, 2] = hclen
+    header[c, 3] = ncl
+    return nbits + wp.int64(xbits)
+
+
+@wp.func
+def token_freq(c: wp.int32, nt: wp.int32, tokens: wp.array2d(dtype=wp.uint32), freq: wp.array2d(dtype=wp.int32),
+               len_sym: wp.array(dtype=wp.int32)):
+    """The literal/length and distance frequencies of chunk c's tokens (end of block counted)."""
+    for s in range(CL0):
+        freq[c, s] = 0
+    for k in range(nt):
+        t = tokens[k, c]
+        top = wp.int32(t >> wp.uint32(16))
+        if top == 0:
+            v = wp.int32(t)
+            freq[c, v] = freq[c, v] + 1
+        else:
+            ls = len_sym[top + 2]
+            freq[c, ls] = freq[c, ls] + 1
+            dc = dist_code(wp.int32(t & wp.uint32(65535)) + 1)
+            freq[c, DIST0 + dc[0]] = freq[c, DIST0 + dc[0]] + 1
+    freq[c, 256] = freq[c, 256] + 1
+
+
+@wp.kernel
+def huffman_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.int32),
+                   chunk_len: wp.array(dtype=wp.int32), last: wp.array(dtype=wp.int32),
+                   entropy: wp.array(dtype=wp.float32), cl_order: wp.array(dtype=wp.int32),
+                   len_sym: wp.array(dtype=wp.int32), tokens: wp.array2d(dtype=wp.uint32),
+                   ntok: wp.array(dtype=wp.int32), extra: wp.array(dtype=wp.int32),
+                   freq: wp.array2d(dtype=wp.int32), lens: wp.array2d(dtype=wp.int32),
+                   clsym: wp.array2d(dtype=wp.int32), srt: wp.array2d(dtype=wp.int32),
+                   node: wp.array2d(dtype=wp.int32), pleaf: wp.array2d(dtype=wp.int32),
+                   pnode: wp.array2d(dtype=wp.int32), bits: wp.array2d(dtype=wp.int32),
+                   header: wp.array2d(dtype=wp.int32), size: wp.array(dtype=wp.int32)):
+    """Code lengths and the piece's size in bytes; header[c] = (hlit, hdist, hclen, number of
+    run-length coded code lengths, stored).
+
+    Where the chunk's bytes coded one by one could be smaller than its LZ77 tokens (noisy
+    data: short matches cost more than the literals they replace; the bytes' entropy bounds
+    the literals' size from below), the literal-only block is planned too and the smaller
+    one kept, the tokens rewritten as literals if that is the one."""
+    c = wp.tid()
+    n = chunk_len[c]
+    nbits = plan_block(c, extra[c], cl_order, freq, lens, clsym, srt, node, pleaf, pnode, bits, header)
+    if n > 0 and wp.float64(n) * wp.float64(entropy[c]) < wp.float64(nbits):
+        base = chunk_off[c]
+        for s in range(CL0):
+            freq[c, s] = 0
+        for k in range(n):
+            v = wp.int32(buf[base + k])
+            freq[c, v] = freq[c, v] + 1
+        freq[c, 256] = 1
+        lit_bits = plan_block(c, 0, cl_order, freq, lens, clsym, srt, node, pleaf, pnode, bits, header)
+        if lit_bits < nbits:
+            for k in range(n):
+                tokens[k, c] = wp.uint32(buf[base + k])
+            ntok[c] = n
+            extra[c] = 0
+            nbits = lit_bits
+        else:  # back to the tokens' plan
+            token_freq(c, ntok[c], tokens, freq, len_sym)
+            nbits = plan_block(c, extra[c], cl_order, freq, lens, clsym, srt, node, pleaf, pnode, bits, header)
     dyn = int(0)
     if last[c] != 0:
         dyn = wp.int32((nbits + wp.int64(7)) >> wp.int64(3))
@@ -377,10 +456,6 @@ def huffman_kernel(chunk_len: wp.array(dtype=wp.int32), last: wp.array(dtype=wp.
         size[c] = n + 5
     else:
         size[c] = dyn
-    header[c, 0] = hlit
-    header[c, 1] = hdist
-    header[c, 2] = hclen
-    header[c, 3] = ncl
     header[c, 4] = stored
 
 

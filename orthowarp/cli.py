@@ -197,10 +197,10 @@ def demo(out_dir, device):
               help="JPEG / WebP quality 1-100 (default 90; orthority's JPEG default is 75).")
 @click.option("--compress-level", type=int, default=None,
               help="Deflate level 1-12 (default 6) or zstd level 1-22 (default 9).")
-@click.option("--block-codec", type=click.Choice(["auto", "host", "nvcomp", "hybrid"]), default="auto", show_default=True,
+@click.option("--block-codec", type=click.Choice(["auto", "host", "nvcomp", "hybrid", "warp"]), default="auto", show_default=True,
               help="Who deflates a COG's blocks: host (libdeflate on all cores), nvcomp (the GPU; needs "
-                   "orthowarp[gpu]), hybrid (both); auto: nvcomp on a GPU with nvCOMP at --compress-level 1-4, "
-                   "else host.")
+                   "orthowarp[gpu]), hybrid (both), warp (orthowarp's own deflate kernels on the device); auto: "
+                   "nvcomp on a GPU with nvCOMP at --compress-level 1-4, else host.")
 @click.option("--dtype", type=click.Choice(["uint8", "uint16", "float32"]), help="Output data type (default: the source's).")
 @click.option("--out-dir", type=click.Path(file_okay=False), default=".", show_default=True)
 @click.option("--overwrite", is_flag=True, help="Replace existing outputs.")
@@ -541,9 +541,10 @@ def _frame_orientations(images, int_param, ext_param, crs, ids=None):
 @click.option("--reference", type=int, default=None,
               help="Balancing keeps this image's radiometry (its position in IMAGES, from 0); default: the mean.")
 @click.option("--compress-level", type=int, default=None, help="Deflate level 1-12 (default 6).")
-@click.option("--block-codec", type=click.Choice(["auto", "host", "nvcomp", "hybrid"]), default="auto", show_default=True,
+@click.option("--block-codec", type=click.Choice(["auto", "host", "nvcomp", "hybrid", "warp"]), default="auto", show_default=True,
               help="Who deflates the mosaic's blocks: host (libdeflate on all cores), nvcomp (the tiles stay on the "
-                   "GPU; needs orthowarp[gpu]), hybrid (both); auto: host.")
+                   "GPU; needs orthowarp[gpu]), hybrid (both), warp (orthowarp's own deflate kernels on the device); "
+                   "auto: host.")
 @click.option("--dtype", type=click.Choice(["uint8", "uint16", "float32"]), help="Output data type (default: the sources').")
 @click.option("--overwrite", is_flag=True, help="Replace existing outputs.")
 @click.option("--no-refraction", is_flag=True, help="Do not correct atmospheric refraction.")

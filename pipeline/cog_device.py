@@ -265,7 +265,7 @@ class WarpDeflate:
             z = lambda shape, dt=wp.int32: wp.empty(shape, dtype=dt, device=d)  # noqa: E731
             self._scratch = dict(
                 m=m, head=z((m, kd.HASH_SIZE)), prev=z((c + self.window, m)), tokens=z((c, m), wp.uint32), ntok=z(m),
-                freq=z((m, kd.NSYM)), extra=z(m), lens=z((m, kd.NSYM)), codes=z((m, kd.NSYM)),
+                freq=z((m, kd.NSYM)), extra=z(m), entropy=z(m, wp.float32), lens=z((m, kd.NSYM)), codes=z((m, kd.NSYM)),
                 clsym=z((m, kd.CL_ROW)), srt=z((m, 288)), node=z((m, 288)), pleaf=z((m, 288)),
                 pnode=z((m, 288)), bits=z((m, 32)), header=z((m, 5)), size=z(m), end=z(m))
         return self._scratch
@@ -285,7 +285,7 @@ class WarpDeflate:
             starts += [o + j * self.chunk for j in range(k)]
             lens += [min(self.chunk, n - j * self.chunk) for j in range(k)]
             last += [0] * (k - 1) + [1]
-            prime += [0] + [self.window] * (k - 1)
+            prime += [min(self.window, j * self.chunk) for j in range(k)]  # never before the stream
         starts, lens, last, prime = (np.asarray(a, np.int32) for a in (starts, lens, last, prime))
         pieces = []
         with self._lock:
@@ -307,10 +307,10 @@ class WarpDeflate:
         fin = wp.array(last, dtype=wp.int32, device=d)
         wp.launch(kd.lz77_kernel, dim=m, device=d,
                   inputs=[buf, off, ln, wp.array(prime, dtype=wp.int32, device=d), self.depth, self.nice, int(self.lazy), len_sym, len_xbits],
-                  outputs=[s["head"], s["prev"], s["tokens"], s["ntok"], s["freq"], s["extra"]])
-        wp.launch(kd.huffman_kernel, dim=m, device=d, inputs=[ln, fin, s["extra"], cl_order],
-                  outputs=[s["freq"], s["lens"], s["clsym"], s["srt"], s["node"], s["pleaf"], s["pnode"],
-                           s["bits"], s["header"], s["size"]])
+                  outputs=[s["head"], s["prev"], s["tokens"], s["ntok"], s["freq"], s["extra"], s["entropy"]])
+        wp.launch(kd.huffman_kernel, dim=m, device=d, inputs=[buf, off, ln, fin, s["entropy"], cl_order, len_sym],
+                  outputs=[s["tokens"], s["ntok"], s["extra"], s["freq"], s["lens"], s["clsym"], s["srt"], s["node"],
+                           s["pleaf"], s["pnode"], s["bits"], s["header"], s["size"]])
         size = s["size"].numpy()[:m].astype(np.int64)
         out_off = np.concatenate([[0], np.cumsum(size)[:-1]])
         total = int(size.sum())

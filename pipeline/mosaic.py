@@ -49,12 +49,12 @@ from ..pose import Pose
 from ..pushbroom import PushbroomScene
 from .cog import DTYPES, CogWriter
 from .dem import Dem
-from .cog_device import DeviceCogEncoder, HostDeflate, NvcompDeflate
+from .cog_device import DeviceCogEncoder
 from .io import atomic_files, check_destination
 from .ortho import _TOP as TOP
 from .ortho import _WP_TYPES as WP_TYPES
 from .ortho import BLOCK_CODECS, COARSE_STEP, RESAMPLING, ImageTiles, _as_dem, _block_codec, _check_cancel, \
-    _nvcomp_type, coarse_grid, output_grid, source_facts
+    device_codecs, coarse_grid, output_grid, source_facts
 from .geometry import FrameGeometry, PushbroomGeometry
 from .profile import StageTimer
 
@@ -211,7 +211,7 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
         backward method.
     compress_level : int, optional
         Deflate level 1-12 (default 6).
-    block_codec : {"auto", "host", "nvcomp", "hybrid"}, optional
+    block_codec : {"auto", "host", "nvcomp", "hybrid", "warp"}, optional
         Who deflates the mosaic's blocks (as for
         :func:`~orthowarp.pipeline.ortho.orthorectify`): "host" (the tiles copied to host
         memory, blocks, overviews and libdeflate there), "nvcomp" (on a GPU: the tiles stay
@@ -595,10 +595,7 @@ class MosaicPlan:
             encoder = None
             try:
                 if _block_codec != "host":
-                    codecs = [NvcompDeflate(_nvcomp_type(compress_level or 6), self.warp_device)] \
-                        if _block_codec in ("nvcomp", "hybrid") else []
-                    if _block_codec in ("hybrid", "device"):
-                        codecs.append(HostDeflate(compress_level or 6))
+                    codecs = device_codecs(_block_codec, compress_level or 6, self.warp_device)
                     encoder = self._encoder = DeviceCogEncoder(writers[0], self.warp_device, codecs)
                 for (r0, c0, th, tw), (block, valid, source) in results:
                     if block is not None:

@@ -43,7 +43,7 @@ from ..pushbroom import PushbroomScene
 from .dem import Dem
 from .geometry import FrameGeometry, PushbroomGeometry
 from .cog import DTYPES, CogWriter, overview_count, verify_tiff
-from .cog_device import DeviceCogEncoder, HostDeflate, NvcompDeflate, nvcomp_available
+from .cog_device import DeviceCogEncoder, HostDeflate, NvcompDeflate, WarpDeflate, nvcomp_available
 from .io import GDAL_ERRORS, atomic_path, check_destination, gdal_reason, write_error
 from .profile import StageTimer
 
@@ -57,7 +57,7 @@ DRIVERS = ("COG", "GTiff")
 COMPRESS = ("deflate", "zstd", "lzw", "jpeg", "webp", "none")
 LOSSY = ("jpeg", "webp")
 DEFAULT_QUALITY = 90  # JPEG / WebP quality of lossy outputs (orthority's JPEG default is 75)
-BLOCK_CODECS = ("auto", "host", "nvcomp", "hybrid")
+BLOCK_CODECS = ("auto", "host", "nvcomp", "hybrid", "warp")
 # threads per block of the per-pixel ortho kernels: on an H100, 128 ran a few per cent faster
 # than Warp's default 256 (bench/ortho.py's block-size scan)
 ORTHO_BLOCK_DIM = 128
@@ -297,7 +297,7 @@ def orthorectify(src: str | os.PathLike, sensor: FrameCamera | PushbroomScene, *
     cancel : threading.Event, optional
         Set from another thread (or a signal handler) to stop the run: no tile starts after
         it, nothing is published, and :class:`~orthowarp.errors.Cancelled` is raised.
-    block_codec : {"auto", "host", "nvcomp", "hybrid"}, optional
+    block_codec : {"auto", "host", "nvcomp", "hybrid", "warp"}, optional
         Who compresses a deflate COG's blocks. "host": each tile goes to host memory, where
         the writer applies the predictor, builds the overviews and deflates (libdeflate, all
         cores). "nvcomp" (CUDA, needs ``orthowarp[gpu]``): predictor, masks and the overview
@@ -307,7 +307,9 @@ def orthorectify(src: str | os.PathLike, sensor: FrameCamera | PushbroomScene, *
         arrive while it compresses a batch, by libdeflate on the host cores (on the CPU device or without nvCOMP: libdeflate alone, after
         the same per-block work in Warp kernels). The files decode to the same pixels whichever path wrote
         them; nvCOMP's streams differ in size (``compress_level`` 1-4: its medium-ratio
-        variant, 5-7: high, 8-12: highest). On an H100 with 16 host cores, nvCOMP at level
+        variant, 5-7: high, 8-12: highest). "warp": the same device work, the blocks deflated
+        by orthowarp's own kernels (:class:`~orthowarp.pipeline.cog_device.WarpDeflate`, any
+        device; no extra package; the search depth follows ``compress_level``). On an H100 with 16 host cores, nvCOMP at level
         6's ratio was slower than libdeflate on the cores, and faster at levels 1-4, so
         "auto" is "nvcomp" for ``compress_level`` 1-4 on a CUDA device with nvCOMP, else
         "host".
@@ -504,6 +506,8 @@ def _block_codec(choice, device, deflate_cog, level=6):
         return "nvcomp" if gpu and level <= 4 else "host"
     if choice == "hybrid":
         return "hybrid" if gpu else "device"
+    if choice == "warp":
+        return "warp"
     if not device.is_cuda:
         raise ParamError(f"block_codec 'nvcomp' needs a CUDA device (the run is on {device})")
     if not gpu:
@@ -515,6 +519,24 @@ def _block_codec(choice, device, deflate_cog, level=6):
 def _nvcomp_type(level):
     """nvCOMP Deflate variant for a libdeflate level (see bench/deflate_codecs.py)."""
     return 2 if level <= 4 else 4 if level <= 7 else 5
+
+
+def _warp_deflate(level, device):
+    """orthowarp's device deflate with the hash-chain depth of a libdeflate level."""
+    depth, nice = (4, 32) if level <= 2 else (8, 64) if level <= 4 else (32, 128) if level <= 6 \
+        else (64, 258) if level <= 8 else (128, 258)
+    return WarpDeflate(device, depth=depth, nice=nice)
+
+
+def device_codecs(block_codec, level, device):
+    """The raw-deflate codecs of a :class:`DeviceCogEncoder` for a resolved ``block_codec``
+    ("nvcomp", "hybrid", "device" or "warp") at a libdeflate ``level``."""
+    if block_codec == "warp":
+        return [_warp_deflate(level, device)]
+    codecs = [NvcompDeflate(_nvcomp_type(level), device)] if block_codec in ("nvcomp", "hybrid") else []
+    if block_codec in ("hybrid", "device"):
+        codecs.append(HostDeflate(level))
+    return codecs
 
 
 def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, path, resampling,
@@ -927,9 +949,7 @@ def _open_sink(path, profile, cog, final_name, timer, device=None, block_codec="
         encoder = None
         try:
             if block_codec != "host":
-                codecs = [NvcompDeflate(_nvcomp_type(cog["level"]), device)] if block_codec in ("nvcomp", "hybrid") else []
-                if block_codec in ("hybrid", "device"):
-                    codecs.append(HostDeflate(cog["level"]))
+                codecs = device_codecs(block_codec, cog["level"], device)
                 encoder = DeviceCogEncoder(w, device, codecs)
             # the tiles are fresh arrays the pipeline drops after the call: no copy
             yield _Sink(functools.partial(w.write, copy=False), encoder.write if encoder is not None else None)

@@ -54,12 +54,13 @@ def test_bytes_view_shares_memory(device):
     assert v.shape == (12,) and v.numpy().view(np.uint16).tolist() == list(range(6))
 
 
-def _write(path, shape, count, dtype, tile, *, device=None, overviews=3, block=256):
-    """One file from the scene, through the device encoder (``device``) or the host writer."""
+def _write(path, shape, count, dtype, tile, *, device=None, overviews=3, block=256, codecs=None):
+    """One file from the scene, through the device encoder (``device``; libdeflate unless
+    ``codecs`` are given) or the host writer."""
     data, mask = scene(shape, count, dtype)
     w = CogWriter(path, width=shape[1], height=shape[0], count=count, dtype=dtype, crs=CRS, transform=TRANSFORM,
                   block_size=block, overviews=overviews, threads=2)
-    enc = DeviceCogEncoder(w, wp.get_device(device), [HostDeflate(6, threads=2)]) if device else None
+    enc = DeviceCogEncoder(w, wp.get_device(device), codecs or [HostDeflate(6, threads=2)]) if device else None
     with w:
         tiles = [(r, c) for r in range(0, shape[0], tile) for c in range(0, shape[1], tile)]
         for k in np.random.default_rng(1).permutation(len(tiles)):
