@@ -1,4 +1,4 @@
-"""Benchmark: nvCOMP's Deflate on the GPU against libdeflate on the host, for COG blocks.
+"""Benchmark: device deflate (nvCOMP's, orthowarp's WarpDeflate) against libdeflate on the host, for COG blocks.
 
 A batch of 512 x 512 x 3 uint8 blocks with TIFF predictor 2 applied (horizontal differencing
 per sample, as the COG writer stores them) is compressed
@@ -106,12 +106,36 @@ def nvcomp_variant(pred, algorithm_type, chunk):
     return sum(sizes), dt, dt_copy, ok
 
 
+def warp_variant(pred, chunk, window, depth, nice, device="cuda:0"):
+    """(compressed bytes, seconds, blocks that inflate to their input) of orthowarp's device
+    deflate (WarpDeflate) over the batch ``pred``, resident on the GPU; the time includes the
+    streams' copy to the host (what the COG writer receives)."""
+    import warp as wp
+
+    from orthowarp.pipeline.cog_device import WarpDeflate
+
+    n, size = len(pred), pred[0].nbytes
+    buf = wp.array(pred.reshape(-1), dtype=wp.uint8, device=device)
+    codec = WarpDeflate(device, chunk=chunk, window=window, depth=depth, nice=nice)
+    offs, sizes = [k * size for k in range(n)], [size] * n
+    codec.compress(buf, offs[:8], sizes[:8])  # compile / load the kernels, scratch
+    wp.synchronize_device(device)
+    t = time.perf_counter()
+    raws = codec.compress(buf, offs, sizes)
+    dt = time.perf_counter() - t
+    ok = sum(zlib.decompress(r, -15) == pred[k].tobytes() for k, r in enumerate(raws))
+    return sum(len(r) for r in raws), dt, ok
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--blocks", type=int, default=1000)
     ap.add_argument("--image", default=None)
     ap.add_argument("--types", default="0,1,2,4,5")
     ap.add_argument("--out", default=None)
+    ap.add_argument("--warp", default="",
+                    help="WarpDeflate variants CHUNK:WINDOW:DEPTH:NICE, comma-separated (e.g. 16384:8192:32:128)")
+    ap.add_argument("--warp-device", default="cuda:0")
     a = ap.parse_args()
     report = {"blocks": a.blocks, "block": [B, B, 3], "content": {}}
     try:
@@ -131,7 +155,7 @@ def main():
         row = {"input_MB": nbytes / 1e6, "libdeflate6": {"bytes": size6, "GBps": nbytes / dt6 / 1e9,
                                                          "threads": os.cpu_count()},
                "libdeflate1_bytes": size1, "nvcomp": {}}
-        for t in [int(x) for x in a.types.split(",")]:
+        for t in [int(x) for x in a.types.split(",") if x]:
             for chunk in (None, B * B * 3):
                 key = f"type{t}" + ("" if chunk is None else "_chunk")
                 try:
@@ -141,6 +165,16 @@ def main():
                 except Exception as e:  # noqa: BLE001
                     row["nvcomp"][key] = {"error": f"{type(e).__name__}: {e}"[:300]}
                 print(name, key, row["nvcomp"][key], flush=True)
+        row["warp"] = {}
+        for v in filter(None, a.warp.split(",")):
+            chunk, window, depth, nice = (int(x) for x in v.split(":"))
+            try:
+                size, dt, ok = warp_variant(pred, chunk, window, depth, nice, a.warp_device)
+                row["warp"][v] = {"bytes": size, "ratio_vs_libdeflate6": size / size6, "GBps": nbytes / dt / 1e9,
+                                  "decoded_ok": ok}
+            except Exception as e:  # noqa: BLE001
+                row["warp"][v] = {"error": f"{type(e).__name__}: {e}"[:300]}
+            print(name, "warp", v, row["warp"][v], flush=True)
         report["content"][name] = row
     text = json.dumps(report, indent=1)
     if a.out:

@@ -239,6 +239,9 @@ def main(argv=None):
     ap.add_argument("--variants", action="store_true", help="block-codec variants on the CPU too (a check of the bench)")
     ap.add_argument("--skip-variants", action="store_true", help="no block-codec variants")
     ap.add_argument("--batch-levels", default="6", help="deflate levels of the batch runs, e.g. 6,1")
+    ap.add_argument("--codecs", default="host,nvcomp,hybrid,host:1,nvcomp:1",
+                    help="block-codec variants (CODEC[:LEVEL], comma-separated), e.g. host,warp,warp:1")
+    ap.add_argument("--batch-codecs", default="auto", help="block codecs of the batch runs, e.g. auto,warp")
     ap.add_argument("--batch", type=int, default=0, help="also run N copies of the frame in one CLI call (GPU)")
     ap.add_argument("--out", default="bench/results/ortho.json")
     args = ap.parse_args(argv)
@@ -301,7 +304,7 @@ def main(argv=None):
         r["ortho_shape"] = list(res.shape)
         r["kernel_fraction_of_wall"] = res.timings["kernel"] / res.timings["wall"]
         if not args.skip_cli:
-            def cli_batch(n, device_name, resolution, gpu_index, level="6"):
+            def cli_batch(n, device_name, resolution, gpu_index, level="6", codec="auto"):
                 """N copies of the frame (links) in one call: wall time, peak memory, GPU busy."""
                 bdir = os.path.join(work, "batch")
                 os.makedirs(bdir, exist_ok=True)
@@ -320,9 +323,12 @@ def main(argv=None):
                     "-q", "ortho", *names, "--int-param", os.path.join(work, "camera.yaml"), "--ext-param",
                     os.path.join(bdir, "ext.csv"), "--dem", dem_path, "--out-dir", bdir, "--overwrite",
                     "--resolution", repr(resolution), "--resampling", args.resampling, "--device", device_name,
-                    "--profile-json", prof_path, "--compress-level", level,
+                    "--profile-json", prof_path, "--compress-level", level, "--block-codec", codec,
                     *(["--no-refraction"] if args.no_refraction else [])], gpu_index=gpu_index)
-                o["images"], o["compress_level"] = n, int(level)
+                o["images"], o["compress_level"], o["block_codec"] = n, int(level), codec
+                if o["returncode"] == 0:
+                    o["output_mb"] = sum(os.path.getsize(os.path.join(bdir, f"frame{k:03d}_ORTHO.tif"))
+                                         for k in range(n)) / 1e6
                 if o["returncode"] == 0:
                     with open(prof_path) as f:
                         o["profile"] = json.load(f).get("total")
@@ -357,8 +363,7 @@ def main(argv=None):
                 if r["cli"]["returncode"] == 0:
                     outputs["auto"] = os.path.join(work, "ortho_auto.tif")
                     os.replace(os.path.join(work, "frame_ORTHO.tif"), outputs["auto"])
-                for codec, level in (("host", None), ("nvcomp", None), ("hybrid", None), ("host", "1"),
-                                     ("nvcomp", "1")):
+                for codec, _, level in (v.partition(":") for v in args.codecs.split(",")):
                     key = f"cli_{codec}" + (f"_level{level}" if level else "")
                     r[key] = cli("--block-codec", codec, *(["--compress-level", level] if level else []))
                     if r[key]["returncode"] == 0:
@@ -368,10 +373,12 @@ def main(argv=None):
                 r["codec_agreement"] = compare_outputs(outputs, "cli_host")
             if args.batch and (geom.device.is_cuda or args.variants):
                 for level in args.batch_levels.split(","):
-                    key = "cli_batch" if level == "6" else f"cli_batch_level{level}"
-                    r[key] = cli_batch(args.batch, name, res.resolution,
-                                       geom.device.ordinal if geom.device.is_cuda else None, level)
-                    save_report(report, args.out)
+                    for codec in args.batch_codecs.split(","):
+                        key = ("cli_batch" if level == "6" else f"cli_batch_level{level}") + \
+                            ("" if codec == "auto" else f"_{codec}")
+                        r[key] = cli_batch(args.batch, name, res.resolution,
+                                           geom.device.ordinal if geom.device.is_cuda else None, level, codec)
+                        save_report(report, args.out)
             # the floor of that start-up: interpreter, imports, Warp and device set-up, kernels loaded, no job
             t = time.perf_counter()
             subprocess.run([sys.executable, "-c", STARTUP, name], check=True)

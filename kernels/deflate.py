@@ -1,6 +1,6 @@
 """Deflate (RFC 1951) on the device: LZ77 with hash chains and lazy matching, dynamic Huffman.
 
-Each thread compresses one *chunk* (at most 32 KiB) of one stream into a self-contained piece
+Each thread compresses one *chunk* (at most 65535 bytes) of one stream into a self-contained piece
 of deflate data that ends on a byte boundary, so that the pieces of a stream concatenate into
 the stream without any bit shifting:
 
@@ -34,7 +34,8 @@ wp.set_module_options({"enable_backward": False})
 
 GOLDEN = wp.constant(wp.uint32(2654435761))  # Knuth's multiplicative hash
 HASH_SIZE = wp.constant(1 << 13)  # head table entries per chunk (13-bit hash of 3 bytes)
-MAX_CHUNK = 32768  # bytes: a stored block holds at most 65535, a match reaches 32768 back
+MAX_CHUNK = 65535  # bytes per chunk: what one stored block holds
+MAX_DIST = wp.constant(32768)  # the farthest a match reaches back
 NSYM = wp.constant(336)  # per-chunk symbol row: literal/length 0-285, distance 286-315, code length 316-334
 DIST0 = wp.constant(286)
 CL0 = wp.constant(316)
@@ -149,7 +150,7 @@ def lz77_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.int3
             maxl = wp.min(258, n - i)
             best = wp.max(pl, 2)  # only a longer match than the deferred one matters
             left = depth
-            while cand >= -pr and left > 0 and best < maxl:
+            while cand >= -pr and left > 0 and best < maxl and i - cand <= MAX_DIST:
                 if buf[base + cand + best] == buf[base + i + best]:
                     m = int(0)
                     while m < maxl:

@@ -101,8 +101,8 @@ def test_size_near_libdeflate_level_6(device):
 @given(streams=st.lists(st.one_of(
     st.binary(max_size=3000),
     st.lists(st.sampled_from([0, 1, 2, 255]), max_size=4000).map(bytes),
-    st.tuples(st.binary(min_size=1, max_size=40), st.integers(1, 300)).map(lambda t: t[0] * t[1]),
-), min_size=1, max_size=4), chunk=st.sampled_from([1024, 1536, 4096]), window=st.sampled_from([0, 700, 1024]),
+    st.tuples(st.binary(min_size=1, max_size=40), st.integers(1, 1000)).map(lambda t: t[0] * t[1]),
+), min_size=1, max_size=4), chunk=st.sampled_from([1024, 1536, 4096, 65535]), window=st.sampled_from([0, 700, 1024, 32768]),
     depth=st.integers(1, 40), nice=st.integers(3, 258))
 def test_fuzz_any_bytes_round_trip(streams, chunk, window, depth, nice):
     codec = WarpDeflate("cpu", chunk=chunk, window=window, depth=depth, nice=nice, max_chunks=5)
@@ -112,9 +112,9 @@ def test_fuzz_any_bytes_round_trip(streams, chunk, window, depth, nice):
 
 def test_arguments_are_checked():
     with pytest.raises(ParamError, match="chunk"):
-        WarpDeflate("cpu", chunk=40000)
+        WarpDeflate("cpu", chunk=70000)
     with pytest.raises(ParamError, match="window"):
-        WarpDeflate("cpu", chunk=32768, window=1)
+        WarpDeflate("cpu", window=40000)
     with pytest.raises(ParamError, match="nice"):
         WarpDeflate("cpu", nice=300)
     assert WarpDeflate("cpu").compress(wp.empty(1, dtype=wp.uint8, device="cpu"), [], []) == []
@@ -132,3 +132,13 @@ def test_device_encoder_with_warp_deflate_writes_the_host_writers_pixels(tmp_pat
         np.testing.assert_array_equal(ma, mb)
         np.testing.assert_array_equal(da, db)
     assert isinstance(enc, DeviceCogEncoder)
+
+
+def test_matches_reach_32768_bytes_back_and_no_farther(device):
+    rng = np.random.default_rng(9)
+    near = rng.integers(0, 256, 20000, dtype=np.uint8).tobytes() * 3  # repeats 20000 bytes back
+    far = rng.integers(0, 256, 40000, dtype=np.uint8).tobytes() * 2  # 40000 back: out of reach
+    raws = _compress(WarpDeflate(device, chunk=65535, window=8192), [near, far])
+    assert [zlib.decompress(r, -15) for r in raws] == [near, far]
+    assert len(raws[0]) < 20000 + 2000  # two of the three copies as matches
+    assert len(raws[1]) > 80000  # nothing to find within reach: stored

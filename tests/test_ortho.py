@@ -510,17 +510,22 @@ def test_tiles_and_threads_do_not_change_the_result(tmp_path):
     np.testing.assert_allclose(a[va], b[vb], rtol=0, atol=1e-3)
 
 
-@pytest.mark.parametrize("src_dtype,scale,tile", [("uint8", 200.0, 512), ("float32", 1.0, 1024), ("uint16", 3000.0, 256)])
-def test_block_codecs_write_the_same_pixels(tmp_path, device, src_dtype, scale, tile):
+@pytest.mark.parametrize("src_dtype,scale,tile,codec", [("uint8", 200.0, 512, "hybrid"), ("float32", 1.0, 1024, "hybrid"),
+                                                         ("uint16", 3000.0, 256, "hybrid"), ("uint8", 200.0, 512, "warp")])
+def test_block_codecs_write_the_same_pixels(tmp_path, device, src_dtype, scale, tile, codec):
     """Blocks encoded in Warp kernels (block_codec "hybrid": predictor, masks and overviews on
-    the device; libdeflate here, nvCOMP too on a GPU that has it) decode to exactly the host
-    writer's pixels and masks at every level, tiles without data included."""
+    the device; libdeflate here, nvCOMP too on a GPU that has it; "warp": deflated by
+    orthowarp's kernels too) decode to exactly the host writer's pixels and masks at every
+    level, tiles without data included."""
     sc = scene("ins")
     kw = dict(refraction_image=False, refraction=False, src_dtype=src_dtype, scale=scale, tile_size=tile, device=device,
               resolution=0.05)
     host = ortho(sc, tmp_path, name="host.tif", block_codec="host", **kw)
-    dev = ortho(sc, tmp_path, name="dev.tif", block_codec="hybrid", **kw)
-    assert dev.profile["block_codec"] in ("device", "hybrid")
+    dev = ortho(sc, tmp_path, name="dev.tif", block_codec=codec, **kw)
+    assert dev.profile["block_codec"] in (("device", "hybrid") if codec == "hybrid" else ("warp",))
+    if codec == "warp":
+        assert set(dev.profile["blocks_by_codec"]) == {"warp"}
+        assert os.path.getsize(dev.path) <= 1.10 * os.path.getsize(host.path)
     if tile % 512 == 0:  # tiles of whole 512-pixel blocks are encoded on the device; others mostly on the host
         assert sum(dev.profile["blocks_by_codec"].values()) > 0
     with rasterio.open(host.path) as a:
