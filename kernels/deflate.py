@@ -1,16 +1,23 @@
 """Deflate (RFC 1951) on the device: LZ77 with hash chains and lazy matching, dynamic Huffman.
 
-Each thread compresses one *chunk* (at most 65535 bytes) of one stream into a self-contained piece
-of deflate data that ends on a byte boundary, so that the pieces of a stream concatenate into
-the stream without any bit shifting:
+Each stream is cut into *chunks* (at most 65535 bytes), each of which becomes a self-contained
+piece of deflate data ending on a byte boundary, so that the pieces of a stream concatenate
+into the stream without any bit shifting.
 
-- :func:`lz77_kernel`: hash chains over 3-byte prefixes (head table per chunk, links per
-  position), a bounded chain walk (``depth`` candidates, stop at ``nice`` bytes) and one-step
-  lazy evaluation as in zlib's ``deflate_slow`` (a match is deferred by one byte when the next
-  position matches longer). Matches end inside the chunk and may start up to ``prime`` bytes
-  before it, in data of the same stream that the decoder has already produced (the window of
-  a single-threaded deflate, cut to what one thread hashes). Tokens and symbol frequencies
-  per chunk.
+LZ77 in three steps, so that the costly part runs with one thread per byte:
+
+- :func:`chain_kernel` (a thread per chunk, in order): the hash chains over 3-byte prefixes
+  (head table per chunk, a link per position), including the ``prime`` bytes before the chunk
+  (the end of the same stream's previous chunk, which a decoder has already produced);
+- :func:`match_kernel` (a thread per position): the longest match along the chain, at most
+  ``depth`` candidates, stopping at ``nice`` bytes, ending inside the chunk and reaching at
+  most 32768 back; and the chunk's byte histogram;
+- :func:`parse_kernel` (a thread per chunk, in order): tokens from those matches with one-step
+  lazy evaluation as in zlib's ``deflate_slow`` (a match is deferred by one byte when the
+  next position matches longer); the symbol frequencies.
+
+Then:
+
 - :func:`huffman_kernel`: per chunk, the cheaper of the tokens and the bytes as literals (as
   libdeflate avoids short matches on data with few distinct literals; chosen here by the
   exact sizes of both blocks), length-limited Huffman code lengths for the literal/length
@@ -23,9 +30,11 @@ the stream without any bit shifting:
   block followed by an empty stored block (``BFINAL`` 0: the same byte alignment as zlib's
   ``Z_SYNC_FLUSH``); the last piece of a stream is a final block padded to a byte.
 
-Chunk-local tables live in scratch arrays, one row per chunk (the ``(positions, chunks)``
-arrays are transposed so that threads of a warp walking their chunks in step touch
-neighbouring words). The host side is :class:`orthowarp.pipeline.cog_device.WarpDeflate`.
+Chunk-local tables live in scratch arrays, one row per chunk; the tokens are stored
+``(positions, chunks)`` so that threads walking their chunks in step touch neighbouring
+words. The chain walk parallelised per position follows the GPU LZ77 literature (match
+finding independent per position, then a sequential parse; e.g. Sitaridi et al., "Massively
+parallel lossless compression", VLDB 2016). The host side is :class:`orthowarp.pipeline.cog_device.WarpDeflate`.
 """
 
 import warp as wp
@@ -67,13 +76,68 @@ def dist_code(d: wp.int32) -> wp.vec3i:
     return wp.vec3i(code, nx, xv)
 
 
-@wp.func
-def insert(buf: wp.array(dtype=wp.uint8), base: wp.int32, j: wp.int32, pr: wp.int32, c: wp.int32,
-           head: wp.array2d(dtype=wp.int32), prev: wp.array2d(dtype=wp.int32)):
-    """Chain position j (chunk-relative, from -pr) in: links are stored as j + pr + 1, 0 ends."""
-    h = hash3(buf, base + j)
-    prev[j + pr, c] = head[c, h]
-    head[c, h] = j + pr + 1
+@wp.kernel
+def chain_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.int32),
+                 chunk_len: wp.array(dtype=wp.int32), prime: wp.array(dtype=wp.int32),
+                 head: wp.array2d(dtype=wp.int32), prev: wp.array2d(dtype=wp.int32),
+                 hist: wp.array2d(dtype=wp.int32)):
+    """Hash chains of chunk c (one thread, in position order): prev[c, j + pr] = 1 + pr + the
+    previous position with the same 3-byte hash (0: none), for j from -pr (the window before
+    the chunk, pr = prime[c]) to the last position with 3 bytes left. The byte histogram is
+    cleared for :func:`match_kernel`."""
+    c = wp.tid()
+    base = chunk_off[c]
+    n = chunk_len[c]
+    pr = prime[c]
+    for h in range(HASH_SIZE):
+        head[c, h] = 0
+    for s in range(256):
+        hist[c, s] = 0
+    j = -pr
+    while j + 2 < n:
+        h = hash3(buf, base + j)
+        prev[c, j + pr] = head[c, h]
+        head[c, h] = j + pr + 1
+        j = j + 1
+
+
+@wp.kernel
+def match_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.int32),
+                 chunk_len: wp.array(dtype=wp.int32), prime: wp.array(dtype=wp.int32), depth: wp.int32,
+                 nice: wp.int32, prev: wp.array2d(dtype=wp.int32), best: wp.array2d(dtype=wp.int32),
+                 hist: wp.array2d(dtype=wp.int32)):
+    """The longest match at position i of chunk c (one thread per position): best[c, i] =
+    length << 16 | (distance - 1), 0 for none. The chain is walked from the nearest earlier
+    position, at most ``depth`` candidates, stopping at ``nice`` bytes; of equal lengths the
+    nearest wins; a match ends inside the chunk and reaches at most 32768 back."""
+    c, i = wp.tid()
+    n = chunk_len[c]
+    if i >= n:
+        return
+    base = chunk_off[c]
+    wp.atomic_add(hist, c, wp.int32(buf[base + i]), 1)
+    pr = prime[c]
+    found = int(0)
+    if i + 2 < n:
+        cand = prev[c, i + pr] - 1 - pr
+        maxl = wp.min(258, n - i)
+        bl = int(2)
+        left = depth
+        while cand >= -pr and left > 0 and bl < maxl and i - cand <= MAX_DIST:
+            if buf[base + cand + bl] == buf[base + i + bl]:
+                m = int(0)
+                while m < maxl:
+                    if buf[base + cand + m] != buf[base + i + m]:
+                        break
+                    m = m + 1
+                if m > bl:
+                    bl = m
+                    found = (m << 16) | (i - cand - 1)
+                    if m >= nice:
+                        break
+            cand = prev[c, cand + pr] - 1 - pr
+            left = left - 1
+    best[c, i] = found
 
 
 @wp.func
@@ -97,106 +161,60 @@ def add_match(length: wp.int32, dist: wp.int32, nt: wp.int32, c: wp.int32, token
 
 
 @wp.kernel
-def lz77_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.int32),
-                chunk_len: wp.array(dtype=wp.int32), prime: wp.array(dtype=wp.int32), depth: wp.int32, nice: wp.int32, lazy: wp.int32,
-                len_sym: wp.array(dtype=wp.int32), len_xbits: wp.array(dtype=wp.int32),
-                head: wp.array2d(dtype=wp.int32), prev: wp.array2d(dtype=wp.int32),
-                tokens: wp.array2d(dtype=wp.uint32), ntok: wp.array(dtype=wp.int32),
-                freq: wp.array2d(dtype=wp.int32), extra: wp.array(dtype=wp.int32),
-                entropy: wp.array(dtype=wp.float32)):
-    """Tokens of chunk ``c``: (length - 2) << 16 | (distance - 1) for a match, the byte for a
-    literal; the literal/length and distance frequencies (end of block counted) and the total
-    of the length and distance extra bits. Matches may reach ``prime[c]`` bytes before the
-    chunk (the end of the stream's previous chunk, which a decoder has already produced)."""
+def parse_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.int32),
+                 chunk_len: wp.array(dtype=wp.int32), nice: wp.int32, lazy: wp.int32,
+                 len_sym: wp.array(dtype=wp.int32), len_xbits: wp.array(dtype=wp.int32),
+                 best: wp.array2d(dtype=wp.int32), hist: wp.array2d(dtype=wp.int32),
+                 tokens: wp.array2d(dtype=wp.uint32), ntok: wp.array(dtype=wp.int32),
+                 freq: wp.array2d(dtype=wp.int32), extra: wp.array(dtype=wp.int32),
+                 entropy: wp.array(dtype=wp.float32)):
+    """Tokens of chunk c from the matches found at each position (one thread, in order): a
+    match is deferred by one byte when the next position matches longer (zlib's
+    ``deflate_slow``). Tokens: (length - 2) << 16 | (distance - 1) for a match, the byte for
+    a literal; the literal/length and distance frequencies (end of block counted), the total
+    of the extra bits, and the bytes' order-0 entropy (bits per byte) for huffman_kernel's
+    choice between tokens and literals."""
     c = wp.tid()
     base = chunk_off[c]
     n = chunk_len[c]
-    pr = prime[c]
-    for h in range(HASH_SIZE):
-        head[c, h] = 0
     for s in range(NSYM):
         freq[c, s] = 0
-    # the bytes' order-0 entropy (bits per byte), for huffman_kernel's choice between tokens
-    # and literals; the histogram borrows the frequency row
-    for k in range(n):
-        v = wp.int32(buf[base + k])
-        freq[c, v] = freq[c, v] + 1
     ent = float(0.0)
     for s in range(256):
-        f = freq[c, s]
+        f = hist[c, s]
         if f > 0:
             q = float(f) / float(n)
             ent = ent - q * wp.log2(q)
-        freq[c, s] = 0
     entropy[c] = ent
-    jp = -pr
-    while jp < 0:
-        if jp + 2 < n:
-            insert(buf, base, jp, pr, c, head, prev)
-        jp = jp + 1
     i = int(0)
     nt = int(0)
     xb = int(0)
-    pl = int(0)  # length of the match deferred from position i - 1 (lazy evaluation)
+    pl = int(0)  # length of the match deferred from position i - 1
     pd = int(0)
     while i < n:
-        best = int(0)
-        bd = int(0)
-        if i + 2 < n:
-            h = hash3(buf, base + i)
-            cand = head[c, h] - 1 - pr
-            prev[i + pr, c] = head[c, h]
-            head[c, h] = i + pr + 1
-            maxl = wp.min(258, n - i)
-            best = wp.max(pl, 2)  # only a longer match than the deferred one matters
-            left = depth
-            while cand >= -pr and left > 0 and best < maxl and i - cand <= MAX_DIST:
-                if buf[base + cand + best] == buf[base + i + best]:
-                    m = int(0)
-                    while m < maxl:
-                        if buf[base + cand + m] != buf[base + i + m]:
-                            break
-                        m = m + 1
-                    if m > best:
-                        best = m
-                        bd = i - cand
-                        if m >= nice:
-                            break
-                cand = prev[cand + pr, c] - 1 - pr
-                left = left - 1
-            if bd == 0:
-                best = 0
+        e = best[c, i]
+        ml = e >> 16
+        md = (e & 65535) + 1
         if pl >= 3:
-            if best > pl:  # the match one byte later is longer: the byte before it goes literal
+            if ml > pl:  # the match one byte later is longer: the byte before it goes literal
                 add_literal(wp.int32(buf[base + i - 1]), nt, c, tokens, freq)
                 nt = nt + 1
-                pl = best
-                pd = bd
+                pl = ml
+                pd = md
                 i = i + 1
             else:
                 xb = xb + add_match(pl, pd, nt, c, tokens, freq, len_sym, len_xbits)
                 nt = nt + 1
-                end = i - 1 + pl
-                j = i + 1
-                while j < end:
-                    if j + 2 < n:
-                        insert(buf, base, j, pr, c, head, prev)
-                    j = j + 1
-                i = end
+                i = i - 1 + pl
                 pl = 0
-        elif best >= 3:
-            if lazy == 0 or best >= nice:
-                xb = xb + add_match(best, bd, nt, c, tokens, freq, len_sym, len_xbits)
+        elif ml >= 3:
+            if lazy == 0 or ml >= nice:
+                xb = xb + add_match(ml, md, nt, c, tokens, freq, len_sym, len_xbits)
                 nt = nt + 1
-                j = i + 1
-                while j < i + best:
-                    if j + 2 < n:
-                        insert(buf, base, j, pr, c, head, prev)
-                    j = j + 1
-                i = i + best
+                i = i + ml
             else:
-                pl = best
-                pd = bd
+                pl = ml
+                pd = md
                 i = i + 1
         else:
             add_literal(wp.int32(buf[base + i]), nt, c, tokens, freq)
@@ -410,7 +428,8 @@ def token_freq(c: wp.int32, nt: wp.int32, tokens: wp.array2d(dtype=wp.uint32), f
 @wp.kernel
 def huffman_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.int32),
                    chunk_len: wp.array(dtype=wp.int32), last: wp.array(dtype=wp.int32),
-                   entropy: wp.array(dtype=wp.float32), cl_order: wp.array(dtype=wp.int32),
+                   entropy: wp.array(dtype=wp.float32), hist: wp.array2d(dtype=wp.int32),
+                   cl_order: wp.array(dtype=wp.int32),
                    len_sym: wp.array(dtype=wp.int32), tokens: wp.array2d(dtype=wp.uint32),
                    ntok: wp.array(dtype=wp.int32), extra: wp.array(dtype=wp.int32),
                    freq: wp.array2d(dtype=wp.int32), lens: wp.array2d(dtype=wp.int32),
@@ -432,9 +451,8 @@ def huffman_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.i
         base = chunk_off[c]
         for s in range(CL0):
             freq[c, s] = 0
-        for k in range(n):
-            v = wp.int32(buf[base + k])
-            freq[c, v] = freq[c, v] + 1
+        for s in range(256):
+            freq[c, s] = hist[c, s]
         freq[c, 256] = 1
         lit_bits = plan_block(c, 0, cl_order, freq, lens, clsym, srt, node, pleaf, pnode, bits, header)
         if lit_bits < nbits:

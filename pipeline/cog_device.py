@@ -211,8 +211,9 @@ _CL_ORDER = np.array([16, 17, 18, 0, 8, 7, 9, 6, 10, 5, 11, 4, 12, 3, 13, 2, 14,
 
 class WarpDeflate:
     """Raw deflate of device-resident buffers by orthowarp's own kernels
-    (:mod:`orthowarp.kernels.deflate`): LZ77 with hash chains and lazy matching, and a dynamic
-    Huffman block per chunk of ``chunk`` bytes, one thread per chunk, on any Warp device.
+    (:mod:`orthowarp.kernels.deflate`): LZ77 with hash chains (matches found with a thread per
+    byte) and lazy matching, and a dynamic Huffman block per chunk of ``chunk`` bytes, on any
+    Warp device.
 
     Parameters
     ----------
@@ -231,11 +232,10 @@ class WarpDeflate:
         Bytes before a chunk (of the same stream) that its matches may reach (0-32768, default
         8192); each chunk hashes them first.
     max_chunks : int, optional
-        Chunks per launch, which bounds the scratch memory: about (8 x chunk + 4 x window + 36 KiB)
-        bytes per chunk. Default on a GPU: what fits in an eighth of its memory (an H100: 17500
-        chunks of 64 KiB, 52000 of 16 KiB), as one thread per chunk needs many chunks in flight
-        to hide memory latency (4096 chunks per launch, about one warp per SM, ran at 0.2 GB/s);
-        64 on the CPU.
+        Chunks per launch, which bounds the scratch memory: about (12 x chunk + 4 x window + 37 KiB)
+        bytes per chunk. Default on a GPU: what fits in an eighth of its memory (an H100:
+        about 11800 chunks of 64 KiB), as the per-chunk steps need many chunks in flight to
+        hide memory latency; 64 on the CPU.
     """
 
     name = "warp"
@@ -251,7 +251,7 @@ class WarpDeflate:
         self.device = wp.get_device(device)
         self.chunk, self.depth, self.nice, self.lazy = int(chunk), int(depth), int(nice), bool(lazy)
         self.window = int(window)
-        per_chunk = 8 * self.chunk + 4 * self.window + 36 * 1024
+        per_chunk = 12 * self.chunk + 4 * self.window + 37 * 1024
         self.max_chunks = int(max_chunks or (max(64, self.device.total_memory // 8 // per_chunk)
                                              if self.device.is_cuda else 64))
         self._lock = threading.Lock()
@@ -270,7 +270,8 @@ class WarpDeflate:
             d, c = self.device, self.chunk
             z = lambda shape, dt=wp.int32: wp.empty(shape, dtype=dt, device=d)  # noqa: E731
             self._scratch = dict(
-                m=m, head=z((m, kd.HASH_SIZE)), prev=z((c + self.window, m)), tokens=z((c, m), wp.uint32), ntok=z(m),
+                m=m, head=z((m, kd.HASH_SIZE)), prev=z((m, c + self.window)), best=z((m, c)), hist=z((m, 256)),
+                tokens=z((c, m), wp.uint32), ntok=z(m),
                 freq=z((m, kd.NSYM)), extra=z(m), entropy=z(m, wp.float32), lens=z((m, kd.NSYM)), codes=z((m, kd.NSYM)),
                 clsym=z((m, kd.CL_ROW)), srt=z((m, 288)), node=z((m, 288)), pleaf=z((m, 288)),
                 pnode=z((m, 288)), bits=z((m, 32)), header=z((m, 5)), size=z(m), end=z(m))
@@ -311,10 +312,14 @@ class WarpDeflate:
         off = wp.array(starts, dtype=wp.int32, device=d)
         ln = wp.array(lens, dtype=wp.int32, device=d)
         fin = wp.array(last, dtype=wp.int32, device=d)
-        wp.launch(kd.lz77_kernel, dim=m, device=d,
-                  inputs=[buf, off, ln, wp.array(prime, dtype=wp.int32, device=d), self.depth, self.nice, int(self.lazy), len_sym, len_xbits],
-                  outputs=[s["head"], s["prev"], s["tokens"], s["ntok"], s["freq"], s["extra"], s["entropy"]])
-        wp.launch(kd.huffman_kernel, dim=m, device=d, inputs=[buf, off, ln, fin, s["entropy"], cl_order, len_sym],
+        pr = wp.array(prime, dtype=wp.int32, device=d)
+        wp.launch(kd.chain_kernel, dim=m, device=d, inputs=[buf, off, ln, pr], outputs=[s["head"], s["prev"], s["hist"]])
+        wp.launch(kd.match_kernel, dim=(m, int(lens.max(initial=0)) or 1), device=d,
+                  inputs=[buf, off, ln, pr, self.depth, self.nice, s["prev"]], outputs=[s["best"], s["hist"]])
+        wp.launch(kd.parse_kernel, dim=m, device=d,
+                  inputs=[buf, off, ln, self.nice, int(self.lazy), len_sym, len_xbits, s["best"], s["hist"]],
+                  outputs=[s["tokens"], s["ntok"], s["freq"], s["extra"], s["entropy"]])
+        wp.launch(kd.huffman_kernel, dim=m, device=d, inputs=[buf, off, ln, fin, s["entropy"], s["hist"], cl_order, len_sym],
                   outputs=[s["tokens"], s["ntok"], s["extra"], s["freq"], s["lens"], s["clsym"], s["srt"], s["node"],
                            s["pleaf"], s["pnode"], s["bits"], s["header"], s["size"]])
         size = s["size"].numpy()[:m].astype(np.int64)
