@@ -124,7 +124,10 @@ def warp_variant(pred, chunk, window, depth, nice, device="cuda:0"):
     raws = codec.compress(buf, offs, sizes)
     dt = time.perf_counter() - t
     ok = sum(zlib.decompress(r, -15) == pred[k].tobytes() for k, r in enumerate(raws))
-    return sum(len(r) for r in raws), dt, ok
+    # where the time goes: the same batch again, synchronised after each step
+    prof = WarpDeflate(device, chunk=chunk, window=window, depth=depth, nice=nice, profile=True)
+    prof.compress(buf, offs, sizes)
+    return sum(len(r) for r in raws), dt, ok, prof.timings
 
 
 def main():
@@ -169,9 +172,9 @@ def main():
         for v in filter(None, a.warp.split(",")):
             chunk, window, depth, nice = (int(x) for x in v.split(":"))
             try:
-                size, dt, ok = warp_variant(pred, chunk, window, depth, nice, a.warp_device)
+                size, dt, ok, steps = warp_variant(pred, chunk, window, depth, nice, a.warp_device)
                 row["warp"][v] = {"bytes": size, "ratio_vs_libdeflate6": size / size6, "GBps": nbytes / dt / 1e9,
-                                  "decoded_ok": ok}
+                                  "decoded_ok": ok, "steps_s": {k: round(x, 4) for k, x in steps.items()}}
             except Exception as e:  # noqa: BLE001
                 row["warp"][v] = {"error": f"{type(e).__name__}: {e}"[:300]}
             print(name, "warp", v, row["warp"][v], flush=True)

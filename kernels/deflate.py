@@ -229,6 +229,23 @@ def parse_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.int
 
 
 @wp.func
+def sift_down(srt: wp.array2d(dtype=wp.int32), c: wp.int32, root: wp.int32, size: wp.int32):
+    """Restore the max-heap property of srt[c, 0:size] below ``root``."""
+    r = root
+    while 2 * r + 1 < size:
+        ch = 2 * r + 1
+        if ch + 1 < size:
+            if srt[c, ch + 1] > srt[c, ch]:
+                ch = ch + 1
+        if srt[c, r] >= srt[c, ch]:
+            break
+        v = srt[c, r]
+        srt[c, r] = srt[c, ch]
+        srt[c, ch] = v
+        r = ch
+
+
+@wp.func
 def code_lengths(freq: wp.array2d(dtype=wp.int32), lens: wp.array2d(dtype=wp.int32), c: wp.int32,
                  first: wp.int32, nsym: wp.int32, limit: wp.int32, srt: wp.array2d(dtype=wp.int32),
                  node: wp.array2d(dtype=wp.int32), pleaf: wp.array2d(dtype=wp.int32),
@@ -250,15 +267,18 @@ def code_lengths(freq: wp.array2d(dtype=wp.int32), lens: wp.array2d(dtype=wp.int
             srt[c, n] = 512 + s
             n = n + 1
         s = s + 1
-    for a in range(1, n):  # insertion sort, ascending (n <= 286)
-        key = srt[c, a]
-        b = a - 1
-        while b >= 0:
-            if srt[c, b] <= key:
-                break
-            srt[c, b + 1] = srt[c, b]
-            b = b - 1
-        srt[c, b + 1] = key
+    # heapsort, ascending (the keys are distinct)
+    k = n // 2 - 1
+    while k >= 0:
+        sift_down(srt, c, k, n)
+        k = k - 1
+    e = n - 1
+    while e > 0:
+        top = srt[c, 0]
+        srt[c, 0] = srt[c, e]
+        srt[c, e] = top
+        sift_down(srt, c, 0, e)
+        e = e - 1
     # two-queue Huffman tree: leaves in weight order, internal nodes in creation order
     li = int(0)
     qi = int(0)
@@ -405,26 +425,6 @@ def plan_block(c: wp.int32, xbits: wp.int32, cl_order: wp.array(dtype=wp.int32),
     return nbits + wp.int64(xbits)
 
 
-@wp.func
-def token_freq(c: wp.int32, nt: wp.int32, tokens: wp.array2d(dtype=wp.uint32), freq: wp.array2d(dtype=wp.int32),
-               len_sym: wp.array(dtype=wp.int32)):
-    """The literal/length and distance frequencies of chunk c's tokens (end of block counted)."""
-    for s in range(CL0):
-        freq[c, s] = 0
-    for k in range(nt):
-        t = tokens[k, c]
-        top = wp.int32(t >> wp.uint32(16))
-        if top == 0:
-            v = wp.int32(t)
-            freq[c, v] = freq[c, v] + 1
-        else:
-            ls = len_sym[top + 2]
-            freq[c, ls] = freq[c, ls] + 1
-            dc = dist_code(wp.int32(t & wp.uint32(65535)) + 1)
-            freq[c, DIST0 + dc[0]] = freq[c, DIST0 + dc[0]] + 1
-    freq[c, 256] = freq[c, 256] + 1
-
-
 @wp.kernel
 def huffman_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.int32),
                    chunk_len: wp.array(dtype=wp.int32), last: wp.array(dtype=wp.int32),
@@ -436,7 +436,8 @@ def huffman_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.i
                    clsym: wp.array2d(dtype=wp.int32), srt: wp.array2d(dtype=wp.int32),
                    node: wp.array2d(dtype=wp.int32), pleaf: wp.array2d(dtype=wp.int32),
                    pnode: wp.array2d(dtype=wp.int32), bits: wp.array2d(dtype=wp.int32),
-                   header: wp.array2d(dtype=wp.int32), size: wp.array(dtype=wp.int32)):
+                   header: wp.array2d(dtype=wp.int32), size: wp.array(dtype=wp.int32),
+                   lens_keep: wp.array2d(dtype=wp.int32), clsym_keep: wp.array2d(dtype=wp.int32)):
     """Code lengths and the piece's size in bytes; header[c] = (hlit, hdist, hclen, number of
     run-length coded code lengths, stored).
 
@@ -448,6 +449,15 @@ def huffman_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.i
     n = chunk_len[c]
     nbits = plan_block(c, extra[c], cl_order, freq, lens, clsym, srt, node, pleaf, pnode, bits, header)
     if n > 0 and wp.float64(n) * wp.float64(entropy[c]) < wp.float64(nbits):
+        # keep the tokens' plan aside
+        for s in range(NSYM):
+            lens_keep[c, s] = lens[c, s]
+        for k in range(header[c, 3]):
+            clsym_keep[c, k] = clsym[c, k]
+        h0 = header[c, 0]
+        h1 = header[c, 1]
+        h2 = header[c, 2]
+        h3 = header[c, 3]
         base = chunk_off[c]
         for s in range(CL0):
             freq[c, s] = 0
@@ -462,8 +472,14 @@ def huffman_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.i
             extra[c] = 0
             nbits = lit_bits
         else:  # back to the tokens' plan
-            token_freq(c, ntok[c], tokens, freq, len_sym)
-            nbits = plan_block(c, extra[c], cl_order, freq, lens, clsym, srt, node, pleaf, pnode, bits, header)
+            for s in range(NSYM):
+                lens[c, s] = lens_keep[c, s]
+            for k in range(h3):
+                clsym[c, k] = clsym_keep[c, k]
+            header[c, 0] = h0
+            header[c, 1] = h1
+            header[c, 2] = h2
+            header[c, 3] = h3
     dyn = int(0)
     if last[c] != 0:
         dyn = wp.int32((nbits + wp.int64(7)) >> wp.int64(3))

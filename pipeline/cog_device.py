@@ -25,6 +25,7 @@ compression are identical bit for bit; only the deflate streams differ).
 import os
 import struct
 import threading
+import time
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -231,6 +232,9 @@ class WarpDeflate:
     window : int, optional
         Bytes before a chunk (of the same stream) that its matches may reach (0-32768, default
         8192); each chunk hashes them first.
+    profile : bool, optional
+        Synchronise after each step and add its seconds to :attr:`timings` ("setup", "chain",
+        "match", "parse", "huffman", "sizes", "emit", "copy", "split"; slows the codec a little).
     max_chunks : int, optional
         Chunks per launch, which bounds the scratch memory: about (12 x chunk + 4 x window + 37 KiB)
         bytes per chunk. Default on a GPU: what fits in an eighth of its memory (an H100:
@@ -241,7 +245,8 @@ class WarpDeflate:
     name = "warp"
     batched = True  # many chunks per launch: fed batches gathered over tiles
 
-    def __init__(self, device, *, chunk=65535, depth=32, nice=128, lazy=True, window=8192, max_chunks=None):
+    def __init__(self, device, *, chunk=65535, depth=32, nice=128, lazy=True, window=8192, max_chunks=None,
+                 profile=False):
         if not 1024 <= int(chunk) <= kd.MAX_CHUNK:
             raise ParamError(f"chunk must be 1024-{kd.MAX_CHUNK} bytes, got {chunk}")
         if not 0 <= int(window) <= 32768:
@@ -254,6 +259,8 @@ class WarpDeflate:
         per_chunk = 12 * self.chunk + 4 * self.window + 37 * 1024
         self.max_chunks = int(max_chunks or (max(64, self.device.total_memory // 8 // per_chunk)
                                              if self.device.is_cuda else 64))
+        self.profile = bool(profile)
+        self.timings = {}
         self._lock = threading.Lock()
         self._tables = None
         self._scratch = None
@@ -273,7 +280,7 @@ class WarpDeflate:
                 m=m, head=z((m, kd.HASH_SIZE)), prev=z((m, c + self.window)), best=z((m, c)), hist=z((m, 256)),
                 tokens=z((c, m), wp.uint32), ntok=z(m),
                 freq=z((m, kd.NSYM)), extra=z(m), entropy=z(m, wp.float32), lens=z((m, kd.NSYM)), codes=z((m, kd.NSYM)),
-                clsym=z((m, kd.CL_ROW)), srt=z((m, 288)), node=z((m, 288)), pleaf=z((m, 288)),
+                clsym=z((m, kd.CL_ROW)), lens_keep=z((m, kd.NSYM)), clsym_keep=z((m, kd.CL_ROW)), srt=z((m, 288)), node=z((m, 288)), pleaf=z((m, 288)),
                 pnode=z((m, 288)), bits=z((m, 32)), header=z((m, 5)), size=z(m), end=z(m))
         return self._scratch
 
@@ -284,6 +291,7 @@ class WarpDeflate:
             return []
         if buf.shape[0] >= 2**31:
             raise ParamError(f"WarpDeflate takes buffers under 2 GiB, got {buf.shape[0]} bytes")
+        t = time.perf_counter()
         starts, lens, last, prime, first_chunk = [], [], [], [], []
         for o, n in zip(offsets, sizes):
             o, n = int(o), int(n)
@@ -294,15 +302,30 @@ class WarpDeflate:
             last += [0] * (k - 1) + [1]
             prime += [min(self.window, j * self.chunk) for j in range(k)]  # never before the stream
         starts, lens, last, prime = (np.asarray(a, np.int32) for a in (starts, lens, last, prime))
+        self._tick("setup", t)
         pieces = []
         with self._lock:
             for a in range(0, len(starts), self.max_chunks):
                 part = slice(a, a + self.max_chunks)
                 pieces.append(self._compress_chunks(buf, starts[part], lens[part], last[part], prime[part]))
+        t = time.perf_counter()
         data = np.concatenate([p[0] for p in pieces]) if len(pieces) > 1 else pieces[0][0]
         bounds = np.concatenate([[0], np.cumsum(np.concatenate([p[1] for p in pieces]))])
         first_chunk.append(len(starts))
-        return [data[bounds[first_chunk[k]]:bounds[first_chunk[k + 1]]].tobytes() for k in range(len(offsets))]
+        out = [data[bounds[first_chunk[k]]:bounds[first_chunk[k + 1]]].tobytes() for k in range(len(offsets))]
+        self._tick("split", t)
+        return out
+
+    def _tick(self, step, t, sync=False):
+        """With ``profile``: add the seconds since ``t`` to step's timing (after the device's
+        work if ``sync``); returns the time now."""
+        if not self.profile:
+            return t
+        if sync:
+            wp.synchronize_device(self.device)
+        now = time.perf_counter()
+        self.timings[step] = self.timings.get(step, 0.0) + now - t
+        return now
 
     def _compress_chunks(self, buf, starts, lens, last, prime):
         """The pieces of ``len(starts)`` chunks: (their bytes back to back, size of each)."""
@@ -313,28 +336,37 @@ class WarpDeflate:
         ln = wp.array(lens, dtype=wp.int32, device=d)
         fin = wp.array(last, dtype=wp.int32, device=d)
         pr = wp.array(prime, dtype=wp.int32, device=d)
+        t = self._tick("setup", time.perf_counter(), sync=True)
         wp.launch(kd.chain_kernel, dim=m, device=d, inputs=[buf, off, ln, pr], outputs=[s["head"], s["prev"], s["hist"]])
+        t = self._tick("chain", t, sync=True)
         wp.launch(kd.match_kernel, dim=(m, int(lens.max(initial=0)) or 1), device=d,
                   inputs=[buf, off, ln, pr, self.depth, self.nice, s["prev"]], outputs=[s["best"], s["hist"]])
+        t = self._tick("match", t, sync=True)
         wp.launch(kd.parse_kernel, dim=m, device=d,
                   inputs=[buf, off, ln, self.nice, int(self.lazy), len_sym, len_xbits, s["best"], s["hist"]],
                   outputs=[s["tokens"], s["ntok"], s["freq"], s["extra"], s["entropy"]])
+        t = self._tick("parse", t, sync=True)
         wp.launch(kd.huffman_kernel, dim=m, device=d, inputs=[buf, off, ln, fin, s["entropy"], s["hist"], cl_order, len_sym],
                   outputs=[s["tokens"], s["ntok"], s["extra"], s["freq"], s["lens"], s["clsym"], s["srt"], s["node"],
-                           s["pleaf"], s["pnode"], s["bits"], s["header"], s["size"]])
+                           s["pleaf"], s["pnode"], s["bits"], s["header"], s["size"], s["lens_keep"], s["clsym_keep"]])
+        t = self._tick("huffman", t, sync=True)
         size = s["size"].numpy()[:m].astype(np.int64)
         out_off = np.concatenate([[0], np.cumsum(size)[:-1]])
         total = int(size.sum())
         out = wp.empty(max(total, 1), dtype=wp.uint8, device=d)
+        t = self._tick("sizes", t)
         wp.launch(kd.emit_kernel, dim=m, device=d,
                   inputs=[buf, off, ln, fin, wp.array(out_off.astype(np.int32), dtype=wp.int32, device=d), cl_order,
                           len_sym, len_xbits, len_xval, s["tokens"], s["ntok"], s["lens"], s["codes"], s["clsym"],
                           s["bits"], s["header"]],
                   outputs=[out, s["end"]])
+        t = self._tick("emit", t, sync=True)
         end = s["end"].numpy()[:m]
         if not np.array_equal(end, out_off + size):  # the size pass and the writer disagree
             raise DeviceError("deflate kernels wrote pieces of other sizes than they computed")
-        return out.numpy()[:total], size
+        host = out.numpy()[:total]
+        self._tick("copy", t)
+        return host, size
 
     def close(self):
         self._scratch = None
