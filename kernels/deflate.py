@@ -52,8 +52,11 @@ CL_ROW = 320  # run-length coded code lengths per chunk: at most 286 + 30 entrie
 
 
 @wp.func
-def hash3(buf: wp.array(dtype=wp.uint8), p: wp.int32) -> wp.int32:
+def hash_at(buf: wp.array(dtype=wp.uint8), p: wp.int32, hlen: wp.int32) -> wp.int32:
+    """13-bit multiplicative hash of the hlen (3 or 4) bytes at p."""
     v = (wp.uint32(buf[p]) << wp.uint32(16)) | (wp.uint32(buf[p + 1]) << wp.uint32(8)) | wp.uint32(buf[p + 2])
+    if hlen == 4:
+        v = (v << wp.uint32(8)) | wp.uint32(buf[p + 3])
     return wp.int32((v * GOLDEN) >> wp.uint32(32 - 13))
 
 
@@ -78,7 +81,7 @@ def dist_code(d: wp.int32) -> wp.vec3i:
 
 @wp.kernel
 def chain_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.int32),
-                 chunk_len: wp.array(dtype=wp.int32), prime: wp.array(dtype=wp.int32),
+                 chunk_len: wp.array(dtype=wp.int32), prime: wp.array(dtype=wp.int32), hlen: wp.int32,
                  head: wp.array2d(dtype=wp.int32), prev: wp.array2d(dtype=wp.int32),
                  hist: wp.array2d(dtype=wp.int32)):
     """Hash chains of chunk c (one thread, in position order): prev[c, j + pr] = 1 + pr + the
@@ -94,8 +97,8 @@ def chain_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.int
     for s in range(256):
         hist[c, s] = 0
     j = -pr
-    while j + 2 < n:
-        h = hash3(buf, base + j)
+    while j + hlen - 1 < n:
+        h = hash_at(buf, base + j, hlen)
         prev[c, j + pr] = head[c, h]
         head[c, h] = j + pr + 1
         j = j + 1
@@ -103,8 +106,8 @@ def chain_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.int
 
 @wp.kernel
 def match_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.int32),
-                 chunk_len: wp.array(dtype=wp.int32), prime: wp.array(dtype=wp.int32), depth: wp.int32,
-                 nice: wp.int32, prev: wp.array2d(dtype=wp.int32), best: wp.array2d(dtype=wp.int32),
+                 chunk_len: wp.array(dtype=wp.int32), prime: wp.array(dtype=wp.int32), hlen: wp.int32,
+                 depth: wp.int32, nice: wp.int32, prev: wp.array2d(dtype=wp.int32), best: wp.array2d(dtype=wp.int32),
                  hist: wp.array2d(dtype=wp.int32)):
     """The longest match at position i of chunk c (one thread per position): best[c, i] =
     length << 16 | (distance - 1), 0 for none. The chain is walked from the nearest earlier
@@ -118,7 +121,7 @@ def match_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.int
     wp.atomic_add(hist, c, wp.int32(buf[base + i]), 1)
     pr = prime[c]
     found = int(0)
-    if i + 2 < n:
+    if i + hlen - 1 < n:
         cand = prev[c, i + pr] - 1 - pr
         maxl = wp.min(258, n - i)
         bl = int(2)

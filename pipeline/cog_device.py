@@ -232,6 +232,9 @@ class WarpDeflate:
     window : int, optional
         Bytes before a chunk (of the same stream) that its matches may reach (0-32768, default
         8192); each chunk hashes them first.
+    hash_bytes : {3, 4}, optional
+        Bytes hashed into the chains (default 3). With 4, chains link only positions that
+        share 4 bytes: far fewer candidates on noisy data, but no 3-byte matches.
     profile : bool, optional
         Synchronise after each step and add its seconds to :attr:`timings` ("setup", "chain",
         "match", "parse", "huffman", "sizes", "emit", "copy", "split"; slows the codec a little).
@@ -245,8 +248,8 @@ class WarpDeflate:
     name = "warp"
     batched = True  # many chunks per launch: fed batches gathered over tiles
 
-    def __init__(self, device, *, chunk=65535, depth=32, nice=128, lazy=True, window=8192, max_chunks=None,
-                 profile=False):
+    def __init__(self, device, *, chunk=65535, depth=32, nice=128, lazy=True, window=8192, hash_bytes=3,
+                 max_chunks=None, profile=False):
         if not 1024 <= int(chunk) <= kd.MAX_CHUNK:
             raise ParamError(f"chunk must be 1024-{kd.MAX_CHUNK} bytes, got {chunk}")
         if not 0 <= int(window) <= 32768:
@@ -259,6 +262,9 @@ class WarpDeflate:
         per_chunk = 12 * self.chunk + 4 * self.window + 37 * 1024
         self.max_chunks = int(max_chunks or (max(64, self.device.total_memory // 8 // per_chunk)
                                              if self.device.is_cuda else 64))
+        if hash_bytes not in (3, 4):
+            raise ParamError(f"hash_bytes must be 3 or 4, got {hash_bytes}")
+        self.hash_bytes = int(hash_bytes)
         self.profile = bool(profile)
         self.timings = {}
         self._lock = threading.Lock()
@@ -337,10 +343,10 @@ class WarpDeflate:
         fin = wp.array(last, dtype=wp.int32, device=d)
         pr = wp.array(prime, dtype=wp.int32, device=d)
         t = self._tick("setup", time.perf_counter(), sync=True)
-        wp.launch(kd.chain_kernel, dim=m, device=d, inputs=[buf, off, ln, pr], outputs=[s["head"], s["prev"], s["hist"]])
+        wp.launch(kd.chain_kernel, dim=m, device=d, inputs=[buf, off, ln, pr, self.hash_bytes], outputs=[s["head"], s["prev"], s["hist"]])
         t = self._tick("chain", t, sync=True)
         wp.launch(kd.match_kernel, dim=(m, int(lens.max(initial=0)) or 1), device=d,
-                  inputs=[buf, off, ln, pr, self.depth, self.nice, s["prev"]], outputs=[s["best"], s["hist"]])
+                  inputs=[buf, off, ln, pr, self.hash_bytes, self.depth, self.nice, s["prev"]], outputs=[s["best"], s["hist"]])
         t = self._tick("match", t, sync=True)
         wp.launch(kd.parse_kernel, dim=m, device=d,
                   inputs=[buf, off, ln, self.nice, int(self.lazy), len_sym, len_xbits, s["best"], s["hist"]],
