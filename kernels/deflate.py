@@ -6,15 +6,17 @@ into the stream without any bit shifting.
 
 LZ77 in three steps, so that the costly part runs with one thread per byte:
 
-- :func:`chain_kernel` (a thread per chunk, in order): the hash chains over 3-byte prefixes
+- :func:`chain_kernel` (a thread per chunk, in order): the hash chains over 3- or 4-byte prefixes
   (head table per chunk, a link per position), including the ``prime`` bytes before the chunk
   (the end of the same stream's previous chunk, which a decoder has already produced);
 - :func:`match_kernel` (a thread per position): the longest match along the chain, at most
-  ``depth`` candidates, stopping at ``nice`` bytes, ending inside the chunk and reaching at
-  most 32768 back; and the chunk's byte histogram;
+  ``depth`` candidates, compared over at most ``nice`` bytes (the first to reach them ends the
+  search), ending inside the chunk and reaching at most 32768 back; and the chunk's byte
+  histogram;
 - :func:`parse_kernel` (a thread per chunk, in order): tokens from those matches with one-step
   lazy evaluation as in zlib's ``deflate_slow`` (a match is deferred by one byte when the
-  next position matches longer); the symbol frequencies.
+  next position matches longer), a match of ``nice`` bytes grown to its full length; the
+  symbol frequencies.
 
 Then:
 
@@ -124,12 +126,13 @@ def match_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.int
     if i + hlen - 1 < n:
         cand = prev[c, i + pr] - 1 - pr
         maxl = wp.min(258, n - i)
+        cap = wp.min(maxl, nice)  # a match of nice bytes ends the search; the parse extends the one it takes
         bl = int(2)
         left = depth
-        while cand >= -pr and left > 0 and bl < maxl and i - cand <= MAX_DIST:
+        while cand >= -pr and left > 0 and bl < cap and i - cand <= MAX_DIST:
             if buf[base + cand + bl] == buf[base + i + bl]:
                 m = int(0)
-                while m < maxl:
+                while m < cap:
                     if buf[base + cand + m] != buf[base + i + m]:
                         break
                     m = m + 1
@@ -148,6 +151,20 @@ def add_literal(v: wp.int32, nt: wp.int32, c: wp.int32, tokens: wp.array2d(dtype
                 freq: wp.array2d(dtype=wp.int32)):
     tokens[nt, c] = wp.uint32(v)
     freq[c, v] = freq[c, v] + 1
+
+
+@wp.func
+def extended(buf: wp.array(dtype=wp.uint8), base: wp.int32, pos: wp.int32, dist: wp.int32, length: wp.int32,
+             n: wp.int32) -> wp.int32:
+    """A match at pos of at least ``length`` bytes, ``dist`` back, grown to its full length
+    (at most 258, inside the chunk's n bytes)."""
+    m = length
+    top = wp.min(258, n - pos)
+    while m < top:
+        if buf[base + pos + m] != buf[base + pos - dist + m]:
+            break
+        m = m + 1
+    return m
 
 
 @wp.func
@@ -206,12 +223,16 @@ def parse_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.int
                 pd = md
                 i = i + 1
             else:
+                if pl >= nice:
+                    pl = extended(buf, base, i - 1, pd, pl, n)
                 xb = xb + add_match(pl, pd, nt, c, tokens, freq, len_sym, len_xbits)
                 nt = nt + 1
                 i = i - 1 + pl
                 pl = 0
         elif ml >= 3:
             if lazy == 0 or ml >= nice:
+                if ml >= nice:
+                    ml = extended(buf, base, i, md, ml, n)
                 xb = xb + add_match(ml, md, nt, c, tokens, freq, len_sym, len_xbits)
                 nt = nt + 1
                 i = i + ml
@@ -224,6 +245,8 @@ def parse_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.int
             nt = nt + 1
             i = i + 1
     if pl >= 3:
+        if pl >= nice:
+            pl = extended(buf, base, n - 1, pd, pl, n)
         xb = xb + add_match(pl, pd, nt, c, tokens, freq, len_sym, len_xbits)
         nt = nt + 1
     freq[c, 256] = freq[c, 256] + 1
