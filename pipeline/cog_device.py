@@ -33,7 +33,6 @@ import warp as wp
 
 from ..errors import DeviceError, ParamError
 from ..kernels import cog as kc
-from ..kernels import deflate as kd
 
 __all__ = ["DeviceCogEncoder", "HostDeflate", "NvcompDeflate", "WarpDeflate", "nvcomp_available", "zlib_stream"]
 
@@ -253,6 +252,9 @@ class WarpDeflate:
 
     def __init__(self, device, *, chunk=65535, depth=32, nice=128, lazy=True, window=8192, hash_bytes=4,
                  max_chunks=None, profile=False):
+        from ..kernels import deflate as kd  # its kernels are built on first use only (14 ms at import)
+
+        self._kd = kd
         if not 1024 <= int(chunk) <= kd.MAX_CHUNK:
             raise ParamError(f"chunk must be 1024-{kd.MAX_CHUNK} bytes, got {chunk}")
         if not 0 <= int(window) <= 32768:
@@ -283,7 +285,7 @@ class WarpDeflate:
     def _scratch_arrays(self, m):
         """Scratch for ``m`` chunks (kept for the next call)."""
         if self._scratch is None or self._scratch["m"] < m:
-            d, c = self.device, self.chunk
+            d, c, kd = self.device, self.chunk, self._kd
             z = lambda shape, dt=wp.int32: wp.empty(shape, dtype=dt, device=d)  # noqa: E731
             self._scratch = dict(
                 m=m, head=z((m, kd.HASH_SIZE)), prev=z((m, c + self.window)), best=z((m, c)), hist=z((m, 256)),
@@ -338,7 +340,7 @@ class WarpDeflate:
 
     def _compress_chunks(self, buf, starts, lens, last, prime):
         """The pieces of ``len(starts)`` chunks: (their bytes back to back, size of each)."""
-        d, m = self.device, len(starts)
+        d, m, kd = self.device, len(starts), self._kd
         len_sym, len_xbits, len_xval, cl_order = self._table_arrays()
         s = self._scratch_arrays(m)
         off = wp.array(starts, dtype=wp.int32, device=d)

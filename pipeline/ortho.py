@@ -662,6 +662,9 @@ class ImageTiles:
         # heights per DEM block, once per image: a tile's height range then costs a few blocks
         self.dem_blocks = (32, geom.dem.block_range(32)) if method == "backward" and not geom.dem.is_constant else None
         self.method, self.decimate = method, decimate
+        # frames on the CPU: the refraction turn interpolated from the coarse grid's nodes (see
+        # kernels.ortho.CoarseGrid; the GPU keeps the per-pixel turn, not yet timed both ways)
+        self.refraction_nodes = not device.is_cuda
         if method == "forward":
             self.forward_coords = _forward_coords(geom, transform, out_crs, geom.horizontal_crs, device, self.timer,
                                                   self.radius)
@@ -747,6 +750,14 @@ class ImageTiles:
         else:
             wp.launch(ortho_kernels.frame_node_pixels_kernel, dim=nodes.shape, device=device,
                       inputs=[*sensor, grid, wp.vec2d(*heights), nodes])
+            if self.refraction_nodes and sensor[2].enabled:
+                # the refraction turn interpolated from the nodes (see CoarseGrid): on the CPU,
+                # where the per-pixel turn was a third of the kernel's time
+                grid.refr_a = wp.empty(uv.shape[:2], dtype=wp.vec3d, device=device)
+                grid.refr_b = wp.empty(uv.shape[:2], dtype=wp.vec3d, device=device)
+                wp.launch(ortho_kernels.frame_node_refraction_kernel, dim=uv.shape[:2], device=device,
+                          inputs=[sensor[2], grid, wp.vec2d(*heights), grid.refr_a, grid.refr_b])
+                grid.refr_nodes = 1
         pixels = nodes.numpy()  # waits for the kernels
         timer.span("kernel", t)
         t = time.perf_counter()
