@@ -9,6 +9,10 @@ horizontal part through the Jacobian of the transformation from the pose's map C
 the east-north-up frame of a GNSS/INS pose, to the output CRS) and written
 as three float32 bands: sigma east, sigma north, sigma up (m; NaN where the image does not see
 the point). The raster's pixels are ``step`` ortho pixels, with the ortho's origin.
+
+:func:`scene_monoplot_covariance` is the same propagation for a pushbroom scene, whose
+projection has no closed form: its derivatives are taken through the kernels'
+own projection (:func:`orthowarp.project`, the chain the ortho runs) by central differences.
 """
 
 import numpy as np
@@ -16,11 +20,117 @@ from affine import Affine
 from pyproj import Transformer
 
 from ..adjust import collinearity as col
-from ..adjust.precision import _camera_row, _Frame, monoplot_covariance
+from ..adjust.geocentric import LocalFrame
+from ..adjust.precision import PrecisionResult, _camera_row, _Frame, _square, monoplot_covariance
 from ..errors import ParamError
 from .io import write_raster
 
-__all__ = ["accuracy_raster"]
+__all__ = ["accuracy_raster", "scene_monoplot_covariance", "SCENE_INPUTS"]
+
+# a pushbroom scene's orientation inputs, constant over the scene: the orbit's offset in the
+# orbital frame (m), the attitude's offsets (deg) and the look angles' offsets (deg)
+SCENE_INPUTS = ("across", "along", "radial", "roll", "pitch", "yaw", "psi_x", "psi_y")
+_SCENE_STEPS = np.array([1.0, 1.0, 1.0, 1e-4, 1e-4, 1e-4, 1e-4, 1e-4])  # central-difference steps
+
+
+def perturbed_scene(scene, offsets):
+    """The scene with its orientation offset by ``offsets`` (8,), in the order and units of
+    :data:`SCENE_INPUTS`: every ephemeris position moved by (across, along, radial) m along the
+    orbital frame's axes at that sample (X2 = v x radial, Y2, Z2 radial), the yaw, pitch and
+    roll samples and every detector's psi_x, psi_y shifted (deg)."""
+    from ..pushbroom import PushbroomScene
+
+    d = np.asarray(offsets, float)
+    if scene.polynomials is not None:
+        raise ParamError("the precision of a scene whose orientation is given by polynomials is not supported")
+    frame = scene.orbital_frame(scene.eph_position, scene.eph_velocity)  # (n, 3, 3): columns X2, Y2, Z2
+    yaw, pitch, roll = np.radians(d[[5, 4, 3]])
+    return PushbroomScene(width=scene.width, height=scene.height, line_period=scene.line_period,
+                          center_line=scene.center_line, eph_time=scene.eph_time,
+                          eph_position=scene.eph_position + frame @ d[:3], eph_velocity=scene.eph_velocity,
+                          att_time=scene.att_time, att_angles=scene.att_angles + [yaw, pitch, roll],
+                          psi_x=scene.psi_x + np.radians(d[6]), psi_y=scene.psi_y + np.radians(d[7]),
+                          attitude_model=scene.attitude_model, epoch=scene.epoch,
+                          attitude_extrapolation=scene.attitude_extrapolation, source=scene.source)
+
+
+def scene_monoplot_covariance(scene, points, slopes, *, orientation_cov, pixel_sigma=0.5, dem_sigma=0.0,
+                              refraction=True, device=None) -> PrecisionResult:
+    """Covariance of ground points geolocated from one pushbroom scene on a DEM.
+
+    The conditions are those of :func:`~orthowarp.adjust.precision.monoplot_covariance`: the
+    point's pixel is the measured one, its height the DEM's (``u - s_e e - s_n n - e_h = 0``
+    in the point's east-north-up frame); their derivatives by central differences through
+    :func:`orthowarp.project` (1 m along east, north and up; 1 m and 1e-4 deg of the inputs).
+
+    Parameters
+    ----------
+    scene : PushbroomScene
+    points : array_like (n, 3)
+        Longitude, latitude (deg), ellipsoidal height (m), e.g. from :func:`orthowarp.geolocate`.
+    slopes : array_like (n, 2)
+        The DEM's slopes there: dh/d(east), dh/d(north).
+    orientation_cov : array_like (8, 8)
+        Covariance of the orientation's offsets, constant over the scene, in the order and
+        units of :data:`SCENE_INPUTS`: the orbit across and along the track and radially (m),
+        roll, pitch, yaw (deg), the look angles psi_x, psi_y (deg).
+    pixel_sigma : float, optional
+        Standard deviation of the measured pixel, each axis (px).
+    dem_sigma : float, optional
+        Standard deviation of the DEM's heights (m).
+    refraction : bool, optional
+    device : str, optional
+        Warp device of the projections.
+
+    Returns
+    -------
+    PrecisionResult
+        Covariances (n, 3, 3) in each point's own east, north, up frame (m).
+    """
+    from .geometry import project
+
+    pts = np.asarray(points, float)
+    if pts.ndim != 2 or pts.shape[1] != 3 or not np.isfinite(pts).all():
+        raise ParamError(f"points must be finite (n, 3) longitude, latitude, height, got shape {pts.shape}")
+    slopes = np.asarray(slopes, float)
+    if slopes.shape != (len(pts), 2) or not np.isfinite(slopes).all():
+        raise ParamError(f"slopes must be finite, shape ({len(pts)}, 2), got {slopes.shape}")
+    cov_l = _square("orientation_cov", orientation_cov, len(SCENE_INPUTS))
+    if not (np.isfinite(pixel_sigma) and pixel_sigma >= 0 and np.isfinite(dem_sigma) and dem_sigma >= 0):
+        raise ParamError(f"pixel_sigma and dem_sigma must be finite and >= 0, got {pixel_sigma}, {dem_sigma}")
+    n, m = len(pts), len(SCENE_INPUTS)
+
+    def pixels(sc, lon_lat_h):
+        return project(sc, lon_lat_h, refraction=refraction, device=device)
+
+    if not np.isfinite(pixels(scene, pts)).all():
+        raise ParamError("every point must lie on the scene (some project outside it or behind it)")
+    frames = [LocalFrame(p[1], p[0], p[2]) for p in pts]
+    f_x = np.zeros((n, 3, 3))
+    for a in range(3):
+        shifted = []
+        for sign in (1.0, -1.0):
+            e = np.zeros(3)
+            e[a] = sign
+            lla = np.stack([fr.to_lla(e)[0] for fr in frames])  # lat, lon, h
+            shifted.append(pixels(scene, lla[:, [1, 0, 2]]))
+        f_x[:, :2, a] = 0.5 * (shifted[0] - shifted[1])
+    f_x[:, 2] = np.stack([-slopes[:, 0], -slopes[:, 1], np.ones(n)], -1)
+    f_l = np.zeros((n, 3, m + 3))
+    for k in range(m):
+        step = np.zeros(m)
+        step[k] = _SCENE_STEPS[k]
+        plus, minus = (pixels(perturbed_scene(scene, s * step), pts) for s in (1.0, -1.0))
+        f_l[:, :2, k] = (plus - minus) / (2 * _SCENE_STEPS[k])
+    f_l[:, :2, m:m + 2] = -np.eye(2)  # the measured pixel
+    f_l[:, 2, m + 2] = -1.0  # the DEM's height error
+    c_in = np.zeros((m + 3, m + 3))
+    c_in[:m, :m] = cov_l
+    c_in[m:m + 2, m:m + 2] = pixel_sigma**2 * np.eye(2)
+    c_in[m + 2, m + 2] = dem_sigma**2
+    a = -np.linalg.solve(f_x, f_l)
+    return PrecisionResult(pts, a @ c_in @ np.transpose(a, (0, 2, 1)))
+
 
 
 def accuracy_raster(dst, camera, pose, dem, crs, transform, shape, *, pose_cov, pixel_sigma=0.5, camera_cov=None,

@@ -277,3 +277,119 @@ def test_accuracy_raster_for_a_gnss_ins_pose(tmp_path):
                               dem_sigma=0.4)
     np.testing.assert_allclose(np.hypot(out[0, i, j], out[1, i, j]), np.hypot(*ref.sigma[0, :2]), rtol=0.01)
     np.testing.assert_allclose(out[2, i, j], ref.sigma[0, 2], rtol=1e-6)
+
+
+def _sloped_dem(scene_points, slope_e, slope_n, h0):
+    """A planar DEM in UTM (zone of the points) rising slope_e per metre of easting and slope_n
+    per metre of northing around the points."""
+    from affine import Affine
+    from pyproj import CRS, Transformer
+
+    lon0, lat0 = scene_points[:, 0].mean(), scene_points[:, 1].mean()
+    utm = CRS.from_epsg(32600 + int((lon0 + 180) // 6) + 1)
+    to_utm = Transformer.from_crs("EPSG:4326", utm, always_xy=True)
+    x0, y0 = to_utm.transform(lon0, lat0)
+    res = 30.0
+    cols = rows = 2000
+    left, top = x0 - res * cols / 2, y0 + res * rows / 2
+    xx = left + (np.arange(cols) + 0.5) * res
+    yy = top - (np.arange(rows) + 0.5) * res
+    grid = h0 + slope_e * (xx[None, :] - x0) + slope_n * (yy[:, None] - y0)
+    return ow.Dem(grid.astype(np.float64), Affine(res, 0, left, 0, -res, top), utm)
+
+
+def test_scene_monoplotting_follows_the_kernels_input_by_input():
+    """pipeline.precision.scene_monoplot_covariance for a pushbroom scene on a sloped DEM: its
+    Jacobian (built from orthowarp.project) against the displacement orthowarp.geolocate (the
+    forward chain, another route through the kernels) gives each point for each input moved
+    alone by a small amount, within 2 % (and 2 mm)."""
+    from orthowarp.adjust.geocentric import LocalFrame
+    from orthowarp.pipeline.precision import SCENE_INPUTS, perturbed_scene, scene_monoplot_covariance
+    from orthowarp.pushbroom import synthetic_scene
+    from pyproj import Transformer
+
+    scene = synthetic_scene(width=3000, height=3000, gsd=10.0, view_angle=12.0)
+    pixels = np.array([[150.0, 200.0], [1500.0, 1500.0], [2850.0, 2700.0]])
+    approx = ow.geolocate(scene, pixels, dem=400.0, device="cpu")
+    dem = _sloped_dem(approx, 0.12, -0.05, 400.0)
+    pts = ow.geolocate(scene, pixels, dem=dem, device="cpu")
+    frames = [LocalFrame(p[1], p[0], p[2]) for p in pts]
+    # the DEM's slopes in each point's east/north frame, from the DEM itself
+    to = Transformer.from_crs("EPSG:4326", dem.crs, always_xy=True)
+    slopes = []
+    for fr in frames:
+        lla = np.stack([fr.to_lla(e)[0] for e in ([1.0, 0, 0], [-1.0, 0, 0], [0, 1.0, 0], [0, -1.0, 0])])
+        x, y = to.transform(lla[:, 1], lla[:, 0])
+        z = dem.sample(np.asarray(x), np.asarray(y))
+        slopes.append([(z[0] - z[1]) / 2, (z[2] - z[3]) / 2])
+    slopes = np.array(slopes)
+    sig = np.array([5.0, 5.0, 5.0, 2e-3, 2e-3, 2e-3, 2e-3, 2e-3])
+    res = scene_monoplot_covariance(scene, pts, slopes, orientation_cov=np.diag(sig**2), pixel_sigma=0.5,
+                                    dem_sigma=2.0, device="cpu")
+    # recover A's columns from the covariance of one input at a time
+    for k, name in enumerate(SCENE_INPUTS):
+        d = np.zeros(len(SCENE_INPUTS))
+        d[k] = sig[k]
+        moved = ow.geolocate(perturbed_scene(scene, d), pixels, dem=dem, device="cpu")
+        disp = np.stack([fr.from_lla(np.array([[m[1], m[0], m[2]]]))[0] for fr, m in zip(frames, moved)])
+        one = scene_monoplot_covariance(scene, pts, slopes, orientation_cov=np.diag(np.where(np.arange(8) == k, sig**2, 0)),
+                                        pixel_sigma=0.0, device="cpu")
+        for c, v in zip(one.cov, disp):  # rank one: c = a a^T with a = the predicted displacement (up to sign)
+            assert abs(np.sqrt(np.trace(c)) - np.linalg.norm(v)) <= 0.02 * np.linalg.norm(v) + 2e-3, (name, c, v)
+            assert np.linalg.norm(c @ v - (v @ v) * v) <= (0.04 * np.linalg.norm(v) + 4e-3) * (v @ v), (name, c, v)
+    print("\n[scene monoplot] sigma E, N, U (m):", np.round(res.sigma, 3).tolist())
+    assert np.all(res.sigma > 0)
+
+
+@pytest.mark.slow
+def test_scene_monoplotting_matches_monte_carlo_through_the_kernels():
+    """The scene's propagated covariance against Monte Carlo through orthowarp.geolocate
+    (orbit, attitude and look-angle offsets, pixel noise and a DEM height error drawn
+    together; constant DEM), 600 draws, within 15 %."""
+    from orthowarp.adjust.geocentric import LocalFrame
+    from orthowarp.pipeline.precision import perturbed_scene, scene_monoplot_covariance
+    from orthowarp.pushbroom import synthetic_scene
+
+    rng = np.random.default_rng(21)
+    scene = synthetic_scene(width=3000, height=3000, gsd=10.0, view_angle=-8.0)
+    pixels = np.array([[300.0, 400.0], [2600.0, 2500.0]])
+    height = 250.0
+    pts = ow.geolocate(scene, pixels, dem=height, device="cpu")
+    cov = np.diag([8.0, 8.0, 4.0, 1e-3, 1e-3, 2e-3, 1.5e-3, 1.5e-3]) ** 2
+    cov[3, 6] = cov[6, 3] = 0.5 * 1e-3 * 1.5e-3  # correlated roll and psi_x
+    pixel_sigma, dem_sigma = 0.3, 3.0
+    res = scene_monoplot_covariance(scene, pts, np.zeros((2, 2)), orientation_cov=cov, pixel_sigma=pixel_sigma,
+                                    dem_sigma=dem_sigma, device="cpu")
+    frames = [LocalFrame(p[1], p[0], p[2]) for p in pts]
+    n = 600
+    draws = rng.multivariate_normal(np.zeros(8), cov, size=n)
+    enu = []
+    for t in range(n):
+        g = ow.geolocate(perturbed_scene(scene, draws[t]), pixels + rng.normal(0, pixel_sigma, pixels.shape),
+                         dem=height + rng.normal(0, dem_sigma), device="cpu")
+        enu.append([fr.from_lla(np.array([[m[1], m[0], m[2]]]))[0] for fr, m in zip(frames, g)])
+    enu = np.array(enu)
+    emp = np.stack([np.cov(enu[:, k].T) for k in range(len(pts))])
+    print("\n[scene monoplot] predicted sigma E, N, U (m):", np.round(res.sigma, 3).tolist(),
+          "\n[scene monoplot] Monte Carlo:", np.round(np.sqrt(np.diagonal(emp, axis1=1, axis2=2)), 3).tolist())
+    assert_cov_close(res.cov, emp, 0.15)
+
+
+def test_bad_scene_precision_inputs():
+    from orthowarp.pipeline.precision import scene_monoplot_covariance
+    from orthowarp.pushbroom import synthetic_scene
+
+    scene = synthetic_scene(width=2000, height=2000, gsd=10.0)
+    pts = ow.geolocate(scene, np.array([[1000.0, 1000.0]]), dem=0.0, device="cpu")
+    good = dict(orientation_cov=np.eye(8), device="cpu")
+    with pytest.raises(ParamError, match="points"):
+        scene_monoplot_covariance(scene, pts[:, :2], np.zeros((1, 2)), **good)
+    with pytest.raises(ParamError, match="slopes"):
+        scene_monoplot_covariance(scene, pts, np.zeros((2, 2)), **good)
+    with pytest.raises(ParamError, match="orientation_cov"):
+        scene_monoplot_covariance(scene, pts, np.zeros((1, 2)), orientation_cov=np.eye(6), device="cpu")
+    with pytest.raises(ParamError, match="on the scene"):
+        scene_monoplot_covariance(scene, pts + [1.0, 0.0, 0.0], np.zeros((1, 2)), **good)
+    coef, _ = scene.fit_polynomials()
+    with pytest.raises(ParamError, match="polynomials"):
+        scene_monoplot_covariance(scene.with_polynomials(coef), pts, np.zeros((1, 2)), **good)
