@@ -289,9 +289,9 @@ class WarpDeflate:
             z = lambda shape, dt=wp.int32: wp.empty(shape, dtype=dt, device=d)  # noqa: E731
             self._scratch = dict(
                 m=m, head=z((m, kd.HASH_SIZE)), prev=z((m, c + self.window)), best=z((m, c)), hist=z((m, 256)),
-                tokens=z((c, m), wp.uint32), ntok=z(m),
-                freq=z((m, kd.NSYM)), extra=z(m), entropy=z(m, wp.float32), lens=z((m, kd.NSYM)), codes=z((m, kd.NSYM)),
-                clsym=z((m, kd.CL_ROW)), lens_keep=z((m, kd.NSYM)), clsym_keep=z((m, kd.CL_ROW)), srt=z((m, 288)), node=z((m, 288)), pleaf=z((m, 288)),
+                tokens=z((c, m), wp.uint32), ntok=z(m), freq=z((m, kd.NSYM)), extra=z(m), entropy=z(m, wp.float32),
+                lens=z((m, kd.NSYM)), codes=z((m, kd.NSYM)), clsym=z((m, kd.CL_ROW)), lens_keep=z((m, kd.NSYM)),
+                clsym_keep=z((m, kd.CL_ROW)), srt=z((m, 288)), node=z((m, 288)), pleaf=z((m, 288)),
                 pnode=z((m, 288)), bits=z((m, 32)), header=z((m, 5)), size=z(m), end=z(m))
         return self._scratch
 
@@ -348,16 +348,19 @@ class WarpDeflate:
         fin = wp.array(last, dtype=wp.int32, device=d)
         pr = wp.array(prime, dtype=wp.int32, device=d)
         t = self._tick("setup", time.perf_counter(), sync=True)
-        wp.launch(kd.chain_kernel, dim=m, device=d, inputs=[buf, off, ln, pr, self.hash_bytes], outputs=[s["head"], s["prev"], s["hist"]])
+        wp.launch(kd.chain_kernel, dim=m, device=d, inputs=[buf, off, ln, pr, self.hash_bytes],
+                  outputs=[s["head"], s["prev"], s["hist"]])
         t = self._tick("chain", t, sync=True)
         wp.launch(kd.match_kernel, dim=(m, int(lens.max(initial=0)) or 1), device=d,
-                  inputs=[buf, off, ln, pr, self.hash_bytes, self.depth, self.nice, s["prev"]], outputs=[s["best"], s["hist"]])
+                  inputs=[buf, off, ln, pr, self.hash_bytes, self.depth, self.nice, s["prev"]],
+                  outputs=[s["best"], s["hist"]])
         t = self._tick("match", t, sync=True)
         wp.launch(kd.parse_kernel, dim=m, device=d,
                   inputs=[buf, off, ln, self.nice, int(self.lazy), len_sym, len_xbits, s["best"], s["hist"]],
                   outputs=[s["tokens"], s["ntok"], s["freq"], s["extra"], s["entropy"]])
         t = self._tick("parse", t, sync=True)
-        wp.launch(kd.huffman_kernel, dim=m, device=d, inputs=[buf, off, ln, fin, s["entropy"], s["hist"], cl_order, len_sym],
+        wp.launch(kd.huffman_kernel, dim=m, device=d,
+                  inputs=[buf, off, ln, fin, s["entropy"], s["hist"], cl_order, len_sym],
                   outputs=[s["tokens"], s["ntok"], s["extra"], s["freq"], s["lens"], s["clsym"], s["srt"], s["node"],
                            s["pleaf"], s["pnode"], s["bits"], s["header"], s["size"], s["lens_keep"], s["clsym_keep"]])
         t = self._tick("huffman", t, sync=True)

@@ -108,7 +108,8 @@ if st is not None:
         st.binary(max_size=3000),
         st.lists(st.sampled_from([0, 1, 2, 255]), max_size=4000).map(bytes),
         st.tuples(st.binary(min_size=1, max_size=40), st.integers(1, 1000)).map(lambda t: t[0] * t[1]),
-    ), min_size=1, max_size=4), chunk=st.sampled_from([1024, 1536, 4096, 65535]), window=st.sampled_from([0, 700, 1024, 32768]),
+    ), min_size=1, max_size=4), chunk=st.sampled_from([1024, 1536, 4096, 65535]),
+        window=st.sampled_from([0, 700, 1024, 32768]),
         depth=st.integers(1, 40), nice=st.integers(3, 258), hash_bytes=st.sampled_from([3, 4]))
     def test_fuzz_any_bytes_round_trip(streams, chunk, window, depth, nice, hash_bytes):
         codec = WarpDeflate("cpu", chunk=chunk, window=window, depth=depth, nice=nice, hash_bytes=hash_bytes,

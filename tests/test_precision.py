@@ -332,8 +332,8 @@ def test_scene_monoplotting_follows_the_kernels_input_by_input():
         d[k] = sig[k]
         moved = ow.geolocate(perturbed_scene(scene, d), pixels, dem=dem, device="cpu")
         disp = np.stack([fr.from_lla(np.array([[m[1], m[0], m[2]]]))[0] for fr, m in zip(frames, moved)])
-        one = scene_monoplot_covariance(scene, pts, slopes, orientation_cov=np.diag(np.where(np.arange(8) == k, sig**2, 0)),
-                                        pixel_sigma=0.0, device="cpu")
+        alone = np.diag(np.where(np.arange(len(SCENE_INPUTS)) == k, sig**2, 0.0))
+        one = scene_monoplot_covariance(scene, pts, slopes, orientation_cov=alone, pixel_sigma=0.0, device="cpu")
         for c, v in zip(one.cov, disp):  # rank one: c = a a^T with a = the predicted displacement (up to sign)
             assert abs(np.sqrt(np.trace(c)) - np.linalg.norm(v)) <= 0.02 * np.linalg.norm(v) + 2e-3, (name, c, v)
             assert np.linalg.norm(c @ v - (v @ v) * v) <= (0.04 * np.linalg.norm(v) + 4e-3) * (v @ v), (name, c, v)
