@@ -201,6 +201,11 @@ def demo(out_dir, device):
               help="Who deflates a COG's blocks: host (libdeflate on all cores), nvcomp (the GPU; needs "
                    "orthowarp[gpu]), hybrid (both), warp (orthowarp's own deflate kernels on the device); auto: "
                    "nvcomp on a GPU with nvCOMP at --compress-level 1-4, else host.")
+@click.option("-co", "--co", "creation", multiple=True, metavar="KEY=VALUE",
+              help="GDAL-style creation option, repeatable: BLOCKSIZE (64-4096, multiple of 16; default 512), "
+                   "BIGTIFF (YES, NO, IF_NEEDED, IF_SAFER), NUM_THREADS (count or ALL_CPUS); COMPRESS, LEVEL (ZLEVEL) "
+                   "and QUALITY (JPEG_QUALITY) set --compress, --compress-level and --quality; PREDICTOR=YES (2) is "
+                   "what orthowarp writes for integer data.")
 @click.option("--dtype", type=click.Choice(["uint8", "uint16", "float32"]), help="Output data type (default: the source's).")
 @click.option("--out-dir", type=click.Path(file_okay=False), default=".", show_default=True)
 @click.option("--overwrite", is_flag=True, help="Replace existing outputs.")
@@ -231,7 +236,7 @@ def demo(out_dir, device):
               help="Write the same profile as JSON to this file.")
 @click.pass_context
 def ortho(ctx, images, odm_dataset, int_param, ext_param, dimap, attitude_model, dem, height, crs, resolution, resampling, method,
-          driver, compress, compress_level, quality, block_codec, dtype,
+          driver, compress, compress_level, quality, block_codec, creation, dtype,
           out_dir, overwrite, no_refraction, geoid, same_vertical_datum, device, tile_size, export_params, accuracy,
           pose_sigma,
           pixel_sigma, dem_sigma, show_profile, profile_json):
@@ -277,13 +282,14 @@ def ortho(ctx, images, odm_dataset, int_param, ext_param, dimap, attitude_model,
             raise ParamError("--pixel-sigma and --dem-sigma must be >= 0")
     if (dem is None) == (height is None):
         raise ParamError("Give exactly one of --dem FILE and --height METRES")
+    compress, compress_level, quality, creation_options = _creation_args(creation, compress, compress_level, quality)
     if show_profile or profile_json:
         from .pipeline.profile import format_profile
     quiet = ctx.obj["quiet"]
     options = dict(crs=crs, resolution=resolution, resampling=resampling, method=method,
                    refraction=not no_refraction, dtype=dtype, driver="COG" if driver.lower() == "cog" else "GTiff",
                    compress=compress, compress_level=compress_level, quality=quality, block_codec=block_codec,
-                   overwrite=overwrite,
+                   creation_options=creation_options, overwrite=overwrite,
                    device=device,
                    progress=not quiet, tile_size=tile_size, geoid=geoid, same_vertical_datum=same_vertical_datum)
 
@@ -395,6 +401,44 @@ def _accuracy_name(dst):
     """<image>_ACCURACY.tif beside <image>_ORTHO.tif."""
     base = dst[:-len("_ORTHO.tif")] if dst.endswith("_ORTHO.tif") else os.path.splitext(dst)[0]
     return base + "_ACCURACY.tif"
+
+
+_COMPRESS_NAMES = {"deflate", "zstd", "lzw", "jpeg", "webp", "none"}
+
+
+def _creation_args(values, compress, compress_level, quality):
+    """``-co KEY=VALUE`` options: COMPRESS, LEVEL/ZLEVEL/ZSTD_LEVEL, QUALITY/JPEG_QUALITY and
+    PREDICTOR (YES/2/STANDARD only) taken into the matching options, the rest returned as the
+    writer's creation options (checked by orthorectify)."""
+    from .errors import ParamError
+
+    rest = {}
+    for item in values:
+        key, sep, value = item.partition("=")
+        key, value = key.strip().upper(), value.strip()
+        if not sep or not key or not value:
+            raise ParamError(f"-co takes KEY=VALUE, got {item!r}")
+        if key == "COMPRESS":
+            if value.lower() not in _COMPRESS_NAMES:
+                raise ParamError(f"-co COMPRESS must be one of {sorted(n.upper() for n in _COMPRESS_NAMES)}, got {value!r}")
+            compress = value.lower()
+        elif key in ("LEVEL", "ZLEVEL", "ZSTD_LEVEL"):
+            try:
+                compress_level = int(value)
+            except ValueError:
+                raise ParamError(f"-co {key} must be an integer, got {value!r}") from None
+        elif key in ("QUALITY", "JPEG_QUALITY", "WEBP_LEVEL"):
+            try:
+                quality = int(value)
+            except ValueError:
+                raise ParamError(f"-co {key} must be an integer, got {value!r}") from None
+        elif key == "PREDICTOR":
+            if value.upper() not in ("YES", "2", "STANDARD"):
+                raise ParamError(f"-co PREDICTOR={value}: orthowarp writes horizontal differencing (PREDICTOR=2) for "
+                                 "integer data with deflate, zstd and lzw, and no other predictor")
+        else:
+            rest[key] = value
+    return compress, compress_level, quality, rest
 
 
 def _odm_dataset(folder, images, int_param, ext_param, dem, height):
@@ -545,6 +589,10 @@ def _frame_orientations(images, int_param, ext_param, crs, ids=None):
               help="Who deflates the mosaic's blocks: host (libdeflate on all cores), nvcomp (the tiles stay on the "
                    "GPU; needs orthowarp[gpu]), hybrid (both), warp (orthowarp's own deflate kernels on the device); "
                    "auto: host.")
+@click.option("-co", "--co", "creation", multiple=True, metavar="KEY=VALUE",
+              help="GDAL-style creation option of the mosaic (and index) file, repeatable: BLOCKSIZE, BIGTIFF, "
+                   "NUM_THREADS as for ortho; LEVEL (ZLEVEL) sets --compress-level; the mosaic is deflate with "
+                   "PREDICTOR=2.")
 @click.option("--dtype", type=click.Choice(["uint8", "uint16", "float32"]), help="Output data type (default: the sources').")
 @click.option("--overwrite", is_flag=True, help="Replace existing outputs.")
 @click.option("--no-refraction", is_flag=True, help="Do not correct atmospheric refraction.")
@@ -558,8 +606,8 @@ def _frame_orientations(images, int_param, ext_param, crs, ids=None):
 @click.option("--profile-json", type=click.Path(dir_okay=False), help="Write the same profile as JSON to this file.")
 @click.pass_context
 def mosaic(ctx, images, int_param, ext_param, odm_dataset, scenes, attitude_model, dem, height, out_path, index_path, seamlines_path, crs, resolution,
-           resampling, seams, seam_width, blend, feather, no_balance, no_occlusion, reference, compress_level, block_codec, dtype,
-           overwrite, no_refraction, geoid,
+           resampling, seams, seam_width, blend, feather, no_balance, no_occlusion, reference, compress_level, block_codec, creation,
+           dtype, overwrite, no_refraction, geoid,
            same_vertical_datum, device, workers, tile_size, show_profile, profile_json):
     """Mosaic frame IMAGES and pushbroom scenes (--scene) into one cloud-optimized GeoTIFF: each
     pixel from the image that sees its ground most nearly from above (smallest off-nadir
@@ -577,6 +625,9 @@ def mosaic(ctx, images, int_param, ext_param, odm_dataset, scenes, attitude_mode
         raise ParamError("Give frame IMAGES (with --ext-param) or pushbroom scenes (--scene IMAGE DIMAP)")
     if images and not ext_param:
         raise ParamError("Frame IMAGES need --ext-param (their exterior orientation)")
+    compress, compress_level, quality, creation_options = _creation_args(creation, "deflate", compress_level, None)
+    if compress != "deflate" or quality is not None:
+        raise ParamError("the mosaic is written with deflate: -co COMPRESS and QUALITY do not apply")
     jobs = _frame_orientations(images, int_param, ext_param, crs) if images else []
     if scenes:
         from .pushbroom import PushbroomScene
@@ -590,7 +641,7 @@ def mosaic(ctx, images, int_param, ext_param, odm_dataset, scenes, attitude_mode
                     refraction=not no_refraction, dtype=dtype, index=index_path, seamlines=seamlines_path,
                     seams=seams, seam_width=seam_width, blend=blend, feather=feather,
                     balance=not no_balance, reference=reference, occlusion=not no_occlusion,
-                    compress_level=compress_level, block_codec=block_codec,
+                    compress_level=compress_level, block_codec=block_codec, creation_options=creation_options,
                     overwrite=overwrite, device=device, geoid=geoid, same_vertical_datum=same_vertical_datum,
                     workers=workers, tile_size=tile_size, cancel=ctx.meta.get("orthowarp.stop"))
     if show_profile or profile_json:

@@ -54,7 +54,7 @@ from .io import atomic_files, check_destination
 from .ortho import _TOP as TOP
 from .ortho import _WP_TYPES as WP_TYPES
 from .ortho import BLOCK_CODECS, COARSE_STEP, RESAMPLING, ImageTiles, _as_dem, _block_codec, _check_cancel, \
-    device_codecs, coarse_grid, output_grid, source_facts
+    coarse_grid, device_codecs, output_grid, parse_creation_options, source_facts
 from .geometry import FrameGeometry, PushbroomGeometry
 from .profile import StageTimer
 
@@ -146,7 +146,7 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
            seamlines: str | os.PathLike | None = None, seams: str = "least-cost", seam_width: float = 256,
            blend: str = "feather", feather: float = 32, balance: bool = True, reference: int | None = None,
            occlusion: bool = True, compress_level: int | None = None, block_codec: str = "auto",
-           tile_size: int | None = None, overwrite: bool = False, device: str | None = None,
+           creation_options: dict | None = None, tile_size: int | None = None, overwrite: bool = False, device: str | None = None,
            workers: int | None = None, geoid: str | os.PathLike | None = None, same_vertical_datum: bool = False,
            cancel: threading.Event | None = None) -> MosaicResult:
     """Mosaic frame images and pushbroom scenes into one cloud-optimized GeoTIFF (deflate,
@@ -211,6 +211,9 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
         backward method.
     compress_level : int, optional
         Deflate level 1-12 (default 6).
+    creation_options : dict, optional
+        BLOCKSIZE, BIGTIFF, NUM_THREADS of the mosaic and index files (as for
+        :func:`~orthowarp.pipeline.ortho.orthorectify`).
     block_codec : {"auto", "host", "nvcomp", "hybrid", "warp"}, optional
         Who deflates the mosaic's blocks (as for
         :func:`~orthowarp.pipeline.ortho.orthorectify`): "host" (the tiles copied to host
@@ -238,6 +241,7 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
     images = _check_images(images, resampling, dtype, blend, feather, reference, seams, seam_width)
     if block_codec not in BLOCK_CODECS:
         raise ParamError(f"block_codec must be one of {BLOCK_CODECS}, got {block_codec!r}")
+    co = parse_creation_options(creation_options)
     if tile_size is not None and (int(tile_size) < 16 or int(tile_size) % 16):
         raise ParamError(f"tile_size must be a positive multiple of 16, got {tile_size}")
     dst = os.fspath(dst)
@@ -283,7 +287,7 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
 
     try:
         return plan.write(dst, results(), index=index, seamlines=seamlines, compress_level=compress_level,
-                          overwrite=overwrite, t_start=t0, _block_codec=codec)
+                          overwrite=overwrite, t_start=t0, _block_codec=codec, creation_options=co)
     finally:
         plan.close()
 
@@ -565,7 +569,7 @@ class MosaicPlan:
         return got
 
     def write(self, dst, results, *, index=None, seamlines=None, compress_level=None, overwrite=False,
-              t_start=None, _block_codec="host"):
+              t_start=None, _block_codec="host", creation_options=None):
         """Write the mosaic from tile results, in any order: ``results`` yields
         ((r0, c0, rows, cols), (block, valid, source)) for every tile of the grid (e.g. from
         :meth:`tile` on a thread pool or a distributed engine). The outputs (mosaic, optional
@@ -587,11 +591,14 @@ class MosaicPlan:
         rio_crs = rasterio.crs.CRS.from_wkt(self.crs_wkt)
         t_start = time.perf_counter() if t_start is None else t_start
         with rasterio.Env(GDAL_CACHEMAX=256), atomic_files(outputs) as tmps:
+            co = creation_options if isinstance(creation_options, dict) and "block" in creation_options \
+                else parse_creation_options(creation_options)
+            kw = dict(level=compress_level or 6, block_size=co["block"], bigtiff=co["bigtiff"], threads=co["threads"])
             writers = [CogWriter(tmps[0], width=cols, height=rows, count=self.count, dtype=self.dtype, crs=rio_crs,
-                                 transform=self.transform, level=compress_level or 6, name=dst)]
+                                 transform=self.transform, name=dst, **kw)]
             if index is not None:
                 writers.append(CogWriter(tmps[1], width=cols, height=rows, count=1, dtype="uint16", crs=rio_crs,
-                                         transform=self.transform, level=compress_level or 6, name=outputs[1]))
+                                         transform=self.transform, name=outputs[1], **kw))
             encoder = None
             try:
                 if _block_codec != "host":

@@ -231,7 +231,7 @@ def orthorectify(src: str | os.PathLike, sensor: FrameCamera | PushbroomScene, *
                  tile_size: int | None = None, overwrite: bool = False, device: str | None = None,
                  progress: bool = False, workers: int | None = None, geoid: str | os.PathLike | None = None,
                  same_vertical_datum: bool = False, cancel: threading.Event | None = None,
-                 block_codec: str = "auto") -> OrthoResult:
+                 block_codec: str = "auto", creation_options: dict | None = None) -> OrthoResult:
     """Orthorectify one frame image or pushbroom scene into a GeoTIFF / cloud-optimized GeoTIFF.
 
     Called as ``orthorectify(src, camera, pose, dst, ...)`` for a frame image or
@@ -297,6 +297,13 @@ def orthorectify(src: str | os.PathLike, sensor: FrameCamera | PushbroomScene, *
     cancel : threading.Event, optional
         Set from another thread (or a signal handler) to stop the run: no tile starts after
         it, nothing is published, and :class:`~orthowarp.errors.Cancelled` is raised.
+    creation_options : dict, optional
+        GDAL-style creation options of the output file, keys case-insensitive: ``BLOCKSIZE``
+        (pixels, a multiple of 16 from 64 to 4096; default 512), ``BIGTIFF`` (``YES``,
+        ``NO``, ``IF_NEEDED``, ``IF_SAFER``; default: BigTIFF where the file needs it),
+        ``NUM_THREADS`` (compression threads, a count or ``ALL_CPUS``, the default). They apply
+        whichever writer makes the file (orthowarp's COG writer, GDAL's COG or GTiff driver).
+        Compression, level and quality have their own arguments.
     block_codec : {"auto", "host", "nvcomp", "hybrid", "warp"}, optional
         Who compresses a deflate COG's blocks. "host": each tile goes to host memory, where
         the writer applies the predictor, builds the overviews and deflates (libdeflate, all
@@ -359,6 +366,7 @@ def orthorectify(src: str | os.PathLike, sensor: FrameCamera | PushbroomScene, *
         raise ParamError(f"dtype must be one of {DTYPES}, got {dtype!r}")
     if block_codec not in BLOCK_CODECS:
         raise ParamError(f"block_codec must be one of {BLOCK_CODECS}, got {block_codec!r}")
+    co = parse_creation_options(creation_options)
     if tile_size is not None:
         tile_size = int(tile_size)
         if tile_size < 16 or tile_size % 16:
@@ -406,15 +414,17 @@ def orthorectify(src: str | os.PathLike, sensor: FrameCamera | PushbroomScene, *
         work = tmp_final if driver == "GTiff" or streamed else tmp_final + ".work.tif"
         _render(src, geom, out_crs, transform, shape, count, out_dtype,
                 compress if driver == "GTiff" else "none", work, resampling, tile_size, progress,
-                workers, timer, dst, method, masked, compress_level, quality=quality,
-                cog=dict(compress=compress, level=compress_level or 6) if streamed else None, cancel=cancel,
+                workers, timer, dst, method, masked, compress_level, quality=quality, co=co,
+                cog=dict(compress=compress, level=compress_level or 6, block_size=co["block"], bigtiff=co["bigtiff"],
+                         threads=co["threads"]) if streamed else None, cancel=cancel,
                 block_codec=_block_codec(block_codec, geom.device, streamed and compress == "deflate",
                                          compress_level or 6),
                 src_dtype=src_dtype, clipped=clipped)
         t0 = time.perf_counter()
         if not streamed:
             try:
-                _finish(work, tmp_final, driver, compress, overviews, out_dtype, compress_level, quality=quality)
+                _finish(work, tmp_final, driver, compress, overviews, out_dtype, compress_level, quality=quality,
+                        co=co)
             except GDAL_ERRORS as e:
                 raise write_error(dst, tmp_final, e) from e
             verify_tiff(tmp_final, name=dst)  # GDAL's close does not report failed writes
@@ -482,9 +492,49 @@ def _default_tile_size(device, bands, workers):
     return size
 
 
-def _creation_options(compress, dtype, level=None):
-    opts = dict(tiled=True, blockxsize=512, blockysize=512, compress=compress.upper() if compress != "none" else None,
-                BIGTIFF="IF_SAFER", NUM_THREADS="ALL_CPUS")  # GDAL compresses blocks on all cores
+CREATION_OPTIONS = ("BLOCKSIZE", "BIGTIFF", "NUM_THREADS")
+_BIGTIFF = {"YES": True, "NO": False, "IF_NEEDED": None, "IF_SAFER": None}
+
+
+def parse_creation_options(options):
+    """Checked creation options (see :func:`orthorectify`'s ``creation_options``) as the
+    writers take them: block edge, BigTIFF flag for orthowarp's COG writer (None: as needed)
+    and GDAL's string, compression threads (None: all cores) and GDAL's string."""
+    out = dict(block=512, bigtiff=None, bigtiff_gdal="IF_SAFER", threads=None, threads_gdal="ALL_CPUS")
+    for key, value in (options or {}).items():
+        k, v = str(key).strip().upper(), str(value).strip().upper()
+        if k == "BLOCKSIZE":
+            try:
+                block = int(v)
+            except ValueError:
+                block = 0
+            if not (64 <= block <= 4096 and block % 16 == 0):
+                raise ParamError(f"creation option BLOCKSIZE must be a multiple of 16 from 64 to 4096, got {value!r}")
+            out["block"] = block
+        elif k == "BIGTIFF":
+            if v not in _BIGTIFF:
+                raise ParamError(f"creation option BIGTIFF must be one of {sorted(_BIGTIFF)}, got {value!r}")
+            out["bigtiff"], out["bigtiff_gdal"] = _BIGTIFF[v], v
+        elif k == "NUM_THREADS":
+            if v != "ALL_CPUS":
+                try:
+                    threads = int(v)
+                except ValueError:
+                    threads = 0
+                if threads < 1:
+                    raise ParamError(f"creation option NUM_THREADS must be a count >= 1 or ALL_CPUS, got {value!r}")
+                out["threads"], out["threads_gdal"] = threads, str(threads)
+        else:
+            raise ParamError(f"unknown creation option {key!r}: orthowarp takes {', '.join(CREATION_OPTIONS)} "
+                             "(compression, level and quality have their own options)")
+    return out
+
+
+def _creation_options(compress, dtype, level=None, co=None):
+    co = co or parse_creation_options(None)
+    opts = dict(tiled=True, blockxsize=co["block"], blockysize=co["block"],
+                compress=compress.upper() if compress != "none" else None,
+                BIGTIFF=co["bigtiff_gdal"], NUM_THREADS=co["threads_gdal"])  # GDAL compresses blocks on all cores
     if level is not None and compress in ("deflate", "zstd"):
         opts["ZLEVEL" if compress == "deflate" else "ZSTD_LEVEL"] = level
     if compress in ("deflate", "zstd", "lzw") and dtype != "float32":
@@ -541,12 +591,12 @@ def device_codecs(block_codec, level, device):
 
 def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, path, resampling,
             tile_size, progress, workers, timer, final_name, method_name, masked, compress_level=None, cog=None,
-            cancel=None, src_dtype=None, clipped=None, block_codec="host", quality=None):
+            cancel=None, src_dtype=None, clipped=None, block_codec="host", quality=None, co=None):
     rows, cols = shape
     is_float = out_dtype == "float32"
     profile = dict(driver="GTiff", width=cols, height=rows, count=count, dtype=out_dtype,
                    crs=rasterio.crs.CRS.from_wkt(out_crs.to_wkt()), transform=transform,
-                   **_creation_options(compress, out_dtype, compress_level))
+                   **_creation_options(compress, out_dtype, compress_level, co))
     if compress == "jpeg":
         profile.update(JPEG_QUALITY=quality or DEFAULT_QUALITY, **({"photometric": "YCBCR"} if count == 3 else {}))
     elif compress == "webp":
@@ -1122,7 +1172,7 @@ def _progress(total):
     return tqdm(total=total, unit="tile", leave=False)
 
 
-def _finish(work, final, driver, compress, overviews, dtype, level=None, quality=None):
+def _finish(work, final, driver, compress, overviews, dtype, level=None, quality=None, co=None):
     """Overviews, then (for COG) a copy in the cloud-optimized layout."""
     if driver == "COG" or overviews:
         with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True, GDAL_CACHEMAX=256), rasterio.open(work, "r+") as ds:
@@ -1130,8 +1180,9 @@ def _finish(work, final, driver, compress, overviews, dtype, level=None, quality
             if factors:
                 ds.build_overviews(factors, rasterio.enums.Resampling.average)
     if driver == "COG":
-        opts = dict(compress=compress.upper() if compress != "none" else "NONE", blocksize=512,
-                    overviews="FORCE_USE_EXISTING", BIGTIFF="IF_SAFER", NUM_THREADS="ALL_CPUS")
+        co = co or parse_creation_options(None)
+        opts = dict(compress=compress.upper() if compress != "none" else "NONE", blocksize=co["block"],
+                    overviews="FORCE_USE_EXISTING", BIGTIFF=co["bigtiff_gdal"], NUM_THREADS=co["threads_gdal"])
         if compress in ("deflate", "zstd", "lzw") and dtype != "float32":
             opts["predictor"] = "YES"
         if compress in LOSSY:

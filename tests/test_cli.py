@@ -356,3 +356,40 @@ def test_adjust_report_explains_itself(tmp_path):
     assert u["rejected"] == len(rep["rejected"]) > 0 and "w-test" in md
     ws = [float(v) for v in re.findall(r"\|w\| = ([0-9.]+)", md)]
     assert ws == sorted(ws, reverse=True) and "residual (" in md
+
+
+def test_ortho_creation_options(tmp_path):
+    """-co: BLOCKSIZE, BIGTIFF and NUM_THREADS reach whichever writer makes the file (orthowarp's
+    COG writer, GDAL's COG driver for zstd, GDAL's GTiff driver), COMPRESS and LEVEL set the
+    matching options, and the pixels stay those of the default file; unknown keys and
+    predictors orthowarp does not write are refused with a one-line message."""
+    import numpy as np
+    import rasterio
+
+    args = _ortho_inputs(tmp_path)
+    base = ["-q", "ortho", str(tmp_path / "img.tif"), *args, "--height", "100", "--device", "cpu"]
+
+    def run(out, *extra):
+        return CliRunner().invoke(main, [*base, "--out-dir", str(tmp_path / out), *extra])
+
+    assert run("default").exit_code == 0
+    with rasterio.open(tmp_path / "default" / "img_ORTHO.tif") as ds:
+        ref, ref_mask = ds.read(), ds.dataset_mask()
+    for out, extra, block, big, compression in (
+            ("cog", ["-co", "BLOCKSIZE=256", "-co", "bigtiff=yes", "-co", "NUM_THREADS=2"], 256, True, "deflate"),
+            ("zstd", ["-co", "COMPRESS=ZSTD", "-co", "LEVEL=3", "-co", "BLOCKSIZE=128"], 128, False, "zstd"),
+            ("gtiff", ["--driver", "gtiff", "-co", "BLOCKSIZE=64", "-co", "BIGTIFF=YES"], 64, True, "deflate")):
+        res = run(out, *extra)
+        assert res.exit_code == 0, res.output
+        path = tmp_path / out / "img_ORTHO.tif"
+        with rasterio.open(path) as ds:
+            assert ds.block_shapes[0] == (block, block) and ds.compression.value.lower() == compression
+            np.testing.assert_array_equal(ds.read(), ref)
+            np.testing.assert_array_equal(ds.dataset_mask(), ref_mask)
+        assert (path.read_bytes()[2:4] == b"+\x00") == big  # BigTIFF's version 43
+    for extra, words in ((["-co", "FOO=1"], "unknown creation option 'FOO'"), (["-co", "BLOCKSIZE=100"], "BLOCKSIZE"),
+                         (["-co", "PREDICTOR=3"], "PREDICTOR=3"), (["-co", "BLOCKSIZE"], "KEY=VALUE"),
+                         (["-co", "BIGTIFF=maybe"], "BIGTIFF")):
+        res = run("bad", *extra)
+        assert res.exit_code == 1 and words in res.output and len(res.output.strip().splitlines()) == 1, res.output
+    assert not (tmp_path / "bad").exists() or not any((tmp_path / "bad").iterdir())

@@ -224,6 +224,26 @@ def test_the_mosaic_does_not_depend_on_the_tiling(pair, tmp_path, occlusion, ble
     assert diff.max() < 1e-3 * sc.texture.std
 
 
+def test_mosaic_creation_options(pair, tmp_path):
+    """creation_options reach the mosaic's and the index's writers: 256-pixel blocks, BigTIFF,
+    the same pixels as the default files."""
+    sc, images, _, _ = pair
+    files = {}
+    for name, co in (("default", None), ("co", {"blocksize": "256", "BIGTIFF": "YES", "NUM_THREADS": "2"})):
+        res = mosaic(images, tmp_path / f"{name}.tif", dem=sc.dem, refraction=False, device="cpu", tile_size=128,
+                     index=tmp_path / f"{name}_index.tif", occlusion=False, creation_options=co)
+        files[name] = (res.path, res.index)
+    for a, b in zip(files["default"], files["co"]):
+        with rasterio.open(a) as da, rasterio.open(b) as db:
+            assert db.block_shapes[0] == (256, 256) and da.block_shapes[0] == (512, 512)
+            np.testing.assert_array_equal(da.read(), db.read())
+            np.testing.assert_array_equal(da.dataset_mask(), db.dataset_mask())
+        with open(b, "rb") as f:
+            assert f.read(4)[2:4] == b"+\x00"  # BigTIFF
+    with pytest.raises(ParamError, match="BLOCKSIZE"):
+        mosaic(images, tmp_path / "bad.tif", dem=sc.dem, device="cpu", creation_options={"BLOCKSIZE": "8"})
+
+
 @pytest.mark.parametrize("occlusion, blend", [(True, "feather"), (False, "multiband")])
 def test_tiles_kept_on_the_device_give_the_same_file(pair, tmp_path, occlusion, blend):
     """block_codec="hybrid": the tiles stay on the device (the forward method's gaps filled
