@@ -32,6 +32,7 @@ is kept).
 
 import contextlib
 import importlib
+import logging
 import os
 import sys
 import tempfile
@@ -218,8 +219,29 @@ def resolve_device(device=None):
         raise DeviceError(f"Unknown or unavailable Warp device {device!r}: {e}") from e
 
 
+_log = logging.getLogger("orthowarp")
+COMPILE_NOTICE_S = 2.0  # a module load taking longer than this is compiling
+
+
+@contextlib.contextmanager
+def compile_notice(device, what):
+    """Log a warning (logger "orthowarp") if the block takes more than
+    :data:`COMPILE_NOTICE_S`: Warp is compiling kernels, which happens on the first run with
+    a Warp version and device and can take minutes; the cache then serves later runs."""
+    timer = threading.Timer(COMPILE_NOTICE_S, lambda: _log.warning(
+        "Compiling %s for %s: the first run with this Warp and device takes a while; later runs load them from "
+        "%s", what, device, wp.config.kernel_cache_dir))
+    timer.daemon = True
+    timer.start()
+    try:
+        yield
+    finally:
+        timer.cancel()
+
+
 def load_modules(device, *modules, block_dim=None):
-    """Load (compile if needed) Warp modules on a device, quietly, before launching from threads.
+    """Load (compile if needed) Warp modules on a device, quietly, before launching from threads,
+    with a logged notice when that takes long (see :func:`compile_notice`).
 
     Parameters
     ----------
@@ -229,7 +251,8 @@ def load_modules(device, *modules, block_dim=None):
     block_dim : int, optional
         The block size the launches will use (a module is loaded per block size).
     """
-    with quiet_warp():
+    names = ", ".join(m.__name__.rsplit(".", 1)[-1] for m in modules)
+    with quiet_warp(), compile_notice(device, f"Warp kernels ({names})"):
         for m in modules:
             if block_dim is None:
                 wp.load_module(m, device=device)

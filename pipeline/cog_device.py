@@ -31,6 +31,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import warp as wp
 
+from .._device import load_modules
 from ..errors import DeviceError, ParamError
 from ..kernels import cog as kc
 
@@ -442,7 +443,7 @@ class DeviceCogEncoder:
                 wp.set_mempool_release_threshold(device, half)
             else:
                 self._threshold = None
-        wp.load_module(kc, device=device)
+        load_modules(device, kc)
 
     def _device_level(self, li, row, col, h, w):
         """Whether a piece at level ``li`` with top-left (row, col), h x w pixels, covers whole

@@ -12,7 +12,7 @@ import numpy as np
 import warp as wp
 from pyproj import CRS, Transformer
 
-from .._device import quiet_warp, resolve_device
+from .._device import load_modules, quiet_warp, resolve_device
 from .._validate import as_crs, no_infinite_rows, points
 from ..camera import FrameCamera
 from ..errors import GeometryError, ParamError
@@ -227,6 +227,7 @@ class FrameGeometry:
         _check_sensor(camera, pose)
         self.camera, self.pose = camera, pose
         self.device = resolve_device(device)
+        load_modules(self.device, frame_kernels)  # compiled here on a first run, with a notice
         self._probe_base = None
         if region is None:
             region = (0.0, 0.0, float(camera.image_size[0]), float(camera.image_size[1]))
@@ -340,7 +341,6 @@ class FrameGeometry:
         workers = workers or os.cpu_count() or 1
         band_rows = band_rows or max(1, -(-rows // (4 * workers)))
         structs = self.structs()
-        wp.load_module(frame_kernels, device=self.device)  # compile once, before the threads
 
         def band(i0):
             i1 = min(i0 + band_rows, rows)
@@ -392,6 +392,7 @@ class PushbroomGeometry:
             raise ParamError(f"scene must be a PushbroomScene, got {type(scene).__name__}")
         self.scene = scene
         self.device = resolve_device(device)
+        load_modules(self.device, pb_kernels)  # compiled here on a first run, with a notice
         self._probe_base = None
         if region is None:
             region = (0.0, 0.0, float(scene.width), float(scene.height))

@@ -32,7 +32,7 @@ from pyproj import CRS, Transformer
 from rasterio.enums import MaskFlags, Resampling
 from rasterio.windows import Window
 
-from .._device import quiet_warp
+from .._device import load_modules, quiet_warp
 from .._validate import as_crs, finite
 from ..camera import FrameCamera
 from ..errors import Cancelled, DeviceError, GeometryError, OrthowarpWarning, ParamError, RasterIOError
@@ -720,7 +720,10 @@ class ImageTiles:
                                                   self.radius)
         self._local = threading.local()
         self._handles, self._lock = [], threading.Lock()
-        wp.load_module(ortho_kernels, device=device)
+        # the node kernels launch with Warp's default block size, the per-pixel kernels with
+        # ORTHO_BLOCK_DIM (a CUDA module is built per block size): both loaded here
+        load_modules(device, ortho_kernels)
+        load_modules(device, ortho_kernels, block_dim=ORTHO_BLOCK_DIM)
 
     def _source(self):
         """This thread's handle of the source (rasterio is not thread-safe per handle)."""

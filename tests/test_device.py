@@ -212,3 +212,30 @@ def test_unknown_device_is_device_error():
     with pytest.raises(ow.DeviceError, match="no-such-device"):
         _device.resolve_device("no-such-device")
     assert _device.resolve_device("cpu").is_cpu
+
+
+def test_a_slow_module_load_is_announced_as_compiling(monkeypatch, caplog):
+    """load_modules logs one warning (logger "orthowarp") when loading takes longer than
+    COMPILE_NOTICE_S, as Warp's first compile on a device does, and nothing when it is fast."""
+    import logging
+    import time
+    import types
+
+    import warp as wp
+
+    from orthowarp import _device
+
+    monkeypatch.setattr(_device, "COMPILE_NOTICE_S", 0.05)
+    fake = types.ModuleType("orthowarp.kernels.fake")
+    delay = {"s": 0.3}
+    monkeypatch.setattr(wp, "load_module", lambda m, device=None, block_dim=None: time.sleep(delay["s"]))
+    with caplog.at_level(logging.WARNING, logger="orthowarp"):
+        _device.load_modules("cpu", fake)
+        assert [r.getMessage() for r in caplog.records if "Compiling" in r.getMessage()] == [
+            f"Compiling Warp kernels (fake) for cpu: the first run with this Warp and device takes a while; later "
+            f"runs load them from {wp.config.kernel_cache_dir}"]
+        caplog.clear()
+        delay["s"] = 0.0
+        _device.load_modules("cpu", fake)
+        time.sleep(0.1)  # past the notice's delay: a cancelled timer stays silent
+        assert not [r for r in caplog.records if "Compiling" in r.getMessage()]
