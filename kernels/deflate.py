@@ -34,9 +34,9 @@ Then:
 
 Chunk-local tables live in scratch arrays, one row per chunk; the tokens are stored
 ``(positions, chunks)`` so that threads walking their chunks in step touch neighbouring
-words. The chain walk parallelised per position follows the GPU LZ77 literature (match
-finding independent per position, then a sequential parse; e.g. Sitaridi et al., "Massively
-parallel lossless compression", VLDB 2016). The host side is :class:`orthowarp.pipeline.cog_device.WarpDeflate`.
+words. Match finding independent per position followed by a sequential parse is the usual
+arrangement of GPU LZ77 encoders. The host side is
+:class:`orthowarp.pipeline.cog_device.WarpDeflate`.
 """
 
 import warp as wp
@@ -44,7 +44,7 @@ import warp as wp
 wp.set_module_options({"enable_backward": False})
 
 GOLDEN = wp.constant(wp.uint32(2654435761))  # Knuth's multiplicative hash
-HASH_SIZE = wp.constant(1 << 13)  # head table entries per chunk (13-bit hash of 3 bytes)
+HASH_SIZE = wp.constant(1 << 13)  # head table entries per chunk (13-bit hash of 3 or 4 bytes)
 MAX_CHUNK = 65535  # bytes per chunk: what one stored block holds
 MAX_DIST = wp.constant(32768)  # the farthest a match reaches back
 NSYM = wp.constant(336)  # per-chunk symbol row: literal/length 0-285, distance 286-315, code length 316-334

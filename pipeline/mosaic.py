@@ -241,7 +241,7 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
     images = _check_images(images, resampling, dtype, blend, feather, reference, seams, seam_width)
     if block_codec not in BLOCK_CODECS:
         raise ParamError(f"block_codec must be one of {BLOCK_CODECS}, got {block_codec!r}")
-    co = parse_creation_options(creation_options)
+    parse_creation_options(creation_options)  # checked before any work
     if tile_size is not None and (int(tile_size) < 16 or int(tile_size) % 16):
         raise ParamError(f"tile_size must be a positive multiple of 16, got {tile_size}")
     dst = os.fspath(dst)
@@ -287,7 +287,7 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
 
     try:
         return plan.write(dst, results(), index=index, seamlines=seamlines, compress_level=compress_level,
-                          overwrite=overwrite, t_start=t0, _block_codec=codec, creation_options=co)
+                          overwrite=overwrite, t_start=t0, _block_codec=codec, creation_options=creation_options)
     finally:
         plan.close()
 
@@ -591,8 +591,7 @@ class MosaicPlan:
         rio_crs = rasterio.crs.CRS.from_wkt(self.crs_wkt)
         t_start = time.perf_counter() if t_start is None else t_start
         with rasterio.Env(GDAL_CACHEMAX=256), atomic_files(outputs) as tmps:
-            co = creation_options if isinstance(creation_options, dict) and "block" in creation_options \
-                else parse_creation_options(creation_options)
+            co = parse_creation_options(creation_options)
             kw = dict(level=compress_level or 6, block_size=co["block"], bigtiff=co["bigtiff"], threads=co["threads"])
             writers = [CogWriter(tmps[0], width=cols, height=rows, count=self.count, dtype=self.dtype, crs=rio_crs,
                                  transform=self.transform, name=dst, **kw)]

@@ -534,7 +534,7 @@ def _creation_options(compress, dtype, level=None, co=None):
     co = co or parse_creation_options(None)
     opts = dict(tiled=True, blockxsize=co["block"], blockysize=co["block"],
                 compress=compress.upper() if compress != "none" else None,
-                BIGTIFF=co["bigtiff_gdal"], NUM_THREADS=co["threads_gdal"])  # GDAL compresses blocks on all cores
+                BIGTIFF=co["bigtiff_gdal"], NUM_THREADS=co["threads_gdal"])  # GDAL's compression threads
     if level is not None and compress in ("deflate", "zstd"):
         opts["ZLEVEL" if compress == "deflate" else "ZSTD_LEVEL"] = level
     if compress in ("deflate", "zstd", "lzw") and dtype != "float32":
