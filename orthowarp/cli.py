@@ -111,6 +111,9 @@ def _exit_now(signum):
     os._exit(128 + signum)
 
 
+_FRAME_POSE_SIGMA = "0.05,0.05,0.1,0.005,0.005,0.01"
+_SCENE_SIGMA = "10,10,5,0.001,0.001,0.001,0.001,0.001"
+
 @click.group(cls=_Group)
 @click.version_option(package_name="orthowarp")
 @click.option("-v", "--verbose", count=True,
@@ -220,11 +223,13 @@ def demo(out_dir, device):
 @click.option("--accuracy", is_flag=True,
               help="Also write <image>_ACCURACY.tif: the predicted accuracy of each ground position (sigma east, "
                    "north, up in m, by error propagation from --pose-sigma, --pixel-sigma and --dem-sigma), one "
-                   "pixel per 16 x 16 ortho pixels; frame images.")
-@click.option("--pose-sigma", default="0.05,0.05,0.1,0.005,0.005,0.01", show_default=True,
+                   "pixel per 16 x 16 ortho pixels; frame images and --dimap scenes.")
+@click.option("--pose-sigma", default=_FRAME_POSE_SIGMA, show_default=True,
               metavar="SX,SY,SZ,SA,SB,SC",
               help="With --accuracy: the poses' standard deviations: x, y, z (or east, north, up for GNSS/INS "
-                   "poses) in m, omega, phi, kappa (or roll, pitch, yaw) in deg.")
+                   "poses) in m, omega, phi, kappa (or roll, pitch, yaw) in deg; for a --dimap scene eight numbers "
+                   "(default 10,10,5,0.001,0.001,0.001,0.001,0.001): the orbit across, along the track and radially "
+                   "(m), roll, pitch, yaw and the look angles psi_x, psi_y (deg).")
 @click.option("--pixel-sigma", type=float, default=0.5, show_default=True,
               help="With --accuracy: standard deviation of an image position (px).")
 @click.option("--dem-sigma", type=float, default=0.5, show_default=True,
@@ -270,14 +275,16 @@ def ortho(ctx, images, odm_dataset, int_param, ext_param, dimap, attitude_model,
         return
     sigmas = None
     if accuracy:
-        if dimap:
-            raise ParamError("--accuracy is computed for frame images, not --dimap scenes")
+        if dimap and pose_sigma == _FRAME_POSE_SIGMA:
+            pose_sigma = _SCENE_SIGMA
+        want = 8 if dimap else 6
         try:
             sigmas = [float(v) for v in pose_sigma.split(",")]
         except ValueError:
             sigmas = []
-        if len(sigmas) != 6 or not all(np.isfinite(v) and v >= 0 for v in sigmas):
-            raise ParamError(f"--pose-sigma must be six numbers >= 0 (m, m, m, deg, deg, deg), got {pose_sigma!r}")
+        if len(sigmas) != want or not all(np.isfinite(v) and v >= 0 for v in sigmas):
+            units = "m, m, m, deg x 5 for a --dimap scene" if dimap else "m, m, m, deg, deg, deg"
+            raise ParamError(f"--pose-sigma must be {want} numbers >= 0 ({units}), got {pose_sigma!r}")
         if not (np.isfinite(pixel_sigma) and pixel_sigma >= 0 and np.isfinite(dem_sigma) and dem_sigma >= 0):
             raise ParamError("--pixel-sigma and --dem-sigma must be >= 0")
     if (dem is None) == (height is None):
@@ -320,9 +327,16 @@ def ortho(ctx, images, odm_dataset, int_param, ext_param, dimap, attitude_model,
             if accuracy:
                 from .pipeline.precision import accuracy_raster
 
-                camera, pose = sensor
-                accuracy_raster(_accuracy_name(dst), camera, pose, terrain, r.crs, r.transform, r.shape,
-                                pose_cov=np.diag(sigmas) ** 2, pixel_sigma=pixel_sigma, dem_sigma=dem_sigma)
+                if len(sensor) == 1:  # a pushbroom scene
+                    from .pipeline.precision import scene_accuracy_raster
+
+                    scene_accuracy_raster(_accuracy_name(dst), sensor[0], terrain, r.crs, r.transform, r.shape,
+                                          orientation_cov=np.diag(sigmas) ** 2, pixel_sigma=pixel_sigma,
+                                          dem_sigma=dem_sigma, refraction=not no_refraction, device=device)
+                else:
+                    camera, pose = sensor
+                    accuracy_raster(_accuracy_name(dst), camera, pose, terrain, r.crs, r.transform, r.shape,
+                                    pose_cov=np.diag(sigmas) ** 2, pixel_sigma=pixel_sigma, dem_sigma=dem_sigma)
             return dst, r
 
         def report(dst, r):

@@ -20,12 +20,12 @@ from affine import Affine
 from pyproj import Transformer
 
 from ..adjust import collinearity as col
-from ..adjust.geocentric import LocalFrame
 from ..adjust.precision import PrecisionResult, _camera_row, _Frame, _square, monoplot_covariance
 from ..errors import ParamError
+from ..geodesy import WGS84_A, WGS84_E2
 from .io import write_raster
 
-__all__ = ["accuracy_raster", "scene_monoplot_covariance", "SCENE_INPUTS"]
+__all__ = ["accuracy_raster", "scene_accuracy_raster", "scene_monoplot_covariance", "SCENE_INPUTS"]
 
 # a pushbroom scene's orientation inputs, constant over the scene: the orbit's offset in the
 # orbital frame (m), the attitude's offsets (deg) and the look angles' offsets (deg)
@@ -52,6 +52,23 @@ def perturbed_scene(scene, offsets):
                           psi_x=scene.psi_x + np.radians(d[6]), psi_y=scene.psi_y + np.radians(d[7]),
                           attitude_model=scene.attitude_model, epoch=scene.epoch,
                           attitude_extrapolation=scene.attitude_extrapolation, source=scene.source)
+
+
+def enu_shifted(points, axis, metres):
+    """Geodetic points (n, 3: longitude, latitude deg, height m) moved ``metres`` along their
+    local east (axis 0), north (1) or up (2), to first order (through the ellipsoid's radii of
+    curvature at the point; the error, metres^2 / R, is below a micrometre at 1 m)."""
+    lon, lat, h = (np.asarray(points, float)[:, k] for k in range(3))
+    s = np.sin(np.radians(lat))
+    w = np.sqrt(1.0 - WGS84_E2 * s * s)
+    out = np.stack([lon, lat, h], -1)
+    if axis == 0:
+        out[:, 0] += np.degrees(metres / ((WGS84_A / w + h) * np.cos(np.radians(lat))))
+    elif axis == 1:
+        out[:, 1] += np.degrees(metres / (WGS84_A * (1.0 - WGS84_E2) / w**3 + h))
+    else:
+        out[:, 2] += metres
+    return out
 
 
 def scene_monoplot_covariance(scene, points, slopes, *, orientation_cov, pixel_sigma=0.5, dem_sigma=0.0,
@@ -105,16 +122,10 @@ def scene_monoplot_covariance(scene, points, slopes, *, orientation_cov, pixel_s
 
     if not np.isfinite(pixels(scene, pts)).all():
         raise ParamError("every point must lie on the scene (some project outside it or behind it)")
-    frames = [LocalFrame(p[1], p[0], p[2]) for p in pts]
     f_x = np.zeros((n, 3, 3))
     for a in range(3):
-        shifted = []
-        for sign in (1.0, -1.0):
-            e = np.zeros(3)
-            e[a] = sign
-            lla = np.stack([fr.to_lla(e)[0] for fr in frames])  # lat, lon, h
-            shifted.append(pixels(scene, lla[:, [1, 0, 2]]))
-        f_x[:, :2, a] = 0.5 * (shifted[0] - shifted[1])
+        plus, minus = (pixels(scene, enu_shifted(pts, a, sign)) for sign in (1.0, -1.0))
+        f_x[:, :2, a] = 0.5 * (plus - minus)
     f_x[:, 2] = np.stack([-slopes[:, 0], -slopes[:, 1], np.ones(n)], -1)
     f_l = np.zeros((n, 3, m + 3))
     for k in range(m):
@@ -131,6 +142,42 @@ def scene_monoplot_covariance(scene, points, slopes, *, orientation_cov, pixel_s
     a = -np.linalg.solve(f_x, f_l)
     return PrecisionResult(pts, a @ c_in @ np.transpose(a, (0, 2, 1)))
 
+
+
+def _as_terrain(dem):
+    from .dem import Dem
+
+    if isinstance(dem, Dem):
+        return dem
+    return Dem.from_file(dem) if isinstance(dem, (str, bytes)) or hasattr(dem, "__fspath__") else \
+        Dem.constant(float(dem))
+
+
+def _cell_points(dem, crs, transform, shape, step, frame_crs):
+    """The accuracy raster's grid (``step`` ortho pixels a cell) and its cells' centres on the
+    terrain: (grid transform, (rows, cols), points (n, 3), slopes (n, 2)). Points are in the
+    frame's map CRS ``frame_crs`` (x, y, h), or longitude, latitude, ellipsoidal height where
+    it is None; slopes per metre along x, y, or east, north."""
+    geo = frame_crs is None
+    rows, cols = -(-shape[0] // step), -(-shape[1] // step)
+    grid = transform @ Affine.scale(step)
+    jj, ii = np.meshgrid(np.arange(cols) + 0.5, np.arange(rows) + 0.5)
+    ox, oy = grid @ (jj.ravel(), ii.ravel())
+    ox, oy = np.asarray(ox, dtype=np.float64), np.asarray(oy, dtype=np.float64)
+    to_frame = Transformer.from_crs(crs, "EPSG:4326" if geo else frame_crs, always_xy=True)
+    px, py = (np.asarray(v, dtype=np.float64) for v in to_frame.transform(ox, oy))
+    terrain = _as_terrain(dem).for_frame(frame_crs)
+    h = terrain.sample(px, py)
+    if terrain.is_constant:
+        slopes = np.zeros((len(px), 2))
+    else:  # the bilinear surface's slope (per metre east and north for lon/lat grids)
+        d = 0.1 * min(abs(terrain.transform.a), abs(terrain.transform.e))
+        sx = sy = 2 * d
+        if geo:  # degrees -> metres on the sphere of the mean radius (the slope to ~0.3 %)
+            sx, sy = sx * np.radians(1.0) * 6371008.8 * np.cos(np.radians(py)), sy * np.radians(1.0) * 6371008.8
+        slopes = np.stack([(terrain.sample(px + d, py) - terrain.sample(px - d, py)) / sx,
+                           (terrain.sample(px, py + d) - terrain.sample(px, py - d)) / sy], -1)
+    return grid, (rows, cols), np.stack([px, py, h], -1), slopes
 
 
 def accuracy_raster(dst, camera, pose, dem, crs, transform, shape, *, pose_cov, pixel_sigma=0.5, camera_cov=None,
@@ -162,37 +209,13 @@ def accuracy_raster(dst, camera, pose, dem, crs, transform, shape, *, pose_cov, 
     ndarray (3, rows, cols) float32
         What was written.
     """
-    from .dem import Dem
-
-    if not isinstance(dem, Dem):
-        dem = Dem.from_file(dem) if isinstance(dem, (str, bytes)) or hasattr(dem, "__fspath__") else \
-            Dem.constant(float(dem))
     step = int(step)
     if step < 1:
         raise ParamError(f"step must be >= 1, got {step}")
     frame = _Frame([pose])  # photogrammetric or GNSS/INS (a clear error otherwise)
     row, _ = frame.pose(pose)
     geo = frame.local is not None
-    rows, cols = -(-shape[0] // step), -(-shape[1] // step)
-    grid = transform @ Affine.scale(step)
-    jj, ii = np.meshgrid(np.arange(cols) + 0.5, np.arange(rows) + 0.5)
-    ox, oy = grid @ (jj.ravel(), ii.ravel())
-    ox, oy = np.asarray(ox, dtype=np.float64), np.asarray(oy, dtype=np.float64)
-    pose_crs = "EPSG:4326" if geo else pose.crs  # the points' horizontal coordinates: lon/lat, or map x/y
-    to_pose = Transformer.from_crs(crs, pose_crs, always_xy=True)
-    px, py = (np.asarray(v, dtype=np.float64) for v in to_pose.transform(ox, oy))
-    terrain = dem.for_frame(None if geo else pose.crs)
-    h = terrain.sample(px, py)
-    if terrain.is_constant:
-        slopes = np.zeros((len(px), 2))
-    else:  # the bilinear surface's slope (per metre east and north for lon/lat grids)
-        d = 0.1 * min(abs(terrain.transform.a), abs(terrain.transform.e))
-        sx = sy = 2 * d
-        if geo:  # degrees -> metres on the sphere of the mean radius (the slope to ~0.3 %)
-            sx, sy = sx * np.radians(1.0) * 6371008.8 * np.cos(np.radians(py)), sy * np.radians(1.0) * 6371008.8
-        slopes = np.stack([(terrain.sample(px + d, py) - terrain.sample(px - d, py)) / sx,
-                           (terrain.sample(px, py + d) - terrain.sample(px, py - d)) / sy], -1)
-    pts = np.stack([px, py, h], -1)
+    grid, (rows, cols), pts, slopes = _cell_points(dem, crs, transform, shape, step, None if geo else pose.crs)
     ok = np.all(np.isfinite(pts), axis=1) & np.all(np.isfinite(slopes), axis=1)
     if ok.any():  # seen by the image: in front of it and inside its frame
         n = int(ok.sum())
@@ -226,6 +249,52 @@ def accuracy_raster(dst, camera, pose, dem, crs, transform, shape, *, pose_cov, 
         e = 1.0
         ex, ny = np.array([e, 0.0, 0.0]), np.array([0.0, e, 0.0])
         jac = np.stack([out_xy(local + ex) - out_xy(local - ex), out_xy(local + ny) - out_xy(local - ny)], -1) / (2 * e)
+        horizontal = jac @ cov[:, :2, :2] @ np.transpose(jac, (0, 2, 1))
+        out[0, ok] = np.sqrt(np.maximum(horizontal[:, 0, 0], 0.0))
+        out[1, ok] = np.sqrt(np.maximum(horizontal[:, 1, 1], 0.0))
+        out[2, ok] = np.sqrt(np.maximum(cov[:, 2, 2], 0.0))
+    out = out.reshape(3, rows, cols)
+    write_raster(dst, out, transform=grid, crs=crs.to_wkt(), nodata=np.nan)
+    return out
+
+
+def scene_accuracy_raster(dst, scene, dem, crs, transform, shape, *, orientation_cov, pixel_sigma=0.5, dem_sigma=0.0,
+                          step=16, refraction=True, device=None):
+    """Write the predicted accuracy of an ortho of one pushbroom scene: as
+    :func:`accuracy_raster`, with :func:`scene_monoplot_covariance` (``orientation_cov``: (8,
+    8) in the order and units of :data:`SCENE_INPUTS`) at each cell's centre.
+
+    Returns
+    -------
+    ndarray (3, rows, cols) float32
+        What was written: sigma east, north (the output CRS's axes) and up (m).
+    """
+    from .geometry import project
+
+    step = int(step)
+    if step < 1:
+        raise ParamError(f"step must be >= 1, got {step}")
+    _square("orientation_cov", orientation_cov, len(SCENE_INPUTS))
+    grid, (rows, cols), pts, slopes = _cell_points(dem, crs, transform, shape, step, None)
+    ok = np.all(np.isfinite(pts), axis=1) & np.all(np.isfinite(slopes), axis=1)
+    if ok.any():  # on the scene
+        pix = project(scene, pts[ok], refraction=refraction, device=device)
+        inside = np.all(np.isfinite(pix), axis=1) & (pix[:, 0] >= 0) & (pix[:, 0] <= scene.width) & (
+            pix[:, 1] >= 0) & (pix[:, 1] <= scene.height)
+        ok[np.flatnonzero(ok)[~inside]] = False
+    out = np.full((3, rows * cols), np.nan, np.float32)
+    if ok.any():
+        cov = scene_monoplot_covariance(scene, pts[ok], slopes[ok], orientation_cov=orientation_cov,
+                                        pixel_sigma=pixel_sigma, dem_sigma=dem_sigma, refraction=refraction,
+                                        device=device).cov
+        # east/north (m) -> the output CRS's x, y: J C J^T with J by central differences
+        to_out = Transformer.from_crs("EPSG:4326", crs, always_xy=True)
+
+        def out_xy(q):
+            return np.stack(to_out.transform(q[:, 0], q[:, 1]), -1)
+
+        p = pts[ok]
+        jac = np.stack([out_xy(enu_shifted(p, a, 1.0)) - out_xy(enu_shifted(p, a, -1.0)) for a in (0, 1)], -1) / 2.0
         horizontal = jac @ cov[:, :2, :2] @ np.transpose(jac, (0, 2, 1))
         out[0, ok] = np.sqrt(np.maximum(horizontal[:, 0, 0], 0.0))
         out[1, ok] = np.sqrt(np.maximum(horizontal[:, 1, 1], 0.0))

@@ -135,6 +135,17 @@ def test_ortho_command_with_dimap(tmp_path):
     with rasterio.open(out / "scene_ORTHO.tif") as ds:
         data, mask = ds.read(1), ds.dataset_mask() > 0
         assert ds.crs.to_epsg() == 32631 and mask.mean() > 0.3 and np.all(data[mask] == 77)
+    r = CliRunner().invoke(main, ["-q", "ortho", "--dimap", str(tmp_path / "scene.dim"), str(tmp_path / "scene.tif"),
+                                  "--height", "100", "--out-dir", str(out), "--device", "cpu", "--overwrite",
+                                  "--accuracy"])
+    assert r.exit_code == 0, r.output
+    with rasterio.open(out / "scene_ACCURACY.tif") as ds:
+        acc = ds.read()
+        assert ds.count == 3 and np.isfinite(acc).any() and np.all(acc[np.isfinite(acc)] > 0)
+    r = CliRunner().invoke(main, ["ortho", "--dimap", str(tmp_path / "scene.dim"), str(tmp_path / "scene.tif"),
+                                  "--height", "100", "--out-dir", str(out), "--overwrite", "--accuracy",
+                                  "--pose-sigma", "1,2,3,4,5,6"])
+    assert r.exit_code == 1 and "8 numbers" in r.output
     r = CliRunner().invoke(main, ["ortho", "--dimap", str(tmp_path / "scene.dim"), str(tmp_path / "scene.tif"),
                                   str(tmp_path / "scene.tif"), "--height", "100", "--out-dir", str(out)])
     assert r.exit_code == 1 and "one scene" in r.output

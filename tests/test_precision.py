@@ -393,3 +393,52 @@ def test_bad_scene_precision_inputs():
     coef, _ = scene.fit_polynomials()
     with pytest.raises(ParamError, match="polynomials"):
         scene_monoplot_covariance(scene.with_polynomials(coef), pts, np.zeros((1, 2)), **good)
+
+
+def test_scene_accuracy_raster_is_the_propagation_at_its_cells(tmp_path):
+    """pipeline.precision.scene_accuracy_raster: a cell's sigma up is the scene propagation's
+    at the cell centre on the DEM, its horizontal sigmas that covariance in the output CRS
+    (UTM: the total horizontal variance kept to the scale factor); cells off the scene are
+    NaN; the raster is aligned with the ortho grid, one pixel per 16."""
+    import rasterio
+    from affine import Affine
+    from pyproj import CRS, Transformer
+
+    from orthowarp.pipeline.precision import scene_accuracy_raster, scene_monoplot_covariance
+    from orthowarp.pushbroom import synthetic_scene
+
+    scene = synthetic_scene(width=2000, height=2000, gsd=10.0, view_angle=6.0)
+    corners = ow.geolocate(scene, [[0.0, 0.0], [2000.0, 2000.0]], dem=300.0, device="cpu")
+    utm = CRS.from_epsg(32600 + int((corners[:, 0].mean() + 180) // 6) + 1)
+    x, y = Transformer.from_crs("EPSG:4326", utm, always_xy=True).transform(corners[:, 0], corners[:, 1])
+    res = 20.0
+    left, top = min(x) - 3000, max(y) + 3000
+    shape = (int((max(y) - min(y) + 6000) / res), int((max(x) - min(x) + 6000) / res))
+    transform = Affine(res, 0, left, 0, -res, top)
+    dem = _sloped_dem(corners, 0.05, 0.02, 300.0)
+    cov = np.diag([10.0, 10.0, 5.0, 1e-3, 1e-3, 1e-3, 1e-3, 1e-3]) ** 2
+    out = scene_accuracy_raster(tmp_path / "acc.tif", scene, dem, utm, transform, shape, orientation_cov=cov,
+                                pixel_sigma=0.5, dem_sigma=1.0, device="cpu")
+    with rasterio.open(tmp_path / "acc.tif") as ds:
+        assert ds.count == 3 and ds.transform == transform @ Affine.scale(16) and ds.crs == utm
+        np.testing.assert_array_equal(ds.read(), out)
+    seen = np.isfinite(out[2])
+    assert 0.2 < seen.mean() < 0.95  # the scene's footprint, with the margin around it off it
+    i, j = np.argwhere(seen)[len(np.argwhere(seen)) // 2]
+    cx, cy = (transform @ Affine.scale(16)) @ (j + 0.5, i + 0.5)
+    lon, lat = Transformer.from_crs(utm, "EPSG:4326", always_xy=True).transform(cx, cy)
+    h = dem.sample(np.array([cx]), np.array([cy]))[0]
+    terrain = dem.for_frame(None)  # the DEM in lon/lat, as the raster samples it
+
+    def z(lo, la):
+        return terrain.sample(np.array([lo]), np.array([la]))[0]
+
+    d = 0.1 * min(abs(terrain.transform.a), abs(terrain.transform.e))
+    metres = np.radians(1.0) * 6371008.8
+    slopes = [[(z(lon + d, lat) - z(lon - d, lat)) / (2 * d * metres * np.cos(np.radians(lat))),
+               (z(lon, lat + d) - z(lon, lat - d)) / (2 * d * metres)]]
+    ref = scene_monoplot_covariance(scene, [[lon, lat, z(lon, lat)]], slopes, orientation_cov=cov, pixel_sigma=0.5,
+                                    dem_sigma=1.0, device="cpu")
+    np.testing.assert_allclose(out[2, i, j], ref.sigma[0, 2], rtol=1e-5)
+    np.testing.assert_allclose(np.hypot(out[0, i, j], out[1, i, j]), np.hypot(*ref.sigma[0, :2]), rtol=2e-3)
+    assert abs(h - z(lon, lat)) < 0.05
