@@ -10,6 +10,7 @@ import contextlib
 import functools
 import logging
 import math
+import numbers
 import os
 import re
 import warnings
@@ -29,7 +30,9 @@ from .._validate import as_crs, finite
 from ..errors import CrsError, ParamError, RasterIOError
 from ..kernels.dem import DemData
 
-__all__ = ["Dem", "memory_budget", "height_unit_factor"]
+__all__ = ["Dem", "as_dem", "memory_budget", "height_unit_factor", "MAX_GROUND_HEIGHT"]
+
+MAX_GROUND_HEIGHT = 1e7  # m: |h| of ground points and constant terrain heights
 
 log = logging.getLogger(__name__)
 
@@ -733,3 +736,20 @@ def _nodata_cells(raw, nodata):
     if not (math.isfinite(nodata) and nodata == int(nodata) and info.min <= nodata <= info.max):
         return None  # a nodata value the band cannot hold marks no cell
     return raw == raw.dtype.type(int(nodata))
+
+
+def as_dem(dem, *, name="dem"):
+    """The terrain of an API call: a :class:`Dem` as it is, a DEM file (path) opened, a
+    constant ellipsoidal height (m, finite, within +-``MAX_GROUND_HEIGHT``) as a constant Dem.
+    The one coercion every public function that takes a terrain applies."""
+    if isinstance(dem, Dem):
+        return dem
+    if isinstance(dem, (str, os.PathLike)):
+        return Dem.from_file(dem)
+    if isinstance(dem, (bool, np.bool_)) or not isinstance(dem, numbers.Real):
+        raise ParamError(f"{name} must be a Dem, a DEM file or a constant height in metres, got {dem!r}")
+    if not np.isfinite(dem):
+        raise ParamError(f"{name}: a constant terrain height must be finite, got {dem!r}")
+    if abs(float(dem)) > MAX_GROUND_HEIGHT:
+        raise ParamError(f"{name}: a constant terrain height of {float(dem):g} m is beyond +-{MAX_GROUND_HEIGHT:g} m")
+    return Dem.constant(float(dem))

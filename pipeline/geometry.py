@@ -22,7 +22,7 @@ from ..kernels import pushbroom as pb_kernels
 from ..pose import GEOCENTRIC, Pose
 from ..pushbroom import PushbroomScene
 from ..refraction import RefractionModel
-from .dem import Dem, _horizontal, memory_budget
+from .dem import MAX_GROUND_HEIGHT, Dem, _horizontal, as_dem, memory_budget
 from .vertical import reconcile_dem
 
 __all__ = ["geolocate", "project", "FrameGeometry", "PushbroomGeometry", "check_camera_above_terrain"]
@@ -35,14 +35,6 @@ def _check_sensor(camera, pose):
         raise ParamError(f"camera must be a FrameCamera, got {type(camera).__name__}")
     if not isinstance(pose, Pose):
         raise ParamError(f"pose must be a Pose, got {type(pose).__name__}")
-
-
-def _as_dem(dem):
-    if isinstance(dem, Dem):
-        return dem
-    if isinstance(dem, numbers.Real):
-        return Dem.constant(dem)
-    raise ParamError(f"dem must be a Dem or a constant height in metres, got {type(dem).__name__}")
 
 
 def _frame_crs(pose):
@@ -199,8 +191,8 @@ class FrameGeometry:
     ----------
     camera : FrameCamera
     pose : Pose
-    dem : Dem or float
-        Terrain: a DEM or a constant ellipsoidal height (m). A DEM file not read whole
+    dem : Dem, str or float
+        Terrain: a DEM, a DEM file or a constant ellipsoidal height (m). A DEM file not read whole
         (:meth:`Dem.from_file`) is read over the region's footprint only (see
         ``_prepared_dem``).
     refraction : bool, optional
@@ -232,7 +224,7 @@ class FrameGeometry:
         if region is None:
             region = (0.0, 0.0, float(camera.image_size[0]), float(camera.image_size[1]))
         frame = None if pose.mode == GEOCENTRIC else pose.crs
-        terrain = _as_dem(dem)
+        terrain = as_dem(dem)
         dem = _prepared_dem(terrain, lambda d: reconcile_dem(
             d, pose, geoid=geoid, same_vertical_datum=same_vertical_datum, name=_dem_name(d)).for_frame(frame),
             self._probe, region, self.horizontal_crs, height_range)
@@ -371,7 +363,7 @@ class PushbroomGeometry:
     Parameters
     ----------
     scene : PushbroomScene
-    dem : Dem or float
+    dem : Dem, str or float
         As :class:`FrameGeometry`.
     refraction : bool, optional
     device : str, optional
@@ -396,7 +388,7 @@ class PushbroomGeometry:
         self._probe_base = None
         if region is None:
             region = (0.0, 0.0, float(scene.width), float(scene.height))
-        dem = _prepared_dem(_as_dem(dem), lambda d: (d if d.is_constant else reconcile_dem(
+        dem = _prepared_dem(as_dem(dem), lambda d: (d if d.is_constant else reconcile_dem(
             d, _GeocentricPositions(), geoid=geoid, same_vertical_datum=same_vertical_datum,
             name=_dem_name(d))).for_frame(None), self._probe, region, self.horizontal_crs, height_range)
         self.dem = self._crop_to_footprint(dem, region) if not dem.is_constant else dem
@@ -495,7 +487,6 @@ def _sensor_args(name, sensor, args, what):
 
 
 # Plausibility bounds of the inputs (see _check_ground_points and check_camera_above_terrain).
-MAX_GROUND_HEIGHT = 1e7  # m: |h| of ground points and constant terrain heights
 MAX_MAP_COORDINATE = 1e8  # m: |x|, |y| of points in a projected CRS
 
 
@@ -504,16 +495,6 @@ def _check_refraction(refraction):
     if isinstance(refraction, (bool, np.bool_)) or (isinstance(refraction, numbers.Integral) and refraction in (0, 1)):
         return bool(refraction)
     raise ParamError(f"refraction must be True or False, got {refraction!r}")
-
-
-def _check_dem_arg(dem):
-    """A constant terrain height must be a plausible number (a bool is not a height)."""
-    if isinstance(dem, (bool, np.bool_)):
-        raise ParamError(f"dem must be a Dem or a constant height in metres, got {dem!r}")
-    if isinstance(dem, numbers.Real) and not np.isfinite(dem):
-        raise ParamError(f"dem: a constant terrain height must be finite, got {dem!r}")
-    if isinstance(dem, numbers.Real) and abs(float(dem)) > MAX_GROUND_HEIGHT:
-        raise ParamError(f"dem: a constant terrain height of {float(dem):g} m is beyond +-{MAX_GROUND_HEIGHT:g} m")
 
 
 def _horizontal_crs(crs):
@@ -622,8 +603,8 @@ def geolocate(sensor: FrameCamera | PushbroomScene, *args, dem: Dem | str | os.P
         (col, row) pixel coordinates; the centre of pixel (i, j) is (j + 0.5, i + 0.5). A row
         with NaN, or with a masked value in a NumPy masked array, is missing: its result row
         is NaN.
-    dem : Dem or float
-        Terrain model, or a constant ellipsoidal height (m).
+    dem : Dem, str or float
+        Terrain model: a Dem, a DEM file, or a constant ellipsoidal height (m).
     crs : str, int or pyproj.CRS, optional
         CRS of the result; default EPSG:4979 (longitude, latitude in degrees, ellipsoidal
         height in metres).
@@ -655,7 +636,7 @@ def geolocate(sensor: FrameCamera | PushbroomScene, *args, dem: Dem | str | os.P
     pix = points(pixels, 2, "pixels")
     no_infinite_rows("pixels", pix)
     refraction = _check_refraction(refraction)
-    _check_dem_arg(dem)
+    dem = as_dem(dem)
     dst = as_crs(crs)
     region = None
     finite = np.all(np.isfinite(pix), axis=1)

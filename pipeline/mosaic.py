@@ -48,12 +48,12 @@ from ..kernels import mosaic as mosaic_kernels
 from ..pose import Pose
 from ..pushbroom import PushbroomScene
 from .cog import DTYPES, CogWriter
-from .dem import Dem
+from .dem import Dem, as_dem
 from .cog_device import DeviceCogEncoder
 from .io import atomic_files, check_destination
 from .ortho import _TOP as TOP
 from .ortho import _WP_TYPES as WP_TYPES
-from .ortho import BLOCK_CODECS, COARSE_STEP, RESAMPLING, ImageTiles, _as_dem, _block_codec, _check_cancel, \
+from .ortho import BLOCK_CODECS, COARSE_STEP, RESAMPLING, ImageTiles, _block_codec, _check_cancel, \
     coarse_grid, device_codecs, output_grid, parse_creation_options, source_facts
 from .geometry import FrameGeometry, PushbroomGeometry
 from .profile import StageTimer
@@ -654,7 +654,7 @@ def mosaic_plan(images, *, dem, crs=None, resolution=None, resampling="bilinear"
     :func:`mosaic`."""
     t_plan = time.perf_counter()
     images = _check_images(images, resampling, dtype, blend, feather, reference, seams, seam_width)
-    terrain = _as_dem(dem)
+    terrain = as_dem(dem)
     # the sources: one band count and data type
     facts = []  # (path, bands, data type, masked)
     for src, sensor, pose in images:

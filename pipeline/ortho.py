@@ -40,7 +40,7 @@ from ..kernels import ortho as ortho_kernels
 from ..geodesy import geodetic_to_ecef, geodetic_up
 from ..pose import Pose
 from ..pushbroom import PushbroomScene
-from .dem import Dem
+from .dem import Dem, as_dem
 from .geometry import FrameGeometry, PushbroomGeometry
 from .cog import DTYPES, CogWriter, overview_count, verify_tiff
 from .cog_device import DeviceCogEncoder, HostDeflate, NvcompDeflate, WarpDeflate, nvcomp_available
@@ -201,12 +201,6 @@ def _mean_gsd(geom, to_out):
     if gsd.size == 0:
         raise GeometryError("Could not estimate the ground sample distance: no ground under the image")
     return float(np.mean(gsd))
-
-
-def _as_dem(dem):
-    if isinstance(dem, (str, os.PathLike)):
-        return Dem.from_file(dem)
-    return dem
 
 
 class _Counter:
@@ -388,10 +382,10 @@ def orthorectify(src: str | os.PathLike, sensor: FrameCamera | PushbroomScene, *
         raise ParamError(f"webp compression takes 3 or 4 bands; '{src}' has {count}")
 
     if pose is None:
-        geom = PushbroomGeometry(camera, _as_dem(dem), refraction=refraction, device=device, geoid=geoid,
+        geom = PushbroomGeometry(camera, as_dem(dem), refraction=refraction, device=device, geoid=geoid,
                                  same_vertical_datum=same_vertical_datum)
     else:
-        geom = FrameGeometry(camera, pose, _as_dem(dem), refraction=refraction, device=device, geoid=geoid,
+        geom = FrameGeometry(camera, pose, as_dem(dem), refraction=refraction, device=device, geoid=geoid,
                              same_vertical_datum=same_vertical_datum)
     if tile_size is None:
         tile_size = _default_tile_size(geom.device, count, workers)

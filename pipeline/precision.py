@@ -23,6 +23,7 @@ from ..adjust import collinearity as col
 from ..adjust.precision import PrecisionResult, _camera_row, _Frame, _square, monoplot_covariance
 from ..errors import ParamError
 from ..geodesy import WGS84_A, WGS84_E2
+from .dem import as_dem
 from .io import write_raster
 
 __all__ = ["accuracy_raster", "scene_accuracy_raster", "scene_monoplot_covariance", "SCENE_INPUTS"]
@@ -144,15 +145,6 @@ def scene_monoplot_covariance(scene, points, slopes, *, orientation_cov, pixel_s
 
 
 
-def _as_terrain(dem):
-    from .dem import Dem
-
-    if isinstance(dem, Dem):
-        return dem
-    return Dem.from_file(dem) if isinstance(dem, (str, bytes)) or hasattr(dem, "__fspath__") else \
-        Dem.constant(float(dem))
-
-
 def _cell_points(dem, crs, transform, shape, step, frame_crs):
     """The accuracy raster's grid (``step`` ortho pixels a cell) and its cells' centres on the
     terrain: (grid transform, (rows, cols), points (n, 3), slopes (n, 2)). Points are in the
@@ -166,7 +158,7 @@ def _cell_points(dem, crs, transform, shape, step, frame_crs):
     ox, oy = np.asarray(ox, dtype=np.float64), np.asarray(oy, dtype=np.float64)
     to_frame = Transformer.from_crs(crs, "EPSG:4326" if geo else frame_crs, always_xy=True)
     px, py = (np.asarray(v, dtype=np.float64) for v in to_frame.transform(ox, oy))
-    terrain = _as_terrain(dem).for_frame(frame_crs)
+    terrain = as_dem(dem).for_frame(frame_crs)
     h = terrain.sample(px, py)
     if terrain.is_constant:
         slopes = np.zeros((len(px), 2))

@@ -684,3 +684,30 @@ def test_masked_array_cells_are_nodata():
     dem = ow.Dem(z, (1.0, 0.0, 0.0, 0.0, -1.0, 2.0), "EPSG:32632")
     assert (dem.hmin, dem.hmax) == (1.0, 4.0) and np.isnan(dem.array[0, 1])
     assert z.data[0, 1] == -9999.0  # the caller's array is untouched
+
+
+def test_every_terrain_argument_goes_through_one_coercion(tmp_path):
+    """as_dem: a Dem as it is, a file path (str or PathLike) opened, a finite plausible
+    number as a constant; anything else refused naming the argument. geolocate takes a path
+    as orthorectify does (it refused one before)."""
+    import pathlib
+
+    import orthowarp as ow
+    from orthowarp.pipeline.dem import MAX_GROUND_HEIGHT, Dem, as_dem
+    from orthowarp.pushbroom import synthetic_scene
+
+    transform = Affine(0.01, 0, 4.2, 0, -0.01, 44.8)
+    path = write_dem(tmp_path / "dem.tif", np.full((100, 100), 120.0), transform=transform, crs="EPSG:4979")
+    dem = Dem(np.full((100, 100), 120.0), transform, "EPSG:4979")
+    assert as_dem(dem) is dem
+    for p in (str(path), pathlib.Path(path)):
+        assert as_dem(p).sample(np.array([4.7]), np.array([44.3]))[0] == pytest.approx(120.0)
+    assert as_dem(250).is_constant and as_dem(250.5).value == 250.5
+    for bad, words in ((True, "constant height"), (float("nan"), "finite"), (2 * MAX_GROUND_HEIGHT, "beyond"),
+                       ([1, 2], "a DEM file")):
+        with pytest.raises(ParamError, match=words):
+            as_dem(bad, name="terrain")
+    scene = synthetic_scene(width=2000, height=2000, gsd=10.0, lat=44.3, lon=4.7)
+    a = ow.geolocate(scene, [[1000.0, 1000.0]], dem=str(path), device="cpu")
+    b = ow.geolocate(scene, [[1000.0, 1000.0]], dem=dem, device="cpu")
+    np.testing.assert_array_equal(a, b)

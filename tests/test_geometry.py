@@ -538,11 +538,19 @@ def test_points_of_wrong_shape(points):
         ow.project(sc.camera, sc.pose, points, crs=UTM32, device="cpu")
 
 
-@pytest.mark.parametrize("dem", ["dem.tif", np.zeros((10, 10)), None, [400.0]])
+@pytest.mark.parametrize("dem", [np.zeros((10, 10)), None, [400.0]])
 def test_dem_of_wrong_type(dem):
     sc = scene("opk")
     with pytest.raises(ow.ParamError):
         ow.geolocate(sc.camera, sc.pose, [[10.0, 10.0]], dem=dem, device="cpu")
+
+
+def test_a_dem_path_is_opened_as_everywhere_else():
+    """A path is a DEM file for geolocate as for orthorectify and mosaic (geolocate refused
+    paths with a ParamError before): a missing one is named."""
+    sc = scene("opk")
+    with pytest.raises(ow.RasterIOError, match="DEM file 'no-such-dem.tif' does not exist"):
+        ow.geolocate(sc.camera, sc.pose, [[10.0, 10.0]], dem="no-such-dem.tif", device="cpu")
 
 
 # ------------------------------------------------------------------------------------------
