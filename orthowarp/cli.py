@@ -417,6 +417,19 @@ def _accuracy_name(dst):
     return base + "_ACCURACY.tif"
 
 
+def _sigma_list(text, n, option):
+    """``n`` comma-separated standard deviations (finite, >= 0) of a CLI option."""
+    from .errors import ParamError
+
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != n or not all(np.isfinite(v) and v >= 0 for v in values):
+        raise ParamError(f"{option} must be {n} comma-separated numbers >= 0, got {text!r}")
+    return values
+
+
 _COMPRESS_NAMES = {"deflate", "zstd", "lzw", "jpeg", "webp", "none"}
 
 
@@ -603,6 +616,18 @@ def _frame_orientations(images, int_param, ext_param, crs, ids=None):
               help="Who deflates the mosaic's blocks: host (libdeflate on all cores), nvcomp (the tiles stay on the "
                    "GPU; needs orthowarp[gpu]), hybrid (both), warp (orthowarp's own deflate kernels on the device); "
                    "auto: host.")
+@click.option("--accuracy", is_flag=True,
+              help="Also write <mosaic>_ACCURACY.tif: the predicted accuracy (sigma east, north, up in m) of each "
+                   "16 x 16-pixel cell from the image its centre was taken from (needs --index).")
+@click.option("--pose-sigma", default=_FRAME_POSE_SIGMA, show_default=True, metavar="SX,SY,SZ,SA,SB,SC",
+              help="With --accuracy: frame images' pose standard deviations (m, m, m, deg, deg, deg; as for ortho).")
+@click.option("--scene-sigma", default=_SCENE_SIGMA, show_default=True, metavar="8 NUMBERS",
+              help="With --accuracy: pushbroom scenes' orientation standard deviations (orbit across, along, radial "
+                   "in m; roll, pitch, yaw, psi_x, psi_y in deg).")
+@click.option("--pixel-sigma", type=float, default=0.5, show_default=True,
+              help="With --accuracy: standard deviation of an image position (px).")
+@click.option("--dem-sigma", type=float, default=0.5, show_default=True,
+              help="With --accuracy: standard deviation of the DEM's heights (m).")
 @click.option("-co", "--co", "creation", multiple=True, metavar="KEY=VALUE",
               help="GDAL-style creation option of the mosaic (and index) file, repeatable: BLOCKSIZE, BIGTIFF, "
                    "NUM_THREADS as for ortho; LEVEL (ZLEVEL) sets --compress-level; the mosaic is deflate with "
@@ -620,8 +645,8 @@ def _frame_orientations(images, int_param, ext_param, crs, ids=None):
 @click.option("--profile-json", type=click.Path(dir_okay=False), help="Write the same profile as JSON to this file.")
 @click.pass_context
 def mosaic(ctx, images, int_param, ext_param, odm_dataset, scenes, attitude_model, dem, height, out_path, index_path, seamlines_path, crs, resolution,
-           resampling, seams, seam_width, blend, feather, no_balance, no_occlusion, reference, compress_level, block_codec, creation,
-           dtype, overwrite, no_refraction, geoid,
+           resampling, seams, seam_width, blend, feather, no_balance, no_occlusion, reference, compress_level, block_codec, accuracy,
+           pose_sigma, scene_sigma, pixel_sigma, dem_sigma, creation, dtype, overwrite, no_refraction, geoid,
            same_vertical_datum, device, workers, tile_size, show_profile, profile_json):
     """Mosaic frame IMAGES and pushbroom scenes (--scene) into one cloud-optimized GeoTIFF: each
     pixel from the image that sees its ground most nearly from above (smallest off-nadir
@@ -629,6 +654,7 @@ def mosaic(ctx, images, int_param, ext_param, odm_dataset, scenes, attitude_mode
     radiometry balanced by gains and offsets from their overlaps."""
     from .errors import ParamError, RasterIOError
     from .pipeline.dem import Dem
+    from .pipeline.io import check_destination
     from .pipeline.mosaic import mosaic as make_mosaic
 
     if odm_dataset is not None:
@@ -642,6 +668,14 @@ def mosaic(ctx, images, int_param, ext_param, odm_dataset, scenes, attitude_mode
     compress, compress_level, quality, creation_options = _creation_args(creation, "deflate", compress_level, None)
     if compress != "deflate" or quality is not None:
         raise ParamError("the mosaic is written with deflate: -co COMPRESS and QUALITY do not apply")
+    if accuracy:
+        if not index_path:
+            raise ParamError("--accuracy takes each cell's image from the index: give --index too")
+        frame_sigmas = _sigma_list(pose_sigma, 6, "--pose-sigma")
+        scene_sigmas = _sigma_list(scene_sigma, 8, "--scene-sigma")
+        if not (np.isfinite(pixel_sigma) and pixel_sigma >= 0 and np.isfinite(dem_sigma) and dem_sigma >= 0):
+            raise ParamError("--pixel-sigma and --dem-sigma must be >= 0")
+        check_destination(_accuracy_name(out_path), overwrite=overwrite)
     jobs = _frame_orientations(images, int_param, ext_param, crs) if images else []
     if scenes:
         from .pushbroom import PushbroomScene
@@ -658,6 +692,13 @@ def mosaic(ctx, images, int_param, ext_param, odm_dataset, scenes, attitude_mode
                     compress_level=compress_level, block_codec=block_codec, creation_options=creation_options,
                     overwrite=overwrite, device=device, geoid=geoid, same_vertical_datum=same_vertical_datum,
                     workers=workers, tile_size=tile_size, cancel=ctx.meta.get("orthowarp.stop"))
+    if accuracy:
+        from .pipeline.precision import mosaic_accuracy_raster
+
+        mosaic_accuracy_raster(_accuracy_name(r.path), jobs, r.index, terrain, r.crs, r.transform, r.shape,
+                               pose_cov=np.diag(frame_sigmas) ** 2, orientation_cov=np.diag(scene_sigmas) ** 2,
+                               pixel_sigma=pixel_sigma, dem_sigma=dem_sigma, refraction=not no_refraction,
+                               device=device)
     if show_profile or profile_json:
         from .pipeline.io import write_json
         from .pipeline.profile import format_profile

@@ -26,7 +26,8 @@ from ..geodesy import WGS84_A, WGS84_E2
 from .dem import as_dem
 from .io import write_raster
 
-__all__ = ["accuracy_raster", "scene_accuracy_raster", "scene_monoplot_covariance", "SCENE_INPUTS"]
+__all__ = ["accuracy_raster", "scene_accuracy_raster", "mosaic_accuracy_raster", "frame_cell_sigmas",
+           "scene_cell_sigmas", "scene_monoplot_covariance", "SCENE_INPUTS"]
 
 # a pushbroom scene's orientation inputs, constant over the scene: the orbit's offset in the
 # orbital frame (m), the attitude's offsets (deg) and the look angles' offsets (deg)
@@ -145,17 +146,24 @@ def scene_monoplot_covariance(scene, points, slopes, *, orientation_cov, pixel_s
 
 
 
-def _cell_points(dem, crs, transform, shape, step, frame_crs):
-    """The accuracy raster's grid (``step`` ortho pixels a cell) and its cells' centres on the
-    terrain: (grid transform, (rows, cols), points (n, 3), slopes (n, 2)). Points are in the
-    frame's map CRS ``frame_crs`` (x, y, h), or longitude, latitude, ellipsoidal height where
-    it is None; slopes per metre along x, y, or east, north."""
-    geo = frame_crs is None
+def _cell_centres(transform, shape, step):
+    """The accuracy raster's grid (``step`` ortho pixels a cell): its transform, (rows, cols)
+    and the cells' centres (x, y) in the ortho's CRS, row-major."""
+    step = int(step)
+    if step < 1:
+        raise ParamError(f"step must be >= 1, got {step}")
     rows, cols = -(-shape[0] // step), -(-shape[1] // step)
     grid = transform @ Affine.scale(step)
     jj, ii = np.meshgrid(np.arange(cols) + 0.5, np.arange(rows) + 0.5)
     ox, oy = grid @ (jj.ravel(), ii.ravel())
-    ox, oy = np.asarray(ox, dtype=np.float64), np.asarray(oy, dtype=np.float64)
+    return grid, (rows, cols), np.asarray(ox, dtype=np.float64), np.asarray(oy, dtype=np.float64)
+
+
+def _terrain_points(dem, crs, ox, oy, frame_crs):
+    """Points (n, 3) on the terrain under (ox, oy) of ``crs`` and the terrain's slopes (n, 2):
+    x, y, h in the frame's map CRS ``frame_crs``, or longitude, latitude, ellipsoidal height
+    where it is None; slopes per metre along x, y, or east, north."""
+    geo = frame_crs is None
     to_frame = Transformer.from_crs(crs, "EPSG:4326" if geo else frame_crs, always_xy=True)
     px, py = (np.asarray(v, dtype=np.float64) for v in to_frame.transform(ox, oy))
     terrain = as_dem(dem).for_frame(frame_crs)
@@ -169,7 +177,90 @@ def _cell_points(dem, crs, transform, shape, step, frame_crs):
             sx, sy = sx * np.radians(1.0) * 6371008.8 * np.cos(np.radians(py)), sy * np.radians(1.0) * 6371008.8
         slopes = np.stack([(terrain.sample(px + d, py) - terrain.sample(px - d, py)) / sx,
                            (terrain.sample(px, py + d) - terrain.sample(px, py - d)) / sy], -1)
-    return grid, (rows, cols), np.stack([px, py, h], -1), slopes
+    return np.stack([px, py, h], -1), slopes
+
+
+def _sigmas(cov, jac):
+    """(3, n) float32: sigma x, y of the horizontal covariance taken through ``jac`` (n, 2, 2)
+    and sigma up."""
+    horizontal = jac @ cov[:, :2, :2] @ np.transpose(jac, (0, 2, 1))
+    return np.stack([np.sqrt(np.maximum(horizontal[:, 0, 0], 0.0)), np.sqrt(np.maximum(horizontal[:, 1, 1], 0.0)),
+                     np.sqrt(np.maximum(cov[:, 2, 2], 0.0))]).astype(np.float32)
+
+
+def frame_cell_sigmas(camera, pose, dem, crs, ox, oy, *, pose_cov, pixel_sigma=0.5, camera_cov=None, camera_params=(),
+                      dem_sigma=0.0):
+    """Predicted sigma east, north (the axes of ``crs``) and up (m), (3, n) float32, of the
+    ground under the points (ox, oy) of ``crs`` seen by one frame image (NaN where it does
+    not see them); see :func:`accuracy_raster`."""
+    frame = _Frame([pose])  # photogrammetric or GNSS/INS (a clear error otherwise)
+    row, _ = frame.pose(pose)
+    geo = frame.local is not None
+    pts, slopes = _terrain_points(dem, crs, ox, oy, None if geo else pose.crs)
+    ok = np.all(np.isfinite(pts), axis=1) & np.all(np.isfinite(slopes), axis=1)
+    if ok.any():  # seen by the image: in front of it and inside its frame
+        n = int(ok.sum())
+        pix = col.project(np.broadcast_to(row, (n, 6)), frame.points(pts[ok]),
+                          np.broadcast_to(_camera_row(camera), (n, 10)),
+                          np.broadcast_to(np.asarray(camera.image_size, np.float64), (n, 2)))
+        w, hh = camera.image_size
+        inside = np.all(np.isfinite(pix), axis=1) & (pix[:, 0] >= 0) & (pix[:, 0] <= w) & (pix[:, 1] >= 0) & (
+            pix[:, 1] <= hh)
+        ok[np.flatnonzero(ok)[~inside]] = False
+    out = np.full((3, len(ox)), np.nan, np.float32)
+    if ok.any():
+        res = monoplot_covariance(camera, pose, pts[ok], slopes[ok], pose_cov=pose_cov, pixel_sigma=pixel_sigma,
+                                  camera_cov=camera_cov, camera_params=camera_params, dem_sigma=dem_sigma)
+        # the horizontal covariance in the output CRS: J C J^T, J = d(out x, y)/d(frame x, y)
+        # (the frame: the pose's map CRS, or the east-north-up frame of a GNSS/INS pose)
+        local = frame.points(pts[ok])
+        if geo:
+            to_out = Transformer.from_crs("EPSG:4326", crs, always_xy=True)
+
+            def out_xy(q):
+                lla = frame.local.to_lla(q)
+                return np.stack(to_out.transform(lla[:, 1], lla[:, 0]), -1)
+        else:
+            to_out = Transformer.from_crs(pose.crs, crs, always_xy=True)
+
+            def out_xy(q):
+                return np.stack(to_out.transform(q[:, 0], q[:, 1]), -1)
+
+        e = 1.0
+        ex, ny = np.array([e, 0.0, 0.0]), np.array([0.0, e, 0.0])
+        jac = np.stack([out_xy(local + ex) - out_xy(local - ex), out_xy(local + ny) - out_xy(local - ny)], -1) / (2 * e)
+        out[:, ok] = _sigmas(res.cov, jac)
+    return out
+
+
+def scene_cell_sigmas(scene, dem, crs, ox, oy, *, orientation_cov, pixel_sigma=0.5, dem_sigma=0.0, refraction=True,
+                      device=None):
+    """:func:`frame_cell_sigmas` for a pushbroom scene (:func:`scene_monoplot_covariance`)."""
+    from .geometry import project
+
+    _square("orientation_cov", orientation_cov, len(SCENE_INPUTS))
+    pts, slopes = _terrain_points(dem, crs, ox, oy, None)
+    ok = np.all(np.isfinite(pts), axis=1) & np.all(np.isfinite(slopes), axis=1)
+    if ok.any():  # on the scene
+        pix = project(scene, pts[ok], refraction=refraction, device=device)
+        inside = np.all(np.isfinite(pix), axis=1) & (pix[:, 0] >= 0) & (pix[:, 0] <= scene.width) & (
+            pix[:, 1] >= 0) & (pix[:, 1] <= scene.height)
+        ok[np.flatnonzero(ok)[~inside]] = False
+    out = np.full((3, len(ox)), np.nan, np.float32)
+    if ok.any():
+        cov = scene_monoplot_covariance(scene, pts[ok], slopes[ok], orientation_cov=orientation_cov,
+                                        pixel_sigma=pixel_sigma, dem_sigma=dem_sigma, refraction=refraction,
+                                        device=device).cov
+        # east/north (m) -> the output CRS's x, y: J by central differences
+        to_out = Transformer.from_crs("EPSG:4326", crs, always_xy=True)
+
+        def out_xy(q):
+            return np.stack(to_out.transform(q[:, 0], q[:, 1]), -1)
+
+        p = pts[ok]
+        jac = np.stack([out_xy(enu_shifted(p, a, 1.0)) - out_xy(enu_shifted(p, a, -1.0)) for a in (0, 1)], -1) / 2.0
+        out[:, ok] = _sigmas(cov, jac)
+    return out
 
 
 def accuracy_raster(dst, camera, pose, dem, crs, transform, shape, *, pose_cov, pixel_sigma=0.5, camera_cov=None,
@@ -201,50 +292,9 @@ def accuracy_raster(dst, camera, pose, dem, crs, transform, shape, *, pose_cov, 
     ndarray (3, rows, cols) float32
         What was written.
     """
-    step = int(step)
-    if step < 1:
-        raise ParamError(f"step must be >= 1, got {step}")
-    frame = _Frame([pose])  # photogrammetric or GNSS/INS (a clear error otherwise)
-    row, _ = frame.pose(pose)
-    geo = frame.local is not None
-    grid, (rows, cols), pts, slopes = _cell_points(dem, crs, transform, shape, step, None if geo else pose.crs)
-    ok = np.all(np.isfinite(pts), axis=1) & np.all(np.isfinite(slopes), axis=1)
-    if ok.any():  # seen by the image: in front of it and inside its frame
-        n = int(ok.sum())
-        pix = col.project(np.broadcast_to(row, (n, 6)), frame.points(pts[ok]),
-                          np.broadcast_to(_camera_row(camera), (n, 10)),
-                          np.broadcast_to(np.asarray(camera.image_size, np.float64), (n, 2)))
-        w, hh = camera.image_size
-        inside = np.all(np.isfinite(pix), axis=1) & (pix[:, 0] >= 0) & (pix[:, 0] <= w) & (pix[:, 1] >= 0) & (
-            pix[:, 1] <= hh)
-        ok[np.flatnonzero(ok)[~inside]] = False
-    out = np.full((3, rows * cols), np.nan, np.float32)
-    if ok.any():
-        res = monoplot_covariance(camera, pose, pts[ok], slopes[ok], pose_cov=pose_cov, pixel_sigma=pixel_sigma,
-                                  camera_cov=camera_cov, camera_params=camera_params, dem_sigma=dem_sigma)
-        cov = res.cov
-        # the horizontal covariance in the output CRS: J C J^T, J = d(out x, y)/d(frame x, y)
-        # (the frame: the pose's map CRS, or the east-north-up frame of a GNSS/INS pose)
-        local = frame.points(pts[ok])
-        if geo:
-            to_out = Transformer.from_crs("EPSG:4326", crs, always_xy=True)
-
-            def out_xy(q):
-                lla = frame.local.to_lla(q)
-                return np.stack(to_out.transform(lla[:, 1], lla[:, 0]), -1)
-        else:
-            to_out = Transformer.from_crs(pose.crs, crs, always_xy=True)
-
-            def out_xy(q):
-                return np.stack(to_out.transform(q[:, 0], q[:, 1]), -1)
-
-        e = 1.0
-        ex, ny = np.array([e, 0.0, 0.0]), np.array([0.0, e, 0.0])
-        jac = np.stack([out_xy(local + ex) - out_xy(local - ex), out_xy(local + ny) - out_xy(local - ny)], -1) / (2 * e)
-        horizontal = jac @ cov[:, :2, :2] @ np.transpose(jac, (0, 2, 1))
-        out[0, ok] = np.sqrt(np.maximum(horizontal[:, 0, 0], 0.0))
-        out[1, ok] = np.sqrt(np.maximum(horizontal[:, 1, 1], 0.0))
-        out[2, ok] = np.sqrt(np.maximum(cov[:, 2, 2], 0.0))
+    grid, (rows, cols), ox, oy = _cell_centres(transform, shape, step)
+    out = frame_cell_sigmas(camera, pose, dem, crs, ox, oy, pose_cov=pose_cov, pixel_sigma=pixel_sigma,
+                            camera_cov=camera_cov, camera_params=camera_params, dem_sigma=dem_sigma)
     out = out.reshape(3, rows, cols)
     write_raster(dst, out, transform=grid, crs=crs.to_wkt(), nodata=np.nan)
     return out
@@ -261,36 +311,82 @@ def scene_accuracy_raster(dst, scene, dem, crs, transform, shape, *, orientation
     ndarray (3, rows, cols) float32
         What was written: sigma east, north (the output CRS's axes) and up (m).
     """
-    from .geometry import project
+    grid, (rows, cols), ox, oy = _cell_centres(transform, shape, step)
+    out = scene_cell_sigmas(scene, dem, crs, ox, oy, orientation_cov=orientation_cov, pixel_sigma=pixel_sigma,
+                            dem_sigma=dem_sigma, refraction=refraction, device=device).reshape(3, rows, cols)
+    write_raster(dst, out, transform=grid, crs=crs.to_wkt(), nodata=np.nan)
+    return out
 
-    step = int(step)
-    if step < 1:
-        raise ParamError(f"step must be >= 1, got {step}")
-    _square("orientation_cov", orientation_cov, len(SCENE_INPUTS))
-    grid, (rows, cols), pts, slopes = _cell_points(dem, crs, transform, shape, step, None)
-    ok = np.all(np.isfinite(pts), axis=1) & np.all(np.isfinite(slopes), axis=1)
-    if ok.any():  # on the scene
-        pix = project(scene, pts[ok], refraction=refraction, device=device)
-        inside = np.all(np.isfinite(pix), axis=1) & (pix[:, 0] >= 0) & (pix[:, 0] <= scene.width) & (
-            pix[:, 1] >= 0) & (pix[:, 1] <= scene.height)
-        ok[np.flatnonzero(ok)[~inside]] = False
+
+def mosaic_accuracy_raster(dst, images, index, dem, crs, transform, shape, *, pose_cov=None, orientation_cov=None,
+                           pixel_sigma=0.5, dem_sigma=0.0, step=16, refraction=True, device=None):
+    """Write the predicted accuracy of a mosaic: each cell from the image the mosaic took the
+    cell's centre from (its source-index raster), as :func:`accuracy_raster` /
+    :func:`scene_accuracy_raster` for that image.
+
+    Parameters
+    ----------
+    dst : str or os.PathLike
+    images : sequence
+        The mosaic's images in index order: (camera, pose) for frames, a PushbroomScene for
+        scenes (or (src, ...) items as :func:`~orthowarp.pipeline.mosaic.mosaic` takes them).
+    index : str or os.PathLike
+        The mosaic's source-index raster (uint16, the image's position; 65535 for none).
+    dem, crs, transform, shape, step :
+        As for :func:`accuracy_raster` (the mosaic's grid).
+    pose_cov : array_like (6, 6)
+        Frames' pose covariance (as for :func:`accuracy_raster`); needed with frames.
+    orientation_cov : array_like (8, 8)
+        Scenes' orientation covariance (:data:`SCENE_INPUTS`); needed with scenes.
+    pixel_sigma, dem_sigma, refraction, device :
+        As above.
+
+    Returns
+    -------
+    ndarray (3, rows, cols) float32
+        What was written.
+    """
+    import rasterio
+
+    from ..pushbroom import PushbroomScene
+    from .mosaic import NO_SOURCE
+
+    grid, (rows, cols), ox, oy = _cell_centres(transform, shape, step)
+    try:
+        with rasterio.open(index) as ds:
+            if (ds.height, ds.width) != tuple(shape):
+                raise ParamError(f"Index '{index}' is {ds.height} x {ds.width} pixels, the mosaic {shape[0]} x {shape[1]}")
+            # the pixel at each cell's centre (a cell of step x step pixels; the last may be short)
+            r = np.minimum(np.arange(rows) * int(step) + int(step) // 2, shape[0] - 1)
+            c = np.minimum(np.arange(cols) * int(step) + int(step) // 2, shape[1] - 1)
+            if shape[0] * shape[1] <= 64 << 20:  # at most 128 MB: read whole
+                src = ds.read(1)[np.ix_(r, c)].ravel()
+            else:  # one row of pixels per row of cells
+                src = np.concatenate([ds.read(1, window=((int(i), int(i) + 1), (0, shape[1])))[0, c] for i in r])
+    except rasterio.errors.RasterioIOError as e:
+        raise ParamError(f"Could not read index '{index}': {e}") from e
     out = np.full((3, rows * cols), np.nan, np.float32)
-    if ok.any():
-        cov = scene_monoplot_covariance(scene, pts[ok], slopes[ok], orientation_cov=orientation_cov,
-                                        pixel_sigma=pixel_sigma, dem_sigma=dem_sigma, refraction=refraction,
-                                        device=device).cov
-        # east/north (m) -> the output CRS's x, y: J C J^T with J by central differences
-        to_out = Transformer.from_crs("EPSG:4326", crs, always_xy=True)
-
-        def out_xy(q):
-            return np.stack(to_out.transform(q[:, 0], q[:, 1]), -1)
-
-        p = pts[ok]
-        jac = np.stack([out_xy(enu_shifted(p, a, 1.0)) - out_xy(enu_shifted(p, a, -1.0)) for a in (0, 1)], -1) / 2.0
-        horizontal = jac @ cov[:, :2, :2] @ np.transpose(jac, (0, 2, 1))
-        out[0, ok] = np.sqrt(np.maximum(horizontal[:, 0, 0], 0.0))
-        out[1, ok] = np.sqrt(np.maximum(horizontal[:, 1, 1], 0.0))
-        out[2, ok] = np.sqrt(np.maximum(cov[:, 2, 2], 0.0))
+    for k in np.unique(src):
+        if k == NO_SOURCE:
+            continue
+        if k >= len(images):
+            raise ParamError(f"Index '{index}' names image {k}; {len(images)} images were given")
+        at = np.flatnonzero(src == k)
+        item = images[k]
+        sensor = item if isinstance(item, PushbroomScene) else item[1] if len(item) == 2 and isinstance(
+            item[1], PushbroomScene) else None
+        if sensor is not None:
+            if orientation_cov is None:
+                raise ParamError("mosaic_accuracy_raster: a pushbroom scene needs orientation_cov")
+            out[:, at] = scene_cell_sigmas(sensor, dem, crs, ox[at], oy[at], orientation_cov=orientation_cov,
+                                           pixel_sigma=pixel_sigma, dem_sigma=dem_sigma, refraction=refraction,
+                                           device=device)
+        else:
+            if pose_cov is None:
+                raise ParamError("mosaic_accuracy_raster: frame images need pose_cov")
+            camera, pose = item[-2], item[-1]
+            out[:, at] = frame_cell_sigmas(camera, pose, dem, crs, ox[at], oy[at], pose_cov=pose_cov,
+                                           pixel_sigma=pixel_sigma, dem_sigma=dem_sigma)
     out = out.reshape(3, rows, cols)
     write_raster(dst, out, transform=grid, crs=crs.to_wkt(), nodata=np.nan)
     return out

@@ -371,11 +371,18 @@ def test_cli_mosaic_of_pushbroom_scenes(tmp_path, monkeypatch):
     monkeypatch.setattr(PushbroomScene, "from_dimap", classmethod(lambda cls, path, **kw: scenes[str(path)]))
     out = tmp_path / "m.tif"
     res = CliRunner().invoke(main, ["mosaic", *args, "--height", "250", "--crs", "EPSG:32631", "--resolution", "5",
-                                    "--no-refraction", "--out", str(out), "--index", str(tmp_path / "i.tif")])
+                                    "--no-refraction", "--out", str(out), "--index", str(tmp_path / "i.tif"),
+                                    "--accuracy"])
     assert res.exit_code == 0, res.output
     assert "s0.tif" in res.output and "s1.tif" in res.output
     with rasterio.open(tmp_path / "i.tif") as ds:
         assert set(np.unique(ds.read(1)[ds.dataset_mask() > 0])) == {0, 1}
+    with rasterio.open(tmp_path / "m_ACCURACY.tif") as ds:  # the scenes' propagation, cell by cell
+        acc = ds.read()
+        assert ds.count == 3 and np.isfinite(acc).mean() > 0.3 and np.all(acc[np.isfinite(acc)] > 0)
+    res = CliRunner().invoke(main, ["mosaic", *args, "--height", "250", "--crs", "EPSG:32631", "--resolution", "5",
+                                    "--out", str(tmp_path / "n.tif"), "--accuracy"])
+    assert res.exit_code != 0 and "--index" in res.output
     res = CliRunner().invoke(main, ["mosaic", "--height", "250", "--out", str(tmp_path / "n.tif")])
     assert res.exit_code != 0 and "--scene" in res.output
     res = CliRunner().invoke(main, ["mosaic", str(tmp_path / "s0.tif"), "--height", "250", "--out", str(tmp_path / "n.tif")])
@@ -641,3 +648,36 @@ def test_a_small_image_cache_gives_the_same_mosaic(pair, tmp_path):
     plan.write(tmp_path / "b.tif", zip(tiles, results))
     plan.close()
     assert (tmp_path / "a.tif").read_bytes() == (tmp_path / "b.tif").read_bytes()
+
+
+def test_mosaic_accuracy_raster_takes_each_cell_from_its_source_image(pair, tmp_path):
+    """pipeline.precision.mosaic_accuracy_raster: every cell carries the predicted accuracy of
+    the image its centre was taken from (the mosaic's index), equal to that image's own
+    accuracy raster there; cells without a source are NaN."""
+    from orthowarp.pipeline.mosaic import NO_SOURCE
+    from orthowarp.pipeline.precision import accuracy_raster, mosaic_accuracy_raster
+
+    sc, images, _, _ = pair
+    res = mosaic(images, tmp_path / "m.tif", dem=sc.dem, refraction=False, device="cpu", tile_size=128,
+                 index=tmp_path / "i.tif", occlusion=False)
+    with rasterio.open(res.path) as ds:
+        crs, transform, shape = ds.crs, ds.transform, ds.shape
+    from pyproj import CRS
+
+    crs = CRS.from_wkt(crs.to_wkt())
+    cov = np.diag([0.05, 0.05, 0.1, 0.005, 0.005, 0.01]) ** 2
+    got = mosaic_accuracy_raster(tmp_path / "acc.tif", images, res.index, sc.dem, crs, transform, shape, pose_cov=cov,
+                                 pixel_sigma=0.5, dem_sigma=0.3, step=8)
+    each = [accuracy_raster(tmp_path / f"a{k}.tif", im[1], im[2], sc.dem, crs, transform, shape, pose_cov=cov,
+                            pixel_sigma=0.5, dem_sigma=0.3, step=8) for k, im in enumerate(images)]
+    with rasterio.open(res.index) as ds:
+        index = ds.read(1)
+    r = np.minimum(np.arange(got.shape[1]) * 8 + 4, shape[0] - 1)
+    c = np.minimum(np.arange(got.shape[2]) * 8 + 4, shape[1] - 1)
+    src = index[np.ix_(r, c)]
+    for k in range(len(images)):
+        at = src == k
+        assert at.sum() > 20
+        np.testing.assert_array_equal(got[:, at], each[k][:, at])
+    assert np.all(np.isnan(got[:, src == NO_SOURCE]))
+    assert not np.allclose(each[0][:, src == 1], each[1][:, src == 1], equal_nan=True)  # the images differ there
