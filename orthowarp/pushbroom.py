@@ -420,14 +420,21 @@ class PushbroomScene:
             rms[name] = float(np.sqrt(np.mean((design @ c - y) ** 2)))
         return coef, rms
 
+    def replace(self, **changes):
+        """This scene with some of its constructor arguments changed (checked as in the
+        constructor)."""
+        args = dict(width=self.width, height=self.height, line_period=self.line_period, center_line=self.center_line,
+                    eph_time=self.eph_time, eph_position=self.eph_position, eph_velocity=self.eph_velocity,
+                    att_time=self.att_time, att_angles=self.att_angles, psi_x=self.psi_x, psi_y=self.psi_y,
+                    attitude_model=self.attitude_model, epoch=self.epoch,
+                    attitude_extrapolation=self.attitude_extrapolation, source=self.source,
+                    polynomials=self.polynomials)
+        args.update(changes)
+        return PushbroomScene(**args)
+
     def with_polynomials(self, coefficients):
         """This scene with its exterior orientation given by 27 polynomial coefficients."""
-        return PushbroomScene(width=self.width, height=self.height, line_period=self.line_period,
-                              center_line=self.center_line, eph_time=self.eph_time, eph_position=self.eph_position,
-                              eph_velocity=self.eph_velocity, att_time=self.att_time, att_angles=self.att_angles,
-                              psi_x=self.psi_x, psi_y=self.psi_y, attitude_model=self.attitude_model, epoch=self.epoch,
-                              attitude_extrapolation=self.attitude_extrapolation, source=self.source,
-                              polynomials=coefficients)
+        return self.replace(polynomials=coefficients)
 
     def mean_height(self):
         """Mean ellipsoidal height (m) of the satellite over the scene."""

@@ -40,20 +40,14 @@ def perturbed_scene(scene, offsets):
     :data:`SCENE_INPUTS`: every ephemeris position moved by (across, along, radial) m along the
     orbital frame's axes at that sample (X2 = v x radial, Y2, Z2 radial), the yaw, pitch and
     roll samples and every detector's psi_x, psi_y shifted (deg)."""
-    from ..pushbroom import PushbroomScene
-
     d = np.asarray(offsets, float)
     if scene.polynomials is not None:
         raise ParamError("the precision of a scene whose orientation is given by polynomials is not supported")
     frame = scene.orbital_frame(scene.eph_position, scene.eph_velocity)  # (n, 3, 3): columns X2, Y2, Z2
     yaw, pitch, roll = np.radians(d[[5, 4, 3]])
-    return PushbroomScene(width=scene.width, height=scene.height, line_period=scene.line_period,
-                          center_line=scene.center_line, eph_time=scene.eph_time,
-                          eph_position=scene.eph_position + frame @ d[:3], eph_velocity=scene.eph_velocity,
-                          att_time=scene.att_time, att_angles=scene.att_angles + [yaw, pitch, roll],
-                          psi_x=scene.psi_x + np.radians(d[6]), psi_y=scene.psi_y + np.radians(d[7]),
-                          attitude_model=scene.attitude_model, epoch=scene.epoch,
-                          attitude_extrapolation=scene.attitude_extrapolation, source=scene.source)
+    return scene.replace(eph_position=scene.eph_position + frame @ d[:3],
+                         att_angles=scene.att_angles + [yaw, pitch, roll],
+                         psi_x=scene.psi_x + np.radians(d[6]), psi_y=scene.psi_y + np.radians(d[7]))
 
 
 def enu_shifted(points, axis, metres):
