@@ -361,7 +361,7 @@ class WarpDeflate:
                   outputs=[s["tokens"], s["ntok"], s["freq"], s["extra"], s["entropy"]])
         t = self._tick("parse", t, sync=True)
         wp.launch(kd.huffman_kernel, dim=m, device=d,
-                  inputs=[buf, off, ln, fin, s["entropy"], s["hist"], cl_order, len_sym],
+                  inputs=[buf, off, ln, fin, s["entropy"], s["hist"], cl_order],
                   outputs=[s["tokens"], s["ntok"], s["extra"], s["freq"], s["lens"], s["clsym"], s["srt"], s["node"],
                            s["pleaf"], s["pnode"], s["bits"], s["header"], s["size"], s["lens_keep"], s["clsym_keep"]])
         t = self._tick("huffman", t, sync=True)
