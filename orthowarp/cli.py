@@ -277,16 +277,9 @@ def ortho(ctx, images, odm_dataset, int_param, ext_param, dimap, attitude_model,
     if accuracy:
         if dimap and pose_sigma == _FRAME_POSE_SIGMA:
             pose_sigma = _SCENE_SIGMA
-        want = 8 if dimap else 6
-        try:
-            sigmas = [float(v) for v in pose_sigma.split(",")]
-        except ValueError:
-            sigmas = []
-        if len(sigmas) != want or not all(np.isfinite(v) and v >= 0 for v in sigmas):
-            units = "m, m, m, deg x 5 for a --dimap scene" if dimap else "m, m, m, deg, deg, deg"
-            raise ParamError(f"--pose-sigma must be {want} numbers >= 0 ({units}), got {pose_sigma!r}")
-        if not (np.isfinite(pixel_sigma) and pixel_sigma >= 0 and np.isfinite(dem_sigma) and dem_sigma >= 0):
-            raise ParamError("--pixel-sigma and --dem-sigma must be >= 0")
+        sigmas = _sigma_list(pose_sigma, 8, "--pose-sigma", "m, m, m, deg x 5 for a --dimap scene") if dimap \
+            else _sigma_list(pose_sigma, 6, "--pose-sigma", "m, m, m, deg, deg, deg")
+        _check_measurement_sigmas(pixel_sigma, dem_sigma)
     if (dem is None) == (height is None):
         raise ParamError("Give exactly one of --dem FILE and --height METRES")
     compress, compress_level, quality, creation_options = _creation_args(creation, compress, compress_level, quality)
@@ -417,7 +410,7 @@ def _accuracy_name(dst):
     return base + "_ACCURACY.tif"
 
 
-def _sigma_list(text, n, option):
+def _sigma_list(text, n, option, units):
     """``n`` comma-separated standard deviations (finite, >= 0) of a CLI option."""
     from .errors import ParamError
 
@@ -426,8 +419,15 @@ def _sigma_list(text, n, option):
     except ValueError:
         values = []
     if len(values) != n or not all(np.isfinite(v) and v >= 0 for v in values):
-        raise ParamError(f"{option} must be {n} comma-separated numbers >= 0, got {text!r}")
+        raise ParamError(f"{option} must be {n} numbers >= 0 ({units}), got {text!r}")
     return values
+
+
+def _check_measurement_sigmas(pixel_sigma, dem_sigma):
+    from .errors import ParamError
+
+    if not (np.isfinite(pixel_sigma) and pixel_sigma >= 0 and np.isfinite(dem_sigma) and dem_sigma >= 0):
+        raise ParamError("--pixel-sigma and --dem-sigma must be >= 0")
 
 
 _COMPRESS_NAMES = {"deflate", "zstd", "lzw", "jpeg", "webp", "none"}
@@ -671,10 +671,9 @@ def mosaic(ctx, images, int_param, ext_param, odm_dataset, scenes, attitude_mode
     if accuracy:
         if not index_path:
             raise ParamError("--accuracy takes each cell's image from the index: give --index too")
-        frame_sigmas = _sigma_list(pose_sigma, 6, "--pose-sigma")
-        scene_sigmas = _sigma_list(scene_sigma, 8, "--scene-sigma")
-        if not (np.isfinite(pixel_sigma) and pixel_sigma >= 0 and np.isfinite(dem_sigma) and dem_sigma >= 0):
-            raise ParamError("--pixel-sigma and --dem-sigma must be >= 0")
+        frame_sigmas = _sigma_list(pose_sigma, 6, "--pose-sigma", "m, m, m, deg, deg, deg")
+        scene_sigmas = _sigma_list(scene_sigma, 8, "--scene-sigma", "m, m, m, deg x 5")
+        _check_measurement_sigmas(pixel_sigma, dem_sigma)
         check_destination(_accuracy_name(out_path), overwrite=overwrite)
     jobs = _frame_orientations(images, int_param, ext_param, crs) if images else []
     if scenes:
