@@ -451,17 +451,22 @@ class Dem:
         -------
         Dem
             ``self`` when the grid already is in those coordinates, else a bilinear reprojection
-            at about the same resolution.
+            at about the same resolution, made once per CRS and kept with this DEM (the
+            accuracy rasters of a batch or a mosaic ask for it image after image).
         """
         if self.is_constant:
             return self
         if crs is None:
             if self.crs.is_geographic and _is_wgs84(self.crs):
                 return self
-            return self.reproject(GEOGRAPHIC)
-        if self.crs.equals(crs, ignore_axis_order=True) or _horizontal(self.crs).equals(_horizontal(crs), ignore_axis_order=True):
+        elif self.crs.equals(crs, ignore_axis_order=True) or _horizontal(self.crs).equals(_horizontal(crs),
+                                                                                          ignore_axis_order=True):
             return self
-        return self.reproject(crs)
+        frames = self.__dict__.setdefault("_frames", {})
+        key = None if crs is None else as_crs(crs).to_wkt()
+        if key not in frames:
+            frames[key] = self.reproject(GEOGRAPHIC if crs is None else crs)
+        return frames[key]
 
     def reproject(self, crs):
         """Reprojection onto a north-up grid in ``crs`` (pyproj/rasterio CRS): each cell the

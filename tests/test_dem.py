@@ -711,3 +711,16 @@ def test_every_terrain_argument_goes_through_one_coercion(tmp_path):
     a = ow.geolocate(scene, [[1000.0, 1000.0]], dem=str(path), device="cpu")
     b = ow.geolocate(scene, [[1000.0, 1000.0]], dem=dem, device="cpu")
     np.testing.assert_array_equal(a, b)
+
+
+def test_a_reprojection_for_a_frame_is_made_once_per_crs():
+    """Dem.for_frame keeps its reprojections: the same CRS asked again (as the accuracy rasters
+    of a batch or a mosaic do, image after image) returns the same grid; another CRS another."""
+    from orthowarp.pipeline.dem import Dem
+
+    dem = Dem(np.arange(400.0).reshape(20, 20), Affine(30.0, 0, 500000.0, 0, -30.0, 5000000.0), "EPSG:32632")
+    geo = dem.for_frame(None)
+    assert geo is dem.for_frame(None) and geo is not dem
+    other = dem.for_frame(CRS.from_epsg(32633))
+    assert other is dem.for_frame(CRS.from_epsg(32633)) and other is not geo
+    assert dem.for_frame(CRS.from_epsg(32632)) is dem
