@@ -202,7 +202,8 @@ def demo(out_dir, device):
               help="Deflate level 1-12 (default 6) or zstd level 1-22 (default 9).")
 @click.option("--block-codec", type=click.Choice(["auto", "host", "nvcomp", "hybrid", "warp"]), default="auto", show_default=True,
               help="Who deflates a COG's blocks: host (libdeflate on all cores), nvcomp (the GPU; needs "
-                   "orthowarp[gpu]), hybrid (both), warp (orthowarp's own deflate kernels on the device); auto: "
+                   "orthowarp[gpu]), warp (orthowarp's own deflate kernels on the device), hybrid (the device: nvCOMP at "
+                   "--compress-level 1-4 where installed, else warp; and the host cores at once); auto: "
                    "nvcomp on a GPU with nvCOMP at --compress-level 1-4, else host.")
 @click.option("-co", "--co", "creation", multiple=True, metavar="KEY=VALUE",
               help="GDAL-style creation option, repeatable: BLOCKSIZE (64-4096, multiple of 16; default 512), "
@@ -614,7 +615,8 @@ def _frame_orientations(images, int_param, ext_param, crs, ids=None):
 @click.option("--compress-level", type=int, default=None, help="Deflate level 1-12 (default 6).")
 @click.option("--block-codec", type=click.Choice(["auto", "host", "nvcomp", "hybrid", "warp"]), default="auto", show_default=True,
               help="Who deflates the mosaic's blocks: host (libdeflate on all cores), nvcomp (the tiles stay on the "
-                   "GPU; needs orthowarp[gpu]), hybrid (both), warp (orthowarp's own deflate kernels on the device); "
+                   "GPU; needs orthowarp[gpu]), warp (orthowarp's own deflate kernels on the device), hybrid (the device: "
+                   "nvCOMP at --compress-level 1-4 where installed, else warp; and the host cores at once); "
                    "auto: host.")
 @click.option("--accuracy", is_flag=True,
               help="Also write <mosaic>_ACCURACY.tif: the predicted accuracy (sigma east, north, up in m) of each "

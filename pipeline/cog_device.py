@@ -276,6 +276,7 @@ class WarpDeflate:
         self._lock = threading.Lock()
         self._tables = None
         self._scratch = None
+        self._own_stream = None
 
     def _table_arrays(self):
         if self._tables is None:
@@ -283,22 +284,39 @@ class WarpDeflate:
             self._tables = tuple(wp.array(a, dtype=wp.int32, device=d) for a in (*_length_tables(), _CL_ORDER))
         return self._tables
 
+    def _stream(self):
+        """The codec's own CUDA stream (None on the CPU): its kernels and copies overlap the
+        work the rest of the program puts on the device's stream (tiles, other encoders)."""
+        if self.device.is_cuda and self._own_stream is None:
+            self._own_stream = wp.Stream(self.device)
+        return self._own_stream
+
     def _scratch_arrays(self, m):
-        """Scratch for ``m`` chunks (kept for the next call)."""
+        """Scratch for ``m`` chunks (kept for the next call), the output buffer (each piece at
+        most its chunk + 5 bytes: a stored block) and pinned host buffers for the per-chunk
+        inputs and the read-backs."""
         if self._scratch is None or self._scratch["m"] < m:
             d, c, kd = self.device, self.chunk, self._kd
             z = lambda shape, dt=wp.int32: wp.empty(shape, dtype=dt, device=d)  # noqa: E731
+            pinned = d.is_cuda
+            h = lambda n, dt=wp.int32: wp.empty(n, dtype=dt, device="cpu", pinned=pinned)  # noqa: E731
             self._scratch = dict(
                 m=m, head=z((m, kd.HASH_SIZE)), prev=z((m, c + self.window)), best=z((m, c)), hist=z((m, 256)),
                 tokens=z((c, m), wp.uint32), ntok=z(m), freq=z((m, kd.NSYM)), extra=z(m), entropy=z(m, wp.float32),
                 lens=z((m, kd.NSYM)), codes=z((m, kd.NSYM)), clsym=z((m, kd.CL_ROW)), lens_keep=z((m, kd.NSYM)),
                 clsym_keep=z((m, kd.CL_ROW)), srt=z((m, 288)), node=z((m, 288)), pleaf=z((m, 288)),
-                pnode=z((m, 288)), bits=z((m, 32)), header=z((m, 5)), size=z(m), end=z(m))
+                pnode=z((m, 288)), bits=z((m, 32)), header=z((m, 5)), size=z(m), end=z(m),
+                inputs=z(5 * m), out=z(m * (c + 5), wp.uint8),
+                inputs_host=h(5 * m), size_host=h(m), end_host=h(m), out_host=h(m * (c + 5), wp.uint8))
+            if pinned:  # nothing of the old scratch may be in use when it goes
+                wp.synchronize_device(d)
         return self._scratch
 
     def compress(self, buf, offsets, sizes):
-        """Raw deflate streams (list of bytes) of the buffers (``offsets``, ``sizes``: byte
-        lists) of the uint8 Warp array ``buf`` on this codec's device."""
+        """Raw deflate streams of the buffers (``offsets``, ``sizes``: byte lists) of the uint8
+        Warp array ``buf`` on this codec's device, written on the device's current stream.
+
+        Returns a list of bytes-like objects (memoryviews of one host buffer per call)."""
         if len(offsets) == 0:
             return []
         if buf.shape[0] >= 2**31:
@@ -317,14 +335,18 @@ class WarpDeflate:
         self._tick("setup", t)
         pieces = []
         with self._lock:
+            stream = self._stream()
+            if stream is not None:  # the buffer is complete once the device's stream gets here
+                stream.wait_stream(wp.get_stream(self.device))
             for a in range(0, len(starts), self.max_chunks):
                 part = slice(a, a + self.max_chunks)
-                pieces.append(self._compress_chunks(buf, starts[part], lens[part], last[part], prime[part]))
+                pieces.append(self._compress_chunks(buf, starts[part], lens[part], last[part], prime[part], stream))
         t = time.perf_counter()
         data = np.concatenate([p[0] for p in pieces]) if len(pieces) > 1 else pieces[0][0]
         bounds = np.concatenate([[0], np.cumsum(np.concatenate([p[1] for p in pieces]))])
         first_chunk.append(len(starts))
-        out = [data[bounds[first_chunk[k]]:bounds[first_chunk[k + 1]]].tobytes() for k in range(len(offsets))]
+        view = memoryview(data)
+        out = [view[bounds[first_chunk[k]]:bounds[first_chunk[k + 1]]] for k in range(len(offsets))]
         self._tick("split", t)
         return out
 
@@ -339,52 +361,64 @@ class WarpDeflate:
         self.timings[step] = self.timings.get(step, 0.0) + now - t
         return now
 
-    def _compress_chunks(self, buf, starts, lens, last, prime):
+    def _read_back(self, host, dev, n, stream):
+        """The first ``n`` items of device array ``dev`` through the host buffer ``host`` (pinned
+        on a GPU), after the codec's work so far (a NumPy view of ``host``)."""
+        if n:
+            wp.copy(host, dev, count=n, stream=stream)
+        if stream is not None:
+            wp.synchronize_stream(stream)
+        return host.numpy()[:n]
+
+    def _compress_chunks(self, buf, starts, lens, last, prime, stream):
         """The pieces of ``len(starts)`` chunks: (their bytes back to back, size of each)."""
         d, m, kd = self.device, len(starts), self._kd
         len_sym, len_xbits, len_xval, cl_order = self._table_arrays()
         s = self._scratch_arrays(m)
-        off = wp.array(starts, dtype=wp.int32, device=d)
-        ln = wp.array(lens, dtype=wp.int32, device=d)
-        fin = wp.array(last, dtype=wp.int32, device=d)
-        pr = wp.array(prime, dtype=wp.int32, device=d)
+        staged = s["inputs_host"].numpy()
+        staged[:4 * m] = np.concatenate([starts, lens, last, prime])
+        wp.copy(s["inputs"], s["inputs_host"], count=4 * m, stream=stream)
+        off, ln, fin, pr = (s["inputs"][k * m:(k + 1) * m] for k in range(4))
         t = self._tick("setup", time.perf_counter(), sync=True)
-        wp.launch(kd.chain_kernel, dim=m, device=d, inputs=[buf, off, ln, pr, self.hash_bytes],
-                  outputs=[s["head"], s["prev"], s["hist"]])
+        launch = lambda kernel, dim, inputs, outputs: wp.launch(  # noqa: E731
+            kernel, dim=dim, device=d, stream=stream, inputs=inputs, outputs=outputs)
+        launch(kd.chain_kernel, m, [buf, off, ln, pr, self.hash_bytes], [s["head"], s["prev"], s["hist"]])
         t = self._tick("chain", t, sync=True)
-        wp.launch(kd.match_kernel, dim=(m, int(lens.max(initial=0)) or 1), device=d,
-                  inputs=[buf, off, ln, pr, self.hash_bytes, self.depth, self.nice, s["prev"]],
-                  outputs=[s["best"], s["hist"]])
+        launch(kd.match_kernel, (m, int(lens.max(initial=0)) or 1),
+               [buf, off, ln, pr, self.hash_bytes, self.depth, self.nice, s["prev"]], [s["best"], s["hist"]])
         t = self._tick("match", t, sync=True)
-        wp.launch(kd.parse_kernel, dim=m, device=d,
-                  inputs=[buf, off, ln, self.nice, int(self.lazy), len_sym, len_xbits, s["best"], s["hist"]],
-                  outputs=[s["tokens"], s["ntok"], s["freq"], s["extra"], s["entropy"]])
+        launch(kd.parse_kernel, m, [buf, off, ln, self.nice, int(self.lazy), len_sym, len_xbits, s["best"], s["hist"]],
+               [s["tokens"], s["ntok"], s["freq"], s["extra"], s["entropy"]])
         t = self._tick("parse", t, sync=True)
-        wp.launch(kd.huffman_kernel, dim=m, device=d,
-                  inputs=[buf, off, ln, fin, s["entropy"], s["hist"], cl_order],
-                  outputs=[s["tokens"], s["ntok"], s["extra"], s["freq"], s["lens"], s["clsym"], s["srt"], s["node"],
-                           s["pleaf"], s["pnode"], s["bits"], s["header"], s["size"], s["lens_keep"], s["clsym_keep"]])
+        launch(kd.huffman_kernel, m, [buf, off, ln, fin, s["entropy"], s["hist"], cl_order],
+               [s["tokens"], s["ntok"], s["extra"], s["freq"], s["lens"], s["clsym"], s["srt"], s["node"],
+                s["pleaf"], s["pnode"], s["bits"], s["header"], s["size"], s["lens_keep"], s["clsym_keep"]])
         t = self._tick("huffman", t, sync=True)
-        size = s["size"].numpy()[:m].astype(np.int64)
+        size = self._read_back(s["size_host"], s["size"], m, stream).astype(np.int64)
         out_off = np.concatenate([[0], np.cumsum(size)[:-1]])
         total = int(size.sum())
-        out = wp.empty(max(total, 1), dtype=wp.uint8, device=d)
+        staged[4 * m:5 * m] = out_off
+        wp.copy(s["inputs"], s["inputs_host"], dest_offset=4 * m, src_offset=4 * m, count=m, stream=stream)
         t = self._tick("sizes", t)
-        wp.launch(kd.emit_kernel, dim=m, device=d,
-                  inputs=[buf, off, ln, fin, wp.array(out_off.astype(np.int32), dtype=wp.int32, device=d), cl_order,
-                          len_sym, len_xbits, len_xval, s["tokens"], s["ntok"], s["lens"], s["codes"], s["clsym"],
-                          s["bits"], s["header"]],
-                  outputs=[out, s["end"]])
+        launch(kd.emit_kernel, m, [buf, off, ln, fin, s["inputs"][4 * m:5 * m], cl_order, len_sym, len_xbits,
+                                   len_xval, s["tokens"], s["ntok"], s["lens"], s["codes"], s["clsym"], s["bits"],
+                                   s["header"]],
+               [s["out"], s["end"]])
         t = self._tick("emit", t, sync=True)
-        end = s["end"].numpy()[:m]
+        if total:
+            wp.copy(s["out_host"], s["out"], count=total, stream=stream)
+        end = self._read_back(s["end_host"], s["end"], m, stream)
         if not np.array_equal(end, out_off + size):  # the size pass and the writer disagree
             raise DeviceError("deflate kernels wrote pieces of other sizes than they computed")
-        host = out.numpy()[:total]
+        host = s["out_host"].numpy()[:total].copy()  # the pinned buffer serves the next call
         self._tick("copy", t)
         return host, size
 
     def close(self):
+        if self._own_stream is not None:
+            wp.synchronize_stream(self._own_stream)
         self._scratch = None
+        self._own_stream = None
 
 
 class _Tile:

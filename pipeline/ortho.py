@@ -304,11 +304,13 @@ def orthorectify(src: str | os.PathLike, sensor: FrameCamera | PushbroomScene, *
         cores). "nvcomp" (CUDA, needs ``orthowarp[gpu]``): predictor, masks and the overview
         levels that cover whole blocks are computed on the device and nvCOMP deflates them
         there, in batches gathered over tiles; only compressed blocks cross to the host.
-        "hybrid": the same device work, the blocks deflated by nvCOMP or, for tiles that
-        arrive while it compresses a batch, by libdeflate on the host cores (on the CPU device or without nvCOMP: libdeflate alone, after
-        the same per-block work in Warp kernels). The files decode to the same pixels whichever path wrote
-        them; nvCOMP's streams differ in size (``compress_level`` 1-4: its medium-ratio
-        variant, 5-7: high, 8-12: highest). "warp": the same device work, the blocks deflated
+        "hybrid" (CUDA): the same device work, the blocks deflated on the device (nvCOMP
+        at ``compress_level`` 1-4 where it is installed, else orthowarp's own kernels, as
+        "warp") and, for tiles that arrive while the device compresses a batch, by
+        libdeflate on the host cores, so both work at once (on the CPU device: libdeflate
+        alone, after the same per-block work in Warp kernels). The files decode to the same
+        pixels whichever path wrote them; nvCOMP's streams differ in size (``compress_level``
+        1-4: its medium-ratio variant, 5-7: high, 8-12: highest). "warp": the same device work, the blocks deflated
         by orthowarp's own kernels (:class:`~orthowarp.pipeline.cog_device.WarpDeflate`, any
         device; no extra package; the search depth follows ``compress_level``). On an H100 with 16 host cores, nvCOMP at level
         6's ratio was slower than libdeflate on the cores, and faster at levels 1-4, so
@@ -548,8 +550,8 @@ def _block_codec(choice, device, deflate_cog, level=6):
         # libdeflate on the cores; its medium-ratio variant (levels 1-4) is faster than any
         # host level
         return "nvcomp" if gpu and level <= 4 else "host"
-    if choice == "hybrid":
-        return "hybrid" if gpu else "device"
+    if choice == "hybrid":  # a device codec (nvCOMP or orthowarp's) and the host cores
+        return "hybrid" if device.is_cuda else "device"
     if choice == "warp":
         return "warp"
     if not device.is_cuda:
@@ -577,7 +579,15 @@ def device_codecs(block_codec, level, device):
     ("nvcomp", "hybrid", "device" or "warp") at a libdeflate ``level``."""
     if block_codec == "warp":
         return [_warp_deflate(level, device)]
-    codecs = [NvcompDeflate(_nvcomp_type(level), device)] if block_codec in ("nvcomp", "hybrid") else []
+    codecs = []
+    if block_codec == "nvcomp":
+        codecs.append(NvcompDeflate(_nvcomp_type(level), device))
+    elif block_codec == "hybrid":
+        # the faster device codec at the level (bench/deflate_codecs.py on an H100: nvCOMP's
+        # medium-ratio variant for levels 1-4; at level 6's ratio nvCOMP ran at 0.2-0.4 GB/s,
+        # orthowarp's kernels at 0.7-0.9 GB/s)
+        use_nvcomp = level <= 4 and nvcomp_available()
+        codecs.append(NvcompDeflate(_nvcomp_type(level), device) if use_nvcomp else _warp_deflate(level, device))
     if block_codec in ("hybrid", "device"):
         codecs.append(HostDeflate(level))
     return codecs
