@@ -106,7 +106,7 @@ def nvcomp_variant(pred, algorithm_type, chunk):
     return sum(sizes), dt, dt_copy, ok
 
 
-def warp_variant(pred, chunk, window, depth, nice, device="cuda:0", hash_bytes=3):
+def warp_variant(pred, chunk, window, depth, nice, device="cuda:0", hash_bytes=4, good=0):
     """(compressed bytes, seconds, blocks that inflate to their input) of orthowarp's device
     deflate (WarpDeflate) over the batch ``pred``, resident on the GPU; the time includes the
     streams' copy to the host (what the COG writer receives)."""
@@ -116,7 +116,8 @@ def warp_variant(pred, chunk, window, depth, nice, device="cuda:0", hash_bytes=3
 
     n, size = len(pred), pred[0].nbytes
     buf = wp.array(pred.reshape(-1), dtype=wp.uint8, device=device)
-    codec = WarpDeflate(device, chunk=chunk, window=window, depth=depth, nice=nice, hash_bytes=hash_bytes)
+    kw = dict(chunk=chunk, window=window, depth=depth, nice=nice, hash_bytes=hash_bytes, good=good)
+    codec = WarpDeflate(device, **kw)
     offs, sizes = [k * size for k in range(n)], [size] * n
     codec.compress(buf, offs[:8], sizes[:8])  # compile / load the kernels, scratch
     wp.synchronize_device(device)
@@ -125,7 +126,7 @@ def warp_variant(pred, chunk, window, depth, nice, device="cuda:0", hash_bytes=3
     dt = time.perf_counter() - t
     ok = sum(zlib.decompress(r, -15) == pred[k].tobytes() for k, r in enumerate(raws))
     # where the time goes: the same batch again, synchronised after each step
-    prof = WarpDeflate(device, chunk=chunk, window=window, depth=depth, nice=nice, hash_bytes=hash_bytes, profile=True)
+    prof = WarpDeflate(device, profile=True, **kw)
     prof.compress(buf, offs, sizes)
     return sum(len(r) for r in raws), dt, ok, prof.timings
 
@@ -137,7 +138,8 @@ def main():
     ap.add_argument("--types", default="0,1,2,4,5")
     ap.add_argument("--out", default=None)
     ap.add_argument("--warp", default="",
-                    help="WarpDeflate variants CHUNK:WINDOW:DEPTH:NICE[:HASH_BYTES], comma-separated (e.g. 65535:8192:32:128:4)")
+                    help="WarpDeflate variants CHUNK:WINDOW:DEPTH:NICE[:HASH_BYTES[:GOOD]], comma-separated "
+                         "(e.g. 65535:8192:32:128:4:8)")
     ap.add_argument("--warp-device", default="cuda:0")
     a = ap.parse_args()
     report = {"blocks": a.blocks, "block": [B, B, 3], "content": {}}

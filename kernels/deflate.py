@@ -45,6 +45,8 @@ wp.set_module_options({"enable_backward": False})
 
 GOLDEN = wp.constant(wp.uint32(2654435761))  # Knuth's multiplicative hash
 HASH_SIZE = wp.constant(1 << 13)  # head table entries per chunk (13-bit hash of 3 or 4 bytes)
+CHAIN_PARTS = wp.constant(8)  # parts of a chunk whose chains are built by threads of their own
+PARSE_PART = wp.constant(4096)  # bytes of a chunk parsed by one thread (matches end inside the part)
 MAX_CHUNK = 65535  # bytes per chunk: what one stored block holds
 MAX_DIST = wp.constant(32768)  # the farthest a match reaches back
 NSYM = wp.constant(336)  # per-chunk symbol row: literal/length 0-285, distance 286-315, code length 316-334
@@ -82,39 +84,69 @@ def dist_code(d: wp.int32) -> wp.vec3i:
 
 
 @wp.kernel
-def chain_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.int32),
-                 chunk_len: wp.array(dtype=wp.int32), prime: wp.array(dtype=wp.int32), hlen: wp.int32,
-                 head: wp.array2d(dtype=wp.int32), prev: wp.array2d(dtype=wp.int32),
-                 hist: wp.array2d(dtype=wp.int32)):
-    """Hash chains of chunk c (one thread, in position order): prev[c, j + pr] = 1 + pr + the
-    previous position with the same 3-byte hash (0: none), for j from -pr (the window before
-    the chunk, pr = prime[c]) to the last position with 3 bytes left. The byte histogram is
-    cleared for :func:`match_kernel`."""
-    c = wp.tid()
-    base = chunk_off[c]
-    n = chunk_len[c]
+def chain_part_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.int32),
+                      chunk_len: wp.array(dtype=wp.int32), prime: wp.array(dtype=wp.int32), hlen: wp.int32,
+                      first: wp.array3d(dtype=wp.int32), last: wp.array3d(dtype=wp.int32),
+                      prev: wp.array2d(dtype=wp.int32)):
+    """Hash chains of part s of chunk c (one thread, in position order). The positions j of
+    the chunk that have ``hlen`` bytes left, from -pr (the window before the chunk, pr =
+    prime[c]) on, indexed k = j + pr, are cut into CHAIN_PARTS equal parts; within part s,
+    prev[c, k] = 1 + the part's previous position k' with the same hash (0: none). The
+    first and the last position of each hash in the part (1 + k, 0: none) go to
+    first[c, s, h] and last[c, s, h], which :func:`chain_link_kernel` joins across the parts
+    (both tables must be zero on entry)."""
+    c, s = wp.tid()
     pr = prime[c]
-    for h in range(HASH_SIZE):
-        head[c, h] = 0
-    for s in range(256):
-        hist[c, s] = 0
-    j = -pr
-    while j + hlen - 1 < n:
-        h = hash_at(buf, base + j, hlen)
-        prev[c, j + pr] = head[c, h]
-        head[c, h] = j + pr + 1
-        j = j + 1
+    total = pr + chunk_len[c] - hlen + 1
+    if total <= 0:
+        return
+    q = (total + CHAIN_PARTS - 1) // CHAIN_PARTS
+    k0 = s * q
+    k1 = wp.min(k0 + q, total)
+    start = chunk_off[c] - pr
+    for k in range(k0, k1):
+        h = hash_at(buf, start + k, hlen)
+        l = last[c, s, h]
+        if l == 0:
+            first[c, s, h] = k + 1
+        else:
+            prev[c, k] = l
+        last[c, s, h] = k + 1
+
+
+@wp.kernel
+def chain_link_kernel(first: wp.array3d(dtype=wp.int32), last: wp.array3d(dtype=wp.int32),
+                      prev: wp.array2d(dtype=wp.int32), hist: wp.array2d(dtype=wp.int32)):
+    """The chains across parts, for hash h of chunk c (a thread each): the first position of
+    h in a part links to its last position in the nearest earlier part that holds h, so the
+    chains are exactly those of one pass over the chunk. The tables are left zero for the
+    next call; the chunk's byte histogram is cleared for :func:`match_kernel`."""
+    c, h = wp.tid()
+    run = int(0)
+    for s in range(CHAIN_PARTS):
+        f = first[c, s, h]
+        if f != 0:
+            prev[c, f - 1] = run
+            first[c, s, h] = 0
+        l = last[c, s, h]
+        if l != 0:
+            run = l
+            last[c, s, h] = 0
+    if h < 256:
+        hist[c, h] = 0
 
 
 @wp.kernel
 def match_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.int32),
                  chunk_len: wp.array(dtype=wp.int32), prime: wp.array(dtype=wp.int32), hlen: wp.int32,
-                 depth: wp.int32, nice: wp.int32, prev: wp.array2d(dtype=wp.int32), best: wp.array2d(dtype=wp.int32),
-                 hist: wp.array2d(dtype=wp.int32)):
+                 depth: wp.int32, nice: wp.int32, good: wp.int32, prev: wp.array2d(dtype=wp.int32),
+                 best: wp.array2d(dtype=wp.int32), hist: wp.array2d(dtype=wp.int32)):
     """The longest match at position i of chunk c (one thread per position): best[c, i] =
     length << 16 | (distance - 1), 0 for none. The chain is walked from the nearest earlier
-    position, at most ``depth`` candidates, stopping at ``nice`` bytes; of equal lengths the
-    nearest wins; a match ends inside the chunk and reaches at most 32768 back."""
+    position, at most ``depth`` candidates (once a match reaches ``good`` bytes, good > 0,
+    only a quarter of those left: zlib's ``good_length``), stopping at ``nice`` bytes; of
+    equal lengths the nearest wins; a match ends inside its parse part (see
+    :func:`parse_kernel`) and reaches at most 32768 back."""
     c, i = wp.tid()
     n = chunk_len[c]
     if i >= n:
@@ -125,12 +157,14 @@ def match_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.int
     found = int(0)
     if i + hlen - 1 < n:
         cand = prev[c, i + pr] - 1 - pr
-        maxl = wp.min(258, n - i)
+        maxl = wp.min(258, wp.min(n, (i // PARSE_PART + 1) * PARSE_PART) - i)
         cap = wp.min(maxl, nice)  # a match of nice bytes ends the search; the parse extends the one it takes
         bl = int(2)
         left = depth
+        quartered = int(0)
+        tail = buf[base + i + bl]  # the byte a longer match must match first
         while cand >= -pr and left > 0 and bl < cap and i - cand <= MAX_DIST:
-            if buf[base + cand + bl] == buf[base + i + bl]:
+            if buf[base + cand + bl] == tail:
                 m = int(0)
                 while m < cap:
                     if buf[base + cand + m] != buf[base + i + m]:
@@ -139,25 +173,29 @@ def match_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.int
                 if m > bl:
                     bl = m
                     found = (m << 16) | (i - cand - 1)
-                    if m >= nice:
+                    if m >= cap:
                         break
+                    tail = buf[base + i + bl]
+                    if good > 0 and m >= good and quartered == 0:
+                        left = left // 4
+                        quartered = 1
             cand = prev[c, cand + pr] - 1 - pr
             left = left - 1
     best[c, i] = found
 
 
 @wp.func
-def add_literal(v: wp.int32, nt: wp.int32, c: wp.int32, tokens: wp.array2d(dtype=wp.uint32),
-                freq: wp.array2d(dtype=wp.int32)):
-    tokens[nt, c] = wp.uint32(v)
-    freq[c, v] = freq[c, v] + 1
+def add_literal(v: wp.int32, nt: wp.int32, c: wp.int32, p: wp.int32, tokens: wp.array2d(dtype=wp.uint32),
+                freq: wp.array3d(dtype=wp.int32)):
+    tokens[c, nt] = wp.uint32(v)
+    freq[c, p, v] = freq[c, p, v] + 1
 
 
 @wp.func
 def extended(buf: wp.array(dtype=wp.uint8), base: wp.int32, pos: wp.int32, dist: wp.int32, length: wp.int32,
              n: wp.int32) -> wp.int32:
     """A match at pos of at least ``length`` bytes, ``dist`` back, grown to its full length
-    (at most 258, inside the chunk's n bytes)."""
+    (at most 258, ending at or before n)."""
     m = length
     top = wp.min(258, n - pos)
     while m < top:
@@ -168,15 +206,15 @@ def extended(buf: wp.array(dtype=wp.uint8), base: wp.int32, pos: wp.int32, dist:
 
 
 @wp.func
-def add_match(length: wp.int32, dist: wp.int32, nt: wp.int32, c: wp.int32, tokens: wp.array2d(dtype=wp.uint32),
-              freq: wp.array2d(dtype=wp.int32), len_sym: wp.array(dtype=wp.int32),
-              len_xbits: wp.array(dtype=wp.int32)) -> wp.int32:
+def add_match(length: wp.int32, dist: wp.int32, nt: wp.int32, c: wp.int32, p: wp.int32,
+              tokens: wp.array2d(dtype=wp.uint32), freq: wp.array3d(dtype=wp.int32),
+              len_sym: wp.array(dtype=wp.int32), len_xbits: wp.array(dtype=wp.int32)) -> wp.int32:
     """Store a match token; its extra bits returned."""
-    tokens[nt, c] = (wp.uint32(length - 2) << wp.uint32(16)) | wp.uint32(dist - 1)
+    tokens[c, nt] = (wp.uint32(length - 2) << wp.uint32(16)) | wp.uint32(dist - 1)
     s = len_sym[length]
-    freq[c, s] = freq[c, s] + 1
+    freq[c, p, s] = freq[c, p, s] + 1
     dc = dist_code(dist)
-    freq[c, DIST0 + dc[0]] = freq[c, DIST0 + dc[0]] + 1
+    freq[c, p, DIST0 + dc[0]] = freq[c, p, DIST0 + dc[0]] + 1
     return len_xbits[length] + dc[1]
 
 
@@ -184,56 +222,54 @@ def add_match(length: wp.int32, dist: wp.int32, nt: wp.int32, c: wp.int32, token
 def parse_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.int32),
                  chunk_len: wp.array(dtype=wp.int32), nice: wp.int32, lazy: wp.int32,
                  len_sym: wp.array(dtype=wp.int32), len_xbits: wp.array(dtype=wp.int32),
-                 best: wp.array2d(dtype=wp.int32), hist: wp.array2d(dtype=wp.int32),
-                 tokens: wp.array2d(dtype=wp.uint32), ntok: wp.array(dtype=wp.int32),
-                 freq: wp.array2d(dtype=wp.int32), extra: wp.array(dtype=wp.int32),
-                 entropy: wp.array(dtype=wp.float32)):
-    """Tokens of chunk c from the matches found at each position (one thread, in order): a
-    match is deferred by one byte when the next position matches longer (zlib's
-    ``deflate_slow``). Tokens: (length - 2) << 16 | (distance - 1) for a match, the byte for
-    a literal; the literal/length and distance frequencies (end of block counted), the total
-    of the extra bits, and the bytes' order-0 entropy (bits per byte) for huffman_kernel's
-    choice between tokens and literals."""
-    c = wp.tid()
-    base = chunk_off[c]
+                 best: wp.array2d(dtype=wp.int32), tokens: wp.array2d(dtype=wp.uint32),
+                 ntok: wp.array2d(dtype=wp.int32), freq: wp.array3d(dtype=wp.int32),
+                 extra: wp.array2d(dtype=wp.int32)):
+    """Tokens of part p (bytes p * PARSE_PART onwards, PARSE_PART of them at most) of chunk c
+    from the matches found at each position (one thread, in order; a match ends inside its
+    part): a match is deferred by one byte when the next position matches longer (zlib's
+    ``deflate_slow``). Tokens, from tokens[c, p * PARSE_PART] on (ntok[c, p] of them):
+    (length - 2) << 16 | (distance - 1) for a match, the byte for a literal; the part's
+    literal/length and distance frequencies in freq[c, p] and its extra bits in extra[c, p]."""
+    c, p = wp.tid()
     n = chunk_len[c]
-    for s in range(NSYM):
-        freq[c, s] = 0
-    ent = float(0.0)
-    for s in range(256):
-        f = hist[c, s]
-        if f > 0:
-            q = float(f) / float(n)
-            ent = ent - q * wp.log2(q)
-    entropy[c] = ent
-    i = int(0)
-    nt = int(0)
+    for s in range(DIST0 + 30):
+        freq[c, p, s] = 0
+    a = p * PARSE_PART
+    if a >= n:
+        ntok[c, p] = 0
+        extra[c, p] = 0
+        return
+    b = wp.min(a + PARSE_PART, n)
+    base = chunk_off[c]
+    i = a
+    nt = a
     xb = int(0)
     pl = int(0)  # length of the match deferred from position i - 1
     pd = int(0)
-    while i < n:
+    while i < b:
         e = best[c, i]
-        ml = e >> 16
+        ml = wp.min(e >> 16, b - i)
         md = (e & 65535) + 1
         if pl >= 3:
             if ml > pl:  # the match one byte later is longer: the byte before it goes literal
-                add_literal(wp.int32(buf[base + i - 1]), nt, c, tokens, freq)
+                add_literal(wp.int32(buf[base + i - 1]), nt, c, p, tokens, freq)
                 nt = nt + 1
                 pl = ml
                 pd = md
                 i = i + 1
             else:
                 if pl >= nice:
-                    pl = extended(buf, base, i - 1, pd, pl, n)
-                xb = xb + add_match(pl, pd, nt, c, tokens, freq, len_sym, len_xbits)
+                    pl = extended(buf, base, i - 1, pd, pl, b)
+                xb = xb + add_match(pl, pd, nt, c, p, tokens, freq, len_sym, len_xbits)
                 nt = nt + 1
                 i = i - 1 + pl
                 pl = 0
         elif ml >= 3:
             if lazy == 0 or ml >= nice:
                 if ml >= nice:
-                    ml = extended(buf, base, i, md, ml, n)
-                xb = xb + add_match(ml, md, nt, c, tokens, freq, len_sym, len_xbits)
+                    ml = extended(buf, base, i, md, ml, b)
+                xb = xb + add_match(ml, md, nt, c, p, tokens, freq, len_sym, len_xbits)
                 nt = nt + 1
                 i = i + ml
             else:
@@ -241,17 +277,48 @@ def parse_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.int
                 pd = md
                 i = i + 1
         else:
-            add_literal(wp.int32(buf[base + i]), nt, c, tokens, freq)
+            add_literal(wp.int32(buf[base + i]), nt, c, p, tokens, freq)
             nt = nt + 1
             i = i + 1
     if pl >= 3:
         if pl >= nice:
-            pl = extended(buf, base, n - 1, pd, pl, n)
-        xb = xb + add_match(pl, pd, nt, c, tokens, freq, len_sym, len_xbits)
+            pl = extended(buf, base, b - 1, pd, pl, b)
+        xb = xb + add_match(pl, pd, nt, c, p, tokens, freq, len_sym, len_xbits)
         nt = nt + 1
-    freq[c, 256] = freq[c, 256] + 1
-    ntok[c] = nt
-    extra[c] = xb
+    ntok[c, p] = nt - a
+    extra[c, p] = xb
+
+
+@wp.kernel
+def parse_sum_kernel(chunk_len: wp.array(dtype=wp.int32), part_freq: wp.array3d(dtype=wp.int32),
+                     part_extra: wp.array2d(dtype=wp.int32), hist: wp.array2d(dtype=wp.int32),
+                     freq: wp.array2d(dtype=wp.int32), extra: wp.array(dtype=wp.int32),
+                     entropy: wp.array(dtype=wp.float32)):
+    """Chunk c's symbol frequencies (thread (c, s) for symbol s; end of block counted) from
+    its parts'; thread (c, 0) also sums the extra bits and computes the bytes' order-0 entropy
+    (bits per byte) for huffman_kernel's choice between tokens and literals."""
+    c, s = wp.tid()
+    n = chunk_len[c]
+    nparts = (n + PARSE_PART - 1) // PARSE_PART
+    f = int(0)
+    if s < DIST0 + 30:
+        for p in range(nparts):
+            f = f + part_freq[c, p, s]
+    if s == 256:
+        f = f + 1
+    freq[c, s] = f
+    if s == 0:
+        xb = int(0)
+        for p in range(nparts):
+            xb = xb + part_extra[c, p]
+        extra[c] = xb
+        ent = float(0.0)
+        for v in range(256):
+            h = hist[c, v]
+            if h > 0:
+                q = float(h) / float(n)
+                ent = ent - q * wp.log2(q)
+        entropy[c] = ent
 
 
 @wp.func
@@ -456,7 +523,7 @@ def huffman_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.i
                    chunk_len: wp.array(dtype=wp.int32), last: wp.array(dtype=wp.int32),
                    entropy: wp.array(dtype=wp.float32), hist: wp.array2d(dtype=wp.int32),
                    cl_order: wp.array(dtype=wp.int32), tokens: wp.array2d(dtype=wp.uint32),
-                   ntok: wp.array(dtype=wp.int32), extra: wp.array(dtype=wp.int32),
+                   ntok: wp.array2d(dtype=wp.int32), extra: wp.array(dtype=wp.int32),
                    freq: wp.array2d(dtype=wp.int32), lens: wp.array2d(dtype=wp.int32),
                    clsym: wp.array2d(dtype=wp.int32), srt: wp.array2d(dtype=wp.int32),
                    node: wp.array2d(dtype=wp.int32), pleaf: wp.array2d(dtype=wp.int32),
@@ -492,8 +559,9 @@ def huffman_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.i
         lit_bits = plan_block(c, 0, cl_order, freq, lens, clsym, srt, node, pleaf, pnode, bits, header)
         if lit_bits < nbits:
             for k in range(n):
-                tokens[k, c] = wp.uint32(buf[base + k])
-            ntok[c] = n
+                tokens[c, k] = wp.uint32(buf[base + k])
+            for p in range((n + PARSE_PART - 1) // PARSE_PART):
+                ntok[c, p] = wp.min(PARSE_PART, n - p * PARSE_PART)
             extra[c] = 0
             nbits = lit_bits
         else:  # back to the tokens' plan
@@ -568,7 +636,7 @@ def emit_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.int3
                 out_off: wp.array(dtype=wp.int32), cl_order: wp.array(dtype=wp.int32),
                 len_sym: wp.array(dtype=wp.int32), len_xbits: wp.array(dtype=wp.int32),
                 len_xval: wp.array(dtype=wp.int32), tokens: wp.array2d(dtype=wp.uint32),
-                ntok: wp.array(dtype=wp.int32), lens: wp.array2d(dtype=wp.int32),
+                ntok: wp.array2d(dtype=wp.int32), lens: wp.array2d(dtype=wp.int32),
                 codes: wp.array2d(dtype=wp.int32), clsym: wp.array2d(dtype=wp.int32),
                 bits: wp.array2d(dtype=wp.int32), header: wp.array2d(dtype=wp.int32),
                 out: wp.array(dtype=wp.uint8), end: wp.array(dtype=wp.int32)):
@@ -610,22 +678,24 @@ def emit_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.int3
             p, acc, nb = put(out, p, acc, nb, e >> 8, 3)
         elif sym == 18:
             p, acc, nb = put(out, p, acc, nb, e >> 8, 7)
-    for k in range(ntok[c]):
-        t = tokens[k, c]
-        top = wp.int32(t >> wp.uint32(16))
-        if top == 0:
-            v = wp.int32(t)
-            p, acc, nb = put(out, p, acc, nb, codes[c, v], lens[c, v])
-        else:
-            length = top + 2
-            ls = len_sym[length]
-            p, acc, nb = put(out, p, acc, nb, codes[c, ls], lens[c, ls])
-            if len_xbits[length] > 0:
-                p, acc, nb = put(out, p, acc, nb, len_xval[length], len_xbits[length])
-            dc = dist_code(wp.int32(t & wp.uint32(65535)) + 1)
-            p, acc, nb = put(out, p, acc, nb, codes[c, DIST0 + dc[0]], lens[c, DIST0 + dc[0]])
-            if dc[1] > 0:
-                p, acc, nb = put(out, p, acc, nb, dc[2], dc[1])
+    for part in range((n + PARSE_PART - 1) // PARSE_PART):
+        a = part * PARSE_PART
+        for k in range(a, a + ntok[c, part]):
+            t = tokens[c, k]
+            top = wp.int32(t >> wp.uint32(16))
+            if top == 0:
+                v = wp.int32(t)
+                p, acc, nb = put(out, p, acc, nb, codes[c, v], lens[c, v])
+            else:
+                length = top + 2
+                ls = len_sym[length]
+                p, acc, nb = put(out, p, acc, nb, codes[c, ls], lens[c, ls])
+                if len_xbits[length] > 0:
+                    p, acc, nb = put(out, p, acc, nb, len_xval[length], len_xbits[length])
+                dc = dist_code(wp.int32(t & wp.uint32(65535)) + 1)
+                p, acc, nb = put(out, p, acc, nb, codes[c, DIST0 + dc[0]], lens[c, DIST0 + dc[0]])
+                if dc[1] > 0:
+                    p, acc, nb = put(out, p, acc, nb, dc[2], dc[1])
     p, acc, nb = put(out, p, acc, nb, codes[c, 256], lens[c, 256])
     if fin == 0:  # an empty stored block brings the piece to a byte boundary
         p, acc, nb = put(out, p, acc, nb, 0, 3)

@@ -228,6 +228,9 @@ class WarpDeflate:
     nice : int, optional
         A match this long ends the search (default 128); each position compares at most this
         many bytes, and the parse extends the matches it takes to their full length.
+    good : int, optional
+        Once a position's best match reaches this many bytes, only a quarter of the
+        candidates left are tried (zlib's ``good_length``; default 0: off).
     lazy : bool, optional
         One-step lazy matching (default True).
     window : int, optional
@@ -242,16 +245,16 @@ class WarpDeflate:
         Synchronise after each step and add its seconds to :attr:`timings` ("setup", "chain",
         "match", "parse", "huffman", "sizes", "emit", "copy", "split"; slows the codec a little).
     max_chunks : int, optional
-        Chunks per launch, which bounds the scratch memory: about (12 x chunk + 4 x window + 37 KiB)
-        bytes per chunk. Default on a GPU: what fits in an eighth of its memory (an H100:
-        about 11800 chunks of 64 KiB), as the per-chunk steps need many chunks in flight to
+        Chunks per launch, which bounds the scratch memory: about (13 x chunk + 4 x window + 572 KiB)
+        bytes per chunk. Default on a GPU: what fits in a sixth of its memory (an H100:
+        about 9200 chunks of 64 KiB, more than a 512 MiB batch of the COG encoder), as the per-chunk steps need many chunks in flight to
         hide memory latency; 64 on the CPU.
     """
 
     name = "warp"
     batched = True  # many chunks per launch: fed batches gathered over tiles
 
-    def __init__(self, device, *, chunk=65535, depth=32, nice=128, lazy=True, window=8192, hash_bytes=4,
+    def __init__(self, device, *, chunk=65535, depth=32, nice=128, good=0, lazy=True, window=8192, hash_bytes=4,
                  max_chunks=None, profile=False):
         from ..kernels import deflate as kd  # its kernels are built on first use only (14 ms at import)
 
@@ -263,10 +266,13 @@ class WarpDeflate:
         if int(depth) < 1 or not 3 <= int(nice) <= 258:
             raise ParamError(f"depth must be >= 1 and nice 3-258, got {depth}, {nice}")
         self.device = wp.get_device(device)
+        if int(good) < 0:
+            raise ParamError(f"good must be >= 0, got {good}")
         self.chunk, self.depth, self.nice, self.lazy = int(chunk), int(depth), int(nice), bool(lazy)
+        self.good = int(good)
         self.window = int(window)
-        per_chunk = 12 * self.chunk + 4 * self.window + 37 * 1024
-        self.max_chunks = int(max_chunks or (max(64, self.device.total_memory // 8 // per_chunk)
+        per_chunk = 13 * self.chunk + 4 * self.window + 8 * kd.CHAIN_PARTS * kd.HASH_SIZE + 60 * 1024
+        self.max_chunks = int(max_chunks or (max(64, self.device.total_memory // 6 // per_chunk)
                                              if self.device.is_cuda else 64))
         if hash_bytes not in (3, 4):
             raise ParamError(f"hash_bytes must be 3 or 4, got {hash_bytes}")
@@ -300,9 +306,13 @@ class WarpDeflate:
             z = lambda shape, dt=wp.int32: wp.empty(shape, dtype=dt, device=d)  # noqa: E731
             pinned = d.is_cuda
             h = lambda n, dt=wp.int32: wp.empty(n, dtype=dt, device="cpu", pinned=pinned)  # noqa: E731
+            parts = -(-c // kd.PARSE_PART)
+            tables = (m, kd.CHAIN_PARTS, kd.HASH_SIZE)
             self._scratch = dict(
-                m=m, head=z((m, kd.HASH_SIZE)), prev=z((m, c + self.window)), best=z((m, c)), hist=z((m, 256)),
-                tokens=z((c, m), wp.uint32), ntok=z(m), freq=z((m, kd.NSYM)), extra=z(m), entropy=z(m, wp.float32),
+                m=m, first=wp.zeros(tables, dtype=wp.int32, device=d), last=wp.zeros(tables, dtype=wp.int32, device=d),
+                prev=z((m, c + self.window)), best=z((m, c)), hist=z((m, 256)), tokens=z((m, c), wp.uint32),
+                ntok=z((m, parts)), part_freq=z((m, parts, kd.DIST0 + 30)), part_extra=z((m, parts)),
+                freq=z((m, kd.NSYM)), extra=z(m), entropy=z(m, wp.float32),
                 lens=z((m, kd.NSYM)), codes=z((m, kd.NSYM)), clsym=z((m, kd.CL_ROW)), lens_keep=z((m, kd.NSYM)),
                 clsym_keep=z((m, kd.CL_ROW)), srt=z((m, 288)), node=z((m, 288)), pleaf=z((m, 288)),
                 pnode=z((m, 288)), bits=z((m, 32)), header=z((m, 5)), size=z(m), end=z(m),
@@ -382,13 +392,17 @@ class WarpDeflate:
         t = self._tick("setup", time.perf_counter(), sync=True)
         launch = lambda kernel, dim, inputs, outputs: wp.launch(  # noqa: E731
             kernel, dim=dim, device=d, stream=stream, inputs=inputs, outputs=outputs)
-        launch(kd.chain_kernel, m, [buf, off, ln, pr, self.hash_bytes], [s["head"], s["prev"], s["hist"]])
+        launch(kd.chain_part_kernel, (m, kd.CHAIN_PARTS), [buf, off, ln, pr, self.hash_bytes],
+               [s["first"], s["last"], s["prev"]])
+        launch(kd.chain_link_kernel, (m, kd.HASH_SIZE), [s["first"], s["last"]], [s["prev"], s["hist"]])
         t = self._tick("chain", t, sync=True)
         launch(kd.match_kernel, (m, int(lens.max(initial=0)) or 1),
-               [buf, off, ln, pr, self.hash_bytes, self.depth, self.nice, s["prev"]], [s["best"], s["hist"]])
+               [buf, off, ln, pr, self.hash_bytes, self.depth, self.nice, self.good, s["prev"]], [s["best"], s["hist"]])
         t = self._tick("match", t, sync=True)
-        launch(kd.parse_kernel, m, [buf, off, ln, self.nice, int(self.lazy), len_sym, len_xbits, s["best"], s["hist"]],
-               [s["tokens"], s["ntok"], s["freq"], s["extra"], s["entropy"]])
+        launch(kd.parse_kernel, (m, s["ntok"].shape[1]), [buf, off, ln, self.nice, int(self.lazy), len_sym, len_xbits, s["best"]],
+               [s["tokens"], s["ntok"], s["part_freq"], s["part_extra"]])
+        launch(kd.parse_sum_kernel, (m, kd.NSYM), [ln, s["part_freq"], s["part_extra"], s["hist"]],
+               [s["freq"], s["extra"], s["entropy"]])
         t = self._tick("parse", t, sync=True)
         launch(kd.huffman_kernel, m, [buf, off, ln, fin, s["entropy"], s["hist"], cl_order],
                [s["tokens"], s["ntok"], s["extra"], s["freq"], s["lens"], s["clsym"], s["srt"], s["node"],

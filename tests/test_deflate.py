@@ -71,7 +71,8 @@ def _cases():
 
 
 @pytest.mark.parametrize("chunk,window,lazy,hash_bytes", [(1024, 0, True, 4), (1024, 1024, True, 3),
-                                                        (2048, 512, False, 4), (2048, 512, True, 3)])
+                                                        (2048, 512, False, 4), (2048, 512, True, 3),
+                                                        (16384, 8192, True, 4)])  # several parse parts
 def test_streams_inflate_to_their_input(device, chunk, window, lazy, hash_bytes):
     cases = _cases()
     codec = WarpDeflate(device, chunk=chunk, window=window, lazy=lazy, hash_bytes=hash_bytes, max_chunks=7)
@@ -152,3 +153,43 @@ def test_matches_reach_32768_bytes_back_and_no_farther(device):
     assert [zlib.decompress(r, -15) for r in raws] == [near, far]
     assert len(raws[0]) < 20000 + 2000  # two of the three copies as matches
     assert len(raws[1]) > 80000  # nothing to find within reach: stored
+
+
+@pytest.mark.parametrize("hash_bytes", [3, 4])
+def test_hash_chains_built_in_parts_equal_one_pass(device, hash_bytes):
+    """chain_part_kernel + chain_link_kernel link every position to the nearest earlier one
+    with the same hash, from the window before the chunk on, as one pass over the chunk
+    would (reference: a dictionary walk in Python)."""
+    from orthowarp.kernels import deflate as kd
+
+    rng = np.random.default_rng(3)
+    data = rng.integers(0, 3, 9000, dtype=np.uint8)  # few symbols: long chains
+    data[4000:6000] = 0
+    starts, lens, prime = [0, 3000, 7000, 8990], [3000, 4000, 1990, 7], [0, 2000, 500, 9]
+    m, width = len(starts), max(lens) + max(prime)
+
+    def keys(k):  # the kernel's hash, on the host
+        v = 0
+        for b in data[k:k + hash_bytes]:
+            v = (v << 8) | int(b)
+        return ((v * 2654435761) & 0xFFFFFFFF) >> (32 - 13)
+
+    d = device
+    arr = lambda a: wp.array(np.asarray(a, np.int32), dtype=wp.int32, device=d)  # noqa: E731
+    tables = (m, kd.CHAIN_PARTS, kd.HASH_SIZE)
+    first, last = wp.zeros(tables, dtype=wp.int32, device=d), wp.zeros(tables, dtype=wp.int32, device=d)
+    prev, hist = wp.full((m, width), -7, dtype=wp.int32, device=d), wp.full((m, 256), 5, dtype=wp.int32, device=d)
+    buf = wp.array(data, dtype=wp.uint8, device=d)
+    wp.launch(kd.chain_part_kernel, (m, kd.CHAIN_PARTS), [buf, arr(starts), arr(lens), arr(prime), hash_bytes],
+              [first, last, prev], device=d)
+    wp.launch(kd.chain_link_kernel, (m, kd.HASH_SIZE), [first, last], [prev, hist], device=d)
+    got = prev.numpy()
+    for c, (o, n, pr) in enumerate(zip(starts, lens, prime)):
+        heads, want = {}, []
+        for k in range(pr + n - hash_bytes + 1):
+            h = keys(o - pr + k)
+            want.append(heads.get(h, 0))
+            heads[h] = k + 1
+        np.testing.assert_array_equal(got[c, :len(want)], want, err_msg=f"chunk {c}")
+    assert not first.numpy().any() and not last.numpy().any()  # left zero for the next call
+    assert not hist.numpy().any()
