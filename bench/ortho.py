@@ -287,6 +287,7 @@ def main(argv=None):
     for name in devices:
         geom = FrameGeometry(cam, pose, dem, device=name, refraction=not args.no_refraction)
         r = dict(device=str(geom.device), device_name=geom.device.name)
+        report["results"].append(r)  # in the report from the start: a run cut short keeps what it measured
         r.update(kernel_only(geom, src, args.resampling, repeats=3 if geom.device.is_cuda else 1))
         for codec in ("auto", "host"):  # the default; the host path if the default fails
             t = time.perf_counter()
@@ -370,6 +371,7 @@ def main(argv=None):
                         outputs[key] = os.path.join(work, f"ortho_{key}.tif")
                         os.replace(os.path.join(work, "frame_ORTHO.tif"), outputs[key])
                     print(key, r[key]["wall_s"], r[key].get("output_mb"), r[key]["returncode"], flush=True)
+                    save_report(report, args.out)
                 r["codec_agreement"] = compare_outputs(outputs, "cli_host")
             if args.batch and (geom.device.is_cuda or args.variants):
                 for level in args.batch_levels.split(","):
@@ -387,7 +389,6 @@ def main(argv=None):
             t = time.perf_counter()
             subprocess.run([sys.executable, "-c", "import orthowarp"], check=True)
             r["cli"]["import_orthowarp_process_s"] = time.perf_counter() - t
-        report["results"].append(r)
         save_report(report, args.out)
         cli = r.get("cli", {})
         print(f"{r['device_name']:>24s} kernel {r['kernel_gpix_s']:.3f} Gpix/s ({r['kernel_gpix_s_per_band']:.3f} per band) "

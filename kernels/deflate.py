@@ -47,6 +47,7 @@ GOLDEN = wp.constant(wp.uint32(2654435761))  # Knuth's multiplicative hash
 HASH_SIZE = wp.constant(1 << 13)  # head table entries per chunk (13-bit hash of 3 or 4 bytes)
 CHAIN_PARTS = wp.constant(8)  # parts of a chunk whose chains are built by threads of their own
 PARSE_PART = wp.constant(4096)  # bytes of a chunk parsed by one thread (matches end inside the part)
+RUN = wp.constant(16)  # positions whose matches one thread of match_kernel finds, one after the other
 MAX_CHUNK = 65535  # bytes per chunk: what one stored block holds
 MAX_DIST = wp.constant(32768)  # the farthest a match reaches back
 NSYM = wp.constant(336)  # per-chunk symbol row: literal/length 0-285, distance 286-315, code length 316-334
@@ -141,31 +142,48 @@ def match_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.int
                  chunk_len: wp.array(dtype=wp.int32), prime: wp.array(dtype=wp.int32), hlen: wp.int32,
                  depth: wp.int32, nice: wp.int32, good: wp.int32, prev: wp.array2d(dtype=wp.int32),
                  best: wp.array2d(dtype=wp.int32), hist: wp.array2d(dtype=wp.int32)):
-    """The longest match at position i of chunk c (one thread per position): best[c, i] =
-    length << 16 | (distance - 1), 0 for none. The chain is walked from the nearest earlier
-    position, at most ``depth`` candidates (once a match reaches ``good`` bytes, good > 0,
-    only a quarter of those left: zlib's ``good_length``), stopping at ``nice`` bytes; of
-    equal lengths the nearest wins; a match ends inside its parse part (see
-    :func:`parse_kernel`) and reaches at most 32768 back."""
-    c, i = wp.tid()
+    """The longest match at each of RUN positions of chunk c, from g * RUN on (one
+    thread per run of positions): best[c, i] = length << 16 | (distance - 1), 0 for none.
+
+    The chain of a position is walked from the nearest earlier position, at most ``depth``
+    candidates (once a match reaches ``good`` bytes, good > 0, only a quarter of those left:
+    zlib's ``good_length``), stopping at ``nice`` bytes; of equal lengths the nearest wins; a
+    match ends inside its parse part (see :func:`parse_kernel`) and reaches at most 32768
+    back. One loop step is one candidate or the move to the next position, so the threads
+    of a warp stay in step (walks differ in length; a thread per position left most lanes
+    of a warp idle). A match of length L at position i, distance d, means L - 1 bytes at
+    i + 1 match d back: those are not compared again (long runs cost a compare per byte,
+    not one per byte and candidate). Also the chunk's byte histogram."""
+    c, g = wp.tid()
     n = chunk_len[c]
+    i = g * RUN
     if i >= n:
         return
+    iend = wp.min(i + RUN, n)
     base = chunk_off[c]
-    wp.atomic_add(hist, c, wp.int32(buf[base + i]), 1)
     pr = prime[c]
+    # the walk of position i: next candidate, candidates left, best length, found, cap, the
+    # byte a longer match must match first
+    cand = int(-pr - 1)
+    left = int(0)
+    bl = int(2)
     found = int(0)
+    cap = int(0)
+    tail = wp.uint8(0)
+    quartered = int(0)
+    known_d = int(0)  # from the previous position's match: at this distance, known_l bytes match
+    known_l = int(0)
     if i + hlen - 1 < n:
         cand = prev[c, i + pr] - 1 - pr
-        maxl = wp.min(258, wp.min(n, (i // PARSE_PART + 1) * PARSE_PART) - i)
-        cap = wp.min(maxl, nice)  # a match of nice bytes ends the search; the parse extends the one it takes
-        bl = int(2)
         left = depth
-        quartered = int(0)
-        tail = buf[base + i + bl]  # the byte a longer match must match first
-        while cand >= -pr and left > 0 and bl < cap and i - cand <= MAX_DIST:
+        cap = wp.min(wp.min(258, wp.min(n, (i // PARSE_PART + 1) * PARSE_PART) - i), nice)
+        tail = buf[base + i + 2]
+    while i < iend:
+        if cand >= -pr and left > 0 and bl < cap and i - cand <= MAX_DIST:
             if buf[base + cand + bl] == tail:
                 m = int(0)
+                if i - cand == known_d:  # the bytes the previous position's match verified
+                    m = wp.min(known_l, cap)
                 while m < cap:
                     if buf[base + cand + m] != buf[base + i + m]:
                         break
@@ -173,15 +191,29 @@ def match_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.int
                 if m > bl:
                     bl = m
                     found = (m << 16) | (i - cand - 1)
-                    if m >= cap:
-                        break
-                    tail = buf[base + i + bl]
+                    if m < cap:
+                        tail = buf[base + i + bl]
                     if good > 0 and m >= good and quartered == 0:
                         left = left // 4
                         quartered = 1
             cand = prev[c, cand + pr] - 1 - pr
             left = left - 1
-    best[c, i] = found
+        else:
+            best[c, i] = found
+            wp.atomic_add(hist, c, wp.int32(buf[base + i]), 1)
+            known_d = (found & 65535) + 1
+            known_l = wp.max((found >> 16) - 1, 0)
+            i = i + 1
+            cand = -pr - 1
+            left = 0
+            bl = 2
+            found = 0
+            quartered = 0
+            if i < iend and i + hlen - 1 < n:
+                cand = prev[c, i + pr] - 1 - pr
+                left = depth
+                cap = wp.min(wp.min(258, wp.min(n, (i // PARSE_PART + 1) * PARSE_PART) - i), nice)
+                tail = buf[base + i + 2]
 
 
 @wp.func

@@ -396,7 +396,7 @@ class WarpDeflate:
                [s["first"], s["last"], s["prev"]])
         launch(kd.chain_link_kernel, (m, kd.HASH_SIZE), [s["first"], s["last"]], [s["prev"], s["hist"]])
         t = self._tick("chain", t, sync=True)
-        launch(kd.match_kernel, (m, int(lens.max(initial=0)) or 1),
+        launch(kd.match_kernel, (m, -(-int(lens.max(initial=0)) // kd.RUN) or 1),
                [buf, off, ln, pr, self.hash_bytes, self.depth, self.nice, self.good, s["prev"]], [s["best"], s["hist"]])
         t = self._tick("match", t, sync=True)
         launch(kd.parse_kernel, (m, s["ntok"].shape[1]), [buf, off, ln, self.nice, int(self.lazy), len_sym, len_xbits, s["best"]],
