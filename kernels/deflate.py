@@ -47,7 +47,6 @@ GOLDEN = wp.constant(wp.uint32(2654435761))  # Knuth's multiplicative hash
 HASH_SIZE = wp.constant(1 << 13)  # head table entries per chunk (13-bit hash of 3 or 4 bytes)
 CHAIN_PARTS = wp.constant(8)  # parts of a chunk whose chains are built by threads of their own
 PARSE_PART = wp.constant(4096)  # bytes of a chunk parsed by one thread (matches end inside the part)
-RUN = wp.constant(16)  # positions whose matches one thread of match_kernel finds, one after the other
 MAX_CHUNK = 65535  # bytes per chunk: what one stored block holds
 MAX_DIST = wp.constant(32768)  # the farthest a match reaches back
 NSYM = wp.constant(336)  # per-chunk symbol row: literal/length 0-285, distance 286-315, code length 316-334
@@ -140,9 +139,9 @@ def chain_link_kernel(first: wp.array3d(dtype=wp.int32), last: wp.array3d(dtype=
 @wp.kernel
 def match_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.int32),
                  chunk_len: wp.array(dtype=wp.int32), prime: wp.array(dtype=wp.int32), hlen: wp.int32,
-                 depth: wp.int32, nice: wp.int32, good: wp.int32, prev: wp.array2d(dtype=wp.int32),
+                 depth: wp.int32, nice: wp.int32, good: wp.int32, run: wp.int32, prev: wp.array2d(dtype=wp.int32),
                  best: wp.array2d(dtype=wp.int32), hist: wp.array2d(dtype=wp.int32)):
-    """The longest match at each of RUN positions of chunk c, from g * RUN on (one
+    """The longest match at each of ``run`` positions of chunk c, from g * run on (one
     thread per run of positions): best[c, i] = length << 16 | (distance - 1), 0 for none.
 
     The chain of a position is walked from the nearest earlier position, at most ``depth``
@@ -156,10 +155,10 @@ def match_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.int
     not one per byte and candidate). Also the chunk's byte histogram."""
     c, g = wp.tid()
     n = chunk_len[c]
-    i = g * RUN
+    i = g * run
     if i >= n:
         return
-    iend = wp.min(i + RUN, n)
+    iend = wp.min(i + run, n)
     base = chunk_off[c]
     pr = prime[c]
     # the walk of position i: next candidate, candidates left, best length, found, cap, the

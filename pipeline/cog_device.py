@@ -228,6 +228,9 @@ class WarpDeflate:
     nice : int, optional
         A match this long ends the search (default 128); each position compares at most this
         many bytes, and the parse extends the matches it takes to their full length.
+    run : int, optional
+        Positions whose matches one thread finds, one after the other (default 16): the
+        threads of a warp then take about the same number of steps.
     good : int, optional
         Once a position's best match reaches this many bytes, only a quarter of the
         candidates left are tried (zlib's ``good_length``; default 0: off).
@@ -255,7 +258,7 @@ class WarpDeflate:
     batched = True  # many chunks per launch: fed batches gathered over tiles
 
     def __init__(self, device, *, chunk=65535, depth=32, nice=128, good=0, lazy=True, window=8192, hash_bytes=4,
-                 max_chunks=None, profile=False):
+                 run=16, max_chunks=None, profile=False):
         from ..kernels import deflate as kd  # its kernels are built on first use only (14 ms at import)
 
         self._kd = kd
@@ -270,6 +273,9 @@ class WarpDeflate:
             raise ParamError(f"good must be >= 0, got {good}")
         self.chunk, self.depth, self.nice, self.lazy = int(chunk), int(depth), int(nice), bool(lazy)
         self.good = int(good)
+        if not 1 <= int(run) <= 4096:
+            raise ParamError(f"run must be 1-4096 positions, got {run}")
+        self.run = int(run)
         self.window = int(window)
         per_chunk = 13 * self.chunk + 4 * self.window + 8 * kd.CHAIN_PARTS * kd.HASH_SIZE + 60 * 1024
         self.max_chunks = int(max_chunks or (max(64, self.device.total_memory // 6 // per_chunk)
@@ -396,8 +402,9 @@ class WarpDeflate:
                [s["first"], s["last"], s["prev"]])
         launch(kd.chain_link_kernel, (m, kd.HASH_SIZE), [s["first"], s["last"]], [s["prev"], s["hist"]])
         t = self._tick("chain", t, sync=True)
-        launch(kd.match_kernel, (m, -(-int(lens.max(initial=0)) // kd.RUN) or 1),
-               [buf, off, ln, pr, self.hash_bytes, self.depth, self.nice, self.good, s["prev"]], [s["best"], s["hist"]])
+        launch(kd.match_kernel, (m, -(-int(lens.max(initial=0)) // self.run) or 1),
+               [buf, off, ln, pr, self.hash_bytes, self.depth, self.nice, self.good, self.run, s["prev"]],
+               [s["best"], s["hist"]])
         t = self._tick("match", t, sync=True)
         launch(kd.parse_kernel, (m, s["ntok"].shape[1]), [buf, off, ln, self.nice, int(self.lazy), len_sym, len_xbits, s["best"]],
                [s["tokens"], s["ntok"], s["part_freq"], s["part_extra"]])

@@ -193,3 +193,15 @@ def test_hash_chains_built_in_parts_equal_one_pass(device, hash_bytes):
         np.testing.assert_array_equal(got[c, :len(want)], want, err_msg=f"chunk {c}")
     assert not first.numpy().any() and not last.numpy().any()  # left zero for the next call
     assert not hist.numpy().any()
+
+
+def test_positions_per_thread_change_no_stream(device):
+    """match_kernel's ``run`` (positions per thread) and its reuse of the previous
+    position's match are bookkeeping: the streams are the same bytes for every run."""
+    data = [_predicted_texture(24, 300, seed=2), bytes(9000) + bytes(range(256)) * 8, _cases()["deep huffman tree"]]
+    got = {run: [bytes(r) for r in _compress(WarpDeflate(device, chunk=16384, run=run), data)] for run in (1, 5, 16)}
+    assert got[1] == got[5] == got[16]
+    for raw, d in zip(got[16], data):
+        assert zlib.decompress(raw, -15) == d
+    with pytest.raises(ParamError, match="run"):
+        WarpDeflate(device, run=0)
