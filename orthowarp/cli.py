@@ -204,7 +204,7 @@ def demo(out_dir, device):
               help="Who deflates a COG's blocks: host (libdeflate on all cores), nvcomp (the GPU; needs "
                    "orthowarp[gpu]), warp (orthowarp's own deflate kernels on the device), hybrid (the device: nvCOMP at "
                    "--compress-level 1-4 where installed, else warp; and the host cores at once); auto: "
-                   "nvcomp on a GPU with nvCOMP at --compress-level 1-4, else host.")
+                   "on a GPU nvcomp at --compress-level 1-4 where installed, else hybrid; on the CPU host.")
 @click.option("-co", "--co", "creation", multiple=True, metavar="KEY=VALUE",
               help="GDAL-style creation option, repeatable: BLOCKSIZE (64-4096, multiple of 16; default 512), "
                    "BIGTIFF (YES, NO, IF_NEEDED, IF_SAFER), NUM_THREADS (count or ALL_CPUS); COMPRESS, LEVEL (ZLEVEL) "

@@ -312,10 +312,11 @@ def orthorectify(src: str | os.PathLike, sensor: FrameCamera | PushbroomScene, *
         pixels whichever path wrote them; nvCOMP's streams differ in size (``compress_level``
         1-4: its medium-ratio variant, 5-7: high, 8-12: highest). "warp": the same device work, the blocks deflated
         by orthowarp's own kernels (:class:`~orthowarp.pipeline.cog_device.WarpDeflate`, any
-        device; no extra package; the search depth follows ``compress_level``). On an H100 with 16 host cores, nvCOMP at level
-        6's ratio was slower than libdeflate on the cores, and faster at levels 1-4, so
-        "auto" is "nvcomp" for ``compress_level`` 1-4 on a CUDA device with nvCOMP, else
-        "host".
+        device; no extra package; the search depth follows ``compress_level``). "auto": on a CUDA device "nvcomp"
+        for ``compress_level`` 1-4 where nvCOMP is installed, else "hybrid" (measured with
+        16 host cores: nvCOMP's medium-ratio variant beats every host level; at level 6 the
+        device kernels with the host cores were 1.4 times as fast as the cores alone, files
+        1.4 % larger); on the CPU "host".
 
     Returns
     -------
@@ -545,11 +546,14 @@ def _block_codec(choice, device, deflate_cog, level=6):
         return "host"
     gpu = device.is_cuda and nvcomp_available()
     if choice == "auto":
-        # measured on an H100 with 16 host cores (bench/reference/ortho-codecs-h100.json):
-        # nvCOMP's Deflate at libdeflate level 6's ratio runs at 0.2-0.4 GB/s, slower than
-        # libdeflate on the cores; its medium-ratio variant (levels 1-4) is faster than any
-        # host level
-        return "nvcomp" if gpu and level <= 4 else "host"
+        # measured with 16 host cores: nvCOMP's medium-ratio variant (levels 1-4) is faster
+        # than any host level (H100, bench/reference/ortho-codecs-h100.json); at the higher
+        # levels orthowarp's deflate kernels and the host cores together beat the cores alone
+        # (H200, bench/reference/ortho-hybrid-h200.json: a 450 Mpix COG in 4.4 s against
+        # 6.2 s, a batch of 20 in 54.7 s against 77.5 s, 1.4 % larger files)
+        if gpu and level <= 4:
+            return "nvcomp"
+        return "hybrid" if device.is_cuda else "host"
     if choice == "hybrid":  # a device codec (nvCOMP or orthowarp's) and the host cores
         return "hybrid" if device.is_cuda else "device"
     if choice == "warp":
