@@ -45,7 +45,7 @@ wp.set_module_options({"enable_backward": False})
 
 GOLDEN = wp.constant(wp.uint32(2654435761))  # Knuth's multiplicative hash
 HASH_SIZE = wp.constant(1 << 13)  # head table entries per chunk (13-bit hash of 3 or 4 bytes)
-CHAIN_PARTS = wp.constant(8)  # parts of a chunk whose chains are built by threads of their own
+CHAIN_PARTS = wp.constant(32)  # parts of a chunk whose chains are built by threads of their own
 PARSE_PART = wp.constant(4096)  # bytes of a chunk parsed by one thread (matches end inside the part)
 MAX_CHUNK = 65535  # bytes per chunk: what one stored block holds
 MAX_DIST = wp.constant(32768)  # the farthest a match reaches back
@@ -83,57 +83,68 @@ def dist_code(d: wp.int32) -> wp.vec3i:
     return wp.vec3i(code, nx, xv)
 
 
+@wp.func
+def chain_span(total: wp.int32) -> wp.int32:
+    """Positions per part of a chunk's ``total`` hashed positions (see chain_part_kernel)."""
+    return (total + CHAIN_PARTS - 1) // CHAIN_PARTS
+
+
 @wp.kernel
 def chain_part_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.int32),
                       chunk_len: wp.array(dtype=wp.int32), prime: wp.array(dtype=wp.int32), hlen: wp.int32,
-                      first: wp.array3d(dtype=wp.int32), last: wp.array3d(dtype=wp.int32),
+                      first: wp.array3d(dtype=wp.uint16), last: wp.array3d(dtype=wp.uint16),
                       prev: wp.array2d(dtype=wp.int32)):
     """Hash chains of part s of chunk c (one thread, in position order). The positions j of
     the chunk that have ``hlen`` bytes left, from -pr (the window before the chunk, pr =
-    prime[c]) on, indexed k = j + pr, are cut into CHAIN_PARTS equal parts; within part s,
-    prev[c, k] = 1 + the part's previous position k' with the same hash (0: none). The
-    first and the last position of each hash in the part (1 + k, 0: none) go to
-    first[c, s, h] and last[c, s, h], which :func:`chain_link_kernel` joins across the parts
-    (both tables must be zero on entry)."""
+    prime[c]) on, indexed k = j + pr, are cut into CHAIN_PARTS equal parts of q positions;
+    within part s, prev[c, k] = 1 + the part's previous position k' with the same hash (0:
+    none). The first and the last position of each hash in the part go to first[c, s, h]
+    and last[c, s, h] as 1 + their offset in the part (0: none), which :func:`chain_link_kernel`
+    joins across the parts (both tables must be zero on entry)."""
     c, s = wp.tid()
     pr = prime[c]
     total = pr + chunk_len[c] - hlen + 1
     if total <= 0:
         return
-    q = (total + CHAIN_PARTS - 1) // CHAIN_PARTS
+    q = chain_span(total)
     k0 = s * q
     k1 = wp.min(k0 + q, total)
     start = chunk_off[c] - pr
     for k in range(k0, k1):
         h = hash_at(buf, start + k, hlen)
-        l = last[c, s, h]
+        l = wp.int32(last[c, s, h])
         if l == 0:
-            first[c, s, h] = k + 1
+            first[c, s, h] = wp.uint16(k - k0 + 1)
         else:
-            prev[c, k] = l
-        last[c, s, h] = k + 1
+            prev[c, k] = k0 + l
+        last[c, s, h] = wp.uint16(k - k0 + 1)
 
 
 @wp.kernel
-def chain_link_kernel(first: wp.array3d(dtype=wp.int32), last: wp.array3d(dtype=wp.int32),
+def chain_link_kernel(chunk_len: wp.array(dtype=wp.int32), prime: wp.array(dtype=wp.int32), hlen: wp.int32,
+                      first: wp.array3d(dtype=wp.uint16), last: wp.array3d(dtype=wp.uint16),
                       prev: wp.array2d(dtype=wp.int32), hist: wp.array2d(dtype=wp.int32)):
     """The chains across parts, for hash h of chunk c (a thread each): the first position of
     h in a part links to its last position in the nearest earlier part that holds h, so the
     chains are exactly those of one pass over the chunk. The tables are left zero for the
     next call; the chunk's byte histogram is cleared for :func:`match_kernel`."""
     c, h = wp.tid()
-    run = int(0)
-    for s in range(CHAIN_PARTS):
-        f = first[c, s, h]
-        if f != 0:
-            prev[c, f - 1] = run
-            first[c, s, h] = 0
-        l = last[c, s, h]
-        if l != 0:
-            run = l
-            last[c, s, h] = 0
     if h < 256:
         hist[c, h] = 0
+    total = prime[c] + chunk_len[c] - hlen + 1
+    if total <= 0:
+        return
+    q = chain_span(total)
+    run = int(0)
+    for s in range(CHAIN_PARTS):
+        f = wp.int32(first[c, s, h])
+        if f != 0:
+            prev[c, s * q + f - 1] = run
+            first[c, s, h] = wp.uint16(0)
+        l = wp.int32(last[c, s, h])
+        if l != 0:
+            run = s * q + l
+            last[c, s, h] = wp.uint16(0)
 
 
 @wp.kernel

@@ -248,9 +248,9 @@ class WarpDeflate:
         Synchronise after each step and add its seconds to :attr:`timings` ("setup", "chain",
         "match", "parse", "huffman", "sizes", "emit", "copy", "split"; slows the codec a little).
     max_chunks : int, optional
-        Chunks per launch, which bounds the scratch memory: about (13 x chunk + 4 x window + 572 KiB)
-        bytes per chunk. Default on a GPU: what fits in a sixth of its memory (an H100:
-        about 9200 chunks of 64 KiB, more than a 512 MiB batch of the COG encoder), as the per-chunk steps need many chunks in flight to
+        Chunks per launch, which bounds the scratch memory: about (13 x chunk + 4 x window + 1.1 MiB)
+        bytes per chunk. Default on a GPU: what fits in a quarter of its memory (an H100:
+        about 10000 chunks of 64 KiB, more than a 512 MiB batch of the COG encoder), as the per-chunk steps need many chunks in flight to
         hide memory latency; 64 on the CPU.
     """
 
@@ -277,8 +277,8 @@ class WarpDeflate:
             raise ParamError(f"run must be 1-4096 positions, got {run}")
         self.run = int(run)
         self.window = int(window)
-        per_chunk = 13 * self.chunk + 4 * self.window + 8 * kd.CHAIN_PARTS * kd.HASH_SIZE + 60 * 1024
-        self.max_chunks = int(max_chunks or (max(64, self.device.total_memory // 6 // per_chunk)
+        per_chunk = 13 * self.chunk + 4 * self.window + 4 * kd.CHAIN_PARTS * kd.HASH_SIZE + 60 * 1024
+        self.max_chunks = int(max_chunks or (max(64, self.device.total_memory // 4 // per_chunk)
                                              if self.device.is_cuda else 64))
         if hash_bytes not in (3, 4):
             raise ParamError(f"hash_bytes must be 3 or 4, got {hash_bytes}")
@@ -315,7 +315,7 @@ class WarpDeflate:
             parts = -(-c // kd.PARSE_PART)
             tables = (m, kd.CHAIN_PARTS, kd.HASH_SIZE)
             self._scratch = dict(
-                m=m, first=wp.zeros(tables, dtype=wp.int32, device=d), last=wp.zeros(tables, dtype=wp.int32, device=d),
+                m=m, first=wp.zeros(tables, dtype=wp.uint16, device=d), last=wp.zeros(tables, dtype=wp.uint16, device=d),
                 prev=z((m, c + self.window)), best=z((m, c)), hist=z((m, 256)), tokens=z((m, c), wp.uint32),
                 ntok=z((m, parts)), part_freq=z((m, parts, kd.DIST0 + 30)), part_extra=z((m, parts)),
                 freq=z((m, kd.NSYM)), extra=z(m), entropy=z(m, wp.float32),
@@ -400,7 +400,8 @@ class WarpDeflate:
             kernel, dim=dim, device=d, stream=stream, inputs=inputs, outputs=outputs)
         launch(kd.chain_part_kernel, (m, kd.CHAIN_PARTS), [buf, off, ln, pr, self.hash_bytes],
                [s["first"], s["last"], s["prev"]])
-        launch(kd.chain_link_kernel, (m, kd.HASH_SIZE), [s["first"], s["last"]], [s["prev"], s["hist"]])
+        launch(kd.chain_link_kernel, (m, kd.HASH_SIZE), [ln, pr, self.hash_bytes, s["first"], s["last"]],
+               [s["prev"], s["hist"]])
         t = self._tick("chain", t, sync=True)
         launch(kd.match_kernel, (m, -(-int(lens.max(initial=0)) // self.run) or 1),
                [buf, off, ln, pr, self.hash_bytes, self.depth, self.nice, self.good, self.run, s["prev"]],

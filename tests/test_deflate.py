@@ -177,12 +177,13 @@ def test_hash_chains_built_in_parts_equal_one_pass(device, hash_bytes):
     d = device
     arr = lambda a: wp.array(np.asarray(a, np.int32), dtype=wp.int32, device=d)  # noqa: E731
     tables = (m, kd.CHAIN_PARTS, kd.HASH_SIZE)
-    first, last = wp.zeros(tables, dtype=wp.int32, device=d), wp.zeros(tables, dtype=wp.int32, device=d)
+    first, last = wp.zeros(tables, dtype=wp.uint16, device=d), wp.zeros(tables, dtype=wp.uint16, device=d)
     prev, hist = wp.full((m, width), -7, dtype=wp.int32, device=d), wp.full((m, 256), 5, dtype=wp.int32, device=d)
     buf = wp.array(data, dtype=wp.uint8, device=d)
     wp.launch(kd.chain_part_kernel, (m, kd.CHAIN_PARTS), [buf, arr(starts), arr(lens), arr(prime), hash_bytes],
               [first, last, prev], device=d)
-    wp.launch(kd.chain_link_kernel, (m, kd.HASH_SIZE), [first, last], [prev, hist], device=d)
+    wp.launch(kd.chain_link_kernel, (m, kd.HASH_SIZE), [arr(lens), arr(prime), hash_bytes, first, last], [prev, hist],
+              device=d)
     got = prev.numpy()
     for c, (o, n, pr) in enumerate(zip(starts, lens, prime)):
         heads, want = {}, []
