@@ -243,6 +243,9 @@ def main(argv=None):
                     help="block-codec variants (CODEC[:LEVEL], comma-separated), e.g. host,warp,warp:1")
     ap.add_argument("--batch-codecs", default="auto", help="block codecs of the batch runs, e.g. auto,warp")
     ap.add_argument("--batch", type=int, default=0, help="also run N copies of the frame in one CLI call (GPU)")
+    ap.add_argument("--sample-stacks", type=float, default=None, metavar="SECONDS",
+                    help="sample the batch child's Python stacks at this interval (bench/stack_sampler.py; "
+                         "the report's 'stacks')")
     ap.add_argument("--out", default="bench/results/ortho.json")
     args = ap.parse_args(argv)
     wp.config.log_level = wp.LOG_WARNING
@@ -320,13 +323,22 @@ def main(argv=None):
                 with open(os.path.join(bdir, "ext.csv"), "w") as f:
                     f.write(head + "\n" + "".join(row.replace("frame,", f"frame{k:03d},", 1) + "\n" for k in range(n)))
                 prof_path = os.path.join(work, "cli_profile_batch.json")
-                o = run_cli(sys.executable, "orthowarp.cli:main", [
+                stacks = os.path.join(work, f"stacks_batch_{codec}_{level}.json")
+                # with --sample-stacks the child runs under bench/stack_sampler.py (its overhead included)
+                entry = ["stack_sampler:main", stacks, str(args.sample_stacks), "orthowarp.cli:main"] \
+                    if args.sample_stacks else ["orthowarp.cli:main"]
+                here = os.path.dirname(os.path.abspath(__file__))
+                env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (here, os.environ.get("PYTHONPATH")) if p))
+                o = run_cli(sys.executable, entry[0], [*entry[1:],
                     "-q", "ortho", *names, "--int-param", os.path.join(work, "camera.yaml"), "--ext-param",
                     os.path.join(bdir, "ext.csv"), "--dem", dem_path, "--out-dir", bdir, "--overwrite",
                     "--resolution", repr(resolution), "--resampling", args.resampling, "--device", device_name,
                     "--profile-json", prof_path, "--compress-level", level, "--block-codec", codec,
-                    *(["--no-refraction"] if args.no_refraction else [])], gpu_index=gpu_index)
+                    *(["--no-refraction"] if args.no_refraction else [])], gpu_index=gpu_index, env=env)
                 o["images"], o["compress_level"], o["block_codec"] = n, int(level), codec
+                if args.sample_stacks and os.path.exists(stacks):
+                    with open(stacks) as f:
+                        o["stacks"] = json.load(f)
                 if o["returncode"] == 0:
                     o["output_mb"] = sum(os.path.getsize(os.path.join(bdir, f"frame{k:03d}_ORTHO.tif"))
                                          for k in range(n)) / 1e6
