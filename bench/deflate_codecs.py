@@ -106,7 +106,7 @@ def nvcomp_variant(pred, algorithm_type, chunk):
     return sum(sizes), dt, dt_copy, ok
 
 
-def warp_variant(pred, chunk, window, depth, nice, device="cuda:0", hash_bytes=4, good=0, run=16):
+def warp_variant(pred, chunk, window, depth, nice, device="cuda:0", hash_bytes=4, good=0, run=16, chain_parts=8):
     """(compressed bytes, seconds, blocks that inflate to their input) of orthowarp's device
     deflate (WarpDeflate) over the batch ``pred``, resident on the GPU, after a call on the same batch (the
     scratch and pinned buffers a COG encoder keeps); the time includes the streams' copy to
@@ -117,7 +117,8 @@ def warp_variant(pred, chunk, window, depth, nice, device="cuda:0", hash_bytes=4
 
     n, size = len(pred), pred[0].nbytes
     buf = wp.array(pred.reshape(-1), dtype=wp.uint8, device=device)
-    kw = dict(chunk=chunk, window=window, depth=depth, nice=nice, hash_bytes=hash_bytes, good=good, run=run)
+    kw = dict(chunk=chunk, window=window, depth=depth, nice=nice, hash_bytes=hash_bytes, good=good, run=run,
+              chain_parts=chain_parts)
     codec = WarpDeflate(device, **kw)
     offs, sizes = [k * size for k in range(n)], [size] * n
     codec.compress(buf, offs, sizes)  # compile / load the kernels, scratch and pinned buffers for the batch
@@ -141,7 +142,7 @@ def main():
     ap.add_argument("--types", default="0,1,2,4,5")
     ap.add_argument("--out", default=None)
     ap.add_argument("--warp", default="",
-                    help="WarpDeflate variants CHUNK:WINDOW:DEPTH:NICE[:HASH_BYTES[:GOOD[:RUN]]], comma-separated "
+                    help="WarpDeflate variants CHUNK:WINDOW:DEPTH:NICE[:HASH_BYTES[:GOOD[:RUN[:CHAIN_PARTS]]]], comma-separated "
                          "(e.g. 65535:8192:32:128:4:8)")
     ap.add_argument("--warp-device", default="cuda:0")
     a = ap.parse_args()

@@ -45,7 +45,6 @@ wp.set_module_options({"enable_backward": False})
 
 GOLDEN = wp.constant(wp.uint32(2654435761))  # Knuth's multiplicative hash
 HASH_SIZE = wp.constant(1 << 13)  # head table entries per chunk (13-bit hash of 3 or 4 bytes)
-CHAIN_PARTS = wp.constant(32)  # parts of a chunk whose chains are built by threads of their own
 PARSE_PART = wp.constant(4096)  # bytes of a chunk parsed by one thread (matches end inside the part)
 MAX_CHUNK = 65535  # bytes per chunk: what one stored block holds
 MAX_DIST = wp.constant(32768)  # the farthest a match reaches back
@@ -84,9 +83,9 @@ def dist_code(d: wp.int32) -> wp.vec3i:
 
 
 @wp.func
-def chain_span(total: wp.int32) -> wp.int32:
+def chain_span(total: wp.int32, parts: wp.int32) -> wp.int32:
     """Positions per part of a chunk's ``total`` hashed positions (see chain_part_kernel)."""
-    return (total + CHAIN_PARTS - 1) // CHAIN_PARTS
+    return (total + parts - 1) // parts
 
 
 @wp.kernel
@@ -96,7 +95,8 @@ def chain_part_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=w
                       prev: wp.array2d(dtype=wp.int32)):
     """Hash chains of part s of chunk c (one thread, in position order). The positions j of
     the chunk that have ``hlen`` bytes left, from -pr (the window before the chunk, pr =
-    prime[c]) on, indexed k = j + pr, are cut into CHAIN_PARTS equal parts of q positions;
+    prime[c]) on, indexed k = j + pr, are cut into as many equal parts of q positions as
+    ``first`` has rows per chunk (at most 65535 positions each);
     within part s, prev[c, k] = 1 + the part's previous position k' with the same hash (0:
     none). The first and the last position of each hash in the part go to first[c, s, h]
     and last[c, s, h] as 1 + their offset in the part (0: none), which :func:`chain_link_kernel`
@@ -106,7 +106,7 @@ def chain_part_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=w
     total = pr + chunk_len[c] - hlen + 1
     if total <= 0:
         return
-    q = chain_span(total)
+    q = chain_span(total, first.shape[1])
     k0 = s * q
     k1 = wp.min(k0 + q, total)
     start = chunk_off[c] - pr
@@ -134,9 +134,10 @@ def chain_link_kernel(chunk_len: wp.array(dtype=wp.int32), prime: wp.array(dtype
     total = prime[c] + chunk_len[c] - hlen + 1
     if total <= 0:
         return
-    q = chain_span(total)
+    parts = first.shape[1]
+    q = chain_span(total, parts)
     run = int(0)
-    for s in range(CHAIN_PARTS):
+    for s in range(parts):
         f = wp.int32(first[c, s, h])
         if f != 0:
             prev[c, s * q + f - 1] = run

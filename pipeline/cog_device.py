@@ -228,6 +228,9 @@ class WarpDeflate:
     nice : int, optional
         A match this long ends the search (default 128); each position compares at most this
         many bytes, and the parse extends the matches it takes to their full length.
+    chain_parts : int, optional
+        Threads per chunk that build its hash chains, each over a part of it (1-64, default
+        8; the parts' chains are then joined, the same chains for any count).
     run : int, optional
         Positions whose matches one thread finds, one after the other (default 16): the
         threads of a warp then take about the same number of steps.
@@ -248,8 +251,8 @@ class WarpDeflate:
         Synchronise after each step and add its seconds to :attr:`timings` ("setup", "chain",
         "match", "parse", "huffman", "sizes", "emit", "copy", "split"; slows the codec a little).
     max_chunks : int, optional
-        Chunks per launch, which bounds the scratch memory: about (13 x chunk + 4 x window + 1.1 MiB)
-        bytes per chunk. Default on a GPU: what fits in a quarter of its memory (an H100:
+        Chunks per launch, which bounds the scratch memory: about (13 x chunk + 4 x window +
+        chain_parts x 32 KiB + 60 KiB) bytes per chunk. Default on a GPU: what fits in a quarter of its memory (an H100:
         about 10000 chunks of 64 KiB, more than a 512 MiB batch of the COG encoder), as the per-chunk steps need many chunks in flight to
         hide memory latency; 64 on the CPU.
     """
@@ -258,7 +261,7 @@ class WarpDeflate:
     batched = True  # many chunks per launch: fed batches gathered over tiles
 
     def __init__(self, device, *, chunk=65535, depth=32, nice=128, good=0, lazy=True, window=8192, hash_bytes=4,
-                 run=16, max_chunks=None, profile=False):
+                 run=16, chain_parts=8, max_chunks=None, profile=False):
         from ..kernels import deflate as kd  # its kernels are built on first use only (14 ms at import)
 
         self._kd = kd
@@ -276,8 +279,11 @@ class WarpDeflate:
         if not 1 <= int(run) <= 4096:
             raise ParamError(f"run must be 1-4096 positions, got {run}")
         self.run = int(run)
+        if not 1 <= int(chain_parts) <= 64 or -(-(int(chunk) + int(window)) // int(chain_parts)) > 65535:
+            raise ParamError(f"chain_parts must be 1-64, with at most 65535 positions per part, got {chain_parts}")
+        self.chain_parts = int(chain_parts)
         self.window = int(window)
-        per_chunk = 13 * self.chunk + 4 * self.window + 4 * kd.CHAIN_PARTS * kd.HASH_SIZE + 60 * 1024
+        per_chunk = 13 * self.chunk + 4 * self.window + 4 * self.chain_parts * kd.HASH_SIZE + 60 * 1024
         self.max_chunks = int(max_chunks or (max(64, self.device.total_memory // 4 // per_chunk)
                                              if self.device.is_cuda else 64))
         if hash_bytes not in (3, 4):
@@ -313,7 +319,7 @@ class WarpDeflate:
             pinned = d.is_cuda
             h = lambda n, dt=wp.int32: wp.empty(n, dtype=dt, device="cpu", pinned=pinned)  # noqa: E731
             parts = -(-c // kd.PARSE_PART)
-            tables = (m, kd.CHAIN_PARTS, kd.HASH_SIZE)
+            tables = (m, self.chain_parts, kd.HASH_SIZE)
             self._scratch = dict(
                 m=m, first=wp.zeros(tables, dtype=wp.uint16, device=d), last=wp.zeros(tables, dtype=wp.uint16, device=d),
                 prev=z((m, c + self.window)), best=z((m, c)), hist=z((m, 256)), tokens=z((m, c), wp.uint32),
@@ -398,7 +404,7 @@ class WarpDeflate:
         t = self._tick("setup", time.perf_counter(), sync=True)
         launch = lambda kernel, dim, inputs, outputs: wp.launch(  # noqa: E731
             kernel, dim=dim, device=d, stream=stream, inputs=inputs, outputs=outputs)
-        launch(kd.chain_part_kernel, (m, kd.CHAIN_PARTS), [buf, off, ln, pr, self.hash_bytes],
+        launch(kd.chain_part_kernel, (m, self.chain_parts), [buf, off, ln, pr, self.hash_bytes],
                [s["first"], s["last"], s["prev"]])
         launch(kd.chain_link_kernel, (m, kd.HASH_SIZE), [ln, pr, self.hash_bytes, s["first"], s["last"]],
                [s["prev"], s["hist"]])

@@ -155,8 +155,8 @@ def test_matches_reach_32768_bytes_back_and_no_farther(device):
     assert len(raws[1]) > 80000  # nothing to find within reach: stored
 
 
-@pytest.mark.parametrize("hash_bytes", [3, 4])
-def test_hash_chains_built_in_parts_equal_one_pass(device, hash_bytes):
+@pytest.mark.parametrize("hash_bytes,parts", [(3, 8), (4, 8), (4, 1), (4, 64)])
+def test_hash_chains_built_in_parts_equal_one_pass(device, hash_bytes, parts):
     """chain_part_kernel + chain_link_kernel link every position to the nearest earlier one
     with the same hash, from the window before the chunk on, as one pass over the chunk
     would (reference: a dictionary walk in Python)."""
@@ -176,11 +176,11 @@ def test_hash_chains_built_in_parts_equal_one_pass(device, hash_bytes):
 
     d = device
     arr = lambda a: wp.array(np.asarray(a, np.int32), dtype=wp.int32, device=d)  # noqa: E731
-    tables = (m, kd.CHAIN_PARTS, kd.HASH_SIZE)
+    tables = (m, parts, kd.HASH_SIZE)
     first, last = wp.zeros(tables, dtype=wp.uint16, device=d), wp.zeros(tables, dtype=wp.uint16, device=d)
     prev, hist = wp.full((m, width), -7, dtype=wp.int32, device=d), wp.full((m, 256), 5, dtype=wp.int32, device=d)
     buf = wp.array(data, dtype=wp.uint8, device=d)
-    wp.launch(kd.chain_part_kernel, (m, kd.CHAIN_PARTS), [buf, arr(starts), arr(lens), arr(prime), hash_bytes],
+    wp.launch(kd.chain_part_kernel, (m, parts), [buf, arr(starts), arr(lens), arr(prime), hash_bytes],
               [first, last, prev], device=d)
     wp.launch(kd.chain_link_kernel, (m, kd.HASH_SIZE), [arr(lens), arr(prime), hash_bytes, first, last], [prev, hist],
               device=d)
@@ -206,3 +206,5 @@ def test_positions_per_thread_change_no_stream(device):
         assert zlib.decompress(raw, -15) == d
     with pytest.raises(ParamError, match="run"):
         WarpDeflate(device, run=0)
+    with pytest.raises(ParamError, match="65535 positions per part"):
+        WarpDeflate(device, chain_parts=1)  # 64 KiB + 8 KiB of positions in one part
