@@ -451,8 +451,7 @@ class WarpDeflate:
 
 class _Tile:
     """A tile's encoded blocks on the device: their (level, bi, bj) keys, the block arrays
-    (image blocks per level, then mask blocks per level) and the blocks' Adler-32s (a device
-    array per block array)."""
+    (image blocks per level, then mask blocks per level) and the blocks' Adler-32s."""
 
     def __init__(self, keys, arrays, adlers):
         self.keys, self.arrays, self.adlers = keys, arrays, adlers
@@ -605,11 +604,11 @@ class DeviceCogEncoder:
         if not images:
             return None
         arrays = images + masks
-        return _Tile(keys, arrays, [self._adler(_bytes_view(a), a.shape[0]) for a in arrays])
+        adlers = np.concatenate([self._adler(_bytes_view(a), a.shape[0]) for a in arrays])
+        return _Tile(keys, arrays, adlers)
 
     def _adler(self, view, n):
-        """Adler-32 of each of the ``n`` equal parts of the uint8 array ``view`` (int64, n, on
-        the device: read when the blocks are compressed, not per tile)."""
+        """Adler-32 of each of the ``n`` equal parts of the uint8 array ``view`` (int64, n)."""
         per = view.shape[0] // n
         nchunk = -(-per // _CHUNK)
         offs = wp.array(np.arange(n, dtype=np.int32) * per, dtype=wp.int32, device=self.device)
@@ -620,7 +619,7 @@ class DeviceCogEncoder:
                   outputs=[s1, s2], device=self.device)
         out = wp.empty(n, dtype=wp.int64, device=self.device)
         wp.launch(kc.adler_finish_kernel, dim=n, inputs=[s1, s2, size], outputs=[out], device=self.device)
-        return out
+        return out.numpy()
 
     def _compress(self, jobs, codec):
         """Deflate the blocks of ``jobs`` with ``codec`` in one call and store them."""
@@ -646,9 +645,8 @@ class DeviceCogEncoder:
         wr = self.writer
         for job in jobs:
             n_img = len(job.keys)
-            adlers = np.concatenate([a.numpy() for a in job.adlers])
-            streams = [zlib_stream(r, int(a)) for r, a in zip(raws[k:k + len(adlers)], adlers)]
-            k += len(adlers)
+            streams = [zlib_stream(r, int(a)) for r, a in zip(raws[k:k + len(job.adlers)], job.adlers)]
+            k += len(job.adlers)
             for i, key in enumerate(job.keys):
                 wr.put_block(*key, [streams[i]] + ([streams[n_img + i]] if wr.mask else []))
 
