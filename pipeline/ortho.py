@@ -742,19 +742,6 @@ class ImageTiles:
                 self._handles.append(ds)
         return ds
 
-    def _staged(self, nbytes):
-        """This thread's pinned host buffer of at least ``nbytes`` bytes (grown by half again
-        when short), once the device has taken the last upload from it."""
-        loc = self._local
-        if getattr(loc, "uploaded", None) is not None:
-            wp.synchronize_event(loc.uploaded)
-            loc.uploaded = None
-        buf = getattr(loc, "staging", None)
-        if buf is None or buf.shape[0] < nbytes:
-            buf = loc.staging = wp.empty(max(nbytes, nbytes * 3 // 2 if buf is not None else nbytes),
-                                         dtype=wp.uint8, device="cpu", pinned=True)
-        return buf
-
     def close(self):
         """Close the threads' source handles."""
         with self._lock:
@@ -876,13 +863,6 @@ class ImageTiles:
         read = dict(window=win, out_dtype=None if ds.dtypes[0] in ("uint8", "uint16", "float32") else "float32")
         if factor > 1:
             read.update(out_shape=(self.count, *shape), resampling=Resampling.average)
-        staged = None
-        if device.is_cuda:  # straight into this thread's pinned buffer: the upload is a DMA
-            dtype = np.dtype(read.pop("out_dtype") or ds.dtypes[0])
-            read.pop("out_shape", None)
-            staged = self._staged(ds.count * shape[0] * shape[1] * dtype.itemsize)
-            read["out"] = staged.numpy()[:ds.count * shape[0] * shape[1] * dtype.itemsize].view(dtype).reshape(
-                ds.count, *shape)
         try:
             data = ds.read(**read)
             valid = None
@@ -896,12 +876,7 @@ class ImageTiles:
             self.clipped.add(n_out, data.size)
         timer.span("read", t)
         t = time.perf_counter()
-        if staged is None:
-            arr = wp.array(data, dtype=_WP_TYPES[data.dtype.name], device=device)
-        else:
-            arr = wp.empty(data.shape, dtype=_WP_TYPES[data.dtype.name], device=device)
-            wp.copy(arr, wp.array(ptr=staged.ptr, shape=data.shape, dtype=arr.dtype, device="cpu"))
-            self._local.uploaded = device.stream.record_event()  # the buffer is free again once it passes
+        arr = wp.array(data, dtype=_WP_TYPES[data.dtype.name], device=device)
         if data.dtype.name not in (self.out_dtype, "float32"):  # e.g. uint8 into float32: widen on the device
             wide = wp.empty(data.shape, dtype=wp.float32, device=device)
             timer.span("h2d", t)
