@@ -106,7 +106,7 @@ def nvcomp_variant(pred, algorithm_type, chunk):
     return sum(sizes), dt, dt_copy, ok
 
 
-def warp_variant(pred, chunk, window, depth, nice, device="cuda:0", hash_bytes=4, good=0, run=16, chain_parts=8):
+def warp_variant(pred, chunk, window, depth, nice, device="cuda:0", hash_bytes=4, good=0, run=16, chain_parts=4):
     """(compressed bytes, seconds, blocks that inflate to their input) of orthowarp's device
     deflate (WarpDeflate) over the batch ``pred``, resident on the GPU, after a call on the same batch (the
     scratch and pinned buffers a COG encoder keeps); the time includes the streams' copy to

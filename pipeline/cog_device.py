@@ -230,7 +230,9 @@ class WarpDeflate:
         many bytes, and the parse extends the matches it takes to their full length.
     chain_parts : int, optional
         Threads per chunk that build its hash chains, each over a part of it (1-64, default
-        8; the parts' chains are then joined, the same chains for any count).
+        4; the parts' chains are then joined, the same chains for any count). On an H200
+        the chains of 786 MB took 0.08-0.09 s with 4 parts, 0.11-0.12 s with 8, 0.15 s with 16
+        (larger tables: the walk is bound by scattered memory accesses).
     run : int, optional
         Positions whose matches one thread finds, one after the other (default 16): the
         threads of a warp then take about the same number of steps.
@@ -252,8 +254,8 @@ class WarpDeflate:
         "match", "parse", "huffman", "sizes", "emit", "copy", "split"; slows the codec a little).
     max_chunks : int, optional
         Chunks per launch, which bounds the scratch memory: about (13 x chunk + 4 x window +
-        chain_parts x 32 KiB + 60 KiB) bytes per chunk. Default on a GPU: what fits in a quarter of its memory (an H100:
-        about 10000 chunks of 64 KiB, more than a 512 MiB batch of the COG encoder), as the per-chunk steps need many chunks in flight to
+        chain_parts x 32 KiB + 60 KiB) bytes per chunk. Default on a GPU: what fits in a sixth of its memory (an H100:
+        about 12000 chunks of 64 KiB, more than a 512 MiB batch of the COG encoder), as the per-chunk steps need many chunks in flight to
         hide memory latency; 64 on the CPU.
     """
 
@@ -261,7 +263,7 @@ class WarpDeflate:
     batched = True  # many chunks per launch: fed batches gathered over tiles
 
     def __init__(self, device, *, chunk=65535, depth=32, nice=128, good=0, lazy=True, window=8192, hash_bytes=4,
-                 run=16, chain_parts=8, max_chunks=None, profile=False):
+                 run=16, chain_parts=4, max_chunks=None, profile=False):
         from ..kernels import deflate as kd  # its kernels are built on first use only (14 ms at import)
 
         self._kd = kd
@@ -284,7 +286,7 @@ class WarpDeflate:
         self.chain_parts = int(chain_parts)
         self.window = int(window)
         per_chunk = 13 * self.chunk + 4 * self.window + 4 * self.chain_parts * kd.HASH_SIZE + 60 * 1024
-        self.max_chunks = int(max_chunks or (max(64, self.device.total_memory // 4 // per_chunk)
+        self.max_chunks = int(max_chunks or (max(64, self.device.total_memory // 6 // per_chunk)
                                              if self.device.is_cuda else 64))
         if hash_bytes not in (3, 4):
             raise ParamError(f"hash_bytes must be 3 or 4, got {hash_bytes}")
