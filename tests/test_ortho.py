@@ -592,6 +592,37 @@ def test_block_codecs_write_the_same_pixels(tmp_path, device, src_dtype, scale, 
             assert b.tags(ns="IMAGE_STRUCTURE").get("LAYOUT") == ("COG" if k == 0 else None) or k
 
 
+@pytest.mark.parametrize("is_cuda,nvcomp,level,want", [
+    (True, True, 1, "nvcomp"), (True, True, 4, "nvcomp"), (True, True, 6, "hybrid"), (True, False, 1, "hybrid"),
+    (True, False, 6, "hybrid"), (False, True, 6, "host"), (False, False, 1, "host")])
+def test_auto_block_codec(monkeypatch, is_cuda, nvcomp, level, want):
+    """block_codec "auto": nvCOMP at levels 1-4 where it is installed, else on a GPU the device
+    kernels with the host cores ("hybrid"); on the CPU the host path."""
+    from types import SimpleNamespace
+
+    from orthowarp.pipeline import ortho as po
+
+    monkeypatch.setattr(po, "nvcomp_available", lambda: nvcomp)
+    assert po._block_codec("auto", SimpleNamespace(is_cuda=is_cuda), True, level) == want
+    assert po._block_codec("auto", SimpleNamespace(is_cuda=is_cuda), False, level) == "host"  # not a deflate COG
+
+
+def test_hybrid_codecs_without_nvcomp_are_warp_and_host(monkeypatch):
+    """block_codec "hybrid" without nvCOMP (or at levels 5-12): orthowarp's deflate kernels on
+    the device, at the level's search depth, and libdeflate on the host cores."""
+    import warp as wp
+
+    from orthowarp.pipeline import ortho as po
+    from orthowarp.pipeline.cog_device import HostDeflate, WarpDeflate
+
+    monkeypatch.setattr(po, "nvcomp_available", lambda: False)
+    for level, depth in ((1, 4), (6, 32), (9, 128)):
+        gpu, host = po.device_codecs("hybrid", level, wp.get_device("cpu"))
+        assert isinstance(gpu, WarpDeflate) and gpu.depth == depth
+        assert isinstance(host, HostDeflate) and host.level == level
+        host.close()
+
+
 def test_measurement_detects_a_known_error(tmp_path):
     """The yardstick works: orthorectifying with the camera moved by (+0.3, -0.2) pixels east
     and north yields a measured shift of (dy, dx) = (+0.2, +0.3) (the texture appears moved by
