@@ -142,7 +142,8 @@ def main():
     ap.add_argument("--types", default="0,1,2,4,5")
     ap.add_argument("--out", default=None)
     ap.add_argument("--warp", default="",
-                    help="WarpDeflate variants CHUNK:WINDOW:DEPTH:NICE[:HASH_BYTES[:GOOD[:RUN[:CHAIN_PARTS]]]], comma-separated "
+                    help="WarpDeflate variants, comma-separated: "
+                         "CHUNK:WINDOW:DEPTH:NICE[:HASH_BYTES[:GOOD[:RUN[:CHAIN_PARTS]]]] "
                          "(e.g. 65535:8192:32:128:4:8)")
     ap.add_argument("--warp-device", default="cuda:0")
     a = ap.parse_args()

@@ -254,9 +254,10 @@ class WarpDeflate:
         "match", "parse", "huffman", "sizes", "emit", "copy", "split"; slows the codec a little).
     max_chunks : int, optional
         Chunks per launch, which bounds the scratch memory: about (13 x chunk + 4 x window +
-        chain_parts x 32 KiB + 60 KiB) bytes per chunk. Default on a GPU: what fits in a sixth of its memory (an H100:
-        about 12000 chunks of 64 KiB, more than a 512 MiB batch of the COG encoder), as the per-chunk steps need many chunks in flight to
-        hide memory latency; 64 on the CPU.
+        chain_parts x 32 KiB + 60 KiB) bytes per chunk. Default on a GPU: what fits in a sixth
+        of its memory (an H100: about 12000 chunks of 64 KiB, more than a 512 MiB batch of the
+        COG encoder), as the per-chunk steps need many chunks in flight to hide memory
+        latency; 64 on the CPU. At most what keeps a launch's output under 2 GiB.
     """
 
     name = "warp"
@@ -286,8 +287,9 @@ class WarpDeflate:
         self.chain_parts = int(chain_parts)
         self.window = int(window)
         per_chunk = 13 * self.chunk + 4 * self.window + 4 * self.chain_parts * kd.HASH_SIZE + 60 * 1024
-        self.max_chunks = int(max_chunks or (max(64, self.device.total_memory // 6 // per_chunk)
-                                             if self.device.is_cuda else 64))
+        self.max_chunks = min(int(max_chunks or (max(64, self.device.total_memory // 6 // per_chunk)
+                                                 if self.device.is_cuda else 64)),
+                              (2**31 - 1) // (self.chunk + 5))  # the pieces' int32 offsets
         if hash_bytes not in (3, 4):
             raise ParamError(f"hash_bytes must be 3 or 4, got {hash_bytes}")
         self.hash_bytes = int(hash_bytes)
@@ -323,7 +325,8 @@ class WarpDeflate:
             parts = -(-c // kd.PARSE_PART)
             tables = (m, self.chain_parts, kd.HASH_SIZE)
             self._scratch = dict(
-                m=m, first=wp.zeros(tables, dtype=wp.uint16, device=d), last=wp.zeros(tables, dtype=wp.uint16, device=d),
+                m=m, first=wp.zeros(tables, dtype=wp.uint16, device=d),
+                last=wp.zeros(tables, dtype=wp.uint16, device=d),
                 prev=z((m, c + self.window)), best=z((m, c)), hist=z((m, 256)), tokens=z((m, c), wp.uint32),
                 ntok=z((m, parts)), part_freq=z((m, parts, kd.DIST0 + 30)), part_extra=z((m, parts)),
                 freq=z((m, kd.NSYM)), extra=z(m), entropy=z(m, wp.float32),
@@ -332,7 +335,7 @@ class WarpDeflate:
                 pnode=z((m, 288)), bits=z((m, 32)), header=z((m, 5)), size=z(m), end=z(m),
                 inputs=z(5 * m), out=z(m * (c + 5), wp.uint8),
                 inputs_host=h(5 * m), size_host=h(m), end_host=h(m), out_host=h(m * (c + 5), wp.uint8))
-            if pinned:  # nothing of the old scratch may be in use when it goes
+            if pinned:  # allocated and zeroed in the device stream's order: done before the codec's stream uses them
                 wp.synchronize_device(d)
         return self._scratch
 
@@ -415,7 +418,8 @@ class WarpDeflate:
                [buf, off, ln, pr, self.hash_bytes, self.depth, self.nice, self.good, self.run, s["prev"]],
                [s["best"], s["hist"]])
         t = self._tick("match", t, sync=True)
-        launch(kd.parse_kernel, (m, s["ntok"].shape[1]), [buf, off, ln, self.nice, int(self.lazy), len_sym, len_xbits, s["best"]],
+        launch(kd.parse_kernel, (m, s["ntok"].shape[1]),
+               [buf, off, ln, self.nice, int(self.lazy), len_sym, len_xbits, s["best"]],
                [s["tokens"], s["ntok"], s["part_freq"], s["part_extra"]])
         launch(kd.parse_sum_kernel, (m, kd.NSYM), [ln, s["part_freq"], s["part_extra"], s["hist"]],
                [s["freq"], s["extra"], s["entropy"]])
