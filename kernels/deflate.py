@@ -4,19 +4,23 @@ Each stream is cut into *chunks* (at most 65535 bytes), each of which becomes a 
 piece of deflate data ending on a byte boundary, so that the pieces of a stream concatenate
 into the stream without any bit shifting.
 
-LZ77 in three steps, so that the costly part runs with one thread per byte:
+LZ77 in steps that each keep many threads busy:
 
-- :func:`chain_kernel` (a thread per chunk, in order): the hash chains over 3- or 4-byte prefixes
-  (head table per chunk, a link per position), including the ``prime`` bytes before the chunk
-  (the end of the same stream's previous chunk, which a decoder has already produced);
-- :func:`match_kernel` (a thread per position): the longest match along the chain, at most
-  ``depth`` candidates, compared over at most ``nice`` bytes (the first to reach them ends the
-  search), ending inside the chunk and reaching at most 32768 back; and the chunk's byte
+- :func:`chain_part_kernel` (a few threads per chunk, each over a part of it, in order) and
+  :func:`chain_link_kernel` (a thread per chunk and hash value): the hash chains over 3- or
+  4-byte prefixes (a link per position), including the ``prime`` bytes before the chunk (the
+  end of the same stream's previous chunk, which a decoder has already produced); the parts'
+  chains joined into exactly those of one pass over the chunk;
+- :func:`match_kernel` (a thread per run of consecutive positions, one candidate per loop
+  step): the longest match along each position's chain, at most ``depth`` candidates,
+  compared over at most ``nice`` bytes (the first to reach them ends the search), ending
+  inside the position's parse part and reaching at most 32768 back; and the chunk's byte
   histogram;
-- :func:`parse_kernel` (a thread per chunk, in order): tokens from those matches with one-step
-  lazy evaluation as in zlib's ``deflate_slow`` (a match is deferred by one byte when the
-  next position matches longer), a match of ``nice`` bytes grown to its full length; the
-  symbol frequencies.
+- :func:`parse_kernel` (a thread per 4 KiB part of a chunk, in order) and
+  :func:`parse_sum_kernel`: tokens from those matches with one-step lazy evaluation as in
+  zlib's ``deflate_slow`` (a match is deferred by one byte when the next position matches
+  longer), a match of ``nice`` bytes grown to its full length; the parts' symbol frequencies
+  summed per chunk.
 
 Then:
 
@@ -32,10 +36,9 @@ Then:
   block followed by an empty stored block (``BFINAL`` 0: the same byte alignment as zlib's
   ``Z_SYNC_FLUSH``); the last piece of a stream is a final block padded to a byte.
 
-Chunk-local tables live in scratch arrays, one row per chunk; the tokens are stored
-``(positions, chunks)`` so that threads walking their chunks in step touch neighbouring
-words. Match finding independent per position followed by a sequential parse is the usual
-arrangement of GPU LZ77 encoders. The host side is
+Chunk-local tables live in scratch arrays, one row per chunk (the tokens of a part from the
+part's first byte's index on). Match finding independent per position followed by a
+sequential parse is the usual arrangement of GPU LZ77 encoders. The host side is
 :class:`orthowarp.pipeline.cog_device.WarpDeflate`.
 """
 
