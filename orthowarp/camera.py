@@ -1,10 +1,13 @@
 """Frame camera interior orientation (:class:`FrameCamera`)."""
 
+from __future__ import annotations
+
 import math
 import numbers
 
 import numpy as np
 import warp as wp
+from numpy.typing import ArrayLike
 
 from . import brown
 from ._device import quiet_warp, resolve_device
@@ -86,8 +89,9 @@ class FrameCamera:
     point (x, y) is (x, y, -f) in the camera frame (x right, y up, z backwards).
     """
 
-    def __init__(self, focal_length, pixel_size, image_size, *, principal_point=(0.0, 0.0),
-                 k1=0.0, k2=0.0, k3=0.0, p1=0.0, p2=0.0):
+    def __init__(self, focal_length: float, pixel_size: float | tuple[float, float], image_size: tuple[int, int], *,
+                 principal_point: tuple[float, float] = (0.0, 0.0), k1: float = 0.0, k2: float = 0.0,
+                 k3: float = 0.0, p1: float = 0.0, p2: float = 0.0) -> None:
         self.focal_length = _focal_length(focal_length)
         try:
             ps = np.broadcast_to(np.asarray(pixel_size, dtype=np.float64), (2,)).copy()
@@ -116,8 +120,10 @@ class FrameCamera:
         self._check_invertible()
 
     @classmethod
-    def from_mm_coefficients(cls, focal_length, pixel_size, image_size, *, principal_point=(0.0, 0.0),
-                             k1=0.0, k2=0.0, k3=0.0, p1=0.0, p2=0.0, decentring="fraser"):
+    def from_mm_coefficients(cls, focal_length: float, pixel_size: float | tuple[float, float],
+                             image_size: tuple[int, int], *, principal_point: tuple[float, float] = (0.0, 0.0),
+                             k1: float = 0.0, k2: float = 0.0, k3: float = 0.0, p1: float = 0.0, p2: float = 0.0,
+                             decentring: str = "fraser") -> FrameCamera:
         """Build from Brown coefficients in mm units for a y-up image frame (seed 003's eq. 2).
 
         Parameters
@@ -175,11 +181,11 @@ class FrameCamera:
                 f"k1={self.k1!r}, k2={self.k2!r}, k3={self.k3!r}, p1={self.p1!r}, p2={self.p2!r})")
 
     @property
-    def has_distortion(self):
+    def has_distortion(self) -> bool:
         return any(v != 0.0 for v in (self.k1, self.k2, self.k3, self.p1, self.p2))
 
     # -- host reference (float64 NumPy) ------------------------------------------------------
-    def distort(self, uv):
+    def distort(self, uv: ArrayLike) -> np.ndarray:
         """Undistorted -> distorted normalised coordinates, (N, 2) -> (N, 2), closed form."""
         return brown.distort(uv, self.k1, self.k2, self.k3, self.p1, self.p2)[0]
 
@@ -187,7 +193,7 @@ class FrameCamera:
         j = brown.distort(uv, self.k1, self.k2, self.k3, self.p1, self.p2)[1]
         return j[..., 0, 0], j[..., 0, 1], j[..., 1, 0], j[..., 1, 1]
 
-    def undistort(self, uvd, *, iterations=30):
+    def undistort(self, uvd: ArrayLike, *, iterations: int = 30) -> np.ndarray:
         """Distorted -> undistorted normalised coordinates, (N, 2) -> (N, 2), Newton's method."""
         uvd = np.asarray(uvd, dtype=np.float64)
         uv = uvd.copy()
@@ -202,12 +208,12 @@ class FrameCamera:
                 break
         return uv
 
-    def pixel_to_normalized(self, pixels):
+    def pixel_to_normalized(self, pixels: ArrayLike) -> np.ndarray:
         """Pixel (col, row) (N, 2) -> distorted normalised (u, v) (N, 2)."""
         return brown.pixel_to_normalized(pixels, self.focal_length, self.principal_point, self.pixel_size,
                                          self.image_size)
 
-    def normalized_to_pixel(self, uv):
+    def normalized_to_pixel(self, uv: ArrayLike) -> np.ndarray:
         """Distorted normalised (u, v) (N, 2) -> pixel (col, row) (N, 2)."""
         return brown.normalized_to_pixel(uv, self.focal_length, self.principal_point, self.pixel_size,
                                          self.image_size)
@@ -273,7 +279,7 @@ class FrameCamera:
                 f"is not invertible over the {w}x{h} image (first failure at pixel ({c:.1f}, {r:.1f}))")
 
     # -- device --------------------------------------------------------------------------------
-    def to_struct(self):
+    def to_struct(self) -> FrameCameraData:
         """Pack into :class:`orthowarp.kernels.camera.FrameCameraData`."""
         s = FrameCameraData()
         s.focal = self.focal_length
@@ -284,14 +290,14 @@ class FrameCamera:
         s.k1, s.k2, s.k3, s.p1, s.p2 = self.k1, self.k2, self.k3, self.p1, self.p2
         return s
 
-    def pixel_to_camera(self, pixels, *, device=None):
+    def pixel_to_camera(self, pixels: ArrayLike, *, device: wp.DeviceLike = None) -> np.ndarray:
         """Pixels (N, 2) (col, row) -> unit rays (N, 3) in the camera frame (kernel).
 
         Rows with NaN, or masked in a NumPy masked array, give NaN rays.
         """
         return self._per_row(pixel_to_camera_kernel, _as_points(pixels, 2, "pixels"), wp.vec2d, wp.vec3d, device)
 
-    def camera_to_pixel(self, vectors, *, device=None):
+    def camera_to_pixel(self, vectors: ArrayLike, *, device: wp.DeviceLike = None) -> np.ndarray:
         """Camera-frame directions (N, 3) -> pixels (N, 2); NaN rows for directions not in front
         and for rows with NaN or masked in a NumPy masked array."""
         return self._per_row(camera_to_pixel_kernel, _as_points(vectors, 3, "vectors"), wp.vec3d, wp.vec2d, device)

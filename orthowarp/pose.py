@@ -1,5 +1,9 @@
 """Exterior orientation (:class:`Pose`) in the two conventions of DESIGN.md."""
 
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
 import numpy as np
 import warp as wp
 
@@ -7,6 +11,10 @@ from . import geodesy
 from ._validate import as_crs, finite, finite_vector
 from .errors import CrsError, ParamError
 from .kernels.frame import FramePoseData
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
+    from pyproj import CRS
 
 __all__ = ["Pose"]
 
@@ -56,7 +64,8 @@ class Pose:
         The object frame: EPSG:4978 (ECEF) or the map CRS.
     """
 
-    def __init__(self, mode, center, rotation, crs, *, params=None):
+    def __init__(self, mode: str, center: ArrayLike, rotation: ArrayLike, crs: CRS | str | int, *,
+                 params: dict[str, Any] | None = None) -> None:
         if mode not in (GEOCENTRIC, MAP):
             raise ParamError(f"mode must be 'geocentric' or 'map', got {mode!r}")
         self.mode = mode
@@ -79,7 +88,9 @@ class Pose:
         self.params = dict(params or {})
 
     @classmethod
-    def from_ins(cls, lat, lon, h, roll, pitch, yaw, *, boresight=(0.0, 0.0, 0.0), lever_arm=(0.0, 0.0, 0.0)):
+    def from_ins(cls, lat: float, lon: float, h: float, roll: float, pitch: float, yaw: float, *,
+                 boresight: tuple[float, float, float] = (0.0, 0.0, 0.0),
+                 lever_arm: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> Pose:
         """GNSS/INS pose, geocentric (rigorous) mode.
 
         Parameters
@@ -117,7 +128,8 @@ class Pose:
                    params=params)
 
     @classmethod
-    def from_opk(cls, x, y, z, omega, phi, kappa, *, crs):
+    def from_opk(cls, x: float, y: float, z: float, omega: float, phi: float, kappa: float, *,
+                 crs: CRS | str | int) -> Pose:
         """Photogrammetric pose (PATB, seed 002 eq. 2), map-Cartesian mode.
 
         Parameters
@@ -145,7 +157,7 @@ class Pose:
         return f"Pose({self.mode}: {args})"
 
     @property
-    def center_geodetic(self):
+    def center_geodetic(self) -> tuple[float, float, float]:
         """(lat deg, lon deg, h m) of the projection centre; geocentric mode only."""
         if self.mode != GEOCENTRIC:
             raise ParamError("center_geodetic is defined for geocentric poses only")
@@ -153,7 +165,7 @@ class Pose:
         return float(lat), float(lon), float(h)
 
     @property
-    def up(self):
+    def up(self) -> np.ndarray:
         """Unit local vertical (3,) at the projection centre, object frame."""
         if self.mode == MAP:
             return np.array([0.0, 0.0, 1.0])
@@ -161,11 +173,11 @@ class Pose:
         return -geodesy.ned_to_ecef_matrix(lat, lon)[:, 2]
 
     @property
-    def height(self):
+    def height(self) -> float:
         """Ellipsoidal height (geocentric) or z (map) of the projection centre (m)."""
         return self.center_geodetic[2] if self.mode == GEOCENTRIC else float(self.center[2])
 
-    def to_struct(self):
+    def to_struct(self) -> FramePoseData:
         """Pack into :class:`orthowarp.kernels.frame.FramePoseData`."""
         s = FramePoseData()
         s.mode = 0 if self.mode == GEOCENTRIC else 1

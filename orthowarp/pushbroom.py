@@ -19,13 +19,24 @@ interpolated linearly between detectors) ->
 Reference: SPOT Image, "SPOT Satellite Geometry Handbook", S-NT-73-12-SI, 2002.
 """
 
+from __future__ import annotations
+
 import math
 import operator
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .errors import GeometryError, ParamError
 from .geodesy import WGS84_A, WGS84_B, ecef_to_geodetic
+
+if TYPE_CHECKING:  # annotations only: Warp is imported where a scene is packed for a device
+    import os
+
+    import warp as wp
+    from numpy.typing import ArrayLike
+
+    from .kernels.pushbroom import PushbroomData
 
 __all__ = ["PushbroomScene", "attitude_matrix", "lagrange", "MAX_LINES", "MAX_DETECTORS", "MIN_LINE_PERIOD",
            "MAX_LINE_PERIOD"]
@@ -204,9 +215,11 @@ class PushbroomScene:
         yet: seed 000's Gauss-Helmert bundle adjustment of these groups is planned work.)
     """
 
-    def __init__(self, *, width, height, line_period, center_line, eph_time, eph_position, eph_velocity,
-                 att_time, att_angles, psi_x, psi_y, attitude_model="full", epoch=None,
-                 attitude_extrapolation=0.5, source=None, polynomials=None):
+    def __init__(self, *, width: int, height: int, line_period: float, center_line: float, eph_time: ArrayLike,
+                 eph_position: ArrayLike, eph_velocity: ArrayLike, att_time: ArrayLike, att_angles: ArrayLike,
+                 psi_x: ArrayLike, psi_y: ArrayLike, attitude_model: str = "full", epoch: Any = None,
+                 attitude_extrapolation: float = 0.5, source: str | None = None,
+                 polynomials: ArrayLike | None = None) -> None:
         if attitude_model not in ATTITUDE_MODELS:
             raise ParamError(f"attitude_model must be one of {ATTITUDE_MODELS}, got {attitude_model!r}")
         # sizes first: every array below is allocated from them
@@ -243,7 +256,7 @@ class PushbroomScene:
                                 f"outside its attitudes ({self.att_time[0]:.3f}..{self.att_time[-1]:.3f} s)")
 
     @classmethod
-    def from_dimap(cls, path, *, attitude_model="full"):
+    def from_dimap(cls, path: str | os.PathLike, *, attitude_model: str = "full") -> PushbroomScene:
         """The scene of a SPOT level-1A DIMAP metadata file (see
         :func:`orthowarp.pipeline.dimap.read_dimap`)."""
         from .pipeline.dimap import read_dimap
@@ -260,11 +273,11 @@ class PushbroomScene:
 
     # -- the model, float64 ------------------------------------------------------------------
 
-    def line_time(self, row):
+    def line_time(self, row: ArrayLike) -> np.ndarray:
         """Seconds from the scene-centre time of the (continuous) row coordinate."""
         return (np.asarray(row, dtype=np.float64) + 0.5 - self.center_line) * self.line_period
 
-    def line_row(self, t):
+    def line_row(self, t: ArrayLike) -> np.ndarray:
         """The (continuous) row coordinate of line time ``t`` (s from the scene-centre time):
         the inverse of :meth:`line_time`."""
         return np.asarray(t, dtype=np.float64) / self.line_period + self.center_line - 0.5
@@ -278,7 +291,7 @@ class PushbroomScene:
             raise GeometryError(f"line times {t.min():.3f}..{t.max():.3f} s fall outside the attitudes "
                                 f"({self.att_time[0]:.3f}..{self.att_time[-1]:.3f} s, +-{e} s)")
 
-    def orbit(self, t):
+    def orbit(self, t: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """Position and velocity (n, 3) (ECEF, m and m/s) at times t (s)."""
         t = np.atleast_1d(np.asarray(t, dtype=np.float64))
         self._check_times(t)
@@ -286,7 +299,7 @@ class PushbroomScene:
             return _poly(self.polynomials[0], t), _poly(self.polynomials[1], t)
         return lagrange(t, self.eph_time, self.eph_position), lagrange(t, self.eph_time, self.eph_velocity)
 
-    def attitude(self, t):
+    def attitude(self, t: ArrayLike) -> np.ndarray:
         """Yaw, pitch, roll (n, 3) (rad), linear in time (extrapolated past the ends)."""
         t = np.atleast_1d(np.asarray(t, dtype=np.float64))
         if self.polynomials is not None:
@@ -296,14 +309,14 @@ class PushbroomScene:
         w = ((t - tt[i]) / (tt[i + 1] - tt[i]))[:, None]
         return (1 - w) * a[i] + w * a[i + 1]
 
-    def look_vector(self, col):
+    def look_vector(self, col: ArrayLike) -> np.ndarray:
         """Unit look vectors u1 (n, 3) of (continuous) column coordinates, navigation frame."""
         det = np.asarray(col, dtype=np.float64) + 0.5  # 1-based detector number
         px, py = self._psi_at(self.psi_x, det), self._psi_at(self.psi_y, det)
         u = np.stack([-np.tan(py), np.tan(px), -np.ones_like(px)], -1)
         return u / np.linalg.norm(u, axis=-1, keepdims=True)
 
-    def orbital_frame(self, p, v):
+    def orbital_frame(self, p: ArrayLike, v: ArrayLike) -> np.ndarray:
         """Columns X2, Y2, Z2 of the orbital frame at positions/velocities (n, 3) -> (n, 3, 3)."""
         z2 = p / np.linalg.norm(p, axis=-1, keepdims=True)
         x2 = np.cross(v, z2)
@@ -311,7 +324,7 @@ class PushbroomScene:
         y2 = np.cross(z2, x2)
         return np.stack([x2, y2, z2], -1)
 
-    def rays(self, pixels):
+    def rays(self, pixels: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """Satellite positions and unit look directions (ECEF) of pixels (n, 2) (col, row)."""
         pixels = _array("pixels", pixels, (None, 2))
         t = self.line_time(pixels[:, 1])
@@ -322,7 +335,7 @@ class PushbroomScene:
         d = np.einsum("nij,nj->ni", self.orbital_frame(p, v), np.einsum("nij,nj->ni", m, u))
         return p, d / np.linalg.norm(d, axis=-1, keepdims=True)
 
-    def geolocate_ellipsoid(self, pixels, h=0.0):
+    def geolocate_ellipsoid(self, pixels: ArrayLike, h: float = 0.0) -> np.ndarray:
         """Ground points (n, 3) (lon, lat in degrees, h in m) of pixels (n, 2) on the surface
         of ellipsoidal height h: the closed form on the ellipsoid of semi-axes a + h, b + h,
         then a Newton correction along the ray to the exact geodetic height."""
@@ -340,7 +353,7 @@ class PushbroomScene:
 
     # -- packing and the backward reference --------------------------------------------------
 
-    def to_struct(self, device):
+    def to_struct(self, device: wp.DeviceLike) -> PushbroomData:
         """Pack into :class:`orthowarp.kernels.pushbroom.PushbroomData` on a Warp device."""
         import warp as wp
 
@@ -368,7 +381,7 @@ class PushbroomScene:
         s.det_u = wp.array(self.look_vector(np.arange(self.width) + 0.5), dtype=wp.vec3d, device=device)
         return s
 
-    def line_table(self, margin=256):
+    def line_table(self, margin: int = 256) -> tuple[np.ndarray, np.ndarray, float]:
         """Satellite positions (n, 3) and rotations R = [X2 Y2 Z2] M (n, 3, 3) at the line
         centres of the scene and ``margin`` lines each side, as far as the ephemeris and the
         attitudes reach, and the row coordinate of the first (see the kernels' PushbroomData)."""
@@ -397,7 +410,7 @@ class PushbroomScene:
         a = det - (i + 1)
         return (1 - a) * values[i] + a * values[i + 1]
 
-    def fit_polynomials(self, *, samples=201):
+    def fit_polynomials(self, *, samples: int = 201) -> tuple[np.ndarray, dict[str, float]]:
         """Fit seed 000's 27 coefficients: position, velocity and attitude as 2nd-degree
         polynomials in line time, by least squares over the scene's lines (the metadata's
         interpolated orbit and attitudes, ``samples`` lines evenly spread).
@@ -420,7 +433,7 @@ class PushbroomScene:
             rms[name] = float(np.sqrt(np.mean((design @ c - y) ** 2)))
         return coef, rms
 
-    def replace(self, **changes):
+    def replace(self, **changes: Any) -> PushbroomScene:
         """This scene with some of its constructor arguments changed (checked as in the
         constructor)."""
         args = dict(width=self.width, height=self.height, line_period=self.line_period, center_line=self.center_line,
@@ -432,11 +445,11 @@ class PushbroomScene:
         args.update(changes)
         return PushbroomScene(**args)
 
-    def with_polynomials(self, coefficients):
+    def with_polynomials(self, coefficients: ArrayLike) -> PushbroomScene:
         """This scene with its exterior orientation given by 27 polynomial coefficients."""
         return self.replace(polynomials=coefficients)
 
-    def mean_height(self):
+    def mean_height(self) -> float:
         """Mean ellipsoidal height (m) of the satellite over the scene."""
         t = self.line_time(np.linspace(0, self.height, 9))
         p, _ = self.orbit(t)
@@ -448,7 +461,8 @@ class PushbroomScene:
             return _poly(self.polynomials[0], t), _poly(self.polynomials[1], t)
         return lagrange(t, self.eph_time, self.eph_position), lagrange(t, self.eph_time, self.eph_velocity)
 
-    def project_ecef(self, xyz, *, t0=None, tol=1e-6, max_iter=40):
+    def project_ecef(self, xyz: ArrayLike, *, t0: ArrayLike | None = None, tol: float = 1e-6,
+                     max_iter: int = 40) -> np.ndarray:
         """Ground points (n, 3) (ECEF, m) -> pixels (n, 2), without refraction: the secant
         iteration of the kernels in float64 NumPy (the reference they are checked against).
 

@@ -6,6 +6,8 @@ for (:meth:`Dem.crop`, :meth:`Dem.sample`), or whole when :attr:`Dem.array` is a
 read checks the size it would allocate against :func:`memory_budget` first.
 """
 
+from __future__ import annotations
+
 import contextlib
 import functools
 import logging
@@ -14,6 +16,7 @@ import numbers
 import os
 import re
 import warnings
+from typing import TYPE_CHECKING
 
 import numpy as np
 import rasterio
@@ -29,6 +32,10 @@ from rasterio.windows import Window
 from .._validate import as_crs, finite
 from ..errors import CrsError, ParamError, RasterIOError
 from ..kernels.dem import DemData
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
+    from pyproj import CRS
 
 __all__ = ["Dem", "as_dem", "memory_budget", "height_unit_factor", "MAX_GROUND_HEIGHT"]
 
@@ -240,7 +247,8 @@ class Dem:
     :meth:`sample` and the geometry classes read only the windows they need.
     """
 
-    def __init__(self, array, transform, crs, *, nodata=None):
+    def __init__(self, array: ArrayLike, transform: Affine, crs: CRS | str | int, *,
+                 nodata: float | None = None) -> None:
         # a copy: the caller's array is never modified; a masked array's masked cells are nodata
         arr = np.array(np.ma.getdata(array), dtype=np.float32)
         if arr.ndim != 2 or min(arr.shape) < 1:
@@ -269,7 +277,7 @@ class Dem:
         self._hmax = float(np.nanmax(arr))
 
     @classmethod
-    def constant(cls, height):
+    def constant(cls, height: float) -> Dem:
         """A DEM of constant height (m) everywhere."""
         h = finite("height", height)
         dem = cls.__new__(cls)
@@ -283,7 +291,8 @@ class Dem:
         return dem
 
     @classmethod
-    def without_heights(cls, bounds, crs, hmin, hmax):
+    def without_heights(cls, bounds: tuple[float, float, float, float], crs: CRS | str | int, hmin: float,
+                        hmax: float) -> Dem:
         """A DEM with no heights (2 x 2 cells without data) over ``bounds`` (xmin, ymin, xmax,
         ymax) in ``crs``, nominally from ``hmin`` to ``hmax`` m: rays meet no ground on it.
         What the geometry classes use where a DEM file has no heights under a footprint."""
@@ -298,7 +307,7 @@ class Dem:
         return dem
 
     @classmethod
-    def from_file(cls, path, *, band=1):
+    def from_file(cls, path: str | os.PathLike, *, band: int = 1) -> Dem:
         """Open a DEM band of a raster file (GeoTIFF or anything GDAL reads), lazily.
 
         The file's size, georeferencing, CRS, nodata, band scale and offset and height unit
@@ -352,12 +361,12 @@ class Dem:
 
     # -- lazy state -----------------------------------------------------------------------------
     @property
-    def loaded(self):
+    def loaded(self) -> bool:
         """True when the heights are in memory (always, but for a DEM file not read whole)."""
         return self._array is not None
 
     @property
-    def array(self):
+    def array(self) -> np.ndarray:
         """Heights (rows, cols) float32, NaN without data; a DEM file is read whole on first use.
 
         Raises
@@ -377,25 +386,25 @@ class Dem:
         return self._array
 
     @property
-    def hmin(self):
+    def hmin(self) -> float:
         """Lowest height (m); a DEM file is read whole on first use (see :attr:`array`)."""
         if self._hmin is None:
             self.array  # noqa: B018 (reads the file)
         return self._hmin
 
     @property
-    def hmax(self):
+    def hmax(self) -> float:
         """Highest height (m); a DEM file is read whole on first use (see :attr:`array`)."""
         if self._hmax is None:
             self.array  # noqa: B018 (reads the file)
         return self._hmax
 
     @property
-    def is_constant(self):
+    def is_constant(self) -> bool:
         return self.value is not None
 
     @property
-    def shape(self):
+    def shape(self) -> tuple[int, int]:
         if self._array is None:
             return self._file.height, self._file.width
         return self._array.shape
@@ -407,7 +416,7 @@ class Dem:
             return f"Dem.from_file({self.source!r}, shape={self.shape}, crs={self.crs.to_string()!r})"
         return f"Dem(shape={self.shape}, crs={self.crs.to_string()!r}, heights=[{self.hmin:.1f}, {self.hmax:.1f}])"
 
-    def sample(self, x, y):
+    def sample(self, x: ArrayLike, y: ArrayLike) -> np.ndarray:
         """Bilinear heights (m) at horizontal coordinates x, y of the DEM's CRS (host, float64).
 
         Same rule as the kernels: between cell centres, NaN outside the grid or next to
@@ -438,7 +447,7 @@ class Dem:
         return np.where(inside, h, np.nan)
 
     # -- preparation for the kernels ------------------------------------------------------------
-    def for_frame(self, crs):
+    def for_frame(self, crs: CRS | str | int) -> Dem:
         """This DEM on a grid in the horizontal coordinates of a geometry frame.
 
         Parameters
@@ -468,7 +477,7 @@ class Dem:
             frames[key] = self.reproject(GEOGRAPHIC if crs is None else crs)
         return frames[key]
 
-    def reproject(self, crs):
+    def reproject(self, crs: CRS | str | int) -> Dem:
         """Reprojection onto a north-up grid in ``crs`` (pyproj/rasterio CRS): each cell the
         bilinear height of this grid (:meth:`sample`, the kernels' rule) at the cell centre's
         exact position.
@@ -501,7 +510,8 @@ class Dem:
         dem.source = self.source
         return dem
 
-    def window(self, xmin, ymin, xmax, ymax, *, margin=2):
+    def window(self, xmin: float, ymin: float, xmax: float, ymax: float, *,
+               margin: int = 2) -> tuple[int, int, int, int] | None:
         """Cell index ranges (i0, i1, j0, j1) covering the given bounds plus ``margin`` cells,
         clipped to the grid; None where they leave it."""
         rows, cols = self.shape
@@ -515,7 +525,7 @@ class Dem:
             return None
         return i0, i1, j0, j1
 
-    def crop(self, xmin, ymin, xmax, ymax, *, margin=2):
+    def crop(self, xmin: float, ymin: float, xmax: float, ymax: float, *, margin: int = 2) -> Dem | None:
         """The part of the grid covering the given bounds plus ``margin`` cells, or None if none
         (or if it has no heights).
 
@@ -541,7 +551,7 @@ class Dem:
             dem._grid = self._grid or (self.shape, self.transform)
         return dem
 
-    def block_bounds(self, block=BLOCK):
+    def block_bounds(self, block: int = BLOCK) -> np.ndarray:
         """Upper bounds of sampled heights per block of ``block`` x ``block`` cells (float32).
 
         Entry (I, J) bounds the bilinear height at any grid point within ``block`` cells of
@@ -560,7 +570,7 @@ class Dem:
         return np.ascontiguousarray(
             np.lib.stride_tricks.sliding_window_view(colmax, win, axis=0)[::block][:nbi].max(axis=2))
 
-    def block_range(self, block=32):
+    def block_range(self, block: int = 32) -> tuple[np.ndarray, np.ndarray]:
         """Lowest and highest height per block of ``block`` x ``block`` cells (float32, NaN
         where a block has none), for bounding the heights under a region cheaply."""
         rows, cols = self.shape
@@ -572,7 +582,7 @@ class Dem:
             warnings.simplefilter("ignore", RuntimeWarning)  # blocks without heights
             return np.nanmin(cells, axis=(1, 3)), np.nanmax(cells, axis=(1, 3))
 
-    def to_struct(self, device):
+    def to_struct(self, device: wp.DeviceLike) -> DemData:
         """Pack into :class:`orthowarp.kernels.dem.DemData` on ``device``."""
         s = DemData()
         s.data = wp.array(self.array, dtype=wp.float32, device=device)
