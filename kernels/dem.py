@@ -119,8 +119,3 @@ def dem_sample(dem: DemData, x: wp.float64, y: wp.float64):
     """Bilinear height (m) at horizontal coordinates (x, y); NaN outside or at nodata."""
     return dem_sample_grid(dem, dem_grid(dem, x, y))
 
-
-@wp.kernel
-def dem_sample_kernel(dem: DemData, xy: wp.array(dtype=wp.vec2d), out: wp.array(dtype=wp.float64)):
-    i = wp.tid()
-    out[i] = dem_sample(dem, xy[i][0], xy[i][1])

@@ -73,27 +73,6 @@ def ecef_to_geodetic(p: wp.vec3d):
     return g
 
 
-@wp.func
-def ned_to_ecef(lat: wp.float64, lon: wp.float64):
-    """Rotation matrix R_ecef<-ned at latitude, longitude (rad); columns are N, E, D in ECEF."""
-    sl = wp.sin(lat)
-    cl = wp.cos(lat)
-    so = wp.sin(lon)
-    co = wp.cos(lon)
-    return wp.mat33d(
-        -sl * co, -so, -cl * co,
-        -sl * so, co, -cl * so,
-        cl, wp.float64(0.0), -sl,
-    )
-
-
-@wp.func
-def ellipsoid_normal(lat: wp.float64, lon: wp.float64):
-    """Unit outward ellipsoid normal (the geodetic 'up') at latitude, longitude (rad)."""
-    cl = wp.cos(lat)
-    return wp.vec3d(cl * wp.cos(lon), cl * wp.sin(lon), wp.sin(lat))
-
-
 @wp.kernel
 def geodetic_to_ecef_kernel(llh: wp.array(dtype=wp.vec3d), out: wp.array(dtype=wp.vec3d)):
     """(lat deg, lon deg, h m) -> ECEF (m), element-wise."""

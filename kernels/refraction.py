@@ -47,30 +47,3 @@ def refraction_q(tab: RefractionTable, theta: wp.float64, h: wp.float64):
         (one - ah) * tab.q[it + 1, ih] + ah * tab.q[it + 1, ih + 1]
     )
     return q
-
-
-@wp.func
-def refraction_delta(tab: RefractionTable, theta: wp.float64, h: wp.float64):
-    """Angle (rad) between the apparent ray and the chord to ground at height h (m)."""
-    return refraction_q(tab, theta, h) * wp.tan(theta)
-
-
-@wp.func
-def nadir_angle(d: wp.vec3d, up: wp.vec3d):
-    """Angle (rad) between the unit direction d and the nadir -up."""
-    s = wp.length(wp.cross(d, up))
-    c = -wp.dot(d, up)
-    return wp.atan2(s, c)
-
-
-@wp.func
-def tilt_from_nadir(d: wp.vec3d, up: wp.vec3d, dtheta: wp.float64):
-    """Rotate the unit direction d in its vertical plane, increasing its nadir angle by dtheta."""
-    c = -wp.dot(d, up)
-    e = d + c * up
-    s = wp.length(e)
-    if s < wp.float64(1.0e-15):
-        return d
-    e = e / s
-    t = wp.atan2(s, c) + dtheta
-    return -wp.cos(t) * up + wp.sin(t) * e

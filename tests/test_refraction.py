@@ -8,7 +8,7 @@ import warp as wp
 
 from orthowarp import refraction
 from orthowarp.errors import ParamError
-from orthowarp.kernels.refraction import RefractionTable, nadir_angle, refraction_delta, tilt_from_nadir
+from orthowarp.kernels.refraction import RefractionTable, refraction_q
 from orthowarp.refraction import (
     RefractionModel,
     asprs_delta,
@@ -219,18 +219,7 @@ def test_table_disabled_is_zero():
 def _lookup_kernel(tab: RefractionTable, theta: wp.array(dtype=wp.float64), h: wp.array(dtype=wp.float64),
                    out: wp.array(dtype=wp.float64)):
     i = wp.tid()
-    out[i] = refraction_delta(tab, theta[i], h[i])
-
-
-@wp.kernel
-def _tilt_kernel(d: wp.array(dtype=wp.vec3d), up: wp.vec3d, dtheta: wp.float64,
-                 before: wp.array(dtype=wp.float64), after: wp.array(dtype=wp.float64),
-                 out: wp.array(dtype=wp.vec3d)):
-    i = wp.tid()
-    before[i] = nadir_angle(d[i], up)
-    t = tilt_from_nadir(d[i], up, dtheta)
-    after[i] = nadir_angle(t, up)
-    out[i] = t
+    out[i] = refraction_q(tab, theta[i], h[i]) * wp.tan(theta[i])  # the turn, as the frame kernels take it
 
 
 @pytest.mark.parametrize("enabled", [True, False])
@@ -249,24 +238,3 @@ def test_kernel_lookup_matches_host(device, enabled):
         np.testing.assert_allclose(got, trace_delta(theta, 3000.0, h), rtol=5e-3, atol=1e-8)
     else:
         np.testing.assert_array_equal(got, 0.0)
-
-
-def test_kernel_tilt_from_nadir(device):
-    up = np.array([0.3, -0.2, 0.9])
-    up /= np.linalg.norm(up)
-    rng = np.random.default_rng(5)
-    d = rng.normal(size=(50, 3)) * 0.3 - up  # roughly downwards
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    n = len(d)
-    before, after = (wp.empty(n, dtype=wp.float64, device=device) for _ in range(2))
-    out = wp.empty(n, dtype=wp.vec3d, device=device)
-    dtheta = 3e-5
-    wp.launch(_tilt_kernel, dim=n, device=device,
-              inputs=[wp.array(d, dtype=wp.vec3d, device=device), wp.vec3d(*up), wp.float64(dtheta),
-                      before, after, out])
-    b, a, t = before.numpy(), after.numpy(), out.numpy()
-    np.testing.assert_allclose(b, np.arccos(np.clip(-(d @ up), -1, 1)), rtol=0, atol=1e-7)
-    np.testing.assert_allclose(a - b, dtheta, rtol=0, atol=1e-12)
-    np.testing.assert_allclose(np.linalg.norm(t, axis=1), 1.0, rtol=0, atol=1e-14)
-    # stays in the vertical plane of d: (d x up) . t == 0
-    np.testing.assert_allclose(np.einsum("ij,ij->i", np.cross(d, up), t), 0.0, rtol=0, atol=1e-14)
