@@ -86,6 +86,24 @@ def dist_code(d: wp.int32) -> wp.vec3i:
 
 
 @wp.func
+def parse_parts(n: wp.int32) -> wp.int32:
+    """Parse parts of a chunk of n bytes (see :func:`parse_kernel`)."""
+    return (n + PARSE_PART - 1) // PARSE_PART
+
+
+@wp.func
+def walk_start(buf: wp.array(dtype=wp.uint8), base: wp.int32, prev: wp.array2d(dtype=wp.int32), c: wp.int32,
+               i: wp.int32, n: wp.int32, pr: wp.int32, hlen: wp.int32, depth: wp.int32, nice: wp.int32):
+    """The start of position i's chain walk in :func:`match_kernel`: (first candidate,
+    candidates left, longest match to look for, the byte a match longer than 2 must match
+    first); no walk (no candidate, none left) where fewer than ``hlen`` bytes are left."""
+    if i + hlen - 1 >= n:
+        return -pr - 1, 0, 0, wp.uint8(0)
+    cap = wp.min(wp.min(258, wp.min(n, (i // PARSE_PART + 1) * PARSE_PART) - i), nice)
+    return prev[c, i + pr] - 1 - pr, depth, cap, buf[base + i + 2]
+
+
+@wp.func
 def chain_span(total: wp.int32, parts: wp.int32) -> wp.int32:
     """Positions per part of a chunk's ``total`` hashed positions (see chain_part_kernel)."""
     return (total + parts - 1) // parts
@@ -176,22 +194,14 @@ def match_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.int
     iend = wp.min(i + run, n)
     base = chunk_off[c]
     pr = prime[c]
-    # the walk of position i: next candidate, candidates left, best length, found, cap, the
-    # byte a longer match must match first
-    cand = int(-pr - 1)
-    left = int(0)
+    # the walk of position i: next candidate, candidates left, longest match to look for, the
+    # byte a longer match must match first; best length, found
+    cand, left, cap, tail = walk_start(buf, base, prev, c, i, n, pr, hlen, depth, nice)
     bl = int(2)
     found = int(0)
-    cap = int(0)
-    tail = wp.uint8(0)
     quartered = int(0)
     known_d = int(0)  # from the previous position's match: at this distance, known_l bytes match
     known_l = int(0)
-    if i + hlen - 1 < n:
-        cand = prev[c, i + pr] - 1 - pr
-        left = depth
-        cap = wp.min(wp.min(258, wp.min(n, (i // PARSE_PART + 1) * PARSE_PART) - i), nice)
-        tail = buf[base + i + 2]
     while i < iend:
         if cand >= -pr and left > 0 and bl < cap and i - cand <= MAX_DIST:
             if buf[base + cand + bl] == tail:
@@ -218,16 +228,11 @@ def match_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.int
             known_d = (found & 65535) + 1
             known_l = wp.max((found >> 16) - 1, 0)
             i = i + 1
-            cand = -pr - 1
-            left = 0
             bl = 2
             found = 0
             quartered = 0
-            if i < iend and i + hlen - 1 < n:
-                cand = prev[c, i + pr] - 1 - pr
-                left = depth
-                cap = wp.min(wp.min(258, wp.min(n, (i // PARSE_PART + 1) * PARSE_PART) - i), nice)
-                tail = buf[base + i + 2]
+            if i < iend:
+                cand, left, cap, tail = walk_start(buf, base, prev, c, i, n, pr, hlen, depth, nice)
 
 
 @wp.func
@@ -345,7 +350,7 @@ def parse_sum_kernel(chunk_len: wp.array(dtype=wp.int32), part_freq: wp.array3d(
     (bits per byte) for huffman_kernel's choice between tokens and literals."""
     c, s = wp.tid()
     n = chunk_len[c]
-    nparts = (n + PARSE_PART - 1) // PARSE_PART
+    nparts = parse_parts(n)
     f = int(0)
     if s < DIST0 + 30:
         for p in range(nparts):
@@ -606,7 +611,7 @@ def huffman_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.i
         if lit_bits < nbits:
             for k in range(n):
                 tokens[c, k] = wp.uint32(buf[base + k])
-            for p in range((n + PARSE_PART - 1) // PARSE_PART):
+            for p in range(parse_parts(n)):
                 ntok[c, p] = wp.min(PARSE_PART, n - p * PARSE_PART)
             extra[c] = 0
             nbits = lit_bits
@@ -724,7 +729,7 @@ def emit_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.int3
             p, acc, nb = put(out, p, acc, nb, e >> 8, 3)
         elif sym == 18:
             p, acc, nb = put(out, p, acc, nb, e >> 8, 7)
-    for part in range((n + PARSE_PART - 1) // PARSE_PART):
+    for part in range(parse_parts(n)):
         a = part * PARSE_PART
         for k in range(a, a + ntok[c, part]):
             t = tokens[c, k]
