@@ -541,17 +541,16 @@ def _creation_options(compress, dtype, level=None, co=None):
 
 def _block_codec(choice, device, deflate_cog, level=6):
     """The block codec a run uses (see :func:`orthorectify`'s ``block_codec``): "host",
-    "nvcomp", "hybrid" (nvCOMP and libdeflate) or "device" (device work, libdeflate only)."""
+    "nvcomp", "warp", "hybrid" (a device codec and libdeflate) or "device" (device work,
+    libdeflate only)."""
     if choice == "host" or not deflate_cog:
         return "host"
-    gpu = device.is_cuda and nvcomp_available()
     if choice == "auto":
-        # measured with 16 host cores: nvCOMP's medium-ratio variant (levels 1-4) is faster
-        # than any host level (H100, bench/reference/ortho-codecs-h100.json); at the higher
-        # levels orthowarp's deflate kernels and the host cores together beat the cores alone
-        # (H200, bench/reference/ortho-hybrid-h200.json: a 450 Mpix COG in 4.4 s against
-        # 6.2 s, a batch of 20 in 54.7 s against 77.5 s, 1.4 % larger files)
-        if gpu and level <= 4:
+        # measured with 16 host cores: at the higher levels orthowarp's deflate kernels and
+        # the host cores together beat the cores alone (H200, bench/reference/
+        # ortho-hybrid-h200.json: a 450 Mpix COG in 4.4 s against 6.2 s, a batch of 20 in
+        # 54.7 s against 77.5 s, 1.4 % larger files)
+        if device.is_cuda and _nvcomp_pays(level):
             return "nvcomp"
         return "hybrid" if device.is_cuda else "host"
     if choice == "hybrid":  # a device codec (nvCOMP or orthowarp's) and the host cores
@@ -560,10 +559,19 @@ def _block_codec(choice, device, deflate_cog, level=6):
         return "warp"
     if not device.is_cuda:
         raise ParamError(f"block_codec 'nvcomp' needs a CUDA device (the run is on {device})")
-    if not gpu:
+    if not nvcomp_available():
         raise DeviceError("block_codec 'nvcomp' needs nvCOMP: pip install 'orthowarp[gpu]' (package "
                           "nvidia-nvcomp-cu13)")
     return "nvcomp"
+
+
+def _nvcomp_pays(level):
+    """Whether nvCOMP deflates faster than the alternatives at a libdeflate ``level``: its
+    medium-ratio variant, at levels 1-4, beat every host level on an H100 with 16 cores
+    (bench/reference/ortho-codecs-h100.json); at level 6's ratio it ran at 0.2-0.4 GB/s,
+    below the host cores and orthowarp's kernels (bench/reference/deflate-codecs-h100.json,
+    deflate-codecs-warp-h200.json). False where nvCOMP is not installed."""
+    return level <= 4 and nvcomp_available()
 
 
 def _nvcomp_type(level):
@@ -586,12 +594,9 @@ def device_codecs(block_codec, level, device):
     codecs = []
     if block_codec == "nvcomp":
         codecs.append(NvcompDeflate(_nvcomp_type(level), device))
-    elif block_codec == "hybrid":
-        # the faster device codec at the level (bench/deflate_codecs.py on an H100: nvCOMP's
-        # medium-ratio variant for levels 1-4; at level 6's ratio nvCOMP ran at 0.2-0.4 GB/s,
-        # orthowarp's kernels at 0.7-0.9 GB/s)
-        use_nvcomp = level <= 4 and nvcomp_available()
-        codecs.append(NvcompDeflate(_nvcomp_type(level), device) if use_nvcomp else _warp_deflate(level, device))
+    elif block_codec == "hybrid":  # the faster device codec at the level
+        codecs.append(NvcompDeflate(_nvcomp_type(level), device) if _nvcomp_pays(level)
+                      else _warp_deflate(level, device))
     if block_codec in ("hybrid", "device"):
         codecs.append(HostDeflate(level))
     return codecs
