@@ -38,7 +38,7 @@ from scipy.sparse.csgraph import connected_components
 from ..camera import FrameCamera
 from ..errors import GeometryError, ParamError
 from .block import Block
-from .collinearity import CALIBRATION, camera_jacobian, jacobians, project, rotation
+from ..collinearity import CALIBRATION, camera_jacobian, jacobians, project, rotation
 
 __all__ = ["bundle_adjust", "AdjustResult", "intersect"]
 
@@ -397,7 +397,7 @@ def intersect(block, poses_deg, point_index, *, iterations=10, cam_rows=None, ro
                          "it cannot be intersected")
     i, jl = block.obs_image[sel], local[block.obs_point[sel]]
     # closed-form first value: the point nearest to all rays
-    from .collinearity import rotation
+    from ..collinearity import rotation
 
     with np.errstate(all="ignore"):
         r, _ = rotation(poses[i, 3:])

@@ -50,7 +50,7 @@ class LocalFrame:
         return np.r_[c, geodesy.opk_angles(self.r @ p.rotation)]
 
     def pose_from_local(self, pose):
-        r_ecef_cam = self.r.T @ (geodesy.rx(pose[3]) @ geodesy.ry(pose[4]) @ geodesy.rz(pose[5]))
+        r_ecef_cam = self.r.T @ geodesy.opk_matrix(np.radians(pose[3:6]))[0][0]
         lla = self.to_lla(pose[:3])[0]
         r_nav_body = geodesy.ned_to_ecef_matrix(lla[0], lla[1]).T @ r_ecef_cam @ MOUNT.T
         return np.r_[lla, _rpy(r_nav_body)]

@@ -42,7 +42,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from ..errors import ParamError
-from . import collinearity as col
+from .. import collinearity as col
 
 if TYPE_CHECKING:  # annotations only
     from ..camera import FrameCamera

@@ -17,7 +17,7 @@ import numpy as np
 from ..camera import FrameCamera
 from ..errors import ParamError
 from .block import Block
-from .collinearity import project
+from ..collinearity import project
 
 __all__ = ["synthetic_block", "film_camera", "CONTROL_LAYOUTS"]
 

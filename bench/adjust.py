@@ -23,7 +23,7 @@ import scipy.sparse as sp
 from scipy.optimize import least_squares
 
 from orthowarp.adjust import bundle_adjust, synthetic_block
-from orthowarp.adjust.collinearity import project
+from orthowarp.collinearity import project
 
 
 def reset_peak():

@@ -28,8 +28,9 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from geometry import scene  # noqa: E402
 
 from orthowarp.kernels import ortho as ok  # noqa: E402
-from orthowarp.pipeline.geometry import FrameGeometry  # noqa: E402
+from orthowarp.pipeline.geometry import SensorGeometry  # noqa: E402
 from orthowarp.pipeline.ortho import coarse_grid, coarse_struct, orthorectify, output_grid  # noqa: E402
+from orthowarp.sensor import FrameSensor
 
 TILE = 512
 
@@ -37,7 +38,7 @@ TILE = 512
 def source_coords(cam, pose, dem, device, refraction, grid_def):
     """(rows, cols, 2) source pixel of every output pixel of the output grid ``grid_def``
     (CRS, transform, shape: computed once, on the CPU)."""
-    geom = FrameGeometry(cam, pose, dem, device=device, refraction=refraction)
+    geom = SensorGeometry(FrameSensor(cam, pose), dem, device=device, refraction=refraction)
     out_crs, transform, shape = grid_def
     to_frame = Transformer.from_crs(out_crs, geom.horizontal_crs, always_xy=True)
     c, _, r = geom.sensor_structs()
@@ -96,7 +97,7 @@ def main():
         write_source(src, args.width, args.height)
         for refraction in (False, True):
             t = time.perf_counter()
-            out_crs, transform, shape, res = output_grid(FrameGeometry(cam, pose, dem, device="cpu",
+            out_crs, transform, shape, res = output_grid(SensorGeometry(FrameSensor(cam, pose), dem, device="cpu",
                                                                        refraction=refraction))
             coords = [source_coords(cam, pose, dem, dev, refraction, (out_crs, transform, shape)) for dev in devs]
             row = dict(refraction=refraction, output=list(shape), coords=compare(*coords),
@@ -105,7 +106,7 @@ def main():
                 outs = []
                 for k, dev in enumerate(devs):
                     dst = os.path.join(tmp, f"{k}-{resampling}-{refraction}.tif")
-                    orthorectify(src, cam, pose, dst, dem=dem, device=dev, resampling=resampling, crs=out_crs,
+                    orthorectify(src, FrameSensor(cam, pose), dst, dem=dem, device=dev, resampling=resampling, crs=out_crs,
                                  resolution=res, refraction=refraction, tile_size=TILE, compress="none")
                     with rasterio.open(dst) as ds:
                         outs.append((ds.read().astype(np.int16), ds.dataset_mask()))

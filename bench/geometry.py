@@ -26,7 +26,8 @@ from affine import Affine
 
 import orthowarp as ow
 from orthowarp.kernels import frame as frame_kernels
-from orthowarp.pipeline.geometry import FrameGeometry
+from orthowarp.pipeline.geometry import SensorGeometry
+from orthowarp.sensor import FrameSensor
 
 
 def scene(width, height):
@@ -134,7 +135,7 @@ def main(argv=None):
     samples = {}
     for name in devices:
         for refraction in (True, False):
-            geom = FrameGeometry(cam, pose, dem, refraction=refraction, device=name)
+            geom = SensorGeometry(FrameSensor(cam, pose), dem, refraction=refraction, device=name)
             dev = geom.device
             if dev.is_cuda:
                 r, sample = time_cuda(geom, args.width, args.height, args.repeats,
@@ -153,7 +154,7 @@ def main(argv=None):
     if len(devices) > 1:
         rng = np.random.default_rng(1)
         pix = np.column_stack([rng.uniform(0, args.width, 20000), rng.uniform(0, args.height, 20000)])
-        res = [FrameGeometry(cam, pose, dem, device=d).geolocate_frame(pix) for d in devices]
+        res = [SensorGeometry(FrameSensor(cam, pose), dem, device=d).geolocate_frame(pix) for d in devices]
         lat = np.radians(res[0][:, 1])
         d_e = (res[1][:, 0] - res[0][:, 0]) * 111320.0 * np.cos(lat)
         d_n = (res[1][:, 1] - res[0][:, 1]) * 111132.0

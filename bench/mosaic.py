@@ -38,6 +38,7 @@ import tempfile
 import time
 
 import numpy as np
+from orthowarp.sensor import FrameSensor
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.join(HERE, "..", "tests"))  # the independent renderer and its reference
@@ -124,7 +125,7 @@ def run_mosaic(spec_path, out_path):
     from affine import Affine
 
     dem = ow.Dem(np.load(spec["dem"]), Affine(*spec["dem_transform"]), UTM32)
-    jobs = [(j["path"], cam, ow.Pose.from_opk(**j["pose"], crs=UTM32)) for j in spec["jobs"]]
+    jobs = [(j["path"], ow.FrameSensor(cam, ow.Pose.from_opk(**j["pose"], crs=UTM32))) for j in spec["jobs"]]
     t = time.perf_counter()
     m = ow.mosaic(jobs, out_path, dem=dem, refraction=False, reference=0, index=out_path + ".index.tif",
                   overwrite=True, device=spec["device"])
@@ -259,7 +260,7 @@ def build_speed(folder, n_images, strips, width, height):
             continue
         pose = exterior[f"f{k:03d}"].pose
         cc, rr = np.meshgrid(gc, gr)
-        xyz = ow.geolocate(camera, pose, np.stack([cc.ravel(), rr.ravel()], -1), dem=dem, crs=UTM32,
+        xyz = ow.geolocate(FrameSensor(camera, pose), np.stack([cc.ravel(), rr.ravel()], -1), dem=dem, crs=UTM32,
                            refraction=False)
         gx = xp.asarray(xyz[:, 0].reshape(cc.shape) - X0)
         gy = xp.asarray(xyz[:, 1].reshape(cc.shape) - Y0)

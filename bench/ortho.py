@@ -34,8 +34,9 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from geometry import scene  # noqa: E402
 
 from orthowarp.kernels import ortho as ok  # noqa: E402
-from orthowarp.pipeline.geometry import FrameGeometry  # noqa: E402
+from orthowarp.pipeline.geometry import SensorGeometry  # noqa: E402
 from orthowarp.pipeline.ortho import COARSE_STEP, ORTHO_BLOCK_DIM, RESAMPLING, coarse_grid, coarse_struct, orthorectify, output_grid  # noqa: E402
+from orthowarp.sensor import FrameSensor
 
 
 # Runs a click CLI (module, function) in a child that reports its own peak resident memory when it
@@ -139,7 +140,7 @@ def kernel_only(geom, src_path, resampling, repeats=3):
     sw.valid = wp.array(np.ones((1, 1), np.uint8), dtype=wp.uint8, device=dev)
     sw.col0 = sw.row0 = 0
     sw.inv_sx = sw.inv_sy = 1.0
-    width, height = float(geom.camera.image_size[0]), float(geom.camera.image_size[1])
+    width, height = float(geom.image_size[0]), float(geom.image_size[1])
     cam, _, refr, dem, _ = geom.structs()
     method = RESAMPLING[resampling]
     n_bands = 1 if dev.is_cuda else 4 * (os.cpu_count() or 1)
@@ -151,7 +152,7 @@ def kernel_only(geom, src_path, resampling, repeats=3):
         bands.append(dict(
             shape=(r1 - r0, cols),
             coarse=coarse_struct(np.ascontiguousarray(coarse_all[c0:max(c1, c0 + 2)]), geom.geocentric, dev,
-                                 pose=geom.pose),
+                                 pose=geom.sensor.pose),
             out=wp.empty((r1 - r0, cols, count), dtype=wp.uint8, device=dev),
             valid=wp.empty((r1 - r0, cols), dtype=wp.uint8, device=dev)))
     block_dim = [ORTHO_BLOCK_DIM]
@@ -288,14 +289,14 @@ def main(argv=None):
               f"rc {o['returncode']} {o['stderr'][-300:]}", flush=True)
 
     for name in devices:
-        geom = FrameGeometry(cam, pose, dem, device=name, refraction=not args.no_refraction)
+        geom = SensorGeometry(FrameSensor(cam, pose), dem, device=name, refraction=not args.no_refraction)
         r = dict(device=str(geom.device), device_name=geom.device.name)
         report["results"].append(r)  # in the report from the start: a run cut short keeps what it measured
         r.update(kernel_only(geom, src, args.resampling, repeats=3 if geom.device.is_cuda else 1))
         for codec in ("auto", "host"):  # the default; the host path if the default fails
             t = time.perf_counter()
             try:
-                res = orthorectify(src, cam, pose, os.path.join(work, f"inproc_{r['device'].replace(':', '')}.tif"),
+                res = orthorectify(src, FrameSensor(cam, pose), os.path.join(work, f"inproc_{r['device'].replace(':', '')}.tif"),
                                    dem=dem, resampling=args.resampling, method=args.method, overwrite=True,
                                    device=name, refraction=not args.no_refraction, block_codec=codec)
                 break

@@ -27,8 +27,9 @@ from orthowarp.kernels import ortho as ok  # noqa: E402
 from orthowarp.kernels.camera import FrameCameraData  # noqa: E402
 from orthowarp.kernels.dem import DemData  # noqa: E402
 from orthowarp.kernels.refraction import RefractionTable  # noqa: E402
-from orthowarp.pipeline.geometry import FrameGeometry  # noqa: E402
+from orthowarp.pipeline.geometry import SensorGeometry  # noqa: E402
 from orthowarp.pipeline.ortho import coarse_grid, coarse_struct, output_grid  # noqa: E402
+from orthowarp.sensor import FrameSensor
 
 
 def _fused(cam: FrameCameraData, refr: RefractionTable, dem: DemData, grid: ok.CoarseGrid,
@@ -60,11 +61,11 @@ def main(argv=None):
     src_path = os.path.join(args.workdir, "frame.tif")
     if not os.path.exists(src_path):
         write_source(src_path, args.width, args.height)
-    geom = FrameGeometry(cam, pose, dem, device=dev, refraction=True)
+    geom = SensorGeometry(FrameSensor(cam, pose), dem, device=dev, refraction=True)
     crs, transform, shape, _ = output_grid(geom)
     rows, cols = shape
     uv = coarse_grid(transform, Transformer.from_crs(crs, "EPSG:4326", always_xy=True), 0, 0, rows, cols)
-    grid = coarse_struct(uv, geom.geocentric, dev, pose=geom.pose)
+    grid = coarse_struct(uv, geom.geocentric, dev, pose=geom.sensor.pose)
     with rasterio.open(src_path) as ds:
         data = wp.array(ds.read(), dtype=wp.uint8, device=dev)
     sw = ok.SourceWindow()

@@ -30,7 +30,7 @@ from rasterio.windows import Window
 
 import orthowarp as ow
 from orthowarp.kernels import pushbroom as pb_kernels
-from orthowarp.pipeline.geometry import PushbroomGeometry
+from orthowarp.pipeline.geometry import SensorGeometry
 from orthowarp.pushbroom import synthetic_scene
 
 
@@ -156,7 +156,7 @@ def main(argv=None):
                   line_period_s=scene.line_period, dem_shape=list(dem.shape), refraction=True,
                   cpu_count=os.cpu_count(), warp=wp.__version__, results=[])
     for name in devices:
-        geom = PushbroomGeometry(scene, dem, device=name)
+        geom = SensorGeometry(scene, dem, device=name)
         r = dict(device=str(geom.device), device_name=geom.device.name)
         r.update(forward_backward(geom, args.size, args.cpu_step, args.repeats if geom.device.is_cuda else 1))
         print(f"{r['device_name']:>24s} forward {r['forward_gpix_s']:.4f} Gpix/s backward {r['backward_gpix_s']:.4f} "

@@ -83,7 +83,7 @@ def main(argv=None):
     jobs = []
     for path in images:
         o = exterior[os.path.splitext(os.path.basename(path))[0]]
-        jobs.append((path, cameras[o.camera_id] if o.camera_id else next(iter(cameras.values())), o.pose))
+        jobs.append((path, ow.FrameSensor(cameras[o.camera_id] if o.camera_id else next(iter(cameras.values())), o.pose)))
     os.makedirs(args.out, exist_ok=True)
     dem = ow.Dem.from_file(os.path.join(data, dem_path))
     name = os.path.join(args.out, f"{args.dataset}_mosaic")

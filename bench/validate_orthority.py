@@ -31,6 +31,7 @@ from rasterio.windows import from_bounds
 import orthowarp as ow
 from orthowarp.pipeline.formats import read_cameras, read_exterior
 from orthowarp.pipeline.registration import misregistration
+from orthowarp.sensor import FrameSensor
 
 # images, interior and exterior orientation, DEM (relative to the data folder), resolution (m)
 DATASETS = {
@@ -119,7 +120,7 @@ def main(argv=None):
         for img in images:
             key = os.path.splitext(os.path.basename(img))[0]
             dst = os.path.join(work, f"{key}_{'refr' if refraction else 'norefr'}.tif")
-            ow.orthorectify(img, cams.get(ext[key].camera_id, camera), ext[key].pose, dst, dem=dem, resolution=RES,
+            ow.orthorectify(img, FrameSensor(cams.get(ext[key].camera_id, camera), ext[key].pose), dst, dem=dem, resolution=RES,
                             resampling="bilinear", refraction=refraction, overwrite=True, device=args.device)
             ours[(key, refraction)] = dst
     report = dict(dataset=args.dataset, data=data, resolution=RES, orthority=[], refraction_effect=[])

@@ -13,7 +13,7 @@ import warp as wp
 
 from .dem import DemData
 from .frame import MODE_GEOCENTRIC, FramePoseData, SearchParams, apparent_direction, geolocate_ray
-from .geodesy import ecef_to_geodetic_sc
+from .geodesy import DEG, ecef_to_geodetic_sc, geodetic_to_ecef
 from .refraction import RefractionTable
 
 wp.set_module_options({"enable_backward": False})
@@ -350,3 +350,18 @@ def pb_project_kernel(
     """ECEF points (N,) at ellipsoidal heights (N,), first line-time guesses (N,) -> pixels."""
     i = wp.tid()
     out[i] = pb_project(pb, refr, xyz[i], heights[i], t0[i])
+
+
+@wp.kernel
+def pb_project_geo_kernel(
+    pb: PushbroomData,
+    refr: RefractionTable,
+    points: wp.array(dtype=wp.vec3d),
+    out: wp.array(dtype=wp.vec2d),
+):
+    """Project geo triples (N,) (lon, lat deg, ellipsoidal h m) -> pixels (N,), the line-time
+    iteration started at the scene centre (the frame's ``project_kernel`` signature)."""
+    i = wp.tid()
+    g = points[i]
+    x = geodetic_to_ecef(g[1] * DEG, g[0] * DEG, g[2])
+    out[i] = pb_project(pb, refr, x, g[2], wp.float64(0.0))

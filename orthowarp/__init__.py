@@ -46,6 +46,11 @@ _LAZY = {
     "project": ".pipeline.geometry",
     "orthorectify": ".pipeline.ortho",
     "mosaic": ".pipeline.mosaic",
+    "read_scene": ".pipeline.dimap",
+    "read_block": ".pipeline.blockio",
+    "write_block": ".pipeline.blockio",
+    "SensorModel": ".sensor",
+    "FrameSensor": ".sensor",
 }
 _SUBPACKAGES = ("adjust", "kernels", "pipeline")  # ``ow.adjust.bundle_adjust`` etc. without an import
 
@@ -58,6 +63,11 @@ __all__ = [
     "project",
     "orthorectify",
     "mosaic",
+    "SensorModel",
+    "FrameSensor",
+    "read_scene",
+    "read_block",
+    "write_block",
     "OrthowarpError",
     "ParamError",
     "CrsError",

@@ -15,6 +15,7 @@ import click
 import numpy as np
 
 from .errors import OrthowarpError, OrthowarpWarning
+from .sensor import FrameSensor
 
 
 class _Group(click.Group):
@@ -316,20 +317,19 @@ def ortho(ctx, images, odm_dataset, int_param, ext_param, dimap, attitude_model,
         profiles = []
 
         def one(job):
-            image, *sensor, dst = job
-            r = orthorectify(image, *sensor, dst, dem=terrain, **options)
+            image, sensor, dst = job
+            r = orthorectify(image, sensor, dst, dem=terrain, **options)
             if accuracy:
                 from .pipeline.precision import accuracy_raster
 
-                if len(sensor) == 1:  # a pushbroom scene
+                if sensor.kind == "pushbroom":
                     from .pipeline.precision import scene_accuracy_raster
 
-                    scene_accuracy_raster(_accuracy_name(dst), sensor[0], terrain, r.crs, r.transform, r.shape,
+                    scene_accuracy_raster(_accuracy_name(dst), sensor, terrain, r.crs, r.transform, r.shape,
                                           orientation_cov=np.diag(sigmas) ** 2, pixel_sigma=pixel_sigma,
                                           dem_sigma=dem_sigma, refraction=not no_refraction, device=device)
                 else:
-                    camera, pose = sensor
-                    accuracy_raster(_accuracy_name(dst), camera, pose, terrain, r.crs, r.transform, r.shape,
+                    accuracy_raster(_accuracy_name(dst), sensor.camera, sensor.pose, terrain, r.crs, r.transform, r.shape,
                                     pose_cov=np.diag(sigmas) ** 2, pixel_sigma=pixel_sigma, dem_sigma=dem_sigma)
             return dst, r
 
@@ -370,7 +370,7 @@ def ortho(ctx, images, odm_dataset, int_param, ext_param, dimap, attitude_model,
                             show=show_profile, path=profile_json)
 
     if dimap is not None:
-        from .pushbroom import PushbroomScene
+        from .pipeline.dimap import read_scene
 
         if int_param or ext_param:
             raise ParamError("--dimap replaces --int-param and --ext-param: give one or the other")
@@ -378,7 +378,7 @@ def ortho(ctx, images, odm_dataset, int_param, ext_param, dimap, attitude_model,
             raise ParamError(f"--dimap describes one scene: give its one image, not {len(images)}")
         if not os.path.exists(images[0]):
             raise RasterIOError(f"Image '{images[0]}' does not exist")
-        scene = PushbroomScene.from_dimap(dimap, attitude_model=attitude_model)
+        scene = read_scene(dimap, attitude_model=attitude_model)
         key = os.path.splitext(os.path.basename(images[0]))[0]
         run([(images[0], scene, os.path.join(out_dir, f"{key}_ORTHO.tif"))])
         return
@@ -391,7 +391,7 @@ def ortho(ctx, images, odm_dataset, int_param, ext_param, dimap, attitude_model,
         if dst in seen:
             raise ParamError(f"Images '{seen[dst]}' and '{image}' would both be written to '{dst}'")
         seen[dst] = image
-        jobs.append((image, camera, pose, dst))
+        jobs.append((image, FrameSensor(camera, pose), dst))
     run(jobs)
 
 
@@ -677,14 +677,15 @@ def mosaic(ctx, images, int_param, ext_param, odm_dataset, scenes, attitude_mode
         scene_sigmas = _sigma_list(scene_sigma, 8, "--scene-sigma", "m, m, m, deg x 5")
         _check_measurement_sigmas(pixel_sigma, dem_sigma)
         check_destination(_accuracy_name(out_path), overwrite=overwrite)
-    jobs = _frame_orientations(images, int_param, ext_param, crs) if images else []
+    jobs = [(image, FrameSensor(camera, pose))
+            for image, camera, pose in (_frame_orientations(images, int_param, ext_param, crs) if images else [])]
     if scenes:
-        from .pushbroom import PushbroomScene
+        from .pipeline.dimap import read_scene
 
         for image, dimap in scenes:
             if not os.path.exists(image):
                 raise RasterIOError(f"Image '{image}' does not exist")
-            jobs.append((image, PushbroomScene.from_dimap(dimap, attitude_model=attitude_model)))
+            jobs.append((image, read_scene(dimap, attitude_model=attitude_model)))
     terrain = Dem.from_file(dem) if dem is not None else height
     r = make_mosaic(jobs, out_path, dem=terrain, crs=crs, resolution=resolution, resampling=resampling,
                     refraction=not no_refraction, dtype=dtype, index=index_path, seamlines=seamlines_path,
@@ -803,7 +804,8 @@ def adjust(ctx, block_file, out_dir, write_example, cameras, exterior, image_poi
     and --ground-points) and write the refined orientation, points and reports into --out. A run
     that does not converge, or ends singular, writes nothing and exits with status 1. Try it:
     orthowarp adjust block.json --write-example --out adjusted"""
-    from .adjust import bundle_adjust, read_block
+    from .adjust import bundle_adjust
+    from .pipeline.blockio import read_block
     from .errors import Cancelled, GeometryError, ParamError
     from .pipeline.adjust_report import write_adjustment
 
@@ -822,7 +824,8 @@ def adjust(ctx, block_file, out_dir, write_example, cameras, exterior, image_poi
             raise ParamError("Give BLOCK_FILE (a block JSON; --write-example writes one) or the four CSV/orientation "
                              "files")
         if write_example:
-            from .adjust import synthetic_block, write_block
+            from .adjust import synthetic_block
+            from .pipeline.blockio import write_block
             from .pipeline.io import check_destination
 
             check_destination(block_file, overwrite=False)

@@ -19,6 +19,7 @@ __all__ = [
     "rx",
     "ry",
     "rz",
+    "opk_matrix",
     "opk_angles",
     "r1",
     "r2",
@@ -98,7 +99,7 @@ def geodetic_up(lat, lon):
 def enu_to_ecef_matrix(lat, lon):
     """R_ecef<-enu (3, 3) at latitude, longitude (deg): columns east, north, up (seed 003 eq. 9)."""
     m = ned_to_ecef_matrix(lat, lon)
-    return np.stack([m[:, 1], m[:, 0], -m[:, 2]], axis=1)
+    return np.stack([m[:, 1], m[:, 0], geodetic_up(lat, lon)], axis=1)
 
 
 def rx(angle):
@@ -119,9 +120,45 @@ def rz(angle):
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
+def opk_matrix(angles):
+    """R = Rx(omega) Ry(phi) Rz(kappa) (PATB: camera -> object) and its derivatives, for many
+    angle triples; the one place this product is written (:meth:`Pose.from_opk`, the bundle
+    adjustment and :class:`~orthowarp.sensor.FrameSensor` use it).
+
+    Parameters
+    ----------
+    angles : array_like, shape (n, 3)
+        omega, phi, kappa (rad).
+
+    Returns
+    -------
+    r : ndarray, shape (n, 3, 3)
+    dr : ndarray, shape (n, 3, 3, 3)
+        dr[:, k] = dR / d(angle k) (per radian).
+    """
+    a = np.asarray(angles, dtype=np.float64).reshape(-1, 3)
+    so, co = np.sin(a[:, 0]), np.cos(a[:, 0])
+    sp, cp = np.sin(a[:, 1]), np.cos(a[:, 1])
+    sk, ck = np.sin(a[:, 2]), np.cos(a[:, 2])
+    r = np.empty((len(a), 3, 3))
+    r[:, 0, 0], r[:, 0, 1], r[:, 0, 2] = cp * ck, -cp * sk, sp
+    r[:, 1, 0], r[:, 1, 1], r[:, 1, 2] = co * sk + so * sp * ck, co * ck - so * sp * sk, -so * cp
+    r[:, 2, 0], r[:, 2, 1], r[:, 2, 2] = so * sk - co * sp * ck, so * ck + co * sp * sk, co * cp
+    dr = np.zeros((len(a), 3, 3, 3))
+    # d/d omega = Gx R (Gx the generator of x): rows (0, -R2, R1)
+    dr[:, 0, 1], dr[:, 0, 2] = -r[:, 2], r[:, 1]
+    # d/d phi = Rx (Gy Ry) Rz
+    dr[:, 1, 0, 0], dr[:, 1, 0, 1], dr[:, 1, 0, 2] = -sp * ck, sp * sk, cp
+    dr[:, 1, 1, 0], dr[:, 1, 1, 1], dr[:, 1, 1, 2] = so * cp * ck, -so * cp * sk, so * sp
+    dr[:, 1, 2, 0], dr[:, 1, 2, 1], dr[:, 1, 2, 2] = -co * cp * ck, co * cp * sk, -co * sp
+    # d/d kappa = R Gz: columns (R1, -R0, 0)
+    dr[:, 2, :, 0], dr[:, 2, :, 1] = r[:, :, 1], -r[:, :, 0]
+    return r, dr
+
+
 def opk_angles(r):
-    """(omega, phi, kappa) (deg, Python floats) of ``R = rx(omega) @ ry(phi) @ rz(kappa)`` (3, 3): the
-    inverse of that product, phi within +-90 degrees."""
+    """(omega, phi, kappa) (deg, Python floats) of ``R = Rx(omega) Ry(phi) Rz(kappa)`` (3, 3): the
+    inverse of :func:`opk_matrix`, phi within +-90 degrees."""
     phi = np.arcsin(np.clip(r[0, 2], -1.0, 1.0))
     angles = np.degrees([np.arctan2(-r[1, 2], r[2, 2]), phi, np.arctan2(-r[0, 1], r[0, 0])])
     return tuple(float(a) for a in angles)

@@ -148,7 +148,7 @@ class Pose:
         crs = as_crs(crs)
         if not crs.is_projected:
             raise CrsError(f"crs must be a projected CRS for omega-phi-kappa poses, got {crs.name!r}")
-        rot = geodesy.rx(vals[3]) @ geodesy.ry(vals[4]) @ geodesy.rz(vals[5])
+        rot = geodesy.opk_matrix(np.radians(vals[3:]))[0][0]
         params = dict(zip(("x", "y", "z", "omega", "phi", "kappa"), vals))
         return cls(MAP, vals[:3], rot, crs, params=params)
 
@@ -170,7 +170,7 @@ class Pose:
         if self.mode == MAP:
             return np.array([0.0, 0.0, 1.0])
         lat, lon, _ = self.center_geodetic
-        return -geodesy.ned_to_ecef_matrix(lat, lon)[:, 2]
+        return geodesy.geodetic_up(lat, lon)
 
     @property
     def height(self) -> float:

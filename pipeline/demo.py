@@ -22,7 +22,8 @@ from .dem import Dem
 import rasterio
 from pyproj import Transformer
 
-from .geometry import FrameGeometry, geolocate, project
+from ..sensor import FrameSensor
+from .geometry import SensorGeometry, geolocate, project
 from .io import ensure_folder, write_json, write_raster, write_text
 from .ortho import orthorectify
 from .registration import misregistration
@@ -109,7 +110,7 @@ def run_demo(out_dir="orthowarp-demo", *, device=None, seed=0):
 
     # 1. Forward geolocation of every pixel centre (float64, DEM relief search, refraction on).
     t0 = time.perf_counter()
-    geom = FrameGeometry(camera, pose, dem, refraction=True, device=device)
+    geom = SensorGeometry(FrameSensor(camera, pose), dem, refraction=True, device=device)
     ground = geom.geolocate_image()
     t_geo = time.perf_counter() - t0
     valid = np.all(np.isfinite(ground), axis=2)
@@ -125,18 +126,18 @@ def run_demo(out_dir="orthowarp-demo", *, device=None, seed=0):
     lon = rng.uniform(lo[0], hi[0], 4000)
     lat = rng.uniform(lo[1], hi[1], 4000)
     truth = np.stack([lon, lat, dem.sample(lon, lat)], axis=1)
-    pix = project(camera, pose, truth, device=device)
+    pix = project(FrameSensor(camera, pose), truth, device=device)
     inside = np.all(np.isfinite(pix), axis=1) & (pix[:, 0] >= 0) & (pix[:, 0] <= w) & (pix[:, 1] >= 0) & (pix[:, 1] <= h)
     truth, pix = truth[inside][:1000], pix[inside][:1000]
-    back = geolocate(camera, pose, pix, dem=dem, device=device)
+    back = geolocate(FrameSensor(camera, pose), pix, dem=dem, device=device)
     err_m = _enu_error(back, truth)
-    again = project(camera, pose, back, device=device)
+    again = project(FrameSensor(camera, pose), back, device=device)
     err_px = np.hypot(*(again - pix).T)
     gsd = (pose.height - np.nanmean(ground[..., 2])) * camera.pixel_size[0] / camera.focal_length
 
     # 4. Orthorectify the frame and measure its misregistration against the truth texture.
     t0 = time.perf_counter()
-    ortho = orthorectify(os.path.join(out_dir, "image.tif"), camera, pose, os.path.join(out_dir, "ortho.tif"),
+    ortho = orthorectify(os.path.join(out_dir, "image.tif"), FrameSensor(camera, pose), os.path.join(out_dir, "ortho.tif"),
                          dem=dem, resampling="bicubic", overwrite=True, device=device)
     t_ortho = time.perf_counter() - t0
     with rasterio.open(ortho.path) as ds:
@@ -151,7 +152,7 @@ def run_demo(out_dir="orthowarp-demo", *, device=None, seed=0):
     edge = np.linspace(0.0, 1.0, 33)[:-1]
     border = np.concatenate([np.stack([edge * w, 0 * edge], 1), np.stack([0 * edge + w, edge * h], 1),
                              np.stack([w - edge * w, 0 * edge + h], 1), np.stack([0 * edge, h - edge * h], 1)])
-    foot = geolocate(camera, pose, border, dem=dem, device=device)
+    foot = geolocate(FrameSensor(camera, pose), border, dem=dem, device=device)
     ring = [[float(x), float(y)] for x, y in foot[:, :2] if np.isfinite(x)]
     write_json(os.path.join(out_dir, "footprint.geojson"), {
         "type": "FeatureCollection", "features": [{"type": "Feature", "properties": {"image": "image.tif"},

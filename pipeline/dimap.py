@@ -34,9 +34,9 @@ import numpy as np
 
 from ..errors import ParamError, RasterIOError
 from ..geodesy import WGS84_B
-from ..pushbroom import MAX_DETECTORS, MAX_LINES, check_line_period
+from ..pushbroom import MAX_DETECTORS, MAX_LINES, PushbroomScene, check_line_period
 
-__all__ = ["DimapMetadata", "read_dimap", "write_dimap", "MAX_BYTES", "MAX_ELEMENTS"]
+__all__ = ["DimapMetadata", "read_dimap", "read_scene", "write_dimap", "MAX_BYTES", "MAX_ELEMENTS"]
 
 #: Largest DIMAP file read (bytes).
 MAX_BYTES = 64 << 20
@@ -332,6 +332,24 @@ def read_dimap(path):
                          center_line=center_line, eph_time=eph_t, eph_position=eph_p, eph_velocity=eph_v,
                          att_time=att_t, att_angles=att_a, attitude_source=source, psi_x=px, psi_y=py,
                          look_angles_interpolated=interpolated, frame=frame, scene_center=center, mission=mission)
+
+
+def read_scene(path, *, attitude_model="full"):
+    """The :class:`~orthowarp.pushbroom.PushbroomScene` of a SPOT level-1A DIMAP metadata file.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The DIMAP file (METADATA.DIM).
+    attitude_model : {"full", "first_order"}, optional
+        See :class:`~orthowarp.pushbroom.PushbroomScene`.
+
+    Raises
+    ------
+    ParamError, RasterIOError
+        As :func:`read_dimap`, naming the file.
+    """
+    return PushbroomScene.from_metadata(read_dimap(path), attitude_model=attitude_model)
 
 
 def write_dimap(scene, path, *, epoch="2020-06-01T10:30:00.000000"):

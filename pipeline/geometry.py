@@ -6,40 +6,36 @@ import copy
 import math
 import numbers
 import os
+import sys
 from concurrent.futures import ThreadPoolExecutor
+from typing import TYPE_CHECKING
 
 import numpy as np
 import warp as wp
 from pyproj import CRS, Transformer
 
 from .._device import load_modules, quiet_warp, resolve_device
-from .._validate import as_crs, no_infinite_rows, points
-from ..camera import FrameCamera
+from .._validate import as_crs, no_infinite_rows
+from .._validate import points as _as_points
 from ..errors import GeometryError, ParamError
-from ..kernels import frame as frame_kernels
-from ..kernels.frame import SearchParams, geolocate_grid_kernel, geolocate_kernel, project_kernel
-from ..kernels import pushbroom as pb_kernels
-from ..pose import GEOCENTRIC, Pose
-from ..pushbroom import PushbroomScene
+from ..kernels.frame import SearchParams
 from ..refraction import RefractionModel
+from ..sensor import SensorModel, check_centre_above_terrain
 from .dem import MAX_GROUND_HEIGHT, Dem, _horizontal, as_dem, memory_budget
 from .vertical import reconcile_dem
 
-__all__ = ["geolocate", "project", "FrameGeometry", "PushbroomGeometry", "check_camera_above_terrain"]
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
+
+__all__ = ["geolocate", "project", "SensorGeometry", "check_camera_above_terrain"]
 
 LLH = "EPSG:4979"
 
 
-def _check_sensor(camera, pose):
-    if not isinstance(camera, FrameCamera):
-        raise ParamError(f"camera must be a FrameCamera, got {type(camera).__name__}")
-    if not isinstance(pose, Pose):
-        raise ParamError(f"pose must be a Pose, got {type(pose).__name__}")
-
-
-def _frame_crs(pose):
-    """CRS of the geo triples the kernels exchange for this pose (3-D)."""
-    return as_crs(LLH) if pose.mode == GEOCENTRIC else pose.crs.to_3d()
+def _check_sensor_model(sensor):
+    if not isinstance(sensor, SensorModel):
+        raise ParamError(f"sensor must be a FrameSensor (camera and pose) or a PushbroomScene, got "
+                         f"{type(sensor).__name__}")
 
 
 def _region_border(region, n=65):
@@ -180,17 +176,19 @@ def _transform(xyz, src, dst):
     return np.stack([x, y, z], axis=1)
 
 
-class FrameGeometry:
-    """A frame camera + pose + DEM packed for the kernels on one device.
+class SensorGeometry:
+    """A sensor + DEM packed for the kernels on one device: the host object the pipeline keeps
+    per image, for every kind of sensor (:class:`~orthowarp.sensor.SensorModel`).
 
-    This is the host object the pipeline keeps per image: it prepares the DEM in the pose's
-    frame (reprojected and cropped to the footprint), builds the refraction table and holds the
-    device structs, so repeated launches pay nothing more.
+    It prepares the DEM in the sensor's frame (vertical datum reconciled, reprojected and
+    cropped to the footprint), builds the refraction table and holds the device structs, so
+    repeated launches pay nothing more.
 
     Parameters
     ----------
-    camera : FrameCamera
-    pose : Pose
+    sensor : SensorModel
+        A :class:`~orthowarp.sensor.FrameSensor` or a
+        :class:`~orthowarp.pushbroom.PushbroomScene`.
     dem : Dem, str or float
         Terrain: a DEM, a DEM file or a constant ellipsoidal height (m). A DEM file not read whole
         (:meth:`Dem.from_file`) is read over the region's footprint only (see
@@ -214,70 +212,63 @@ class FrameGeometry:
         Take DEM and position heights as the same datum whatever their CRSs declare.
     """
 
-    def __init__(self, camera, pose, dem, *, refraction=True, device=None, region=None, tolerance=1e-4,
+    def __init__(self, sensor, dem, *, refraction=True, device=None, region=None, tolerance=1e-4,
                  height_range=None, geoid=None, same_vertical_datum=False):
-        _check_sensor(camera, pose)
-        self.camera, self.pose = camera, pose
+        if not isinstance(sensor, SensorModel):
+            raise ParamError(f"sensor must be a FrameSensor or a PushbroomScene, got {type(sensor).__name__}")
+        self.sensor = sensor
         self.device = resolve_device(device)
-        load_modules(self.device, frame_kernels)  # compiled here on a first run, with a notice
+        load_modules(self.device, _kernel_module(sensor))  # compiled here on a first run, with a notice
         self._probe_base = None
         if region is None:
-            region = (0.0, 0.0, float(camera.image_size[0]), float(camera.image_size[1]))
-        frame = None if pose.mode == GEOCENTRIC else pose.crs
+            region = (0.0, 0.0, *map(float, sensor.image_size))
+        frame = None if sensor.geocentric else sensor.frame_crs
         terrain = as_dem(dem)
         dem = _prepared_dem(terrain, lambda d: reconcile_dem(
-            d, pose, geoid=geoid, same_vertical_datum=same_vertical_datum, name=_dem_name(d)).for_frame(frame),
-            self._probe, region, self.horizontal_crs, height_range)
-        check_camera_above_terrain(pose, dem, name=terrain.source)
+            d, sensor.positions, geoid=geoid, same_vertical_datum=same_vertical_datum,
+            name=_dem_name(d)).for_frame(frame), self._probe, region, self.horizontal_crs, height_range)
+        sensor.check_above_terrain(dem, name=terrain.source)
         self.dem = self._crop_to_footprint(dem, region) if not dem.is_constant else dem
         hmin, hmax = height_range if height_range is not None else (self.dem.hmin, self.dem.hmax)
-        self.refraction = RefractionModel(pose.height, hmin, hmax, enabled=refraction)
+        self.refraction = RefractionModel(sensor.reference_height(), hmin, hmax, enabled=refraction)
         self.search = SearchParams()
         self.search.htol = float(tolerance)
         self.search.max_steps = 1 << 20
         self._structs = None
 
-    @property
-    def image_size(self):
-        """(width, height) of the image in pixels."""
-        return tuple(self.camera.image_size)
-
-    @property
-    def geocentric(self):
-        """True when the object frame is ECEF and geo triples are lon, lat, h."""
-        return self.pose.mode == GEOCENTRIC
-
-    @property
-    def horizontal_crs(self):
-        """CRS of the horizontal coordinates of the geo triples (lon/lat or map x/y)."""
-        return as_crs("EPSG:4326") if self.geocentric else self.pose.crs
+    image_size = property(lambda self: tuple(self.sensor.image_size), doc="(width, height) of the image in pixels.")
+    geocentric = property(lambda self: self.sensor.geocentric,
+                          doc="True when the object frame is ECEF and geo triples are lon, lat, h.")
+    horizontal_crs = property(lambda self: self.sensor.horizontal_crs,
+                              doc="CRS of the horizontal coordinates of the geo triples (lon/lat or map x/y).")
+    frame_crs = property(lambda self: self.sensor.frame_crs, doc="CRS of the geo triples.")
 
     def at_height(self, h):
         """The same sensor over a constant height h (m)."""
-        return FrameGeometry(self.camera, self.pose, Dem.constant(h), refraction=self.refraction.enabled,
-                             device=self.device)
+        return SensorGeometry(self.sensor, Dem.constant(h), refraction=self.refraction.enabled, device=self.device)
 
     def sensor_structs(self):
-        """The structs the per-pixel ortho kernels take before the DEM: (camera, pose, refraction)."""
-        return self.structs()[:3]
+        """The structs the per-pixel ortho kernels take before the DEM: the sensor's
+        (:meth:`~orthowarp.sensor.SensorModel.arg_value`) and the refraction table."""
+        return self.structs()[:-2]
 
     def dem_struct(self):
         """The DEM's struct on the device."""
-        return self.structs()[3]
+        return self.structs()[-2]
 
     def structs(self):
-        """(camera, pose, refraction, dem, search) structs on the device."""
+        """(*sensor structs, refraction, dem, search) on the device: the kernels' leading
+        arguments."""
         if self._structs is None:
-            self._structs = (self.camera.to_struct(), self.pose.to_struct(),
-                             self.refraction.to_struct(self.device), self.dem.to_struct(self.device),
-                             self.search)
+            self._structs = (*self.sensor.arg_value(self.device), self.refraction.to_struct(self.device),
+                             self.dem.to_struct(self.device), self.search)
         return self._structs
 
     def _probe(self, h):
         """This sensor over a constant height h (m), with refraction, for footprints."""
         if self._probe_base is None:
-            self._probe_base = FrameGeometry(self.camera, self.pose, Dem.constant(0.0), refraction=True,
-                                             device=self.device, height_range=PROBE_HEIGHTS)
+            self._probe_base = SensorGeometry(self.sensor, Dem.constant(0.0), refraction=True, device=self.device,
+                                              height_range=PROBE_HEIGHTS)
         return _at_constant(self._probe_base, h)
 
     def _crop_to_footprint(self, dem, region):
@@ -287,11 +278,11 @@ class FrameGeometry:
         return _crop_to_feet(dem, np.concatenate(feet))
 
     def geolocate_frame(self, pixels):
-        """Pixels (N, 2) -> geo triples (N, 3) of the pose's frame (lon/lat/h or map x/y/z)."""
-        pix = points(pixels, 2, "pixels")
+        """Pixels (N, 2) -> geo triples (N, 3) of the sensor's frame (lon/lat/h or map x/y/z)."""
+        pix = _as_points(pixels, 2, "pixels")
         out = wp.empty(len(pix), dtype=wp.vec3d, device=self.device)
         if len(pix):
-            wp.launch(geolocate_kernel, dim=len(pix), device=self.device,
+            wp.launch(self.sensor.kernels.geolocate, dim=len(pix), device=self.device,
                       inputs=[*self.structs(), wp.array(pix, dtype=wp.vec2d, device=self.device), out])
         return out.numpy().reshape(-1, 3)
 
@@ -301,7 +292,7 @@ class FrameGeometry:
         Pixel (i, j) of ``out`` is image pixel (col0 + j step, row0 + i step). Runs
         asynchronously on the device's current stream.
         """
-        wp.launch(geolocate_grid_kernel, dim=out.shape, device=self.device, block_dim=block_dim,
+        wp.launch(self.sensor.kernels.geolocate_grid, dim=out.shape, device=self.device, block_dim=block_dim,
                   inputs=[*self.structs(), float(col0), float(row0), float(step), out])
         return out
 
@@ -323,7 +314,7 @@ class FrameGeometry:
         -------
         ndarray, shape (rows, cols, 3)
         """
-        w, h = self.camera.image_size
+        w, h = self.image_size
         cols, rows = int(np.ceil(w / step)), int(np.ceil(h / step))
         c0 = r0 = 0.5 * step
         if self.device.is_cuda:
@@ -332,13 +323,12 @@ class FrameGeometry:
         result = np.empty((rows, cols, 3))
         workers = workers or os.cpu_count() or 1
         band_rows = band_rows or max(1, -(-rows // (4 * workers)))
-        structs = self.structs()
+        structs, kernel = self.structs(), self.sensor.kernels.geolocate_grid
 
         def band(i0):
             i1 = min(i0 + band_rows, rows)
             out = wp.empty((i1 - i0, cols), dtype=wp.vec3d, device=self.device)
-            wp.launch(geolocate_grid_kernel, dim=out.shape, device=self.device,
-                      inputs=[*structs, c0, r0 + i0 * step, float(step), out])
+            wp.launch(kernel, dim=out.shape, device=self.device, inputs=[*structs, c0, r0 + i0 * step, float(step), out])
             result[i0:i1] = out.numpy()
 
         with ThreadPoolExecutor(max_workers=workers) as pool:
@@ -346,144 +336,20 @@ class FrameGeometry:
         return result
 
     def project_frame(self, geo):
-        """Geo triples (N, 3) of the pose's frame -> pixels (N, 2)."""
-        geo = points(geo, 3, "points")
-        cam, pose, refr, _, _ = self.structs()
+        """Geo triples (N, 3) of the sensor's frame -> pixels (N, 2); NaN behind a frame
+        camera, and where a pushbroom's line-time iteration finds no line within the
+        ephemeris and attitude span."""
+        geo = _as_points(geo, 3, "points")
         out = wp.empty(len(geo), dtype=wp.vec2d, device=self.device)
         if len(geo):
-            wp.launch(project_kernel, dim=len(geo), device=self.device,
-                      inputs=[cam, pose, refr, wp.array(geo, dtype=wp.vec3d, device=self.device), out])
+            wp.launch(self.sensor.kernels.project, dim=len(geo), device=self.device,
+                      inputs=[*self.sensor_structs(), wp.array(geo, dtype=wp.vec3d, device=self.device), out])
         return out.numpy().reshape(-1, 2)
 
 
-class PushbroomGeometry:
-    """A pushbroom scene + DEM packed for the kernels on one device (the pushbroom twin of
-    :class:`FrameGeometry`; the object frame is ECEF, geo triples are lon, lat, h).
-
-    Parameters
-    ----------
-    scene : PushbroomScene
-    dem : Dem, str or float
-        As :class:`FrameGeometry`.
-    refraction : bool, optional
-    device : str, optional
-    region : (col0, row0, col1, row1), optional
-        Pixel region the rays will come from (default: the whole scene); the DEM is cropped
-        to its footprint.
-    tolerance : float, optional
-        Height tolerance (m) of the relief search.
-    height_range : (float, float), optional
-        As :class:`FrameGeometry`.
-    geoid, same_vertical_datum : optional
-        As :class:`FrameGeometry`.
-    """
-
-    def __init__(self, scene, dem, *, refraction=True, device=None, region=None, tolerance=1e-4,
-                 height_range=None, geoid=None, same_vertical_datum=False):
-        if not isinstance(scene, PushbroomScene):
-            raise ParamError(f"scene must be a PushbroomScene, got {type(scene).__name__}")
-        self.scene = scene
-        self.device = resolve_device(device)
-        load_modules(self.device, pb_kernels)  # compiled here on a first run, with a notice
-        self._probe_base = None
-        if region is None:
-            region = (0.0, 0.0, float(scene.width), float(scene.height))
-        dem = _prepared_dem(as_dem(dem), lambda d: (d if d.is_constant else reconcile_dem(
-            d, _GeocentricPositions(), geoid=geoid, same_vertical_datum=same_vertical_datum,
-            name=_dem_name(d))).for_frame(None), self._probe, region, self.horizontal_crs, height_range)
-        self.dem = self._crop_to_footprint(dem, region) if not dem.is_constant else dem
-        hmin, hmax = height_range if height_range is not None else (self.dem.hmin, self.dem.hmax)
-        self.refraction = RefractionModel(scene.mean_height(), hmin, hmax, enabled=refraction)
-        self.search = SearchParams()
-        self.search.htol = float(tolerance)
-        self.search.max_steps = 1 << 20
-        self._structs = None
-
-    image_size = property(lambda self: (self.scene.width, self.scene.height), doc="(width, height) in pixels.")
-    geocentric = True
-    horizontal_crs = property(lambda self: as_crs("EPSG:4326"), doc="lon/lat (EPSG:4326).")
-
-    def at_height(self, h):
-        """The same scene over a constant height h (m)."""
-        return PushbroomGeometry(self.scene, Dem.constant(h), refraction=self.refraction.enabled, device=self.device)
-
-    def sensor_structs(self):
-        """The structs the per-pixel ortho kernels take before the DEM: (scene, refraction)."""
-        return self.structs()[:2]
-
-    def dem_struct(self):
-        """The DEM's struct on the device."""
-        return self.structs()[2]
-
-    def structs(self):
-        """(scene, refraction, dem, search) structs on the device."""
-        if self._structs is None:
-            self._structs = (self.scene.to_struct(self.device), self.refraction.to_struct(self.device),
-                             self.dem.to_struct(self.device), self.search)
-        return self._structs
-
-    def _probe(self, h):
-        """This scene over a constant height h (m), with refraction, for footprints."""
-        if self._probe_base is None:
-            self._probe_base = PushbroomGeometry(self.scene, Dem.constant(0.0), device=self.device,
-                                                 height_range=PROBE_HEIGHTS)
-        return _at_constant(self._probe_base, h)
-
-    def _crop_to_footprint(self, dem, region):
-        border = _region_border(region)
-        feet = np.concatenate([self._probe(h).geolocate_frame(border) for h in (dem.hmin, dem.hmax)])
-        return _crop_to_feet(dem, feet)
-
-    def geolocate_frame(self, pixels):
-        """Pixels (N, 2) -> geo triples (N, 3) (lon, lat deg, ellipsoidal h m)."""
-        pix = points(pixels, 2, "pixels")
-        out = wp.empty(len(pix), dtype=wp.vec3d, device=self.device)
-        if len(pix):
-            wp.launch(pb_kernels.pb_geolocate_kernel, dim=len(pix), device=self.device,
-                      inputs=[*self.structs(), wp.array(pix, dtype=wp.vec2d, device=self.device), out])
-        return out.numpy().reshape(-1, 3)
-
-    def geolocate_grid(self, out, *, col0=0.5, row0=0.5, step=1.0):
-        """Geolocate a regular pixel grid into a device array ``out`` (rows, cols) of vec3d."""
-        wp.launch(pb_kernels.pb_geolocate_grid_kernel, dim=out.shape, device=self.device,
-                  inputs=[*self.structs(), float(col0), float(row0), float(step), out])
-        return out
-
-    def project_frame(self, geo):
-        """Geo triples (N, 3) (lon, lat, h) -> pixels (N, 2); NaN where the line-time
-        iteration finds no line within the ephemeris and attitude span."""
-        geo = points(geo, 3, "points")
-        from ..geodesy import geodetic_to_ecef
-
-        xyz = geodetic_to_ecef(geo[:, 1], geo[:, 0], geo[:, 2])
-        out = wp.empty(len(geo), dtype=wp.vec2d, device=self.device)
-        if len(geo):
-            sc, refr, _, _ = self.structs()
-            d = self.device
-            wp.launch(pb_kernels.pb_project_kernel, dim=len(geo), device=d,
-                      inputs=[sc, refr, wp.array(xyz, dtype=wp.vec3d, device=d),
-                              wp.array(np.ascontiguousarray(geo[:, 2]), dtype=wp.float64, device=d),
-                              wp.zeros(len(geo), dtype=wp.float64, device=d), out])
-        return out.numpy().reshape(-1, 2)
-
-
-class _GeocentricPositions:
-    """Stands for a pose in :func:`reconcile_dem`: satellite positions are ECEF, so their
-    heights are ellipsoidal."""
-
-    mode = GEOCENTRIC
-    crs = as_crs("EPSG:4978")
-
-
-def _sensor_args(name, sensor, args, what):
-    """Split geolocate / project's positional arguments: (camera, pose, X) or (scene, X)."""
-    if isinstance(sensor, PushbroomScene):
-        if len(args) != 1:
-            raise ParamError(f"{name}(scene, {what}, ...) takes a PushbroomScene and the {what}")
-        return sensor, None, args[0]
-    if len(args) != 2:
-        raise ParamError(f"{name}(camera, pose, {what}, ...) takes a FrameCamera, a Pose and the {what}")
-    return sensor, args[0], args[1]
+def _kernel_module(sensor):
+    """The Python module holding a sensor's kernels (loaded before threads launch them)."""
+    return sys.modules[sensor.kernels.geolocate.func.__module__]
 
 
 # Plausibility bounds of the inputs (see _check_ground_points and check_camera_above_terrain).
@@ -544,61 +410,18 @@ def _transform_checked(xyz, src, dst, name):
     return out
 
 
-def check_camera_above_terrain(pose, dem, *, name=None):
-    """GeometryError when the projection centre is not above the terrain under it.
-
-    Parameters
-    ----------
-    pose : Pose
-    dem : Dem
-        Terrain in the pose's frame and vertical datum (as :class:`FrameGeometry` holds it:
-        lon/lat for geocentric poses, the map CRS for map poses). Where the DEM has no height
-        under the camera nothing is checked.
-    name : str, optional
-        The DEM's file, for the message.
-
-    Notes
-    -----
-    A camera below the surface sees no ground: every ray would start underground, and the
-    kernels return NaN for it. Call this before cropping the DEM to the footprint, so that
-    the cell under the camera is still there.
-    """
-    if pose.mode == GEOCENTRIC:
-        lat, lon, h = pose.center_geodetic
-        x, y = lon, lat
-        where = f"lat {lat:.6f}, lon {lon:.6f}"
-        kind = "ellipsoidal height"
-    else:
-        x, y, h = (float(v) for v in pose.center)
-        where = f"x {x:.3f}, y {y:.3f} in {pose.crs.name!r}"
-        kind = "height"
-    if dem.is_constant:
-        terrain, place = float(dem.value), "the constant terrain height"
-    else:
-        terrain = float(dem.sample(x, y))
-        if not np.isfinite(terrain):
-            return
-        name = name or dem.source
-        place = f"the terrain under it (DEM {name!r})" if name else "the terrain (DEM) under it"
-    if h <= terrain:
-        rel = "below" if h < terrain else "at"
-        raise GeometryError(f"The camera is {rel} the terrain: its {kind} is h={h:.3f} m at {where}, and "
-                            f"{place} is {terrain:.3f} m (check the pose's height and the DEM's vertical datum)")
+check_camera_above_terrain = check_centre_above_terrain  # the frame's check (see SensorModel.check_above_terrain)
 
 
-def geolocate(sensor: FrameCamera | PushbroomScene, *args, dem: Dem | str | os.PathLike | float,
+def geolocate(sensor: SensorModel, pixels: ArrayLike, *, dem: Dem | str | os.PathLike | float,
               crs: str | int | CRS = LLH, refraction: bool = True, device: str | None = None,
               geoid: str | os.PathLike | None = None, same_vertical_datum: bool = False) -> np.ndarray:
     """Ground coordinates of image pixels (forward, pixel -> ground).
 
-    Called as ``geolocate(camera, pose, pixels, ...)`` for a frame image or
-    ``geolocate(scene, pixels, ...)`` for a pushbroom scene.
-
     Parameters
     ----------
-    sensor : FrameCamera or PushbroomScene
-    pose : Pose
-        Frame images only.
+    sensor : SensorModel
+        ``FrameSensor(camera, pose)`` for a frame image, or a ``PushbroomScene``.
     pixels : array_like, shape (N, 2)
         (col, row) pixel coordinates; the centre of pixel (i, j) is (j + 0.5, i + 0.5). A row
         with NaN, or with a masked value in a NumPy masked array, is missing: its result row
@@ -630,10 +453,8 @@ def geolocate(sensor: FrameCamera | PushbroomScene, *args, dem: Dem | str | os.P
     GeometryError
         The frame camera is not above the terrain under it.
     """
-    camera, pose, pixels = _sensor_args("geolocate", sensor, args, "pixels")
-    if pose is not None:
-        _check_sensor(camera, pose)
-    pix = points(pixels, 2, "pixels")
+    _check_sensor_model(sensor)
+    pix = _as_points(pixels, 2, "pixels")
     no_infinite_rows("pixels", pix)
     refraction = _check_refraction(refraction)
     dem = as_dem(dem)
@@ -644,30 +465,21 @@ def geolocate(sensor: FrameCamera | PushbroomScene, *args, dem: Dem | str | os.P
         lo, hi = pix[finite].min(axis=0), pix[finite].max(axis=0)
         region = (lo[0], lo[1], hi[0], hi[1])
     with quiet_warp():
-        if pose is None:
-            geom = PushbroomGeometry(camera, dem, refraction=refraction, device=device, region=region, geoid=geoid,
-                                     same_vertical_datum=same_vertical_datum)
-            out = _transform(geom.geolocate_frame(pix), as_crs(LLH), dst)
-        else:
-            geom = FrameGeometry(camera, pose, dem, refraction=refraction, device=device, region=region,
-                                 geoid=geoid, same_vertical_datum=same_vertical_datum)
-            out = _transform(geom.geolocate_frame(pix), _frame_crs(pose), dst)
+        geom = SensorGeometry(sensor, dem, refraction=refraction, device=device, region=region, geoid=geoid,
+                              same_vertical_datum=same_vertical_datum)
+        out = _transform(geom.geolocate_frame(pix), sensor.frame_crs, dst)
     out[~finite] = np.nan
     return out
 
 
-def project(sensor: FrameCamera | PushbroomScene, *args, crs: str | int | CRS = LLH, refraction: bool = True,
+def project(sensor: SensorModel, points: ArrayLike, *, crs: str | int | CRS = LLH, refraction: bool = True,
             device: str | None = None) -> np.ndarray:
     """Pixel coordinates of ground points (backward, ground -> pixel).
 
-    Called as ``project(camera, pose, points, ...)`` for a frame image or
-    ``project(scene, points, ...)`` for a pushbroom scene.
-
     Parameters
     ----------
-    sensor : FrameCamera or PushbroomScene
-    pose : Pose
-        Frame images only.
+    sensor : SensorModel
+        ``FrameSensor(camera, pose)`` for a frame image, or a ``PushbroomScene``.
     points : array_like, shape (N, 3)
         (x, y, h) in ``crs``; by default longitude, latitude (deg), ellipsoidal height (m).
         A row with NaN, or with a masked value in a NumPy masked array, is missing: its result
@@ -693,30 +505,20 @@ def project(sensor: FrameCamera | PushbroomScene, *args, crs: str | int | CRS = 
         +-360 deg (geographic ``crs``), x or y beyond 1e8 m (projected ``crs``), a height
         beyond +-1e7 m, or a position ``crs`` cannot transform (the message names the row).
     """
-    camera, pose, points_ = _sensor_args("project", sensor, args, "points")
-    if pose is not None:
-        _check_sensor(camera, pose)
-    pts = points(points_, 3, "points")
+    _check_sensor_model(sensor)
+    pts = _as_points(points, 3, "points")
     refraction = _check_refraction(refraction)
     src = as_crs(crs)
     _check_ground_points(pts, src)
     missing = ~np.all(np.isfinite(pts), axis=1)
     with quiet_warp():
-        if pose is None:
-            geo = _transform_checked(pts, src, as_crs(LLH), "points")
-            _check_heights(geo, as_crs(LLH))
-            ok = ~missing
-            hr = (float(geo[ok, 2].min()), float(geo[ok, 2].max())) if np.any(ok) else (0.0, 0.0)
-            geom = PushbroomGeometry(camera, Dem.constant(hr[0]), refraction=refraction, device=device,
-                                     height_range=hr)
-            out = geom.project_frame(geo)
-        else:
-            geo = _transform_checked(pts, src, _frame_crs(pose), "points")
-            _check_heights(geo, _frame_crs(pose))
-            ok = ~missing
-            hmin, hmax = (float(geo[ok, 2].min()), float(geo[ok, 2].max())) if np.any(ok) else (0.0, 0.0)
-            geom = FrameGeometry(camera, pose, Dem.constant(hmin), refraction=refraction, device=device,
-                                 height_range=(hmin, hmax))
-            out = geom.project_frame(geo)
+        frame_crs = sensor.frame_crs
+        geo = _transform_checked(pts, src, frame_crs, "points")
+        _check_heights(geo, frame_crs)
+        ok = ~missing
+        hmin, hmax = (float(geo[ok, 2].min()), float(geo[ok, 2].max())) if np.any(ok) else (0.0, 0.0)
+        geom = SensorGeometry(sensor, Dem.constant(hmin), refraction=refraction, device=device,
+                              height_range=(hmin, hmax))
+        out = geom.project_frame(geo)
     out[missing] = np.nan
     return out

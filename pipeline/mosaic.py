@@ -41,12 +41,10 @@ from affine import Affine
 from pyproj import CRS, Transformer
 
 from .._device import quiet_warp
-from ..camera import FrameCamera
 from ..errors import GeometryError, ParamError, RasterIOError
 from ..geodesy import geodetic_to_ecef, geodetic_up
 from ..kernels import mosaic as mosaic_kernels
-from ..pose import Pose
-from ..pushbroom import PushbroomScene
+from ..sensor import SensorModel
 from .cog import DTYPES, CogWriter
 from .dem import Dem, as_dem
 from .cog_device import DeviceCogEncoder
@@ -55,7 +53,7 @@ from .ortho import _TOP as TOP
 from .ortho import _WP_TYPES as WP_TYPES
 from .ortho import BLOCK_CODECS, COARSE_STEP, RESAMPLING, ImageTiles, _block_codec, _check_cancel, \
     coarse_grid, device_codecs, output_grid, parse_creation_options, source_facts
-from .geometry import FrameGeometry, PushbroomGeometry
+from .geometry import SensorGeometry
 from .profile import StageTimer
 
 __all__ = ["mosaic", "mosaic_plan", "MosaicPlan", "MosaicResult", "NO_SOURCE"]
@@ -117,16 +115,16 @@ def _node_fields(geom, transform, to_frame, r0, c0, th, tw, *, angle=True):
     else:
         ground = np.stack([u, v, h], -1)
         up = np.broadcast_to([0.0, 0.0, 1.0], ground.shape)
-    if isinstance(geom, PushbroomGeometry):  # the satellite where it images the point
+    if geom.sensor.kind == "pushbroom":  # the satellite where it images the point
         centre = np.full(ground.shape, np.nan)
         ok = np.isfinite(pix[..., 1])
         if ok.any():
             try:
-                centre[ok] = geom.scene.orbit(geom.scene.line_time(pix[..., 1][ok]))[0]
+                centre[ok] = geom.sensor.orbit(geom.sensor.line_time(pix[..., 1][ok]))[0]
             except GeometryError:  # rows beyond the ephemeris: no angle there
                 pass
     else:
-        centre = np.broadcast_to(np.asarray(geom.pose.center, float), ground.shape)
+        centre = np.broadcast_to(np.asarray(geom.sensor.pose.center, float), ground.shape)
     ray = centre - ground
     with np.errstate(invalid="ignore"):
         cos = np.einsum("...i,...i->...", ray, up) / np.linalg.norm(ray, axis=-1)
@@ -154,9 +152,10 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
 
     Parameters
     ----------
-    images : sequence of (src, FrameCamera, Pose) or (src, PushbroomScene)
-        Source images (all with the same band count and data type) and their orientation:
-        frame images, pushbroom scenes, or a mix.
+    images : sequence of (src, SensorModel)
+        Source images (all with the same band count and data type) and their sensors:
+        ``FrameSensor(camera, pose)`` for frame images, ``PushbroomScene`` for pushbroom
+        scenes, or a mix.
     dst : str or os.PathLike
         The mosaic (written under a temporary name, published when complete).
     dem : Dem, str or float
@@ -350,12 +349,11 @@ class MosaicPlan:
         return self.warp_device.is_cuda
 
     def geometry(self, k):
-        """A new FrameGeometry or PushbroomGeometry of image ``k`` (its DEM cropped to the
-        footprint)."""
+        """A new SensorGeometry of image ``k`` (its DEM cropped to the footprint)."""
         o = self.options
-        _, sensor, pose, _ = self.sources[k]
-        return _geometry(sensor, pose, self.terrain, refraction=o["refraction"], device=o["device"], geoid=o["geoid"],
-                         same_vertical_datum=o["same_vertical_datum"])
+        _, sensor, _ = self.sources[k]
+        return SensorGeometry(sensor, self.terrain, refraction=o["refraction"], device=o["device"], geoid=o["geoid"],
+                              same_vertical_datum=o["same_vertical_datum"])
 
     def _materialise(self):
         """This process's state: the stage timer and the cache of images in use."""
@@ -367,9 +365,9 @@ class MosaicPlan:
 
     def _build(self, k, timer):
         o = self.options
-        src, _, pose, masked = self.sources[k]
+        src, sensor, masked = self.sources[k]
         geom = self.geometry(k)
-        method = o["method"] if pose is not None else "backward"  # pushbroom: the backward method only
+        method = o["method"] if sensor.kind == "frame" else "backward"  # pushbroom: the backward method only
         crs = self.crs
         entry = dict(geom=geom, to_frame=Transformer.from_crs(crs, geom.horizontal_crs, always_xy=True),
                      renderer=ImageTiles(src, geom, crs, self.transform, count=self.count, out_dtype=self.dtype,
@@ -454,7 +452,7 @@ class MosaicPlan:
         st = self._materialise()
         out, source, has = self._select(st, "renderer", r0, c0, th, tw, device=device)
         missing = ~(has.numpy().view(bool) if device is not None else has)
-        if self.options["method"] == "forward" and missing.any() and any(s[2] is not None for s in self.sources):
+        if self.options["method"] == "forward" and missing.any() and any(s[1].kind == "frame" for s in self.sources):
             # ground no image sees by the forward method (hidden, where it drops folded quads on
             # a rough DSM, or the half pixel along a footprint's edge): the backward method's
             # value, from the same rule, on the blocks of the tile that have such pixels
@@ -657,14 +655,13 @@ def mosaic_plan(images, *, dem, crs=None, resolution=None, resampling="bilinear"
     terrain = as_dem(dem)
     # the sources: one band count and data type
     facts = []  # (path, bands, data type, masked)
-    for src, sensor, pose in images:
+    for src, sensor in images:
         src = os.fspath(src)
         if not os.path.exists(src):
             raise RasterIOError(f"Image '{src}' does not exist")
         if os.path.abspath(src) in map(os.path.abspath, _outputs):
             raise ParamError(f"Output '{src}' is one of the source images: choose another name")
-        facts.append((src, *(source_facts(src, sensor.image_size) if pose is not None else
-                             source_facts(src, (sensor.width, sensor.height), "scene"))))
+        facts.append((src, *source_facts(src, tuple(sensor.image_size), "camera" if sensor.kind == "frame" else "scene")))
     counts, dtypes = {f[1] for f in facts}, {f[2] for f in facts}
     if len(counts) > 1 or len(dtypes) > 1:
         raise ParamError(f"The images of a mosaic must share their band count and data type; got bands "
@@ -675,9 +672,9 @@ def mosaic_plan(images, *, dem, crs=None, resolution=None, resampling="bilinear"
     # the grid: the union of the images' grids at one resolution, aligned to it (the images'
     # geometry built one at a time: memory does not grow with their number)
     grids = []
-    for src, sensor, pose in images:
-        geom = _geometry(sensor, pose, terrain, refraction=refraction, device=device, geoid=geoid,
-                         same_vertical_datum=same_vertical_datum)
+    for src, sensor in images:
+        geom = SensorGeometry(sensor, terrain, refraction=refraction, device=device, geoid=geoid,
+                              same_vertical_datum=same_vertical_datum)
         try:
             grids.append(output_grid(geom, crs=crs if crs is not None else (grids[0][0] if grids else None),
                                      resolution=resolution, name=src))
@@ -703,7 +700,7 @@ def mosaic_plan(images, *, dem, crs=None, resolution=None, resampling="bilinear"
     options = dict(resampling=resampling, refraction=refraction, blend=blend, feather=float(feather), device=device,
                    geoid=geoid, same_vertical_datum=same_vertical_datum,
                    method="forward" if occlusion else "backward", cache_images=24)
-    plan = MosaicPlan([(f[0], sensor, pose, f[3]) for f, (_, sensor, pose) in zip(facts, images)], terrain, options,
+    plan = MosaicPlan([(f[0], sensor, f[3]) for f, (_, sensor) in zip(facts, images)], terrain, options,
                       out_crs, transform, (rows, cols), res, foot, count, out_dtype, src_dtype)
     # one reduced pass: the images' overlaps for the balance and the seams' labelling
     t = time.perf_counter()
@@ -744,28 +741,19 @@ def _outputs(dst, index, seamlines, overwrite):
     return outputs
 
 
-def _geometry(sensor, pose, terrain, **kw):
-    """The geometry of a frame image (camera + pose) or of a pushbroom scene (pose None)."""
-    if pose is None:
-        return PushbroomGeometry(sensor, terrain, **kw)
-    return FrameGeometry(sensor, pose, terrain, **kw)
-
-
 def _check_images(images, resampling, dtype, blend, feather, reference, seams, seam_width):
-    """Check the arguments; returns the images as (source, sensor, pose or None)."""
+    """Check the arguments; returns the images as (source, sensor)."""
     images = list(images)
     if not images:
         raise ParamError("mosaic needs at least one image")
-    out = []
     for k, item in enumerate(images):
-        item = tuple(item)
-        if len(item) in (2, 3) and isinstance(item[1], PushbroomScene) and (len(item) == 2 or item[2] is None):
-            out.append((item[0], item[1], None))
-        elif len(item) == 3 and isinstance(item[1], FrameCamera) and isinstance(item[2], Pose):
-            out.append(item)
-        else:
-            raise ParamError(f"images[{k}] must be (source, FrameCamera, Pose) or (source, PushbroomScene)")
-    images = out
+        try:
+            item = tuple(item)
+        except TypeError:
+            item = ()
+        if len(item) != 2 or not isinstance(item[1], SensorModel):
+            raise ParamError(f"images[{k}] must be (source, sensor): a FrameSensor(camera, pose) or a PushbroomScene")
+    images = [tuple(item) for item in images]
     if len(images) >= NO_SOURCE:
         raise ParamError(f"mosaic takes at most {NO_SOURCE - 1} images, got {len(images)}")
     if resampling not in RESAMPLING:

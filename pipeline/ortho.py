@@ -34,14 +34,12 @@ from rasterio.windows import Window
 
 from .._device import load_modules, quiet_warp
 from .._validate import as_crs, finite
-from ..camera import FrameCamera
 from ..errors import Cancelled, DeviceError, GeometryError, OrthowarpWarning, ParamError, RasterIOError
 from ..kernels import ortho as ortho_kernels
 from ..geodesy import geodetic_to_ecef, geodetic_up
-from ..pose import Pose
-from ..pushbroom import PushbroomScene
+from ..sensor import SensorModel
 from .dem import Dem, as_dem
-from .geometry import FrameGeometry, PushbroomGeometry
+from .geometry import SensorGeometry
 from .cog import DTYPES, CogWriter, overview_count, verify_tiff
 from .cog_device import DeviceCogEncoder, HostDeflate, NvcompDeflate, WarpDeflate, nvcomp_available
 from .io import GDAL_ERRORS, atomic_path, check_destination, gdal_reason, write_error
@@ -115,7 +113,7 @@ def output_grid(geom, *, crs=None, resolution=None, name=None):
 
     Parameters
     ----------
-    geom : FrameGeometry or PushbroomGeometry
+    geom : SensorGeometry
     crs : CRS-like, optional
         Default: the CRS of map-Cartesian poses, else the UTM zone of the image centre.
     resolution : float, optional
@@ -155,7 +153,7 @@ def output_grid(geom, *, crs=None, resolution=None, name=None):
                 centre = np.nanmean(feet, axis=0)
             crs = _utm_crs(centre[0], centre[1])
         else:
-            crs = geom.pose.crs
+            crs = geom.horizontal_crs  # the map poses' CRS
     crs = as_crs(crs)
     if crs.is_geocentric:
         raise ParamError("crs must be a projected or geographic CRS for orthoimages")
@@ -217,7 +215,7 @@ class _Counter:
 
 
 @quiet_warp()  # Warp's informational messages only where the user asked for them
-def orthorectify(src: str | os.PathLike, sensor: FrameCamera | PushbroomScene, *args,
+def orthorectify(src: str | os.PathLike, sensor: SensorModel, dst: str | os.PathLike, *,
                  dem: Dem | str | os.PathLike | float, crs: str | int | CRS | None = None,
                  resolution: float | None = None, resampling: str = "bilinear", method: str = "backward",
                  refraction: bool = True, dtype: str | None = None, driver: str = "COG", compress: str = "deflate",
@@ -228,18 +226,13 @@ def orthorectify(src: str | os.PathLike, sensor: FrameCamera | PushbroomScene, *
                  block_codec: str = "auto", creation_options: dict | None = None) -> OrthoResult:
     """Orthorectify one frame image or pushbroom scene into a GeoTIFF / cloud-optimized GeoTIFF.
 
-    Called as ``orthorectify(src, camera, pose, dst, ...)`` for a frame image or
-    ``orthorectify(src, scene, dst, ...)`` for a pushbroom scene.
-
     Parameters
     ----------
     src : str or os.PathLike
         Source image (any raster GDAL reads; any band count; uint8, uint16 or float32).
-    sensor : FrameCamera or PushbroomScene
-        Frame interior orientation (its image_size must match the source), or a pushbroom
-        scene (its width x height must match the source).
-    pose : Pose
-        Exterior orientation of a frame image.
+    sensor : SensorModel
+        ``FrameSensor(camera, pose)`` for a frame image, or a ``PushbroomScene``: its
+        image size must match the source's.
     dst : str or os.PathLike
         Output file. Written under a temporary name in the same folder and renamed when
         complete; an existing file is an error unless ``overwrite``.
@@ -324,19 +317,11 @@ def orthorectify(src: str | os.PathLike, sensor: FrameCamera | PushbroomScene, *
     """
     t_wall = time.perf_counter()
     timer = StageTimer(t_wall)  # intervals per stage and thread: see orthowarp.pipeline.profile
-    if isinstance(sensor, PushbroomScene):
-        if len(args) != 1:
-            raise ParamError("orthorectify(src, scene, dst, ...) takes the source, a PushbroomScene and the output")
-        camera, pose, dst = sensor, None, args[0]
-        if method != "backward":
-            raise ParamError("pushbroom scenes are orthorectified by the backward method only")
-    else:
-        if len(args) != 2:
-            raise ParamError("orthorectify(src, camera, pose, dst, ...) takes the source, a FrameCamera, a Pose "
-                             "and the output")
-        camera, (pose, dst) = sensor, args
-        if not isinstance(camera, FrameCamera) or not isinstance(pose, Pose):
-            raise ParamError("camera must be a FrameCamera and pose a Pose")
+    if not isinstance(sensor, SensorModel):
+        raise ParamError(f"sensor must be a FrameSensor (camera and pose) or a PushbroomScene, got "
+                         f"{type(sensor).__name__}")
+    if method == "forward" and sensor.kind != "frame":
+        raise ParamError(f"{sensor.kind} sensors are orthorectified by the backward method only")
     if method not in ("backward", "forward"):
         raise ParamError(f"method must be 'backward' or 'forward', got {method!r}")
     if resampling not in RESAMPLING:
@@ -374,8 +359,7 @@ def orthorectify(src: str | os.PathLike, sensor: FrameCamera | PushbroomScene, *
         raise RasterIOError(f"Image '{src}' does not exist")
     if os.path.abspath(src) == os.path.abspath(dst):
         raise ParamError(f"Output '{dst}' is the source image: choose another name")
-    count, src_dtype, masked = source_facts(src, (camera.width, camera.height) if pose is None else
-                                            tuple(camera.image_size), "scene" if pose is None else "camera")
+    count, src_dtype, masked = source_facts(src, tuple(sensor.image_size), "camera" if sensor.kind == "frame" else "scene")
     out_dtype = dtype or (src_dtype if src_dtype in DTYPES else "float32")
     if compress in LOSSY and out_dtype != "uint8":
         raise ParamError(f"{compress} compression needs uint8 output")
@@ -384,12 +368,8 @@ def orthorectify(src: str | os.PathLike, sensor: FrameCamera | PushbroomScene, *
     if compress == "webp" and count not in (3, 4):
         raise ParamError(f"webp compression takes 3 or 4 bands; '{src}' has {count}")
 
-    if pose is None:
-        geom = PushbroomGeometry(camera, as_dem(dem), refraction=refraction, device=device, geoid=geoid,
-                                 same_vertical_datum=same_vertical_datum)
-    else:
-        geom = FrameGeometry(camera, pose, as_dem(dem), refraction=refraction, device=device, geoid=geoid,
-                             same_vertical_datum=same_vertical_datum)
+    geom = SensorGeometry(sensor, as_dem(dem), refraction=refraction, device=device, geoid=geoid,
+                          same_vertical_datum=same_vertical_datum)
     if tile_size is None:
         tile_size = _default_tile_size(geom.device, count, workers)
     try:
@@ -682,7 +662,7 @@ class ImageTiles:
     ----------
     src : str
         Source image (its size is the sensor's).
-    geom : FrameGeometry or PushbroomGeometry
+    geom : SensorGeometry
     out_crs : pyproj.CRS
     transform : affine.Affine
         Of the output grid.
@@ -712,7 +692,7 @@ class ImageTiles:
         self.timer = timer if timer is not None else StageTimer(time.perf_counter())
         self.clipped = clipped
         self.device = device = geom.device
-        self.pushbroom = isinstance(geom, PushbroomGeometry)
+        self.pushbroom = geom.sensor.kind == "pushbroom"
         self.sensor, self.dem = geom.sensor_structs(), geom.dem_struct()
         self.h_mid = 0.5 * (geom.dem.hmin + geom.dem.hmax)
         self.resampling_code, self.radius = RESAMPLING[resampling], _RADIUS[resampling]
@@ -802,7 +782,7 @@ class ImageTiles:
         if heights is None:  # no DEM under the tile
             return None, None
         t = time.perf_counter()
-        grid = coarse_struct(uv, geom.geocentric, device, pose=None if self.pushbroom else geom.pose)
+        grid = coarse_struct(uv, geom.geocentric, device, pose=None if self.pushbroom else geom.sensor.pose)
         nodes = wp.empty((2, *uv.shape[:2]), dtype=wp.vec2d, device=device)
         timer.span("h2d", t)
         t = time.perf_counter()
@@ -1117,7 +1097,7 @@ def _forward_coords(geom, transform, out_crs, frame_crs, device, timer, radius, 
     output pixels; a tile's source window is then the bounding box of the coarse nodes that
     land within ``margin`` output pixels of it, grown by ``step + margin`` source pixels.
     """
-    w_img, h_img = geom.camera.image_size
+    w_img, h_img = geom.image_size
     cam, pose, refr, dem, search = geom.structs()
     sc = np.unique(np.append(np.arange(0, w_img, step), w_img - 1)) + 0.5
     sr = np.unique(np.append(np.arange(0, h_img, step), h_img - 1)) + 0.5

@@ -19,7 +19,7 @@ import numpy as np
 from affine import Affine
 from pyproj import Transformer
 
-from ..adjust import collinearity as col
+from .. import collinearity as col
 from ..adjust.precision import PrecisionResult, _camera_row, _Frame, _square, monoplot_covariance
 from ..errors import ParamError
 from ..geodesy import WGS84_A, WGS84_E2
@@ -322,8 +322,9 @@ def mosaic_accuracy_raster(dst, images, index, dem, crs, transform, shape, *, po
     ----------
     dst : str or os.PathLike
     images : sequence
-        The mosaic's images in index order: (camera, pose) for frames, a PushbroomScene for
-        scenes (or (src, ...) items as :func:`~orthowarp.pipeline.mosaic.mosaic` takes them).
+        The mosaic's images in index order: their sensors (``FrameSensor``,
+        ``PushbroomScene``), or (src, sensor) items as :func:`~orthowarp.pipeline.mosaic.mosaic`
+        takes them.
     index : str or os.PathLike
         The mosaic's source-index raster (uint16, the image's position; 65535 for none).
     dem, crs, transform, shape, step :
@@ -342,7 +343,7 @@ def mosaic_accuracy_raster(dst, images, index, dem, crs, transform, shape, *, po
     """
     import rasterio
 
-    from ..pushbroom import PushbroomScene
+    from ..sensor import SensorModel
     from .mosaic import NO_SOURCE
 
     grid, (rows, cols), ox, oy = _cell_centres(transform, shape, step)
@@ -367,9 +368,10 @@ def mosaic_accuracy_raster(dst, images, index, dem, crs, transform, shape, *, po
             raise ParamError(f"Index '{index}' names image {k}; {len(images)} images were given")
         at = np.flatnonzero(src == k)
         item = images[k]
-        sensor = item if isinstance(item, PushbroomScene) else item[1] if len(item) == 2 and isinstance(
-            item[1], PushbroomScene) else None
-        if sensor is not None:
+        sensor = item if isinstance(item, SensorModel) else item[1]
+        if not isinstance(sensor, SensorModel):
+            raise ParamError(f"images[{k}] must be a sensor or (source, sensor), got {type(sensor).__name__}")
+        if sensor.kind == "pushbroom":
             if orientation_cov is None:
                 raise ParamError("mosaic_accuracy_raster: a pushbroom scene needs orientation_cov")
             out[:, at] = scene_cell_sigmas(sensor, dem, crs, ox[at], oy[at], orientation_cov=orientation_cov,
@@ -378,8 +380,7 @@ def mosaic_accuracy_raster(dst, images, index, dem, crs, transform, shape, *, po
         else:
             if pose_cov is None:
                 raise ParamError("mosaic_accuracy_raster: frame images need pose_cov")
-            camera, pose = item[-2], item[-1]
-            out[:, at] = frame_cell_sigmas(camera, pose, dem, crs, ox[at], oy[at], pose_cov=pose_cov,
+            out[:, at] = frame_cell_sigmas(sensor.camera, sensor.pose, dem, crs, ox[at], oy[at], pose_cov=pose_cov,
                                            pixel_sigma=pixel_sigma, dem_sigma=dem_sigma)
     out = out.reshape(3, rows, cols)
     write_raster(dst, out, transform=grid, crs=crs.to_wkt(), nodata=np.nan)

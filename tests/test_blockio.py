@@ -5,7 +5,8 @@ import json
 import numpy as np
 import pytest
 
-from orthowarp.adjust import read_block, synthetic_block, write_block
+from orthowarp import read_block, write_block
+from orthowarp.adjust import synthetic_block
 from orthowarp.errors import ParamError, RasterIOError
 from orthowarp.pipeline.blockio import read_ground_points_csv, read_image_points_csv
 

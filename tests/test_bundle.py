@@ -453,7 +453,7 @@ def test_cli_adjust_refuses_outside_observations_unless_asked(tmp_path, caplog):
 
     from click.testing import CliRunner
 
-    from orthowarp.adjust import write_block
+    from orthowarp import write_block
     from orthowarp.cli import main
 
     block, _ = synthetic_block(strips=2, images_per_strip=4, seed=11)
@@ -478,7 +478,7 @@ def test_cli_adjust_refuses_outside_observations_unless_asked(tmp_path, caplog):
 def test_cli_adjust_failure_writes_nothing(tmp_path):
     from click.testing import CliRunner
 
-    from orthowarp.adjust import write_block
+    from orthowarp import write_block
     from orthowarp.cli import main
 
     block, _ = synthetic_block(strips=2, images_per_strip=4, seed=9)

@@ -158,7 +158,8 @@ def test_adjust_command(tmp_path):
     """orthowarp adjust writes orientation the ortho reads, points, and reports with plots."""
     import numpy as np
 
-    from orthowarp.adjust import synthetic_block, write_block
+    from orthowarp import write_block
+    from orthowarp.adjust import synthetic_block
     from orthowarp.pipeline.formats import read_cameras, read_exterior
 
     block, truth = synthetic_block(strips=2, images_per_strip=4, seed=11)
@@ -175,7 +176,8 @@ def test_adjust_command(tmp_path):
     ext = read_exterior(out / "exterior.csv")
     cams = read_cameras(out / "cameras.yaml")
     assert set(ext) == set(block.image_ids)
-    from orthowarp.adjust import read_block, bundle_adjust
+    from orthowarp import read_block
+    from orthowarp.adjust import bundle_adjust
 
     res = bundle_adjust(read_block(tmp_path / "block.json"), snooping=True, self_calibration=("k1", "p1"))
     for iid in block.image_ids:

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import orthowarp as ow
-from orthowarp.adjust.collinearity import jacobians, project, rotation
+from orthowarp.collinearity import jacobians, project, rotation
 from orthowarp.geodesy import rx, ry, rz
 
 CRS = "EPSG:32632"
@@ -24,7 +24,7 @@ def setup():
     rng = np.random.default_rng(0)
     pix = np.stack([rng.uniform(0, 1400, 200), rng.uniform(0, 1000, 200)], 1)
     o = ow.Pose.from_opk(*pose[:3], *np.degrees(pose[3:]), crs=CRS)
-    ground = ow.geolocate(cam, o, pix, dem=300.0, crs=CRS, refraction=False, device="cpu")
+    ground = ow.geolocate(ow.FrameSensor(cam, o), pix, dem=300.0, crs=CRS, refraction=False, device="cpu")
     return cam, pose, o, pix, ground
 
 
@@ -41,7 +41,7 @@ def test_projection_matches_the_frame_kernels(setup):
     c, s = camera_rows(cam, len(ground))
     got = project(np.tile(pose, (len(ground), 1)), ground, c, s)
     np.testing.assert_allclose(got, pix, atol=1e-7)
-    np.testing.assert_allclose(got, ow.project(cam, o, ground, crs=CRS, refraction=False, device="cpu"), atol=1e-7)
+    np.testing.assert_allclose(got, ow.project(ow.FrameSensor(cam, o), ground, crs=CRS, refraction=False, device="cpu"), atol=1e-7)
 
 
 def test_jacobians_match_finite_differences(setup):
@@ -73,7 +73,7 @@ def test_points_behind_the_camera_are_nan(setup):
 
 
 def test_camera_jacobian_matches_finite_differences(setup):
-    from orthowarp.adjust.collinearity import CALIBRATION, camera_jacobian
+    from orthowarp.collinearity import CALIBRATION, camera_jacobian
 
     cam, pose, _, _, ground = setup
     n = len(ground)

@@ -8,6 +8,7 @@ from affine import Affine
 import orthowarp as ow
 from orthowarp.errors import CrsError, ParamError, RasterIOError
 from orthowarp.pipeline.dem import BLOCK
+from orthowarp.sensor import FrameSensor
 
 
 def hills(rows=60, cols=80, seed=0):
@@ -113,12 +114,12 @@ def test_geolocation_on_a_reprojected_dem_meets_the_terrain():
     pose = ow.Pose.from_ins(lat, lon, 1500.0, roll=2.0, pitch=-3.0, yaw=40.0)
     cam = ow.FrameCamera(50.0, 0.01, (1000, 800))
     pix = np.random.default_rng(0).uniform([0, 0], [1000, 800], (2000, 2))
-    g = ow.geolocate(cam, pose, pix, dem=dem, crs="EPSG:32632", device="cpu", refraction=False)
+    g = ow.geolocate(FrameSensor(cam, pose), pix, dem=dem, crs="EPSG:32632", device="cpu", refraction=False)
     assert np.all(np.isfinite(g))
     dz = g[:, 2] - terrain(g[:, 0], g[:, 1])
     assert np.abs(dz).max() < 1e-3, np.abs(dz).max()
-    geo = ow.geolocate(cam, pose, pix, dem=dem, device="cpu", refraction=False)
-    np.testing.assert_allclose(ow.project(cam, pose, geo, device="cpu", refraction=False), pix, atol=1e-6)
+    geo = ow.geolocate(FrameSensor(cam, pose), pix, dem=dem, device="cpu", refraction=False)
+    np.testing.assert_allclose(ow.project(FrameSensor(cam, pose), geo, device="cpu", refraction=False), pix, atol=1e-6)
 
 
 def test_crop_keeps_georeferencing():
@@ -331,7 +332,7 @@ def small_ortho(tmp_path, dem, name, **kw):
             warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
             with rasterio.open(src, "w", driver="GTiff", width=64, height=48, count=1, dtype="uint8") as dst:
                 dst.write(img, 1)
-    res = orthorectify(src, cam, pose, tmp_path / f"ortho_{name}.tif", dem=dem, device="cpu", dtype="float32",
+    res = orthorectify(src, FrameSensor(cam, pose), tmp_path / f"ortho_{name}.tif", dem=dem, device="cpu", dtype="float32",
                        resolution=0.5, crs=UTM32, **kw)
     with rasterio.open(res.path) as ds:
         return ds.read(1), ds.transform
@@ -434,7 +435,7 @@ def test_job_needing_the_whole_oversized_dem_errors_cleanly(tmp_path):
         with rasterio.open(src, "w", driver="GTiff", width=64, height=48, count=1, dtype="uint8") as dst:
             dst.write(np.ones((48, 64), np.uint8), 1)
     with pytest.raises(ParamError) as info:
-        orthorectify(src, cam, pose, tmp_path / "out.tif", dem=str(path), device="cpu")
+        orthorectify(src, FrameSensor(cam, pose), tmp_path / "out.tif", dem=str(path), device="cpu")
     msg = str(info.value)
     assert "huge.tif" in msg and "unbounded" in msg and "\n" not in msg, msg
     assert not [f for f in os.listdir(tmp_path) if f.startswith(("out", ".tmp-"))]
@@ -467,7 +468,7 @@ def test_huge_sparse_dem_without_heights_under_the_footprint(tmp_path):
     dem = ow.Dem.from_file(path)
     cam = ow.FrameCamera(100.0, 0.06, (64, 48))
     pose = ow.Pose.from_opk(OPK_X + 20000.0, OPK_Y - 7000.0, 1400.0, 0.0, 0.0, 0.0, crs=UTM32)
-    got = ow.geolocate(cam, pose, [[0.5, 0.5], [32.0, 24.0], [63.5, 47.5]], dem=dem, crs=UTM32, device="cpu")
+    got = ow.geolocate(FrameSensor(cam, pose), [[0.5, 0.5], [32.0, 24.0], [63.5, 47.5]], dem=dem, crs=UTM32, device="cpu")
     assert got.shape == (3, 3) and np.all(np.isnan(got))
     src = tmp_path / "src.tif"
     with warnings.catch_warnings():
@@ -475,7 +476,7 @@ def test_huge_sparse_dem_without_heights_under_the_footprint(tmp_path):
         with rasterio.open(src, "w", driver="GTiff", width=64, height=48, count=1, dtype="uint8") as dst:
             dst.write(np.ones((48, 64), np.uint8), 1)
     with pytest.raises(ow.GeometryError, match=r"huge\.tif.*does not cover"):
-        orthorectify(src, cam, pose, tmp_path / "out.tif", dem=dem, device="cpu")
+        orthorectify(src, FrameSensor(cam, pose), tmp_path / "out.tif", dem=dem, device="cpu")
     assert not dem.loaded
 
 

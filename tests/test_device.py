@@ -32,14 +32,14 @@ CALLS = textwrap.dedent("""
     pose = ow.Pose.from_ins(47.0, 8.0, 2500.0, roll=0.5, pitch=-0.3, yaw=90.0)
     dem = ow.Dem(np.full((60, 60), 420.0, np.float32), Affine(0.0005, 0, 7.985, 0, -0.0005, 47.015), "EPSG:4326")
     results = {
-        "geolocate_constant": ow.geolocate(cam, pose, [[0.5, 0.5], [500, 400]], dem=400.0, device="cpu"),
-        "geolocate_dem": ow.geolocate(cam, pose, [[500, 400]], dem=dem, device="cpu"),
-        "geolocate_default_device": ow.geolocate(cam, pose, [[500, 400]], dem=400.0),
-        "project": ow.project(cam, pose, [[8.0, 47.0, 400.0]], device="cpu"),
+        "geolocate_constant": ow.geolocate(ow.FrameSensor(cam, pose), [[0.5, 0.5], [500, 400]], dem=400.0, device="cpu"),
+        "geolocate_dem": ow.geolocate(ow.FrameSensor(cam, pose), [[500, 400]], dem=dem, device="cpu"),
+        "geolocate_default_device": ow.geolocate(ow.FrameSensor(cam, pose), [[500, 400]], dem=400.0),
+        "project": ow.project(ow.FrameSensor(cam, pose), [[8.0, 47.0, 400.0]], device="cpu"),
         "pixel_to_camera": cam.pixel_to_camera([[500, 400]], device="cpu"),
         "camera_to_pixel": cam.camera_to_pixel([[0.0, 0.0, -1.0]], device="cpu"),
     }
-    scene = ow.PushbroomScene.from_dimap("tests/data/spot5/spot_example1.xml")
+    scene = ow.read_scene("tests/data/spot5/spot_example1.xml")
     results["pushbroom_geolocate"] = ow.geolocate(scene, [[150.0, 1000.0]], dem=100.0, device="cpu")
     results["pushbroom_project"] = ow.project(scene, results["pushbroom_geolocate"], device="cpu")
 """)
@@ -101,9 +101,9 @@ def test_library_calls_print_nothing(tmp_path):
     pose = ow.Pose.from_ins(47.0, 8.0, 2500.0, roll=0.5, pitch=-0.3, yaw=90.0)
     import numpy as np
 
-    np.testing.assert_allclose(r["gc"], ow.geolocate(cam, pose, [[0.5, 0.5], [500, 400]], dem=400.0, device="cpu"),
+    np.testing.assert_allclose(r["gc"], ow.geolocate(ow.FrameSensor(cam, pose), [[0.5, 0.5], [500, 400]], dem=400.0, device="cpu"),
                                rtol=0, atol=1e-9)
-    np.testing.assert_allclose(r["pr"], ow.project(cam, pose, [[8.0, 47.0, 400.0]], device="cpu"), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(r["pr"], ow.project(ow.FrameSensor(cam, pose), [[8.0, 47.0, 400.0]], device="cpu"), rtol=0, atol=1e-9)
     np.testing.assert_allclose(r["pb"], [[150.0, 1000.0]], rtol=0, atol=1e-3)  # pushbroom round trip
 
 
@@ -192,7 +192,7 @@ def test_quiet_scope_across_threads(info_level):
 def test_quiet_scope_restores_after_an_error(info_level):
     with pytest.raises(ow.ParamError):
         with _device.quiet_warp():
-            ow.geolocate(ow.FrameCamera(50.0, 0.01, (10, 10)), ow.Pose.from_ins(47, 8, 900, 0, 0, 0),
+            ow.geolocate(ow.FrameSensor(ow.FrameCamera(50.0, 0.01, (10, 10)), ow.Pose.from_ins(47, 8, 900, 0, 0, 0)),
                          [[float("inf"), 1.0]], dem=0.0, device="cpu")
     assert wp.config.log_level == wp.LOG_INFO
 

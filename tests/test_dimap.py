@@ -8,7 +8,7 @@ import pytest
 
 from orthowarp.errors import ParamError, RasterIOError
 from orthowarp.pipeline import dimap
-from orthowarp.pipeline.dimap import read_dimap
+from orthowarp.pipeline.dimap import read_dimap, read_scene
 
 SAMPLE = os.path.join(os.path.dirname(__file__), "data", "spot5", "spot_example1.xml")
 
@@ -119,14 +119,13 @@ def test_entities_and_size_are_refused(tmp_path, text, monkeypatch):
 
 
 def test_written_synthetic_scene_reads_back(tmp_path):
-    from orthowarp import PushbroomScene
     from orthowarp.pipeline.dimap import write_dimap
     from orthowarp.pushbroom import synthetic_scene
 
     sc = synthetic_scene(width=50, height=80, view_angle=10.0)
     path = tmp_path / "scene.dim"
     write_dimap(sc, path)
-    back = PushbroomScene.from_dimap(path)
+    back = read_scene(path)
     for name in ("eph_time", "eph_position", "eph_velocity", "att_time", "att_angles", "psi_x", "psi_y"):
         np.testing.assert_allclose(getattr(back, name), getattr(sc, name), rtol=1e-15, atol=1e-6 if "time" in name else 0)
     assert (back.width, back.height, back.line_period, back.center_line) == (sc.width, sc.height, sc.line_period,
@@ -137,15 +136,14 @@ def test_written_synthetic_scene_reads_back(tmp_path):
 
 def test_lines_outside_the_ephemeris_are_refused(tmp_path, text):
     """A scene-centre time 200 s late puts every line after the last ephemeris point."""
-    from orthowarp import PushbroomScene
     from orthowarp.errors import GeometryError
 
     late = text.replace("<SCENE_CENTER_TIME>2008-03-04T12:31:39.349737", "<SCENE_CENTER_TIME>2008-03-04T12:34:59.349737")
     with pytest.raises(GeometryError, match="outside its ephemeris"):
-        PushbroomScene.from_dimap(variant(tmp_path, late))
+        read_scene(variant(tmp_path, late))
     early = text.replace("<SCENE_CENTER_LINE>48085", "<SCENE_CENTER_LINE>148085")
     with pytest.raises(GeometryError, match="outside its attitudes.*v.xml|v.xml.*outside its attitudes"):
-        PushbroomScene.from_dimap(variant(tmp_path, early))
+        read_scene(variant(tmp_path, early))
 
 
 # =============================================================================================
@@ -301,10 +299,9 @@ from orthowarp.errors import OrthowarpError  # noqa: E402
 
 def clean_read(path):
     """(metadata, scene) of a DIMAP file, None for each an OrthowarpError refused."""
-    from orthowarp import PushbroomScene
 
     out = []
-    for fn in (read_dimap, PushbroomScene.from_dimap):
+    for fn in (read_dimap, read_scene):
         with warnings.catch_warnings():
             warnings.simplefilter("error")
             try:

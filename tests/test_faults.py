@@ -105,7 +105,8 @@ def test_full_disk_keeps_the_earlier_output(tmp_path, options):
 
 
 def test_full_disk_in_adjust_changes_no_output(tmp_path):
-    from orthowarp.adjust import synthetic_block, write_block
+    from orthowarp import write_block
+    from orthowarp.adjust import synthetic_block
 
     block, _ = synthetic_block(strips=2, images_per_strip=4, seed=11)
     write_block(block, tmp_path / "block.json")

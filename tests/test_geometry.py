@@ -17,6 +17,7 @@ from affine import Affine
 from pyproj import Transformer
 
 import orthowarp as ow
+from orthowarp.sensor import FrameSensor
 from scenes import UTM32, geo_dem, make_poses, map_dem
 
 try:
@@ -62,7 +63,7 @@ class Scene:
 
     def geolocate_object(self, pixels, *, refraction, device, dem=None):
         """geolocate() converted to the reference's object frame (ECEF or map x, y, z)."""
-        got = ow.geolocate(self.camera, self.pose, pixels, dem=self.dem if dem is None else dem,
+        got = ow.geolocate(FrameSensor(self.camera, self.pose), pixels, dem=self.dem if dem is None else dem,
                            crs=self.crs, refraction=refraction, device=device)
         if self.kind == "ins":
             return ref.llh_to_ecef(got[:, 0], got[:, 1], got[:, 2])
@@ -208,7 +209,7 @@ def test_nadir_closed_form_map(kappa, device):
     z, h0 = 2500.0, 430.0
     pose = ow.Pose.from_opk(OPK_X, OPK_Y, z, 0.0, 0.0, kappa, crs=UTM32)
     pix = _offsets_to_pixels(NADIR_OFFSETS_MM, size, ps)
-    got = ow.geolocate(cam, pose, pix, dem=ow.Dem.constant(h0), crs=UTM32, refraction=False, device=device)
+    got = ow.geolocate(FrameSensor(cam, pose), pix, dem=ow.Dem.constant(h0), crs=UTM32, refraction=False, device=device)
     scale = (z - h0) / f
     c, s = np.cos(np.radians(kappa)), np.sin(np.radians(kappa))
     dx, dy = NADIR_OFFSETS_MM[:, 0], NADIR_OFFSETS_MM[:, 1]
@@ -237,7 +238,7 @@ def test_nadir_closed_form_ins(yaw, device):
     lat, lon, h, h0 = 47.1, 8.3, 2500.0, 430.0
     pose = ow.Pose.from_ins(lat, lon, h, 0.0, 0.0, yaw)
     pix = _offsets_to_pixels(NADIR_OFFSETS_MM, size, ps)
-    got = ow.geolocate(cam, pose, pix, dem=h0, refraction=False, device=device)
+    got = ow.geolocate(FrameSensor(cam, pose), pix, dem=h0, refraction=False, device=device)
     p = ref.llh_to_ecef(got[:, 0], got[:, 1], got[:, 2]) - ref.llh_to_ecef(lon, lat, h0)
     east, north, _ = ref.enu_axes(lat, lon)
     e, n = p @ east, p @ north
@@ -284,10 +285,10 @@ def test_round_trip(name, crs, device):
     x, y = rc.image_mm(corners)
     u, v = rc.undistort(x / rc.f, -y / rc.f)
     assert np.min(np.hypot(u * rc.f - x, -v * rc.f - y)) / rc.px[0] > 30.0
-    ground = ow.geolocate(sc.camera, sc.pose, pix, dem=sc.dem, crs=crs, refraction=True, device=device)
+    ground = ow.geolocate(FrameSensor(sc.camera, sc.pose), pix, dem=sc.dem, crs=crs, refraction=True, device=device)
     assert np.all(np.isfinite(ground))
     assert np.ptp(ground[:, 2]) > 100.0  # the rays land on the relief
-    back = ow.project(sc.camera, sc.pose, ground, crs=crs, refraction=True, device=device)
+    back = ow.project(FrameSensor(sc.camera, sc.pose), ground, crs=crs, refraction=True, device=device)
     err = np.hypot(*(back - pix).T)
     assert err.max() <= TOL_RT, f"max {err.max():.2e} px at {pix[np.argmax(err)]}"
 
@@ -361,13 +362,13 @@ def test_dem_not_covering_the_rays_gives_nan(device):
     pix = np.array([[0.5, 0.5], [w / 2, h / 2], [w, h], [100.0, h / 2], [w - 100.0, h / 2]])
     # far away: no pixel's ray meets it
     far, _ = map_dem(hills, OPK_X + 5000.0, OPK_Y - 3000.0, 100, 100, 5.0)
-    got = ow.geolocate(cam, pose, pix, dem=far, crs=UTM32, device=device)
+    got = ow.geolocate(FrameSensor(cam, pose), pix, dem=far, crs=UTM32, device=device)
     assert got.shape == (len(pix), 3) and np.all(np.isnan(got))
     # covering only x < OPK_X - 30 m: left part of the image hits, right part is NaN
     west, _ = map_dem(hills, OPK_X - 330.0, OPK_Y, 120, 200, 5.0)
     left = np.array([[0.5, 0.5], [100.0, h / 2], [w / 2 - 1000, h - 0.5], [w / 2 - 1000, 10.0]])
     right = np.array([[w - 0.5, 0.5], [w / 2 + 200, h / 2], [w, h], [w / 2 + 600, 10.0]])
-    got = ow.geolocate(cam, pose, np.concatenate([left, right]), dem=west, crs=UTM32, device=device)
+    got = ow.geolocate(FrameSensor(cam, pose), np.concatenate([left, right]), dem=west, crs=UTM32, device=device)
     assert np.all(np.isfinite(got[:4])) and np.all(got[:4, 0] < OPK_X - 30.0)
     assert np.all(np.isnan(got[4:]))
 
@@ -379,15 +380,15 @@ def test_ray_above_horizon_gives_nan(device):
     w, h = sc.size
     pix = np.array([[0, 0], [w, h], [w / 2, h / 2], [w / 2, 0], [w / 2, h]], dtype=float)
     for dem in (sc.dem, ow.Dem.constant(400.0), 0.0):
-        got = ow.geolocate(sc.camera, p, pix, dem=dem, device=device)
+        got = ow.geolocate(FrameSensor(sc.camera, p), pix, dem=dem, device=device)
         assert np.all(np.isnan(got)), dem
     p = ow.Pose.from_opk(OPK_X, OPK_Y, 2400.0, 0.0, 95.0, 0.0, crs=UTM32)
     for dem in (scene("opk").dem, ow.Dem.constant(400.0)):
-        got = ow.geolocate(sc.camera, p, pix, dem=dem, crs=UTM32, device=device)
+        got = ow.geolocate(FrameSensor(sc.camera, p), pix, dem=dem, crs=UTM32, device=device)
         assert np.all(np.isnan(got)), dem
     # sanity: the same camera pitched down (not above the horizon) does hit the DEM
     p = ow.Pose.from_ins(47.1, 8.3, 2600.0, 0.0, 0.0, 20.0)
-    assert np.all(np.isfinite(ow.geolocate(sc.camera, p, pix, dem=sc.dem, device=device)))
+    assert np.all(np.isfinite(ow.geolocate(FrameSensor(sc.camera, p), pix, dem=sc.dem, device=device)))
 
 
 def _ridge_scene():
@@ -440,14 +441,14 @@ def test_project_behind_camera_is_nan(refraction, device):
     lat, lon, h = sc.pose.center_geodetic
     pts = np.array([[lon, lat, h + 500.0], [lon + 0.01, lat - 0.004, h + 300.0],
                     [lon - 0.02, lat, h + 2000.0], [lon, lat, 500.0]])
-    got = ow.project(sc.camera, sc.pose, pts, refraction=refraction, device=device)
+    got = ow.project(FrameSensor(sc.camera, sc.pose), pts, refraction=refraction, device=device)
     assert np.all(np.isnan(got[:3])) and np.all(np.isfinite(got[3]))
     # the valid point projects where the reference's collinearity puts it (refraction: < 0.1 px)
     d = (ref.llh_to_ecef(*pts[3]) - sc.ref_pose.center) @ sc.ref_pose.rotation
     np.testing.assert_allclose(got[3], sc.ref_camera.pixels(d[None])[0], atol=0.1 if refraction else 1e-6)
     sm = scene("opk")
     pts = np.array([[OPK_X, OPK_Y, 2900.0], [OPK_X + 300.0, OPK_Y - 200.0, 2500.0], [OPK_X, OPK_Y, 500.0]])
-    got = ow.project(sm.camera, sm.pose, pts, crs=UTM32, refraction=refraction, device=device)
+    got = ow.project(FrameSensor(sm.camera, sm.pose), pts, crs=UTM32, refraction=refraction, device=device)
     assert np.all(np.isnan(got[:2])) and np.all(np.isfinite(got[2]))
 
 
@@ -455,12 +456,12 @@ def test_project_behind_camera_is_nan(refraction, device):
 def test_project_in_utm_equals_direct(device):
     sc = scene("ins47")
     pix = sample_pixels(sc.size)
-    llh = ow.geolocate(sc.camera, sc.pose, pix, dem=sc.dem, device=device)
-    utm = ow.geolocate(sc.camera, sc.pose, pix, dem=sc.dem, crs=UTM32, device=device)
+    llh = ow.geolocate(FrameSensor(sc.camera, sc.pose), pix, dem=sc.dem, device=device)
+    utm = ow.geolocate(FrameSensor(sc.camera, sc.pose), pix, dem=sc.dem, crs=UTM32, device=device)
     tr = Transformer.from_crs("EPSG:4979", UTM32, always_xy=True)
     np.testing.assert_allclose(utm, np.stack(tr.transform(*llh.T), 1), rtol=0, atol=1e-6)
-    direct = ow.project(sc.camera, sc.pose, llh, device=device)
-    via_utm = ow.project(sc.camera, sc.pose, utm, crs=UTM32, device=device)
+    direct = ow.project(FrameSensor(sc.camera, sc.pose), llh, device=device)
+    via_utm = ow.project(FrameSensor(sc.camera, sc.pose), utm, crs=UTM32, device=device)
     np.testing.assert_allclose(via_utm, direct, rtol=0, atol=1e-6)
     np.testing.assert_allclose(direct, pix, rtol=0, atol=TOL_RT)
 
@@ -528,21 +529,21 @@ def test_dem_file_round_trip(tmp_path):
 def test_pixels_of_wrong_shape(pixels):
     sc = scene("opk")
     with pytest.raises(ow.ParamError):
-        ow.geolocate(sc.camera, sc.pose, pixels, dem=400.0, device="cpu")
+        ow.geolocate(FrameSensor(sc.camera, sc.pose), pixels, dem=400.0, device="cpu")
 
 
 @pytest.mark.parametrize("points", [np.zeros((4, 2)), np.zeros(4)])
 def test_points_of_wrong_shape(points):
     sc = scene("opk")
     with pytest.raises(ow.ParamError):
-        ow.project(sc.camera, sc.pose, points, crs=UTM32, device="cpu")
+        ow.project(FrameSensor(sc.camera, sc.pose), points, crs=UTM32, device="cpu")
 
 
 @pytest.mark.parametrize("dem", [np.zeros((10, 10)), None, [400.0]])
 def test_dem_of_wrong_type(dem):
     sc = scene("opk")
     with pytest.raises(ow.ParamError):
-        ow.geolocate(sc.camera, sc.pose, [[10.0, 10.0]], dem=dem, device="cpu")
+        ow.geolocate(FrameSensor(sc.camera, sc.pose), [[10.0, 10.0]], dem=dem, device="cpu")
 
 
 def test_a_dem_path_is_opened_as_everywhere_else():
@@ -550,7 +551,7 @@ def test_a_dem_path_is_opened_as_everywhere_else():
     paths with a ParamError before): a missing one is named."""
     sc = scene("opk")
     with pytest.raises(ow.RasterIOError, match="DEM file 'no-such-dem.tif' does not exist"):
-        ow.geolocate(sc.camera, sc.pose, [[10.0, 10.0]], dem="no-such-dem.tif", device="cpu")
+        ow.geolocate(FrameSensor(sc.camera, sc.pose), [[10.0, 10.0]], dem="no-such-dem.tif", device="cpu")
 
 
 # ------------------------------------------------------------------------------------------
@@ -631,11 +632,11 @@ def test_dem_file_in_another_crs_is_reprojected_over_its_window(tmp_path):
     w, h = sc.size
     pix = sample_pixels(sc.size)
     lazy = ow.Dem.from_file(path)
-    got = ow.geolocate(sc.camera, sc.pose, pix, dem=lazy, crs=UTM32, refraction=False, device="cpu")
-    whole = ow.geolocate(sc.camera, sc.pose, pix, dem=utm, crs=UTM32, refraction=False, device="cpu")
+    got = ow.geolocate(FrameSensor(sc.camera, sc.pose), pix, dem=lazy, crs=UTM32, refraction=False, device="cpu")
+    whole = ow.geolocate(FrameSensor(sc.camera, sc.pose), pix, dem=utm, crs=UTM32, refraction=False, device="cpu")
     assert np.all(np.isfinite(got)) and not lazy.loaded
     np.testing.assert_allclose(got, whole, rtol=0, atol=0.1)
-    geom = ow.pipeline.geometry.FrameGeometry(sc.camera, sc.pose, ow.Dem.from_file(path), refraction=False,
+    geom = ow.pipeline.geometry.SensorGeometry(FrameSensor(sc.camera, sc.pose), ow.Dem.from_file(path), refraction=False,
                                               device="cpu", region=(0, 0, w / 4, h / 4))
     assert geom.dem.crs.is_geographic and geom.dem.shape[0] * geom.dem.shape[1] < 0.25 * 300 * 300
 
@@ -681,16 +682,16 @@ def test_camera_below_the_terrain_says_so(name):
         terrain = float(sc.dem.sample(OPK_X, OPK_Y))
     assert terrain > 400.0
     with pytest.raises(ow.GeometryError) as info:
-        ow.geolocate(sc.camera, pose, pix, dem=sc.dem, crs=sc.crs, device="cpu")
+        ow.geolocate(FrameSensor(sc.camera, pose), pix, dem=sc.dem, crs=sc.crs, device="cpu")
     msg = str(info.value)
     assert "below the terrain" in msg and "h=350.000 m" in msg and f"{terrain:.3f} m" in msg
     # over a constant height too, and exactly at it
     with pytest.raises(ow.GeometryError, match="below the terrain.*constant terrain height is 500.000 m"):
-        ow.geolocate(sc.camera, pose, pix, dem=500.0, crs=sc.crs, device="cpu")
+        ow.geolocate(FrameSensor(sc.camera, pose), pix, dem=500.0, crs=sc.crs, device="cpu")
     with pytest.raises(ow.GeometryError, match="at the terrain"):
-        ow.geolocate(sc.camera, pose, pix, dem=350.0, crs=sc.crs, device="cpu")
+        ow.geolocate(FrameSensor(sc.camera, pose), pix, dem=350.0, crs=sc.crs, device="cpu")
     # control: 1 m above a constant height the same pose geolocates to that height
-    got = ow.geolocate(sc.camera, pose, pix, dem=349.0, crs=sc.crs, device="cpu")
+    got = ow.geolocate(FrameSensor(sc.camera, pose), pix, dem=349.0, crs=sc.crs, device="cpu")
     np.testing.assert_allclose(got[:, 2], 349.0, rtol=0, atol=1e-3)
 
 
@@ -703,7 +704,7 @@ def test_camera_below_a_dem_file_names_the_file(tmp_path):
     cam = ow.FrameCamera(50.0, 0.01, (100, 80))
     pose = ow.Pose.from_opk(OPK_X, OPK_Y, 700.0, 0.0, 0.0, 0.0, crs=UTM32)
     with pytest.raises(ow.GeometryError, match="terrain.tif") as info:
-        ow.geolocate(cam, pose, [[50.0, 40.0]], dem=ow.Dem.from_file(path), crs=UTM32, device="cpu")
+        ow.geolocate(FrameSensor(cam, pose), [[50.0, 40.0]], dem=ow.Dem.from_file(path), crs=UTM32, device="cpu")
     assert "h=700.000 m" in str(info.value) and "800.000 m" in str(info.value)
 
 
@@ -714,11 +715,11 @@ def test_camera_beside_the_dem_is_not_checked():
     dem, _ = map_dem(lambda e, n: 300.0 + 0.0 * e + 0.0 * n, OPK_X + 1500.0, OPK_Y, 100, 100, 5.0)
     cam = ow.FrameCamera(50.0, 0.01, (100, 80))
     pose = ow.Pose.from_opk(OPK_X, OPK_Y, 1300.0, 0.0, -56.3, 0.0, crs=UTM32)  # looks ~1.5 km east
-    got = ow.geolocate(cam, pose, [[50.0, 40.0]], dem=dem, crs=UTM32, device="cpu")
+    got = ow.geolocate(FrameSensor(cam, pose), [[50.0, 40.0]], dem=dem, crs=UTM32, device="cpu")
     assert np.all(np.isfinite(got))
     np.testing.assert_allclose(got[0, 2], 300.0, rtol=0, atol=1e-3)
     low = ow.Pose.from_opk(OPK_X, OPK_Y, 200.0, 0.0, -80.0, 0.0, crs=UTM32)
-    assert np.all(np.isnan(ow.geolocate(cam, low, [[50.0, 40.0]], dem=dem, crs=UTM32, device="cpu")))
+    assert np.all(np.isnan(ow.geolocate(FrameSensor(cam, low), [[50.0, 40.0]], dem=dem, crs=UTM32, device="cpu")))
 
 
 @pytest.mark.parametrize("pts,crs,words", [
@@ -737,14 +738,14 @@ def test_camera_beside_the_dem_is_not_checked():
 def test_project_refuses_points_off_the_earth(pts, crs, words):
     sc = scene("ins47")
     with pytest.raises(ow.ParamError) as info:
-        ow.project(sc.camera, sc.pose, pts, crs=crs, device="cpu")
+        ow.project(FrameSensor(sc.camera, sc.pose), pts, crs=crs, device="cpu")
     for word in words:
         assert word in str(info.value), (word, str(info.value))
 
 
 def test_project_latitude_at_the_poles_is_accepted():
     sc = scene("ins80")
-    got = ow.project(sc.camera, sc.pose, [[0.0, 90.0, 0.0], [0.0, -90.0, 0.0]], device="cpu")
+    got = ow.project(FrameSensor(sc.camera, sc.pose), [[0.0, 90.0, 0.0], [0.0, -90.0, 0.0]], device="cpu")
     assert got.shape == (2, 2)  # far outside the image or behind the camera, but not refused
 
 
@@ -753,22 +754,22 @@ def test_masked_pixels_and_points_give_nan_rows():
     values (here values that would be errors or garbage), the others what plain input gives."""
     sc = scene("ins47")
     pix = sample_pixels(sc.size)[:6].copy()
-    plain = ow.geolocate(sc.camera, sc.pose, pix, dem=sc.dem, device="cpu")
+    plain = ow.geolocate(FrameSensor(sc.camera, sc.pose), pix, dem=sc.dem, device="cpu")
     data = pix.copy()
     data[1] = [np.inf, -1e308]
     data[4] = [1e9, 3.0]
     mask = np.zeros(pix.shape, bool)
     mask[1, 0] = mask[1, 1] = mask[4, 0] = True
-    got = ow.geolocate(sc.camera, sc.pose, np.ma.masked_array(data, mask=mask), dem=sc.dem, device="cpu")
+    got = ow.geolocate(FrameSensor(sc.camera, sc.pose), np.ma.masked_array(data, mask=mask), dem=sc.dem, device="cpu")
     assert np.all(np.isnan(got[[1, 4]]))
     keep = [0, 2, 3, 5]
     np.testing.assert_allclose(got[keep], plain[keep], rtol=0, atol=1e-9)
 
     pts = plain.copy()
-    back = ow.project(sc.camera, sc.pose, pts, device="cpu")
+    back = ow.project(FrameSensor(sc.camera, sc.pose), pts, device="cpu")
     data = pts.copy()
     data[2] = [8.3, 1000.0, 1e300]  # would be a ParamError unmasked
-    got = ow.project(sc.camera, sc.pose, np.ma.masked_array(data, mask=[[0, 0, 0], [0, 0, 0], [0, 1, 0],
+    got = ow.project(FrameSensor(sc.camera, sc.pose), np.ma.masked_array(data, mask=[[0, 0, 0], [0, 0, 0], [0, 1, 0],
                                                                         [0, 0, 0], [0, 0, 0], [0, 0, 0]]),
                      device="cpu")
     assert np.all(np.isnan(got[2]))
@@ -776,10 +777,10 @@ def test_masked_pixels_and_points_give_nan_rows():
     np.testing.assert_allclose(got[keep], back[keep], rtol=0, atol=1e-9)
     np.testing.assert_allclose(got[keep], pix[keep], rtol=0, atol=TOL_RT)
     # an unmasked masked array is plain input; NaN rows are missing rows as well
-    np.testing.assert_allclose(ow.project(sc.camera, sc.pose, np.ma.masked_array(pts), device="cpu"), back,
+    np.testing.assert_allclose(ow.project(FrameSensor(sc.camera, sc.pose), np.ma.masked_array(pts), device="cpu"), back,
                                rtol=0, atol=0)
     pts[3] = np.nan
-    got = ow.project(sc.camera, sc.pose, pts, device="cpu")
+    got = ow.project(FrameSensor(sc.camera, sc.pose), pts, device="cpu")
     assert np.all(np.isnan(got[3])) and np.all(np.isfinite(got[[0, 1, 2, 4, 5]]))
 
 
@@ -798,7 +799,7 @@ def test_geolocate_arguments(kwargs, words):
     args = dict(pixels=[[10.0, 10.0]], dem=400.0, refraction=True)
     args.update(kwargs)
     with pytest.raises(ow.ParamError) as info:
-        ow.geolocate(sc.camera, sc.pose, args["pixels"], dem=args["dem"], refraction=args["refraction"],
+        ow.geolocate(FrameSensor(sc.camera, sc.pose), args["pixels"], dem=args["dem"], refraction=args["refraction"],
                      crs=UTM32, device="cpu")
     for word in words:
         assert word in str(info.value), (word, str(info.value))
@@ -829,10 +830,10 @@ def test_poses_at_the_bounds_are_accepted():
     (a valid rotation: looking back over the top) and angles of a full turn."""
     cam = ow.FrameCamera(1000.0, 0.006, (100, 80))
     geo = ow.Pose.from_ins(0.0, 8.0, 35786e3, 0.0, 0.0, 0.0)
-    np.testing.assert_allclose(ow.geolocate(cam, geo, [[50.0, 40.0]], dem=0.0, device="cpu")[0],
+    np.testing.assert_allclose(ow.geolocate(FrameSensor(cam, geo), [[50.0, 40.0]], dem=0.0, device="cpu")[0],
                                [8.0, 0.0, 0.0], rtol=0, atol=1e-6)
     low = ow.Pose.from_ins(31.5, 35.5, -50.0, 360.0, 0.0, -360.0)
-    np.testing.assert_allclose(ow.geolocate(cam, low, [[50.0, 40.0]], dem=-400.0, device="cpu")[0],
+    np.testing.assert_allclose(ow.geolocate(FrameSensor(cam, low), [[50.0, 40.0]], dem=-400.0, device="cpu")[0],
                                [35.5, 31.5, -400.0], rtol=0, atol=1e-6)
     assert ow.Pose.from_ins(47.0, 8.0, 900.0, 0.0, 95.0, 0.0).params["pitch"] == 95.0
 
@@ -882,7 +883,7 @@ def test_fuzz_project_points(pts, mask, masked):
     m = np.array(mask[:pts.size], bool).reshape(pts.shape)
     arg = np.ma.masked_array(pts, mask=m) if masked else pts
     try:
-        got = ow.project(sc.camera, sc.pose, arg, device="cpu")
+        got = ow.project(FrameSensor(sc.camera, sc.pose), arg, device="cpu")
     except ow.ParamError as e:
         assert "points row" in str(e)
         event("refused")
@@ -901,7 +902,7 @@ def test_fuzz_project_points(pts, mask, masked):
 def test_fuzz_geolocate_pixels(pix):
     sc = scene("opk")
     try:
-        got = ow.geolocate(sc.camera, sc.pose, pix, dem=400.0, crs=UTM32, device="cpu")
+        got = ow.geolocate(FrameSensor(sc.camera, sc.pose), pix, dem=400.0, crs=UTM32, device="cpu")
     except ow.ParamError as e:
         assert "pixels row" in str(e) and np.any(np.isinf(pix))
         event("refused")

@@ -15,6 +15,7 @@ from test_ortho import OPK_X, OPK_Y, RMS_MAX, SUPERSAMPLE, UTM32, describe, meas
 
 from orthowarp.errors import ParamError, RasterIOError
 from orthowarp.pipeline.mosaic import NO_SOURCE, mosaic
+from orthowarp.sensor import FrameSensor
 
 
 def _second_view(sc):
@@ -34,7 +35,7 @@ def pair(tmp_path_factory):
     folder = tmp_path_factory.mktemp("pair")
     a = write_image(folder / "a.tif", sc.image(False), "float32")
     b = write_image(folder / "b.tif", img2, "float32")
-    return sc, [(a, sc.camera, sc.pose), (b, sc.camera, pose2)], [sc.ref_pose, ref_pose2], folder
+    return sc, [(a, FrameSensor(sc.camera, sc.pose)), (b, FrameSensor(sc.camera, pose2))], [sc.ref_pose, ref_pose2], folder
 
 
 def test_mosaic_of_two_frames_matches_the_truth_and_the_nadir_rule(pair, tmp_path, device):
@@ -81,7 +82,7 @@ def brighter(pair):
     with rasterio.open(images[1][0]) as ds:
         img = ds.read(1).astype(np.float64)
     b = write_image(folder / "b_bright.tif", 1.25 * img + 0.3, "float32")
-    return sc, [images[0], (b, images[1][1], images[1][2])], ref_poses
+    return sc, [images[0], (b, images[1][1])], ref_poses
 
 
 def test_balancing_recovers_gain_and_offset(brighter, tmp_path):
@@ -173,7 +174,7 @@ def test_least_cost_seams_go_around_what_one_image_alone_shows(pair, tmp_path):
     inside = ndimage.binary_closing(inside, iterations=2) | inside
     img[inside] = img.max() + 5 * sc.texture.std
     obj = write_image(folder / "b_object.tif", img, "float32")
-    images2 = [images[0], (obj, images[1][1], images[1][2])]
+    images2 = [images[0], (obj, images[1][1])]
     split = {}
     core = ndimage.binary_erosion(disc, iterations=2)  # surely the object's ground
     for seams in ("nadir", "least-cost"):
@@ -333,9 +334,9 @@ def test_mosaic_of_two_pushbroom_scenes_and_of_a_mix(tmp_path):
     cx, cy = x[idx == 0].mean(), y[idx == 0].mean()
     pose = ow.Pose.from_opk(x=cx + 400.0, y=cy, z=25250.0, omega=0.0, phi=0.0, kappa=20.0, crs=utm)
     cc, rr = np.meshgrid(np.arange(300) + 0.5, np.arange(300) + 0.5)
-    g = ow.geolocate(cam, pose, np.stack([cc.ravel(), rr.ravel()], 1), dem=250.0, crs=utm, refraction=False)
+    g = ow.geolocate(FrameSensor(cam, pose), np.stack([cc.ravel(), rr.ravel()], 1), dem=250.0, crs=utm, refraction=False)
     frame = write_image(tmp_path / "frame.tif", texture(g[:, 0], g[:, 1]).reshape(300, 300), "float32")
-    res = mosaic([images[0], (frame, cam, pose)], tmp_path / "mix.tif", dem=250.0, crs=utm, resolution=5.0,
+    res = mosaic([images[0], (frame, FrameSensor(cam, pose))], tmp_path / "mix.tif", dem=250.0, crs=utm, resolution=5.0,
                  refraction=False, device="cpu", tile_size=128)
     with rasterio.open(res.path) as ds:
         data, valid = ds.read(1).astype(np.float64), ds.dataset_mask() > 0
@@ -353,7 +354,7 @@ def test_cli_mosaic_of_pushbroom_scenes(tmp_path, monkeypatch):
     from pyproj import Transformer
 
     from orthowarp.cli import main
-    from orthowarp.pushbroom import PushbroomScene, synthetic_scene
+    from orthowarp.pushbroom import synthetic_scene
     from test_pushbroom import texture
 
     scenes = {}
@@ -368,7 +369,7 @@ def test_cli_mosaic_of_pushbroom_scenes(tmp_path, monkeypatch):
         (tmp_path / f"s{k}.dim").write_text("<Dimap_Document/>")
         scenes[str(tmp_path / f"s{k}.dim")] = sc
         args += ["--scene", str(img), str(tmp_path / f"s{k}.dim")]
-    monkeypatch.setattr(PushbroomScene, "from_dimap", classmethod(lambda cls, path, **kw: scenes[str(path)]))
+    monkeypatch.setattr("orthowarp.pipeline.dimap.read_scene", lambda path, **kw: scenes[str(path)])
     out = tmp_path / "m.tif"
     res = CliRunner().invoke(main, ["mosaic", *args, "--height", "250", "--crs", "EPSG:32631", "--resolution", "5",
                                     "--no-refraction", "--out", str(out), "--index", str(tmp_path / "i.tif"),
@@ -497,9 +498,9 @@ def test_bad_mosaic_inputs(pair, tmp_path):
     with rasterio.open(rgb, "w", driver="GTiff", width=400, height=300, count=3, dtype="float32") as dst:
         dst.write(np.zeros((3, 300, 400), np.float32))
     with pytest.raises(ParamError, match=r"share their band count and data type; got bands \[1, 3\]"):
-        mosaic([images[0], (str(rgb), sc.camera, sc.pose)], tmp_path / "m.tif", dem=sc.dem)
+        mosaic([images[0], (str(rgb), FrameSensor(sc.camera, sc.pose))], tmp_path / "m.tif", dem=sc.dem)
     with pytest.raises(RasterIOError, match="does not exist"):
-        mosaic([(str(folder / "none.tif"), sc.camera, sc.pose)], tmp_path / "m.tif", dem=sc.dem)
+        mosaic([(str(folder / "none.tif"), FrameSensor(sc.camera, sc.pose))], tmp_path / "m.tif", dem=sc.dem)
     (tmp_path / "m.tif").write_text("earlier")
     with pytest.raises(RasterIOError, match="exists"):
         mosaic(images, tmp_path / "m.tif", dem=sc.dem)
@@ -603,7 +604,7 @@ def test_hidden_ground_comes_from_an_image_that_sees_it(tmp_path):
         pose, ref_pose = scenes.make_poses("opk", kw)
         img = render.Renderer(ref_cam, ref_pose, grid.sample, (grid.hmin, grid.hmax), texture, UTM32,
                               refraction=False).render(SUPERSAMPLE)
-        images.append((write_image(tmp_path / f"{name}.tif", img, "float32"), cam, pose))
+        images.append((write_image(tmp_path / f"{name}.tif", img, "float32"), FrameSensor(cam, pose)))
     out = {}
     for occlusion in (True, False):
         res = mosaic(images, tmp_path / f"m{occlusion}.tif", dem=dem, refraction=False, resolution=1.0, blend="none",
@@ -668,7 +669,7 @@ def test_mosaic_accuracy_raster_takes_each_cell_from_its_source_image(pair, tmp_
     cov = np.diag([0.05, 0.05, 0.1, 0.005, 0.005, 0.01]) ** 2
     got = mosaic_accuracy_raster(tmp_path / "acc.tif", images, res.index, sc.dem, crs, transform, shape, pose_cov=cov,
                                  pixel_sigma=0.5, dem_sigma=0.3, step=8)
-    each = [accuracy_raster(tmp_path / f"a{k}.tif", im[1], im[2], sc.dem, crs, transform, shape, pose_cov=cov,
+    each = [accuracy_raster(tmp_path / f"a{k}.tif", im[1].camera, im[1].pose, sc.dem, crs, transform, shape, pose_cov=cov,
                             pixel_sigma=0.5, dem_sigma=0.3, step=8) for k, im in enumerate(images)]
     with rasterio.open(res.index) as ds:
         index = ds.read(1)

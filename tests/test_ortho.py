@@ -37,6 +37,7 @@ from scenes import geo_dem
 from orthowarp.errors import GeometryError, ParamError, RasterIOError
 from orthowarp.pipeline.ortho import orthorectify
 from orthowarp.pipeline.registration import misregistration
+from orthowarp.sensor import FrameSensor
 
 try:
     from . import reference as ref
@@ -212,7 +213,7 @@ def ortho(sc, tmp_path, *, refraction_image, refraction, name="ortho.tif", src_d
     """Write the scene's rendered image (times scale, plus offset) and orthorectify it."""
     src = write_image(tmp_path / f"src_{name}", sc.image(refraction_image) * scale + offset, src_dtype)
     kw.setdefault("device", "cpu")
-    result = orthorectify(src, sc.camera, sc.pose, tmp_path / name, dem=sc.dem, refraction=refraction, **kw)
+    result = orthorectify(src, FrameSensor(sc.camera, sc.pose), tmp_path / name, dem=sc.dem, refraction=refraction, **kw)
     return result
 
 
@@ -326,8 +327,8 @@ def test_forward_method_leaves_hidden_ground_nodata(tmp_path):
     dem, _ = map_dem(ridge, OPK_X, OPK_Y, 700, 2.0)
     src = write_image(tmp_path / "src.tif", np.random.default_rng(1).integers(1, 255, (150, 200)), "uint8")
     kw = dict(dem=dem, refraction=False, device="cpu", resolution=4.0)
-    back = orthorectify(src, cam, pose, tmp_path / "back.tif", **kw)
-    fwd = orthorectify(src, cam, pose, tmp_path / "fwd.tif", method="forward", **kw)
+    back = orthorectify(src, FrameSensor(cam, pose), tmp_path / "back.tif", **kw)
+    fwd = orthorectify(src, FrameSensor(cam, pose), tmp_path / "fwd.tif", method="forward", **kw)
     _, vb, _ = read_ortho(back.path)
     _, vf, _ = read_ortho(fwd.path)
     x, _ = pixel_centres(fwd)
@@ -437,11 +438,11 @@ def test_refraction_from_the_nodes_matches_the_per_pixel_turn(name):
     per tile, and refraction moves them by far more than that."""
     import warp as wp
     from orthowarp.kernels import ortho as ok
-    from orthowarp.pipeline.geometry import FrameGeometry
+    from orthowarp.pipeline.geometry import SensorGeometry
     from orthowarp.pipeline.ortho import _height_range, coarse_grid, coarse_struct, output_grid
 
     sc = scene(name)
-    geoms = {r: FrameGeometry(sc.camera, sc.pose, sc.dem, device="cpu", refraction=r) for r in (True, False)}
+    geoms = {r: SensorGeometry(FrameSensor(sc.camera, sc.pose), sc.dem, device="cpu", refraction=r) for r in (True, False)}
     geom = geoms[True]
     out_crs, transform, shape, _ = output_grid(geom)
     to_frame = Transformer.from_crs(out_crs, geom.horizontal_crs, always_xy=True)
@@ -457,7 +458,7 @@ def test_refraction_from_the_nodes_matches_the_per_pixel_turn(name):
             coords = {}
             for key, g in (("pixel", geom), ("nodes", geom), ("none", geoms[False])):
                 cam, _, refr = g.sensor_structs()
-                grid = coarse_struct(uv, g.geocentric, "cpu", pose=g.pose)
+                grid = coarse_struct(uv, g.geocentric, "cpu", pose=g.sensor.pose)
                 if key == "nodes":
                     grid.refr_a = wp.empty(uv.shape[:2], dtype=wp.vec3d, device="cpu")
                     grid.refr_b = wp.empty(uv.shape[:2], dtype=wp.vec3d, device="cpu")
@@ -491,11 +492,11 @@ def test_tile_windows_hold_every_source_pixel(name):
     source pixels by several pixels."""
     import warp as wp
     from orthowarp.kernels import ortho as ok
-    from orthowarp.pipeline.geometry import FrameGeometry
+    from orthowarp.pipeline.geometry import SensorGeometry
     from orthowarp.pipeline.ortho import _height_range, _node_window, coarse_grid, coarse_struct, output_grid
 
     sc = scene(name)
-    geom = FrameGeometry(sc.camera, sc.pose, sc.dem, device="cpu", refraction=True)
+    geom = SensorGeometry(FrameSensor(sc.camera, sc.pose), sc.dem, device="cpu", refraction=True)
     out_crs, transform, shape, _ = output_grid(geom)
     frame_crs = geom.horizontal_crs
     to_frame = Transformer.from_crs(out_crs, frame_crs, always_xy=True)
@@ -516,7 +517,7 @@ def test_tile_windows_hold_every_source_pixel(name):
             jj, ii = np.meshgrid(np.arange(c0, c0 + size) + 0.5, np.arange(r0, r0 + size) + 0.5)
             u, v = to_frame.transform(*(transform @ (jj.ravel(), ii.ravel())))
             h = geom.dem.sample(np.asarray(u), np.asarray(v))
-            pix = ow.project(sc.camera, sc.pose, np.stack([u, v, h], 1), crs=frame_crs, refraction=True, device="cpu")
+            pix = ow.project(FrameSensor(sc.camera, sc.pose), np.stack([u, v, h], 1), crs=frame_crs, refraction=True, device="cpu")
             pix = pix[np.isfinite(pix).all(axis=1)]
             pix = pix[(pix[:, 0] >= 0) & (pix[:, 0] <= w) & (pix[:, 1] >= 0) & (pix[:, 1] <= h_img)]  # on the image
             if window is None:
@@ -633,7 +634,7 @@ def test_measurement_detects_a_known_error(tmp_path):
     moved = ow.Pose.from_opk(p["x"] + 0.3 * res_m, p["y"] - 0.2 * res_m, p["z"], p["omega"], p["phi"], p["kappa"],
                              crs=UTM32)
     src = write_image(tmp_path / "src.tif", sc.image(False))
-    res = orthorectify(src, sc.camera, moved, tmp_path / "o.tif", dem=sc.dem, refraction=False, resolution=res_m,
+    res = orthorectify(src, FrameSensor(sc.camera, moved), tmp_path / "o.tif", dem=sc.dem, refraction=False, resolution=res_m,
                        device="cpu")
     m, _, _, _ = measure(sc, res)
     print(f"\n[opk, camera moved by (+0.3, -0.2) px east/north] {describe(m)}")
@@ -689,8 +690,8 @@ def test_ignoring_refraction_shifts_by_the_model(name, tmp_path, device):
     assert m["n_tiles"] >= 8
     assert mag.min() > 0.2, "refraction must displace the ground by several tenths of a pixel"
     # the prediction agrees with orthowarp's own refraction displacement at those pixels
-    on = ow.geolocate(sc.camera, sc.pose, pix, dem=sc.dem, crs=UTM32, refraction=True, device="cpu")
-    off = ow.geolocate(sc.camera, sc.pose, pix, dem=sc.dem, crs=UTM32, refraction=False, device="cpu")
+    on = ow.geolocate(FrameSensor(sc.camera, sc.pose), pix, dem=sc.dem, crs=UTM32, refraction=True, device="cpu")
+    off = ow.geolocate(FrameSensor(sc.camera, sc.pose), pix, dem=sc.dem, crs=UTM32, refraction=False, device="cpu")
     d = on[:, :2] - off[:, :2]
     pred_ow = np.stack([d[:, 1], -d[:, 0]], axis=1) / res.resolution
     np.testing.assert_allclose(pred_ow, pred, atol=0.01)
@@ -792,8 +793,8 @@ def test_cog_has_overviews_and_tiles(tmp_path):
 def test_gtiff_driver_matches_cog(tmp_path):
     sc = scene("opk")
     src = write_image(tmp_path / "src.tif", sc.image(False) * 20.0, "uint16")
-    a = orthorectify(src, sc.camera, sc.pose, tmp_path / "a.tif", dem=sc.dem, refraction=False, device="cpu")
-    b = orthorectify(src, sc.camera, sc.pose, tmp_path / "b.tif", dem=sc.dem, refraction=False, device="cpu",
+    a = orthorectify(src, FrameSensor(sc.camera, sc.pose), tmp_path / "a.tif", dem=sc.dem, refraction=False, device="cpu")
+    b = orthorectify(src, FrameSensor(sc.camera, sc.pose), tmp_path / "b.tif", dem=sc.dem, refraction=False, device="cpu",
                      driver="GTiff")
     assert a.transform == b.transform and a.shape == b.shape
     with rasterio.open(a.path) as da, rasterio.open(b.path) as db:
@@ -812,15 +813,15 @@ def test_compress_level(driver, compress, tmp_path):
     sc = scene("opk")
     src = write_image(tmp_path / "src.tif", sc.image(False) * 20.0, "uint16")
     kw = dict(dem=sc.dem, refraction=False, device="cpu", driver=driver, compress=compress)
-    a = orthorectify(src, sc.camera, sc.pose, tmp_path / "a.tif", compress_level=1, **kw)
-    b = orthorectify(src, sc.camera, sc.pose, tmp_path / "b.tif", compress_level=12 if compress == "deflate" else 22,
+    a = orthorectify(src, FrameSensor(sc.camera, sc.pose), tmp_path / "a.tif", compress_level=1, **kw)
+    b = orthorectify(src, FrameSensor(sc.camera, sc.pose), tmp_path / "b.tif", compress_level=12 if compress == "deflate" else 22,
                      **kw)
     assert os.path.getsize(b.path) != os.path.getsize(a.path)
     with rasterio.open(a.path) as da, rasterio.open(b.path) as db:
         np.testing.assert_array_equal(da.read(), db.read())
     for level, comp in [(0, "deflate"), (13, "deflate"), (23, "zstd"), (5, "lzw")]:
         with pytest.raises(ParamError, match="compress_level"):
-            orthorectify(src, sc.camera, sc.pose, tmp_path / "c.tif", compress_level=level,
+            orthorectify(src, FrameSensor(sc.camera, sc.pose), tmp_path / "c.tif", compress_level=level,
                          **{**kw, "compress": comp})
     assert not os.path.exists(tmp_path / "c.tif")
 
@@ -836,7 +837,7 @@ def test_source_nodata_is_honoured(tmp_path):
         warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
         with rasterio.open(src, "w", driver="GTiff", width=400, height=300, count=1, dtype="uint16", nodata=0) as dst:
             dst.write(img, 1)
-    res = orthorectify(src, sc.camera, sc.pose, tmp_path / "o.tif", dem=sc.dem, refraction=False, device="cpu")
+    res = orthorectify(src, FrameSensor(sc.camera, sc.pose), tmp_path / "o.tif", dem=sc.dem, refraction=False, device="cpu")
     data, valid, _ = read_ortho(res.path)
     pix = source_position(sc, res)
     hole = (pix[..., 0] > 200.5) & (pix[..., 0] < 259.5) & (pix[..., 1] > 100.5) & (pix[..., 1] < 149.5)
@@ -863,7 +864,7 @@ def small_setup(tmp_path, *, dtype="uint8"):
 
 def test_small_setup_works(tmp_path):
     cam, pose, dem, src = small_setup(tmp_path)
-    res = orthorectify(src, cam, pose, tmp_path / "out.tif", dem=dem, device="cpu")
+    res = orthorectify(src, FrameSensor(cam, pose), tmp_path / "out.tif", dem=dem, device="cpu")
     assert os.path.exists(res.path)
     assert not [f for f in os.listdir(tmp_path) if ".orthowarp-tmp-" in f]
 
@@ -872,7 +873,7 @@ def test_missing_source(tmp_path):
     cam, pose, dem, _ = small_setup(tmp_path)
     missing = tmp_path / "nope.tif"
     with pytest.raises(RasterIOError, match="nope.tif"):
-        orthorectify(missing, cam, pose, tmp_path / "out.tif", dem=dem, device="cpu")
+        orthorectify(missing, FrameSensor(cam, pose), tmp_path / "out.tif", dem=dem, device="cpu")
     assert_no_leftovers(tmp_path, "out.tif")
 
 
@@ -881,7 +882,7 @@ def test_corrupt_source(tmp_path):
     bad = tmp_path / "bad.tif"
     bad.write_bytes(np.random.default_rng(1).integers(0, 256, 4096, dtype=np.uint8).tobytes())
     with pytest.raises(RasterIOError, match="bad.tif"):
-        orthorectify(bad, cam, pose, tmp_path / "out.tif", dem=dem, device="cpu")
+        orthorectify(bad, FrameSensor(cam, pose), tmp_path / "out.tif", dem=dem, device="cpu")
     assert_no_leftovers(tmp_path, "out.tif")
 
 
@@ -892,7 +893,7 @@ def test_truncated_source(tmp_path):
     (tmp_path / "trunc.tif").write_bytes(data[:len(data) // 2])  # header and first strips only
     full.unlink()
     with pytest.raises(RasterIOError) as info:
-        orthorectify(tmp_path / "trunc.tif", sc.camera, sc.pose, tmp_path / "out.tif", dem=sc.dem,
+        orthorectify(tmp_path / "trunc.tif", FrameSensor(sc.camera, sc.pose), tmp_path / "out.tif", dem=sc.dem,
                      refraction=False, device="cpu")
     assert_no_leftovers(tmp_path, "out.tif")
     assert "trunc.tif" in str(info.value) and ".orthowarp-tmp-" not in str(info.value), str(info.value)
@@ -902,7 +903,7 @@ def test_image_size_mismatch(tmp_path):
     _, pose, dem, src = small_setup(tmp_path)
     cam = ow.FrameCamera(SMALL["f"], SMALL["pixel"], (60, 48))
     with pytest.raises(ParamError, match="64 x 48"):
-        orthorectify(src, cam, pose, tmp_path / "out.tif", dem=dem, device="cpu")
+        orthorectify(src, FrameSensor(cam, pose), tmp_path / "out.tif", dem=dem, device="cpu")
     assert_no_leftovers(tmp_path, "out.tif")
 
 
@@ -911,10 +912,10 @@ def test_existing_output_needs_overwrite(tmp_path):
     dst = tmp_path / "out.tif"
     dst.write_bytes(b"precious")
     with pytest.raises(RasterIOError, match="out.tif"):
-        orthorectify(src, cam, pose, dst, dem=dem, device="cpu")
+        orthorectify(src, FrameSensor(cam, pose), dst, dem=dem, device="cpu")
     assert dst.read_bytes() == b"precious"
     assert not [f for f in os.listdir(tmp_path) if ".orthowarp-tmp-" in f]
-    orthorectify(src, cam, pose, dst, dem=dem, device="cpu", overwrite=True)
+    orthorectify(src, FrameSensor(cam, pose), dst, dem=dem, device="cpu", overwrite=True)
     with rasterio.open(dst) as ds:
         assert ds.width > 0
 
@@ -924,7 +925,7 @@ def test_unwritable_output_folder(tmp_path):
     blocker = tmp_path / "afile"
     blocker.write_text("not a folder")
     with pytest.raises(RasterIOError, match="afile"):
-        orthorectify(src, cam, pose, blocker / "out.tif", dem=dem, device="cpu")
+        orthorectify(src, FrameSensor(cam, pose), blocker / "out.tif", dem=dem, device="cpu")
     assert blocker.read_text() == "not a folder"
     assert_no_leftovers(tmp_path, "out.tif")
 
@@ -933,7 +934,7 @@ def test_dem_not_covering_the_footprint(tmp_path):
     cam, pose, _, src = small_setup(tmp_path)
     far, _ = map_dem(lambda e, n: 450.0 + 0.0 * e, OPK_X + 5000.0, OPK_Y - 3000.0, 50, 2.0)
     with pytest.raises(GeometryError, match="DEM"):
-        orthorectify(src, cam, pose, tmp_path / "out.tif", dem=far, device="cpu")
+        orthorectify(src, FrameSensor(cam, pose), tmp_path / "out.tif", dem=far, device="cpu")
     assert_no_leftovers(tmp_path, "out.tif")
 
 
@@ -944,7 +945,7 @@ def test_dem_covering_part_of_the_footprint(tmp_path, caplog):
     z = np.full((100, 60), 450.0, np.float32)
     west = ow.Dem(z, Affine(2.0, 0.0, edge - 120.0, 0.0, -2.0, OPK_Y + 100.0), UTM32)
     with caplog.at_level(logging.WARNING):
-        res = orthorectify(src, cam, pose, tmp_path / "out.tif", dem=west, device="cpu")
+        res = orthorectify(src, FrameSensor(cam, pose), tmp_path / "out.tif", dem=west, device="cpu")
     assert any(r.levelno == logging.WARNING and "DEM" in r.getMessage() for r in caplog.records), caplog.text
     data, valid, _ = read_ortho(res.path)
     x, y = pixel_centres(res)
@@ -963,7 +964,7 @@ def test_camera_seeing_the_horizon(tmp_path):
     src = write_image(tmp_path / "src.tif", rng.integers(1, 255, (48, 64)), "uint8")
     dem, _ = geo_dem(lambda e, n: 450.0 + 0.0 * e, 8.9, 46.95, 50, 20.0)
     with pytest.raises(GeometryError, match="horizon"):
-        orthorectify(src, cam, pose, tmp_path / "out.tif", dem=dem, device="cpu")
+        orthorectify(src, FrameSensor(cam, pose), tmp_path / "out.tif", dem=dem, device="cpu")
     assert_no_leftovers(tmp_path, "out.tif")
 
 
@@ -990,7 +991,7 @@ def test_coarse_output_reads_reduced_and_area_averaged(tmp_path, monkeypatch, me
         return out
 
     monkeypatch.setattr(rasterio.io.DatasetReader, "read", read)
-    res = orthorectify(src, cam, pose, tmp_path / "coarse.tif", dem=100.0, resolution=1.2, refraction=False,
+    res = orthorectify(src, FrameSensor(cam, pose), tmp_path / "coarse.tif", dem=100.0, resolution=1.2, refraction=False,
                        method=method, resampling=resampling, device="cpu")
     monkeypatch.undo()
     data, valid, _ = read_ortho(res.path)
@@ -1013,7 +1014,7 @@ def test_coarse_output_of_a_float_source_matches_block_means(tmp_path):
     jj, ii = np.meshgrid(np.arange(800), np.arange(640))
     image = 0.25 * jj + ((ii + jj) % 2) * 40.0
     src = write_image(tmp_path / "ramp.tif", image, "float32")
-    res = orthorectify(src, cam, pose, tmp_path / "o.tif", dem=100.0, resolution=0.96, refraction=False,
+    res = orthorectify(src, FrameSensor(cam, pose), tmp_path / "o.tif", dem=100.0, resolution=0.96, refraction=False,
                        resampling="bilinear", device="cpu", tile_size=32)
     data, valid, _ = read_ortho(res.path)
     inner = valid & np.roll(valid, 2, 0) & np.roll(valid, -2, 0) & np.roll(valid, 2, 1) & np.roll(valid, -2, 1)
@@ -1037,7 +1038,7 @@ def test_narrowing_dtype_warns_with_the_clipped_fraction(tmp_path, src_dtype, dt
     src = write_image(tmp_path / "s.tif", np.where(jj < 32, values[0], values[1]), src_dtype)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        res = orthorectify(src, cam, pose, tmp_path / "o.tif", dem=100.0, refraction=False, dtype=dtype,
+        res = orthorectify(src, FrameSensor(cam, pose), tmp_path / "o.tif", dem=100.0, refraction=False, dtype=dtype,
                            resampling="nearest", device="cpu")
     ours = [w for w in caught if issubclass(w.category, ow.errors.OrthowarpWarning)]
     if not clipped:
@@ -1068,7 +1069,7 @@ def test_partial_dem_cover_warning_names_the_image(tmp_path, caplog):
                        transform=from_origin(499997.5, 5200020.0, 0.5, 0.5)) as dst:
         dst.write(np.full((1, 40, 40), 100.0, np.float32))
     with caplog.at_level(logging.WARNING, logger="orthowarp"):
-        orthorectify(src, cam, pose, tmp_path / "o.tif", dem=str(dem), device="cpu", refraction=False)
+        orthorectify(src, FrameSensor(cam, pose), tmp_path / "o.tif", dem=str(dem), device="cpu", refraction=False)
     msgs = [r.getMessage() for r in caplog.records if "only partly" in r.getMessage()]
     assert msgs and "tiny.tif" in msgs[0], [r.getMessage() for r in caplog.records]
 
@@ -1085,8 +1086,8 @@ def test_lossy_outputs_for_rgb(tmp_path, compress, quality):
     with rasterio.open(src, "w", driver="GTiff", width=320, height=240, count=3, dtype="uint8") as dst:
         dst.write(rgb.astype(np.uint8))
     kw = dict(dem=100.0, device="cpu", refraction=False)
-    ref = orthorectify(src, cam, pose, tmp_path / "lossless.tif", **kw)
-    lossy = orthorectify(src, cam, pose, tmp_path / "lossy.tif", compress=compress, quality=quality, **kw)
+    ref = orthorectify(src, FrameSensor(cam, pose), tmp_path / "lossless.tif", **kw)
+    lossy = orthorectify(src, FrameSensor(cam, pose), tmp_path / "lossy.tif", compress=compress, quality=quality, **kw)
     assert lossy.shape == ref.shape
     with rasterio.open(tmp_path / "lossless.tif") as a, rasterio.open(tmp_path / "lossy.tif") as b:
         tags = b.tags(ns="IMAGE_STRUCTURE")
@@ -1101,6 +1102,6 @@ def test_lossy_outputs_for_rgb(tmp_path, compress, quality):
         assert np.mean(diff) < (3.0 if (quality or 90) >= 75 else 6.0), np.mean(diff)
     assert os.path.getsize(tmp_path / "lossy.tif") < 0.6 * os.path.getsize(tmp_path / "lossless.tif")
     with pytest.raises(ParamError, match="quality"):
-        orthorectify(src, cam, pose, tmp_path / "q.tif", quality=80, **kw)  # deflate has no quality
+        orthorectify(src, FrameSensor(cam, pose), tmp_path / "q.tif", quality=80, **kw)  # deflate has no quality
     with pytest.raises(ParamError, match="uint8"):
-        orthorectify(src, cam, pose, tmp_path / "f.tif", compress=compress, dtype="float32", **kw)
+        orthorectify(src, FrameSensor(cam, pose), tmp_path / "f.tif", compress=compress, dtype="float32", **kw)

@@ -12,6 +12,7 @@ import pytest
 import orthowarp as ow
 from orthowarp.adjust.precision import intersection_covariance, monoplot_covariance
 from orthowarp.errors import ParamError
+from orthowarp.sensor import FrameSensor
 
 E0, N0 = 500000.0, 5200000.0
 PLANE = (100.0, 0.05, 0.02)  # Z = a + b (X - E0) + c (Y - N0)
@@ -109,7 +110,7 @@ def test_monoplotting_covariance_matches_monte_carlo():
     xs, ys = E0 - 1000 + cols * 5.0, N0 + 1000 - rows * 5.0
     dem = ow.Dem(PLANE[0] + PLANE[1] * (xs - E0) + PLANE[2] * (ys - N0), Affine(5.0, 0, E0 - 1000, 0, -5.0, N0 + 1000),
                  "EPSG:32632")
-    np.testing.assert_allclose(ow.geolocate(camera, pose, PIXELS, dem=dem, crs="EPSG:32632", device="cpu", refraction=False), pts,
+    np.testing.assert_allclose(ow.geolocate(FrameSensor(camera, pose), PIXELS, dem=dem, crs="EPSG:32632", device="cpu", refraction=False), pts,
                                atol=2e-3)
     res = monoplot_covariance(camera, pose, pts, np.tile(PLANE[1:], (len(pts), 1)), pose_cov=POSE_COV,
                               pixel_sigma=pixel_sigma, camera_cov=CAM_COV, camera_params=("f", "x0", "y0"),
@@ -197,7 +198,7 @@ def test_gnss_ins_monoplotting_matches_monte_carlo_through_the_kernels():
     pixels = np.array([[200.0, 300.0], [2000.0, 1500.0], [3800.0, 2800.0]])
     pose_cov = np.diag([0.05, 0.05, 0.1, 0.005, 0.005, 0.01]) ** 2
     pixel_sigma, dem_sigma, height = 0.5, 0.4, 500.0
-    pts = ow.geolocate(camera, pose, pixels, dem=height, device="cpu", refraction=False)  # lon, lat, h
+    pts = ow.geolocate(FrameSensor(camera, pose), pixels, dem=height, device="cpu", refraction=False)  # lon, lat, h
     res = monoplot_covariance(camera, pose, pts, np.zeros((len(pts), 2)), pose_cov=pose_cov, pixel_sigma=pixel_sigma,
                               dem_sigma=dem_sigma)
     lat0, lon0, _ = pose.center_geodetic
@@ -208,7 +209,7 @@ def test_gnss_ins_monoplotting_matches_monte_carlo_through_the_kernels():
     for t in range(n):
         lla = here.to_lla(d[t, :3])[0]
         p = ow.Pose.from_ins(*lla, truth["roll"] + d[t, 3], truth["pitch"] + d[t, 4], truth["yaw"] + d[t, 5], **kw)
-        g = ow.geolocate(camera, p, pixels + rng.normal(0, pixel_sigma, pixels.shape),
+        g = ow.geolocate(FrameSensor(camera, p), pixels + rng.normal(0, pixel_sigma, pixels.shape),
                          dem=height + rng.normal(0, dem_sigma), device="cpu", refraction=False)
         enu.append(frame.from_lla(np.stack([g[:, 1], g[:, 0], g[:, 2]], -1)))
     enu = np.array(enu)
@@ -262,7 +263,7 @@ def test_accuracy_raster_for_a_gnss_ins_pose(tmp_path):
     pose = ow.Pose.from_ins(46.501, 7.998, 2650.0, 1.2, -0.8, 35.0)
     pose_cov = np.diag([0.05, 0.05, 0.1, 0.005, 0.005, 0.01]) ** 2
     utm = CRS(32632)
-    centre = ow.geolocate(camera, pose, [[2000.0, 1500.0]], dem=500.0, crs=utm, device="cpu", refraction=False)[0]
+    centre = ow.geolocate(FrameSensor(camera, pose), [[2000.0, 1500.0]], dem=500.0, crs=utm, device="cpu", refraction=False)[0]
     from affine import Affine
 
     transform, shape = Affine(0.2, 0, centre[0] - 200, 0, -0.2, centre[1] + 200), (2000, 2000)

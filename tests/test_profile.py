@@ -17,6 +17,7 @@ from pyproj import CRS
 import orthowarp as ow
 from orthowarp.cli import main
 from orthowarp.pipeline.profile import STAGES, StageTimer, format_profile, merge_profiles, process_start, union_length
+from orthowarp.sensor import FrameSensor
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -165,7 +166,7 @@ def _check_consistent(p, result):
 @pytest.mark.parametrize("driver,compress", [("COG", "deflate"), ("GTiff", "deflate")])
 def test_orthorectify_profile(tmp_path, driver, compress):
     src, cam, pose = _frame_job(tmp_path)
-    r = ow.orthorectify(src, cam, pose, tmp_path / "out.tif", dem=100.0, device="cpu", driver=driver,
+    r = ow.orthorectify(src, FrameSensor(cam, pose), tmp_path / "out.tif", dem=100.0, device="cpu", driver=driver,
                         compress=compress, tile_size=64, workers=2)
     p = r.profile
     _check_consistent(p, r)
@@ -182,7 +183,7 @@ def test_orthorectify_profile(tmp_path, driver, compress):
 
 def test_orthorectify_profile_forward(tmp_path):
     src, cam, pose = _frame_job(tmp_path)
-    r = ow.orthorectify(src, cam, pose, tmp_path / "out.tif", dem=100.0, device="cpu", method="forward",
+    r = ow.orthorectify(src, FrameSensor(cam, pose), tmp_path / "out.tif", dem=100.0, device="cpu", method="forward",
                         tile_size=64, workers=2)
     _check_consistent(r.profile, r)
     assert r.profile["stages"]["prepare"]["count"] >= r.profile["tiles"]

@@ -5,18 +5,19 @@ import os
 import numpy as np
 import pytest
 
-from orthowarp import PushbroomScene
+from orthowarp import PushbroomScene, read_scene
 from orthowarp.errors import GeometryError, ParamError
 from orthowarp.geodesy import geodetic_to_ecef
 from orthowarp.pipeline.dimap import read_dimap
 from orthowarp.pushbroom import attitude_matrix, lagrange
+from orthowarp.sensor import FrameSensor
 
 SAMPLE = os.path.join(os.path.dirname(__file__), "data", "spot5", "spot_example1.xml")
 
 
 @pytest.fixture(scope="module")
 def scene():
-    return PushbroomScene.from_dimap(SAMPLE)
+    return read_scene(SAMPLE)
 
 
 def test_corners_reproduce_the_dataset_frame(scene):
@@ -72,7 +73,7 @@ def test_attitude_matrix_forms():
 
 
 def test_first_order_attitude_model_differs_by_second_order_terms(scene):
-    fo = PushbroomScene.from_dimap(SAMPLE, attitude_model="first_order")
+    fo = read_scene(SAMPLE, attitude_model="first_order")
     pix = np.array([[0.5, 0.5], [150.0, 48084.5], [299.5, 96167.5]])
     a = geodetic_to_ecef(*scene.geolocate_ellipsoid(pix)[:, [1, 0, 2]].T)
     b = geodetic_to_ecef(*fo.geolocate_ellipsoid(pix)[:, [1, 0, 2]].T)
@@ -86,7 +87,7 @@ def test_times_outside_the_ephemeris_are_errors(scene):
     with pytest.raises(GeometryError, match="outside the attitudes"):
         scene.orbit(np.array([-100.0]))
     with pytest.raises(ParamError, match="attitude_model"):
-        PushbroomScene.from_dimap(SAMPLE, attitude_model="quaternion")
+        read_scene(SAMPLE, attitude_model="quaternion")
     with pytest.raises(ParamError, match="pixels"):
         scene.geolocate_ellipsoid(np.array([[np.nan, 1.0]]))
 
@@ -97,7 +98,7 @@ import orthowarp as ow  # noqa: E402
 from affine import Affine  # noqa: E402
 
 from orthowarp.pipeline.dem import Dem  # noqa: E402
-from orthowarp.pipeline.geometry import PushbroomGeometry  # noqa: E402
+from orthowarp.pipeline.geometry import SensorGeometry  # noqa: E402
 
 
 def random_pixels(scene, n=300, seed=0):
@@ -131,7 +132,7 @@ def test_kernels_match_the_host_model(scene, device):
     """Forward on the ellipsoid <= 1 mm from the host model; backward <= 0.01 px from the
     host's secant solution, which itself inverts the forward model to < 1e-6 px."""
     pix = random_pixels(scene)
-    geom = PushbroomGeometry(scene, Dem.constant(0.0), refraction=False, device=device)
+    geom = SensorGeometry(scene, Dem.constant(0.0), refraction=False, device=device)
     k = geom.geolocate_frame(pix)
     h = scene.geolocate_ellipsoid(pix, 0.0)
     assert np.max(np.linalg.norm(ecef(k) - ecef(h), axis=1)) < 1e-3
@@ -171,9 +172,13 @@ def test_refraction_moves_the_ground_point_towards_the_satellite(scene, device):
 
 def test_api_forms_and_errors(scene):
     pix = np.array([[10.5, 20.5]])
-    with pytest.raises(ParamError, match="PushbroomScene and the pixels"):
+    # the API takes one sensor: the old (camera, pose, ...) form is refused, and so is a sensor
+    # that is none
+    with pytest.raises(TypeError):
         ow.geolocate(scene, None, pix, dem=0.0, device="cpu")
-    with pytest.raises(ParamError, match="FrameCamera, a Pose"):
+    with pytest.raises(ParamError, match="camera must be a FrameCamera, got PushbroomScene"):
+        FrameSensor(scene, None)
+    with pytest.raises(ParamError, match="sensor must be a FrameSensor .* or a PushbroomScene"):
         ow.project(object(), np.zeros((1, 3)), device="cpu")
     # points no line sees: far from the strip
     far = np.array([[30.0, 40.0, 0.0]])
@@ -256,8 +261,11 @@ def test_pushbroom_ortho_bad_input(tmp_path):
         ow.orthorectify(src, sc, tmp_path / "o.tif", dem=0.0, device="cpu")
     with pytest.raises(ParamError, match="backward method only"):
         ow.orthorectify(src, sc, tmp_path / "o.tif", dem=0.0, device="cpu", method="forward")
-    with pytest.raises(ParamError, match="PushbroomScene and the output"):
+    with pytest.raises(TypeError):
         ow.orthorectify(src, sc, None, tmp_path / "o.tif", dem=0.0, device="cpu")
+    with pytest.raises(ParamError, match="sensor must be a FrameSensor .* or a PushbroomScene, got FrameCamera"):
+        ow.orthorectify(src, ow.FrameCamera(100.0, 0.01, (sc.width, sc.height)), tmp_path / "o.tif", dem=0.0,
+                        device="cpu")
     assert sorted(os.listdir(tmp_path)) == ["s.tif"]
 
 
@@ -272,7 +280,7 @@ def test_polynomial_exterior_orientation(device):
     pix = random_pixels(sc, 100, seed=3)
     a, b = ecef(sc.geolocate_ellipsoid(pix)), ecef(poly.geolocate_ellipsoid(pix))
     assert np.max(np.linalg.norm(a - b, axis=1)) < 0.1
-    geom = PushbroomGeometry(poly, Dem.constant(0.0), refraction=False, device=device)
+    geom = SensorGeometry(poly, Dem.constant(0.0), refraction=False, device=device)
     k = geom.geolocate_frame(pix)
     assert np.max(np.linalg.norm(ecef(k) - b, axis=1)) < 1e-3
     np.testing.assert_allclose(geom.project_frame(k), pix, atol=1e-3)
@@ -290,7 +298,7 @@ def test_polynomials_of_the_real_segment(scene):
 def test_line_row_inverts_line_time():
     """Row <-> line time: PushbroomScene.line_row is the inverse of line_time (the one host
     pair; the kernels' twins are pb_line_time / pb_line_row)."""
-    scene = ow.PushbroomScene.from_dimap(SAMPLE)
+    scene = ow.read_scene(SAMPLE)
     rows = np.array([-0.5, 0.0, 0.5, 1234.25, scene.height - 0.5])
     np.testing.assert_allclose(scene.line_row(scene.line_time(rows)), rows, atol=1e-7)
     assert scene.line_time(scene.center_line - 0.5) == 0.0

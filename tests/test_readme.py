@@ -29,7 +29,7 @@ def python_blocks(text):
 
 def _fixtures(folder):
     """The files README's examples name, in ``folder``."""
-    from orthowarp.adjust import write_block
+    from orthowarp import write_block
     from orthowarp.adjust.synthetic import synthetic_block
     from orthowarp.pipeline.demo import run_demo, synthetic_scene
 

@@ -11,6 +11,7 @@ from pyproj import CRS
 import orthowarp as ow
 from orthowarp.errors import ParamError
 from orthowarp.pipeline.vertical import height_kind, reconcile_dem
+from orthowarp.sensor import FrameSensor
 
 GEOCENTRIC_POSE = ow.Pose.from_ins(47.0, 8.0, 2000.0, 0.0, 0.0, 0.0)
 
@@ -61,7 +62,7 @@ def test_same_vertical_datum_overrides():
 
 def test_geolocate_applies_the_rule():
     with pytest.raises(ParamError, match="geoid"):
-        ow.geolocate(ow.FrameCamera(50.0, 0.01, (100, 100)), GEOCENTRIC_POSE, [[50, 50]],
+        ow.geolocate(FrameSensor(ow.FrameCamera(50.0, 0.01, (100, 100)), GEOCENTRIC_POSE), [[50, 50]],
                      dem=dem_in("EPSG:4326+3855"), device="cpu")
 
 
