@@ -4,7 +4,7 @@ Scene: the camera, pose and DEM of bench/geometry.py at a smaller frame size (de
 2600, the size issue 11 quotes), a procedural 3-band uint8 source. For refraction off and on:
 
 - source coordinates: the source pixel of every output pixel, as the fused backward kernel
-  computes it (``frame_source_coords_kernel``), in 512-pixel output tiles on each device;
+  computes it (``source_coords_kernel``), in 512-pixel output tiles on each device;
   reported: the largest and 99.9th-percentile difference (px) and where they are;
 - orthos: ``orthorectify`` on each device with the same tiling (nearest and bilinear);
   reported: the fraction of output pixels that differ and the largest difference (DN).
@@ -41,7 +41,7 @@ def source_coords(cam, pose, dem, device, refraction, grid_def):
     geom = SensorGeometry(FrameSensor(cam, pose), dem, device=device, refraction=refraction)
     out_crs, transform, shape = grid_def
     to_frame = Transformer.from_crs(out_crs, geom.horizontal_crs, always_xy=True)
-    c, _, r = geom.sensor_structs()
+    c, r = geom.sensor_structs()
     d = geom.dem_struct()
     w, h = geom.image_size
     coords = np.full((*shape, 2), np.nan)
@@ -51,8 +51,8 @@ def source_coords(cam, pose, dem, device, refraction, grid_def):
             uv = coarse_grid(transform, to_frame, r0, c0, th, tw)
             grid = coarse_struct(uv, geom.geocentric, geom.device, pose=pose)
             out = wp.empty((th, tw), dtype=wp.vec2d, device=geom.device)
-            wp.launch(ok.frame_source_coords_kernel, dim=(th, tw), device=geom.device,
-                      inputs=[c, r, d, grid, float(w), float(h), out])
+            wp.launch(ok.source_coords_kernel, dim=(th, tw), device=geom.device,
+                      inputs=[c, r, d, grid, wp.float64(w), wp.float64(h), out])
             coords[r0:r0 + th, c0:c0 + tw] = out.numpy()
     return coords
 

@@ -25,7 +25,7 @@ import warp as wp
 from affine import Affine
 
 import orthowarp as ow
-from orthowarp.kernels import frame as frame_kernels
+from orthowarp.kernels import sensor as sensor_kernels
 from orthowarp.pipeline.geometry import SensorGeometry
 from orthowarp.sensor import FrameSensor
 
@@ -68,14 +68,14 @@ def time_cuda(geom, width, height, repeats, block_dims):
         per_block[bd] = min(times)
     best_bd = min(per_block, key=per_block.get)
     flat = out.flatten()
-    cam, pose, refr, _, _ = geom.structs()
+    arg, refr, _, _ = geom.structs()
     pix = wp.empty(flat.shape[0], dtype=wp.vec2d, device=dev)
-    wp.launch(frame_kernels.project_kernel, dim=flat.shape[0], inputs=[cam, pose, refr, flat, pix], device=dev)
+    wp.launch(sensor_kernels.project_kernel, dim=flat.shape[0], inputs=[arg, refr, flat, pix], device=dev)
     wp.synchronize_device(dev)
     btimes = []
     for _ in range(repeats):
         t = time.perf_counter()
-        wp.launch(frame_kernels.project_kernel, dim=flat.shape[0], inputs=[cam, pose, refr, flat, pix], device=dev)
+        wp.launch(sensor_kernels.project_kernel, dim=flat.shape[0], inputs=[arg, refr, flat, pix], device=dev)
         wp.synchronize_device(dev)
         btimes.append(time.perf_counter() - t)
     # correctness on a strided sample: round trip and NaN count
@@ -96,7 +96,7 @@ def time_cpu(geom, width, height, step, workers):
     res = geom.geolocate_image(step=step, workers=workers)
     fwd = time.perf_counter() - t
     flat = res.reshape(-1, 3)
-    cam, pose, refr, _, _ = geom.structs()
+    arg, refr, _, _ = geom.structs()
     pts = wp.array(flat, dtype=wp.vec3d, device="cpu")
     n = flat.shape[0]
     bands = np.array_split(np.arange(n), 4 * workers)
@@ -104,8 +104,8 @@ def time_cpu(geom, width, height, step, workers):
 
     def back(k):
         b = bands[k]
-        wp.launch(frame_kernels.project_kernel, dim=len(b), device="cpu",
-                  inputs=[cam, pose, refr, pts[int(b[0]):int(b[-1]) + 1], outs[k]])
+        wp.launch(sensor_kernels.project_kernel, dim=len(b), device="cpu",
+                  inputs=[arg, refr, pts[int(b[0]):int(b[-1]) + 1], outs[k]])
 
     t = time.perf_counter()
     with ThreadPoolExecutor(workers) as pool:

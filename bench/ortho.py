@@ -118,7 +118,7 @@ def write_orientation(folder, cam, pose, name):
 def kernel_only(geom, src_path, resampling, repeats=3):
     """The pipeline's per-pixel kernel over the whole output with the uint8 source resident on
     the device: source coordinates by the backward chain, then resampling into the packed uint8
-    output and its mask (:func:`orthowarp.kernels.ortho.ortho_frame_kernel`).
+    output and its mask (:func:`orthowarp.kernels.ortho.ortho_kernel`).
 
     On a GPU one launch covers the output; on the CPU the output is cut into row bands launched
     from a thread pool (one band per core, as the pipeline does). Time: the best of
@@ -141,7 +141,7 @@ def kernel_only(geom, src_path, resampling, repeats=3):
     sw.col0 = sw.row0 = 0
     sw.inv_sx = sw.inv_sy = 1.0
     width, height = float(geom.image_size[0]), float(geom.image_size[1])
-    cam, _, refr, dem, _ = geom.structs()
+    arg, refr, dem, _ = geom.structs()
     method = RESAMPLING[resampling]
     n_bands = 1 if dev.is_cuda else 4 * (os.cpu_count() or 1)
     band_rows = -(-rows // n_bands // step) * step
@@ -158,8 +158,8 @@ def kernel_only(geom, src_path, resampling, repeats=3):
     block_dim = [ORTHO_BLOCK_DIM]
 
     def launch(b):
-        wp.launch(ok.ortho_frame_kernel, dim=b["shape"], device=dev, block_dim=block_dim[0],
-                  inputs=[cam, refr, dem, b["coarse"], wp.float64(width), wp.float64(height), sw, data, method, 255.0, b["out"], b["valid"]])
+        wp.launch(ok.ortho_kernel, dim=b["shape"], device=dev, block_dim=block_dim[0],
+                  inputs=[arg, refr, dem, b["coarse"], wp.float64(width), wp.float64(height), sw, data, method, 255.0, b["out"], b["valid"]])
 
     def best_of():
         def run():

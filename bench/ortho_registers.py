@@ -1,6 +1,6 @@
 """Benchmark: the fused frame-ortho kernel under register caps (CUDA ``__maxnreg__``).
 
-Uncapped, the kernel (:func:`orthowarp.kernels.ortho.ortho_frame_kernel`) takes ~115 registers
+Uncapped, the kernel (:func:`orthowarp.kernels.ortho.ortho_kernel`) takes ~115 registers
 per thread; this script times copies of it capped at 64, 72, 80 and 96 registers, at several
 thread-block sizes, on the frame of bench/ortho.py (20000 x 13000 x 3 uint8 source resident on
 the device, 23310 x 19297 output, bilinear, refraction on), and counts the bytes in which each
@@ -24,19 +24,19 @@ from geometry import scene  # noqa: E402
 from ortho import save_report, write_source  # noqa: E402
 
 from orthowarp.kernels import ortho as ok  # noqa: E402
-from orthowarp.kernels.camera import FrameCameraData  # noqa: E402
+from orthowarp.kernels.sensor import FrameArg  # noqa: E402
 from orthowarp.kernels.dem import DemData  # noqa: E402
 from orthowarp.kernels.refraction import RefractionTable  # noqa: E402
 from orthowarp.pipeline.geometry import SensorGeometry  # noqa: E402
 from orthowarp.pipeline.ortho import coarse_grid, coarse_struct, output_grid  # noqa: E402
-from orthowarp.sensor import FrameSensor
+from orthowarp.sensor import FrameSensor  # noqa: E402
 
 
-def _fused(cam: FrameCameraData, refr: RefractionTable, dem: DemData, grid: ok.CoarseGrid,
+def _fused(arg: FrameArg, refr: RefractionTable, dem: DemData, grid: ok.CoarseGrid,
            width: wp.float64, height: wp.float64, src: ok.SourceWindow, data: wp.array3d(dtype=wp.uint8),
            method: wp.int32, top: wp.float32, out: wp.array3d(dtype=wp.uint8), out_valid: wp.array2d(dtype=wp.uint8)):
     i, j = wp.tid()  # the body of the library's kernel
-    pix = ok.frame_source_pixel(cam, refr, dem, grid, i, j, width, height)
+    pix = ok.source_pixel(arg, refr, dem, grid, i, j, width, height)
     ok.resample_at(src, data, pix, method, top, out, out_valid, i, j)
 
 
@@ -72,12 +72,12 @@ def main(argv=None):
     sw.masked, sw.col0, sw.row0 = 0, 0, 0
     sw.inv_sx = sw.inv_sy = 1.0
     sw.valid = wp.array(np.ones((1, 1), np.uint8), dtype=wp.uint8, device=dev)
-    c, _, r, d, _ = geom.structs()
+    c, r, d, _ = geom.structs()
     inputs = [c, r, d, grid, wp.float64(args.width), wp.float64(args.height), sw, data, 1, 255.0]
     ref = wp.empty((rows, cols, 3), dtype=wp.uint8, device=dev)
     out = wp.empty_like(ref)
     valid = wp.empty((rows, cols), dtype=wp.uint8, device=dev)
-    wp.launch(ok.ortho_frame_kernel, dim=(rows, cols), device=dev, inputs=[*inputs, ref, valid])
+    wp.launch(ok.ortho_kernel, dim=(rows, cols), device=dev, inputs=[*inputs, ref, valid])
     reference = ref.numpy().astype(np.int16)
 
     def best(kernel, block_dim, repeats=3):
@@ -93,7 +93,7 @@ def main(argv=None):
 
     results = []
     for block_dim in (64, 128, 256):
-        for name, kernel in (("library", ok.ortho_frame_kernel),
+        for name, kernel in (("library", ok.ortho_kernel),
                              *((str(cap) if cap else "uncapped", KERNELS[cap]) for cap in CAPS)):
             t = best(kernel, block_dim)
             diff = np.abs(out.numpy().astype(np.int16) - reference)

@@ -30,6 +30,7 @@ from rasterio.windows import Window
 
 import orthowarp as ow
 from orthowarp.kernels import pushbroom as pb_kernels
+from orthowarp.kernels import sensor as sensor_kernels
 from orthowarp.pipeline.geometry import SensorGeometry
 from orthowarp.pushbroom import synthetic_scene
 
@@ -78,16 +79,18 @@ def forward_backward(geom, size, cpu_step, repeats):
     c0 = r0 = 0.5 * step
     out = wp.empty((rows, cols), dtype=wp.vec3d, device=dev)
     wp.load_module(pb_kernels, device=dev)
+    wp.load_module(sensor_kernels, device=dev)
 
     def launch_forward():
         if dev.is_cuda:
-            wp.launch(pb_kernels.pb_geolocate_grid_kernel, dim=out.shape, device=dev,
-                      inputs=[pb, refr, dem, search, c0, r0, step, out])
+            wp.launch(sensor_kernels.geolocate_grid_kernel, dim=out.shape, device=dev,
+                      inputs=[pb, refr, dem, search, wp.float64(c0), wp.float64(r0), wp.float64(step), out])
         else:
             def run(i0, i1):
                 part = wp.empty((i1 - i0, cols), dtype=wp.vec3d, device=dev)
-                wp.launch(pb_kernels.pb_geolocate_grid_kernel, dim=part.shape, device=dev,
-                          inputs=[pb, refr, dem, search, c0, r0 + i0 * step, step, part])
+                wp.launch(sensor_kernels.geolocate_grid_kernel, dim=part.shape, device=dev,
+                          inputs=[pb, refr, dem, search, wp.float64(c0), wp.float64(r0 + i0 * step), wp.float64(step),
+                                  part])
                 wp.copy(out, part, dest_offset=i0 * cols, count=part.size)
 
             banded(rows, run)

@@ -2,12 +2,12 @@
 
 Backward (default), per output tile:
 
-1. :func:`frame_node_pixels_kernel` / :func:`pb_node_pixels_kernel`: the source pixels of
+1. :func:`node_pixels_kernel`: the source pixels of
    the nodes of the tile's coarse grid at the lowest and the highest DEM height under the
    tile. Each output pixel's ground point lies on the vertical between those heights of a
    point inside a grid cell, so its source pixel lies in the nodes' bounding box (grown by a
    margin for the projection's curvature within a cell): the host reads that window.
-2. :func:`ortho_frame_kernel` / :func:`ortho_pb_kernel`, one thread per output pixel: pixel
+2. :func:`ortho_kernel`, one thread per output pixel: pixel
    centre -> horizontal coordinates of the pose's frame (bilinear in the coarse grid the host
    transforms exactly with PROJ) -> DEM height -> backward projection (collinearity,
    refraction, distortion; or the pushbroom's line-time iteration) -> source pixel (col,
@@ -30,9 +30,11 @@ import warp as wp
 
 from .camera import FrameCameraData, camera_to_pixel
 from .dem import DemData, dem_sample
-from .frame import FramePoseData, SearchParams, apparent_direction, geolocate_pixel, project_xyz
 from .pushbroom import PushbroomData, pb_line_time, pb_project
+from .ray import apparent_direction
 from .refraction import RefractionTable
+from .ray import SearchParams
+from .sensor import SENSOR_ARGS, FrameArg, sensor_geolocate, sensor_project_xyz
 
 wp.set_module_options({"enable_backward": False})
 
@@ -108,7 +110,10 @@ class CoarseGrid:
     height range of hundreds of metres the interpolation moves the chord by micrometres
     (tests/test_ortho.py measures it against the per-pixel turn), and spares per pixel the
     refraction table's lookup and the turn's arithmetic (a third of the CPU kernel's time).
-    Off (0) the kernel turns every pixel's chord itself."""
+    Off (0) the kernel turns every pixel's chord itself.
+
+    For a pushbroom scene ``times`` holds each node's line time (s), the first guess of the
+    per-pixel line-time iteration (:func:`pb_node_times_kernel`)."""
 
     uv: wp.array2d(dtype=wp.vec2d)
     xyz0: wp.array2d(dtype=wp.vec3d)
@@ -119,6 +124,7 @@ class CoarseGrid:
     refr_a: wp.array2d(dtype=wp.vec3d)
     refr_b: wp.array2d(dtype=wp.vec3d)
     refr_nodes: wp.int32
+    times: wp.array2d(dtype=wp.float64)
     step: wp.float64
     geocentric: wp.int32
 
@@ -167,20 +173,33 @@ def frame_source_pixel(cam: FrameCameraData, refr: RefractionTable, dem: DemData
 
 
 @wp.func
-def pb_source_pixel(pb: PushbroomData, refr: RefractionTable, dem: DemData, grid: CoarseGrid,
-                    times: wp.array2d(dtype=wp.float64), i: wp.int32, j: wp.int32, width: wp.float64,
-                    height: wp.float64):
+def pb_source_pixel(pb: PushbroomData, refr: RefractionTable, dem: DemData, grid: CoarseGrid, i: wp.int32,
+                    j: wp.int32, width: wp.float64, height: wp.float64):
     """:func:`frame_source_pixel` for a pushbroom scene: the line time is solved from the
-    coarse grid's interpolated time (``times``, s)."""
+    coarse grid's interpolated time (``grid.times``, s)."""
     fi = wp.float64(i) / grid.step
     fj = wp.float64(j) / grid.step
     x, h = grid_ground(grid, dem, fi, fj)
     if not wp.isfinite(h):
         return wp.vec2d(wp.float64(wp.nan), wp.float64(wp.nan))
-    t0 = grid_bilinear(times, fi, fj)
+    t0 = grid_bilinear(grid.times, fi, fj)
     if not wp.isfinite(t0):
         t0 = wp.float64(0.0)
     return in_image(pb_project(pb, refr, x, h, t0), width, height)
+
+
+@wp.func
+def source_pixel(arg: FrameArg, refr: RefractionTable, dem: DemData, grid: CoarseGrid, i: wp.int32, j: wp.int32,
+                 width: wp.float64, height: wp.float64):
+    """Source pixel of output-tile pixel (i, j) (see :class:`CoarseGrid`): a frame's."""
+    return frame_source_pixel(arg.cam, refr, dem, grid, i, j, width, height)
+
+
+@wp.func
+def source_pixel(arg: PushbroomData, refr: RefractionTable, dem: DemData, grid: CoarseGrid, i: wp.int32,
+                 j: wp.int32, width: wp.float64, height: wp.float64):
+    """Source pixel of output-tile pixel (i, j): a pushbroom scene's."""
+    return pb_source_pixel(arg, refr, dem, grid, i, j, width, height)
 
 
 @wp.func
@@ -213,9 +232,8 @@ def frame_node_refraction_kernel(refr: RefractionTable, grid: CoarseGrid, height
 
 
 @wp.kernel
-def frame_node_pixels_kernel(
-    cam: FrameCameraData,
-    pose: FramePoseData,
+def node_pixels_kernel(
+    arg: Any,
     refr: RefractionTable,
     grid: CoarseGrid,
     heights: wp.vec2d,
@@ -223,25 +241,11 @@ def frame_node_pixels_kernel(
 ):
     """Source pixel of every node of a tile's coarse grid at the two heights (k = 0, 1) that
     bound the tile's DEM: the tile's source pixels lie in their bounding box, but for the
-    curvature of the projection within a grid cell."""
+    curvature of the projection within a grid cell (NaN where the sensor does not see the
+    node: behind a frame camera, outside a scene's ephemeris)."""
     k, i, j = wp.tid()
     h = heights[k]
-    pixels[k, i, j] = project_xyz(cam, pose, refr, node_point(grid, i, j, h), h)  # the object-frame chain
-
-
-@wp.kernel
-def pb_node_pixels_kernel(
-    pb: PushbroomData,
-    refr: RefractionTable,
-    grid: CoarseGrid,
-    heights: wp.vec2d,
-    pixels: wp.array3d(dtype=wp.vec2d),
-):
-    """:func:`frame_node_pixels_kernel` for a pushbroom scene (NaN where the line time falls
-    outside the ephemeris)."""
-    k, i, j = wp.tid()
-    h = heights[k]
-    pixels[k, i, j] = pb_project(pb, refr, node_point(grid, i, j, h), h, wp.float64(0.0))
+    pixels[k, i, j] = sensor_project_xyz(arg, refr, node_point(grid, i, j, h), h, wp.float64(0.0))
 
 
 @wp.kernel
@@ -425,8 +429,8 @@ FUSED_MAX_REGISTERS = 64
 
 
 @wp.kernel(cuda_max_registers=FUSED_MAX_REGISTERS)
-def ortho_frame_kernel(
-    cam: FrameCameraData,
+def ortho_kernel(
+    arg: Any,
     refr: RefractionTable,
     dem: DemData,
     grid: CoarseGrid,
@@ -439,32 +443,10 @@ def ortho_frame_kernel(
     out: wp.array3d(dtype=Any),
     out_valid: wp.array2d(dtype=wp.uint8),
 ):
-    """Backward ortho of a frame image, one thread per output-tile pixel: its source pixel
-    (:func:`frame_source_pixel`; the grid carries the pose), then :func:`resample_at`."""
+    """Backward ortho, one thread per output-tile pixel: its source pixel
+    (:func:`source_pixel`; a frame's pose is in the grid), then :func:`resample_at`."""
     i, j = wp.tid()
-    pix = frame_source_pixel(cam, refr, dem, grid, i, j, width, height)
-    resample_at(src, data, pix, method, top, out, out_valid, i, j)
-
-
-@wp.kernel(cuda_max_registers=FUSED_MAX_REGISTERS)
-def ortho_pb_kernel(
-    pb: PushbroomData,
-    refr: RefractionTable,
-    dem: DemData,
-    grid: CoarseGrid,
-    times: wp.array2d(dtype=wp.float64),
-    width: wp.float64,
-    height: wp.float64,
-    src: SourceWindow,
-    data: wp.array3d(dtype=Any),
-    method: wp.int32,
-    top: wp.float32,
-    out: wp.array3d(dtype=Any),
-    out_valid: wp.array2d(dtype=wp.uint8),
-):
-    """:func:`ortho_frame_kernel` for a pushbroom scene (:func:`pb_source_pixel`)."""
-    i, j = wp.tid()
-    pix = pb_source_pixel(pb, refr, dem, grid, times, i, j, width, height)
+    pix = source_pixel(arg, refr, dem, grid, i, j, width, height)
     resample_at(src, data, pix, method, top, out, out_valid, i, j)
 
 
@@ -487,8 +469,9 @@ def ortho_resample_kernel(
 # or one of another dtype read as float32) resampled into an integer output
 for _src, _out in ((wp.uint8, wp.uint8), (wp.uint16, wp.uint16), (wp.float32, wp.float32), (wp.float32, wp.uint8),
                    (wp.float32, wp.uint16)):
-    for _kernel in (ortho_frame_kernel, ortho_pb_kernel, ortho_resample_kernel):
-        wp.overload(_kernel, {"data": wp.array3d(dtype=_src), "out": wp.array3d(dtype=_out)})
+    wp.overload(ortho_resample_kernel, {"data": wp.array3d(dtype=_src), "out": wp.array3d(dtype=_out)})
+    for _arg in SENSOR_ARGS:
+        wp.overload(ortho_kernel, {"arg": _arg, "data": wp.array3d(dtype=_src), "out": wp.array3d(dtype=_out)})
 
 
 # -- forward (direct) method, seed 003 ----------------------------------------------------------
@@ -514,8 +497,7 @@ def frame_to_output(f: FrameToOutput, u: wp.float64, v: wp.float64):
 
 @wp.kernel
 def forward_nodes_kernel(
-    cam: FrameCameraData,
-    pose: FramePoseData,
+    arg: Any,
     refr: RefractionTable,
     dem: DemData,
     search: SearchParams,
@@ -525,10 +507,11 @@ def forward_nodes_kernel(
     nodes: wp.array2d(dtype=wp.vec2d),
 ):
     """Forward chain for every source pixel centre of a window: its ground point, as
-    output-tile pixel coordinates (NaN where the ray meets no ground)."""
+    output-tile pixel coordinates (NaN where the ray meets no ground). Built for frames only:
+    the host runs the forward method for them alone."""
     i, j = wp.tid()
     half = wp.float64(0.5)
-    g = geolocate_pixel(cam, pose, refr, dem, search, wp.vec2d(wp.float64(col0 + j) + half, wp.float64(row0 + i) + half))
+    g = sensor_geolocate(arg, refr, dem, search, wp.vec2d(wp.float64(col0 + j) + half, wp.float64(row0 + i) + half))
     if wp.isfinite(g[0]):
         nodes[i, j] = frame_to_output(f2o, g[0], g[1])
     else:
@@ -609,8 +592,8 @@ wp.overload(widen_kernel, {"src": wp.array3d(dtype=wp.uint16)})
 
 
 @wp.kernel
-def frame_source_coords_kernel(
-    cam: FrameCameraData,
+def source_coords_kernel(
+    arg: Any,
     refr: RefractionTable,
     dem: DemData,
     grid: CoarseGrid,
@@ -618,8 +601,14 @@ def frame_source_coords_kernel(
     height: wp.float64,
     out: wp.array2d(dtype=wp.vec2d),
 ):
-    """The source pixel (col, row) of every output pixel of a tile, as the fused frame kernel
-    computes it (:func:`frame_source_pixel`), stored: for checking the backends against each
-    other and against independent references."""
+    """The source pixel (col, row) of every output pixel of a tile, as the fused kernel
+    computes it (:func:`source_pixel`), stored: for checking the backends against each other
+    and against independent references."""
     i, j = wp.tid()
-    out[i, j] = frame_source_pixel(cam, refr, dem, grid, i, j, width, height)
+    out[i, j] = source_pixel(arg, refr, dem, grid, i, j, width, height)
+
+
+for _arg in SENSOR_ARGS:
+    wp.overload(node_pixels_kernel, {"arg": _arg})
+    wp.overload(source_coords_kernel, {"arg": _arg})
+wp.overload(forward_nodes_kernel, {"arg": FrameArg})

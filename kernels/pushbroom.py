@@ -7,13 +7,17 @@
 - :func:`pb_project`: ground (ECEF) -> pixel: secant iteration on the line time until the
   apparent direction lies in the detector line's plane (the along-track look angle of the
   detector the across-track angle points at), then the column from the look-angle table.
+
+The scene's kernels are the sensor-generic ones of :mod:`orthowarp.kernels.sensor`
+(:class:`PushbroomData` is the scene's argument there); :func:`pb_project_kernel` takes first
+guesses of the line times (for benchmarks).
 """
 
 import warp as wp
 
 from .dem import DemData
-from .frame import MODE_GEOCENTRIC, FramePoseData, SearchParams, apparent_direction, geolocate_ray
-from .geodesy import DEG, ecef_to_geodetic_sc, geodetic_to_ecef
+from .ray import MODE_GEOCENTRIC, FramePoseData, SearchParams, apparent_direction, geolocate_ray
+from .geodesy import ecef_to_geodetic_sc
 from .refraction import RefractionTable
 
 wp.set_module_options({"enable_backward": False})
@@ -309,36 +313,6 @@ def pb_project(pb: PushbroomData, refr: RefractionTable, x: wp.vec3d, h: wp.floa
 
 
 @wp.kernel
-def pb_geolocate_kernel(
-    pb: PushbroomData,
-    refr: RefractionTable,
-    dem: DemData,
-    search: SearchParams,
-    pixels: wp.array(dtype=wp.vec2d),
-    out: wp.array(dtype=wp.vec3d),
-):
-    """Pixels (N,) -> geo triples (N,)."""
-    i = wp.tid()
-    out[i] = pb_geolocate(pb, refr, dem, search, pixels[i])
-
-
-@wp.kernel
-def pb_geolocate_grid_kernel(
-    pb: PushbroomData,
-    refr: RefractionTable,
-    dem: DemData,
-    search: SearchParams,
-    col0: wp.float64,
-    row0: wp.float64,
-    step: wp.float64,
-    out: wp.array2d(dtype=wp.vec3d),
-):
-    """Geolocate the pixel grid (col0 + j step, row0 + i step) -> out[i, j]."""
-    i, j = wp.tid()
-    out[i, j] = pb_geolocate(pb, refr, dem, search, wp.vec2d(col0 + wp.float64(j) * step, row0 + wp.float64(i) * step))
-
-
-@wp.kernel
 def pb_project_kernel(
     pb: PushbroomData,
     refr: RefractionTable,
@@ -351,17 +325,3 @@ def pb_project_kernel(
     i = wp.tid()
     out[i] = pb_project(pb, refr, xyz[i], heights[i], t0[i])
 
-
-@wp.kernel
-def pb_project_geo_kernel(
-    pb: PushbroomData,
-    refr: RefractionTable,
-    points: wp.array(dtype=wp.vec3d),
-    out: wp.array(dtype=wp.vec2d),
-):
-    """Project geo triples (N,) (lon, lat deg, ellipsoidal h m) -> pixels (N,), the line-time
-    iteration started at the scene centre (the frame's ``project_kernel`` signature)."""
-    i = wp.tid()
-    g = points[i]
-    x = geodetic_to_ecef(g[1] * DEG, g[0] * DEG, g[2])
-    out[i] = pb_project(pb, refr, x, g[2], wp.float64(0.0))

@@ -29,7 +29,7 @@ import numpy as np
 
 from .errors import GeometryError, ParamError
 from .geodesy import WGS84_A, WGS84_B, ecef_to_geodetic
-from .sensor import GeocentricPositions, SensorKernels, SensorModel
+from .sensor import GeocentricPositions, SensorKernels, SensorModel, generic_kernels
 
 if TYPE_CHECKING:  # annotations only: Warp is imported where a scene is packed for a device
     import os
@@ -302,12 +302,10 @@ class PushbroomScene(SensorModel):
 
     @property
     def kernels(self) -> SensorKernels:
-        from .kernels import pushbroom as k
-
-        return SensorKernels(k.pb_geolocate_kernel, k.pb_geolocate_grid_kernel, k.pb_project_geo_kernel)
+        return generic_kernels()
 
     def _pack(self, device):
-        return (self.to_struct(device),)
+        return self.to_struct(device)
 
     def project(self, xyz: ArrayLike) -> np.ndarray:
         """ECEF points (N, 3) -> pixels (N, 2), float64, without refraction (see

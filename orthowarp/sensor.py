@@ -8,13 +8,14 @@ and never branch on the kind of sensor (after orthority's ``Camera``, Vision Wor
 ``CameraModel`` and warp.fem's geometry/``arg_value`` pattern):
 
 - **Device side.** :meth:`SensorModel.arg_value` packs the float64 parameters into the Warp
-  structs the sensor's kernels read (cached per device), and :attr:`SensorModel.kernels` names
+  struct the sensor's kernels read (cached per device), and :attr:`SensorModel.kernels` names
   those kernels (:class:`SensorKernels`): the ray of a pixel met with the terrain
-  (``geolocate``, ``geolocate_grid``) and the pixel of a ground point (``project``). The
-  device functions behind them are ``geolocate_pixel`` / ``project_point``
-  (:mod:`orthowarp.kernels.frame`) and ``pb_geolocate`` / ``pb_project``
-  (:mod:`orthowarp.kernels.pushbroom`); the relief search and refraction they share are
-  :mod:`orthowarp.kernels.frame`'s ``geolocate_ray`` and ``apparent_direction``.
+  (``geolocate``, ``geolocate_grid``) and the pixel of a ground point (``project``). They are
+  written once (:mod:`orthowarp.kernels.sensor`) against overloads per argument struct that
+  call the sensor's device functions (``geolocate_pixel`` / ``project_xyz`` of
+  :mod:`orthowarp.kernels.frame`, ``pb_geolocate`` / ``pb_project`` of
+  :mod:`orthowarp.kernels.pushbroom`), which end in the one ray module
+  (:mod:`orthowarp.kernels.ray`: refraction, ellipsoid, DEM relief search).
 - **Host side.** :meth:`SensorModel.project` maps object-frame points to pixels in float64
   NumPy (no refraction: the model of the adjustment), :meth:`SensorModel.project_jacobian`
   adds the derivatives by the parameters and by the point, and :meth:`SensorModel.parameters`
@@ -25,9 +26,8 @@ and never branch on the kind of sensor (after orthority's ``Camera``, Vision Wor
   CRS of the positions, for reconciling vertical datums).
 
 A new sensor (RPC, say) plugs in by subclassing :class:`SensorModel`: its struct and device
-functions in a kernels/ module, the three kernels, and the host methods above. (The ortho's
-per-pixel kernel is still written per sensor: :mod:`orthowarp.pipeline.ortho` picks it by
-:attr:`SensorModel.kind`.)
+functions in a kernels/ module, their overloads in :mod:`orthowarp.kernels.sensor` and
+:mod:`orthowarp.kernels.ortho` (``source_pixel``), and the host methods above.
 """
 
 from __future__ import annotations
@@ -65,9 +65,17 @@ class GeocentricPositions:
         return as_crs("EPSG:4978")
 
 
+def generic_kernels() -> SensorKernels:
+    """The sensor-generic kernels of :mod:`orthowarp.kernels.sensor` (built for every sensor's
+    argument struct)."""
+    from .kernels import sensor as k
+
+    return SensorKernels(k.geolocate_kernel, k.geolocate_grid_kernel, k.project_kernel)
+
+
 class SensorKernels(NamedTuple):
-    """The kernels of one kind of sensor, each taking ``(*arg_value, refraction, dem, search,
-    ...)`` (see :mod:`orthowarp.kernels.frame` for the frame's, the pushbroom's are alike).
+    """A sensor's kernels, each taking ``(arg_value, refraction, dem, search, ...)``: for the
+    sensors of orthowarp the generic ones of :mod:`orthowarp.kernels.sensor`.
 
     geolocate : pixels (N,) vec2d -> geo triples (N,) vec3d, the ray met with the terrain.
     geolocate_grid : a regular pixel grid (col0, row0, step) -> geo triples (rows, cols).
@@ -134,16 +142,16 @@ class SensorModel(abc.ABC):
         """The sensor's geolocate / geolocate_grid / project kernels."""
 
     @abc.abstractmethod
-    def _pack(self, device: wp.Device) -> tuple:
-        """The structs of :meth:`arg_value`, freshly packed for ``device``."""
+    def _pack(self, device: wp.Device) -> Any:
+        """The struct of :meth:`arg_value`, freshly packed for ``device``."""
 
     def __getstate__(self):
         """Pickled (for a distributed scheduler) without the device structs and their lock."""
         return {k: v for k, v in self.__dict__.items() if k not in ("_arg_cache", "_arg_lock")}
 
-    def arg_value(self, device: wp.DeviceLike) -> tuple:
-        """The sensor's Warp structs on ``device`` (cached per device), in the order its
-        kernels take them before the refraction table."""
+    def arg_value(self, device: wp.DeviceLike) -> Any:
+        """The sensor's argument struct on ``device`` (cached per device): the first argument
+        of its kernels, before the refraction table."""
         from ._device import resolve_device
 
         dev = resolve_device(device)
@@ -262,12 +270,14 @@ class FrameSensor(SensorModel):
 
     @property
     def kernels(self) -> SensorKernels:
-        from .kernels import frame as k
-
-        return SensorKernels(k.geolocate_kernel, k.geolocate_grid_kernel, k.project_kernel)
+        return generic_kernels()
 
     def _pack(self, device):
-        return self.camera.to_struct(), self.pose.to_struct()
+        from .kernels.sensor import FrameArg
+
+        arg = FrameArg()
+        arg.cam, arg.pose = self.camera.to_struct(), self.pose.to_struct()
+        return arg
 
     # -- host ----------------------------------------------------------------------------------
     def _calibration_row(self):

@@ -6,7 +6,6 @@ import copy
 import math
 import numbers
 import os
-import sys
 from concurrent.futures import ThreadPoolExecutor
 from typing import TYPE_CHECKING
 
@@ -18,7 +17,8 @@ from .._device import load_modules, quiet_warp, resolve_device
 from .._validate import as_crs, no_infinite_rows
 from .._validate import points as _as_points
 from ..errors import GeometryError, ParamError
-from ..kernels.frame import SearchParams
+from ..kernels import sensor as sensor_kernels
+from ..kernels.ray import SearchParams
 from ..refraction import RefractionModel
 from ..sensor import SensorModel, check_centre_above_terrain
 from .dem import MAX_GROUND_HEIGHT, Dem, _horizontal, as_dem, memory_budget
@@ -218,7 +218,7 @@ class SensorGeometry:
             raise ParamError(f"sensor must be a FrameSensor or a PushbroomScene, got {type(sensor).__name__}")
         self.sensor = sensor
         self.device = resolve_device(device)
-        load_modules(self.device, _kernel_module(sensor))  # compiled here on a first run, with a notice
+        load_modules(self.device, sensor_kernels)  # compiled here on a first run, with a notice
         self._probe_base = None
         if region is None:
             region = (0.0, 0.0, *map(float, sensor.image_size))
@@ -248,19 +248,19 @@ class SensorGeometry:
         return SensorGeometry(self.sensor, Dem.constant(h), refraction=self.refraction.enabled, device=self.device)
 
     def sensor_structs(self):
-        """The structs the per-pixel ortho kernels take before the DEM: the sensor's
+        """The structs the per-pixel ortho kernels take before the DEM: the sensor's argument
         (:meth:`~orthowarp.sensor.SensorModel.arg_value`) and the refraction table."""
-        return self.structs()[:-2]
+        return self.structs()[:2]
 
     def dem_struct(self):
         """The DEM's struct on the device."""
-        return self.structs()[-2]
+        return self.structs()[2]
 
     def structs(self):
-        """(*sensor structs, refraction, dem, search) on the device: the kernels' leading
+        """(sensor argument, refraction, dem, search) on the device: the kernels' leading
         arguments."""
         if self._structs is None:
-            self._structs = (*self.sensor.arg_value(self.device), self.refraction.to_struct(self.device),
+            self._structs = (self.sensor.arg_value(self.device), self.refraction.to_struct(self.device),
                              self.dem.to_struct(self.device), self.search)
         return self._structs
 
@@ -293,7 +293,7 @@ class SensorGeometry:
         asynchronously on the device's current stream.
         """
         wp.launch(self.sensor.kernels.geolocate_grid, dim=out.shape, device=self.device, block_dim=block_dim,
-                  inputs=[*self.structs(), float(col0), float(row0), float(step), out])
+                  inputs=[*self.structs(), wp.float64(col0), wp.float64(row0), wp.float64(step), out])
         return out
 
     def geolocate_image(self, *, step=1.0, band_rows=None, workers=None):
@@ -328,7 +328,8 @@ class SensorGeometry:
         def band(i0):
             i1 = min(i0 + band_rows, rows)
             out = wp.empty((i1 - i0, cols), dtype=wp.vec3d, device=self.device)
-            wp.launch(kernel, dim=out.shape, device=self.device, inputs=[*structs, c0, r0 + i0 * step, float(step), out])
+            wp.launch(kernel, dim=out.shape, device=self.device,
+                      inputs=[*structs, wp.float64(c0), wp.float64(r0 + i0 * step), wp.float64(step), out])
             result[i0:i1] = out.numpy()
 
         with ThreadPoolExecutor(max_workers=workers) as pool:
@@ -345,11 +346,6 @@ class SensorGeometry:
             wp.launch(self.sensor.kernels.project, dim=len(geo), device=self.device,
                       inputs=[*self.sensor_structs(), wp.array(geo, dtype=wp.vec3d, device=self.device), out])
         return out.numpy().reshape(-1, 2)
-
-
-def _kernel_module(sensor):
-    """The Python module holding a sensor's kernels (loaded before threads launch them)."""
-    return sys.modules[sensor.kernels.geolocate.func.__module__]
 
 
 # Plausibility bounds of the inputs (see _check_ground_points and check_camera_above_terrain).

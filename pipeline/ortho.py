@@ -786,23 +786,21 @@ class ImageTiles:
         nodes = wp.empty((2, *uv.shape[:2]), dtype=wp.vec2d, device=device)
         timer.span("h2d", t)
         t = time.perf_counter()
-        times = None
-        if self.pushbroom:
-            wp.launch(ortho_kernels.pb_node_pixels_kernel, dim=nodes.shape, device=device,
-                      inputs=[*sensor, grid, wp.vec2d(*heights), nodes])
-            times = wp.empty(grid.uv.shape, dtype=wp.float64, device=device)
+        wp.launch(ortho_kernels.node_pixels_kernel, dim=nodes.shape, device=device,
+                  inputs=[*sensor, grid, wp.vec2d(*heights), nodes])
+        # what the sensors' per-pixel chains take from the nodes beside the grid itself
+        if self.pushbroom:  # the line times: the per-pixel iteration's first guesses
+            grid.times = wp.empty(grid.uv.shape, dtype=wp.float64, device=device)
             wp.launch(ortho_kernels.pb_node_times_kernel, dim=grid.uv.shape, device=device,
-                      inputs=[*sensor, dem, grid, self.h_mid, times])
+                      inputs=[*sensor, dem, grid, self.h_mid, grid.times])
         else:
-            wp.launch(ortho_kernels.frame_node_pixels_kernel, dim=nodes.shape, device=device,
-                      inputs=[*sensor, grid, wp.vec2d(*heights), nodes])
-            if self.refraction_nodes and sensor[2].enabled:
+            if self.refraction_nodes and sensor[1].enabled:
                 # the refraction turn interpolated from the nodes (see CoarseGrid): on the CPU,
                 # where the per-pixel turn was a third of the kernel's time
                 grid.refr_a = wp.empty(uv.shape[:2], dtype=wp.vec3d, device=device)
                 grid.refr_b = wp.empty(uv.shape[:2], dtype=wp.vec3d, device=device)
                 wp.launch(ortho_kernels.frame_node_refraction_kernel, dim=uv.shape[:2], device=device,
-                          inputs=[sensor[2], grid, wp.vec2d(*heights), grid.refr_a, grid.refr_b])
+                          inputs=[sensor[1], grid, wp.vec2d(*heights), grid.refr_a, grid.refr_b])
                 grid.refr_nodes = 1
         pixels = nodes.numpy()  # waits for the kernels
         timer.span("kernel", t)
@@ -815,14 +813,9 @@ class ImageTiles:
             window = (*window, factor)
 
         def launch(sw, data, out, out_valid):
-            if self.pushbroom:
-                kernel, args = ortho_kernels.ortho_pb_kernel, [*sensor, dem, grid, times]
-            else:  # the grid carries the pose
-                cam, _, refr = sensor
-                kernel, args = ortho_kernels.ortho_frame_kernel, [cam, refr, dem, grid]
-            wp.launch(kernel, dim=(th, tw), device=device, block_dim=ORTHO_BLOCK_DIM,
-                      inputs=[*args, wp.float64(w_img), wp.float64(h_img), sw, data, self.resampling_code, self.top,
-                              out, out_valid])
+            wp.launch(ortho_kernels.ortho_kernel, dim=(th, tw), device=device, block_dim=ORTHO_BLOCK_DIM,
+                      inputs=[*sensor, dem, grid, wp.float64(w_img), wp.float64(h_img), sw, data,
+                              self.resampling_code, self.top, out, out_valid])
 
         return launch, window
 
@@ -1098,7 +1091,7 @@ def _forward_coords(geom, transform, out_crs, frame_crs, device, timer, radius, 
     land within ``margin`` output pixels of it, grown by ``step + margin`` source pixels.
     """
     w_img, h_img = geom.image_size
-    cam, pose, refr, dem, search = geom.structs()
+    arg, refr, dem, search = geom.structs()
     sc = np.unique(np.append(np.arange(0, w_img, step), w_img - 1)) + 0.5
     sr = np.unique(np.append(np.arange(0, h_img, step), h_img - 1)) + 0.5
     cc, rr = np.meshgrid(sc, sr)
@@ -1150,7 +1143,7 @@ def _forward_coords(geom, transform, out_crs, frame_crs, device, timer, radius, 
         timer.span("h2d", t)
         t = time.perf_counter()
         wp.launch(ortho_kernels.forward_nodes_kernel, dim=nodes.shape, device=device,
-                  inputs=[cam, pose, refr, dem, search, f2o, wc0, wr0, nodes])
+                  inputs=[arg, refr, dem, search, f2o, wp.int32(wc0), wp.int32(wr0), nodes])
         wp.launch(ortho_kernels.forward_scatter_kernel, dim=(nodes.shape[0] - 1, nodes.shape[1] - 1), device=device,
                   inputs=[nodes, wc0, wr0, max_edge, coords])
         timer.span("kernel", t)

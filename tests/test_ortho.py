@@ -457,7 +457,7 @@ def test_refraction_from_the_nodes_matches_the_per_pixel_turn(name):
                 continue
             coords = {}
             for key, g in (("pixel", geom), ("nodes", geom), ("none", geoms[False])):
-                cam, _, refr = g.sensor_structs()
+                arg, refr = g.sensor_structs()
                 grid = coarse_struct(uv, g.geocentric, "cpu", pose=g.sensor.pose)
                 if key == "nodes":
                     grid.refr_a = wp.empty(uv.shape[:2], dtype=wp.vec3d, device="cpu")
@@ -466,8 +466,8 @@ def test_refraction_from_the_nodes_matches_the_per_pixel_turn(name):
                               inputs=[refr, grid, wp.vec2d(*heights), grid.refr_a, grid.refr_b])
                     grid.refr_nodes = 1
                 out = wp.empty((size, size), dtype=wp.vec2d, device="cpu")
-                wp.launch(ok.frame_source_coords_kernel, dim=(size, size), device="cpu",
-                          inputs=[cam, refr, g.dem_struct(), grid, float(w), float(h_img), out])
+                wp.launch(ok.source_coords_kernel, dim=(size, size), device="cpu",
+                          inputs=[arg, refr, g.dem_struct(), grid, wp.float64(w), wp.float64(h_img), out])
                 coords[key] = out.numpy()
             a, b = coords["pixel"], coords["nodes"]
             np.testing.assert_array_equal(np.isfinite(a), np.isfinite(b))
@@ -500,7 +500,7 @@ def test_tile_windows_hold_every_source_pixel(name):
     out_crs, transform, shape, _ = output_grid(geom)
     frame_crs = geom.horizontal_crs
     to_frame = Transformer.from_crs(out_crs, frame_crs, always_xy=True)
-    cam, pose, refr, _, _ = geom.structs()
+    arg, refr, _, _ = geom.structs()
     size, spans, checked = 64, [], 0
     blocks = (4, geom.dem.block_range(4))
     for r0 in range(0, shape[0] - size, 3 * size):
@@ -510,8 +510,8 @@ def test_tile_windows_hold_every_source_pixel(name):
             if heights is None:  # off the DEM
                 continue
             nodes = wp.empty((2, *uv.shape[:2]), dtype=wp.vec2d, device="cpu")
-            wp.launch(ok.frame_node_pixels_kernel, dim=nodes.shape, device="cpu",
-                      inputs=[cam, pose, refr, coarse_struct(uv, geom.geocentric, "cpu"), wp.vec2d(*heights), nodes])
+            wp.launch(ok.node_pixels_kernel, dim=nodes.shape, device="cpu",
+                      inputs=[arg, refr, coarse_struct(uv, geom.geocentric, "cpu"), wp.vec2d(*heights), nodes])
             w, h_img = sc.size
             window = _node_window(nodes.numpy(), 0, w, h_img, margin=0)
             jj, ii = np.meshgrid(np.arange(c0, c0 + size) + 0.5, np.arange(r0, r0 + size) + 0.5)

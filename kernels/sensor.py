@@ -1,0 +1,124 @@
+"""Sensor-generic kernels, device code: one body for every sensor (see
+:class:`orthowarp.sensor.SensorModel`), specialised at import time for each sensor's argument
+struct (the pattern of warp.fem's geometries).
+
+A sensor's argument is one struct (:meth:`SensorModel.arg_value`): :class:`FrameArg` (camera
+and pose) for a frame image, :class:`~orthowarp.kernels.pushbroom.PushbroomData` for a
+pushbroom scene. Each implements, by overloads of one name:
+
+- :func:`sensor_geolocate` ``(arg, refr, dem, search, pixel) -> geo triple``: the pixel's ray
+  met with the terrain (:func:`orthowarp.kernels.ray.geolocate_ray`);
+- :func:`sensor_project_xyz` ``(arg, refr, x, h, t0) -> pixel``: a point of the sensor's
+  Cartesian object frame at height h to its pixel (``t0``: a first guess of the line time, s;
+  frames ignore it);
+- :func:`sensor_project_geo` ``(arg, refr, geo) -> pixel``: the same from a geo triple.
+
+The kernels below (and the ortho's node and per-pixel kernels in
+:mod:`orthowarp.kernels.ortho`) are written once against those names. A new sensor adds its
+struct, the three overloads and a line to :data:`SENSOR_ARGS`.
+"""
+
+from typing import Any
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+from .camera import FrameCameraData
+from .dem import DemData
+from .frame import FramePoseData, geolocate_pixel, project_point, project_xyz
+from .geodesy import DEG, geodetic_to_ecef
+from .pushbroom import PushbroomData, pb_geolocate, pb_project
+from .ray import SearchParams
+from .refraction import RefractionTable
+
+
+@wp.struct
+class FrameArg:
+    """A frame image's sensor: interior (``cam``) and exterior (``pose``) orientation."""
+
+    cam: FrameCameraData
+    pose: FramePoseData
+
+
+@wp.func
+def sensor_geolocate(arg: FrameArg, refr: RefractionTable, dem: DemData, search: SearchParams, pix: wp.vec2d):
+    return geolocate_pixel(arg.cam, arg.pose, refr, dem, search, pix)
+
+
+@wp.func
+def sensor_geolocate(arg: PushbroomData, refr: RefractionTable, dem: DemData, search: SearchParams, pix: wp.vec2d):
+    return pb_geolocate(arg, refr, dem, search, pix)
+
+
+@wp.func
+def sensor_project_xyz(arg: FrameArg, refr: RefractionTable, x: wp.vec3d, h: wp.float64, t0: wp.float64):
+    return project_xyz(arg.cam, arg.pose, refr, x, h)
+
+
+@wp.func
+def sensor_project_xyz(arg: PushbroomData, refr: RefractionTable, x: wp.vec3d, h: wp.float64, t0: wp.float64):
+    return pb_project(arg, refr, x, h, t0)
+
+
+@wp.func
+def sensor_project_geo(arg: FrameArg, refr: RefractionTable, geo: wp.vec3d):
+    return project_point(arg.cam, arg.pose, refr, geo)
+
+
+@wp.func
+def sensor_project_geo(arg: PushbroomData, refr: RefractionTable, geo: wp.vec3d):
+    """Geo triple (lon, lat deg, ellipsoidal h m) -> pixel; the line time searched from the
+    scene centre."""
+    x = geodetic_to_ecef(geo[1] * DEG, geo[0] * DEG, geo[2])
+    return pb_project(arg, refr, x, geo[2], wp.float64(0.0))
+
+
+@wp.kernel
+def geolocate_kernel(
+    arg: Any,
+    refr: RefractionTable,
+    dem: DemData,
+    search: SearchParams,
+    pixels: wp.array(dtype=wp.vec2d),
+    out: wp.array(dtype=wp.vec3d),
+):
+    """Geolocate a list of pixels (N,) -> geo triples (N,)."""
+    i = wp.tid()
+    out[i] = sensor_geolocate(arg, refr, dem, search, pixels[i])
+
+
+@wp.kernel
+def geolocate_grid_kernel(
+    arg: Any,
+    refr: RefractionTable,
+    dem: DemData,
+    search: SearchParams,
+    col0: wp.float64,
+    row0: wp.float64,
+    step: wp.float64,
+    out: wp.array2d(dtype=wp.vec3d),
+):
+    """Geolocate the pixel-centre grid (row0 + i step, col0 + j step) -> out[i, j]."""
+    i, j = wp.tid()
+    pix = wp.vec2d(col0 + wp.float64(j) * step, row0 + wp.float64(i) * step)
+    out[i, j] = sensor_geolocate(arg, refr, dem, search, pix)
+
+
+@wp.kernel
+def project_kernel(
+    arg: Any,
+    refr: RefractionTable,
+    points: wp.array(dtype=wp.vec3d),
+    out: wp.array(dtype=wp.vec2d),
+):
+    """Project geo triples (N,) -> pixels (N,); NaN where the sensor does not see them."""
+    i = wp.tid()
+    out[i] = sensor_project_geo(arg, refr, points[i])
+
+
+SENSOR_ARGS = (FrameArg, PushbroomData)  # the structs the generic kernels are built for
+
+for _arg in SENSOR_ARGS:
+    for _kernel in (geolocate_kernel, geolocate_grid_kernel, project_kernel):
+        wp.overload(_kernel, {"arg": _arg})
