@@ -222,7 +222,7 @@ class SensorGeometry:
         self._probe_base = None
         if region is None:
             region = (0.0, 0.0, *map(float, sensor.image_size))
-        frame = None if sensor.geocentric else sensor.frame_crs
+        frame = None if sensor.geocentric else sensor.horizontal_crs  # the map CRS itself, not its 3-D form
         terrain = as_dem(dem)
         dem = _prepared_dem(terrain, lambda d: reconcile_dem(
             d, sensor.positions, geoid=geoid, same_vertical_datum=same_vertical_datum,

@@ -209,3 +209,24 @@ def test_the_models_import_neither_pipeline_nor_adjust():
             continue
         used = imported_subpackages(os.path.join(ROOT, "orthowarp", name))
         assert not used & {"pipeline", "adjust", "cli"}, f"orthowarp/{name} imports {sorted(used)}"
+
+
+def test_a_dem_in_the_map_poses_crs_is_used_as_it_is():
+    """A DEM already in a map pose's CRS is cropped, never resampled: same cells, same CRS.
+    (Reprojecting it onto the CRS's 3-D form moved its nodata edge and changed orthos.)"""
+    from affine import Affine
+
+    from orthowarp.pipeline.geometry import SensorGeometry
+
+    sensor = frame_sensor("map")
+    z = np.full((200, 200), 300.0, np.float32)
+    z[:, :20] = np.nan  # a nodata edge, as DSMs have
+    dem = ow.Dem(z, Affine(5.0, 0.0, 499600.0, 0.0, -5.0, 5100700.0), UTM)
+    geom = SensorGeometry(sensor, dem, device="cpu", refraction=False)
+    assert geom.dem.crs == dem.crs
+    a, t = geom.dem.transform, dem.transform
+    assert (a.a, a.e) == (t.a, t.e)
+    c0, r0 = round((a.c - t.c) / t.a), round((a.f - t.f) / t.e)  # a crop: a whole-cell offset
+    assert (a.c, a.f) == (t.c + c0 * t.a, t.f + r0 * t.e)
+    rows, cols = geom.dem.shape
+    np.testing.assert_array_equal(geom.dem.array, z[r0:r0 + rows, c0:c0 + cols])
