@@ -360,7 +360,7 @@ def intersect(block, poses_deg, point_index, *, iterations=10, cam_rows=None, ro
     point_index : array_like of int
         Points to intersect (each seen in >= 2 images).
     cam_rows : ndarray, shape (n, 10), optional
-        Per-image camera parameters (see :mod:`~orthowarp.adjust.collinearity`); default the
+        Per-image camera parameters (see :mod:`~orthowarp.collinearity`); default the
         block's cameras.
     robust : bool, optional
         Down-weight rays that disagree with the others (Huber reweighting on the residuals,

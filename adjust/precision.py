@@ -3,7 +3,7 @@
 A ground point is a function of the orientation and the measurements: X = X(l). Linearised,
 its covariance is ``C_X = A C_l A^T`` with ``A = dX/dl``. The point is defined implicitly by
 conditions ``F(X, l) = 0`` written with the bundle adjustment's collinearity equations
-(:mod:`orthowarp.adjust.collinearity`, whose distortion and pixel mapping are
+(:mod:`orthowarp.collinearity`, whose distortion and pixel mapping are
 :class:`~orthowarp.camera.FrameCamera`'s own, :mod:`orthowarp.brown`), so ``A = -(F_X^+) F_l``:
 
 - **monoplotting** (one image and a DEM): the point's pixel is the measured one (two

@@ -104,7 +104,7 @@ class CoarseGrid:
 
     With ``refr_nodes`` set (see :func:`frame_node_refraction_kernel`), the refraction turn
     of that chord is interpolated too: refr_a + h refr_b is the correction that
-    :func:`~orthowarp.kernels.frame.apparent_direction` adds to the chord at the node, as a
+    :func:`~orthowarp.kernels.ray.apparent_direction` adds to the chord at the node, as a
     line through its values at the two heights that bound the tile's DEM. The correction is
     |v| delta (~0.1 m from an aircraft) and smooth: over a cell of 16 output pixels and a
     height range of hundreds of metres the interpolation moves the chord by micrometres

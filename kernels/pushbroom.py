@@ -3,7 +3,7 @@
 
 - :func:`pb_ray`: pixel -> satellite position and unit look direction (ECEF).
 - :func:`pb_geolocate`: pixel -> ground through the frame kernels' relief search
-  (:func:`orthowarp.kernels.frame.geolocate_ray`) with a pose built at the line's position.
+  (:func:`orthowarp.kernels.ray.geolocate_ray`) with a pose built at the line's position.
 - :func:`pb_project`: ground (ECEF) -> pixel: secant iteration on the line time until the
   apparent direction lies in the detector line's plane (the along-track look angle of the
   detector the across-track angle points at), then the column from the look-angle table.

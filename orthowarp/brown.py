@@ -4,7 +4,7 @@ Brown-Conrady distortion on OpenCV-normalised coordinates with its Jacobian, and
 between normalised coordinates and pixels (DESIGN.md: pixel (col, row) from the top-left
 corner, camera x right, y up, the principal point's offset from the image centre in mm, y up).
 :class:`~orthowarp.camera.FrameCamera` uses them with its scalars, the bundle adjustment
-(:mod:`orthowarp.adjust.collinearity`) with per-observation arrays: every argument
+(:mod:`orthowarp.collinearity`) with per-observation arrays: every argument
 broadcasts. The device twins are in :mod:`orthowarp.kernels.camera`.
 """
 

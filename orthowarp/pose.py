@@ -178,7 +178,7 @@ class Pose:
         return self.center_geodetic[2] if self.mode == GEOCENTRIC else float(self.center[2])
 
     def to_struct(self) -> FramePoseData:
-        """Pack into :class:`orthowarp.kernels.frame.FramePoseData`."""
+        """Pack into :class:`orthowarp.kernels.ray.FramePoseData`."""
         s = FramePoseData()
         s.mode = 0 if self.mode == GEOCENTRIC else 1
         s.center = wp.vec3d(*self.center)

@@ -1,4 +1,4 @@
-"""Collinearity equations (adjust/collinearity.py): against the frame kernels' projection and
+"""Collinearity equations (orthowarp/collinearity.py): against the frame kernels' projection and
 finite differences."""
 
 import numpy as np
