@@ -4,17 +4,22 @@
   :func:`orthowarp.write_block`, :mod:`orthowarp.pipeline.blockio`; this package touches no file);
 - :func:`bundle_adjust` -> :class:`AdjustResult`;
 - the observation equations and their Jacobians: :mod:`orthowarp.collinearity` (the frame sensor's own);
+- :class:`ScenePoints` (points measured in pushbroom scenes; files: :func:`orthowarp.read_scene_points`)
+  and :func:`preadjust_look_angles`: seed 000's look-angle pre-adjustment of SPOT-5 level-1A
+  scenes (:mod:`~orthowarp.adjust.lookangles`);
 - :func:`synthetic_block`: blocks with known truth (:func:`film_camera`: seed 002's kind of camera);
 - :func:`monoplot_covariance`, :func:`intersection_covariance`: ground points' precision by
   error propagation (seed 004; :mod:`~orthowarp.adjust.precision`).
 """
 
 from .block import ROLES, Block
+from .lookangles import LookAngleResult, preadjust_look_angles
+from .scene_points import ScenePoints
 from .bundle import AdjustResult, bundle_adjust, intersect
 from .precision import PrecisionResult, intersection_covariance, monoplot_covariance
 from .synthetic import CONTROL_LAYOUTS, film_camera, synthetic_block
 
 __all__ = ["Block", "ROLES", "AdjustResult", "bundle_adjust", "intersect", "synthetic_block", "film_camera",
-           "CONTROL_LAYOUTS", "PrecisionResult", "monoplot_covariance",
+           "CONTROL_LAYOUTS", "PrecisionResult", "ScenePoints", "LookAngleResult", "preadjust_look_angles", "monoplot_covariance",
            "intersection_covariance"]
 

@@ -1,0 +1,286 @@
+"""Pre-adjustment of a pushbroom scene's look angles by ground control (seed 000, eqs. 19-20).
+
+With a SPOT-5 level-1A scene and ground control, the detectors' look angles are the dominant
+error; they are corrected first, with the exterior orientation held fixed. Per control point,
+the direction from the satellite (at the line time of the measured row) to the ground point,
+in the instrument frame ``q = R^T (X - P)``, gives the look angles the detector should have::
+
+    psi_x = atan(-q_y / q_z),   psi_y = atan(q_x / q_z)
+
+(the inverse of the look vector ``u1 = normalize(-tan psi_y, tan psi_x, -1)``, DESIGN.md). The
+corrections are modelled along the detector line by polynomials in the normalised detector
+number ``u = (d - c) / h`` (d = col + 0.5 the 1-based detector, c and h the line's centre and
+half length), ``dpsi_x(u) = sum_k a_k u^k`` and ``dpsi_y(u) = sum_k b_k u^k`` (degree 2 by
+default), so that every detector gets corrected look angles.
+
+The coefficients are estimated by a Gauss-Helmert adjustment (``A dx + B v + w = 0``): per control
+point two conditions
+
+    g(l, x) = psi_measured(row, X) - psi_nominal(col) - dpsi(u(col); x) = 0,
+
+whose observations ``l`` are the measured column and row (px) and the point's east, north and up
+offsets (m) from its given coordinates, weighted by their sigmas, so that ground control noise
+(seed 000's GPS survey: +-0.06 m horizontally, +-1 m vertically) and image measurement noise
+enter together. ``B = dg/dl`` is taken by central differences of the float64 model (the
+nominal look angles are linear between detectors, so ``dg/dcol`` is their local slope), ``A``
+is the polynomial basis. Iterated to convergence of ``dx``; ``sigma0^2 = v^T P v / r`` with
+``r = 2 n - 2 (degree + 1)``.
+
+Reference: seed 000 (SPOT-5 HRG level 1A, look-angle pre-adjustment); W. Foerstner and B.
+Wrobel, Photogrammetric Computer Vision (2016), section 4.8 (Gauss-Helmert model).
+"""
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .. import geodesy
+from ..errors import GeometryError, ParamError
+from ..pushbroom import PushbroomScene
+from .scene_points import ScenePoints
+
+__all__ = ["LookAngleResult", "preadjust_look_angles", "look_angle_conditions", "corrected_scene"]
+
+# central-difference steps of B's columns: col, row (px), east, north, up (m)
+_STEPS = np.array([1e-2, 1e-2, 1e-2, 1e-2, 1e-2])
+
+
+def _basis(scene, col, degree):
+    """Polynomial basis (n, degree + 1) at columns ``col`` (the normalised detector number)."""
+    d = np.asarray(col, dtype=np.float64) + 0.5
+    c, h = 0.5 * (scene.width + 1), max(0.5 * (scene.width - 1), 0.5)
+    u = (d - c) / h
+    return u[:, None] ** np.arange(degree + 1)
+
+
+def look_angle_conditions(scene, obs, llh, coefficients):
+    """The pre-adjustment's conditions g (n, 2) (rad) at observations ``obs`` (n, 5).
+
+    Parameters
+    ----------
+    scene : PushbroomScene
+        Nominal scene (its exterior orientation held fixed).
+    obs : ndarray, shape (n, 5)
+        col, row (px) and east, north, up offsets (m) of each point from ``llh``.
+    llh : ndarray, shape (n, 3)
+        The points' given lon, lat (deg), ellipsoidal h (m).
+    coefficients : ndarray, shape (2, degree + 1)
+        Corrections of psi_x and psi_y (rad) as polynomials in the normalised detector number.
+
+    Returns
+    -------
+    ndarray, shape (n, 2)
+        Measured minus corrected nominal look angles (psi_x, psi_y), rad.
+    """
+    col, row = obs[:, 0], obs[:, 1]
+    lon, lat, h = llh[:, 0], llh[:, 1], llh[:, 2]
+    x = geodesy.geodetic_to_ecef(lat, lon, h)
+    enu = np.stack([geodesy.enu_to_ecef_matrix(a, b) for a, b in zip(lat, lon)]) if len(lat) else np.zeros((0, 3, 3))
+    x = x + np.einsum("nij,nj->ni", enu, obs[:, 2:5])
+    t = scene.line_time(row)
+    p, v = scene.orbit(t)
+    from ..pushbroom import attitude_matrix
+
+    r = scene.orbital_frame(p, v) @ attitude_matrix(*scene.attitude(t).T,
+                                                     first_order=scene.attitude_model == "first_order")
+    q = np.einsum("nji,nj->ni", r, x - p)
+    measured = np.stack([np.arctan(-q[:, 1] / q[:, 2]), np.arctan(q[:, 0] / q[:, 2])], -1)
+    det = col + 0.5
+    nominal = np.stack([scene._psi_at(scene.psi_x, det), scene._psi_at(scene.psi_y, det)], -1)
+    corr = _basis(scene, col, coefficients.shape[1] - 1) @ np.asarray(coefficients).T
+    return measured - nominal - corr
+
+
+def corrected_scene(scene, coefficients):
+    """The scene with its look angles corrected by the polynomials ``coefficients`` (2, k)
+    (rad, in the normalised detector number; see the module doc)."""
+    coefficients = np.asarray(coefficients, dtype=np.float64)
+    corr = _basis(scene, np.arange(scene.width) + 0.5, coefficients.shape[1] - 1) @ coefficients.T  # detector k at col k - 0.5
+    return scene.replace(psi_x=scene.psi_x + corr[:, 0], psi_y=scene.psi_y + corr[:, 1])
+
+
+@dataclass
+class LookAngleResult:
+    """What :func:`preadjust_look_angles` found, per scene.
+
+    Attributes
+    ----------
+    success : bool
+        Every scene converged.
+    status : dict of str -> int
+        1 converged; 0 iteration limit; -1 singular normal equations (control too few or too
+        bunched along the line).
+    message : str
+    coefficients : dict of str -> ndarray, shape (2, degree + 1)
+        Corrections of psi_x and psi_y (rad) per power of the normalised detector number.
+    covariance : dict of str -> ndarray, shape (2 (degree + 1),) * 2
+        sigma0^2 N^-1 of the coefficients (psi_x's first).
+    sigma0, redundancy, iterations : dict of str -> float / int / int
+    scenes : dict of str -> PushbroomScene
+        The corrected scenes (see :func:`corrected_scene`).
+    residuals : dict of str -> ndarray, shape (n, 5)
+        Residuals v of each control point's observations: col, row (px), east, north, up (m).
+    control_ids, check_ids : dict of str -> list of str
+        The control and check points of each scene, in the order of the arrays.
+    control_rmse, check_rmse : dict of str -> ndarray, shape (2,)
+        RMSE (px) of col and row of the given points projected into the corrected scene
+        against their measurements (NaN without such points).
+    check_rmse_before : dict of str -> ndarray, shape (2,)
+        The same with the nominal scene.
+    """
+
+    success: bool
+    message: str
+    status: dict = field(default_factory=dict)
+    coefficients: dict = field(default_factory=dict)
+    covariance: dict = field(default_factory=dict)
+    sigma0: dict = field(default_factory=dict)
+    redundancy: dict = field(default_factory=dict)
+    iterations: dict = field(default_factory=dict)
+    scenes: dict = field(default_factory=dict)
+    residuals: dict = field(default_factory=dict)
+    control_ids: dict = field(default_factory=dict)
+    check_ids: dict = field(default_factory=dict)
+    control_rmse: dict = field(default_factory=dict)
+    check_rmse: dict = field(default_factory=dict)
+    check_rmse_before: dict = field(default_factory=dict)
+
+    def coefficient_std(self, scene_id):
+        """Sigmas (2, degree + 1) of a scene's coefficients (rad)."""
+        c = self.covariance[scene_id]
+        return np.sqrt(np.diag(c)).reshape(2, -1)
+
+
+def _pixel_rmse(scene, points, idx, xy):
+    """RMSE (2,) of col, row of points ``idx`` projected into ``scene`` against ``xy``."""
+    if not len(idx):
+        return np.full(2, np.nan)
+    llh = points.llh[idx]
+    pix = scene.project_ecef(geodesy.geodetic_to_ecef(llh[:, 1], llh[:, 0], llh[:, 2]), tol=1e-9)
+    return np.sqrt(np.mean((pix - xy) ** 2, axis=0))
+
+
+def _check_scene_obs(scene_id, scene, pts_idx, points, xy):
+    """ParamError naming a point whose row lies outside the scene's lines or its column outside
+    the detector line."""
+    for k, (c, r) in zip(pts_idx, xy):
+        if not (0.0 <= c <= scene.width and 0.0 <= r <= scene.height):
+            raise ParamError(f"{points.name}: point '{points.point_ids[k]}' at (col, row) = ({c:.6g}, {r:.6g}) lies "
+                             f"outside scene '{scene_id}' ({scene.width} x {scene.height} px)")
+
+
+def preadjust_look_angles(scenes, points, *, degree=2, max_iterations=20, xtol=1e-13):
+    """Correct the look angles of pushbroom scenes by ground control, EO held fixed (seed 000
+    eqs. 19-20; see the module doc).
+
+    Parameters
+    ----------
+    scenes : dict of str -> PushbroomScene
+        The scenes by the ids ``points`` uses (each adjusted on its own).
+    points : ScenePoints
+        Control points (their given coordinates and sigmas, measured col/row and sigma) and
+        check points; tie points are ignored here.
+    degree : int, optional
+        Degree of the correction polynomials along the detector line (0-4; seed 000: 2).
+    max_iterations : int, optional
+    xtol : float, optional
+        Convergence: largest coefficient change (rad).
+
+    Returns
+    -------
+    LookAngleResult
+
+    Raises
+    ------
+    ParamError
+        A scene id without a scene, a point outside its scene, fewer control points in a scene
+        than the polynomials have coefficients per angle (degree + 1), a degree out of range.
+    """
+    if not isinstance(points, ScenePoints):
+        raise ParamError(f"points must be ScenePoints, got {type(points).__name__}")
+    if not isinstance(scenes, dict) or not all(isinstance(s, PushbroomScene) for s in scenes.values()):
+        raise ParamError("scenes must be a dict of scene id -> PushbroomScene")
+    if not (isinstance(degree, (int, np.integer)) and 0 <= degree <= 4):
+        raise ParamError(f"degree must be an integer 0-4, got {degree!r}")
+    missing = [s for s in points.scene_ids if s not in scenes]
+    if missing:
+        raise ParamError(f"{points.name}: no scene given for scene id(s) {missing}")
+    q = degree + 1
+    control, check = points.role_mask("control"), points.role_mask("check")
+    res = LookAngleResult(success=True, message="")
+    messages = []
+    for sid in points.scene_ids:
+        scene = scenes[sid]
+        idx, xy, sig = points.observations_of(sid)
+        _check_scene_obs(sid, scene, idx, points, xy)
+        sel = control[idx]
+        ci, cxy, csig = idx[sel], xy[sel], sig[sel]
+        n = len(ci)
+        if n < q:
+            raise ParamError(f"{points.name}: scene '{sid}' has {n} control point(s); a degree-{degree} correction "
+                             f"needs at least {q} (better {q + 2} or more, spread along the line)")
+        llh = points.llh[ci]
+        # a priori covariance of each point's observations: col, row, east, north, up
+        qll = np.zeros((n, 5))
+        qll[:, :2] = csig[:, None] ** 2
+        qll[:, 2:] = points.llh_sigma[ci] ** 2
+        v = np.zeros((n, 5))
+        x = np.zeros((2, q))
+        status, it = 0, 0
+        try:
+            for it in range(1, max_iterations + 1):
+                obs = np.concatenate([cxy, np.zeros((n, 3))], 1) + v
+                g = look_angle_conditions(scene, obs, llh, x)
+                b = np.empty((n, 2, 5))
+                for j in range(5):
+                    d = np.zeros(5)
+                    d[j] = _STEPS[j]
+                    b[:, :, j] = (look_angle_conditions(scene, obs + d, llh, x)
+                                  - look_angle_conditions(scene, obs - d, llh, x)) / (2 * _STEPS[j])
+                basis = _basis(scene, obs[:, 0], degree)
+                a = np.zeros((n, 2, 2 * q))
+                a[:, 0, :q], a[:, 1, q:] = -basis, -basis
+                w = g - np.einsum("nij,nj->ni", b, v)  # misclosure at the approximations
+                m = np.linalg.inv(np.einsum("nij,nj,nkj->nik", b, qll, b))  # (B Q B^T)^-1 per point
+                normal = np.einsum("nji,njk,nkl->il", a, m, a)
+                rhs = np.einsum("nji,njk,nk->i", a, m, w)
+                if np.linalg.cond(normal) > 1e14:
+                    status = -1
+                    break
+                dx = -np.linalg.solve(normal, rhs)
+                k = -np.einsum("nij,nj->ni", m, np.einsum("nij,j->ni", a, dx) + w)
+                v = qll * np.einsum("nji,nj->ni", b, k)
+                x = x + dx.reshape(2, q)
+                if np.max(np.abs(dx)) < xtol:
+                    status = 1
+                    break
+        except GeometryError as e:
+            raise ParamError(f"{points.name}: scene '{sid}': {e}") from e
+        res.status[sid], res.iterations[sid] = status, it
+        r = 2 * n - 2 * q
+        res.redundancy[sid] = r
+        if status == -1:
+            res.success = False
+            messages.append(f"scene '{sid}': singular normal equations: its {n} control points do not determine a "
+                            f"degree-{degree} correction (too few or too bunched along the detector line)")
+            continue
+        if status == 0:
+            res.success = False
+            messages.append(f"scene '{sid}': no convergence in {max_iterations} iterations")
+        vpv = float(np.sum(v * v / qll))
+        s0 = np.sqrt(vpv / r) if r > 0 else np.nan
+        res.sigma0[sid] = s0
+        res.coefficients[sid] = x
+        res.covariance[sid] = (s0 ** 2 if r > 0 else 1.0) * np.linalg.inv(normal)
+        res.residuals[sid] = v
+        res.scenes[sid] = fixed = corrected_scene(scene, x)
+        chk = check[idx]
+        res.control_ids[sid] = [points.point_ids[i] for i in ci]
+        res.check_ids[sid] = [points.point_ids[i] for i in idx[chk]]
+        res.control_rmse[sid] = _pixel_rmse(fixed, points, ci, cxy)
+        res.check_rmse[sid] = _pixel_rmse(fixed, points, idx[chk], xy[chk])
+        res.check_rmse_before[sid] = _pixel_rmse(scene, points, idx[chk], xy[chk])
+        if status == 1:
+            messages.append(f"scene '{sid}': converged in {it} iterations, sigma0 {s0:.3g}, redundancy {r}")
+    res.message = "; ".join(messages)
+    return res
