@@ -6,7 +6,9 @@
 - the observation equations and their Jacobians: :mod:`orthowarp.collinearity` (the frame sensor's own);
 - :class:`ScenePoints` (points measured in pushbroom scenes; files: :func:`orthowarp.read_scene_points`)
   and :func:`preadjust_look_angles`: seed 000's look-angle pre-adjustment of SPOT-5 level-1A
-  scenes (:mod:`~orthowarp.adjust.lookangles`);
+  scenes (:mod:`~orthowarp.adjust.lookangles`); :func:`adjust_scenes`: its bundle adjustment
+  of exterior-orientation coefficient groups over a stereo pair (:mod:`~orthowarp.adjust.spot_bundle`;
+  simulated pairs: :mod:`~orthowarp.adjust.spot_synthetic`);
 - :func:`synthetic_block`: blocks with known truth (:func:`film_camera`: seed 002's kind of camera);
 - :func:`monoplot_covariance`, :func:`intersection_covariance`: ground points' precision by
   error propagation (seed 004; :mod:`~orthowarp.adjust.precision`).
@@ -15,11 +17,13 @@
 from .block import ROLES, Block
 from .lookangles import LookAngleResult, preadjust_look_angles
 from .scene_points import ScenePoints
+from .spot_bundle import EO_GROUPS, SceneBundleResult, adjust_scenes, intersect_scene_points
 from .bundle import AdjustResult, bundle_adjust, intersect
 from .precision import PrecisionResult, intersection_covariance, monoplot_covariance
 from .synthetic import CONTROL_LAYOUTS, film_camera, synthetic_block
 
 __all__ = ["Block", "ROLES", "AdjustResult", "bundle_adjust", "intersect", "synthetic_block", "film_camera",
-           "CONTROL_LAYOUTS", "PrecisionResult", "ScenePoints", "LookAngleResult", "preadjust_look_angles", "monoplot_covariance",
+           "CONTROL_LAYOUTS", "PrecisionResult", "ScenePoints", "LookAngleResult", "preadjust_look_angles",
+           "EO_GROUPS", "SceneBundleResult", "adjust_scenes", "intersect_scene_points", "monoplot_covariance",
            "intersection_covariance"]
 

@@ -1,0 +1,394 @@
+"""Bundle adjustment of pushbroom scenes' exterior orientation (seed 000, eqs. 14-17 and 21).
+
+Each scene's exterior orientation is seed 000's 27 coefficients: position (m), velocity (m/s)
+and attitude (yaw, pitch, roll; rad), each per axis a 2nd-degree polynomial in line time t
+(:attr:`~orthowarp.pushbroom.PushbroomScene.polynomials`). A subset of coefficient groups is
+freed per scene (seed 000's Table 2: ``position0`` the three constant terms of the position,
+``attitude1`` the linear terms of the attitude, and so on); the ground coordinates of tie and
+check points are unknowns too (check points are thereby intersected from the scenes, and
+compared with their given coordinates only afterwards); control points are unknowns with
+their given coordinates as weighted observations (east, north, up sigmas).
+
+Condition equations (Gauss-Helmert, ``A dx + B v + w = 0``), two per measured point and scene:
+with ``q = R(t)^T (X - P(t))`` the direction to the point in the instrument frame at the line
+time of the measured row,
+
+    -q_y / q_z - tan psi_x(col) = 0,    q_x / q_z - tan psi_y(col) = 0
+
+(the look vector ``u1 = normalize(-tan psi_y, tan psi_x, -1)``, DESIGN.md); the observations
+``v`` are the measured column and row (their sigmas in px), the unknowns the freed coefficients
+and the points' east/north/up corrections (m). ``B`` and ``A`` are central differences of the
+float64 model. Iterated (Gauss-Newton) until the largest scaled correction is below ``xtol``.
+
+Beyond the seed: ``eo_sigma`` puts weighted priors on the freed coefficients (the stated orbit
+and attitude accuracy: a constant term's sigma, the linear and quadratic terms' scaled so that
+each moves the orbit or attitude at the scene's ends by that much), which keeps combinations of
+groups that the control cannot separate well posed; without it the groups are free, as in the
+seed, and the correlations between freed groups are reported (seed 000 explains the failures of
+combined groups by them).
+
+Reference: seed 000 (SPOT-5 HRG level 1A stereo, Gauss-Helmert bundle adjustment with EO groups).
+"""
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .. import geodesy
+from ..errors import GeometryError, ParamError
+from ..pushbroom import PushbroomScene, attitude_matrix
+from .scene_points import ScenePoints
+
+__all__ = ["EO_GROUPS", "SceneBundleResult", "adjust_scenes", "intersect_scene_points"]
+
+QUANTITIES = ("position", "velocity", "attitude")
+EO_GROUPS = tuple(f"{q}{k}" for q in QUANTITIES for k in range(3))
+"""Coefficient groups: quantity and power of t (each group: the three axes)."""
+_UNIT = {"position": 1.0, "velocity": 1e-3, "attitude": 1e-6}  # scale of the unknowns: m, mm/s, urad
+_H_PIX, _H_ENU = 1e-2, 1e-2  # central-difference steps: px, m
+
+
+def _group_index(group):
+    """Flat indices (3,) into a (3, 3, 3) coefficient array [quantity][axis][power] of a group."""
+    q, k = QUANTITIES.index(group[:-1]), int(group[-1])
+    return np.array([q * 9 + a * 3 + k for a in range(3)])
+
+
+def _poly(c, t):
+    """Values (n, 3) of polynomials c (3 axes, 3 powers) at times t (n,)."""
+    return c[:, 0] + t[:, None] * c[:, 1] + (t * t)[:, None] * c[:, 2]
+
+
+def _conditions(scene, poly, col, row, x):
+    """The two conditions (n, 2) of measured (col, row) (n,) and ECEF points x (n, 3) under the
+    coefficients ``poly`` (3, 3, 3)."""
+    t = scene.line_time(row)
+    p, v, att = _poly(poly[0], t), _poly(poly[1], t), _poly(poly[2], t)
+    r = scene.orbital_frame(p, v) @ attitude_matrix(*att.T, first_order=scene.attitude_model == "first_order")
+    q = np.einsum("nji,nj->ni", r, x - p)
+    det = col + 0.5
+    tx, ty = np.tan(scene._psi_at(scene.psi_x, det)), np.tan(scene._psi_at(scene.psi_y, det))
+    return np.stack([-q[:, 1] / q[:, 2] - tx, q[:, 0] / q[:, 2] - ty], -1)
+
+
+def intersect_scene_points(scenes, points, *, which=None):
+    """Ground points (p, 3) (lon, lat deg, h m) by intersecting the rays of their measurements
+    in two or more scenes (the least-squares point nearest to all rays); NaN rows for points
+    measured in fewer than two scenes.
+
+    Parameters
+    ----------
+    scenes : dict of str -> PushbroomScene
+    points : ScenePoints
+    which : array_like of int, optional
+        Point indices (default: all).
+    """
+    which = np.arange(points.n_points) if which is None else np.asarray(which)
+    out = np.full((points.n_points, 3), np.nan)
+    for i in which:
+        sel = np.flatnonzero(points.obs_point == i)
+        if len(sel) < 2:
+            continue
+        a, b = np.zeros((3, 3)), np.zeros(3)
+        for k in sel:
+            p, d = scenes[points.scene_ids[points.obs_scene[k]]].rays(points.obs_xy[k:k + 1])
+            m = np.eye(3) - np.outer(d[0], d[0])
+            a += m
+            b += m @ p[0]
+        x = np.linalg.solve(a, b)
+        lat, lon, h = geodesy.ecef_to_geodetic(x[None])
+        out[i] = [lon[0], lat[0], h[0]]
+    return out
+
+
+@dataclass
+class SceneBundleResult:
+    """What :func:`adjust_scenes` found (m, rad; pixels for image residuals).
+
+    Attributes
+    ----------
+    success : bool
+    status : int
+        1 converged; 0 iteration limit; -1 singular normal equations (the freed groups are not
+        determined by the control: see ``message``).
+    message : str
+    sigma0 : float
+    redundancy : int
+    iterations : int
+    scenes : dict of str -> PushbroomScene
+        The scenes with their adjusted coefficients.
+    freed : dict of str -> tuple of str
+        The groups freed per scene.
+    coefficients, coefficient_std : dict of str -> ndarray, shape (3, 3, 3)
+        Adjusted coefficients and their sigmas (0 where not freed).
+    covariance : ndarray
+        sigma0^2 N^-1 of all unknowns: the freed coefficients scene by scene (scaled units:
+        m, mm/s, microradian, per t^k with t in units of the scene's half duration), then the
+        points' east, north, up (m).
+    group_correlation : dict of (scene, group, group) -> float
+        Largest |correlation| between any coefficient of one freed group and any of another in
+        the same scene.
+    point_ids : list of str
+    llh : ndarray, shape (p, 3)
+        Adjusted lon, lat (deg), h (m) of every point.
+    point_cov : ndarray, shape (p, 3, 3)
+        East, north, up covariance (m^2) of every point.
+    residuals : ndarray, shape (m, 2)
+        Image residuals v (px) of the observations, in ScenePoints order.
+    control_rmse, check_rmse : ndarray, shape (3,)
+        RMSE east, north, up (m) of the adjusted coordinates against the given ones (NaN
+        without such points).
+    check_errors : ndarray, shape (c, 3)
+        East, north, up errors (m) of each check point.
+    check_ids : list of str
+    """
+
+    success: bool
+    status: int
+    message: str
+    sigma0: float = float("nan")
+    redundancy: int = 0
+    iterations: int = 0
+    scenes: dict = field(default_factory=dict)
+    freed: dict = field(default_factory=dict)
+    coefficients: dict = field(default_factory=dict)
+    coefficient_std: dict = field(default_factory=dict)
+    covariance: np.ndarray = None
+    group_correlation: dict = field(default_factory=dict)
+    point_ids: list = field(default_factory=list)
+    llh: np.ndarray = None
+    point_cov: np.ndarray = None
+    residuals: np.ndarray = None
+    control_rmse: np.ndarray = None
+    check_rmse: np.ndarray = None
+    check_errors: np.ndarray = None
+    check_ids: list = field(default_factory=list)
+
+
+def _check_args(scenes, points, groups, eo_sigma):
+    if not isinstance(points, ScenePoints):
+        raise ParamError(f"points must be ScenePoints, got {type(points).__name__}")
+    if not isinstance(scenes, dict) or not all(isinstance(s, PushbroomScene) for s in scenes.values()):
+        raise ParamError("scenes must be a dict of scene id -> PushbroomScene")
+    missing = [s for s in points.scene_ids if s not in scenes]
+    if missing:
+        raise ParamError(f"{points.name}: no scene given for scene id(s) {missing}")
+    if len(points.scene_ids) < 2:
+        raise ParamError(f"{points.name}: a stereo adjustment needs points measured in two or more scenes; "
+                         f"they name {len(points.scene_ids)} ({points.scene_ids})")
+    if isinstance(groups, str) or not all(isinstance(g, str) for g in groups):
+        raise ParamError(f"groups must be a sequence of group names from {EO_GROUPS}, got {groups!r}")
+    bad = [g for g in groups if g not in EO_GROUPS]
+    if bad:
+        raise ParamError(f"unknown EO group(s) {bad}; known: {EO_GROUPS}")
+    if eo_sigma is not None:
+        if not isinstance(eo_sigma, dict) or set(eo_sigma) - set(QUANTITIES):
+            raise ParamError(f"eo_sigma must map some of {QUANTITIES} to sigmas (m, m/s, rad), got {eo_sigma!r}")
+        for k, s in eo_sigma.items():
+            if not (isinstance(s, (int, float)) and np.isfinite(s) and s > 0):
+                raise ParamError(f"eo_sigma[{k!r}] must be a number > 0, got {s!r}")
+
+
+def adjust_scenes(scenes, points, *, groups=("attitude0",), eo_sigma=None, max_iterations=20, xtol=1e-5):
+    """Bundle-adjust pushbroom scenes' exterior orientation with ground control and tie points
+    (see the module doc).
+
+    Parameters
+    ----------
+    scenes : dict of str -> PushbroomScene
+        By the scene ids of ``points`` (two or more). Scenes without polynomials get them
+        fitted to their ephemeris and attitudes first (:meth:`PushbroomScene.fit_polynomials`).
+        Look angles as given (pre-adjusted ones: :func:`preadjust_look_angles`).
+    points : ScenePoints
+        Control points (weighted by their sigmas), check points (adjusted as tie points, then
+        compared with their given coordinates), tie points.
+    groups : sequence of str, optional
+        The coefficient groups freed in every scene (:data:`EO_GROUPS`).
+    eo_sigma : dict, optional
+        Priors on the freed coefficients: ``{"position": m, "velocity": m/s, "attitude": rad}``
+        (see the module doc). Default: none (free groups, as seed 000).
+    max_iterations : int, optional
+    xtol : float, optional
+        Convergence: largest correction of an unknown in its scaled unit (m, mm/s, urad; the
+        central differences leave a noise of about 1e-7 there).
+
+    Returns
+    -------
+    SceneBundleResult
+
+    Raises
+    ------
+    ParamError
+        Fewer than two scenes, unknown groups, a point outside its scene, a tie or check point
+        measured in fewer than two scenes, fewer control points than the freed groups need.
+    """
+    groups = tuple(groups)
+    _check_args(scenes, points, groups, eo_sigma)
+    sids = list(points.scene_ids)
+    scn = {}
+    for sid in sids:
+        s = scenes[sid]
+        scn[sid] = s if s.polynomials is not None else s.with_polynomials(s.fit_polynomials()[0])
+        idx, xy, _ = points.observations_of(sid)
+        for k, (c, r) in zip(idx, xy):
+            if not (0.0 <= c <= s.width and 0.0 <= r <= s.height):
+                raise ParamError(f"{points.name}: point '{points.point_ids[k]}' at (col, row) = ({c:.6g}, {r:.6g}) "
+                                 f"lies outside scene '{sid}' ({s.width} x {s.height} px)")
+    n_pts = points.n_points
+    control = points.role_mask("control")
+    n_scenes_of = np.bincount(points.obs_point, minlength=n_pts)
+    for i in np.flatnonzero(~control & (n_scenes_of < 2)):
+        raise ParamError(f"{points.name}: {points.roles[i]} point '{points.point_ids[i]}' is measured in "
+                         f"{n_scenes_of[i]} scene(s); it needs two or more to be intersected")
+    if len(groups) * 3 > 2 * int(control.sum()) * len(sids) and eo_sigma is None:
+        raise ParamError(f"{points.name}: {int(control.sum())} control point(s) cannot determine the "
+                         f"{len(groups) * 3} coefficients freed per scene ({', '.join(groups)}); give more control "
+                         "or eo_sigma priors")
+    # approximate coordinates: given ones for control and check points where measured in one
+    # scene only... control: given; others: intersected
+    llh0 = points.llh.copy()
+    free_pts = ~control
+    inter = intersect_scene_points(scn, points, which=np.flatnonzero(free_pts))
+    llh0[free_pts] = inter[free_pts]
+    xyz0 = geodesy.geodetic_to_ecef(llh0[:, 1], llh0[:, 0], llh0[:, 2])
+    enu = np.stack([geodesy.enu_to_ecef_matrix(la, lo) for la, lo in zip(llh0[:, 1], llh0[:, 0])])
+    # unknowns: freed coefficients scene by scene (scaled), then points' east, north, up
+    fidx = np.concatenate([_group_index(g) for g in groups]) if groups else np.zeros(0, int)
+    nf = len(fidx)
+    scale = {}
+    for sid in sids:
+        th = 0.5 * scn[sid].height * scn[sid].line_period
+        scale[sid] = np.array([_UNIT[QUANTITIES[i // 9]] / th ** (i % 3) for i in fidx])
+    n_unk = nf * len(sids) + 3 * n_pts
+    prior_w = np.zeros(n_unk)
+    if eo_sigma is not None:
+        for s_k, sid in enumerate(sids):
+            th = 0.5 * scn[sid].height * scn[sid].line_period
+            for j, i in enumerate(fidx):
+                q = QUANTITIES[i // 9]
+                if q in eo_sigma:
+                    sig = eo_sigma[q] / th ** (i % 3) / scale[sid][j]  # in the scaled unit
+                    prior_w[s_k * nf + j] = 1.0 / sig ** 2
+    for i in np.flatnonzero(control):
+        prior_w[nf * len(sids) + 3 * i:nf * len(sids) + 3 * i + 3] = 1.0 / points.llh_sigma[i] ** 2
+    x = np.zeros(n_unk)
+    m = len(points.obs_point)
+    v = np.zeros((m, 2))
+    qll = np.stack([points.obs_sigma ** 2] * 2, -1)
+    status, it, normal = 0, 0, None
+
+    def polys(xv):
+        out = {}
+        for s_k, sid in enumerate(sids):
+            c = scn[sid].polynomials.copy().ravel()
+            c[fidx] += xv[s_k * nf:(s_k + 1) * nf] * scale[sid]
+            out[sid] = c.reshape(3, 3, 3)
+        return out
+
+    def ground(xv):
+        d = xv[nf * len(sids):].reshape(n_pts, 3)
+        return xyz0 + np.einsum("nij,nj->ni", enu, d)
+
+    try:
+        for it in range(1, max_iterations + 1):
+            pol, xg = polys(x), ground(x)
+            normal = np.diag(prior_w)
+            rhs = prior_w * x
+            a_rows = []
+            for s_k, sid in enumerate(sids):
+                sel = np.flatnonzero(points.obs_scene == s_k)
+                if not len(sel):
+                    continue
+                sc, pi = scn[sid], points.obs_point[sel]
+                col, row = points.obs_xy[sel, 0] + v[sel, 0], points.obs_xy[sel, 1] + v[sel, 1]
+                g = _conditions(sc, pol[sid], col, row, xg[pi])
+                b = np.empty((len(sel), 2, 2))
+                for j, (dc, dr) in enumerate(((_H_PIX, 0.0), (0.0, _H_PIX))):
+                    b[:, :, j] = (_conditions(sc, pol[sid], col + dc, row + dr, xg[pi])
+                                  - _conditions(sc, pol[sid], col - dc, row - dr, xg[pi])) / (2 * _H_PIX)
+                a_eo = np.empty((len(sel), 2, nf))
+                base = pol[sid].ravel()
+                for j, i in enumerate(fidx):
+                    hi, lo = base.copy(), base.copy()
+                    h = scale[sid][j]
+                    hi[i] += h
+                    lo[i] -= h
+                    a_eo[:, :, j] = (_conditions(sc, hi.reshape(3, 3, 3), col, row, xg[pi])
+                                     - _conditions(sc, lo.reshape(3, 3, 3), col, row, xg[pi])) / 2.0
+                a_pt = np.empty((len(sel), 2, 3))
+                for j in range(3):
+                    dx = enu[pi][:, :, j] * _H_ENU
+                    a_pt[:, :, j] = (_conditions(sc, pol[sid], col, row, xg[pi] + dx)
+                                     - _conditions(sc, pol[sid], col, row, xg[pi] - dx)) / (2 * _H_ENU)
+                w = g - np.einsum("nij,nj->ni", b, v[sel])
+                mm = np.linalg.inv(np.einsum("nij,nj,nkj->nik", b, qll[sel], b))
+                cols_eo = np.arange(s_k * nf, (s_k + 1) * nf)
+                for r_k, k in enumerate(sel):
+                    cols = np.concatenate([cols_eo, nf * len(sids) + 3 * points.obs_point[k] + np.arange(3)])
+                    ak = np.concatenate([a_eo[r_k], a_pt[r_k]], 1)
+                    normal[np.ix_(cols, cols)] += ak.T @ mm[r_k] @ ak
+                    rhs[cols] += ak.T @ mm[r_k] @ w[r_k]
+                    a_rows.append((k, cols, ak, mm[r_k], w[r_k], b[r_k]))
+            if not np.all(np.isfinite(normal)) or np.linalg.cond(normal) > 1e15:
+                status = -1
+                break
+            dx = -np.linalg.solve(normal, rhs)
+            for k, cols, ak, mk, wk, bk in a_rows:
+                kk = -mk @ (ak @ dx[cols] + wk)
+                v[k] = qll[k] * (bk.T @ kk)
+            x = x + dx
+            if np.max(np.abs(dx)) < xtol:
+                status = 1
+                break
+    except GeometryError as e:
+        raise ParamError(f"{points.name}: {e}") from e
+    res = SceneBundleResult(success=status == 1, status=status, message="", iterations=it,
+                            freed={sid: groups for sid in sids}, point_ids=list(points.point_ids))
+    if status == -1:
+        res.message = (f"singular normal equations: the freed groups ({', '.join(groups) or 'none'}) are not "
+                       "determined by the control and tie points (more control, fewer groups, or eo_sigma priors)")
+        return res
+    r = 2 * m + int(np.count_nonzero(prior_w)) - n_unk
+    vpv = float(np.sum(v * v / qll) + np.sum(prior_w * x * x))
+    res.redundancy = r
+    res.sigma0 = s0 = float(np.sqrt(vpv / r)) if r > 0 else float("nan")
+    cov = (s0 ** 2 if r > 0 else 1.0) * np.linalg.inv(normal)
+    res.covariance = cov
+    pol = polys(x)
+    for s_k, sid in enumerate(sids):
+        res.scenes[sid] = scn[sid].with_polynomials(pol[sid])
+        res.coefficients[sid] = pol[sid]
+        std = np.zeros(27)
+        blk = slice(s_k * nf, (s_k + 1) * nf)
+        std[fidx] = np.sqrt(np.diag(cov[blk, blk])) * scale[sid]
+        res.coefficient_std[sid] = std.reshape(3, 3, 3)
+        sd = np.sqrt(np.diag(cov))
+        corr = cov / np.outer(sd, sd)
+        for g1 in range(len(groups)):
+            for g2 in range(g1 + 1, len(groups)):
+                i1 = s_k * nf + 3 * g1 + np.arange(3)
+                i2 = s_k * nf + 3 * g2 + np.arange(3)
+                res.group_correlation[(sid, groups[g1], groups[g2])] = float(np.max(np.abs(corr[np.ix_(i1, i2)])))
+    xg = ground(x)
+    lat, lon, h = geodesy.ecef_to_geodetic(xg)
+    res.llh = np.stack([lon, lat, h], -1)
+    base = nf * len(sids)
+    res.point_cov = np.stack([cov[base + 3 * i:base + 3 * i + 3, base + 3 * i:base + 3 * i + 3] for i in range(n_pts)])
+    res.residuals = v
+
+    def enu_errors(sel):
+        if not np.any(sel):
+            return np.zeros((0, 3))
+        given = geodesy.geodetic_to_ecef(points.llh[sel, 1], points.llh[sel, 0], points.llh[sel, 2])
+        diff = xg[sel] - given
+        return np.einsum("nji,nj->ni", enu[sel], diff)
+
+    ctrl_err = enu_errors(control)
+    check = points.role_mask("check")
+    res.check_errors = enu_errors(check)
+    res.check_ids = [points.point_ids[i] for i in np.flatnonzero(check)]
+    res.control_rmse = np.sqrt(np.mean(ctrl_err ** 2, 0)) if len(ctrl_err) else np.full(3, np.nan)
+    res.check_rmse = np.sqrt(np.mean(res.check_errors ** 2, 0)) if len(res.check_errors) else np.full(3, np.nan)
+    res.message = (f"converged in {it} iterations" if status == 1 else f"no convergence in {max_iterations} "
+                   "iterations") + f", sigma0 {s0:.3g}, redundancy {r}"
+    return res

@@ -1,0 +1,116 @@
+"""Simulated SPOT-like stereo pairs with truth, for the pushbroom adjustment's tests and bench
+(the setting of seed 000: two scenes of one area from different orbits and mirror angles,
+ground control from a GPS survey, image measurements of a few tenths of a pixel).
+
+- :func:`stereo_pair`: two synthetic scenes whose centres see the same ground point.
+- :func:`perturbed`: a scene with look-angle and exterior-orientation errors added (the truth
+  that the nominal metadata misses).
+- :func:`simulate_points`: points in the overlap measured in both true scenes, with noise.
+"""
+
+import numpy as np
+
+from .. import geodesy
+from ..pushbroom import synthetic_scene
+from .lookangles import corrected_scene
+from .scene_points import ScenePoints
+
+__all__ = ["stereo_pair", "perturbed", "simulate_points", "LAYOUTS"]
+
+LAYOUTS = ("H-0", "H-20", "G-A", "G-B")
+"""Point distributions after seed 000: H-0 every point control; H-20 20 spread check points
+(half of them below 40 points);
+G-A control only in the first half of the lines; G-B control only in the first half of the
+columns (of the first scene)."""
+
+
+def stereo_pair(*, width=3000, height=3000, gsd=10.0, view_angles=(-12.0, 12.0), lat=44.0, lon=5.0):
+    """Two synthetic scenes (:func:`~orthowarp.pushbroom.synthetic_scene`, with the polynomials
+    of their exterior orientation fitted) whose centre pixels see one ground point at h = 0:
+    the second orbit is shifted until its centre meets the first's."""
+    a = synthetic_scene(width=width, height=height, gsd=gsd, view_angle=view_angles[0], lat=lat, lon=lon)
+    centre = np.array([[0.5 * width, 0.5 * height]])
+    target = a.geolocate_ellipsoid(centre)[0]
+    la, lo = lat, lon
+    for _ in range(6):
+        b = synthetic_scene(width=width, height=height, gsd=gsd, view_angle=view_angles[1], lat=la, lon=lo)
+        got = b.geolocate_ellipsoid(centre)[0]
+        lo, la = lo + (target[0] - got[0]), la + (target[1] - got[1])
+    b = synthetic_scene(width=width, height=height, gsd=gsd, view_angle=view_angles[1], lat=la, lon=lo)
+    return tuple(s.with_polynomials(s.fit_polynomials()[0]) for s in (a, b))
+
+
+def perturbed(scene, *, look=None, eo=None):
+    """The scene with errors: ``look`` (2, k) look-angle corrections (rad, polynomials in the
+    normalised detector number, as :func:`~orthowarp.adjust.lookangles.corrected_scene`), ``eo``
+    (3, 3, 3) added to its exterior-orientation coefficients."""
+    out = scene if look is None else corrected_scene(scene, look)
+    if eo is not None:
+        out = out.with_polynomials(out.polynomials + np.asarray(eo, dtype=np.float64))
+    return out
+
+
+def simulate_points(truth, *, n=47, layout="H-20", ground_sigma=(0.06, 0.06, 1.0), pixel_sigma=0.25, heights=(0.0, 600.0),
+                    seed=0, noise=True, margin=30.0):
+    """Points in the overlap of the true scenes, measured in both.
+
+    Parameters
+    ----------
+    truth : dict of str -> PushbroomScene
+        The true scenes (two); the first one's pixels are drawn, their ground points (at
+        uniform random heights) projected into the second.
+    n : int, optional
+    layout : {"H-0", "H-20", "G-A", "G-B"}, optional
+        See :data:`LAYOUTS`.
+    ground_sigma : (float, float, float), optional
+        Control coordinates' noise east, north, up (m): seed 000's GPS survey.
+    pixel_sigma : float, optional
+        Image measurement noise (px).
+    seed : int, optional
+    noise : bool, optional
+        False: exact observations.
+
+    Returns
+    -------
+    points : ScenePoints
+    true_llh : ndarray, shape (n, 3)
+    """
+    if layout not in LAYOUTS:
+        raise ValueError(f"layout must be one of {LAYOUTS}, got {layout!r}")
+    rng = np.random.default_rng(seed)
+    (ia, a), (ib, b) = list(truth.items())[:2]
+    llh, pa, pb = [], [], []
+    while len(llh) < n:
+        pix = np.array([[rng.uniform(margin, a.width - margin), rng.uniform(margin, a.height - margin)]])
+        g = a.geolocate_ellipsoid(pix, rng.uniform(*heights))[0]
+        x = geodesy.geodetic_to_ecef(g[1], g[0], g[2])[None]
+        q = b.project_ecef(x, tol=1e-9)[0]
+        if np.all(np.isfinite(q)) and margin < q[0] < b.width - margin and margin < q[1] < b.height - margin:
+            llh.append(g), pa.append(pix[0]), pb.append(q)
+    llh, pa, pb = np.array(llh), np.array(pa), np.array(pb)
+    if layout == "H-0":
+        roles = ["control"] * n
+    elif layout == "H-20":
+        roles = ["control"] * n
+        for i in rng.choice(n, 20 if n >= 40 else n // 2, replace=False):
+            roles[i] = "check"
+    else:
+        axis = 1 if layout == "G-A" else 0
+        size = a.height if layout == "G-A" else a.width
+        roles = ["control" if pa[i, axis] < 0.5 * size else "check" for i in range(n)]
+    given = llh.copy()
+    obs_a, obs_b = pa.copy(), pb.copy()
+    if noise:
+        enu = rng.normal(0.0, 1.0, (n, 3)) * ground_sigma
+        x = geodesy.geodetic_to_ecef(llh[:, 1], llh[:, 0], llh[:, 2])
+        x = x + np.stack([geodesy.enu_to_ecef_matrix(la, lo) @ e for la, lo, e in zip(llh[:, 1], llh[:, 0], enu)])
+        lat, lon, h = geodesy.ecef_to_geodetic(x)
+        given = np.stack([lon, lat, h], -1)
+        obs_a = obs_a + rng.normal(0.0, pixel_sigma, obs_a.shape)
+        obs_b = obs_b + rng.normal(0.0, pixel_sigma, obs_b.shape)
+    sig = np.array([ground_sigma if r == "control" else (np.nan,) * 3 for r in roles], dtype=np.float64)
+    pts = ScenePoints(scene_ids=[ia, ib], point_ids=[f"P{k:02d}" for k in range(n)], roles=roles, llh=given,
+                      llh_sigma=sig, obs_scene=np.repeat([0, 1], n), obs_point=np.tile(np.arange(n), 2),
+                      obs_xy=np.concatenate([obs_a, obs_b]), obs_sigma=np.full(2 * n, float(pixel_sigma)),
+                      name=f"simulated {layout}")
+    return pts, llh
