@@ -178,9 +178,10 @@ def demo(out_dir, device):
               help="Exterior orientation: CSV (x,y,z,omega,phi,kappa or latitude,longitude,altitude,roll,pitch,yaw), "
                    "orthority GeoJSON or OpenSfM reconstruction.json.")
 @click.option("--dimap", type=click.Path(dir_okay=False),
-              help="SPOT level-1A DIMAP metadata of a pushbroom scene (instead of --int-param/--ext-param; one image).")
-@click.option("--attitude-model", type=click.Choice(["full", "first_order"]), default="full", show_default=True,
-              help="Pushbroom attitude matrix: full, or its first-order (linearised) form.")
+              help="SPOT level-1A DIMAP metadata of a pushbroom scene, or a scene JSON from 'orthowarp spot-adjust' (instead of --int-param/--ext-param; one image).")
+@click.option("--attitude-model", type=click.Choice(["full", "first_order"]), default=None,
+              help="Pushbroom attitude matrix: full (the default for DIMAP), or its first-order (linearised) form; "
+                   "a scene JSON from 'orthowarp spot-adjust' keeps its own.")
 @click.option("--dem", type=click.Path(dir_okay=False), help="DEM file (any CRS).")
 @click.option("--height", type=float, help="Constant terrain height (m) instead of a DEM.")
 @click.option("--crs", help="Output CRS (EPSG code, WKT or PROJ string); also the CRS of x,y,z poses in a file that "
@@ -583,8 +584,9 @@ def _frame_orientations(images, int_param, ext_param, crs, ids=None):
 @click.option("--scene", "scenes", nargs=2, multiple=True, type=(click.Path(dir_okay=False), click.Path(dir_okay=False)),
               metavar="IMAGE DIMAP", help="A pushbroom scene: its image and its SPOT level-1A DIMAP metadata "
                                           "(repeatable; numbered after IMAGES in the index).")
-@click.option("--attitude-model", type=click.Choice(["full", "first_order"]), default="full", show_default=True,
-              help="Attitude matrix of the pushbroom scenes (first_order: the linearised form).")
+@click.option("--attitude-model", type=click.Choice(["full", "first_order"]), default=None,
+              help="Attitude matrix of the pushbroom scenes: full (the default for DIMAP) or first_order (the "
+                   "linearised form); a scene JSON from 'orthowarp spot-adjust' keeps its own.")
 @click.option("--dem", type=click.Path(dir_okay=False), help="DEM/DSM file.")
 @click.option("--height", type=float, help="Constant ellipsoidal height (m) instead of a DEM.")
 @click.option("--out", "out_path", type=click.Path(dir_okay=False), required=True, help="The mosaic (COG).")
@@ -850,3 +852,126 @@ def adjust(ctx, block_file, out_dir, write_example, cameras, exterior, image_poi
 
 if __name__ == "__main__":  # pragma: no cover
     main()
+
+
+def _eo_sigma(text):
+    """--eo-sigma "position=10,attitude=5e-5" -> dict."""
+    from .errors import ParamError
+
+    out = {}
+    for part in filter(None, (p.strip() for p in text.split(","))):
+        key, _, value = part.partition("=")
+        try:
+            out[key.strip()] = float(value)
+        except ValueError:
+            raise ParamError(f"--eo-sigma: {part!r} is not quantity=sigma (position m, velocity m/s, attitude rad)") \
+                from None
+    return out
+
+
+@main.command("spot-adjust")
+@click.option("--scene", "scenes", multiple=True, nargs=2, metavar="ID FILE",
+              help="A scene: its id in the points file and its DIMAP metadata (or scene JSON). Two or more.")
+@click.option("--points", "points_file", type=click.Path(dir_okay=False),
+              help="Measured points: JSON (orthowarp-scene-points) or CSV (id,role,x,y,z,sx,sy,sz,scene,col,row,sigma).")
+@click.option("--points-crs", default="EPSG:4979", show_default=True, help="CRS of a CSV's x, y (z: ellipsoidal).")
+@click.option("--pixel-sigma", type=float, default=0.3, show_default=True,
+              help="Image sigma (px) of CSV rows that give none.")
+@click.option("--groups", default="attitude0,attitude1", show_default=True,
+              help="EO coefficient groups freed per scene: position|velocity|attitude + 0|1|2 (constant, linear, "
+                   "quadratic in line time), comma-separated; 'none' for none.")
+@click.option("--eo-sigma", default=None,
+              help="Priors on the freed groups, e.g. 'position=10,attitude=5e-5' (m, m/s, rad); default: none.")
+@click.option("--look-degree", type=click.IntRange(0, 4), default=2, show_default=True,
+              help="Degree of the look-angle correction polynomials along the detector line.")
+@click.option("--no-preadjust", is_flag=True, help="Skip the look-angle pre-adjustment.")
+@click.option("--attitude-model", type=click.Choice(["full", "first_order"]), default=None,
+              help="Attitude matrix of DIMAP scenes (default full; a scene JSON keeps its own).")
+@click.option("--out", "out_dir", type=click.Path(file_okay=False), required=True, help="Output folder.")
+@click.option("--write-example", type=click.Path(file_okay=False), default=None,
+              help="First write a simulated SPOT-like stereo pair with attitude and look-angle errors (two scene "
+                   "JSON files and 47 points, 20 of them check points) into this folder, which must not exist, "
+                   "then adjust it (--scene and --points are then not given).")
+@click.option("--no-plots", is_flag=True, help="Skip the PNG plots.")
+@click.pass_context
+def spot_adjust(ctx, scenes, points_file, points_crs, pixel_sigma, groups, eo_sigma, look_degree, no_preadjust,
+                attitude_model, out_dir, write_example, no_plots):
+    """Adjust pushbroom (SPOT-5 level 1A) scenes with ground control: the look angles first
+    (EO fixed), then the chosen exterior-orientation groups of all scenes together, with check
+    points intersected from the adjusted scenes. Writes the adjusted scenes (for
+    'orthowarp ortho --dimap'), the points and reports into --out; a failed adjustment writes
+    nothing and exits with status 1. Try it:
+    orthowarp spot-adjust --write-example spot-example --out spot-adjusted"""
+    from .adjust import adjust_scenes, preadjust_look_angles
+    from .errors import Cancelled, GeometryError, ParamError
+    from .pipeline.dimap import read_scene
+    from .pipeline.scenepoints import read_scene_points, read_scene_points_csv
+    from .pipeline.spot_report import write_scene_adjustment
+
+    if write_example:
+        if scenes or points_file:
+            raise ParamError("--write-example writes its own scenes and points: give neither --scene nor --points")
+        scenes, points_file = _write_spot_example(write_example)
+        if not ctx.obj["quiet"]:
+            click.echo(f"wrote the example stereo pair and points into {write_example}")
+    if len(scenes) < 2 or not points_file:
+        raise ParamError("Give two or more --scene ID FILE and --points FILE (or --write-example DIR)")
+    ids = [s for s, _ in scenes]
+    dup = next((s for s in ids if ids.count(s) > 1), None)
+    if dup is not None:
+        raise ParamError(f"--scene id '{dup}' is given twice")
+    models = {sid: read_scene(path, attitude_model=attitude_model) for sid, path in scenes}
+    if points_file.lower().endswith(".csv"):
+        points = read_scene_points_csv(points_file, crs=points_crs, sigma=pixel_sigma)
+    else:
+        points = read_scene_points(points_file)
+    unknown = [s for s in points.scene_ids if s not in models]
+    if unknown:
+        raise ParamError(f"'{points_file}' measures points in scene(s) {unknown}, which no --scene gives")
+    freed = () if groups.strip().lower() == "none" else tuple(g.strip() for g in groups.split(",") if g.strip())
+    priors = _eo_sigma(eo_sigma) if eo_sigma else None
+    before = adjust_scenes(models, points, groups=())
+    pre = None
+    if not no_preadjust:
+        pre = preadjust_look_angles(models, points, degree=look_degree)
+        if not pre.success:
+            raise GeometryError(f"look-angle pre-adjustment of '{points_file}' failed: {pre.message}; nothing written "
+                                f"to '{out_dir}'")
+        models = {**models, **pre.scenes}
+    result = adjust_scenes(models, points, groups=freed, eo_sigma=priors)
+    if not result.success:
+        raise GeometryError(f"adjustment of '{points_file}' failed (status {result.status}): {result.message}; "
+                            f"nothing written to '{out_dir}'")
+    if ctx.meta["orthowarp.stop"].is_set():
+        raise Cancelled(f"adjustment of '{points_file}' cancelled; nothing written to '{out_dir}'")
+    paths = write_scene_adjustment(result, points, out_dir, preadjustment=pre, before=before, plots=not no_plots)
+    if not ctx.obj["quiet"]:
+        click.echo(f"{result.message}; check RMSE east/north/up (m) {np.array2string(result.check_rmse, precision=3)} "
+                   f"(uncorrected {np.array2string(before.check_rmse, precision=3)}); outputs: "
+                   + ", ".join(os.path.basename(p) for p in paths.values()))
+
+
+def _write_spot_example(folder):
+    """A simulated stereo pair with errors (see orthowarp.adjust.spot_synthetic) written into a
+    new folder: ((id, scene JSON) x 2, points JSON)."""
+    from .adjust.spot_synthetic import perturbed, simulate_points, stereo_pair
+    from .pipeline.dimap import write_scene
+    from .pipeline.io import check_destination, ensure_folder
+    from .pipeline.scenepoints import write_scene_points
+
+    check_destination(folder, overwrite=False)
+    a, b = stereo_pair()
+    eo = np.zeros((3, 3, 3))
+    eo[2, :, 0] = [2e-5, -3e-5, 4e-5]  # attitude biases (rad)
+    eo[2, :, 1] = [0.0, 1e-6, -2e-6]  # and drifts (rad/s)
+    look = np.array([[1e-5, 5e-6, -4e-6], [-8e-6, 3e-6, 2e-6]])  # look-angle biases and trends (rad)
+    truth = {"left": perturbed(a, look=look, eo=eo), "right": perturbed(b, look=-look, eo=-eo)}
+    points, _ = simulate_points(truth, layout="H-20", seed=7)
+    ensure_folder(folder)
+    out = []
+    for sid, scene in (("left", a), ("right", b)):
+        path = os.path.join(folder, f"{sid}.json")
+        write_scene(scene, path)
+        out.append((sid, path))
+    write_scene_points(points, os.path.join(folder, "points.json"))
+    return tuple(out), os.path.join(folder, "points.json")

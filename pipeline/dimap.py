@@ -32,11 +32,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import ParamError, RasterIOError
+from ..errors import GeometryError, ParamError, RasterIOError
 from ..geodesy import WGS84_B
 from ..pushbroom import MAX_DETECTORS, MAX_LINES, PushbroomScene, check_line_period
 
-__all__ = ["DimapMetadata", "read_dimap", "read_scene", "write_dimap", "MAX_BYTES", "MAX_ELEMENTS"]
+__all__ = ["DimapMetadata", "read_dimap", "read_scene", "write_scene", "scene_json", "write_dimap", "MAX_BYTES", "MAX_ELEMENTS"]
 
 #: Largest DIMAP file read (bytes).
 MAX_BYTES = 64 << 20
@@ -334,22 +334,126 @@ def read_dimap(path):
                          look_angles_interpolated=interpolated, frame=frame, scene_center=center, mission=mission)
 
 
-def read_scene(path, *, attitude_model="full"):
-    """The :class:`~orthowarp.pushbroom.PushbroomScene` of a SPOT level-1A DIMAP metadata file.
+def read_scene(path, *, attitude_model=None):
+    """The :class:`~orthowarp.pushbroom.PushbroomScene` of a SPOT level-1A DIMAP metadata file,
+    or of an adjusted scene written by :func:`write_scene` (JSON; found by its content).
 
     Parameters
     ----------
     path : str or os.PathLike
-        The DIMAP file (METADATA.DIM).
+        The DIMAP file (METADATA.DIM), or a scene JSON.
     attitude_model : {"full", "first_order"}, optional
-        See :class:`~orthowarp.pushbroom.PushbroomScene`.
+        See :class:`~orthowarp.pushbroom.PushbroomScene`; default "full" for DIMAP, the
+        file's own for a scene JSON (where another is refused: the adjustment used that one).
 
     Raises
     ------
     ParamError, RasterIOError
         As :func:`read_dimap`, naming the file.
     """
-    return PushbroomScene.from_metadata(read_dimap(path), attitude_model=attitude_model)
+    path = os.fspath(path)
+    try:
+        with open(path, "rb") as f:
+            head = f.read(64).lstrip()
+    except OSError as e:
+        raise RasterIOError(f"Cannot read scene file '{path}': {e.strerror or e}") from e
+    if head.startswith(b"{"):
+        return _read_scene_json(path, attitude_model)
+    return PushbroomScene.from_metadata(read_dimap(path), attitude_model=attitude_model or "full")
+
+
+SCENE_FORMAT = "orthowarp-scene"
+_SCENE_ARRAYS = dict(eph_time=(None,), eph_position=(None, 3), eph_velocity=(None, 3), att_time=(None,),
+                     att_angles=(None, 3), psi_x=(None,), psi_y=(None,))
+
+
+def scene_json(scene, *, extra=None):
+    """A scene, adjusted or not, as self-contained JSON text (every array of its model,
+    polynomials included; see :func:`write_scene`).
+
+    Parameters
+    ----------
+    scene : PushbroomScene
+    extra : dict, optional
+        Informative entries (how the scene was adjusted), kept under ``"adjustment"``.
+    """
+    import json
+
+    if not isinstance(scene, PushbroomScene):
+        raise ParamError(f"scene must be a PushbroomScene, got {type(scene).__name__}")
+    doc = {"format": SCENE_FORMAT, "version": 1, "width": scene.width, "height": scene.height,
+           "line_period": scene.line_period, "center_line": scene.center_line,
+           "attitude_model": scene.attitude_model, "attitude_extrapolation": scene.attitude_extrapolation,
+           "epoch": None if scene.epoch is None else str(scene.epoch), "source": scene.source,
+           "polynomials": None if scene.polynomials is None else scene.polynomials.tolist()}
+    for name in _SCENE_ARRAYS:
+        doc[name] = getattr(scene, name).tolist()
+    if extra:
+        doc["adjustment"] = extra
+    return json.dumps(doc, indent=1, allow_nan=False) + "\n"
+
+
+def write_scene(scene, path, *, extra=None):
+    """Write :func:`scene_json` of a scene atomically; :func:`read_scene` reads it back to the
+    same model (``orthowarp ortho --dimap FILE`` takes it)."""
+    from .io import write_text
+
+    write_text(path, scene_json(scene, extra=extra))
+
+
+def _read_scene_json(path, attitude_model):
+    """:func:`read_scene` of a scene JSON (see :func:`write_scene`)."""
+    import json
+    import math
+
+    from .blockio import _read_utf8
+
+    try:
+        doc = json.loads(_read_utf8(path, "scene file "))
+    except (ValueError, RecursionError) as e:
+        raise ParamError(f"Could not parse scene file '{path}': {str(e)[:200]}") from None
+    if not isinstance(doc, dict) or doc.get("format") != SCENE_FORMAT or doc.get("version") != 1:
+        raise ParamError(f"Could not parse scene file '{path}': not a {SCENE_FORMAT!r} version 1 document")
+    model = doc.get("attitude_model")
+    if attitude_model is not None and attitude_model != model:
+        raise ParamError(f"Scene file '{path}' was adjusted with attitude model {model!r}, not {attitude_model!r}")
+    args = {}
+    for key in ("width", "height", "line_period", "center_line", "attitude_extrapolation"):
+        v = doc.get(key)
+        try:
+            ok = not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(float(v))
+        except OverflowError:
+            ok = False
+        if not ok:
+            raise ParamError(f"Could not parse scene file '{path}': '{key}' must be a finite number, got "
+                             f"{str(v)[:60]}")
+        args[key] = v
+    for name, shape in _SCENE_ARRAYS.items():
+        try:
+            a = np.array(doc.get(name), dtype=np.float64)
+        except (TypeError, ValueError, OverflowError) as e:
+            raise ParamError(f"Could not parse scene file '{path}': '{name}' must be numbers: {e}"[:300]) from None
+        if a.ndim != len(shape) or (len(shape) == 2 and a.shape[1] != 3) or not np.all(np.isfinite(a)):
+            raise ParamError(f"Could not parse scene file '{path}': '{name}' must be finite numbers of shape "
+                             f"{tuple('n' if d is None else d for d in shape)}")
+        args[name] = a
+    poly = doc.get("polynomials")
+    if poly is not None:
+        try:
+            poly = np.array(poly, dtype=np.float64)
+        except (TypeError, ValueError, OverflowError):
+            poly = None
+        if poly is None or poly.shape != (3, 3, 3) or not np.all(np.isfinite(poly)):
+            raise ParamError(f"Could not parse scene file '{path}': 'polynomials' must be 3 x 3 x 3 finite numbers")
+    epoch = doc.get("epoch")
+    try:
+        epoch = None if epoch is None else np.datetime64(epoch, "us")
+    except (TypeError, ValueError):
+        raise ParamError(f"Could not parse scene file '{path}': 'epoch' {str(epoch)[:60]!r} is not a UTC time") from None
+    try:
+        return PushbroomScene(**args, attitude_model=model, epoch=epoch, source=path, polynomials=poly)
+    except (ParamError, GeometryError) as e:
+        raise type(e)(f"Scene file '{path}': {e}") from None
 
 
 def write_dimap(scene, path, *, epoch="2020-06-01T10:30:00.000000"):

@@ -406,3 +406,38 @@ def test_ortho_creation_options(tmp_path):
         res = run("bad", *extra)
         assert res.exit_code == 1 and words in res.output and len(res.output.strip().splitlines()) == 1, res.output
     assert not (tmp_path / "bad").exists() or not any((tmp_path / "bad").iterdir())
+
+
+def test_spot_adjust_example_end_to_end(tmp_path):
+    """orthowarp spot-adjust --write-example: the simulated stereo pair adjusted, outputs written
+    together, the adjusted scene taken by orthowarp ortho --dimap; bad runs write nothing."""
+    import os
+
+    import numpy as np
+    import rasterio
+
+    ex, out = tmp_path / "ex", tmp_path / "adj"
+    res = CliRunner().invoke(main, ["spot-adjust", "--write-example", str(ex), "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    assert sorted(os.listdir(out)) == ["errors.png", "left_ADJUSTED.json", "points.csv", "report.json", "report.md",
+                                       "residuals.png", "right_ADJUSTED.json"]
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["uncorrected"]["check_rmse_enu"][2] > 50.0 > 20.0 > rep["check_rmse_enu"][2]
+    assert rep["freed"] == {"left": ["attitude0", "attitude1"], "right": ["attitude0", "attitude1"]}
+    with rasterio.open(tmp_path / "img.tif", "w", driver="GTiff", width=3000, height=3000, count=1,
+                       dtype="uint8") as d:
+        d.write(np.full((3000, 3000), 7, np.uint8), 1)
+    res = CliRunner().invoke(main, ["-q", "ortho", "--dimap", str(out / "left_ADJUSTED.json"), "--height", "300",
+                                    "--resolution", "200", "--device", "cpu", "--out-dir", str(tmp_path / "o"),
+                                    str(tmp_path / "img.tif")])
+    assert res.exit_code == 0, res.output
+    assert os.path.exists(tmp_path / "o" / "img_ORTHO.tif")
+    # bad runs: one scene, an unknown group (nothing written)
+    res = CliRunner().invoke(main, ["spot-adjust", "--scene", "left", str(ex / "left.json"), "--points",
+                                    str(ex / "points.json"), "--out", str(tmp_path / "bad")])
+    assert res.exit_code != 0 and "two or more --scene" in res.output
+    res = CliRunner().invoke(main, ["spot-adjust", "--scene", "left", str(ex / "left.json"), "--scene", "right",
+                                    str(ex / "right.json"), "--points", str(ex / "points.json"), "--groups",
+                                    "attitude7", "--out", str(tmp_path / "bad")])
+    assert res.exit_code != 0 and "unknown EO group" in res.output
+    assert not os.path.exists(tmp_path / "bad")

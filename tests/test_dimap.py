@@ -354,3 +354,80 @@ def test_fuzz_dimap_declarations(tmp_path, data):
 
 with open(SAMPLE, encoding="utf-8") as _f:
     SAMPLE_TEXT = _f.read()
+
+
+# -- adjusted scenes as JSON (write_scene / read_scene) ------------------------------------------
+
+def test_scene_json_round_trips_to_the_same_model(tmp_path):
+    from orthowarp.pipeline.dimap import write_scene
+    from orthowarp.pushbroom import synthetic_scene
+
+    sc = synthetic_scene(width=60, height=80, view_angle=7.0)
+    sc = sc.with_polynomials(sc.fit_polynomials()[0] + 1e-7).replace(attitude_model="first_order")
+    write_scene(sc, tmp_path / "s.json", extra={"groups": ["attitude0"]})
+    back = read_scene(tmp_path / "s.json")
+    assert back.attitude_model == "first_order" and back.source == str(tmp_path / "s.json")
+    np.testing.assert_array_equal(back.polynomials, sc.polynomials)
+    for name in ("psi_x", "psi_y", "eph_position", "att_angles"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(sc, name))
+    pix = np.array([[0.5, 0.5], [30.0, 40.0]])
+    np.testing.assert_array_equal(back.geolocate_ellipsoid(pix, 100.0), sc.geolocate_ellipsoid(pix, 100.0))
+    with pytest.raises(ParamError, match="adjusted with attitude model 'first_order', not 'full'"):
+        read_scene(tmp_path / "s.json", attitude_model="full")
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda d: d.update(format="x"), "not a 'orthowarp-scene' version 1 document"),
+    (lambda d: d.update(width="300"), "'width' must be a finite number"),
+    (lambda d: d.update(psi_x=[0.1, None]), "'psi_x' must be"),
+    (lambda d: d.update(eph_position=[[1.0, 2.0]] * 13), "'eph_position' must be finite numbers of shape"),
+    (lambda d: d.update(polynomials=[[1.0]]), "'polynomials' must be 3 x 3 x 3"),
+    (lambda d: d.update(epoch="yesterday"), "'epoch' .* is not a UTC time"),
+    (lambda d: d.update(line_period=-1.0), "line_period"),
+])
+def test_bad_scene_json_is_refused_naming_the_file(tmp_path, change, message):
+    import json
+
+    from orthowarp.pipeline.dimap import scene_json
+    from orthowarp.pushbroom import synthetic_scene
+
+    doc = json.loads(scene_json(synthetic_scene(width=20, height=30)))
+    change(doc)
+    (tmp_path / "bad.json").write_text(json.dumps(doc))
+    with pytest.raises(ParamError, match=message) as e:
+        read_scene(tmp_path / "bad.json")
+    assert "bad.json" in str(e.value)
+
+
+from hypothesis import given  # noqa: E402
+
+import fuzz_strategies as fz  # noqa: E402
+
+
+def _scene_doc():
+    import json
+
+    from orthowarp.pipeline.dimap import scene_json
+    from orthowarp.pushbroom import synthetic_scene
+
+    sc = synthetic_scene(width=8, height=12)
+    return json.loads(scene_json(sc.with_polynomials(sc.fit_polynomials()[0])))
+
+
+@fz.fuzz_settings(0.3)
+@given(text=fz.document(_scene_doc(), syntax="json", keys=("format", "version", "width", "height", "psi_x",
+                                                            "polynomials", "epoch", "attitude_model")))
+def test_fuzz_scene_json(tmp_path_factory, text):
+    from orthowarp.errors import OrthowarpError
+
+    path = tmp_path_factory.mktemp("fz") / "scene.json"
+    if isinstance(text, bytes):
+        path.write_bytes(text)
+    else:
+        path.write_text(text, encoding="utf-8", errors="surrogatepass")
+    try:
+        sc = read_scene(path)
+    except OrthowarpError as e:
+        assert "\n" not in str(e) and str(path) in str(e), str(e)[:300]
+        return
+    fz.check_scene(sc)
