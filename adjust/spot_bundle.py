@@ -37,6 +37,7 @@ import numpy as np
 from .. import geodesy
 from ..errors import GeometryError, ParamError
 from ..pushbroom import PushbroomScene, attitude_matrix
+from .lookangles import _basis, corrected_scene
 from .scene_points import ScenePoints
 
 __all__ = ["EO_GROUPS", "SceneBundleResult", "adjust_scenes", "intersect_scene_points"]
@@ -59,16 +60,20 @@ def _poly(c, t):
     return c[:, 0] + t[:, None] * c[:, 1] + (t * t)[:, None] * c[:, 2]
 
 
-def _conditions(scene, poly, col, row, x):
+def _conditions(scene, poly, col, row, x, look=None):
     """The two conditions (n, 2) of measured (col, row) (n,) and ECEF points x (n, 3) under the
-    coefficients ``poly`` (3, 3, 3)."""
+    coefficients ``poly`` (3, 3, 3) and look-angle corrections ``look`` (2, k) (rad; None:
+    none)."""
     t = scene.line_time(row)
     p, v, att = _poly(poly[0], t), _poly(poly[1], t), _poly(poly[2], t)
     r = scene.orbital_frame(p, v) @ attitude_matrix(*att.T, first_order=scene.attitude_model == "first_order")
     q = np.einsum("nji,nj->ni", r, x - p)
     det = col + 0.5
-    tx, ty = np.tan(scene._psi_at(scene.psi_x, det)), np.tan(scene._psi_at(scene.psi_y, det))
-    return np.stack([-q[:, 1] / q[:, 2] - tx, q[:, 0] / q[:, 2] - ty], -1)
+    px, py = scene._psi_at(scene.psi_x, det), scene._psi_at(scene.psi_y, det)
+    if look is not None:
+        corr = _basis(scene, col, look.shape[1] - 1) @ look.T
+        px, py = px + corr[:, 0], py + corr[:, 1]
+    return np.stack([-q[:, 1] / q[:, 2] - np.tan(px), q[:, 0] / q[:, 2] - np.tan(py)], -1)
 
 
 def intersect_scene_points(scenes, points, *, which=None):
@@ -141,6 +146,10 @@ class SceneBundleResult:
     check_errors : ndarray, shape (c, 3)
         East, north, up errors (m) of each check point.
     check_ids : list of str
+    look_coefficients, look_std : dict of str -> ndarray, shape (2, degree + 1)
+        With the "look" group: the look-angle corrections (rad; see
+        :func:`~orthowarp.adjust.lookangles.corrected_scene`, already applied to ``scenes``)
+        and their sigmas.
     """
 
     success: bool
@@ -163,6 +172,8 @@ class SceneBundleResult:
     check_rmse: np.ndarray = None
     check_errors: np.ndarray = None
     check_ids: list = field(default_factory=list)
+    look_coefficients: dict = field(default_factory=dict)
+    look_std: dict = field(default_factory=dict)
 
 
 def _check_args(scenes, points, groups, eo_sigma):
@@ -178,18 +189,22 @@ def _check_args(scenes, points, groups, eo_sigma):
                          f"they name {len(points.scene_ids)} ({points.scene_ids})")
     if isinstance(groups, str) or not all(isinstance(g, str) for g in groups):
         raise ParamError(f"groups must be a sequence of group names from {EO_GROUPS}, got {groups!r}")
-    bad = [g for g in groups if g not in EO_GROUPS]
+    bad = [g for g in groups if g not in EO_GROUPS + ("look",)]
     if bad:
-        raise ParamError(f"unknown EO group(s) {bad}; known: {EO_GROUPS}")
+        raise ParamError(f"unknown EO group(s) {bad}; known: {EO_GROUPS} and 'look'")
+    if len(set(groups)) != len(groups):
+        raise ParamError(f"groups name a group twice: {groups!r}")
     if eo_sigma is not None:
-        if not isinstance(eo_sigma, dict) or set(eo_sigma) - set(QUANTITIES):
-            raise ParamError(f"eo_sigma must map some of {QUANTITIES} to sigmas (m, m/s, rad), got {eo_sigma!r}")
+        if not isinstance(eo_sigma, dict) or set(eo_sigma) - set(QUANTITIES + ("look",)):
+            raise ParamError(f"eo_sigma must map some of {QUANTITIES + ('look',)} to sigmas (m, m/s, rad, rad), got "
+                             f"{eo_sigma!r}")
         for k, s in eo_sigma.items():
             if not (isinstance(s, (int, float)) and np.isfinite(s) and s > 0):
                 raise ParamError(f"eo_sigma[{k!r}] must be a number > 0, got {s!r}")
 
 
-def adjust_scenes(scenes, points, *, groups=("attitude0",), eo_sigma=None, max_iterations=20, xtol=1e-5):
+def adjust_scenes(scenes, points, *, groups=("attitude0",), eo_sigma=None, look_degree=2, max_iterations=20,
+                  xtol=1e-5):
     """Bundle-adjust pushbroom scenes' exterior orientation with ground control and tie points
     (see the module doc).
 
@@ -203,10 +218,15 @@ def adjust_scenes(scenes, points, *, groups=("attitude0",), eo_sigma=None, max_i
         Control points (weighted by their sigmas), check points (adjusted as tie points, then
         compared with their given coordinates), tie points.
     groups : sequence of str, optional
-        The coefficient groups freed in every scene (:data:`EO_GROUPS`).
+        The coefficient groups freed in every scene (:data:`EO_GROUPS`), and ``"look"``: the
+        look-angle corrections of :func:`~orthowarp.adjust.lookangles.preadjust_look_angles`
+        (degree ``look_degree``) estimated together with the rest, so that their uncertainty
+        enters the points' covariances (the seed's two steps in one; a look-angle constant and
+        an attitude constant are nearly the same unknown: free them together only with priors).
     eo_sigma : dict, optional
-        Priors on the freed coefficients: ``{"position": m, "velocity": m/s, "attitude": rad}``
-        (see the module doc). Default: none (free groups, as seed 000).
+        Priors on the freed coefficients: ``{"position": m, "velocity": m/s, "attitude": rad,
+        "look": rad}`` (see the module doc). Default: none (free groups, as seed 000).
+    look_degree : int, optional
     max_iterations : int, optional
     xtol : float, optional
         Convergence: largest correction of an unknown in its scaled unit (m, mm/s, urad; the
@@ -224,6 +244,10 @@ def adjust_scenes(scenes, points, *, groups=("attitude0",), eo_sigma=None, max_i
     """
     groups = tuple(groups)
     _check_args(scenes, points, groups, eo_sigma)
+    if not (isinstance(look_degree, (int, np.integer)) and 0 <= look_degree <= 4):
+        raise ParamError(f"look_degree must be an integer 0-4, got {look_degree!r}")
+    eo_groups = tuple(g for g in groups if g != "look")
+    nl = 2 * (look_degree + 1) if "look" in groups else 0
     sids = list(points.scene_ids)
     scn = {}
     for sid in sids:
@@ -240,26 +264,27 @@ def adjust_scenes(scenes, points, *, groups=("attitude0",), eo_sigma=None, max_i
     for i in np.flatnonzero(~control & (n_scenes_of < 2)):
         raise ParamError(f"{points.name}: {points.roles[i]} point '{points.point_ids[i]}' is measured in "
                          f"{n_scenes_of[i]} scene(s); it needs two or more to be intersected")
-    if len(groups) * 3 > 2 * int(control.sum()) * len(sids) and eo_sigma is None:
-        raise ParamError(f"{points.name}: {int(control.sum())} control point(s) cannot determine the "
-                         f"{len(groups) * 3} coefficients freed per scene ({', '.join(groups)}); give more control "
-                         "or eo_sigma priors")
-    # approximate coordinates: given ones for control and check points where measured in one
-    # scene only... control: given; others: intersected
+    fidx = np.concatenate([_group_index(g) for g in eo_groups]) if eo_groups else np.zeros(0, int)
+    nf = len(fidx)
+    nb = nf + nl  # unknowns per scene: freed EO coefficients, then look-angle coefficients
+    if nb > 2 * int(control.sum()) and eo_sigma is None:
+        raise ParamError(f"{points.name}: {int(control.sum())} control point(s) cannot determine the {nb} "
+                         f"coefficients freed per scene ({', '.join(groups)}); give more control or eo_sigma priors")
+    # approximate coordinates: given ones for control points, intersected ones for the rest
     llh0 = points.llh.copy()
     free_pts = ~control
     inter = intersect_scene_points(scn, points, which=np.flatnonzero(free_pts))
     llh0[free_pts] = inter[free_pts]
     xyz0 = geodesy.geodetic_to_ecef(llh0[:, 1], llh0[:, 0], llh0[:, 2])
     enu = np.stack([geodesy.enu_to_ecef_matrix(la, lo) for la, lo in zip(llh0[:, 1], llh0[:, 0])])
-    # unknowns: freed coefficients scene by scene (scaled), then points' east, north, up
-    fidx = np.concatenate([_group_index(g) for g in groups]) if groups else np.zeros(0, int)
-    nf = len(fidx)
+    # unknowns: each scene's block (scaled units), then the points' east, north, up (m)
     scale = {}
     for sid in sids:
         th = 0.5 * scn[sid].height * scn[sid].line_period
-        scale[sid] = np.array([_UNIT[QUANTITIES[i // 9]] / th ** (i % 3) for i in fidx])
-    n_unk = nf * len(sids) + 3 * n_pts
+        scale[sid] = np.concatenate([[_UNIT[QUANTITIES[i // 9]] / th ** (i % 3) for i in fidx],
+                                     np.full(nl, _UNIT["attitude"])])
+    base = nb * len(sids)
+    n_unk = base + 3 * n_pts
     prior_w = np.zeros(n_unk)
     if eo_sigma is not None:
         for s_k, sid in enumerate(sids):
@@ -267,75 +292,74 @@ def adjust_scenes(scenes, points, *, groups=("attitude0",), eo_sigma=None, max_i
             for j, i in enumerate(fidx):
                 q = QUANTITIES[i // 9]
                 if q in eo_sigma:
-                    sig = eo_sigma[q] / th ** (i % 3) / scale[sid][j]  # in the scaled unit
-                    prior_w[s_k * nf + j] = 1.0 / sig ** 2
+                    prior_w[s_k * nb + j] = (scale[sid][j] * th ** (i % 3) / eo_sigma[q]) ** 2
+            if nl and "look" in eo_sigma:
+                prior_w[s_k * nb + nf:(s_k + 1) * nb] = (_UNIT["attitude"] / eo_sigma["look"]) ** 2
     for i in np.flatnonzero(control):
-        prior_w[nf * len(sids) + 3 * i:nf * len(sids) + 3 * i + 3] = 1.0 / points.llh_sigma[i] ** 2
+        prior_w[base + 3 * i:base + 3 * i + 3] = 1.0 / points.llh_sigma[i] ** 2
     x = np.zeros(n_unk)
     m = len(points.obs_point)
     v = np.zeros((m, 2))
     qll = np.stack([points.obs_sigma ** 2] * 2, -1)
     status, it, normal = 0, 0, None
 
-    def polys(xv):
-        out = {}
-        for s_k, sid in enumerate(sids):
-            c = scn[sid].polynomials.copy().ravel()
-            c[fidx] += xv[s_k * nf:(s_k + 1) * nf] * scale[sid]
-            out[sid] = c.reshape(3, 3, 3)
-        return out
+    def model(xv, sid, s_k):
+        """(coefficients (3, 3, 3), look-angle corrections (2, degree + 1) or None) of a scene."""
+        blk = xv[s_k * nb:(s_k + 1) * nb] * scale[sid]
+        c = scn[sid].polynomials.copy().ravel()
+        c[fidx] += blk[:nf]
+        return c.reshape(3, 3, 3), (blk[nf:].reshape(2, -1) if nl else None)
 
     def ground(xv):
-        d = xv[nf * len(sids):].reshape(n_pts, 3)
-        return xyz0 + np.einsum("nij,nj->ni", enu, d)
+        return xyz0 + np.einsum("nij,nj->ni", enu, xv[base:].reshape(n_pts, 3))
 
     try:
         for it in range(1, max_iterations + 1):
-            pol, xg = polys(x), ground(x)
+            xg = ground(x)
             normal = np.diag(prior_w)
             rhs = prior_w * x
-            a_rows = []
+            rows = []
             for s_k, sid in enumerate(sids):
                 sel = np.flatnonzero(points.obs_scene == s_k)
                 if not len(sel):
                     continue
                 sc, pi = scn[sid], points.obs_point[sel]
                 col, row = points.obs_xy[sel, 0] + v[sel, 0], points.obs_xy[sel, 1] + v[sel, 1]
-                g = _conditions(sc, pol[sid], col, row, xg[pi])
+                pol, look = model(x, sid, s_k)
+
+                def cond(c=col, r=row, p=pol, lk=look, xx=None):
+                    return _conditions(sc, p, c, r, xg[pi] if xx is None else xx, lk)
+
+                g = cond()
                 b = np.empty((len(sel), 2, 2))
-                for j, (dc, dr) in enumerate(((_H_PIX, 0.0), (0.0, _H_PIX))):
-                    b[:, :, j] = (_conditions(sc, pol[sid], col + dc, row + dr, xg[pi])
-                                  - _conditions(sc, pol[sid], col - dc, row - dr, xg[pi])) / (2 * _H_PIX)
-                a_eo = np.empty((len(sel), 2, nf))
-                base = pol[sid].ravel()
-                for j, i in enumerate(fidx):
-                    hi, lo = base.copy(), base.copy()
-                    h = scale[sid][j]
-                    hi[i] += h
-                    lo[i] -= h
-                    a_eo[:, :, j] = (_conditions(sc, hi.reshape(3, 3, 3), col, row, xg[pi])
-                                     - _conditions(sc, lo.reshape(3, 3, 3), col, row, xg[pi])) / 2.0
+                b[:, :, 0] = (cond(c=col + _H_PIX) - cond(c=col - _H_PIX)) / (2 * _H_PIX)
+                b[:, :, 1] = (cond(r=row + _H_PIX) - cond(r=row - _H_PIX)) / (2 * _H_PIX)
+                a_sc = np.empty((len(sel), 2, nb))
+                for j in range(nb):  # a step of one scaled unit
+                    hi, lo = x.copy(), x.copy()
+                    hi[s_k * nb + j] += 1.0
+                    lo[s_k * nb + j] -= 1.0
+                    (ph, lh), (pl, ll) = model(hi, sid, s_k), model(lo, sid, s_k)
+                    a_sc[:, :, j] = (cond(p=ph, lk=lh) - cond(p=pl, lk=ll)) / 2.0
                 a_pt = np.empty((len(sel), 2, 3))
                 for j in range(3):
                     dx = enu[pi][:, :, j] * _H_ENU
-                    a_pt[:, :, j] = (_conditions(sc, pol[sid], col, row, xg[pi] + dx)
-                                     - _conditions(sc, pol[sid], col, row, xg[pi] - dx)) / (2 * _H_ENU)
+                    a_pt[:, :, j] = (cond(xx=xg[pi] + dx) - cond(xx=xg[pi] - dx)) / (2 * _H_ENU)
                 w = g - np.einsum("nij,nj->ni", b, v[sel])
                 mm = np.linalg.inv(np.einsum("nij,nj,nkj->nik", b, qll[sel], b))
-                cols_eo = np.arange(s_k * nf, (s_k + 1) * nf)
+                cols_sc = np.arange(s_k * nb, (s_k + 1) * nb)
                 for r_k, k in enumerate(sel):
-                    cols = np.concatenate([cols_eo, nf * len(sids) + 3 * points.obs_point[k] + np.arange(3)])
-                    ak = np.concatenate([a_eo[r_k], a_pt[r_k]], 1)
+                    cols = np.concatenate([cols_sc, base + 3 * points.obs_point[k] + np.arange(3)])
+                    ak = np.concatenate([a_sc[r_k], a_pt[r_k]], 1)
                     normal[np.ix_(cols, cols)] += ak.T @ mm[r_k] @ ak
                     rhs[cols] += ak.T @ mm[r_k] @ w[r_k]
-                    a_rows.append((k, cols, ak, mm[r_k], w[r_k], b[r_k]))
+                    rows.append((k, cols, ak, mm[r_k], w[r_k], b[r_k]))
             if not np.all(np.isfinite(normal)) or np.linalg.cond(normal) > 1e15:
                 status = -1
                 break
             dx = -np.linalg.solve(normal, rhs)
-            for k, cols, ak, mk, wk, bk in a_rows:
-                kk = -mk @ (ak @ dx[cols] + wk)
-                v[k] = qll[k] * (bk.T @ kk)
+            for k, cols, ak, mk, wk, bk in rows:
+                v[k] = qll[k] * (bk.T @ (-mk @ (ak @ dx[cols] + wk)))
             x = x + dx
             if np.max(np.abs(dx)) < xtol:
                 status = 1
@@ -354,25 +378,31 @@ def adjust_scenes(scenes, points, *, groups=("attitude0",), eo_sigma=None, max_i
     res.sigma0 = s0 = float(np.sqrt(vpv / r)) if r > 0 else float("nan")
     cov = (s0 ** 2 if r > 0 else 1.0) * np.linalg.inv(normal)
     res.covariance = cov
-    pol = polys(x)
+    sd = np.sqrt(np.diag(cov))
+    corr = cov / np.outer(sd, sd)
+    local = {g: 3 * k + np.arange(3) for k, g in enumerate(eo_groups)}
+    if nl:
+        local["look"] = nf + np.arange(nl)
     for s_k, sid in enumerate(sids):
-        res.scenes[sid] = scn[sid].with_polynomials(pol[sid])
-        res.coefficients[sid] = pol[sid]
+        pol, look = model(x, sid, s_k)
+        adjusted = scn[sid].with_polynomials(pol)
+        if look is not None:
+            adjusted = corrected_scene(adjusted, look)
+            res.look_coefficients[sid] = look
+            res.look_std[sid] = (sd[s_k * nb + nf:(s_k + 1) * nb] * scale[sid][nf:]).reshape(2, -1)
+        res.scenes[sid] = adjusted
+        res.coefficients[sid] = pol
         std = np.zeros(27)
-        blk = slice(s_k * nf, (s_k + 1) * nf)
-        std[fidx] = np.sqrt(np.diag(cov[blk, blk])) * scale[sid]
+        std[fidx] = sd[s_k * nb:s_k * nb + nf] * scale[sid][:nf]
         res.coefficient_std[sid] = std.reshape(3, 3, 3)
-        sd = np.sqrt(np.diag(cov))
-        corr = cov / np.outer(sd, sd)
-        for g1 in range(len(groups)):
-            for g2 in range(g1 + 1, len(groups)):
-                i1 = s_k * nf + 3 * g1 + np.arange(3)
-                i2 = s_k * nf + 3 * g2 + np.arange(3)
-                res.group_correlation[(sid, groups[g1], groups[g2])] = float(np.max(np.abs(corr[np.ix_(i1, i2)])))
+        names = list(local)
+        for g1 in range(len(names)):
+            for g2 in range(g1 + 1, len(names)):
+                i1, i2 = s_k * nb + local[names[g1]], s_k * nb + local[names[g2]]
+                res.group_correlation[(sid, names[g1], names[g2])] = float(np.max(np.abs(corr[np.ix_(i1, i2)])))
     xg = ground(x)
     lat, lon, h = geodesy.ecef_to_geodetic(xg)
     res.llh = np.stack([lon, lat, h], -1)
-    base = nf * len(sids)
     res.point_cov = np.stack([cov[base + 3 * i:base + 3 * i + 3, base + 3 * i:base + 3 * i + 3] for i in range(n_pts)])
     res.residuals = v
 
@@ -380,8 +410,7 @@ def adjust_scenes(scenes, points, *, groups=("attitude0",), eo_sigma=None, max_i
         if not np.any(sel):
             return np.zeros((0, 3))
         given = geodesy.geodetic_to_ecef(points.llh[sel, 1], points.llh[sel, 0], points.llh[sel, 2])
-        diff = xg[sel] - given
-        return np.einsum("nji,nj->ni", enu[sel], diff)
+        return np.einsum("nji,nj->ni", enu[sel], xg[sel] - given)
 
     ctrl_err = enu_errors(control)
     check = points.role_mask("check")

@@ -879,7 +879,9 @@ def _eo_sigma(text):
               help="Image sigma (px) of CSV rows that give none.")
 @click.option("--groups", default="attitude0,attitude1", show_default=True,
               help="EO coefficient groups freed per scene: position|velocity|attitude + 0|1|2 (constant, linear, "
-                   "quadratic in line time), comma-separated; 'none' for none.")
+                   "quadratic in line time), comma-separated; 'none' for none; 'look' estimates the look-angle "
+                   "corrections in the same adjustment instead of a pre-adjustment (e.g. look,attitude1: their "
+                   "uncertainty then enters the points' covariances).")
 @click.option("--eo-sigma", default=None,
               help="Priors on the freed groups, e.g. 'position=10,attitude=5e-5' (m, m/s, rad); default: none.")
 @click.option("--look-degree", type=click.IntRange(0, 4), default=2, show_default=True,
@@ -932,13 +934,13 @@ def spot_adjust(ctx, scenes, points_file, points_crs, pixel_sigma, groups, eo_si
     priors = _eo_sigma(eo_sigma) if eo_sigma else None
     before = adjust_scenes(models, points, groups=())
     pre = None
-    if not no_preadjust:
+    if not no_preadjust and "look" not in freed:
         pre = preadjust_look_angles(models, points, degree=look_degree)
         if not pre.success:
             raise GeometryError(f"look-angle pre-adjustment of '{points_file}' failed: {pre.message}; nothing written "
                                 f"to '{out_dir}'")
         models = {**models, **pre.scenes}
-    result = adjust_scenes(models, points, groups=freed, eo_sigma=priors)
+    result = adjust_scenes(models, points, groups=freed, eo_sigma=priors, look_degree=look_degree)
     if not result.success:
         raise GeometryError(f"adjustment of '{points_file}' failed (status {result.status}): {result.message}; "
                             f"nothing written to '{out_dir}'")

@@ -57,6 +57,9 @@ def write_scene_adjustment(result, points, out_dir, *, preadjustment=None, befor
                  "coefficient_std": result.coefficient_std[sid].tolist(), "points": points.name}
         if preadjustment is not None and sid in preadjustment.coefficients:
             extra["look_angle_correction"] = preadjustment.coefficients[sid].tolist()
+        if sid in result.look_coefficients:
+            extra["look_angle_correction"] = result.look_coefficients[sid].tolist()
+            extra["look_angle_correction_std"] = result.look_std[sid].tolist()
         paths[f"scene_{sid}"] = p = os.path.join(out_dir, f"{sid}_ADJUSTED.json")
         files[p] = scene_json(scene, extra=_finite_or_null(extra))
     rows = ["point,role,lon,lat,h,se,sn,su"]
@@ -75,6 +78,8 @@ def write_scene_adjustment(result, points, out_dir, *, preadjustment=None, befor
         group_correlation=[dict(scene=s, a=a, b=b, r=r) for (s, a, b), r in result.group_correlation.items()],
         coefficients={sid: c.tolist() for sid, c in result.coefficients.items()},
         coefficient_std={sid: c.tolist() for sid, c in result.coefficient_std.items()},
+        look_angle_correction={sid: c.tolist() for sid, c in result.look_coefficients.items()},
+        look_angle_correction_std={sid: c.tolist() for sid, c in result.look_std.items()},
         image_residual_rms_px=np.sqrt(np.mean(result.residuals ** 2, 0)).tolist())
     if before is not None:
         report["uncorrected"] = dict(control_rmse_enu=before.control_rmse.tolist(),

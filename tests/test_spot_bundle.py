@@ -121,3 +121,23 @@ def test_bad_input(pair):
     far.obs_xy[3] = [5000.0, 10.0]
     with pytest.raises(ParamError, match="'P03' at .* lies outside scene 'L'"):
         adjust_scenes(pair, far)
+
+
+def test_joint_look_angles_and_attitude_drifts(pair):
+    """The look-angle corrections estimated in the bundle (group "look"): exact data recover them
+    and the drifts; the look constant and the attitude constant are one unknown (singular
+    without priors)."""
+    eo = np.zeros((3, 3, 3))
+    eo[2, :, 1] = EO[2, :, 1]
+    truth = {k: perturbed(s, look=LOOK if k == "L" else -LOOK, eo=eo if k == "L" else -eo) for k, s in pair.items()}
+    pts, true_llh = simulate_points(truth, layout="H-20", noise=False)
+    res = adjust_scenes(pair, pts, groups=("look", "attitude1"))
+    assert res.success, res.message
+    np.testing.assert_allclose(res.look_coefficients["L"], LOOK, atol=1e-10)
+    np.testing.assert_allclose(res.look_coefficients["R"], -LOOK, atol=1e-10)
+    np.testing.assert_allclose(res.scenes["L"].psi_x, truth["L"].psi_x, atol=1e-10)
+    assert np.abs(res.check_errors).max() < 1e-3 and res.look_std["L"].shape == (2, 3)
+    both = adjust_scenes(pair, pts, groups=("look", "attitude0"))
+    assert not both.success
+    with pytest.raises(ParamError, match="name a group twice"):
+        adjust_scenes(pair, pts, groups=("look", "look"))
