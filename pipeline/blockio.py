@@ -158,19 +158,21 @@ def _read_utf8(path, what):
         raise ParamError(f"Could not parse {what}'{path}': not UTF-8 text ({e.reason} at byte {e.start})") from e
 
 
-def _load_json(path):
-    text = _read_utf8(path, "block file ")
+def _load_json(path, what="block file "):
+    """The parsed JSON document of ``path`` (duplicate keys refused); ``what`` names the kind
+    of file in messages."""
+    text = _read_utf8(path, what)
     try:
         return json.loads(text, object_pairs_hook=_no_duplicates)
     except json.JSONDecodeError as e:
-        raise ParamError(f"Could not parse block file '{path}': {e}") from e
+        raise ParamError(f"Could not parse {what}'{path}': {e}") from e
     except _Duplicate as e:
-        raise ParamError(f"Could not parse block file '{path}': key {_show(e.args[0])} appears twice in one "
+        raise ParamError(f"Could not parse {what}'{path}': key {_show(e.args[0])} appears twice in one "
                          "object") from None
     except RecursionError:
-        raise ParamError(f"Could not parse block file '{path}': nested too deeply") from None
+        raise ParamError(f"Could not parse {what}'{path}': nested too deeply") from None
     except ValueError as e:  # e.g. integers beyond Python's digit limit
-        raise ParamError(f"Could not parse block file '{path}': {e}") from e
+        raise ParamError(f"Could not parse {what}'{path}': {e}") from e
 
 
 _CAMERA_TEXT_KEYS = ("type", "projection_type")

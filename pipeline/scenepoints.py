@@ -31,7 +31,6 @@ CRS is an argument)::
 ``sigma`` may be omitted (then the ``sigma`` argument applies).
 """
 
-import json
 import math
 import os
 
@@ -40,8 +39,8 @@ from pyproj import CRS, Transformer
 
 from ..adjust.scene_points import ScenePoints
 from ..errors import ParamError
-from .blockio import (_csv_id, _csv_num, _csv_records, _fail, _got, _ident, _jlist, _no_duplicates, _num, _nums,
-                      _obj, _read_utf8, _show, _Duplicate)
+from .blockio import (_csv_id, _csv_num, _csv_records, _fail, _got, _ident, _jlist, _load_json, _num, _nums, _obj,
+                      _show)
 from .io import write_json
 
 __all__ = ["read_scene_points", "write_scene_points", "read_scene_points_csv", "FORMAT"]
@@ -49,21 +48,6 @@ __all__ = ["read_scene_points", "write_scene_points", "read_scene_points_csv", "
 FORMAT = "orthowarp-scene-points"
 _ROLES = ("control", "check", "tie")
 MAX_POINTS = 1_000_000
-
-
-def _load(path):
-    text = _read_utf8(path, "scene points file ")
-    try:
-        return json.loads(text, object_pairs_hook=_no_duplicates)
-    except json.JSONDecodeError as e:
-        raise ParamError(f"Could not parse scene points file '{path}': {e}") from e
-    except _Duplicate as e:
-        raise ParamError(f"Could not parse scene points file '{path}': key {_show(e.args[0])} appears twice in one "
-                         "object") from None
-    except RecursionError:
-        raise ParamError(f"Could not parse scene points file '{path}': nested too deeply") from None
-    except ValueError as e:
-        raise ParamError(f"Could not parse scene points file '{path}': {e}") from e
 
 
 def _to_llh(path, crs_text, xyz):
@@ -130,7 +114,7 @@ def read_scene_points(path):
         The file cannot be read.
     """
     path = os.fspath(path)
-    data = _obj(path, _load(path), "the file's content")
+    data = _obj(path, _load_json(path, "scene points file "), "the file's content")
     if data.get("format") != FORMAT:
         raise _fail(path, f"'format' must be {FORMAT!r}, {_got(data.get('format'))}")
     if data.get("version") != 1:

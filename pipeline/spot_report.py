@@ -13,14 +13,13 @@
   and ``errors.png`` (check-point errors).
 """
 
-import io
 import json
 import os
 
 import numpy as np
 
 from ..errors import GeometryError
-from .adjust_report import _finite_or_null
+from .adjust_report import _finite_or_null, _png
 from .dimap import scene_json
 from .io import ensure_folder, write_files
 
@@ -124,12 +123,6 @@ def _markdown(r, plots):
     if plots:
         lines += ["", "![image residuals](residuals.png)", "", "![check-point errors](errors.png)"]
     return "\n".join(lines) + "\n"
-
-
-def _png(fig):
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110)
-    return buf.getvalue()
 
 
 def _plots(result, points, out_dir):

@@ -536,3 +536,12 @@ def check_scene(scene):
     assert 1 <= scene.width <= MAX_DETECTORS and 1 <= scene.height <= MAX_LINES
     assert MIN_LINE_PERIOD <= scene.line_period <= MAX_LINE_PERIOD
     assert _finite([scene.center_line]) and _finite(scene.eph_position) and _finite(scene.att_angles)
+
+
+def write_document(path, content):
+    """Write a generated document (bytes, or text with lone surrogates kept) to ``path``."""
+    if isinstance(content, bytes):
+        path.write_bytes(content)
+    else:
+        path.write_text(content, encoding="utf-8", errors="surrogatepass")
+    return path

@@ -421,10 +421,7 @@ def test_fuzz_scene_json(tmp_path_factory, text):
     from orthowarp.errors import OrthowarpError
 
     path = tmp_path_factory.mktemp("fz") / "scene.json"
-    if isinstance(text, bytes):
-        path.write_bytes(text)
-    else:
-        path.write_text(text, encoding="utf-8", errors="surrogatepass")
+    fz.write_document(path, text)
     try:
         sc = read_scene(path)
     except OrthowarpError as e:

@@ -627,12 +627,7 @@ def clean_parse(fn, path, *args, names=(), **kwargs):
             return None
 
 
-def write_bytes_or_text(path, content):
-    if isinstance(content, bytes):
-        path.write_bytes(content)
-    else:
-        path.write_text(content, encoding="utf-8", errors="surrogatepass")
-    return path
+write_bytes_or_text = fz.write_document
 
 
 @fz.fuzz_settings()

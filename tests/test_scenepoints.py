@@ -147,10 +147,7 @@ def check(pts):
 @given(text=fz.document(DOC, syntax="json", keys=KEYS))
 def test_fuzz_scene_points_json(tmp_path_factory, text):
     path = tmp_path_factory.mktemp("fz") / "points.json"
-    if isinstance(text, bytes):
-        path.write_bytes(text)
-    else:
-        path.write_text(text, encoding="utf-8", errors="surrogatepass")
+    fz.write_document(path, text)
     pts = parse_or_own_error(read_scene_points, path)
     if pts is not None:
         check(pts)
@@ -169,10 +166,7 @@ def test_fuzz_scene_points_csv(tmp_path_factory, data):
     table = fz.csv_tables(CSV_HEAD, CSV_ROWS)
     text = data.draw(st.one_of(table, table, table, table.flatmap(fz.damaged_text), st.text(max_size=300)))
     path = tmp_path_factory.mktemp("fz") / "points.csv"
-    if isinstance(text, bytes):
-        path.write_bytes(text)
-    else:
-        path.write_text(text, encoding="utf-8", errors="surrogatepass")
+    fz.write_document(path, text)
     pts = parse_or_own_error(read_scene_points_csv, path, crs="EPSG:4979")
     if pts is not None:
         check(pts)
