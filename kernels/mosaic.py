@@ -196,3 +196,11 @@ def mosaic_fill_kernel(
         out[r0 + i, c0 + j, b] = part[i, j, b]
     valid[r0 + i, c0 + j] = wp.uint8(1)
     source[r0 + i, c0 + j] = part_source[i, j]
+
+
+# the output dtypes (uint8, uint16, float32), built at import: an overload made at a launch
+# would change the module under the threads launching from it
+for _t in (wp.uint8, wp.uint16, wp.float32):
+    wp.overload(mosaic_candidate_kernel, {"values": wp.array3d(dtype=_t)})
+    wp.overload(mosaic_blend_kernel, {"out": wp.array3d(dtype=_t)})
+    wp.overload(mosaic_fill_kernel, {"out": wp.array3d(dtype=_t), "part": wp.array3d(dtype=_t)})
