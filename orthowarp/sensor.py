@@ -74,8 +74,9 @@ def generic_kernels() -> SensorKernels:
 
 
 class SensorKernels(NamedTuple):
-    """A sensor's kernels, each taking ``(arg_value, refraction, dem, search, ...)``: for the
-    sensors of orthowarp the generic ones of :mod:`orthowarp.kernels.sensor`.
+    """A sensor's kernels (for the sensors of orthowarp the generic ones of
+    :mod:`orthowarp.kernels.sensor`): ``geolocate`` and ``geolocate_grid`` take ``(arg_value,
+    refraction, dem, search, ...)``, ``project`` takes ``(arg_value, refraction, points, out)``.
 
     geolocate : pixels (N,) vec2d -> geo triples (N,) vec3d, the ray met with the terrain.
     geolocate_grid : a regular pixel grid (col0, row0, step) -> geo triples (rows, cols).
