@@ -80,8 +80,7 @@ class SensorKernels(NamedTuple):
 
     geolocate : pixels (N,) vec2d -> geo triples (N,) vec3d, the ray met with the terrain.
     geolocate_grid : a regular pixel grid (col0, row0, step) -> geo triples (rows, cols).
-    project : geo triples -> pixels (its inputs differ by sensor; see the owner's
-        ``project_frame``).
+    project : geo triples (N,) of the sensor's frame -> pixels (N,) vec2d.
     """
 
     geolocate: Any
