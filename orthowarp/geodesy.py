@@ -20,6 +20,7 @@ __all__ = [
     "ry",
     "rz",
     "opk_matrix",
+    "rotvec_matrix",
     "opk_angles",
     "r1",
     "r2",
@@ -154,6 +155,21 @@ def opk_matrix(angles):
     # d/d kappa = R Gz: columns (R1, -R0, 0)
     dr[:, 2, :, 0], dr[:, 2, :, 1] = r[:, :, 1], -r[:, :, 0]
     return r, dr
+
+
+def rotvec_matrix(rvec):
+    """The rotation matrix (3, 3) of a rotation vector (3,) (rad: axis times angle), by
+    Rodrigues' formula ``R = I + (sin t / t) K + ((1 - cos t) / t^2) K^2`` with K the cross-product
+    matrix of the vector and t its length (series below 1e-4 rad, exact to float64 there)."""
+    r = np.asarray(rvec, dtype=np.float64).reshape(3)
+    t2 = float(r @ r)
+    k = np.array([[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]])
+    if t2 < 1e-8:
+        a, b = 1.0 - t2 / 6.0, 0.5 - t2 / 24.0
+    else:
+        t = np.sqrt(t2)
+        a, b = np.sin(t) / t, (1.0 - np.cos(t)) / t2
+    return np.eye(3) + a * k + b * (k @ k)
 
 
 def opk_angles(r):

@@ -995,9 +995,7 @@ def _read_opensfm(path, recs, crs, frame):
                 t = np.array(_numbers(shot["translation"], 3, "translation"))
                 for i, v in enumerate(t):
                     _bounded(v, MAX_COORDINATE, f"translation[{i}]", " m")
-                from scipy.spatial.transform import Rotation  # only OpenSfM files need SciPy
-
-                r_cam_world = Rotation.from_rotvec(rvec).as_matrix()
+                r_cam_world = geodesy.rotvec_matrix(rvec)
                 centre = -r_cam_world.T @ t
                 _bounded(float(np.linalg.norm(centre)), MAX_COORDINATE, "distance of the camera from the reference",
                          " m")

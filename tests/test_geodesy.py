@@ -462,3 +462,18 @@ def test_geodetic_up_is_the_ellipsoid_normal():
         for j in range(2):
             np.testing.assert_allclose(up[i, j], geodesy.enu_to_ecef_matrix(lat[i, j], lon[i, j])[:, 2], atol=1e-15)
     np.testing.assert_allclose(geodesy.geodetic_up(90.0, 0.0), [0.0, 0.0, 1.0], atol=1e-15)
+
+
+def test_rotation_vectors_match_scipy():
+    """Rodrigues' formula (OpenSfM's rotation vectors) against SciPy's Rotation, from 1e-12 rad
+    to pi."""
+    from scipy.spatial.transform import Rotation
+
+    from orthowarp.geodesy import rotvec_matrix
+
+    rng = np.random.default_rng(5)
+    for t in (0.0, 1e-12, 1e-6, 1e-4, 0.5, 2.0, np.pi):
+        for _ in range(5):
+            axis = rng.normal(size=3)
+            r = axis / np.linalg.norm(axis) * t
+            np.testing.assert_allclose(rotvec_matrix(r), Rotation.from_rotvec(r).as_matrix(), atol=2e-16 + 4e-16 * t)
