@@ -9,6 +9,8 @@
   scenes (:mod:`~orthowarp.adjust.lookangles`); :func:`adjust_scenes`: its bundle adjustment
   of exterior-orientation coefficient groups over a stereo pair (:mod:`~orthowarp.adjust.spot_bundle`;
   simulated pairs: :mod:`~orthowarp.adjust.spot_synthetic`);
+- :func:`match_points`: area-based matching (NCC search, then least-squares matching) of
+  points between two images on a Warp device (:mod:`~orthowarp.adjust.matching`);
 - :func:`synthetic_block`: blocks with known truth (:func:`film_camera`: seed 002's kind of camera);
 - :func:`monoplot_covariance`, :func:`intersection_covariance`: ground points' precision by
   error propagation (seed 004; :mod:`~orthowarp.adjust.precision`).
@@ -16,6 +18,7 @@
 
 from .block import ROLES, Block
 from .lookangles import LookAngleResult, preadjust_look_angles
+from .matching import MatchResult, match_points
 from .scene_points import ScenePoints
 from .spot_bundle import EO_GROUPS, SceneBundleResult, adjust_scenes, intersect_scene_points
 from .bundle import AdjustResult, bundle_adjust, intersect
@@ -24,6 +27,6 @@ from .synthetic import CONTROL_LAYOUTS, film_camera, synthetic_block
 
 __all__ = ["Block", "ROLES", "AdjustResult", "bundle_adjust", "intersect", "synthetic_block", "film_camera",
            "CONTROL_LAYOUTS", "PrecisionResult", "ScenePoints", "LookAngleResult", "preadjust_look_angles",
-           "EO_GROUPS", "SceneBundleResult", "adjust_scenes", "intersect_scene_points", "monoplot_covariance",
+           "EO_GROUPS", "SceneBundleResult", "adjust_scenes", "intersect_scene_points", "MatchResult", "match_points", "monoplot_covariance",
            "intersection_covariance"]
 
