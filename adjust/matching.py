@@ -13,7 +13,7 @@ import numpy as np
 
 from ..errors import ParamError
 
-__all__ = ["MatchResult", "match_points"]
+__all__ = ["MatchResult", "match_points", "interest_points"]
 
 
 @dataclass
@@ -137,3 +137,78 @@ def match_points(left, right, points, predicted, *, window=21, radius=8, min_sco
         near = np.hypot(*(out.xy - out.ncc_xy).T) <= max_shift
         out.ok = (out.score >= min_score) & (out.iterations > 0) & near & np.all(np.isfinite(out.xy), axis=1)
     return out
+
+
+def _box(a, half):
+    """Sums of ``a`` over (2 half + 1)^2 windows (same shape; edges: the window clipped)."""
+    c = np.pad(np.cumsum(np.cumsum(a, 0), 1), ((1, 0), (1, 0)))
+    rows, cols = a.shape
+    i0 = np.clip(np.arange(rows) - half, 0, rows)
+    i1 = np.clip(np.arange(rows) + half + 1, 0, rows)
+    j0 = np.clip(np.arange(cols) - half, 0, cols)
+    j1 = np.clip(np.arange(cols) + half + 1, 0, cols)
+    return c[i1][:, j1] - c[i0][:, j1] - c[i1][:, j0] + c[i0][:, j0]
+
+
+def interest_points(image, *, zones=(4, 3), per_zone=1, window=21, min_roundness=0.5, margin=None):
+    """Well-textured points by Foerstner's operator, spread over a grid of zones (seed 002:
+    6 or 12 per image).
+
+    The operator's normal matrix N = sum over the window of the gradients' outer products gives
+    a point's precision ``w = det N / trace N`` and roundness ``q = 4 det N / trace(N)^2``; in
+    each zone the points of greatest ``w`` with ``q >= min_roundness`` are taken, at least a
+    window apart.
+
+    Parameters
+    ----------
+    image : array_like, shape (rows, cols)
+    zones : (int, int), optional
+        Zones across (columns) and down (rows).
+    per_zone : int, optional
+    window : int, optional
+        The operator's window side (px, odd), as the matching's.
+    min_roundness : float, optional
+    margin : int, optional
+        Pixels left at the border (default: a window).
+
+    Returns
+    -------
+    points : ndarray, shape (k, 2)
+        (col, row) pixel centres, zone by zone; fewer than zones x per_zone where zones have
+        no texture (none in a textureless image).
+    strength : ndarray, shape (k,)
+        Their ``w``.
+    """
+    img = _image("image", image).astype(np.float64)
+    if not (isinstance(window, (int, np.integer)) and window % 2 == 1 and window >= 3):
+        raise ParamError(f"window must be an odd integer >= 3, got {window!r}")
+    nz = tuple(int(z) for z in zones)
+    if len(nz) != 2 or min(nz) < 1:
+        raise ParamError(f"zones must be two integers >= 1, got {zones!r}")
+    half = window // 2
+    margin = window if margin is None else int(margin)
+    gy, gx = np.gradient(img)
+    sxx, syy, sxy = _box(gx * gx, half), _box(gy * gy, half), _box(gx * gy, half)
+    det, tr = sxx * syy - sxy * sxy, sxx + syy
+    with np.errstate(invalid="ignore", divide="ignore"):
+        w = np.where(tr > 0, det / tr, 0.0)
+        q = np.where(tr > 0, 4.0 * det / (tr * tr), 0.0)
+    rows, cols = img.shape
+    w[q < min_roundness] = 0.0
+    w[:margin], w[rows - margin:], w[:, :margin], w[:, cols - margin:] = 0.0, 0.0, 0.0, 0.0
+    scale = float(np.max(w)) if np.max(w) > 0 else 1.0
+    pts, strength = [], []
+    for zr in range(nz[1]):
+        for zc in range(nz[0]):
+            r0, r1 = zr * rows // nz[1], (zr + 1) * rows // nz[1]
+            c0, c1 = zc * cols // nz[0], (zc + 1) * cols // nz[0]
+            zone = w[r0:r1, c0:c1].copy()
+            for _ in range(per_zone):
+                k = int(np.argmax(zone))
+                i, j = divmod(k, zone.shape[1])
+                if zone[i, j] <= 1e-9 * scale:
+                    break
+                pts.append((c0 + j + 0.5, r0 + i + 0.5))
+                strength.append(zone[i, j])
+                zone[max(i - window, 0):i + window + 1, max(j - window, 0):j + window + 1] = 0.0
+    return np.array(pts, dtype=np.float64).reshape(-1, 2), np.array(strength)
