@@ -13,7 +13,7 @@ from ..errors import ParamError
 from ..sensor import FrameSensor
 from .geometry import geolocate, project
 
-__all__ = ["PairMatches", "match_pair"]
+__all__ = ["PairMatches", "match_pair", "match_block"]
 
 
 @dataclass
@@ -96,3 +96,114 @@ def match_pair(left, right, left_sensor, right_sensor, dem, *, zones=(4, 3), per
         ok = fwd.ok & back.ok & (err <= max_back_error)
     return PairMatches(left=pts[ok], right=fwd.xy[ok], sigma=fwd.sigma[ok], predicted=pred[ok], score=fwd.score[ok],
                        candidates=int(inside.sum()), back_error=err[ok])
+
+
+def match_block(images, sensors, dem, *, ids=None, zones=(4, 3), per_zone=2, window=21, radius=8, min_score=0.7,
+                max_back_error=0.2, gnss_sigma=None, ins_sigma=None, refraction=True, device=None):
+    """Tie points of a block of frame images by matching (seed 002), as a
+    :class:`~orthowarp.adjust.Block` that :func:`~orthowarp.adjust.bundle_adjust` takes.
+
+    Every image's interest points are matched in every other image their predictions fall in
+    (through the sensors and the DEM); a point is kept with its observations in all the images
+    where it matched and back-matched (multi-image transfer to one point id, named
+    ``<image id>:<k>``), when there are at least two. Each observation's sigma is the
+    least-squares sigma of its match (the reference image's: the largest of its matches'),
+    floored at 0.02 px.
+
+    Parameters
+    ----------
+    images : sequence of array_like (rows, cols)
+    sensors : sequence of FrameSensor
+        Approximate orientations, all map-Cartesian (omega-phi-kappa) in one CRS.
+    dem : Dem, str or float
+    ids : sequence of str, optional
+        Image ids (default ``img0``, ``img1``, ...).
+    zones, per_zone, window, radius, min_score, max_back_error, refraction, device :
+        As :func:`match_pair`.
+    gnss_sigma : float, optional
+        Sigma (m) of the given projection centres as observations of the adjustment (default:
+        none: the block then needs control).
+    ins_sigma : float, optional
+        Sigma (deg) of the given omega, phi, kappa as observations (default: none).
+
+    Returns
+    -------
+    block : Block
+        Poses from the sensors, tie points (coordinates unknown), their observations.
+    stats : dict
+        Interest points, predictions inside another image, accepted observations per pair.
+    """
+    from ..adjust.block import Block
+
+    images = [np.asarray(a) for a in images]
+    sensors = list(sensors)
+    if len(images) != len(sensors) or len(images) < 2:
+        raise ParamError(f"match_block needs two or more images with one sensor each, got {len(images)} images and "
+                         f"{len(sensors)} sensors")
+    ids = [f"img{k}" for k in range(len(images))] if ids is None else [str(i) for i in ids]
+    if len(ids) != len(images) or len(set(ids)) != len(ids):
+        raise ParamError("ids must name every image once")
+    for k, s in enumerate(sensors):
+        if not isinstance(s, FrameSensor) or s.geocentric:
+            raise ParamError(f"sensors[{k}] must be a map-Cartesian FrameSensor (omega-phi-kappa pose)")
+    crs = sensors[0].pose.crs
+    if any(not s.pose.crs.equals(crs) for s in sensors):
+        raise ParamError("the sensors' poses must share one CRS")
+    obs = {}  # (point id, image index) -> (col, row, sigma)
+    stats = dict(interest=0, pairs={})
+    for i, (img_i, s_i) in enumerate(zip(images, sensors)):
+        pts, _ = interest_points(img_i, zones=zones, per_zone=per_zone, window=window)
+        stats["interest"] += len(pts)
+        if not len(pts):
+            continue
+        ground = geolocate(s_i, pts, dem=dem, crs=s_i.frame_crs, refraction=refraction, device=device)
+        found = {}
+        for j, (img_j, s_j) in enumerate(zip(images, sensors)):
+            if j == i:
+                continue
+            pred = project(s_j, ground, crs=s_i.frame_crs, refraction=refraction, device=device)
+            w, h = s_j.image_size
+            inside = np.all(np.isfinite(pred), axis=1) & (pred[:, 0] > window) & (pred[:, 0] < w - window) & (
+                pred[:, 1] > window) & (pred[:, 1] < h - window)
+            sel = np.flatnonzero(inside)
+            if not len(sel):
+                continue
+            fwd = match_points(img_i, img_j, pts[sel], pred[sel], window=window, radius=radius, min_score=min_score,
+                               device=device)
+            back = match_points(img_j, img_i, np.nan_to_num(fwd.xy, nan=-1e3), pts[sel], window=window, radius=2,
+                                min_score=min_score, device=device)
+            with np.errstate(invalid="ignore"):
+                ok = fwd.ok & back.ok & (np.hypot(*(back.xy - pts[sel]).T) <= max_back_error)
+            stats["pairs"][f"{ids[i]}->{ids[j]}"] = dict(predicted=int(len(sel)), accepted=int(ok.sum()))
+            for k in np.flatnonzero(ok):
+                found.setdefault(int(sel[k]), []).append((j, *fwd.xy[k], float(max(fwd.sigma[k].max(), 0.02))))
+        for k, matches in found.items():
+            pid = f"{ids[i]}:{k}"
+            sig = max(m[3] for m in matches)
+            obs[(pid, i)] = (pts[k, 0], pts[k, 1], sig)
+            for j, c, r, s in matches:
+                obs[(pid, j)] = (c, r, s)
+    point_ids = sorted({pid for pid, _ in obs}, key=lambda p: (p.rsplit(":", 1)[0], int(p.rsplit(":", 1)[1])))
+    index = {pid: n for n, pid in enumerate(point_ids)}
+    keys = sorted(obs, key=lambda t: (index[t[0]], t[1]))
+    cameras, image_camera = {}, []
+    for s in sensors:
+        cid = next((c for c, cam in cameras.items() if cam is s.camera), f"cam{len(cameras)}")
+        cameras[cid] = s.camera
+        image_camera.append(cid)
+    params = [s.parameters() for s in sensors]
+    poses = np.array([[p[k] for k in ("X0", "Y0", "Z0", "omega", "phi", "kappa")] for p in params])
+    n, p = len(images), len(point_ids)
+    gnss = np.full((n, 3), np.nan) if gnss_sigma is None else poses[:, :3].copy()
+    ins = np.full((n, 3), np.nan) if ins_sigma is None else poses[:, 3:].copy()
+    block = Block(crs=crs.to_string(), cameras=cameras, image_ids=ids, image_camera=image_camera, poses=poses,
+                  point_ids=point_ids, roles=["tie"] * p, xyz=np.full((p, 3), np.nan), xyz_sigma=np.full((p, 3), np.nan),
+                  obs_image=np.array([t[1] for t in keys], dtype=np.int64),
+                  obs_point=np.array([index[t[0]] for t in keys], dtype=np.int64),
+                  obs_xy=np.array([obs[t][:2] for t in keys], dtype=np.float64).reshape(-1, 2),
+                  obs_sigma=np.array([obs[t][2] for t in keys], dtype=np.float64),
+                  gnss_xyz=gnss, gnss_sigma=np.full((n, 3), np.nan if gnss_sigma is None else float(gnss_sigma)),
+                  ins_opk=ins, ins_sigma=np.full((n, 3), np.nan if ins_sigma is None else float(ins_sigma)),
+                  name="matched block")
+    stats["points"], stats["observations"] = p, len(keys)
+    return block, stats
