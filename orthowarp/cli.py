@@ -977,3 +977,74 @@ def _write_spot_example(folder):
         out.append((sid, path))
     write_scene_points(points, os.path.join(folder, "points.json"))
     return tuple(out), os.path.join(folder, "points.json")
+
+
+@main.command()
+@click.argument("images", nargs=-1, type=click.Path(dir_okay=False))
+@click.option("--int-param", type=click.Path(dir_okay=False), help="Camera file (orthority/ODM YAML or JSON, OpenSfM).")
+@click.option("--ext-param", type=click.Path(dir_okay=False),
+              help="Approximate exterior orientation (x,y,z,omega,phi,kappa CSV + .prj, GeoJSON, reconstruction.json).")
+@click.option("--crs", help="CRS of x,y,z poses in a file that has no .prj.")
+@click.option("--dem", type=click.Path(dir_okay=False), help="DEM file (any CRS).")
+@click.option("--height", type=float, help="Constant terrain height (m) instead of a DEM.")
+@click.option("--out", "out_path", type=click.Path(dir_okay=False), required=True,
+              help="The block file to write (JSON, for 'orthowarp adjust').")
+@click.option("--zones", default="4x3", show_default=True, help="Interest-point zones per image, across x down.")
+@click.option("--per-zone", type=click.IntRange(1, 100), default=2, show_default=True, help="Points per zone.")
+@click.option("--window", type=int, default=21, show_default=True, help="Matching window side (px, odd).")
+@click.option("--radius", type=click.IntRange(0, 256), default=8, show_default=True,
+              help="NCC search radius (px) around the predicted position: the orientation's error in pixels.")
+@click.option("--min-score", type=float, default=0.7, show_default=True, help="Smallest NCC accepted.")
+@click.option("--gnss-sigma", type=float, default=None,
+              help="Sigma (m) of the given projection centres as observations in the block (default: none).")
+@click.option("--ins-sigma", type=float, default=None,
+              help="Sigma (deg) of the given omega, phi, kappa as observations in the block (default: none).")
+@click.option("--no-refraction", is_flag=True, help="Do not model atmospheric refraction in the predictions.")
+@click.option("--overwrite", is_flag=True, help="Replace an existing block file.")
+@click.option("--device", default=None, help="Warp device (cpu, cuda, cuda:N); default: first GPU, else CPU.")
+@click.pass_context
+def match(ctx, images, int_param, ext_param, crs, dem, height, out_path, zones, per_zone, window, radius, min_score,
+          gnss_sigma, ins_sigma, no_refraction, overwrite, device):
+    """Find tie points between frame IMAGES by area-based matching (interest points, NCC,
+    least-squares matching, back-matching), predicted through their approximate orientation and
+    the DEM, and write them as a block for 'orthowarp adjust' (add control points to its
+    'points' before adjusting, or give --gnss-sigma/--ins-sigma). The first band of each image
+    is matched; the poses must be omega-phi-kappa ones in a projected CRS."""
+    import rasterio
+
+    from .errors import ParamError, RasterIOError
+    from .pipeline.blockio import write_block
+    from .pipeline.dem import Dem
+    from .pipeline.io import check_destination
+    from .pipeline.matching import match_block
+
+    images = _expand_globs(images)
+    if len(images) < 2 or not (int_param or ext_param) or (dem is None) == (height is None):
+        raise ParamError("Give two or more IMAGES, --ext-param (and --int-param) and one of --dem or --height")
+    try:
+        zx, zy = (int(v) for v in zones.lower().split("x"))
+    except ValueError:
+        raise ParamError(f"--zones must be COLSxROWS such as 4x3, got {zones!r}") from None
+    check_destination(out_path, overwrite=overwrite)
+    jobs = _frame_orientations(images, int_param, ext_param, crs)
+    pixels = []
+    for image, cam, _ in jobs:
+        try:
+            with rasterio.open(image) as ds:
+                pixels.append(ds.read(1).astype(np.float32))
+        except rasterio.errors.RasterioIOError as e:
+            raise RasterIOError(f"Could not read image '{image}': {e}") from e
+    terrain = Dem.from_file(dem) if dem is not None else height
+    ids = [os.path.splitext(os.path.basename(image))[0] for image, _, _ in jobs]
+    block, stats = match_block(pixels, [FrameSensor(c, p) for _, c, p in jobs], terrain, ids=ids, zones=(zx, zy),
+                               per_zone=per_zone, window=window, radius=radius, min_score=min_score,
+                               gnss_sigma=gnss_sigma, ins_sigma=ins_sigma, refraction=not no_refraction,
+                               device=device)
+    if not block.n_points:
+        raise ParamError(f"No tie point matched between the {len(images)} images ({stats['interest']} interest "
+                         "points): no texture, no overlap, or the orientation is further off than --radius")
+    write_block(block, out_path)
+    if not ctx.obj["quiet"]:
+        pairs = ", ".join(f"{k} {v['accepted']}/{v['predicted']}" for k, v in stats["pairs"].items())
+        click.echo(f"{out_path}: {stats['points']} tie points, {stats['observations']} observations "
+                   f"({stats['interest']} interest points; matched/predicted per pair: {pairs})")

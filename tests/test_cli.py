@@ -441,3 +441,37 @@ def test_spot_adjust_example_end_to_end(tmp_path):
                                     "attitude7", "--out", str(tmp_path / "bad")])
     assert res.exit_code != 0 and "unknown EO group" in res.output
     assert not os.path.exists(tmp_path / "bad")
+
+
+def test_match_writes_a_block_of_ties(tmp_path):
+    """orthowarp match on the rendered pair with orientation files: a block of tie points that
+    read_block takes; a bad option -> a clear error and no file."""
+    import os
+
+    import numpy as np
+
+    from orthowarp import read_block
+    from orthowarp.pipeline.formats import export_params
+    from test_mosaic import _second_view
+    from test_ortho import scene, write_image
+
+    sc = scene("opk")
+    pose2, _, img2 = _second_view(sc)
+    a = write_image(tmp_path / "a.tif", sc.image(False), "float32")
+    b = write_image(tmp_path / "b.tif", img2, "float32")
+    export_params([(str(a), sc.camera, sc.pose), (str(b), sc.camera, pose2)], tmp_path / "o")
+    dem = tmp_path / "dem.tif"
+    from orthowarp.pipeline.io import write_raster
+
+    write_raster(dem, sc.dem.array, transform=sc.dem.transform, crs=sc.dem.crs.to_wkt(), nodata=np.nan)
+    args = ["match", str(a), str(b), "--int-param", str(tmp_path / "o" / "int_param.yaml"), "--ext-param",
+            str(tmp_path / "o" / "ext_param.csv"), "--dem", str(dem), "--window", "15", "--per-zone", "3",
+            "--device", "cpu", "--no-refraction"]
+    res = CliRunner().invoke(main, [*args, "--out", str(tmp_path / "block.json")])
+    assert res.exit_code == 0, res.output
+    block = read_block(tmp_path / "block.json")
+    assert block.n_points >= 30 and set(block.roles) == {"tie"} and block.image_ids == ["a", "b"]
+    res = CliRunner().invoke(main, [*args[:3], "--int-param", str(tmp_path / "o" / "int_param.yaml"), "--ext-param",
+                                    str(tmp_path / "o" / "ext_param.csv"), "--height", "450", "--zones", "4y3",
+                                    "--out", str(tmp_path / "x.json")])
+    assert res.exit_code != 0 and "--zones must be" in res.output and not os.path.exists(tmp_path / "x.json")
