@@ -42,6 +42,7 @@ def main(argv=None):
     pred = truth + rng.uniform(-4, 4, truth.shape)
     lw, rw = wp.array(left.astype(np.float32), device=dev), wp.array(right.astype(np.float32), device=dev)
     p, q = wp.array(pts, dtype=wp.vec2d, device=dev), wp.array(pred, dtype=wp.vec2d, device=dev)
+    aff = wp.array(np.tile(np.eye(2), (len(pts), 1, 1)), dtype=wp.mat22d, device=dev)
     n, half = len(pts), args.window // 2
     ncc_xy, score = wp.empty(n, dtype=wp.vec2d, device=dev), wp.empty(n, dtype=wp.float64, device=dev)
     xy, sig = wp.empty(n, dtype=wp.vec2d, device=dev), wp.empty(n, dtype=wp.vec2d, device=dev)
@@ -49,11 +50,11 @@ def main(argv=None):
 
     def ncc():
         wp.launch(km.ncc_search_kernel, dim=n, device=dev,
-                  inputs=[lw, rw, p, q, wp.int32(half), wp.int32(args.radius), ncc_xy, score])
+                  inputs=[lw, rw, p, q, aff, wp.int32(half), wp.int32(args.radius), ncc_xy, score])
 
     def lsm():
         wp.launch(km.lsm_kernel, dim=n, device=dev,
-                  inputs=[lw, rw, p, ncc_xy, wp.int32(half), wp.int32(20), wp.float64(1e-4), xy, sig, s0, its])
+                  inputs=[lw, rw, p, ncc_xy, aff, wp.int32(half), wp.int32(20), wp.float64(1e-4), xy, sig, s0, its])
 
     def best(fn):
         fn()

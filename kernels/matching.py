@@ -6,9 +6,10 @@ Pixel coordinates follow DESIGN.md: (col, row) with the centre of pixel (i, j) a
 the image).
 
 - :func:`ncc_search_kernel`: for each point, the template of (2 half + 1)^2 pixels around its
-  position in the left image is correlated with the right image at every whole-pixel offset
-  within ``radius`` of the predicted position; the best offset is refined by a parabola through
-  its neighbours on each axis.
+  position in the left image is correlated with the right image, resampled through the point's
+  predicted affine map (rotation, scale and shear between the views), at every whole-pixel
+  offset within ``radius`` of the predicted position; the best offset is refined by a parabola
+  through its neighbours on each axis.
 - :func:`lsm_kernel`: least-squares matching (Gruen 1985): the right window mapped by an affine
   transformation (6 parameters) with a linear radiometric correction (2: offset, gain) is fitted
   to the template by Gauss-Newton in float64; returns the position, its standard deviations from
@@ -45,9 +46,10 @@ def sample(img: wp.array2d(dtype=wp.float32), x: wp.float64, y: wp.float64):
 
 @wp.func
 def ncc_at(left: wp.array2d(dtype=wp.float32), right: wp.array2d(dtype=wp.float32), xl: wp.float64, yl: wp.float64,
-           xr: wp.float64, yr: wp.float64, half: wp.int32):
-    """Normalised cross-correlation of the windows centred at (xl, yl) left and (xr, yr) right;
-    NaN where a window leaves its image or has no texture."""
+           xr: wp.float64, yr: wp.float64, half: wp.int32, a: wp.mat22d):
+    """Normalised cross-correlation of the window centred at (xl, yl) left and its image under
+    the affine map ``a`` (right offset = a @ left offset) centred at (xr, yr) right; NaN where a
+    window leaves its image or has no texture."""
     st = wp.float64(0.0)
     ss = wp.float64(0.0)
     stt = wp.float64(0.0)
@@ -55,8 +57,10 @@ def ncc_at(left: wp.array2d(dtype=wp.float32), right: wp.array2d(dtype=wp.float3
     sts = wp.float64(0.0)
     for dy in range(-half, half + 1):
         for dx in range(-half, half + 1):
-            t = sample(left, xl + wp.float64(dx), yl + wp.float64(dy))
-            s = sample(right, xr + wp.float64(dx), yr + wp.float64(dy))
+            fdx = wp.float64(dx)
+            fdy = wp.float64(dy)
+            t = sample(left, xl + fdx, yl + fdy)
+            s = sample(right, xr + a[0, 0] * fdx + a[0, 1] * fdy, yr + a[1, 0] * fdx + a[1, 1] * fdy)
             st += t
             ss += s
             stt += t * t
@@ -85,22 +89,26 @@ def ncc_search_kernel(
     right: wp.array2d(dtype=wp.float32),
     points: wp.array(dtype=wp.vec2d),
     predicted: wp.array(dtype=wp.vec2d),
+    affine: wp.array(dtype=wp.mat22d),
     half: wp.int32,
     radius: wp.int32,
     out: wp.array(dtype=wp.vec2d),
     score: wp.array(dtype=wp.float64),
 ):
     """Best NCC position (N,) of each point's template within ``radius`` px of its prediction,
-    to a fraction of a pixel; NaN and score NaN where no offset correlates."""
+    to a fraction of a pixel, the right window resampled by each point's predicted affine map
+    (N,) (rotation, scale and shear between the images); NaN and score NaN where no offset
+    correlates."""
     k = wp.tid()
     p = points[k]
     q = predicted[k]
+    a = affine[k]
     best = wp.float64(-2.0)
     bu = int(0)
     bv = int(0)
     for v in range(-radius, radius + 1):
         for u in range(-radius, radius + 1):
-            c = ncc_at(left, right, p[0], p[1], q[0] + wp.float64(u), q[1] + wp.float64(v), half)
+            c = ncc_at(left, right, p[0], p[1], q[0] + wp.float64(u), q[1] + wp.float64(v), half, a)
             if c > best:
                 best = c
                 bu = u
@@ -112,10 +120,10 @@ def ncc_search_kernel(
         return
     x = q[0] + wp.float64(bu)
     y = q[1] + wp.float64(bv)
-    dx = parabola_peak(ncc_at(left, right, p[0], p[1], x - wp.float64(1.0), y, half), best,
-                       ncc_at(left, right, p[0], p[1], x + wp.float64(1.0), y, half))
-    dy = parabola_peak(ncc_at(left, right, p[0], p[1], x, y - wp.float64(1.0), half), best,
-                       ncc_at(left, right, p[0], p[1], x, y + wp.float64(1.0), half))
+    dx = parabola_peak(ncc_at(left, right, p[0], p[1], x - wp.float64(1.0), y, half, a), best,
+                       ncc_at(left, right, p[0], p[1], x + wp.float64(1.0), y, half, a))
+    dy = parabola_peak(ncc_at(left, right, p[0], p[1], x, y - wp.float64(1.0), half, a), best,
+                       ncc_at(left, right, p[0], p[1], x, y + wp.float64(1.0), half, a))
     out[k] = wp.vec2d(x + dx, y + dy)
     score[k] = best
 
@@ -161,6 +169,7 @@ def lsm_kernel(
     right: wp.array2d(dtype=wp.float32),
     points: wp.array(dtype=wp.vec2d),
     start: wp.array(dtype=wp.vec2d),
+    affine: wp.array(dtype=wp.mat22d),
     half: wp.int32,
     max_iter: wp.int32,
     tol: wp.float64,
@@ -169,17 +178,18 @@ def lsm_kernel(
     sigma0: wp.array(dtype=wp.float64),
     iterations: wp.array(dtype=wp.int32),
 ):
-    """Least-squares matching of each point's template from ``start`` (N,): position, its
-    sigmas (px), sigma0 (grey values) and iterations (0: diverged, left its window or singular;
-    the position is then NaN)."""
+    """Least-squares matching of each point's template from ``start`` (N,) and the affine map
+    ``affine`` (N,): position, its sigmas (px), sigma0 (grey values) and iterations (0:
+    diverged, left its window or singular; the position is then NaN)."""
     k = wp.tid()
     p = points[k]
     q = start[k]
+    a0 = affine[k]
     nan = wp.float64(wp.nan)
     one = wp.float64(1.0)
     zero = wp.float64(0.0)
     # x' = q + a0 + a1 dx + a2 dy, y' = q + b0 + b1 dx + b2 dy; template = r0 + r1 right(x', y')
-    prm = vec8(zero, one, zero, zero, zero, one, zero, one)
+    prm = vec8(zero, a0[0, 0], a0[0, 1], zero, a0[1, 0], a0[1, 1], zero, one)
     n_pix = (2 * half + 1) * (2 * half + 1)
     done = int(0)
     nmat = mat88()

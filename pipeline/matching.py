@@ -1,7 +1,7 @@
 """Tie points between frame images by area-based matching, predicted through the sensors'
-geometry (seed 002; issue 15): interest points of one image, their ground points on the DEM,
-their predicted pixels in the other image, NCC + least-squares matching
-(:func:`orthowarp.adjust.match_points`), back-matching.
+geometry (seed 002): interest points of one image, their ground points on the DEM, their
+predicted pixels and local affine maps (rotation, scale, shear between the views) in the other
+image, NCC + least-squares matching (:func:`orthowarp.adjust.match_points`), back-matching.
 """
 
 from dataclasses import dataclass
@@ -14,6 +14,19 @@ from ..sensor import FrameSensor
 from .geometry import geolocate, project
 
 __all__ = ["PairMatches", "match_pair", "match_block"]
+
+
+def _predict(left_sensor, right_sensor, pts, dem, refraction, device):
+    """Predicted right pixels (k, 2) of left pixels (k, 2) through the sensors and the DEM, and
+    the local affine maps (k, 2, 2) d right / d left (from neighbours one pixel away)."""
+    crs = left_sensor.frame_crs
+    k = len(pts)
+    probe = np.concatenate([pts, pts + [1.0, 0.0], pts + [0.0, 1.0]])
+    ground = geolocate(left_sensor, probe, dem=dem, crs=crs, refraction=refraction, device=device)
+    pred = project(right_sensor, ground, crs=crs, refraction=refraction, device=device)
+    aff = np.stack([pred[k:2 * k] - pred[:k], pred[2 * k:] - pred[:k]], -1)  # columns: d/dcol, d/drow
+    aff[~np.all(np.isfinite(aff), axis=(1, 2))] = np.eye(2)
+    return pred[:k], aff
 
 
 @dataclass
@@ -79,18 +92,17 @@ def match_pair(left, right, left_sensor, right_sensor, dem, *, zones=(4, 3), per
     empty = PairMatches(*(np.zeros((0, 2)),) * 4, np.zeros(0), 0, np.zeros(0))
     if not len(pts):
         return empty
-    crs = left_sensor.frame_crs
-    ground = geolocate(left_sensor, pts, dem=dem, crs=crs, refraction=refraction, device=device)
-    pred = project(right_sensor, ground, crs=crs, refraction=refraction, device=device)
+    pred, aff = _predict(left_sensor, right_sensor, pts, dem, refraction, device)
     w, h = right_sensor.image_size
     inside = np.all(np.isfinite(pred), axis=1) & (pred[:, 0] > window) & (pred[:, 0] < w - window) & (
         pred[:, 1] > window) & (pred[:, 1] < h - window)
-    pts, pred = pts[inside], pred[inside]
+    pts, pred, aff = pts[inside], pred[inside], aff[inside]
     if not len(pts):
         return empty
-    fwd = match_points(left, right, pts, pred, window=window, radius=radius, min_score=min_score, device=device)
-    back = match_points(right, left, np.nan_to_num(fwd.xy, nan=-1e3), pts, window=window, radius=2,
-                        min_score=min_score, device=device)
+    fwd = match_points(left, right, pts, pred, affine=aff, window=window, radius=radius, min_score=min_score,
+                       device=device)
+    back = match_points(right, left, np.nan_to_num(fwd.xy, nan=-1e3), pts, affine=np.linalg.inv(aff), window=window,
+                        radius=2, min_score=min_score, device=device)
     err = np.hypot(*(back.xy - pts).T)
     with np.errstate(invalid="ignore"):
         ok = fwd.ok & back.ok & (err <= max_back_error)
@@ -156,22 +168,21 @@ def match_block(images, sensors, dem, *, ids=None, zones=(4, 3), per_zone=2, win
         stats["interest"] += len(pts)
         if not len(pts):
             continue
-        ground = geolocate(s_i, pts, dem=dem, crs=s_i.frame_crs, refraction=refraction, device=device)
         found = {}
         for j, (img_j, s_j) in enumerate(zip(images, sensors)):
             if j == i:
                 continue
-            pred = project(s_j, ground, crs=s_i.frame_crs, refraction=refraction, device=device)
+            pred, aff = _predict(s_i, s_j, pts, dem, refraction, device)
             w, h = s_j.image_size
             inside = np.all(np.isfinite(pred), axis=1) & (pred[:, 0] > window) & (pred[:, 0] < w - window) & (
                 pred[:, 1] > window) & (pred[:, 1] < h - window)
             sel = np.flatnonzero(inside)
             if not len(sel):
                 continue
-            fwd = match_points(img_i, img_j, pts[sel], pred[sel], window=window, radius=radius, min_score=min_score,
-                               device=device)
-            back = match_points(img_j, img_i, np.nan_to_num(fwd.xy, nan=-1e3), pts[sel], window=window, radius=2,
-                                min_score=min_score, device=device)
+            fwd = match_points(img_i, img_j, pts[sel], pred[sel], affine=aff[sel], window=window, radius=radius,
+                               min_score=min_score, device=device)
+            back = match_points(img_j, img_i, np.nan_to_num(fwd.xy, nan=-1e3), pts[sel], affine=np.linalg.inv(aff[sel]),
+                                window=window, radius=2, min_score=min_score, device=device)
             with np.errstate(invalid="ignore"):
                 ok = fwd.ok & back.ok & (np.hypot(*(back.xy - pts[sel]).T) <= max_back_error)
             stats["pairs"][f"{ids[i]}->{ids[j]}"] = dict(predicted=int(len(sel)), accepted=int(ok.sum()))

@@ -1,0 +1,105 @@
+"""Matched ties on real frames (issue 15): the four NGI frames of orthority's sample data, their
+given orientation as weighted observations (GNSS 1 m, INS 0.05 deg), tie points by matching
+(orthowarp.pipeline.matching.match_block), a bundle adjustment, and the sub-pixel shifts between
+overlapping orthos (tile-wise phase correlation) before and after.
+
+usage: python3 bench/match_ngi.py [--data ../shared/data/orthority] [--resolution 5] [--out FILE]
+Reads the shared sample data (which tests must not); CPU.
+"""
+
+import argparse
+import itertools
+import json
+import os
+import sys
+import tempfile
+import time
+
+import numpy as np
+import rasterio
+from rasterio.windows import from_bounds
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+
+import orthowarp as ow  # noqa: E402
+from orthowarp.adjust import bundle_adjust  # noqa: E402
+from orthowarp.pipeline.formats import read_cameras, read_exterior  # noqa: E402
+from orthowarp.pipeline.matching import match_block  # noqa: E402
+from orthowarp.pipeline.registration import misregistration  # noqa: E402
+
+
+def overlaps(paths):
+    """Per overlapping pair: the RMS and mean magnitude (px) of the tile shifts in the overlap."""
+    out = {}
+    for a, b in itertools.combinations(paths, 2):
+        with rasterio.open(a) as da, rasterio.open(b) as db:
+            l, bo = max(da.bounds.left, db.bounds.left), max(da.bounds.bottom, db.bounds.bottom)
+            r, t = min(da.bounds.right, db.bounds.right), min(da.bounds.top, db.bounds.top)
+            if r <= l or t <= bo:
+                continue
+            wa, wb = from_bounds(l, bo, r, t, da.transform).round_offsets().round_lengths(), \
+                from_bounds(l, bo, r, t, db.transform).round_offsets().round_lengths()
+            h, w = min(wa.height, wb.height), min(wa.width, wb.width)
+            if min(h, w) < 64:
+                continue
+            ia = da.read(1, window=wa)[:h, :w].astype(np.float64)
+            ib = db.read(1, window=wb)[:h, :w].astype(np.float64)
+            va = da.read_masks(1, window=wa)[:h, :w] > 0
+            vb = db.read_masks(1, window=wb)[:h, :w] > 0
+        m = misregistration(ia, ib, valid=va & vb, tile=64)
+        if m["n_tiles"]:
+            mag = np.hypot(*m["shifts"].T)
+            out[f"{os.path.basename(a)[:-10]}~{os.path.basename(b)[:-10]}"] = dict(
+                tiles=int(m["n_tiles"]), rms_px=round(float(m["rms"]), 3), mean_px=round(float(mag.mean()), 3))
+    return out
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "shared",
+                                                   "data", "orthority"))
+    ap.add_argument("--resolution", type=float, default=5.0)
+    ap.add_argument("--out", default="bench/results/match_ngi.json")
+    args = ap.parse_args(argv)
+    t0 = time.perf_counter()
+    d = args.data
+    cams = read_cameras(os.path.join(d, "io", "ngi_int_param.yaml"))
+    ext = read_exterior(os.path.join(d, "io", "ngi_xyz_opk.csv"))
+    dem = ow.Dem.from_file(os.path.join(d, "ngi", "dem.tif"))
+    names = sorted(ext)
+    sensors = [ow.FrameSensor(cams[ext[n].camera_id] if ext[n].camera_id else next(iter(cams.values())), ext[n].pose)
+               for n in names]
+    images = []
+    for n in names:
+        with rasterio.open(os.path.join(d, "ngi", n + ".tif")) as ds:
+            images.append(ds.read(1).astype(np.float32))
+    block, stats = match_block(images, sensors, dem, ids=names, zones=(8, 12), per_zone=2, radius=12, gnss_sigma=1.0,
+                               ins_sigma=0.05, device="cpu")
+    res = bundle_adjust(block)
+    adjusted = []
+    for n, s in zip(names, sensors):
+        x, y, z, o, p, k = res.poses[n]
+        adjusted.append(ow.FrameSensor(s.camera, ow.Pose.from_opk(x, y, z, o, p, k, crs=s.pose.crs)))
+    out = dict(benchmark="match_ngi", images=names, resolution=args.resolution, match=stats,
+               adjustment=dict(message=res.message, sigma0=res.sigma0, redundancy=res.redundancy,
+                               pose_change={n: (np.array(res.poses[n]) - [s.parameters()[k] for k in (
+                                   "X0", "Y0", "Z0", "omega", "phi", "kappa")]).round(4).tolist()
+                                            for n, s in zip(names, sensors)}))
+    with tempfile.TemporaryDirectory() as work:
+        for tag, group in (("given", sensors), ("adjusted", adjusted)):
+            paths = []
+            for n, s in zip(names, group):
+                dst = os.path.join(work, f"{tag}_{n}_ORTHO.tif")
+                ow.orthorectify(os.path.join(d, "ngi", n + ".tif"), s, dst, dem=dem, resolution=args.resolution,
+                                device="cpu")
+                paths.append(dst)
+            out[f"overlaps_{tag}"] = overlaps(paths)
+    out["seconds"] = round(time.perf_counter() - t0, 1)
+    print(json.dumps(out, indent=1))
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+    with open(args.out, "w") as f:
+        json.dump(out, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
