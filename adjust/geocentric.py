@@ -20,12 +20,6 @@ from ..pose import MOUNT, Pose
 __all__ = ["to_local", "from_local"]
 
 
-def _rpy(r_nav_body):
-    """roll, pitch, yaw (deg) of R_nav<-body = Rz(yaw) Ry(pitch) Rx(roll)."""
-    r = r_nav_body
-    return np.degrees([np.arctan2(r[2, 1], r[2, 2]), -np.arcsin(np.clip(r[2, 0], -1.0, 1.0)), np.arctan2(r[1, 0], r[0, 0])])
-
-
 class LocalFrame:
     """East-north-up frame at an origin (lat, lon, h in deg, m)."""
 
@@ -53,7 +47,7 @@ class LocalFrame:
         r_ecef_cam = self.r.T @ geodesy.opk_matrix(np.radians(pose[3:6]))[0][0]
         lla = self.to_lla(pose[:3])[0]
         r_nav_body = geodesy.ned_to_ecef_matrix(lla[0], lla[1]).T @ r_ecef_cam @ MOUNT.T
-        return np.r_[lla, _rpy(r_nav_body)]
+        return np.r_[lla, geodesy.rpy_angles(r_nav_body)]
 
 
 def to_local(block):

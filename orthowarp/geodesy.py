@@ -20,6 +20,7 @@ __all__ = [
     "ry",
     "rz",
     "opk_matrix",
+    "rpy_angles",
     "rotvec_matrix",
     "opk_angles",
     "r1",
@@ -170,6 +171,14 @@ def rotvec_matrix(rvec):
         t = np.sqrt(t2)
         a, b = np.sin(t) / t, (1.0 - np.cos(t)) / t2
     return np.eye(3) + a * k + b * (k @ k)
+
+
+def rpy_angles(r_nav_body):
+    """(roll, pitch, yaw) (deg) of ``R_nav<-body = Rz(yaw) Ry(pitch) Rx(roll)`` (3, 3): the
+    inverse of that product (DESIGN.md's GNSS/INS convention), pitch within +-90 degrees."""
+    r = np.asarray(r_nav_body, dtype=np.float64)
+    return tuple(float(a) for a in np.degrees([np.arctan2(r[2, 1], r[2, 2]), -np.arcsin(np.clip(r[2, 0], -1.0, 1.0)),
+                                               np.arctan2(r[1, 0], r[0, 0])]))
 
 
 def opk_angles(r):

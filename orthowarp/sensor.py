@@ -348,8 +348,16 @@ class FrameSensor(SensorModel):
         p.update({k: float(v) for k, v in values.items()})
         pose, camera = self.pose, self.camera
         if any(k in values for k in FRAME_PARAMETERS[:6]):
-            r, _ = geodesy.opk_matrix(np.radians([[p["omega"], p["phi"], p["kappa"]]]))
-            pose = Pose(pose.mode, [p["X0"], p["Y0"], p["Z0"]], r[0], pose.crs, params=pose.params)
+            if self.geocentric:  # a GNSS/INS pose again, its params consistent (no boresight or lever arm)
+                from .pose import MOUNT
+
+                r, _ = geodesy.opk_matrix(np.radians([[p["omega"], p["phi"], p["kappa"]]]))
+                lat, lon, h = geodesy.ecef_to_geodetic(np.array([p["X0"], p["Y0"], p["Z0"]]))
+                lat, lon, h = float(lat), float(lon), float(h)
+                rpy = geodesy.rpy_angles(geodesy.ned_to_ecef_matrix(lat, lon).T @ r[0] @ MOUNT.T)
+                pose = Pose.from_ins(lat, lon, h, *rpy)
+            else:
+                pose = Pose.from_opk(p["X0"], p["Y0"], p["Z0"], p["omega"], p["phi"], p["kappa"], crs=pose.crs)
         if any(k in values for k in FRAME_PARAMETERS[6:]):
             camera = FrameCamera(p["f"], camera.pixel_size, camera.image_size, principal_point=(p["x0"], p["y0"]),
                                  k1=p["k1"], k2=p["k2"], k3=p["k3"], p1=p["p1"], p2=p["p2"])

@@ -230,3 +230,21 @@ def test_a_dem_in_the_map_poses_crs_is_used_as_it_is():
     assert (a.c, a.f) == (t.c + c0 * t.a, t.f + r0 * t.e)
     rows, cols = geom.dem.shape
     np.testing.assert_array_equal(geom.dem.array, z[r0:r0 + rows, c0:c0 + cols])
+
+
+@pytest.mark.parametrize("kind", ["map", "geocentric"])
+def test_changed_poses_carry_consistent_params(kind):
+    """A pose from with_parameters is the same pose as its own params describe (exports and the
+    precision functions read them): no stale values from the pose it came from."""
+    sensor = frame_sensor(kind)
+    p = sensor.parameters()
+    moved = sensor.with_parameters(X0=p["X0"] + 3.0, kappa=p["kappa"] + 0.5)
+    q = moved.pose.params
+    if kind == "map":
+        again = ow.Pose.from_opk(q["x"], q["y"], q["z"], q["omega"], q["phi"], q["kappa"], crs=UTM)
+    else:
+        again = ow.Pose.from_ins(q["lat"], q["lon"], q["h"], q["roll"], q["pitch"], q["yaw"])
+    np.testing.assert_allclose(again.center, moved.pose.center, atol=1e-6)
+    np.testing.assert_allclose(again.rotation, moved.pose.rotation, atol=1e-12)
+    np.testing.assert_allclose(moved.parameters()["X0"], p["X0"] + 3.0, atol=1e-6)
+    np.testing.assert_allclose(moved.parameters()["kappa"], p["kappa"] + 0.5, atol=1e-9)
