@@ -207,7 +207,7 @@ def match_block(images, sensors, dem, *, ids=None, zones=(4, 3), per_zone=2, win
     n, p = len(images), len(point_ids)
     gnss = np.full((n, 3), np.nan) if gnss_sigma is None else poses[:, :3].copy()
     ins = np.full((n, 3), np.nan) if ins_sigma is None else poses[:, 3:].copy()
-    block = Block(crs=crs.to_string(), cameras=cameras, image_ids=ids, image_camera=image_camera, poses=poses,
+    block = Block(crs=crs.to_wkt(), cameras=cameras, image_ids=ids, image_camera=image_camera, poses=poses,
                   point_ids=point_ids, roles=["tie"] * p, xyz=np.full((p, 3), np.nan), xyz_sigma=np.full((p, 3), np.nan),
                   obs_image=np.array([t[1] for t in keys], dtype=np.int64),
                   obs_point=np.array([index[t[0]] for t in keys], dtype=np.int64),
