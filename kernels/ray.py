@@ -15,7 +15,7 @@ import warp as wp
 wp.set_module_options({"enable_backward": False})  # forward-only kernels: halves compile time
 
 from .dem import DemData, dem_block_bound, dem_grid, dem_sample_grid, dem_sample_grid_f32
-from .geodesy import DEG, RAD2DEG, WGS84_A, WGS84_B, WGS84_E2, ecef_to_geodetic, ecef_to_geodetic_sc, geodetic_to_ecef
+from .geodesy import RAD2DEG, WGS84_A, WGS84_B, WGS84_E2, ecef_to_geodetic, ecef_to_geodetic_sc
 from .refraction import RefractionTable, refraction_q
 
 MODE_GEOCENTRIC = wp.constant(0)

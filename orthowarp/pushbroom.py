@@ -32,8 +32,6 @@ from .geodesy import WGS84_A, WGS84_B, ecef_to_geodetic
 from .sensor import GeocentricPositions, SensorKernels, SensorModel, generic_kernels
 
 if TYPE_CHECKING:  # annotations only: Warp is imported where a scene is packed for a device
-    import os
-
     import warp as wp
     from numpy.typing import ArrayLike
 

@@ -16,7 +16,7 @@ from pyproj import CRS, Transformer
 from .._device import load_modules, quiet_warp, resolve_device
 from .._validate import as_crs, no_infinite_rows
 from .._validate import points as _as_points
-from ..errors import GeometryError, ParamError
+from ..errors import ParamError
 from ..kernels import sensor as sensor_kernels
 from ..kernels.ray import SearchParams
 from ..refraction import RefractionModel

@@ -5,7 +5,7 @@ import os
 import numpy as np
 import pytest
 
-from orthowarp import PushbroomScene, read_scene
+from orthowarp import read_scene
 from orthowarp.errors import GeometryError, ParamError
 from orthowarp.geodesy import geodetic_to_ecef
 from orthowarp.pipeline.dimap import read_dimap
