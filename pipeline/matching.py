@@ -4,6 +4,7 @@ predicted pixels and local affine maps (rotation, scale, shear between the views
 image, NCC + least-squares matching (:func:`orthowarp.adjust.match_points`), back-matching.
 """
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -14,6 +15,8 @@ from ..sensor import FrameSensor
 from .geometry import geolocate, project
 
 __all__ = ["PairMatches", "match_pair", "match_block"]
+
+log = logging.getLogger(__name__)
 
 
 def _predict(left_sensor, right_sensor, pts, dem, refraction, device):
@@ -155,9 +158,13 @@ def match_block(images, sensors, dem, *, ids=None, zones=(4, 3), per_zone=2, win
     ids = [f"img{k}" for k in range(len(images))] if ids is None else [str(i) for i in ids]
     if len(ids) != len(images) or len(set(ids)) != len(ids):
         raise ParamError("ids must name every image once")
-    for k, s in enumerate(sensors):
+    for k, (s, img) in enumerate(zip(sensors, images)):
         if not isinstance(s, FrameSensor) or s.geocentric:
             raise ParamError(f"sensors[{k}] must be a map-Cartesian FrameSensor (omega-phi-kappa pose)")
+        if img.ndim != 2 or (img.shape[1], img.shape[0]) != tuple(s.image_size):
+            raise ParamError(f"image '{ids[k]}' has shape {img.shape}; its camera takes one band of "
+                             f"{s.image_size[0]} x {s.image_size[1]} pixels (rows, cols = {s.image_size[1]}, "
+                             f"{s.image_size[0]})")
     crs = sensors[0].pose.crs
     if any(not s.pose.crs.equals(crs) for s in sensors):
         raise ParamError("the sensors' poses must share one CRS")
@@ -167,6 +174,7 @@ def match_block(images, sensors, dem, *, ids=None, zones=(4, 3), per_zone=2, win
         pts, _ = interest_points(img_i, zones=zones, per_zone=per_zone, window=window)
         stats["interest"] += len(pts)
         if not len(pts):
+            log.warning("image '%s' has no textured point to match (uniform or empty?)", ids[i])
             continue
         found = {}
         for j, (img_j, s_j) in enumerate(zip(images, sensors)):
@@ -186,6 +194,9 @@ def match_block(images, sensors, dem, *, ids=None, zones=(4, 3), per_zone=2, win
             with np.errstate(invalid="ignore"):
                 ok = fwd.ok & back.ok & (np.hypot(*(back.xy - pts[sel]).T) <= max_back_error)
             stats["pairs"][f"{ids[i]}->{ids[j]}"] = dict(predicted=int(len(sel)), accepted=int(ok.sum()))
+            if len(sel) >= 5 and not ok.any():
+                log.warning("none of the %d points of '%s' predicted in '%s' matched: is the orientation further "
+                            "off than the search radius (%d px)?", len(sel), ids[i], ids[j], radius)
             for k in np.flatnonzero(ok):
                 found.setdefault(int(sel[k]), []).append((j, *fwd.xy[k], float(max(fwd.sigma[k].max(), 0.02))))
         for k, matches in found.items():

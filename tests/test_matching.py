@@ -177,3 +177,21 @@ def test_matched_block_adjusts(tmp_path):
     assert res.success, res.message
     assert np.sqrt(np.mean(res.residuals[res.used] ** 2)) < 0.05
     assert np.hypot(*(np.array(res.poses["b"][:2]) - [p["X0"], p["Y0"]])) < 0.5  # from 1.5 m off
+
+
+def test_match_block_refuses_wrong_images_and_warns_on_textureless_ones(caplog):
+    from orthowarp.pipeline.matching import match_block
+    from orthowarp.sensor import FrameSensor
+    from test_mosaic import _second_view
+    from test_ortho import scene
+
+    sc = scene("opk")
+    pose2, _, img2 = _second_view(sc)
+    left, right = FrameSensor(sc.camera, sc.pose), FrameSensor(sc.camera, pose2)
+    with pytest.raises(ParamError, match="image 'b' has shape \\(300, 399\\)"):
+        match_block([sc.image(False), img2[:, :-1]], [left, right], sc.dem, ids=["a", "b"], device="cpu")
+    with caplog.at_level("WARNING", logger="orthowarp.pipeline.matching"):
+        block, stats = match_block([sc.image(False), np.full_like(img2, 50.0)], [left, right], sc.dem, ids=["a", "b"],
+                                   window=15, refraction=False, device="cpu")
+    assert block.n_points == 0 and "image 'b' has no textured point" in caplog.text
+    assert "none of the" in caplog.text and "search radius" in caplog.text
