@@ -160,13 +160,18 @@ def _pixel_rmse(scene, points, idx, xy):
     return np.sqrt(np.mean((pix - xy) ** 2, axis=0))
 
 
-def _check_scene_obs(scene_id, scene, pts_idx, points, xy):
-    """ParamError naming a point whose row lies outside the scene's lines or its column outside
-    the detector line."""
-    for k, (c, r) in zip(pts_idx, xy):
-        if not (0.0 <= c <= scene.width and 0.0 <= r <= scene.height):
-            raise ParamError(f"{points.name}: point '{points.point_ids[k]}' at (col, row) = ({c:.6g}, {r:.6g}) lies "
-                             f"outside scene '{scene_id}' ({scene.width} x {scene.height} px)")
+def check_scenes(scenes, points):
+    """The checks of the scene adjustments' common arguments: ``points`` are ScenePoints,
+    ``scenes`` a dict of PushbroomScene holding every scene id the points name, and every
+    observation inside its scene (:meth:`ScenePoints.validate`); ParamError naming the cause."""
+    if not isinstance(points, ScenePoints):
+        raise ParamError(f"points must be ScenePoints, got {type(points).__name__}")
+    if not isinstance(scenes, dict) or not all(isinstance(s, PushbroomScene) for s in scenes.values()):
+        raise ParamError("scenes must be a dict of scene id -> PushbroomScene")
+    missing = [s for s in points.scene_ids if s not in scenes]
+    if missing:
+        raise ParamError(f"{points.name}: no scene given for scene id(s) {missing}")
+    points.validate(sizes={sid: scenes[sid].image_size for sid in points.scene_ids})
 
 
 def preadjust_look_angles(scenes, points, *, degree=2, max_iterations=20, xtol=1e-13):
@@ -196,15 +201,9 @@ def preadjust_look_angles(scenes, points, *, degree=2, max_iterations=20, xtol=1
         A scene id without a scene, a point outside its scene, fewer control points in a scene
         than the polynomials have coefficients per angle (degree + 1), a degree out of range.
     """
-    if not isinstance(points, ScenePoints):
-        raise ParamError(f"points must be ScenePoints, got {type(points).__name__}")
-    if not isinstance(scenes, dict) or not all(isinstance(s, PushbroomScene) for s in scenes.values()):
-        raise ParamError("scenes must be a dict of scene id -> PushbroomScene")
+    check_scenes(scenes, points)
     if not (isinstance(degree, (int, np.integer)) and 0 <= degree <= 4):
         raise ParamError(f"degree must be an integer 0-4, got {degree!r}")
-    missing = [s for s in points.scene_ids if s not in scenes]
-    if missing:
-        raise ParamError(f"{points.name}: no scene given for scene id(s) {missing}")
     q = degree + 1
     control, check = points.role_mask("control"), points.role_mask("check")
     res = LookAngleResult(success=True, message="")
@@ -212,7 +211,6 @@ def preadjust_look_angles(scenes, points, *, degree=2, max_iterations=20, xtol=1
     for sid in points.scene_ids:
         scene = scenes[sid]
         idx, xy, sig = points.observations_of(sid)
-        _check_scene_obs(sid, scene, idx, points, xy)
         sel = control[idx]
         ci, cxy, csig = idx[sel], xy[sel], sig[sel]
         n = len(ci)

@@ -36,9 +36,8 @@ import numpy as np
 
 from .. import geodesy
 from ..errors import GeometryError, ParamError
-from ..pushbroom import PushbroomScene, attitude_matrix
-from .lookangles import _basis, corrected_scene
-from .scene_points import ScenePoints
+from ..pushbroom import attitude_matrix
+from .lookangles import _basis, check_scenes, corrected_scene
 
 __all__ = ["EO_GROUPS", "SceneBundleResult", "adjust_scenes", "intersect_scene_points"]
 
@@ -177,13 +176,7 @@ class SceneBundleResult:
 
 
 def _check_args(scenes, points, groups, eo_sigma):
-    if not isinstance(points, ScenePoints):
-        raise ParamError(f"points must be ScenePoints, got {type(points).__name__}")
-    if not isinstance(scenes, dict) or not all(isinstance(s, PushbroomScene) for s in scenes.values()):
-        raise ParamError("scenes must be a dict of scene id -> PushbroomScene")
-    missing = [s for s in points.scene_ids if s not in scenes]
-    if missing:
-        raise ParamError(f"{points.name}: no scene given for scene id(s) {missing}")
+    check_scenes(scenes, points)
     if len(points.scene_ids) < 2:
         raise ParamError(f"{points.name}: a stereo adjustment needs points measured in two or more scenes; "
                          f"they name {len(points.scene_ids)} ({points.scene_ids})")
@@ -253,11 +246,6 @@ def adjust_scenes(scenes, points, *, groups=("attitude0",), eo_sigma=None, look_
     for sid in sids:
         s = scenes[sid]
         scn[sid] = s if s.polynomials is not None else s.with_polynomials(s.fit_polynomials()[0])
-        idx, xy, _ = points.observations_of(sid)
-        for k, (c, r) in zip(idx, xy):
-            if not (0.0 <= c <= s.width and 0.0 <= r <= s.height):
-                raise ParamError(f"{points.name}: point '{points.point_ids[k]}' at (col, row) = ({c:.6g}, {r:.6g}) "
-                                 f"lies outside scene '{sid}' ({s.width} x {s.height} px)")
     n_pts = points.n_points
     control = points.role_mask("control")
     n_scenes_of = np.bincount(points.obs_point, minlength=n_pts)
