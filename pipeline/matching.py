@@ -32,6 +32,36 @@ def _predict(left_sensor, right_sensor, pts, dem, refraction, device):
     return pred[:k], aff
 
 
+def _check_image(name, image, sensor):
+    """ParamError unless ``sensor`` is a FrameSensor and ``image`` one band of its size."""
+    if not isinstance(sensor, FrameSensor):
+        raise ParamError(f"the sensor of image '{name}' must be a FrameSensor, got {type(sensor).__name__}")
+    shape = np.shape(image)
+    w, h = sensor.image_size
+    if len(shape) != 2 or (shape[1], shape[0]) != (w, h):
+        raise ParamError(f"image '{name}' has shape {shape}; its camera takes one band of {w} x {h} pixels "
+                         f"(rows, cols = {h}, {w})")
+
+
+def _match_into(left, right, left_sensor, right_sensor, pts, dem, *, window, radius, min_score, max_back_error,
+                refraction, device):
+    """Points ``pts`` (k, 2) of ``left`` predicted in ``right`` (those whose prediction lies a
+    window inside it: indices ``sel``), matched, and back-matched. Returns (sel, predicted (s, 2),
+    forward MatchResult (s rows), back-match distance (s,), accepted (s,) bool)."""
+    pred, aff = _predict(left_sensor, right_sensor, pts, dem, refraction, device)
+    w, h = right_sensor.image_size
+    sel = np.flatnonzero(np.all(np.isfinite(pred), axis=1) & (pred[:, 0] > window) & (pred[:, 0] < w - window) & (
+        pred[:, 1] > window) & (pred[:, 1] < h - window))
+    fwd = match_points(left, right, pts[sel], pred[sel], affine=aff[sel], window=window, radius=radius,
+                       min_score=min_score, device=device)
+    back = match_points(right, left, np.nan_to_num(fwd.xy, nan=-1e3), pts[sel], affine=np.linalg.inv(aff[sel]),
+                        window=window, radius=2, min_score=min_score, device=device)
+    err = np.hypot(*(back.xy - pts[sel]).T)
+    with np.errstate(invalid="ignore"):
+        ok = fwd.ok & back.ok & (err <= max_back_error)
+    return sel, pred[sel], fwd, err, ok
+
+
 @dataclass
 class PairMatches:
     """Matches of one image pair.
@@ -84,33 +114,14 @@ def match_pair(left, right, left_sensor, right_sensor, dem, *, zones=(4, 3), per
     -------
     PairMatches
     """
-    for name, s, img in (("left_sensor", left_sensor, left), ("right_sensor", right_sensor, right)):
-        if not isinstance(s, FrameSensor):
-            raise ParamError(f"{name} must be a FrameSensor, got {type(s).__name__}")
-        shape = np.shape(img)
-        if len(shape) != 2 or (shape[1], shape[0]) != tuple(s.image_size):
-            raise ParamError(f"{name}'s image must be (rows, cols) = ({s.image_size[1]}, {s.image_size[0]}), "
-                             f"got shape {shape}")
+    _check_image("left", left, left_sensor)
+    _check_image("right", right, right_sensor)
     pts, _ = interest_points(left, zones=zones, per_zone=per_zone, window=window)
-    empty = PairMatches(*(np.zeros((0, 2)),) * 4, np.zeros(0), 0, np.zeros(0))
-    if not len(pts):
-        return empty
-    pred, aff = _predict(left_sensor, right_sensor, pts, dem, refraction, device)
-    w, h = right_sensor.image_size
-    inside = np.all(np.isfinite(pred), axis=1) & (pred[:, 0] > window) & (pred[:, 0] < w - window) & (
-        pred[:, 1] > window) & (pred[:, 1] < h - window)
-    pts, pred, aff = pts[inside], pred[inside], aff[inside]
-    if not len(pts):
-        return empty
-    fwd = match_points(left, right, pts, pred, affine=aff, window=window, radius=radius, min_score=min_score,
-                       device=device)
-    back = match_points(right, left, np.nan_to_num(fwd.xy, nan=-1e3), pts, affine=np.linalg.inv(aff), window=window,
-                        radius=2, min_score=min_score, device=device)
-    err = np.hypot(*(back.xy - pts).T)
-    with np.errstate(invalid="ignore"):
-        ok = fwd.ok & back.ok & (err <= max_back_error)
-    return PairMatches(left=pts[ok], right=fwd.xy[ok], sigma=fwd.sigma[ok], predicted=pred[ok], score=fwd.score[ok],
-                       candidates=int(inside.sum()), back_error=err[ok])
+    sel, pred, fwd, err, ok = _match_into(left, right, left_sensor, right_sensor, pts, dem, window=window,
+                                          radius=radius, min_score=min_score, max_back_error=max_back_error,
+                                          refraction=refraction, device=device)
+    return PairMatches(left=pts[sel][ok], right=fwd.xy[ok], sigma=fwd.sigma[ok], predicted=pred[ok],
+                       score=fwd.score[ok], candidates=len(sel), back_error=err[ok])
 
 
 def match_block(images, sensors, dem, *, ids=None, zones=(4, 3), per_zone=2, window=21, radius=8, min_score=0.7,
@@ -159,12 +170,9 @@ def match_block(images, sensors, dem, *, ids=None, zones=(4, 3), per_zone=2, win
     if len(ids) != len(images) or len(set(ids)) != len(ids):
         raise ParamError("ids must name every image once")
     for k, (s, img) in enumerate(zip(sensors, images)):
-        if not isinstance(s, FrameSensor) or s.geocentric:
+        _check_image(ids[k], img, s)
+        if s.geocentric:
             raise ParamError(f"sensors[{k}] must be a map-Cartesian FrameSensor (omega-phi-kappa pose)")
-        if img.ndim != 2 or (img.shape[1], img.shape[0]) != tuple(s.image_size):
-            raise ParamError(f"image '{ids[k]}' has shape {img.shape}; its camera takes one band of "
-                             f"{s.image_size[0]} x {s.image_size[1]} pixels (rows, cols = {s.image_size[1]}, "
-                             f"{s.image_size[0]})")
     crs = sensors[0].pose.crs
     if any(not s.pose.crs.equals(crs) for s in sensors):
         raise ParamError("the sensors' poses must share one CRS")
@@ -180,19 +188,11 @@ def match_block(images, sensors, dem, *, ids=None, zones=(4, 3), per_zone=2, win
         for j, (img_j, s_j) in enumerate(zip(images, sensors)):
             if j == i:
                 continue
-            pred, aff = _predict(s_i, s_j, pts, dem, refraction, device)
-            w, h = s_j.image_size
-            inside = np.all(np.isfinite(pred), axis=1) & (pred[:, 0] > window) & (pred[:, 0] < w - window) & (
-                pred[:, 1] > window) & (pred[:, 1] < h - window)
-            sel = np.flatnonzero(inside)
+            sel, _, fwd, _, ok = _match_into(img_i, img_j, s_i, s_j, pts, dem, window=window, radius=radius,
+                                             min_score=min_score, max_back_error=max_back_error,
+                                             refraction=refraction, device=device)
             if not len(sel):
                 continue
-            fwd = match_points(img_i, img_j, pts[sel], pred[sel], affine=aff[sel], window=window, radius=radius,
-                               min_score=min_score, device=device)
-            back = match_points(img_j, img_i, np.nan_to_num(fwd.xy, nan=-1e3), pts[sel], affine=np.linalg.inv(aff[sel]),
-                                window=window, radius=2, min_score=min_score, device=device)
-            with np.errstate(invalid="ignore"):
-                ok = fwd.ok & back.ok & (np.hypot(*(back.xy - pts[sel]).T) <= max_back_error)
             stats["pairs"][f"{ids[i]}->{ids[j]}"] = dict(predicted=int(len(sel)), accepted=int(ok.sum()))
             if len(sel) >= 5 and not ok.any():
                 log.warning("none of the %d points of '%s' predicted in '%s' matched: is the orientation further "
