@@ -130,34 +130,46 @@ class _Frame:
         (6, 6) of that row (angles in deg) by the pose's inputs (see the module's
         description): the identity for photogrammetric poses, numerical (central differences)
         for GNSS/INS ones, through :meth:`Pose.from_ins` with the pose's boresight and lever
-        arm."""
+        arm (:func:`moved_pose`)."""
         if self.local is None:
             return _pose_row(pose), np.eye(6)
-        from ..pose import Pose
-        from .geocentric import LocalFrame
-
-        p = pose.params
-        lla0 = np.array([p["lat"], p["lon"], p["h"]], dtype=np.float64)
-        att0 = np.array([p["roll"], p["pitch"], p["yaw"]], dtype=np.float64)
-        here = LocalFrame(*lla0)  # the reference point's own east, north, up
         jac = np.empty((6, 6))
         for k in range(6):
-            d = 1e-3 if k < 3 else 1e-5  # m, deg
-            moved = []
-            for sign in (1.0, -1.0):
-                lla, att = lla0, att0.copy()
-                if k < 3:
-                    off = np.zeros(3)
-                    off[k] = sign * d
-                    lla = here.to_lla(off)[0]
-                else:
-                    att[k - 3] += sign * d
-                moved.append(self._row(Pose.from_ins(*lla, *att, boresight=p["boresight"], lever_arm=p["lever_arm"])))
-            diff = moved[0] - moved[1]
+            d = INPUT_STEPS[k]
+            diff = self._row(moved_pose(pose, k, d)) - self._row(moved_pose(pose, k, -d))
             # angles per degree, as the equations' columns are (a step across +-180 deg wrapped)
             diff[3:] = (np.degrees(diff[3:]) + 180.0) % 360.0 - 180.0
             jac[:, k] = diff / (2 * d)
         return self._row(pose), jac
+
+
+INPUT_STEPS = (1e-3, 1e-3, 1e-3, 1e-5, 1e-5, 1e-5)  # central-difference steps of the pose inputs (m, deg)
+
+
+def moved_pose(pose, k, d):
+    """The pose with its input ``k`` (see the module's description: X0, Y0, Z0 or east, north,
+    up in m; omega, phi, kappa or roll, pitch, yaw in deg) moved by ``d``; boresight and lever
+    arm of a GNSS/INS pose kept."""
+    from ..pose import Pose
+
+    p = pose.params
+    if pose.mode == "map":
+        v = np.array([p["x"], p["y"], p["z"], p["omega"], p["phi"], p["kappa"]], dtype=np.float64)
+        v[k] += d
+        return Pose.from_opk(*v, crs=pose.crs)
+    if pose.mode != "geocentric":
+        raise ParamError(f"precision is computed for photogrammetric or GNSS/INS poses, got a {pose.mode} pose")
+    from .geocentric import LocalFrame
+
+    lla = np.array([p["lat"], p["lon"], p["h"]], dtype=np.float64)
+    att = np.array([p["roll"], p["pitch"], p["yaw"]], dtype=np.float64)
+    if k < 3:  # along the reference point's own east, north, up
+        off = np.zeros(3)
+        off[k] = d
+        lla = LocalFrame(*lla).to_lla(off)[0]
+    else:
+        att[k - 3] += d
+    return Pose.from_ins(*lla, *att, boresight=p["boresight"], lever_arm=p["lever_arm"])
 
 
 def _square(name, value, n):

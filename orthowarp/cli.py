@@ -331,7 +331,9 @@ def ortho(ctx, images, odm_dataset, int_param, ext_param, dimap, attitude_model,
                                           dem_sigma=dem_sigma, refraction=not no_refraction, device=device)
                 else:
                     accuracy_raster(_accuracy_name(dst), sensor.camera, sensor.pose, terrain, r.crs, r.transform, r.shape,
-                                    pose_cov=np.diag(sigmas) ** 2, pixel_sigma=pixel_sigma, dem_sigma=dem_sigma)
+                                    pose_cov=np.diag(sigmas) ** 2, pixel_sigma=pixel_sigma, dem_sigma=dem_sigma,
+                                    refraction=not no_refraction, geoid=geoid,
+                                    same_vertical_datum=same_vertical_datum, device=device)
             return dst, r
 
         def report(dst, r):
@@ -702,7 +704,7 @@ def mosaic(ctx, images, int_param, ext_param, odm_dataset, scenes, attitude_mode
         mosaic_accuracy_raster(_accuracy_name(r.path), jobs, r.index, terrain, r.crs, r.transform, r.shape,
                                pose_cov=np.diag(frame_sigmas) ** 2, orientation_cov=np.diag(scene_sigmas) ** 2,
                                pixel_sigma=pixel_sigma, dem_sigma=dem_sigma, refraction=not no_refraction,
-                               device=device)
+                               geoid=geoid, same_vertical_datum=same_vertical_datum, device=device)
     if show_profile or profile_json:
         from .pipeline.io import write_json
         from .pipeline.profile import format_profile

@@ -3,12 +3,16 @@ propagation (:mod:`orthowarp.adjust.precision`, [P4]) on a grid aligned with the
 
 For every ``step`` x ``step`` cell of the ortho's grid, the ground point at the cell's centre
 (its height from the DEM, the DEM's slope from its bilinear surface) is projected into the
-image; where the image sees it, its covariance from one image on the DEM
-(:func:`~orthowarp.adjust.precision.monoplot_covariance`) is turned into the output CRS (the
-horizontal part through the Jacobian of the transformation from the pose's map CRS, or from
-the east-north-up frame of a GNSS/INS pose, to the output CRS) and written
-as three float32 bands: sigma east, sigma north, sigma up (m; NaN where the image does not see
-the point). The raster's pixels are ``step`` ortho pixels, with the ortho's origin.
+image; where the image sees it, its covariance from one image on the DEM ([P4]'s
+monoplotting) is turned into the output CRS and written as three float32 bands: sigma x,
+sigma y (the output CRS's axes) and sigma up (m; NaN where the image does not see the point).
+The raster's pixels are ``step`` ortho pixels, with the ortho's origin.
+
+For frame images the whole computation runs on the device
+(:func:`frame_window_sigmas`, :mod:`orthowarp.kernels.precision`): the cells' ground points
+from the ortho's coarse-grid geometry, the projection's derivatives by Warp's automatic
+differentiation of the kernels' own projection (refraction included), the covariance per cell.
+The pose's and camera's input covariance enters once per image (:func:`raw_covariance`).
 
 :func:`scene_monoplot_covariance` is the same propagation for a pushbroom scene, whose
 projection has no closed form: its derivatives are taken through the kernels'
@@ -19,15 +23,14 @@ import numpy as np
 from affine import Affine
 from pyproj import Transformer
 
-from .. import collinearity as col
-from ..adjust.precision import PrecisionResult, _camera_row, _Frame, _square, monoplot_covariance
+from ..adjust.precision import INPUT_STEPS, PrecisionResult, _square, moved_pose
 from ..errors import ParamError
 from ..geodesy import WGS84_A, WGS84_E2
 from .dem import as_dem
 from .io import write_raster
 
-__all__ = ["accuracy_raster", "scene_accuracy_raster", "mosaic_accuracy_raster", "frame_cell_sigmas",
-           "scene_cell_sigmas", "scene_monoplot_covariance", "SCENE_INPUTS"]
+__all__ = ["accuracy_raster", "scene_accuracy_raster", "mosaic_accuracy_raster", "frame_window_sigmas",
+           "raw_covariance", "scene_cell_sigmas", "scene_monoplot_covariance", "SCENE_INPUTS"]
 
 # a pushbroom scene's orientation inputs, constant over the scene: the orbit's offset in the
 # orbital frame (m), the attitude's offsets (deg) and the look angles' offsets (deg)
@@ -182,49 +185,119 @@ def _sigmas(cov, jac):
                      np.sqrt(np.maximum(cov[:, 2, 2], 0.0))]).astype(np.float32)
 
 
-def frame_cell_sigmas(camera, pose, dem, crs, ox, oy, *, pose_cov, pixel_sigma=0.5, camera_cov=None, camera_params=(),
-                      dem_sigma=0.0):
-    """Predicted sigma east, north (the axes of ``crs``) and up (m), (3, n) float32, of the
-    ground under the points (ox, oy) of ``crs`` seen by one frame image (NaN where it does
-    not see them); see :func:`accuracy_raster`."""
-    frame = _Frame([pose])  # photogrammetric or GNSS/INS (a clear error otherwise)
-    row, _ = frame.pose(pose)
-    geo = frame.local is not None
-    pts, slopes = _terrain_points(dem, crs, ox, oy, None if geo else pose.crs)
-    ok = np.all(np.isfinite(pts), axis=1) & np.all(np.isfinite(slopes), axis=1)
-    if ok.any():  # seen by the image: in front of it and inside its frame
-        n = int(ok.sum())
-        pix = col.project(np.broadcast_to(row, (n, 6)), frame.points(pts[ok]),
-                          np.broadcast_to(_camera_row(camera), (n, 10)),
-                          np.broadcast_to(np.asarray(camera.image_size, np.float64), (n, 2)))
-        w, hh = camera.image_size
-        inside = np.all(np.isfinite(pix), axis=1) & (pix[:, 0] >= 0) & (pix[:, 0] <= w) & (pix[:, 1] >= 0) & (
-            pix[:, 1] <= hh)
-        ok[np.flatnonzero(ok)[~inside]] = False
-    out = np.full((3, len(ox)), np.nan, np.float32)
-    if ok.any():
-        res = monoplot_covariance(camera, pose, pts[ok], slopes[ok], pose_cov=pose_cov, pixel_sigma=pixel_sigma,
-                                  camera_cov=camera_cov, camera_params=camera_params, dem_sigma=dem_sigma)
-        # the horizontal covariance in the output CRS: J C J^T, J = d(out x, y)/d(frame x, y)
-        # (the frame: the pose's map CRS, or the east-north-up frame of a GNSS/INS pose)
-        local = frame.points(pts[ok])
-        if geo:
-            to_out = Transformer.from_crs("EPSG:4326", crs, always_xy=True)
+RAW_CAMERA = ("f", "x0", "y0", "k1", "k2", "k3", "p1", "p2")  # the kernels' raw camera parameters, in order
 
-            def out_xy(q):
-                lla = frame.local.to_lla(q)
-                return np.stack(to_out.transform(lla[:, 1], lla[:, 0]), -1)
-        else:
-            to_out = Transformer.from_crs(pose.crs, crs, always_xy=True)
 
-            def out_xy(q):
-                return np.stack(to_out.transform(q[:, 0], q[:, 1]), -1)
+def raw_covariance(camera, pose, *, pose_cov, camera_cov=None, camera_params=()):
+    """Covariance (20, 20) of the raw parameters the accuracy kernels differentiate by
+    (:data:`orthowarp.kernels.precision.RAW`: projection centre, rotation matrix row-major,
+    camera), ``M C_in M^T``, with ``M`` the derivative of the pose's centre and rotation by its
+    inputs (central differences through the pose's own construction,
+    :func:`~orthowarp.adjust.precision.moved_pose`) and of the camera by its parameters (the
+    identity); inputs and units as for :func:`~orthowarp.adjust.precision.monoplot_covariance`."""
+    pose_cov = _square("pose_cov", pose_cov, 6)
+    q = len(camera_params)
+    bad = [n for n in camera_params if n not in RAW_CAMERA]
+    if bad or len(set(camera_params)) != q:
+        raise ParamError(f"camera_params must be distinct names from {RAW_CAMERA}, got {list(camera_params)}")
+    c_in = np.zeros((6 + q, 6 + q))
+    c_in[:6, :6] = pose_cov
+    if q:
+        c_in[6:, 6:] = _square("camera_cov", camera_cov, q)
+    m = np.zeros((20, 6 + q))
+    for k in range(6):
+        d = INPUT_STEPS[k]
+        hi, lo = moved_pose(pose, k, d), moved_pose(pose, k, -d)
+        m[:3, k] = (np.asarray(hi.center, float) - np.asarray(lo.center, float)) / (2 * d)
+        m[3:12, k] = (np.asarray(hi.rotation, float) - np.asarray(lo.rotation, float)).ravel() / (2 * d)
+    for i, name in enumerate(camera_params):
+        m[12 + RAW_CAMERA.index(name), 6 + i] = 1.0
+    return m @ c_in @ m.T
 
-        e = 1.0
-        ex, ny = np.array([e, 0.0, 0.0]), np.array([0.0, e, 0.0])
-        jac = np.stack([out_xy(local + ex) - out_xy(local - ex), out_xy(local + ny) - out_xy(local - ny)], -1) / (2 * e)
-        out[:, ok] = _sigmas(res.cov, jac)
-    return out
+
+def _check_sigmas(pixel_sigma, dem_sigma):
+    if not (np.isfinite(pixel_sigma) and pixel_sigma >= 0 and np.isfinite(dem_sigma) and dem_sigma >= 0):
+        raise ParamError(f"pixel_sigma and dem_sigma must be finite and >= 0, got {pixel_sigma}, {dem_sigma}")
+
+
+def frame_window_sigmas(geometry, crs, cells, window, c_raw, *, pixel_sigma=0.5, dem_sigma=0.0, nodes=16,
+                        chunk=1 << 18):
+    """Predicted sigma x, y (the axes of ``crs``) and up (m) of the ground under a window of
+    accuracy cells seen by one frame image, on the geometry's device
+    (:mod:`orthowarp.kernels.precision`).
+
+    Parameters
+    ----------
+    geometry : SensorGeometry
+        The frame image's geometry (sensor, DEM, refraction, device), as the ortho uses it.
+    crs : pyproj.CRS
+    cells : affine.Affine
+        The accuracy grid's transform (north up: no rotation terms).
+    window : (row0, col0, rows, cols)
+        The cells to compute.
+    c_raw : ndarray (20, 20)
+        :func:`raw_covariance` of the image.
+    pixel_sigma, dem_sigma : float
+        As for :func:`~orthowarp.adjust.precision.monoplot_covariance`.
+    nodes : int, optional
+        Cells between the exact (PROJ) nodes of the cells' positions; between them the
+        positions are interpolated bilinearly, as the ortho's coarse grid.
+    chunk : int, optional
+        Cells per launch (bounds the device memory: ~0.5 kB a cell).
+
+    Returns
+    -------
+    ndarray (3, rows, cols) float32
+        NaN where the image does not see the cell's ground point.
+    """
+    import warp as wp
+
+    from ..kernels import precision as kp
+    from .ortho import coarse_grid, coarse_struct
+
+    if cells.b != 0 or cells.d != 0:
+        raise ParamError(f"the accuracy grid must be north up (no rotation terms), got {tuple(cells)[:6]}")
+    _check_sigmas(pixel_sigma, dem_sigma)
+    r0, c0, rows, cols = map(int, window)
+    device = geometry.device
+    to_frame = Transformer.from_crs(crs, geometry.horizontal_crs, always_xy=True)
+    grid = coarse_struct(coarse_grid(cells, to_frame, r0, c0, rows, cols, step=nodes), geometry.geocentric, device,
+                         step=nodes)
+    arg, refr = geometry.sensor_structs()
+    dem = geometry.dem_struct()
+    width, height = map(float, geometry.image_size)
+    n_all = rows * cols
+    m = max(1, min(int(chunk), n_all))
+    out = wp.empty((3, n_all), dtype=wp.float32, device=device)
+    c_raw = wp.array(np.ascontiguousarray(c_raw, dtype=np.float64), dtype=wp.float64, device=device)
+
+    def buf(dtype, grad=False):
+        return wp.zeros(m, dtype=dtype, device=device, requires_grad=grad)
+
+    x, h, basis, slope, to_out = buf(wp.vec3d, True), buf(wp.float64), buf(wp.mat33d), buf(wp.vec2d), buf(wp.mat22d)
+    d_c, d_r, d_k, pix = buf(wp.vec3d, True), buf(wp.mat33d, True), buf(kp.vec8d, True), buf(wp.vec2d, True)
+    saved = [(buf(wp.vec3d), buf(wp.vec3d), buf(wp.mat33d), buf(kp.vec8d)) for _ in range(2)]
+    seeds = [wp.array(np.tile(e, (m, 1)), dtype=wp.vec2d, device=device) for e in np.eye(2)]
+    for start in range(0, n_all, m):
+        n = min(m, n_all - start)
+        wp.launch(kp.cell_points_kernel, dim=n, device=device,
+                  inputs=[dem, grid, start, cols, 1.0 / nodes, 1.0 / (nodes * cells.a), 1.0 / (nodes * cells.e)],
+                  outputs=[x, h, basis, slope, to_out])
+        tape = wp.Tape()
+        with tape:
+            wp.launch(kp.pixel_ad_kernel, dim=n, device=device, inputs=[arg.cam, arg.pose, refr, x, h, d_c, d_r, d_k],
+                      outputs=[pix])
+        for seed, keep in zip(seeds, saved):  # reverse passes: d col, then d row
+            tape.backward(grads={pix: seed})
+            for src, dst in zip((x, d_c, d_r, d_k), keep):
+                wp.copy(dst, src.grad)
+            tape.zero()
+        (gx0, gc0, gr0, gk0), (gx1, gc1, gr1, gk1) = saved
+        wp.launch(kp.accuracy_kernel, dim=n, device=device,
+                  inputs=[pix, gx0, gx1, gc0, gc1, gr0, gr1, gk0, gk1, basis, slope, to_out, c_raw,
+                          float(pixel_sigma) ** 2, float(dem_sigma) ** 2, width, height, start],
+                  outputs=[out])
+    return out.numpy().reshape(3, rows, cols)
 
 
 def scene_cell_sigmas(scene, dem, crs, ox, oy, *, orientation_cov, pixel_sigma=0.5, dem_sigma=0.0, refraction=True,
@@ -258,8 +331,10 @@ def scene_cell_sigmas(scene, dem, crs, ox, oy, *, orientation_cov, pixel_sigma=0
 
 
 def accuracy_raster(dst, camera, pose, dem, crs, transform, shape, *, pose_cov, pixel_sigma=0.5, camera_cov=None,
-                    camera_params=(), dem_sigma=0.0, step=16):
-    """Write the predicted accuracy of an ortho of one frame image.
+                    camera_params=(), dem_sigma=0.0, step=16, refraction=True, geoid=None, same_vertical_datum=False,
+                    device=None):
+    """Write the predicted accuracy of an ortho of one frame image, computed on ``device``
+    (:func:`frame_window_sigmas`).
 
     Parameters
     ----------
@@ -280,16 +355,24 @@ def accuracy_raster(dst, camera, pose, dem, crs, transform, shape, *, pose_cov, 
         As for :func:`~orthowarp.adjust.precision.monoplot_covariance`.
     step : int, optional
         Ortho pixels per accuracy pixel, each way.
+    refraction, geoid, same_vertical_datum, device :
+        The ortho's geometry options (:class:`~orthowarp.pipeline.geometry.SensorGeometry`).
 
     Returns
     -------
     ndarray (3, rows, cols) float32
-        What was written.
+        What was written: sigma x, y (the axes of ``crs``) and up (m); NaN where the image
+        does not see the cell's centre.
     """
-    grid, (rows, cols), ox, oy = _cell_centres(transform, shape, step)
-    out = frame_cell_sigmas(camera, pose, dem, crs, ox, oy, pose_cov=pose_cov, pixel_sigma=pixel_sigma,
-                            camera_cov=camera_cov, camera_params=camera_params, dem_sigma=dem_sigma)
-    out = out.reshape(3, rows, cols)
+    from ..sensor import FrameSensor
+    from .geometry import SensorGeometry
+
+    grid, (rows, cols), _, _ = _cell_centres(transform, shape, step)
+    c_raw = raw_covariance(camera, pose, pose_cov=pose_cov, camera_cov=camera_cov, camera_params=camera_params)
+    geom = SensorGeometry(FrameSensor(camera, pose), dem, refraction=refraction, device=device, geoid=geoid,
+                          same_vertical_datum=same_vertical_datum)
+    out = frame_window_sigmas(geom, crs, grid, (0, 0, rows, cols), c_raw, pixel_sigma=pixel_sigma,
+                              dem_sigma=dem_sigma)
     write_raster(dst, out, transform=grid, crs=crs.to_wkt(), nodata=np.nan)
     return out
 
@@ -313,7 +396,8 @@ def scene_accuracy_raster(dst, scene, dem, crs, transform, shape, *, orientation
 
 
 def mosaic_accuracy_raster(dst, images, index, dem, crs, transform, shape, *, pose_cov=None, orientation_cov=None,
-                           pixel_sigma=0.5, dem_sigma=0.0, step=16, refraction=True, device=None):
+                           pixel_sigma=0.5, dem_sigma=0.0, step=16, refraction=True, geoid=None,
+                           same_vertical_datum=False, device=None):
     """Write the predicted accuracy of a mosaic: each cell from the image the mosaic took the
     cell's centre from (its source-index raster), as :func:`accuracy_raster` /
     :func:`scene_accuracy_raster` for that image.
@@ -333,8 +417,8 @@ def mosaic_accuracy_raster(dst, images, index, dem, crs, transform, shape, *, po
         Frames' pose covariance (as for :func:`accuracy_raster`); needed with frames.
     orientation_cov : array_like (8, 8)
         Scenes' orientation covariance (:data:`SCENE_INPUTS`); needed with scenes.
-    pixel_sigma, dem_sigma, refraction, device :
-        As above.
+    pixel_sigma, dem_sigma, refraction, geoid, same_vertical_datum, device :
+        As above (``geoid``, ``same_vertical_datum``: frames only).
 
     Returns
     -------
@@ -344,6 +428,7 @@ def mosaic_accuracy_raster(dst, images, index, dem, crs, transform, shape, *, po
     import rasterio
 
     from ..sensor import SensorModel
+    from .geometry import SensorGeometry
     from .mosaic import NO_SOURCE
 
     grid, (rows, cols), ox, oy = _cell_centres(transform, shape, step)
@@ -380,8 +465,15 @@ def mosaic_accuracy_raster(dst, images, index, dem, crs, transform, shape, *, po
         else:
             if pose_cov is None:
                 raise ParamError("mosaic_accuracy_raster: frame images need pose_cov")
-            out[:, at] = frame_cell_sigmas(sensor.camera, sensor.pose, dem, crs, ox[at], oy[at], pose_cov=pose_cov,
-                                           pixel_sigma=pixel_sigma, dem_sigma=dem_sigma)
+            # the image's cells: its window of the grid on the device, then those it supplies
+            i, j = np.divmod(at, cols)
+            win = (i.min(), j.min(), i.max() - i.min() + 1, j.max() - j.min() + 1)
+            geom = SensorGeometry(sensor, dem, refraction=refraction, device=device, geoid=geoid,
+                                  same_vertical_datum=same_vertical_datum)
+            sig = frame_window_sigmas(geom, crs, grid, win, raw_covariance(sensor.camera, sensor.pose,
+                                                                           pose_cov=pose_cov),
+                                      pixel_sigma=pixel_sigma, dem_sigma=dem_sigma)
+            out[:, at] = sig[:, i - win[0], j - win[1]]
     out = out.reshape(3, rows, cols)
     write_raster(dst, out, transform=grid, crs=crs.to_wkt(), nodata=np.nan)
     return out

@@ -236,7 +236,7 @@ def test_accuracy_raster_is_the_propagation_at_its_cells(tmp_path):
                  "EPSG:32632")
     transform, shape = Affine(0.5, 0, E0 - 150, 0, -0.5, N0 + 150), (600, 640)
     out = accuracy_raster(tmp_path / "acc.tif", camera, pose, dem, CRS(32632), transform, shape, pose_cov=POSE_COV,
-                          pixel_sigma=0.5, dem_sigma=0.3)
+                          pixel_sigma=0.5, dem_sigma=0.3, refraction=False)
     assert out.shape == (3, 38, 40)
     with rasterio.open(tmp_path / "acc.tif") as ds:
         assert ds.count == 3 and ds.transform == transform * Affine.scale(16) and ds.crs.to_epsg() == 32632
@@ -248,7 +248,19 @@ def test_accuracy_raster_is_the_propagation_at_its_cells(tmp_path):
     z = PLANE[0] + PLANE[1] * (x - E0) + PLANE[2] * (y - N0)
     ref = monoplot_covariance(camera, pose, [[x, y, z]], [PLANE[1:]], pose_cov=POSE_COV, pixel_sigma=0.5,
                               dem_sigma=0.3)
-    np.testing.assert_allclose(out[:, i, j], ref.sigma[0], rtol=1e-5)
+    np.testing.assert_allclose(out[:, i, j], ref.sigma[0], rtol=1e-6)
+    # every seen cell against the host propagation (the adjustment's analytic collinearity)
+    ii, jj = np.nonzero(seen)
+    x, y = transform * Affine.scale(16) * (jj + 0.5, ii + 0.5)
+    z = PLANE[0] + PLANE[1] * (x - E0) + PLANE[2] * (y - N0)
+    ref = monoplot_covariance(camera, pose, np.stack([x, y, z], -1), np.tile(PLANE[1:], (len(x), 1)),
+                              pose_cov=POSE_COV, pixel_sigma=0.5, dem_sigma=0.3)
+    np.testing.assert_allclose(out[:, ii, jj], ref.sigma.T, rtol=1e-6)
+    # with refraction (the ortho's default) the derivatives turn by ~1e-4 of themselves
+    refr = accuracy_raster(tmp_path / "refr.tif", camera, pose, dem, CRS(32632), transform, shape, pose_cov=POSE_COV,
+                           pixel_sigma=0.5, dem_sigma=0.3)
+    np.testing.assert_array_equal(np.isfinite(refr), np.isfinite(out))
+    np.testing.assert_allclose(refr[:, ii, jj], out[:, ii, jj], rtol=1e-3)
 
 
 def test_accuracy_raster_for_a_gnss_ins_pose(tmp_path):
@@ -278,6 +290,17 @@ def test_accuracy_raster_for_a_gnss_ins_pose(tmp_path):
                               dem_sigma=0.4)
     np.testing.assert_allclose(np.hypot(out[0, i, j], out[1, i, j]), np.hypot(*ref.sigma[0, :2]), rtol=0.01)
     np.testing.assert_allclose(out[2, i, j], ref.sigma[0, 2], rtol=1e-6)
+    # each axis: east/north taken into UTM's x, y by PROJ's own derivative there (the kernels
+    # take it from the coarse grid; the host works in the nadir's east-north-up frame, turned
+    # from the cell's by 2e-5 rad here)
+    from orthowarp.pipeline.precision import enu_shifted
+
+    to_utm = Transformer.from_crs("EPSG:4326", utm, always_xy=True)
+    p = np.array([[lon, lat, 500.0]])
+    jac = np.stack([np.subtract(to_utm.transform(*enu_shifted(p, a, 1.0)[0, :2]),
+                                to_utm.transform(*enu_shifted(p, a, -1.0)[0, :2])) / 2.0 for a in (0, 1)], -1)
+    cov = jac @ ref.cov[0, :2, :2] @ jac.T
+    np.testing.assert_allclose(out[:2, i, j], np.sqrt(np.diag(cov)), rtol=2e-4)
 
 
 def _sloped_dem(scene_points, slope_e, slope_n, h0):

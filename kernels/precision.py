@@ -1,0 +1,231 @@
+"""Predicted accuracy of ground points seen by a frame image, device code ([P4]: C = A C_l A^T).
+
+The ground point under an accuracy cell (the ortho's coarse-grid geometry: its horizontal
+position interpolated from exact nodes, its height the DEM's bilinear) is fixed by three
+conditions ([P4]'s monoplotting): its pixel is the measured one, ``p(x, l) - p_obs = 0`` (two),
+and its height is the DEM's, ``u - s_e e - s_n n - e_h = 0``, in the point's own east-north-up
+frame (e, n, u in m; s_e, s_n the DEM's slope). Linearised, ``F_X dX + F_l dl = 0``, so
+``C_X = F_X^-1 F_l C_l F_l^T F_X^-T``.
+
+The derivatives of ``p`` come from Warp's automatic differentiation of the kernels' own
+projection, :func:`~orthowarp.kernels.frame.project_xyz` (refraction included), in
+:func:`pixel_ad_kernel`: each cell gets its own zero offsets of the projection centre, the
+rotation matrix and the camera's eight calibration parameters, and the reverse pass for the
+column and then for the row gives every cell's gradient by the point and by those raw
+parameters. The host maps the user's inputs (pose inputs, calibration) to the raw parameters
+once per image (``C_raw = M C_in M^T``, :data:`RAW`), so a cell's image-side covariance is the
+quadratic form ``J C_raw J^T`` (:func:`accuracy_kernel`).
+"""
+
+import warp as wp
+
+from .camera import FrameCameraData
+from .dem import DemData, dem_sample
+from .frame import project_xyz
+from .geodesy import DEG, WGS84_A, WGS84_E2
+from .ortho import CoarseGrid, grid_cell, grid_ground, grid_lerp
+from .ray import FramePoseData
+from .refraction import RefractionTable
+
+RAW = 20  # raw parameters: projection centre (3, m), rotation R_object<-camera (9, row-major), camera (8)
+vec8d = wp.types.vector(length=8, dtype=wp.float64)  # f, x0, y0 (mm); k1, k2, k3, p1, p2
+
+
+@wp.func
+def offset_camera(cam: FrameCameraData, d: vec8d):
+    """The camera with its calibration offset by d (f, x0, y0 mm; k1, k2, k3, p1, p2)."""
+    c = FrameCameraData()
+    c.focal = cam.focal + d[0]
+    c.pixel_size = cam.pixel_size
+    c.inv_pixel_size = cam.inv_pixel_size
+    c.size = cam.size
+    c.pp = wp.vec2d(cam.pp[0] + d[1], cam.pp[1] + d[2])
+    c.k1 = cam.k1 + d[3]
+    c.k2 = cam.k2 + d[4]
+    c.k3 = cam.k3 + d[5]
+    c.p1 = cam.p1 + d[6]
+    c.p2 = cam.p2 + d[7]
+    return c
+
+
+@wp.func
+def offset_pose(pose: FramePoseData, dc: wp.vec3d, dr: wp.mat33d):
+    """The pose with its centre offset by dc (m) and its rotation matrix by dr."""
+    p = FramePoseData()
+    p.mode = pose.mode
+    p.center = pose.center + dc
+    p.rot = pose.rot + dr
+    p.up = pose.up
+    p.height = pose.height
+    return p
+
+
+@wp.kernel
+def pixel_ad_kernel(
+    cam: FrameCameraData,
+    pose: FramePoseData,
+    refr: RefractionTable,
+    x: wp.array(dtype=wp.vec3d),
+    h: wp.array(dtype=wp.float64),
+    d_center: wp.array(dtype=wp.vec3d),
+    d_rot: wp.array(dtype=wp.mat33d),
+    d_cam: wp.array(dtype=vec8d),
+    out: wp.array(dtype=wp.vec2d),
+):
+    """Pixel (N,) of the object-frame points x (N,) at heights h (N,) by
+    :func:`~orthowarp.kernels.frame.project_xyz`, with per-point offsets (zero) of the raw
+    parameters whose gradients the reverse pass gives."""
+    i = wp.tid()
+    out[i] = project_xyz(offset_camera(cam, d_cam[i]), offset_pose(pose, d_center[i], d_rot[i]), refr, x[i], h[i])
+
+
+@wp.func
+def dem_slope(dem: DemData, grid: CoarseGrid, uv: wp.vec2d, m_east: wp.float64, m_north: wp.float64):
+    """The DEM's slope (rise per metre east, per metre north) at uv (the grid's horizontal
+    coordinates): central differences of its bilinear surface over a tenth of a DEM cell
+    (exact inside a cell); ``m_east``, ``m_north``: metres per unit of u and v."""
+    du = wp.float64(0.1) * wp.abs(dem.dx)
+    dv = wp.float64(0.1) * wp.abs(dem.dy)
+    if dem.constant != 0:
+        return wp.vec2d(wp.float64(0.0), wp.float64(0.0))
+    se = (dem_sample(dem, uv[0] + du, uv[1]) - dem_sample(dem, uv[0] - du, uv[1])) / (wp.float64(2.0) * du * m_east)
+    sn = (dem_sample(dem, uv[0], uv[1] + dv) - dem_sample(dem, uv[0], uv[1] - dv)) / (wp.float64(2.0) * dv * m_north)
+    return wp.vec2d(se, sn)
+
+
+@wp.kernel(enable_backward=False)
+def cell_points_kernel(
+    dem: DemData,
+    grid: CoarseGrid,
+    start: wp.int32,
+    cols: wp.int32,
+    inv_node: wp.float64,
+    inv_ax: wp.float64,
+    inv_ey: wp.float64,
+    x: wp.array(dtype=wp.vec3d),
+    h: wp.array(dtype=wp.float64),
+    basis: wp.array(dtype=wp.mat33d),
+    slope: wp.array(dtype=wp.vec2d),
+    to_out: wp.array(dtype=wp.mat22d),
+):
+    """The ground points of accuracy cells start + k (k < len(x); row-major over ``cols``
+    columns), whose centres are the grid's points at fractional node index (i, j) *
+    ``inv_node``: the object-frame point x and its height h (:func:`grid_ground`, as the
+    ortho), its east-north-up axes in the object frame (columns of ``basis``; the identity
+    for map poses), the DEM's slope, and ``to_out`` = d(output x, y)/d(east, north) from the
+    grid's derivative (``inv_ax``, ``inv_ey``: node indices per unit of output x, y)."""
+    k = wp.tid()
+    c = start + wp.int32(k)
+    fi = wp.float64(c // cols) * inv_node
+    fj = wp.float64(c % cols) * inv_node
+    xk, hk = grid_ground(grid, dem, fi, fj)
+    i0, j0, ai, aj = grid_cell(grid.uv.shape[0], grid.uv.shape[1], fi, fj)
+    uv = grid_lerp(grid.uv, i0, j0, ai, aj)
+    one = wp.float64(1.0)
+    duv_dj = (one - ai) * (grid.uv[i0, j0 + 1] - grid.uv[i0, j0]) + ai * (grid.uv[i0 + 1, j0 + 1] - grid.uv[i0 + 1, j0])
+    duv_di = (one - aj) * (grid.uv[i0 + 1, j0] - grid.uv[i0, j0]) + aj * (grid.uv[i0 + 1, j0 + 1] - grid.uv[i0, j0 + 1])
+    m_east = one
+    m_north = one
+    b = wp.identity(n=3, dtype=wp.float64)
+    if grid.geocentric != 0:  # metres per degree of longitude and latitude at (lon, lat, h)
+        lon = uv[0] * DEG
+        lat = uv[1] * DEG
+        sl = wp.sin(lat)
+        cl = wp.cos(lat)
+        so = wp.sin(lon)
+        co = wp.cos(lon)
+        w2 = one - WGS84_E2 * sl * sl
+        n_rad = WGS84_A / wp.sqrt(w2)
+        m_east = (n_rad + hk) * cl * DEG
+        m_north = (n_rad * (one - WGS84_E2) / w2 + hk) * DEG
+        b = wp.mat33d(-so, -sl * co, cl * co,
+                      co, -sl * so, cl * so,
+                      wp.float64(0.0), cl, sl)
+    # d(east, north)/d(output x, y): columns by output x (node j) and output y (node i)
+    en_out = wp.mat22d(m_east * duv_dj[0] * inv_ax, m_east * duv_di[0] * inv_ey,
+                       m_north * duv_dj[1] * inv_ax, m_north * duv_di[1] * inv_ey)
+    x[k] = xk
+    h[k] = hk
+    basis[k] = b
+    slope[k] = dem_slope(dem, grid, uv, m_east, m_north)
+    to_out[k] = wp.inverse(en_out)
+
+
+@wp.func
+def raw_row(gc: wp.vec3d, gr: wp.mat33d, gk: vec8d, m: wp.int32):
+    """Entry m of a pixel coordinate's gradient by the raw parameters (:data:`RAW`)."""
+    if m < 3:
+        return gc[m]
+    if m < 12:
+        return gr[(m - 3) // 3, (m - 3) % 3]
+    return gk[m - 12]
+
+
+@wp.kernel(enable_backward=False)
+def accuracy_kernel(
+    pix: wp.array(dtype=wp.vec2d),
+    gx0: wp.array(dtype=wp.vec3d),
+    gx1: wp.array(dtype=wp.vec3d),
+    gc0: wp.array(dtype=wp.vec3d),
+    gc1: wp.array(dtype=wp.vec3d),
+    gr0: wp.array(dtype=wp.mat33d),
+    gr1: wp.array(dtype=wp.mat33d),
+    gk0: wp.array(dtype=vec8d),
+    gk1: wp.array(dtype=vec8d),
+    basis: wp.array(dtype=wp.mat33d),
+    slope: wp.array(dtype=wp.vec2d),
+    to_out: wp.array(dtype=wp.mat22d),
+    c_raw: wp.array2d(dtype=wp.float64),
+    pixel_var: wp.float64,
+    dem_var: wp.float64,
+    width: wp.float64,
+    height: wp.float64,
+    start: wp.int32,
+    out: wp.array2d(dtype=wp.float32),
+):
+    """Sigma of the output CRS's x, y and of up (m) of each cell's ground point into columns
+    start + k of ``out`` (3, cells); NaN where the image does not see it. Rows 0 and 1 of a
+    cell's pixel Jacobians come from the reverse passes of :func:`pixel_ad_kernel` (``gx``
+    by the object-frame point, ``gc``, ``gr``, ``gk`` by the raw parameters)."""
+    k = wp.tid()
+    p = pix[k]
+    nan = wp.float32(wp.nan)
+    zero = wp.float64(0.0)
+    ok = wp.isfinite(p[0]) and wp.isfinite(p[1]) and wp.isfinite(slope[k][0]) and wp.isfinite(slope[k][1])
+    if not ok or p[0] < zero or p[1] < zero or p[0] > width or p[1] > height:
+        out[0, start + k] = nan
+        out[1, start + k] = nan
+        out[2, start + k] = nan
+        return
+    # image side: S = J C_raw J^T + pixel_var I (pixels^2)
+    s00 = pixel_var
+    s01 = zero
+    s11 = pixel_var
+    for a in range(RAW):
+        ja0 = raw_row(gc0[k], gr0[k], gk0[k], a)
+        ja1 = raw_row(gc1[k], gr1[k], gk1[k], a)
+        if ja0 != zero or ja1 != zero:
+            t0 = zero
+            t1 = zero
+            for b in range(RAW):
+                c = c_raw[a, b]
+                t0 += c * raw_row(gc0[k], gr0[k], gk0[k], b)
+                t1 += c * raw_row(gc1[k], gr1[k], gk1[k], b)
+            s00 += ja0 * t0
+            s01 += ja0 * t1
+            s11 += ja1 * t1
+    # F_X in east, north, up: pixel rows (dp/dx) E, height row (-s_e, -s_n, 1)
+    e = basis[k]
+    r0 = wp.transpose(e) * gx0[k]
+    r1 = wp.transpose(e) * gx1[k]
+    sl = slope[k]
+    fx = wp.mat33d(r0[0], r0[1], r0[2], r1[0], r1[1], r1[2], -sl[0], -sl[1], wp.float64(1.0))
+    fi = wp.inverse(fx)
+    cl = wp.mat33d(s00, s01, zero, s01, s11, zero, zero, zero, dem_var)
+    cx = fi * cl * wp.transpose(fi)
+    j = to_out[k]
+    ch = wp.mat22d(cx[0, 0], cx[0, 1], cx[1, 0], cx[1, 1])
+    co = j * ch * wp.transpose(j)
+    out[0, start + k] = wp.float32(wp.sqrt(wp.max(co[0, 0], zero)))
+    out[1, start + k] = wp.float32(wp.sqrt(wp.max(co[1, 1], zero)))
+    out[2, start + k] = wp.float32(wp.sqrt(wp.max(cx[2, 2], zero)))
