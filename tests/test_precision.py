@@ -303,6 +303,51 @@ def test_accuracy_raster_for_a_gnss_ins_pose(tmp_path):
     np.testing.assert_allclose(out[:2, i, j], np.sqrt(np.diag(cov)), rtol=2e-4)
 
 
+def test_accuracy_raster_for_a_gnss_ins_pose_on_a_slope(tmp_path):
+    """A GNSS/INS pose over a planar UTM DEM rising 0.3 to the east and 0.2 to the north (the
+    kernels sample it reprojected to longitude/latitude and take its slope per metre there):
+    every seen cell's sigmas equal the host propagation's with the plane's slope in the cell's
+    own east/north (through PROJ), with the camera self-calibrated (f, x0, y0, k1)."""
+    from affine import Affine
+    from pyproj import CRS, Transformer
+
+    from orthowarp.pipeline.precision import accuracy_raster, enu_shifted
+
+    camera = ow.FrameCamera(100.5, 0.0052, (4000, 3000), k1=-0.02)
+    pose = ow.Pose.from_ins(46.501, 7.998, 2650.0, 1.2, -0.8, 35.0, boresight=(0.1, -0.05, 0.2))
+    pose_cov = np.diag([0.05, 0.05, 0.1, 0.005, 0.005, 0.01]) ** 2
+    names = ("f", "x0", "y0", "k1")
+    camera_cov = np.diag([0.01, 0.005, 0.005, 1e-4]) ** 2
+    utm = CRS(32632)
+    to_utm = Transformer.from_crs("EPSG:4326", utm, always_xy=True)
+    x0, y0 = to_utm.transform(7.998, 46.501)
+    xs, ys = x0 - 1500 + (np.arange(300) + 0.5) * 10.0, y0 + 1500 - (np.arange(300) + 0.5) * 10.0
+    plane = lambda x, y: 500.0 + 0.3 * (x - x0) + 0.2 * (y - y0)  # noqa: E731
+    dem = ow.Dem(plane(xs[None, :], ys[:, None]), Affine(10.0, 0, x0 - 1500, 0, -10.0, y0 + 1500), utm)
+    transform, shape = Affine(0.25, 0, x0 - 300, 0, -0.25, y0 + 300), (2400, 2400)
+    out = accuracy_raster(tmp_path / "acc.tif", camera, pose, dem, utm, transform, shape, pose_cov=pose_cov,
+                          camera_cov=camera_cov, camera_params=names, pixel_sigma=0.3, dem_sigma=0.5,
+                          refraction=False)
+    seen = np.isfinite(out[0])
+    assert seen.mean() > 0.3
+    ii, jj = np.nonzero(seen)
+    ii, jj = ii[::23], jj[::23]
+    x, y = transform * Affine.scale(16) * (jj + 0.5, ii + 0.5)
+    lon, lat = Transformer.from_crs(utm, "EPSG:4326", always_xy=True).transform(x, y)
+    p = np.stack([lon, lat, plane(x, y)], -1)
+
+    def utm_of(q):
+        return np.stack(to_utm.transform(q[:, 0], q[:, 1]), -1)
+
+    jac = np.stack([(utm_of(enu_shifted(p, a, 1.0)) - utm_of(enu_shifted(p, a, -1.0))) / 2.0 for a in (0, 1)], -1)
+    slopes = np.stack([jac[:, 0, a] * 0.3 + jac[:, 1, a] * 0.2 for a in (0, 1)], -1)  # rise per metre east, north
+    ref = monoplot_covariance(camera, pose, p, slopes, pose_cov=pose_cov, camera_cov=camera_cov, camera_params=names,
+                              pixel_sigma=0.3, dem_sigma=0.5)
+    cov = jac @ ref.cov[:, :2, :2] @ np.transpose(jac, (0, 2, 1))
+    want = np.stack([np.sqrt(cov[:, 0, 0]), np.sqrt(cov[:, 1, 1]), ref.sigma[:, 2]])
+    np.testing.assert_allclose(out[:, ii, jj], want, rtol=2e-4)  # measured: 5e-5
+
+
 def _sloped_dem(scene_points, slope_e, slope_n, h0):
     """A planar DEM in UTM (zone of the points) rising slope_e per metre of easting and slope_n
     per metre of northing around the points."""
