@@ -221,7 +221,7 @@ def _check_sigmas(pixel_sigma, dem_sigma):
 
 
 def frame_window_sigmas(geometry, crs, cells, window, c_raw, *, pixel_sigma=0.5, dem_sigma=0.0, nodes=16,
-                        chunk=1 << 18):
+                        chunk=None):
     """Predicted sigma x, y (the axes of ``crs``) and up (m) of the ground under a window of
     accuracy cells seen by one frame image, on the geometry's device
     (:mod:`orthowarp.kernels.precision`).
@@ -243,7 +243,8 @@ def frame_window_sigmas(geometry, crs, cells, window, c_raw, *, pixel_sigma=0.5,
         Cells between the exact (PROJ) nodes of the cells' positions; between them the
         positions are interpolated bilinearly, as the ortho's coarse grid.
     chunk : int, optional
-        Cells per launch (bounds the device memory: ~0.5 kB a cell).
+        Cells per launch (bounds the device memory: ~0.5 kB a cell); default 2^21 on a GPU,
+        2^18 on the CPU.
 
     Returns
     -------
@@ -267,6 +268,8 @@ def frame_window_sigmas(geometry, crs, cells, window, c_raw, *, pixel_sigma=0.5,
     dem = geometry.dem_struct()
     width, height = map(float, geometry.image_size)
     n_all = rows * cols
+    if chunk is None:
+        chunk = 1 << 21 if device.is_cuda else 1 << 18
     m = max(1, min(int(chunk), n_all))
     out = wp.empty((3, n_all), dtype=wp.float32, device=device)
     c_raw = wp.array(np.ascontiguousarray(c_raw, dtype=np.float64), dtype=wp.float64, device=device)
