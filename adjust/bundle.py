@@ -45,6 +45,7 @@ __all__ = ["bundle_adjust", "AdjustResult", "intersect"]
 log = logging.getLogger(__name__)
 
 POSE_NAMES = ("x", "y", "z", "omega", "phi", "kappa")
+JOINT_LIMIT = 3000  # the largest whole pose covariance kept (rows: 6 per image)
 
 
 @dataclass
@@ -75,6 +76,11 @@ class AdjustResult:
         image id -> the six sigmas (sigma0 sqrt(Qii)).
     pose_cov : ndarray, shape (n, 6, 6)
         sigma0^2 Q blocks (m, deg).
+    pose_cov_joint : ndarray, shape (6n, 6n) or None
+        The poses' whole covariance (m, deg), images in the block's order: the blocks above
+        and the cross-covariances between images, as error propagation through several images
+        needs them (:func:`orthowarp.adjust.precision.intersection_covariance`). Computed with
+        ``covariance="full"`` for blocks of up to 500 images; None otherwise.
     points, point_std : dict
         point id -> (x, y, z) / sigmas, for tie and control points (and check points, from their
         intersection).
@@ -127,6 +133,7 @@ class AdjustResult:
     cameras: dict = field(default_factory=dict)
     camera_std: dict = field(default_factory=dict)
     local_frame: object = None
+    pose_cov_joint: np.ndarray = None
 
 
 def _datum_check(block, used_points, control_free):
@@ -1245,6 +1252,9 @@ def _statistics(pr, poses, pts, used, weights, cost, covariance, withheld=()):
         return out
     # pose blocks of S^-1, by solves on identity columns in batches
     pose_q = np.zeros((n, 6, 6))
+    # the whole pose part too (cross-covariances between images, for error propagation), where
+    # it is asked for and small (6n <= JOINT_LIMIT: at most 72 MB)
+    joint = np.zeros((6 * n, 6 * n)) if covariance == "full" and 6 * n <= JOINT_LIMIT else None
     batch = max(1, 3000 // 6)
     for k0 in range(0, n, batch):
         k1 = min(k0 + batch, n)
@@ -1253,6 +1263,9 @@ def _statistics(pr, poses, pts, used, weights, cost, covariance, withheld=()):
         z = red.lu.solve(e)
         for k in range(k0, k1):
             pose_q[k] = z[6 * k:6 * k + 6, 6 * (k - k0):6 * (k - k0) + 6]
+        if joint is not None:
+            joint[:, 6 * k0:6 * k1] = z[:6 * n]
+    out["pose_q_joint"] = joint
     var = np.einsum("nii->ni", pose_q)
     bad = np.flatnonzero(~np.all(np.isfinite(var) & (var > 0), axis=1))
     if len(bad):
@@ -1359,6 +1372,10 @@ def _result(pr, poses, pts, used, st, status, it, cost, rejected, corr_limit):
     out_poses = poses.copy()
     out_poses[:, 3:] = np.degrees(out_poses[:, 3:])
     pose_cov = None if st["pose_q"] is None else s2 * st["pose_q"] * np.outer(deg, deg)
+    joint = st.get("pose_q_joint")
+    if joint is not None:
+        d = np.tile(deg, b.n_images)
+        joint = s2 * 0.5 * (joint + joint.T) * np.outer(d, d)
     warnings = []
     if pose_cov is not None:
         for k in range(b.n_images):
@@ -1420,7 +1437,7 @@ def _result(pr, poses, pts, used, st, status, it, cost, rejected, corr_limit):
         poses={b.image_ids[k]: tuple(out_poses[k]) for k in range(b.n_images)},
         pose_std={} if pose_cov is None else {b.image_ids[k]: tuple(np.sqrt(np.diag(pose_cov[k])))
                                               for k in range(b.n_images)},
-        pose_cov=pose_cov, points=points, point_std=point_std, point_cov=point_cov,
+        pose_cov=pose_cov, pose_cov_joint=joint, points=points, point_std=point_std, point_cov=point_cov,
         residuals=st["residuals"], redundancy_numbers=st["rnum"], w_tests=st["w"], used=used, rejected=rejected,
         control_rmse=control_rmse, check_rmse=check_rmse, check_errors=check_err,
         correlation_warnings=warnings, cameras=cameras, camera_std=camera_std)

@@ -511,3 +511,40 @@ def test_scene_accuracy_raster_is_the_propagation_at_its_cells(tmp_path):
     np.testing.assert_allclose(out[2, i, j], ref.sigma[0, 2], rtol=1e-5)
     np.testing.assert_allclose(np.hypot(out[0, i, j], out[1, i, j]), np.hypot(*ref.sigma[0, :2]), rtol=2e-3)
     assert abs(h - z(lon, lat)) < 0.05
+
+
+def test_check_points_of_an_adjusted_block_meet_their_predicted_precision():
+    """[P4]'s propagation fed by a bundle adjustment (its poses' joint covariance, with the
+    cross-covariances between images): at the check points of a synthetic block (measured in
+    the images, not in the adjustment) it gives the adjustment's own propagated covariance
+    (which also carries sigma0), and over 30 blocks with fresh noise the check points' actual
+    errors normalised by it have unit variance (chi-square test, alpha 0.1 %)."""
+    from orthowarp.adjust import bundle_adjust
+    from orthowarp.adjust.synthetic import synthetic_block
+
+    chi2, dof, sig_z = 0.0, 0, []
+    for r in range(30):
+        block, _ = synthetic_block(strips=2, images_per_strip=4, ties_per_image=12, control="A", sigma_px=0.5,
+                                   sigma_control=0.02, n_check=6, seed=2000 + r, geometry_seed=7)
+        res = bundle_adjust(block, covariance="full")
+        assert res.success and res.pose_cov_joint.shape == (48, 48)
+        np.testing.assert_allclose(res.pose_cov_joint[6:12, 6:12], res.pose_cov[1], rtol=1e-9)
+        check = np.flatnonzero(np.array(block.roles) == "check")
+        for c, j in enumerate(check):
+            k = block.obs_image[block.obs_point == j]
+            idx = np.concatenate([np.arange(6 * kk, 6 * kk + 6) for kk in k])
+            cams = [block.cameras[block.image_camera[kk]] for kk in k]
+            poses = [ow.Pose.from_opk(*res.poses[block.image_ids[kk]], crs=block.crs) for kk in k]
+            xyz = block.xyz[j] + res.check_errors[c]  # where the adjusted poses put the point
+            pred = intersection_covariance(cams, poses, [xyz], pose_cov=res.pose_cov_joint[np.ix_(idx, idx)],
+                                           pixel_sigma=0.5 * res.sigma0)
+            # the adjustment's own propagation (sigma0^2 (N^-1 + M^T S^-1 M), adjust/bundle.py)
+            np.testing.assert_allclose(pred.sigma[0], res.point_std[block.point_ids[j]], rtol=1e-5)
+            e = res.check_errors[c]
+            chi2 += float(e @ np.linalg.solve(pred.cov[0], e))
+            dof += 3
+            sig_z.append(pred.sigma[0, 2])
+    z = (chi2 - dof) / np.sqrt(2 * dof)
+    print(f"\n[adjusted block] {dof // 3} check points, chi2 {chi2:.1f} for {dof} dof (z = {z:.2f}), "
+          f"predicted sigma Z {np.min(sig_z):.3f}-{np.max(sig_z):.3f} m")
+    assert abs(z) < 3.29
