@@ -11,6 +11,11 @@ import pytest
 
 import orthowarp as ow
 from orthowarp.adjust.precision import intersection_covariance, monoplot_covariance
+
+try:
+    from conftest import DEVICES
+except ImportError:  # pragma: no cover
+    DEVICES = ["cpu"]
 from orthowarp.errors import ParamError
 from orthowarp.sensor import FrameSensor
 
@@ -219,10 +224,11 @@ def test_gnss_ins_monoplotting_matches_monte_carlo_through_the_kernels():
     assert_cov_close(res.cov, emp, 0.1)
 
 
-def test_accuracy_raster_is_the_propagation_at_its_cells(tmp_path):
+@pytest.mark.parametrize("device", DEVICES)
+def test_accuracy_raster_is_the_propagation_at_its_cells(tmp_path, device):
     """pipeline.precision.accuracy_raster: one pixel per 16 x 16 ortho pixels, aligned with the
     ortho; at each seen cell the monoplot sigmas of the cell centre's ground point; NaN where
-    the image does not see it."""
+    the image does not see it. On every device."""
     import rasterio
     from affine import Affine
     from pyproj import CRS
@@ -236,7 +242,7 @@ def test_accuracy_raster_is_the_propagation_at_its_cells(tmp_path):
                  "EPSG:32632")
     transform, shape = Affine(0.5, 0, E0 - 150, 0, -0.5, N0 + 150), (600, 640)
     out = accuracy_raster(tmp_path / "acc.tif", camera, pose, dem, CRS(32632), transform, shape, pose_cov=POSE_COV,
-                          pixel_sigma=0.5, dem_sigma=0.3, refraction=False)
+                          pixel_sigma=0.5, dem_sigma=0.3, refraction=False, device=device)
     assert out.shape == (3, 38, 40)
     with rasterio.open(tmp_path / "acc.tif") as ds:
         assert ds.count == 3 and ds.transform == transform * Affine.scale(16) and ds.crs.to_epsg() == 32632
@@ -258,7 +264,7 @@ def test_accuracy_raster_is_the_propagation_at_its_cells(tmp_path):
     np.testing.assert_allclose(out[:, ii, jj], ref.sigma.T, rtol=1e-6)
     # with refraction (the ortho's default) the derivatives turn by ~1e-4 of themselves
     refr = accuracy_raster(tmp_path / "refr.tif", camera, pose, dem, CRS(32632), transform, shape, pose_cov=POSE_COV,
-                           pixel_sigma=0.5, dem_sigma=0.3)
+                           pixel_sigma=0.5, dem_sigma=0.3, device=device)
     np.testing.assert_array_equal(np.isfinite(refr), np.isfinite(out))
     np.testing.assert_allclose(refr[:, ii, jj], out[:, ii, jj], rtol=1e-3)
 
@@ -548,3 +554,27 @@ def test_check_points_of_an_adjusted_block_meet_their_predicted_precision():
     print(f"\n[adjusted block] {dof // 3} check points, chi2 {chi2:.1f} for {dof} dof (z = {z:.2f}), "
           f"predicted sigma Z {np.min(sig_z):.3f}-{np.max(sig_z):.3f} m")
     assert abs(z) < 3.29
+
+
+def test_bad_accuracy_raster_inputs(tmp_path):
+    """Refused before anything is written: a rotated output grid, an unknown or repeated camera
+    parameter, a negative sigma, a pose covariance of the wrong shape."""
+    from affine import Affine
+    from pyproj import CRS
+
+    from orthowarp.pipeline.precision import accuracy_raster
+
+    camera, pose = camera_and_pose(POSE, CAM)
+    good = dict(pose_cov=POSE_COV, device="cpu")
+    grid = (Affine(0.5, 0, E0 - 150, 0, -0.5, N0 + 150), (64, 64))
+    cases = [
+        (dict(), (Affine(0.5, 0.1, E0 - 150, 0, -0.5, N0 + 150), (64, 64)), "north up"),
+        (dict(camera_params=("f", "k9"), camera_cov=np.eye(2)), grid, "camera_params"),
+        (dict(camera_params=("f", "f"), camera_cov=np.eye(2)), grid, "camera_params"),
+        (dict(pixel_sigma=-1.0), grid, "pixel_sigma"),
+        (dict(pose_cov=np.eye(5)), grid, "pose_cov"),
+    ]
+    for kw, (transform, shape), match in cases:
+        with pytest.raises(ParamError, match=match):
+            accuracy_raster(tmp_path / "acc.tif", camera, pose, 100.0, CRS(32632), transform, shape, **{**good, **kw})
+        assert not (tmp_path / "acc.tif").exists()
