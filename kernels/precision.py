@@ -9,12 +9,12 @@ frame (e, n, u in m; s_e, s_n the DEM's slope). Linearised, ``F_X dX + F_l dl = 
 
 The derivatives of ``p`` come from Warp's automatic differentiation of the kernels' own
 projection, :func:`~orthowarp.kernels.frame.project_xyz` (refraction included), in
-:func:`pixel_ad_kernel`: each cell gets its own zero offsets of the projection centre, the
-rotation matrix and the camera's eight calibration parameters, and the reverse pass for the
-column and then for the row gives every cell's gradient by the point and by those raw
-parameters. The host maps the user's inputs (pose inputs, calibration) to the raw parameters
-once per image (``C_raw = M C_in M^T``, :data:`RAW`), so a cell's image-side covariance is the
-quadratic form ``J C_raw J^T`` (:func:`accuracy_kernel`).
+:func:`pixel_ad_kernel`: each cell gets its own zero offsets of the rotation matrix and of the
+camera's eight calibration parameters, and the reverse pass for the column and then for the
+row gives every cell's gradient by the point and by those raw parameters (the projection
+centre's is the point's, negated). The host maps the user's inputs (pose inputs, calibration)
+to the raw parameters once per image (``C_raw = M C_in M^T``, :data:`RAW`), so a cell's
+image-side covariance is the quadratic form ``J C_raw J^T`` (:func:`accuracy_kernel`).
 """
 
 import warp as wp
@@ -49,11 +49,13 @@ def offset_camera(cam: FrameCameraData, d: vec8d):
 
 
 @wp.func
-def offset_pose(pose: FramePoseData, dc: wp.vec3d, dr: wp.mat33d):
-    """The pose with its centre offset by dc (m) and its rotation matrix by dr."""
+def offset_pose(pose: FramePoseData, dr: wp.mat33d):
+    """The pose with its rotation matrix offset by dr. (An offset of the centre needs no
+    gradient of its own: the projection takes the point and the centre only as x - C, so
+    dp/dC = -dp/dx.)"""
     p = FramePoseData()
     p.mode = pose.mode
-    p.center = pose.center + dc
+    p.center = pose.center
     p.rot = pose.rot + dr
     p.up = pose.up
     p.height = pose.height
@@ -67,16 +69,15 @@ def pixel_ad_kernel(
     refr: RefractionTable,
     x: wp.array(dtype=wp.vec3d),
     h: wp.array(dtype=wp.float64),
-    d_center: wp.array(dtype=wp.vec3d),
     d_rot: wp.array(dtype=wp.mat33d),
     d_cam: wp.array(dtype=vec8d),
     out: wp.array(dtype=wp.vec2d),
 ):
     """Pixel (N,) of the object-frame points x (N,) at heights h (N,) by
-    :func:`~orthowarp.kernels.frame.project_xyz`, with per-point offsets (zero) of the raw
-    parameters whose gradients the reverse pass gives."""
+    :func:`~orthowarp.kernels.frame.project_xyz`, with per-point offsets (zero) of the
+    rotation and the camera whose gradients the reverse pass gives (with x's)."""
     i = wp.tid()
-    out[i] = project_xyz(offset_camera(cam, d_cam[i]), offset_pose(pose, d_center[i], d_rot[i]), refr, x[i], h[i])
+    out[i] = project_xyz(offset_camera(cam, d_cam[i]), offset_pose(pose, d_rot[i]), refr, x[i], h[i])
 
 
 @wp.func
@@ -151,14 +152,21 @@ def cell_points_kernel(
     to_out[k] = wp.inverse(en_out)
 
 
+vec20d = wp.types.vector(length=RAW, dtype=wp.float64)
+
+
 @wp.func
-def raw_row(gc: wp.vec3d, gr: wp.mat33d, gk: vec8d, m: wp.int32):
-    """Entry m of a pixel coordinate's gradient by the raw parameters (:data:`RAW`)."""
-    if m < 3:
-        return gc[m]
-    if m < 12:
-        return gr[(m - 3) // 3, (m - 3) % 3]
-    return gk[m - 12]
+def raw_gradient(gx: wp.vec3d, gr: wp.mat33d, gk: vec8d):
+    """A pixel coordinate's gradient by the raw parameters (:data:`RAW`) from its gradients by
+    the point (the centre's is its negative), the rotation and the camera."""
+    g = vec20d()
+    for m in range(3):
+        g[m] = -gx[m]
+    for m in range(9):
+        g[3 + m] = gr[m // 3, m % 3]
+    for m in range(8):
+        g[12 + m] = gk[m]
+    return g
 
 
 @wp.kernel(enable_backward=False)
@@ -166,8 +174,6 @@ def accuracy_kernel(
     pix: wp.array(dtype=wp.vec2d),
     gx0: wp.array(dtype=wp.vec3d),
     gx1: wp.array(dtype=wp.vec3d),
-    gc0: wp.array(dtype=wp.vec3d),
-    gc1: wp.array(dtype=wp.vec3d),
     gr0: wp.array(dtype=wp.mat33d),
     gr1: wp.array(dtype=wp.mat33d),
     gk0: wp.array(dtype=vec8d),
@@ -186,7 +192,7 @@ def accuracy_kernel(
     """Sigma of the output CRS's x, y and of up (m) of each cell's ground point into columns
     start + k of ``out`` (3, cells); NaN where the image does not see it. Rows 0 and 1 of a
     cell's pixel Jacobians come from the reverse passes of :func:`pixel_ad_kernel` (``gx``
-    by the object-frame point, ``gc``, ``gr``, ``gk`` by the raw parameters)."""
+    by the object-frame point, ``gr`` by the rotation, ``gk`` by the camera)."""
     k = wp.tid()
     p = pix[k]
     nan = wp.float32(wp.nan)
@@ -197,27 +203,28 @@ def accuracy_kernel(
         out[1, start + k] = nan
         out[2, start + k] = nan
         return
+    g0 = gx0[k]
+    g1 = gx1[k]
+    j0 = raw_gradient(g0, gr0[k], gk0[k])
+    j1 = raw_gradient(g1, gr1[k], gk1[k])
     # image side: S = J C_raw J^T + pixel_var I (pixels^2)
     s00 = pixel_var
     s01 = zero
     s11 = pixel_var
     for a in range(RAW):
-        ja0 = raw_row(gc0[k], gr0[k], gk0[k], a)
-        ja1 = raw_row(gc1[k], gr1[k], gk1[k], a)
-        if ja0 != zero or ja1 != zero:
-            t0 = zero
-            t1 = zero
-            for b in range(RAW):
-                c = c_raw[a, b]
-                t0 += c * raw_row(gc0[k], gr0[k], gk0[k], b)
-                t1 += c * raw_row(gc1[k], gr1[k], gk1[k], b)
-            s00 += ja0 * t0
-            s01 += ja0 * t1
-            s11 += ja1 * t1
+        t0 = zero
+        t1 = zero
+        for b in range(RAW):
+            c = c_raw[a, b]
+            t0 += c * j0[b]
+            t1 += c * j1[b]
+        s00 += j0[a] * t0
+        s01 += j0[a] * t1
+        s11 += j1[a] * t1
     # F_X in east, north, up: pixel rows (dp/dx) E, height row (-s_e, -s_n, 1)
     e = basis[k]
-    r0 = wp.transpose(e) * gx0[k]
-    r1 = wp.transpose(e) * gx1[k]
+    r0 = wp.transpose(e) * g0
+    r1 = wp.transpose(e) * g1
     sl = slope[k]
     fx = wp.mat33d(r0[0], r0[1], r0[2], r1[0], r1[1], r1[2], -sl[0], -sl[1], wp.float64(1.0))
     fi = wp.inverse(fx)

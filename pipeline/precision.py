@@ -19,6 +19,8 @@ projection has no closed form: its derivatives are taken through the kernels'
 own projection (:func:`orthowarp.project`, the chain the ortho runs) by central differences.
 """
 
+import time
+
 import numpy as np
 from affine import Affine
 from pyproj import Transformer
@@ -221,7 +223,7 @@ def _check_sigmas(pixel_sigma, dem_sigma):
 
 
 def frame_window_sigmas(geometry, crs, cells, window, c_raw, *, pixel_sigma=0.5, dem_sigma=0.0, nodes=16,
-                        chunk=None):
+                        chunk=None, timings=None):
     """Predicted sigma x, y (the axes of ``crs``) and up (m) of the ground under a window of
     accuracy cells seen by one frame image, on the geometry's device
     (:mod:`orthowarp.kernels.precision`).
@@ -245,6 +247,9 @@ def frame_window_sigmas(geometry, crs, cells, window, c_raw, *, pixel_sigma=0.5,
     chunk : int, optional
         Cells per launch (bounds the device memory: ~0.5 kB a cell); default 2^21 on a GPU,
         2^18 on the CPU.
+    timings : dict, optional
+        Filled with seconds per step (nodes, buffers, cells, projection, gradients,
+        covariance, read-back), the device synchronised after each: for benchmarks.
 
     Returns
     -------
@@ -261,9 +266,19 @@ def frame_window_sigmas(geometry, crs, cells, window, c_raw, *, pixel_sigma=0.5,
     _check_sigmas(pixel_sigma, dem_sigma)
     r0, c0, rows, cols = map(int, window)
     device = geometry.device
+    clock = [time.perf_counter()]
+
+    def tick(step):  # with ``timings``: seconds per step, the device synchronised
+        if timings is not None:
+            wp.synchronize_device(device)
+            now = time.perf_counter()
+            timings[step] = timings.get(step, 0.0) + now - clock[0]
+            clock[0] = now
+
     to_frame = Transformer.from_crs(crs, geometry.horizontal_crs, always_xy=True)
     grid = coarse_struct(coarse_grid(cells, to_frame, r0, c0, rows, cols, step=nodes), geometry.geocentric, device,
                          step=nodes)
+    tick("nodes")
     arg, refr = geometry.sensor_structs()
     dem = geometry.dem_struct()
     width, height = map(float, geometry.image_size)
@@ -278,29 +293,39 @@ def frame_window_sigmas(geometry, crs, cells, window, c_raw, *, pixel_sigma=0.5,
         return wp.zeros(m, dtype=dtype, device=device, requires_grad=grad)
 
     x, h, basis, slope, to_out = buf(wp.vec3d, True), buf(wp.float64), buf(wp.mat33d), buf(wp.vec2d), buf(wp.mat22d)
-    d_c, d_r, d_k, pix = buf(wp.vec3d, True), buf(wp.mat33d, True), buf(kp.vec8d, True), buf(wp.vec2d, True)
-    saved = [(buf(wp.vec3d), buf(wp.vec3d), buf(wp.mat33d), buf(kp.vec8d)) for _ in range(2)]
+    d_r, d_k, pix = buf(wp.mat33d, True), buf(kp.vec8d, True), buf(wp.vec2d, True)
+    # each reverse pass accumulates into its own zeroed gradient buffers: by the point, the
+    # rotation and the camera, for the column (0) and the row (1)
+    grads = [(buf(wp.vec3d), buf(wp.mat33d), buf(kp.vec8d)) for _ in range(2)]
     seeds = [wp.array(np.tile(e, (m, 1)), dtype=wp.vec2d, device=device) for e in np.eye(2)]
+    tick("buffers")
     for start in range(0, n_all, m):
         n = min(m, n_all - start)
         wp.launch(kp.cell_points_kernel, dim=n, device=device,
                   inputs=[dem, grid, start, cols, 1.0 / nodes, 1.0 / (nodes * cells.a), 1.0 / (nodes * cells.e)],
                   outputs=[x, h, basis, slope, to_out])
+        tick("cells")
         tape = wp.Tape()
         with tape:
-            wp.launch(kp.pixel_ad_kernel, dim=n, device=device, inputs=[arg.cam, arg.pose, refr, x, h, d_c, d_r, d_k],
+            wp.launch(kp.pixel_ad_kernel, dim=n, device=device, inputs=[arg.cam, arg.pose, refr, x, h, d_r, d_k],
                       outputs=[pix])
-        for seed, keep in zip(seeds, saved):  # reverse passes: d col, then d row
+        tick("projection")
+        for seed, g in zip(seeds, grads):  # reverse passes: d col, then d row
+            if start:
+                for a in g:
+                    a.zero_()
+            x.grad, d_r.grad, d_k.grad = g
             tape.backward(grads={pix: seed})
-            for src, dst in zip((x, d_c, d_r, d_k), keep):
-                wp.copy(dst, src.grad)
-            tape.zero()
-        (gx0, gc0, gr0, gk0), (gx1, gc1, gr1, gk1) = saved
+        tick("gradients")
+        (gx0, gr0, gk0), (gx1, gr1, gk1) = grads
         wp.launch(kp.accuracy_kernel, dim=n, device=device,
-                  inputs=[pix, gx0, gx1, gc0, gc1, gr0, gr1, gk0, gk1, basis, slope, to_out, c_raw,
+                  inputs=[pix, gx0, gx1, gr0, gr1, gk0, gk1, basis, slope, to_out, c_raw,
                           float(pixel_sigma) ** 2, float(dem_sigma) ** 2, width, height, start],
                   outputs=[out])
-    return out.numpy().reshape(3, rows, cols)
+        tick("covariance")
+    sig = out.numpy().reshape(3, rows, cols)
+    tick("read-back")
+    return sig
 
 
 def scene_cell_sigmas(scene, dem, crs, ox, oy, *, orientation_cov, pixel_sigma=0.5, dem_sigma=0.0, refraction=True,

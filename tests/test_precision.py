@@ -578,3 +578,25 @@ def test_bad_accuracy_raster_inputs(tmp_path):
         with pytest.raises(ParamError, match=match):
             accuracy_raster(tmp_path / "acc.tif", camera, pose, 100.0, CRS(32632), transform, shape, **{**good, **kw})
         assert not (tmp_path / "acc.tif").exists()
+
+
+def test_accuracy_cells_do_not_depend_on_the_launch_chunks():
+    """frame_window_sigmas in launches of 7000 cells (several reverse passes into re-zeroed
+    gradient buffers) gives the one-launch result exactly."""
+    from affine import Affine
+    from pyproj import CRS
+
+    from orthowarp.pipeline.geometry import SensorGeometry
+    from orthowarp.pipeline.precision import frame_window_sigmas, raw_covariance
+
+    camera = ow.FrameCamera(100.5, 0.0052, (4000, 3000), k1=-0.02)
+    pose = ow.Pose.from_ins(46.501, 7.998, 2650.0, 1.2, -0.8, 35.0)
+    utm = CRS(32632)
+    c = ow.geolocate(FrameSensor(camera, pose), [[2000.0, 1500.0]], dem=500.0, crs=utm, device="cpu")[0]
+    cells = Affine(1.6, 0, c[0] - 250, 0, -1.6, c[1] + 250)
+    c_raw = raw_covariance(camera, pose, pose_cov=np.diag([0.05, 0.05, 0.1, 0.005, 0.005, 0.01]) ** 2)
+    geom = SensorGeometry(FrameSensor(camera, pose), 500.0, device="cpu")
+    one = frame_window_sigmas(geom, utm, cells, (0, 0, 300, 310), c_raw)
+    many = frame_window_sigmas(geom, utm, cells, (0, 0, 300, 310), c_raw, chunk=7000)
+    assert 0.3 < np.isfinite(one[0]).mean() < 1.0
+    np.testing.assert_array_equal(many, one)
