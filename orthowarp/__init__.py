@@ -5,8 +5,9 @@ Public API::
     import orthowarp as ow
     cam = ow.FrameCamera(focal_length=100.0, pixel_size=0.006, image_size=(11310, 17310))
     pose = ow.Pose.from_ins(47.0, 8.0, 2500.0, roll=0.5, pitch=-0.3, yaw=90.0)
-    lonlath = ow.geolocate(cam, pose, [[0.5, 0.5]], dem=ow.Dem.from_file("dem.tif"))
-    colrow = ow.project(cam, pose, lonlath)
+    sensor = ow.FrameSensor(cam, pose)
+    lonlath = ow.geolocate(sensor, [[0.5, 0.5]], dem=ow.Dem.from_file("dem.tif"))
+    colrow = ow.project(sensor, lonlath)
 
 Conventions (units, axes, pixel origin) are those of DESIGN.md: metres, degrees, seconds;
 pixel (col, row) with the origin at the top-left corner of the top-left pixel.

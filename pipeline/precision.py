@@ -328,12 +328,7 @@ def frame_window_sigmas(geometry, crs, cells, window, c_raw, *, pixel_sigma=0.5,
                           float(pixel_sigma) ** 2, float(dem_sigma) ** 2, width, height, start],
                   outputs=[out])
         tick("covariance")
-    if device.is_cuda:  # through a pinned buffer: a pageable copy runs at a fraction of the bus's rate
-        host = wp.empty((3, n_all), dtype=wp.float32, device="cpu", pinned=True)
-        wp.copy(host, out)
-        wp.synchronize_device(device)
-        out = host
-    sig = out.numpy().reshape(3, rows, cols)
+    sig = out.numpy().reshape(3, rows, cols)  # (a pinned buffer's allocation costs more than it saves)
     tick("read-back")
     return sig
 
