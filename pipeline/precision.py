@@ -172,8 +172,11 @@ def _terrain_points(dem, crs, ox, oy, frame_crs):
     else:  # the bilinear surface's slope (per metre east and north for lon/lat grids)
         d = 0.1 * min(abs(terrain.transform.a), abs(terrain.transform.e))
         sx = sy = 2 * d
-        if geo:  # degrees -> metres on the sphere of the mean radius (the slope to ~0.3 %)
-            sx, sy = sx * np.radians(1.0) * 6371008.8 * np.cos(np.radians(py)), sy * np.radians(1.0) * 6371008.8
+        if geo:  # degrees -> metres through the ellipsoid's radii of curvature (as the kernels)
+            sl = np.sin(np.radians(py))
+            w2 = 1.0 - WGS84_E2 * sl * sl
+            sx = sx * np.radians(1.0) * (WGS84_A / np.sqrt(w2) + h) * np.cos(np.radians(py))
+            sy = sy * np.radians(1.0) * (WGS84_A * (1.0 - WGS84_E2) / w2**1.5 + h)
         slopes = np.stack([(terrain.sample(px + d, py) - terrain.sample(px - d, py)) / sx,
                            (terrain.sample(px, py + d) - terrain.sample(px, py - d)) / sy], -1)
     return np.stack([px, py, h], -1), slopes
@@ -335,7 +338,9 @@ def frame_window_sigmas(geometry, crs, cells, window, c_raw, *, pixel_sigma=0.5,
 
 def scene_cell_sigmas(scene, dem, crs, ox, oy, *, orientation_cov, pixel_sigma=0.5, dem_sigma=0.0, refraction=True,
                       device=None):
-    """:func:`frame_cell_sigmas` for a pushbroom scene (:func:`scene_monoplot_covariance`)."""
+    """Predicted sigma x, y (the axes of ``crs``) and up (m), (3, n) float32, of the ground
+    under the points (ox, oy) of ``crs`` seen by a pushbroom scene (NaN where it does not see
+    them), by :func:`scene_monoplot_covariance` at each point."""
     from .geometry import project
 
     _square("orientation_cov", orientation_cov, len(SCENE_INPUTS))

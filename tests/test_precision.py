@@ -508,10 +508,14 @@ def test_scene_accuracy_raster_is_the_propagation_at_its_cells(tmp_path):
     def z(lo, la):
         return terrain.sample(np.array([lo]), np.array([la]))[0]
 
-    d = 0.1 * min(abs(terrain.transform.a), abs(terrain.transform.e))
-    metres = np.radians(1.0) * 6371008.8
-    slopes = [[(z(lon + d, lat) - z(lon - d, lat)) / (2 * d * metres * np.cos(np.radians(lat))),
-               (z(lon, lat + d) - z(lon, lat - d)) / (2 * d * metres)]]
+    # the plane's rise per metre east and north at the point, through PROJ's own derivative
+    from orthowarp.pipeline.precision import enu_shifted
+
+    to_utm = Transformer.from_crs("EPSG:4326", utm, always_xy=True)
+    p = np.array([[lon, lat, h]])
+    jac = np.stack([np.subtract(to_utm.transform(*enu_shifted(p, a, 1.0)[0, :2]),
+                                to_utm.transform(*enu_shifted(p, a, -1.0)[0, :2])) / 2.0 for a in (0, 1)], -1)
+    slopes = [[jac[0, a] * 0.05 + jac[1, a] * 0.02 for a in (0, 1)]]
     ref = scene_monoplot_covariance(scene, [[lon, lat, z(lon, lat)]], slopes, orientation_cov=cov, pixel_sigma=0.5,
                                     dem_sigma=1.0, device="cpu")
     np.testing.assert_allclose(out[2, i, j], ref.sigma[0, 2], rtol=1e-5)
