@@ -22,11 +22,11 @@ from .matching import MatchResult, interest_points, match_points
 from .scene_points import ScenePoints
 from .spot_bundle import EO_GROUPS, SceneBundleResult, adjust_scenes, intersect_scene_points
 from .bundle import AdjustResult, bundle_adjust, intersect
-from .precision import PrecisionResult, intersection_covariance, monoplot_covariance
+from .precision import PrecisionResult, input_covariance, intersection_covariance, monoplot_covariance
 from .synthetic import CONTROL_LAYOUTS, film_camera, synthetic_block
 
 __all__ = ["Block", "ROLES", "AdjustResult", "bundle_adjust", "intersect", "synthetic_block", "film_camera",
            "CONTROL_LAYOUTS", "PrecisionResult", "ScenePoints", "LookAngleResult", "preadjust_look_angles",
            "EO_GROUPS", "SceneBundleResult", "adjust_scenes", "intersect_scene_points", "MatchResult", "match_points", "interest_points", "monoplot_covariance",
-           "intersection_covariance"]
+           "intersection_covariance", "input_covariance"]
 

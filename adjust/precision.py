@@ -25,7 +25,8 @@ Poses:
   covariance is in its axes;
 - GNSS/INS (:meth:`~orthowarp.Pose.from_ins`): the pose inputs are the reference point's
   offsets east, north, up (m) and roll, pitch, yaw (deg), as a GNSS/INS specification states
-  them; points are (longitude, latitude, height) as :func:`orthowarp.geolocate` returns them.
+  them, optionally followed by the boresight angles (deg) and the lever arm's components (m)
+  as :meth:`~orthowarp.Pose.from_ins` takes them (9 or 12 inputs); points are (longitude, latitude, height) as :func:`orthowarp.geolocate` returns them.
   The equations are written in an east-north-up frame at the (first) pose's nadir (exactly:
   ECEF rotated and shifted, :mod:`orthowarp.adjust.geocentric`), the pose inputs mapped into
   it by their Jacobian (boresight and lever arm included), and the points' covariance is in
@@ -48,7 +49,7 @@ if TYPE_CHECKING:  # annotations only
     from ..camera import FrameCamera
     from ..pose import Pose
 
-__all__ = ["PrecisionResult", "monoplot_covariance", "intersection_covariance"]
+__all__ = ["PrecisionResult", "monoplot_covariance", "intersection_covariance", "input_covariance"]
 
 CAMERA_PARAMS = col.CALIBRATION  # f, x0, y0, k1, k2, k3, p1, p2
 
@@ -100,7 +101,7 @@ class _Frame:
     """Where the equations are written: the map CRS of photogrammetric poses (identity), or an
     east-north-up frame at the first GNSS/INS pose's nadir."""
 
-    def __init__(self, poses):
+    def __init__(self, poses, local=None):
         modes = {p.mode for p in poses}
         if len(modes) != 1:
             raise ParamError(f"the poses must be all photogrammetric or all GNSS/INS, got {sorted(modes)}")
@@ -109,7 +110,7 @@ class _Frame:
             from .geocentric import LocalFrame
 
             lat, lon, _ = poses[0].center_geodetic
-            self.local = LocalFrame(lat, lon, 0.0)
+            self.local = local if local is not None else LocalFrame(lat, lon, 0.0)
         elif modes != {"map"}:
             raise ParamError(f"precision is computed for photogrammetric or GNSS/INS poses, got {sorted(modes)}")
 
@@ -125,16 +126,15 @@ class _Frame:
         c = (pose.center - self.local.origin) @ self.local.r.T
         return np.r_[c, np.radians(geodesy.opk_angles(self.local.r @ pose.rotation))]
 
-    def pose(self, pose):
+    def pose(self, pose, inputs=6):
         """The pose's row in the frame (X0, Y0, Z0 m, omega, phi, kappa rad) and the Jacobian
-        (6, 6) of that row (angles in deg) by the pose's inputs (see the module's
-        description): the identity for photogrammetric poses, numerical (central differences)
-        for GNSS/INS ones, through :meth:`Pose.from_ins` with the pose's boresight and lever
-        arm (:func:`moved_pose`)."""
+        (6, inputs) of that row (angles in deg) by the pose's first ``inputs`` inputs (see the
+        module's description): the identity for photogrammetric poses, numerical (central
+        differences) for GNSS/INS ones, through :meth:`Pose.from_ins` (:func:`moved_pose`)."""
         if self.local is None:
             return _pose_row(pose), np.eye(6)
-        jac = np.empty((6, 6))
-        for k in range(6):
+        jac = np.empty((6, inputs))
+        for k in range(inputs):
             d = INPUT_STEPS[k]
             diff = self._row(moved_pose(pose, k, d)) - self._row(moved_pose(pose, k, -d))
             # angles per degree, as the equations' columns are (a step across +-180 deg wrapped)
@@ -143,13 +143,26 @@ class _Frame:
         return self._row(pose), jac
 
 
-INPUT_STEPS = (1e-3, 1e-3, 1e-3, 1e-5, 1e-5, 1e-5)  # central-difference steps of the pose inputs (m, deg)
+# central-difference steps of the pose inputs: position (m), attitude (deg), boresight (deg),
+# lever arm (m)
+INPUT_STEPS = (1e-3, 1e-3, 1e-3, 1e-5, 1e-5, 1e-5, 1e-5, 1e-5, 1e-5, 1e-3, 1e-3, 1e-3)
+
+
+def pose_inputs(pose, size):
+    """Check that a pose covariance of ``size`` x ``size`` fits the pose: 6 for photogrammetric
+    poses; 6, 9 (with boresight) or 12 (with boresight and lever arm) for GNSS/INS poses."""
+    allowed = (6,) if pose.mode == "map" else (6, 9, 12)
+    if size not in allowed:
+        kind = "a photogrammetric" if pose.mode == "map" else "a GNSS/INS"
+        raise ParamError(f"pose_cov of {kind} pose must be {' or '.join(f'{a} x {a}' for a in allowed)}, "
+                         f"got {size} x {size}")
+    return size
 
 
 def moved_pose(pose, k, d):
     """The pose with its input ``k`` (see the module's description: X0, Y0, Z0 or east, north,
-    up in m; omega, phi, kappa or roll, pitch, yaw in deg) moved by ``d``; boresight and lever
-    arm of a GNSS/INS pose kept."""
+    up in m; omega, phi, kappa or roll, pitch, yaw in deg; for GNSS/INS poses also 6-8 the
+    boresight angles (deg) and 9-11 the lever arm (m)) moved by ``d``."""
     from ..pose import Pose
 
     p = pose.params
@@ -163,13 +176,37 @@ def moved_pose(pose, k, d):
 
     lla = np.array([p["lat"], p["lon"], p["h"]], dtype=np.float64)
     att = np.array([p["roll"], p["pitch"], p["yaw"]], dtype=np.float64)
+    boresight = np.array(p["boresight"], dtype=np.float64)
+    lever = np.array(p["lever_arm"], dtype=np.float64)
     if k < 3:  # along the reference point's own east, north, up
         off = np.zeros(3)
         off[k] = d
         lla = LocalFrame(*lla).to_lla(off)[0]
-    else:
+    elif k < 6:
         att[k - 3] += d
-    return Pose.from_ins(*lla, *att, boresight=p["boresight"], lever_arm=p["lever_arm"])
+    elif k < 9:
+        boresight[k - 6] += d
+    else:
+        lever[k - 9] += d
+    return Pose.from_ins(*lla, *att, boresight=tuple(boresight), lever_arm=tuple(lever))
+
+
+def input_covariance(pose: Pose, frame_cov: ArrayLike, *, local=None) -> np.ndarray:
+    """The covariance (6, 6) of a pose's inputs (see the module's description) from that of
+    its row in an adjustment's frame: X0, Y0, Z0 (m) and omega, phi, kappa (deg) of a
+    photogrammetric pose in its CRS (returned as given), or for a GNSS/INS pose the row in the
+    east-north-up frame ``local`` (a :class:`~orthowarp.adjust.geocentric.LocalFrame`, as
+    :attr:`BundleResult.local_frame <orthowarp.adjust.bundle.BundleResult>`): ``J^-1 C J^-T``
+    with ``J`` the row's derivative by the inputs."""
+    c = _square("frame_cov", frame_cov, 6)
+    if pose.mode == "map":
+        return c
+    if local is None:
+        raise ParamError("a GNSS/INS pose's covariance needs the adjustment's local frame")
+    _, jac = _Frame([pose], local=local).pose(pose)
+    inv = np.linalg.inv(jac)
+    out = inv @ c @ inv.T
+    return 0.5 * (out + out.T)
 
 
 def _square(name, value, n):
@@ -226,9 +263,10 @@ def monoplot_covariance(camera: FrameCamera, pose: Pose, points: ArrayLike, slop
     slopes : array_like (n, 2)
         The DEM's slopes there (its bilinear surface): dZ/dX, dZ/dY, or for GNSS/INS poses
         dh/d(east), dh/d(north).
-    pose_cov : array_like (6, 6)
+    pose_cov : array_like (6, 6), or for GNSS/INS poses also (9, 9) or (12, 12)
         Covariance of the pose's inputs (see the module's description: X0, Y0, Z0 or east,
-        north, up in m; omega, phi, kappa or roll, pitch, yaw in deg).
+        north, up in m; omega, phi, kappa or roll, pitch, yaw in deg; for GNSS/INS poses then
+        the boresight angles (deg) and the lever arm (m), see :meth:`Pose.from_ins`).
     pixel_sigma : float, optional
         Standard deviation of the measured pixel, each axis (px).
     camera_cov : array_like (q, q), optional
@@ -243,12 +281,14 @@ def monoplot_covariance(camera: FrameCamera, pose: Pose, points: ArrayLike, slop
     -------
     PrecisionResult
     """
-    pts, slopes, q, pose_cov, camera_cov = _check(points, pose_cov, camera_cov, camera_params, slopes=slopes)
+    pts, slopes, q, pose_cov, camera_cov = _check(points, pose_cov, camera_cov, camera_params, slopes=slopes,
+                                                  pose_size=pose_inputs(pose, np.shape(pose_cov)[0]
+                                                                        if np.ndim(pose_cov) == 2 else -1))
     if not (np.isfinite(pixel_sigma) and pixel_sigma >= 0 and np.isfinite(dem_sigma) and dem_sigma >= 0):
         raise ParamError(f"pixel_sigma and dem_sigma must be finite and >= 0, got {pixel_sigma}, {dem_sigma}")
     n = len(pts)
     frame = _Frame([pose])
-    row, jac = frame.pose(pose)
+    row, jac = frame.pose(pose, len(pose_cov))
     pose_cov = jac @ pose_cov @ jac.T
     j_point, j_in = _image_terms(camera, row, frame.points(pts), camera_params)
     m = j_in.shape[2]
@@ -278,9 +318,10 @@ def intersection_covariance(cameras: Sequence[FrameCamera], poses: Sequence[Pose
         Photogrammetric or GNSS/INS poses (all of one kind), one per image (k images).
     points : array_like (n, 3)
         The intersected ground points.
-    pose_cov : array_like (6, 6) or (6k, 6k)
+    pose_cov : array_like (p, p) or (pk, pk)
         Each pose's covariance (the same for all), or that of the stacked poses (correlated
-        poses, e.g. from an adjustment).
+        poses, e.g. from an adjustment); p = 6, or for GNSS/INS poses also 9 or 12 (see
+        :func:`monoplot_covariance`). A (6k, 6k) matrix is read as the stacked poses'.
     pixel_sigma : float, optional
     camera_cov, camera_params :
         As for :func:`monoplot_covariance`, per distinct camera.
@@ -293,16 +334,18 @@ def intersection_covariance(cameras: Sequence[FrameCamera], poses: Sequence[Pose
         raise ParamError(f"intersection needs two or more images with one camera each; got {len(poses)} poses "
                          f"and {len(cameras)} cameras")
     k = len(poses)
-    shared = np.shape(pose_cov) == (6, 6)  # one covariance for every pose, or the stacked poses'
+    size = np.shape(pose_cov)[0] if np.ndim(pose_cov) == 2 else -1
+    shared = size in (6, 9, 12) and size != 6 * k  # one covariance for every pose, or the stacked poses'
+    p = pose_inputs(poses[0], size if shared else size // k if size % k == 0 else -1)
     pts, _, q, pose_cov, camera_cov = _check(points, pose_cov, camera_cov, camera_params,
-                                             pose_size=6 if shared else 6 * k)
+                                             pose_size=p if shared else p * k)
     distinct = []
     for c in cameras:
         if not any(c is d for d in distinct):
             distinct.append(c)
     n_in = 6 * k + q * len(distinct) + 2 * k
     c_in = np.zeros((n_in, n_in))
-    c_in[:6 * k, :6 * k] = np.kron(np.eye(k), pose_cov) if shared else pose_cov
+    c_pose = np.kron(np.eye(k), pose_cov) if shared else pose_cov  # (p k, p k) of the inputs
     for d in range(len(distinct)):
         if q:
             c_in[6 * k + q * d:6 * k + q * (d + 1), 6 * k + q * d:6 * k + q * (d + 1)] = camera_cov
@@ -310,12 +353,12 @@ def intersection_covariance(cameras: Sequence[FrameCamera], poses: Sequence[Pose
     n = len(pts)
     frame = _Frame(poses)
     local = frame.points(pts)
-    pose_rows, big = [], np.zeros((6 * k, 6 * k))
+    pose_rows, big = [], np.zeros((6 * k, p * k))
     for i, pose in enumerate(poses):  # each pose's row in the frame, its inputs mapped there
-        row, jac = frame.pose(pose)
+        row, jac = frame.pose(pose, p)
         pose_rows.append(row)
-        big[6 * i:6 * i + 6, 6 * i:6 * i + 6] = jac
-    c_in[:6 * k, :6 * k] = big @ c_in[:6 * k, :6 * k] @ big.T
+        big[6 * i:6 * i + 6, p * i:p * i + p] = jac
+    c_in[:6 * k, :6 * k] = big @ c_pose @ big.T
     f_x = np.zeros((n, 2 * k, 3))
     f_l = np.zeros((n, 2 * k, n_in))
     for i, (camera, pose) in enumerate(zip(cameras, poses)):

@@ -230,9 +230,13 @@ def demo(out_dir, device):
 @click.option("--pose-sigma", default=_FRAME_POSE_SIGMA, show_default=True,
               metavar="SX,SY,SZ,SA,SB,SC",
               help="With --accuracy: the poses' standard deviations: x, y, z (or east, north, up for GNSS/INS "
-                   "poses) in m, omega, phi, kappa (or roll, pitch, yaw) in deg; for a --dimap scene eight numbers "
-                   "(default 10,10,5,0.001,0.001,0.001,0.001,0.001): the orbit across, along the track and radially "
-                   "(m), roll, pitch, yaw and the look angles psi_x, psi_y (deg).")
+                   "poses) in m, omega, phi, kappa (or roll, pitch, yaw) in deg; GNSS/INS poses may add the "
+                   "boresight angles (deg), then the lever arm (m): 9 or 12 numbers. For a --dimap scene eight "
+                   "numbers (default 10,10,5,0.001,0.001,0.001,0.001,0.001): the orbit across, along the track and "
+                   "radially (m), roll, pitch, yaw and the look angles psi_x, psi_y (deg).")
+@click.option("--pose-cov", "pose_cov_file", type=click.Path(dir_okay=False),
+              help="With --accuracy: each image's pose covariance from 'orthowarp adjust' (its pose_cov.json, "
+                   "the exterior file's parameters), instead of --pose-sigma.")
 @click.option("--pixel-sigma", type=float, default=0.5, show_default=True,
               help="With --accuracy: standard deviation of an image position (px).")
 @click.option("--dem-sigma", type=float, default=0.5, show_default=True,
@@ -246,7 +250,7 @@ def demo(out_dir, device):
 def ortho(ctx, images, odm_dataset, int_param, ext_param, dimap, attitude_model, dem, height, crs, resolution, resampling, method,
           driver, compress, compress_level, quality, block_codec, creation, dtype,
           out_dir, overwrite, no_refraction, geoid, same_vertical_datum, device, tile_size, export_params, accuracy,
-          pose_sigma,
+          pose_sigma, pose_cov_file,
           pixel_sigma, dem_sigma, show_profile, profile_json):
     """Orthorectify frame IMAGES, or one pushbroom scene (--dimap), into (cloud-optimized)
     GeoTIFFs named <image>_ORTHO.tif."""
@@ -276,13 +280,20 @@ def ortho(ctx, images, odm_dataset, int_param, ext_param, dimap, attitude_model,
             if not ctx.obj["quiet"]:
                 click.echo(path)
         return
-    sigmas = None
+    sigmas = covs = cov_names = None
+    if pose_cov_file is not None:
+        from .pipeline.adjust_report import POSE_COV_PARAMETERS, read_pose_covariances
+
+        covs, cov_names = read_pose_covariances(pose_cov_file)
     if accuracy:
         if dimap and pose_sigma == _FRAME_POSE_SIGMA:
             pose_sigma = _SCENE_SIGMA
         sigmas = _sigma_list(pose_sigma, 8, "--pose-sigma", "m, m, m, deg x 5 for a --dimap scene") if dimap \
-            else _sigma_list(pose_sigma, 6, "--pose-sigma", "m, m, m, deg, deg, deg")
+            else _sigma_list(pose_sigma, (6, 9, 12), "--pose-sigma", "m, m, m, deg, deg, deg; GNSS/INS poses: "
+                             "then boresight deg x 3, lever arm m x 3")
         _check_measurement_sigmas(pixel_sigma, dem_sigma)
+    if pose_cov_file is not None and (not accuracy or dimap):
+        raise ParamError("--pose-cov goes with --accuracy for frame images")
     if (dem is None) == (height is None):
         raise ParamError("Give exactly one of --dem FILE and --height METRES")
     compress, compress_level, quality, creation_options = _creation_args(creation, compress, compress_level, quality)
@@ -314,6 +325,19 @@ def ortho(ctx, images, odm_dataset, int_param, ext_param, dimap, attitude_model,
             check_destination(dst, overwrite=overwrite)
             if accuracy:
                 check_destination(_accuracy_name(dst), overwrite=overwrite)
+        if accuracy and not dimap:  # every image's pose covariance, before anything is written
+            from .adjust.precision import pose_inputs
+
+            for image, sensor, _ in jobs:
+                if covs is None:
+                    pose_inputs(sensor.pose, len(sigmas))
+                    continue
+                want = POSE_COV_PARAMETERS["map" if sensor.pose.mode == "map" else "geocentric"]
+                if cov_names != want:
+                    raise ParamError(f"'{pose_cov_file}' gives covariances of {cov_names}; the pose of "
+                                     f"'{image}' takes {want}")
+                if _image_key(image) not in covs:
+                    raise ParamError(f"Image '{image}' has no pose covariance in '{pose_cov_file}'")
         terrain = Dem.from_file(dem) if dem is not None else height
         profiles = []
 
@@ -321,6 +345,7 @@ def ortho(ctx, images, odm_dataset, int_param, ext_param, dimap, attitude_model,
             image, sensor, dst = job
             r = orthorectify(image, sensor, dst, dem=terrain, **options)
             if accuracy:
+                pose_cov = np.diag(sigmas) ** 2 if covs is None else covs[_image_key(image)]
                 from .pipeline.precision import accuracy_raster
 
                 if sensor.kind == "pushbroom":
@@ -331,7 +356,7 @@ def ortho(ctx, images, odm_dataset, int_param, ext_param, dimap, attitude_model,
                                           dem_sigma=dem_sigma, refraction=not no_refraction, device=device)
                 else:
                     accuracy_raster(_accuracy_name(dst), sensor.camera, sensor.pose, terrain, r.crs, r.transform, r.shape,
-                                    pose_cov=np.diag(sigmas) ** 2, pixel_sigma=pixel_sigma, dem_sigma=dem_sigma,
+                                    pose_cov=pose_cov, pixel_sigma=pixel_sigma, dem_sigma=dem_sigma,
                                     refraction=not no_refraction, geoid=geoid,
                                     same_vertical_datum=same_vertical_datum, device=device)
             return dst, r
@@ -389,7 +414,7 @@ def ortho(ctx, images, odm_dataset, int_param, ext_param, dimap, attitude_model,
         raise ParamError("Give --ext-param (frame images) or --dimap (a pushbroom scene)")
     jobs, seen = [], {}
     for image, camera, pose in _frame_orientations(images, int_param, ext_param, crs):
-        key = os.path.splitext(os.path.basename(image))[0]
+        key = _image_key(image)
         dst = os.path.join(out_dir, f"{key}_ORTHO.tif")
         if dst in seen:
             raise ParamError(f"Images '{seen[dst]}' and '{image}' would both be written to '{dst}'")
@@ -408,6 +433,11 @@ class _Either:
         return any(e.is_set() for e in self.events)
 
 
+def _image_key(image):
+    """An image's name in orientation files: its file name without the extension."""
+    return os.path.splitext(os.path.basename(image))[0]
+
+
 def _accuracy_name(dst):
     """<image>_ACCURACY.tif beside <image>_ORTHO.tif."""
     base = dst[:-len("_ORTHO.tif")] if dst.endswith("_ORTHO.tif") else os.path.splitext(dst)[0]
@@ -415,15 +445,17 @@ def _accuracy_name(dst):
 
 
 def _sigma_list(text, n, option, units):
-    """``n`` comma-separated standard deviations (finite, >= 0) of a CLI option."""
+    """``n`` (an int, or a tuple of the counts allowed) comma-separated standard deviations
+    (finite, >= 0) of a CLI option."""
     from .errors import ParamError
 
+    counts = (n,) if isinstance(n, int) else tuple(n)
     try:
         values = [float(v) for v in text.split(",")]
     except ValueError:
         values = []
-    if len(values) != n or not all(np.isfinite(v) and v >= 0 for v in values):
-        raise ParamError(f"{option} must be {n} numbers >= 0 ({units}), got {text!r}")
+    if len(values) not in counts or not all(np.isfinite(v) and v >= 0 for v in values):
+        raise ParamError(f"{option} must be {' or '.join(map(str, counts))} numbers >= 0 ({units}), got {text!r}")
     return values
 
 
@@ -626,7 +658,8 @@ def _frame_orientations(images, int_param, ext_param, crs, ids=None):
               help="Also write <mosaic>_ACCURACY.tif: the predicted accuracy (sigma east, north, up in m) of each "
                    "16 x 16-pixel cell from the image its centre was taken from (needs --index).")
 @click.option("--pose-sigma", default=_FRAME_POSE_SIGMA, show_default=True, metavar="SX,SY,SZ,SA,SB,SC",
-              help="With --accuracy: frame images' pose standard deviations (m, m, m, deg, deg, deg; as for ortho).")
+              help="With --accuracy: frame images' pose standard deviations (m, m, m, deg, deg, deg; GNSS/INS poses "
+                   "also 9 or 12 numbers with the boresight and the lever arm; as for ortho).")
 @click.option("--scene-sigma", default=_SCENE_SIGMA, show_default=True, metavar="8 NUMBERS",
               help="With --accuracy: pushbroom scenes' orientation standard deviations (orbit across, along, radial "
                    "in m; roll, pitch, yaw, psi_x, psi_y in deg).")
@@ -677,7 +710,8 @@ def mosaic(ctx, images, int_param, ext_param, odm_dataset, scenes, attitude_mode
     if accuracy:
         if not index_path:
             raise ParamError("--accuracy takes each cell's image from the index: give --index too")
-        frame_sigmas = _sigma_list(pose_sigma, 6, "--pose-sigma", "m, m, m, deg, deg, deg")
+        frame_sigmas = _sigma_list(pose_sigma, (6, 9, 12), "--pose-sigma", "m, m, m, deg, deg, deg; GNSS/INS "
+                                   "poses: then boresight deg x 3, lever arm m x 3")
         scene_sigmas = _sigma_list(scene_sigma, 8, "--scene-sigma", "m, m, m, deg x 5")
         _check_measurement_sigmas(pixel_sigma, dem_sigma)
         check_destination(_accuracy_name(out_path), overwrite=overwrite)
@@ -690,6 +724,12 @@ def mosaic(ctx, images, int_param, ext_param, odm_dataset, scenes, attitude_mode
             if not os.path.exists(image):
                 raise RasterIOError(f"Image '{image}' does not exist")
             jobs.append((image, read_scene(dimap, attitude_model=attitude_model)))
+    if accuracy:  # every frame's pose takes that many sigmas, before anything is written
+        from .adjust.precision import pose_inputs
+
+        for _, sensor in jobs:
+            if sensor.kind != "pushbroom":
+                pose_inputs(sensor.pose, len(frame_sigmas))
     terrain = Dem.from_file(dem) if dem is not None else height
     r = make_mosaic(jobs, out_path, dem=terrain, crs=crs, resolution=resolution, resampling=resampling,
                     refraction=not no_refraction, dtype=dtype, index=index_path, seamlines=seamlines_path,

@@ -8,6 +8,11 @@ Files written into the output folder, all together or none (:func:`~orthowarp.pi
   .prj): ``orthowarp ortho --ext-param exterior.csv``;
 - ``cameras.yaml``: the cameras in orthority's format: ``--int-param cameras.yaml``;
 - ``points.csv``: ``point,role,x,y,z,sx,sy,sz``;
+- ``pose_cov.json``: each image's pose covariance in the parameters of ``exterior.csv`` (x, y,
+  z m and omega, phi, kappa deg; geocentric blocks: the position's east, north, up offsets
+  (m) and roll, pitch, yaw (deg), as :mod:`orthowarp.adjust.precision` takes a GNSS/INS
+  pose's inputs): ``orthowarp ortho --accuracy --pose-cov pose_cov.json`` (written when the
+  adjustment computed covariances);
 - ``report.json``: statistics (sigma0, redundancy, RMSE per axis, pose sigmas, rejections,
   correlation warnings, residual summary);
 - ``report.md``, ``residuals.png`` (image residual vectors of every image, seed 000 Figures
@@ -27,11 +32,59 @@ from .blockio import _camera_dict
 from ..errors import GeometryError
 from .io import ensure_folder, write_files
 
-__all__ = ["write_adjustment"]
+__all__ = ["write_adjustment", "read_pose_covariances", "POSE_COV_PARAMETERS"]
+
+# the parameters of pose_cov.json, by block mode
+POSE_COV_PARAMETERS = {"map": ["x", "y", "z", "omega", "phi", "kappa"],
+                       "geocentric": ["east", "north", "up", "roll", "pitch", "yaw"]}
 
 
 def _csv(rows):
     return "\n".join(",".join(str(v) for v in r) for r in rows) + "\n"
+
+
+def _pose_cov(block, result, k):
+    """Image k's pose covariance (6 x 6 nested lists) in the parameters of exterior.csv."""
+    c = result.pose_cov[k]
+    if block.mode == "geocentric":
+        from ..adjust.precision import input_covariance
+        from ..pose import Pose
+
+        c = input_covariance(Pose.from_ins(*result.poses[block.image_ids[k]]), c, local=result.local_frame)
+    return [[float(v) for v in row] for row in c]
+
+
+def read_pose_covariances(path):
+    """The pose covariances of ``pose_cov.json`` (as :func:`write_adjustment` writes it):
+    image id -> (6, 6) ndarray (m, deg), with the parameter names.
+
+    Raises
+    ------
+    ParamError
+        The file cannot be read or parsed, or a matrix is not a finite symmetric positive
+        semi-definite 6 x 6 one (naming the file and the image).
+    """
+    from ..adjust.precision import _square
+    from ..errors import ParamError
+
+    try:
+        with open(path, encoding="utf-8") as f:
+            doc = json.load(f)
+        names = doc["parameters"]
+        images = doc["images"]
+    except (OSError, ValueError, KeyError, TypeError, RecursionError) as e:
+        raise ParamError(f"Could not read pose covariances '{path}': {str(e)[:200]}") from e
+    if names not in POSE_COV_PARAMETERS.values() or not isinstance(images, dict) or not images:
+        raise ParamError(f"Could not read pose covariances '{path}': parameters must be one of "
+                         f"{list(POSE_COV_PARAMETERS.values())} and images a non-empty mapping")
+    out = {}
+    for iid, c in images.items():
+        try:
+            out[str(iid)] = _square(f"the pose covariance of image {str(iid)[:60]!r}", np.asarray(c, dtype=np.float64),
+                                    6)
+        except (ParamError, ValueError, TypeError, RecursionError) as e:
+            raise ParamError(f"Could not read pose covariances '{path}': {str(e)[:200]}") from e
+    return out, names
 
 
 def write_adjustment(result, block, out_dir, *, plots=True):
@@ -71,6 +124,11 @@ def write_adjustment(result, block, out_dir, *, plots=True):
         prow.append((pid, role, *(f"{v:.4f}" for v in xyz), *(f"{v:.4f}" for v in sd)))
     paths["points"] = os.path.join(out_dir, "points.csv")
     files[paths["points"]] = _csv(prow)
+    if result.pose_cov is not None:
+        paths["pose_cov"] = os.path.join(out_dir, "pose_cov.json")
+        files[paths["pose_cov"]] = json.dumps(dict(
+            parameters=POSE_COV_PARAMETERS[b.mode], units="m, deg",
+            images={iid: _pose_cov(b, result, k) for k, iid in enumerate(b.image_ids)}), indent=1) + "\n"
     used = result.used
     res = result.residuals[used]
     report = dict(

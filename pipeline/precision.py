@@ -25,7 +25,7 @@ import numpy as np
 from affine import Affine
 from pyproj import Transformer
 
-from ..adjust.precision import INPUT_STEPS, PrecisionResult, _square, moved_pose
+from ..adjust.precision import INPUT_STEPS, PrecisionResult, _square, moved_pose, pose_inputs
 from ..errors import ParamError
 from ..geodesy import WGS84_A, WGS84_E2
 from .dem import as_dem
@@ -200,23 +200,25 @@ def raw_covariance(camera, pose, *, pose_cov, camera_cov=None, camera_params=())
     inputs (central differences through the pose's own construction,
     :func:`~orthowarp.adjust.precision.moved_pose`) and of the camera by its parameters (the
     identity); inputs and units as for :func:`~orthowarp.adjust.precision.monoplot_covariance`."""
-    pose_cov = _square("pose_cov", pose_cov, 6)
+    pose_cov = _square("pose_cov", pose_cov, pose_inputs(pose, np.shape(pose_cov)[0] if np.ndim(pose_cov) == 2
+                                                          else -1))
+    p = len(pose_cov)
     q = len(camera_params)
     bad = [n for n in camera_params if n not in RAW_CAMERA]
     if bad or len(set(camera_params)) != q:
         raise ParamError(f"camera_params must be distinct names from {RAW_CAMERA}, got {list(camera_params)}")
-    c_in = np.zeros((6 + q, 6 + q))
-    c_in[:6, :6] = pose_cov
+    c_in = np.zeros((p + q, p + q))
+    c_in[:p, :p] = pose_cov
     if q:
-        c_in[6:, 6:] = _square("camera_cov", camera_cov, q)
-    m = np.zeros((20, 6 + q))
-    for k in range(6):
+        c_in[p:, p:] = _square("camera_cov", camera_cov, q)
+    m = np.zeros((20, p + q))
+    for k in range(p):
         d = INPUT_STEPS[k]
         hi, lo = moved_pose(pose, k, d), moved_pose(pose, k, -d)
         m[:3, k] = (np.asarray(hi.center, float) - np.asarray(lo.center, float)) / (2 * d)
         m[3:12, k] = (np.asarray(hi.rotation, float) - np.asarray(lo.rotation, float)).ravel() / (2 * d)
     for i, name in enumerate(camera_params):
-        m[12 + RAW_CAMERA.index(name), 6 + i] = 1.0
+        m[12 + RAW_CAMERA.index(name), p + i] = 1.0
     return m @ c_in @ m.T
 
 

@@ -261,6 +261,17 @@ def test_geocentric_block_matches_its_local_twin():
         for k, iid in enumerate(geo.image_ids):
             assert ext[iid].pose.mode == "geocentric"
             np.testing.assert_allclose(ext[iid].pose.center, Pose.from_ins(*est[k]).center, atol=1e-3)
+        # the pose covariances in the GNSS/INS inputs (east, north, up, roll, pitch, yaw): mapped
+        # into the adjustment's frame they are its own
+        from orthowarp.adjust.precision import _Frame
+        from orthowarp.pipeline.adjust_report import read_pose_covariances
+
+        covs, names = read_pose_covariances(f"{d}/pose_cov.json")
+        assert names == ["east", "north", "up", "roll", "pitch", "yaw"] and sorted(covs) == sorted(geo.image_ids)
+        for k, iid in enumerate(geo.image_ids):
+            pose = Pose.from_ins(*res.poses[iid])
+            _, jac = _Frame([pose], local=res.local_frame).pose(pose)
+            np.testing.assert_allclose(jac @ covs[iid] @ jac.T, res.pose_cov[k], rtol=1e-6, atol=1e-14)
 
 
 # --- gross blunders, failures and bad starts ----------------------------------------------------

@@ -475,3 +475,63 @@ def test_match_writes_a_block_of_ties(tmp_path):
                                     str(tmp_path / "o" / "ext_param.csv"), "--height", "450", "--zones", "4y3",
                                     "--out", str(tmp_path / "x.json")])
     assert res.exit_code != 0 and "--zones must be" in res.output and not os.path.exists(tmp_path / "x.json")
+
+
+def test_adjusted_pose_covariances_feed_the_accuracy_raster(tmp_path):
+    """orthowarp adjust writes pose_cov.json (each image's covariance in exterior.csv's
+    parameters); orthowarp ortho --accuracy --pose-cov takes it, giving the raster the API gives
+    with that image's covariance; a file without the image, or a wrong parameter set, is
+    refused before anything is written."""
+    import numpy as np
+    import rasterio
+    from affine import Affine
+    from pyproj import CRS
+
+    import orthowarp as ow
+    from orthowarp.adjust import bundle_adjust
+    from orthowarp.adjust.synthetic import synthetic_block
+    from orthowarp.pipeline.precision import accuracy_raster
+
+    cam = ow.FrameCamera(100.0, 0.09, (700, 1000))  # the synthetic block's format at a tenth of its pixels
+    block, _ = synthetic_block(strips=2, images_per_strip=3, camera=cam, sigma_px=0.05, seed=3)
+    ow.write_block(block, tmp_path / "block.json")
+    adj = tmp_path / "adj"
+    res = CliRunner().invoke(main, ["-q", "adjust", str(tmp_path / "block.json"), "--out", str(adj), "--no-plots"])
+    assert res.exit_code == 0, res.output
+    doc = json.loads((adj / "pose_cov.json").read_text())
+    assert doc["parameters"] == ["x", "y", "z", "omega", "phi", "kappa"] and sorted(doc["images"]) == block.image_ids
+    ref = bundle_adjust(block)
+    k = 2
+    iid = block.image_ids[k]
+    np.testing.assert_allclose(doc["images"][iid], ref.pose_cov[k], rtol=1e-6, atol=1e-15)
+    image = tmp_path / f"{iid}.tif"
+    with rasterio.open(image, "w", driver="GTiff", width=700, height=1000, count=1, dtype="uint8") as dst:
+        dst.write(np.random.default_rng(0).integers(1, 255, (1, 1000, 700), dtype=np.uint8))
+    orient = ["--int-param", str(adj / "cameras.yaml"), "--ext-param", str(adj / "exterior.csv"), "--height", "0",
+              "--device", "cpu", "--resolution", "2", "--no-refraction"]
+    res = CliRunner().invoke(main, ["-q", "ortho", str(image), *orient, "--out-dir", str(tmp_path / "out"),
+                                    "--accuracy", "--pose-cov", str(adj / "pose_cov.json"), "--pixel-sigma", "0.2",
+                                    "--dem-sigma", "0.4"])
+    assert res.exit_code == 0, res.output
+    with rasterio.open(tmp_path / "out" / f"{iid}_ORTHO.tif") as o, \
+            rasterio.open(tmp_path / "out" / f"{iid}_ACCURACY.tif") as a:
+        got, transform, shape = a.read(), o.transform, o.shape
+    pose = ow.Pose.from_opk(*ref.poses[iid], crs=block.crs)
+    want = accuracy_raster(tmp_path / "api.tif", ref.cameras["cam"], pose, 0.0, CRS.from_user_input(block.crs),
+                           Affine(*transform[:6]), shape, pose_cov=np.array(doc["images"][iid]), pixel_sigma=0.2,
+                           dem_sigma=0.4, refraction=False, device="cpu")
+    assert np.isfinite(got).mean() > 0.3
+    np.testing.assert_allclose(got, want, rtol=1e-5)
+    # refused before anything is written: an image without a covariance, a parameter set of
+    # the other pose kind
+    doc["images"].pop(iid)
+    (tmp_path / "less.json").write_text(json.dumps(doc))
+    doc2 = json.loads((adj / "pose_cov.json").read_text())
+    doc2["parameters"] = ["east", "north", "up", "roll", "pitch", "yaw"]
+    (tmp_path / "geo.json").write_text(json.dumps(doc2))
+    for name, match in (("less.json", "has no pose covariance"), ("geo.json", "takes")):
+        out = tmp_path / f"out_{name[:-5]}"
+        res = CliRunner().invoke(main, ["ortho", str(image), *orient, "--out-dir", str(out), "--accuracy",
+                                        "--pose-cov", str(tmp_path / name)])
+        assert res.exit_code == 1 and match in res.output, res.output
+        assert not out.exists() or not list(out.iterdir())

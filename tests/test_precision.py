@@ -313,15 +313,18 @@ def test_accuracy_raster_for_a_gnss_ins_pose_on_a_slope(tmp_path):
     """A GNSS/INS pose over a planar UTM DEM rising 0.3 to the east and 0.2 to the north (the
     kernels sample it reprojected to longitude/latitude and take its slope per metre there):
     every seen cell's sigmas equal the host propagation's with the plane's slope in the cell's
-    own east/north (through PROJ), with the camera self-calibrated (f, x0, y0, k1)."""
+    own east/north (through PROJ), with the camera self-calibrated (f, x0, y0, k1) and the
+    boresight's and lever arm's sigmas among the inputs."""
     from affine import Affine
     from pyproj import CRS, Transformer
 
     from orthowarp.pipeline.precision import accuracy_raster, enu_shifted
 
     camera = ow.FrameCamera(100.5, 0.0052, (4000, 3000), k1=-0.02)
-    pose = ow.Pose.from_ins(46.501, 7.998, 2650.0, 1.2, -0.8, 35.0, boresight=(0.1, -0.05, 0.2))
-    pose_cov = np.diag([0.05, 0.05, 0.1, 0.005, 0.005, 0.01]) ** 2
+    pose = ow.Pose.from_ins(46.501, 7.998, 2650.0, 1.2, -0.8, 35.0, boresight=(0.1, -0.05, 0.2),
+                            lever_arm=(0.1, 0.2, -0.5))
+    # with the boresight's and the lever arm's sigmas (12 inputs)
+    pose_cov = np.diag([0.05, 0.05, 0.1, 0.005, 0.005, 0.01, 0.003, 0.003, 0.004, 0.02, 0.02, 0.03]) ** 2
     names = ("f", "x0", "y0", "k1")
     camera_cov = np.diag([0.01, 0.005, 0.005, 1e-4]) ** 2
     utm = CRS(32632)
@@ -352,6 +355,39 @@ def test_accuracy_raster_for_a_gnss_ins_pose_on_a_slope(tmp_path):
     cov = jac @ ref.cov[:, :2, :2] @ np.transpose(jac, (0, 2, 1))
     want = np.stack([np.sqrt(cov[:, 0, 0]), np.sqrt(cov[:, 1, 1]), ref.sigma[:, 2]])
     np.testing.assert_allclose(out[:, ii, jj], want, rtol=2e-4)  # measured: 5e-5
+
+
+def test_boresight_and_lever_arm_inputs_follow_the_kernels():
+    """A GNSS/INS pose's boresight angles and lever arm as inputs 7-12: the covariance from
+    each input alone is rank one along the displacement orthowarp.geolocate (the kernels'
+    forward chain) gives the points when that input is moved by its sigma (within 1 %, and
+    0.1 mm)."""
+    from orthowarp.adjust.geocentric import LocalFrame
+    from orthowarp.adjust.precision import moved_pose
+
+    camera = ow.FrameCamera(100.5, 0.0052, (4000, 3000), k1=-0.03)
+    pose = ow.Pose.from_ins(46.501, 7.998, 2650.0, 1.2, -0.8, 35.0, boresight=(0.02, -0.01, 0.05),
+                            lever_arm=(0.12, 0.0, -0.35))
+    pixels = np.array([[200.0, 300.0], [2000.0, 1500.0], [3800.0, 2800.0]])
+    pts = ow.geolocate(FrameSensor(camera, pose), pixels, dem=500.0, device="cpu", refraction=False)
+    lat0, lon0, _ = pose.center_geodetic
+    frame = LocalFrame(lat0, lon0, 0.0)  # the propagation's east-north-up frame
+    base = frame.from_lla(np.stack([pts[:, 1], pts[:, 0], pts[:, 2]], -1))
+    sig = np.array([0.05, 0.05, 0.1, 0.005, 0.005, 0.01, 0.004, 0.004, 0.006, 0.05, 0.05, 0.08])
+    for k in range(6, 12):
+        g = ow.geolocate(FrameSensor(camera, moved_pose(pose, k, sig[k])), pixels, dem=500.0, device="cpu",
+                         refraction=False)
+        disp = frame.from_lla(np.stack([g[:, 1], g[:, 0], g[:, 2]], -1)) - base
+        alone = np.diag(np.where(np.arange(12) == k, sig**2, 0.0))
+        one = monoplot_covariance(camera, pose, pts, np.zeros((3, 2)), pose_cov=alone, pixel_sigma=0.0)
+        for c, v in zip(one.cov, disp):
+            assert abs(np.sqrt(np.trace(c)) - np.linalg.norm(v)) <= 0.01 * np.linalg.norm(v) + 1e-4, (k, c, v)
+            assert np.linalg.norm(c @ v - (v @ v) * v) <= (0.02 * np.linalg.norm(v) + 2e-4) * (v @ v), (k, c, v)
+    with pytest.raises(ParamError, match="9 x 9 or 12 x 12"):
+        monoplot_covariance(camera, pose, pts, np.zeros((3, 2)), pose_cov=np.eye(8))
+    map_cam, map_pose = camera_and_pose(POSE, CAM)
+    with pytest.raises(ParamError, match="6 x 6"):
+        monoplot_covariance(map_cam, map_pose, [[E0, N0, 100.0]], [[0.0, 0.0]], pose_cov=np.eye(9))
 
 
 def _sloped_dem(scene_points, slope_e, slope_n, h0):
@@ -604,3 +640,22 @@ def test_accuracy_cells_do_not_depend_on_the_launch_chunks():
     many = frame_window_sigmas(geom, utm, cells, (0, 0, 300, 310), c_raw, chunk=7000)
     assert 0.3 < np.isfinite(one[0]).mean() < 1.0
     np.testing.assert_array_equal(many, one)
+
+
+def test_input_covariance_inverts_the_frame_mapping():
+    """adjust.input_covariance: a GNSS/INS pose's input covariance mapped into an adjustment's
+    local frame and back is itself; a photogrammetric pose's comes back as given."""
+    from orthowarp.adjust import input_covariance
+    from orthowarp.adjust.geocentric import LocalFrame
+    from orthowarp.adjust.precision import _Frame
+
+    pose = ow.Pose.from_ins(46.501, 7.998, 2650.0, 1.2, -0.8, 35.0)
+    local = LocalFrame(46.49, 8.01, 300.0)  # a block's frame, some km away
+    a = np.random.default_rng(2).normal(size=(6, 6))
+    c = a @ a.T * np.r_[0.05, 0.05, 0.1, 0.005, 0.005, 0.01][:, None] * np.r_[0.05, 0.05, 0.1, 0.005, 0.005, 0.01]
+    _, jac = _Frame([pose], local=local).pose(pose)
+    np.testing.assert_allclose(input_covariance(pose, jac @ c @ jac.T, local=local), c, rtol=1e-7, atol=1e-16)
+    camera, map_pose = camera_and_pose(POSE, CAM)
+    np.testing.assert_array_equal(input_covariance(map_pose, POSE_COV), POSE_COV)
+    with pytest.raises(ParamError, match="local frame"):
+        input_covariance(pose, c)
