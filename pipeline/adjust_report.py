@@ -82,7 +82,7 @@ def read_pose_covariances(path):
         try:
             out[str(iid)] = _square(f"the pose covariance of image {str(iid)[:60]!r}", np.asarray(c, dtype=np.float64),
                                     6)
-        except (ParamError, ValueError, TypeError, RecursionError) as e:
+        except (ParamError, ValueError, TypeError, OverflowError, RecursionError) as e:
             raise ParamError(f"Could not read pose covariances '{path}': {str(e)[:200]}") from e
     return out, names
 
