@@ -169,6 +169,28 @@ def raw_gradient(gx: wp.vec3d, gr: wp.mat33d, gk: vec8d):
     return g
 
 
+LE90_FACTOR = wp.constant(wp.float64(1.6448536269514722))  # the standard normal's 95 % quantile
+
+
+@wp.func
+def ce90(table: wp.array(dtype=wp.float64), c: wp.mat22d):
+    """CE90 (m) of a horizontal covariance c (m^2): sigma_major times the table's factor at
+    sigma_minor / sigma_major (linear between its entries)."""
+    zero = wp.float64(0.0)
+    half = wp.float64(0.5)
+    mean = half * (c[0, 0] + c[1, 1])
+    d = wp.sqrt(wp.max(half * half * (c[0, 0] - c[1, 1]) * (c[0, 0] - c[1, 1]) + c[0, 1] * c[1, 0], zero))
+    major = wp.sqrt(wp.max(mean + d, zero))
+    minor = wp.sqrt(wp.max(mean - d, zero))
+    if major <= zero:
+        return zero
+    n = table.shape[0]
+    f = wp.min(minor / major, wp.float64(1.0)) * wp.float64(n - 1)
+    i = wp.min(wp.int32(f), n - 2)
+    a = f - wp.float64(i)
+    return major * ((wp.float64(1.0) - a) * table[i] + a * table[i + 1])
+
+
 @wp.kernel(enable_backward=False)
 def accuracy_kernel(
     pix: wp.array(dtype=wp.vec2d),
@@ -186,13 +208,19 @@ def accuracy_kernel(
     dem_var: wp.float64,
     width: wp.float64,
     height: wp.float64,
+    ce_table: wp.array(dtype=wp.float64),
     start: wp.int32,
     out: wp.array2d(dtype=wp.float32),
 ):
     """Sigma of the output CRS's x, y and of up (m) of each cell's ground point into columns
     start + k of ``out`` (3, cells); NaN where the image does not see it. Rows 0 and 1 of a
     cell's pixel Jacobians come from the reverse passes of :func:`pixel_ad_kernel` (``gx``
-    by the object-frame point, ``gr`` by the rotation, ``gk`` by the camera)."""
+    by the object-frame point, ``gr`` by the rotation, ``gk`` by the camera).
+
+    With a ``ce_table`` (not empty: CE90 / sigma_major against sigma_minor / sigma_major on a
+    regular grid over [0, 1]), rows 0 and 1 are CE90 and LE90 (m) instead: the radius that
+    holds 90 % of the horizontal error, from the east/north covariance's axes, and 1.6449
+    sigma up; row 2 NaN."""
     k = wp.tid()
     p = pix[k]
     nan = wp.float32(wp.nan)
@@ -230,8 +258,13 @@ def accuracy_kernel(
     fi = wp.inverse(fx)
     cl = wp.mat33d(s00, s01, zero, s01, s11, zero, zero, zero, dem_var)
     cx = fi * cl * wp.transpose(fi)
-    j = to_out[k]
     ch = wp.mat22d(cx[0, 0], cx[0, 1], cx[1, 0], cx[1, 1])
+    if ce_table.shape[0] > 0:
+        out[0, start + k] = wp.float32(ce90(ce_table, ch))
+        out[1, start + k] = wp.float32(LE90_FACTOR * wp.sqrt(wp.max(cx[2, 2], zero)))
+        out[2, start + k] = nan
+        return
+    j = to_out[k]
     co = j * ch * wp.transpose(j)
     out[0, start + k] = wp.float32(wp.sqrt(wp.max(co[0, 0], zero)))
     out[1, start + k] = wp.float32(wp.sqrt(wp.max(co[1, 1], zero)))

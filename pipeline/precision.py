@@ -19,6 +19,7 @@ projection has no closed form: its derivatives are taken through the kernels'
 own projection (:func:`orthowarp.project`, the chain the ortho runs) by central differences.
 """
 
+import functools
 import time
 
 import numpy as np
@@ -182,9 +183,56 @@ def _terrain_points(dem, crs, ox, oy, frame_crs):
     return np.stack([px, py, h], -1), slopes
 
 
-def _sigmas(cov, jac):
+MEASURES = ("sigma", "ce90")  # the accuracy rasters' bands: sigma x, y, up; or CE90, LE90
+LE90 = 1.6448536269514722  # LE90 / sigma: the standard normal's 95 % quantile
+
+
+@functools.lru_cache(maxsize=4)  # 0.5 s to compute; read-only
+def ce90_table(n=129):
+    """CE90 / sigma_major (n,) at sigma_minor / sigma_major = 0, 1/(n-1), ..., 1: the radius
+    holding 90 % of a horizontal normal error, from the exact probability over the circle,
+    P(R) = 1/(2 pi s1 s2) integral over theta of (1 - exp(-a R^2 / 2)) / a, a = cos^2 / s1^2 +
+    sin^2 / s2^2, solved for P = 0.9 (1.6449 for a line, 2.1460 for a circle). Linear
+    interpolation between the 129 entries is within 1e-5 of the exact value."""
+    from scipy.integrate import quad
+    from scipy.optimize import brentq
+
+    def p(r, q):
+        def f(t):
+            a = np.cos(t) ** 2 + np.sin(t) ** 2 / q**2
+            return (1.0 - np.exp(-a * r * r / 2.0)) / a
+
+        return 4.0 * quad(f, 0.0, np.pi / 2, limit=200, epsabs=1e-13, epsrel=1e-12)[0] / (2.0 * np.pi * q)
+
+    out = np.empty(n)
+    out[0] = LE90  # a line: the two-sided 90 % of one normal
+    for i in range(1, n):
+        q = i / (n - 1)
+        out[i] = brentq(lambda r: p(r, q) - 0.9, 1.0, 3.0, xtol=1e-13)
+    out.flags.writeable = False
+    return out
+
+
+def _measure(measure):
+    if measure not in MEASURES:
+        raise ParamError(f"measure must be one of {MEASURES}, got {measure!r}")
+    return measure
+
+
+def _sigmas(cov, jac, measure="sigma"):
     """(3, n) float32: sigma x, y of the horizontal covariance taken through ``jac`` (n, 2, 2)
-    and sigma up."""
+    and sigma up; or, for ``measure="ce90"``, CE90 of the horizontal covariance (m, in the
+    covariance's own east/north), LE90 and NaN."""
+    if measure == "ce90":
+        h = cov[:, :2, :2]
+        mean = 0.5 * (h[:, 0, 0] + h[:, 1, 1])
+        d = np.sqrt(np.maximum(0.25 * (h[:, 0, 0] - h[:, 1, 1]) ** 2 + h[:, 0, 1] * h[:, 1, 0], 0.0))
+        major, minor = np.sqrt(np.maximum(mean + d, 0.0)), np.sqrt(np.maximum(mean - d, 0.0))
+        table = ce90_table()
+        ratio = np.divide(minor, major, out=np.ones_like(major), where=major > 0)
+        ce = major * np.interp(ratio, np.linspace(0.0, 1.0, len(table)), table)
+        return np.stack([ce, LE90 * np.sqrt(np.maximum(cov[:, 2, 2], 0.0)), np.full(len(cov), np.nan)]).astype(
+            np.float32)
     horizontal = jac @ cov[:, :2, :2] @ np.transpose(jac, (0, 2, 1))
     return np.stack([np.sqrt(np.maximum(horizontal[:, 0, 0], 0.0)), np.sqrt(np.maximum(horizontal[:, 1, 1], 0.0)),
                      np.sqrt(np.maximum(cov[:, 2, 2], 0.0))]).astype(np.float32)
@@ -227,8 +275,8 @@ def _check_sigmas(pixel_sigma, dem_sigma):
         raise ParamError(f"pixel_sigma and dem_sigma must be finite and >= 0, got {pixel_sigma}, {dem_sigma}")
 
 
-def frame_window_sigmas(geometry, crs, cells, window, c_raw, *, pixel_sigma=0.5, dem_sigma=0.0, nodes=32,
-                        chunk=None, timings=None):
+def frame_window_sigmas(geometry, crs, cells, window, c_raw, *, pixel_sigma=0.5, dem_sigma=0.0, measure="sigma",
+                        nodes=32, chunk=None, timings=None):
     """Predicted sigma x, y (the axes of ``crs``) and up (m) of the ground under a window of
     accuracy cells seen by one frame image, on the geometry's device
     (:mod:`orthowarp.kernels.precision`).
@@ -246,6 +294,9 @@ def frame_window_sigmas(geometry, crs, cells, window, c_raw, *, pixel_sigma=0.5,
         :func:`raw_covariance` of the image.
     pixel_sigma, dem_sigma : float
         As for :func:`~orthowarp.adjust.precision.monoplot_covariance`.
+    measure : {"sigma", "ce90"}, optional
+        What the rows hold: sigma x, y (the axes of ``crs``) and up (m); or CE90 (the radius
+        holding 90 % of the horizontal error, m on the ground), LE90 (1.6449 sigma up) and NaN.
     nodes : int, optional
         Cells between the exact (PROJ) nodes of the cells' positions; between them the
         positions are interpolated bilinearly, as the ortho's coarse grid (over 32 cells of
@@ -270,6 +321,7 @@ def frame_window_sigmas(geometry, crs, cells, window, c_raw, *, pixel_sigma=0.5,
     if cells.b != 0 or cells.d != 0:
         raise ParamError(f"the accuracy grid must be north up (no rotation terms), got {tuple(cells)[:6]}")
     _check_sigmas(pixel_sigma, dem_sigma)
+    table = ce90_table() if _measure(measure) == "ce90" else np.zeros(0)
     r0, c0, rows, cols = map(int, window)
     device = geometry.device
     clock = [time.perf_counter()]
@@ -294,6 +346,7 @@ def frame_window_sigmas(geometry, crs, cells, window, c_raw, *, pixel_sigma=0.5,
     m = max(1, min(int(chunk), n_all))
     out = wp.empty((3, n_all), dtype=wp.float32, device=device)
     c_raw = wp.array(np.ascontiguousarray(c_raw, dtype=np.float64), dtype=wp.float64, device=device)
+    table = wp.array(table, dtype=wp.float64, device=device)
 
     def written(dtype, grad=False):  # every entry written by a kernel before it is read
         return wp.empty(m, dtype=dtype, device=device, requires_grad=grad)
@@ -330,7 +383,7 @@ def frame_window_sigmas(geometry, crs, cells, window, c_raw, *, pixel_sigma=0.5,
         (gx0, gr0, gk0), (gx1, gr1, gk1) = grads
         wp.launch(kp.accuracy_kernel, dim=n, device=device,
                   inputs=[pix, gx0, gx1, gr0, gr1, gk0, gk1, basis, slope, to_out, c_raw,
-                          float(pixel_sigma) ** 2, float(dem_sigma) ** 2, width, height, start],
+                          float(pixel_sigma) ** 2, float(dem_sigma) ** 2, width, height, table, start],
                   outputs=[out])
         tick("covariance")
     sig = out.numpy().reshape(3, rows, cols)  # (a pinned buffer's allocation costs more than it saves)
@@ -339,10 +392,12 @@ def frame_window_sigmas(geometry, crs, cells, window, c_raw, *, pixel_sigma=0.5,
 
 
 def scene_cell_sigmas(scene, dem, crs, ox, oy, *, orientation_cov, pixel_sigma=0.5, dem_sigma=0.0, refraction=True,
-                      device=None):
+                      measure="sigma", device=None):
     """Predicted sigma x, y (the axes of ``crs``) and up (m), (3, n) float32, of the ground
     under the points (ox, oy) of ``crs`` seen by a pushbroom scene (NaN where it does not see
-    them), by :func:`scene_monoplot_covariance` at each point."""
+    them), by :func:`scene_monoplot_covariance` at each point; or CE90, LE90 and NaN (see
+    :func:`frame_window_sigmas`)."""
+    _measure(measure)
     from .geometry import project
 
     _square("orientation_cov", orientation_cov, len(SCENE_INPUTS))
@@ -366,13 +421,13 @@ def scene_cell_sigmas(scene, dem, crs, ox, oy, *, orientation_cov, pixel_sigma=0
 
         p = pts[ok]
         jac = np.stack([out_xy(enu_shifted(p, a, 1.0)) - out_xy(enu_shifted(p, a, -1.0)) for a in (0, 1)], -1) / 2.0
-        out[:, ok] = _sigmas(cov, jac)
+        out[:, ok] = _sigmas(cov, jac, measure)
     return out
 
 
 def accuracy_raster(dst, camera, pose, dem, crs, transform, shape, *, pose_cov, pixel_sigma=0.5, camera_cov=None,
-                    camera_params=(), dem_sigma=0.0, step=16, refraction=True, geoid=None, same_vertical_datum=False,
-                    device=None):
+                    camera_params=(), dem_sigma=0.0, step=16, measure="sigma", refraction=True, geoid=None,
+                    same_vertical_datum=False, device=None):
     """Write the predicted accuracy of an ortho of one frame image, computed on ``device``
     (:func:`frame_window_sigmas`).
 
@@ -395,48 +450,53 @@ def accuracy_raster(dst, camera, pose, dem, crs, transform, shape, *, pose_cov, 
         As for :func:`~orthowarp.adjust.precision.monoplot_covariance`.
     step : int, optional
         Ortho pixels per accuracy pixel, each way.
+    measure : {"sigma", "ce90"}, optional
+        Three bands sigma x, y (the axes of ``crs``) and up (m), or two bands CE90 and LE90
+        (m; see :func:`frame_window_sigmas`).
     refraction, geoid, same_vertical_datum, device :
         The ortho's geometry options (:class:`~orthowarp.pipeline.geometry.SensorGeometry`).
 
     Returns
     -------
-    ndarray (3, rows, cols) float32
-        What was written: sigma x, y (the axes of ``crs``) and up (m); NaN where the image
-        does not see the cell's centre.
+    ndarray (bands, rows, cols) float32
+        What was written; NaN where the image does not see the cell's centre.
     """
     from ..sensor import FrameSensor
     from .geometry import SensorGeometry
 
     grid, (rows, cols), _, _ = _cell_centres(transform, shape, step)
+    bands = 2 if _measure(measure) == "ce90" else 3
     c_raw = raw_covariance(camera, pose, pose_cov=pose_cov, camera_cov=camera_cov, camera_params=camera_params)
     geom = SensorGeometry(FrameSensor(camera, pose), dem, refraction=refraction, device=device, geoid=geoid,
                           same_vertical_datum=same_vertical_datum)
     out = frame_window_sigmas(geom, crs, grid, (0, 0, rows, cols), c_raw, pixel_sigma=pixel_sigma,
-                              dem_sigma=dem_sigma)
+                              dem_sigma=dem_sigma, measure=measure)[:bands]
     write_raster(dst, out, transform=grid, crs=crs.to_wkt(), nodata=np.nan)
     return out
 
 
 def scene_accuracy_raster(dst, scene, dem, crs, transform, shape, *, orientation_cov, pixel_sigma=0.5, dem_sigma=0.0,
-                          step=16, refraction=True, device=None):
+                          step=16, measure="sigma", refraction=True, device=None):
     """Write the predicted accuracy of an ortho of one pushbroom scene: as
     :func:`accuracy_raster`, with :func:`scene_monoplot_covariance` (``orientation_cov``: (8,
     8) in the order and units of :data:`SCENE_INPUTS`) at each cell's centre.
 
     Returns
     -------
-    ndarray (3, rows, cols) float32
-        What was written: sigma east, north (the output CRS's axes) and up (m).
+    ndarray (bands, rows, cols) float32
+        What was written: sigma x, y (the output CRS's axes) and up (m), or CE90 and LE90.
     """
     grid, (rows, cols), ox, oy = _cell_centres(transform, shape, step)
+    bands = 2 if _measure(measure) == "ce90" else 3
     out = scene_cell_sigmas(scene, dem, crs, ox, oy, orientation_cov=orientation_cov, pixel_sigma=pixel_sigma,
-                            dem_sigma=dem_sigma, refraction=refraction, device=device).reshape(3, rows, cols)
+                            dem_sigma=dem_sigma, refraction=refraction, measure=measure,
+                            device=device).reshape(3, rows, cols)[:bands]
     write_raster(dst, out, transform=grid, crs=crs.to_wkt(), nodata=np.nan)
     return out
 
 
 def mosaic_accuracy_raster(dst, images, index, dem, crs, transform, shape, *, pose_cov=None, orientation_cov=None,
-                           pixel_sigma=0.5, dem_sigma=0.0, step=16, refraction=True, geoid=None,
+                           pixel_sigma=0.5, dem_sigma=0.0, step=16, measure="sigma", refraction=True, geoid=None,
                            same_vertical_datum=False, device=None):
     """Write the predicted accuracy of a mosaic: each cell from the image the mosaic took the
     cell's centre from (its source-index raster), as :func:`accuracy_raster` /
@@ -457,12 +517,12 @@ def mosaic_accuracy_raster(dst, images, index, dem, crs, transform, shape, *, po
         Frames' pose covariance (as for :func:`accuracy_raster`); needed with frames.
     orientation_cov : array_like (8, 8)
         Scenes' orientation covariance (:data:`SCENE_INPUTS`); needed with scenes.
-    pixel_sigma, dem_sigma, refraction, geoid, same_vertical_datum, device :
+    pixel_sigma, dem_sigma, measure, refraction, geoid, same_vertical_datum, device :
         As above (``geoid``, ``same_vertical_datum``: frames only).
 
     Returns
     -------
-    ndarray (3, rows, cols) float32
+    ndarray (bands, rows, cols) float32
         What was written.
     """
     import rasterio
@@ -485,6 +545,7 @@ def mosaic_accuracy_raster(dst, images, index, dem, crs, transform, shape, *, po
                 src = np.concatenate([ds.read(1, window=((int(i), int(i) + 1), (0, shape[1])))[0, c] for i in r])
     except rasterio.errors.RasterioIOError as e:
         raise ParamError(f"Could not read index '{index}': {e}") from e
+    bands = 2 if _measure(measure) == "ce90" else 3
     out = np.full((3, rows * cols), np.nan, np.float32)
     for k in np.unique(src):
         if k == NO_SOURCE:
@@ -501,7 +562,7 @@ def mosaic_accuracy_raster(dst, images, index, dem, crs, transform, shape, *, po
                 raise ParamError("mosaic_accuracy_raster: a pushbroom scene needs orientation_cov")
             out[:, at] = scene_cell_sigmas(sensor, dem, crs, ox[at], oy[at], orientation_cov=orientation_cov,
                                            pixel_sigma=pixel_sigma, dem_sigma=dem_sigma, refraction=refraction,
-                                           device=device)
+                                           measure=measure, device=device)
         else:
             if pose_cov is None:
                 raise ParamError("mosaic_accuracy_raster: frame images need pose_cov")
@@ -512,8 +573,8 @@ def mosaic_accuracy_raster(dst, images, index, dem, crs, transform, shape, *, po
                                   same_vertical_datum=same_vertical_datum)
             sig = frame_window_sigmas(geom, crs, grid, win, raw_covariance(sensor.camera, sensor.pose,
                                                                            pose_cov=pose_cov),
-                                      pixel_sigma=pixel_sigma, dem_sigma=dem_sigma)
+                                      pixel_sigma=pixel_sigma, dem_sigma=dem_sigma, measure=measure)
             out[:, at] = sig[:, i - win[0], j - win[1]]
-    out = out.reshape(3, rows, cols)
+    out = out.reshape(3, rows, cols)[:bands]
     write_raster(dst, out, transform=grid, crs=crs.to_wkt(), nodata=np.nan)
     return out

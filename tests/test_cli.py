@@ -276,6 +276,16 @@ def test_ortho_accuracy_raster(tmp_path):
         data = a.read()
         assert np.isfinite(data).any() and np.all(data[np.isfinite(data)] > 0)
         assert np.nanmax(data[2]) >= 0.3  # the DEM's sigma at least, vertically
+    res = CliRunner().invoke(main, ["-q", "ortho", str(tmp_path / "img.tif"), *args, "--height", "100",
+                                    "--out-dir", str(tmp_path / "ce"), "--device", "cpu", "--accuracy",
+                                    "--accuracy-measure", "ce90", "--dem-sigma", "0.3"])
+    assert res.exit_code == 0, res.output
+    with rasterio.open(tmp_path / "ce" / "img_ACCURACY.tif") as a:
+        ce = a.read()
+    assert ce.shape == (2, *data.shape[1:])
+    np.testing.assert_allclose(ce[1], 1.6448536269514722 * data[2], rtol=1e-6, equal_nan=True)  # LE90
+    ok = np.isfinite(data[0])
+    assert np.all(ce[0][ok] >= 1.6448 * np.maximum(data[0], data[1])[ok] * 0.999)  # CE90 >= 1.64 sigma_major
     res = CliRunner().invoke(main, ["ortho", str(tmp_path / "img.tif"), *args, "--height", "100", "--out-dir",
                                     str(tmp_path / "o2"), "--device", "cpu", "--accuracy", "--pose-sigma", "1,2"])
     assert res.exit_code == 1 and "--pose-sigma" in res.output

@@ -667,18 +667,21 @@ def test_mosaic_accuracy_raster_takes_each_cell_from_its_source_image(pair, tmp_
 
     crs = CRS.from_wkt(crs.to_wkt())
     cov = np.diag([0.05, 0.05, 0.1, 0.005, 0.005, 0.01]) ** 2
-    got = mosaic_accuracy_raster(tmp_path / "acc.tif", images, res.index, sc.dem, crs, transform, shape, pose_cov=cov,
-                                 pixel_sigma=0.5, dem_sigma=0.3, step=8)
-    each = [accuracy_raster(tmp_path / f"a{k}.tif", im[1].camera, im[1].pose, sc.dem, crs, transform, shape, pose_cov=cov,
-                            pixel_sigma=0.5, dem_sigma=0.3, step=8) for k, im in enumerate(images)]
     with rasterio.open(res.index) as ds:
         index = ds.read(1)
-    r = np.minimum(np.arange(got.shape[1]) * 8 + 4, shape[0] - 1)
-    c = np.minimum(np.arange(got.shape[2]) * 8 + 4, shape[1] - 1)
-    src = index[np.ix_(r, c)]
-    for k in range(len(images)):
-        at = src == k
-        assert at.sum() > 20
-        np.testing.assert_array_equal(got[:, at], each[k][:, at])
-    assert np.all(np.isnan(got[:, src == NO_SOURCE]))
-    assert not np.allclose(each[0][:, src == 1], each[1][:, src == 1], equal_nan=True)  # the images differ there
+    for measure, bands in (("sigma", 3), ("ce90", 2)):
+        got = mosaic_accuracy_raster(tmp_path / f"acc_{measure}.tif", images, res.index, sc.dem, crs, transform, shape,
+                                     pose_cov=cov, pixel_sigma=0.5, dem_sigma=0.3, step=8, measure=measure)
+        each = [accuracy_raster(tmp_path / f"a{k}_{measure}.tif", im[1].camera, im[1].pose, sc.dem, crs, transform,
+                                shape, pose_cov=cov, pixel_sigma=0.5, dem_sigma=0.3, step=8, measure=measure)
+                for k, im in enumerate(images)]
+        assert got.shape[0] == bands and each[0].shape[0] == bands
+        r = np.minimum(np.arange(got.shape[1]) * 8 + 4, shape[0] - 1)
+        c = np.minimum(np.arange(got.shape[2]) * 8 + 4, shape[1] - 1)
+        src = index[np.ix_(r, c)]
+        for k in range(len(images)):
+            at = src == k
+            assert at.sum() > 20
+            np.testing.assert_allclose(got[:, at], each[k][:, at], rtol=1e-6)
+        assert np.all(np.isnan(got[:, src == NO_SOURCE]))
+        assert not np.allclose(each[0][:, src == 1], each[1][:, src == 1], equal_nan=True)  # the images differ there

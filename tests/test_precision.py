@@ -659,3 +659,49 @@ def test_input_covariance_inverts_the_frame_mapping():
     np.testing.assert_array_equal(input_covariance(map_pose, POSE_COV), POSE_COV)
     with pytest.raises(ParamError, match="local frame"):
         input_covariance(pose, c)
+
+
+def test_ce90_table_against_monte_carlo():
+    """CE90 / sigma_major against the 90 % quantile of the radius of 2 million normal draws,
+    for axis ratios 0 (a line: 1.6449), 0.3, 0.6 and 1 (a circle: sqrt(2 ln 10) = 2.1460)."""
+    from orthowarp.pipeline.precision import ce90_table
+
+    table = ce90_table()
+    assert table[0] == pytest.approx(1.6448536269514722) and table[-1] == pytest.approx(np.sqrt(2 * np.log(10)))
+    rng = np.random.default_rng(7)
+    for q in (0.0, 0.3, 0.6, 1.0):
+        r = np.hypot(rng.normal(size=2_000_000), q * rng.normal(size=2_000_000))
+        assert np.interp(q, np.linspace(0, 1, len(table)), table) == pytest.approx(np.quantile(r, 0.9), rel=3e-3)
+
+
+def test_accuracy_raster_in_ce90_and_le90(tmp_path):
+    """measure="ce90": two bands, CE90 from the cell's horizontal covariance (its own axes, on
+    the ground) and LE90 = 1.6449 sigma up, against the host propagation at every seen cell."""
+    from affine import Affine
+    from pyproj import CRS
+    from scipy.optimize import brentq
+
+    from orthowarp.pipeline.precision import accuracy_raster
+
+    camera, pose = camera_and_pose(POSE, CAM)
+    transform, shape = Affine(0.5, 0, E0 - 150, 0, -0.5, N0 + 150), (600, 640)
+    kw = dict(pose_cov=POSE_COV, pixel_sigma=0.5, dem_sigma=0.3, refraction=False, device="cpu")
+    out = accuracy_raster(tmp_path / "ce.tif", camera, pose, 100.0, CRS(32632), transform, shape, measure="ce90", **kw)
+    assert out.shape == (2, 38, 40)
+    ii, jj = np.nonzero(np.isfinite(out[0]))
+    assert len(ii) > 100
+    x, y = transform * Affine.scale(16) * (jj + 0.5, ii + 0.5)
+    ref = monoplot_covariance(camera, pose, np.stack([x, y, np.full(len(x), 100.0)], -1), np.zeros((len(x), 2)),
+                              pose_cov=POSE_COV, pixel_sigma=0.5, dem_sigma=0.3)
+
+    def ce90(c):  # exact: the radius at which the normal's probability over the disc is 0.9
+        s1, s2 = np.sqrt(np.linalg.eigvalsh(c)[::-1])
+        th = np.linspace(0, 2 * np.pi, 4001)[:-1]
+        a = np.cos(th) ** 2 / s1**2 + np.sin(th) ** 2 / s2**2
+        return brentq(lambda r: np.mean((1 - np.exp(-a * r * r / 2)) / a) / (s1 * s2) - 0.9, 0.1 * s1, 5 * s1)
+
+    want = np.array([ce90(c[:2, :2]) for c in ref.cov[::7]])
+    np.testing.assert_allclose(out[0, ii[::7], jj[::7]], want, rtol=1e-5)
+    np.testing.assert_allclose(out[1, ii, jj], 1.6448536269514722 * ref.sigma[:, 2], rtol=1e-6)
+    with pytest.raises(ParamError, match="measure"):
+        accuracy_raster(tmp_path / "x.tif", camera, pose, 100.0, CRS(32632), transform, shape, measure="cep", **kw)
