@@ -7,7 +7,8 @@ device:
 - the ortho's per-pixel kernel over the whole output (``kernel_only`` of bench/ortho.py:
   backward chain and bilinear resampling into the packed uint8 output, source resident);
 - the accuracy layer (:func:`orthowarp.pipeline.precision.frame_window_sigmas`) over the same
-  grid at ``--steps`` ortho pixels per accuracy pixel: the whole call (PROJ nodes, device
+  grid at ``--steps`` ortho pixels per accuracy pixel (``--measures``: sigma x, y, up, and/or
+  CE90, LE90): the whole call (PROJ nodes, device
   buffers, the cell, automatic-differentiation and covariance kernels, the read-back), best of
   ``--repeats`` after a warm-up call, and its ratio to the ortho kernel's time.
 
@@ -45,6 +46,7 @@ def main(argv=None):
     ap.add_argument("--devices", default=None)
     ap.add_argument("--steps", default="16,4", help="ortho pixels per accuracy pixel, comma-separated")
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--measures", default="sigma", help="sigma and/or ce90, comma-separated")
     ap.add_argument("--workdir", default=None)
     ap.add_argument("--out", default="bench/results/accuracy.json")
     args = ap.parse_args(argv)
@@ -68,12 +70,13 @@ def main(argv=None):
         r.update(kernel_only(geom, src, "bilinear", repeats=args.repeats if geom.device.is_cuda else 1))
         r.pop("block_dim_scan_s", None)
         r["accuracy"] = []
-        for step in map(int, args.steps.split(",")):
+        for step, measure in ((int(t), m) for t in args.steps.split(",") for m in args.measures.split(",")):
             rows, cols = -(-shape[0] // step), -(-shape[1] // step)
             cells = transform @ Affine.scale(step)
 
             def run():
-                out = frame_window_sigmas(geom, crs, cells, (0, 0, rows, cols), c_raw, pixel_sigma=0.5, dem_sigma=0.3)
+                out = frame_window_sigmas(geom, crs, cells, (0, 0, rows, cols), c_raw, pixel_sigma=0.5, dem_sigma=0.3,
+                                          measure=measure)
                 wp.synchronize_device(geom.device)
                 return out
 
@@ -85,18 +88,19 @@ def main(argv=None):
                 best = min(best, time.perf_counter() - t)
             steps = {}  # once more with the device synchronised after each step
             frame_window_sigmas(geom, crs, cells, (0, 0, rows, cols), c_raw, pixel_sigma=0.5, dem_sigma=0.3,
-                                timings=steps)
+                                measure=measure, timings=steps)
             seen = np.isfinite(out[0])
-            a = dict(step=step, cells=rows * cols, seen=float(seen.mean()), s=best, steps_s=steps,
+            a = dict(step=step, measure=measure, cells=rows * cols, seen=float(seen.mean()), s=best, steps_s=steps,
                      cells_per_s=rows * cols / best,
                      vs_ortho_kernel=best / r["kernel_s"],
-                     sigma_median_m=[float(np.nanmedian(out[k])) for k in range(3)],
-                     sigma_range_m=[[float(np.nanmin(out[k])), float(np.nanmax(out[k]))] for k in range(3)])
+                     median_m=[float(np.nanmedian(out[k])) for k in range(2 if measure == "ce90" else 3)],
+                     range_m=[[float(np.nanmin(out[k])), float(np.nanmax(out[k]))]
+                              for k in range(2 if measure == "ce90" else 3)])
             r["accuracy"].append(a)
             save_report(report, args.out)
-            print(f"{r['device_name']:>24s} ortho kernel {r['kernel_s'] * 1e3:.1f} ms; accuracy step {step}: "
+            print(f"{r['device_name']:>24s} ortho kernel {r['kernel_s'] * 1e3:.1f} ms; accuracy ({measure}) step {step}: "
                   f"{rows * cols} cells {best * 1e3:.1f} ms = {a['vs_ortho_kernel']:.1%} of the kernel; "
-                  f"median sigma x/y/up {a['sigma_median_m']}; steps (ms) "
+                  f"median {a['median_m']}; steps (ms) "
                   f"{ {k: round(v * 1e3, 2) for k, v in steps.items()} }", flush=True)
     save_report(report, args.out)
 
