@@ -224,9 +224,10 @@ def demo(out_dir, device):
               help="Write the frame IMAGES' orientation in orthority's formats (int_param.yaml, ext_param.csv "
                    "and .prj) into --out-dir, and stop (no orthos).")
 @click.option("--accuracy", is_flag=True,
-              help="Also write <image>_ACCURACY.tif: the predicted accuracy of each ground position (sigma east, "
-                   "north, up in m, by error propagation from --pose-sigma, --pixel-sigma and --dem-sigma), one "
-                   "pixel per 16 x 16 ortho pixels; frame images and --dimap scenes.")
+              help="Also write <image>_ACCURACY.tif: the predicted accuracy of each ground position (sigma x, y, "
+                   "up in m, or CE90 and LE90, by error propagation from --pose-sigma or --pose-cov, --pixel-sigma "
+                   "and --dem-sigma), one pixel per --accuracy-step x --accuracy-step ortho pixels; frame images "
+                   "and --dimap scenes.")
 @click.option("--pose-sigma", default=_FRAME_POSE_SIGMA, show_default=True,
               metavar="SX,SY,SZ,SA,SB,SC",
               help="With --accuracy: the poses' standard deviations: x, y, z (or east, north, up for GNSS/INS "
@@ -240,6 +241,8 @@ def demo(out_dir, device):
 @click.option("--accuracy-measure", type=click.Choice(["sigma", "ce90"]), default="sigma", show_default=True,
               help="With --accuracy: three bands sigma x, y, up (m), or two bands CE90 (the radius holding 90 %% of "
                    "the horizontal error) and LE90 (m).")
+@click.option("--accuracy-step", type=click.IntRange(1, 4096), default=16, show_default=True,
+              help="With --accuracy: ortho pixels per accuracy pixel, each way (1: full resolution).")
 @click.option("--pixel-sigma", type=float, default=0.5, show_default=True,
               help="With --accuracy: standard deviation of an image position (px).")
 @click.option("--dem-sigma", type=float, default=0.5, show_default=True,
@@ -253,7 +256,7 @@ def demo(out_dir, device):
 def ortho(ctx, images, odm_dataset, int_param, ext_param, dimap, attitude_model, dem, height, crs, resolution, resampling, method,
           driver, compress, compress_level, quality, block_codec, creation, dtype,
           out_dir, overwrite, no_refraction, geoid, same_vertical_datum, device, tile_size, export_params, accuracy,
-          pose_sigma, pose_cov_file, accuracy_measure,
+          pose_sigma, pose_cov_file, accuracy_measure, accuracy_step,
           pixel_sigma, dem_sigma, show_profile, profile_json):
     """Orthorectify frame IMAGES, or one pushbroom scene (--dimap), into (cloud-optimized)
     GeoTIFFs named <image>_ORTHO.tif."""
@@ -356,12 +359,13 @@ def ortho(ctx, images, odm_dataset, int_param, ext_param, dimap, attitude_model,
 
                     scene_accuracy_raster(_accuracy_name(dst), sensor, terrain, r.crs, r.transform, r.shape,
                                           orientation_cov=np.diag(sigmas) ** 2, pixel_sigma=pixel_sigma,
-                                          dem_sigma=dem_sigma, measure=accuracy_measure,
+                                          dem_sigma=dem_sigma, measure=accuracy_measure, step=accuracy_step,
                                           refraction=not no_refraction, device=device)
                 else:
                     accuracy_raster(_accuracy_name(dst), sensor.camera, sensor.pose, terrain, r.crs, r.transform, r.shape,
                                     pose_cov=pose_cov, pixel_sigma=pixel_sigma, dem_sigma=dem_sigma,
-                                    measure=accuracy_measure, refraction=not no_refraction, geoid=geoid,
+                                    measure=accuracy_measure, step=accuracy_step, refraction=not no_refraction,
+                                    geoid=geoid,
                                     same_vertical_datum=same_vertical_datum, device=device)
             return dst, r
 
@@ -659,13 +663,16 @@ def _frame_orientations(images, int_param, ext_param, crs, ids=None):
                    "nvCOMP at --compress-level 1-4 where installed, else warp; and the host cores at once); "
                    "auto: host.")
 @click.option("--accuracy", is_flag=True,
-              help="Also write <mosaic>_ACCURACY.tif: the predicted accuracy (sigma east, north, up in m) of each "
-                   "16 x 16-pixel cell from the image its centre was taken from (needs --index).")
+              help="Also write <mosaic>_ACCURACY.tif: the predicted accuracy (sigma x, y, up in m, or CE90 and "
+                   "LE90) of each --accuracy-step x --accuracy-step cell from the image its centre was taken from "
+                   "(needs --index).")
 @click.option("--pose-sigma", default=_FRAME_POSE_SIGMA, show_default=True, metavar="SX,SY,SZ,SA,SB,SC",
               help="With --accuracy: frame images' pose standard deviations (m, m, m, deg, deg, deg; GNSS/INS poses "
                    "also 9 or 12 numbers with the boresight and the lever arm; as for ortho).")
 @click.option("--accuracy-measure", type=click.Choice(["sigma", "ce90"]), default="sigma", show_default=True,
               help="With --accuracy: sigma x, y, up, or CE90 and LE90 (as for ortho).")
+@click.option("--accuracy-step", type=click.IntRange(1, 4096), default=16, show_default=True,
+              help="With --accuracy: mosaic pixels per accuracy pixel, each way (1: full resolution).")
 @click.option("--scene-sigma", default=_SCENE_SIGMA, show_default=True, metavar="8 NUMBERS",
               help="With --accuracy: pushbroom scenes' orientation standard deviations (orbit across, along, radial "
                    "in m; roll, pitch, yaw, psi_x, psi_y in deg).")
@@ -691,7 +698,7 @@ def _frame_orientations(images, int_param, ext_param, crs, ids=None):
 @click.pass_context
 def mosaic(ctx, images, int_param, ext_param, odm_dataset, scenes, attitude_model, dem, height, out_path, index_path, seamlines_path, crs, resolution,
            resampling, seams, seam_width, blend, feather, no_balance, no_occlusion, reference, compress_level, block_codec, accuracy,
-           pose_sigma, accuracy_measure, scene_sigma, pixel_sigma, dem_sigma, creation, dtype, overwrite, no_refraction, geoid,
+           pose_sigma, accuracy_measure, accuracy_step, scene_sigma, pixel_sigma, dem_sigma, creation, dtype, overwrite, no_refraction, geoid,
            same_vertical_datum, device, workers, tile_size, show_profile, profile_json):
     """Mosaic frame IMAGES and pushbroom scenes (--scene) into one cloud-optimized GeoTIFF: each
     pixel from the image that sees its ground most nearly from above (smallest off-nadir
@@ -750,7 +757,7 @@ def mosaic(ctx, images, int_param, ext_param, odm_dataset, scenes, attitude_mode
         mosaic_accuracy_raster(_accuracy_name(r.path), jobs, r.index, terrain, r.crs, r.transform, r.shape,
                                pose_cov=np.diag(frame_sigmas) ** 2, orientation_cov=np.diag(scene_sigmas) ** 2,
                                pixel_sigma=pixel_sigma, dem_sigma=dem_sigma, measure=accuracy_measure,
-                               refraction=not no_refraction, geoid=geoid, same_vertical_datum=same_vertical_datum,
+                               step=accuracy_step, refraction=not no_refraction, geoid=geoid, same_vertical_datum=same_vertical_datum,
                                device=device)
     if show_profile or profile_json:
         from .pipeline.io import write_json

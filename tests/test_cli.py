@@ -286,6 +286,17 @@ def test_ortho_accuracy_raster(tmp_path):
     np.testing.assert_allclose(ce[1], 1.6448536269514722 * data[2], rtol=1e-6, equal_nan=True)  # LE90
     ok = np.isfinite(data[0])
     assert np.all(ce[0][ok] >= 1.6448 * np.maximum(data[0], data[1])[ok] * 0.999)  # CE90 >= 1.64 sigma_major
+    res = CliRunner().invoke(main, ["-q", "ortho", str(tmp_path / "img.tif"), *args, "--height", "100",
+                                    "--out-dir", str(tmp_path / "full"), "--device", "cpu", "--accuracy",
+                                    "--accuracy-step", "1", "--dem-sigma", "0.3"])
+    assert res.exit_code == 0, res.output
+    with rasterio.open(out / "img_ORTHO.tif") as o, rasterio.open(tmp_path / "full" / "img_ACCURACY.tif") as a:
+        assert a.transform == o.transform and a.shape == o.shape  # one accuracy pixel per ortho pixel
+        full = a.read()
+    near = full[:, 8::16, 8::16]  # the pixels half a pixel off the 16 x 16 cells' centres
+    both = np.isfinite(near[0]) & np.isfinite(data[0])
+    assert both.sum() >= 0.9 * np.isfinite(data[0]).sum()
+    np.testing.assert_allclose(near[:, both], data[:, both], rtol=1e-3)
     res = CliRunner().invoke(main, ["ortho", str(tmp_path / "img.tif"), *args, "--height", "100", "--out-dir",
                                     str(tmp_path / "o2"), "--device", "cpu", "--accuracy", "--pose-sigma", "1,2"])
     assert res.exit_code == 1 and "--pose-sigma" in res.output
