@@ -1262,7 +1262,8 @@ def _statistics(pr, poses, pts, used, weights, cost, covariance, withheld=()):
         e[np.arange(6 * k0, 6 * k1), np.arange(6 * (k1 - k0))] = 1.0
         z = red.lu.solve(e)
         for k in range(k0, k1):
-            pose_q[k] = z[6 * k:6 * k + 6, 6 * (k - k0):6 * (k - k0) + 6]
+            q6 = z[6 * k:6 * k + 6, 6 * (k - k0):6 * (k - k0) + 6]
+            pose_q[k] = 0.5 * (q6 + q6.T)  # symmetric, as it is up to the solves' rounding
         if joint is not None:
             joint[:, 6 * k0:6 * k1] = z[:6 * n]
     out["pose_q_joint"] = joint

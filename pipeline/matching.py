@@ -140,7 +140,8 @@ def match_block(images, sensors, dem, *, ids=None, zones=(4, 3), per_zone=2, win
     ----------
     images : sequence of array_like (rows, cols)
     sensors : sequence of FrameSensor
-        Approximate orientations, all map-Cartesian (omega-phi-kappa) in one CRS.
+        Approximate orientations, all map-Cartesian (omega-phi-kappa) in one CRS, or all
+        GNSS/INS (:meth:`Pose.from_ins`, without boresight and lever arm: a geocentric block).
     dem : Dem, str or float
     ids : sequence of str, optional
         Image ids (default ``img0``, ``img1``, ...).
@@ -150,7 +151,8 @@ def match_block(images, sensors, dem, *, ids=None, zones=(4, 3), per_zone=2, win
         Sigma (m) of the given projection centres as observations of the adjustment (default:
         none: the block then needs control).
     ins_sigma : float, optional
-        Sigma (deg) of the given omega, phi, kappa as observations (default: none).
+        Sigma (deg) of the given omega, phi, kappa (or roll, pitch, yaw) as observations
+        (default: none).
 
     Returns
     -------
@@ -169,12 +171,21 @@ def match_block(images, sensors, dem, *, ids=None, zones=(4, 3), per_zone=2, win
     ids = [f"img{k}" for k in range(len(images))] if ids is None else [str(i) for i in ids]
     if len(ids) != len(images) or len(set(ids)) != len(ids):
         raise ParamError("ids must name every image once")
+    geo = bool(sensors[0].geocentric)
     for k, (s, img) in enumerate(zip(sensors, images)):
         _check_image(ids[k], img, s)
-        if s.geocentric:
-            raise ParamError(f"sensors[{k}] must be a map-Cartesian FrameSensor (omega-phi-kappa pose)")
-    crs = sensors[0].pose.crs
-    if any(not s.pose.crs.equals(crs) for s in sensors):
+        if bool(s.geocentric) != geo:
+            raise ParamError("the sensors' poses must be all omega-phi-kappa or all GNSS/INS")
+        if geo:
+            p = s.pose.params
+            if not {"lat", "lon", "h", "roll", "pitch", "yaw"} <= set(p):
+                raise ParamError(f"sensors[{k}]: a GNSS/INS pose from Pose.from_ins is needed for a block")
+            if np.any(np.asarray(p.get("boresight", (0, 0, 0)), float) != 0) or np.any(
+                    np.asarray(p.get("lever_arm", (0, 0, 0)), float) != 0):
+                raise ParamError(f"sensors[{k}]: the block format holds GNSS/INS poses without boresight and lever "
+                                 "arm; give the camera's own pose (Pose.from_ins of the camera centre and attitude)")
+    crs = None if geo else sensors[0].pose.crs
+    if not geo and any(not s.pose.crs.equals(crs) for s in sensors):
         raise ParamError("the sensors' poses must share one CRS")
     obs = {}  # (point id, image index) -> (col, row, sigma)
     stats = dict(interest=0, pairs={})
@@ -213,12 +224,16 @@ def match_block(images, sensors, dem, *, ids=None, zones=(4, 3), per_zone=2, win
         cid = next((c for c, cam in cameras.items() if cam is s.camera), f"cam{len(cameras)}")
         cameras[cid] = s.camera
         image_camera.append(cid)
-    params = [s.parameters() for s in sensors]
-    poses = np.array([[p[k] for k in ("X0", "Y0", "Z0", "omega", "phi", "kappa")] for p in params])
+    if geo:  # the block's geocentric form: latitude, longitude, height, roll, pitch, yaw
+        poses = np.array([[s.pose.params[k] for k in ("lat", "lon", "h", "roll", "pitch", "yaw")] for s in sensors],
+                         dtype=np.float64)
+    else:
+        params = [s.parameters() for s in sensors]
+        poses = np.array([[p[k] for k in ("X0", "Y0", "Z0", "omega", "phi", "kappa")] for p in params])
     n, p = len(images), len(point_ids)
     gnss = np.full((n, 3), np.nan) if gnss_sigma is None else poses[:, :3].copy()
     ins = np.full((n, 3), np.nan) if ins_sigma is None else poses[:, 3:].copy()
-    block = Block(crs=crs.to_wkt(), cameras=cameras, image_ids=ids, image_camera=image_camera, poses=poses,
+    block = Block(crs="EPSG:4979" if geo else crs.to_wkt(), cameras=cameras, image_ids=ids, image_camera=image_camera, poses=poses,
                   point_ids=point_ids, roles=["tie"] * p, xyz=np.full((p, 3), np.nan), xyz_sigma=np.full((p, 3), np.nan),
                   obs_image=np.array([t[1] for t in keys], dtype=np.int64),
                   obs_point=np.array([index[t[0]] for t in keys], dtype=np.int64),
@@ -226,6 +241,6 @@ def match_block(images, sensors, dem, *, ids=None, zones=(4, 3), per_zone=2, win
                   obs_sigma=np.array([obs[t][2] for t in keys], dtype=np.float64),
                   gnss_xyz=gnss, gnss_sigma=np.full((n, 3), np.nan if gnss_sigma is None else float(gnss_sigma)),
                   ins_opk=ins, ins_sigma=np.full((n, 3), np.nan if ins_sigma is None else float(ins_sigma)),
-                  name="matched block")
+                  name="matched block", **({"mode": "geocentric"} if geo else {}))
     stats["points"], stats["observations"] = p, len(keys)
     return block, stats

@@ -20,6 +20,12 @@ def test_demo_runs_end_to_end(tmp_path):
     assert s["check_max_m"] < 0.005  # 5 mm against the scene's truth
     assert s["round_trip_max_px"] < 1e-3
     assert s["pixels_without_ground"] == 0
+    # the chain: matched ties and three control points bring the mosaic onto the truth
+    c = s["chain"]
+    assert c["ties"] >= 30 and "chain on 4 frames" in res.output
+    assert c["approximate"]["mosaic_misregistration_rms_m"] > 1.0
+    assert c["adjusted"]["mosaic_misregistration_rms_m"] < 0.4
+    assert {"block.json", "adjusted", "mosaic_adjusted.tif"} <= {p.name for p in (out / "chain").iterdir()}
 
 
 def test_library_errors_become_one_line_messages():

@@ -33,7 +33,7 @@ def _fixtures(folder):
     from orthowarp.adjust.synthetic import synthetic_block
     from orthowarp.pipeline.demo import run_demo, synthetic_scene
 
-    run_demo(os.path.join(folder, "orthowarp-demo"), device="cpu")
+    run_demo(os.path.join(folder, "orthowarp-demo"), device="cpu", chain=False)
     demo = os.path.join(folder, "orthowarp-demo")
     shutil.copy(os.path.join(demo, "dem.tif"), os.path.join(folder, "dem.tif"))
     camera, pose = synthetic_scene()[:2]
