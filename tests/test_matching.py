@@ -195,3 +195,30 @@ def test_match_block_refuses_wrong_images_and_warns_on_textureless_ones(caplog):
                                    window=15, refraction=False, device="cpu")
     assert block.n_points == 0 and "image 'b' has no textured point" in caplog.text
     assert "none of the" in caplog.text and "search radius" in caplog.text
+
+
+def test_match_block_takes_gnss_ins_poses_without_boresight_only():
+    """A block of GNSS/INS poses is geocentric (latitude, longitude, height, roll, pitch, yaw,
+    the given orientation as its GNSS/INS observations); poses with a boresight or lever arm
+    (which the block format does not hold) and a mix of pose kinds are refused, naming them.
+    (The demo's chain matches and adjusts such a block end to end: tests/test_cli.py.)"""
+    import orthowarp as ow
+    from orthowarp.pipeline.matching import match_block
+    from orthowarp.sensor import FrameSensor
+
+    cam = ow.FrameCamera(100.0, 0.05, (400, 300))
+    img = np.random.default_rng(0).uniform(0, 255, (300, 400))
+    a = ow.Pose.from_ins(46.5, 8.0, 2600.0, 0.5, -0.3, 90.0)
+    b = ow.Pose.from_ins(46.5, 8.004, 2600.0, 0.2, 0.4, 90.0)
+    block, _ = match_block([img, img], [FrameSensor(cam, a), FrameSensor(cam, b)], 600.0, gnss_sigma=2.0,
+                           ins_sigma=0.1, refraction=False, device="cpu")
+    assert block.mode == "geocentric" and block.crs == "EPSG:4979"
+    np.testing.assert_allclose(block.poses[1], [46.5, 8.004, 2600.0, 0.2, 0.4, 90.0])
+    np.testing.assert_allclose(block.gnss_xyz, block.poses[:, :3])
+    np.testing.assert_allclose(block.ins_opk, block.poses[:, 3:])
+    mounted = ow.Pose.from_ins(46.5, 8.004, 2600.0, 0.2, 0.4, 90.0, boresight=(0.01, 0.0, 0.0))
+    with pytest.raises(ParamError, match=r"sensors\[1\].*boresight"):
+        match_block([img, img], [FrameSensor(cam, a), FrameSensor(cam, mounted)], 600.0, device="cpu")
+    opk = ow.Pose.from_opk(500000.0, 5150000.0, 2600.0, 0.0, 0.0, 0.0, crs="EPSG:32632")
+    with pytest.raises(ParamError, match="all omega-phi-kappa or all GNSS/INS"):
+        match_block([img, img], [FrameSensor(cam, a), FrameSensor(cam, opk)], 600.0, device="cpu")
