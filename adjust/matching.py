@@ -64,7 +64,7 @@ def _points(name, p):
     return np.ascontiguousarray(p)
 
 
-def match_points(left, right, points, predicted, *, affine=None, window=21, radius=8, min_score=0.7,
+def match_points(left, right, points, predicted, *, affine=None, window=21, radius=8, levels=0, min_score=0.7,
                  max_iterations=30, tol=1e-2, max_shift=1.0, device=None):
     """Match points of the left image in the right one.
 
@@ -83,7 +83,13 @@ def match_points(left, right, points, predicted, *, affine=None, window=21, radi
     window : int, optional
         Window side (px, odd, 5-101).
     radius : int, optional
-        NCC search radius (px) around the prediction.
+        NCC search radius (px) around the prediction (at the coarsest pyramid level).
+    levels : int, optional
+        Image-pyramid levels above the full resolution (each a 2 x 2 mean of the one below):
+        the NCC search starts at the coarsest level with ``radius`` there (so it reaches
+        ``radius * 2**levels`` full-resolution pixels), and each finer level searches 2 px
+        around the peak of the coarser one; the full resolution's NCC and the least-squares
+        matching finish as without levels.
     min_score : float, optional
         Smallest NCC accepted.
     max_iterations : int, optional
@@ -115,6 +121,9 @@ def match_points(left, right, points, predicted, *, affine=None, window=21, radi
         raise ParamError(f"window must be an odd integer 5-101 (px), got {window!r}")
     if not (isinstance(radius, (int, np.integer)) and 0 <= radius <= 256):
         raise ParamError(f"radius must be an integer 0-256 (px), got {radius!r}")
+    if not (isinstance(levels, (int, np.integer)) and 0 <= levels <= 6 and min(left.shape + right.shape) >> levels
+            >= window):
+        raise ParamError(f"levels must be an integer 0-6 whose coarsest images still hold a window, got {levels!r}")
     if not (-1.0 <= float(min_score) <= 1.0):
         raise ParamError(f"min_score must lie in [-1, 1], got {min_score!r}")
     n = len(pts)
@@ -127,10 +136,26 @@ def match_points(left, right, points, predicted, *, affine=None, window=21, radi
         ncc_xy = wp.empty(n, dtype=wp.vec2d, device=dev)
         score = wp.empty(n, dtype=wp.float64, device=dev)
         half = int(window) // 2
-        if n:
+
+        def search(lw_, rw_, p_, guess, r):
             wp.launch(km.ncc_search_kernel, dim=n, device=dev,
-                      inputs=[lw, rw, p, wp.array(pred, dtype=wp.vec2d, device=dev), a, wp.int32(half),
-                              wp.int32(radius), ncc_xy, score])
+                      inputs=[lw_, rw_, p_, wp.array(guess, dtype=wp.vec2d, device=dev), a, wp.int32(half),
+                              wp.int32(r), ncc_xy, score])
+            return ncc_xy.numpy().reshape(n, 2)
+
+        if n:
+            guess, pl, pr = pred, [left], [right]
+            for _ in range(levels):  # the pyramids
+                pl.append(_halve(pl[-1]))
+                pr.append(_halve(pr[-1]))
+            for lev in range(levels, 0, -1):  # coarse to fine: each level's peak the next one's guess
+                s = float(2**lev)
+                peak = search(wp.array(pl[lev], dtype=wp.float32, device=dev),
+                              wp.array(pr[lev], dtype=wp.float32, device=dev),
+                              wp.array(pts / s, dtype=wp.vec2d, device=dev), guess / s,
+                              radius if lev == levels else 2)
+                guess = np.where(np.isfinite(peak), peak * s, guess)
+            search(lw, rw, p, guess, radius if levels == 0 else 2)
         xy = wp.empty(n, dtype=wp.vec2d, device=dev)
         sig = wp.empty(n, dtype=wp.vec2d, device=dev)
         s0 = wp.empty(n, dtype=wp.float64, device=dev)
@@ -146,6 +171,14 @@ def match_points(left, right, points, predicted, *, affine=None, window=21, radi
         near = np.hypot(*(out.xy - out.ncc_xy).T) <= max_shift
         out.ok = (out.score >= min_score) & (out.iterations > 0) & near & np.all(np.isfinite(out.xy), axis=1)
     return out
+
+
+def _halve(a):
+    """The 2 x 2 means of ``a`` (an odd last row or column dropped): pixel coordinates with the
+    top-left corner as origin halve exactly."""
+    r, c = (a.shape[0] // 2) * 2, (a.shape[1] // 2) * 2
+    b = a[:r, :c]
+    return (0.25 * (b[0::2, 0::2] + b[1::2, 0::2] + b[0::2, 1::2] + b[1::2, 1::2])).astype(np.float32)
 
 
 def _box(a, half):

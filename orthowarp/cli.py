@@ -1065,18 +1065,22 @@ def _write_spot_example(folder):
 @click.option("--per-zone", type=click.IntRange(1, 100), default=2, show_default=True, help="Points per zone.")
 @click.option("--window", type=int, default=21, show_default=True, help="Matching window side (px, odd).")
 @click.option("--radius", type=click.IntRange(0, 256), default=8, show_default=True,
-              help="NCC search radius (px) around the predicted position: the orientation's error in pixels.")
+              help="NCC search radius (px) around the predicted position (at the top of the --pyramid): with it the "
+                   "search reaches RADIUS x 2^PYRAMID pixels, which must cover the orientation's error.")
+@click.option("--pyramid", type=click.IntRange(0, 6), default=0, show_default=True,
+              help="Image-pyramid levels (2 x 2 means) above the full resolution for the NCC search.")
 @click.option("--min-score", type=float, default=0.7, show_default=True, help="Smallest NCC accepted.")
 @click.option("--gnss-sigma", type=float, default=None,
               help="Sigma (m) of the given projection centres as observations in the block (default: none).")
 @click.option("--ins-sigma", type=float, default=None,
-              help="Sigma (deg) of the given omega, phi, kappa as observations in the block (default: none).")
+              help="Sigma (deg) of the given omega, phi, kappa (or roll, pitch, yaw) as observations in the block "
+                   "(default: none).")
 @click.option("--no-refraction", is_flag=True, help="Do not model atmospheric refraction in the predictions.")
 @click.option("--overwrite", is_flag=True, help="Replace an existing block file.")
 @click.option("--device", default=None, help="Warp device (cpu, cuda, cuda:N); default: first GPU, else CPU.")
 @click.pass_context
-def match(ctx, images, int_param, ext_param, crs, dem, height, out_path, zones, per_zone, window, radius, min_score,
-          gnss_sigma, ins_sigma, no_refraction, overwrite, device):
+def match(ctx, images, int_param, ext_param, crs, dem, height, out_path, zones, per_zone, window, radius, pyramid,
+          min_score, gnss_sigma, ins_sigma, no_refraction, overwrite, device):
     """Find tie points between frame IMAGES by area-based matching (interest points, NCC,
     least-squares matching, back-matching), predicted through their approximate orientation and
     the DEM, and write them as a block for 'orthowarp adjust' (add control points to its
@@ -1109,12 +1113,13 @@ def match(ctx, images, int_param, ext_param, crs, dem, height, out_path, zones, 
     terrain = Dem.from_file(dem) if dem is not None else height
     ids = [os.path.splitext(os.path.basename(image))[0] for image, _, _ in jobs]
     block, stats = match_block(pixels, [FrameSensor(c, p) for _, c, p in jobs], terrain, ids=ids, zones=(zx, zy),
-                               per_zone=per_zone, window=window, radius=radius, min_score=min_score,
-                               gnss_sigma=gnss_sigma, ins_sigma=ins_sigma, refraction=not no_refraction,
+                               per_zone=per_zone, window=window, radius=radius, levels=pyramid,
+                               min_score=min_score, gnss_sigma=gnss_sigma, ins_sigma=ins_sigma, refraction=not no_refraction,
                                device=device)
     if not block.n_points:
         raise ParamError(f"No tie point matched between the {len(images)} images ({stats['interest']} interest "
-                         "points): no texture, no overlap, or the orientation is further off than --radius")
+                         "points): no texture, no overlap, or the orientation is further off than the search "
+                         "reaches (--radius, --pyramid)")
     write_block(block, out_path)
     if not ctx.obj["quiet"]:
         pairs = ", ".join(f"{k} {v['accepted']}/{v['predicted']}" for k, v in stats["pairs"].items())

@@ -43,8 +43,8 @@ def _check_image(name, image, sensor):
                          f"(rows, cols = {h}, {w})")
 
 
-def _match_into(left, right, left_sensor, right_sensor, pts, dem, *, window, radius, min_score, max_back_error,
-                refraction, device):
+def _match_into(left, right, left_sensor, right_sensor, pts, dem, *, window, radius, levels, min_score,
+                max_back_error, refraction, device):
     """Points ``pts`` (k, 2) of ``left`` predicted in ``right`` (those whose prediction lies a
     window inside it: indices ``sel``), matched, and back-matched. Returns (sel, predicted (s, 2),
     forward MatchResult (s rows), back-match distance (s,), accepted (s,) bool)."""
@@ -53,7 +53,7 @@ def _match_into(left, right, left_sensor, right_sensor, pts, dem, *, window, rad
     sel = np.flatnonzero(np.all(np.isfinite(pred), axis=1) & (pred[:, 0] > window) & (pred[:, 0] < w - window) & (
         pred[:, 1] > window) & (pred[:, 1] < h - window))
     fwd = match_points(left, right, pts[sel], pred[sel], affine=aff[sel], window=window, radius=radius,
-                       min_score=min_score, device=device)
+                       levels=levels, min_score=min_score, device=device)
     back = match_points(right, left, np.nan_to_num(fwd.xy, nan=-1e3), pts[sel], affine=np.linalg.inv(aff[sel]),
                         window=window, radius=2, min_score=min_score, device=device)
     err = np.hypot(*(back.xy - pts[sel]).T)
@@ -91,7 +91,7 @@ class PairMatches:
 
 
 def match_pair(left, right, left_sensor, right_sensor, dem, *, zones=(4, 3), per_zone=2, window=21, radius=8,
-               min_score=0.7, max_back_error=0.2, refraction=True, device=None):
+               levels=0, min_score=0.7, max_back_error=0.2, refraction=True, device=None):
     """Match interest points of ``left`` in ``right``, predicted through the sensors and the DEM.
 
     Parameters
@@ -101,9 +101,9 @@ def match_pair(left, right, left_sensor, right_sensor, dem, *, zones=(4, 3), per
     left_sensor, right_sensor : FrameSensor
         Approximate orientations (GNSS/INS or omega-phi-kappa).
     dem : Dem, str or float
-    zones, per_zone, window, radius, min_score :
+    zones, per_zone, window, radius, levels, min_score :
         As :func:`~orthowarp.adjust.matching.interest_points` and
-        :func:`~orthowarp.adjust.matching.match_points`; ``radius`` must cover the
+        :func:`~orthowarp.adjust.matching.match_points`; ``radius * 2**levels`` must cover the
         orientation's error in pixels.
     max_back_error : float, optional
         Largest distance (px) between a left point and the back-match of its right position.
@@ -118,14 +118,14 @@ def match_pair(left, right, left_sensor, right_sensor, dem, *, zones=(4, 3), per
     _check_image("right", right, right_sensor)
     pts, _ = interest_points(left, zones=zones, per_zone=per_zone, window=window)
     sel, pred, fwd, err, ok = _match_into(left, right, left_sensor, right_sensor, pts, dem, window=window,
-                                          radius=radius, min_score=min_score, max_back_error=max_back_error,
-                                          refraction=refraction, device=device)
+                                          radius=radius, levels=levels, min_score=min_score,
+                                          max_back_error=max_back_error, refraction=refraction, device=device)
     return PairMatches(left=pts[sel][ok], right=fwd.xy[ok], sigma=fwd.sigma[ok], predicted=pred[ok],
                        score=fwd.score[ok], candidates=len(sel), back_error=err[ok])
 
 
-def match_block(images, sensors, dem, *, ids=None, zones=(4, 3), per_zone=2, window=21, radius=8, min_score=0.7,
-                max_back_error=0.2, gnss_sigma=None, ins_sigma=None, refraction=True, device=None):
+def match_block(images, sensors, dem, *, ids=None, zones=(4, 3), per_zone=2, window=21, radius=8, levels=0,
+                min_score=0.7, max_back_error=0.2, gnss_sigma=None, ins_sigma=None, refraction=True, device=None):
     """Tie points of a block of frame images by matching (seed 002), as a
     :class:`~orthowarp.adjust.Block` that :func:`~orthowarp.adjust.bundle_adjust` takes.
 
@@ -145,7 +145,7 @@ def match_block(images, sensors, dem, *, ids=None, zones=(4, 3), per_zone=2, win
     dem : Dem, str or float
     ids : sequence of str, optional
         Image ids (default ``img0``, ``img1``, ...).
-    zones, per_zone, window, radius, min_score, max_back_error, refraction, device :
+    zones, per_zone, window, radius, levels, min_score, max_back_error, refraction, device :
         As :func:`match_pair`.
     gnss_sigma : float, optional
         Sigma (m) of the given projection centres as observations of the adjustment (default:
@@ -200,14 +200,14 @@ def match_block(images, sensors, dem, *, ids=None, zones=(4, 3), per_zone=2, win
             if j == i:
                 continue
             sel, _, fwd, _, ok = _match_into(img_i, img_j, s_i, s_j, pts, dem, window=window, radius=radius,
-                                             min_score=min_score, max_back_error=max_back_error,
+                                             levels=levels, min_score=min_score, max_back_error=max_back_error,
                                              refraction=refraction, device=device)
             if not len(sel):
                 continue
             stats["pairs"][f"{ids[i]}->{ids[j]}"] = dict(predicted=int(len(sel)), accepted=int(ok.sum()))
             if len(sel) >= 5 and not ok.any():
                 log.warning("none of the %d points of '%s' predicted in '%s' matched: is the orientation further "
-                            "off than the search radius (%d px)?", len(sel), ids[i], ids[j], radius)
+                            "off than the search reaches (%d px)?", len(sel), ids[i], ids[j], radius * 2**levels)
             for k in np.flatnonzero(ok):
                 found.setdefault(int(sel[k]), []).append((j, *fwd.xy[k], float(max(fwd.sigma[k].max(), 0.02))))
         for k, matches in found.items():

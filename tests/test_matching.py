@@ -84,6 +84,27 @@ def test_failures_are_flagged(points):
     assert not edge.ok[0] and np.isnan(edge.xy[0, 0])  # the window leaves the image
 
 
+def test_an_image_pyramid_reaches_predictions_far_off(points):
+    """Predictions 20-30 px off: a search of 8 px misses them, the same search at the top of a
+    2-level pyramid (reaching 32 px) finds them, and the least-squares matching at the full
+    resolution is as accurate as from a close prediction (0.05 px)."""
+    left, right, true_map = pair(rotation_scale(3.0, 1.02), np.array([7.3, -4.6]))
+    centre = points[np.all((points > 100) & (points < 200), axis=1)]
+    truth = true_map(centre)
+    rng = np.random.default_rng(4)
+    angle = rng.uniform(0, 2 * np.pi, len(centre))
+    pred = truth + rng.uniform(20, 30, len(centre))[:, None] * np.stack([np.cos(angle), np.sin(angle)], 1)
+    flat = match_points(left, right, centre, pred, affine=np.tile(rotation_scale(3.0, 1.02), (len(centre), 1, 1)),
+                        device="cpu")
+    assert flat.ok.mean() < 0.2
+    pyr = match_points(left, right, centre, pred, affine=np.tile(rotation_scale(3.0, 1.02), (len(centre), 1, 1)),
+                       levels=2, device="cpu")
+    assert len(centre) > 20 and pyr.ok.all()
+    assert np.sqrt(np.mean((pyr.xy - truth) ** 2)) < 0.05
+    with pytest.raises(ParamError, match="levels"):
+        match_points(left, right, centre, pred, levels=4, device="cpu")  # 300 / 16 px hold no 21-px window
+
+
 def test_bad_input():
     img = np.zeros((50, 50))
     with pytest.raises(ParamError, match="left must be a 2-D image"):
@@ -194,7 +215,7 @@ def test_match_block_refuses_wrong_images_and_warns_on_textureless_ones(caplog):
         block, stats = match_block([sc.image(False), np.full_like(img2, 50.0)], [left, right], sc.dem, ids=["a", "b"],
                                    window=15, refraction=False, device="cpu")
     assert block.n_points == 0 and "image 'b' has no textured point" in caplog.text
-    assert "none of the" in caplog.text and "search radius" in caplog.text
+    assert "none of the" in caplog.text and "search reaches" in caplog.text
 
 
 def test_match_block_takes_gnss_ins_poses_without_boresight_only():
