@@ -62,6 +62,35 @@ def _match_into(left, right, left_sensor, right_sensor, pts, dem, *, window, rad
     return sel, pred[sel], fwd, err, ok
 
 
+def _inconsistent(images, sensors, dem, found, *, window, min_score, tol, refraction, device):
+    """The observations of a reference image's points that disagree with the point's other
+    observations (multi-image consistency): for every two images j1, j2 that both matched a
+    point, its position in j1 is matched into j2 (1 px around its position there, through the
+    local affine map between them) and must land within ``tol`` px of it. ``found``: point
+    -> [(image, col, row, sigma), ...] (the reference image's matches). An observation that
+    fails every check it takes part in is returned as (point, image); a point matched in two
+    other images that disagree loses both."""
+    pairs = {}
+    for k, m in found.items():
+        for a in range(len(m)):
+            for b in range(a + 1, len(m)):
+                pairs.setdefault((m[a][0], m[b][0]), []).append((k, m[a][1:3], m[b][1:3]))
+    checks, fails = {}, {}
+    for (j1, j2), rows in pairs.items():
+        p1 = np.array([r[1] for r in rows], dtype=np.float64)
+        p2 = np.array([r[2] for r in rows], dtype=np.float64)
+        _, aff = _predict(sensors[j1], sensors[j2], p1, dem, refraction, device)
+        res = match_points(images[j1], images[j2], p1, p2, affine=aff, window=window, radius=1, min_score=min_score,
+                           device=device)
+        with np.errstate(invalid="ignore"):
+            good = res.ok & (np.hypot(*(res.xy - p2).T) <= tol)
+        for (k, _, _), g in zip(rows, good):
+            for j in (j1, j2):
+                checks[(k, j)] = checks.get((k, j), 0) + 1
+                fails[(k, j)] = fails.get((k, j), 0) + (not g)
+    return {key for key, n in checks.items() if fails[key] == n}
+
+
 @dataclass
 class PairMatches:
     """Matches of one image pair.
@@ -131,8 +160,10 @@ def match_block(images, sensors, dem, *, ids=None, zones=(4, 3), per_zone=2, win
 
     Every image's interest points are matched in every other image their predictions fall in
     (through the sensors and the DEM); a point is kept with its observations in all the images
-    where it matched and back-matched (multi-image transfer to one point id, named
-    ``<image id>:<k>``), when there are at least two. Each observation's sigma is the
+    where it matched, back-matched and agreed with its other matches (each two of them matched
+    into one another to within twice ``max_back_error``; an observation that disagrees with all
+    the others is dropped) — multi-image transfer to one point id, named ``<image id>:<k>`` —
+    when there are at least two. Each observation's sigma is the
     least-squares sigma of its match (the reference image's: the largest of its matches'),
     floored at 0.02 px.
 
@@ -159,7 +190,8 @@ def match_block(images, sensors, dem, *, ids=None, zones=(4, 3), per_zone=2, win
     block : Block
         Poses from the sensors, tie points (coordinates unknown), their observations.
     stats : dict
-        Interest points, predictions inside another image, accepted observations per pair.
+        Interest points, predictions inside another image, accepted observations per pair,
+        observations dropped by the multi-image check (``inconsistent``).
     """
     from ..adjust.block import Block
 
@@ -188,7 +220,7 @@ def match_block(images, sensors, dem, *, ids=None, zones=(4, 3), per_zone=2, win
     if not geo and any(not s.pose.crs.equals(crs) for s in sensors):
         raise ParamError("the sensors' poses must share one CRS")
     obs = {}  # (point id, image index) -> (col, row, sigma)
-    stats = dict(interest=0, pairs={})
+    stats = dict(interest=0, pairs={}, inconsistent=0)
     for i, (img_i, s_i) in enumerate(zip(images, sensors)):
         pts, _ = interest_points(img_i, zones=zones, per_zone=per_zone, window=window)
         stats["interest"] += len(pts)
@@ -210,6 +242,13 @@ def match_block(images, sensors, dem, *, ids=None, zones=(4, 3), per_zone=2, win
                             "off than the search reaches (%d px)?", len(sel), ids[i], ids[j], radius * 2**levels)
             for k in np.flatnonzero(ok):
                 found.setdefault(int(sel[k]), []).append((j, *fwd.xy[k], float(max(fwd.sigma[k].max(), 0.02))))
+        bad = _inconsistent(images, sensors, dem, found, window=window, min_score=min_score, tol=2 * max_back_error,
+                            refraction=refraction, device=device)
+        stats["inconsistent"] += len(bad)
+        for k in list(found):
+            found[k] = [m for m in found[k] if (k, m[0]) not in bad]
+            if not found[k]:
+                del found[k]
         for k, matches in found.items():
             pid = f"{ids[i]}:{k}"
             sig = max(m[3] for m in matches)

@@ -243,3 +243,43 @@ def test_match_block_takes_gnss_ins_poses_without_boresight_only():
     opk = ow.Pose.from_opk(500000.0, 5150000.0, 2600.0, 0.0, 0.0, 0.0, crs="EPSG:32632")
     with pytest.raises(ParamError, match="all omega-phi-kappa or all GNSS/INS"):
         match_block([img, img], [FrameSensor(cam, a), FrameSensor(cam, opk)], 600.0, device="cpu")
+
+
+def test_multi_image_consistency_drops_the_observation_that_disagrees():
+    """Four rendered views of one scene: a reference point's matches in the three others are
+    matched into one another; all agree (nothing dropped) until one of them is moved by
+    1.5 px, which then fails both its checks and is the only one dropped. match_block on the
+    four views keeps ties seen in three and four images and drops nothing."""
+    import render
+    import scenes
+    from test_ortho import OPK_X, OPK_Y, SUPERSAMPLE, UTM32, scene
+
+    from orthowarp.pipeline.matching import _inconsistent, match_block, match_pair
+    from orthowarp.sensor import FrameSensor
+
+    sc = scene("opk")
+    images, sensors = [sc.image(False)], [FrameSensor(sc.camera, sc.pose)]
+    for dx, dy, kappa in ((80.0, 10.0, 57.0), (40.0, 30.0, 55.0), (60.0, -20.0, 59.0)):
+        pose, ref_pose = scenes.make_poses("opk", dict(x=OPK_X + dx, y=OPK_Y + dy, z=1390.0, omega=-1.0, phi=1.5,
+                                                       kappa=kappa))
+        r = render.Renderer(sc.ref_camera, ref_pose, sc.grid.sample, (sc.grid.hmin, sc.grid.hmax), sc.texture, UTM32,
+                            refraction=False)
+        images.append(r.render(SUPERSAMPLE))
+        sensors.append(FrameSensor(sc.camera, pose))
+    kw = dict(zones=(4, 3), per_zone=3, window=15, radius=6, refraction=False, device="cpu")
+    found = {}
+    for j in (1, 2, 3):
+        m = match_pair(images[0], images[j], sensors[0], sensors[j], sc.dem, **kw)
+        for left, right in zip(m.left, m.right):
+            found.setdefault(tuple(np.round(left, 6)), []).append((j, *right, 0.02))
+    found = {k: v for k, v in found.items() if len(v) == 3}
+    assert len(found) >= 5
+    args = dict(window=15, min_score=0.7, tol=0.4, refraction=False, device="cpu")
+    assert _inconsistent(images, sensors, sc.dem, found, **args) == set()
+    k = next(iter(found))
+    j, c, r, s = found[k][1]
+    found[k][1] = (j, c + 1.5, r, s)
+    assert _inconsistent(images, sensors, sc.dem, found, **args) == {(k, j)}
+    block, stats = match_block(images, sensors, sc.dem, **kw)
+    rays = np.bincount(block.obs_point)
+    assert stats["inconsistent"] == 0 and rays.max() == 4 and (rays >= 3).sum() >= 10
