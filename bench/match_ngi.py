@@ -3,7 +3,14 @@ given orientation as weighted observations (GNSS 1 m, INS 0.05 deg), tie points 
 (orthowarp.pipeline.matching.match_block), a bundle adjustment, and the sub-pixel shifts between
 overlapping orthos (tile-wise phase correlation) before and after.
 
-usage: python3 bench/match_ngi.py [--data ../shared/data/orthority] [--resolution 5] [--out FILE]
+With ``--perturb M,DEG`` the given orientation is first degraded (every centre moved by
+N(0, M) m per axis, every angle by N(0, DEG) deg, seeded), as a GNSS/INS-only orientation
+would be; the matching and the adjustment start from it with those sigmas, and the overlaps of
+the given, the degraded and the adjusted orientation are reported. ``--snooping`` adjusts with
+Baarda's data snooping.
+
+usage: python3 bench/match_ngi.py [--data ../shared/data/orthority] [--resolution 5] [--perturb 1,0.05]
+                                  [--snooping] [--out FILE]
 Reads the shared sample data (which tests must not); CPU.
 """
 
@@ -59,6 +66,9 @@ def main(argv=None):
     ap.add_argument("--data", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "shared",
                                                    "data", "orthority"))
     ap.add_argument("--resolution", type=float, default=5.0)
+    ap.add_argument("--perturb", default=None, metavar="M,DEG")
+    ap.add_argument("--snooping", action="store_true")
+    ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--out", default="bench/results/match_ngi.json")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
@@ -69,24 +79,38 @@ def main(argv=None):
     names = sorted(ext)
     sensors = [ow.FrameSensor(cams[ext[n].camera_id] if ext[n].camera_id else next(iter(cams.values())), ext[n].pose)
                for n in names]
+    given = sensors
+    gnss, ins = 1.0, 0.05
+    if args.perturb:
+        gnss, ins = (float(v) for v in args.perturb.split(","))
+        rng = np.random.default_rng(args.seed)
+        sensors = []
+        for s in given:
+            p = s.parameters()
+            e = rng.normal(size=6)
+            sensors.append(s.with_parameters(X0=p["X0"] + gnss * e[0], Y0=p["Y0"] + gnss * e[1],
+                                             Z0=p["Z0"] + gnss * e[2], omega=p["omega"] + ins * e[3],
+                                             phi=p["phi"] + ins * e[4], kappa=p["kappa"] + ins * e[5]))
     images = []
     for n in names:
         with rasterio.open(os.path.join(d, "ngi", n + ".tif")) as ds:
             images.append(ds.read(1).astype(np.float32))
-    block, stats = match_block(images, sensors, dem, ids=names, zones=(8, 12), per_zone=2, radius=12, gnss_sigma=1.0,
-                               ins_sigma=0.05, device="cpu")
-    res = bundle_adjust(block)
+    block, stats = match_block(images, sensors, dem, ids=names, zones=(8, 12), per_zone=2, radius=12, gnss_sigma=gnss,
+                               ins_sigma=ins, device="cpu")
+    res = bundle_adjust(block, snooping=args.snooping)
     adjusted = []
     for n, s in zip(names, sensors):
         x, y, z, o, p, k = res.poses[n]
         adjusted.append(ow.FrameSensor(s.camera, ow.Pose.from_opk(x, y, z, o, p, k, crs=s.pose.crs)))
-    out = dict(benchmark="match_ngi", images=names, resolution=args.resolution, match=stats,
+    out = dict(benchmark="match_ngi", images=names, resolution=args.resolution, perturb=args.perturb,
+               seed=args.seed, snooping=args.snooping, match=stats,
                adjustment=dict(message=res.message, sigma0=res.sigma0, redundancy=res.redundancy,
                                pose_change={n: (np.array(res.poses[n]) - [s.parameters()[k] for k in (
                                    "X0", "Y0", "Z0", "omega", "phi", "kappa")]).round(4).tolist()
                                             for n, s in zip(names, sensors)}))
     with tempfile.TemporaryDirectory() as work:
-        for tag, group in (("given", sensors), ("adjusted", adjusted)):
+        groups = [("given", given)] + ([("perturbed", sensors)] if args.perturb else []) + [("adjusted", adjusted)]
+        for tag, group in groups:
             paths = []
             for n, s in zip(names, group):
                 dst = os.path.join(work, f"{tag}_{n}_ORTHO.tif")
@@ -94,6 +118,9 @@ def main(argv=None):
                                 device="cpu")
                 paths.append(dst)
             out[f"overlaps_{tag}"] = overlaps(paths)
+    for tag, _ in groups:
+        o = out[f"overlaps_{tag}"]
+        out[f"mean_px_{tag}"] = round(float(np.mean([v["mean_px"] for v in o.values()])), 3) if o else None
     out["seconds"] = round(time.perf_counter() - t0, 1)
     print(json.dumps(out, indent=1))
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
