@@ -239,6 +239,9 @@ def compile_notice(device, what):
         timer.cancel()
 
 
+_LOAD_LOCK = threading.RLock()
+
+
 def load_modules(device, *modules, block_dim=None):
     """Load (compile if needed) Warp modules on a device, quietly, before launching from threads,
     with a logged notice when that takes long (see :func:`compile_notice`).
@@ -252,7 +255,9 @@ def load_modules(device, *modules, block_dim=None):
         The block size the launches will use (a module is loaded per block size).
     """
     names = ", ".join(m.__name__.rsplit(".", 1)[-1] for m in modules)
-    with quiet_warp(), compile_notice(device, f"Warp kernels ({names})"):
+    # one loader at a time: two image threads loading the same module at once both load it
+    # (each reports a cached load; the work is done twice)
+    with _LOAD_LOCK, quiet_warp(), compile_notice(device, f"Warp kernels ({names})"):
         for m in modules:
             if block_dim is None:
                 wp.load_module(m, device=device)
