@@ -81,7 +81,7 @@ def pixel_ad_kernel(
 
 
 @wp.func
-def dem_slope(dem: DemData, grid: CoarseGrid, uv: wp.vec2d, m_east: wp.float64, m_north: wp.float64):
+def dem_slope(dem: DemData, uv: wp.vec2d, m_east: wp.float64, m_north: wp.float64):
     """The DEM's slope (rise per metre east, per metre north) at uv (the grid's horizontal
     coordinates): central differences of its bilinear surface over a tenth of a DEM cell
     (exact inside a cell); ``m_east``, ``m_north``: metres per unit of u and v."""
@@ -148,7 +148,7 @@ def cell_points_kernel(
     x[k] = xk
     h[k] = hk
     basis[k] = b
-    slope[k] = dem_slope(dem, grid, uv, m_east, m_north)
+    slope[k] = dem_slope(dem, uv, m_east, m_north)
     to_out[k] = wp.inverse(en_out)
 
 

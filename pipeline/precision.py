@@ -146,17 +146,20 @@ def scene_monoplot_covariance(scene, points, slopes, *, orientation_cov, pixel_s
 
 
 
-def _cell_centres(transform, shape, step):
-    """The accuracy raster's grid (``step`` ortho pixels a cell): its transform, (rows, cols)
-    and the cells' centres (x, y) in the ortho's CRS, row-major."""
-    step = int(step)
-    if step < 1:
-        raise ParamError(f"step must be >= 1, got {step}")
-    rows, cols = -(-shape[0] // step), -(-shape[1] // step)
-    grid = transform @ Affine.scale(step)
-    jj, ii = np.meshgrid(np.arange(cols) + 0.5, np.arange(rows) + 0.5)
-    ox, oy = grid @ (jj.ravel(), ii.ravel())
-    return grid, (rows, cols), np.asarray(ox, dtype=np.float64), np.asarray(oy, dtype=np.float64)
+def _cell_grid(transform, shape, step):
+    """The accuracy raster's grid (``step`` ortho pixels a cell): its transform and (rows,
+    cols)."""
+    if not isinstance(step, (int, np.integer)) or step < 1:
+        raise ParamError(f"step must be an integer >= 1, got {step!r}")
+    return transform @ Affine.scale(int(step)), (-(-shape[0] // int(step)), -(-shape[1] // int(step)))
+
+
+def _cell_centres(grid, rows, cols, at=None):
+    """The centres (x, y) in the ortho's CRS of the cells ``at`` (flat indices, row-major;
+    default all) of an accuracy grid."""
+    i, j = np.divmod(np.arange(rows * cols) if at is None else np.asarray(at), cols)
+    ox, oy = grid @ (j + 0.5, i + 0.5)
+    return np.asarray(ox, dtype=np.float64), np.asarray(oy, dtype=np.float64)
 
 
 def _terrain_points(dem, crs, ox, oy, frame_crs):
@@ -356,7 +359,7 @@ def frame_window_sigmas(geometry, crs, cells, window, c_raw, *, pixel_sigma=0.5,
 
     x, h, basis, slope = written(wp.vec3d, True), written(wp.float64), written(wp.mat33d), written(wp.vec2d)
     to_out, pix = written(wp.mat22d), written(wp.vec2d, True)
-    d_r, d_k = zeros(wp.mat33d, True), zeros(kp.vec8d, True)  # the (zero) offsets differentiated by
+    d_r, d_k = zeros(wp.mat33d, True), zeros(kp.vec8d, True)  # the zero offsets the gradients are by
     # each reverse pass accumulates into its own zeroed gradient buffers: by the point, the
     # rotation and the camera, for the column (0) and the row (1)
     grads = [(zeros(wp.vec3d), zeros(wp.mat33d), zeros(kp.vec8d)) for _ in range(2)]
@@ -464,7 +467,7 @@ def accuracy_raster(dst, camera, pose, dem, crs, transform, shape, *, pose_cov, 
     from ..sensor import FrameSensor
     from .geometry import SensorGeometry
 
-    grid, (rows, cols), _, _ = _cell_centres(transform, shape, step)
+    grid, (rows, cols) = _cell_grid(transform, shape, step)
     bands = 2 if _measure(measure) == "ce90" else 3
     c_raw = raw_covariance(camera, pose, pose_cov=pose_cov, camera_cov=camera_cov, camera_params=camera_params)
     geom = SensorGeometry(FrameSensor(camera, pose), dem, refraction=refraction, device=device, geoid=geoid,
@@ -486,7 +489,8 @@ def scene_accuracy_raster(dst, scene, dem, crs, transform, shape, *, orientation
     ndarray (bands, rows, cols) float32
         What was written: sigma x, y (the output CRS's axes) and up (m), or CE90 and LE90.
     """
-    grid, (rows, cols), ox, oy = _cell_centres(transform, shape, step)
+    grid, (rows, cols) = _cell_grid(transform, shape, step)
+    ox, oy = _cell_centres(grid, rows, cols)
     bands = 2 if _measure(measure) == "ce90" else 3
     out = scene_cell_sigmas(scene, dem, crs, ox, oy, orientation_cov=orientation_cov, pixel_sigma=pixel_sigma,
                             dem_sigma=dem_sigma, refraction=refraction, measure=measure,
@@ -531,7 +535,8 @@ def mosaic_accuracy_raster(dst, images, index, dem, crs, transform, shape, *, po
     from .geometry import SensorGeometry
     from .mosaic import NO_SOURCE
 
-    grid, (rows, cols), ox, oy = _cell_centres(transform, shape, step)
+    grid, (rows, cols) = _cell_grid(transform, shape, step)
+    bands = 2 if _measure(measure) == "ce90" else 3
     try:
         with rasterio.open(index) as ds:
             if (ds.height, ds.width) != tuple(shape):
@@ -545,7 +550,6 @@ def mosaic_accuracy_raster(dst, images, index, dem, crs, transform, shape, *, po
                 src = np.concatenate([ds.read(1, window=((int(i), int(i) + 1), (0, shape[1])))[0, c] for i in r])
     except rasterio.errors.RasterioIOError as e:
         raise ParamError(f"Could not read index '{index}': {e}") from e
-    bands = 2 if _measure(measure) == "ce90" else 3
     out = np.full((3, rows * cols), np.nan, np.float32)
     for k in np.unique(src):
         if k == NO_SOURCE:
@@ -560,7 +564,8 @@ def mosaic_accuracy_raster(dst, images, index, dem, crs, transform, shape, *, po
         if sensor.kind == "pushbroom":
             if orientation_cov is None:
                 raise ParamError("mosaic_accuracy_raster: a pushbroom scene needs orientation_cov")
-            out[:, at] = scene_cell_sigmas(sensor, dem, crs, ox[at], oy[at], orientation_cov=orientation_cov,
+            ox, oy = _cell_centres(grid, rows, cols, at)
+            out[:, at] = scene_cell_sigmas(sensor, dem, crs, ox, oy, orientation_cov=orientation_cov,
                                            pixel_sigma=pixel_sigma, dem_sigma=dem_sigma, refraction=refraction,
                                            measure=measure, device=device)
         else:
