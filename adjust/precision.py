@@ -26,7 +26,8 @@ Poses:
 - GNSS/INS (:meth:`~orthowarp.Pose.from_ins`): the pose inputs are the reference point's
   offsets east, north, up (m) and roll, pitch, yaw (deg), as a GNSS/INS specification states
   them, optionally followed by the boresight angles (deg) and the lever arm's components (m)
-  as :meth:`~orthowarp.Pose.from_ins` takes them (9 or 12 inputs); points are (longitude, latitude, height) as :func:`orthowarp.geolocate` returns them.
+  as :meth:`~orthowarp.Pose.from_ins` takes them (9 or 12 inputs); points are (longitude,
+  latitude, height) as :func:`orthowarp.geolocate` returns them.
   The equations are written in an east-north-up frame at the (first) pose's nadir (exactly:
   ECEF rotated and shifted, :mod:`orthowarp.adjust.geocentric`), the pose inputs mapped into
   it by their Jacobian (boresight and lever arm included), and the points' covariance is in
@@ -196,7 +197,7 @@ def input_covariance(pose: Pose, frame_cov: ArrayLike, *, local=None) -> np.ndar
     its row in an adjustment's frame: X0, Y0, Z0 (m) and omega, phi, kappa (deg) of a
     photogrammetric pose in its CRS (returned as given), or for a GNSS/INS pose the row in the
     east-north-up frame ``local`` (a :class:`~orthowarp.adjust.geocentric.LocalFrame`, as
-    :attr:`BundleResult.local_frame <orthowarp.adjust.bundle.BundleResult>`): ``J^-1 C J^-T``
+    :attr:`AdjustResult.local_frame <orthowarp.adjust.AdjustResult>`): ``J^-1 C J^-T``
     with ``J`` the row's derivative by the inputs."""
     c = _square("frame_cov", frame_cov, 6)
     if pose.mode == "map":
