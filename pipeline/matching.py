@@ -14,7 +14,7 @@ from ..errors import ParamError
 from ..sensor import FrameSensor
 from .geometry import geolocate, project
 
-__all__ = ["PairMatches", "match_pair", "match_block"]
+__all__ = ["PairMatches", "match_pair", "match_block", "ControlObservations", "control_observations"]
 
 log = logging.getLogger(__name__)
 
@@ -283,3 +283,113 @@ def match_block(images, sensors, dem, *, ids=None, zones=(4, 3), per_zone=2, win
                   name="matched block", **({"mode": "geocentric"} if geo else {}))
     stats["points"], stats["observations"] = p, len(keys)
     return block, stats
+
+
+@dataclass
+class ControlObservations:
+    """Image observations of control points (m rows).
+
+    Attributes
+    ----------
+    point, image : ndarray of int, shape (m,)
+        The point's and the image's index.
+    xy : ndarray, shape (m, 2)
+        (col, row): matched against the reference where ``matched``, else predicted.
+    sigma : ndarray, shape (m,)
+        Least-squares sigma (px, the larger axis) of a match; NaN for a prediction.
+    predicted : ndarray, shape (m, 2)
+        Where the orientation predicts the point.
+    matched : ndarray of bool, shape (m,)
+    """
+
+    point: np.ndarray
+    image: np.ndarray
+    xy: np.ndarray
+    sigma: np.ndarray
+    predicted: np.ndarray
+    matched: np.ndarray
+
+
+def control_observations(images, sensors, dem, points, *, reference=None, window=21, radius=8, levels=0,
+                         min_score=0.7, refraction=True, device=None):
+    """Image positions of control points in every image that sees them: predicted from their
+    ground coordinates through the sensors (for a user to confirm), and with a ``reference``
+    orthoimage matched there (its chip around each point against the image, through the local
+    affine map from the reference's pixels to the image's; NCC then least-squares matching).
+
+    Parameters
+    ----------
+    images : sequence of array_like (rows, cols)
+    sensors : sequence of FrameSensor
+    dem : Dem, str or float
+    points : array_like, shape (n, 3)
+        Ground coordinates in the sensors' frame CRS (map x, y, z, or longitude, latitude,
+        height for GNSS/INS poses).
+    reference : (array_like (rows, cols), affine.Affine), optional
+        An orthoimage (one band) and its transform in the horizontal axes of that CRS.
+    window, radius, levels, min_score, refraction, device :
+        As :func:`match_pair`.
+
+    Returns
+    -------
+    ControlObservations
+        One row per point and image whose prediction lies a window inside the image; without
+        a reference all are predictions, with one only the matches that passed the checks.
+    """
+    images = [np.asarray(a) for a in images]
+    sensors = list(sensors)
+    if len(images) != len(sensors) or not images:
+        raise ParamError(f"control_observations needs one sensor per image, got {len(images)} images and "
+                         f"{len(sensors)} sensors")
+    for k, (s, img) in enumerate(zip(sensors, images)):
+        _check_image(f"images[{k}]", img, s)
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3 or not np.all(np.isfinite(pts)):
+        raise ParamError(f"points must be a finite (n, 3) array, got shape {pts.shape}")
+    if reference is not None:
+        ref_img, ref_t = np.asarray(reference[0]), reference[1]
+        if ref_img.ndim != 2:
+            raise ParamError(f"the reference must be one band (rows, cols), got shape {ref_img.shape}")
+        if ref_t.b != 0 or ref_t.d != 0:
+            raise ParamError("the reference's transform must be north up (no rotation terms)")
+        col, row = ~ref_t * (pts[:, 0], pts[:, 1])
+        ref_px = np.stack([col, row], -1)
+        # heights of ground points one reference pixel away along its columns and rows
+        from .dem import as_dem
+
+        terrain = as_dem(dem).for_frame(None if sensors[0].geocentric else sensors[0].horizontal_crs)
+    out = dict(point=[], image=[], xy=[], sigma=[], predicted=[], matched=[])
+    for k, (img, s) in enumerate(zip(images, sensors)):
+        pred = project(s, pts, crs=s.frame_crs, refraction=refraction, device=device)
+        w, h = s.image_size
+        sel = np.flatnonzero(np.all(np.isfinite(pred), axis=1) & (pred[:, 0] > window) & (pred[:, 0] < w - window)
+                             & (pred[:, 1] > window) & (pred[:, 1] < h - window))
+        if not len(sel):
+            continue
+        if reference is None:
+            xy, sig, ok = pred[sel], np.full(len(sel), np.nan), np.zeros(len(sel), bool)
+        else:
+            a, e = ref_t.a, ref_t.e
+            probe = []
+            for dx, dy in ((a, 0.0), (0.0, e)):  # one reference pixel along its columns, then its rows
+                x, y = pts[sel, 0] + dx, pts[sel, 1] + dy
+                probe.append(project(s, np.stack([x, y, terrain.sample(x, y)], -1), crs=s.frame_crs,
+                                     refraction=refraction, device=device))
+            aff = np.stack([probe[0] - pred[sel], probe[1] - pred[sel]], -1)
+            bad = ~np.all(np.isfinite(aff), axis=(1, 2))
+            aff[bad] = np.eye(2)
+            res = match_points(ref_img, img, ref_px[sel], pred[sel], affine=aff, window=window, radius=radius,
+                               levels=levels, min_score=min_score, device=device)
+            ok = res.ok & ~bad
+            sel, xy, sig, ok = sel[ok], res.xy[ok], res.sigma[ok].max(axis=1), np.ones(int(ok.sum()), bool)
+        out["point"].append(sel)
+        out["image"].append(np.full(len(sel), k))
+        out["xy"].append(xy)
+        out["sigma"].append(sig)
+        out["predicted"].append(pred[sel])
+        out["matched"].append(ok)
+    if not out["point"]:
+        return ControlObservations(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0),
+                                   np.zeros((0, 2)), np.zeros(0, bool))
+    return ControlObservations(*(np.concatenate(out[key]) for key in ("point", "image", "xy", "sigma", "predicted",
+                                                                       "matched")))

@@ -283,3 +283,42 @@ def test_multi_image_consistency_drops_the_observation_that_disagrees():
     block, stats = match_block(images, sensors, sc.dem, **kw)
     rays = np.bincount(block.obs_point)
     assert stats["inconsistent"] == 0 and rays.max() == 4 and (rays >= 3).sum() >= 10
+
+
+def test_control_points_predicted_and_matched_against_a_reference_chip():
+    """Control points seen by a frame whose orientation is 1.5 m and 0.05 deg off: without a
+    reference their predictions (pixels off the truth); with an orthoimage of the truth
+    texture as reference, matched to within 0.05 px RMS of their true image positions."""
+    from affine import Affine
+
+    import orthowarp as ow
+    from orthowarp.pipeline.matching import control_observations
+    from orthowarp.sensor import FrameSensor
+    from test_ortho import scene
+
+    sc = scene("opk")
+    image = sc.image(False)
+    true = FrameSensor(sc.camera, sc.pose)
+    p = true.parameters()
+    approx = true.with_parameters(X0=p["X0"] + 1.5, kappa=p["kappa"] + 0.05)
+    w, h = sc.camera.image_size
+    pix = np.array([[0.2 * w, 0.25 * h], [0.8 * w, 0.3 * h], [0.5 * w, 0.5 * h], [0.3 * w, 0.8 * h], [0.75 * w, 0.7 * h]])
+    pts = ow.geolocate(true, pix, dem=sc.dem, crs=true.frame_crs, refraction=False, device="cpu")
+    truth = ow.project(true, pts, crs=true.frame_crs, refraction=False, device="cpu")
+    res = 0.25
+    x0, y0 = pts[:, 0].min() - 60, pts[:, 1].max() + 60
+    cols, rows = int((pts[:, 0].max() + 60 - x0) / res), int((y0 - pts[:, 1].min() + 60) / res)
+    jj, ii = np.meshgrid(np.arange(cols) + 0.5, np.arange(rows) + 0.5)
+    ref = sc.texture(x0 + jj * res, y0 - ii * res)
+    kw = dict(window=21, radius=10, refraction=False, device="cpu")
+    guess = control_observations([image], [approx], sc.dem, pts, **kw)
+    assert not guess.matched.any() and np.isnan(guess.sigma).all() and sorted(guess.point) == list(range(5))
+    assert np.sqrt(np.mean((guess.xy - truth[guess.point]) ** 2)) > 1.0  # the prediction alone is pixels off
+    got = control_observations([image], [approx], sc.dem, pts, reference=(ref, Affine(res, 0, x0, 0, -res, y0)), **kw)
+    assert got.matched.all() and len(got.point) == 5
+    np.testing.assert_allclose(got.predicted, guess.xy[np.argsort(guess.point)][got.point])
+    rms = np.sqrt(np.mean((got.xy - truth[got.point]) ** 2))
+    print(f"\n[control chips] predictions {np.sqrt(np.mean((guess.xy - truth[guess.point]) ** 2)):.2f} px RMS off, "
+          f"matches {rms:.4f} px")
+    assert rms < 0.05
+    assert np.all(got.sigma < 0.05)
