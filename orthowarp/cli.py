@@ -457,6 +457,70 @@ class _Either:
         return any(e.is_set() for e in self.events)
 
 
+def _match_control(block, pixels, sensors, terrain, control_csv, reference, sigma, out_path, *, overwrite, quiet,
+                   **kw):
+    """``orthowarp match --control``: the block with the control points matched against the
+    reference's chips; without a reference the block as it is, and the points' predicted
+    image positions written to <OUT>_control.csv."""
+    import rasterio
+    from pyproj import CRS
+
+    from .adjust.block import Block
+    from .errors import ParamError, RasterIOError
+    from .pipeline.blockio import read_ground_points_csv
+    from .pipeline.io import check_destination, write_text
+    from .pipeline.matching import control_observations
+
+    gcps = read_ground_points_csv(control_csv, sigma=sigma)
+    if not gcps:
+        raise ParamError(f"Control points file '{control_csv}' holds no point")
+    geo = block.mode == "geocentric"
+    xyz = np.array([g["xyz"] for g in gcps], dtype=np.float64)  # the block's form: lat, lon, h if geocentric
+    pts = xyz[:, [1, 0, 2]] if geo else xyz  # the sensors' frame: lon, lat, h or x, y, z
+    ref = None
+    if reference is not None:
+        try:
+            with rasterio.open(reference) as ds:
+                if ds.crs is None or not CRS.from_wkt(ds.crs.to_wkt()).equals(sensors[0].horizontal_crs):
+                    raise ParamError(f"Reference '{reference}' must be in the poses' horizontal CRS "
+                                     f"({sensors[0].horizontal_crs.name}), got {ds.crs}")
+                ref = (ds.read(1).astype(np.float32), ds.transform)
+        except rasterio.errors.RasterioIOError as e:
+            raise RasterIOError(f"Could not read reference '{reference}': {e}") from e
+    obs = control_observations(pixels, sensors, terrain, pts, reference=ref, **kw)
+    names = [g["id"] for g in gcps]
+    if ref is None:
+        dst = os.path.splitext(out_path)[0] + "_control.csv"
+        check_destination(dst, overwrite=overwrite)
+        rows = ["image,point,col,row"] + [f"{block.image_ids[i]},{names[p]},{c:.3f},{r:.3f}"
+                                          for p, i, (c, r) in zip(obs.point, obs.image, obs.xy)]
+        write_text(dst, "\n".join(rows) + "\n")
+        if not quiet:
+            click.echo(f"{dst}: predicted image positions of {len(set(obs.point.tolist()))} of {len(gcps)} control "
+                       "points, to confirm (then 'orthowarp adjust --image-points')")
+        return block
+    seen = sorted(set(obs.point.tolist()))
+    missed = [names[p] for p in range(len(gcps)) if p not in seen]
+    if missed:
+        click.echo(f"warning: control points not matched in any image: {', '.join(missed)}", err=True)
+    index = {p: block.n_points + n for n, p in enumerate(seen)}
+    sig = np.array([g.get("sigma", [sigma] * 3) for g in gcps], dtype=np.float64)
+    out = Block(crs=block.crs, cameras=block.cameras, image_ids=block.image_ids, image_camera=block.image_camera,
+                poses=block.poses, point_ids=block.point_ids + [names[p] for p in seen],
+                roles=block.roles + ["control"] * len(seen), xyz=np.vstack([block.xyz, xyz[seen]]),
+                xyz_sigma=np.vstack([block.xyz_sigma, sig[seen]]),
+                obs_image=np.r_[block.obs_image, obs.image].astype(np.int64),
+                obs_point=np.r_[block.obs_point, [index[p] for p in obs.point]].astype(np.int64),
+                obs_xy=np.vstack([block.obs_xy, obs.xy]),
+                obs_sigma=np.r_[block.obs_sigma, np.maximum(obs.sigma, 0.02)], gnss_xyz=block.gnss_xyz,
+                gnss_sigma=block.gnss_sigma, ins_opk=block.ins_opk, ins_sigma=block.ins_sigma, name=block.name,
+                mode=block.mode)
+    if not quiet:
+        click.echo(f"control: {len(seen)} of {len(gcps)} points matched against '{reference}' "
+                   f"({len(obs.point)} observations)")
+    return out
+
+
 def _image_key(image):
     """An image's name in orientation files: its file name without the extension."""
     return os.path.splitext(os.path.basename(image))[0]
@@ -1069,6 +1133,15 @@ def _write_spot_example(folder):
                    "search reaches RADIUS x 2^PYRAMID pixels, which must cover the orientation's error.")
 @click.option("--pyramid", type=click.IntRange(0, 6), default=0, show_default=True,
               help="Image-pyramid levels (2 x 2 means) above the full resolution for the NCC search.")
+@click.option("--control", "control_csv", type=click.Path(dir_okay=False),
+              help="Control points CSV (point,x,y,z[,sx,sy,sz]; in the poses' CRS, or latitude, longitude, height "
+                   "for GNSS/INS poses). With --reference they are matched against its chips and added to the "
+                   "block as control; without, their predicted image positions are written to "
+                   "<OUT>_control.csv (image,point,col,row, the image-points CSV of 'orthowarp adjust') to confirm.")
+@click.option("--reference", type=click.Path(dir_okay=False),
+              help="Reference orthoimage for --control (its first band; in the poses' horizontal CRS).")
+@click.option("--control-sigma", type=float, default=0.05, show_default=True,
+              help="Sigma (m) of control points whose CSV row gives none.")
 @click.option("--min-score", type=float, default=0.7, show_default=True, help="Smallest NCC accepted.")
 @click.option("--gnss-sigma", type=float, default=None,
               help="Sigma (m) of the given projection centres as observations in the block (default: none).")
@@ -1080,7 +1153,7 @@ def _write_spot_example(folder):
 @click.option("--device", default=None, help="Warp device (cpu, cuda, cuda:N); default: first GPU, else CPU.")
 @click.pass_context
 def match(ctx, images, int_param, ext_param, crs, dem, height, out_path, zones, per_zone, window, radius, pyramid,
-          min_score, gnss_sigma, ins_sigma, no_refraction, overwrite, device):
+          control_csv, reference, control_sigma, min_score, gnss_sigma, ins_sigma, no_refraction, overwrite, device):
     """Find tie points between frame IMAGES by area-based matching (interest points, NCC,
     least-squares matching, back-matching), predicted through their approximate orientation and
     the DEM, and write them as a block for 'orthowarp adjust' (add control points to its
@@ -1120,6 +1193,11 @@ def match(ctx, images, int_param, ext_param, crs, dem, height, out_path, zones, 
         raise ParamError(f"No tie point matched between the {len(images)} images ({stats['interest']} interest "
                          "points): no texture, no overlap, or the orientation is further off than the search "
                          "reaches (--radius, --pyramid)")
+    if control_csv is not None:
+        block = _match_control(block, pixels, [FrameSensor(c, p) for _, c, p in jobs], terrain, control_csv,
+                               reference, control_sigma, out_path, overwrite=overwrite, quiet=ctx.obj["quiet"],
+                               window=window, radius=radius, levels=pyramid, min_score=min_score,
+                               refraction=not no_refraction, device=device)
     write_block(block, out_path)
     if not ctx.obj["quiet"]:
         pairs = ", ".join(f"{k} {v['accepted']}/{v['predicted']}" for k, v in stats["pairs"].items())

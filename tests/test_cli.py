@@ -502,6 +502,42 @@ def test_match_writes_a_block_of_ties(tmp_path):
                                     str(tmp_path / "o" / "ext_param.csv"), "--height", "450", "--zones", "4y3",
                                     "--out", str(tmp_path / "x.json")])
     assert res.exit_code != 0 and "--zones must be" in res.output and not os.path.exists(tmp_path / "x.json")
+    # control points: predicted positions to confirm, or matched against a reference orthoimage
+    import orthowarp as ow
+    from orthowarp.sensor import FrameSensor
+
+    true = FrameSensor(sc.camera, sc.pose)
+    w, h = sc.camera.image_size
+    pts = ow.geolocate(true, [[0.3 * w, 0.4 * h], [0.6 * w, 0.6 * h], [0.5 * w, 0.3 * h]], dem=sc.dem,
+                       crs=true.frame_crs, refraction=False, device="cpu")
+    (tmp_path / "gcp.csv").write_text("point,x,y,z\n" + "".join(f"G{k},{x},{y},{z}\n" for k, (x, y, z) in
+                                                                 enumerate(pts)))
+    res = CliRunner().invoke(main, [*args, "--control", str(tmp_path / "gcp.csv"), "--out", str(tmp_path / "p.json")])
+    assert res.exit_code == 0, res.output
+    lines = (tmp_path / "p_control.csv").read_text().splitlines()
+    assert lines[0] == "image,point,col,row" and {line.split(",")[1] for line in lines[1:]} == {"G0", "G1", "G2"}
+    assert set(read_block(tmp_path / "p.json").roles) == {"tie"}  # predictions are not observations
+    res_m = 0.5
+    x0, y0 = pts[:, 0].min() - 50, pts[:, 1].max() + 50
+    jj, ii = np.meshgrid(np.arange(int((pts[:, 0].max() + 50 - x0) / res_m)) + 0.5,
+                         np.arange(int((y0 - pts[:, 1].min() + 50) / res_m)) + 0.5)
+    from affine import Affine
+
+    write_raster(tmp_path / "ref.tif", sc.texture(x0 + jj * res_m, y0 - ii * res_m).astype(np.float32),
+                 transform=Affine(res_m, 0, x0, 0, -res_m, y0), crs=sc.pose.crs.to_wkt())
+    res = CliRunner().invoke(main, [*args, "--control", str(tmp_path / "gcp.csv"), "--reference",
+                                    str(tmp_path / "ref.tif"), "--out", str(tmp_path / "c.json")])
+    assert res.exit_code == 0, res.output
+    block = read_block(tmp_path / "c.json")
+    control = [k for k, r in enumerate(block.roles) if r == "control"]
+    assert [block.point_ids[k] for k in control] == ["G0", "G1", "G2"]
+    truth = ow.project(true, pts, crs=true.frame_crs, refraction=False, device="cpu")
+    for n, k in enumerate(control):
+        at = np.flatnonzero(block.obs_point == k)
+        assert len(at) >= 1
+        for i, xy in zip(block.obs_image[at], block.obs_xy[at]):
+            if i == 0:  # image a: its pose is the true one
+                np.testing.assert_allclose(xy, truth[n], atol=0.1)
 
 
 def test_adjusted_pose_covariances_feed_the_accuracy_raster(tmp_path):
