@@ -149,6 +149,11 @@ class _Frame:
 INPUT_STEPS = (1e-3, 1e-3, 1e-3, 1e-5, 1e-5, 1e-5, 1e-5, 1e-5, 1e-5, 1e-3, 1e-3, 1e-3)
 
 
+def cov_size(c):
+    """The side of a square matrix argument (-1 for anything not 2-D), for the checks."""
+    return np.shape(c)[0] if np.ndim(c) == 2 else -1
+
+
 def pose_inputs(pose, size):
     """Check that a pose covariance of ``size`` x ``size`` fits the pose: 6 for photogrammetric
     poses; 6, 9 (with boresight) or 12 (with boresight and lever arm) for GNSS/INS poses."""
@@ -283,8 +288,7 @@ def monoplot_covariance(camera: FrameCamera, pose: Pose, points: ArrayLike, slop
     PrecisionResult
     """
     pts, slopes, q, pose_cov, camera_cov = _check(points, pose_cov, camera_cov, camera_params, slopes=slopes,
-                                                  pose_size=pose_inputs(pose, np.shape(pose_cov)[0]
-                                                                        if np.ndim(pose_cov) == 2 else -1))
+                                                  pose_size=pose_inputs(pose, cov_size(pose_cov)))
     if not (np.isfinite(pixel_sigma) and pixel_sigma >= 0 and np.isfinite(dem_sigma) and dem_sigma >= 0):
         raise ParamError(f"pixel_sigma and dem_sigma must be finite and >= 0, got {pixel_sigma}, {dem_sigma}")
     n = len(pts)
@@ -335,7 +339,7 @@ def intersection_covariance(cameras: Sequence[FrameCamera], poses: Sequence[Pose
         raise ParamError(f"intersection needs two or more images with one camera each; got {len(poses)} poses "
                          f"and {len(cameras)} cameras")
     k = len(poses)
-    size = np.shape(pose_cov)[0] if np.ndim(pose_cov) == 2 else -1
+    size = cov_size(pose_cov)
     shared = size in (6, 9, 12) and size != 6 * k  # one covariance for every pose, or the stacked poses'
     p = pose_inputs(poses[0], size if shared else size // k if size % k == 0 else -1)
     pts, _, q, pose_cov, camera_cov = _check(points, pose_cov, camera_cov, camera_params,

@@ -26,7 +26,7 @@ import numpy as np
 from affine import Affine
 from pyproj import Transformer
 
-from ..adjust.precision import INPUT_STEPS, PrecisionResult, _square, moved_pose, pose_inputs
+from ..adjust.precision import INPUT_STEPS, PrecisionResult, _square, cov_size, moved_pose, pose_inputs
 from ..errors import ParamError
 from ..geodesy import WGS84_A, WGS84_E2
 from .dem import as_dem
@@ -251,8 +251,7 @@ def raw_covariance(camera, pose, *, pose_cov, camera_cov=None, camera_params=())
     inputs (central differences through the pose's own construction,
     :func:`~orthowarp.adjust.precision.moved_pose`) and of the camera by its parameters (the
     identity); inputs and units as for :func:`~orthowarp.adjust.precision.monoplot_covariance`."""
-    pose_cov = _square("pose_cov", pose_cov, pose_inputs(pose, np.shape(pose_cov)[0] if np.ndim(pose_cov) == 2
-                                                          else -1))
+    pose_cov = _square("pose_cov", pose_cov, pose_inputs(pose, cov_size(pose_cov)))
     p = len(pose_cov)
     q = len(camera_params)
     bad = [n for n in camera_params if n not in RAW_CAMERA]
