@@ -6,7 +6,7 @@ the data.
 """
 
 import unicodedata
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -125,6 +125,19 @@ class Block:
 
     def role_mask(self, role):
         return np.array([r == role for r in self.roles], dtype=bool)
+
+    def with_points(self, point_ids, roles, xyz, xyz_sigma, obs_image, obs_point, obs_xy, obs_sigma):
+        """This block with points appended (control from a survey, say) and their image
+        observations; ``obs_point`` indexes the new points (0 for the first of them). The
+        result is checked as any block."""
+        k = len(point_ids)
+        return replace(self, point_ids=list(self.point_ids) + list(point_ids), roles=list(self.roles) + list(roles),
+                       xyz=np.vstack([self.xyz, np.reshape(xyz, (k, 3))]),
+                       xyz_sigma=np.vstack([self.xyz_sigma, np.reshape(xyz_sigma, (k, 3))]),
+                       obs_image=np.r_[self.obs_image, np.asarray(obs_image, dtype=np.int64)],
+                       obs_point=np.r_[self.obs_point, self.n_points + np.asarray(obs_point, dtype=np.int64)],
+                       obs_xy=np.vstack([self.obs_xy, np.reshape(obs_xy, (-1, 2))]),
+                       obs_sigma=np.r_[self.obs_sigma, np.asarray(obs_sigma, dtype=np.float64)])
 
     def validate(self):
         """Check ids, shapes, roles and values; raise ParamError naming the offending item."""

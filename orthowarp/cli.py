@@ -431,7 +431,7 @@ def ortho(ctx, images, odm_dataset, int_param, ext_param, dimap, attitude_model,
         if not os.path.exists(images[0]):
             raise RasterIOError(f"Image '{images[0]}' does not exist")
         scene = read_scene(dimap, attitude_model=attitude_model)
-        key = os.path.splitext(os.path.basename(images[0]))[0]
+        key = _image_key(images[0])
         run([(images[0], scene, os.path.join(out_dir, f"{key}_ORTHO.tif"))])
         return
     if not ext_param:
@@ -465,7 +465,6 @@ def _match_control(block, pixels, sensors, terrain, control_csv, reference, sigm
     import rasterio
     from pyproj import CRS
 
-    from .adjust.block import Block
     from .errors import ParamError, RasterIOError
     from .pipeline.blockio import read_ground_points_csv
     from .pipeline.io import check_destination, write_text
@@ -503,18 +502,10 @@ def _match_control(block, pixels, sensors, terrain, control_csv, reference, sigm
     missed = [names[p] for p in range(len(gcps)) if p not in seen]
     if missed:
         click.echo(f"warning: control points not matched in any image: {', '.join(missed)}", err=True)
-    index = {p: block.n_points + n for n, p in enumerate(seen)}
+    index = {p: n for n, p in enumerate(seen)}
     sig = np.array([g.get("sigma", [sigma] * 3) for g in gcps], dtype=np.float64)
-    out = Block(crs=block.crs, cameras=block.cameras, image_ids=block.image_ids, image_camera=block.image_camera,
-                poses=block.poses, point_ids=block.point_ids + [names[p] for p in seen],
-                roles=block.roles + ["control"] * len(seen), xyz=np.vstack([block.xyz, xyz[seen]]),
-                xyz_sigma=np.vstack([block.xyz_sigma, sig[seen]]),
-                obs_image=np.r_[block.obs_image, obs.image].astype(np.int64),
-                obs_point=np.r_[block.obs_point, [index[p] for p in obs.point]].astype(np.int64),
-                obs_xy=np.vstack([block.obs_xy, obs.xy]),
-                obs_sigma=np.r_[block.obs_sigma, np.maximum(obs.sigma, 0.02)], gnss_xyz=block.gnss_xyz,
-                gnss_sigma=block.gnss_sigma, ins_opk=block.ins_opk, ins_sigma=block.ins_sigma, name=block.name,
-                mode=block.mode)
+    out = block.with_points([names[p] for p in seen], ["control"] * len(seen), xyz[seen], sig[seen], obs.image,
+                            [index[p] for p in obs.point], obs.xy, np.maximum(obs.sigma, 0.02))
     if not quiet:
         click.echo(f"control: {len(seen)} of {len(gcps)} points matched against '{reference}' "
                    f"({len(obs.point)} observations)")
@@ -677,7 +668,7 @@ def _frame_orientations(images, int_param, ext_param, crs, ids=None):
     for image in images:
         if not os.path.exists(image):
             raise RasterIOError(f"Image '{image}' does not exist")
-        key = os.path.splitext(os.path.basename(image))[0]
+        key = _image_key(image)
         if key not in exterior:
             raise ParamError(f"Image '{image}' is not in the exterior orientation file '{ext_param}'")
         orient = exterior[key]
@@ -1184,7 +1175,7 @@ def match(ctx, images, int_param, ext_param, crs, dem, height, out_path, zones, 
         except rasterio.errors.RasterioIOError as e:
             raise RasterIOError(f"Could not read image '{image}': {e}") from e
     terrain = Dem.from_file(dem) if dem is not None else height
-    ids = [os.path.splitext(os.path.basename(image))[0] for image, _, _ in jobs]
+    ids = [_image_key(image) for image, _, _ in jobs]
     block, stats = match_block(pixels, [FrameSensor(c, p) for _, c, p in jobs], terrain, ids=ids, zones=(zx, zy),
                                per_zone=per_zone, window=window, radius=radius, levels=pyramid,
                                min_score=min_score, gnss_sigma=gnss_sigma, ins_sigma=ins_sigma, refraction=not no_refraction,

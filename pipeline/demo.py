@@ -109,16 +109,17 @@ def render(sensor, dem, path, *, device=None):
     return image, ground
 
 
-def _mosaic_error(path):
-    """Misregistration (px) of a written mosaic against the truth texture, 64-px tiles
-    (0.02 px steps of the correlation peak)."""
+def _texture_error(path, *, upsample=100):
+    """Misregistration (px; :func:`~orthowarp.pipeline.registration.misregistration`, 64-px
+    tiles, correlation peaks to 1 / ``upsample`` px) of a written ortho or mosaic against the
+    truth texture."""
     with rasterio.open(path) as ds:
         img = ds.read(1).astype(np.float64)
         ok = ds.dataset_mask() > 0
         rows, cols = np.mgrid[0:ds.height, 0:ds.width]
         x, y = ds.transform @ (cols + 0.5, rows + 0.5)
         lon, lat = Transformer.from_crs(ds.crs, "EPSG:4326", always_xy=True).transform(x, y)
-    return misregistration(texture(*local_metres(lon, lat)), img, valid=ok, tile=64, upsample=50)
+    return misregistration(texture(*local_metres(lon, lat)), img, valid=ok, tile=64, upsample=upsample)
 
 
 def _pose_errors(poses, truth):
@@ -139,7 +140,6 @@ def run_chain(out_dir, camera, dem, *, device=None, seed=0):
     truth, ties, the mosaics' misregistration against the truth texture).
     """
     from ..adjust import bundle_adjust
-    from ..adjust.block import Block
     from .adjust_report import write_adjustment
     from .blockio import write_block
     from .matching import match_block
@@ -188,20 +188,12 @@ def run_chain(out_dir, camera, dem, *, device=None, seed=0):
             pix = project(FrameSensor(camera, p), llh[None], device=device)[0]
             if np.all(np.isfinite(pix)) and 20 <= pix[0] <= w - 20 and 20 <= pix[1] <= h - 20:
                 img_idx.append(k)
-                pt_idx.append(block.n_points + c)
+                pt_idx.append(c)
                 obs.append(pix + rng.normal(0, 0.3, 2))
         pts.append(np.array([llh[1], llh[0], llh[2]]) + rng.normal(0, 0.05, 3) * [1 / M_PER_DEG_LAT,
                                                                                  1 / M_PER_DEG_LON, 1.0])
-    block = Block(crs=block.crs, cameras=block.cameras, image_ids=block.image_ids, image_camera=block.image_camera,
-                  poses=block.poses, point_ids=block.point_ids + [f"GCP{c}" for c in range(len(pts))],
-                  roles=block.roles + ["control"] * len(pts), xyz=np.vstack([block.xyz, pts]),
-                  xyz_sigma=np.vstack([block.xyz_sigma, np.full((len(pts), 3), 0.05)]),
-                  obs_image=np.r_[block.obs_image, img_idx].astype(np.int64),
-                  obs_point=np.r_[block.obs_point, pt_idx].astype(np.int64),
-                  obs_xy=np.vstack([block.obs_xy, np.reshape(obs, (-1, 2))]),
-                  obs_sigma=np.r_[block.obs_sigma, np.full(len(obs), 0.3)], gnss_xyz=block.gnss_xyz,
-                  gnss_sigma=block.gnss_sigma, ins_opk=block.ins_opk, ins_sigma=block.ins_sigma,
-                  name="demo chain", mode=block.mode)
+    block = block.with_points([f"GCP{c}" for c in range(len(pts))], ["control"] * len(pts), pts,
+                              np.full((len(pts), 3), 0.05), img_idx, pt_idx, obs, np.full(len(obs), 0.3))
     write_block(block, os.path.join(folder, "block.json"))
     # 3. the adjustment
     t0 = time.perf_counter()
@@ -220,7 +212,7 @@ def run_chain(out_dir, camera, dem, *, device=None, seed=0):
         m = mosaic([(path, FrameSensor(camera, p)) for path, p in zip(paths, poses)],
                    os.path.join(folder, f"mosaic_{name}.tif"), dem=dem, resolution=MOSAIC_RESOLUTION, occlusion=False,
                    overwrite=True, device=device)
-        reg = _mosaic_error(m.path)
+        reg = _texture_error(m.path, upsample=50)
         dc, da = _pose_errors(poses, truth)
         out[name] = dict(pose_error_max_m=dc, attitude_error_max_deg=da, mosaic_seconds=time.perf_counter() - t0,
                          mosaic_misregistration_rms_m=float(reg["rms"]) * MOSAIC_RESOLUTION,
@@ -288,13 +280,7 @@ def run_demo(out_dir="orthowarp-demo", *, device=None, seed=0, chain=True):
     ortho = orthorectify(os.path.join(out_dir, "image.tif"), FrameSensor(camera, pose), os.path.join(out_dir, "ortho.tif"),
                          dem=dem, resampling="bicubic", overwrite=True, device=device)
     t_ortho = time.perf_counter() - t0
-    with rasterio.open(ortho.path) as ds:
-        ortho_img = ds.read(1).astype(np.float64)
-        ortho_valid = ds.dataset_mask() > 0
-    rows, cols = np.mgrid[0:ortho.shape[0], 0:ortho.shape[1]]
-    ox, oy = ortho.transform @ (cols + 0.5, rows + 0.5)
-    olon, olat = Transformer.from_crs(ortho.crs, "EPSG:4326", always_xy=True).transform(ox, oy)
-    reg = misregistration(texture(*local_metres(olon, olat)), ortho_img, valid=ortho_valid, tile=64)
+    reg = _texture_error(ortho.path)
 
     # 5. Footprint of the image border as GeoJSON, check points as CSV.
     edge = np.linspace(0.0, 1.0, 33)[:-1]

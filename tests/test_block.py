@@ -31,6 +31,21 @@ def test_a_valid_block():
     assert np.all(np.isnan(b.gnss_xyz)) and b.gnss_xyz.shape == (2, 3)
 
 
+def test_points_are_appended_with_their_observations():
+    """Block.with_points: the new points after the old, their observations indexing them; the
+    block it makes is checked as any (an observation outside its image refused)."""
+    b = tiny()
+    c = b.with_points(["g1", "g2"], ["control", "control"], [[5, 5, 0], [6, 6, 1]], [[0.05] * 3] * 2, [0, 1, 1],
+                      [0, 0, 1], [[100, 100], [120, 100], [200, 300]], [0.3] * 3)
+    assert c.point_ids == ["c", "k", "t", "g1", "g2"] and c.roles[3:] == ["control", "control"]
+    np.testing.assert_array_equal(c.obs_point[6:], [3, 3, 4])
+    np.testing.assert_array_equal(c.obs_image[6:], [0, 1, 1])
+    np.testing.assert_array_equal(c.xyz[4], [6, 6, 1])
+    assert b.n_points == 3 and len(b.obs_xy) == 6  # the original is left as it was
+    with pytest.raises(ParamError, match="outside"):
+        b.with_points(["g"], ["control"], [[5, 5, 0]], [[0.05] * 3], [0], [0], [[5000, 100]], [0.3])
+
+
 @pytest.mark.parametrize("xy", [(-0.01, 400), (1000.01, 400), (500, -1), (500, 800.5), (-5000, 40000)])
 def test_an_observation_outside_its_image_is_named(xy):
     obs = np.array(tiny().obs_xy)
