@@ -255,7 +255,7 @@ def demo(out_dir, device, no_chain):
               help="With --accuracy: each image's pose covariance from 'orthowarp adjust' (its pose_cov.json, "
                    "the exterior file's parameters), instead of --pose-sigma.")
 @click.option("--accuracy-measure", type=click.Choice(["sigma", "ce90"]), default="sigma", show_default=True,
-              help="With --accuracy: three bands sigma x, y, up (m), or two bands CE90 (the radius holding 90 %% of "
+              help="With --accuracy: three bands sigma x, y, up (m), or two bands CE90 (the radius holding 90 % of "
                    "the horizontal error) and LE90 (m).")
 @click.option("--accuracy-step", type=click.IntRange(1, 4096), default=16, show_default=True,
               help="With --accuracy: ortho pixels per accuracy pixel, each way (1: full resolution).")
@@ -1146,10 +1146,12 @@ def _write_spot_example(folder):
 def match(ctx, images, int_param, ext_param, crs, dem, height, out_path, zones, per_zone, window, radius, pyramid,
           control_csv, reference, control_sigma, min_score, gnss_sigma, ins_sigma, no_refraction, overwrite, device):
     """Find tie points between frame IMAGES by area-based matching (interest points, NCC,
-    least-squares matching, back-matching), predicted through their approximate orientation and
-    the DEM, and write them as a block for 'orthowarp adjust' (add control points to its
-    'points' before adjusting, or give --gnss-sigma/--ins-sigma). The first band of each image
-    is matched; the poses must be omega-phi-kappa ones in a projected CRS."""
+    least-squares matching, back-matching, a check across images), predicted through their
+    approximate orientation and the DEM, and write them as a block for 'orthowarp adjust' (add
+    control with --control and --reference, or to its 'points' before adjusting, or give
+    --gnss-sigma/--ins-sigma). The first band of each image is matched; the poses are all
+    omega-phi-kappa ones in one projected CRS, or all GNSS/INS ones without boresight and lever
+    arm."""
     import rasterio
 
     from .errors import ParamError, RasterIOError
