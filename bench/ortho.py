@@ -19,6 +19,7 @@ usage: python3 bench/ortho.py [--width W --height H] [--devices cpu,cuda:0] [--o
 import argparse
 import json
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -243,6 +244,8 @@ def main(argv=None):
     ap.add_argument("--codecs", default="host,nvcomp,hybrid,host:1,nvcomp:1",
                     help="block-codec variants (CODEC[:LEVEL], comma-separated), e.g. host,warp,warp:1")
     ap.add_argument("--batch-codecs", default="auto", help="block codecs of the batch runs, e.g. auto,warp")
+    ap.add_argument("--source-reads", default="", help="also run the single frame with these --source-reads, e.g. tiles")
+    ap.add_argument("--batch-source-reads", default="auto", help="--source-reads of the batch runs, e.g. auto,tiles")
     ap.add_argument("--batch", type=int, default=0, help="also run N copies of the frame in one CLI call (GPU)")
     ap.add_argument("--sample-stacks", type=float, default=None, metavar="SECONDS",
                     help="sample the batch child's Python stacks at this interval (bench/stack_sampler.py; "
@@ -309,7 +312,7 @@ def main(argv=None):
         r["ortho_shape"] = list(res.shape)
         r["kernel_fraction_of_wall"] = res.timings["kernel"] / res.timings["wall"]
         if not args.skip_cli:
-            def cli_batch(n, device_name, resolution, gpu_index, level="6", codec="auto"):
+            def cli_batch(n, device_name, resolution, gpu_index, level="6", codec="auto", reads="auto"):
                 """N copies of the frame (links) in one call: wall time, peak memory, GPU busy."""
                 bdir = os.path.join(work, "batch")
                 os.makedirs(bdir, exist_ok=True)
@@ -335,8 +338,9 @@ def main(argv=None):
                     os.path.join(bdir, "ext.csv"), "--dem", dem_path, "--out-dir", bdir, "--overwrite",
                     "--resolution", repr(resolution), "--resampling", args.resampling, "--device", device_name,
                     "--profile-json", prof_path, "--compress-level", level, "--block-codec", codec,
-                    *(["--no-refraction"] if args.no_refraction else [])], gpu_index=gpu_index, env=env)
-                o["images"], o["compress_level"], o["block_codec"] = n, int(level), codec
+                    "--source-reads", reads, *(["--no-refraction"] if args.no_refraction else [])],
+                    gpu_index=gpu_index, env=env)
+                o["images"], o["compress_level"], o["block_codec"], o["source_reads"] = n, int(level), codec, reads
                 if args.sample_stacks and os.path.exists(stacks):
                     with open(stacks) as f:
                         o["stacks"] = json.load(f)
@@ -386,14 +390,30 @@ def main(argv=None):
                     print(key, r[key]["wall_s"], r[key].get("output_mb"), r[key]["returncode"], flush=True)
                     save_report(report, args.out)
                 r["codec_agreement"] = compare_outputs(outputs, "cli_host")
+            reads_outputs = {}
+            if r["cli"]["returncode"] == 0:  # the default's file, to compare with
+                reads_outputs["cli"] = os.path.join(work, "ortho_default.tif")
+                shutil.copyfile(os.path.join(work, "ortho_auto.tif") if os.path.exists(os.path.join(work, "ortho_auto.tif"))
+                                else os.path.join(work, "frame_ORTHO.tif"), reads_outputs["cli"])
+            for reads in filter(None, args.source_reads.split(",")):  # the single frame, other source reads
+                key = f"cli_source_{reads}"
+                r[key] = cli("--source-reads", reads)
+                if r[key]["returncode"] == 0:
+                    reads_outputs[key] = os.path.join(work, f"ortho_{key}.tif")
+                    os.replace(os.path.join(work, "frame_ORTHO.tif"), reads_outputs[key])
+                print(key, r[key]["wall_s"], r[key].get("output_mb"), r[key]["returncode"], flush=True)
+                save_report(report, args.out)
+            if len(reads_outputs) > 1:
+                r["source_reads_agreement"] = compare_outputs(reads_outputs, "cli")
             if args.batch and (geom.device.is_cuda or args.variants):
                 for level in args.batch_levels.split(","):
                     for codec in args.batch_codecs.split(","):
-                        key = ("cli_batch" if level == "6" else f"cli_batch_level{level}") + \
-                            ("" if codec == "auto" else f"_{codec}")
-                        r[key] = cli_batch(args.batch, name, res.resolution,
-                                           geom.device.ordinal if geom.device.is_cuda else None, level, codec)
-                        save_report(report, args.out)
+                        for reads in args.batch_source_reads.split(","):
+                            key = ("cli_batch" if level == "6" else f"cli_batch_level{level}") + \
+                                ("" if codec == "auto" else f"_{codec}") + ("" if reads == "auto" else f"_{reads}")
+                            r[key] = cli_batch(args.batch, name, res.resolution,
+                                               geom.device.ordinal if geom.device.is_cuda else None, level, codec, reads)
+                            save_report(report, args.out)
             # the floor of that start-up: interpreter, imports, Warp and device set-up, kernels loaded, no job
             t = time.perf_counter()
             subprocess.run([sys.executable, "-c", STARTUP, name], check=True)

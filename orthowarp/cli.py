@@ -223,6 +223,10 @@ def demo(out_dir, device, no_chain):
                    "orthowarp[gpu]), warp (orthowarp's own deflate kernels on the device), hybrid (the device: nvCOMP at "
                    "--compress-level 1-4 where installed, else warp; and the host cores at once); auto: "
                    "on a GPU nvcomp at --compress-level 1-4 where installed, else hybrid; on the CPU host.")
+@click.option("--source-reads", type=click.Choice(["auto", "whole", "tiles"]), default="auto", show_default=True,
+              help="How the image reaches the device: whole (read once, by strips on several threads, into device "
+                   "memory), tiles (each output tile reads its own window); auto: whole on a GPU where the image takes "
+                   "at most a quarter of its free memory, else tiles. The pixels written are the same.")
 @click.option("-co", "--co", "creation", multiple=True, metavar="KEY=VALUE",
               help="GDAL-style creation option, repeatable: BLOCKSIZE (64-4096, multiple of 16; default 512), "
                    "BIGTIFF (YES, NO, IF_NEEDED, IF_SAFER), NUM_THREADS (count or ALL_CPUS); COMPRESS, LEVEL (ZLEVEL) "
@@ -270,7 +274,7 @@ def demo(out_dir, device, no_chain):
               help="Write the same profile as JSON to this file.")
 @click.pass_context
 def ortho(ctx, images, odm_dataset, int_param, ext_param, dimap, attitude_model, dem, height, crs, resolution, resampling, method,
-          driver, compress, compress_level, quality, block_codec, creation, dtype,
+          driver, compress, compress_level, quality, block_codec, source_reads, creation, dtype,
           out_dir, overwrite, no_refraction, geoid, same_vertical_datum, device, tile_size, export_params, accuracy,
           pose_sigma, pose_cov_file, accuracy_measure, accuracy_step,
           pixel_sigma, dem_sigma, show_profile, profile_json):
@@ -325,7 +329,7 @@ def ortho(ctx, images, odm_dataset, int_param, ext_param, dimap, attitude_model,
     options = dict(crs=crs, resolution=resolution, resampling=resampling, method=method,
                    refraction=not no_refraction, dtype=dtype, driver="COG" if driver.lower() == "cog" else "GTiff",
                    compress=compress, compress_level=compress_level, quality=quality, block_codec=block_codec,
-                   creation_options=creation_options, overwrite=overwrite,
+                   source_reads=source_reads, creation_options=creation_options, overwrite=overwrite,
                    device=device,
                    progress=not quiet, tile_size=tile_size, geoid=geoid, same_vertical_datum=same_vertical_datum)
 

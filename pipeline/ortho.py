@@ -56,6 +56,7 @@ COMPRESS = ("deflate", "zstd", "lzw", "jpeg", "webp", "none")
 LOSSY = ("jpeg", "webp")
 DEFAULT_QUALITY = 90  # JPEG / WebP quality of lossy outputs (orthority's JPEG default is 75)
 BLOCK_CODECS = ("auto", "host", "nvcomp", "hybrid", "warp")
+SOURCE_READS = ("auto", "whole", "tiles")
 # threads per block of the per-pixel ortho kernels: on an H100, 128 ran a few per cent faster
 # than Warp's default 256 (bench/ortho.py's block-size scan)
 ORTHO_BLOCK_DIM = 128
@@ -223,7 +224,8 @@ def orthorectify(src: str | os.PathLike, sensor: SensorModel, dst: str | os.Path
                  tile_size: int | None = None, overwrite: bool = False, device: str | None = None,
                  progress: bool = False, workers: int | None = None, geoid: str | os.PathLike | None = None,
                  same_vertical_datum: bool = False, cancel: threading.Event | None = None,
-                 block_codec: str = "auto", creation_options: dict | None = None) -> OrthoResult:
+                 block_codec: str = "auto", creation_options: dict | None = None,
+                 source_reads: str = "auto") -> OrthoResult:
     """Orthorectify one frame image or pushbroom scene into a GeoTIFF / cloud-optimized GeoTIFF.
 
     Parameters
@@ -310,6 +312,14 @@ def orthorectify(src: str | os.PathLike, sensor: SensorModel, dst: str | os.Path
         16 host cores: nvCOMP's medium-ratio variant beats every host level; at level 6 the
         device kernels with the host cores were 1.4 times as fast as the cores alone, files
         1.4 % larger); on the CPU "host".
+    source_reads : {"auto", "whole", "tiles"}, optional
+        How the source reaches the device. "tiles": each output tile reads the source window
+        it needs (reduced where the output is coarser) and uploads it. "whole": the source is
+        read once, by strips on several threads, into device memory, and every tile at the
+        source's resolution samples it there (tiles whose output is coarser than the source
+        still read reduced windows); the pixels written are the same. "auto": "whole" on a
+        CUDA device where the source takes at most a quarter of the device's free memory,
+        else "tiles".
 
     Returns
     -------
@@ -348,6 +358,8 @@ def orthorectify(src: str | os.PathLike, sensor: SensorModel, dst: str | os.Path
         raise ParamError(f"dtype must be one of {DTYPES}, got {dtype!r}")
     if block_codec not in BLOCK_CODECS:
         raise ParamError(f"block_codec must be one of {BLOCK_CODECS}, got {block_codec!r}")
+    if source_reads not in SOURCE_READS:
+        raise ParamError(f"source_reads must be one of {SOURCE_READS}, got {source_reads!r}")
     co = parse_creation_options(creation_options)
     if tile_size is not None:
         tile_size = int(tile_size)
@@ -396,7 +408,7 @@ def orthorectify(src: str | os.PathLike, sensor: SensorModel, dst: str | os.Path
                          threads=co["threads"]) if streamed else None, cancel=cancel,
                 block_codec=_block_codec(block_codec, geom.device, streamed and compress == "deflate",
                                          compress_level or 6),
-                src_dtype=src_dtype, clipped=clipped)
+                src_dtype=src_dtype, clipped=clipped, source_reads=source_reads)
         t0 = time.perf_counter()
         if not streamed:
             try:
@@ -584,7 +596,8 @@ def device_codecs(block_codec, level, device):
 
 def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, path, resampling,
             tile_size, progress, workers, timer, final_name, method_name, masked, compress_level=None, cog=None,
-            cancel=None, src_dtype=None, clipped=None, block_codec="host", quality=None, co=None):
+            cancel=None, src_dtype=None, clipped=None, block_codec="host", quality=None, co=None,
+            source_reads="tiles"):
     rows, cols = shape
     is_float = out_dtype == "float32"
     profile = dict(driver="GTiff", width=cols, height=rows, count=count, dtype=out_dtype,
@@ -600,7 +613,8 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
     tiles = [(r0, c0, min(tile_size, rows - r0), min(tile_size, cols - c0))
              for r0 in range(0, rows, tile_size) for c0 in range(0, cols, tile_size)]
     image = ImageTiles(src, geom, out_crs, transform, count=count, out_dtype=out_dtype, resampling=resampling,
-                       method=method_name, masked=masked, src_dtype=src_dtype, timer=timer, clipped=clipped)
+                       method=method_name, masked=masked, src_dtype=src_dtype, timer=timer, clipped=clipped,
+                       source_reads=source_reads)
 
     def run(tile):
         _check_cancel(cancel, final_name)
@@ -683,10 +697,16 @@ class ImageTiles:
         than it (default); False: always at full resolution (the output then samples the
         source without averaging, the same way whatever the ratio of the resolutions). The
         forward method reduces its reads by the image's overall ratio either way.
+    source_reads : {"tiles", "whole", "auto"}, optional
+        "tiles" (default): each tile reads and uploads its own window. "whole": on the first
+        tile at the source's resolution the whole source is read, by strips on several
+        threads, into device memory, and such tiles sample it there (the same pixels: their
+        windows hold every tap). "auto": "whole" on a CUDA device where the source takes at
+        most a quarter of its free memory.
     """
 
     def __init__(self, src, geom, out_crs, transform, *, count, out_dtype, resampling="bilinear", method="backward",
-                 masked=True, src_dtype=None, timer=None, clipped=None, decimate=True):
+                 masked=True, src_dtype=None, timer=None, clipped=None, decimate=True, source_reads="tiles"):
         self.src, self.geom, self.transform = src, geom, transform
         self.count, self.out_dtype, self.masked = count, out_dtype, masked
         self.timer = timer if timer is not None else StageTimer(time.perf_counter())
@@ -713,6 +733,16 @@ class ImageTiles:
                                                   self.radius)
         self._local = threading.local()
         self._handles, self._lock = [], threading.Lock()
+        # the source's dtype as read (GDAL converts others to float32) and as the kernels take it
+        read_dtype = src_dtype if src_dtype in ("uint8", "uint16", "float32") else "float32"
+        self._kernel_dtype = read_dtype if read_dtype in (out_dtype, "float32") else "float32"
+        if source_reads == "auto":
+            w, h = self.image_size
+            need = h * w * (count * np.dtype(self._kernel_dtype).itemsize + (1 if masked else 0))
+            source_reads = "whole" if device.is_cuda and need <= device.free_memory // 4 else "tiles"
+        self.source_reads = self.timer.info["source_reads"] = source_reads
+        self._whole, self._whole_lock = None, threading.Lock()
+        self._all_valid = None  # the 1 x 1 mask of an unmasked window, made once
         # the node kernels launch with Warp's default block size, the per-pixel kernels with
         # ORTHO_BLOCK_DIM (a CUDA module is built per block size): both loaded here
         load_modules(device, ortho_kernels)
@@ -829,12 +859,82 @@ class ImageTiles:
 
         return launch, window
 
+    def _whole_source(self):
+        """The whole source on the device, read on first use: (values (bands, rows, cols) in
+        the kernels' dtype, valid (rows, cols) uint8 or None where unmasked)."""
+        with self._whole_lock:
+            if self._whole is None:
+                self._whole = self._read_whole()
+            return self._whole
+
+    def _read_whole(self):
+        """Read the source by strips of whole rows on several threads (a handle each) into one
+        device array, uploaded strip by strip on each thread's own stream."""
+        timer, device = self.timer, self.device
+        w, h = self.image_size
+        ds = self._source()
+        bands, block_rows = ds.count, ds.block_shapes[0][0]
+        read_dtype = ds.dtypes[0] if ds.dtypes[0] in ("uint8", "uint16", "float32") else "float32"
+        # strips of whole source blocks, about 16 MB each
+        rows = max(block_rows, (16 << 20) // max(1, w * bands * np.dtype(read_dtype).itemsize) // block_rows * block_rows)
+        strips = [(r0, min(rows, h - r0)) for r0 in range(0, h, rows)]
+        timer.info["whole_source_strips"] = len(strips)
+        data = wp.empty((bands, h, w), dtype=_WP_TYPES[read_dtype], device=device)
+        valid = wp.empty((h, w), dtype=wp.uint8, device=device) if self.masked else None
+        narrowing = self.narrowing and self.clipped is not None
+        top = self.top
+
+        def read(part):
+            t = time.perf_counter()
+            handle = _open_source(self.src)
+            stream = wp.Stream(device) if device.is_cuda else None
+            try:
+                for r0, n in part:
+                    win = Window(0, r0, w, n)
+                    try:
+                        strip = handle.read(window=win, out_dtype=None if read_dtype == ds.dtypes[0] else "float32")
+                        mask = handle.dataset_mask(window=win) if self.masked else None
+                    except GDAL_ERRORS as e:
+                        raise RasterIOError(f"Could not read image '{self.src}': {gdal_reason(e)}") from e
+                    if narrowing:
+                        self.clipped.add(int(np.count_nonzero((strip > top) | (strip < 0)) if strip.dtype.kind == "f"
+                                             else np.count_nonzero(strip > top)), strip.size)
+                    t1 = time.perf_counter()
+                    timer.span("read", t)
+                    host = wp.array(strip, dtype=data.dtype, device="cpu", copy=False)
+                    for b in range(bands):  # each band's rows are contiguous on both sides
+                        wp.copy(data, host, dest_offset=(b * h + r0) * w, src_offset=b * n * w, count=n * w,
+                                stream=stream)
+                    if mask is not None:
+                        wp.copy(valid, wp.array(mask, dtype=wp.uint8, device="cpu", copy=False), dest_offset=r0 * w,
+                                count=n * w, stream=stream)
+                    if stream is not None:
+                        wp.synchronize_stream(stream)  # the host strip may go
+                    timer.span("h2d", t1)
+                    t = time.perf_counter()
+            finally:
+                handle.close()
+
+        n_threads = max(1, min(8, os.cpu_count() or 1, len(strips)))
+        with ThreadPoolExecutor(max_workers=n_threads) as pool:
+            list(pool.map(read, [strips[k::n_threads] for k in range(n_threads)]))
+        if read_dtype != self._kernel_dtype:  # e.g. uint8 into float32: widen on the device
+            t = time.perf_counter()
+            wide = wp.empty(data.shape, dtype=wp.float32, device=device)
+            wp.launch(ortho_kernels.widen_kernel, dim=data.shape, inputs=[data], outputs=[wide], device=device)
+            data = wide
+            timer.span("kernel", t)
+        return data, valid
+
     def _read_window(self, ds, wc0, wr0, wc1, wr1, factor):
         """The source window on the device, (bands, rows, cols) in the output's dtype or float32,
         and where it lies (its mask, origin and scale). ``factor`` > 1: read reduced by that
         factor with area averaging (from the source's overviews where it has them), so that a
         coarse output is neither aliased nor costs full-resolution reads."""
         timer, device, top = self.timer, self.device, self.top
+        if factor == 1 and self.source_reads == "whole":
+            data, valid = self._whole_source()
+            return self._window_struct(valid, 0, 0, 1.0, 1.0), data
         t = time.perf_counter()
         win = Window(wc0, wr0, wc1 - wc0, wr1 - wr0)
         shape = (-(-(wr1 - wr0) // factor), -(-(wc1 - wc0) // factor))
@@ -863,13 +963,25 @@ class ImageTiles:
             timer.span("kernel", t)
             t = time.perf_counter()
             arr = wide
-        sw = ortho_kernels.SourceWindow()
-        sw.masked = int(self.masked)
-        sw.valid = wp.array(valid if self.masked else np.ones((1, 1), np.uint8), dtype=wp.uint8, device=device)
-        sw.col0, sw.row0 = wc0, wr0
-        sw.inv_sx, sw.inv_sy = shape[1] / (wc1 - wc0), shape[0] / (wr1 - wr0)  # window pixels per image pixel
+        sw = self._window_struct(wp.array(valid, dtype=wp.uint8, device=device) if self.masked else None, wc0, wr0,
+                                 shape[1] / (wc1 - wc0), shape[0] / (wr1 - wr0))  # window pixels per image pixel
         timer.span("h2d", t)
         return sw, arr
+
+    def _window_struct(self, valid, col0, row0, inv_sx, inv_sy):
+        """A window's SourceWindow: its device mask (None where the source is unmasked), its
+        top-left image pixel and its pixels per image pixel."""
+        sw = ortho_kernels.SourceWindow()
+        sw.masked = int(valid is not None)
+        if valid is None:
+            with self._lock:
+                if self._all_valid is None:
+                    self._all_valid = wp.array(np.ones((1, 1), np.uint8), dtype=wp.uint8, device=self.device)
+            valid = self._all_valid
+        sw.valid = valid
+        sw.col0, sw.row0 = col0, row0
+        sw.inv_sx, sw.inv_sy = inv_sx, inv_sy
+        return sw
 
 
 def source_facts(src, size, sensor="camera"):

@@ -564,6 +564,53 @@ def test_tiles_and_threads_do_not_change_the_result(tmp_path):
     np.testing.assert_allclose(a[va], b[vb], rtol=0, atol=1e-3)
 
 
+@pytest.mark.parametrize("src_dtype,dtype,method,resampling,nodata,resolution", [
+    ("float32", None, "backward", "lanczos", None, None), ("uint8", None, "backward", "bilinear", 0, None),
+    ("uint8", "float32", "backward", "bicubic", None, None), ("uint16", None, "forward", "bilinear", None, None),
+    ("uint16", None, "backward", "bilinear", 0, 2.5)])
+def test_whole_source_reads_write_the_same_pixels(tmp_path, device, src_dtype, dtype, method, resampling, nodata,
+                                                   resolution):
+    """source_reads="whole" (the source read once, by strips on threads, into device memory)
+    writes exactly the pixels and mask of per-tile window reads: masked sources, a widened
+    integer source, the forward method, and an output coarser than the source (its tiles
+    read reduced windows either way)."""
+    sc = scene("ins")
+    scale = {"uint8": 200.0, "uint16": 3000.0, "float32": 1.0}[src_dtype]
+    src = write_image(tmp_path / "src.tif", sc.image(False) * scale + 1.0, src_dtype)
+    if nodata is not None:  # a nodata value: the source is masked
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+            ds = rasterio.open(src, "r+")
+        with ds:
+            values = ds.read(1)
+            values[:40, :60] = nodata
+            ds.write(values, 1)
+            ds.nodata = nodata
+    tile = 32 if resolution else 96
+    kw = dict(dem=sc.dem, refraction=False, device=device, method=method, resampling=resampling, tile_size=tile,
+              workers=2, **({"dtype": dtype} if dtype else {}), **({"resolution": resolution} if resolution else {}))
+    sensor = FrameSensor(sc.camera, sc.pose)
+    tiles = orthorectify(src, sensor, tmp_path / "tiles.tif", source_reads="tiles", **kw)
+    whole = orthorectify(src, sensor, tmp_path / "whole.tif", source_reads="whole", **kw)
+    assert tiles.profile["source_reads"] == "tiles" and whole.profile["source_reads"] == "whole"
+    if not resolution:  # read whole, by strips
+        assert whole.profile["whole_source_strips"] >= 1 and "whole_source_strips" not in tiles.profile
+    with rasterio.open(tiles.path) as a, rasterio.open(whole.path) as b:
+        assert max(a.shape) > 2 * tile
+        np.testing.assert_array_equal(a.dataset_mask(), b.dataset_mask())
+        np.testing.assert_array_equal(a.read(), b.read())
+        if nodata is not None:
+            assert 0 < (a.dataset_mask() == 0).mean() < 1
+
+
+def test_source_reads_is_checked(tmp_path):
+    sc = scene("ins")
+    src = write_image(tmp_path / "src.tif", sc.image(False))
+    with pytest.raises(ParamError, match="source_reads"):
+        orthorectify(src, FrameSensor(sc.camera, sc.pose), tmp_path / "o.tif", dem=sc.dem, source_reads="all")
+    assert not os.path.exists(tmp_path / "o.tif")
+
+
 @pytest.mark.parametrize("src_dtype,scale,tile,codec", [("uint8", 200.0, 512, "hybrid"), ("float32", 1.0, 1024, "hybrid"),
                                                          ("uint16", 3000.0, 256, "hybrid"), ("uint8", 200.0, 512, "warp")])
 def test_block_codecs_write_the_same_pixels(tmp_path, device, src_dtype, scale, tile, codec):
