@@ -45,7 +45,7 @@ from .cog_device import DeviceCogEncoder, HostDeflate, NvcompDeflate, WarpDeflat
 from .io import GDAL_ERRORS, atomic_path, check_destination, gdal_reason, write_error
 from .profile import StageTimer
 
-__all__ = ["orthorectify", "OrthoResult", "RESAMPLING", "output_grid", "ImageTiles"]
+__all__ = ["orthorectify", "OrthoResult", "RESAMPLING", "output_grid", "ImageTiles", "read_whole_source"]
 
 log = logging.getLogger(__name__)
 
@@ -572,9 +572,12 @@ def _nvcomp_type(level):
 
 
 def _warp_deflate(level, device):
-    """orthowarp's device deflate with the hash-chain depth of a libdeflate level."""
-    depth, nice = (4, 32) if level <= 2 else (8, 64) if level <= 4 else (32, 128) if level <= 6 \
-        else (64, 258) if level <= 8 else (128, 258)
+    """orthowarp's device deflate with the hash-chain depth of a libdeflate level (level 5:
+    depth 16, whose streams were 1.082 / 1.015 times libdeflate 6's on procedural / aerial
+    blocks, as libdeflate 5's were 1.080 / 1.005; bench/reference/deflate-codecs-warp-h200.json
+    and bench/deflate_codecs.py's blocks on the host)."""
+    depth, nice = (4, 32) if level <= 2 else (8, 64) if level <= 4 else (16, 128) if level == 5 \
+        else (32, 128) if level <= 6 else (64, 258) if level <= 8 else (128, 258)
     return WarpDeflate(device, depth=depth, nice=nice)
 
 
@@ -868,63 +871,9 @@ class ImageTiles:
             return self._whole
 
     def _read_whole(self):
-        """Read the source by strips of whole rows on several threads (a handle each) into one
-        device array, uploaded strip by strip on each thread's own stream."""
-        timer, device = self.timer, self.device
-        w, h = self.image_size
-        ds = self._source()
-        bands, block_rows = ds.count, ds.block_shapes[0][0]
-        read_dtype = ds.dtypes[0] if ds.dtypes[0] in ("uint8", "uint16", "float32") else "float32"
-        # strips of whole source blocks, about 16 MB each
-        rows = max(block_rows, (16 << 20) // max(1, w * bands * np.dtype(read_dtype).itemsize) // block_rows * block_rows)
-        strips = [(r0, min(rows, h - r0)) for r0 in range(0, h, rows)]
-        timer.info["whole_source_strips"] = len(strips)
-        data = wp.empty((bands, h, w), dtype=_WP_TYPES[read_dtype], device=device)
-        valid = wp.empty((h, w), dtype=wp.uint8, device=device) if self.masked else None
-        narrowing = self.narrowing and self.clipped is not None
-        top = self.top
-
-        def read(part):
-            t = time.perf_counter()
-            handle = _open_source(self.src)
-            stream = wp.Stream(device) if device.is_cuda else None
-            try:
-                for r0, n in part:
-                    win = Window(0, r0, w, n)
-                    try:
-                        strip = handle.read(window=win, out_dtype=None if read_dtype == ds.dtypes[0] else "float32")
-                        mask = handle.dataset_mask(window=win) if self.masked else None
-                    except GDAL_ERRORS as e:
-                        raise RasterIOError(f"Could not read image '{self.src}': {gdal_reason(e)}") from e
-                    if narrowing:
-                        self.clipped.add(int(np.count_nonzero((strip > top) | (strip < 0)) if strip.dtype.kind == "f"
-                                             else np.count_nonzero(strip > top)), strip.size)
-                    t1 = time.perf_counter()
-                    timer.span("read", t)
-                    host = wp.array(strip, dtype=data.dtype, device="cpu", copy=False)
-                    for b in range(bands):  # each band's rows are contiguous on both sides
-                        wp.copy(data, host, dest_offset=(b * h + r0) * w, src_offset=b * n * w, count=n * w,
-                                stream=stream)
-                    if mask is not None:
-                        wp.copy(valid, wp.array(mask, dtype=wp.uint8, device="cpu", copy=False), dest_offset=r0 * w,
-                                count=n * w, stream=stream)
-                    if stream is not None:
-                        wp.synchronize_stream(stream)  # the host strip may go
-                    timer.span("h2d", t1)
-                    t = time.perf_counter()
-            finally:
-                handle.close()
-
-        n_threads = max(1, min(8, os.cpu_count() or 1, len(strips)))
-        with ThreadPoolExecutor(max_workers=n_threads) as pool:
-            list(pool.map(read, [strips[k::n_threads] for k in range(n_threads)]))
-        if read_dtype != self._kernel_dtype:  # e.g. uint8 into float32: widen on the device
-            t = time.perf_counter()
-            wide = wp.empty(data.shape, dtype=wp.float32, device=device)
-            wp.launch(ortho_kernels.widen_kernel, dim=data.shape, inputs=[data], outputs=[wide], device=device)
-            data = wide
-            timer.span("kernel", t)
-        return data, valid
+        """The whole source on the device (see :func:`read_whole_source`)."""
+        return read_whole_source(self.src, self.device, masked=self.masked, dtype=self._kernel_dtype, timer=self.timer,
+                                 clipped=self.clipped if self.narrowing else None, top=self.top)
 
     def _read_window(self, ds, wc0, wr0, wc1, wr1, factor):
         """The source window on the device, (bands, rows, cols) in the output's dtype or float32,
@@ -982,6 +931,83 @@ class ImageTiles:
         sw.col0, sw.row0 = col0, row0
         sw.inv_sx, sw.inv_sy = inv_sx, inv_sy
         return sw
+
+
+def read_whole_source(src, device, *, masked, dtype, timer=None, clipped=None, top=0.0):
+    """Read a source image whole into device memory: by strips of whole source blocks (about
+    16 MB each) on up to 8 threads, each with its own handle and (on a GPU) its own stream, so
+    that GDAL's decoding on the host cores and the uploads overlap.
+
+    Parameters
+    ----------
+    src : str
+        The image (any raster GDAL reads; uint8, uint16 and float32 are read as they are,
+        other types as float32).
+    device : warp.context.Device
+    masked : bool
+        Also read its mask (GDAL's dataset mask: 0 invalid, 255 valid).
+    dtype : {"uint8", "uint16", "float32"}
+        The device array's dtype: the read dtype, or "float32" (widened on the device).
+    timer : StageTimer, optional
+        Gets "read" (GDAL), "h2d" (uploads) and "kernel" (widening) spans and the strip count.
+    clipped : object with ``add(n, total)``, optional
+        Counts source values outside [0, ``top``] (an integer output narrower than the source).
+
+    Returns
+    -------
+    values : warp array (bands, rows, cols) of ``dtype``
+    valid : warp array of uint8 (rows, cols), or None where not ``masked``
+    """
+    timer = timer if timer is not None else StageTimer(time.perf_counter())
+    with _open_source(src) as ds:
+        w, h, bands, block_rows, native = ds.width, ds.height, ds.count, ds.block_shapes[0][0], ds.dtypes[0]
+    read_dtype = native if native in ("uint8", "uint16", "float32") else "float32"
+    rows = max(block_rows, (16 << 20) // max(1, w * bands * np.dtype(read_dtype).itemsize) // block_rows * block_rows)
+    strips = [(r0, min(rows, h - r0)) for r0 in range(0, h, rows)]
+    timer.info["whole_source_strips"] = len(strips)
+    data = wp.empty((bands, h, w), dtype=_WP_TYPES[read_dtype], device=device)
+    valid = wp.empty((h, w), dtype=wp.uint8, device=device) if masked else None
+
+    def read(part):
+        t = time.perf_counter()
+        handle = _open_source(src)
+        stream = wp.Stream(device) if device.is_cuda else None
+        try:
+            for r0, n in part:
+                win = Window(0, r0, w, n)
+                try:
+                    strip = handle.read(window=win, out_dtype=None if read_dtype == native else "float32")
+                    mask = handle.dataset_mask(window=win) if masked else None
+                except GDAL_ERRORS as e:
+                    raise RasterIOError(f"Could not read image '{src}': {gdal_reason(e)}") from e
+                if clipped is not None:
+                    clipped.add(int(np.count_nonzero((strip > top) | (strip < 0)) if strip.dtype.kind == "f"
+                                    else np.count_nonzero(strip > top)), strip.size)
+                t1 = time.perf_counter()
+                timer.span("read", t)
+                host = wp.array(strip, dtype=data.dtype, device="cpu", copy=False)
+                for b in range(bands):  # each band's rows are contiguous on both sides
+                    wp.copy(data, host, dest_offset=(b * h + r0) * w, src_offset=b * n * w, count=n * w, stream=stream)
+                if mask is not None:
+                    wp.copy(valid, wp.array(mask, dtype=wp.uint8, device="cpu", copy=False), dest_offset=r0 * w,
+                            count=n * w, stream=stream)
+                if stream is not None:
+                    wp.synchronize_stream(stream)  # the host strip may go
+                timer.span("h2d", t1)
+                t = time.perf_counter()
+        finally:
+            handle.close()
+
+    n_threads = max(1, min(8, os.cpu_count() or 1, len(strips)))
+    with ThreadPoolExecutor(max_workers=n_threads) as pool:
+        list(pool.map(read, [strips[k::n_threads] for k in range(n_threads)]))
+    if read_dtype != dtype:  # e.g. uint8 into float32: widen on the device
+        t = time.perf_counter()
+        wide = wp.empty(data.shape, dtype=wp.float32, device=device)
+        wp.launch(ortho_kernels.widen_kernel, dim=data.shape, inputs=[data], outputs=[wide], device=device)
+        data = wide
+        timer.span("kernel", t)
+    return data, valid
 
 
 def source_facts(src, size, sensor="camera"):
