@@ -474,11 +474,13 @@ class DeviceCogEncoder:
         and the small pieces of the upper overview levels (:meth:`CogWriter.write`).
     device : warp Device
     codecs : list
-        One or two raw-deflate codecs: :class:`NvcompDeflate` and/or :class:`HostDeflate`.
-        nvCOMP gets blocks in batches of at least ``batch_bytes`` gathered over
-        several tiles (its Deflate compresses one stream per block, and a batch of a single
-        tile's blocks would leave most of the GPU idle); with a host codec too, tiles that
-        arrive while the GPU is compressing a batch go to the host cores instead.
+        One or two raw-deflate codecs: a batched device codec (:class:`NvcompDeflate`,
+        :class:`WarpDeflate`) and/or :class:`HostDeflate`. The device codec gets blocks in
+        batches of at least ``batch_bytes`` gathered over several tiles (a batch of a single
+        tile's blocks would leave most of the GPU idle); while it compresses one batch the
+        next one fills, and it takes that one as soon as it is done. With a host codec too,
+        tiles that arrive while the device is busy and its next batch is already full go to
+        the host cores instead.
     batch_bytes : int, optional
         Uncompressed bytes per nvCOMP batch (default 512 MiB: about 680 blocks of 512 x 512 x 3
         bytes; nvCOMP reserves about 2.3 times that for its output).
@@ -544,8 +546,8 @@ class DeviceCogEncoder:
             return
         take = None
         with self._lock:
-            if self._gpu_busy and self.host is not None:
-                pass  # the GPU is busy: this tile goes to the host cores
+            if self._gpu_busy and self.host is not None and self._batch_n >= self.batch_bytes:
+                pass  # the device is busy and its next batch is full: this tile goes to the host cores
             else:
                 while self._gpu_busy and self._batch_n >= 2 * self.batch_bytes:
                     self._lock.wait()  # bounded device memory: wait for the batch in flight
@@ -570,11 +572,21 @@ class DeviceCogEncoder:
             self._compress_gpu(take)
 
     def _compress_gpu(self, jobs):
-        try:
-            self._compress(jobs, self.gpu)
-        finally:
+        """Deflate a batch on the device, then each next batch that filled meanwhile: the
+        device goes from one batch to the next without waiting for another tile."""
+        while jobs:
+            try:
+                self._compress(jobs, self.gpu)
+            except BaseException:
+                with self._lock:
+                    self._gpu_busy = False
+                    self._lock.notify_all()
+                raise
             with self._lock:
-                self._gpu_busy = False
+                if self._batch_n >= self.batch_bytes:
+                    jobs, self._batch, self._batch_n = self._batch, [], 0
+                else:
+                    jobs, self._gpu_busy = None, False
                 self._lock.notify_all()
 
     def _encode(self, row, col, tile, valid):
