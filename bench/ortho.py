@@ -405,6 +405,8 @@ def main(argv=None):
                 save_report(report, args.out)
             if len(reads_outputs) > 1:
                 r["source_reads_agreement"] = compare_outputs(reads_outputs, "cli")
+            if args.oty_python and "orthority" not in report:  # before the batches, which may be cut off
+                run_orthority(res.resolution)
             if args.batch and (geom.device.is_cuda or args.variants):
                 for level in args.batch_levels.split(","):
                     for codec in args.batch_codecs.split(","):
