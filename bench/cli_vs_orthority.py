@@ -1,0 +1,94 @@
+"""Benchmark: orthowarp's CLI against orthority's on orthority's own sample data, on the CPU.
+
+Alternating runs (orthowarp, then orthority, per round) of two jobs:
+
+- ``ngi``: one NGI aerial frame (3324c_2015_1004_05_0182_RGB.tif) on the 24 m DEM at 1 m
+  (``orthowarp ortho IMG --int-param config.yaml --ext-param camera_pos_ori.txt --dem dem.tif
+  --resolution 1`` / ``oty frame ... --res 1``);
+- ``odm``: the ODM dataset's 4 drone frames on its DSM at 0.2 m (``orthowarp ortho
+  --odm-dataset DIR --resolution 0.2`` / ``oty odm --dataset-dir DIR --res 0.2``).
+
+Both write deflate GeoTIFFs (orthowarp's default COG; orthority with ``--compress deflate``).
+Wall time of each process, end to end; the report gives every run and the medians. The first
+round also warms the page cache and Warp's kernel cache, so it is left out of the medians.
+
+usage: python3 bench/cli_vs_orthority.py --data DIR/orthority --oty PATH/TO/oty [--rounds 7]
+       [--device cpu] [--out FILE]
+"""
+
+import argparse
+import json
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+
+
+def jobs(data, work):
+    ngi, odm = os.path.join(data, "ngi"), os.path.join(data, "odm")
+    frame = os.path.join(ngi, "3324c_2015_1004_05_0182_RGB.tif")
+    frame_args = ["--int-param", os.path.join(ngi, "config.yaml"), "--ext-param", os.path.join(ngi, "camera_pos_ori.txt"),
+                  "--dem", os.path.join(ngi, "dem.tif")]
+    return {
+        "ngi": (["ortho", frame, *frame_args, "--resolution", "1"],
+                ["frame", *frame_args, "--res", "1", "--compress", "deflate", frame]),
+        "odm": (["ortho", "--odm-dataset", odm, "--resolution", "0.2"],
+                ["odm", "--dataset-dir", odm, "--res", "0.2", "--compress", "deflate"]),
+    }
+
+
+def timed(cmd, out_dir):
+    """Wall seconds of one run into a fresh ``out_dir`` (None if it failed)."""
+    shutil.rmtree(out_dir, ignore_errors=True)
+    os.makedirs(out_dir)
+    t = time.perf_counter()
+    p = subprocess.run([*cmd, "--out-dir", out_dir], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    dt = time.perf_counter() - t
+    if p.returncode != 0:
+        print(f"failed ({p.returncode}): {' '.join(cmd)}\n{p.stderr[-500:]}", file=sys.stderr)
+        return None
+    return dt
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--data", required=True, help="orthority's sample data (with ngi/ and odm/)")
+    ap.add_argument("--oty", required=True, help="orthority 0.7.0's oty command")
+    ap.add_argument("--orthowarp", default=None, help="orthowarp command (default: this Python's module)")
+    ap.add_argument("--rounds", type=int, default=7)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--jobs", default="ngi,odm")
+    ap.add_argument("--out", default="bench/results/cli-vs-orthority.json")
+    args = ap.parse_args()
+    ow = [args.orthowarp] if args.orthowarp else [sys.executable, "-m", "orthowarp.cli"]
+    work = tempfile.mkdtemp(prefix="ow_vs_oty_")
+    report = dict(benchmark="cli_vs_orthority", cpu_count=os.cpu_count(), device=args.device, rounds=args.rounds,
+                  results={})
+    try:
+        for name in args.jobs.split(","):
+            ow_args, oty_args = jobs(args.data, work)[name]
+            runs = dict(orthowarp=[], orthority=[])
+            for _ in range(args.rounds):
+                runs["orthowarp"].append(timed([*ow, "-q", *ow_args, "--device", args.device], os.path.join(work, "ow")))
+                runs["orthority"].append(timed([args.oty, *oty_args], os.path.join(work, "oty")))
+            row = dict(runs=runs)
+            for k, v in runs.items():
+                kept = [x for x in v[1:] if x is not None]
+                row[f"{k}_median_s"] = statistics.median(kept) if kept else None
+            if row["orthowarp_median_s"] and row["orthority_median_s"]:
+                row["orthowarp_vs_orthority"] = row["orthowarp_median_s"] / row["orthority_median_s"]
+            report["results"][name] = row
+            print(name, {k: v for k, v in row.items() if k != "runs"}, flush=True)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+    with open(args.out, "w") as f:
+        json.dump(report, f, indent=1)
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
