@@ -219,23 +219,6 @@ def resolve_device(device=None):
         raise DeviceError(f"Unknown or unavailable Warp device {device!r}: {e}") from e
 
 
-def use_priority_stream(device):
-    """Make a new high-priority CUDA stream the device's current stream (Warp's current stream
-    belongs to the device, for every thread): the work launched on it (the tiles' kernels,
-    uploads and read-backs) is scheduled ahead of the kernels of the device deflate, which run
-    on normal-priority streams of their own, instead of waiting behind a batch's grids.
-
-    A process-wide setting, for a program that owns its process (the CLI): the library never
-    calls it. A no-op on the CPU.
-
-    Parameters
-    ----------
-    device : warp.context.Device
-    """
-    if device.is_cuda:
-        wp.set_stream(wp.Stream(device, priority=-1), device=device, sync=True)
-
-
 _log = logging.getLogger("orthowarp")
 COMPILE_NOTICE_S = 2.0  # a module load taking longer than this is compiling
 

@@ -223,9 +223,6 @@ def demo(out_dir, device, no_chain):
                    "orthowarp[gpu]), warp (orthowarp's own deflate kernels on the device), hybrid (the device: nvCOMP at "
                    "--compress-level 1-4 where installed, else warp; and the host cores at once); auto: "
                    "on a GPU nvcomp at --compress-level 1-4 where installed, else hybrid; on the CPU host.")
-@click.option("--stream-priority", type=click.Choice(["high", "normal"]), default="high", show_default=True,
-              help="On a GPU, the CUDA stream priority of the tiles' work: high schedules it ahead of the device "
-                   "deflate's kernels (their own normal-priority streams), normal lets it wait behind them.")
 @click.option("--source-reads", type=click.Choice(["auto", "whole", "tiles"]), default="auto", show_default=True,
               help="How the image reaches the device: whole (read once, by strips on several threads, into device "
                    "memory), tiles (each output tile reads its own window); auto: whole on a GPU where the image takes "
@@ -277,7 +274,7 @@ def demo(out_dir, device, no_chain):
               help="Write the same profile as JSON to this file.")
 @click.pass_context
 def ortho(ctx, images, odm_dataset, int_param, ext_param, dimap, attitude_model, dem, height, crs, resolution, resampling, method,
-          driver, compress, compress_level, quality, block_codec, stream_priority, source_reads, creation, dtype,
+          driver, compress, compress_level, quality, block_codec, source_reads, creation, dtype,
           out_dir, overwrite, no_refraction, geoid, same_vertical_datum, device, tile_size, export_params, accuracy,
           pose_sigma, pose_cov_file, accuracy_measure, accuracy_step,
           pixel_sigma, dem_sigma, show_profile, profile_json):
@@ -350,10 +347,6 @@ def ortho(ctx, images, odm_dataset, int_param, ext_param, dimap, attitude_model,
 
         stop, failed = ctx.meta.get("orthowarp.stop"), threading.Event()
         options["cancel"] = _Either(stop, failed)
-        if stream_priority == "high":  # this process is the CLI's: its device stream may be set
-            from ._device import resolve_device, use_priority_stream
-
-            use_priority_stream(resolve_device(device))
         for *_, dst in jobs:
             check_destination(dst, overwrite=overwrite)
             if accuracy:

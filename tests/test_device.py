@@ -240,19 +240,3 @@ def test_a_slow_module_load_is_announced_as_compiling(monkeypatch, caplog):
         time.sleep(0.1)  # past the notice's delay: a cancelled timer stays silent
         assert not [r for r in caplog.records if "Compiling" in r.getMessage()]
 
-
-def test_priority_stream(device):
-    """use_priority_stream gives a CUDA device a new high-priority current stream (later work
-    still runs on it in order) and leaves the CPU alone."""
-    dev = wp.get_device(device)
-    before = wp.get_stream(dev) if dev.is_cuda else None
-    try:
-        _device.use_priority_stream(dev)
-        if dev.is_cuda:
-            stream = wp.get_stream(dev)
-            assert stream is not before and stream.priority == -1
-        a = wp.array([1.0, 2.0], dtype=wp.float64, device=dev)
-        assert a.numpy().tolist() == [1.0, 2.0]
-    finally:
-        if before is not None:
-            wp.set_stream(before, device=dev, sync=True)
