@@ -22,7 +22,7 @@ from ..kernels.ray import SearchParams
 from ..refraction import RefractionModel
 from ..sensor import SensorModel, check_centre_above_terrain
 from .dem import MAX_GROUND_HEIGHT, Dem, _horizontal, as_dem, memory_budget
-from .vertical import reconcile_dem
+from .vertical import as_geoid, reconcile_dem
 
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike
@@ -224,6 +224,7 @@ class SensorGeometry:
             region = (0.0, 0.0, *map(float, sensor.image_size))
         frame = None if sensor.geocentric else sensor.horizontal_crs  # the map CRS itself, not its 3-D form
         terrain = as_dem(dem)
+        geoid = as_geoid(geoid)  # checked whether or not the DEM needs it
         dem = _prepared_dem(terrain, lambda d: reconcile_dem(
             d, sensor.positions, geoid=geoid, same_vertical_datum=same_vertical_datum,
             name=_dem_name(d)).for_frame(frame), self._probe, region, self.horizontal_crs, height_range)

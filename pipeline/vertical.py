@@ -17,15 +17,16 @@ the DEM's window only.
 """
 
 import logging
+import os
 
 import numpy as np
 from pyproj import Transformer
 
-from ..errors import ParamError
+from ..errors import ParamError, RasterIOError
 from ..pose import GEOCENTRIC
 from .dem import Dem
 
-__all__ = ["height_kind", "reconcile_dem"]
+__all__ = ["as_geoid", "height_kind", "reconcile_dem"]
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +51,27 @@ def height_kind(crs):
 
 def _pose_kind(pose):
     return ELLIPSOIDAL if pose.mode == GEOCENTRIC else height_kind(pose.crs)
+
+
+def as_geoid(geoid):
+    """A geoid grid argument, checked whether or not a job turns out to need it: None, a
+    :class:`Dem` as it is, or a grid file opened (its header: any raster GDAL reads with a CRS).
+
+    Raises
+    ------
+    RasterIOError
+        The file does not exist or GDAL cannot read it (the message names it as the geoid grid).
+    ParamError
+        Not a Dem or a path.
+    """
+    if geoid is None or isinstance(geoid, Dem):
+        return geoid
+    if not isinstance(geoid, (str, os.PathLike)):
+        raise ParamError(f"geoid must be a Dem or a grid file, got {type(geoid).__name__}")
+    try:
+        return Dem.from_file(geoid)
+    except (RasterIOError, ParamError) as e:
+        raise type(e)(f"Could not use '{os.fspath(geoid)}' as the geoid grid: {e}") from e
 
 
 def reconcile_dem(dem, pose, *, geoid=None, same_vertical_datum=False, name="DEM"):
@@ -85,7 +107,8 @@ def reconcile_dem(dem, pose, *, geoid=None, same_vertical_datum=False, name="DEM
         raise ParamError(
             f"{name} has {dk} heights ({dem.crs.name}) but the positions are {pk}: pass a geoid grid "
             "(--geoid FILE, e.g. egm08_25.gtx) to convert, or --same-vertical-datum if they agree")
-    grid = Dem.from_file(geoid) if not isinstance(geoid, Dem) else geoid
+    grid = as_geoid(geoid)
+    geoid = grid.source or "given"  # its name in the messages
     rows, cols = dem.shape
     jj, ii = np.meshgrid(np.arange(cols) + 0.5, np.arange(rows) + 0.5)
     x, y = dem.transform @ (jj, ii)

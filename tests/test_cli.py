@@ -1,6 +1,7 @@
 """The command line: the demo end to end, and clean one-line errors."""
 
 import json
+import os
 
 from click.testing import CliRunner
 
@@ -74,6 +75,16 @@ def test_ortho_command(tmp_path):
     res = CliRunner().invoke(main, ["ortho", str(tmp_path / "img.tif"), *args, "--height", "100",
                                     "--out-dir", str(out), "--device", "cpu"])
     assert res.exit_code == 1 and "--overwrite" in res.output
+
+
+def test_ortho_checks_a_geoid_grid_it_would_not_use(tmp_path):
+    """--geoid is checked even where the job needs no datum conversion (a constant height)."""
+    args = _ortho_inputs(tmp_path)
+    (tmp_path / "geoid.tif").write_text("not a raster")
+    res = CliRunner().invoke(main, ["-q", "ortho", str(tmp_path / "img.tif"), *args, "--height", "100", "--geoid",
+                                    str(tmp_path / "geoid.tif"), "--out-dir", str(tmp_path / "out"), "--device", "cpu"])
+    assert res.exit_code == 1 and "as the geoid grid" in res.output and "geoid.tif" in res.output
+    assert not os.path.exists(tmp_path / "out" / "img_ORTHO.tif")
 
 
 def test_ortho_crs_options_and_quoted_globs(tmp_path):

@@ -10,7 +10,7 @@ from pyproj import CRS
 
 import orthowarp as ow
 from orthowarp.errors import ParamError
-from orthowarp.pipeline.vertical import height_kind, reconcile_dem
+from orthowarp.pipeline.vertical import as_geoid, height_kind, reconcile_dem
 from orthowarp.sensor import FrameSensor
 
 GEOCENTRIC_POSE = ow.Pose.from_ins(47.0, 8.0, 2000.0, 0.0, 0.0, 0.0)
@@ -90,3 +90,20 @@ def test_scaled_geoid_grid_file_read_over_the_dem_window_only(tmp_path, monkeypa
     np.testing.assert_allclose(out["cm"][0], 400.0 + 47.0 + 0.5 * (x - 8.0), atol=0.006)
     np.testing.assert_allclose(out["cm"], out["float"], atol=0.006)  # half a centimetre of rounding
     assert len(reads) == 2 and max(reads) < 0.01 * 400 * 300
+
+
+@pytest.mark.parametrize("bad", ["missing", "junk"])
+def test_a_geoid_grid_is_checked_even_where_it_is_not_needed(tmp_path, bad):
+    """A geoid grid that cannot be read is an error naming it as the geoid grid even when the
+    DEM and the positions share their datum (the grid would go unused); the CLI's test is in
+    test_cli.py."""
+    path = tmp_path / "geoid.tif"
+    if bad == "junk":
+        path.write_text("not a raster")
+    sensor = FrameSensor(ow.FrameCamera(50.0, 0.01, (100, 100)), GEOCENTRIC_POSE)
+    with pytest.raises(ow.RasterIOError, match="as the geoid grid") as e:
+        ow.geolocate(sensor, [[50, 50]], dem=dem_in("EPSG:4326"), device="cpu", geoid=str(path))
+    assert str(path) in str(e.value)
+    assert as_geoid(None) is None
+    with pytest.raises(ParamError, match="geoid must be"):
+        as_geoid(3.0)
