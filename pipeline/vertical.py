@@ -106,7 +106,8 @@ def reconcile_dem(dem, pose, *, geoid=None, same_vertical_datum=False, name="DEM
     if geoid is None:
         raise ParamError(
             f"{name} has {dk} heights ({dem.crs.name}) but the positions are {pk}: pass a geoid grid "
-            "(--geoid FILE, e.g. egm08_25.gtx) to convert, or --same-vertical-datum if they agree")
+            "(geoid= / --geoid FILE, e.g. egm08_25.gtx) to convert, or same_vertical_datum=True / "
+            "--same-vertical-datum if they agree")
     grid = as_geoid(geoid)
     geoid = grid.source or "given"  # its name in the messages
     rows, cols = dem.shape
