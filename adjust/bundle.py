@@ -1,16 +1,16 @@
-"""Bundle block adjustment of frame images (seed 002), map-Cartesian mode.
+"""Bundle block adjustment of frame images ([P2]), map-Cartesian mode.
 
 Unknowns: six pose parameters per image (X0, Y0, Z0 in m; omega, phi, kappa in radians inside,
 degrees at the interface) and three coordinates per tie and control point (control points with
-sigma 0 are constants). Observations: image coordinates (collinearity, seed 002 eqs. 4-6,
+sigma 0 are constants). Observations: image coordinates (collinearity, [P2] eqs. 4-6,
 weights 1/sigma^2), control coordinates, GNSS projection centres and INS attitudes as weighted
 direct observations. Check points never enter; they are intersected afterwards with the
 adjusted poses.
 
 Solution: Levenberg-Marquardt on the normal equations partitioned into 6x6 image blocks U,
-3x3 point blocks V and the image-point blocks W (seed 002 eq. 10); the point blocks are
+3x3 point blocks V and the image-point blocks W ([P2] eq. 10); the point blocks are
 eliminated (Schur complement ``S = U - W V^-1 W^T``, the reduced camera system, formed as one
-sparse product), S is factorised sparse (SuperLU) and the points back-substituted. Statistics (seed 002 eq. 11 and the usual
+sparse product), S is factorised sparse (SuperLU) and the points back-substituted. Statistics ([P2] eq. 11 and the usual
 photogrammetric set): sigma0, covariances ``sigma0^2 Q`` of every pose (6x6) and point (3x3) from
 solves with the factorisation (no dense inverse), residuals, redundancy numbers, Baarda's
 w-test with optional iterative rejection, an optional Huber loss, high-correlation warnings,

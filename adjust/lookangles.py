@@ -1,4 +1,4 @@
-"""Pre-adjustment of a pushbroom scene's look angles by ground control (seed 000, eqs. 19-20).
+"""Pre-adjustment of a pushbroom scene's look angles by ground control ([P1], eqs. 19-20).
 
 With a SPOT-5 level-1A scene and ground control, the detectors' look angles are the dominant
 error; they are corrected first, with the exterior orientation held fixed. Per control point,
@@ -20,13 +20,13 @@ point two conditions
 
 whose observations ``l`` are the measured column and row (px) and the point's east, north and up
 offsets (m) from its given coordinates, weighted by their sigmas, so that ground control noise
-(seed 000's GPS survey: +-0.06 m horizontally, +-1 m vertically) and image measurement noise
+([P1]'s GPS survey: +-0.06 m horizontally, +-1 m vertically) and image measurement noise
 enter together. ``B = dg/dl`` is taken by central differences of the float64 model (the
 nominal look angles are linear between detectors, so ``dg/dcol`` is their local slope), ``A``
 is the polynomial basis. Iterated to convergence of ``dx``; ``sigma0^2 = v^T P v / r`` with
 ``r = 2 n - 2 (degree + 1)``.
 
-Reference: seed 000 (SPOT-5 HRG level 1A, look-angle pre-adjustment); W. Foerstner and B.
+Reference: [P1] (SPOT-5 HRG level 1A, look-angle pre-adjustment); W. Foerstner and B.
 Wrobel, Photogrammetric Computer Vision (2016), section 4.8 (Gauss-Helmert model).
 """
 
@@ -175,7 +175,7 @@ def check_scenes(scenes, points):
 
 
 def preadjust_look_angles(scenes, points, *, degree=2, max_iterations=20, xtol=1e-13):
-    """Correct the look angles of pushbroom scenes by ground control, EO held fixed (seed 000
+    """Correct the look angles of pushbroom scenes by ground control, EO held fixed ([P1]
     eqs. 19-20; see the module doc).
 
     Parameters
@@ -186,7 +186,7 @@ def preadjust_look_angles(scenes, points, *, degree=2, max_iterations=20, xtol=1
         Control points (their given coordinates and sigmas, measured col/row and sigma) and
         check points; tie points are ignored here.
     degree : int, optional
-        Degree of the correction polynomials along the detector line (0-4; seed 000: 2).
+        Degree of the correction polynomials along the detector line (0-4; [P1]: 2).
     max_iterations : int, optional
     xtol : float, optional
         Convergence: largest coefficient change (rad).

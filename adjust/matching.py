@@ -1,4 +1,4 @@
-"""Area-based matching of points between two images (seed 002): NCC search around predicted
+"""Area-based matching of points between two images ([P2]): NCC search around predicted
 positions, then least-squares matching, on a Warp device (one thread per point; the CPU
 backend gives the same results). The device code is :mod:`orthowarp.kernels.matching`.
 
@@ -193,7 +193,7 @@ def _box(a, half):
 
 
 def interest_points(image, *, zones=(4, 3), per_zone=1, window=21, min_roundness=0.5, margin=None):
-    """Well-textured points by Foerstner's operator, spread over a grid of zones (seed 002:
+    """Well-textured points by Foerstner's operator, spread over a grid of zones ([P2]:
     6 or 12 per image).
 
     The operator's normal matrix N = sum over the window of the gradients' outer products gives

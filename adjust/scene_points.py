@@ -1,5 +1,5 @@
 """Ground points measured in pushbroom scenes, as arrays (:class:`ScenePoints`): the
-observations of the SPOT-5 look-angle pre-adjustment and stereo adjustment (seed 000).
+observations of the SPOT-5 look-angle pre-adjustment and stereo adjustment ([P1]).
 
 The file formats live in :mod:`orthowarp.pipeline.scenepoints`; this module only holds and
 checks the data.

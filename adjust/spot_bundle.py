@@ -1,9 +1,9 @@
-"""Bundle adjustment of pushbroom scenes' exterior orientation (seed 000, eqs. 14-17 and 21).
+"""Bundle adjustment of pushbroom scenes' exterior orientation ([P1], eqs. 14-17 and 21).
 
-Each scene's exterior orientation is seed 000's 27 coefficients: position (m), velocity (m/s)
+Each scene's exterior orientation is [P1]'s 27 coefficients: position (m), velocity (m/s)
 and attitude (yaw, pitch, roll; rad), each per axis a 2nd-degree polynomial in line time t
 (:attr:`~orthowarp.pushbroom.PushbroomScene.polynomials`). A subset of coefficient groups is
-freed per scene (seed 000's Table 2: ``position0`` the three constant terms of the position,
+freed per scene ([P1]'s Table 2: ``position0`` the three constant terms of the position,
 ``attitude1`` the linear terms of the attitude, and so on); the ground coordinates of tie and
 check points are unknowns too (check points are thereby intersected from the scenes, and
 compared with their given coordinates only afterwards); control points are unknowns with
@@ -24,10 +24,10 @@ Beyond the seed: ``eo_sigma`` puts weighted priors on the freed coefficients (th
 and attitude accuracy: a constant term's sigma, the linear and quadratic terms' scaled so that
 each moves the orbit or attitude at the scene's ends by that much), which keeps combinations of
 groups that the control cannot separate well posed; without it the groups are free, as in the
-seed, and the correlations between freed groups are reported (seed 000 explains the failures of
+seed, and the correlations between freed groups are reported ([P1] explains the failures of
 combined groups by them).
 
-Reference: seed 000 (SPOT-5 HRG level 1A stereo, Gauss-Helmert bundle adjustment with EO groups).
+Reference: [P1] (SPOT-5 HRG level 1A stereo, Gauss-Helmert bundle adjustment with EO groups).
 """
 
 from dataclasses import dataclass, field
@@ -218,7 +218,7 @@ def adjust_scenes(scenes, points, *, groups=("attitude0",), eo_sigma=None, look_
         an attitude constant are nearly the same unknown: free them together only with priors).
     eo_sigma : dict, optional
         Priors on the freed coefficients: ``{"position": m, "velocity": m/s, "attitude": rad,
-        "look": rad}`` (see the module doc). Default: none (free groups, as seed 000).
+        "look": rad}`` (see the module doc). Default: none (free groups, as [P1]).
     look_degree : int, optional
     max_iterations : int, optional
     xtol : float, optional

@@ -1,5 +1,5 @@
 """Simulated SPOT-like stereo pairs with truth, for the pushbroom adjustment's tests and bench
-(the setting of seed 000: two scenes of one area from different orbits and mirror angles,
+(the setting of [P1]: two scenes of one area from different orbits and mirror angles,
 ground control from a GPS survey, image measurements of a few tenths of a pixel).
 
 - :func:`stereo_pair`: two synthetic scenes whose centres see the same ground point.
@@ -18,7 +18,7 @@ from .scene_points import ScenePoints
 __all__ = ["stereo_pair", "perturbed", "simulate_points", "LAYOUTS"]
 
 LAYOUTS = ("H-0", "H-20", "G-A", "G-B")
-"""Point distributions after seed 000: H-0 every point control; H-20 20 spread check points
+"""Point distributions after [P1]: H-0 every point control; H-20 20 spread check points
 (half of them below 40 points);
 G-A control only in the first half of the lines; G-B control only in the first half of the
 columns (of the first scene)."""
@@ -63,7 +63,7 @@ def simulate_points(truth, *, n=47, layout="H-20", ground_sigma=(0.06, 0.06, 1.0
     layout : {"H-0", "H-20", "G-A", "G-B"}, optional
         See :data:`LAYOUTS`.
     ground_sigma : (float, float, float), optional
-        Control coordinates' noise east, north, up (m): seed 000's GPS survey.
+        Control coordinates' noise east, north, up (m): [P1]'s GPS survey.
     pixel_sigma : float, optional
         Image measurement noise (px).
     seed : int, optional

@@ -4,7 +4,7 @@ Strips flown along +x with ``forward`` (default 60 %) overlap along the track an
 (30 %) between strips, kappa = 0; tie points at the standard (von Gruber) positions of the
 images: three along the track (-base, 0, +base, so that neighbouring images share them) by
 two to four rows across (see ``ties_per_image``; 9 is the classic 3 x 3 layout), or spread at
-random; a smooth terrain; control-point layouts in the spirit of seed 002's groups (``A`` well
+random; a smooth terrain; control-point layouts in the spirit of [P2]'s groups (``A`` well
 spread: corners, edge midpoints and centre; ``B`` the four corners; ``C`` clustered at one end
 of the block; ``D`` none, for GNSS-supported blocks); check points scattered over the block.
 Control and check points are ground points of their own, placed independently of the tie
@@ -25,7 +25,7 @@ CONTROL_LAYOUTS = ("A", "B", "C", "D")
 
 
 def film_camera():
-    """A wide-angle film camera of the kind seed 002's blocks were flown with: f = 153 mm,
+    """A wide-angle film camera of the kind [P2]'s blocks were flown with: f = 153 mm,
     230 x 230 mm format scanned at 20 um (11500 x 11500 pixels), no distortion."""
     return FrameCamera(153.0, 0.020, (11500, 11500))
 
@@ -73,7 +73,7 @@ def synthetic_block(*, strips=3, images_per_strip=8, ties_per_image=12, control=
     camera : FrameCamera, optional
         The block's (nominal) camera; its image's first axis lies along the track. Default: a
         digital frame camera, f = 100 mm, 9 um pixels, 7000 x 10000 pixels, no distortion
-        (base-to-height ratio 0.25 at 60 % overlap); :func:`film_camera` gives seed 002's
+        (base-to-height ratio 0.25 at 60 % overlap); :func:`film_camera` gives [P2]'s
         kind of wide-angle film camera (0.6).
     true_camera : FrameCamera, optional
         The camera that takes the images (for self-calibration tests); the block keeps the

@@ -1,4 +1,4 @@
-"""The frame-camera chain of seed 003 (direct georeferencing), device code: the frame
+"""The frame-camera chain of [P3] (direct georeferencing), device code: the frame
 sensor's device functions (its kernels are the sensor-generic ones of
 :mod:`orthowarp.kernels.sensor`).
 

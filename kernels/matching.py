@@ -1,4 +1,4 @@
-"""Area-based image matching, device code (seed 002): normalised cross-correlation search and
+"""Area-based image matching, device code ([P2]): normalised cross-correlation search and
 least-squares matching, one thread per point.
 
 Pixel coordinates follow DESIGN.md: (col, row) with the centre of pixel (i, j) at

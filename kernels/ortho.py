@@ -18,7 +18,7 @@ Backward (default), per output tile:
    weight is under half of the total is nodata), stored in the output's dtype,
    pixel-interleaved, as the file wants it. The source coordinates never leave registers.
 
-Forward (seed 003's direct method): :func:`forward_nodes_kernel` runs the forward chain for
+Forward ([P3]'s direct method): :func:`forward_nodes_kernel` runs the forward chain for
 every source pixel of the window that maps into the tile, and :func:`forward_scatter_kernel`
 inverts that map quad by quad into per-output-pixel source coordinates, which
 :func:`ortho_resample_kernel` resamples with the same :func:`resample_at`.
@@ -474,7 +474,7 @@ for _src, _out in ((wp.uint8, wp.uint8), (wp.uint16, wp.uint16), (wp.float32, wp
         wp.overload(ortho_kernel, {"arg": _arg, "data": wp.array3d(dtype=_src), "out": wp.array3d(dtype=_out)})
 
 
-# -- forward (direct) method, seed 003 ----------------------------------------------------------
+# -- forward (direct) method, [P3] ----------------------------------------------------------
 
 
 @wp.struct

@@ -27,7 +27,7 @@ wp.set_module_options({"enable_backward": False})
 class PushbroomData:
     """A scene packed for kernels: ephemeris (times s, ECEF positions m, velocities m/s),
     attitudes (times s; yaw, pitch, roll rad), look angles per detector (psi_x, psi_y rad),
-    line period (s), DIMAP centre line, first_order (1: seed 000's eq. 4 attitude matrix),
+    line period (s), DIMAP centre line, first_order (1: [P1]'s eq. 4 attitude matrix),
     and the extrapolation (s) allowed past the attitudes.
 
     line_p, line_r: the satellite position and the rotation R = [X2 Y2 Z2] M of the rows
@@ -35,7 +35,7 @@ class PushbroomData:
     rigorous model on the host; between them P and R are linear in the row (errors ~ a dt^2 / 8
     = 6e-7 m and 1e-12 rad at SPOT's line period), outside them the rigorous model runs here.
     det_u: the unit look vector u1 of every detector, likewise linear between detectors.
-    poly, use_poly: seed 000's 27 coefficients (position, velocity, attitude as 2nd-degree
+    poly, use_poly: [P1]'s 27 coefficients (position, velocity, attitude as 2nd-degree
     polynomials in t; entry 3 q + k holds the power-k coefficients of quantity q), used instead
     of the ephemeris and attitude samples when use_poly is 1."""
 

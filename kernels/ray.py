@@ -1,5 +1,5 @@
 """Rays of any sensor met with the Earth, device code: the ellipsoid at a height, the
-atmospheric refraction of the ray, and the DEM relief search (seed 003's chain after the
+atmospheric refraction of the ray, and the DEM relief search ([P3]'s chain after the
 camera: the frame kernels and the pushbroom kernels both end here).
 
 A ray starts at a sensor position in an object frame (:class:`FramePoseData`: ECEF for
@@ -51,7 +51,7 @@ class SearchParams:
 def point_at_height(pose: FramePoseData, d: wp.vec3d, h: wp.float64):
     """Geo triple where the ray (center, unit d) meets the surface of height h; NaN if it misses.
 
-    Geocentric: the ellipsoid of semi-axes a + h, b + h (seed 003 eqs. 10-12), solved in the
+    Geocentric: the ellipsoid of semi-axes a + h, b + h ([P3] eqs. 10-12), solved in the
     cancellation-free form of the quadratic; the returned height is the exact geodetic height
     of the intersection, which differs from h by millimetres. Map mode: the plane z = h.
     """
@@ -76,7 +76,7 @@ def point_at_height(pose: FramePoseData, d: wp.vec3d, h: wp.float64):
 def ellipsoid_distance(c: wp.vec3d, d: wp.vec3d, h: wp.float64):
     """Distance (m) along the unit ray (c, d) to the ellipsoid of semi-axes a + h, b + h.
 
-    Seed 003 eqs. 10-12, the near root of the quadratic in its cancellation-free form; NaN
+    [P3] eqs. 10-12, the near root of the quadratic in its cancellation-free form; NaN
     when the ray misses, points away, or starts inside.
     """
     ia = wp.float64(1.0) / (WGS84_A + h)
@@ -195,7 +195,7 @@ def geolocate_ray(
 ):
     """First intersection of an apparent ray (unit, object frame) with the DEM, as a geo triple.
 
-    Relief search (replaces the fixed-point iteration of seed 003 eqs. 18-21, which diverges
+    Relief search (replaces the fixed-point iteration of [P3] eqs. 18-21, which diverges
     where slope x tan(off-nadir) > 1):
 
     1. the ray's ground track between the DEM's highest and lowest heights is computed

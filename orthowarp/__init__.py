@@ -10,7 +10,10 @@ Public API::
     colrow = ow.project(sensor, lonlath)
 
 Conventions (units, axes, pixel origin) are those of DESIGN.md: metres, degrees, seconds;
-pixel (col, row) with the origin at the top-left corner of the top-left pixel.
+pixel (col, row) with the origin at the top-left corner of the top-left pixel. [P1]-[P4] in
+the docstrings are the four papers the geometry and the adjustment follow (README, "References"):
+[P1] SPOT-5 HRG level-1A rigorous model, [P2] aerial triangulation, [P3] direct
+georeferencing and differential rectification, [P4] precision by error propagation.
 """
 
 import logging

@@ -124,7 +124,7 @@ class FrameCamera:
                              image_size: tuple[int, int], *, principal_point: tuple[float, float] = (0.0, 0.0),
                              k1: float = 0.0, k2: float = 0.0, k3: float = 0.0, p1: float = 0.0, p2: float = 0.0,
                              decentring: str = "fraser") -> FrameCamera:
-        """Build from Brown coefficients in mm units for a y-up image frame (seed 003's eq. 2).
+        """Build from Brown coefficients in mm units for a y-up image frame ([P3]'s eq. 2).
 
         Parameters
         ----------
@@ -136,7 +136,7 @@ class FrameCamera:
             Decentring coefficients, mm^-1, in the order ``decentring`` names.
         decentring : {"fraser", "opencv"}, optional
             Which decentring term each coefficient carries. "fraser" (default: the
-            Fraser/Australis order of seed 003's eq. 2, and of most photogrammetric calibration
+            Fraser/Australis order of [P3]'s eq. 2, and of most photogrammetric calibration
             reports), with x, y in mm from the principal point, y up, r^2 = x^2 + y^2::
 
                 dx = x (k1 r^2 + k2 r^4 + k3 r^6) + p1 (r^2 + 2 x^2) + 2 p2 x y
@@ -151,7 +151,7 @@ class FrameCamera:
         Notes
         -----
         The class applies (dx, dy) as forward distortion: a ray's undistorted image point (x, y)
-        lands at (x + dx, y + dy). Seed 003 writes its model as the correction of a measured
+        lands at (x + dx, y + dy). [P3] writes its model as the correction of a measured
         (distorted) point; the two readings agree to first order in the distortion only (they
         differ by terms in the products of coefficients: for a calibration estimated as a
         correction, re-estimate it as forward distortion, or expect differences of the order of

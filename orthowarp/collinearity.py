@@ -1,4 +1,4 @@
-"""Collinearity equations of frame images (seed 002 eqs. 4-6): the host model of
+"""Collinearity equations of frame images ([P2] eqs. 4-6): the host model of
 :class:`~orthowarp.sensor.FrameSensor` and of the bundle adjustment (:mod:`orthowarp.adjust`).
 
 Pure functions of arrays (float64 NumPy), vectorised over observations:

@@ -99,7 +99,7 @@ def geodetic_up(lat, lon):
 
 
 def enu_to_ecef_matrix(lat, lon):
-    """R_ecef<-enu (3, 3) at latitude, longitude (deg): columns east, north, up (seed 003 eq. 9)."""
+    """R_ecef<-enu (3, 3) at latitude, longitude (deg): columns east, north, up ([P3] eq. 9)."""
     m = ned_to_ecef_matrix(lat, lon)
     return np.stack([m[:, 1], m[:, 0], geodetic_up(lat, lon)], axis=1)
 
@@ -190,15 +190,15 @@ def opk_angles(r):
 
 
 def r1(angle):
-    """Seed 003's elementary rotation R1 (3, 3): a passive (frame) rotation, ``R1(a) = rx(-a)``."""
+    """[P3]'s elementary rotation R1 (3, 3): a passive (frame) rotation, ``R1(a) = rx(-a)``."""
     return rx(-angle)
 
 
 def r2(angle):
-    """Seed 003's elementary rotation R2 (3, 3): ``R2(a) = ry(-a)``."""
+    """[P3]'s elementary rotation R2 (3, 3): ``R2(a) = ry(-a)``."""
     return ry(-angle)
 
 
 def r3(angle):
-    """Seed 003's elementary rotation R3 (3, 3): ``R3(a) = rz(-a)``."""
+    """[P3]'s elementary rotation R3 (3, 3): ``R3(a) = rz(-a)``."""
     return rz(-angle)

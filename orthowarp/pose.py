@@ -19,7 +19,7 @@ if TYPE_CHECKING:
 __all__ = ["Pose"]
 
 # R_body<-cam for the standard mount: body x = camera y, body y = camera x, body z = -camera z
-# (seed 003: R3(-90 deg) R1(180 deg)).
+# ([P3]: R3(-90 deg) R1(180 deg)).
 MOUNT = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
 
 GEOCENTRIC = "geocentric"
@@ -130,7 +130,7 @@ class Pose:
     @classmethod
     def from_opk(cls, x: float, y: float, z: float, omega: float, phi: float, kappa: float, *,
                  crs: CRS | str | int) -> Pose:
-        """Photogrammetric pose (PATB, seed 002 eq. 2), map-Cartesian mode.
+        """Photogrammetric pose (PATB, [P2] eq. 2), map-Cartesian mode.
 
         Parameters
         ----------

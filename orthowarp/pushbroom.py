@@ -1,4 +1,4 @@
-"""Rigorous pushbroom model of SPOT level-1A scenes (seed 000; DESIGN.md, "Pushbroom").
+"""Rigorous pushbroom model of SPOT level-1A scenes ([P1]; DESIGN.md, "Pushbroom").
 
 Float64 NumPy on the host: the reference the kernels are checked against, and the place where
 the exterior orientation is fitted as polynomials in line time.
@@ -12,7 +12,7 @@ interpolated linearly between detectors) ->
   ephemeris;
 - yaw, pitch, roll linearly interpolated in time;
 - orbital frame ``Z2 = P/|P|, X2 = (V x Z2)/|V x Z2|, Y2 = Z2 x X2``;
-- attitude ``M = Mp Mr My`` (SPOT geometry handbook eq. 11), or seed 000's first-order form;
+- attitude ``M = Mp Mr My`` (SPOT geometry handbook eq. 11), or [P1]'s first-order form;
 - look vector ``u1 = normalize(-tan psi_y, tan psi_x, -1)``;
 - ray ``P + s [X2 Y2 Z2] M u1`` intersected with the ellipsoid (or the DEM).
 
@@ -148,8 +148,8 @@ def attitude_matrix(yaw, pitch, roll, *, first_order=False):
     """M = Mp Mr My (handbook eq. 11) for arrays of angles (rad) -> (n, 3, 3).
 
     With ``first_order``, the handbook's linearisation (angles to first order), which is what
-    seed 000's eq. 4 stands for: with the roll and pitch signs the DIMAP angles need (the rows
-    above, the full matrix's first-order terms). Seed 000's eq. 4 as printed, fed the DIMAP
+    [P1]'s eq. 4 stands for: with the roll and pitch signs the DIMAP angles need (the rows
+    above, the full matrix's first-order terms). [P1]'s eq. 4 as printed, fed the DIMAP
     angles, moves ground points by ~1.9 km at the SPOT-5 sample scene; the seed's text says to
     negate roll and pitch, which gives this form."""
     y, p, r = (np.atleast_1d(np.asarray(a, dtype=np.float64)) for a in (yaw, pitch, roll))
@@ -208,7 +208,7 @@ class PushbroomScene(SensorModel):
         Look angles (rad) of every detector.
     attitude_model : {"full", "first_order"}, optional
         "full": the attitude matrix of the three angles (handbook eq. 11); "first_order": its
-        linearisation (seed 000's eq. 4 with roll and pitch signed as the DIMAP angles need;
+        linearisation ([P1]'s eq. 4 with roll and pitch signed as the DIMAP angles need;
         see :func:`attitude_matrix`).
     epoch : numpy.datetime64, optional
         UTC of t = 0 (informative).
@@ -216,13 +216,13 @@ class PushbroomScene(SensorModel):
         Seconds the attitudes may be extrapolated past their first/last sample (default 0.5:
         level-1A files start the attitudes a few lines after the first line).
     polynomials : array_like, shape (3, 3, 3), optional
-        Seed 000's exterior orientation as 2nd-degree polynomials in line time t (s):
+        [P1]'s exterior orientation as 2nd-degree polynomials in line time t (s):
         ``[quantity][axis][power]`` for quantity position (m), velocity (m/s), attitude (yaw,
         pitch, roll, rad): 27 coefficients that replace the ephemeris interpolation and the
         attitude samples when given (see :meth:`fit_polynomials`). They are the scene's
         :meth:`parameters` (named as :data:`POLYNOMIAL_PARAMETERS`: ``position_x_0`` ..
         ``attitude_roll_2``; units m, m/s, rad per s to the power). (No adjustment of them
-        exists yet: seed 000's Gauss-Helmert bundle adjustment of these groups is planned work.)
+        exists yet: [P1]'s Gauss-Helmert bundle adjustment of these groups is planned work.)
     """
 
     kind = "pushbroom"
@@ -499,7 +499,7 @@ class PushbroomScene(SensorModel):
         return (1 - a) * values[i] + a * values[i + 1]
 
     def fit_polynomials(self, *, samples: int = 201) -> tuple[np.ndarray, dict[str, float]]:
-        """Fit seed 000's 27 coefficients: position, velocity and attitude as 2nd-degree
+        """Fit [P1]'s 27 coefficients: position, velocity and attitude as 2nd-degree
         polynomials in line time, by least squares over the scene's lines (the metadata's
         interpolated orbit and attitudes, ``samples`` lines evenly spread).
 

@@ -2,8 +2,8 @@
 
 The atmosphere is the U.S. Standard Atmosphere 1976 (pressure and temperature by geopotential
 layers up to 86 km, vacuum above), and its refractivity the dry-air Smith-Weintraub/Essen form
-``N = 77.6 P / T`` (P in hPa, T in K; n = 1 + 1e-6 N), as in seed 003's eq. 13 sense of a
-refractive index per layer. Layers are 50 m thick below 20 km (seed 003 uses 1 km), 250 m to
+``N = 77.6 P / T`` (P in hPa, T in K; n = 1 + 1e-6 N), as in [P3]'s eq. 13 sense of a
+refractive index per layer. Layers are 50 m thick below 20 km ([P3] uses 1 km), 250 m to
 50 km and 1 km above. Inside a layer the index is constant and the ray straight; across
 spherical layer boundaries Snell's law makes ``n r sin(z)`` invariant (Bouguer), so the central
 angle a ray sweeps is the sum over layers of ``acos(b / r_top) - acos(b / r_bottom)`` with the

@@ -15,7 +15,7 @@ Files written into the output folder, all together or none (:func:`~orthowarp.pi
   adjustment computed covariances);
 - ``report.json``: statistics (sigma0, redundancy, RMSE per axis, pose sigmas, rejections,
   correlation warnings, residual summary);
-- ``report.md``, ``residuals.png`` (image residual vectors of every image, seed 000 Figures
+- ``report.md``, ``residuals.png`` (image residual vectors of every image, [P1] Figures
   5-7 style) and ``errors.png`` (planimetric error vectors and height errors at control and
   check points).
 """

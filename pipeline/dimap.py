@@ -23,7 +23,7 @@ Earth's polar radius and :data:`MAX_ORBIT_RADIUS`, with velocities not parallel 
 below :data:`MAX_SPEED`; times ISO 8601 (``YYYY-MM-DDThh:mm:ss[.ffffff][Z]``).
 
 Reference: SPOT Image, "SPOT Satellite Geometry Handbook", S-NT-73-12-SI, 2002 (the DIMAP
-elements and the model); seed 000 of this project.
+elements and the model); [P1] of this project.
 """
 
 import os

@@ -1,5 +1,5 @@
 """Tie points between frame images by area-based matching, predicted through the sensors'
-geometry (seed 002): interest points of one image, their ground points on the DEM, their
+geometry ([P2]): interest points of one image, their ground points on the DEM, their
 predicted pixels and local affine maps (rotation, scale, shear between the views) in the other
 image, NCC + least-squares matching (:func:`orthowarp.adjust.match_points`), back-matching.
 """
@@ -155,7 +155,7 @@ def match_pair(left, right, left_sensor, right_sensor, dem, *, zones=(4, 3), per
 
 def match_block(images, sensors, dem, *, ids=None, zones=(4, 3), per_zone=2, window=21, radius=8, levels=0,
                 min_score=0.7, max_back_error=0.2, gnss_sigma=None, ins_sigma=None, refraction=True, device=None):
-    """Tie points of a block of frame images by matching (seed 002), as a
+    """Tie points of a block of frame images by matching ([P2]), as a
     :class:`~orthowarp.adjust.Block` that :func:`~orthowarp.adjust.bundle_adjust` takes.
 
     Every image's interest points are matched in every other image their predictions fall in

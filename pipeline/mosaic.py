@@ -203,7 +203,7 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
         With ``balance``: the image (position in ``images``) whose radiometry is kept; default:
         the gains' geometric mean is 1 and the offsets' mean 0.
     occlusion : bool, optional
-        Project each image by the forward method (seed 003's direct method), which leaves the
+        Project each image by the forward method ([P3]'s direct method), which leaves the
         ground it cannot see (behind relief or objects on the DSM) without a value, so that
         another image that sees it supplies it; False: the backward method, which fills hidden
         ground with whatever hides it (faster). Pushbroom scenes are always projected by the

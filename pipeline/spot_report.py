@@ -9,7 +9,7 @@
 - ``report.json``: sigma0, redundancy, RMSE east/north/up at control and check points before
   and after, the freed groups' coefficients, sigmas and correlations, the pre-adjustment's
   corrections;
-- ``report.md``, ``residuals.png`` (image residual vectors over each scene, seed 000's Figure 5)
+- ``report.md``, ``residuals.png`` (image residual vectors over each scene, [P1]'s Figure 5)
   and ``errors.png`` (check-point errors).
 """
 
