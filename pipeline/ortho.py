@@ -898,9 +898,7 @@ class ImageTiles:
         except GDAL_ERRORS as e:
             raise RasterIOError(f"Could not read image '{self.src}': {gdal_reason(e)}") from e
         if self.narrowing and self.clipped is not None:
-            n_out = int(np.count_nonzero((data > top) | (data < 0))) if data.dtype.kind == "f" else \
-                int(np.count_nonzero(data > top))
-            self.clipped.add(n_out, data.size)
+            _count_clipped(self.clipped, data, top)
         timer.span("read", t)
         t = time.perf_counter()
         arr = wp.array(data, dtype=_WP_TYPES[data.dtype.name], device=device)
@@ -931,6 +929,13 @@ class ImageTiles:
         sw.col0, sw.row0 = col0, row0
         sw.inv_sx, sw.inv_sy = inv_sx, inv_sy
         return sw
+
+
+def _count_clipped(counter, data, top):
+    """Add to ``counter`` the values of ``data`` outside [0, ``top``] (an integer output
+    narrower than the source clips them), out of its size."""
+    outside = (data > top) | (data < 0) if data.dtype.kind == "f" else data > top
+    counter.add(int(np.count_nonzero(outside)), data.size)
 
 
 def read_whole_source(src, device, *, masked, dtype, timer=None, clipped=None, top=0.0):
@@ -972,6 +977,8 @@ def read_whole_source(src, device, *, masked, dtype, timer=None, clipped=None, t
         t = time.perf_counter()
         handle = _open_source(src)
         stream = wp.Stream(device) if device.is_cuda else None
+        if stream is not None:  # the arrays were allocated in the device stream's order
+            stream.wait_stream(wp.get_stream(device))
         try:
             for r0, n in part:
                 win = Window(0, r0, w, n)
@@ -981,8 +988,7 @@ def read_whole_source(src, device, *, masked, dtype, timer=None, clipped=None, t
                 except GDAL_ERRORS as e:
                     raise RasterIOError(f"Could not read image '{src}': {gdal_reason(e)}") from e
                 if clipped is not None:
-                    clipped.add(int(np.count_nonzero((strip > top) | (strip < 0)) if strip.dtype.kind == "f"
-                                    else np.count_nonzero(strip > top)), strip.size)
+                    _count_clipped(clipped, strip, top)
                 t1 = time.perf_counter()
                 timer.span("read", t)
                 host = wp.array(strip, dtype=data.dtype, device="cpu", copy=False)

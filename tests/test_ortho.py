@@ -34,7 +34,7 @@ from pyproj import Transformer
 import orthowarp as ow
 import scenes
 from scenes import geo_dem
-from orthowarp.errors import GeometryError, ParamError, RasterIOError
+from orthowarp.errors import GeometryError, OrthowarpWarning, ParamError, RasterIOError
 from orthowarp.pipeline.ortho import orthorectify
 from orthowarp.pipeline.registration import misregistration
 from orthowarp.sensor import FrameSensor
@@ -567,7 +567,7 @@ def test_tiles_and_threads_do_not_change_the_result(tmp_path):
 @pytest.mark.parametrize("src_dtype,dtype,method,resampling,nodata,resolution", [
     ("float32", None, "backward", "lanczos", None, None), ("uint8", None, "backward", "bilinear", 0, None),
     ("uint8", "float32", "backward", "bicubic", None, None), ("uint16", None, "forward", "bilinear", None, None),
-    ("uint16", None, "backward", "bilinear", 0, 2.5)])
+    ("uint16", None, "backward", "bilinear", 0, 2.5), ("uint16", "uint8", "backward", "bilinear", None, None)])
 def test_whole_source_reads_write_the_same_pixels(tmp_path, device, src_dtype, dtype, method, resampling, nodata,
                                                    resolution):
     """source_reads="whole" (the source read once, by strips on threads, into device memory)
@@ -590,8 +590,12 @@ def test_whole_source_reads_write_the_same_pixels(tmp_path, device, src_dtype, d
     kw = dict(dem=sc.dem, refraction=False, device=device, method=method, resampling=resampling, tile_size=tile,
               workers=2, **({"dtype": dtype} if dtype else {}), **({"resolution": resolution} if resolution else {}))
     sensor = FrameSensor(sc.camera, sc.pose)
-    tiles = orthorectify(src, sensor, tmp_path / "tiles.tif", source_reads="tiles", **kw)
-    whole = orthorectify(src, sensor, tmp_path / "whole.tif", source_reads="whole", **kw)
+    with warnings.catch_warnings(record=True) as seen:  # a narrower output: clipped values counted both ways
+        warnings.simplefilter("always", OrthowarpWarning)
+        tiles = orthorectify(src, sensor, tmp_path / "tiles.tif", source_reads="tiles", **kw)
+        whole = orthorectify(src, sensor, tmp_path / "whole.tif", source_reads="whole", **kw)
+    clipped = [str(w.message) for w in seen if "were clipped" in str(w.message)]
+    assert len(clipped) == (2 if dtype == "uint8" else 0), clipped
     assert tiles.profile["source_reads"] == "tiles" and whole.profile["source_reads"] == "whole"
     if not resolution:  # read whole, by strips
         assert whole.profile["whole_source_strips"] >= 1 and "whole_source_strips" not in tiles.profile
