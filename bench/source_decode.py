@@ -6,7 +6,7 @@ threads, each uploaded on its own stream). This bench writes bench/ortho.py's pr
 20000 x 13000 x 3 uint8 frame as tiled (512 x 512) GeoTIFFs, uncompressed, deflate with
 predictor 2, and JPEG (quality 90, YCbCr), and times, per file:
 
-- ``gdal``: the ortho's own whole read (``ImageTiles._read_whole``) on the device: the source
+- ``gdal``: the ortho's own whole read (``read_whole_source``) on the device: the source
   in device memory, by GDAL on the host cores and uploads;
 - ``nvimgcodec``: nvImageCodec's decoder (nvTIFF for TIFF containers, nvJPEG for JPEG tiles)
   straight into device memory, where the package is installed and a CUDA device is present.
