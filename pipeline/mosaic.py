@@ -219,7 +219,7 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
         memory, blocks, overviews and libdeflate there), "nvcomp" (on a GPU: the tiles stay
         there, blocks and overview levels made there and deflated by nvCOMP; ``pip install
         'orthowarp[gpu]'``), "hybrid" (the same, libdeflate on the host cores taking the
-        tiles that arrive while nvCOMP is busy); "auto": "host" (the fastest measured for a
+        tiles that arrive while the device is busy and its next batch is full); "auto": "host" (the fastest measured for a
         mosaic, whose host cores are busy with the tiles). Every choice decodes to the same
         pixels.
     tile_size : int, optional

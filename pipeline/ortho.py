@@ -301,8 +301,8 @@ def orthorectify(src: str | os.PathLike, sensor: SensorModel, dst: str | os.Path
         there, in batches gathered over tiles; only compressed blocks cross to the host.
         "hybrid" (CUDA): the same device work, the blocks deflated on the device (nvCOMP
         at ``compress_level`` 1-4 where it is installed, else orthowarp's own kernels, as
-        "warp") and, for tiles that arrive while the device compresses a batch, by
-        libdeflate on the host cores, so both work at once (on the CPU device: libdeflate
+        "warp") and, for tiles that arrive while the device compresses a batch and its
+        next batch is already full, by libdeflate on the host cores, so both work at once (on the CPU device: libdeflate
         alone, after the same per-block work in Warp kernels). The files decode to the same
         pixels whichever path wrote them; nvCOMP's streams differ in size (``compress_level``
         1-4: its medium-ratio variant, 5-7: high, 8-12: highest). "warp": the same device work, the blocks deflated
