@@ -44,7 +44,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import yaml
 from pyproj import CRS, Transformer
 from pyproj.exceptions import CRSError
 
@@ -172,9 +171,11 @@ def _looks_like_json(path, text):
     return path.suffix.lower() in (".json", ".geojson") or text.lstrip()[:1] in ("{", "[")
 
 
-# PyYAML's pure-Python safe loader: libyaml's (CSafeLoader) is faster but overflows the C stack
-# (a crash, not an exception) on a document nested 100 000 deep
-_YAML_LOADER = yaml.SafeLoader
+def _yaml():
+    """PyYAML, imported on first use (JSON-only jobs, e.g. ODM datasets, never load it)."""
+    import yaml
+
+    return yaml
 
 
 def _load_structured(path, text):
@@ -188,8 +189,11 @@ def _load_structured(path, text):
             raise _fail(path, "invalid JSON: nested too deeply", e) from None
         except ValueError as e:  # e.g. an integer of more than 4300 digits
             raise _fail(path, f"invalid JSON: {_one_line(e)}", e) from e
+    yaml = _yaml()
     try:
-        return yaml.load(text, Loader=_YAML_LOADER)  # noqa: S506 - a safe loader
+        # PyYAML's pure-Python safe loader: libyaml's (CSafeLoader) is faster but overflows the C
+        # stack (a crash, not an exception) on a document nested 100 000 deep
+        return yaml.load(text, Loader=yaml.SafeLoader)  # noqa: S506 - a safe loader
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
@@ -1068,7 +1072,7 @@ def export_params(jobs, folder, *, camera_ids=None, overwrite=False):
         rows.append((os.path.splitext(os.path.basename(image))[0], *(repr(float(v)) for v in vals), names[id(cam)]))
     folder = os.fspath(folder)
     ensure_folder(folder)
-    files = {os.path.join(folder, "int_param.yaml"): yaml.safe_dump({names[id(c)]: _camera_dict(c) for c in cams}),
+    files = {os.path.join(folder, "int_param.yaml"): _yaml().safe_dump({names[id(c)]: _camera_dict(c) for c in cams}),
              os.path.join(folder, "ext_param.csv"): "\n".join(",".join(r) for r in rows) + "\n"}
     if not geo:
         crs = jobs[0][2].crs

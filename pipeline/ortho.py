@@ -41,7 +41,6 @@ from ..sensor import SensorModel
 from .dem import Dem, as_dem
 from .geometry import SensorGeometry
 from .cog import DTYPES, CogWriter, overview_count, verify_tiff
-from .cog_device import DeviceCogEncoder, HostDeflate, NvcompDeflate, WarpDeflate, nvcomp_available
 from .io import GDAL_ERRORS, atomic_path, check_destination, gdal_reason, write_error
 from .profile import StageTimer
 
@@ -557,6 +556,14 @@ def _block_codec(choice, device, deflate_cog, level=6):
     return "nvcomp"
 
 
+def nvcomp_available():
+    """Whether nvCOMP's Python package is installed (:mod:`~orthowarp.pipeline.cog_device`, with
+    the device COG writer's kernels, is imported only by jobs that may use them)."""
+    from .cog_device import nvcomp_available as available
+
+    return available()
+
+
 def _nvcomp_pays(level):
     """Whether nvCOMP deflates faster than the alternatives at a libdeflate ``level``: its
     medium-ratio variant, at levels 1-4, beat every host level on an H100 with 16 cores
@@ -578,12 +585,16 @@ def _warp_deflate(level, device):
     and bench/deflate_codecs.py's blocks on the host)."""
     depth, nice = (4, 32) if level <= 2 else (8, 64) if level <= 4 else (16, 128) if level == 5 \
         else (32, 128) if level <= 6 else (64, 258) if level <= 8 else (128, 258)
+    from .cog_device import WarpDeflate
+
     return WarpDeflate(device, depth=depth, nice=nice)
 
 
 def device_codecs(block_codec, level, device):
     """The raw-deflate codecs of a :class:`DeviceCogEncoder` for a resolved ``block_codec``
     ("nvcomp", "hybrid", "device" or "warp") at a libdeflate ``level``."""
+    from .cog_device import HostDeflate, NvcompDeflate
+
     if block_codec == "warp":
         return [_warp_deflate(level, device)]
     codecs = []
@@ -1144,6 +1155,8 @@ def _open_sink(path, profile, cog, final_name, timer, device=None, block_codec="
         try:
             if block_codec != "host":
                 codecs = device_codecs(block_codec, cog["level"], device)
+                from .cog_device import DeviceCogEncoder
+
                 encoder = DeviceCogEncoder(w, device, codecs)
             # the tiles are fresh arrays the pipeline drops after the call: no copy
             yield _Sink(functools.partial(w.write, copy=False), encoder.write if encoder is not None else None)
