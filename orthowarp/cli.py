@@ -484,10 +484,9 @@ def _match_control(block, pixels, sensors, terrain, control_csv, reference, sigm
     if reference is not None:
         try:
             with rasterio.open(reference) as ds:
-                if ds.crs is None or not CRS.from_wkt(ds.crs.to_wkt()).equals(sensors[0].horizontal_crs):
-                    raise ParamError(f"Reference '{reference}' must be in the poses' horizontal CRS "
-                                     f"({sensors[0].horizontal_crs.name}), got {ds.crs}")
-                ref = (ds.read(1).astype(np.float32), ds.transform)
+                if ds.crs is None:
+                    raise ParamError(f"Reference '{reference}' has no CRS")
+                ref = (ds.read(1).astype(np.float32), ds.transform, CRS.from_wkt(ds.crs.to_wkt()))
         except rasterio.errors.RasterioIOError as e:
             raise RasterIOError(f"Could not read reference '{reference}': {e}") from e
     obs = control_observations(pixels, sensors, terrain, pts, reference=ref, **kw)
@@ -1134,7 +1133,8 @@ def _write_spot_example(folder):
                    "block as control; without, their predicted image positions are written to "
                    "<OUT>_control.csv (image,point,col,row, the image-points CSV of 'orthowarp adjust') to confirm.")
 @click.option("--reference", type=click.Path(dir_okay=False),
-              help="Reference orthoimage for --control (its first band; in the poses' horizontal CRS).")
+              help="Reference orthoimage for --control (its first band; any CRS: the points and chips are "
+                   "carried into it).")
 @click.option("--control-sigma", type=float, default=0.05, show_default=True,
               help="Sigma (m) of control points whose CSV row gives none.")
 @click.option("--min-score", type=float, default=0.7, show_default=True, help="Smallest NCC accepted.")

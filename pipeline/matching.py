@@ -8,7 +8,9 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
+from pyproj import Transformer
 
+from .._validate import as_crs
 from ..adjust.matching import interest_points, match_points
 from ..errors import ParamError
 from ..sensor import FrameSensor
@@ -325,8 +327,11 @@ def control_observations(images, sensors, dem, points, *, reference=None, window
     points : array_like, shape (n, 3)
         Ground coordinates in the sensors' frame CRS (map x, y, z, or longitude, latitude,
         height for GNSS/INS poses).
-    reference : (array_like (rows, cols), affine.Affine), optional
-        An orthoimage (one band) and its transform in the horizontal axes of that CRS.
+    reference : (array_like (rows, cols), affine.Affine[, CRS]), optional
+        An orthoimage (one band), its north-up transform, and its CRS (any horizontal CRS
+        pyproj knows; default: the points' horizontal CRS, the sensors' ``horizontal_crs``).
+        Points, chips and the local affine maps are carried between the two CRSs, so a
+        GNSS/INS block (longitude, latitude) takes a reference in a map projection.
     window, radius, levels, min_score, refraction, device :
         As :func:`match_pair`.
 
@@ -347,12 +352,23 @@ def control_observations(images, sensors, dem, points, *, reference=None, window
     if pts.ndim != 2 or pts.shape[1] != 3 or not np.all(np.isfinite(pts)):
         raise ParamError(f"points must be a finite (n, 3) array, got shape {pts.shape}")
     if reference is not None:
+        if len(reference) not in (2, 3):
+            raise ParamError("reference must be (image, transform) or (image, transform, crs)")
         ref_img, ref_t = np.asarray(reference[0]), reference[1]
         if ref_img.ndim != 2:
             raise ParamError(f"the reference must be one band (rows, cols), got shape {ref_img.shape}")
         if ref_t.b != 0 or ref_t.d != 0:
             raise ParamError("the reference's transform must be north up (no rotation terms)")
-        col, row = ~ref_t * (pts[:, 0], pts[:, 1])
+        points_crs = sensors[0].horizontal_crs
+        ref_crs = as_crs(reference[2], name="reference crs") if len(reference) == 3 else points_crs
+        if ref_crs.equals(points_crs):
+            to_ref = from_ref = None
+        else:
+            to_ref = Transformer.from_crs(points_crs, ref_crs, always_xy=True)
+            from_ref = Transformer.from_crs(ref_crs, points_crs, always_xy=True)
+        rx, ry = (pts[:, 0], pts[:, 1]) if to_ref is None else to_ref.transform(pts[:, 0], pts[:, 1])
+        rx, ry = np.asarray(rx, np.float64), np.asarray(ry, np.float64)
+        col, row = ~ref_t * (rx, ry)
         ref_px = np.stack([col, row], -1)
         # heights of ground points one reference pixel away along its columns and rows
         from .dem import as_dem
@@ -372,7 +388,9 @@ def control_observations(images, sensors, dem, points, *, reference=None, window
             a, e = ref_t.a, ref_t.e
             probe = []
             for dx, dy in ((a, 0.0), (0.0, e)):  # one reference pixel along its columns, then its rows
-                x, y = pts[sel, 0] + dx, pts[sel, 1] + dy
+                x, y = rx[sel] + dx, ry[sel] + dy
+                if from_ref is not None:
+                    x, y = (np.asarray(v, np.float64) for v in from_ref.transform(x, y))
                 probe.append(project(s, np.stack([x, y, terrain.sample(x, y)], -1), crs=s.frame_crs,
                                      refraction=refraction, device=device))
             aff = np.stack([probe[0] - pred[sel], probe[1] - pred[sel]], -1)

@@ -549,6 +549,11 @@ def test_match_writes_a_block_of_ties(tmp_path):
         for i, xy in zip(block.obs_image[at], block.obs_xy[at]):
             if i == 0:  # image a: its pose is the true one
                 np.testing.assert_allclose(xy, truth[n], atol=0.1)
+    # a reference must say its CRS (any CRS: the API's test carries points and chips between CRSs)
+    write_raster(tmp_path / "nocrs.tif", np.zeros((40, 40), np.float32), transform=Affine(res_m, 0, x0, 0, -res_m, y0))
+    res = CliRunner().invoke(main, [*args, "--control", str(tmp_path / "gcp.csv"), "--reference",
+                                    str(tmp_path / "nocrs.tif"), "--out", str(tmp_path / "n.json")])
+    assert res.exit_code == 1 and "has no CRS" in res.output and not os.path.exists(tmp_path / "n.json")
 
 
 def test_adjusted_pose_covariances_feed_the_accuracy_raster(tmp_path):

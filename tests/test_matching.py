@@ -322,3 +322,48 @@ def test_control_points_predicted_and_matched_against_a_reference_chip():
           f"matches {rms:.4f} px")
     assert rms < 0.05
     assert np.all(got.sigma < 0.05)
+
+
+@pytest.mark.parametrize("name,ref_crs", [("ins", "EPSG:32632"), ("opk", "EPSG:4326")])
+def test_control_chips_from_a_reference_in_another_crs(name, ref_crs):
+    """A reference orthoimage in another CRS than the points' (a GNSS/INS block's longitude and
+    latitude against a UTM reference; a map block against a geographic one): points, chips and
+    the local affine maps are carried between the CRSs, and the matches land within 0.05 px RMS
+    of the true image positions."""
+    from affine import Affine
+    from pyproj import Transformer
+
+    import orthowarp as ow
+    from orthowarp.pipeline.matching import control_observations
+    from orthowarp.sensor import FrameSensor
+    from test_ortho import UTM32, scene
+
+    sc = scene(name)
+    image = sc.image(False)
+    true = FrameSensor(sc.camera, sc.pose)
+    p = true.parameters()
+    approx = true.with_parameters(X0=p["X0"] + 1.5, kappa=p["kappa"] + 0.05)
+    w, h = sc.camera.image_size
+    pix = np.array([[0.2 * w, 0.25 * h], [0.8 * w, 0.3 * h], [0.5 * w, 0.5 * h], [0.3 * w, 0.8 * h], [0.75 * w, 0.7 * h]])
+    pts = ow.geolocate(true, pix, dem=sc.dem, crs=true.frame_crs, refraction=False, device="cpu")
+    truth = ow.project(true, pts, crs=true.frame_crs, refraction=False, device="cpu")
+    to_ref = Transformer.from_crs(true.horizontal_crs, ref_crs, always_xy=True)
+    to_texture = Transformer.from_crs(ref_crs, UTM32, always_xy=True)  # the texture lives in UTM 32N
+    rx, ry = (np.asarray(v) for v in to_ref.transform(pts[:, 0], pts[:, 1]))
+    # about 0.25 m pixels, 60 m around the points, in the reference's own units
+    sx, sy = (0.25, 0.25) if ref_crs == UTM32 else (0.25 / (111320.0 * np.cos(np.radians(ry.mean()))), 0.25 / 110950.0)
+    mx, my = 60.0 / 0.25 * sx, 60.0 / 0.25 * sy
+    x0, y0 = rx.min() - mx, ry.max() + my
+    cols, rows = int((rx.max() + mx - x0) / sx), int((y0 - ry.min() + my) / sy)
+    jj, ii = np.meshgrid(np.arange(cols) + 0.5, np.arange(rows) + 0.5)
+    tx, ty = to_texture.transform(x0 + jj * sx, y0 - ii * sy)
+    ref = sc.texture(np.asarray(tx), np.asarray(ty))
+    kw = dict(window=21, radius=10, refraction=False, device="cpu")
+    got = control_observations([image], [approx], sc.dem, pts, reference=(ref, Affine(sx, 0, x0, 0, -sy, y0), ref_crs),
+                               **kw)
+    assert got.matched.all() and len(got.point) == 5
+    rms = np.sqrt(np.mean((got.xy - truth[got.point]) ** 2))
+    print(f"\n[control chips, {name} against {ref_crs}] matches {rms:.4f} px")
+    assert rms < 0.05
+    with pytest.raises(ParamError, match="reference"):
+        control_observations([image], [approx], sc.dem, pts, reference=(ref,), **kw)
