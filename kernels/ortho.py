@@ -30,6 +30,7 @@ import warp as wp
 
 from .camera import FrameCameraData, camera_to_pixel
 from .dem import DemData, dem_sample
+from .geodesy import geodetic_to_ecef
 from .pushbroom import PushbroomData, pb_line_time, pb_project
 from .ray import apparent_direction
 from .refraction import RefractionTable
@@ -474,6 +475,37 @@ for _src, _out in ((wp.uint8, wp.uint8), (wp.uint16, wp.uint16), (wp.float32, wp
         wp.overload(ortho_kernel, {"arg": _arg, "data": wp.array3d(dtype=_src), "out": wp.array3d(dtype=_out)})
 
 
+@wp.kernel
+def visibility_kernel(
+    arg: Any,
+    refr: RefractionTable,
+    dem: DemData,
+    search: SearchParams,
+    grid: CoarseGrid,
+    width: wp.float64,
+    height: wp.float64,
+    tol: wp.float64,
+    valid: wp.array2d(dtype=wp.uint8),
+):
+    """Hidden ground off: output pixel (i, j)'s ground point is seen by the sensor when its
+    source pixel, geolocated forward (the first ground point along the pixel's ray, the DEM
+    relief search), comes back to it within ``tol`` (m); else terrain or an object on the DSM
+    between them hides it and ``valid`` is set to 0 there (pixels already invalid stay so)."""
+    i, j = wp.tid()
+    if valid[i, j] == wp.uint8(0):
+        return
+    x, h = grid_ground(grid, dem, wp.float64(i) / grid.step, wp.float64(j) / grid.step)
+    pix = source_pixel(arg, refr, dem, grid, i, j, width, height)
+    if not wp.isfinite(h) or not wp.isfinite(pix[0]):
+        return
+    g = sensor_geolocate(arg, refr, dem, search, pix)
+    p = g
+    if grid.geocentric != 0:  # a geo triple (lon, lat deg, h) against the grid's ECEF point
+        p = geodetic_to_ecef(wp.radians(g[1]), wp.radians(g[0]), g[2])
+    if not wp.isfinite(p[0]) or wp.length(p - x) > tol:
+        valid[i, j] = wp.uint8(0)
+
+
 # -- forward (direct) method, [P3] ----------------------------------------------------------
 
 
@@ -611,4 +643,5 @@ def source_coords_kernel(
 for _arg in SENSOR_ARGS:
     wp.overload(node_pixels_kernel, {"arg": _arg})
     wp.overload(source_coords_kernel, {"arg": _arg})
+    wp.overload(visibility_kernel, {"arg": _arg})
 wp.overload(forward_nodes_kernel, {"arg": FrameArg})

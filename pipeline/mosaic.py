@@ -207,7 +207,9 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
         ground it cannot see (behind relief or objects on the DSM) without a value, so that
         another image that sees it supplies it; False: the backward method, which fills hidden
         ground with whatever hides it (faster). Pushbroom scenes are always projected by the
-        backward method.
+        backward method; with ``occlusion`` each of their pixels' visibility is tested (its
+        source pixel geolocated forward must come back to its ground point) and hidden ground
+        is left to another image in the same way.
     compress_level : int, optional
         Deflate level 1-12 (default 6).
     creation_options : dict, optional
@@ -368,12 +370,14 @@ class MosaicPlan:
         src, sensor, masked = self.sources[k]
         geom = self.geometry(k)
         method = o["method"] if sensor.kind == "frame" else "backward"  # pushbroom: the backward method only
+        # occlusion for pushbroom scenes: the backward method with each pixel's visibility tested
+        hide = o["method"] == "forward" and method == "backward"
         crs = self.crs
         entry = dict(geom=geom, to_frame=Transformer.from_crs(crs, geom.horizontal_crs, always_xy=True),
                      renderer=ImageTiles(src, geom, crs, self.transform, count=self.count, out_dtype=self.dtype,
                                          resampling=o["resampling"], method=method, masked=masked,
-                                         src_dtype=self.src_dtype, timer=timer))
-        if method == "forward":  # for ground that no image sees (holes of the forward method)
+                                         src_dtype=self.src_dtype, timer=timer, occlusion=hide))
+        if method == "forward" or hide:  # for ground that no image sees (holes of hidden ground)
             entry["fallback"] = ImageTiles(src, geom, crs, self.transform, count=self.count, out_dtype=self.dtype,
                                            resampling=o["resampling"], method="backward", masked=masked,
                                            src_dtype=self.src_dtype, timer=timer)

@@ -711,6 +711,12 @@ class ImageTiles:
         than it (default); False: always at full resolution (the output then samples the
         source without averaging, the same way whatever the ratio of the resolutions). The
         forward method reduces its reads by the image's overall ratio either way.
+    occlusion : bool, optional
+        Backward method: also test each output pixel's visibility (its source pixel geolocated
+        forward must come back to its ground point within half an output pixel; see
+        :func:`orthowarp.kernels.ortho.visibility_kernel`) and leave hidden ground invalid, as
+        the forward method does (default False: hidden ground takes the occluding surface's
+        pixels). For mosaics of pushbroom scenes, whose only method is the backward one.
     source_reads : {"tiles", "whole", "auto"}, optional
         "tiles" (default): each tile reads and uploads its own window. "whole": on the first
         tile at the source's resolution the whole source is read, by strips on several
@@ -720,7 +726,8 @@ class ImageTiles:
     """
 
     def __init__(self, src, geom, out_crs, transform, *, count, out_dtype, resampling="bilinear", method="backward",
-                 masked=True, src_dtype=None, timer=None, clipped=None, decimate=True, source_reads="tiles"):
+                 masked=True, src_dtype=None, timer=None, clipped=None, decimate=True, source_reads="tiles",
+                 occlusion=False):
         self.src, self.geom, self.transform = src, geom, transform
         self.count, self.out_dtype, self.masked = count, out_dtype, masked
         self.timer = timer if timer is not None else StageTimer(time.perf_counter())
@@ -739,6 +746,10 @@ class ImageTiles:
         # heights per DEM block, once per image: a tile's height range then costs a few blocks
         self.dem_blocks = (32, geom.dem.block_range(32)) if method == "backward" and not geom.dem.is_constant else None
         self.method, self.decimate = method, decimate
+        self.occlusion = bool(occlusion) and method == "backward"
+        if self.occlusion:  # half an output pixel, in metres
+            unit = 111320.0 if out_crs.is_geographic else (out_crs.axis_info[0].unit_conversion_factor or 1.0)
+            self.hidden_tol = 0.5 * abs(transform.a) * unit
         # frames on the CPU: the refraction turn interpolated from the coarse grid's nodes (see
         # kernels.ortho.CoarseGrid; the GPU keeps the per-pixel turn, not yet timed both ways)
         self.refraction_nodes = not device.is_cuda
@@ -860,6 +871,10 @@ class ImageTiles:
             wp.launch(ortho_kernels.ortho_kernel, dim=(th, tw), device=device, block_dim=ORTHO_BLOCK_DIM,
                       inputs=[*sensor, dem, grid, wp.float64(w_img), wp.float64(h_img), sw, data,
                               self.resampling_code, self.top, out, out_valid])
+            if self.occlusion:  # hidden ground off
+                wp.launch(ortho_kernels.visibility_kernel, dim=(th, tw), device=device, block_dim=ORTHO_BLOCK_DIM,
+                          inputs=[*sensor, dem, geom.search, grid, wp.float64(w_img), wp.float64(h_img),
+                                  wp.float64(self.hidden_tol), out_valid])
 
         return launch, window
 

@@ -685,3 +685,96 @@ def test_mosaic_accuracy_raster_takes_each_cell_from_its_source_image(pair, tmp_
             np.testing.assert_allclose(got[:, at], each[k][:, at], rtol=1e-6)
         assert np.all(np.isnan(got[:, src == NO_SOURCE]))
         assert not np.allclose(each[0][:, src == 1], each[1][:, src == 1], equal_nan=True)  # the images differ there
+
+
+def test_pushbroom_hidden_ground_is_tested_and_taken_from_another_scene(tmp_path):
+    """A 200 m box on flat ground at 250 m, seen by SPOT-like scenes 10 and 20 deg off nadir
+    from either side. The backward method with the visibility test (ImageTiles(occlusion=True),
+    what mosaics of pushbroom scenes use) leaves invalid exactly the ground behind the box, up
+    to a pixel at the hidden strip's edges. The reference is a float64 NumPy march from each
+    pixel's ground point towards the satellite on the DEM's bilinear surface, not the kernels'
+    search; its look direction comes from two host geolocations of the box's pixel at two
+    heights. The mosaic takes that ground from the scene on the other side (without the test,
+    from the occluder in the more nadir scene)."""
+    from affine import Affine
+    from pyproj import CRS, Transformer
+    from scipy import ndimage
+
+    import orthowarp as ow
+    from orthowarp.pipeline.geometry import SensorGeometry
+    from orthowarp.pipeline.ortho import ImageTiles
+    from orthowarp.pushbroom import synthetic_scene
+    from scenes import geo_dem
+
+    utm = CRS.from_user_input("EPSG:32631")
+    first = synthetic_scene(width=400, height=500, view_angle=10.0)
+    lonc, latc, _ = first.geolocate_ellipsoid([[200.0, 250.0]], 250.0)[0]
+    lon1, lat1 = 3.0 * lonc - 10.0, 44.0  # the other side: an orbit whose -20 deg view centres on the same ground
+    for _ in range(6):
+        second = synthetic_scene(width=400, height=500, view_angle=-20.0, lon=lon1, lat=lat1)
+        c = second.geolocate_ellipsoid([[200.0, 250.0]], 250.0)[0]
+        lon1, lat1 = lon1 + lonc - c[0], lat1 + latc - c[1]
+    scenes = [first, second]
+    half, top = 150.0, 200.0
+    box = lambda e, n: 250.0 + top * ((np.abs(e) < half) & (np.abs(n) < half))  # noqa: E731
+    dem, _ = geo_dem(box, lonc, latc, 900, 5.0)
+    mx, my = 111320.0 * np.cos(np.radians(latc)), 111132.0
+    to_utm = Transformer.from_crs("EPSG:4326", utm, always_xy=True)
+    to_geo = Transformer.from_crs(utm, "EPSG:4326", always_xy=True)
+    xc, yc = to_utm.transform(lonc, latc)
+    res, n = 5.0, 200
+    transform = Affine(res, 0.0, xc - n * res / 2, 0.0, -res, yc + n * res / 2)
+    jj, ii = np.meshgrid(np.arange(n) + 0.5, np.arange(n) + 0.5)
+    x, y = transform * (jj, ii)
+    lon, lat = (np.asarray(v) for v in to_geo.transform(x, y))
+    e, nn = (lon - lonc) * mx, (lat - latc) * my
+    hidden_by = []
+    for k, sc in enumerate(scenes):
+        src = write_image(tmp_path / f"s{k}.tif", np.full((sc.height, sc.width), 100.0 + 50 * k), "float32")
+        # the look direction at the box: the box centre's pixel geolocated at two heights
+        pix = ow.project(sc, [[lonc, latc, 250.0]], refraction=False, device="cpu")
+        lo, hi = sc.geolocate_ellipsoid(pix, 250.0)[0], sc.geolocate_ellipsoid(pix, 1250.0)[0]
+        de, dn = (hi[0] - lo[0]) * mx, (hi[1] - lo[1]) * my  # horizontal run towards the satellite per 1000 m up
+        run = np.hypot(de, dn) / 1000.0  # horizontal metres per metre up, towards the satellite
+        u = np.array([de, dn]) / np.hypot(de, dn)
+        # a float64 NumPy march along each pixel's path on the DEM's bilinear surface: hidden
+        # where the terrain rises above the ray (steps of 0.25 m up to the box's top)
+        h0 = dem.sample(lon, lat)
+        s = np.arange(0.25, top * run + 0.25, 0.25)
+        pe, pn = e[..., None] + s * u[0], nn[..., None] + s * u[1]
+        ground = dem.sample(lonc + pe / mx, latc + pn / my)
+        behind = np.any(ground > h0[..., None] + s / run + 1e-3, axis=-1)
+        geom = SensorGeometry(sc, dem, refraction=False, device="cpu")
+        got = {}
+        for occ in (False, True):
+            it = ImageTiles(src, geom, utm, transform, count=1, out_dtype="float32", masked=False, occlusion=occ)
+            try:
+                _, valid = it.render(0, 0, n, n)
+                got[occ] = valid.numpy() > 0
+            finally:
+                it.close()
+        assert got[False].all()  # the scene covers the window
+        off = got[False] & ~got[True]
+        wrong = off ^ behind
+        edge = ndimage.binary_dilation(behind, iterations=1) & ~ndimage.binary_erosion(behind, iterations=1)
+        print(f"\n[pushbroom visibility, scene {k}] hidden {behind.sum()} px analytic, {off.sum()} px tested, "
+              f"{wrong.sum()} differ, {(wrong & ~edge).sum()} away from the strip's edges")
+        assert behind.sum() > 300 and not (wrong & ~edge).any()
+        hidden_by.append(behind)
+    assert not (hidden_by[0] & hidden_by[1]).any()  # each side's hidden ground is seen from the other
+    # the mosaic: scene 0 is the more nadir one everywhere (10 against 20 deg), so its nadir
+    # seams give it all the ground it sees; the ground it does not see comes from scene 1
+    images = [(str(tmp_path / f"s{k}.tif"), sc) for k, sc in enumerate(scenes)]
+    inner = ndimage.binary_erosion(hidden_by[0], iterations=2)
+    assert inner.sum() > 100
+    for occ in (True, False):
+        out = mosaic(images, tmp_path / f"m{occ}.tif", dem=dem, crs=utm, resolution=res, refraction=False,
+                     device="cpu", index=tmp_path / f"i{occ}.tif", seams="nadir", blend="none", balance=False,
+                     tile_size=128, occlusion=occ)
+        with rasterio.open(out.index) as ix:
+            win = rasterio.windows.from_bounds(*rasterio.transform.array_bounds(n, n, transform), transform=ix.transform)
+            idx = ix.read(1, window=win.round_offsets().round_lengths(), boundless=True, fill_value=255)[:n, :n]
+        seen0 = ndimage.binary_erosion(~hidden_by[0], iterations=2)
+        assert np.mean(idx[seen0] == 0) > 0.99  # scene 0 elsewhere
+        # hidden from scene 0: scene 1 with the visibility test, scene 0's occluder without it
+        assert np.all(idx[inner] == (1 if occ else 0)), (occ, np.unique(idx[inner], return_counts=True))
