@@ -646,8 +646,16 @@ def _image_crs(images):
 
 def _crs_label(crs):
     """A CRS's name and its horizontal unit for a summary line ("WGS 84 / UTM zone 32N, metre");
-    its PROJ string where it has no name."""
-    name = crs.name if crs.name and crs.name.lower() != "unknown" else crs.to_string()
+    where it has no name ("unknown", "unnamed"), its EPSG code or else its PROJ string."""
+    name = crs.name
+    if not name or name.lower() in ("unknown", "unnamed"):
+        code = crs.to_epsg()
+        if code is not None:
+            name = f"EPSG:{code}"
+        else:
+            with warnings.catch_warnings():  # pyproj: a PROJ string may lose a WKT's details (here: a label)
+                warnings.simplefilter("ignore")
+                name = crs.to_proj4()
     unit = crs.axis_info[0].unit_name if crs.axis_info else None
     return f"{name}, {unit}" if unit else name
 

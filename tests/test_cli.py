@@ -614,3 +614,19 @@ def test_adjusted_pose_covariances_feed_the_accuracy_raster(tmp_path):
                                         "--pose-cov", str(tmp_path / name)])
         assert res.exit_code == 1 and match in res.output, res.output
         assert not out.exists() or not list(out.iterdir())
+
+
+def test_crs_label_names_unnamed_crss():
+    """The summary line's CRS: its name where it has one; an unnamed CRS (a .prj's PROJ string,
+    a WKT named "unnamed") by its EPSG code where it has one, else by its PROJ string."""
+    from pyproj import CRS
+
+    from orthowarp.cli import _crs_label
+
+    assert _crs_label(CRS.from_epsg(32632)) == "WGS 84 / UTM zone 32N, metre"
+    tm = "+proj=tmerc +lat_0=0 +lon_0=25 +k=1 +x_0=0 +y_0=0 +datum=WGS84 +units=m +no_defs"
+    unnamed = CRS.from_wkt(CRS.from_user_input(tm).to_wkt().replace('"unknown"', '"unnamed"', 1))
+    label = _crs_label(unnamed)
+    assert "+proj=tmerc" in label and "+lon_0=25" in label and label.endswith(", metre")
+    utm = CRS.from_wkt(CRS.from_epsg(32632).to_wkt("WKT1_GDAL").replace("WGS 84 / UTM zone 32N", "unnamed", 1))
+    assert _crs_label(utm) == "EPSG:32632, metre"
