@@ -285,19 +285,14 @@ def test_multi_image_consistency_drops_the_observation_that_disagrees():
     assert stats["inconsistent"] == 0 and rays.max() == 4 and (rays >= 3).sum() >= 10
 
 
-def test_control_points_predicted_and_matched_against_a_reference_chip():
-    """Control points seen by a frame whose orientation is 1.5 m and 0.05 deg off: without a
-    reference their predictions (pixels off the truth); with an orthoimage of the truth
-    texture as reference, matched to within 0.05 px RMS of their true image positions."""
-    from affine import Affine
-
+def _control_scene(name):
+    """A rendered scene's image, its true sensor, one 1.5 m and 0.05 deg off, five ground
+    points spread over the image and their true image positions."""
     import orthowarp as ow
-    from orthowarp.pipeline.matching import control_observations
     from orthowarp.sensor import FrameSensor
     from test_ortho import scene
 
-    sc = scene("opk")
-    image = sc.image(False)
+    sc = scene(name)
     true = FrameSensor(sc.camera, sc.pose)
     p = true.parameters()
     approx = true.with_parameters(X0=p["X0"] + 1.5, kappa=p["kappa"] + 0.05)
@@ -305,6 +300,18 @@ def test_control_points_predicted_and_matched_against_a_reference_chip():
     pix = np.array([[0.2 * w, 0.25 * h], [0.8 * w, 0.3 * h], [0.5 * w, 0.5 * h], [0.3 * w, 0.8 * h], [0.75 * w, 0.7 * h]])
     pts = ow.geolocate(true, pix, dem=sc.dem, crs=true.frame_crs, refraction=False, device="cpu")
     truth = ow.project(true, pts, crs=true.frame_crs, refraction=False, device="cpu")
+    return sc, sc.image(False), true, approx, pts, truth
+
+
+def test_control_points_predicted_and_matched_against_a_reference_chip():
+    """Control points seen by a frame whose orientation is 1.5 m and 0.05 deg off: without a
+    reference their predictions (pixels off the truth); with an orthoimage of the truth
+    texture as reference, matched to within 0.05 px RMS of their true image positions."""
+    from affine import Affine
+
+    from orthowarp.pipeline.matching import control_observations
+
+    sc, image, true, approx, pts, truth = _control_scene("opk")
     res = 0.25
     x0, y0 = pts[:, 0].min() - 60, pts[:, 1].max() + 60
     cols, rows = int((pts[:, 0].max() + 60 - x0) / res), int((y0 - pts[:, 1].min() + 60) / res)
@@ -333,20 +340,10 @@ def test_control_chips_from_a_reference_in_another_crs(name, ref_crs):
     from affine import Affine
     from pyproj import Transformer
 
-    import orthowarp as ow
     from orthowarp.pipeline.matching import control_observations
-    from orthowarp.sensor import FrameSensor
-    from test_ortho import UTM32, scene
+    from test_ortho import UTM32
 
-    sc = scene(name)
-    image = sc.image(False)
-    true = FrameSensor(sc.camera, sc.pose)
-    p = true.parameters()
-    approx = true.with_parameters(X0=p["X0"] + 1.5, kappa=p["kappa"] + 0.05)
-    w, h = sc.camera.image_size
-    pix = np.array([[0.2 * w, 0.25 * h], [0.8 * w, 0.3 * h], [0.5 * w, 0.5 * h], [0.3 * w, 0.8 * h], [0.75 * w, 0.7 * h]])
-    pts = ow.geolocate(true, pix, dem=sc.dem, crs=true.frame_crs, refraction=False, device="cpu")
-    truth = ow.project(true, pts, crs=true.frame_crs, refraction=False, device="cpu")
+    sc, image, true, approx, pts, truth = _control_scene(name)
     to_ref = Transformer.from_crs(true.horizontal_crs, ref_crs, always_xy=True)
     to_texture = Transformer.from_crs(ref_crs, UTM32, always_xy=True)  # the texture lives in UTM 32N
     rx, ry = (np.asarray(v) for v in to_ref.transform(pts[:, 0], pts[:, 1]))
