@@ -12,7 +12,6 @@ usage: python3 bench/adjust.py [--strips 20 --images 50 --ties 102000] [--skip-s
 """
 
 import argparse
-import json
 import os
 import platform
 import time
@@ -24,6 +23,7 @@ from scipy.optimize import least_squares
 
 from orthowarp.adjust import bundle_adjust, synthetic_block
 from orthowarp.collinearity import project
+from _report import save_report
 
 
 def reset_peak():
@@ -146,9 +146,7 @@ def main(argv=None):
             report["speedup_to_same_cost"] = state["t_reached"] / report["orthowarp"]["wall_s"]
         print(f"scipy least_squares (trf, jac_sparsity): {wall:.1f} s, best cost {state['best']:.6g} "
               f"(target {target:.6g}, reached after {state['t_reached']} s), {status}", flush=True)
-    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    with open(args.out, "w") as f:
-        json.dump(report, f, indent=2)
+    save_report(report, args.out, indent=2)
     print(f"wrote {args.out}")
 
 

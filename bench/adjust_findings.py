@@ -29,14 +29,13 @@ usage: python3 bench/adjust_findings.py [--runs 20] [--camera film|digital] [--o
 """
 
 import argparse
-import json
-import os
 import time
 
 import numpy as np
 
 from orthowarp import FrameCamera
 from orthowarp.adjust import bundle_adjust, film_camera, synthetic_block
+from _report import save_report
 
 SEVEN = [(0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (1.0, 1.0), (0.5, 0.0), (0.5, 1.0), (0.5, 0.5)]  # fractions of the strip
 
@@ -99,9 +98,7 @@ def main(argv=None):
         args.runs = args.runs or 5
         report = published(args)
         out = args.out or "bench/reference/adjust-published-seed002.json"
-        os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
-        with open(out, "w") as f:
-            json.dump(report, f, indent=1)
+        save_report(report, out)
         print(f"wrote {out}")
         return
     args.runs = args.runs or 20
@@ -126,9 +123,7 @@ def main(argv=None):
             print(f"control {control}  ties {ties:2d}:  check RMSE x {rmse[0] * 100:6.2f}  y {rmse[1] * 100:6.2f}  "
                   f"z {rmse[2] * 100:6.2f} cm   sigma0 {np.mean(s0):.3f}   ({len(block.obs_image)} image observations)",
                   flush=True)
-    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    with open(args.out, "w") as f:
-        json.dump(dict(benchmark="adjust_findings", runs=args.runs, camera=args.camera, rows=rows), f, indent=2)
+    save_report(dict(benchmark="adjust_findings", runs=args.runs, camera=args.camera, rows=rows), args.out, indent=2)
     print(f"wrote {args.out}")
 
 

@@ -31,6 +31,7 @@ from orthowarp.kernels import ortho as ok  # noqa: E402
 from orthowarp.pipeline.geometry import SensorGeometry  # noqa: E402
 from orthowarp.pipeline.ortho import coarse_grid, coarse_struct, orthorectify, output_grid  # noqa: E402
 from orthowarp.sensor import FrameSensor
+from _report import save_report  # noqa: E402
 
 TILE = 512
 
@@ -117,9 +118,7 @@ def main():
                                        max_dn=int(diff[both].max()), mask_differs=int((ma != mb).sum()))
             report["results"].append(row)
             print(json.dumps(row), flush=True)
-    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    with open(args.out, "w") as f:
-        json.dump(report, f, indent=1)
+    save_report(report, args.out)
 
 
 if __name__ == "__main__":

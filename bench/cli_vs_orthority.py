@@ -17,7 +17,6 @@ usage: python3 bench/cli_vs_orthority.py --data DIR/orthority --oty PATH/TO/oty 
 """
 
 import argparse
-import json
 import os
 import shutil
 import statistics
@@ -25,6 +24,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from _report import save_report
 
 
 def jobs(data, work):
@@ -84,9 +84,7 @@ def main():
             print(name, {k: v for k, v in row.items() if k != "runs"}, flush=True)
     finally:
         shutil.rmtree(work, ignore_errors=True)
-    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    with open(args.out, "w") as f:
-        json.dump(report, f, indent=1)
+    save_report(report, args.out)
     print(f"wrote {args.out}")
 
 

@@ -13,7 +13,6 @@ usage: python3 bench/geometry.py [--out FILE] [--width W --height H] [--devices 
 """
 
 import argparse
-import json
 import os
 import platform
 import sys
@@ -28,6 +27,7 @@ import orthowarp as ow
 from orthowarp.kernels import sensor as sensor_kernels
 from orthowarp.pipeline.geometry import SensorGeometry
 from orthowarp.sensor import FrameSensor
+from _report import save_report
 
 
 def scene(width, height):
@@ -162,9 +162,7 @@ def main(argv=None):
         report["cpu_vs_cuda_max_m"] = float(np.nanmax(np.sqrt(d_e**2 + d_n**2 + d_h**2)))
         report["cpu_vs_cuda_nan_mismatch"] = int((np.isnan(res[0][:, 0]) != np.isnan(res[1][:, 0])).sum())
         print(f"CPU vs CUDA on 20000 random pixels: max {report['cpu_vs_cuda_max_m'] * 1000:.4f} mm")
-    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    with open(args.out, "w") as f:
-        json.dump(report, f, indent=2)
+    save_report(report, args.out, indent=2)
     print(f"wrote {args.out}")
     return 0
 

@@ -13,6 +13,7 @@ import sys
 import time
 
 import numpy as np
+from _report import save_report
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests"))
@@ -88,9 +89,7 @@ def main(argv=None):
                    cpu_gpu_ncc_max_diff_px=float(np.max(np.abs(cpu.ncc_xy[both] - gpu.ncc_xy[both])))
                    if both.any() else None)
     print(json.dumps(out, indent=1))
-    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    with open(args.out, "w") as f:
-        json.dump(out, f, indent=1)
+    save_report(out, args.out)
 
 
 if __name__ == "__main__":

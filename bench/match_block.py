@@ -26,6 +26,7 @@ sys.path.insert(0, os.path.join(HERE, "..", "tests"))
 import orthowarp as ow  # noqa: E402
 from orthowarp.adjust import bundle_adjust  # noqa: E402
 from orthowarp.pipeline.matching import match_block  # noqa: E402
+from _report import save_report  # noqa: E402
 
 KEYS = ("X0", "Y0", "Z0", "omega", "phi", "kappa")
 
@@ -129,9 +130,7 @@ def main(argv=None):
         out["runs"].append(run(images, truth, approx, ids, sc, zones, args.per_zone, rng))
     out["seconds"] = round(time.perf_counter() - t0, 1)
     print(json.dumps(out, indent=1))
-    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    with open(args.out, "w") as f:
-        json.dump(out, f, indent=1)
+    save_report(out, args.out)
 
 
 if __name__ == "__main__":

@@ -33,6 +33,7 @@ from orthowarp.adjust import bundle_adjust  # noqa: E402
 from orthowarp.pipeline.formats import read_cameras, read_exterior  # noqa: E402
 from orthowarp.pipeline.matching import match_block  # noqa: E402
 from orthowarp.pipeline.registration import misregistration  # noqa: E402
+from _report import save_report  # noqa: E402
 
 
 def overlaps(paths):
@@ -128,9 +129,7 @@ def main(argv=None):
         out[f"mean_shift_px_{tag}"] = round(float(np.mean([v["mean_shift_px"] for v in o.values()])), 3) if o else None
     out["seconds"] = round(time.perf_counter() - t0, 1)
     print(json.dumps(out, indent=1))
-    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    with open(args.out, "w") as f:
-        json.dump(out, f, indent=1)
+    save_report(out, args.out)
 
 
 if __name__ == "__main__":

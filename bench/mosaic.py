@@ -39,6 +39,7 @@ import time
 
 import numpy as np
 from orthowarp.sensor import FrameSensor
+from _report import save_report
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.join(HERE, "..", "tests"))  # the independent renderer and its reference
@@ -349,9 +350,7 @@ def run_speed(args, sizes):
     orient = ["--int-param", os.path.join(work, "camera.yaml"), "--ext-param", os.path.join(work, "ext.csv")]
 
     def save():
-        os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-        with open(args.out, "w") as f:
-            json.dump(report, f, indent=1)
+        save_report(report, args.out)
         if args.oty_stage == "orthos":  # for the second call (--oty-stage cog)
             with open(os.path.join(work, "speed_report.json"), "w") as f:
                 json.dump(report, f, indent=1)
@@ -517,9 +516,7 @@ def main(argv=None):
                  f"99th percentile {r['near_buildings_p99']:.2f} (elsewhere {r['elsewhere_p99']:.2f})"
                  if r.get("near_buildings_pixels") else ""),
               flush=True)
-    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    with open(args.out, "w") as f:
-        json.dump(report, f, indent=1)
+    save_report(report, args.out)
     print(f"wrote {args.out}")
 
 

@@ -38,6 +38,7 @@ from orthowarp.kernels import ortho as ok  # noqa: E402
 from orthowarp.pipeline.geometry import SensorGeometry  # noqa: E402
 from orthowarp.pipeline.ortho import COARSE_STEP, ORTHO_BLOCK_DIM, RESAMPLING, coarse_grid, coarse_struct, orthorectify, output_grid  # noqa: E402
 from orthowarp.sensor import FrameSensor
+from _report import save_report as _save_report  # noqa: E402
 
 
 # Runs a click CLI (module, function) in a child that reports its own peak resident memory when it
@@ -222,9 +223,7 @@ def compare_outputs(paths, reference):
 
 def save_report(report, path):
     """Write a benchmark report as JSON (folders created)."""
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    with open(path, "w") as f:
-        json.dump(report, f, indent=2)
+    _save_report(report, path, indent=2)
 
 
 def main(argv=None):

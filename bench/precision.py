@@ -23,11 +23,11 @@ usage: python3 bench/precision.py [--out FILE] [--plot FILE] [--format WxH]
 """
 
 import argparse
-import json
 import os
 import sys
 
 import numpy as np
+from _report import save_report
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.join(HERE, ".."))
@@ -176,9 +176,7 @@ def main(argv=None):
     if args.plot and plot(report, args.plot):
         report["plot"] = os.path.basename(args.plot)
         print(f"plotted {args.plot}")
-    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    with open(args.out, "w") as f:
-        json.dump(report, f, indent=1)
+    save_report(report, args.out)
     print(f"wrote {args.out}")
 
 

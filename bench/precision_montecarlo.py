@@ -33,6 +33,7 @@ from pyproj import CRS, Transformer
 import orthowarp as ow
 from orthowarp.adjust.geocentric import LocalFrame
 from orthowarp.sensor import FrameSensor
+from _report import save_report
 
 
 def hills(lat0, lon0, half=700.0, ground=500.0):
@@ -135,9 +136,7 @@ def main(argv=None):
         report[name] = fn(args.draws, args.device, rng)
         report[name]["s"] = time.perf_counter() - t
         print(name, json.dumps({k: v for k, v in report[name].items() if "sigma" in k or "rel" in k}), flush=True)
-    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    with open(args.out, "w") as f:
-        json.dump(report, f, indent=2)
+    save_report(report, args.out, indent=2)
 
 
 if __name__ == "__main__":

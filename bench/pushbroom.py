@@ -15,7 +15,6 @@ usage: python3 bench/pushbroom.py [--out FILE] [--size N] [--devices cpu,cuda:0]
 """
 
 import argparse
-import json
 import os
 import sys
 import tempfile
@@ -33,6 +32,7 @@ from orthowarp.kernels import pushbroom as pb_kernels
 from orthowarp.kernels import sensor as sensor_kernels
 from orthowarp.pipeline.geometry import SensorGeometry
 from orthowarp.pushbroom import synthetic_scene
+from _report import save_report
 
 
 def make_dem(scene):
@@ -181,9 +181,7 @@ def main(argv=None):
             print(f"{'':>24s} ortho {res.shape[1]} x {res.shape[0]} in {r['ortho_wall_s']:.1f} s "
                   f"stages {({k: round(v, 2) for k, v in res.timings.items()})}", flush=True)
         report["results"].append(r)
-        os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-        with open(args.out, "w") as f:
-            json.dump(report, f, indent=2)
+        save_report(report, args.out, indent=2)
     print(f"wrote {args.out}")
 
 

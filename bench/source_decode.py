@@ -34,6 +34,7 @@ from rasterio.windows import Window
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from ortho import write_source  # noqa: E402  (the ortho bench's frame)
+from _report import save_report  # noqa: E402
 
 
 def write_format(src, path, fmt):
@@ -135,9 +136,7 @@ def main():
                 row["nvimgcodec_error"] = f"{type(e).__name__}: {e}"
         report["results"].append(row)
         print(json.dumps(row), flush=True)
-        os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-        with open(args.out, "w") as f:
-            json.dump(report, f, indent=1)
+        save_report(report, args.out)
     print(f"wrote {args.out}")
 
 

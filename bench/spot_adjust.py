@@ -22,7 +22,6 @@ Runs on the CPU (SciPy/NumPy only).
 """
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -34,6 +33,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 from orthowarp import geodesy  # noqa: E402
 from orthowarp.adjust import adjust_scenes, preadjust_look_angles  # noqa: E402
 from orthowarp.adjust.spot_synthetic import LAYOUTS, perturbed, simulate_points, stereo_pair  # noqa: E402
+from _report import save_report  # noqa: E402
 
 EO = np.zeros((3, 3, 3))
 EO[2, :, 0] = [2e-5, -3e-5, 4e-5]
@@ -147,9 +147,7 @@ def main(argv=None):
               f"{mc['rms_error']} m; predicted a posteriori {mc['rms_predicted_a_posteriori']} m (ratio "
               f"{mc['sigma_ratio_a_posteriori']}), a priori {mc['rms_predicted_a_priori']} m (ratio "
               f"{mc['sigma_ratio_a_priori']})")
-    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    with open(args.out, "w") as f:
-        json.dump(out, f, indent=1)
+    save_report(out, args.out)
     print(f"wrote {args.out} ({out['seconds']} s)")
 
 

@@ -17,7 +17,6 @@ usage: python3 bench/validate_orthority.py [--dataset ngi|odm] [--data ../shared
 import argparse
 import glob
 import itertools
-import json
 import os
 import subprocess
 import sys
@@ -32,6 +31,7 @@ import orthowarp as ow
 from orthowarp.pipeline.formats import read_cameras, read_exterior
 from orthowarp.pipeline.registration import misregistration
 from orthowarp.sensor import FrameSensor
+from _report import save_report
 
 # images, interior and exterior orientation, DEM (relative to the data folder), resolution (m)
 DATASETS = {
@@ -150,9 +150,7 @@ def main(argv=None):
         r.update(image=k)
         report["refraction_effect"].append(r)
         print(f"  {k[-8:]}: mean shift ({r['mean_dx_px']:+.3f}, {r['mean_dy_px']:+.3f}) px, RMS {r['rms_px']:.3f} px")
-    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    with open(args.out, "w") as f:
-        json.dump(report, f, indent=2)
+    save_report(report, args.out, indent=2)
     print(f"wrote {args.out}")
     # criteria: the mean shift of each overlap / each orthority comparison (per-tile RMS is
     # reported too; in overlaps it is dominated by view-dependent content, see the JSON)
