@@ -213,6 +213,33 @@ def node_point(grid: CoarseGrid, i: wp.int32, j: wp.int32, h: wp.float64):
 
 
 @wp.kernel
+def coarse_fields_kernel(uv: wp.array2d(dtype=wp.vec2d), geocentric: wp.int32, has_pose: wp.int32,
+                         center: wp.vec3d, rot: wp.mat33d, xyz0: wp.array2d(dtype=wp.vec3d),
+                         up: wp.array2d(dtype=wp.vec3d), cam_a: wp.array2d(dtype=wp.vec3d),
+                         cam_b: wp.array2d(dtype=wp.vec3d)):
+    """A :class:`CoarseGrid`'s fields from its nodes' uv (float64): for ``geocentric`` grids
+    (uv = longitude, latitude in degrees) xyz0, the ECEF point on the ellipsoid, and up, its
+    unit normal; with ``has_pose`` (a frame camera of centre ``center`` and rotation ``rot``,
+    camera to the pose's frame) cam_a = rot^T (x(0) - center) and cam_b = rot^T up, where
+    x(0) and up are the point at height 0 and the vertical ((0, 0, 1) for map frames)."""
+    i, j = wp.tid()
+    p = uv[i, j]
+    x0 = wp.vec3d(p[0], p[1], wp.float64(0.0))
+    n = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(1.0))
+    if geocentric != 0:
+        lat = wp.radians(p[1])
+        lon = wp.radians(p[0])
+        x0 = geodetic_to_ecef(lat, lon, wp.float64(0.0))
+        n = wp.vec3d(wp.cos(lat) * wp.cos(lon), wp.cos(lat) * wp.sin(lon), wp.sin(lat))
+        xyz0[i, j] = x0
+        up[i, j] = n
+    if has_pose != 0:
+        rt = wp.transpose(rot)
+        cam_a[i, j] = rt * (x0 - center)
+        cam_b[i, j] = rt * n
+
+
+@wp.kernel
 def frame_node_refraction_kernel(refr: RefractionTable, grid: CoarseGrid, heights: wp.vec2d,
                                  refr_a: wp.array2d(dtype=wp.vec3d), refr_b: wp.array2d(dtype=wp.vec3d)):
     """The refraction correction of each node's camera-frame chord as a line in the height:

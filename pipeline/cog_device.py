@@ -6,16 +6,19 @@ reduction, deflate. :class:`DeviceCogEncoder` does all of it where the tile alre
 (:mod:`orthowarp.kernels.cog`), level after level while the reduced piece still covers whole
 blocks, and only compressed blocks cross to the host:
 
-1. the tile's blocks, their mask blocks and their Adler-32 checksums on the device;
+1. the tile's blocks and their mask blocks on the device;
 2. the next level's piece reduced on the device, and the same again, down to the level at
    which the piece no longer covers whole blocks (e.g. 4096-pixel tiles, 512-pixel blocks:
    levels 0-3 here, 85 blocks per tile); that last small piece goes to the host writer, which
    reduces it with the pieces of the neighbouring tiles;
-3. all those blocks compressed in one batch by a raw-deflate codec: :class:`NvcompDeflate`
-   (nvCOMP's Deflate on the GPU, package ``nvidia-nvcomp-cu13``, ``pip install
-   orthowarp[gpu]``) or :class:`HostDeflate` (libdeflate on host threads, after one copy of
-   the predicted blocks); each raw stream is wrapped as the zlib stream TIFF's deflate
+3. all those blocks, gathered over tiles, checksummed (Adler-32) in one pass, and all but
+   the empty ones (all zeros: outside the footprint) compressed in one batch by a
+   raw-deflate codec: :class:`WarpDeflate` (Warp kernels), :class:`NvcompDeflate` (nvCOMP's
+   Deflate on the GPU, package ``nvidia-nvcomp-cu13``, ``pip install orthowarp[gpu]``) or
+   :class:`HostDeflate` (libdeflate on host threads, after one copy of the predicted
+   blocks); each raw stream is wrapped as the zlib stream TIFF's deflate
    compression (code 8) stores: header 78 9C, the stream, the Adler-32 big-endian (RFC 1950);
+   an empty block gets the one stream of zeros of its size, made once;
 4. the records handed to the writer, which lays the file out as before.
 
 Every path decodes to the same pixels as the host writer's (the block contents before
@@ -456,11 +459,11 @@ class WarpDeflate:
 
 
 class _Tile:
-    """A tile's encoded blocks on the device: their (level, bi, bj) keys, the block arrays
-    (image blocks per level, then mask blocks per level) and the blocks' Adler-32s."""
+    """A tile's encoded blocks on the device: their (level, bi, bj) keys and the block arrays
+    (image blocks per level, then mask blocks per level)."""
 
-    def __init__(self, keys, arrays, adlers):
-        self.keys, self.arrays, self.adlers = keys, arrays, adlers
+    def __init__(self, keys, arrays):
+        self.keys, self.arrays = keys, arrays
         self.nbytes = sum(a.size * wp.types.type_size_in_bytes(a.dtype) for a in arrays)
 
 
@@ -498,7 +501,9 @@ class DeviceCogEncoder:
         self.writer, self.device = writer, device
         self.gpu, self.host = (gpu or [None])[0], (host or [None])[0]
         self.batch_bytes = int(batch_bytes)
-        self.blocks_by_codec = {c.name: 0 for c in codecs}
+        self.blocks_by_codec = {c.name: 0 for c in codecs}  # blocks each codec compressed
+        self.empty_blocks = 0  # all-zero image blocks, given the one stream of their size
+        self._zeros = {}  # size -> raw deflate stream of that many zero bytes
         self._lock = threading.Condition()
         self._batch, self._batch_n, self._gpu_busy = [], 0, False
         self._threshold = None
@@ -621,23 +626,38 @@ class DeviceCogEncoder:
             li, row, col, piece, pvalid = li + 1, row // 2, col // 2, nxt, nxt_valid
         if not images:
             return None
-        arrays = images + masks
-        adlers = np.concatenate([self._adler(_bytes_view(a), a.shape[0]) for a in arrays])
-        return _Tile(keys, arrays, adlers)
+        return _Tile(keys, images + masks)
 
-    def _adler(self, view, n):
-        """Adler-32 of each of the ``n`` equal parts of the uint8 array ``view`` (int64, n)."""
-        per = view.shape[0] // n
-        nchunk = -(-per // _CHUNK)
-        offs = wp.array(np.arange(n, dtype=np.int32) * per, dtype=wp.int32, device=self.device)
-        size = wp.array(np.full(n, per, np.int32), dtype=wp.int32, device=self.device)
-        s1 = wp.empty((n, nchunk), dtype=wp.int64, device=self.device)
-        s2 = wp.empty((n, nchunk), dtype=wp.int64, device=self.device)
-        wp.launch(kc.adler_partials_kernel, dim=(n, nchunk), inputs=[view, offs, size, wp.int32(_CHUNK)],
-                  outputs=[s1, s2], device=self.device)
-        out = wp.empty(n, dtype=wp.int64, device=self.device)
-        wp.launch(kc.adler_finish_kernel, dim=n, inputs=[s1, s2, size], outputs=[out], device=self.device)
-        return out.numpy()
+    def _checksums(self, buf, offsets, sizes):
+        """Adler-32 (int64) of the buffers (``offsets``, ``sizes``: int32 arrays of bytes) of
+        the uint8 array ``buf``, and whether each is all zeros (bool): one upload, two
+        launches and one read-back for a whole batch."""
+        n, d = len(offsets), self.device
+        bounds = wp.array(np.concatenate([offsets, sizes]), dtype=wp.int32, device=d)
+        offs, size = bounds[:n], bounds[n:]
+        nchunk = -(-int(sizes.max()) // _CHUNK)
+        s1 = wp.empty((n, nchunk), dtype=wp.int64, device=d)
+        s2 = wp.empty((n, nchunk), dtype=wp.int64, device=d)
+        wp.launch(kc.adler_partials_kernel, dim=(n, nchunk), inputs=[buf, offs, size, wp.int32(_CHUNK)],
+                  outputs=[s1, s2], device=d)
+        out = wp.empty(2 * n, dtype=wp.int64, device=d)
+        zero = wp.empty(n, dtype=wp.int32, device=d)
+        wp.launch(kc.adler_finish_kernel, dim=n, inputs=[s1, s2, size], outputs=[out, zero], device=d)
+        return out.numpy()[:n], zero.numpy().astype(bool)
+
+    def _zero_stream(self, size):
+        """The raw deflate stream of ``size`` zero bytes (libdeflate level 6), made once per
+        size: an empty block (outside the footprint: no pixel and no mask bit, after the
+        predictor all zeros) is not sent to the codec."""
+        with self._lock:
+            raw = self._zeros.get(size)
+        if raw is None:
+            from deflate import deflate_compress
+
+            raw = bytes(deflate_compress(np.zeros(size, np.uint8), 6))
+            with self._lock:
+                self._zeros[size] = raw
+        return raw
 
     def _compress(self, jobs, codec):
         """Deflate the blocks of ``jobs`` with ``codec`` in one call and store them."""
@@ -656,17 +676,29 @@ class DeviceCogEncoder:
             buf = wp.empty(pos, dtype=wp.uint8, device=self.device)
             for v, at in parts:
                 wp.copy(buf, v, dest_offset=at, count=v.shape[0])
-        raws = codec.compress(buf, offsets, sizes)
-        with self._lock:
-            self.blocks_by_codec[codec.name] += sum(len(j.keys) for j in jobs)
+        offsets, sizes = np.asarray(offsets, np.int32), np.asarray(sizes, np.int32)
+        adlers, zero = self._checksums(buf, offsets, sizes)
+        live = np.flatnonzero(~zero)
+        raws = [None] * len(offsets)
+        for k, r in zip(live, codec.compress(buf, offsets[live].tolist(), sizes[live].tolist()) if len(live) else []):
+            raws[k] = r
+        for k in np.flatnonzero(zero):
+            raws[k] = self._zero_stream(int(sizes[k]))
+        n_keys = sum(len(j.keys) for j in jobs)
+        n_empty = 0  # all-zero image blocks
         k = 0
         wr = self.writer
         for job in jobs:
             n_img = len(job.keys)
-            streams = [zlib_stream(r, int(a)) for r, a in zip(raws[k:k + len(job.adlers)], job.adlers)]
-            k += len(job.adlers)
+            n_all = sum(a.shape[0] for a in job.arrays)
+            streams = [zlib_stream(r, int(a)) for r, a in zip(raws[k:k + n_all], adlers[k:k + n_all])]
+            n_empty += int(zero[k:k + n_img].sum())
+            k += n_all
             for i, key in enumerate(job.keys):
                 wr.put_block(*key, [streams[i]] + ([streams[n_img + i]] if wr.mask else []))
+        with self._lock:
+            self.blocks_by_codec[codec.name] += n_keys - n_empty
+            self.empty_blocks += n_empty
 
     def close(self):
         for c in (self.gpu, self.host):

@@ -36,7 +36,6 @@ from .._device import load_modules, quiet_warp
 from .._validate import as_crs, finite
 from ..errors import Cancelled, DeviceError, GeometryError, OrthowarpWarning, ParamError, RasterIOError
 from ..kernels import ortho as ortho_kernels
-from ..geodesy import geodetic_to_ecef, geodetic_up
 from ..sensor import SensorModel
 from .dem import Dem, as_dem
 from .geometry import SensorGeometry
@@ -441,27 +440,29 @@ def coarse_grid(transform, to_frame, r0, c0, th, tw, step=COARSE_STEP):
 
 def coarse_struct(uv, geocentric, device, step=COARSE_STEP, pose=None):
     """The kernels' :class:`~orthowarp.kernels.ortho.CoarseGrid` of a coarse grid ``uv``
-    (rows, cols, 2) from :func:`coarse_grid`; for geocentric poses with the ECEF points on
-    the ellipsoid and their normals, and given a frame ``pose``, with the nodes' lines in its
-    camera frame, computed here in float64."""
+    (rows, cols, 2) from :func:`coarse_grid`: one upload of ``uv``, then on the device, in
+    float64 (:func:`~orthowarp.kernels.ortho.coarse_fields_kernel`), for geocentric poses the
+    ECEF points on the ellipsoid and their normals, and given a frame ``pose``, the nodes'
+    lines in its camera frame."""
     g = ortho_kernels.CoarseGrid()
     g.uv = wp.array(uv, dtype=wp.vec2d, device=device)
     g.step = float(step)
     g.geocentric = int(bool(geocentric))
+    shape = uv.shape[:2]
+    if not geocentric and pose is None:
+        return g
     if geocentric:
-        x0 = np.ascontiguousarray(geodetic_to_ecef(uv[..., 1], uv[..., 0], 0.0))
-        up = geodetic_up(uv[..., 1], uv[..., 0])
-        g.xyz0 = wp.array(x0, dtype=wp.vec3d, device=device)
-        g.up = wp.array(up, dtype=wp.vec3d, device=device)
-    else:
-        x0 = np.concatenate([uv, np.zeros(uv.shape[:-1] + (1,))], -1)
-        up = np.broadcast_to([0.0, 0.0, 1.0], x0.shape)
-    if pose is not None:  # rows of R^T (x - C) are (x - C) @ R
-        rot = np.asarray(pose.rotation, float)
-        g.cam_a = wp.array(np.ascontiguousarray((x0 - np.asarray(pose.center, float)) @ rot), dtype=wp.vec3d,
-                           device=device)
-        g.cam_b = wp.array(np.ascontiguousarray(up @ rot), dtype=wp.vec3d, device=device)
-        g.cam_up = wp.vec3d(*(np.asarray(pose.up, float) @ rot))
+        g.xyz0 = wp.empty(shape, dtype=wp.vec3d, device=device)
+        g.up = wp.empty(shape, dtype=wp.vec3d, device=device)
+    centre, rot = wp.vec3d(0.0, 0.0, 0.0), wp.mat33d(*np.eye(3).ravel())
+    if pose is not None:
+        rot_np = np.asarray(pose.rotation, float)
+        centre, rot = wp.vec3d(*np.asarray(pose.center, float)), wp.mat33d(*rot_np.ravel())
+        g.cam_a = wp.empty(shape, dtype=wp.vec3d, device=device)
+        g.cam_b = wp.empty(shape, dtype=wp.vec3d, device=device)
+        g.cam_up = wp.vec3d(*(np.asarray(pose.up, float) @ rot_np))
+    wp.launch(ortho_kernels.coarse_fields_kernel, dim=shape, device=device,
+              inputs=[g.uv, g.geocentric, int(pose is not None), centre, rot, g.xyz0, g.up, g.cam_a, g.cam_b])
     return g
 
 

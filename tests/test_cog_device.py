@@ -20,9 +20,12 @@ from orthowarp.pipeline.cog_device import (DeviceCogEncoder, HostDeflate, Nvcomp
 
 def test_adler32_matches_zlib(device):
     rng = np.random.default_rng(3)
-    sizes = [1, 7, 16384, 16385, 100000, 786432]
+    sizes = [1, 7, 16384, 16385, 100000, 786432, 40000, 70000]
     bufs = [rng.integers(0, 256, n, dtype=np.uint8) for n in sizes]
-    bufs[-1][:] = 255  # the largest sums
+    bufs[5][:] = 255  # the largest sums
+    bufs[6][:] = 0  # empty
+    bufs[7][:] = 0
+    bufs[7][-1] = 1  # all but the last byte
     data = np.concatenate(bufs)
     offs = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int32)
     chunk = 16384
@@ -34,8 +37,10 @@ def test_adler32_matches_zlib(device):
     wp.launch(kc.adler_partials_kernel, dim=s1.shape, inputs=[d, wp.array(offs, dtype=wp.int32, device=device), size,
                                                                 wp.int32(chunk)], outputs=[s1, s2], device=device)
     out = wp.empty(len(sizes), dtype=wp.int64, device=device)
-    wp.launch(kc.adler_finish_kernel, dim=len(sizes), inputs=[s1, s2, size], outputs=[out], device=device)
+    zero = wp.empty(len(sizes), dtype=wp.int32, device=device)
+    wp.launch(kc.adler_finish_kernel, dim=len(sizes), inputs=[s1, s2, size], outputs=[out, zero], device=device)
     assert out.numpy().tolist() == [zlib.adler32(b.tobytes()) for b in bufs]
+    assert zero.numpy().tolist() == [int(not b.any()) for b in bufs]
 
 
 def test_zlib_stream_inflates():
@@ -113,7 +118,7 @@ def test_device_encoded_file_has_the_host_writers_pixels(tmp_path, device, count
     # blocks encoded on the device: all of level 0 when tiles are whole blocks, else only the
     # tiles that happen to cover whole blocks (here the corner one)
     nb0 = -(-shape[0] // 256) * -(-shape[1] // 256)
-    assert enc.blocks_by_codec["libdeflate"] >= (nb0 if tile % 256 == 0 else 1)
+    assert enc.blocks_by_codec["libdeflate"] + enc.empty_blocks >= (nb0 if tile % 256 == 0 else 1)
 
 
 def test_device_encoder_refuses_uncompressed_writers(tmp_path, device):
@@ -168,6 +173,54 @@ class _SlowBatchedDeflate(HostDeflate):
         return super().compress(buf, offsets, sizes)
 
 
+class _RecordingDeflate(HostDeflate):
+    """libdeflate that keeps a copy of every buffer it is given."""
+
+    def __init__(self):
+        super().__init__(6, threads=2)
+        self.given = []
+
+    def compress(self, buf, offsets, sizes):
+        host = buf.numpy()
+        self.given += [host[o:o + n].copy() for o, n in zip(offsets, sizes)]
+        return super().compress(buf, offsets, sizes)
+
+
+def test_empty_blocks_get_one_stream_and_skip_the_codec(tmp_path, device):
+    """Blocks outside the footprint (no pixel, no mask bit: all zeros after the predictor)
+    are given the stream of zeros of their size instead of going through the codec; the
+    file still decodes to the host writer's pixels at every level."""
+    shape, count = (1024, 1536), 3
+    data, mask = scene(shape, count, "uint8")
+    mask[:, :700] = False  # the left blocks of levels 0-1 empty, the column at 512-767 partly
+    mask[:300, 1300:] = False
+    data[~mask] = 0
+    ref, out = str(tmp_path / "ref.tif"), str(tmp_path / "out.tif")
+    w = CogWriter(ref, width=shape[1], height=shape[0], count=count, dtype="uint8", crs=CRS, transform=TRANSFORM,
+                  block_size=256, overviews=3, threads=2)
+    with w:
+        w.write(0, 0, data, mask)
+    codec = _RecordingDeflate()
+    w = CogWriter(out, width=shape[1], height=shape[0], count=count, dtype="uint8", crs=CRS, transform=TRANSFORM,
+                  block_size=256, overviews=3, threads=2)
+    enc = DeviceCogEncoder(w, wp.get_device(device), [codec])
+    with w:
+        for r in range(0, shape[0], 512):
+            for c in range(0, shape[1], 512):
+                enc.write(r, c, wp.array(np.ascontiguousarray(data[r:r + 512, c:c + 512]), dtype=wp.uint8, device=device),
+                          wp.array(mask[r:r + 512, c:c + 512].astype(np.uint8), dtype=wp.uint8, device=device))
+        enc.flush()
+    enc.close()
+    # level 0: 4 x 6 blocks, the first two columns empty (8); level 1 (256 x 256 pieces of
+    # 512-px tiles): 2 x 3 blocks, the first column empty (2)
+    assert enc.empty_blocks == 8 + 2
+    assert enc.blocks_by_codec["libdeflate"] == 4 * 6 + 2 * 3 - enc.empty_blocks
+    assert all(b.any() for b in codec.given)  # no empty buffer reached the codec
+    for (da, ma, _, _), (db, mb, _, _) in zip(_levels(ref, count), _levels(out, count)):
+        np.testing.assert_array_equal(ma, mb)
+        np.testing.assert_array_equal(da, db)
+
+
 @pytest.mark.parametrize("with_host", [False, True])
 def test_batches_over_tiles_and_the_hand_over_to_the_host(tmp_path, with_host):
     from concurrent.futures import ThreadPoolExecutor
@@ -190,7 +243,7 @@ def test_batches_over_tiles_and_the_hand_over_to_the_host(tmp_path, with_host):
             list(pool.map(one, [(r, c) for r in range(0, shape[0], 512) for c in range(0, shape[1], 512)]))
         enc.flush()
     enc.close()
-    n_blocks = sum(enc.blocks_by_codec.values())
+    n_blocks = sum(enc.blocks_by_codec.values()) + enc.empty_blocks
     assert n_blocks >= 6 * 8 + 3 * 4  # levels 0 and 1 whole on the device (upper levels partly)
     # batches span several tiles, and the next one fills while one runs (with a host codec,
     # tiles that arrive while a batch runs and the next is full go to the host)
