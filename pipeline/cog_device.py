@@ -367,7 +367,8 @@ class WarpDeflate:
         with self._lock:
             stream = self._stream()
             if stream is not None:  # the buffer is complete once the device's stream gets here
-                stream.wait_stream(wp.get_stream(self.device))
+                with wp.ScopedDevice(self.device):  # the device's context current in this thread
+                    stream.wait_stream(wp.get_stream(self.device))
             for a in range(0, len(starts), self.max_chunks):
                 part = slice(a, a + self.max_chunks)
                 pieces.append(self._compress_chunks(buf, starts[part], lens[part], last[part], prime[part], stream))

@@ -1005,7 +1005,8 @@ def read_whole_source(src, device, *, masked, dtype, timer=None, clipped=None, t
         handle = _open_source(src)
         stream = wp.Stream(device) if device.is_cuda else None
         if stream is not None:  # the arrays were allocated in the device stream's order
-            stream.wait_stream(wp.get_stream(device))
+            with wp.ScopedDevice(device):  # the device's context current in this new thread
+                stream.wait_stream(wp.get_stream(device))
         try:
             for r0, n in part:
                 win = Window(0, r0, w, n)
