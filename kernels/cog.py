@@ -194,20 +194,26 @@ def adler_partials_kernel(
 @wp.kernel
 def adler_finish_kernel(s1: wp.array2d(dtype=wp.int64), s2: wp.array2d(dtype=wp.int64),
                         sizes: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.int64),
-                        zero: wp.array(dtype=wp.int32)):
+                        fill: wp.array(dtype=wp.int32)):
     """Adler-32 of each buffer: A = 1 + sum d_i, B = L + sum (L - i) d_i, both mod 65521,
-    packed as B * 65536 + A (RFC 1950); and whether all its bytes are zero (1, else 0: the
-    partial sums of bytes are exact, so they are all 0 only then)."""
+    packed as B * 65536 + A (RFC 1950); and the byte that fills it whole: 0 where all its
+    bytes are 0, 255 where all are 255 (the partial sums of bytes are exact, so they sum to
+    0 or 255 L only then), else -1."""
     k = wp.tid()
     a = wp.int64(1)
     b = wp.int64(sizes[k]) % ADLER_MOD
-    nonzero = wp.int64(0)
+    total = wp.int64(0)
     for c in range(s1.shape[1]):
         a = (a + s1[k, c] % ADLER_MOD) % ADLER_MOD
         b = (b + s2[k, c] % ADLER_MOD) % ADLER_MOD
-        nonzero += s1[k, c]
+        total += s1[k, c]
     out[k] = b * wp.int64(65536) + a
-    zero[k] = wp.where(nonzero == wp.int64(0), 1, 0)
+    f = -1
+    if total == wp.int64(0):
+        f = 0
+    elif total == wp.int64(255) * wp.int64(sizes[k]):
+        f = 255
+    fill[k] = f
 
 
 @wp.kernel

@@ -12,13 +12,13 @@ blocks, and only compressed blocks cross to the host:
    levels 0-3 here, 85 blocks per tile); that last small piece goes to the host writer, which
    reduces it with the pieces of the neighbouring tiles;
 3. all those blocks, gathered over tiles, checksummed (Adler-32) in one pass, and all but
-   the empty ones (all zeros: outside the footprint) compressed in one batch by a
-   raw-deflate codec: :class:`WarpDeflate` (Warp kernels), :class:`NvcompDeflate` (nvCOMP's
+   those of one byte (empty ones outside the footprint, full mask blocks inside it)
+   compressed in one batch by a raw-deflate codec: :class:`WarpDeflate` (Warp kernels), :class:`NvcompDeflate` (nvCOMP's
    Deflate on the GPU, package ``nvidia-nvcomp-cu13``, ``pip install orthowarp[gpu]``) or
    :class:`HostDeflate` (libdeflate on host threads, after one copy of the predicted
    blocks); each raw stream is wrapped as the zlib stream TIFF's deflate
    compression (code 8) stores: header 78 9C, the stream, the Adler-32 big-endian (RFC 1950);
-   an empty block gets the one stream of zeros of its size, made once;
+   a block of one byte gets the one stream of its size and byte, made once;
 4. the records handed to the writer, which lays the file out as before.
 
 Every path decodes to the same pixels as the host writer's (the block contents before
@@ -481,8 +481,9 @@ class DeviceCogEncoder:
         One or two raw-deflate codecs: a batched device codec (:class:`NvcompDeflate`,
         :class:`WarpDeflate`) and/or :class:`HostDeflate`. The device codec gets blocks in
         batches of at least ``batch_bytes`` gathered over several tiles (a batch of a single
-        tile's blocks would leave most of the GPU idle); while it compresses one batch the
-        next one fills, and it takes that one as soon as it is done. With a host codec too,
+        tile's blocks would leave most of the GPU idle), on a thread of its own (the tiles'
+        threads hand a full batch over and go on); while it compresses one batch the next one
+        fills, and it takes that one as soon as it is done. With a host codec too,
         tiles that arrive while the device is busy and its next batch is already full go to
         the host cores instead.
     batch_bytes : int, optional
@@ -502,11 +503,14 @@ class DeviceCogEncoder:
         self.writer, self.device = writer, device
         self.gpu, self.host = (gpu or [None])[0], (host or [None])[0]
         self.batch_bytes = int(batch_bytes)
-        self.blocks_by_codec = {c.name: 0 for c in codecs}  # blocks each codec compressed
+        self.blocks_by_codec = {c.name: 0 for c in codecs}  # image blocks each codec compressed
         self.empty_blocks = 0  # all-zero image blocks, given the one stream of their size
-        self._zeros = {}  # size -> raw deflate stream of that many zero bytes
+        self._constants = {}  # (size, byte) -> raw deflate stream of that many such bytes
         self._lock = threading.Condition()
         self._batch, self._batch_n, self._gpu_busy = [], 0, False
+        self._failed = None  # a batch's error, raised by the next write or the flush
+        # the device codec's batches run on a thread of their own, one after another
+        self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="device-codec")
         self._threshold = None
         if self.gpu is not None and wp.is_mempool_enabled(device):
             # nvCOMP allocates its scratch outside Warp's memory pool: have the pool give back
@@ -544,6 +548,8 @@ class DeviceCogEncoder:
         belongs to the device, not to a thread, so callers in several threads share it).
         """
         self.writer._raise_pending()  # noqa: SLF001
+        with self._lock:
+            self._raise_failed()
         job = self._encode(row, col, tile, valid)
         if job is None:
             return
@@ -557,6 +563,7 @@ class DeviceCogEncoder:
             else:
                 while self._gpu_busy and self._batch_n >= 2 * self.batch_bytes:
                     self._lock.wait()  # bounded device memory: wait for the batch in flight
+                self._raise_failed()
                 self._batch.append(job)
                 self._batch_n += job.nbytes
                 job = None
@@ -564,30 +571,42 @@ class DeviceCogEncoder:
                     take, self._batch, self._batch_n, self._gpu_busy = self._batch, [], 0, True
         if job is not None:
             self._compress([job], self.host)
-        if take:
-            self._compress_gpu(take)
+        if take:  # the codec's own thread deflates it: the tile's thread goes back to its tiles
+            self._worker.submit(self._compress_gpu, take)
 
     def flush(self):
-        """Compress the blocks still waiting for a batch."""
+        """Compress the blocks still waiting for a batch (after the batches in flight); raises
+        the codec's error if a batch failed."""
         with self._lock:
             while self._gpu_busy:
                 self._lock.wait()
+            self._raise_failed()
             take, self._batch, self._batch_n = self._batch, [], 0
             self._gpu_busy = bool(take)
         if take:
             self._compress_gpu(take)
+            with self._lock:
+                self._raise_failed()
+
+    def _raise_failed(self):
+        """Raise the error of a failed batch (under the lock)."""
+        if self._failed is not None:
+            raise self._failed
 
     def _compress_gpu(self, jobs):
         """Deflate a batch on the device, then each next batch that filled meanwhile: the
-        device goes from one batch to the next without waiting for another tile."""
+        device goes from one batch to the next without waiting for another tile. An error is
+        kept for :meth:`write` and :meth:`flush` to raise."""
         while jobs:
             try:
-                self._compress(jobs, self.gpu)
-            except BaseException:
+                with wp.ScopedDevice(self.device):  # the device's context current in this thread
+                    self._compress(jobs, self.gpu)
+            except BaseException as e:  # noqa: BLE001 - raised by the next write or the flush
                 with self._lock:
+                    self._failed = self._failed or e
                     self._gpu_busy = False
                     self._lock.notify_all()
-                raise
+                return
             with self._lock:
                 if self._batch_n >= self.batch_bytes:
                     jobs, self._batch, self._batch_n = self._batch, [], 0
@@ -631,8 +650,8 @@ class DeviceCogEncoder:
 
     def _checksums(self, buf, offsets, sizes):
         """Adler-32 (int64) of the buffers (``offsets``, ``sizes``: int32 arrays of bytes) of
-        the uint8 array ``buf``, and whether each is all zeros (bool): one upload, two
-        launches and one read-back for a whole batch."""
+        the uint8 array ``buf``, and the byte that fills each whole (0 or 255, else -1; int32):
+        one upload, two launches and one read-back for a whole batch."""
         n, d = len(offsets), self.device
         bounds = wp.array(np.concatenate([offsets, sizes]), dtype=wp.int32, device=d)
         offs, size = bounds[:n], bounds[n:]
@@ -641,23 +660,25 @@ class DeviceCogEncoder:
         s2 = wp.empty((n, nchunk), dtype=wp.int64, device=d)
         wp.launch(kc.adler_partials_kernel, dim=(n, nchunk), inputs=[buf, offs, size, wp.int32(_CHUNK)],
                   outputs=[s1, s2], device=d)
-        out = wp.empty(2 * n, dtype=wp.int64, device=d)
-        zero = wp.empty(n, dtype=wp.int32, device=d)
-        wp.launch(kc.adler_finish_kernel, dim=n, inputs=[s1, s2, size], outputs=[out, zero], device=d)
-        return out.numpy()[:n], zero.numpy().astype(bool)
+        out = wp.empty(n, dtype=wp.int64, device=d)
+        fill = wp.empty(n, dtype=wp.int32, device=d)
+        wp.launch(kc.adler_finish_kernel, dim=n, inputs=[s1, s2, size], outputs=[out, fill], device=d)
+        return out.numpy(), fill.numpy()
 
-    def _zero_stream(self, size):
-        """The raw deflate stream of ``size`` zero bytes (libdeflate level 6), made once per
-        size: an empty block (outside the footprint: no pixel and no mask bit, after the
-        predictor all zeros) is not sent to the codec."""
+    def _constant_stream(self, size, value):
+        """The raw deflate stream of ``size`` bytes of ``value`` (libdeflate level 6), made
+        once per size and value. Blocks filled with one byte are not sent to the codec: empty
+        image and mask blocks (outside the footprint: no pixel and no mask bit, after the
+        predictor all zeros) and the mask blocks inside it (all 255)."""
+        key = (size, value)
         with self._lock:
-            raw = self._zeros.get(size)
+            raw = self._constants.get(key)
         if raw is None:
             from deflate import deflate_compress
 
-            raw = bytes(deflate_compress(np.zeros(size, np.uint8), 6))
+            raw = bytes(deflate_compress(np.full(size, value, np.uint8), 6))
             with self._lock:
-                self._zeros[size] = raw
+                self._constants[key] = raw
         return raw
 
     def _compress(self, jobs, codec):
@@ -678,30 +699,31 @@ class DeviceCogEncoder:
             for v, at in parts:
                 wp.copy(buf, v, dest_offset=at, count=v.shape[0])
         offsets, sizes = np.asarray(offsets, np.int32), np.asarray(sizes, np.int32)
-        adlers, zero = self._checksums(buf, offsets, sizes)
-        live = np.flatnonzero(~zero)
+        adlers, fill = self._checksums(buf, offsets, sizes)
+        live = np.flatnonzero(fill < 0)
         raws = [None] * len(offsets)
         for k, r in zip(live, codec.compress(buf, offsets[live].tolist(), sizes[live].tolist()) if len(live) else []):
             raws[k] = r
-        for k in np.flatnonzero(zero):
-            raws[k] = self._zero_stream(int(sizes[k]))
-        n_keys = sum(len(j.keys) for j in jobs)
-        n_empty = 0  # all-zero image blocks
+        for k in np.flatnonzero(fill >= 0):
+            raws[k] = self._constant_stream(int(sizes[k]), int(fill[k]))
+        n_coded = n_empty = 0  # image blocks through the codec, and all-zero ones
         k = 0
         wr = self.writer
         for job in jobs:
             n_img = len(job.keys)
             n_all = sum(a.shape[0] for a in job.arrays)
             streams = [zlib_stream(r, int(a)) for r, a in zip(raws[k:k + n_all], adlers[k:k + n_all])]
-            n_empty += int(zero[k:k + n_img].sum())
+            n_coded += int((fill[k:k + n_img] < 0).sum())
+            n_empty += int((fill[k:k + n_img] == 0).sum())
             k += n_all
             for i, key in enumerate(job.keys):
                 wr.put_block(*key, [streams[i]] + ([streams[n_img + i]] if wr.mask else []))
         with self._lock:
-            self.blocks_by_codec[codec.name] += n_keys - n_empty
+            self.blocks_by_codec[codec.name] += n_coded
             self.empty_blocks += n_empty
 
     def close(self):
+        self._worker.shutdown(wait=True)
         for c in (self.gpu, self.host):
             if c is not None:
                 c.close()
