@@ -107,7 +107,7 @@ def match_points(left, right, points, predicted, *, affine=None, window=21, radi
     """
     import warp as wp
 
-    from .._device import load_modules, quiet_warp, resolve_device
+    from .._device import load_modules, quiet_warp, resolve_device, to_host
     from ..kernels import matching as km
 
     left, right = _image("left", left), _image("right", right)
@@ -141,7 +141,7 @@ def match_points(left, right, points, predicted, *, affine=None, window=21, radi
             wp.launch(km.ncc_search_kernel, dim=n, device=dev,
                       inputs=[lw_, rw_, p_, wp.array(guess, dtype=wp.vec2d, device=dev), a, wp.int32(half),
                               wp.int32(r), ncc_xy, score])
-            return ncc_xy.numpy().reshape(n, 2)
+            return to_host(ncc_xy).reshape(n, 2)
 
         if n:
             guess, pl, pr = pred, [left], [right]
@@ -164,9 +164,9 @@ def match_points(left, right, points, predicted, *, affine=None, window=21, radi
             wp.launch(km.lsm_kernel, dim=n, device=dev,
                       inputs=[lw, rw, p, ncc_xy, a, wp.int32(half), wp.int32(max_iterations), wp.float64(tol), xy,
                               sig, s0, its])
-        out = MatchResult(xy=xy.numpy().reshape(n, 2), sigma=sig.numpy().reshape(n, 2),
-                          ncc_xy=ncc_xy.numpy().reshape(n, 2), score=score.numpy(), sigma0=s0.numpy(),
-                          iterations=its.numpy(), ok=np.zeros(n, bool))
+        out = MatchResult(xy=to_host(xy).reshape(n, 2), sigma=to_host(sig).reshape(n, 2),
+                          ncc_xy=to_host(ncc_xy).reshape(n, 2), score=to_host(score), sigma0=to_host(s0),
+                          iterations=to_host(its), ok=np.zeros(n, bool))
     with np.errstate(invalid="ignore"):
         near = np.hypot(*(out.xy - out.ncc_xy).T) <= max_shift
         out.ok = (out.score >= min_score) & (out.iterations > 0) & near & np.all(np.isfinite(out.xy), axis=1)

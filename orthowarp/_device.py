@@ -263,3 +263,31 @@ def load_modules(device, *modules, block_dim=None):
                 wp.load_module(m, device=device)
             else:
                 wp.load_module(m, device=device, block_dim=block_dim)
+
+
+def to_host(arr):
+    """A NumPy array of a Warp array's values, safe to call from several threads at once.
+
+    Warp's ``array.numpy()`` makes the CUDA null stream the device's current stream for its
+    copy (a device-wide setting, not a per-thread one), so threads reading back at once
+    change it under one another; on an H200 one such race ended in a segfault inside
+    ``Device.set_stream``. Here a CUDA array is copied on the device's current stream (the
+    one the pipeline's kernels run on), which is then waited for; a CPU array is returned as
+    ``numpy()`` does (a view).
+
+    Parameters
+    ----------
+    arr : warp array
+        Contiguous.
+
+    Returns
+    -------
+    ndarray
+        A copy for a CUDA array; shape and dtype as ``arr.numpy()``.
+    """
+    if not arr.device.is_cuda:
+        return arr.numpy()
+    host = wp.empty(arr.shape, dtype=arr.dtype, device="cpu")
+    wp.copy(host, arr)
+    wp.synchronize_stream(wp.get_stream(arr.device))
+    return host.numpy()

@@ -10,7 +10,7 @@ import warp as wp
 from numpy.typing import ArrayLike
 
 from . import brown
-from ._device import quiet_warp, resolve_device
+from ._device import quiet_warp, resolve_device, to_host
 from ._validate import finite as _finite
 from ._validate import points as _as_points
 from .errors import GeometryError, ParamError
@@ -311,7 +311,7 @@ class FrameCamera:
             if len(rows):
                 wp.launch(kernel, dim=len(rows), device=dev,
                           inputs=[self.to_struct(), wp.array(rows, dtype=in_type, device=dev), out])
-            res = out.numpy().reshape(len(rows), out_type._length_)
+            res = to_host(out).reshape(len(rows), out_type._length_)
         res[~np.all(np.isfinite(rows), axis=1)] = np.nan
         return res
 

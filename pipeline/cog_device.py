@@ -34,7 +34,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import warp as wp
 
-from .._device import load_modules
+from .._device import load_modules, to_host
 from ..errors import DeviceError, ParamError
 from ..kernels import cog as kc
 
@@ -92,7 +92,7 @@ class HostDeflate:
     def compress(self, buf, offsets, sizes):
         """Raw deflate streams (list of bytes) of the buffers (``offsets``, ``sizes``: byte
         lists) of the uint8 Warp array ``buf``."""
-        host = buf.numpy()  # a copy from a GPU, a view on the CPU
+        host = to_host(buf)  # a copy from a GPU, a view on the CPU
         return list(self._pool.map(lambda k: self._compress(host[offsets[k]:offsets[k] + sizes[k]], self.level),
                                    range(len(offsets))))
 
@@ -189,7 +189,7 @@ class NvcompDeflate:
                   inputs=[out_buf, wp.array(src_off, dtype=wp.int32, device=self.device), dst,
                           wp.array(dst_off, dtype=wp.int32, device=self.device),
                           wp.array(comp, dtype=wp.int32, device=self.device), wp.int32(_CHUNK)])
-        host = dst.numpy()
+        host = to_host(dst)
         return [host[o:o + k].tobytes() for o, k in zip(dst_off, comp)]
 
     def close(self):
@@ -623,7 +623,7 @@ class DeviceCogEncoder:
         while True:
             h, w = piece.shape[0], piece.shape[1]
             if not self._device_level(li, row, col, h, w):
-                self.writer.write(row, col, piece.numpy(), pvalid.numpy().view(bool), level=li, copy=False)
+                self.writer.write(row, col, to_host(piece), to_host(pvalid).view(bool), level=li, copy=False)
                 break
             nby, nbx = -(-h // b), -(-w // b)
             blocks = wp.empty((nby * nbx, b, b, wr.count), dtype=_WP[wr.dtype], device=self.device)
@@ -663,7 +663,7 @@ class DeviceCogEncoder:
         out = wp.empty(n, dtype=wp.int64, device=d)
         fill = wp.empty(n, dtype=wp.int32, device=d)
         wp.launch(kc.adler_finish_kernel, dim=n, inputs=[s1, s2, size], outputs=[out, fill], device=d)
-        return out.numpy(), fill.numpy()
+        return to_host(out), to_host(fill)
 
     def _constant_stream(self, size, value):
         """The raw deflate stream of ``size`` bytes of ``value`` (libdeflate level 6), made

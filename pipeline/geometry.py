@@ -13,7 +13,7 @@ import numpy as np
 import warp as wp
 from pyproj import CRS, Transformer
 
-from .._device import load_modules, quiet_warp, resolve_device
+from .._device import load_modules, quiet_warp, resolve_device, to_host
 from .._validate import as_crs, no_infinite_rows
 from .._validate import points as _as_points
 from ..errors import ParamError
@@ -285,7 +285,7 @@ class SensorGeometry:
         if len(pix):
             wp.launch(self.sensor.kernels.geolocate, dim=len(pix), device=self.device,
                       inputs=[*self.structs(), wp.array(pix, dtype=wp.vec2d, device=self.device), out])
-        return out.numpy().reshape(-1, 3)
+        return to_host(out).reshape(-1, 3)
 
     def geolocate_grid(self, out, *, col0=0.5, row0=0.5, step=1.0, block_dim=256):
         """Geolocate a regular pixel grid into a device array ``out`` (rows, cols) of vec3d.
@@ -320,7 +320,7 @@ class SensorGeometry:
         c0 = r0 = 0.5 * step
         if self.device.is_cuda:
             out = wp.empty((rows, cols), dtype=wp.vec3d, device=self.device)
-            return self.geolocate_grid(out, col0=c0, row0=r0, step=step).numpy()
+            return to_host(self.geolocate_grid(out, col0=c0, row0=r0, step=step))
         result = np.empty((rows, cols, 3))
         workers = workers or os.cpu_count() or 1
         band_rows = band_rows or max(1, -(-rows // (4 * workers)))
@@ -331,7 +331,7 @@ class SensorGeometry:
             out = wp.empty((i1 - i0, cols), dtype=wp.vec3d, device=self.device)
             wp.launch(kernel, dim=out.shape, device=self.device,
                       inputs=[*structs, wp.float64(c0), wp.float64(r0 + i0 * step), wp.float64(step), out])
-            result[i0:i1] = out.numpy()
+            result[i0:i1] = to_host(out)
 
         with ThreadPoolExecutor(max_workers=workers) as pool:
             list(pool.map(band, range(0, rows, band_rows)))
@@ -346,7 +346,7 @@ class SensorGeometry:
         if len(geo):
             wp.launch(self.sensor.kernels.project, dim=len(geo), device=self.device,
                       inputs=[*self.sensor_structs(), wp.array(geo, dtype=wp.vec3d, device=self.device), out])
-        return out.numpy().reshape(-1, 2)
+        return to_host(out).reshape(-1, 2)
 
 
 # Plausibility bounds of the inputs (see _check_ground_points and check_camera_above_terrain).

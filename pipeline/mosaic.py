@@ -40,7 +40,7 @@ import warp as wp
 from affine import Affine
 from pyproj import CRS, Transformer
 
-from .._device import quiet_warp
+from .._device import quiet_warp, to_host
 from ..errors import GeometryError, ParamError, RasterIOError
 from ..geodesy import geodetic_to_ecef, geodetic_up
 from ..kernels import mosaic as mosaic_kernels
@@ -265,7 +265,7 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
         _check_cancel(cancel, dst)
         out, has, source = plan._tile(r0, c0, th, tw, device=on)
         plan._encoder.write(r0, c0, out, has)
-        source = source.numpy()
+        source = to_host(source)
         return None, source != NO_SOURCE, source
 
     def results():
@@ -455,7 +455,7 @@ class MosaicPlan:
         tile computed on that device."""
         st = self._materialise()
         out, source, has = self._select(st, "renderer", r0, c0, th, tw, device=device)
-        missing = ~(has.numpy().view(bool) if device is not None else has)
+        missing = ~(to_host(has).view(bool) if device is not None else has)
         if self.options["method"] == "forward" and missing.any() and any(s[1].kind == "frame" for s in self.sources):
             # ground no image sees by the forward method (hidden, where it drops folded quads on
             # a rough DSM, or the half pixel along a footprint's edge): the backward method's
@@ -492,7 +492,7 @@ class MosaicPlan:
         ks, stack, rank, on = got
         t = time.perf_counter()
         if o["blend"] == "multiband":
-            out, source, has = _multiband(stack.numpy(), rank.numpy(), np.asarray(ks), feather, halo, top,
+            out, source, has = _multiband(to_host(stack), to_host(rank), np.asarray(ks), feather, halo, top,
                                           self.dtype)
             timer.span("prepare", t)
             return (out, source, has) if device is None else _to_device(device, out, source, has)
@@ -507,7 +507,7 @@ class MosaicPlan:
         if device is not None:
             return out, source, has
         t = time.perf_counter()
-        out, source, has = out.numpy(), source.numpy(), has.numpy().view(bool)
+        out, source, has = to_host(out), to_host(source), to_host(has).view(bool)
         timer.span("d2h", t)
         return out, source, has
 
@@ -852,8 +852,8 @@ def _reduced_pass(plan, cancel, max_pixels):
             return None
         to_frame = Transformer.from_crs(crs, geom.horizontal_crs, always_xy=True)
         angle = _angle_field(geom, ctr, to_frame, r0, c0, r1 - r0, c1 - c0).astype(np.float32)
-        v = values.numpy()
-        ok = valid.numpy().view(bool) & np.isfinite(angle) & np.isfinite(v).all(axis=-1)
+        v = to_host(values)
+        ok = to_host(valid).view(bool) & np.isfinite(angle) & np.isfinite(v).all(axis=-1)
         return r0, c0, v, ok, angle
 
     # the images on threads (reads and kernels release the GIL), merged in their order

@@ -32,7 +32,7 @@ from pyproj import CRS, Transformer
 from rasterio.enums import MaskFlags, Resampling
 from rasterio.windows import Window
 
-from .._device import load_modules, quiet_warp
+from .._device import load_modules, quiet_warp, to_host
 from .._validate import as_crs, finite
 from ..errors import Cancelled, DeviceError, GeometryError, OrthowarpWarning, ParamError, RasterIOError
 from ..kernels import ortho as ortho_kernels
@@ -646,7 +646,7 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
             mask = np.zeros((th, tw), bool)
         else:
             t = time.perf_counter()
-            block, mask = packed.numpy(), res_valid.numpy().view(bool)
+            block, mask = to_host(packed), to_host(res_valid).view(bool)
             timer.span("d2h", t)
         t = time.perf_counter()
         sink(r0, c0, block, mask)
@@ -858,7 +858,7 @@ class ImageTiles:
                 wp.launch(ortho_kernels.frame_node_refraction_kernel, dim=uv.shape[:2], device=device,
                           inputs=[sensor[1], grid, wp.vec2d(*heights), grid.refr_a, grid.refr_b])
                 grid.refr_nodes = 1
-        pixels = nodes.numpy()  # waits for the kernels
+        pixels = to_host(nodes)  # waits for the kernels
         timer.span("kernel", t)
         t = time.perf_counter()
         w_img, h_img = self.image_size

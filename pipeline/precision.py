@@ -318,6 +318,7 @@ def frame_window_sigmas(geometry, crs, cells, window, c_raw, *, pixel_sigma=0.5,
     import warp as wp
 
     from ..kernels import precision as kp
+    from .._device import to_host
     from .ortho import coarse_grid, coarse_struct
 
     if cells.b != 0 or cells.d != 0:
@@ -388,7 +389,7 @@ def frame_window_sigmas(geometry, crs, cells, window, c_raw, *, pixel_sigma=0.5,
                           float(pixel_sigma) ** 2, float(dem_sigma) ** 2, width, height, table, start],
                   outputs=[out])
         tick("covariance")
-    sig = out.numpy().reshape(3, rows, cols)  # (a pinned buffer's allocation costs more than it saves)
+    sig = to_host(out).reshape(3, rows, cols)  # (a pinned buffer's allocation costs more than it saves)
     tick("read-back")
     return sig
 

@@ -13,6 +13,7 @@ import sys
 import textwrap
 import threading
 
+import numpy as np
 import pytest
 import warp as wp
 
@@ -240,3 +241,31 @@ def test_a_slow_module_load_is_announced_as_compiling(monkeypatch, caplog):
         time.sleep(0.1)  # past the notice's delay: a cancelled timer stays silent
         assert not [r for r in caplog.records if "Compiling" in r.getMessage()]
 
+
+
+@pytest.mark.parametrize("dtype,np_dtype,shape", [(wp.uint8, np.uint8, (5, 7, 3)), (wp.vec2d, np.float64, (4, 6)),
+                                                  (wp.float64, np.float64, (9,)), (wp.uint16, np.uint16, (3, 2))])
+def test_to_host_gives_what_numpy_gives(device, dtype, np_dtype, shape):
+    """to_host (the pipeline's thread-safe read-back) returns the values, shape and dtype of
+    Warp's own array.numpy()."""
+    from orthowarp._device import to_host
+
+    n = int(np.prod(shape)) * (2 if dtype is wp.vec2d else 1)
+    values = (np.arange(n) % 251).reshape(*shape, *((2,) if dtype is wp.vec2d else ()))
+    a = wp.array(values.astype(np_dtype), dtype=dtype, device=device)
+    got, want = to_host(a), a.numpy()
+    assert got.shape == want.shape and got.dtype == want.dtype
+    np.testing.assert_array_equal(got, want)
+
+
+def test_to_host_from_many_threads(device):
+    """Read-backs from several threads at once (Warp's numpy() changes the device's current
+    stream for its copy; to_host does not) all give their own array's values."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from orthowarp._device import to_host
+
+    arrays = [wp.full(1000, k, dtype=wp.int32, device=device) for k in range(16)]
+    with ThreadPoolExecutor(8) as pool:
+        out = list(pool.map(lambda k: to_host(arrays[k % 16]), range(200)))
+    assert all((o == k % 16).all() for k, o in enumerate(out))
