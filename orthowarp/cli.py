@@ -743,7 +743,7 @@ def _frame_orientations(images, int_param, ext_param, crs, ids=None):
               help="Who deflates the mosaic's blocks: host (libdeflate on all cores), nvcomp (the tiles stay on the "
                    "GPU; needs orthowarp[gpu]), warp (orthowarp's own deflate kernels on the device), hybrid (the device: "
                    "nvCOMP at --compress-level 1-4 where installed, else warp; and the host cores at once); "
-                   "auto: host.")
+                   "auto: warp on a GPU, host on the CPU.")
 @click.option("--accuracy", is_flag=True,
               help="Also write <mosaic>_ACCURACY.tif: the predicted accuracy (sigma x, y, up in m, or CE90 and "
                    "LE90) of each --accuracy-step x --accuracy-step cell from the image its centre was taken from "

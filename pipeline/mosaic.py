@@ -220,10 +220,11 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
         :func:`~orthowarp.pipeline.ortho.orthorectify`): "host" (the tiles copied to host
         memory, blocks, overviews and libdeflate there), "nvcomp" (on a GPU: the tiles stay
         there, blocks and overview levels made there and deflated by nvCOMP; ``pip install
-        'orthowarp[gpu]'``), "hybrid" (the same, libdeflate on the host cores taking the
-        tiles that arrive while the device is busy and its next batch is full); "auto": "host" (the fastest measured for a
-        mosaic, whose host cores are busy with the tiles). Every choice decodes to the same
-        pixels.
+        'orthowarp[gpu]'``), "warp" (the same, deflated by orthowarp's own kernels), "hybrid"
+        (a device codec, libdeflate on the host cores taking the tiles that arrive while the
+        device is busy and its next batch is full); "auto": "warp" on a GPU (the fastest
+        measured for a mosaic, whose host cores are busy with the tiles), "host" on the CPU.
+        Every choice decodes to the same pixels.
     tile_size : int, optional
         Output tile edge (pixels, multiple of 16); default 2048 on a GPU (fewer, larger
         launches: the per-tile work on the host is what bounds a mosaic), 512 on the CPU.
@@ -727,10 +728,11 @@ def mosaic_plan(images, *, dem, crs=None, resolution=None, resampling="bilinear"
 
 def _mosaic_block_codec(choice, device, level):
     """The block codec a mosaic uses (see :func:`mosaic`'s ``block_codec``): "auto" is
-    "host" (on the H100 host the host codec was the fastest for the 40-frame speed block,
-    bench/reference/mosaic-speed-h100.json)."""
+    "warp" on a GPU (the 40-frame speed block on an H200: 28.3 and 29.5 s against 33.1 and
+    34.0 s with the host codec, bench/reference/mosaic-speed-*-codec-h200*.json), "host" on
+    the CPU."""
     if choice == "auto":
-        return "host"
+        return "warp" if device.is_cuda else "host"
     return _block_codec(choice, device, True, level)
 
 
