@@ -778,3 +778,14 @@ def test_pushbroom_hidden_ground_is_tested_and_taken_from_another_scene(tmp_path
         assert np.mean(idx[seen0] == 0) > 0.99  # scene 0 elsewhere
         # hidden from scene 0: scene 1 with the visibility test, scene 0's occluder without it
         assert np.all(idx[inner] == (1 if occ else 0)), (occ, np.unique(idx[inner], return_counts=True))
+
+
+def test_auto_block_codec_is_warp_on_a_gpu_and_host_on_the_cpu():
+    import warp as wp
+
+    from orthowarp.pipeline.mosaic import _mosaic_block_codec
+
+    assert _mosaic_block_codec("auto", wp.get_device("cpu"), 6) == "host"
+    assert _mosaic_block_codec("warp", wp.get_device("cpu"), 6) == "warp"
+    if wp.get_cuda_device_count():
+        assert _mosaic_block_codec("auto", wp.get_device("cuda:0"), 6) == "warp"
