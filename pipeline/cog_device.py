@@ -13,12 +13,13 @@ blocks, and only compressed blocks cross to the host:
    reduces it with the pieces of the neighbouring tiles;
 3. all those blocks, gathered over tiles, checksummed (Adler-32) in one pass, and all but
    those of one byte (empty ones outside the footprint, full mask blocks inside it)
-   compressed in one batch by a raw-deflate codec: :class:`WarpDeflate` (Warp kernels), :class:`NvcompDeflate` (nvCOMP's
-   Deflate on the GPU, package ``nvidia-nvcomp-cu13``, ``pip install orthowarp[gpu]``) or
-   :class:`HostDeflate` (libdeflate on host threads, after one copy of the predicted
-   blocks); each raw stream is wrapped as the zlib stream TIFF's deflate
-   compression (code 8) stores: header 78 9C, the stream, the Adler-32 big-endian (RFC 1950);
-   a block of one byte gets the one stream of its size and byte, made once;
+   compressed in one batch by a raw-deflate codec: :class:`WarpDeflate` (Warp kernels),
+   :class:`NvcompDeflate` (nvCOMP's Deflate on the GPU, package ``nvidia-nvcomp-cu13``,
+   ``pip install orthowarp[gpu]``) or :class:`HostDeflate` (libdeflate on host threads,
+   after one copy of the predicted blocks); each raw stream is wrapped as the zlib stream
+   TIFF's deflate compression (code 8) stores: header 78 9C, the stream, the Adler-32
+   big-endian (RFC 1950); a block of one byte gets the one stream of its size and byte, made
+   once;
 4. the records handed to the writer, which lays the file out as before.
 
 Every path decodes to the same pixels as the host writer's (the block contents before

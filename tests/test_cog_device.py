@@ -211,7 +211,8 @@ def test_blocks_of_one_byte_get_one_stream_and_skip_the_codec(tmp_path, device):
     with w:
         for r in range(0, shape[0], 512):
             for c in range(0, shape[1], 512):
-                enc.write(r, c, wp.array(np.ascontiguousarray(data[r:r + 512, c:c + 512]), dtype=wp.uint8, device=device),
+                enc.write(r, c, wp.array(np.ascontiguousarray(data[r:r + 512, c:c + 512]), dtype=wp.uint8,
+                                         device=device),
                           wp.array(mask[r:r + 512, c:c + 512].astype(np.uint8), dtype=wp.uint8, device=device))
         enc.flush()
     enc.close()
