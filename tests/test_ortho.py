@@ -1156,3 +1156,41 @@ def test_lossy_outputs_for_rgb(tmp_path, compress, quality):
         orthorectify(src, FrameSensor(cam, pose), tmp_path / "q.tif", quality=80, **kw)  # deflate has no quality
     with pytest.raises(ParamError, match="uint8"):
         orthorectify(src, FrameSensor(cam, pose), tmp_path / "f.tif", compress=compress, dtype="float32", **kw)
+
+
+@pytest.mark.parametrize("geocentric,with_pose", [(True, True), (False, True), (True, False)])
+def test_coarse_fields_on_the_device_match_float64_numpy(device, geocentric, with_pose):
+    """coarse_struct's fields, computed by coarse_fields_kernel from the uploaded uv, against
+    the same quantities from orthowarp.geodesy in float64 NumPy: ECEF points and normals of
+    geocentric grids, camera-frame lines R^T (x(0) - C) and R^T up given a pose."""
+    from types import SimpleNamespace
+
+    from scipy.spatial.transform import Rotation
+
+    from orthowarp.geodesy import geodetic_to_ecef, geodetic_up
+    from orthowarp.pipeline.ortho import coarse_struct
+
+    rng = np.random.default_rng(5)
+    if geocentric:
+        uv = np.stack([rng.uniform(7.5, 8.5, (17, 23)), rng.uniform(46.0, 47.0, (17, 23))], -1)
+        x0, up = geodetic_to_ecef(uv[..., 1], uv[..., 0], 0.0), geodetic_up(uv[..., 1], uv[..., 0])
+        centre = geodetic_to_ecef(46.5, 8.0, 2400.0)
+    else:
+        uv = np.stack([rng.uniform(4.6e5, 4.61e5, (17, 23)), rng.uniform(5.2e6, 5.201e6, (17, 23))], -1)
+        x0, up = np.concatenate([uv, np.zeros(uv.shape[:-1] + (1,))], -1), np.broadcast_to([0.0, 0.0, 1.0], (17, 23, 3))
+        centre = np.array([460500.0, 5200500.0, 1500.0])
+    rot = Rotation.from_euler("xyz", [2.0, -3.0, 40.0], degrees=True).as_matrix()
+    pose = SimpleNamespace(rotation=rot, center=centre, up=np.array([0.6, 0.3, 0.74])) if with_pose else None
+    g = coarse_struct(np.ascontiguousarray(uv), geocentric, device, pose=pose)
+    np.testing.assert_array_equal(g.uv.numpy(), uv)
+    if geocentric:
+        np.testing.assert_allclose(g.xyz0.numpy(), x0, rtol=0, atol=1e-8)  # metres
+        np.testing.assert_allclose(g.up.numpy(), up, rtol=0, atol=1e-15)
+    else:
+        assert g.xyz0 is None and g.up is None
+    if with_pose:
+        np.testing.assert_allclose(g.cam_a.numpy(), (x0 - centre) @ rot, rtol=0, atol=1e-8)
+        np.testing.assert_allclose(g.cam_b.numpy(), up @ rot, rtol=0, atol=1e-15)
+        np.testing.assert_allclose(np.array(g.cam_up), pose.up @ rot, rtol=0, atol=1e-15)
+    else:
+        assert g.cam_a is None and g.cam_b is None
