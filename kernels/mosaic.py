@@ -13,6 +13,11 @@ function (:mod:`orthowarp.kernels.ortho`). Then:
    "none"), or every image within ``feather`` of it with weights falling linearly across
    that band; the weighted mean stored in the output's dtype, the mask, and the index of the
    image with the largest weight.
+
+Multi-band blending (Burt and Adelson's multiresolution spline in Brown and Lowe's three
+bands) instead: :func:`multiband_planes_kernel` (the best image and the planes to blur),
+:func:`blur_axis_kernel` twice per sigma (a separable Gaussian), and
+:func:`multiband_combine_kernel` (the bands, their weights, the sum).
 """
 
 from typing import Any
@@ -198,9 +203,138 @@ def mosaic_fill_kernel(
     source[r0 + i, c0 + j] = part_source[i, j]
 
 
+@wp.kernel
+def multiband_planes_kernel(stack: wp.array4d(dtype=wp.float32), rank: wp.array3d(dtype=wp.float32),
+                            planes: wp.array3d(dtype=wp.float32), best: wp.array2d(dtype=wp.int32)):
+    """Multi-band blending, step 1, per pixel of the tile grown by the halo: ``best``, the
+    image of smallest rank (the first of equals; -1 where no image has a value), and per
+    image k the planes that the blurs take, k (bands + 2) + b: its balanced value of band b
+    where it has a value, else 0; k (bands + 2) + bands: 1 where it has a value, else 0; k
+    (bands + 2) + bands + 1: 1 where it is the best image, else 0."""
+    i, j = wp.tid()
+    n = rank.shape[0]
+    nb = stack.shape[3]
+    lo = wp.float32(wp.inf)
+    arg = wp.int32(-1)
+    for k in range(n):
+        r = rank[k, i, j]
+        if r < lo:
+            lo = r
+            arg = k
+    best[i, j] = arg
+    for k in range(n):
+        base = k * (nb + 2)
+        ok = rank[k, i, j] < wp.float32(wp.inf)
+        for b in range(nb):
+            v = wp.float32(0.0)
+            if ok:
+                v = stack[k, i, j, b]
+            planes[base + b, i, j] = v
+        planes[base + nb, i, j] = wp.where(ok, wp.float32(1.0), wp.float32(0.0))
+        planes[base + nb + 1, i, j] = wp.where(k == arg, wp.float32(1.0), wp.float32(0.0))
+
+
+@wp.kernel
+def blur_axis_kernel(src: wp.array3d(dtype=wp.float32), weights: wp.array(dtype=wp.float32), axis: wp.int32,
+                     dst: wp.array3d(dtype=wp.float32)):
+    """One pass of a separable blur: each plane of ``src`` correlated along ``axis`` (1 rows,
+    2 columns) with ``weights`` (odd length, centred), the edge pixel repeated beyond the
+    array (SciPy's mode "nearest")."""
+    p, i, j = wp.tid()
+    radius = weights.shape[0] // 2
+    acc = wp.float32(0.0)
+    for t in range(weights.shape[0]):
+        if axis == 1:
+            acc += weights[t] * src[p, wp.clamp(i + t - radius, 0, src.shape[1] - 1), j]
+        else:
+            acc += weights[t] * src[p, i, wp.clamp(j + t - radius, 0, src.shape[2] - 1)]
+    dst[p, i, j] = acc
+
+
+@wp.func
+def band_low(blurred: wp.array3d(dtype=wp.float32), base: wp.int32, b: wp.int32, nb: wp.int32, i: wp.int32,
+             j: wp.int32):
+    """An image's band b blurred and normalised by its blurred valid pixels (NaN where that
+    is 1e-6 or less)."""
+    norm = blurred[base + nb, i, j]
+    if norm > wp.float32(1e-6):
+        return blurred[base + b, i, j] / norm
+    return wp.float32(wp.nan)
+
+
+@wp.func
+def finite_or_zero(v: wp.float32):
+    if wp.isfinite(v):
+        return v
+    return wp.float32(0.0)
+
+
+@wp.kernel
+def multiband_combine_kernel(
+    planes: wp.array3d(dtype=wp.float32),
+    mid: wp.array3d(dtype=wp.float32),
+    low: wp.array3d(dtype=wp.float32),
+    best: wp.array2d(dtype=wp.int32),
+    images: wp.array1d(dtype=wp.int32),
+    halo: wp.int32,
+    top: wp.float32,
+    out: wp.array3d(dtype=Any),
+    valid: wp.array2d(dtype=wp.uint8),
+    source: wp.array2d(dtype=wp.uint16),
+):
+    """Multi-band blending, step 2, per pixel of the inner tile (the grown tile less ``halo``
+    on each side), from :func:`multiband_planes_kernel`'s ``planes`` and their blurs at the
+    middle (``mid``) and the low band's sigma (``low``): per image the high band (value minus
+    its normalised ``mid`` blur), the middle band (that minus the normalised ``low`` blur) and
+    the low band (the latter), NaN parts taken as 0; each band averaged over the images with
+    the best image's one-hot weight (high band), or its blur (middle, low), where the image
+    has a value; the three bands added, stored as :func:`~orthowarp.kernels.ortho.store_pixel`
+    does; ``source`` gets ``images`` of the best image, NO_SOURCE where none has a value."""
+    i, j = wp.tid()
+    gi = i + halo
+    gj = j + halo
+    arg = best[gi, gj]
+    if arg < 0:
+        store_nodata(out, valid, i, j, top)
+        source[i, j] = NO_SOURCE
+        return
+    n = images.shape[0]
+    nb = out.shape[2]
+    for b in range(nb):
+        acc = wp.float64(0.0)
+        for level in range(3):
+            num = wp.float64(0.0)
+            total = wp.float64(0.0)
+            for k in range(n):
+                base = k * (nb + 2)
+                if planes[base + nb, gi, gj] > wp.float32(0.0):
+                    w = planes[base + nb + 1, gi, gj]
+                    if level == 1:
+                        w = mid[base + nb + 1, gi, gj]
+                    elif level == 2:
+                        w = low[base + nb + 1, gi, gj]
+                    lo1 = band_low(mid, base, b, nb, gi, gj)
+                    lo2 = band_low(low, base, b, nb, gi, gj)
+                    part = planes[base + b, gi, gj] - lo1
+                    if level == 1:
+                        part = lo1 - lo2
+                    elif level == 2:
+                        part = lo2
+                    num += wp.float64(w) * wp.float64(finite_or_zero(part))
+                    total += wp.float64(w)
+            if total > wp.float64(0.0):
+                acc += num / total
+            else:
+                acc = wp.float64(wp.nan)
+        store_pixel(out, i, j, b, wp.float32(acc), top)
+    valid[i, j] = wp.uint8(1)
+    source[i, j] = wp.uint16(images[arg])
+
+
 # the output dtypes (uint8, uint16, float32), built at import: an overload made at a launch
 # would change the module under the threads launching from it
 for _t in (wp.uint8, wp.uint16, wp.float32):
+    wp.overload(multiband_combine_kernel, {"out": wp.array3d(dtype=_t)})
     wp.overload(mosaic_candidate_kernel, {"values": wp.array3d(dtype=_t)})
     wp.overload(mosaic_blend_kernel, {"out": wp.array3d(dtype=_t)})
     wp.overload(mosaic_fill_kernel, {"out": wp.array3d(dtype=_t), "part": wp.array3d(dtype=_t)})

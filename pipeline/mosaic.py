@@ -492,18 +492,19 @@ class MosaicPlan:
             return (out, source, has) if device is None else _to_device(device, out, source, has)
         ks, stack, rank, on = got
         t = time.perf_counter()
-        if o["blend"] == "multiband":
-            out, source, has = _multiband(to_host(stack), to_host(rank), np.asarray(ks), feather, halo, top,
-                                          self.dtype)
-            timer.span("prepare", t)
-            return (out, source, has) if device is None else _to_device(device, out, source, has)
         n = len(ks)
         out = wp.empty((th, tw, count), dtype=WP_TYPES[self.dtype], device=on)
         has = wp.empty((th, tw), dtype=wp.uint8, device=on)
         source = wp.empty((th, tw), dtype=wp.uint16, device=on)
-        wp.launch(mosaic_kernels.mosaic_blend_kernel, dim=(th, tw), device=on,
-                  inputs=[stack, rank, wp.array(np.array(ks, np.int32), device=on), n, float(feather),
-                          int(o["blend"] == "none"), top, out, has, source])
+        images = wp.array(np.array(ks, np.int32), device=on)
+        if o["blend"] == "multiband":
+            planes, mid, low, best = _multiband(stack, rank, feather, halo, on)
+            wp.launch(mosaic_kernels.multiband_combine_kernel, dim=(th, tw), device=on,
+                      inputs=[planes, mid, low, best, images, halo, top, out, has, source])
+        else:
+            wp.launch(mosaic_kernels.mosaic_blend_kernel, dim=(th, tw), device=on,
+                      inputs=[stack, rank, images, n, float(feather), int(o["blend"] == "none"), top, out, has,
+                              source])
         timer.span("kernel", t)
         if device is not None:
             return out, source, has
@@ -1144,9 +1145,19 @@ def _multiband_halo(feather):
     return int(np.ceil(3.0 * 0.5 * feather)) + 1
 
 
-def _multiband(stack, rank, ks, feather, halo, top, dtype):
-    """Multi-band blending of a tile grown by ``halo`` pixels (Burt and Adelson's
-    multiresolution spline, ACM ToG 1983, in the three-band form of Brown and Lowe, IJCV 2007).
+def _gaussian_weights(sigma, truncate=3.0):
+    """The normalised Gaussian of ``sigma`` pixels out to ``truncate`` sigmas (float32, odd
+    length), as SciPy's ``gaussian_filter`` builds it."""
+    radius = int(truncate * sigma + 0.5)
+    x = np.arange(-radius, radius + 1, dtype=np.float64)
+    w = np.exp(-0.5 * x * x / (sigma * sigma))
+    return (w / w.sum()).astype(np.float32)
+
+
+def _multiband(stack, rank, feather, halo, device):
+    """Multi-band blending of a tile grown by ``halo`` pixels, on ``device`` (Burt and
+    Adelson's multiresolution spline, ACM ToG 1983, in the three-band form of Brown and Lowe,
+    IJCV 2007; kernels in :mod:`orthowarp.kernels.mosaic`).
 
     Each image's balanced values (``stack`` (n, rows, cols, bands)) are split into a high band
     (values minus their blur at sigma ``feather`` / 8), a middle band (that blur minus the blur
@@ -1159,49 +1170,27 @@ def _multiband(stack, rank, ks, feather, halo, top, dtype):
 
     Returns
     -------
-    out : ndarray (rows - 2 halo, cols - 2 halo, bands) of ``dtype``
-    source : ndarray of uint16: ``ks`` of the chosen image (NO_SOURCE where none)
-    has : ndarray of bool
+    planes, mid, low : warp arrays (n (bands + 2), rows, cols) float32
+        The images' masked values, valid pixels and one-hot weights, and their two blurs.
+    best : warp array (rows, cols) int32
+        The image of smallest rank (-1 where none).
     """
-    from scipy.ndimage import gaussian_filter
-
-    valid = np.isfinite(rank)
-    best = np.argmin(np.where(valid, rank, np.inf), axis=0)
-    has_full = valid.any(axis=0)
-    onehot = ((np.arange(len(ks))[:, None, None] == best[None]) & valid & has_full[None]).astype(np.float32)
-    s_mid, s_low = feather / 8.0, feather / 2.0
-
-    def blur(a, sigma):
-        return gaussian_filter(a, sigma=sigma, mode="nearest", truncate=3.0)
-
-    inner = (slice(halo, stack.shape[1] - halo), slice(halo, stack.shape[2] - halo))
-    acc = np.zeros(stack[0][inner].shape, np.float64)
-    bands = []  # per image, its three bands on the inner tile
-    for k in range(len(ks)):
-        m = valid[k].astype(np.float32)
-        v = np.where(valid[k][..., None], stack[k], 0.0).astype(np.float32)
-        lows = []
-        for sigma in (s_mid, s_low):
-            norm = blur(m, sigma)
-            with np.errstate(invalid="ignore", divide="ignore"):
-                lows.append(np.stack([blur(v[..., b], sigma) for b in range(v.shape[-1])], -1)
-                            / np.where(norm > 1e-6, norm, np.nan)[..., None])
-        bands.append(((v - lows[0])[inner], (lows[0] - lows[1])[inner], lows[1][inner]))
-    for level, sigma in enumerate((0.0, s_mid, s_low)):
-        weights = [np.where(valid[k], onehot[k] if sigma == 0.0 else blur(onehot[k], sigma), 0.0)[inner]
-                   for k in range(len(ks))]
-        total = np.sum(weights, axis=0)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            acc += np.nansum([w[..., None] * np.nan_to_num(b[level]) for w, b in zip(weights, bands)], axis=0) \
-                / np.where(total > 0, total, np.nan)[..., None]
-    has = has_full[inner]
-    out = acc
-    if top > 0.0:
-        out = np.where(has[..., None], np.clip(np.rint(out), 0.0, top), 0.0).astype(dtype)
-    else:
-        out = np.where(has[..., None], out, np.nan).astype(np.float32)
-    source = np.where(has, ks[best[inner]], NO_SOURCE).astype(np.uint16)
-    return out, source, has
+    n, rows, cols, nb = stack.shape
+    planes = wp.empty((n * (nb + 2), rows, cols), dtype=wp.float32, device=device)
+    best = wp.empty((rows, cols), dtype=wp.int32, device=device)
+    wp.launch(mosaic_kernels.multiband_planes_kernel, dim=(rows, cols), device=device, inputs=[stack, rank],
+              outputs=[planes, best])
+    tmp = wp.empty_like(planes)
+    blurred = []
+    for sigma in (feather / 8.0, feather / 2.0):
+        weights = wp.array(_gaussian_weights(sigma), dtype=wp.float32, device=device)
+        out = wp.empty_like(planes)
+        wp.launch(mosaic_kernels.blur_axis_kernel, dim=planes.shape, device=device, inputs=[planes, weights, 1],
+                  outputs=[tmp])
+        wp.launch(mosaic_kernels.blur_axis_kernel, dim=planes.shape, device=device, inputs=[tmp, weights, 2],
+                  outputs=[out])
+        blurred.append(out)
+    return planes, blurred[0], blurred[1], best
 
 
 def _to_device(device, out, source, has):
