@@ -190,7 +190,7 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
         same width towards its border, so footprint edges inside another image's cover do not
         show. "multiband": fine detail from each pixel's own image, coarser detail and
         brightness blended over wider bands (Burt and Adelson's multiresolution spline in three
-        bands, computed on the host, reading 1.5 ``feather`` pixels around each tile): no
+        bands, in Warp kernels, reading 1.5 ``feather`` pixels around each tile): no
         ghosts of small objects and no visible brightness step.
     feather : float, optional
         Width of the blend across seams, output pixels (for "multiband": twice the sigma of
