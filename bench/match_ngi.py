@@ -7,10 +7,13 @@ With ``--perturb M,DEG`` the given orientation is first degraded (every centre m
 N(0, M) m per axis, every angle by N(0, DEG) deg, seeded), as a GNSS/INS-only orientation
 would be; the matching and the adjustment start from it with those sigmas, and the overlaps of
 the given, the degraded and the adjusted orientation are reported. ``--snooping`` adjusts with
-Baarda's data snooping.
+Baarda's data snooping. ``--dem-from-ties L[,L...]`` also makes the orthos of the given and the
+adjusted orientation on the DEM corrected by the adjusted tie points: their heights minus the
+DEM's, smoothed by a Gaussian kernel of length L (m) with one point's worth of zero as a prior
+(sum w dh / (sum w + 1)), added to every DEM cell.
 
 usage: python3 bench/match_ngi.py [--data ../shared/data/orthority] [--resolution 5] [--perturb 1,0.05]
-                                  [--snooping] [--out FILE]
+                                  [--snooping] [--dem-from-ties 300,2000] [--out FILE]
 Reads the shared sample data (which tests must not); CPU.
 """
 
@@ -74,6 +77,8 @@ def main(argv=None):
     ap.add_argument("--perturb", default=None, metavar="M,DEG")
     ap.add_argument("--snooping", action="store_true")
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--dem-from-ties", default=None, metavar="L[,L...]",
+                    help="also the orthos on the DEM corrected by the adjusted tie points, smoothed over L metres")
     ap.add_argument("--out", default="bench/results/match_ngi.json")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
@@ -113,17 +118,34 @@ def main(argv=None):
                                pose_change={n: (np.array(res.poses[n]) - [s.parameters()[k] for k in (
                                    "X0", "Y0", "Z0", "omega", "phi", "kappa")]).round(4).tolist()
                                             for n, s in zip(names, sensors)}))
+    groups = [("given", given, dem)] + ([("perturbed", sensors, dem)] if args.perturb else []) + \
+        [("adjusted", adjusted, dem)]
+    if args.dem_from_ties:
+        from pyproj import Transformer
+
+        pts = np.array(list(res.points.values()))
+        px, py = Transformer.from_crs(given[0].pose.crs, dem.crs, always_xy=True).transform(pts[:, 0], pts[:, 1])
+        dh = pts[:, 2] - dem.sample(px, py)
+        ok = np.isfinite(dh)
+        px, py, dh = px[ok], py[ok], dh[ok]
+        out["tie_minus_dem_m"] = dict(points=int(ok.sum()), mean=round(float(dh.mean()), 3),
+                                      std=round(float(dh.std()), 3))
+        rows, cols = dem.shape
+        gx, gy = dem.transform * np.meshgrid(np.arange(cols) + 0.5, np.arange(rows) + 0.5)
+        for length in (float(v) for v in args.dem_from_ties.split(",")):
+            w = np.exp(-0.5 * ((gx[..., None] - px) ** 2 + (gy[..., None] - py) ** 2) / length ** 2)
+            fixed = ow.Dem(dem.array + (w * dh).sum(-1) / (w.sum(-1) + 1.0), dem.transform, dem.crs)
+            groups += [(f"given_dem{length:g}", given, fixed), (f"adjusted_dem{length:g}", adjusted, fixed)]
     with tempfile.TemporaryDirectory() as work:
-        groups = [("given", given)] + ([("perturbed", sensors)] if args.perturb else []) + [("adjusted", adjusted)]
-        for tag, group in groups:
+        for tag, group, terrain in groups:
             paths = []
             for n, s in zip(names, group):
                 dst = os.path.join(work, f"{tag}_{n}_ORTHO.tif")
-                ow.orthorectify(os.path.join(d, "ngi", n + ".tif"), s, dst, dem=dem, resolution=args.resolution,
+                ow.orthorectify(os.path.join(d, "ngi", n + ".tif"), s, dst, dem=terrain, resolution=args.resolution,
                                 device="cpu")
                 paths.append(dst)
             out[f"overlaps_{tag}"] = overlaps(paths)
-    for tag, _ in groups:
+    for tag, *_ in groups:
         o = out[f"overlaps_{tag}"]
         out[f"mean_px_{tag}"] = round(float(np.mean([v["mean_px"] for v in o.values()])), 3) if o else None
         out[f"mean_shift_px_{tag}"] = round(float(np.mean([v["mean_shift_px"] for v in o.values()])), 3) if o else None
