@@ -131,6 +131,20 @@ def blend_weight(e: wp.float32, lo: wp.float32, k: wp.int32, best: wp.int32, fea
     return wp.clamp(wp.float32(1.0) - (e - lo) / feather, wp.float32(0.0), wp.float32(1.0))
 
 
+@wp.func
+def smallest_rank(rank: wp.array3d(dtype=wp.float32), n: wp.int32, i: wp.int32, j: wp.int32):
+    """(the image of smallest rank at pixel (i, j), the first of equals, -1 where none of the
+    ``n`` has a value (+inf); that rank)."""
+    lo = wp.float32(wp.inf)
+    arg = wp.int32(-1)
+    for k in range(n):
+        e = rank[k, i, j]
+        if e < lo:
+            lo = e
+            arg = k
+    return arg, lo
+
+
 @wp.kernel
 def mosaic_blend_kernel(
     stack: wp.array4d(dtype=wp.float32),
@@ -149,13 +163,7 @@ def mosaic_blend_kernel(
     :func:`~orthowarp.kernels.ortho.store_pixel`; ``source`` gets ``images[k]`` of the image
     with the largest weight (the first of equals), NO_SOURCE where none has a value."""
     i, j = wp.tid()
-    lo = wp.float32(wp.inf)
-    best = wp.int32(-1)
-    for k in range(n):
-        e = rank[k, i, j]
-        if e < lo:
-            lo = e
-            best = k
+    best, lo = smallest_rank(rank, n, i, j)
     total = wp.float32(0.0)
     wmax = wp.float32(0.0)
     arg = wp.int32(-1)
@@ -214,13 +222,7 @@ def multiband_planes_kernel(stack: wp.array4d(dtype=wp.float32), rank: wp.array3
     i, j = wp.tid()
     n = rank.shape[0]
     nb = stack.shape[3]
-    lo = wp.float32(wp.inf)
-    arg = wp.int32(-1)
-    for k in range(n):
-        r = rank[k, i, j]
-        if r < lo:
-            lo = r
-            arg = k
+    arg, lo = smallest_rank(rank, n, i, j)
     best[i, j] = arg
     for k in range(n):
         base = k * (nb + 2)

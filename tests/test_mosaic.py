@@ -792,25 +792,10 @@ def test_auto_block_codec_is_warp_on_a_gpu_and_host_on_the_cpu():
 
 
 def _multiband_reference(stack, rank, ks, feather, halo, top, dtype):
-    """The NumPy/SciPy reference of the kernels' multi-band blending (the host version they
-    replaced): a tile grown by ``halo`` pixels (Burt and Adelson's multiresolution spline, ACM
-    ToG 1983, in the three-band form of Brown and Lowe, IJCV 2007).
-
-    Each image's balanced values (``stack`` (n, rows, cols, bands)) are split into a high band
-    (values minus their blur at sigma ``feather`` / 8), a middle band (that blur minus the blur
-    at ``feather`` / 2) and a low band (the latter blur), each blur normalised by the image's
-    valid pixels. Each pixel's image is the one of smallest rank (``rank`` (n, rows, cols),
-    +inf without a value); its one-hot weights, blurred like the band (not at all for the high
-    band) and kept where the image has a value, blend each band; the bands add up. Fine
-    detail thus changes sharply at the seam and brightness over the blend's width. Blurs reach
-    three sigma, inside the halo: the inner tile is the same whichever tile computes it.
-
-    Returns
-    -------
-    out : ndarray (rows - 2 halo, cols - 2 halo, bands) of ``dtype``
-    source : ndarray of uint16: ``ks`` of the chosen image (NO_SOURCE where none)
-    has : ndarray of bool
-    """
+    """The NumPy/SciPy reference of the kernels' multi-band blending: the host version they
+    replaced, as :func:`orthowarp.pipeline.mosaic._multiband` describes the method, on a tile
+    grown by ``halo`` pixels; returns the inner tile's (values of ``dtype``, source index
+    (``ks`` of the chosen image, NO_SOURCE where none), has a value)."""
     from scipy.ndimage import gaussian_filter
 
     valid = np.isfinite(rank)
