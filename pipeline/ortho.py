@@ -760,7 +760,7 @@ class ImageTiles:
         self._local = threading.local()
         self._handles, self._lock = [], threading.Lock()
         # the source's dtype as read (GDAL converts others to float32) and as the kernels take it
-        read_dtype = src_dtype if src_dtype in ("uint8", "uint16", "float32") else "float32"
+        read_dtype = _read_dtype(src_dtype)
         self._kernel_dtype = read_dtype if read_dtype in (out_dtype, "float32") else "float32"
         if source_reads == "auto":
             w, h = self.image_size
@@ -893,14 +893,11 @@ class ImageTiles:
         """The whole source on the device, read on first use: (values (bands, rows, cols) in
         the kernels' dtype, valid (rows, cols) uint8 or None where unmasked)."""
         with self._whole_lock:
-            if self._whole is None:
-                self._whole = self._read_whole()
+            if self._whole is None:  # see read_whole_source
+                self._whole = read_whole_source(self.src, self.device, masked=self.masked, dtype=self._kernel_dtype,
+                                                timer=self.timer, clipped=self.clipped if self.narrowing else None,
+                                                top=self.top)
             return self._whole
-
-    def _read_whole(self):
-        """The whole source on the device (see :func:`read_whole_source`)."""
-        return read_whole_source(self.src, self.device, masked=self.masked, dtype=self._kernel_dtype, timer=self.timer,
-                                 clipped=self.clipped if self.narrowing else None, top=self.top)
 
     def _read_window(self, ds, wc0, wr0, wc1, wr1, factor):
         """The source window on the device, (bands, rows, cols) in the output's dtype or float32,
@@ -914,7 +911,7 @@ class ImageTiles:
         t = time.perf_counter()
         win = Window(wc0, wr0, wc1 - wc0, wr1 - wr0)
         shape = (-(-(wr1 - wr0) // factor), -(-(wc1 - wc0) // factor))
-        read = dict(window=win, out_dtype=None if ds.dtypes[0] in ("uint8", "uint16", "float32") else "float32")
+        read = dict(window=win, out_dtype=None if _read_dtype(ds.dtypes[0]) == ds.dtypes[0] else "float32")
         if factor > 1:
             read.update(out_shape=(self.count, *shape), resampling=Resampling.average)
         try:
@@ -958,6 +955,12 @@ class ImageTiles:
         return sw
 
 
+def _read_dtype(dtype):
+    """The dtype a source of ``dtype`` is read in: its own where the kernels take it
+    (uint8, uint16, float32), else float32 (GDAL converts the others)."""
+    return dtype if dtype in DTYPES else "float32"
+
+
 def _count_clipped(counter, data, top):
     """Add to ``counter`` the values of ``data`` outside [0, ``top``] (an integer output
     narrower than the source clips them), out of its size."""
@@ -993,7 +996,7 @@ def read_whole_source(src, device, *, masked, dtype, timer=None, clipped=None, t
     timer = timer if timer is not None else StageTimer(time.perf_counter())
     with _open_source(src) as ds:
         w, h, bands, block_rows, native = ds.width, ds.height, ds.count, ds.block_shapes[0][0], ds.dtypes[0]
-    read_dtype = native if native in ("uint8", "uint16", "float32") else "float32"
+    read_dtype = _read_dtype(native)
     rows = max(block_rows, (16 << 20) // max(1, w * bands * np.dtype(read_dtype).itemsize) // block_rows * block_rows)
     strips = [(r0, min(rows, h - r0)) for r0 in range(0, h, rows)]
     timer.info["whole_source_strips"] = len(strips)
