@@ -303,29 +303,24 @@ def multiband_combine_kernel(
     n = images.shape[0]
     nb = out.shape[2]
     for b in range(nb):
+        # per band level (high, middle, low): the weighted sum and the sum of the weights
+        num = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+        total = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+        for k in range(n):
+            base = k * (nb + 2)
+            if planes[base + nb, gi, gj] > wp.float32(0.0):
+                lo1 = band_low(mid, base, b, nb, gi, gj)
+                lo2 = band_low(low, base, b, nb, gi, gj)
+                w = wp.vec3d(wp.float64(planes[base + nb + 1, gi, gj]), wp.float64(mid[base + nb + 1, gi, gj]),
+                             wp.float64(low[base + nb + 1, gi, gj]))
+                part = wp.vec3d(wp.float64(finite_or_zero(planes[base + b, gi, gj] - lo1)),
+                                wp.float64(finite_or_zero(lo1 - lo2)), wp.float64(finite_or_zero(lo2)))
+                num += wp.cw_mul(w, part)
+                total += w
         acc = wp.float64(0.0)
         for level in range(3):
-            num = wp.float64(0.0)
-            total = wp.float64(0.0)
-            for k in range(n):
-                base = k * (nb + 2)
-                if planes[base + nb, gi, gj] > wp.float32(0.0):
-                    w = planes[base + nb + 1, gi, gj]
-                    if level == 1:
-                        w = mid[base + nb + 1, gi, gj]
-                    elif level == 2:
-                        w = low[base + nb + 1, gi, gj]
-                    lo1 = band_low(mid, base, b, nb, gi, gj)
-                    lo2 = band_low(low, base, b, nb, gi, gj)
-                    part = planes[base + b, gi, gj] - lo1
-                    if level == 1:
-                        part = lo1 - lo2
-                    elif level == 2:
-                        part = lo2
-                    num += wp.float64(w) * wp.float64(finite_or_zero(part))
-                    total += wp.float64(w)
-            if total > wp.float64(0.0):
-                acc += num / total
+            if total[level] > wp.float64(0.0):
+                acc += num[level] / total[level]
             else:
                 acc = wp.float64(wp.nan)
         store_pixel(out, i, j, b, wp.float32(acc), top)
