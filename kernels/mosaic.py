@@ -3,6 +3,9 @@
 For one output tile, each image that has pixels in it was rendered by the ortho's tile
 function (:mod:`orthowarp.kernels.ortho`). Then:
 
+0. With feathering, :func:`edge_node_pixels_kernel` and :func:`edge_nodes_kernel`, once per
+   image: at the tile's coarse-grid nodes, the distance (output pixels) of the node's image
+   from the image's border.
 1. :func:`mosaic_candidate_kernel`, once per image: its values balanced (gain and offset per
    band) into the tile's stack, and its rank per pixel: the signed distance (output pixels,
    negative inside) from the image's region of the seam labelling, bilinear in a window of
@@ -24,7 +27,10 @@ from typing import Any
 
 import warp as wp
 
-from .ortho import store_nodata, store_pixel
+from .dem import DemData, dem_sample
+from .ortho import CoarseGrid, node_point, store_nodata, store_pixel
+from .refraction import RefractionTable
+from .sensor import SENSOR_ARGS, sensor_project_xyz
 
 wp.set_module_options({"enable_backward": False})
 
@@ -85,6 +91,81 @@ def node_sample(nodes: wp.array3d(dtype=wp.float32), k: wp.int32, step: wp.float
 
 
 @wp.kernel
+def edge_node_pixels_kernel(
+    arg: Any,
+    refr: RefractionTable,
+    dem: DemData,
+    grid: CoarseGrid,
+    pixels: wp.array2d(dtype=wp.vec2d),
+):
+    """Source pixel (col, row) of each coarse-grid node's ground point at its DEM height (NaN
+    off the DEM and where the sensor does not see the point)."""
+    i, j = wp.tid()
+    uv = grid.uv[i, j]
+    h = dem_sample(dem, uv[0], uv[1])
+    if wp.isfinite(h):
+        pixels[i, j] = sensor_project_xyz(arg, refr, node_point(grid, i, j, h), h, wp.float64(0.0))
+    else:
+        pixels[i, j] = wp.vec2d(wp.float64(wp.nan), wp.float64(wp.nan))
+
+
+@wp.func
+def node_step(pixels: wp.array2d(dtype=wp.vec2d), p: wp.vec2d, i: wp.int32, j: wp.int32):
+    """Distance (source pixels) from ``p`` to node (i, j)'s pixel; NaN off the grid or where
+    either is NaN."""
+    if i < 0 or j < 0 or i >= pixels.shape[0] or j >= pixels.shape[1]:
+        return wp.float64(wp.nan)
+    return wp.length(pixels[i, j] - p)
+
+
+@wp.kernel
+def edge_nodes_kernel(
+    pixels: wp.array2d(dtype=wp.vec2d),
+    width: wp.float64,
+    height: wp.float64,
+    step: wp.float64,
+    k: wp.int32,
+    edge: wp.array3d(dtype=wp.float32),
+):
+    """``edge[k]`` at each coarse-grid node (nodes every ``step`` output pixels): the distance
+    of the node's pixel (``pixels``, :func:`edge_node_pixels_kernel`) from the border of the
+    image (``width`` x ``height`` pixels; negative outside), in output pixels: divided by the
+    local scale, the mean length of the steps to the node's finite neighbours (source pixels)
+    over ``step`` (1 where it has none). 0 where the node's pixel is NaN."""
+    i, j = wp.tid()
+    p = pixels[i, j]
+    if not (wp.isfinite(p[0]) and wp.isfinite(p[1])):
+        edge[k, i, j] = wp.float32(0.0)
+        return
+    d = wp.min(wp.min(p[0], width - p[0]), wp.min(p[1], height - p[1]))
+    total = wp.float64(0.0)
+    count = wp.float64(0.0)
+    for n in range(4):
+        di = 0
+        dj = 0
+        if n == 0:
+            dj = 1
+        elif n == 1:
+            dj = -1
+        elif n == 2:
+            di = 1
+        else:
+            di = -1
+        s = node_step(pixels, p, i + di, j + dj)
+        if wp.isfinite(s):
+            total += s
+            count += wp.float64(1.0)
+    scale = wp.float64(1.0)
+    if count > wp.float64(0.0) and total > wp.float64(0.0):
+        scale = total / (count * step)
+    edge[k, i, j] = wp.float32(d / scale)
+
+
+for _arg in SENSOR_ARGS:
+    wp.overload(edge_node_pixels_kernel, {"arg": _arg})
+
+
+@wp.kernel
 def mosaic_candidate_kernel(
     values: wp.array3d(dtype=Any),
     valid: wp.array2d(dtype=wp.uint8),
@@ -102,9 +183,10 @@ def mosaic_candidate_kernel(
 ):
     """The tile's k-th image (``image`` among the mosaic's): its values balanced by
     ``gains[image]`` and ``offsets[image]`` (images, bands) into ``stack[k]`` (th, tw, bands)
-    and its rank into ``rank[k]`` (th, tw). ``edge[k]`` (coarse nodes): distance of the
-    pixel's image from the image's border, source pixels; the fade adds ``feather`` * (1 -
-    edge / fade_width), clipped to [0, feather], where ``fade_width`` > 0."""
+    and its rank into ``rank[k]`` (th, tw). ``edge[k]`` (coarse nodes every ``edge_step``
+    pixels, see :func:`edge_nodes_kernel`): distance of the pixel's image from the image's
+    border, output pixels; the fade adds ``feather`` * (1 - edge / fade_width), clipped to
+    [0, feather], where ``fade_width`` > 0."""
     i, j = wp.tid()
     if valid[i, j] == wp.uint8(0):
         rank[k, i, j] = wp.float32(wp.inf)

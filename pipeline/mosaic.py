@@ -52,7 +52,7 @@ from .io import atomic_files, check_destination
 from .ortho import _TOP as TOP
 from .ortho import _WP_TYPES as WP_TYPES
 from .ortho import BLOCK_CODECS, COARSE_STEP, RESAMPLING, ImageTiles, _block_codec, _check_cancel, \
-    coarse_grid, device_codecs, output_grid, parse_creation_options, source_facts
+    coarse_grid, coarse_struct, device_codecs, output_grid, parse_creation_options, source_facts
 from .geometry import SensorGeometry
 from .profile import StageTimer
 
@@ -89,26 +89,15 @@ def _upsample(node, th, tw):
     return np.stack([np.interp(rows, ki, along[:, j]) for j in range(tw)], axis=1)
 
 
-def _node_fields(geom, transform, to_frame, r0, c0, th, tw, *, angle=True):
+def _node_angles(geom, transform, to_frame, r0, c0, th, tw):
     """At the coarse-grid nodes of the tile (every COARSE_STEP pixels from its first pixel,
-    see :func:`~orthowarp.pipeline.ortho.coarse_grid`), from the image of ``geom``: the
-    off-nadir angle (radians) under which it sees the node's ground point (from the camera
-    centre, or a pushbroom scene's satellite position at the line that images the point, and
-    the point on the DEM; None without ``angle``), the distance (source pixels) of that
-    point's image from the image's border (both NaN where the DEM has no height), and the
-    source pixels per output pixel (a scalar)."""
+    see :func:`~orthowarp.pipeline.ortho.coarse_grid`), the off-nadir angle (radians) under
+    which the image of ``geom`` sees the node's ground point: from the camera centre, or a
+    pushbroom scene's satellite position at the line that images the point, to the point on
+    the DEM (NaN where the DEM has no height or the sensor does not see the point)."""
     uv = coarse_grid(transform, to_frame, r0, c0, th, tw)
     u, v = uv[..., 0], uv[..., 1]
     h = geom.dem.sample(u, v)
-    pix = geom.project_frame(np.stack([u, v, h], -1).reshape(-1, 3)).reshape(*u.shape, 2)
-    w, hh = geom.image_size
-    edge = np.minimum(np.minimum(pix[..., 0], w - pix[..., 0]), np.minimum(pix[..., 1], hh - pix[..., 1]))
-    with np.errstate(invalid="ignore"):
-        steps = np.concatenate([np.hypot(*np.diff(pix, axis=ax).reshape(-1, 2).T) for ax in (0, 1)])
-    steps = steps[np.isfinite(steps)]
-    scale = float(np.median(steps)) / COARSE_STEP if len(steps) else 1.0
-    if not angle:
-        return None, edge, scale
     if geom.geocentric:
         ground = geodetic_to_ecef(v, u, h)
         up = geodetic_up(v, u)
@@ -116,6 +105,7 @@ def _node_fields(geom, transform, to_frame, r0, c0, th, tw, *, angle=True):
         ground = np.stack([u, v, h], -1)
         up = np.broadcast_to([0.0, 0.0, 1.0], ground.shape)
     if geom.sensor.kind == "pushbroom":  # the satellite where it images the point
+        pix = geom.project_frame(np.stack([u, v, h], -1).reshape(-1, 3)).reshape(*u.shape, 2)
         centre = np.full(ground.shape, np.nan)
         ok = np.isfinite(pix[..., 1])
         if ok.any():
@@ -128,13 +118,12 @@ def _node_fields(geom, transform, to_frame, r0, c0, th, tw, *, angle=True):
     ray = centre - ground
     with np.errstate(invalid="ignore"):
         cos = np.einsum("...i,...i->...", ray, up) / np.linalg.norm(ray, axis=-1)
-    return np.arccos(np.clip(cos, -1.0, 1.0)), edge, scale
+    return np.arccos(np.clip(cos, -1.0, 1.0))
 
 
 def _angle_field(geom, transform, to_frame, r0, c0, th, tw):
-    """:func:`_node_fields`' off-nadir angle per tile pixel (th, tw), bilinear between the
-    nodes."""
-    return _upsample(_node_fields(geom, transform, to_frame, r0, c0, th, tw)[0], th, tw)
+    """:func:`_node_angles` per tile pixel (th, tw), bilinear between the nodes."""
+    return _upsample(_node_angles(geom, transform, to_frame, r0, c0, th, tw), th, tw)
 
 
 @quiet_warp()
@@ -363,7 +352,7 @@ class MosaicPlan:
         with self._lock:
             if self._state is None:
                 self._state = dict(timer=StageTimer(time.perf_counter()), images=collections.OrderedDict(), users={},
-                                   builds=0)
+                                   builds=0, transformers={})
             return self._state
 
     def _build(self, k, timer):
@@ -374,7 +363,7 @@ class MosaicPlan:
         # occlusion for pushbroom scenes: the backward method with each pixel's visibility tested
         hide = o["method"] == "forward" and method == "backward"
         crs = self.crs
-        entry = dict(geom=geom, to_frame=Transformer.from_crs(crs, geom.horizontal_crs, always_xy=True),
+        entry = dict(geom=geom, to_frame=self._to_frame(geom.horizontal_crs),
                      renderer=ImageTiles(src, geom, crs, self.transform, count=self.count, out_dtype=self.dtype,
                                          resampling=o["resampling"], method=method, masked=masked,
                                          src_dtype=self.src_dtype, timer=timer, occlusion=hide))
@@ -383,6 +372,19 @@ class MosaicPlan:
                                            resampling=o["resampling"], method="backward", masked=masked,
                                            src_dtype=self.src_dtype, timer=timer)
         return entry
+
+    def _to_frame(self, frame_crs):
+        """The transformer from the mosaic's CRS to a pose frame's horizontal CRS, one per
+        frame CRS in this process (images in one frame share the tiles' coarse grids)."""
+        st = self._materialise()
+        key = frame_crs.to_wkt()
+        with self._lock:
+            got = st["transformers"].get(key)
+        if got is None:
+            got = Transformer.from_crs(self.crs, frame_crs, always_xy=True)
+            with self._lock:
+                got = st["transformers"].setdefault(key, got)
+        return got
 
     @staticmethod
     def _close_entry(entry):
@@ -521,8 +523,9 @@ class MosaicPlan:
         None where no image has pixels there."""
         o, timer = self.options, st["timer"]
         count, feather = self.count, o["feather"]
-        rendered = []  # (k, values, valid, edge distance at the coarse nodes, fade width)
+        rendered = []  # (k, values, valid, the node pixels for the fade or None, image size)
         device = None
+        grids = {}  # coarse grids by transformer: images in one pose frame share the tile's nodes
         for k, (fr0, fr1, fc0, fc1) in enumerate(self.foot):
             if fr1 <= r0 or fr0 >= r0 + th or fc1 <= c0 or fc0 >= c0 + tw:
                 continue
@@ -531,21 +534,19 @@ class MosaicPlan:
                 values, valid = entry.get(which, entry["renderer"]).render(r0, c0, th, tw)
                 if values is None:
                     continue
-                t = time.perf_counter()
-                edge, width = np.zeros((2, 2), np.float32), 0.0
-                if fade:  # towards the image's border, over the blend's width
-                    _, edge, scale = _node_fields(entry["geom"], self.transform, entry["to_frame"], r0, c0, th, tw,
-                                                  angle=False)
-                    edge, width = np.nan_to_num(edge, nan=0.0).astype(np.float32), feather * scale
-                rendered.append((k, values, valid, edge, width))
                 device = values.device
-            timer.span("prepare", t)
+                pixels = None
+                if fade:  # towards the image's border, over the blend's width: its nodes' pixels
+                    pixels = self._node_pixels(entry, grids, r0, c0, th, tw, device, timer)
+                rendered.append((k, values, valid, pixels, entry["geom"].image_size))
         if not rendered:
             return None
         t = time.perf_counter()
         ks = [r[0] for r in rendered]
         (wr0, wc0), windows = _distance_windows(self.labels, self.seam_step, r0, c0, th, tw, ks,
                                                 clip=2.0 * feather + 4.0 * self.seam_step)
+        timer.span("prepare", t)
+        t = time.perf_counter()
         gains, offsets = self._balance_on(st, device)
         n = len(rendered)
         stack = wp.empty((n, th, tw, count), dtype=wp.float32, device=device)
@@ -554,13 +555,39 @@ class MosaicPlan:
         win.f, win.r0, win.c0, win.wr0, win.wc0 = float(self.seam_step), r0, c0, wr0, wc0
         win.rows, win.cols = self.labels.shape
         win.field = wp.array(np.stack([windows[k] for k in ks]), dtype=wp.float32, device=device)  # one copy each
-        edges = wp.array(np.stack([r[3] for r in rendered]), dtype=wp.float32, device=device)
-        for slot, (k, values, valid, _, width) in enumerate(rendered):
+        edges = wp.zeros((n, 2, 2), dtype=wp.float32, device=device)
+        if fade:  # the edge distances (output pixels) at the nodes
+            edges = wp.empty((n, *rendered[0][3].shape), dtype=wp.float32, device=device)
+            for slot, (_, _, _, pixels, (w_img, h_img)) in enumerate(rendered):
+                wp.launch(mosaic_kernels.edge_nodes_kernel, dim=pixels.shape, device=device,
+                          inputs=[pixels, float(w_img), float(h_img), float(COARSE_STEP), slot, edges])
+        for slot, (k, values, valid, _, _) in enumerate(rendered):
             wp.launch(mosaic_kernels.mosaic_candidate_kernel, dim=(th, tw), device=device,
-                      inputs=[values, valid, gains, offsets, k, win, edges, float(COARSE_STEP), float(width),
-                              float(feather), slot, stack, rank])
+                      inputs=[values, valid, gains, offsets, k, win, edges, float(COARSE_STEP),
+                              float(feather) if fade else 0.0, float(feather), slot, stack, rank])
         timer.span("kernel", t)
         return ks, stack, rank, device
+
+    def _node_pixels(self, entry, grids, r0, c0, th, tw, device, timer):
+        """The source pixels (device, nodes (rows, cols) of vec2d) of the ground points at the
+        tile's coarse-grid nodes (see :func:`~orthowarp.pipeline.ortho.coarse_grid`) on the DEM,
+        from an image (``entry``); ``grids`` caches the nodes per transformer for the tile."""
+        geom = entry["geom"]
+        t = time.perf_counter()
+        key = (id(entry["to_frame"]), geom.geocentric)
+        grid = grids.get(key)
+        if grid is None:
+            uv = coarse_grid(self.transform, entry["to_frame"], r0, c0, th, tw)
+            timer.span("prepare", t)
+            t = time.perf_counter()
+            grid = grids[key] = coarse_struct(uv, geom.geocentric, device)
+            timer.span("h2d", t)
+            t = time.perf_counter()
+        pixels = wp.empty(grid.uv.shape, dtype=wp.vec2d, device=device)
+        wp.launch(mosaic_kernels.edge_node_pixels_kernel, dim=pixels.shape, device=device,
+                  inputs=[*geom.sensor_structs(), geom.dem_struct(), grid, pixels])
+        timer.span("kernel", t)
+        return pixels
 
     def _balance_on(self, st, device):
         """The gains and offsets (images, bands) as float32 arrays on ``device``, copied once

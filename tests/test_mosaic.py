@@ -880,3 +880,51 @@ def test_multiband_kernels_match_the_numpy_reference(device, dtype, top):
     else:
         np.testing.assert_allclose(got_out[got_has], want[0][got_has], rtol=1e-5, atol=1e-3)
         assert np.isnan(got_out[~got_has]).all()
+
+
+@pytest.mark.parametrize("name", ["opk", "ins"])
+def test_fade_edge_distances_at_the_nodes_match_float64_numpy(device, name):
+    """The feather's fade input at a tile's coarse-grid nodes (edge_node_pixels_kernel, then
+    edge_nodes_kernel): the distance of each node's image from the image's border (negative
+    outside) over the local scale (the mean step to the neighbouring nodes' pixels per output
+    pixel), against float64 NumPy through the reference camera and pose, on a tile across
+    the image's corner; a second image writes its own slot."""
+    import warp as wp
+    from pyproj import Transformer
+
+    import reference as ref
+    from orthowarp.kernels import mosaic as mk
+    from orthowarp.pipeline.geometry import SensorGeometry
+    from orthowarp.pipeline.ortho import COARSE_STEP, coarse_grid, coarse_struct, output_grid
+
+    sc = scene(name)
+    geom = SensorGeometry(FrameSensor(sc.camera, sc.pose), sc.dem, refraction=False, device=device)
+    crs, transform, shape, _ = output_grid(geom)
+    to_frame = Transformer.from_crs(crs, geom.horizontal_crs, always_xy=True)
+    r0, c0, th, tw = 0, 0, shape[0] // 3, shape[1] // 3  # the grid's corner: partly outside the image
+    uv = coarse_grid(transform, to_frame, r0, c0, th, tw)
+    grid = coarse_struct(uv, geom.geocentric, device)
+    pixels = wp.empty(uv.shape[:2], dtype=wp.vec2d, device=device)
+    wp.launch(mk.edge_node_pixels_kernel, dim=pixels.shape, device=device,
+              inputs=[*geom.sensor_structs(), geom.dem_struct(), grid, pixels])
+    edge = wp.full((2, *uv.shape[:2]), -7.0, dtype=wp.float32, device=device)
+    w, h = geom.image_size
+    wp.launch(mk.edge_nodes_kernel, dim=pixels.shape, device=device,
+              inputs=[pixels, float(w), float(h), float(COARSE_STEP), 1, edge])
+    got = edge.numpy()
+
+    u, v = uv[..., 0], uv[..., 1]
+    z = sc.grid.sample(u, v)
+    x = np.stack([u, v, z], -1) if name == "opk" else ref.llh_to_ecef(u, v, z)
+    pr = sc.ref_pose
+    pix = sc.ref_camera.pixels((x.reshape(-1, 3) - pr.center) @ pr.rotation).reshape(*u.shape, 2)
+    border = np.minimum(np.minimum(pix[..., 0], w - pix[..., 0]), np.minimum(pix[..., 1], h - pix[..., 1]))
+    pad = np.pad(pix, ((1, 1), (1, 1), (0, 0)), constant_values=np.nan)
+    steps = np.stack([np.hypot(*(pad[1 + di:pad.shape[0] - 1 + di, 1 + dj:pad.shape[1] - 1 + dj] - pix).transpose(2, 0, 1))
+                      for di, dj in ((0, 1), (0, -1), (1, 0), (-1, 0))])
+    scale = np.nanmean(steps, axis=0) / COARSE_STEP
+    want = np.where(np.isfinite(border), border / scale, 0.0)
+    assert (want < 0).any() and (want > 0).any()  # the tile spans the image's corner
+    print(f"\n[fade edge] {name}: {np.abs(got[1] - want).max():.2e} px at most, range {want.min():.1f}..{want.max():.1f}")
+    np.testing.assert_allclose(got[1], want, rtol=1e-6, atol=1e-4)  # output pixels
+    np.testing.assert_array_equal(got[0], -7.0)  # the other slot untouched
