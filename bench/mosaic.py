@@ -25,7 +25,6 @@ usage: python3 bench/mosaic.py [--strips 5] [--sizes 10,40] [--buildings N] [--d
        python3 bench/mosaic.py --speed [--frame 9600x8000] [--sizes 10,40] [--device cuda:0]
                                [--oty-python PY [--oty-stage all|orthos|cog] [--no-orthowarp --resolution R]]
                                [--block-codec auto|host|nvcomp|hybrid|warp] [--blend feather|multiband|none]
-                               [--source-reads tiles|whole|auto]
                                [--tile-size PX] [--workers N]
                                [--sample-stacks SECONDS] [--workdir DIR] [--out FILE]
 """
@@ -343,7 +342,6 @@ def run_speed(args, sizes):
     frames, dem_path = build_speed(work, max(sizes), args.strips, width, height)
     report = dict(benchmark="mosaic_speed", frame=[width, height, 3], dtype="uint8", strips=args.strips,
                   device=args.device, tile_size=args.tile_size, workers=args.workers, block_codec=args.block_codec, blend=args.blend,
-                  source_reads=args.source_reads,
                   cpu_count=os.cpu_count(), build_s=time.perf_counter() - t, results=[])
     gpu = int(args.device.split(":")[1]) if args.device.startswith("cuda:") else (0 if args.device == "cuda" else None)
     try:
@@ -380,7 +378,6 @@ def run_speed(args, sizes):
         extra = (["--workers", str(args.workers)] if args.workers else []) + \
             (["--tile-size", str(args.tile_size)] if args.tile_size else []) + \
             (["--block-codec", args.block_codec] if args.block_codec else []) + \
-            (["--source-reads", args.source_reads] if args.source_reads else []) + \
             (["--blend", args.blend] if args.blend else [])
         cli = ["mosaic", *frames[:n], *orient, "--dem", dem_path, "--out", out, "--overwrite", "--device",
                args.device, "--profile-json", prof, *extra]
@@ -472,7 +469,6 @@ def main(argv=None):
     ap.add_argument("--workers", type=int, default=None, help="--speed: orthowarp mosaic --workers")
     ap.add_argument("--tile-size", type=int, default=None, help="--speed: orthowarp mosaic --tile-size")
     ap.add_argument("--block-codec", default=None, help="--speed: orthowarp mosaic --block-codec")
-    ap.add_argument("--source-reads", default=None, help="--speed: orthowarp mosaic --source-reads (tiles, whole, auto)")
     ap.add_argument("--blend", default=None, help="--speed: orthowarp mosaic --blend (feather, multiband, none)")
     ap.add_argument("--oty-python", default=None, help="--speed: a Python with orthority 0.7.0: run it side by side")
     ap.add_argument("--sample-stacks", type=float, default=None, metavar="SECONDS",

@@ -774,11 +774,6 @@ def _frame_orientations(images, int_param, ext_param, crs, ids=None):
 @click.option("--device", default=None, help="Warp device (cpu, cuda, cuda:N); default: first GPU, else CPU.")
 @click.option("--workers", type=int, default=None, help="Tiles in flight (default: CPU cores on the CPU, 8 on a GPU).")
 @click.option("--tile-size", type=int, default=None, help="Output tile edge, pixels (default: 2048 on a GPU, 512 on the CPU).")
-@click.option("--source-reads", type=click.Choice(["tiles", "whole", "auto"]), default="tiles", show_default=True,
-              help="How the images reach the device: tiles (each output tile reads each image's window), whole (an "
-                   "image read once into device memory on first use, kept while it is in the cache of 24 images "
-                   "in use); auto: whole on a GPU for images that take at most 1/96 of its free memory. The pixels "
-                   "written are the same.")
 @click.option("--profile", "show_profile", is_flag=True,
               help="Print where the time went: the plan's steps, per-stage times, GPU busy fraction, what bounds it.")
 @click.option("--profile-json", type=click.Path(dir_okay=False), help="Write the same profile as JSON to this file.")
@@ -786,7 +781,7 @@ def _frame_orientations(images, int_param, ext_param, crs, ids=None):
 def mosaic(ctx, images, int_param, ext_param, odm_dataset, scenes, attitude_model, dem, height, out_path, index_path, seamlines_path, crs, resolution,
            resampling, seams, seam_width, blend, feather, no_balance, no_occlusion, reference, compress_level, block_codec, accuracy,
            pose_sigma, accuracy_measure, accuracy_step, scene_sigma, pixel_sigma, dem_sigma, creation, dtype, overwrite, no_refraction, geoid,
-           same_vertical_datum, device, workers, tile_size, source_reads, show_profile, profile_json):
+           same_vertical_datum, device, workers, tile_size, show_profile, profile_json):
     """Mosaic frame IMAGES and pushbroom scenes (--scene) into one cloud-optimized GeoTIFF: each
     pixel from the image that sees its ground most nearly from above (smallest off-nadir
     angle), the seams moved to where the images agree, feathered across the seams, the images'
@@ -837,8 +832,7 @@ def mosaic(ctx, images, int_param, ext_param, odm_dataset, scenes, attitude_mode
                     balance=not no_balance, reference=reference, occlusion=not no_occlusion,
                     compress_level=compress_level, block_codec=block_codec, creation_options=creation_options,
                     overwrite=overwrite, device=device, geoid=geoid, same_vertical_datum=same_vertical_datum,
-                    workers=workers, tile_size=tile_size, source_reads=source_reads,
-                    cancel=ctx.meta.get("orthowarp.stop"))
+                    workers=workers, tile_size=tile_size, cancel=ctx.meta.get("orthowarp.stop"))
     if accuracy:
         from .pipeline.precision import mosaic_accuracy_raster
 

@@ -51,8 +51,7 @@ from .cog_device import DeviceCogEncoder
 from .io import atomic_files, check_destination
 from .ortho import _TOP as TOP
 from .ortho import _WP_TYPES as WP_TYPES
-from .ortho import _read_dtype
-from .ortho import BLOCK_CODECS, COARSE_STEP, RESAMPLING, SOURCE_READS, ImageTiles, _block_codec, _check_cancel, \
+from .ortho import BLOCK_CODECS, COARSE_STEP, RESAMPLING, ImageTiles, _block_codec, _check_cancel, \
     coarse_grid, coarse_struct, device_codecs, output_grid, parse_creation_options, source_facts
 from .geometry import SensorGeometry
 from .profile import StageTimer
@@ -136,7 +135,7 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
            occlusion: bool = True, compress_level: int | None = None, block_codec: str = "auto",
            creation_options: dict | None = None, tile_size: int | None = None, overwrite: bool = False, device: str | None = None,
            workers: int | None = None, geoid: str | os.PathLike | None = None, same_vertical_datum: bool = False,
-           source_reads: str = "tiles", cancel: threading.Event | None = None) -> MosaicResult:
+           cancel: threading.Event | None = None) -> MosaicResult:
     """Mosaic frame images and pushbroom scenes into one cloud-optimized GeoTIFF (deflate,
     internal mask, overviews).
 
@@ -215,13 +214,6 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
         device is busy and its next batch is full); "auto": "warp" on a GPU (the fastest
         measured for a mosaic, whose host cores are busy with the tiles), "host" on the CPU.
         Every choice decodes to the same pixels.
-    source_reads : {"tiles", "whole", "auto"}, optional
-        "tiles" (default): each tile reads and uploads each image's window it needs. "whole":
-        an image's first tile reads the whole source into device memory (by strips on several
-        threads), and its tiles sample it there; the image's memory goes with it from the
-        cache of images in use (at most 24). "auto": "whole" on a CUDA device for images that
-        take at most 1/96 of its free memory (a quarter shared by the 24 images of the
-        cache), else "tiles". The same pixels either way.
     tile_size : int, optional
         Output tile edge (pixels, multiple of 16); default 2048 on a GPU (fewer, larger
         launches: the per-tile work on the host is what bounds a mosaic), 512 on the CPU.
@@ -249,8 +241,7 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
                        refraction=refraction, dtype=dtype, seams=seams, seam_width=seam_width, blend=blend,
                        feather=feather, balance=balance,
                        reference=reference, occlusion=occlusion, device=device, geoid=geoid,
-                       same_vertical_datum=same_vertical_datum, source_reads=source_reads, cancel=cancel,
-                       _outputs=outputs)
+                       same_vertical_datum=same_vertical_datum, cancel=cancel, _outputs=outputs)
     t0 = time.perf_counter()
     on = plan.warp_device
     codec = _mosaic_block_codec(block_codec, on, compress_level or 6)
@@ -389,21 +380,14 @@ class MosaicPlan:
         # occlusion for pushbroom scenes: the backward method with each pixel's visibility tested
         hide = o["method"] == "forward" and method == "backward"
         crs = self.crs
-        reads = o.get("source_reads", "tiles")
-        if reads == "auto":  # a quarter of the device's free memory shared by the cache's images
-            w, h = geom.image_size
-            need = w * h * (self.count * np.dtype(_read_dtype(self.src_dtype or self.dtype)).itemsize + (1 if masked else 0))
-            reads = "whole" if geom.device.is_cuda and need * 4 * o["cache_images"] <= geom.device.free_memory \
-                else "tiles"
         entry = dict(geom=geom, to_frame=self._to_frame(geom.horizontal_crs),
                      renderer=ImageTiles(src, geom, crs, self.transform, count=self.count, out_dtype=self.dtype,
                                          resampling=o["resampling"], method=method, masked=masked,
-                                         src_dtype=self.src_dtype, timer=timer, occlusion=hide, source_reads=reads))
+                                         src_dtype=self.src_dtype, timer=timer, occlusion=hide))
         if method == "forward" or hide:  # for ground that no image sees (holes of hidden ground)
             entry["fallback"] = ImageTiles(src, geom, crs, self.transform, count=self.count, out_dtype=self.dtype,
                                            resampling=o["resampling"], method="backward", masked=masked,
-                                           src_dtype=self.src_dtype, timer=timer, source_reads=reads,
-                                           whole_of=entry["renderer"])
+                                           src_dtype=self.src_dtype, timer=timer)
         return entry
 
     def _to_frame(self, frame_crs):
@@ -710,16 +694,14 @@ class MosaicPlan:
 @quiet_warp()
 def mosaic_plan(images, *, dem, crs=None, resolution=None, resampling="bilinear", refraction=True, dtype=None,
                 seams="least-cost", seam_width=256, blend="feather", feather=32, balance=True, reference=None,
-                occlusion=True, device=None, geoid=None, same_vertical_datum=False, source_reads="tiles", cancel=None,
-                _outputs=(), _seam_pixels=SEAM_PIXELS):
+                occlusion=True, device=None, geoid=None, same_vertical_datum=False, cancel=None, _outputs=(),
+                _seam_pixels=SEAM_PIXELS):
     """The grid, sources and radiometric balance of a mosaic, without writing it: a
     :class:`MosaicPlan` whose :meth:`~MosaicPlan.tile` any scheduler can run (threads, a Dask
     cluster) and whose :meth:`~MosaicPlan.write` assembles the results. Parameters as
     :func:`mosaic`."""
     t_plan = time.perf_counter()
     images = _check_images(images, resampling, dtype, blend, feather, reference, seams, seam_width)
-    if source_reads not in SOURCE_READS:
-        raise ParamError(f"source_reads must be one of {SOURCE_READS}, got {source_reads!r}")
     terrain = as_dem(dem)
     # the sources: one band count and data type
     facts = []  # (path, bands, data type, masked)
@@ -767,7 +749,7 @@ def mosaic_plan(images, *, dem, crs=None, resolution=None, resampling="bilinear"
     log.info("mosaic of %d images: %d x %d pixels at %.4g", len(images), cols, rows, res)
     options = dict(resampling=resampling, refraction=refraction, blend=blend, feather=float(feather), device=device,
                    geoid=geoid, same_vertical_datum=same_vertical_datum,
-                   method="forward" if occlusion else "backward", cache_images=24, source_reads=source_reads)
+                   method="forward" if occlusion else "backward", cache_images=24)
     plan = MosaicPlan([(f[0], sensor, f[3]) for f, (_, sensor) in zip(facts, images)], terrain, options,
                       out_crs, transform, (rows, cols), res, foot, count, out_dtype, src_dtype)
     # one reduced pass: the images' overlaps for the balance and the seams' labelling

@@ -724,14 +724,11 @@ class ImageTiles:
         threads, into device memory, and such tiles sample it there (the same pixels: their
         windows hold every tap). "auto": "whole" on a CUDA device where the source takes at
         most a quarter of its free memory.
-    whole_of : ImageTiles, optional
-        Another image's tile functions of the same source: share its whole read (one copy in
-        device memory) instead of making one.
     """
 
     def __init__(self, src, geom, out_crs, transform, *, count, out_dtype, resampling="bilinear", method="backward",
                  masked=True, src_dtype=None, timer=None, clipped=None, decimate=True, source_reads="tiles",
-                 occlusion=False, whole_of=None):
+                 occlusion=False):
         self.src, self.geom, self.transform = src, geom, transform
         self.count, self.out_dtype, self.masked = count, out_dtype, masked
         self.timer = timer if timer is not None else StageTimer(time.perf_counter())
@@ -771,7 +768,6 @@ class ImageTiles:
             source_reads = "whole" if device.is_cuda and need <= device.free_memory // 4 else "tiles"
         self.source_reads = self.timer.info["source_reads"] = source_reads
         self._whole, self._whole_lock = None, threading.Lock()
-        self._whole_of = whole_of
         self._all_valid = None  # the 1 x 1 mask of an unmasked window, made once
         # the node kernels launch with Warp's default block size, the per-pixel kernels with
         # ORTHO_BLOCK_DIM (a CUDA module is built per block size): both loaded here
@@ -896,8 +892,6 @@ class ImageTiles:
     def _whole_source(self):
         """The whole source on the device, read on first use: (values (bands, rows, cols) in
         the kernels' dtype, valid (rows, cols) uint8 or None where unmasked)."""
-        if self._whole_of is not None:
-            return self._whole_of._whole_source()
         with self._whole_lock:
             if self._whole is None:  # see read_whole_source
                 self._whole = read_whole_source(self.src, self.device, masked=self.masked, dtype=self._kernel_dtype,

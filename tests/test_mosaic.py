@@ -651,27 +651,23 @@ def test_a_small_image_cache_gives_the_same_mosaic(pair, tmp_path):
     assert (tmp_path / "a.tif").read_bytes() == (tmp_path / "b.tif").read_bytes()
 
 
-def test_whole_source_reads_and_kept_geometries_give_the_same_mosaic(pair, tmp_path, monkeypatch):
-    """source_reads="whole" reads each image once (its forward renderer and backward fallback
-    share the read) and gives the tiles' bytes; the reduced pass's geometries serve the tiles,
-    so each image's geometry is built once; a bad source_reads is refused."""
+def test_the_reduced_pass_geometries_serve_the_tiles(pair, tmp_path, monkeypatch):
+    """Each image's geometry is built once: the reduced pass's is kept for its tile functions
+    (the file is the same as with a cache too small to keep any)."""
     from orthowarp.pipeline import mosaic as mosaic_module
-    from orthowarp.pipeline import ortho as ortho_module
 
     sc, images, _, _ = pair
-    kw = dict(dem=sc.dem, refraction=False, device="cpu", tile_size=64)
-    builds, reads = [], []
-    geometry, whole = mosaic_module.MosaicPlan.geometry, ortho_module.read_whole_source
+    kw = dict(dem=sc.dem, refraction=False, device="cpu", tile_size=64, workers=1)  # no two tiles racing to build
+    builds = []
+    geometry = mosaic_module.MosaicPlan.geometry
     monkeypatch.setattr(mosaic_module.MosaicPlan, "geometry", lambda self, k: builds.append(k) or geometry(self, k))
-    monkeypatch.setattr(ortho_module, "read_whole_source", lambda src, *a, **k: reads.append(src) or whole(src, *a, **k))
-    mosaic(images, tmp_path / "tiles.tif", **kw)
-    assert sorted(builds) == [0, 1] and reads == []
-    mosaic(images, tmp_path / "whole.tif", source_reads="whole", **kw)
-    assert sorted(reads) == sorted(str(p) for p, _ in images)
-    assert (tmp_path / "tiles.tif").read_bytes() == (tmp_path / "whole.tif").read_bytes()
-    with pytest.raises(ParamError, match="source_reads"):
-        mosaic(images, tmp_path / "bad.tif", source_reads="all", **kw)
-    assert not (tmp_path / "bad.tif").exists()
+    mosaic(images, tmp_path / "kept.tif", **kw)
+    assert sorted(builds) == [0, 1]
+    builds.clear()  # nothing kept: the tile functions build their own
+    monkeypatch.setattr(mosaic_module.MosaicPlan, "_keep_geometry", lambda self, k, geom: None)
+    mosaic(images, tmp_path / "built.tif", **kw)
+    assert sorted(builds) == [0, 0, 1, 1]
+    assert (tmp_path / "kept.tif").read_bytes() == (tmp_path / "built.tif").read_bytes()
 
 
 def test_mosaic_accuracy_raster_takes_each_cell_from_its_source_image(pair, tmp_path):
