@@ -313,11 +313,13 @@ class MosaicPlan:
         self.labels, self.seam_step = None, 1  # the seams' labelling, set by mosaic_plan
         self.setup_s = {}  # seconds of mosaic_plan's steps
         self._state, self._lock = None, threading.Lock()
+        self._kept = collections.OrderedDict()  # geometries of the reduced pass, for the tiles
         self._encoder = None  # while writing with a device block codec
 
     def __getstate__(self):
         state = dict(self.__dict__)
         state["_state"], state["_lock"], state["_encoder"] = None, None, None
+        state["_kept"] = collections.OrderedDict()
         return state
 
     def __setstate__(self, state):
@@ -350,18 +352,16 @@ class MosaicPlan:
     def _keep_geometry(self, k, geom):
         """Keep image ``k``'s geometry (built by the reduced pass) for its tile functions: in a
         cache of at most ``cache_images`` geometries, the oldest dropped first."""
-        st = self._materialise()
-        with self._lock:
-            st["geometries"][k] = geom
-            st["geometries"].move_to_end(k)
-            while len(st["geometries"]) > self.options["cache_images"]:
-                st["geometries"].popitem(last=False)
+        with self._lock:  # (apart from the tiles' state, whose timer starts with the first tile)
+            self._kept[k] = geom
+            self._kept.move_to_end(k)
+            while len(self._kept) > self.options["cache_images"]:
+                self._kept.popitem(last=False)
 
     def _take_geometry(self, k):
         """Image ``k``'s kept geometry (taken out of the cache), or a new one."""
-        st = self._materialise()
         with self._lock:
-            geom = st["geometries"].pop(k, None)
+            geom = self._kept.pop(k, None)
         return geom if geom is not None else self.geometry(k)
 
     def _materialise(self):
@@ -369,7 +369,7 @@ class MosaicPlan:
         with self._lock:
             if self._state is None:
                 self._state = dict(timer=StageTimer(time.perf_counter()), images=collections.OrderedDict(), users={},
-                                   builds=0, transformers={}, geometries=collections.OrderedDict())
+                                   builds=0, transformers={})
             return self._state
 
     def _build(self, k, timer):
@@ -450,6 +450,7 @@ class MosaicPlan:
                 for entry in self._state["images"].values():
                     self._close_entry(entry)
                 self._state = None
+            self._kept.clear()
 
     def tiles(self, tile_size=512):
         """The grid's tiles (r0, c0, rows, cols), row-major."""
