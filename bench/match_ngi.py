@@ -117,7 +117,14 @@ def main(argv=None):
                adjustment=dict(message=res.message, sigma0=res.sigma0, redundancy=res.redundancy,
                                pose_change={n: (np.array(res.poses[n]) - [s.parameters()[k] for k in (
                                    "X0", "Y0", "Z0", "omega", "phi", "kappa")]).round(4).tolist()
-                                            for n, s in zip(names, sensors)}))
+                                            for n, s in zip(names, sensors)},
+                               # each correction over its own posterior sigma (X0 Y0 Z0 m, omega phi kappa deg):
+                               # how far the ties moved the orientation, in units of what they determine
+                               pose_std={n: np.sqrt(np.diag(res.pose_cov[k])).round(4).tolist()
+                                         for k, n in enumerate(names)},
+                               pose_change_over_std={n: ((np.array(res.poses[n]) - [s.parameters()[c] for c in (
+                                   "X0", "Y0", "Z0", "omega", "phi", "kappa")]) / np.sqrt(np.diag(res.pose_cov[k])))
+                                   .round(2).tolist() for k, (n, s) in enumerate(zip(names, sensors))}))
     groups = [("given", given, dem)] + ([("perturbed", sensors, dem)] if args.perturb else []) + \
         [("adjusted", adjusted, dem)]
     if args.dem_from_ties:
