@@ -110,12 +110,15 @@ def edge_node_pixels_kernel(
 
 
 @wp.func
-def node_step(pixels: wp.array2d(dtype=wp.vec2d), p: wp.vec2d, i: wp.int32, j: wp.int32):
-    """Distance (source pixels) from ``p`` to node (i, j)'s pixel; NaN off the grid or where
-    either is NaN."""
+def add_step(acc: wp.vec2d, pixels: wp.array2d(dtype=wp.vec2d), p: wp.vec2d, i: wp.int32, j: wp.int32):
+    """``acc`` + (the distance in source pixels from ``p`` to node (i, j)'s pixel, 1) where
+    that node exists and the distance is finite, else ``acc``."""
     if i < 0 or j < 0 or i >= pixels.shape[0] or j >= pixels.shape[1]:
-        return wp.float64(wp.nan)
-    return wp.length(pixels[i, j] - p)
+        return acc
+    s = wp.length(pixels[i, j] - p)
+    if wp.isfinite(s):
+        return acc + wp.vec2d(s, wp.float64(1.0))
+    return acc
 
 
 @wp.kernel
@@ -138,26 +141,14 @@ def edge_nodes_kernel(
         edge[k, i, j] = wp.float32(0.0)
         return
     d = wp.min(wp.min(p[0], width - p[0]), wp.min(p[1], height - p[1]))
-    total = wp.float64(0.0)
-    count = wp.float64(0.0)
-    for n in range(4):
-        di = 0
-        dj = 0
-        if n == 0:
-            dj = 1
-        elif n == 1:
-            dj = -1
-        elif n == 2:
-            di = 1
-        else:
-            di = -1
-        s = node_step(pixels, p, i + di, j + dj)
-        if wp.isfinite(s):
-            total += s
-            count += wp.float64(1.0)
+    acc = wp.vec2d(wp.float64(0.0), wp.float64(0.0))  # (sum of the steps, their count)
+    acc = add_step(acc, pixels, p, i, j + 1)
+    acc = add_step(acc, pixels, p, i, j - 1)
+    acc = add_step(acc, pixels, p, i + 1, j)
+    acc = add_step(acc, pixels, p, i - 1, j)
     scale = wp.float64(1.0)
-    if count > wp.float64(0.0) and total > wp.float64(0.0):
-        scale = total / (count * step)
+    if acc[0] > wp.float64(0.0):
+        scale = acc[0] / (acc[1] * step)
     edge[k, i, j] = wp.float32(d / scale)
 
 
