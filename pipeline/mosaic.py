@@ -870,7 +870,7 @@ def _reduced_pass(plan, cancel, max_pixels):
         Mosaic pixels per reduced pixel (each way).
     coarse : list, per image, of (r0, c0, values, ok) or None
         The image's window on the reduced grid: first row and column, values float32
-        (rows, cols, bands), ok bool (rows, cols).
+        (rows, cols, bands; 0 where not ok), ok bool (rows, cols).
     labels : ndarray of uint16 (rows, cols)
         Per reduced pixel, the covering image with the smallest off-nadir angle (NO_SOURCE
         where none covers it).
@@ -902,6 +902,7 @@ def _reduced_pass(plan, cancel, max_pixels):
         angle = _angle_field(geom, ctr, to_frame, r0, c0, r1 - r0, c1 - c0).astype(np.float32)
         v = to_host(values)
         ok = to_host(valid).view(bool) & np.isfinite(angle) & np.isfinite(v).all(axis=-1)
+        v[~ok] = 0.0  # (no NaN: the overlaps' statistics are sums of values times a 0/1 mask)
         plan._keep_geometry(k, geom)  # for the image's tile functions
         return r0, c0, v, ok, angle
 
@@ -939,8 +940,9 @@ def _balance(coarse, count, reference):
         m = int(both.sum())
         if m < 50:
             continue
-        a, b = a[both].astype(np.float64), b[both].astype(np.float64)
-        eq_g.append((i, j, np.sqrt(m), a.mean(0), b.mean(0), a.std(0), b.std(0)))
+        w = both.astype(np.float32)
+        (ma, sa), (mb, sb) = _moments(a, w, m), _moments(b, w, m)
+        eq_g.append((i, j, np.sqrt(m), ma, mb, sa, sb))
     gains, offsets = np.ones((n, count)), np.zeros((n, count))
     if not eq_g:
         return gains, offsets
@@ -962,6 +964,16 @@ def _balance(coarse, count, reference):
             rhs_b.append(w * (a[j] * mj[band] - a[i] * mi[band]))
         gains[:, band], offsets[:, band] = a, _solve(rows_b, rhs_b, n, reference)
     return gains, offsets
+
+
+def _moments(values, w, m):
+    """Mean and (population) standard deviation per band of ``values`` (rows, cols, bands)
+    over the ``m`` pixels where ``w`` (rows, cols) is 1 (0 elsewhere), summed in float64 in
+    one pass without copying them out."""
+    s1 = np.einsum("ijk,ij->k", values, w, dtype=np.float64)
+    s2 = np.einsum("ijk,ijk,ij->k", values, values, w, dtype=np.float64)
+    mean = s1 / m
+    return mean, np.sqrt(np.maximum(s2 / m - mean * mean, 0.0))
 
 
 def _least_cost_seams(labels, coarse, gains, offsets, width, reach, cancel=None):

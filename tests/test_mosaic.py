@@ -947,3 +947,17 @@ def test_fade_edge_distances_at_the_nodes_match_float64_numpy(device, name):
     print(f"\n[fade edge] {name}: {np.abs(got[1] - want).max():.2e} px at most, range {want.min():.1f}..{want.max():.1f}")
     np.testing.assert_allclose(got[1], want, rtol=1e-6, atol=1e-4)  # output pixels
     np.testing.assert_array_equal(got[0], -7.0)  # the other slot untouched
+
+
+def test_overlap_moments_match_numpy_over_the_masked_pixels():
+    """The balance's per-band mean and standard deviation over an overlap's pixels (masked
+    sums in float64, no copy) against NumPy's mean and std of the pixels taken out."""
+    from orthowarp.pipeline.mosaic import _moments
+
+    rng = np.random.default_rng(3)
+    values = (rng.uniform(0, 255, (120, 90, 3)) * [1.0, 0.7, 1.3] + [0, 40, -20]).astype(np.float32)
+    both = rng.uniform(size=(120, 90)) > 0.4
+    mean, std = _moments(values, both.astype(np.float32), int(both.sum()))
+    x = values[both].astype(np.float64)
+    np.testing.assert_allclose(mean, x.mean(0), rtol=1e-12)
+    np.testing.assert_allclose(std, x.std(0), rtol=1e-9)
