@@ -166,7 +166,7 @@ def mosaic_candidate_kernel(
     dist: ReducedWindow,
     edge: wp.array3d(dtype=wp.float32),
     edge_step: wp.float32,
-    fade_width: wp.float32,
+    fade: wp.int32,
     feather: wp.float32,
     k: wp.int32,
     stack: wp.array4d(dtype=wp.float32),
@@ -176,8 +176,8 @@ def mosaic_candidate_kernel(
     ``gains[image]`` and ``offsets[image]`` (images, bands) into ``stack[k]`` (th, tw, bands)
     and its rank into ``rank[k]`` (th, tw). ``edge[k]`` (coarse nodes every ``edge_step``
     pixels, see :func:`edge_nodes_kernel`): distance of the pixel's image from the image's
-    border, output pixels; the fade adds ``feather`` * (1 - edge / fade_width), clipped to
-    [0, feather], where ``fade_width`` > 0."""
+    border, output pixels; with ``fade`` (1) the rank gets ``feather`` * (1 - edge /
+    ``feather``), clipped to [0, feather]: the image fades out over ``feather`` pixels."""
     i, j = wp.tid()
     if valid[i, j] == wp.uint8(0):
         rank[k, i, j] = wp.float32(wp.inf)
@@ -185,9 +185,9 @@ def mosaic_candidate_kernel(
             stack[k, i, j, b] = wp.float32(0.0)
         return
     r = reduced_sample(dist, k, i, j)
-    if fade_width > wp.float32(0.0):
+    if fade != 0:
         e = node_sample(edge, k, edge_step, i, j)
-        r = r + feather * wp.clamp(wp.float32(1.0) - e / fade_width, wp.float32(0.0), wp.float32(1.0))
+        r = r + feather * wp.clamp(wp.float32(1.0) - e / feather, wp.float32(0.0), wp.float32(1.0))
     rank[k, i, j] = r
     for b in range(stack.shape[3]):
         stack[k, i, j, b] = wp.float32(values[i, j, b]) * gains[image, b] + offsets[image, b]

@@ -314,12 +314,13 @@ class MosaicPlan:
         self.setup_s = {}  # seconds of mosaic_plan's steps
         self._state, self._lock = None, threading.Lock()
         self._kept = collections.OrderedDict()  # geometries of the reduced pass, for the tiles
+        self._transformers = {}  # mosaic CRS -> a pose frame's horizontal CRS, by that CRS's WKT
         self._encoder = None  # while writing with a device block codec
 
     def __getstate__(self):
         state = dict(self.__dict__)
         state["_state"], state["_lock"], state["_encoder"] = None, None, None
-        state["_kept"] = collections.OrderedDict()
+        state["_kept"], state["_transformers"] = collections.OrderedDict(), {}
         return state
 
     def __setstate__(self, state):
@@ -369,7 +370,7 @@ class MosaicPlan:
         with self._lock:
             if self._state is None:
                 self._state = dict(timer=StageTimer(time.perf_counter()), images=collections.OrderedDict(), users={},
-                                   builds=0, transformers={})
+                                   builds=0)
             return self._state
 
     def _build(self, k, timer):
@@ -392,15 +393,15 @@ class MosaicPlan:
 
     def _to_frame(self, frame_crs):
         """The transformer from the mosaic's CRS to a pose frame's horizontal CRS, one per
-        frame CRS in this process (images in one frame share the tiles' coarse grids)."""
-        st = self._materialise()
+        frame CRS in this process, for the reduced pass and the tiles (images in one frame
+        share the tiles' coarse grids)."""
         key = frame_crs.to_wkt()
         with self._lock:
-            got = st["transformers"].get(key)
+            got = self._transformers.get(key)
         if got is None:
             got = Transformer.from_crs(self.crs, frame_crs, always_xy=True)
             with self._lock:
-                got = st["transformers"].setdefault(key, got)
+                got = self._transformers.setdefault(key, got)
         return got
 
     @staticmethod
@@ -581,8 +582,8 @@ class MosaicPlan:
                           inputs=[pixels, float(w_img), float(h_img), float(COARSE_STEP), slot, edges])
         for slot, (k, values, valid, _, _) in enumerate(rendered):
             wp.launch(mosaic_kernels.mosaic_candidate_kernel, dim=(th, tw), device=device,
-                      inputs=[values, valid, gains, offsets, k, win, edges, float(COARSE_STEP),
-                              float(feather) if fade else 0.0, float(feather), slot, stack, rank])
+                      inputs=[values, valid, gains, offsets, k, win, edges, float(COARSE_STEP), int(fade),
+                              float(feather), slot, stack, rank])
         timer.span("kernel", t)
         return ks, stack, rank, device
 
@@ -898,7 +899,7 @@ def _reduced_pass(plan, cancel, max_pixels):
             it.close()
         if values is None:
             return None
-        to_frame = Transformer.from_crs(crs, geom.horizontal_crs, always_xy=True)
+        to_frame = plan._to_frame(geom.horizontal_crs)
         angle = _angle_field(geom, ctr, to_frame, r0, c0, r1 - r0, c1 - c0).astype(np.float32)
         v = to_host(values)
         ok = to_host(valid).view(bool) & np.isfinite(angle) & np.isfinite(v).all(axis=-1)
