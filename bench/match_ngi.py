@@ -112,19 +112,17 @@ def main(argv=None):
     for n, s in zip(names, sensors):
         x, y, z, o, p, k = res.poses[n]
         adjusted.append(ow.FrameSensor(s.camera, ow.Pose.from_opk(x, y, z, o, p, k, crs=s.pose.crs)))
+    # each image's correction by the adjustment (X0 Y0 Z0 m, omega phi kappa deg), and that over
+    # its own posterior sigma: how far the ties moved the orientation, in units of what they determine
+    change = {n: np.array(res.poses[n]) - [s.parameters()[c] for c in ("X0", "Y0", "Z0", "omega", "phi", "kappa")]
+              for n, s in zip(names, sensors)}
     out = dict(benchmark="match_ngi", images=names, resolution=args.resolution, perturb=args.perturb,
                seed=args.seed, snooping=args.snooping, match=stats,
                adjustment=dict(message=res.message, sigma0=res.sigma0, redundancy=res.redundancy,
-                               pose_change={n: (np.array(res.poses[n]) - [s.parameters()[k] for k in (
-                                   "X0", "Y0", "Z0", "omega", "phi", "kappa")]).round(4).tolist()
-                                            for n, s in zip(names, sensors)},
-                               # each correction over its own posterior sigma (X0 Y0 Z0 m, omega phi kappa deg):
-                               # how far the ties moved the orientation, in units of what they determine
-                               pose_std={n: np.sqrt(np.diag(res.pose_cov[k])).round(4).tolist()
-                                         for k, n in enumerate(names)},
-                               pose_change_over_std={n: ((np.array(res.poses[n]) - [s.parameters()[c] for c in (
-                                   "X0", "Y0", "Z0", "omega", "phi", "kappa")]) / np.sqrt(np.diag(res.pose_cov[k])))
-                                   .round(2).tolist() for k, (n, s) in enumerate(zip(names, sensors))}))
+                               pose_change={n: c.round(4).tolist() for n, c in change.items()},
+                               pose_std={n: np.round(res.pose_std[n], 4).tolist() for n in names},
+                               pose_change_over_std={n: (c / res.pose_std[n]).round(2).tolist()
+                                                     for n, c in change.items()}))
     groups = [("given", given, dem)] + ([("perturbed", sensors, dem)] if args.perturb else []) + \
         [("adjusted", adjusted, dem)]
     if args.dem_from_ties:
