@@ -285,6 +285,26 @@ def mosaic_fill_kernel(
 
 
 @wp.kernel
+def count_sources_kernel(source: wp.array2d(dtype=wp.uint16), counts: wp.array(dtype=wp.int64)):
+    """Per row of a tile's source index (one thread each): its pixels of each image added to
+    ``counts`` (images,), one atomic add per run of equal values along the row; NO_SOURCE
+    pixels are not counted."""
+    i = wp.tid()
+    cur = source[i, 0]
+    run = wp.int64(0)
+    for j in range(source.shape[1]):
+        v = source[i, j]
+        if v != cur:
+            if cur != NO_SOURCE:
+                wp.atomic_add(counts, wp.int32(cur), run)
+            cur = v
+            run = wp.int64(0)
+        run += wp.int64(1)
+    if cur != NO_SOURCE:
+        wp.atomic_add(counts, wp.int32(cur), run)
+
+
+@wp.kernel
 def multiband_planes_kernel(stack: wp.array4d(dtype=wp.float32), rank: wp.array3d(dtype=wp.float32),
                             planes: wp.array3d(dtype=wp.float32), best: wp.array2d(dtype=wp.int32)):
     """Multi-band blending, step 1, per pixel of the tile grown by the halo: ``best``, the

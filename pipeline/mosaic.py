@@ -27,12 +27,13 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import heapq
 import logging
 import os
 import threading
 import time
 from collections.abc import Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 
 import numpy as np
 import rasterio
@@ -248,6 +249,8 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
     tiles = plan.tiles(int(tile_size) if tile_size is not None else (2048 if on.is_cuda else 512))
     n_workers = workers or (8 if on.is_cuda else (os.cpu_count() or 1))
 
+    host_source = index is not None or seamlines is not None  # else the pixels per image counted there
+
     def run(r0, c0, th, tw):
         if codec == "host":
             return plan.tile(r0, c0, th, tw, cancel=cancel, name=dst)
@@ -255,6 +258,9 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
         _check_cancel(cancel, dst)
         out, has, source = plan._tile(r0, c0, th, tw, device=on)
         plan._encoder.write(r0, c0, out, has)
+        if not host_source:
+            plan._count_sources(source)
+            return None, None, None
         source = to_host(source)
         return None, source != NO_SOURCE, source
 
@@ -608,6 +614,22 @@ class MosaicPlan:
         timer.span("kernel", t)
         return pixels
 
+    def _count_sources(self, source):
+        """Add a device tile's source index (th, tw) to this process's pixels per image, on its
+        device (for :meth:`write`, where the index does not come to the host)."""
+        st = self._materialise()
+        with self._lock:
+            counts = st.get("counts")
+            if counts is None:
+                counts = st["counts"] = wp.zeros(len(self.sources), dtype=wp.int64, device=source.device)
+        wp.launch(mosaic_kernels.count_sources_kernel, dim=source.shape[0], device=source.device,
+                  inputs=[source, counts])
+
+    def _counted_sources(self):
+        """The pixels per image counted on the device by :meth:`_count_sources` (int64 (images,))."""
+        counts = self._state.pop("counts", None) if self._state is not None else None
+        return to_host(counts).astype(np.int64) if counts is not None else np.zeros(len(self.sources), np.int64)
+
     def _balance_on(self, st, device):
         """The gains and offsets (images, bands) as float32 arrays on ``device``, copied once
         per process."""
@@ -656,6 +678,8 @@ class MosaicPlan:
                 for (r0, c0, th, tw), (block, valid, source) in results:
                     if block is not None:
                         writers[0].write(r0, c0, block, valid, copy=False)
+                    if source is None:  # (a tile on the device, its pixels counted there)
+                        continue
                     if index is not None:
                         writers[1].write(r0, c0, source[..., None], valid, copy=False)
                     used += np.bincount(source[valid], minlength=n)[:n]
@@ -666,6 +690,7 @@ class MosaicPlan:
                                      (c0 + j0) // step:(c0 + j0) // step + sub.shape[1]] = sub
                 if encoder is not None:
                     encoder.flush()  # the last nvCOMP batch
+                used += self._counted_sources()
                 for w in writers:
                     w.close()
                 if seamlines is not None:
@@ -937,7 +962,9 @@ def _balance(coarse, count, reference):
     ``reference`` or by zero means; an image without overlaps keeps gain 1, offset 0."""
     n = len(coarse)
     eq_g = []  # (i, j, weight, stats) per overlap
-    for i, j, _, a, b, both in _overlaps(coarse):
+    for box in _overlap_boxes(coarse):
+        i, j = box[:2]
+        a, b, both = _overlap_arrays(coarse, box)
         m = int(both.sum())
         if m < 50:
             continue
@@ -977,7 +1004,7 @@ def _moments(values, w, m):
     return mean, np.sqrt(np.maximum(s2 / m - mean * mean, 0.0))
 
 
-def _least_cost_seams(labels, coarse, gains, offsets, width, reach, cancel=None):
+def _least_cost_seams(labels, coarse, gains, offsets, width, reach, cancel=None, workers=None):
     """Move the seams of the reduced labelling ``labels`` (in place) onto least-cost paths
     where the images agree.
 
@@ -995,7 +1022,9 @@ def _least_cost_seams(labels, coarse, gains, offsets, width, reach, cancel=None)
     region) splits it, each part going to the region whose side of the rim it touches (see
     :func:`_split_corridor`); a corridor that no path separates is labelled by a minimum cut
     instead (:func:`_cut_corridor`). Pairs are taken in order, each on the labels the earlier
-    ones left: one global labelling, so seams are consistent across output tiles.
+    ones left: one global labelling, so seams are consistent across output tiles. (Pairs
+    whose windows do not meet run at once on up to ``workers`` threads, default the CPU
+    cores: the same labels.)
     (A seam refined within a buffer around an initial one by Dijkstra on a mismatch cost, as
     in Chon et al., ISPRS J. Photogramm. 2010, here on a reduced grid.)
 
@@ -1004,42 +1033,97 @@ def _least_cost_seams(labels, coarse, gains, offsets, width, reach, cancel=None)
     int
         Reduced pixels whose image changed.
     """
+    boxes = list(_overlap_boxes(coarse))
+    crows, ccols = labels.shape
+    # each pair's window of the labels: its overlap grown by one pixel, cut to the grid; a
+    # pair waits for the earlier pairs whose windows meet its own (it reads and writes the
+    # labels in its window alone), so pairs run on threads and give the labels of the order
+    win = np.array([(max(r0 - 1, 0), min(r1 + 1, crows), max(c0 - 1, 0), min(c1 + 1, ccols))
+                    for _, _, r0, r1, c0, c1 in boxes]).reshape(-1, 4)
+    after = [np.flatnonzero((win[:p, 0] < win[p, 1]) & (win[p, 0] < win[:p, 1]) & (win[:p, 2] < win[p, 3])
+                            & (win[p, 2] < win[:p, 3])) for p in range(len(boxes))]
+
+    def pair(p):
+        _check_cancel(cancel, "the mosaic")
+        return _seam_pair(labels, coarse, boxes[p], gains, offsets, width, reach)
+
+    return sum(_run_ordered(pair, after, workers))
+
+
+def _run_ordered(fn, after, workers):
+    """``fn(p)`` for p = 0 .. len(after) - 1 on up to ``workers`` threads, each once all of
+    ``after[p]`` (earlier indices) are done, the ready ones in index order; returns the
+    results in index order (the first exception raised, the tasks not yet started dropped)."""
+    n = len(after)
+    waiting = np.array([len(a) for a in after], np.int64)
+    then = [[] for _ in range(n)]
+    for p, deps in enumerate(after):
+        for q in deps:
+            then[q].append(p)
+    ready = [p for p in range(n) if not waiting[p]]  # a heap: the lowest index first
+    heapq.heapify(ready)
+    results = [None] * n
+    limit = max(1, min(workers or os.cpu_count() or 1, n or 1))
+    with ThreadPoolExecutor(max_workers=limit) as pool:
+        running = {}
+        try:
+            while ready or running:
+                while ready and len(running) < limit:
+                    p = heapq.heappop(ready)
+                    running[pool.submit(fn, p)] = p
+                done, _ = wait(running, return_when=FIRST_COMPLETED)
+                for f in done:
+                    p = running.pop(f)
+                    results[p] = f.result()
+                    for q in then[p]:
+                        waiting[q] -= 1
+                        if not waiting[q]:
+                            heapq.heappush(ready, q)
+        except BaseException:
+            for f in running:
+                f.cancel()
+            raise
+    return results
+
+
+def _seam_pair(labels, coarse, box, gains, offsets, width, reach):
+    """One pair's least-cost seam (see :func:`_least_cost_seams`): ``labels`` changed in
+    place within the pair's overlap ``box`` (i, j, r0, r1, c0, c1) grown by one pixel;
+    returns the reduced pixels whose image changed."""
     from scipy import ndimage
 
     crows, ccols = labels.shape
-    moved = 0
-    for i, j, (r0, c0), a, b, both in _overlaps(coarse, pad=1):
-        _check_cancel(cancel, "the mosaic")
-        h, w = both.shape
-        wr0, wc0 = r0 - 1, c0 - 1  # the pair's window, grown by one pixel
-        gr0, gr1, gc0, gc1 = max(wr0, 0), min(wr0 + h, crows), max(wc0, 0), min(wc0 + w, ccols)
-        lab = np.full((h, w), NO_SOURCE, np.uint16)  # beyond the grid: no image's
-        lab[gr0 - wr0:gr1 - wr0, gc0 - wc0:gc1 - wc0] = labels[gr0:gr1, gc0:gc1]
-        mi, mj = lab == i, lab == j
-        # the movable seams: pixels of either region next to the other, where both images see
-        # (at the edge of one image's cover, the seam's side within it)
-        border = ((mi & ndimage.binary_dilation(mj)) | (mj & ndimage.binary_dilation(mi))) & both
-        if not border.any():
-            continue
-        away = ndimage.distance_transform_edt(~border)  # from the nadir seam, reduced pixels
-        corridor = both & (mi | mj) & (away <= width)
-        d = np.abs((a * gains[i].astype(np.float32) + offsets[i].astype(np.float32))
-                   - (b * gains[j].astype(np.float32) + offsets[j].astype(np.float32))).mean(axis=-1)
-        if not corridor.any():
-            continue
-        m = max(float(np.median(d[corridor])), 1e-6 * (float(np.abs(a[corridor]).max()) + 1.0))
-        # the largest disagreement within the blend's reach: a seam keeps that far from objects
-        d = ndimage.maximum_filter(np.where(both, d, 0.0), size=2 * reach + 1)
-        cost = 1.0 + np.minimum((d / (3.0 * m)) ** 2, 400.0) + 4.0 * (away / width) ** 2
-        to_i = _split_corridor(corridor, mi, mj, cost)
-        if to_i is None:  # a rim no path splits (tangled footprints): a minimum cut instead
-            to_i = _cut_corridor(corridor, mi, mj, cost, away, width)
-        if to_i is None:
-            continue
-        new = np.where(corridor, np.where(to_i, i, j), lab).astype(np.uint16)
-        moved += int((new != lab).sum())
-        labels[gr0:gr1, gc0:gc1] = new[gr0 - wr0:gr1 - wr0, gc0 - wc0:gc1 - wc0]
-    return moved
+    i, j, r0, _, c0, _ = box
+    a, b, both = _overlap_arrays(coarse, box, pad=1)
+    h, w = both.shape
+    wr0, wc0 = r0 - 1, c0 - 1  # the pair's window, grown by one pixel
+    gr0, gr1, gc0, gc1 = max(wr0, 0), min(wr0 + h, crows), max(wc0, 0), min(wc0 + w, ccols)
+    lab = np.full((h, w), NO_SOURCE, np.uint16)  # beyond the grid: no image's
+    lab[gr0 - wr0:gr1 - wr0, gc0 - wc0:gc1 - wc0] = labels[gr0:gr1, gc0:gc1]
+    mi, mj = lab == i, lab == j
+    # the movable seams: pixels of either region next to the other, where both images see
+    # (at the edge of one image's cover, the seam's side within it)
+    border = ((mi & ndimage.binary_dilation(mj)) | (mj & ndimage.binary_dilation(mi))) & both
+    if not border.any():
+        return 0
+    away = ndimage.distance_transform_edt(~border)  # from the nadir seam, reduced pixels
+    corridor = both & (mi | mj) & (away <= width)
+    d = np.abs((a * gains[i].astype(np.float32) + offsets[i].astype(np.float32))
+               - (b * gains[j].astype(np.float32) + offsets[j].astype(np.float32))).mean(axis=-1)
+    if not corridor.any():
+        return 0
+    m = max(float(np.median(d[corridor])), 1e-6 * (float(np.abs(a[corridor]).max()) + 1.0))
+    # the largest disagreement within the blend's reach: a seam keeps that far from objects
+    d = ndimage.maximum_filter(np.where(both, d, 0.0), size=2 * reach + 1)
+    cost = 1.0 + np.minimum((d / (3.0 * m)) ** 2, 400.0) + 4.0 * (away / width) ** 2
+    to_i = _split_corridor(corridor, mi, mj, cost)
+    if to_i is None:  # a rim no path splits (tangled footprints): a minimum cut instead
+        to_i = _cut_corridor(corridor, mi, mj, cost, away, width)
+    if to_i is None:
+        return 0
+    new = np.where(corridor, np.where(to_i, i, j), lab).astype(np.uint16)
+    labels[gr0:gr1, gc0:gc1] = new[gr0 - wr0:gr1 - wr0, gc0 - wc0:gc1 - wc0]
+    return int((new != lab).sum())
 
 
 def _split_corridor(corridor, mi, mj, cost, tries=4):
@@ -1333,28 +1417,35 @@ def _distance_windows(labels, f, r0, c0, th, tw, ks, clip):
     return (wr0, wc0), out
 
 
-def _overlaps(coarse, pad=0):
-    """Per pair of images whose reduced windows meet: (i, j, values of i, values of j, both
-    valid), cut to the intersection of the windows grown by ``pad`` pixels (the grown part
-    invalid)."""
+def _overlap_boxes(coarse):
+    """Per pair of images (i < j) whose reduced windows meet: (i, j, r0, r1, c0, c1), the
+    intersection of their windows on the reduced grid."""
     for i in range(len(coarse)):
         for j in range(i + 1, len(coarse)):
             if coarse[i] is None or coarse[j] is None:
                 continue
-            ri, ci, vi, oki = coarse[i]
-            rj, cj, vj, okj = coarse[j]
+            ri, ci, _, oki = coarse[i]
+            rj, cj, _, okj = coarse[j]
             r0, r1 = max(ri, rj), min(ri + oki.shape[0], rj + okj.shape[0])
             c0, c1 = max(ci, cj), min(ci + oki.shape[1], cj + okj.shape[1])
-            if r0 >= r1 or c0 >= c1:
-                continue
-            a = vi[r0 - ri:r1 - ri, c0 - ci:c1 - ci]
-            b = vj[r0 - rj:r1 - rj, c0 - cj:c1 - cj]
-            both = oki[r0 - ri:r1 - ri, c0 - ci:c1 - ci] & okj[r0 - rj:r1 - rj, c0 - cj:c1 - cj]
-            if pad:
-                a = np.pad(a, ((pad, pad), (pad, pad), (0, 0)))
-                b = np.pad(b, ((pad, pad), (pad, pad), (0, 0)))
-                both = np.pad(both, pad)
-            yield i, j, (r0, c0), a, b, both
+            if r0 < r1 and c0 < c1:
+                yield i, j, r0, r1, c0, c1
+
+
+def _overlap_arrays(coarse, box, pad=0):
+    """A pair's (values of i, values of j, both valid) on its overlap ``box`` (from
+    :func:`_overlap_boxes`) grown by ``pad`` pixels (the grown part invalid)."""
+    i, j, r0, r1, c0, c1 = box
+    ri, ci, vi, oki = coarse[i]
+    rj, cj, vj, okj = coarse[j]
+    a = vi[r0 - ri:r1 - ri, c0 - ci:c1 - ci]
+    b = vj[r0 - rj:r1 - rj, c0 - cj:c1 - cj]
+    both = oki[r0 - ri:r1 - ri, c0 - ci:c1 - ci] & okj[r0 - rj:r1 - rj, c0 - cj:c1 - cj]
+    if pad:
+        a = np.pad(a, ((pad, pad), (pad, pad), (0, 0)))
+        b = np.pad(b, ((pad, pad), (pad, pad), (0, 0)))
+        both = np.pad(both, pad)
+    return a, b, both
 
 
 def _solve(rows, rhs, n, reference):

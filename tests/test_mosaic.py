@@ -250,7 +250,7 @@ def test_tiles_kept_on_the_device_give_the_same_file(pair, tmp_path, occlusion, 
     """block_codec="hybrid": the tiles stay on the device (the forward method's gaps filled
     there by the backward one's blocks), their blocks and overview levels are made there and
     deflated by the host codec (on the CPU, as nvCOMP would on a GPU): the file decodes to the
-    host path's pixels and mask at every level, and the index and the pixel counts agree."""
+    host path's pixels and mask at every level, and the index and the pixel counts agree (also counted on the device, without an index)."""
     sc, images, _, _ = pair
     got = {}
     for codec in ("host", "hybrid"):
@@ -271,6 +271,10 @@ def test_tiles_kept_on_the_device_give_the_same_file(pair, tmp_path, occlusion, 
         np.testing.assert_array_equal(a, b)
     np.testing.assert_array_equal(index_h, index_d)
     assert px_h == px_d and sum(px_h) > 0
+    if occlusion:  # without an index the tiles' source indices stay there, counted by a kernel
+        res = mosaic(images, tmp_path / "m-counted.tif", dem=sc.dem, refraction=False, device="cpu", tile_size=512,
+                     occlusion=occlusion, blend=blend, block_codec="hybrid")
+        assert res.pixels_per_image == px_h
 
 
 def test_mosaic_of_two_pushbroom_scenes_and_of_a_mix(tmp_path):
@@ -961,3 +965,74 @@ def test_overlap_moments_match_numpy_over_the_masked_pixels():
     x = values[both].astype(np.float64)
     np.testing.assert_allclose(mean, x.mean(0), rtol=1e-12)
     np.testing.assert_allclose(std, x.std(0), rtol=1e-9)
+
+
+def test_ordered_tasks_wait_for_the_earlier_ones_they_name():
+    """_run_ordered: each task starts only after the earlier tasks it names have finished,
+    the results come back in index order, and a task's exception reaches the caller."""
+    import threading
+    import time
+
+    from orthowarp.pipeline.mosaic import _run_ordered
+
+    rng = np.random.default_rng(5)
+    n = 40
+    after = [np.flatnonzero(rng.uniform(size=p) < 0.15) for p in range(n)]
+    lock, started, finished = threading.Lock(), {}, {}
+    clock = iter(range(10**6))
+
+    def task(p):
+        with lock:
+            started[p] = next(clock)
+        time.sleep(0.002 * rng.uniform())
+        with lock:
+            finished[p] = next(clock)
+        return p * p
+
+    assert _run_ordered(task, after, 4) == [p * p for p in range(n)]
+    for p in range(n):
+        assert all(finished[q] < started[p] for q in after[p]), p
+
+    def failing(p):
+        if p == 7:
+            raise ValueError("task 7")
+        return p
+
+    with pytest.raises(ValueError, match="task 7"):
+        _run_ordered(failing, after, 4)
+
+
+def test_seams_on_threads_give_the_labels_of_the_order():
+    """The least-cost seams of a block of six overlapping images with disagreeing patches:
+    the same labels on one thread and on four (pairs whose windows meet wait for each
+    other), and the seams moved."""
+    from scipy import ndimage
+
+    from orthowarp.pipeline.mosaic import _least_cost_seams
+
+    rng = np.random.default_rng(11)
+    rows, cols = 150, 220
+    truth = ndimage.gaussian_filter(rng.normal(size=(rows, cols, 3)), (2, 2, 0)).astype(np.float32) * 40 + 100
+    coarse, centres = [], []
+    for k in range(6):
+        r0, c0 = (k // 3) * 60, (k % 3) * 65
+        h, w = 90, 90
+        v = truth[r0:r0 + h, c0:c0 + w].copy()
+        for _ in range(3):  # objects only this image shows
+            pr, pc = rng.integers(0, h - 8), rng.integers(0, w - 8)
+            v[pr:pr + 8, pc:pc + 8] += 80.0
+        coarse.append((r0, c0, v, np.ones((h, w), bool)))
+        centres.append((r0 + h / 2, c0 + w / 2))
+    rr, cc = np.mgrid[0:rows, 0:cols]
+    dist = np.stack([np.hypot(rr - a, cc - b) for a, b in centres])
+    cover = np.stack([(rr >= r0) & (rr < r0 + v.shape[0]) & (cc >= c0) & (cc < c0 + v.shape[1])
+                      for r0, c0, v, _ in coarse])
+    labels0 = np.where(cover.any(0), np.argmin(np.where(cover, dist, np.inf), axis=0), NO_SOURCE).astype(np.uint16)
+    gains, offsets = np.ones((6, 3)), np.zeros((6, 3))
+    got = []
+    for workers in (1, 4):
+        labels = labels0.copy()
+        moved = _least_cost_seams(labels, coarse, gains, offsets, 20.0, 2, workers=workers)
+        got.append((labels, moved))
+    np.testing.assert_array_equal(got[0][0], got[1][0])
+    assert got[0][1] == got[1][1] > 0
