@@ -341,7 +341,8 @@ def run_speed(args, sizes):
     t = time.perf_counter()
     frames, dem_path = build_speed(work, max(sizes), args.strips, width, height)
     report = dict(benchmark="mosaic_speed", frame=[width, height, 3], dtype="uint8", strips=args.strips,
-                  device=args.device, tile_size=args.tile_size, workers=args.workers, block_codec=args.block_codec, blend=args.blend,
+                  device=args.device, tile_size=args.tile_size, workers=args.workers, processes=args.processes,
+                  block_codec=args.block_codec, blend=args.blend,
                   cpu_count=os.cpu_count(), build_s=time.perf_counter() - t, results=[])
     gpu = int(args.device.split(":")[1]) if args.device.startswith("cuda:") else (0 if args.device == "cuda" else None)
     try:
@@ -376,6 +377,7 @@ def run_speed(args, sizes):
         out = os.path.join(work, f"mosaic{n}.tif")
         prof = os.path.join(work, f"mosaic{n}.profile.json")
         extra = (["--workers", str(args.workers)] if args.workers else []) + \
+            (["--processes", str(args.processes)] if args.processes else []) + \
             (["--tile-size", str(args.tile_size)] if args.tile_size else []) + \
             (["--block-codec", args.block_codec] if args.block_codec else []) + \
             (["--blend", args.blend] if args.blend else [])
@@ -398,12 +400,18 @@ def run_speed(args, sizes):
             if args.sample_stacks and os.path.exists(stacks):
                 with open(stacks) as f:
                     r["stacks"] = json.load(f)
+            # tile processes: their peaks added to the main one's (an upper bound of the whole)
+            workers_mb = [m for m in r["profile"].get("worker_peak_rss_mb") or [] if m is not None]
+            if r["peak_rss_mb"] is not None:
+                r["peak_rss_total_mb"] = r["peak_rss_mb"] + sum(workers_mb)
             r.update(output_gpix=px / 1e9, output_gpix_s=px / 1e9 / r["wall_s"],
                      tiles_output_gpix_s=px / 1e9 / r["profile"]["wall_s"], output_mb=os.path.getsize(out) / 1e6)
         report["results"].append(r)
         save()
         print(f"orthowarp mosaic {n} frames ({r['input_gpix']:.2f} Gpix in): {r['wall_s']:.1f} s, "
-              f"peak {r['peak_rss_mb'] or float('nan'):.0f} MB, GPU busy {r.get('gpu_busy_fraction', float('nan')):.2f}, "
+              f"peak {r['peak_rss_mb'] or float('nan'):.0f} MB (with tile processes "
+              f"{r.get('peak_rss_total_mb', r['peak_rss_mb']) or float('nan'):.0f} MB), "
+              f"GPU busy {r.get('gpu_busy_fraction', float('nan')):.2f}, "
               f"{r.get('output_gpix', float('nan')):.3f} Gpix out, {r.get('output_gpix_s', float('nan')):.3f} Gpix/s "
               f"end to end, {r.get('tiles_output_gpix_s', float('nan')):.3f} Gpix/s tiles+writing, "
               f"rc {r['returncode']} {r['stderr'][-800:]}", flush=True)
@@ -467,6 +475,7 @@ def main(argv=None):
     ap.add_argument("--speed", action="store_true", help="the speed block (see above) instead of the truth block")
     ap.add_argument("--frame", default="9600x8000", help="--speed: frame size W x H")
     ap.add_argument("--workers", type=int, default=None, help="--speed: orthowarp mosaic --workers")
+    ap.add_argument("--processes", type=int, default=None, help="--speed: orthowarp mosaic --processes")
     ap.add_argument("--tile-size", type=int, default=None, help="--speed: orthowarp mosaic --tile-size")
     ap.add_argument("--block-codec", default=None, help="--speed: orthowarp mosaic --block-codec")
     ap.add_argument("--blend", default=None, help="--speed: orthowarp mosaic --blend (feather, multiband, none)")

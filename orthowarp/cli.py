@@ -114,6 +114,7 @@ def _exit_now(signum):
 
 _FRAME_POSE_SIGMA = "0.05,0.05,0.1,0.005,0.005,0.01"
 _SCENE_SIGMA = "10,10,5,0.001,0.001,0.001,0.001,0.001"
+MOSAIC_GPU_PROCESSES = 4  # orthowarp mosaic's tile processes on a GPU (bench/reference/mosaic-speed-processes-h100.json)
 
 @click.group(cls=_Group)
 @click.version_option(package_name="orthowarp")
@@ -772,7 +773,11 @@ def _frame_orientations(images, int_param, ext_param, crs, ids=None):
 @click.option("--geoid", type=click.Path(dir_okay=False), help="Geoid grid for converting between DEM and position heights.")
 @click.option("--same-vertical-datum", is_flag=True, help="Take DEM and position heights as the same vertical datum.")
 @click.option("--device", default=None, help="Warp device (cpu, cuda, cuda:N); default: first GPU, else CPU.")
-@click.option("--workers", type=int, default=None, help="Tiles in flight (default: CPU cores on the CPU, 8 on a GPU).")
+@click.option("--workers", type=int, default=None,
+              help="Tiles in flight (default: CPU cores on the CPU, 8 on a GPU); with --processes, per process (default 2).")
+@click.option("--processes", type=click.IntRange(min=1), default=None,
+              help="Worker processes computing the tiles on the same device (default: 4 on a GPU, 1 on the CPU, "
+                   "where 1 is threads of this process).")
 @click.option("--tile-size", type=int, default=None, help="Output tile edge, pixels (default: 2048 on a GPU, 512 on the CPU).")
 @click.option("--profile", "show_profile", is_flag=True,
               help="Print where the time went: the plan's steps, per-stage times, GPU busy fraction, what bounds it.")
@@ -781,7 +786,7 @@ def _frame_orientations(images, int_param, ext_param, crs, ids=None):
 def mosaic(ctx, images, int_param, ext_param, odm_dataset, scenes, attitude_model, dem, height, out_path, index_path, seamlines_path, crs, resolution,
            resampling, seams, seam_width, blend, feather, no_balance, no_occlusion, reference, compress_level, block_codec, accuracy,
            pose_sigma, accuracy_measure, accuracy_step, scene_sigma, pixel_sigma, dem_sigma, creation, dtype, overwrite, no_refraction, geoid,
-           same_vertical_datum, device, workers, tile_size, show_profile, profile_json):
+           same_vertical_datum, device, workers, processes, tile_size, show_profile, profile_json):
     """Mosaic frame IMAGES and pushbroom scenes (--scene) into one cloud-optimized GeoTIFF: each
     pixel from the image that sees its ground most nearly from above (smallest off-nadir
     angle), the seams moved to where the images agree, feathered across the seams, the images'
@@ -826,13 +831,17 @@ def mosaic(ctx, images, int_param, ext_param, odm_dataset, scenes, attitude_mode
             if sensor.kind != "pushbroom":
                 pose_inputs(sensor.pose, len(frame_sigmas))
     terrain = Dem.from_file(dem) if dem is not None else height
+    if processes is None:  # a GPU mosaic is bound by the host work per tile: several processes feed it
+        from ._device import resolve_device
+
+        processes = MOSAIC_GPU_PROCESSES if resolve_device(device).is_cuda else 1
     r = make_mosaic(jobs, out_path, dem=terrain, crs=crs, resolution=resolution, resampling=resampling,
                     refraction=not no_refraction, dtype=dtype, index=index_path, seamlines=seamlines_path,
                     seams=seams, seam_width=seam_width, blend=blend, feather=feather,
                     balance=not no_balance, reference=reference, occlusion=not no_occlusion,
                     compress_level=compress_level, block_codec=block_codec, creation_options=creation_options,
                     overwrite=overwrite, device=device, geoid=geoid, same_vertical_datum=same_vertical_datum,
-                    workers=workers, tile_size=tile_size, cancel=ctx.meta.get("orthowarp.stop"))
+                    workers=workers, processes=processes, tile_size=tile_size, cancel=ctx.meta.get("orthowarp.stop"))
     if accuracy:
         from .pipeline.precision import mosaic_accuracy_raster
 

@@ -41,7 +41,7 @@ import warp as wp
 from affine import Affine
 from pyproj import CRS, Transformer
 
-from .._device import quiet_warp, to_host
+from .._device import quiet_warp, resolve_device, to_host
 from ..errors import GeometryError, ParamError, RasterIOError
 from ..geodesy import geodetic_to_ecef, geodetic_up
 from ..kernels import mosaic as mosaic_kernels
@@ -56,6 +56,7 @@ from .ortho import BLOCK_CODECS, COARSE_STEP, RESAMPLING, ImageTiles, _block_cod
     coarse_grid, coarse_struct, device_codecs, output_grid, parse_creation_options, source_facts
 from .geometry import SensorGeometry
 from .profile import StageTimer
+from .tileprocs import ProcessTiles
 
 __all__ = ["mosaic", "mosaic_plan", "MosaicPlan", "MosaicResult", "NO_SOURCE"]
 
@@ -135,8 +136,8 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
            blend: str = "feather", feather: float = 32, balance: bool = True, reference: int | None = None,
            occlusion: bool = True, compress_level: int | None = None, block_codec: str = "auto",
            creation_options: dict | None = None, tile_size: int | None = None, overwrite: bool = False, device: str | None = None,
-           workers: int | None = None, geoid: str | os.PathLike | None = None, same_vertical_datum: bool = False,
-           cancel: threading.Event | None = None) -> MosaicResult:
+           workers: int | None = None, processes: int | None = None, geoid: str | os.PathLike | None = None,
+           same_vertical_datum: bool = False, cancel: threading.Event | None = None) -> MosaicResult:
     """Mosaic frame images and pushbroom scenes into one cloud-optimized GeoTIFF (deflate,
     internal mask, overviews).
 
@@ -221,7 +222,16 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
     overwrite : bool, optional
     device : str, optional
     workers : int, optional
-        Tiles in flight (default: CPU cores on the CPU, 8 on a GPU).
+        Tiles in flight (default: CPU cores on the CPU, 8 on a GPU); with ``processes``, tile
+        threads per process (default 2).
+    processes : int, optional
+        Compute the tiles in this many worker processes on the same device (default 1: threads
+        of this process alone). A mosaic on a GPU is bound by its host work per tile, which the
+        threads of one process share under the interpreter lock; several processes share the
+        device instead (see :mod:`orthowarp.pipeline.tileprocs`). They are started with the
+        "spawn" method, so a script calling this must guard its top level with
+        ``if __name__ == "__main__":``. Each process holds its own image cache
+        (``cache_images``) and CUDA context.
     geoid, same_vertical_datum :
         As for :func:`~orthowarp.pipeline.ortho.orthorectify`.
     cancel : threading.Event, optional
@@ -236,15 +246,35 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
     parse_creation_options(creation_options)  # checked before any work
     if tile_size is not None and (int(tile_size) < 16 or int(tile_size) % 16):
         raise ParamError(f"tile_size must be a positive multiple of 16, got {tile_size}")
+    if processes is not None and (not isinstance(processes, (int, np.integer)) or processes < 1):
+        raise ParamError(f"processes must be a positive number of processes, got {processes!r}")
     dst = os.fspath(dst)
     outputs = _outputs(dst, index, seamlines, overwrite)
-    plan = mosaic_plan(images, dem=dem, crs=crs, resolution=resolution, resampling=resampling,
-                       refraction=refraction, dtype=dtype, seams=seams, seam_width=seam_width, blend=blend,
-                       feather=feather, balance=balance,
-                       reference=reference, occlusion=occlusion, device=device, geoid=geoid,
-                       same_vertical_datum=same_vertical_datum, cancel=cancel, _outputs=outputs)
+    on = resolve_device(device)
+    procs = ProcessTiles(int(processes), str(on), threads=workers or 2) if processes and processes > 1 else None  # start-up beside the plan
+    try:
+        plan = mosaic_plan(images, dem=dem, crs=crs, resolution=resolution, resampling=resampling,
+                           refraction=refraction, dtype=dtype, seams=seams, seam_width=seam_width, blend=blend,
+                           feather=feather, balance=balance,
+                           reference=reference, occlusion=occlusion, device=device, geoid=geoid,
+                           same_vertical_datum=same_vertical_datum, cancel=cancel, _outputs=outputs)
+        if procs is None:
+            return _write_mosaic(plan, dst, on, index=index, seamlines=seamlines, compress_level=compress_level,
+                                 block_codec=block_codec, creation_options=creation_options, tile_size=tile_size,
+                                 overwrite=overwrite, workers=workers, cancel=cancel)
+        return _write_mosaic_processes(plan, procs, dst, on, index=index, seamlines=seamlines,
+                                       compress_level=compress_level, block_codec=block_codec,
+                                       creation_options=creation_options, tile_size=tile_size, overwrite=overwrite,
+                                       workers=workers, cancel=cancel)
+    finally:
+        if procs is not None:
+            procs.close()
+
+
+def _write_mosaic(plan, dst, on, *, index, seamlines, compress_level, block_codec, creation_options, tile_size,
+                  overwrite, workers, cancel):
+    """:func:`mosaic`'s tiles on a thread pool of this process, written."""
     t0 = time.perf_counter()
-    on = plan.warp_device
     codec = _mosaic_block_codec(block_codec, on, compress_level or 6)
     tiles = plan.tiles(int(tile_size) if tile_size is not None else (2048 if on.is_cuda else 512))
     n_workers = workers or (8 if on.is_cuda else (os.cpu_count() or 1))
@@ -281,6 +311,49 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
                 for _, f in pending:
                     f.cancel()
                 raise
+
+    try:
+        return plan.write(dst, results(), index=index, seamlines=seamlines, compress_level=compress_level,
+                          overwrite=overwrite, t_start=t0, _block_codec=codec, creation_options=creation_options)
+    finally:
+        plan.close()
+
+
+def _write_mosaic_processes(plan, procs, dst, on, *, index, seamlines, compress_level, block_codec, creation_options,
+                            tile_size, overwrite, workers, cancel):
+    """:func:`mosaic`'s tiles on worker processes (``procs``, a started
+    :class:`~orthowarp.pipeline.tileprocs.ProcessTiles`), written by this one: each finished
+    tile uploaded to this process's device for the device block codec, or handed to the host
+    writer."""
+    t0 = time.perf_counter()
+    codec = _mosaic_block_codec(block_codec, on, compress_level or 6)
+    size = int(tile_size) if tile_size is not None else (2048 if on.is_cuda else 512)
+    tiles = plan.tiles(size)
+    with_source = codec == "host" or index is not None or seamlines is not None
+    plan._kept.clear()  # the reduced pass's geometries: the workers build their own
+    procs.start_plan(plan, (size, size), with_source=with_source)
+
+    def results():
+        for tile, values, valid, source, release in procs.run(tiles, plan.count, plan.dtype, cancel=cancel, name=dst):
+            try:
+                r0, c0 = tile[:2]
+                ok = valid.view(bool)
+                if codec == "host":  # (the slot is reused: copies)
+                    yield tile, (values.copy(), ok.copy(), source.copy())
+                    continue
+                plan._encoder.write(r0, c0, wp.array(values, device=on), wp.array(valid, dtype=wp.uint8, device=on))
+                yield tile, (None, ok.copy(), source.copy()) if source is not None else (None, None, None)
+            finally:
+                release()
+        st = plan._materialise()
+        timer = st["timer"]
+        for info in procs.finish():  # the workers' pixel counts, stage intervals and image builds
+            st["counts_host"] = st.get("counts_host", 0) + np.asarray(info["counts"], np.int64)
+            st["builds"] += info["builds"]
+            for k, spans in info["spans"].items():
+                timer.spans[k].extend(spans)
+        timer.info.update(processes=procs.n, worker_peak_rss_mb=[
+            i["peak_rss_kb"] / 1024 if i["peak_rss_kb"] is not None else None for i in procs.worker_info])
 
     try:
         return plan.write(dst, results(), index=index, seamlines=seamlines, compress_level=compress_level,
@@ -342,8 +415,7 @@ class MosaicPlan:
     @property
     def warp_device(self):
         """The warp Device the tiles are computed on."""
-        with self._image(0) as entry:
-            return entry["geom"].device
+        return resolve_device(self.options["device"])
 
     @property
     def device_is_cuda(self):
@@ -628,7 +700,10 @@ class MosaicPlan:
     def _counted_sources(self):
         """The pixels per image counted on the device by :meth:`_count_sources` (int64 (images,))."""
         counts = self._state.pop("counts", None) if self._state is not None else None
-        return to_host(counts).astype(np.int64) if counts is not None else np.zeros(len(self.sources), np.int64)
+        got = to_host(counts).astype(np.int64) if counts is not None else np.zeros(len(self.sources), np.int64)
+        if self._state is not None:  # from worker processes (see _write_mosaic_processes)
+            got += self._state.pop("counts_host", 0)
+        return got
 
     def _balance_on(self, st, device):
         """The gains and offsets (images, bands) as float32 arrays on ``device``, copied once

@@ -494,6 +494,9 @@ def test_bad_mosaic_inputs(pair, tmp_path):
         mosaic(images, tmp_path / "m.tif", dem=sc.dem, feather=0)
     with pytest.raises(ParamError, match="reference must be"):
         mosaic(images, tmp_path / "m.tif", dem=sc.dem, reference=2)
+    for processes in (0, 1.5, "2"):
+        with pytest.raises(ParamError, match="processes must be"):
+            mosaic(images, tmp_path / "m.tif", dem=sc.dem, processes=processes)
     with pytest.raises(ParamError, match="must be different files"):
         mosaic(images, tmp_path / "m.tif", dem=sc.dem, index=tmp_path / "m.tif")
     with pytest.raises(ParamError, match="one of the source images"):
@@ -1036,3 +1039,21 @@ def test_seams_on_threads_give_the_labels_of_the_order():
         got.append((labels, moved))
     np.testing.assert_array_equal(got[0][0], got[1][0])
     assert got[0][1] == got[1][1] > 0
+
+
+@pytest.mark.parametrize("codec", ["host", "hybrid"])
+def test_tiles_on_worker_processes_give_the_same_file(pair, tmp_path, codec):
+    """processes=2: the tiles computed in two spawned processes (handed back through shared
+    memory; with "hybrid" uploaded again for the device encoder, the pixels per image counted
+    by the workers) give the pixels, mask and counts of the threads of one process."""
+    sc, images, _, _ = pair
+    got = {}
+    for processes in (None, 2):
+        res = mosaic(images, tmp_path / f"m-{processes}.tif", dem=sc.dem, refraction=False, device="cpu",
+                     tile_size=256, block_codec=codec, processes=processes)
+        with rasterio.open(res.path) as ds:
+            got[processes] = (ds.read(), ds.dataset_mask(), res.pixels_per_image, res.profile.get("processes"))
+    (a, ma, pa, _), (b, mb, pb, n) = got[None], got[2]
+    np.testing.assert_array_equal(ma, mb)
+    np.testing.assert_array_equal(a, b)
+    assert pa == pb and sum(pa) > 0 and n == 2

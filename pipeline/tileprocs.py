@@ -1,0 +1,319 @@
+"""A mosaic's tiles on worker processes: several host processes feeding one device.
+
+A mosaic on a GPU is bound by its host work per tile (coarse grids through PROJ, window
+searches, source reads, array set-up and launches), which threads of one process share under
+its interpreter lock: on an H100 host the 40-frame speed block took the same time with 4, 8 or
+16 tile threads (bench/reference/mosaic-speed-workers-h100.json). :class:`ProcessTiles` runs
+:meth:`MosaicPlan._tile <orthowarp.pipeline.mosaic.MosaicPlan._tile>` (a pure function of the
+tile and the plan) in spawned processes, each with its own interpreter, CUDA context and source
+handles, on the same device. Each finished tile comes back through a slot of a shared memory
+file (values and validity, and the source index where the caller wants it); the caller uploads
+it to its own device context and hands it to the COG encoder, so one process writes the file.
+
+- Processes start before the plan is made (their imports, Warp's initialisation and kernel
+  loading overlap it) and get the plan once, pickled.
+- Tiles are dealt in contiguous runs of the row-major order, one run per process, so that each
+  image's geometry, forward map and source handles are built in few processes; a process whose
+  run is done takes tiles from the end of the longest remaining run.
+- At most ``threads + 1`` tiles per process are in flight (the slots): host memory does not grow with the
+  mosaic or the number of images.
+- A worker's exception is raised in the caller (same type where it pickles); a worker that
+  dies is an error naming its exit code. Workers are daemons: none outlives the caller.
+"""
+
+from __future__ import annotations
+
+import collections
+import mmap
+import multiprocessing
+import os
+import pickle
+import queue
+import tempfile
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+
+from ..errors import OrthowarpError
+from .ortho import _check_cancel
+
+__all__ = ["ProcessTiles"]
+
+_POLL_S = 0.5  # how often a wait for results checks that the workers live
+
+
+class ProcessTiles:
+    """Worker processes computing a mosaic plan's tiles on one device.
+
+    Parameters
+    ----------
+    n : int
+        Processes (>= 1).
+    device : str
+        The Warp device they compute on (e.g. ``"cuda:0"``; ``"cpu"`` works too, for tests).
+    threads : int, optional
+        Tile threads per process (default 2): a process has at most ``threads + 1`` tiles.
+
+    Use :meth:`start_plan` once the plan exists, then iterate :meth:`run`; :meth:`close`
+    (or the context manager) ends the processes and removes the shared file.
+    """
+
+    def __init__(self, n, device, *, threads=2):
+        self.n, self.device, self.threads = int(n), str(device), max(1, int(threads))
+        ctx = multiprocessing.get_context("spawn")  # no fork of a process holding CUDA and threads
+        self._results = ctx.Queue()
+        self._tasks = [ctx.SimpleQueue() for _ in range(self.n)]
+        self._procs = [ctx.Process(target=_worker_main, args=(w, self.device, self.threads, self._tasks[w], self._results),
+                                   daemon=True, name=f"orthowarp-tiles-{w}") for w in range(self.n)]
+        self._file = self._map = None
+        self.worker_info = []  # per worker at the end: pixels per image, stage spans, builds, peak RSS
+        for p in self._procs:
+            p.start()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def start_plan(self, plan, tile_shape, *, with_source):
+        """Send ``plan`` to the workers and make the slots for tiles of at most ``tile_shape``
+        (rows, cols): values (the plan's dtype and bands), validity (uint8) and, ``with_source``,
+        the source index (uint16)."""
+        th, tw = tile_shape
+        self._with_source = bool(with_source)
+        self._layout = _slot_layout(th, tw, plan.count, plan.dtype, self._with_source)
+        self._slot_bytes = self._layout[-1]
+        n_slots = (self.threads + 1) * self.n
+        fd, path = tempfile.mkstemp(prefix="orthowarp-tiles-", dir="/dev/shm" if os.path.isdir("/dev/shm") else None)
+        try:
+            os.ftruncate(fd, self._slot_bytes * n_slots)
+            self._map = mmap.mmap(fd, self._slot_bytes * n_slots)
+        finally:
+            os.close(fd)
+        self._file = path
+        self._free = list(range(n_slots))
+        blob = pickle.dumps(plan, protocol=pickle.HIGHEST_PROTOCOL)
+        for q in self._tasks:
+            q.put(("plan", blob, path, self._slot_bytes, self._with_source))
+
+    def _views(self, slot, th, tw, count, dtype):
+        """The slot's arrays for a tile (th, tw): values (th, tw, count), valid (th, tw) uint8,
+        source (th, tw) uint16 or None."""
+        return _slot_views(self._map, slot * self._slot_bytes, th, tw, count, dtype, self._with_source)
+
+    def run(self, tiles, count, dtype, *, cancel=None, name=None):
+        """Compute ``tiles`` ((r0, c0, rows, cols) each) on the workers; yields
+        ((r0, c0, rows, cols), values, valid, source or None, release) in the order they finish,
+        the arrays views of a slot that ``release()`` gives back (call it once done with them)."""
+        n_tiles = len(tiles)
+        # contiguous runs of the row-major order, one per worker
+        bounds = np.linspace(0, n_tiles, self.n + 1).round().astype(int)
+        runs = [collections.deque(range(bounds[w], bounds[w + 1])) for w in range(self.n)]
+        busy = [0] * self.n
+        done_tiles = 0
+        released = []
+
+        def deal(w):
+            while busy[w] <= self.threads and self._free:
+                run = runs[w] if runs[w] else max(runs, key=len)
+                if not run:
+                    return
+                k = run.popleft() if run is runs[w] else run.pop()
+                slot = self._free.pop()
+                self._tasks[w].put(("tile", k, tiles[k], slot))
+                busy[w] += 1
+
+        for w in range(self.n):
+            deal(w)
+        while done_tiles < n_tiles:
+            _check_cancel(cancel, name)
+            msg = self._get()
+            kind, w = msg[0], msg[1]
+            if kind == "error":
+                raise _rebuild(msg[2], msg[3])
+            _, w, k, slot = msg
+            busy[w] -= 1
+            done_tiles += 1
+            r0, c0, th, tw = tiles[k]
+            values, valid, source = self._views(slot, th, tw, count, dtype)
+
+            def release(slot=slot):
+                released.append(slot)
+
+            yield tiles[k], values, valid, source, release
+            self._free.extend(released)
+            released.clear()
+            for v in range(self.n):
+                deal(v)
+
+    def finish(self):
+        """Tell the workers to end and collect what each reports: a list of dicts (counts:
+        pixels per image, spans: stage intervals, builds, peak_rss_kb)."""
+        for q in self._tasks:
+            q.put(None)
+        info = {}
+        while len(info) < self.n:
+            msg = self._get()
+            if msg[0] == "error":
+                raise _rebuild(msg[2], msg[3])
+            if msg[0] == "end":
+                info[msg[1]] = msg[2]
+        self.worker_info = [info[w] for w in range(self.n)]
+        return self.worker_info
+
+    def _get(self):
+        """The next worker message; an error if a worker died."""
+        while True:
+            try:
+                return self._results.get(timeout=_POLL_S)
+            except queue.Empty:
+                for p in self._procs:
+                    if p.exitcode is not None and p.exitcode != 0:
+                        raise OrthowarpError(f"A mosaic tile process ended with exit code {p.exitcode}")
+
+    def close(self):
+        """End the workers (at once where they are still working) and remove the slots' file."""
+        for p in self._procs:
+            if p.is_alive():
+                p.terminate()
+        for p in self._procs:
+            p.join(timeout=5)
+        if self._map is not None:
+            self._map.close()
+            self._map = None
+        if self._file is not None:
+            try:
+                os.unlink(self._file)
+            except FileNotFoundError:
+                pass
+            self._file = None
+        self._results.close()
+
+
+def _slot_layout(th, tw, count, dtype, with_source):
+    """Byte offsets (values, valid, source, end) of a slot for tiles up to (th, tw)."""
+    v = th * tw * count * np.dtype(dtype).itemsize
+    a = -(-v // 64) * 64
+    b = a + -(-(th * tw) // 64) * 64
+    end = b + (-(-(2 * th * tw) // 64) * 64 if with_source else 0)
+    return 0, a, b, end
+
+
+def _slot_views(buf, base, th, tw, count, dtype, with_source):
+    """Views of a slot at ``base`` of ``buf`` for a tile (th, tw) (packed for that size)."""
+    dt = np.dtype(dtype)
+    off_v = base
+    off_a = off_v + -(-(th * tw * count * dt.itemsize) // 64) * 64
+    off_s = off_a + -(-(th * tw) // 64) * 64
+    values = np.ndarray((th, tw, count), dt, buffer=buf, offset=off_v)
+    valid = np.ndarray((th, tw), np.uint8, buffer=buf, offset=off_a)
+    source = np.ndarray((th, tw), np.uint16, buffer=buf, offset=off_s) if with_source else None
+    return values, valid, source
+
+
+def _portable(exc):
+    """(pickled exception or None, its text) for sending to the caller."""
+    import traceback
+
+    text = "".join(traceback.format_exception(type(exc), exc, exc.__traceback__))
+    try:
+        blob = pickle.dumps(exc)
+        pickle.loads(blob)
+    except Exception:  # noqa: BLE001 - an exception that does not pickle: its text alone
+        blob = None
+    return blob, text
+
+
+def _rebuild(blob, text):
+    """The worker's exception, or an OrthowarpError with its text."""
+    if blob is not None:
+        try:
+            return pickle.loads(blob)
+        except Exception:  # noqa: BLE001
+            pass
+    return OrthowarpError(f"A mosaic tile process failed:\n{text}")
+
+
+def _peak_rss_kb():
+    try:
+        with open("/proc/self/status") as f:
+            return next((int(line.split()[1]) for line in f if line.startswith("VmHWM:")), None)
+    except OSError:
+        return None
+
+
+def _worker_main(w, device, threads, tasks, results):
+    """A tile process: load the kernels, take the plan, compute tiles into their slots."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # an interrupt is the caller's to handle (it ends us)
+    try:
+        import warp as wp
+
+        from .._device import load_modules, quiet_warp, resolve_device, to_host
+        from ..kernels import mosaic as mosaic_kernels
+        from ..kernels import ortho as ortho_kernels
+
+        with quiet_warp():
+            dev = resolve_device(device)
+            load_modules(dev, ortho_kernels, mosaic_kernels)
+    except BaseException as e:  # noqa: BLE001 - reported to the caller
+        results.put(("error", w, *_portable(e)))
+        return
+    plan, buf, slot_bytes, with_source = None, None, 0, False
+    failed = []
+
+    def tile(k, r0, c0, th, tw, slot):
+        try:
+            with quiet_warp():
+                out, has, source = plan._tile(r0, c0, th, tw, device=dev)
+                if not with_source:
+                    plan._count_sources(source)
+                values, valid, src = _slot_views(buf, slot * slot_bytes, th, tw, plan.count, plan.dtype, with_source)
+                values[...] = to_host(out)
+                valid[...] = to_host(has)
+                if with_source:
+                    src[...] = to_host(source)
+            results.put(("done", w, k, slot))
+        except BaseException as e:  # noqa: BLE001 - reported to the caller
+            failed.append(e)
+            results.put(("error", w, *_portable(e)))
+
+    with ThreadPoolExecutor(max_workers=threads) as pool:
+        while not failed:
+            msg = tasks.get()
+            if msg is None:
+                break
+            if msg[0] == "plan":
+                try:
+                    _, blob, path, slot_bytes, with_source = msg
+                    plan = pickle.loads(blob)
+                    fd = os.open(path, os.O_RDWR)
+                    try:
+                        buf = mmap.mmap(fd, 0)
+                    finally:
+                        os.close(fd)
+                except BaseException as e:  # noqa: BLE001 - reported to the caller
+                    results.put(("error", w, *_portable(e)))
+                    return
+                continue
+            _, k, (r0, c0, th, tw), slot = msg
+            pool.submit(tile, k, r0, c0, th, tw, slot)
+    if failed:
+        return
+    try:
+        st = plan._state if plan is not None else None
+        info = dict(counts=plan._counted_sources() if plan is not None else None,
+                    spans={k: list(v) for k, v in st["timer"].spans.items()} if st else {},
+                    builds=st["builds"] if st else 0, peak_rss_kb=_peak_rss_kb(), t_end=time.perf_counter())
+        if plan is not None:
+            plan.close()
+        wp.synchronize()
+        results.put(("end", w, info))
+    except BaseException as e:  # noqa: BLE001
+        results.put(("error", w, *_portable(e)))
+    finally:
+        if buf is not None:
+            buf.close()
