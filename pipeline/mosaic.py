@@ -331,6 +331,7 @@ def _write_mosaic_processes(plan, procs, dst, on, *, index, seamlines, compress_
     tiles = plan.tiles(size)
     with_source = codec == "host" or index is not None or seamlines is not None
     plan._kept.clear()  # the reduced pass's geometries: the workers build their own
+    plan._materialise()  # the stage timer starts with the tiles, as on threads
     procs.start_plan(plan, (size, size), with_source=with_source)
 
     def results():
@@ -822,17 +823,20 @@ def mosaic_plan(images, *, dem, crs=None, resolution=None, resampling="bilinear"
     out_dtype = dtype or (src_dtype if src_dtype in DTYPES else "float32")
 
     # the grid: the union of the images' grids at one resolution, aligned to it (the images'
-    # geometry built one at a time: memory does not grow with their number)
-    grids = []
-    for src, sensor in images:
+    # geometries built on a few threads, each dropped once its grid is known: memory does not
+    # grow with their number)
+    def grid_of(item, grid_crs):
+        src, sensor = item
         geom = SensorGeometry(sensor, terrain, refraction=refraction, device=device, geoid=geoid,
                               same_vertical_datum=same_vertical_datum)
         try:
-            grids.append(output_grid(geom, crs=crs if crs is not None else (grids[0][0] if grids else None),
-                                     resolution=resolution, name=src))
+            return output_grid(geom, crs=grid_crs, resolution=resolution, name=src)
         except GeometryError as e:
             raise GeometryError(f"Image '{src}': {e}") from e
-        del geom
+
+    grids = [grid_of(images[0], crs)]  # (its CRS is the others' where none is given)
+    with ThreadPoolExecutor(max_workers=max(1, min(8, os.cpu_count() or 1, len(images) - 1))) as pool:
+        grids += pool.map(lambda item: grid_of(item, crs if crs is not None else grids[0][0]), images[1:])
     out_crs = grids[0][0]
     res = float(resolution) if resolution is not None else float(np.mean([g[3] for g in grids]))
     boxes = []
@@ -1036,16 +1040,20 @@ def _balance(coarse, count, reference):
     log a_j) and one for offsets (a_i m_i + b_i = a_j m_j + b_j), the datum fixed by
     ``reference`` or by zero means; an image without overlaps keeps gain 1, offset 0."""
     n = len(coarse)
-    eq_g = []  # (i, j, weight, stats) per overlap
-    for box in _overlap_boxes(coarse):
-        i, j = box[:2]
+
+    def stats(box):
+        """(i, j, weight, means, standard deviations) of an overlap, None if under 50 pixels."""
         a, b, both = _overlap_arrays(coarse, box)
         m = int(both.sum())
         if m < 50:
-            continue
+            return None
         w = both.astype(np.float32)
         (ma, sa), (mb, sb) = _moments(a, w, m), _moments(b, w, m)
-        eq_g.append((i, j, np.sqrt(m), ma, mb, sa, sb))
+        return box[0], box[1], np.sqrt(m), ma, mb, sa, sb
+
+    boxes = list(_overlap_boxes(coarse))
+    with ThreadPoolExecutor(max_workers=max(1, min(8, os.cpu_count() or 1, len(boxes)))) as pool:  # (einsum frees the GIL)
+        eq_g = [e for e in pool.map(stats, boxes) if e is not None]  # (i, j, weight, stats) per overlap, in order
     gains, offsets = np.ones((n, count)), np.zeros((n, count))
     if not eq_g:
         return gains, offsets
