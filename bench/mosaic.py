@@ -401,7 +401,7 @@ def run_speed(args, sizes):
                 with open(stacks) as f:
                     r["stacks"] = json.load(f)
             # tile processes: their peaks added to the main one's (an upper bound of the whole)
-            workers_mb = [m for m in r["profile"].get("worker_peak_rss_mb") or [] if m is not None]
+            workers_mb = [m for m in r["profile"]["tiles"].get("worker_peak_rss_mb") or [] if m is not None]
             if r["peak_rss_mb"] is not None:
                 r["peak_rss_total_mb"] = r["peak_rss_mb"] + sum(workers_mb)
             r.update(output_gpix=px / 1e9, output_gpix_s=px / 1e9 / r["wall_s"],

@@ -114,7 +114,8 @@ def _exit_now(signum):
 
 _FRAME_POSE_SIGMA = "0.05,0.05,0.1,0.005,0.005,0.01"
 _SCENE_SIGMA = "10,10,5,0.001,0.001,0.001,0.001,0.001"
-MOSAIC_GPU_PROCESSES = 4  # orthowarp mosaic's tile processes on a GPU (bench/reference/mosaic-speed-processes-h100.json)
+# orthowarp mosaic's tile processes on a GPU (bench/reference/mosaic-speed-processes-h100.json)
+MOSAIC_GPU_PROCESSES = 4
 
 @click.group(cls=_Group)
 @click.version_option(package_name="orthowarp")

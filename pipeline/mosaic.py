@@ -251,7 +251,8 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
     dst = os.fspath(dst)
     outputs = _outputs(dst, index, seamlines, overwrite)
     on = resolve_device(device)
-    procs = ProcessTiles(int(processes), str(on), threads=workers or 2) if processes and processes > 1 else None  # start-up beside the plan
+    # the tile processes start beside the plan (their imports and kernel loading overlap it)
+    procs = ProcessTiles(int(processes), str(on), threads=workers or 2) if processes and processes > 1 else None
     try:
         plan = mosaic_plan(images, dem=dem, crs=crs, resolution=resolution, resampling=resampling,
                            refraction=refraction, dtype=dtype, seams=seams, seam_width=seam_width, blend=blend,
@@ -1052,8 +1053,9 @@ def _balance(coarse, count, reference):
         return box[0], box[1], np.sqrt(m), ma, mb, sa, sb
 
     boxes = list(_overlap_boxes(coarse))
-    with ThreadPoolExecutor(max_workers=max(1, min(8, os.cpu_count() or 1, len(boxes)))) as pool:  # (einsum frees the GIL)
-        eq_g = [e for e in pool.map(stats, boxes) if e is not None]  # (i, j, weight, stats) per overlap, in order
+    # (i, j, weight, stats) per overlap, in order, on threads (einsum frees the GIL)
+    with ThreadPoolExecutor(max_workers=max(1, min(8, os.cpu_count() or 1, len(boxes)))) as pool:
+        eq_g = [e for e in pool.map(stats, boxes) if e is not None]
     gains, offsets = np.ones((n, count)), np.zeros((n, count))
     if not eq_g:
         return gains, offsets

@@ -64,8 +64,9 @@ class ProcessTiles:
         ctx = multiprocessing.get_context("spawn")  # no fork of a process holding CUDA and threads
         self._results = ctx.Queue()
         self._tasks = [ctx.SimpleQueue() for _ in range(self.n)]
-        self._procs = [ctx.Process(target=_worker_main, args=(w, self.device, self.threads, self._tasks[w], self._results),
-                                   daemon=True, name=f"orthowarp-tiles-{w}") for w in range(self.n)]
+        self._procs = [ctx.Process(target=_worker_main, name=f"orthowarp-tiles-{w}", daemon=True,
+                                   args=(w, self.device, self.threads, self._tasks[w], self._results))
+                       for w in range(self.n)]
         self._file = self._map = None
         self.worker_info = []  # per worker at the end: pixels per image, stage spans, builds, peak RSS
         for p in self._procs:

@@ -73,7 +73,7 @@ def test_every_tile_comes_back_once_with_the_workers_values(with_source):
 
 
 def test_a_workers_exception_reaches_the_caller():
-    with ProcessTiles(2, "cpu", threads=1) as procs:
+    with ProcessTiles(1, "cpu", threads=1) as procs:
         procs.start_plan(StandInPlan(fail=64), (32, 32), with_source=False)
         with pytest.raises(ParamError, match="tile at row 64 failed"):
             for *_, release in procs.run(_tiles(), 2, "float32"):
@@ -81,7 +81,7 @@ def test_a_workers_exception_reaches_the_caller():
 
 
 def test_a_worker_that_dies_is_an_error_naming_its_exit_code():
-    with ProcessTiles(2, "cpu", threads=1) as procs:
+    with ProcessTiles(1, "cpu", threads=1) as procs:
         procs.start_plan(StandInPlan(fail=32, die=True), (32, 32), with_source=False)
         with pytest.raises(OrthowarpError, match="exit code 3"):
             for *_, release in procs.run(_tiles(), 2, "float32"):
