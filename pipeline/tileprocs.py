@@ -81,28 +81,31 @@ class ProcessTiles:
     def start_plan(self, plan, tile_shape, *, with_source):
         """Send ``plan`` to the workers and make the slots for tiles of at most ``tile_shape``
         (rows, cols): values (the plan's dtype and bands), validity (uint8) and, ``with_source``,
-        the source index (uint16)."""
+        the source index (uint16). The pickled plan lies at the start of the shared file (the
+        workers' queues carry only small messages, so no put can block on a worker that is
+        gone)."""
         th, tw = tile_shape
         self._with_source = bool(with_source)
-        self._layout = _slot_layout(th, tw, plan.count, plan.dtype, self._with_source)
-        self._slot_bytes = self._layout[-1]
+        self._slot_bytes = _slot_size(th, tw, plan.count, plan.dtype, self._with_source)
         n_slots = (self.threads + 1) * self.n
+        blob = pickle.dumps(plan, protocol=pickle.HIGHEST_PROTOCOL)
+        self._base = -(-len(blob) // mmap.PAGESIZE) * mmap.PAGESIZE
         fd, path = tempfile.mkstemp(prefix="orthowarp-tiles-", dir="/dev/shm" if os.path.isdir("/dev/shm") else None)
+        self._file = path
         try:
-            os.ftruncate(fd, self._slot_bytes * n_slots)
-            self._map = mmap.mmap(fd, self._slot_bytes * n_slots)
+            os.ftruncate(fd, self._base + self._slot_bytes * n_slots)
+            self._map = mmap.mmap(fd, self._base + self._slot_bytes * n_slots)
         finally:
             os.close(fd)
-        self._file = path
+        self._map[:len(blob)] = blob
         self._free = list(range(n_slots))
-        blob = pickle.dumps(plan, protocol=pickle.HIGHEST_PROTOCOL)
         for q in self._tasks:
-            q.put(("plan", blob, path, self._slot_bytes, self._with_source))
+            q.put(("plan", path, len(blob), self._base, self._slot_bytes, self._with_source))
 
     def _views(self, slot, th, tw, count, dtype):
         """The slot's arrays for a tile (th, tw): values (th, tw, count), valid (th, tw) uint8,
         source (th, tw) uint16 or None."""
-        return _slot_views(self._map, slot * self._slot_bytes, th, tw, count, dtype, self._with_source)
+        return _slot_views(self._map, self._base + slot * self._slot_bytes, th, tw, count, dtype, self._with_source)
 
     def run(self, tiles, count, dtype, *, cancel=None, name=None):
         """Compute ``tiles`` ((r0, c0, rows, cols) each) on the workers; yields
@@ -131,8 +134,7 @@ class ProcessTiles:
         while done_tiles < n_tiles:
             _check_cancel(cancel, name)
             msg = self._get()
-            kind, w = msg[0], msg[1]
-            if kind == "error":
+            if msg[0] == "error":
                 raise _rebuild(msg[2], msg[3])
             _, w, k, slot = msg
             busy[w] -= 1
@@ -193,24 +195,27 @@ class ProcessTiles:
         self._results.close()
 
 
-def _slot_layout(th, tw, count, dtype, with_source):
-    """Byte offsets (values, valid, source, end) of a slot for tiles up to (th, tw)."""
-    v = th * tw * count * np.dtype(dtype).itemsize
-    a = -(-v // 64) * 64
-    b = a + -(-(th * tw) // 64) * 64
-    end = b + (-(-(2 * th * tw) // 64) * 64 if with_source else 0)
-    return 0, a, b, end
+def _slot_size(th, tw, count, dtype, with_source):
+    """Bytes of a slot for tiles up to (th, tw) (see :func:`_slot_views`)."""
+    return sum(_parts(th, tw, count, dtype, with_source))
+
+
+def _parts(th, tw, count, dtype, with_source):
+    """The byte sizes of a slot's values, validity and source index, each rounded up to 64."""
+    def up(n):
+        return -(-n // 64) * 64
+
+    return up(th * tw * count * np.dtype(dtype).itemsize), up(th * tw), up(2 * th * tw) if with_source else 0
 
 
 def _slot_views(buf, base, th, tw, count, dtype, with_source):
-    """Views of a slot at ``base`` of ``buf`` for a tile (th, tw) (packed for that size)."""
-    dt = np.dtype(dtype)
-    off_v = base
-    off_a = off_v + -(-(th * tw * count * dt.itemsize) // 64) * 64
-    off_s = off_a + -(-(th * tw) // 64) * 64
-    values = np.ndarray((th, tw, count), dt, buffer=buf, offset=off_v)
-    valid = np.ndarray((th, tw), np.uint8, buffer=buf, offset=off_a)
-    source = np.ndarray((th, tw), np.uint16, buffer=buf, offset=off_s) if with_source else None
+    """Views of the slot at byte ``base`` of ``buf`` for a tile (th, tw): values (th, tw,
+    count), validity (th, tw) uint8, source index (th, tw) uint16 or None (packed for that
+    size)."""
+    n_values, n_valid, _ = _parts(th, tw, count, dtype, with_source)
+    values = np.ndarray((th, tw, count), np.dtype(dtype), buffer=buf, offset=base)
+    valid = np.ndarray((th, tw), np.uint8, buffer=buf, offset=base + n_values)
+    source = np.ndarray((th, tw), np.uint16, buffer=buf, offset=base + n_values + n_valid) if with_source else None
     return values, valid, source
 
 
@@ -264,7 +269,7 @@ def _worker_main(w, device, threads, tasks, results):
     except BaseException as e:  # noqa: BLE001 - reported to the caller
         results.put(("error", w, *_portable(e)))
         return
-    plan, buf, slot_bytes, with_source = None, None, 0, False
+    plan, buf, base, slot_bytes, with_source = None, None, 0, 0, False
     failed = []
 
     def tile(k, r0, c0, th, tw, slot):
@@ -273,7 +278,8 @@ def _worker_main(w, device, threads, tasks, results):
                 out, has, source = plan._tile(r0, c0, th, tw, device=dev)
                 if not with_source:
                     plan._count_sources(source)
-                values, valid, src = _slot_views(buf, slot * slot_bytes, th, tw, plan.count, plan.dtype, with_source)
+                values, valid, src = _slot_views(buf, base + slot * slot_bytes, th, tw, plan.count, plan.dtype,
+                                                 with_source)
                 values[...] = to_host(out)
                 valid[...] = to_host(has)
                 if with_source:
@@ -292,13 +298,13 @@ def _worker_main(w, device, threads, tasks, results):
                 break
             if msg[0] == "plan":
                 try:
-                    _, blob, path, slot_bytes, with_source = msg
-                    plan = pickle.loads(blob)
+                    _, path, n_blob, base, slot_bytes, with_source = msg
                     fd = os.open(path, os.O_RDWR)
                     try:
                         buf = mmap.mmap(fd, 0)
                     finally:
                         os.close(fd)
+                    plan = pickle.loads(buf[:n_blob])
                 except BaseException as e:  # noqa: BLE001 - reported to the caller
                     results.put(("error", w, *_portable(e)))
                     return

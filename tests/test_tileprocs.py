@@ -88,3 +88,15 @@ def test_a_worker_that_dies_is_an_error_naming_its_exit_code():
                 release()
     assert not any(name.startswith("orthowarp-tiles-") for name in os.listdir("/dev/shm")) \
         if os.path.isdir("/dev/shm") else True
+
+
+def test_a_worker_that_cannot_start_is_an_error_not_a_hang():
+    """A worker whose device does not exist reports it and ends; the plan is still sent (it
+    lies in the shared file, the queue carries a small message) and the error is raised."""
+    from orthowarp.errors import DeviceError
+
+    with ProcessTiles(1, "no-such-device", threads=1) as procs:
+        procs.start_plan(StandInPlan(), (32, 32), with_source=False)
+        with pytest.raises(DeviceError, match="no-such-device"):
+            for *_, release in procs.run(_tiles(), 2, "float32"):
+                release()
