@@ -11,12 +11,13 @@ file (values and validity, and the source index where the caller wants it); the 
 it to its own device context and hands it to the COG encoder, so one process writes the file.
 
 - Processes start before the plan is made (their imports, Warp's initialisation and kernel
-  loading overlap it) and get the plan once, pickled.
+  loading overlap it) and get the plan once, pickled at the start of the shared file.
 - Tiles are dealt in contiguous runs of the row-major order, one run per process, so that each
   image's geometry, forward map and source handles are built in few processes; a process whose
   run is done takes tiles from the end of the longest remaining run.
-- At most ``threads + 1`` tiles per process are in flight (the slots): host memory does not grow with the
-  mosaic or the number of images.
+- At most ``threads + 1`` tiles per process are in flight (the slots), and each process's
+  image cache is bounded (``cache_images``): host memory does not grow with the mosaic or the
+  number of images.
 - A worker's exception is raised in the caller (same type where it pickles); a worker that
   dies is an error naming its exit code. Workers are daemons: none outlives the caller.
 """
