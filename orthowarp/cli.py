@@ -117,6 +117,7 @@ _SCENE_SIGMA = "10,10,5,0.001,0.001,0.001,0.001,0.001"
 # orthowarp mosaic's tile processes on a GPU (bench/reference/mosaic-speed-processes-h100.json)
 MOSAIC_GPU_PROCESSES = 4
 
+
 @click.group(cls=_Group)
 @click.version_option(package_name="orthowarp")
 @click.option("-v", "--verbose", count=True,

@@ -134,7 +134,11 @@ class ProcessTiles:
             deal(w)
         while done_tiles < n_tiles:
             _check_cancel(cancel, name)
-            msg = self._get()
+            try:
+                msg = self._get()
+            except OrthowarpError:  # a signal to the process group ends the workers too: a stop, not a failure
+                _check_cancel(cancel, name)
+                raise
             if msg[0] == "error":
                 raise _rebuild(msg[2], msg[3])
             _, w, k, slot = msg

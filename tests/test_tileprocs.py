@@ -100,3 +100,21 @@ def test_a_worker_that_cannot_start_is_an_error_not_a_hang():
         with pytest.raises(DeviceError, match="no-such-device"):
             for *_, release in procs.run(_tiles(), 2, "float32"):
                 release()
+
+
+def test_a_stop_that_also_ends_the_workers_is_a_stop():
+    """A signal to the whole process group ends the workers as well as setting the caller's
+    stop: the caller reports the stop (Cancelled), not a failed worker."""
+    import threading
+
+    from orthowarp.errors import Cancelled
+
+    cancel = threading.Event()
+    timer = threading.Timer(0.2, cancel.set)  # long before the worker has started and died
+    with ProcessTiles(1, "cpu", threads=1) as procs:
+        procs.start_plan(StandInPlan(fail=0, die=True), (32, 32), with_source=False)
+        timer.start()
+        with pytest.raises(Cancelled):
+            for *_, release in procs.run(_tiles(), 2, "float32", cancel=cancel, name="m.tif"):
+                release()
+    timer.cancel()
