@@ -259,28 +259,39 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
                            feather=feather, balance=balance,
                            reference=reference, occlusion=occlusion, device=device, geoid=geoid,
                            same_vertical_datum=same_vertical_datum, cancel=cancel, _outputs=outputs)
-        if procs is None:
-            return _write_mosaic(plan, dst, on, index=index, seamlines=seamlines, compress_level=compress_level,
-                                 block_codec=block_codec, creation_options=creation_options, tile_size=tile_size,
-                                 overwrite=overwrite, workers=workers, cancel=cancel)
-        return _write_mosaic_processes(plan, procs, dst, on, index=index, seamlines=seamlines,
-                                       compress_level=compress_level, block_codec=block_codec,
-                                       creation_options=creation_options, tile_size=tile_size, overwrite=overwrite,
-                                       workers=workers, cancel=cancel)
+        return _write_mosaic(plan, procs, dst, on, index=index, seamlines=seamlines, compress_level=compress_level,
+                             block_codec=block_codec, creation_options=creation_options, tile_size=tile_size,
+                             overwrite=overwrite, workers=workers, cancel=cancel)
     finally:
         if procs is not None:
             procs.close()
 
 
-def _write_mosaic(plan, dst, on, *, index, seamlines, compress_level, block_codec, creation_options, tile_size,
-                  overwrite, workers, cancel):
-    """:func:`mosaic`'s tiles on a thread pool of this process, written."""
+def _write_mosaic(plan, procs, dst, on, *, index, seamlines, compress_level, block_codec, creation_options,
+                  tile_size, overwrite, workers, cancel):
+    """:func:`mosaic`'s tiles, on a thread pool of this process or, with ``procs`` (a started
+    :class:`~orthowarp.pipeline.tileprocs.ProcessTiles`), on worker processes, written."""
     t0 = time.perf_counter()
     codec = _mosaic_block_codec(block_codec, on, compress_level or 6)
-    tiles = plan.tiles(int(tile_size) if tile_size is not None else (2048 if on.is_cuda else 512))
-    n_workers = workers or (8 if on.is_cuda else (os.cpu_count() or 1))
-
+    size = int(tile_size) if tile_size is not None else (2048 if on.is_cuda else 512)
+    tiles = plan.tiles(size)
     host_source = index is not None or seamlines is not None  # else the pixels per image counted there
+    if procs is None:
+        results = _thread_results(plan, tiles, codec, on, host_source, workers, cancel, dst)
+    else:
+        results = _process_results(plan, procs, tiles, size, codec, on, host_source, cancel, dst)
+    try:
+        return plan.write(dst, results, index=index, seamlines=seamlines, compress_level=compress_level,
+                          overwrite=overwrite, t_start=t0, _block_codec=codec, creation_options=creation_options)
+    finally:
+        plan.close()
+
+
+def _thread_results(plan, tiles, codec, on, host_source, workers, cancel, dst):
+    """Tile results for :meth:`MosaicPlan.write` from a thread pool of this process, in grid
+    order, at most 2 x workers tiles in flight (bounded memory); with a device ``codec`` each
+    tile goes to the plan's encoder from its thread."""
+    n_workers = workers or (8 if on.is_cuda else (os.cpu_count() or 1))
 
     def run(r0, c0, th, tw):
         if codec == "host":
@@ -295,45 +306,31 @@ def _write_mosaic(plan, dst, on, *, index, seamlines, compress_level, block_code
         source = to_host(source)
         return None, source != NO_SOURCE, source
 
-    def results():
-        """Tile results in grid order, at most 2 x workers tiles in flight (bounded memory)."""
-        with ThreadPoolExecutor(max_workers=n_workers) as pool:
-            pending = collections.deque()
-            try:
-                for tile in tiles:
-                    pending.append((tile, pool.submit(run, *tile)))
-                    if len(pending) >= 2 * n_workers:
-                        tile0, f = pending.popleft()
-                        yield tile0, f.result()
-                while pending:
+    with ThreadPoolExecutor(max_workers=n_workers) as pool:
+        pending = collections.deque()
+        try:
+            for tile in tiles:
+                pending.append((tile, pool.submit(run, *tile)))
+                if len(pending) >= 2 * n_workers:
                     tile0, f = pending.popleft()
                     yield tile0, f.result()
-            except BaseException:
-                for _, f in pending:
-                    f.cancel()
-                raise
-
-    try:
-        return plan.write(dst, results(), index=index, seamlines=seamlines, compress_level=compress_level,
-                          overwrite=overwrite, t_start=t0, _block_codec=codec, creation_options=creation_options)
-    finally:
-        plan.close()
+            while pending:
+                tile0, f = pending.popleft()
+                yield tile0, f.result()
+        except BaseException:
+            for _, f in pending:
+                f.cancel()
+            raise
 
 
-def _write_mosaic_processes(plan, procs, dst, on, *, index, seamlines, compress_level, block_codec, creation_options,
-                            tile_size, overwrite, workers, cancel):
-    """:func:`mosaic`'s tiles on worker processes (``procs``, a started
-    :class:`~orthowarp.pipeline.tileprocs.ProcessTiles`), written by this one: each finished
-    tile uploaded to this process's device for the device block codec, or handed to the host
-    writer."""
-    t0 = time.perf_counter()
-    codec = _mosaic_block_codec(block_codec, on, compress_level or 6)
-    size = int(tile_size) if tile_size is not None else (2048 if on.is_cuda else 512)
-    tiles = plan.tiles(size)
-    with_source = codec == "host" or index is not None or seamlines is not None
+def _process_results(plan, procs, tiles, size, codec, on, host_source, cancel, dst):
+    """Tile results for :meth:`MosaicPlan.write` from worker processes, as they finish: the
+    plan sent to them now, each finished tile uploaded to this process's device for the
+    device ``codec``'s encoder or copied for the host writer, and at the end the workers'
+    pixel counts, stage intervals and image builds merged into this process's state."""
     plan._kept.clear()  # the reduced pass's geometries: the workers build their own
-    plan._materialise()  # the stage timer starts with the tiles, as on threads
-    procs.start_plan(plan, (size, size), with_source=with_source)
+    st = plan._materialise()  # the stage timer starts with the tiles, as on threads
+    procs.start_plan(plan, (size, size), with_source=codec == "host" or host_source)
 
     def results():
         for tile, values, valid, source, release in procs.run(tiles, plan.count, plan.dtype, cancel=cancel, name=dst):
@@ -347,9 +344,8 @@ def _write_mosaic_processes(plan, procs, dst, on, *, index, seamlines, compress_
                 yield tile, (None, ok.copy(), source.copy()) if source is not None else (None, None, None)
             finally:
                 release()
-        st = plan._materialise()
         timer = st["timer"]
-        for info in procs.finish():  # the workers' pixel counts, stage intervals and image builds
+        for info in procs.finish():
             st["counts_host"] = st.get("counts_host", 0) + np.asarray(info["counts"], np.int64)
             st["builds"] += info["builds"]
             for k, spans in info["spans"].items():
@@ -357,11 +353,7 @@ def _write_mosaic_processes(plan, procs, dst, on, *, index, seamlines, compress_
         timer.info.update(processes=procs.n, worker_peak_rss_mb=[
             i["peak_rss_kb"] / 1024 if i["peak_rss_kb"] is not None else None for i in procs.worker_info])
 
-    try:
-        return plan.write(dst, results(), index=index, seamlines=seamlines, compress_level=compress_level,
-                          overwrite=overwrite, t_start=t0, _block_codec=codec, creation_options=creation_options)
-    finally:
-        plan.close()
+    return results()
 
 
 class MosaicPlan:
@@ -703,7 +695,7 @@ class MosaicPlan:
         """The pixels per image counted on the device by :meth:`_count_sources` (int64 (images,))."""
         counts = self._state.pop("counts", None) if self._state is not None else None
         got = to_host(counts).astype(np.int64) if counts is not None else np.zeros(len(self.sources), np.int64)
-        if self._state is not None:  # from worker processes (see _write_mosaic_processes)
+        if self._state is not None:  # from worker processes (see _process_results)
             got += self._state.pop("counts_host", 0)
         return got
 
