@@ -404,6 +404,8 @@ def run_speed(args, sizes):
             workers_mb = [m for m in r["profile"]["tiles"].get("worker_peak_rss_mb") or [] if m is not None]
             if r["peak_rss_mb"] is not None:
                 r["peak_rss_total_mb"] = r["peak_rss_mb"] + sum(workers_mb)
+            r.update(image_builds=r["profile"].get("image_builds"),
+                     images_held_peak=r["profile"].get("images_held_peak"))
             r.update(output_gpix=px / 1e9, output_gpix_s=px / 1e9 / r["wall_s"],
                      tiles_output_gpix_s=px / 1e9 / r["profile"]["wall_s"], output_mb=os.path.getsize(out) / 1e6)
         report["results"].append(r)
@@ -414,6 +416,7 @@ def run_speed(args, sizes):
               f"GPU busy {r.get('gpu_busy_fraction', float('nan')):.2f}, "
               f"{r.get('output_gpix', float('nan')):.3f} Gpix out, {r.get('output_gpix_s', float('nan')):.3f} Gpix/s "
               f"end to end, {r.get('tiles_output_gpix_s', float('nan')):.3f} Gpix/s tiles+writing, "
+              f"images built {r.get('image_builds')}, at most {r.get('images_held_peak')} held in a process, "
               f"rc {r['returncode']} {r['stderr'][-800:]}", flush=True)
     if args.oty_python:
         import rasterio

@@ -864,7 +864,7 @@ def mosaic(ctx, images, int_param, ext_param, odm_dataset, scenes, attitude_mode
             write_json(profile_json, dict(plan_s=r.setup_s, tiles=r.profile, wall_s=r.wall_s,
                                           output_pixels=int(r.shape[0]) * int(r.shape[1]),
                                           shape=list(r.shape), resolution=r.resolution, image_builds=r.image_builds,
-                                          images=len(jobs)))
+                                          images_held_peak=r.images_held_peak, images=len(jobs)))
     if not ctx.obj["quiet"]:
         counts = ", ".join(f"{os.path.basename(img)} {n}" for (img, *_), n in zip(jobs, r.pixels_per_image))
         click.echo(f"{r.path}: {r.shape[1]} x {r.shape[0]} px at {r.resolution:.4g} ({_crs_label(r.crs)}); pixels per "

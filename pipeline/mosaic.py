@@ -56,7 +56,7 @@ from .ortho import BLOCK_CODECS, COARSE_STEP, RESAMPLING, ImageTiles, _block_cod
     coarse_grid, coarse_struct, device_codecs, output_grid, parse_creation_options, source_facts
 from .geometry import SensorGeometry
 from .profile import StageTimer
-from .tileprocs import ProcessTiles
+from .tileprocs import ProcessTiles, TileDealer, tile_runs
 
 __all__ = ["mosaic", "mosaic_plan", "MosaicPlan", "MosaicResult", "NO_SOURCE"]
 
@@ -74,8 +74,10 @@ class MosaicResult:
     ((images, bands): the radiometric balance applied), ``setup_s`` (seconds of the plan's
     steps: ``reduced_pass``, ``balance``, ``seams``, ``total``), ``wall_s`` (the tiles and the
     writing), ``image_builds`` (times an image's geometry and tile functions were built in
-    this process: the number of images unless the cache evicted some) and ``profile`` (of the
-    tiles and the writing)."""
+    this process or its tile processes: the number of images per process whose run meets
+    them, unless the cache evicted some), ``images_held_peak`` (the most images whose geometry
+    and tile functions one process held at once) and ``profile`` (of the tiles and the
+    writing)."""
 
     def __init__(self, **kw):
         self.__dict__.update(kw)
@@ -273,7 +275,7 @@ def _write_mosaic(plan, procs, dst, on, *, index, seamlines, compress_level, blo
     :class:`~orthowarp.pipeline.tileprocs.ProcessTiles`), on worker processes, written."""
     t0 = time.perf_counter()
     codec = _mosaic_block_codec(block_codec, on, compress_level or 6)
-    size = int(tile_size) if tile_size is not None else (2048 if on.is_cuda else 512)
+    size = int(tile_size) if tile_size is not None else _default_tile_size(on)
     tiles = plan.tiles(size)
     host_source = index is not None or seamlines is not None  # else the pixels per image counted there
     if procs is None:
@@ -287,13 +289,19 @@ def _write_mosaic(plan, procs, dst, on, *, index, seamlines, compress_level, blo
         plan.close()
 
 
+def _default_tile_size(device):
+    """The mosaic's tile size (pixels) on a Warp ``device`` where none is given."""
+    return 2048 if device.is_cuda else 512
+
+
 def _thread_results(plan, tiles, codec, on, host_source, workers, cancel, dst):
-    """Tile results for :meth:`MosaicPlan.write` from a thread pool of this process, in grid
-    order, at most 2 x workers tiles in flight (bounded memory); with a device ``codec`` each
-    tile goes to the plan's encoder from its thread."""
+    """Tile results for :meth:`MosaicPlan.write` from a thread pool of this process, in the
+    order of :func:`~orthowarp.pipeline.tileprocs.tile_runs` (one run), at most 2 x workers
+    tiles in flight (bounded memory); with a device ``codec`` each tile goes to the plan's
+    encoder from its thread."""
     n_workers = workers or (8 if on.is_cuda else (os.cpu_count() or 1))
 
-    def run(r0, c0, th, tw):
+    def tile(r0, c0, th, tw):
         if codec == "host":
             return plan.tile(r0, c0, th, tw, cancel=cancel, name=dst)
         # the tile stays on the device: blocks, overview levels and checksums made there
@@ -306,11 +314,23 @@ def _thread_results(plan, tiles, codec, on, host_source, workers, cancel, dst):
         source = to_host(source)
         return None, source != NO_SOURCE, source
 
+    def run(tile_, used, final):
+        try:
+            return tile(*tile_)
+        finally:
+            plan._note_done(used, final)  # the images no later tile uses are dropped
+
+    # one run of the tiles (see tile_runs): the images in use at once are those that meet a
+    # cross-section of the grid, each built once
+    images = [plan._tile_images(*t) for t in tiles]
+    dealer = TileDealer(tile_runs(tiles, 1, images), images)
     with ThreadPoolExecutor(max_workers=n_workers) as pool:
         pending = collections.deque()
         try:
-            for tile in tiles:
-                pending.append((tile, pool.submit(run, *tile)))
+            for _ in tiles:
+                k, used, final, _ = dealer.next(0)
+                plan._note_dealt(used)
+                pending.append((tiles[k], pool.submit(run, tiles[k], used, final)))
                 if len(pending) >= 2 * n_workers:
                     tile0, f = pending.popleft()
                     yield tile0, f.result()
@@ -333,7 +353,9 @@ def _process_results(plan, procs, tiles, size, codec, on, host_source, cancel, d
     procs.start_plan(plan, (size, size), with_source=codec == "host" or host_source)
 
     def results():
-        for tile, values, valid, source, release in procs.run(tiles, plan.count, plan.dtype, cancel=cancel, name=dst):
+        images = [plan._tile_images(*t) for t in tiles]
+        for tile, values, valid, source, release in procs.run(tiles, plan.count, plan.dtype, images=images,
+                                                              cancel=cancel, name=dst):
             try:
                 r0, c0 = tile[:2]
                 ok = valid.view(bool)
@@ -351,7 +373,9 @@ def _process_results(plan, procs, tiles, size, codec, on, host_source, cancel, d
             for k, spans in info["spans"].items():
                 timer.spans[k].extend(spans)
         timer.info.update(processes=procs.n, worker_peak_rss_mb=[
-            i["peak_rss_kb"] / 1024 if i["peak_rss_kb"] is not None else None for i in procs.worker_info])
+            i["peak_rss_kb"] / 1024 if i["peak_rss_kb"] is not None else None for i in procs.worker_info],
+            worker_images_held_peak=[i["held_peak"] for i in procs.worker_info])
+        st["held_peak"] = max(i["held_peak"] for i in procs.worker_info)
 
     return results()
 
@@ -442,7 +466,7 @@ class MosaicPlan:
         with self._lock:
             if self._state is None:
                 self._state = dict(timer=StageTimer(time.perf_counter()), images=collections.OrderedDict(), users={},
-                                   builds=0)
+                                   builds=0, held_peak=0, pending={}, final=set())
             return self._state
 
     def _build(self, k, timer):
@@ -504,6 +528,7 @@ class MosaicPlan:
                     else:
                         entry = st["images"][k] = built
                         st["builds"] += 1
+                        st["held_peak"] = max(st["held_peak"], len(st["images"]))
                     while len(st["images"]) > self.options["cache_images"]:
                         victim = next((j for j in st["images"] if st["users"].get(j, 0) == 0), None)
                         if victim is None:
@@ -515,6 +540,44 @@ class MosaicPlan:
         finally:
             with self._lock:
                 st["users"][k] -= 1
+
+    def _tile_images(self, r0, c0, th, tw):
+        """The images whose footprint meets the tile (r0, c0, th, tw), with the multi-band
+        blend's halo: those its tile function may build (as :meth:`_stack` selects them)."""
+        o = self.options
+        halo = _multiband_halo(o["feather"]) if o["blend"] == "multiband" else 0
+        foot = np.asarray(self.foot, np.int64).reshape(-1, 4)
+        meets = (foot[:, 1] > r0 - halo) & (foot[:, 0] < r0 + th + halo) & (foot[:, 3] > c0 - halo) & \
+            (foot[:, 2] < c0 + tw + halo)
+        return tuple(int(k) for k in np.flatnonzero(meets))
+
+    def _note_dealt(self, ks):
+        """A tile that uses images ``ks`` is on its way to this process's tile functions."""
+        st = self._materialise()
+        with self._lock:
+            for k in ks:
+                st["pending"][k] = st["pending"].get(k, 0) + 1
+                st["final"].discard(k)
+
+    def _note_done(self, ks, final):
+        """A tile dealt with :meth:`_note_dealt` (images ``ks``) is done, and no tile to come
+        uses the images ``final``: those are dropped from the cache once no dealt tile needs
+        them (a later tile that does after all builds its image again)."""
+        st = self._materialise()
+        to_close = []
+        with self._lock:
+            pending = st["pending"]
+            for k in ks:
+                pending[k] -= 1
+                if not pending[k]:
+                    del pending[k]
+            st["final"].update(final)
+            for k in [k for k in st["final"] if k not in pending and not st["users"].get(k)]:
+                st["final"].discard(k)
+                if k in st["images"]:
+                    to_close.append(st["images"].pop(k))
+        for e in to_close:
+            self._close_entry(e)
 
     def close(self):
         """Close this process's source handles."""
@@ -784,6 +847,7 @@ class MosaicPlan:
                             pixels_per_image=used.tolist(), gains=self.gains, offsets=self.offsets,
                             wall_s=time.perf_counter() - t_start, setup_s=dict(self.setup_s),
                             image_builds=self._state["builds"] if self._state is not None else None,
+                            images_held_peak=self._state["held_peak"] if self._state is not None else None,
                             profile=timer.profile() if timer is not None else None)
 
 
@@ -1005,9 +1069,16 @@ def _reduced_pass(plan, cancel, max_pixels):
         return r0, c0, v, ok, angle
 
     # the images on threads (reads and kernels release the GIL), merged in their order; computed
-    # in the reverse of the order in which the row-major tiles first need them, so that the
-    # geometries kept last (a bounded cache) are those the first tiles use
-    order = sorted(range(len(plan.foot)), key=lambda k: (plan.foot[k][0], plan.foot[k][2]), reverse=True)
+    # in the reverse of the order in which the tiles (of the default size, in the order of
+    # _thread_results) first need them, so that the geometries kept last (a bounded cache) are
+    # those the first tiles use
+    tiles = plan.tiles(_default_tile_size(plan.warp_device))
+    images = [plan._tile_images(*t) for t in tiles]
+    first = {}
+    for pos, t in enumerate(tile_runs(tiles, 1, images)[0]):
+        for k in images[t]:
+            first.setdefault(k, pos)
+    order = sorted(range(len(plan.foot)), key=lambda k: first.get(k, -1), reverse=True)
     coarse = []
     with ThreadPoolExecutor(max_workers=min(8, os.cpu_count() or 1, len(plan.foot))) as pool:
         items = dict(zip(order, pool.map(one, order)))

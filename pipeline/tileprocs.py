@@ -12,12 +12,15 @@ it to its own device context and hands it to the COG encoder, so one process wri
 
 - Processes start before the plan is made (their imports, Warp's initialisation and kernel
   loading overlap it) and get the plan once, pickled at the start of the shared file.
-- Tiles are dealt in contiguous runs of the row-major order, one run per process, so that each
-  image's geometry, forward map and source handles are built in few processes; a process whose
-  run is done takes tiles from the end of the longest remaining run.
-- At most ``threads + 1`` tiles per process are in flight (the slots), and each process's
-  image cache is bounded (``cache_images``): host memory does not grow with the mosaic or the
-  number of images.
+- Tiles are dealt in runs, one per process (:func:`tile_runs`): a band of whole tile rows (or
+  columns) swept across in a serpentine, so that each image's geometry, forward map and source
+  handles are built in few processes, once each, and a process needs at once only the images
+  that meet a cross-section of its band. A process whose run is done takes tiles from the end
+  of the longest remaining run.
+- With each tile go the images its run no longer needs after it, which the process then drops
+  (see :class:`TileDealer`); each process's image cache is also bounded (``cache_images``). At most
+  ``threads + 1`` tiles per process are in flight (the slots). So host memory does not grow with
+  the mosaic or the number of images.
 - A worker's exception is raised in the caller (same type where it pickles); a worker that
   dies is an error naming its exit code. Workers are daemons: none outlives the caller.
 """
@@ -38,7 +41,7 @@ import numpy as np
 from ..errors import OrthowarpError
 from .ortho import _check_cancel
 
-__all__ = ["ProcessTiles"]
+__all__ = ["ProcessTiles", "TileDealer", "tile_runs"]
 
 _POLL_S = 0.5  # how often a wait for results checks that the workers live
 
@@ -107,27 +110,32 @@ class ProcessTiles:
         source (th, tw) uint16 or None."""
         return _slot_views(self._map, self._base + slot * self._slot_bytes, th, tw, count, dtype, self._with_source)
 
-    def run(self, tiles, count, dtype, *, cancel=None, name=None):
+    def run(self, tiles, count, dtype, *, images=None, cancel=None, name=None):
         """Compute ``tiles`` ((r0, c0, rows, cols) each) on the workers; yields
         ((r0, c0, rows, cols), values, valid, source or None, release) in the order they finish,
-        the arrays views of a slot that ``release()`` gives back (call it once done with them)."""
+        the arrays views of a slot that ``release()`` gives back (call it once done with them).
+
+        ``images`` (per tile, the indices of the images its tile function may use; see
+        :func:`tile_runs`) lets each process drop an image once the tiles of its run are done
+        with it, so that a process holds only the images its current tiles use."""
         n_tiles = len(tiles)
-        # contiguous runs of the row-major order, one per worker
-        bounds = np.linspace(0, n_tiles, self.n + 1).round().astype(int)
-        runs = [collections.deque(range(bounds[w], bounds[w + 1])) for w in range(self.n)]
+        images = images if images is not None else [()] * n_tiles
+        dealer = TileDealer(tile_runs(tiles, self.n, images), images)
         busy = [0] * self.n
         done_tiles = 0
         released = []
 
         def deal(w):
             while busy[w] <= self.threads and self._free:
-                run = runs[w] if runs[w] else max(runs, key=len)
-                if not run:
+                got = dealer.next(w)
+                if got is None:
                     return
-                k = run.popleft() if run is runs[w] else run.pop()
+                k, used, final, drop = got
                 slot = self._free.pop()
-                self._tasks[w].put(("tile", k, tiles[k], slot))
+                self._tasks[w].put(("tile", k, tiles[k], slot, used, final))
                 busy[w] += 1
+                if drop is not None:  # a tile taken from another run's end: that run's last use
+                    self._tasks[drop[0]].put(("drop", drop[1]))
 
         for w in range(self.n):
             deal(w)
@@ -197,6 +205,106 @@ class ProcessTiles:
                 pass
             self._file = None
         self._results.close()
+
+
+def tile_runs(tiles, n, images):
+    """The order of a mosaic's tiles on ``n`` processes (or on one, for threads): ``n`` runs,
+    each a band of whole tile rows (or whole tile columns) of the grid swept across in a
+    serpentine (down one column of the band, up the next), so that the images in use at any
+    point of a run are those that meet a short cross-section of the band, whatever the number
+    of images. Of the two orientations, the one whose runs need the fewest images at once.
+
+    Parameters
+    ----------
+    tiles : list of (r0, c0, rows, cols)
+        The grid's tiles (any order).
+    n : int
+        Runs (>= 1); a grid of fewer tile rows and columns than ``n`` leaves some empty.
+    images : list of tuple of int
+        Per tile, the images its tile function may use.
+
+    Returns
+    -------
+    runs : list of n lists of int
+        Indices into ``tiles``; together each tile once.
+    """
+    rows = {r: i for i, r in enumerate(sorted({t[0] for t in tiles}))}
+    cols = {c: j for j, c in enumerate(sorted({t[1] for t in tiles}))}
+    at = {(rows[t[0]], cols[t[1]]): k for k, t in enumerate(tiles)}
+    best = None
+    for across in (False, True):  # bands of rows swept along the columns, or the transpose
+        n_band, n_sweep = (len(cols), len(rows)) if across else (len(rows), len(cols))
+        bounds = np.linspace(0, n_band, n + 1).round().astype(int)
+        runs = []
+        for b in range(n):
+            band = range(bounds[b], bounds[b + 1])
+            run = []
+            for j in range(n_sweep):
+                for i in (band if j % 2 == 0 else reversed(band)):
+                    k = at.get((j, i) if across else (i, j))
+                    if k is not None:
+                        run.append(k)
+            runs.append(run)
+        peak = max(_live_peak(run, images) for run in runs)
+        if best is None or peak < best[0]:
+            best = (peak, runs)
+    return best[1]
+
+
+def _live_peak(run, images):
+    """The most images in use at once along ``run``: an image from its first tile to its last."""
+    first, last = {}, {}
+    for pos, k in enumerate(run):
+        for j in images[k]:
+            first.setdefault(j, pos)
+            last[j] = pos
+    if not first:
+        return 0
+    live = np.zeros(len(run) + 1, np.int64)
+    np.add.at(live, list(first.values()), 1)
+    np.add.at(live, [last[j] + 1 for j in first], -1)
+    return int(np.cumsum(live).max())
+
+
+class TileDealer:
+    """Hands out the runs' tiles: a process takes the next tile of its own run and, once that
+    is empty, the last tile of the longest run left. With each tile of its own run go the
+    images the run no longer needs after it (its last use of them, ``final``); a tile taken
+    from another run's end may be that run's last use of an image its process holds, which is
+    then dropped there (``drop``). Images of taken tiles are left to the bounded cache."""
+
+    def __init__(self, runs, images):
+        self.runs = [collections.deque(r) for r in runs]
+        self.images = images
+        self.left = [collections.Counter(j for k in r for j in images[k]) for r in runs]
+        self.held = [set() for _ in runs]  # images dealt to a run's process and not yet final
+
+    def next(self, w):
+        """(tile, its images, images final for process w, (process, images) to drop or None)
+        for process ``w``, or None where no tile is left."""
+        own = self.runs[w]
+        if own:
+            k = own.popleft()
+            left, held, final = self.left[w], self.held[w], []
+            for j in self.images[k]:
+                left[j] -= 1
+                if left[j] == 0:
+                    final.append(j)
+                    held.discard(j)
+                else:
+                    held.add(j)
+            return k, self.images[k], tuple(final), None
+        u = max(range(len(self.runs)), key=lambda v: len(self.runs[v]))
+        if not self.runs[u]:
+            return None
+        k = self.runs[u].pop()
+        left, held, drop = self.left[u], self.held[u], []
+        for j in self.images[k]:
+            left[j] -= 1
+            if left[j] == 0 and j in held:
+                drop.append(j)
+                held.discard(j)
+        return k, self.images[k], (), ((u, tuple(drop)) if drop else None)
 
 
 def _slot_size(th, tw, count, dtype, with_source):
@@ -276,7 +384,7 @@ def _worker_main(w, device, threads, tasks, results):
     plan, buf, base, slot_bytes, with_source = None, None, 0, 0, False
     failed = []
 
-    def tile(k, r0, c0, th, tw, slot):
+    def tile(k, r0, c0, th, tw, slot, used, final):
         try:
             with quiet_warp():
                 out, has, source = plan._tile(r0, c0, th, tw, device=dev)
@@ -289,6 +397,8 @@ def _worker_main(w, device, threads, tasks, results):
                 if with_source:
                     src[...] = to_host(source)
             results.put(("done", w, k, slot))
+            if used or final:
+                plan._note_done(used, final)  # the images the run is done with are dropped
         except BaseException as e:  # noqa: BLE001 - reported to the caller
             failed.append(e)
             results.put(("error", w, *_portable(e)))
@@ -313,15 +423,25 @@ def _worker_main(w, device, threads, tasks, results):
                     results.put(("error", w, *_portable(e)))
                     return
                 continue
-            _, k, (r0, c0, th, tw), slot = msg
-            pool.submit(tile, k, r0, c0, th, tw, slot)
+            if msg[0] == "drop":
+                try:
+                    plan._note_done((), msg[1])
+                except BaseException as e:  # noqa: BLE001 - reported to the caller
+                    results.put(("error", w, *_portable(e)))
+                    return
+                continue
+            _, k, (r0, c0, th, tw), slot, used, final = msg
+            if used:
+                plan._note_dealt(used)
+            pool.submit(tile, k, r0, c0, th, tw, slot, used, final)
     if failed:
         return
     try:
         st = plan._state if plan is not None else None
         info = dict(counts=plan._counted_sources() if plan is not None else None,
                     spans={k: list(v) for k, v in st["timer"].spans.items()} if st else {},
-                    builds=st["builds"] if st else 0, peak_rss_kb=_peak_rss_kb())
+                    builds=st["builds"] if st else 0, held_peak=st["held_peak"] if st else 0,
+                    peak_rss_kb=_peak_rss_kb())
         if plan is not None:
             plan.close()
         wp.synchronize()

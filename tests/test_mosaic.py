@@ -658,6 +658,32 @@ def test_a_small_image_cache_gives_the_same_mosaic(pair, tmp_path):
     assert (tmp_path / "a.tif").read_bytes() == (tmp_path / "b.tif").read_bytes()
 
 
+def test_images_are_dropped_after_their_last_tile(pair, tmp_path, monkeypatch):
+    """The tiles run in the order of tile_runs, each image dropped once its last tile is
+    done: none is held when the tiles end, each was built once, and the file is byte for
+    byte the one made with the images kept to the end."""
+    from orthowarp.pipeline import mosaic as mosaic_module
+
+    sc, images, _, _ = pair
+    kw = dict(dem=sc.dem, refraction=False, device="cpu", tile_size=64)
+    held = []
+    close = mosaic_module.MosaicPlan.close
+
+    def closing(self):  # what the plan holds when the tiles are done
+        held.append(len(self._state["images"]) if self._state is not None else None)
+        close(self)
+
+    monkeypatch.setattr(mosaic_module.MosaicPlan, "close", closing)
+    res = mosaic(images, tmp_path / "dropped.tif", **kw)
+    assert held == [0] and res.image_builds == 2 and res.images_held_peak == 2
+    nxt = mosaic_module.TileDealer.next
+    monkeypatch.setattr(mosaic_module.TileDealer, "next", lambda self, w: (*nxt(self, w)[:2], (), None))
+    held.clear()
+    mosaic(images, tmp_path / "kept.tif", **kw)
+    assert held == [2]
+    assert (tmp_path / "dropped.tif").read_bytes() == (tmp_path / "kept.tif").read_bytes()
+
+
 def test_the_reduced_pass_geometries_serve_the_tiles(pair, tmp_path, monkeypatch):
     """Each image's geometry is built once: the reduced pass's is kept for its tile functions
     (the file is the same as with a cache too small to keep any)."""
@@ -1053,7 +1079,10 @@ def test_tiles_on_worker_processes_give_the_same_file(pair, tmp_path, codec):
                      tile_size=256, block_codec=codec, processes=processes)
         with rasterio.open(res.path) as ds:
             got[processes] = (ds.read(), ds.dataset_mask(), res.pixels_per_image, res.profile.get("processes"))
-    (a, ma, pa, _), (b, mb, pb, n) = got[None], got[2]
+        got[processes] += (res.image_builds, res.images_held_peak)
+    (a, ma, pa, _, builds_a, held_a), (b, mb, pb, n, builds_b, held_b) = got[None], got[2]
     np.testing.assert_array_equal(ma, mb)
     np.testing.assert_array_equal(a, b)
     assert pa == pb and sum(pa) > 0 and n == 2
+    # each image built once per process whose run (or taken tiles) met it
+    assert builds_a == 2 and 2 <= builds_b <= 4 and held_a == 2 and 1 <= held_b <= 2

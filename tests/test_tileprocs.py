@@ -10,7 +10,8 @@ import pytest
 import warp as wp
 
 from orthowarp.errors import OrthowarpError, ParamError
-from orthowarp.pipeline.tileprocs import ProcessTiles
+from orthowarp.pipeline.profile import StageTimer
+from orthowarp.pipeline.tileprocs import ProcessTiles, TileDealer, _live_peak, tile_runs
 
 
 class StandInPlan:
@@ -42,6 +43,37 @@ class StandInPlan:
 
     def close(self):
         pass
+
+
+class TrackingPlan(StandInPlan):
+    """A stand-in that holds its tiles' images (the tile's column, c0 // 32) as the mosaic's
+    cache does: each built on first use and dropped once final and no dealt tile needs it."""
+
+    def __init__(self):
+        super().__init__()
+        self.held, self.pending, self.final = set(), {}, set()
+
+    def _tile(self, r0, c0, th, tw, device=None):
+        if self._state is None:  # (made in the worker: a timer does not pickle)
+            self._state = dict(timer=StageTimer(), builds=0, held_peak=0)
+        if c0 // 32 not in self.held:
+            self.held.add(c0 // 32)
+            self._state["builds"] += 1
+            self._state["held_peak"] = max(self._state["held_peak"], len(self.held))
+        return super()._tile(r0, c0, th, tw, device)
+
+    def _note_dealt(self, ks):
+        for k in ks:
+            self.pending[k] = self.pending.get(k, 0) + 1
+            self.final.discard(k)
+
+    def _note_done(self, ks, final):
+        for k in ks:
+            self.pending[k] -= 1
+        self.final.update(final)
+        for k in [k for k in self.final if not self.pending.get(k)]:
+            self.final.discard(k)
+            self.held.discard(k)
 
 
 def _tiles(rows=96, cols=80, size=32):
@@ -118,3 +150,69 @@ def test_a_stop_that_also_ends_the_workers_is_a_stop():
             for *_, release in procs.run(_tiles(), 2, "float32", cancel=cancel, name="m.tif"):
                 release()
     timer.cancel()
+
+
+def test_a_process_drops_each_image_after_the_last_tile_of_its_run_that_uses_it():
+    """3 x 3 tiles, each using the image of its column: the run sweeps the columns (the
+    orientation that needs one image at a time), so each image is built once and, dropped
+    after its column's last tile, never held with another; without the images, all three."""
+    tiles = _tiles()
+    images = [(c0 // 32,) for _, c0, _, _ in tiles]
+    for given, held in ((images, 1), (None, 3)):
+        with ProcessTiles(1, "cpu", threads=1) as procs:
+            procs.start_plan(TrackingPlan(), (32, 32), with_source=False)
+            for *_, release in procs.run(tiles, 2, "float32", images=given):
+                release()
+            (info,) = procs.finish()
+        assert info["builds"] == 3 and info["held_peak"] == held
+
+
+@pytest.mark.parametrize("rows,cols,n", [(3, 3, 1), (5, 4, 2), (7, 9, 4), (2, 6, 4), (1, 1, 3)])
+def test_tile_runs_cover_every_tile_once_in_serpentine_bands(rows, cols, n):
+    tiles = _tiles(rows * 32 - 5, cols * 32 - 7)
+    runs = tile_runs(tiles, n, [()] * len(tiles))
+    assert len(runs) == n
+    assert sorted(k for run in runs for k in run) == list(range(len(tiles)))
+    for run in runs:  # (no images: the first orientation, bands of rows swept along the columns)
+        pos = [(tiles[k][0] // 32, tiles[k][1] // 32) for k in run]
+        band = sorted({i for i, _ in pos})
+        assert band == list(range(band[0], band[-1] + 1)) if band else True
+        # along the columns, down one and up the next
+        expect = [(i, j) for j in range(cols) for i in (band if j % 2 == 0 else band[::-1])]
+        assert pos == expect
+    sizes = [len(r) for r in runs]
+    assert max(sizes) - min(sizes) <= cols
+
+
+@pytest.mark.parametrize("stripes", ["columns", "rows"])
+def test_tile_runs_take_the_orientation_that_needs_fewer_images(stripes):
+    """Images in stripes two tiles wide: the runs sweep across the stripes (one or two
+    images at a time), not along them (each band would need its stripes all the way)."""
+    tiles = _tiles(8 * 32, 8 * 32)
+    along = 1 if stripes == "columns" else 0
+    images = [(t[along] // 64,) for t in tiles]
+    runs = tile_runs(tiles, 2, images)
+    assert max(_live_peak(run, images) for run in runs) == 1
+    for run in runs:  # each run is a band across the stripes: it meets all four
+        assert {images[k][0] for k in run} == {0, 1, 2, 3}
+
+
+def test_live_peak_counts_an_image_from_its_first_tile_to_its_last():
+    images = [(0,), (1,), (0,), (2,), ()]
+    assert _live_peak([0, 1, 2, 3, 4], images) == 2  # 0 lives over tiles 0-2, 1 within it
+    assert _live_peak([0, 2, 1, 3], images) == 1
+    assert _live_peak([4], images) == 0
+
+
+def test_the_dealer_marks_last_uses_and_drops_what_a_taken_tile_ended():
+    """Own runs first, each tile with the images its run no longer needs; a process whose run
+    is done takes the last tile of the longest run, and where that was the run's last use of
+    an image already dealt to its process, that process is told to drop it."""
+    images = [(0,), (0, 1), (1, 2), (2,), (2, 3)]
+    d = TileDealer([[0, 1], [2, 3, 4]], images)
+    assert d.next(1) == (2, (1, 2), (1,), None)
+    assert d.next(0) == (0, (0,), (), None)
+    assert d.next(0) == (1, (0, 1), (0, 1), None)
+    assert d.next(0) == (4, (2, 3), (), None)  # taken from run 1's end: image 3 never dealt to 1
+    assert d.next(0) == (3, (2,), (), (1, (2,)))  # run 1's last use of image 2, which 1 holds
+    assert d.next(1) is None and d.next(0) is None
