@@ -296,7 +296,7 @@ def _default_tile_size(device):
 
 def _thread_results(plan, tiles, codec, on, host_source, workers, cancel, dst):
     """Tile results for :meth:`MosaicPlan.write` from a thread pool of this process, in the
-    order of :func:`~orthowarp.pipeline.tileprocs.tile_runs` (one run), at most 2 x workers
+    order of :func:`~orthowarp.pipeline.tileprocs.tile_runs` (its runs in turn), at most 2 x workers
     tiles in flight (bounded memory); with a device ``codec`` each tile goes to the plan's
     encoder from its thread."""
     n_workers = workers or (8 if on.is_cuda else (os.cpu_count() or 1))
@@ -320,10 +320,10 @@ def _thread_results(plan, tiles, codec, on, host_source, workers, cancel, dst):
         finally:
             plan._note_done(used, final)  # the images no later tile uses are dropped
 
-    # one run of the tiles (see tile_runs): the images in use at once are those that meet a
-    # cross-section of the grid, each built once
+    # the tiles' runs one after the other (see tile_runs): the images in use at once are those
+    # that meet a cross-section of a band
     images = [plan._tile_images(*t) for t in tiles]
-    dealer = TileDealer(tile_runs(tiles, 1, images), images)
+    dealer = TileDealer(tile_runs(tiles, 1, images), images, 1)
     with ThreadPoolExecutor(max_workers=n_workers) as pool:
         pending = collections.deque()
         try:
@@ -1075,7 +1075,7 @@ def _reduced_pass(plan, cancel, max_pixels):
     tiles = plan.tiles(_default_tile_size(plan.warp_device))
     images = [plan._tile_images(*t) for t in tiles]
     first = {}
-    for pos, t in enumerate(tile_runs(tiles, 1, images)[0]):
+    for pos, t in enumerate(k for run in tile_runs(tiles, 1, images) for k in run):
         for k in images[t]:
             first.setdefault(k, pos)
     order = sorted(range(len(plan.foot)), key=lambda k: first.get(k, -1), reverse=True)

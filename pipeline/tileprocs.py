@@ -12,11 +12,13 @@ it to its own device context and hands it to the COG encoder, so one process wri
 
 - Processes start before the plan is made (their imports, Warp's initialisation and kernel
   loading overlap it) and get the plan once, pickled at the start of the shared file.
-- Tiles are dealt in runs, one per process (:func:`tile_runs`): a band of whole tile rows (or
-  columns) swept across in a serpentine, so that each image's geometry, forward map and source
-  handles are built in few processes, once each, and a process needs at once only the images
-  that meet a cross-section of its band. A process whose run is done takes tiles from the end
-  of the longest remaining run.
+- Tiles are dealt in runs (:func:`tile_runs`): bands of whole tile rows (or columns), one per
+  process unless a run would then need more than 16 images at once (then more, thinner ones),
+  swept across in a serpentine, so that each image's geometry, forward map and source handles
+  are built in few processes and a process needs at once only the images that meet a
+  cross-section of its band, however large the mosaic. A process whose run is done starts the
+  next run nobody has started, and once none is left takes tiles from the end of the longest
+  remaining run.
 - With each tile go the images its run no longer needs after it, which the process then drops
   (see :class:`TileDealer`); each process's image cache is also bounded (``cache_images``). At most
   ``threads + 1`` tiles per process are in flight (the slots). So host memory does not grow with
@@ -120,7 +122,7 @@ class ProcessTiles:
         with it, so that a process holds only the images its current tiles use."""
         n_tiles = len(tiles)
         images = images if images is not None else [()] * n_tiles
-        dealer = TileDealer(tile_runs(tiles, self.n, images), images)
+        dealer = TileDealer(tile_runs(tiles, self.n, images), images, self.n)
         busy = [0] * self.n
         done_tiles = 0
         released = []
@@ -207,47 +209,70 @@ class ProcessTiles:
         self._results.close()
 
 
-def tile_runs(tiles, n, images):
-    """The order of a mosaic's tiles on ``n`` processes (or on one, for threads): ``n`` runs,
-    each a band of whole tile rows (or whole tile columns) of the grid swept across in a
-    serpentine (down one column of the band, up the next), so that the images in use at any
-    point of a run are those that meet a short cross-section of the band, whatever the number
-    of images. Of the two orientations, the one whose runs need the fewest images at once.
+def tile_runs(tiles, n, images, *, limit=16):
+    """The order of a mosaic's tiles on ``n`` processes (or on one, for threads): runs, each a
+    band of whole tile rows (or whole tile columns) of the grid swept across in a serpentine
+    (down one column of the band, up the next), so that the images in use at any point of a run
+    are those that meet a short cross-section of the band.
+
+    One band per process where no run then needs more than ``limit`` images at once; else
+    more, thinner bands until none does (or the bands are one tile thin), so that the images
+    in use at once do not grow with the mosaic. Thinner bands cost builds: an image is built
+    once in each run that meets it. Consecutive bands are swept in opposite directions (one
+    process taking them in turn ends one where the next begins). Of the two orientations, the
+    one with the fewest runs within ``limit`` (else the one that needs the fewest images at
+    once).
 
     Parameters
     ----------
     tiles : list of (r0, c0, rows, cols)
         The grid's tiles (any order).
     n : int
-        Runs (>= 1); a grid of fewer tile rows and columns than ``n`` leaves some empty.
+        Processes (>= 1); a grid of fewer tile rows and columns than ``n`` leaves some runs
+        empty.
     images : list of tuple of int
         Per tile, the images its tile function may use.
+    limit : int, optional
+        Images a run may need at once.
 
     Returns
     -------
-    runs : list of n lists of int
-        Indices into ``tiles``; together each tile once.
+    runs : list of at least n lists of int
+        Indices into ``tiles``, in the order to compute them; together each tile once.
     """
     rows = {r: i for i, r in enumerate(sorted({t[0] for t in tiles}))}
     cols = {c: j for j, c in enumerate(sorted({t[1] for t in tiles}))}
     at = {(rows[t[0]], cols[t[1]]): k for k, t in enumerate(tiles)}
-    best = None
-    for across in (False, True):  # bands of rows swept along the columns, or the transpose
+
+    def layout(across, n_runs):
         n_band, n_sweep = (len(cols), len(rows)) if across else (len(rows), len(cols))
-        bounds = np.linspace(0, n_band, n + 1).round().astype(int)
+        bounds = np.linspace(0, n_band, n_runs + 1).round().astype(int)
         runs = []
-        for b in range(n):
+        for b in range(n_runs):
             band = range(bounds[b], bounds[b + 1])
             run = []
-            for j in range(n_sweep):
-                for i in (band if j % 2 == 0 else reversed(band)):
+            sweep = range(n_sweep) if b % 2 == 0 else range(n_sweep - 1, -1, -1)
+            for m, j in enumerate(sweep):
+                for i in (band if m % 2 == 0 else reversed(band)):
                     k = at.get((j, i) if across else (i, j))
                     if k is not None:
                         run.append(k)
             runs.append(run)
-        peak = max(_live_peak(run, images) for run in runs)
-        if best is None or peak < best[0]:
-            best = (peak, runs)
+        return runs
+
+    best = None
+    for across in (False, True):  # bands of rows swept along the columns, or the transpose
+        n_band = len(cols) if across else len(rows)
+        n_runs = n
+        while True:
+            runs = layout(across, n_runs)
+            peak = max(_live_peak(run, images) for run in runs)
+            if peak <= limit or n_runs >= n_band:
+                break
+            n_runs = min(n_band, max(n_runs + 1, (3 * n_runs) // 2))
+        key = (0, n_runs, peak) if peak <= limit else (1, peak, n_runs)
+        if best is None or key < best[0]:
+            best = (key, runs)
     return best[1]
 
 
@@ -267,25 +292,43 @@ def _live_peak(run, images):
 
 
 class TileDealer:
-    """Hands out the runs' tiles: a process takes the next tile of its own run and, once that
-    is empty, the last tile of the longest run left. With each tile of its own run go the
-    images the run no longer needs after it (its last use of them, ``final``); a tile taken
-    from another run's end may be that run's last use of an image its process holds, which is
-    then dropped there (``drop``). Images of taken tiles are left to the bounded cache."""
+    """Hands out the runs' tiles to processes: a process takes the next tile of its current
+    run; once that is empty, the next run nobody has started; once none is left, the last tile
+    of the longest run left. With each tile of its current run go the images the run no longer
+    needs after it (its last use of them, ``final``); a tile taken from another run's end may
+    be that run's last use of an image its process holds, which is then dropped there
+    (``drop``). Images of taken tiles are left to the bounded cache.
 
-    def __init__(self, runs, images):
+    Parameters
+    ----------
+    runs : list of list of int
+        Tile indices (from :func:`tile_runs`).
+    images : list of tuple of int
+        Per tile, the images its tile function may use.
+    processes : int, optional
+        Default: one per run. Process ``w`` starts with run ``w``.
+    """
+
+    def __init__(self, runs, images, processes=None):
+        n = len(runs) if processes is None else int(processes)
         self.runs = [collections.deque(r) for r in runs]
         self.images = images
         self.left = [collections.Counter(j for k in r for j in images[k]) for r in runs]
         self.held = [set() for _ in runs]  # images dealt to a run's process and not yet final
+        self.current = [w if w < len(runs) else None for w in range(n)]
+        self.owner = {w: w for w in range(min(n, len(runs)))}
+        self.unstarted = collections.deque(range(n, len(runs)))
 
     def next(self, w):
         """(tile, its images, images final for process w, (process, images) to drop or None)
         for process ``w``, or None where no tile is left."""
-        own = self.runs[w]
-        if own:
-            k = own.popleft()
-            left, held, final = self.left[w], self.held[w], []
+        r = self.current[w]
+        while (r is None or not self.runs[r]) and self.unstarted:
+            r = self.current[w] = self.unstarted.popleft()
+            self.owner[r] = w
+        if r is not None and self.runs[r]:
+            k = self.runs[r].popleft()
+            left, held, final = self.left[r], self.held[r], []
             for j in self.images[k]:
                 left[j] -= 1
                 if left[j] == 0:
@@ -294,8 +337,8 @@ class TileDealer:
                 else:
                     held.add(j)
             return k, self.images[k], tuple(final), None
-        u = max(range(len(self.runs)), key=lambda v: len(self.runs[v]))
-        if not self.runs[u]:
+        u = max(range(len(self.runs)), key=lambda v: len(self.runs[v]), default=None)
+        if u is None or not self.runs[u]:
             return None
         k = self.runs[u].pop()
         left, held, drop = self.left[u], self.held[u], []
@@ -304,7 +347,7 @@ class TileDealer:
             if left[j] == 0 and j in held:
                 drop.append(j)
                 held.discard(j)
-        return k, self.images[k], (), ((u, tuple(drop)) if drop else None)
+        return k, self.images[k], (), ((self.owner[u], tuple(drop)) if drop else None)
 
 
 def _slot_size(th, tw, count, dtype, with_source):

@@ -173,28 +173,28 @@ def test_tile_runs_cover_every_tile_once_in_serpentine_bands(rows, cols, n):
     runs = tile_runs(tiles, n, [()] * len(tiles))
     assert len(runs) == n
     assert sorted(k for run in runs for k in run) == list(range(len(tiles)))
-    for run in runs:  # (no images: the first orientation, bands of rows swept along the columns)
+    for b, run in enumerate(runs):  # (no images: one band per process, of rows, along the columns)
         pos = [(tiles[k][0] // 32, tiles[k][1] // 32) for k in run]
         band = sorted({i for i, _ in pos})
         assert band == list(range(band[0], band[-1] + 1)) if band else True
-        # along the columns, down one and up the next
-        expect = [(i, j) for j in range(cols) for i in (band if j % 2 == 0 else band[::-1])]
+        # along the columns (every other band the other way), down one and up the next
+        sweep = range(cols) if b % 2 == 0 else range(cols - 1, -1, -1)
+        expect = [(i, j) for m, j in enumerate(sweep) for i in (band if m % 2 == 0 else band[::-1])]
         assert pos == expect
     sizes = [len(r) for r in runs]
     assert max(sizes) - min(sizes) <= cols
 
 
 @pytest.mark.parametrize("stripes", ["columns", "rows"])
-def test_tile_runs_take_the_orientation_that_needs_fewer_images(stripes):
-    """Images in stripes two tiles wide: the runs sweep across the stripes (one or two
-    images at a time), not along them (each band would need its stripes all the way)."""
+def test_tile_runs_need_one_stripe_at_a_time(stripes):
+    """Images one tile wide and the grid's length (stripes), either way round: the runs need
+    one image at a time (bands one stripe tall, or a band swept along the stripes), where
+    one band of the whole grid swept across them would meet all eight in each column."""
     tiles = _tiles(8 * 32, 8 * 32)
     along = 1 if stripes == "columns" else 0
-    images = [(t[along] // 64,) for t in tiles]
-    runs = tile_runs(tiles, 2, images)
+    images = [(t[along] // 32,) for t in tiles]
+    runs = tile_runs(tiles, 1, images)
     assert max(_live_peak(run, images) for run in runs) == 1
-    for run in runs:  # each run is a band across the stripes: it meets all four
-        assert {images[k][0] for k in run} == {0, 1, 2, 3}
 
 
 def test_live_peak_counts_an_image_from_its_first_tile_to_its_last():
@@ -216,3 +216,41 @@ def test_the_dealer_marks_last_uses_and_drops_what_a_taken_tile_ended():
     assert d.next(0) == (4, (2, 3), (), None)  # taken from run 1's end: image 3 never dealt to 1
     assert d.next(0) == (3, (2,), (), (1, (2,)))  # run 1's last use of image 2, which 1 holds
     assert d.next(1) is None and d.next(0) is None
+
+
+@pytest.mark.parametrize("strips", [3, 12, 36])
+def test_bands_get_thinner_as_the_mosaic_grows(strips):
+    """Images 4 tiles tall and 6 wide, overlapping by half each way, in a mosaic of ``strips``
+    strips of ``strips`` images: on 2 processes a run never needs more than 16 images at once,
+    one band per process while that holds (up to 12 strips here), thinner bands beyond, each
+    image in at most 3 runs."""
+    rows, cols = 2 * strips + 2, 3 * strips + 3
+    tiles = _tiles(rows * 32, cols * 32)
+    images = []
+    for t in tiles:
+        i, j = t[0] // 32, t[1] // 32
+        images.append(tuple(a * 100 + b for a in range(max(0, (i - 4) // 2 + 1), i // 2 + 1)
+                            for b in range(max(0, (j - 6) // 3 + 1), j // 3 + 1)))
+    runs = tile_runs(tiles, 2, images)
+    assert sorted(k for r in runs for k in r) == list(range(len(tiles)))
+    assert max(_live_peak(run, images) for run in runs) <= 16
+    assert len(runs) == 2 if strips <= 12 else len(runs) > 2
+    runs_of = {}
+    for r, run in enumerate(runs):
+        for k in run:
+            for j in images[k]:
+                runs_of.setdefault(j, set()).add(r)
+    assert max(len(v) for v in runs_of.values()) <= 3
+
+
+def test_a_process_starts_the_next_run_nobody_has_started():
+    """Three runs on two processes: process 0 goes on with run 2 once its own is done; a tile
+    taken from the end of run 2 by process 1 then tells process 0 to drop what it ended."""
+    images = [(0,), (1,), (2,), (2, 3), (3,)]
+    d = TileDealer([[0], [1], [2, 3, 4]], images, 2)
+    assert d.next(0) == (0, (0,), (0,), None)
+    assert d.next(0) == (2, (2,), (), None)  # run 2, started by process 0
+    assert d.next(1) == (1, (1,), (1,), None)
+    assert d.next(1) == (4, (3,), (), None)  # taken from run 2's end: image 3 not dealt to 0 yet
+    assert d.next(1) == (3, (2, 3), (), (0, (2,)))  # run 2's last use of image 2, held by 0
+    assert d.next(0) is None and d.next(1) is None
