@@ -314,11 +314,11 @@ def _thread_results(plan, tiles, codec, on, host_source, workers, cancel, dst):
         source = to_host(source)
         return None, source != NO_SOURCE, source
 
-    def run(tile_, used, final):
+    def run(tile_, used, token):
         try:
             return tile(*tile_)
         finally:
-            plan._note_done(used, final)  # the images no later tile uses are dropped
+            plan._note_done(used, token)  # the images no later tile uses are dropped
 
     # the tiles' runs one after the other (see tile_runs): the images in use at once are those
     # that meet a cross-section of a band
@@ -329,8 +329,8 @@ def _thread_results(plan, tiles, codec, on, host_source, workers, cancel, dst):
         try:
             for _ in tiles:
                 k, used, final, _ = dealer.next(0)
-                plan._note_dealt(used)
-                pending.append((tiles[k], pool.submit(run, tiles[k], used, final)))
+                token = plan._note_dealt(used, final)
+                pending.append((tiles[k], pool.submit(run, tiles[k], used, token)))
                 if len(pending) >= 2 * n_workers:
                     tile0, f = pending.popleft()
                     yield tile0, f.result()
@@ -466,7 +466,7 @@ class MosaicPlan:
         with self._lock:
             if self._state is None:
                 self._state = dict(timer=StageTimer(time.perf_counter()), images=collections.OrderedDict(), users={},
-                                   builds=0, held_peak=0, pending={}, final=set())
+                                   builds=0, held_peak=0, pending={}, deals={}, final=set())
             return self._state
 
     def _build(self, k, timer):
@@ -551,27 +551,40 @@ class MosaicPlan:
             (foot[:, 2] < c0 + tw + halo)
         return tuple(int(k) for k in np.flatnonzero(meets))
 
-    def _note_dealt(self, ks):
-        """A tile that uses images ``ks`` is on its way to this process's tile functions."""
+    def _note_dealt(self, ks, final=()):
+        """A tile that uses images ``ks`` is on its way to this process's tile functions, after
+        which its run needs the images ``final`` no more. Returns the token to hand to
+        :meth:`_note_done` once the tile is done: those images with the number of tiles dealt
+        that use them so far (one dealt later, e.g. of another run, keeps its image)."""
         st = self._materialise()
         with self._lock:
+            deals = st["deals"]
             for k in ks:
                 st["pending"][k] = st["pending"].get(k, 0) + 1
+                deals[k] = deals.get(k, 0) + 1
                 st["final"].discard(k)
+            return {k: deals[k] for k in final}
 
-    def _note_done(self, ks, final):
-        """A tile dealt with :meth:`_note_dealt` (images ``ks``) is done, and no tile to come
-        uses the images ``final``: those are dropped from the cache once no dealt tile needs
-        them (a later tile that does after all builds its image again)."""
+    def _note_drop(self, final):
+        """No tile dealt from now on uses the images ``final`` (see :meth:`_note_done`)."""
+        st = self._materialise()
+        with self._lock:
+            token = {k: st["deals"].get(k, 0) for k in final}
+        self._note_done((), token)
+
+    def _note_done(self, ks, token):
+        """A tile dealt with :meth:`_note_dealt` (images ``ks``) is done. The images of its
+        ``token`` that no tile has been dealt since are dropped from the cache once no dealt
+        tile needs them (a later tile that does after all builds its image again)."""
         st = self._materialise()
         to_close = []
         with self._lock:
-            pending = st["pending"]
+            pending, deals = st["pending"], st["deals"]
             for k in ks:
                 pending[k] -= 1
                 if not pending[k]:
                     del pending[k]
-            st["final"].update(final)
+            st["final"].update(k for k, n in token.items() if deals.get(k, 0) == n)
             for k in [k for k in st["final"] if k not in pending and not st["users"].get(k)]:
                 st["final"].discard(k)
                 if k in st["images"]:

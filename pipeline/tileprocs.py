@@ -427,7 +427,7 @@ def _worker_main(w, device, threads, tasks, results):
     plan, buf, base, slot_bytes, with_source = None, None, 0, 0, False
     failed = []
 
-    def tile(k, r0, c0, th, tw, slot, used, final):
+    def tile(k, r0, c0, th, tw, slot, used, token):
         try:
             with quiet_warp():
                 out, has, source = plan._tile(r0, c0, th, tw, device=dev)
@@ -440,8 +440,8 @@ def _worker_main(w, device, threads, tasks, results):
                 if with_source:
                     src[...] = to_host(source)
             results.put(("done", w, k, slot))
-            if used or final:
-                plan._note_done(used, final)  # the images the run is done with are dropped
+            if used:
+                plan._note_done(used, token)  # the images the run is done with are dropped
         except BaseException as e:  # noqa: BLE001 - reported to the caller
             failed.append(e)
             results.put(("error", w, *_portable(e)))
@@ -468,15 +468,14 @@ def _worker_main(w, device, threads, tasks, results):
                 continue
             if msg[0] == "drop":
                 try:
-                    plan._note_done((), msg[1])
+                    plan._note_drop(msg[1])
                 except BaseException as e:  # noqa: BLE001 - reported to the caller
                     results.put(("error", w, *_portable(e)))
                     return
                 continue
             _, k, (r0, c0, th, tw), slot, used, final = msg
-            if used:
-                plan._note_dealt(used)
-            pool.submit(tile, k, r0, c0, th, tw, slot, used, final)
+            token = plan._note_dealt(used, final) if used else None
+            pool.submit(tile, k, r0, c0, th, tw, slot, used, token)
     if failed:
         return
     try:

@@ -1086,3 +1086,40 @@ def test_tiles_on_worker_processes_give_the_same_file(pair, tmp_path, codec):
     assert pa == pb and sum(pa) > 0 and n == 2
     # each image built once per process whose run (or taken tiles) met it
     assert builds_a == 2 and 2 <= builds_b <= 4 and held_a == 2 and 1 <= held_b <= 2
+
+
+def test_an_image_is_dropped_after_its_last_tile_unless_dealt_again():
+    """The cache's bookkeeping: an image its run is done with goes once no dealt tile needs
+    it; a tile dealt after that tile (of another run) keeps it."""
+    import threading
+
+    from orthowarp.pipeline.mosaic import MosaicPlan
+
+    plan = MosaicPlan.__new__(MosaicPlan)
+    plan._lock, plan._state = threading.Lock(), None
+    st = plan._materialise()
+    closed = []
+
+    class Renderer:
+        def __init__(self, k):
+            self.k = k
+
+        def close(self):
+            closed.append(self.k)
+
+    st["images"].update({5: dict(renderer=Renderer(5)), 6: dict(renderer=Renderer(6))})
+    # image 6: an earlier tile of the run still running when its last tile is done
+    earlier = plan._note_dealt((6,))
+    last = plan._note_dealt((6,), (6,))
+    plan._note_done((6,), last)
+    assert 6 in st["images"]
+    plan._note_done((6,), earlier)
+    assert 6 not in st["images"] and closed == [6]
+    # image 5: a tile of another run dealt before the first run's last tile is done
+    last = plan._note_dealt((5,), (5,))
+    other = plan._note_dealt((5,))
+    plan._note_done((5,), last)
+    plan._note_done((5,), other)
+    assert 5 in st["images"] and closed == [6]
+    plan._note_drop((5,))  # then no tile to come uses it
+    assert 5 not in st["images"] and closed == [6, 5]

@@ -62,15 +62,19 @@ class TrackingPlan(StandInPlan):
             self._state["held_peak"] = max(self._state["held_peak"], len(self.held))
         return super()._tile(r0, c0, th, tw, device)
 
-    def _note_dealt(self, ks):
+    def _note_dealt(self, ks, final=()):
         for k in ks:
             self.pending[k] = self.pending.get(k, 0) + 1
             self.final.discard(k)
+        return tuple(final)
 
-    def _note_done(self, ks, final):
+    def _note_drop(self, final):
+        self._note_done((), final)
+
+    def _note_done(self, ks, token):
         for k in ks:
             self.pending[k] -= 1
-        self.final.update(final)
+        self.final.update(token)
         for k in [k for k in self.final if not self.pending.get(k)]:
             self.final.discard(k)
             self.held.discard(k)
