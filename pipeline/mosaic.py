@@ -322,7 +322,7 @@ def _thread_results(plan, tiles, codec, on, host_source, workers, cancel, dst):
 
     # the tiles' runs one after the other (see tile_runs): the images in use at once are those
     # that meet a cross-section of a band
-    images = [plan._tile_images(*t) for t in tiles]
+    images = plan._tile_images(tiles)
     dealer = TileDealer(tile_runs(tiles, 1, images), images, 1)
     with ThreadPoolExecutor(max_workers=n_workers) as pool:
         pending = collections.deque()
@@ -353,7 +353,7 @@ def _process_results(plan, procs, tiles, size, codec, on, host_source, cancel, d
     procs.start_plan(plan, (size, size), with_source=codec == "host" or host_source)
 
     def results():
-        images = [plan._tile_images(*t) for t in tiles]
+        images = plan._tile_images(tiles)
         for tile, values, valid, source, release in procs.run(tiles, plan.count, plan.dtype, images=images,
                                                               cancel=cancel, name=dst):
             try:
@@ -541,15 +541,21 @@ class MosaicPlan:
             with self._lock:
                 st["users"][k] -= 1
 
-    def _tile_images(self, r0, c0, th, tw):
-        """The images whose footprint meets the tile (r0, c0, th, tw), with the multi-band
-        blend's halo: those its tile function may build (as :meth:`_stack` selects them)."""
+    def _images_meeting(self, r0, c0, th, tw, foot=None):
+        """The images whose footprint meets the box (r0, c0, th, tw) of the output grid, in
+        order (``foot``: the footprints as an (images, 4) array, made here where None)."""
+        foot = np.asarray(self.foot, np.int64).reshape(-1, 4) if foot is None else foot
+        meets = (foot[:, 1] > r0) & (foot[:, 0] < r0 + th) & (foot[:, 3] > c0) & (foot[:, 2] < c0 + tw)
+        return tuple(int(k) for k in np.flatnonzero(meets))
+
+    def _tile_images(self, tiles):
+        """Per tile (r0, c0, th, tw) of ``tiles``, the images its tile function may build:
+        those whose footprint meets it with the multi-band blend's halo (see :meth:`_select`)."""
         o = self.options
         halo = _multiband_halo(o["feather"]) if o["blend"] == "multiband" else 0
         foot = np.asarray(self.foot, np.int64).reshape(-1, 4)
-        meets = (foot[:, 1] > r0 - halo) & (foot[:, 0] < r0 + th + halo) & (foot[:, 3] > c0 - halo) & \
-            (foot[:, 2] < c0 + tw + halo)
-        return tuple(int(k) for k in np.flatnonzero(meets))
+        return [self._images_meeting(r0 - halo, c0 - halo, th + 2 * halo, tw + 2 * halo, foot)
+                for r0, c0, th, tw in tiles]
 
     def _note_dealt(self, ks, final=()):
         """A tile that uses images ``ks`` is on its way to this process's tile functions, after
@@ -693,9 +699,7 @@ class MosaicPlan:
         rendered = []  # (k, values, valid, the node pixels for the fade or None, image size)
         device = None
         grids = {}  # coarse grids by transformer: images in one pose frame share the tile's nodes
-        for k, (fr0, fr1, fc0, fc1) in enumerate(self.foot):
-            if fr1 <= r0 or fr0 >= r0 + th or fc1 <= c0 or fc0 >= c0 + tw:
-                continue
+        for k in self._images_meeting(r0, c0, th, tw):
             with self._image(k) as entry:
                 # (a pushbroom scene has no forward method: its backward tile function serves both)
                 values, valid = entry.get(which, entry["renderer"]).render(r0, c0, th, tw)
@@ -1086,7 +1090,7 @@ def _reduced_pass(plan, cancel, max_pixels):
     # _thread_results) first need them, so that the geometries kept last (a bounded cache) are
     # those the first tiles use
     tiles = plan.tiles(_default_tile_size(plan.warp_device))
-    images = [plan._tile_images(*t) for t in tiles]
+    images = plan._tile_images(tiles)
     first = {}
     for pos, t in enumerate(k for run in tile_runs(tiles, 1, images) for k in run):
         for k in images[t]:

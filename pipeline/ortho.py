@@ -1227,8 +1227,8 @@ class _NodeBlocks:
     where the node has none. The grid is cut into ``block`` x ``block`` node blocks with the
     bounding box of their positions and the range of their values (float64): a query tests the
     blocks, takes whole the ones inside the box and tests node by node only those across its
-    edge. Each node is kept as its offset from its block's lower bounds in float32 (a third of
-    the grid in float64: an image's forward map is held while its tiles run), so a node's
+    edge. Each node is kept as its offset from its block's lower bounds in float32 (half the
+    grid in float64: an image's forward map is held while its tiles run), so a node's
     values come back within 2**-24 of its block's spread (a block of the forward map spans
     about 128 output pixels, so within 1e-5 px; values that are multiples of 0.5 below 2**23
     of the lower bound, such as source pixel centres, exactly).
