@@ -289,7 +289,7 @@ def ortho(ctx, images, odm_dataset, int_param, ext_param, dimap, attitude_model,
     _spare_final_collection()
     from .errors import ParamError, RasterIOError
     from .pipeline.dem import Dem
-    from .pipeline.io import check_destination
+    from .pipeline.io import check_destination, outputs_together
     from .pipeline.ortho import orthorectify
 
     t_imported = time.perf_counter()
@@ -372,24 +372,25 @@ def ortho(ctx, images, odm_dataset, int_param, ext_param, dimap, attitude_model,
 
         def one(job):
             image, sensor, dst = job
-            r = orthorectify(image, sensor, dst, dem=terrain, **options)
-            if accuracy:
-                pose_cov = np.diag(sigmas) ** 2 if covs is None else covs[_image_key(image)]
-                from .pipeline.precision import accuracy_raster
+            with outputs_together(overwrite=overwrite):  # the ortho and its accuracy raster, or neither
+                r = orthorectify(image, sensor, dst, dem=terrain, **options)
+                if accuracy:
+                    pose_cov = np.diag(sigmas) ** 2 if covs is None else covs[_image_key(image)]
+                    from .pipeline.precision import accuracy_raster
 
-                if sensor.kind == "pushbroom":
-                    from .pipeline.precision import scene_accuracy_raster
+                    if sensor.kind == "pushbroom":
+                        from .pipeline.precision import scene_accuracy_raster
 
-                    scene_accuracy_raster(_accuracy_name(dst), sensor, terrain, r.crs, r.transform, r.shape,
-                                          orientation_cov=np.diag(sigmas) ** 2, pixel_sigma=pixel_sigma,
-                                          dem_sigma=dem_sigma, measure=accuracy_measure, step=accuracy_step,
-                                          refraction=not no_refraction, device=device)
-                else:
-                    accuracy_raster(_accuracy_name(dst), sensor.camera, sensor.pose, terrain, r.crs, r.transform, r.shape,
-                                    pose_cov=pose_cov, pixel_sigma=pixel_sigma, dem_sigma=dem_sigma,
-                                    measure=accuracy_measure, step=accuracy_step, refraction=not no_refraction,
-                                    geoid=geoid,
-                                    same_vertical_datum=same_vertical_datum, device=device)
+                        scene_accuracy_raster(_accuracy_name(dst), sensor, terrain, r.crs, r.transform, r.shape,
+                                              orientation_cov=np.diag(sigmas) ** 2, pixel_sigma=pixel_sigma,
+                                              dem_sigma=dem_sigma, measure=accuracy_measure, step=accuracy_step,
+                                              refraction=not no_refraction, device=device)
+                    else:
+                        accuracy_raster(_accuracy_name(dst), sensor.camera, sensor.pose, terrain, r.crs, r.transform, r.shape,
+                                        pose_cov=pose_cov, pixel_sigma=pixel_sigma, dem_sigma=dem_sigma,
+                                        measure=accuracy_measure, step=accuracy_step, refraction=not no_refraction,
+                                        geoid=geoid,
+                                        same_vertical_datum=same_vertical_datum, device=device)
             return dst, r
 
         def report(dst, r):
@@ -795,7 +796,7 @@ def mosaic(ctx, images, int_param, ext_param, odm_dataset, scenes, attitude_mode
     radiometry balanced by gains and offsets from their overlaps."""
     from .errors import ParamError, RasterIOError
     from .pipeline.dem import Dem
-    from .pipeline.io import check_destination
+    from .pipeline.io import check_destination, outputs_together
     from .pipeline.mosaic import mosaic as make_mosaic
 
     if odm_dataset is not None:
@@ -837,21 +838,22 @@ def mosaic(ctx, images, int_param, ext_param, odm_dataset, scenes, attitude_mode
         from ._device import resolve_device
 
         processes = MOSAIC_GPU_PROCESSES if resolve_device(device).is_cuda else 1
-    r = make_mosaic(jobs, out_path, dem=terrain, crs=crs, resolution=resolution, resampling=resampling,
-                    refraction=not no_refraction, dtype=dtype, index=index_path, seamlines=seamlines_path,
-                    seams=seams, seam_width=seam_width, blend=blend, feather=feather,
-                    balance=not no_balance, reference=reference, occlusion=not no_occlusion,
-                    compress_level=compress_level, block_codec=block_codec, creation_options=creation_options,
-                    overwrite=overwrite, device=device, geoid=geoid, same_vertical_datum=same_vertical_datum,
-                    workers=workers, processes=processes, tile_size=tile_size, cancel=ctx.meta.get("orthowarp.stop"))
-    if accuracy:
-        from .pipeline.precision import mosaic_accuracy_raster
+    with outputs_together(overwrite=overwrite):  # the mosaic, its sidecars and accuracy raster, or none
+        r = make_mosaic(jobs, out_path, dem=terrain, crs=crs, resolution=resolution, resampling=resampling,
+                        refraction=not no_refraction, dtype=dtype, index=index_path, seamlines=seamlines_path,
+                        seams=seams, seam_width=seam_width, blend=blend, feather=feather,
+                        balance=not no_balance, reference=reference, occlusion=not no_occlusion,
+                        compress_level=compress_level, block_codec=block_codec, creation_options=creation_options,
+                        overwrite=overwrite, device=device, geoid=geoid, same_vertical_datum=same_vertical_datum,
+                        workers=workers, processes=processes, tile_size=tile_size, cancel=ctx.meta.get("orthowarp.stop"))
+        if accuracy:
+            from .pipeline.precision import mosaic_accuracy_raster
 
-        mosaic_accuracy_raster(_accuracy_name(r.path), jobs, r.index, terrain, r.crs, r.transform, r.shape,
-                               pose_cov=np.diag(frame_sigmas) ** 2, orientation_cov=np.diag(scene_sigmas) ** 2,
-                               pixel_sigma=pixel_sigma, dem_sigma=dem_sigma, measure=accuracy_measure,
-                               step=accuracy_step, refraction=not no_refraction, geoid=geoid, same_vertical_datum=same_vertical_datum,
-                               device=device)
+            mosaic_accuracy_raster(_accuracy_name(r.path), jobs, r.index, terrain, r.crs, r.transform, r.shape,
+                                   pose_cov=np.diag(frame_sigmas) ** 2, orientation_cov=np.diag(scene_sigmas) ** 2,
+                                   pixel_sigma=pixel_sigma, dem_sigma=dem_sigma, measure=accuracy_measure,
+                                   step=accuracy_step, refraction=not no_refraction, geoid=geoid, same_vertical_datum=same_vertical_datum,
+                                   device=device)
     if show_profile or profile_json:
         from .pipeline.io import write_json
         from .pipeline.profile import format_profile

@@ -16,6 +16,7 @@ Every output is written under a temporary name in its destination folder and pub
 """
 
 import contextlib
+import contextvars
 import errno
 import fcntl
 import json
@@ -28,9 +29,9 @@ import warnings
 import rasterio
 from rasterio._err import CPLE_BaseError
 
-from ..errors import RasterIOError
+from ..errors import ParamError, RasterIOError
 
-__all__ = ["ensure_folder", "check_destination", "atomic_path", "atomic_files", "remove_stale_temporaries", "remove_own_temporaries",
+__all__ = ["ensure_folder", "check_destination", "atomic_path", "atomic_files", "outputs_together", "pending_path", "remove_stale_temporaries", "remove_own_temporaries",
            "write_raster", "write_text", "write_files", "write_json", "describe_os_error", "gdal_reason", "storage_facts", "write_error"]
 
 TMP_TAG = ".orthowarp-tmp-"
@@ -99,7 +100,8 @@ def ensure_folder(path):
 
 def check_destination(path, *, overwrite=False):
     """Refuse an output name before any work: an existing folder, or an existing file when not
-    ``overwrite``; create its folder if needed.
+    ``overwrite``; create its folder if needed. Stale temporaries of dead runs in the folder
+    are removed first (:func:`remove_stale_temporaries`), also when the name is refused.
 
     Raises
     ------
@@ -108,6 +110,8 @@ def check_destination(path, *, overwrite=False):
     path = os.fspath(path)
     if os.path.isdir(path):
         raise RasterIOError(f"Output '{path}' is an existing folder")
+    # what dead runs left in the folder goes whatever this run does next (refused or not)
+    remove_stale_temporaries(os.path.dirname(os.path.abspath(path)))
     if os.path.lexists(path) and not overwrite:
         raise RasterIOError(f"Output '{path}' exists (pass overwrite=True / --overwrite to replace it)")
     ensure_folder(os.path.dirname(os.path.abspath(path)))
@@ -218,42 +222,6 @@ def _new_temporary(path):
     raise FileExistsError(errno.EEXIST, "no free temporary name", tmp)
 
 
-@contextlib.contextmanager
-def atomic_path(path, *, overwrite=True, durable=True):
-    """Yield a temporary path for ``path``, published onto it only if the block succeeds.
-
-    Parameters
-    ----------
-    path : str or os.PathLike
-        The destination.
-    overwrite : bool, optional
-        Replace an existing ``path``. False: an existing one is an error, also when it appears
-        while the block runs (another run wrote it); it is never replaced.
-    durable : bool, optional
-        Sync the file's data and its folder, so that a power cut leaves the earlier file or the
-        complete new one, never a published file with missing data.
-
-    Notes
-    -----
-    The block writes the temporary and may create helper files named the temporary plus a
-    suffix; all of them are removed whatever happens. Errors raised while publishing are
-    :class:`RasterIOError` naming ``path``.
-    """
-    path = os.fspath(path)
-    with _kept_temporary(path) as tmp:
-        yield tmp
-        try:
-            _finalise(tmp, durable)
-            _publish(tmp, path, overwrite)
-            if durable:
-                _fsync_path(os.path.dirname(os.path.abspath(path)), directory=True)
-        except FileExistsError as e:
-            raise RasterIOError(f"Output '{path}' was created by someone else while this run wrote it; "
-                                "it was left as it is (pass overwrite=True / --overwrite to replace it)") from e
-        except OSError as e:
-            raise RasterIOError(f"Could not write '{path}': {describe_os_error(e)}") from e
-
-
 def _finalise(tmp, durable):
     """Sync a complete temporary (if ``durable``) and give it the usual permissions (it was
     made 0600)."""
@@ -277,72 +245,212 @@ def _remove_job(tmp):
         os.remove(tmp)
 
 
+class _Together:
+    """Outputs of one job, published together (see :func:`outputs_together`)."""
+
+    def __init__(self, overwrite, durable):
+        self.overwrite, self.durable = overwrite, durable
+        self.members = []  # [path, temporary, fd, overwrite, complete]
+        self.lock = threading.Lock()
+
+    def reserve(self, path, overwrite):
+        """A locked temporary for ``path`` (published at :meth:`publish`)."""
+        path = os.fspath(path)
+        folder = os.path.dirname(os.path.abspath(path))
+        remove_stale_temporaries(folder)
+        with self.lock:
+            if any(os.path.abspath(m[0]) == os.path.abspath(path) for m in self.members):
+                raise RasterIOError(f"Output '{path}' is written twice in one job")
+        try:
+            fd, tmp = _new_temporary(path)
+        except OSError as e:
+            raise RasterIOError(f"Cannot write into '{folder}': {describe_os_error(e)}") from e
+        member = [path, tmp, fd, bool(overwrite) and self.overwrite, False]
+        with self.lock:
+            self.members.append(member)
+        return member
+
+    def pending(self, path):
+        """The temporary of a complete, not yet published output ``path``, or None."""
+        path = os.path.abspath(os.fspath(path))
+        with self.lock:
+            for p, tmp, _, _, complete in self.members:
+                if complete and os.path.abspath(p) == path:
+                    return tmp
+        return None
+
+    def publish(self):
+        """Publish every member (they are all complete), or none: on a failure the outputs
+        already published are put back as they were."""
+        members = [m for m in self.members]
+        backups, done = {}, []
+        try:
+            for _, tmp, _, _, _ in members:
+                _finalise(tmp, self.durable)
+            for path, tmp, _, overwrite, _ in members:
+                if overwrite and os.path.lexists(path):
+                    os.link(path, tmp + ".previous")
+                    backups[path] = tmp + ".previous"
+            for path, tmp, _, overwrite, _ in members:
+                _publish(tmp, path, overwrite)
+                done.append(path)
+            if self.durable:
+                for folder in {os.path.dirname(os.path.abspath(m[0])) for m in members}:
+                    _fsync_path(folder, directory=True)
+        except OSError as e:
+            for path in done:  # roll back
+                with contextlib.suppress(OSError):
+                    if path in backups:
+                        os.replace(backups.pop(path), path)
+                    else:
+                        os.remove(path)
+            failed = members[len(done)][0] if len(done) < len(members) else members[-1][0]
+            rest = "; none of the outputs was changed" if len(members) > 1 else ""
+            if isinstance(e, FileExistsError):
+                raise RasterIOError(f"Output '{failed}' was created by someone else while this run wrote it; "
+                                    f"it was left as it is{rest} (pass overwrite=True / --overwrite to replace "
+                                    "it)") from e
+            raise RasterIOError(f"Could not write '{failed}': {describe_os_error(e)}{rest}") from e
+        finally:
+            for b in backups.values():
+                with contextlib.suppress(FileNotFoundError):
+                    os.remove(b)
+
+    def discard(self):
+        """Remove every member's temporary (and helper files) and release its lock."""
+        for _, tmp, fd, _, _ in self.members:
+            _remove_job(tmp)
+            with contextlib.suppress(OSError):
+                os.close(fd)
+        self.members = []
+
+
+_TOGETHER = contextvars.ContextVar("orthowarp_outputs_together", default=None)
+
+
 @contextlib.contextmanager
-def atomic_files(paths, *, durable=True):
+def outputs_together(*, overwrite=True, durable=True):
+    """Publish every output written inside the block together, when the block succeeds.
+
+    Each output written inside the block by orthowarp (an ortho or mosaic, its index,
+    seamlines and accuracy sidecars, a text file) is complete under its temporary name when its
+    own writer returns, but is published (renamed into place) only when the whole block ends
+    without an error; if the block fails, or any of them cannot be published, none is changed
+    (those already published are put back). Blocks nest: an inner one joins the outer.
+
+    Parameters
+    ----------
+    overwrite : bool, optional
+        False: no output of the block replaces an existing file, whatever its writer says; an
+        output that appears while the block runs (another run wrote it) is an error, and none
+        of the block's outputs is published.
+    durable : bool, optional
+        Sync each file and its folder before the block returns.
+
+    Notes
+    -----
+    The block's outputs are tied to the calling thread (a :mod:`contextvars` context): a
+    writer called on another thread publishes its output on its own. While the block runs, an
+    output complete but not yet published is read through :func:`pending_path`.
+
+    Examples
+    --------
+    >>> with outputs_together(overwrite=False):                      # doctest: +SKIP
+    ...     r = orthorectify(src, sensor, "a_ORTHO.tif", dem=dem)
+    ...     accuracy_raster("a_ACCURACY.tif", camera, pose, dem, r.crs, r.transform, r.shape)
+    """
+    outer = _TOGETHER.get()
+    if outer is not None:
+        if not overwrite and outer.overwrite:
+            raise ParamError("outputs_together(overwrite=False) inside a block that overwrites")
+        yield outer
+        return
+    together = _Together(bool(overwrite), bool(durable))
+    token = _TOGETHER.set(together)
+    try:
+        yield together
+        _TOGETHER.reset(token)
+        token = None
+        together.publish()
+    finally:
+        if token is not None:
+            _TOGETHER.reset(token)
+        together.discard()
+
+
+def pending_path(path):
+    """Where to read ``path`` now: inside :func:`outputs_together`, the temporary of an output
+    written earlier in the block and not yet published; else ``path``."""
+    together = _TOGETHER.get()
+    tmp = together.pending(path) if together is not None else None
+    return tmp if tmp is not None else os.fspath(path)
+
+
+@contextlib.contextmanager
+def atomic_path(path, *, overwrite=True, durable=True):
+    """Yield a temporary path for ``path``, published onto it only if the block succeeds.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The destination.
+    overwrite : bool, optional
+        Replace an existing ``path``. False: an existing one is an error, also when it appears
+        while the block runs (another run wrote it); it is never replaced.
+    durable : bool, optional
+        Sync the file's data and its folder, so that a power cut leaves the earlier file or the
+        complete new one, never a published file with missing data.
+
+    Notes
+    -----
+    The block writes the temporary and may create helper files named the temporary plus a
+    suffix; all of them are removed whatever happens. Errors raised while publishing are
+    :class:`RasterIOError` naming ``path``. Inside :func:`outputs_together` the file is
+    published with the block's other outputs, when that block ends.
+    """
+    with atomic_files([path], overwrite=overwrite, durable=durable) as (tmp,):
+        yield tmp
+
+
+@contextlib.contextmanager
+def atomic_files(paths, *, overwrite=True, durable=True):
     """Yield temporary paths (a list) for several outputs, published together.
 
     Every output is written under its temporary; only when the block succeeds are they
     published, the earlier files kept aside until all are in place. If one cannot be
     published, those already published are put back as they were (restored, or removed where
-    there was none), so the set appears whole or not at all.
+    there was none), so the set appears whole or not at all. ``overwrite`` as in
+    :func:`atomic_path`; inside :func:`outputs_together` they join that block's outputs.
     """
     paths = [os.fspath(p) for p in paths]
-    with contextlib.ExitStack() as stack:
-        tmps = [stack.enter_context(_kept_temporary(p)) for p in paths]
-        yield tmps
-        backups, done = [], []
+    with outputs_together(overwrite=True, durable=durable) as together:
+        members = [together.reserve(p, overwrite) for p in paths]
         try:
-            for t in tmps:
-                _finalise(t, durable)
-            for p, t in zip(paths, tmps):
-                if os.path.lexists(p):
-                    b = t + ".previous"
-                    os.link(p, b)
-                    backups.append((p, b))
-            for p, t in zip(paths, tmps):
-                os.replace(t, p)
-                done.append(p)
-            if durable:
-                for folder in {os.path.dirname(os.path.abspath(p)) for p in paths}:
-                    _fsync_path(folder, directory=True)
-        except OSError as e:
-            previous = dict(backups)
-            for p in done:  # roll back
+            yield [m[1] for m in members]
+        except BaseException:
+            with together.lock:
+                together.members = [m for m in together.members if m not in members]
+            for m in members:
+                _remove_job(m[1])
                 with contextlib.suppress(OSError):
-                    if p in previous:
-                        os.replace(previous.pop(p), p)
-                    else:
-                        os.remove(p)
-            failed = paths[len(done)] if len(done) < len(paths) else paths[-1]
-            raise RasterIOError(f"Could not write '{failed}': {describe_os_error(e)}; "
-                                "none of the outputs was changed") from e
-        finally:
-            for _, b in backups:
-                with contextlib.suppress(FileNotFoundError):
-                    os.remove(b)
+                    os.close(m[2])
+            raise
+        for m in members:
+            m[4] = True
 
 
-@contextlib.contextmanager
-def _kept_temporary(path):
-    """A locked temporary for ``path`` that the caller publishes (see :func:`atomic_files`)."""
-    folder = os.path.dirname(os.path.abspath(path))
-    remove_stale_temporaries(folder)
-    try:
-        fd, tmp = _new_temporary(path)
-    except OSError as e:
-        raise RasterIOError(f"Cannot write into '{folder}': {describe_os_error(e)}") from e
-    try:
-        yield tmp
-    finally:
-        _remove_job(tmp)
-        os.close(fd)
+def write_raster(path, array, *, transform=None, crs=None, nodata=None, compress="deflate", descriptions=None,
+                 units=None):
+    """Write a (bands, rows, cols) or (rows, cols) array as a tiled GeoTIFF, atomically.
 
-
-def write_raster(path, array, *, transform=None, crs=None, nodata=None, compress="deflate"):
-    """Write a (bands, rows, cols) or (rows, cols) array as a tiled GeoTIFF, atomically."""
+    ``descriptions`` and ``units``, where given, are one string per band (GDAL's band
+    description and unit type)."""
     from .cog import verify_tiff
 
     arr = array if array.ndim == 3 else array[None]
+    for name, values in (("descriptions", descriptions), ("units", units)):
+        if values is not None and len(values) != arr.shape[0]:
+            raise ValueError(f"write_raster: {name} needs one string per band ({arr.shape[0]}), got {len(values)}")
     profile = dict(driver="GTiff", width=arr.shape[2], height=arr.shape[1], count=arr.shape[0],
                    dtype=arr.dtype, compress=compress, tiled=True, blockxsize=256, blockysize=256)
     if transform is not None:
@@ -357,6 +465,10 @@ def write_raster(path, array, *, transform=None, crs=None, nodata=None, compress
                 warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
                 with rasterio.open(tmp, "w", **profile) as dst:
                     dst.write(arr)
+                    if descriptions is not None:
+                        dst.descriptions = tuple(descriptions)
+                    if units is not None:
+                        dst.units = tuple(units)
             verify_tiff(tmp)
         except (*GDAL_ERRORS, OSError) as e:
             raise write_error(path, tmp, e) from e

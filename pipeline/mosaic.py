@@ -811,7 +811,7 @@ class MosaicPlan:
         coarse_index = np.full((-(-rows // step), -(-cols // step)), NO_SOURCE, np.uint16) if seamlines else None
         rio_crs = rasterio.crs.CRS.from_wkt(self.crs_wkt)
         t_start = time.perf_counter() if t_start is None else t_start
-        with rasterio.Env(GDAL_CACHEMAX=256), atomic_files(outputs) as tmps:
+        with rasterio.Env(GDAL_CACHEMAX=256), atomic_files(outputs, overwrite=overwrite) as tmps:
             co = parse_creation_options(creation_options)
             kw = dict(level=compress_level or 6, block_size=co["block"], bigtiff=co["bigtiff"], threads=co["threads"])
             writers = [CogWriter(tmps[0], width=cols, height=rows, count=self.count, dtype=self.dtype, crs=rio_crs,

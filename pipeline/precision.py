@@ -533,12 +533,13 @@ def mosaic_accuracy_raster(dst, images, index, dem, crs, transform, shape, *, po
 
     from ..sensor import SensorModel
     from .geometry import SensorGeometry
+    from .io import pending_path
     from .mosaic import NO_SOURCE
 
     grid, (rows, cols) = _cell_grid(transform, shape, step)
     bands = 2 if _measure(measure) == "ce90" else 3
     try:
-        with rasterio.open(index) as ds:
+        with rasterio.open(pending_path(index)) as ds:  # maybe not yet published (outputs_together)
             if (ds.height, ds.width) != tuple(shape):
                 raise ParamError(f"Index '{index}' is {ds.height} x {ds.width} pixels, the mosaic {shape[0]} x {shape[1]}")
             # the pixel at each cell's centre (a cell of step x step pixels; the last may be short)

@@ -24,18 +24,28 @@ it to its own device context and hands it to the COG encoder, so one process wri
   ``threads + 1`` tiles per process are in flight (the slots). So host memory does not grow with
   the mosaic or the number of images.
 - A worker's exception is raised in the caller (same type where it pickles); a worker that
-  dies is an error naming its exit code. Workers are daemons: none outlives the caller.
+  dies is an error naming its exit code.
+- No worker outlives the caller, however the caller ends: they are daemons (a normal exit
+  ends them), and each watches its parent (:func:`_end_with_parent`), so a caller killed by
+  SIGKILL or the OOM killer takes its workers with it within a fraction of a second. The
+  shared file holds an ``flock`` for as long as its caller lives; one left by a caller that
+  died is removed by the next :class:`ProcessTiles` (:func:`remove_stale_segments`).
 """
 
 from __future__ import annotations
 
 import collections
+import contextlib
+import fcntl
 import mmap
 import multiprocessing
 import os
 import pickle
 import queue
+import sys
 import tempfile
+import threading
+import time
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -43,9 +53,47 @@ import numpy as np
 from ..errors import OrthowarpError
 from .ortho import _check_cancel
 
-__all__ = ["ProcessTiles", "TileDealer", "tile_runs"]
+__all__ = ["ProcessTiles", "TileDealer", "tile_runs", "remove_stale_segments"]
 
 _POLL_S = 0.5  # how often a wait for results checks that the workers live
+_PARENT_POLL_S = 0.2  # how often a worker checks that its parent lives
+SEGMENT_PREFIX = "orthowarp-tiles-"  # the shared files: <prefix><pid>-<random>
+
+
+def _segment_folder():
+    """Where the shared files go: /dev/shm (memory) where there is one."""
+    return "/dev/shm" if os.path.isdir("/dev/shm") else tempfile.gettempdir()
+
+
+def remove_stale_segments(folder=None):
+    """Remove the shared files of :class:`ProcessTiles` whose caller is gone (no process holds
+    their ``flock``); returns the paths removed. ``folder``: default /dev/shm (or the
+    temporary folder where there is none)."""
+    folder = _segment_folder() if folder is None else folder
+    try:
+        names = [n for n in os.listdir(folder) if n.startswith(SEGMENT_PREFIX)]
+    except OSError:
+        return []
+    removed = []
+    for name in names:
+        path = os.path.join(folder, name)
+        try:
+            fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW)
+        except OSError:
+            continue
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)
+            continue  # a live caller holds it
+        try:
+            os.unlink(path)
+            removed.append(path)
+        except OSError:
+            pass
+        finally:
+            os.close(fd)
+    return removed
 
 
 class ProcessTiles:
@@ -69,10 +117,15 @@ class ProcessTiles:
         ctx = multiprocessing.get_context("spawn")  # no fork of a process holding CUDA and threads
         self._results = ctx.Queue()
         self._tasks = [ctx.SimpleQueue() for _ in range(self.n)]
+        # a worker asks the kernel for SIGKILL when its parent dies only where the parent's thread
+        # starting it is the main thread: the kernel ties that signal to the thread, not the process
+        on_main = threading.current_thread() is threading.main_thread()
         self._procs = [ctx.Process(target=_worker_main, name=f"orthowarp-tiles-{w}", daemon=True,
-                                   args=(w, self.device, self.threads, self._tasks[w], self._results))
+                                   args=(w, self.device, self.threads, self._tasks[w], self._results, os.getpid(),
+                                         on_main))
                        for w in range(self.n)]
-        self._file = self._map = None
+        self._file = self._map = self._fd = None
+        remove_stale_segments()
         self.worker_info = []  # per worker at the end: pixels per image, stage spans, builds, peak RSS
         for p in self._procs:
             p.start()
@@ -95,13 +148,11 @@ class ProcessTiles:
         n_slots = (self.threads + 1) * self.n
         blob = pickle.dumps(plan, protocol=pickle.HIGHEST_PROTOCOL)
         self._base = -(-len(blob) // mmap.PAGESIZE) * mmap.PAGESIZE
-        fd, path = tempfile.mkstemp(prefix="orthowarp-tiles-", dir="/dev/shm" if os.path.isdir("/dev/shm") else None)
-        self._file = path
-        try:
-            os.ftruncate(fd, self._base + self._slot_bytes * n_slots)
-            self._map = mmap.mmap(fd, self._base + self._slot_bytes * n_slots)
-        finally:
-            os.close(fd)
+        fd, path = tempfile.mkstemp(prefix=f"{SEGMENT_PREFIX}{os.getpid()}-", dir=_segment_folder())
+        self._file, self._fd = path, fd
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # held while this process lives (see remove_stale_segments)
+        os.ftruncate(fd, self._base + self._slot_bytes * n_slots)
+        self._map = mmap.mmap(fd, self._base + self._slot_bytes * n_slots)
         self._map[:len(blob)] = blob
         self._free = list(range(n_slots))
         for q in self._tasks:
@@ -201,11 +252,12 @@ class ProcessTiles:
             self._map.close()
             self._map = None
         if self._file is not None:
-            try:
+            with contextlib.suppress(FileNotFoundError):
                 os.unlink(self._file)
-            except FileNotFoundError:
-                pass
             self._file = None
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
         self._results.close()
 
 
@@ -405,10 +457,35 @@ def _peak_rss_kb():
         return None
 
 
-def _worker_main(w, device, threads, tasks, results):
+def _end_with_parent(parent, kernel_signal):
+    """End this process as soon as its parent (pid ``parent``) is gone, however it ended: on
+    Linux, with ``kernel_signal``, the kernel sends SIGKILL (prctl PR_SET_PDEATHSIG) and a
+    watcher thread checks the parent every 0.2 s everywhere (a parent that is gone leaves its
+    children to another, so ``getppid`` changes)."""
+    if kernel_signal and sys.platform.startswith("linux"):
+        import ctypes
+        import signal
+
+        with contextlib.suppress(OSError, AttributeError):
+            libc = ctypes.CDLL(None, use_errno=True)
+            libc.prctl(1, int(signal.SIGKILL), 0, 0, 0)  # PR_SET_PDEATHSIG
+    if os.getppid() != parent:  # gone before the request above took effect
+        os._exit(1)
+
+    def watch():
+        while True:
+            time.sleep(_PARENT_POLL_S)
+            if os.getppid() != parent:
+                os._exit(1)
+
+    threading.Thread(target=watch, name="orthowarp-parent-watch", daemon=True).start()
+
+
+def _worker_main(w, device, threads, tasks, results, parent, kernel_signal):
     """A tile process: load the kernels, take the plan, compute tiles into their slots."""
     import signal
 
+    _end_with_parent(parent, kernel_signal)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # an interrupt is the caller's to handle (it ends us)
     try:
         import rasterio

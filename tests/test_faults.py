@@ -289,3 +289,135 @@ def test_a_failed_adjustment_is_never_written(tmp_path):
     paths = write_adjustment(res, block, tmp_path / "out", plots=False)
     report = (tmp_path / "out" / "report.json").read_text()
     assert "NaN" not in report and "Infinity" not in report and os.path.exists(paths["exterior"])
+
+
+def _mosaic_args(tmp_path, out, *extra):
+    """``orthowarp mosaic`` of the one small frame of :func:`_frame_job` into ``out``."""
+    args = _frame_job(tmp_path)
+    return ["-q", "mosaic", *args, "--out", str(out), "--index", str(out.with_name("index.tif")), *extra]
+
+
+def test_concurrent_mosaic_writers_never_replace_silently(tmp_path):
+    """Two mosaics written to one --out (and --index) at once without --overwrite: one is
+    published, the other run fails naming the file, neither output is a mix of the two and no
+    temporary is left."""
+    out = tmp_path / "out" / "m.tif"
+    args = _mosaic_args(tmp_path, out, "--resolution", "0.01", "--tile-size", "64")
+    runs = [_cli(args) for _ in range(2)]
+    outs = [p.communicate(timeout=300) for p in runs]
+    assert sorted(p.returncode for p in runs) == [0, 1], outs
+    line = _error_line(outs[[p.returncode for p in runs].index(1)][1])
+    assert ("m.tif" in line or "index.tif" in line) and ("exists" in line or "created by someone else" in line), line
+    assert _temporaries(tmp_path / "out") == []
+    data, mask = _pixels(out)
+    ref = tmp_path / "ref" / "m.tif"
+    res = CliRunner().invoke(main, _mosaic_args(tmp_path, ref, "--resolution", "0.01", "--tile-size", "64"))
+    assert res.exit_code == 0, res.output
+    ref_data, ref_mask = _pixels(ref)
+    np.testing.assert_array_equal(data, ref_data)
+    np.testing.assert_array_equal(mask, ref_mask)
+    np.testing.assert_array_equal(_pixels(out.with_name("index.tif"))[0], _pixels(ref.with_name("index.tif"))[0])
+
+
+def test_a_mosaic_appearing_while_a_run_writes_is_never_replaced(tmp_path, monkeypatch):
+    """The race without timing: another run publishes the mosaic after this run's checks; this
+    run then fails naming it, publishes none of its outputs (the index neither) and leaves the
+    other run's file as it was."""
+    from orthowarp.pipeline import mosaic as pm
+
+    out = tmp_path / "m.tif"
+    real_writer = pm.CogWriter
+
+    def writer_after_another_run(*a, **k):  # the mosaic's files are being written
+        if not out.exists():
+            out.write_bytes(b"the other run's mosaic")
+        return real_writer(*a, **k)
+
+    monkeypatch.setattr(pm, "CogWriter", writer_after_another_run)
+    res = CliRunner().invoke(main, _mosaic_args(tmp_path, out))
+    assert res.exit_code == 1
+    assert "m.tif' was created by someone else" in res.output and "none of the outputs was changed" in res.output
+    assert out.read_bytes() == b"the other run's mosaic"
+    assert not (tmp_path / "index.tif").exists() and _temporaries(tmp_path) == []
+
+
+def _failing_accuracy(monkeypatch, name):
+    """Make pipeline.precision's ``name`` fail as a full disk would, after writing its file."""
+    import errno
+
+    from orthowarp.errors import RasterIOError
+    from orthowarp.pipeline import precision
+
+    real = getattr(precision, name)
+
+    def fail(dst, *a, **k):
+        real(dst, *a, **k)  # written in full, and still not published: the job failed
+        raise RasterIOError(f"Could not write '{dst}': {os.strerror(errno.ENOSPC)}")
+
+    monkeypatch.setattr(precision, name, fail)
+
+
+@pytest.mark.parametrize("earlier", [False, True], ids=["empty-folder", "over-earlier-outputs"])
+def test_an_ortho_and_its_accuracy_raster_are_published_together_or_not_at_all(tmp_path, monkeypatch, earlier):
+    args = _frame_job(tmp_path) + ["--out-dir", str(tmp_path / "out"), "--accuracy", "--accuracy-step", "4"]
+    ortho, acc = tmp_path / "out" / "img_ORTHO.tif", tmp_path / "out" / "img_ACCURACY.tif"
+    if earlier:
+        res = CliRunner().invoke(main, ["-q", "ortho", *args, "--resolution", "0.2"])
+        assert res.exit_code == 0, res.output
+        before = ortho.read_bytes(), acc.read_bytes()
+    _failing_accuracy(monkeypatch, "accuracy_raster")
+    res = CliRunner().invoke(main, ["-q", "ortho", *args, "--resolution", "0.1", "--overwrite"])
+    assert res.exit_code == 1 and "img_ACCURACY.tif': No space left on device" in res.output, res.output
+    if earlier:
+        assert (ortho.read_bytes(), acc.read_bytes()) == before
+    else:
+        assert os.listdir(tmp_path / "out") == []
+    assert _temporaries(tmp_path / "out") == []
+    monkeypatch.undo()
+    res = CliRunner().invoke(main, ["-q", "ortho", *args, "--resolution", "0.1", "--overwrite"])
+    assert res.exit_code == 0, res.output
+    with rasterio.open(ortho) as o, rasterio.open(acc) as a:  # the pair: one grid, cells of 4 x 4 pixels
+        assert o.crs == a.crs and a.res == pytest.approx((0.4, 0.4)) and o.res == pytest.approx((0.1, 0.1))
+        assert (a.bounds.left, a.bounds.top) == pytest.approx((o.bounds.left, o.bounds.top))
+
+
+def test_a_mosaic_its_index_and_accuracy_raster_are_published_together_or_not_at_all(tmp_path, monkeypatch):
+    out = tmp_path / "out" / "m.tif"
+    args = _mosaic_args(tmp_path, out, "--accuracy", "--accuracy-step", "4", "--seamlines",
+                        str(tmp_path / "out" / "seams.geojson"))
+    res = CliRunner().invoke(main, [*args, "--resolution", "0.2"])
+    assert res.exit_code == 0, res.output
+    names = ["m.tif", "index.tif", "seams.geojson", "m_ACCURACY.tif"]
+    before = {n: (tmp_path / "out" / n).read_bytes() for n in names}
+    _failing_accuracy(monkeypatch, "mosaic_accuracy_raster")
+    res = CliRunner().invoke(main, [*args, "--resolution", "0.1", "--overwrite"])
+    assert res.exit_code == 1 and "m_ACCURACY.tif': No space left on device" in res.output, res.output
+    assert {n: (tmp_path / "out" / n).read_bytes() for n in names} == before
+    assert sorted(os.listdir(tmp_path / "out")) == sorted(names)
+    monkeypatch.undo()
+    res = CliRunner().invoke(main, [*args, "--resolution", "0.1", "--overwrite"])  # the accuracy read the new index
+    assert res.exit_code == 0, res.output
+    with rasterio.open(out) as m, rasterio.open(tmp_path / "out" / "m_ACCURACY.tif") as a:
+        assert a.res == pytest.approx((0.4, 0.4)) and m.res == pytest.approx((0.1, 0.1))
+        assert (a.bounds.left, a.bounds.top) == pytest.approx((m.bounds.left, m.bounds.top))
+
+
+def test_a_refused_mosaic_still_removes_the_temporaries_of_dead_runs(tmp_path):
+    """A run killed outright leaves its temporaries; the next run into that folder removes
+    them even when it refuses to run (its output exists and there is no --overwrite)."""
+    out = tmp_path / "m.tif"
+    res = CliRunner().invoke(main, _mosaic_args(tmp_path, out))
+    assert res.exit_code == 0, res.output
+    code = ("import sys, time\nfrom orthowarp.pipeline.io import atomic_files\n"
+            f"with atomic_files([{str(out)!r}, {str(tmp_path / 'index.tif')!r}]) as tmps:\n"
+            "    open(tmps[0] + '.blocks', 'w').close()\n"
+            "    print(*tmps, flush=True)\n    time.sleep(600)\n")
+    p = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    _STARTED.append(p)
+    tmps = p.stdout.readline().split()
+    p.kill()
+    p.wait()
+    assert len(_temporaries(tmp_path)) == 3 and all(os.path.exists(t) for t in tmps)
+    res = CliRunner().invoke(main, _mosaic_args(tmp_path, out))
+    assert res.exit_code == 1 and "exists" in res.output
+    assert _temporaries(tmp_path) == []

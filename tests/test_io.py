@@ -192,3 +192,57 @@ def test_gdal_reason_digs_out_the_cause():
             raise OSError("Read failed. See previous exception for details.") from inner
     except OSError as e:
         assert owio.gdal_reason(e) == "TIFFReadEncodedTile() failed"
+
+
+def test_outputs_together_publish_all_or_none(tmp_path):
+    """Outputs written inside one block appear together when it ends: none while it runs
+    (another output of the block is read from its temporary through pending_path), none when
+    it fails, and an output that appeared meanwhile is never replaced without overwrite."""
+    a, b = tmp_path / "a.tif", tmp_path / "b.txt"
+    with owio.outputs_together(overwrite=False):
+        owio.write_text(a, "A1")
+        assert not a.exists() and open(owio.pending_path(a)).read() == "A1"
+        assert owio.pending_path(b) == os.fspath(b)  # not written (yet): the name itself
+        owio.write_text(b, "B1")
+        assert not b.exists()
+    assert a.read_text() == "A1" and b.read_text() == "B1" and _temporaries(tmp_path) == []
+    with pytest.raises(ZeroDivisionError), owio.outputs_together():
+        owio.write_text(a, "A2")
+        1 / 0
+    assert a.read_text() == "A1" and _temporaries(tmp_path) == []
+    c = tmp_path / "c.txt"
+    with pytest.raises(RasterIOError, match=r"b.txt' was created by someone else.*none of the outputs was changed"):
+        with owio.outputs_together(overwrite=False):
+            owio.write_text(c, "C")   # (a writer that would overwrite: the block's overwrite=False wins)
+            owio.write_text(b, "B2")
+    assert not c.exists() and b.read_text() == "B1" and _temporaries(tmp_path) == []
+    with owio.outputs_together(overwrite=True):  # nested blocks join the outer one
+        with owio.outputs_together():
+            owio.write_text(a, "A3")
+        assert a.read_text() == "A1"
+    assert a.read_text() == "A3"
+    with pytest.raises(RasterIOError, match="written twice"), owio.outputs_together():
+        owio.write_text(a, "A4")
+        owio.write_text(a, "A5")
+    assert a.read_text() == "A3" and _temporaries(tmp_path) == []
+
+
+def test_refusing_a_destination_removes_stale_temporaries(tmp_path):
+    """check_destination clears what dead runs left in the folder before it refuses a name."""
+    import subprocess
+    import sys
+
+    (tmp_path / "x.tif").write_text("kept")
+    code = ("import time\nfrom orthowarp.pipeline.io import atomic_path\n"
+            f"with atomic_path({str(tmp_path / 'x.tif')!r}) as t:\n    print(t, flush=True)\n    time.sleep(600)\n")
+    p = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    try:
+        p.stdout.readline()
+        owio.check_destination(tmp_path / "y.tif")  # a live run's temporary stays
+        assert len(_temporaries(tmp_path)) == 1
+    finally:
+        p.kill()
+        p.wait()
+    with pytest.raises(RasterIOError, match="exists"):
+        owio.check_destination(tmp_path / "x.tif")
+    assert _temporaries(tmp_path) == [] and (tmp_path / "x.tif").read_text() == "kept"

@@ -258,3 +258,68 @@ def test_a_process_starts_the_next_run_nobody_has_started():
     assert d.next(1) == (4, (3,), (), None)  # taken from run 2's end: image 3 not dealt to 0 yet
     assert d.next(1) == (3, (2, 3), (), (0, (2,)))  # run 2's last use of image 2, held by 0
     assert d.next(0) is None and d.next(1) is None
+
+
+def _alive(pid):
+    """Whether process ``pid`` runs (a zombie waiting for its reaper counts as ended)."""
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            state = next((line.split()[1] for line in f if line.startswith("State:")), "")
+    except OSError:
+        return False
+    return state not in ("Z", "X")
+
+
+def _children(pid):
+    """The pids of ``pid``'s children (Linux /proc)."""
+    kids = []
+    for task in os.listdir(f"/proc/{pid}/task"):
+        with open(f"/proc/{pid}/task/{task}/children") as f:
+            kids += [int(k) for k in f.read().split()]
+    return kids
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self/task"), reason="needs Linux /proc")
+@pytest.mark.parametrize("signal_name", ["SIGKILL", "SIGSEGV"])
+def test_workers_and_shared_file_do_not_outlive_a_caller_killed_outright(tmp_path, signal_name):
+    """A caller killed without a chance to clean up (SIGKILL: the OOM killer; a crash) takes
+    every process it started with it (the tile workers, multiprocessing's resource tracker),
+    and the shared file it leaves is removed by the next ProcessTiles (here: by
+    remove_stale_segments, which that runs), while a live caller's file stays."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from orthowarp.pipeline.tileprocs import remove_stale_segments
+
+    script = (
+        "import os, sys, time\n"
+        f"sys.path.insert(0, {os.path.dirname(__file__)!r})\n"
+        "from test_tileprocs import StandInPlan\n"
+        "from orthowarp.pipeline.tileprocs import ProcessTiles\n"
+        "procs = ProcessTiles(2, 'cpu', threads=1)\n"
+        "procs.start_plan(StandInPlan(), (32, 32), with_source=False)\n"
+        "print(procs._file, *[p.pid for p in procs._procs], flush=True)\n"
+        "time.sleep(600)\n")
+    caller = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
+    try:
+        shared, *workers = caller.stdout.readline().split()
+        workers = [int(w) for w in workers]
+        assert len(workers) == 2 and all(_alive(w) for w in workers)
+        started = set(_children(caller.pid))  # the workers and the resource tracker
+        assert set(workers) <= started and len(started) >= 3
+        assert shared not in remove_stale_segments()  # a live caller's file stays
+        assert os.path.exists(shared)
+        caller.send_signal(getattr(signal, signal_name))
+        caller.wait(timeout=30)
+        deadline = time.monotonic() + 30
+        while any(_alive(p) for p in started) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not [p for p in started if _alive(p)], "processes outlived their caller"
+        assert os.path.exists(shared)  # left by the dead caller ...
+        assert shared in remove_stale_segments()  # ... and removed by the next one
+        assert not os.path.exists(shared)
+    finally:
+        caller.kill()
+        caller.wait()
