@@ -421,3 +421,23 @@ def test_a_refused_mosaic_still_removes_the_temporaries_of_dead_runs(tmp_path):
     res = CliRunner().invoke(main, _mosaic_args(tmp_path, out))
     assert res.exit_code == 1 and "exists" in res.output
     assert _temporaries(tmp_path) == []
+
+
+@pytest.mark.parametrize("earlier", [False, True], ids=["empty-folder", "over-earlier-outputs"])
+def test_full_disk_for_the_accuracy_raster_publishes_no_ortho(tmp_path, earlier):
+    """The ortho fits under the file-size limit and its accuracy raster does not (185 vs 391 kB
+    here): the run fails naming the accuracy raster and publishes neither."""
+    args = _frame_job(tmp_path) + ["--out-dir", str(tmp_path / "out"), "--resolution", "0.02", "--accuracy",
+                                   "--accuracy-step", "1", "--overwrite"]
+    if earlier:
+        res = CliRunner().invoke(main, ["-q", "ortho", *args[:-6], "--resolution", "0.05", "--accuracy"])
+        assert res.exit_code == 0, res.output
+    before = {n: (tmp_path / "out" / n).read_bytes() for n in os.listdir(tmp_path / "out")} if earlier else {}
+    p = _cli(["-q", "ortho", *args], fsize=280_000)
+    _, err = p.communicate(timeout=300)
+    assert p.returncode == 1, err
+    line = _error_line(err)
+    assert "img_ACCURACY.tif'" in line and ("File too large" in line or "ulimit -f" in line), line
+    after = {n: (tmp_path / "out" / n).read_bytes() for n in os.listdir(tmp_path / "out")} if earlier else {}
+    assert after == before and (earlier or not os.listdir(tmp_path / "out"))
+    assert _temporaries(tmp_path / "out") == []
