@@ -269,3 +269,33 @@ def accuracy_kernel(
     out[0, start + k] = wp.float32(wp.sqrt(wp.max(co[0, 0], zero)))
     out[1, start + k] = wp.float32(wp.sqrt(wp.max(co[1, 1], zero)))
     out[2, start + k] = wp.float32(wp.sqrt(wp.max(cx[2, 2], zero)))
+
+
+@wp.kernel(enable_backward=False)
+def hidden_facets_kernel(
+    pose: FramePoseData,
+    x: wp.array(dtype=wp.vec3d),
+    gx0: wp.array(dtype=wp.vec3d),
+    gx1: wp.array(dtype=wp.vec3d),
+    basis: wp.array(dtype=wp.mat33d),
+    slope: wp.array(dtype=wp.vec2d),
+    start: wp.int32,
+    out: wp.array2d(dtype=wp.float32),
+):
+    """NaN into columns start + k of ``out`` where the DEM's tangent plane at the cell's ground
+    point x faces away from the camera (or contains the ray): the image does not see that
+    ground, the terrain just in front of it along the ray stands above the ray (see
+    :func:`orthowarp.pipeline.precision.facing`). The ray's direction at the point is the
+    pixel's null direction, gx0 x gx1 (the gradients of the column and the row by the point:
+    refraction included), turned toward the projection centre."""
+    k = wp.tid()
+    v = wp.cross(gx0[k], gx1[k])
+    if wp.dot(v, pose.center - x[k]) < wp.float64(0.0):
+        v = -v
+    e = wp.transpose(basis[k]) * v  # east, north, up
+    s = slope[k]
+    if not (e[2] - s[0] * e[0] - s[1] * e[1] > wp.float64(0.0)):
+        nan = wp.float32(wp.nan)
+        out[0, start + k] = nan
+        out[1, start + k] = nan
+        out[2, start + k] = nan

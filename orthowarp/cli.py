@@ -262,8 +262,10 @@ def demo(out_dir, device, no_chain):
               help="With --accuracy: each image's pose covariance from 'orthowarp adjust' (its pose_cov.json, "
                    "the exterior file's parameters), instead of --pose-sigma.")
 @click.option("--accuracy-measure", type=click.Choice(["sigma", "ce90"]), default="sigma", show_default=True,
-              help="With --accuracy: three bands sigma x, y, up (m), or two bands CE90 (the radius holding 90 % of "
-                   "the horizontal error) and LE90 (m).")
+              help="With --accuracy: three bands sigma x, y (in the output CRS's units: m, or deg where it is "
+                   "longitude/latitude) and up (m), or two bands CE90 (the radius holding 90 % of the horizontal "
+                   "error) and LE90 (m); each band's description says which. Ground that faces away from the image "
+                   "(hidden by its own slope) is NaN.")
 @click.option("--accuracy-step", type=click.IntRange(1, 4096), default=16, show_default=True,
               help="With --accuracy: ortho pixels per accuracy pixel, each way (1: full resolution).")
 @click.option("--pixel-sigma", type=float, default=0.5, show_default=True,
@@ -749,8 +751,8 @@ def _frame_orientations(images, int_param, ext_param, crs, ids=None):
                    "nvCOMP at --compress-level 1-4 where installed, else warp; and the host cores at once); "
                    "auto: warp on a GPU, host on the CPU.")
 @click.option("--accuracy", is_flag=True,
-              help="Also write <mosaic>_ACCURACY.tif: the predicted accuracy (sigma x, y, up in m, or CE90 and "
-                   "LE90) of each --accuracy-step x --accuracy-step cell from the image its centre was taken from "
+              help="Also write <mosaic>_ACCURACY.tif: the predicted accuracy (sigma x, y in the CRS's units and up "
+                   "in m, or CE90 and LE90 in m) of each --accuracy-step x --accuracy-step cell from the image its centre was taken from "
                    "(needs --index).")
 @click.option("--pose-sigma", default=_FRAME_POSE_SIGMA, show_default=True, metavar="SX,SY,SZ,SA,SB,SC",
               help="With --accuracy: frame images' pose standard deviations (m, m, m, deg, deg, deg; GNSS/INS poses "

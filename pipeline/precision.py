@@ -5,8 +5,18 @@ For every ``step`` x ``step`` cell of the ortho's grid, the ground point at the 
 (its height from the DEM, the DEM's slope from its bilinear surface) is projected into the
 image; where the image sees it, its covariance from one image on the DEM ([P4]'s
 monoplotting) is turned into the output CRS and written as three float32 bands: sigma x,
-sigma y (the output CRS's axes) and sigma up (m; NaN where the image does not see the point).
-The raster's pixels are ``step`` ortho pixels, with the ortho's origin.
+sigma y (along the output CRS's axes, in its axis unit: m for a projected CRS in metres, deg
+for a longitude/latitude one) and sigma up (m); NaN where the image does not see the point.
+The bands carry their descriptions and units (:func:`band_descriptions`). The raster's pixels
+are ``step`` ortho pixels, with the ortho's origin.
+
+"Not seen" includes ground hidden by its own slope: where the DEM's tangent plane at the point
+faces away from the camera (:func:`facing`), the ray passes under the terrain just in front of
+the point; the monoplot's equations still solve there, for ground the image does not show,
+with sigmas that explode toward the grazing ray (the plane containing the ray, where the
+equations are singular). Such cells are NaN. On the seen side of a grazing ray the large
+sigmas are right: the horizontal sigma grows as 1 / sin(the angle between the ray and the
+terrain plane), e.g. 134 m north at 0.7 deg on a steep slope at the far edge of an aerial frame.
 
 For frame images the whole computation runs on the device
 (:func:`frame_window_sigmas`, :mod:`orthowarp.kernels.precision`): the cells' ground points
@@ -24,16 +34,18 @@ import time
 
 import numpy as np
 from affine import Affine
-from pyproj import Transformer
+from pyproj import CRS, Transformer
 
 from ..adjust.precision import INPUT_STEPS, PrecisionResult, _square, cov_size, moved_pose, pose_inputs
 from ..errors import ParamError
 from ..geodesy import WGS84_A, WGS84_E2
+from ..kernels.precision import hidden_facets_kernel
 from .dem import as_dem
 from .io import write_raster
 
 __all__ = ["accuracy_raster", "scene_accuracy_raster", "mosaic_accuracy_raster", "frame_window_sigmas",
-           "raw_covariance", "scene_cell_sigmas", "scene_monoplot_covariance", "SCENE_INPUTS"]
+           "raw_covariance", "scene_cell_sigmas", "scene_monoplot_covariance", "SCENE_INPUTS", "band_descriptions",
+           "facing"]
 
 # a pushbroom scene's orientation inputs, constant over the scene: the orbit's offset in the
 # orbital frame (m), the attitude's offsets (deg) and the look angles' offsets (deg)
@@ -106,8 +118,6 @@ def scene_monoplot_covariance(scene, points, slopes, *, orientation_cov, pixel_s
     PrecisionResult
         Covariances (n, 3, 3) in each point's own east, north, up frame (m).
     """
-    from .geometry import project
-
     pts = np.asarray(points, float)
     if pts.ndim != 2 or pts.shape[1] != 3 or not np.isfinite(pts).all():
         raise ParamError(f"points must be finite (n, 3) longitude, latitude, height, got shape {pts.shape}")
@@ -117,6 +127,15 @@ def scene_monoplot_covariance(scene, points, slopes, *, orientation_cov, pixel_s
     cov_l = _square("orientation_cov", orientation_cov, len(SCENE_INPUTS))
     if not (np.isfinite(pixel_sigma) and pixel_sigma >= 0 and np.isfinite(dem_sigma) and dem_sigma >= 0):
         raise ParamError(f"pixel_sigma and dem_sigma must be finite and >= 0, got {pixel_sigma}, {dem_sigma}")
+    cov, _ = _scene_monoplot(scene, pts, slopes, cov_l, pixel_sigma, dem_sigma, refraction, device)
+    return PrecisionResult(pts, cov)
+
+
+def _scene_monoplot(scene, pts, slopes, cov_l, pixel_sigma, dem_sigma, refraction, device):
+    """:func:`scene_monoplot_covariance`'s covariances (n, 3, 3) and its ``F_X`` (n, 3, 3:
+    rows d(col, row)/d(east, north, up) and the height condition), inputs checked."""
+    from .geometry import project
+
     n, m = len(pts), len(SCENE_INPUTS)
 
     def pixels(sc, lon_lat_h):
@@ -142,7 +161,7 @@ def scene_monoplot_covariance(scene, points, slopes, *, orientation_cov, pixel_s
     c_in[m:m + 2, m:m + 2] = pixel_sigma**2 * np.eye(2)
     c_in[m + 2, m + 2] = dem_sigma**2
     a = -np.linalg.solve(f_x, f_l)
-    return PrecisionResult(pts, a @ c_in @ np.transpose(a, (0, 2, 1)))
+    return a @ c_in @ np.transpose(a, (0, 2, 1)), f_x
 
 
 
@@ -272,6 +291,43 @@ def raw_covariance(camera, pose, *, pose_cov, camera_cov=None, camera_params=())
     return m @ c_in @ m.T
 
 
+def facing(to_sensor, slopes):
+    """Whether the terrain's tangent plane at ground points faces the sensor, ``n . v > 0``:
+    ``n = (-s_e, -s_n, 1)`` its upward normal (``slopes`` (n, 2): rise per metre east, north),
+    ``v`` (n, 3: east, north, up) the ray's direction at the point toward the sensor. The ray
+    ``X0 + t v`` stands ``t n . v`` above that plane, so where ``n . v < 0`` the terrain just in
+    front of the point rises above the ray: its own slope hides the point from the sensor
+    (the monoplot's equations still have a solution there, for ground the image does not
+    see). At ``n . v = 0`` the ray grazes the terrain and the monoplot's conditions are
+    singular: on the seen side the horizontal sigma grows without bound, as
+    1 / sin(the angle between the ray and the terrain plane)."""
+    v = np.asarray(to_sensor, float)
+    s = np.asarray(slopes, float)
+    return v[:, 2] - s[:, 0] * v[:, 0] - s[:, 1] * v[:, 1] > 0.0
+
+
+_UNIT_ABBREV = {"metre": "m", "meter": "m", "degree": "deg", "US survey foot": "ftUS", "foot": "ft"}
+
+
+def band_descriptions(crs, measure="sigma"):
+    """(descriptions, units) of an accuracy raster's bands, one string each, for rasterio's
+    ``descriptions`` and ``units``: ``measure="sigma"``: sigma x and sigma y along the output
+    CRS's own axes, in its axis unit (m for UTM; deg for a longitude/latitude CRS), and sigma
+    up (m); ``"ce90"``: CE90 and LE90 (m on the ground)."""
+    if _measure(measure) == "ce90":
+        return (("CE90: radius holding 90% of the horizontal error (m)", "LE90: 90% vertical error, 1.6449 sigma up (m)"),
+                ("m", "m"))
+    axes = CRS(crs).axis_info
+    x = next((a for a in axes if a.direction.lower() in ("east", "west")), axes[0] if axes else None)
+    y = next((a for a in axes if a.direction.lower() in ("north", "south")), axes[1] if len(axes) > 1 else None)
+    names, units = [], []
+    for label, a in (("x", x), ("y", y)):
+        u = _UNIT_ABBREV.get(a.unit_name, a.unit_name) if a is not None else "m"
+        names.append(f"sigma {label}: {a.name.lower()} ({u})" if a is not None else f"sigma {label} ({u})")
+        units.append(u)
+    return (*names, "sigma up (m)"), (*units, "m")
+
+
 def _check_sigmas(pixel_sigma, dem_sigma):
     if not (np.isfinite(pixel_sigma) and pixel_sigma >= 0 and np.isfinite(dem_sigma) and dem_sigma >= 0):
         raise ParamError(f"pixel_sigma and dem_sigma must be finite and >= 0, got {pixel_sigma}, {dem_sigma}")
@@ -279,7 +335,7 @@ def _check_sigmas(pixel_sigma, dem_sigma):
 
 def frame_window_sigmas(geometry, crs, cells, window, c_raw, *, pixel_sigma=0.5, dem_sigma=0.0, measure="sigma",
                         nodes=32, chunk=None, timings=None):
-    """Predicted sigma x, y (the axes of ``crs``) and up (m) of the ground under a window of
+    """Predicted sigma x, y (the axes of ``crs``, in its unit) and up (m) of the ground under a window of
     accuracy cells seen by one frame image, on the geometry's device
     (:mod:`orthowarp.kernels.precision`).
 
@@ -297,7 +353,7 @@ def frame_window_sigmas(geometry, crs, cells, window, c_raw, *, pixel_sigma=0.5,
     pixel_sigma, dem_sigma : float
         As for :func:`~orthowarp.adjust.precision.monoplot_covariance`.
     measure : {"sigma", "ce90"}, optional
-        What the rows hold: sigma x, y (the axes of ``crs``) and up (m); or CE90 (the radius
+        What the rows hold: sigma x, y (the axes of ``crs``, in its unit) and up (m); or CE90 (the radius
         holding 90 % of the horizontal error, m on the ground), LE90 (1.6449 sigma up) and NaN.
     nodes : int, optional
         Cells between the exact (PROJ) nodes of the cells' positions; between them the
@@ -313,7 +369,8 @@ def frame_window_sigmas(geometry, crs, cells, window, c_raw, *, pixel_sigma=0.5,
     Returns
     -------
     ndarray (3, rows, cols) float32
-        NaN where the image does not see the cell's ground point.
+        NaN where the image does not see the cell's ground point: off the image or the DEM, or
+        on terrain whose slope faces away from the camera (:func:`facing`).
     """
     import warp as wp
 
@@ -388,6 +445,8 @@ def frame_window_sigmas(geometry, crs, cells, window, c_raw, *, pixel_sigma=0.5,
                   inputs=[pix, gx0, gx1, gr0, gr1, gk0, gk1, basis, slope, to_out, c_raw,
                           float(pixel_sigma) ** 2, float(dem_sigma) ** 2, width, height, table, start],
                   outputs=[out])
+        wp.launch(hidden_facets_kernel, dim=n, device=device,
+                  inputs=[arg.pose, x, grads[0][0], grads[1][0], basis, slope, start], outputs=[out])
         tick("covariance")
     sig = to_host(out).reshape(3, rows, cols)  # (a pinned buffer's allocation costs more than it saves)
     tick("read-back")
@@ -396,9 +455,9 @@ def frame_window_sigmas(geometry, crs, cells, window, c_raw, *, pixel_sigma=0.5,
 
 def scene_cell_sigmas(scene, dem, crs, ox, oy, *, orientation_cov, pixel_sigma=0.5, dem_sigma=0.0, refraction=True,
                       measure="sigma", device=None):
-    """Predicted sigma x, y (the axes of ``crs``) and up (m), (3, n) float32, of the ground
+    """Predicted sigma x, y (the axes of ``crs``, in its unit) and up (m), (3, n) float32, of the ground
     under the points (ox, oy) of ``crs`` seen by a pushbroom scene (NaN where it does not see
-    them), by :func:`scene_monoplot_covariance` at each point; or CE90, LE90 and NaN (see
+    them: off the scene or the DEM, or hidden by their own slope, :func:`facing`), by :func:`scene_monoplot_covariance` at each point; or CE90, LE90 and NaN (see
     :func:`frame_window_sigmas`)."""
     _measure(measure)
     from .geometry import project
@@ -413,9 +472,16 @@ def scene_cell_sigmas(scene, dem, crs, ox, oy, *, orientation_cov, pixel_sigma=0
         ok[np.flatnonzero(ok)[~inside]] = False
     out = np.full((3, len(ox)), np.nan, np.float32)
     if ok.any():
-        cov = scene_monoplot_covariance(scene, pts[ok], slopes[ok], orientation_cov=orientation_cov,
-                                        pixel_sigma=pixel_sigma, dem_sigma=dem_sigma, refraction=refraction,
-                                        device=device).cov
+        _check_sigmas(pixel_sigma, dem_sigma)
+        cov, f_x = _scene_monoplot(scene, pts[ok], slopes[ok], _square("orientation_cov", orientation_cov,
+                                                                      len(SCENE_INPUTS)),
+                                   pixel_sigma, dem_sigma, refraction, device)
+        # the line of sight: the pixel's null direction in east, north, up, toward the (orbiting) sensor
+        v = np.cross(f_x[:, 0], f_x[:, 1])
+        v *= np.where(v[:, 2] < 0.0, -1.0, 1.0)[:, None]
+        seen = facing(v, slopes[ok])  # ground whose own slope hides it from the scene: NaN
+        cov = cov[seen]
+        ok[np.flatnonzero(ok)[~seen]] = False
         # east/north (m) -> the output CRS's x, y: J by central differences
         to_out = Transformer.from_crs("EPSG:4326", crs, always_xy=True)
 
@@ -454,15 +520,17 @@ def accuracy_raster(dst, camera, pose, dem, crs, transform, shape, *, pose_cov, 
     step : int, optional
         Ortho pixels per accuracy pixel, each way.
     measure : {"sigma", "ce90"}, optional
-        Three bands sigma x, y (the axes of ``crs``) and up (m), or two bands CE90 and LE90
-        (m; see :func:`frame_window_sigmas`).
+        Three bands sigma x, y (the axes of ``crs``, in its axis unit) and up (m), or two bands
+        CE90 and LE90 (m; see :func:`frame_window_sigmas`); each band's description and unit
+        are set (:func:`band_descriptions`).
     refraction, geoid, same_vertical_datum, device :
         The ortho's geometry options (:class:`~orthowarp.pipeline.geometry.SensorGeometry`).
 
     Returns
     -------
     ndarray (bands, rows, cols) float32
-        What was written; NaN where the image does not see the cell's centre.
+        What was written; NaN where the image does not see the cell's centre (including
+        ground hidden by its own slope).
     """
     from ..sensor import FrameSensor
     from .geometry import SensorGeometry
@@ -474,7 +542,9 @@ def accuracy_raster(dst, camera, pose, dem, crs, transform, shape, *, pose_cov, 
                           same_vertical_datum=same_vertical_datum)
     out = frame_window_sigmas(geom, crs, grid, (0, 0, rows, cols), c_raw, pixel_sigma=pixel_sigma,
                               dem_sigma=dem_sigma, measure=measure)[:bands]
-    write_raster(dst, out, transform=grid, crs=crs.to_wkt(), nodata=np.nan)
+    descriptions, units = band_descriptions(crs, measure)
+    write_raster(dst, out, transform=grid, crs=crs.to_wkt(), nodata=np.nan, descriptions=descriptions[:bands],
+                 units=units[:bands])
     return out
 
 
@@ -487,7 +557,8 @@ def scene_accuracy_raster(dst, scene, dem, crs, transform, shape, *, orientation
     Returns
     -------
     ndarray (bands, rows, cols) float32
-        What was written: sigma x, y (the output CRS's axes) and up (m), or CE90 and LE90.
+        What was written: sigma x, y (the output CRS's axes, in its unit) and up (m), or CE90
+        and LE90 (m).
     """
     grid, (rows, cols) = _cell_grid(transform, shape, step)
     ox, oy = _cell_centres(grid, rows, cols)
@@ -495,7 +566,9 @@ def scene_accuracy_raster(dst, scene, dem, crs, transform, shape, *, orientation
     out = scene_cell_sigmas(scene, dem, crs, ox, oy, orientation_cov=orientation_cov, pixel_sigma=pixel_sigma,
                             dem_sigma=dem_sigma, refraction=refraction, measure=measure,
                             device=device).reshape(3, rows, cols)[:bands]
-    write_raster(dst, out, transform=grid, crs=crs.to_wkt(), nodata=np.nan)
+    descriptions, units = band_descriptions(crs, measure)
+    write_raster(dst, out, transform=grid, crs=crs.to_wkt(), nodata=np.nan, descriptions=descriptions[:bands],
+                 units=units[:bands])
     return out
 
 
@@ -582,5 +655,7 @@ def mosaic_accuracy_raster(dst, images, index, dem, crs, transform, shape, *, po
                                       pixel_sigma=pixel_sigma, dem_sigma=dem_sigma, measure=measure)
             out[:, at] = sig[:, i - win[0], j - win[1]]
     out = out.reshape(3, rows, cols)[:bands]
-    write_raster(dst, out, transform=grid, crs=crs.to_wkt(), nodata=np.nan)
+    descriptions, units = band_descriptions(crs, measure)
+    write_raster(dst, out, transform=grid, crs=crs.to_wkt(), nodata=np.nan, descriptions=descriptions[:bands],
+                 units=units[:bands])
     return out

@@ -533,6 +533,8 @@ def test_scene_accuracy_raster_is_the_propagation_at_its_cells(tmp_path):
     with rasterio.open(tmp_path / "acc.tif") as ds:
         assert ds.count == 3 and ds.transform == transform @ Affine.scale(16) and ds.crs == utm
         np.testing.assert_array_equal(ds.read(), out)
+        assert ds.descriptions == ("sigma x: easting (m)", "sigma y: northing (m)", "sigma up (m)")
+        assert ds.units == ("m", "m", "m")
     seen = np.isfinite(out[2])
     assert 0.2 < seen.mean() < 0.95  # the scene's footprint, with the margin around it off it
     i, j = np.argwhere(seen)[len(np.argwhere(seen)) // 2]
@@ -705,3 +707,216 @@ def test_accuracy_raster_in_ce90_and_le90(tmp_path):
     np.testing.assert_allclose(out[1, ii, jj], 1.6448536269514722 * ref.sigma[:, 2], rtol=1e-6)
     with pytest.raises(ParamError, match="measure"):
         accuracy_raster(tmp_path / "x.tif", camera, pose, 100.0, CRS(32632), transform, shape, measure="cep", **kw)
+
+
+def _ray_dem(pose, cam, pix, dz, dem, start):
+    """Ground points (n, 3) where the rays of pixels (n, 2) of a pose (6: X0, Y0, Z0, omega, phi,
+    kappa deg) with a camera (3: f, x0, y0 mm) meet a bilinear DEM (``reference.GridDem``)
+    raised by dz: the crossing nearest the points ``start`` (n, 3), by Newton's method along
+    each ray (the local intersection the monoplot linearises, whether or not it is the first
+    along the ray)."""
+    f, x0, y0 = cam
+    x = (pix[:, 0] - SIZE[0] / 2) * PIX - x0
+    y = (SIZE[1] / 2 - pix[:, 1]) * PIX - y0
+    d = np.stack([x, y, -f * np.ones_like(x)], -1) @ rot(pose[3], pose[4], pose[5]).T
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    c = np.asarray(pose[:3], float)
+    s = np.einsum("ij,ij->i", start - c, d)
+
+    def gap(t):
+        p = c + t[:, None] * d
+        return p[:, 2] - dem.sample(p[:, 0], p[:, 1]) - dz
+
+    for _ in range(30):
+        step = gap(s) / ((gap(s + 1e-4) - gap(s - 1e-4)) / 2e-4)
+        s = s - step
+        if np.max(np.abs(step)) < 1e-11:
+            break
+    return c + s[:, None] * d
+
+
+def test_accuracy_raster_hides_ground_facing_away_from_the_camera(tmp_path):
+    """Defect 9 (sigma north / up of 216 / 332 m at an edge cell of the NGI ortho): where the
+    ray meets terrain at a grazing angle the monoplot's sigmas legitimately explode, but where
+    the terrain's slope faces away from the camera (steeper than the ray, falling away from it)
+    the image does not see the ground at all, and the raster must say so (NaN), not give the
+    propagation of a point the image hides. A wide-angle nadir frame over north-south ridges
+    (slopes up to 3) at 1000 m: against an independent float64 reference (the ray-DEM
+    crossing recomputed by Newton's method, its Jacobian by the pose, the pixel and the DEM's
+    height by central differences), the raster is NaN exactly off the image and on the facets
+    that face away, and elsewhere, grazing rays included, equals the reference's sigmas."""
+    import rasterio
+    from affine import Affine
+    from pyproj import CRS
+
+    import reference as ref
+    from orthowarp.pipeline.precision import accuracy_raster
+    from scenes import map_dem
+
+    def ridges(dx, dy):
+        return 100.0 + 95.0 * np.sin(2 * np.pi * dx / 200.0) + 0.0 * dy
+
+    dem, grid = map_dem(ridges, E0, N0, 260, 200, 5.0)  # bilinear patches' centres on a 5 m lattice
+    pose = np.array([E0 + 3.0, N0 - 4.0, 1100.0, 0.3, -0.2, 2.0])
+    cam = np.array([20.0, 0.0, 0.0])  # +-26.6 deg across, +-20.6 deg along: rays down to 63 deg
+    camera, owpose = camera_and_pose(pose, cam)
+    cov = np.diag([0.05, 0.05, 0.1, 0.005, 0.005, 0.01]) ** 2
+    pixel_sigma, dem_sigma = 0.5, 0.5
+    # 10 m cells centred on the patches' centres (10 ortho pixels of 1 m): the slope is the
+    # patch's own, away from the kinks between patches
+    transform, shape = Affine(1.0, 0, E0 - 605.0, 0, -1.0, N0 + 455.0), (910, 1210)
+    out = accuracy_raster(tmp_path / "acc.tif", camera, owpose, dem, CRS(32632), transform, shape, pose_cov=cov,
+                          pixel_sigma=pixel_sigma, dem_sigma=dem_sigma, step=10, refraction=False, device="cpu")
+    rows, cols = out.shape[1:]
+    ii, jj = np.divmod(np.arange(rows * cols), cols)
+    x, y = transform @ Affine.scale(10) @ (jj + 0.5, ii + 0.5)
+    h = grid.sample(x, y)
+    pts = np.stack([x, y, h], -1)
+    pix = project(pose[None], cam[None], pts[None])[0]
+    on_image = np.isfinite(h) & (pix[:, 0] >= 0) & (pix[:, 1] >= 0) & (pix[:, 0] <= SIZE[0]) & (pix[:, 1] <= SIZE[1])
+    # the terrain's tangent plane against the direction to the camera
+    e = 1e-3
+    slope = np.stack([(grid.sample(x + e, y) - grid.sample(x - e, y)) / (2 * e),
+                      (grid.sample(x, y + e) - grid.sample(x, y - e)) / (2 * e)], -1)
+    normal = np.stack([-slope[:, 0], -slope[:, 1], np.ones(len(x))], -1)
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    to_cam = pose[:3] - pts
+    to_cam /= np.linalg.norm(to_cam, axis=1, keepdims=True)
+    elevation = np.degrees(np.arcsin(np.einsum("ij,ij->i", normal, to_cam)))  # the camera above the plane
+    facing_away = on_image & (elevation <= 0)
+    assert facing_away.sum() > 50 and (on_image & (elevation > 0)).sum() > 2000
+    np.testing.assert_array_equal(np.isfinite(out[0]).ravel(), on_image & (elevation > 0))
+    assert np.isnan(out[:, facing_away.reshape(rows, cols)]).all()
+    # the independent propagation at the seen cells: the ground point's Jacobian by the pose,
+    # the pixel and the DEM's height, by central differences of the ray-DEM crossing
+    k = np.flatnonzero(on_image & (elevation > 0))
+    base = np.concatenate([np.tile(pose, (len(k), 1)), pix[k], np.zeros((len(k), 1))], 1)
+    steps = np.r_[1e-3, 1e-3, 1e-3, 1e-6, 1e-6, 1e-6, 1e-3, 1e-3, 1e-3]
+    jac = np.empty((len(k), 3, 9))
+    for a in range(9):
+        hi, lo = base.copy(), base.copy()
+        hi[:, a] += steps[a]
+        lo[:, a] -= steps[a]
+        jac[:, :, a] = (_points_moved(hi, cam, grid, pts[k]) - _points_moved(lo, cam, grid, pts[k])) / (2 * steps[a])
+    c_in = np.diag(np.r_[np.sqrt(np.diag(cov)), pixel_sigma, pixel_sigma, dem_sigma] ** 2)
+    c = jac @ c_in @ np.transpose(jac, (0, 2, 1))
+    want = np.sqrt(np.diagonal(c, axis1=1, axis2=2)).T
+    got = out.reshape(3, -1)[:, k]
+    np.testing.assert_allclose(got, want, rtol=5e-5)  # measured: 7e-6
+    # grazing rays on the seen side keep their (large, right) sigmas
+    sigma_h = np.hypot(want[0], want[1])
+    assert sigma_h.max() > 10 * np.median(sigma_h)
+    print(f"\n[facing] {facing_away.sum()} cells face away (NaN), {len(k)} seen; sigma_h median "
+          f"{np.median(sigma_h):.2f} m, max {sigma_h.max():.1f} m at {elevation[k][np.argmax(sigma_h)]:.2f} deg; "
+          f"largest relative difference {np.max(np.abs(got - want) / want):.1e}")
+    # a facet facing away is hidden: the first terrain along its pixel's ray is elsewhere
+    tracer = ref.RayTracer(ref.RefPose.opk(*pose), grid)
+    rcam = ref.RefCamera(cam[0], PIX, SIZE)
+    some = np.flatnonzero(facing_away)[:: max(1, facing_away.sum() // 5)][:5]
+    first = tracer.geolocate(rcam, pix[some])
+    assert (np.linalg.norm(first - pts[some], axis=1) > 1.0).all()
+    with rasterio.open(tmp_path / "acc.tif") as ds:
+        np.testing.assert_array_equal(ds.read(), out)
+
+
+def _points_moved(inputs, cam, grid, start):
+    """The ray-DEM crossings (n, 3) for rows of inputs (n, 9: the pose, the pixel, the DEM's
+    height offset)."""
+    out = np.empty((len(inputs), 3))
+    # one pose per row: group identical poses (a single input moved) for vectorised crossings
+    poses, inv = np.unique(inputs[:, :6], axis=0, return_inverse=True)
+    for u, p in enumerate(poses):
+        r = np.flatnonzero(inv.ravel() == u)
+        out[r] = _ray_dem(p, cam, inputs[r, 6:8], inputs[r, 8], grid, start[r])
+    return out
+
+
+def test_accuracy_rasters_describe_their_bands(tmp_path):
+    """Every accuracy raster says what each band is and its unit (GDAL band description and
+    unit type, read back by rasterio): sigma x, y along the output CRS's axes in its unit (m for
+    UTM; deg for longitude/latitude, which they then are: x 1 m east is ~1/78 km of a degree
+    here) and sigma up (m); CE90 and LE90 (m); for frames, mosaics and (in
+    test_scene_accuracy_raster_is_the_propagation_at_its_cells) scenes."""
+    import rasterio
+    from affine import Affine
+    from pyproj import CRS, Transformer
+
+    from orthowarp.pipeline.precision import accuracy_raster, band_descriptions, mosaic_accuracy_raster
+
+    camera, pose = camera_and_pose(POSE, CAM)
+    kw = dict(pose_cov=POSE_COV, pixel_sigma=0.5, dem_sigma=0.3, refraction=False, device="cpu")
+    transform, shape = Affine(0.5, 0, E0 - 150, 0, -0.5, N0 + 150), (600, 640)
+    utm = accuracy_raster(tmp_path / "utm.tif", camera, pose, 100.0, CRS(32632), transform, shape, **kw)
+    accuracy_raster(tmp_path / "ce.tif", camera, pose, 100.0, CRS(32632), transform, shape, measure="ce90", **kw)
+    lon, lat = Transformer.from_crs(32632, 4326, always_xy=True).transform(E0, N0)
+    d = 0.5 / 111200.0
+    geo_t = Affine(d / np.cos(np.radians(lat)), 0, lon - 320 * d / np.cos(np.radians(lat)), 0, -d, lat + 300 * d)
+    geo = accuracy_raster(tmp_path / "geo.tif", camera, pose, 100.0, CRS(4326), geo_t, shape, **kw)
+    index = tmp_path / "index.tif"
+    with rasterio.open(index, "w", driver="GTiff", width=shape[1], height=shape[0], count=1, dtype="uint16",
+                       transform=transform, crs="EPSG:32632") as ds:
+        ds.write(np.zeros((1, *shape), np.uint16))
+    mosaic_accuracy_raster(tmp_path / "mosaic.tif", [FrameSensor(camera, pose)], index, 100.0, CRS(32632), transform,
+                           shape, pose_cov=POSE_COV, pixel_sigma=0.5, dem_sigma=0.3, refraction=False, device="cpu")
+    sigma_utm = (("sigma x: easting (m)", "sigma y: northing (m)", "sigma up (m)"), ("m", "m", "m"))
+    ce = (("CE90: radius holding 90% of the horizontal error (m)", "LE90: 90% vertical error, 1.6449 sigma up (m)"),
+          ("m", "m"))
+    sigma_geo = (("sigma x: geodetic longitude (deg)", "sigma y: geodetic latitude (deg)", "sigma up (m)"),
+                 ("deg", "deg", "m"))
+    assert band_descriptions(CRS(32632)) == sigma_utm and band_descriptions(CRS(4326)) == sigma_geo
+    assert band_descriptions(CRS(32632), "ce90") == ce
+    for name, want in (("utm", sigma_utm), ("ce", ce), ("geo", sigma_geo), ("mosaic", sigma_utm)):
+        with rasterio.open(tmp_path / f"{name}.tif") as ds:
+            assert (ds.descriptions, ds.units) == want, name
+    # the longitude/latitude raster's sigma x, y are degrees: in metres, the UTM raster's (to the
+    # meridian convergence's turn of the axes, ~1 %)
+    m_lon, m_lat = 111320.0 * np.cos(np.radians(lat)), 111200.0
+    np.testing.assert_allclose(np.nanmedian(geo[0]) * m_lon, np.nanmedian(utm[0]), rtol=0.03)
+    np.testing.assert_allclose(np.nanmedian(geo[1]) * m_lat, np.nanmedian(utm[1]), rtol=0.03)
+    np.testing.assert_allclose(np.nanmedian(geo[2]), np.nanmedian(utm[2]), rtol=1e-3)
+
+
+def test_scene_accuracy_is_nan_on_ground_facing_away_from_the_scene():
+    """The pushbroom counterpart of defect 9: scene_cell_sigmas gives NaN where the DEM's
+    tangent plane faces away from the line of sight (an egg-crate DEM with slopes up to 15,
+    seen 6 deg off nadir), sigmas elsewhere. The line of sight for the check is independent of
+    the propagation's derivatives: the chord between the cell's pixel geolocated at two
+    constant heights; the slope from the reference's bilinear DEM 1 m east and north of the
+    point (pyproj's ECEF)."""
+    from orthowarp.pipeline.precision import scene_cell_sigmas
+    from orthowarp.pushbroom import synthetic_scene
+
+    import reference as ref
+    from scenes import geo_dem
+
+    scene = synthetic_scene(width=2000, height=2000, gsd=10.0, view_angle=6.0)
+    lonc, latc, _ = ow.geolocate(scene, [[1950.0, 1000.0]], dem=300.0, device="cpu")[0]
+    dem, grid = geo_dem(lambda e, n: 300.0 + 150.0 * np.sin(2 * np.pi * e / 60.0) * np.sin(2 * np.pi * n / 60.0),
+                        lonc, latc, 60, 5.0)
+    k = np.arange(2, 59)  # the bilinear patches' centres (the cells' corners), inside the grid
+    lon, lat = np.meshgrid(grid.x0 + k * grid.dx, grid.y0 + k * grid.dy)
+    lon, lat = lon.ravel(), lat.ravel()
+    cov = np.diag([10.0, 10.0, 5.0, 1e-3, 1e-3, 1e-3, 1e-3, 1e-3]) ** 2
+    out = scene_cell_sigmas(scene, dem, "EPSG:4326", lon, lat, orientation_cov=cov, pixel_sigma=0.5, dem_sigma=1.0,
+                            device="cpu")
+    h = grid.sample(lon, lat)
+    x0 = ref.llh_to_ecef(lon, lat, h)
+    east, north, up = ref.enu_axes(lat, lon)
+
+    def height_at(p):
+        lo, la, _ = ref.ecef_to_llh(p)
+        return grid.sample(lo, la)
+
+    slope = np.stack([(height_at(x0 + ax) - height_at(x0 - ax)) / 2.0 for ax in (east, north)], -1)
+    pix = ow.project(scene, np.stack([lon, lat, h], -1), device="cpu")
+    lo, hi = (ow.geolocate(scene, pix, dem=z, device="cpu") for z in (0.0, 600.0))
+    v = ref.llh_to_ecef(*hi.T) - ref.llh_to_ecef(*lo.T)  # up the line of sight, toward the scene
+    v = np.stack([np.einsum("ij,ij->i", v, a) for a in (east, north, up)], -1)
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    n = np.stack([-slope[:, 0], -slope[:, 1], np.ones(len(lon))], -1)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    elevation = np.degrees(np.arcsin(np.einsum("ij,ij->i", n, v)))  # the line of sight above the tangent plane
+    clear = np.abs(elevation) > 0.05
+    assert (elevation < -0.05).sum() > 20 and (elevation > 0.05).sum() > 1000
+    np.testing.assert_array_equal(np.isfinite(out[2])[clear], (elevation > 0)[clear])
+    assert np.all(np.isfinite(out[:, elevation > 0.05]))
