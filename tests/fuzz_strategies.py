@@ -545,3 +545,141 @@ def write_document(path, content):
     else:
         path.write_text(content, encoding="utf-8", errors="surrogatepass")
     return path
+
+
+# ---------------------------------------------------------------------------------------------
+# documents written from known values (round-trip properties: what is parsed must be what was
+# written, so that a reader that swaps, drops or mis-scales a value fails)
+# ---------------------------------------------------------------------------------------------
+
+def opk_rotation(omega, phi, kappa):
+    """R = Rx(omega) Ry(phi) Rz(kappa) (deg), written out here (DESIGN.md's PATB convention)."""
+    o, p, k = np.radians([omega, phi, kappa])
+    rx = np.array([[1, 0, 0], [0, np.cos(o), -np.sin(o)], [0, np.sin(o), np.cos(o)]])
+    ry = np.array([[np.cos(p), 0, np.sin(p)], [0, 1, 0], [-np.sin(p), 0, np.cos(p)]])
+    rz = np.array([[np.cos(k), -np.sin(k), 0], [np.sin(k), np.cos(k), 0], [0, 0, 1]])
+    return rx @ ry @ rz
+
+
+image_stems = st.from_regex(r"[A-Za-z][A-Za-z0-9_-]{0,8}", fullmatch=True)
+
+
+def distinct_values(draw, lo, hi, n):
+    """n floats in [lo, hi], distinct from each other (so that a value read from the wrong
+    column or row cannot equal the right one by chance)."""
+    vals = draw(st.lists(st.floats(lo, hi, allow_nan=False, allow_infinity=False), min_size=n, max_size=n,
+                         unique=True))
+    return vals
+
+
+# (column names, ranges) of the CSV layouts: positions, then attitudes
+CSV_LAYOUTS = {
+    "xyz_opk": (("x", "y", "z", "omega", "phi", "kappa"),
+                ((2e5, 8e5), (1e6, 8e6), (-300.0, 9000.0), (-359.0, 359.0), (-359.0, 359.0), (-359.0, 359.0))),
+    "lla_rpy": (("latitude", "longitude", "altitude", "roll", "pitch", "yaw"),
+                ((-80.0, 80.0), (-179.0, 179.0), (-300.0, 9000.0), (-359.0, 359.0), (-359.0, 359.0), (-359.0, 359.0))),
+    "lla_opk": (("latitude", "longitude", "altitude", "omega", "phi", "kappa"),
+                ((40.0, 52.0), (6.0, 12.0), (-300.0, 9000.0), (-359.0, 359.0), (-359.0, 359.0), (-359.0, 359.0))),
+    "xyz_rpy": (("x", "y", "z", "roll", "pitch", "yaw"),
+                ((3e5, 7e5), (4.5e6, 5.7e6), (-300.0, 9000.0), (-359.0, 359.0), (-359.0, 359.0), (-359.0, 359.0))),
+}
+CSV_LAYOUTS["legacy"] = CSV_LAYOUTS["xyz_opk"]
+
+
+@st.composite
+def exterior_csv(draw, layout):
+    """(text, rows, radians): a CSV document of ``layout`` (see CSV_LAYOUTS; "legacy" is the
+    header-less ``filename x y z omega phi kappa``) written from drawn values, and what it
+    holds: rows of (image key, camera or None, six floats as the reader must see them; angles
+    in the unit written). Columns in a drawn order (the header names them) with extra columns,
+    a drawn delimiter, number format, decimal commas, quoting and header case."""
+    names, ranges = CSV_LAYOUTS[layout]
+    n = draw(st.integers(1, 4))
+    stems = draw(st.lists(image_stems, min_size=n, max_size=n, unique=True))
+    radians = layout != "legacy" and draw(st.booleans())
+    delim = draw(st.sampled_from([",", ";", "\t", " ", ", "]) if layout != "legacy" else
+                 st.sampled_from([" ", ",", ";", "\t"]))
+    decimal_comma = delim in (";", "\t") and draw(st.booleans())
+    quote = draw(st.sampled_from(["", '"'])) if delim != " " or layout != "legacy" else ""
+    with_camera = layout != "legacy" and draw(st.booleans())
+    # each column's values distinct, so a swapped column or row shows
+    cols = [distinct_values(draw, lo, hi, n) for lo, hi in ranges]
+    fmt = draw(st.sampled_from(["repr", "fixed3", "fixed9", "exp"] if not decimal_comma else ["fixed3", "fixed9"]))
+
+    def text_of(v):
+        t = {"repr": repr(v), "fixed3": f"{v:.3f}", "fixed9": f"{v:.9f}", "exp": f"{v:.12e}"}[fmt]
+        return t.replace(".", ",") if decimal_comma else t
+
+    rows, lines = [], []
+    fields = ["filename", *names] + (["camera"] if with_camera else []) + (["note"] if layout != "legacy" else [])
+    order = list(range(len(fields))) if layout == "legacy" else draw(st.permutations(range(len(fields))))
+    if layout != "legacy":
+        header = [fields[c] for c in order]
+        header = [h.upper() if draw(st.booleans()) else h for h in header]
+        lines.append(delim.join(f"{quote}{h}{quote}" if quote else h for h in header))
+    for r in range(n):
+        ext = draw(st.sampled_from(["", ".tif", ".JPG", ".jpeg"]))
+        cam = f"cam{r % 2}" if with_camera else None
+        values = []
+        cells = {"filename": f"{quote}{stems[r]}{ext}{quote}", "note": f"{quote}n{r}{quote}"}
+        if with_camera:
+            cells["camera"] = f"{quote}{cam}{quote}"
+        for c, name in enumerate(names):
+            v = cols[c][r]
+            if radians and c >= 3:
+                v = math.radians(v)
+            t = text_of(v)
+            cells[name] = t
+            values.append(float(t.replace(",", ".")))
+        lines.append(delim.join(cells[fields[c]] for c in order))
+        rows.append((stems[r], cam, values))
+    return "\n".join(lines) + "\n", rows, radians
+
+
+@st.composite
+def orthority_cameras(draw):
+    """(document, expected): an orthority camera mapping written from drawn values, and per
+    camera id what FrameCamera must hold: image size, focal length in pixels (x, y), principal
+    point in pixels (col, row) and the distortion coefficients."""
+    n = draw(st.integers(1, 3))
+    ids = draw(st.lists(st.from_regex(r"[A-Za-z][A-Za-z0-9 _-]{0,10}[A-Za-z0-9]", fullmatch=True), min_size=n,
+                        max_size=n, unique=True))
+    doc, expected = {}, {}
+    for cid in ids:
+        kind = draw(st.sampled_from(["pinhole", "brown", "opencv"]))
+        w = draw(st.integers(100, 12000))
+        h = draw(st.integers(max(100, w // 2), 2 * w))
+        m = max(w, h)
+        cx, cy = distinct_values(draw, -0.05, 0.05, 2)
+        p = {"type": kind, "im_size": [w, h]}
+        if draw(st.booleans()):  # focal length in the unit of the sensor size
+            sw = draw(st.floats(2.0, 60.0))
+            sh = sw * h / w * draw(st.floats(0.9, 1.1))
+            f = max(sw, sh) * draw(st.floats(0.7, 3.0))  # corners within 35 deg of the axis
+            p.update(focal_len=f, sensor_size=[sw, sh])
+            fpx = (f * w / sw, f * h / sh)
+        else:  # normalised by the larger image side
+            f = draw(st.floats(0.7, 3.0))
+            p["focal_len"] = f
+            fpx = (f * m, f * m)
+        p.update(cx=cx, cy=cy)
+        coeffs = dict(k1=0.0, k2=0.0, k3=0.0, p1=0.0, p2=0.0)
+        if kind != "pinhole":
+            k1, k2, k3 = draw(st.floats(-0.1, 0.1)), draw(st.floats(-0.02, 0.02)), draw(st.floats(-0.005, 0.005))
+            p1, p2 = distinct_values(draw, -1e-3, 1e-3, 2)
+            coeffs = dict(k1=k1, k2=k2, k3=k3, p1=p1, p2=p2)
+            p.update(coeffs)
+        doc[cid] = p
+        expected[cid] = dict(size=(w, h), focal_px=fpx, principal_px=(w / 2 + cx * m, h / 2 + cy * m), **coeffs)
+    return doc, expected
+
+
+@st.composite
+def opk_poses(draw, n_max=3, xy=((4e5, 6e5), (5.0e6, 5.3e6))):
+    """n poses (x, y, z, omega, phi, kappa) with phi away from +-90 deg (so that omega, phi,
+    kappa are unique) and angles within (-180, 180)."""
+    n = draw(st.integers(1, n_max))
+    cols = [distinct_values(draw, *xy[0], n), distinct_values(draw, *xy[1], n), distinct_values(draw, 100.0, 3000.0, n),
+            distinct_values(draw, -179.0, 179.0, n), distinct_values(draw, -80.0, 80.0, n),
+            distinct_values(draw, -179.0, 179.0, n)]
+    return [tuple(c[r] for c in cols) for r in range(n)]

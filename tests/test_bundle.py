@@ -219,18 +219,33 @@ def test_missing_initial_poses_come_from_resection():
 
 def test_geocentric_block_matches_its_local_twin():
     """A block given in latitude, longitude, height and roll, pitch, yaw (GNSS/INS) is adjusted
-    in the local ENU frame: poses come back in the GNSS/INS convention, and they reproduce the
-    truth; a pose converted there and back is unchanged."""
+    in a local ENU frame at its centre; its twin, the same block given map-Cartesian in that
+    frame, is adjusted too, and the two results are the same: poses, points, sigma0, redundancy
+    and covariances. Poses come back in the GNSS/INS convention, a pose converted there and
+    back is unchanged, and the refined orientation reads back from the lla-rpy CSV."""
     from orthowarp.adjust.block import Block
     from orthowarp.adjust.geocentric import LocalFrame
     from orthowarp.pose import Pose
 
     local, truth = synthetic_block(strips=2, images_per_strip=5, control="A", gnss_sigma=0.05, ins_sigma=0.01, seed=14)
+    # The twin is centred horizontally on its images, so that the geocentric adjustment's own
+    # frame (ENU at the mean latitude, longitude and height of the poses) has the axes of the
+    # frame the twin is given in: ENU axes depend on latitude and longitude only, and the
+    # mean's height offset is a shift. (With the twin off-centre by 2 km, the axes differ by
+    # 1.4e-4 rad: positions agree as rigid motions preserve least squares with isotropic
+    # sigmas, but INS attitudes are weighted as omega, phi, kappa about each frame's axes, and
+    # the covariances are expressed on different axes.)
+    shift = np.r_[np.mean(local.poses[:, :2], axis=0), 0.0]
+    local = _copy(local, poses=local.poses - np.r_[shift, 0, 0, 0], xyz=local.xyz - shift,
+                  gnss_xyz=local.gnss_xyz - shift)
+    truth_poses = truth["poses"] - np.r_[shift, 0, 0, 0]
     frame = LocalFrame(46.5, 8.0, 300.0)
     # the local block's ENU coordinates -> geodetic GNSS/INS block
     poses = np.array([frame.pose_from_local(p) for p in local.poses])
     gnss = frame.to_lla(local.gnss_xyz)
-    ins = np.array([frame.pose_from_local(np.r_[g, o])[3:] for g, o in zip(local.gnss_xyz, local.ins_opk)])
+    # roll, pitch, yaw refer to the NED frame at a position: the adjustment takes the image's
+    # initial position for it (as the twin's omega, phi, kappa are at that position too)
+    ins = np.array([frame.pose_from_local(np.r_[p[:3], o])[3:] for p, o in zip(local.poses, local.ins_opk)])
     xyz = np.where(np.isfinite(local.xyz), 0.0, np.nan)
     ok = np.all(np.isfinite(local.xyz), axis=1)
     xyz[ok] = frame.to_lla(local.xyz[ok])
@@ -242,19 +257,36 @@ def test_geocentric_block_matches_its_local_twin():
     back = LocalFrame(*poses[0][:3]).pose_from_local(LocalFrame(*poses[0][:3]).pose_to_local(*poses[0]))
     np.testing.assert_allclose(back, poses[0], atol=1e-9)
     res = bundle_adjust(geo)
-    assert res.success and 0.7 < res.sigma0 < 1.3
-    est = np.array([res.poses[i] for i in geo.image_ids])
-    want = np.array([frame.pose_from_local(t) for t in truth["poses"]])
-    ecef = lambda a: np.array([Pose.from_ins(*r).center for r in a])  # noqa: E731
-    assert np.max(np.linalg.norm(ecef(est) - ecef(want), axis=1)) < 0.5
-    np.testing.assert_allclose(est[:, 3:], want[:, 3:], atol=0.05)
-    assert p.mode == "geocentric" and np.all(res.check_rmse < 1.0)
+    twin = bundle_adjust(local)
+    assert res.success and twin.success and p.mode == "geocentric"
+    # the premise: the adjustment's frame has the twin frame's axes (to 1e-6 deg, 2e-8 rad)
+    assert abs(res.local_frame.lat - frame.lat) < 1e-6 and abs(res.local_frame.lon - frame.lon) < 1e-6
+    # one least-squares problem in two Cartesian frames related by a shift: the same solution up
+    # to rounding and the stopping rule (xtol 1e-8 m and 1e-11 rad per iteration); seen: 2e-8 m,
+    # 1.3e-9 deg, covariances 1e-6 relative, sigma0 1e-10 relative
+    assert res.redundancy == twin.redundancy
+    assert res.sigma0 == pytest.approx(twin.sigma0, rel=1e-8)
+    assert res.cost == pytest.approx(twin.cost, rel=1e-8)
+    est = np.array([frame.pose_to_local(*res.poses[i]) for i in geo.image_ids])  # the twin's frame
+    want = estimates(twin, local)
+    np.testing.assert_allclose(est[:, :3], want[:, :3], rtol=0, atol=1e-6)
+    np.testing.assert_allclose(est[:, 3:], want[:, 3:], rtol=0, atol=1e-7)
+    np.testing.assert_allclose(res.pose_cov, twin.pose_cov, rtol=1e-5, atol=1e-5 * np.abs(twin.pose_cov).max())
+    for pid in local.point_ids:
+        if np.all(np.isfinite(twin.points[pid])):
+            np.testing.assert_allclose(frame.from_lla(np.array(res.points[pid]))[0], twin.points[pid], rtol=0, atol=1e-5)
+    np.testing.assert_allclose(res.point_cov, twin.point_cov, rtol=1e-5, atol=1e-5 * np.abs(twin.point_cov).max())
+    np.testing.assert_allclose(res.check_rmse, twin.check_rmse, rtol=0, atol=1e-6)
+    # and the twin finds the truth within its sigmas (4.5: the largest of 60 standard normals)
+    std = np.array([twin.pose_std[i] for i in local.image_ids])
+    assert np.all(np.abs(want - truth_poses) < 4.5 * std)
     # the refined orientation as the ortho reads it (lla-rpy CSV)
     import tempfile
 
     from orthowarp.pipeline.adjust_report import write_adjustment
     from orthowarp.pipeline.formats import read_exterior
 
+    est = np.array([res.poses[i] for i in geo.image_ids])
     with tempfile.TemporaryDirectory() as d:
         write_adjustment(res, geo, d, plots=False)
         ext = read_exterior(f"{d}/exterior.csv")
@@ -483,7 +515,19 @@ def test_cli_adjust_refuses_outside_observations_unless_asked(tmp_path, caplog):
     assert r.exit_code == 0, r.output
     ob = data["observations"][3]
     assert f"dropped 1 image observation(s) outside their image: {ob['point']}@{ob['image']}" in caplog.text
-    assert (out / "exterior.csv").exists()
+    # what was written: every image's adjusted pose, those of the block without the dropped
+    # observation (adjusted here through the API), in the block's CRS (exterior.prj)
+    from orthowarp.pipeline.formats import read_exterior
+
+    ext = read_exterior(out / "exterior.csv")
+    ref = bundle_adjust(_without(block, 3))
+    assert ref.success and list(ext) == block.image_ids
+    for iid in block.image_ids:
+        pose = ext[iid].pose
+        assert pose.mode == "map" and pose.crs.equals(block.crs)
+        got = [pose.params[k] for k in ("x", "y", "z", "omega", "phi", "kappa")]
+        np.testing.assert_allclose(got[:3], ref.poses[iid][:3], rtol=0, atol=1e-4)
+        np.testing.assert_allclose(got[3:], ref.poses[iid][3:], rtol=0, atol=1e-6)
 
 
 def test_cli_adjust_failure_writes_nothing(tmp_path):
@@ -524,3 +568,132 @@ def test_synthetic_block_with_control_at_given_positions():
     assert res.success and 0.5 < res.sigma0 < 1.5 and len(res.pose_std) == 4
     with pytest.raises(ParamError, match="fractions"):
         synthetic_block(control=[(0.5, 3.0)])
+
+
+# --- sigma0 and the covariances, recomputed independently ----------------------------------------
+# Every other fixture's noise equals its stated sigma, so its sigma0 is ~1 and sigma0, sigma0^2,
+# sqrt(sigma0) all look alike. Here the image noise is generated at 0.5 px and the control noise
+# at 0.02 m while the a-priori sigmas say 1 px and 0.04 m: the true sigma0 is 0.5.
+
+def _half_noise_block(seed=21):
+    block, truth = synthetic_block(strips=2, images_per_strip=4, ties_per_image=9, sigma_px=0.5,
+                                   sigma_control=0.02, seed=seed)
+    return _copy(block, obs_sigma=np.full(len(block.obs_sigma), 1.0), xyz_sigma=2.0 * block.xyz_sigma), truth
+
+
+def _vtpv_by_hand(res, block, fix_control=False):
+    """v'Pv from the result's image residuals and its adjusted control coordinates."""
+    roles = np.array(block.roles)
+    obs = res.used & (roles[block.obs_point] != "check")
+    v = res.residuals[obs]
+    vtpv = float(np.sum((v / block.obs_sigma[obs, None]) ** 2))
+    if not fix_control:
+        for j in np.flatnonzero(roles == "control"):
+            vx = block.xyz[j] - np.array(res.points[block.point_ids[j]])
+            vtpv += float(np.sum((vx / block.xyz_sigma[j]) ** 2))
+    return vtpv
+
+
+@pytest.mark.parametrize("fix_control", [False, True])
+def test_sigma0_is_sqrt_vtpv_over_the_redundancy(fix_control):
+    """sigma0 = sqrt(v'Pv / r), recomputed from the residuals, with r counted by hand, on a
+    block whose true sigma0 is 0.5 (not 1)."""
+    block, _ = _half_noise_block()
+    res = bundle_adjust(block, fix_control=fix_control, covariance="full")
+    assert res.success and not res.rejected and res.used.sum() == np.sum(np.array(block.roles)[block.obs_point] != "check")
+    roles = np.array(block.roles)
+    n_img = block.n_images
+    n_tie, n_ctrl = int(np.sum(roles == "tie")), int(np.sum(roles == "control"))
+    n_img_obs = int(np.sum(roles[block.obs_point] != "check"))  # check points never enter
+    # observations: 2 image coordinates per measurement + 3 coordinates per weighted control point
+    observations = 2 * n_img_obs + (0 if fix_control else 3 * n_ctrl)
+    # unknowns: 6 pose parameters per image + 3 coordinates per tie and control point
+    unknowns = 6 * n_img + 3 * (n_tie + n_ctrl)
+    # constraints: a fixed control point's 3 coordinates are held (none with weighted control)
+    constraints = 3 * n_ctrl if fix_control else 0
+    r = observations - unknowns + constraints
+    assert res.redundancy == r
+    vtpv = _vtpv_by_hand(res, block, fix_control)
+    assert res.cost == pytest.approx(vtpv, rel=1e-9)
+    assert res.sigma0 == pytest.approx(np.sqrt(vtpv / r), rel=1e-9)
+    # the estimate finds the true 0.5 (r ~ 70: its standard error is 0.5 / sqrt(2 r) ~ 0.04)
+    assert 0.5 - 4 * 0.5 / np.sqrt(2 * r) < res.sigma0 < 0.5 + 4 * 0.5 / np.sqrt(2 * r)
+    # the stated sigma of a point or pose is sigma0 sqrt(q): 0.5 of its a-priori value
+    for k, iid in enumerate(block.image_ids):
+        np.testing.assert_allclose(res.pose_std[iid], np.sqrt(np.diag(res.pose_cov[k])), rtol=1e-12)
+
+
+def _dense_normal_matrix(res, block):
+    """N = J^T P J of the whole adjustment (poses in rad, then the tie and control points), in
+    float64 NumPy at the adjusted values, and the indices of the points' columns."""
+    from orthowarp.collinearity import jacobians
+
+    roles = np.array(block.roles)
+    free = np.flatnonzero(roles != "check")
+    col = {j: 6 * block.n_images + 3 * a for a, j in enumerate(free)}
+    dim = 6 * block.n_images + 3 * len(free)
+    poses = estimates(res, block).copy()
+    poses[:, 3:] = np.radians(poses[:, 3:])
+    pts = np.array([res.points[block.point_ids[j]] for j in range(block.n_points)])
+    obs = np.flatnonzero(res.used & (roles[block.obs_point] != "check"))
+    cam, size = block.camera_arrays()
+    i, j = block.obs_image[obs], block.obs_point[obs]
+    pix, jp, jx = jacobians(poses[i], pts[j], cam[i], size[i])
+    # the analytic Jacobian agrees with central differences of the projection (independent check)
+    from orthowarp.collinearity import project
+
+    for k in range(6):
+        h = 1e-3 if k < 3 else 1e-7
+        dp = np.zeros(6)
+        dp[k] = h
+        fd = (project(poses[i] + dp, pts[j], cam[i], size[i]) - project(poses[i] - dp, pts[j], cam[i], size[i])) / (2 * h)
+        np.testing.assert_allclose(jp[:, :, k], fd, rtol=1e-6, atol=1e-6 * np.abs(fd).max())
+    n = np.zeros((dim, dim))
+    for a in range(len(obs)):
+        rows = np.zeros((2, dim))
+        rows[:, 6 * i[a]:6 * i[a] + 6] = jp[a]
+        rows[:, col[j[a]]:col[j[a]] + 3] = jx[a]
+        n += rows.T @ rows / block.obs_sigma[obs[a]] ** 2
+    for jj in np.flatnonzero(roles == "control"):  # the control coordinates' direct observations
+        c = col[jj]
+        n[c:c + 3, c:c + 3] += np.diag(1.0 / block.xyz_sigma[jj] ** 2)
+    return n, col
+
+
+def test_covariances_are_sigma0_squared_times_the_inverse_normal_matrix():
+    """The result's pose and point covariances equal sigma0^2 N^-1, with N = J^T P J built and
+    inverted densely here (float64 NumPy), on the block whose sigma0 is 0.5 (so sigma0 and
+    sigma0^2 differ by a factor of 2)."""
+    block, _ = _half_noise_block()
+    res = bundle_adjust(block, covariance="full")
+    assert res.success and 0.3 < res.sigma0 < 0.7
+    n, col = _dense_normal_matrix(res, block)
+    q = np.linalg.inv(n)
+    s2 = res.sigma0 ** 2
+    deg = np.r_[np.ones(3), np.full(3, 180.0 / np.pi)]
+    for k in range(block.n_images):
+        want = s2 * q[6 * k:6 * k + 6, 6 * k:6 * k + 6] * np.outer(deg, deg)
+        np.testing.assert_allclose(res.pose_cov[k], want, rtol=1e-6, atol=1e-9 * np.abs(want).max())
+    # the whole pose covariance, cross-covariances between images included
+    d = np.tile(deg, block.n_images)
+    joint = s2 * q[:6 * block.n_images, :6 * block.n_images] * np.outer(d, d)
+    np.testing.assert_allclose(res.pose_cov_joint, joint, rtol=1e-6, atol=1e-9 * np.abs(joint).max())
+    for j, c in col.items():
+        want = s2 * q[c:c + 3, c:c + 3]
+        np.testing.assert_allclose(res.point_cov[j], want, rtol=1e-6, atol=1e-9 * np.abs(want).max())
+        np.testing.assert_allclose(res.point_std[block.point_ids[j]], np.sqrt(np.diag(want)), rtol=1e-6)
+
+
+def test_doubling_the_a_priori_sigmas_halves_sigma0_and_keeps_the_covariances():
+    """All a-priori sigmas doubled: the weights drop by 4, the poses are the same, sigma0
+    halves and the a-posteriori covariances (sigma0^2 Q: Q grows by 4) do not change."""
+    block, _ = _half_noise_block()
+    a = bundle_adjust(block, covariance="full")
+    b = bundle_adjust(_copy(block, obs_sigma=2.0 * block.obs_sigma, xyz_sigma=2.0 * block.xyz_sigma),
+                      covariance="full")
+    assert a.success and b.success and a.redundancy == b.redundancy
+    np.testing.assert_allclose(estimates(b, block), estimates(a, block), rtol=0, atol=1e-9)
+    assert b.cost == pytest.approx(a.cost / 4, rel=1e-9)
+    assert b.sigma0 == pytest.approx(a.sigma0 / 2, rel=1e-9)
+    np.testing.assert_allclose(b.pose_cov, a.pose_cov, rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(b.point_cov, a.point_cov, rtol=1e-9, atol=1e-15)

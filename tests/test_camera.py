@@ -93,11 +93,36 @@ def test_cameras_construct_with_strong_distortion(name):
     assert shift.min() >= MIN_CORNER_DISTORTION[name], shift
 
 
-def test_drone_has_wider_field_of_view():
-    def half_diag(p):
-        w, h = p["image_size"]
-        return np.hypot(w, h) / 2 * p["pixel_size"] / p["focal_length"]
-    assert half_diag(DRONE) > 0.8 > 10 * half_diag(AERIAL)
+def _field_of_view(params, device):
+    """Horizontal, vertical and diagonal field of view (rad) of the camera model, from the
+    angles between the rays FrameCamera.pixel_to_camera gives for opposite image edges and
+    corners (principal point centred, no distortion: the closed form applies)."""
+    cam = make(dict(params, principal_point=(0.0, 0.0), k1=0.0, k2=0.0, k3=0.0, p1=0.0, p2=0.0))
+    w, h = params["image_size"]
+    pix = np.array([[0, h / 2], [w, h / 2], [w / 2, 0], [w / 2, h], [0, 0], [w, h]], dtype=np.float64)
+    rays = cam.pixel_to_camera(pix, device=device)
+    angle = lambda a, b: np.arccos(np.clip(rays[a] @ rays[b], -1.0, 1.0))  # noqa: E731 (unit rays)
+    return np.array([angle(0, 1), angle(2, 3), angle(4, 5)])
+
+
+def test_drone_has_wider_field_of_view(device):
+    """The field of view the camera model gives equals the closed form 2 atan(s / 2f) for the
+    sensor's width, height and diagonal s, and the drone's is wider than the aerial camera's."""
+    fov = {}
+    for name, params in (("drone", DRONE), ("aerial", AERIAL)):
+        w, h = params["image_size"]
+        s = np.array([w, h, np.hypot(w, h)]) * params["pixel_size"]  # mm
+        fov[name] = _field_of_view(params, device)
+        np.testing.assert_allclose(fov[name], 2 * np.arctan(s / (2 * params["focal_length"])), rtol=0, atol=1e-12)
+    # 1" sensor behind 8.8 mm: 73 x 53 deg (84 deg across the diagonal); the aerial frame: 6 x 4 deg
+    np.testing.assert_allclose(np.degrees(fov["drone"]), [73.5, 52.9, 83.8], atol=0.1)
+    np.testing.assert_allclose(np.degrees(fov["aerial"]), [5.9, 3.9, 7.1], atol=0.1)
+    assert np.all(fov["drone"] > 10 * fov["aerial"])
+    # with the lens's distortion (barrel: k1 < 0) the corners' rays spread wider than the pinhole's
+    cam = make(dict(DRONE, principal_point=(0.0, 0.0)))
+    w, h = DRONE["image_size"]
+    rays = cam.pixel_to_camera(np.array([[0.0, 0.0], [w, h]]), device=device)
+    assert np.arccos(rays[0] @ rays[1]) > fov["drone"][2]
 
 
 # -- inverse distortion ----------------------------------------------------------------------

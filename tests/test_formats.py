@@ -828,13 +828,11 @@ def test_csv_degrees_read_as_radians_are_refused(tmp_path):
 
 def test_csv_quote_detection_is_linear(tmp_path):
     """A line with a long run of blanks took quadratic time to scan for quotes (0.7 s for
-    20 000 blanks, minutes for 200 000): now linear."""
-    import time
-
+    20 000 blanks, minutes for 200 000): now linear. Such a line reads right (its speed is a
+    bench's business, not a test's: no wall-clock assert here)."""
     text = "filename x y z omega phi kappa\nimg" + " " * 200_000 + "431250.5 5150320.25 2650.0 0.5 -1.25 91.0\n"
-    t0 = time.perf_counter()
     got = read_exterior(write(tmp_path / "blanks.csv", text), crs=UTM32)
-    assert time.perf_counter() - t0 < 5.0
+    assert list(got) == ["img"] and got["img"].camera_id is None
     assert_same_pose(got["img"].pose, Pose.from_opk(431250.5, 5150320.25, 2650.0, 0.5, -1.25, 91.0, crs=UTM32))
 
 
@@ -894,3 +892,115 @@ def test_reconstruction_hand_cases(tmp_path, mutate, match):
         with pytest.raises(ParamError, match=match) as info:
             read_exterior(path)
     assert str(path) in str(info.value)
+
+
+# =============================================================================================
+# round-trip properties: documents written from known values (tests/fuzz_strategies.py) must
+# parse to those values, each in its place (a reader that swaps omega and phi, or two rows,
+# or reads the wrong column, fails here where the robustness fuzzing above passes)
+# =============================================================================================
+
+TO_UTM32 = Transformer.from_crs("EPSG:4979", UTM32, always_xy=True)
+
+
+@fz.fuzz_settings(share=0.25)
+@given(data=st.data())
+def test_fuzz_exterior_csv_round_trip(tmp_path, data):
+    layout = data.draw(st.sampled_from(["xyz_opk", "xyz_opk", "legacy", "lla_rpy", "lla_opk", "xyz_rpy"]))
+    text, rows, radians = data.draw(fz.exterior_csv(layout))
+    path = write(tmp_path / "ext.csv", text)
+    got = read_exterior(path, crs=UTM32, radians=radians)
+    assert list(got) == [r[0] for r in rows], text
+    for name, cam, values in rows:
+        io = got[name]
+        assert io.camera_id == cam
+        pos, ang = values[:3], [math.degrees(a) if radians else a for a in values[3:]]
+        prm = io.pose.params
+        if layout in ("xyz_opk", "legacy"):
+            assert io.pose.mode == "map" and io.pose.crs.equals(CRS(UTM32))
+            assert [prm[k] for k in ("x", "y", "z", "omega", "phi", "kappa")] == pos + ang, text
+            np.testing.assert_array_equal(io.pose.center, pos)
+            np.testing.assert_allclose(io.pose.rotation, fz.opk_rotation(*ang), rtol=0, atol=1e-12)
+        elif layout == "lla_rpy":
+            assert io.pose.mode == "geocentric"
+            assert [prm[k] for k in ("lat", "lon", "h", "roll", "pitch", "yaw")] == pos + ang, text
+        elif layout == "lla_opk":  # the position projected into the CRS the angles refer to
+            assert [prm[k] for k in ("omega", "phi", "kappa")] == ang, text
+            np.testing.assert_allclose([prm[k] for k in ("x", "y", "z")], TO_UTM32.transform(pos[1], pos[0], pos[2]),
+                                       rtol=0, atol=1e-6)
+            np.testing.assert_allclose(io.pose.rotation, fz.opk_rotation(*ang), rtol=0, atol=1e-12)
+        else:  # xyz_rpy: the position made geodetic, the angles roll, pitch, yaw
+            assert [prm[k] for k in ("roll", "pitch", "yaw")] == ang, text
+            lon, lat, h = TO_UTM32.transform(*pos, direction="INVERSE")
+            np.testing.assert_allclose([prm["lat"], prm["lon"], prm["h"]], [lat, lon, h], rtol=0, atol=1e-9)
+
+
+@fz.fuzz_settings(share=0.25)
+@given(data=st.data())
+def test_fuzz_cameras_round_trip(tmp_path, data):
+    doc, expected = data.draw(fz.orthority_cameras())
+    syntax = data.draw(st.sampled_from(["yaml", "json"]))
+    text = fz.to_yaml(doc) if syntax == "yaml" else fz.to_json(doc)
+    cams = read_cameras(write(tmp_path / f"int_param.{syntax}", text))
+    assert list(cams) == list(expected)
+    for cid, want in expected.items():
+        cam = cams[cid]
+        assert cam.image_size == want["size"]
+        np.testing.assert_allclose(focal_px(cam), want["focal_px"], rtol=1e-12)
+        np.testing.assert_allclose(principal_px(cam), want["principal_px"], rtol=0, atol=1e-9)
+        assert (cam.k1, cam.k2, cam.k3, cam.p1, cam.p2) == tuple(want[k] for k in ("k1", "k2", "k3", "p1", "p2"))
+
+
+@fz.fuzz_settings(share=0.25)
+@given(poses=fz.opk_poses(), data=st.data())
+def test_fuzz_exterior_geojson_round_trip(tmp_path, poses, data):
+    names = data.draw(st.lists(fz.image_stems, min_size=len(poses), max_size=len(poses), unique=True))
+    feats = [{"type": "Feature", "properties": {"filename": f"{n}.tif", "camera": f"c{k}", "xyz": [x, y, z],
+                                                "opk": [math.radians(o), math.radians(p), math.radians(kp)]},
+              "geometry": {"type": "Point", "coordinates": [0.0, 0.0, z]}}
+             for k, (n, (x, y, z, o, p, kp)) in enumerate(zip(names, poses))]
+    doc = {"type": "FeatureCollection", "world_crs": UTM32, "features": feats}
+    got = read_exterior(write(tmp_path / "ext.geojson", json.dumps(doc)))
+    assert list(got) == names
+    for k, (n, (x, y, z, o, p, kp)) in enumerate(zip(names, poses)):
+        io = got[n]
+        assert io.camera_id == f"c{k}" and io.pose.mode == "map"
+        opk = [float(np.degrees(math.radians(a))) for a in (o, p, kp)]  # as the file holds them
+        assert [io.pose.params[c] for c in ("x", "y", "z", "omega", "phi", "kappa")] == [x, y, z, *opk]
+        np.testing.assert_allclose(io.pose.rotation, fz.opk_rotation(o, p, kp), rtol=0, atol=1e-12)
+
+
+@fz.fuzz_settings(share=0.25)
+@given(poses=fz.opk_poses(), data=st.data())
+def test_fuzz_opensfm_round_trip(tmp_path, poses, data):
+    """ODM's projected frame (a reference on whole UTM metres): the shots' rotation vectors and
+    translations, written from known poses and cameras, read back as those poses and cameras."""
+    names = data.draw(st.lists(fz.image_stems, min_size=len(poses), max_size=len(poses), unique=True))
+    e0, n0 = data.draw(st.integers(420_000, 580_000)), data.draw(st.integers(5_050_000, 5_250_000))
+    lon, lat = Transformer.from_crs(UTM32, "EPSG:4326", always_xy=True).transform(e0, n0)
+    w, h = data.draw(st.integers(200, 8000)), data.draw(st.integers(200, 8000))
+    focal_x, focal_y = fz.distinct_values(data.draw, 0.6, 1.2, 2)
+    c_x, c_y = fz.distinct_values(data.draw, -0.02, 0.02, 2)
+    k1, k2, k3, p1, p2 = fz.distinct_values(data.draw, -1e-3, 1e-3, 5)
+    cams = {"v2 cam": {"projection_type": "brown", "width": w, "height": h, "focal_x": focal_x, "focal_y": focal_y,
+                       "c_x": c_x, "c_y": c_y, "k1": k1, "k2": k2, "k3": k3, "p1": p1, "p2": p2}}
+    shots = {f"{n}.JPG": shot(fz.opk_rotation(*p[3:]), np.array(p[:3]) - [e0, n0, 0.0], camera="v2 cam")
+             for n, p in zip(names, poses)}
+    doc = [{"cameras": cams, "shots": shots, "reference_lla": {"latitude": lat, "longitude": lon, "altitude": 0.0}}]
+    path = write(tmp_path / "reconstruction.json", json.dumps(doc))
+    got = read_exterior(path, crs=UTM32)
+    assert list(got) == names
+    for n, (x, y, z, o, p, kp) in zip(names, poses):
+        io = got[n]
+        assert io.camera_id == "cam" and io.pose.mode == "map" and io.pose.crs.equals(CRS(UTM32))
+        np.testing.assert_allclose(io.pose.center, [x, y, z], rtol=0, atol=1e-6)
+        np.testing.assert_allclose([io.pose.params[c] for c in ("x", "y", "z")], [x, y, z], rtol=0, atol=1e-6)
+        np.testing.assert_allclose([io.pose.params[c] for c in ("omega", "phi", "kappa")], [o, p, kp], rtol=0,
+                                   atol=1e-8)
+        np.testing.assert_allclose(io.pose.rotation, fz.opk_rotation(o, p, kp), rtol=0, atol=1e-12)
+    cam = read_cameras(path)["cam"]
+    m = max(w, h)
+    assert cam.image_size == (w, h)
+    np.testing.assert_allclose(focal_px(cam), (focal_x * m, focal_y * m), rtol=1e-12)
+    np.testing.assert_allclose(principal_px(cam), (w / 2 + c_x * m, h / 2 + c_y * m), rtol=0, atol=1e-9)
+    assert (cam.k1, cam.k2, cam.k3, cam.p1, cam.p2) == (k1, k2, k3, p1, p2)
