@@ -469,7 +469,10 @@ def test_spot_adjust_example_end_to_end(tmp_path):
                                     "--resolution", "200", "--device", "cpu", "--out-dir", str(tmp_path / "o"),
                                     str(tmp_path / "img.tif")])
     assert res.exit_code == 0, res.output
-    assert os.path.exists(tmp_path / "o" / "img_ORTHO.tif")
+    with rasterio.open(tmp_path / "o" / "img_ORTHO.tif") as ds:  # the adjusted scene's ortho of the constant image
+        data, mask = ds.read(1), ds.dataset_mask()
+        assert ds.crs is not None and ds.res == (200.0, 200.0)
+    assert mask.mean() > 0.2 and (data[mask > 0] == 7).all()
     # bad runs: one scene, an unknown group (nothing written)
     res = CliRunner().invoke(main, ["spot-adjust", "--scene", "left", str(ex / "left.json"), "--points",
                                     str(ex / "points.json"), "--out", str(tmp_path / "bad")])
