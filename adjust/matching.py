@@ -205,7 +205,8 @@ def interest_points(image, *, zones=(4, 3), per_zone=1, window=21, min_roundness
     ----------
     image : array_like, shape (rows, cols)
     zones : (int, int), optional
-        Zones across (columns) and down (rows).
+        Zones across (columns) and down (rows), each at least ``window`` pixels each way
+        (finer zones are a ParamError naming the most the image allows).
     per_zone : int, optional
     window : int, optional
         The operator's window side (px, odd), as the matching's.
@@ -224,9 +225,17 @@ def interest_points(image, *, zones=(4, 3), per_zone=1, window=21, min_roundness
     img = _image("image", image).astype(np.float64)
     if not (isinstance(window, (int, np.integer)) and window % 2 == 1 and window >= 3):
         raise ParamError(f"window must be an odd integer >= 3, got {window!r}")
-    nz = tuple(int(z) for z in zones)
+    try:
+        nz = tuple(int(z) for z in zones)
+    except (TypeError, ValueError):
+        nz = ()
     if len(nz) != 2 or min(nz) < 1:
         raise ParamError(f"zones must be two integers >= 1, got {zones!r}")
+    rows, cols = img.shape
+    most = (cols // window, rows // window)  # zones at least a window wide each way
+    if nz[0] > most[0] or nz[1] > most[1]:
+        raise ParamError(f"zones {nz[0]}x{nz[1]} are too fine for the {cols} x {rows} px image: a zone must be at "
+                         f"least the {window} px window each way, so at most {most[0]}x{most[1]} zones")
     half = window // 2
     margin = window if margin is None else int(margin)
     gy, gx = np.gradient(img)
@@ -235,7 +244,6 @@ def interest_points(image, *, zones=(4, 3), per_zone=1, window=21, min_roundness
     with np.errstate(invalid="ignore", divide="ignore"):
         w = np.where(tr > 0, det / tr, 0.0)
         q = np.where(tr > 0, 4.0 * det / (tr * tr), 0.0)
-    rows, cols = img.shape
     w[q < min_roundness] = 0.0
     w[:margin], w[rows - margin:], w[:, :margin], w[:, cols - margin:] = 0.0, 0.0, 0.0, 0.0
     scale = float(np.max(w)) if np.max(w) > 0 else 1.0

@@ -216,9 +216,16 @@ def input_covariance(pose: Pose, frame_cov: ArrayLike, *, local=None) -> np.ndar
 
 
 def _square(name, value, n):
-    c = np.asarray(value, dtype=np.float64)
-    if c.shape != (n, n) or not np.all(np.isfinite(c)):
-        raise ParamError(f"{name} must be a finite {n} x {n} matrix, got shape {c.shape}")
+    try:
+        c = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as e:
+        raise ParamError(f"{name} must be a {n} x {n} matrix of numbers: {e}") from e
+    if c.shape != (n, n):
+        raise ParamError(f"{name} must be a {n} x {n} matrix, got shape {c.shape}")
+    if not np.all(np.isfinite(c)):
+        i, j = (int(k) for k in np.argwhere(~np.isfinite(c))[0])
+        raise ParamError(f"{name} must hold finite numbers, got {c[i, j]} at [{i}, {j}] (a variance overflows "
+                         "float64 where its sigma is beyond ~1e154)")
     if not np.allclose(c, c.T, rtol=1e-9, atol=1e-15) or np.linalg.eigvalsh(0.5 * (c + c.T)).min() < -1e-12 * max(
             1.0, np.abs(c).max()):
         raise ParamError(f"{name} must be symmetric positive semi-definite")

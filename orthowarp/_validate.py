@@ -78,3 +78,38 @@ def as_crs(value, name="crs"):
         return CRS.from_user_input(value)
     except CRSError as e:
         raise CrsError(f"{name}: unknown coordinate reference system {value!r}: {e}") from e
+
+
+def integer(name, value, *, low=None, high=None, none=False):
+    """``int(value)`` for an integer (an integral float such as 512.0 too) within [low, high],
+    or ParamError naming ``name``; None passes through where ``none``."""
+    import numbers
+
+    if value is None and none:
+        return None
+    ok = not isinstance(value, (bool, np.bool_)) and isinstance(value, numbers.Real)
+    if ok and not isinstance(value, numbers.Integral):
+        ok = math.isfinite(float(value)) and float(value).is_integer()
+    if ok:
+        n = int(value)
+        ok = (low is None or n >= low) and (high is None or n <= high)
+    if not ok:
+        span = (f" {low}-{high}" if high is not None else f" >= {low}") if low is not None else \
+            (f" <= {high}" if high is not None else "")
+        raise ParamError(f"{name} must be an integer{span}, got {value!r}")
+    return n
+
+
+def positive(name, value, *, zero=False, none=False):
+    """A finite number > 0 (>= 0 where ``zero``) as a float, or ParamError naming ``name``;
+    None passes through where ``none``. Booleans and strings are refused, not converted."""
+    import numbers
+
+    if value is None and none:
+        return None
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
+        raise ParamError(f"{name} must be a number, got {value!r}")
+    v = finite(name, value)
+    if v < 0 or (v == 0 and not zero):
+        raise ParamError(f"{name} must be {'>= 0' if zero else '> 0'}, got {value!r}")
+    return v

@@ -25,6 +25,9 @@ MAX_FOCAL_LENGTH = 1e6  # mm (1 km; the longest Earth-imaging telescopes have ~1
 MIN_PIXEL_ANGLE = 1e-8  # rad (2 milliarcseconds): pixel_size / focal_length
 MAX_OFF_AXIS = 85.0  # deg: the image corner farthest from the principal point
 MAX_IMAGE_SIDE = 2**31 - 1  # pixels: Warp launches index with 32-bit integers
+# The most a lens's distortion may move an image point, as a fraction of its (undistorted)
+# distance from the principal point: strong wide-angle lenses stay within ~0.3.
+MAX_DISTORTION = 0.5
 
 
 def _focal_length(value):
@@ -80,7 +83,9 @@ class FrameCamera:
         than 85 deg off the optical axis (usually a unit mix-up: all lengths are in mm), an
         image size that is not a positive integer.
     GeometryError
-        The distortion cannot be inverted everywhere in the image.
+        The distortion cannot be inverted everywhere in the image, or moves an image point by
+        more than ``MAX_DISTORTION`` (half) of its distance from the principal point (no lens
+        does: the coefficient is likely in other units).
 
     Notes
     -----
@@ -277,6 +282,24 @@ class FrameCamera:
             raise GeometryError(
                 f"Lens distortion (k1={self.k1}, k2={self.k2}, k3={self.k3}, p1={self.p1}, p2={self.p2}) "
                 f"is not invertible over the {w}x{h} image (first failure at pixel ({c:.1f}, {r:.1f}))")
+        # invertible, but no lens: a point moved by more than MAX_DISTORTION of its distance from
+        # the principal point (k1 = 1e6 shrinks the field seen fourfold, say)
+        radius = np.hypot(uv[:, 0], uv[:, 1])
+        with np.errstate(all="ignore"):
+            moved = np.where(radius > 0.0, np.hypot(*(uvd - uv).T) / radius, 0.0)
+        if np.max(moved) > MAX_DISTORTION:
+            k = int(np.argmax(moved))
+            u, v = uv[k]
+            r2 = u * u + v * v
+            terms = {"k1": abs(self.k1) * r2, "k2": abs(self.k2) * r2**2, "k3": abs(self.k3) * r2**3,
+                     "p1": abs(self.p1) * math.hypot(2 * u * v, r2 + 2 * v * v) / math.sqrt(r2),
+                     "p2": abs(self.p2) * math.hypot(r2 + 2 * u * u, 2 * u * v) / math.sqrt(r2)}
+            worst = max(terms, key=lambda n: terms[n])  # the coefficient moving the point most
+            c, r = pix[k]
+            raise GeometryError(
+                f"Lens distortion {worst}={getattr(self, worst)} is implausible (not invertible in practice) over "
+                f"the {w}x{h} image: it moves pixel ({c:.1f}, {r:.1f}) by {moved[k]:.3g} times its distance from the "
+                f"principal point, a lens at most {MAX_DISTORTION:g}; check {worst} (OpenCV-normalised units)")
 
     # -- device --------------------------------------------------------------------------------
     def to_struct(self) -> FrameCameraData:

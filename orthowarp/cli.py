@@ -315,6 +315,10 @@ def ortho(ctx, images, odm_dataset, int_param, ext_param, dimap, attitude_model,
     if pose_cov_file is not None:
         from .pipeline.adjust_report import POSE_COV_PARAMETERS, read_pose_covariances
 
+        if ctx.get_parameter_source("pose_sigma") not in (None, click.core.ParameterSource.DEFAULT,
+                                                           click.core.ParameterSource.DEFAULT_MAP):
+            raise ParamError("Give --pose-sigma or --pose-cov, not both: --pose-cov replaces the sigmas")
+
         covs, cov_names = read_pose_covariances(pose_cov_file)
     if accuracy:
         if dimap and pose_sigma == _FRAME_POSE_SIGMA:
@@ -532,9 +536,14 @@ def _accuracy_name(dst):
     return base + "_ACCURACY.tif"
 
 
+_SIGMA_BOUNDS = {"m": 1e6, "deg": 180.0}  # the largest standard deviation a pose's input may take
+
+
 def _sigma_list(text, n, option, units):
     """``n`` (an int, or a tuple of the counts allowed) comma-separated standard deviations
-    (finite, >= 0) of a CLI option."""
+    (finite, >= 0: 0 leaves that input out, and at most 1e6 m or 180 deg) of a CLI option:
+    m, m, m, then deg (a scene's eight numbers; a frame pose's six, then boresight deg x 3,
+    lever arm m x 3)."""
     from .errors import ParamError
 
     counts = (n,) if isinstance(n, int) else tuple(n)
@@ -544,6 +553,11 @@ def _sigma_list(text, n, option, units):
         values = []
     if len(values) not in counts or not all(np.isfinite(v) and v >= 0 for v in values):
         raise ParamError(f"{option} must be {' or '.join(map(str, counts))} numbers >= 0 ({units}), got {text!r}")
+    kinds = ["m"] * 3 + ["deg"] * 5 if counts == (8,) else ["m"] * 3 + ["deg"] * 6 + ["m"] * 3
+    for k, (v, unit) in enumerate(zip(values, kinds)):
+        if v > _SIGMA_BOUNDS[unit]:
+            raise ParamError(f"{option}: number {k + 1}, {text.split(',')[k].strip()} {unit}, is beyond "
+                             f"{_SIGMA_BOUNDS[unit]:g} {unit} (no pose is that uncertain: check the units, {units})")
     return values
 
 
@@ -1142,7 +1156,8 @@ def _write_spot_example(folder):
 @click.option("--height", type=float, help="Constant terrain height (m) instead of a DEM.")
 @click.option("--out", "out_path", type=click.Path(dir_okay=False), required=True,
               help="The block file to write (JSON, for 'orthowarp adjust').")
-@click.option("--zones", default="4x3", show_default=True, help="Interest-point zones per image, across x down.")
+@click.option("--zones", default="4x3", show_default=True,
+              help="Interest-point zones per image, across x down; each at least --window pixels each way.")
 @click.option("--per-zone", type=click.IntRange(1, 100), default=2, show_default=True, help="Points per zone.")
 @click.option("--window", type=int, default=21, show_default=True, help="Matching window side (px, odd).")
 @click.option("--radius", type=click.IntRange(0, 256), default=8, show_default=True,
@@ -1194,6 +1209,8 @@ def match(ctx, images, int_param, ext_param, crs, dem, height, out_path, zones, 
         zx, zy = (int(v) for v in zones.lower().split("x"))
     except ValueError:
         raise ParamError(f"--zones must be COLSxROWS such as 4x3, got {zones!r}") from None
+    if zx < 1 or zy < 1:
+        raise ParamError(f"--zones must be COLSxROWS of at least 1x1, got {zones!r}")
     check_destination(out_path, overwrite=overwrite)
     jobs = _frame_orientations(images, int_param, ext_param, crs)
     pixels = []
@@ -1203,12 +1220,23 @@ def match(ctx, images, int_param, ext_param, crs, dem, height, out_path, zones, 
                 pixels.append(ds.read(1).astype(np.float32))
         except rasterio.errors.RasterioIOError as e:
             raise RasterIOError(f"Could not read image '{image}': {e}") from e
+        rows, cols = pixels[-1].shape
+        if window > 0 and (zx > cols // window or zy > rows // window):  # a zone at least a window each way
+            raise ParamError(f"--zones {zx}x{zy} is too fine for image '{image}' ({cols} x {rows} px): a zone must be "
+                             f"at least the --window of {window} px each way, so at most {cols // window}x"
+                             f"{rows // window} zones")
     terrain = Dem.from_file(dem) if dem is not None else height
     ids = [_image_key(image) for image, _, _ in jobs]
     block, stats = match_block(pixels, [FrameSensor(c, p) for _, c, p in jobs], terrain, ids=ids, zones=(zx, zy),
                                per_zone=per_zone, window=window, radius=radius, levels=pyramid,
                                min_score=min_score, gnss_sigma=gnss_sigma, ins_sigma=ins_sigma, refraction=not no_refraction,
                                device=device)
+    if not block.n_points and stats.get("no_ground"):
+        off = stats["no_ground"]
+        raise ParamError(f"No tie point matched: {f'the DEM {dem!r}' if dem else f'--height {height:g}'} does not cover "
+                         f"{'the images' if len(off) == len(ids) else 'image(s) ' + ', '.join(off)} (none of "
+                         f"{'their' if len(off) > 1 else 'its'} interest points meets it): check the DEM and the "
+                         "poses' CRS (--crs, .prj)")
     if not block.n_points:
         raise ParamError(f"No tie point matched between the {len(images)} images ({stats['interest']} interest "
                          "points): no texture, no overlap, or the orientation is further off than the search "

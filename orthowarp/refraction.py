@@ -18,7 +18,7 @@ cross-check.
 import numpy as np
 import warp as wp
 
-from .errors import ParamError
+from .errors import GeometryError, ParamError
 from .kernels.refraction import RefractionTable
 
 __all__ = [
@@ -38,6 +38,7 @@ _LAYERS = [(0.0, 288.15, -0.0065), (11000.0, 216.65, 0.0), (20000.0, 216.65, 0.0
            (32000.0, 228.65, 0.0028), (47000.0, 270.65, 0.0), (51000.0, 270.65, -0.0028),
            (71000.0, 214.65, -0.002)]
 _TOP = 86000.0  # geometric altitude above which the index is taken as 1
+LOWEST_LAYER = -2000.0  # m: the layered atmosphere's floor (below the lowest land, -430 m)
 
 
 def _layer_base_pressures():
@@ -85,7 +86,7 @@ def refractive_index(z):
 
 def _boundaries(top):
     """Layer boundaries (descending, m) from ``top`` down to -2 km."""
-    b = np.concatenate([np.arange(-2000.0, 20000.0, 50.0), np.arange(20000.0, 50000.0, 250.0),
+    b = np.concatenate([np.arange(LOWEST_LAYER, 20000.0, 50.0), np.arange(20000.0, 50000.0, 250.0),
                         np.arange(50000.0, _TOP, 1000.0), [_TOP]])
     b = b[b < top]
     return np.concatenate([[top], b[::-1]])
@@ -186,6 +187,9 @@ class RefractionModel:
     def __init__(self, sensor_height, h_min, h_max, *, theta_max=89.0, enabled=True):
         self.enabled = bool(enabled)
         self.sensor_height = float(sensor_height)
+        if self.enabled and not self.sensor_height > LOWEST_LAYER:
+            raise GeometryError(f"The sensor's height {self.sensor_height:.3f} m is below any terrain (the refraction "
+                                f"model's atmosphere ends at {LOWEST_LAYER:g} m): check the pose's height")
         lo = float(h_min) - 10.0
         hi = min(float(h_max) + 10.0, self.sensor_height - 1.0)
         if hi <= lo:

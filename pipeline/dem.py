@@ -29,7 +29,7 @@ from rasterio.enums import MaskFlags
 from rasterio.errors import RasterioIOError
 from rasterio.windows import Window
 
-from .._validate import as_crs, finite
+from .._validate import as_crs, finite, finite_vector, integer
 from ..errors import CrsError, ParamError, RasterIOError
 from ..kernels.dem import DemData
 
@@ -250,12 +250,20 @@ class Dem:
     def __init__(self, array: ArrayLike, transform: Affine, crs: CRS | str | int, *,
                  nodata: float | None = None) -> None:
         # a copy: the caller's array is never modified; a masked array's masked cells are nodata
-        arr = np.array(np.ma.getdata(array), dtype=np.float32)
+        try:
+            raw = np.asarray(np.ma.getdata(array))
+        except (TypeError, ValueError) as e:
+            raise ParamError(f"DEM array must be a 2-D array of heights: {e}") from e
+        if raw.dtype.kind not in "iuf":  # strings, objects, complex and boolean values are not heights
+            raise ParamError(f"DEM array must hold real numbers (heights), got dtype {raw.dtype}")
+        arr = np.array(raw, dtype=np.float32)
         if arr.ndim != 2 or min(arr.shape) < 1:
             raise ParamError(f"DEM array must be 2-D and non-empty, got shape {arr.shape}")
         if np.ma.isMaskedArray(array):
             arr[np.ma.getmaskarray(array)] = np.nan
-        if nodata is not None and not (isinstance(nodata, float) and math.isnan(nodata)):
+        if nodata is not None and (isinstance(nodata, (bool, np.bool_)) or not isinstance(nodata, numbers.Real)):
+            raise ParamError(f"DEM nodata must be a number, got {nodata!r}")
+        if nodata is not None and not math.isnan(float(nodata)):
             arr[arr == np.float32(nodata)] = np.nan
         arr[~np.isfinite(arr)] = np.nan
         if not np.any(np.isfinite(arr)):
@@ -264,6 +272,8 @@ class Dem:
             t = transform if isinstance(transform, Affine) else Affine(*transform)
         except (TypeError, ValueError) as e:
             raise ParamError(f"DEM transform must be an affine transform: {e}") from e
+        if not all(isinstance(v, numbers.Real) and math.isfinite(v) for v in tuple(t)[:6]):
+            raise ParamError(f"DEM transform must be six finite numbers, got {tuple(t)[:6]}")
         if t.b != 0.0 or t.d != 0.0 or t.a == 0.0 or t.e == 0.0:
             raise ParamError(f"DEM transform must be north-up without rotation, got {tuple(t)[:6]}")
         self._array = arr
@@ -296,7 +306,7 @@ class Dem:
         """A DEM with no heights (2 x 2 cells without data) over ``bounds`` (xmin, ymin, xmax,
         ymax) in ``crs``, nominally from ``hmin`` to ``hmax`` m: rays meet no ground on it.
         What the geometry classes use where a DEM file has no heights under a footprint."""
-        xmin, ymin, xmax, ymax = (float(v) for v in bounds)
+        xmin, ymin, xmax, ymax = (float(v) for v in finite_vector("bounds", bounds, 4))
         dem = cls.__new__(cls)
         dem._array = np.full((2, 2), np.nan, np.float32)
         dem._file = dem._grid = None
@@ -329,7 +339,11 @@ class Dem:
             offset, a height unit that cannot be interpreted (or that contradicts the CRS),
             or a transform with rotation.
         """
-        path = os.fspath(path)
+        try:
+            path = os.fspath(path)
+        except TypeError as e:
+            raise ParamError(f"DEM file must be a path, got {path!r}") from e
+        band = integer("band", band, low=1)
         if not os.path.exists(path):
             raise RasterIOError(f"DEM file '{path}' does not exist")
         try:

@@ -16,7 +16,7 @@ from pyproj import CRS, Transformer
 from .._device import load_modules, quiet_warp, resolve_device, to_host
 from .._validate import as_crs, no_infinite_rows
 from .._validate import points as _as_points
-from ..errors import ParamError
+from ..errors import GeometryError, ParamError
 from ..kernels import sensor as sensor_kernels
 from ..kernels.ray import SearchParams
 from ..refraction import RefractionModel
@@ -213,7 +213,7 @@ class SensorGeometry:
     """
 
     def __init__(self, sensor, dem, *, refraction=True, device=None, region=None, tolerance=1e-4,
-                 height_range=None, geoid=None, same_vertical_datum=False):
+                 height_range=None, geoid=None, same_vertical_datum=False, _probe_only=False):
         if not isinstance(sensor, SensorModel):
             raise ParamError(f"sensor must be a FrameSensor or a PushbroomScene, got {type(sensor).__name__}")
         self.sensor = sensor
@@ -228,7 +228,9 @@ class SensorGeometry:
         dem = _prepared_dem(terrain, lambda d: reconcile_dem(
             d, sensor.positions, geoid=geoid, same_vertical_datum=same_vertical_datum,
             name=_dem_name(d)).for_frame(frame), self._probe, region, self.horizontal_crs, height_range)
-        sensor.check_above_terrain(dem, name=terrain.source)
+        self.terrain = terrain  # the DEM as given (not cropped), for messages
+        if not _probe_only:  # a footprint probe's constant height is no terrain: nothing to check
+            sensor.check_above_terrain(dem, name=terrain.source)
         self.dem = self._crop_to_footprint(dem, region) if not dem.is_constant else dem
         hmin, hmax = height_range if height_range is not None else (self.dem.hmin, self.dem.hmax)
         self.refraction = RefractionModel(sensor.reference_height(), hmin, hmax, enabled=refraction)
@@ -245,8 +247,32 @@ class SensorGeometry:
     frame_crs = property(lambda self: self.sensor.frame_crs, doc="CRS of the geo triples.")
 
     def at_height(self, h):
-        """The same sensor over a constant height h (m)."""
-        return SensorGeometry(self.sensor, Dem.constant(h), refraction=self.refraction.enabled, device=self.device)
+        """The same sensor over a constant height h (m); GeometryError where the sensor is not
+        above it (over a DEM: not above the DEM's lowest height ``h``, said so)."""
+        try:
+            return SensorGeometry(self.sensor, Dem.constant(h), refraction=self.refraction.enabled, device=self.device)
+        except GeometryError as e:
+            if self.dem.is_constant:
+                raise
+            name = self.terrain.source or self.dem.source
+            dem = f"the DEM {os.fspath(name)!r}" if name else "the DEM"
+            raise GeometryError(f"The camera is below the terrain it looks at: its height "
+                                f"{self.sensor.reference_height():.3f} m is not above the lowest height of {dem} "
+                                f"around its footprint, {float(h):.3f} m (check the pose's height and the DEM's "
+                                "vertical datum)") from e
+
+    def dem_extent(self):
+        """(xmin, ymin, xmax, ymax) of the DEM as given (the whole grid, not the part read) in
+        :attr:`horizontal_crs`, for messages; None over a constant height."""
+        t = self.terrain
+        if t.is_constant:
+            return None
+        rows, cols = t.shape
+        tr = t.transform  # north up: the corners are (c, f) and (c + a cols, f + e rows)
+        xa, ya, xb, yb = tr.c, tr.f, tr.c + tr.a * cols, tr.f + tr.e * rows
+        to_frame = Transformer.from_crs(_horizontal(t.crs), _horizontal(as_crs(self.horizontal_crs)), always_xy=True)
+        with np.errstate(invalid="ignore"):
+            return _bounds_in(to_frame, min(xa, xb), min(ya, yb), max(xa, xb), max(ya, yb))
 
     def sensor_structs(self):
         """The structs the per-pixel ortho kernels take before the DEM: the sensor's argument
@@ -268,8 +294,12 @@ class SensorGeometry:
     def _probe(self, h):
         """This sensor over a constant height h (m), with refraction, for footprints."""
         if self._probe_base is None:
-            self._probe_base = SensorGeometry(self.sensor, Dem.constant(0.0), refraction=True, device=self.device,
-                                              height_range=PROBE_HEIGHTS)
+            # (not checked against its nominal height; a sensor below the probe heights, under
+            # ground, is probed without refraction: the check against the real terrain comes
+            # after the probes and says what is wrong)
+            refraction = float(self.sensor.reference_height()) > PROBE_HEIGHTS[0]
+            self._probe_base = SensorGeometry(self.sensor, Dem.constant(0.0), refraction=refraction,
+                                              device=self.device, height_range=PROBE_HEIGHTS, _probe_only=True)
         return _at_constant(self._probe_base, h)
 
     def _crop_to_footprint(self, dem, region):

@@ -193,7 +193,8 @@ def match_block(images, sensors, dem, *, ids=None, zones=(4, 3), per_zone=2, win
         Poses from the sensors, tie points (coordinates unknown), their observations.
     stats : dict
         Interest points, predictions inside another image, accepted observations per pair,
-        observations dropped by the multi-image check (``inconsistent``).
+        observations dropped by the multi-image check (``inconsistent``), the ids of the images
+        none of whose interest points meets the DEM (``no_ground``: it does not cover them).
     """
     from ..adjust.block import Block
 
@@ -222,12 +223,18 @@ def match_block(images, sensors, dem, *, ids=None, zones=(4, 3), per_zone=2, win
     if not geo and any(not s.pose.crs.equals(crs) for s in sensors):
         raise ParamError("the sensors' poses must share one CRS")
     obs = {}  # (point id, image index) -> (col, row, sigma)
-    stats = dict(interest=0, pairs={}, inconsistent=0)
+    stats = dict(interest=0, pairs={}, inconsistent=0, no_ground=[])
     for i, (img_i, s_i) in enumerate(zip(images, sensors)):
         pts, _ = interest_points(img_i, zones=zones, per_zone=per_zone, window=window)
         stats["interest"] += len(pts)
         if not len(pts):
             log.warning("image '%s' has no textured point to match (uniform or empty?)", ids[i])
+            continue
+        ground = geolocate(s_i, pts, dem=dem, crs=s_i.frame_crs, refraction=refraction, device=device)
+        if not np.all(np.isfinite(ground), axis=1).any():  # nothing to predict in the other images
+            stats["no_ground"].append(ids[i])
+            log.warning("none of the %d interest points of image '%s' meets the DEM: it does not cover the image",
+                        len(pts), ids[i])
             continue
         found = {}
         for j, (img_j, s_j) in enumerate(zip(images, sensors)):

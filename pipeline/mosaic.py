@@ -42,6 +42,7 @@ from affine import Affine
 from pyproj import CRS, Transformer
 
 from .._device import quiet_warp, resolve_device, to_host
+from .._validate import integer, positive
 from ..errors import GeometryError, ParamError, RasterIOError
 from ..geodesy import geodetic_to_ecef, geodetic_up
 from ..kernels import mosaic as mosaic_kernels
@@ -242,14 +243,20 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
     -------
     MosaicResult
     """
-    images = _check_images(images, resampling, dtype, blend, feather, reference, seams, seam_width)
+    images = _check_images(images, resampling, dtype, blend, feather, reference, seams, seam_width,
+                           resolution=resolution, refraction=refraction, balance=balance, occlusion=occlusion,
+                           same_vertical_datum=same_vertical_datum)
     if block_codec not in BLOCK_CODECS:
         raise ParamError(f"block_codec must be one of {BLOCK_CODECS}, got {block_codec!r}")
     parse_creation_options(creation_options)  # checked before any work
-    if tile_size is not None and (int(tile_size) < 16 or int(tile_size) % 16):
+    if tile_size is not None and integer("tile_size", tile_size, low=16) % 16:
         raise ParamError(f"tile_size must be a positive multiple of 16, got {tile_size}")
     if processes is not None and (not isinstance(processes, (int, np.integer)) or processes < 1):
         raise ParamError(f"processes must be a positive number of processes, got {processes!r}")
+    compress_level = integer("compress_level", compress_level, low=1, high=12, none=True)  # deflate's levels
+    workers = integer("workers", workers, low=1, none=True)
+    if not isinstance(overwrite, (bool, np.bool_)):
+        raise ParamError(f"overwrite must be True or False, got {overwrite!r}")
     dst = os.fspath(dst)
     outputs = _outputs(dst, index, seamlines, overwrite)
     on = resolve_device(device)
@@ -878,7 +885,9 @@ def mosaic_plan(images, *, dem, crs=None, resolution=None, resampling="bilinear"
     cluster) and whose :meth:`~MosaicPlan.write` assembles the results. Parameters as
     :func:`mosaic`."""
     t_plan = time.perf_counter()
-    images = _check_images(images, resampling, dtype, blend, feather, reference, seams, seam_width)
+    images = _check_images(images, resampling, dtype, blend, feather, reference, seams, seam_width,
+                           resolution=resolution, refraction=refraction, balance=balance, occlusion=occlusion,
+                           same_vertical_datum=same_vertical_datum)
     terrain = as_dem(dem)
     # the sources: one band count and data type
     facts = []  # (path, bands, data type, masked)
@@ -972,7 +981,8 @@ def _outputs(dst, index, seamlines, overwrite):
     return outputs
 
 
-def _check_images(images, resampling, dtype, blend, feather, reference, seams, seam_width):
+def _check_images(images, resampling, dtype, blend, feather, reference, seams, seam_width, *, resolution=None,
+                  refraction=True, balance=True, occlusion=True, same_vertical_datum=False):
     """Check the arguments; returns the images as (source, sensor)."""
     images = list(images)
     if not images:
@@ -995,12 +1005,25 @@ def _check_images(images, resampling, dtype, blend, feather, reference, seams, s
         raise ParamError(f"blend must be 'feather', 'multiband' or 'none', got {blend!r}")
     if seams not in ("least-cost", "nadir"):
         raise ParamError(f"seams must be 'least-cost' or 'nadir', got {seams!r}")
-    if not np.isfinite(seam_width) or seam_width < 0:
-        raise ParamError(f"seam_width must be a width in pixels >= 0, got {seam_width!r}")
-    if not np.isfinite(feather) or feather <= 0:
-        raise ParamError(f"feather must be a positive width in pixels, got {feather!r}")
+    positive("seam_width", seam_width, zero=True)  # pixels
+    positive("feather", feather)  # pixels
     if reference is not None and not (isinstance(reference, (int, np.integer)) and 0 <= reference < len(images)):
         raise ParamError(f"reference must be an image's position 0-{len(images) - 1}, got {reference!r}")
+    for name, flag in (("refraction", refraction), ("balance", balance), ("occlusion", occlusion),
+                       ("same_vertical_datum", same_vertical_datum)):
+        if not isinstance(flag, (bool, np.bool_)):
+            raise ParamError(f"{name} must be True or False, got {flag!r}")
+    positive("resolution", resolution, none=True)
+    seen = {}  # each file once: a second copy would count twice in the default resolution and the balance
+    for k, (src, _) in enumerate(images):
+        try:
+            key = os.path.normcase(os.path.realpath(os.fspath(src)))
+        except TypeError:
+            raise ParamError(f"images[{k}]: the source must be a file path, got {src!r}") from None
+        if key in seen:
+            raise ParamError(f"images[{k}] '{os.fspath(src)}' is the same file as images[{seen[key]}] "
+                             f"'{os.fspath(images[seen[key]][0])}': a mosaic takes each image once")
+        seen[key] = k
     return images
 
 

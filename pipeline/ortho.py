@@ -33,7 +33,7 @@ from rasterio.enums import MaskFlags, Resampling
 from rasterio.windows import Window
 
 from .._device import load_modules, quiet_warp, to_host
-from .._validate import as_crs, finite
+from .._validate import as_crs, finite, integer, positive
 from ..errors import Cancelled, DeviceError, GeometryError, OrthowarpWarning, ParamError, RasterIOError
 from ..kernels import ortho as ortho_kernels
 from ..sensor import SensorModel
@@ -61,6 +61,7 @@ ORTHO_BLOCK_DIM = 128
 _WP_TYPES = {"uint8": wp.uint8, "uint16": wp.uint16, "float32": wp.float32}
 _TOP = {"uint8": 255.0, "uint16": 65535.0, "float32": 0.0}  # the kernels' clipping top per output type (0: none)
 COARSE_STEP = 16  # output pixels between nodes of the exactly transformed coarse grid
+MIN_FOOTPRINT_PIXELS = 4  # output pixels the footprint's longer side must span at least (else: resolution)
 
 
 @dataclass
@@ -127,7 +128,11 @@ def output_grid(geom, *, crs=None, resolution=None, name=None):
     Raises
     ------
     GeometryError
-        The camera sees the horizon, or the DEM does not cover the image footprint at all.
+        The camera sees the horizon, or the DEM does not cover the image footprint at all (the
+        message gives both extents in the poses' CRS).
+    ParamError
+        ``resolution`` is not > 0, or so coarse that the footprint's longer side spans fewer
+        than ``MIN_FOOTPRINT_PIXELS`` pixels.
     """
     frame_crs = geom.horizontal_crs
     size = geom.image_size
@@ -140,7 +145,7 @@ def output_grid(geom, *, crs=None, resolution=None, name=None):
     feet = geom.geolocate_frame(border)
     ok = np.all(np.isfinite(feet), axis=1)
     if not np.any(ok):
-        raise GeometryError("The DEM does not cover the image footprint")
+        raise GeometryError(_not_covered(geom, low))
     if not np.all(ok):
         log.warning("%sthe DEM covers the image footprint only partly (%d of %d border rays miss it); "
                     "the rest of the orthoimage is nodata", f"Image '{name}': " if name else "",
@@ -172,6 +177,13 @@ def output_grid(geom, *, crs=None, resolution=None, name=None):
     res = finite("resolution", resolution)
     if res <= 0:
         raise ParamError(f"resolution must be > 0, got {resolution}")
+    span = max(max(x) - min(x), max(y) - min(y))  # the footprint's longer side, CRS units
+    if span < MIN_FOOTPRINT_PIXELS * res:
+        unit = crs.axis_info[0].unit_name if crs.axis_info else "CRS units"
+        raise ParamError(f"resolution {res:g} {unit} is coarser than the image footprint allows: its longer side, "
+                         f"{span:.4g} {unit}, would span {span / res:.3g} pixels (fewer than {MIN_FOOTPRINT_PIXELS}); "
+                         f"give at most {span / MIN_FOOTPRINT_PIXELS:.4g} (the mean GSD is "
+                         f"{_mean_gsd(geom, to_out):.4g})")
     x0, x1 = math.floor(min(x) / res) * res, math.ceil(max(x) / res) * res
     y0, y1 = math.floor(min(y) / res) * res, math.ceil(max(y) / res) * res
     shape = (max(int(round((y1 - y0) / res)), 1), max(int(round((x1 - x0) / res)), 1))
@@ -179,6 +191,24 @@ def output_grid(geom, *, crs=None, resolution=None, name=None):
         raise ParamError(f"The orthoimage would have {shape[1]} x {shape[0]} pixels at resolution {res}: "
                          "check the resolution and the CRS units")
     return crs, Affine(res, 0.0, x0, 0.0, -res, y1), shape, res
+
+
+def _not_covered(geom, feet):
+    """The message of a DEM that does not cover an image's footprint (``feet``: its border on
+    the DEM's lowest height): both extents in the poses' horizontal CRS, named."""
+    crs = as_crs(geom.horizontal_crs)
+    dem = geom.dem_extent()
+    if dem is None or not np.all(np.isfinite(feet)):
+        return "The DEM does not cover the image footprint"
+    geographic = crs.is_geographic
+
+    def span(x0, y0, x1, y1):
+        f = (lambda v: f"{v:.6f}") if geographic else (lambda v: f"{v:.1f}")
+        return f"{'lon' if geographic else 'x'} {f(x0)} to {f(x1)}, {'lat' if geographic else 'y'} {f(y0)} to {f(y1)}"
+
+    foot = (feet[:, 0].min(), feet[:, 1].min(), feet[:, 0].max(), feet[:, 1].max())
+    return (f"The DEM does not cover the image footprint: in the poses' CRS {crs.name!r} the footprint spans "
+            f"{span(*foot)} and the DEM {span(*dem)} (check the poses' CRS, e.g. --crs or a .prj, and the DEM's)")
 
 
 def _mean_gsd(geom, to_out):
@@ -340,10 +370,9 @@ def orthorectify(src: str | os.PathLike, sensor: SensorModel, dst: str | os.Path
         raise ParamError(f"compress must be one of {COMPRESS}, got {compress!r}")
     if compress_level is not None:
         top = {"deflate": 12, "zstd": 22}.get(compress)
-        if top is None or not (1 <= int(compress_level) <= top):
-            raise ParamError(f"compress_level must be 1-12 for deflate or 1-22 for zstd, got {compress_level!r} "
-                             f"with {compress!r}")
-        compress_level = int(compress_level)
+        if top is None:
+            raise ParamError(f"compress_level applies to deflate (1-12) and zstd (1-22), not {compress!r}")
+        compress_level = integer("compress_level", compress_level, low=1, high=top)
     if quality is not None:
         if compress not in LOSSY:
             raise ParamError(f"quality applies to jpeg and webp compression, not {compress!r}")
@@ -360,9 +389,15 @@ def orthorectify(src: str | os.PathLike, sensor: SensorModel, dst: str | os.Path
         raise ParamError(f"source_reads must be one of {SOURCE_READS}, got {source_reads!r}")
     co = parse_creation_options(creation_options)
     if tile_size is not None:
-        tile_size = int(tile_size)
-        if tile_size < 16 or tile_size % 16:
+        tile_size = integer("tile_size", tile_size, low=16)
+        if tile_size % 16:
             raise ParamError(f"tile_size must be a positive multiple of 16, got {tile_size}")
+    workers = integer("workers", workers, low=1, none=True)
+    resolution = positive("resolution", resolution, none=True)
+    for name, flag in (("refraction", refraction), ("overviews", overviews), ("overwrite", overwrite),
+                       ("progress", progress), ("same_vertical_datum", same_vertical_datum)):
+        if not isinstance(flag, (bool, np.bool_)):
+            raise ParamError(f"{name} must be True or False, got {flag!r}")
     src, dst = os.fspath(src), os.fspath(dst)
     check_destination(dst, overwrite=overwrite)
     if not os.path.exists(src):

@@ -131,6 +131,22 @@ def test_interest_points_spread_over_the_zones():
     assert flat.shape == (0, 2)  # no texture, no points
 
 
+def test_zones_finer_than_the_image_allows_are_refused():
+    """Zones narrower than the operator's window (here 0 px: more zones than pixels) are a
+    ParamError naming zones and the most the image allows, not an argmax of an empty zone."""
+    from orthowarp.adjust.matching import interest_points
+
+    img = RNG.uniform(0, 255, (48, 64))
+    with pytest.raises(ParamError, match=r"zones 1000x1000 .*64 x 48 px.*at most 3x2 zones"):
+        interest_points(img, zones=(1000, 1000))
+    with pytest.raises(ParamError, match=r"zones 4x3 .*17 px window.*at most 3x2 zones"):  # 16 x 16 px zones
+        interest_points(img, zones=(4, 3), window=17)
+    with pytest.raises(ParamError, match="zones must be two integers"):
+        interest_points(img, zones="ab")
+    pts, _ = interest_points(RNG.uniform(0, 255, (150, 200)), zones=(9, 7), window=21)  # the most allowed
+    assert 0 < len(pts) <= 63
+
+
 def test_tie_points_between_rendered_frames_with_an_approximate_orientation():
     """Two frames rendered from a scene with truth (tests/render.py); the right one's orientation
     off by 1.5 m and 0.05 deg (predictions several pixels off): the matched positions against
