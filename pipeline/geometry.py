@@ -261,6 +261,18 @@ class SensorGeometry:
                                 f"around its footprint, {float(h):.3f} m (check the pose's height and the DEM's "
                                 "vertical datum)") from e
 
+    def on_device(self, device):
+        """The same geometry (sensor, prepared DEM, refraction table) with its kernels on another
+        Warp device; this one where it is already there. Its device structs and footprint
+        probes are made on first use there."""
+        device = resolve_device(device)
+        if device == self.device:
+            return self
+        load_modules(device, sensor_kernels)
+        twin = copy.copy(self)
+        twin.device, twin._structs, twin._probe_base = device, None, None
+        return twin
+
     def dem_extent(self):
         """(xmin, ymin, xmax, ymax) of the DEM as given (the whole grid, not the part read) in
         :attr:`horizontal_crs`, for messages; None over a constant height."""

@@ -111,6 +111,13 @@ def _border(size, n=64):
 def output_grid(geom, *, crs=None, resolution=None, name=None):
     """Output CRS, resolution and pixel-aligned grid of one image's orthoimage.
 
+    The grid is computed on the CPU whatever ``geom``'s device, so that the same call gives
+    the same grid on every device: a GPU's float64 differs from the CPU's in the last bits,
+    and the grid, aligned to whole pixels from the CRS's origin, turns a relative change of
+    the mean GSD into a shift of its distance from that origin in pixels times that change
+    (on an H100, 3.9e-10 of the GSD moved a UTM grid by 0.02 px, and 2.5 % of a nearest
+    ortho's pixels; bench/reference/api-agreement-h100.json).
+
     Parameters
     ----------
     geom : SensorGeometry
@@ -134,6 +141,7 @@ def output_grid(geom, *, crs=None, resolution=None, name=None):
         ``resolution`` is not > 0, or so coarse that the footprint's longer side spans fewer
         than ``MIN_FOOTPRINT_PIXELS`` pixels.
     """
+    geom = geom.on_device("cpu")  # the same grid from every device (see above)
     frame_crs = geom.horizontal_crs
     size = geom.image_size
     border = _border(size)
@@ -862,16 +870,18 @@ class ImageTiles:
         timer.span("kernel", t)
         return values, valid
 
-    def _backward(self, r0, c0, th, tw):
-        """The backward method's source window for a tile (see :mod:`orthowarp.kernels.ortho`)
-        and the launch of its fused kernel."""
+    def _tile_grid(self, r0, c0, th, tw):
+        """A tile's coarse grid as the backward kernels take it, its nodes' source pixels at
+        the tile's lowest and highest DEM height (2, rows, cols, 2), those heights and its
+        source window (col0, row0, col1, row1, factor; None where empty); all None where no
+        DEM lies under the tile."""
         geom, device, timer, sensor, dem = self.geom, self.device, self.timer, self.sensor, self.dem
         t = time.perf_counter()
         uv = coarse_grid(self.transform, self.to_frame, r0, c0, th, tw)
         heights = _height_range(geom.dem, self.dem_blocks, uv)
         timer.span("prepare", t)
         if heights is None:  # no DEM under the tile
-            return None, None
+            return None, None, None, None
         t = time.perf_counter()
         grid = coarse_struct(uv, geom.geocentric, device, pose=None if self.pushbroom else geom.sensor.pose)
         nodes = wp.empty((2, *uv.shape[:2]), dtype=wp.vec2d, device=device)
@@ -902,6 +912,31 @@ class ImageTiles:
         timer.span("prepare", t)
         if window is not None:
             window = (*window, factor)
+        return grid, pixels, heights, window
+
+    def source_coords(self, r0, c0, th, tw):
+        """The source pixel (col, row) of every pixel of a tile as the backward kernel
+        computes it (the same grid, nodes and sensor chain: see :meth:`_tile_grid`), as a
+        host array (th, tw, 2), NaN where there is none; with the tile's node pixels, height
+        range and source window (see :meth:`_tile_grid`). For checking devices against each
+        other and against references."""
+        grid, pixels, heights, window = self._tile_grid(r0, c0, th, tw)
+        if grid is None:
+            return np.full((th, tw, 2), np.nan), None, None, None
+        w_img, h_img = self.image_size
+        out = wp.empty((th, tw), dtype=wp.vec2d, device=self.device)
+        wp.launch(ortho_kernels.source_coords_kernel, dim=(th, tw), device=self.device,
+                  inputs=[*self.sensor, self.dem, grid, wp.float64(w_img), wp.float64(h_img), out])
+        return to_host(out), pixels, heights, window
+
+    def _backward(self, r0, c0, th, tw):
+        """The backward method's source window for a tile (see :mod:`orthowarp.kernels.ortho`)
+        and the launch of its fused kernel."""
+        grid, _, _, window = self._tile_grid(r0, c0, th, tw)
+        if grid is None:
+            return None, None
+        geom, device, sensor, dem = self.geom, self.device, self.sensor, self.dem
+        w_img, h_img = self.image_size
 
         def launch(sw, data, out, out_valid):
             wp.launch(ortho_kernels.ortho_kernel, dim=(th, tw), device=device, block_dim=ORTHO_BLOCK_DIM,

@@ -408,6 +408,75 @@ def test_footprint_is_the_images(name, resampling, tmp_path):
     assert np.all((col >= 0) & (col <= res.shape[1]) & (row >= 0) & (row <= res.shape[0]))
 
 
+@pytest.mark.parametrize("name", ["ins", "opk"])
+def test_output_grid_is_the_same_on_every_device(name):
+    """output_grid computes on the CPU whatever the geometry's device, so that a device whose
+    float64 results differ from the CPU's in the last bits (a GPU's) gives the same grid. Else
+    the default resolution (the mean GSD) and the grid's alignment to whole pixels from the
+    CRS's origin turn those bits into a shift of the whole grid: on an H100, 3.9e-10 of the GSD
+    moved it by 0.02 px and changed 2.5 % of a nearest ortho's pixels (bench/api_agreement.py,
+    bench/reference/api-agreement-h100.json)."""
+    import copy
+
+    from orthowarp.pipeline import ortho as po
+    from orthowarp.pipeline.geometry import SensorGeometry
+
+    rng = np.random.default_rng(11)
+
+    class OtherDevice(SensorGeometry):
+        """The geometry as another device computes it: the CPU's results, last bits changed
+        (within 64 ulp); its CPU twin is the geometry itself."""
+
+        def geolocate_frame(self, pixels):
+            g = super().geolocate_frame(pixels)
+            return g * (1.0 + rng.integers(-64, 65, g.shape) * 2.0**-52)
+
+        def on_device(self, device):
+            twin = copy.copy(self)
+            twin.__class__ = SensorGeometry
+            return twin
+
+    sc = scene(name)
+    geom = SensorGeometry(FrameSensor(sc.camera, sc.pose), sc.dem, device="cpu", refraction=True)
+    other = copy.copy(geom)
+    other.__class__ = OtherDevice
+    crs, transform, shape, res = po.output_grid(geom)
+    assert po.output_grid(other) == (crs, transform, shape, res)
+    # what those bits do to a grid computed from them: the GSD moves, and the grid with it
+    to_out = Transformer.from_crs(geom.horizontal_crs, crs, always_xy=True)
+    moved = po.output_grid(geom, resolution=po._mean_gsd(other, to_out))[1]
+    shift = max(abs(moved.c - transform.c), abs(moved.f - transform.f)) / res
+    print(f"{name}: GSD's last bits moved the grid by {shift:.2e} px")
+    assert moved != transform
+
+
+def test_tile_source_coords_are_the_orthos(tmp_path):
+    """ImageTiles.source_coords (what bench/api_agreement.py compares between devices) gives
+    the source pixels the public call samples: a nearest ortho is the source at them."""
+    from orthowarp.pipeline import ortho as po
+    from orthowarp.pipeline.geometry import SensorGeometry
+
+    sc = scene("ins")
+    res = ortho(sc, tmp_path, refraction_image=True, refraction=True, resampling="nearest", tile_size=64)
+    data, valid, _ = read_ortho(res.path)
+    src = sc.image(True).astype(np.float32)
+    geom = SensorGeometry(FrameSensor(sc.camera, sc.pose), sc.dem, device="cpu", refraction=True)
+    image = po.ImageTiles(str(tmp_path / "src_ortho.tif"), geom, res.crs, res.transform, count=1,
+                          out_dtype="float32", resampling="nearest", masked=False)
+    rows, cols = res.shape
+    h, w = src.shape
+    for r0 in range(0, rows, 64):
+        for c0 in range(0, cols, 64):
+            th, tw = min(64, rows - r0), min(64, cols - c0)
+            coords = image.source_coords(r0, c0, th, tw)[0]
+            ok = np.isfinite(coords).all(-1)
+            np.testing.assert_array_equal(ok, valid[r0:r0 + th, c0:c0 + tw])
+            c = np.clip(np.floor(coords[ok, 0]).astype(int), 0, w - 1)
+            r = np.clip(np.floor(coords[ok, 1]).astype(int), 0, h - 1)
+            np.testing.assert_array_equal(src[r, c], data[r0:r0 + th, c0:c0 + tw][ok])
+    image.close()
+
+
 def test_tile_height_range_from_dem_blocks():
     """A tile's height range from the DEM's block minima and maxima holds the exact range of
     the cells under it (and one around); no heights there -> None; a constant DEM -> its
