@@ -8,7 +8,7 @@ coordinates (u, v) = (x / f, -y / f), undistorted -> distorted.
 
 import warp as wp
 
-wp.set_module_options({"enable_backward": False})  # forward-only kernels: halves compile time
+wp.set_module_options({"enable_backward": False, "cuda_output": "cubin"})  # forward-only kernels: halves compile time
 
 
 @wp.struct

@@ -24,7 +24,7 @@ from typing import Any
 
 import warp as wp
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "cuda_output": "cubin"})
 
 ADLER_MOD = wp.constant(wp.int64(65521))
 

@@ -8,7 +8,7 @@ for nodata; bilinear interpolation between cell centres; NaN outside the grid.
 
 import warp as wp
 
-wp.set_module_options({"enable_backward": False})  # forward-only kernels: halves compile time
+wp.set_module_options({"enable_backward": False, "cuda_output": "cubin"})  # forward-only kernels: halves compile time
 
 
 @wp.struct

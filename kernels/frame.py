@@ -13,7 +13,7 @@ height m) in geocentric mode, (x, y, z) of the map CRS in map-Cartesian mode.
 
 import warp as wp
 
-wp.set_module_options({"enable_backward": False})  # forward-only kernels: halves compile time
+wp.set_module_options({"enable_backward": False, "cuda_output": "cubin"})  # forward-only kernels: halves compile time
 
 from .camera import FrameCameraData, camera_to_pixel, pixel_to_camera
 from .dem import DemData

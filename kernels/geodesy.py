@@ -5,7 +5,7 @@ Angles are radians inside these functions; heights are ellipsoidal, metres.
 
 import warp as wp
 
-wp.set_module_options({"enable_backward": False})  # forward-only kernels: halves compile time
+wp.set_module_options({"enable_backward": False, "cuda_output": "cubin"})  # forward-only kernels: halves compile time
 
 WGS84_A = wp.constant(wp.float64(6378137.0))
 WGS84_F = wp.constant(wp.float64(1.0 / 298.257223563))

@@ -21,7 +21,7 @@ South African Journal of Photogrammetry 14(3), 1985.
 
 import warp as wp
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "cuda_output": "cubin"})
 
 mat88 = wp.types.matrix(shape=(8, 8), dtype=wp.float64)
 vec8 = wp.types.vector(length=8, dtype=wp.float64)

@@ -32,7 +32,7 @@ from .ortho import CoarseGrid, node_point, store_nodata, store_pixel
 from .refraction import RefractionTable
 from .sensor import SENSOR_ARGS, sensor_project_xyz
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "cuda_output": "cubin"})
 
 NO_SOURCE = wp.constant(wp.uint16(65535))
 

@@ -37,7 +37,7 @@ from .refraction import RefractionTable
 from .ray import SearchParams
 from .sensor import SENSOR_ARGS, FrameArg, sensor_geolocate, sensor_project_xyz
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "cuda_output": "cubin"})
 
 NEAREST = wp.constant(0)
 BILINEAR = wp.constant(1)

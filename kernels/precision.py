@@ -29,6 +29,9 @@ from .refraction import RefractionTable
 
 RAW = 20  # raw parameters: projection centre (3, m), rotation R_object<-camera (9, row-major), camera (8)
 vec8d = wp.types.vector(length=8, dtype=wp.float64)  # f, x0, y0 (mm); k1, k2, k3, p1, p2
+# machine code (cubin), not PTX, on a GPU: no driver compile of PTX on a first run, and the
+# cubins built with orthowarp are taken as they are (orthowarp._kernelcache)
+wp.set_module_options({"cuda_output": "cubin"})
 
 
 @wp.func

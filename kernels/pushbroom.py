@@ -20,7 +20,7 @@ from .ray import MODE_GEOCENTRIC, FramePoseData, SearchParams, apparent_directio
 from .geodesy import ecef_to_geodetic_sc
 from .refraction import RefractionTable
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "cuda_output": "cubin"})
 
 
 @wp.struct

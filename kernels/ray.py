@@ -12,7 +12,7 @@ sensor sees it under (the backward chain's refraction).
 
 import warp as wp
 
-wp.set_module_options({"enable_backward": False})  # forward-only kernels: halves compile time
+wp.set_module_options({"enable_backward": False, "cuda_output": "cubin"})  # forward-only kernels: halves compile time
 
 from .dem import DemData, dem_block_bound, dem_grid, dem_sample_grid, dem_sample_grid_f32
 from .geodesy import RAD2DEG, WGS84_A, WGS84_B, WGS84_E2, ecef_to_geodetic, ecef_to_geodetic_sc

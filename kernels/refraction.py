@@ -9,7 +9,7 @@ smooth and nearly constant, so bilinear interpolation is accurate to well under 
 
 import warp as wp
 
-wp.set_module_options({"enable_backward": False})  # forward-only kernels: halves compile time
+wp.set_module_options({"enable_backward": False, "cuda_output": "cubin"})  # forward-only kernels: halves compile time
 
 
 @wp.struct

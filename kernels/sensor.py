@@ -22,7 +22,7 @@ from typing import Any
 
 import warp as wp
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "cuda_output": "cubin"})
 
 from .camera import FrameCameraData
 from .dem import DemData

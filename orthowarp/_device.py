@@ -42,7 +42,7 @@ import warp as wp
 
 from .errors import DeviceError
 
-__all__ = ["resolve_device", "quiet_warp", "ensure_warp_initialized", "load_modules", "set_warp_messages"]
+__all__ = ["resolve_device", "quiet_warp", "ensure_warp_initialized", "load_modules", "ship", "set_warp_messages"]
 
 # What Warp's native library writes to fd 2 when no CUDA driver can be loaded (CPU-only
 # machines): an informational notice for orthowarp, whose CPU backend is a supported target.
@@ -242,9 +242,31 @@ def compile_notice(device, what):
 _LOAD_LOCK = threading.RLock()
 
 
+def ship(device, *modules, block_dim=None):
+    """Put the binaries built with orthowarp for these kernel modules (if any match this Warp,
+    device and block size) into Warp's kernel cache, so that Warp loads them instead of
+    compiling (see :mod:`orthowarp._kernelcache`); for modules Warp loads on their first launch.
+
+    Parameters
+    ----------
+    device : warp.context.Device or str
+    *modules : module
+        Python modules holding Warp kernels.
+    block_dim : int, optional
+        The block size they are launched with (default: Warp's for the device).
+    """
+    from ._kernelcache import seed
+
+    device = wp.get_device(device)
+    for m in modules:
+        seed(device, m, block_dim)
+
+
 def load_modules(device, *modules, block_dim=None):
-    """Load (compile if needed) Warp modules on a device, quietly, before launching from threads,
-    with a logged notice when that takes long (see :func:`compile_notice`).
+    """Load Warp modules on a device, quietly, before launching from threads: the binaries
+    built with orthowarp where they match (:func:`ship`), else compiled (the first time with
+    this Warp and device), with a logged notice when that takes long (see
+    :func:`compile_notice`).
 
     Parameters
     ----------
@@ -257,6 +279,8 @@ def load_modules(device, *modules, block_dim=None):
     names = ", ".join(m.__name__.rsplit(".", 1)[-1] for m in modules)
     # one loader at a time: two image threads loading the same module at once both load it
     # (each reports a cached load; the work is done twice)
+    with _LOAD_LOCK, quiet_warp():
+        ship(device, *modules, block_dim=block_dim)
     with _LOAD_LOCK, quiet_warp(), compile_notice(device, f"Warp kernels ({names})"):
         for m in modules:
             if block_dim is None:

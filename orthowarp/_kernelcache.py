@@ -1,0 +1,185 @@
+"""Kernels compiled when orthowarp is built, so that a first call does not compile them.
+
+Warp compiles a module's kernels the first time one of them is used on a device and keeps the
+result in its kernel cache (``warp.config.kernel_cache_dir``): on an empty cache that is tens
+of seconds on the CPU and minutes on a GPU, where the driver also turns PTX into machine code.
+orthowarp's build (``pip install``) compiles its kernel modules into the package instead
+(``orthowarp/_kernels``, laid out as Warp's cache is: a folder per Warp version, in it one per
+module variant, named by the module's content hash, holding its metadata and its binaries):
+
+- the CPU objects, always (for the building machine's CPU: Warp compiles with
+  ``-march=native``, and an object built for another CPU is not taken);
+- CUDA cubins (machine code, not PTX) for every GPU architecture of the building machine,
+  and for those listed in ``ORTHOWARP_CUDA_ARCHS`` (e.g. ``"80,86,89,90"``: a CPU-only
+  machine cross-compiles them through Warp's NVRTC).
+
+At run time :func:`seed` copies the files of a module variant from the package into Warp's
+kernel cache before Warp loads it, and Warp then finds them there as if it had compiled them.
+Nothing is taken on trust: a folder is named by the hash Warp computes for the module as it
+is now (the Warp version, the code, the options, the block size), and a binary by its
+target, so a module changed since the build, another Warp, CPU or GPU simply finds no files
+and is compiled as before (with :func:`orthowarp._device.compile_notice`'s one-line notice).
+
+``python orthowarp/_kernelcache.py OUT [--arch 80,90] [--no-cpu]`` builds into ``OUT``; it
+imports only Warp and orthowarp's ``kernels`` package (the rest of orthowarp need not be
+importable there: it runs inside ``pip``'s build environment).
+"""
+
+import os
+import shutil
+
+__all__ = ["MODULES", "SHIPPED", "seed", "build"]
+
+# orthowarp's kernel modules (under orthowarp.kernels) and the block sizes they are launched
+# with beyond the default (the CPU's 1, a GPU's module default of 256)
+MODULES = {"camera": (), "geodesy": (), "sensor": (), "ortho": (128,), "mosaic": (), "cog": (), "deflate": (),
+           "matching": (), "precision": (), "pushbroom": ()}
+SHIPPED = os.path.join(os.path.dirname(os.path.abspath(__file__)), "_kernels")
+_SEEDED = set()  # (module variant, device, shipped folder, kernel cache) already seeded in this process
+
+
+def _files_for(folder, device):
+    """The files of a shipped module variant ``folder`` that a Warp ``device`` loads: its
+    metadata, and its CPU objects or its cubins for the device's architecture."""
+    try:
+        names = os.listdir(folder)
+    except OSError:
+        return []
+    if device.is_cpu:
+        return [n for n in names if n.endswith((".meta", ".o"))]
+    arch = f".sm{device.arch}"
+    return [n for n in names if n.endswith(".meta") or (arch in n and n.endswith(".cubin"))]
+
+
+def seed(device, module, block_dim=None, *, shipped=None):
+    """Copy a module variant's shipped binaries for ``device`` into Warp's kernel cache, where
+    Warp's load then finds them; returns the names copied (none when the package holds none
+    for this module, Warp, block size and target, or the cache has them already).
+
+    Parameters
+    ----------
+    device : warp.context.Device
+    module : module
+        A Python module of Warp kernels (e.g. ``orthowarp.kernels.ortho``).
+    block_dim : int, optional
+        The block size it is loaded with (default: the CPU's 1, a GPU's module default).
+    shipped : str, optional
+        Where the built kernels are (default :data:`SHIPPED`, the package's ``_kernels``).
+
+    Notes
+    -----
+    Any failure (no such folder, a Warp without these module methods, an unwritable cache)
+    copies nothing: Warp then compiles the module as it would have.
+    """
+    import warp as wp
+
+    shipped = SHIPPED if shipped is None else os.fspath(shipped)
+    try:
+        mod = wp.get_module(module.__name__)
+        if block_dim is None:
+            block_dim = 1 if device.is_cpu else mod.options["block_dim"]
+        ident = mod.get_module_identifier(block_dim)
+        key = (ident, str(device), shipped, wp.config.kernel_cache_dir)
+        if key in _SEEDED:
+            return []
+        _SEEDED.add(key)
+        source = os.path.join(shipped, wp.config.version, ident)
+        names = _files_for(source, device)
+        if not any(not n.endswith(".meta") for n in names):
+            return []
+        target = os.path.join(wp.config.kernel_cache_dir, ident)
+        copied = []
+        for name in names:
+            dst = os.path.join(target, name)
+            if os.path.exists(dst):
+                continue
+            os.makedirs(target, exist_ok=True)
+            tmp = f"{dst}.{os.getpid()}.tmp"  # whole or not at all: another process may load it now
+            shutil.copyfile(os.path.join(source, name), tmp)
+            os.replace(tmp, dst)
+            copied.append(name)
+        return copied
+    except (AttributeError, KeyError, OSError, TypeError, ValueError):
+        return []
+
+
+def build(out, *, cpu=True, archs=(), modules=None, workers=None):
+    """Compile orthowarp's kernel modules into ``out`` (Warp's cache layout, see the module
+    doc): CPU objects (``cpu``) and cubins for the CUDA architectures ``archs`` (ints, e.g.
+    90) and those of the machine's GPUs. ``modules``: names of :data:`MODULES` (default:
+    all). Returns the variant folders written.
+
+    Runs in a process of its own (it points Warp's kernel cache at ``out``, which puts them in
+    ``out/<Warp's version>``); the sources (.cu/.cpp) are removed afterwards, only metadata
+    and binaries stay.
+    """
+    import importlib
+    from concurrent.futures import ThreadPoolExecutor
+
+    import warp as wp
+
+    out = os.path.abspath(out)
+    shutil.rmtree(out, ignore_errors=True)  # nothing of an earlier build (other hashes) stays
+    os.makedirs(out)
+    wp.config.kernel_cache_dir = out
+    wp.config.quiet = True
+    wp.init()
+    archs = sorted({int(a) for a in archs} | {d.arch for d in wp.get_cuda_devices()})
+    modules = {name: importlib.import_module(f"orthowarp.kernels.{name}") for name in (modules or MODULES)}
+
+    def one(name):
+        m = modules[name]
+        if cpu:
+            for bd in (1, *MODULES[name]):
+                wp.load_module(m, device="cpu", block_dim=bd)
+        mod = wp.get_module(m.__name__)
+        default = mod.options["block_dim"]
+        for bd in (default, *MODULES[name]):
+            for arch in archs:
+                wp.set_module_options({"block_dim": bd}, m)
+                try:
+                    wp.compile_aot_module(m, arch=arch, use_ptx=False)
+                finally:
+                    wp.set_module_options({"block_dim": default}, m)
+
+    with ThreadPoolExecutor(max_workers=workers or os.cpu_count() or 1) as pool:
+        list(pool.map(one, modules))
+    folders = []
+    root = wp.config.kernel_cache_dir  # out/<Warp's version>
+    for ident in sorted(os.listdir(root)):
+        folder = os.path.join(root, ident)
+        if not os.path.isdir(folder):
+            continue
+        for name in os.listdir(folder):
+            if not name.endswith((".meta", ".o", ".cubin")):
+                os.remove(os.path.join(folder, name))
+        folders.append(folder)
+    return folders
+
+
+def _main(argv=None):
+    import argparse
+    import sys
+    import types
+
+    p = argparse.ArgumentParser(description="Compile orthowarp's Warp kernels into a folder (Warp's cache layout).")
+    p.add_argument("out")
+    p.add_argument("--arch", default=os.environ.get("ORTHOWARP_CUDA_ARCHS", ""),
+                   help="CUDA architectures to compile cubins for besides the machine's GPUs, e.g. 80,86,89,90")
+    p.add_argument("--no-cpu", action="store_true", help="no CPU objects")
+    p.add_argument("--modules", default="", help="comma-separated kernel modules (default: all)")
+    p.add_argument("--package", help="the orthowarp package folder to take the kernels from (default: beside this file)")
+    args = p.parse_args(argv)
+    package = os.path.abspath(args.package or os.path.dirname(os.path.abspath(__file__)))
+    if "orthowarp" not in sys.modules:  # the kernels without the rest of orthowarp (a build environment)
+        stub = types.ModuleType("orthowarp")
+        stub.__path__ = [package]
+        sys.modules["orthowarp"] = stub
+    archs = [int(a) for a in args.arch.replace(";", ",").split(",") if a.strip()]
+    names = [m for m in args.modules.split(",") if m] or None
+    folders = build(args.out, cpu=not args.no_cpu, archs=archs, modules=names)
+    print(f"{len(folders)} kernel module variants in {args.out}")
+
+
+if __name__ == "__main__":
+    _main()
