@@ -221,16 +221,27 @@ def resolve_device(device=None):
 
 _log = logging.getLogger("orthowarp")
 COMPILE_NOTICE_S = 2.0  # a module load taking longer than this is compiling
+_NOTICED = set()  # devices the compile notice was given for in this process
+_NOTICE_LOCK = threading.Lock()
 
 
 @contextlib.contextmanager
 def compile_notice(device, what):
-    """Log a warning (logger "orthowarp") if the block takes more than
-    :data:`COMPILE_NOTICE_S`: Warp is compiling kernels, which happens on the first run with
-    a Warp version and device and can take minutes; the cache then serves later runs."""
-    timer = threading.Timer(COMPILE_NOTICE_S, lambda: _log.warning(
-        "Compiling %s for %s: the first run with this Warp and device takes a while; later runs load them from "
-        "%s", what, device, wp.config.kernel_cache_dir))
+    """Log a warning (logger "orthowarp"), once per device and process, if the block takes
+    more than :data:`COMPILE_NOTICE_S`: Warp is compiling kernels, which happens where the
+    install holds none built for this device and Warp (see :mod:`orthowarp._kernelcache`) on
+    the first run, and takes about 10-30 s on a CPU and minutes on a GPU (193 s for an ortho's
+    modules on an H200); Warp's cache then serves later runs."""
+    def notice():
+        with _NOTICE_LOCK:  # (not the loaders' lock: a load holds that while this runs)
+            if str(device) in _NOTICED:
+                return
+            _NOTICED.add(str(device))
+        wait = "a few minutes" if getattr(device, "is_cuda", False) else "10-30 s"
+        _log.warning("Compiling %s for %s, once (about %s): this install holds no kernels built for this device "
+                     "and Warp; later runs load them from %s", what, device, wait, wp.config.kernel_cache_dir)
+
+    timer = threading.Timer(COMPILE_NOTICE_S, notice)
     timer.daemon = True
     timer.start()
     try:

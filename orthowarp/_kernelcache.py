@@ -103,47 +103,45 @@ def seed(device, module, block_dim=None, *, shipped=None):
         return []
 
 
-def build(out, *, cpu=True, archs=(), modules=None, workers=None):
+def build(out, *, cpu=True, archs=(), modules=None, workers=None, package=None):
     """Compile orthowarp's kernel modules into ``out`` (Warp's cache layout, see the module
     doc): CPU objects (``cpu``) and cubins for the CUDA architectures ``archs`` (ints, e.g.
     90) and those of the machine's GPUs. ``modules``: names of :data:`MODULES` (default:
-    all). Returns the variant folders written.
+    all); ``package``: the orthowarp package folder whose kernels are compiled (default: this
+    one). Returns the variant folders written.
 
-    Runs in a process of its own (it points Warp's kernel cache at ``out``, which puts them in
+    The CPU objects are compiled by one process (a thread per module), each cubin by a
+    process of its own (``workers`` at once, default one per core), each its Warp kernel cache pointed at ``out`` (which puts them in
     ``out/<Warp's version>``); the sources (.cu/.cpp) are removed afterwards, only metadata
     and binaries stay.
     """
-    import importlib
+    import subprocess
+    import sys
     from concurrent.futures import ThreadPoolExecutor
 
     import warp as wp
 
     out = os.path.abspath(out)
+    package = os.path.abspath(package or os.path.dirname(os.path.abspath(__file__)))
     shutil.rmtree(out, ignore_errors=True)  # nothing of an earlier build (other hashes) stays
     os.makedirs(out)
     wp.config.kernel_cache_dir = out
-    wp.config.quiet = True
+    _quiet(wp)
     wp.init()
     archs = sorted({int(a) for a in archs} | {d.arch for d in wp.get_cuda_devices()})
-    modules = {name: importlib.import_module(f"orthowarp.kernels.{name}") for name in (modules or MODULES)}
+    names = list(modules or MODULES)
+    # the CPU's variants in one process (on threads), each GPU one in a process of its own (a
+    # GPU block size is set as the module's option while it compiles)
+    tasks = [f"{','.join(names)}:cpu:"] if cpu else []
+    tasks += [f"{name}:{arch}:{bd}" for name in names for arch in archs for bd in ("default", *MODULES[name])]
+    script = os.path.abspath(__file__)
+    code = "import runpy, sys; sys.argv = sys.argv[1:]; runpy.run_path(sys.argv[0], run_name='__main__')"
 
-    def one(name):
-        m = modules[name]
-        if cpu:
-            for bd in (1, *MODULES[name]):
-                wp.load_module(m, device="cpu", block_dim=bd)
-        mod = wp.get_module(m.__name__)
-        default = mod.options["block_dim"]
-        for bd in (default, *MODULES[name]):
-            for arch in archs:
-                wp.set_module_options({"block_dim": bd}, m)
-                try:
-                    wp.compile_aot_module(m, arch=arch, use_ptx=False)
-                finally:
-                    wp.set_module_options({"block_dim": default}, m)
+    def run(task):
+        subprocess.run([sys.executable, "-c", code, script, out, "--package", package, "--task", task], check=True)
 
     with ThreadPoolExecutor(max_workers=workers or os.cpu_count() or 1) as pool:
-        list(pool.map(one, modules))
+        list(pool.map(run, tasks))
     folders = []
     root = wp.config.kernel_cache_dir  # out/<Warp's version>
     for ident in sorted(os.listdir(root)):
@@ -157,6 +155,42 @@ def build(out, *, cpu=True, archs=(), modules=None, workers=None):
     return folders
 
 
+def _quiet(wp):
+    """No banner or module-load lines from this build's Warp."""
+    if hasattr(wp, "LOG_WARNING") and hasattr(wp.config, "log_level"):
+        wp.config.log_level = wp.LOG_WARNING
+    else:
+        wp.config.quiet = True
+
+
+def _compile_task(out, task):
+    """One build task: "module,module,...:cpu:" (those modules' CPU variants) or
+    "module:arch:block_dim" (a cubin; block_dim "default": the module's own)."""
+    import importlib
+
+    import warp as wp
+
+    names, target, bd = task.split(":")
+    wp.config.kernel_cache_dir = out
+    _quiet(wp)
+    wp.init()
+    if target == "cpu":
+        from concurrent.futures import ThreadPoolExecutor
+
+        def one(name):
+            m = importlib.import_module(f"orthowarp.kernels.{name}")
+            for dim in (1, *MODULES[name]):
+                wp.load_module(m, device="cpu", block_dim=dim)
+
+        with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+            list(pool.map(one, names.split(",")))
+        return
+    m = importlib.import_module(f"orthowarp.kernels.{names}")
+    if bd != "default":
+        wp.set_module_options({"block_dim": int(bd)}, m)
+    wp.compile_aot_module(m, arch=int(target), use_ptx=False)
+
+
 def _main(argv=None):
     import argparse
     import sys
@@ -168,16 +202,23 @@ def _main(argv=None):
                    help="CUDA architectures to compile cubins for besides the machine's GPUs, e.g. 80,86,89,90")
     p.add_argument("--no-cpu", action="store_true", help="no CPU objects")
     p.add_argument("--modules", default="", help="comma-separated kernel modules (default: all)")
+    p.add_argument("--task", help=argparse.SUPPRESS)  # one variant, in a process of its own (build)
     p.add_argument("--package", help="the orthowarp package folder to take the kernels from (default: beside this file)")
     args = p.parse_args(argv)
     package = os.path.abspath(args.package or os.path.dirname(os.path.abspath(__file__)))
     if "orthowarp" not in sys.modules:  # the kernels without the rest of orthowarp (a build environment)
         stub = types.ModuleType("orthowarp")
         stub.__path__ = [package]
+        checkout = os.path.dirname(package)  # a source checkout keeps kernels/ beside orthowarp/
+        if not os.path.isdir(os.path.join(package, "kernels")) and os.path.isdir(os.path.join(checkout, "kernels")):
+            stub.__path__.append(checkout)
         sys.modules["orthowarp"] = stub
+    if args.task:
+        _compile_task(os.path.abspath(args.out), args.task)
+        return
     archs = [int(a) for a in args.arch.replace(";", ",").split(",") if a.strip()]
     names = [m for m in args.modules.split(",") if m] or None
-    folders = build(args.out, cpu=not args.no_cpu, archs=archs, modules=names)
+    folders = build(args.out, cpu=not args.no_cpu, archs=archs, modules=names, package=package)
     print(f"{len(folders)} kernel module variants in {args.out}")
 
 
