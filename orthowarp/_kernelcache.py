@@ -35,7 +35,22 @@ __all__ = ["MODULES", "SHIPPED", "seed", "build"]
 MODULES = {"camera": (), "geodesy": (), "sensor": (), "ortho": (128,), "mosaic": (), "cog": (), "deflate": (),
            "matching": (), "precision": (), "pushbroom": ()}
 SHIPPED = os.path.join(os.path.dirname(os.path.abspath(__file__)), "_kernels")
+_PACKAGE_SHIPPED = SHIPPED
 _SEEDED = set()  # (module variant, device, shipped folder, kernel cache) already seeded in this process
+
+
+def _default_shipped():
+    """:data:`SHIPPED`; in a source checkout (which has none), the installed orthowarp's, if
+    any (e.g. the tests of a checkout just installed: the same code, so the same hashes)."""
+    if os.path.isdir(SHIPPED) or SHIPPED != _PACKAGE_SHIPPED:
+        return SHIPPED
+    import sys
+
+    for entry in sys.path:  # an installed orthowarp further along the path
+        candidate = os.path.join(os.path.abspath(entry or os.curdir), "orthowarp", "_kernels")
+        if os.path.isdir(candidate):
+            return candidate
+    return SHIPPED
 
 
 def _files_for(folder, device):
@@ -64,7 +79,8 @@ def seed(device, module, block_dim=None, *, shipped=None):
     block_dim : int, optional
         The block size it is loaded with (default: the CPU's 1, a GPU's module default).
     shipped : str, optional
-        Where the built kernels are (default :data:`SHIPPED`, the package's ``_kernels``).
+        Where the built kernels are (default :data:`SHIPPED`, the package's ``_kernels``; in a
+        source checkout the installed package's).
 
     Notes
     -----
@@ -73,7 +89,7 @@ def seed(device, module, block_dim=None, *, shipped=None):
     """
     import warp as wp
 
-    shipped = SHIPPED if shipped is None else os.fspath(shipped)
+    shipped = _default_shipped() if shipped is None else os.fspath(shipped)
     try:
         mod = wp.get_module(module.__name__)
         if block_dim is None:
