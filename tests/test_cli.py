@@ -3,11 +3,13 @@
 import json
 import os
 
+import pytest
 from click.testing import CliRunner
 
 from orthowarp.cli import main
 
 
+@pytest.mark.slow
 def test_demo_runs_end_to_end(tmp_path):
     out = tmp_path / "demo"
     res = CliRunner().invoke(main, ["demo", "--out", str(out), "--device", "cpu"])

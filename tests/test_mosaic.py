@@ -277,6 +277,7 @@ def test_tiles_kept_on_the_device_give_the_same_file(pair, tmp_path, occlusion, 
         assert res.pixels_per_image == px_h
 
 
+@pytest.mark.slow
 def test_mosaic_of_two_pushbroom_scenes_and_of_a_mix(tmp_path):
     """Two synthetic SPOT-like scenes side by side (orbits ~1 km apart, both 15 deg off
     nadir), rendered by the float64 host model from an analytic texture on a surface
@@ -739,6 +740,7 @@ def test_mosaic_accuracy_raster_takes_each_cell_from_its_source_image(pair, tmp_
         assert not np.allclose(each[0][:, src == 1], each[1][:, src == 1], equal_nan=True)  # the images differ there
 
 
+@pytest.mark.slow
 def test_pushbroom_hidden_ground_is_tested_and_taken_from_another_scene(tmp_path):
     """A 200 m box on flat ground at 250 m, seen by SPOT-like scenes 10 and 20 deg off nadir
     from either side. The backward method with the visibility test (ImageTiles(occlusion=True),
