@@ -25,7 +25,6 @@ Exit status 1 when a mutation survives or errs, or the baseline fails.
 
 import argparse
 import datetime
-import json
 import os
 import platform
 import shutil

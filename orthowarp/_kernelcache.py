@@ -127,9 +127,9 @@ def build(out, *, cpu=True, archs=(), modules=None, workers=None, package=None):
     one). Returns the variant folders written.
 
     The CPU objects are compiled by one process (a thread per module), each cubin by a
-    process of its own (``workers`` at once, default one per core), each its Warp kernel cache pointed at ``out`` (which puts them in
-    ``out/<Warp's version>``); the sources (.cu/.cpp) are removed afterwards, only metadata
-    and binaries stay.
+    process of its own (``workers`` at once, default one per core), each with its Warp kernel
+    cache pointed at ``out`` (which puts them in ``out/<Warp's version>``); the sources
+    (.cu/.cpp) are removed afterwards, only metadata and binaries stay.
     """
     import subprocess
     import sys
@@ -219,7 +219,8 @@ def _main(argv=None):
     p.add_argument("--no-cpu", action="store_true", help="no CPU objects")
     p.add_argument("--modules", default="", help="comma-separated kernel modules (default: all)")
     p.add_argument("--task", help=argparse.SUPPRESS)  # one variant, in a process of its own (build)
-    p.add_argument("--package", help="the orthowarp package folder to take the kernels from (default: beside this file)")
+    p.add_argument("--package", help="the orthowarp package folder to take the kernels from "
+                   "(default: beside this file)")
     args = p.parse_args(argv)
     package = os.path.abspath(args.package or os.path.dirname(os.path.abspath(__file__)))
     if "orthowarp" not in sys.modules:  # the kernels without the rest of orthowarp (a build environment)
