@@ -32,8 +32,8 @@ from rasterio._err import CPLE_BaseError
 from ..errors import ParamError, RasterIOError
 
 __all__ = ["ensure_folder", "check_destination", "atomic_path", "atomic_files", "outputs_together", "pending_path",
-           "remove_stale_temporaries", "remove_own_temporaries", "write_raster", "write_text", "write_files", "write_json",
-           "describe_os_error", "gdal_reason", "storage_facts", "write_error"]
+           "remove_stale_temporaries", "remove_own_temporaries", "write_raster", "write_text", "write_files",
+           "write_json", "describe_os_error", "gdal_reason", "storage_facts", "write_error"]
 
 TMP_TAG = ".orthowarp-tmp-"
 # what rasterio raises for GDAL's errors: its own classes, and GDAL's CPLE_* ones where it
