@@ -33,7 +33,7 @@ class Block:
     """A block of frame images: map-Cartesian (projected CRS) or geocentric (GNSS/INS).
 
     In ``mode="geocentric"`` poses are latitude, longitude (deg), ellipsoidal height (m),
-    roll, pitch, yaw (deg, DESIGN.md's GNSS/INS convention), points and GNSS positions are
+    roll, pitch, yaw (deg, docs/design.md's GNSS/INS convention), points and GNSS positions are
     latitude, longitude, height, INS observations roll, pitch, yaw, and sigmas of positions
     are east, north, up (m); see :mod:`orthowarp.adjust.geocentric`.
 

@@ -6,7 +6,7 @@ Earth's curvature stays in the coordinates).
 :func:`to_local` turns such a block into a map-Cartesian one in that frame (poses as
 R_enu<-cam = Rx(omega) Ry(phi) Rz(kappa), near-vertical there, so no singularity);
 :func:`from_local` turns the adjustment's result back (poses as lat, lon, h, roll, pitch,
-yaw with DESIGN.md's NED navigation frame and standard mount; points as lat, lon, h).
+yaw with docs/design.md's NED navigation frame and standard mount; points as lat, lon, h).
 Sigmas of GNSS positions and control points are read as east, north, up (m); INS sigmas as
 the attitude angles' (deg), applied to omega, phi, kappa of the local frame; the result's pose
 sigmas are east, north, up (m) and the rotations about the local axes (deg).

@@ -7,7 +7,7 @@ in the instrument frame ``q = R^T (X - P)``, gives the look angles the detector 
 
     psi_x = atan(-q_y / q_z),   psi_y = atan(q_x / q_z)
 
-(the inverse of the look vector ``u1 = normalize(-tan psi_y, tan psi_x, -1)``, DESIGN.md). The
+(the inverse of the look vector ``u1 = normalize(-tan psi_y, tan psi_x, -1)``, docs/design.md). The
 corrections are modelled along the detector line by polynomials in the normalised detector
 number ``u = (d - c) / h`` (d = col + 0.5 the 1-based detector, c and h the line's centre and
 half length), ``dpsi_x(u) = sum_k a_k u^k`` and ``dpsi_y(u) = sum_k b_k u^k`` (degree 2 by

@@ -15,7 +15,7 @@ time of the measured row,
 
     -q_y / q_z - tan psi_x(col) = 0,    q_x / q_z - tan psi_y(col) = 0
 
-(the look vector ``u1 = normalize(-tan psi_y, tan psi_x, -1)``, DESIGN.md); the observations
+(the look vector ``u1 = normalize(-tan psi_y, tan psi_x, -1)``, docs/design.md); the observations
 ``v`` are the measured column and row (their sigmas in px), the unknowns the freed coefficients
 and the points' east/north/up corrections (m). ``B`` and ``A`` are central differences of the
 float64 model. Iterated (Gauss-Newton) until the largest scaled correction is below ``xtol``.

@@ -1,6 +1,6 @@
 """Frame camera interior orientation, device code.
 
-Conventions (DESIGN.md): pixel (col, row) with the origin at the top-left corner of the
+Conventions (docs/design.md): pixel (col, row) with the origin at the top-left corner of the
 top-left pixel; camera frame x right, y up, z backwards (looks along -z); image coordinates
 (x, y) in mm from the principal point; Brown-Conrady distortion on OpenCV normalised
 coordinates (u, v) = (x / f, -y / f), undistorted -> distorted.

@@ -1,7 +1,7 @@
 """Area-based image matching, device code ([P2]): normalised cross-correlation search and
 least-squares matching, one thread per point.
 
-Pixel coordinates follow DESIGN.md: (col, row) with the centre of pixel (i, j) at
+Pixel coordinates follow docs/design.md: (col, row) with the centre of pixel (i, j) at
 (j + 0.5, i + 0.5); images are sampled bilinearly (NaN where the 2 x 2 neighbourhood leaves
 the image).
 

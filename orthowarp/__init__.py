@@ -9,7 +9,7 @@ Public API::
     lonlath = ow.geolocate(sensor, [[0.5, 0.5]], dem=ow.Dem.from_file("dem.tif"))
     colrow = ow.project(sensor, lonlath)
 
-Conventions (units, axes, pixel origin) are those of DESIGN.md: metres, degrees, seconds;
+Conventions (units, axes, pixel origin) are those of docs/design.md: metres, degrees, seconds;
 pixel (col, row) with the origin at the top-left corner of the top-left pixel. [P1]-[P4] in
 the docstrings are the four papers the geometry and the adjustment follow (README, "References"):
 [P1] SPOT-5 HRG level-1A rigorous model, [P2] aerial triangulation, [P3] direct
@@ -19,7 +19,7 @@ georeferencing and differential rectification, [P4] precision by error propagati
 import logging
 import os
 
-# DESIGN.md's layout keeps kernels/, pipeline/ and adjust/ at the repository's top level; an
+# docs/design.md's layout keeps kernels/, pipeline/ and adjust/ at the repository's top level; an
 # install maps them into this package. When this folder is imported straight from a source
 # checkout (e.g. ``python -m pytest`` puts the checkout first on sys.path), find them there.
 _checkout = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

@@ -1,7 +1,7 @@
 """The frame camera's formulas on the host (float64 NumPy), written once.
 
 Brown-Conrady distortion on OpenCV-normalised coordinates with its Jacobian, and the mapping
-between normalised coordinates and pixels (DESIGN.md: pixel (col, row) from the top-left
+between normalised coordinates and pixels (docs/design.md: pixel (col, row) from the top-left
 corner, camera x right, y up, the principal point's offset from the image centre in mm, y up).
 :class:`~orthowarp.camera.FrameCamera` uses them with its scalars, the bundle adjustment
 (:mod:`orthowarp.collinearity`) with per-observation arrays: every argument

@@ -3,7 +3,7 @@
 
 Pure functions of arrays (float64 NumPy), vectorised over observations:
 
-- the camera -> object rotation ``R = Rx(omega) Ry(phi) Rz(kappa)`` (DESIGN.md, PATB) and its
+- the camera -> object rotation ``R = Rx(omega) Ry(phi) Rz(kappa)`` (docs/design.md, PATB) and its
   derivatives by the three angles (:func:`orthowarp.geodesy.opk_matrix`, here ``rotation``);
 - a ground point X seen from the projection centre X0: camera-frame vector
   ``Xc = R^T (X - X0)``, OpenCV-normalised coordinates ``u = -Xc/Zc, v = Yc/Zc`` (the camera

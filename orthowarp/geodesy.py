@@ -175,7 +175,7 @@ def rotvec_matrix(rvec):
 
 def rpy_angles(r_nav_body):
     """(roll, pitch, yaw) (deg) of ``R_nav<-body = Rz(yaw) Ry(pitch) Rx(roll)`` (3, 3): the
-    inverse of that product (DESIGN.md's GNSS/INS convention), pitch within +-90 degrees."""
+    inverse of that product (docs/design.md's GNSS/INS convention), pitch within +-90 degrees."""
     r = np.asarray(r_nav_body, dtype=np.float64)
     return tuple(float(a) for a in np.degrees([np.arctan2(r[2, 1], r[2, 2]), -np.arcsin(np.clip(r[2, 0], -1.0, 1.0)),
                                                np.arctan2(r[1, 0], r[0, 0])]))

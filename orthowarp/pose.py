@@ -1,4 +1,4 @@
-"""Exterior orientation (:class:`Pose`) in the two conventions of DESIGN.md."""
+"""Exterior orientation (:class:`Pose`) in the two conventions of docs/design.md."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Rigorous pushbroom model of SPOT level-1A scenes ([P1]; DESIGN.md, "Pushbroom").
+"""Rigorous pushbroom model of SPOT level-1A scenes ([P1]; docs/design.md, "Pushbroom").
 
 Float64 NumPy on the host: the reference the kernels are checked against, and the place where
 the exterior orientation is fitted as polynomials in line time.

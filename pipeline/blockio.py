@@ -23,7 +23,7 @@ JSON (``orthowarp-block`` version 1)::
     }
 
 Geocentric blocks (GNSS/INS, ``crs`` a geographic 3-D CRS such as "EPSG:4979"): poses
-``{"lat", "lon", "h", "roll", "pitch", "yaw"}`` (deg, m; DESIGN.md's GNSS/INS convention),
+``{"lat", "lon", "h", "roll", "pitch", "yaw"}`` (deg, m; docs/design.md's GNSS/INS convention),
 ``"gnss": {"lla": [lat, lon, h], "sigma": [east, north, up]}``, ``"ins": {"rpy": [...],
 "sigma": [...]}``, points ``"xyz": [lat, lon, h]`` with sigmas east, north, up (m).
 

@@ -553,7 +553,7 @@ def write_document(path, content):
 # ---------------------------------------------------------------------------------------------
 
 def opk_rotation(omega, phi, kappa):
-    """R = Rx(omega) Ry(phi) Rz(kappa) (deg), written out here (DESIGN.md's PATB convention)."""
+    """R = Rx(omega) Ry(phi) Rz(kappa) (deg), written out here (docs/design.md's PATB convention)."""
     o, p, k = np.radians([omega, phi, kappa])
     rx = np.array([[1, 0, 0], [0, np.cos(o), -np.sin(o)], [0, np.sin(o), np.cos(o)]])
     ry = np.array([[np.cos(p), 0, np.sin(p)], [0, 1, 0], [-np.sin(p), 0, np.cos(p)]])

@@ -1,6 +1,6 @@
 """Independent float64 NumPy reference of the frame-camera chain (tests only).
 
-Written from the text of DESIGN.md ("Conventions" and "The per-pixel chain"), NOT from
+Written from the text of docs/design.md ("Conventions" and "The per-pixel chain"), NOT from
 orthowarp's code: nothing here imports orthowarp's kernels, camera, pose or geodesy helpers.
 ECEF <-> geodetic conversions use pyproj; the only orthowarp function used is
 :func:`orthowarp.refraction.trace_delta`, for the refraction angle itself (the geometry that

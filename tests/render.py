@@ -1,6 +1,6 @@
 """Independent float64 NumPy renderer of synthetic aerial frame images (tests only).
 
-Given a camera and a pose (the DESIGN.md conventions, as :mod:`reference` implements them from
+Given a camera and a pose (the conventions of docs/design.md, as :mod:`reference` implements them from
 the text: :class:`reference.RefCamera`, :class:`reference.RefPose`), a DEM surface and an
 analytic, band-limited texture T(x, y) on the ground, :class:`Renderer` draws the image the
 camera would take: for every pixel (a few sub-pixel samples each, so that a pixel is the

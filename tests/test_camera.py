@@ -1,6 +1,6 @@
 """FrameCamera: pixel convention, Brown-Conrady distortion and its inverse, mm coefficients, errors.
 
-The forward model used as the reference is written out here from DESIGN.md ("Frame camera"),
+The forward model used as the reference is written out here from docs/design.md ("Frame camera"),
 independently of the library: camera ray (X, Y, Z) (x right, y up, z back) -> OpenCV-normalised
 u = X / (-Z), v = -Y / (-Z) -> Brown-Conrady distortion -> image mm x = u_d f, y = -v_d f ->
 pixel col = (x + x0) / px + W / 2, row = H / 2 - (y + y0) / py.
@@ -31,10 +31,10 @@ def make(params):
     return FrameCamera(**params)
 
 
-# -- independent reference model (DESIGN.md) -------------------------------------------------
+# -- independent reference model (docs/design.md) --------------------------------------------
 
 def brown(params, u, v):
-    """DESIGN.md's Brown-Conrady formula, undistorted -> distorted normalised coordinates."""
+    """docs/design.md's Brown-Conrady formula, undistorted -> distorted normalised coordinates."""
     k1, k2, k3, p1, p2 = (params.get(k, 0.0) for k in ("k1", "k2", "k3", "p1", "p2"))
     r2 = u * u + v * v
     radial = 1 + k1 * r2 + k2 * r2**2 + k3 * r2**3
@@ -174,7 +174,7 @@ def test_host_undistort_matches_kernel(name, device):
     uv_kernel = np.stack([rays[:, 0] / -rays[:, 2], -rays[:, 1] / -rays[:, 2]], axis=1)
     uv_host = cam.undistort(cam.pixel_to_normalized(pix))
     np.testing.assert_allclose(uv_kernel, uv_host, rtol=0, atol=1e-9)
-    # and the host closed form is DESIGN.md's formula
+    # and the host closed form is docs/design.md's formula
     ud, vd = brown(params, uv_host[:, 0], uv_host[:, 1])
     np.testing.assert_allclose(cam.distort(uv_host), np.stack([ud, vd], axis=1), rtol=0, atol=1e-15)
 

@@ -1,7 +1,7 @@
 """Geodesy (host and device) against pyproj, local-frame matrices, rotations and Pose.
 
 References are independent of the library: pyproj (PROJ's cart conversion) for WGS84
-geodetic <-> ECEF, and rotation matrices written out below from the text of DESIGN.md.
+geodetic <-> ECEF, and rotation matrices written out below from the text of docs/design.md.
 """
 
 import math
@@ -298,7 +298,7 @@ def _ned_basis(lat, lon):
     return np.stack([north, east, -up], axis=1)
 
 
-# R_body<-cam from DESIGN.md words: camera x -> body y, camera y -> body x, camera z -> -body z
+# R_body<-cam from docs/design.md's words: camera x -> body y, camera y -> body x, camera z -> -body z
 _MOUNT_FROM_TEXT = np.stack([Y, X, -Z], axis=1)
 
 INS_CASES = [

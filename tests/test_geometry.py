@@ -1,7 +1,7 @@
 """Frame-camera geolocation (pixel -> ground) and projection (ground -> pixel).
 
 The main check compares :func:`orthowarp.geolocate` with the independent float64 NumPy
-reference of ``tests/reference.py`` (written from DESIGN.md, sharing no code with the
+reference of ``tests/reference.py`` (written from docs/design.md, sharing no code with the
 kernels) on hilly synthetic DEMs, for both pose conventions, with and without refraction.
 Closed-form nadir cases pin the axis conventions, round trips pin geolocate/project
 consistency, and the relief search is tested where the plain fixed-point iteration diverges.

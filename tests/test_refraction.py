@@ -200,7 +200,7 @@ def test_table_vs_trace_satellite(sensor):
     got, ref = model.delta(t, h), trace_delta(t, sensor, h)
     ok = (np.abs(got - ref) <= 5e-3 * np.abs(ref)) | (np.abs(got - ref) <= 1e-8)
     assert np.all(ok)
-    # about 1 m on the ground from ~700 km at 25-30 deg (DESIGN.md)
+    # about 1 m on the ground from ~700 km at 25-30 deg (docs/design.md)
     d = float(trace_delta(np.radians(27.0), sensor, 0.0)) * sensor / math.cos(np.radians(27.0))
     assert 0.3 < d < 3.0
 
