@@ -40,8 +40,7 @@ import warp as wp
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from _report import save_report  # noqa: E402
-from backend_agreement import write_source  # noqa: E402
-from geometry import scene  # noqa: E402
+from backend_agreement import devices_and_scene, write_source  # noqa: E402
 
 import orthowarp as ow  # noqa: E402
 from orthowarp.pipeline import ortho as po  # noqa: E402
@@ -224,11 +223,7 @@ def main():
     ap.add_argument("--out", default="bench/results/api_agreement.json")
     ap.add_argument("--dump", default=None, help="npz of the worst tile's intermediates (with --diagnose)")
     args = ap.parse_args()
-    wp.init()
-    devs = args.devices.split(",")
-    if any(d.startswith("cuda") for d in devs) and wp.get_cuda_device_count() == 0:
-        sys.exit("no CUDA device: this benchmark compares the CPU with a GPU")
-    cam, pose, dem = scene(args.width, args.height)
+    devs, (cam, pose, dem) = devices_and_scene(args)
     report = dict(benchmark="api_agreement", image=[args.width, args.height], tile=TILE, source_reads="tiles",
                   compress=args.compress, devices=[wp.get_device(d).name for d in devs], device_ids=devs,
                   warp=wp.config.version, cpu_cores=os.cpu_count(), results={}, variants={})

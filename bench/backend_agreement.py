@@ -58,6 +58,16 @@ def source_coords(cam, pose, dem, device, refraction, grid_def):
     return coords
 
 
+def devices_and_scene(args):
+    """The devices compared (``args.devices``, comma-separated; exits where one is a GPU and
+    there is none) and bench/geometry.py's scene of ``args.width`` x ``args.height``."""
+    wp.init()
+    devs = args.devices.split(",")
+    if any(d.startswith("cuda") for d in devs) and wp.get_cuda_device_count() == 0:
+        sys.exit("no CUDA device: this benchmark compares the CPU with a GPU")
+    return devs, scene(args.width, args.height)
+
+
 def write_source(path, width, height):
     jj, ii = np.meshgrid(np.arange(width, dtype=np.float32), np.arange(height, dtype=np.float32))
     bands = [127 + 60 * np.sin(jj / 7.3) * np.cos(ii / 5.1) + 40 * np.sin((jj + ii) / 2.3),
@@ -86,11 +96,7 @@ def main():
     ap.add_argument("--out", default="bench/results/backend_agreement.json")
     ap.add_argument("--devices", default="cpu,cuda:0", help="the two devices compared")
     args = ap.parse_args()
-    wp.init()
-    devs = args.devices.split(",")
-    if any(d.startswith("cuda") for d in devs) and wp.get_cuda_device_count() == 0:
-        sys.exit("no CUDA device: this benchmark compares the CPU with a GPU")
-    cam, pose, dem = scene(args.width, args.height)
+    devs, (cam, pose, dem) = devices_and_scene(args)
     report = dict(benchmark="backend_agreement", image=[args.width, args.height], tile=TILE,
                   devices=[wp.get_device(d).name for d in devs], warp=wp.config.version, results=[])
     with tempfile.TemporaryDirectory() as tmp:
