@@ -299,6 +299,8 @@ def ortho(ctx, images, odm_dataset, int_param, ext_param, dimap, attitude_model,
     if odm_dataset is not None:
         images, int_param, ext_param, dem = _odm_dataset(odm_dataset, images, int_param, ext_param, dem, height)
     if not images:
+        if dimap is not None:
+            raise ParamError(f"--dimap '{dimap}' describes a scene: give its image as IMAGES")
         raise ParamError("Give IMAGES (or --odm-dataset DIR)")
     if export_params:
         if dimap or not ext_param:
@@ -1012,8 +1014,9 @@ def adjust(ctx, block_file, out_dir, write_example, cameras, exterior, image_poi
         raise Cancelled(f"adjustment of '{block_file}' cancelled; nothing written to '{out_dir}'")
     paths = write_adjustment(result, block, out_dir, plots=not no_plots)
     if not ctx.obj["quiet"]:
-        click.echo(f"{result.message}; sigma0 {result.sigma0:.4f}, redundancy {result.redundancy}; "
-                   f"check RMSE (m) {np.array2string(result.check_rmse, precision=4)}; outputs: "
+        check = (f"check RMSE (m) {np.array2string(result.check_rmse, precision=4)}"
+                 if np.all(np.isfinite(result.check_rmse)) else "no check points")
+        click.echo(f"{result.message}; sigma0 {result.sigma0:.4f}, redundancy {result.redundancy}; {check}; outputs: "
                    + ", ".join(os.path.basename(p) for p in paths.values()))
 
 

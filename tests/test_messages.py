@@ -309,3 +309,31 @@ def test_a_covariance_that_overflows_says_so():
     with pytest.raises(ParamError, match=r"got shape \(5, 5\)"):
         input_covariance(pose, np.eye(5))
     assert isinstance(ParamError("x"), OrthowarpError)
+
+
+def test_ortho_dimap_without_its_image_says_so(tmp_path):
+    from click.testing import CliRunner
+
+    from orthowarp.cli import main
+
+    res = CliRunner().invoke(main, ["ortho", "--dimap", str(tmp_path / "scene.xml"), "--height", "0",
+                                    "--out-dir", str(tmp_path / "o")])
+    assert res.exit_code == 1
+    assert "--dimap" in res.output and "give its image as IMAGES" in res.output, res.output
+
+
+def test_adjust_without_check_points_says_so(tmp_path):
+    """A block without check points: the summary says so instead of 'check RMSE [nan nan nan]'."""
+    from click.testing import CliRunner
+
+    from orthowarp import write_block
+    from orthowarp.adjust import synthetic_block
+    from orthowarp.cli import main
+
+    block, _ = synthetic_block(strips=2, images_per_strip=4, seed=11)
+    block.roles[:] = ["tie" if r == "check" else r for r in block.roles]
+    write_block(block, tmp_path / "block.json")
+    res = CliRunner().invoke(main, ["adjust", str(tmp_path / "block.json"), "--out", str(tmp_path / "a"),
+                                    "--no-plots"])
+    assert res.exit_code == 0, res.output
+    assert "no check points" in res.output and "nan" not in res.output, res.output
