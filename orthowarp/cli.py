@@ -342,7 +342,7 @@ def ortho(ctx, images, odm_dataset, int_param, ext_param, dimap, attitude_model,
                    compress=compress, compress_level=compress_level, quality=quality, block_codec=block_codec,
                    source_reads=source_reads, creation_options=creation_options, overwrite=overwrite,
                    device=device,
-                   progress=not quiet, tile_size=tile_size, geoid=geoid, same_vertical_datum=same_vertical_datum)
+                   tile_size=tile_size, geoid=geoid, same_vertical_datum=same_vertical_datum)
 
     def run(jobs):
         """Check every destination, then read the terrain and write the orthos, two at a time:
@@ -358,6 +358,10 @@ def ortho(ctx, images, odm_dataset, int_param, ext_param, dimap, attitude_model,
 
         stop, failed = ctx.meta.get("orthowarp.stop"), threading.Event()
         options["cancel"] = _Either(stop, failed)
+        # one bar for the batch (the tiles of every image, as each starts), on a terminal only
+        from tqdm import tqdm
+
+        options["progress"] = tqdm(total=0, unit="tile", leave=False, disable=quiet or not sys.stderr.isatty())
         for *_, dst in jobs:
             check_destination(dst, overwrite=overwrite)
             if accuracy:
@@ -422,7 +426,8 @@ def ortho(ctx, images, odm_dataset, int_param, ext_param, dimap, attitude_model,
                 error = e if error is None or isinstance(error, Cancelled) else error
 
         t_first = time.perf_counter()
-        with ThreadPoolExecutor(max_workers=min(2, len(jobs)), thread_name_prefix="image") as pool:
+        with options["progress"], ThreadPoolExecutor(max_workers=min(2, len(jobs)),
+                                                     thread_name_prefix="image") as pool:
             for job in jobs:
                 if error is not None:
                     break

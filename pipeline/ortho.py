@@ -311,8 +311,10 @@ def orthorectify(src: str | os.PathLike, sensor: SensorModel, dst: str | os.Path
     overwrite : bool, optional
     device : str, optional
         Warp device; None picks the first CUDA device, else the CPU.
-    progress : bool, optional
-        Show a progress bar (tqdm) over tiles.
+    progress : bool or tqdm-like, optional
+        True: show a progress bar (tqdm) over tiles. A bar object (``tqdm(total=0)``, or anything
+        with ``total``, ``update(n)`` and ``refresh()``): add this ortho's tiles to its total and
+        advance it, so that one bar serves several calls at once (the CLI's batches).
     workers : int, optional
         Tiles in flight at once (default: CPU cores on the CPU, 4 on a GPU).
     geoid : Dem or str, optional
@@ -404,8 +406,11 @@ def orthorectify(src: str | os.PathLike, sensor: SensorModel, dst: str | os.Path
     resolution = positive("resolution", resolution, none=True)
     for name, flag in (("refraction", refraction), ("overviews", overviews), ("overwrite", overwrite),
                        ("progress", progress), ("same_vertical_datum", same_vertical_datum)):
-        if not isinstance(flag, (bool, np.bool_)):
-            raise ParamError(f"{name} must be True or False, got {flag!r}")
+        if not isinstance(flag, (bool, np.bool_)) and not (name == "progress" and hasattr(flag, "update")):
+            raise ParamError(f"{name} must be True or False{' or a progress bar' if name == 'progress' else ''}, "
+                             f"got {flag!r}")
+    if isinstance(progress, (bool, np.bool_)):
+        progress = bool(progress)
     src, dst = os.fspath(src), os.fspath(dst)
     check_destination(dst, overwrite=overwrite)
     if not os.path.exists(src):
@@ -702,7 +707,7 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
         # (5 % of RAM) would hold gigabytes of blocks.
         with rasterio.Env(GDAL_CACHEMAX=256), _open_sink(path, profile, cog, final_name, timer, device,
                                                          block_codec) as sink:
-            bar = _progress(len(tiles)) if progress else None
+            bar = _progress(len(tiles)) if progress is True else _shared_bar(progress, len(tiles))
             timer.info.update(device=str(device), tiles=len(tiles), threads=n_workers, block_codec=block_codec)
             timer.span("setup", timer.start)  # from the call to the first tile
             pool = ThreadPoolExecutor(max_workers=n_workers)
@@ -712,7 +717,7 @@ def _render(src, geom, out_crs, transform, shape, count, out_dtype, compress, pa
                         bar.update(1)
             finally:  # on an error or an interruption, the tiles not yet started are dropped
                 pool.shutdown(wait=True, cancel_futures=True)
-                if bar is not None:
+                if bar is not None and progress is True:  # (a shared bar is its owner's to close)
                     bar.close()
     except GDAL_ERRORS as e:
         raise write_error(final_name, path, e) from e
@@ -1414,6 +1419,19 @@ def _progress(total):
     from tqdm import tqdm
 
     return tqdm(total=total, unit="tile", leave=False)
+
+
+_BAR_LOCK = threading.Lock()
+
+
+def _shared_bar(bar, tiles):
+    """``bar`` (a shared tqdm-like bar, or False/None) with ``tiles`` more to do; None for none."""
+    if not bar:
+        return None
+    with _BAR_LOCK:
+        bar.total = (bar.total or 0) + tiles
+        bar.refresh()
+    return bar
 
 
 def _finish(work, final, driver, compress, overviews, dtype, level=None, quality=None, co=None):

@@ -1314,3 +1314,56 @@ def test_coarse_fields_on_the_device_match_float64_numpy(device, geocentric, wit
         np.testing.assert_allclose(np.array(g.cam_up), pose.up @ rot, rtol=0, atol=1e-15)
     else:
         assert g.cam_a is None and g.cam_b is None
+
+
+def test_orthos_at_once_share_one_progress_bar(tmp_path):
+    """progress=<bar>: each call adds its tiles to the bar's total and advances it, so two orthos
+    run at once report on one bar (the CLI's batch); the bar is left open for its owner."""
+    import threading
+
+    cam, pose, dem, src = small_setup(tmp_path)
+
+    class Bar:
+        def __init__(self):
+            self.total, self.n, self.closed, self.lock = 0, 0, False, threading.Lock()
+
+        def update(self, k=1):
+            with self.lock:
+                self.n += k
+
+        def refresh(self):
+            pass
+
+        def close(self):
+            self.closed = True
+
+    bar = Bar()
+    runs = [threading.Thread(target=orthorectify, args=(src, FrameSensor(cam, pose), tmp_path / f"o{k}.tif"),
+                             kwargs=dict(dem=dem, device="cpu", tile_size=16, progress=bar)) for k in range(2)]
+    for t in runs:
+        t.start()
+    for t in runs:
+        t.join()
+    with rasterio.open(tmp_path / "o0.tif") as o:
+        tiles = -(-o.height // 16) * -(-o.width // 16)
+    assert tiles > 4 and bar.total == bar.n == 2 * tiles and not bar.closed
+    with pytest.raises(ParamError, match="progress must be True or False or a progress bar"):
+        orthorectify(src, FrameSensor(cam, pose), tmp_path / "x.tif", dem=dem, device="cpu", progress="yes")
+
+
+def test_cli_batch_shows_no_bar_off_a_terminal(tmp_path):
+    """orthowarp ortho off a terminal (a log, a pipe): no progress bar in what it writes."""
+    from click.testing import CliRunner
+
+    from orthowarp.cli import main
+
+    cam, pose, dem, src = small_setup(tmp_path)
+    (tmp_path / "camera.yaml").write_text(
+        f"cam:\n  type: pinhole\n  im_size: [64, 48]\n  focal_len: {SMALL['f']}\n"
+        f"  sensor_size: [{64 * SMALL['pixel']}, {48 * SMALL['pixel']}]\n")
+    (tmp_path / "ext.csv").write_text(f"filename,x,y,z,omega,phi,kappa\nsrc,{OPK_X},{OPK_Y},1400,0,0,0\n")
+    res = CliRunner().invoke(main, ["ortho", str(src), "--int-param", str(tmp_path / "camera.yaml"), "--ext-param",
+                                    str(tmp_path / "ext.csv"), "--crs", str(UTM32), "--height", "450",
+                                    "--out-dir", str(tmp_path / "out"), "--device", "cpu"])
+    assert res.exit_code == 0, res.output
+    assert "tile/s" not in res.output and "\r" not in res.output, res.output
