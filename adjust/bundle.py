@@ -146,7 +146,8 @@ def _datum_check(block, used_points, control_free):
             return
     raise GeometryError(f"Block '{block.name}': datum defect: {len(known)} known positions (control points "
                         "with coordinates, GNSS projection centres), which do not fix a 3-D similarity "
-                        "transformation; give at least 3 non-collinear ones")
+                        "transformation; give at least 3 non-collinear ones (a block from 'orthowarp match' "
+                        "takes its poses as GNSS/INS observations with --gnss-sigma and --ins-sigma)")
 
 
 class _Problem:
