@@ -42,7 +42,7 @@ import warp as wp
 
 from .errors import DeviceError
 
-__all__ = ["resolve_device", "quiet_warp", "ensure_warp_initialized", "load_modules", "ship", "set_warp_messages"]
+__all__ = ["resolve_device", "quiet_warp", "ensure_warp_initialized", "load_modules", "set_warp_messages"]
 
 # What Warp's native library writes to fd 2 when no CUDA driver can be loaded (CPU-only
 # machines): an informational notice for orthowarp, whose CPU backend is a supported target.
@@ -198,7 +198,9 @@ def ensure_warp_initialized():
 def resolve_device(device=None):
     """Return a Warp device: ``None`` picks the first CUDA device if any, else the CPU.
 
-    Initialises Warp quietly if needed (see :func:`ensure_warp_initialized`).
+    Initialises Warp quietly if needed (see :func:`ensure_warp_initialized`), and the first
+    time a device is resolved puts the kernels built with orthowarp for it into Warp's kernel
+    cache, so that Warp loads them instead of compiling (:func:`orthowarp._kernelcache.seed`).
 
     Parameters
     ----------
@@ -210,13 +212,18 @@ def resolve_device(device=None):
     DeviceError
         The device is unknown or unavailable.
     """
+    from ._kernelcache import seed
+
     ensure_warp_initialized()
     if device is None:
-        return wp.get_device("cuda:0") if wp.get_cuda_device_count() > 0 else wp.get_device("cpu")
-    try:
-        return wp.get_device(device)
-    except Exception as e:  # Warp raises plain exceptions for unknown aliases
-        raise DeviceError(f"Unknown or unavailable Warp device {device!r}: {e}") from e
+        found = wp.get_device("cuda:0") if wp.get_cuda_device_count() > 0 else wp.get_device("cpu")
+    else:
+        try:
+            found = wp.get_device(device)
+        except Exception as e:  # Warp raises plain exceptions for unknown aliases
+            raise DeviceError(f"Unknown or unavailable Warp device {device!r}: {e}") from e
+    seed(found)
+    return found
 
 
 _log = logging.getLogger("orthowarp")
@@ -253,30 +260,10 @@ def compile_notice(device, what):
 _LOAD_LOCK = threading.RLock()
 
 
-def ship(device, *modules, block_dim=None):
-    """Put the binaries built with orthowarp for these kernel modules (if any match this Warp,
-    device and block size) into Warp's kernel cache, so that Warp loads them instead of
-    compiling (see :mod:`orthowarp._kernelcache`); for modules Warp loads on their first launch.
-
-    Parameters
-    ----------
-    device : warp.context.Device or str
-    *modules : module
-        Python modules holding Warp kernels.
-    block_dim : int, optional
-        The block size they are launched with (default: Warp's for the device).
-    """
-    from ._kernelcache import seed
-
-    device = wp.get_device(device)
-    for m in modules:
-        seed(device, m, block_dim)
-
-
 def load_modules(device, *modules, block_dim=None):
     """Load Warp modules on a device, quietly, before launching from threads: the binaries
-    built with orthowarp where they match (:func:`ship`), else compiled (the first time with
-    this Warp and device), with a logged notice when that takes long (see
+    built with orthowarp where they match (see :func:`resolve_device`), else compiled (the
+    first time with this Warp and device), with a logged notice when that takes long (see
     :func:`compile_notice`).
 
     Parameters
@@ -290,8 +277,6 @@ def load_modules(device, *modules, block_dim=None):
     names = ", ".join(m.__name__.rsplit(".", 1)[-1] for m in modules)
     # one loader at a time: two image threads loading the same module at once both load it
     # (each reports a cached load; the work is done twice)
-    with _LOAD_LOCK, quiet_warp():
-        ship(device, *modules, block_dim=block_dim)
     with _LOAD_LOCK, quiet_warp(), compile_notice(device, f"Warp kernels ({names})"):
         for m in modules:
             if block_dim is None:

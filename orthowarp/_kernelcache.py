@@ -13,8 +13,9 @@ module variant, named by the module's content hash, holding its metadata and its
   and for those listed in ``ORTHOWARP_CUDA_ARCHS`` (e.g. ``"80,86,89,90"``: a CPU-only
   machine cross-compiles them through Warp's NVRTC).
 
-At run time :func:`seed` copies the files of a module variant from the package into Warp's
-kernel cache before Warp loads it, and Warp then finds them there as if it had compiled them.
+At run time :func:`seed` copies the files for a device from the package into Warp's kernel
+cache the first time the device is resolved (:func:`orthowarp._device.resolve_device`), and
+Warp then finds them there as if it had compiled them.
 Nothing is taken on trust: a folder is named by the hash Warp computes for the module as it
 is now (the Warp version, the code, the options, the block size), and a binary by its
 target, so a module changed since the build, another Warp, CPU or GPU simply finds no files
@@ -36,7 +37,7 @@ MODULES = {"camera": (), "geodesy": (), "sensor": (), "ortho": (128,), "mosaic":
            "matching": (), "precision": (), "pushbroom": ()}
 SHIPPED = os.path.join(os.path.dirname(os.path.abspath(__file__)), "_kernels")
 _PACKAGE_SHIPPED = SHIPPED
-_SEEDED = set()  # (module variant, device, shipped folder, kernel cache) already seeded in this process
+_SEEDED = set()  # (device, shipped folder, kernel cache) already seeded in this process
 
 
 def _default_shipped():
@@ -66,57 +67,62 @@ def _files_for(folder, device):
     return [n for n in names if n.endswith(".meta") or (arch in n and n.endswith(".cubin"))]
 
 
-def seed(device, module, block_dim=None, *, shipped=None):
-    """Copy a module variant's shipped binaries for ``device`` into Warp's kernel cache, where
-    Warp's load then finds them; returns the names copied (none when the package holds none
-    for this module, Warp, block size and target, or the cache has them already).
+def seed(device, *, shipped=None):
+    """Copy the shipped binaries for ``device`` into Warp's kernel cache, where Warp's loads then
+    find them; returns the paths copied (none when the package holds none for this Warp and
+    target, or the cache has them already). Done once per device, package and cache in a
+    process (the calls after the first return at once).
+
+    Every module variant's folder is copied, whatever modules the job uses: a folder is named
+    by the hash of the module it was built from, so Warp takes one only where that is the
+    module as it is now, and the copy (metadata and this target's binaries: under 1 MB for a
+    CPU, about 13 MB of cubins for a GPU architecture) costs less than finding out which
+    modules a job will load.
 
     Parameters
     ----------
     device : warp.context.Device
-    module : module
-        A Python module of Warp kernels (e.g. ``orthowarp.kernels.ortho``).
-    block_dim : int, optional
-        The block size it is loaded with (default: the CPU's 1, a GPU's module default).
     shipped : str, optional
         Where the built kernels are (default :data:`SHIPPED`, the package's ``_kernels``; in a
         source checkout the installed package's).
 
     Notes
     -----
-    Any failure (no such folder, a Warp without these module methods, an unwritable cache)
-    copies nothing: Warp then compiles the module as it would have.
+    Any failure (no such folder, an unwritable cache) copies nothing: Warp then compiles the
+    modules as it would have.
     """
     import warp as wp
 
     shipped = _default_shipped() if shipped is None else os.fspath(shipped)
+    key = (str(device), shipped, wp.config.kernel_cache_dir)
+    if key in _SEEDED:
+        return []
+    _SEEDED.add(key)
+    root = os.path.join(shipped, wp.config.version)
+    copied = []
     try:
-        mod = wp.get_module(module.__name__)
-        if block_dim is None:
-            block_dim = 1 if device.is_cpu else mod.options["block_dim"]
-        ident = mod.get_module_identifier(block_dim)
-        key = (ident, str(device), shipped, wp.config.kernel_cache_dir)
-        if key in _SEEDED:
-            return []
-        _SEEDED.add(key)
-        source = os.path.join(shipped, wp.config.version, ident)
+        idents = sorted(os.listdir(root))
+    except OSError:
+        return []
+    for ident in idents:
+        source = os.path.join(root, ident)
         names = _files_for(source, device)
         if not any(not n.endswith(".meta") for n in names):
-            return []
+            continue  # no binary for this target
         target = os.path.join(wp.config.kernel_cache_dir, ident)
-        copied = []
-        for name in names:
-            dst = os.path.join(target, name)
-            if os.path.exists(dst):
-                continue
-            os.makedirs(target, exist_ok=True)
-            tmp = f"{dst}.{os.getpid()}.tmp"  # whole or not at all: another process may load it now
-            shutil.copyfile(os.path.join(source, name), tmp)
-            os.replace(tmp, dst)
-            copied.append(name)
-        return copied
-    except (AttributeError, KeyError, OSError, TypeError, ValueError):
-        return []
+        try:
+            for name in names:
+                dst = os.path.join(target, name)
+                if os.path.exists(dst):
+                    continue
+                os.makedirs(target, exist_ok=True)
+                tmp = f"{dst}.{os.getpid()}.tmp"  # whole or not at all: another process may load it now
+                shutil.copyfile(os.path.join(source, name), tmp)
+                os.replace(tmp, dst)
+                copied.append(dst)
+        except OSError:
+            continue
+    return copied
 
 
 def build(out, *, cpu=True, archs=(), modules=None, workers=None, package=None):

@@ -10,11 +10,10 @@ import warp as wp
 from numpy.typing import ArrayLike
 
 from . import brown
-from ._device import quiet_warp, resolve_device, ship, to_host
+from ._device import quiet_warp, resolve_device, to_host
 from ._validate import finite as _finite
 from ._validate import points as _as_points
 from .errors import GeometryError, ParamError
-from .kernels import camera as camera_kernels
 from .kernels.camera import FrameCameraData, camera_to_pixel_kernel, pixel_to_camera_kernel
 
 __all__ = ["FrameCamera"]
@@ -331,7 +330,6 @@ class FrameCamera:
         NaN output rows where an input row is missing (NaN or masked)."""
         with quiet_warp():
             dev = resolve_device(device)
-            ship(dev, camera_kernels)  # the binaries built with orthowarp, where they match
             out = wp.empty(len(rows), dtype=out_type, device=dev)
             if len(rows):
                 wp.launch(kernel, dim=len(rows), device=dev,

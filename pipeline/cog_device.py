@@ -35,7 +35,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import warp as wp
 
-from .._device import load_modules, ship, to_host
+from .._device import load_modules, to_host
 from ..errors import DeviceError, ParamError
 from ..kernels import cog as kc
 
@@ -279,7 +279,6 @@ class WarpDeflate:
         if int(depth) < 1 or not 3 <= int(nice) <= 258:
             raise ParamError(f"depth must be >= 1 and nice 3-258, got {depth}, {nice}")
         self.device = wp.get_device(device)
-        ship(self.device, kd)  # the binaries built with orthowarp, where they match
         if int(good) < 0:
             raise ParamError(f"good must be >= 0, got {good}")
         self.chunk, self.depth, self.nice, self.lazy = int(chunk), int(depth), int(nice), bool(lazy)

@@ -41,7 +41,7 @@ import warp as wp
 from affine import Affine
 from pyproj import CRS, Transformer
 
-from .._device import quiet_warp, resolve_device, ship, to_host
+from .._device import quiet_warp, resolve_device, to_host
 from .._validate import integer, positive
 from ..errors import GeometryError, ParamError, RasterIOError
 from ..geodesy import geodetic_to_ecef, geodetic_up
@@ -439,11 +439,8 @@ class MosaicPlan:
 
     @property
     def warp_device(self):
-        """The warp Device the tiles are computed on (with the mosaic's kernels built with
-        orthowarp put where Warp finds them, :func:`~orthowarp._device.ship`)."""
-        device = resolve_device(self.options["device"])
-        ship(device, mosaic_kernels)
-        return device
+        """The warp Device the tiles are computed on."""
+        return resolve_device(self.options["device"])
 
     @property
     def device_is_cuda(self):
@@ -892,7 +889,6 @@ def mosaic_plan(images, *, dem, crs=None, resolution=None, resampling="bilinear"
                            resolution=resolution, refraction=refraction, balance=balance, occlusion=occlusion,
                            same_vertical_datum=same_vertical_datum)
     terrain = as_dem(dem)
-    ship(resolve_device(device), mosaic_kernels)  # the binaries built with orthowarp, where they match
     # the sources: one band count and data type
     facts = []  # (path, bands, data type, masked)
     for src, sensor in images:

@@ -375,7 +375,7 @@ def frame_window_sigmas(geometry, crs, cells, window, c_raw, *, pixel_sigma=0.5,
     import warp as wp
 
     from ..kernels import precision as kp
-    from .._device import ship, to_host
+    from .._device import to_host
     from .ortho import coarse_grid, coarse_struct
 
     if cells.b != 0 or cells.d != 0:
@@ -384,7 +384,6 @@ def frame_window_sigmas(geometry, crs, cells, window, c_raw, *, pixel_sigma=0.5,
     table = ce90_table() if _measure(measure) == "ce90" else np.zeros(0)
     r0, c0, rows, cols = map(int, window)
     device = geometry.device
-    ship(device, kp)  # the binaries built with orthowarp, where they match
     clock = [time.perf_counter()]
 
     def tick(step):  # with ``timings``: seconds per step, the device synchronised

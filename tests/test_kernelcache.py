@@ -75,4 +75,4 @@ def test_seed_copies_nothing_without_a_matching_build(tmp_path, bad):
         folder = shipped / wp.config.version / mod.get_module_identifier(1)
         folder.mkdir(parents=True)
         (folder / "x.meta").write_text("{}")
-    assert seed(resolve_device("cpu"), kc, shipped=str(shipped)) == []
+    assert seed(resolve_device("cpu"), shipped=str(shipped)) == []
