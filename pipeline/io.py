@@ -17,6 +17,7 @@ Every output is written under a temporary name in its destination folder and pub
 
 import contextlib
 import contextvars
+import dataclasses
 import errno
 import fcntl
 import json
@@ -32,8 +33,8 @@ from rasterio._err import CPLE_BaseError
 from ..errors import ParamError, RasterIOError
 
 __all__ = ["ensure_folder", "check_destination", "atomic_path", "atomic_files", "outputs_together", "pending_path",
-           "remove_stale_temporaries", "remove_own_temporaries", "write_raster", "write_text", "write_files",
-           "write_json", "describe_os_error", "gdal_reason", "storage_facts", "write_error"]
+           "remove_stale_temporaries", "remove_own_temporaries", "abandoned", "write_raster", "write_text",
+           "write_files", "write_json", "describe_os_error", "gdal_reason", "storage_facts", "write_error"]
 
 TMP_TAG = ".orthowarp-tmp-"
 # what rasterio raises for GDAL's errors: its own classes, and GDAL's CPLE_* ones where it
@@ -143,23 +144,36 @@ def remove_stale_temporaries(folder):
     removed = []
     for job, members in jobs.items():
         # the job's main file is the shortest name (the others add a suffix to it)
-        main = os.path.join(folder, min(members, key=len))
-        try:
-            fd = os.open(main, os.O_RDONLY)
-        except OSError:
-            continue
-        try:
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except OSError:
+        with abandoned(os.path.join(folder, min(members, key=len))) as gone:
+            if not gone:
                 continue  # a live run holds it
             for name in sorted(members, key=len, reverse=True):  # helpers first, the locked main last
                 with contextlib.suppress(FileNotFoundError):
                     os.remove(os.path.join(folder, name))
                     removed.append(os.path.join(folder, name))
-        finally:
-            os.close(fd)
     return removed
+
+
+@contextlib.contextmanager
+def abandoned(path):
+    """Yield whether ``path``'s owner is gone: True where no process holds an ``flock`` on it
+    (this one then holds it for the block), False where a live one does or it cannot be
+    opened. Files that live as long as their run (temporaries, shared segments) are locked by
+    it, so what a killed run left is found this way."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW)
+    except OSError:
+        yield False
+        return
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            yield False
+            return
+        yield True
+    finally:
+        os.close(fd)
 
 
 def _fsync_path(path, *, directory=False):
@@ -246,12 +260,30 @@ def _remove_job(tmp):
         os.remove(tmp)
 
 
+@dataclasses.dataclass(eq=False)
+class _Member:
+    """An output of a job: its destination, its locked temporary (and the lock's fd), whether
+    it may replace an existing file and whether its writer has completed it."""
+
+    path: str
+    tmp: str
+    fd: int
+    overwrite: bool
+    complete: bool = False
+
+    def drop(self):
+        """Remove the temporary (and its helper files) and release its lock."""
+        _remove_job(self.tmp)
+        with contextlib.suppress(OSError):
+            os.close(self.fd)
+
+
 class _Together:
     """Outputs of one job, published together (see :func:`outputs_together`)."""
 
     def __init__(self, overwrite, durable):
         self.overwrite, self.durable = overwrite, durable
-        self.members = []  # [path, temporary, fd, overwrite, complete]
+        self.members = []  # _Member, in the order reserved
         self.lock = threading.Lock()
 
     def reserve(self, path, overwrite):
@@ -260,13 +292,13 @@ class _Together:
         folder = os.path.dirname(os.path.abspath(path))
         remove_stale_temporaries(folder)
         with self.lock:
-            if any(os.path.abspath(m[0]) == os.path.abspath(path) for m in self.members):
+            if any(os.path.abspath(m.path) == os.path.abspath(path) for m in self.members):
                 raise RasterIOError(f"Output '{path}' is written twice in one job")
         try:
             fd, tmp = _new_temporary(path)
         except OSError as e:
             raise RasterIOError(f"Cannot write into '{folder}': {describe_os_error(e)}") from e
-        member = [path, tmp, fd, bool(overwrite) and self.overwrite, False]
+        member = _Member(path, tmp, fd, bool(overwrite) and self.overwrite)
         with self.lock:
             self.members.append(member)
         return member
@@ -275,28 +307,28 @@ class _Together:
         """The temporary of a complete, not yet published output ``path``, or None."""
         path = os.path.abspath(os.fspath(path))
         with self.lock:
-            for p, tmp, _, _, complete in self.members:
-                if complete and os.path.abspath(p) == path:
-                    return tmp
+            for m in self.members:
+                if m.complete and os.path.abspath(m.path) == path:
+                    return m.tmp
         return None
 
     def publish(self):
         """Publish every member (they are all complete), or none: on a failure the outputs
         already published are put back as they were."""
-        members = [m for m in self.members]
+        members = list(self.members)
         backups, done = {}, []
         try:
-            for _, tmp, _, _, _ in members:
-                _finalise(tmp, self.durable)
-            for path, tmp, _, overwrite, _ in members:
-                if overwrite and os.path.lexists(path):
-                    os.link(path, tmp + ".previous")
-                    backups[path] = tmp + ".previous"
-            for path, tmp, _, overwrite, _ in members:
-                _publish(tmp, path, overwrite)
-                done.append(path)
+            for m in members:
+                _finalise(m.tmp, self.durable)
+            for m in members:
+                if m.overwrite and os.path.lexists(m.path):
+                    os.link(m.path, m.tmp + ".previous")
+                    backups[m.path] = m.tmp + ".previous"
+            for m in members:
+                _publish(m.tmp, m.path, m.overwrite)
+                done.append(m.path)
             if self.durable:
-                for folder in {os.path.dirname(os.path.abspath(m[0])) for m in members}:
+                for folder in {os.path.dirname(os.path.abspath(m.path)) for m in members}:
                     _fsync_path(folder, directory=True)
         except OSError as e:
             for path in done:  # roll back
@@ -305,7 +337,7 @@ class _Together:
                         os.replace(backups.pop(path), path)
                     else:
                         os.remove(path)
-            failed = members[len(done)][0] if len(done) < len(members) else members[-1][0]
+            failed = members[len(done)].path if len(done) < len(members) else members[-1].path
             rest = "; none of the outputs was changed" if len(members) > 1 else ""
             if isinstance(e, FileExistsError):
                 raise RasterIOError(f"Output '{failed}' was created by someone else while this run wrote it; "
@@ -317,13 +349,14 @@ class _Together:
                 with contextlib.suppress(FileNotFoundError):
                     os.remove(b)
 
-    def discard(self):
-        """Remove every member's temporary (and helper files) and release its lock."""
-        for _, tmp, fd, _, _ in self.members:
-            _remove_job(tmp)
-            with contextlib.suppress(OSError):
-                os.close(fd)
-        self.members = []
+    def discard(self, members=None):
+        """Drop ``members`` (default: all) from the job: their temporaries (and helper files)
+        removed, their locks released."""
+        members = list(self.members) if members is None else members
+        with self.lock:
+            self.members = [m for m in self.members if m not in members]
+        for m in members:
+            m.drop()
 
 
 _TOGETHER = contextvars.ContextVar("orthowarp_outputs_together", default=None)
@@ -427,17 +460,12 @@ def atomic_files(paths, *, overwrite=True, durable=True):
     with outputs_together(overwrite=True, durable=durable) as together:
         members = [together.reserve(p, overwrite) for p in paths]
         try:
-            yield [m[1] for m in members]
+            yield [m.tmp for m in members]
         except BaseException:
-            with together.lock:
-                together.members = [m for m in together.members if m not in members]
-            for m in members:
-                _remove_job(m[1])
-                with contextlib.suppress(OSError):
-                    os.close(m[2])
+            together.discard(members)
             raise
         for m in members:
-            m[4] = True
+            m.complete = True
 
 
 def write_raster(path, array, *, transform=None, crs=None, nodata=None, compress="deflate", descriptions=None,
@@ -451,7 +479,7 @@ def write_raster(path, array, *, transform=None, crs=None, nodata=None, compress
     arr = array if array.ndim == 3 else array[None]
     for name, values in (("descriptions", descriptions), ("units", units)):
         if values is not None and len(values) != arr.shape[0]:
-            raise ValueError(f"write_raster: {name} needs one string per band ({arr.shape[0]}), got {len(values)}")
+            raise ParamError(f"write_raster: {name} needs one string per band ({arr.shape[0]}), got {len(values)}")
     profile = dict(driver="GTiff", width=arr.shape[2], height=arr.shape[1], count=arr.shape[0],
                    dtype=arr.dtype, compress=compress, tiled=True, blockxsize=256, blockysize=256)
     if transform is not None:

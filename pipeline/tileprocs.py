@@ -51,6 +51,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from ..errors import OrthowarpError
+from .io import abandoned
 from .ortho import _check_cancel
 
 __all__ = ["ProcessTiles", "TileDealer", "tile_runs", "remove_stale_segments"]
@@ -77,22 +78,11 @@ def remove_stale_segments(folder=None):
     removed = []
     for name in names:
         path = os.path.join(folder, name)
-        try:
-            fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW)
-        except OSError:
-            continue
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            os.close(fd)
-            continue  # a live caller holds it
-        try:
-            os.unlink(path)
-            removed.append(path)
-        except OSError:
-            pass
-        finally:
-            os.close(fd)
+        with abandoned(path) as gone:  # (a live caller holds its file's lock)
+            if gone:
+                with contextlib.suppress(OSError):
+                    os.unlink(path)
+                    removed.append(path)
     return removed
 
 
