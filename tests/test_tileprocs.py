@@ -293,10 +293,13 @@ def test_workers_and_shared_file_do_not_outlive_a_caller_killed_outright(tmp_pat
 
     from orthowarp.pipeline.tileprocs import remove_stale_segments
 
+    folder = str(tmp_path)  # this test's own segment folder: another test's dead caller is not ours
     script = (
         "import os, sys, time\n"
         f"sys.path.insert(0, {os.path.dirname(__file__)!r})\n"
         "from test_tileprocs import StandInPlan\n"
+        "from orthowarp.pipeline import tileprocs\n"
+        f"tileprocs._segment_folder = lambda: {folder!r}\n"
         "from orthowarp.pipeline.tileprocs import ProcessTiles\n"
         "procs = ProcessTiles(2, 'cpu', threads=1)\n"
         "procs.start_plan(StandInPlan(), (32, 32), with_source=False)\n"
@@ -309,7 +312,8 @@ def test_workers_and_shared_file_do_not_outlive_a_caller_killed_outright(tmp_pat
         assert len(workers) == 2 and all(_alive(w) for w in workers)
         started = set(_children(caller.pid))  # the workers and the resource tracker
         assert set(workers) <= started and len(started) >= 3
-        assert shared not in remove_stale_segments()  # a live caller's file stays
+        assert os.path.dirname(shared) == folder
+        assert remove_stale_segments(folder) == []  # a live caller's file stays
         assert os.path.exists(shared)
         caller.send_signal(getattr(signal, signal_name))
         caller.wait(timeout=30)
@@ -318,7 +322,7 @@ def test_workers_and_shared_file_do_not_outlive_a_caller_killed_outright(tmp_pat
             time.sleep(0.1)
         assert not [p for p in started if _alive(p)], "processes outlived their caller"
         assert os.path.exists(shared)  # left by the dead caller ...
-        assert shared in remove_stale_segments()  # ... and removed by the next one
+        assert remove_stale_segments(folder) == [shared]  # ... and removed by the next one
         assert not os.path.exists(shared)
     finally:
         caller.kill()
