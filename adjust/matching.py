@@ -13,7 +13,7 @@ import numpy as np
 
 from ..errors import ParamError
 
-__all__ = ["MatchResult", "match_points", "interest_points"]
+__all__ = ["MatchResult", "match_points", "interest_points", "zones_allowed"]
 
 
 @dataclass
@@ -192,6 +192,13 @@ def _box(a, half):
     return c[i1][:, j1] - c[i0][:, j1] - c[i1][:, j0] + c[i0][:, j0]
 
 
+def zones_allowed(shape, window):
+    """The most zones (across, down) an image of ``shape`` (rows, cols) takes for the interest
+    operator's ``window`` (px): a zone at least a window wide each way."""
+    rows, cols = shape
+    return cols // window, rows // window
+
+
 def interest_points(image, *, zones=(4, 3), per_zone=1, window=21, min_roundness=0.5, margin=None):
     """Well-textured points by Foerstner's operator, spread over a grid of zones ([P2]:
     6 or 12 per image).
@@ -232,7 +239,7 @@ def interest_points(image, *, zones=(4, 3), per_zone=1, window=21, min_roundness
     if len(nz) != 2 or min(nz) < 1:
         raise ParamError(f"zones must be two integers >= 1, got {zones!r}")
     rows, cols = img.shape
-    most = (cols // window, rows // window)  # zones at least a window wide each way
+    most = zones_allowed(img.shape, window)
     if nz[0] > most[0] or nz[1] > most[1]:
         raise ParamError(f"zones {nz[0]}x{nz[1]} are too fine for the {cols} x {rows} px image: a zone must be at "
                          f"least the {window} px window each way, so at most {most[0]}x{most[1]} zones")

@@ -1204,6 +1204,7 @@ def match(ctx, images, int_param, ext_param, crs, dem, height, out_path, zones, 
     arm."""
     import rasterio
 
+    from .adjust.matching import zones_allowed
     from .errors import ParamError, RasterIOError
     from .pipeline.blockio import write_block
     from .pipeline.dem import Dem
@@ -1229,10 +1230,10 @@ def match(ctx, images, int_param, ext_param, crs, dem, height, out_path, zones, 
         except rasterio.errors.RasterioIOError as e:
             raise RasterIOError(f"Could not read image '{image}': {e}") from e
         rows, cols = pixels[-1].shape
-        if window > 0 and (zx > cols // window or zy > rows // window):  # a zone at least a window each way
+        most = zones_allowed((rows, cols), window) if window > 0 else (zx, zy)
+        if zx > most[0] or zy > most[1]:
             raise ParamError(f"--zones {zx}x{zy} is too fine for image '{image}' ({cols} x {rows} px): a zone must be "
-                             f"at least the --window of {window} px each way, so at most {cols // window}x"
-                             f"{rows // window} zones")
+                             f"at least the --window of {window} px each way, so at most {most[0]}x{most[1]} zones")
     terrain = Dem.from_file(dem) if dem is not None else height
     ids = [_image_key(image) for image, _, _ in jobs]
     block, stats = match_block(pixels, [FrameSensor(c, p) for _, c, p in jobs], terrain, ids=ids, zones=(zx, zy),
