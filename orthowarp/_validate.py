@@ -113,3 +113,11 @@ def positive(name, value, *, zero=False, none=False):
     if v < 0 or (v == 0 and not zero):
         raise ParamError(f"{name} must be {'>= 0' if zero else '> 0'}, got {value!r}")
     return v
+
+
+def flag(name, value):
+    """``bool(value)`` for True or False (NumPy's too), or ParamError naming ``name``: 0, 1 and
+    strings such as "no" are refused, not converted."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise ParamError(f"{name} must be True or False, got {value!r}")
+    return bool(value)

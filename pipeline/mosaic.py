@@ -42,7 +42,7 @@ from affine import Affine
 from pyproj import CRS, Transformer
 
 from .._device import quiet_warp, resolve_device, to_host
-from .._validate import integer, positive
+from .._validate import flag, integer, positive
 from ..errors import GeometryError, ParamError, RasterIOError
 from ..geodesy import geodetic_to_ecef, geodetic_up
 from ..kernels import mosaic as mosaic_kernels
@@ -255,8 +255,7 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
         raise ParamError(f"processes must be a positive number of processes, got {processes!r}")
     compress_level = integer("compress_level", compress_level, low=1, high=12, none=True)  # deflate's levels
     workers = integer("workers", workers, low=1, none=True)
-    if not isinstance(overwrite, (bool, np.bool_)):
-        raise ParamError(f"overwrite must be True or False, got {overwrite!r}")
+    flag("overwrite", overwrite)
     dst = os.fspath(dst)
     outputs = _outputs(dst, index, seamlines, overwrite)
     on = resolve_device(device)
@@ -1009,10 +1008,9 @@ def _check_images(images, resampling, dtype, blend, feather, reference, seams, s
     positive("feather", feather)  # pixels
     if reference is not None and not (isinstance(reference, (int, np.integer)) and 0 <= reference < len(images)):
         raise ParamError(f"reference must be an image's position 0-{len(images) - 1}, got {reference!r}")
-    for name, flag in (("refraction", refraction), ("balance", balance), ("occlusion", occlusion),
-                       ("same_vertical_datum", same_vertical_datum)):
-        if not isinstance(flag, (bool, np.bool_)):
-            raise ParamError(f"{name} must be True or False, got {flag!r}")
+    for name, value in (("refraction", refraction), ("balance", balance), ("occlusion", occlusion),
+                        ("same_vertical_datum", same_vertical_datum)):
+        flag(name, value)
     positive("resolution", resolution, none=True)
     seen = {}  # each file once: a second copy would count twice in the default resolution and the balance
     for k, (src, _) in enumerate(images):

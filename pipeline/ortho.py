@@ -33,7 +33,7 @@ from rasterio.enums import MaskFlags, Resampling
 from rasterio.windows import Window
 
 from .._device import load_modules, quiet_warp, to_host
-from .._validate import as_crs, finite, integer, positive
+from .._validate import as_crs, finite, flag, integer, positive
 from ..errors import Cancelled, DeviceError, GeometryError, OrthowarpWarning, ParamError, RasterIOError
 from ..kernels import ortho as ortho_kernels
 from ..sensor import SensorModel
@@ -404,13 +404,14 @@ def orthorectify(src: str | os.PathLike, sensor: SensorModel, dst: str | os.Path
             raise ParamError(f"tile_size must be a positive multiple of 16, got {tile_size}")
     workers = integer("workers", workers, low=1, none=True)
     resolution = positive("resolution", resolution, none=True)
-    for name, flag in (("refraction", refraction), ("overviews", overviews), ("overwrite", overwrite),
-                       ("progress", progress), ("same_vertical_datum", same_vertical_datum)):
-        if not isinstance(flag, (bool, np.bool_)) and not (name == "progress" and hasattr(flag, "update")):
-            raise ParamError(f"{name} must be True or False{' or a progress bar' if name == 'progress' else ''}, "
-                             f"got {flag!r}")
-    if isinstance(progress, (bool, np.bool_)):
-        progress = bool(progress)
+    for name, value in (("refraction", refraction), ("overviews", overviews), ("overwrite", overwrite),
+                        ("same_vertical_datum", same_vertical_datum)):
+        flag(name, value)
+    if not hasattr(progress, "update"):  # else a shared bar
+        try:
+            progress = flag("progress", progress)
+        except ParamError:
+            raise ParamError(f"progress must be True or False or a progress bar, got {progress!r}") from None
     src, dst = os.fspath(src), os.fspath(dst)
     check_destination(dst, overwrite=overwrite)
     if not os.path.exists(src):
