@@ -306,6 +306,13 @@ def facing(to_sensor, slopes):
     return v[:, 2] - s[:, 0] * v[:, 0] - s[:, 1] * v[:, 1] > 0.0
 
 
+def _write_accuracy(dst, out, grid, crs, measure):
+    """Write an accuracy raster (bands, rows, cols; NaN: not seen) on ``grid`` in ``crs``, its
+    bands described (:func:`band_descriptions`)."""
+    descriptions, units = band_descriptions(crs, measure)
+    write_raster(dst, out, transform=grid, crs=crs.to_wkt(), nodata=np.nan, descriptions=descriptions, units=units)
+
+
 _UNIT_ABBREV = {"metre": "m", "meter": "m", "degree": "deg", "US survey foot": "ftUS", "foot": "ft"}
 
 
@@ -542,9 +549,7 @@ def accuracy_raster(dst, camera, pose, dem, crs, transform, shape, *, pose_cov, 
                           same_vertical_datum=same_vertical_datum)
     out = frame_window_sigmas(geom, crs, grid, (0, 0, rows, cols), c_raw, pixel_sigma=pixel_sigma,
                               dem_sigma=dem_sigma, measure=measure)[:bands]
-    descriptions, units = band_descriptions(crs, measure)
-    write_raster(dst, out, transform=grid, crs=crs.to_wkt(), nodata=np.nan, descriptions=descriptions[:bands],
-                 units=units[:bands])
+    _write_accuracy(dst, out, grid, crs, measure)
     return out
 
 
@@ -566,9 +571,7 @@ def scene_accuracy_raster(dst, scene, dem, crs, transform, shape, *, orientation
     out = scene_cell_sigmas(scene, dem, crs, ox, oy, orientation_cov=orientation_cov, pixel_sigma=pixel_sigma,
                             dem_sigma=dem_sigma, refraction=refraction, measure=measure,
                             device=device).reshape(3, rows, cols)[:bands]
-    descriptions, units = band_descriptions(crs, measure)
-    write_raster(dst, out, transform=grid, crs=crs.to_wkt(), nodata=np.nan, descriptions=descriptions[:bands],
-                 units=units[:bands])
+    _write_accuracy(dst, out, grid, crs, measure)
     return out
 
 
@@ -655,7 +658,5 @@ def mosaic_accuracy_raster(dst, images, index, dem, crs, transform, shape, *, po
                                       pixel_sigma=pixel_sigma, dem_sigma=dem_sigma, measure=measure)
             out[:, at] = sig[:, i - win[0], j - win[1]]
     out = out.reshape(3, rows, cols)[:bands]
-    descriptions, units = band_descriptions(crs, measure)
-    write_raster(dst, out, transform=grid, crs=crs.to_wkt(), nodata=np.nan, descriptions=descriptions[:bands],
-                 units=units[:bands])
+    _write_accuracy(dst, out, grid, crs, measure)
     return out
