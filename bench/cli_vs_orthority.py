@@ -1,19 +1,21 @@
 """Benchmark: orthowarp's CLI against orthority's on orthority's own sample data, on the CPU.
 
-Alternating runs (orthowarp, then orthority, per round) of two jobs:
+Alternating runs (orthowarp, then orthority, per round) of the sample jobs, each at the same
+resampling on both sides (``bilinear``: orthowarp ``--resampling bilinear`` / oty ``--interp
+bilinear``; ``cubic``: ``--resampling bicubic`` / ``--interp cubic``, orthority's default):
 
-- ``ngi``: one NGI aerial frame (3324c_2015_1004_05_0182_RGB.tif) on the 24 m DEM at 1 m
-  (``orthowarp ortho IMG --int-param config.yaml --ext-param camera_pos_ori.txt --dem dem.tif
-  --resolution 1`` / ``oty frame ... --res 1``);
-- ``odm``: the ODM dataset's 4 drone frames on its DSM at 0.2 m (``orthowarp ortho
-  --odm-dataset DIR --resolution 0.2`` / ``oty odm --dataset-dir DIR --res 0.2``).
+- ``ngi1``, ``ngi5``: one NGI aerial frame (3324c_2015_1004_05_0182_RGB.tif) on the 24 m DEM at 1 m
+  and 5 m (``orthowarp ortho IMG --int-param config.yaml --ext-param camera_pos_ori.txt --dem
+  dem.tif --resolution R`` / ``oty frame ... --res R``);
+- ``odm``: the ODM dataset's 4 drone frames on its DSM at 0.25 m (``orthowarp ortho
+  --odm-dataset DIR --resolution 0.25`` / ``oty odm --dataset-dir DIR --res 0.25``).
 
 Both write deflate GeoTIFFs (orthowarp's default COG; orthority with ``--compress deflate``).
 Wall time of each process, end to end; the report gives every run and the medians. The first
 round also warms the page cache and Warp's kernel cache, so it is left out of the medians.
 
 usage: python3 bench/cli_vs_orthority.py --data DIR/orthority --oty PATH/TO/oty [--rounds 7]
-       [--device cpu] [--out FILE]
+       [--device cpu] [--jobs ngi1,ngi5,odm] [--resampling bilinear,cubic] [--out FILE]
 """
 
 import argparse
@@ -27,16 +29,24 @@ import time
 from _report import save_report
 
 
-def jobs(data, work):
+RESAMPLING = {"bilinear": ("bilinear", "bilinear"), "cubic": ("bicubic", "cubic")}  # orthowarp's, orthority's
+
+
+def jobs(data, resampling):
+    """{name: (orthowarp arguments, oty arguments)} of the sample jobs at one resampling."""
     ngi, odm = os.path.join(data, "ngi"), os.path.join(data, "odm")
     frame = os.path.join(ngi, "3324c_2015_1004_05_0182_RGB.tif")
     frame_args = ["--int-param", os.path.join(ngi, "config.yaml"), "--ext-param", os.path.join(ngi, "camera_pos_ori.txt"),
                   "--dem", os.path.join(ngi, "dem.tif")]
+    ow, oty = RESAMPLING[resampling]
+    ow_opts, oty_opts = ["--resampling", ow], ["--interp", oty, "--compress", "deflate"]
     return {
-        "ngi": (["ortho", frame, *frame_args, "--resolution", "1"],
-                ["frame", *frame_args, "--res", "1", "--compress", "deflate", frame]),
-        "odm": (["ortho", "--odm-dataset", odm, "--resolution", "0.2"],
-                ["odm", "--dataset-dir", odm, "--res", "0.2", "--compress", "deflate"]),
+        "ngi1": (["ortho", frame, *frame_args, "--resolution", "1", *ow_opts],
+                 ["frame", *frame_args, "--res", "1", *oty_opts, frame]),
+        "ngi5": (["ortho", frame, *frame_args, "--resolution", "5", *ow_opts],
+                 ["frame", *frame_args, "--res", "5", *oty_opts, frame]),
+        "odm": (["ortho", "--odm-dataset", odm, "--resolution", "0.25", *ow_opts],
+                ["odm", "--dataset-dir", odm, "--res", "0.25", *oty_opts]),
     }
 
 
@@ -60,7 +70,8 @@ def main():
     ap.add_argument("--orthowarp", default=None, help="orthowarp command (default: this Python's module)")
     ap.add_argument("--rounds", type=int, default=7)
     ap.add_argument("--device", default="cpu")
-    ap.add_argument("--jobs", default="ngi,odm")
+    ap.add_argument("--jobs", default="ngi1,ngi5,odm")
+    ap.add_argument("--resampling", default="bilinear,cubic")
     ap.add_argument("--out", default="bench/results/cli-vs-orthority.json")
     args = ap.parse_args()
     ow = [args.orthowarp] if args.orthowarp else [sys.executable, "-m", "orthowarp.cli"]
@@ -68,8 +79,9 @@ def main():
     report = dict(benchmark="cli_vs_orthority", cpu_count=os.cpu_count(), device=args.device, rounds=args.rounds,
                   results={})
     try:
-        for name in args.jobs.split(","):
-            ow_args, oty_args = jobs(args.data, work)[name]
+        for resampling, name in [(r, n) for r in args.resampling.split(",") for n in args.jobs.split(",")]:
+            ow_args, oty_args = jobs(args.data, resampling)[name]
+            name = f"{name}-{resampling}"
             runs = dict(orthowarp=[], orthority=[])
             for _ in range(args.rounds):
                 runs["orthowarp"].append(timed([*ow, "-q", *ow_args, "--device", args.device], os.path.join(work, "ow")))
