@@ -1025,9 +1025,6 @@ def adjust(ctx, block_file, out_dir, write_example, cameras, exterior, image_poi
                    + ", ".join(os.path.basename(p) for p in paths.values()))
 
 
-if __name__ == "__main__":  # pragma: no cover
-    main()
-
 
 def _eo_sigma(text):
     """--eo-sigma "position=10,attitude=5e-5" -> dict."""
@@ -1260,3 +1257,7 @@ def match(ctx, images, int_param, ext_param, crs, dem, height, out_path, zones, 
         pairs = ", ".join(f"{k} {v['accepted']}/{v['predicted']}" for k, v in stats["pairs"].items())
         click.echo(f"{out_path}: {stats['points']} tie points, {stats['observations']} observations "
                    f"({stats['interest']} interest points; matched/predicted per pair: {pairs})")
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()
