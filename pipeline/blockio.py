@@ -380,13 +380,19 @@ def _first_duplicate(ids):
     return None
 
 
+def _decimal(v):
+    """A value derived by float arithmetic from decimal inputs, as its shortest decimal at 15
+    significant digits (9000 x 0.007 mm is 63.0 mm, not 62.99999999999999)."""
+    return float(f"{v:.15g}") + 0.0  # (and no -0.0)
+
+
 def _camera_dict(cam):
     w, h = cam.image_size
     px, py = cam.pixel_size
     m = max(w, h)
     return {"type": "brown", "im_size": [w, h], "focal_len": cam.focal_length,
-            "sensor_size": [w * px, h * py * 1.0],
-            "cx": cam.principal_point[0] / (m * px), "cy": -cam.principal_point[1] / (m * py),
+            "sensor_size": [_decimal(w * px), _decimal(h * py)],
+            "cx": _decimal(cam.principal_point[0] / (m * px)), "cy": _decimal(-cam.principal_point[1] / (m * py)),
             "k1": cam.k1, "k2": cam.k2, "k3": cam.k3, "p1": cam.p1, "p2": cam.p2}
 
 
