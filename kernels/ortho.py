@@ -39,6 +39,11 @@ from .sensor import SENSOR_ARGS, FrameArg, sensor_geolocate, sensor_project_xyz
 
 wp.set_module_options({"enable_backward": False, "cuda_output": "cubin"})
 
+# threads per block of the per-pixel kernels (a CUDA module is built per block size, so the
+# module is loaded with it as well as with Warp's default): on an H100, 128 ran a few per cent
+# faster than Warp's default 256 (bench/ortho.py's block-size scan)
+BLOCK_DIM = 128
+
 NEAREST = wp.constant(0)
 BILINEAR = wp.constant(1)
 BICUBIC = wp.constant(2)

@@ -55,9 +55,7 @@ LOSSY = ("jpeg", "webp")
 DEFAULT_QUALITY = 90  # JPEG / WebP quality of lossy outputs (orthority's JPEG default is 75)
 BLOCK_CODECS = ("auto", "host", "nvcomp", "hybrid", "warp")
 SOURCE_READS = ("auto", "whole", "tiles")
-# threads per block of the per-pixel ortho kernels: on an H100, 128 ran a few per cent faster
-# than Warp's default 256 (bench/ortho.py's block-size scan)
-ORTHO_BLOCK_DIM = 128
+ORTHO_BLOCK_DIM = ortho_kernels.BLOCK_DIM
 _WP_TYPES = {"uint8": wp.uint8, "uint16": wp.uint16, "float32": wp.float32}
 _TOP = {"uint8": 255.0, "uint16": 65535.0, "float32": 0.0}  # the kernels' clipping top per output type (0: none)
 COARSE_STEP = 16  # output pixels between nodes of the exactly transformed coarse grid

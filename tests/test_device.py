@@ -215,6 +215,35 @@ def test_unknown_device_is_device_error():
     assert _device.resolve_device("cpu").is_cpu
 
 
+def test_warm_up_in_a_fresh_process_prints_nothing_and_leaves_the_modules_loaded(tmp_path):
+    """The CLI's background warm-up: Warp initialised, the modules loaded on the device (with
+    their launch block size too), nothing printed, Warp's level restored; the job's own
+    resolve and load afterwards find it all done."""
+    out = tmp_path / "r.json"
+    script = textwrap.dedent("""
+        import warp as wp
+        from orthowarp import _device
+        level0 = wp.config.log_level
+        _device.warm_up("cpu", ["orthowarp.kernels.ortho"]).join()
+        import orthowarp.kernels.ortho as k
+        loaded = sorted(str(key) for key in wp.get_module(k.__name__).execs)
+        device = _device.resolve_device("cpu")
+    """) + _report("dict(initialised=_device._warp_runtime() is not None, level=wp.config.log_level,"
+                   " level0=level0, loaded=loaded, device=str(device))")
+    rc, stdout, stderr = _run(script, env={"OW_RESULT": str(out)})
+    assert rc == 0, stderr
+    assert (stdout, stderr) == ("", "")
+    r = json.loads(out.read_text())
+    assert r["initialised"] and r["device"] == "cpu" and r["level"] == r["level0"]
+    assert r["loaded"], r["loaded"]  # (on the CPU, Warp loads one binary whatever the block size)
+
+
+def test_a_failed_warm_up_is_left_to_the_job():
+    _device.warm_up("no-such-device", ["orthowarp.kernels.sensor"]).join()  # raises nothing
+    with pytest.raises(ow.DeviceError, match="no-such-device"):
+        _device.resolve_device("no-such-device")
+
+
 def test_a_slow_module_load_is_announced_as_compiling(monkeypatch, caplog):
     """load_modules logs one warning (logger "orthowarp") when loading takes longer than
     COMPILE_NOTICE_S, as Warp's first compile on a device does, once per device, with the
