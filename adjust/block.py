@@ -5,10 +5,13 @@ The file formats live in :mod:`orthowarp.pipeline.blockio`; this module only hol
 the data.
 """
 
+from __future__ import annotations
+
 import unicodedata
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from ..camera import FrameCamera
 from ..errors import ParamError
@@ -89,7 +92,7 @@ class Block:
     name: str = field(default="block")
     mode: str = field(default="map")
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if self.mode not in ("map", "geocentric"):
             raise ParamError(f"block mode must be 'map' or 'geocentric', got {self.mode!r}")
         self.image_ids, self.image_camera = _ids("image_ids", self.image_ids), _ids("image_camera", self.image_camera)
@@ -116,20 +119,50 @@ class Block:
         self.validate()
 
     @property
-    def n_images(self):
+    def n_images(self) -> int:
+        """The number of images, n."""
         return len(self.image_ids)
 
     @property
-    def n_points(self):
+    def n_points(self) -> int:
+        """The number of points, p."""
         return len(self.point_ids)
 
-    def role_mask(self, role):
+    def role_mask(self, role: str) -> np.ndarray:
+        """Which points have a role.
+
+        Parameters
+        ----------
+        role : str
+            One of :data:`ROLES`.
+
+        Returns
+        -------
+        ndarray of bool, shape (p,)
+        """
         return np.array([r == role for r in self.roles], dtype=bool)
 
-    def with_points(self, point_ids, roles, xyz, xyz_sigma, obs_image, obs_point, obs_xy, obs_sigma):
+    def with_points(self, point_ids: list[str], roles: list[str], xyz: ArrayLike, xyz_sigma: ArrayLike,
+                    obs_image: ArrayLike, obs_point: ArrayLike, obs_xy: ArrayLike, obs_sigma: ArrayLike) -> Block:
         """This block with points appended (control from a survey, say) and their image
-        observations; ``obs_point`` indexes the new points (0 for the first of them). The
-        result is checked as any block."""
+        observations. The result is checked as any block.
+
+        Parameters
+        ----------
+        point_ids, roles : list of str, length k
+        xyz, xyz_sigma : array_like, shape (k, 3)
+            Coordinates and sigmas (m), as :class:`Block`'s.
+        obs_image, obs_point : array_like of int, shape (m,)
+            Image indices, and indices into the new points (0 for the first of them).
+        obs_xy : array_like, shape (m, 2)
+            Measured (col, row) (px).
+        obs_sigma : array_like, shape (m,)
+            Their sigmas (px).
+
+        Returns
+        -------
+        Block
+        """
         k = len(point_ids)
         return replace(self, point_ids=list(self.point_ids) + list(point_ids), roles=list(self.roles) + list(roles),
                        xyz=np.vstack([self.xyz, np.reshape(xyz, (k, 3))]),
@@ -139,14 +172,37 @@ class Block:
                        obs_xy=np.vstack([self.obs_xy, np.reshape(obs_xy, (-1, 2))]),
                        obs_sigma=np.r_[self.obs_sigma, np.asarray(obs_sigma, dtype=np.float64)])
 
-    def validate(self):
-        """Check ids, shapes, roles and values; raise ParamError naming the offending item."""
+    def validate(self) -> None:
+        """Check ids, shapes, roles and values.
+
+        Raises
+        ------
+        ParamError
+            Naming the offending item: duplicate ids, an unknown or implausible camera, an
+            unknown role, bad observations (indices, non-finite or outside their image,
+            implausible sigmas, a point measured twice in an image), bad point coordinates
+            or sigmas, bad GNSS/INS observations or initial poses.
+        """
+        self._validate_ids()
+        self._validate_cameras()
+        for pid, role in zip(self.point_ids, self.roles):
+            if role not in ROLES:
+                raise ParamError(f"point '{pid}' has role {role!r}; expected one of {ROLES}")
+        self._validate_observations()
+        for i, pid in enumerate(self.point_ids):
+            self._validate_point(i, pid)
+        for k, img in enumerate(self.image_ids):
+            self._validate_image(k, img)
+
+    def _validate_ids(self) -> None:
         for kind, ids in (("image", self.image_ids), ("point", self.point_ids)):
             seen = set()
             for i in ids:
                 if i in seen:
                     raise ParamError(f"{kind} id '{i}' appears twice")
                 seen.add(i)
+
+    def _validate_cameras(self) -> None:
         for img, cam in zip(self.image_ids, self.image_camera):
             if cam not in self.cameras:
                 raise ParamError(f"image '{img}' names camera '{cam}', which the block does not define")
@@ -156,9 +212,8 @@ class Block:
             if not (1 <= w <= MAX_IMAGE_SIZE and 1 <= h <= MAX_IMAGE_SIZE):
                 raise ParamError(f"camera '{cam}': an image of {w:g} x {h:g} pixels is not plausible for a frame "
                                  f"camera (at most {MAX_IMAGE_SIZE:g} per side)")
-        for pid, role in zip(self.point_ids, self.roles):
-            if role not in ROLES:
-                raise ParamError(f"point '{pid}' has role {role!r}; expected one of {ROLES}")
+
+    def _validate_observations(self) -> None:
         m = len(self.obs_image)
         if not (len(self.obs_point) == m == len(self.obs_xy) == len(self.obs_sigma)):
             raise ParamError("observation arrays differ in length")
@@ -195,45 +250,47 @@ class Block:
             k = int(uniq[counts > 1][0])
             raise ParamError(f"point '{self.point_ids[k % self.n_points]}' is measured twice in image "
                              f"'{self.image_ids[k // self.n_points]}'")
-        for i, pid in enumerate(self.point_ids):
-            if self.roles[i] in ("control", "check"):
-                if not np.all(np.isfinite(self.xyz[i])):
-                    raise ParamError(f"{self.roles[i]} point '{pid}' needs finite coordinates")
-            if self.roles[i] == "control":
-                s = self.xyz_sigma[i]
-                if not np.all(np.isfinite(s)) or np.any(s < 0):
-                    raise ParamError(f"control point '{pid}' needs a sigma >= 0 per axis (0 fixes it), "
-                                     f"got {_fmt(s)}")
-            s = self.xyz_sigma[i]
-            given = np.isfinite(s)
-            if np.any(np.isinf(s)) or np.any(s[given] < 0):
-                raise ParamError(f"{self.roles[i]} point '{pid}': sigma {_fmt(s)} m: sigmas must be finite and >= 0")
-            pos = s[given & (s != 0)]
-            if self.roles[i] != "control" and np.any(s[given] == 0):
-                raise ParamError(f"{self.roles[i]} point '{pid}': sigma 0 (only a control point can be fixed)")
-            if np.any((pos < SIGMA_RANGE[0]) | (pos > SIGMA_RANGE[1])):
-                raise ParamError(f"{self.roles[i]} point '{pid}': sigma {_fmt(s)} m "
-                                 f"{_sigma_problem(pos[(pos < SIGMA_RANGE[0]) | (pos > SIGMA_RANGE[1])][0])}")
-            self._check_position(self.xyz[i], f"{self.roles[i]} point '{pid}'")
-        for k, img in enumerate(self.image_ids):
-            for name, val, sig in (("GNSS position", self.gnss_xyz[k], self.gnss_sigma[k]),
-                                   ("INS attitude", self.ins_opk[k], self.ins_sigma[k])):
-                given = np.isfinite(val)
-                if np.any(given & ~(np.isfinite(sig) & (sig > 0))):
-                    raise ParamError(f"image '{img}': the {name} observation needs a sigma > 0 per axis, "
-                                     f"got {_fmt(sig)}")
-                bad = given & ((sig < SIGMA_RANGE[0]) | (sig > SIGMA_RANGE[1]))
-                if np.any(bad):
-                    raise ParamError(f"image '{img}': the {name} observation's sigma {_fmt(sig)} "
-                                     f"{_sigma_problem(sig[bad][0])}")
-            if np.any(~np.isfinite(self.poses[k])) and not np.all(~np.isfinite(self.poses[k])):
-                raise ParamError(f"image '{img}': give the whole initial pose or none of it")
-            self._check_position(self.poses[k, :3], f"image '{img}': initial position")
-            self._check_angles(self.poses[k, 3:], f"image '{img}': initial attitude")
-            self._check_position(self.gnss_xyz[k], f"image '{img}': GNSS position")
-            self._check_angles(self.ins_opk[k], f"image '{img}': INS attitude")
 
-    def _check_position(self, v, what):
+    def _validate_point(self, i: int, pid: str) -> None:
+        if self.roles[i] in ("control", "check"):
+            if not np.all(np.isfinite(self.xyz[i])):
+                raise ParamError(f"{self.roles[i]} point '{pid}' needs finite coordinates")
+        if self.roles[i] == "control":
+            s = self.xyz_sigma[i]
+            if not np.all(np.isfinite(s)) or np.any(s < 0):
+                raise ParamError(f"control point '{pid}' needs a sigma >= 0 per axis (0 fixes it), "
+                                 f"got {_fmt(s)}")
+        s = self.xyz_sigma[i]
+        given = np.isfinite(s)
+        if np.any(np.isinf(s)) or np.any(s[given] < 0):
+            raise ParamError(f"{self.roles[i]} point '{pid}': sigma {_fmt(s)} m: sigmas must be finite and >= 0")
+        pos = s[given & (s != 0)]
+        if self.roles[i] != "control" and np.any(s[given] == 0):
+            raise ParamError(f"{self.roles[i]} point '{pid}': sigma 0 (only a control point can be fixed)")
+        if np.any((pos < SIGMA_RANGE[0]) | (pos > SIGMA_RANGE[1])):
+            raise ParamError(f"{self.roles[i]} point '{pid}': sigma {_fmt(s)} m "
+                             f"{_sigma_problem(pos[(pos < SIGMA_RANGE[0]) | (pos > SIGMA_RANGE[1])][0])}")
+        self._check_position(self.xyz[i], f"{self.roles[i]} point '{pid}'")
+
+    def _validate_image(self, k: int, img: str) -> None:
+        for name, val, sig in (("GNSS position", self.gnss_xyz[k], self.gnss_sigma[k]),
+                               ("INS attitude", self.ins_opk[k], self.ins_sigma[k])):
+            given = np.isfinite(val)
+            if np.any(given & ~(np.isfinite(sig) & (sig > 0))):
+                raise ParamError(f"image '{img}': the {name} observation needs a sigma > 0 per axis, "
+                                 f"got {_fmt(sig)}")
+            bad = given & ((sig < SIGMA_RANGE[0]) | (sig > SIGMA_RANGE[1]))
+            if np.any(bad):
+                raise ParamError(f"image '{img}': the {name} observation's sigma {_fmt(sig)} "
+                                 f"{_sigma_problem(sig[bad][0])}")
+        if np.any(~np.isfinite(self.poses[k])) and not np.all(~np.isfinite(self.poses[k])):
+            raise ParamError(f"image '{img}': give the whole initial pose or none of it")
+        self._check_position(self.poses[k, :3], f"image '{img}': initial position")
+        self._check_angles(self.poses[k, 3:], f"image '{img}': initial attitude")
+        self._check_position(self.gnss_xyz[k], f"image '{img}': GNSS position")
+        self._check_angles(self.ins_opk[k], f"image '{img}': INS attitude")
+
+    def _check_position(self, v: ArrayLike, what: str) -> None:
         """Refuse absurd coordinates (1e308, a latitude of 200 deg...) with what is wrong."""
         v = np.asarray(v, dtype=np.float64)
         if not np.all(np.isfinite(v)):
@@ -251,19 +308,30 @@ class Block:
                                  f"(|{name}| <= {lim:g} {unit}): a wrong value, unit or CRS?")
 
     @staticmethod
-    def _check_angles(v, what):
+    def _check_angles(v: ArrayLike, what: str) -> None:
+        """Refuse attitude angles (deg) beyond +-MAX_ANGLE with what is wrong."""
         v = np.asarray(v, dtype=np.float64)
         if np.all(np.isfinite(v)) and np.any(np.abs(v) > MAX_ANGLE):
             raise ParamError(f"{what}: angles {_fmt(v)} deg; each must lie within "
                              f"+-{MAX_ANGLE:g} deg")
 
-    def image_sizes(self):
-        """Width and height (px) of each image, array (n, 2)."""
+    def image_sizes(self) -> np.ndarray:
+        """The size of each image.
+
+        Returns
+        -------
+        ndarray, shape (n, 2)
+            Width and height (px).
+        """
         return np.array([self.cameras[c].image_size for c in self.image_camera], dtype=np.float64).reshape(-1, 2)
 
-    def outside_observations(self):
-        """Observations whose (col, row) lies outside their image, [0, width] x [0, height]:
-        bool array (m,)."""
+    def outside_observations(self) -> np.ndarray:
+        """Observations whose (col, row) lies outside their image, [0, width] x [0, height].
+
+        Returns
+        -------
+        ndarray of bool, shape (m,)
+        """
         if len(self.obs_image) == 0:
             return np.zeros(0, dtype=bool)
         size = self.image_sizes()[self.obs_image]
@@ -271,8 +339,17 @@ class Block:
         with np.errstate(invalid="ignore"):
             return ~((xy[:, 0] >= 0) & (xy[:, 0] <= size[:, 0]) & (xy[:, 1] >= 0) & (xy[:, 1] <= size[:, 1]))
 
-    def camera_arrays(self):
-        """Per-image camera rows (n, 10) and image sizes (n, 2) for the collinearity functions."""
+    def camera_arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per-image camera rows and image sizes for the collinearity functions.
+
+        Returns
+        -------
+        rows : ndarray, shape (n, 10)
+            f, x0, y0 (mm), k1, k2, k3, p1, p2, pixel size x, y (mm) per image (see
+            :mod:`~orthowarp.collinearity`).
+        sizes : ndarray, shape (n, 2)
+            Width and height (px).
+        """
         rows, sizes = [], []
         for cid in self.image_camera:
             c = self.cameras[cid]
@@ -281,7 +358,8 @@ class Block:
         return np.array(rows, dtype=np.float64).reshape(-1, 10), np.array(sizes, dtype=np.float64).reshape(-1, 2)
 
 
-def _sigma_problem(s):
+def _sigma_problem(s: float) -> str:
+    """What is wrong with a sigma outside SIGMA_RANGE, in words."""
     lo, hi = SIGMA_RANGE
     if not np.isfinite(s):
         return "is not finite"
@@ -290,7 +368,8 @@ def _sigma_problem(s):
     return f"is not plausible (outside [{lo:g}, {hi:g}]: the weights 1/sigma^2 would under- or overflow)"
 
 
-def _array(name, value, dtype, shape):
+def _array(name: str, value: ArrayLike, dtype: type | None, shape: tuple[int, ...]) -> np.ndarray:
+    """``value`` as an array of ``shape`` (-1: any length); ParamError when it is not one."""
     try:
         a = np.asarray(value, dtype=dtype)
         return a.reshape(shape)
@@ -298,11 +377,12 @@ def _array(name, value, dtype, shape):
         raise ParamError(f"{name} must be an array of shape {shape} (-1: any length): {e}") from e
 
 
-def _fmt(v):
+def _fmt(v: ArrayLike) -> str:
+    """Values as "(a, b, c)" for messages."""
     return "(" + ", ".join(f"{float(x):g}" for x in np.ravel(v)) + ")"
 
 
-def _ids(name, values):
+def _ids(name: str, values: list) -> list[str]:
     """Ids as strings (integers are taken as their decimal string); no empty ones, none with
     control characters (they would break messages and files)."""
     out = []

@@ -12,10 +12,19 @@ the attitude angles' (deg), applied to omega, phi, kappa of the local frame; the
 sigmas are east, north, up (m) and the rotations about the local axes (deg).
 """
 
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .. import geodesy
 from ..pose import MOUNT, Pose
+
+if TYPE_CHECKING:  # annotations only
+    from .block import Block
+    from .bundle.result import AdjustResult
 
 __all__ = ["to_local", "from_local"]
 
@@ -23,35 +32,99 @@ __all__ = ["to_local", "from_local"]
 class LocalFrame:
     """East-north-up frame at an origin (lat, lon, h in deg, m)."""
 
-    def __init__(self, lat, lon, h):
+    def __init__(self, lat: float, lon: float, h: float) -> None:
         self.lat, self.lon, self.h = float(lat), float(lon), float(h)
         self.origin = geodesy.geodetic_to_ecef(lat, lon, h)
         self.r = geodesy.enu_to_ecef_matrix(lat, lon).T  # R_enu<-ecef
 
-    def from_lla(self, lla):
+    def from_lla(self, lla: ArrayLike) -> np.ndarray:
+        """Points in this frame.
+
+        Parameters
+        ----------
+        lla : array_like, shape (k, 3) or (3,)
+            Latitude, longitude (deg), ellipsoidal height (m).
+
+        Returns
+        -------
+        ndarray, shape (k, 3)
+            East, north, up (m).
+        """
         lla = np.atleast_2d(lla)
         x = geodesy.geodetic_to_ecef(lla[:, 0], lla[:, 1], lla[:, 2])
         return (x - self.origin) @ self.r.T
 
-    def to_lla(self, enu):
+    def to_lla(self, enu: ArrayLike) -> np.ndarray:
+        """Points in this frame as geodetic coordinates (the inverse of :meth:`from_lla`).
+
+        Parameters
+        ----------
+        enu : array_like, shape (k, 3) or (3,)
+            East, north, up (m).
+
+        Returns
+        -------
+        ndarray, shape (k, 3)
+            Latitude, longitude (deg), ellipsoidal height (m).
+        """
         x = np.atleast_2d(enu) @ self.r + self.origin
         lat, lon, h = geodesy.ecef_to_geodetic(x)
         return np.stack([lat, lon, h], -1)
 
-    def pose_to_local(self, lat, lon, h, roll, pitch, yaw):
+    def pose_to_local(self, lat: float, lon: float, h: float, roll: float, pitch: float, yaw: float) -> np.ndarray:
+        """A GNSS/INS pose as a pose in this frame.
+
+        Parameters
+        ----------
+        lat, lon, h : float
+            The navigation reference point: latitude, longitude (deg), ellipsoidal height (m).
+        roll, pitch, yaw : float
+            Attitude (deg; docs/design.md's GNSS/INS convention, standard mount).
+
+        Returns
+        -------
+        ndarray, shape (6,)
+            East, north, up (m), omega, phi, kappa (deg) in this frame.
+        """
         p = Pose.from_ins(lat, lon, h, roll, pitch, yaw)
         c = (p.center - self.origin) @ self.r.T
         return np.r_[c, geodesy.opk_angles(self.r @ p.rotation)]
 
-    def pose_from_local(self, pose):
+    def pose_from_local(self, pose: np.ndarray) -> np.ndarray:
+        """The inverse of :meth:`pose_to_local`.
+
+        Parameters
+        ----------
+        pose : ndarray, shape (6,)
+            East, north, up (m), omega, phi, kappa (deg) in this frame.
+
+        Returns
+        -------
+        ndarray, shape (6,)
+            Latitude, longitude (deg), height (m), roll, pitch, yaw (deg).
+        """
         r_ecef_cam = self.r.T @ geodesy.opk_matrix(np.radians(pose[3:6]))[0][0]
         lla = self.to_lla(pose[:3])[0]
         r_nav_body = geodesy.ned_to_ecef_matrix(lla[0], lla[1]).T @ r_ecef_cam @ MOUNT.T
         return np.r_[lla, geodesy.rpy_angles(r_nav_body)]
 
 
-def to_local(block):
-    """The block in the local ENU frame of its centre, and that frame (see the module doc)."""
+def to_local(block: Block) -> tuple[Block, LocalFrame]:
+    """A geocentric block in the local ENU frame of its centre (see the module doc).
+
+    Parameters
+    ----------
+    block : Block
+        In ``mode="geocentric"``.
+
+    Returns
+    -------
+    local : Block
+        The block, map-Cartesian in the frame (m, deg).
+    frame : LocalFrame
+        The frame: east-north-up at the mean of the initial positions (else of the GNSS
+        positions, else of the points).
+    """
     from .block import Block
 
     b = block
@@ -83,9 +156,21 @@ def to_local(block):
     return local, frame
 
 
-def from_local(result, frame):
+def from_local(result: AdjustResult, frame: LocalFrame) -> AdjustResult:
     """The adjustment result of a local block with poses (lat, lon, h, roll, pitch, yaw) and
-    points (lat, lon, h); sigmas, residuals and RMSEs stay in the local frame (m, deg)."""
+    points (lat, lon, h); sigmas, residuals and RMSEs stay in the local frame (m, deg).
+
+    Parameters
+    ----------
+    result : AdjustResult
+        Of the block :func:`to_local` gave; changed in place.
+    frame : LocalFrame
+
+    Returns
+    -------
+    AdjustResult
+        ``result``, with ``local_frame`` set.
+    """
     result.poses = {k: tuple(frame.pose_from_local(np.asarray(v))) for k, v in result.poses.items()}
     result.points = {k: tuple(frame.to_lla(np.asarray(v))[0]) if np.all(np.isfinite(v)) else v
                      for k, v in result.points.items()}

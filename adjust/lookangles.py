@@ -30,9 +30,12 @@ Reference: [P1] (SPOT-5 HRG level 1A, look-angle pre-adjustment); W. Foerstner a
 Wrobel, Photogrammetric Computer Vision (2016), section 4.8 (Gauss-Helmert model).
 """
 
+from __future__ import annotations
+
 from dataclasses import dataclass, field
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .. import geodesy
 from ..errors import GeometryError, ParamError
@@ -45,7 +48,7 @@ __all__ = ["LookAngleResult", "preadjust_look_angles", "look_angle_conditions", 
 _STEPS = np.array([1e-2, 1e-2, 1e-2, 1e-2, 1e-2])
 
 
-def _basis(scene, col, degree):
+def _basis(scene: PushbroomScene, col: ArrayLike, degree: int) -> np.ndarray:
     """Polynomial basis (n, degree + 1) at columns ``col`` (the normalised detector number)."""
     d = np.asarray(col, dtype=np.float64) + 0.5
     c, h = 0.5 * (scene.width + 1), max(0.5 * (scene.width - 1), 0.5)
@@ -53,7 +56,8 @@ def _basis(scene, col, degree):
     return u[:, None] ** np.arange(degree + 1)
 
 
-def look_angle_conditions(scene, obs, llh, coefficients):
+def look_angle_conditions(scene: PushbroomScene, obs: np.ndarray, llh: np.ndarray,
+                          coefficients: ArrayLike) -> np.ndarray:
     """The pre-adjustment's conditions g (n, 2) (rad) at observations ``obs`` (n, 5).
 
     Parameters
@@ -91,9 +95,21 @@ def look_angle_conditions(scene, obs, llh, coefficients):
     return measured - nominal - corr
 
 
-def corrected_scene(scene, coefficients):
-    """The scene with its look angles corrected by the polynomials ``coefficients`` (2, k)
-    (rad, in the normalised detector number; see the module doc)."""
+def corrected_scene(scene: PushbroomScene, coefficients: ArrayLike) -> PushbroomScene:
+    """The scene with its look angles corrected by polynomials along the detector line.
+
+    Parameters
+    ----------
+    scene : PushbroomScene
+    coefficients : array_like, shape (2, k)
+        Corrections of psi_x and psi_y (rad) per power of the normalised detector number (see
+        the module doc).
+
+    Returns
+    -------
+    PushbroomScene
+        A copy with ``psi_x`` and ``psi_y`` (rad, per detector) corrected.
+    """
     coefficients = np.asarray(coefficients, dtype=np.float64)
     corr = _basis(scene, np.arange(scene.width) + 0.5, coefficients.shape[1] - 1) @ coefficients.T  # detector k at col k - 0.5
     return scene.replace(psi_x=scene.psi_x + corr[:, 0], psi_y=scene.psi_y + corr[:, 1])
@@ -145,13 +161,23 @@ class LookAngleResult:
     check_rmse: dict = field(default_factory=dict)
     check_rmse_before: dict = field(default_factory=dict)
 
-    def coefficient_std(self, scene_id):
-        """Sigmas (2, degree + 1) of a scene's coefficients (rad)."""
+    def coefficient_std(self, scene_id: str) -> np.ndarray:
+        """Sigmas of a scene's coefficients.
+
+        Parameters
+        ----------
+        scene_id : str
+
+        Returns
+        -------
+        ndarray, shape (2, degree + 1)
+            Sigmas (rad) of the psi_x and psi_y corrections' coefficients.
+        """
         c = self.covariance[scene_id]
         return np.sqrt(np.diag(c)).reshape(2, -1)
 
 
-def _pixel_rmse(scene, points, idx, xy):
+def _pixel_rmse(scene: PushbroomScene, points: ScenePoints, idx: np.ndarray, xy: np.ndarray) -> np.ndarray:
     """RMSE (2,) of col, row of points ``idx`` projected into ``scene`` against ``xy``."""
     if not len(idx):
         return np.full(2, np.nan)
@@ -160,10 +186,21 @@ def _pixel_rmse(scene, points, idx, xy):
     return np.sqrt(np.mean((pix - xy) ** 2, axis=0))
 
 
-def check_scenes(scenes, points):
-    """The checks of the scene adjustments' common arguments: ``points`` are ScenePoints,
-    ``scenes`` a dict of PushbroomScene holding every scene id the points name, and every
-    observation inside its scene (:meth:`ScenePoints.validate`); ParamError naming the cause."""
+def check_scenes(scenes: dict[str, PushbroomScene], points: ScenePoints) -> None:
+    """The checks of the scene adjustments' common arguments.
+
+    Parameters
+    ----------
+    scenes : dict of str -> PushbroomScene
+        Must hold every scene id the points name.
+    points : ScenePoints
+        Every observation must lie inside its scene (:meth:`ScenePoints.validate`).
+
+    Raises
+    ------
+    ParamError
+        Naming the cause.
+    """
     if not isinstance(points, ScenePoints):
         raise ParamError(f"points must be ScenePoints, got {type(points).__name__}")
     if not isinstance(scenes, dict) or not all(isinstance(s, PushbroomScene) for s in scenes.values()):
@@ -174,7 +211,8 @@ def check_scenes(scenes, points):
     points.validate(sizes={sid: scenes[sid].image_size for sid in points.scene_ids})
 
 
-def preadjust_look_angles(scenes, points, *, degree=2, max_iterations=20, xtol=1e-13):
+def preadjust_look_angles(scenes: dict[str, PushbroomScene], points: ScenePoints, *, degree: int = 2,
+                          max_iterations: int = 20, xtol: float = 1e-13) -> LookAngleResult:
     """Correct the look angles of pushbroom scenes by ground control, EO held fixed ([P1]
     eqs. 19-20; see the module doc).
 
@@ -217,41 +255,12 @@ def preadjust_look_angles(scenes, points, *, degree=2, max_iterations=20, xtol=1
         if n < q:
             raise ParamError(f"{points.name}: scene '{sid}' has {n} control point(s); a degree-{degree} correction "
                              f"needs at least {q} (better {q + 2} or more, spread along the line)")
-        llh = points.llh[ci]
         # a priori covariance of each point's observations: col, row, east, north, up
         qll = np.zeros((n, 5))
         qll[:, :2] = csig[:, None] ** 2
         qll[:, 2:] = points.llh_sigma[ci] ** 2
-        v = np.zeros((n, 5))
-        x = np.zeros((2, q))
-        status, it = 0, 0
         try:
-            for it in range(1, max_iterations + 1):
-                obs = np.concatenate([cxy, np.zeros((n, 3))], 1) + v
-                g = look_angle_conditions(scene, obs, llh, x)
-                b = np.empty((n, 2, 5))
-                for j in range(5):
-                    d = np.zeros(5)
-                    d[j] = _STEPS[j]
-                    b[:, :, j] = (look_angle_conditions(scene, obs + d, llh, x)
-                                  - look_angle_conditions(scene, obs - d, llh, x)) / (2 * _STEPS[j])
-                basis = _basis(scene, obs[:, 0], degree)
-                a = np.zeros((n, 2, 2 * q))
-                a[:, 0, :q], a[:, 1, q:] = -basis, -basis
-                w = g - np.einsum("nij,nj->ni", b, v)  # misclosure at the approximations
-                m = np.linalg.inv(np.einsum("nij,nj,nkj->nik", b, qll, b))  # (B Q B^T)^-1 per point
-                normal = np.einsum("nji,njk,nkl->il", a, m, a)
-                rhs = np.einsum("nji,njk,nk->i", a, m, w)
-                if np.linalg.cond(normal) > 1e14:
-                    status = -1
-                    break
-                dx = -np.linalg.solve(normal, rhs)
-                k = -np.einsum("nij,nj->ni", m, np.einsum("nij,j->ni", a, dx) + w)
-                v = qll * np.einsum("nji,nj->ni", b, k)
-                x = x + dx.reshape(2, q)
-                if np.max(np.abs(dx)) < xtol:
-                    status = 1
-                    break
+            x, v, normal, status, it = _gauss_helmert(scene, cxy, points.llh[ci], qll, degree, max_iterations, xtol)
         except GeometryError as e:
             raise ParamError(f"{points.name}: scene '{sid}': {e}") from e
         res.status[sid], res.iterations[sid] = status, it
@@ -282,3 +291,43 @@ def preadjust_look_angles(scenes, points, *, degree=2, max_iterations=20, xtol=1
             messages.append(f"scene '{sid}': converged in {it} iterations, sigma0 {s0:.3g}, redundancy {r}")
     res.message = "; ".join(messages)
     return res
+
+
+def _gauss_helmert(scene: PushbroomScene, cxy: np.ndarray, llh: np.ndarray, qll: np.ndarray, degree: int,
+                   max_iterations: int, xtol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int]:
+    """The pre-adjustment of one scene from its control points measured at ``cxy`` (n, 2; px),
+    given at ``llh`` (n, 3; lon, lat deg, h m), with the a priori variances ``qll`` (n, 5) of
+    col, row (px^2), east, north, up (m^2). Returns the coefficients (2, degree + 1; rad), the
+    residuals v (n, 5), the last normal matrix (2 (degree + 1),) * 2, the status (1 converged,
+    0 iteration limit, -1 singular) and the iterations."""
+    n, q = len(cxy), degree + 1
+    v = np.zeros((n, 5))
+    x = np.zeros((2, q))
+    status, it = 0, 0
+    for it in range(1, max_iterations + 1):  # (max_iterations < 1 leaves ``normal`` unbound, as it always did)
+        obs = np.concatenate([cxy, np.zeros((n, 3))], 1) + v
+        g = look_angle_conditions(scene, obs, llh, x)
+        b = np.empty((n, 2, 5))
+        for j in range(5):
+            d = np.zeros(5)
+            d[j] = _STEPS[j]
+            b[:, :, j] = (look_angle_conditions(scene, obs + d, llh, x)
+                          - look_angle_conditions(scene, obs - d, llh, x)) / (2 * _STEPS[j])
+        basis = _basis(scene, obs[:, 0], degree)
+        a = np.zeros((n, 2, 2 * q))
+        a[:, 0, :q], a[:, 1, q:] = -basis, -basis
+        w = g - np.einsum("nij,nj->ni", b, v)  # misclosure at the approximations
+        m = np.linalg.inv(np.einsum("nij,nj,nkj->nik", b, qll, b))  # (B Q B^T)^-1 per point
+        normal = np.einsum("nji,njk,nkl->il", a, m, a)
+        rhs = np.einsum("nji,njk,nk->i", a, m, w)
+        if np.linalg.cond(normal) > 1e14:
+            status = -1
+            break
+        dx = -np.linalg.solve(normal, rhs)
+        k = -np.einsum("nij,nj->ni", m, np.einsum("nij,j->ni", a, dx) + w)
+        v = qll * np.einsum("nji,nj->ni", b, k)
+        x = x + dx.reshape(2, q)
+        if np.max(np.abs(dx)) < xtol:
+            status = 1
+            break
+    return x, v, normal, status, it

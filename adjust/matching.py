@@ -7,9 +7,12 @@ converged within ``max_iterations`` and stayed inside the window; its position w
 ``max_shift`` px of the NCC peak. Points that fail a check are flagged, not dropped.
 """
 
+from __future__ import annotations
+
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from ..errors import ParamError
 
@@ -48,7 +51,9 @@ class MatchResult:
     ok: np.ndarray
 
 
-def _image(name, a):
+def _image(name: str, a: ArrayLike) -> np.ndarray:
+    """A 2-D real image (rows, cols) of at least 3 x 3 pixels as C-contiguous float32;
+    ParamError else."""
     a = np.asarray(a)
     if a.ndim != 2 or min(a.shape) < 3:
         raise ParamError(f"{name} must be a 2-D image (rows, cols) of at least 3 x 3 pixels, got shape {a.shape}")
@@ -57,15 +62,18 @@ def _image(name, a):
     return np.ascontiguousarray(a, dtype=np.float32)
 
 
-def _points(name, p):
+def _points(name: str, p: ArrayLike) -> np.ndarray:
+    """Pixel coordinates (n, 2) as C-contiguous float64; ParamError else."""
     p = np.asarray(p, dtype=np.float64)
     if p.ndim != 2 or p.shape[1] != 2:
         raise ParamError(f"{name} must be (n, 2) pixel coordinates (col, row), got shape {p.shape}")
     return np.ascontiguousarray(p)
 
 
-def match_points(left, right, points, predicted, *, affine=None, window=21, radius=8, levels=0, min_score=0.7,
-                 max_iterations=30, tol=1e-2, max_shift=1.0, device=None):
+def match_points(left: ArrayLike, right: ArrayLike, points: ArrayLike, predicted: ArrayLike, *,
+                 affine: ArrayLike | None = None, window: int = 21, radius: int = 8, levels: int = 0,
+                 min_score: float = 0.7, max_iterations: int = 30, tol: float = 1e-2, max_shift: float = 1.0,
+                 device: str | None = None) -> MatchResult:
     """Match points of the left image in the right one.
 
     Parameters
@@ -137,7 +145,8 @@ def match_points(left, right, points, predicted, *, affine=None, window=21, radi
         score = wp.empty(n, dtype=wp.float64, device=dev)
         half = int(window) // 2
 
-        def search(lw_, rw_, p_, guess, r):
+        def search(lw_: wp.array, rw_: wp.array, p_: wp.array, guess: np.ndarray, r: int) -> np.ndarray:
+            """The NCC peaks (n, 2) around ``guess`` within ``r`` px, at one pyramid level."""
             wp.launch(km.ncc_search_kernel, dim=n, device=dev,
                       inputs=[lw_, rw_, p_, wp.array(guess, dtype=wp.vec2d, device=dev), a, wp.int32(half),
                               wp.int32(r), ncc_xy, score])
@@ -173,7 +182,7 @@ def match_points(left, right, points, predicted, *, affine=None, window=21, radi
     return out
 
 
-def _halve(a):
+def _halve(a: np.ndarray) -> np.ndarray:
     """The 2 x 2 means of ``a`` (an odd last row or column dropped): pixel coordinates with the
     top-left corner as origin halve exactly."""
     r, c = (a.shape[0] // 2) * 2, (a.shape[1] // 2) * 2
@@ -181,7 +190,7 @@ def _halve(a):
     return (0.25 * (b[0::2, 0::2] + b[1::2, 0::2] + b[0::2, 1::2] + b[1::2, 1::2])).astype(np.float32)
 
 
-def _box(a, half):
+def _box(a: np.ndarray, half: int) -> np.ndarray:
     """Sums of ``a`` over (2 half + 1)^2 windows (same shape; edges: the window clipped)."""
     c = np.pad(np.cumsum(np.cumsum(a, 0), 1), ((1, 0), (1, 0)))
     rows, cols = a.shape
@@ -192,14 +201,28 @@ def _box(a, half):
     return c[i1][:, j1] - c[i0][:, j1] - c[i1][:, j0] + c[i0][:, j0]
 
 
-def zones_allowed(shape, window):
-    """The most zones (across, down) an image of ``shape`` (rows, cols) takes for the interest
-    operator's ``window`` (px): a zone at least a window wide each way."""
+def zones_allowed(shape: tuple[int, int], window: int) -> tuple[int, int]:
+    """The most zones an image takes for the interest operator: a zone at least a window wide
+    each way.
+
+    Parameters
+    ----------
+    shape : (int, int)
+        The image's rows and columns.
+    window : int
+        The operator's window side (px).
+
+    Returns
+    -------
+    (int, int)
+        Zones across and down.
+    """
     rows, cols = shape
     return cols // window, rows // window
 
 
-def interest_points(image, *, zones=(4, 3), per_zone=1, window=21, min_roundness=0.5, margin=None):
+def interest_points(image: ArrayLike, *, zones: tuple[int, int] = (4, 3), per_zone: int = 1, window: int = 21,
+                    min_roundness: float = 0.5, margin: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Well-textured points by Foerstner's operator, spread over a grid of zones ([P2]:
     6 or 12 per image).
 

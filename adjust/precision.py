@@ -49,6 +49,7 @@ from .. import collinearity as col
 if TYPE_CHECKING:  # annotations only
     from ..camera import FrameCamera
     from ..pose import Pose
+    from .geocentric import LocalFrame
 
 __all__ = ["PrecisionResult", "monoplot_covariance", "intersection_covariance", "input_covariance"]
 
@@ -75,21 +76,25 @@ class PrecisionResult:
     cov: np.ndarray
 
     @property
-    def sigma(self):
+    def sigma(self) -> np.ndarray:
+        """Standard deviations (n, 3) of X, Y, Z (m)."""
         return np.sqrt(np.maximum(np.diagonal(self.cov, axis1=1, axis2=2), 0.0))
 
     @property
-    def sigma_xy(self):
+    def sigma_xy(self) -> np.ndarray:
+        """sqrt((sigma_X^2 + sigma_Y^2) / 2) (n,) (m)."""
         s = self.sigma
         return np.sqrt(0.5 * (s[:, 0] ** 2 + s[:, 1] ** 2))
 
 
-def _camera_row(camera):
+def _camera_row(camera: FrameCamera) -> np.ndarray:
+    """The camera's parameter row (10,) for :mod:`orthowarp.collinearity`."""
     return np.array([camera.focal_length, *camera.principal_point, camera.k1, camera.k2, camera.k3, camera.p1,
                      camera.p2, *camera.pixel_size], dtype=np.float64)
 
 
-def _pose_row(pose):
+def _pose_row(pose: Pose) -> np.ndarray:
+    """A photogrammetric pose's row (6,): X0, Y0, Z0 (m), omega, phi, kappa (rad)."""
     if pose.mode != "map":
         raise ParamError("precision is computed for photogrammetric (omega-phi-kappa) poses; got a "
                          f"{pose.mode} pose")
@@ -102,7 +107,7 @@ class _Frame:
     """Where the equations are written: the map CRS of photogrammetric poses (identity), or an
     east-north-up frame at the first GNSS/INS pose's nadir."""
 
-    def __init__(self, poses, local=None):
+    def __init__(self, poses: Sequence[Pose], local: LocalFrame | None = None) -> None:
         modes = {p.mode for p in poses}
         if len(modes) != 1:
             raise ParamError(f"the poses must be all photogrammetric or all GNSS/INS, got {sorted(modes)}")
@@ -115,19 +120,19 @@ class _Frame:
         elif modes != {"map"}:
             raise ParamError(f"precision is computed for photogrammetric or GNSS/INS poses, got {sorted(modes)}")
 
-    def points(self, points):
+    def points(self, points: np.ndarray) -> np.ndarray:
         """Points (n, 3) of the poses' kind -> the frame's coordinates."""
         if self.local is None:
             return points
         return self.local.from_lla(np.stack([points[:, 1], points[:, 0], points[:, 2]], -1))
 
-    def _row(self, pose):
+    def _row(self, pose: Pose) -> np.ndarray:
         from .. import geodesy
 
         c = (pose.center - self.local.origin) @ self.local.r.T
         return np.r_[c, np.radians(geodesy.opk_angles(self.local.r @ pose.rotation))]
 
-    def pose(self, pose, inputs=6):
+    def pose(self, pose: Pose, inputs: int = 6) -> tuple[np.ndarray, np.ndarray]:
         """The pose's row in the frame (X0, Y0, Z0 m, omega, phi, kappa rad) and the Jacobian
         (6, inputs) of that row (angles in deg) by the pose's first ``inputs`` inputs (see the
         module's description): the identity for photogrammetric poses, numerical (central
@@ -149,14 +154,41 @@ class _Frame:
 INPUT_STEPS = (1e-3, 1e-3, 1e-3, 1e-5, 1e-5, 1e-5, 1e-5, 1e-5, 1e-5, 1e-3, 1e-3, 1e-3)
 
 
-def cov_size(c):
-    """The side of a square matrix argument (-1 for anything not 2-D), for the checks."""
+def cov_size(c: ArrayLike) -> int:
+    """The side of a square matrix argument, for the checks.
+
+    Parameters
+    ----------
+    c : array_like
+
+    Returns
+    -------
+    int
+        Its first dimension when 2-D, else -1.
+    """
     return np.shape(c)[0] if np.ndim(c) == 2 else -1
 
 
-def pose_inputs(pose, size):
-    """Check that a pose covariance of ``size`` x ``size`` fits the pose: 6 for photogrammetric
-    poses; 6, 9 (with boresight) or 12 (with boresight and lever arm) for GNSS/INS poses."""
+def pose_inputs(pose: Pose, size: int) -> int:
+    """Check that a pose covariance of ``size`` x ``size`` fits the pose.
+
+    Parameters
+    ----------
+    pose : Pose
+    size : int
+        6 for photogrammetric poses; 6, 9 (with boresight) or 12 (with boresight and lever
+        arm) for GNSS/INS poses.
+
+    Returns
+    -------
+    int
+        ``size``.
+
+    Raises
+    ------
+    ParamError
+        Any other size.
+    """
     allowed = (6,) if pose.mode == "map" else (6, 9, 12)
     if size not in allowed:
         kind = "a photogrammetric" if pose.mode == "map" else "a GNSS/INS"
@@ -165,10 +197,23 @@ def pose_inputs(pose, size):
     return size
 
 
-def moved_pose(pose, k, d):
-    """The pose with its input ``k`` (see the module's description: X0, Y0, Z0 or east, north,
-    up in m; omega, phi, kappa or roll, pitch, yaw in deg; for GNSS/INS poses also 6-8 the
-    boresight angles (deg) and 9-11 the lever arm (m)) moved by ``d``."""
+def moved_pose(pose: Pose, k: int, d: float) -> Pose:
+    """The pose with one of its inputs moved.
+
+    Parameters
+    ----------
+    pose : Pose
+    k : int
+        The input (see the module's description): 0-2 X0, Y0, Z0 or east, north, up (m);
+        3-5 omega, phi, kappa or roll, pitch, yaw (deg); for GNSS/INS poses also 6-8 the
+        boresight angles (deg) and 9-11 the lever arm (m).
+    d : float
+        The step, in the input's unit.
+
+    Returns
+    -------
+    Pose
+    """
     from ..pose import Pose
 
     p = pose.params
@@ -197,13 +242,27 @@ def moved_pose(pose, k, d):
     return Pose.from_ins(*lla, *att, boresight=tuple(boresight), lever_arm=tuple(lever))
 
 
-def input_covariance(pose: Pose, frame_cov: ArrayLike, *, local=None) -> np.ndarray:
-    """The covariance (6, 6) of a pose's inputs (see the module's description) from that of
-    its row in an adjustment's frame: X0, Y0, Z0 (m) and omega, phi, kappa (deg) of a
-    photogrammetric pose in its CRS (returned as given), or for a GNSS/INS pose the row in the
-    east-north-up frame ``local`` (a :class:`~orthowarp.adjust.geocentric.LocalFrame`, as
-    :attr:`AdjustResult.local_frame <orthowarp.adjust.AdjustResult>`): ``J^-1 C J^-T``
-    with ``J`` the row's derivative by the inputs."""
+def input_covariance(pose: Pose, frame_cov: ArrayLike, *, local: LocalFrame | None = None) -> np.ndarray:
+    """The covariance of a pose's inputs (see the module's description) from that of its row
+    in an adjustment's frame: ``J^-1 C J^-T`` with ``J`` the row's derivative by the inputs.
+
+    Parameters
+    ----------
+    pose : Pose
+    frame_cov : array_like, shape (6, 6)
+        Covariance of the pose's row: X0, Y0, Z0 (m) and omega, phi, kappa (deg) of a
+        photogrammetric pose in its CRS, or for a GNSS/INS pose of its row in the
+        east-north-up frame ``local``.
+    local : LocalFrame, optional
+        The adjustment's frame (:class:`~orthowarp.adjust.geocentric.LocalFrame`, as
+        :attr:`AdjustResult.local_frame <orthowarp.adjust.AdjustResult>`); needed for GNSS/INS
+        poses.
+
+    Returns
+    -------
+    ndarray, shape (6, 6)
+        The inputs' covariance (m, deg; photogrammetric poses: ``frame_cov`` as given).
+    """
     c = _square("frame_cov", frame_cov, 6)
     if pose.mode == "map":
         return c
@@ -215,7 +274,8 @@ def input_covariance(pose: Pose, frame_cov: ArrayLike, *, local=None) -> np.ndar
     return 0.5 * (out + out.T)
 
 
-def _square(name, value, n):
+def _square(name: str, value: ArrayLike, n: int) -> np.ndarray:
+    """``value`` as a symmetric positive semi-definite (n, n) matrix; ParamError else."""
     try:
         c = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError) as e:
@@ -232,7 +292,8 @@ def _square(name, value, n):
     return c
 
 
-def _image_terms(camera, pose_row, points, camera_params):
+def _image_terms(camera: FrameCamera, pose_row: np.ndarray, points: np.ndarray,
+                 camera_params: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
     """Per point: the collinearity Jacobians by the point (n, 2, 3) and by the image's inputs
     (n, 2, 6 + q + 2): pose (X0, Y0, Z0 m, angles per degree), camera parameters, measured
     pixel. ``pose_row``: X0, Y0, Z0, omega, phi, kappa (rad) in the points' frame."""
@@ -250,7 +311,8 @@ def _image_terms(camera, pose_row, points, camera_params):
     return j_point, np.concatenate(blocks, axis=2)
 
 
-def _input_cov(pose_cov, camera_cov, pixel_cov, q):
+def _input_cov(pose_cov: np.ndarray, camera_cov: np.ndarray | None, pixel_cov: np.ndarray, q: int) -> np.ndarray:
+    """The block-diagonal covariance (6 + q + 2,) * 2 of one image's inputs."""
     m = 6 + q + 2
     c = np.zeros((m, m))
     c[:6, :6] = pose_cov
@@ -388,7 +450,11 @@ def intersection_covariance(cameras: Sequence[FrameCamera], poses: Sequence[Pose
     return PrecisionResult(pts, a @ c_in @ np.transpose(a, (0, 2, 1)))
 
 
-def _check(points, pose_cov, camera_cov, camera_params, slopes=None, pose_size=6):
+def _check(points: ArrayLike, pose_cov: ArrayLike, camera_cov: ArrayLike | None, camera_params: Sequence[str],
+           slopes: ArrayLike | None = None,
+           pose_size: int = 6) -> tuple[np.ndarray, np.ndarray | None, int, np.ndarray, np.ndarray | None]:
+    """The arguments of the propagations, checked (ParamError) and as arrays: points (n, 3),
+    slopes (n, 2) or None, q, pose_cov, camera_cov."""
     pts = np.asarray(points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3 or not np.all(np.isfinite(pts)):
         raise ParamError(f"points must be a finite (n, 3) array, got shape {pts.shape}")

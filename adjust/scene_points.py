@@ -5,6 +5,8 @@ The file formats live in :mod:`orthowarp.pipeline.scenepoints`; this module only
 checks the data.
 """
 
+from __future__ import annotations
+
 from dataclasses import dataclass
 
 import numpy as np
@@ -57,7 +59,7 @@ class ScenePoints:
     obs_sigma: np.ndarray
     name: str = "points"
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         self.scene_ids = _ids("scene_ids", self.scene_ids)
         self.point_ids = _ids("point_ids", self.point_ids)
         self.roles = list(self.roles)
@@ -80,21 +82,59 @@ class ScenePoints:
         self.validate()
 
     @property
-    def n_points(self):
+    def n_points(self) -> int:
+        """The number of points, p."""
         return len(self.point_ids)
 
-    def role_mask(self, role):
+    def role_mask(self, role: str) -> np.ndarray:
+        """Which points have a role.
+
+        Parameters
+        ----------
+        role : str
+            ``control``, ``check`` or ``tie``.
+
+        Returns
+        -------
+        ndarray of bool, shape (p,)
+        """
         return np.array([r == role for r in self.roles], dtype=bool)
 
-    def observations_of(self, scene):
-        """(point indices (k,), col/row (k, 2), sigmas (k,)) of one scene (its id or index)."""
+    def observations_of(self, scene: str | int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The observations of one scene.
+
+        Parameters
+        ----------
+        scene : str or int
+            The scene's id or index.
+
+        Returns
+        -------
+        points : ndarray of int, shape (k,)
+            Point indices.
+        xy : ndarray, shape (k, 2)
+            Measured (col, row) (px).
+        sigma : ndarray, shape (k,)
+            Their sigmas (px).
+        """
         s = self.scene_ids.index(scene) if isinstance(scene, str) else int(scene)
         sel = self.obs_scene == s
         return self.obs_point[sel], self.obs_xy[sel], self.obs_sigma[sel]
 
-    def validate(self, sizes=None):
-        """Check ids, roles, values and, given ``sizes`` ({scene id: (width, height)}), that
-        every observation lies in its scene; ParamError naming the point and scene."""
+    def validate(self, sizes: dict[str, tuple[float, float]] | None = None) -> None:
+        """Check ids, roles, values and, given ``sizes``, that every observation lies in its
+        scene.
+
+        Parameters
+        ----------
+        sizes : dict of str -> (float, float), optional
+            Scene id -> (width, height) (px).
+
+        Raises
+        ------
+        ParamError
+            Naming the point and scene.
+        """
         where = self.name
         for kind, ids in (("scene", self.scene_ids), ("point", self.point_ids)):
             seen = set()

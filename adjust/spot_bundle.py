@@ -30,14 +30,19 @@ combined groups by them).
 Reference: [P1] (SPOT-5 HRG level 1A stereo, Gauss-Helmert bundle adjustment with EO groups).
 """
 
+from __future__ import annotations
+
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .. import geodesy
 from ..errors import GeometryError, ParamError
-from ..pushbroom import attitude_matrix
+from ..pushbroom import PushbroomScene, attitude_matrix
 from .lookangles import _basis, check_scenes, corrected_scene
+from .scene_points import ScenePoints
 
 __all__ = ["EO_GROUPS", "SceneBundleResult", "adjust_scenes", "intersect_scene_points"]
 
@@ -48,18 +53,19 @@ _UNIT = {"position": 1.0, "velocity": 1e-3, "attitude": 1e-6}  # scale of the un
 _H_PIX, _H_ENU = 1e-2, 1e-2  # central-difference steps: px, m
 
 
-def _group_index(group):
+def _group_index(group: str) -> np.ndarray:
     """Flat indices (3,) into a (3, 3, 3) coefficient array [quantity][axis][power] of a group."""
     q, k = QUANTITIES.index(group[:-1]), int(group[-1])
     return np.array([q * 9 + a * 3 + k for a in range(3)])
 
 
-def _poly(c, t):
+def _poly(c: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Values (n, 3) of polynomials c (3 axes, 3 powers) at times t (n,)."""
     return c[:, 0] + t[:, None] * c[:, 1] + (t * t)[:, None] * c[:, 2]
 
 
-def _conditions(scene, poly, col, row, x, look=None):
+def _conditions(scene: PushbroomScene, poly: np.ndarray, col: np.ndarray, row: np.ndarray, x: np.ndarray,
+                look: np.ndarray | None = None) -> np.ndarray:
     """The two conditions (n, 2) of measured (col, row) (n,) and ECEF points x (n, 3) under the
     coefficients ``poly`` (3, 3, 3) and look-angle corrections ``look`` (2, k) (rad; None:
     none)."""
@@ -75,7 +81,8 @@ def _conditions(scene, poly, col, row, x, look=None):
     return np.stack([-q[:, 1] / q[:, 2] - np.tan(px), q[:, 0] / q[:, 2] - np.tan(py)], -1)
 
 
-def intersect_scene_points(scenes, points, *, which=None):
+def intersect_scene_points(scenes: dict[str, PushbroomScene], points: ScenePoints, *,
+                           which: ArrayLike | None = None) -> np.ndarray:
     """Ground points (p, 3) (lon, lat deg, h m) by intersecting the rays of their measurements
     in two or more scenes (the least-squares point nearest to all rays); NaN rows for points
     measured in fewer than two scenes.
@@ -86,6 +93,12 @@ def intersect_scene_points(scenes, points, *, which=None):
     points : ScenePoints
     which : array_like of int, optional
         Point indices (default: all).
+
+    Returns
+    -------
+    ndarray, shape (p, 3)
+        Longitude, latitude (deg) and ellipsoidal height (m) of every point (NaN rows for
+        those not intersected).
     """
     which = np.arange(points.n_points) if which is None else np.asarray(which)
     out = np.full((points.n_points, 3), np.nan)
@@ -175,7 +188,9 @@ class SceneBundleResult:
     look_std: dict = field(default_factory=dict)
 
 
-def _check_args(scenes, points, groups, eo_sigma):
+def _check_args(scenes: dict[str, PushbroomScene], points: ScenePoints, groups: tuple[str, ...],
+                eo_sigma: dict[str, float] | None, look_degree: int) -> None:
+    """The arguments of :func:`adjust_scenes`; ParamError naming the first bad one."""
     check_scenes(scenes, points)
     if len(points.scene_ids) < 2:
         raise ParamError(f"{points.name}: a stereo adjustment needs points measured in two or more scenes; "
@@ -194,10 +209,13 @@ def _check_args(scenes, points, groups, eo_sigma):
         for k, s in eo_sigma.items():
             if not (isinstance(s, (int, float)) and np.isfinite(s) and s > 0):
                 raise ParamError(f"eo_sigma[{k!r}] must be a number > 0, got {s!r}")
+    if not (isinstance(look_degree, (int, np.integer)) and 0 <= look_degree <= 4):
+        raise ParamError(f"look_degree must be an integer 0-4, got {look_degree!r}")
 
 
-def adjust_scenes(scenes, points, *, groups=("attitude0",), eo_sigma=None, look_degree=2, max_iterations=20,
-                  xtol=1e-5):
+def adjust_scenes(scenes: dict[str, PushbroomScene], points: ScenePoints, *,
+                  groups: Sequence[str] = ("attitude0",), eo_sigma: dict[str, float] | None = None,
+                  look_degree: int = 2, max_iterations: int = 20, xtol: float = 1e-5) -> SceneBundleResult:
     """Bundle-adjust pushbroom scenes' exterior orientation with ground control and tie points
     (see the module doc).
 
@@ -236,176 +254,243 @@ def adjust_scenes(scenes, points, *, groups=("attitude0",), eo_sigma=None, look_
         measured in fewer than two scenes, fewer control points than the freed groups need.
     """
     groups = tuple(groups)
-    _check_args(scenes, points, groups, eo_sigma)
-    if not (isinstance(look_degree, (int, np.integer)) and 0 <= look_degree <= 4):
-        raise ParamError(f"look_degree must be an integer 0-4, got {look_degree!r}")
-    eo_groups = tuple(g for g in groups if g != "look")
-    nl = 2 * (look_degree + 1) if "look" in groups else 0
-    sids = list(points.scene_ids)
-    scn = {}
-    for sid in sids:
-        s = scenes[sid]
-        scn[sid] = s if s.polynomials is not None else s.with_polynomials(s.fit_polynomials()[0])
-    n_pts = points.n_points
-    control = points.role_mask("control")
-    n_scenes_of = np.bincount(points.obs_point, minlength=n_pts)
-    for i in np.flatnonzero(~control & (n_scenes_of < 2)):
-        raise ParamError(f"{points.name}: {points.roles[i]} point '{points.point_ids[i]}' is measured in "
-                         f"{n_scenes_of[i]} scene(s); it needs two or more to be intersected")
-    fidx = np.concatenate([_group_index(g) for g in eo_groups]) if eo_groups else np.zeros(0, int)
-    nf = len(fidx)
-    nb = nf + nl  # unknowns per scene: freed EO coefficients, then look-angle coefficients
-    if nb > 2 * int(control.sum()) and eo_sigma is None:
-        raise ParamError(f"{points.name}: {int(control.sum())} control point(s) cannot determine the {nb} "
-                         f"coefficients freed per scene ({', '.join(groups)}); give more control or eo_sigma priors")
-    # approximate coordinates: given ones for control points, intersected ones for the rest
-    llh0 = points.llh.copy()
-    free_pts = ~control
-    inter = intersect_scene_points(scn, points, which=np.flatnonzero(free_pts))
-    llh0[free_pts] = inter[free_pts]
-    xyz0 = geodesy.geodetic_to_ecef(llh0[:, 1], llh0[:, 0], llh0[:, 2])
-    enu = np.stack([geodesy.enu_to_ecef_matrix(la, lo) for la, lo in zip(llh0[:, 1], llh0[:, 0])])
-    # unknowns: each scene's block (scaled units), then the points' east, north, up (m)
-    scale = {}
-    for sid in sids:
-        th = 0.5 * scn[sid].height * scn[sid].line_period
-        scale[sid] = np.concatenate([[_UNIT[QUANTITIES[i // 9]] / th ** (i % 3) for i in fidx],
-                                     np.full(nl, _UNIT["attitude"])])
-    base = nb * len(sids)
-    n_unk = base + 3 * n_pts
-    prior_w = np.zeros(n_unk)
-    if eo_sigma is not None:
-        for s_k, sid in enumerate(sids):
-            th = 0.5 * scn[sid].height * scn[sid].line_period
-            for j, i in enumerate(fidx):
-                q = QUANTITIES[i // 9]
-                if q in eo_sigma:
-                    prior_w[s_k * nb + j] = (scale[sid][j] * th ** (i % 3) / eo_sigma[q]) ** 2
-            if nl and "look" in eo_sigma:
-                prior_w[s_k * nb + nf:(s_k + 1) * nb] = (_UNIT["attitude"] / eo_sigma["look"]) ** 2
-    for i in np.flatnonzero(control):
-        prior_w[base + 3 * i:base + 3 * i + 3] = 1.0 / points.llh_sigma[i] ** 2
-    x = np.zeros(n_unk)
-    m = len(points.obs_point)
-    v = np.zeros((m, 2))
+    _check_args(scenes, points, groups, eo_sigma, look_degree)
+    lay = _Layout(scenes, points, groups, look_degree, eo_sigma)
+    prior_w = _prior_weights(lay, points, eo_sigma)
     qll = np.stack([points.obs_sigma ** 2] * 2, -1)
-    status, it, normal = 0, 0, None
-
-    def model(xv, sid, s_k):
-        """(coefficients (3, 3, 3), look-angle corrections (2, degree + 1) or None) of a scene."""
-        blk = xv[s_k * nb:(s_k + 1) * nb] * scale[sid]
-        c = scn[sid].polynomials.copy().ravel()
-        c[fidx] += blk[:nf]
-        return c.reshape(3, 3, 3), (blk[nf:].reshape(2, -1) if nl else None)
-
-    def ground(xv):
-        return xyz0 + np.einsum("nij,nj->ni", enu, xv[base:].reshape(n_pts, 3))
-
     try:
-        for it in range(1, max_iterations + 1):
-            xg = ground(x)
-            normal = np.diag(prior_w)
-            rhs = prior_w * x
-            rows = []
-            for s_k, sid in enumerate(sids):
-                sel = np.flatnonzero(points.obs_scene == s_k)
-                if not len(sel):
-                    continue
-                sc, pi = scn[sid], points.obs_point[sel]
-                col, row = points.obs_xy[sel, 0] + v[sel, 0], points.obs_xy[sel, 1] + v[sel, 1]
-                pol, look = model(x, sid, s_k)
-
-                def cond(c=col, r=row, p=pol, lk=look, xx=None):
-                    return _conditions(sc, p, c, r, xg[pi] if xx is None else xx, lk)
-
-                g = cond()
-                b = np.empty((len(sel), 2, 2))
-                b[:, :, 0] = (cond(c=col + _H_PIX) - cond(c=col - _H_PIX)) / (2 * _H_PIX)
-                b[:, :, 1] = (cond(r=row + _H_PIX) - cond(r=row - _H_PIX)) / (2 * _H_PIX)
-                a_sc = np.empty((len(sel), 2, nb))
-                for j in range(nb):  # a step of one scaled unit
-                    hi, lo = x.copy(), x.copy()
-                    hi[s_k * nb + j] += 1.0
-                    lo[s_k * nb + j] -= 1.0
-                    (ph, lh), (pl, ll) = model(hi, sid, s_k), model(lo, sid, s_k)
-                    a_sc[:, :, j] = (cond(p=ph, lk=lh) - cond(p=pl, lk=ll)) / 2.0
-                a_pt = np.empty((len(sel), 2, 3))
-                for j in range(3):
-                    dx = enu[pi][:, :, j] * _H_ENU
-                    a_pt[:, :, j] = (cond(xx=xg[pi] + dx) - cond(xx=xg[pi] - dx)) / (2 * _H_ENU)
-                w = g - np.einsum("nij,nj->ni", b, v[sel])
-                mm = np.linalg.inv(np.einsum("nij,nj,nkj->nik", b, qll[sel], b))
-                cols_sc = np.arange(s_k * nb, (s_k + 1) * nb)
-                for r_k, k in enumerate(sel):
-                    cols = np.concatenate([cols_sc, base + 3 * points.obs_point[k] + np.arange(3)])
-                    ak = np.concatenate([a_sc[r_k], a_pt[r_k]], 1)
-                    normal[np.ix_(cols, cols)] += ak.T @ mm[r_k] @ ak
-                    rhs[cols] += ak.T @ mm[r_k] @ w[r_k]
-                    rows.append((k, cols, ak, mm[r_k], w[r_k], b[r_k]))
-            if not np.all(np.isfinite(normal)) or np.linalg.cond(normal) > 1e15:
-                status = -1
-                break
-            dx = -np.linalg.solve(normal, rhs)
-            for k, cols, ak, mk, wk, bk in rows:
-                v[k] = qll[k] * (bk.T @ (-mk @ (ak @ dx[cols] + wk)))
-            x = x + dx
-            if np.max(np.abs(dx)) < xtol:
-                status = 1
-                break
+        x, v, normal, status, it = _iterate(lay, points, prior_w, qll, max_iterations, xtol)
     except GeometryError as e:
         raise ParamError(f"{points.name}: {e}") from e
     res = SceneBundleResult(success=status == 1, status=status, message="", iterations=it,
-                            freed={sid: groups for sid in sids}, point_ids=list(points.point_ids))
+                            freed={sid: groups for sid in lay.sids}, point_ids=list(points.point_ids))
     if status == -1:
         res.message = (f"singular normal equations: the freed groups ({', '.join(groups) or 'none'}) are not "
                        "determined by the control and tie points (more control, fewer groups, or eo_sigma priors)")
         return res
-    r = 2 * m + int(np.count_nonzero(prior_w)) - n_unk
+    r = 2 * len(points.obs_point) + int(np.count_nonzero(prior_w)) - lay.n_unk
     vpv = float(np.sum(v * v / qll) + np.sum(prior_w * x * x))
     res.redundancy = r
     res.sigma0 = s0 = float(np.sqrt(vpv / r)) if r > 0 else float("nan")
     cov = (s0 ** 2 if r > 0 else 1.0) * np.linalg.inv(normal)
     res.covariance = cov
+    _scene_results(res, lay, x, cov)
+    _point_results(res, lay, points, x, cov)
+    res.residuals = v
+    res.message = (f"converged in {it} iterations" if status == 1 else f"no convergence in {max_iterations} "
+                   "iterations") + f", sigma0 {s0:.3g}, redundancy {r}"
+    return res
+
+
+class _Layout:
+    """The unknowns of a scene adjustment: per scene (``sids`` order) a block of ``nb``
+    (the ``nf`` freed EO coefficients ``fidx`` into the (3, 3, 3) coefficients, then ``nl``
+    look-angle coefficients) in scaled units (``scale``: m, mm/s, urad per t^k), then each
+    point's east, north, up correction (m) from its approximate position ``xyz0`` (p, 3; ECEF)
+    along ``enu`` (p, 3, 3). Built from the arguments, with the checks that need the scenes
+    (ParamError), and the approximate coordinates (given for control points, intersected for
+    the others)."""
+
+    def __init__(self, scenes: dict[str, PushbroomScene], points: ScenePoints, groups: tuple[str, ...],
+                 look_degree: int, eo_sigma: dict[str, float] | None) -> None:
+        self.eo_groups = tuple(g for g in groups if g != "look")
+        self.nl = 2 * (look_degree + 1) if "look" in groups else 0
+        self.sids = list(points.scene_ids)
+        self.scn = {}
+        for sid in self.sids:
+            s = scenes[sid]
+            self.scn[sid] = s if s.polynomials is not None else s.with_polynomials(s.fit_polynomials()[0])
+        self.n_pts = points.n_points
+        control = points.role_mask("control")
+        n_scenes_of = np.bincount(points.obs_point, minlength=self.n_pts)
+        for i in np.flatnonzero(~control & (n_scenes_of < 2)):
+            raise ParamError(f"{points.name}: {points.roles[i]} point '{points.point_ids[i]}' is measured in "
+                             f"{n_scenes_of[i]} scene(s); it needs two or more to be intersected")
+        self.fidx = (np.concatenate([_group_index(g) for g in self.eo_groups]) if self.eo_groups
+                     else np.zeros(0, int))
+        self.nf = len(self.fidx)
+        self.nb = self.nf + self.nl  # unknowns per scene: freed EO coefficients, then look-angle coefficients
+        if self.nb > 2 * int(control.sum()) and eo_sigma is None:
+            raise ParamError(f"{points.name}: {int(control.sum())} control point(s) cannot determine the {self.nb} "
+                             f"coefficients freed per scene ({', '.join(groups)}); give more control or eo_sigma "
+                             "priors")
+        # approximate coordinates: given ones for control points, intersected ones for the rest
+        llh0 = points.llh.copy()
+        free_pts = ~control
+        inter = intersect_scene_points(self.scn, points, which=np.flatnonzero(free_pts))
+        llh0[free_pts] = inter[free_pts]
+        self.xyz0 = geodesy.geodetic_to_ecef(llh0[:, 1], llh0[:, 0], llh0[:, 2])
+        self.enu = np.stack([geodesy.enu_to_ecef_matrix(la, lo) for la, lo in zip(llh0[:, 1], llh0[:, 0])])
+        # unknowns: each scene's block (scaled units), then the points' east, north, up (m)
+        self.scale = {}
+        for sid in self.sids:
+            th = self.half_duration(sid)
+            self.scale[sid] = np.concatenate([[_UNIT[QUANTITIES[i // 9]] / th ** (i % 3) for i in self.fidx],
+                                              np.full(self.nl, _UNIT["attitude"])])
+        self.base = self.nb * len(self.sids)
+        self.n_unk = self.base + 3 * self.n_pts
+
+    def half_duration(self, sid: str) -> float:
+        """Half the duration (s) of scene ``sid``: the unit of t in its polynomials."""
+        return 0.5 * self.scn[sid].height * self.scn[sid].line_period
+
+    def model(self, xv: np.ndarray, s_k: int) -> tuple[np.ndarray, np.ndarray | None]:
+        """(coefficients (3, 3, 3), look-angle corrections (2, degree + 1) or None) of scene
+        ``s_k`` at the unknowns ``xv`` (n_unk,)."""
+        sid = self.sids[s_k]
+        nb, nf = self.nb, self.nf
+        blk = xv[s_k * nb:(s_k + 1) * nb] * self.scale[sid]
+        c = self.scn[sid].polynomials.copy().ravel()
+        c[self.fidx] += blk[:nf]
+        return c.reshape(3, 3, 3), (blk[nf:].reshape(2, -1) if self.nl else None)
+
+    def ground(self, xv: np.ndarray) -> np.ndarray:
+        """The points (p, 3; ECEF, m) at the unknowns ``xv`` (n_unk,)."""
+        return self.xyz0 + np.einsum("nij,nj->ni", self.enu, xv[self.base:].reshape(self.n_pts, 3))
+
+
+def _prior_weights(lay: _Layout, points: ScenePoints, eo_sigma: dict[str, float] | None) -> np.ndarray:
+    """Weights (n_unk,) of the priors on the unknowns (0: none): the freed coefficients'
+    ``eo_sigma`` (each scaled to move the orbit or attitude at the scene's ends by that
+    much) and the control points' coordinate sigmas."""
+    nb, nf = lay.nb, lay.nf
+    prior_w = np.zeros(lay.n_unk)
+    if eo_sigma is not None:
+        for s_k, sid in enumerate(lay.sids):
+            th = lay.half_duration(sid)
+            for j, i in enumerate(lay.fidx):
+                q = QUANTITIES[i // 9]
+                if q in eo_sigma:
+                    prior_w[s_k * nb + j] = (lay.scale[sid][j] * th ** (i % 3) / eo_sigma[q]) ** 2
+            if lay.nl and "look" in eo_sigma:
+                prior_w[s_k * nb + nf:(s_k + 1) * nb] = (_UNIT["attitude"] / eo_sigma["look"]) ** 2
+    for i in np.flatnonzero(points.role_mask("control")):
+        prior_w[lay.base + 3 * i:lay.base + 3 * i + 3] = 1.0 / points.llh_sigma[i] ** 2
+    return prior_w
+
+
+def _iterate(lay: _Layout, points: ScenePoints, prior_w: np.ndarray, qll: np.ndarray, max_iterations: int,
+             xtol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int]:
+    """Gauss-Helmert iterations from zero corrections: the unknowns (n_unk,), the residuals v
+    (m, 2; px), the last normal matrix (n_unk, n_unk), the status (1 converged, 0 iteration
+    limit, -1 singular) and the iterations."""
+    nb, base = lay.nb, lay.base
+    x = np.zeros(lay.n_unk)
+    v = np.zeros((len(points.obs_point), 2))
+    status, it, normal = 0, 0, None
+    for it in range(1, max_iterations + 1):
+        xg = lay.ground(x)
+        normal = np.diag(prior_w)
+        rhs = prior_w * x
+        rows = []
+        for s_k in range(len(lay.sids)):
+            sel = np.flatnonzero(points.obs_scene == s_k)
+            if not len(sel):
+                continue
+            g, b, a_sc, a_pt = _linearise(lay, points, x, v, xg, s_k, sel)
+            w = g - np.einsum("nij,nj->ni", b, v[sel])
+            mm = np.linalg.inv(np.einsum("nij,nj,nkj->nik", b, qll[sel], b))
+            cols_sc = np.arange(s_k * nb, (s_k + 1) * nb)
+            for r_k, k in enumerate(sel):
+                cols = np.concatenate([cols_sc, base + 3 * points.obs_point[k] + np.arange(3)])
+                ak = np.concatenate([a_sc[r_k], a_pt[r_k]], 1)
+                normal[np.ix_(cols, cols)] += ak.T @ mm[r_k] @ ak
+                rhs[cols] += ak.T @ mm[r_k] @ w[r_k]
+                rows.append((k, cols, ak, mm[r_k], w[r_k], b[r_k]))
+        if not np.all(np.isfinite(normal)) or np.linalg.cond(normal) > 1e15:
+            status = -1
+            break
+        dx = -np.linalg.solve(normal, rhs)
+        for k, cols, ak, mk, wk, bk in rows:
+            v[k] = qll[k] * (bk.T @ (-mk @ (ak @ dx[cols] + wk)))
+        x = x + dx
+        if np.max(np.abs(dx)) < xtol:
+            status = 1
+            break
+    return x, v, normal, status, it
+
+
+def _linearise(lay: _Layout, points: ScenePoints, x: np.ndarray, v: np.ndarray, xg: np.ndarray, s_k: int,
+               sel: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The conditions g (k, 2) of scene ``s_k``'s observations ``sel`` (k,) at the unknowns
+    ``x``, the residuals ``v`` (m, 2) and the points ``xg`` (p, 3), and by central
+    differences their derivatives B (k, 2, 2) by col and row, A (k, 2, nb) by the scene's
+    unknowns, A (k, 2, 3) by the point's east, north, up."""
+    nb = lay.nb
+    sc, pi = lay.scn[lay.sids[s_k]], points.obs_point[sel]
+    col, row = points.obs_xy[sel, 0] + v[sel, 0], points.obs_xy[sel, 1] + v[sel, 1]
+    pol, look = lay.model(x, s_k)
+
+    def cond(c: np.ndarray = col, r: np.ndarray = row, p: np.ndarray = pol, lk: np.ndarray | None = look,
+             xx: np.ndarray | None = None) -> np.ndarray:
+        return _conditions(sc, p, c, r, xg[pi] if xx is None else xx, lk)
+
+    g = cond()
+    b = np.empty((len(sel), 2, 2))
+    b[:, :, 0] = (cond(c=col + _H_PIX) - cond(c=col - _H_PIX)) / (2 * _H_PIX)
+    b[:, :, 1] = (cond(r=row + _H_PIX) - cond(r=row - _H_PIX)) / (2 * _H_PIX)
+    a_sc = np.empty((len(sel), 2, nb))
+    for j in range(nb):  # a step of one scaled unit
+        hi, lo = x.copy(), x.copy()
+        hi[s_k * nb + j] += 1.0
+        lo[s_k * nb + j] -= 1.0
+        (ph, lh), (pl, ll) = lay.model(hi, s_k), lay.model(lo, s_k)
+        a_sc[:, :, j] = (cond(p=ph, lk=lh) - cond(p=pl, lk=ll)) / 2.0
+    a_pt = np.empty((len(sel), 2, 3))
+    for j in range(3):
+        dx = lay.enu[pi][:, :, j] * _H_ENU
+        a_pt[:, :, j] = (cond(xx=xg[pi] + dx) - cond(xx=xg[pi] - dx)) / (2 * _H_ENU)
+    return g, b, a_sc, a_pt
+
+
+def _scene_results(res: SceneBundleResult, lay: _Layout, x: np.ndarray, cov: np.ndarray) -> None:
+    """Into ``res``: each scene adjusted, its coefficients and their sigmas, its look-angle
+    corrections, and the largest correlations between its freed groups."""
+    nb, nf = lay.nb, lay.nf
     sd = np.sqrt(np.diag(cov))
     corr = cov / np.outer(sd, sd)
-    local = {g: 3 * k + np.arange(3) for k, g in enumerate(eo_groups)}
-    if nl:
-        local["look"] = nf + np.arange(nl)
-    for s_k, sid in enumerate(sids):
-        pol, look = model(x, sid, s_k)
-        adjusted = scn[sid].with_polynomials(pol)
+    local = {g: 3 * k + np.arange(3) for k, g in enumerate(lay.eo_groups)}
+    if lay.nl:
+        local["look"] = nf + np.arange(lay.nl)
+    for s_k, sid in enumerate(lay.sids):
+        pol, look = lay.model(x, s_k)
+        adjusted = lay.scn[sid].with_polynomials(pol)
         if look is not None:
             adjusted = corrected_scene(adjusted, look)
             res.look_coefficients[sid] = look
-            res.look_std[sid] = (sd[s_k * nb + nf:(s_k + 1) * nb] * scale[sid][nf:]).reshape(2, -1)
+            res.look_std[sid] = (sd[s_k * nb + nf:(s_k + 1) * nb] * lay.scale[sid][nf:]).reshape(2, -1)
         res.scenes[sid] = adjusted
         res.coefficients[sid] = pol
         std = np.zeros(27)
-        std[fidx] = sd[s_k * nb:s_k * nb + nf] * scale[sid][:nf]
+        std[lay.fidx] = sd[s_k * nb:s_k * nb + nf] * lay.scale[sid][:nf]
         res.coefficient_std[sid] = std.reshape(3, 3, 3)
         names = list(local)
         for g1 in range(len(names)):
             for g2 in range(g1 + 1, len(names)):
                 i1, i2 = s_k * nb + local[names[g1]], s_k * nb + local[names[g2]]
                 res.group_correlation[(sid, names[g1], names[g2])] = float(np.max(np.abs(corr[np.ix_(i1, i2)])))
-    xg = ground(x)
+
+
+def _point_results(res: SceneBundleResult, lay: _Layout, points: ScenePoints, x: np.ndarray,
+                   cov: np.ndarray) -> None:
+    """Into ``res``: the adjusted points (lon, lat, h), their east, north, up covariances, and
+    the control and check points' errors and RMSEs against their given coordinates."""
+    base = lay.base
+    xg = lay.ground(x)
     lat, lon, h = geodesy.ecef_to_geodetic(xg)
     res.llh = np.stack([lon, lat, h], -1)
-    res.point_cov = np.stack([cov[base + 3 * i:base + 3 * i + 3, base + 3 * i:base + 3 * i + 3] for i in range(n_pts)])
-    res.residuals = v
+    res.point_cov = np.stack([cov[base + 3 * i:base + 3 * i + 3, base + 3 * i:base + 3 * i + 3]
+                              for i in range(lay.n_pts)])
 
-    def enu_errors(sel):
+    def enu_errors(sel: np.ndarray) -> np.ndarray:
         if not np.any(sel):
             return np.zeros((0, 3))
         given = geodesy.geodetic_to_ecef(points.llh[sel, 1], points.llh[sel, 0], points.llh[sel, 2])
-        return np.einsum("nji,nj->ni", enu[sel], xg[sel] - given)
+        return np.einsum("nji,nj->ni", lay.enu[sel], xg[sel] - given)
 
-    ctrl_err = enu_errors(control)
+    ctrl_err = enu_errors(points.role_mask("control"))
     check = points.role_mask("check")
     res.check_errors = enu_errors(check)
     res.check_ids = [points.point_ids[i] for i in np.flatnonzero(check)]
     res.control_rmse = np.sqrt(np.mean(ctrl_err ** 2, 0)) if len(ctrl_err) else np.full(3, np.nan)
     res.check_rmse = np.sqrt(np.mean(res.check_errors ** 2, 0)) if len(res.check_errors) else np.full(3, np.nan)
-    res.message = (f"converged in {it} iterations" if status == 1 else f"no convergence in {max_iterations} "
-                   "iterations") + f", sigma0 {s0:.3g}, redundancy {r}"
-    return res

@@ -8,10 +8,13 @@ ground control from a GPS survey, image measurements of a few tenths of a pixel)
 - :func:`simulate_points`: points in the overlap measured in both true scenes, with noise.
 """
 
+from __future__ import annotations
+
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .. import geodesy
-from ..pushbroom import synthetic_scene
+from ..pushbroom import PushbroomScene, synthetic_scene
 from .lookangles import corrected_scene
 from .scene_points import ScenePoints
 
@@ -24,10 +27,28 @@ G-A control only in the first half of the lines; G-B control only in the first h
 columns (of the first scene)."""
 
 
-def stereo_pair(*, width=3000, height=3000, gsd=10.0, view_angles=(-12.0, 12.0), lat=44.0, lon=5.0):
+def stereo_pair(*, width: int = 3000, height: int = 3000, gsd: float = 10.0,
+                view_angles: tuple[float, float] = (-12.0, 12.0), lat: float = 44.0,
+                lon: float = 5.0) -> tuple[PushbroomScene, PushbroomScene]:
     """Two synthetic scenes (:func:`~orthowarp.pushbroom.synthetic_scene`, with the polynomials
     of their exterior orientation fitted) whose centre pixels see one ground point at h = 0:
-    the second orbit is shifted until its centre meets the first's."""
+    the second orbit is shifted until its centre meets the first's.
+
+    Parameters
+    ----------
+    width, height : int, optional
+        Scene size (px).
+    gsd : float, optional
+        Ground sample distance (m).
+    view_angles : (float, float), optional
+        The two scenes' mirror angles (deg).
+    lat, lon : float, optional
+        The first scene's centre (deg).
+
+    Returns
+    -------
+    (PushbroomScene, PushbroomScene)
+    """
     a = synthetic_scene(width=width, height=height, gsd=gsd, view_angle=view_angles[0], lat=lat, lon=lon)
     centre = np.array([[0.5 * width, 0.5 * height]])
     target = a.geolocate_ellipsoid(centre)[0]
@@ -40,18 +61,33 @@ def stereo_pair(*, width=3000, height=3000, gsd=10.0, view_angles=(-12.0, 12.0),
     return tuple(s.with_polynomials(s.fit_polynomials()[0]) for s in (a, b))
 
 
-def perturbed(scene, *, look=None, eo=None):
-    """The scene with errors: ``look`` (2, k) look-angle corrections (rad, polynomials in the
-    normalised detector number, as :func:`~orthowarp.adjust.lookangles.corrected_scene`), ``eo``
-    (3, 3, 3) added to its exterior-orientation coefficients."""
+def perturbed(scene: PushbroomScene, *, look: ArrayLike | None = None,
+              eo: ArrayLike | None = None) -> PushbroomScene:
+    """The scene with errors.
+
+    Parameters
+    ----------
+    scene : PushbroomScene
+    look : array_like, shape (2, k), optional
+        Look-angle corrections (rad, polynomials in the normalised detector number, as
+        :func:`~orthowarp.adjust.lookangles.corrected_scene`).
+    eo : array_like, shape (3, 3, 3), optional
+        Added to the exterior-orientation coefficients (m, m/s, rad per power of t).
+
+    Returns
+    -------
+    PushbroomScene
+    """
     out = scene if look is None else corrected_scene(scene, look)
     if eo is not None:
         out = out.with_polynomials(out.polynomials + np.asarray(eo, dtype=np.float64))
     return out
 
 
-def simulate_points(truth, *, n=47, layout="H-20", ground_sigma=(0.06, 0.06, 1.0), pixel_sigma=0.25, heights=(0.0, 600.0),
-                    seed=0, noise=True, margin=30.0):
+def simulate_points(truth: dict[str, PushbroomScene], *, n: int = 47, layout: str = "H-20",
+                    ground_sigma: tuple[float, float, float] = (0.06, 0.06, 1.0), pixel_sigma: float = 0.25,
+                    heights: tuple[float, float] = (0.0, 600.0), seed: int = 0, noise: bool = True,
+                    margin: float = 30.0) -> tuple[ScenePoints, np.ndarray]:
     """Points in the overlap of the true scenes, measured in both.
 
     Parameters
@@ -66,9 +102,13 @@ def simulate_points(truth, *, n=47, layout="H-20", ground_sigma=(0.06, 0.06, 1.0
         Control coordinates' noise east, north, up (m): [P1]'s GPS survey.
     pixel_sigma : float, optional
         Image measurement noise (px).
+    heights : (float, float), optional
+        Range of the points' ellipsoidal heights (m).
     seed : int, optional
     noise : bool, optional
         False: exact observations.
+    margin : float, optional
+        Pixels left at the scenes' borders.
 
     Returns
     -------

@@ -12,7 +12,12 @@ layout (so layouts can be compared on the same points). Image observations carry
 noise of ``sigma_px``; GNSS/INS observations, when asked for, theirs.
 """
 
+from __future__ import annotations
+
+from dataclasses import dataclass
+
 import numpy as np
+from numpy.typing import ArrayLike
 
 from ..camera import FrameCamera
 from ..errors import ParamError
@@ -24,20 +29,30 @@ __all__ = ["synthetic_block", "film_camera", "CONTROL_LAYOUTS"]
 CONTROL_LAYOUTS = ("A", "B", "C", "D")
 
 
-def film_camera():
-    """A wide-angle film camera of the kind [P2]'s blocks were flown with: f = 153 mm,
-    230 x 230 mm format scanned at 20 um (11500 x 11500 pixels), no distortion."""
+def film_camera() -> FrameCamera:
+    """A wide-angle film camera of the kind [P2]'s blocks were flown with.
+
+    Returns
+    -------
+    FrameCamera
+        f = 153 mm, 230 x 230 mm format scanned at 20 um (11500 x 11500 pixels), no
+        distortion.
+    """
     return FrameCamera(153.0, 0.020, (11500, 11500))
 
 
-def _terrain(x, y):
+def _terrain(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """The synthetic terrain's height (m) at (x, y) (m)."""
     return 300.0 + 40.0 * np.sin(x / 700.0) * np.cos(y / 900.0) + 15.0 * np.sin((x + 2 * y) / 350.0)
 
 
-def synthetic_block(*, strips=3, images_per_strip=8, ties_per_image=12, control="A", n_check=12, sigma_px=0.5,
-                    sigma_control=0.02, gnss_sigma=None, ins_sigma=None, flying_height=1500.0, forward=0.6, side=0.3,
-                    pose_noise=(1.0, 0.05), seed=0, geometry_seed=None, random_ties=None, camera=None,
-                    true_camera=None, crs="EPSG:32632"):
+def synthetic_block(*, strips: int = 3, images_per_strip: int = 8, ties_per_image: int = 12,
+                    control: str | ArrayLike = "A", n_check: int = 12, sigma_px: float = 0.5,
+                    sigma_control: float = 0.02, gnss_sigma: float | None = None, ins_sigma: float | None = None,
+                    flying_height: float = 1500.0, forward: float = 0.6, side: float = 0.3,
+                    pose_noise: tuple[float, float] = (1.0, 0.05), seed: int = 0, geometry_seed: int | None = None,
+                    random_ties: int | None = None, camera: FrameCamera | None = None,
+                    true_camera: FrameCamera | None = None, crs: str = "EPSG:32632") -> tuple[Block, dict]:
     """A block and its truth.
 
     Parameters
@@ -78,6 +93,8 @@ def synthetic_block(*, strips=3, images_per_strip=8, ties_per_image=12, control=
     true_camera : FrameCamera, optional
         The camera that takes the images (for self-calibration tests); the block keeps the
         nominal one. Its image size must be the nominal camera's.
+    crs : str, optional
+        The block's CRS.
 
     Returns
     -------
@@ -87,6 +104,51 @@ def synthetic_block(*, strips=3, images_per_strip=8, ties_per_image=12, control=
     """
     if ties_per_image not in (6, 9, 12):
         raise ParamError(f"ties_per_image must be 6, 9 or 12, got {ties_per_image!r}")
+    fractions = _control_fractions(control)
+    gseed = seed if geometry_seed is None else geometry_seed
+    geo = np.random.default_rng([gseed, 0])  # tilts and tie points
+    chk = np.random.default_rng([gseed, 1])  # check points: the same whatever the tie layout
+    rng = np.random.default_rng([seed, 2])  # noise
+    cam = camera or FrameCamera(100.0, 0.009, (7000, 10000))  # 7000 px along the track (x), 10000 across
+    fl = _flight(cam, strips, images_per_strip, flying_height, forward, side)
+    poses = _true_poses(geo, fl)
+    tie_xy = _tie_positions(geo, fl, ties_per_image, random_ties)
+    control_xy, check_xy = _signalised_positions(chk, fl, control, fractions, n_check)
+    all_xy = np.concatenate([tie_xy, control_xy, check_xy])
+    roles = ["tie"] * len(tie_xy) + ["control"] * len(control_xy) + ["check"] * n_check
+    xyz = np.column_stack([all_xy, _terrain(all_xy[:, 0], all_xy[:, 1])])
+    ii, jj, pix, keep = _observations(fl, poses, xyz, cam, true_camera)
+    xyz, roles = xyz[keep], [r for r, k in zip(roles, keep) if k]
+    n = len(poses)
+    obs = pix + rng.normal(0, sigma_px, pix.shape)
+    given = xyz.copy()
+    rl = np.array(roles)
+    given[rl == "control"] += rng.normal(0, sigma_control, ((rl == "control").sum(), 3))
+    given[rl == "tie"] = np.nan
+    sig = np.full((len(xyz), 3), np.nan)
+    sig[rl == "control"] = sigma_control
+    init = poses.copy()
+    init[:, :3] += rng.normal(0, pose_noise[0], (n, 3))
+    init[:, 3:] += rng.normal(0, pose_noise[1], (n, 3))
+    kw = {}
+    if gnss_sigma:
+        kw["gnss_xyz"] = poses[:, :3] + rng.normal(0, gnss_sigma, (n, 3))
+        kw["gnss_sigma"] = np.full((n, 3), float(gnss_sigma))
+    if ins_sigma:
+        kw["ins_opk"] = poses[:, 3:] + rng.normal(0, ins_sigma, (n, 3))
+        kw["ins_sigma"] = np.full((n, 3), float(ins_sigma))
+    ids = [f"s{s}_{k:03d}" for s in range(strips) for k in range(images_per_strip)]
+    block = Block(crs=crs, cameras={"cam": cam}, image_ids=ids, image_camera=["cam"] * n, poses=init,
+                  point_ids=[f"{r[0]}{j:05d}" for j, r in enumerate(roles)], roles=roles, xyz=given,
+                  xyz_sigma=sig, obs_image=ii, obs_point=jj, obs_xy=obs, obs_sigma=np.full(len(ii), float(sigma_px)),
+                  name=f"synthetic {strips}x{images_per_strip} control "
+                       f"{control if fractions is None else f'{len(fractions)} points'}", **kw)
+    return block, dict(poses=poses, xyz=xyz)
+
+
+def _control_fractions(control: str | ArrayLike) -> np.ndarray | None:
+    """Control positions given as fractions of the block's extent (k, 2), or None for a
+    layout's name; ParamError for anything else."""
     fractions = None
     if not isinstance(control, str):
         fractions = np.asarray(control, dtype=np.float64).reshape(-1, 2)
@@ -94,19 +156,49 @@ def synthetic_block(*, strips=3, images_per_strip=8, ties_per_image=12, control=
             raise ParamError(f"control positions must be finite fractions of the block's extent, got {control!r}")
     elif control not in CONTROL_LAYOUTS:
         raise ParamError(f"control must be one of {CONTROL_LAYOUTS} or positions, got {control!r}")
-    gseed = seed if geometry_seed is None else geometry_seed
-    geo = np.random.default_rng([gseed, 0])  # tilts and tie points
-    chk = np.random.default_rng([gseed, 1])  # check points: the same whatever the tie layout
-    rng = np.random.default_rng([seed, 2])  # noise
-    cam = camera or FrameCamera(100.0, 0.009, (7000, 10000))  # 7000 px along the track (x), 10000 across
+    return fractions
+
+
+@dataclass
+class _Flight:
+    """The flight's geometry (m): strips along +x, images ``base`` apart along the track,
+    strips ``spacing`` apart across it; an image's footprint ``along`` x ``across``; the
+    cameras at height ``z0``."""
+
+    strips: int
+    images_per_strip: int
+    along: float
+    across: float
+    base: float
+    spacing: float
+    z0: float
+
+
+def _flight(cam: FrameCamera, strips: int, images_per_strip: int, flying_height: float, forward: float,
+            side: float) -> _Flight:
+    """The flight of ``cam`` at ``flying_height`` (m) above the mean terrain with ``forward``
+    and ``side`` overlaps (fractions)."""
     scale = flying_height / cam.focal_length * cam.pixel_size[0]  # m per pixel
     along, across = cam.image_size[0] * scale, cam.image_size[1] * scale  # footprint (m)
     base, spacing = (1 - forward) * along, (1 - side) * across
-    z0 = 300.0 + flying_height
-    centres = [(k * base, s * spacing) for s in range(strips) for k in range(images_per_strip)]
-    poses = np.array([[x, y, z0, 0.0, 0.0, 0.0] for x, y in centres])
+    return _Flight(strips, images_per_strip, along, across, base, spacing, 300.0 + flying_height)
+
+
+def _true_poses(geo: np.random.Generator, fl: _Flight) -> np.ndarray:
+    """The true poses (n, 6; m, deg): the image centres of the strips, small random tilts."""
+    centres = [(k * fl.base, s * fl.spacing) for s in range(fl.strips) for k in range(fl.images_per_strip)]
+    poses = np.array([[x, y, fl.z0, 0.0, 0.0, 0.0] for x, y in centres])
     poses[:, 3:5] = geo.normal(0, 0.5, (len(poses), 2))  # small tilts (deg)
     poses[:, 5] = geo.normal(0, 0.5, len(poses))
+    return poses
+
+
+def _tie_positions(geo: np.random.Generator, fl: _Flight, ties_per_image: int,
+                   random_ties: int | None) -> np.ndarray:
+    """Tie points' ground positions (t, 2; m): the standard positions (or ``random_ties``
+    spread uniformly), those inside the block's extent."""
+    base, spacing, along, across = fl.base, fl.spacing, fl.along, fl.across
+    strips, images_per_strip = fl.strips, fl.images_per_strip
     rows = {6: [-0.5, 0.5], 9: [-0.5, 0.0, 0.5], 12: [-0.5, -1 / 6, 1 / 6, 0.5]}[ties_per_image]
     pts = {}
     for s in range(strips):
@@ -124,9 +216,16 @@ def synthetic_block(*, strips=3, images_per_strip=8, ties_per_image=12, control=
     x0, x1 = -0.4 * along, (images_per_strip - 1) * base + 0.4 * along
     y0, y1 = -0.4 * across, (strips - 1) * spacing + 0.4 * across
     inside = (tie_xy[:, 0] > x0) & (tie_xy[:, 0] < x1) & (tie_xy[:, 1] > y0) & (tie_xy[:, 1] < y1)
-    tie_xy = tie_xy[inside]
+    return tie_xy[inside]
+
+
+def _signalised_positions(chk: np.random.Generator, fl: _Flight, control: str | ArrayLike,
+                          fractions: np.ndarray | None, n_check: int) -> tuple[np.ndarray, np.ndarray]:
+    """Control (c, 2) and check (n_check, 2) points' ground positions (m): ground points of
+    their own (signalised), placed whatever the tie layout."""
+    base, spacing, strips = fl.base, fl.spacing, fl.strips
     # the control layouts' target positions
-    xa, xb = 0.0, (images_per_strip - 1) * base
+    xa, xb = 0.0, (fl.images_per_strip - 1) * base
     ya, yb = -0.5 * spacing, (strips - 0.5) * spacing
     targets = {"A": [(xa, ya), (xb, ya), (xa, yb), (xb, yb), ((xa + xb) / 2, ya), ((xa + xb) / 2, yb),
                      (xa, (ya + yb) / 2), (xb, (ya + yb) / 2), ((xa + xb) / 2, (ya + yb) / 2)],
@@ -138,11 +237,18 @@ def synthetic_block(*, strips=3, images_per_strip=8, ties_per_image=12, control=
     # the tie layout, and measured in every image that sees them
     control_xy = np.array(targets, float).reshape(-1, 2) + chk.uniform(-0.02, 0.02, (len(targets), 2)) * base
     check_xy = np.stack([chk.uniform(xa, xb, n_check), chk.uniform(0.0, (strips - 1) * spacing, n_check)], 1)
-    all_xy = np.concatenate([tie_xy, control_xy, check_xy])
-    roles = ["tie"] * len(tie_xy) + ["control"] * len(control_xy) + ["check"] * n_check
-    xyz = np.column_stack([all_xy, _terrain(all_xy[:, 0], all_xy[:, 1])])
-    # observations: every point in every image it falls in
-    n, p = len(poses), len(xyz)
+    return control_xy, check_xy
+
+
+def _observations(fl: _Flight, poses: np.ndarray, xyz: np.ndarray, cam: FrameCamera,
+                  true_camera: FrameCamera | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Every point (p, 3; m) in every image it falls in (50 px from the border), taken by
+    ``true_camera`` (else ``cam``) at ``poses`` (n, 6; m, deg), points seen at least twice:
+    images (m,), points (m,) numbered among the kept ones, exact pixels (m, 2), and which
+    points are kept (p,)."""
+    base, spacing, along, across = fl.base, fl.spacing, fl.along, fl.across
+    images_per_strip, strips = fl.images_per_strip, fl.strips
+    p = len(xyz)
     # candidate images of each point: the grid neighbours of its nearest image centre
     kk = np.rint(xyz[:, 0] / base).astype(int)
     ss = np.rint(xyz[:, 1] / spacing).astype(int)
@@ -173,29 +279,4 @@ def synthetic_block(*, strips=3, images_per_strip=8, ties_per_image=12, control=
     remap = -np.ones(p, int)
     remap[keep] = np.arange(keep.sum())
     sel = keep[jj]
-    ii, jj, pix = ii[sel], remap[jj[sel]], pix[sel]
-    xyz, roles = xyz[keep], [r for r, k in zip(roles, keep) if k]
-    obs = pix + rng.normal(0, sigma_px, pix.shape)
-    given = xyz.copy()
-    rl = np.array(roles)
-    given[rl == "control"] += rng.normal(0, sigma_control, ((rl == "control").sum(), 3))
-    given[rl == "tie"] = np.nan
-    sig = np.full((len(xyz), 3), np.nan)
-    sig[rl == "control"] = sigma_control
-    init = poses.copy()
-    init[:, :3] += rng.normal(0, pose_noise[0], (n, 3))
-    init[:, 3:] += rng.normal(0, pose_noise[1], (n, 3))
-    kw = {}
-    if gnss_sigma:
-        kw["gnss_xyz"] = poses[:, :3] + rng.normal(0, gnss_sigma, (n, 3))
-        kw["gnss_sigma"] = np.full((n, 3), float(gnss_sigma))
-    if ins_sigma:
-        kw["ins_opk"] = poses[:, 3:] + rng.normal(0, ins_sigma, (n, 3))
-        kw["ins_sigma"] = np.full((n, 3), float(ins_sigma))
-    ids = [f"s{s}_{k:03d}" for s in range(strips) for k in range(images_per_strip)]
-    block = Block(crs=crs, cameras={"cam": cam}, image_ids=ids, image_camera=["cam"] * n, poses=init,
-                  point_ids=[f"{r[0]}{j:05d}" for j, r in enumerate(roles)], roles=roles, xyz=given,
-                  xyz_sigma=sig, obs_image=ii, obs_point=jj, obs_xy=obs, obs_sigma=np.full(len(ii), float(sigma_px)),
-                  name=f"synthetic {strips}x{images_per_strip} control "
-                       f"{control if fractions is None else f'{len(fractions)} points'}", **kw)
-    return block, dict(poses=poses, xyz=xyz)
+    return ii[sel], remap[jj[sel]], pix[sel], keep

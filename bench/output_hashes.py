@@ -37,8 +37,8 @@ def jobs(data, work):
                         "--index", os.path.join("ngi-mosaic", "index.tif"),
                         "--seamlines", os.path.join("ngi-mosaic", "seams.geojson")]],
         "odm-ortho": [["ortho", "--odm-dataset", odm, "--resolution", "0.5", "--out-dir", out("odm-ortho")]],
-        "adjust-example": [["adjust", "block.json", "--write-example", "--out", out("adjust-example")]],
-        "spot-example": [["spot-adjust", "--write-example", out("spot-example-in"), "--out", out("spot-example")]],
+        "adjust-example": [["adjust", "block.json", "--write-example", "--out-dir", out("adjust-example")]],
+        "spot-example": [["spot-adjust", "--write-example", out("spot-example-in"), "--out-dir", out("spot-example")]],
     }
 
 

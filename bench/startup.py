@@ -3,7 +3,8 @@ single-frame ``orthowarp ortho`` job (CLI, a 4000 x 2600 frame on a constant hei
 pieces that make it up, each in a fresh interpreter: ``import warp``, ``warp.init()``, the
 first CUDA context (``warp.get_device("cuda:0").context``), ``import orthowarp.cli``, and the
 CLI's own ``--profile-json`` start-up marks (to the command, the job's imports, orientation and
-terrain, image set-up to the first kernel). Every measurement is repeated (``--repeat``) and
+terrain, image set-up to the first kernel), in alternating runs with the CLI's background device
+warm-up and without it (``ORTHOWARP_NO_WARM_UP=1``). Every measurement is repeated (``--repeat``) and
 the median reported; the first CLI run is left out of the median (it warms the page cache).
 
 usage: python3 bench/startup.py [--device cuda:0] [--repeat 5] [--out FILE]
@@ -67,27 +68,31 @@ def main():
     ap.add_argument("--out", default="bench/results/startup.json")
     args = ap.parse_args()
     report = dict(benchmark="startup", device_id=args.device, repeat=args.repeat, cpu_cores=os.cpu_count(),
-                  pieces={}, cli={})
+                  pieces={})
     with tempfile.TemporaryDirectory() as tmp:
         for name, code in PIECES.items():
             runs = [wall(code.format(device=args.device), tmp) for _ in range(args.repeat)]
             report["pieces"][name] = dict(median_s=statistics.median(runs), runs=runs)
             print(name, round(statistics.median(runs), 3), flush=True)
         argv = job(tmp, args.width, args.height)
-        marks = []
+        marks = {"cli": [], "cli_no_warm_up": []}  # alternating: with the CLI's device warm-up, and without
         for k in range(args.repeat + 1):
-            out = os.path.join(tmp, f"o{k}")
-            prof = os.path.join(tmp, f"p{k}.json")
-            t = time.perf_counter()
-            p = subprocess.run([sys.executable, "-m", "orthowarp.cli", "-q", "ortho", *argv, "--device", args.device,
-                                "--out-dir", out, "--profile-json", prof], cwd=tmp, capture_output=True, text=True)
-            if p.returncode != 0:
-                sys.exit(p.stderr[-2000:])
-            with open(prof) as f:
-                marks.append(dict(json.load(f)["startup"], wall_s=time.perf_counter() - t))
-        report["cli"] = dict(runs=marks, median={k: statistics.median(m[k] for m in marks[1:]) for k in marks[1]
-                                                 if all(isinstance(m.get(k), (int, float)) for m in marks[1:])})
-        print("cli", json.dumps(report["cli"]["median"]), flush=True)
+            for mode in marks:
+                out = os.path.join(tmp, f"o{k}{mode}")
+                prof = os.path.join(tmp, f"p{k}{mode}.json")
+                env = dict(os.environ, **({"ORTHOWARP_NO_WARM_UP": "1"} if mode == "cli_no_warm_up" else {}))
+                t = time.perf_counter()
+                p = subprocess.run([sys.executable, "-m", "orthowarp.cli", "-q", "ortho", *argv, "--device",
+                                    args.device, "--out-dir", out, "--profile-json", prof], cwd=tmp,
+                                   capture_output=True, text=True, env=env)
+                if p.returncode != 0:
+                    sys.exit(p.stderr[-2000:])
+                with open(prof) as f:
+                    marks[mode].append(dict(json.load(f)["startup"], wall_s=time.perf_counter() - t))
+        for mode, runs in marks.items():
+            report[mode] = dict(runs=runs, median={k: statistics.median(m[k] for m in runs[1:]) for k in runs[1]
+                                                   if all(isinstance(m.get(k), (int, float)) for m in runs[1:])})
+            print(mode, json.dumps(report[mode]["median"]), flush=True)
     try:
         import warp as wp
 

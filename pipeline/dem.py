@@ -769,7 +769,8 @@ def _nodata_cells(raw, nodata):
 
 def as_dem(dem, *, name="dem"):
     """The terrain of an API call: a :class:`Dem` as it is, a DEM file (path) opened, a
-    constant ellipsoidal height (m, finite, within +-``MAX_GROUND_HEIGHT``) as a constant Dem.
+    constant height (m, finite, within +-``MAX_GROUND_HEIGHT``; in the vertical datum of the
+    positions it is used with) as a constant Dem.
     The one coercion every public function that takes a terrain applies."""
     if isinstance(dem, Dem):
         return dem

@@ -190,9 +190,10 @@ class SensorGeometry:
         A :class:`~orthowarp.sensor.FrameSensor` or a
         :class:`~orthowarp.pushbroom.PushbroomScene`.
     dem : Dem, str or float
-        Terrain: a DEM, a DEM file or a constant ellipsoidal height (m). A DEM file not read whole
-        (:meth:`Dem.from_file`) is read over the region's footprint only (see
-        ``_prepared_dem``).
+        Terrain: a DEM, a DEM file or a constant height (m) in the vertical datum of the
+        positions (ellipsoidal for geocentric poses and scenes, the map CRS's z for map poses). A
+        DEM file not read whole (:meth:`Dem.from_file`) is read over the region's footprint only
+        (see ``_prepared_dem``).
     refraction : bool, optional
         Model atmospheric refraction (layered standard atmosphere).
     device : str, optional
@@ -466,7 +467,8 @@ def geolocate(sensor: SensorModel, pixels: ArrayLike, *, dem: Dem | str | os.Pat
         with NaN, or with a masked value in a NumPy masked array, is missing: its result row
         is NaN.
     dem : Dem, str or float
-        Terrain model: a Dem, a DEM file, or a constant ellipsoidal height (m).
+        Terrain model: a Dem, a DEM file, or a constant height (m) in the vertical datum of the
+        positions (ellipsoidal for geocentric poses and scenes, the map CRS's z for map poses).
     crs : str, int or pyproj.CRS, optional
         CRS of the result; default EPSG:4979 (longitude, latitude in degrees, ellipsoidal
         height in metres).

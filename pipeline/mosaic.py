@@ -153,7 +153,9 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
     dst : str or os.PathLike
         The mosaic (written under a temporary name, published when complete).
     dem : Dem, str or float
-        Terrain: a Dem, a DEM file, or a constant ellipsoidal height (m).
+        Terrain: a Dem, a DEM file, or a constant height (m) in the vertical datum of the
+        positions: ellipsoidal for geocentric poses and pushbroom scenes, the z of the map CRS
+        for map-Cartesian poses.
     crs : CRS-like, optional
         Output CRS; default: that of the first image's ortho.
     resolution : float, optional

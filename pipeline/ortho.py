@@ -273,7 +273,9 @@ def orthorectify(src: str | os.PathLike, sensor: SensorModel, dst: str | os.Path
         Output file. Written under a temporary name in the same folder and renamed when
         complete; an existing file is an error unless ``overwrite``.
     dem : Dem, str or float
-        Terrain: a Dem, a DEM file, or a constant ellipsoidal height (m).
+        Terrain: a Dem, a DEM file, or a constant height (m) in the vertical datum of the
+        positions: ellipsoidal for geocentric poses and pushbroom scenes, the z of the map CRS
+        for map-Cartesian poses.
     crs : CRS-like, optional
         Output CRS; default: the CRS of map-Cartesian poses, else the UTM zone of the image
         centre.

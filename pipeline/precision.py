@@ -29,8 +29,12 @@ projection has no closed form: its derivatives are taken through the kernels'
 own projection (:func:`orthowarp.project`, the chain the ortho runs) by central differences.
 """
 
+from __future__ import annotations
+
 import functools
+import os
 import time
+from typing import TYPE_CHECKING
 
 import numpy as np
 from affine import Affine
@@ -43,7 +47,12 @@ from ..kernels.precision import hidden_facets_kernel
 from .dem import as_dem
 from .io import write_raster
 
-__all__ = ["accuracy_raster", "scene_accuracy_raster", "mosaic_accuracy_raster", "frame_window_sigmas",
+if TYPE_CHECKING:
+    from ..sensor import SensorModel
+    from .dem import Dem
+
+__all__ = ["accuracy_raster", "scene_accuracy_raster", "sensor_accuracy_raster", "accuracy_path",
+           "mosaic_accuracy_raster", "frame_window_sigmas",
            "raw_covariance", "scene_cell_sigmas", "scene_monoplot_covariance", "SCENE_INPUTS", "band_descriptions",
            "facing"]
 
@@ -435,17 +444,16 @@ def frame_window_sigmas(geometry, crs, cells, window, c_raw, *, pixel_sigma=0.5,
                   inputs=[dem, grid, start, cols, 1.0 / nodes, 1.0 / (nodes * cells.a), 1.0 / (nodes * cells.e)],
                   outputs=[x, h, basis, slope, to_out])
         tick("cells")
-        tape = wp.Tape()
-        with tape:
-            wp.launch(kp.pixel_ad_kernel, dim=n, device=device, inputs=[arg.cam, arg.pose, refr, x, h, d_r, d_k],
-                      outputs=[pix])
+        inputs = [arg.cam, arg.pose, refr, x, h, d_r, d_k]
+        wp.launch(kp.pixel_ad_kernel, dim=n, device=device, inputs=inputs, outputs=[pix])
         tick("projection")
         for seed, g in zip(seeds, grads):  # reverse passes: d col, then d row
             if start:
                 for a in g:
                     a.zero_()
             x.grad, d_r.grad, d_k.grad = g
-            tape.backward(grads={pix: seed})
+            pix.grad.assign(seed)
+            _reverse_launch(kp.pixel_ad_kernel, n, device, inputs, [pix])
         tick("gradients")
         (gx0, gr0, gk0), (gx1, gr1, gk1) = grads
         wp.launch(kp.accuracy_kernel, dim=n, device=device,
@@ -499,6 +507,21 @@ def scene_cell_sigmas(scene, dem, crs, ox, oy, *, orientation_cov, pixel_sigma=0
         jac = np.stack([out_xy(enu_shifted(p, a, 1.0)) - out_xy(enu_shifted(p, a, -1.0)) for a in (0, 1)], -1) / 2.0
         out[:, ok] = _sigmas(cov, jac, measure)
     return out
+
+
+def _reverse_launch(kernel, dim, device, inputs, outputs):
+    """The reverse (adjoint) pass of one launch of ``kernel``, accumulating into the ``grad``
+    arrays of its array arguments (and of the arrays inside its struct arguments), from the
+    ``grad`` arrays of its outputs: what ``wp.Tape.backward`` does for a recorded launch,
+    without a tape. Warp keeps one tape for the whole process, which records every launch of
+    every thread while it is active: kernels launched meanwhile by another thread (another
+    image's ortho in a batch) would be recorded and run backwards too."""
+    import warp as wp
+
+    adjoints = wp.Tape()  # never entered: only its mapping of arguments to their adjoints
+    wp.launch(kernel, dim=dim, device=device, inputs=inputs, outputs=outputs,
+              adj_inputs=[adjoints.get_adjoint(a) for a in inputs],
+              adj_outputs=[adjoints.get_adjoint(a) for a in outputs], adjoint=True)
 
 
 def accuracy_raster(dst, camera, pose, dem, crs, transform, shape, *, pose_cov, pixel_sigma=0.5, camera_cov=None,
@@ -573,6 +596,77 @@ def scene_accuracy_raster(dst, scene, dem, crs, transform, shape, *, orientation
                             device=device).reshape(3, rows, cols)[:bands]
     _write_accuracy(dst, out, grid, crs, measure)
     return out
+
+
+def sensor_accuracy_raster(dst: str | os.PathLike, sensor: SensorModel, dem: Dem | str | os.PathLike | float,
+                           crs: CRS, transform: Affine, shape: tuple[int, int], *, pose_cov: np.ndarray | None = None,
+                           orientation_cov: np.ndarray | None = None, pixel_sigma: float = 0.5, dem_sigma: float = 0.0,
+                           step: int = 16, measure: str = "sigma", refraction: bool = True,
+                           geoid: Dem | str | os.PathLike | None = None, same_vertical_datum: bool = False,
+                           device: str | None = None) -> np.ndarray:
+    """Write the predicted accuracy of an ortho of any sensor: :func:`accuracy_raster` for a
+    frame image (``FrameSensor``), :func:`scene_accuracy_raster` for a pushbroom scene.
+
+    Parameters
+    ----------
+    dst : str or os.PathLike
+        The raster (GeoTIFF, written atomically).
+    sensor : SensorModel
+        A ``FrameSensor`` or a ``PushbroomScene``.
+    dem, crs, transform, shape, step, measure, pixel_sigma, dem_sigma, refraction, device :
+        As for :func:`accuracy_raster` (the ortho's grid: ``crs``, ``transform``, ``shape``
+        (rows, cols)).
+    pose_cov : array_like (k, k)
+        A frame's pose covariance (m, deg; see :func:`accuracy_raster`); needed for frames.
+    orientation_cov : array_like (8, 8)
+        A scene's orientation covariance, in the order and units of :data:`SCENE_INPUTS`;
+        needed for scenes.
+    geoid, same_vertical_datum :
+        Frames only, as for :func:`accuracy_raster` (a scene's heights are ellipsoidal).
+
+    Returns
+    -------
+    ndarray (bands, rows, cols) float32
+        What was written (see :func:`accuracy_raster`).
+
+    Raises
+    ------
+    ParamError
+        The covariance the sensor needs is missing, or the sensor is of another kind.
+    """
+    kind = getattr(sensor, "kind", None)
+    if kind == "pushbroom":
+        if orientation_cov is None:
+            raise ParamError("The accuracy of a pushbroom scene needs orientation_cov (8 x 8)")
+        return scene_accuracy_raster(dst, sensor, dem, crs, transform, shape, orientation_cov=orientation_cov,
+                                     pixel_sigma=pixel_sigma, dem_sigma=dem_sigma, measure=measure, step=step,
+                                     refraction=refraction, device=device)
+    if kind != "frame":
+        raise ParamError(f"sensor must be a FrameSensor or a PushbroomScene, got {type(sensor).__name__}")
+    if pose_cov is None:
+        raise ParamError("The accuracy of a frame image needs pose_cov")
+    return accuracy_raster(dst, sensor.camera, sensor.pose, dem, crs, transform, shape, pose_cov=pose_cov,
+                           pixel_sigma=pixel_sigma, dem_sigma=dem_sigma, measure=measure, step=step,
+                           refraction=refraction, geoid=geoid, same_vertical_datum=same_vertical_datum,
+                           device=device)
+
+
+def accuracy_path(dst: str | os.PathLike) -> str:
+    """The accuracy raster's name beside an output: ``<image>_ACCURACY.tif`` for
+    ``<image>_ORTHO.tif``, ``<name>_ACCURACY.tif`` for any other ``<name>.<ext>``.
+
+    Parameters
+    ----------
+    dst : str or os.PathLike
+        The ortho's or mosaic's path.
+
+    Returns
+    -------
+    str
+    """
+    dst = os.fspath(dst)
+    base = dst[:-len("_ORTHO.tif")] if dst.endswith("_ORTHO.tif") else os.path.splitext(dst)[0]
+    return base + "_ACCURACY.tif"
 
 
 def mosaic_accuracy_raster(dst, images, index, dem, crs, transform, shape, *, pose_cov=None, orientation_cov=None,

@@ -18,6 +18,7 @@ the DEM's window only.
 
 import logging
 import os
+import threading
 
 import numpy as np
 from pyproj import Transformer
@@ -74,6 +75,40 @@ def as_geoid(geoid):
         raise type(e)(f"Could not use '{os.fspath(geoid)}' as the geoid grid: {e}") from e
 
 
+def _datum_label(crs, kind):
+    """How a CRS's heights read in a message: "orthometric (EGM2008 height)", "ellipsoidal
+    (WGS 84)", "undeclared (WGS 84 / UTM zone 32N declares no heights)"."""
+    if crs is None:
+        return "undeclared"
+    if kind == ORTHOMETRIC:
+        vertical = next((sub for sub in crs.sub_crs_list if sub.is_vertical), crs) if crs.is_compound else crs
+        return f"orthometric ({vertical.name})"
+    if kind == ELLIPSOIDAL:
+        return f"ellipsoidal ({crs.name})"
+    return f"undeclared ({crs.name} declares no heights)"
+
+
+_NOTED = set()  # (DEM file, DEM datum, positions' datum) of the notes logged for DEM files
+_NOTED_LOCK = threading.Lock()
+
+
+def _note_same_datum(dem, pose, dk, pk, name):
+    """Log at INFO, once per DEM (its file, or the Dem object in memory) and datum pair, that
+    heights of which one side declares no datum are taken as the other's (a DEM file is
+    reconciled window by window, image by image: the note would repeat)."""
+    dem_side = _datum_label(dem.crs, dk)
+    pose_side = "ellipsoidal (geocentric)" if pose.mode == GEOCENTRIC else _datum_label(pose.crs, pk)
+    if dem.source is not None:
+        seen, key = _NOTED, (os.fspath(dem.source), dem_side, pose_side)
+    else:
+        seen, key = dem.__dict__.setdefault("_datum_notes", set()), (dem_side, pose_side)
+    with _NOTED_LOCK:
+        if key in seen:
+            return
+        seen.add(key)
+    log.info("%s heights are %s, the positions' %s: taken as the same vertical datum", name, dem_side, pose_side)
+
+
 def reconcile_dem(dem, pose, *, geoid=None, same_vertical_datum=False, name="DEM"):
     """The DEM with heights in the vertical datum of the pose.
 
@@ -100,8 +135,7 @@ def reconcile_dem(dem, pose, *, geoid=None, same_vertical_datum=False, name="DEM
     dk, pk = height_kind(dem.crs), _pose_kind(pose)
     if dk is None or pk is None or dk == pk:
         if dk != pk:
-            log.info("%s heights are %s, positions %s: taken as the same vertical datum", name,
-                     dk or "undeclared", pk or "undeclared")
+            _note_same_datum(dem, pose, dk, pk, name)
         return dem
     if geoid is None:
         raise ParamError(

@@ -505,12 +505,12 @@ def test_cli_adjust_refuses_outside_observations_unless_asked(tmp_path, caplog):
     data["observations"][3]["col"] = -40.0
     (tmp_path / "b.json").write_text(json.dumps(data))
     out = tmp_path / "out"
-    r = CliRunner().invoke(main, ["adjust", str(tmp_path / "b.json"), "--out", str(out), "--no-plots"])
+    r = CliRunner().invoke(main, ["adjust", str(tmp_path / "b.json"), "--out-dir", str(out), "--no-plots"])
     assert r.exit_code == 1 and len(r.output.strip().splitlines()) == 1
     assert r.output.startswith("Error: ") and "b.json" in r.output and "lies outside the image" in r.output
     assert not out.exists()
     with caplog.at_level("WARNING", logger="orthowarp.pipeline.blockio"):
-        r = CliRunner().invoke(main, ["adjust", str(tmp_path / "b.json"), "--out", str(out), "--no-plots",
+        r = CliRunner().invoke(main, ["adjust", str(tmp_path / "b.json"), "--out-dir", str(out), "--no-plots",
                                       "--drop-outside-observations"])
     assert r.exit_code == 0, r.output
     ob = data["observations"][3]
@@ -541,7 +541,7 @@ def test_cli_adjust_failure_writes_nothing(tmp_path):
     write_block(_copy(block, obs_xy=noisy), tmp_path / "b.json")
     out = tmp_path / "out"
     for extra in ([], ["--snooping"]):
-        r = CliRunner().invoke(main, ["adjust", str(tmp_path / "b.json"), "--out", str(out), "--no-plots", *extra])
+        r = CliRunner().invoke(main, ["adjust", str(tmp_path / "b.json"), "--out-dir", str(out), "--no-plots", *extra])
         assert r.exit_code == 1
         errors = [ln for ln in r.output.splitlines() if ln.startswith("Error:")]
         assert len(errors) == 1 and "failed (status" in errors[0] and "nothing written" in errors[0]

@@ -12,7 +12,7 @@ from orthowarp.cli import main
 @pytest.mark.slow
 def test_demo_runs_end_to_end(tmp_path):
     out = tmp_path / "demo"
-    res = CliRunner().invoke(main, ["demo", "--out", str(out), "--device", "cpu"])
+    res = CliRunner().invoke(main, ["demo", "--out-dir", str(out), "--device", "cpu"])
     assert res.exit_code == 0, res.output
     assert "accuracy vs scene truth" in res.output
     names = {p.name for p in out.iterdir()}
@@ -41,7 +41,7 @@ def test_library_errors_become_one_line_messages():
 def test_unwritable_output_folder(tmp_path):
     blocker = tmp_path / "file"
     blocker.write_text("x")
-    res = CliRunner().invoke(main, ["demo", "--out", str(blocker / "sub"), "--device", "cpu"])
+    res = CliRunner().invoke(main, ["demo", "--out-dir", str(blocker / "sub"), "--device", "cpu"])
     assert res.exit_code != 0
     assert "Error:" in res.output and "Traceback" not in res.output
 
@@ -184,7 +184,7 @@ def test_adjust_command(tmp_path):
     block, truth = synthetic_block(strips=2, images_per_strip=4, seed=11)
     write_block(block, tmp_path / "block.json")
     out = tmp_path / "adj"
-    r = CliRunner().invoke(main, ["adjust", str(tmp_path / "block.json"), "--out", str(out), "--snooping",
+    r = CliRunner().invoke(main, ["adjust", str(tmp_path / "block.json"), "--out-dir", str(out), "--snooping",
                                   "--self-calibration", "k1,p1"])
     assert r.exit_code == 0, r.output
     for name in ("exterior.csv", "exterior.prj", "cameras.yaml", "points.csv", "report.json", "report.md",
@@ -205,7 +205,7 @@ def test_adjust_command(tmp_path):
     c0, c1 = res.cameras["cam"], cams["cam"]  # the self-calibrated camera, as the ortho reads it
     assert c1.image_size == c0.image_size
     np.testing.assert_allclose([c1.focal_length, c1.k1, c1.p1], [c0.focal_length, c0.k1, c0.p1], rtol=1e-12, atol=1e-15)
-    r = CliRunner().invoke(main, ["adjust", str(tmp_path / "missing.json"), "--out", str(out)])
+    r = CliRunner().invoke(main, ["adjust", str(tmp_path / "missing.json"), "--out-dir", str(out)])
     assert r.exit_code == 1 and "missing.json" in r.output
 
 
@@ -357,12 +357,12 @@ def test_adjust_can_be_tried_without_a_block_file(tmp_path):
     import yaml
 
     block = tmp_path / "block.json"
-    res = CliRunner().invoke(main, ["adjust", str(block), "--write-example", "--out", str(tmp_path / "a"),
+    res = CliRunner().invoke(main, ["adjust", str(block), "--write-example", "--out-dir", str(tmp_path / "a"),
                                     "--no-plots"])
     assert res.exit_code == 0, res.output
     assert block.is_file() and (tmp_path / "a" / "exterior.csv").is_file() and "sigma0" in res.output
     sigma0 = res.output.split("sigma0 ")[1].split(",")[0]
-    res = CliRunner().invoke(main, ["adjust", str(block), "--write-example", "--out", str(tmp_path / "b")])
+    res = CliRunner().invoke(main, ["adjust", str(block), "--write-example", "--out-dir", str(tmp_path / "b")])
     assert res.exit_code == 1 and "exists" in res.output
     # the same block as files
     doc = json.loads(block.read_text())
@@ -381,11 +381,11 @@ def test_adjust_can_be_tried_without_a_block_file(tmp_path):
         for p in doc["points"] if p["role"] != "tie"))
     res = CliRunner().invoke(main, ["adjust", "--cameras", str(tmp_path / "cams.yaml"), "--exterior",
                                     str(tmp_path / "ext.csv"), "--image-points", str(tmp_path / "obs.csv"),
-                                    "--ground-points", str(tmp_path / "gcp.csv"), "--out", str(tmp_path / "c"),
+                                    "--ground-points", str(tmp_path / "gcp.csv"), "--out-dir", str(tmp_path / "c"),
                                     "--no-plots"])
     assert res.exit_code == 0, res.output
     assert res.output.split("sigma0 ")[1].split(",")[0] == sigma0
-    res = CliRunner().invoke(main, ["adjust", "--cameras", str(tmp_path / "cams.yaml"), "--out", str(tmp_path / "d")])
+    res = CliRunner().invoke(main, ["adjust", "--cameras", str(tmp_path / "cams.yaml"), "-O", str(tmp_path / "d")])
     assert res.exit_code == 1 and "needs all of" in res.output
 
 
@@ -397,7 +397,7 @@ def test_adjust_report_explains_itself(tmp_path):
     import re
 
     block = tmp_path / "block.json"
-    res = CliRunner().invoke(main, ["-q", "adjust", str(block), "--write-example", "--out", str(tmp_path / "a"),
+    res = CliRunner().invoke(main, ["-q", "adjust", str(block), "--write-example", "--out-dir", str(tmp_path / "a"),
                                     "--snooping", "--self-calibration", "f,x0,y0", "--no-plots"])
     assert res.exit_code == 0, res.output
     md = (tmp_path / "a" / "report.md").read_text()
@@ -457,31 +457,34 @@ def test_spot_adjust_example_end_to_end(tmp_path):
     import rasterio
 
     ex, out = tmp_path / "ex", tmp_path / "adj"
-    res = CliRunner().invoke(main, ["spot-adjust", "--write-example", str(ex), "--out", str(out)])
+    res = CliRunner().invoke(main, ["spot-adjust", "--write-example", str(ex), "--out-dir", str(out)])
     assert res.exit_code == 0, res.output
     assert sorted(os.listdir(out)) == ["errors.png", "left_ADJUSTED.json", "points.csv", "report.json", "report.md",
                                        "residuals.png", "right_ADJUSTED.json"]
     rep = json.loads((out / "report.json").read_text())
     assert rep["uncorrected"]["check_rmse_enu"][2] > 50.0 > 20.0 > rep["check_rmse_enu"][2]
     assert rep["freed"] == {"left": ["attitude0", "attitude1"], "right": ["attitude0", "attitude1"]}
-    with rasterio.open(tmp_path / "img.tif", "w", driver="GTiff", width=3000, height=3000, count=1,
-                       dtype="uint8") as d:
-        d.write(np.full((3000, 3000), 7, np.uint8), 1)
+    # the example's images: one per scene, of its size, for the next step
+    assert sorted(os.listdir(ex)) == ["left.json", "left.tif", "points.json", "right.json", "right.tif"]
+    assert "3000 x 3000 px checkerboard images" in res.output
+    with rasterio.open(ex / "left.tif") as d:
+        assert (d.width, d.height, d.count, d.dtypes[0]) == (3000, 3000, 1, "uint8")
+        values = set(np.unique(d.read(1)).tolist())
+    assert values == {60, 180}
     res = CliRunner().invoke(main, ["-q", "ortho", "--dimap", str(out / "left_ADJUSTED.json"), "--height", "300",
-                                    "--resolution", "200", "--device", "cpu", "--out-dir", str(tmp_path / "o"),
-                                    str(tmp_path / "img.tif")])
+                                    "-r", "200", "-d", "cpu", "-O", str(tmp_path / "o"), str(ex / "left.tif")])
     assert res.exit_code == 0, res.output
-    with rasterio.open(tmp_path / "o" / "img_ORTHO.tif") as ds:  # the adjusted scene's ortho of the constant image
+    with rasterio.open(tmp_path / "o" / "left_ORTHO.tif") as ds:  # the adjusted scene's ortho of its image
         data, mask = ds.read(1), ds.dataset_mask()
         assert ds.crs is not None and ds.res == (200.0, 200.0)
-    assert mask.mean() > 0.2 and (data[mask > 0] == 7).all()
+    assert mask.mean() > 0.2 and set(np.unique(data[mask > 0]).tolist()) <= set(range(60, 181))
     # bad runs: one scene, an unknown group (nothing written)
     res = CliRunner().invoke(main, ["spot-adjust", "--scene", "left", str(ex / "left.json"), "--points",
-                                    str(ex / "points.json"), "--out", str(tmp_path / "bad")])
+                                    str(ex / "points.json"), "--out-dir", str(tmp_path / "bad")])
     assert res.exit_code != 0 and "two or more --scene" in res.output
     res = CliRunner().invoke(main, ["spot-adjust", "--scene", "left", str(ex / "left.json"), "--scene", "right",
                                     str(ex / "right.json"), "--points", str(ex / "points.json"), "--groups",
-                                    "attitude7", "--out", str(tmp_path / "bad")])
+                                    "attitude7", "--out-dir", str(tmp_path / "bad")])
     assert res.exit_code != 0 and "unknown EO group" in res.output
     assert not os.path.exists(tmp_path / "bad")
 
@@ -580,7 +583,7 @@ def test_adjusted_pose_covariances_feed_the_accuracy_raster(tmp_path):
     block, _ = synthetic_block(strips=2, images_per_strip=3, camera=cam, sigma_px=0.05, seed=3)
     ow.write_block(block, tmp_path / "block.json")
     adj = tmp_path / "adj"
-    res = CliRunner().invoke(main, ["-q", "adjust", str(tmp_path / "block.json"), "--out", str(adj), "--no-plots"])
+    res = CliRunner().invoke(main, ["-q", "adjust", str(tmp_path / "block.json"), "--out-dir", str(adj), "--no-plots"])
     assert res.exit_code == 0, res.output
     doc = json.loads((adj / "pose_cov.json").read_text())
     assert doc["parameters"] == ["x", "y", "z", "omega", "phi", "kappa"] and sorted(doc["images"]) == block.image_ids
@@ -626,12 +629,118 @@ def test_crs_label_names_unnamed_crss():
     a WKT named "unnamed") by its EPSG code where it has one, else by its PROJ string."""
     from pyproj import CRS
 
-    from orthowarp.cli import _crs_label
+    from orthowarp.cli.report import crs_label
 
-    assert _crs_label(CRS.from_epsg(32632)) == "WGS 84 / UTM zone 32N, metre"
+    assert crs_label(CRS.from_epsg(32632)) == "WGS 84 / UTM zone 32N, metre"
     tm = "+proj=tmerc +lat_0=0 +lon_0=25 +k=1 +x_0=0 +y_0=0 +datum=WGS84 +units=m +no_defs"
     unnamed = CRS.from_wkt(CRS.from_user_input(tm).to_wkt().replace('"unknown"', '"unnamed"', 1))
-    label = _crs_label(unnamed)
+    label = crs_label(unnamed)
     assert "+proj=tmerc" in label and "+lon_0=25" in label and label.endswith(", metre")
     utm = CRS.from_wkt(CRS.from_epsg(32632).to_wkt("WKT1_GDAL").replace("WGS 84 / UTM zone 32N", "unnamed", 1))
-    assert _crs_label(utm) == "EPSG:32632, metre"
+    assert crs_label(utm) == "EPSG:32632, metre"
+
+
+def test_folder_outputs_are_out_dir_and_the_old_out_still_works(tmp_path):
+    """A command writing into a folder takes -O/--out-dir DIR; adjust's (and demo's,
+    spot-adjust's) earlier --out DIR still works, with a one-line deprecation warning on
+    stderr; both at once is a usage error."""
+    from orthowarp import write_block
+    from orthowarp.adjust import synthetic_block
+
+    block, _ = synthetic_block(strips=2, images_per_strip=3, seed=5)
+    write_block(block, tmp_path / "b.json")
+    base = ["-q", "adjust", str(tmp_path / "b.json"), "--no-plots"]
+    res = CliRunner().invoke(main, [*base, "--out", str(tmp_path / "old")])
+    assert res.exit_code == 0, res.output
+    assert (tmp_path / "old" / "exterior.csv").is_file()
+    assert res.stderr.splitlines() == ["Warning: 'adjust --out DIR' is deprecated: use --out-dir DIR (-O DIR)"]
+    res = CliRunner().invoke(main, [*base, "-O", str(tmp_path / "new")])
+    assert res.exit_code == 0 and res.stderr == "", res.output
+    assert (tmp_path / "new" / "exterior.csv").read_bytes() == (tmp_path / "old" / "exterior.csv").read_bytes()
+    res = CliRunner().invoke(main, [*base, "--out", str(tmp_path / "a"), "--out-dir", str(tmp_path / "b")])
+    assert res.exit_code == 2 and "once" in res.output and not (tmp_path / "a").exists()
+    res = CliRunner().invoke(main, base)
+    assert res.exit_code == 2 and "--out-dir" in res.output
+
+
+def test_shared_options_have_one_declaration():
+    """An option several commands take means the same and reads the same in each: one help
+    text, one default, one type, one short form (except those that are different options
+    under one name: listed here). The help texts name no repository file or issue."""
+    import re
+
+    from orthowarp.cli import main as group
+
+    different = {"--scene", "--write-example", "--reference"}  # other options, named alike
+    per_command = {"--out", "--out-dir"}  # one declaration; the help says what the command writes there
+    seen = {}
+    for name, command in group.commands.items():
+        for p in command.params:
+            if not isinstance(p, __import__("click").Option) or p.hidden:
+                continue
+            long = max(p.opts, key=len)
+            if long in different or (long == "--pixel-sigma" and name == "spot-adjust"):
+                continue
+            info = p.to_info_dict()
+            for k in ("name", *(("help", "default", "required") if long in per_command else ())):
+                info.pop(k)
+            seen.setdefault(long, {})[name] = json.dumps(info, sort_keys=True, default=str)
+            assert not re.search(r"\.py\b|bench/|docs/|tests/|#\d|issue", p.help or ""), (name, long, p.help)
+        assert not re.search(r"\.py\b|bench/|docs/|tests/|#\d|issue", command.help or ""), name
+    shared = {k: v for k, v in seen.items() if len(v) > 1}
+    assert {"--device", "--height", "--dem", "--crs", "--resolution", "--overwrite", "--geoid", "--accuracy",
+            "--pose-sigma", "--no-plots", "--out-dir"} <= set(shared)
+    for long, by_command in shared.items():
+        assert len(set(by_command.values())) == 1, (long, by_command)
+    assert "ellipsoidal" in group.commands["mosaic"].params[[p.name for p in group.commands["mosaic"].params]
+                                                            .index("height")].help
+
+
+def test_python_m_knows_every_command_and_help_loads_no_library():
+    """python -m orthowarp.cli lists every command; the CLI's modules import only click (the
+    commands load the library when they run)."""
+    import subprocess
+    import sys
+
+    p = subprocess.run([sys.executable, "-m", "orthowarp.cli", "--help"], capture_output=True, text=True, timeout=60)
+    assert p.returncode == 0, p.stderr
+    for name in ("adjust", "demo", "match", "mosaic", "ortho", "spot-adjust"):
+        assert f"  {name} " in p.stdout
+    code = ("import sys; import orthowarp.cli; "
+            "print(sorted(m for m in sys.modules if m.split('.')[0] in ('numpy', 'warp', 'rasterio', 'pyproj', 'scipy')"
+            " or m.startswith('orthowarp.pipeline')))")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert p.returncode == 0 and p.stdout.strip() == "[]", p.stdout + p.stderr
+
+
+def test_ortho_scene_sigma_and_the_old_pose_sigma_of_a_scene(tmp_path):
+    """--scene-sigma gives a --dimap scene's sigmas (as for mosaic); --pose-sigma with eight
+    numbers still does, with a deprecation warning; both at once is refused."""
+    import numpy as np
+    import rasterio
+
+    from orthowarp.pipeline.dimap import write_dimap
+    from orthowarp.pushbroom import synthetic_scene
+
+    sc = synthetic_scene(width=120, height=150, view_angle=5.0)
+    write_dimap(sc, tmp_path / "scene.dim")
+    with rasterio.open(tmp_path / "scene.tif", "w", driver="GTiff", width=120, height=150, count=1,
+                       dtype="uint8") as ds:
+        ds.write(np.full((1, 150, 120), 77, np.uint8))
+    base = ["-q", "ortho", "--dimap", str(tmp_path / "scene.dim"), str(tmp_path / "scene.tif"), "--height", "100",
+            "-d", "cpu", "--accuracy", "--pixel-sigma", "0", "--dem-sigma", "0"]
+    sigmas = "20,20,10,0.002,0.002,0.002,0.002,0.002"
+    outs = []
+    for k, option in enumerate(("--scene-sigma", "--pose-sigma")):
+        res = CliRunner().invoke(main, [*base, option, sigmas, "-O", str(tmp_path / f"o{k}")])
+        assert res.exit_code == 0, res.output
+        assert ("deprecated" in res.stderr) == (option == "--pose-sigma"), res.stderr
+        with rasterio.open(tmp_path / f"o{k}" / "scene_ACCURACY.tif") as ds:
+            outs.append(ds.read())
+    np.testing.assert_array_equal(outs[0], outs[1])
+    res = CliRunner().invoke(main, [*base, "-O", str(tmp_path / "o2")])
+    assert res.exit_code == 0, res.output
+    with rasterio.open(tmp_path / "o2" / "scene_ACCURACY.tif") as ds:  # the default sigmas: half these
+        np.testing.assert_allclose(ds.read(), outs[0] / 2, rtol=1e-4, equal_nan=True)
+    res = CliRunner().invoke(main, [*base, "--scene-sigma", sigmas, "--pose-sigma", sigmas, "-O", str(tmp_path / "x")])
+    assert res.exit_code == 1 and "--scene-sigma" in res.output and not (tmp_path / "x").exists()

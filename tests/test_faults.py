@@ -111,13 +111,13 @@ def test_full_disk_in_adjust_changes_no_output(tmp_path):
     block, _ = synthetic_block(strips=2, images_per_strip=4, seed=11)
     write_block(block, tmp_path / "block.json")
     out = tmp_path / "adj"
-    res = CliRunner().invoke(main, ["-q", "adjust", str(tmp_path / "block.json"), "--out", str(out)])
+    res = CliRunner().invoke(main, ["-q", "adjust", str(tmp_path / "block.json"), "--out-dir", str(out)])
     assert res.exit_code == 0, res.output
     before = {n: (out / n).read_bytes() for n in os.listdir(out)}
     assert {"exterior.csv", "cameras.yaml", "points.csv", "report.json", "report.md", "residuals.png"} <= set(before)
     # the plots are the largest files: the limit lets the text outputs through but not them
     small = max(len(v) for k, v in before.items() if not k.endswith(".png"))
-    p = _cli(["-q", "adjust", str(tmp_path / "block.json"), "--out", str(out), "--snooping"], fsize=small + 1000)
+    p = _cli(["-q", "adjust", str(tmp_path / "block.json"), "--out-dir", str(out), "--snooping"], fsize=small + 1000)
     _, err = p.communicate(timeout=300)
     assert p.returncode == 1, err
     assert "File too large" in _error_line(err) and "none of the outputs was changed" in err

@@ -333,7 +333,7 @@ def test_adjust_without_check_points_says_so(tmp_path):
     block, _ = synthetic_block(strips=2, images_per_strip=4, seed=11)
     block.roles[:] = ["tie" if r == "check" else r for r in block.roles]
     write_block(block, tmp_path / "block.json")
-    res = CliRunner().invoke(main, ["adjust", str(tmp_path / "block.json"), "--out", str(tmp_path / "a"),
+    res = CliRunner().invoke(main, ["adjust", str(tmp_path / "block.json"), "--out-dir", str(tmp_path / "a"),
                                     "--no-plots"])
     assert res.exit_code == 0, res.output
     assert "no check points" in res.output and "nan" not in res.output, res.output

@@ -586,7 +586,7 @@ def test_check_points_of_an_adjusted_block_meet_their_predicted_precision():
             xyz = block.xyz[j] + res.check_errors[c]  # where the adjusted poses put the point
             pred = intersection_covariance(cams, poses, [xyz], pose_cov=res.pose_cov_joint[np.ix_(idx, idx)],
                                            pixel_sigma=0.5 * res.sigma0)
-            # the adjustment's own propagation (sigma0^2 (N^-1 + M^T S^-1 M), adjust/bundle.py)
+            # the adjustment's own propagation (sigma0^2 (N^-1 + M^T S^-1 M), adjust/bundle/statistics.py)
             np.testing.assert_allclose(pred.sigma[0], res.point_std[block.point_ids[j]], rtol=1e-5)
             e = res.check_errors[c]
             chi2 += float(e @ np.linalg.solve(pred.cov[0], e))

@@ -55,6 +55,21 @@ def test_undeclared_side_is_taken_as_the_other(caplog):
     assert "same vertical datum" in caplog.text
 
 
+def test_a_datum_taken_as_the_other_is_logged_once_naming_both(caplog):
+    """x,y,z poses in a 2-D map CRS (no vertical datum) over a DEM with EGM2008 heights: the
+    log says once, at INFO, that they are taken as one datum, naming both sides."""
+    pose = ow.Pose.from_opk(500000.0, 5200000.0, 1500.0, 0.0, 0.0, 0.0, crs="EPSG:32632")
+    dem = ow.Dem(np.full((20, 20), 400.0), Affine(10.0, 0, 499900.0, 0, -10.0, 5200100.0), "EPSG:32632+3855")
+    with caplog.at_level(logging.INFO, logger="orthowarp"):
+        for _ in range(3):
+            assert reconcile_dem(dem, pose, name="DEM 'dem.tif'") is dem
+    notes = [r for r in caplog.records if "same vertical datum" in r.getMessage()]
+    assert len(notes) == 1 and notes[0].levelno == logging.INFO
+    message = notes[0].getMessage()
+    assert "DEM 'dem.tif'" in message and "orthometric (EGM2008 height)" in message
+    assert "undeclared (WGS 84 / UTM zone 32N declares no heights)" in message
+
+
 def test_same_vertical_datum_overrides():
     dem = dem_in("EPSG:4326+3855")
     assert reconcile_dem(dem, GEOCENTRIC_POSE, same_vertical_datum=True) is dem

@@ -1,0 +1,181 @@
+"""``orthowarp mosaic``: frame images and pushbroom scenes into one mosaic, by
+:func:`~orthowarp.pipeline.mosaic.mosaic`."""
+
+from __future__ import annotations
+
+import os
+from types import SimpleNamespace
+from typing import Any
+
+import click
+
+from . import options
+from .report import crs_label, warm_up
+
+# orthowarp mosaic's tile processes on a GPU (bench/reference/mosaic-speed-processes-h100.json)
+MOSAIC_GPU_PROCESSES = 4
+
+
+@click.command()
+@click.argument("images", nargs=-1, type=click.Path(dir_okay=False))
+@options.orientation
+@options.odm_dataset
+@click.option("--scene", "scenes", nargs=2, multiple=True,
+              type=(click.Path(dir_okay=False), click.Path(dir_okay=False)),
+              metavar="IMAGE DIMAP", help="A pushbroom scene: its image and its SPOT level-1A DIMAP metadata "
+                                          "(repeatable; numbered after IMAGES in the index).")
+@options.attitude_model
+@options.terrain
+@options.out_file("The mosaic (COG).")
+@click.option("--index", "index_path", type=click.Path(dir_okay=False),
+              help="Also write the per-pixel source index (uint16 COG: the image's position in IMAGES).")
+@options.crs
+@options.resolution
+@options.resampling
+@click.option("--seamlines", "seamlines_path", type=click.Path(dir_okay=False),
+              help="Also write each image's part of the mosaic as GeoJSON polygons (longitude/latitude).")
+@click.option("--seams", type=click.Choice(["least-cost", "nadir"]), default="least-cost", show_default=True,
+              help="Seams where the images agree (moved from the most-nadir seams around buildings, trees, "
+                   "moving objects), or the most-nadir seams.")
+@click.option("--seam-width", type=float, default=256.0, show_default=True,
+              help="How far a least-cost seam may move from the most-nadir seam, output pixels.")
+@click.option("--blend", type=click.Choice(["feather", "multiband", "none"]), default="feather", show_default=True,
+              help="Feather across seams (and towards image borders), blend by frequency bands (fine detail "
+                   "sharp, brightness over the feather width), or take each pixel from one image.")
+@click.option("--feather", type=float, default=32.0, show_default=True, help="Width of the blend, output pixels.")
+@click.option("--no-balance", is_flag=True, help="No radiometric balancing (gain and offset per image and band).")
+@click.option("--no-occlusion", is_flag=True,
+              help="Project by the backward method (faster; ground hidden from an image is filled with what hides it).")
+@click.option("--reference", type=int, default=None,
+              help="Balancing keeps this image's radiometry (its position in IMAGES, from 0); default: the mean.")
+@options.compress_level
+@options.block_codec
+@options.accuracy_options
+@options.creation
+@options.dtype
+@options.overwrite
+@options.no_refraction
+@options.vertical
+@options.device
+@options.workers
+@click.option("--processes", type=click.IntRange(min=1), default=None,
+              help="Worker processes computing the tiles on the same device (default: 4 on a GPU, 1 on the CPU, "
+                   "where 1 is threads of this process).")
+@options.tile_size
+@options.profiling
+@click.pass_context
+def mosaic(ctx: click.Context, images: tuple[str, ...], **kwargs: Any) -> None:
+    """Mosaic frame IMAGES and pushbroom scenes (--scene) into one cloud-optimized GeoTIFF: each
+    pixel from the image that sees its ground most nearly from above (smallest off-nadir
+    angle), the seams moved to where the images agree, feathered across the seams, the images'
+    radiometry balanced by gains and offsets from their overlaps."""
+    warm_up(kwargs["device"], accuracy=kwargs["accuracy"], more=("orthowarp.kernels.mosaic",))
+    import numpy as np
+
+    from ..errors import ParamError
+    from ..pipeline.dem import Dem
+    from ..pipeline.io import outputs_together
+    from ..pipeline.mosaic import mosaic as make_mosaic
+    from ..pipeline.precision import accuracy_path
+    from ..pipeline.sensors import odm_dataset
+
+    o = SimpleNamespace(**kwargs)
+    if o.odm_dataset is not None:
+        images, o.int_param, o.ext_param, o.dem = odm_dataset(o.odm_dataset, images=images, int_param=o.int_param,
+                                                              ext_param=o.ext_param, dem=o.dem, height=o.height)
+    if (o.dem is None) == (o.height is None):
+        raise ParamError("Give exactly one of --dem FILE and --height METRES")
+    if not images and not o.scenes:
+        raise ParamError("Give frame IMAGES (with --ext-param) or pushbroom scenes (--scene IMAGE DIMAP)")
+    if images and not o.ext_param:
+        raise ParamError("Frame IMAGES need --ext-param (their exterior orientation)")
+    compress, compress_level, quality, creation_options = options.creation_args(o.creation, "deflate",
+                                                                                o.compress_level, None)
+    if compress != "deflate" or quality is not None:
+        raise ParamError("the mosaic is written with deflate: -co COMPRESS and QUALITY do not apply")
+    sigmas = _accuracy_sigmas(o) if o.accuracy else None
+    jobs = _jobs(images, o)
+    if o.accuracy:  # every frame's pose takes that many sigmas, before anything is written
+        from ..adjust.precision import pose_inputs
+
+        for _, sensor in jobs:
+            if sensor.kind != "pushbroom":
+                pose_inputs(sensor.pose, len(sigmas[0]))
+    terrain = Dem.from_file(o.dem) if o.dem is not None else o.height
+    processes = o.processes
+    if processes is None:  # a GPU mosaic is bound by the host work per tile: several processes feed it
+        from .._device import resolve_device
+
+        processes = MOSAIC_GPU_PROCESSES if resolve_device(o.device).is_cuda else 1
+    with outputs_together(overwrite=o.overwrite):  # the mosaic, its sidecars and accuracy raster, or none
+        r = make_mosaic(jobs, o.out_path, dem=terrain, crs=o.crs, resolution=o.resolution, resampling=o.resampling,
+                        refraction=not o.no_refraction, dtype=o.dtype, index=o.index_path, seamlines=o.seamlines_path,
+                        seams=o.seams, seam_width=o.seam_width, blend=o.blend, feather=o.feather,
+                        balance=not o.no_balance, reference=o.reference, occlusion=not o.no_occlusion,
+                        compress_level=compress_level, block_codec=o.block_codec, creation_options=creation_options,
+                        overwrite=o.overwrite, device=o.device, geoid=o.geoid,
+                        same_vertical_datum=o.same_vertical_datum, workers=o.workers, processes=processes,
+                        tile_size=o.tile_size, cancel=ctx.meta.get("orthowarp.stop"))
+        if o.accuracy:
+            from ..pipeline.precision import mosaic_accuracy_raster
+
+            mosaic_accuracy_raster(accuracy_path(r.path), jobs, r.index, terrain, r.crs, r.transform, r.shape,
+                                   pose_cov=np.diag(sigmas[0]) ** 2, orientation_cov=np.diag(sigmas[1]) ** 2,
+                                   pixel_sigma=o.pixel_sigma, dem_sigma=o.dem_sigma, measure=o.accuracy_measure,
+                                   step=o.accuracy_step, refraction=not o.no_refraction, geoid=o.geoid,
+                                   same_vertical_datum=o.same_vertical_datum, device=o.device)
+    if o.show_profile or o.profile_json:
+        _report_profile(r, len(jobs), show=o.show_profile, path=o.profile_json)
+    if not ctx.obj["quiet"]:
+        counts = ", ".join(f"{os.path.basename(img)} {n}" for (img, *_), n in zip(jobs, r.pixels_per_image))
+        click.echo(f"{r.path}: {r.shape[1]} x {r.shape[0]} px at {r.resolution:.4g} ({crs_label(r.crs)}); pixels per "
+                   f"image: {counts}")
+
+
+def _accuracy_sigmas(o: SimpleNamespace) -> tuple[list[float], list[float]]:
+    """(frame pose sigmas, scene sigmas) of ``--accuracy``, checked, and the accuracy raster's
+    destination checked, before any work."""
+    from ..errors import ParamError
+    from ..pipeline.io import check_destination
+    from ..pipeline.precision import accuracy_path
+
+    if not o.index_path:
+        raise ParamError("--accuracy takes each cell's image from the index: give --index too")
+    frame = options.sigma_list(o.pose_sigma, (6, 9, 12), "--pose-sigma", options.FRAME_SIGMA_UNITS)
+    scene = options.sigma_list(o.scene_sigma, 8, "--scene-sigma", options.SCENE_SIGMA_UNITS)
+    options.check_measurement_sigmas(o.pixel_sigma, o.dem_sigma)
+    check_destination(accuracy_path(o.out_path), overwrite=o.overwrite)
+    return frame, scene
+
+
+def _jobs(images: tuple[str, ...] | list[str], o: SimpleNamespace) -> list[tuple[str, Any]]:
+    """(image, sensor) of the frame IMAGES, then of the --scene scenes."""
+    from ..errors import RasterIOError
+    from ..pipeline.sensors import frame_sensors
+
+    jobs = frame_sensors(images, o.int_param, o.ext_param, crs=o.crs) if images else []
+    if o.scenes:
+        from ..pipeline.dimap import read_scene
+
+        for image, dimap in o.scenes:
+            if not os.path.exists(image):
+                raise RasterIOError(f"Image '{image}' does not exist")
+            jobs.append((image, read_scene(dimap, attitude_model=o.attitude_model)))
+    return jobs
+
+
+def _report_profile(r: Any, images: int, *, show: bool, path: str | None) -> None:
+    """The mosaic's profile: the plan's steps and the tiles' stages, on stderr (``show``) and
+    as JSON (``path``)."""
+    from ..pipeline.io import write_json
+    from ..pipeline.profile import format_profile
+
+    steps = ", ".join(f"{k} {v:.3f} s" for k, v in r.setup_s.items() if k != "total")
+    if show:
+        click.echo(f"plan: {r.setup_s.get('total', 0.0):.3f} s ({steps})", err=True)
+        click.echo(format_profile(r.profile, f"{r.path} (tiles and writing)"), err=True)
+    if path:
+        write_json(path, dict(plan_s=r.setup_s, tiles=r.profile, wall_s=r.wall_s,
+                              output_pixels=int(r.shape[0]) * int(r.shape[1]),
+                              shape=list(r.shape), resolution=r.resolution, image_builds=r.image_builds,
+                              images_held_peak=r.images_held_peak, images=images))
