@@ -16,17 +16,49 @@
   error propagation ([P4]; :mod:`~orthowarp.adjust.precision`).
 """
 
-from .block import ROLES, Block
-from .lookangles import LookAngleResult, preadjust_look_angles
-from .matching import MatchResult, interest_points, match_points
-from .scene_points import ScenePoints
-from .spot_bundle import EO_GROUPS, SceneBundleResult, adjust_scenes, intersect_scene_points
-from .bundle import AdjustResult, bundle_adjust, intersect
-from .precision import PrecisionResult, input_covariance, intersection_covariance, monoplot_covariance
-from .synthetic import CONTROL_LAYOUTS, film_camera, synthetic_block
+# The names below are imported when first used (PEP 562), so that importing one module of this
+# package (``orthowarp.adjust.precision`` for the ortho's accuracy rasters, say) does not load
+# the bundle adjustment and SciPy's sparse solvers with it.
+_LAZY = {
+    "ROLES": ".block",
+    "Block": ".block",
+    "LookAngleResult": ".lookangles",
+    "preadjust_look_angles": ".lookangles",
+    "MatchResult": ".matching",
+    "interest_points": ".matching",
+    "match_points": ".matching",
+    "ScenePoints": ".scene_points",
+    "EO_GROUPS": ".spot_bundle",
+    "SceneBundleResult": ".spot_bundle",
+    "adjust_scenes": ".spot_bundle",
+    "intersect_scene_points": ".spot_bundle",
+    "AdjustResult": ".bundle",
+    "bundle_adjust": ".bundle",
+    "intersect": ".bundle",
+    "PrecisionResult": ".precision",
+    "input_covariance": ".precision",
+    "intersection_covariance": ".precision",
+    "monoplot_covariance": ".precision",
+    "CONTROL_LAYOUTS": ".synthetic",
+    "film_camera": ".synthetic",
+    "synthetic_block": ".synthetic",
+}
 
 __all__ = ["Block", "ROLES", "AdjustResult", "bundle_adjust", "intersect", "synthetic_block", "film_camera",
            "CONTROL_LAYOUTS", "PrecisionResult", "ScenePoints", "LookAngleResult", "preadjust_look_angles",
            "EO_GROUPS", "SceneBundleResult", "adjust_scenes", "intersect_scene_points", "MatchResult", "match_points", "interest_points", "monoplot_covariance",
            "intersection_covariance", "input_covariance"]
 
+
+def __getattr__(name):
+    import importlib
+
+    if name not in _LAZY:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(_LAZY[name], __name__), name)
+    globals()[name] = value  # later look-ups skip this function
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_LAZY))

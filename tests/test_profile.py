@@ -256,9 +256,10 @@ import json, sys
 import orthowarp as ow
 before = sorted(m for m in sys.modules if m.split(".")[0] in ("scipy", "matplotlib", "warp", "rasterio", "pyproj", "yaml",
                                                                "tqdm", "defusedxml") or m.startswith("orthowarp."))
-names = [ow.FrameCamera, ow.Pose, ow.PushbroomScene, ow.Dem, ow.geolocate, ow.project, ow.orthorectify]
+names = [ow.FrameCamera, ow.Pose, ow.PushbroomScene, ow.Dem, ow.geolocate, ow.project, ow.orthorectify,
+         ow.orthorectify_many]
 after = sorted(m for m in sys.modules if m.split(".")[0] in ("scipy", "matplotlib", "yaml", "tqdm", "defusedxml")
-               or m in ("orthowarp.adjust", "orthowarp.pipeline.dimap", "orthowarp.pipeline.formats"))
+               or m in ("orthowarp.adjust.bundle", "orthowarp.pipeline.dimap", "orthowarp.pipeline.formats"))
 import warp
 runtime = warp._src.context.runtime if hasattr(warp, "_src") else warp.context.runtime
 print(json.dumps(dict(before=before, after=after, names=[n.__name__ for n in names], warp_initialised=runtime is not None,
@@ -269,13 +270,15 @@ print(json.dumps(dict(before=before, after=after, names=[n.__name__ for n in nam
 def test_import_orthowarp_is_light():
     """``import orthowarp`` loads the error classes only (no SciPy, Matplotlib, Warp, GDAL, PROJ,
     YAML, tqdm, XML parsers); the public names import on first use, still without SciPy or
-    Matplotlib, and initialise no Warp runtime."""
+    Matplotlib (the ortho's batch runner reaches the adjustment's precision module, whose package
+    must not load the bundle adjustment), and initialise no Warp runtime."""
     p = subprocess.run([sys.executable, "-c", _IMPORT_CHECK], cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, p.stderr
     doc = json.loads(p.stdout.strip().splitlines()[-1])
     assert doc["before"] == ["orthowarp.errors"]
     assert doc["after"] == []
-    assert doc["names"] == ["FrameCamera", "Pose", "PushbroomScene", "Dem", "geolocate", "project", "orthorectify"]
+    assert doc["names"] == ["FrameCamera", "Pose", "PushbroomScene", "Dem", "geolocate", "project", "orthorectify",
+                            "orthorectify_many"]
     assert doc["warp_initialised"] is False
     assert doc["adjust"] == "bundle_adjust"
 
