@@ -1,7 +1,7 @@
 """SciPy adjustment stage: bundle block adjustment of frame images ([P2]).
 
 - :class:`Block`: a block as arrays (its files: :func:`orthowarp.read_block` /
-  :func:`orthowarp.write_block`, :mod:`orthowarp.pipeline.blockio`; this package touches no file);
+  :func:`orthowarp.write_block`, :mod:`orthowarp.pipeline.formats.block`; this package touches no file);
 - :func:`bundle_adjust` -> :class:`AdjustResult`;
 - the observation equations and their Jacobians: :mod:`orthowarp.collinearity` (the frame sensor's own);
 - :class:`ScenePoints` (points measured in pushbroom scenes; files: :func:`orthowarp.read_scene_points`)

@@ -1,7 +1,7 @@
 """A photogrammetric block as arrays: cameras, images with their poses and GNSS/INS
 observations, points with their roles, and image observations (see :class:`Block`).
 
-The file formats live in :mod:`orthowarp.pipeline.blockio`; this module only holds and checks
+The file formats live in :mod:`orthowarp.pipeline.formats.block`; this module only holds and checks
 the data.
 """
 

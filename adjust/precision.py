@@ -263,7 +263,7 @@ def input_covariance(pose: Pose, frame_cov: ArrayLike, *, local: LocalFrame | No
     ndarray, shape (6, 6)
         The inputs' covariance (m, deg; photogrammetric poses: ``frame_cov`` as given).
     """
-    c = _square("frame_cov", frame_cov, 6)
+    c = square_matrix("frame_cov", frame_cov, 6)
     if pose.mode == "map":
         return c
     if local is None:
@@ -274,7 +274,7 @@ def input_covariance(pose: Pose, frame_cov: ArrayLike, *, local: LocalFrame | No
     return 0.5 * (out + out.T)
 
 
-def _square(name: str, value: ArrayLike, n: int) -> np.ndarray:
+def square_matrix(name: str, value: ArrayLike, n: int) -> np.ndarray:
     """``value`` as a symmetric positive semi-definite (n, n) matrix; ParamError else."""
     try:
         c = np.asarray(value, dtype=np.float64)
@@ -462,11 +462,11 @@ def _check(points: ArrayLike, pose_cov: ArrayLike, camera_cov: ArrayLike | None,
     if bad or len(set(camera_params)) != len(camera_params):
         raise ParamError(f"camera_params must be distinct names from {CAMERA_PARAMS}, got {list(camera_params)}")
     q = len(camera_params)
-    pose_cov = _square("pose_cov", pose_cov, pose_size)
+    pose_cov = square_matrix("pose_cov", pose_cov, pose_size)
     if q:
         if camera_cov is None:
             raise ParamError("camera_params given without camera_cov")
-        camera_cov = _square("camera_cov", camera_cov, q)
+        camera_cov = square_matrix("camera_cov", camera_cov, q)
     elif camera_cov is not None:
         raise ParamError("camera_cov given without camera_params")
     if slopes is not None:

@@ -1,7 +1,7 @@
 """Ground points measured in pushbroom scenes, as arrays (:class:`ScenePoints`): the
 observations of the SPOT-5 look-angle pre-adjustment and stereo adjustment ([P1]).
 
-The file formats live in :mod:`orthowarp.pipeline.scenepoints`; this module only holds and
+The file formats live in :mod:`orthowarp.pipeline.formats.scene_points`; this module only holds and
 checks the data.
 """
 

@@ -113,7 +113,7 @@ def warp_variant(pred, chunk, window, depth, nice, device="cuda:0", hash_bytes=4
     the host (what the COG writer receives)."""
     import warp as wp
 
-    from orthowarp.pipeline.cog_device import WarpDeflate
+    from orthowarp.pipeline.raster.device import WarpDeflate
 
     n, size = len(pred), pred[0].nbytes
     buf = wp.array(pred.reshape(-1), dtype=wp.uint8, device=device)

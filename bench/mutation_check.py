@@ -98,7 +98,7 @@ MUTATIONS = [
          what="the bundle adjustment's covariances sigma0 Q instead of sigma0^2 Q",
          tests=[T_BUNDLE + "test_covariances_are_sigma0_squared_times_the_inverse_normal_matrix",
                 T_BUNDLE + "test_doubling_the_a_priori_sigmas_halves_sigma0_and_keeps_the_covariances"]),
-    dict(name="csv_omega_phi_swapped", file="pipeline/formats.py",
+    dict(name="csv_omega_phi_swapped", file="pipeline/formats/exterior.py",
          original="pose = Pose.from_opk(*pos, *ang, crs=map_crs)",
          replacement="pose = Pose.from_opk(*pos, ang[1], ang[0], ang[2], crs=map_crs)",
          what="the exterior-orientation CSV reader passes phi as omega and omega as phi",

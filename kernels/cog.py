@@ -1,7 +1,7 @@
 """Cloud-optimized GeoTIFF blocks on the device: predictor, masks, overviews, checksums.
 
 The COG writer's per-block work, for tiles that are already on the device (see
-:mod:`orthowarp.pipeline.cog_device`):
+:mod:`orthowarp.pipeline.raster.device`):
 
 - :func:`encode_blocks_kernel`: cut a level's piece (rows, cols, bands) into the file's
   B x B blocks, pixel-interleaved; integer pixels outside the mask set to 0 and TIFF
@@ -16,7 +16,7 @@ The COG writer's per-block work, for tiles that are already on the device (see
   uncompressed block (RFC 1950), which a zlib stream carries after its raw deflate data;
 - :func:`gather_kernel`: pack variable-length compressed streams into one buffer.
 
-All of these reproduce, bit for bit, what :class:`orthowarp.pipeline.cog.CogWriter` computes
+All of these reproduce, bit for bit, what :class:`orthowarp.pipeline.raster.cog.CogWriter` computes
 on the host for the same pixels.
 """
 

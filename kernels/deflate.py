@@ -39,7 +39,7 @@ Then:
 Chunk-local tables live in scratch arrays, one row per chunk (the tokens of a part from the
 part's first byte's index on). Match finding independent per position followed by a
 sequential parse is the usual arrangement of GPU LZ77 encoders. The host side is
-:class:`orthowarp.pipeline.cog_device.WarpDeflate`.
+:class:`orthowarp.pipeline.raster.device.WarpDeflate`.
 """
 
 import warp as wp

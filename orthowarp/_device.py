@@ -30,6 +30,8 @@ level, the last to leave restores it, unless someone set another level in betwee
 is kept).
 """
 
+from __future__ import annotations
+
 import contextlib
 import importlib
 import logging
@@ -37,10 +39,17 @@ import os
 import sys
 import tempfile
 import threading
+from typing import IO, TYPE_CHECKING, Any
 
 import warp as wp
 
 from .errors import DeviceError
+
+if TYPE_CHECKING:  # annotations only
+    import types
+    from collections.abc import Iterator, Sequence
+
+    import numpy as np
 
 __all__ = ["resolve_device", "quiet_warp", "ensure_warp_initialized", "load_modules", "set_warp_messages", "warm_up"]
 
@@ -54,16 +63,21 @@ _saved = None  # (attribute, value found, value set) while _depth > 0 and a sett
 _show = False  # set_warp_messages(True): leave Warp's output alone
 
 
-def set_warp_messages(enabled):
+def set_warp_messages(enabled: bool) -> None:
     """Show Warp's own messages during orthowarp calls (``True``) or keep them quiet (default).
 
     The CLI's ``-v`` calls this with ``True``. It changes nothing in Warp's configuration.
+
+    Parameters
+    ----------
+    enabled : bool
+        True: leave Warp's output alone from now on (process-wide); False: quiet again.
     """
     global _show
     _show = bool(enabled)
 
 
-def _level_setting():
+def _level_setting() -> tuple[str | None, Any]:
     """(attribute of warp.config, value that silences Warp's info output, or None to leave it).
 
     Warp >= 1.10 has ``config.log_level``; older releases a boolean ``config.quiet``.
@@ -79,7 +93,7 @@ def _level_setting():
     return None, None
 
 
-def _wants_messages():
+def _wants_messages() -> bool:
     """True when Warp's messages must come through: set_warp_messages(True), or a Warp log
     level below LOG_INFO (the user asked for debug output)."""
     if _show:
@@ -90,11 +104,15 @@ def _wants_messages():
 
 
 @contextlib.contextmanager
-def quiet_warp():
+def quiet_warp() -> Iterator[None]:
     """Context in which Warp prints no informational messages (see the module notes).
 
     Thread-safe and re-entrant; restores the level found on entry when the last orthowarp
     call leaves it.
+
+    Yields
+    ------
+    None
     """
     global _depth, _saved
     with _lock:
@@ -118,7 +136,7 @@ def quiet_warp():
                 _saved = None
 
 
-def _warp_runtime():
+def _warp_runtime() -> Any:
     """Warp's runtime object, or None while Warp is not initialised (never initialises it)."""
     for mod in ("warp._src.context", "warp.context"):
         try:
@@ -129,7 +147,7 @@ def _warp_runtime():
 
 
 @contextlib.contextmanager
-def _native_stderr_to_file():
+def _native_stderr_to_file() -> Iterator[IO[bytes] | None]:
     """Divert file descriptor 2 (where Warp's native library writes) to a temporary file;
     yields the file, or None where fd 2 cannot be diverted (then nothing is)."""
     try:
@@ -155,7 +173,7 @@ def _native_stderr_to_file():
         os.close(saved)
 
 
-def _replay(tmp):
+def _replay(tmp: IO[bytes] | None) -> None:
     """Write back to stderr what was diverted, less Warp's no-CUDA-driver notice."""
     if tmp is None:
         return
@@ -172,7 +190,7 @@ def _replay(tmp):
         os.write(2, rest)
 
 
-def ensure_warp_initialized():
+def ensure_warp_initialized() -> None:
     """Initialise Warp if nobody has, without its banner or the CPU-only driver notice.
 
     Does nothing when Warp is already initialised, and initialises it as Warp would
@@ -195,7 +213,7 @@ def ensure_warp_initialized():
                 _replay(tmp)  # also when init failed: its native messages explain why
 
 
-def resolve_device(device=None):
+def resolve_device(device: wp.DeviceLike = None) -> wp.Device:
     """Return a Warp device: ``None`` picks the first CUDA device if any, else the CPU.
 
     Initialises Warp quietly if needed (see :func:`ensure_warp_initialized`), and the first
@@ -206,6 +224,10 @@ def resolve_device(device=None):
     ----------
     device : str or warp.context.Device, optional
         ``"cpu"``, ``"cuda"``, ``"cuda:N"`` or a Warp device.
+
+    Returns
+    -------
+    warp.context.Device
 
     Raises
     ------
@@ -226,7 +248,7 @@ def resolve_device(device=None):
     return found
 
 
-def warm_up(device=None, modules=()):
+def warm_up(device: wp.DeviceLike = None, modules: Sequence[str] = ()) -> threading.Thread:
     """Start initialising Warp, the device and its kernel modules on a background thread, so
     that this overlaps what the caller does meanwhile (its imports, reading its inputs).
 
@@ -251,7 +273,7 @@ def warm_up(device=None, modules=()):
     threading.Thread
         The started daemon thread.
     """
-    def work():
+    def work() -> None:
         try:
             found = resolve_device(device)
             if found.is_cuda:
@@ -276,13 +298,25 @@ _NOTICE_LOCK = threading.Lock()
 
 
 @contextlib.contextmanager
-def compile_notice(device, what):
+def compile_notice(device: wp.Device, what: str) -> Iterator[None]:
     """Log a warning (logger "orthowarp"), once per device and process, if the block takes
     more than :data:`COMPILE_NOTICE_S`: Warp is compiling kernels, which happens where the
     install holds none built for this device and Warp (see :mod:`orthowarp._kernelcache`) on
     the first run, and takes about 10-30 s on a CPU and minutes on a GPU (193 s for an ortho's
-    modules on an H200); Warp's cache then serves later runs."""
-    def notice():
+    modules on an H200); Warp's cache then serves later runs.
+
+    Parameters
+    ----------
+    device : warp.context.Device
+        The device the block loads modules on (named in the warning).
+    what : str
+        What is being compiled, for the warning (e.g. ``"Warp kernels (ortho)"``).
+
+    Yields
+    ------
+    None
+    """
+    def notice() -> None:
         with _NOTICE_LOCK:  # (not the loaders' lock: a load holds that while this runs)
             if str(device) in _NOTICED:
                 return
@@ -303,7 +337,7 @@ def compile_notice(device, what):
 _LOAD_LOCK = threading.RLock()
 
 
-def load_modules(device, *modules, block_dim=None):
+def load_modules(device: wp.Device, *modules: types.ModuleType, block_dim: int | None = None) -> None:
     """Load Warp modules on a device, quietly, before launching from threads: the binaries
     built with orthowarp where they match (see :func:`resolve_device`), else compiled (the
     first time with this Warp and device), with a logged notice when that takes long (see
@@ -312,6 +346,7 @@ def load_modules(device, *modules, block_dim=None):
     Parameters
     ----------
     device : warp.context.Device
+        Where the modules are loaded (a resolved device, see :func:`resolve_device`).
     *modules : module
         Python modules holding Warp kernels (e.g. ``orthowarp.kernels.ortho``).
     block_dim : int, optional
@@ -328,7 +363,7 @@ def load_modules(device, *modules, block_dim=None):
                 wp.load_module(m, device=device, block_dim=block_dim)
 
 
-def to_host(arr):
+def to_host(arr: wp.array) -> np.ndarray:
     """A NumPy array of a Warp array's values, safe to call from several threads at once.
 
     Warp's ``array.numpy()`` makes the CUDA null stream the device's current stream for its

@@ -26,8 +26,17 @@ imports only Warp and orthowarp's ``kernels`` package (the rest of orthowarp nee
 importable there: it runs inside ``pip``'s build environment).
 """
 
+from __future__ import annotations
+
 import os
 import shutil
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # annotations only: Warp is imported where it is used
+    import types
+    from collections.abc import Iterable, Sequence
+
+    import warp as wp
 
 __all__ = ["MODULES", "SHIPPED", "seed", "build"]
 
@@ -40,7 +49,7 @@ _PACKAGE_SHIPPED = SHIPPED
 _SEEDED = set()  # (device, shipped folder, kernel cache) already seeded in this process
 
 
-def _default_shipped():
+def _default_shipped() -> str:
     """:data:`SHIPPED`; in a source checkout (which has none), the installed orthowarp's, if
     any (e.g. the tests of a checkout just installed: the same code, so the same hashes)."""
     if os.path.isdir(SHIPPED) or SHIPPED != _PACKAGE_SHIPPED:
@@ -54,7 +63,7 @@ def _default_shipped():
     return SHIPPED
 
 
-def _files_for(folder, device):
+def _files_for(folder: str, device: wp.Device) -> list[str]:
     """The files of a shipped module variant ``folder`` that a Warp ``device`` loads: its
     metadata, and its CPU objects or its cubins for the device's architecture."""
     try:
@@ -67,7 +76,7 @@ def _files_for(folder, device):
     return [n for n in names if n.endswith(".meta") or (arch in n and n.endswith(".cubin"))]
 
 
-def seed(device, *, shipped=None):
+def seed(device: wp.Device, *, shipped: str | os.PathLike[str] | None = None) -> list[str]:
     """Copy the shipped binaries for ``device`` into Warp's kernel cache, where Warp's loads then
     find them; returns the paths copied (none when the package holds none for this Warp and
     target, or the cache has them already). Done once per device, package and cache in a
@@ -82,9 +91,15 @@ def seed(device, *, shipped=None):
     Parameters
     ----------
     device : warp.context.Device
-    shipped : str, optional
+        The device whose binaries (CPU objects, or cubins for its architecture) are copied.
+    shipped : str or os.PathLike, optional
         Where the built kernels are (default :data:`SHIPPED`, the package's ``_kernels``; in a
         source checkout the installed package's).
+
+    Returns
+    -------
+    list of str
+        The files written into Warp's kernel cache (paths).
 
     Notes
     -----
@@ -125,7 +140,8 @@ def seed(device, *, shipped=None):
     return copied
 
 
-def build(out, *, cpu=True, archs=(), modules=None, workers=None, package=None):
+def build(out: str | os.PathLike[str], *, cpu: bool = True, archs: Iterable[int] = (),
+          modules: Sequence[str] | None = None, workers: int | None = None, package: str | None = None) -> list[str]:
     """Compile orthowarp's kernel modules into ``out`` (Warp's cache layout, see the module
     doc): CPU objects (``cpu``) and cubins for the CUDA architectures ``archs`` (ints, e.g.
     90) and those of the machine's GPUs. ``modules``: names of :data:`MODULES` (default:
@@ -136,6 +152,26 @@ def build(out, *, cpu=True, archs=(), modules=None, workers=None, package=None):
     process of its own (``workers`` at once, default one per core), each with its Warp kernel
     cache pointed at ``out`` (which puts them in ``out/<Warp's version>``); the sources
     (.cu/.cpp) are removed afterwards, only metadata and binaries stay.
+
+    Parameters
+    ----------
+    out : str or os.PathLike
+        The folder to build into (emptied first).
+    cpu : bool, optional
+        Build the CPU objects.
+    archs : iterable of int, optional
+        CUDA architectures (e.g. 80, 90) to build cubins for, besides the machine's GPUs'.
+    modules : sequence of str, optional
+        Names of :data:`MODULES` (default: all).
+    workers : int, optional
+        Compiling processes at once (default: one per core).
+    package : str, optional
+        The orthowarp package folder whose kernels are compiled (default: this one).
+
+    Returns
+    -------
+    list of str
+        The module variant folders written (``out/<Warp's version>/<hash>``).
     """
     import subprocess
     import sys
@@ -159,7 +195,7 @@ def build(out, *, cpu=True, archs=(), modules=None, workers=None, package=None):
     script = os.path.abspath(__file__)
     code = "import runpy, sys; sys.argv = sys.argv[1:]; runpy.run_path(sys.argv[0], run_name='__main__')"
 
-    def run(task):
+    def run(task: str) -> None:
         subprocess.run([sys.executable, "-c", code, script, out, "--package", package, "--task", task], check=True)
 
     with ThreadPoolExecutor(max_workers=workers or os.cpu_count() or 1) as pool:
@@ -177,7 +213,7 @@ def build(out, *, cpu=True, archs=(), modules=None, workers=None, package=None):
     return folders
 
 
-def _quiet(wp):
+def _quiet(wp: types.ModuleType) -> None:
     """No banner or module-load lines from this build's Warp."""
     if hasattr(wp, "LOG_WARNING") and hasattr(wp.config, "log_level"):
         wp.config.log_level = wp.LOG_WARNING
@@ -185,7 +221,7 @@ def _quiet(wp):
         wp.config.quiet = True
 
 
-def _compile_task(out, task):
+def _compile_task(out: str, task: str) -> None:
     """One build task: "module,module,...:cpu:" (those modules' CPU variants) or
     "module:arch:block_dim" (a cubin; block_dim "default": the module's own)."""
     import importlib
@@ -199,7 +235,7 @@ def _compile_task(out, task):
     if target == "cpu":
         from concurrent.futures import ThreadPoolExecutor
 
-        def one(name):
+        def one(name: str) -> None:
             m = importlib.import_module(f"orthowarp.kernels.{name}")
             for dim in (1, *MODULES[name]):
                 wp.load_module(m, device="cpu", block_dim=dim)
@@ -213,7 +249,7 @@ def _compile_task(out, task):
     wp.compile_aot_module(m, arch=int(target), use_ptx=False)
 
 
-def _main(argv=None):
+def _main(argv: Sequence[str] | None = None) -> None:
     import argparse
     import sys
     import types

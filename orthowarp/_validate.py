@@ -1,6 +1,9 @@
 """Argument validation helpers shared by the host classes."""
 
+from __future__ import annotations
+
 import math
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from pyproj import CRS
@@ -8,8 +11,11 @@ from pyproj.exceptions import CRSError
 
 from .errors import CrsError, ParamError
 
+if TYPE_CHECKING:  # annotations only
+    from numpy.typing import ArrayLike
 
-def finite(name, value):
+
+def finite(name: str, value: Any) -> float:
     """``float(value)``, or ParamError naming ``name`` if it is not a finite number."""
     try:
         v = float(value)
@@ -20,7 +26,7 @@ def finite(name, value):
     return v
 
 
-def finite_vector(name, value, n):
+def finite_vector(name: str, value: ArrayLike, n: int) -> np.ndarray:
     """A finite float64 vector of length n, or ParamError naming ``name``."""
     try:
         arr = np.asarray(value, dtype=np.float64).reshape(-1)
@@ -31,7 +37,7 @@ def finite_vector(name, value, n):
     return arr
 
 
-def points(values, ncol, name):
+def points(values: ArrayLike, ncol: int, name: str) -> np.ndarray:
     """A C-contiguous float64 array of shape (N, ncol); a single point (ncol,) becomes (1, ncol).
 
     The mask of a NumPy masked array is honoured: a row with any masked value becomes a NaN
@@ -62,7 +68,7 @@ def points(values, ncol, name):
     return arr
 
 
-def no_infinite_rows(name, arr):
+def no_infinite_rows(name: str, arr: np.ndarray) -> None:
     """ParamError naming ``name`` and the first row holding +-inf (NaN rows are missing rows)."""
     bad = np.isinf(arr).any(axis=1)
     if np.any(bad):
@@ -70,7 +76,7 @@ def no_infinite_rows(name, arr):
         raise ParamError(f"{name} row {i} is not finite: {arr[i].tolist()}")
 
 
-def as_crs(value, name="crs"):
+def as_crs(value: Any, name: str = "crs") -> CRS:
     """A pyproj CRS from anything pyproj accepts, or CrsError naming ``name``."""
     if value is None:
         raise CrsError(f"{name} is required")
@@ -80,7 +86,8 @@ def as_crs(value, name="crs"):
         raise CrsError(f"{name}: unknown coordinate reference system {value!r}: {e}") from e
 
 
-def integer(name, value, *, low=None, high=None, none=False):
+def integer(name: str, value: Any, *, low: int | None = None, high: int | None = None,
+            none: bool = False) -> int | None:
     """``int(value)`` for an integer (an integral float such as 512.0 too) within [low, high],
     or ParamError naming ``name``; None passes through where ``none``."""
     import numbers
@@ -100,7 +107,7 @@ def integer(name, value, *, low=None, high=None, none=False):
     return n
 
 
-def positive(name, value, *, zero=False, none=False):
+def positive(name: str, value: Any, *, zero: bool = False, none: bool = False) -> float | None:
     """A finite number > 0 (>= 0 where ``zero``) as a float, or ParamError naming ``name``;
     None passes through where ``none``. Booleans and strings are refused, not converted."""
     import numbers
@@ -115,7 +122,7 @@ def positive(name, value, *, zero=False, none=False):
     return v
 
 
-def flag(name, value):
+def flag(name: str, value: Any) -> bool:
     """``bool(value)`` for True or False (NumPy's too), or ParamError naming ``name``: 0, 1 and
     strings such as "no" are refused, not converted."""
     if not isinstance(value, (bool, np.bool_)):

@@ -8,24 +8,35 @@ corner, camera x right, y up, the principal point's offset from the image centre
 broadcasts. The device twins are in :mod:`orthowarp.kernels.camera`.
 """
 
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
 import numpy as np
+
+if TYPE_CHECKING:  # annotations only
+    from collections.abc import Sequence
+
+    from numpy.typing import ArrayLike
 
 __all__ = ["distort", "normalized_to_pixel", "pixel_to_normalized"]
 
 
-def distort(uv, k1, k2, k3, p1, p2):
+def distort(uv: ArrayLike, k1: float | np.ndarray, k2: float | np.ndarray, k3: float | np.ndarray,
+            p1: float | np.ndarray, p2: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Undistorted -> distorted normalised coordinates and the Jacobian.
 
     Parameters
     ----------
-    uv : ndarray, shape (..., 2)
-        OpenCV-normalised (u, v).
+    uv : array_like, shape (..., 2)
+        Undistorted OpenCV-normalised (u, v).
     k1, k2, k3, p1, p2 : float or ndarray broadcasting with ``uv[..., 0]``
         Radial and decentring coefficients (OpenCV's convention).
 
     Returns
     -------
     uvd : ndarray, shape (..., 2)
+        Distorted normalised (ud, vd).
     jacobian : ndarray, shape (..., 2, 2)
         d(ud, vd) / d(u, v).
     """
@@ -42,12 +53,32 @@ def distort(uv, k1, k2, k3, p1, p2):
     return uvd, jac
 
 
-def normalized_to_pixel(uv, focal_length, principal_point, pixel_size, image_size):
+def normalized_to_pixel(uv: ArrayLike, focal_length: float | np.ndarray,
+                        principal_point: Sequence[float | np.ndarray], pixel_size: Sequence[float | np.ndarray],
+                        image_size: Sequence[float | np.ndarray]) -> np.ndarray:
     """Distorted normalised (u, v) (..., 2) -> pixel (col, row) (..., 2).
 
     ``focal_length`` (mm), ``principal_point`` (x0, y0) (mm, from the image centre, y up),
     ``pixel_size`` (px, py) (mm) and ``image_size`` (width, height) (pixels): each a pair (or
     a scalar for the focal length) of floats or of arrays broadcasting with ``uv[..., 0]``.
+
+    Parameters
+    ----------
+    uv : array_like, shape (..., 2)
+        Distorted OpenCV-normalised (u, v).
+    focal_length : float or ndarray
+        Focal length (mm).
+    principal_point : pair of float or ndarray
+        (x0, y0) (mm), offset of the principal point from the image centre, x right, y up.
+    pixel_size : pair of float or ndarray
+        Pixel pitch (px, py) (mm).
+    image_size : pair of float or ndarray
+        (width, height) (pixels).
+
+    Returns
+    -------
+    ndarray, shape (..., 2)
+        Pixel (col, row), origin at the top-left corner of the top-left pixel.
     """
     uv = np.asarray(uv, dtype=np.float64)
     x = uv[..., 0] * focal_length
@@ -56,9 +87,30 @@ def normalized_to_pixel(uv, focal_length, principal_point, pixel_size, image_siz
                      0.5 * image_size[1] - (y + principal_point[1]) / pixel_size[1]], axis=-1)
 
 
-def pixel_to_normalized(pixels, focal_length, principal_point, pixel_size, image_size):
+def pixel_to_normalized(pixels: ArrayLike, focal_length: float | np.ndarray,
+                        principal_point: Sequence[float | np.ndarray], pixel_size: Sequence[float | np.ndarray],
+                        image_size: Sequence[float | np.ndarray]) -> np.ndarray:
     """Pixel (col, row) (..., 2) -> distorted normalised (u, v) (..., 2); arguments as for
-    :func:`normalized_to_pixel`."""
+    :func:`normalized_to_pixel`.
+
+    Parameters
+    ----------
+    pixels : array_like, shape (..., 2)
+        Pixel (col, row), origin at the top-left corner of the top-left pixel.
+    focal_length : float or ndarray
+        Focal length (mm).
+    principal_point : pair of float or ndarray
+        (x0, y0) (mm), offset of the principal point from the image centre, x right, y up.
+    pixel_size : pair of float or ndarray
+        Pixel pitch (px, py) (mm).
+    image_size : pair of float or ndarray
+        (width, height) (pixels).
+
+    Returns
+    -------
+    ndarray, shape (..., 2)
+        Distorted OpenCV-normalised (u, v).
+    """
     p = np.asarray(pixels, dtype=np.float64)
     x = (p[..., 0] - 0.5 * image_size[0]) * pixel_size[0] - principal_point[0]
     y = (0.5 * image_size[1] - p[..., 1]) * pixel_size[1] - principal_point[1]

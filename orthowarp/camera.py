@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import math
 import numbers
+from typing import TYPE_CHECKING
 
 import numpy as np
 import warp as wp
-from numpy.typing import ArrayLike
 
 from . import brown
 from ._device import quiet_warp, resolve_device, to_host
@@ -15,6 +15,9 @@ from ._validate import finite as _finite
 from ._validate import points as _as_points
 from .errors import GeometryError, ParamError
 from .kernels.camera import FrameCameraData, camera_to_pixel_kernel, pixel_to_camera_kernel
+
+if TYPE_CHECKING:  # annotations only
+    from numpy.typing import ArrayLike
 
 __all__ = ["FrameCamera"]
 
@@ -30,7 +33,7 @@ MAX_IMAGE_SIDE = 2**31 - 1  # pixels: Warp launches index with 32-bit integers
 MAX_DISTORTION = 0.5
 
 
-def _focal_length(value):
+def _focal_length(value: float) -> float:
     """The focal length (mm) as a float: finite, > 0 and at most MAX_FOCAL_LENGTH."""
     f = _finite("focal_length", value)
     if f <= 0.0:
@@ -41,7 +44,7 @@ def _focal_length(value):
     return f
 
 
-def _image_side(name, v):
+def _image_side(name: str, v: float) -> int:
     """A positive integer image dimension (integral floats such as 4000.0 are accepted)."""
     if isinstance(v, (bool, np.bool_)) or not isinstance(v, (numbers.Integral, numbers.Real)):
         raise ParamError(f"{name} must be an integer number of pixels, got {v!r}")
@@ -180,26 +183,51 @@ class FrameCamera:
                                  "normalised coefficients")
         return cls(focal_length, pixel_size, image_size, principal_point=principal_point, **norm)
 
-    def __repr__(self):
+    def __repr__(self) -> str:
         return (f"FrameCamera(focal_length={self.focal_length!r}, pixel_size={self.pixel_size!r}, "
                 f"image_size={self.image_size!r}, principal_point={self.principal_point!r}, "
                 f"k1={self.k1!r}, k2={self.k2!r}, k3={self.k3!r}, p1={self.p1!r}, p2={self.p2!r})")
 
     @property
     def has_distortion(self) -> bool:
+        """True when any of the Brown coefficients k1, k2, k3, p1, p2 is non-zero."""
         return any(v != 0.0 for v in (self.k1, self.k2, self.k3, self.p1, self.p2))
 
     # -- host reference (float64 NumPy) ------------------------------------------------------
     def distort(self, uv: ArrayLike) -> np.ndarray:
-        """Undistorted -> distorted normalised coordinates, (N, 2) -> (N, 2), closed form."""
+        """Undistorted -> distorted normalised coordinates, (N, 2) -> (N, 2), closed form.
+
+        Parameters
+        ----------
+        uv : array_like, shape (N, 2) (or (..., 2))
+            Undistorted OpenCV-normalised (u, v) (dimensionless: image coordinates over f).
+
+        Returns
+        -------
+        ndarray, shape of ``uv``
+            Distorted normalised (ud, vd), float64.
+        """
         return brown.distort(uv, self.k1, self.k2, self.k3, self.p1, self.p2)[0]
 
-    def _jacobian(self, uv):
+    def _jacobian(self, uv: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         j = brown.distort(uv, self.k1, self.k2, self.k3, self.p1, self.p2)[1]
         return j[..., 0, 0], j[..., 0, 1], j[..., 1, 0], j[..., 1, 1]
 
     def undistort(self, uvd: ArrayLike, *, iterations: int = 30) -> np.ndarray:
-        """Distorted -> undistorted normalised coordinates, (N, 2) -> (N, 2), Newton's method."""
+        """Distorted -> undistorted normalised coordinates, (N, 2) -> (N, 2), Newton's method.
+
+        Parameters
+        ----------
+        uvd : array_like, shape (N, 2) (or (..., 2))
+            Distorted OpenCV-normalised (ud, vd).
+        iterations : int, optional
+            Most Newton steps; the iteration stops earlier once every step is below 1e-15.
+
+        Returns
+        -------
+        ndarray, shape of ``uvd``
+            Undistorted normalised (u, v), float64.
+        """
         uvd = np.asarray(uvd, dtype=np.float64)
         uv = uvd.copy()
         for _ in range(iterations):
@@ -214,16 +242,38 @@ class FrameCamera:
         return uv
 
     def pixel_to_normalized(self, pixels: ArrayLike) -> np.ndarray:
-        """Pixel (col, row) (N, 2) -> distorted normalised (u, v) (N, 2)."""
+        """Pixel (col, row) (N, 2) -> distorted normalised (u, v) (N, 2).
+
+        Parameters
+        ----------
+        pixels : array_like, shape (N, 2) (or (..., 2))
+            Pixel (col, row), origin at the top-left corner of the top-left pixel.
+
+        Returns
+        -------
+        ndarray, shape of ``pixels``
+            Distorted OpenCV-normalised (u, v), float64.
+        """
         return brown.pixel_to_normalized(pixels, self.focal_length, self.principal_point, self.pixel_size,
                                          self.image_size)
 
     def normalized_to_pixel(self, uv: ArrayLike) -> np.ndarray:
-        """Distorted normalised (u, v) (N, 2) -> pixel (col, row) (N, 2)."""
+        """Distorted normalised (u, v) (N, 2) -> pixel (col, row) (N, 2).
+
+        Parameters
+        ----------
+        uv : array_like, shape (N, 2) (or (..., 2))
+            Distorted OpenCV-normalised (u, v).
+
+        Returns
+        -------
+        ndarray, shape of ``uv``
+            Pixel (col, row), float64.
+        """
         return brown.normalized_to_pixel(uv, self.focal_length, self.principal_point, self.pixel_size,
                                          self.image_size)
 
-    def _check_plausible(self):
+    def _check_plausible(self) -> None:
         """ParamError for a focal length, pixel pitch or principal point no camera has.
 
         Checks, in this order: the focal length is at most 1 km; a pixel subtends at least
@@ -248,7 +298,7 @@ class FrameCamera:
                 f"{off_axis:.2f} deg off the axis for focal_length {f:g} mm (more than {MAX_OFF_AXIS:g}): "
                 "check that focal_length, pixel_size and principal_point are all in mm")
 
-    def _check_invertible(self):
+    def _check_invertible(self) -> None:
         """Check that distortion is a one-to-one map over the whole image.
 
         The inverse is solved on a grid of distorted points (dense along the border, where
@@ -303,7 +353,13 @@ class FrameCamera:
 
     # -- device --------------------------------------------------------------------------------
     def to_struct(self) -> FrameCameraData:
-        """Pack into :class:`orthowarp.kernels.camera.FrameCameraData`."""
+        """Pack into :class:`orthowarp.kernels.camera.FrameCameraData`.
+
+        Returns
+        -------
+        FrameCameraData
+            The Warp struct (host values: it holds no arrays, so it serves every device).
+        """
         s = FrameCameraData()
         s.focal = self.focal_length
         s.pixel_size = wp.vec2d(*self.pixel_size)
@@ -317,15 +373,41 @@ class FrameCamera:
         """Pixels (N, 2) (col, row) -> unit rays (N, 3) in the camera frame (kernel).
 
         Rows with NaN, or masked in a NumPy masked array, give NaN rays.
+
+        Parameters
+        ----------
+        pixels : array_like, shape (N, 2) or (2,)
+            Pixel (col, row).
+        device : str or warp.context.Device, optional
+            Where the kernel runs (default: the first CUDA device, else the CPU).
+
+        Returns
+        -------
+        ndarray, shape (N, 3)
+            Unit ray directions (x right, y up, z backwards), float64.
         """
         return self._per_row(pixel_to_camera_kernel, _as_points(pixels, 2, "pixels"), wp.vec2d, wp.vec3d, device)
 
     def camera_to_pixel(self, vectors: ArrayLike, *, device: wp.DeviceLike = None) -> np.ndarray:
         """Camera-frame directions (N, 3) -> pixels (N, 2); NaN rows for directions not in front
-        and for rows with NaN or masked in a NumPy masked array."""
+        and for rows with NaN or masked in a NumPy masked array.
+
+        Parameters
+        ----------
+        vectors : array_like, shape (N, 3) or (3,)
+            Camera-frame directions (any length; the camera looks along -z).
+        device : str or warp.context.Device, optional
+            Where the kernel runs (default: the first CUDA device, else the CPU).
+
+        Returns
+        -------
+        ndarray, shape (N, 2)
+            Pixel (col, row), float64.
+        """
         return self._per_row(camera_to_pixel_kernel, _as_points(vectors, 3, "vectors"), wp.vec3d, wp.vec2d, device)
 
-    def _per_row(self, kernel, rows, in_type, out_type, device):
+    def _per_row(self, kernel: wp.Kernel, rows: np.ndarray, in_type: type, out_type: type,
+                 device: wp.DeviceLike) -> np.ndarray:
         """Launch ``kernel`` (camera struct, rows in, rows out) over ``rows`` (N, k) float64;
         NaN output rows where an input row is missing (NaN or masked)."""
         with quiet_warp():

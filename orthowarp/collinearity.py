@@ -16,10 +16,17 @@ image centre, y up), k1, k2, k3, p1, p2 (OpenCV-normalised), and the pixel pitch
 image size (m, 2) in pixels.
 """
 
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from .brown import distort, normalized_to_pixel
 from .geodesy import opk_matrix as rotation
+
+if TYPE_CHECKING:  # annotations only
+    from collections.abc import Sequence
 
 __all__ = ["rotation", "project", "jacobians", "camera_jacobian", "camera_frame_to_pixel", "camera_jacobian_from_frame",
            "CAMERA_COLUMNS", "CALIBRATION"]
@@ -27,7 +34,7 @@ __all__ = ["rotation", "project", "jacobians", "camera_jacobian", "camera_frame_
 CAMERA_COLUMNS = ("f", "x0", "y0", "k1", "k2", "k3", "p1", "p2", "px", "py")
 
 
-def _normalised(xc):
+def _normalised(xc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(u, v) (m, 2) and the camera-frame vector's Jacobian d(u, v)/d(Xc) (m, 2, 3)."""
     x, y, z = xc[:, 0], xc[:, 1], xc[:, 2]
     iz = 1.0 / z
@@ -40,12 +47,29 @@ def _normalised(xc):
     return uv, d
 
 
-def camera_frame_to_pixel(xc, cam, size):
+def camera_frame_to_pixel(xc: np.ndarray, cam: np.ndarray, size: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Camera-frame vectors (m, 3) -> pixels (m, 2) and d pixel / d Xc (m, 2, 3).
 
     The normalised coordinates, Brown distortion and scaling to pixels of one observation
     row of ``cam`` (m, 10) and ``size`` (m, 2) each; points behind the camera (Zc >= 0) are
     not masked here (see :func:`project`).
+
+    Parameters
+    ----------
+    xc : ndarray, shape (m, 3)
+        Camera-frame vectors Xc (m; any length: only the direction matters).
+    cam : ndarray, shape (m, 10)
+        Camera parameters per observation (:data:`CAMERA_COLUMNS`: f, x0, y0 in mm, k1, k2, k3,
+        p1, p2, px, py in mm).
+    size : ndarray, shape (m, 2)
+        Image (width, height) per observation (pixels).
+
+    Returns
+    -------
+    pixels : ndarray, shape (m, 2)
+        Pixel (col, row).
+    d_xc : ndarray, shape (m, 2, 3)
+        d pixel / d Xc (pixels per m).
     """
     uv, duv = _normalised(xc)
     uvd, dd = distort(uv, cam[:, 3], cam[:, 4], cam[:, 5], cam[:, 6], cam[:, 7])
@@ -54,26 +78,58 @@ def camera_frame_to_pixel(xc, cam, size):
     return pix, scale[:, :, None] * np.einsum("nij,njk->nik", dd, duv)
 
 
-def _camera_frame(poses, points):
+def _camera_frame(poses: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """R (m, 3, 3), dR (m, 3, 3, 3), X - X0 (m, 3) and Xc = R^T (X - X0) (m, 3)."""
     r, dr = rotation(poses[:, 3:])
     d = points - poses[:, :3]
     return r, dr, d, np.einsum("nji,nj->ni", r, d)
 
 
-def project(poses, points, cam, size):
+def project(poses: np.ndarray, points: np.ndarray, cam: np.ndarray, size: np.ndarray) -> np.ndarray:
     """Pixels (m, 2) of points (m, 3) seen from poses (m, 6) (X0, Y0, Z0 m; omega, phi, kappa
-    rad) by cameras (m, 10) of image sizes (m, 2); NaN for points behind the camera."""
+    rad) by cameras (m, 10) of image sizes (m, 2); NaN for points behind the camera.
+
+    Parameters
+    ----------
+    poses : ndarray, shape (m, 6)
+        X0, Y0, Z0 (m, object frame) and omega, phi, kappa (rad) per observation.
+    points : ndarray, shape (m, 3)
+        Object-frame points X, Y, Z (m).
+    cam : ndarray, shape (m, 10)
+        Camera parameters per observation (:data:`CAMERA_COLUMNS`).
+    size : ndarray, shape (m, 2)
+        Image (width, height) per observation (pixels).
+
+    Returns
+    -------
+    ndarray, shape (m, 2)
+        Pixel (col, row); NaN rows for points behind the camera.
+    """
     *_, xc = _camera_frame(poses, points)
     pix, _ = camera_frame_to_pixel(xc, cam, size)
     pix[xc[:, 2] >= 0] = np.nan
     return pix
 
 
-def jacobians(poses, points, cam, size):
+def jacobians(poses: np.ndarray, points: np.ndarray, cam: np.ndarray,
+              size: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Pixels (m, 2) and their Jacobians by the pose (m, 2, 6) and by the point (m, 2, 3).
 
     The pose Jacobian's angle columns are per radian.
+
+    Parameters
+    ----------
+    poses, points, cam, size : ndarray
+        As for :func:`project`: (m, 6) (m and rad), (m, 3) (m), (m, 10) and (m, 2) (pixels).
+
+    Returns
+    -------
+    pixels : ndarray, shape (m, 2)
+        Pixel (col, row), not masked behind the camera.
+    j_pose : ndarray, shape (m, 2, 6)
+        d pixel / d (X0, Y0, Z0, omega, phi, kappa): pixels per m, per radian.
+    j_point : ndarray, shape (m, 2, 3)
+        d pixel / d (X, Y, Z) (pixels per m).
     """
     r, dr, d, xc = _camera_frame(poses, points)
     pix, chain = camera_frame_to_pixel(xc, cam, size)
@@ -90,17 +146,46 @@ def jacobians(poses, points, cam, size):
 CALIBRATION = ("f", "x0", "y0", "k1", "k2", "k3", "p1", "p2")
 
 
-def camera_jacobian(poses, points, cam, size, which):
+def camera_jacobian(poses: np.ndarray, points: np.ndarray, cam: np.ndarray, size: np.ndarray,
+                    which: Sequence[str]) -> np.ndarray:
     """Jacobian (m, 2, q) of the pixels by the camera parameters named in ``which`` (a subset
     of :data:`CALIBRATION`; f, x0, y0 in mm, the Brown coefficients as defined on OpenCV
-    normalised coordinates)."""
+    normalised coordinates).
+
+    Parameters
+    ----------
+    poses, points, cam, size : ndarray
+        As for :func:`project`: (m, 6) (m and rad), (m, 3) (m), (m, 10) and (m, 2) (pixels).
+    which : sequence of str, length q
+        Names from :data:`CALIBRATION`, in the order of the Jacobian's columns.
+
+    Returns
+    -------
+    ndarray, shape (m, 2, q)
+        d pixel / d parameter: pixels per mm for f, x0, y0, per unit of each Brown coefficient.
+    """
     *_, xc = _camera_frame(poses, points)
     return camera_jacobian_from_frame(xc, cam, size, which)
 
 
-def camera_jacobian_from_frame(xc, cam, size, which):
+def camera_jacobian_from_frame(xc: np.ndarray, cam: np.ndarray, size: np.ndarray, which: Sequence[str]) -> np.ndarray:
     """:func:`camera_jacobian` of camera-frame vectors Xc (m, 3). The normalised coordinates
-    do not depend on the camera parameters: only the distortion and the scaling to pixels do."""
+    do not depend on the camera parameters: only the distortion and the scaling to pixels do.
+
+    Parameters
+    ----------
+    xc : ndarray, shape (m, 3)
+        Camera-frame vectors Xc = R^T (X - X0) (m).
+    cam, size : ndarray
+        As for :func:`project`: (m, 10) and (m, 2) (pixels).
+    which : sequence of str, length q
+        Names from :data:`CALIBRATION`, in the order of the Jacobian's columns.
+
+    Returns
+    -------
+    ndarray, shape (m, 2, q)
+        As :func:`camera_jacobian`.
+    """
     uv, _ = _normalised(xc)
     uvd, _ = distort(uv, cam[:, 3], cam[:, 4], cam[:, 5], cam[:, 6], cam[:, 7])
     u, v = uv[:, 0], uv[:, 1]

@@ -34,13 +34,13 @@ MAX_HEIGHT = 1e8
 MAX_ANGLE = 360.0
 
 
-def _height(name, h):
+def _height(name: str, h: float) -> float:
     if not MIN_HEIGHT <= h <= MAX_HEIGHT:
         raise ParamError(f"{name} must be within [{MIN_HEIGHT:g}, {MAX_HEIGHT:g}] m for a camera, got {h:g}")
     return h
 
 
-def _angle(name, value):
+def _angle(name: str, value: float) -> float:
     v = finite(name, value)
     if abs(v) > MAX_ANGLE:
         raise ParamError(f"{name} must be within [-{MAX_ANGLE:g}, {MAX_ANGLE:g}] degrees, got {v:g}")
@@ -52,6 +52,26 @@ class Pose:
 
     Build with :meth:`from_ins` (GNSS/INS, geocentric rigorous mode) or :meth:`from_opk`
     (photogrammetric omega-phi-kappa, map-Cartesian mode).
+
+    Parameters
+    ----------
+    mode : {"geocentric", "map"}
+        The object frame: ECEF, or a projected CRS treated as Cartesian.
+    center : array_like, shape (3,)
+        Projection centre in the object frame (m); its ellipsoidal height (geocentric) or z
+        (map) within [-1e5, 1e8] m.
+    rotation : array_like, shape (3, 3)
+        R_object<-camera, a proper rotation matrix.
+    crs : pyproj.CRS, str or int
+        The object frame's CRS, kept as given.
+    params : dict, optional
+        The constructor's arguments (for ``repr`` and reports); the class methods fill it.
+
+    Raises
+    ------
+    ParamError
+        An unknown mode, a centre that is not finite or out of range, a rotation that is not
+        a proper rotation matrix.
 
     Attributes
     ----------
@@ -107,6 +127,16 @@ class Pose:
             ``R_body<-cam = R_boresight R_mount``.
         lever_arm : (float, float, float), optional
             Vector (m) from the navigation reference point to the projection centre, body axes.
+
+        Returns
+        -------
+        Pose
+            Mode "geocentric": centre in ECEF (m), R_ecef<-camera, crs EPSG:4978.
+
+        Raises
+        ------
+        ParamError
+            A value is not finite or out of the ranges above.
         """
         lat, lon, h = finite("lat", lat), finite("lon", lon), _height("h", finite("h", h))
         roll, pitch, yaw = _angle("roll", roll), _angle("pitch", pitch), _angle("yaw", yaw)
@@ -142,6 +172,18 @@ class Pose:
             to object vectors.
         crs : str, int or pyproj.CRS
             A projected CRS, treated as Cartesian.
+
+        Returns
+        -------
+        Pose
+            Mode "map": centre (x, y, z) in ``crs`` (m), R_object<-camera, crs a pyproj CRS.
+
+        Raises
+        ------
+        ParamError
+            A value is not finite or out of the ranges above.
+        CrsError
+            ``crs`` is unknown or not projected.
         """
         vals = [finite("x", x), finite("y", y), _height("z", finite("z", z)),
                 _angle("omega", omega), _angle("phi", phi), _angle("kappa", kappa)]
@@ -152,7 +194,7 @@ class Pose:
         params = dict(zip(("x", "y", "z", "omega", "phi", "kappa"), vals))
         return cls(MAP, vals[:3], rot, crs, params=params)
 
-    def __repr__(self):
+    def __repr__(self) -> str:
         args = ", ".join(f"{k}={v!r}" for k, v in self.params.items())
         return f"Pose({self.mode}: {args})"
 
@@ -178,7 +220,13 @@ class Pose:
         return self.center_geodetic[2] if self.mode == GEOCENTRIC else float(self.center[2])
 
     def to_struct(self) -> FramePoseData:
-        """Pack into :class:`orthowarp.kernels.ray.FramePoseData`."""
+        """Pack into :class:`orthowarp.kernels.ray.FramePoseData`.
+
+        Returns
+        -------
+        FramePoseData
+            The Warp struct (host values: it holds no arrays, so it serves every device).
+        """
         s = FramePoseData()
         s.mode = 0 if self.mode == GEOCENTRIC else 1
         s.center = wp.vec3d(*self.center)

@@ -34,7 +34,6 @@ from .sensor import GeocentricPositions, SensorKernels, SensorModel, generic_ker
 if TYPE_CHECKING:  # annotations only: Warp is imported where a scene is packed for a device
     import warp as wp
     from numpy.typing import ArrayLike
-
     from pyproj import CRS
 
     from .kernels.pushbroom import PushbroomData
@@ -61,7 +60,7 @@ MIN_LINE_PERIOD = 1e-6
 MAX_LINE_PERIOD = 1.0
 
 
-def _count(name, value, bound, what):
+def _count(name: str, value: Any, bound: int, what: str) -> int:
     """A whole number in 1..bound, or ParamError saying what is wrong (never truncated)."""
     if isinstance(value, (bool, np.bool_)):
         raise ParamError(f"{name} must be a whole number, got {value!r}")
@@ -82,9 +81,27 @@ def _count(name, value, bound, what):
     return v
 
 
-def check_line_period(value, name="line_period"):
+def check_line_period(value: Any, name: str = "line_period") -> float:
     """``value`` (s) as a float if finite and within [MIN_LINE_PERIOD, MAX_LINE_PERIOD], else
-    ParamError saying so."""
+    ParamError saying so.
+
+    Parameters
+    ----------
+    value : float
+        A line period (s).
+    name : str, optional
+        The argument's name, for the message.
+
+    Returns
+    -------
+    float
+        The line period (s).
+
+    Raises
+    ------
+    ParamError
+        Not a number, not finite, or outside [:data:`MIN_LINE_PERIOD`, :data:`MAX_LINE_PERIOD`].
+    """
     try:
         v = float(value)
     except (TypeError, ValueError) as e:
@@ -95,7 +112,7 @@ def check_line_period(value, name="line_period"):
     return v
 
 
-def _array(name, value, shape):
+def _array(name: str, value: ArrayLike, shape: tuple[int | None, ...]) -> np.ndarray:
     """A finite float64 array of the given shape (None: any length), or ParamError naming it."""
     try:
         arr = np.asarray(value, dtype=np.float64)
@@ -109,25 +126,29 @@ def _array(name, value, shape):
     return arr
 
 
-def _poly(c, t):
+def _poly(c: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Evaluate (3, 3) [axis][power] coefficients at times t (n,) -> (n, 3)."""
     return c[None, :, 0] + t[:, None] * c[None, :, 1] + (t * t)[:, None] * c[None, :, 2]
 
 
-def lagrange(t, times, values, order=8):
+def lagrange(t: ArrayLike, times: np.ndarray, values: np.ndarray, order: int = 8) -> np.ndarray:
     """Lagrange interpolation with the ``order`` samples around each time.
 
     Parameters
     ----------
-    t : ndarray, shape (n,)
+    t : array_like, shape (n,) or scalar
         Times (s), within ``times``' span.
     times : ndarray, shape (m,)
-        Sample times, increasing.
+        Sample times (s), increasing, m >= ``order``.
     values : ndarray, shape (m, k)
+        Samples (any unit) at ``times``.
+    order : int, optional
+        Samples per interpolation (the polynomial's degree plus one).
 
     Returns
     -------
     ndarray, shape (n, k)
+        Interpolated values, in the unit of ``values``.
     """
     t = np.atleast_1d(np.asarray(t, dtype=np.float64))
     m = len(times)
@@ -144,14 +165,27 @@ def lagrange(t, times, values, order=8):
     return out
 
 
-def attitude_matrix(yaw, pitch, roll, *, first_order=False):
+def attitude_matrix(yaw: ArrayLike, pitch: ArrayLike, roll: ArrayLike, *, first_order: bool = False) -> np.ndarray:
     """M = Mp Mr My (handbook eq. 11) for arrays of angles (rad) -> (n, 3, 3).
 
     With ``first_order``, the handbook's linearisation (angles to first order), which is what
     [P1]'s eq. 4 stands for: with the roll and pitch signs the DIMAP angles need (the rows
     above, the full matrix's first-order terms). [P1]'s eq. 4 as printed, fed the DIMAP
     angles, moves ground points by ~1.9 km at the SPOT-5 sample scene; the seed's text says to
-    negate roll and pitch, which gives this form."""
+    negate roll and pitch, which gives this form.
+
+    Parameters
+    ----------
+    yaw, pitch, roll : array_like, shape (n,) or scalar
+        Attitude angles (rad), as the DIMAP metadata give them.
+    first_order : bool, optional
+        The linearised matrix instead of the full product.
+
+    Returns
+    -------
+    ndarray, shape (n, 3, 3)
+        M, mapping navigation-frame look vectors to the orbital frame (dimensionless).
+    """
     y, p, r = (np.atleast_1d(np.asarray(a, dtype=np.float64)) for a in (yaw, pitch, roll))
     if first_order:
         one, zero = np.ones_like(y), np.zeros_like(y)
@@ -164,9 +198,25 @@ def attitude_matrix(yaw, pitch, roll, *, first_order=False):
     return np.stack([np.stack(row, -1) for row in rows], -2)
 
 
-def ellipsoid_distance(p, d, h):
+def ellipsoid_distance(p: np.ndarray, d: np.ndarray, h: float | np.ndarray) -> np.ndarray:
     """Distance (m) along unit rays (p, d) (n, 3) to the ellipsoid of semi-axes a + h, b + h;
-    NaN where a ray misses."""
+    NaN where a ray misses.
+
+    Parameters
+    ----------
+    p : ndarray, shape (n, 3)
+        Ray origins, ECEF (m), outside the ellipsoid.
+    d : ndarray, shape (n, 3)
+        Unit ray directions, ECEF.
+    h : float or ndarray, shape (n,)
+        Height (m) added to both semi-axes of WGS84.
+
+    Returns
+    -------
+    ndarray, shape (n,)
+        Distance (m) from ``p`` to the first intersection; NaN where the ray misses or points
+        away.
+    """
     ia, ib = 1.0 / (WGS84_A + h), 1.0 / (WGS84_B + h)
     scale = np.stack(np.broadcast_arrays(ia, ia, ib), -1)
     cs, ds = p * scale, d * scale
@@ -215,6 +265,8 @@ class PushbroomScene(SensorModel):
     attitude_extrapolation : float, optional
         Seconds the attitudes may be extrapolated past their first/last sample (default 0.5:
         level-1A files start the attitudes a few lines after the first line).
+    source : str, optional
+        The metadata file the scene comes from (informative, for messages).
     polynomials : array_like, shape (3, 3, 3), optional
         [P1]'s exterior orientation as 2nd-degree polynomials in line time t (s):
         ``[quantity][axis][power]`` for quantity position (m), velocity (m/s), attitude (yaw,
@@ -223,6 +275,17 @@ class PushbroomScene(SensorModel):
         :meth:`parameters` (named as :data:`POLYNOMIAL_PARAMETERS`: ``position_x_0`` ..
         ``attitude_roll_2``; units m, m/s, rad per s to the power). (No adjustment of them
         exists yet: [P1]'s Gauss-Helmert bundle adjustment of these groups is planned work.)
+
+    Raises
+    ------
+    ParamError
+        An argument is missing its shape, not finite or out of range (sizes over
+        :data:`MAX_DETECTORS` / :data:`MAX_LINES`, a line period outside
+        [:data:`MIN_LINE_PERIOD`, :data:`MAX_LINE_PERIOD`], fewer than 8 ephemeris points or 2
+        attitudes, times not increasing, an unknown attitude model).
+    GeometryError
+        The scene's line times fall outside its ephemeris or its attitudes (beyond
+        ``attitude_extrapolation``).
     """
 
     kind = "pushbroom"
@@ -270,14 +333,29 @@ class PushbroomScene(SensorModel):
     @classmethod
     def from_metadata(cls, m: Any, *, attitude_model: str = "full") -> PushbroomScene:
         """The scene of parsed level-1A metadata (a
-        :class:`~orthowarp.pipeline.dimap.DimapMetadata`; files are read by
-        :func:`orthowarp.read_scene`)."""
+        :class:`~orthowarp.pipeline.formats.dimap.DimapMetadata`; files are read by
+        :func:`orthowarp.read_scene`).
+
+        Parameters
+        ----------
+        m : DimapMetadata
+            Any object with the attributes ``ncols``, ``nrows``, ``line_period``,
+            ``center_line``, ``eph_time``, ``eph_position``, ``eph_velocity``, ``att_time``,
+            ``att_angles``, ``psi_x``, ``psi_y``, ``epoch`` and ``path`` (units as the
+            constructor's arguments).
+        attitude_model : {"full", "first_order"}, optional
+            As for the constructor.
+
+        Returns
+        -------
+        PushbroomScene
+        """
         return cls(width=m.ncols, height=m.nrows, line_period=m.line_period, center_line=m.center_line,
                    eph_time=m.eph_time, eph_position=m.eph_position, eph_velocity=m.eph_velocity,
                    att_time=m.att_time, att_angles=m.att_angles, psi_x=m.psi_x, psi_y=m.psi_y,
                    attitude_model=attitude_model, epoch=m.epoch, source=m.path)
 
-    def __repr__(self):
+    def __repr__(self) -> str:
         return (f"PushbroomScene({self.width} x {self.height}, line period {self.line_period:.6g} s, "
                 f"{len(self.eph_time)} ephemeris points, {len(self.att_time)} attitudes, {self.attitude_model})")
 
@@ -296,22 +374,40 @@ class PushbroomScene(SensorModel):
         return as_crs("EPSG:4979")
 
     def reference_height(self) -> float:
+        """The satellite's mean ellipsoidal height over the scene (m): :meth:`mean_height`."""
         return self.mean_height()
 
     @property
     def kernels(self) -> SensorKernels:
+        """The generic kernels (:func:`orthowarp.sensor.generic_kernels`)."""
         return generic_kernels()
 
-    def _pack(self, device):
+    def _pack(self, device: wp.Device) -> PushbroomData:
         return self.to_struct(device)
 
     def project(self, xyz: ArrayLike) -> np.ndarray:
         """ECEF points (N, 3) -> pixels (N, 2), float64, without refraction (see
-        :meth:`project_ecef`)."""
+        :meth:`project_ecef`).
+
+        Parameters
+        ----------
+        xyz : array_like, shape (N, 3)
+            ECEF points (m).
+
+        Returns
+        -------
+        ndarray, shape (N, 2)
+            Pixel (col, row); NaN rows where the line-time iteration does not converge.
+        """
         return self.project_ecef(xyz)
 
     def parameters(self) -> dict[str, float]:
         """The 27 exterior-orientation coefficients by name (:data:`POLYNOMIAL_PARAMETERS`).
+
+        Returns
+        -------
+        dict of str to float
+            ``position_x_0`` .. ``attitude_roll_2``: m, m/s and rad per second to the power.
 
         Raises
         ------
@@ -325,6 +421,23 @@ class PushbroomScene(SensorModel):
         return dict(zip(POLYNOMIAL_PARAMETERS, map(float, self.polynomials.ravel())))
 
     def with_parameters(self, **values: float) -> PushbroomScene:
+        """This scene with the named polynomial coefficients changed.
+
+        Parameters
+        ----------
+        **values : float
+            New values by name (:data:`POLYNOMIAL_PARAMETERS`, in their units).
+
+        Returns
+        -------
+        PushbroomScene
+            A new scene; this one is unchanged.
+
+        Raises
+        ------
+        ParamError
+            An unknown name, or a scene without polynomials (see :meth:`parameters`).
+        """
         self._check_names(values)
         poly = self.polynomials.copy()
         for name, v in values.items():
@@ -338,6 +451,28 @@ class PushbroomScene(SensorModel):
         Central differences of the float64 projection (steps: 0.5 m for the point; 1 m,
         1 mm/s and 0.1 microradian over the scene's half duration to the power for the
         coefficients), the line-time iteration converged to 1e-9 lines.
+
+        Parameters
+        ----------
+        xyz : array_like, shape (N, 3)
+            ECEF points (m).
+        wrt : tuple of str, optional
+            Names from :data:`POLYNOMIAL_PARAMETERS` (length q), in the order of ``d_params``'
+            columns.
+
+        Returns
+        -------
+        pixels : ndarray, shape (N, 2)
+            Pixel (col, row), as :meth:`project`.
+        d_params : ndarray, shape (N, 2, q)
+            By the named coefficients (pixels per unit of each).
+        d_point : ndarray, shape (N, 2, 3)
+            By the ECEF point (pixels per m).
+
+        Raises
+        ------
+        ParamError
+            The scene has no polynomials (see :meth:`parameters`) and ``wrt`` names some.
         """
         xyz = _array("xyz", xyz, (None, 3))
         wrt = POLYNOMIAL_PARAMETERS if wrt is None else tuple(wrt)
@@ -362,15 +497,37 @@ class PushbroomScene(SensorModel):
         return pix, out, j_point
 
     def line_time(self, row: ArrayLike) -> np.ndarray:
-        """Seconds from the scene-centre time of the (continuous) row coordinate."""
+        """Seconds from the scene-centre time of the (continuous) row coordinate.
+
+        Parameters
+        ----------
+        row : array_like
+            Row coordinates (pixels, top edge of the image at 0).
+
+        Returns
+        -------
+        ndarray, shape of ``row``
+            Line times t (s from the scene-centre time).
+        """
         return (np.asarray(row, dtype=np.float64) + 0.5 - self.center_line) * self.line_period
 
     def line_row(self, t: ArrayLike) -> np.ndarray:
         """The (continuous) row coordinate of line time ``t`` (s from the scene-centre time):
-        the inverse of :meth:`line_time`."""
+        the inverse of :meth:`line_time`.
+
+        Parameters
+        ----------
+        t : array_like
+            Line times (s from the scene-centre time).
+
+        Returns
+        -------
+        ndarray, shape of ``t``
+            Row coordinates (pixels).
+        """
         return np.asarray(t, dtype=np.float64) / self.line_period + self.center_line - 0.5
 
-    def _check_times(self, t):
+    def _check_times(self, t: np.ndarray) -> None:
         if np.any((t < self.eph_time[0]) | (t > self.eph_time[-1])):
             raise GeometryError(f"line times {t.min():.3f}..{t.max():.3f} s fall outside the ephemeris "
                                 f"({self.eph_time[0]:.3f}..{self.eph_time[-1]:.3f} s)")
@@ -380,7 +537,26 @@ class PushbroomScene(SensorModel):
                                 f"({self.att_time[0]:.3f}..{self.att_time[-1]:.3f} s, +-{e} s)")
 
     def orbit(self, t: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
-        """Position and velocity (n, 3) (ECEF, m and m/s) at times t (s)."""
+        """Position and velocity (n, 3) (ECEF, m and m/s) at times t (s).
+
+        Parameters
+        ----------
+        t : array_like, shape (n,) or scalar
+            Line times (s from the scene-centre time).
+
+        Returns
+        -------
+        position : ndarray, shape (n, 3)
+            ECEF (m).
+        velocity : ndarray, shape (n, 3)
+            ECEF (m/s).
+
+        Raises
+        ------
+        GeometryError
+            A time falls outside the ephemeris or the attitudes (beyond
+            ``attitude_extrapolation``).
+        """
         t = np.atleast_1d(np.asarray(t, dtype=np.float64))
         self._check_times(t)
         if self.polynomials is not None:
@@ -388,7 +564,18 @@ class PushbroomScene(SensorModel):
         return lagrange(t, self.eph_time, self.eph_position), lagrange(t, self.eph_time, self.eph_velocity)
 
     def attitude(self, t: ArrayLike) -> np.ndarray:
-        """Yaw, pitch, roll (n, 3) (rad), linear in time (extrapolated past the ends)."""
+        """Yaw, pitch, roll (n, 3) (rad), linear in time (extrapolated past the ends).
+
+        Parameters
+        ----------
+        t : array_like, shape (n,) or scalar
+            Line times (s from the scene-centre time).
+
+        Returns
+        -------
+        ndarray, shape (n, 3)
+            Yaw, pitch, roll (rad).
+        """
         t = np.atleast_1d(np.asarray(t, dtype=np.float64))
         if self.polynomials is not None:
             return _poly(self.polynomials[2], t)
@@ -398,14 +585,39 @@ class PushbroomScene(SensorModel):
         return (1 - w) * a[i] + w * a[i + 1]
 
     def look_vector(self, col: ArrayLike) -> np.ndarray:
-        """Unit look vectors u1 (n, 3) of (continuous) column coordinates, navigation frame."""
+        """Unit look vectors u1 (n, 3) of (continuous) column coordinates, navigation frame.
+
+        Parameters
+        ----------
+        col : array_like, shape (n,)
+            Column coordinates (pixels; detector number ``col + 0.5``).
+
+        Returns
+        -------
+        ndarray, shape (n, 3)
+            ``normalize(-tan psi_y, tan psi_x, -1)``.
+        """
         det = np.asarray(col, dtype=np.float64) + 0.5  # 1-based detector number
         px, py = self._psi_at(self.psi_x, det), self._psi_at(self.psi_y, det)
         u = np.stack([-np.tan(py), np.tan(px), -np.ones_like(px)], -1)
         return u / np.linalg.norm(u, axis=-1, keepdims=True)
 
     def orbital_frame(self, p: ArrayLike, v: ArrayLike) -> np.ndarray:
-        """Columns X2, Y2, Z2 of the orbital frame at positions/velocities (n, 3) -> (n, 3, 3)."""
+        """Columns X2, Y2, Z2 of the orbital frame at positions/velocities (n, 3) -> (n, 3, 3).
+
+        Parameters
+        ----------
+        p : array_like, shape (n, 3)
+            Satellite positions, ECEF (m).
+        v : array_like, shape (n, 3)
+            Satellite velocities, ECEF (m/s).
+
+        Returns
+        -------
+        ndarray, shape (n, 3, 3)
+            Unit columns ``Z2 = P/|P|``, ``X2 = (V x Z2)/|V x Z2|``, ``Y2 = Z2 x X2`` (as
+            [X2 Y2 Z2]).
+        """
         z2 = p / np.linalg.norm(p, axis=-1, keepdims=True)
         x2 = np.cross(v, z2)
         x2 /= np.linalg.norm(x2, axis=-1, keepdims=True)
@@ -413,7 +625,20 @@ class PushbroomScene(SensorModel):
         return np.stack([x2, y2, z2], -1)
 
     def rays(self, pixels: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
-        """Satellite positions and unit look directions (ECEF) of pixels (n, 2) (col, row)."""
+        """Satellite positions and unit look directions (ECEF) of pixels (n, 2) (col, row).
+
+        Parameters
+        ----------
+        pixels : array_like, shape (n, 2)
+            Pixel (col, row).
+
+        Returns
+        -------
+        positions : ndarray, shape (n, 3)
+            Satellite positions at the pixels' line times, ECEF (m).
+        directions : ndarray, shape (n, 3)
+            Unit look directions, ECEF.
+        """
         pixels = _array("pixels", pixels, (None, 2))
         t = self.line_time(pixels[:, 1])
         p, v = self.orbit(t)
@@ -426,7 +651,20 @@ class PushbroomScene(SensorModel):
     def geolocate_ellipsoid(self, pixels: ArrayLike, h: float = 0.0) -> np.ndarray:
         """Ground points (n, 3) (lon, lat in degrees, h in m) of pixels (n, 2) on the surface
         of ellipsoidal height h: the closed form on the ellipsoid of semi-axes a + h, b + h,
-        then a Newton correction along the ray to the exact geodetic height."""
+        then a Newton correction along the ray to the exact geodetic height.
+
+        Parameters
+        ----------
+        pixels : array_like, shape (n, 2)
+            Pixel (col, row).
+        h : float or array_like, shape (n,), optional
+            Ellipsoidal height (m) of the surface.
+
+        Returns
+        -------
+        ndarray, shape (n, 3)
+            Longitude, latitude (deg) and ellipsoidal height (m); NaN rows for rays that miss.
+        """
         p, d = self.rays(pixels)
         h = np.broadcast_to(np.asarray(h, dtype=np.float64), (len(p),))
         s = ellipsoid_distance(p, d, h)
@@ -442,7 +680,18 @@ class PushbroomScene(SensorModel):
     # -- packing and the backward reference --------------------------------------------------
 
     def to_struct(self, device: wp.DeviceLike) -> PushbroomData:
-        """Pack into :class:`orthowarp.kernels.pushbroom.PushbroomData` on a Warp device."""
+        """Pack into :class:`orthowarp.kernels.pushbroom.PushbroomData` on a Warp device.
+
+        Parameters
+        ----------
+        device : str or warp.context.Device
+            Where the struct's arrays (ephemeris, attitudes, look vectors, line table) go.
+
+        Returns
+        -------
+        PushbroomData
+            The Warp struct the kernels read.
+        """
         import warp as wp
 
         from .kernels.pushbroom import PushbroomData
@@ -472,7 +721,22 @@ class PushbroomScene(SensorModel):
     def line_table(self, margin: int = 256) -> tuple[np.ndarray, np.ndarray, float]:
         """Satellite positions (n, 3) and rotations R = [X2 Y2 Z2] M (n, 3, 3) at the line
         centres of the scene and ``margin`` lines each side, as far as the ephemeris and the
-        attitudes reach, and the row coordinate of the first (see the kernels' PushbroomData)."""
+        attitudes reach, and the row coordinate of the first (see the kernels' PushbroomData).
+
+        Parameters
+        ----------
+        margin : int, optional
+            Lines tabulated beyond each end of the scene.
+
+        Returns
+        -------
+        positions : ndarray, shape (n, 3)
+            ECEF (m); shape (0, 3) when fewer than two lines are covered.
+        rotations : ndarray, shape (n, 3, 3)
+            Navigation frame -> ECEF.
+        row0 : float
+            Row coordinate of the first line (its centre).
+        """
         rows = np.arange(-margin, self.height + margin) + 0.5
         t = self.line_time(rows)
         e = self.attitude_extrapolation
@@ -487,7 +751,7 @@ class PushbroomScene(SensorModel):
         m = attitude_matrix(ypr[:, 0], ypr[:, 1], ypr[:, 2], first_order=self.attitude_model == "first_order")
         return p, self.orbital_frame(p, v) @ m, float(rows[0])
 
-    def _psi_at(self, values, det):
+    def _psi_at(self, values: np.ndarray, det: ArrayLike) -> np.ndarray:
         """A look angle (psi_x or psi_y, (width,)) at fractional 1-based detector numbers:
         linear between detectors, and extended linearly past the first and last (as the
         kernels do)."""
@@ -503,11 +767,16 @@ class PushbroomScene(SensorModel):
         polynomials in line time, by least squares over the scene's lines (the metadata's
         interpolated orbit and attitudes, ``samples`` lines evenly spread).
 
+        Parameters
+        ----------
+        samples : int, optional
+            Lines sampled, evenly from the first line's top to the last line's bottom.
+
         Returns
         -------
         coefficients : ndarray, shape (3, 3, 3)
             [position | velocity | attitude][axis][power of t].
-        rms : dict
+        rms : dict of str to float
             Fit residual RMS of position (m), velocity (m/s) and attitude (rad).
         """
         t = self.line_time(np.linspace(0.0, self.height, samples))
@@ -523,7 +792,18 @@ class PushbroomScene(SensorModel):
 
     def replace(self, **changes: Any) -> PushbroomScene:
         """This scene with some of its constructor arguments changed (checked as in the
-        constructor)."""
+        constructor).
+
+        Parameters
+        ----------
+        **changes
+            Constructor arguments by name.
+
+        Returns
+        -------
+        PushbroomScene
+            A new scene; this one is unchanged.
+        """
         args = dict(width=self.width, height=self.height, line_period=self.line_period, center_line=self.center_line,
                     eph_time=self.eph_time, eph_position=self.eph_position, eph_velocity=self.eph_velocity,
                     att_time=self.att_time, att_angles=self.att_angles, psi_x=self.psi_x, psi_y=self.psi_y,
@@ -534,16 +814,33 @@ class PushbroomScene(SensorModel):
         return PushbroomScene(**args)
 
     def with_polynomials(self, coefficients: ArrayLike) -> PushbroomScene:
-        """This scene with its exterior orientation given by 27 polynomial coefficients."""
+        """This scene with its exterior orientation given by 27 polynomial coefficients.
+
+        Parameters
+        ----------
+        coefficients : array_like, shape (3, 3, 3)
+            [position | velocity | attitude][axis][power of t] (m, m/s, rad; per second to the
+            power), as :meth:`fit_polynomials` returns them.
+
+        Returns
+        -------
+        PushbroomScene
+        """
         return self.replace(polynomials=coefficients)
 
     def mean_height(self) -> float:
-        """Mean ellipsoidal height (m) of the satellite over the scene."""
+        """Mean ellipsoidal height (m) of the satellite over the scene (9 lines evenly spread).
+
+        Returns
+        -------
+        float
+            m.
+        """
         t = self.line_time(np.linspace(0, self.height, 9))
         p, _ = self.orbit(t)
         return float(np.mean(ecef_to_geodetic(p)[2]))
 
-    def _orbit_any(self, t):
+    def _orbit_any(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Position and velocity without the span check (the iteration may pass outside)."""
         if self.polynomials is not None:
             return _poly(self.polynomials[0], t), _poly(self.polynomials[1], t)
@@ -555,13 +852,30 @@ class PushbroomScene(SensorModel):
         iteration of the kernels in float64 NumPy (the reference they are checked against).
 
         The line time t solves tan psi_x(q(t)) = tan psi_x(column(q(t))) where q(t) is the
-        direction to the point in the instrument frame at t; ``tol`` is in lines."""
+        direction to the point in the instrument frame at t; ``tol`` is in lines.
+
+        Parameters
+        ----------
+        xyz : array_like, shape (n, 3)
+            ECEF points (m).
+        t0 : array_like, shape (n,), optional
+            First guesses of the line times (s; default 0, the scene centre).
+        tol : float, optional
+            Convergence tolerance (lines).
+        max_iter : int, optional
+            Most secant steps.
+
+        Returns
+        -------
+        ndarray, shape (n, 2)
+            Pixel (col, row); NaN rows where the iteration did not converge.
+        """
         xyz = _array("xyz", xyz, (None, 3))
         n = len(xyz)
         ids = np.arange(1, self.width + 1, dtype=np.float64)
         order = np.argsort(self.psi_y)
 
-        def residual(t):
+        def residual(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             ok = (t >= self.eph_time[0]) & (t <= self.eph_time[-1])
             tt = np.where(ok, t, 0.0)
             p, v = self._orbit_any(tt)
@@ -605,8 +919,9 @@ GM = 3.986004418e14  # m^3/s^2, WGS84
 OMEGA_E = 7.292115e-5  # rad/s, WGS84
 
 
-def synthetic_scene(*, width=12000, height=12000, gsd=5.0, altitude=832e3, view_angle=0.0, lat=44.0, lon=5.0,
-                    inclination=98.7, yaw=1.0e-3, pitch=-5.0e-4, smile=1.0e-4):
+def synthetic_scene(*, width: int = 12000, height: int = 12000, gsd: float = 5.0, altitude: float = 832e3,
+                    view_angle: float = 0.0, lat: float = 44.0, lon: float = 5.0, inclination: float = 98.7,
+                    yaw: float = 1.0e-3, pitch: float = -5.0e-4, smile: float = 1.0e-4) -> PushbroomScene:
     """A SPOT-like scene with known geometry, for tests and benchmarks.
 
     A circular orbit (``altitude`` above the equatorial radius, ``inclination`` deg) whose
@@ -615,6 +930,25 @@ def synthetic_scene(*, width=12000, height=12000, gsd=5.0, altitude=832e3, view_
     small constant yaw and pitch plus a slow drift); a linear array of ``width`` detectors of
     ``gsd`` m at nadir, its along-track look angle bent by ``smile`` rad at the ends; the line
     period gives ``gsd`` m along the track.
+
+    Parameters
+    ----------
+    width, height : int, optional
+        Detectors per line and lines.
+    gsd : float, optional
+        Ground sample distance at nadir (m), across and along the track.
+    altitude : float, optional
+        Orbit radius less the equatorial radius (m).
+    view_angle : float, optional
+        Roll across the track (deg).
+    lat, lon : float, optional
+        Sub-satellite point at t = 0 (deg).
+    inclination : float, optional
+        Orbit inclination (deg).
+    yaw, pitch : float, optional
+        Constant attitude offsets (rad), plus a drift of 2e-6 rad/s.
+    smile : float, optional
+        Along-track look angle (rad) of the end detectors (quadratic across the array).
 
     Returns
     -------
@@ -632,7 +966,7 @@ def synthetic_scene(*, width=12000, height=12000, gsd=5.0, altitude=832e3, view_
     half = 0.5 * height * line_period
     t_eph = np.arange(-np.ceil((half + 40) / 10) * 10, half + 50, 10.0)
 
-    def state(t):
+    def state(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         u = u0 + n * t
         p_in = r * (np.cos(u)[:, None] * e1 + np.sin(u)[:, None] * e2)
         v_in = r * n * (-np.sin(u)[:, None] * e1 + np.cos(u)[:, None] * e2)

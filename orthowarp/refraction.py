@@ -15,11 +15,18 @@ reaches ellipsoidal height h. The ASPRS closed form (Manual of Photogrammetry) i
 cross-check.
 """
 
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
 import numpy as np
 import warp as wp
 
 from .errors import GeometryError, ParamError
 from .kernels.refraction import RefractionTable
+
+if TYPE_CHECKING:  # annotations only
+    from numpy.typing import ArrayLike
 
 __all__ = [
     "standard_atmosphere",
@@ -41,7 +48,7 @@ _TOP = 86000.0  # geometric altitude above which the index is taken as 1
 LOWEST_LAYER = -2000.0  # m: the layered atmosphere's floor (below the lowest land, -430 m)
 
 
-def _layer_base_pressures():
+def _layer_base_pressures() -> np.ndarray:
     p = [101325.0]
     for (hb, tb, lr), (hn, _, _) in zip(_LAYERS[:-1], _LAYERS[1:]):
         dh = hn - hb
@@ -58,13 +65,20 @@ _TB = np.array([la[1] for la in _LAYERS])
 _LR = np.array([la[2] for la in _LAYERS])
 
 
-def standard_atmosphere(z):
+def standard_atmosphere(z: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
     """Pressure (Pa) and temperature (K) of the U.S. Standard Atmosphere 1976.
 
     Parameters
     ----------
     z : array_like
         Geometric altitude above sea level (m); the lowest layer extends below 0.
+
+    Returns
+    -------
+    pressure : ndarray, shape of ``z``
+        Pa.
+    temperature : ndarray, shape of ``z``
+        K.
     """
     z = np.asarray(z, dtype=np.float64)
     hgp = _R0 * z / (_R0 + z)
@@ -77,14 +91,25 @@ def standard_atmosphere(z):
     return np.where(lr == 0.0, p_iso, p_grad), t
 
 
-def refractive_index(z):
-    """Refractive index n of dry air at geometric altitude z (m), 1 above 86 km."""
+def refractive_index(z: ArrayLike) -> np.ndarray:
+    """Refractive index n of dry air at geometric altitude z (m), 1 above 86 km.
+
+    Parameters
+    ----------
+    z : array_like
+        Geometric altitude above sea level (m).
+
+    Returns
+    -------
+    ndarray, shape of ``z``
+        n = 1 + 77.6e-6 P / T (P in hPa, T in K) of the standard atmosphere, dimensionless.
+    """
     p, t = standard_atmosphere(z)
     n = 1.0 + 77.6e-6 * (p / 100.0) / t
     return np.where(np.asarray(z) >= _TOP, 1.0, n)
 
 
-def _boundaries(top):
+def _boundaries(top: float) -> np.ndarray:
     """Layer boundaries (descending, m) from ``top`` down to -2 km."""
     b = np.concatenate([np.arange(LOWEST_LAYER, 20000.0, 50.0), np.arange(20000.0, 50000.0, 250.0),
                         np.arange(50000.0, _TOP, 1000.0), [_TOP]])
@@ -92,7 +117,8 @@ def _boundaries(top):
     return np.concatenate([[top], b[::-1]])
 
 
-def trace_delta(theta, sensor_height, ground_height, *, radius=EARTH_RADIUS):
+def trace_delta(theta: ArrayLike, sensor_height: float, ground_height: ArrayLike, *,
+                radius: float = EARTH_RADIUS) -> np.ndarray:
     """Refraction angle delta (rad) by tracing through spherical layers.
 
     Parameters
@@ -109,9 +135,14 @@ def trace_delta(theta, sensor_height, ground_height, *, radius=EARTH_RADIUS):
 
     Returns
     -------
-    ndarray
+    ndarray, the broadcast shape of ``theta`` and ``ground_height``
         delta = theta - (nadir angle of the chord from the sensor to the stopped point), rad;
         NaN where the ray never descends to ``ground_height``.
+
+    Raises
+    ------
+    ParamError
+        A ground height is not below the sensor.
     """
     theta, hg = np.broadcast_arrays(np.asarray(theta, dtype=np.float64),
                                     np.asarray(ground_height, dtype=np.float64))
@@ -143,11 +174,25 @@ def trace_delta(theta, sensor_height, ground_height, *, radius=EARTH_RADIUS):
     return theta - chord.reshape(theta.shape)
 
 
-def asprs_delta(theta, sensor_height, ground_height=0.0):
+def asprs_delta(theta: ArrayLike, sensor_height: ArrayLike, ground_height: ArrayLike = 0.0) -> np.ndarray:
     """ASPRS closed form of the refraction angle (rad): ``K tan(theta)``.
 
     ``K = 2410 H / (H^2 - 6 H + 250) - 2410 h^2 / ((h^2 - 6 h + 250) H)`` microradians with
     H and h in km (Manual of Photogrammetry); valid for aircraft heights.
+
+    Parameters
+    ----------
+    theta : array_like
+        Apparent nadir angle of the ray at the sensor (rad).
+    sensor_height : array_like
+        Sensor height H (m) above sea level.
+    ground_height : array_like, optional
+        Ground height h (m) above sea level.
+
+    Returns
+    -------
+    ndarray, the broadcast shape of the arguments
+        Refraction angle delta (rad).
     """
     big_h = np.asarray(sensor_height, dtype=np.float64) / 1000.0
     h = np.asarray(ground_height, dtype=np.float64) / 1000.0
@@ -155,10 +200,24 @@ def asprs_delta(theta, sensor_height, ground_height=0.0):
     return 1e-6 * k * np.tan(theta)
 
 
-def saastamoinen_delta(theta, sensor_height, ground_height=0.0):
+def saastamoinen_delta(theta: ArrayLike, sensor_height: ArrayLike, ground_height: ArrayLike = 0.0) -> np.ndarray:
     """Saastamoinen's (1972) closed form of the refraction angle (rad) for aerial photographs.
 
     ``13 (H - h) (1 - 0.02 (2 H + h)) tan(theta)`` microradians with H and h in km.
+
+    Parameters
+    ----------
+    theta : array_like
+        Apparent nadir angle of the ray at the sensor (rad).
+    sensor_height : array_like
+        Sensor height H (m) above sea level.
+    ground_height : array_like, optional
+        Ground height h (m) above sea level.
+
+    Returns
+    -------
+    ndarray, the broadcast shape of the arguments
+        Refraction angle delta (rad).
     """
     big_h = np.asarray(sensor_height, dtype=np.float64) / 1000.0
     h = np.asarray(ground_height, dtype=np.float64) / 1000.0
@@ -179,12 +238,28 @@ class RefractionModel:
         ``delta / tan(theta)``.
     enabled : bool, optional
         False gives a table that the kernels read as "no refraction".
+
+    Attributes
+    ----------
+    theta : ndarray, shape (N_THETA,)
+        Tabulated apparent nadir angles (rad), evenly spaced from 0 to ``theta_max``.
+    heights : ndarray, shape (N_H,)
+        Tabulated ground heights (m), evenly spaced from ``h_min`` - 10 m to ``h_max`` + 10 m (or
+        to 1 m below the sensor if that is lower).
+    q : ndarray, shape (N_THETA, N_H)
+        ``delta / tan(theta)`` at each node (zero when not ``enabled``).
+
+    Raises
+    ------
+    GeometryError
+        Refraction is enabled and the sensor is below the atmosphere's floor (-2 km).
     """
 
     N_THETA = 181
     N_H = 17
 
-    def __init__(self, sensor_height, h_min, h_max, *, theta_max=89.0, enabled=True):
+    def __init__(self, sensor_height: float, h_min: float, h_max: float, *, theta_max: float = 89.0,
+                 enabled: bool = True) -> None:
         self.enabled = bool(enabled)
         self.sensor_height = float(sensor_height)
         if self.enabled and not self.sensor_height > LOWEST_LAYER:
@@ -202,10 +277,22 @@ class RefractionModel:
         else:
             self.q = np.zeros((self.N_THETA, self.N_H))
 
-    def delta(self, theta, h):
+    def delta(self, theta: ArrayLike, h: ArrayLike) -> np.ndarray:
         """Refraction angle (rad) at apparent nadir angle theta (rad) and ground height h (m).
 
         Host twin of the kernel lookup (bilinear in the table), for tests and planning.
+
+        Parameters
+        ----------
+        theta : array_like
+            Apparent nadir angle (rad).
+        h : array_like
+            Ground height (m), broadcasting with ``theta``; clamped to the table's range.
+
+        Returns
+        -------
+        ndarray, the broadcast shape of ``theta`` and ``h``
+            delta (rad); zeros when the model is not ``enabled``.
         """
         ft = np.clip(np.asarray(theta) / (self.theta[1] - self.theta[0]), 0, self.N_THETA - 1)
         fh = np.clip((np.asarray(h) - self.heights[0]) / (self.heights[1] - self.heights[0]), 0, self.N_H - 1)
@@ -216,8 +303,19 @@ class RefractionModel:
              + at * ((1 - ah) * self.q[it + 1, ih] + ah * self.q[it + 1, ih + 1]))
         return q * np.tan(theta) if self.enabled else np.zeros_like(q)
 
-    def to_struct(self, device):
-        """Pack into :class:`orthowarp.kernels.refraction.RefractionTable` on ``device``."""
+    def to_struct(self, device: wp.DeviceLike) -> RefractionTable:
+        """Pack into :class:`orthowarp.kernels.refraction.RefractionTable` on ``device``.
+
+        Parameters
+        ----------
+        device : str or warp.context.Device
+            Where the table's array is allocated.
+
+        Returns
+        -------
+        RefractionTable
+            The Warp struct the kernels read (its ``q`` a float64 Warp array on ``device``).
+        """
         s = RefractionTable()
         s.enabled = 1 if self.enabled else 0
         s.theta0 = 0.0

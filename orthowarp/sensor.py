@@ -42,11 +42,14 @@ from . import geodesy
 from .errors import GeometryError, ParamError
 
 if TYPE_CHECKING:
+    from collections.abc import Iterable
+
     import warp as wp
     from numpy.typing import ArrayLike
     from pyproj import CRS
 
     from .camera import FrameCamera
+    from .kernels.sensor import FrameArg
     from .pose import Pose
 
 __all__ = ["SensorModel", "SensorKernels", "FrameSensor", "FRAME_PARAMETERS", "GeocentricPositions"]
@@ -59,7 +62,8 @@ class GeocentricPositions:
     mode = "geocentric"
 
     @property
-    def crs(self):
+    def crs(self) -> CRS:
+        """EPSG:4978 (ECEF)."""
         from ._validate import as_crs
 
         return as_crs("EPSG:4978")
@@ -67,7 +71,13 @@ class GeocentricPositions:
 
 def generic_kernels() -> SensorKernels:
     """The sensor-generic kernels of :mod:`orthowarp.kernels.sensor` (built for every sensor's
-    argument struct)."""
+    argument struct).
+
+    Returns
+    -------
+    SensorKernels
+        ``geolocate_kernel``, ``geolocate_grid_kernel`` and ``project_kernel`` (imports Warp).
+    """
     from .kernels import sensor as k
 
     return SensorKernels(k.geolocate_kernel, k.geolocate_grid_kernel, k.project_kernel)
@@ -133,7 +143,15 @@ class SensorModel(abc.ABC):
 
     def check_above_terrain(self, dem: Any, *, name: str | None = None) -> None:
         """GeometryError when the sensor is not above the terrain under it (``dem`` in the
-        sensor's frame and vertical datum). Default: nothing to check (orbiting sensors)."""
+        sensor's frame and vertical datum). Default: nothing to check (orbiting sensors).
+
+        Parameters
+        ----------
+        dem : Dem
+            Terrain (an :class:`orthowarp.Dem`) in the sensor's frame and vertical datum.
+        name : str, optional
+            The DEM's file, for the message.
+        """
 
     # -- device --------------------------------------------------------------------------------
     @property
@@ -145,13 +163,25 @@ class SensorModel(abc.ABC):
     def _pack(self, device: wp.Device) -> Any:
         """The struct of :meth:`arg_value`, freshly packed for ``device``."""
 
-    def __getstate__(self):
+    def __getstate__(self) -> dict[str, Any]:
         """Pickled (for a distributed scheduler) without the device structs and their lock."""
         return {k: v for k, v in self.__dict__.items() if k not in ("_arg_cache", "_arg_lock")}
 
     def arg_value(self, device: wp.DeviceLike) -> Any:
         """The sensor's argument struct on ``device`` (cached per device): the first argument
-        of its kernels, before the refraction table."""
+        of its kernels, before the refraction table.
+
+        Parameters
+        ----------
+        device : str, warp.context.Device or None
+            As :func:`orthowarp._device.resolve_device` takes it (None: the default device).
+
+        Returns
+        -------
+        Warp struct
+            The subclass's struct (:class:`orthowarp.kernels.sensor.FrameArg`,
+            :class:`orthowarp.kernels.pushbroom.PushbroomData`, ...), packed once per device.
+        """
         from ._device import resolve_device
 
         dev = resolve_device(device)
@@ -167,15 +197,34 @@ class SensorModel(abc.ABC):
     @abc.abstractmethod
     def project(self, xyz: ArrayLike) -> np.ndarray:
         """Object-frame points (N, 3) (ECEF, or map x, y, z; m) -> pixels (N, 2) (col, row),
-        float64 NumPy, without refraction; NaN rows for points the sensor does not see."""
+        float64 NumPy, without refraction; NaN rows for points the sensor does not see.
+
+        Parameters
+        ----------
+        xyz : array_like, shape (N, 3) or (3,)
+            Object-frame points (m).
+
+        Returns
+        -------
+        ndarray, shape (N, 2)
+            Pixel (col, row), float64.
+        """
 
     @abc.abstractmethod
     def project_jacobian(self, xyz: ArrayLike, *, wrt: tuple[str, ...] | None = None) -> tuple[np.ndarray, ...]:
         """:meth:`project` and its derivatives.
 
+        Parameters
+        ----------
+        xyz : array_like, shape (N, 3) or (3,)
+            Object-frame points (m).
+        wrt : tuple of str, optional
+            Names from :meth:`parameters` (length q), in the order of ``d_params``' columns.
+
         Returns
         -------
         pixels : ndarray, shape (N, 2)
+            Pixel (col, row), as :meth:`project`.
         d_params : ndarray, shape (N, 2, q)
             By the parameters named in ``wrt`` (default: all of :meth:`parameters`), in
             their units (see :meth:`parameters`).
@@ -186,13 +235,35 @@ class SensorModel(abc.ABC):
     @abc.abstractmethod
     def parameters(self) -> dict[str, float]:
         """The parameters an adjustment may refine, by name (floats; units in the
-        subclass's doc)."""
+        subclass's doc).
+
+        Returns
+        -------
+        dict of str to float
+            Each parameter's current value, in the order of the subclass's parameter names.
+        """
 
     @abc.abstractmethod
     def with_parameters(self, **values: float) -> SensorModel:
-        """This sensor with the named parameters changed (checked as in the constructor)."""
+        """This sensor with the named parameters changed (checked as in the constructor).
 
-    def _check_names(self, names):
+        Parameters
+        ----------
+        **values : float
+            New values by name (names of :meth:`parameters`, in their units).
+
+        Returns
+        -------
+        SensorModel
+            A new sensor of the same class; this one is unchanged.
+
+        Raises
+        ------
+        ParamError
+            An unknown name, or a value the constructor refuses.
+        """
+
+    def _check_names(self, names: Iterable[str]) -> None:
         known = self.parameters()
         bad = [n for n in names if n not in known]
         if bad:
@@ -212,7 +283,15 @@ class FrameSensor(SensorModel):
     Parameters
     ----------
     camera : FrameCamera
+        Interior orientation.
     pose : Pose
+        Exterior orientation (geocentric or map-Cartesian).
+
+    Raises
+    ------
+    ParamError
+        ``camera`` is not a :class:`~orthowarp.camera.FrameCamera` or ``pose`` not a
+        :class:`~orthowarp.pose.Pose`.
 
     Notes
     -----
@@ -235,25 +314,28 @@ class FrameSensor(SensorModel):
             raise ParamError(f"pose must be a Pose, got {type(pose).__name__}")
         self.camera, self.pose = camera, pose
 
-    def __repr__(self):
+    def __repr__(self) -> str:
         return f"FrameSensor({self.camera!r}, {self.pose!r})"
 
     image_size = property(lambda self: tuple(self.camera.image_size), doc="(width, height) in pixels.")
 
     @property
     def geocentric(self) -> bool:
+        """True for a geocentric (GNSS/INS) pose, False for a map-Cartesian one."""
         from .pose import GEOCENTRIC
 
         return self.pose.mode == GEOCENTRIC
 
     @property
     def frame_crs(self) -> CRS:
+        """EPSG:4979 for a geocentric pose, else the pose's map CRS made 3-D."""
         from ._validate import as_crs
 
         return as_crs("EPSG:4979") if self.geocentric else self.pose.crs.to_3d()
 
     @property
     def horizontal_crs(self) -> CRS:
+        """EPSG:4326 for a geocentric pose, else the pose's map CRS."""
         from ._validate import as_crs
 
         return as_crs("EPSG:4326") if self.geocentric else self.pose.crs
@@ -261,18 +343,28 @@ class FrameSensor(SensorModel):
     positions = property(lambda self: self.pose, doc="The pose (mode and CRS of the projection centre).")
 
     def reference_height(self) -> float:
+        """The projection centre's ellipsoidal height (geocentric) or z (map) (m)."""
         return self.pose.height
 
     def check_above_terrain(self, dem: Any, *, name: str | None = None) -> None:
         """GeometryError when the projection centre is not above the terrain under it (see
-        :func:`check_centre_above_terrain`)."""
+        :func:`check_centre_above_terrain`).
+
+        Parameters
+        ----------
+        dem : Dem
+            Terrain in the pose's frame and vertical datum.
+        name : str, optional
+            The DEM's file, for the message.
+        """
         check_centre_above_terrain(self.pose, dem, name=name)
 
     @property
     def kernels(self) -> SensorKernels:
+        """The generic kernels (:func:`generic_kernels`)."""
         return generic_kernels()
 
-    def _pack(self, device):
+    def _pack(self, device: wp.Device) -> FrameArg:
         from .kernels.sensor import FrameArg
 
         arg = FrameArg()
@@ -280,18 +372,29 @@ class FrameSensor(SensorModel):
         return arg
 
     # -- host ----------------------------------------------------------------------------------
-    def _calibration_row(self):
+    def _calibration_row(self) -> np.ndarray:
         """The camera as one row of :data:`orthowarp.collinearity.CAMERA_COLUMNS`."""
         c = self.camera
         return np.array([[c.focal_length, *c.principal_point, c.k1, c.k2, c.k3, c.p1, c.p2, *c.pixel_size]])
 
     def project(self, xyz: ArrayLike) -> np.ndarray:
         """Object-frame points (N, 3) -> pixels (N, 2), float64, without refraction; NaN rows
-        for points behind the camera and for rows with NaN."""
+        for points behind the camera and for rows with NaN.
+
+        Parameters
+        ----------
+        xyz : array_like, shape (N, 3) or (3,)
+            Object-frame points (m): ECEF for a geocentric pose, map x, y, z for a map pose.
+
+        Returns
+        -------
+        ndarray, shape (N, 2)
+            Pixel (col, row), float64.
+        """
         pix, _, _ = self._collinearity(xyz)
         return pix
 
-    def _collinearity(self, xyz):
+    def _collinearity(self, xyz: ArrayLike) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray]]:
         from . import collinearity as col
         from ._validate import points
 
@@ -305,6 +408,28 @@ class FrameSensor(SensorModel):
         return pix, chain, (pts, cam, size)
 
     def project_jacobian(self, xyz: ArrayLike, *, wrt: tuple[str, ...] | None = None) -> tuple[np.ndarray, ...]:
+        """:meth:`project` and its analytic derivatives.
+
+        Parameters
+        ----------
+        xyz : array_like, shape (N, 3) or (3,)
+            Object-frame points (m).
+        wrt : tuple of str, optional
+            Names from :data:`FRAME_PARAMETERS` (length q; default all 14), in the order of
+            ``d_params``' columns.
+
+        Returns
+        -------
+        pixels : ndarray, shape (N, 2)
+            Pixel (col, row), as :meth:`project`.
+        d_params : ndarray, shape (N, 2, q)
+            By the named parameters: pixels per m (X0, Y0, Z0), per degree (omega, phi,
+            kappa), per mm (f, x0, y0), per unit of each Brown coefficient.
+        d_point : ndarray, shape (N, 2, 3)
+            By the object-frame point (pixels per m).
+
+        Rows of points the camera does not see are NaN in all three.
+        """
         from . import collinearity as col
 
         wrt = FRAME_PARAMETERS if wrt is None else tuple(wrt)
@@ -330,16 +455,45 @@ class FrameSensor(SensorModel):
         j_point[bad] = np.nan
         return pix, out, j_point
 
-    def _angles(self):
+    def _angles(self) -> tuple[float, float, float]:
         return geodesy.opk_angles(self.pose.rotation)
 
     def parameters(self) -> dict[str, float]:
+        """The 14 frame parameters by name (:data:`FRAME_PARAMETERS`; units in the class doc).
+
+        Returns
+        -------
+        dict of str to float
+            X0, Y0, Z0 (m), omega, phi, kappa (deg), f, x0, y0 (mm), k1, k2, k3, p1, p2.
+        """
         c = self.camera
         values = [*map(float, self.pose.center), *self._angles(), c.focal_length, *c.principal_point,
                   c.k1, c.k2, c.k3, c.p1, c.p2]
         return dict(zip(FRAME_PARAMETERS, map(float, values)))
 
     def with_parameters(self, **values: float) -> FrameSensor:
+        """This sensor with the named parameters changed (checked as in the constructors).
+
+        A geocentric pose comes back as a GNSS/INS pose of the same projection centre and
+        rotation (without boresight or lever arm), a map pose as an omega-phi-kappa pose.
+
+        Parameters
+        ----------
+        **values : float
+            New values by name (:data:`FRAME_PARAMETERS`, in their units).
+
+        Returns
+        -------
+        FrameSensor
+            A new sensor; this one is unchanged.
+
+        Raises
+        ------
+        ParamError
+            An unknown name, or a value the camera or pose refuses.
+        GeometryError
+            The changed distortion is not invertible over the image.
+        """
         from .camera import FrameCamera
         from .pose import Pose
 
@@ -370,11 +524,17 @@ def check_centre_above_terrain(pose: Pose, dem: Any, *, name: str | None = None)
     Parameters
     ----------
     pose : Pose
+        The frame's exterior orientation.
     dem : Dem
         Terrain in the pose's frame and vertical datum (lon/lat for geocentric poses, the map
         CRS for map poses). Where the DEM has no height under the camera nothing is checked.
     name : str, optional
         The DEM's file, for the message.
+
+    Raises
+    ------
+    GeometryError
+        The projection centre's height is at or below the terrain height under it.
 
     Notes
     -----

@@ -66,7 +66,7 @@ _UNITS = {
 }
 
 
-def memory_budget():
+def memory_budget() -> int:
     """Bytes a DEM grid may take in memory as float32 heights.
 
     The environment variable ``ORTHOWARP_DEM_MEMORY`` sets it (bytes, or with a suffix K, M,
@@ -163,7 +163,7 @@ def _crs_height_unit(crs):
     return float(axes[0].unit_conversion_factor), axes[0].unit_name
 
 
-def height_unit_factor(crs, band_unit, *, name="DEM"):
+def height_unit_factor(crs: CRS | None, band_unit: str | None, *, name: str = "DEM") -> float:
     """Metres per height unit of a DEM band, from its CRS and its band unit.
 
     Rules (GDAL's, made strict): the band's unit (GDAL's ``GetUnitType``: "m", "metre",
@@ -482,7 +482,7 @@ class Dem:
         if crs is None:
             if self.crs.is_geographic and _is_wgs84(self.crs):
                 return self
-        elif self.crs.equals(crs, ignore_axis_order=True) or _horizontal(self.crs).equals(_horizontal(crs),
+        elif self.crs.equals(crs, ignore_axis_order=True) or horizontal_crs(self.crs).equals(horizontal_crs(crs),
                                                                                           ignore_axis_order=True):
             return self
         frames = self.__dict__.setdefault("_frames", {})
@@ -503,8 +503,8 @@ class Dem:
         grid gets cells of this grid's size in metres both ways (GDAL's default is square in
         degrees, ~16 % coarser in latitude at 40 degrees N).
         """
-        dst_crs = rasterio.crs.CRS.from_user_input(_horizontal(as_crs(crs)).to_wkt())
-        src_crs = rasterio.crs.CRS.from_user_input(_horizontal(self.crs).to_wkt())
+        dst_crs = rasterio.crs.CRS.from_user_input(horizontal_crs(as_crs(crs)).to_wkt())
+        src_crs = rasterio.crs.CRS.from_user_input(horizontal_crs(self.crs).to_wkt())
         self.array  # noqa: B018 (a DEM file is read whole here, if it fits)
         rows, cols = self.shape
         bounds = rasterio.transform.array_bounds(rows, cols, self.transform)
@@ -699,8 +699,8 @@ def _is_wgs84(crs):
     return ell is not None and abs(ell.semi_major_metre - 6378137.0) < 1e-3 and abs(ell.inverse_flattening - 298.257223563) < 1e-6
 
 
-def _horizontal(crs):
-    """The horizontal part of a (possibly compound) CRS."""
+def horizontal_crs(crs: CRS) -> CRS:
+    """The horizontal part of a (possibly compound) CRS: its first sub-CRS, else itself."""
     return crs.sub_crs_list[0] if crs.is_compound else crs
 
 
@@ -767,7 +767,7 @@ def _nodata_cells(raw, nodata):
     return raw == raw.dtype.type(int(nodata))
 
 
-def as_dem(dem, *, name="dem"):
+def as_dem(dem: Dem | str | os.PathLike | float, *, name: str = "dem") -> Dem:
     """The terrain of an API call: a :class:`Dem` as it is, a DEM file (path) opened, a
     constant height (m, finite, within +-``MAX_GROUND_HEIGHT``; in the vertical datum of the
     positions it is used with) as a constant Dem.

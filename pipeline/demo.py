@@ -12,27 +12,32 @@ matching -> bundle adjustment with the orientation as weighted observations and 
 points -> mosaic, and measures the mosaic against the truth before and after.
 """
 
+from __future__ import annotations
+
 import csv
 import io
 import os
 import time
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import rasterio
 from affine import Affine
+from pyproj import Transformer
 
 from .. import geodesy
 from ..camera import FrameCamera
-from ..pose import Pose
 from ..errors import GeometryError
-from .dem import Dem
-import rasterio
-from pyproj import Transformer
-
+from ..pose import Pose
 from ..sensor import FrameSensor
+from .dem import Dem
 from .geometry import SensorGeometry, geolocate, project
-from .io import ensure_folder, write_json, write_raster, write_text
 from .ortho import orthorectify
+from .raster.io import ensure_folder, write_json, write_raster, write_text
 from .registration import misregistration
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
 
 # the chain's block: 2 strips of 2 frames, 60 % forward and 30 % side overlap; approximate
 # orientation off by GNSS_ERROR (m, each axis) and INS_ERROR (deg, each angle)
@@ -45,12 +50,12 @@ M_PER_DEG_LON = np.pi / 180.0 * geodesy.WGS84_A * np.cos(np.radians(LAT0)) / np.
     1.0 - geodesy.WGS84_E2 * np.sin(np.radians(LAT0)) ** 2)
 
 
-def local_metres(lon, lat):
+def local_metres(lon: ArrayLike, lat: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
     """East, north offsets (m) from the scene origin (a local equirectangular approximation)."""
     return (np.asarray(lon) - LON0) * M_PER_DEG_LON, (np.asarray(lat) - LAT0) * M_PER_DEG_LAT
 
 
-def terrain(x, y):
+def terrain(x: ArrayLike, y: ArrayLike) -> np.ndarray:
     """Ellipsoidal terrain height (m) at local east, north offsets (m): hills, a dome, ripples."""
     return (650.0 + 170.0 * np.sin(x / 900.0 + 0.3) * np.cos(y / 1100.0)
             + 130.0 * np.exp(-((x - 400.0) ** 2 + (y + 300.0) ** 2) / 500.0**2)
@@ -60,7 +65,7 @@ def terrain(x, y):
 _WAVES = np.random.default_rng(20261121).uniform(size=(14, 3))
 
 
-def texture(x, y):
+def texture(x: ArrayLike, y: ArrayLike) -> np.ndarray:
     """Ground reflectance (0-255) at local east, north offsets (m).
 
     A sum of 14 plane waves with random directions and wavelengths of 12-90 m: band-limited
@@ -74,7 +79,7 @@ def texture(x, y):
     return np.clip(out, 0, 255)
 
 
-def synthetic_scene():
+def synthetic_scene() -> tuple[FrameCamera, Pose, Dem]:
     """(camera, pose, dem) of the demo scene."""
     dlon, dlat = 0.0001, 0.00007
     n_lon, n_lat = 660, 720
@@ -96,7 +101,8 @@ def _enu_error(a, b):
     return np.linalg.norm(pa - pb, axis=1)
 
 
-def render(sensor, dem, path, *, device=None):
+def render(sensor: FrameSensor, dem: Dem, path: str, *,
+           device: str | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Render a frame of the scene: every pixel's ground point (forward geolocation, refraction
     on) takes the analytic texture; written to ``path`` (uint8, 0 = no ground). Returns the
     image and the ground points (rows, cols, 3)."""
@@ -131,7 +137,8 @@ def _pose_errors(poses, truth):
     return dc, da
 
 
-def run_chain(out_dir, camera, dem, *, device=None, seed=0):
+def run_chain(out_dir: str | os.PathLike, camera: FrameCamera, dem: Dem, *, device: str | None = None,
+              seed: int = 0) -> dict[str, Any]:
     """The automatic chain on a block of four frames of the demo scene (see the module doc).
 
     Writes ``chain/`` in ``out_dir``: the frames, the matched block (``block.json``), the
@@ -140,10 +147,10 @@ def run_chain(out_dir, camera, dem, *, device=None, seed=0):
     truth, ties, the mosaics' misregistration against the truth texture).
     """
     from ..adjust import bundle_adjust
-    from .adjust_report import write_adjustment
-    from .blockio import write_block
+    from .formats.block import write_block
     from .matching import match_block
     from .mosaic import mosaic
+    from .reports.adjust import write_adjustment
 
     folder = os.path.join(out_dir, "chain")
     ensure_folder(folder)
@@ -223,7 +230,8 @@ def run_chain(out_dir, camera, dem, *, device=None, seed=0):
                 **out)
 
 
-def run_demo(out_dir="orthowarp-demo", *, device=None, seed=0, chain=True):
+def run_demo(out_dir: str | os.PathLike = "orthowarp-demo", *, device: str | None = None, seed: int = 0,
+             chain: bool = True) -> dict[str, Any]:
     """Build the scene, geolocate the whole frame, render it, measure accuracy, write outputs.
 
     Parameters

@@ -7,7 +7,8 @@ import math
 import numbers
 import os
 from concurrent.futures import ThreadPoolExecutor
-from typing import TYPE_CHECKING
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import warp as wp
@@ -21,24 +22,26 @@ from ..kernels import sensor as sensor_kernels
 from ..kernels.ray import SearchParams
 from ..refraction import RefractionModel
 from ..sensor import SensorModel, check_centre_above_terrain
-from .dem import MAX_GROUND_HEIGHT, Dem, _horizontal, as_dem, memory_budget
+from .dem import MAX_GROUND_HEIGHT, Dem, as_dem, horizontal_crs, memory_budget
 from .vertical import as_geoid, reconcile_dem
 
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike
+    from pyproj.transformer import Transformer as TransformerType
+    from warp.context import Device
 
 __all__ = ["geolocate", "project", "SensorGeometry", "check_camera_above_terrain"]
 
 LLH = "EPSG:4979"
 
 
-def _check_sensor_model(sensor):
+def _check_sensor_model(sensor: object) -> None:
     if not isinstance(sensor, SensorModel):
         raise ParamError(f"sensor must be a FrameSensor (camera and pose) or a PushbroomScene, got "
                          f"{type(sensor).__name__}")
 
 
-def _region_border(region, n=65):
+def _region_border(region: tuple[float, float, float, float], n: int = 65) -> np.ndarray:
     """Pixels (4 n, 2) along the border of a pixel region (col0, row0, col1, row1)."""
     c0, r0, c1, r1 = region
     t = np.linspace(0.0, 1.0, n)
@@ -50,7 +53,7 @@ def _region_border(region, n=65):
     ])
 
 
-def _crop_to_feet(dem, feet):
+def _crop_to_feet(dem: Dem, feet: np.ndarray) -> Dem:
     """The DEM cropped to the bounding box of ground points (N, 3); the whole DEM when some
     border rays miss the Earth."""
     if not np.all(np.isfinite(feet)):
@@ -62,7 +65,7 @@ def _crop_to_feet(dem, feet):
 PROBE_HEIGHTS = (-1000.0, 9000.0)  # m: the refraction table of footprint probes covers Earth's terrain
 
 
-def _at_constant(base, h):
+def _at_constant(base: SensorGeometry, h: float) -> SensorGeometry:
     """A copy of a geometry over a constant DEM, over the constant height h (m) instead: its
     refraction table (built once, over PROBE_HEIGHTS) shared, its device structs rebuilt."""
     probe = copy.copy(base)
@@ -70,11 +73,13 @@ def _at_constant(base, h):
     return probe
 
 
-def _dem_name(dem):
+def _dem_name(dem: Dem) -> str:
     return f"DEM '{dem.source}'" if dem.source else "DEM"
 
 
-def _prepared_dem(dem, prepare, probe, region, frame_crs, height_range=None):
+def _prepared_dem(dem: Dem, prepare: Callable[[Dem], Dem], probe: Callable[[float], SensorGeometry],
+                  region: tuple[float, float, float, float], frame_crs: CRS,
+                  height_range: tuple[float, float] | None = None) -> Dem:
     """The DEM ready for a geometry: ``prepare(dem)`` (vertical datum reconciled, in the frame's
     horizontal coordinates), for a DEM file not read whole over the window the job needs only.
 
@@ -96,9 +101,9 @@ def _prepared_dem(dem, prepare, probe, region, frame_crs, height_range=None):
     if dem.is_constant or dem.loaded:
         return prepare(dem)
     border = _region_border(region)
-    to_dem = Transformer.from_crs(_horizontal(frame_crs), _horizontal(dem.crs), always_xy=True)
+    to_dem = Transformer.from_crs(horizontal_crs(frame_crs), horizontal_crs(dem.crs), always_xy=True)
 
-    def whole(why):
+    def whole(why: str) -> Dem:
         try:
             dem.array  # noqa: B018 (reads the file, or says why it cannot)
         except ParamError as e:
@@ -126,7 +131,7 @@ def _prepared_dem(dem, prepare, probe, region, frame_crs, height_range=None):
             if 4 * rows * cols <= memory_budget():
                 return whole("it has no heights under the image footprint")
             empty = Dem.without_heights((feet[:, 0].min(), feet[:, 1].min(), feet[:, 0].max(), feet[:, 1].max()),
-                                        _horizontal(as_crs(frame_crs)), lo, hi)
+                                        horizontal_crs(as_crs(frame_crs)), lo, hi)
             empty.source = dem.source
             return empty
         ready = prepare(sub)
@@ -138,7 +143,8 @@ def _prepared_dem(dem, prepare, probe, region, frame_crs, height_range=None):
     return whole("the window under the image footprint did not settle")  # not seen: windows grow
 
 
-def _centre_height(dem, probe, region, to_dem):
+def _centre_height(dem: Dem, probe: Callable[[float], SensorGeometry], region: tuple[float, float, float, float],
+                   to_dem: TransformerType) -> float:
     """The DEM height under the centre of a pixel region (0 where it has none there)."""
     centre = [[0.5 * (region[0] + region[2]), 0.5 * (region[1] + region[3])]]
     h = 0.0
@@ -156,7 +162,8 @@ def _centre_height(dem, probe, region, to_dem):
     return h
 
 
-def _bounds_in(tr, xmin, ymin, xmax, ymax, n=17):
+def _bounds_in(tr: TransformerType, xmin: float, ymin: float, xmax: float, ymax: float,
+               n: int = 17) -> tuple[float, float, float, float]:
     """Bounds (xmin, ymin, xmax, ymax) in a transformer's target CRS of a rectangle, from
     ``n`` points along each side."""
     t = np.linspace(0.0, 1.0, n)
@@ -167,7 +174,7 @@ def _bounds_in(tr, xmin, ymin, xmax, ymax, n=17):
     return x.min(), y.min(), x.max(), y.max()
 
 
-def _transform(xyz, src, dst):
+def _transform(xyz: np.ndarray, src: CRS, dst: CRS) -> np.ndarray:
     """Transform (N, 3) points between CRSs (x/y as lon/lat order); identity when equal."""
     if src.equals(dst):
         return xyz
@@ -213,8 +220,11 @@ class SensorGeometry:
         Take DEM and position heights as the same datum whatever their CRSs declare.
     """
 
-    def __init__(self, sensor, dem, *, refraction=True, device=None, region=None, tolerance=1e-4,
-                 height_range=None, geoid=None, same_vertical_datum=False, _probe_only=False):
+    def __init__(self, sensor: SensorModel, dem: Dem | str | os.PathLike | float, *, refraction: bool = True,
+                 device: str | Device | None = None, region: tuple[float, float, float, float] | None = None,
+                 tolerance: float = 1e-4, height_range: tuple[float, float] | None = None,
+                 geoid: Dem | str | os.PathLike | None = None, same_vertical_datum: bool = False,
+                 _probe_only: bool = False) -> None:
         if not isinstance(sensor, SensorModel):
             raise ParamError(f"sensor must be a FrameSensor or a PushbroomScene, got {type(sensor).__name__}")
         self.sensor = sensor
@@ -247,7 +257,7 @@ class SensorGeometry:
                               doc="CRS of the horizontal coordinates of the geo triples (lon/lat or map x/y).")
     frame_crs = property(lambda self: self.sensor.frame_crs, doc="CRS of the geo triples.")
 
-    def at_height(self, h):
+    def at_height(self, h: float) -> SensorGeometry:
         """The same sensor over a constant height h (m); GeometryError where the sensor is not
         above it (over a DEM: not above the DEM's lowest height ``h``, said so)."""
         try:
@@ -262,7 +272,7 @@ class SensorGeometry:
                                 f"around its footprint, {float(h):.3f} m (check the pose's height and the DEM's "
                                 "vertical datum)") from e
 
-    def on_device(self, device):
+    def on_device(self, device: str | Device | None) -> SensorGeometry:
         """The same geometry (sensor, prepared DEM, refraction table) with its kernels on another
         Warp device; this one where it is already there. Its device structs and footprint
         probes are made on first use there."""
@@ -274,7 +284,7 @@ class SensorGeometry:
         twin.device, twin._structs, twin._probe_base = device, None, None
         return twin
 
-    def dem_extent(self):
+    def dem_extent(self) -> tuple[float, float, float, float] | None:
         """(xmin, ymin, xmax, ymax) of the DEM as given (the whole grid, not the part read) in
         :attr:`horizontal_crs`, for messages; None over a constant height."""
         t = self.terrain
@@ -283,20 +293,20 @@ class SensorGeometry:
         rows, cols = t.shape
         tr = t.transform  # north up: the corners are (c, f) and (c + a cols, f + e rows)
         xa, ya, xb, yb = tr.c, tr.f, tr.c + tr.a * cols, tr.f + tr.e * rows
-        to_frame = Transformer.from_crs(_horizontal(t.crs), _horizontal(as_crs(self.horizontal_crs)), always_xy=True)
+        to_frame = Transformer.from_crs(horizontal_crs(t.crs), horizontal_crs(as_crs(self.horizontal_crs)), always_xy=True)
         with np.errstate(invalid="ignore"):
             return _bounds_in(to_frame, min(xa, xb), min(ya, yb), max(xa, xb), max(ya, yb))
 
-    def sensor_structs(self):
+    def sensor_structs(self) -> tuple[Any, Any]:
         """The structs the per-pixel ortho kernels take before the DEM: the sensor's argument
         (:meth:`~orthowarp.sensor.SensorModel.arg_value`) and the refraction table."""
         return self.structs()[:2]
 
-    def dem_struct(self):
+    def dem_struct(self) -> Any:
         """The DEM's struct on the device."""
         return self.structs()[2]
 
-    def structs(self):
+    def structs(self) -> tuple[Any, Any, Any, Any]:
         """(sensor argument, refraction, dem, search) on the device: the kernels' leading
         arguments."""
         if self._structs is None:
@@ -304,7 +314,7 @@ class SensorGeometry:
                              self.dem.to_struct(self.device), self.search)
         return self._structs
 
-    def _probe(self, h):
+    def _probe(self, h: float) -> SensorGeometry:
         """This sensor over a constant height h (m), with refraction, for footprints."""
         if self._probe_base is None:
             # (not checked against its nominal height; a sensor below the probe heights, under
@@ -315,13 +325,13 @@ class SensorGeometry:
                                               device=self.device, height_range=PROBE_HEIGHTS, _probe_only=True)
         return _at_constant(self._probe_base, h)
 
-    def _crop_to_footprint(self, dem, region):
+    def _crop_to_footprint(self, dem: Dem, region: tuple[float, float, float, float]) -> Dem:
         """Crop the DEM to the ground footprint of a pixel region at the DEM's extreme heights."""
         border = _region_border(region)
         feet = [self._probe(h).geolocate_frame(border) for h in (dem.hmin, dem.hmax)]
         return _crop_to_feet(dem, np.concatenate(feet))
 
-    def geolocate_frame(self, pixels):
+    def geolocate_frame(self, pixels: ArrayLike) -> np.ndarray:
         """Pixels (N, 2) -> geo triples (N, 3) of the sensor's frame (lon/lat/h or map x/y/z)."""
         pix = _as_points(pixels, 2, "pixels")
         out = wp.empty(len(pix), dtype=wp.vec3d, device=self.device)
@@ -330,7 +340,8 @@ class SensorGeometry:
                       inputs=[*self.structs(), wp.array(pix, dtype=wp.vec2d, device=self.device), out])
         return to_host(out).reshape(-1, 3)
 
-    def geolocate_grid(self, out, *, col0=0.5, row0=0.5, step=1.0, block_dim=256):
+    def geolocate_grid(self, out: wp.array, *, col0: float = 0.5, row0: float = 0.5, step: float = 1.0,
+                       block_dim: int = 256) -> wp.array:
         """Geolocate a regular pixel grid into a device array ``out`` (rows, cols) of vec3d.
 
         Pixel (i, j) of ``out`` is image pixel (col0 + j step, row0 + i step). Runs
@@ -340,7 +351,8 @@ class SensorGeometry:
                   inputs=[*self.structs(), wp.float64(col0), wp.float64(row0), wp.float64(step), out])
         return out
 
-    def geolocate_image(self, *, step=1.0, band_rows=None, workers=None):
+    def geolocate_image(self, *, step: float = 1.0, band_rows: int | None = None,
+                        workers: int | None = None) -> np.ndarray:
         """Geo triples of a regular grid of pixel centres over the whole image.
 
         Parameters
@@ -369,7 +381,7 @@ class SensorGeometry:
         band_rows = band_rows or max(1, -(-rows // (4 * workers)))
         structs, kernel = self.structs(), self.sensor.kernels.geolocate_grid
 
-        def band(i0):
+        def band(i0: int) -> None:
             i1 = min(i0 + band_rows, rows)
             out = wp.empty((i1 - i0, cols), dtype=wp.vec3d, device=self.device)
             wp.launch(kernel, dim=out.shape, device=self.device,
@@ -380,7 +392,7 @@ class SensorGeometry:
             list(pool.map(band, range(0, rows, band_rows)))
         return result
 
-    def project_frame(self, geo):
+    def project_frame(self, geo: ArrayLike) -> np.ndarray:
         """Geo triples (N, 3) of the sensor's frame -> pixels (N, 2); NaN behind a frame
         camera, and where a pushbroom's line-time iteration finds no line within the
         ephemeris and attitude span."""
@@ -396,31 +408,28 @@ class SensorGeometry:
 MAX_MAP_COORDINATE = 1e8  # m: |x|, |y| of points in a projected CRS
 
 
-def _check_refraction(refraction):
+def _check_refraction(refraction: object) -> bool:
     """True or False (0 and 1 too); anything else, a string such as "no" included, is an error."""
     if isinstance(refraction, (bool, np.bool_)) or (isinstance(refraction, numbers.Integral) and refraction in (0, 1)):
         return bool(refraction)
     raise ParamError(f"refraction must be True or False, got {refraction!r}")
 
 
-def _horizontal_crs(crs):
-    return crs.sub_crs_list[0] if crs.is_compound else crs
-
-
-def _bad_row(name, values, limit, what, unit, crs, ok, hint=""):
+def _bad_row(name: str, values: np.ndarray, limit: float, what: str, unit: str, crs: CRS, ok: np.ndarray,
+             hint: str = "") -> None:
     bad = ok & (np.abs(values) > limit)
     if np.any(bad):
         i = int(np.argmax(bad))
         raise ParamError(f"{name} row {i}: {what} {values[i]:g} is beyond +-{limit:g} {unit} in {crs.name!r}{hint}")
 
 
-def _check_ground_points(pts, crs, name="points"):
+def _check_ground_points(pts: np.ndarray, crs: CRS, name: str = "points") -> None:
     """ParamError naming the argument and the first offending row: +-inf anywhere; in a
     geographic CRS a latitude beyond +-90 deg or a longitude beyond +-360 deg; in a projected
     CRS an x or y beyond 1e8 m (2.5 times round the Earth). NaN rows are missing rows."""
     no_infinite_rows(name, pts)
     ok = np.all(np.isfinite(pts), axis=1)
-    horizontal = _horizontal_crs(crs)
+    horizontal = horizontal_crs(crs)
     if horizontal.is_geographic:
         hint = " (the columns are longitude, latitude, height)"
         _bad_row(name, pts[:, 1], 90.0, "latitude", "degrees", crs, ok, hint)
@@ -434,13 +443,13 @@ def _check_ground_points(pts, crs, name="points"):
         _bad_row(name, pts[:, 1], limit, "y", unit, crs, ok)
 
 
-def _check_heights(geo, frame_crs, name="points"):
+def _check_heights(geo: np.ndarray, frame_crs: CRS, name: str = "points") -> None:
     """ParamError for a height (in the pose's frame, m) beyond +-MAX_GROUND_HEIGHT."""
     ok = np.all(np.isfinite(geo), axis=1)
     _bad_row(name, geo[:, 2], MAX_GROUND_HEIGHT, "height", "m", frame_crs, ok)
 
 
-def _transform_checked(xyz, src, dst, name):
+def _transform_checked(xyz: np.ndarray, src: CRS, dst: CRS, name: str) -> np.ndarray:
     """:func:`_transform`, with ParamError for a finite row the transformation cannot map."""
     out = _transform(xyz, src, dst)
     lost = np.all(np.isfinite(xyz), axis=1) & ~np.all(np.isfinite(out), axis=1)

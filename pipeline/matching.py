@@ -4,8 +4,13 @@ predicted pixels and local affine maps (rotation, scale, shear between the views
 image, NCC + least-squares matching (:func:`orthowarp.adjust.match_points`), back-matching.
 """
 
+from __future__ import annotations
+
 import logging
+import os
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from pyproj import Transformer
@@ -15,6 +20,12 @@ from ..adjust.matching import interest_points, match_points
 from ..errors import ParamError
 from ..sensor import FrameSensor
 from .geometry import geolocate, project
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
+
+    from ..adjust.block import Block
+    from .dem import Dem
 
 __all__ = ["PairMatches", "match_pair", "match_block", "ControlObservations", "control_observations"]
 
@@ -121,8 +132,10 @@ class PairMatches:
     back_error: np.ndarray
 
 
-def match_pair(left, right, left_sensor, right_sensor, dem, *, zones=(4, 3), per_zone=2, window=21, radius=8,
-               levels=0, min_score=0.7, max_back_error=0.2, refraction=True, device=None):
+def match_pair(left: ArrayLike, right: ArrayLike, left_sensor: FrameSensor, right_sensor: FrameSensor,
+               dem: Dem | str | os.PathLike | float, *, zones: tuple[int, int] = (4, 3), per_zone: int = 2,
+               window: int = 21, radius: int = 8, levels: int = 0, min_score: float = 0.7,
+               max_back_error: float = 0.2, refraction: bool = True, device: str | None = None) -> PairMatches:
     """Match interest points of ``left`` in ``right``, predicted through the sensors and the DEM.
 
     Parameters
@@ -155,8 +168,11 @@ def match_pair(left, right, left_sensor, right_sensor, dem, *, zones=(4, 3), per
                        score=fwd.score[ok], candidates=len(sel), back_error=err[ok])
 
 
-def match_block(images, sensors, dem, *, ids=None, zones=(4, 3), per_zone=2, window=21, radius=8, levels=0,
-                min_score=0.7, max_back_error=0.2, gnss_sigma=None, ins_sigma=None, refraction=True, device=None):
+def match_block(images: Sequence[ArrayLike], sensors: Sequence[FrameSensor], dem: Dem | str | os.PathLike | float, *,
+                ids: Sequence[str] | None = None, zones: tuple[int, int] = (4, 3), per_zone: int = 2, window: int = 21,
+                radius: int = 8, levels: int = 0, min_score: float = 0.7, max_back_error: float = 0.2,
+                gnss_sigma: ArrayLike | None = None, ins_sigma: ArrayLike | None = None, refraction: bool = True,
+                device: str | None = None) -> tuple[Block, dict[str, Any]]:
     """Tie points of a block of frame images by matching ([P2]), as a
     :class:`~orthowarp.adjust.Block` that :func:`~orthowarp.adjust.bundle_adjust` takes.
 
@@ -319,8 +335,10 @@ class ControlObservations:
     matched: np.ndarray
 
 
-def control_observations(images, sensors, dem, points, *, reference=None, window=21, radius=8, levels=0,
-                         min_score=0.7, refraction=True, device=None):
+def control_observations(images: Sequence[ArrayLike], sensors: Sequence[FrameSensor],
+                         dem: Dem | str | os.PathLike | float, points: ArrayLike, *, reference: tuple | None = None,
+                         window: int = 21, radius: int = 8, levels: int = 0, min_score: float = 0.7,
+                         refraction: bool = True, device: str | None = None) -> ControlObservations:
     """Image positions of control points in every image that sees them: predicted from their
     ground coordinates through the sensors (for a user to confirm), and with a ``reference``
     orthoimage matched there (its chip around each point against the image, through the local

@@ -40,16 +40,24 @@ import numpy as np
 from affine import Affine
 from pyproj import CRS, Transformer
 
-from ..adjust.precision import INPUT_STEPS, PrecisionResult, _square, cov_size, moved_pose, pose_inputs
+from ..adjust.precision import INPUT_STEPS, PrecisionResult, cov_size, moved_pose, pose_inputs, square_matrix
 from ..errors import ParamError
 from ..geodesy import WGS84_A, WGS84_E2
 from ..kernels.precision import hidden_facets_kernel
 from .dem import as_dem
-from .io import write_raster
+from .raster.io import write_raster
 
 if TYPE_CHECKING:
+    from collections.abc import Sequence
+
+    from numpy.typing import ArrayLike
+
+    from ..camera import FrameCamera
+    from ..pose import Pose
+    from ..pushbroom import PushbroomScene
     from ..sensor import SensorModel
     from .dem import Dem
+    from .geometry import SensorGeometry
 
 __all__ = ["accuracy_raster", "scene_accuracy_raster", "sensor_accuracy_raster", "accuracy_path",
            "mosaic_accuracy_raster", "frame_window_sigmas",
@@ -62,7 +70,7 @@ SCENE_INPUTS = ("across", "along", "radial", "roll", "pitch", "yaw", "psi_x", "p
 _SCENE_STEPS = np.array([1.0, 1.0, 1.0, 1e-4, 1e-4, 1e-4, 1e-4, 1e-4])  # central-difference steps
 
 
-def perturbed_scene(scene, offsets):
+def perturbed_scene(scene: PushbroomScene, offsets: ArrayLike) -> PushbroomScene:
     """The scene with its orientation offset by ``offsets`` (8,), in the order and units of
     :data:`SCENE_INPUTS`: every ephemeris position moved by (across, along, radial) m along the
     orbital frame's axes at that sample (X2 = v x radial, Y2, Z2 radial), the yaw, pitch and
@@ -77,7 +85,7 @@ def perturbed_scene(scene, offsets):
                          psi_x=scene.psi_x + np.radians(d[6]), psi_y=scene.psi_y + np.radians(d[7]))
 
 
-def enu_shifted(points, axis, metres):
+def enu_shifted(points: ArrayLike, axis: int, metres: float) -> np.ndarray:
     """Geodetic points (n, 3: longitude, latitude deg, height m) moved ``metres`` along their
     local east (axis 0), north (1) or up (2), to first order (through the ellipsoid's radii of
     curvature at the point; the error, metres^2 / R, is below a micrometre at 1 m)."""
@@ -94,8 +102,9 @@ def enu_shifted(points, axis, metres):
     return out
 
 
-def scene_monoplot_covariance(scene, points, slopes, *, orientation_cov, pixel_sigma=0.5, dem_sigma=0.0,
-                              refraction=True, device=None) -> PrecisionResult:
+def scene_monoplot_covariance(scene: PushbroomScene, points: ArrayLike, slopes: ArrayLike, *,
+                              orientation_cov: ArrayLike, pixel_sigma: float = 0.5, dem_sigma: float = 0.0,
+                              refraction: bool = True, device: str | None = None) -> PrecisionResult:
     """Covariance of ground points geolocated from one pushbroom scene on a DEM.
 
     The conditions are those of :func:`~orthowarp.adjust.precision.monoplot_covariance`: the
@@ -133,7 +142,7 @@ def scene_monoplot_covariance(scene, points, slopes, *, orientation_cov, pixel_s
     slopes = np.asarray(slopes, float)
     if slopes.shape != (len(pts), 2) or not np.isfinite(slopes).all():
         raise ParamError(f"slopes must be finite, shape ({len(pts)}, 2), got {slopes.shape}")
-    cov_l = _square("orientation_cov", orientation_cov, len(SCENE_INPUTS))
+    cov_l = square_matrix("orientation_cov", orientation_cov, len(SCENE_INPUTS))
     if not (np.isfinite(pixel_sigma) and pixel_sigma >= 0 and np.isfinite(dem_sigma) and dem_sigma >= 0):
         raise ParamError(f"pixel_sigma and dem_sigma must be finite and >= 0, got {pixel_sigma}, {dem_sigma}")
     cov, _ = _scene_monoplot(scene, pts, slopes, cov_l, pixel_sigma, dem_sigma, refraction, device)
@@ -171,7 +180,6 @@ def _scene_monoplot(scene, pts, slopes, cov_l, pixel_sigma, dem_sigma, refractio
     c_in[m + 2, m + 2] = dem_sigma**2
     a = -np.linalg.solve(f_x, f_l)
     return a @ c_in @ np.transpose(a, (0, 2, 1)), f_x
-
 
 
 def _cell_grid(transform, shape, step):
@@ -219,7 +227,7 @@ LE90 = 1.6448536269514722  # LE90 / sigma: the standard normal's 95 % quantile
 
 
 @functools.lru_cache(maxsize=4)  # 0.5 s to compute; read-only
-def ce90_table(n=129):
+def ce90_table(n: int = 129) -> np.ndarray:
     """CE90 / sigma_major (n,) at sigma_minor / sigma_major = 0, 1/(n-1), ..., 1: the radius
     holding 90 % of a horizontal normal error, from the exact probability over the circle,
     P(R) = 1/(2 pi s1 s2) integral over theta of (1 - exp(-a R^2 / 2)) / a, a = cos^2 / s1^2 +
@@ -272,14 +280,15 @@ def _sigmas(cov, jac, measure="sigma"):
 RAW_CAMERA = ("f", "x0", "y0", "k1", "k2", "k3", "p1", "p2")  # the kernels' raw camera parameters, in order
 
 
-def raw_covariance(camera, pose, *, pose_cov, camera_cov=None, camera_params=()):
+def raw_covariance(camera: FrameCamera, pose: Pose, *, pose_cov: ArrayLike, camera_cov: ArrayLike | None = None,
+                   camera_params: Sequence[str] = ()) -> np.ndarray:
     """Covariance (20, 20) of the raw parameters the accuracy kernels differentiate by
     (:data:`orthowarp.kernels.precision.RAW`: projection centre, rotation matrix row-major,
     camera), ``M C_in M^T``, with ``M`` the derivative of the pose's centre and rotation by its
     inputs (central differences through the pose's own construction,
     :func:`~orthowarp.adjust.precision.moved_pose`) and of the camera by its parameters (the
     identity); inputs and units as for :func:`~orthowarp.adjust.precision.monoplot_covariance`."""
-    pose_cov = _square("pose_cov", pose_cov, pose_inputs(pose, cov_size(pose_cov)))
+    pose_cov = square_matrix("pose_cov", pose_cov, pose_inputs(pose, cov_size(pose_cov)))
     p = len(pose_cov)
     q = len(camera_params)
     bad = [n for n in camera_params if n not in RAW_CAMERA]
@@ -288,7 +297,7 @@ def raw_covariance(camera, pose, *, pose_cov, camera_cov=None, camera_params=())
     c_in = np.zeros((p + q, p + q))
     c_in[:p, :p] = pose_cov
     if q:
-        c_in[p:, p:] = _square("camera_cov", camera_cov, q)
+        c_in[p:, p:] = square_matrix("camera_cov", camera_cov, q)
     m = np.zeros((20, p + q))
     for k in range(p):
         d = INPUT_STEPS[k]
@@ -300,7 +309,7 @@ def raw_covariance(camera, pose, *, pose_cov, camera_cov=None, camera_params=())
     return m @ c_in @ m.T
 
 
-def facing(to_sensor, slopes):
+def facing(to_sensor: ArrayLike, slopes: ArrayLike) -> np.ndarray:
     """Whether the terrain's tangent plane at ground points faces the sensor, ``n . v > 0``:
     ``n = (-s_e, -s_n, 1)`` its upward normal (``slopes`` (n, 2): rise per metre east, north),
     ``v`` (n, 3: east, north, up) the ray's direction at the point toward the sensor. The ray
@@ -325,7 +334,7 @@ def _write_accuracy(dst, out, grid, crs, measure):
 _UNIT_ABBREV = {"metre": "m", "meter": "m", "degree": "deg", "US survey foot": "ftUS", "foot": "ft"}
 
 
-def band_descriptions(crs, measure="sigma"):
+def band_descriptions(crs: CRS | str, measure: str = "sigma") -> tuple[tuple[str, ...], tuple[str, ...]]:
     """(descriptions, units) of an accuracy raster's bands, one string each, for rasterio's
     ``descriptions`` and ``units``: ``measure="sigma"``: sigma x and sigma y along the output
     CRS's own axes, in its axis unit (m for UTM; deg for a longitude/latitude CRS), and sigma
@@ -349,8 +358,9 @@ def _check_sigmas(pixel_sigma, dem_sigma):
         raise ParamError(f"pixel_sigma and dem_sigma must be finite and >= 0, got {pixel_sigma}, {dem_sigma}")
 
 
-def frame_window_sigmas(geometry, crs, cells, window, c_raw, *, pixel_sigma=0.5, dem_sigma=0.0, measure="sigma",
-                        nodes=32, chunk=None, timings=None):
+def frame_window_sigmas(geometry: SensorGeometry, crs: CRS, cells: Affine, window: tuple[int, int, int, int],
+                        c_raw: np.ndarray, *, pixel_sigma: float = 0.5, dem_sigma: float = 0.0, measure: str = "sigma",
+                        nodes: int = 32, chunk: int | None = None, timings: dict | None = None) -> np.ndarray:
     """Predicted sigma x, y (the axes of ``crs``, in its unit) and up (m) of the ground under a window of
     accuracy cells seen by one frame image, on the geometry's device
     (:mod:`orthowarp.kernels.precision`).
@@ -392,7 +402,7 @@ def frame_window_sigmas(geometry, crs, cells, window, c_raw, *, pixel_sigma=0.5,
 
     from ..kernels import precision as kp
     from .._device import to_host
-    from .ortho import coarse_grid, coarse_struct
+    from .ortho.tiles import coarse_grid, coarse_struct
 
     if cells.b != 0 or cells.d != 0:
         raise ParamError(f"the accuracy grid must be north up (no rotation terms), got {tuple(cells)[:6]}")
@@ -468,8 +478,9 @@ def frame_window_sigmas(geometry, crs, cells, window, c_raw, *, pixel_sigma=0.5,
     return sig
 
 
-def scene_cell_sigmas(scene, dem, crs, ox, oy, *, orientation_cov, pixel_sigma=0.5, dem_sigma=0.0, refraction=True,
-                      measure="sigma", device=None):
+def scene_cell_sigmas(scene: PushbroomScene, dem: Dem, crs: CRS, ox: np.ndarray, oy: np.ndarray, *,
+                      orientation_cov: ArrayLike, pixel_sigma: float = 0.5, dem_sigma: float = 0.0,
+                      refraction: bool = True, measure: str = "sigma", device: str | None = None) -> np.ndarray:
     """Predicted sigma x, y (the axes of ``crs``, in its unit) and up (m), (3, n) float32, of the ground
     under the points (ox, oy) of ``crs`` seen by a pushbroom scene (NaN where it does not see
     them: off the scene or the DEM, or hidden by their own slope, :func:`facing`), by :func:`scene_monoplot_covariance` at each point; or CE90, LE90 and NaN (see
@@ -477,7 +488,7 @@ def scene_cell_sigmas(scene, dem, crs, ox, oy, *, orientation_cov, pixel_sigma=0
     _measure(measure)
     from .geometry import project
 
-    _square("orientation_cov", orientation_cov, len(SCENE_INPUTS))
+    square_matrix("orientation_cov", orientation_cov, len(SCENE_INPUTS))
     pts, slopes = _terrain_points(dem, crs, ox, oy, None)
     ok = np.all(np.isfinite(pts), axis=1) & np.all(np.isfinite(slopes), axis=1)
     if ok.any():  # on the scene
@@ -488,8 +499,8 @@ def scene_cell_sigmas(scene, dem, crs, ox, oy, *, orientation_cov, pixel_sigma=0
     out = np.full((3, len(ox)), np.nan, np.float32)
     if ok.any():
         _check_sigmas(pixel_sigma, dem_sigma)
-        cov, f_x = _scene_monoplot(scene, pts[ok], slopes[ok], _square("orientation_cov", orientation_cov,
-                                                                      len(SCENE_INPUTS)),
+        cov, f_x = _scene_monoplot(scene, pts[ok], slopes[ok], square_matrix("orientation_cov", orientation_cov,
+                                                                             len(SCENE_INPUTS)),
                                    pixel_sigma, dem_sigma, refraction, device)
         # the line of sight: the pixel's null direction in east, north, up, toward the (orbiting) sensor
         v = np.cross(f_x[:, 0], f_x[:, 1])
@@ -524,9 +535,12 @@ def _reverse_launch(kernel, dim, device, inputs, outputs):
               adj_outputs=[adjoints.get_adjoint(a) for a in outputs], adjoint=True)
 
 
-def accuracy_raster(dst, camera, pose, dem, crs, transform, shape, *, pose_cov, pixel_sigma=0.5, camera_cov=None,
-                    camera_params=(), dem_sigma=0.0, step=16, measure="sigma", refraction=True, geoid=None,
-                    same_vertical_datum=False, device=None):
+def accuracy_raster(dst: str | os.PathLike, camera: FrameCamera, pose: Pose, dem: Dem | str | os.PathLike | float,
+                    crs: CRS, transform: Affine, shape: tuple[int, int], *, pose_cov: ArrayLike, pixel_sigma: float = 0.5,
+                    camera_cov: ArrayLike | None = None, camera_params: Sequence[str] = (), dem_sigma: float = 0.0,
+                    step: int = 16, measure: str = "sigma", refraction: bool = True,
+                    geoid: Dem | str | os.PathLike | None = None, same_vertical_datum: bool = False,
+                    device: str | None = None) -> np.ndarray:
     """Write the predicted accuracy of an ortho of one frame image, computed on ``device``
     (:func:`frame_window_sigmas`).
 
@@ -576,8 +590,10 @@ def accuracy_raster(dst, camera, pose, dem, crs, transform, shape, *, pose_cov, 
     return out
 
 
-def scene_accuracy_raster(dst, scene, dem, crs, transform, shape, *, orientation_cov, pixel_sigma=0.5, dem_sigma=0.0,
-                          step=16, measure="sigma", refraction=True, device=None):
+def scene_accuracy_raster(dst: str | os.PathLike, scene: PushbroomScene, dem: Dem | str | os.PathLike | float, crs: CRS,
+                          transform: Affine, shape: tuple[int, int], *, orientation_cov: ArrayLike,
+                          pixel_sigma: float = 0.5, dem_sigma: float = 0.0, step: int = 16, measure: str = "sigma",
+                          refraction: bool = True, device: str | None = None) -> np.ndarray:
     """Write the predicted accuracy of an ortho of one pushbroom scene: as
     :func:`accuracy_raster`, with :func:`scene_monoplot_covariance` (``orientation_cov``: (8,
     8) in the order and units of :data:`SCENE_INPUTS`) at each cell's centre.
@@ -669,9 +685,12 @@ def accuracy_path(dst: str | os.PathLike) -> str:
     return base + "_ACCURACY.tif"
 
 
-def mosaic_accuracy_raster(dst, images, index, dem, crs, transform, shape, *, pose_cov=None, orientation_cov=None,
-                           pixel_sigma=0.5, dem_sigma=0.0, step=16, measure="sigma", refraction=True, geoid=None,
-                           same_vertical_datum=False, device=None):
+def mosaic_accuracy_raster(dst: str | os.PathLike, images: Sequence, index: str | os.PathLike,
+                           dem: Dem | str | os.PathLike | float, crs: CRS, transform: Affine, shape: tuple[int, int], *,
+                           pose_cov: ArrayLike | None = None, orientation_cov: ArrayLike | None = None,
+                           pixel_sigma: float = 0.5, dem_sigma: float = 0.0, step: int = 16, measure: str = "sigma",
+                           refraction: bool = True, geoid: Dem | str | os.PathLike | None = None,
+                           same_vertical_datum: bool = False, device: str | None = None) -> np.ndarray:
     """Write the predicted accuracy of a mosaic: each cell from the image the mosaic took the
     cell's centre from (its source-index raster), as :func:`accuracy_raster` /
     :func:`scene_accuracy_raster` for that image.
@@ -703,7 +722,7 @@ def mosaic_accuracy_raster(dst, images, index, dem, crs, transform, shape, *, po
 
     from ..sensor import SensorModel
     from .geometry import SensorGeometry
-    from .io import pending_path
+    from .raster.io import pending_path
     from .mosaic import NO_SOURCE
 
     grid, (rows, cols) = _cell_grid(transform, shape, step)

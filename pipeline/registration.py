@@ -37,7 +37,14 @@ Sign convention: ``moving(x) = reference(x - s)``, i.e. ``moving`` is ``referenc
 gives ``(dy, dx) = (s_row, s_col)``. Rows grow downwards, columns to the right.
 """
 
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
 import numpy as np
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
 
 __all__ = ["phase_correlation", "misregistration"]
 
@@ -147,7 +154,8 @@ def _locate(r, nbins, upsample):
     return float(dy), float(dx), float(loc[1, 1] / nbins)  # a pure shift sums to nbins
 
 
-def phase_correlation(reference, moving, *, upsample=100, window=True, iterations=4, floor=FLOOR):
+def phase_correlation(reference: ArrayLike, moving: ArrayLike, *, upsample: int = 100, window: bool | str = True,
+                      iterations: int = 4, floor: float = FLOOR) -> tuple[float, float]:
     """Sub-pixel translation of ``moving`` relative to ``reference``.
 
     Parameters
@@ -217,8 +225,9 @@ def phase_correlation(reference, moving, *, upsample=100, window=True, iteration
     return dy, dx, peak
 
 
-def misregistration(reference, moving, *, valid=None, tile=64, min_valid=0.95, min_peak=0.5,
-                    upsample=100, window=True, floor=FLOOR):
+def misregistration(reference: ArrayLike, moving: ArrayLike, *, valid: ArrayLike | None = None, tile: int = 64,
+                    min_valid: float = 0.95, min_peak: float = 0.5, upsample: int = 100, window: bool | str = True,
+                    floor: float = FLOOR) -> dict[str, Any]:
     """Local shifts of ``moving`` relative to ``reference`` by phase correlation on tiles.
 
     The images are cut into non-overlapping ``tile`` x ``tile`` tiles (from the top-left; a

@@ -16,9 +16,12 @@ and offset), and so does a geoid grid read from a file. A grid file not read who
 the DEM's window only.
 """
 
+from __future__ import annotations
+
 import logging
 import os
 import threading
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from pyproj import Transformer
@@ -26,6 +29,11 @@ from pyproj import Transformer
 from ..errors import ParamError, RasterIOError
 from ..pose import GEOCENTRIC
 from .dem import Dem
+
+if TYPE_CHECKING:
+    from pyproj import CRS
+
+    from ..pose import Pose
 
 __all__ = ["as_geoid", "height_kind", "reconcile_dem"]
 
@@ -35,7 +43,7 @@ ELLIPSOIDAL = "ellipsoidal"
 ORTHOMETRIC = "orthometric"
 
 
-def height_kind(crs):
+def height_kind(crs: CRS | None) -> str | None:
     """"ellipsoidal", "orthometric" or None (undeclared) for the heights of a pyproj CRS."""
     if crs is None:
         return None
@@ -54,7 +62,7 @@ def _pose_kind(pose):
     return ELLIPSOIDAL if pose.mode == GEOCENTRIC else height_kind(pose.crs)
 
 
-def as_geoid(geoid):
+def as_geoid(geoid: Dem | str | os.PathLike | None) -> Dem | None:
     """A geoid grid argument, checked whether or not a job turns out to need it: None, a
     :class:`Dem` as it is, or a grid file opened (its header: any raster GDAL reads with a CRS).
 
@@ -109,7 +117,8 @@ def _note_same_datum(dem, pose, dk, pk, name):
     log.info("%s heights are %s, the positions' %s: taken as the same vertical datum", name, dem_side, pose_side)
 
 
-def reconcile_dem(dem, pose, *, geoid=None, same_vertical_datum=False, name="DEM"):
+def reconcile_dem(dem: Dem, pose: Pose | Any, *, geoid: Dem | str | os.PathLike | None = None,
+                  same_vertical_datum: bool = False, name: str = "DEM") -> Dem:
     """The DEM with heights in the vertical datum of the pose.
 
     Parameters

@@ -1,4 +1,4 @@
-"""The adjustment's pose covariance file (pipeline/adjust_report.py): the reader against what
+"""The adjustment's pose covariance file (pipeline/reports/adjust.py): the reader against what
 the writer writes, bad files, and a fuzz of the parser."""
 
 import json
@@ -10,7 +10,7 @@ from hypothesis import given
 
 import fuzz_strategies as fz
 from orthowarp.errors import OrthowarpError, ParamError
-from orthowarp.pipeline.adjust_report import read_pose_covariances
+from orthowarp.pipeline.reports.adjust import read_pose_covariances
 
 COV = (np.diag([0.05, 0.05, 0.08, 0.004, 0.004, 0.006]) ** 2).tolist()
 DOC = dict(parameters=["x", "y", "z", "omega", "phi", "kappa"], units="m, deg", images={"img_001": COV, "img_002": COV})

@@ -13,8 +13,8 @@ import rasterio
 import orthowarp as ow
 import scenes
 from orthowarp.errors import Cancelled, ParamError, RasterIOError
-from orthowarp.pipeline.batch import ortho_destinations, orthorectify_many
-from orthowarp.pipeline.io import TMP_TAG
+from orthowarp.pipeline.ortho.batch import ortho_destinations, orthorectify_many
+from orthowarp.pipeline.raster.io import TMP_TAG
 from orthowarp.pipeline.ortho import orthorectify
 from orthowarp.pipeline.precision import accuracy_path, accuracy_raster
 from orthowarp.sensor import FrameSensor

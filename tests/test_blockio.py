@@ -8,7 +8,7 @@ import pytest
 from orthowarp import read_block, write_block
 from orthowarp.adjust import synthetic_block
 from orthowarp.errors import ParamError, RasterIOError
-from orthowarp.pipeline.blockio import read_ground_points_csv, read_image_points_csv
+from orthowarp.pipeline.formats.block import read_ground_points_csv, read_image_points_csv
 
 
 @pytest.fixture(scope="module")
@@ -220,7 +220,7 @@ def test_observations_outside_their_image_are_refused_or_dropped(small, tmp_path
                                          r"at \(col, row\) = \(-3, .*\) lies outside the image \(0..7000 x 0..10000 "
                                          r"px\); 1 more observation\(s\) do too"):
         read_block(path)
-    with caplog.at_level("WARNING", logger="orthowarp.pipeline.blockio"):
+    with caplog.at_level("WARNING", logger="orthowarp.pipeline.formats.block"):
         b = read_block(path, drop_outside=True)
     assert len(b.obs_xy) == len(small.obs_xy) - 2
     msg = " ".join(r.getMessage() for r in caplog.records)

@@ -283,7 +283,7 @@ def test_geocentric_block_matches_its_local_twin():
     # the refined orientation as the ortho reads it (lla-rpy CSV)
     import tempfile
 
-    from orthowarp.pipeline.adjust_report import write_adjustment
+    from orthowarp.pipeline.reports.adjust import write_adjustment
     from orthowarp.pipeline.formats import read_exterior
 
     est = np.array([res.poses[i] for i in geo.image_ids])
@@ -296,7 +296,7 @@ def test_geocentric_block_matches_its_local_twin():
         # the pose covariances in the GNSS/INS inputs (east, north, up, roll, pitch, yaw): mapped
         # into the adjustment's frame they are its own
         from orthowarp.adjust.precision import _Frame
-        from orthowarp.pipeline.adjust_report import read_pose_covariances
+        from orthowarp.pipeline.reports.adjust import read_pose_covariances
 
         covs, names = read_pose_covariances(f"{d}/pose_cov.json")
         assert names == ["east", "north", "up", "roll", "pitch", "yaw"] and sorted(covs) == sorted(geo.image_ids)
@@ -509,7 +509,7 @@ def test_cli_adjust_refuses_outside_observations_unless_asked(tmp_path, caplog):
     assert r.exit_code == 1 and len(r.output.strip().splitlines()) == 1
     assert r.output.startswith("Error: ") and "b.json" in r.output and "lies outside the image" in r.output
     assert not out.exists()
-    with caplog.at_level("WARNING", logger="orthowarp.pipeline.blockio"):
+    with caplog.at_level("WARNING", logger="orthowarp.pipeline.formats.block"):
         r = CliRunner().invoke(main, ["adjust", str(tmp_path / "b.json"), "--out-dir", str(out), "--no-plots",
                                       "--drop-outside-observations"])
     assert r.exit_code == 0, r.output

@@ -139,7 +139,7 @@ def test_ortho_command_with_dimap(tmp_path):
     import numpy as np
     import rasterio
 
-    from orthowarp.pipeline.dimap import write_dimap
+    from orthowarp.pipeline.formats.dimap import write_dimap
     from orthowarp.pushbroom import synthetic_scene
 
     sc = synthetic_scene(width=120, height=150, view_angle=5.0)
@@ -507,7 +507,7 @@ def test_match_writes_a_block_of_ties(tmp_path):
     b = write_image(tmp_path / "b.tif", img2, "float32")
     export_params([(str(a), sc.camera, sc.pose), (str(b), sc.camera, pose2)], tmp_path / "o")
     dem = tmp_path / "dem.tif"
-    from orthowarp.pipeline.io import write_raster
+    from orthowarp.pipeline.raster.io import write_raster
 
     write_raster(dem, sc.dem.array, transform=sc.dem.transform, crs=sc.dem.crs.to_wkt(), nodata=np.nan)
     args = ["match", str(a), str(b), "--int-param", str(tmp_path / "o" / "int_param.yaml"), "--ext-param",
@@ -719,7 +719,7 @@ def test_ortho_scene_sigma_and_the_old_pose_sigma_of_a_scene(tmp_path):
     import numpy as np
     import rasterio
 
-    from orthowarp.pipeline.dimap import write_dimap
+    from orthowarp.pipeline.formats.dimap import write_dimap
     from orthowarp.pushbroom import synthetic_scene
 
     sc = synthetic_scene(width=120, height=150, view_angle=5.0)

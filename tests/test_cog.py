@@ -9,7 +9,7 @@ import rasterio.shutil
 from affine import Affine
 
 from orthowarp.errors import ParamError
-from orthowarp.pipeline.cog import CogWriter, overview_count
+from orthowarp.pipeline.raster.cog import CogWriter, overview_count
 
 CRS = "EPSG:32632"
 TRANSFORM = Affine(0.25, 0, 500000.0, 0, -0.25, 5100000.0)

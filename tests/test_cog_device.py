@@ -1,4 +1,4 @@
-"""COG blocks encoded on the device (pipeline/cog_device.py, kernels/cog.py): checksums, zlib
+"""COG blocks encoded on the device (pipeline/raster/device.py, kernels/cog.py): checksums, zlib
 streams, and files that decode to exactly the host writer's pixels at every level."""
 
 import os
@@ -13,8 +13,8 @@ from test_cog import CRS, TRANSFORM, scene
 
 from orthowarp.errors import DeviceError, ParamError
 from orthowarp.kernels import cog as kc
-from orthowarp.pipeline.cog import CogWriter
-from orthowarp.pipeline.cog_device import (DeviceCogEncoder, HostDeflate, NvcompDeflate, _bytes_view,
+from orthowarp.pipeline.raster.cog import CogWriter
+from orthowarp.pipeline.raster.device import (DeviceCogEncoder, HostDeflate, NvcompDeflate, _bytes_view,
                                            nvcomp_available, zlib_stream)
 
 

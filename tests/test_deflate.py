@@ -1,4 +1,4 @@
-"""Deflate on the device (kernels/deflate.py through pipeline/cog_device.WarpDeflate): every
+"""Deflate on the device (kernels/deflate.py through pipeline/raster/device.WarpDeflate): every
 stream inflates with zlib (an independent decoder that refuses over-subscribed and incomplete
 Huffman codes) to exactly its input, and the size stays near libdeflate level 6's."""
 
@@ -16,7 +16,7 @@ except ImportError:  # pragma: no cover
     st = None
 
 from orthowarp.errors import ParamError
-from orthowarp.pipeline.cog_device import DeviceCogEncoder, WarpDeflate, zlib_stream
+from orthowarp.pipeline.raster.device import DeviceCogEncoder, WarpDeflate, zlib_stream
 
 EXAMPLES = int(os.environ.get("ORTHOWARP_FUZZ_EXAMPLES", "60"))
 

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from orthowarp.errors import ParamError, RasterIOError
-from orthowarp.pipeline import dimap
-from orthowarp.pipeline.dimap import read_dimap, read_scene
+from orthowarp.pipeline.formats import dimap
+from orthowarp.pipeline.formats.dimap import read_dimap, read_scene
 
 SAMPLE = os.path.join(os.path.dirname(__file__), "data", "spot5", "spot_example1.xml")
 
@@ -119,7 +119,7 @@ def test_entities_and_size_are_refused(tmp_path, text, monkeypatch):
 
 
 def test_written_synthetic_scene_reads_back(tmp_path):
-    from orthowarp.pipeline.dimap import write_dimap
+    from orthowarp.pipeline.formats.dimap import write_dimap
     from orthowarp.pushbroom import synthetic_scene
 
     sc = synthetic_scene(width=50, height=80, view_angle=10.0)
@@ -152,7 +152,7 @@ def test_lines_outside_the_ephemeris_are_refused(tmp_path, text):
 
 def small_text():
     """A small, valid DIMAP document (a synthetic 20 x 30 scene)."""
-    from orthowarp.pipeline.dimap import write_dimap
+    from orthowarp.pipeline.formats.dimap import write_dimap
     from orthowarp.pushbroom import synthetic_scene
 
     import tempfile
@@ -359,7 +359,7 @@ with open(SAMPLE, encoding="utf-8") as _f:
 # -- adjusted scenes as JSON (write_scene / read_scene) ------------------------------------------
 
 def test_scene_json_round_trips_to_the_same_model(tmp_path):
-    from orthowarp.pipeline.dimap import write_scene
+    from orthowarp.pipeline.formats.dimap import write_scene
     from orthowarp.pushbroom import synthetic_scene
 
     sc = synthetic_scene(width=60, height=80, view_angle=7.0)
@@ -388,7 +388,7 @@ def test_scene_json_round_trips_to_the_same_model(tmp_path):
 def test_bad_scene_json_is_refused_naming_the_file(tmp_path, change, message):
     import json
 
-    from orthowarp.pipeline.dimap import scene_json
+    from orthowarp.pipeline.formats.dimap import scene_json
     from orthowarp.pushbroom import synthetic_scene
 
     doc = json.loads(scene_json(synthetic_scene(width=20, height=30)))
@@ -407,7 +407,7 @@ import fuzz_strategies as fz  # noqa: E402
 def _scene_doc():
     import json
 
-    from orthowarp.pipeline.dimap import scene_json
+    from orthowarp.pipeline.formats.dimap import scene_json
     from orthowarp.pushbroom import synthetic_scene
 
     sc = synthetic_scene(width=8, height=12)

@@ -22,7 +22,7 @@ from click.testing import CliRunner
 from pyproj import CRS
 
 from orthowarp.cli import main
-from orthowarp.pipeline.io import TMP_TAG
+from orthowarp.pipeline.raster.io import TMP_TAG
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -278,7 +278,7 @@ def test_a_failed_adjustment_is_never_written(tmp_path):
 
     from orthowarp.adjust import bundle_adjust, synthetic_block
     from orthowarp.errors import GeometryError
-    from orthowarp.pipeline.adjust_report import write_adjustment
+    from orthowarp.pipeline.reports.adjust import write_adjustment
 
     block, _ = synthetic_block(strips=2, images_per_strip=4, seed=11)
     res = bundle_adjust(block)
@@ -323,7 +323,7 @@ def test_a_mosaic_appearing_while_a_run_writes_is_never_replaced(tmp_path, monke
     """The race without timing: another run publishes the mosaic after this run's checks; this
     run then fails naming it, publishes none of its outputs (the index neither) and leaves the
     other run's file as it was."""
-    from orthowarp.pipeline import mosaic as pm
+    from orthowarp.pipeline.mosaic import plan as pm
 
     out = tmp_path / "m.tif"
     real_writer = pm.CogWriter
@@ -408,7 +408,7 @@ def test_a_refused_mosaic_still_removes_the_temporaries_of_dead_runs(tmp_path):
     out = tmp_path / "m.tif"
     res = CliRunner().invoke(main, _mosaic_args(tmp_path, out))
     assert res.exit_code == 0, res.output
-    code = ("import sys, time\nfrom orthowarp.pipeline.io import atomic_files\n"
+    code = ("import sys, time\nfrom orthowarp.pipeline.raster.io import atomic_files\n"
             f"with atomic_files([{str(out)!r}, {str(tmp_path / 'index.tif')!r}]) as tmps:\n"
             "    open(tmps[0] + '.blocks', 'w').close()\n"
             "    print(*tmps, flush=True)\n    time.sleep(600)\n")

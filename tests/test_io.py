@@ -10,8 +10,8 @@ import pytest
 import rasterio
 
 from orthowarp.errors import RasterIOError
-from orthowarp.pipeline import io as owio
-from orthowarp.pipeline.cog import verify_tiff
+from orthowarp.pipeline.raster import io as owio
+from orthowarp.pipeline.raster.tiff import verify_tiff
 
 
 def _temporaries(folder):
@@ -81,7 +81,7 @@ def test_check_destination(tmp_path):
 _HOLD = """
 import os, sys, time
 sys.path.insert(0, {root!r})
-from orthowarp.pipeline import io
+from orthowarp.pipeline.raster import io
 with io.atomic_path({dst!r}) as tmp:
     open(tmp, "w").write("partial")
     open(tmp + ".blocks", "w").write("partial")
@@ -233,7 +233,7 @@ def test_refusing_a_destination_removes_stale_temporaries(tmp_path):
     import sys
 
     (tmp_path / "x.tif").write_text("kept")
-    code = ("import time\nfrom orthowarp.pipeline.io import atomic_path\n"
+    code = ("import time\nfrom orthowarp.pipeline.raster.io import atomic_path\n"
             f"with atomic_path({str(tmp_path / 'x.tif')!r}) as t:\n    print(t, flush=True)\n    time.sleep(600)\n")
     p = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
     try:

@@ -1,4 +1,4 @@
-"""Mosaics (pipeline/mosaic.py): two overlapping frames of one synthetic scene against the
+"""Mosaics (pipeline/mosaic/): two overlapping frames of one synthetic scene against the
 scene's truth, the source index against an independent off-nadir rule, and bad input."""
 
 import os
@@ -374,7 +374,7 @@ def test_cli_mosaic_of_pushbroom_scenes(tmp_path, monkeypatch):
         (tmp_path / f"s{k}.dim").write_text("<Dimap_Document/>")
         scenes[str(tmp_path / f"s{k}.dim")] = sc
         args += ["--scene", str(img), str(tmp_path / f"s{k}.dim")]
-    monkeypatch.setattr("orthowarp.pipeline.dimap.read_scene", lambda path, **kw: scenes[str(path)])
+    monkeypatch.setattr("orthowarp.pipeline.formats.dimap.read_scene", lambda path, **kw: scenes[str(path)])
     out = tmp_path / "m.tif"
     res = CliRunner().invoke(main, ["mosaic", *args, "--height", "250", "--crs", "EPSG:32631", "--resolution", "5",
                                     "--no-refraction", "--out", str(out), "--index", str(tmp_path / "i.tif"),
@@ -400,7 +400,7 @@ def test_a_minimum_cut_takes_the_seam_round_a_disagreement(max_nodes):
     """The minimum-cut labelling of a corridor (used where no path splits its rim): a straight
     nadir seam through a blob where the images disagree moves round it, and stays where it
     was elsewhere; also when the corridor is cut on 2 x 2 blocks."""
-    from orthowarp.pipeline.mosaic import _cut_corridor
+    from orthowarp.pipeline.mosaic.seams import _cut_corridor
 
     h, w = 60, 80
     cols = np.broadcast_to(np.arange(w), (h, w))
@@ -426,7 +426,7 @@ def test_the_backward_fallback_covers_only_blocks_with_coverable_gaps():
     """Pixels the forward method leaves without a value are filled on the tile's blocks that
     hold them (each block row's consecutive blocks merged), and only where the reduced
     labelling has cover within one reduced pixel: gaps beyond every image cost nothing."""
-    from orthowarp.pipeline.mosaic import _fallback_blocks
+    from orthowarp.pipeline.mosaic.blend import _fallback_blocks
 
     f = 4
     labels = np.full((100, 100), NO_SOURCE, np.uint16)
@@ -837,7 +837,7 @@ def test_pushbroom_hidden_ground_is_tested_and_taken_from_another_scene(tmp_path
 def test_auto_block_codec_is_warp_on_a_gpu_and_host_on_the_cpu():
     import warp as wp
 
-    from orthowarp.pipeline.mosaic import _mosaic_block_codec
+    from orthowarp.pipeline.mosaic.plan import mosaic_block_codec as _mosaic_block_codec
 
     assert _mosaic_block_codec("auto", wp.get_device("cpu"), 6) == "host"
     assert _mosaic_block_codec("warp", wp.get_device("cpu"), 6) == "warp"
@@ -847,7 +847,7 @@ def test_auto_block_codec_is_warp_on_a_gpu_and_host_on_the_cpu():
 
 def _multiband_reference(stack, rank, ks, feather, halo, top, dtype):
     """The NumPy/SciPy reference of the kernels' multi-band blending: the host version they
-    replaced, as :func:`orthowarp.pipeline.mosaic._multiband` describes the method, on a tile
+    replaced, as :func:`orthowarp.pipeline.mosaic.blend._multiband` describes the method, on a tile
     grown by ``halo`` pixels; returns the inner tile's (values of ``dtype``, source index
     (``ks`` of the chosen image, NO_SOURCE where none), has a value)."""
     from scipy.ndimage import gaussian_filter
@@ -899,7 +899,8 @@ def test_multiband_kernels_match_the_numpy_reference(device, dtype, top):
     import warp as wp
 
     from orthowarp.kernels import mosaic as mk
-    from orthowarp.pipeline.mosaic import _multiband, _multiband_halo
+    from orthowarp.pipeline.mosaic.blend import _multiband
+    from orthowarp.pipeline.mosaic.blend import multiband_halo as _multiband_halo
 
     rng = np.random.default_rng(11)
     feather = 12.0
@@ -987,7 +988,7 @@ def test_fade_edge_distances_at_the_nodes_match_float64_numpy(device, name):
 def test_overlap_moments_match_numpy_over_the_masked_pixels():
     """The balance's per-band mean and standard deviation over an overlap's pixels (masked
     sums in float64, no copy) against NumPy's mean and std of the pixels taken out."""
-    from orthowarp.pipeline.mosaic import _moments
+    from orthowarp.pipeline.mosaic.balance import _moments
 
     rng = np.random.default_rng(3)
     values = (rng.uniform(0, 255, (120, 90, 3)) * [1.0, 0.7, 1.3] + [0, 40, -20]).astype(np.float32)
@@ -1004,7 +1005,7 @@ def test_ordered_tasks_wait_for_the_earlier_ones_they_name():
     import threading
     import time
 
-    from orthowarp.pipeline.mosaic import _run_ordered
+    from orthowarp.pipeline.mosaic.seams import _run_ordered
 
     rng = np.random.default_rng(5)
     n = 40
@@ -1039,7 +1040,7 @@ def test_seams_on_threads_give_the_labels_of_the_order():
     other), and the seams moved."""
     from scipy import ndimage
 
-    from orthowarp.pipeline.mosaic import _least_cost_seams
+    from orthowarp.pipeline.mosaic.seams import least_cost_seams as _least_cost_seams
 
     rng = np.random.default_rng(11)
     rows, cols = 150, 220

@@ -342,7 +342,7 @@ def test_node_blocks_bound_the_nodes_in_a_box():
     """The forward method's node search by blocks gives the bounds a node-by-node search
     gives, for boxes inside, across and outside a rotated, warped node grid with holes: the
     source pixels exactly, the other values within float32's step of a block's spread."""
-    from orthowarp.pipeline.ortho import _NodeBlocks
+    from orthowarp.pipeline.ortho.forward import _NodeBlocks
 
     rng = np.random.default_rng(3)
     rows, cols = 53, 71  # not whole blocks
@@ -418,7 +418,7 @@ def test_output_grid_is_the_same_on_every_device(name):
     bench/reference/api-agreement-h100.json)."""
     import copy
 
-    from orthowarp.pipeline import ortho as po
+    from orthowarp.pipeline.ortho import grid as po
     from orthowarp.pipeline.geometry import SensorGeometry
 
     rng = np.random.default_rng(11)
@@ -482,7 +482,7 @@ def test_tile_height_range_from_dem_blocks():
     the cells under it (and one around); no heights there -> None; a constant DEM -> its
     height."""
     from orthowarp.pipeline.dem import Dem
-    from orthowarp.pipeline.ortho import _height_range
+    from orthowarp.pipeline.ortho.tiles import _height_range
 
     rng = np.random.default_rng(3)
     z = rng.normal(500.0, 80.0, (150, 230)).astype(np.float32)
@@ -510,7 +510,8 @@ def test_refraction_from_the_nodes_matches_the_per_pixel_turn(name):
     import warp as wp
     from orthowarp.kernels import ortho as ok
     from orthowarp.pipeline.geometry import SensorGeometry
-    from orthowarp.pipeline.ortho import _height_range, coarse_grid, coarse_struct, output_grid
+    from orthowarp.pipeline.ortho import coarse_grid, coarse_struct, output_grid
+    from orthowarp.pipeline.ortho.tiles import _height_range
 
     sc = scene(name)
     geoms = {r: SensorGeometry(FrameSensor(sc.camera, sc.pose), sc.dem, device="cpu", refraction=r) for r in (True, False)}
@@ -564,7 +565,8 @@ def test_tile_windows_hold_every_source_pixel(name):
     import warp as wp
     from orthowarp.kernels import ortho as ok
     from orthowarp.pipeline.geometry import SensorGeometry
-    from orthowarp.pipeline.ortho import _height_range, _node_window, coarse_grid, coarse_struct, output_grid
+    from orthowarp.pipeline.ortho import coarse_grid, coarse_struct, output_grid
+    from orthowarp.pipeline.ortho.tiles import _height_range, _node_window
 
     sc = scene(name)
     geom = SensorGeometry(FrameSensor(sc.camera, sc.pose), sc.dem, device="cpu", refraction=True)
@@ -733,11 +735,11 @@ def test_auto_block_codec(monkeypatch, is_cuda, nvcomp, level, want):
     kernels with the host cores ("hybrid"); on the CPU the host path."""
     from types import SimpleNamespace
 
-    from orthowarp.pipeline import ortho as po
+    from orthowarp.pipeline.ortho import sink as po
 
     monkeypatch.setattr(po, "nvcomp_available", lambda: nvcomp)
-    assert po._block_codec("auto", SimpleNamespace(is_cuda=is_cuda), True, level) == want
-    assert po._block_codec("auto", SimpleNamespace(is_cuda=is_cuda), False, level) == "host"  # not a deflate COG
+    assert po.choose_block_codec("auto", SimpleNamespace(is_cuda=is_cuda), True, level) == want
+    assert po.choose_block_codec("auto", SimpleNamespace(is_cuda=is_cuda), False, level) == "host"  # not a deflate COG
 
 
 def test_hybrid_codecs_without_nvcomp_are_warp_and_host(monkeypatch):
@@ -745,8 +747,8 @@ def test_hybrid_codecs_without_nvcomp_are_warp_and_host(monkeypatch):
     the device, at the level's search depth, and libdeflate on the host cores."""
     import warp as wp
 
-    from orthowarp.pipeline import ortho as po
-    from orthowarp.pipeline.cog_device import HostDeflate, WarpDeflate
+    from orthowarp.pipeline.ortho import sink as po
+    from orthowarp.pipeline.raster.device import HostDeflate, WarpDeflate
 
     monkeypatch.setattr(po, "nvcomp_available", lambda: False)
     for level, depth in ((1, 4), (6, 32), (9, 128)):

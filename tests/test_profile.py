@@ -1,4 +1,4 @@
-"""Profiles of orthorectifications (orthowarp.pipeline.profile), ``orthowarp ortho --profile``,
+"""Profiles of orthorectifications (orthowarp.pipeline.reports.profile), ``orthowarp ortho --profile``,
 and the start-up cost of ``import orthowarp``."""
 
 import json
@@ -16,7 +16,7 @@ from pyproj import CRS
 
 import orthowarp as ow
 from orthowarp.cli import main
-from orthowarp.pipeline.profile import STAGES, StageTimer, format_profile, merge_profiles, process_start, union_length
+from orthowarp.pipeline.reports.profile import STAGES, StageTimer, format_profile, merge_profiles, process_start, union_length
 from orthowarp.sensor import FrameSensor
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -259,7 +259,8 @@ before = sorted(m for m in sys.modules if m.split(".")[0] in ("scipy", "matplotl
 names = [ow.FrameCamera, ow.Pose, ow.PushbroomScene, ow.Dem, ow.geolocate, ow.project, ow.orthorectify,
          ow.orthorectify_many]
 after = sorted(m for m in sys.modules if m.split(".")[0] in ("scipy", "matplotlib", "yaml", "tqdm", "defusedxml")
-               or m in ("orthowarp.adjust.bundle", "orthowarp.pipeline.dimap", "orthowarp.pipeline.formats"))
+               or m in ("orthowarp.adjust.bundle", "orthowarp.pipeline.formats.dimap", "orthowarp.pipeline.formats.cameras",
+                        "orthowarp.pipeline.formats.exterior"))
 import warp
 runtime = warp._src.context.runtime if hasattr(warp, "_src") else warp.context.runtime
 print(json.dumps(dict(before=before, after=after, names=[n.__name__ for n in names], warp_initialised=runtime is not None,

@@ -8,7 +8,7 @@ import pytest
 from orthowarp import read_scene
 from orthowarp.errors import GeometryError, ParamError
 from orthowarp.geodesy import geodetic_to_ecef
-from orthowarp.pipeline.dimap import read_dimap
+from orthowarp.pipeline.formats.dimap import read_dimap
 from orthowarp.pushbroom import attitude_matrix, lagrange
 from orthowarp.sensor import FrameSensor
 

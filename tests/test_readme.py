@@ -289,7 +289,7 @@ def _demo_frames(folder):
     import yaml
 
     from orthowarp.pipeline.demo import render, synthetic_scene
-    from orthowarp.pipeline.io import write_raster
+    from orthowarp.pipeline.raster.io import write_raster
     from orthowarp.sensor import FrameSensor
 
     camera, pose, dem = synthetic_scene()

@@ -1,4 +1,4 @@
-"""Scene point files (pipeline/scenepoints.py): JSON round trips, the CSV import, CRS handling,
+"""Scene point files (pipeline/formats/scene_points.py): JSON round trips, the CSV import, CRS handling,
 errors naming the file and point, and Hypothesis fuzzing of both parsers."""
 
 import copy
@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 import fuzz_strategies as fz
 from orthowarp.adjust.scene_points import ScenePoints
 from orthowarp.errors import OrthowarpError, ParamError, RasterIOError
-from orthowarp.pipeline.scenepoints import read_scene_points, read_scene_points_csv, write_scene_points
+from orthowarp.pipeline.formats.scene_points import read_scene_points, read_scene_points_csv, write_scene_points
 
 DOC = {
     "format": "orthowarp-scene-points", "version": 1, "crs": "EPSG:4979",

@@ -1,4 +1,4 @@
-"""Tiles on worker processes (pipeline/tileprocs.py): every tile comes back once with the
+"""Tiles on worker processes (pipeline/mosaic/workers.py): every tile comes back once with the
 worker's values, a worker's exception reaches the caller with its type, and a worker that dies
 is an error naming its exit code. The plans here are small stand-ins (importable by the spawned
 workers from this module); the mosaic through them is tested in test_mosaic.py."""
@@ -10,8 +10,8 @@ import pytest
 import warp as wp
 
 from orthowarp.errors import OrthowarpError, ParamError
-from orthowarp.pipeline.profile import StageTimer
-from orthowarp.pipeline.tileprocs import ProcessTiles, TileDealer, _live_peak, tile_runs
+from orthowarp.pipeline.reports.profile import StageTimer
+from orthowarp.pipeline.mosaic.workers import ProcessTiles, TileDealer, _live_peak, tile_runs
 
 
 class StandInPlan:
@@ -291,16 +291,16 @@ def test_workers_and_shared_file_do_not_outlive_a_caller_killed_outright(tmp_pat
     import sys
     import time
 
-    from orthowarp.pipeline.tileprocs import remove_stale_segments
+    from orthowarp.pipeline.mosaic.workers import remove_stale_segments
 
     folder = str(tmp_path)  # this test's own segment folder: another test's dead caller is not ours
     script = (
         "import os, sys, time\n"
         f"sys.path.insert(0, {os.path.dirname(__file__)!r})\n"
         "from test_tileprocs import StandInPlan\n"
-        "from orthowarp.pipeline import tileprocs\n"
+        "from orthowarp.pipeline.mosaic import workers as tileprocs\n"
         f"tileprocs._segment_folder = lambda: {folder!r}\n"
-        "from orthowarp.pipeline.tileprocs import ProcessTiles\n"
+        "from orthowarp.pipeline.mosaic.workers import ProcessTiles\n"
         "procs = ProcessTiles(2, 'cpu', threads=1)\n"
         "procs.start_plan(StandInPlan(), (32, 32), with_source=False)\n"
         "print(procs._file, *[p.pid for p in procs._procs], flush=True)\n"

@@ -112,7 +112,7 @@ class _Group(click.Group):
 
 def _exit_now(signum: int) -> NoReturn:
     """Last resort of a stop: remove the temporaries, exit without waiting for anything."""
-    from ..pipeline.io import remove_own_temporaries
+    from ..pipeline.raster.io import remove_own_temporaries
 
     remove_own_temporaries()
     sys.stderr.write(f"Error: stopped by signal {signum}; temporaries removed\n")

@@ -50,7 +50,7 @@ def adjust(ctx: click.Context, block_file: str | None, out_dir: str, **kwargs: A
 
     from ..adjust import bundle_adjust
     from ..errors import Cancelled, GeometryError
-    from ..pipeline.adjust_report import write_adjustment
+    from ..pipeline.reports.adjust import write_adjustment
 
     o = SimpleNamespace(**kwargs)
     block, block_file = _block(block_file, o, quiet=ctx.obj["quiet"])
@@ -75,7 +75,7 @@ def _block(block_file: str | None, o: SimpleNamespace, *, quiet: bool) -> tuple[
     """(the block, its name in messages): from BLOCK_FILE (written first with
     --write-example), or from the four files."""
     from ..errors import ParamError
-    from ..pipeline.blockio import read_block
+    from ..pipeline.formats.block import read_block
 
     parts = (o.cameras, o.exterior, o.image_points, o.ground_points)
     if any(parts):
@@ -83,7 +83,7 @@ def _block(block_file: str | None, o: SimpleNamespace, *, quiet: bool) -> tuple[
             raise ParamError("Give BLOCK_FILE or --cameras/--exterior/--image-points/--ground-points, not both")
         if not all(parts):
             raise ParamError("A block from files needs all of --cameras, --exterior, --image-points, --ground-points")
-        from ..pipeline.blockio import block_from_files
+        from ..pipeline.formats.block import block_from_files
 
         return block_from_files(*parts, drop_outside=o.drop_outside), o.exterior
     if not block_file:
@@ -91,8 +91,8 @@ def _block(block_file: str | None, o: SimpleNamespace, *, quiet: bool) -> tuple[
                          "files")
     if o.write_example:
         from ..adjust import synthetic_block
-        from ..pipeline.blockio import write_block
-        from ..pipeline.io import check_destination
+        from ..pipeline.formats.block import write_block
+        from ..pipeline.raster.io import check_destination
 
         check_destination(block_file, overwrite=False)
         write_block(synthetic_block()[0], block_file)

@@ -58,11 +58,11 @@ def match(ctx: click.Context, images: tuple[str, ...], **kwargs: Any) -> None:
     boresight and lever arm."""
     warm_up(kwargs["device"], more=("orthowarp.kernels.matching",))
     from ..errors import ParamError
-    from ..pipeline.blockio import write_block
     from ..pipeline.dem import Dem
-    from ..pipeline.io import check_destination
+    from ..pipeline.formats.block import write_block
+    from ..pipeline.formats.sensors import expand_images, frame_sensors, image_key
     from ..pipeline.matching import match_block
-    from ..pipeline.sensors import expand_images, frame_sensors, image_key
+    from ..pipeline.raster.io import check_destination
 
     o = SimpleNamespace(**kwargs)
     images = expand_images(images)
@@ -147,9 +147,9 @@ def _match_control(block: Any, pixels: list[Any], sensors: list[Any], terrain: A
     import numpy as np
 
     from ..errors import ParamError
-    from ..pipeline.blockio import read_ground_points_csv
-    from ..pipeline.io import check_destination, write_text
+    from ..pipeline.formats.block import read_ground_points_csv
     from ..pipeline.matching import control_observations
+    from ..pipeline.raster.io import check_destination, write_text
 
     gcps = read_ground_points_csv(control_csv, sigma=sigma)
     if not gcps:

@@ -74,10 +74,10 @@ def mosaic(ctx: click.Context, images: tuple[str, ...], **kwargs: Any) -> None:
 
     from ..errors import ParamError
     from ..pipeline.dem import Dem
-    from ..pipeline.io import outputs_together
+    from ..pipeline.formats.sensors import odm_dataset
     from ..pipeline.mosaic import mosaic as make_mosaic
     from ..pipeline.precision import accuracy_path
-    from ..pipeline.sensors import odm_dataset
+    from ..pipeline.raster.io import outputs_together
 
     o = SimpleNamespace(**kwargs)
     if o.odm_dataset is not None:
@@ -136,8 +136,8 @@ def _accuracy_sigmas(o: SimpleNamespace) -> tuple[list[float], list[float]]:
     """(frame pose sigmas, scene sigmas) of ``--accuracy``, checked, and the accuracy raster's
     destination checked, before any work."""
     from ..errors import ParamError
-    from ..pipeline.io import check_destination
     from ..pipeline.precision import accuracy_path
+    from ..pipeline.raster.io import check_destination
 
     if not o.index_path:
         raise ParamError("--accuracy takes each cell's image from the index: give --index too")
@@ -151,11 +151,11 @@ def _accuracy_sigmas(o: SimpleNamespace) -> tuple[list[float], list[float]]:
 def _jobs(images: tuple[str, ...] | list[str], o: SimpleNamespace) -> list[tuple[str, Any]]:
     """(image, sensor) of the frame IMAGES, then of the --scene scenes."""
     from ..errors import RasterIOError
-    from ..pipeline.sensors import frame_sensors
+    from ..pipeline.formats.sensors import frame_sensors
 
     jobs = frame_sensors(images, o.int_param, o.ext_param, crs=o.crs) if images else []
     if o.scenes:
-        from ..pipeline.dimap import read_scene
+        from ..pipeline.formats.dimap import read_scene
 
         for image, dimap in o.scenes:
             if not os.path.exists(image):
@@ -167,8 +167,8 @@ def _jobs(images: tuple[str, ...] | list[str], o: SimpleNamespace) -> list[tuple
 def _report_profile(r: Any, images: int, *, show: bool, path: str | None) -> None:
     """The mosaic's profile: the plan's steps and the tiles' stages, on stderr (``show``) and
     as JSON (``path``)."""
-    from ..pipeline.io import write_json
-    from ..pipeline.profile import format_profile
+    from ..pipeline.raster.io import write_json
+    from ..pipeline.reports.profile import format_profile
 
     steps = ", ".join(f"{k} {v:.3f} s" for k, v in r.setup_s.items() if k != "total")
     if show:

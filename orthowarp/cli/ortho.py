@@ -1,5 +1,5 @@
 """``orthowarp ortho``: frame images or one pushbroom scene into orthos, by
-:func:`~orthowarp.pipeline.batch.orthorectify_many`."""
+:func:`~orthowarp.pipeline.ortho.batch.orthorectify_many`."""
 
 from __future__ import annotations
 
@@ -67,8 +67,8 @@ def ortho(ctx: click.Context, images: tuple[str, ...], **kwargs: Any) -> None:
     if not kwargs["export_params"]:
         warm_up(kwargs["device"], accuracy=kwargs["accuracy"])
     from ..errors import ParamError
-    from ..pipeline.batch import orthorectify_many
-    from ..pipeline.sensors import odm_dataset
+    from ..pipeline.formats.sensors import odm_dataset
+    from ..pipeline.ortho.batch import orthorectify_many
 
     t_imported = time.perf_counter()
     o = SimpleNamespace(**kwargs)
@@ -102,7 +102,7 @@ def ortho(ctx: click.Context, images: tuple[str, ...], **kwargs: Any) -> None:
                        f"{r.timings['wall']:.2f} s")
         profiles.append((dst, r.profile))
         if o.show_profile:
-            from ..pipeline.profile import format_profile
+            from ..pipeline.reports.profile import format_profile
 
             click.echo(format_profile(r.profile, dst), err=True)
 
@@ -125,8 +125,8 @@ def ortho(ctx: click.Context, images: tuple[str, ...], **kwargs: Any) -> None:
 def _export_params(images: tuple[str, ...] | list[str], o: SimpleNamespace, *, quiet: bool) -> None:
     """``--export-params``: the frame images' orientation in orthority's formats."""
     from ..errors import ParamError
-    from ..pipeline.formats import export_params
-    from ..pipeline.sensors import frame_orientations
+    from ..pipeline.formats.export import export_params
+    from ..pipeline.formats.sensors import frame_orientations
 
     if o.dimap or not o.ext_param:
         raise ParamError("--export-params writes frame images' orientations: give --ext-param (not --dimap)")
@@ -173,10 +173,10 @@ def _covariances(ctx: click.Context, o: SimpleNamespace) -> tuple[Any, Any]:
 def _jobs(images: tuple[str, ...] | list[str], o: SimpleNamespace) -> list[tuple[str, Any, str]]:
     """(image, sensor, destination) of each image: the --dimap scene, or the frames."""
     from ..errors import ParamError, RasterIOError
-    from ..pipeline.batch import ortho_destinations
+    from ..pipeline.ortho.batch import ortho_destinations
 
     if o.dimap is not None:
-        from ..pipeline.dimap import read_scene
+        from ..pipeline.formats.dimap import read_scene
 
         if o.int_param or o.ext_param:
             raise ParamError("--dimap replaces --int-param and --ext-param: give one or the other")
@@ -187,7 +187,7 @@ def _jobs(images: tuple[str, ...] | list[str], o: SimpleNamespace) -> list[tuple
         return ortho_destinations([(images[0], read_scene(o.dimap, attitude_model=o.attitude_model))], o.out_dir)
     if not o.ext_param:
         raise ParamError("Give --ext-param (frame images) or --dimap (a pushbroom scene)")
-    from ..pipeline.sensors import frame_sensors
+    from ..pipeline.formats.sensors import frame_sensors
 
     return ortho_destinations(frame_sensors(images, o.int_param, o.ext_param, crs=o.crs), o.out_dir)
 
@@ -215,8 +215,8 @@ def _report_profile(profiles: list[tuple[str, dict]], batch_wall: float, marks: 
     """The ortho command's profile: the batch total (several images) and the start-up, on stderr
     (``show``) and as JSON (``path``). ``marks``: perf_counter() readings at the command's
     start, after its imports, and at the batch's start."""
-    from ..pipeline.io import write_json
-    from ..pipeline.profile import format_profile, merge_profiles, process_start
+    from ..pipeline.raster.io import write_json
+    from ..pipeline.reports.profile import format_profile, merge_profiles, process_start
 
     t_command, t_imported, t_first = marks
     first = profiles[0][1]

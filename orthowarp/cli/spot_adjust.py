@@ -54,7 +54,7 @@ def spot_adjust(ctx: click.Context, **kwargs: Any) -> None:
 
     from ..adjust import adjust_scenes, preadjust_look_angles
     from ..errors import Cancelled, GeometryError
-    from ..pipeline.spot_report import write_scene_adjustment
+    from ..pipeline.reports.spot import write_scene_adjustment
 
     o = SimpleNamespace(**kwargs)
     models, points = _inputs(o, quiet=ctx.obj["quiet"])
@@ -86,8 +86,8 @@ def _inputs(o: SimpleNamespace, *, quiet: bool) -> tuple[dict[str, Any], Any]:
     """(scene id -> scene, measured points) of the --scene and --points options, or of the
     example written first (--write-example); ``o.points_file`` set to the points' file."""
     from ..errors import ParamError
-    from ..pipeline.dimap import read_scene
-    from ..pipeline.scenepoints import read_scene_points, read_scene_points_csv
+    from ..pipeline.formats.dimap import read_scene
+    from ..pipeline.formats.scene_points import read_scene_points, read_scene_points_csv
 
     scenes = o.scenes
     if o.write_example:
@@ -136,9 +136,9 @@ def _write_spot_example(folder: str) -> tuple[tuple[tuple[str, str], ...], str, 
     import numpy as np
 
     from ..adjust.spot_synthetic import perturbed, simulate_points, stereo_pair
-    from ..pipeline.dimap import write_scene
-    from ..pipeline.io import check_destination, ensure_folder, write_raster
-    from ..pipeline.scenepoints import write_scene_points
+    from ..pipeline.formats.dimap import write_scene
+    from ..pipeline.formats.scene_points import write_scene_points
+    from ..pipeline.raster.io import check_destination, ensure_folder, write_raster
 
     check_destination(folder, overwrite=False)
     a, b = stereo_pair()

@@ -1,7 +1,7 @@
 """Outputs of a bundle adjustment: refined orientation in the formats ``orthowarp ortho``
 reads, adjusted points, a JSON report, and a readable report with plots (matplotlib).
 
-Files written into the output folder, all together or none (:func:`~orthowarp.pipeline.io.write_files`):
+Files written into the output folder, all together or none (:func:`~orthowarp.pipeline.raster.io.write_files`):
 
 - ``exterior.csv`` + ``exterior.prj``: ``filename,x,y,z,omega,phi,kappa`` (m, deg) in the
   block's CRS (geocentric blocks: ``filename,latitude,longitude,altitude,roll,pitch,yaw``, no
@@ -20,41 +20,50 @@ Files written into the output folder, all together or none (:func:`~orthowarp.pi
   check points).
 """
 
+from __future__ import annotations
+
 import io
 import json
 import os
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import yaml
 from pyproj import CRS
 
-from .blockio import _camera_dict
-from ..errors import GeometryError
-from .io import ensure_folder, write_files
+from ...errors import GeometryError, ParamError
+from ..formats.export import camera_dict
+from ..raster.io import ensure_folder, write_files
 
-__all__ = ["write_adjustment", "read_pose_covariances", "POSE_COV_PARAMETERS"]
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
+    from ...adjust.block import Block
+    from ...adjust.bundle.result import AdjustResult
+
+__all__ = ["write_adjustment", "read_pose_covariances", "POSE_COV_PARAMETERS", "finite_or_null", "png_bytes"]
 
 # the parameters of pose_cov.json, by block mode
 POSE_COV_PARAMETERS = {"map": ["x", "y", "z", "omega", "phi", "kappa"],
                        "geocentric": ["east", "north", "up", "roll", "pitch", "yaw"]}
 
 
-def _csv(rows):
+def _csv(rows: list) -> str:
     return "\n".join(",".join(str(v) for v in r) for r in rows) + "\n"
 
 
-def _pose_cov(block, result, k):
+def _pose_cov(block: Block, result: AdjustResult, k: int) -> list[list[float]]:
     """Image k's pose covariance (6 x 6 nested lists) in the parameters of exterior.csv."""
     c = result.pose_cov[k]
     if block.mode == "geocentric":
-        from ..adjust.precision import input_covariance
-        from ..pose import Pose
+        from ...adjust.precision import input_covariance
+        from ...pose import Pose
 
         c = input_covariance(Pose.from_ins(*result.poses[block.image_ids[k]]), c, local=result.local_frame)
     return [[float(v) for v in row] for row in c]
 
 
-def read_pose_covariances(path):
+def read_pose_covariances(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], list[str]]:
     """The pose covariances of ``pose_cov.json`` (as :func:`write_adjustment` writes it):
     image id -> (6, 6) ndarray (m, deg), with the parameter names.
 
@@ -64,8 +73,7 @@ def read_pose_covariances(path):
         The file cannot be read or parsed, or a matrix is not a finite symmetric positive
         semi-definite 6 x 6 one (naming the file and the image).
     """
-    from ..adjust.precision import _square
-    from ..errors import ParamError
+    from ...adjust.precision import square_matrix
 
     try:
         with open(path, encoding="utf-8") as f:
@@ -80,18 +88,35 @@ def read_pose_covariances(path):
     out = {}
     for iid, c in images.items():
         try:
-            out[str(iid)] = _square(f"the pose covariance of image {str(iid)[:60]!r}", np.asarray(c, dtype=np.float64),
+            out[str(iid)] = square_matrix(f"the pose covariance of image {str(iid)[:60]!r}", np.asarray(c, dtype=np.float64),
                                     6)
         except (ParamError, ValueError, TypeError, OverflowError, RecursionError) as e:
             raise ParamError(f"Could not read pose covariances '{path}': {str(e)[:200]}") from e
     return out, names
 
 
-def write_adjustment(result, block, out_dir, *, plots=True):
+def write_adjustment(result: AdjustResult, block: Block, out_dir: str | os.PathLike, *,
+                     plots: bool = True) -> dict[str, str]:
     """Write the adjustment's outputs (see the module doc) into ``out_dir``; returns the paths.
 
     The files are made in memory and published together: a failure (full disk, say) leaves
     the folder's earlier outputs as they were.
+
+    Parameters
+    ----------
+    result : AdjustResult
+        From :func:`~orthowarp.adjust.bundle_adjust`.
+    block : Block
+        The block adjusted.
+    out_dir : str or os.PathLike
+        The output folder (made if needed).
+    plots : bool, optional
+        Also write ``residuals.png`` and ``errors.png``.
+
+    Returns
+    -------
+    dict of str to str
+        The paths written, by kind.
 
     Raises
     ------
@@ -116,7 +141,7 @@ def write_adjustment(result, block, out_dir, *, plots=True):
         files[os.path.join(out_dir, "exterior.prj")] = CRS.from_user_input(b.crs).to_wkt()
     paths["cameras"] = os.path.join(out_dir, "cameras.yaml")
     cams = result.cameras or b.cameras
-    files[paths["cameras"]] = yaml.safe_dump({cid: _camera_dict(c) for cid, c in cams.items()})
+    files[paths["cameras"]] = yaml.safe_dump({cid: camera_dict(c) for cid, c in cams.items()})
     prow = [("point", "role", "x", "y", "z", "sx", "sy", "sz")]
     for pid, role in zip(b.point_ids, b.roles):
         xyz = result.points.get(pid, (np.nan,) * 3)
@@ -162,7 +187,7 @@ def write_adjustment(result, block, out_dir, *, plots=True):
         x["residual_px"] = [float(v) for v in res_all[k]] if k is not None and np.all(np.isfinite(res_all[k])) \
             else None
     paths["report"] = os.path.join(out_dir, "report.json")
-    files[paths["report"]] = json.dumps(_finite_or_null(report), indent=2, allow_nan=False) + "\n"
+    files[paths["report"]] = json.dumps(finite_or_null(report), indent=2, allow_nan=False) + "\n"
     if plots:
         for key, (path, png) in _plots(result, block, out_dir).items():
             paths[key], files[path] = path, png
@@ -172,12 +197,12 @@ def write_adjustment(result, block, out_dir, *, plots=True):
     return paths
 
 
-def _finite_or_null(obj):
+def finite_or_null(obj: Any) -> Any:
     """``obj`` with every non-finite float replaced by None (JSON has no NaN or infinity)."""
     if isinstance(obj, dict):
-        return {k: _finite_or_null(v) for k, v in obj.items()}
+        return {k: finite_or_null(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return [_finite_or_null(v) for v in obj]
+        return [finite_or_null(v) for v in obj]
     if isinstance(obj, (float, np.floating)):
         return float(obj) if np.isfinite(obj) else None
     if isinstance(obj, np.integer):
@@ -185,7 +210,7 @@ def _finite_or_null(obj):
     return obj
 
 
-def _markdown(r, plots):
+def _markdown(r: dict, plots: bool) -> str:
     axes = ("x", "y", "z")
     lines = [f"# Bundle adjustment: {r['block']}", "",
              f"- {r['message']} after {r['iterations']} iterations",
@@ -236,13 +261,14 @@ def _markdown(r, plots):
     return "\n".join(lines) + "\n"
 
 
-def _png(fig):
+def png_bytes(fig: Figure) -> bytes:
+    """The PNG bytes (110 dpi) of a Matplotlib figure, as the reports' plots are written."""
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110)
     return buf.getvalue()
 
 
-def _plots(result, block, out_dir):
+def _plots(result: AdjustResult, block: Block, out_dir: str | os.PathLike) -> dict:
     from matplotlib.figure import Figure  # no pyplot: no global backend state
 
     b = block
@@ -265,7 +291,7 @@ def _plots(result, block, out_dir):
         ax.set_xticks([])
         ax.set_yticks([])
     fig.suptitle(f"image residuals x {scale:.0f} (red: rejected)")
-    out["residuals_png"] = os.path.join(out_dir, "residuals.png"), _png(fig)
+    out["residuals_png"] = os.path.join(out_dir, "residuals.png"), png_bytes(fig)
     fig = Figure(figsize=(8, 6))
     ax = fig.add_subplot(1, 1, 1)
     centres = np.array([result.poses[i][:2] for i in b.image_ids])
@@ -285,5 +311,5 @@ def _plots(result, block, out_dir):
     ax.set_aspect("equal")
     ax.legend(fontsize=8)
     ax.set_title("errors at control and check points (labels: height error)")
-    out["errors_png"] = os.path.join(out_dir, "errors.png"), _png(fig)
+    out["errors_png"] = os.path.join(out_dir, "errors.png"), png_bytes(fig)
     return out

@@ -22,13 +22,13 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import Cancelled, ParamError
-from ..sensor import SensorModel
-from .dem import Dem, as_dem
-from .io import check_destination, outputs_together
-from .ortho import OrthoResult, orthorectify
-from .precision import accuracy_path, sensor_accuracy_raster
-from .sensors import image_key
+from ...errors import Cancelled, ParamError
+from ...sensor import SensorModel
+from ..dem import Dem, as_dem
+from ..formats.sensors import image_key
+from ..precision import accuracy_path, sensor_accuracy_raster
+from ..raster.io import check_destination, outputs_together
+from . import OrthoResult, orthorectify
 
 __all__ = ["orthorectify_many", "ortho_destinations", "ORTHO_SUFFIX"]
 
@@ -56,7 +56,7 @@ def ortho_destinations(images: Iterable[tuple[str | os.PathLike, SensorModel]], 
     Parameters
     ----------
     images : iterable of (str or os.PathLike, SensorModel)
-        E.g. :func:`~orthowarp.pipeline.sensors.frame_sensors`'s pairs.
+        E.g. :func:`~orthowarp.pipeline.formats.sensors.frame_sensors`'s pairs.
     out_dir : str or os.PathLike
         The output folder.
     suffix : str, optional
@@ -86,8 +86,8 @@ def _frame_covariances(jobs: Sequence[tuple[str, SensorModel, str]],
     """Each job's pose covariance (None for scenes), checked against its pose before anything
     is written: one array for every frame, or a mapping image name -> array, or
     ``pose_cov.json`` from ``orthowarp adjust`` (its parameters must be those of the pose)."""
-    from ..adjust.precision import pose_inputs
-    from .adjust_report import POSE_COV_PARAMETERS, read_pose_covariances
+    from ...adjust.precision import pose_inputs
+    from ..reports.adjust import POSE_COV_PARAMETERS, read_pose_covariances
 
     frames = [k for k, (_, sensor, _) in enumerate(jobs) if sensor.kind != "pushbroom"]
     out: list = [None] * len(jobs)

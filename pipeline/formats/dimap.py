@@ -26,15 +26,24 @@ Reference: SPOT Image, "SPOT Satellite Geometry Handbook", S-NT-73-12-SI, 2002 (
 elements and the model); [P1] of this project.
 """
 
+from __future__ import annotations
+
+import json
+import math
 import os
 import re
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..errors import GeometryError, ParamError, RasterIOError
-from ..geodesy import WGS84_B
-from ..pushbroom import MAX_DETECTORS, MAX_LINES, PushbroomScene, check_line_period
+from ...errors import GeometryError, ParamError, RasterIOError
+from ...geodesy import WGS84_B
+from ...pushbroom import MAX_DETECTORS, MAX_LINES, PushbroomScene, check_line_period
+from ._parse import fail, one_line, read_utf8, show
+
+if TYPE_CHECKING:
+    from xml.etree.ElementTree import Element
 
 __all__ = ["DimapMetadata", "read_dimap", "read_scene", "write_scene", "scene_json", "write_dimap", "MAX_BYTES", "MAX_ELEMENTS"]
 
@@ -107,7 +116,8 @@ class DimapMetadata:
     mission: str = ""
 
 
-def _parse(path):
+def _parse_xml(path: str) -> Element:
+    """The root element of a DIMAP file, parsed safely and bounded (see the module doc)."""
     try:
         import defusedxml.ElementTree as safe_et
         from defusedxml import DefusedXmlException
@@ -120,7 +130,7 @@ def _parse(path):
     except OSError as e:
         raise RasterIOError(f"Cannot read DIMAP file '{path}': {e.strerror or e}") from e
     if size > MAX_BYTES:
-        raise ParamError(f"DIMAP file '{path}' is {size} bytes, over the {MAX_BYTES >> 20} MiB limit")
+        raise fail(path, f"{size} bytes, over the {MAX_BYTES >> 20} MiB limit", kind="DIMAP file ")
     root, count = None, 0
     try:
         with open(path, "rb") as f:
@@ -129,88 +139,79 @@ def _parse(path):
                     root = elem
                 count += 1
                 if count > MAX_ELEMENTS:
-                    raise ParamError(f"DIMAP file '{path}' holds more than {MAX_ELEMENTS} XML elements: not the "
-                                     "metadata of one scene (orthowarp.pipeline.dimap.MAX_ELEMENTS)")
+                    raise fail(path, f"more than {MAX_ELEMENTS} XML elements: not the metadata of one scene "
+                                     "(orthowarp.pipeline.formats.dimap.MAX_ELEMENTS)", kind="DIMAP file ")
     except (ParseError, DefusedXmlException) as e:
-        raise ParamError(f"Could not parse DIMAP file '{path}': {_one_line(e)}") from e
+        raise fail(path, one_line(e), e, kind="DIMAP file ") from e
     except (LookupError, UnicodeError) as e:  # an unknown or wrong encoding in the XML declaration
-        raise ParamError(f"Could not parse DIMAP file '{path}': {type(e).__name__}: {_one_line(e)}") from e
+        raise fail(path, f"{type(e).__name__}: {one_line(e)}", e, kind="DIMAP file ") from e
     except OSError as e:
         raise RasterIOError(f"Cannot read DIMAP file '{path}': {e.strerror or e}") from e
     if root is None:
-        raise ParamError(f"Could not parse DIMAP file '{path}': no root element")
+        raise fail(path, "no root element", kind="DIMAP file ")
     return root
-
-
-def _one_line(text, limit=200):
-    text = " ".join(str(text).split())
-    return text if len(text) <= limit else text[:limit] + "..."
 
 
 class _Doc:
     """Element lookups that fail with the path of what is missing."""
 
-    def __init__(self, root, path):
+    def __init__(self, root: Element, path: str) -> None:
         self.root, self.path = root, path
 
-    def find(self, xpath, where=None, required=True):
+    def find(self, xpath: str, where: Element | None = None, required: bool = True) -> Element | None:
         node = (where if where is not None else self.root).find(xpath)
         if node is None and required:
-            raise ParamError(f"DIMAP file '{self.path}': missing <{xpath}>")
+            raise self.fail(f"missing <{xpath}>")
         return node
 
-    def fail(self, msg):
-        return ParamError(f"DIMAP file '{self.path}': {msg}")
+    def fail(self, msg: str) -> ParamError:
+        return fail(self.path, msg, kind="DIMAP file ")
 
-    def text(self, xpath, where=None):
+    def text(self, xpath: str, where: Element | None = None) -> str:
         node = self.find(xpath, where)
         if node.text is None or not node.text.strip():
             raise self.fail(f"empty <{xpath}>")
         return node.text.strip()
 
-    def number(self, xpath, where=None, *, bound=None):
+    def number(self, xpath: str, where: Element | None = None, *, bound: float | None = None) -> float:
         s = self.text(xpath, where)
         try:
             v = float(s)
         except ValueError:
-            raise self.fail(f"<{xpath}> is not a number: {_show(s)}") from None
+            raise self.fail(f"<{xpath}> is not a number: {show(s)}") from None
         if not np.isfinite(v):
-            raise self.fail(f"<{xpath}> is not finite: {_show(s)}")
+            raise self.fail(f"<{xpath}> is not finite: {show(s)}")
         if bound is not None and abs(v) > bound:
             raise self.fail(f"<{xpath}> {v:g} is beyond +-{bound:g}")
         return v
 
-    def whole(self, xpath, where=None, *, bound, what):
+    def whole(self, xpath: str, where: Element | None = None, *, bound: int, what: str) -> int:
         """A count or an index written as a whole number (never truncated) within 1..bound."""
         s = self.text(xpath, where)
         if not _WHOLE.fullmatch(s):
-            raise self.fail(f"<{xpath}> must be a whole number, got {_show(s)}")
+            raise self.fail(f"<{xpath}> must be a whole number, got {show(s)}")
         v = int(s) if len(s) <= 30 else (-1 if s.startswith("-") else bound + 1)  # no int() of 5000 digits
         if v < 1:
             raise self.fail(f"<{xpath}> must be positive, got {s}")
         if v > bound:
-            raise self.fail(f"<{xpath}> {s if len(s) <= 30 else _show(s)} is over the limit of {bound} {what}")
+            raise self.fail(f"<{xpath}> {s if len(s) <= 30 else show(s)} is over the limit of {bound} {what}")
         return v
 
-    def time(self, xpath, where=None):
+    def time(self, xpath: str, where: Element | None = None) -> np.datetime64:
         s = self.text(xpath, where)
         if _ISO_TIME.fullmatch(s):
             try:
                 return np.datetime64(s.rstrip("Z"), "us")
             except ValueError as e:
-                raise self.fail(f"<{xpath}> is not a valid time: {_show(s)} ({e})") from None
-        raise self.fail(f"<{xpath}> is not an ISO time (YYYY-MM-DDThh:mm:ss[.ffffff][Z]): {_show(s)}")
+                raise self.fail(f"<{xpath}> is not a valid time: {show(s)} ({e})") from None
+        raise self.fail(f"<{xpath}> is not an ISO time (YYYY-MM-DDThh:mm:ss[.ffffff][Z]): {show(s)}")
 
 
-def _show(s, limit=60):
-    return repr(s) if len(s) <= limit else repr(s[:limit]) + "..."
-
-
-def _seconds(t, epoch):
+def _seconds(t: np.datetime64, epoch: np.datetime64) -> float:
     return (t - epoch) / np.timedelta64(1, "us") * 1e-6
 
 
-def read_dimap(path):
+def read_dimap(path: str | os.PathLike) -> DimapMetadata:
     """Read a SPOT level-1A DIMAP metadata file.
 
     Parameters
@@ -229,9 +230,9 @@ def read_dimap(path):
         The file cannot be read.
     """
     path = os.fspath(path)
-    root = _parse(path)
+    root = _parse_xml(path)
     if root.tag != "Dimap_Document":
-        raise ParamError(f"DIMAP file '{path}': the root element is <{root.tag}>, not <Dimap_Document>")
+        raise fail(path, f"the root element is <{root.tag}>, not <Dimap_Document>", kind="DIMAP file ")
     doc = _Doc(root, path)
     # sizes first, against the model's bounds: the look angles and the kernels' line table are
     # allocated from them
@@ -242,7 +243,7 @@ def read_dimap(path):
     try:
         line_period = check_line_period(doc.number("LINE_PERIOD", stamp), "<LINE_PERIOD>")
     except ParamError as e:
-        if str(e).startswith("DIMAP file"):
+        if str(e).startswith("Could not parse DIMAP file"):
             raise
         raise doc.fail(str(e)) from None
     epoch = doc.time("SCENE_CENTER_TIME", stamp)
@@ -250,7 +251,7 @@ def read_dimap(path):
 
     points = doc.find("Ephemeris/Points", strip).findall("Point")
     if len(points) < 8:
-        raise ParamError(f"DIMAP file '{path}': <Ephemeris/Points> holds {len(points)} <Point>s; "
+        raise doc.fail(f"<Ephemeris/Points> holds {len(points)} <Point>s; "
                          "the 8-point Lagrange interpolation needs at least 8")
     eph_t = np.array([_seconds(doc.time("TIME", p), epoch) for p in points])
     # each coordinate bounded first: the norms of 1e308s overflow
@@ -259,17 +260,17 @@ def read_dimap(path):
     order = np.argsort(eph_t)
     eph_t, eph_p, eph_v = eph_t[order], eph_p[order], eph_v[order]
     if np.any(np.diff(eph_t) <= 0):
-        raise ParamError(f"DIMAP file '{path}': ephemeris times repeat")
+        raise doc.fail("ephemeris times repeat")
     radius, speed = np.linalg.norm(eph_p, axis=1), np.linalg.norm(eph_v, axis=1)
     bad = np.flatnonzero((radius <= WGS84_B) | (radius > MAX_ORBIT_RADIUS))
     if len(bad):
-        raise ParamError(f"DIMAP file '{path}': ephemeris point {order[bad[0]] + 1} is {radius[bad[0]]:.6g} m from "
+        raise doc.fail(f"ephemeris point {order[bad[0]] + 1} is {radius[bad[0]]:.6g} m from "
                          f"the Earth's centre: not an orbit (between {WGS84_B:.0f} and {MAX_ORBIT_RADIUS:g} m)")
     with np.errstate(all="ignore"):
         sine = np.linalg.norm(np.cross(eph_p, eph_v), axis=1) / (radius * speed)
     bad = np.flatnonzero(~(speed <= MAX_SPEED) | ~(sine > 1e-3))
     if len(bad):
-        raise ParamError(f"DIMAP file '{path}': the velocity of ephemeris point {order[bad[0]] + 1} "
+        raise doc.fail(f"the velocity of ephemeris point {order[bad[0]] + 1} "
                          f"({speed[bad[0]]:.6g} m/s) is not an orbital velocity (zero, parallel to the position "
                          f"or over {MAX_SPEED:g} m/s)")
 
@@ -281,32 +282,32 @@ def read_dimap(path):
         angles = raw.findall("Angles") if raw is not None else []
         source = "raw"
     if len(angles) < 2:
-        raise ParamError(f"DIMAP file '{path}': missing <Satellite_Attitudes> angles (neither "
+        raise doc.fail("missing <Satellite_Attitudes> angles (neither "
                          "Corrected_Attitudes/Corrected_Attitude/Angles nor Raw_Attitudes/Aocs_Attitude/Angles_List/Angles)")
     att_t = np.array([_seconds(doc.time("TIME", a), epoch) for a in angles])
     att_a = np.array([[doc.number(k, a, bound=np.pi) for k in ("YAW", "PITCH", "ROLL")] for a in angles])
     order = np.argsort(att_t)
     att_t, att_a = att_t[order], att_a[order]
     if np.any(np.diff(att_t) <= 0):
-        raise ParamError(f"DIMAP file '{path}': attitude times repeat")
+        raise doc.fail("attitude times repeat")
 
     looks = strip.find("Sensor_Configuration/Instrument_Look_Angles_List/Instrument_Look_Angles/Look_Angles_List")
     looks = looks.findall("Look_Angles") if looks is not None else []
     if not looks:
-        raise ParamError(f"DIMAP file '{path}': missing <Instrument_Look_Angles/Look_Angles_List/Look_Angles>")
+        raise doc.fail("missing <Instrument_Look_Angles/Look_Angles_List/Look_Angles>")
     det = np.array([doc.whole("DETECTOR_ID", la, bound=ncols, what=f"detectors (NCOLS {ncols})") for la in looks])
     px = np.array([doc.number("PSI_X", la) for la in looks])
     py = np.array([doc.number("PSI_Y", la) for la in looks])
     if np.any(np.abs(px) >= np.pi / 2) or np.any(np.abs(py) >= np.pi / 2):
-        raise ParamError(f"DIMAP file '{path}': a look angle (PSI_X, PSI_Y) is beyond +-90 degrees")
+        raise doc.fail("a look angle (PSI_X, PSI_Y) is beyond +-90 degrees")
     order = np.argsort(det)
     det, px, py = det[order], px[order], py[order]
     if np.any(np.diff(det) <= 0) or det[0] < 1 or det[-1] > ncols:
-        raise ParamError(f"DIMAP file '{path}': detector ids must be distinct and within 1..{ncols}")
+        raise doc.fail(f"detector ids must be distinct and within 1..{ncols}")
     interpolated = len(det) < ncols
     if interpolated:
         if det[0] != 1 or det[-1] != ncols:
-            raise ParamError(f"DIMAP file '{path}': look angles of detectors 1 and {ncols} are needed to "
+            raise doc.fail(f"look angles of detectors 1 and {ncols} are needed to "
                              f"interpolate the others; the file gives {int(det[0])}..{int(det[-1])}")
         ids = np.arange(1, ncols + 1, dtype=float)
         px, py = np.interp(ids, det, px), np.interp(ids, det, py)
@@ -334,7 +335,7 @@ def read_dimap(path):
                          look_angles_interpolated=interpolated, frame=frame, scene_center=center, mission=mission)
 
 
-def read_scene(path, *, attitude_model=None):
+def read_scene(path: str | os.PathLike, *, attitude_model: str | None = None) -> PushbroomScene:
     """The :class:`~orthowarp.pushbroom.PushbroomScene` of a SPOT level-1A DIMAP metadata file,
     or of an adjusted scene written by :func:`write_scene` (JSON; found by its content).
 
@@ -367,7 +368,7 @@ _SCENE_ARRAYS = dict(eph_time=(None,), eph_position=(None, 3), eph_velocity=(Non
                      att_angles=(None, 3), psi_x=(None,), psi_y=(None,))
 
 
-def scene_json(scene, *, extra=None):
+def scene_json(scene: PushbroomScene, *, extra: dict[str, Any] | None = None) -> str:
     """A scene, adjusted or not, as self-contained JSON text (every array of its model,
     polynomials included; see :func:`write_scene`).
 
@@ -377,8 +378,6 @@ def scene_json(scene, *, extra=None):
     extra : dict, optional
         Informative entries (how the scene was adjusted), kept under ``"adjustment"``.
     """
-    import json
-
     if not isinstance(scene, PushbroomScene):
         raise ParamError(f"scene must be a PushbroomScene, got {type(scene).__name__}")
     doc = {"format": SCENE_FORMAT, "version": 1, "width": scene.width, "height": scene.height,
@@ -393,27 +392,22 @@ def scene_json(scene, *, extra=None):
     return json.dumps(doc, indent=1, allow_nan=False) + "\n"
 
 
-def write_scene(scene, path, *, extra=None):
+def write_scene(scene: PushbroomScene, path: str | os.PathLike, *, extra: dict[str, Any] | None = None) -> None:
     """Write :func:`scene_json` of a scene atomically; :func:`read_scene` reads it back to the
     same model (``orthowarp ortho --dimap FILE`` takes it)."""
-    from .io import write_text
+    from ..raster.io import write_text  # (reading scenes loads no GDAL)
 
     write_text(path, scene_json(scene, extra=extra))
 
 
-def _read_scene_json(path, attitude_model):
+def _read_scene_json(path: str, attitude_model: str | None) -> PushbroomScene:
     """:func:`read_scene` of a scene JSON (see :func:`write_scene`)."""
-    import json
-    import math
-
-    from .blockio import _read_utf8
-
     try:
-        doc = json.loads(_read_utf8(path, "scene file "))
+        doc = json.loads(read_utf8(path, "scene file "))
     except (ValueError, RecursionError) as e:
-        raise ParamError(f"Could not parse scene file '{path}': {str(e)[:200]}") from None
+        raise fail(path, one_line(e, 200), kind="scene file ") from None
     if not isinstance(doc, dict) or doc.get("format") != SCENE_FORMAT or doc.get("version") != 1:
-        raise ParamError(f"Could not parse scene file '{path}': not a {SCENE_FORMAT!r} version 1 document")
+        raise fail(path, f"not a {SCENE_FORMAT!r} version 1 document", kind="scene file ")
     model = doc.get("attitude_model")
     if attitude_model is not None and attitude_model != model:
         raise ParamError(f"Scene file '{path}' was adjusted with attitude model {model!r}, not {attitude_model!r}")
@@ -425,17 +419,16 @@ def _read_scene_json(path, attitude_model):
         except OverflowError:
             ok = False
         if not ok:
-            raise ParamError(f"Could not parse scene file '{path}': '{key}' must be a finite number, got "
-                             f"{str(v)[:60]}")
+            raise fail(path, f"'{key}' must be a finite number, got {str(v)[:60]}", kind="scene file ")
         args[key] = v
     for name, shape in _SCENE_ARRAYS.items():
         try:
             a = np.array(doc.get(name), dtype=np.float64)
         except (TypeError, ValueError, OverflowError) as e:
-            raise ParamError(f"Could not parse scene file '{path}': '{name}' must be numbers: {e}"[:300]) from None
+            raise fail(path, one_line(f"'{name}' must be numbers: {e}", 200), kind="scene file ") from None
         if a.ndim != len(shape) or (len(shape) == 2 and a.shape[1] != 3) or not np.all(np.isfinite(a)):
-            raise ParamError(f"Could not parse scene file '{path}': '{name}' must be finite numbers of shape "
-                             f"{tuple('n' if d is None else d for d in shape)}")
+            raise fail(path, f"'{name}' must be finite numbers of shape "
+                             f"{tuple('n' if d is None else d for d in shape)}", kind="scene file ")
         args[name] = a
     poly = doc.get("polynomials")
     if poly is not None:
@@ -444,19 +437,20 @@ def _read_scene_json(path, attitude_model):
         except (TypeError, ValueError, OverflowError):
             poly = None
         if poly is None or poly.shape != (3, 3, 3) or not np.all(np.isfinite(poly)):
-            raise ParamError(f"Could not parse scene file '{path}': 'polynomials' must be 3 x 3 x 3 finite numbers")
+            raise fail(path, "'polynomials' must be 3 x 3 x 3 finite numbers", kind="scene file ")
     epoch = doc.get("epoch")
     try:
         epoch = None if epoch is None else np.datetime64(epoch, "us")
     except (TypeError, ValueError):
-        raise ParamError(f"Could not parse scene file '{path}': 'epoch' {str(epoch)[:60]!r} is not a UTC time") from None
+        raise fail(path, f"'epoch' {str(epoch)[:60]!r} is not a UTC time", kind="scene file ") from None
     try:
         return PushbroomScene(**args, attitude_model=model, epoch=epoch, source=path, polynomials=poly)
     except (ParamError, GeometryError) as e:
         raise type(e)(f"Scene file '{path}': {e}") from None
 
 
-def write_dimap(scene, path, *, epoch="2020-06-01T10:30:00.000000"):
+def write_dimap(scene: PushbroomScene, path: str | os.PathLike, *,
+                epoch: str = "2020-06-01T10:30:00.000000") -> None:
     """Write a minimal SPOT level-1A DIMAP file of a :class:`~orthowarp.PushbroomScene` (the
     elements :func:`read_dimap` reads), atomically; for synthetic scenes in tests and benchmarks.
 
@@ -469,14 +463,14 @@ def write_dimap(scene, path, *, epoch="2020-06-01T10:30:00.000000"):
     """
     from xml.sax.saxutils import escape
 
-    from .io import write_text
+    from ..raster.io import write_text  # (reading scenes loads no GDAL)
 
     t0 = np.datetime64(epoch, "us")
 
-    def iso(seconds):
+    def iso(seconds: float) -> str:
         return str(t0 + np.timedelta64(int(round(seconds * 1e6)), "us"))
 
-    def num(v):
+    def num(v: float) -> str:
         return repr(float(v))
 
     eph = "".join(

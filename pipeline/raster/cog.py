@@ -24,13 +24,17 @@ TIFF 6.0 and BigTIFF structures: Adobe, "TIFF Revision 6.0" (1992); the BigTIFF 
 (www.awaresystems.be/imaging/tiff/bigtiff.html).
 """
 
+from __future__ import annotations
+
 import errno
-import io
 import os
 import struct
 import tempfile
 import threading
+import time
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import rasterio
@@ -40,12 +44,13 @@ try:  # libdeflate: about 4x faster than zlib at the same level, same zlib strea
 except ImportError:  # pragma: no cover
     from zlib import compress as _zlib_compress
 
-from ..errors import ParamError, RasterIOError
+from ...errors import ParamError, RasterIOError
+from .tiff import LONG, LONG8, SHORT, TYPE_SIZE, Tag, read_tiff_tags
 
-__all__ = ["CogWriter", "overview_count", "verify_tiff"]
+if TYPE_CHECKING:
+    from affine import Affine
 
-_TYPE_SIZE = {1: 1, 2: 1, 3: 2, 4: 4, 5: 8, 6: 1, 7: 1, 8: 2, 9: 4, 10: 8, 11: 4, 12: 8, 13: 4, 16: 8, 17: 8, 18: 8}
-SHORT, LONG, LONG8 = 3, 4, 16
+__all__ = ["CogWriter", "overview_count", "DTYPES"]
 # tags the writer sets itself; everything else of the template's first IFD is copied
 _LAYOUT_TAGS = {254, 256, 257, 259, 273, 278, 279, 317, 322, 323, 324, 325}
 # tags an overview IFD shares with the full resolution
@@ -55,7 +60,7 @@ _GHOST_KEYS = ("LAYOUT=IFDS_BEFORE_DATA\nBLOCK_ORDER=ROW_MAJOR\nBLOCK_LEADER=SIZ
 DTYPES = ("uint8", "uint16", "float32")
 
 
-def overview_count(width, height, *, min_size=256):
+def overview_count(width: int, height: int, *, min_size: int = 256) -> int:
     """Number of 2x overview levels: halve until the larger side would drop under ``min_size``."""
     n, size = 0, max(width, height)
     while size / 2 ** (n + 1) >= min_size:
@@ -63,119 +68,7 @@ def overview_count(width, height, *, min_size=256):
     return n
 
 
-def _tiff_header(f):
-    """(big, offset of the first IFD) of the little-endian TIFF or BigTIFF open in ``f``."""
-    f.seek(0)
-    head = f.read(16)
-    if head[:2] != b"II" or len(head) < 8:
-        raise ParamError("not a little-endian TIFF file")
-    version = struct.unpack_from("<H", head, 2)[0]
-    if version not in (42, 43):
-        raise ParamError(f"not a TIFF file (version {version})")
-    big = version == 43
-    return big, struct.unpack_from("<Q", head, 8)[0] if big else struct.unpack_from("<I", head, 4)[0]
-
-
-def _read_ifd(f, ifd, big, size):
-    """Tags of the IFD at ``ifd`` of the TIFF open in ``f`` (``size`` bytes long): (tags, next
-    IFD offset), tags as tag -> (type, count, raw value bytes)."""
-    fmt_n, entry, inline = ("<Q", 20, 8) if big else ("<H", 12, 4)
-    if not 0 < ifd < size:
-        raise ParamError(f"IFD offset {ifd} outside the file ({size} bytes)")
-    f.seek(ifd)
-    n = struct.unpack(fmt_n, f.read(struct.calcsize(fmt_n)))[0]
-    if n * entry > size:
-        raise ParamError(f"IFD at {ifd} claims {n} entries")
-    table = f.read(n * entry + inline)
-    if len(table) < n * entry + inline:
-        raise ParamError(f"IFD at {ifd} is truncated")
-    tags = {}
-    for k in range(n):
-        e = k * entry
-        tag, typ = struct.unpack_from("<HH", table, e)
-        count = struct.unpack_from("<Q" if big else "<I", table, e + 4)[0]
-        nbytes = _TYPE_SIZE.get(typ, 1) * count
-        if nbytes <= inline:
-            raw = table[e + 4 + inline: e + 4 + inline + nbytes]
-        else:
-            off = struct.unpack_from("<Q" if big else "<I", table, e + 4 + inline)[0]
-            if off + nbytes > size:
-                raise ParamError(f"tag {tag} at IFD {ifd} points past the end of the file")
-            f.seek(off)
-            raw = f.read(nbytes)
-        tags[tag] = (typ, count, bytes(raw))
-    nxt = struct.unpack_from("<Q" if big else "<I", table, n * entry)[0]
-    return tags, nxt
-
-
-def read_tiff_tags(data):
-    """Tags of the first IFD of a little-endian TIFF or BigTIFF held in ``data`` (bytes).
-
-    Returns
-    -------
-    dict
-        tag -> (type, count, raw value bytes).
-    """
-    f = io.BytesIO(data)
-    big, ifd = _tiff_header(f)
-    return _read_ifd(f, ifd, big, len(data))[0]
-
-
-def _values(typ, raw):
-    fmt = {SHORT: "H", LONG: "I", LONG8: "Q"}.get(typ)
-    if fmt is None:
-        raise ParamError(f"unexpected TIFF field type {typ} for block offsets or sizes")
-    return struct.unpack("<%d%s" % (len(raw) // struct.calcsize(fmt), fmt), raw)
-
-
-def verify_tiff(path, *, name=None):
-    """Check that every image of a written TIFF has all its blocks stored in the file: each
-    block's offset and size are non-zero and within the file. GDAL's close does not report a
-    failed flush (a full disk leaves blocks with zero offsets, which readers take for empty
-    blocks); this structural check finds them.
-
-    Parameters
-    ----------
-    path : str
-    name : str, optional
-        The file named in messages (the destination, where ``path`` is its temporary).
-
-    Raises
-    ------
-    RasterIOError
-        Naming the file and the first missing or truncated block.
-    """
-    name = path if name is None else name
-    try:
-        size = os.path.getsize(path)
-        with open(path, "rb") as f:
-            big, ifd = _tiff_header(f)
-            seen, k = set(), 0
-            while ifd:
-                if ifd in seen or len(seen) > 10000:
-                    raise ParamError("the IFD chain loops")
-                seen.add(ifd)
-                tags, nxt = _read_ifd(f, ifd, big, size)
-                off_tag, len_tag = (324, 325) if 324 in tags else (273, 279)
-                if off_tag not in tags or len_tag not in tags:
-                    raise ParamError(f"image {k} has no block offsets")
-                offsets, lengths = _values(*tags[off_tag][::2]), _values(*tags[len_tag][::2])
-                if len(offsets) != len(lengths):
-                    raise ParamError(f"image {k} has {len(offsets)} block offsets but {len(lengths)} sizes")
-                for b, (o, n) in enumerate(zip(offsets, lengths)):
-                    if o == 0 or n == 0 or o + n > size:
-                        raise ParamError(f"block {b} of image {k} is missing or truncated (offset {o}, "
-                                         f"{n} bytes, file {size} bytes)")
-                ifd, k = nxt, k + 1
-    except (ParamError, struct.error) as e:
-        from .io import storage_facts
-
-        raise RasterIOError(f"Could not write '{name}': the file is incomplete ({e}){storage_facts(path)}") from e
-    except OSError as e:
-        raise RasterIOError(f"Could not check '{name}': {e.strerror or e}") from e
-
-
-def _template_tags(count, dtype, crs, transform, nodata):
+def _template_tags(count: int, dtype: str, crs: Any, transform: Affine, nodata: float | None) -> dict[int, Tag]:
     """The first-IFD tags GDAL writes for a GeoTIFF of this kind (see the module doc)."""
     fd, path = tempfile.mkstemp(suffix=".tif")
     os.close(fd)
@@ -193,14 +86,14 @@ def _template_tags(count, dtype, crs, transform, nodata):
         os.remove(path)
 
 
-def _pack(fmt, values):
+def _pack(fmt: str, values: Sequence[int]) -> bytes:
     return struct.pack("<%d%s" % (len(values), fmt), *values)
 
 
 class _Level:
     """One resolution level: its size, its blocks' records, and blocks waiting for pixels."""
 
-    def __init__(self, width, height, block):
+    def __init__(self, width: int, height: int, block: int) -> None:
         self.width, self.height = width, height
         self.nbx, self.nby = -(-width // block), -(-height // block)
         self.records = [None] * (self.nbx * self.nby)  # (offset, image bytes, record bytes) in the side file
@@ -208,7 +101,7 @@ class _Level:
         self.block = block
         self.lock = threading.Lock()
 
-    def block_shape(self, bi, bj):
+    def block_shape(self, bi: int, bj: int) -> tuple[int, int]:
         b = self.block
         return min(b, self.height - bi * b), min(b, self.width - bj * b)
 
@@ -243,6 +136,10 @@ class CogWriter:
     name : str, optional
         The file named in error messages (the destination, where ``path`` is its temporary);
         default ``path``.
+    timer : object with ``span(stage, start)``, optional
+        Gets a ``"write"`` span (from its ``time.perf_counter()`` start) per full-resolution
+        block compressed and stored, the overview blocks it completes included, in the
+        writer's threads: e.g. a :class:`~orthowarp.pipeline.reports.profile.StageTimer`.
 
     Raises
     ------
@@ -251,8 +148,10 @@ class CogWriter:
         fails (full disk, file size limit, I/O error), naming ``name`` and the cause.
     """
 
-    def __init__(self, path, *, width, height, count, dtype, crs=None, transform, mask=True, compress="deflate",
-                 level=6, block_size=512, overviews=None, threads=None, bigtiff=None, name=None):
+    def __init__(self, path: str | os.PathLike, *, width: int, height: int, count: int, dtype: str, crs: Any = None,
+                 transform: Affine, mask: bool = True, compress: str = "deflate", level: int = 6,
+                 block_size: int = 512, overviews: int | None = None, threads: int | None = None,
+                 bigtiff: bool | None = None, name: str | os.PathLike | None = None, timer: Any = None) -> None:
         if dtype not in DTYPES:
             raise ParamError(f"CogWriter dtype must be one of {DTYPES}, got {dtype!r}")
         if compress not in ("deflate", "none"):
@@ -286,13 +185,15 @@ class CogWriter:
         self._error = None
         self._closed = False
         self.bigtiff = bigtiff
+        self._timer = timer
 
     # -- streaming -------------------------------------------------------------------------
 
-    def write(self, row, col, data, mask=None, *, copy=True, level=0):
+    def write(self, row: int, col: int, data: np.ndarray, mask: np.ndarray | None = None, *, copy: bool = True,
+              level: int = 0) -> None:
         """Add the tile whose top-left pixel is (``row``, ``col``) of resolution level ``level``
         (0: full resolution; an overview level for pieces reduced elsewhere, see
-        :class:`~orthowarp.pipeline.cog_device.DeviceCogEncoder`).
+        :class:`~orthowarp.pipeline.raster.device.DeviceCogEncoder`).
 
         Parameters
         ----------
@@ -305,7 +206,7 @@ class CogWriter:
             False: the writer reads them until their blocks are compressed, and the caller
             must leave them unchanged (they are not written to).
         """
-        self._raise_pending()
+        self.raise_pending()
         h, w = data.shape[:2]
         if not 0 <= level < len(self.levels):
             raise ParamError(f"level {level} outside 0-{len(self.levels) - 1}")
@@ -321,12 +222,12 @@ class CogWriter:
             fut = self._pool.submit(self._emit, level, bi, bj, *blk)
             fut.add_done_callback(lambda f: self._slots.release())
 
-    def put_block(self, level, bi, bj, payloads):
+    def put_block(self, level: int, bi: int, bj: int, payloads: Sequence[bytes]) -> None:
         """Store a block compressed elsewhere: ``payloads`` = [image bytes] or, with a mask,
         [image bytes, mask bytes], each as the file stores it (see
-        :class:`~orthowarp.pipeline.cog_device.DeviceCogEncoder`). No overview is derived
+        :class:`~orthowarp.pipeline.raster.device.DeviceCogEncoder`). No overview is derived
         from it: the caller gives the next levels too."""
-        self._raise_pending()
+        self.raise_pending()
         lvl = self.levels[level]
         if not (0 <= bi < lvl.nby and 0 <= bj < lvl.nbx) or len(payloads) != 1 + self.mask:
             raise ParamError(f"block ({bi}, {bj}) of level {level} with {len(payloads)} payload(s) does not fit")
@@ -335,7 +236,8 @@ class CogWriter:
         except OSError as e:
             raise RasterIOError(f"Could not write '{self.name}': {e.strerror or e}") from e
 
-    def _insert(self, li, row, col, data, mask, copy=True):
+    def _insert(self, li: int, row: int, col: int, data: np.ndarray, mask: np.ndarray,
+                copy: bool = True) -> list[tuple[int, int, tuple[np.ndarray, np.ndarray]]]:
         """Copy a piece into the level's blocks; return the blocks it completes.
 
         Blocks the piece covers whole are cut out directly (as views of it when ``copy`` is
@@ -373,7 +275,7 @@ class CogWriter:
                         done.append((bi, bj, entry[:2]))
         return done
 
-    def _scratch(self, name, shape, dtype):
+    def _scratch(self, name: str, shape: tuple[int, ...], dtype: np.dtype) -> np.ndarray:
         """A buffer of this thread's, reused from block to block (no allocation, no page
         faults on fresh memory in the hot path)."""
         bufs = self._local.__dict__
@@ -382,7 +284,18 @@ class CogWriter:
             buf = bufs[name] = np.empty(shape, dtype)
         return buf
 
-    def _emit(self, li, bi, bj, data, mask):
+    def _emit(self, li: int, bi: int, bj: int, data: np.ndarray, mask: np.ndarray) -> None:
+        """:meth:`_emit_block`, a full-resolution block's (with the overview blocks it
+        completes) timed as the ``timer``'s ``"write"`` stage."""
+        if li or self._timer is None:
+            return self._emit_block(li, bi, bj, data, mask)
+        t = time.perf_counter()
+        try:
+            return self._emit_block(li, bi, bj, data, mask)
+        finally:
+            self._timer.span("write", t)
+
+    def _emit_block(self, li: int, bi: int, bj: int, data: np.ndarray, mask: np.ndarray) -> None:
         """Compress and store a complete block (B, B, C), then feed its reduction to the next
         level. ``data`` and ``mask`` are only read."""
         try:
@@ -403,7 +316,7 @@ class CogWriter:
             self._error = self._error or e
             raise
 
-    def _store(self, li, bi, bj, parts):
+    def _store(self, li: int, bi: int, bj: int, parts: Sequence[bytes]) -> None:
         """Append a block's record to the block file (GDAL's record per part: uint32 size, the
         bytes, their last 4 repeated)."""
         lvl = self.levels[li]
@@ -416,7 +329,7 @@ class CogWriter:
         _pwrite_all(self._fd, bufs, off)
         lvl.records[bi * lvl.nbx + bj] = (off, len(parts[0]), size)
 
-    def _reduce(self, data, mask, full=False):
+    def _reduce(self, data: np.ndarray, mask: np.ndarray, full: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """2 x 2 mean of the valid pixels of a (h, w, C) block; odd edges use what exists.
         ``full``: every pixel is valid and h, w are even (the common case, summed in this
         thread's buffers; the result is one of them, copied by the caller)."""
@@ -452,12 +365,12 @@ class CogWriter:
         nn = np.maximum(n, 1).astype(acc)[..., None]
         return ((total + nn // 2) // nn).astype(self.dtype), valid  # rounded mean
 
-    def _scratch_true(self, h, w):
+    def _scratch_true(self, h: int, w: int) -> np.ndarray:
         buf = self._scratch("true", (h, w), np.dtype(bool))
         buf.fill(True)
         return buf
 
-    def _encode(self, data, mask=None):
+    def _encode(self, data: np.ndarray, mask: np.ndarray | None = None) -> bytes:
         """The compressed bytes of a block (B, B, C): pixels where ``mask`` is False set to 0,
         then, for compressed integer rasters, TIFF predictor 2 (horizontal differencing per
         sample, modulo the type's range)."""
@@ -472,10 +385,12 @@ class CogWriter:
             data = diff
         return self._compress(np.ascontiguousarray(data))
 
-    def _compress(self, raw):
+    def _compress(self, raw: np.ndarray) -> bytes:
         return _zlib_compress(raw, self.zlevel) if self.compress == "deflate" else bytes(raw)
 
-    def _raise_pending(self):
+    def raise_pending(self) -> None:
+        """Raise, in the caller's thread, the first error of the writer's compression threads
+        (an OSError as a :class:`RasterIOError` naming the file); nothing if there is none."""
         e = self._error
         if isinstance(e, OSError) and not isinstance(e, RasterIOError):
             raise RasterIOError(f"Could not write '{self.name}': {e.strerror or e}") from e
@@ -484,13 +399,13 @@ class CogWriter:
 
     # -- finishing ---------------------------------------------------------------------------
 
-    def close(self):
+    def close(self) -> None:
         """Wait for the blocks, then write the file (see the module doc)."""
         if self._closed:
             return
         try:
             self._pool.shutdown(wait=True)
-            self._raise_pending()
+            self.raise_pending()
             for li, lvl in enumerate(self.levels):
                 if lvl.pending or any(r is None for r in lvl.records):
                     raise ParamError(f"CogWriter closed with level {li} incomplete: some tiles were never written")
@@ -499,13 +414,13 @@ class CogWriter:
             self._closed = True
             self._cleanup()
 
-    def abort(self):
+    def abort(self) -> None:
         """Drop everything written so far."""
         self._pool.shutdown(wait=True, cancel_futures=True)
         self._closed = True
         self._cleanup()
 
-    def _cleanup(self):
+    def _cleanup(self) -> None:
         try:
             os.close(self._fd)
         except OSError:
@@ -513,16 +428,16 @@ class CogWriter:
         if os.path.exists(self._side_path):
             os.remove(self._side_path)
 
-    def __enter__(self):
+    def __enter__(self) -> CogWriter:
         return self
 
-    def __exit__(self, exc_type, exc, tb):
+    def __exit__(self, exc_type: type | None, exc: BaseException | None, tb: Any) -> None:
         if exc_type is None:
             self.close()
         else:
             self.abort()
 
-    def _ifds(self, big):
+    def _ifds(self, big: bool) -> list[tuple[int, str, dict[int, Tag], int]]:
         """(tags dict) per IFD in file order, with the tile offsets left as placeholders."""
         ifds = []
         b = self.block
@@ -546,12 +461,12 @@ class CogWriter:
                 ifds.append((li, "mask", mtags, n))
         for _, _, tags, n in ifds:  # placeholders of the right size
             typ = LONG8 if big else LONG
-            tags[324] = (typ, n, bytes(_TYPE_SIZE[typ] * n))
-            tags[325] = (typ, n, bytes(_TYPE_SIZE[typ] * n))
+            tags[324] = (typ, n, bytes(TYPE_SIZE[typ] * n))
+            tags[325] = (typ, n, bytes(TYPE_SIZE[typ] * n))
         return ifds
 
     @staticmethod
-    def _ifd_size(tags, big):
+    def _ifd_size(tags: dict[int, Tag], big: bool) -> int:
         inline = 8 if big else 4
         size = (8 + 20 * len(tags) + 8) if big else (2 + 12 * len(tags) + 4)
         for typ, count, raw in tags.values():
@@ -560,7 +475,7 @@ class CogWriter:
         return size
 
     @staticmethod
-    def _encode_ifd(tags, at, next_ifd, big):
+    def _encode_ifd(tags: dict[int, Tag], at: int, next_ifd: int, big: bool) -> bytes:
         inline = 8 if big else 4
         head = struct.pack("<Q", len(tags)) if big else struct.pack("<H", len(tags))
         values_at = at + (8 + 20 * len(tags) + 8 if big else 2 + 12 * len(tags) + 4)
@@ -577,7 +492,7 @@ class CogWriter:
         tail = struct.pack("<Q" if big else "<I", next_ifd)
         return head + b"".join(entries) + tail + b"".join(values)
 
-    def _assemble(self):
+    def _assemble(self) -> None:
         data_bytes = sum(r[2] for lvl in self.levels for r in lvl.records)
         big = data_bytes + (1 << 24) >= 1 << 32 if self.bigtiff is None else bool(self.bigtiff)
         ifds = self._ifds(big)
@@ -625,7 +540,7 @@ class CogWriter:
             raise RasterIOError(f"Could not write '{self.name}': {e.strerror or e}") from e
 
 
-def _pwrite_all(fd, bufs, offset):
+def _pwrite_all(fd: int, bufs: Sequence[bytes], offset: int) -> None:
     """Write the buffers at ``offset``, resuming short writes (a short write is followed by a
     failing one, e.g. ENOSPC or EFBIG, which raises)."""
     n = os.pwritev(fd, bufs, offset)
@@ -638,7 +553,7 @@ def _pwrite_all(fd, bufs, offset):
         data, offset = data[n:], offset + n
 
 
-def _copy_range(fd_in, fd_out, src, dst, n):
+def _copy_range(fd_in: int, fd_out: int, src: int, dst: int, n: int) -> None:
     """Copy n bytes between files at the given offsets (in the kernel where it can)."""
     kernel_copy = hasattr(os, "copy_file_range")
     while n > 0:

@@ -31,17 +31,20 @@ CRS is an argument)::
 ``sigma`` may be omitted (then the ``sigma`` argument applies).
 """
 
+from __future__ import annotations
+
 import math
 import os
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 from pyproj import CRS, Transformer
 
-from ..adjust.scene_points import ScenePoints
-from ..errors import ParamError
-from .blockio import (_csv_id, _csv_num, _csv_records, _fail, _got, _ident, _jlist, _load_json, _num, _nums, _obj,
-                      _show)
-from .io import write_json
+from ...adjust.scene_points import ScenePoints
+from ...errors import ParamError
+from ..raster.io import write_json
+from ._parse import csv_id, csv_num, csv_records, fail, got, ident, jlist, load_json, num, nums, obj, show
 
 __all__ = ["read_scene_points", "write_scene_points", "read_scene_points_csv", "FORMAT"]
 
@@ -50,17 +53,17 @@ _ROLES = ("control", "check", "tie")
 MAX_POINTS = 1_000_000
 
 
-def _to_llh(path, crs_text, xyz):
+def _to_llh(path: str, crs_text: str, xyz: np.ndarray | Sequence) -> np.ndarray:
     """(p, 3) coordinates in ``crs_text`` (NaN rows kept) -> lon, lat (deg), h (m)."""
     try:
         crs = CRS.from_user_input(crs_text)
     except Exception as e:  # noqa: BLE001 - pyproj raises CRSError and others
-        raise _fail(path, f"crs {_show(crs_text)} is not a CRS: {e}") from e
+        raise fail(path, f"crs {show(crs_text)} is not a CRS: {e}") from e
     if crs.is_compound or crs.is_vertical:
-        raise _fail(path, f"crs {crs.name!r} has a vertical datum: give ellipsoidal heights in a geographic or "
+        raise fail(path, f"crs {crs.name!r} has a vertical datum: give ellipsoidal heights in a geographic or "
                           "projected CRS")
     if not (crs.is_geographic or crs.is_projected):
-        raise _fail(path, f"crs must be geographic or projected, got {crs.name!r}")
+        raise fail(path, f"crs must be geographic or projected, got {crs.name!r}")
     xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
     out = np.full_like(xyz, np.nan)
     ok = np.all(np.isfinite(xyz), axis=1)
@@ -71,15 +74,16 @@ def _to_llh(path, crs_text, xyz):
         out[ok] = np.stack([lon, lat, xyz[ok, 2]], -1)
         bad = ok & ~np.all(np.isfinite(out), axis=1)
         if np.any(bad):
-            raise _fail(path, f"coordinates {xyz[np.argmax(bad)].tolist()} cannot be transformed from {crs.name!r} "
+            raise fail(path, f"coordinates {xyz[np.argmax(bad)].tolist()} cannot be transformed from {crs.name!r} "
                               "to longitude, latitude")
     return out
 
 
-def _build(path, ids, roles, xyz, sigmas, obs, crs_text):
+def _build(path: str, ids: list[str], roles: list[str], xyz: list, sigmas: list, obs: list[tuple],
+           crs_text: str) -> ScenePoints:
     """ScenePoints from per-point lists and observations [(point index, scene id, col, row, sigma)]."""
     if len(ids) > MAX_POINTS:
-        raise _fail(path, f"{len(ids)} points: more than {MAX_POINTS} is not plausible")
+        raise fail(path, f"{len(ids)} points: more than {MAX_POINTS} is not plausible")
     scene_ids = []
     for _, sid, *_ in obs:
         if sid not in scene_ids:
@@ -96,7 +100,7 @@ def _build(path, ids, roles, xyz, sigmas, obs, crs_text):
         raise ParamError(str(e)) from None
 
 
-def read_scene_points(path):
+def read_scene_points(path: str | os.PathLike) -> ScenePoints:
     """Read ground points measured in pushbroom scenes (JSON; see the module doc).
 
     Returns
@@ -114,53 +118,53 @@ def read_scene_points(path):
         The file cannot be read.
     """
     path = os.fspath(path)
-    data = _obj(path, _load_json(path, "scene points file "), "the file's content")
+    data = obj(path, load_json(path, "scene points file "), "the file's content")
     if data.get("format") != FORMAT:
-        raise _fail(path, f"'format' must be {FORMAT!r}, {_got(data.get('format'))}")
+        raise fail(path, f"'format' must be {FORMAT!r}, {got(data.get('format'))}")
     if data.get("version") != 1:
-        raise _fail(path, f"'version' must be 1, {_got(data.get('version'))}")
+        raise fail(path, f"'version' must be 1, {got(data.get('version'))}")
     unknown = sorted(set(data) - {"format", "version", "crs", "points"})
     if unknown:
-        raise _fail(path, f"unknown key(s) {', '.join(map(_show, unknown))}")
+        raise fail(path, f"unknown key(s) {', '.join(map(show, unknown))}")
     if not isinstance(data.get("crs"), str):
-        raise _fail(path, f"'crs' must be a string such as \"EPSG:4979\", {_got(data.get('crs'))}")
+        raise fail(path, f"'crs' must be a string such as \"EPSG:4979\", {got(data.get('crs'))}")
     ids, roles, xyz, sigmas, obs = [], [], [], [], []
-    for k, p in enumerate(_jlist(path, data.get("points"), "'points'")):
-        p = _obj(path, p, f"points[{k}]")
-        pid = _ident(path, p.get("id"), f"points[{k}].id")
+    for k, p in enumerate(jlist(path, data.get("points"), "'points'")):
+        p = obj(path, p, f"points[{k}]")
+        pid = ident(path, p.get("id"), f"points[{k}].id")
         what = f"point '{pid}'"
         bad = sorted(set(p) - {"id", "role", "xyz", "sigma", "observations"})
         if bad:
-            raise _fail(path, f"{what}: unknown key(s) {', '.join(map(_show, bad))}")
+            raise fail(path, f"{what}: unknown key(s) {', '.join(map(show, bad))}")
         role = p.get("role")
         if role not in _ROLES:
-            raise _fail(path, f"{what}: role must be one of {_ROLES}, {_got(role)}")
+            raise fail(path, f"{what}: role must be one of {_ROLES}, {got(role)}")
         if role == "tie":
             if "xyz" in p or "sigma" in p:
-                raise _fail(path, f"{what}: a tie point has no given coordinates (no 'xyz' or 'sigma')")
+                raise fail(path, f"{what}: a tie point has no given coordinates (no 'xyz' or 'sigma')")
             g, s = [math.nan] * 3, [math.nan] * 3
         else:
             if "xyz" not in p:
-                raise _fail(path, f"{what}: a {role} point needs 'xyz'")
-            g = _nums(path, p["xyz"], 3, f"{what}: xyz")
+                raise fail(path, f"{what}: a {role} point needs 'xyz'")
+            g = nums(path, p["xyz"], 3, f"{what}: xyz")
             if role == "control" and "sigma" not in p:
-                raise _fail(path, f"{what}: a control point needs 'sigma' (east, north, up in m)")
-            s = _nums(path, p["sigma"], 3, f"{what}: sigma") if "sigma" in p else [math.nan] * 3
+                raise fail(path, f"{what}: a control point needs 'sigma' (east, north, up in m)")
+            s = nums(path, p["sigma"], 3, f"{what}: sigma") if "sigma" in p else [math.nan] * 3
         i = len(ids)
         ids.append(pid), roles.append(role), xyz.append(g), sigmas.append(s)
-        for sid, o in _obj(path, p.get("observations", {}), f"{what}: observations").items():
-            sid = _ident(path, sid, f"{what}: scene id")
-            o = _obj(path, o, f"{what} in scene '{sid}'")
+        for sid, o in obj(path, p.get("observations", {}), f"{what}: observations").items():
+            sid = ident(path, sid, f"{what}: scene id")
+            o = obj(path, o, f"{what} in scene '{sid}'")
             bad = sorted(set(o) - {"col", "row", "sigma"})
             if bad or not {"col", "row", "sigma"} <= set(o):
-                raise _fail(path, f"{what} in scene '{sid}' must give col, row and sigma (px), got keys "
-                                  f"{', '.join(map(_show, o))}")
-            obs.append((i, sid, *(_num(path, o[key], f"{what} in scene '{sid}': {key}") for key in ("col", "row",
+                raise fail(path, f"{what} in scene '{sid}' must give col, row and sigma (px), got keys "
+                                  f"{', '.join(map(show, o))}")
+            obs.append((i, sid, *(num(path, o[key], f"{what} in scene '{sid}': {key}") for key in ("col", "row",
                                                                                                      "sigma"))))
     return _build(path, ids, roles, xyz, sigmas, obs, data["crs"])
 
 
-def read_scene_points_csv(path, *, crs, sigma=0.3):
+def read_scene_points_csv(path: str | os.PathLike, *, crs: str, sigma: float = 0.3) -> ScenePoints:
     """Import ground points measured in pushbroom scenes from a CSV (see the module doc).
 
     Parameters
@@ -184,25 +188,25 @@ def read_scene_points_csv(path, *, crs, sigma=0.3):
     if not (isinstance(sigma, (int, float)) and not isinstance(sigma, bool) and math.isfinite(sigma) and sigma > 0):
         raise ParamError(f"sigma must be a number > 0 (px), got {sigma!r}")
 
-    def make(cells, what):
-        pid = _csv_id(cells, "id", what)
+    def make(cells: dict[str, str], what: str) -> tuple:
+        pid = csv_id(cells, "id", what)
         role = cells["role"].lower()
         if role not in _ROLES:
-            raise ValueError(f"{what}: role must be one of {_ROLES}, got {_show(cells['role'])}")
+            raise ValueError(f"{what}: role must be one of {_ROLES}, got {show(cells['role'])}")
 
-        def maybe(key, **kw):
-            return _csv_num(cells, key, what, **kw) if cells.get(key, "") != "" else math.nan
+        def maybe(key: str, **kw: Any) -> float:
+            return csv_num(cells, key, what, **kw) if cells.get(key, "") != "" else math.nan
 
         g = [maybe(k) for k in ("x", "y", "z")]
         s = [maybe(k, positive=True) for k in ("sx", "sy", "sz")]
         sid = cells.get("scene", "")
         o = None
         if sid:
-            o = (sid, _csv_num(cells, "col", what), _csv_num(cells, "row", what),
+            o = (sid, csv_num(cells, "col", what), csv_num(cells, "row", what),
                  maybe("sigma", positive=True) if cells.get("sigma", "") != "" else float(sigma))
         return pid, role, g, s, o
 
-    records = _csv_records(path, ("id", "role", "x", "y", "z"),
+    records = csv_records(path, ("id", "role", "x", "y", "z"),
                            ("sx", "sy", "sz", "scene", "col", "row", "sigma"), make)
     ids, roles, xyz, sigmas, obs, index = [], [], [], [], [], {}
     for pid, role, g, s, o in records:
@@ -211,7 +215,7 @@ def read_scene_points_csv(path, *, crs, sigma=0.3):
             same = roles[i] == role and np.array_equal(xyz[i], g, equal_nan=True) and np.array_equal(
                 sigmas[i], s, equal_nan=True)
             if not same:
-                raise _fail(path, f"point '{pid}': its rows disagree on role, x, y, z or sigmas")
+                raise fail(path, f"point '{pid}': its rows disagree on role, x, y, z or sigmas")
         else:
             i = index[pid] = len(ids)
             ids.append(pid), roles.append(role), xyz.append(g), sigmas.append(s)
@@ -219,11 +223,11 @@ def read_scene_points_csv(path, *, crs, sigma=0.3):
             obs.append((i, *o))
     for i, (pid, role) in enumerate(zip(ids, roles)):
         if role == "tie" and not np.all(np.isnan(xyz[i])):
-            raise _fail(path, f"point '{pid}': a tie point has no given coordinates (leave x, y, z empty)")
+            raise fail(path, f"point '{pid}': a tie point has no given coordinates (leave x, y, z empty)")
     return _build(path, ids, roles, xyz, sigmas, obs, crs)
 
 
-def write_scene_points(points, path, *, crs="EPSG:4979"):
+def write_scene_points(points: ScenePoints, path: str | os.PathLike, *, crs: str = "EPSG:4979") -> None:
     """Write :class:`ScenePoints` as JSON (coordinates as lon, lat, h in ``crs``, which must
     be EPSG:4979), atomically."""
     if not isinstance(points, ScenePoints):

@@ -15,6 +15,8 @@ Every output is written under a temporary name in its destination folder and pub
   of them cannot be published.
 """
 
+from __future__ import annotations
+
 import contextlib
 import contextvars
 import dataclasses
@@ -22,19 +24,26 @@ import errno
 import fcntl
 import json
 import os
-import resource
 import secrets
 import threading
 import warnings
+from collections.abc import Iterable, Iterator, Mapping, Sequence
+from typing import TYPE_CHECKING, Any
 
+import numpy as np
 import rasterio
 from rasterio._err import CPLE_BaseError
 
-from ..errors import ParamError, RasterIOError
+from ...errors import Cancelled, ParamError, RasterIOError
+from .tiff import storage_facts, verify_tiff
+
+if TYPE_CHECKING:
+    from affine import Affine
 
 __all__ = ["ensure_folder", "check_destination", "atomic_path", "atomic_files", "outputs_together", "pending_path",
            "remove_stale_temporaries", "remove_own_temporaries", "abandoned", "write_raster", "write_text",
-           "write_files", "write_json", "describe_os_error", "gdal_reason", "storage_facts", "write_error"]
+           "write_files", "write_json", "describe_os_error", "gdal_reason", "write_error", "check_cancel",
+           "GDAL_ERRORS", "TMP_TAG"]
 
 TMP_TAG = ".orthowarp-tmp-"
 # what rasterio raises for GDAL's errors: its own classes, and GDAL's CPLE_* ones where it
@@ -42,12 +51,12 @@ TMP_TAG = ".orthowarp-tmp-"
 GDAL_ERRORS = (rasterio.errors.RasterioError, CPLE_BaseError)
 
 
-def describe_os_error(e):
+def describe_os_error(e: OSError) -> str:
     """The cause of an OSError in a few words ("No space left on device")."""
     return e.strerror or str(e) or type(e).__name__
 
 
-def gdal_reason(e):
+def gdal_reason(e: BaseException | None) -> str:
     """GDAL's own message behind a rasterio error: rasterio often says only "see previous
     exception", with GDAL's error as the cause."""
     reasons = []
@@ -59,36 +68,33 @@ def gdal_reason(e):
     return "; ".join(reasons) or "unknown GDAL error"
 
 
-def storage_facts(path):
-    """What the system says about room for writing ``path``: "; the file reached the
-    process's file-size limit (ulimit -f) of N bytes" or "; the file system has N bytes free",
-    or "" when neither applies. For errors from GDAL, which reports a failed write without its
-    cause (errno)."""
-    facts = []
-    try:
-        soft = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
-        if soft != resource.RLIM_INFINITY and os.path.getsize(path) >= soft - (1 << 16):
-            facts.append(f"the file reached the process's file-size limit (ulimit -f) of {soft} bytes")
-    except OSError:
-        pass
-    try:
-        st = os.statvfs(os.path.dirname(os.path.abspath(path)))
-        free = st.f_bavail * st.f_frsize
-        if free < (1 << 24):
-            facts.append(f"the file system has {free} bytes free")
-    except OSError:
-        pass
-    return "".join(f"; {f}" for f in facts)
-
-
-def write_error(name, tmp, e):
+def write_error(name: str, tmp: str, e: BaseException) -> RasterIOError:
     """The :class:`RasterIOError` for a failed write of ``name`` (written as ``tmp``): the cause
     (OS or GDAL) and :func:`storage_facts`."""
     reason = gdal_reason(e) if isinstance(e, GDAL_ERRORS) else describe_os_error(e)
     return RasterIOError(f"Could not write '{name}': {reason}{storage_facts(tmp)}")
 
 
-def ensure_folder(path):
+def check_cancel(cancel: threading.Event | None, name: str | None) -> None:
+    """Stop a run whose ``cancel`` event is set, before it writes anything more.
+
+    Parameters
+    ----------
+    cancel : threading.Event or None
+        Set from another thread (or a signal handler) to stop the run; None: never.
+    name : str or None
+        The output the run writes, for the message.
+
+    Raises
+    ------
+    Cancelled
+        ``cancel`` is set: nothing of ``name`` is published.
+    """
+    if cancel is not None and cancel.is_set():
+        raise Cancelled(f"The orthoimage '{name}' was cancelled; nothing was written")
+
+
+def ensure_folder(path: str | os.PathLike) -> None:
     """Create an output folder (and parents) if needed, or raise RasterIOError naming it."""
     if os.path.exists(path) and not os.path.isdir(path):
         raise RasterIOError(f"Output folder '{path}' is a file, not a folder")
@@ -100,7 +106,7 @@ def ensure_folder(path):
         raise RasterIOError(f"Output folder '{path}' is not writable")
 
 
-def check_destination(path, *, overwrite=False):
+def check_destination(path: str | os.PathLike, *, overwrite: bool = False) -> None:
     """Refuse an output name before any work: an existing folder, or an existing file when not
     ``overwrite``; create its folder if needed. Stale temporaries of dead runs in the folder
     are removed first (:func:`remove_stale_temporaries`), also when the name is refused.
@@ -119,7 +125,7 @@ def check_destination(path, *, overwrite=False):
     ensure_folder(os.path.dirname(os.path.abspath(path)))
 
 
-def _tmp_parts(name):
+def _tmp_parts(name: str) -> tuple[str, str] | None:
     """(job id, suffix) of a temporary's file name, or None if it is not one of ours."""
     k = name.find(TMP_TAG)
     if not name.startswith(".") or k < 0:
@@ -129,7 +135,7 @@ def _tmp_parts(name):
     return (name[:k + len(TMP_TAG)] + job), rest[len(job):]
 
 
-def remove_stale_temporaries(folder):
+def remove_stale_temporaries(folder: str) -> list[str]:
     """Remove the temporaries of dead runs in ``folder`` (see the module doc); returns the
     paths removed. A temporary whose lock is held belongs to a live run and stays."""
     try:
@@ -155,7 +161,7 @@ def remove_stale_temporaries(folder):
 
 
 @contextlib.contextmanager
-def abandoned(path):
+def abandoned(path: str) -> Iterator[bool]:
     """Yield whether ``path``'s owner is gone: True where no process holds an ``flock`` on it
     (this one then holds it for the block), False where a live one does or it cannot be
     opened. Files that live as long as their run (temporaries, shared segments) are locked by
@@ -176,7 +182,7 @@ def abandoned(path):
         os.close(fd)
 
 
-def _fsync_path(path, *, directory=False):
+def _fsync_path(path: str, *, directory: bool = False) -> None:
     fd = os.open(path, os.O_RDONLY | (os.O_DIRECTORY if directory else 0))
     try:
         os.fsync(fd)
@@ -187,7 +193,7 @@ def _fsync_path(path, *, directory=False):
         os.close(fd)
 
 
-def _publish(tmp, path, overwrite):
+def _publish(tmp: str, path: str, overwrite: bool) -> None:
     """Rename ``tmp`` onto ``path``; without ``overwrite`` atomically refused if ``path`` exists."""
     if overwrite:
         os.replace(tmp, path)
@@ -211,7 +217,7 @@ _LIVE = set()  # this process's temporaries, for remove_own_temporaries
 _LIVE_LOCK = threading.Lock()
 
 
-def remove_own_temporaries():
+def remove_own_temporaries() -> None:
     """Remove every temporary this process holds (and their helper files): for a last-resort
     exit (os._exit) that skips the normal clean-up."""
     with _LIVE_LOCK:
@@ -220,7 +226,7 @@ def remove_own_temporaries():
         _remove_job(tmp)
 
 
-def _new_temporary(path):
+def _new_temporary(path: str) -> tuple[int, str]:
     """Create and lock the temporary of ``path``: (fd, temporary path)."""
     folder, base = os.path.split(os.path.abspath(path))
     ext = os.path.splitext(base)[1]
@@ -237,7 +243,7 @@ def _new_temporary(path):
     raise FileExistsError(errno.EEXIST, "no free temporary name", tmp)
 
 
-def _finalise(tmp, durable):
+def _finalise(tmp: str, durable: bool) -> None:
     """Sync a complete temporary (if ``durable``) and give it the usual permissions (it was
     made 0600)."""
     if durable:
@@ -247,7 +253,8 @@ def _finalise(tmp, durable):
     os.chmod(tmp, 0o666 & ~umask)
 
 
-def _remove_job(tmp):
+def _remove_job(tmp: str) -> None:
+    """Remove a temporary and its helper files, and forget it."""
     with _LIVE_LOCK:
         _LIVE.discard(tmp)
     folder, base = os.path.split(tmp)
@@ -271,7 +278,7 @@ class _Member:
     overwrite: bool
     complete: bool = False
 
-    def drop(self):
+    def drop(self) -> None:
         """Remove the temporary (and its helper files) and release its lock."""
         _remove_job(self.tmp)
         with contextlib.suppress(OSError):
@@ -281,12 +288,12 @@ class _Member:
 class _Together:
     """Outputs of one job, published together (see :func:`outputs_together`)."""
 
-    def __init__(self, overwrite, durable):
+    def __init__(self, overwrite: bool, durable: bool) -> None:
         self.overwrite, self.durable = overwrite, durable
         self.members = []  # _Member, in the order reserved
         self.lock = threading.Lock()
 
-    def reserve(self, path, overwrite):
+    def reserve(self, path: str | os.PathLike, overwrite: bool) -> _Member:
         """A locked temporary for ``path`` (published at :meth:`publish`)."""
         path = os.fspath(path)
         folder = os.path.dirname(os.path.abspath(path))
@@ -303,7 +310,7 @@ class _Together:
             self.members.append(member)
         return member
 
-    def pending(self, path):
+    def pending(self, path: str | os.PathLike) -> str | None:
         """The temporary of a complete, not yet published output ``path``, or None."""
         path = os.path.abspath(os.fspath(path))
         with self.lock:
@@ -312,7 +319,7 @@ class _Together:
                     return m.tmp
         return None
 
-    def publish(self):
+    def publish(self) -> None:
         """Publish every member (they are all complete), or none: on a failure the outputs
         already published are put back as they were."""
         members = list(self.members)
@@ -349,7 +356,7 @@ class _Together:
                 with contextlib.suppress(FileNotFoundError):
                     os.remove(b)
 
-    def discard(self, members=None):
+    def discard(self, members: list[_Member] | None = None) -> None:
         """Drop ``members`` (default: all) from the job: their temporaries (and helper files)
         removed, their locks released."""
         members = list(self.members) if members is None else members
@@ -363,7 +370,7 @@ _TOGETHER = contextvars.ContextVar("orthowarp_outputs_together", default=None)
 
 
 @contextlib.contextmanager
-def outputs_together(*, overwrite=True, durable=True):
+def outputs_together(*, overwrite: bool = True, durable: bool = True) -> Iterator[_Together]:
     """Publish every output written inside the block together, when the block succeeds.
 
     Each output written inside the block by orthowarp (an ortho or mosaic, its index,
@@ -412,7 +419,7 @@ def outputs_together(*, overwrite=True, durable=True):
         together.discard()
 
 
-def pending_path(path):
+def pending_path(path: str | os.PathLike) -> str:
     """Where to read ``path`` now: inside :func:`outputs_together`, the temporary of an output
     written earlier in the block and not yet published; else ``path``."""
     together = _TOGETHER.get()
@@ -421,7 +428,7 @@ def pending_path(path):
 
 
 @contextlib.contextmanager
-def atomic_path(path, *, overwrite=True, durable=True):
+def atomic_path(path: str | os.PathLike, *, overwrite: bool = True, durable: bool = True) -> Iterator[str]:
     """Yield a temporary path for ``path``, published onto it only if the block succeeds.
 
     Parameters
@@ -447,7 +454,8 @@ def atomic_path(path, *, overwrite=True, durable=True):
 
 
 @contextlib.contextmanager
-def atomic_files(paths, *, overwrite=True, durable=True):
+def atomic_files(paths: Iterable[str | os.PathLike], *, overwrite: bool = True,
+                 durable: bool = True) -> Iterator[list[str]]:
     """Yield temporary paths (a list) for several outputs, published together.
 
     Every output is written under its temporary; only when the block succeeds are they
@@ -468,14 +476,30 @@ def atomic_files(paths, *, overwrite=True, durable=True):
             m.complete = True
 
 
-def write_raster(path, array, *, transform=None, crs=None, nodata=None, compress="deflate", descriptions=None,
-                 units=None):
-    """Write a (bands, rows, cols) or (rows, cols) array as a tiled GeoTIFF, atomically.
+def write_raster(path: str | os.PathLike, array: np.ndarray, *, transform: Affine | None = None, crs: Any = None,
+                 nodata: float | None = None, compress: str = "deflate", descriptions: Sequence[str] | None = None,
+                 units: Sequence[str] | None = None) -> None:
+    """Write an array as a tiled GeoTIFF (256-pixel blocks), atomically, its blocks verified.
 
-    ``descriptions`` and ``units``, where given, are one string per band (GDAL's band
-    description and unit type)."""
-    from .cog import verify_tiff
+    Parameters
+    ----------
+    path : str or os.PathLike
+    array : ndarray, shape (bands, rows, cols) or (rows, cols)
+    transform : affine.Affine, optional
+    crs : CRS-like, optional
+    nodata : float, optional
+    compress : str, optional
+        GDAL compression (default deflate).
+    descriptions, units : sequence of str, optional
+        One string per band: GDAL's band description and unit type.
 
+    Raises
+    ------
+    ParamError
+        ``descriptions`` or ``units`` not one per band.
+    RasterIOError
+        The write failed (the cause named).
+    """
     arr = array if array.ndim == 3 else array[None]
     for name, values in (("descriptions", descriptions), ("units", units)):
         if values is not None and len(values) != arr.shape[0]:
@@ -503,13 +527,13 @@ def write_raster(path, array, *, transform=None, crs=None, nodata=None, compress
             raise write_error(path, tmp, e) from e
 
 
-def write_text(path, text):
+def write_text(path: str | os.PathLike, text: str) -> None:
     """Write a text file atomically (every write and the close checked)."""
     with atomic_path(path) as tmp:
         _write_text_to(tmp, text, path)
 
 
-def _write_text_to(tmp, text, name):
+def _write_text_to(tmp: str, text: str, name: str | os.PathLike) -> None:
     try:
         with open(tmp, "w", encoding="utf-8") as f:
             f.write(text)
@@ -517,7 +541,7 @@ def _write_text_to(tmp, text, name):
         raise RasterIOError(f"Could not write '{name}': {describe_os_error(e)}") from e
 
 
-def write_files(contents, *, durable=True):
+def write_files(contents: Mapping[str, str | bytes], *, durable: bool = True) -> None:
     """Write several files together (see :func:`atomic_files`).
 
     Parameters
@@ -537,6 +561,6 @@ def write_files(contents, *, durable=True):
                                     "none of the outputs was changed") from e
 
 
-def write_json(path, obj):
+def write_json(path: str | os.PathLike, obj: Any) -> None:
     """Write an object as indented JSON, atomically."""
     write_text(path, json.dumps(obj, indent=2) + "\n")

@@ -1,9 +1,9 @@
 """Outputs of the SPOT-5 stereo adjustment (:func:`~orthowarp.adjust.adjust_scenes`, after
 :func:`~orthowarp.adjust.preadjust_look_angles`), all written together or none
-(:func:`~orthowarp.pipeline.io.write_files`):
+(:func:`~orthowarp.pipeline.raster.io.write_files`):
 
 - ``<scene>_ADJUSTED.json``: each scene with its corrected look angles and adjusted
-  exterior-orientation polynomials (:func:`~orthowarp.pipeline.dimap.scene_json`), which
+  exterior-orientation polynomials (:func:`~orthowarp.pipeline.formats.dimap.scene_json`), which
   ``orthowarp ortho --dimap`` and :func:`orthowarp.read_scene` take;
 - ``points.csv``: ``point,role,lon,lat,h,se,sn,su`` of the adjusted points (deg, m);
 - ``report.json``: sigma0, redundancy, RMSE east/north/up at control and check points before
@@ -13,20 +13,30 @@
   and ``errors.png`` (check-point errors).
 """
 
+from __future__ import annotations
+
 import json
 import os
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..errors import GeometryError
-from .adjust_report import _finite_or_null, _png
-from .dimap import scene_json
-from .io import ensure_folder, write_files
+from ...errors import GeometryError
+from ..formats.dimap import scene_json
+from ..raster.io import ensure_folder, write_files
+from .adjust import finite_or_null, png_bytes
+
+if TYPE_CHECKING:
+    from ...adjust.lookangles import LookAngleResult
+    from ...adjust.scene_points import ScenePoints
+    from ...adjust.spot_bundle import SceneBundleResult
 
 __all__ = ["write_scene_adjustment"]
 
 
-def write_scene_adjustment(result, points, out_dir, *, preadjustment=None, before=None, plots=True):
+def write_scene_adjustment(result: SceneBundleResult, points: ScenePoints, out_dir: str | os.PathLike, *,
+                           preadjustment: LookAngleResult | None = None, before: SceneBundleResult | None = None,
+                           plots: bool = True) -> dict[str, str]:
     """Write the stereo adjustment's outputs (see the module doc) into ``out_dir``; returns the
     paths by kind.
 
@@ -60,7 +70,7 @@ def write_scene_adjustment(result, points, out_dir, *, preadjustment=None, befor
             extra["look_angle_correction"] = result.look_coefficients[sid].tolist()
             extra["look_angle_correction_std"] = result.look_std[sid].tolist()
         paths[f"scene_{sid}"] = p = os.path.join(out_dir, f"{sid}_ADJUSTED.json")
-        files[p] = scene_json(scene, extra=_finite_or_null(extra))
+        files[p] = scene_json(scene, extra=finite_or_null(extra))
     rows = ["point,role,lon,lat,h,se,sn,su"]
     for i, pid in enumerate(result.point_ids):
         sd = np.sqrt(np.clip(np.diag(result.point_cov[i]), 0, None))
@@ -90,7 +100,7 @@ def write_scene_adjustment(result, points, out_dir, *, preadjustment=None, befor
             coefficient_std={k: preadjustment.coefficient_std(k).tolist() for k in preadjustment.coefficients},
             sigma0=preadjustment.sigma0, check_rmse_px={k: v.tolist() for k, v in preadjustment.check_rmse.items()},
             check_rmse_px_before={k: v.tolist() for k, v in preadjustment.check_rmse_before.items()})
-    report = _finite_or_null(report)
+    report = finite_or_null(report)
     paths["report"] = p = os.path.join(out_dir, "report.json")
     files[p] = json.dumps(report, indent=2, allow_nan=False) + "\n"
     if plots:
@@ -102,11 +112,11 @@ def write_scene_adjustment(result, points, out_dir, *, preadjustment=None, befor
     return paths
 
 
-def _fmt3(v):
+def _fmt3(v: object) -> str:
     return " / ".join("-" if v is None else f"{x:.3f}" for x in v) if v is not None else "-"
 
 
-def _markdown(r, plots):
+def _markdown(r: dict, plots: bool) -> str:
     lines = [f"# SPOT stereo adjustment of {r['points']}", "",
              f"{r['message']}.", "",
              "| | control RMSE E / N / U (m) | check RMSE E / N / U (m) |", "|---|---|---|"]
@@ -125,7 +135,7 @@ def _markdown(r, plots):
     return "\n".join(lines) + "\n"
 
 
-def _plots(result, points, out_dir):
+def _plots(result: SceneBundleResult, points: ScenePoints, out_dir: str | os.PathLike) -> dict:
     from matplotlib.figure import Figure  # no pyplot: no global backend state
 
     out = {}
@@ -145,7 +155,7 @@ def _plots(result, points, out_dir):
         ax.set_ylim(sc.height, 0)
         ax.set_title(sid, fontsize=9)
     fig.suptitle(f"image residuals x {scale:.0f} (blue: control, orange: tie and check)")
-    out["residuals_png"] = os.path.join(out_dir, "residuals.png"), _png(fig)
+    out["residuals_png"] = os.path.join(out_dir, "residuals.png"), png_bytes(fig)
     fig = Figure(figsize=(6, 5))
     ax = fig.add_subplot(1, 1, 1)
     chk = points.role_mask("check")
@@ -158,5 +168,5 @@ def _plots(result, points, out_dir):
         ax.set_title(f"check points: planimetric errors x {s:.3g} deg/m, labels: height errors")
     else:
         ax.set_title("no check points")
-    out["errors_png"] = os.path.join(out_dir, "errors.png"), _png(fig)
+    out["errors_png"] = os.path.join(out_dir, "errors.png"), png_bytes(fig)
     return out

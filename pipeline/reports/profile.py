@@ -43,9 +43,12 @@ finish
     Closing the output: the last blocks, overviews and the COG layout, checks.
 """
 
+from __future__ import annotations
+
 import os
 import threading
 import time
+from collections.abc import Iterable, Sequence
 
 __all__ = ["STAGES", "StageTimer", "union_length", "merge_profiles", "format_profile", "process_start"]
 
@@ -66,7 +69,7 @@ _BOUND = {
 }
 
 
-def union_length(intervals):
+def union_length(intervals: Iterable[tuple[float, float]]) -> float:
     """Length of the union of intervals.
 
     Parameters
@@ -102,25 +105,25 @@ class StageTimer:
         When the measured call began (default: now).
     """
 
-    def __init__(self, start=None):
+    def __init__(self, start: float | None = None) -> None:
         self.start = time.perf_counter() if start is None else float(start)
         self.lock = threading.Lock()
         self.spans = {k: [] for k in STAGES}
         self.info = {}
 
-    def span(self, stage, start, end=None):
+    def span(self, stage: str, start: float, end: float | None = None) -> None:
         """Record that a thread was in ``stage`` from ``start`` to ``end`` (default: now)."""
         end = time.perf_counter() if end is None else end
         with self.lock:
             self.spans[stage].append((start, end))
 
     @property
-    def sums(self):
+    def sums(self) -> dict[str, float]:
         """Seconds per stage, summed over intervals (and threads)."""
         with self.lock:
             return {k: float(sum(e - s for s, e in v)) for k, v in self.spans.items()}
 
-    def profile(self, end=None):
+    def profile(self, end: float | None = None) -> dict:
         """The profile of the call up to ``end`` (default: now): a JSON-serialisable dict.
 
         Returns
@@ -156,14 +159,14 @@ class StageTimer:
         return prof
 
 
-def _busy_and_bound(stages, wall):
+def _busy_and_bound(stages: dict, wall: float) -> dict:
     busy = stages["kernel"]["union_s"]
     bound = max((k for k in STAGES if k != "queue"), key=lambda k: stages[k]["union_s"])
     return dict(device_busy_s=float(busy), device_busy_fraction=float(busy / wall) if wall > 0 else 0.0,
                 bound_by=bound, bound=f"bound by {_BOUND[bound]}")
 
 
-def merge_profiles(profiles, *, wall=None):
+def merge_profiles(profiles: Sequence[dict], *, wall: float | None = None) -> dict:
     """The profile of calls that ran one after another (a batch), from theirs.
 
     Sums add; so do unions (exact for calls disjoint in time, an upper bound, at most the
@@ -212,7 +215,7 @@ def merge_profiles(profiles, *, wall=None):
     return out
 
 
-def format_profile(prof, title):
+def format_profile(prof: dict, title: str) -> str:
     """A profile as text (lines without a final newline), e.g. for ``orthowarp ortho --profile``.
 
     Parameters
@@ -221,6 +224,10 @@ def format_profile(prof, title):
         From :meth:`StageTimer.profile` or :func:`merge_profiles`.
     title : str
         The first line's subject (a file name, "total").
+
+    Returns
+    -------
+    str
     """
     wall = prof["wall_s"]
     head = f"profile {title}: wall {wall:.3f} s"
@@ -250,7 +257,7 @@ def format_profile(prof, title):
 _START = {}
 
 
-def process_start():
+def process_start() -> float | None:
     """The ``time.perf_counter()`` reading at which this process started, or None where the
     OS does not say (Linux only: /proc/self/stat's start time against CLOCK_BOOTTIME; its
     resolution is one clock tick, usually 10 ms).
@@ -265,7 +272,7 @@ def process_start():
     return _START[pid]
 
 
-def _read_process_start():
+def _read_process_start() -> float | None:
     try:
         with open("/proc/self/stat", "rb") as f:
             stat = f.read()

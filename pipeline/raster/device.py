@@ -1,6 +1,6 @@
-"""Feed a :class:`~orthowarp.pipeline.cog.CogWriter` from tiles that are on the device.
+"""Feed a :class:`~orthowarp.pipeline.raster.cog.CogWriter` from tiles that are on the device.
 
-The host writer (:mod:`orthowarp.pipeline.cog`) takes each tile to host memory and does the
+The host writer (:mod:`orthowarp.pipeline.raster.cog`) takes each tile to host memory and does the
 per-block work there: mask zeroing, TIFF predictor 2, mask bits, the 2 x 2 overview
 reduction, deflate. :class:`DeviceCogEncoder` does all of it where the tile already is
 (:mod:`orthowarp.kernels.cog`), level after level while the reduced piece still covers whole
@@ -26,18 +26,27 @@ Every path decodes to the same pixels as the host writer's (the block contents b
 compression are identical bit for bit; only the deflate streams differ).
 """
 
+from __future__ import annotations
+
 import os
 import struct
 import threading
 import time
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import warp as wp
 
-from .._device import load_modules, to_host
-from ..errors import DeviceError, ParamError
-from ..kernels import cog as kc
+from ..._device import load_modules, to_host
+from ...errors import DeviceError, ParamError
+from ...kernels import cog as kc
+
+if TYPE_CHECKING:
+    from warp.context import Device, Stream
+
+    from .cog import CogWriter
 
 __all__ = ["DeviceCogEncoder", "HostDeflate", "NvcompDeflate", "WarpDeflate", "nvcomp_available", "zlib_stream"]
 
@@ -46,13 +55,13 @@ _ZLIB_HEADER = b"\x78\x9c"
 _CHUNK = 1 << 14  # bytes per thread in the checksum and gather kernels
 
 
-def zlib_stream(raw, adler):
+def zlib_stream(raw: bytes, adler: int) -> bytes:
     """The zlib stream (RFC 1950) of a raw deflate stream ``raw`` of data whose Adler-32 is
     ``adler``: what TIFF's deflate compression stores per block."""
     return b"".join((_ZLIB_HEADER, raw, struct.pack(">I", adler & 0xFFFFFFFF)))
 
 
-def nvcomp_available():
+def nvcomp_available() -> bool:
     """True where nvCOMP's Python package can be imported (it still needs a CUDA device)."""
     try:
         from nvidia import nvcomp  # noqa: F401
@@ -61,7 +70,7 @@ def nvcomp_available():
     return True
 
 
-def _bytes_view(arr):
+def _bytes_view(arr: wp.array) -> wp.array:
     """A flat uint8 view of a contiguous Warp array (same memory, kept alive by ``arr``)."""
     n = arr.size * wp.types.type_size_in_bytes(arr.dtype)
     view = wp.array(ptr=arr.ptr, shape=(n,), dtype=wp.uint8, device=arr.device)
@@ -83,21 +92,21 @@ class HostDeflate:
     name = "libdeflate"
     batched = False  # called per tile
 
-    def __init__(self, level=6, *, threads=None):
+    def __init__(self, level: int = 6, *, threads: int | None = None) -> None:
         from deflate import deflate_compress
 
         self._compress = deflate_compress
         self.level = int(level)
         self._pool = ThreadPoolExecutor(max_workers=threads or os.cpu_count() or 1, thread_name_prefix="deflate")
 
-    def compress(self, buf, offsets, sizes):
+    def compress(self, buf: wp.array, offsets: Sequence[int], sizes: Sequence[int]) -> list:
         """Raw deflate streams (list of bytes) of the buffers (``offsets``, ``sizes``: byte
         lists) of the uint8 Warp array ``buf``."""
         host = to_host(buf)  # a copy from a GPU, a view on the CPU
         return list(self._pool.map(lambda k: self._compress(host[offsets[k]:offsets[k] + sizes[k]], self.level),
                                    range(len(offsets))))
 
-    def close(self):
+    def close(self) -> None:
         self._pool.shutdown(wait=True)
 
 
@@ -116,7 +125,7 @@ class NvcompDeflate:
     name = "nvcomp"
     batched = True  # called with batches gathered over tiles (see DeviceCogEncoder)
 
-    def __init__(self, algorithm_type, device):
+    def __init__(self, algorithm_type: int, device: Device) -> None:
         if not device.is_cuda:
             raise ParamError("nvCOMP compresses on CUDA devices only")
         try:
@@ -132,14 +141,14 @@ class NvcompDeflate:
         self._codec_lock = threading.Lock()
         self._codec_obj, self._caps = None, {}
 
-    def _codec(self):
+    def _codec(self) -> Any:
         if self._codec_obj is None:
             nv = self._nvcomp
             self._codec_obj = nv.Codec(algorithm="Deflate", bitstream_kind=nv.BitstreamKind.RAW,
                                        algorithm_type=self.algorithm_type, device_id=self.device.ordinal)
         return self._codec_obj
 
-    def _capacity(self, codec, size):
+    def _capacity(self, codec: Any, size: int) -> int:
         """Bytes nvCOMP reserves for one compressed stream of ``size`` input bytes (its upper
         bound, about 2.3 x the input for Deflate in nvCOMP 6; 16-byte aligned)."""
         if size not in self._caps:
@@ -147,13 +156,13 @@ class NvcompDeflate:
             self._caps[size] = -(-int(codec.get_max_comp_buffer_size(probe)) // 16) * 16
         return self._caps[size]
 
-    def compress(self, buf, offsets, sizes):
+    def compress(self, buf: wp.array, offsets: Sequence[int], sizes: Sequence[int]) -> list:
         """Raw deflate streams (list of bytes) of the buffers of the uint8 Warp array ``buf``
         (on this codec's device, written on the device's current stream)."""
         with self._codec_lock:
             return self._compress_all(buf, offsets, sizes)
 
-    def _compress_all(self, buf, offsets, sizes):
+    def _compress_all(self, buf: wp.array, offsets: Sequence[int], sizes: Sequence[int]) -> list[bytes]:
         # nvCOMP works on its own stream: the blocks must be complete
         wp.synchronize_stream(self.device.stream)
         codec = self._codec()
@@ -171,7 +180,8 @@ class NvcompDeflate:
                     out[k] = raw
         return out
 
-    def _compress(self, codec, buf, offsets, sizes, caps):
+    def _compress(self, codec: Any, buf: wp.array, offsets: Sequence[int], sizes: Sequence[int],
+                  caps: Sequence[int]) -> list[bytes]:
         nv, n = self._nvcomp, len(offsets)
         caps = np.asarray(caps, np.int64)
         src_off = np.concatenate([[0], np.cumsum(caps)[:-1]]).astype(np.int32)
@@ -193,11 +203,11 @@ class NvcompDeflate:
         host = to_host(dst)
         return [host[o:o + k].tobytes() for o, k in zip(dst_off, comp)]
 
-    def close(self):
+    def close(self) -> None:
         self._codec_obj = None
 
 
-def _length_tables():
+def _length_tables() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per match length 0-258: its literal/length symbol, extra bits and extra value (RFC 1951
     3.2.5; lengths 0-2 unused)."""
     bases = [3, 4, 5, 6, 7, 8, 9, 10, 11, 13, 15, 17, 19, 23, 27, 31, 35, 43, 51, 59, 67, 83, 99, 115,
@@ -267,9 +277,10 @@ class WarpDeflate:
     name = "warp"
     batched = True  # many chunks per launch: fed batches gathered over tiles
 
-    def __init__(self, device, *, chunk=65535, depth=32, nice=128, good=0, lazy=True, window=8192, hash_bytes=4,
-                 run=16, chain_parts=4, max_chunks=None, profile=False):
-        from ..kernels import deflate as kd  # its kernels are built on first use only (14 ms at import)
+    def __init__(self, device: Device, *, chunk: int = 65535, depth: int = 32, nice: int = 128, good: int = 0,
+                 lazy: bool = True, window: int = 8192, hash_bytes: int = 4, run: int = 16, chain_parts: int = 4,
+                 max_chunks: int | None = None, profile: bool = False) -> None:
+        from ...kernels import deflate as kd  # its kernels are built on first use only (14 ms at import)
 
         self._kd = kd
         if not 1024 <= int(chunk) <= kd.MAX_CHUNK:
@@ -304,20 +315,20 @@ class WarpDeflate:
         self._scratch = None
         self._own_stream = None
 
-    def _table_arrays(self):
+    def _table_arrays(self) -> tuple[wp.array, ...]:
         if self._tables is None:
             d = self.device
             self._tables = tuple(wp.array(a, dtype=wp.int32, device=d) for a in (*_length_tables(), _CL_ORDER))
         return self._tables
 
-    def _stream(self):
+    def _stream(self) -> Stream | None:
         """The codec's own CUDA stream (None on the CPU): its kernels and copies overlap the
         work the rest of the program puts on the device's stream (tiles, other encoders)."""
         if self.device.is_cuda and self._own_stream is None:
             self._own_stream = wp.Stream(self.device)
         return self._own_stream
 
-    def _scratch_arrays(self, m):
+    def _scratch_arrays(self, m: int) -> dict[str, wp.array]:
         """Scratch for ``m`` chunks (kept for the next call), the output buffer (each piece at
         most its chunk + 5 bytes: a stored block) and pinned host buffers for the per-chunk
         inputs and the read-backs."""
@@ -343,7 +354,7 @@ class WarpDeflate:
                 wp.synchronize_device(d)
         return self._scratch
 
-    def compress(self, buf, offsets, sizes):
+    def compress(self, buf: wp.array, offsets: Sequence[int], sizes: Sequence[int]) -> list:
         """Raw deflate streams of the buffers (``offsets``, ``sizes``: byte lists) of the uint8
         Warp array ``buf`` on this codec's device, written on the device's current stream.
 
@@ -382,7 +393,7 @@ class WarpDeflate:
         self._tick("split", t)
         return out
 
-    def _tick(self, step, t, sync=False):
+    def _tick(self, step: str, t: float, sync: bool = False) -> float:
         """With ``profile``: add the seconds since ``t`` to step's timing (after the device's
         work if ``sync``); returns the time now."""
         if not self.profile:
@@ -393,7 +404,7 @@ class WarpDeflate:
         self.timings[step] = self.timings.get(step, 0.0) + now - t
         return now
 
-    def _read_back(self, host, dev, n, stream):
+    def _read_back(self, host: wp.array, dev: wp.array, n: int, stream: Stream | None) -> np.ndarray:
         """The first ``n`` items of device array ``dev`` through the host buffer ``host`` (pinned
         on a GPU), after the codec's work so far (a NumPy view of ``host``)."""
         if n:
@@ -402,7 +413,8 @@ class WarpDeflate:
             wp.synchronize_stream(stream)
         return host.numpy()[:n]
 
-    def _compress_chunks(self, buf, starts, lens, last, prime, stream):
+    def _compress_chunks(self, buf: wp.array, starts: np.ndarray, lens: np.ndarray, last: np.ndarray,
+                         prime: np.ndarray, stream: Stream | None) -> tuple[np.ndarray, np.ndarray]:
         """The pieces of ``len(starts)`` chunks: (their bytes back to back, size of each)."""
         d, m, kd = self.device, len(starts), self._kd
         len_sym, len_xbits, len_xval, cl_order = self._table_arrays()
@@ -453,7 +465,7 @@ class WarpDeflate:
         self._tick("copy", t)
         return host, size
 
-    def close(self):
+    def close(self) -> None:
         if self._own_stream is not None:
             wp.synchronize_stream(self._own_stream)
         self._scratch = None
@@ -464,13 +476,13 @@ class _Tile:
     """A tile's encoded blocks on the device: their (level, bi, bj) keys and the block arrays
     (image blocks per level, then mask blocks per level)."""
 
-    def __init__(self, keys, arrays):
+    def __init__(self, keys: list[tuple[int, int, int]], arrays: list[wp.array]) -> None:
         self.keys, self.arrays = keys, arrays
         self.nbytes = sum(a.size * wp.types.type_size_in_bytes(a.dtype) for a in arrays)
 
 
 class DeviceCogEncoder:
-    """Encode tiles on the device into a :class:`~orthowarp.pipeline.cog.CogWriter`.
+    """Encode tiles on the device into a :class:`~orthowarp.pipeline.raster.cog.CogWriter`.
 
     Parameters
     ----------
@@ -494,7 +506,8 @@ class DeviceCogEncoder:
     Call :meth:`flush` after the last tile, before the writer's ``close``.
     """
 
-    def __init__(self, writer, device, codecs, *, batch_bytes=512 << 20):
+    def __init__(self, writer: CogWriter, device: Device, codecs: Sequence[Any], *,
+                 batch_bytes: int = 512 << 20) -> None:
         if writer.compress != "deflate":
             raise ParamError("DeviceCogEncoder needs a deflate CogWriter")
         gpu = [c for c in codecs if c.batched]
@@ -526,14 +539,14 @@ class DeviceCogEncoder:
                 self._threshold = None
         load_modules(device, kc)
 
-    def _device_level(self, li, row, col, h, w):
+    def _device_level(self, li: int, row: int, col: int, h: int, w: int) -> bool:
         """Whether a piece at level ``li`` with top-left (row, col), h x w pixels, covers whole
         blocks of that level (its blocks can be encoded on the device)."""
         lvl, b = self.writer.levels[li], self.writer.block
         return (row % b == 0 and col % b == 0 and (h % b == 0 or row + h == lvl.height)
                 and (w % b == 0 or col + w == lvl.width))
 
-    def write(self, row, col, tile, valid):
+    def write(self, row: int, col: int, tile: wp.array, valid: wp.array) -> None:
         """Add a full-resolution tile.
 
         Parameters
@@ -548,7 +561,7 @@ class DeviceCogEncoder:
         The tile must have been written on the device's current stream (Warp's current stream
         belongs to the device, not to a thread, so callers in several threads share it).
         """
-        self.writer._raise_pending()  # noqa: SLF001
+        self.writer.raise_pending()
         with self._lock:
             self._raise_failed()
         job = self._encode(row, col, tile, valid)
@@ -575,7 +588,7 @@ class DeviceCogEncoder:
         if take:  # the codec's own thread deflates it: the tile's thread goes back to its tiles
             self._worker.submit(self._compress_gpu, take)
 
-    def flush(self):
+    def flush(self) -> None:
         """Compress the blocks still waiting for a batch (after the batches in flight); raises
         the codec's error if a batch failed."""
         with self._lock:
@@ -589,12 +602,12 @@ class DeviceCogEncoder:
             with self._lock:
                 self._raise_failed()
 
-    def _raise_failed(self):
+    def _raise_failed(self) -> None:
         """Raise the error of a failed batch (under the lock)."""
         if self._failed is not None:
             raise self._failed
 
-    def _compress_gpu(self, jobs):
+    def _compress_gpu(self, jobs: list[_Tile]) -> None:
         """Deflate a batch on the device, then each next batch that filled meanwhile: the
         device goes from one batch to the next without waiting for another tile. An error is
         kept for :meth:`write` and :meth:`flush` to raise."""
@@ -615,7 +628,7 @@ class DeviceCogEncoder:
                     jobs, self._gpu_busy = None, False
                 self._lock.notify_all()
 
-    def _encode(self, row, col, tile, valid):
+    def _encode(self, row: int, col: int, tile: wp.array, valid: wp.array) -> _Tile | None:
         """The device work of a tile: blocks, mask blocks and overview levels while they cover
         whole blocks (the rest to the host writer), and the blocks' checksums."""
         wr, b = self.writer, self.writer.block
@@ -649,7 +662,7 @@ class DeviceCogEncoder:
             return None
         return _Tile(keys, images + masks)
 
-    def _checksums(self, buf, offsets, sizes):
+    def _checksums(self, buf: wp.array, offsets: np.ndarray, sizes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Adler-32 (int64) of the buffers (``offsets``, ``sizes``: int32 arrays of bytes) of
         the uint8 array ``buf``, and the byte that fills each whole (0 or 255, else -1; int32):
         one upload, two launches and one read-back for a whole batch."""
@@ -666,7 +679,7 @@ class DeviceCogEncoder:
         wp.launch(kc.adler_finish_kernel, dim=n, inputs=[s1, s2, size], outputs=[out, fill], device=d)
         return to_host(out), to_host(fill)
 
-    def _constant_stream(self, size, value):
+    def _constant_stream(self, size: int, value: int) -> bytes:
         """The raw deflate stream of ``size`` bytes of ``value`` (libdeflate level 6), made
         once per size and value. Blocks filled with one byte are not sent to the codec: empty
         image and mask blocks (outside the footprint: no pixel and no mask bit, after the
@@ -682,7 +695,7 @@ class DeviceCogEncoder:
                 self._constants[key] = raw
         return raw
 
-    def _compress(self, jobs, codec):
+    def _compress(self, jobs: list[_Tile], codec: Any) -> None:
         """Deflate the blocks of ``jobs`` with ``codec`` in one call and store them."""
         parts, offsets, sizes, pos = [], [], [], 0
         for job in jobs:
@@ -723,7 +736,7 @@ class DeviceCogEncoder:
             self.blocks_by_codec[codec.name] += n_coded
             self.empty_blocks += n_empty
 
-    def close(self):
+    def close(self) -> None:
         self._worker.shutdown(wait=True)
         for c in (self.gpu, self.host):
             if c is not None:

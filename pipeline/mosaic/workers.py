@@ -4,7 +4,7 @@ A mosaic on a GPU is bound by its host work per tile (coarse grids through PROJ,
 searches, source reads, array set-up and launches), which threads of one process share under
 its interpreter lock: on an H100 host the 40-frame speed block took the same time with 4, 8 or
 16 tile threads (bench/reference/mosaic-speed-workers-h100.json). :class:`ProcessTiles` runs
-:meth:`MosaicPlan._tile <orthowarp.pipeline.mosaic.MosaicPlan._tile>` (a pure function of the
+:meth:`MosaicPlan._tile <orthowarp.pipeline.mosaic.plan.MosaicPlan._tile>` (a pure function of the
 tile and the plan) in spawned processes, each with its own interpreter, CUDA context and source
 handles, on the same device. Each finished tile comes back through a slot of a shared memory
 file (values and validity, and the source index where the caller wants it); the caller uploads
@@ -46,13 +46,17 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..errors import OrthowarpError
-from .io import abandoned
-from .ortho import _check_cancel
+from ...errors import OrthowarpError
+from ..raster.io import abandoned, check_cancel
+
+if TYPE_CHECKING:
+    from multiprocessing.queues import Queue, SimpleQueue
 
 __all__ = ["ProcessTiles", "TileDealer", "tile_runs", "remove_stale_segments"]
 
@@ -61,12 +65,12 @@ _PARENT_POLL_S = 0.2  # how often a worker checks that its parent lives
 SEGMENT_PREFIX = "orthowarp-tiles-"  # the shared files: <prefix><pid>-<random>
 
 
-def _segment_folder():
+def _segment_folder() -> str:
     """Where the shared files go: /dev/shm (memory) where there is one."""
     return "/dev/shm" if os.path.isdir("/dev/shm") else tempfile.gettempdir()
 
 
-def remove_stale_segments(folder=None):
+def remove_stale_segments(folder: str | None = None) -> list[str]:
     """Remove the shared files of :class:`ProcessTiles` whose caller is gone (no process holds
     their ``flock``); returns the paths removed. ``folder``: default /dev/shm (or the
     temporary folder where there is none)."""
@@ -102,7 +106,7 @@ class ProcessTiles:
     (or the context manager) ends the processes and removes the shared file.
     """
 
-    def __init__(self, n, device, *, threads=2):
+    def __init__(self, n: int, device: str, *, threads: int = 2) -> None:
         self.n, self.device, self.threads = int(n), str(device), max(1, int(threads))
         ctx = multiprocessing.get_context("spawn")  # no fork of a process holding CUDA and threads
         self._results = ctx.Queue()
@@ -120,13 +124,13 @@ class ProcessTiles:
         for p in self._procs:
             p.start()
 
-    def __enter__(self):
+    def __enter__(self) -> ProcessTiles:
         return self
 
-    def __exit__(self, *exc):
+    def __exit__(self, *exc: Any) -> None:
         self.close()
 
-    def start_plan(self, plan, tile_shape, *, with_source):
+    def start_plan(self, plan: Any, tile_shape: tuple[int, int], *, with_source: bool) -> None:
         """Send ``plan`` to the workers and make the slots for tiles of at most ``tile_shape``
         (rows, cols): values (the plan's dtype and bands), validity (uint8) and, ``with_source``,
         the source index (uint16). The pickled plan lies at the start of the shared file (the
@@ -148,12 +152,15 @@ class ProcessTiles:
         for q in self._tasks:
             q.put(("plan", path, len(blob), self._base, self._slot_bytes, self._with_source))
 
-    def _views(self, slot, th, tw, count, dtype):
+    def _views(self, slot: int, th: int, tw: int, count: int,
+               dtype: str) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         """The slot's arrays for a tile (th, tw): values (th, tw, count), valid (th, tw) uint8,
         source (th, tw) uint16 or None."""
         return _slot_views(self._map, self._base + slot * self._slot_bytes, th, tw, count, dtype, self._with_source)
 
-    def run(self, tiles, count, dtype, *, images=None, cancel=None, name=None):
+    def run(self, tiles: Sequence[tuple[int, int, int, int]], count: int, dtype: str, *,
+            images: Sequence[tuple[int, ...]] | None = None, cancel: threading.Event | None = None,
+            name: str | None = None) -> Iterator[tuple]:
         """Compute ``tiles`` ((r0, c0, rows, cols) each) on the workers; yields
         ((r0, c0, rows, cols), values, valid, source or None, release) in the order they finish,
         the arrays views of a slot that ``release()`` gives back (call it once done with them).
@@ -168,7 +175,7 @@ class ProcessTiles:
         done_tiles = 0
         released = []
 
-        def deal(w):
+        def deal(w: int) -> None:
             while busy[w] <= self.threads and self._free:
                 got = dealer.next(w)
                 if got is None:
@@ -183,11 +190,11 @@ class ProcessTiles:
         for w in range(self.n):
             deal(w)
         while done_tiles < n_tiles:
-            _check_cancel(cancel, name)
+            check_cancel(cancel, name)
             try:
                 msg = self._get()
             except OrthowarpError:  # a signal to the process group ends the workers too: a stop, not a failure
-                _check_cancel(cancel, name)
+                check_cancel(cancel, name)
                 raise
             if msg[0] == "error":
                 raise _rebuild(msg[2], msg[3])
@@ -197,7 +204,7 @@ class ProcessTiles:
             r0, c0, th, tw = tiles[k]
             values, valid, source = self._views(slot, th, tw, count, dtype)
 
-            def release(slot=slot):
+            def release(slot: int = slot) -> None:
                 released.append(slot)
 
             yield tiles[k], values, valid, source, release
@@ -206,7 +213,7 @@ class ProcessTiles:
             for v in range(self.n):
                 deal(v)
 
-    def finish(self):
+    def finish(self) -> list[dict]:
         """Tell the workers to end and collect what each reports: a list of dicts (counts:
         pixels per image, spans: stage intervals, builds, peak_rss_kb)."""
         for q in self._tasks:
@@ -221,7 +228,7 @@ class ProcessTiles:
         self.worker_info = [info[w] for w in range(self.n)]
         return self.worker_info
 
-    def _get(self):
+    def _get(self) -> tuple:
         """The next worker message; an error if a worker died."""
         while True:
             try:
@@ -231,7 +238,7 @@ class ProcessTiles:
                     if p.exitcode is not None and p.exitcode != 0:
                         raise OrthowarpError(f"A mosaic tile process ended with exit code {p.exitcode}")
 
-    def close(self):
+    def close(self) -> None:
         """End the workers (at once where they are still working) and remove the slots' file."""
         for p in self._procs:
             if p.is_alive():
@@ -251,7 +258,8 @@ class ProcessTiles:
         self._results.close()
 
 
-def tile_runs(tiles, n, images, *, limit=16):
+def tile_runs(tiles: Sequence[tuple[int, int, int, int]], n: int, images: Sequence[tuple[int, ...]], *,
+              limit: int = 16) -> list[list[int]]:
     """The order of a mosaic's tiles on ``n`` processes (or on one, for threads): runs, each a
     band of whole tile rows (or whole tile columns) of the grid swept across in a serpentine
     (down one column of the band, up the next), so that the images in use at any point of a run
@@ -286,7 +294,7 @@ def tile_runs(tiles, n, images, *, limit=16):
     cols = {c: j for j, c in enumerate(sorted({t[1] for t in tiles}))}
     at = {(rows[t[0]], cols[t[1]]): k for k, t in enumerate(tiles)}
 
-    def layout(across, n_runs):
+    def layout(across: bool, n_runs: int) -> list[list[int]]:
         n_band, n_sweep = (len(cols), len(rows)) if across else (len(rows), len(cols))
         bounds = np.linspace(0, n_band, n_runs + 1).round().astype(int)
         runs = []
@@ -318,7 +326,7 @@ def tile_runs(tiles, n, images, *, limit=16):
     return best[1]
 
 
-def _live_peak(run, images):
+def _live_peak(run: Sequence[int], images: Sequence[tuple[int, ...]]) -> int:
     """The most images in use at once along ``run``: an image from its first tile to its last."""
     first, last = {}, {}
     for pos, k in enumerate(run):
@@ -351,7 +359,8 @@ class TileDealer:
         Default: one per run. Process ``w`` starts with run ``w``.
     """
 
-    def __init__(self, runs, images, processes=None):
+    def __init__(self, runs: Sequence[Sequence[int]], images: Sequence[tuple[int, ...]],
+                 processes: int | None = None) -> None:
         n = len(runs) if processes is None else int(processes)
         self.runs = [collections.deque(r) for r in runs]
         self.images = images
@@ -361,7 +370,7 @@ class TileDealer:
         self.owner = {w: w for w in range(min(n, len(runs)))}
         self.unstarted = collections.deque(range(n, len(runs)))
 
-    def next(self, w):
+    def next(self, w: int) -> tuple | None:
         """(tile, its images, images final for process w, (process, images) to drop or None)
         for process ``w``, or None where no tile is left."""
         r = self.current[w]
@@ -392,20 +401,21 @@ class TileDealer:
         return k, self.images[k], (), ((self.owner[u], tuple(drop)) if drop else None)
 
 
-def _slot_size(th, tw, count, dtype, with_source):
+def _slot_size(th: int, tw: int, count: int, dtype: str, with_source: bool) -> int:
     """Bytes of a slot for tiles up to (th, tw) (see :func:`_slot_views`)."""
     return sum(_parts(th, tw, count, dtype, with_source))
 
 
-def _parts(th, tw, count, dtype, with_source):
+def _parts(th: int, tw: int, count: int, dtype: str, with_source: bool) -> tuple[int, int, int]:
     """The byte sizes of a slot's values, validity and source index, each rounded up to 64."""
-    def up(n):
+    def up(n: int) -> int:
         return -(-n // 64) * 64
 
     return up(th * tw * count * np.dtype(dtype).itemsize), up(th * tw), up(2 * th * tw) if with_source else 0
 
 
-def _slot_views(buf, base, th, tw, count, dtype, with_source):
+def _slot_views(buf: Any, base: int, th: int, tw: int, count: int, dtype: str,
+                with_source: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """Views of the slot at byte ``base`` of ``buf`` for a tile (th, tw): values (th, tw,
     count), validity (th, tw) uint8, source index (th, tw) uint16 or None (packed for that
     size)."""
@@ -416,7 +426,7 @@ def _slot_views(buf, base, th, tw, count, dtype, with_source):
     return values, valid, source
 
 
-def _portable(exc):
+def _portable(exc: BaseException) -> tuple[bytes | None, str]:
     """(pickled exception or None, its text) for sending to the caller."""
     import traceback
 
@@ -429,7 +439,7 @@ def _portable(exc):
     return blob, text
 
 
-def _rebuild(blob, text):
+def _rebuild(blob: bytes | None, text: str) -> BaseException:
     """The worker's exception, or an OrthowarpError with its text."""
     if blob is not None:
         try:
@@ -439,7 +449,7 @@ def _rebuild(blob, text):
     return OrthowarpError(f"A mosaic tile process failed:\n{text}")
 
 
-def _peak_rss_kb():
+def _peak_rss_kb() -> int | None:
     try:
         with open("/proc/self/status") as f:
             return next((int(line.split()[1]) for line in f if line.startswith("VmHWM:")), None)
@@ -447,7 +457,7 @@ def _peak_rss_kb():
         return None
 
 
-def _end_with_parent(parent, kernel_signal):
+def _end_with_parent(parent: int, kernel_signal: bool) -> None:
     """End this process as soon as its parent (pid ``parent``) is gone, however it ended: on
     Linux, with ``kernel_signal``, the kernel sends SIGKILL (prctl PR_SET_PDEATHSIG) and a
     watcher thread checks the parent every 0.2 s everywhere (a parent that is gone leaves its
@@ -462,7 +472,7 @@ def _end_with_parent(parent, kernel_signal):
     if os.getppid() != parent:  # gone before the request above took effect
         os._exit(1)
 
-    def watch():
+    def watch() -> None:
         while True:
             time.sleep(_PARENT_POLL_S)
             if os.getppid() != parent:
@@ -471,7 +481,8 @@ def _end_with_parent(parent, kernel_signal):
     threading.Thread(target=watch, name="orthowarp-parent-watch", daemon=True).start()
 
 
-def _worker_main(w, device, threads, tasks, results, parent, kernel_signal):
+def _worker_main(w: int, device: str, threads: int, tasks: SimpleQueue, results: Queue, parent: int,
+                 kernel_signal: bool) -> None:
     """A tile process: load the kernels, take the plan, compute tiles into their slots."""
     import signal
 
@@ -481,9 +492,9 @@ def _worker_main(w, device, threads, tasks, results, parent, kernel_signal):
         import rasterio
         import warp as wp
 
-        from .._device import load_modules, quiet_warp, resolve_device, to_host
-        from ..kernels import mosaic as mosaic_kernels
-        from ..kernels import ortho as ortho_kernels
+        from ..._device import load_modules, quiet_warp, resolve_device, to_host
+        from ...kernels import mosaic as mosaic_kernels
+        from ...kernels import ortho as ortho_kernels
 
         with quiet_warp():
             dev = resolve_device(device)
@@ -494,7 +505,7 @@ def _worker_main(w, device, threads, tasks, results, parent, kernel_signal):
     plan, buf, base, slot_bytes, with_source = None, None, 0, 0, False
     failed = []
 
-    def tile(k, r0, c0, th, tw, slot, used, token):
+    def tile(k: int, r0: int, c0: int, th: int, tw: int, slot: int, used: tuple[int, ...], token: Any) -> None:
         try:
             with quiet_warp():
                 out, has, source = plan._tile(r0, c0, th, tw, device=dev)

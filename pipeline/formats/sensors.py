@@ -7,7 +7,7 @@ OpenSfM ``reconstruction.json``), their interior orientation from a camera file 
 YAML or JSON, or the same ``reconstruction.json``); :func:`frame_orientations` pairs each image
 with its camera and pose, :func:`frame_sensors` makes the ``(image, FrameSensor)`` pairs that
 :func:`~orthowarp.pipeline.mosaic.mosaic` and
-:func:`~orthowarp.pipeline.batch.orthorectify_many` take. An OpenDroneMap dataset folder holds
+:func:`~orthowarp.pipeline.ortho.batch.orthorectify_many` take. An OpenDroneMap dataset folder holds
 all of it (:func:`odm_dataset`, :func:`odm_sensors`).
 """
 
@@ -18,10 +18,10 @@ import os
 from collections.abc import Iterable, Sequence
 from typing import NamedTuple
 
-from ..camera import FrameCamera
-from ..errors import CrsError, ParamError, RasterIOError
-from ..pose import Pose
-from ..sensor import FrameSensor
+from ...camera import FrameCamera
+from ...errors import CrsError, ParamError, RasterIOError
+from ...pose import Pose
+from ...sensor import FrameSensor
 
 __all__ = ["FrameOrientation", "OdmDataset", "image_key", "expand_images", "image_crs", "frame_orientations",
            "frame_sensors", "odm_dataset", "odm_sensors", "IMAGE_EXTENSIONS"]
@@ -151,7 +151,9 @@ def frame_orientations(images: Iterable[str | os.PathLike], int_param: str | os.
         The positions' CRS is not known (the file names none, no ``crs``, no georeferenced
         image).
     """
-    from .formats import read_cameras, read_exterior
+    # the readers load on first use: a batch that only names its outputs (image_key) needs neither
+    from .cameras import read_cameras
+    from .exterior import read_exterior
 
     images = expand_images(images)
     try:  # the poses in their file's own CRS (a .prj beside a CSV, a GeoJSON's, ...)
@@ -187,7 +189,7 @@ def frame_sensors(images: Iterable[str | os.PathLike], int_param: str | os.PathL
                   ext_param: str | os.PathLike, *, crs: str | int | None = None) -> list[tuple[str, FrameSensor]]:
     """``(image, FrameSensor)`` pairs of frame images from the orientation files: the input of
     :func:`~orthowarp.pipeline.mosaic.mosaic`, and with a destination each, of
-    :func:`~orthowarp.pipeline.batch.orthorectify_many`.
+    :func:`~orthowarp.pipeline.ortho.batch.orthorectify_many`.
 
     Parameters and errors as :func:`frame_orientations`.
 

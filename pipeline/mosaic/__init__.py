@@ -1,0 +1,312 @@
+"""Orthomosaics: frame images, pushbroom scenes or a mix, to one cloud-optimized GeoTIFF, tile by tile.
+
+The mosaic's grid is the union of the images' ortho grids at one resolution, cut into tiles;
+for each tile, every image whose footprint meets it is projected straight into the tile by
+:class:`~orthowarp.pipeline.ortho.tiles.ImageTiles` (the ortho's own tile function: no intermediate
+orthos). The seams come first, from one reduced pass over the whole mosaic (each image
+rendered alone on a grid of at most ~4 Mpix): every reduced pixel goes to the image that sees
+its ground point most nearly from above (the smallest off-nadir angle, which minimises relief
+displacement), then each seam between two images is moved, within a corridor, onto the
+least-cost path where the two images agree (around buildings, trees and moving objects that
+look different in each). One labelling for the whole grid: seams never jump at tile borders.
+In a tile, each image's signed distance from its region (bilinear between reduced pixels)
+ranks the images; with feathering, those within a band of the nearest share a pixel, their
+weights falling linearly across the band (a chosen width in output pixels), and an image's
+weight falls to zero towards its border over the same width. Ground an image does not see (the
+forward method's holes behind relief) comes from the next image. Radiometric balancing applies
+per image and band a gain and an offset from one least-squares solve over the overlaps'
+statistics on the reduced grid. A tile is a pure function of the tile and the inputs; memory
+is bounded by the tile size and the reduced grid, whatever the number of images.
+
+Optionally a per-pixel source-index raster (uint16, the image's position in the input list,
+the one with the largest weight; masked, by its internal mask, where no image has a value) is
+written beside the mosaic and published together with it.
+
+:func:`mosaic` is here; its parts are the package's modules: the plan and its reduced pass
+(:mod:`~orthowarp.pipeline.mosaic.plan`), the seams (:mod:`~orthowarp.pipeline.mosaic.seams`),
+the radiometric balance (:mod:`~orthowarp.pipeline.mosaic.balance`), the blending of a tile
+(:mod:`~orthowarp.pipeline.mosaic.blend`) and the tiles' order and worker processes
+(:mod:`~orthowarp.pipeline.mosaic.workers`).
+"""
+
+from __future__ import annotations
+
+import collections
+import os
+import threading
+import time
+from collections.abc import Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import warp as wp
+from pyproj import CRS
+
+from ..._device import quiet_warp, resolve_device, to_host
+from ..._validate import flag, integer
+from ...errors import ParamError
+from ..dem import Dem
+from ..ortho.sink import BLOCK_CODECS, parse_creation_options
+from ..raster.io import check_cancel
+from .plan import (NO_SOURCE, MosaicPlan, MosaicResult, check_images, default_tile_size, mosaic_block_codec,
+                   mosaic_plan, output_paths)
+from .workers import ProcessTiles, TileDealer, tile_runs
+
+__all__ = ["mosaic", "mosaic_plan", "MosaicPlan", "MosaicResult", "NO_SOURCE"]
+
+@quiet_warp()
+def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | os.PathLike | float,
+           crs: str | int | CRS | None = None, resolution: float | None = None, resampling: str = "bilinear",
+           refraction: bool = True, dtype: str | None = None, index: str | os.PathLike | None = None,
+           seamlines: str | os.PathLike | None = None, seams: str = "least-cost", seam_width: float = 256,
+           blend: str = "feather", feather: float = 32, balance: bool = True, reference: int | None = None,
+           occlusion: bool = True, compress_level: int | None = None, block_codec: str = "auto",
+           creation_options: dict | None = None, tile_size: int | None = None, overwrite: bool = False, device: str | None = None,
+           workers: int | None = None, processes: int | None = None, geoid: str | os.PathLike | None = None,
+           same_vertical_datum: bool = False, cancel: threading.Event | None = None) -> MosaicResult:
+    """Mosaic frame images and pushbroom scenes into one cloud-optimized GeoTIFF (deflate,
+    internal mask, overviews).
+
+    Parameters
+    ----------
+    images : sequence of (src, SensorModel)
+        Source images (all with the same band count and data type) and their sensors:
+        ``FrameSensor(camera, pose)`` for frame images, ``PushbroomScene`` for pushbroom
+        scenes, or a mix.
+    dst : str or os.PathLike
+        The mosaic (written under a temporary name, published when complete).
+    dem : Dem, str or float
+        Terrain: a Dem, a DEM file, or a constant height (m) in the vertical datum of the
+        positions: ellipsoidal for geocentric poses and pushbroom scenes, the z of the map CRS
+        for map-Cartesian poses.
+    crs : CRS-like, optional
+        Output CRS; default: that of the first image's ortho.
+    resolution : float, optional
+        Pixel size (CRS units); default: the mean of the images' ground sample distances.
+    resampling : {"nearest", "bilinear", "bicubic", "lanczos"}, optional
+    refraction : bool, optional
+    dtype : {"uint8", "uint16", "float32"}, optional
+        Default: the sources'.
+    index : str or os.PathLike, optional
+        Also write the per-pixel source index (uint16 COG; masked where no image has a value):
+        the image with the largest weight.
+    seamlines : str or os.PathLike, optional
+        Also write the images' parts of the mosaic as GeoJSON (RFC 7946, longitude/latitude):
+        one feature per image, a (Multi)Polygon traced on the source index at a reduced
+        resolution (at most ~4 Mpix), with the image's path, position and pixel count.
+    seams : {"least-cost", "nadir"}, optional
+        "nadir": each pixel's image is the one that sees its ground most nearly from above
+        (smallest off-nadir angle), decided on a reduced grid (at most ~4 Mpix). "least-cost"
+        (default): those seams then moved onto least-cost paths where the two images agree,
+        within ``seam_width`` of the nadir seam.
+    seam_width : float, optional
+        How far (output pixels) a least-cost seam may move from the nadir seam.
+    blend : {"feather", "multiband", "none"}, optional
+        "none": each pixel from the image of its region (or, where that image has no value,
+        the nearest region's). "feather": the images whose region is within ``feather`` / 2
+        pixels share the pixel, their weights falling linearly across the band (``feather``
+        output pixels wide around each seam); an image's weight also falls to zero over the
+        same width towards its border, so footprint edges inside another image's cover do not
+        show. "multiband": fine detail from each pixel's own image, coarser detail and
+        brightness blended over wider bands (Burt and Adelson's multiresolution spline in three
+        bands, in Warp kernels, reading 1.5 ``feather`` pixels around each tile): no
+        ghosts of small objects and no visible brightness step.
+    feather : float, optional
+        Width of the blend across seams, output pixels (for "multiband": twice the sigma of
+        its widest band).
+    balance : bool, optional
+        Radiometric balancing: per image and band a gain and an offset, estimated by least
+        squares from the images' overlaps (means and standard deviations on a reduced grid,
+        one global solve) and applied before blending.
+    reference : int, optional
+        With ``balance``: the image (position in ``images``) whose radiometry is kept; default:
+        the gains' geometric mean is 1 and the offsets' mean 0.
+    occlusion : bool, optional
+        Project each image by the forward method ([P3]'s direct method), which leaves the
+        ground it cannot see (behind relief or objects on the DSM) without a value, so that
+        another image that sees it supplies it; False: the backward method, which fills hidden
+        ground with whatever hides it (faster). Pushbroom scenes are always projected by the
+        backward method; with ``occlusion`` each of their pixels' visibility is tested (its
+        source pixel geolocated forward must come back to its ground point) and hidden ground
+        is left to another image in the same way.
+    compress_level : int, optional
+        Deflate level 1-12 (default 6).
+    creation_options : dict, optional
+        BLOCKSIZE, BIGTIFF, NUM_THREADS of the mosaic and index files (as for
+        :func:`~orthowarp.pipeline.ortho.orthorectify`).
+    block_codec : {"auto", "host", "nvcomp", "hybrid", "warp"}, optional
+        Who deflates the mosaic's blocks (as for
+        :func:`~orthowarp.pipeline.ortho.orthorectify`): "host" (the tiles copied to host
+        memory, blocks, overviews and libdeflate there), "nvcomp" (on a GPU: the tiles stay
+        there, blocks and overview levels made there and deflated by nvCOMP; ``pip install
+        'orthowarp[gpu]'``), "warp" (the same, deflated by orthowarp's own kernels), "hybrid"
+        (a device codec, libdeflate on the host cores taking the tiles that arrive while the
+        device is busy and its next batch is full); "auto": "warp" on a GPU (the fastest
+        measured for a mosaic, whose host cores are busy with the tiles), "host" on the CPU.
+        Every choice decodes to the same pixels.
+    tile_size : int, optional
+        Output tile edge (pixels, multiple of 16); default 2048 on a GPU (fewer, larger
+        launches: the per-tile work on the host is what bounds a mosaic), 512 on the CPU.
+    overwrite : bool, optional
+    device : str, optional
+    workers : int, optional
+        Tiles in flight (default: CPU cores on the CPU, 8 on a GPU); with ``processes``, tile
+        threads per process (default 2).
+    processes : int, optional
+        Compute the tiles in this many worker processes on the same device (default 1: threads
+        of this process alone). A mosaic on a GPU is bound by its host work per tile, which the
+        threads of one process share under the interpreter lock; several processes share the
+        device instead (see :mod:`orthowarp.pipeline.mosaic.workers`). They are started with the
+        "spawn" method, so a script calling this must guard its top level with
+        ``if __name__ == "__main__":``. Each process holds its own image cache
+        (``cache_images``) and CUDA context.
+    geoid, same_vertical_datum :
+        As for :func:`~orthowarp.pipeline.ortho.orthorectify`.
+    cancel : threading.Event, optional
+
+    Returns
+    -------
+    MosaicResult
+    """
+    images = check_images(images, resampling, dtype, blend, feather, reference, seams, seam_width,
+                           resolution=resolution, refraction=refraction, balance=balance, occlusion=occlusion,
+                           same_vertical_datum=same_vertical_datum)
+    if block_codec not in BLOCK_CODECS:
+        raise ParamError(f"block_codec must be one of {BLOCK_CODECS}, got {block_codec!r}")
+    parse_creation_options(creation_options)  # checked before any work
+    if tile_size is not None and integer("tile_size", tile_size, low=16) % 16:
+        raise ParamError(f"tile_size must be a positive multiple of 16, got {tile_size}")
+    if processes is not None and (not isinstance(processes, (int, np.integer)) or processes < 1):
+        raise ParamError(f"processes must be a positive number of processes, got {processes!r}")
+    compress_level = integer("compress_level", compress_level, low=1, high=12, none=True)  # deflate's levels
+    workers = integer("workers", workers, low=1, none=True)
+    flag("overwrite", overwrite)
+    dst = os.fspath(dst)
+    outputs = output_paths(dst, index, seamlines, overwrite)
+    on = resolve_device(device)
+    # the tile processes start beside the plan (their imports and kernel loading overlap it)
+    procs = ProcessTiles(int(processes), str(on), threads=workers or 2) if processes and processes > 1 else None
+    try:
+        plan = mosaic_plan(images, dem=dem, crs=crs, resolution=resolution, resampling=resampling,
+                           refraction=refraction, dtype=dtype, seams=seams, seam_width=seam_width, blend=blend,
+                           feather=feather, balance=balance,
+                           reference=reference, occlusion=occlusion, device=device, geoid=geoid,
+                           same_vertical_datum=same_vertical_datum, cancel=cancel, _outputs=outputs)
+        return _write_mosaic(plan, procs, dst, on, index=index, seamlines=seamlines, compress_level=compress_level,
+                             block_codec=block_codec, creation_options=creation_options, tile_size=tile_size,
+                             overwrite=overwrite, workers=workers, cancel=cancel)
+    finally:
+        if procs is not None:
+            procs.close()
+
+
+def _write_mosaic(plan: MosaicPlan, procs: ProcessTiles | None, dst: str, on: wp.context.Device, *,
+                  index: str | os.PathLike | None, seamlines: str | os.PathLike | None, compress_level: int | None,
+                  block_codec: str, creation_options: dict | None, tile_size: int | None, overwrite: bool,
+                  workers: int | None, cancel: threading.Event | None) -> MosaicResult:
+    """:func:`mosaic`'s tiles, on a thread pool of this process or, with ``procs`` (a started
+    :class:`~orthowarp.pipeline.mosaic.workers.ProcessTiles`), on worker processes, written."""
+    t0 = time.perf_counter()
+    codec = mosaic_block_codec(block_codec, on, compress_level or 6)
+    size = int(tile_size) if tile_size is not None else default_tile_size(on)
+    tiles = plan.tiles(size)
+    host_source = index is not None or seamlines is not None  # else the pixels per image counted there
+    if procs is None:
+        results = _thread_results(plan, tiles, codec, on, host_source, workers, cancel, dst)
+    else:
+        results = _process_results(plan, procs, tiles, size, codec, on, host_source, cancel, dst)
+    try:
+        return plan.write(dst, results, index=index, seamlines=seamlines, compress_level=compress_level,
+                          overwrite=overwrite, t_start=t0, _block_codec=codec, creation_options=creation_options)
+    finally:
+        plan.close()
+
+
+def _thread_results(plan: MosaicPlan, tiles: list[tuple[int, int, int, int]], codec: str, on: wp.context.Device,
+                    host_source: bool, workers: int | None, cancel: threading.Event | None,
+                    dst: str) -> Iterator[tuple[tuple[int, int, int, int], tuple]]:
+    """Tile results for :meth:`MosaicPlan.write` from a thread pool of this process, in the
+    order of :func:`~orthowarp.pipeline.mosaic.workers.tile_runs` (its runs in turn), at most 2 x workers
+    tiles in flight (bounded memory); with a device ``codec`` each tile goes to the plan's
+    encoder from its thread."""
+    n_workers = workers or (8 if on.is_cuda else (os.cpu_count() or 1))
+
+    def tile(r0: int, c0: int, th: int, tw: int) -> tuple:
+        if codec == "host":
+            return plan.tile(r0, c0, th, tw, cancel=cancel, name=dst)
+        # the tile stays on the device: blocks, overview levels and checksums made there
+        check_cancel(cancel, dst)
+        out, has, source = plan._tile(r0, c0, th, tw, device=on)
+        plan._encoder.write(r0, c0, out, has)
+        if not host_source:
+            plan._count_sources(source)
+            return None, None, None
+        source = to_host(source)
+        return None, source != NO_SOURCE, source
+
+    def run(tile_: tuple[int, int, int, int], used: tuple[int, ...], token: dict[int, int]) -> tuple:
+        try:
+            return tile(*tile_)
+        finally:
+            plan._note_done(used, token)  # the images no later tile uses are dropped
+
+    # the tiles' runs one after the other (see tile_runs): the images in use at once are those
+    # that meet a cross-section of a band
+    images = plan._tile_images(tiles)
+    dealer = TileDealer(tile_runs(tiles, 1, images), images, 1)
+    with ThreadPoolExecutor(max_workers=n_workers) as pool:
+        pending = collections.deque()
+        try:
+            for _ in tiles:
+                k, used, final, _ = dealer.next(0)
+                token = plan._note_dealt(used, final)
+                pending.append((tiles[k], pool.submit(run, tiles[k], used, token)))
+                if len(pending) >= 2 * n_workers:
+                    tile0, f = pending.popleft()
+                    yield tile0, f.result()
+            while pending:
+                tile0, f = pending.popleft()
+                yield tile0, f.result()
+        except BaseException:
+            for _, f in pending:
+                f.cancel()
+            raise
+
+
+def _process_results(plan: MosaicPlan, procs: ProcessTiles, tiles: list[tuple[int, int, int, int]], size: int,
+                     codec: str, on: wp.context.Device, host_source: bool, cancel: threading.Event | None,
+                     dst: str) -> Iterator[tuple[tuple[int, int, int, int], tuple]]:
+    """Tile results for :meth:`MosaicPlan.write` from worker processes, as they finish: the
+    plan sent to them now, each finished tile uploaded to this process's device for the
+    device ``codec``'s encoder or copied for the host writer, and at the end the workers'
+    pixel counts, stage intervals and image builds merged into this process's state."""
+    plan._kept.clear()  # the reduced pass's geometries: the workers build their own
+    st = plan._materialise()  # the stage timer starts with the tiles, as on threads
+    procs.start_plan(plan, (size, size), with_source=codec == "host" or host_source)
+
+    def results() -> Iterator[tuple[tuple[int, int, int, int], tuple]]:
+        images = plan._tile_images(tiles)
+        for tile, values, valid, source, release in procs.run(tiles, plan.count, plan.dtype, images=images,
+                                                              cancel=cancel, name=dst):
+            try:
+                r0, c0 = tile[:2]
+                ok = valid.view(bool)
+                if codec == "host":  # (the slot is reused: copies)
+                    yield tile, (values.copy(), ok.copy(), source.copy())
+                    continue
+                plan._encoder.write(r0, c0, wp.array(values, device=on), wp.array(valid, dtype=wp.uint8, device=on))
+                yield tile, (None, ok.copy(), source.copy()) if source is not None else (None, None, None)
+            finally:
+                release()
+        timer = st["timer"]
+        for info in procs.finish():
+            st["counts_host"] = st.get("counts_host", 0) + np.asarray(info["counts"], np.int64)
+            st["builds"] += info["builds"]
+            for k, spans in info["spans"].items():
+                timer.spans[k].extend(spans)
+        timer.info.update(processes=procs.n, worker_peak_rss_mb=[
+            i["peak_rss_kb"] / 1024 if i["peak_rss_kb"] is not None else None for i in procs.worker_info],
+            worker_images_held_peak=[i["held_peak"] for i in procs.worker_info])
+        st["held_peak"] = max(i["held_peak"] for i in procs.worker_info)
+
+    return results()

@@ -1,0 +1,133 @@
+"""Radiometric balancing of a mosaic: per image and band a gain and an offset from one
+least-squares solve over the images' overlaps on the reduced grid.
+
+Per pair of images whose reduced windows meet (:func:`overlap_boxes`, :func:`overlap_arrays`),
+the mean and standard deviation of each band over the pixels both cover; then one weighted
+least-squares solve for the log gains (log s_i + log a_i = log s_j + log a_j) and one for the
+offsets (a_i m_i + b_i = a_j m_j + b_j), the datum fixed by a reference image or by zero means
+(:func:`radiometric_balance`). The least-cost seams compare the balanced images on the same
+overlaps (:mod:`~orthowarp.pipeline.mosaic.seams`).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from typing import Optional
+
+import numpy as np
+
+__all__ = ["radiometric_balance", "overlap_boxes", "overlap_arrays"]
+
+#: A reduced pass's image: (first row, first column, values (rows, cols, bands) float32, valid
+#: (rows, cols) bool) on the reduced grid, or None where the image has nothing there.
+Coarse = Optional[tuple[int, int, np.ndarray, np.ndarray]]
+
+
+def radiometric_balance(coarse: Sequence[Coarse], count: int,
+                        reference: int | None) -> tuple[np.ndarray, np.ndarray]:
+    """Per image and band, gain and offset (both (n_images, count)) that make the images agree
+    in their overlaps on the reduced grid (``coarse`` from :func:`~orthowarp.pipeline.mosaic.plan.reduced_pass`): per
+    overlapping pair and band the mean and standard deviation over the pixels both cover,
+    then one weighted least-squares solve for log gains (log s_i + log a_i = log s_j +
+    log a_j) and one for offsets (a_i m_i + b_i = a_j m_j + b_j), the datum fixed by
+    ``reference`` or by zero means; an image without overlaps keeps gain 1, offset 0."""
+    n = len(coarse)
+
+    def stats(box: tuple[int, ...]) -> tuple | None:
+        """(i, j, weight, means, standard deviations) of an overlap, None if under 50 pixels."""
+        a, b, both = overlap_arrays(coarse, box)
+        m = int(both.sum())
+        if m < 50:
+            return None
+        w = both.astype(np.float32)
+        (ma, sa), (mb, sb) = _moments(a, w, m), _moments(b, w, m)
+        return box[0], box[1], np.sqrt(m), ma, mb, sa, sb
+
+    boxes = list(overlap_boxes(coarse))
+    # (i, j, weight, stats) per overlap, in order, on threads (einsum frees the GIL)
+    with ThreadPoolExecutor(max_workers=max(1, min(8, os.cpu_count() or 1, len(boxes)))) as pool:
+        eq_g = [e for e in pool.map(stats, boxes) if e is not None]
+    gains, offsets = np.ones((n, count)), np.zeros((n, count))
+    if not eq_g:
+        return gains, offsets
+    for band in range(count):
+        rows_g, rhs_g = [], []
+        for i, j, w, mi, mj, si, sj in eq_g:
+            if si[band] > 0 and sj[band] > 0:
+                row = np.zeros(n)
+                row[i], row[j] = w, -w
+                rows_g.append(row)
+                rhs_g.append(w * (np.log(sj[band]) - np.log(si[band])))
+        x = _solve(rows_g, rhs_g, n, reference)
+        a = np.exp(x)
+        rows_b, rhs_b = [], []
+        for i, j, w, mi, mj, si, sj in eq_g:
+            row = np.zeros(n)
+            row[i], row[j] = w, -w
+            rows_b.append(row)
+            rhs_b.append(w * (a[j] * mj[band] - a[i] * mi[band]))
+        gains[:, band], offsets[:, band] = a, _solve(rows_b, rhs_b, n, reference)
+    return gains, offsets
+
+
+def _moments(values: np.ndarray, w: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and (population) standard deviation per band of ``values`` (rows, cols, bands)
+    over the ``m`` pixels where ``w`` (rows, cols) is 1 (0 elsewhere), summed in float64 in
+    one pass without copying them out."""
+    s1 = np.einsum("ijk,ij->k", values, w, dtype=np.float64)
+    s2 = np.einsum("ijk,ijk,ij->k", values, values, w, dtype=np.float64)
+    mean = s1 / m
+    return mean, np.sqrt(np.maximum(s2 / m - mean * mean, 0.0))
+
+
+def _solve(rows: Sequence[np.ndarray], rhs: Sequence[float], n: int, reference: int | None) -> np.ndarray:
+    """Least squares for n unknowns from weighted difference equations, the datum fixed by
+    ``reference`` (its unknown 0) or by a zero sum, every unknown weakly held at 0 (images
+    without equations)."""
+    a = list(rows)
+    b = list(rhs)
+    datum = np.zeros(n)
+    if reference is None:
+        datum[:] = 1.0
+    else:
+        datum[reference] = 1.0
+    scale = max((np.abs(r).max() for r in rows), default=1.0)
+    a.append(datum * scale * 10.0)
+    b.append(0.0)
+    a += list(np.eye(n) * scale * 1e-6)
+    b += [0.0] * n
+    return np.linalg.lstsq(np.asarray(a), np.asarray(b), rcond=None)[0]
+
+
+def overlap_boxes(coarse: Sequence[Coarse]) -> Iterator[tuple[int, int, int, int, int, int]]:
+    """Per pair of images (i < j) whose reduced windows meet: (i, j, r0, r1, c0, c1), the
+    intersection of their windows on the reduced grid."""
+    for i in range(len(coarse)):
+        for j in range(i + 1, len(coarse)):
+            if coarse[i] is None or coarse[j] is None:
+                continue
+            ri, ci, _, oki = coarse[i]
+            rj, cj, _, okj = coarse[j]
+            r0, r1 = max(ri, rj), min(ri + oki.shape[0], rj + okj.shape[0])
+            c0, c1 = max(ci, cj), min(ci + oki.shape[1], cj + okj.shape[1])
+            if r0 < r1 and c0 < c1:
+                yield i, j, r0, r1, c0, c1
+
+
+def overlap_arrays(coarse: Sequence[Coarse], box: tuple[int, int, int, int, int, int],
+                   pad: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A pair's (values of i, values of j, both valid) on its overlap ``box`` (from
+    :func:`overlap_boxes`) grown by ``pad`` pixels (the grown part invalid)."""
+    i, j, r0, r1, c0, c1 = box
+    ri, ci, vi, oki = coarse[i]
+    rj, cj, vj, okj = coarse[j]
+    a = vi[r0 - ri:r1 - ri, c0 - ci:c1 - ci]
+    b = vj[r0 - rj:r1 - rj, c0 - cj:c1 - cj]
+    both = oki[r0 - ri:r1 - ri, c0 - ci:c1 - ci] & okj[r0 - rj:r1 - rj, c0 - cj:c1 - cj]
+    if pad:
+        a = np.pad(a, ((pad, pad), (pad, pad), (0, 0)))
+        b = np.pad(b, ((pad, pad), (pad, pad), (0, 0)))
+        both = np.pad(both, pad)
+    return a, b, both

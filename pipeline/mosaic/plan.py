@@ -1,0 +1,709 @@
+"""A mosaic's plan: the grid, the sources, the radiometric balance and the seams, computed
+first on one reduced pass; then a tile is a pure function of its extent and the plan.
+
+:func:`mosaic_plan` makes a :class:`MosaicPlan` without writing anything: the grid is the union
+of the images' ortho grids at one resolution; the reduced pass (:func:`reduced_pass`) renders
+each image alone on a grid of at most ~4 Mpix, for the balance
+(:mod:`~orthowarp.pipeline.mosaic.balance`) and the seams
+(:mod:`~orthowarp.pipeline.mosaic.seams`). The plan pickles, so its :meth:`~MosaicPlan.tile`
+(:class:`~orthowarp.pipeline.mosaic.blend.TileBlending`) runs on threads, on worker processes
+(:mod:`~orthowarp.pipeline.mosaic.workers`) or under any scheduler; :meth:`~MosaicPlan.write`
+assembles the results into the mosaic and its optional index and seamlines, published together.
+Each process holds a bounded cache of the images' geometries and tile functions.
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import json
+import logging
+import os
+import threading
+import time
+from collections.abc import Iterable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import rasterio
+import warp as wp
+from affine import Affine
+from pyproj import CRS, Transformer
+
+from ..._device import quiet_warp, resolve_device, to_host
+from ..._validate import flag, positive
+from ...errors import GeometryError, ParamError, RasterIOError
+from ...kernels import mosaic as mosaic_kernels
+from ...sensor import SensorModel
+from ..dem import Dem, as_dem
+from ..geometry import SensorGeometry
+from ..ortho.grid import output_grid
+from ..ortho.sink import choose_block_codec, device_codecs, parse_creation_options
+from ..ortho.tiles import RESAMPLING, ImageTiles, source_facts
+from ..raster.cog import DTYPES, CogWriter
+from ..raster.device import DeviceCogEncoder
+from ..raster.io import atomic_files, check_cancel, check_destination
+from ..reports.profile import StageTimer
+from .balance import Coarse, radiometric_balance
+from .blend import TileBlending, multiband_halo
+from .seams import NO_SOURCE, angle_field, least_cost_seams
+from .workers import tile_runs
+
+if TYPE_CHECKING:
+    from warp.context import Device
+
+__all__ = ["mosaic_plan", "MosaicPlan", "MosaicResult", "NO_SOURCE", "SEAM_PIXELS", "reduced_pass", "check_images",
+           "output_paths", "mosaic_block_codec", "default_tile_size"]
+
+log = logging.getLogger(__name__)
+
+SEAM_PIXELS = 4_000_000  # the largest reduced grid of the balance and the seams (pixels)
+
+
+class MosaicResult:
+    """What :func:`~orthowarp.pipeline.mosaic.mosaic` wrote: ``path``, ``index`` and ``seamlines`` (paths or None),
+    ``crs``, ``transform``, ``shape`` (rows, cols), ``resolution``, ``pixels_per_image`` (list:
+    output pixels in which each image has the largest weight), ``gains`` and ``offsets``
+    ((images, bands): the radiometric balance applied), ``setup_s`` (seconds of the plan's
+    steps: ``reduced_pass``, ``balance``, ``seams``, ``total``), ``wall_s`` (the tiles and the
+    writing), ``image_builds`` (times an image's geometry and tile functions were built in
+    this process or its tile processes: the number of images per process whose run meets
+    them, unless the cache evicted some), ``images_held_peak`` (the most images whose geometry
+    and tile functions one process held at once) and ``profile`` (of the tiles and the
+    writing)."""
+
+    def __init__(self, **kw: Any) -> None:
+        self.__dict__.update(kw)
+
+
+class MosaicPlan(TileBlending):
+    """A mosaic's grid, sources and radiometric balance, and its tile function (see
+    :func:`mosaic_plan`). Picklable: a copy sent to another process (e.g. a Dask worker)
+    rebuilds its geometry and source handles there on the first tile.
+
+    Attributes
+    ----------
+    crs : pyproj.CRS
+    transform : affine.Affine
+    shape : (int, int)
+        (rows, cols).
+    resolution : float
+    count : int
+        Bands.
+    dtype : str
+        Output data type.
+    gains, offsets : ndarray, shape (images, bands)
+        The radiometric balance applied to each image before blending.
+    """
+
+    def __init__(self, sources: list[tuple[str, SensorModel, bool]], terrain: Dem, options: dict[str, Any], crs: CRS,
+                 transform: Affine, shape: tuple[int, int], resolution: float, foot: list[tuple[int, int, int, int]],
+                 count: int, dtype: str, src_dtype: str) -> None:
+        self.sources, self.terrain, self.options = sources, terrain, options
+        self.crs_wkt = crs.to_wkt()
+        self.transform, self.shape, self.resolution = transform, tuple(shape), float(resolution)
+        self.foot, self.count, self.dtype, self.src_dtype = foot, count, dtype, src_dtype
+        self.gains = np.ones((len(sources), count))
+        self.offsets = np.zeros((len(sources), count))
+        self.labels, self.seam_step = None, 1  # the seams' labelling, set by mosaic_plan
+        self.setup_s = {}  # seconds of mosaic_plan's steps
+        self._state, self._lock = None, threading.Lock()
+        self._kept = collections.OrderedDict()  # geometries of the reduced pass, for the tiles
+        self._transformers = {}  # mosaic CRS -> a pose frame's horizontal CRS, by that CRS's WKT
+        self._encoder = None  # while writing with a device block codec
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = dict(self.__dict__)
+        state["_state"], state["_lock"], state["_encoder"] = None, None, None
+        state["_kept"], state["_transformers"] = collections.OrderedDict(), {}
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self._lock = threading.Lock()
+
+    @property
+    def crs(self) -> CRS:
+        """The mosaic's CRS."""
+        return CRS.from_wkt(self.crs_wkt)
+
+    @property
+    def warp_device(self) -> Device:
+        """The warp Device the tiles are computed on."""
+        return resolve_device(self.options["device"])
+
+    @property
+    def device_is_cuda(self) -> bool:
+        """Whether the tiles are computed on a CUDA device."""
+        return self.warp_device.is_cuda
+
+    def geometry(self, k: int) -> SensorGeometry:
+        """A new SensorGeometry of image ``k`` (its DEM cropped to the footprint)."""
+        o = self.options
+        _, sensor, _ = self.sources[k]
+        return SensorGeometry(sensor, self.terrain, refraction=o["refraction"], device=o["device"], geoid=o["geoid"],
+                              same_vertical_datum=o["same_vertical_datum"])
+
+    def _keep_geometry(self, k: int, geom: SensorGeometry) -> None:
+        """Keep image ``k``'s geometry (built by the reduced pass) for its tile functions: in a
+        cache of at most ``cache_images`` geometries, the oldest dropped first."""
+        with self._lock:  # (apart from the tiles' state, whose timer starts with the first tile)
+            self._kept[k] = geom
+            self._kept.move_to_end(k)
+            while len(self._kept) > self.options["cache_images"]:
+                self._kept.popitem(last=False)
+
+    def _take_geometry(self, k: int) -> SensorGeometry:
+        """Image ``k``'s kept geometry (taken out of the cache), or a new one."""
+        with self._lock:
+            geom = self._kept.pop(k, None)
+        return geom if geom is not None else self.geometry(k)
+
+    def _materialise(self) -> dict[str, Any]:
+        """This process's state: the stage timer and the cache of images in use."""
+        with self._lock:
+            if self._state is None:
+                self._state = dict(timer=StageTimer(time.perf_counter()), images=collections.OrderedDict(), users={},
+                                   builds=0, held_peak=0, pending={}, deals={}, final=set())
+            return self._state
+
+    def _build(self, k: int, timer: StageTimer) -> dict[str, Any]:
+        """Image ``k``'s cache entry: its geometry, transformer and tile functions."""
+        o = self.options
+        src, sensor, masked = self.sources[k]
+        geom = self._take_geometry(k)
+        method = o["method"] if sensor.kind == "frame" else "backward"  # pushbroom: the backward method only
+        # occlusion for pushbroom scenes: the backward method with each pixel's visibility tested
+        hide = o["method"] == "forward" and method == "backward"
+        crs = self.crs
+        entry = dict(geom=geom, to_frame=self._to_frame(geom.horizontal_crs),
+                     renderer=ImageTiles(src, geom, crs, self.transform, count=self.count, out_dtype=self.dtype,
+                                         resampling=o["resampling"], method=method, masked=masked,
+                                         src_dtype=self.src_dtype, timer=timer, occlusion=hide))
+        if method == "forward" or hide:  # for ground that no image sees (holes of hidden ground)
+            entry["fallback"] = ImageTiles(src, geom, crs, self.transform, count=self.count, out_dtype=self.dtype,
+                                           resampling=o["resampling"], method="backward", masked=masked,
+                                           src_dtype=self.src_dtype, timer=timer)
+        return entry
+
+    def _to_frame(self, frame_crs: CRS) -> Transformer:
+        """The transformer from the mosaic's CRS to a pose frame's horizontal CRS, one per
+        frame CRS in this process, for the reduced pass and the tiles (images in one frame
+        share the tiles' coarse grids)."""
+        key = frame_crs.to_wkt()
+        with self._lock:
+            got = self._transformers.get(key)
+        if got is None:
+            got = Transformer.from_crs(self.crs, frame_crs, always_xy=True)
+            with self._lock:
+                got = self._transformers.setdefault(key, got)
+        return got
+
+    @staticmethod
+    def _close_entry(entry: dict[str, Any]) -> None:
+        """Close an image's tile functions (their source handles)."""
+        entry["renderer"].close()
+        if "fallback" in entry:
+            entry["fallback"].close()
+
+    @contextlib.contextmanager
+    def _image(self, k: int) -> Iterator[dict[str, Any]]:
+        """Image ``k``'s geometry, tile functions and transformer: built on first use and kept
+        in a cache of at most ``cache_images`` images (the least recently used one that no
+        tile is using goes first), so that memory does not grow with the number of images."""
+        st = self._materialise()
+        with self._lock:
+            entry = st["images"].get(k)
+            if entry is not None:
+                st["images"].move_to_end(k)
+            st["users"][k] = st["users"].get(k, 0) + 1
+        try:
+            if entry is None:
+                built = self._build(k, st["timer"])  # outside the lock: slow
+                to_close = []
+                with self._lock:
+                    if k in st["images"]:  # another thread built it meanwhile
+                        entry = st["images"][k]
+                        to_close.append(built)
+                    else:
+                        entry = st["images"][k] = built
+                        st["builds"] += 1
+                        st["held_peak"] = max(st["held_peak"], len(st["images"]))
+                    while len(st["images"]) > self.options["cache_images"]:
+                        victim = next((j for j in st["images"] if st["users"].get(j, 0) == 0), None)
+                        if victim is None:
+                            break
+                        to_close.append(st["images"].pop(victim))
+                for e in to_close:
+                    self._close_entry(e)
+            yield entry
+        finally:
+            with self._lock:
+                st["users"][k] -= 1
+
+    def _images_meeting(self, r0: int, c0: int, th: int, tw: int, foot: np.ndarray | None = None) -> tuple[int, ...]:
+        """The images whose footprint meets the box (r0, c0, th, tw) of the output grid, in
+        order (``foot``: the footprints as an (images, 4) array, made here where None)."""
+        foot = np.asarray(self.foot, np.int64).reshape(-1, 4) if foot is None else foot
+        meets = (foot[:, 1] > r0) & (foot[:, 0] < r0 + th) & (foot[:, 3] > c0) & (foot[:, 2] < c0 + tw)
+        return tuple(int(k) for k in np.flatnonzero(meets))
+
+    def _tile_images(self, tiles: Sequence[tuple[int, int, int, int]]) -> list[tuple[int, ...]]:
+        """Per tile (r0, c0, th, tw) of ``tiles``, the images its tile function may build:
+        those whose footprint meets it with the multi-band blend's halo (see :meth:`_select`)."""
+        o = self.options
+        halo = multiband_halo(o["feather"]) if o["blend"] == "multiband" else 0
+        foot = np.asarray(self.foot, np.int64).reshape(-1, 4)
+        return [self._images_meeting(r0 - halo, c0 - halo, th + 2 * halo, tw + 2 * halo, foot)
+                for r0, c0, th, tw in tiles]
+
+    def _note_dealt(self, ks: Iterable[int], final: Iterable[int] = ()) -> dict[int, int]:
+        """A tile that uses images ``ks`` is on its way to this process's tile functions, after
+        which its run needs the images ``final`` no more. Returns the token to hand to
+        :meth:`_note_done` once the tile is done: those images with the number of tiles dealt
+        that use them so far (one dealt later, e.g. of another run, keeps its image)."""
+        st = self._materialise()
+        with self._lock:
+            deals = st["deals"]
+            for k in ks:
+                st["pending"][k] = st["pending"].get(k, 0) + 1
+                deals[k] = deals.get(k, 0) + 1
+                st["final"].discard(k)
+            return {k: deals[k] for k in final}
+
+    def _note_drop(self, final: Iterable[int]) -> None:
+        """No tile dealt from now on uses the images ``final`` (see :meth:`_note_done`)."""
+        st = self._materialise()
+        with self._lock:
+            token = {k: st["deals"].get(k, 0) for k in final}
+        self._note_done((), token)
+
+    def _note_done(self, ks: Iterable[int], token: dict[int, int]) -> None:
+        """A tile dealt with :meth:`_note_dealt` (images ``ks``) is done. The images of its
+        ``token`` that no tile has been dealt since are dropped from the cache once no dealt
+        tile needs them (a later tile that does after all builds its image again)."""
+        st = self._materialise()
+        to_close = []
+        with self._lock:
+            pending, deals = st["pending"], st["deals"]
+            for k in ks:
+                pending[k] -= 1
+                if not pending[k]:
+                    del pending[k]
+            st["final"].update(k for k, n in token.items() if deals.get(k, 0) == n)
+            for k in [k for k in st["final"] if k not in pending and not st["users"].get(k)]:
+                st["final"].discard(k)
+                if k in st["images"]:
+                    to_close.append(st["images"].pop(k))
+        for e in to_close:
+            self._close_entry(e)
+
+    def close(self) -> None:
+        """Close this process's source handles."""
+        with self._lock:
+            if self._state is not None:
+                for entry in self._state["images"].values():
+                    self._close_entry(entry)
+                self._state = None
+            self._kept.clear()
+
+    def tiles(self, tile_size: int = 512) -> list[tuple[int, int, int, int]]:
+        """The grid's tiles (r0, c0, rows, cols), row-major."""
+        rows, cols = self.shape
+        return [(r0, c0, min(tile_size, rows - r0), min(tile_size, cols - c0))
+                for r0 in range(0, rows, tile_size) for c0 in range(0, cols, tile_size)]
+
+    def tile(self, r0: int, c0: int, th: int, tw: int, *, cancel: threading.Event | None = None,
+             name: str | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """One output tile: a pure function of the tile and the plan.
+
+        Returns
+        -------
+        block : ndarray (th, tw, bands) of the output dtype
+        valid : ndarray of bool (th, tw)
+        source : ndarray of uint16 (th, tw)
+            The image with the largest weight (NO_SOURCE where none has a value).
+        """
+        check_cancel(cancel, name)
+        return self._tile(r0, c0, th, tw)
+
+    def _count_sources(self, source: wp.array) -> None:
+        """Add a device tile's source index (th, tw) to this process's pixels per image, on its
+        device (for :meth:`write`, where the index does not come to the host)."""
+        st = self._materialise()
+        with self._lock:
+            counts = st.get("counts")
+            if counts is None:
+                counts = st["counts"] = wp.zeros(len(self.sources), dtype=wp.int64, device=source.device)
+        wp.launch(mosaic_kernels.count_sources_kernel, dim=source.shape[0], device=source.device,
+                  inputs=[source, counts])
+
+    def _counted_sources(self) -> np.ndarray:
+        """The pixels per image counted on the device by :meth:`_count_sources` (int64 (images,))."""
+        counts = self._state.pop("counts", None) if self._state is not None else None
+        got = to_host(counts).astype(np.int64) if counts is not None else np.zeros(len(self.sources), np.int64)
+        if self._state is not None:  # from worker processes (see _process_results)
+            got += self._state.pop("counts_host", 0)
+        return got
+
+    def write(self, dst: str | os.PathLike, results: Iterable[tuple[tuple[int, int, int, int], tuple]], *,
+              index: str | os.PathLike | None = None, seamlines: str | os.PathLike | None = None,
+              compress_level: int | None = None, overwrite: bool = False, t_start: float | None = None,
+              _block_codec: str = "host", creation_options: dict | None = None) -> MosaicResult:
+        """Write the mosaic from tile results, in any order: ``results`` yields
+        ((r0, c0, rows, cols), (block, valid, source)) for every tile of the grid (e.g. from
+        :meth:`tile` on a thread pool or a distributed engine). The outputs (mosaic, optional
+        index COG and seamlines GeoJSON) are published together when all tiles are in.
+        (Internally, with a ``_block_codec`` other than "host", the tiles' pixels go to the
+        mosaic's file through ``self._encoder`` on the device and ``block`` is None.)
+
+        Returns
+        -------
+        MosaicResult
+        """
+        dst = os.fspath(dst)
+        outputs = output_paths(dst, index, seamlines, overwrite)
+        rows, cols = self.shape
+        n = len(self.sources)
+        used = np.zeros(n, np.int64)
+        step = max(1, int(np.ceil(np.sqrt(rows * cols / 4e6))))  # the seamlines' reduced grid
+        coarse_index = np.full((-(-rows // step), -(-cols // step)), NO_SOURCE, np.uint16) if seamlines else None
+        rio_crs = rasterio.crs.CRS.from_wkt(self.crs_wkt)
+        t_start = time.perf_counter() if t_start is None else t_start
+        with rasterio.Env(GDAL_CACHEMAX=256), atomic_files(outputs, overwrite=overwrite) as tmps:
+            co = parse_creation_options(creation_options)
+            kw = dict(level=compress_level or 6, block_size=co["block"], bigtiff=co["bigtiff"], threads=co["threads"])
+            writers = [CogWriter(tmps[0], width=cols, height=rows, count=self.count, dtype=self.dtype, crs=rio_crs,
+                                 transform=self.transform, name=dst, **kw)]
+            if index is not None:
+                writers.append(CogWriter(tmps[1], width=cols, height=rows, count=1, dtype="uint16", crs=rio_crs,
+                                         transform=self.transform, name=outputs[1], **kw))
+            encoder = None
+            try:
+                if _block_codec != "host":
+                    codecs = device_codecs(_block_codec, compress_level or 6, self.warp_device)
+                    encoder = self._encoder = DeviceCogEncoder(writers[0], self.warp_device, codecs)
+                for (r0, c0, th, tw), (block, valid, source) in results:
+                    if block is not None:
+                        writers[0].write(r0, c0, block, valid, copy=False)
+                    if source is None:  # (a tile on the device, its pixels counted there)
+                        continue
+                    if index is not None:
+                        writers[1].write(r0, c0, source[..., None], valid, copy=False)
+                    used += np.bincount(source[valid], minlength=n)[:n]
+                    if coarse_index is not None:  # every step-th pixel, aligned on the whole grid
+                        i0, j0 = (-r0) % step, (-c0) % step
+                        sub = source[i0::step, j0::step]
+                        coarse_index[(r0 + i0) // step:(r0 + i0) // step + sub.shape[0],
+                                     (c0 + j0) // step:(c0 + j0) // step + sub.shape[1]] = sub
+                if encoder is not None:
+                    encoder.flush()  # the last nvCOMP batch
+                used += self._counted_sources()
+                for w in writers:
+                    w.close()
+                if seamlines is not None:
+                    _write_seamlines(tmps[-1], coarse_index, self.transform @ Affine.scale(step), self.crs,
+                                     [src for src, *_ in self.sources], used, name=outputs[-1])
+            except BaseException:
+                for w in writers:
+                    w.abort()
+                raise
+            finally:
+                if encoder is not None:
+                    encoder.close()
+                    self._encoder = None
+                    if self._state is not None:
+                        self._state["timer"].info["blocks_by_codec"] = dict(encoder.blocks_by_codec)
+                if self._state is not None:
+                    self._state["timer"].info["block_codec"] = _block_codec
+        timer = self._state["timer"] if self._state is not None else None
+        return MosaicResult(path=dst, index=outputs[1] if index is not None else None,
+                            seamlines=outputs[-1] if seamlines is not None else None, crs=self.crs,
+                            transform=self.transform, shape=self.shape, resolution=self.resolution,
+                            pixels_per_image=used.tolist(), gains=self.gains, offsets=self.offsets,
+                            wall_s=time.perf_counter() - t_start, setup_s=dict(self.setup_s),
+                            image_builds=self._state["builds"] if self._state is not None else None,
+                            images_held_peak=self._state["held_peak"] if self._state is not None else None,
+                            profile=timer.profile() if timer is not None else None)
+
+
+@quiet_warp()
+def mosaic_plan(images: Sequence[tuple], *, dem: Dem | str | os.PathLike | float, crs: str | int | CRS | None = None,
+                resolution: float | None = None, resampling: str = "bilinear", refraction: bool = True,
+                dtype: str | None = None, seams: str = "least-cost", seam_width: float = 256, blend: str = "feather",
+                feather: float = 32, balance: bool = True, reference: int | None = None, occlusion: bool = True,
+                device: str | None = None, geoid: str | os.PathLike | None = None, same_vertical_datum: bool = False,
+                cancel: threading.Event | None = None, _outputs: Sequence[str] = (),
+                _seam_pixels: int = SEAM_PIXELS) -> MosaicPlan:
+    """The grid, sources and radiometric balance of a mosaic, without writing it: a
+    :class:`MosaicPlan` whose :meth:`~MosaicPlan.tile` any scheduler can run (threads, a Dask
+    cluster) and whose :meth:`~MosaicPlan.write` assembles the results. Parameters as
+    :func:`~orthowarp.pipeline.mosaic.mosaic`."""
+    t_plan = time.perf_counter()
+    images = check_images(images, resampling, dtype, blend, feather, reference, seams, seam_width,
+                           resolution=resolution, refraction=refraction, balance=balance, occlusion=occlusion,
+                           same_vertical_datum=same_vertical_datum)
+    terrain = as_dem(dem)
+    # the sources: one band count and data type
+    facts = []  # (path, bands, data type, masked)
+    for src, sensor in images:
+        src = os.fspath(src)
+        if not os.path.exists(src):
+            raise RasterIOError(f"Image '{src}' does not exist")
+        if os.path.abspath(src) in map(os.path.abspath, _outputs):
+            raise ParamError(f"Output '{src}' is one of the source images: choose another name")
+        facts.append((src, *source_facts(src, tuple(sensor.image_size), "camera" if sensor.kind == "frame" else "scene")))
+    counts, dtypes = {f[1] for f in facts}, {f[2] for f in facts}
+    if len(counts) > 1 or len(dtypes) > 1:
+        raise ParamError(f"The images of a mosaic must share their band count and data type; got bands "
+                         f"{sorted(counts)} and types {sorted(dtypes)}")
+    count, src_dtype = facts[0][1], facts[0][2]
+    out_dtype = dtype or (src_dtype if src_dtype in DTYPES else "float32")
+
+    # the grid: the union of the images' grids at one resolution, aligned to it (the images'
+    # geometries built on a few threads, each dropped once its grid is known: memory does not
+    # grow with their number)
+    def grid_of(item: tuple, grid_crs: CRS | None) -> tuple:
+        src, sensor = item
+        geom = SensorGeometry(sensor, terrain, refraction=refraction, device=device, geoid=geoid,
+                              same_vertical_datum=same_vertical_datum)
+        try:
+            return output_grid(geom, crs=grid_crs, resolution=resolution, name=src)
+        except GeometryError as e:
+            raise GeometryError(f"Image '{src}': {e}") from e
+
+    grids = [grid_of(images[0], crs)]  # (its CRS is the others' where none is given)
+    with ThreadPoolExecutor(max_workers=max(1, min(8, os.cpu_count() or 1, len(images) - 1))) as pool:
+        grids += pool.map(lambda item: grid_of(item, crs if crs is not None else grids[0][0]), images[1:])
+    out_crs = grids[0][0]
+    res = float(resolution) if resolution is not None else float(np.mean([g[3] for g in grids]))
+    boxes = []
+    for _, tr, shape, _ in grids:
+        x0, y1 = tr.c, tr.f
+        boxes.append((x0, y1 + tr.e * shape[0], x0 + tr.a * shape[1], y1))
+    xmin = np.floor(min(b[0] for b in boxes) / res) * res
+    ymin = np.floor(min(b[1] for b in boxes) / res) * res
+    xmax = np.ceil(max(b[2] for b in boxes) / res) * res
+    ymax = np.ceil(max(b[3] for b in boxes) / res) * res
+    transform = Affine(res, 0.0, xmin, 0.0, -res, ymax)
+    rows, cols = int(round((ymax - ymin) / res)), int(round((xmax - xmin) / res))
+    # each image's footprint in mosaic pixels (rows r0-r1, cols c0-c1), one pixel of margin
+    foot = [(int(np.floor((ymax - b[3]) / res)) - 1, int(np.ceil((ymax - b[1]) / res)) + 1,
+             int(np.floor((b[0] - xmin) / res)) - 1, int(np.ceil((b[2] - xmin) / res)) + 1) for b in boxes]
+    log.info("mosaic of %d images: %d x %d pixels at %.4g", len(images), cols, rows, res)
+    options = dict(resampling=resampling, refraction=refraction, blend=blend, feather=float(feather), device=device,
+                   geoid=geoid, same_vertical_datum=same_vertical_datum,
+                   method="forward" if occlusion else "backward", cache_images=24)
+    plan = MosaicPlan([(f[0], sensor, f[3]) for f, (_, sensor) in zip(facts, images)], terrain, options,
+                      out_crs, transform, (rows, cols), res, foot, count, out_dtype, src_dtype)
+    # one reduced pass: the images' overlaps for the balance and the seams' labelling
+    t = time.perf_counter()
+    f, coarse, labels = reduced_pass(plan, cancel, _seam_pixels)
+    plan.setup_s["reduced_pass"] = time.perf_counter() - t
+    if balance and len(images) > 1:
+        t = time.perf_counter()
+        plan.gains, plan.offsets = radiometric_balance(coarse, count, reference)
+        plan.setup_s["balance"] = time.perf_counter() - t
+    if seams == "least-cost" and len(images) > 1:
+        t = time.perf_counter()
+        moved = least_cost_seams(labels, coarse, plan.gains, plan.offsets, max(2.0, seam_width / f),
+                                  int(np.ceil(0.5 * feather / f)) if blend != "none" else 1, cancel)
+        plan.setup_s["seams"] = time.perf_counter() - t
+        log.info("least-cost seams moved %d of %d reduced pixels (%d mosaic pixels each)", moved, labels.size, f * f)
+    plan.labels, plan.seam_step = labels, f
+    plan.setup_s["total"] = time.perf_counter() - t_plan
+    return plan
+
+
+def default_tile_size(device: Device) -> int:
+    """The mosaic's tile size (pixels) on a Warp ``device`` where none is given: 2048 on a GPU
+    (fewer, larger launches), 512 on the CPU."""
+    return 2048 if device.is_cuda else 512
+
+
+def mosaic_block_codec(choice: str, device: Device, level: int) -> str:
+    """The block codec a mosaic uses (see :func:`~orthowarp.pipeline.mosaic.mosaic`'s ``block_codec``): "auto" is
+    "warp" on a GPU (the 40-frame speed block on an H200: 28.3 and 29.5 s against 33.1 and
+    34.0 s with the host codec, bench/reference/mosaic-speed-*-codec-h200*.json), "host" on
+    the CPU."""
+    if choice == "auto":
+        return "warp" if device.is_cuda else "host"
+    return choose_block_codec(choice, device, True, level)
+
+
+def output_paths(dst: str, index: str | os.PathLike | None, seamlines: str | os.PathLike | None,
+                 overwrite: bool) -> list[str]:
+    """The mosaic's output paths [mosaic, index?, seamlines?], checked before any work
+    (distinct, and each a possible destination: see
+    :func:`~orthowarp.pipeline.raster.io.check_destination`)."""
+    outputs = [dst] + ([os.fspath(index)] if index is not None else []) + \
+        ([os.fspath(seamlines)] if seamlines is not None else [])
+    if len(set(map(os.path.abspath, outputs))) != len(outputs):
+        raise ParamError(f"The mosaic, its index and its seamlines must be different files ('{dst}')")
+    for path in outputs:
+        check_destination(path, overwrite=overwrite)
+    return outputs
+
+
+def check_images(images: Iterable, resampling: str, dtype: str | None, blend: str, feather: float,
+                 reference: int | None, seams: str, seam_width: float, *, resolution: float | None = None,
+                 refraction: bool = True, balance: bool = True, occlusion: bool = True,
+                 same_vertical_datum: bool = False) -> list[tuple]:
+    """Check :func:`~orthowarp.pipeline.mosaic.mosaic`'s arguments (those named as there)
+    before any work; returns the images as a list of (source, sensor).
+
+    Raises
+    ------
+    ParamError
+        Naming the argument (and the image) at fault.
+    """
+    images = list(images)
+    if not images:
+        raise ParamError("mosaic needs at least one image")
+    for k, item in enumerate(images):
+        try:
+            item = tuple(item)
+        except TypeError:
+            item = ()
+        if len(item) != 2 or not isinstance(item[1], SensorModel):
+            raise ParamError(f"images[{k}] must be (source, sensor): a FrameSensor(camera, pose) or a PushbroomScene")
+    images = [tuple(item) for item in images]
+    if len(images) >= NO_SOURCE:
+        raise ParamError(f"mosaic takes at most {NO_SOURCE - 1} images, got {len(images)}")
+    if resampling not in RESAMPLING:
+        raise ParamError(f"resampling must be one of {sorted(RESAMPLING)}, got {resampling!r}")
+    if dtype is not None and dtype not in DTYPES:
+        raise ParamError(f"dtype must be one of {DTYPES}, got {dtype!r}")
+    if blend not in ("feather", "multiband", "none"):
+        raise ParamError(f"blend must be 'feather', 'multiband' or 'none', got {blend!r}")
+    if seams not in ("least-cost", "nadir"):
+        raise ParamError(f"seams must be 'least-cost' or 'nadir', got {seams!r}")
+    positive("seam_width", seam_width, zero=True)  # pixels
+    positive("feather", feather)  # pixels
+    if reference is not None and not (isinstance(reference, (int, np.integer)) and 0 <= reference < len(images)):
+        raise ParamError(f"reference must be an image's position 0-{len(images) - 1}, got {reference!r}")
+    for name, value in (("refraction", refraction), ("balance", balance), ("occlusion", occlusion),
+                        ("same_vertical_datum", same_vertical_datum)):
+        flag(name, value)
+    positive("resolution", resolution, none=True)
+    seen = {}  # each file once: a second copy would count twice in the default resolution and the balance
+    for k, (src, _) in enumerate(images):
+        try:
+            key = os.path.normcase(os.path.realpath(os.fspath(src)))
+        except TypeError:
+            raise ParamError(f"images[{k}]: the source must be a file path, got {src!r}") from None
+        if key in seen:
+            raise ParamError(f"images[{k}] '{os.fspath(src)}' is the same file as images[{seen[key]}] "
+                             f"'{os.fspath(images[seen[key]][0])}': a mosaic takes each image once")
+        seen[key] = k
+    return images
+
+
+def _write_seamlines(path: str, index: np.ndarray, transform: Affine, crs: CRS, names: Sequence[str],
+                     used: np.ndarray, *, name: str) -> None:
+    """GeoJSON of each image's part of the mosaic (see :func:`~orthowarp.pipeline.mosaic.mosaic`'s ``seamlines``)."""
+    from rasterio.features import shapes
+
+    to_lonlat = Transformer.from_crs(crs, "EPSG:4326", always_xy=True)
+    parts = {}
+    for geom, value in shapes(index, mask=index != NO_SOURCE, transform=transform, connectivity=4):
+        rings = []
+        for ring in geom["coordinates"]:
+            xy = np.asarray(ring, float)
+            lon, lat = to_lonlat.transform(xy[:, 0], xy[:, 1])
+            rings.append([[round(float(a), 9), round(float(b), 9)] for a, b in zip(lon, lat)])
+        parts.setdefault(int(value), []).append(rings)
+    features = []
+    for k, polys in sorted(parts.items()):
+        geometry = {"type": "Polygon", "coordinates": polys[0]} if len(polys) == 1 else \
+            {"type": "MultiPolygon", "coordinates": polys}
+        features.append({"type": "Feature", "geometry": geometry,
+                         "properties": {"image": names[k], "index": k, "pixels": int(used[k])}})
+    text = json.dumps({"type": "FeatureCollection", "features": features})
+    try:
+        with open(path, "w", encoding="utf-8") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+    except OSError as e:
+        raise RasterIOError(f"Could not write '{name}': {e.strerror or e}") from e
+
+
+def reduced_pass(plan: MosaicPlan, cancel: threading.Event | None,
+                 max_pixels: int) -> tuple[int, list[Coarse], np.ndarray]:
+    """Each image rendered alone on a reduced grid of the mosaic (the mosaic's pixels
+    ``f`` x ``f``, at most ``max_pixels`` pixels) and the most-nadir labelling of that grid.
+    Up to f = 3 the images are read at full resolution and sampled at the reduced grid's
+    points (reduced reads would smooth each image by its own factor, biasing the balance's
+    standard deviations where the images' scales differ); from f = 4 they are read reduced
+    and area-averaged (each source pixel read once instead of one in f^2 used).
+
+    Returns
+    -------
+    f : int
+        Mosaic pixels per reduced pixel (each way).
+    coarse : list, per image, of (r0, c0, values, ok) or None
+        The image's window on the reduced grid: first row and column, values float32
+        (rows, cols, bands; 0 where not ok), ok bool (rows, cols).
+    labels : ndarray of uint16 (rows, cols)
+        Per reduced pixel, the covering image with the smallest off-nadir angle (NO_SOURCE
+        where none covers it).
+    """
+    (rows, cols), count = plan.shape, plan.count
+    f = max(1, int(np.ceil(np.sqrt(rows * cols / max_pixels))))
+    crows, ccols = -(-rows // f), -(-cols // f)
+    ctr = plan.transform @ Affine.scale(f)
+    crs = plan.crs
+    labels = np.full((crows, ccols), NO_SOURCE, np.uint16)
+    best = np.full((crows, ccols), np.inf, np.float32)
+
+    def one(k: int) -> tuple | None:
+        """Image k alone on its window of the reduced grid: (r0, c0, values, ok, angle) or None."""
+        check_cancel(cancel, "the mosaic")
+        fr0, fr1, fc0, fc1 = plan.foot[k]
+        src, geom = plan.sources[k][0], plan.geometry(k)
+        r0, r1 = max(fr0 // f, 0), min(-(-fr1 // f), crows)
+        c0, c1 = max(fc0 // f, 0), min(-(-fc1 // f), ccols)
+        it = ImageTiles(src, geom, crs, ctr, count=count, out_dtype="float32", resampling=plan.options["resampling"],
+                        masked=True, src_dtype="float32", decimate=f >= 4)
+        try:
+            values, valid = it.render(r0, c0, r1 - r0, c1 - c0)
+        finally:
+            it.close()
+        if values is None:
+            return None
+        to_frame = plan._to_frame(geom.horizontal_crs)
+        angle = angle_field(geom, ctr, to_frame, r0, c0, r1 - r0, c1 - c0).astype(np.float32)
+        v = to_host(values)
+        ok = to_host(valid).view(bool) & np.isfinite(angle) & np.isfinite(v).all(axis=-1)
+        v[~ok] = 0.0  # (no NaN: the overlaps' statistics are sums of values times a 0/1 mask)
+        plan._keep_geometry(k, geom)  # for the image's tile functions
+        return r0, c0, v, ok, angle
+
+    # the images on threads (reads and kernels release the GIL), merged in their order; computed
+    # in the reverse of the order in which the tiles (of the default size, in the order of
+    # _thread_results) first need them, so that the geometries kept last (a bounded cache) are
+    # those the first tiles use
+    tiles = plan.tiles(default_tile_size(plan.warp_device))
+    images = plan._tile_images(tiles)
+    first = {}
+    for pos, t in enumerate(k for run in tile_runs(tiles, 1, images) for k in run):
+        for k in images[t]:
+            first.setdefault(k, pos)
+    order = sorted(range(len(plan.foot)), key=lambda k: first.get(k, -1), reverse=True)
+    coarse = []
+    with ThreadPoolExecutor(max_workers=min(8, os.cpu_count() or 1, len(plan.foot))) as pool:
+        items = dict(zip(order, pool.map(one, order)))
+        for k in range(len(plan.foot)):
+            item = items.pop(k)
+            if item is None:
+                coarse.append(None)
+                continue
+            r0, c0, v, ok, angle = item
+            coarse.append((r0, c0, v, ok))
+            win_best, win_labels = best[r0:r0 + ok.shape[0], c0:c0 + ok.shape[1]], \
+                labels[r0:r0 + ok.shape[0], c0:c0 + ok.shape[1]]
+            better = ok & (angle < win_best)
+            win_best[better], win_labels[better] = angle[better], k
+    return f, coarse, labels

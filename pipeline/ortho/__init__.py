@@ -1,0 +1,435 @@
+"""Orthorectification of frame images and pushbroom scenes: output grid, tiling, streaming, GeoTIFF/COG writing.
+
+Per output tile (see :mod:`orthowarp.kernels.ortho`): the host transforms a coarse grid of the
+tile's pixel centres into the pose's frame with PROJ, a kernel computes the source pixel of
+every output pixel and the bounding box of them, the host reads exactly that source window
+(all bands and its mask), a second kernel resamples it, and the host writes the tile. Tiles run
+on a thread pool: each worker has its own source handle, so the reads, preparation and
+compression of different tiles overlap with each other and with the device work (which goes to
+the device's one stream in submission order). Neither the source nor the output is ever held
+whole in memory.
+
+:func:`orthorectify` is here; its parts are the package's modules:
+
+- :mod:`~orthowarp.pipeline.ortho.grid`: the output grid (:func:`output_grid`);
+- :mod:`~orthowarp.pipeline.ortho.tiles`: one image on output tiles (:class:`ImageTiles`, the
+  coarse grids, source windows and reads; the mosaic's tile function too);
+- :mod:`~orthowarp.pipeline.ortho.forward`: the forward method's maps;
+- :mod:`~orthowarp.pipeline.ortho.sink`: the writers, creation options and block codecs;
+- :mod:`~orthowarp.pipeline.ortho.batch`: a batch of orthos (:func:`~orthowarp.pipeline.ortho.batch.orthorectify_many`),
+  imported on its own (it loads the accuracy rasters).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+import time
+import warnings
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import rasterio
+from affine import Affine
+from pyproj import CRS
+
+from ..._device import quiet_warp, to_host
+from ..._validate import flag, integer, positive
+from ...errors import GeometryError, OrthowarpWarning, ParamError, RasterIOError
+from ...sensor import SensorModel
+from ..dem import Dem, as_dem
+from ..geometry import SensorGeometry
+from ..raster.cog import DTYPES
+from ..raster.io import GDAL_ERRORS, atomic_path, check_cancel, check_destination, write_error
+from ..raster.tiff import verify_tiff
+from ..reports.profile import StageTimer
+from .forward import forward_coords
+from .grid import MIN_FOOTPRINT_PIXELS, output_grid
+from .sink import (BLOCK_CODECS, COMPRESS, CREATION_OPTIONS, DEFAULT_QUALITY, DRIVERS, LOSSY, choose_block_codec,
+                   device_codecs, finish, gdal_profile, nvcomp_available, open_sink, parse_creation_options)
+from .tiles import (COARSE_STEP, ORTHO_BLOCK_DIM, RESAMPLING, SOURCE_READS, ImageTiles, coarse_grid, coarse_struct,
+                    read_whole_source, source_facts)
+
+if TYPE_CHECKING:
+    from warp.context import Device
+
+__all__ = ["orthorectify", "OrthoResult", "RESAMPLING", "output_grid", "ImageTiles", "read_whole_source",
+           "coarse_grid", "coarse_struct", "source_facts", "forward_coords", "parse_creation_options",
+           "device_codecs", "nvcomp_available", "COARSE_STEP", "ORTHO_BLOCK_DIM", "BLOCK_CODECS", "SOURCE_READS",
+           "DRIVERS", "COMPRESS", "LOSSY", "DEFAULT_QUALITY", "CREATION_OPTIONS", "MIN_FOOTPRINT_PIXELS"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class OrthoResult:
+    """What :func:`orthorectify` wrote.
+
+    Attributes
+    ----------
+    path : str
+    crs : pyproj.CRS
+    transform : affine.Affine
+    shape : (int, int)
+        (rows, cols) of the orthoimage.
+    resolution : float
+        Pixel size in CRS units.
+    timings : dict
+        Seconds per stage summed over tiles and threads (the stages of
+        :mod:`orthowarp.pipeline.reports.profile`: setup, prepare, read, h2d, kernel, d2h, queue, write,
+        finish) and ``wall``, the call's wall-clock seconds.
+    profile : dict
+        Per stage the summed and the wall-clock (union of intervals) seconds, the device busy
+        fraction, what bounds the run and the start-up figures: see
+        :meth:`orthowarp.pipeline.reports.profile.StageTimer.profile`. JSON-serialisable.
+    """
+
+    path: str
+    crs: CRS
+    transform: Affine
+    shape: tuple
+    resolution: float
+    timings: dict = field(default_factory=dict)
+    profile: dict = field(default_factory=dict)
+
+
+class _Counter:
+    """Thread-safe count of values (n of total)."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.n = self.total = 0
+
+    def add(self, n: int, total: int) -> None:
+        with self.lock:
+            self.n += n
+            self.total += total
+
+
+@quiet_warp()  # Warp's informational messages only where the user asked for them
+def orthorectify(src: str | os.PathLike, sensor: SensorModel, dst: str | os.PathLike, *,
+                 dem: Dem | str | os.PathLike | float, crs: str | int | CRS | None = None,
+                 resolution: float | None = None, resampling: str = "bilinear", method: str = "backward",
+                 refraction: bool = True, dtype: str | None = None, driver: str = "COG", compress: str = "deflate",
+                 compress_level: int | None = None, quality: int | None = None, overviews: bool = True,
+                 tile_size: int | None = None, overwrite: bool = False, device: str | None = None,
+                 progress: bool = False, workers: int | None = None, geoid: str | os.PathLike | None = None,
+                 same_vertical_datum: bool = False, cancel: threading.Event | None = None,
+                 block_codec: str = "auto", creation_options: dict | None = None,
+                 source_reads: str = "auto") -> OrthoResult:
+    """Orthorectify one frame image or pushbroom scene into a GeoTIFF / cloud-optimized GeoTIFF.
+
+    Parameters
+    ----------
+    src : str or os.PathLike
+        Source image (any raster GDAL reads; any band count; uint8, uint16 or float32).
+    sensor : SensorModel
+        ``FrameSensor(camera, pose)`` for a frame image, or a ``PushbroomScene``: its
+        image size must match the source's.
+    dst : str or os.PathLike
+        Output file. Written under a temporary name in the same folder and renamed when
+        complete; an existing file is an error unless ``overwrite``.
+    dem : Dem, str or float
+        Terrain: a Dem, a DEM file, or a constant height (m) in the vertical datum of the
+        positions: ellipsoidal for geocentric poses and pushbroom scenes, the z of the map CRS
+        for map-Cartesian poses.
+    crs : CRS-like, optional
+        Output CRS; default: the CRS of map-Cartesian poses, else the UTM zone of the image
+        centre.
+    resolution : float, optional
+        Output pixel size (CRS units); default: the image's mean ground sample distance.
+    resampling : {"nearest", "bilinear", "bicubic", "lanczos"}, optional
+    method : {"backward", "forward"}, optional
+        Backward (indirect): every output pixel is projected into the source. Forward (seed
+        003's direct method): every source pixel is geolocated with the forward chain and the
+        map is inverted quad by quad; ground hidden from the camera stays nodata, and so does
+        the outer half source pixel of the footprint.
+    refraction : bool, optional
+    dtype : {"uint8", "uint16", "float32"}, optional
+        Output data type; default: the source's. Float outputs use NaN as nodata, integer
+        outputs an internal mask.
+    driver : {"COG", "GTiff"}, optional
+        Cloud-optimized GeoTIFF (default) or tiled GeoTIFF.
+    compress : {"deflate", "zstd", "lzw", "jpeg", "webp", "none"}, optional
+        Lossless (deflate, the default; zstd, lzw; none) or lossy for uint8 outputs: "jpeg"
+        (1 or 3 bands; 3 bands in YCbCr) or "webp" (3 or 4 bands), both with an internal mask
+        for nodata.
+    compress_level : int, optional
+        Deflate level 1-12 (default 6; libdeflate's scale, whose 7 makes blocks the size of
+        GDAL's default) or zstd level 1-22 (default GDAL's, 9).
+    quality : int, optional
+        JPEG / WebP quality 1-100 (default 90).
+    overviews : bool, optional
+        Build internal overviews (always for COG).
+    tile_size : int, optional
+        Output tile edge in pixels (multiple of 16); default: 512 on the CPU, on a GPU the
+        largest power of two up to 4096 whose tiles in flight use at most a quarter of the
+        device's free memory.
+    overwrite : bool, optional
+    device : str, optional
+        Warp device; None picks the first CUDA device, else the CPU.
+    progress : bool or tqdm-like, optional
+        True: show a progress bar (tqdm) over tiles. A bar object (``tqdm(total=0)``, or anything
+        with ``total``, ``update(n)`` and ``refresh()``): add this ortho's tiles to its total and
+        advance it, so that one bar serves several calls at once (the CLI's batches).
+    workers : int, optional
+        Tiles in flight at once (default: CPU cores on the CPU, 4 on a GPU).
+    geoid : Dem or str, optional
+        Geoid undulation grid, used when the DEM's and the positions' vertical datums differ.
+    same_vertical_datum : bool, optional
+        Take DEM and position heights as the same datum whatever their CRSs declare.
+    cancel : threading.Event, optional
+        Set from another thread (or a signal handler) to stop the run: no tile starts after
+        it, nothing is published, and :class:`~orthowarp.errors.Cancelled` is raised.
+    creation_options : dict, optional
+        GDAL-style creation options of the output file, keys case-insensitive: ``BLOCKSIZE``
+        (pixels, a multiple of 16 from 64 to 4096; default 512), ``BIGTIFF`` (``YES``,
+        ``NO``, ``IF_NEEDED``, ``IF_SAFER``; default: BigTIFF where the file needs it),
+        ``NUM_THREADS`` (compression threads, a count or ``ALL_CPUS``, the default). They apply
+        whichever writer makes the file (orthowarp's COG writer, GDAL's COG or GTiff driver).
+        Compression, level and quality have their own arguments.
+    block_codec : {"auto", "host", "nvcomp", "hybrid", "warp"}, optional
+        Who compresses a deflate COG's blocks. "host": each tile goes to host memory, where
+        the writer applies the predictor, builds the overviews and deflates (libdeflate, all
+        cores). "nvcomp" (CUDA, needs ``orthowarp[gpu]``): predictor, masks and the overview
+        levels that cover whole blocks are computed on the device and nvCOMP deflates them
+        there, in batches gathered over tiles; only compressed blocks cross to the host.
+        "hybrid" (CUDA): the same device work, the blocks deflated on the device (nvCOMP
+        at ``compress_level`` 1-4 where it is installed, else orthowarp's own kernels, as
+        "warp") and, for tiles that arrive while the device compresses a batch and its
+        next batch is already full, by libdeflate on the host cores, so both work at once (on the CPU device: libdeflate
+        alone, after the same per-block work in Warp kernels). The files decode to the same
+        pixels whichever path wrote them; nvCOMP's streams differ in size (``compress_level``
+        1-4: its medium-ratio variant, 5-7: high, 8-12: highest). "warp": the same device work, the blocks deflated
+        by orthowarp's own kernels (:class:`~orthowarp.pipeline.raster.device.WarpDeflate`, any
+        device; no extra package; the search depth follows ``compress_level``). "auto": on a CUDA device "nvcomp"
+        for ``compress_level`` 1-4 where nvCOMP is installed, else "hybrid" (measured with
+        16 host cores: nvCOMP's medium-ratio variant beats every host level; at level 6 the
+        device kernels with the host cores were 1.4 times as fast as the cores alone, files
+        1.4 % larger); on the CPU "host".
+    source_reads : {"auto", "whole", "tiles"}, optional
+        How the source reaches the device. "tiles": each output tile reads the source window
+        it needs (reduced where the output is coarser) and uploads it. "whole": the source is
+        read once, by strips on several threads, into device memory, and every tile at the
+        source's resolution samples it there (tiles whose output is coarser than the source
+        still read reduced windows); the pixels written are the same. "auto": "whole" on a
+        CUDA device where the source takes at most a quarter of the device's free memory,
+        else "tiles".
+
+    Returns
+    -------
+    OrthoResult
+    """
+    t_wall = time.perf_counter()
+    timer = StageTimer(t_wall)  # intervals per stage and thread: see orthowarp.pipeline.reports.profile
+    if not isinstance(sensor, SensorModel):
+        raise ParamError(f"sensor must be a FrameSensor (camera and pose) or a PushbroomScene, got "
+                         f"{type(sensor).__name__}")
+    if method == "forward" and sensor.kind != "frame":
+        raise ParamError(f"{sensor.kind} sensors are orthorectified by the backward method only")
+    if method not in ("backward", "forward"):
+        raise ParamError(f"method must be 'backward' or 'forward', got {method!r}")
+    if resampling not in RESAMPLING:
+        raise ParamError(f"resampling must be one of {sorted(RESAMPLING)}, got {resampling!r}")
+    if driver not in DRIVERS:
+        raise ParamError(f"driver must be one of {DRIVERS}, got {driver!r}")
+    if compress not in COMPRESS:
+        raise ParamError(f"compress must be one of {COMPRESS}, got {compress!r}")
+    if compress_level is not None:
+        top = {"deflate": 12, "zstd": 22}.get(compress)
+        if top is None:
+            raise ParamError(f"compress_level applies to deflate (1-12) and zstd (1-22), not {compress!r}")
+        compress_level = integer("compress_level", compress_level, low=1, high=top)
+    if quality is not None:
+        if compress not in LOSSY:
+            raise ParamError(f"quality applies to jpeg and webp compression, not {compress!r}")
+        if not (isinstance(quality, (int, np.integer)) and 1 <= int(quality) <= 100):
+            raise ParamError(f"quality must be an integer 1-100, got {quality!r}")
+        quality = int(quality)
+    if compress in LOSSY and quality is None:
+        quality = DEFAULT_QUALITY
+    if dtype is not None and dtype not in DTYPES:
+        raise ParamError(f"dtype must be one of {DTYPES}, got {dtype!r}")
+    if block_codec not in BLOCK_CODECS:
+        raise ParamError(f"block_codec must be one of {BLOCK_CODECS}, got {block_codec!r}")
+    if source_reads not in SOURCE_READS:
+        raise ParamError(f"source_reads must be one of {SOURCE_READS}, got {source_reads!r}")
+    co = parse_creation_options(creation_options)
+    if tile_size is not None:
+        tile_size = integer("tile_size", tile_size, low=16)
+        if tile_size % 16:
+            raise ParamError(f"tile_size must be a positive multiple of 16, got {tile_size}")
+    workers = integer("workers", workers, low=1, none=True)
+    resolution = positive("resolution", resolution, none=True)
+    for name, value in (("refraction", refraction), ("overviews", overviews), ("overwrite", overwrite),
+                        ("same_vertical_datum", same_vertical_datum)):
+        flag(name, value)
+    if not hasattr(progress, "update"):  # else a shared bar
+        try:
+            progress = flag("progress", progress)
+        except ParamError:
+            raise ParamError(f"progress must be True or False or a progress bar, got {progress!r}") from None
+    src, dst = os.fspath(src), os.fspath(dst)
+    check_destination(dst, overwrite=overwrite)
+    if not os.path.exists(src):
+        raise RasterIOError(f"Image '{src}' does not exist")
+    if os.path.abspath(src) == os.path.abspath(dst):
+        raise ParamError(f"Output '{dst}' is the source image: choose another name")
+    count, src_dtype, masked = source_facts(src, tuple(sensor.image_size), "camera" if sensor.kind == "frame" else "scene")
+    out_dtype = dtype or (src_dtype if src_dtype in DTYPES else "float32")
+    if compress in LOSSY and out_dtype != "uint8":
+        raise ParamError(f"{compress} compression needs uint8 output")
+    if compress == "jpeg" and count not in (1, 3):
+        raise ParamError(f"jpeg compression takes 1 or 3 bands; '{src}' has {count}")
+    if compress == "webp" and count not in (3, 4):
+        raise ParamError(f"webp compression takes 3 or 4 bands; '{src}' has {count}")
+
+    geom = SensorGeometry(sensor, as_dem(dem), refraction=refraction, device=device, geoid=geoid,
+                          same_vertical_datum=same_vertical_datum)
+    if tile_size is None:
+        tile_size = _default_tile_size(geom.device, count, workers)
+    try:
+        out_crs, transform, shape, res = output_grid(geom, crs=crs, resolution=resolution, name=src)
+    except GeometryError as e:
+        terrain = getattr(dem, "source", None) or (dem if isinstance(dem, (str, os.PathLike)) else None)
+        where = f" with DEM '{os.fspath(terrain)}'" if terrain else ""
+        raise GeometryError(f"Image '{src}'{where}: {e}") from e
+    log.info("%s -> %s: %d x %d pixels at %.4g %s", src, dst, shape[1], shape[0], res,
+             out_crs.axis_info[0].unit_name if out_crs.axis_info else "")
+    clipped = _Counter()
+    # A deflate or uncompressed COG streams through CogWriter (blocks compressed and overviews
+    # reduced as tiles arrive); other COGs are written uncompressed and copied by GDAL's COG
+    # driver, which compresses once.
+    streamed = driver == "COG" and compress in ("deflate", "none")
+    # the temporary's helper files (a COG's block file, GDAL's intermediate) are named after it
+    # and removed with it whatever happens
+    with atomic_path(dst, overwrite=overwrite) as tmp_final:
+        work = tmp_final if driver == "GTiff" or streamed else tmp_final + ".work.tif"
+        _render(src, geom, out_crs, transform, shape, count, out_dtype,
+                compress if driver == "GTiff" else "none", work, resampling, tile_size, progress,
+                workers, timer, dst, method, masked, compress_level, quality=quality, co=co,
+                cog=dict(compress=compress, level=compress_level or 6, block_size=co["block"], bigtiff=co["bigtiff"],
+                         threads=co["threads"]) if streamed else None, cancel=cancel,
+                block_codec=choose_block_codec(block_codec, geom.device, streamed and compress == "deflate",
+                                               compress_level or 6),
+                src_dtype=src_dtype, clipped=clipped, source_reads=source_reads)
+        t0 = time.perf_counter()
+        if not streamed:
+            try:
+                finish(work, tmp_final, driver, compress, overviews, out_dtype, compress_level, quality=quality,
+                       co=co)
+            except GDAL_ERRORS as e:
+                raise write_error(dst, tmp_final, e) from e
+            verify_tiff(tmp_final, name=dst)  # GDAL's close does not report failed writes
+        timer.span("finish", t0)
+        check_cancel(cancel, dst)
+    if clipped.n:
+        warnings.warn(f"Image '{src}': {clipped.n / clipped.total:.3%} of the {src_dtype} source values read lie "
+                      f"outside the {out_dtype} range [0, {int(np.iinfo(out_dtype).max)}] and were clipped in "
+                      f"'{dst}'", OrthowarpWarning, stacklevel=2)
+    prof = timer.profile()
+    timings = dict(timer.sums, wall=prof["wall_s"])
+    return OrthoResult(dst, out_crs, transform, shape, res, timings, prof)
+
+
+def _default_tile_size(device: Device, bands: int, workers: int | None) -> int:
+    """Output tile edge for a device: see :func:`orthorectify`'s ``tile_size``."""
+    if not device.is_cuda:
+        return 512  # one COG block; tiles in flight (one per core) stay small in host memory
+    # per output pixel: source coordinates (16 B, forward method only), result (at most 4 B
+    # per band), mask (1 B), and a source window of about the same size (at most 5 B per band,
+    # mask included)
+    per_pixel = 17 + 9 * bands
+    budget = 0.25 * device.free_memory / max(workers or 4, 1)
+    size = 4096
+    while size > 1024 and size * size * per_pixel > budget:
+        size //= 2
+    return size
+
+
+def _render(src: str, geom: SensorGeometry, out_crs: CRS, transform: Affine, shape: tuple[int, int], count: int,
+            out_dtype: str, compress: str, path: str, resampling: str, tile_size: int, progress: Any,
+            workers: int | None, timer: StageTimer, final_name: str, method_name: str, masked: bool,
+            compress_level: int | None = None, cog: dict[str, Any] | None = None,
+            cancel: threading.Event | None = None, src_dtype: str | None = None, clipped: _Counter | None = None,
+            block_codec: str = "host", quality: int | None = None, co: dict[str, Any] | None = None,
+            source_reads: str = "tiles") -> None:
+    """:func:`orthorectify`'s tiles: rendered on a thread pool and written into ``path``
+    (through :func:`~orthowarp.pipeline.ortho.sink.open_sink`)."""
+    rows, cols = shape
+    is_float = out_dtype == "float32"
+    profile = gdal_profile(out_crs, transform, shape, count, out_dtype, compress, compress_level, co, quality)
+    device = geom.device
+    tiles = [(r0, c0, min(tile_size, rows - r0), min(tile_size, cols - c0))
+             for r0 in range(0, rows, tile_size) for c0 in range(0, cols, tile_size)]
+    image = ImageTiles(src, geom, out_crs, transform, count=count, out_dtype=out_dtype, resampling=resampling,
+                       method=method_name, masked=masked, src_dtype=src_dtype, timer=timer, clipped=clipped,
+                       source_reads=source_reads)
+
+    def run(tile: tuple[int, int, int, int]) -> None:
+        check_cancel(cancel, final_name)
+        r0, c0, th, tw = tile
+        if sink.device is not None:  # the tile stays on the device: blocks encoded there
+            packed, res_valid = image.render(r0, c0, th, tw, fill=True)
+            t = time.perf_counter()
+            sink.device(r0, c0, packed, res_valid)
+            timer.span("write", t)
+            return
+        packed, res_valid = image.render(r0, c0, th, tw)
+        if packed is None:
+            block = np.zeros((th, tw, count), out_dtype) if not is_float else np.full((th, tw, count), np.nan, np.float32)
+            mask = np.zeros((th, tw), bool)
+        else:
+            t = time.perf_counter()
+            block, mask = to_host(packed), to_host(res_valid).view(bool)
+            timer.span("d2h", t)
+        t = time.perf_counter()
+        sink(r0, c0, block, mask)
+        # the COG writer compresses in its own threads (timed there as "write"): here the hand-off
+        timer.span("queue" if cog is not None else "write", t)
+
+    n_workers = workers or (4 if device.is_cuda else (os.cpu_count() or 1))
+    try:
+        # A bounded GDAL block cache for the source reads and GDAL-written outputs: the default
+        # (5 % of RAM) would hold gigabytes of blocks.
+        with rasterio.Env(GDAL_CACHEMAX=256), open_sink(path, profile, cog, final_name, timer, device,
+                                                        block_codec) as sink:
+            bar = _progress(len(tiles)) if progress is True else _shared_bar(progress, len(tiles))
+            timer.info.update(device=str(device), tiles=len(tiles), threads=n_workers, block_codec=block_codec)
+            timer.span("setup", timer.start)  # from the call to the first tile
+            pool = ThreadPoolExecutor(max_workers=n_workers)
+            try:
+                for _ in pool.map(run, tiles):
+                    if bar is not None:
+                        bar.update(1)
+            finally:  # on an error or an interruption, the tiles not yet started are dropped
+                pool.shutdown(wait=True, cancel_futures=True)
+                if bar is not None and progress is True:  # (a shared bar is its owner's to close)
+                    bar.close()
+    except GDAL_ERRORS as e:
+        raise write_error(final_name, path, e) from e
+    finally:
+        image.close()
+
+
+def _progress(total: int) -> Any:
+    """A tqdm bar over ``total`` tiles."""
+    from tqdm import tqdm
+
+    return tqdm(total=total, unit="tile", leave=False)
+
+
+_BAR_LOCK = threading.Lock()
+
+
+def _shared_bar(bar: Any, tiles: int) -> Any:
+    """``bar`` (a shared tqdm-like bar, or False/None) with ``tiles`` more to do; None for none."""
+    if not bar:
+        return None
+    with _BAR_LOCK:
+        bar.total = (bar.total or 0) + tiles
+        bar.refresh()
+    return bar

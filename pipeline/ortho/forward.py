@@ -1,0 +1,180 @@
+"""The forward method's maps ([P3]'s direct method): source pixels geolocated, then inverted
+quad by quad into source coordinates per output pixel.
+
+Once per image, :func:`forward_coords` geolocates a coarse grid of source pixels and maps them
+to output pixels, keeping them in blocks (:class:`_NodeBlocks`); per output tile it then finds
+the source window whose nodes land near the tile, geolocates every pixel of it on the device
+(:func:`~orthowarp.kernels.ortho.forward_nodes_kernel`) and scatters the quads into the tile's
+source coordinates (:func:`~orthowarp.kernels.ortho.forward_scatter_kernel`); ground hidden from
+the camera stays without coordinates. The resampling is the backward method's
+(:class:`~orthowarp.pipeline.ortho.tiles.ImageTiles`).
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+import numpy as np
+import warp as wp
+from pyproj import CRS, Transformer
+
+from ...kernels import ortho as ortho_kernels
+
+if TYPE_CHECKING:
+    from affine import Affine
+
+    from ..geometry import SensorGeometry
+    from ..reports.profile import StageTimer
+
+__all__ = ["forward_coords"]
+
+
+class _NodeBlocks:
+    """Bounds of the nodes of a grid that fall in a box, found by blocks.
+
+    ``fields`` (rows, cols, 2 + m): per node its position (x, y) and m more values, NaN
+    where the node has none. The grid is cut into ``block`` x ``block`` node blocks with the
+    bounding box of their positions and the range of their values (float64): a query tests the
+    blocks, takes whole the ones inside the box and tests node by node only those across its
+    edge. Each node is kept as its offset from its block's lower bounds in float32 (half the
+    grid in float64: an image's forward map is held while its tiles run), so a node's
+    values come back within 2**-24 of its block's spread (a block of the forward map spans
+    about 128 output pixels, so within 1e-5 px; values that are multiples of 0.5 below 2**23
+    of the lower bound, such as source pixel centres, exactly).
+    """
+
+    def __init__(self, fields: np.ndarray, block: int = 8) -> None:
+        rows, cols, m = fields.shape
+        self.block = block
+        nb_r, nb_c = -(-rows // block), -(-cols // block)
+        pad = np.full((nb_r * block, nb_c * block, m), np.nan)
+        pad[:rows, :cols] = fields
+        blocks = pad.reshape(nb_r, block, nb_c, block, m).transpose(0, 2, 1, 3, 4).reshape(nb_r * nb_c, -1, m)
+        del pad
+        with warnings.catch_warnings():  # blocks with no node: NaN bounds, never selected
+            warnings.simplefilter("ignore", RuntimeWarning)
+            self.lo = np.nanmin(blocks, axis=1)
+            self.hi = np.nanmax(blocks, axis=1)
+        blocks -= self.lo[:, None, :]
+        self.offsets = blocks.astype(np.float32)
+
+    def bounds(self, x0: float, y0: float, x1: float, y1: float) -> tuple[np.ndarray, np.ndarray] | None:
+        """(lo, hi): the smallest and largest values (m each) of the nodes with x0 <= x <= x1
+        and y0 <= y <= y1, or None where there is none."""
+        lo, hi = self.lo, self.hi
+        meets = (hi[:, 0] >= x0) & (lo[:, 0] <= x1) & (hi[:, 1] >= y0) & (lo[:, 1] <= y1)
+        inside = meets & (lo[:, 0] >= x0) & (hi[:, 0] <= x1) & (lo[:, 1] >= y0) & (hi[:, 1] <= y1)
+        parts_lo, parts_hi = [lo[inside, 2:]], [hi[inside, 2:]]
+        across = meets & ~inside
+        if across.any():
+            edge = (lo[across][:, None, :] + self.offsets[across]).reshape(-1, lo.shape[1])
+            sel = (edge[:, 0] >= x0) & (edge[:, 0] <= x1) & (edge[:, 1] >= y0) & (edge[:, 1] <= y1)
+            parts_lo.append(edge[sel, 2:])
+            parts_hi.append(edge[sel, 2:])
+        lo_all, hi_all = np.concatenate(parts_lo), np.concatenate(parts_hi)
+        if not len(lo_all):
+            return None
+        return lo_all.min(axis=0), hi_all.max(axis=0)
+
+
+def forward_coords(geom: SensorGeometry, transform: Affine, out_crs: CRS, frame_crs: CRS, device: wp.context.Device,
+                   timer: StageTimer, radius: int, step: int = 16,
+                   margin: int = 32) -> Callable[[int, int, int, int], tuple[wp.array, tuple | None]]:
+    """The forward method's per-tile source coordinates (see
+    :func:`~orthowarp.pipeline.ortho.orthorectify`'s ``method``).
+
+    Once per image, a coarse grid of source pixels (every ``step``) is geolocated and mapped to
+    output pixels; a tile's source window is then the bounding box of the coarse nodes that
+    land within ``margin`` output pixels of it, grown by ``step + margin`` source pixels.
+
+    Parameters
+    ----------
+    geom : SensorGeometry
+        A frame image's geometry.
+    transform : affine.Affine
+        The output grid's.
+    out_crs, frame_crs : pyproj.CRS
+        The output CRS and the poses' horizontal CRS.
+    device : warp.context.Device
+    timer : StageTimer
+        Gets the tiles' ``prepare``, ``h2d`` and ``kernel`` spans.
+    radius : int
+        The resampling's reach (source pixels) beyond a coordinate.
+    step : int, optional
+        Source pixels between the coarse grid's nodes.
+    margin : int, optional
+        Output pixels around a tile whose nodes count.
+
+    Returns
+    -------
+    callable
+        ``coords_for(r0, c0, th, tw)`` -> (source (col, row) per tile pixel: a warp array
+        (th, tw) of vec2d, NaN where none; the source window (col0, row0, col1, row1, read
+        reduction factor), or None where the tile sees nothing of the image).
+    """
+    w_img, h_img = geom.image_size
+    arg, refr, dem, search = geom.structs()
+    sc = np.unique(np.append(np.arange(0, w_img, step), w_img - 1)) + 0.5
+    sr = np.unique(np.append(np.arange(0, h_img, step), h_img - 1)) + 0.5
+    cc, rr = np.meshgrid(sc, sr)
+    g = geom.geolocate_frame(np.stack([cc.ravel(), rr.ravel()], 1))
+    ok = np.all(np.isfinite(g), axis=1)
+    to_out = Transformer.from_crs(frame_crs, out_crs, always_xy=True)
+    x, y = to_out.transform(g[ok, 0], g[ok, 1])
+    oc, orow = ~transform @ (np.asarray(x), np.asarray(y))
+    node_out = np.stack([oc, orow], 1)
+    # output pixels per source pixel, for rejecting quads that span occlusions
+    scale = float(np.median(np.hypot(*np.diff(node_out.reshape(-1, 2), axis=0).T))) / step if len(node_out) > 1 else 1.0
+    max_edge = 4.0 * max(scale, 1.0)
+    factor = max(int(np.floor(1.0 / scale)), 1) if scale > 0 else 1  # reduced reads: see _decimation
+    # the nodes on their grid (NaN where not geolocated): per node, output column and row,
+    # source column and row, frame u and v
+    fields = np.full((*cc.shape, 6), np.nan)
+    fields.reshape(-1, 6)[ok] = np.concatenate([node_out, np.stack([cc.ravel()[ok], rr.ravel()[ok]], 1), g[ok, :2]],
+                                               1)
+    node_blocks = _NodeBlocks(fields)
+
+    def coords_for(r0: int, c0: int, th: int, tw: int) -> tuple[wp.array, tuple | None]:
+        t = time.perf_counter()
+        coords = wp.full((th, tw), wp.vec2d(np.nan, np.nan), dtype=wp.vec2d, device=device)
+        # the nodes within margin of the tile: bounds of their source and frame coordinates
+        bounds = node_blocks.bounds(c0 - margin, r0 - margin, c0 + tw + margin, r0 + th + margin)
+        if bounds is None:
+            timer.span("prepare", t)
+            return coords, None
+        lo, hi = bounds
+        grow = step + margin
+        wc0 = max(int(lo[0]) - grow, 0)
+        wr0 = max(int(lo[1]) - grow, 0)
+        wc1 = min(int(hi[0]) + grow, w_img)
+        wr1 = min(int(hi[1]) + grow, h_img)
+        # frame -> output-tile pixel lookup grid over the selected ground
+        lo, hi = lo[2:], hi[2:]
+        pad = 0.25 * (hi - lo) + 1e-6
+        gu = np.linspace(lo[0] - pad[0], hi[0] + pad[0], 33)
+        gv = np.linspace(lo[1] - pad[1], hi[1] + pad[1], 33)
+        uu, vv = np.meshgrid(gu, gv)
+        x, y = to_out.transform(uu, vv)
+        pc, pr = ~transform @ (np.asarray(x), np.asarray(y))
+        timer.span("prepare", t)
+        t = time.perf_counter()
+        f2o = ortho_kernels.FrameToOutput()
+        f2o.grid = wp.array(np.ascontiguousarray(np.stack([pc - c0, pr - r0], -1)), dtype=wp.vec2d, device=device)
+        f2o.x0, f2o.dx, f2o.y0, f2o.dy = float(gu[0]), float(gu[1] - gu[0]), float(gv[0]), float(gv[1] - gv[0])
+        nodes = wp.empty((wr1 - wr0, wc1 - wc0), dtype=wp.vec2d, device=device)
+        timer.span("h2d", t)
+        t = time.perf_counter()
+        wp.launch(ortho_kernels.forward_nodes_kernel, dim=nodes.shape, device=device,
+                  inputs=[arg, refr, dem, search, f2o, wp.int32(wc0), wp.int32(wr0), nodes])
+        wp.launch(ortho_kernels.forward_scatter_kernel, dim=(nodes.shape[0] - 1, nodes.shape[1] - 1), device=device,
+                  inputs=[nodes, wc0, wr0, max_edge, coords])
+        timer.span("kernel", t)
+        # the resampling window must hold the kernel's support around every coordinate
+        reach = (radius + 1) * factor
+        return coords, (max(wc0 - reach, 0), max(wr0 - reach, 0), min(wc1 + reach, w_img), min(wr1 + reach, h_img),
+                        factor)
+
+    return coords_for

@@ -1,0 +1,392 @@
+"""Where an orthoimage's tiles go: the writers, their creation options and the block codecs.
+
+A deflate or uncompressed COG streams through :class:`~orthowarp.pipeline.raster.cog.CogWriter`
+(blocks compressed and overviews reduced as tiles arrive), fed from the host or, with a device
+block codec, from the device (:class:`~orthowarp.pipeline.raster.device.DeviceCogEncoder` and
+its raw-deflate codecs: :func:`choose_block_codec`, :func:`device_codecs`); other outputs go
+through GDAL's GTiff driver (:func:`gdal_profile`) and, for a COG, are copied into the
+cloud-optimized layout by GDAL's COG driver after their overviews are built (:func:`finish`).
+:func:`parse_creation_options` checks the GDAL-style creation options every writer takes.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import threading
+import time
+from collections.abc import Callable, Iterator, Mapping
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import rasterio
+import rasterio.shutil
+from rasterio.windows import Window
+
+from ...errors import DeviceError, ParamError
+from ..raster.cog import CogWriter, overview_count
+from ..raster.io import GDAL_ERRORS, write_error
+
+if TYPE_CHECKING:
+    from affine import Affine
+    from pyproj import CRS
+    from warp.context import Device
+
+    from ..raster.device import WarpDeflate
+    from ..reports.profile import StageTimer
+
+__all__ = ["open_sink", "Sink", "finish", "gdal_profile", "gdal_creation_options", "parse_creation_options",
+           "choose_block_codec", "device_codecs", "nvcomp_available", "DRIVERS", "COMPRESS", "LOSSY",
+           "DEFAULT_QUALITY", "BLOCK_CODECS", "CREATION_OPTIONS"]
+
+DRIVERS = ("COG", "GTiff")
+COMPRESS = ("deflate", "zstd", "lzw", "jpeg", "webp", "none")
+LOSSY = ("jpeg", "webp")
+DEFAULT_QUALITY = 90  # JPEG / WebP quality of lossy outputs (orthority's JPEG default is 75)
+BLOCK_CODECS = ("auto", "host", "nvcomp", "hybrid", "warp")
+
+
+CREATION_OPTIONS = ("BLOCKSIZE", "BIGTIFF", "NUM_THREADS")
+
+_BIGTIFF = {"YES": True, "NO": False, "IF_NEEDED": None, "IF_SAFER": None}
+
+
+def parse_creation_options(options: Mapping[str, Any] | None) -> dict[str, Any]:
+    """Checked creation options (see :func:`~orthowarp.pipeline.ortho.orthorectify`'s
+    ``creation_options``) as the writers take them.
+
+    Parameters
+    ----------
+    options : mapping or None
+        GDAL-style creation options, keys case-insensitive: ``BLOCKSIZE``, ``BIGTIFF``,
+        ``NUM_THREADS``.
+
+    Returns
+    -------
+    dict
+        ``block`` (block edge, pixels), ``bigtiff`` (orthowarp's COG writer: True, False or
+        None for as needed) and ``bigtiff_gdal`` (GDAL's string), ``threads`` (compression
+        threads, None for all cores) and ``threads_gdal`` (GDAL's string).
+
+    Raises
+    ------
+    ParamError
+        An unknown option or a value out of range.
+    """
+    out = dict(block=512, bigtiff=None, bigtiff_gdal="IF_SAFER", threads=None, threads_gdal="ALL_CPUS")
+    for key, value in (options or {}).items():
+        k, v = str(key).strip().upper(), str(value).strip().upper()
+        if k == "BLOCKSIZE":
+            try:
+                block = int(v)
+            except ValueError:
+                block = 0
+            if not (64 <= block <= 4096 and block % 16 == 0):
+                raise ParamError(f"creation option BLOCKSIZE must be a multiple of 16 from 64 to 4096, got {value!r}")
+            out["block"] = block
+        elif k == "BIGTIFF":
+            if v not in _BIGTIFF:
+                raise ParamError(f"creation option BIGTIFF must be one of {sorted(_BIGTIFF)}, got {value!r}")
+            out["bigtiff"], out["bigtiff_gdal"] = _BIGTIFF[v], v
+        elif k == "NUM_THREADS":
+            if v != "ALL_CPUS":
+                try:
+                    threads = int(v)
+                except ValueError:
+                    threads = 0
+                if threads < 1:
+                    raise ParamError(f"creation option NUM_THREADS must be a count >= 1 or ALL_CPUS, got {value!r}")
+                out["threads"], out["threads_gdal"] = threads, str(threads)
+        else:
+            raise ParamError(f"unknown creation option {key!r}: orthowarp takes {', '.join(CREATION_OPTIONS)} "
+                             "(compression, level and quality have their own options)")
+    return out
+
+
+def gdal_creation_options(compress: str, dtype: str, level: int | None = None,
+                          co: dict[str, Any] | None = None) -> dict[str, Any]:
+    """GDAL's GTiff creation options of a tiled output: blocks, compression (with its level
+    and, for lossless integer outputs, the horizontal predictor), BigTIFF and compression
+    threads from the parsed creation options ``co`` (:func:`parse_creation_options`)."""
+    co = co or parse_creation_options(None)
+    opts = dict(tiled=True, blockxsize=co["block"], blockysize=co["block"],
+                compress=compress.upper() if compress != "none" else None,
+                BIGTIFF=co["bigtiff_gdal"], NUM_THREADS=co["threads_gdal"])  # GDAL's compression threads
+    if level is not None and compress in ("deflate", "zstd"):
+        opts["ZLEVEL" if compress == "deflate" else "ZSTD_LEVEL"] = level
+    if compress in ("deflate", "zstd", "lzw") and dtype != "float32":
+        opts["predictor"] = 2
+    return {k: v for k, v in opts.items() if v is not None}
+
+
+def gdal_profile(crs: CRS, transform: Affine, shape: tuple[int, int], count: int, dtype: str, compress: str,
+                 level: int | None = None, co: dict[str, Any] | None = None,
+                 quality: int | None = None) -> dict[str, Any]:
+    """The GDAL profile (rasterio's ``open`` keywords) of a tiled GeoTIFF output.
+
+    Parameters
+    ----------
+    crs : pyproj.CRS
+    transform : affine.Affine
+    shape : (int, int)
+        (rows, cols).
+    count : int
+        Bands.
+    dtype : str
+        Data type; float outputs get NaN as nodata (integer ones an internal mask).
+    compress : str
+        GDAL compression ("none": none); "jpeg" and "webp" take ``quality``.
+    level : int, optional
+        Deflate or zstd level.
+    co : dict, optional
+        Parsed creation options (:func:`parse_creation_options`).
+    quality : int, optional
+        JPEG / WebP quality (default :data:`DEFAULT_QUALITY`).
+    """
+    rows, cols = shape
+    profile = dict(driver="GTiff", width=cols, height=rows, count=count, dtype=dtype,
+                   crs=rasterio.crs.CRS.from_wkt(crs.to_wkt()), transform=transform,
+                   **gdal_creation_options(compress, dtype, level, co))
+    if compress == "jpeg":
+        profile.update(JPEG_QUALITY=quality or DEFAULT_QUALITY, **({"photometric": "YCBCR"} if count == 3 else {}))
+    elif compress == "webp":
+        profile.update(WEBP_LEVEL=quality or DEFAULT_QUALITY)
+    if dtype == "float32":
+        profile["nodata"] = float("nan")
+    return profile
+
+
+def choose_block_codec(choice: str, device: Device, deflate_cog: bool, level: int = 6) -> str:
+    """The block codec a run uses.
+
+    Parameters
+    ----------
+    choice : {"auto", "host", "nvcomp", "hybrid", "warp"}
+        See :func:`~orthowarp.pipeline.ortho.orthorectify`'s ``block_codec``.
+    device : warp.context.Device
+        The run's device.
+    deflate_cog : bool
+        The output is a deflate COG streamed through orthowarp's writer (else: "host").
+    level : int, optional
+        The libdeflate level (1-12).
+
+    Returns
+    -------
+    {"host", "nvcomp", "warp", "hybrid", "device"}
+        "hybrid": a device codec and libdeflate; "device": the block work on the device,
+        libdeflate only.
+
+    Raises
+    ------
+    ParamError
+        "nvcomp" on a CPU device.
+    DeviceError
+        "nvcomp" without nvCOMP installed.
+    """
+    if choice == "host" or not deflate_cog:
+        return "host"
+    if choice == "auto":
+        # measured with 16 host cores: at the higher levels orthowarp's deflate kernels and
+        # the host cores together beat the cores alone (H200, bench/reference/
+        # ortho-hybrid-h200.json: a 450 Mpix COG in 4.4 s against 6.2 s, a batch of 20 in
+        # 54.7 s against 77.5 s, 1.4 % larger files)
+        if device.is_cuda and _nvcomp_pays(level):
+            return "nvcomp"
+        return "hybrid" if device.is_cuda else "host"
+    if choice == "hybrid":  # a device codec (nvCOMP or orthowarp's) and the host cores
+        return "hybrid" if device.is_cuda else "device"
+    if choice == "warp":
+        return "warp"
+    if not device.is_cuda:
+        raise ParamError(f"block_codec 'nvcomp' needs a CUDA device (the run is on {device})")
+    if not nvcomp_available():
+        raise DeviceError("block_codec 'nvcomp' needs nvCOMP: pip install 'orthowarp[gpu]' (package "
+                          "nvidia-nvcomp-cu13)")
+    return "nvcomp"
+
+
+def nvcomp_available() -> bool:
+    """Whether nvCOMP's Python package is installed (:mod:`~orthowarp.pipeline.raster.device`,
+    with the device COG writer's kernels, is imported only by jobs that may use them)."""
+    from ..raster.device import nvcomp_available as available
+
+    return available()
+
+
+def _nvcomp_pays(level: int) -> bool:
+    """Whether nvCOMP deflates faster than the alternatives at a libdeflate ``level``: its
+    medium-ratio variant, at levels 1-4, beat every host level on an H100 with 16 cores
+    (bench/reference/ortho-codecs-h100.json); at level 6's ratio it ran at 0.2-0.4 GB/s,
+    below the host cores and orthowarp's kernels (bench/reference/deflate-codecs-h100.json,
+    deflate-codecs-warp-h200.json). False where nvCOMP is not installed."""
+    return level <= 4 and nvcomp_available()
+
+
+def _nvcomp_type(level: int) -> int:
+    """nvCOMP Deflate variant for a libdeflate level (see bench/deflate_codecs.py)."""
+    return 2 if level <= 4 else 4 if level <= 7 else 5
+
+
+def _warp_deflate(level: int, device: Device) -> WarpDeflate:
+    """orthowarp's device deflate with the hash-chain depth of a libdeflate level (level 5:
+    depth 16, whose streams were 1.082 / 1.015 times libdeflate 6's on procedural / aerial
+    blocks, as libdeflate 5's were 1.080 / 1.005; bench/reference/deflate-codecs-warp-h200.json
+    and bench/deflate_codecs.py's blocks on the host)."""
+    depth, nice = (4, 32) if level <= 2 else (8, 64) if level <= 4 else (16, 128) if level == 5 \
+        else (32, 128) if level <= 6 else (64, 258) if level <= 8 else (128, 258)
+    from ..raster.device import WarpDeflate
+
+    return WarpDeflate(device, depth=depth, nice=nice)
+
+
+def device_codecs(block_codec: str, level: int, device: Device) -> list:
+    """The raw-deflate codecs of a :class:`~orthowarp.pipeline.raster.device.DeviceCogEncoder`.
+
+    Parameters
+    ----------
+    block_codec : {"nvcomp", "hybrid", "device", "warp"}
+        A resolved block codec (:func:`choose_block_codec`).
+    level : int
+        The libdeflate level (1-12).
+    device : warp.context.Device
+
+    Returns
+    -------
+    list
+        :class:`~orthowarp.pipeline.raster.device.NvcompDeflate`,
+        :class:`~orthowarp.pipeline.raster.device.WarpDeflate` and/or
+        :class:`~orthowarp.pipeline.raster.device.HostDeflate` objects, in the encoder's order.
+    """
+    from ..raster.device import HostDeflate, NvcompDeflate
+
+    if block_codec == "warp":
+        return [_warp_deflate(level, device)]
+    codecs = []
+    if block_codec == "nvcomp":
+        codecs.append(NvcompDeflate(_nvcomp_type(level), device))
+    elif block_codec == "hybrid":  # the faster device codec at the level
+        codecs.append(NvcompDeflate(_nvcomp_type(level), device) if _nvcomp_pays(level)
+                      else _warp_deflate(level, device))
+    if block_codec in ("hybrid", "device"):
+        codecs.append(HostDeflate(level))
+    return codecs
+
+
+class Sink:
+    """Where tiles go: ``host(row, col, block (rows, cols, bands), mask (rows, cols) bool)``
+    takes host arrays; ``device(row, col, tile, valid)``, where not None, takes
+    device arrays (see :class:`~orthowarp.pipeline.raster.device.DeviceCogEncoder`)."""
+
+    def __init__(self, host: Callable[..., None], device: Callable[..., None] | None = None) -> None:
+        self.host, self.device = host, device
+
+    def __call__(self, *args: Any) -> None:
+        return self.host(*args)
+
+
+@contextlib.contextmanager
+def open_sink(path: str, profile: dict[str, Any], cog: dict[str, Any] | None, final_name: str, timer: StageTimer,
+              device: Device | None = None, block_codec: str = "host") -> Iterator[Sink]:
+    """A :class:`Sink` writing tiles into ``path``, closed (and timed as ``finish``) when the
+    block ends.
+
+    Parameters
+    ----------
+    path : str
+        The file written (a temporary of ``final_name``).
+    profile : dict
+        The output's GDAL profile (:func:`gdal_profile`).
+    cog : dict or None
+        The options of :class:`~orthowarp.pipeline.raster.cog.CogWriter` (compress, level,
+        block_size, bigtiff, threads), which then writes the file; None: GDAL's GTiff driver.
+    final_name : str
+        The destination, named in errors.
+    timer : StageTimer
+        Gets the writer's ``write`` and ``finish`` spans.
+    device : warp.context.Device, optional
+    block_codec : str, optional
+        A resolved block codec (:func:`choose_block_codec`): other than "host", the COG's
+        blocks are made on ``device`` from device tiles (``Sink.device``).
+    """
+    if cog is not None:
+        w = CogWriter(path, width=profile["width"], height=profile["height"], count=profile["count"],
+                      dtype=profile["dtype"], crs=profile["crs"], transform=profile["transform"], name=final_name,
+                      timer=timer, **cog)
+        encoder = None
+        try:
+            if block_codec != "host":
+                codecs = device_codecs(block_codec, cog["level"], device)
+                from ..raster.device import DeviceCogEncoder
+
+                encoder = DeviceCogEncoder(w, device, codecs)
+            # the tiles are fresh arrays the pipeline drops after the call: no copy
+            yield Sink(functools.partial(w.write, copy=False), encoder.write if encoder is not None else None)
+            t = time.perf_counter()
+            if encoder is not None:
+                encoder.flush()  # the last nvCOMP batch
+        except BaseException:
+            w.abort()
+            raise
+        finally:
+            if encoder is not None:
+                encoder.close()
+                timer.info["blocks_by_codec"] = dict(encoder.blocks_by_codec)
+        w.close()  # the last blocks, then the file's IFDs and block copy
+        timer.span("finish", t)
+        return
+    lock = threading.Lock()
+    is_float = profile["dtype"] == "float32"
+    with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True), rasterio.open(path, "w", **profile) as dst:
+        def sink(r0: int, c0: int, block: np.ndarray, mask: np.ndarray) -> None:
+            win = Window(c0, r0, block.shape[1], block.shape[0])
+            try:
+                with lock:
+                    dst.write(np.moveaxis(block, 2, 0), window=win)
+                    if not is_float:
+                        dst.write_mask(mask.astype(np.uint8) * 255, window=win)
+            except GDAL_ERRORS as e:
+                raise write_error(final_name, path, e) from e
+        yield Sink(sink)
+        t = time.perf_counter()
+    timer.span("finish", t)  # GDAL's close: its last blocks compressed and written
+
+
+def finish(work: str, final: str, driver: str, compress: str, overviews: bool, dtype: str, level: int | None = None,
+           quality: int | None = None, co: dict[str, Any] | None = None) -> None:
+    """Finish a GDAL-written output: its overviews, then (for COG) a copy in the
+    cloud-optimized layout.
+
+    Parameters
+    ----------
+    work : str
+        The tiled GeoTIFF written (for COG, an intermediate; else the output itself).
+    final : str
+        The COG written from it (``driver`` "COG").
+    driver : {"COG", "GTiff"}
+    compress : str
+        The COG's compression.
+    overviews : bool
+        Build overviews (always for COG).
+    dtype : str
+        The output's data type (integer outputs get the predictor).
+    level, quality : int, optional
+        Compression level; JPEG / WebP quality.
+    co : dict, optional
+        Parsed creation options (:func:`parse_creation_options`).
+    """
+    if driver == "COG" or overviews:
+        with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True, GDAL_CACHEMAX=256), rasterio.open(work, "r+") as ds:
+            factors = [2 ** (k + 1) for k in range(overview_count(ds.width, ds.height))]
+            if factors:
+                ds.build_overviews(factors, rasterio.enums.Resampling.average)
+    if driver == "COG":
+        co = co or parse_creation_options(None)
+        opts = dict(compress=compress.upper() if compress != "none" else "NONE", blocksize=co["block"],
+                    overviews="FORCE_USE_EXISTING", BIGTIFF=co["bigtiff_gdal"], NUM_THREADS=co["threads_gdal"])
+        if compress in ("deflate", "zstd", "lzw") and dtype != "float32":
+            opts["predictor"] = "YES"
+        if compress in LOSSY:
+            opts["quality"] = quality or DEFAULT_QUALITY
+        if level is not None:
+            opts["level"] = level
+        rasterio.shutil.copy(work, final, driver="COG", **opts)
