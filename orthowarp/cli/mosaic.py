@@ -9,6 +9,7 @@ from typing import Any
 
 import click
 
+from ..options import Blend, Seams, values
 from . import options
 from .report import crs_label, warm_up
 
@@ -34,12 +35,12 @@ MOSAIC_GPU_PROCESSES = 4
 @options.resampling
 @click.option("--seamlines", "seamlines_path", type=click.Path(dir_okay=False),
               help="Also write each image's part of the mosaic as GeoJSON polygons (longitude/latitude).")
-@click.option("--seams", type=click.Choice(["least-cost", "nadir"]), default="least-cost", show_default=True,
+@click.option("--seams", type=click.Choice(values(Seams)), default="least-cost", show_default=True,
               help="Seams where the images agree (moved from the most-nadir seams around buildings, trees, "
                    "moving objects), or the most-nadir seams.")
 @click.option("--seam-width", type=float, default=256.0, show_default=True,
               help="How far a least-cost seam may move from the most-nadir seam, output pixels.")
-@click.option("--blend", type=click.Choice(["feather", "multiband", "none"]), default="feather", show_default=True,
+@click.option("--blend", type=click.Choice(values(Blend)), default="feather", show_default=True,
               help="Feather across seams (and towards image borders), blend by frequency bands (fine detail "
                    "sharp, brightness over the feather width), or take each pixel from one image.")
 @click.option("--feather", type=float, default=32.0, show_default=True, help="Width of the blend, output pixels.")

@@ -16,13 +16,15 @@ from typing import Any, TypeVar
 
 import click
 
+from ..options import AccuracyMeasure, BlockCodec, Compress, Resampling, values
+
 F = TypeVar("F", bound=Callable[..., Any])
 
 FRAME_POSE_SIGMA = "0.05,0.05,0.1,0.005,0.005,0.01"  # --pose-sigma's default: m x 3, deg x 3
 SCENE_SIGMA = "10,10,5,0.001,0.001,0.001,0.001,0.001"  # --scene-sigma's default: m x 3, deg x 5
-RESAMPLING = ("nearest", "bilinear", "bicubic", "lanczos")
-BLOCK_CODECS = ("auto", "host", "nvcomp", "hybrid", "warp")
-COMPRESS = ("deflate", "zstd", "lzw", "jpeg", "webp", "none")
+RESAMPLING = values(Resampling)
+BLOCK_CODECS = values(BlockCodec)
+COMPRESS = values(Compress)
 
 
 def compose(*decorators: Callable[[F], F]) -> Callable[[F], F]:
@@ -185,7 +187,7 @@ scene_sigma = click.option("--scene-sigma", default=SCENE_SIGMA, show_default=Tr
                            help="With --accuracy: pushbroom scenes' orientation standard deviations: the orbit "
                                 "across, along the track and radially (m), roll, pitch, yaw and the look angles "
                                 "psi_x, psi_y (deg).")
-accuracy_measure = click.option("--accuracy-measure", type=click.Choice(["sigma", "ce90"]), default="sigma",
+accuracy_measure = click.option("--accuracy-measure", type=click.Choice(values(AccuracyMeasure)), default="sigma",
                                 show_default=True,
                                 help="With --accuracy: three bands sigma x, y (in the output CRS's units: m, or deg "
                                      "where it is longitude/latitude) and up (m), or two bands CE90 (the radius "

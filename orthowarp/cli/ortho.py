@@ -11,6 +11,7 @@ from typing import Any
 
 import click
 
+from ..options import Method, SourceReads, values
 from . import options
 from .report import crs_label, warm_up
 
@@ -29,7 +30,7 @@ _DEFAULT_SOURCES = (None, click.core.ParameterSource.DEFAULT, click.core.Paramet
 @options.crs
 @options.resolution
 @options.resampling
-@click.option("--method", type=click.Choice(["backward", "forward"]), default="backward", show_default=True,
+@click.option("--method", type=click.Choice(values(Method)), default="backward", show_default=True,
               help="backward: project each output pixel into the source; forward: the direct method "
                    "(geolocate each source pixel; hidden ground stays nodata).")
 @click.option("--driver", type=click.Choice(["cog", "gtiff"], case_sensitive=False), default="cog", show_default=True,
@@ -38,7 +39,7 @@ _DEFAULT_SOURCES = (None, click.core.ParameterSource.DEFAULT, click.core.Paramet
 @options.quality
 @options.compress_level
 @options.block_codec
-@click.option("--source-reads", type=click.Choice(["auto", "whole", "tiles"]), default="auto", show_default=True,
+@click.option("--source-reads", type=click.Choice(values(SourceReads)), default="auto", show_default=True,
               help="How the image reaches the device: whole (read once, by strips on several threads, into device "
                    "memory), tiles (each output tile reads its own window); auto: whole on a GPU where the image takes "
                    "at most a quarter of its free memory, else tiles. The pixels written are the same.")

@@ -45,11 +45,20 @@ from pyproj import CRS
 from ..._device import quiet_warp, resolve_device, to_host
 from ..._validate import flag, integer
 from ...errors import ParamError
+from ...options import BlockCodec, choice
 from ..dem import Dem
-from ..ortho.sink import BLOCK_CODECS, parse_creation_options
+from ..ortho.sink import parse_creation_options
 from ..raster.io import check_cancel
-from .plan import (NO_SOURCE, MosaicPlan, MosaicResult, check_images, default_tile_size, mosaic_block_codec,
-                   mosaic_plan, output_paths)
+from .plan import (
+    NO_SOURCE,
+    MosaicPlan,
+    MosaicResult,
+    check_images,
+    default_tile_size,
+    mosaic_block_codec,
+    mosaic_plan,
+    output_paths,
+)
 from .workers import ProcessTiles, TileDealer, tile_runs
 
 __all__ = ["mosaic", "mosaic_plan", "MosaicPlan", "MosaicResult", "NO_SOURCE"]
@@ -171,8 +180,7 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
     images = check_images(images, resampling, dtype, blend, feather, reference, seams, seam_width,
                            resolution=resolution, refraction=refraction, balance=balance, occlusion=occlusion,
                            same_vertical_datum=same_vertical_datum)
-    if block_codec not in BLOCK_CODECS:
-        raise ParamError(f"block_codec must be one of {BLOCK_CODECS}, got {block_codec!r}")
+    block_codec = choice("block_codec", block_codec, BlockCodec).value
     parse_creation_options(creation_options)  # checked before any work
     if tile_size is not None and integer("tile_size", tile_size, low=16) % 16:
         raise ParamError(f"tile_size must be a positive multiple of 16, got {tile_size}")

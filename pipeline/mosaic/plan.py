@@ -35,12 +35,13 @@ from ..._device import quiet_warp, resolve_device, to_host
 from ..._validate import flag, positive
 from ...errors import GeometryError, ParamError, RasterIOError
 from ...kernels import mosaic as mosaic_kernels
+from ...options import Blend, Resampling, Seams, choice
 from ...sensor import SensorModel
 from ..dem import Dem, as_dem
 from ..geometry import SensorGeometry
 from ..ortho.grid import output_grid
 from ..ortho.sink import choose_block_codec, device_codecs, parse_creation_options
-from ..ortho.tiles import RESAMPLING, ImageTiles, source_facts
+from ..ortho.tiles import ImageTiles, source_facts
 from ..raster.cog import DTYPES, CogWriter
 from ..raster.device import DeviceCogEncoder
 from ..raster.io import atomic_files, check_cancel, check_destination
@@ -571,14 +572,11 @@ def check_images(images: Iterable, resampling: str, dtype: str | None, blend: st
     images = [tuple(item) for item in images]
     if len(images) >= NO_SOURCE:
         raise ParamError(f"mosaic takes at most {NO_SOURCE - 1} images, got {len(images)}")
-    if resampling not in RESAMPLING:
-        raise ParamError(f"resampling must be one of {sorted(RESAMPLING)}, got {resampling!r}")
+    choice("resampling", resampling, Resampling)
     if dtype is not None and dtype not in DTYPES:
         raise ParamError(f"dtype must be one of {DTYPES}, got {dtype!r}")
-    if blend not in ("feather", "multiband", "none"):
-        raise ParamError(f"blend must be 'feather', 'multiband' or 'none', got {blend!r}")
-    if seams not in ("least-cost", "nadir"):
-        raise ParamError(f"seams must be 'least-cost' or 'nadir', got {seams!r}")
+    choice("blend", blend, Blend)
+    choice("seams", seams, Seams)
     positive("seam_width", seam_width, zero=True)  # pixels
     positive("feather", feather)  # pixels
     if reference is not None and not (isinstance(reference, (int, np.integer)) and 0 <= reference < len(images)):

@@ -39,19 +39,48 @@ from pyproj import CRS
 from ..._device import quiet_warp, to_host
 from ..._validate import flag, integer, positive
 from ...errors import GeometryError, OrthowarpWarning, ParamError, RasterIOError
+from ...options import BlockCodec, Compress, Method, Resampling, SourceReads, choice
 from ...sensor import SensorModel
 from ..dem import Dem, as_dem
 from ..geometry import SensorGeometry
 from ..raster.cog import DTYPES
-from ..raster.io import GDAL_ERRORS, atomic_path, check_cancel, check_destination, write_error
+from ..raster.io import (
+    GDAL_ERRORS,
+    atomic_path,
+    check_cancel,
+    check_destination,
+    write_error,
+)
 from ..raster.tiff import verify_tiff
 from ..reports.profile import StageTimer
 from .forward import forward_coords
 from .grid import MIN_FOOTPRINT_PIXELS, output_grid
-from .sink import (BLOCK_CODECS, COMPRESS, CREATION_OPTIONS, DEFAULT_QUALITY, DRIVERS, LOSSY, choose_block_codec,
-                   device_codecs, finish, gdal_profile, nvcomp_available, open_sink, parse_creation_options)
-from .tiles import (COARSE_STEP, ORTHO_BLOCK_DIM, RESAMPLING, SOURCE_READS, ImageTiles, coarse_grid, coarse_struct,
-                    read_whole_source, source_facts)
+from .sink import (
+    BLOCK_CODECS,
+    COMPRESS,
+    CREATION_OPTIONS,
+    DEFAULT_QUALITY,
+    DRIVERS,
+    LOSSY,
+    choose_block_codec,
+    device_codecs,
+    finish,
+    gdal_profile,
+    nvcomp_available,
+    open_sink,
+    parse_creation_options,
+)
+from .tiles import (
+    COARSE_STEP,
+    ORTHO_BLOCK_DIM,
+    RESAMPLING,
+    SOURCE_READS,
+    ImageTiles,
+    coarse_grid,
+    coarse_struct,
+    read_whole_source,
+    source_facts,
+)
 
 if TYPE_CHECKING:
     from warp.context import Device
@@ -228,16 +257,13 @@ def orthorectify(src: str | os.PathLike, sensor: SensorModel, dst: str | os.Path
     if not isinstance(sensor, SensorModel):
         raise ParamError(f"sensor must be a FrameSensor (camera and pose) or a PushbroomScene, got "
                          f"{type(sensor).__name__}")
+    method = choice("method", method, Method).value
     if method == "forward" and sensor.kind != "frame":
         raise ParamError(f"{sensor.kind} sensors are orthorectified by the backward method only")
-    if method not in ("backward", "forward"):
-        raise ParamError(f"method must be 'backward' or 'forward', got {method!r}")
-    if resampling not in RESAMPLING:
-        raise ParamError(f"resampling must be one of {sorted(RESAMPLING)}, got {resampling!r}")
+    resampling = choice("resampling", resampling, Resampling).value
     if driver not in DRIVERS:
         raise ParamError(f"driver must be one of {DRIVERS}, got {driver!r}")
-    if compress not in COMPRESS:
-        raise ParamError(f"compress must be one of {COMPRESS}, got {compress!r}")
+    compress = choice("compress", compress, Compress).value
     if compress_level is not None:
         top = {"deflate": 12, "zstd": 22}.get(compress)
         if top is None:
@@ -253,10 +279,8 @@ def orthorectify(src: str | os.PathLike, sensor: SensorModel, dst: str | os.Path
         quality = DEFAULT_QUALITY
     if dtype is not None and dtype not in DTYPES:
         raise ParamError(f"dtype must be one of {DTYPES}, got {dtype!r}")
-    if block_codec not in BLOCK_CODECS:
-        raise ParamError(f"block_codec must be one of {BLOCK_CODECS}, got {block_codec!r}")
-    if source_reads not in SOURCE_READS:
-        raise ParamError(f"source_reads must be one of {SOURCE_READS}, got {source_reads!r}")
+    block_codec = choice("block_codec", block_codec, BlockCodec).value
+    source_reads = choice("source_reads", source_reads, SourceReads).value
     co = parse_creation_options(creation_options)
     if tile_size is not None:
         tile_size = integer("tile_size", tile_size, low=16)

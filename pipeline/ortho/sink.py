@@ -24,6 +24,7 @@ import rasterio.shutil
 from rasterio.windows import Window
 
 from ...errors import DeviceError, ParamError
+from ...options import BlockCodec, Compress, values
 from ..raster.cog import CogWriter, overview_count
 from ..raster.io import GDAL_ERRORS, write_error
 
@@ -40,10 +41,10 @@ __all__ = ["open_sink", "Sink", "finish", "gdal_profile", "gdal_creation_options
            "DEFAULT_QUALITY", "BLOCK_CODECS", "CREATION_OPTIONS"]
 
 DRIVERS = ("COG", "GTiff")
-COMPRESS = ("deflate", "zstd", "lzw", "jpeg", "webp", "none")
+COMPRESS = values(Compress)
 LOSSY = ("jpeg", "webp")
 DEFAULT_QUALITY = 90  # JPEG / WebP quality of lossy outputs (orthority's JPEG default is 75)
-BLOCK_CODECS = ("auto", "host", "nvcomp", "hybrid", "warp")
+BLOCK_CODECS = values(BlockCodec)
 
 
 CREATION_OPTIONS = ("BLOCKSIZE", "BIGTIFF", "NUM_THREADS")

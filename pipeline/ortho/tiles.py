@@ -30,6 +30,8 @@ from rasterio.windows import Window
 from ..._device import load_modules, to_host
 from ...errors import ParamError, RasterIOError
 from ...kernels import ortho as ortho_kernels
+from ...options import Resampling as Interpolation
+from ...options import SourceReads, values
 from ..raster.cog import DTYPES
 from ..raster.io import GDAL_ERRORS, gdal_reason
 from ..reports.profile import StageTimer
@@ -46,9 +48,11 @@ if TYPE_CHECKING:
 __all__ = ["ImageTiles", "read_whole_source", "source_facts", "coarse_grid", "coarse_struct", "RESAMPLING",
            "SOURCE_READS", "ORTHO_BLOCK_DIM", "COARSE_STEP", "WP_TYPES", "TOP"]
 
-RESAMPLING = {"nearest": 0, "bilinear": 1, "bicubic": 2, "lanczos": 3}
+# the kernels' codes (kernels/ortho.py: NEAREST, BILINEAR, BICUBIC, LANCZOS)
+RESAMPLING = {Interpolation.NEAREST.value: 0, Interpolation.BILINEAR.value: 1, Interpolation.BICUBIC.value: 2,
+              Interpolation.LANCZOS.value: 3}
 _RADIUS = {"nearest": 1, "bilinear": 1, "bicubic": 2, "lanczos": 3}
-SOURCE_READS = ("auto", "whole", "tiles")
+SOURCE_READS = values(SourceReads)
 ORTHO_BLOCK_DIM = ortho_kernels.BLOCK_DIM
 #: Warp's dtype of each output data type.
 WP_TYPES = {"uint8": wp.uint8, "uint16": wp.uint16, "float32": wp.float32}
