@@ -39,6 +39,8 @@ from .registration import misregistration
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike
 
+    from ..adjust.block import Block
+
 # the chain's block: 2 strips of 2 frames, 60 % forward and 30 % side overlap; approximate
 # orientation off by GNSS_ERROR (m, each axis) and INS_ERROR (deg, each angle)
 GNSS_ERROR, INS_ERROR = 1.5, 0.05
@@ -146,16 +148,39 @@ def run_chain(out_dir: str | os.PathLike, camera: FrameCamera, dem: Dem, *, devi
     approximate and the adjusted orientation. Returns the figures (pose errors against the
     truth, ties, the mosaics' misregistration against the truth texture).
     """
-    from ..adjust import bundle_adjust
     from .formats.block import write_block
     from .matching import match_block
-    from .mosaic import mosaic
-    from .reports.adjust import write_adjustment
 
     folder = os.path.join(out_dir, "chain")
     ensure_folder(folder)
     rng = np.random.default_rng(seed + 1)
-    # the block: camera poses (no boresight: the block format's GNSS/INS poses are the camera's)
+    truth = _chain_truth(camera, rng, device)
+    ids = [f"frame{k}" for k in range(len(truth))]
+    paths = [os.path.join(folder, f"{i}.tif") for i in ids]
+    images = [render(FrameSensor(camera, p), dem, path, device=device)[0] for p, path in zip(truth, paths)]
+    approx = _approximate(truth, rng)
+    # 1. tie points by matching
+    t0 = time.perf_counter()
+    block, stats = match_block(images, [FrameSensor(camera, p) for p in approx], dem, ids=ids, zones=(4, 3),
+                               per_zone=2, window=21, radius=12, gnss_sigma=GNSS_ERROR, ins_sigma=INS_ERROR,
+                               device=device)
+    t_match = time.perf_counter() - t0
+    # 2. three control points
+    block, n_control = _with_control(block, camera, dem, truth, rng, device)
+    write_block(block, os.path.join(folder, "block.json"))
+    # 3. the adjustment
+    res, adjusted, t_adjust = _adjust(block, ids, folder)
+    # 4. mosaics from the approximate and the adjusted orientation, against the truth texture
+    out = {name: _chain_mosaic(name, poses, truth, camera, dem, paths, folder, device)
+           for name, poses in (("approximate", approx), ("adjusted", adjusted))}
+    return dict(images=len(ids), ties=int(stats["points"]), tie_observations=int(stats["observations"]),
+                control_points=n_control, match_seconds=t_match, adjust_seconds=t_adjust, sigma0=float(res.sigma0),
+                **out)
+
+
+def _chain_truth(camera: FrameCamera, rng: np.random.Generator, device: str | None) -> list[Pose]:
+    """The chain block's true camera poses: 2 strips of 2 frames, 60 % forward and 30 % side
+    overlap (no boresight: the block format's GNSS/INS poses are the camera's)."""
     probe = Pose.from_ins(LAT0, LON0, 2650.0, roll=0.0, pitch=0.0, yaw=90.0)
     w, h = camera.image_size
     g = geolocate(FrameSensor(camera, probe), [[w / 2, h / 2], [w / 2, 0.0], [0.0, h / 2]], dem=650.0,
@@ -168,10 +193,11 @@ def run_chain(out_dir: str | os.PathLike, camera: FrameCamera, dem: Dem, *, devi
             e, n = 2 * 0.4 * shot * along + 2 * 0.7 * strip * across
             truth.append(Pose.from_ins(LAT0 + n / M_PER_DEG_LAT, LON0 + e / M_PER_DEG_LON, 2650.0 + rng.normal(0, 5),
                                        roll=rng.normal(0, 1.0), pitch=rng.normal(0, 1.0), yaw=90.0 + rng.normal(0, 2)))
-    ids = [f"frame{k}" for k in range(len(truth))]
-    paths = [os.path.join(folder, f"{i}.tif") for i in ids]
-    images = [render(FrameSensor(camera, p), dem, path, device=device)[0] for p, path in zip(truth, paths)]
-    # the approximate orientation: GNSS/INS-like errors
+    return truth
+
+
+def _approximate(truth: list[Pose], rng: np.random.Generator) -> list[Pose]:
+    """The approximate orientation: the true poses with GNSS/INS-like errors."""
     approx = []
     for p in truth:
         q = p.params
@@ -180,14 +206,14 @@ def run_chain(out_dir: str | os.PathLike, camera: FrameCamera, dem: Dem, *, devi
         approx.append(Pose.from_ins(q["lat"] + north, q["lon"] + east, q["h"] + GNSS_ERROR * d[2],
                                     q["roll"] + INS_ERROR * d[3], q["pitch"] + INS_ERROR * d[4],
                                     q["yaw"] + INS_ERROR * d[5]))
-    # 1. tie points by matching
-    t0 = time.perf_counter()
-    block, stats = match_block(images, [FrameSensor(camera, p) for p in approx], dem, ids=ids, zones=(4, 3),
-                               per_zone=2, window=21, radius=12, gnss_sigma=GNSS_ERROR, ins_sigma=INS_ERROR,
-                               device=device)
-    t_match = time.perf_counter() - t0
-    # 2. three control points (surveyed to 5 cm: ground points of chosen pixels of the true
-    # frames), measured in every image that sees them (0.3 px)
+    return approx
+
+
+def _with_control(block: Block, camera: FrameCamera, dem: Dem, truth: list[Pose], rng: np.random.Generator,
+                  device: str | None) -> tuple[Block, int]:
+    """``block`` with three control points (surveyed to 5 cm: ground points of chosen pixels of
+    the true frames), measured in every image that sees them (0.3 px); and their number."""
+    w, h = camera.image_size
     pts, img_idx, pt_idx, obs = [], [], [], []
     for c, (k0, fx, fy) in enumerate([(0, 0.75, 0.3), (3, 0.25, 0.7), (1, 0.5, 0.8)]):
         llh = geolocate(FrameSensor(camera, truth[k0]), [[fx * w, fy * h]], dem=dem, device=device)[0]
@@ -201,33 +227,42 @@ def run_chain(out_dir: str | os.PathLike, camera: FrameCamera, dem: Dem, *, devi
                                                                                  1 / M_PER_DEG_LON, 1.0])
     block = block.with_points([f"GCP{c}" for c in range(len(pts))], ["control"] * len(pts), pts,
                               np.full((len(pts), 3), 0.05), img_idx, pt_idx, obs, np.full(len(obs), 0.3))
-    write_block(block, os.path.join(folder, "block.json"))
-    # 3. the adjustment
+    return block, len(pts)
+
+
+def _adjust(block: Block, ids: list[str], folder: str) -> tuple[Any, list[Pose], float]:
+    """The block's bundle adjustment, its outputs written to ``folder/adjusted``: (the result,
+    the adjusted poses of the images ``ids``, the adjustment's seconds)."""
+    from ..adjust import bundle_adjust
+    from .reports.adjust import write_adjustment
+
     t0 = time.perf_counter()
     res = bundle_adjust(block)
     t_adjust = time.perf_counter() - t0
     if not res.success:
         raise GeometryError(f"The demo chain's adjustment failed: {res.message}")
     write_adjustment(res, block, os.path.join(folder, "adjusted"), plots=False)
-    adjusted = [Pose.from_ins(*res.poses[i]) for i in ids]
-    # 4. mosaics from the approximate and the adjusted orientation, against the truth texture
-    out = {}
-    for name, poses in (("approximate", approx), ("adjusted", adjusted)):
-        t0 = time.perf_counter()
-        # (hidden-ground handling off: it triples the mosaic's time on a CPU, and the demo
-        # shows the orientation's effect)
-        m = mosaic([(path, FrameSensor(camera, p)) for path, p in zip(paths, poses)],
-                   os.path.join(folder, f"mosaic_{name}.tif"), dem=dem, resolution=MOSAIC_RESOLUTION, occlusion=False,
-                   overwrite=True, device=device)
-        reg = _texture_error(m.path, upsample=50)
-        dc, da = _pose_errors(poses, truth)
-        out[name] = dict(pose_error_max_m=dc, attitude_error_max_deg=da, mosaic_seconds=time.perf_counter() - t0,
-                         mosaic_misregistration_rms_m=float(reg["rms"]) * MOSAIC_RESOLUTION,
-                         mosaic_misregistration_max_m=float(reg["max"]) * MOSAIC_RESOLUTION,
-                         mosaic_tiles=int(reg["n_tiles"]))
-    return dict(images=len(ids), ties=int(stats["points"]), tie_observations=int(stats["observations"]),
-                control_points=len(pts), match_seconds=t_match, adjust_seconds=t_adjust, sigma0=float(res.sigma0),
-                **out)
+    return res, [Pose.from_ins(*res.poses[i]) for i in ids], t_adjust
+
+
+def _chain_mosaic(name: str, poses: list[Pose], truth: list[Pose], camera: FrameCamera, dem: Dem,
+                  paths: list[str], folder: str, device: str | None) -> dict[str, Any]:
+    """The mosaic ``mosaic_<name>.tif`` of the frames ``paths`` with ``poses``: the poses'
+    errors and the mosaic's misregistration against the truth."""
+    from .mosaic import mosaic
+
+    t0 = time.perf_counter()
+    # (hidden-ground handling off: it triples the mosaic's time on a CPU, and the demo
+    # shows the orientation's effect)
+    m = mosaic([(path, FrameSensor(camera, p)) for path, p in zip(paths, poses)],
+               os.path.join(folder, f"mosaic_{name}.tif"), dem=dem, resolution=MOSAIC_RESOLUTION, occlusion=False,
+               overwrite=True, device=device)
+    reg = _texture_error(m.path, upsample=50)
+    dc, da = _pose_errors(poses, truth)
+    return dict(pose_error_max_m=dc, attitude_error_max_deg=da, mosaic_seconds=time.perf_counter() - t0,
+                mosaic_misregistration_rms_m=float(reg["rms"]) * MOSAIC_RESOLUTION,
+                mosaic_misregistration_max_m=float(reg["max"]) * MOSAIC_RESOLUTION,
+                mosaic_tiles=int(reg["n_tiles"]))
 
 
 def run_demo(out_dir: str | os.PathLike = "orthowarp-demo", *, device: str | None = None, seed: int = 0,
@@ -252,13 +287,14 @@ def run_demo(out_dir: str | os.PathLike = "orthowarp-demo", *, device: str | Non
     """
     ensure_folder(out_dir)
     camera, pose, dem = synthetic_scene()
+    sensor = FrameSensor(camera, pose)
     w, h = camera.image_size
     write_raster(os.path.join(out_dir, "dem.tif"), dem.array, transform=dem.transform,
                  crs="EPSG:4326", nodata=np.nan)
 
     # 1. Forward geolocation of every pixel centre (float64, DEM relief search, refraction on).
     t0 = time.perf_counter()
-    geom = SensorGeometry(FrameSensor(camera, pose), dem, refraction=True, device=device)
+    geom = SensorGeometry(sensor, dem, refraction=True, device=device)
     ground = geom.geolocate_image()
     t_geo = time.perf_counter() - t0
     valid = np.all(np.isfinite(ground), axis=2)
@@ -269,43 +305,22 @@ def run_demo(out_dir: str | os.PathLike = "orthowarp-demo", *, device: str | Non
     write_raster(os.path.join(out_dir, "image.tif"), image, nodata=0)
 
     # 3. Accuracy against truth: points on the analytic terrain, projected and geolocated back.
-    rng = np.random.default_rng(seed)
-    lo, hi = np.nanmin(ground[valid], axis=0), np.nanmax(ground[valid], axis=0)
-    lon = rng.uniform(lo[0], hi[0], 4000)
-    lat = rng.uniform(lo[1], hi[1], 4000)
-    truth = np.stack([lon, lat, dem.sample(lon, lat)], axis=1)
-    pix = project(FrameSensor(camera, pose), truth, device=device)
-    inside = np.all(np.isfinite(pix), axis=1) & (pix[:, 0] >= 0) & (pix[:, 0] <= w) & (pix[:, 1] >= 0) & (pix[:, 1] <= h)
-    truth, pix = truth[inside][:1000], pix[inside][:1000]
-    back = geolocate(FrameSensor(camera, pose), pix, dem=dem, device=device)
+    truth, pix, back = _check_points(sensor, dem, ground[valid], seed, device)
     err_m = _enu_error(back, truth)
-    again = project(FrameSensor(camera, pose), back, device=device)
+    again = project(sensor, back, device=device)
     err_px = np.hypot(*(again - pix).T)
     gsd = (pose.height - np.nanmean(ground[..., 2])) * camera.pixel_size[0] / camera.focal_length
 
     # 4. Orthorectify the frame and measure its misregistration against the truth texture.
     t0 = time.perf_counter()
-    ortho = orthorectify(os.path.join(out_dir, "image.tif"), FrameSensor(camera, pose), os.path.join(out_dir, "ortho.tif"),
+    ortho = orthorectify(os.path.join(out_dir, "image.tif"), sensor, os.path.join(out_dir, "ortho.tif"),
                          dem=dem, resampling="bicubic", overwrite=True, device=device)
     t_ortho = time.perf_counter() - t0
     reg = _texture_error(ortho.path)
 
     # 5. Footprint of the image border as GeoJSON, check points as CSV.
-    edge = np.linspace(0.0, 1.0, 33)[:-1]
-    border = np.concatenate([np.stack([edge * w, 0 * edge], 1), np.stack([0 * edge + w, edge * h], 1),
-                             np.stack([w - edge * w, 0 * edge + h], 1), np.stack([0 * edge, h - edge * h], 1)])
-    foot = geolocate(FrameSensor(camera, pose), border, dem=dem, device=device)
-    ring = [[float(x), float(y)] for x, y in foot[:, :2] if np.isfinite(x)]
-    write_json(os.path.join(out_dir, "footprint.geojson"), {
-        "type": "FeatureCollection", "features": [{"type": "Feature", "properties": {"image": "image.tif"},
-                                                   "geometry": {"type": "Polygon", "coordinates": [ring + ring[:1]]}}]})
-    buf = io.StringIO()
-    wr = csv.writer(buf)
-    wr.writerow(["lon", "lat", "h", "col", "row", "lon_est", "lat_est", "h_est", "error_m"])
-    for t, p, b, e in zip(truth, pix, back, err_m):
-        wr.writerow([f"{t[0]:.9f}", f"{t[1]:.9f}", f"{t[2]:.4f}", f"{p[0]:.4f}", f"{p[1]:.4f}",
-                     f"{b[0]:.9f}", f"{b[1]:.9f}", f"{b[2]:.4f}", f"{e:.6f}"])
-    write_text(os.path.join(out_dir, "check_points.csv"), buf.getvalue())
+    _write_footprint(out_dir, sensor, dem, device)
+    _write_check_points(out_dir, truth, pix, back, err_m)
 
     summary = {
         "device": str(geom.device),
@@ -336,3 +351,45 @@ def run_demo(out_dir: str | os.PathLike = "orthowarp-demo", *, device: str | Non
         summary["outputs"] = sorted(set(os.listdir(out_dir)) | {"summary.json"})
     write_json(os.path.join(out_dir, "summary.json"), summary)
     return summary
+
+
+def _check_points(sensor: FrameSensor, dem: Dem, ground: np.ndarray, seed: int,
+                  device: str | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Up to 1000 random points on the analytic terrain within the frame's ``ground`` points
+    (k, 3): (truth (lon, lat, h), their pixels, those pixels geolocated back)."""
+    rng = np.random.default_rng(seed)
+    w, h = sensor.camera.image_size
+    lo, hi = np.nanmin(ground, axis=0), np.nanmax(ground, axis=0)
+    lon = rng.uniform(lo[0], hi[0], 4000)
+    lat = rng.uniform(lo[1], hi[1], 4000)
+    truth = np.stack([lon, lat, dem.sample(lon, lat)], axis=1)
+    pix = project(sensor, truth, device=device)
+    inside = np.all(np.isfinite(pix), axis=1) & (pix[:, 0] >= 0) & (pix[:, 0] <= w) & (pix[:, 1] >= 0) & (pix[:, 1] <= h)
+    truth, pix = truth[inside][:1000], pix[inside][:1000]
+    back = geolocate(sensor, pix, dem=dem, device=device)
+    return truth, pix, back
+
+
+def _write_footprint(out_dir: str | os.PathLike, sensor: FrameSensor, dem: Dem, device: str | None) -> None:
+    """``footprint.geojson``: the image border (32 points a side) geolocated on the DEM."""
+    w, h = sensor.camera.image_size
+    edge = np.linspace(0.0, 1.0, 33)[:-1]
+    border = np.concatenate([np.stack([edge * w, 0 * edge], 1), np.stack([0 * edge + w, edge * h], 1),
+                             np.stack([w - edge * w, 0 * edge + h], 1), np.stack([0 * edge, h - edge * h], 1)])
+    foot = geolocate(sensor, border, dem=dem, device=device)
+    ring = [[float(x), float(y)] for x, y in foot[:, :2] if np.isfinite(x)]
+    write_json(os.path.join(out_dir, "footprint.geojson"), {
+        "type": "FeatureCollection", "features": [{"type": "Feature", "properties": {"image": "image.tif"},
+                                                   "geometry": {"type": "Polygon", "coordinates": [ring + ring[:1]]}}]})
+
+
+def _write_check_points(out_dir: str | os.PathLike, truth: np.ndarray, pix: np.ndarray, back: np.ndarray,
+                        err_m: np.ndarray) -> None:
+    """``check_points.csv``: each check point's truth, pixel, estimate and error (m)."""
+    buf = io.StringIO()
+    wr = csv.writer(buf)
+    wr.writerow(["lon", "lat", "h", "col", "row", "lon_est", "lat_est", "h_est", "error_m"])
+    for t, p, b, e in zip(truth, pix, back, err_m):
+        wr.writerow([f"{t[0]:.9f}", f"{t[1]:.9f}", f"{t[2]:.4f}", f"{p[0]:.4f}", f"{p[1]:.4f}",
+                     f"{b[0]:.9f}", f"{b[1]:.9f}", f"{b[2]:.4f}", f"{e:.6f}"])
+    write_text(os.path.join(out_dir, "check_points.csv"), buf.getvalue())

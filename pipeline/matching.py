@@ -23,6 +23,7 @@ from .geometry import geolocate, project
 
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike
+    from pyproj import CRS
 
     from ..adjust.block import Block
     from .dem import Dem
@@ -56,22 +57,39 @@ def _check_image(name, image, sensor):
                          f"(rows, cols = {h}, {w})")
 
 
-def _match_into(left, right, left_sensor, right_sensor, pts, dem, *, window, radius, levels, min_score,
-                max_back_error, refraction, device):
+@dataclass(frozen=True)
+class _MatchSettings:
+    """The settings of :func:`match_pair` and :func:`match_block` (their meanings there):
+    interest points (``zones``, ``per_zone``), the search and the checks of a match."""
+
+    zones: tuple[int, int]
+    per_zone: int
+    window: int
+    radius: int
+    levels: int
+    min_score: float
+    max_back_error: float
+    refraction: bool
+    device: str | None
+
+
+def _match_into(left: np.ndarray, right: np.ndarray, left_sensor: FrameSensor, right_sensor: FrameSensor,
+                pts: np.ndarray, dem: Dem | str | os.PathLike | float, cfg: _MatchSettings) -> tuple:
     """Points ``pts`` (k, 2) of ``left`` predicted in ``right`` (those whose prediction lies a
     window inside it: indices ``sel``), matched, and back-matched. Returns (sel, predicted (s, 2),
     forward MatchResult (s rows), back-match distance (s,), accepted (s,) bool)."""
-    pred, aff = _predict(left_sensor, right_sensor, pts, dem, refraction, device)
+    window, min_score, device = cfg.window, cfg.min_score, cfg.device
+    pred, aff = _predict(left_sensor, right_sensor, pts, dem, cfg.refraction, device)
     w, h = right_sensor.image_size
     sel = np.flatnonzero(np.all(np.isfinite(pred), axis=1) & (pred[:, 0] > window) & (pred[:, 0] < w - window) & (
         pred[:, 1] > window) & (pred[:, 1] < h - window))
-    fwd = match_points(left, right, pts[sel], pred[sel], affine=aff[sel], window=window, radius=radius,
-                       levels=levels, min_score=min_score, device=device)
+    fwd = match_points(left, right, pts[sel], pred[sel], affine=aff[sel], window=window, radius=cfg.radius,
+                       levels=cfg.levels, min_score=min_score, device=device)
     back = match_points(right, left, np.nan_to_num(fwd.xy, nan=-1e3), pts[sel], affine=np.linalg.inv(aff[sel]),
                         window=window, radius=2, min_score=min_score, device=device)
     err = np.hypot(*(back.xy - pts[sel]).T)
     with np.errstate(invalid="ignore"):
-        ok = fwd.ok & back.ok & (err <= max_back_error)
+        ok = fwd.ok & back.ok & (err <= cfg.max_back_error)
     return sel, pred[sel], fwd, err, ok
 
 
@@ -161,9 +179,8 @@ def match_pair(left: ArrayLike, right: ArrayLike, left_sensor: FrameSensor, righ
     _check_image("left", left, left_sensor)
     _check_image("right", right, right_sensor)
     pts, _ = interest_points(left, zones=zones, per_zone=per_zone, window=window)
-    sel, pred, fwd, err, ok = _match_into(left, right, left_sensor, right_sensor, pts, dem, window=window,
-                                          radius=radius, levels=levels, min_score=min_score,
-                                          max_back_error=max_back_error, refraction=refraction, device=device)
+    cfg = _MatchSettings(zones, per_zone, window, radius, levels, min_score, max_back_error, refraction, device)
+    sel, pred, fwd, err, ok = _match_into(left, right, left_sensor, right_sensor, pts, dem, cfg)
     return PairMatches(left=pts[sel][ok], right=fwd.xy[ok], sigma=fwd.sigma[ok], predicted=pred[ok],
                        score=fwd.score[ok], candidates=len(sel), back_error=err[ok])
 
@@ -212,8 +229,20 @@ def match_block(images: Sequence[ArrayLike], sensors: Sequence[FrameSensor], dem
         observations dropped by the multi-image check (``inconsistent``), the ids of the images
         none of whose interest points meets the DEM (``no_ground``: it does not cover them).
     """
-    from ..adjust.block import Block
+    images, sensors, ids, geo, crs = _check_block(images, sensors, ids)
+    cfg = _MatchSettings(zones, per_zone, window, radius, levels, min_score, max_back_error, refraction, device)
+    obs = {}  # (point id, image index) -> (col, row, sigma)
+    stats = dict(interest=0, pairs={}, inconsistent=0, no_ground=[])
+    for i in range(len(images)):
+        obs.update(_image_observations(i, images, sensors, ids, dem, cfg, stats))
+    block = _block_from_observations(sensors, ids, geo, crs, obs, gnss_sigma, ins_sigma)
+    stats["points"], stats["observations"] = len({pid for pid, _ in obs}), len(obs)
+    return block, stats
 
+
+def _check_block(images: Sequence[ArrayLike], sensors: Sequence[FrameSensor],
+                 ids: Sequence[str] | None) -> tuple[list[np.ndarray], list[FrameSensor], list[str], bool, CRS | None]:
+    """:func:`match_block`'s inputs checked: (images, sensors, ids, geocentric, the poses' CRS or None)."""
     images = [np.asarray(a) for a in images]
     sensors = list(sensors)
     if len(images) != len(sensors) or len(images) < 2:
@@ -228,86 +257,124 @@ def match_block(images: Sequence[ArrayLike], sensors: Sequence[FrameSensor], dem
         if bool(s.geocentric) != geo:
             raise ParamError("the sensors' poses must be all omega-phi-kappa or all GNSS/INS")
         if geo:
-            p = s.pose.params
-            if not {"lat", "lon", "h", "roll", "pitch", "yaw"} <= set(p):
-                raise ParamError(f"sensors[{k}]: a GNSS/INS pose from Pose.from_ins is needed for a block")
-            if np.any(np.asarray(p.get("boresight", (0, 0, 0)), float) != 0) or np.any(
-                    np.asarray(p.get("lever_arm", (0, 0, 0)), float) != 0):
-                raise ParamError(f"sensors[{k}]: the block format holds GNSS/INS poses without boresight and lever "
-                                 "arm; give the camera's own pose (Pose.from_ins of the camera centre and attitude)")
+            _check_block_ins(k, s.pose.params)
     crs = None if geo else sensors[0].pose.crs
     if not geo and any(not s.pose.crs.equals(crs) for s in sensors):
         raise ParamError("the sensors' poses must share one CRS")
-    obs = {}  # (point id, image index) -> (col, row, sigma)
-    stats = dict(interest=0, pairs={}, inconsistent=0, no_ground=[])
-    for i, (img_i, s_i) in enumerate(zip(images, sensors)):
-        pts, _ = interest_points(img_i, zones=zones, per_zone=per_zone, window=window)
-        stats["interest"] += len(pts)
-        if not len(pts):
-            log.warning("image '%s' has no textured point to match (uniform or empty?)", ids[i])
+    return images, sensors, ids, geo, crs
+
+
+def _check_block_ins(k: int, p: dict[str, Any]) -> None:
+    """ParamError unless sensor ``k``'s pose parameters ``p`` are a block's GNSS/INS pose."""
+    if not {"lat", "lon", "h", "roll", "pitch", "yaw"} <= set(p):
+        raise ParamError(f"sensors[{k}]: a GNSS/INS pose from Pose.from_ins is needed for a block")
+    if np.any(np.asarray(p.get("boresight", (0, 0, 0)), float) != 0) or np.any(
+            np.asarray(p.get("lever_arm", (0, 0, 0)), float) != 0):
+        raise ParamError(f"sensors[{k}]: the block format holds GNSS/INS poses without boresight and lever "
+                         "arm; give the camera's own pose (Pose.from_ins of the camera centre and attitude)")
+
+
+def _image_observations(i: int, images: list[np.ndarray], sensors: list[FrameSensor], ids: list[str],
+                        dem: Dem | str | os.PathLike | float, cfg: _MatchSettings,
+                        stats: dict[str, Any]) -> dict[tuple[str, int], tuple]:
+    """The observations ((point id, image) -> (col, row, sigma)) of the ties of reference image
+    ``i``'s interest points; its counts added to ``stats``."""
+    pts, _ = interest_points(images[i], zones=cfg.zones, per_zone=cfg.per_zone, window=cfg.window)
+    stats["interest"] += len(pts)
+    if not len(pts):
+        log.warning("image '%s' has no textured point to match (uniform or empty?)", ids[i])
+        return {}
+    s_i = sensors[i]
+    ground = geolocate(s_i, pts, dem=dem, crs=s_i.frame_crs, refraction=cfg.refraction, device=cfg.device)
+    if not np.all(np.isfinite(ground), axis=1).any():  # nothing to predict in the other images
+        stats["no_ground"].append(ids[i])
+        log.warning("none of the %d interest points of image '%s' meets the DEM: it does not cover the image",
+                    len(pts), ids[i])
+        return {}
+    found = _matches_in_others(i, pts, images, sensors, ids, dem, cfg, stats)
+    bad = _inconsistent(images, sensors, dem, found, window=cfg.window, min_score=cfg.min_score,
+                        tol=2 * cfg.max_back_error, refraction=cfg.refraction, device=cfg.device)
+    stats["inconsistent"] += len(bad)
+    for k in list(found):
+        found[k] = [m for m in found[k] if (k, m[0]) not in bad]
+        if not found[k]:
+            del found[k]
+    obs = {}
+    for k, matches in found.items():
+        pid = f"{ids[i]}:{k}"
+        sig = max(m[3] for m in matches)
+        obs[(pid, i)] = (pts[k, 0], pts[k, 1], sig)
+        for j, c, r, s in matches:
+            obs[(pid, j)] = (c, r, s)
+    return obs
+
+
+def _matches_in_others(i: int, pts: np.ndarray, images: list[np.ndarray], sensors: list[FrameSensor],
+                       ids: list[str], dem: Dem | str | os.PathLike | float, cfg: _MatchSettings,
+                       stats: dict[str, Any]) -> dict[int, list]:
+    """Image ``i``'s points ``pts`` matched in every other image: point -> [(image, col, row,
+    sigma), ...]; the pairs' counts added to ``stats``."""
+    found = {}
+    for j, (img_j, s_j) in enumerate(zip(images, sensors)):
+        if j == i:
             continue
-        ground = geolocate(s_i, pts, dem=dem, crs=s_i.frame_crs, refraction=refraction, device=device)
-        if not np.all(np.isfinite(ground), axis=1).any():  # nothing to predict in the other images
-            stats["no_ground"].append(ids[i])
-            log.warning("none of the %d interest points of image '%s' meets the DEM: it does not cover the image",
-                        len(pts), ids[i])
+        sel, _, fwd, _, ok = _match_into(images[i], img_j, sensors[i], s_j, pts, dem, cfg)
+        if not len(sel):
             continue
-        found = {}
-        for j, (img_j, s_j) in enumerate(zip(images, sensors)):
-            if j == i:
-                continue
-            sel, _, fwd, _, ok = _match_into(img_i, img_j, s_i, s_j, pts, dem, window=window, radius=radius,
-                                             levels=levels, min_score=min_score, max_back_error=max_back_error,
-                                             refraction=refraction, device=device)
-            if not len(sel):
-                continue
-            stats["pairs"][f"{ids[i]}->{ids[j]}"] = dict(predicted=int(len(sel)), accepted=int(ok.sum()))
-            if len(sel) >= 5 and not ok.any():
-                log.warning("none of the %d points of '%s' predicted in '%s' matched: is the orientation further "
-                            "off than the search reaches (%d px)?", len(sel), ids[i], ids[j], radius * 2**levels)
-            for k in np.flatnonzero(ok):
-                found.setdefault(int(sel[k]), []).append((j, *fwd.xy[k], float(max(fwd.sigma[k].max(), 0.02))))
-        bad = _inconsistent(images, sensors, dem, found, window=window, min_score=min_score, tol=2 * max_back_error,
-                            refraction=refraction, device=device)
-        stats["inconsistent"] += len(bad)
-        for k in list(found):
-            found[k] = [m for m in found[k] if (k, m[0]) not in bad]
-            if not found[k]:
-                del found[k]
-        for k, matches in found.items():
-            pid = f"{ids[i]}:{k}"
-            sig = max(m[3] for m in matches)
-            obs[(pid, i)] = (pts[k, 0], pts[k, 1], sig)
-            for j, c, r, s in matches:
-                obs[(pid, j)] = (c, r, s)
-    point_ids = sorted({pid for pid, _ in obs}, key=lambda p: (p.rsplit(":", 1)[0], int(p.rsplit(":", 1)[1])))
-    index = {pid: n for n, pid in enumerate(point_ids)}
-    keys = sorted(obs, key=lambda t: (index[t[0]], t[1]))
+        stats["pairs"][f"{ids[i]}->{ids[j]}"] = dict(predicted=int(len(sel)), accepted=int(ok.sum()))
+        if len(sel) >= 5 and not ok.any():
+            log.warning("none of the %d points of '%s' predicted in '%s' matched: is the orientation further "
+                        "off than the search reaches (%d px)?", len(sel), ids[i], ids[j], cfg.radius * 2**cfg.levels)
+        for k in np.flatnonzero(ok):
+            found.setdefault(int(sel[k]), []).append((j, *fwd.xy[k], float(max(fwd.sigma[k].max(), 0.02))))
+    return found
+
+
+def _block_cameras(sensors: list[FrameSensor]) -> tuple[dict[str, Any], list[str]]:
+    """The block's cameras (one id per distinct camera object) and each image's camera id."""
     cameras, image_camera = {}, []
     for s in sensors:
         cid = next((c for c, cam in cameras.items() if cam is s.camera), f"cam{len(cameras)}")
         cameras[cid] = s.camera
         image_camera.append(cid)
+    return cameras, image_camera
+
+
+def _block_poses(sensors: list[FrameSensor], geo: bool) -> np.ndarray:
+    """The block's poses (n, 6): latitude, longitude, height, roll, pitch, yaw (geocentric) or
+    X0, Y0, Z0, omega, phi, kappa."""
     if geo:  # the block's geocentric form: latitude, longitude, height, roll, pitch, yaw
-        poses = np.array([[s.pose.params[k] for k in ("lat", "lon", "h", "roll", "pitch", "yaw")] for s in sensors],
-                         dtype=np.float64)
-    else:
-        params = [s.parameters() for s in sensors]
-        poses = np.array([[p[k] for k in ("X0", "Y0", "Z0", "omega", "phi", "kappa")] for p in params])
-    n, p = len(images), len(point_ids)
+        return np.array([[s.pose.params[k] for k in ("lat", "lon", "h", "roll", "pitch", "yaw")] for s in sensors],
+                        dtype=np.float64)
+    params = [s.parameters() for s in sensors]
+    return np.array([[p[k] for k in ("X0", "Y0", "Z0", "omega", "phi", "kappa")] for p in params])
+
+
+def _block_from_observations(sensors: list[FrameSensor], ids: list[str], geo: bool, crs: CRS | None,
+                             obs: dict[tuple[str, int], tuple], gnss_sigma: ArrayLike | None,
+                             ins_sigma: ArrayLike | None) -> Block:
+    """The matched block: poses from the sensors, tie points ordered by image id and number,
+    their observations ``obs`` ((point id, image) -> (col, row, sigma))."""
+    from ..adjust.block import Block
+
+    point_ids = sorted({pid for pid, _ in obs}, key=lambda p: (p.rsplit(":", 1)[0], int(p.rsplit(":", 1)[1])))
+    index = {pid: n for n, pid in enumerate(point_ids)}
+    keys = sorted(obs, key=lambda t: (index[t[0]], t[1]))
+    cameras, image_camera = _block_cameras(sensors)
+    poses = _block_poses(sensors, geo)
+    n, p = len(sensors), len(point_ids)
     gnss = np.full((n, 3), np.nan) if gnss_sigma is None else poses[:, :3].copy()
     ins = np.full((n, 3), np.nan) if ins_sigma is None else poses[:, 3:].copy()
-    block = Block(crs="EPSG:4979" if geo else crs.to_wkt(), cameras=cameras, image_ids=ids, image_camera=image_camera, poses=poses,
-                  point_ids=point_ids, roles=["tie"] * p, xyz=np.full((p, 3), np.nan), xyz_sigma=np.full((p, 3), np.nan),
-                  obs_image=np.array([t[1] for t in keys], dtype=np.int64),
-                  obs_point=np.array([index[t[0]] for t in keys], dtype=np.int64),
-                  obs_xy=np.array([obs[t][:2] for t in keys], dtype=np.float64).reshape(-1, 2),
-                  obs_sigma=np.array([obs[t][2] for t in keys], dtype=np.float64),
-                  gnss_xyz=gnss, gnss_sigma=np.full((n, 3), np.nan if gnss_sigma is None else float(gnss_sigma)),
-                  ins_opk=ins, ins_sigma=np.full((n, 3), np.nan if ins_sigma is None else float(ins_sigma)),
-                  name="matched block", **({"mode": "geocentric"} if geo else {}))
-    stats["points"], stats["observations"] = p, len(keys)
-    return block, stats
+    return Block(crs="EPSG:4979" if geo else crs.to_wkt(), cameras=cameras, image_ids=ids, image_camera=image_camera,
+                 poses=poses, point_ids=point_ids, roles=["tie"] * p, xyz=np.full((p, 3), np.nan),
+                 xyz_sigma=np.full((p, 3), np.nan),
+                 obs_image=np.array([t[1] for t in keys], dtype=np.int64),
+                 obs_point=np.array([index[t[0]] for t in keys], dtype=np.int64),
+                 obs_xy=np.array([obs[t][:2] for t in keys], dtype=np.float64).reshape(-1, 2),
+                 obs_sigma=np.array([obs[t][2] for t in keys], dtype=np.float64),
+                 gnss_xyz=gnss, gnss_sigma=np.full((n, 3), np.nan if gnss_sigma is None else float(gnss_sigma)),
+                 ins_opk=ins, ins_sigma=np.full((n, 3), np.nan if ins_sigma is None else float(ins_sigma)),
+                 name="matched block", **({"mode": "geocentric"} if geo else {}))
 
 
 @dataclass

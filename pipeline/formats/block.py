@@ -36,6 +36,7 @@ from __future__ import annotations
 import logging
 import os
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -163,6 +164,62 @@ def read_block(path: str | os.PathLike, *, drop_outside: bool = False) -> Block:
 def _block_from_data(data: object, path: str, name: str, *, drop_outside: bool = False) -> Block:
     """:func:`read_block`'s work on a parsed document ``data``; ``path`` is how the messages
     name its source, ``name`` the block's name."""
+    data, geocentric = _header(path, data)
+    cameras = _cameras(path, data["cameras"])
+    images = _images(path, data["images"], cameras, geocentric)
+    points = _points(path, data["points"])
+    img_index, pt_index = _indexes(path, images.ids, points.ids)
+    obs = _observations(path, data["observations"], img_index, pt_index)
+    if drop_outside and len(obs.image):
+        obs = _drop_outside(path, obs, cameras, images, points)
+    try:
+        return Block(crs=data["crs"], cameras=cameras, image_ids=images.ids, image_camera=images.camera,
+                     poses=np.array(images.poses, float).reshape(-1, 6), point_ids=points.ids, roles=points.roles,
+                     xyz=np.array(points.xyz, float).reshape(-1, 3),
+                     xyz_sigma=np.array(points.sigma, float).reshape(-1, 3),
+                     obs_image=obs.image, obs_point=obs.point, obs_xy=obs.xy, obs_sigma=obs.sigma,
+                     gnss_xyz=images.gnss_xyz, gnss_sigma=images.gnss_sigma, ins_opk=images.ins_opk,
+                     ins_sigma=images.ins_sigma, name=name, mode="geocentric" if geocentric else "map")
+    except ParamError as e:
+        raise fail(path, e) from e
+
+
+@dataclass
+class _Images:
+    """A block document's images: ids, cameras, poses (NaN rows where absent) and GNSS/INS
+    observations (NaN rows where absent)."""
+
+    ids: list[str]
+    camera: list[str]
+    poses: list[list[float]]
+    gnss_xyz: np.ndarray
+    gnss_sigma: np.ndarray
+    ins_opk: np.ndarray
+    ins_sigma: np.ndarray
+
+
+@dataclass
+class _Points:
+    """A block document's points: ids, roles, coordinates and sigmas (NaN where absent)."""
+
+    ids: list[str]
+    roles: list[str]
+    xyz: list[list[float]]
+    sigma: list[list[float]]
+
+
+@dataclass
+class _Observations:
+    """A block document's image observations: image and point indexes, (col, row) and sigma."""
+
+    image: np.ndarray
+    point: np.ndarray
+    xy: np.ndarray
+    sigma: np.ndarray
+
+
+def _header(path: str, data: object) -> tuple[dict[str, Any], bool]:
+    """The document as an object with every section, and whether its CRS makes it geocentric."""
     data = obj(path, data, "the file's content")
     for key in ("crs", "cameras", "images", "points", "observations"):
         if key not in data:
@@ -176,19 +233,28 @@ def _block_from_data(data: object, path: str, name: str, *, drop_outside: bool =
     geocentric = crs.is_geographic and len(crs.axis_info) == 3
     if not geocentric and not crs.is_projected:
         raise fail(path, f"crs must be projected (map blocks) or geographic 3-D (GNSS/INS blocks), got {crs.name!r}")
-    pose_keys = ("lat", "lon", "h", "roll", "pitch", "yaw") if geocentric else ("x", "y", "z", "omega", "phi", "kappa")
-    gnss_key, ins_key = ("lla", "rpy") if geocentric else ("xyz", "opk")
-    cams = obj(path, data["cameras"], "'cameras'")
+    return data, geocentric
+
+
+def _cameras(path: str, value: object) -> dict[str, FrameCamera]:
+    """The document's cameras by id."""
+    cams = obj(path, value, "'cameras'")
     if not cams:
         raise fail(path, "'cameras' must map camera ids to parameters; it is empty")
     cameras = {}
     for cid, params in cams.items():
         cid = ident(path, cid, "camera id")
         cameras[cid] = _camera(path, cid, params)
-    images = jlist(path, data["images"], "'images'")
-    image_ids, image_camera, poses = [], [], []
+    return cameras
+
+
+def _images(path: str, value: object, cameras: Mapping[str, FrameCamera], geocentric: bool) -> _Images:
+    """The document's images, each naming one of ``cameras``."""
+    pose_keys = ("lat", "lon", "h", "roll", "pitch", "yaw") if geocentric else ("x", "y", "z", "omega", "phi", "kappa")
+    gnss_key, ins_key = ("lla", "rpy") if geocentric else ("xyz", "opk")
+    images = jlist(path, value, "'images'")
     n = len(images)
-    gx, gs, io_, is_ = (np.full((n, 3), np.nan) for _ in range(4))
+    out = _Images([], [], [], *(np.full((n, 3), np.nan) for _ in range(4)))
     for k, img in enumerate(images):
         img = obj(path, img, f"image #{k + 1}")
         if "id" not in img or "camera" not in img:
@@ -197,25 +263,34 @@ def _block_from_data(data: object, path: str, name: str, *, drop_outside: bool =
         cam = ident(path, img["camera"], f"image '{iid}' camera")
         if cam not in cameras:
             raise fail(path, f"image '{iid}' names unknown camera '{cam}'")
-        image_ids.append(iid)
-        image_camera.append(cam)
-        pose = img.get("pose")
-        if pose is None:
-            poses.append([np.nan] * 6)
-        else:
-            pose = obj(path, pose, f"image '{iid}' pose")
-            if any(k_ not in pose for k_ in pose_keys):
-                raise fail(path, f"image '{iid}': 'pose' needs {', '.join(pose_keys)}")
-            poses.append([num(path, pose[k_], f"image '{iid}' pose {k_}") for k_ in pose_keys])
-        for key, vkey, arr, sarr in (("gnss", gnss_key, gx, gs), ("ins", ins_key, io_, is_)):
+        out.ids.append(iid)
+        out.camera.append(cam)
+        out.poses.append(_pose(path, img.get("pose"), iid, pose_keys))
+        for key, vkey, arr, sarr in (("gnss", gnss_key, out.gnss_xyz, out.gnss_sigma),
+                                     ("ins", ins_key, out.ins_opk, out.ins_sigma)):
             if img.get(key) is not None:
                 g = obj(path, img[key], f"image '{iid}' {key}")
                 if vkey not in g or "sigma" not in g:
                     raise fail(path, f"image '{iid}': '{key}' needs '{vkey}' and 'sigma'")
                 arr[k] = nums(path, g[vkey], 3, f"image '{iid}' {key} {vkey}")
                 sarr[k] = nums(path, g["sigma"], 3, f"image '{iid}' {key} sigma")
-    point_ids, roles, xyz, sig = [], [], [], []
-    for k, pt in enumerate(jlist(path, data["points"], "'points'")):
+    return out
+
+
+def _pose(path: str, pose: object, iid: str, pose_keys: tuple[str, ...]) -> list[float]:
+    """An image's pose values in ``pose_keys``' order (NaNs where it has none)."""
+    if pose is None:
+        return [np.nan] * 6
+    pose = obj(path, pose, f"image '{iid}' pose")
+    if any(k_ not in pose for k_ in pose_keys):
+        raise fail(path, f"image '{iid}': 'pose' needs {', '.join(pose_keys)}")
+    return [num(path, pose[k_], f"image '{iid}' pose {k_}") for k_ in pose_keys]
+
+
+def _points(path: str, value: object) -> _Points:
+    """The document's points."""
+    out = _Points([], [], [], [])
+    for k, pt in enumerate(jlist(path, value, "'points'")):
         pt = obj(path, pt, f"point #{k + 1}")
         if "id" not in pt:
             raise fail(path, f"point #{k + 1}: needs an 'id'")
@@ -223,18 +298,31 @@ def _block_from_data(data: object, path: str, name: str, *, drop_outside: bool =
         role = pt.get("role", "tie")
         if role not in ROLES:
             raise fail(path, f"point '{pid}': role {show(role)}, expected one of {ROLES}")
-        point_ids.append(pid)
-        roles.append(role)
-        xyz.append(nums(path, pt["xyz"], 3, f"point '{pid}' xyz") if pt.get("xyz") is not None else [np.nan] * 3)
-        sig.append(nums(path, pt["sigma"], 3, f"point '{pid}' sigma") if pt.get("sigma") is not None else [np.nan] * 3)
+        out.ids.append(pid)
+        out.roles.append(role)
+        out.xyz.append(nums(path, pt["xyz"], 3, f"point '{pid}' xyz") if pt.get("xyz") is not None
+                       else [np.nan] * 3)
+        out.sigma.append(nums(path, pt["sigma"], 3, f"point '{pid}' sigma") if pt.get("sigma") is not None
+                         else [np.nan] * 3)
+    return out
+
+
+def _indexes(path: str, image_ids: list[str], point_ids: list[str]) -> tuple[dict[str, int], dict[str, int]]:
+    """The index of every image id and of every point id, each id appearing once."""
     img_index = {iid: k for k, iid in enumerate(image_ids)}
     pt_index = {pid: k for k, pid in enumerate(point_ids)}
     if len(img_index) < len(image_ids):
         raise fail(path, f"image id '{first_duplicate(image_ids)}' appears twice")
     if len(pt_index) < len(point_ids):
         raise fail(path, f"point id '{first_duplicate(point_ids)}' appears twice")
+    return img_index, pt_index
+
+
+def _observations(path: str, value: object, img_index: Mapping[str, int],
+                  pt_index: Mapping[str, int]) -> _Observations:
+    """The document's image observations, each of a known image and point."""
     oi, op, oxy, osig = [], [], [], []
-    for k, ob in enumerate(jlist(path, data["observations"], "'observations'")):
+    for k, ob in enumerate(jlist(path, value, "'observations'")):
         ob = obj(path, ob, f"observation #{k + 1}")
         if any(k_ not in ob for k_ in ("image", "point", "col", "row")):
             raise fail(path, f"observation #{k + 1}: needs image, point, col, row")
@@ -249,25 +337,22 @@ def _block_from_data(data: object, path: str, name: str, *, drop_outside: bool =
         op.append(pt_index[pid])
         oxy.append([num(path, ob["col"], f"{what} col"), num(path, ob["row"], f"{what} row")])
         osig.append(num(path, ob.get("sigma", 1.0), f"{what} sigma"))
-    oi, op = np.array(oi, np.int64), np.array(op, np.int64)
-    oxy, osig = np.array(oxy, float).reshape(-1, 2), np.array(osig, float)
-    if drop_outside and len(oi):
-        size = np.array([cameras[image_camera[k]].image_size for k in oi], float).reshape(-1, 2)
-        out = ~((oxy >= 0) & (oxy <= size)).all(axis=1)
-        if np.any(out):
-            ids = [f"{point_ids[j]}@{image_ids[i]}" for i, j in zip(oi[out], op[out])]
-            log.warning("'%s': dropped %d image observation(s) outside their image: %s%s", path, len(ids),
-                        ", ".join(ids[:20]), f" and {len(ids) - 20} more" if len(ids) > 20 else "")
-            oi, op, oxy, osig = oi[~out], op[~out], oxy[~out], osig[~out]
-    try:
-        return Block(crs=data["crs"], cameras=cameras, image_ids=image_ids, image_camera=image_camera,
-                     poses=np.array(poses, float).reshape(-1, 6), point_ids=point_ids, roles=roles,
-                     xyz=np.array(xyz, float).reshape(-1, 3), xyz_sigma=np.array(sig, float).reshape(-1, 3),
-                     obs_image=oi, obs_point=op, obs_xy=oxy, obs_sigma=osig, gnss_xyz=gx, gnss_sigma=gs,
-                     ins_opk=io_, ins_sigma=is_, name=name,
-                     mode="geocentric" if geocentric else "map")
-    except ParamError as e:
-        raise fail(path, e) from e
+    return _Observations(np.array(oi, np.int64), np.array(op, np.int64), np.array(oxy, float).reshape(-1, 2),
+                         np.array(osig, float))
+
+
+def _drop_outside(path: str, obs: _Observations, cameras: Mapping[str, FrameCamera], images: _Images,
+                  points: _Points) -> _Observations:
+    """``obs`` without the observations outside their image, logged (``drop_outside``)."""
+    size = np.array([cameras[images.camera[k]].image_size for k in obs.image], float).reshape(-1, 2)
+    out = ~((obs.xy >= 0) & (obs.xy <= size)).all(axis=1)
+    if not np.any(out):
+        return obs
+    ids = [f"{points.ids[j]}@{images.ids[i]}" for i, j in zip(obs.image[out], obs.point[out])]
+    log.warning("'%s': dropped %d image observation(s) outside their image: %s%s", path, len(ids),
+                ", ".join(ids[:20]), f" and {len(ids) - 20} more" if len(ids) > 20 else "")
+    keep = ~out
+    return _Observations(obs.image[keep], obs.point[keep], obs.xy[keep], obs.sigma[keep])
 
 
 def _list(v: np.ndarray) -> list[float] | None:

@@ -239,6 +239,20 @@ def read_dimap(path: str | os.PathLike) -> DimapMetadata:
     ncols = doc.whole("Raster_Dimensions/NCOLS", bound=MAX_DETECTORS, what="detectors (pushbroom.MAX_DETECTORS)")
     nrows = doc.whole("Raster_Dimensions/NROWS", bound=MAX_LINES, what="lines (pushbroom.MAX_LINES)")
     strip = doc.find("Data_Strip")
+    line_period, epoch, center_line = _time_stamp(doc, strip)
+    eph_t, eph_p, eph_v = _ephemeris(doc, strip, epoch)
+    att_t, att_a, source = _attitudes(doc, strip, epoch)
+    px, py, interpolated = _look_angles(doc, strip, ncols)
+    frame, center = _dataset_frame(doc)
+    return DimapMetadata(path=path, ncols=ncols, nrows=nrows, line_period=line_period, epoch=epoch,
+                         center_line=center_line, eph_time=eph_t, eph_position=eph_p, eph_velocity=eph_v,
+                         att_time=att_t, att_angles=att_a, attitude_source=source, psi_x=px, psi_y=py,
+                         look_angles_interpolated=interpolated, frame=frame, scene_center=center,
+                         mission=_mission(root))
+
+
+def _time_stamp(doc: _Doc, strip: Element) -> tuple[float, np.datetime64, float]:
+    """The line period (s), the scene-centre time and the scene-centre line."""
     stamp = doc.find("Sensor_Configuration/Time_Stamp", strip)
     try:
         line_period = check_line_period(doc.number("LINE_PERIOD", stamp), "<LINE_PERIOD>")
@@ -248,7 +262,11 @@ def read_dimap(path: str | os.PathLike) -> DimapMetadata:
         raise doc.fail(str(e)) from None
     epoch = doc.time("SCENE_CENTER_TIME", stamp)
     center_line = doc.number("SCENE_CENTER_LINE", stamp)
+    return line_period, epoch, center_line
 
+
+def _ephemeris(doc: _Doc, strip: Element, epoch: np.datetime64) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The ephemeris points in time order: times (s from ``epoch``), ECEF positions and velocities."""
     points = doc.find("Ephemeris/Points", strip).findall("Point")
     if len(points) < 8:
         raise doc.fail(f"<Ephemeris/Points> holds {len(points)} <Point>s; "
@@ -273,7 +291,12 @@ def read_dimap(path: str | os.PathLike) -> DimapMetadata:
         raise doc.fail(f"the velocity of ephemeris point {order[bad[0]] + 1} "
                          f"({speed[bad[0]]:.6g} m/s) is not an orbital velocity (zero, parallel to the position "
                          f"or over {MAX_SPEED:g} m/s)")
+    return eph_t, eph_p, eph_v
 
+
+def _attitudes(doc: _Doc, strip: Element, epoch: np.datetime64) -> tuple[np.ndarray, np.ndarray, str]:
+    """The attitudes in time order: times (s from ``epoch``), yaw, pitch and roll (rad), and
+    their source ("corrected", else "raw")."""
     att = strip.find("Satellite_Attitudes/Corrected_Attitudes/Corrected_Attitude")
     source = "corrected"
     angles = att.findall("Angles") if att is not None else []
@@ -290,7 +313,11 @@ def read_dimap(path: str | os.PathLike) -> DimapMetadata:
     att_t, att_a = att_t[order], att_a[order]
     if np.any(np.diff(att_t) <= 0):
         raise doc.fail("attitude times repeat")
+    return att_t, att_a, source
 
+
+def _look_angles(doc: _Doc, strip: Element, ncols: int) -> tuple[np.ndarray, np.ndarray, bool]:
+    """The look angles (rad) of detectors 1..``ncols``, and whether they were interpolated."""
     looks = strip.find("Sensor_Configuration/Instrument_Look_Angles_List/Instrument_Look_Angles/Look_Angles_List")
     looks = looks.findall("Look_Angles") if looks is not None else []
     if not looks:
@@ -311,9 +338,13 @@ def read_dimap(path: str | os.PathLike) -> DimapMetadata:
                              f"interpolate the others; the file gives {int(det[0])}..{int(det[-1])}")
         ids = np.arange(1, ncols + 1, dtype=float)
         px, py = np.interp(ids, det, px), np.interp(ids, det, py)
+    return px, py, interpolated
 
+
+def _dataset_frame(doc: _Doc) -> tuple[list[dict[str, float]], dict[str, float] | None]:
+    """The ``Dataset_Frame`` vertices and scene centre (None where absent)."""
     frame, center = [], None
-    fr = root.find("Dataset_Frame")
+    fr = doc.root.find("Dataset_Frame")
     if fr is not None:
         for v in fr.findall("Vertex"):
             frame.append(dict(row=doc.number("FRAME_ROW", v), col=doc.number("FRAME_COL", v),
@@ -322,6 +353,11 @@ def read_dimap(path: str | os.PathLike) -> DimapMetadata:
         if c is not None:
             center = dict(row=doc.number("FRAME_ROW", c), col=doc.number("FRAME_COL", c),
                           lon=doc.number("FRAME_LON", c, bound=360.0), lat=doc.number("FRAME_LAT", c, bound=90.0))
+    return frame, center
+
+
+def _mission(root: Element) -> str:
+    """The mission and its index ("SPOT 5"), or ""."""
     mission = ""
     m = root.find("Dataset_Sources/Source_Information/Scene_Source/MISSION")
     if m is not None and m.text:
@@ -329,10 +365,7 @@ def read_dimap(path: str | os.PathLike) -> DimapMetadata:
         idx = root.find("Dataset_Sources/Source_Information/Scene_Source/MISSION_INDEX")
         if idx is not None and idx.text:
             mission += " " + idx.text.strip()
-    return DimapMetadata(path=path, ncols=ncols, nrows=nrows, line_period=line_period, epoch=epoch,
-                         center_line=center_line, eph_time=eph_t, eph_position=eph_p, eph_velocity=eph_v,
-                         att_time=att_t, att_angles=att_a, attitude_source=source, psi_x=px, psi_y=py,
-                         look_angles_interpolated=interpolated, frame=frame, scene_center=center, mission=mission)
+    return mission
 
 
 def read_scene(path: str | os.PathLike, *, attitude_model: str | None = None) -> PushbroomScene:

@@ -360,11 +360,60 @@ def _read_prj(path: Path) -> tuple[CRS | None, str | None]:
     return _as_crs(text, f"'{prj}'"), f"'{prj}'"
 
 
+@dataclass(frozen=True)
+class _CsvLayout:
+    """How a CSV file's rows read: delimiter and quote, the columns' indexes, the position and
+    attitude columns, and the fields a row needs."""
+
+    delim: str
+    quote_char: str
+    col: dict[str, int]
+    position: tuple[str, str, str]
+    attitude: tuple[str, str, str]
+    min_fields: int  # a row's fewest fields: up to the last column read
+    ncols: int  # the fields a row is expected to have (the camera column included)
+
+    @property
+    def is_map(self) -> bool:
+        """Map positions (x, y, z), else latitude, longitude and altitude."""
+        return self.position[0] == "x"
+
+    @property
+    def is_opk(self) -> bool:
+        """Omega-phi-kappa angles, else roll, pitch and yaw."""
+        return self.attitude[0] == "omega"
+
+
+@dataclass(frozen=True)
+class _CsvFrame:
+    """The CRS of a CSV file's poses and the conversions its positions need."""
+
+    map_crs: CRS | None
+    to_llh: Transformer | None  # map positions with roll, pitch, yaw: to latitude, longitude, height
+    to_map: Transformer | None  # geographic positions with omega, phi, kappa: to the map CRS
+
+
 def _read_csv(path: Path, text: str, crs: Any, radians: bool) -> dict[str, ImageOrientation]:
+    """The orientations of orthority's CSV format (or the header-less legacy layout) by image name."""
     lines = [(i + 1, ln.strip()) for i, ln in enumerate(text.splitlines())]
     lines = [(n, ln) for n, ln in lines if ln and not ln.startswith("#")]
     if not lines:
         return {}
+    layout, rows = _csv_layout(path, lines)
+    frame = _csv_frame(path, crs, layout)
+    result, seen = {}, {}
+    for lineno, line in rows:
+        name, pos, ang, cam = _csv_row(path, lineno, line, layout, seen)
+        try:
+            pose = _csv_pose(pos, ang, layout, frame, radians)
+        except (ParamError, ValueError) as e:
+            raise fail(path, f"line {lineno}: image {quote(name)}: {e}", e) from e
+        result[name] = ImageOrientation(pose, cam or None)
+    return result
+
+
+def _csv_layout(path: Path, lines: list[tuple[int, str]]) -> tuple[_CsvLayout, list[tuple[int, str]]]:
+    """The file's layout, from its first lines, and its data rows (line number, text)."""
     delim, quote_char = _csv_dialect(lines[0][1], [ln for _, ln in lines[:5]])
     first = [f.lower() for f in _split(path, lines[0][0], lines[0][1], delim, quote_char)]
     if "filename" in first:
@@ -378,6 +427,14 @@ def _read_csv(path: Path, text: str, crs: Any, radians: bool) -> dict[str, Image
     col = {}
     for i, f in enumerate(fields):
         col.setdefault(f, i)
+    position, attitude = _csv_columns(path, col)
+    needed = [col["filename"]] + [col[c] for c in position + attitude]
+    ncols = max(needed + ([col["camera"]] if "camera" in col else [])) + 1
+    return _CsvLayout(delim, quote_char, col, position, attitude, max(needed) + 1, ncols), rows
+
+
+def _csv_columns(path: Path, col: Mapping[str, int]) -> tuple[tuple[str, str, str], tuple[str, str, str]]:
+    """The header's position columns and attitude columns."""
     has = lambda keys: all(n in col for n in keys)  # noqa: E731
     if has(("x", "y", "z")):
         position = ("x", "y", "z")
@@ -395,8 +452,13 @@ def _read_csv(path: Path, text: str, crs: Any, radians: bool) -> dict[str, Image
         missing = [n for n in ("omega", "phi", "kappa") if n not in col]
         raise fail(path, "the header needs columns 'omega', 'phi', 'kappa' or 'roll', 'pitch', 'yaw' "
                           f"(missing: {', '.join(missing)})")
-    is_map, is_opk = position[0] == "x", attitude[0] == "omega"
+    return position, attitude
 
+
+def _csv_frame(path: Path, crs: Any, layout: _CsvLayout) -> _CsvFrame:
+    """The map CRS (from a .prj beside the file, else ``crs``) where map positions or
+    omega-phi-kappa angles need one, with the conversions between the two kinds of pose."""
+    is_map, is_opk = layout.is_map, layout.is_opk
     map_crs = to_llh = to_map = None
     if is_map or is_opk:
         prj_crs, prj_source = _read_prj(path)
@@ -406,52 +468,55 @@ def _read_csv(path: Path, text: str, crs: Any, radians: bool) -> dict[str, Image
             to_llh = Transformer.from_crs(map_crs, "EPSG:4979", always_xy=True)
         elif is_opk and not is_map:
             to_map = Transformer.from_crs("EPSG:4979", map_crs, always_xy=True)
+    return _CsvFrame(map_crs, to_llh, to_map)
 
-    needed = [col["filename"]] + [col[c] for c in position + attitude]
-    ncols = max(needed + ([col["camera"]] if "camera" in col else [])) + 1
-    result, seen = {}, {}
-    for lineno, line in rows:
-        vals = _split(path, lineno, line, delim, quote_char)
-        if len(vals) < max(needed) + 1:
-            raise fail(path, f"line {lineno}: expected {ncols} fields, got {len(vals)}")
-        name = _image_key(vals[col["filename"]])
-        if not name:
-            raise fail(path, f"line {lineno}: empty filename")
-        if name in seen:
-            raise fail(path, f"line {lineno}: image {quote(name)} already given on line {seen[name]}")
-        seen[name] = lineno
-        pos = [_csv_number(path, lineno, name, c, vals[col[c]], delim) for c in position]
-        ang = [_csv_number(path, lineno, name, c, vals[col[c]], delim) for c in attitude]
-        cam = vals[col["camera"]].strip() if "camera" in col and col["camera"] < len(vals) else ""
-        try:
-            _check_position(pos, position)
-            for a, c in zip(ang, attitude):
-                if radians:
-                    _bounded(a, math.radians(MAX_ANGLE), c, " rad")
-                else:
-                    _bounded(a, MAX_ANGLE, c, " deg")
-            if radians:
-                ang = [math.degrees(a) for a in ang]
-            if is_map and is_opk:
-                pose = Pose.from_opk(*pos, *ang, crs=map_crs)
-            elif not is_map and not is_opk:
-                pose = Pose.from_ins(*pos, *ang)
-            elif is_map:
-                lon, lat, h = to_llh.transform(*pos)
-                if not all(map(math.isfinite, (lon, lat, h))):
-                    raise ValueError(f"position {tuple(pos)} cannot be converted from {map_crs.name!r} to "
-                                     "latitude, longitude and height")
-                pose = Pose.from_ins(lat, lon, h, *ang)
-            else:
-                lat, lon, alt = pos
-                x, y, z = to_map.transform(lon, lat, alt)
-                if not all(map(math.isfinite, (x, y, z))):
-                    raise ValueError(f"position {tuple(pos)} cannot be converted to {map_crs.name!r}")
-                pose = Pose.from_opk(x, y, z, *ang, crs=map_crs)
-        except (ParamError, ValueError) as e:
-            raise fail(path, f"line {lineno}: image {quote(name)}: {e}", e) from e
-        result[name] = ImageOrientation(pose, cam or None)
-    return result
+
+def _csv_row(path: Path, lineno: int, line: str, layout: _CsvLayout,
+             seen: dict[str, int]) -> tuple[str, list[float], list[float], str]:
+    """A data row's image name (noted in ``seen``), position, angles and camera ("" for none)."""
+    col = layout.col
+    vals = _split(path, lineno, line, layout.delim, layout.quote_char)
+    if len(vals) < layout.min_fields:
+        raise fail(path, f"line {lineno}: expected {layout.ncols} fields, got {len(vals)}")
+    name = _image_key(vals[col["filename"]])
+    if not name:
+        raise fail(path, f"line {lineno}: empty filename")
+    if name in seen:
+        raise fail(path, f"line {lineno}: image {quote(name)} already given on line {seen[name]}")
+    seen[name] = lineno
+    pos = [_csv_number(path, lineno, name, c, vals[col[c]], layout.delim) for c in layout.position]
+    ang = [_csv_number(path, lineno, name, c, vals[col[c]], layout.delim) for c in layout.attitude]
+    cam = vals[col["camera"]].strip() if "camera" in col and col["camera"] < len(vals) else ""
+    return name, pos, ang, cam
+
+
+def _csv_pose(pos: list[float], ang: list[float], layout: _CsvLayout, frame: _CsvFrame, radians: bool) -> Pose:
+    """The pose of a row's position and angles; ValueError or ParamError for implausible values."""
+    position, attitude, is_map, is_opk = layout.position, layout.attitude, layout.is_map, layout.is_opk
+    map_crs = frame.map_crs
+    _check_position(pos, position)
+    for a, c in zip(ang, attitude):
+        if radians:
+            _bounded(a, math.radians(MAX_ANGLE), c, " rad")
+        else:
+            _bounded(a, MAX_ANGLE, c, " deg")
+    if radians:
+        ang = [math.degrees(a) for a in ang]
+    if is_map and is_opk:
+        return Pose.from_opk(*pos, *ang, crs=map_crs)
+    if not is_map and not is_opk:
+        return Pose.from_ins(*pos, *ang)
+    if is_map:
+        lon, lat, h = frame.to_llh.transform(*pos)
+        if not all(map(math.isfinite, (lon, lat, h))):
+            raise ValueError(f"position {tuple(pos)} cannot be converted from {map_crs.name!r} to "
+                             "latitude, longitude and height")
+        return Pose.from_ins(lat, lon, h, *ang)
+    lat, lon, alt = pos
+    x, y, z = frame.to_map.transform(lon, lat, alt)
+    if not all(map(math.isfinite, (x, y, z))):
+        raise ValueError(f"position {tuple(pos)} cannot be converted to {map_crs.name!r}")
+    return Pose.from_opk(x, y, z, *ang, crs=map_crs)
 
 
 def _camera_ref(value: object, *, opensfm: bool = False) -> str | None:

@@ -37,6 +37,7 @@ import threading
 import time
 from collections.abc import Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
@@ -200,32 +201,46 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
                            feather=feather, balance=balance,
                            reference=reference, occlusion=occlusion, device=device, geoid=geoid,
                            same_vertical_datum=same_vertical_datum, cancel=cancel, _outputs=outputs)
-        return _write_mosaic(plan, procs, dst, on, index=index, seamlines=seamlines, compress_level=compress_level,
-                             block_codec=block_codec, creation_options=creation_options, tile_size=tile_size,
-                             overwrite=overwrite, workers=workers, cancel=cancel)
+        out = _WriteSettings(index=index, seamlines=seamlines, compress_level=compress_level, block_codec=block_codec,
+                             creation_options=creation_options, tile_size=tile_size, overwrite=overwrite,
+                             workers=workers)
+        return _write_mosaic(plan, procs, dst, on, out, cancel)
     finally:
         if procs is not None:
             procs.close()
 
 
-def _write_mosaic(plan: MosaicPlan, procs: ProcessTiles | None, dst: str, on: wp.context.Device, *,
-                  index: str | os.PathLike | None, seamlines: str | os.PathLike | None, compress_level: int | None,
-                  block_codec: str, creation_options: dict | None, tile_size: int | None, overwrite: bool,
-                  workers: int | None, cancel: threading.Event | None) -> MosaicResult:
+@dataclass(frozen=True)
+class _WriteSettings:
+    """:func:`mosaic`'s checked settings of its tiles and outputs (their meanings there)."""
+
+    index: str | os.PathLike | None
+    seamlines: str | os.PathLike | None
+    compress_level: int | None
+    block_codec: str
+    creation_options: dict | None
+    tile_size: int | None
+    overwrite: bool
+    workers: int | None
+
+
+def _write_mosaic(plan: MosaicPlan, procs: ProcessTiles | None, dst: str, on: wp.context.Device, out: _WriteSettings,
+                  cancel: threading.Event | None) -> MosaicResult:
     """:func:`mosaic`'s tiles, on a thread pool of this process or, with ``procs`` (a started
     :class:`~orthowarp.pipeline.mosaic.workers.ProcessTiles`), on worker processes, written."""
     t0 = time.perf_counter()
-    codec = mosaic_block_codec(block_codec, on, compress_level or 6)
-    size = int(tile_size) if tile_size is not None else default_tile_size(on)
+    codec = mosaic_block_codec(out.block_codec, on, out.compress_level or 6)
+    size = int(out.tile_size) if out.tile_size is not None else default_tile_size(on)
     tiles = plan.tiles(size)
-    host_source = index is not None or seamlines is not None  # else the pixels per image counted there
+    host_source = out.index is not None or out.seamlines is not None  # else the pixels per image counted there
     if procs is None:
-        results = _thread_results(plan, tiles, codec, on, host_source, workers, cancel, dst)
+        results = _thread_results(plan, tiles, codec, on, host_source, out.workers, cancel, dst)
     else:
         results = _process_results(plan, procs, tiles, size, codec, on, host_source, cancel, dst)
     try:
-        return plan.write(dst, results, index=index, seamlines=seamlines, compress_level=compress_level,
-                          overwrite=overwrite, t_start=t0, _block_codec=codec, creation_options=creation_options)
+        return plan.write(dst, results, index=out.index, seamlines=out.seamlines, compress_level=out.compress_level,
+                          overwrite=out.overwrite, t_start=t0, _block_codec=codec,
+                          creation_options=out.creation_options)
     finally:
         plan.close()
 

@@ -23,6 +23,7 @@ import threading
 import time
 from collections.abc import Iterable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -443,40 +444,87 @@ def mosaic_plan(images: Sequence[tuple], *, dem: Dem | str | os.PathLike | float
     :func:`~orthowarp.pipeline.mosaic.mosaic`."""
     t_plan = time.perf_counter()
     images = check_images(images, resampling, dtype, blend, feather, reference, seams, seam_width,
-                           resolution=resolution, refraction=refraction, balance=balance, occlusion=occlusion,
-                           same_vertical_datum=same_vertical_datum)
+                          resolution=resolution, refraction=refraction, balance=balance, occlusion=occlusion,
+                          same_vertical_datum=same_vertical_datum)
+    cfg = _PlanSettings(crs=crs, resolution=resolution, resampling=resampling, refraction=refraction, seams=seams,
+                        seam_width=seam_width, blend=blend, feather=feather, balance=balance, reference=reference,
+                        occlusion=occlusion, device=device, geoid=geoid, same_vertical_datum=same_vertical_datum)
     terrain = as_dem(dem)
-    # the sources: one band count and data type
-    facts = []  # (path, bands, data type, masked)
+    facts = _source_facts(images, _outputs)
+    count, src_dtype = facts[0][1], facts[0][2]
+    out_dtype = dtype or (src_dtype if src_dtype in DTYPES else "float32")
+    out_crs, res, transform, (rows, cols), foot = _union_grid(_image_grids(images, terrain, cfg), resolution)
+    log.info("mosaic of %d images: %d x %d pixels at %.4g", len(images), cols, rows, res)
+    plan = MosaicPlan([(f[0], sensor, f[3]) for f, (_, sensor) in zip(facts, images)], terrain, _plan_options(cfg),
+                      out_crs, transform, (rows, cols), res, foot, count, out_dtype, src_dtype)
+    _balance_and_seams(plan, cfg, cancel, _seam_pixels)
+    plan.setup_s["total"] = time.perf_counter() - t_plan
+    return plan
+
+
+@dataclass(frozen=True)
+class _PlanSettings:
+    """:func:`mosaic_plan`'s checked settings that its steps use (their meanings there)."""
+
+    crs: str | int | CRS | None
+    resolution: float | None
+    resampling: str
+    refraction: bool
+    seams: str
+    seam_width: float
+    blend: str
+    feather: float
+    balance: bool
+    reference: int | None
+    occlusion: bool
+    device: str | None
+    geoid: str | os.PathLike | None
+    same_vertical_datum: bool
+
+
+def _source_facts(images: list[tuple], outputs: Sequence[str]) -> list[tuple[str, int, str, bool]]:
+    """(path, bands, data type, masked) of each source image, checked: each exists, none is
+    one of the ``outputs``, and all share one band count and data type."""
+    facts = []
     for src, sensor in images:
         src = os.fspath(src)
         if not os.path.exists(src):
             raise RasterIOError(f"Image '{src}' does not exist")
-        if os.path.abspath(src) in map(os.path.abspath, _outputs):
+        if os.path.abspath(src) in map(os.path.abspath, outputs):
             raise ParamError(f"Output '{src}' is one of the source images: choose another name")
-        facts.append((src, *source_facts(src, tuple(sensor.image_size), "camera" if sensor.kind == "frame" else "scene")))
+        kind = "camera" if sensor.kind == "frame" else "scene"
+        facts.append((src, *source_facts(src, tuple(sensor.image_size), kind)))
     counts, dtypes = {f[1] for f in facts}, {f[2] for f in facts}
     if len(counts) > 1 or len(dtypes) > 1:
         raise ParamError(f"The images of a mosaic must share their band count and data type; got bands "
                          f"{sorted(counts)} and types {sorted(dtypes)}")
-    count, src_dtype = facts[0][1], facts[0][2]
-    out_dtype = dtype or (src_dtype if src_dtype in DTYPES else "float32")
+    return facts
 
-    # the grid: the union of the images' grids at one resolution, aligned to it (the images'
-    # geometries built on a few threads, each dropped once its grid is known: memory does not
-    # grow with their number)
+
+def _image_grids(images: list[tuple], terrain: Dem, cfg: _PlanSettings) -> list[tuple]:
+    """Each image's ortho grid (crs, transform, shape, resolution) in ``cfg.crs``, else in the
+    first image's CRS (the images' geometries built on a few threads, each dropped once its
+    grid is known: memory does not grow with their number)."""
     def grid_of(item: tuple, grid_crs: CRS | None) -> tuple:
         src, sensor = item
-        geom = SensorGeometry(sensor, terrain, refraction=refraction, device=device, geoid=geoid,
-                              same_vertical_datum=same_vertical_datum)
+        geom = SensorGeometry(sensor, terrain, refraction=cfg.refraction, device=cfg.device, geoid=cfg.geoid,
+                              same_vertical_datum=cfg.same_vertical_datum)
         try:
-            return output_grid(geom, crs=grid_crs, resolution=resolution, name=src)
+            return output_grid(geom, crs=grid_crs, resolution=cfg.resolution, name=src)
         except GeometryError as e:
             raise GeometryError(f"Image '{src}': {e}") from e
 
+    crs = cfg.crs
     grids = [grid_of(images[0], crs)]  # (its CRS is the others' where none is given)
     with ThreadPoolExecutor(max_workers=max(1, min(8, os.cpu_count() or 1, len(images) - 1))) as pool:
         grids += pool.map(lambda item: grid_of(item, crs if crs is not None else grids[0][0]), images[1:])
+    return grids
+
+
+def _union_grid(grids: list[tuple], resolution: float | None) -> tuple:
+    """The mosaic's grid: the union of the images' ``grids`` at one resolution, aligned to it.
+    Returns (crs, resolution, transform, (rows, cols), footprints), each image's footprint in
+    mosaic pixels (rows r0-r1, cols c0-c1) with one pixel of margin."""
     out_crs = grids[0][0]
     res = float(resolution) if resolution is not None else float(np.mean([g[3] for g in grids]))
     boxes = []
@@ -489,32 +537,37 @@ def mosaic_plan(images: Sequence[tuple], *, dem: Dem | str | os.PathLike | float
     ymax = np.ceil(max(b[3] for b in boxes) / res) * res
     transform = Affine(res, 0.0, xmin, 0.0, -res, ymax)
     rows, cols = int(round((ymax - ymin) / res)), int(round((xmax - xmin) / res))
-    # each image's footprint in mosaic pixels (rows r0-r1, cols c0-c1), one pixel of margin
     foot = [(int(np.floor((ymax - b[3]) / res)) - 1, int(np.ceil((ymax - b[1]) / res)) + 1,
              int(np.floor((b[0] - xmin) / res)) - 1, int(np.ceil((b[2] - xmin) / res)) + 1) for b in boxes]
-    log.info("mosaic of %d images: %d x %d pixels at %.4g", len(images), cols, rows, res)
-    options = dict(resampling=resampling, refraction=refraction, blend=blend, feather=float(feather), device=device,
-                   geoid=geoid, same_vertical_datum=same_vertical_datum,
-                   method="forward" if occlusion else "backward", cache_images=24)
-    plan = MosaicPlan([(f[0], sensor, f[3]) for f, (_, sensor) in zip(facts, images)], terrain, options,
-                      out_crs, transform, (rows, cols), res, foot, count, out_dtype, src_dtype)
-    # one reduced pass: the images' overlaps for the balance and the seams' labelling
+    return out_crs, res, transform, (rows, cols), foot
+
+
+def _plan_options(cfg: _PlanSettings) -> dict[str, Any]:
+    """The plan's ``options``: what its tile functions need, plain values (the plan pickles)."""
+    return dict(resampling=cfg.resampling, refraction=cfg.refraction, blend=cfg.blend, feather=float(cfg.feather),
+                device=cfg.device, geoid=cfg.geoid, same_vertical_datum=cfg.same_vertical_datum,
+                method="forward" if cfg.occlusion else "backward", cache_images=24)
+
+
+def _balance_and_seams(plan: MosaicPlan, cfg: _PlanSettings, cancel: threading.Event | None,
+                       seam_pixels: int) -> None:
+    """One reduced pass (the images' overlaps), then the plan's radiometric balance and its
+    seams' labelling from it; each step's seconds in ``plan.setup_s``."""
     t = time.perf_counter()
-    f, coarse, labels = reduced_pass(plan, cancel, _seam_pixels)
+    f, coarse, labels = reduced_pass(plan, cancel, seam_pixels)
     plan.setup_s["reduced_pass"] = time.perf_counter() - t
-    if balance and len(images) > 1:
+    n_images = len(plan.sources)
+    if cfg.balance and n_images > 1:
         t = time.perf_counter()
-        plan.gains, plan.offsets = radiometric_balance(coarse, count, reference)
+        plan.gains, plan.offsets = radiometric_balance(coarse, plan.count, cfg.reference)
         plan.setup_s["balance"] = time.perf_counter() - t
-    if seams == "least-cost" and len(images) > 1:
+    if cfg.seams == "least-cost" and n_images > 1:
         t = time.perf_counter()
-        moved = least_cost_seams(labels, coarse, plan.gains, plan.offsets, max(2.0, seam_width / f),
-                                  int(np.ceil(0.5 * feather / f)) if blend != "none" else 1, cancel)
+        moved = least_cost_seams(labels, coarse, plan.gains, plan.offsets, max(2.0, cfg.seam_width / f),
+                                  int(np.ceil(0.5 * cfg.feather / f)) if cfg.blend != "none" else 1, cancel)
         plan.setup_s["seams"] = time.perf_counter() - t
         log.info("least-cost seams moved %d of %d reduced pixels (%d mosaic pixels each)", moved, labels.size, f * f)
     plan.labels, plan.seam_step = labels, f
-    plan.setup_s["total"] = time.perf_counter() - t_plan
-    return plan
 
 
 def default_tile_size(device: Device) -> int:

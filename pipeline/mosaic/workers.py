@@ -48,6 +48,7 @@ import threading
 import time
 from collections.abc import Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -57,6 +58,8 @@ from ..raster.io import abandoned, check_cancel
 
 if TYPE_CHECKING:
     from multiprocessing.queues import Queue, SimpleQueue
+
+    from warp.context import Device
 
 __all__ = ["ProcessTiles", "TileDealer", "tile_runs", "remove_stale_segments"]
 
@@ -481,6 +484,27 @@ def _end_with_parent(parent: int, kernel_signal: bool) -> None:
     threading.Thread(target=watch, name="orthowarp-parent-watch", daemon=True).start()
 
 
+@dataclass
+class _Worker:
+    """A tile process's state (mutable: the plan and its shared file arrive with the "plan"
+    message): its number, its results queue, its Warp device, the plan, the shared file's map
+    with its slots' layout, and the exceptions of its tiles."""
+
+    w: int
+    results: Queue
+    dev: Device
+    plan: Any = None
+    buf: Any = None
+    base: int = 0
+    slot_bytes: int = 0
+    with_source: bool = False
+    failed: list = field(default_factory=list)
+
+    def report(self, exc: BaseException) -> None:
+        """Send ``exc`` to the caller."""
+        self.results.put(("error", self.w, *_portable(exc)))
+
+
 def _worker_main(w: int, device: str, threads: int, tasks: SimpleQueue, results: Queue, parent: int,
                  kernel_signal: bool) -> None:
     """A tile process: load the kernels, take the plan, compute tiles into their slots."""
@@ -489,73 +513,98 @@ def _worker_main(w: int, device: str, threads: int, tasks: SimpleQueue, results:
     _end_with_parent(parent, kernel_signal)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # an interrupt is the caller's to handle (it ends us)
     try:
-        import rasterio
-        import warp as wp
-
-        from ..._device import load_modules, quiet_warp, resolve_device, to_host
-        from ...kernels import mosaic as mosaic_kernels
-        from ...kernels import ortho as ortho_kernels
-
-        with quiet_warp():
-            dev = resolve_device(device)
-            load_modules(dev, ortho_kernels, mosaic_kernels)
+        dev = _worker_device(device)
     except BaseException as e:  # noqa: BLE001 - reported to the caller
         results.put(("error", w, *_portable(e)))
         return
-    plan, buf, base, slot_bytes, with_source = None, None, 0, 0, False
-    failed = []
+    ws = _Worker(w, results, dev)
+    if _serve_tasks(ws, tasks, threads) and not ws.failed:
+        _worker_end(ws)
 
-    def tile(k: int, r0: int, c0: int, th: int, tw: int, slot: int, used: tuple[int, ...], token: Any) -> None:
-        try:
-            with quiet_warp():
-                out, has, source = plan._tile(r0, c0, th, tw, device=dev)
-                if not with_source:
-                    plan._count_sources(source)
-                values, valid, src = _slot_views(buf, base + slot * slot_bytes, th, tw, plan.count, plan.dtype,
-                                                 with_source)
-                values[...] = to_host(out)
-                valid[...] = to_host(has)
-                if with_source:
-                    src[...] = to_host(source)
-            results.put(("done", w, k, slot))
-            if used:
-                plan._note_done(used, token)  # the images the run is done with are dropped
-        except BaseException as e:  # noqa: BLE001 - reported to the caller
-            failed.append(e)
-            results.put(("error", w, *_portable(e)))
+
+def _worker_device(device: str) -> Device:
+    """Load Warp and the kernels on ``device`` in this process; returns its Warp device."""
+    from ..._device import load_modules, quiet_warp, resolve_device
+    from ...kernels import mosaic as mosaic_kernels
+    from ...kernels import ortho as ortho_kernels
+
+    with quiet_warp():
+        dev = resolve_device(device)
+        load_modules(dev, ortho_kernels, mosaic_kernels)
+    return dev
+
+
+def _serve_tasks(ws: _Worker, tasks: SimpleQueue, threads: int) -> bool:
+    """Take the caller's messages until the end (None) or a failure, tiles computed on
+    ``threads`` threads; False where a "plan" or "drop" message failed (reported)."""
+    import rasterio
 
     # GDAL's block cache as in the caller's tiles (its default, 5 % of the RAM, let each of four
     # workers reach 3.9-4.8 GB on a 128 GB host)
     with rasterio.Env(GDAL_CACHEMAX=256), ThreadPoolExecutor(max_workers=threads) as pool:
-        while not failed:
+        while not ws.failed:
             msg = tasks.get()
             if msg is None:
                 break
-            if msg[0] == "plan":
+            if msg[0] in ("plan", "drop"):
                 try:
-                    _, path, n_blob, base, slot_bytes, with_source = msg
-                    fd = os.open(path, os.O_RDWR)
-                    try:
-                        buf = mmap.mmap(fd, 0)
-                    finally:
-                        os.close(fd)
-                    plan = pickle.loads(buf[:n_blob])
+                    if msg[0] == "plan":
+                        _load_plan(ws, *msg[1:])
+                    else:
+                        ws.plan._note_drop(msg[1])
                 except BaseException as e:  # noqa: BLE001 - reported to the caller
-                    results.put(("error", w, *_portable(e)))
-                    return
-                continue
-            if msg[0] == "drop":
-                try:
-                    plan._note_drop(msg[1])
-                except BaseException as e:  # noqa: BLE001 - reported to the caller
-                    results.put(("error", w, *_portable(e)))
-                    return
+                    ws.report(e)
+                    return False
                 continue
             _, k, (r0, c0, th, tw), slot, used, final = msg
-            token = plan._note_dealt(used, final) if used else None
-            pool.submit(tile, k, r0, c0, th, tw, slot, used, token)
-    if failed:
-        return
+            token = ws.plan._note_dealt(used, final) if used else None
+            pool.submit(_worker_tile, ws, k, (r0, c0, th, tw), slot, used, token)
+    return True
+
+
+def _load_plan(ws: _Worker, path: str, n_blob: int, base: int, slot_bytes: int, with_source: bool) -> None:
+    """Map the shared file at ``path`` and unpickle the plan from its first ``n_blob`` bytes."""
+    ws.base, ws.slot_bytes, ws.with_source = base, slot_bytes, with_source
+    fd = os.open(path, os.O_RDWR)
+    try:
+        ws.buf = mmap.mmap(fd, 0)
+    finally:
+        os.close(fd)
+    ws.plan = pickle.loads(ws.buf[:n_blob])
+
+
+def _worker_tile(ws: _Worker, k: int, box: tuple[int, int, int, int], slot: int, used: tuple[int, ...],
+                 token: Any) -> None:
+    """Compute tile ``k`` (r0, c0, th, tw) into its ``slot`` and say so (or report its failure)."""
+    from ..._device import quiet_warp, to_host
+
+    r0, c0, th, tw = box
+    plan, with_source = ws.plan, ws.with_source
+    try:
+        with quiet_warp():
+            out, has, source = plan._tile(r0, c0, th, tw, device=ws.dev)
+            if not with_source:
+                plan._count_sources(source)
+            values, valid, src = _slot_views(ws.buf, ws.base + slot * ws.slot_bytes, th, tw, plan.count, plan.dtype,
+                                             with_source)
+            values[...] = to_host(out)
+            valid[...] = to_host(has)
+            if with_source:
+                src[...] = to_host(source)
+        ws.results.put(("done", ws.w, k, slot))
+        if used:
+            plan._note_done(used, token)  # the images the run is done with are dropped
+    except BaseException as e:  # noqa: BLE001 - reported to the caller
+        ws.failed.append(e)
+        ws.report(e)
+
+
+def _worker_end(ws: _Worker) -> None:
+    """Close the plan and send the caller what this process did (pixels per image, stage
+    spans, builds, peak RSS)."""
+    import warp as wp
+
+    plan = ws.plan
     try:
         st = plan._state if plan is not None else None
         info = dict(counts=plan._counted_sources() if plan is not None else None,
@@ -565,9 +614,9 @@ def _worker_main(w: int, device: str, threads: int, tasks: SimpleQueue, results:
         if plan is not None:
             plan.close()
         wp.synchronize()
-        results.put(("end", w, info))
+        ws.results.put(("end", ws.w, info))
     except BaseException as e:  # noqa: BLE001
-        results.put(("error", w, *_portable(e)))
+        ws.report(e)
     finally:
-        if buf is not None:
-            buf.close()
+        if ws.buf is not None:
+            ws.buf.close()

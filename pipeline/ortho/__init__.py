@@ -62,7 +62,7 @@ from .sink import (
     DEFAULT_QUALITY,
     DRIVERS,
     LOSSY,
-    choose_block_codec,
+    OutputSettings,
     device_codecs,
     finish,
     gdal_profile,
@@ -85,7 +85,7 @@ from .tiles import (
 if TYPE_CHECKING:
     from warp.context import Device
 
-__all__ = ["orthorectify", "OrthoResult", "RESAMPLING", "output_grid", "ImageTiles", "read_whole_source",
+__all__ = ["orthorectify", "OrthoResult", "RenderSettings", "OutputSettings", "RESAMPLING", "output_grid", "ImageTiles", "read_whole_source",
            "coarse_grid", "coarse_struct", "source_facts", "forward_coords", "parse_creation_options",
            "device_codecs", "nvcomp_available", "COARSE_STEP", "ORTHO_BLOCK_DIM", "BLOCK_CODECS", "SOURCE_READS",
            "DRIVERS", "COMPRESS", "LOSSY", "DEFAULT_QUALITY", "CREATION_OPTIONS", "MIN_FOOTPRINT_PIXELS"]
@@ -252,23 +252,115 @@ def orthorectify(src: str | os.PathLike, sensor: SensorModel, dst: str | os.Path
     -------
     OrthoResult
     """
-    t_wall = time.perf_counter()
-    timer = StageTimer(t_wall)  # intervals per stage and thread: see orthowarp.pipeline.reports.profile
+    timer = StageTimer(time.perf_counter())  # intervals per stage and thread: see orthowarp.pipeline.reports.profile
+    # the arguments checked, in this order (the first wrong one is reported)
+    method, resampling = _check_method(sensor, method, resampling)
+    compress, compress_level, quality = _check_compression(driver, compress, compress_level, quality, dtype)
+    block_codec = choice("block_codec", block_codec, BlockCodec).value
+    source_reads = choice("source_reads", source_reads, SourceReads).value
+    co = parse_creation_options(creation_options)
+    tile_size, workers = _check_tiling(tile_size, workers)
+    resolution = positive("resolution", resolution, none=True)
+    for name, value in (("refraction", refraction), ("overviews", overviews), ("overwrite", overwrite),
+                        ("same_vertical_datum", same_vertical_datum)):
+        flag(name, value)
+    progress = _check_progress(progress)
+    src, dst = os.fspath(src), os.fspath(dst)
+    source = _open_source(src, dst, sensor, overwrite)
+    output = OutputSettings(driver=driver, compress=compress, level=compress_level, quality=quality,
+                            dtype=_output_dtype(dtype, source, compress), co=co, overviews=overviews,
+                            block_codec=block_codec)
+
+    # the geometry, the tiling and the output grid
+    geom = SensorGeometry(sensor, as_dem(dem), refraction=refraction, device=device, geoid=geoid,
+                          same_vertical_datum=same_vertical_datum)
+    settings = RenderSettings(
+        method=method, resampling=resampling, source_reads=source_reads, workers=workers,
+        tile_size=tile_size if tile_size is not None else _default_tile_size(geom.device, source.count, workers),
+        progress=progress, cancel=cancel)
+    grid = _output_grid(geom, source, dst, dem, crs, resolution)
+
+    clipped = _Counter()
+    _write(geom, grid, source, output, settings, dst, overwrite, timer, clipped)
+    if clipped.n:
+        warnings.warn(f"Image '{src}': {clipped.n / clipped.total:.3%} of the {source.dtype} source values read lie "
+                      f"outside the {output.dtype} range [0, {int(np.iinfo(output.dtype).max)}] and were clipped in "
+                      f"'{dst}'", OrthowarpWarning, stacklevel=2)
+    prof = timer.profile()
+    timings = dict(timer.sums, wall=prof["wall_s"])
+    return OrthoResult(dst, grid.crs, grid.transform, grid.shape, grid.resolution, timings, prof)
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """How :func:`orthorectify` renders its tiles (checked values; see its parameters).
+
+    Attributes
+    ----------
+    method : {"backward", "forward"}
+    resampling : {"nearest", "bilinear", "bicubic", "lanczos"}
+    tile_size : int
+        Output tile edge (pixels).
+    workers : int or None
+        Tiles in flight at once; None: the device's default.
+    source_reads : {"auto", "whole", "tiles"}
+    progress : bool or tqdm-like
+        True: a bar of the run's own; a bar object: a shared bar advanced by the run.
+    cancel : threading.Event or None
+    """
+
+    method: str
+    resampling: str
+    tile_size: int
+    workers: int | None
+    source_reads: str
+    progress: Any = False
+    cancel: threading.Event | None = None
+
+
+@dataclass(frozen=True)
+class _Source:
+    """The source image: its path and what its content is."""
+
+    path: str
+    count: int  # bands
+    dtype: str
+    masked: bool  # nodata, a mask or alpha
+
+
+@dataclass(frozen=True)
+class _Grid:
+    """The output grid."""
+
+    crs: CRS
+    transform: Affine
+    shape: tuple[int, int]  # (rows, cols)
+    resolution: float
+
+
+def _check_method(sensor: SensorModel, method: str, resampling: str) -> tuple[str, str]:
+    """The sensor checked, and the method and resampling checked against it (their values)."""
     if not isinstance(sensor, SensorModel):
         raise ParamError(f"sensor must be a FrameSensor (camera and pose) or a PushbroomScene, got "
                          f"{type(sensor).__name__}")
     method = choice("method", method, Method).value
     if method == "forward" and sensor.kind != "frame":
         raise ParamError(f"{sensor.kind} sensors are orthorectified by the backward method only")
-    resampling = choice("resampling", resampling, Resampling).value
+    return method, choice("resampling", resampling, Resampling).value
+
+
+def _check_compression(driver: str, compress: str, level: int | None, quality: int | None,
+                       dtype: str | None) -> tuple[str, int | None, int | None]:
+    """The driver and data type checked, and the compression with its level and quality (the
+    default quality for lossy compression)."""
     if driver not in DRIVERS:
         raise ParamError(f"driver must be one of {DRIVERS}, got {driver!r}")
     compress = choice("compress", compress, Compress).value
-    if compress_level is not None:
+    if level is not None:
         top = {"deflate": 12, "zstd": 22}.get(compress)
         if top is None:
             raise ParamError(f"compress_level applies to deflate (1-12) and zstd (1-22), not {compress!r}")
-        compress_level = integer("compress_level", compress_level, low=1, high=top)
+        level = integer("compress_level", level, low=1, high=top)
     if quality is not None:
         if compress not in LOSSY:
             raise ParamError(f"quality applies to jpeg and webp compression, not {compress!r}")
@@ -279,42 +371,56 @@ def orthorectify(src: str | os.PathLike, sensor: SensorModel, dst: str | os.Path
         quality = DEFAULT_QUALITY
     if dtype is not None and dtype not in DTYPES:
         raise ParamError(f"dtype must be one of {DTYPES}, got {dtype!r}")
-    block_codec = choice("block_codec", block_codec, BlockCodec).value
-    source_reads = choice("source_reads", source_reads, SourceReads).value
-    co = parse_creation_options(creation_options)
+    return compress, level, quality
+
+
+def _check_tiling(tile_size: int | None, workers: int | None) -> tuple[int | None, int | None]:
+    """The tile size (a multiple of 16) and the worker count checked (None: the defaults)."""
     if tile_size is not None:
         tile_size = integer("tile_size", tile_size, low=16)
         if tile_size % 16:
             raise ParamError(f"tile_size must be a positive multiple of 16, got {tile_size}")
-    workers = integer("workers", workers, low=1, none=True)
-    resolution = positive("resolution", resolution, none=True)
-    for name, value in (("refraction", refraction), ("overviews", overviews), ("overwrite", overwrite),
-                        ("same_vertical_datum", same_vertical_datum)):
-        flag(name, value)
-    if not hasattr(progress, "update"):  # else a shared bar
-        try:
-            progress = flag("progress", progress)
-        except ParamError:
-            raise ParamError(f"progress must be True or False or a progress bar, got {progress!r}") from None
-    src, dst = os.fspath(src), os.fspath(dst)
+    return tile_size, integer("workers", workers, low=1, none=True)
+
+
+def _check_progress(progress: Any) -> Any:
+    """``progress`` checked: True or False, or a shared bar (anything with ``update``)."""
+    if hasattr(progress, "update"):
+        return progress
+    try:
+        return flag("progress", progress)
+    except ParamError:
+        raise ParamError(f"progress must be True or False or a progress bar, got {progress!r}") from None
+
+
+def _open_source(src: str, dst: str, sensor: SensorModel, overwrite: bool) -> _Source:
+    """The source image (its facts read and checked against the sensor), once the destination is checked."""
     check_destination(dst, overwrite=overwrite)
     if not os.path.exists(src):
         raise RasterIOError(f"Image '{src}' does not exist")
     if os.path.abspath(src) == os.path.abspath(dst):
         raise ParamError(f"Output '{dst}' is the source image: choose another name")
-    count, src_dtype, masked = source_facts(src, tuple(sensor.image_size), "camera" if sensor.kind == "frame" else "scene")
-    out_dtype = dtype or (src_dtype if src_dtype in DTYPES else "float32")
+    count, src_dtype, masked = source_facts(src, tuple(sensor.image_size),
+                                            "camera" if sensor.kind == "frame" else "scene")
+    return _Source(src, count, src_dtype, masked)
+
+
+def _output_dtype(dtype: str | None, source: _Source, compress: str) -> str:
+    """The output's data type (default: the source's), checked against the compression."""
+    out_dtype = dtype or (source.dtype if source.dtype in DTYPES else "float32")
     if compress in LOSSY and out_dtype != "uint8":
         raise ParamError(f"{compress} compression needs uint8 output")
-    if compress == "jpeg" and count not in (1, 3):
-        raise ParamError(f"jpeg compression takes 1 or 3 bands; '{src}' has {count}")
-    if compress == "webp" and count not in (3, 4):
-        raise ParamError(f"webp compression takes 3 or 4 bands; '{src}' has {count}")
+    if compress == "jpeg" and source.count not in (1, 3):
+        raise ParamError(f"jpeg compression takes 1 or 3 bands; '{source.path}' has {source.count}")
+    if compress == "webp" and source.count not in (3, 4):
+        raise ParamError(f"webp compression takes 3 or 4 bands; '{source.path}' has {source.count}")
+    return out_dtype
 
-    geom = SensorGeometry(sensor, as_dem(dem), refraction=refraction, device=device, geoid=geoid,
-                          same_vertical_datum=same_vertical_datum)
-    if tile_size is None:
-        tile_size = _default_tile_size(geom.device, count, workers)
+
+def _output_grid(geom: SensorGeometry, source: _Source, dst: str, dem: Dem | str | os.PathLike | float,
+                 crs: str | int | CRS | None, resolution: float | None) -> _Grid:
+    """The output grid (:func:`output_grid`), its errors naming the image and the DEM file."""
+    src = source.path
     try:
         out_crs, transform, shape, res = output_grid(geom, crs=crs, resolution=resolution, name=src)
     except GeometryError as e:
@@ -323,40 +429,28 @@ def orthorectify(src: str | os.PathLike, sensor: SensorModel, dst: str | os.Path
         raise GeometryError(f"Image '{src}'{where}: {e}") from e
     log.info("%s -> %s: %d x %d pixels at %.4g %s", src, dst, shape[1], shape[0], res,
              out_crs.axis_info[0].unit_name if out_crs.axis_info else "")
-    clipped = _Counter()
-    # A deflate or uncompressed COG streams through CogWriter (blocks compressed and overviews
-    # reduced as tiles arrive); other COGs are written uncompressed and copied by GDAL's COG
-    # driver, which compresses once.
-    streamed = driver == "COG" and compress in ("deflate", "none")
+    return _Grid(out_crs, transform, shape, res)
+
+
+def _write(geom: SensorGeometry, grid: _Grid, source: _Source, output: OutputSettings, settings: RenderSettings,
+           dst: str, overwrite: bool, timer: StageTimer, clipped: _Counter) -> None:
+    """The ortho written: its tiles rendered into a temporary, finished and published as ``dst``."""
     # the temporary's helper files (a COG's block file, GDAL's intermediate) are named after it
     # and removed with it whatever happens
     with atomic_path(dst, overwrite=overwrite) as tmp_final:
-        work = tmp_final if driver == "GTiff" or streamed else tmp_final + ".work.tif"
-        _render(src, geom, out_crs, transform, shape, count, out_dtype,
-                compress if driver == "GTiff" else "none", work, resampling, tile_size, progress,
-                workers, timer, dst, method, masked, compress_level, quality=quality, co=co,
-                cog=dict(compress=compress, level=compress_level or 6, block_size=co["block"], bigtiff=co["bigtiff"],
-                         threads=co["threads"]) if streamed else None, cancel=cancel,
-                block_codec=choose_block_codec(block_codec, geom.device, streamed and compress == "deflate",
-                                               compress_level or 6),
-                src_dtype=src_dtype, clipped=clipped, source_reads=source_reads)
+        work = tmp_final if output.driver == "GTiff" or output.streamed else tmp_final + ".work.tif"
+        output = output.for_device(geom.device)
+        _render(geom, grid, source, output, settings, work, dst, timer, clipped)
         t0 = time.perf_counter()
-        if not streamed:
+        if not output.streamed:
             try:
-                finish(work, tmp_final, driver, compress, overviews, out_dtype, compress_level, quality=quality,
-                       co=co)
+                finish(work, tmp_final, output.driver, output.compress, output.overviews, output.dtype, output.level,
+                       quality=output.quality, co=output.co)
             except GDAL_ERRORS as e:
                 raise write_error(dst, tmp_final, e) from e
             verify_tiff(tmp_final, name=dst)  # GDAL's close does not report failed writes
         timer.span("finish", t0)
-        check_cancel(cancel, dst)
-    if clipped.n:
-        warnings.warn(f"Image '{src}': {clipped.n / clipped.total:.3%} of the {src_dtype} source values read lie "
-                      f"outside the {out_dtype} range [0, {int(np.iinfo(out_dtype).max)}] and were clipped in "
-                      f"'{dst}'", OrthowarpWarning, stacklevel=2)
-    prof = timer.profile()
-    timings = dict(timer.sums, wall=prof["wall_s"])
-    return OrthoResult(dst, out_crs, transform, shape, res, timings, prof)
+        check_cancel(settings.cancel, dst)
 
 
 def _default_tile_size(device: Device, bands: int, workers: int | None) -> int:
@@ -374,24 +468,22 @@ def _default_tile_size(device: Device, bands: int, workers: int | None) -> int:
     return size
 
 
-def _render(src: str, geom: SensorGeometry, out_crs: CRS, transform: Affine, shape: tuple[int, int], count: int,
-            out_dtype: str, compress: str, path: str, resampling: str, tile_size: int, progress: Any,
-            workers: int | None, timer: StageTimer, final_name: str, method_name: str, masked: bool,
-            compress_level: int | None = None, cog: dict[str, Any] | None = None,
-            cancel: threading.Event | None = None, src_dtype: str | None = None, clipped: _Counter | None = None,
-            block_codec: str = "host", quality: int | None = None, co: dict[str, Any] | None = None,
-            source_reads: str = "tiles") -> None:
+def _render(geom: SensorGeometry, grid: _Grid, source: _Source, output: OutputSettings, settings: RenderSettings,
+            path: str, final_name: str, timer: StageTimer, clipped: _Counter | None = None) -> None:
     """:func:`orthorectify`'s tiles: rendered on a thread pool and written into ``path``
-    (through :func:`~orthowarp.pipeline.ortho.sink.open_sink`)."""
-    rows, cols = shape
+    (through :func:`~orthowarp.pipeline.ortho.sink.open_sink`); ``output.block_codec`` is resolved."""
+    rows, cols = grid.shape
+    count, out_dtype, tile_size, cancel = source.count, output.dtype, settings.tile_size, settings.cancel
     is_float = out_dtype == "float32"
-    profile = gdal_profile(out_crs, transform, shape, count, out_dtype, compress, compress_level, co, quality)
+    profile = gdal_profile(grid.crs, grid.transform, grid.shape, count, out_dtype, output.tile_compress, output.level,
+                           output.co, output.quality)
+    cog = output.cog_options()
     device = geom.device
     tiles = [(r0, c0, min(tile_size, rows - r0), min(tile_size, cols - c0))
              for r0 in range(0, rows, tile_size) for c0 in range(0, cols, tile_size)]
-    image = ImageTiles(src, geom, out_crs, transform, count=count, out_dtype=out_dtype, resampling=resampling,
-                       method=method_name, masked=masked, src_dtype=src_dtype, timer=timer, clipped=clipped,
-                       source_reads=source_reads)
+    image = ImageTiles(source.path, geom, grid.crs, grid.transform, count=count, out_dtype=out_dtype,
+                       resampling=settings.resampling, method=settings.method, masked=source.masked,
+                       src_dtype=source.dtype, timer=timer, clipped=clipped, source_reads=settings.source_reads)
 
     def run(tile: tuple[int, int, int, int]) -> None:
         check_cancel(cancel, final_name)
@@ -415,7 +507,8 @@ def _render(src: str, geom: SensorGeometry, out_crs: CRS, transform: Affine, sha
         # the COG writer compresses in its own threads (timed there as "write"): here the hand-off
         timer.span("queue" if cog is not None else "write", t)
 
-    n_workers = workers or (4 if device.is_cuda else (os.cpu_count() or 1))
+    n_workers = settings.workers or (4 if device.is_cuda else (os.cpu_count() or 1))
+    progress, block_codec = settings.progress, output.block_codec
     try:
         # A bounded GDAL block cache for the source reads and GDAL-written outputs: the default
         # (5 % of RAM) would hold gigabytes of blocks.

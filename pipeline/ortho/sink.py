@@ -12,10 +12,12 @@ cloud-optimized layout by GDAL's COG driver after their overviews are built (:fu
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -36,7 +38,7 @@ if TYPE_CHECKING:
     from ..raster.device import WarpDeflate
     from ..reports.profile import StageTimer
 
-__all__ = ["open_sink", "Sink", "finish", "gdal_profile", "gdal_creation_options", "parse_creation_options",
+__all__ = ["open_sink", "Sink", "OutputSettings", "finish", "gdal_profile", "gdal_creation_options", "parse_creation_options",
            "choose_block_codec", "device_codecs", "nvcomp_available", "DRIVERS", "COMPRESS", "LOSSY",
            "DEFAULT_QUALITY", "BLOCK_CODECS", "CREATION_OPTIONS"]
 
@@ -271,6 +273,68 @@ def device_codecs(block_codec: str, level: int, device: Device) -> list:
     if block_codec in ("hybrid", "device"):
         codecs.append(HostDeflate(level))
     return codecs
+
+
+@dataclass(frozen=True)
+class OutputSettings:
+    """How an orthoimage is written: format, compression, data type and block codec (checked
+    values; see :func:`~orthowarp.pipeline.ortho.orthorectify`'s parameters).
+
+    Attributes
+    ----------
+    driver : {"COG", "GTiff"}
+    compress : str
+        One of :data:`COMPRESS`.
+    level : int or None
+        Deflate or zstd level; None: the writer's default.
+    quality : int or None
+        JPEG / WebP quality of lossy outputs.
+    dtype : {"uint8", "uint16", "float32"}
+    co : dict
+        Parsed creation options (:func:`parse_creation_options`).
+    overviews : bool
+        Build overviews (always for COG).
+    block_codec : str
+        Who compresses a deflate COG's blocks: the caller's choice (one of :data:`BLOCK_CODECS`),
+        resolved for a device by :meth:`for_device` (:func:`choose_block_codec`).
+    """
+
+    driver: str
+    compress: str
+    level: int | None
+    quality: int | None
+    dtype: str
+    co: dict[str, Any]
+    overviews: bool
+    block_codec: str
+
+    @property
+    def streamed(self) -> bool:
+        """Whether the file streams through :class:`~orthowarp.pipeline.raster.cog.CogWriter`
+        (blocks compressed and overviews reduced as tiles arrive): a deflate or uncompressed COG.
+        Other COGs are written uncompressed and copied by GDAL's COG driver, which compresses once."""
+        return self.driver == "COG" and self.compress in ("deflate", "none")
+
+    @property
+    def tile_compress(self) -> str:
+        """The compression of the file the tiles go into: the output's for GTiff, else none
+        (a COG is compressed by its writer or by GDAL's COG driver)."""
+        return self.compress if self.driver == "GTiff" else "none"
+
+    def cog_options(self) -> dict[str, Any] | None:
+        """The options of :class:`~orthowarp.pipeline.raster.cog.CogWriter` for a streamed output
+        (:func:`open_sink`'s ``cog``); None for the others."""
+        if not self.streamed:
+            return None
+        co = self.co
+        return dict(compress=self.compress, level=self.level or 6, block_size=co["block"], bigtiff=co["bigtiff"],
+                    threads=co["threads"])
+
+    def for_device(self, device: Device) -> OutputSettings:
+        """These settings with the block codec resolved for ``device`` (:func:`choose_block_codec`)."""
+        codec = choose_block_codec(self.block_codec, device, self.streamed and self.compress == "deflate",
+                                   self.level or 6)
+        return dataclasses.replace(self, block_codec=codec)
 
 
 class Sink:
