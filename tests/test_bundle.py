@@ -697,3 +697,12 @@ def test_doubling_the_a_priori_sigmas_halves_sigma0_and_keeps_the_covariances():
     assert b.sigma0 == pytest.approx(a.sigma0 / 2, rel=1e-9)
     np.testing.assert_allclose(b.pose_cov, a.pose_cov, rtol=1e-9, atol=1e-15)
     np.testing.assert_allclose(b.point_cov, a.point_cov, rtol=1e-9, atol=1e-15)
+
+
+def test_the_correlation_warning_explains_the_classic_centre_tilt_pairs():
+    from orthowarp.adjust.bundle.result import correlation_note
+
+    classic = [("a", "x", "phi", 0.999), ("b", "y", "omega", -0.998)]
+    assert "expected for near-vertical images" in correlation_note(classic)
+    assert correlation_note(classic + [("c", "z", "kappa", 0.97)]) == ""  # anything else: no explanation offered
+    assert correlation_note([]) == ""

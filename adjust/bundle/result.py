@@ -153,9 +153,24 @@ def _correlation_warnings(image_ids: list[str], pose_cov: np.ndarray | None,
                     if abs(corr[a, c]) > corr_limit:
                         warnings.append((image_ids[k], POSE_NAMES[a], POSE_NAMES[c], float(corr[a, c])))
     if warnings:
-        log.warning("%d pose parameter pairs are correlated beyond %.2f (first: image %s, %s/%s r = %+.3f)",
-                    len(warnings), corr_limit, *warnings[0])
+        log.warning("%d pose parameter pairs are correlated beyond %.2f (first: image %s, %s/%s r = %+.3f)%s",
+                    len(warnings), corr_limit, *warnings[0], correlation_note(warnings))
     return warnings
+
+
+# the projection centre's shift along x (y) and the tilt about y (x): for near-vertical images
+# both move the image the same way to first order, so a block determines them jointly
+_CENTRE_TILT = ({"x", "phi"}, {"y", "omega"})
+
+
+def correlation_note(warnings: list[tuple[str, str, str, float]]) -> str:
+    """A clause saying what the correlated pairs mean when they are all the classic ones of
+    near-vertical frame images (x with phi, y with omega), else ''."""
+    if warnings and all({a, b} in _CENTRE_TILT for _, a, b, _ in warnings):
+        return ("; all are x with phi or y with omega, as expected for near-vertical images, where a shift of "
+                "the projection centre and a tilt move the image alike: positions of the centres (GNSS) or "
+                "control at different heights separate them")
+    return ""
 
 
 def _adjusted_points(pr: _Problem, pts: np.ndarray, st: dict,
