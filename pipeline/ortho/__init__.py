@@ -85,10 +85,11 @@ from .tiles import (
 if TYPE_CHECKING:
     from warp.context import Device
 
-__all__ = ["orthorectify", "OrthoResult", "RenderSettings", "OutputSettings", "RESAMPLING", "output_grid", "ImageTiles", "read_whole_source",
-           "coarse_grid", "coarse_struct", "source_facts", "forward_coords", "parse_creation_options",
-           "device_codecs", "nvcomp_available", "COARSE_STEP", "ORTHO_BLOCK_DIM", "BLOCK_CODECS", "SOURCE_READS",
-           "DRIVERS", "COMPRESS", "LOSSY", "DEFAULT_QUALITY", "CREATION_OPTIONS", "MIN_FOOTPRINT_PIXELS"]
+__all__ = ["orthorectify", "OrthoResult", "RenderSettings", "OutputSettings", "RESAMPLING", "output_grid",
+           "ImageTiles", "read_whole_source", "coarse_grid", "coarse_struct", "source_facts", "forward_coords",
+           "parse_creation_options", "device_codecs", "nvcomp_available", "COARSE_STEP", "ORTHO_BLOCK_DIM",
+           "BLOCK_CODECS", "SOURCE_READS", "DRIVERS", "COMPRESS", "LOSSY", "DEFAULT_QUALITY", "CREATION_OPTIONS",
+           "MIN_FOOTPRINT_PIXELS"]
 
 log = logging.getLogger(__name__)
 

@@ -6,7 +6,8 @@ block codec, from the device (:class:`~orthowarp.pipeline.raster.device.DeviceCo
 its raw-deflate codecs: :func:`choose_block_codec`, :func:`device_codecs`); other outputs go
 through GDAL's GTiff driver (:func:`gdal_profile`) and, for a COG, are copied into the
 cloud-optimized layout by GDAL's COG driver after their overviews are built (:func:`finish`).
-:func:`parse_creation_options` checks the GDAL-style creation options every writer takes.
+:func:`parse_creation_options` checks the GDAL-style creation options every writer takes;
+:class:`OutputSettings` holds how one output is written.
 """
 
 from __future__ import annotations
@@ -38,9 +39,9 @@ if TYPE_CHECKING:
     from ..raster.device import WarpDeflate
     from ..reports.profile import StageTimer
 
-__all__ = ["open_sink", "Sink", "OutputSettings", "finish", "gdal_profile", "gdal_creation_options", "parse_creation_options",
-           "choose_block_codec", "device_codecs", "nvcomp_available", "DRIVERS", "COMPRESS", "LOSSY",
-           "DEFAULT_QUALITY", "BLOCK_CODECS", "CREATION_OPTIONS"]
+__all__ = ["open_sink", "Sink", "OutputSettings", "finish", "gdal_profile", "gdal_creation_options",
+           "parse_creation_options", "choose_block_codec", "device_codecs", "nvcomp_available", "DRIVERS",
+           "COMPRESS", "LOSSY", "DEFAULT_QUALITY", "BLOCK_CODECS", "CREATION_OPTIONS"]
 
 DRIVERS = ("COG", "GTiff")
 COMPRESS = values(Compress)

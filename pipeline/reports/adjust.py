@@ -31,6 +31,7 @@ import numpy as np
 import yaml
 from pyproj import CRS
 
+from ...adjust.bundle.result import correlation_note
 from ...errors import GeometryError, ParamError
 from ..formats.export import camera_dict
 from ..raster.io import ensure_folder, write_files
@@ -225,13 +226,13 @@ def _markdown(r: dict, plots: bool) -> str:
             lines.append(f"- {name} point RMSE: " + ", ".join(f"{a} {x:.4f} m" for a, x in zip(axes, v)))
     u = r["unused"]
     if r["observations"] > r["observations_used"]:
-        parts = [f"{u['check']} of check points (they only intersect those points afterwards)"] if u["check"] else []
+        parts = [f"{u['check']} observations of check points (they only intersect those points afterwards)"] if u["check"] else []
         if u["rejected"]:
-            parts.append(f"{u['rejected']} rejected (below)")
+            parts.append(f"{u['rejected']} observations rejected (below)")
         if u["lonely_ties"]:
-            parts.append(f"{u['lonely_ties']} of tie points left with fewer than two rays (undetermined)")
+            parts.append(f"{u['lonely_ties']} observations of tie points left with fewer than two rays (undetermined)")
         if u["other"]:
-            parts.append(f"{u['other']} set aside by the robust start")
+            parts.append(f"{u['other']} observations set aside by the robust start")
         lines.append("- not in the adjustment: " + ", ".join(parts))
     if r["cameras"]:
         lines += ["", "## Cameras", "", "| camera | parameter | value | sigma |", "|---|---|---|---|"]
@@ -252,8 +253,9 @@ def _markdown(r: dict, plots: bool) -> str:
             lines.append(f"- point {x['point']} in image {x['image']}: |w| = {abs(x['w']):.2f}{tail}")
     if r["correlation_warnings"]:
         worst = sorted(r["correlation_warnings"], key=lambda x: -abs(x["r"]))
+        note = correlation_note([(x["image"], x["a"], x["b"], x["r"]) for x in worst])
         lines += ["", "## High correlations", "",
-                  f"{len(worst)} pose parameter pairs correlated beyond the limit; the "
+                  f"{len(worst)} pose parameter pairs correlated beyond the limit{note}; the "
                   f"{min(10, len(worst))} strongest (all in report.json):", ""]
         lines += [f"- {x['image']}: {x['a']} / {x['b']} r = {x['r']:+.3f}" for x in worst[:10]]
     if plots:
