@@ -289,6 +289,9 @@ class PushbroomScene(SensorModel):
     """
 
     kind = "pushbroom"
+    noun = "scene"
+    forward_method = False
+    line_timed = True
 
     def __init__(self, *, width: int, height: int, line_period: float, center_line: float, eph_time: ArrayLike,
                  eph_position: ArrayLike, eph_velocity: ArrayLike, att_time: ArrayLike, att_angles: ArrayLike,

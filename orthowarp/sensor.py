@@ -24,6 +24,14 @@ and never branch on the kind of sensor (after orthority's ``Camera``, Vision Wor
   geo triples the kernels take and return), :meth:`SensorModel.reference_height` (the
   sensor's height, for the refraction table) and :attr:`SensorModel.positions` (mode and
   CRS of the positions, for reconciling vertical datums).
+- **Capabilities.** Where the layers above must treat sensors differently, they ask a class
+  attribute the sensor declares, never :attr:`SensorModel.kind` (which names the kind in
+  messages and summaries): :attr:`SensorModel.noun` (what an image of the sensor is called in
+  messages: "camera", "scene"), :attr:`SensorModel.forward_method` (it can be orthorectified
+  by the forward, direct method, not only the backward one) and
+  :attr:`SensorModel.line_timed` (each image line has its own time and orientation, as a
+  pushbroom scene's orbit and attitude; False: one pose, ``sensor.pose``, for the whole
+  image, whose covariance ``pose_cov`` is).
 
 A new sensor (RPC, say) plugs in by subclassing :class:`SensorModel`: its struct and device
 functions in a kernels/ module, their overloads in :mod:`orthowarp.kernels.sensor` and
@@ -106,6 +114,17 @@ class SensorModel(abc.ABC):
     """
 
     kind: str = ""  # "frame", "pushbroom": for messages and summaries
+
+    # -- capabilities (class attributes: what the layers above ask instead of ``kind``) -------
+    #: What an image of this sensor is called in messages ("camera", "scene").
+    noun: str = ""
+    #: True when the forward (direct) method can orthorectify its images; else backward only.
+    forward_method: bool = False
+    #: True when each image line has its own time and orientation (orbit and attitude at the
+    #: line's time: the seams' viewpoint and the ortho's first guesses follow the line, and the
+    #: accuracy propagates an ``orientation_cov``); False: one pose (``pose``) for the whole
+    #: image, whose covariance is ``pose_cov``.
+    line_timed: bool = False
 
     # -- geometry facts ------------------------------------------------------------------------
     @property
@@ -303,6 +322,9 @@ class FrameSensor(SensorModel):
     """
 
     kind = "frame"
+    noun = "camera"
+    forward_method = True
+    line_timed = False
 
     def __init__(self, camera: FrameCamera, pose: Pose) -> None:
         from .camera import FrameCamera

@@ -46,6 +46,7 @@ from ..geodesy import WGS84_A, WGS84_E2
 from ..kernels.precision import hidden_facets_kernel
 from .dem import as_dem
 from .raster.io import write_raster
+from .tiles import Tile
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
@@ -372,7 +373,7 @@ def frame_window_sigmas(geometry: SensorGeometry, crs: CRS, cells: Affine, windo
     crs : pyproj.CRS
     cells : affine.Affine
         The accuracy grid's transform (north up: no rotation terms).
-    window : (row0, col0, rows, cols)
+    window : Tile or (row0, col0, rows, cols)
         The cells to compute.
     c_raw : ndarray (20, 20)
         :func:`raw_covariance` of the image.
@@ -408,7 +409,8 @@ def frame_window_sigmas(geometry: SensorGeometry, crs: CRS, cells: Affine, windo
         raise ParamError(f"the accuracy grid must be north up (no rotation terms), got {tuple(cells)[:6]}")
     _check_sigmas(pixel_sigma, dem_sigma)
     table = ce90_table() if _measure(measure) == "ce90" else np.zeros(0)
-    r0, c0, rows, cols = map(int, window)
+    window = Tile(*map(int, window))
+    rows, cols = window.shape
     device = geometry.device
     clock = [time.perf_counter()]
 
@@ -420,7 +422,7 @@ def frame_window_sigmas(geometry: SensorGeometry, crs: CRS, cells: Affine, windo
             clock[0] = now
 
     to_frame = Transformer.from_crs(crs, geometry.horizontal_crs, always_xy=True)
-    grid = coarse_struct(coarse_grid(cells, to_frame, r0, c0, rows, cols, step=nodes), geometry.geocentric, device,
+    grid = coarse_struct(coarse_grid(cells, to_frame, *window, step=nodes), geometry.geocentric, device,
                          step=nodes)
     tick("nodes")
     arg, refr = geometry.sensor_structs()
@@ -650,15 +652,16 @@ def sensor_accuracy_raster(dst: str | os.PathLike, sensor: SensorModel, dem: Dem
     ParamError
         The covariance the sensor needs is missing, or the sensor is of another kind.
     """
-    kind = getattr(sensor, "kind", None)
-    if kind == "pushbroom":
+    from ..sensor import SensorModel
+
+    if not isinstance(sensor, SensorModel):
+        raise ParamError(f"sensor must be a FrameSensor or a PushbroomScene, got {type(sensor).__name__}")
+    if sensor.line_timed:
         if orientation_cov is None:
             raise ParamError("The accuracy of a pushbroom scene needs orientation_cov (8 x 8)")
         return scene_accuracy_raster(dst, sensor, dem, crs, transform, shape, orientation_cov=orientation_cov,
                                      pixel_sigma=pixel_sigma, dem_sigma=dem_sigma, measure=measure, step=step,
                                      refraction=refraction, device=device)
-    if kind != "frame":
-        raise ParamError(f"sensor must be a FrameSensor or a PushbroomScene, got {type(sensor).__name__}")
     if pose_cov is None:
         raise ParamError("The accuracy of a frame image needs pose_cov")
     return accuracy_raster(dst, sensor.camera, sensor.pose, dem, crs, transform, shape, pose_cov=pose_cov,
@@ -751,7 +754,7 @@ def mosaic_accuracy_raster(dst: str | os.PathLike, images: Sequence, index: str 
         sensor = item if isinstance(item, SensorModel) else item[1]
         if not isinstance(sensor, SensorModel):
             raise ParamError(f"images[{k}] must be a sensor or (source, sensor), got {type(sensor).__name__}")
-        if sensor.kind == "pushbroom":
+        if sensor.line_timed:
             if orientation_cov is None:
                 raise ParamError("mosaic_accuracy_raster: a pushbroom scene needs orientation_cov")
             ox, oy = _cell_centres(grid, rows, cols, at)
@@ -763,13 +766,13 @@ def mosaic_accuracy_raster(dst: str | os.PathLike, images: Sequence, index: str 
                 raise ParamError("mosaic_accuracy_raster: frame images need pose_cov")
             # the image's cells: its window of the grid on the device, then those it supplies
             i, j = np.divmod(at, cols)
-            win = (i.min(), j.min(), i.max() - i.min() + 1, j.max() - j.min() + 1)
+            win = Tile(int(i.min()), int(j.min()), int(i.max() - i.min() + 1), int(j.max() - j.min() + 1))
             geom = SensorGeometry(sensor, dem, refraction=refraction, device=device, geoid=geoid,
                                   same_vertical_datum=same_vertical_datum)
             sig = frame_window_sigmas(geom, crs, grid, win, raw_covariance(sensor.camera, sensor.pose,
                                                                            pose_cov=pose_cov),
                                       pixel_sigma=pixel_sigma, dem_sigma=dem_sigma, measure=measure)
-            out[:, at] = sig[:, i - win[0], j - win[1]]
+            out[:, at] = sig[:, i - win.row, j - win.col]
     out = out.reshape(3, rows, cols)[:bands]
     _write_accuracy(dst, out, grid, crs, measure)
     return out

@@ -139,6 +139,26 @@ def test_pushbroom_scene_is_a_sensor_model(poly_scene):
         plain.parameters()
 
 
+# The capabilities the layers above ask instead of ``kind`` (see SensorModel's doc), with the
+# values each sensor declares: (noun, forward_method, line_timed).
+CAPABILITIES = {"frame": ("camera", True, False), "pushbroom": ("scene", False, True)}
+
+
+@pytest.mark.parametrize("cls", [FrameSensor, ow.PushbroomScene], ids=lambda c: c.__name__)
+def test_sensors_declare_their_capabilities(cls):
+    """Each sensor class declares every capability itself (not inherited from the protocol's
+    blank defaults), with the protocol's types, and consistently with its ``kind``: a sensor
+    with one pose is the one the forward method takes, a line-timed one is not."""
+    names = ("noun", "forward_method", "line_timed")
+    for name in names:
+        assert name in vars(SensorModel), name  # documented on the protocol
+        assert name in vars(cls), f"{cls.__name__} does not declare {name}"
+        assert type(getattr(cls, name)) is type(getattr(SensorModel, name)), name
+    assert cls.noun and cls.kind in CAPABILITIES
+    assert tuple(getattr(cls, n) for n in names) == CAPABILITIES[cls.kind]
+    assert not (cls.forward_method and cls.line_timed)
+
+
 def test_pushbroom_jacobians_linearise_the_projection(poly_scene):
     """Central differences: a step along the derivative predicts the projection's change to
     second order (independent small steps, not those of the Jacobian). The look angles are

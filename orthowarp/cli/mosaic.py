@@ -100,7 +100,7 @@ def mosaic(ctx: click.Context, images: tuple[str, ...], **kwargs: Any) -> None:
         from ..adjust.precision import pose_inputs
 
         for _, sensor in jobs:
-            if sensor.kind != "pushbroom":
+            if not sensor.line_timed:
                 pose_inputs(sensor.pose, len(sigmas[0]))
     terrain = Dem.from_file(o.dem) if o.dem is not None else o.height
     processes = o.processes

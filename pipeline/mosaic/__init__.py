@@ -50,6 +50,7 @@ from ...options import BlockCodec, choice
 from ..dem import Dem
 from ..ortho.sink import parse_creation_options
 from ..raster.io import check_cancel
+from ..tiles import Tile
 from .plan import (
     NO_SOURCE,
     MosaicPlan,
@@ -245,31 +246,31 @@ def _write_mosaic(plan: MosaicPlan, procs: ProcessTiles | None, dst: str, on: wp
         plan.close()
 
 
-def _thread_results(plan: MosaicPlan, tiles: list[tuple[int, int, int, int]], codec: str, on: wp.context.Device,
+def _thread_results(plan: MosaicPlan, tiles: list[Tile], codec: str, on: wp.context.Device,
                     host_source: bool, workers: int | None, cancel: threading.Event | None,
-                    dst: str) -> Iterator[tuple[tuple[int, int, int, int], tuple]]:
+                    dst: str) -> Iterator[tuple[Tile, tuple]]:
     """Tile results for :meth:`MosaicPlan.write` from a thread pool of this process, in the
     order of :func:`~orthowarp.pipeline.mosaic.workers.tile_runs` (its runs in turn), at most 2 x workers
     tiles in flight (bounded memory); with a device ``codec`` each tile goes to the plan's
     encoder from its thread."""
     n_workers = workers or (8 if on.is_cuda else (os.cpu_count() or 1))
 
-    def tile(r0: int, c0: int, th: int, tw: int) -> tuple:
+    def tile(t: Tile) -> tuple:
         if codec == "host":
-            return plan.tile(r0, c0, th, tw, cancel=cancel, name=dst)
+            return plan.tile(*t, cancel=cancel, name=dst)
         # the tile stays on the device: blocks, overview levels and checksums made there
         check_cancel(cancel, dst)
-        out, has, source = plan._tile(r0, c0, th, tw, device=on)
-        plan._encoder.write(r0, c0, out, has)
+        out, has, source = plan._tile(*t, device=on)
+        plan._encoder.write(t.row, t.col, out, has)
         if not host_source:
             plan._count_sources(source)
             return None, None, None
         source = to_host(source)
         return None, source != NO_SOURCE, source
 
-    def run(tile_: tuple[int, int, int, int], used: tuple[int, ...], token: dict[int, int]) -> tuple:
+    def run(tile_: Tile, used: tuple[int, ...], token: dict[int, int]) -> tuple:
         try:
-            return tile(*tile_)
+            return tile(tile_)
         finally:
             plan._note_done(used, token)  # the images no later tile uses are dropped
 
@@ -296,9 +297,9 @@ def _thread_results(plan: MosaicPlan, tiles: list[tuple[int, int, int, int]], co
             raise
 
 
-def _process_results(plan: MosaicPlan, procs: ProcessTiles, tiles: list[tuple[int, int, int, int]], size: int,
+def _process_results(plan: MosaicPlan, procs: ProcessTiles, tiles: list[Tile], size: int,
                      codec: str, on: wp.context.Device, host_source: bool, cancel: threading.Event | None,
-                     dst: str) -> Iterator[tuple[tuple[int, int, int, int], tuple]]:
+                     dst: str) -> Iterator[tuple[Tile, tuple]]:
     """Tile results for :meth:`MosaicPlan.write` from worker processes, as they finish: the
     plan sent to them now, each finished tile uploaded to this process's device for the
     device ``codec``'s encoder or copied for the host writer, and at the end the workers'
@@ -307,17 +308,16 @@ def _process_results(plan: MosaicPlan, procs: ProcessTiles, tiles: list[tuple[in
     st = plan._materialise()  # the stage timer starts with the tiles, as on threads
     procs.start_plan(plan, (size, size), with_source=codec == "host" or host_source)
 
-    def results() -> Iterator[tuple[tuple[int, int, int, int], tuple]]:
+    def results() -> Iterator[tuple[Tile, tuple]]:
         images = plan._tile_images(tiles)
         for tile, values, valid, source, release in procs.run(tiles, plan.count, plan.dtype, images=images,
                                                               cancel=cancel, name=dst):
             try:
-                r0, c0 = tile[:2]
                 ok = valid.view(bool)
                 if codec == "host":  # (the slot is reused: copies)
                     yield tile, (values.copy(), ok.copy(), source.copy())
                     continue
-                plan._encoder.write(r0, c0, wp.array(values, device=on), wp.array(valid, dtype=wp.uint8, device=on))
+                plan._encoder.write(tile.row, tile.col, wp.array(values, device=on), wp.array(valid, dtype=wp.uint8, device=on))
                 yield tile, (None, ok.copy(), source.copy()) if source is not None else (None, None, None)
             finally:
                 release()

@@ -23,6 +23,7 @@ import warp as wp
 from ..._device import to_host
 from ...kernels import mosaic as mosaic_kernels
 from ..ortho.tiles import COARSE_STEP, TOP, WP_TYPES, coarse_grid, coarse_struct
+from ..tiles import Tile
 from .seams import NO_SOURCE
 
 if TYPE_CHECKING:
@@ -47,40 +48,42 @@ class TileBlending:
 
     def _tile(self, r0: int, c0: int, th: int, tw: int, device: Device | None = None) -> tuple:
         """:meth:`~orthowarp.pipeline.mosaic.plan.MosaicPlan.tile`'s arrays; with ``device``, warp arrays there (valid as uint8) from a
-        tile computed on that device."""
+        tile computed on that device. (The four numbers, not a :class:`~orthowarp.pipeline.tiles.Tile`:
+        the hook that worker processes call and tests override.)"""
         st = self._materialise()
-        out, source, has = self._select(st, "renderer", r0, c0, th, tw, device=device)
+        tile = Tile(r0, c0, th, tw)
+        out, source, has = self._select(st, "renderer", tile, device=device)
         missing = ~(to_host(has).view(bool) if device is not None else has)
-        if self.options["method"] == "forward" and missing.any() and any(s[1].kind == "frame" for s in self.sources):
+        if self.options["method"] == "forward" and missing.any() and any(s[1].forward_method for s in self.sources):
             # ground no image sees by the forward method (hidden, where it drops folded quads on
             # a rough DSM, or the half pixel along a footprint's edge): the backward method's
             # value, from the same rule, on the blocks of the tile that have such pixels
-            for br0, bc0, bh, bw in _fallback_blocks(missing, self.labels, self.seam_step, r0, c0):
-                out2, source2, has2 = self._select(st, "fallback", br0, bc0, bh, bw, device=device)
+            for block in _fallback_blocks(missing, self.labels, self.seam_step, r0, c0):
+                out2, source2, has2 = self._select(st, "fallback", block, device=device)
                 if device is not None:
-                    wp.launch(mosaic_kernels.mosaic_fill_kernel, dim=(bh, bw), device=device,
-                              inputs=[out, has, source, out2, has2, source2, br0 - r0, bc0 - c0])
+                    wp.launch(mosaic_kernels.mosaic_fill_kernel, dim=block.shape, device=device,
+                              inputs=[out, has, source, out2, has2, source2, block.row - r0, block.col - c0])
                     continue
-                sl = np.s_[br0 - r0:br0 - r0 + bh, bc0 - c0:bc0 - c0 + bw]
+                sl = block.within(tile)
                 fill = has2 & ~has[sl]
                 out[sl][fill], source[sl][fill] = out2[fill], source2[fill]
                 has[sl] |= fill
         return out, has, source
 
-    def _select(self, st: dict, which: str, r0: int, c0: int, th: int, tw: int, *,
-                device: Device | None = None) -> tuple:
+    def _select(self, st: dict, which: str, tile: Tile, *, device: Device | None = None) -> tuple:
         """(values of the output dtype (th, tw, bands), source index (th, tw), has a value
-        (th, tw)) of a tile from the images' ``which`` tile functions ("renderer" or
+        (th, tw)) of a ``tile`` from the images' ``which`` tile functions ("renderer" or
         "fallback"; see :func:`~orthowarp.pipeline.mosaic.mosaic`): host arrays (has: bool), or with ``device`` warp
         arrays there (has: uint8)."""
         o, timer = self.options, st["timer"]
         count, feather = self.count, o["feather"]
         top = TOP[self.dtype]
+        th, tw = tile.shape
         if o["blend"] == "multiband":
             halo = multiband_halo(feather)
-            got = self._stack(st, which, r0 - halo, c0 - halo, th + 2 * halo, tw + 2 * halo, fade=False)
+            got = self._stack(st, which, tile.grown(halo), fade=False)
         else:
-            got = self._stack(st, which, r0, c0, th, tw, fade=o["blend"] == "feather")
+            got = self._stack(st, which, tile, fade=o["blend"] == "feather")
         if got is None:
             out = np.full((th, tw, count), np.nan if top == 0.0 else 0, self.dtype)
             source, has = np.full((th, tw), NO_SOURCE, np.uint16), np.zeros((th, tw), bool)
@@ -108,33 +111,34 @@ class TileBlending:
         timer.span("d2h", t)
         return out, source, has
 
-    def _stack(self, st: dict, which: str, r0: int, c0: int, th: int, tw: int, *, fade: bool) -> tuple | None:
-        """The images that have pixels in the tile (r0, c0, th, tw): their positions, their
+    def _stack(self, st: dict, which: str, tile: Tile, *, fade: bool) -> tuple | None:
+        """The images that have pixels in the ``tile`` (th, tw): their positions, their
         balanced values (device, (n, th, tw, bands) float32) and ranks (device, (n, th, tw)
         float32: signed distance from the image's region of the seam labelling, plus with
         ``fade`` the fade towards the image's border; +inf without a value), and the device;
         None where no image has pixels there."""
         o, timer = self.options, st["timer"]
         count, feather = self.count, o["feather"]
+        (r0, c0), (th, tw) = tile[:2], tile.shape
         rendered = []  # (k, values, valid, the node pixels for the fade or None, image size)
         device = None
         grids = {}  # coarse grids by transformer: images in one pose frame share the tile's nodes
-        for k in self._images_meeting(r0, c0, th, tw):
+        for k in self._images_meeting(tile):
             with self._image(k) as entry:
                 # (a pushbroom scene has no forward method: its backward tile function serves both)
-                values, valid = entry.get(which, entry["renderer"]).render(r0, c0, th, tw)
+                values, valid = entry.get(which, entry["renderer"]).render(*tile)
                 if values is None:
                     continue
                 device = values.device
                 pixels = None
                 if fade:  # towards the image's border, over the blend's width: its nodes' pixels
-                    pixels = self._node_pixels(entry, grids, r0, c0, th, tw, device, timer)
+                    pixels = self._node_pixels(entry, grids, tile, device, timer)
                 rendered.append((k, values, valid, pixels, entry["geom"].image_size))
         if not rendered:
             return None
         t = time.perf_counter()
         ks = [r[0] for r in rendered]
-        (wr0, wc0), windows = _distance_windows(self.labels, self.seam_step, r0, c0, th, tw, ks,
+        (wr0, wc0), windows = _distance_windows(self.labels, self.seam_step, tile, ks,
                                                 clip=2.0 * feather + 4.0 * self.seam_step)
         timer.span("prepare", t)
         t = time.perf_counter()
@@ -159,8 +163,7 @@ class TileBlending:
         timer.span("kernel", t)
         return ks, stack, rank, device
 
-    def _node_pixels(self, entry: dict, grids: dict, r0: int, c0: int, th: int, tw: int, device: Device,
-                     timer: StageTimer) -> wp.array:
+    def _node_pixels(self, entry: dict, grids: dict, tile: Tile, device: Device, timer: StageTimer) -> wp.array:
         """The source pixels (device, nodes (rows, cols) of vec2d) of the ground points at the
         tile's coarse-grid nodes (see :func:`~orthowarp.pipeline.ortho.tiles.coarse_grid`) on the DEM,
         from an image (``entry``); ``grids`` caches the nodes per transformer for the tile."""
@@ -169,7 +172,7 @@ class TileBlending:
         key = (id(entry["to_frame"]), geom.geocentric)
         grid = grids.get(key)
         if grid is None:
-            uv = coarse_grid(self.transform, entry["to_frame"], r0, c0, th, tw)
+            uv = coarse_grid(self.transform, entry["to_frame"], *tile)
             timer.span("prepare", t)
             t = time.perf_counter()
             grid = grids[key] = coarse_struct(uv, geom.geocentric, device)
@@ -255,12 +258,12 @@ def _to_device(device: Device, out: np.ndarray, source: np.ndarray,
 
 
 def _fallback_blocks(missing: np.ndarray, labels: np.ndarray, f: int, r0: int, c0: int,
-                     block: int = FALLBACK_BLOCK) -> list[tuple[int, int, int, int]]:
+                     block: int = FALLBACK_BLOCK) -> list[Tile]:
     """The parts of a tile (r0, c0) that the backward method must fill: the ``block`` x
     ``block`` pixel blocks (from the tile's first pixel) holding pixels ``missing`` (bool (th,
     tw)) where the reduced labelling (``f`` output pixels per reduced pixel) has cover within
-    one reduced pixel, each block row's consecutive blocks merged. Returns a list of (r0, c0,
-    rows, cols) on the mosaic grid."""
+    one reduced pixel, each block row's consecutive blocks merged. Returns a list of tiles of
+    the mosaic grid."""
     th, tw = missing.shape
     crows, ccols = labels.shape
     rr = np.clip(np.arange(r0, r0 + th) // f, 0, crows - 1)
@@ -287,16 +290,15 @@ def _fallback_blocks(missing: np.ndarray, labels: np.ndarray, f: int, r0: int, c
             while k < nb_c and marked[i, k]:
                 k += 1
             br, bc = i * block, j * block
-            out.append((r0 + br, c0 + bc, min(block, th - br), min(k * block, tw) - bc))
+            out.append(Tile(r0 + br, c0 + bc, min(block, th - br), min(k * block, tw) - bc))
             j = k
     return out
 
 
-def _distance_windows(labels: np.ndarray, f: int, r0: int, c0: int, th: int, tw: int, ks: list[int],
-                      clip: float) -> tuple[tuple[int, int], dict[int, np.ndarray]]:
+def _distance_windows(labels: np.ndarray, f: int, tile: Tile, ks: list[int], clip: float) -> tuple[tuple[int, int], dict[int, np.ndarray]]:
     """Per image of ``ks``, the signed distance (output pixels, negative inside) from the
     image's region of the reduced labelling (``f`` output pixels per reduced pixel), on the
-    window of the reduced grid that the tile (r0, c0, th, tw) needs for bilinear sampling
+    window of the reduced grid that the ``tile`` needs for bilinear sampling
     (:class:`~orthowarp.kernels.mosaic.ReducedWindow`), exact up to ``clip`` and clipped
     there, so that it is the same whichever tile computes it. Beyond the grid, its edge
     repeated.
@@ -309,6 +311,7 @@ def _distance_windows(labels: np.ndarray, f: int, r0: int, c0: int, th: int, tw:
     from scipy import ndimage
 
     crows, ccols = labels.shape
+    r0, c0, th, tw = tile
     margin = int(np.ceil(clip / f)) + 2
     wr0 = int(np.floor((r0 + 0.5) / f - 0.5)) - margin
     wc0 = int(np.floor((c0 + 0.5) / f - 0.5)) - margin

@@ -47,6 +47,7 @@ from ..raster.cog import DTYPES, CogWriter
 from ..raster.device import DeviceCogEncoder
 from ..raster.io import atomic_files, check_cancel, check_destination
 from ..reports.profile import StageTimer
+from ..tiles import Tile
 from .balance import Coarse, radiometric_balance
 from .blend import TileBlending, multiband_halo
 from .seams import NO_SOURCE, angle_field, least_cost_seams
@@ -175,7 +176,7 @@ class MosaicPlan(TileBlending):
         o = self.options
         src, sensor, masked = self.sources[k]
         geom = self._take_geometry(k)
-        method = o["method"] if sensor.kind == "frame" else "backward"  # pushbroom: the backward method only
+        method = o["method"] if sensor.forward_method else "backward"  # pushbroom: the backward method only
         # occlusion for pushbroom scenes: the backward method with each pixel's visibility tested
         hide = o["method"] == "forward" and method == "backward"
         crs = self.crs
@@ -244,21 +245,21 @@ class MosaicPlan(TileBlending):
             with self._lock:
                 st["users"][k] -= 1
 
-    def _images_meeting(self, r0: int, c0: int, th: int, tw: int, foot: np.ndarray | None = None) -> tuple[int, ...]:
-        """The images whose footprint meets the box (r0, c0, th, tw) of the output grid, in
-        order (``foot``: the footprints as an (images, 4) array, made here where None)."""
+    def _images_meeting(self, tile: Tile, foot: np.ndarray | None = None) -> tuple[int, ...]:
+        """The images whose footprint meets the ``tile`` of the output grid, in order
+        (``foot``: the footprints as an (images, 4) array, made here where None)."""
         foot = np.asarray(self.foot, np.int64).reshape(-1, 4) if foot is None else foot
+        r0, c0, th, tw = tile
         meets = (foot[:, 1] > r0) & (foot[:, 0] < r0 + th) & (foot[:, 3] > c0) & (foot[:, 2] < c0 + tw)
         return tuple(int(k) for k in np.flatnonzero(meets))
 
-    def _tile_images(self, tiles: Sequence[tuple[int, int, int, int]]) -> list[tuple[int, ...]]:
-        """Per tile (r0, c0, th, tw) of ``tiles``, the images its tile function may build:
+    def _tile_images(self, tiles: Sequence[Tile]) -> list[tuple[int, ...]]:
+        """Per tile of ``tiles``, the images its tile function may build:
         those whose footprint meets it with the multi-band blend's halo (see :meth:`_select`)."""
         o = self.options
         halo = multiband_halo(o["feather"]) if o["blend"] == "multiband" else 0
         foot = np.asarray(self.foot, np.int64).reshape(-1, 4)
-        return [self._images_meeting(r0 - halo, c0 - halo, th + 2 * halo, tw + 2 * halo, foot)
-                for r0, c0, th, tw in tiles]
+        return [self._images_meeting(Tile(*tile).grown(halo), foot) for tile in tiles]
 
     def _note_dealt(self, ks: Iterable[int], final: Iterable[int] = ()) -> dict[int, int]:
         """A tile that uses images ``ks`` is on its way to this process's tile functions, after
@@ -310,10 +311,11 @@ class MosaicPlan(TileBlending):
                 self._state = None
             self._kept.clear()
 
-    def tiles(self, tile_size: int = 512) -> list[tuple[int, int, int, int]]:
-        """The grid's tiles (r0, c0, rows, cols), row-major."""
+    def tiles(self, tile_size: int = 512) -> list[Tile]:
+        """The grid's tiles (:class:`~orthowarp.pipeline.tiles.Tile`: tuples (r0, c0, rows,
+        cols) for :meth:`tile`), row-major."""
         rows, cols = self.shape
-        return [(r0, c0, min(tile_size, rows - r0), min(tile_size, cols - c0))
+        return [Tile(r0, c0, min(tile_size, rows - r0), min(tile_size, cols - c0))
                 for r0 in range(0, rows, tile_size) for c0 in range(0, cols, tile_size)]
 
     def tile(self, r0: int, c0: int, th: int, tw: int, *, cancel: threading.Event | None = None,
@@ -492,8 +494,7 @@ def _source_facts(images: list[tuple], outputs: Sequence[str]) -> list[tuple[str
             raise RasterIOError(f"Image '{src}' does not exist")
         if os.path.abspath(src) in map(os.path.abspath, outputs):
             raise ParamError(f"Output '{src}' is one of the source images: choose another name")
-        kind = "camera" if sensor.kind == "frame" else "scene"
-        facts.append((src, *source_facts(src, tuple(sensor.image_size), kind)))
+        facts.append((src, *source_facts(src, tuple(sensor.image_size), sensor.noun)))
     counts, dtypes = {f[1] for f in facts}, {f[2] for f in facts}
     if len(counts) > 1 or len(dtypes) > 1:
         raise ParamError(f"The images of a mosaic must share their band count and data type; got bands "
@@ -716,16 +717,17 @@ def reduced_pass(plan: MosaicPlan, cancel: threading.Event | None,
         src, geom = plan.sources[k][0], plan.geometry(k)
         r0, r1 = max(fr0 // f, 0), min(-(-fr1 // f), crows)
         c0, c1 = max(fc0 // f, 0), min(-(-fc1 // f), ccols)
+        window = Tile(r0, c0, r1 - r0, c1 - c0)
         it = ImageTiles(src, geom, crs, ctr, count=count, out_dtype="float32", resampling=plan.options["resampling"],
                         masked=True, src_dtype="float32", decimate=f >= 4)
         try:
-            values, valid = it.render(r0, c0, r1 - r0, c1 - c0)
+            values, valid = it.render(*window)
         finally:
             it.close()
         if values is None:
             return None
         to_frame = plan._to_frame(geom.horizontal_crs)
-        angle = angle_field(geom, ctr, to_frame, r0, c0, r1 - r0, c1 - c0).astype(np.float32)
+        angle = angle_field(geom, ctr, to_frame, window).astype(np.float32)
         v = to_host(values)
         ok = to_host(valid).view(bool) & np.isfinite(angle) & np.isfinite(v).all(axis=-1)
         v[~ok] = 0.0  # (no NaN: the overlaps' statistics are sums of values times a 0/1 mask)

@@ -26,6 +26,7 @@ from ...errors import GeometryError
 from ...geodesy import geodetic_to_ecef, geodetic_up
 from ..ortho.tiles import COARSE_STEP, coarse_grid
 from ..raster.io import check_cancel
+from ..tiles import Tile
 from .balance import Coarse, overlap_arrays, overlap_boxes
 
 if TYPE_CHECKING:
@@ -53,14 +54,13 @@ def _upsample(node: np.ndarray, th: int, tw: int) -> np.ndarray:
     return np.stack([np.interp(rows, ki, along[:, j]) for j in range(tw)], axis=1)
 
 
-def _node_angles(geom: SensorGeometry, transform: Affine, to_frame: Transformer, r0: int, c0: int, th: int,
-                 tw: int) -> np.ndarray:
+def _node_angles(geom: SensorGeometry, transform: Affine, to_frame: Transformer, tile: Tile) -> np.ndarray:
     """At the coarse-grid nodes of the tile (every COARSE_STEP pixels from its first pixel,
     see :func:`~orthowarp.pipeline.ortho.tiles.coarse_grid`), the off-nadir angle (radians) under
     which the image of ``geom`` sees the node's ground point: from the camera centre, or a
     pushbroom scene's satellite position at the line that images the point, to the point on
     the DEM (NaN where the DEM has no height or the sensor does not see the point)."""
-    uv = coarse_grid(transform, to_frame, r0, c0, th, tw)
+    uv = coarse_grid(transform, to_frame, *tile)
     u, v = uv[..., 0], uv[..., 1]
     h = geom.dem.sample(u, v)
     if geom.geocentric:
@@ -69,7 +69,7 @@ def _node_angles(geom: SensorGeometry, transform: Affine, to_frame: Transformer,
     else:
         ground = np.stack([u, v, h], -1)
         up = np.broadcast_to([0.0, 0.0, 1.0], ground.shape)
-    if geom.sensor.kind == "pushbroom":  # the satellite where it images the point
+    if geom.sensor.line_timed:  # the satellite where it images the point
         pix = geom.project_frame(np.stack([u, v, h], -1).reshape(-1, 3)).reshape(*u.shape, 2)
         centre = np.full(ground.shape, np.nan)
         ok = np.isfinite(pix[..., 1])
@@ -86,8 +86,7 @@ def _node_angles(geom: SensorGeometry, transform: Affine, to_frame: Transformer,
     return np.arccos(np.clip(cos, -1.0, 1.0))
 
 
-def angle_field(geom: SensorGeometry, transform: Affine, to_frame: Transformer, r0: int, c0: int, th: int,
-                tw: int) -> np.ndarray:
+def angle_field(geom: SensorGeometry, transform: Affine, to_frame: Transformer, tile: Tile) -> np.ndarray:
     """The off-nadir angle (radians) under which an image sees the ground of each pixel of a
     tile, bilinear between the tile's coarse-grid nodes (:func:`_node_angles`).
 
@@ -99,15 +98,15 @@ def angle_field(geom: SensorGeometry, transform: Affine, to_frame: Transformer, 
         The grid's (a mosaic's, or its reduced grid's).
     to_frame : pyproj.Transformer
         The grid's CRS -> the image's horizontal pose frame.
-    r0, c0, th, tw : int
-        The tile: first row and column, rows and columns.
+    tile : Tile
+        The tile of that grid.
 
     Returns
     -------
-    ndarray, shape (th, tw)
+    ndarray, shape tile.shape
         NaN where the DEM has no height or the sensor does not see the point.
     """
-    return _upsample(_node_angles(geom, transform, to_frame, r0, c0, th, tw), th, tw)
+    return _upsample(_node_angles(geom, transform, to_frame, tile), *tile.shape)
 
 
 def least_cost_seams(labels: np.ndarray, coarse: Sequence[Coarse], gains: np.ndarray, offsets: np.ndarray,

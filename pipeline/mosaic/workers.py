@@ -55,6 +55,7 @@ import numpy as np
 
 from ...errors import OrthowarpError
 from ..raster.io import abandoned, check_cancel
+from ..tiles import Tile
 
 if TYPE_CHECKING:
     from multiprocessing.queues import Queue, SimpleQueue
@@ -161,7 +162,7 @@ class ProcessTiles:
         source (th, tw) uint16 or None."""
         return _slot_views(self._map, self._base + slot * self._slot_bytes, th, tw, count, dtype, self._with_source)
 
-    def run(self, tiles: Sequence[tuple[int, int, int, int]], count: int, dtype: str, *,
+    def run(self, tiles: Sequence[Tile], count: int, dtype: str, *,
             images: Sequence[tuple[int, ...]] | None = None, cancel: threading.Event | None = None,
             name: str | None = None) -> Iterator[tuple]:
         """Compute ``tiles`` ((r0, c0, rows, cols) each) on the workers; yields
@@ -185,7 +186,8 @@ class ProcessTiles:
                     return
                 k, used, final, drop = got
                 slot = self._free.pop()
-                self._tasks[w].put(("tile", k, tiles[k], slot, used, final))
+                # the tile as a plain tuple to the process (rebuilt there as a Tile)
+                self._tasks[w].put(("tile", k, tuple(tiles[k]), slot, used, final))
                 busy[w] += 1
                 if drop is not None:  # a tile taken from another run's end: that run's last use
                     self._tasks[drop[0]].put(("drop", drop[1]))
@@ -204,8 +206,7 @@ class ProcessTiles:
             _, w, k, slot = msg
             busy[w] -= 1
             done_tiles += 1
-            r0, c0, th, tw = tiles[k]
-            values, valid, source = self._views(slot, th, tw, count, dtype)
+            values, valid, source = self._views(slot, *Tile(*tiles[k]).shape, count, dtype)
 
             def release(slot: int = slot) -> None:
                 released.append(slot)
@@ -261,7 +262,7 @@ class ProcessTiles:
         self._results.close()
 
 
-def tile_runs(tiles: Sequence[tuple[int, int, int, int]], n: int, images: Sequence[tuple[int, ...]], *,
+def tile_runs(tiles: Sequence[Tile], n: int, images: Sequence[tuple[int, ...]], *,
               limit: int = 16) -> list[list[int]]:
     """The order of a mosaic's tiles on ``n`` processes (or on one, for threads): runs, each a
     band of whole tile rows (or whole tile columns) of the grid swept across in a serpentine
@@ -556,9 +557,9 @@ def _serve_tasks(ws: _Worker, tasks: SimpleQueue, threads: int) -> bool:
                     ws.report(e)
                     return False
                 continue
-            _, k, (r0, c0, th, tw), slot, used, final = msg
+            _, k, box, slot, used, final = msg
             token = ws.plan._note_dealt(used, final) if used else None
-            pool.submit(_worker_tile, ws, k, (r0, c0, th, tw), slot, used, token)
+            pool.submit(_worker_tile, ws, k, Tile(*box), slot, used, token)
     return True
 
 
@@ -573,16 +574,15 @@ def _load_plan(ws: _Worker, path: str, n_blob: int, base: int, slot_bytes: int, 
     ws.plan = pickle.loads(ws.buf[:n_blob])
 
 
-def _worker_tile(ws: _Worker, k: int, box: tuple[int, int, int, int], slot: int, used: tuple[int, ...],
-                 token: Any) -> None:
-    """Compute tile ``k`` (r0, c0, th, tw) into its ``slot`` and say so (or report its failure)."""
+def _worker_tile(ws: _Worker, k: int, tile: Tile, slot: int, used: tuple[int, ...], token: Any) -> None:
+    """Compute tile ``k`` into its ``slot`` and say so (or report its failure)."""
     from ..._device import quiet_warp, to_host
 
-    r0, c0, th, tw = box
+    th, tw = tile.shape
     plan, with_source = ws.plan, ws.with_source
     try:
         with quiet_warp():
-            out, has, source = plan._tile(r0, c0, th, tw, device=ws.dev)
+            out, has, source = plan._tile(*tile, device=ws.dev)
             if not with_source:
                 plan._count_sources(source)
             values, valid, src = _slot_views(ws.buf, ws.base + slot * ws.slot_bytes, th, tw, plan.count, plan.dtype,

@@ -53,6 +53,7 @@ from ..raster.io import (
 )
 from ..raster.tiff import verify_tiff
 from ..reports.profile import StageTimer
+from ..tiles import Tile
 from .forward import forward_coords
 from .grid import MIN_FOOTPRINT_PIXELS, output_grid
 from .sink import (
@@ -345,7 +346,7 @@ def _check_method(sensor: SensorModel, method: str, resampling: str) -> tuple[st
         raise ParamError(f"sensor must be a FrameSensor (camera and pose) or a PushbroomScene, got "
                          f"{type(sensor).__name__}")
     method = choice("method", method, Method).value
-    if method == "forward" and sensor.kind != "frame":
+    if method == "forward" and not sensor.forward_method:
         raise ParamError(f"{sensor.kind} sensors are orthorectified by the backward method only")
     return method, choice("resampling", resampling, Resampling).value
 
@@ -401,8 +402,7 @@ def _open_source(src: str, dst: str, sensor: SensorModel, overwrite: bool) -> _S
         raise RasterIOError(f"Image '{src}' does not exist")
     if os.path.abspath(src) == os.path.abspath(dst):
         raise ParamError(f"Output '{dst}' is the source image: choose another name")
-    count, src_dtype, masked = source_facts(src, tuple(sensor.image_size),
-                                            "camera" if sensor.kind == "frame" else "scene")
+    count, src_dtype, masked = source_facts(src, tuple(sensor.image_size), sensor.noun)
     return _Source(src, count, src_dtype, masked)
 
 
@@ -480,31 +480,31 @@ def _render(geom: SensorGeometry, grid: _Grid, source: _Source, output: OutputSe
                            output.co, output.quality)
     cog = output.cog_options()
     device = geom.device
-    tiles = [(r0, c0, min(tile_size, rows - r0), min(tile_size, cols - c0))
+    tiles = [Tile(r0, c0, min(tile_size, rows - r0), min(tile_size, cols - c0))
              for r0 in range(0, rows, tile_size) for c0 in range(0, cols, tile_size)]
     image = ImageTiles(source.path, geom, grid.crs, grid.transform, count=count, out_dtype=out_dtype,
                        resampling=settings.resampling, method=settings.method, masked=source.masked,
                        src_dtype=source.dtype, timer=timer, clipped=clipped, source_reads=settings.source_reads)
 
-    def run(tile: tuple[int, int, int, int]) -> None:
+    def run(tile: Tile) -> None:
         check_cancel(cancel, final_name)
-        r0, c0, th, tw = tile
         if sink.device is not None:  # the tile stays on the device: blocks encoded there
-            packed, res_valid = image.render(r0, c0, th, tw, fill=True)
+            packed, res_valid = image.render(*tile, fill=True)
             t = time.perf_counter()
-            sink.device(r0, c0, packed, res_valid)
+            sink.device(tile.row, tile.col, packed, res_valid)
             timer.span("write", t)
             return
-        packed, res_valid = image.render(r0, c0, th, tw)
+        packed, res_valid = image.render(*tile)
         if packed is None:
-            block = np.zeros((th, tw, count), out_dtype) if not is_float else np.full((th, tw, count), np.nan, np.float32)
-            mask = np.zeros((th, tw), bool)
+            shape = (*tile.shape, count)
+            block = np.zeros(shape, out_dtype) if not is_float else np.full(shape, np.nan, np.float32)
+            mask = np.zeros(tile.shape, bool)
         else:
             t = time.perf_counter()
             block, mask = to_host(packed), to_host(res_valid).view(bool)
             timer.span("d2h", t)
         t = time.perf_counter()
-        sink(r0, c0, block, mask)
+        sink(tile.row, tile.col, block, mask)
         # the COG writer compresses in its own threads (timed there as "write"): here the hand-off
         timer.span("queue" if cog is not None else "write", t)
 

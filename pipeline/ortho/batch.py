@@ -89,7 +89,7 @@ def _frame_covariances(jobs: Sequence[tuple[str, SensorModel, str]],
     from ...adjust.precision import pose_inputs
     from ..reports.adjust import POSE_COV_PARAMETERS, read_pose_covariances
 
-    frames = [k for k, (_, sensor, _) in enumerate(jobs) if sensor.kind != "pushbroom"]
+    frames = [k for k, (_, sensor, _) in enumerate(jobs) if not sensor.line_timed]
     out: list = [None] * len(jobs)
     if not frames:
         return out
@@ -211,7 +211,7 @@ def orthorectify_many(jobs: Iterable[tuple[str | os.PathLike, SensorModel, str |
     if accuracy:
         covs = _frame_covariances(jobs, pose_cov)
         for src, sensor, _ in jobs:
-            if sensor.kind != "pushbroom":
+            if not sensor.line_timed:
                 continue
             if orientation_cov is None:
                 raise ParamError("The accuracy of pushbroom scenes needs orientation_cov")

@@ -28,6 +28,7 @@ if TYPE_CHECKING:
 
     from ..geometry import SensorGeometry
     from ..reports.profile import StageTimer
+    from ..tiles import Tile
 
 __all__ = ["forward_coords"]
 
@@ -111,8 +112,8 @@ def forward_coords(geom: SensorGeometry, transform: Affine, out_crs: CRS, frame_
     Returns
     -------
     callable
-        ``coords_for(r0, c0, th, tw)`` -> (source (col, row) per tile pixel: a warp array
-        (th, tw) of vec2d, NaN where none; the source window (col0, row0, col1, row1, read
+        ``coords_for(tile)`` (a :class:`~orthowarp.pipeline.tiles.Tile`) -> (source (col, row)
+        per tile pixel: a warp array (th, tw) of vec2d, NaN where none; the source window (col0, row0, col1, row1, read
         reduction factor), or None where the tile sees nothing of the image).
     """
     w_img, h_img = geom.image_size
@@ -137,8 +138,9 @@ def forward_coords(geom: SensorGeometry, transform: Affine, out_crs: CRS, frame_
                                                1)
     node_blocks = _NodeBlocks(fields)
 
-    def coords_for(r0: int, c0: int, th: int, tw: int) -> tuple[wp.array, tuple | None]:
+    def coords_for(tile: Tile) -> tuple[wp.array, tuple | None]:
         t = time.perf_counter()
+        r0, c0, th, tw = tile
         coords = wp.full((th, tw), wp.vec2d(np.nan, np.nan), dtype=wp.vec2d, device=device)
         # the nodes within margin of the tile: bounds of their source and frame coordinates
         bounds = node_blocks.bounds(c0 - margin, r0 - margin, c0 + tw + margin, r0 + th + margin)

@@ -35,6 +35,7 @@ from ...options import SourceReads, values
 from ..raster.cog import DTYPES
 from ..raster.io import GDAL_ERRORS, gdal_reason
 from ..reports.profile import StageTimer
+from ..tiles import Tile
 from .forward import forward_coords
 
 if TYPE_CHECKING:
@@ -177,7 +178,7 @@ class ImageTiles:
         self.timer = timer if timer is not None else StageTimer(time.perf_counter())
         self.clipped = clipped
         self.device = device = geom.device
-        self.pushbroom = geom.sensor.kind == "pushbroom"
+        self.line_timed = geom.sensor.line_timed
         self.sensor, self.dem = geom.sensor_structs(), geom.dem_struct()
         self.h_mid = 0.5 * (geom.dem.hmin + geom.dem.hmax)
         self.resampling_code, self.radius = RESAMPLING[resampling], _RADIUS[resampling]
@@ -253,7 +254,8 @@ class ImageTiles:
             1 where the image gives the pixel a value.
         """
         device, timer = self.device, self.timer
-        launch, window = self._backward(r0, c0, th, tw) if self.method == "backward" else self._forward(r0, c0, th, tw)
+        tile = Tile(r0, c0, th, tw)
+        launch, window = self._backward(tile) if self.method == "backward" else self._forward(tile)
         if window is None and not fill:
             return None, None
         t = time.perf_counter()
@@ -271,27 +273,27 @@ class ImageTiles:
         timer.span("kernel", t)
         return values, valid
 
-    def _tile_grid(self, r0: int, c0: int, th: int, tw: int) -> tuple:
-        """A tile's coarse grid as the backward kernels take it, its nodes' source pixels at
+    def _tile_grid(self, tile: Tile) -> tuple:
+        """A ``tile``'s coarse grid as the backward kernels take it, its nodes' source pixels at
         the tile's lowest and highest DEM height (2, rows, cols, 2), those heights and its
         source window (col0, row0, col1, row1, factor; None where empty); all None where no
         DEM lies under the tile."""
         geom, device, timer, sensor, dem = self.geom, self.device, self.timer, self.sensor, self.dem
         t = time.perf_counter()
-        uv = coarse_grid(self.transform, self.to_frame, r0, c0, th, tw)
+        uv = coarse_grid(self.transform, self.to_frame, *tile)
         heights = _height_range(geom.dem, self.dem_blocks, uv)
         timer.span("prepare", t)
         if heights is None:  # no DEM under the tile
             return None, None, None, None
         t = time.perf_counter()
-        grid = coarse_struct(uv, geom.geocentric, device, pose=None if self.pushbroom else geom.sensor.pose)
+        grid = coarse_struct(uv, geom.geocentric, device, pose=None if self.line_timed else geom.sensor.pose)
         nodes = wp.empty((2, *uv.shape[:2]), dtype=wp.vec2d, device=device)
         timer.span("h2d", t)
         t = time.perf_counter()
         wp.launch(ortho_kernels.node_pixels_kernel, dim=nodes.shape, device=device,
                   inputs=[*sensor, grid, wp.vec2d(*heights), nodes])
         # what the sensors' per-pixel chains take from the nodes beside the grid itself
-        if self.pushbroom:  # the line times: the per-pixel iteration's first guesses
+        if self.line_timed:  # the line times: the per-pixel iteration's first guesses
             grid.times = wp.empty(grid.uv.shape, dtype=wp.float64, device=device)
             wp.launch(ortho_kernels.pb_node_times_kernel, dim=grid.uv.shape, device=device,
                       inputs=[*sensor, dem, grid, self.h_mid, grid.times])
@@ -321,7 +323,7 @@ class ImageTiles:
         host array (th, tw, 2), NaN where there is none; with the tile's node pixels, height
         range and source window (see :meth:`_tile_grid`). For checking devices against each
         other and against references."""
-        grid, pixels, heights, window = self._tile_grid(r0, c0, th, tw)
+        grid, pixels, heights, window = self._tile_grid(Tile(r0, c0, th, tw))
         if grid is None:
             return np.full((th, tw, 2), np.nan), None, None, None
         w_img, h_img = self.image_size
@@ -330,32 +332,32 @@ class ImageTiles:
                   inputs=[*self.sensor, self.dem, grid, wp.float64(w_img), wp.float64(h_img), out])
         return to_host(out), pixels, heights, window
 
-    def _backward(self, r0: int, c0: int, th: int, tw: int) -> tuple[Callable | None, tuple | None]:
-        """The backward method's source window for a tile (see :mod:`orthowarp.kernels.ortho`)
+    def _backward(self, tile: Tile) -> tuple[Callable | None, tuple | None]:
+        """The backward method's source window for a ``tile`` (see :mod:`orthowarp.kernels.ortho`)
         and the launch of its fused kernel."""
-        grid, _, _, window = self._tile_grid(r0, c0, th, tw)
+        grid, _, _, window = self._tile_grid(tile)
         if grid is None:
             return None, None
         geom, device, sensor, dem = self.geom, self.device, self.sensor, self.dem
         w_img, h_img = self.image_size
 
         def launch(sw: ortho_kernels.SourceWindow, data: wp.array, out: wp.array, out_valid: wp.array) -> None:
-            wp.launch(ortho_kernels.ortho_kernel, dim=(th, tw), device=device, block_dim=ORTHO_BLOCK_DIM,
+            wp.launch(ortho_kernels.ortho_kernel, dim=tile.shape, device=device, block_dim=ORTHO_BLOCK_DIM,
                       inputs=[*sensor, dem, grid, wp.float64(w_img), wp.float64(h_img), sw, data,
                               self.resampling_code, self.top, out, out_valid])
             if self.occlusion:  # hidden ground off
-                wp.launch(ortho_kernels.visibility_kernel, dim=(th, tw), device=device, block_dim=ORTHO_BLOCK_DIM,
+                wp.launch(ortho_kernels.visibility_kernel, dim=tile.shape, device=device, block_dim=ORTHO_BLOCK_DIM,
                           inputs=[*sensor, dem, geom.search, grid, wp.float64(w_img), wp.float64(h_img),
                                   wp.float64(self.hidden_tol), out_valid])
 
         return launch, window
 
-    def _forward(self, r0: int, c0: int, th: int, tw: int) -> tuple[Callable, tuple | None]:
-        """The forward method's coordinates and window for a tile, and the resampling launch."""
-        coords, window = self.forward_coords(r0, c0, th, tw)
+    def _forward(self, tile: Tile) -> tuple[Callable, tuple | None]:
+        """The forward method's coordinates and window for a ``tile``, and the resampling launch."""
+        coords, window = self.forward_coords(tile)
 
         def launch(sw: ortho_kernels.SourceWindow, data: wp.array, out: wp.array, out_valid: wp.array) -> None:
-            wp.launch(ortho_kernels.ortho_resample_kernel, dim=(th, tw), device=self.device, block_dim=ORTHO_BLOCK_DIM,
+            wp.launch(ortho_kernels.ortho_resample_kernel, dim=tile.shape, device=self.device, block_dim=ORTHO_BLOCK_DIM,
                       inputs=[sw, data, coords, self.resampling_code, self.top, out, out_valid])
 
         return launch, window
