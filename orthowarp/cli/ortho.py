@@ -240,7 +240,7 @@ def _report_profile(profiles: list[tuple[str, dict]], batch_wall: float, marks: 
             click.echo(f"start-up: {startup['startup_s']:.3f} s from the process start to the first kernel: "
                        f"{startup['to_command_s']:.3f} s to the command (interpreter, CLI and Warp imports), "
                        f"{startup['job_imports_s']:.3f} s the pipeline's imports, {startup['inputs_s']:.3f} s "
-                       f"orientation files, {startup['image_setup_s']:.3f} s image set-up (Warp "
+                       f"orientation files, {startup['image_setup_s']:.3f} s image set-up (DEM, Warp "
                        f"initialisation, geometry, output grid, kernel modules, first tile)", err=True)
     if path:
         write_json(path, dict(images=[dict(path=dst, profile=p) for dst, p in profiles], total=total,
