@@ -22,6 +22,7 @@ import click
 
 from ..errors import OrthowarpError, OrthowarpWarning
 from . import adjust, demo, match, mosaic, ortho, spot_adjust
+from .warm import start_cuda_driver
 
 __all__ = ["main"]
 
@@ -120,23 +121,6 @@ def _exit_now(signum: int) -> NoReturn:
     os._exit(128 + signum)
 
 
-_DEVICE_COMMANDS = ("demo", "ortho", "mosaic", "match")
-
-
-def _start_cuda_driver(command: str | None) -> None:
-    """For a command that runs kernels on a CUDA device: the driver and the device's context
-    started on a background thread while Warp and the pipeline are imported
-    (:mod:`orthowarp._driver`); ``ORTHOWARP_NO_WARM_UP=1`` turns this off (and the device
-    warm-up, :func:`orthowarp.cli.report.warm_up`), for measuring what they save."""
-    if command not in _DEVICE_COMMANDS or os.environ.get("ORTHOWARP_NO_WARM_UP"):
-        return
-    from .._driver import device_ordinal, start_driver
-
-    ordinal = device_ordinal(sys.argv[1:])
-    if ordinal is not None:
-        start_driver(ordinal)
-
-
 @click.group(cls=_Group)
 @click.version_option(package_name="orthowarp")
 @click.option("-v", "--verbose", count=True,
@@ -145,7 +129,7 @@ def _start_cuda_driver(command: str | None) -> None:
 @click.pass_context
 def main(ctx: click.Context, verbose: int, quiet: bool) -> None:
     """orthowarp: rigorous orthorectification on the GPU with NVIDIA Warp."""
-    _start_cuda_driver(ctx.invoked_subcommand)
+    start_cuda_driver(ctx.invoked_subcommand)
     import warp as wp
 
     from .._device import set_warp_messages

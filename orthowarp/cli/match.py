@@ -10,7 +10,7 @@ from typing import Any
 import click
 
 from . import options
-from .report import warm_up
+from .warm import warm_up
 
 
 @click.command()

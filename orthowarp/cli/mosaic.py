@@ -11,7 +11,8 @@ import click
 
 from ..options import Blend, Seams, values
 from . import options
-from .report import crs_label, warm_up
+from .report import crs_label
+from .warm import warm_up
 
 # orthowarp mosaic's tile processes on a GPU (bench/reference/mosaic-speed-processes-h100.json)
 MOSAIC_GPU_PROCESSES = 4

@@ -13,7 +13,8 @@ import click
 
 from ..options import Method, SourceReads, values
 from . import options
-from .report import crs_label, warm_up
+from .report import crs_label
+from .warm import warm_up
 
 _DEFAULT_SOURCES = (None, click.core.ParameterSource.DEFAULT, click.core.ParameterSource.DEFAULT_MAP)
 

@@ -1,5 +1,4 @@
-"""What the commands share beyond their options: how they name outputs in their summaries,
-and the start of a job's device work."""
+"""What the commands print about their outputs."""
 
 from __future__ import annotations
 
@@ -25,15 +24,3 @@ def crs_label(crs: CRS) -> str:
     unit = crs.axis_info[0].unit_name if crs.axis_info else None
     return f"{name}, {unit}" if unit else name
 
-
-def warm_up(device: str | None, *, accuracy: bool = False, more: tuple[str, ...] = ()) -> None:
-    """Start Warp, the device and the job's kernel modules on a background thread, to overlap
-    the job's imports and the reading of its inputs (:func:`orthowarp._device.warm_up`)."""
-    import os
-
-    if os.environ.get("ORTHOWARP_NO_WARM_UP"):  # (for measuring what the warm-up saves: bench/startup.py)
-        return
-    from .._device import warm_up as start
-
-    modules = ("orthowarp.kernels.sensor", "orthowarp.kernels.ortho", *more)
-    start(device, modules + (("orthowarp.kernels.precision",) if accuracy else ()))
