@@ -656,6 +656,58 @@ wp.overload(widen_kernel, {"src": wp.array3d(dtype=wp.uint16)})
 
 
 @wp.kernel
+def reduce_window_kernel(src: wp.array3d(dtype=Any), valid: wp.array2d(dtype=wp.uint8), masked: wp.int32,
+                         col0: wp.int32, row0: wp.int32, factor: wp.int32, dst: wp.array3d(dtype=wp.float32),
+                         dst_valid: wp.array2d(dtype=wp.uint8)):
+    """A window of a whole source in device memory, reduced by an integer ``factor`` into
+    float32: ``src`` (bands, rows, cols) of the whole image, its mask ``valid`` (rows, cols;
+    read only where ``masked``); window pixel (i, j) of ``dst`` (bands, h, w) is the mean of
+    the valid image pixels of block rows row0 + i f .. row0 + (i + 1) f - 1 and columns
+    col0 + j f .. col0 + (j + 1) f - 1 (clipped to the image: area averaging, each image pixel
+    in one block), valid where the block's centre pixel is (the nearest image pixel, as a
+    reduced mask read takes it) and some pixel of the block is. ``factor`` 1: the window
+    cropped and widened."""
+    i, j = wp.tid()
+    rows = src.shape[1]
+    cols = src.shape[2]
+    r_lo = row0 + i * factor
+    c_lo = col0 + j * factor
+    r_hi = wp.min(r_lo + factor, rows)
+    c_hi = wp.min(c_lo + factor, cols)
+    rc = wp.min(r_lo + factor / 2, rows - 1)
+    cc = wp.min(c_lo + factor / 2, cols - 1)
+    centre = wp.int32(1)
+    if masked != 0:
+        if valid[rc, cc] == wp.uint8(0):
+            centre = wp.int32(0)
+    n = wp.int32(0)
+    for r in range(r_lo, r_hi):
+        for c in range(c_lo, c_hi):
+            ok = wp.int32(1)
+            if masked != 0:
+                if valid[r, c] == wp.uint8(0):
+                    ok = wp.int32(0)
+            n += ok
+    if centre == 0 or n == 0:
+        for b in range(src.shape[0]):
+            dst[b, i, j] = wp.float32(0.0)
+        dst_valid[i, j] = wp.uint8(0)
+        return
+    for b in range(src.shape[0]):
+        acc = wp.float64(0.0)  # exact for any block of integer values
+        for r in range(r_lo, r_hi):
+            for c in range(c_lo, c_hi):
+                if masked == 0 or valid[r, c] != wp.uint8(0):
+                    acc += wp.float64(src[b, r, c])
+        dst[b, i, j] = wp.float32(acc / wp.float64(n))
+    dst_valid[i, j] = wp.uint8(1)
+
+
+for _t in (wp.uint8, wp.uint16, wp.float32):
+    wp.overload(reduce_window_kernel, {"src": wp.array3d(dtype=_t)})
+
+
+@wp.kernel
 def source_coords_kernel(
     arg: Any,
     refr: RefractionTable,

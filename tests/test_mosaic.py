@@ -698,7 +698,7 @@ def test_the_reduced_pass_geometries_serve_the_tiles(pair, tmp_path, monkeypatch
     mosaic(images, tmp_path / "kept.tif", **kw)
     assert sorted(builds) == [0, 1]
     builds.clear()  # nothing kept: the tile functions build their own
-    monkeypatch.setattr(mosaic_module.MosaicPlan, "_keep_geometry", lambda self, k, geom: None)
+    monkeypatch.setattr(mosaic_module.MosaicPlan, "_keep_geometry", lambda self, k, geom, whole=None: None)
     mosaic(images, tmp_path / "built.tif", **kw)
     assert sorted(builds) == [0, 0, 1, 1]
     assert (tmp_path / "kept.tif").read_bytes() == (tmp_path / "built.tif").read_bytes()

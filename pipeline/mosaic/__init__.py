@@ -304,7 +304,11 @@ def _process_results(plan: MosaicPlan, procs: ProcessTiles, tiles: list[Tile], s
     plan sent to them now, each finished tile uploaded to this process's device for the
     device ``codec``'s encoder or copied for the host writer, and at the end the workers'
     pixel counts, stage intervals and image builds merged into this process's state."""
-    plan._kept.clear()  # the reduced pass's geometries: the workers build their own
+    plan._kept.clear()  # the reduced pass's geometries and sources: the workers build their own
+    # each worker reads its images' windows (reduced ones still averaged on the device where
+    # the plan says so: the same pixels) rather than holding every image it meets whole
+    plan.options["resident"] = False
+    plan.options["cache_images"] = min(plan.options["cache_images"], 24)
     st = plan._materialise()  # the stage timer starts with the tiles, as on threads
     procs.start_plan(plan, (size, size), with_source=codec == "host" or host_source)
 

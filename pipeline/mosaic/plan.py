@@ -42,7 +42,7 @@ from ..dem import Dem, as_dem
 from ..geometry import SensorGeometry
 from ..ortho.grid import output_grid
 from ..ortho.sink import choose_block_codec, device_codecs, parse_creation_options
-from ..ortho.tiles import ImageTiles, source_facts
+from ..ortho.tiles import ImageTiles, WholeSource, source_facts, source_read_dtype
 from ..raster.cog import DTYPES, CogWriter
 from ..raster.device import DeviceCogEncoder
 from ..raster.io import atomic_files, check_cancel, check_destination
@@ -148,20 +148,31 @@ class MosaicPlan(TileBlending):
         return SensorGeometry(sensor, self.terrain, refraction=o["refraction"], device=o["device"], geoid=o["geoid"],
                               same_vertical_datum=o["same_vertical_datum"])
 
-    def _keep_geometry(self, k: int, geom: SensorGeometry) -> None:
-        """Keep image ``k``'s geometry (built by the reduced pass) for its tile functions: in a
-        cache of at most ``cache_images`` geometries, the oldest dropped first."""
+    def _keep_geometry(self, k: int, geom: SensorGeometry, whole: WholeSource | None = None) -> None:
+        """Keep image ``k``'s geometry (built by the reduced pass) and its source in device
+        memory (``whole``, where the plan's sources are resident) for its tile functions: in a
+        cache of at most ``cache_images`` images, the oldest dropped first."""
         with self._lock:  # (apart from the tiles' state, whose timer starts with the first tile)
-            self._kept[k] = geom
+            self._kept[k] = geom, whole
             self._kept.move_to_end(k)
             while len(self._kept) > self.options["cache_images"]:
                 self._kept.popitem(last=False)
 
-    def _take_geometry(self, k: int) -> SensorGeometry:
-        """Image ``k``'s kept geometry (taken out of the cache), or a new one."""
+    def _take_geometry(self, k: int) -> tuple[SensorGeometry, WholeSource | None]:
+        """Image ``k``'s kept geometry and whole source (taken out of the cache), or a new
+        geometry and a whole source to be read on first use (None where not resident)."""
         with self._lock:
-            geom = self._kept.pop(k, None)
-        return geom if geom is not None else self.geometry(k)
+            geom, whole = self._kept.pop(k, (None, None))
+        if geom is None:
+            geom = self.geometry(k)
+        if whole is None and self.options.get("resident"):
+            whole = self._whole_source(k, geom.device)
+        return geom, whole
+
+    def _whole_source(self, k: int, device: Device) -> WholeSource:
+        """Image ``k``'s source whole in device memory, read on first use."""
+        src, _, masked = self.sources[k]
+        return WholeSource(src, device, masked=masked, dtype=source_read_dtype(self.src_dtype))
 
     def _materialise(self) -> dict[str, Any]:
         """This process's state: the stage timer and the cache of images in use."""
@@ -175,19 +186,23 @@ class MosaicPlan(TileBlending):
         """Image ``k``'s cache entry: its geometry, transformer and tile functions."""
         o = self.options
         src, sensor, masked = self.sources[k]
-        geom = self._take_geometry(k)
+        geom, whole = self._take_geometry(k)
         method = o["method"] if sensor.forward_method else "backward"  # pushbroom: the backward method only
         # occlusion for pushbroom scenes: the backward method with each pixel's visibility tested
         hide = o["method"] == "forward" and method == "backward"
         crs = self.crs
+        # the source read once into device memory where the plan's sources are resident,
+        # shared by the image's tile functions (reduced windows averaged on the device either way)
+        reads = dict(source_reads="whole" if whole is not None else "tiles", whole=whole,
+                     device_reduce=o.get("device_reduce", False))
         entry = dict(geom=geom, to_frame=self._to_frame(geom.horizontal_crs),
                      renderer=ImageTiles(src, geom, crs, self.transform, count=self.count, out_dtype=self.dtype,
                                          resampling=o["resampling"], method=method, masked=masked,
-                                         src_dtype=self.src_dtype, timer=timer, occlusion=hide))
+                                         src_dtype=self.src_dtype, timer=timer, occlusion=hide, **reads))
         if method == "forward" or hide:  # for ground that no image sees (holes of hidden ground)
             entry["fallback"] = ImageTiles(src, geom, crs, self.transform, count=self.count, out_dtype=self.dtype,
                                            resampling=o["resampling"], method="backward", masked=masked,
-                                           src_dtype=self.src_dtype, timer=timer)
+                                           src_dtype=self.src_dtype, timer=timer, **reads)
         return entry
 
     def _to_frame(self, frame_crs: CRS) -> Transformer:
@@ -457,7 +472,9 @@ def mosaic_plan(images: Sequence[tuple], *, dem: Dem | str | os.PathLike | float
     out_dtype = dtype or (src_dtype if src_dtype in DTYPES else "float32")
     out_crs, res, transform, (rows, cols), foot = _union_grid(_image_grids(images, terrain, cfg), resolution)
     log.info("mosaic of %d images: %d x %d pixels at %.4g", len(images), cols, rows, res)
-    plan = MosaicPlan([(f[0], sensor, f[3]) for f, (_, sensor) in zip(facts, images)], terrain, _plan_options(cfg),
+    options = _plan_options(cfg)
+    options.update(_residency(facts, [sensor for _, sensor in images], resolve_device(device)))
+    plan = MosaicPlan([(f[0], sensor, f[3]) for f, (_, sensor) in zip(facts, images)], terrain, options,
                       out_crs, transform, (rows, cols), res, foot, count, out_dtype, src_dtype)
     _balance_and_seams(plan, cfg, cancel, _seam_pixels)
     plan.setup_s["total"] = time.perf_counter() - t_plan
@@ -548,6 +565,24 @@ def _plan_options(cfg: _PlanSettings) -> dict[str, Any]:
     return dict(resampling=cfg.resampling, refraction=cfg.refraction, blend=cfg.blend, feather=float(cfg.feather),
                 device=cfg.device, geoid=cfg.geoid, same_vertical_datum=cfg.same_vertical_datum,
                 method="forward" if cfg.occlusion else "backward", cache_images=24)
+
+
+def _residency(facts: list[tuple[str, int, str, bool]], sensors: Sequence[SensorModel],
+               device: Device) -> dict[str, Any]:
+    """How a plan on ``device`` holds its sources. On a GPU reduced windows are averaged on
+    the device (``device_reduce``), and where at least two of the largest images fit in half
+    its free memory the sources are resident (``resident``): each is read once, whole, into
+    device memory by the reduced pass and kept for the tiles, as many at once as fit there
+    (``cache_images``; at least the 24 of a plan on the CPU where they fit)."""
+    if not device.is_cuda:
+        return {}
+    _, count, dtype, masked = facts[0]
+    per_pixel = count * np.dtype(source_read_dtype(dtype)).itemsize + int(masked)
+    need = max(int(np.prod(s.image_size)) for s in sensors) * per_pixel
+    fit = int(0.5 * device.free_memory // max(need, 1))
+    if fit < 2:
+        return dict(device_reduce=True)
+    return dict(device_reduce=True, resident=True, cache_images=min(max(24, len(sensors)), fit))
 
 
 def _balance_and_seams(plan: MosaicPlan, cfg: _PlanSettings, cancel: threading.Event | None,
@@ -718,8 +753,13 @@ def reduced_pass(plan: MosaicPlan, cancel: threading.Event | None,
         r0, r1 = max(fr0 // f, 0), min(-(-fr1 // f), crows)
         c0, c1 = max(fc0 // f, 0), min(-(-fc1 // f), ccols)
         window = Tile(r0, c0, r1 - r0, c1 - c0)
+        # where the plan's sources are resident, each is read whole into device memory here
+        # and kept with the geometry for the tiles (reduced windows averaged from it there)
+        whole = plan._whole_source(k, geom.device) if plan.options.get("resident") else None
         it = ImageTiles(src, geom, crs, ctr, count=count, out_dtype="float32", resampling=plan.options["resampling"],
-                        masked=True, src_dtype="float32", decimate=f >= 4)
+                        masked=True, src_dtype="float32", decimate=f >= 4,
+                        device_reduce=plan.options.get("device_reduce", False),
+                        **(dict(source_reads="whole", whole=whole) if whole is not None else {}))
         try:
             values, valid = it.render(*window)
         finally:
@@ -731,7 +771,7 @@ def reduced_pass(plan: MosaicPlan, cancel: threading.Event | None,
         v = to_host(values)
         ok = to_host(valid).view(bool) & np.isfinite(angle) & np.isfinite(v).all(axis=-1)
         v[~ok] = 0.0  # (no NaN: the overlaps' statistics are sums of values times a 0/1 mask)
-        plan._keep_geometry(k, geom)  # for the image's tile functions
+        plan._keep_geometry(k, geom, whole)  # for the image's tile functions
         return r0, c0, v, ok, angle
 
     # the images on threads (reads and kernels release the GIL), merged in their order; computed

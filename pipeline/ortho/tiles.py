@@ -46,8 +46,8 @@ if TYPE_CHECKING:
     from ..dem import Dem
     from ..geometry import SensorGeometry
 
-__all__ = ["ImageTiles", "read_whole_source", "source_facts", "coarse_grid", "coarse_struct", "RESAMPLING",
-           "SOURCE_READS", "ORTHO_BLOCK_DIM", "COARSE_STEP", "WP_TYPES", "TOP"]
+__all__ = ["ImageTiles", "WholeSource", "read_whole_source", "source_facts", "source_read_dtype", "coarse_grid",
+           "coarse_struct", "RESAMPLING", "SOURCE_READS", "ORTHO_BLOCK_DIM", "COARSE_STEP", "WP_TYPES", "TOP"]
 
 # the kernels' codes (kernels/ortho.py: NEAREST, BILINEAR, BICUBIC, LANCZOS)
 RESAMPLING = {Interpolation.NEAREST.value: 0, Interpolation.BILINEAR.value: 1, Interpolation.BICUBIC.value: 2,
@@ -167,12 +167,23 @@ class ImageTiles:
         threads, into device memory, and such tiles sample it there (the same pixels: their
         windows hold every tap). "auto": "whole" on a CUDA device where the source takes at
         most a quarter of its free memory.
+    whole : WholeSource, optional
+        With ``source_reads`` "whole": the source in device memory, shared with other tile
+        functions of the same image (default: one of this object's own).
+    device_reduce : bool, optional
+        Reduced windows are area-averaged on the device from full-resolution pixels (the
+        whole source where it is in device memory, else a full-resolution read of the window;
+        :func:`~orthowarp.kernels.ortho.reduce_window_kernel`: exact block means over the
+        valid pixels) instead of read reduced by GDAL (from the file's overviews where it has
+        them): the same pixels whether the source is whole on the device or not. For a mosaic
+        on a GPU, whose reduced pass and tiles then read each image once.
     """
 
     def __init__(self, src: str, geom: SensorGeometry, out_crs: CRS, transform: Affine, *, count: int, out_dtype: str,
                  resampling: str = "bilinear", method: str = "backward", masked: bool = True,
                  src_dtype: str | None = None, timer: StageTimer | None = None, clipped: Any = None,
-                 decimate: bool = True, source_reads: str = "tiles", occlusion: bool = False) -> None:
+                 decimate: bool = True, source_reads: str = "tiles", occlusion: bool = False,
+                 whole: WholeSource | None = None, device_reduce: bool = False) -> None:
         self.src, self.geom, self.transform = src, geom, transform
         self.count, self.out_dtype, self.masked = count, out_dtype, masked
         self.timer = timer if timer is not None else StageTimer(time.perf_counter())
@@ -204,13 +215,17 @@ class ImageTiles:
         self._local = threading.local()
         self._handles, self._lock = [], threading.Lock()
         # the source's dtype as read (GDAL converts others to float32) and as the kernels take it
-        read_dtype = _read_dtype(src_dtype)
+        read_dtype = source_read_dtype(src_dtype)
         self._kernel_dtype = read_dtype if read_dtype in (out_dtype, "float32") else "float32"
         if source_reads == "auto":
             w, h = self.image_size
             need = h * w * (count * np.dtype(self._kernel_dtype).itemsize + (1 if masked else 0))
             source_reads = "whole" if device.is_cuda and need <= device.free_memory // 4 else "tiles"
         self.source_reads = self.timer.info["source_reads"] = source_reads
+        if source_reads == "whole" and whole is None:
+            whole = WholeSource(src, device, masked=masked, dtype=read_dtype, timer=self.timer,
+                                clipped=clipped if self.narrowing else None, top=self.top)
+        self.whole, self.device_reduce = whole, bool(device_reduce)
         self._whole, self._whole_lock = None, threading.Lock()
         self._all_valid = None  # the 1 x 1 mask of an unmasked window, made once
         # the node kernels launch with Warp's default block size, the per-pixel kernels with
@@ -365,12 +380,47 @@ class ImageTiles:
     def _whole_source(self) -> tuple[wp.array, wp.array | None]:
         """The whole source on the device, read on first use: (values (bands, rows, cols) in
         the kernels' dtype, valid (rows, cols) uint8 or None where unmasked)."""
-        with self._whole_lock:
-            if self._whole is None:  # see read_whole_source
-                self._whole = read_whole_source(self.src, self.device, masked=self.masked, dtype=self._kernel_dtype,
-                                                timer=self.timer, clipped=self.clipped if self.narrowing else None,
-                                                top=self.top)
+        data, valid = self.whole.get()
+        if data.dtype == WP_TYPES[self._kernel_dtype]:
+            return data, valid
+        with self._whole_lock:  # e.g. uint8 into float32: widened on the device, once
+            if self._whole is None:
+                t = time.perf_counter()
+                wide = wp.empty(data.shape, dtype=wp.float32, device=self.device)
+                wp.launch(ortho_kernels.widen_kernel, dim=data.shape, inputs=[data], outputs=[wide], device=self.device)
+                self._whole = wide, valid
+                self.timer.span("kernel", t)
             return self._whole
+
+    def _reduced_on_device(self, wc0: int, wr0: int, wc1: int, wr1: int,
+                           factor: int) -> tuple[ortho_kernels.SourceWindow, wp.array]:
+        """A window reduced by ``factor`` on the device (float32; see ``device_reduce``): its
+        pixels are blocks of ``factor`` x ``factor`` image pixels from (wc0, wr0), the last
+        ones cut by the image's edge only, so its scale is exactly 1 / ``factor``; from the
+        whole source, or from a full-resolution read of the window grown to whole blocks."""
+        shape = (-(-(wr1 - wr0) // factor), -(-(wc1 - wc0) // factor))
+        if self.source_reads == "whole":
+            (data, valid), c0, r0 = self.whole.get(), wc0, wr0
+        else:
+            w_img, h_img = self.image_size
+            sw, data = self._read_window(self._source(), wc0, wr0, min(wc0 + shape[1] * factor, w_img),
+                                         min(wr0 + shape[0] * factor, h_img), 1)
+            valid, c0, r0 = sw.valid if sw.masked else None, 0, 0
+        t = time.perf_counter()
+        out = wp.empty((data.shape[0], *shape), dtype=wp.float32, device=self.device)
+        ok = wp.empty(shape, dtype=wp.uint8, device=self.device)
+        wp.launch(ortho_kernels.reduce_window_kernel, dim=shape, device=self.device,
+                  inputs=[data, valid if valid is not None else self._ones(), int(valid is not None), c0, r0, factor],
+                  outputs=[out, ok])
+        self.timer.span("kernel", t)
+        return self._window_struct(ok, wc0, wr0, 1.0 / factor, 1.0 / factor), out
+
+    def _ones(self) -> wp.array:
+        """The 1 x 1 mask of an unmasked window, made once."""
+        with self._lock:
+            if self._all_valid is None:
+                self._all_valid = wp.array(np.ones((1, 1), np.uint8), dtype=wp.uint8, device=self.device)
+            return self._all_valid
 
     def _read_window(self, ds: rasterio.io.DatasetReader, wc0: int, wr0: int, wc1: int, wr1: int,
                      factor: int) -> tuple[ortho_kernels.SourceWindow, wp.array]:
@@ -382,10 +432,12 @@ class ImageTiles:
         if factor == 1 and self.source_reads == "whole":
             data, valid = self._whole_source()
             return self._window_struct(valid, 0, 0, 1.0, 1.0), data
+        if factor > 1 and self.device_reduce:
+            return self._reduced_on_device(wc0, wr0, wc1, wr1, factor)
         t = time.perf_counter()
         win = Window(wc0, wr0, wc1 - wc0, wr1 - wr0)
         shape = (-(-(wr1 - wr0) // factor), -(-(wc1 - wc0) // factor))
-        read = dict(window=win, out_dtype=None if _read_dtype(ds.dtypes[0]) == ds.dtypes[0] else "float32")
+        read = dict(window=win, out_dtype=None if source_read_dtype(ds.dtypes[0]) == ds.dtypes[0] else "float32")
         if factor > 1:
             read.update(out_shape=(self.count, *shape), resampling=Resampling.average)
         try:
@@ -419,18 +471,13 @@ class ImageTiles:
         top-left image pixel and its pixels per image pixel."""
         sw = ortho_kernels.SourceWindow()
         sw.masked = int(valid is not None)
-        if valid is None:
-            with self._lock:
-                if self._all_valid is None:
-                    self._all_valid = wp.array(np.ones((1, 1), np.uint8), dtype=wp.uint8, device=self.device)
-            valid = self._all_valid
-        sw.valid = valid
+        sw.valid = valid if valid is not None else self._ones()
         sw.col0, sw.row0 = col0, row0
         sw.inv_sx, sw.inv_sy = inv_sx, inv_sy
         return sw
 
 
-def _read_dtype(dtype: str) -> str:
+def source_read_dtype(dtype: str) -> str:
     """The dtype a source of ``dtype`` is read in: its own where the kernels take it
     (uint8, uint16, float32), else float32 (GDAL converts the others)."""
     return dtype if dtype in DTYPES else "float32"
@@ -441,6 +488,43 @@ def _count_clipped(counter: Any, data: np.ndarray, top: float) -> None:
     narrower than the source clips them), out of its size."""
     outside = (data > top) | (data < 0) if data.dtype.kind == "f" else data > top
     counter.add(int(np.count_nonzero(outside)), data.size)
+
+
+class WholeSource:
+    """A source image whole in device memory, read on first use (:func:`read_whole_source`,
+    once, whichever thread asks first) and shared by the tile functions of that image.
+
+    Parameters
+    ----------
+    src : str
+    device : warp.context.Device
+    masked : bool
+        Also hold its mask.
+    dtype : {"uint8", "uint16", "float32"}
+        The dtype it is read in (the source's own where the kernels take it).
+    timer, clipped, top :
+        As for :func:`read_whole_source` (the reader's).
+    """
+
+    def __init__(self, src: str, device: wp.context.Device, *, masked: bool, dtype: str,
+                 timer: StageTimer | None = None, clipped: Any = None, top: float = 0.0) -> None:
+        self.src, self.device, self.masked, self.dtype = src, device, masked, dtype
+        self._read = dict(timer=timer, clipped=clipped, top=top)
+        self._arrays, self._lock = None, threading.Lock()
+
+    def get(self) -> tuple[wp.array, wp.array | None]:
+        """(values (bands, rows, cols) of ``dtype``, valid (rows, cols) uint8 or None where
+        not ``masked``), read now if not yet."""
+        with self._lock:
+            if self._arrays is None:
+                self._arrays = read_whole_source(self.src, self.device, masked=self.masked, dtype=self.dtype,
+                                                 **self._read)
+            return self._arrays
+
+    @property
+    def loaded(self) -> bool:
+        """Whether the source is in device memory."""
+        return self._arrays is not None
 
 
 def read_whole_source(src: str, device: wp.context.Device, *, masked: bool, dtype: str, timer: StageTimer | None = None,
@@ -472,7 +556,7 @@ def read_whole_source(src: str, device: wp.context.Device, *, masked: bool, dtyp
     timer = timer if timer is not None else StageTimer(time.perf_counter())
     with _open_source(src) as ds:
         w, h, bands, block_rows, native = ds.width, ds.height, ds.count, ds.block_shapes[0][0], ds.dtypes[0]
-    read_dtype = _read_dtype(native)
+    read_dtype = source_read_dtype(native)
     rows = max(block_rows, (16 << 20) // max(1, w * bands * np.dtype(read_dtype).itemsize) // block_rows * block_rows)
     strips = [(r0, min(rows, h - r0)) for r0 in range(0, h, rows)]
     timer.info["whole_source_strips"] = len(strips)
