@@ -671,7 +671,8 @@ def test_shared_options_have_one_declaration():
 
     from orthowarp.cli import main as group
 
-    different = {"--scene", "--write-example", "--reference"}  # other options, named alike
+    # other options, named alike (mosaic's --compress offers the lossless compressions it streams)
+    different = {"--scene", "--write-example", "--reference", "--compress"}
     per_command = {"--out", "--out-dir"}  # one declaration; the help says what the command writes there
     seen = {}
     for name, command in group.commands.items():

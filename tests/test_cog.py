@@ -1,4 +1,5 @@
-"""The streaming COG writer, read back by GDAL and compared with GDAL's own COG driver."""
+"""The streaming COG writer (deflate, zstd, none), read back by GDAL and compared with GDAL's own
+COG driver."""
 
 import os
 
@@ -10,6 +11,7 @@ from affine import Affine
 
 from orthowarp.errors import ParamError
 from orthowarp.pipeline.raster.cog import CogWriter, overview_count
+from orthowarp.pipeline.raster.tiff import read_ifd, tiff_header
 
 CRS = "EPSG:32632"
 TRANSFORM = Affine(0.25, 0, 500000.0, 0, -0.25, 5100000.0)
@@ -101,14 +103,15 @@ def test_cog_reads_back_exactly(tmp_path, count, dtype, compress, bigtiff):
                 assert np.abs(ovr[:, ref_mask] - ref[:, ref_mask]).max() <= 0.5 * k + 1e-9
 
 
-def test_layout_is_cloud_optimized(tmp_path):
+@pytest.mark.parametrize("compress", ["deflate", "zstd"])
+def test_layout_is_cloud_optimized(tmp_path, compress):
     """IFDs first, then blocks from the smallest overview to the full resolution, row-major,
     each mask block after its image block (GDAL's block offsets, read through GDAL)."""
     shape = (700, 900)
     data, mask = scene(shape, 3, "uint8")
     path = str(tmp_path / "out.tif")
     with CogWriter(path, width=shape[1], height=shape[0], count=3, dtype="uint8", crs=CRS, transform=TRANSFORM,
-                   block_size=128, overviews=2) as w:
+                   block_size=128, overviews=2, compress=compress) as w:
         write_tiles(w, data, mask, tile=200)
     with rasterio.open(path) as ds:
         def offsets(level):
@@ -151,6 +154,120 @@ def test_matches_gdal_cog_driver(tmp_path):
         oa, ob = (x.read(out_shape=(3, 250, 300)).astype(float) for x in (a, b))
         valid = reference_pyramid(data, mask, 2)[1][1]
         assert np.mean(np.abs(oa - ob)[:, valid]) < 0.5
+
+
+def ifd_tags(path):
+    """(NewSubfileType, Compression, Predictor) of every IFD of a TIFF, in file order (absent: None)."""
+    out = []
+    with open(path, "rb") as f:
+        size = os.path.getsize(path)
+        big, ifd = tiff_header(f)
+        while ifd:
+            tags, ifd = read_ifd(f, ifd, big, size)
+            out.append(tuple(int.from_bytes(tags[t][2][:2], "little") if t in tags else None for t in (254, 259, 317)))
+    return [(kind or 0, comp, pred) for kind, comp, pred in out]
+
+
+def levels(path):
+    """(pixels, mask) of the full resolution and of each overview, as GDAL decodes them."""
+    with rasterio.open(path) as ds:
+        n = len(ds.overviews(1))
+    out = []
+    for k in range(n + 1):
+        with rasterio.open(path, **({"overview_level": k - 1} if k else {})) as ds:
+            out.append((ds.read(), ds.dataset_mask()))
+    return out
+
+
+@pytest.mark.parametrize("count,dtype", [(3, "uint8"), (1, "uint16"), (2, "float32")])
+def test_zstd_cog_has_the_deflate_cogs_pixels(tmp_path, count, dtype):
+    """A zstd COG decodes (GDAL's libtiff, libzstd) to exactly the deflate COG's pixels and
+    masks at every level; GDAL reads it as a ZSTD COG with predictor 2 for integer data, and
+    the mask blocks are deflate, as GDAL's COG driver writes them."""
+    shape = (1100, 1500)
+    data, mask = scene(shape, count, dtype)
+    paths = {}
+    for compress in ("deflate", "zstd"):
+        paths[compress] = str(tmp_path / f"{compress}.tif")
+        with CogWriter(paths[compress], width=shape[1], height=shape[0], count=count, dtype=dtype, crs=CRS,
+                       transform=TRANSFORM, compress=compress, block_size=256, overviews=3, threads=3) as w:
+            write_tiles(w, data, mask, tile=300)
+    assert sorted(os.listdir(tmp_path)) == ["deflate.tif", "zstd.tif"]  # the side files are gone
+    a, b = levels(paths["deflate"]), levels(paths["zstd"])
+    assert len(a) == len(b) == 4
+    for (da, ma), (db, mb) in zip(a, b):
+        np.testing.assert_array_equal(ma, mb)
+        np.testing.assert_array_equal(da, db)  # NaN == NaN here
+    with rasterio.open(paths["zstd"]) as ds:
+        structure = ds.tags(ns="IMAGE_STRUCTURE")
+        assert structure["LAYOUT"] == "COG" and structure["COMPRESSION"] == "ZSTD"
+        assert ds.compression.value == "ZSTD" and ds.overviews(1) == [2, 4, 8]
+        assert structure.get("PREDICTOR") == (None if dtype == "float32" else "2")
+    tags = ifd_tags(paths["zstd"])
+    assert [c for k, c, _ in tags if k in (0, 1)] == [50000] * 4  # the image and its overviews
+    if dtype != "float32":
+        assert [c for k, c, _ in tags if k in (4, 5)] == [8] * 4  # their masks
+        assert [p for k, _, p in tags if k in (0, 1)] == [2] * 4
+    with open(paths["zstd"], "rb") as f:
+        head = f.read(300)
+    assert b"LAYOUT=IFDS_BEFORE_DATA" in head
+    assert (b"MASK_INTERLEAVED_WITH_IMAGERY=YES" in head) == (dtype != "float32")
+
+
+def test_zstd_matches_gdal_cog_driver(tmp_path):
+    """Same pixels and mask as GDAL's COG driver with COMPRESS=ZSTD, and the same compression
+    and predictor in each image's and mask's IFD (ZSTD images, deflate masks)."""
+    shape = (1000, 1200)
+    data, mask = scene(shape, 3, "uint8")
+    ours = str(tmp_path / "ours.tif")
+    with CogWriter(ours, width=shape[1], height=shape[0], count=3, dtype="uint8", crs=CRS, transform=TRANSFORM,
+                   block_size=256, overviews=2, compress="zstd") as w:
+        write_tiles(w, data, mask, tile=256)
+    plain = str(tmp_path / "plain.tif")
+    with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True), rasterio.open(
+            plain, "w", driver="GTiff", width=shape[1], height=shape[0], count=3, dtype="uint8", crs=CRS,
+            transform=TRANSFORM, tiled=True, blockxsize=256, blockysize=256) as dst:
+        dst.write(np.moveaxis(np.where(mask[..., None], data, 0), 2, 0))
+        dst.write_mask(mask.astype(np.uint8) * 255)
+    gdal = str(tmp_path / "gdal.tif")
+    with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True):
+        rasterio.shutil.copy(plain, gdal, driver="COG", compress="ZSTD", blocksize=256, predictor="YES",
+                             overview_resampling="average")
+    with rasterio.open(ours) as a, rasterio.open(gdal) as b:
+        np.testing.assert_array_equal(a.read(), b.read())
+        np.testing.assert_array_equal(a.dataset_mask(), b.dataset_mask())
+        assert a.tags(ns="IMAGE_STRUCTURE") == b.tags(ns="IMAGE_STRUCTURE")
+    # per kind of IFD (0 image, 1 overview, 4 mask, 5 overview mask); GDAL writes Predictor=1
+    # into its mask IFDs, ours leave the tag out, which means 1 (GDAL also orders the IFDs
+    # otherwise, and has one more overview: ours stop at 256 pixels)
+    ours_, gdal_ = ({(k, c, p if k in (0, 1) else None) for k, c, p in ifd_tags(path)} for path in (ours, gdal))
+    assert ours_ == gdal_ == {(0, 50000, 2), (1, 50000, 2), (4, 8, None), (5, 8, None)}
+
+
+def test_compression_levels(tmp_path):
+    """Default levels (deflate 6, zstd 9, as GDAL's), levels that change the bytes but not the
+    pixels, and out-of-range levels refused."""
+    shape = (600, 700)
+    data, mask = scene(shape, 3, "uint8")
+    kw = dict(width=shape[1], height=shape[0], count=3, dtype="uint8", crs=CRS, transform=TRANSFORM, block_size=256)
+    assert CogWriter(str(tmp_path / "d.tif"), **kw).compress_level == 6
+    assert CogWriter(str(tmp_path / "z.tif"), **kw, compress="zstd").compress_level == 9
+    assert CogWriter(str(tmp_path / "n.tif"), **kw, compress="none", level=3).compress_level is None
+    sizes, pixels = {}, {}
+    for level in (1, 19):
+        path = str(tmp_path / f"z{level}.tif")
+        with CogWriter(path, **kw, compress="zstd", level=level) as w:
+            w.write(0, 0, data, mask)
+        sizes[level] = os.path.getsize(path)
+        pixels[level] = levels(path)
+    assert sizes[19] < sizes[1]
+    for (da, ma), (db, mb) in zip(pixels[1], pixels[19]):
+        np.testing.assert_array_equal(da, db)
+        np.testing.assert_array_equal(ma, mb)
+    for compress, level in (("zstd", 0), ("zstd", 23), ("deflate", 13), ("deflate", 0), ("zstd", 2.5), ("zstd", "9")):
+        with pytest.raises(ParamError, match=rf"level \({compress}\) must be an integer"):
+            CogWriter(str(tmp_path / "bad.tif"), **kw, compress=compress, level=level)
+    assert not os.path.exists(tmp_path / "bad.tif.blocks")
 
 
 def test_bad_tiles_and_incomplete_rasters(tmp_path):

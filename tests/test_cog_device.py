@@ -1,5 +1,8 @@
 """COG blocks encoded on the device (pipeline/raster/device.py, kernels/cog.py): checksums, zlib
-streams, and files that decode to exactly the host writer's pixels at every level."""
+streams, zstd frames, and files that decode to exactly the host writer's pixels at every level.
+
+The nvCOMP tests need a CUDA device and ``nvidia-nvcomp-cu13`` (``pip install 'orthowarp[gpu]'``)
+and are skipped elsewhere."""
 
 import os
 import zlib
@@ -14,8 +17,11 @@ from test_cog import CRS, TRANSFORM, scene
 from orthowarp.errors import DeviceError, ParamError
 from orthowarp.kernels import cog as kc
 from orthowarp.pipeline.raster.cog import CogWriter
-from orthowarp.pipeline.raster.device import (DeviceCogEncoder, HostDeflate, NvcompDeflate, _bytes_view,
-                                           nvcomp_available, zlib_stream)
+from orthowarp.pipeline.raster.device import (DeviceCogEncoder, HostDeflate, HostZstd, NvcompDeflate, NvcompZstd,
+                                           _bytes_view, nvcomp_available, zlib_stream)
+
+needs_nvcomp = pytest.mark.skipif(not (nvcomp_available() and wp.get_cuda_device_count()),
+                                  reason="needs nvCOMP and a CUDA device")
 
 
 def test_adler32_matches_zlib(device):
@@ -62,13 +68,16 @@ def test_bytes_view_shares_memory(device):
     assert v.shape == (12,) and v.numpy().view(np.uint16).tolist() == list(range(6))
 
 
-def _write(path, shape, count, dtype, tile, *, device=None, overviews=3, block=256, codecs=None):
-    """One file from the scene, through the device encoder (``device``; libdeflate unless
-    ``codecs`` are given) or the host writer."""
+def _write(path, shape, count, dtype, tile, *, device=None, overviews=3, block=256, codecs=None, compress="deflate",
+           batch_bytes=512 << 20):
+    """One file from the scene, through the device encoder (``device``; libdeflate or, for
+    zstd, ``zstandard`` unless ``codecs`` are given) or the host writer."""
     data, mask = scene(shape, count, dtype)
     w = CogWriter(path, width=shape[1], height=shape[0], count=count, dtype=dtype, crs=CRS, transform=TRANSFORM,
-                  block_size=block, overviews=overviews, threads=2)
-    enc = DeviceCogEncoder(w, wp.get_device(device), codecs or [HostDeflate(6, threads=2)]) if device else None
+                  block_size=block, overviews=overviews, threads=2, compress=compress)
+    host_codec = HostDeflate(6, threads=2) if compress == "deflate" else HostZstd(9, threads=2)
+    enc = DeviceCogEncoder(w, wp.get_device(device), codecs or [host_codec], batch_bytes=batch_bytes) if device \
+        else None
     with w:
         tiles = [(r, c) for r in range(0, shape[0], tile) for c in range(0, shape[1], tile)]
         for k in np.random.default_rng(1).permutation(len(tiles)):
@@ -156,6 +165,145 @@ def test_nvcomp_file_has_the_host_writers_pixels(tmp_path, algorithm_type, batch
     for (da, ma, _, _), (db, mb, _, _) in zip(_levels(host, count), _levels(dev, count)):
         np.testing.assert_array_equal(ma, mb)
         np.testing.assert_array_equal(da, db)
+
+
+@pytest.mark.parametrize("count,dtype,tile,shape", [
+    (3, "uint8", 512, (1100, 1500)),
+    (1, "uint16", 1024, (1300, 1029)),  # odd edges
+    (2, "float32", 512, (900, 700)),
+])
+def test_device_encoded_zstd_file_has_the_host_writers_pixels(tmp_path, device, count, dtype, tile, shape):
+    """A zstd writer fed by the device encoder (zstandard frames for the image blocks, deflate
+    for the mask blocks, the one frame of their size for empty blocks) decodes to the host
+    zstd writer's pixels and masks at every level, with the host writer's tags."""
+    host, dev = str(tmp_path / "host.tif"), str(tmp_path / "dev.tif")
+    _write(host, shape, count, dtype, tile, compress="zstd")
+    enc = _write(dev, shape, count, dtype, tile, device=device, compress="zstd")
+    assert sorted(os.listdir(tmp_path)) == ["dev.tif", "host.tif"]
+    a, b = _levels(host, count), _levels(dev, count)
+    assert len(a) == len(b) == 4
+    for (da, ma, bs_a, ca), (db, mb, bs_b, cb) in zip(a, b):
+        np.testing.assert_array_equal(ma, mb)
+        np.testing.assert_array_equal(da, db)
+        assert bs_a == bs_b == (256, 256) and ca.value == cb.value == "ZSTD"
+    with rasterio.open(host) as x, rasterio.open(dev) as y:
+        assert x.tags(ns="IMAGE_STRUCTURE") == y.tags(ns="IMAGE_STRUCTURE")
+        assert y.tags(ns="IMAGE_STRUCTURE")["LAYOUT"] == "COG"
+    assert enc.blocks_by_codec["zstandard"] + enc.empty_blocks >= -(-shape[0] // 256) * -(-shape[1] // 256)
+    assert (enc.mask_codec is None) == (dtype == "float32")  # masks: a deflate codec of their own
+
+
+class _RecordingZstd(HostZstd):
+    """zstandard that keeps a copy of every buffer it is given."""
+
+    def __init__(self):
+        super().__init__(9, threads=2)
+        self.given = []
+
+    def compress(self, buf, offsets, sizes):
+        host = buf.numpy()
+        self.given += [host[o:o + n].copy() for o, n in zip(offsets, sizes)]
+        return super().compress(buf, offsets, sizes)
+
+
+def test_zstd_codec_gets_image_blocks_and_the_mask_codec_mask_blocks(tmp_path, device):
+    """With a zstd writer the image blocks go to the zstd codec and the mask blocks to the
+    deflate mask codec, neither of them blocks of one byte (an empty image block gets the one
+    zstd frame of its size, a full mask block the one deflate stream)."""
+    shape, count, b = (1024, 1536), 3, 256
+    data, mask = scene(shape, count, "uint8")
+    mask[:, :700] = False
+    data[~mask] = 0
+    ref, out = str(tmp_path / "ref.tif"), str(tmp_path / "out.tif")
+    kw = dict(width=shape[1], height=shape[0], count=count, dtype="uint8", crs=CRS, transform=TRANSFORM,
+              block_size=b, overviews=3, threads=2, compress="zstd")
+    with CogWriter(ref, **kw) as w:
+        w.write(0, 0, data, mask)
+    codec, masks = _RecordingZstd(), _RecordingDeflate()
+    w = CogWriter(out, **kw)
+    enc = DeviceCogEncoder(w, wp.get_device(device), [codec], mask_codec=masks)
+    with w:
+        for r in range(0, shape[0], 512):
+            for c in range(0, shape[1], 512):
+                enc.write(r, c, wp.array(np.ascontiguousarray(data[r:r + 512, c:c + 512]), dtype=wp.uint8,
+                                         device=device),
+                          wp.array(mask[r:r + 512, c:c + 512].astype(np.uint8), dtype=wp.uint8, device=device))
+        enc.flush()
+    enc.close()
+    assert {g.size for g in codec.given} == {b * b * count} and {g.size for g in masks.given} == {b * b // 8}
+    assert all(g.any() and not (g == 255).all() for g in codec.given + masks.given)
+    assert len(codec.given) == enc.blocks_by_codec["zstandard"] and enc.empty_blocks == 8 + 2
+    for (da, ma, _, _), (db, mb, _, _) in zip(_levels(ref, count), _levels(out, count)):
+        np.testing.assert_array_equal(ma, mb)
+        np.testing.assert_array_equal(da, db)
+
+
+def test_codecs_must_match_the_writers_compression(tmp_path, device):
+    kw = dict(width=300, height=300, count=1, dtype="uint8", crs=CRS, transform=TRANSFORM, block_size=256)
+    d = wp.get_device(device)
+    with CogWriter(str(tmp_path / "z.tif"), **kw, compress="zstd") as w:
+        w.write(0, 0, np.zeros((300, 300, 1), np.uint8))
+        with pytest.raises(ParamError, match="makes deflate streams, the writer is zstd"):
+            DeviceCogEncoder(w, d, [HostDeflate(threads=1)])
+        with pytest.raises(ParamError, match="mask blocks are deflate"):
+            DeviceCogEncoder(w, d, [HostZstd(threads=1)], mask_codec=HostZstd(threads=1))
+    with CogWriter(str(tmp_path / "d.tif"), **kw) as w:
+        w.write(0, 0, np.zeros((300, 300, 1), np.uint8))
+        with pytest.raises(ParamError, match="makes zstd streams, the writer is deflate"):
+            DeviceCogEncoder(w, d, [HostZstd(threads=1)])
+    with pytest.raises(ParamError, match="CUDA"):
+        NvcompZstd(wp.get_device("cpu"))
+
+
+@needs_nvcomp
+def test_nvcomp_zstd_frames_decode_to_their_blocks():
+    """nvCOMP's Zstd gives one standard frame per buffer (what libzstd and GDAL decode), for
+    buffers of several sizes in one call, and for predicted image-like blocks and noise."""
+    import zstandard
+
+    rng = np.random.default_rng(5)
+    y, x = np.mgrid[0:512, 0:512]
+    smooth = (128 + 60 * np.sin(x / 37.0) * np.cos(y / 53.0))[..., None].repeat(3, -1).astype(np.uint8)
+    predicted = smooth.copy()
+    predicted[:, 1:] -= smooth[:, :-1]  # TIFF predictor 2 (modulo 256)
+    bufs = [smooth.ravel(), predicted.ravel(), rng.integers(0, 256, 786432, np.uint8),
+            rng.integers(0, 4, 32768, np.uint8), np.zeros(4096, np.uint8), rng.integers(0, 256, 256, np.uint8)]
+    assert all(b.dtype == np.uint8 for b in bufs)
+    sizes = [b.size for b in bufs]
+    offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]]).tolist()
+    device = wp.get_device("cuda:0")
+    buf = wp.array(np.concatenate(bufs), dtype=wp.uint8, device=device)
+    codec = NvcompZstd(device)
+    try:
+        frames = codec.compress(buf, offsets, sizes)
+        frames2 = codec.compress(buf, offsets[:2], sizes[:2])  # the codec serves the next call
+    finally:
+        codec.close()
+    dctx = zstandard.ZstdDecompressor()
+    for frame, b in zip(frames, bufs):
+        assert frame[:4] == b"\x28\xb5\x2f\xfd"  # a Zstandard frame's magic number
+        assert dctx.decompress(frame, max_output_size=b.size) == b.tobytes()
+    for frame, b in zip(frames2, bufs):
+        assert dctx.decompress(frame, max_output_size=b.size) == b.tobytes()
+    assert len(frames[0]) < sizes[0] // 4 and len(frames[4]) < 200
+
+
+@needs_nvcomp
+@pytest.mark.parametrize("batch_bytes", [1, 1 << 20, 512 << 20])
+def test_nvcomp_zstd_file_has_the_host_writers_pixels(tmp_path, batch_bytes):
+    """The device encoder with nvCOMP's Zstd (masks deflated on the host) writes the host zstd
+    writer's pixels and masks at every level, for uint8 RGB and uint16 with odd edges."""
+    for count, dtype, shape in ((3, "uint8", (1100, 1500)), (1, "uint16", (1300, 1029))):
+        host, dev = str(tmp_path / f"host-{dtype}.tif"), str(tmp_path / f"dev-{dtype}.tif")
+        _write(host, shape, count, dtype, 512, compress="zstd")
+        device = wp.get_device("cuda:0")
+        enc = _write(dev, shape, count, dtype, 512, device="cuda:0", compress="zstd", codecs=[NvcompZstd(device)],
+                     batch_bytes=batch_bytes)
+        assert enc.blocks_by_codec["nvcomp"] > 0
+        for (da, ma, _, ca), (db, mb, _, cb) in zip(_levels(host, count), _levels(dev, count)):
+            np.testing.assert_array_equal(ma, mb)
+            np.testing.assert_array_equal(da, db)
+            assert ca.value == cb.value == "ZSTD"
 
 
 class _SlowBatchedDeflate(HostDeflate):

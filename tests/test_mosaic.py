@@ -18,6 +18,12 @@ from orthowarp.pipeline.mosaic import NO_SOURCE, mosaic
 from orthowarp.sensor import FrameSensor
 
 
+def wp_cuda_count():
+    import warp as wp
+
+    return wp.get_cuda_device_count()
+
+
 def _second_view(sc):
     """The scene seen from a second camera 80 m east (same camera, other attitude): its pose
     (orthowarp, reference) and rendered image."""
@@ -243,6 +249,84 @@ def test_mosaic_creation_options(pair, tmp_path):
             assert f.read(4)[2:4] == b"+\x00"  # BigTIFF
     with pytest.raises(ParamError, match="BLOCKSIZE"):
         mosaic(images, tmp_path / "bad.tif", dem=sc.dem, device="cpu", creation_options={"BLOCKSIZE": "8"})
+
+
+def _decoded(path):
+    """(pixels, mask) of every level of a COG, and its IMAGE_STRUCTURE tags."""
+    with rasterio.open(path) as ds:
+        n, structure = len(ds.overviews(1)), ds.tags(ns="IMAGE_STRUCTURE")
+    out = []
+    for k in range(n + 1):
+        with rasterio.open(path, **({"overview_level": k - 1} if k else {})) as ds:
+            out.append((ds.read(), ds.dataset_mask()))
+    return out, structure
+
+
+def test_zstd_mosaic_and_index_have_the_deflate_pixels(pair, tmp_path):
+    """compress="zstd": the mosaic and its index are ZSTD COGs (the index's uint16 with the
+    predictor) that decode to the deflate files' pixels and masks at every level; bad
+    compressions, levels and deflate-only block codecs are refused before any work."""
+    sc, images, _, _ = pair
+    got = {}
+    for compress in ("deflate", "zstd"):
+        res = mosaic(images, tmp_path / f"m-{compress}.tif", dem=sc.dem, refraction=False, device="cpu",
+                     tile_size=256, index=tmp_path / f"i-{compress}.tif", occlusion=False, compress=compress,
+                     **({"compress_level": 3} if compress == "zstd" else {}))
+        got[compress] = (_decoded(res.path), _decoded(res.index), res.pixels_per_image)
+    (m_d, i_d, px_d), (m_z, i_z, px_z) = got["deflate"], got["zstd"]
+    assert px_d == px_z
+    for (levels_d, s_d), (levels_z, s_z) in ((m_d, m_z), (i_d, i_z)):
+        assert len(levels_d) == len(levels_z) > 1
+        for (a, ma), (b, mb) in zip(levels_d, levels_z):
+            np.testing.assert_array_equal(ma, mb)
+            np.testing.assert_array_equal(a, b)
+        assert s_d["COMPRESSION"] == "DEFLATE" and s_z["COMPRESSION"] == "ZSTD" and s_z["LAYOUT"] == "COG"
+    assert i_z[1]["PREDICTOR"] == "2" and "PREDICTOR" not in m_z[1]  # uint16 index; float32 mosaic
+    bad = tmp_path / "bad.tif"
+    for kw, match in ((dict(compress="lzw"), "compress must be one of deflate, zstd"),
+                      (dict(compress=None), "compress must be one of deflate, zstd"),
+                      (dict(compress="zstd", compress_level=23), "compress_level must be an integer 1-22"),
+                      (dict(compress_level=13), "compress_level must be an integer 1-12"),
+                      (dict(compress="zstd", block_codec="warp"), "block_codec 'warp' compresses deflate"),
+                      (dict(compress="zstd", block_codec="hybrid"), "block_codec 'hybrid' compresses deflate")):
+        with pytest.raises(ParamError, match=match):
+            mosaic(images, bad, dem=sc.dem, device="cpu", **kw)
+    assert not bad.exists()
+
+
+def test_zstd_mosaic_block_codec():
+    """A zstd mosaic's "auto" codec: nvCOMP's Zstd on a GPU where installed, else the host."""
+    import warp as wp
+
+    from orthowarp.pipeline.mosaic.plan import mosaic_block_codec
+    from orthowarp.pipeline.raster.device import nvcomp_available
+
+    assert mosaic_block_codec("auto", wp.get_device("cpu"), None, "zstd") == "host"
+    assert mosaic_block_codec("host", wp.get_device("cpu"), 9, "zstd") == "host"
+    with pytest.raises(ParamError, match="block_codec 'warp'"):
+        mosaic_block_codec("warp", wp.get_device("cpu"), 9, "zstd")
+    if wp.get_cuda_device_count():
+        want = "nvcomp" if nvcomp_available() else "host"
+        assert mosaic_block_codec("auto", wp.get_device("cuda:0"), None, "zstd") == want
+
+
+@pytest.mark.skipif(not wp_cuda_count(), reason="needs a CUDA device")
+def test_zstd_mosaic_on_the_gpu_has_the_host_pixels(pair, tmp_path):
+    """On a GPU a zstd mosaic's tiles stay on the device and nvCOMP's Zstd compresses their
+    blocks (where installed): the mosaic and its index decode to the host path's."""
+    sc, images, _, _ = pair
+    got = {}
+    for codec in ("host", "auto"):
+        res = mosaic(images, tmp_path / f"m-{codec}.tif", dem=sc.dem, refraction=False, device="cuda:0",
+                     tile_size=512, index=tmp_path / f"i-{codec}.tif", compress="zstd", block_codec=codec)
+        got[codec] = (_decoded(res.path), _decoded(res.index), res.pixels_per_image)
+    (m_h, i_h, px_h), (m_d, i_d, px_d) = got["host"], got["auto"]
+    assert px_h == px_d
+    for (levels_h, s_h), (levels_d, s_d) in ((m_h, m_d), (i_h, i_d)):
+        for (a, ma), (b, mb) in zip(levels_h, levels_d):
+            np.testing.assert_array_equal(ma, mb)
+            np.testing.assert_array_equal(a, b)
+        assert s_h == s_d and s_d["COMPRESSION"] == "ZSTD"
 
 
 @pytest.mark.parametrize("occlusion, blend", [(True, "feather"), (False, "multiband")])
@@ -541,6 +625,38 @@ def test_cli_mosaic(tmp_path):
     assert set(used) == {0, 1}
     res = CliRunner().invoke(main, ["mosaic", args[0], *args[1:], "--out", str(out)])
     assert res.exit_code == 1 and "exists" in res.output
+
+
+def test_cli_mosaic_zstd(tmp_path):
+    """orthowarp mosaic --compress zstd --compress-level: a ZSTD mosaic and index; -co COMPRESS
+    sets it too, and only deflate and zstd apply."""
+    from click.testing import CliRunner
+    from test_faults import _frame_job
+
+    from orthowarp.cli import main
+
+    args = _frame_job(tmp_path, "a")
+    out, idx = tmp_path / "out" / "m.tif", tmp_path / "out" / "i.tif"
+    base = ["mosaic", *args, "--resolution", "0.5", "--blend", "none", "--no-balance", "--seams", "nadir"]
+    res = CliRunner().invoke(main, [*base, "--out", str(out), "--index", str(idx), "--compress", "zstd",
+                                    "--compress-level", "15"])
+    assert res.exit_code == 0, res.output
+    for path in (out, idx):
+        with rasterio.open(path) as ds:
+            assert ds.tags(ns="IMAGE_STRUCTURE")["COMPRESSION"] == "ZSTD"
+    res = CliRunner().invoke(main, [*base, "--out", str(tmp_path / "co.tif"), "-co", "COMPRESS=ZSTD"])
+    assert res.exit_code == 0, res.output
+    with rasterio.open(tmp_path / "co.tif") as a, rasterio.open(out) as b:
+        assert a.tags(ns="IMAGE_STRUCTURE")["COMPRESSION"] == "ZSTD"
+        np.testing.assert_array_equal(a.read(), b.read())
+    res = CliRunner().invoke(main, [*base, "--out", str(tmp_path / "x.tif"), "-co", "COMPRESS=LZW"])
+    assert res.exit_code != 0 and "deflate or zstd" in res.output
+    res = CliRunner().invoke(main, [*base, "--out", str(tmp_path / "x.tif"), "--compress", "zstd",
+                                    "--compress-level", "23"])
+    assert res.exit_code != 0 and "compress_level must be an integer 1-22" in res.output
+    res = CliRunner().invoke(main, [*base, "--out", str(tmp_path / "x.tif"), "--compress", "lzw"])
+    assert res.exit_code != 0
+    assert not (tmp_path / "x.tif").exists()
 
 
 def test_a_failing_image_leaves_no_mosaic(tmp_path):

@@ -44,6 +44,14 @@ def test_the_cli_offers_the_library_s_choices(command, option, kind):
     assert _choices(command, option) == values(kind)
 
 
+def test_the_mosaic_offers_its_lossless_compressions():
+    """orthowarp mosaic --compress: the library's mosaic compressions, a subset of Compress."""
+    from orthowarp.pipeline.mosaic import MOSAIC_COMPRESS
+
+    assert _choices("mosaic", "--compress") == MOSAIC_COMPRESS == ("deflate", "zstd")
+    assert set(MOSAIC_COMPRESS) <= set(values(Compress))
+
+
 @pytest.mark.parametrize("kwargs, match", [
     (dict(resampling="cubic"), "resampling must be one of"),
     (dict(method="direct"), "method must be one of backward, forward"),

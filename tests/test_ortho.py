@@ -758,6 +758,118 @@ def test_hybrid_codecs_without_nvcomp_are_warp_and_host(monkeypatch):
         host.close()
 
 
+def _levels(path):
+    """(pixels, mask, IMAGE_STRUCTURE) of the full resolution and each overview of a file."""
+    with rasterio.open(path) as ds:
+        n = len(ds.overviews(1))
+    out = []
+    for k in range(n + 1):
+        with rasterio.open(path, **({"overview_level": k - 1} if k else {})) as ds:
+            out.append((ds.read(), ds.dataset_mask(), ds.tags(ns="IMAGE_STRUCTURE")))
+    return out
+
+
+@pytest.mark.parametrize("src_dtype,scale", [("uint16", 20.0), ("float32", 1.0)])
+def test_zstd_cog_streams_with_the_deflate_pixels(tmp_path, monkeypatch, src_dtype, scale):
+    """compress="zstd" streams through orthowarp's COG writer (GDAL's COG driver is not
+    called: no second write) and decodes to the deflate COG's pixels and masks at every level;
+    GDAL reads a ZSTD COG, with the predictor for integer data."""
+    import orthowarp.pipeline.ortho as po
+
+    sc = scene("opk")
+    kw = dict(refraction_image=False, refraction=False, resolution=0.25, src_dtype=src_dtype, scale=scale)
+    deflate = ortho(sc, tmp_path, name="deflate.tif", **kw)
+
+    def no_copy(*args, **kwargs):
+        raise AssertionError("a streamed COG is not copied by GDAL")
+
+    monkeypatch.setattr(po, "finish", no_copy)
+    zstd = ortho(sc, tmp_path, name="zstd.tif", compress="zstd", **kw)
+    assert zstd.profile["block_codec"] == "host"
+    a, b = _levels(deflate.path), _levels(zstd.path)
+    assert len(a) == len(b) >= 2
+    for (da, ma, _), (db, mb, structure) in zip(a, b):
+        np.testing.assert_array_equal(ma, mb)
+        np.testing.assert_array_equal(da, db)  # NaN == NaN here
+        assert structure["COMPRESSION"] == "ZSTD"
+        assert structure.get("PREDICTOR") == ("2" if src_dtype == "uint16" else None)
+    assert b[0][2]["LAYOUT"] == "COG"
+    assert_no_leftovers(tmp_path, "zstd.tif.")
+
+
+@pytest.mark.parametrize("is_cuda,nvcomp,choice,want", [
+    (True, True, "auto", "nvcomp"), (True, False, "auto", "host"), (False, True, "auto", "host"),
+    (True, True, "host", "host"), (True, True, "nvcomp", "nvcomp"), (False, False, "host", "host")])
+def test_zstd_block_codec(monkeypatch, is_cuda, nvcomp, choice, want):
+    """block_codec for a zstd COG: "auto" is nvCOMP's Zstd on a CUDA device where nvCOMP is
+    installed, else the host writer's threads; "host" forces those."""
+    from types import SimpleNamespace
+
+    from orthowarp.pipeline.ortho import sink as po
+
+    monkeypatch.setattr(po, "nvcomp_available", lambda: nvcomp)
+    device = SimpleNamespace(is_cuda=is_cuda)
+    assert po.choose_block_codec(choice, device, True, None, compress="zstd") == want
+    assert po.choose_block_codec(choice, device, False, None, compress="zstd") == "host"  # not streamed
+
+
+def test_zstd_block_codec_errors(tmp_path, monkeypatch):
+    """Block codecs "warp" and "hybrid" compress deflate only: refused with zstd before any work, naming
+    block_codec; "nvcomp" needs a CUDA device and nvCOMP; a host zstd codec for the device
+    encoder takes the level."""
+    import warp as wp
+    from types import SimpleNamespace
+
+    from orthowarp.errors import DeviceError
+    from orthowarp.pipeline.ortho import sink as po
+    from orthowarp.pipeline.raster.device import HostZstd
+
+    for codec in ("warp", "hybrid"):
+        with pytest.raises(ParamError, match=f"block_codec '{codec}' compresses deflate blocks only"):
+            po.choose_block_codec(codec, SimpleNamespace(is_cuda=True), True, None, compress="zstd")
+    with pytest.raises(ParamError, match="CUDA"):
+        po.choose_block_codec("nvcomp", SimpleNamespace(is_cuda=False), True, None, compress="zstd")
+    monkeypatch.setattr(po, "nvcomp_available", lambda: False)
+    with pytest.raises(DeviceError, match="nvCOMP"):
+        po.choose_block_codec("nvcomp", SimpleNamespace(is_cuda=True), True, None, compress="zstd")
+    (codec,) = po.device_codecs("device", 3, wp.get_device("cpu"), "zstd")
+    assert isinstance(codec, HostZstd) and codec.level == 3
+    codec.close()
+    (codec,) = po.device_codecs("device", None, wp.get_device("cpu"), "zstd")
+    assert codec.level == 9
+    codec.close()
+    sc = scene("opk")
+    src = write_image(tmp_path / "src.tif", sc.image(False))
+    with pytest.raises(ParamError, match="block_codec 'warp'"):
+        orthorectify(src, FrameSensor(sc.camera, sc.pose), tmp_path / "o.tif", dem=sc.dem, compress="zstd",
+                     block_codec="warp")
+    assert not os.path.exists(tmp_path / "o.tif")
+
+
+@pytest.mark.skipif(not DEVICES or not any(d.startswith("cuda") for d in DEVICES), reason="needs a CUDA device")
+def test_zstd_on_the_gpu_writes_the_host_pixels(tmp_path):
+    """On a CUDA device a zstd COG's blocks are made there and compressed by nvCOMP's Zstd
+    (block_codec "auto", where nvCOMP is installed; else the host writer): the file decodes to
+    the host path's pixels and masks at every level."""
+    from orthowarp.pipeline.raster.device import nvcomp_available
+
+    sc = scene("ins")
+    kw = dict(refraction_image=False, refraction=False, src_dtype="uint8", scale=200.0, tile_size=512,
+              resolution=0.05, compress="zstd", device="cuda:0")
+    host = ortho(sc, tmp_path, name="host.tif", block_codec="host", **kw)
+    dev = ortho(sc, tmp_path, name="dev.tif", **kw)
+    want = "nvcomp" if nvcomp_available() else "host"
+    assert dev.profile["block_codec"] == want
+    if want == "nvcomp":
+        assert dev.profile["blocks_by_codec"]["nvcomp"] > 0
+    a, b = _levels(host.path), _levels(dev.path)
+    assert len(a) == len(b) >= 3
+    for (da, ma, sa), (db, mb, sb) in zip(a, b):
+        np.testing.assert_array_equal(ma, mb)
+        np.testing.assert_array_equal(da, db)
+        assert sa == sb and sb["COMPRESSION"] == "ZSTD"
+
+
 def test_measurement_detects_a_known_error(tmp_path):
     """The yardstick works: orthorectifying with the camera moved by (+0.3, -0.2) pixels east
     and north yields a measured shift of (dy, dx) = (+0.2, +0.3) (the texture appears moved by

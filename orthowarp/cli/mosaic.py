@@ -50,6 +50,7 @@ MOSAIC_GPU_PROCESSES = 4
               help="Project by the backward method (faster; ground hidden from an image is filled with what hides it).")
 @click.option("--reference", type=int, default=None,
               help="Balancing keeps this image's radiometry (its position in IMAGES, from 0); default: the mean.")
+@options.mosaic_compress
 @options.compress_level
 @options.block_codec
 @options.accuracy_options
@@ -91,10 +92,11 @@ def mosaic(ctx: click.Context, images: tuple[str, ...], **kwargs: Any) -> None:
         raise ParamError("Give frame IMAGES (with --ext-param) or pushbroom scenes (--scene IMAGE DIMAP)")
     if images and not o.ext_param:
         raise ParamError("Frame IMAGES need --ext-param (their exterior orientation)")
-    compress, compress_level, quality, creation_options = options.creation_args(o.creation, "deflate",
+    compress, compress_level, quality, creation_options = options.creation_args(o.creation, o.compress,
                                                                                 o.compress_level, None)
-    if compress != "deflate" or quality is not None:
-        raise ParamError("the mosaic is written with deflate: -co COMPRESS and QUALITY do not apply")
+    if compress not in options.MOSAIC_COMPRESS or quality is not None:
+        raise ParamError("the mosaic is written with deflate or zstd: -co COMPRESS takes DEFLATE or ZSTD, and "
+                         "QUALITY does not apply")
     sigmas = _accuracy_sigmas(o) if o.accuracy else None
     jobs = _jobs(images, o)
     if o.accuracy:  # every frame's pose takes that many sigmas, before anything is written
@@ -114,7 +116,8 @@ def mosaic(ctx: click.Context, images: tuple[str, ...], **kwargs: Any) -> None:
                         refraction=not o.no_refraction, dtype=o.dtype, index=o.index_path, seamlines=o.seamlines_path,
                         seams=o.seams, seam_width=o.seam_width, blend=o.blend, feather=o.feather,
                         balance=not o.no_balance, reference=o.reference, occlusion=not o.no_occlusion,
-                        compress_level=compress_level, block_codec=o.block_codec, creation_options=creation_options,
+                        compress=compress, compress_level=compress_level, block_codec=o.block_codec,
+                        creation_options=creation_options,
                         overwrite=o.overwrite, device=o.device, geoid=o.geoid,
                         same_vertical_datum=o.same_vertical_datum, workers=o.workers, processes=processes,
                         tile_size=o.tile_size, cancel=ctx.meta.get("orthowarp.stop"))

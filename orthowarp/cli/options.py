@@ -25,6 +25,7 @@ SCENE_SIGMA = "10,10,5,0.001,0.001,0.001,0.001,0.001"  # --scene-sigma's default
 RESAMPLING = values(Resampling)
 BLOCK_CODECS = values(BlockCodec)
 COMPRESS = values(Compress)
+MOSAIC_COMPRESS = ("deflate", "zstd")  # (pipeline.mosaic.MOSAIC_COMPRESS, without importing the pipeline)
 
 
 def compose(*decorators: Callable[[F], F]) -> Callable[[F], F]:
@@ -104,21 +105,26 @@ compress = click.option("--compress", type=click.Choice(COMPRESS), default="defl
                              "times smaller; see --quality).")
 quality = click.option("--quality", type=click.IntRange(1, 100), default=None,
                        help="JPEG / WebP quality 1-100 (default 90; orthority's JPEG default is 75).")
+mosaic_compress = click.option("--compress", type=click.Choice(MOSAIC_COMPRESS), default="deflate",
+                               show_default=True,
+                               help="Lossless compression of the mosaic and its --index, with the TIFF predictor "
+                                    "for integer data.")
 compress_level = click.option("--compress-level", type=int, default=None,
-                              help="Deflate level 1-12 (default 6), or zstd level 1-22 (default 9); a mosaic is "
-                                   "always deflate.")
+                              help="Deflate level 1-12 (default 6), or zstd level 1-22 (default 9).")
 block_codec = click.option("--block-codec", type=click.Choice(BLOCK_CODECS), default="auto", show_default=True,
-                           help="Who deflates the blocks of a COG: host (libdeflate on all cores), nvcomp (the GPU; "
-                                "needs orthowarp[gpu]), warp (orthowarp's own deflate kernels on the device), hybrid "
-                                "(the device, nvCOMP at --compress-level 1-4 where installed, else warp, and the host "
-                                "cores at once); auto: host on the CPU; on a GPU, for an ortho nvcomp at "
-                                "--compress-level 1-4 where installed, else hybrid, for a mosaic warp.")
+                           help="Who compresses the blocks of a deflate or zstd COG: host (libdeflate or zstd on all "
+                                "cores), nvcomp (the GPU; needs orthowarp[gpu]; its zstd takes no level), warp "
+                                "(orthowarp's own deflate kernels on the device), hybrid (the device, nvCOMP at "
+                                "--compress-level 1-4 where installed, else warp, and the host cores at once); warp "
+                                "and hybrid are deflate only. auto: host on the CPU; on a GPU, for zstd nvcomp where "
+                                "installed, else host; for a deflate ortho nvcomp at --compress-level 1-4 where "
+                                "installed, else hybrid; for a deflate mosaic warp.")
 creation = click.option("-co", "--co", "creation", multiple=True, metavar="KEY=VALUE",
                         help="GDAL-style creation option, repeatable: BLOCKSIZE (64-4096, multiple of 16; default "
                              "512), BIGTIFF (YES, NO, IF_NEEDED, IF_SAFER), NUM_THREADS (count or ALL_CPUS); "
-                             "COMPRESS, LEVEL (ZLEVEL) and QUALITY (JPEG_QUALITY) set --compress, --compress-level "
-                             "and --quality (a mosaic is always deflate); PREDICTOR=YES (2) is what orthowarp "
-                             "writes for integer data.")
+                             "COMPRESS, LEVEL (ZLEVEL, ZSTD_LEVEL) and QUALITY (JPEG_QUALITY) set --compress, "
+                             "--compress-level and --quality (a mosaic takes DEFLATE or ZSTD); PREDICTOR=YES (2) is "
+                             "what orthowarp writes for integer data.")
 overwrite = click.option("--overwrite", is_flag=True, help="Replace existing outputs.")
 no_plots = click.option("--no-plots", is_flag=True, help="Skip the PNG plots.")
 

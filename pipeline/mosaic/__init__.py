@@ -46,9 +46,10 @@ from pyproj import CRS
 from ..._device import quiet_warp, resolve_device, to_host
 from ..._validate import flag, integer
 from ...errors import ParamError
-from ...options import BlockCodec, choice
+from ...options import BlockCodec, Compress, choice
 from ..dem import Dem
-from ..ortho.sink import parse_creation_options
+from ..ortho.sink import check_block_codec, compress_level as level_of, parse_creation_options
+from ..raster.cog import LEVELS
 from ..raster.io import check_cancel
 from ..tiles import Tile
 from .plan import (
@@ -63,7 +64,10 @@ from .plan import (
 )
 from .workers import ProcessTiles, TileDealer, tile_runs
 
-__all__ = ["mosaic", "mosaic_plan", "MosaicPlan", "MosaicResult", "NO_SOURCE"]
+__all__ = ["mosaic", "mosaic_plan", "MosaicPlan", "MosaicResult", "NO_SOURCE", "MOSAIC_COMPRESS"]
+
+#: A mosaic's (and its index's) compressions: lossless, streamed by orthowarp's COG writer.
+MOSAIC_COMPRESS = ("deflate", "zstd")
 
 @quiet_warp()
 def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | os.PathLike | float,
@@ -71,12 +75,13 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
            refraction: bool = True, dtype: str | None = None, index: str | os.PathLike | None = None,
            seamlines: str | os.PathLike | None = None, seams: str = "least-cost", seam_width: float = 256,
            blend: str = "feather", feather: float = 32, balance: bool = True, reference: int | None = None,
-           occlusion: bool = True, compress_level: int | None = None, block_codec: str = "auto",
+           occlusion: bool = True, compress: str = "deflate", compress_level: int | None = None,
+           block_codec: str = "auto",
            creation_options: dict | None = None, tile_size: int | None = None, overwrite: bool = False, device: str | None = None,
            workers: int | None = None, processes: int | None = None, geoid: str | os.PathLike | None = None,
            same_vertical_datum: bool = False, cancel: threading.Event | None = None) -> MosaicResult:
-    """Mosaic frame images and pushbroom scenes into one cloud-optimized GeoTIFF (deflate,
-    internal mask, overviews).
+    """Mosaic frame images and pushbroom scenes into one cloud-optimized GeoTIFF (deflate or
+    zstd, internal mask, overviews).
 
     Parameters
     ----------
@@ -140,8 +145,11 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
         backward method; with ``occlusion`` each of their pixels' visibility is tested (its
         source pixel geolocated forward must come back to its ground point) and hidden ground
         is left to another image in the same way.
+    compress : {"deflate", "zstd"}, optional
+        The compression of the mosaic and of its index (default deflate), with predictor 2
+        for integer data.
     compress_level : int, optional
-        Deflate level 1-12 (default 6).
+        Deflate level 1-12 (default 6), or zstd level 1-22 (default 9).
     creation_options : dict, optional
         BLOCKSIZE, BIGTIFF, NUM_THREADS of the mosaic and index files (as for
         :func:`~orthowarp.pipeline.ortho.orthorectify`).
@@ -154,7 +162,9 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
         (a device codec, libdeflate on the host cores taking the tiles that arrive while the
         device is busy and its next batch is full); "auto": "warp" on a GPU (the fastest
         measured for a mosaic, whose host cores are busy with the tiles), "host" on the CPU.
-        Every choice decodes to the same pixels.
+        With ``compress="zstd"``: "host" or "nvcomp" (nvCOMP's Zstd, which takes no level);
+        "auto" is "nvcomp" on a GPU where nvCOMP is installed, else "host"; "warp" and
+        "hybrid" are refused. Every choice decodes to the same pixels.
     tile_size : int, optional
         Output tile edge (pixels, multiple of 16); default 2048 on a GPU (fewer, larger
         launches: the per-tile work on the host is what bounds a mosaic), 512 on the CPU.
@@ -182,13 +192,17 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
     images = check_images(images, resampling, dtype, blend, feather, reference, seams, seam_width,
                            resolution=resolution, refraction=refraction, balance=balance, occlusion=occlusion,
                            same_vertical_datum=same_vertical_datum)
+    if not isinstance(compress, str) or compress not in MOSAIC_COMPRESS:
+        raise ParamError(f"compress must be one of {', '.join(MOSAIC_COMPRESS)}; got {compress!r}")
+    compress = Compress(compress).value
     block_codec = choice("block_codec", block_codec, BlockCodec).value
+    check_block_codec(block_codec, compress)
     parse_creation_options(creation_options)  # checked before any work
     if tile_size is not None and integer("tile_size", tile_size, low=16) % 16:
         raise ParamError(f"tile_size must be a positive multiple of 16, got {tile_size}")
     if processes is not None and (not isinstance(processes, (int, np.integer)) or processes < 1):
         raise ParamError(f"processes must be a positive number of processes, got {processes!r}")
-    compress_level = integer("compress_level", compress_level, low=1, high=12, none=True)  # deflate's levels
+    compress_level = integer("compress_level", compress_level, low=1, high=LEVELS[compress][1], none=True)
     workers = integer("workers", workers, low=1, none=True)
     flag("overwrite", overwrite)
     dst = os.fspath(dst)
@@ -202,7 +216,8 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
                            feather=feather, balance=balance,
                            reference=reference, occlusion=occlusion, device=device, geoid=geoid,
                            same_vertical_datum=same_vertical_datum, cancel=cancel, _outputs=outputs)
-        out = _WriteSettings(index=index, seamlines=seamlines, compress_level=compress_level, block_codec=block_codec,
+        out = _WriteSettings(index=index, seamlines=seamlines, compress=compress, compress_level=compress_level,
+                             block_codec=block_codec,
                              creation_options=creation_options, tile_size=tile_size, overwrite=overwrite,
                              workers=workers)
         return _write_mosaic(plan, procs, dst, on, out, cancel)
@@ -217,6 +232,7 @@ class _WriteSettings:
 
     index: str | os.PathLike | None
     seamlines: str | os.PathLike | None
+    compress: str
     compress_level: int | None
     block_codec: str
     creation_options: dict | None
@@ -230,7 +246,7 @@ def _write_mosaic(plan: MosaicPlan, procs: ProcessTiles | None, dst: str, on: wp
     """:func:`mosaic`'s tiles, on a thread pool of this process or, with ``procs`` (a started
     :class:`~orthowarp.pipeline.mosaic.workers.ProcessTiles`), on worker processes, written."""
     t0 = time.perf_counter()
-    codec = mosaic_block_codec(out.block_codec, on, out.compress_level or 6)
+    codec = mosaic_block_codec(out.block_codec, on, level_of(out.compress, out.compress_level), out.compress)
     size = int(out.tile_size) if out.tile_size is not None else default_tile_size(on)
     tiles = plan.tiles(size)
     host_source = out.index is not None or out.seamlines is not None  # else the pixels per image counted there
@@ -239,8 +255,8 @@ def _write_mosaic(plan: MosaicPlan, procs: ProcessTiles | None, dst: str, on: wp
     else:
         results = _process_results(plan, procs, tiles, size, codec, on, host_source, cancel, dst)
     try:
-        return plan.write(dst, results, index=out.index, seamlines=out.seamlines, compress_level=out.compress_level,
-                          overwrite=out.overwrite, t_start=t0, _block_codec=codec,
+        return plan.write(dst, results, index=out.index, seamlines=out.seamlines, compress=out.compress,
+                          compress_level=out.compress_level, overwrite=out.overwrite, t_start=t0, _block_codec=codec,
                           creation_options=out.creation_options)
     finally:
         plan.close()

@@ -368,19 +368,25 @@ class MosaicPlan(TileBlending):
 
     def write(self, dst: str | os.PathLike, results: Iterable[tuple[tuple[int, int, int, int], tuple]], *,
               index: str | os.PathLike | None = None, seamlines: str | os.PathLike | None = None,
-              compress_level: int | None = None, overwrite: bool = False, t_start: float | None = None,
-              _block_codec: str = "host", creation_options: dict | None = None) -> MosaicResult:
+              compress: str = "deflate", compress_level: int | None = None, overwrite: bool = False,
+              t_start: float | None = None, _block_codec: str = "host",
+              creation_options: dict | None = None) -> MosaicResult:
         """Write the mosaic from tile results, in any order: ``results`` yields
         ((r0, c0, rows, cols), (block, valid, source)) for every tile of the grid (e.g. from
         :meth:`tile` on a thread pool or a distributed engine). The outputs (mosaic, optional
-        index COG and seamlines GeoJSON) are published together when all tiles are in.
-        (Internally, with a ``_block_codec`` other than "host", the tiles' pixels go to the
-        mosaic's file through ``self._encoder`` on the device and ``block`` is None.)
+        index COG and seamlines GeoJSON) are published together when all tiles are in; the
+        mosaic and its index are ``compress`` COGs ("deflate" or "zstd", at ``compress_level``:
+        default 6 or 9). (Internally, with a ``_block_codec`` other than "host", the tiles'
+        pixels go to the mosaic's file through ``self._encoder`` on the device and ``block``
+        is None.)
 
         Returns
         -------
         MosaicResult
         """
+        if compress not in ("deflate", "zstd"):
+            raise ParamError(f"compress must be one of deflate, zstd; got {compress!r}")
+        compress = str(compress)  # (an option's member: its plain value)
         dst = os.fspath(dst)
         outputs = output_paths(dst, index, seamlines, overwrite)
         rows, cols = self.shape
@@ -392,7 +398,8 @@ class MosaicPlan(TileBlending):
         t_start = time.perf_counter() if t_start is None else t_start
         with rasterio.Env(GDAL_CACHEMAX=256), atomic_files(outputs, overwrite=overwrite) as tmps:
             co = parse_creation_options(creation_options)
-            kw = dict(level=compress_level or 6, block_size=co["block"], bigtiff=co["bigtiff"], threads=co["threads"])
+            kw = dict(compress=compress, level=compress_level, block_size=co["block"], bigtiff=co["bigtiff"],
+                      threads=co["threads"])
             writers = [CogWriter(tmps[0], width=cols, height=rows, count=self.count, dtype=self.dtype, crs=rio_crs,
                                  transform=self.transform, name=dst, **kw)]
             if index is not None:
@@ -401,7 +408,7 @@ class MosaicPlan(TileBlending):
             encoder = None
             try:
                 if _block_codec != "host":
-                    codecs = device_codecs(_block_codec, compress_level or 6, self.warp_device)
+                    codecs = device_codecs(_block_codec, compress_level, self.warp_device, compress)
                     encoder = self._encoder = DeviceCogEncoder(writers[0], self.warp_device, codecs)
                 for (r0, c0, th, tw), (block, valid, source) in results:
                     if block is not None:
@@ -417,7 +424,7 @@ class MosaicPlan(TileBlending):
                         coarse_index[(r0 + i0) // step:(r0 + i0) // step + sub.shape[0],
                                      (c0 + j0) // step:(c0 + j0) // step + sub.shape[1]] = sub
                 if encoder is not None:
-                    encoder.flush()  # the last nvCOMP batch
+                    encoder.flush()  # the last device batch
                 used += self._counted_sources()
                 for w in writers:
                     w.close()
@@ -612,14 +619,15 @@ def default_tile_size(device: Device) -> int:
     return 2048 if device.is_cuda else 512
 
 
-def mosaic_block_codec(choice: str, device: Device, level: int) -> str:
-    """The block codec a mosaic uses (see :func:`~orthowarp.pipeline.mosaic.mosaic`'s ``block_codec``): "auto" is
-    "warp" on a GPU (the 40-frame speed block on an H200: 28.3 and 29.5 s against 33.1 and
-    34.0 s with the host codec, bench/reference/mosaic-speed-*-codec-h200*.json), "host" on
-    the CPU."""
-    if choice == "auto":
+def mosaic_block_codec(choice: str, device: Device, level: int | None, compress: str = "deflate") -> str:
+    """The block codec a mosaic uses (see :func:`~orthowarp.pipeline.mosaic.mosaic`'s ``block_codec``): for
+    deflate "auto" is "warp" on a GPU (the 40-frame speed block on an H200: 28.3 and 29.5 s
+    against 33.1 and 34.0 s with the host codec, bench/reference/mosaic-speed-*-codec-h200*.json),
+    "host" on the CPU; for zstd as for an ortho (:func:`~orthowarp.pipeline.ortho.sink.choose_block_codec`:
+    nvCOMP's Zstd on a GPU where it is installed, else "host")."""
+    if choice == "auto" and compress == "deflate":
         return "warp" if device.is_cuda else "host"
-    return choose_block_codec(choice, device, True, level)
+    return choose_block_codec(choice, device, True, level, compress=compress)
 
 
 def output_paths(dst: str, index: str | os.PathLike | None, seamlines: str | os.PathLike | None,

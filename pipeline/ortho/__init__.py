@@ -64,6 +64,7 @@ from .sink import (
     DRIVERS,
     LOSSY,
     OutputSettings,
+    check_block_codec,
     device_codecs,
     finish,
     gdal_profile,
@@ -187,7 +188,9 @@ def orthorectify(src: str | os.PathLike, sensor: SensorModel, dst: str | os.Path
     compress : {"deflate", "zstd", "lzw", "jpeg", "webp", "none"}, optional
         Lossless (deflate, the default; zstd, lzw; none) or lossy for uint8 outputs: "jpeg"
         (1 or 3 bands; 3 bands in YCbCr) or "webp" (3 or 4 bands), both with an internal mask
-        for nodata.
+        for nodata. A deflate, zstd or uncompressed COG is streamed by orthowarp's writer
+        (blocks compressed as the tiles arrive); the others are written once uncompressed and
+        copied by GDAL's COG driver.
     compress_level : int, optional
         Deflate level 1-12 (default 6; libdeflate's scale, whose 7 makes blocks the size of
         GDAL's default) or zstd level 1-22 (default GDAL's, 9).
@@ -223,7 +226,7 @@ def orthorectify(src: str | os.PathLike, sensor: SensorModel, dst: str | os.Path
         whichever writer makes the file (orthowarp's COG writer, GDAL's COG or GTiff driver).
         Compression, level and quality have their own arguments.
     block_codec : {"auto", "host", "nvcomp", "hybrid", "warp"}, optional
-        Who compresses a deflate COG's blocks. "host": each tile goes to host memory, where
+        Who compresses a deflate or zstd COG's blocks. "host": each tile goes to host memory, where
         the writer applies the predictor, builds the overviews and deflates (libdeflate, all
         cores). "nvcomp" (CUDA, needs ``orthowarp[gpu]``): predictor, masks and the overview
         levels that cover whole blocks are computed on the device and nvCOMP deflates them
@@ -240,7 +243,12 @@ def orthorectify(src: str | os.PathLike, sensor: SensorModel, dst: str | os.Path
         for ``compress_level`` 1-4 where nvCOMP is installed, else "hybrid" (measured with
         16 host cores: nvCOMP's medium-ratio variant beats every host level; at level 6 the
         device kernels with the host cores were 1.4 times as fast as the cores alone, files
-        1.4 % larger); on the CPU "host".
+        1.4 % larger); on the CPU "host". For a zstd COG: "host" (``zstandard`` on the writer's
+        threads) or "nvcomp" (the same device work, the blocks compressed by nvCOMP's Zstd,
+        which takes no level: ``compress_level`` applies to the host codec; the mask blocks,
+        deflate in a zstd COG as GDAL writes them, are deflated on the host); "auto" is "nvcomp" on a CUDA device where
+        nvCOMP is installed, else "host"; "warp" and "hybrid" are deflate codecs, refused with
+        zstd.
     source_reads : {"auto", "whole", "tiles"}, optional
         How the source reaches the device. "tiles": each output tile reads the source window
         it needs (reduced where the output is coarser) and uploads it. "whole": the source is
@@ -259,6 +267,7 @@ def orthorectify(src: str | os.PathLike, sensor: SensorModel, dst: str | os.Path
     method, resampling = _check_method(sensor, method, resampling)
     compress, compress_level, quality = _check_compression(driver, compress, compress_level, quality, dtype)
     block_codec = choice("block_codec", block_codec, BlockCodec).value
+    check_block_codec(block_codec, compress)
     source_reads = choice("source_reads", source_reads, SourceReads).value
     co = parse_creation_options(creation_options)
     tile_size, workers = _check_tiling(tile_size, workers)

@@ -1,11 +1,11 @@
 """Where an orthoimage's tiles go: the writers, their creation options and the block codecs.
 
-A deflate or uncompressed COG streams through :class:`~orthowarp.pipeline.raster.cog.CogWriter`
+A deflate, zstd or uncompressed COG streams through :class:`~orthowarp.pipeline.raster.cog.CogWriter`
 (blocks compressed and overviews reduced as tiles arrive), fed from the host or, with a device
 block codec, from the device (:class:`~orthowarp.pipeline.raster.device.DeviceCogEncoder` and
-its raw-deflate codecs: :func:`choose_block_codec`, :func:`device_codecs`); other outputs go
-through GDAL's GTiff driver (:func:`gdal_profile`) and, for a COG, are copied into the
-cloud-optimized layout by GDAL's COG driver after their overviews are built (:func:`finish`).
+its codecs: :func:`choose_block_codec`, :func:`device_codecs`); other outputs go through GDAL's
+GTiff driver (:func:`gdal_profile`) and, for a COG, are copied into the cloud-optimized layout
+by GDAL's COG driver after their overviews are built (:func:`finish`).
 :func:`parse_creation_options` checks the GDAL-style creation options every writer takes;
 :class:`OutputSettings` holds how one output is written.
 """
@@ -28,7 +28,7 @@ from rasterio.windows import Window
 
 from ...errors import DeviceError, ParamError
 from ...options import BlockCodec, Compress, values
-from ..raster.cog import CogWriter, overview_count
+from ..raster.cog import LEVELS, CogWriter, overview_count
 from ..raster.io import GDAL_ERRORS, write_error
 
 if TYPE_CHECKING:
@@ -40,14 +40,20 @@ if TYPE_CHECKING:
     from ..reports.profile import StageTimer
 
 __all__ = ["open_sink", "Sink", "OutputSettings", "finish", "gdal_profile", "gdal_creation_options",
-           "parse_creation_options", "choose_block_codec", "device_codecs", "nvcomp_available", "DRIVERS",
-           "COMPRESS", "LOSSY", "DEFAULT_QUALITY", "BLOCK_CODECS", "CREATION_OPTIONS"]
+           "parse_creation_options", "choose_block_codec", "check_block_codec", "device_codecs", "nvcomp_available",
+           "compress_level", "DRIVERS", "COMPRESS", "STREAMED", "DEVICE_COMPRESS", "LOSSY", "DEFAULT_QUALITY",
+           "BLOCK_CODECS", "CREATION_OPTIONS"]
 
 DRIVERS = ("COG", "GTiff")
 COMPRESS = values(Compress)
 LOSSY = ("jpeg", "webp")
 DEFAULT_QUALITY = 90  # JPEG / WebP quality of lossy outputs (orthority's JPEG default is 75)
 BLOCK_CODECS = values(BlockCodec)
+#: The COG compressions orthowarp's writer streams (the others are copied by GDAL's COG driver).
+STREAMED = ("deflate", "zstd", "none")
+#: The compressions whose blocks a device block codec may compress.
+DEVICE_COMPRESS = ("deflate", "zstd")
+_DEFLATE_ONLY = ("warp", "hybrid")  # orthowarp's deflate kernels, and the deflate codecs shared with the host
 
 
 CREATION_OPTIONS = ("BLOCKSIZE", "BIGTIFF", "NUM_THREADS")
@@ -160,7 +166,30 @@ def gdal_profile(crs: CRS, transform: Affine, shape: tuple[int, int], count: int
     return profile
 
 
-def choose_block_codec(choice: str, device: Device, deflate_cog: bool, level: int = 6) -> str:
+def compress_level(compress: str, level: int | None) -> int | None:
+    """The level a ``compress`` output is written at: ``level``, or the writer's default
+    (deflate 6, zstd 9); None for compressions without levels."""
+    if compress not in LEVELS:
+        return None
+    return LEVELS[compress][2] if level is None else int(level)
+
+
+def check_block_codec(block_codec: str, compress: str) -> None:
+    """Refuse a block codec that cannot compress ``compress`` blocks: "warp" and "hybrid"
+    are deflate codecs (orthowarp's deflate kernels; libdeflate beside a device codec).
+
+    Raises
+    ------
+    ParamError
+        Naming ``block_codec`` and the codecs that do apply.
+    """
+    if compress == "zstd" and block_codec in _DEFLATE_ONLY:
+        raise ParamError(f"block_codec {block_codec!r} compresses deflate blocks only; for zstd use auto, host or "
+                         "nvcomp")
+
+
+def choose_block_codec(choice: str, device: Device, device_cog: bool, level: int | None = None, *,
+                       compress: str = "deflate") -> str:
     """The block codec a run uses.
 
     Parameters
@@ -169,10 +198,12 @@ def choose_block_codec(choice: str, device: Device, deflate_cog: bool, level: in
         See :func:`~orthowarp.pipeline.ortho.orthorectify`'s ``block_codec``.
     device : warp.context.Device
         The run's device.
-    deflate_cog : bool
-        The output is a deflate COG streamed through orthowarp's writer (else: "host").
+    device_cog : bool
+        The output is a deflate or zstd COG streamed through orthowarp's writer (else: "host").
     level : int, optional
-        The libdeflate level (1-12).
+        The compression level (libdeflate 1-12, zstd 1-22); default: the writer's.
+    compress : {"deflate", "zstd"}, optional
+        The output's compression.
 
     Returns
     -------
@@ -183,12 +214,19 @@ def choose_block_codec(choice: str, device: Device, deflate_cog: bool, level: in
     Raises
     ------
     ParamError
-        "nvcomp" on a CPU device.
+        "nvcomp" on a CPU device; "warp" or "hybrid" for zstd (:func:`check_block_codec`).
     DeviceError
         "nvcomp" without nvCOMP installed.
     """
-    if choice == "host" or not deflate_cog:
+    check_block_codec(choice, compress)
+    level = compress_level(compress, level)
+    if choice == "host" or not device_cog:
         return "host"
+    if compress == "zstd":
+        # nvCOMP's Zstd where it can run (bench/zstd_codecs.py); else the host writer's threads
+        if choice == "auto":
+            return "nvcomp" if device.is_cuda and nvcomp_available() else "host"
+        return _nvcomp_or_error(device)
     if choice == "auto":
         # measured with 16 host cores: at the higher levels orthowarp's deflate kernels and
         # the host cores together beat the cores alone (H200, bench/reference/
@@ -201,6 +239,11 @@ def choose_block_codec(choice: str, device: Device, deflate_cog: bool, level: in
         return "hybrid" if device.is_cuda else "device"
     if choice == "warp":
         return "warp"
+    return _nvcomp_or_error(device)
+
+
+def _nvcomp_or_error(device: Device) -> str:
+    """The block codec "nvcomp" where nvCOMP can run on ``device``; else the error that says why not."""
     if not device.is_cuda:
         raise ParamError(f"block_codec 'nvcomp' needs a CUDA device (the run is on {device})")
     if not nvcomp_available():
@@ -243,24 +286,35 @@ def _warp_deflate(level: int, device: Device) -> WarpDeflate:
     return WarpDeflate(device, depth=depth, nice=nice)
 
 
-def device_codecs(block_codec: str, level: int, device: Device) -> list:
-    """The raw-deflate codecs of a :class:`~orthowarp.pipeline.raster.device.DeviceCogEncoder`.
+def device_codecs(block_codec: str, level: int | None, device: Device, compress: str = "deflate") -> list:
+    """The codecs of a :class:`~orthowarp.pipeline.raster.device.DeviceCogEncoder`.
 
     Parameters
     ----------
     block_codec : {"nvcomp", "hybrid", "device", "warp"}
         A resolved block codec (:func:`choose_block_codec`).
-    level : int
-        The libdeflate level (1-12).
+    level : int or None
+        The compression level (libdeflate 1-12, zstd 1-22); None: the writer's default.
     device : warp.context.Device
+    compress : {"deflate", "zstd"}, optional
+        The output's compression: raw-deflate codecs, or zstd ones (nvCOMP's Zstd, which has
+        no levels, or ``zstandard`` on the host).
 
     Returns
     -------
     list
         :class:`~orthowarp.pipeline.raster.device.NvcompDeflate`,
         :class:`~orthowarp.pipeline.raster.device.WarpDeflate` and/or
-        :class:`~orthowarp.pipeline.raster.device.HostDeflate` objects, in the encoder's order.
+        :class:`~orthowarp.pipeline.raster.device.HostDeflate` objects, or for zstd
+        :class:`~orthowarp.pipeline.raster.device.NvcompZstd` and/or
+        :class:`~orthowarp.pipeline.raster.device.HostZstd`, in the encoder's order.
     """
+    check_block_codec(block_codec, compress)
+    level = compress_level(compress, level)
+    if compress == "zstd":
+        from ..raster.device import HostZstd, NvcompZstd
+
+        return [NvcompZstd(device)] if block_codec == "nvcomp" else [HostZstd(level)]
     from ..raster.device import HostDeflate, NvcompDeflate
 
     if block_codec == "warp":
@@ -287,7 +341,7 @@ class OutputSettings:
     compress : str
         One of :data:`COMPRESS`.
     level : int or None
-        Deflate or zstd level; None: the writer's default.
+        Deflate or zstd level; None: the writer's default (deflate 6, zstd 9).
     quality : int or None
         JPEG / WebP quality of lossy outputs.
     dtype : {"uint8", "uint16", "float32"}
@@ -296,8 +350,8 @@ class OutputSettings:
     overviews : bool
         Build overviews (always for COG).
     block_codec : str
-        Who compresses a deflate COG's blocks: the caller's choice (one of :data:`BLOCK_CODECS`),
-        resolved for a device by :meth:`for_device` (:func:`choose_block_codec`).
+        Who compresses a deflate or zstd COG's blocks: the caller's choice (one of
+        :data:`BLOCK_CODECS`), resolved for a device by :meth:`for_device` (:func:`choose_block_codec`).
     """
 
     driver: str
@@ -312,9 +366,10 @@ class OutputSettings:
     @property
     def streamed(self) -> bool:
         """Whether the file streams through :class:`~orthowarp.pipeline.raster.cog.CogWriter`
-        (blocks compressed and overviews reduced as tiles arrive): a deflate or uncompressed COG.
-        Other COGs are written uncompressed and copied by GDAL's COG driver, which compresses once."""
-        return self.driver == "COG" and self.compress in ("deflate", "none")
+        (blocks compressed and overviews reduced as tiles arrive): a deflate, zstd or
+        uncompressed COG. Other COGs (lzw, jpeg, webp) are written uncompressed and copied by
+        GDAL's COG driver, which compresses once."""
+        return self.driver == "COG" and self.compress in STREAMED
 
     @property
     def tile_compress(self) -> str:
@@ -328,13 +383,13 @@ class OutputSettings:
         if not self.streamed:
             return None
         co = self.co
-        return dict(compress=self.compress, level=self.level or 6, block_size=co["block"], bigtiff=co["bigtiff"],
-                    threads=co["threads"])
+        return dict(compress=self.compress, level=compress_level(self.compress, self.level), block_size=co["block"],
+                    bigtiff=co["bigtiff"], threads=co["threads"])
 
     def for_device(self, device: Device) -> OutputSettings:
         """These settings with the block codec resolved for ``device`` (:func:`choose_block_codec`)."""
-        codec = choose_block_codec(self.block_codec, device, self.streamed and self.compress == "deflate",
-                                   self.level or 6)
+        codec = choose_block_codec(self.block_codec, device, self.streamed and self.compress in DEVICE_COMPRESS,
+                                   self.level, compress=self.compress)
         return dataclasses.replace(self, block_codec=codec)
 
 
@@ -381,7 +436,7 @@ def open_sink(path: str, profile: dict[str, Any], cog: dict[str, Any] | None, fi
         encoder = None
         try:
             if block_codec != "host":
-                codecs = device_codecs(block_codec, cog["level"], device)
+                codecs = device_codecs(block_codec, cog["level"], device, cog["compress"])
                 from ..raster.device import DeviceCogEncoder
 
                 encoder = DeviceCogEncoder(w, device, codecs)
@@ -389,7 +444,7 @@ def open_sink(path: str, profile: dict[str, Any], cog: dict[str, Any] | None, fi
             yield Sink(functools.partial(w.write, copy=False), encoder.write if encoder is not None else None)
             t = time.perf_counter()
             if encoder is not None:
-                encoder.flush()  # the last nvCOMP batch
+                encoder.flush()  # the last device batch
         except BaseException:
             w.abort()
             raise

@@ -4,9 +4,9 @@ GDAL's COG driver copies a finished dataset: the ortho would be written once unc
 read back to build overviews (one thread), read again and compressed into the final layout.
 :class:`CogWriter` instead takes the ortho tile by tile as it is produced and
 
-- cuts it into the file's blocks (B x B, pixel-interleaved), which are compressed (deflate,
-  with horizontal differencing for integers) on a thread pool as soon as they are complete,
-  and appended to a side file of records;
+- cuts it into the file's blocks (B x B, pixel-interleaved), which are compressed (deflate or
+  zstd, with horizontal differencing for integers) on a thread pool as soon as they are
+  complete, and appended to a side file of records;
 - reduces every complete block 2 x 2 into its quarter of the next overview level (the mean of
   the valid pixels; a pixel is valid when any of its four is), so the whole pyramid is built
   while the full resolution streams through, holding only the overview blocks still waiting
@@ -22,6 +22,11 @@ The georeferencing, photometric and sample tags come from a one-pixel GeoTIFF th
 writes with the same CRS, transform, band count and data type, so they are exactly GDAL's.
 TIFF 6.0 and BigTIFF structures: Adobe, "TIFF Revision 6.0" (1992); the BigTIFF proposal
 (www.awaresystems.be/imaging/tiff/bigtiff.html).
+
+Compression (TIFF tag 259): deflate (8) stores each block as a zlib stream (RFC 1950), zstd
+(50000, libtiff's code for it) as one Zstandard frame (RFC 8878); both with predictor 2 for
+integer data. The mask blocks of a zstd file are deflate streams, as GDAL's COG driver writes
+them with COMPRESS=ZSTD (its internal mask is deflate whatever the image's compression).
 """
 
 from __future__ import annotations
@@ -44,13 +49,14 @@ try:  # libdeflate: about 4x faster than zlib at the same level, same zlib strea
 except ImportError:  # pragma: no cover
     from zlib import compress as _zlib_compress
 
+from ..._validate import integer
 from ...errors import ParamError, RasterIOError
 from .tiff import LONG, LONG8, SHORT, TYPE_SIZE, Tag, read_tiff_tags
 
 if TYPE_CHECKING:
     from affine import Affine
 
-__all__ = ["CogWriter", "overview_count", "DTYPES"]
+__all__ = ["CogWriter", "overview_count", "zstd_frame", "DTYPES", "COMPRESS", "LEVELS"]
 # tags the writer sets itself; everything else of the template's first IFD is copied
 _LAYOUT_TAGS = {254, 256, 257, 259, 273, 278, 279, 317, 322, 323, 324, 325}
 # tags an overview IFD shares with the full resolution
@@ -58,6 +64,26 @@ _OVERVIEW_TAGS = {258, 262, 277, 284, 338, 339, 42113}
 _GHOST_KEYS = ("LAYOUT=IFDS_BEFORE_DATA\nBLOCK_ORDER=ROW_MAJOR\nBLOCK_LEADER=SIZE_AS_UINT4\n"
                "BLOCK_TRAILER=LAST_4_BYTES_REPEATED\nKNOWN_INCOMPATIBLE_EDITION=NO\n ")
 DTYPES = ("uint8", "uint16", "float32")
+#: The writer's compressions and their TIFF Compression tag values (50000: libtiff's ZSTD).
+COMPRESS = {"deflate": 8, "zstd": 50000, "none": 1}
+#: (lowest, highest, default) level of each compression: libdeflate's 1-12 (6: GDAL's default
+#: zlib level), zstd's 1-22 (9: GDAL's default ZSTD_LEVEL).
+LEVELS = {"deflate": (1, 12, 6), "zstd": (1, 22, 9)}
+_MASK_LEVEL = 6  # a zstd file's deflate mask blocks: GDAL's (libtiff's) default zlib level
+_tls = threading.local()  # each thread's zstd compressors
+
+
+def zstd_frame(raw: Any, level: int) -> bytes:
+    """One Zstandard frame (RFC 8878) of the bytes-like ``raw`` at ``level``, by this thread's
+    compressor (a ``zstandard`` compressor serves one thread at a time; it compresses without
+    the interpreter lock, so the writer's threads compress in parallel)."""
+    comps = _tls.__dict__.setdefault("zstd", {})
+    comp = comps.get(level)
+    if comp is None:
+        import zstandard
+
+        comp = comps[level] = zstandard.ZstdCompressor(level=level)
+    return comp.compress(raw)
 
 
 def overview_count(width: int, height: int, *, min_size: int = 256) -> int:
@@ -121,9 +147,13 @@ class CogWriter:
     mask : bool, optional
         Integer rasters: write an internal mask (0 / 255, GDAL's per-dataset mask). Float
         rasters use NaN as nodata and no mask.
-    compress : {"deflate", "none"}, optional
+    compress : {"deflate", "zstd", "none"}, optional
+        Image blocks as zlib streams (libdeflate) or Zstandard frames (``zstandard``), with
+        predictor 2 for integer data, or uncompressed. Mask blocks are deflate streams with
+        either compression, as GDAL writes them.
     level : int, optional
-        zlib level (1-9; GDAL's default 6).
+        Deflate level 1-12 (libdeflate's scale; default 6, as GDAL's) or zstd level 1-22
+        (default 9, as GDAL's); ignored without compression.
     block_size : int, optional
         Block edge in pixels (multiple of 16).
     overviews : int, optional
@@ -149,13 +179,16 @@ class CogWriter:
     """
 
     def __init__(self, path: str | os.PathLike, *, width: int, height: int, count: int, dtype: str, crs: Any = None,
-                 transform: Affine, mask: bool = True, compress: str = "deflate", level: int = 6,
+                 transform: Affine, mask: bool = True, compress: str = "deflate", level: int | None = None,
                  block_size: int = 512, overviews: int | None = None, threads: int | None = None,
                  bigtiff: bool | None = None, name: str | os.PathLike | None = None, timer: Any = None) -> None:
         if dtype not in DTYPES:
             raise ParamError(f"CogWriter dtype must be one of {DTYPES}, got {dtype!r}")
-        if compress not in ("deflate", "none"):
-            raise ParamError(f"CogWriter compress must be 'deflate' or 'none', got {compress!r}")
+        if compress not in COMPRESS:
+            raise ParamError(f"CogWriter compress must be one of {tuple(COMPRESS)}, got {compress!r}")
+        low, high, default = LEVELS.get(compress, (None, None, None))
+        if low is not None:
+            level = integer(f"CogWriter level ({compress})", level, low=low, high=high, none=True)
         if block_size % 16 or block_size < 16:
             raise ParamError(f"block_size must be a positive multiple of 16, got {block_size}")
         self.path = os.fspath(path)
@@ -163,7 +196,11 @@ class CogWriter:
         self.width, self.height, self.count, self.dtype = int(width), int(height), int(count), dtype
         self.is_float = dtype == "float32"
         self.mask = bool(mask) and not self.is_float
-        self.compress, self.zlevel, self.block = compress, int(level), int(block_size)
+        self.compress, self.block = compress, int(block_size)
+        self.compress_level = None if default is None else level if level is not None else default
+        # mask blocks: deflate unless the file is uncompressed (GDAL's mask is deflate with zstd too)
+        self.mask_compress = "none" if compress == "none" else "deflate"
+        self.mask_level = self.compress_level if compress == "deflate" else _MASK_LEVEL
         n_ovr = overview_count(width, height) if overviews is None else int(overviews)
         self.levels = []
         w, h = self.width, self.height
@@ -305,7 +342,7 @@ class CogWriter:
             parts = [self._encode(data, None if full or self.is_float else mask)]
             if self.mask:
                 bits = np.packbits(mask, axis=1)  # 1 bit per pixel, rows padded to bytes, MSB first
-                parts.append(self._compress(bits))
+                parts.append(self._compress_mask(bits))
             self._store(li, bi, bj, parts)
             if li + 1 < len(self.levels):
                 red, red_mask = self._reduce(data[:bh, :bw], mask[:bh, :bw], full and (bh, bw) == data.shape[:2])
@@ -386,7 +423,16 @@ class CogWriter:
         return self._compress(np.ascontiguousarray(data))
 
     def _compress(self, raw: np.ndarray) -> bytes:
-        return _zlib_compress(raw, self.zlevel) if self.compress == "deflate" else bytes(raw)
+        """An image block's stored bytes (``raw``: its contiguous bytes after the predictor)."""
+        if self.compress == "deflate":
+            return _zlib_compress(raw, self.compress_level)
+        if self.compress == "zstd":
+            return zstd_frame(raw, self.compress_level)
+        return bytes(raw)
+
+    def _compress_mask(self, bits: np.ndarray) -> bytes:
+        """A mask block's stored bytes: a zlib stream (deflate and zstd files), or the bits."""
+        return _zlib_compress(bits, self.mask_level) if self.mask_compress == "deflate" else bytes(bits)
 
     def raise_pending(self) -> None:
         """Raise, in the caller's thread, the first error of the writer's compression threads
@@ -441,7 +487,7 @@ class CogWriter:
         """(tags dict) per IFD in file order, with the tile offsets left as placeholders."""
         ifds = []
         b = self.block
-        comp = 8 if self.compress == "deflate" else 1
+        comp, mask_comp = COMPRESS[self.compress], COMPRESS[self.mask_compress]
         for li, lvl in enumerate(self.levels):
             n = lvl.nbx * lvl.nby
             tags = {k: v for k, v in self.tags.items() if k not in _LAYOUT_TAGS and (li == 0 or k in _OVERVIEW_TAGS)}
@@ -454,7 +500,7 @@ class CogWriter:
             ifds.append((li, "image", tags, n))
             if self.mask:
                 mtags = {254: (LONG, 1, _pack("I", [5 if li else 4])), 256: tags[256], 257: tags[257],
-                         258: (SHORT, 1, _pack("H", [1])), 259: (SHORT, 1, _pack("H", [comp])),
+                         258: (SHORT, 1, _pack("H", [1])), 259: (SHORT, 1, _pack("H", [mask_comp])),
                          262: (SHORT, 1, _pack("H", [4])), 277: (SHORT, 1, _pack("H", [1])),
                          284: (SHORT, 1, _pack("H", [1])), 322: tags[322], 323: tags[323],
                          339: (SHORT, 1, _pack("H", [1]))}

@@ -2,7 +2,7 @@
 
 The host writer (:mod:`orthowarp.pipeline.raster.cog`) takes each tile to host memory and does the
 per-block work there: mask zeroing, TIFF predictor 2, mask bits, the 2 x 2 overview
-reduction, deflate. :class:`DeviceCogEncoder` does all of it where the tile already is
+reduction, deflate or zstd. :class:`DeviceCogEncoder` does all of it where the tile already is
 (:mod:`orthowarp.kernels.cog`), level after level while the reduced piece still covers whole
 blocks, and only compressed blocks cross to the host:
 
@@ -11,19 +11,27 @@ blocks, and only compressed blocks cross to the host:
    which the piece no longer covers whole blocks (e.g. 4096-pixel tiles, 512-pixel blocks:
    levels 0-3 here, 85 blocks per tile); that last small piece goes to the host writer, which
    reduces it with the pieces of the neighbouring tiles;
-3. all those blocks, gathered over tiles, checksummed (Adler-32) in one pass, and all but
-   those of one byte (empty ones outside the footprint, full mask blocks inside it)
-   compressed in one batch by a raw-deflate codec: :class:`WarpDeflate` (Warp kernels),
-   :class:`NvcompDeflate` (nvCOMP's Deflate on the GPU, package ``nvidia-nvcomp-cu13``,
-   ``pip install orthowarp[gpu]``) or :class:`HostDeflate` (libdeflate on host threads,
-   after one copy of the predicted blocks); each raw stream is wrapped as the zlib stream
-   TIFF's deflate compression (code 8) stores: header 78 9C, the stream, the Adler-32
-   big-endian (RFC 1950); a block of one byte gets the one stream of its size and byte, made
-   once;
+3. all those blocks, gathered over tiles, checksummed (Adler-32, and whether one byte fills
+   the block) in one pass, and all but those of one byte (empty ones outside the footprint,
+   full mask blocks inside it) compressed in one batch by a codec of the file's compression:
+
+   - deflate: a raw-deflate codec, :class:`WarpDeflate` (Warp kernels), :class:`NvcompDeflate`
+     (nvCOMP's Deflate on the GPU, package ``nvidia-nvcomp-cu13``, ``pip install
+     orthowarp[gpu]``) or :class:`HostDeflate` (libdeflate on host threads, after one copy of
+     the predicted blocks); each raw stream is wrapped as the zlib stream TIFF's deflate
+     compression (code 8) stores: header 78 9C, the stream, the Adler-32 big-endian (RFC 1950);
+   - zstd: a codec of whole Zstandard frames (RFC 8878, what TIFF's ZSTD compression, code
+     50000, stores as is), :class:`NvcompZstd` (nvCOMP's Zstd on the GPU) or
+     :class:`HostZstd` (``zstandard`` on host threads); the mask blocks, which a zstd file
+     stores as deflate (as GDAL does), go to a raw-deflate codec of their own
+     (:class:`HostDeflate` by default) and are wrapped as above;
+
+   a block of one byte gets the one stream (or frame) of its size and byte, made once per
+   compression;
 4. the records handed to the writer, which lays the file out as before.
 
 Every path decodes to the same pixels as the host writer's (the block contents before
-compression are identical bit for bit; only the deflate streams differ).
+compression are identical bit for bit; only the compressed streams differ).
 """
 
 from __future__ import annotations
@@ -48,7 +56,8 @@ if TYPE_CHECKING:
 
     from .cog import CogWriter
 
-__all__ = ["DeviceCogEncoder", "HostDeflate", "NvcompDeflate", "WarpDeflate", "nvcomp_available", "zlib_stream"]
+__all__ = ["DeviceCogEncoder", "HostDeflate", "HostZstd", "NvcompDeflate", "NvcompZstd", "WarpDeflate",
+           "nvcomp_available", "zlib_stream"]
 
 _WP = {"uint8": wp.uint8, "uint16": wp.uint16, "float32": wp.float32}
 _ZLIB_HEADER = b"\x78\x9c"
@@ -78,7 +87,32 @@ def _bytes_view(arr: wp.array) -> wp.array:
     return view
 
 
-class HostDeflate:
+class _HostCodec:
+    """Compression of device-resident buffers on host threads: the buffer copied to the host
+    once, then each of its pieces compressed by :meth:`_one` on a thread pool (the compressors
+    release the interpreter lock). Subclasses give ``name``, ``compression`` and :meth:`_one`."""
+
+    name = compression = ""
+    batched = False  # called per tile
+
+    def __init__(self, level: int, threads: int | None = None, prefix: str = "codec") -> None:
+        self.level = int(level)
+        self._pool = ThreadPoolExecutor(max_workers=threads or os.cpu_count() or 1, thread_name_prefix=prefix)
+
+    def _one(self, raw: np.ndarray) -> bytes:
+        raise NotImplementedError
+
+    def compress(self, buf: wp.array, offsets: Sequence[int], sizes: Sequence[int]) -> list:
+        """The compressed bytes (a list) of the buffers (``offsets``, ``sizes``: byte lists) of
+        the uint8 Warp array ``buf``."""
+        host = to_host(buf)  # a copy from a GPU, a view on the CPU
+        return list(self._pool.map(lambda k: self._one(host[offsets[k]:offsets[k] + sizes[k]]), range(len(offsets))))
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=True)
+
+
+class HostDeflate(_HostCodec):
     """Raw deflate of device-resident buffers on host threads (libdeflate, GIL-free).
 
     Parameters
@@ -89,43 +123,58 @@ class HostDeflate:
         Default: CPU cores.
     """
 
-    name = "libdeflate"
-    batched = False  # called per tile
+    name, compression = "libdeflate", "deflate"  # raw deflate streams
 
     def __init__(self, level: int = 6, *, threads: int | None = None) -> None:
         from deflate import deflate_compress
 
-        self._compress = deflate_compress
-        self.level = int(level)
-        self._pool = ThreadPoolExecutor(max_workers=threads or os.cpu_count() or 1, thread_name_prefix="deflate")
+        self._deflate = deflate_compress
+        super().__init__(level, threads, "deflate")
 
-    def compress(self, buf: wp.array, offsets: Sequence[int], sizes: Sequence[int]) -> list:
-        """Raw deflate streams (list of bytes) of the buffers (``offsets``, ``sizes``: byte
-        lists) of the uint8 Warp array ``buf``."""
-        host = to_host(buf)  # a copy from a GPU, a view on the CPU
-        return list(self._pool.map(lambda k: self._compress(host[offsets[k]:offsets[k] + sizes[k]], self.level),
-                                   range(len(offsets))))
-
-    def close(self) -> None:
-        self._pool.shutdown(wait=True)
+    def _one(self, raw: np.ndarray) -> bytes:
+        return self._deflate(raw, self.level)
 
 
-class NvcompDeflate:
-    """Raw deflate of device-resident buffers on the GPU with nvCOMP (one batch per call).
+class HostZstd(_HostCodec):
+    """Zstandard frames of device-resident buffers on host threads (``zstandard``, one
+    compressor per thread, GIL-free).
 
     Parameters
     ----------
-    algorithm_type : int
-        nvCOMP's Deflate variant: 1 high throughput, 2 medium ratio, 4 high ratio, 5 highest
-        ratio (bench/deflate_codecs.py measures each against libdeflate).
+    level : int
+        zstd level 1-22.
+    threads : int, optional
+        Default: CPU cores.
+    """
+
+    name, compression = "zstandard", "zstd"  # whole frames
+
+    def __init__(self, level: int = 9, *, threads: int | None = None) -> None:
+        from .cog import zstd_frame
+
+        self._frame = zstd_frame
+        super().__init__(level, threads, "zstd")
+
+    def _one(self, raw: np.ndarray) -> bytes:
+        return self._frame(raw, self.level)
+
+
+class _NvcompCodec:
+    """Compression of device-resident buffers on the GPU with nvCOMP's batched API, one batch
+    per call, each buffer one stream (``BitstreamKind.RAW``). Subclasses give ``compression`` and
+    :meth:`_make_codec`.
+
+    Parameters
+    ----------
     device : warp Device
         A CUDA device.
     """
 
     name = "nvcomp"
+    compression = ""
     batched = True  # called with batches gathered over tiles (see DeviceCogEncoder)
 
-    def __init__(self, algorithm_type: int, device: Device) -> None:
+    def __init__(self, device: Device) -> None:
         if not device.is_cuda:
             raise ParamError("nvCOMP compresses on CUDA devices only")
         try:
@@ -133,7 +182,6 @@ class NvcompDeflate:
         except Exception as e:  # noqa: BLE001
             raise DeviceError(f"nvCOMP is not available ({e}); install orthowarp[gpu]") from e
         self._nvcomp = nvcomp
-        self.algorithm_type = int(algorithm_type)
         self.device = device
         # one codec, one batch at a time: a codec keeps scratch sized for its largest batch,
         # and one per calling thread (the tile workers take turns filling batches) held
@@ -141,11 +189,12 @@ class NvcompDeflate:
         self._codec_lock = threading.Lock()
         self._codec_obj, self._caps = None, {}
 
+    def _make_codec(self) -> Any:
+        raise NotImplementedError
+
     def _codec(self) -> Any:
         if self._codec_obj is None:
-            nv = self._nvcomp
-            self._codec_obj = nv.Codec(algorithm="Deflate", bitstream_kind=nv.BitstreamKind.RAW,
-                                       algorithm_type=self.algorithm_type, device_id=self.device.ordinal)
+            self._codec_obj = self._make_codec()
         return self._codec_obj
 
     def _capacity(self, codec: Any, size: int) -> int:
@@ -157,7 +206,7 @@ class NvcompDeflate:
         return self._caps[size]
 
     def compress(self, buf: wp.array, offsets: Sequence[int], sizes: Sequence[int]) -> list:
-        """Raw deflate streams (list of bytes) of the buffers of the uint8 Warp array ``buf``
+        """The compressed streams (list of bytes) of the buffers of the uint8 Warp array ``buf``
         (on this codec's device, written on the device's current stream)."""
         with self._codec_lock:
             return self._compress_all(buf, offsets, sizes)
@@ -205,6 +254,50 @@ class NvcompDeflate:
 
     def close(self) -> None:
         self._codec_obj = None
+
+
+class NvcompDeflate(_NvcompCodec):
+    """Raw deflate of device-resident buffers on the GPU with nvCOMP (one batch per call).
+
+    Parameters
+    ----------
+    algorithm_type : int
+        nvCOMP's Deflate variant: 1 high throughput, 2 medium ratio, 4 high ratio, 5 highest
+        ratio (bench/deflate_codecs.py measures each against libdeflate).
+    device : warp Device
+        A CUDA device.
+    """
+
+    compression = "deflate"  # raw deflate streams
+
+    def __init__(self, algorithm_type: int, device: Device) -> None:
+        super().__init__(device)
+        self.algorithm_type = int(algorithm_type)
+
+    def _make_codec(self) -> Any:
+        nv = self._nvcomp
+        return nv.Codec(algorithm="Deflate", bitstream_kind=nv.BitstreamKind.RAW,
+                        algorithm_type=self.algorithm_type, device_id=self.device.ordinal)
+
+
+class NvcompZstd(_NvcompCodec):
+    """Zstandard frames of device-resident buffers on the GPU with nvCOMP (one batch per call):
+    each buffer one standard frame (RFC 8878), which libzstd, and so GDAL, decodes.
+
+    nvCOMP's Zstd takes no compression level (nvCOMP 6): its frames are about the size of
+    a low host level's (bench/zstd_codecs.py measures them against ``zstandard``'s levels).
+
+    Parameters
+    ----------
+    device : warp Device
+        A CUDA device.
+    """
+
+    compression = "zstd"  # whole frames
+
+    def _make_codec(self) -> Any:
+        nv = self._nvcomp
+        return nv.Codec(algorithm="Zstd", bitstream_kind=nv.BitstreamKind.RAW, device_id=self.device.ordinal)
 
 
 def _length_tables() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -275,6 +368,7 @@ class WarpDeflate:
     """
 
     name = "warp"
+    compression = "deflate"  # raw deflate streams
     batched = True  # many chunks per launch: fed batches gathered over tiles
 
     def __init__(self, device: Device, *, chunk: int = 65535, depth: int = 32, nice: int = 128, good: int = 0,
@@ -473,12 +567,12 @@ class WarpDeflate:
 
 
 class _Tile:
-    """A tile's encoded blocks on the device: their (level, bi, bj) keys and the block arrays
-    (image blocks per level, then mask blocks per level)."""
+    """A tile's encoded blocks on the device: their (level, bi, bj) keys and the block arrays,
+    image blocks per level (``images``) and mask blocks per level (``masks``)."""
 
-    def __init__(self, keys: list[tuple[int, int, int]], arrays: list[wp.array]) -> None:
-        self.keys, self.arrays = keys, arrays
-        self.nbytes = sum(a.size * wp.types.type_size_in_bytes(a.dtype) for a in arrays)
+    def __init__(self, keys: list[tuple[int, int, int]], images: list[wp.array], masks: list[wp.array]) -> None:
+        self.keys, self.images, self.masks = keys, images, masks
+        self.nbytes = sum(a.size * wp.types.type_size_in_bytes(a.dtype) for a in images + masks)
 
 
 class DeviceCogEncoder:
@@ -487,12 +581,14 @@ class DeviceCogEncoder:
     Parameters
     ----------
     writer : CogWriter
-        With ``compress="deflate"``; it receives compressed blocks (:meth:`CogWriter.put_block`)
-        and the small pieces of the upper overview levels (:meth:`CogWriter.write`).
+        With ``compress="deflate"`` or ``"zstd"``; it receives compressed blocks
+        (:meth:`CogWriter.put_block`) and the small pieces of the upper overview levels
+        (:meth:`CogWriter.write`).
     device : warp Device
     codecs : list
-        One or two raw-deflate codecs: a batched device codec (:class:`NvcompDeflate`,
-        :class:`WarpDeflate`) and/or :class:`HostDeflate`. The device codec gets blocks in
+        One or two codecs of the writer's compression: for deflate a batched device codec
+        (:class:`NvcompDeflate`, :class:`WarpDeflate`) and/or :class:`HostDeflate`, for zstd
+        :class:`NvcompZstd` and/or :class:`HostZstd`. The device codec gets blocks in
         batches of at least ``batch_bytes`` gathered over several tiles (a batch of a single
         tile's blocks would leave most of the GPU idle), on a thread of its own (the tiles'
         threads hand a full batch over and go on); while it compresses one batch the next one
@@ -502,24 +598,39 @@ class DeviceCogEncoder:
     batch_bytes : int, optional
         Uncompressed bytes per nvCOMP batch (default 512 MiB: about 680 blocks of 512 x 512 x 3
         bytes; nvCOMP reserves about 2.3 times that for its output).
+    mask_codec : object, optional
+        A raw-deflate codec for the mask blocks of a zstd writer (which stores them as deflate,
+        as GDAL does); default :class:`HostDeflate` at the writer's mask level (the masks are
+        1/8 byte per pixel, and most are one byte, which no codec sees). With a deflate
+        writer, the mask blocks go with the image blocks unless one is given.
 
     Call :meth:`flush` after the last tile, before the writer's ``close``.
     """
 
     def __init__(self, writer: CogWriter, device: Device, codecs: Sequence[Any], *,
-                 batch_bytes: int = 512 << 20) -> None:
-        if writer.compress != "deflate":
-            raise ParamError("DeviceCogEncoder needs a deflate CogWriter")
+                 batch_bytes: int = 512 << 20, mask_codec: Any = None) -> None:
+        if writer.compress not in ("deflate", "zstd"):
+            raise ParamError(f"DeviceCogEncoder needs a deflate or zstd CogWriter, not {writer.compress!r}")
         gpu = [c for c in codecs if c.batched]
         host = [c for c in codecs if not c.batched]
         if not codecs or len(gpu) > 1 or len(host) > 1:
             raise ParamError("DeviceCogEncoder takes one nvCOMP codec, one host codec, or one of each")
+        for c in codecs:
+            if c.compression != writer.compress:
+                raise ParamError(f"DeviceCogEncoder: codec {c.name!r} makes {c.compression} streams, the writer "
+                                 f"is {writer.compress}")
+        if mask_codec is not None and mask_codec.compression != "deflate":
+            raise ParamError(f"DeviceCogEncoder: mask blocks are deflate, codec {mask_codec.name!r} makes "
+                             f"{mask_codec.compression}")
+        if mask_codec is None and writer.compress != "deflate" and writer.mask:
+            mask_codec = HostDeflate(writer.mask_level)
         self.writer, self.device = writer, device
         self.gpu, self.host = (gpu or [None])[0], (host or [None])[0]
+        self.mask_codec = mask_codec  # None: the mask blocks go with the image blocks
         self.batch_bytes = int(batch_bytes)
         self.blocks_by_codec = {c.name: 0 for c in codecs}  # image blocks each codec compressed
         self.empty_blocks = 0  # all-zero image blocks, given the one stream of their size
-        self._constants = {}  # (size, byte) -> raw deflate stream of that many such bytes
+        self._constants = {}  # (compression, size, byte) -> stream of that many such bytes
         self._lock = threading.Condition()
         self._batch, self._batch_n, self._gpu_busy = [], 0, False
         self._failed = None  # a batch's error, raised by the next write or the flush
@@ -660,7 +771,7 @@ class DeviceCogEncoder:
             li, row, col, piece, pvalid = li + 1, row // 2, col // 2, nxt, nxt_valid
         if not images:
             return None
-        return _Tile(keys, images + masks)
+        return _Tile(keys, images, masks)
 
     def _checksums(self, buf: wp.array, offsets: np.ndarray, sizes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Adler-32 (int64) of the buffers (``offsets``, ``sizes``: int32 arrays of bytes) of
@@ -679,33 +790,48 @@ class DeviceCogEncoder:
         wp.launch(kc.adler_finish_kernel, dim=n, inputs=[s1, s2, size], outputs=[out, fill], device=d)
         return to_host(out), to_host(fill)
 
-    def _constant_stream(self, size: int, value: int) -> bytes:
-        """The raw deflate stream of ``size`` bytes of ``value`` (libdeflate level 6), made
-        once per size and value. Blocks filled with one byte are not sent to the codec: empty
-        image and mask blocks (outside the footprint: no pixel and no mask bit, after the
-        predictor all zeros) and the mask blocks inside it (all 255)."""
-        key = (size, value)
+    def _constant_stream(self, compression: str, size: int, value: int) -> bytes:
+        """The stream of ``size`` bytes of ``value`` that ``compression`` stores, made once per
+        compression, size and value: deflate's raw stream (libdeflate level 6; wrapped as any
+        other), zstd's whole frame (at the writer's level). Blocks filled with one byte are not
+        sent to the codec: empty image and mask blocks (outside the footprint: no pixel and no
+        mask bit, after the predictor all zeros) and the mask blocks inside it (all 255)."""
+        key = (compression, size, value)
         with self._lock:
             raw = self._constants.get(key)
         if raw is None:
-            from deflate import deflate_compress
+            data = np.full(size, value, np.uint8)
+            if compression == "zstd":
+                from .cog import zstd_frame
 
-            raw = bytes(deflate_compress(np.full(size, value, np.uint8), 6))
+                raw = zstd_frame(data, self.writer.compress_level)
+            else:
+                from deflate import deflate_compress
+
+                raw = bytes(deflate_compress(data, 6))
             with self._lock:
                 self._constants[key] = raw
         return raw
 
-    def _compress(self, jobs: list[_Tile], codec: Any) -> None:
-        """Deflate the blocks of ``jobs`` with ``codec`` in one call and store them."""
-        parts, offsets, sizes, pos = [], [], [], 0
-        for job in jobs:
-            for a in job.arrays:
+    def _streams(self, arrays: list[list[wp.array]], codec: Any) -> tuple[list[list[bytes]], list[np.ndarray]]:
+        """The stored streams of the blocks of ``arrays`` (per job, its block arrays), all
+        compressed by ``codec`` in one call: per job, its blocks' streams in order and the byte
+        that fills each block (0 or 255, else -1). Deflate streams are wrapped as zlib streams
+        with the blocks' Adler-32; zstd frames are stored as they are."""
+        parts, offsets, sizes, pos, counts = [], [], [], 0, []
+        for job_arrays in arrays:
+            n = 0
+            for a in job_arrays:
                 v = _bytes_view(a)
                 per = v.shape[0] // a.shape[0]
                 parts.append((v, pos))
                 offsets += [pos + k * per for k in range(a.shape[0])]
                 sizes += [per] * a.shape[0]
                 pos += v.shape[0]
+                n += a.shape[0]
+            counts.append(n)
+        if not offsets:
+            return [[] for _ in arrays], [np.empty(0, np.int32) for _ in arrays]
         if len(parts) == 1:
             buf = parts[0][0]
         else:  # one contiguous buffer for the codec (a copy on the device)
@@ -713,32 +839,53 @@ class DeviceCogEncoder:
             for v, at in parts:
                 wp.copy(buf, v, dest_offset=at, count=v.shape[0])
         offsets, sizes = np.asarray(offsets, np.int32), np.asarray(sizes, np.int32)
+        # one pass gives both the Adler-32 (used by deflate's zlib framing only) and the fill
         adlers, fill = self._checksums(buf, offsets, sizes)
         live = np.flatnonzero(fill < 0)
         raws = [None] * len(offsets)
         for k, r in zip(live, codec.compress(buf, offsets[live].tolist(), sizes[live].tolist()) if len(live) else []):
             raws[k] = r
         for k in np.flatnonzero(fill >= 0):
-            raws[k] = self._constant_stream(int(sizes[k]), int(fill[k]))
-        n_coded = n_empty = 0  # image blocks through the codec, and all-zero ones
-        k = 0
+            raws[k] = self._constant_stream(codec.compression, int(sizes[k]), int(fill[k]))
+        if codec.compression == "deflate":
+            streams = [zlib_stream(r, int(a)) for r, a in zip(raws, adlers)]
+        else:
+            streams = [bytes(r) for r in raws]
+        bounds = np.concatenate([[0], np.cumsum(counts)])
+        return ([streams[bounds[j]:bounds[j + 1]] for j in range(len(arrays))],
+                [fill[bounds[j]:bounds[j + 1]] for j in range(len(arrays))])
+
+    def _compress(self, jobs: list[_Tile], codec: Any) -> None:
+        """Compress the blocks of ``jobs`` with ``codec`` in one call (the mask blocks with
+        them, or with :attr:`mask_codec` in another) and store them."""
         wr = self.writer
-        for job in jobs:
+        if self.mask_codec is None:
+            groups = [(codec, [job.images + job.masks for job in jobs])]
+        else:
+            groups = [(codec, [job.images for job in jobs])]
+            if wr.mask:
+                groups.append((self.mask_codec, [job.masks for job in jobs]))
+        streams, fills = [[] for _ in jobs], [[] for _ in jobs]
+        for c, arrays in groups:
+            got, fill = self._streams(arrays, c)
+            for j in range(len(jobs)):
+                streams[j] += got[j]
+                fills[j].append(fill[j])
+        n_coded = n_empty = 0  # image blocks through the codec, and all-zero ones
+        for job, s, f in zip(jobs, streams, fills):
             n_img = len(job.keys)
-            n_all = sum(a.shape[0] for a in job.arrays)
-            streams = [zlib_stream(r, int(a)) for r, a in zip(raws[k:k + n_all], adlers[k:k + n_all])]
-            n_coded += int((fill[k:k + n_img] < 0).sum())
-            n_empty += int((fill[k:k + n_img] == 0).sum())
-            k += n_all
+            img_fill = np.concatenate(f)[:n_img]  # the image blocks come first
+            n_coded += int((img_fill < 0).sum())
+            n_empty += int((img_fill == 0).sum())
             for i, key in enumerate(job.keys):
-                wr.put_block(*key, [streams[i]] + ([streams[n_img + i]] if wr.mask else []))
+                wr.put_block(*key, [s[i]] + ([s[n_img + i]] if wr.mask else []))
         with self._lock:
             self.blocks_by_codec[codec.name] += n_coded
             self.empty_blocks += n_empty
 
     def close(self) -> None:
         self._worker.shutdown(wait=True)
-        for c in (self.gpu, self.host):
+        for c in (self.gpu, self.host, self.mask_codec):
             if c is not None:
                 c.close()
         if self._threshold is not None:
