@@ -708,6 +708,26 @@ for _t in (wp.uint8, wp.uint16, wp.float32):
 
 
 @wp.kernel
+def untile_kernel(raw: wp.array(dtype=Any), block_h: wp.int32, block_w: wp.int32, blocks_across: wp.int32,
+                  row_off: wp.int32, col_off: wp.int32, out: wp.array3d(dtype=Any)):
+    """A TIFF's blocks as stored (``raw``: a grid of blocks ``blocks_across`` wide, block t's
+    pixel-interleaved samples from element t * block_h * block_w * bands) into (bands, rows,
+    cols), as GDAL reads them, from pixel (``row_off``, ``col_off``) of the blocks' grid (0, 0
+    for a whole image): one thread per output sample."""
+    b, r, c = wp.tid()
+    bands = out.shape[0]
+    rr = r + row_off
+    cc = c + col_off
+    t = (rr / block_h) * blocks_across + cc / block_w
+    k = ((t * block_h + rr % block_h) * block_w + cc % block_w) * bands + b
+    out[b, r, c] = raw[k]
+
+
+for _t in (wp.uint8, wp.uint16, wp.float32):
+    wp.overload(untile_kernel, {"raw": wp.array(dtype=_t), "out": wp.array3d(dtype=_t)})
+
+
+@wp.kernel
 def source_coords_kernel(
     arg: Any,
     refr: RefractionTable,

@@ -34,6 +34,7 @@ from ...options import Resampling as Interpolation
 from ...options import SourceReads, values
 from ..raster.cog import DTYPES
 from ..raster.io import GDAL_ERRORS, gdal_reason
+from ..raster.rawtiff import raw_layout, read_raw_blocks, read_raw_window
 from ..reports.profile import StageTimer
 from ..tiles import Tile
 from .forward import forward_coords
@@ -226,6 +227,14 @@ class ImageTiles:
             whole = WholeSource(src, device, masked=masked, dtype=read_dtype, timer=self.timer,
                                 clipped=clipped if self.narrowing else None, top=self.top)
         self.whole, self.device_reduce = whole, bool(device_reduce)
+        # an uncompressed source without a mask: windows read as stored blocks, put in place on
+        # the device (see orthowarp.pipeline.raster.rawtiff; values counted when clipped: GDAL's)
+        self._raw = None
+        if not masked and not (self.narrowing and clipped is not None):
+            layout = raw_layout(src)
+            if layout is not None and (layout.width, layout.height, layout.bands) == (*self.image_size, count) \
+                    and layout.dtype == read_dtype:
+                self._raw = layout
         self._whole, self._whole_lock = None, threading.Lock()
         self._all_valid = None  # the 1 x 1 mask of an unmasked window, made once
         # the node kernels launch with Warp's default block size, the per-pixel kernels with
@@ -415,6 +424,22 @@ class ImageTiles:
         self.timer.span("kernel", t)
         return self._window_struct(ok, wc0, wr0, 1.0 / factor, 1.0 / factor), out
 
+    def _raw_window(self, wc0: int, wr0: int, wc1: int, wr1: int) -> tuple[ortho_kernels.SourceWindow, wp.array]:
+        """A full-resolution window of an uncompressed source, its blocks read as stored and
+        put in place on the device (the pixels GDAL's read gives)."""
+        layout, device = self._raw, self.device
+        raw, across, row_off, col_off = read_raw_window(self.src, layout, device, wc0, wr0, wc1, wr1, timer=self.timer)
+        t = time.perf_counter()
+        data = wp.empty((self.count, wr1 - wr0, wc1 - wc0), dtype=raw.dtype, device=device)
+        wp.launch(ortho_kernels.untile_kernel, dim=data.shape, device=device,
+                  inputs=[raw, layout.block_h, layout.block_w, across, row_off, col_off], outputs=[data])
+        if layout.dtype not in (self.out_dtype, "float32"):  # e.g. uint8 into float32: widen on the device
+            wide = wp.empty(data.shape, dtype=wp.float32, device=device)
+            wp.launch(ortho_kernels.widen_kernel, dim=data.shape, inputs=[data], outputs=[wide], device=device)
+            data = wide
+        self.timer.span("kernel", t)
+        return self._window_struct(None, wc0, wr0, 1.0, 1.0), data
+
     def _ones(self) -> wp.array:
         """The 1 x 1 mask of an unmasked window, made once."""
         with self._lock:
@@ -434,6 +459,8 @@ class ImageTiles:
             return self._window_struct(valid, 0, 0, 1.0, 1.0), data
         if factor > 1 and self.device_reduce:
             return self._reduced_on_device(wc0, wr0, wc1, wr1, factor)
+        if factor == 1 and self._raw is not None:
+            return self._raw_window(wc0, wr0, wc1, wr1)
         t = time.perf_counter()
         win = Window(wc0, wr0, wc1 - wc0, wr1 - wr0)
         shape = (-(-(wr1 - wr0) // factor), -(-(wc1 - wc0) // factor))
@@ -531,7 +558,9 @@ def read_whole_source(src: str, device: wp.context.Device, *, masked: bool, dtyp
                       clipped: Any = None, top: float = 0.0) -> tuple[wp.array, wp.array | None]:
     """Read a source image whole into device memory: by strips of whole source blocks (about
     16 MB each) on up to 8 threads, each with its own handle and (on a GPU) its own stream, so
-    that GDAL's decoding on the host cores and the uploads overlap.
+    that GDAL's decoding on the host cores and the uploads overlap. An uncompressed TIFF
+    without a mask skips GDAL: its blocks are copied as stored and put in place on the device
+    (:mod:`~orthowarp.pipeline.raster.rawtiff`; the same pixels).
 
     Parameters
     ----------
@@ -595,9 +624,22 @@ def read_whole_source(src: str, device: wp.context.Device, *, masked: bool, dtyp
         finally:
             handle.close()
 
-    n_threads = max(1, min(8, os.cpu_count() or 1, len(strips)))
-    with ThreadPoolExecutor(max_workers=n_threads) as pool:
-        list(pool.map(read, [strips[k::n_threads] for k in range(n_threads)]))
+    # an uncompressed source without a mask: its blocks copied as stored and put in place on
+    # the device (the same pixels, without GDAL's per-block work on the host)
+    layout = raw_layout(src) if not masked and clipped is None else None
+    if layout is not None and (layout.width, layout.height, layout.bands, layout.dtype) == (w, h, bands, read_dtype) \
+            and len(layout.offsets) * layout.block_bytes < (1 << 31) * np.dtype(read_dtype).itemsize:
+        timer.info["whole_source_reads"] = "raw"
+        raw = read_raw_blocks(src, layout, device, threads=min(8, os.cpu_count() or 1), timer=timer)
+        t = time.perf_counter()
+        wp.launch(ortho_kernels.untile_kernel, dim=data.shape, device=device,
+                  inputs=[raw, layout.block_h, layout.block_w, layout.blocks_across, 0, 0], outputs=[data])
+        del raw
+        timer.span("kernel", t)
+    else:
+        n_threads = max(1, min(8, os.cpu_count() or 1, len(strips)))
+        with ThreadPoolExecutor(max_workers=n_threads) as pool:
+            list(pool.map(read, [strips[k::n_threads] for k in range(n_threads)]))
     if read_dtype != dtype:  # e.g. uint8 into float32: widen on the device
         t = time.perf_counter()
         wide = wp.empty(data.shape, dtype=wp.float32, device=device)

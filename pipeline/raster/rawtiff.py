@@ -1,0 +1,245 @@
+"""Uncompressed TIFF sources read without GDAL: their blocks copied as stored into device memory.
+
+A frame image stored uncompressed (tiled or in strips, samples interleaved by pixel, as
+cameras' raw exports and the benchmark frames are) is, byte for byte, its pixels in block
+order. :func:`raw_layout` recognises such a file from its first IFD (and refuses anything
+else: compression, a predictor, planes per band, big-endian order, sub-byte or mixed samples,
+colour conversions, orientations other than the first), :func:`read_raw_blocks` copies its
+blocks into one device array with plain positioned reads on several threads (each run of
+blocks that lie back to back in the file in pieces of about 16 MB, uploaded as read), and
+:func:`~orthowarp.kernels.ortho.untile_kernel` puts the samples where GDAL's read would: bands
+first, rows, columns. Nothing is converted, so the result is exactly GDAL's read (the tests
+compare them). TIFF 6.0 (Adobe, 1992): tags 256-259, 262, 273-279, 284, 317, 322-325, 338-339.
+"""
+
+from __future__ import annotations
+
+import os
+import struct
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import warp as wp
+
+from ...errors import ParamError, RasterIOError
+from .tiff import SHORT, LONG, LONG8, read_ifd, tiff_header
+
+if TYPE_CHECKING:
+    from warp.context import Device
+
+__all__ = ["RawLayout", "raw_layout", "read_raw_blocks", "read_raw_window"]
+
+_WIDTH, _HEIGHT, _BITS, _COMPRESSION, _PHOTOMETRIC = 256, 257, 258, 259, 262
+_STRIP_OFFSETS, _ORIENTATION, _SPP, _ROWS_PER_STRIP, _STRIP_SIZES = 273, 274, 277, 278, 279
+_PLANAR, _PREDICTOR, _TILE_W, _TILE_H, _TILE_OFFSETS, _TILE_SIZES = 284, 317, 322, 323, 324, 325
+_EXTRA_SAMPLES, _SAMPLE_FORMAT = 338, 339
+_DTYPES = {(1, 8): "uint8", (1, 16): "uint16", (3, 32): "float32"}  # (SampleFormat, bits) -> dtype
+_WP = {"uint8": wp.uint8, "uint16": wp.uint16, "float32": wp.float32}
+
+
+@dataclass(frozen=True)
+class RawLayout:
+    """Where an uncompressed TIFF's pixels lie: ``width`` x ``height`` pixels of ``bands``
+    samples of ``dtype``, interleaved by pixel, in blocks of ``block_h`` x ``block_w`` pixels
+    (strips: ``block_w`` is the width) ``blocks_across`` to a row of blocks, block t at byte
+    ``offsets[t]``, ``sizes[t]`` bytes long."""
+
+    width: int
+    height: int
+    bands: int
+    dtype: str
+    block_w: int
+    block_h: int
+    offsets: np.ndarray
+    sizes: np.ndarray
+
+    @property
+    def blocks_across(self) -> int:
+        return -(-self.width // self.block_w)
+
+    @property
+    def block_bytes(self) -> int:
+        """Bytes of a whole block."""
+        return self.block_w * self.block_h * self.bands * np.dtype(self.dtype).itemsize
+
+
+def _ints(tag: tuple[int, int, bytes] | None, default: Any = None) -> tuple[int, ...] | Any:
+    if tag is None:
+        return default
+    typ, count, raw = tag
+    fmt = {SHORT: "H", LONG: "I", LONG8: "Q"}.get(typ)
+    if fmt is None:
+        raise ParamError(f"unexpected field type {typ}")
+    return struct.unpack(f"<{count}{fmt}", raw[:count * struct.calcsize(fmt)])
+
+
+def raw_layout(path: str | os.PathLike) -> RawLayout | None:
+    """The :class:`RawLayout` of the first image of ``path`` where its pixels can be copied as
+    stored; None where they cannot (or the file is not a little-endian TIFF): the caller reads
+    it with GDAL."""
+    try:
+        size = os.path.getsize(path)
+        with open(path, "rb") as f:
+            big, ifd = tiff_header(f)
+            tags = read_ifd(f, ifd, big, size)[0]
+        width, height = _ints(tags.get(_WIDTH))[0], _ints(tags.get(_HEIGHT))[0]
+        spp = _ints(tags.get(_SPP), (1,))[0]
+        bits = set(_ints(tags.get(_BITS), (1,)))
+        fmt = set(_ints(tags.get(_SAMPLE_FORMAT), (1,)))
+        if (_ints(tags.get(_COMPRESSION), (1,))[0] != 1 or _ints(tags.get(_PREDICTOR), (1,))[0] != 1
+                or _ints(tags.get(_ORIENTATION), (1,))[0] != 1 or len(bits) != 1 or len(fmt) != 1
+                or (spp > 1 and _ints(tags.get(_PLANAR), (1,))[0] != 1)
+                or _ints(tags.get(_PHOTOMETRIC), (1,))[0] not in (0, 1, 2)):
+            return None
+        dtype = _DTYPES.get((fmt.pop(), bits.pop()))
+        if dtype is None:
+            return None
+        if _TILE_OFFSETS in tags:
+            bw, bh = _ints(tags.get(_TILE_W))[0], _ints(tags.get(_TILE_H))[0]
+            offsets, sizes = _ints(tags[_TILE_OFFSETS]), _ints(tags.get(_TILE_SIZES), ())
+        else:
+            bw, bh = width, min(_ints(tags.get(_ROWS_PER_STRIP), (height,))[0], height)
+            offsets, sizes = _ints(tags.get(_STRIP_OFFSETS), ()), _ints(tags.get(_STRIP_SIZES), ())
+    except (OSError, ParamError, struct.error, TypeError, IndexError):
+        return None
+    layout = RawLayout(width, height, spp, dtype, bw, bh, np.asarray(offsets, np.int64), np.asarray(sizes, np.int64))
+    n = layout.blocks_across * -(-height // bh)
+    if not (width > 0 and height > 0 and bw > 0 and bh > 0) or len(offsets) != n or len(sizes) != n:
+        return None
+    # every block whole (a last strip holds its rows alone) and inside the file
+    full = np.full(n, layout.block_bytes, np.int64)
+    if _TILE_OFFSETS not in tags:
+        full[-1] = (height - (n - 1) * bh) * width * spp * np.dtype(dtype).itemsize
+    if (layout.sizes != full).any() or (layout.offsets <= 0).any() or (layout.offsets + layout.sizes > size).any():
+        return None
+    return layout
+
+
+def read_raw_blocks(path: str | os.PathLike, layout: RawLayout, device: Device, *, threads: int = 8,
+                    chunk: int = 16 << 20, timer: Any = None) -> wp.array:
+    """The blocks of ``path`` (its :class:`RawLayout` ``layout``) copied into device memory.
+
+    Returns
+    -------
+    warp array (blocks * block elements,) of the layout's dtype
+        Block t at element t * block elements, its samples as stored (pixel-interleaved).
+    """
+    item = np.dtype(layout.dtype).itemsize
+    per_block = layout.block_bytes // item
+    out = wp.empty(len(layout.offsets) * per_block, dtype=_WP[layout.dtype], device=device)
+    # pieces (file offset, bytes, destination byte): runs of blocks back to back in the file,
+    # cut at ``chunk`` bytes on block boundaries
+    pieces, t, n = [], 0, len(layout.offsets)
+    per = max(1, chunk // layout.block_bytes)
+    while t < n:
+        u = t + 1
+        while (u < n and u - t < per and layout.offsets[u] == layout.offsets[u - 1] + layout.sizes[u - 1]):
+            u += 1
+        pieces.append((int(layout.offsets[t]), int(layout.offsets[u - 1] + layout.sizes[u - 1] - layout.offsets[t]),
+                       t * layout.block_bytes))
+        t = u
+    failed = threading.Event()
+
+    def copy(part: list[tuple[int, int, int]]) -> None:
+        stream = wp.Stream(device) if device.is_cuda else None
+        if stream is not None:  # the array was allocated in the device stream's order
+            with wp.ScopedDevice(device):
+                stream.wait_stream(wp.get_stream(device))
+        buf = np.empty(max(p[1] for p in part), np.uint8)
+        fd = os.open(path, os.O_RDONLY)
+        try:
+            for off, nbytes, dest in part:
+                if failed.is_set():
+                    return
+                t0 = time.perf_counter()
+                got = 0
+                while got < nbytes:  # (a positioned read may return less than asked)
+                    n_read = os.preadv(fd, [memoryview(buf)[got:nbytes]], off + got)
+                    if n_read <= 0:
+                        raise RasterIOError(f"Could not read image '{os.fspath(path)}': {nbytes} bytes at {off}, "
+                                            f"got {got} (the file changed or is truncated)")
+                    got += n_read
+                if timer is not None:
+                    timer.span("read", t0)
+                t0 = time.perf_counter()
+                host = wp.array(buf[:nbytes].view(layout.dtype), dtype=out.dtype, device="cpu", copy=False)
+                wp.copy(out, host, dest_offset=dest // item, count=nbytes // item, stream=stream)
+                if stream is not None:
+                    wp.synchronize_stream(stream)  # the buffer is reused
+                if timer is not None:
+                    timer.span("h2d", t0)
+        except BaseException:
+            failed.set()
+            raise
+        finally:
+            os.close(fd)
+
+    k = max(1, min(threads, len(pieces)))
+    with ThreadPoolExecutor(max_workers=k) as pool:
+        for f in [pool.submit(copy, pieces[j::k]) for j in range(k)]:
+            try:
+                f.result()
+            except OSError as e:
+                if isinstance(e, RasterIOError):
+                    raise
+                raise RasterIOError(f"Could not read image '{os.fspath(path)}': {e.strerror or e}") from e
+    return out
+
+
+def read_raw_window(path: str | os.PathLike, layout: RawLayout, device: Device, col0: int, row0: int, col1: int,
+                    row1: int, *, timer: Any = None) -> tuple[wp.array, int, int, int]:
+    """The blocks of ``path`` that hold the window of columns ``col0``-``col1`` and rows
+    ``row0``-``row1`` (ends excluded), copied into device memory.
+
+    Returns
+    -------
+    raw : warp array of the layout's dtype
+        The blocks of the window's block rows and columns, as a grid ``blocks_across`` wide
+        (see :func:`~orthowarp.kernels.ortho.untile_kernel`).
+    blocks_across, row_off, col_off : int
+        Its width in blocks, and the window's first pixel in the grid.
+    """
+    bh, bw, across = layout.block_h, layout.block_w, layout.blocks_across
+    bi0, bi1 = row0 // bh, -(-row1 // bh)
+    bj0, bj1 = col0 // bw, -(-col1 // bw)
+    n_across, size = bj1 - bj0, layout.block_bytes
+    buf = np.empty((bi1 - bi0) * n_across * size, np.uint8)
+    t0 = time.perf_counter()
+    try:
+        fd = os.open(path, os.O_RDONLY)
+        try:
+            for i in range(bi0, bi1):
+                j = bj0
+                while j < bj1:  # runs of blocks back to back in the file
+                    t = i * across + j
+                    u = j + 1
+                    while u < bj1 and layout.offsets[t + u - j] == layout.offsets[t + u - j - 1] + layout.sizes[t + u - j - 1]:
+                        u += 1
+                    off = int(layout.offsets[t])
+                    nbytes = int(layout.offsets[t + u - j - 1] + layout.sizes[t + u - j - 1]) - off
+                    dest = ((i - bi0) * n_across + j - bj0) * size
+                    view, got = memoryview(buf)[dest:dest + nbytes], 0
+                    while got < nbytes:
+                        n_read = os.preadv(fd, [view[got:]], off + got)
+                        if n_read <= 0:
+                            raise RasterIOError(f"Could not read image '{os.fspath(path)}': {nbytes} bytes at {off}, "
+                                                f"got {got} (the file changed or is truncated)")
+                        got += n_read
+                    j = u
+        finally:
+            os.close(fd)
+    except RasterIOError:
+        raise
+    except OSError as e:
+        raise RasterIOError(f"Could not read image '{os.fspath(path)}': {e.strerror or e}") from e
+    if timer is not None:
+        timer.span("read", t0)
+    t0 = time.perf_counter()
+    raw = wp.array(buf.view(layout.dtype), dtype=_WP[layout.dtype], device=device)
+    if timer is not None:
+        timer.span("h2d", t0)
+    return raw, n_across, row0 - bi0 * bh, col0 - bj0 * bw
