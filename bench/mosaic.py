@@ -342,7 +342,7 @@ def run_speed(args, sizes):
     frames, dem_path = build_speed(work, max(sizes), args.strips, width, height)
     report = dict(benchmark="mosaic_speed", frame=[width, height, 3], dtype="uint8", strips=args.strips,
                   device=args.device, tile_size=args.tile_size, workers=args.workers, processes=args.processes,
-                  block_codec=args.block_codec, blend=args.blend,
+                  block_codec=args.block_codec, blend=args.blend, compress=args.compress,
                   cpu_count=os.cpu_count(), build_s=time.perf_counter() - t, results=[])
     gpu = int(args.device.split(":")[1]) if args.device.startswith("cuda:") else (0 if args.device == "cuda" else None)
     try:
@@ -380,7 +380,8 @@ def run_speed(args, sizes):
             (["--processes", str(args.processes)] if args.processes else []) + \
             (["--tile-size", str(args.tile_size)] if args.tile_size else []) + \
             (["--block-codec", args.block_codec] if args.block_codec else []) + \
-            (["--blend", args.blend] if args.blend else [])
+            (["--blend", args.blend] if args.blend else []) + \
+            (["--compress", args.compress] if args.compress else [])
         cli = ["mosaic", *frames[:n], *orient, "--dem", dem_path, "--out", out, "--overwrite", "--device",
                args.device, "--profile-json", prof, *extra]
         if args.sample_stacks:  # the child under bench/stack_sampler.py (its own overhead included)
@@ -482,6 +483,7 @@ def main(argv=None):
     ap.add_argument("--tile-size", type=int, default=None, help="--speed: orthowarp mosaic --tile-size")
     ap.add_argument("--block-codec", default=None, help="--speed: orthowarp mosaic --block-codec")
     ap.add_argument("--blend", default=None, help="--speed: orthowarp mosaic --blend (feather, multiband, none)")
+    ap.add_argument("--compress", default=None, help="--speed: orthowarp mosaic --compress (deflate, zstd)")
     ap.add_argument("--oty-python", default=None, help="--speed: a Python with orthority 0.7.0: run it side by side")
     ap.add_argument("--sample-stacks", type=float, default=None, metavar="SECONDS",
                     help="--speed: sample the mosaic child's Python stacks at this interval "
