@@ -798,11 +798,11 @@ def test_zstd_cog_streams_with_the_deflate_pixels(tmp_path, monkeypatch, src_dty
 
 
 @pytest.mark.parametrize("is_cuda,nvcomp,choice,want", [
-    (True, True, "auto", "nvcomp"), (True, False, "auto", "host"), (False, True, "auto", "host"),
+    (True, True, "auto", "host"), (True, False, "auto", "host"), (False, True, "auto", "host"),
     (True, True, "host", "host"), (True, True, "nvcomp", "nvcomp"), (False, False, "host", "host")])
 def test_zstd_block_codec(monkeypatch, is_cuda, nvcomp, choice, want):
-    """block_codec for a zstd COG: "auto" is nvCOMP's Zstd on a CUDA device where nvCOMP is
-    installed, else the host writer's threads; "host" forces those."""
+    """block_codec for a zstd COG: "auto" and "host" are the host writer's threads; nvCOMP's
+    Zstd on request on a CUDA device where nvCOMP is installed."""
     from types import SimpleNamespace
 
     from orthowarp.pipeline.ortho import sink as po

@@ -116,8 +116,8 @@ block_codec = click.option("--block-codec", type=click.Choice(BLOCK_CODECS), def
                                 "cores), nvcomp (the GPU; needs orthowarp[gpu]; its zstd takes no level), warp "
                                 "(orthowarp's own deflate kernels on the device), hybrid (the device, nvCOMP at "
                                 "--compress-level 1-4 where installed, else warp, and the host cores at once); warp "
-                                "and hybrid are deflate only. auto: host on the CPU; on a GPU, for zstd nvcomp where "
-                                "installed, else host; for a deflate ortho nvcomp at --compress-level 1-4 where "
+                                "and hybrid are deflate only. auto: host on the CPU and for zstd; on a GPU, "
+                                "for a deflate ortho nvcomp at --compress-level 1-4 where "
                                 "installed, else hybrid; for a deflate mosaic warp.")
 creation = click.option("-co", "--co", "creation", multiple=True, metavar="KEY=VALUE",
                         help="GDAL-style creation option, repeatable: BLOCKSIZE (64-4096, multiple of 16; default "

@@ -163,7 +163,7 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
         device is busy and its next batch is full); "auto": "warp" on a GPU (the fastest
         measured for a mosaic, whose host cores are busy with the tiles), "host" on the CPU.
         With ``compress="zstd"``: "host" or "nvcomp" (nvCOMP's Zstd, which takes no level);
-        "auto" is "nvcomp" on a GPU where nvCOMP is installed, else "host"; "warp" and
+        "auto" is "host" (nvCOMP's Zstd on request); "warp" and
         "hybrid" are refused. Every choice decodes to the same pixels.
     tile_size : int, optional
         Output tile edge (pixels, multiple of 16); default 2048 on a GPU (fewer, larger

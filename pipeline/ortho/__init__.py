@@ -246,9 +246,8 @@ def orthorectify(src: str | os.PathLike, sensor: SensorModel, dst: str | os.Path
         1.4 % larger); on the CPU "host". For a zstd COG: "host" (``zstandard`` on the writer's
         threads) or "nvcomp" (the same device work, the blocks compressed by nvCOMP's Zstd,
         which takes no level: ``compress_level`` applies to the host codec; the mask blocks,
-        deflate in a zstd COG as GDAL writes them, are deflated on the host); "auto" is "nvcomp" on a CUDA device where
-        nvCOMP is installed, else "host"; "warp" and "hybrid" are deflate codecs, refused with
-        zstd.
+        deflate in a zstd COG as GDAL writes them, are deflated on the host, on request);
+        "auto" is "host"; "warp" and "hybrid" are deflate codecs, refused with zstd.
     source_reads : {"auto", "whole", "tiles"}, optional
         How the source reaches the device. "tiles": each output tile reads the source window
         it needs (reduced where the output is coarser) and uploads it. "whole": the source is
