@@ -16,6 +16,7 @@ from __future__ import annotations
 import heapq
 import logging
 import os
+import threading
 from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from typing import TYPE_CHECKING, Any
@@ -27,11 +28,9 @@ from ...geodesy import geodetic_to_ecef, geodetic_up
 from ..ortho.tiles import COARSE_STEP, coarse_grid
 from ..raster.io import check_cancel
 from ..tiles import Tile
-from .balance import Coarse, overlap_arrays, overlap_boxes
+from .balance import Coarse, overlap_boxes
 
 if TYPE_CHECKING:
-    import threading
-
     from affine import Affine
     from pyproj import Transformer
 
@@ -42,6 +41,11 @@ __all__ = ["NO_SOURCE", "angle_field", "least_cost_seams"]
 log = logging.getLogger(__name__)
 
 NO_SOURCE = 65535  # the index raster's value where no image has a pixel
+# least_cost_seams' threads unless told: more do not help, its numpy calls being short and
+# scipy's Dijkstra holding the interpreter lock (40-frame block on a 16-core host: 1, 2, 4 and 16
+# threads 0.54, 0.55, 0.58 and 0.61 s; docs/benchmarks.md, least-cost seams)
+_SEAM_THREADS = 2
+_CUT_NODES = 40_000  # the largest minimum cut on single pixels (larger corridors: on blocks)
 
 
 def _upsample(node: np.ndarray, th: int, tw: int) -> np.ndarray:
@@ -129,11 +133,23 @@ def least_cost_seams(labels: np.ndarray, coarse: Sequence[Coarse], gains: np.nda
     region) splits it, each part going to the region whose side of the rim it touches (see
     :func:`_split_corridor`); a corridor that no path separates is labelled by a minimum cut
     instead (:func:`_cut_corridor`). Pairs are taken in order, each on the labels the earlier
-    ones left: one global labelling, so seams are consistent across output tiles. (Pairs
-    whose windows do not meet run at once on up to ``workers`` threads, default the CPU
-    cores: the same labels.)
+    ones left: one global labelling, so seams are consistent across output tiles.
     (A seam refined within a buffer around an initial one by Dijkstra on a mismatch cost, as
     in Chon et al., ISPRS J. Photogramm. 2010, here on a reduced grid.)
+
+    Pairs run at once on up to ``workers`` threads (default 2: more do not help, the pairs'
+    numpy calls being short and scipy's Dijkstra holding the interpreter lock), with the
+    labels of the serial order. A pair (i, j) reads the labels only as the masks "is i" and
+    "is j" in its window (its overlap grown by one pixel), and changes only pixels of its
+    corridor, within its overlap, from i to j or back. So a pair that shares no image with an
+    earlier one, or whose window does not meet the earlier one's, neither reads what that one
+    changes nor changes what it reads: the two commute, and a pair waits only for the earlier
+    pairs that share one of its images and whose windows meet its own.
+
+    Each pair works on the part of its window within floor(``width``) + ``reach`` + 1 pixels
+    of its nadir seam (the corridor, the disagreement's reach and the corridor's outside rim;
+    the whole window for a minimum cut on blocks), which gives the corridor, costs, paths and
+    cuts of the whole window (:func:`_seam_pair`).
 
     Returns
     -------
@@ -142,26 +158,54 @@ def least_cost_seams(labels: np.ndarray, coarse: Sequence[Coarse], gains: np.nda
     """
     boxes = list(overlap_boxes(coarse))
     crows, ccols = labels.shape
-    # each pair's window of the labels: its overlap grown by one pixel, cut to the grid; a
-    # pair waits for the earlier pairs whose windows meet its own (it reads and writes the
-    # labels in its window alone), so pairs run on threads and give the labels of the order
+    # each pair's window of the labels: its overlap grown by one pixel, cut to the grid
     win = np.array([(max(r0 - 1, 0), min(r1 + 1, crows), max(c0 - 1, 0), min(c1 + 1, ccols))
-                    for _, _, r0, r1, c0, c1 in boxes]).reshape(-1, 4)
+                    for _, _, r0, r1, c0, c1 in boxes], np.int64).reshape(-1, 4)
+    ij = np.array([box[:2] for box in boxes], np.int64).reshape(-1, 2)
     after = [np.flatnonzero((win[:p, 0] < win[p, 1]) & (win[p, 0] < win[:p, 1]) & (win[:p, 2] < win[p, 3])
-                            & (win[p, 2] < win[:p, 3])) for p in range(len(boxes))]
+                            & (win[p, 2] < win[:p, 3]) & ((ij[:p] == ij[p, 0]) | (ij[:p] == ij[p, 1])).any(axis=1))
+             for p in range(len(boxes))]
+    shared = _Labels(labels)
 
     def pair(p: int) -> int:
         check_cancel(cancel, "the mosaic")
-        return _seam_pair(labels, coarse, boxes[p], gains, offsets, width, reach)
+        rows, cols, values = _seam_pair(shared, coarse, boxes[p], gains, offsets, width, reach)
+        shared.write(rows, cols, values)
+        return int(rows.size)
 
-    return sum(_run_ordered(pair, after, workers))
+    return sum(_run_ordered(pair, after, _SEAM_THREADS if workers is None else workers))
+
+
+class _Labels:
+    """The labels the pairs share: a window read (a copy) and a pair's changes written, each
+    under one lock (pairs running at once change pixels of other images, but a read takes
+    the window whole)."""
+
+    def __init__(self, labels: np.ndarray):
+        self.labels, self.lock = labels, threading.Lock()
+
+    def read(self, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+        with self.lock:
+            return self.labels[r0:r1, c0:c1].copy()
+
+    def write(self, rows: np.ndarray, cols: np.ndarray, values: np.ndarray) -> None:
+        if rows.size:
+            with self.lock:
+                self.labels[rows, cols] = values
 
 
 def _run_ordered(fn: Callable[[int], Any], after: Sequence[Sequence[int]], workers: int | None) -> list:
-    """``fn(p)`` for p = 0 .. len(after) - 1 on up to ``workers`` threads, each once all of
-    ``after[p]`` (earlier indices) are done, the ready ones in index order; returns the
-    results in index order (the first exception raised, the tasks not yet started dropped)."""
+    """``fn(p)`` for p = 0 .. len(after) - 1 on up to ``workers`` threads (default the CPU
+    cores), each once all of ``after[p]`` (earlier indices) are done, the ready ones in index
+    order; returns the results in index order (the first exception raised, the tasks not yet
+    started dropped). On one worker: in order, on this thread."""
     n = len(after)
+    results = [None] * n
+    limit = max(1, min(workers or os.cpu_count() or 1, n or 1))
+    if limit == 1:
+        for p in range(n):
+            results[p] = fn(p)
+        return results
     waiting = np.array([len(a) for a in after], np.int64)
     then = [[] for _ in range(n)]
     for p, deps in enumerate(after):
@@ -169,8 +213,6 @@ def _run_ordered(fn: Callable[[int], Any], after: Sequence[Sequence[int]], worke
             then[q].append(p)
     ready = [p for p in range(n) if not waiting[p]]  # a heap: the lowest index first
     heapq.heapify(ready)
-    results = [None] * n
-    limit = max(1, min(workers or os.cpu_count() or 1, n or 1))
     with ThreadPoolExecutor(max_workers=limit) as pool:
         running = {}
         try:
@@ -193,45 +235,202 @@ def _run_ordered(fn: Callable[[int], Any], after: Sequence[Sequence[int]], worke
     return results
 
 
-def _seam_pair(labels: np.ndarray, coarse: Sequence[Coarse], box: tuple[int, ...], gains: np.ndarray,
-               offsets: np.ndarray, width: float, reach: int) -> int:
-    """One pair's least-cost seam (see :func:`least_cost_seams`): ``labels`` changed in
-    place within the pair's overlap ``box`` (i, j, r0, r1, c0, c1) grown by one pixel;
-    returns the reduced pixels whose image changed."""
+def _seam_pair(shared: _Labels, coarse: Sequence[Coarse], box: tuple[int, ...], gains: np.ndarray,
+               offsets: np.ndarray, width: float, reach: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One pair's least-cost seam (see :func:`least_cost_seams`) on the labels of ``shared``
+    as they are now, within the pair's overlap ``box`` (i, j, r0, r1, c0, c1) grown by one
+    pixel: the pixels whose image changes, as (rows, columns of the grid, images); not written.
+
+    The pair's window (the overlap grown by one pixel, invalid there) is cut to the part
+    around its movable seams that decides the result: the corridor lies within floor(width)
+    rows and columns of them (all seam pixels, from which the distances are measured, lie in
+    the part), its costs look ``reach`` pixels further (the largest disagreement within
+    reach, which meets the window's edges where the part does), and the shortest path and the
+    cut look at the corridor's outside neighbours (one more pixel; whether outside pixels
+    reach the window's edge is the same in the part, whose own edge lies outside the
+    corridor's bounding box). Pixels keep their order (raster scan), so the graphs, components
+    and their numbers are those of the whole window; costs outside the corridor, which
+    nothing reads, are left 0."""
     from scipy import ndimage
 
-    crows, ccols = labels.shape
-    i, j, r0, _, c0, _ = box
-    a, b, both = overlap_arrays(coarse, box, pad=1)
-    h, w = both.shape
+    crows, ccols = shared.labels.shape
+    i, j, r0, r1, c0, c1 = box
+    h, w = r1 - r0 + 2, c1 - c0 + 2
     wr0, wc0 = r0 - 1, c0 - 1  # the pair's window, grown by one pixel
     gr0, gr1, gc0, gc1 = max(wr0, 0), min(wr0 + h, crows), max(wc0, 0), min(wc0 + w, ccols)
     lab = np.full((h, w), NO_SOURCE, np.uint16)  # beyond the grid: no image's
-    lab[gr0 - wr0:gr1 - wr0, gc0 - wc0:gc1 - wc0] = labels[gr0:gr1, gc0:gc1]
+    lab[gr0 - wr0:gr1 - wr0, gc0 - wc0:gc1 - wc0] = shared.read(gr0, gr1, gc0, gc1)
+    none = np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.uint16)
+    ri, ci, vi, oki = coarse[i]
+    rj, cj, vj, okj = coarse[j]
+    both = np.zeros((h, w), bool)
+    both[1:-1, 1:-1] = oki[r0 - ri:r1 - ri, c0 - ci:c1 - ci] & okj[r0 - rj:r1 - rj, c0 - cj:c1 - cj]
     mi, mj = lab == i, lab == j
-    # the movable seams: pixels of either region next to the other, where both images see
-    # (at the edge of one image's cover, the seam's side within it)
-    border = ((mi & ndimage.binary_dilation(mj)) | (mj & ndimage.binary_dilation(mi))) & both
-    if not border.any():
-        return 0
+    # the movable seams: pixels of either region next to the other (4-neighbours), where both
+    # images see (at the edge of one image's cover, the seam's side within it)
+    border = np.zeros((h, w), bool)
+    step = (mi[:, :-1] & mj[:, 1:]) | (mj[:, :-1] & mi[:, 1:])
+    border[:, :-1] |= step
+    border[:, 1:] |= step
+    step = (mi[:-1] & mj[1:]) | (mj[:-1] & mi[1:])
+    border[:-1] |= step
+    border[1:] |= step
+    border &= both
+    rows, cols = np.flatnonzero(border.any(axis=1)), np.flatnonzero(border.any(axis=0))
+    if not rows.size:
+        return none
+    grow = int(np.floor(width)) + max(int(reach), 0) + 1  # see above
+    s0, s1 = max(int(rows[0]) - grow, 0), min(int(rows[-1]) + grow + 1, h)
+    t0, t1 = max(int(cols[0]) - grow, 0), min(int(cols[-1]) + grow + 1, w)
+    part = (slice(s0, s1), slice(t0, t1))
+    mi_w, mj_w = mi, mj
+    border, both, mi, mj, lab = border[part], both[part], mi[part], mj[part], lab[part]
     away = ndimage.distance_transform_edt(~border)  # from the nadir seam, reduced pixels
     corridor = both & (mi | mj) & (away <= width)
-    d = np.abs((a * gains[i].astype(np.float32) + offsets[i].astype(np.float32))
-               - (b * gains[j].astype(np.float32) + offsets[j].astype(np.float32))).mean(axis=-1)
     if not corridor.any():
-        return 0
-    m = max(float(np.median(d[corridor])), 1e-6 * (float(np.abs(a[corridor]).max()) + 1.0))
+        return none
+    # the images' values where both may see: the part within the overlap (beyond it both
+    # images do not see: no difference there, and no corridor)
+    q0, q1, u0, u1 = max(s0, 1), min(s1, h - 1), max(t0, 1), min(t1, w - 1)  # window rows and columns
+    a = vi[wr0 + q0 - ri:wr0 + q1 - ri, wc0 + u0 - ci:wc0 + u1 - ci]
+    b = vj[wr0 + q0 - rj:wr0 + q1 - rj, wc0 + u0 - cj:wc0 + u1 - cj]
+    inner = (slice(q0 - s0, q1 - s0), slice(u0 - t0, u1 - t0))
+    d = np.zeros(corridor.shape, np.float32)
+    d[inner] = _mean_difference(a, b, gains[i], offsets[i], gains[j], offsets[j])
+    m = max(float(np.median(d[corridor])), 1e-6 * (float(np.abs(a[corridor[inner]]).max()) + 1.0))
     # the largest disagreement within the blend's reach: a seam keeps that far from objects
-    d = ndimage.maximum_filter(np.where(both, d, 0.0), size=2 * reach + 1)
-    cost = 1.0 + np.minimum((d / (3.0 * m)) ** 2, 400.0) + 4.0 * (away / width) ** 2
+    d = _max_within(np.where(both, d, 0.0), reach)
+    cost = np.zeros(corridor.shape)  # in the corridor alone (the paths and cuts read no other)
+    cost[corridor] = 1.0 + np.minimum((d[corridor] / (3.0 * m)) ** 2, 400.0) + 4.0 * (away[corridor] / width) ** 2
     to_i = _split_corridor(corridor, mi, mj, cost)
     if to_i is None:  # a rim no path splits (tangled footprints): a minimum cut instead
-        to_i = _cut_corridor(corridor, mi, mj, cost, away, width)
+        if int(corridor.sum()) <= _CUT_NODES:  # on single pixels: the part gives the same cut
+            to_i = _cut_corridor(corridor, mi, mj, cost, away, width, max_nodes=_CUT_NODES)
+        else:  # on blocks aligned with the window's first pixel: on the whole window
+            def whole(x: np.ndarray) -> np.ndarray:
+                out = np.zeros((h, w), x.dtype)
+                out[part] = x
+                return out
+
+            to_i = _cut_corridor(whole(corridor), mi_w, mj_w, whole(cost), whole(away), width,
+                                 max_nodes=_CUT_NODES)
+            if to_i is not None:
+                to_i = to_i[part]
     if to_i is None:
-        return 0
-    new = np.where(corridor, np.where(to_i, i, j), lab).astype(np.uint16)
-    labels[gr0:gr1, gc0:gc1] = new[gr0 - wr0:gr1 - wr0, gc0 - wc0:gc1 - wc0]
-    return int((new != lab).sum())
+        return none
+    new = np.where(to_i[corridor], i, j).astype(np.uint16)
+    changed = new != lab[corridor]
+    rr, cc = np.nonzero(corridor)
+    return rr[changed] + (wr0 + s0), cc[changed] + (wc0 + t0), new[changed]
+
+
+_IN_ORDER: dict[tuple[int, str], bool] = {}  # bands, dtype -> whether np.mean adds them in order
+
+
+def _mean_difference(a: np.ndarray, b: np.ndarray, gain_a: np.ndarray, offset_a: np.ndarray, gain_b: np.ndarray,
+                     offset_b: np.ndarray) -> np.ndarray:
+    """The mean over the bands (last axis) of ``|(a g_a + o_a) - (b g_b + o_b)|``, gains and
+    offsets per band cast to float32: ``np.abs(...).mean(axis=-1)``, the same bits,
+    band by band (NumPy's broadcasting over a short last axis is slow, and so is its mean
+    over one). The same bits because the per-pixel operations are the same and NumPy's mean
+    adds fewer than 8 values one after the other and then divides by their count as below:
+    checked once per band count and dtype on random values, else NumPy's expression."""
+    ga, oa, gb, ob = (np.asarray(x).astype(np.float32) for x in (gain_a, offset_a, gain_b, offset_b))
+    dtype = np.result_type(a.dtype, b.dtype, np.float32)
+    key = (a.shape[-1], dtype.str)
+    if key not in _IN_ORDER:
+        rng = np.random.default_rng(0)
+        probe = (rng.uniform(0.0, 300.0, (4096, key[0])) * rng.choice([1e-3, 1.0, 1e3], (4096, key[0]))).astype(dtype)
+        total = probe[:, 0].copy()
+        for k in range(1, key[0]):
+            total += probe[:, k]
+        np.true_divide(total, np.intp(key[0]), out=total, casting="unsafe")
+        _IN_ORDER[key] = key[0] < 8 and np.array_equal(total, probe.mean(axis=-1))
+    if not _IN_ORDER[key]:
+        return np.abs((a * ga + oa) - (b * gb + ob)).mean(axis=-1)
+    total = None
+    for k in range(a.shape[-1]):
+        x = a[..., k] * ga[k]
+        x += oa[k]
+        y = b[..., k] * gb[k]
+        y += ob[k]
+        x -= y
+        np.abs(x, out=x)
+        if total is None:
+            total = x
+        else:
+            total += x
+    return np.true_divide(total, np.intp(a.shape[-1]), out=total, casting="unsafe")
+
+
+def _max_within(x: np.ndarray, reach: int) -> np.ndarray:
+    """``ndimage.maximum_filter(x, size=2 * reach + 1)`` (its default mode, 'reflect'), the same
+    values (``x`` finite): the largest value within ``reach`` rows, then columns, inside the
+    array (what a reflection brings in lies within the window already). By shifted maxima
+    where ``reach`` is small, faster than the filter's generic line buffers."""
+    if reach > 4:
+        from scipy import ndimage
+
+        return ndimage.maximum_filter(x, size=2 * reach + 1)
+    out = x
+    for axis in (0, 1):
+        src, out = out, out.copy()
+        for k in range(1, reach + 1):
+            lo, hi = [slice(None)] * 2, [slice(None)] * 2
+            lo[axis], hi[axis] = slice(None, -k), slice(k, None)
+            np.maximum(out[tuple(hi)], src[tuple(lo)], out=out[tuple(hi)])
+            np.maximum(out[tuple(lo)], src[tuple(hi)], out=out[tuple(lo)])
+    return out
+
+
+def _grow4(mask: np.ndarray) -> np.ndarray:
+    """``mask`` dilated by its 4-neighbours, nothing beyond its edges (binary_dilation's
+    default)."""
+    out = mask.copy()
+    out[1:] |= mask[:-1]
+    out[:-1] |= mask[1:]
+    out[:, 1:] |= mask[:, :-1]
+    out[:, :-1] |= mask[:, 1:]
+    return out
+
+
+def _in(parts: np.ndarray, n: int, which: np.ndarray) -> np.ndarray:
+    """Where the component numbers ``parts`` (0 .. n) are among ``which`` (> 0)."""
+    lut = np.zeros(n + 1, bool)
+    lut[which] = True
+    lut[0] = False
+    return lut[parts]
+
+
+# a pixel's 8 neighbours in raster order (so, in the corridor's numbering, by increasing node)
+# and the lengths of the steps to them
+_EIGHT = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1))
+_LENGTH = np.array([np.hypot(dr, dc) for dr, dc in _EIGHT])
+
+
+def _corridor_graph(corridor: np.ndarray, cost: np.ndarray) -> tuple[Any, np.ndarray]:
+    """The corridor's 8-neighbour graph (CSR, each node's neighbours in increasing order), an
+    edge weighing the cost of the pixel it enters times the step's length, and the corridor's
+    pixels' node numbers (-1 elsewhere), numbered in raster order."""
+    from scipy.sparse import csr_matrix
+
+    h, w = corridor.shape
+    grid = np.zeros((h + 2, w + 2), bool)  # one pixel around: no node
+    grid[1:-1, 1:-1] = corridor
+    at = np.flatnonzero(grid).astype(np.int32)
+    n = at.size
+    node = np.full((h + 2) * (w + 2), -1, np.int32)
+    node[at] = np.arange(n, dtype=np.int32)
+    price = np.zeros((h + 2, w + 2))
+    price[1:-1, 1:-1] = cost
+    near = (at[:, None] + np.array([dr * (w + 2) + dc for dr, dc in _EIGHT], np.int32)).ravel()  # (n x 8)
+    nbr = node[near]
+    edge = np.flatnonzero(nbr >= 0)  # node edge >> 3's, to its (edge & 7)th neighbour
+    indptr = np.zeros(n + 1, np.int32)
+    np.cumsum(np.bincount(edge >> 3, minlength=n), out=indptr[1:])
+    weight = price.ravel()[near[edge]] * _LENGTH[edge & 7]
+    graph = csr_matrix((weight, nbr[edge], indptr), shape=(n, n))
+    return graph, node.reshape(h + 2, w + 2)[1:-1, 1:-1]
 
 
 def _split_corridor(corridor: np.ndarray, mi: np.ndarray, mj: np.ndarray, cost: np.ndarray,
@@ -248,15 +447,13 @@ def _split_corridor(corridor: np.ndarray, mi: np.ndarray, mj: np.ndarray, cost: 
     touching neither side keep their labels. Returns bool (h, w), True where the corridor
     goes to the first region, or None where no path separates the two sides."""
     from scipy import ndimage
-    from scipy.sparse import csr_matrix
     from scipy.sparse.csgraph import dijkstra
 
-    out_parts, _ = ndimage.label(~corridor)
-    edge_parts = np.unique(np.concatenate([out_parts[0], out_parts[-1], out_parts[:, 0], out_parts[:, -1]]))
-    outer = np.isin(out_parts, edge_parts[edge_parts > 0])
-    rim = corridor & ndimage.binary_dilation(outer)
-    out_i, out_j = ndimage.binary_dilation(mi & outer), ndimage.binary_dilation(mj & outer)
-    out_none = ndimage.binary_dilation(outer & ~mi & ~mj)
+    out_parts, n_out = ndimage.label(~corridor)
+    outer = _in(out_parts, n_out, np.concatenate([out_parts[0], out_parts[-1], out_parts[:, 0], out_parts[:, -1]]))
+    rim = corridor & _grow4(outer)
+    out_i, out_j = _grow4(mi & outer), _grow4(mj & outer)
+    out_none = _grow4(outer & ~mi & ~mj)
     side_i = rim & mi & out_i & ~out_j & ~out_none
     side_j = rim & mj & out_j & ~out_i & ~out_none
     eight = np.ones((3, 3), bool)
@@ -265,38 +462,30 @@ def _split_corridor(corridor: np.ndarray, mi: np.ndarray, mj: np.ndarray, cost: 
         log.debug("seam corridor of %d px: %d free part(s) of its rim, kept", int(corridor.sum()), n_ends)
         return None
     # the corridor's 8-neighbour graph, an edge weighing the cost of the pixel it enters
-    h, w = corridor.shape
-    node = np.full((h, w), -1, np.int64)
-    node[corridor] = np.arange(int(corridor.sum()))
-    src, dst, wt = [], [], []
-    for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
-        a = node[max(0, -dr):h - max(0, dr), max(0, -dc):w - max(0, dc)]
-        b = node[max(0, dr):h - max(0, -dr), max(0, dc):w - max(0, -dc)]
-        ca = cost[max(0, -dr):h - max(0, dr), max(0, -dc):w - max(0, dc)]
-        cb = cost[max(0, dr):h - max(0, -dr), max(0, dc):w - max(0, -dc)]
-        ok = (a >= 0) & (b >= 0)
-        length = np.hypot(dr, dc)
-        src += [a[ok], b[ok]]
-        dst += [b[ok], a[ok]]
-        wt += [cb[ok] * length, ca[ok] * length]
-    n = int(corridor.sum())
-    graph = csr_matrix((np.concatenate(wt), (np.concatenate(src), np.concatenate(dst))), shape=(n, n))
+    graph, node = _corridor_graph(corridor, cost)
+    n = graph.shape[0]
     sizes = np.bincount(ends.ravel())[1:]
     order = np.argsort(-sizes, kind="stable")[:tries] + 1
     for ka in range(len(order)):
+        starts = node[ends == order[ka]]
+        dist = pred = None  # from this free part: once for all the others
         for kb in range(ka + 1, len(order)):
-            starts, targets = node[ends == order[ka]], node[ends == order[kb]]
-            dist, pred, _ = dijkstra(graph, indices=starts, min_only=True, return_predecessors=True)
+            targets = node[ends == order[kb]]
+            if dist is None:
+                dist, pred, _ = dijkstra(graph, indices=starts, min_only=True, return_predecessors=True)
             t = targets[np.argmin(dist[targets])]
             if not np.isfinite(dist[t]):
                 continue
             on_path = np.zeros(n, bool)
+            back, steps = memoryview(pred), []  # Python ints, quickly
+            t = int(t)
             while t >= 0:
-                on_path[t] = True
-                t = pred[t]
-            path = np.zeros((h, w), bool)
+                steps.append(t)
+                t = back[t]
+            on_path[steps] = True
+            path = np.zeros(corridor.shape, bool)
             path[corridor] = on_path
-            rest, _ = ndimage.label(corridor & ~path)
+            rest, n_rest = ndimage.label(corridor & ~path)
             touch_i, touch_j = np.unique(rest[side_i & ~path]), np.unique(rest[side_j & ~path])
             touch_i, touch_j = touch_i[touch_i > 0], touch_j[touch_j > 0]
             if np.intersect1d(touch_i, touch_j).size:
@@ -304,14 +493,14 @@ def _split_corridor(corridor: np.ndarray, mi: np.ndarray, mj: np.ndarray, cost: 
                           int(corridor.sum()), order[ka], order[kb])
                 continue
             to_i = mi.copy()  # the path and parts touching neither side keep their labels
-            to_i[np.isin(rest, touch_i)] = True
-            to_i[np.isin(rest, touch_j)] = False
+            to_i[_in(rest, n_rest, touch_i)] = True
+            to_i[_in(rest, n_rest, touch_j)] = False
             return to_i
     return None
 
 
 def _cut_corridor(corridor: np.ndarray, mi: np.ndarray, mj: np.ndarray, cost: np.ndarray, away: np.ndarray,
-                  width: float, max_nodes: int = 40_000, unit: int = 16) -> np.ndarray | None:
+                  width: float, max_nodes: int = _CUT_NODES, unit: int = 16) -> np.ndarray | None:
     """Label a corridor between the regions ``mi`` and ``mj`` by a minimum s-t cut, where
     :func:`_split_corridor` finds no path (see :func:`least_cost_seams`).
 
