@@ -293,3 +293,50 @@ def test_overview_count():
     assert overview_count(23310, 19297) == 6
     assert overview_count(500, 300) == 0
     assert overview_count(512, 100) == 1
+
+
+@pytest.mark.parametrize("compress", ["deflate", "zstd"])
+def test_category_raster_with_nodata_and_nearest_overviews(tmp_path, compress):
+    """A categorical raster (a mosaic's source index): its nodata value instead of a mask, and
+    overviews whose pixels are each the first valid pixel of their 2 x 2 group (never a mean,
+    which would name another category), nodata where the group has none."""
+    rng = np.random.default_rng(3)
+    h, w, nodata = 300, 270, 65535
+    cat = rng.integers(0, 4, (h, w)).astype(np.uint16) * 2  # 0, 2, 4, 6: means would give odd numbers
+    valid = rng.random((h, w)) > 0.3
+    valid[:64, :64] = False
+    path = tmp_path / "index.tif"
+    with CogWriter(path, width=w, height=h, count=1, dtype="uint16", transform=Affine(1, 0, 0, 0, -1, 0),
+                   block_size=64, overviews=2, nodata=nodata, overview_resampling="nearest", compress=compress) as cw:
+        for r0 in range(0, h, 100):
+            for c0 in range(0, w, 90):
+                cw.write(r0, c0, cat[r0:r0 + 100, c0:c0 + 90, None], valid[r0:r0 + 100, c0:c0 + 90])
+    with rasterio.open(path) as ds:
+        assert ds.nodata == nodata and ds.overviews(1) == [2, 4]
+        full = ds.read(1)
+        np.testing.assert_array_equal(full, np.where(valid, cat, nodata))
+    expect, ok = cat, valid
+    for k in (0, 1):
+        H, W = -(-expect.shape[0] // 2), -(-expect.shape[1] // 2)
+        pe = np.full((2 * H, 2 * W), nodata, np.uint16)
+        pk = np.zeros((2 * H, 2 * W), bool)
+        pe[:expect.shape[0], :expect.shape[1]], pk[:ok.shape[0], :ok.shape[1]] = expect, ok
+        nxt, nok = np.full((H, W), nodata, np.uint16), np.zeros((H, W), bool)
+        for i, j in ((1, 1), (1, 0), (0, 1), (0, 0)):
+            q = pk[i::2, j::2]
+            nxt[q], nok[q] = pe[i::2, j::2][q], True
+        expect, ok = nxt, nok
+        with rasterio.open(path, overview_level=k) as ov:
+            got = ov.read(1)
+        np.testing.assert_array_equal(got, np.where(ok, expect, nodata))
+        assert set(np.unique(got)) <= {0, 2, 4, 6, nodata}
+
+
+def test_nodata_must_be_a_value_of_the_type(tmp_path):
+    kw = dict(width=8, height=8, count=1, transform=Affine(1, 0, 0, 0, -1, 0))
+    with pytest.raises(ParamError, match="nodata"):
+        CogWriter(tmp_path / "a.tif", dtype="uint8", nodata=300, **kw)
+    with pytest.raises(ParamError, match="nodata"):
+        CogWriter(tmp_path / "b.tif", dtype="float32", nodata=0, **kw)
+    with pytest.raises(ParamError, match="overview_resampling"):
+        CogWriter(tmp_path / "c.tif", dtype="uint8", overview_resampling="mode", **kw)

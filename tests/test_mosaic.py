@@ -62,7 +62,8 @@ def test_mosaic_of_two_frames_matches_the_truth_and_the_nadir_rule(pair, tmp_pat
     with rasterio.open(res.index) as ds:
         idx = ds.read(1)
         np.testing.assert_array_equal(ds.dataset_mask() > 0, valid)
-    assert set(np.unique(idx[valid])) == {0, 1} and np.all(idx[~valid] == 0)
+        assert ds.nodata == NO_SOURCE  # not image 0's number
+    assert set(np.unique(idx[valid])) == {0, 1} and np.all(idx[~valid] == NO_SOURCE)
     assert res.pixels_per_image == [int(np.sum(idx[valid] == 0)), int(np.sum(idx[valid] == 1))]
     # the rule, computed independently (reference cameras, per pixel, truth DEM): where both
     # images see the ground point, the one seeing it more nearly from above supplies it
@@ -533,21 +534,31 @@ def test_the_backward_fallback_covers_only_blocks_with_coverable_gaps():
     assert cover[5, 100:120].all() and cover[280, 20] and cover[150, 210] and cover[150, 20]
 
 
-def test_seamlines_trace_each_images_part(pair, tmp_path):
+@pytest.mark.parametrize("lonlat", [False, True])
+def test_seamlines_trace_each_images_part(pair, tmp_path, lonlat):
+    """One feature per image, named by its path relative to the mosaic, in the mosaic's CRS
+    (named in a "crs" member) or in longitude/latitude; each traces the image's pixels."""
     import json
 
-    from pyproj import Transformer
+    from pyproj import CRS, Transformer
 
     sc, images, _, _ = pair
-    res = mosaic(images, tmp_path / "m.tif", dem=sc.dem, refraction=False, seamlines=tmp_path / "seams.geojson",
-                 device="cpu")
-    assert sorted(os.listdir(tmp_path)) == ["m.tif", "seams.geojson"] and res.seamlines.endswith("seams.geojson")
-    doc = json.loads((tmp_path / "seams.geojson").read_text())
+    out = tmp_path / "out"
+    res = mosaic(images, out / "m.tif", dem=sc.dem, refraction=False, seamlines=out / "seams.geojson",
+                 seamlines_lonlat=lonlat, device="cpu")
+    assert sorted(os.listdir(out)) == ["m.tif", "seams.geojson"] and res.seamlines.endswith("seams.geojson")
+    doc = json.loads((out / "seams.geojson").read_text())
     feats = doc["features"]
     assert [f["properties"]["index"] for f in feats] == [0, 1]
-    assert [f["properties"]["image"] for f in feats] == [str(images[0][0]), str(images[1][0])]
+    assert [f["properties"]["image"] for f in feats] == [os.path.relpath(src, out) for src, _ in images]
+    assert all(f["properties"]["image"].startswith("..") for f in feats)  # beside the folder of the mosaic
     assert [f["properties"]["pixels"] for f in feats] == res.pixels_per_image
-    to_utm = Transformer.from_crs("EPSG:4326", UTM32, always_xy=True)
+    if lonlat:
+        assert "crs" not in doc
+        to_utm = Transformer.from_crs("EPSG:4326", UTM32, always_xy=True)
+    else:
+        assert CRS.from_user_input(doc["crs"]["properties"]["name"]).equals(res.crs)
+        to_utm = Transformer.from_crs(res.crs, UTM32, always_xy=True)
     for f in feats:
         polys = [f["geometry"]["coordinates"]] if f["geometry"]["type"] == "Polygon" else f["geometry"]["coordinates"]
         area = 0.0

@@ -73,7 +73,8 @@ MOSAIC_COMPRESS = ("deflate", "zstd")
 def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | os.PathLike | float,
            crs: str | int | CRS | None = None, resolution: float | None = None, resampling: str = "bilinear",
            refraction: bool = True, dtype: str | None = None, index: str | os.PathLike | None = None,
-           seamlines: str | os.PathLike | None = None, seams: str = "least-cost", seam_width: float = 256,
+           seamlines: str | os.PathLike | None = None, seamlines_lonlat: bool = False, seams: str = "least-cost",
+           seam_width: float = 256,
            blend: str = "feather", feather: float = 32, balance: bool = True, reference: int | None = None,
            occlusion: bool = True, compress: str = "deflate", compress_level: int | None = None,
            block_codec: str = "auto",
@@ -104,12 +105,16 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
     dtype : {"uint8", "uint16", "float32"}, optional
         Default: the sources'.
     index : str or os.PathLike, optional
-        Also write the per-pixel source index (uint16 COG; masked where no image has a value):
-        the image with the largest weight.
+        Also write the per-pixel source index (uint16 COG; 65535, its nodata value, where no
+        image has a value; overviews take one of their pixels' images, never a mean): the
+        image with the largest weight.
     seamlines : str or os.PathLike, optional
-        Also write the images' parts of the mosaic as GeoJSON (RFC 7946, longitude/latitude):
-        one feature per image, a (Multi)Polygon traced on the source index at a reduced
-        resolution (at most ~4 Mpix), with the image's path, position and pixel count.
+        Also write the images' parts of the mosaic as GeoJSON: one feature per image, a
+        (Multi)Polygon traced on the source index at a reduced resolution (at most ~4 Mpix),
+        with the image's path relative to the mosaic's folder, its position and pixel count;
+        in the mosaic's CRS, named in a "crs" member (GeoJSON 2008, as GDAL reads it).
+    seamlines_lonlat : bool, optional
+        The seamlines in longitude/latitude instead (RFC 7946, no "crs" member).
     seams : {"least-cost", "nadir"}, optional
         "nadir": each pixel's image is the one that sees its ground most nearly from above
         (smallest off-nadir angle), decided on a reduced grid (at most ~4 Mpix). "least-cost"
@@ -205,6 +210,7 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
     compress_level = integer("compress_level", compress_level, low=1, high=LEVELS[compress][1], none=True)
     workers = integer("workers", workers, low=1, none=True)
     flag("overwrite", overwrite)
+    flag("seamlines_lonlat", seamlines_lonlat)
     dst = os.fspath(dst)
     outputs = output_paths(dst, index, seamlines, overwrite)
     on = resolve_device(device)
@@ -216,7 +222,7 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
                            feather=feather, balance=balance,
                            reference=reference, occlusion=occlusion, device=device, geoid=geoid,
                            same_vertical_datum=same_vertical_datum, cancel=cancel, _outputs=outputs)
-        out = _WriteSettings(index=index, seamlines=seamlines, compress=compress, compress_level=compress_level,
+        out = _WriteSettings(index=index, seamlines=seamlines, seamlines_lonlat=seamlines_lonlat, compress=compress, compress_level=compress_level,
                              block_codec=block_codec,
                              creation_options=creation_options, tile_size=tile_size, overwrite=overwrite,
                              workers=workers)
@@ -232,6 +238,7 @@ class _WriteSettings:
 
     index: str | os.PathLike | None
     seamlines: str | os.PathLike | None
+    seamlines_lonlat: bool
     compress: str
     compress_level: int | None
     block_codec: str
@@ -257,7 +264,7 @@ def _write_mosaic(plan: MosaicPlan, procs: ProcessTiles | None, dst: str, on: wp
     try:
         return plan.write(dst, results, index=out.index, seamlines=out.seamlines, compress=out.compress,
                           compress_level=out.compress_level, overwrite=out.overwrite, t_start=t0, _block_codec=codec,
-                          creation_options=out.creation_options)
+                          creation_options=out.creation_options, seamlines_lonlat=out.seamlines_lonlat)
     finally:
         plan.close()
 

@@ -370,15 +370,16 @@ class MosaicPlan(TileBlending):
               index: str | os.PathLike | None = None, seamlines: str | os.PathLike | None = None,
               compress: str = "deflate", compress_level: int | None = None, overwrite: bool = False,
               t_start: float | None = None, _block_codec: str = "host",
-              creation_options: dict | None = None) -> MosaicResult:
+              creation_options: dict | None = None, seamlines_lonlat: bool = False) -> MosaicResult:
         """Write the mosaic from tile results, in any order: ``results`` yields
         ((r0, c0, rows, cols), (block, valid, source)) for every tile of the grid (e.g. from
         :meth:`tile` on a thread pool or a distributed engine). The outputs (mosaic, optional
         index COG and seamlines GeoJSON) are published together when all tiles are in; the
         mosaic and its index are ``compress`` COGs ("deflate" or "zstd", at ``compress_level``:
-        default 6 or 9). (Internally, with a ``_block_codec`` other than "host", the tiles'
-        pixels go to the mosaic's file through ``self._encoder`` on the device and ``block``
-        is None.)
+        default 6 or 9); the seamlines in the mosaic's CRS, or in longitude/latitude with
+        ``seamlines_lonlat``, naming the images by their paths relative to the mosaic's
+        folder. (Internally, with a ``_block_codec`` other than "host", the tiles' pixels go to
+        the mosaic's file through ``self._encoder`` on the device and ``block`` is None.)
 
         Returns
         -------
@@ -403,8 +404,11 @@ class MosaicPlan(TileBlending):
             writers = [CogWriter(tmps[0], width=cols, height=rows, count=self.count, dtype=self.dtype, crs=rio_crs,
                                  transform=self.transform, name=dst, **kw)]
             if index is not None:
+                # the index: NO_SOURCE as its nodata (distinct from image 0 for readers that
+                # ignore masks), overviews taking an image's number, never a mean of numbers
                 writers.append(CogWriter(tmps[1], width=cols, height=rows, count=1, dtype="uint16", crs=rio_crs,
-                                         transform=self.transform, name=outputs[1], **kw))
+                                         transform=self.transform, name=outputs[1], nodata=NO_SOURCE,
+                                         overview_resampling="nearest", **kw))
             encoder = None
             try:
                 if _block_codec != "host":
@@ -429,8 +433,10 @@ class MosaicPlan(TileBlending):
                 for w in writers:
                     w.close()
                 if seamlines is not None:
+                    here = os.path.dirname(os.path.abspath(dst))
                     _write_seamlines(tmps[-1], coarse_index, self.transform @ Affine.scale(step), self.crs,
-                                     [src for src, *_ in self.sources], used, name=outputs[-1])
+                                     [os.path.relpath(os.path.abspath(src), here) for src, *_ in self.sources], used,
+                                     name=outputs[-1], lonlat=bool(seamlines_lonlat))
             except BaseException:
                 for w in writers:
                     w.abort()
@@ -695,19 +701,30 @@ def check_images(images: Iterable, resampling: str, dtype: str | None, blend: st
     return images
 
 
+def seamlines_crs_member(crs: CRS) -> dict[str, Any]:
+    """The GeoJSON (2008) "crs" member naming ``crs``: its OGC URN where it has an EPSG code,
+    else its WKT (both what GDAL's GeoJSON reader takes)."""
+    code = crs.to_epsg()
+    name = f"urn:ogc:def:crs:EPSG::{code}" if code is not None else crs.to_wkt()
+    return {"type": "name", "properties": {"name": name}}
+
+
 def _write_seamlines(path: str, index: np.ndarray, transform: Affine, crs: CRS, names: Sequence[str],
-                     used: np.ndarray, *, name: str) -> None:
-    """GeoJSON of each image's part of the mosaic (see :func:`~orthowarp.pipeline.mosaic.mosaic`'s ``seamlines``)."""
+                     used: np.ndarray, *, name: str, lonlat: bool = False) -> None:
+    """GeoJSON of each image's part of the mosaic (see :func:`~orthowarp.pipeline.mosaic.mosaic`'s ``seamlines``):
+    in the mosaic's CRS (named in a "crs" member), or with ``lonlat`` in longitude/latitude
+    (RFC 7946); ``names`` as the features' "image"."""
     from rasterio.features import shapes
 
-    to_lonlat = Transformer.from_crs(crs, "EPSG:4326", always_xy=True)
+    to_lonlat = Transformer.from_crs(crs, "EPSG:4326", always_xy=True) if lonlat else None
+    digits = 9 if lonlat or crs.is_geographic else 4
     parts = {}
     for geom, value in shapes(index, mask=index != NO_SOURCE, transform=transform, connectivity=4):
         rings = []
         for ring in geom["coordinates"]:
             xy = np.asarray(ring, float)
-            lon, lat = to_lonlat.transform(xy[:, 0], xy[:, 1])
-            rings.append([[round(float(a), 9), round(float(b), 9)] for a, b in zip(lon, lat)])
+            x, y = to_lonlat.transform(xy[:, 0], xy[:, 1]) if lonlat else (xy[:, 0], xy[:, 1])
+            rings.append([[round(float(a), digits), round(float(b), digits)] for a, b in zip(x, y)])
         parts.setdefault(int(value), []).append(rings)
     features = []
     for k, polys in sorted(parts.items()):
@@ -715,7 +732,10 @@ def _write_seamlines(path: str, index: np.ndarray, transform: Affine, crs: CRS, 
             {"type": "MultiPolygon", "coordinates": polys}
         features.append({"type": "Feature", "geometry": geometry,
                          "properties": {"image": names[k], "index": k, "pixels": int(used[k])}})
-    text = json.dumps({"type": "FeatureCollection", "features": features})
+    collection = {"type": "FeatureCollection", "features": features}
+    if not lonlat:
+        collection["crs"] = seamlines_crs_member(crs)
+    text = json.dumps(collection)
     try:
         with open(path, "w", encoding="utf-8") as f:
             f.write(text)

@@ -147,6 +147,14 @@ class CogWriter:
     mask : bool, optional
         Integer rasters: write an internal mask (0 / 255, GDAL's per-dataset mask). Float
         rasters use NaN as nodata and no mask.
+    nodata : int, optional
+        Integer rasters: instead of a mask, the value of pixels without data (GDAL's nodata
+        tag): pixels equal to it (or outside the mask given to :meth:`write`) are stored as
+        it and left out of the overviews' reductions.
+    overview_resampling : {"average", "nearest"}, optional
+        How a 2 x 2 group of valid pixels becomes an overview pixel: their rounded mean
+        (default; images), or the first valid one in row order (categories, such as a
+        mosaic's source index, whose mean would name another category).
     compress : {"deflate", "zstd", "none"}, optional
         Image blocks as zlib streams (libdeflate) or Zstandard frames (``zstandard``), with
         predictor 2 for integer data, or uncompressed. Mask blocks are deflate streams with
@@ -181,7 +189,8 @@ class CogWriter:
     def __init__(self, path: str | os.PathLike, *, width: int, height: int, count: int, dtype: str, crs: Any = None,
                  transform: Affine, mask: bool = True, compress: str = "deflate", level: int | None = None,
                  block_size: int = 512, overviews: int | None = None, threads: int | None = None,
-                 bigtiff: bool | None = None, name: str | os.PathLike | None = None, timer: Any = None) -> None:
+                 bigtiff: bool | None = None, name: str | os.PathLike | None = None, timer: Any = None,
+                 nodata: int | None = None, overview_resampling: str = "average") -> None:
         if dtype not in DTYPES:
             raise ParamError(f"CogWriter dtype must be one of {DTYPES}, got {dtype!r}")
         if compress not in COMPRESS:
@@ -195,7 +204,14 @@ class CogWriter:
         self.name = self.path if name is None else os.fspath(name)
         self.width, self.height, self.count, self.dtype = int(width), int(height), int(count), dtype
         self.is_float = dtype == "float32"
-        self.mask = bool(mask) and not self.is_float
+        if nodata is not None and (self.is_float or not np.can_cast(np.min_scalar_type(nodata), dtype)
+                                   or int(nodata) != nodata):
+            raise ParamError(f"CogWriter nodata {nodata!r} is not a {dtype} value (float rasters use NaN)")
+        if overview_resampling not in ("average", "nearest"):
+            raise ParamError(f"CogWriter overview_resampling must be average or nearest, got {overview_resampling!r}")
+        self.nodata = None if nodata is None else int(nodata)
+        self.nearest = overview_resampling == "nearest"
+        self.mask = bool(mask) and not self.is_float and self.nodata is None
         self.compress, self.block = compress, int(block_size)
         self.compress_level = None if default is None else level if level is not None else default
         # mask blocks: deflate unless the file is uncompressed (GDAL's mask is deflate with zstd too)
@@ -207,7 +223,8 @@ class CogWriter:
         for _ in range(n_ovr + 1):
             self.levels.append(_Level(w, h, self.block))
             w, h = -(-w // 2), -(-h // 2)
-        self.tags = _template_tags(self.count, dtype, crs, transform, float("nan") if self.is_float else None)
+        self.tags = _template_tags(self.count, dtype, crs, transform,
+                                   float("nan") if self.is_float else self.nodata)
         self._side_path = self.path + ".blocks"
         try:
             self._fd = os.open(self._side_path, os.O_RDWR | os.O_CREAT | os.O_TRUNC, 0o600)
@@ -253,7 +270,8 @@ class CogWriter:
         if row < 0 or col < 0 or row + h > lvl.height or col + w > lvl.width:
             raise ParamError(f"tile at ({row}, {col}) of {h} x {w} falls outside the {lvl.height} x {lvl.width} raster")
         if mask is None:
-            mask = np.ones((h, w), bool) if not self.is_float else np.isfinite(data).any(axis=2)
+            mask = np.isfinite(data).any(axis=2) if self.is_float else \
+                (data != self.nodata).any(axis=2) if self.nodata is not None else np.ones((h, w), bool)
         for bi, bj, blk in self._insert(level, row, col, data, mask, copy=copy):
             self._slots.acquire()
             fut = self._pool.submit(self._emit, level, bi, bj, *blk)
@@ -281,7 +299,7 @@ class CogWriter:
         False and they are full-size); only partly covered ones wait in the level's table
         (under the level's lock) for their other pieces."""
         lvl, b = self.levels[li], self.block
-        fill = np.nan if self.is_float else 0
+        fill = np.nan if self.is_float else self.nodata or 0
         done = []
         for bi in range(row // b, (row + data.shape[0] - 1) // b + 1):
             r0, r1 = max(row, bi * b), min(row + data.shape[0], (bi + 1) * b)
@@ -372,6 +390,16 @@ class CogWriter:
         thread's buffers; the result is one of them, copied by the caller)."""
         h, w = mask.shape
         H, W = -(-h // 2), -(-w // 2)
+        if self.nearest:  # the first valid pixel of each 2 x 2 group, in row order
+            if h % 2 or w % 2:
+                pad = ((0, H * 2 - h), (0, W * 2 - w))
+                data, mask = np.pad(data, pad + ((0, 0),)), np.pad(mask, pad)
+            out = np.full((H, W, self.count), np.nan if self.is_float else self.nodata or 0, data.dtype)
+            valid = np.zeros((H, W), bool)
+            for i, j in ((1, 1), (1, 0), (0, 1), (0, 0)):  # the last written wins: (0, 0) first in order
+                q = mask[i::2, j::2]
+                out[q], valid[q] = data[i::2, j::2][q], True
+            return out, valid
         if full and not self.is_float:
             acc_t = np.uint16 if self.dtype == "uint8" else np.uint32
             acc = self._scratch("acc", (H, W, self.count), acc_t)
@@ -408,12 +436,16 @@ class CogWriter:
         return buf
 
     def _encode(self, data: np.ndarray, mask: np.ndarray | None = None) -> bytes:
-        """The compressed bytes of a block (B, B, C): pixels where ``mask`` is False set to 0,
-        then, for compressed integer rasters, TIFF predictor 2 (horizontal differencing per
-        sample, modulo the type's range)."""
+        """The compressed bytes of a block (B, B, C): pixels where ``mask`` is False set to 0
+        (or to the nodata value), then, for compressed integer rasters, TIFF predictor 2
+        (horizontal differencing per sample, modulo the type's range)."""
         if mask is not None:
             zeroed = self._scratch("zeroed", data.shape, data.dtype)
-            np.multiply(data, mask[..., None], out=zeroed)
+            if self.nodata is None:
+                np.multiply(data, mask[..., None], out=zeroed)
+            else:
+                np.copyto(zeroed, data)
+                zeroed[~mask] = self.nodata
             data = zeroed
         if self.compress != "none" and not self.is_float:
             diff = self._scratch("diff", data.shape, data.dtype)
