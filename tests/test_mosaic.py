@@ -662,13 +662,21 @@ def test_cli_mosaic_zstd(tmp_path):
         assert a.tags(ns="IMAGE_STRUCTURE")["COMPRESSION"] == "ZSTD"
         np.testing.assert_array_equal(a.read(), b.read())
     res = CliRunner().invoke(main, [*base, "--out", str(tmp_path / "x.tif"), "-co", "COMPRESS=LZW"])
-    assert res.exit_code != 0 and "deflate or zstd" in res.output
+    assert res.exit_code != 0 and "DEFLATE, ZSTD, JPEG, WEBP" in res.output
     res = CliRunner().invoke(main, [*base, "--out", str(tmp_path / "x.tif"), "--compress", "zstd",
                                     "--compress-level", "23"])
     assert res.exit_code != 0 and "compress_level must be an integer 1-22" in res.output
     res = CliRunner().invoke(main, [*base, "--out", str(tmp_path / "x.tif"), "--compress", "lzw"])
     assert res.exit_code != 0
+    res = CliRunner().invoke(main, [*base, "--out", str(tmp_path / "x.tif"), "--quality", "80"])
+    assert res.exit_code != 0 and "quality applies to jpeg and webp" in res.output
     assert not (tmp_path / "x.tif").exists()
+    res = CliRunner().invoke(main, [*base, "--out", str(tmp_path / "j.tif"), "-co", "COMPRESS=JPEG", "--quality", "80"])
+    if res.exit_code == 0:  # (a uint8 job: a JPEG mosaic; else refused by name)
+        with rasterio.open(tmp_path / "j.tif") as ds:
+            assert ds.tags(ns="IMAGE_STRUCTURE")["COMPRESSION"] in ("JPEG", "YCbCr JPEG")
+    else:
+        assert "jpeg compression needs a uint8 mosaic" in res.output, res.output
 
 
 def test_a_failing_image_leaves_no_mosaic(tmp_path):
@@ -1254,3 +1262,44 @@ def test_an_image_is_dropped_after_its_last_tile_unless_dealt_again():
     assert 5 in st["images"] and closed == [6]
     plan._note_drop((5,))  # then no tile to come uses it
     assert 5 not in st["images"] and closed == [6, 5]
+
+
+@pytest.mark.parametrize("compress,bands", [("jpeg", 1), ("jpeg", 3), ("webp", 3)])
+def test_lossy_mosaics_decode_near_the_lossless_one(pair, tmp_path, compress, bands):
+    """A uint8 mosaic with jpeg or webp: a COG of that compression (YCbCr for 3-band JPEG),
+    its mask and overviews those of the deflate mosaic, its pixels within the quality's reach;
+    the index stays lossless; bad settings refused before any work."""
+    sc, images, _, folder = pair
+    u8 = []
+    for k, (src, sensor) in enumerate(images):
+        with rasterio.open(src) as ds:
+            band = ds.read(1)
+        data = np.clip(np.nan_to_num(band) * 200.0 + 20.0, 0, 255).astype(np.uint8)
+        path = tmp_path / f"u8_{k}.tif"
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+            with rasterio.open(path, "w", driver="GTiff", width=data.shape[1], height=data.shape[0], count=bands,
+                               dtype="uint8") as dst:
+                dst.write(np.repeat(data[None], bands, axis=0))
+        u8.append((path, sensor))
+    kw = dict(dem=sc.dem, refraction=False, device="cpu", tile_size=128)
+    ref = mosaic(u8, tmp_path / "deflate.tif", **kw)
+    res = mosaic(u8, tmp_path / "lossy.tif", compress=compress, quality=95, index=tmp_path / "index.tif", **kw)
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(("lossy", "index"))) == \
+        ["index.tif", "lossy.tif"]  # no intermediate left
+    with rasterio.open(ref.path) as a, rasterio.open(res.path) as b, rasterio.open(tmp_path / "index.tif") as i:
+        assert b.profile["compress"].lower() == compress and i.profile["compress"].lower() == "deflate"
+        assert b.tags(ns="IMAGE_STRUCTURE").get("LAYOUT") == "COG" and b.overviews(1) == a.overviews(1)
+        if compress == "jpeg" and bands == 3:
+            assert b.tags(ns="IMAGE_STRUCTURE").get("SOURCE_COLOR_SPACE") == "YCbCr"
+        np.testing.assert_array_equal(a.dataset_mask(), b.dataset_mask())
+        ok = a.dataset_mask() > 0
+        diff = np.abs(a.read().astype(int) - b.read().astype(int))[:, ok]
+        assert np.mean(diff) < 2.0 and np.percentile(diff, 99) <= 12, (np.mean(diff), np.percentile(diff, 99))
+    with pytest.raises(ParamError, match="quality"):
+        mosaic(u8, tmp_path / "x.tif", compress="deflate", quality=80, **kw)
+    with pytest.raises(ParamError, match="compress_level"):
+        mosaic(u8, tmp_path / "x.tif", compress=compress, compress_level=3, **kw)
+    with pytest.raises(ParamError, match="uint8"):
+        mosaic(images, tmp_path / "x.tif", compress=compress, **kw)  # float32 images
+    assert not (tmp_path / "x.tif").exists()

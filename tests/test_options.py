@@ -44,11 +44,11 @@ def test_the_cli_offers_the_library_s_choices(command, option, kind):
     assert _choices(command, option) == values(kind)
 
 
-def test_the_mosaic_offers_its_lossless_compressions():
+def test_the_mosaic_offers_its_compressions():
     """orthowarp mosaic --compress: the library's mosaic compressions, a subset of Compress."""
     from orthowarp.pipeline.mosaic import MOSAIC_COMPRESS
 
-    assert _choices("mosaic", "--compress") == MOSAIC_COMPRESS == ("deflate", "zstd")
+    assert _choices("mosaic", "--compress") == MOSAIC_COMPRESS == ("deflate", "zstd", "jpeg", "webp")
     assert set(MOSAIC_COMPRESS) <= set(values(Compress))
 
 

@@ -19,17 +19,9 @@ MOSAIC_GPU_PROCESSES = 4
 
 
 @click.command()
-@click.argument("images", nargs=-1, type=click.Path())
+@click.argument("images", nargs=-1, type=click.Path(dir_okay=False))
 @options.orientation
 @options.odm_dataset
-@options.exif_options
-@click.option("--adjust", "adjust_chain", is_flag=True,
-              help="With --exif: first refine the tags' orientation: tie points by matching, then a bundle "
-                   "adjustment with the GPS positions and gimbal angles as observations and the camera "
-                   "self-calibrated (f, k1, k2); each step's files and report in --adjust-dir.")
-@click.option("--adjust-dir", type=click.Path(file_okay=False), default=None,
-              help="Folder of --adjust's files (block.json, exterior.csv, cameras.yaml, pose_cov.json, report.md, "
-                   "chain.json); default: <mosaic>_adjust beside the mosaic.")
 @click.option("--scene", "scenes", nargs=2, multiple=True,
               type=(click.Path(dir_okay=False), click.Path(dir_okay=False)),
               metavar="IMAGE DIMAP", help="A pushbroom scene: its image and its SPOT level-1A DIMAP metadata "
@@ -64,6 +56,7 @@ MOSAIC_GPU_PROCESSES = 4
               help="Balancing keeps this image's radiometry (its position in IMAGES, from 0); default: the mean.")
 @options.mosaic_compress
 @options.compress_level
+@options.quality
 @options.block_codec
 @options.accuracy_options
 @options.creation
@@ -95,11 +88,6 @@ def mosaic(ctx: click.Context, images: tuple[str, ...], **kwargs: Any) -> None:
     from ..pipeline.raster.io import outputs_together
 
     o = SimpleNamespace(**kwargs)
-    from .exif import check_exif_options
-
-    check_exif_options(images, o)
-    if o.adjust_chain and not o.exif:
-        raise ParamError("--adjust refines the orientation read with --exif: give --exif too")
     if o.odm_dataset is not None:
         images, o.int_param, o.ext_param, o.dem = odm_dataset(o.odm_dataset, images=images, int_param=o.int_param,
                                                               ext_param=o.ext_param, dem=o.dem, height=o.height)
@@ -107,15 +95,15 @@ def mosaic(ctx: click.Context, images: tuple[str, ...], **kwargs: Any) -> None:
         raise ParamError("Give exactly one of --dem FILE and --height METRES")
     if not images and not o.scenes:
         raise ParamError("Give frame IMAGES (with --ext-param) or pushbroom scenes (--scene IMAGE DIMAP)")
-    if images and not o.ext_param and not o.exif:
-        raise ParamError("Frame IMAGES need --ext-param (their exterior orientation), or --exif (from their tags)")
+    if images and not o.ext_param:
+        raise ParamError("Frame IMAGES need --ext-param (their exterior orientation)")
     compress, compress_level, quality, creation_options = options.creation_args(o.creation, o.compress,
-                                                                                o.compress_level, None)
-    if compress not in options.MOSAIC_COMPRESS or quality is not None:
-        raise ParamError("the mosaic is written with deflate or zstd: -co COMPRESS takes DEFLATE or ZSTD, and "
-                         "QUALITY does not apply")
+                                                                                o.compress_level, o.quality)
+    if compress not in options.MOSAIC_COMPRESS:
+        raise ParamError(f"the mosaic is written with {', '.join(options.MOSAIC_COMPRESS)}: -co COMPRESS takes "
+                         f"{', '.join(c.upper() for c in options.MOSAIC_COMPRESS)}")
     sigmas = _accuracy_sigmas(o) if o.accuracy else None
-    jobs = _jobs(images, o, quiet=ctx.obj["quiet"])
+    jobs = _jobs(images, o)
     if o.accuracy:  # every frame's pose takes that many sigmas, before anything is written
         from ..adjust.precision import pose_inputs
 
@@ -123,8 +111,6 @@ def mosaic(ctx: click.Context, images: tuple[str, ...], **kwargs: Any) -> None:
             if not sensor.line_timed:
                 pose_inputs(sensor.pose, len(sigmas[0]))
     terrain = Dem.from_file(o.dem) if o.dem is not None else o.height
-    if o.adjust_chain:
-        jobs = _adjusted(jobs, terrain, o, quiet=ctx.obj["quiet"])
     processes = o.processes
     if processes is None:  # a GPU mosaic is bound by the host work per tile: several processes feed it
         from .._device import resolve_device
@@ -135,7 +121,7 @@ def mosaic(ctx: click.Context, images: tuple[str, ...], **kwargs: Any) -> None:
                         refraction=not o.no_refraction, dtype=o.dtype, index=o.index_path, seamlines=o.seamlines_path,
                         seamlines_lonlat=o.seamlines_lonlat, seams=o.seams, seam_width=o.seam_width, blend=o.blend, feather=o.feather,
                         balance=not o.no_balance, reference=o.reference, occlusion=not o.no_occlusion,
-                        compress=compress, compress_level=compress_level, block_codec=o.block_codec,
+                        compress=compress, compress_level=compress_level, quality=quality, block_codec=o.block_codec,
                         creation_options=creation_options,
                         overwrite=o.overwrite, device=o.device, geoid=o.geoid,
                         same_vertical_datum=o.same_vertical_datum, workers=o.workers, processes=processes,
@@ -172,18 +158,12 @@ def _accuracy_sigmas(o: SimpleNamespace) -> tuple[list[float], list[float]]:
     return frame, scene
 
 
-def _jobs(images: tuple[str, ...] | list[str], o: SimpleNamespace, *, quiet: bool = True) -> list[tuple[str, Any]]:
-    """(image, sensor) of the frame IMAGES (from their tags with --exif), then of the --scene
-    scenes."""
+def _jobs(images: tuple[str, ...] | list[str], o: SimpleNamespace) -> list[tuple[str, Any]]:
+    """(image, sensor) of the frame IMAGES, then of the --scene scenes."""
     from ..errors import RasterIOError
     from ..pipeline.formats.sensors import frame_sensors
 
-    if o.exif:
-        from .exif import exif_jobs
-
-        jobs = exif_jobs(images, o, quiet=quiet).sensors
-    else:
-        jobs = frame_sensors(images, o.int_param, o.ext_param, crs=o.crs) if images else []
+    jobs = frame_sensors(images, o.int_param, o.ext_param, crs=o.crs) if images else []
     if o.scenes:
         from ..pipeline.formats.dimap import read_scene
 
@@ -209,26 +189,3 @@ def _report_profile(r: Any, images: int, *, show: bool, path: str | None) -> Non
                               output_pixels=int(r.shape[0]) * int(r.shape[1]),
                               shape=list(r.shape), resolution=r.resolution, image_builds=r.image_builds,
                               images_held_peak=r.images_held_peak, images=images))
-
-
-def _adjusted(jobs: list[tuple[str, Any]], terrain: Any, o: SimpleNamespace, *, quiet: bool) -> list[tuple[str, Any]]:
-    """``--adjust``: the frames' orientation refined by the chain
-    (:func:`~orthowarp.pipeline.drone.adjust_exif`), its files in --adjust-dir; the scenes as
-    they are."""
-    from ..pipeline.drone import adjust_exif
-    from ..pipeline.raster.io import check_destination
-
-    folder = o.adjust_dir or os.path.splitext(o.out_path)[0] + "_adjust"
-    for name in ("block.json", "exterior.csv", "cameras.yaml", "pose_cov.json", "report.md", "chain.json"):
-        check_destination(os.path.join(folder, name), overwrite=o.overwrite)
-    frames = [(img, s) for img, s in jobs if not s.line_timed]
-    chain = adjust_exif(frames, terrain, folder, device=o.device, refraction=not o.no_refraction)
-    if not quiet:
-        a, m = chain.report["adjust"], chain.report["match"]
-        cams = ", ".join(f"f {c['focal_px_before']:.1f} -> {c['focal_px_after']:.1f} px" for c in a["cameras"].values())
-        click.echo(f"adjust: {m['ties']} tie points, {m['observations']} observations; sigma0 {a['sigma0']:.3f}; {cams}; "
-                   f"positions moved {a['position_change_m']['rms']:.2f} m RMS, attitudes "
-                   f"{a['attitude_change_deg']['rms']:.2f} deg RMS; tie points' median height "
-                   f"{a['tie_height_m']['median']:.2f} m; files in {folder}", err=True)
-    adjusted = dict(chain.sensors)
-    return [(img, adjusted.get(img, s)) for img, s in jobs]

@@ -25,7 +25,7 @@ SCENE_SIGMA = "10,10,5,0.001,0.001,0.001,0.001,0.001"  # --scene-sigma's default
 RESAMPLING = values(Resampling)
 BLOCK_CODECS = values(BlockCodec)
 COMPRESS = values(Compress)
-MOSAIC_COMPRESS = ("deflate", "zstd")  # (pipeline.mosaic.MOSAIC_COMPRESS, without importing the pipeline)
+MOSAIC_COMPRESS = ("deflate", "zstd", "jpeg", "webp")  # (pipeline.mosaic.MOSAIC_COMPRESS, without importing it)
 
 
 def compose(*decorators: Callable[[F], F]) -> Callable[[F], F]:
@@ -107,8 +107,9 @@ quality = click.option("--quality", type=click.IntRange(1, 100), default=None,
                        help="JPEG / WebP quality 1-100 (default 90; orthority's JPEG default is 75).")
 mosaic_compress = click.option("--compress", type=click.Choice(MOSAIC_COMPRESS), default="deflate",
                                show_default=True,
-                               help="Lossless compression of the mosaic and its --index, with the TIFF predictor "
-                                    "for integer data.")
+                               help="Compression of the mosaic: lossless (deflate, zstd; with the TIFF predictor "
+                                    "for integer data; its --index the same) or lossy for uint8 mosaics (jpeg, webp; "
+                                    "see --quality; the --index deflate).")
 compress_level = click.option("--compress-level", type=int, default=None,
                               help="Deflate level 1-12 (default 6), or zstd level 1-22 (default 9).")
 block_codec = click.option("--block-codec", type=click.Choice(BLOCK_CODECS), default="auto", show_default=True,

@@ -48,7 +48,8 @@ from ..._validate import flag, integer
 from ...errors import ParamError
 from ...options import BlockCodec, Compress, choice
 from ..dem import Dem
-from ..ortho.sink import check_block_codec, compress_level as level_of, parse_creation_options
+from ..ortho.sink import DEFAULT_QUALITY, LOSSY, check_block_codec, compress_level as level_of, parse_creation_options
+from ..ortho.tiles import source_facts
 from ..raster.cog import LEVELS
 from ..raster.io import check_cancel
 from ..tiles import Tile
@@ -66,8 +67,9 @@ from .workers import ProcessTiles, TileDealer, tile_runs
 
 __all__ = ["mosaic", "mosaic_plan", "MosaicPlan", "MosaicResult", "NO_SOURCE", "MOSAIC_COMPRESS"]
 
-#: A mosaic's (and its index's) compressions: lossless, streamed by orthowarp's COG writer.
-MOSAIC_COMPRESS = ("deflate", "zstd")
+#: A mosaic's compressions: lossless, streamed by orthowarp's COG writer, or lossy for uint8
+#: mosaics (streamed as deflate, then compressed by GDAL's COG driver; the index stays lossless).
+MOSAIC_COMPRESS = ("deflate", "zstd", "jpeg", "webp")
 
 @quiet_warp()
 def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | os.PathLike | float,
@@ -77,6 +79,7 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
            seam_width: float = 256,
            blend: str = "feather", feather: float = 32, balance: bool = True, reference: int | None = None,
            occlusion: bool = True, compress: str = "deflate", compress_level: int | None = None,
+           quality: int | None = None,
            block_codec: str = "auto",
            creation_options: dict | None = None, tile_size: int | None = None, overwrite: bool = False, device: str | None = None,
            workers: int | None = None, processes: int | None = None, geoid: str | os.PathLike | None = None,
@@ -150,11 +153,16 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
         backward method; with ``occlusion`` each of their pixels' visibility is tested (its
         source pixel geolocated forward must come back to its ground point) and hidden ground
         is left to another image in the same way.
-    compress : {"deflate", "zstd"}, optional
-        The compression of the mosaic and of its index (default deflate), with predictor 2
-        for integer data.
+    compress : {"deflate", "zstd", "jpeg", "webp"}, optional
+        The compression of the mosaic (default deflate), with predictor 2 for integer data;
+        jpeg (1 or 3 bands; 3 as YCbCr) and webp (3 or 4 bands) for uint8 mosaics, their
+        tiles streamed as deflate and then compressed by GDAL's COG driver (the overviews as
+        orthowarp reduced them). The index takes the mosaic's lossless compression, deflate
+        for a lossy mosaic.
     compress_level : int, optional
         Deflate level 1-12 (default 6), or zstd level 1-22 (default 9).
+    quality : int, optional
+        JPEG / WebP quality 1-100 (default 90).
     creation_options : dict, optional
         BLOCKSIZE, BIGTIFF, NUM_THREADS of the mosaic and index files (as for
         :func:`~orthowarp.pipeline.ortho.orthorectify`).
@@ -200,14 +208,16 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
     if not isinstance(compress, str) or compress not in MOSAIC_COMPRESS:
         raise ParamError(f"compress must be one of {', '.join(MOSAIC_COMPRESS)}; got {compress!r}")
     compress = Compress(compress).value
+    stream = "deflate" if compress in LOSSY else compress  # what the tiles stream as
+    quality = _check_lossy(images, compress, dtype, compress_level, quality)
     block_codec = choice("block_codec", block_codec, BlockCodec).value
-    check_block_codec(block_codec, compress)
+    check_block_codec(block_codec, stream)
     parse_creation_options(creation_options)  # checked before any work
     if tile_size is not None and integer("tile_size", tile_size, low=16) % 16:
         raise ParamError(f"tile_size must be a positive multiple of 16, got {tile_size}")
     if processes is not None and (not isinstance(processes, (int, np.integer)) or processes < 1):
         raise ParamError(f"processes must be a positive number of processes, got {processes!r}")
-    compress_level = integer("compress_level", compress_level, low=1, high=LEVELS[compress][1], none=True)
+    compress_level = integer("compress_level", compress_level, low=1, high=LEVELS[stream][1], none=True)
     workers = integer("workers", workers, low=1, none=True)
     flag("overwrite", overwrite)
     flag("seamlines_lonlat", seamlines_lonlat)
@@ -223,6 +233,7 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
                            reference=reference, occlusion=occlusion, device=device, geoid=geoid,
                            same_vertical_datum=same_vertical_datum, cancel=cancel, _outputs=outputs)
         out = _WriteSettings(index=index, seamlines=seamlines, seamlines_lonlat=seamlines_lonlat, compress=compress, compress_level=compress_level,
+                             quality=quality,
                              block_codec=block_codec,
                              creation_options=creation_options, tile_size=tile_size, overwrite=overwrite,
                              workers=workers)
@@ -230,6 +241,30 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
     finally:
         if procs is not None:
             procs.close()
+
+
+def _check_lossy(images: list[tuple], compress: str, dtype: str | None, level: int | None,
+                 quality: int | None) -> int | None:
+    """The quality of a lossy mosaic (default :data:`DEFAULT_QUALITY`; None for a lossless
+    one), checked with the compression's other settings against the first image's bands and
+    data type (all images share them)."""
+    if compress not in LOSSY:
+        if quality is not None:
+            raise ParamError(f"quality applies to jpeg and webp compression, not {compress!r}")
+        return None
+    if level is not None:
+        raise ParamError(f"compress_level applies to deflate (1-12) and zstd (1-22), not {compress!r}")
+    if quality is not None and not (isinstance(quality, (int, np.integer)) and 1 <= int(quality) <= 100):
+        raise ParamError(f"quality must be an integer 1-100, got {quality!r}")
+    src, sensor = images[0]
+    count, src_dtype, _ = source_facts(os.fspath(src), tuple(sensor.image_size), sensor.noun)
+    if (dtype or src_dtype) != "uint8":
+        raise ParamError(f"{compress} compression needs a uint8 mosaic; the images are {src_dtype} (see dtype)")
+    if compress == "jpeg" and count not in (1, 3):
+        raise ParamError(f"jpeg compression takes 1 or 3 bands; '{src}' has {count}")
+    if compress == "webp" and count not in (3, 4):
+        raise ParamError(f"webp compression takes 3 or 4 bands; '{src}' has {count}")
+    return int(quality) if quality is not None else DEFAULT_QUALITY
 
 
 @dataclass(frozen=True)
@@ -241,6 +276,7 @@ class _WriteSettings:
     seamlines_lonlat: bool
     compress: str
     compress_level: int | None
+    quality: int | None
     block_codec: str
     creation_options: dict | None
     tile_size: int | None
@@ -253,7 +289,9 @@ def _write_mosaic(plan: MosaicPlan, procs: ProcessTiles | None, dst: str, on: wp
     """:func:`mosaic`'s tiles, on a thread pool of this process or, with ``procs`` (a started
     :class:`~orthowarp.pipeline.mosaic.workers.ProcessTiles`), on worker processes, written."""
     t0 = time.perf_counter()
-    codec = mosaic_block_codec(out.block_codec, on, level_of(out.compress, out.compress_level), out.compress)
+    stream = "deflate" if out.compress in LOSSY else out.compress
+    level = 1 if out.compress in LOSSY else level_of(out.compress, out.compress_level)  # (a lossy mosaic's intermediate)
+    codec = mosaic_block_codec(out.block_codec, on, level, stream)
     size = int(out.tile_size) if out.tile_size is not None else default_tile_size(on)
     tiles = plan.tiles(size)
     host_source = out.index is not None or out.seamlines is not None  # else the pixels per image counted there
@@ -263,6 +301,7 @@ def _write_mosaic(plan: MosaicPlan, procs: ProcessTiles | None, dst: str, on: wp
         results = _process_results(plan, procs, tiles, size, codec, on, host_source, cancel, dst)
     try:
         return plan.write(dst, results, index=out.index, seamlines=out.seamlines, compress=out.compress,
+                          quality=out.quality,
                           compress_level=out.compress_level, overwrite=out.overwrite, t_start=t0, _block_codec=codec,
                           creation_options=out.creation_options, seamlines_lonlat=out.seamlines_lonlat)
     finally:

@@ -41,11 +41,11 @@ from ...sensor import SensorModel
 from ..dem import Dem, as_dem
 from ..geometry import SensorGeometry
 from ..ortho.grid import output_grid
-from ..ortho.sink import choose_block_codec, device_codecs, parse_creation_options
+from ..ortho.sink import LOSSY, choose_block_codec, device_codecs, finish, parse_creation_options
 from ..ortho.tiles import ImageTiles, WholeSource, source_facts, source_read_dtype
 from ..raster.cog import DTYPES, CogWriter
 from ..raster.device import DeviceCogEncoder
-from ..raster.io import atomic_files, check_cancel, check_destination
+from ..raster.io import GDAL_ERRORS, atomic_files, check_cancel, check_destination, gdal_reason
 from ..reports.profile import StageTimer
 from ..tiles import Tile
 from .balance import Coarse, radiometric_balance
@@ -370,13 +370,16 @@ class MosaicPlan(TileBlending):
               index: str | os.PathLike | None = None, seamlines: str | os.PathLike | None = None,
               compress: str = "deflate", compress_level: int | None = None, overwrite: bool = False,
               t_start: float | None = None, _block_codec: str = "host",
-              creation_options: dict | None = None, seamlines_lonlat: bool = False) -> MosaicResult:
+              creation_options: dict | None = None, seamlines_lonlat: bool = False,
+              quality: int | None = None) -> MosaicResult:
         """Write the mosaic from tile results, in any order: ``results`` yields
         ((r0, c0, rows, cols), (block, valid, source)) for every tile of the grid (e.g. from
         :meth:`tile` on a thread pool or a distributed engine). The outputs (mosaic, optional
         index COG and seamlines GeoJSON) are published together when all tiles are in; the
         mosaic and its index are ``compress`` COGs ("deflate" or "zstd", at ``compress_level``:
-        default 6 or 9); the seamlines in the mosaic's CRS, or in longitude/latitude with
+        default 6 or 9; "jpeg" or "webp" at ``quality`` for the mosaic alone, its tiles
+        streamed into an intermediate deflate COG whose pixels and overviews GDAL's COG
+        driver then compresses, the index deflate); the seamlines in the mosaic's CRS, or in longitude/latitude with
         ``seamlines_lonlat``, naming the images by their paths relative to the mosaic's
         folder. (Internally, with a ``_block_codec`` other than "host", the tiles' pixels go to
         the mosaic's file through ``self._encoder`` on the device and ``block`` is None.)
@@ -385,9 +388,12 @@ class MosaicPlan(TileBlending):
         -------
         MosaicResult
         """
-        if compress not in ("deflate", "zstd"):
-            raise ParamError(f"compress must be one of deflate, zstd; got {compress!r}")
+        if compress not in ("deflate", "zstd", *LOSSY):
+            raise ParamError(f"compress must be one of deflate, zstd, {', '.join(LOSSY)}; got {compress!r}")
         compress = str(compress)  # (an option's member: its plain value)
+        lossy = compress in LOSSY
+        if lossy and self.dtype != "uint8":
+            raise ParamError(f"{compress} compression needs a uint8 mosaic, not {self.dtype}")
         dst = os.fspath(dst)
         outputs = output_paths(dst, index, seamlines, overwrite)
         rows, cols = self.shape
@@ -399,10 +405,12 @@ class MosaicPlan(TileBlending):
         t_start = time.perf_counter() if t_start is None else t_start
         with rasterio.Env(GDAL_CACHEMAX=256), atomic_files(outputs, overwrite=overwrite) as tmps:
             co = parse_creation_options(creation_options)
-            kw = dict(compress=compress, level=compress_level, block_size=co["block"], bigtiff=co["bigtiff"],
-                      threads=co["threads"])
-            writers = [CogWriter(tmps[0], width=cols, height=rows, count=self.count, dtype=self.dtype, crs=rio_crs,
-                                 transform=self.transform, name=dst, **kw)]
+            kw = dict(compress="deflate" if lossy else compress, level=None if lossy else compress_level,
+                      block_size=co["block"], bigtiff=co["bigtiff"], threads=co["threads"])
+            # a lossy mosaic: an intermediate of deflate level 1 beside the temporary, then GDAL's COG
+            work = tmps[0] + ".work.tif" if lossy else tmps[0]
+            writers = [CogWriter(work, width=cols, height=rows, count=self.count, dtype=self.dtype, crs=rio_crs,
+                                 transform=self.transform, name=dst, **(dict(kw, level=1) if lossy else kw))]
             if index is not None:
                 # the index: NO_SOURCE as its nodata (distinct from image 0 for readers that
                 # ignore masks), overviews taking an image's number, never a mean of numbers
@@ -412,7 +420,8 @@ class MosaicPlan(TileBlending):
             encoder = None
             try:
                 if _block_codec != "host":
-                    codecs = device_codecs(_block_codec, compress_level, self.warp_device, compress)
+                    codecs = device_codecs(_block_codec, 1 if lossy else compress_level, self.warp_device,
+                                           "deflate" if lossy else compress)
                     encoder = self._encoder = DeviceCogEncoder(writers[0], self.warp_device, codecs)
                 for (r0, c0, th, tw), (block, valid, source) in results:
                     if block is not None:
@@ -432,6 +441,12 @@ class MosaicPlan(TileBlending):
                 used += self._counted_sources()
                 for w in writers:
                     w.close()
+                if lossy:
+                    try:
+                        finish(work, tmps[0], "COG", compress, True, self.dtype, quality=quality, co=co,
+                               overviews_built=True)
+                    except GDAL_ERRORS as e:
+                        raise RasterIOError(f"Could not write '{dst}': {gdal_reason(e)}") from e
                 if seamlines is not None:
                     here = os.path.dirname(os.path.abspath(dst))
                     _write_seamlines(tmps[-1], coarse_index, self.transform @ Affine.scale(step), self.crs,
@@ -442,6 +457,8 @@ class MosaicPlan(TileBlending):
                     w.abort()
                 raise
             finally:
+                if lossy and os.path.exists(work):
+                    os.remove(work)
                 if encoder is not None:
                     encoder.close()
                     self._encoder = None

@@ -476,7 +476,7 @@ def open_sink(path: str, profile: dict[str, Any], cog: dict[str, Any] | None, fi
 
 
 def finish(work: str, final: str, driver: str, compress: str, overviews: bool, dtype: str, level: int | None = None,
-           quality: int | None = None, co: dict[str, Any] | None = None) -> None:
+           quality: int | None = None, co: dict[str, Any] | None = None, *, overviews_built: bool = False) -> None:
     """Finish a GDAL-written output: its overviews, then (for COG) a copy in the
     cloud-optimized layout.
 
@@ -497,8 +497,11 @@ def finish(work: str, final: str, driver: str, compress: str, overviews: bool, d
         Compression level; JPEG / WebP quality.
     co : dict, optional
         Parsed creation options (:func:`parse_creation_options`).
+    overviews_built : bool, optional
+        ``work`` already has its overviews (e.g. written by
+        :class:`~orthowarp.pipeline.raster.cog.CogWriter`): the COG takes them as they are.
     """
-    if driver == "COG" or overviews:
+    if (driver == "COG" or overviews) and not overviews_built:
         with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True, GDAL_CACHEMAX=256), rasterio.open(work, "r+") as ds:
             factors = [2 ** (k + 1) for k in range(overview_count(ds.width, ds.height))]
             if factors:
