@@ -1264,11 +1264,10 @@ def test_an_image_is_dropped_after_its_last_tile_unless_dealt_again():
     assert 5 not in st["images"] and closed == [6, 5]
 
 
-@pytest.mark.parametrize("compress,bands", [("jpeg", 1), ("jpeg", 3), ("webp", 3)])
-def test_lossy_mosaics_decode_near_the_lossless_one(pair, tmp_path, compress, bands):
-    """A uint8 mosaic with jpeg or webp: a COG of that compression (YCbCr for 3-band JPEG),
-    its mask and overviews those of the deflate mosaic, its pixels within the quality's reach;
-    the index stays lossless; bad settings refused before any work."""
+def test_lossy_mosaics_decode_near_the_lossless_one(pair, tmp_path):
+    """A uint8 RGB mosaic with jpeg or webp: a COG of that compression (YCbCr for JPEG), its
+    mask and overviews those of the deflate mosaic, its pixels within the quality's reach; the
+    index stays lossless; bad settings refused before any work."""
     sc, images, _, folder = pair
     u8 = []
     for k, (src, sensor) in enumerate(images):
@@ -1278,28 +1277,29 @@ def test_lossy_mosaics_decode_near_the_lossless_one(pair, tmp_path, compress, ba
         path = tmp_path / f"u8_{k}.tif"
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
-            with rasterio.open(path, "w", driver="GTiff", width=data.shape[1], height=data.shape[0], count=bands,
+            with rasterio.open(path, "w", driver="GTiff", width=data.shape[1], height=data.shape[0], count=3,
                                dtype="uint8") as dst:
-                dst.write(np.repeat(data[None], bands, axis=0))
+                dst.write(np.stack([data, data // 2 + 60, 255 - data]))
         u8.append((path, sensor))
-    kw = dict(dem=sc.dem, refraction=False, device="cpu", tile_size=128)
+    kw = dict(dem=sc.dem, refraction=False, device="cpu", tile_size=128, seams="nadir")
     ref = mosaic(u8, tmp_path / "deflate.tif", **kw)
-    res = mosaic(u8, tmp_path / "lossy.tif", compress=compress, quality=95, index=tmp_path / "index.tif", **kw)
-    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(("lossy", "index"))) == \
-        ["index.tif", "lossy.tif"]  # no intermediate left
-    with rasterio.open(ref.path) as a, rasterio.open(res.path) as b, rasterio.open(tmp_path / "index.tif") as i:
-        assert b.profile["compress"].lower() == compress and i.profile["compress"].lower() == "deflate"
-        assert b.tags(ns="IMAGE_STRUCTURE").get("LAYOUT") == "COG" and b.overviews(1) == a.overviews(1)
-        if compress == "jpeg" and bands == 3:
-            assert b.tags(ns="IMAGE_STRUCTURE").get("SOURCE_COLOR_SPACE") == "YCbCr"
-        np.testing.assert_array_equal(a.dataset_mask(), b.dataset_mask())
-        ok = a.dataset_mask() > 0
-        diff = np.abs(a.read().astype(int) - b.read().astype(int))[:, ok]
-        assert np.mean(diff) < 2.0 and np.percentile(diff, 99) <= 12, (np.mean(diff), np.percentile(diff, 99))
+    for compress in ("jpeg", "webp"):
+        res = mosaic(u8, tmp_path / f"{compress}.tif", compress=compress, quality=95,
+                     index=tmp_path / f"{compress}_index.tif", **kw)
+        assert not [p for p in tmp_path.iterdir() if "work" in p.name or "orthowarp-tmp" in p.name]  # none left
+        with rasterio.open(ref.path) as a, rasterio.open(res.path) as b, rasterio.open(res.index) as i:
+            assert b.profile["compress"].lower() == compress and i.profile["compress"].lower() == "deflate"
+            assert b.tags(ns="IMAGE_STRUCTURE").get("LAYOUT") == "COG" and b.overviews(1) == a.overviews(1)
+            if compress == "jpeg":
+                assert b.tags(ns="IMAGE_STRUCTURE").get("SOURCE_COLOR_SPACE") == "YCbCr"
+            np.testing.assert_array_equal(a.dataset_mask(), b.dataset_mask())
+            ok = a.dataset_mask() > 0
+            diff = np.abs(a.read().astype(int) - b.read().astype(int))[:, ok]
+            assert np.mean(diff) < 2.0 and np.percentile(diff, 99) <= 12, (np.mean(diff), np.percentile(diff, 99))
     with pytest.raises(ParamError, match="quality"):
         mosaic(u8, tmp_path / "x.tif", compress="deflate", quality=80, **kw)
     with pytest.raises(ParamError, match="compress_level"):
-        mosaic(u8, tmp_path / "x.tif", compress=compress, compress_level=3, **kw)
+        mosaic(u8, tmp_path / "x.tif", compress="jpeg", compress_level=3, **kw)
     with pytest.raises(ParamError, match="uint8"):
-        mosaic(images, tmp_path / "x.tif", compress=compress, **kw)  # float32 images
+        mosaic(images, tmp_path / "x.tif", compress="webp", **kw)  # float32 images
     assert not (tmp_path / "x.tif").exists()
