@@ -205,3 +205,32 @@ def test_the_corridor_graph_is_the_pixel_pair_graph():
         np.testing.assert_array_equal(got.indices, want.indices)
         np.testing.assert_array_equal(got.data, want.data)
         np.testing.assert_array_equal(got_node, node)
+
+
+@pytest.mark.parametrize("name", ["opk", "ins"])
+def test_line_of_sight_angles_are_the_projection_centres(name):
+    """The off-nadir angle from a sensor's line of sight (the null direction of its projection's
+    Jacobian: what a sensor without a projection centre, such as an RPC image, gets) equals the
+    angle of the ray to the camera centre, for a map-Cartesian and a geocentric pose."""
+    from affine import Affine
+    from pyproj import Transformer
+    from test_ortho import scene
+
+    from orthowarp.pipeline.geometry import SensorGeometry
+    from orthowarp.pipeline.mosaic.seams import _node_angles, _sight_angles
+    from orthowarp.pipeline.ortho import output_grid
+    from orthowarp.pipeline.ortho.tiles import coarse_grid
+    from orthowarp.pipeline.tiles import Tile
+    from orthowarp.sensor import FrameSensor
+
+    sc = scene(name)
+    geom = SensorGeometry(FrameSensor(sc.camera, sc.pose), sc.dem, device="cpu", refraction=False)
+    crs, transform, (rows, cols), _ = output_grid(geom)
+    to_frame = Transformer.from_crs(crs, geom.horizontal_crs, always_xy=True)
+    tile = Tile(0, 0, min(rows, 160), min(cols, 160))
+    centre = _node_angles(geom, transform, to_frame, tile)
+    uv = coarse_grid(transform, to_frame, *tile)
+    sight = _sight_angles(geom, uv[..., 0], uv[..., 1], geom.dem.sample(uv[..., 0], uv[..., 1]))
+    ok = np.isfinite(centre)
+    assert ok.mean() > 0.5 and np.array_equal(ok, np.isfinite(sight))
+    np.testing.assert_allclose(sight[ok], centre[ok], atol=2e-5)  # radians

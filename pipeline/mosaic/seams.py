@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ...errors import GeometryError
-from ...geodesy import geodetic_to_ecef, geodetic_up
+from ...geodesy import ecef_to_geodetic, geodetic_to_ecef, geodetic_up
 from ..ortho.tiles import COARSE_STEP, coarse_grid
 from ..raster.io import check_cancel
 from ..tiles import Tile
@@ -63,10 +63,14 @@ def _node_angles(geom: SensorGeometry, transform: Affine, to_frame: Transformer,
     see :func:`~orthowarp.pipeline.ortho.tiles.coarse_grid`), the off-nadir angle (radians) under
     which the image of ``geom`` sees the node's ground point: from the camera centre, or a
     pushbroom scene's satellite position at the line that images the point, to the point on
-    the DEM (NaN where the DEM has no height or the sensor does not see the point)."""
+    the DEM (NaN where the DEM has no height or the sensor does not see the point); for a
+    sensor without a projection centre (an RPC image), from its line of sight
+    (:func:`_sight_angles`)."""
     uv = coarse_grid(transform, to_frame, *tile)
     u, v = uv[..., 0], uv[..., 1]
     h = geom.dem.sample(u, v)
+    if not geom.sensor.line_timed and getattr(geom.sensor, "pose", None) is None:
+        return _sight_angles(geom, u, v, h)
     if geom.geocentric:
         ground = geodetic_to_ecef(v, u, h)
         up = geodetic_up(v, u)
@@ -88,6 +92,44 @@ def _node_angles(geom: SensorGeometry, transform: Affine, to_frame: Transformer,
     with np.errstate(invalid="ignore"):
         cos = np.einsum("...i,...i->...", ray, up) / np.linalg.norm(ray, axis=-1)
     return np.arccos(np.clip(cos, -1.0, 1.0))
+
+
+def _sight_angles(geom: SensorGeometry, u: np.ndarray, v: np.ndarray, h: np.ndarray, step: float = 1.0) -> np.ndarray:
+    """The off-nadir angle (radians) of the line of sight through ground points (u, v, h) of
+    the sensor's frame, for any sensor: the direction along which its projection does not
+    change, the cross product of the gradients of the pixel's column and row with respect to
+    the local east, north and up (central differences of ``step`` metres); NaN where the
+    sensor does not see the point."""
+    pts = np.stack([u, v, h], -1).reshape(-1, 3)
+    if geom.geocentric:  # (lon, lat, h): moved in ECEF along the local axes
+        lat, lon = np.radians(pts[:, 1]), np.radians(pts[:, 0])
+        east = np.stack([-np.sin(lon), np.cos(lon), np.zeros_like(lon)], -1)
+        north = np.stack([-np.sin(lat) * np.cos(lon), -np.sin(lat) * np.sin(lon), np.cos(lat)], -1)
+        axes = (east, north, geodetic_up(pts[:, 1], pts[:, 0]))
+        xyz = geodetic_to_ecef(pts[:, 1], pts[:, 0], pts[:, 2])
+
+        def moved(d: np.ndarray) -> np.ndarray:
+            la, lo, hh = ecef_to_geodetic(xyz + d)
+            return np.stack([lo, la, hh], -1)
+    else:  # map-Cartesian: the frame's own axes
+        axes = tuple(np.broadcast_to(e, pts.shape) for e in np.eye(3))
+
+        def moved(d: np.ndarray) -> np.ndarray:
+            return pts + d
+
+    ok = np.isfinite(pts).all(axis=1)
+    grads = []
+    with np.errstate(invalid="ignore"):
+        for e in axes:
+            plus, minus = np.full((len(pts), 2), np.nan), np.full((len(pts), 2), np.nan)
+            if ok.any():
+                plus[ok] = geom.project_frame(moved(step * e)[ok])
+                minus[ok] = geom.project_frame(moved(-step * e)[ok])
+            grads.append((plus - minus) / (2.0 * step))
+        jac = np.stack(grads, -1)  # (n, 2: col, row, 3: east, north, up)
+        sight = np.cross(jac[:, 0], jac[:, 1])
+        cos = np.abs(sight[:, 2]) / np.linalg.norm(sight, axis=-1)
+    return np.arccos(np.clip(cos, 0.0, 1.0)).reshape(u.shape)
 
 
 def angle_field(geom: SensorGeometry, transform: Affine, to_frame: Transformer, tile: Tile) -> np.ndarray:
