@@ -26,19 +26,35 @@ nominal look angles are linear between detectors, so ``dg/dcol`` is their local 
 is the polynomial basis. Iterated to convergence of ``dx``; ``sigma0^2 = v^T P v / r`` with
 ``r = 2 n - 2 (degree + 1)``.
 
+The result also keeps what a later bundle adjustment needs to carry the pre-adjustment's
+uncertainty (``adjust_scenes(..., preadjustment=result)``): the derivatives of the coefficients
+by every control observation at convergence, ``dx/dl = -N^-1 A^T (B Q B^T)^-1 B`` (the
+linearised Gauss-Helmert solution), so that errors of the control are propagated through both
+steps with their correlations.
+
+**Extrapolation.** The corrections are fitted over the detectors the control spans, and
+evaluated everywhere along the line. Outside that span a polynomial extrapolates: a quadratic
+fitted on one half of the line and read at the far end of the other magnifies its errors (and
+whatever else it absorbed, such as exterior-orientation errors held fixed here) many times
+over. [P1] met this in its layout G-A (control in half of the line: check errors of 25-33 m
+against 5 m elsewhere). Where the line extends beyond the control's span by more than
+``extrapolation_limit`` of its length at either end, the pre-adjustment warns
+(:class:`~orthowarp.errors.OrthowarpWarning`) or, on request, refuses.
+
 Reference: [P1] (SPOT-5 HRG level 1A, look-angle pre-adjustment); W. Foerstner and B.
 Wrobel, Photogrammetric Computer Vision (2016), section 4.8 (Gauss-Helmert model).
 """
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from .. import geodesy
-from ..errors import GeometryError, ParamError
+from ..errors import GeometryError, OrthowarpWarning, ParamError
 from ..pushbroom import PushbroomScene
 from .scene_points import ScenePoints
 
@@ -143,6 +159,20 @@ class LookAngleResult:
         against their measurements (NaN without such points).
     check_rmse_before : dict of str -> ndarray, shape (2,)
         The same with the nominal scene.
+    jacobian : dict of str -> ndarray, shape (2 (degree + 1), n, 5)
+        Derivatives of the coefficients (rad, psi_x's first) by each control point's
+        observations col, row (px) and east, north, up (m), at convergence.
+    control_obs : dict of str -> ndarray of int, shape (n,)
+        The control observations of each scene: indices into the points' observations
+        (``obs_point`` ...), in the order of ``jacobian`` and ``residuals``.
+    control_span : dict of str -> ndarray, shape (2,)
+        The lowest and highest column (px) of the scene's control: the part of the line the
+        corrections are fitted on.
+    outside_fraction : dict of str -> ndarray, shape (2,)
+        Fraction of the detector line before and after ``control_span``, where the corrections
+        are extrapolated.
+    extrapolated : dict of str -> list of str
+        Check and tie points measured in the scene outside ``control_span``.
     """
 
     success: bool
@@ -160,6 +190,11 @@ class LookAngleResult:
     control_rmse: dict = field(default_factory=dict)
     check_rmse: dict = field(default_factory=dict)
     check_rmse_before: dict = field(default_factory=dict)
+    jacobian: dict = field(default_factory=dict)
+    control_obs: dict = field(default_factory=dict)
+    control_span: dict = field(default_factory=dict)
+    outside_fraction: dict = field(default_factory=dict)
+    extrapolated: dict = field(default_factory=dict)
 
     def coefficient_std(self, scene_id: str) -> np.ndarray:
         """Sigmas of a scene's coefficients.
@@ -211,8 +246,12 @@ def check_scenes(scenes: dict[str, PushbroomScene], points: ScenePoints) -> None
     points.validate(sizes={sid: scenes[sid].image_size for sid in points.scene_ids})
 
 
+EXTRAPOLATION = ("warn", "raise", "ignore")
+
+
 def preadjust_look_angles(scenes: dict[str, PushbroomScene], points: ScenePoints, *, degree: int = 2,
-                          max_iterations: int = 20, xtol: float = 1e-13) -> LookAngleResult:
+                          max_iterations: int = 20, xtol: float = 1e-13, extrapolation: str = "warn",
+                          extrapolation_limit: float = 0.2) -> LookAngleResult:
     """Correct the look angles of pushbroom scenes by ground control, EO held fixed ([P1]
     eqs. 19-20; see the module doc).
 
@@ -228,6 +267,13 @@ def preadjust_look_angles(scenes: dict[str, PushbroomScene], points: ScenePoints
     max_iterations : int, optional
     xtol : float, optional
         Convergence: largest coefficient change (rad).
+    extrapolation : {"warn", "raise", "ignore"}, optional
+        What to do where a scene's detector line extends beyond its control's span by more
+        than ``extrapolation_limit`` at either end (see the module doc): warn
+        (:class:`~orthowarp.errors.OrthowarpWarning`), refuse (ParamError), or neither. The
+        span and the points outside it are in the result whatever the choice.
+    extrapolation_limit : float, optional
+        Fraction of the line (0-1).
 
     Returns
     -------
@@ -237,16 +283,27 @@ def preadjust_look_angles(scenes: dict[str, PushbroomScene], points: ScenePoints
     ------
     ParamError
         A scene id without a scene, a point outside its scene, fewer control points in a scene
-        than the polynomials have coefficients per angle (degree + 1), a degree out of range.
+        than the polynomials have coefficients per angle (degree + 1), a degree out of range;
+        with ``extrapolation="raise"``, control that leaves too much of a line uncovered.
+
+    Warns
+    -----
+    OrthowarpWarning
+        With ``extrapolation="warn"``: control that leaves too much of a line uncovered.
     """
     check_scenes(scenes, points)
     if not (isinstance(degree, (int, np.integer)) and 0 <= degree <= 4):
         raise ParamError(f"degree must be an integer 0-4, got {degree!r}")
+    if extrapolation not in EXTRAPOLATION:
+        raise ParamError(f"extrapolation must be one of {EXTRAPOLATION}, got {extrapolation!r}")
+    if not (isinstance(extrapolation_limit, (int, float)) and 0.0 <= extrapolation_limit <= 1.0):
+        raise ParamError(f"extrapolation_limit must be a fraction of the line, 0-1, got {extrapolation_limit!r}")
     q = degree + 1
     control, check = points.role_mask("control"), points.role_mask("check")
     res = LookAngleResult(success=True, message="")
     messages = []
-    for sid in points.scene_ids:
+    uncovered = []
+    for s_k, sid in enumerate(points.scene_ids):
         scene = scenes[sid]
         idx, xy, sig = points.observations_of(sid)
         sel = control[idx]
@@ -259,8 +316,19 @@ def preadjust_look_angles(scenes: dict[str, PushbroomScene], points: ScenePoints
         qll = np.zeros((n, 5))
         qll[:, :2] = csig[:, None] ** 2
         qll[:, 2:] = points.llh_sigma[ci] ** 2
+        lo, hi = float(cxy[:, 0].min()), float(cxy[:, 0].max())
+        out = np.array([lo, scene.width - hi]) / scene.width
+        others = (~control[idx]) & ((xy[:, 0] < lo) | (xy[:, 0] > hi))
+        res.control_span[sid], res.outside_fraction[sid] = np.array([lo, hi]), out
+        res.extrapolated[sid] = [points.point_ids[i] for i in idx[others]]
+        if out.max() > extrapolation_limit:
+            uncovered.append(f"scene '{sid}': the control spans columns {lo:.0f}-{hi:.0f} of {scene.width}, leaving "
+                             f"{100 * out[0]:.0f} % of the detector line before it and {100 * out[1]:.0f} % after it, "
+                             "where the look-angle corrections are extrapolated; "
+                             f"{len(res.extrapolated[sid])} check/tie point(s) lie there")
         try:
-            x, v, normal, status, it = _gauss_helmert(scene, cxy, points.llh[ci], qll, degree, max_iterations, xtol)
+            x, v, normal, status, it, jac = _gauss_helmert(scene, cxy, points.llh[ci], qll, degree, max_iterations,
+                                                           xtol)
         except GeometryError as e:
             raise ParamError(f"{points.name}: scene '{sid}': {e}") from e
         res.status[sid], res.iterations[sid] = status, it
@@ -280,6 +348,7 @@ def preadjust_look_angles(scenes: dict[str, PushbroomScene], points: ScenePoints
         res.coefficients[sid] = x
         res.covariance[sid] = (s0 ** 2 if r > 0 else 1.0) * np.linalg.inv(normal)
         res.residuals[sid] = v
+        res.jacobian[sid], res.control_obs[sid] = jac, np.flatnonzero(points.obs_scene == s_k)[sel]
         res.scenes[sid] = fixed = corrected_scene(scene, x)
         chk = check[idx]
         res.control_ids[sid] = [points.point_ids[i] for i in ci]
@@ -290,20 +359,31 @@ def preadjust_look_angles(scenes: dict[str, PushbroomScene], points: ScenePoints
         if status == 1:
             messages.append(f"scene '{sid}': converged in {it} iterations, sigma0 {s0:.3g}, redundancy {r}")
     res.message = "; ".join(messages)
+    if uncovered and extrapolation != "ignore":
+        text = (f"{points.name}: " + "; ".join(uncovered) + ". Extrapolated look angles can be off by many times "
+                "the pre-adjustment's fit: spread the control over the whole line, or estimate the look angles in "
+                "the bundle (adjust_scenes groups 'look', 'attitude1'); to have the bundle's sigmas carry the "
+                "extrapolation, pass preadjustment= to adjust_scenes")
+        if extrapolation == "raise":
+            raise ParamError(text + f" (extrapolation_limit {extrapolation_limit})")
+        warnings.warn(text, OrthowarpWarning, stacklevel=2)
     return res
 
 
 def _gauss_helmert(scene: PushbroomScene, cxy: np.ndarray, llh: np.ndarray, qll: np.ndarray, degree: int,
-                   max_iterations: int, xtol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int]:
+                   max_iterations: int,
+                   xtol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int, np.ndarray | None]:
     """The pre-adjustment of one scene from its control points measured at ``cxy`` (n, 2; px),
     given at ``llh`` (n, 3; lon, lat deg, h m), with the a priori variances ``qll`` (n, 5) of
     col, row (px^2), east, north, up (m^2). Returns the coefficients (2, degree + 1; rad), the
     residuals v (n, 5), the last normal matrix (2 (degree + 1),) * 2, the status (1 converged,
-    0 iteration limit, -1 singular) and the iterations."""
+    0 iteration limit, -1 singular), the iterations, and the coefficients' derivatives
+    (2 (degree + 1), n, 5) by the observations, ``-N^-1 A^T M B`` of the last linearisation
+    (None when singular)."""
     n, q = len(cxy), degree + 1
     v = np.zeros((n, 5))
     x = np.zeros((2, q))
-    status, it = 0, 0
+    status, it, jac = 0, 0, None
     for it in range(1, max_iterations + 1):  # (max_iterations < 1 leaves ``normal`` unbound, as it always did)
         obs = np.concatenate([cxy, np.zeros((n, 3))], 1) + v
         g = look_angle_conditions(scene, obs, llh, x)
@@ -323,6 +403,7 @@ def _gauss_helmert(scene: PushbroomScene, cxy: np.ndarray, llh: np.ndarray, qll:
         if np.linalg.cond(normal) > 1e14:
             status = -1
             break
+        jac = -np.linalg.solve(normal, np.einsum("nji,njk,nkl->inl", a, m, b).reshape(2 * q, -1)).reshape(2 * q, n, 5)
         dx = -np.linalg.solve(normal, rhs)
         k = -np.einsum("nij,nj->ni", m, np.einsum("nij,j->ni", a, dx) + w)
         v = qll * np.einsum("nji,nj->ni", b, k)
@@ -330,4 +411,4 @@ def _gauss_helmert(scene: PushbroomScene, cxy: np.ndarray, llh: np.ndarray, qll:
         if np.max(np.abs(dx)) < xtol:
             status = 1
             break
-    return x, v, normal, status, it
+    return x, v, normal, status, it, (None if status == -1 else jac)

@@ -27,7 +27,29 @@ groups that the control cannot separate well posed; without it the groups are fr
 seed, and the correlations between freed groups are reported ([P1] explains the failures of
 combined groups by them).
 
-Reference: [P1] (SPOT-5 HRG level 1A stereo, Gauss-Helmert bundle adjustment with EO groups).
+**The two steps' uncertainty.** After [P1]'s pre-adjustment the look angles are held at their
+pre-adjusted values, and the bundle's covariance ``sigma0^2 N^-1`` knows nothing of their
+errors. Where the control spans only part of the detector line, those errors are extrapolated
+and dominate: on a simulated pair with control in one half of the line (layout G-A) the check
+points' errors were 2-6 times the sigmas so reported (docs/paper-p1.md). Given the pre-adjustment
+(``preadjustment=``), the covariance is instead propagated from the observations through both
+steps, first order: the bundle's unknowns are ``x = x(l, c)``, the pre-adjusted coefficients
+``c = c(l)`` come from the same control observations, so
+
+    dx/dl = -N^-1 (R + N_xc D),    C_x = sigma0^2 (dx/dl) Q_l (dx/dl)^T
+
+with ``R = sum A^T (B Q B^T)^-1 B`` (and the priors' weights) the normal equations' derivative
+by the observations l (image col/row, control coordinates, the priors' pseudo-observations),
+``N_xc = sum A^T (B Q B^T)^-1 A_c`` (``A_c``: the conditions' derivatives by the look-angle
+coefficients, ``-sec^2 psi`` times the polynomial basis) and ``D = dc/dl`` the pre-adjustment's
+own (:attr:`LookAngleResult.jacobian <orthowarp.adjust.LookAngleResult>`). Without a
+pre-adjustment this is ``sigma0^2 N^-1`` again. It carries the pre-adjustment's noise, not the
+errors its model makes by holding the exterior orientation: attitude drifts that the
+pre-adjustment folds into the look angles remain a bias (see docs/paper-p1.md).
+
+Reference: [P1] (SPOT-5 HRG level 1A stereo, Gauss-Helmert bundle adjustment with EO groups);
+W. Foerstner and B. Wrobel, Photogrammetric Computer Vision (2016), sections 2.7.6 (propagation
+of covariances) and 4.8 (Gauss-Helmert model).
 """
 
 from __future__ import annotations
@@ -41,7 +63,7 @@ from numpy.typing import ArrayLike
 from .. import geodesy
 from ..errors import GeometryError, ParamError
 from ..pushbroom import PushbroomScene, attitude_matrix
-from .lookangles import _basis, check_scenes, corrected_scene
+from .lookangles import LookAngleResult, _basis, check_scenes, corrected_scene
 from .scene_points import ScenePoints
 
 __all__ = ["EO_GROUPS", "SceneBundleResult", "adjust_scenes", "intersect_scene_points"]
@@ -162,6 +184,10 @@ class SceneBundleResult:
         With the "look" group: the look-angle corrections (rad; see
         :func:`~orthowarp.adjust.lookangles.corrected_scene`, already applied to ``scenes``)
         and their sigmas.
+    look_propagated : bool
+        The covariances (``covariance``, ``coefficient_std``, ``group_correlation``,
+        ``point_cov``) include the uncertainty of a look-angle pre-adjustment (given as
+        ``preadjustment``); False: the look angles were taken as exact, or estimated here.
     """
 
     success: bool
@@ -186,6 +212,7 @@ class SceneBundleResult:
     check_ids: list = field(default_factory=list)
     look_coefficients: dict = field(default_factory=dict)
     look_std: dict = field(default_factory=dict)
+    look_propagated: bool = False
 
 
 def _check_args(scenes: dict[str, PushbroomScene], points: ScenePoints, groups: tuple[str, ...],
@@ -213,9 +240,38 @@ def _check_args(scenes: dict[str, PushbroomScene], points: ScenePoints, groups: 
         raise ParamError(f"look_degree must be an integer 0-4, got {look_degree!r}")
 
 
+def _check_preadjustment(scenes: dict[str, PushbroomScene], points: ScenePoints, groups: tuple[str, ...],
+                         pre: LookAngleResult) -> None:
+    """``preadjustment`` of :func:`adjust_scenes`: a pre-adjustment of these points whose
+    corrected scenes are the ones given; ParamError naming what does not fit."""
+    if not isinstance(pre, LookAngleResult):
+        raise ParamError(f"preadjustment must be the LookAngleResult of preadjust_look_angles, got "
+                         f"{type(pre).__name__}")
+    if "look" in groups:
+        raise ParamError("preadjustment= carries a look-angle pre-adjustment's uncertainty into the bundle, and the "
+                         "'look' group estimates the look angles in the bundle itself: give one or the other")
+    for sid in points.scene_ids:
+        if sid not in pre.jacobian or sid not in pre.scenes:
+            raise ParamError(f"preadjustment holds no look-angle correction of scene '{sid}' (its scenes: "
+                             f"{sorted(pre.coefficients)}; a pre-adjustment that failed for it, or one made before "
+                             "the correction's derivatives were kept)")
+        a, b = scenes[sid], pre.scenes[sid]
+        if not (np.array_equal(a.psi_x, b.psi_x) and np.array_equal(a.psi_y, b.psi_y)):
+            raise ParamError(f"scene '{sid}' does not have the pre-adjustment's corrected look angles: pass "
+                             "preadjustment.scenes as the scenes")
+        obs, s_k = np.asarray(pre.control_obs[sid]), points.scene_ids.index(sid)
+        mine = np.flatnonzero((points.obs_scene == s_k) & points.role_mask("control")[points.obs_point])
+        if not (np.array_equal(obs, mine)
+                and [points.point_ids[points.obs_point[k]] for k in obs] == pre.control_ids[sid]
+                and np.array_equal(pre.control_span[sid], [points.obs_xy[obs, 0].min(), points.obs_xy[obs, 0].max()])):
+            raise ParamError(f"preadjustment was made from other points than '{points.name}' (scene '{sid}''s control "
+                             "observations differ)")
+
+
 def adjust_scenes(scenes: dict[str, PushbroomScene], points: ScenePoints, *,
                   groups: Sequence[str] = ("attitude0",), eo_sigma: dict[str, float] | None = None,
-                  look_degree: int = 2, max_iterations: int = 20, xtol: float = 1e-5) -> SceneBundleResult:
+                  look_degree: int = 2, max_iterations: int = 20, xtol: float = 1e-5,
+                  preadjustment: LookAngleResult | None = None) -> SceneBundleResult:
     """Bundle-adjust pushbroom scenes' exterior orientation with ground control and tie points
     (see the module doc).
 
@@ -242,6 +298,12 @@ def adjust_scenes(scenes: dict[str, PushbroomScene], points: ScenePoints, *,
     xtol : float, optional
         Convergence: largest correction of an unknown in its scaled unit (m, mm/s, urad; the
         central differences leave a noise of about 1e-7 there).
+    preadjustment : LookAngleResult, optional
+        The look-angle pre-adjustment (:func:`~orthowarp.adjust.preadjust_look_angles`) of
+        these points whose corrected scenes are ``scenes``: the covariances then carry its
+        uncertainty through both steps (see the module doc; ``look_propagated``). Without
+        it, the pre-adjusted look angles are taken as exact, which understates the sigmas,
+        grossly where the control leaves part of the detector line uncovered.
 
     Returns
     -------
@@ -251,10 +313,13 @@ def adjust_scenes(scenes: dict[str, PushbroomScene], points: ScenePoints, *,
     ------
     ParamError
         Fewer than two scenes, unknown groups, a point outside its scene, a tie or check point
-        measured in fewer than two scenes, fewer control points than the freed groups need.
+        measured in fewer than two scenes, fewer control points than the freed groups need; a
+        ``preadjustment`` of other points or scenes, or together with the "look" group.
     """
     groups = tuple(groups)
     _check_args(scenes, points, groups, eo_sigma, look_degree)
+    if preadjustment is not None:
+        _check_preadjustment(scenes, points, groups, preadjustment)
     lay = _Layout(scenes, points, groups, look_degree, eo_sigma)
     prior_w = _prior_weights(lay, points, eo_sigma)
     qll = np.stack([points.obs_sigma ** 2] * 2, -1)
@@ -272,13 +337,18 @@ def adjust_scenes(scenes: dict[str, PushbroomScene], points: ScenePoints, *,
     vpv = float(np.sum(v * v / qll) + np.sum(prior_w * x * x))
     res.redundancy = r
     res.sigma0 = s0 = float(np.sqrt(vpv / r)) if r > 0 else float("nan")
-    cov = (s0 ** 2 if r > 0 else 1.0) * np.linalg.inv(normal)
+    if preadjustment is None:
+        cov = (s0 ** 2 if r > 0 else 1.0) * np.linalg.inv(normal)
+    else:
+        cov = (s0 ** 2 if r > 0 else 1.0) * _two_step_covariance(lay, points, x, v, prior_w, qll, preadjustment)
+        res.look_propagated = True
     res.covariance = cov
     _scene_results(res, lay, x, cov)
     _point_results(res, lay, points, x, cov)
     res.residuals = v
     res.message = (f"converged in {it} iterations" if status == 1 else f"no convergence in {max_iterations} "
-                   "iterations") + f", sigma0 {s0:.3g}, redundancy {r}"
+                   "iterations") + f", sigma0 {s0:.3g}, redundancy {r}" + (
+        "; covariances include the look-angle pre-adjustment's uncertainty" if res.look_propagated else "")
     return res
 
 
@@ -374,7 +444,6 @@ def _iterate(lay: _Layout, points: ScenePoints, prior_w: np.ndarray, qll: np.nda
     """Gauss-Helmert iterations from zero corrections: the unknowns (n_unk,), the residuals v
     (m, 2; px), the last normal matrix (n_unk, n_unk), the status (1 converged, 0 iteration
     limit, -1 singular) and the iterations."""
-    nb, base = lay.nb, lay.base
     x = np.zeros(lay.n_unk)
     v = np.zeros((len(points.obs_point), 2))
     status, it, normal = 0, 0, None
@@ -384,19 +453,10 @@ def _iterate(lay: _Layout, points: ScenePoints, prior_w: np.ndarray, qll: np.nda
         rhs = prior_w * x
         rows = []
         for s_k in range(len(lay.sids)):
-            sel = np.flatnonzero(points.obs_scene == s_k)
-            if not len(sel):
-                continue
-            g, b, a_sc, a_pt = _linearise(lay, points, x, v, xg, s_k, sel)
-            w = g - np.einsum("nij,nj->ni", b, v[sel])
-            mm = np.linalg.inv(np.einsum("nij,nj,nkj->nik", b, qll[sel], b))
-            cols_sc = np.arange(s_k * nb, (s_k + 1) * nb)
-            for r_k, k in enumerate(sel):
-                cols = np.concatenate([cols_sc, base + 3 * points.obs_point[k] + np.arange(3)])
-                ak = np.concatenate([a_sc[r_k], a_pt[r_k]], 1)
-                normal[np.ix_(cols, cols)] += ak.T @ mm[r_k] @ ak
-                rhs[cols] += ak.T @ mm[r_k] @ w[r_k]
-                rows.append((k, cols, ak, mm[r_k], w[r_k], b[r_k]))
+            for k, cols, ak, mk, wk, bk in _observation_terms(lay, points, x, v, xg, s_k, qll):
+                normal[np.ix_(cols, cols)] += ak.T @ mk @ ak
+                rhs[cols] += ak.T @ mk @ wk
+                rows.append((k, cols, ak, mk, wk, bk))
         if not np.all(np.isfinite(normal)) or np.linalg.cond(normal) > 1e15:
             status = -1
             break
@@ -408,6 +468,74 @@ def _iterate(lay: _Layout, points: ScenePoints, prior_w: np.ndarray, qll: np.nda
             status = 1
             break
     return x, v, normal, status, it
+
+
+def _observation_terms(lay: _Layout, points: ScenePoints, x: np.ndarray, v: np.ndarray, xg: np.ndarray, s_k: int,
+                       qll: np.ndarray) -> list[tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """Per observation k of scene ``s_k``, linearised at the unknowns ``x``, the residuals ``v``
+    and the points ``xg``: (k, the unknowns it involves (its scene's block, then its point's
+    east, north, up), A (2, nb + 3) by them, (B Q B^T)^-1 (2, 2), the misfit w (2,) at the
+    approximations, B (2, 2) by its col and row)."""
+    nb, base = lay.nb, lay.base
+    sel = np.flatnonzero(points.obs_scene == s_k)
+    if not len(sel):
+        return []
+    g, b, a_sc, a_pt = _linearise(lay, points, x, v, xg, s_k, sel)
+    w = g - np.einsum("nij,nj->ni", b, v[sel])
+    mm = np.linalg.inv(np.einsum("nij,nj,nkj->nik", b, qll[sel], b))
+    cols_sc = np.arange(s_k * nb, (s_k + 1) * nb)
+    out = []
+    for r_k, k in enumerate(sel):
+        cols = np.concatenate([cols_sc, base + 3 * points.obs_point[k] + np.arange(3)])
+        ak = np.concatenate([a_sc[r_k], a_pt[r_k]], 1)
+        out.append((k, cols, ak, mm[r_k], w[r_k], b[r_k]))
+    return out
+
+
+def _two_step_covariance(lay: _Layout, points: ScenePoints, x: np.ndarray, v: np.ndarray, prior_w: np.ndarray,
+                         qll: np.ndarray, pre: LookAngleResult) -> np.ndarray:
+    """The cofactor matrix (n_unk, n_unk) of the unknowns ``x`` propagated from the observations
+    through the pre-adjustment ``pre`` and the bundle (see the module doc; multiply by
+    sigma0^2). The observations l: each image observation's col and row, each control
+    point's east, north, up, each prior's pseudo-observation; their cofactors ``qll``, the
+    control sigmas, 1 / ``prior_w``."""
+    xg = lay.ground(x)
+    n_obs = len(points.obs_point)
+    ctrl = np.flatnonzero(points.role_mask("control"))
+    ctrl_at = {i: 2 * n_obs + 3 * j for j, i in enumerate(ctrl)}  # first column of each control point's e, n, u
+    eo_prior = np.flatnonzero(prior_w[:lay.base])
+    n_l = 2 * n_obs + 3 * len(ctrl) + len(eo_prior)
+    nq = {sid: pre.jacobian[sid].shape[0] for sid in lay.sids}  # look coefficients per scene
+    c_at = np.concatenate([[0], np.cumsum([nq[sid] for sid in lay.sids])])
+    normal = np.diag(prior_w)
+    r_obs = np.zeros((lay.n_unk, n_l))  # derivative of the normal equations' right side by l
+    n_xc = np.zeros((lay.n_unk, c_at[-1]))  # ... by the look coefficients (rad)
+    for s_k, sid in enumerate(lay.sids):
+        scene, deg = lay.scn[sid], nq[sid] // 2 - 1
+        for k, cols, ak, mk, _, bk in _observation_terms(lay, points, x, v, xg, s_k, qll):
+            det = np.array([points.obs_xy[k, 0] + v[k, 0] + 0.5])  # the detector (1-based) of the adjusted col
+            basis = _basis(scene, det - 0.5, deg)[0]
+            sec2 = 1.0 + np.tan([scene._psi_at(scene.psi_x, det)[0], scene._psi_at(scene.psi_y, det)[0]]) ** 2
+            a_c = np.zeros((2, nq[sid]))  # the conditions' -tan(psi + basis c) by c
+            a_c[0, :deg + 1], a_c[1, deg + 1:] = -sec2[0] * basis, -sec2[1] * basis
+            normal[np.ix_(cols, cols)] += ak.T @ mk @ ak
+            r_obs[cols, 2 * k:2 * k + 2] += ak.T @ mk @ bk
+            n_xc[cols, c_at[s_k]:c_at[s_k + 1]] += ak.T @ mk @ a_c
+    for i in ctrl:  # the priors pull the control points towards their given coordinates
+        c3 = lay.base + 3 * i + np.arange(3)
+        r_obs[c3, ctrl_at[i] + np.arange(3)] -= prior_w[c3]
+    r_obs[eo_prior, 2 * n_obs + 3 * len(ctrl) + np.arange(len(eo_prior))] -= prior_w[eo_prior]
+    d = np.zeros((c_at[-1], n_l))  # the pre-adjusted coefficients by l
+    for s_k, sid in enumerate(lay.sids):
+        jac, rows = pre.jacobian[sid], np.arange(c_at[s_k], c_at[s_k + 1])
+        for j, k in enumerate(pre.control_obs[sid]):
+            d[rows, 2 * k:2 * k + 2] = jac[:, j, :2]
+            at = ctrl_at[points.obs_point[k]]
+            d[rows, at:at + 3] = jac[:, j, 2:]
+    q_l = np.concatenate([qll.ravel(), points.llh_sigma[ctrl].ravel() ** 2, 1.0 / prior_w[eo_prior]])
+    t = -np.linalg.solve(normal, r_obs + n_xc @ d)
+    out = (t * q_l) @ t.T
+    return 0.5 * (out + out.T)
 
 
 def _linearise(lay: _Layout, points: ScenePoints, x: np.ndarray, v: np.ndarray, xg: np.ndarray, s_k: int,

@@ -21,10 +21,26 @@ from .scene_points import ScenePoints
 __all__ = ["stereo_pair", "perturbed", "simulate_points", "LAYOUTS"]
 
 LAYOUTS = ("H-0", "H-20", "G-A", "G-B")
-"""Point distributions after [P1]: H-0 every point control; H-20 20 spread check points
-(half of them below 40 points);
-G-A control only in the first half of the lines; G-B control only in the first half of the
-columns (of the first scene)."""
+"""Point distributions of [P1]'s Tables 1-2 (47 points: H-0 47 control; H-20 27 control, 20
+check; G-A 23 control, 24 check; G-B 24 control, 23 check):
+
+- H-0: every point is control;
+- H-20: 20 check points drawn at random among the points (half the points below 40), the rest
+  control, both spread over the scene;
+- G-A: control only in one half of the detector line: the points with the smallest columns of
+  the first scene (23 of 47) are control, the rest check points. [P1] explains G-A's large
+  check errors by exactly this: its control does not spread over the whole line, and look
+  angles belong to the detectors, so half of the line gets adjusted look angles and the other
+  half extrapolated ones;
+- G-B: control only in one half of the lines: the points with the smallest rows of the first
+  scene (24 of 47) are control; the control spans the whole detector line. [P1] draws G-B only
+  (its Figure 4); this is our reading: grouped like G-A, but along the other image axis, which
+  its results (check errors like H-20's) and its text (only G-A leaves part of the line without
+  control) call for.
+
+Other ``n`` scale the G-A and G-B control counts (23/47 and 24/47 of the points)."""
+
+GROUPED_CONTROL = {"G-A": (0, 23), "G-B": (1, 24)}  # image axis (0 col, 1 row), control points of 47
 
 
 def stereo_pair(*, width: int = 3000, height: int = 3000, gsd: float = 10.0,
@@ -97,7 +113,8 @@ def simulate_points(truth: dict[str, PushbroomScene], *, n: int = 47, layout: st
         uniform random heights) projected into the second.
     n : int, optional
     layout : {"H-0", "H-20", "G-A", "G-B"}, optional
-        See :data:`LAYOUTS`.
+        See :data:`LAYOUTS` (G-A: control in one half of the detector line; G-B: in one half
+        of the lines).
     ground_sigma : (float, float, float), optional
         Control coordinates' noise east, north, up (m): [P1]'s GPS survey.
     pixel_sigma : float, optional
@@ -134,10 +151,11 @@ def simulate_points(truth: dict[str, PushbroomScene], *, n: int = 47, layout: st
         roles = ["control"] * n
         for i in rng.choice(n, 20 if n >= 40 else n // 2, replace=False):
             roles[i] = "check"
-    else:
-        axis = 1 if layout == "G-A" else 0
-        size = a.height if layout == "G-A" else a.width
-        roles = ["control" if pa[i, axis] < 0.5 * size else "check" for i in range(n)]
+    else:  # grouped: the control points are those nearest one end of an image axis
+        axis, of_47 = GROUPED_CONTROL[layout]
+        n_control = min(max(int(round(n * of_47 / 47)), 1), n - 1) if n > 1 else n
+        first = set(np.argsort(pa[:, axis], kind="stable")[:n_control].tolist())
+        roles = ["control" if i in first else "check" for i in range(n)]
     given = llh.copy()
     obs_a, obs_b = pa.copy(), pb.copy()
     if noise:

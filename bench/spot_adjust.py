@@ -7,8 +7,8 @@ and attitude biases and drifts added to the truth; 47 points measured in both sc
 0.25 px image noise, control from a GPS survey (+-0.06 m horizontally, +-1 m vertically).
 
 Table 1: RMSE east, north, up (m) at control and check points, per point layout (H-0 all
-control; H-20 20 spread check points; G-A control in the first half of the lines; G-B in the
-first half of the columns): uncorrected (nothing freed), look angles pre-adjusted (EO fixed),
+control; H-20 20 spread check points; G-A control in one half of the detectors (the columns),
+as [P1] defines it; G-B in one half of the lines): uncorrected (nothing freed), look angles pre-adjusted (EO fixed),
 then bundle-adjusted (attitude constants and drifts freed); and "joint": the look-angle
 corrections estimated in the bundle together with the attitude drifts (one adjustment).
 Table 2: per freed EO group or combination (after the pre-adjustment, layout H-20): check RMSE,

@@ -8,7 +8,7 @@ import pytest
 from orthowarp import geodesy
 from orthowarp.adjust.lookangles import corrected_scene, look_angle_conditions, preadjust_look_angles
 from orthowarp.adjust.scene_points import ScenePoints
-from orthowarp.errors import ParamError
+from orthowarp.errors import OrthowarpWarning, ParamError
 from orthowarp.pushbroom import synthetic_scene
 
 # injected corrections of psi_x, psi_y (rad) per power of the normalised detector number:
@@ -109,7 +109,8 @@ def test_bad_input(nominal):
     # control bunched at one column: the quadratic is not determined
     bunched = simulate(nominal, n_control=6, n_check=0)
     bunched.obs_xy[:, 0] = 1000.0 + np.arange(6) * 1e-6
-    res = preadjust_look_angles({"s": nominal}, bunched)
+    with pytest.warns(OrthowarpWarning, match="leaving 50 % of the detector line before it and 50 % after it"):
+        res = preadjust_look_angles({"s": nominal}, bunched)
     assert not res.success and res.status["s"] == -1 and "bunched" in res.message
 
 

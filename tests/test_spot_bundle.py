@@ -1,7 +1,12 @@
 """Bundle adjustment of pushbroom scenes' exterior-orientation groups (adjust/spot_bundle.py,
 seed 000 eqs. 14-17 and 21) on a simulated SPOT-like stereo pair with truth: exact recovery,
 the seed's pattern (combined groups degrade through correlation; priors keep them well posed),
-covariance honesty by Monte Carlo, and bad input."""
+covariance honesty by Monte Carlo (both steps' uncertainty carried where the control covers
+half the detector line), the seed's point layouts, and bad input."""
+
+import dataclasses
+import re
+import warnings
 
 import numpy as np
 import pytest
@@ -10,7 +15,7 @@ from orthowarp import geodesy
 from orthowarp.adjust.lookangles import preadjust_look_angles
 from orthowarp.adjust.spot_bundle import EO_GROUPS, adjust_scenes, intersect_scene_points
 from orthowarp.adjust.spot_synthetic import perturbed, simulate_points, stereo_pair
-from orthowarp.errors import ParamError
+from orthowarp.errors import OrthowarpWarning, ParamError
 
 EO = np.zeros((3, 3, 3))
 EO[2, :, 0] = [2e-5, -3e-5, 4e-5]  # attitude biases (rad): 17-33 m on the ground
@@ -141,3 +146,176 @@ def test_joint_look_angles_and_attitude_drifts(pair):
     assert not both.success
     with pytest.raises(ParamError, match="name a group twice"):
         adjust_scenes(pair, pts, groups=("look", "look"))
+
+
+def test_layouts_are_the_seeds():
+    """Seed 000's Tables 1-2: H-0 47 control; H-20 27 + 20 check; G-A 23 control in one half of
+    the detector line, 24 check in the other; G-B 24 control in one half of the lines (spanning
+    the whole line), 23 check."""
+    a, b = stereo_pair(width=3000, height=3000)
+    pair = {"L": a, "R": b}
+    counts = {}
+    for layout in ("H-0", "H-20", "G-A", "G-B"):
+        pts, _ = simulate_points(pair, layout=layout, noise=False)
+        ctl, chk = pts.role_mask("control"), pts.role_mask("check")
+        counts[layout] = (int(ctl.sum()), int(chk.sum()))
+        first = pts.obs_scene == 0
+        xy = np.empty((pts.n_points, 2))
+        xy[pts.obs_point[first]] = pts.obs_xy[first]
+        if layout == "G-A":
+            assert xy[ctl, 0].max() < xy[chk, 0].min() and xy[ctl, 0].max() < 0.7 * a.width
+        if layout == "G-B":
+            assert xy[ctl, 1].max() < xy[chk, 1].min()
+            assert np.ptp(xy[ctl, 0]) > 0.6 * a.width  # along the line as far as 24 random points reach
+    assert counts == {"H-0": (47, 0), "H-20": (27, 20), "G-A": (23, 24), "G-B": (24, 23)}
+
+
+def check_errors_and_sigmas(res, pts, true_llh, which="check"):
+    sel = pts.role_mask(which)
+    return enu_errors(res.llh[sel], true_llh[sel]), np.stack([np.diag(c) for c in res.point_cov[sel]])
+
+
+def test_two_step_sigmas_grow_where_the_look_angles_are_extrapolated(pair):
+    """Layout G-A (control in one half of the detector line): the pre-adjustment warns that it
+    extrapolates, and the bundle given it (preadjustment=) reports check sigmas several times
+    those of the look angles taken as exact, with the same estimates; where the control spans
+    the line (H-20) they grow little."""
+    truth = {k: perturbed(s, look=LOOK if k == "L" else -LOOK, eo=EO if k == "L" else -EO) for k, s in pair.items()}
+    growth = {}
+    for layout in ("G-A", "H-20"):
+        pts, true_llh = simulate_points(truth, layout=layout, seed=301)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            pre = preadjust_look_angles(pair, pts)
+        said = [str(w.message) for w in caught if issubclass(w.category, OrthowarpWarning)]
+        held = adjust_scenes(pre.scenes, pts, groups=("attitude0", "attitude1"))
+        two = adjust_scenes(pre.scenes, pts, groups=("attitude0", "attitude1"), preadjustment=pre)
+        assert two.success and two.look_propagated and not held.look_propagated
+        np.testing.assert_allclose(two.llh, held.llh, rtol=0, atol=1e-9)  # the same estimates
+        growth[layout] = np.sqrt(check_errors_and_sigmas(two, pts, true_llh)[1].mean(0)
+                                 / check_errors_and_sigmas(held, pts, true_llh)[1].mean(0))
+        if layout == "G-A":
+            assert len(said) == 1 and re.search(r"scene 'L': the control spans columns .* extrapolated", said[0])
+            assert pre.outside_fraction["L"][1] > 0.3 and len(pre.extrapolated["L"]) >= 20
+        else:
+            assert not said
+    assert growth["G-A"].min() > 2.0 and growth["H-20"].max() < 1.3, growth
+
+
+@pytest.mark.slow
+def test_two_step_and_joint_sigmas_match_monte_carlo_in_layout_g_a(pair):
+    """Layout G-A over 40 noise draws (960 check points): the RMS of each check point's error over
+    its reported sigma, per axis, within 0.7-1.45 for the two steps with the pre-adjustment
+    carried (preadjustment=) and for the joint adjustment (look angles and attitude drifts
+    together); the pre-adjusted look angles taken as exact understate the sigmas more than
+    twice over. (Per point, not RMS error over RMS sigma: one draw's check points share its
+    extrapolation error, and the draws' sigmas differ several-fold.)"""
+    truth = {k: perturbed(s, look=LOOK if k == "L" else -LOOK, eo=EO if k == "L" else -EO) for k, s in pair.items()}
+    acc = {k: ([], []) for k in ("exact", "carried", "joint")}
+    for s in range(40):
+        pts, true_llh = simulate_points(truth, layout="G-A", seed=300 + s)
+        pre = preadjust_look_angles(pair, pts, extrapolation="ignore")
+        runs = {"exact": adjust_scenes(pre.scenes, pts, groups=("attitude0", "attitude1")),
+                "carried": adjust_scenes(pre.scenes, pts, groups=("attitude0", "attitude1"), preadjustment=pre),
+                "joint": adjust_scenes(pair, pts, groups=("look", "attitude1"))}
+        for k, res in runs.items():
+            e, p = check_errors_and_sigmas(res, pts, true_llh)
+            acc[k][0].append(e ** 2), acc[k][1].append(p)
+    ratio = {k: np.sqrt((np.concatenate(e) / np.concatenate(p)).mean(0)) for k, (e, p) in acc.items()}
+    assert ratio["exact"].min() > 2.0, ratio
+    for k in ("carried", "joint"):
+        assert np.all((ratio[k] > 0.7) & (ratio[k] < 1.45)), (k, ratio)
+
+
+@pytest.mark.slow
+def test_two_step_covariance_is_the_propagation_through_both_steps(pair):
+    """The check points' covariance of the two steps (preadjustment=) against the same
+    propagation with the derivatives taken by rerunning both steps with each observation moved
+    (image col/row, control east/north/up): within 1 % (layout G-A, 10 points)."""
+    import copy
+
+    truth = {k: perturbed(s, look=LOOK if k == "L" else -LOOK, eo=EO if k == "L" else -EO) for k, s in pair.items()}
+    pts, _ = simulate_points(truth, n=10, layout="G-A", seed=13)
+    chk, ctl = np.flatnonzero(pts.role_mask("check")), np.flatnonzero(pts.role_mask("control"))
+
+    def both_steps(p):
+        pre = preadjust_look_angles(pair, p, extrapolation="ignore")
+        return adjust_scenes(pre.scenes, p, groups=("attitude0", "attitude1"), preadjustment=pre)
+
+    res = both_steps(pts)
+    assert res.success, res.message
+    ref = geodesy.geodetic_to_ecef(res.llh[chk, 1], res.llh[chk, 0], res.llh[chk, 2])
+    enu = np.stack([geodesy.enu_to_ecef_matrix(la, lo) for la, lo in zip(res.llh[chk, 1], res.llh[chk, 0])])
+
+    def moved(p):
+        r = both_steps(p)
+        x = geodesy.geodetic_to_ecef(r.llh[chk, 1], r.llh[chk, 0], r.llh[chk, 2])
+        return np.einsum("nji,nj->ni", enu, x - ref).ravel()
+
+    h, cols, sig = 0.05, [], []
+    for k in range(len(pts.obs_point)):
+        for j in range(2):
+            up, down = copy.deepcopy(pts), copy.deepcopy(pts)
+            up.obs_xy[k, j] += h
+            down.obs_xy[k, j] -= h
+            cols.append((moved(up) - moved(down)) / (2 * h)), sig.append(pts.obs_sigma[k])
+    for i in ctl:
+        for j in range(3):
+            ends = []
+            for step in (h, -h):
+                p = copy.deepcopy(pts)
+                x = geodesy.geodetic_to_ecef(p.llh[i:i + 1, 1], p.llh[i:i + 1, 0], p.llh[i:i + 1, 2])
+                lat, lon, hh = geodesy.ecef_to_geodetic(x + step * geodesy.enu_to_ecef_matrix(p.llh[i, 1],
+                                                                                              p.llh[i, 0])[:, j])
+                p.llh[i] = [lon[0], lat[0], hh[0]]
+                ends.append(moved(p))
+            cols.append((ends[0] - ends[1]) / (2 * h)), sig.append(pts.llh_sigma[i, j])
+    jac = np.array(cols).T
+    full = (jac * np.array(sig) ** 2) @ jac.T
+    want = np.stack([full[3 * m:3 * m + 3, 3 * m:3 * m + 3] for m in range(len(chk))])
+    got = res.point_cov[chk] / res.sigma0 ** 2
+    assert np.abs(got - want).max() < 0.01 * np.abs(want).max()
+
+
+def test_two_step_covariance_without_the_preadjustment_is_the_bundles(pair):
+    """The propagation through both steps with the pre-adjusted coefficients' derivatives set to
+    zero is sigma0^2 N^-1 again; with them it only adds (H-20, control over the whole line)."""
+    truth = {k: perturbed(s, look=LOOK, eo=EO if k == "L" else -EO) for k, s in pair.items()}
+    pts, _ = simulate_points(truth, layout="H-20", seed=5)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # control over the whole line: no extrapolation warning
+        pre = preadjust_look_angles(pair, pts)
+    plain = adjust_scenes(pre.scenes, pts, groups=("attitude0", "attitude1"), eo_sigma={"attitude": 1e-4})
+    zero = dataclasses.replace(pre, jacobian={k: np.zeros_like(v) for k, v in pre.jacobian.items()})
+    same = adjust_scenes(pre.scenes, pts, groups=("attitude0", "attitude1"), eo_sigma={"attitude": 1e-4},
+                         preadjustment=zero)
+    np.testing.assert_allclose(same.covariance, plain.covariance, rtol=1e-6, atol=1e-9 * np.abs(plain.covariance).max())
+    more = adjust_scenes(pre.scenes, pts, groups=("attitude0", "attitude1"), eo_sigma={"attitude": 1e-4},
+                         preadjustment=pre)
+    chk = pts.role_mask("check")
+    grow = np.stack([np.diag(c) for c in more.point_cov[chk]]) / np.stack([np.diag(c) for c in plain.point_cov[chk]])
+    assert grow.min() > 0.999 and grow.max() < 3.0 and "pre-adjustment's uncertainty" in more.message
+
+
+def test_preadjustment_argument_is_checked(pair):
+    truth = {k: perturbed(s, look=LOOK, eo=EO if k == "L" else -EO) for k, s in pair.items()}
+    pts, _ = simulate_points(truth, n=16, layout="H-20", seed=6)
+    pre = preadjust_look_angles(pair, pts)
+    with pytest.raises(ParamError, match="give one or the other"):
+        adjust_scenes(pre.scenes, pts, groups=("look", "attitude1"), preadjustment=pre)
+    with pytest.raises(ParamError, match="scene 'L' does not have the pre-adjustment's corrected look angles"):
+        adjust_scenes(pair, pts, groups=("attitude1",), preadjustment=pre)
+    other, _ = simulate_points(truth, n=16, layout="H-20", seed=7)
+    with pytest.raises(ParamError, match="made from other points"):
+        adjust_scenes(pre.scenes, other, groups=("attitude1",), preadjustment=pre)
+    with pytest.raises(ParamError, match="must be the LookAngleResult"):
+        adjust_scenes(pre.scenes, pts, groups=("attitude1",), preadjustment={"L": None})
+    half, _ = simulate_points(truth, layout="G-A", seed=8)
+    with pytest.raises(ParamError, match=r"scene 'L': the control spans columns .*extrapolation_limit 0.2\)"):
+        preadjust_look_angles(pair, half, extrapolation="raise")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        quiet = preadjust_look_angles(pair, half, extrapolation="ignore")
+    assert quiet.success and quiet.outside_fraction["L"][1] > 0.3
+    with pytest.raises(ParamError, match="extrapolation must be one of"):
+        preadjust_look_angles(pair, half, extrapolation="maybe")
