@@ -68,7 +68,10 @@ def spot_adjust(ctx: click.Context, **kwargs: Any) -> None:
             raise GeometryError(f"look-angle pre-adjustment of '{o.points_file}' failed: {pre.message}; nothing "
                                 f"written to '{o.out_dir}'")
         models = {**models, **pre.scenes}
-    result = adjust_scenes(models, points, groups=freed, eo_sigma=priors, look_degree=o.look_degree)
+    # the pre-adjustment's own uncertainty carried into the bundle's sigmas (its look angles
+    # are estimates, not exact)
+    result = adjust_scenes(models, points, groups=freed, eo_sigma=priors, look_degree=o.look_degree,
+                           preadjustment=pre)
     if not result.success:
         raise GeometryError(f"adjustment of '{o.points_file}' failed (status {result.status}): {result.message}; "
                             f"nothing written to '{o.out_dir}'")
