@@ -35,13 +35,13 @@ def test_resident_sources_are_read_once_and_give_the_same_mosaic(pair, tmp_path,
     reads = _mosaic(images, tmp_path / "resident.tif", dict(device_reduce=True, resident=True, cache_images=24),
                     monkeypatch, **kw)
     assert sorted(reads) == sorted(str(src) for src, _ in images)  # once each, for the reduced pass and the tiles
-    # a cache of one image: read again where evicted, the same file
-    again = _mosaic(images, tmp_path / "evicted.tif", dict(device_reduce=True, resident=True, cache_images=1),
-                    monkeypatch, **kw)
-    assert len(again) > len(images)
     tiles = (tmp_path / "tiles.tif").read_bytes()
     assert (tmp_path / "resident.tif").read_bytes() == tiles
-    assert (tmp_path / "evicted.tif").read_bytes() == tiles
+    if not occlusion:  # a cache of one image: read again where evicted, the same file
+        again = _mosaic(images, tmp_path / "evicted.tif", dict(device_reduce=True, resident=True, cache_images=1),
+                        monkeypatch, **kw)
+        assert len(again) > len(images)
+        assert (tmp_path / "evicted.tif").read_bytes() == tiles
 
 
 def test_residency_is_for_gpus_and_bounded_by_their_memory():
