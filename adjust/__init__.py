@@ -13,7 +13,10 @@
   points between two images on a Warp device (:mod:`~orthowarp.adjust.matching`);
 - :func:`synthetic_block`: blocks with known truth (:func:`film_camera`: [P2]'s kind of camera);
 - :func:`monoplot_covariance`, :func:`intersection_covariance`: ground points' precision by
-  error propagation ([P4]; :mod:`~orthowarp.adjust.precision`).
+  error propagation ([P4]; :mod:`~orthowarp.adjust.precision`);
+- :func:`estimate_bias`, :func:`leave_one_out`: an RPC image's bias compensation from ground
+  control, :func:`fit_rpc`: RPC00B coefficients fitted to a sensor's 3-D grid
+  (:mod:`~orthowarp.adjust.rpc`).
 """
 
 # The names below are imported when first used (PEP 562), so that importing one module of this
@@ -42,12 +45,18 @@ _LAZY = {
     "CONTROL_LAYOUTS": ".synthetic",
     "film_camera": ".synthetic",
     "synthetic_block": ".synthetic",
+    "BiasResult": ".rpc",
+    "RpcFitResult": ".rpc",
+    "estimate_bias": ".rpc",
+    "leave_one_out": ".rpc",
+    "fit_rpc": ".rpc",
 }
 
 __all__ = ["Block", "ROLES", "AdjustResult", "bundle_adjust", "intersect", "synthetic_block", "film_camera",
            "CONTROL_LAYOUTS", "PrecisionResult", "ScenePoints", "LookAngleResult", "preadjust_look_angles",
            "EO_GROUPS", "SceneBundleResult", "adjust_scenes", "intersect_scene_points", "MatchResult", "match_points", "interest_points", "monoplot_covariance",
-           "intersection_covariance", "input_covariance"]
+           "intersection_covariance", "input_covariance", "BiasResult", "RpcFitResult", "estimate_bias",
+           "leave_one_out", "fit_rpc"]
 
 
 def __getattr__(name):

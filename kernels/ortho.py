@@ -10,7 +10,8 @@ Backward (default), per output tile:
 2. :func:`ortho_kernel`, one thread per output pixel: pixel
    centre -> horizontal coordinates of the pose's frame (bilinear in the coarse grid the host
    transforms exactly with PROJ) -> DEM height -> backward projection (collinearity,
-   refraction, distortion; or the pushbroom's line-time iteration) -> source pixel (col,
+   refraction, distortion; or the pushbroom's line-time iteration; or an RPC image's closed
+   form) -> source pixel (col,
    row), float64; NaN where there is no DEM height or the point falls outside the image ->
    :func:`resample_at`: every band of the window (read in its own dtype) sampled with
    nearest, bilinear, bicubic (Keys, a = -0.5) or Lanczos-3 weights, skipping source pixels
@@ -33,6 +34,7 @@ from .dem import DemData, dem_sample
 from .geodesy import geodetic_to_ecef
 from .pushbroom import PushbroomData, pb_line_time, pb_project
 from .ray import apparent_direction
+from .rpc import RpcData, rpc_pixel
 from .refraction import RefractionTable
 from .ray import SearchParams
 from .sensor import SENSOR_ARGS, FrameArg, sensor_geolocate, sensor_project_xyz
@@ -206,6 +208,27 @@ def source_pixel(arg: PushbroomData, refr: RefractionTable, dem: DemData, grid: 
                  j: wp.int32, width: wp.float64, height: wp.float64):
     """Source pixel of output-tile pixel (i, j): a pushbroom scene's."""
     return pb_source_pixel(arg, refr, dem, grid, i, j, width, height)
+
+
+@wp.func
+def rpc_source_pixel(r: RpcData, dem: DemData, grid: CoarseGrid, i: wp.int32, j: wp.int32, width: wp.float64,
+                     height: wp.float64):
+    """:func:`frame_source_pixel` for an RPC image: the RPCs' closed form at the pixel's
+    longitude, latitude (the grid's uv) and DEM height (no refraction: the RPCs hold it)."""
+    i0, j0, ai, aj = grid_cell(grid.uv.shape[0], grid.uv.shape[1], wp.float64(i) / grid.step,
+                               wp.float64(j) / grid.step)
+    uv = grid_lerp(grid.uv, i0, j0, ai, aj)
+    h = dem_sample(dem, uv[0], uv[1])
+    if not wp.isfinite(h):
+        return wp.vec2d(wp.float64(wp.nan), wp.float64(wp.nan))
+    return in_image(rpc_pixel(r, uv[0], uv[1], h), width, height)
+
+
+@wp.func
+def source_pixel(arg: RpcData, refr: RefractionTable, dem: DemData, grid: CoarseGrid, i: wp.int32, j: wp.int32,
+                 width: wp.float64, height: wp.float64):
+    """Source pixel of output-tile pixel (i, j): an RPC image's."""
+    return rpc_source_pixel(arg, dem, grid, i, j, width, height)
 
 
 @wp.func

@@ -4,7 +4,8 @@ struct (the pattern of warp.fem's geometries).
 
 A sensor's argument is one struct (:meth:`SensorModel.arg_value`): :class:`FrameArg` (camera
 and pose) for a frame image, :class:`~orthowarp.kernels.pushbroom.PushbroomData` for a
-pushbroom scene. Each implements, by overloads of one name:
+pushbroom scene, :class:`~orthowarp.kernels.rpc.RpcData` for an RPC image. Each implements, by
+overloads of one name:
 
 - :func:`sensor_geolocate` ``(arg, refr, dem, search, pixel) -> geo triple``: the pixel's ray
   met with the terrain (:func:`orthowarp.kernels.ray.geolocate_ray`);
@@ -30,6 +31,7 @@ from .frame import FramePoseData, geolocate_pixel, project_point, project_xyz
 from .geodesy import DEG, geodetic_to_ecef
 from .pushbroom import PushbroomData, pb_geolocate, pb_project
 from .ray import SearchParams
+from .rpc import RpcData, rpc_geolocate, rpc_pixel, rpc_project_xyz
 from .refraction import RefractionTable
 
 
@@ -52,6 +54,13 @@ def sensor_geolocate(arg: PushbroomData, refr: RefractionTable, dem: DemData, se
 
 
 @wp.func
+def sensor_geolocate(arg: RpcData, refr: RefractionTable, dem: DemData, search: SearchParams, pix: wp.vec2d):
+    """An RPC image's pixel -> the first ground point of its line of sight (the RPCs hold the
+    refraction: ``refr`` is not read)."""
+    return rpc_geolocate(arg, dem, search, pix)
+
+
+@wp.func
 def sensor_project_xyz(arg: FrameArg, refr: RefractionTable, x: wp.vec3d, h: wp.float64, t0: wp.float64):
     return project_xyz(arg.cam, arg.pose, refr, x, h)
 
@@ -59,6 +68,11 @@ def sensor_project_xyz(arg: FrameArg, refr: RefractionTable, x: wp.vec3d, h: wp.
 @wp.func
 def sensor_project_xyz(arg: PushbroomData, refr: RefractionTable, x: wp.vec3d, h: wp.float64, t0: wp.float64):
     return pb_project(arg, refr, x, h, t0)
+
+
+@wp.func
+def sensor_project_xyz(arg: RpcData, refr: RefractionTable, x: wp.vec3d, h: wp.float64, t0: wp.float64):
+    return rpc_project_xyz(arg, x, h)
 
 
 @wp.func
@@ -72,6 +86,12 @@ def sensor_project_geo(arg: PushbroomData, refr: RefractionTable, geo: wp.vec3d)
     scene centre."""
     x = geodetic_to_ecef(geo[1] * DEG, geo[0] * DEG, geo[2])
     return pb_project(arg, refr, x, geo[2], wp.float64(0.0))
+
+
+@wp.func
+def sensor_project_geo(arg: RpcData, refr: RefractionTable, geo: wp.vec3d):
+    """Geo triple (lon, lat deg, ellipsoidal h m) -> pixel by the RPCs' closed form."""
+    return rpc_pixel(arg, geo[0], geo[1], geo[2])
 
 
 @wp.kernel
@@ -117,7 +137,7 @@ def project_kernel(
     out[i] = sensor_project_geo(arg, refr, points[i])
 
 
-SENSOR_ARGS = (FrameArg, PushbroomData)  # the structs the generic kernels are built for
+SENSOR_ARGS = (FrameArg, PushbroomData, RpcData)  # the structs the generic kernels are built for
 
 for _arg in SENSOR_ARGS:
     for _kernel in (geolocate_kernel, geolocate_grid_kernel, project_kernel):

@@ -58,6 +58,8 @@ _LAZY = {
     "write_block": ".pipeline.formats.block",
     "SensorModel": ".sensor",
     "FrameSensor": ".sensor",
+    "RationalSensor": ".rpc",
+    "RpcCoefficients": ".rpc",
 }
 _SUBPACKAGES = ("adjust", "kernels", "pipeline")  # ``ow.adjust.bundle_adjust`` etc. without an import
 
@@ -73,6 +75,8 @@ __all__ = [
     "mosaic",
     "SensorModel",
     "FrameSensor",
+    "RationalSensor",
+    "RpcCoefficients",
     "read_scene",
     "read_block",
     "write_block",

@@ -31,11 +31,12 @@ and never branch on the kind of sensor (after orthority's ``Camera``, Vision Wor
   by the forward, direct method, not only the backward one) and
   :attr:`SensorModel.line_timed` (each image line has its own time and orientation, as a
   pushbroom scene's orbit and attitude; False: one pose, ``sensor.pose``, for the whole
-  image, whose covariance ``pose_cov`` is).
+  image, whose covariance ``pose_cov`` is, or none: ``sensor.pose`` None, an RPC image's).
 
-A new sensor (RPC, say) plugs in by subclassing :class:`SensorModel`: its struct and device
-functions in a kernels/ module, their overloads in :mod:`orthowarp.kernels.sensor` and
-:mod:`orthowarp.kernels.ortho` (``source_pixel``), and the host methods above.
+A new sensor plugs in by subclassing :class:`SensorModel`: its struct and device functions in
+a kernels/ module, their overloads in :mod:`orthowarp.kernels.sensor` and
+:mod:`orthowarp.kernels.ortho` (``source_pixel``), and the host methods above, as the RPC
+sensor did (:class:`orthowarp.rpc.RationalSensor`, :mod:`orthowarp.kernels.rpc`).
 """
 
 from __future__ import annotations
@@ -113,17 +114,17 @@ class SensorModel(abc.ABC):
     (:meth:`with_parameters`), so the device structs are cached safely.
     """
 
-    kind: str = ""  # "frame", "pushbroom": for messages and summaries
+    kind: str = ""  # "frame", "pushbroom", "rpc": for messages and summaries
 
     # -- capabilities (class attributes: what the layers above ask instead of ``kind``) -------
-    #: What an image of this sensor is called in messages ("camera", "scene").
+    #: What an image of this sensor is called in messages ("camera", "scene", "image").
     noun: str = ""
     #: True when the forward (direct) method can orthorectify its images; else backward only.
     forward_method: bool = False
     #: True when each image line has its own time and orientation (orbit and attitude at the
     #: line's time: the seams' viewpoint and the ortho's first guesses follow the line, and the
     #: accuracy propagates an ``orientation_cov``); False: one pose (``pose``) for the whole
-    #: image, whose covariance is ``pose_cov``.
+    #: image, whose covariance is ``pose_cov``, or no pose at all (``pose`` None: RPCs).
     line_timed: bool = False
 
     # -- geometry facts ------------------------------------------------------------------------

@@ -662,6 +662,8 @@ def sensor_accuracy_raster(dst: str | os.PathLike, sensor: SensorModel, dem: Dem
         return scene_accuracy_raster(dst, sensor, dem, crs, transform, shape, orientation_cov=orientation_cov,
                                      pixel_sigma=pixel_sigma, dem_sigma=dem_sigma, measure=measure, step=step,
                                      refraction=refraction, device=device)
+    if getattr(sensor, "pose", None) is None:  # neither line times nor a pose (RPCs): nothing to propagate
+        raise ParamError(f"The accuracy of {sensor.kind} images is not supported (no orientation to propagate)")
     if pose_cov is None:
         raise ParamError("The accuracy of a frame image needs pose_cov")
     return accuracy_raster(dst, sensor.camera, sensor.pose, dem, crs, transform, shape, pose_cov=pose_cov,
@@ -762,6 +764,8 @@ def mosaic_accuracy_raster(dst: str | os.PathLike, images: Sequence, index: str 
                                            pixel_sigma=pixel_sigma, dem_sigma=dem_sigma, refraction=refraction,
                                            measure=measure, device=device)
         else:
+            if getattr(sensor, "pose", None) is None:  # (RPCs)
+                raise ParamError(f"mosaic_accuracy_raster: the accuracy of {sensor.kind} images is not supported")
             if pose_cov is None:
                 raise ParamError("mosaic_accuracy_raster: frame images need pose_cov")
             # the image's cells: its window of the grid on the device, then those it supplies

@@ -12,7 +12,9 @@ the files its examples name, with the same names:
 * the demo scene's DEM (``orthowarp-demo/dem.tif``, ``dem.tif``) and two frames of it
   (``IMG_0001.tif``, ``IMG_0002.tif``) with orthority-format ``int_param.yaml`` and ``ext.csv``;
 * the repository's SPOT-5 DIMAP sample as ``METADATA.DIM`` with an image of its size
-  (``IMAGERY.TIF``), and a synthetic adjustment block as ``block.json``.
+  (``IMAGERY.TIF``), and a synthetic adjustment block as ``block.json``;
+* ``rpc/``: an image with RPCs over the ``ngi/`` stand-in's DEM, named as orthority's RPC sample
+  (``rpc/qb2_basic1b.tif``, ``rpc/rpc_param.yaml``, ``rpc/gcps.geojson``).
 
 Nothing is read from outside the repository and the network is not used.
 
@@ -332,6 +334,54 @@ def _spot_and_block(folder):
     write_block(block, os.path.join(folder, "block.json"))
 
 
+def _rpc(folder):
+    """Stand-ins for orthority's rpc/: an 850 x 1450 image (2 m pixels) over the ngi/ stand-in's
+    DEM with RPCs in its GeoTIFF tags (fitted to a synthetic pushbroom scene there), the same
+    RPCs in orthority's rpc_param.yaml, and five GCPs in orthority's GeoJSON that see the RPCs
+    off by a few pixels."""
+    import warnings
+
+    import rasterio
+    import yaml
+    from pyproj import Transformer
+
+    from orthowarp.adjust.rpc import fit_rpc
+    from orthowarp.pipeline.formats.rpc import rpc_to_gdal
+    from orthowarp.pushbroom import synthetic_scene
+    from orthowarp.rpc import RationalSensor
+
+    os.makedirs(folder)
+    lon, lat = Transformer.from_crs(UTM32, "EPSG:4326", always_xy=True).transform(XC, YC)
+    w, h = 850, 1450
+    scene = synthetic_scene(width=w, height=h, gsd=2.0, lat=lat, lon=lon)
+    centre = scene.geolocate_ellipsoid([[w / 2, h / 2]], 0.0)[0]  # (its lat is geocentric): moved onto the DEM
+    scene = synthetic_scene(width=w, height=h, gsd=2.0, lat=2 * lat - centre[1], lon=2 * lon - centre[0])
+    c, r = np.meshgrid(np.linspace(0, w, 11), np.linspace(0, h, 11))
+    pix = np.stack([c.ravel(), r.ravel()], 1)
+    heights = np.linspace(-100.0, 1500.0, 5)
+    rpc = fit_rpc(np.tile(pix, (len(heights), 1)),
+                  np.concatenate([scene.geolocate_ellipsoid(pix, z) for z in heights])).rpc
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)  # RPCs, no geotransform
+        with rasterio.open(os.path.join(folder, "qb2_basic1b.tif"), "w", driver="GTiff", width=w, height=h, count=1,
+                           dtype="uint8") as dst:
+            rr, cc = np.mgrid[0:h, 0:w]
+            dst.write(((cc * 7 + rr * 3) % 251 + 1).astype(np.uint8), 1)
+            dst.update_tags(ns="RPC", **rpc_to_gdal(rpc))
+    entry = {k: float(v) for k, v in rpc_to_gdal(rpc).items() if " " not in v}
+    entry.update({k: [float(x) for x in v.split()] for k, v in rpc_to_gdal(rpc).items() if " " in v})
+    with open(os.path.join(folder, "rpc_param.yaml"), "w") as f:
+        yaml.safe_dump({"qb2_basic1b.tif": {"im_size": [w, h], "rpc": {k.lower(): v for k, v in entry.items()}}}, f)
+    truth = RationalSensor(rpc, (w, h), bias=dict(dc0=3.0, dr0=-2.0))
+    gcp_pix = np.array([[100.0, 200.0], [700.0, 150.0], [420.0, 700.0], [150.0, 1300.0], [780.0, 1250.0]])
+    ground = truth.locate(gcp_pix, 500.0)
+    features = [{"type": "Feature", "properties": {"ji": (p - 0.5).tolist(), "filename": "qb2_basic1b.tif",
+                                                   "id": f"gcp{k}", "info": ""},
+                 "geometry": {"type": "Point", "coordinates": g.tolist()}} for k, (p, g) in enumerate(zip(gcp_pix, ground))]
+    with open(os.path.join(folder, "gcps.geojson"), "w") as f:
+        json.dump({"type": "FeatureCollection", "features": features}, f)
+
+
 @pytest.fixture(scope="session")
 def sample_data(tmp_path_factory):
     """A folder with every stand-in; each page gets a copy."""
@@ -340,6 +390,7 @@ def sample_data(tmp_path_factory):
     _odm(os.path.join(folder, "odm"))
     _demo_frames(folder)
     _spot_and_block(folder)
+    _rpc(os.path.join(folder, "rpc"))
     return folder
 
 
@@ -398,7 +449,8 @@ def _check_readme(folder, ns):
 
     for name in ("orthos/3324c_2015_1004_05_0182_RGB_ORTHO.tif", "ngi_mosaic.tif", "ngi_index.tif",
                  "ngi_seams.geojson", "ngi_block.json", "ngi_adjusted/exterior.csv", "ngi_adjusted/pose_cov.json",
-                 "ngi_adjusted_mosaic.tif", "spot-adjusted/report.json"):
+                 "ngi_adjusted_mosaic.tif", "spot-adjusted/report.json", "rpc_orthos/qb2_basic1b_ORTHO.tif",
+                 "rpc_orthos_gcp/qb2_basic1b_ORTHO.tif"):
         assert os.path.isfile(os.path.join(folder, name)), name
     with rasterio.open(os.path.join(folder, "ngi_mosaic.tif")) as ds:
         assert ds.count == 3 and ds.dataset_mask().mean() > 0.5

@@ -141,10 +141,10 @@ def test_pushbroom_scene_is_a_sensor_model(poly_scene):
 
 # The capabilities the layers above ask instead of ``kind`` (see SensorModel's doc), with the
 # values each sensor declares: (noun, forward_method, line_timed).
-CAPABILITIES = {"frame": ("camera", True, False), "pushbroom": ("scene", False, True)}
+CAPABILITIES = {"frame": ("camera", True, False), "pushbroom": ("scene", False, True), "rpc": ("image", False, False)}
 
 
-@pytest.mark.parametrize("cls", [FrameSensor, ow.PushbroomScene], ids=lambda c: c.__name__)
+@pytest.mark.parametrize("cls", [FrameSensor, ow.PushbroomScene, ow.RationalSensor], ids=lambda c: c.__name__)
 def test_sensors_declare_their_capabilities(cls):
     """Each sensor class declares every capability itself (not inherited from the protocol's
     blank defaults), with the protocol's types, and consistently with its ``kind``: a sensor

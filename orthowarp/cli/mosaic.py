@@ -19,9 +19,17 @@ MOSAIC_GPU_PROCESSES = 4
 
 
 @click.command()
-@click.argument("images", nargs=-1, type=click.Path(dir_okay=False))
+@click.argument("images", nargs=-1, type=click.Path())
 @options.orientation
 @options.odm_dataset
+@options.exif_options
+@click.option("--adjust", "adjust_chain", is_flag=True,
+              help="With --exif: first refine the tags' orientation: tie points by matching, then a bundle "
+                   "adjustment with the GPS positions and gimbal angles as observations and the camera's "
+                   "radial distortion (k1, k2) self-calibrated; each step's files and report in --adjust-dir.")
+@click.option("--adjust-dir", type=click.Path(file_okay=False), default=None,
+              help="Folder of --adjust's files (exif/ with the tags' orientation, block.json, exterior.csv, "
+                   "cameras.yaml, pose_cov.json, report.md, chain.json); default: <mosaic>_adjust beside the mosaic.")
 @click.option("--scene", "scenes", nargs=2, multiple=True,
               type=(click.Path(dir_okay=False), click.Path(dir_okay=False)),
               metavar="IMAGE DIMAP", help="A pushbroom scene: its image and its SPOT level-1A DIMAP metadata "
@@ -87,7 +95,12 @@ def mosaic(ctx: click.Context, images: tuple[str, ...], **kwargs: Any) -> None:
     from ..pipeline.precision import accuracy_path
     from ..pipeline.raster.io import outputs_together
 
+    from .exif import check_exif_options
+
     o = SimpleNamespace(**kwargs)
+    if o.adjust_chain and not o.exif:
+        raise ParamError("--adjust refines the orientation read with --exif: give --exif too")
+    check_exif_options(images, o)
     if o.odm_dataset is not None:
         images, o.int_param, o.ext_param, o.dem = odm_dataset(o.odm_dataset, images=images, int_param=o.int_param,
                                                               ext_param=o.ext_param, dem=o.dem, height=o.height)
@@ -95,15 +108,15 @@ def mosaic(ctx: click.Context, images: tuple[str, ...], **kwargs: Any) -> None:
         raise ParamError("Give exactly one of --dem FILE and --height METRES")
     if not images and not o.scenes:
         raise ParamError("Give frame IMAGES (with --ext-param) or pushbroom scenes (--scene IMAGE DIMAP)")
-    if images and not o.ext_param:
-        raise ParamError("Frame IMAGES need --ext-param (their exterior orientation)")
+    if images and not o.ext_param and not o.exif:
+        raise ParamError("Frame IMAGES need --ext-param (their exterior orientation), or --exif (from their tags)")
     compress, compress_level, quality, creation_options = options.creation_args(o.creation, o.compress,
                                                                                 o.compress_level, o.quality)
     if compress not in options.MOSAIC_COMPRESS:
         raise ParamError(f"the mosaic is written with {', '.join(options.MOSAIC_COMPRESS)}: -co COMPRESS takes "
                          f"{', '.join(c.upper() for c in options.MOSAIC_COMPRESS)}")
     sigmas = _accuracy_sigmas(o) if o.accuracy else None
-    jobs = _jobs(images, o)
+    jobs = _jobs(images, o, quiet=ctx.obj["quiet"])
     if o.accuracy:  # every frame's pose takes that many sigmas, before anything is written
         from ..adjust.precision import pose_inputs
 
@@ -111,6 +124,8 @@ def mosaic(ctx: click.Context, images: tuple[str, ...], **kwargs: Any) -> None:
             if not sensor.line_timed:
                 pose_inputs(sensor.pose, len(sigmas[0]))
     terrain = Dem.from_file(o.dem) if o.dem is not None else o.height
+    if o.adjust_chain:
+        jobs = _adjusted(jobs, terrain, o, quiet=ctx.obj["quiet"])
     processes = o.processes
     if processes is None:  # a GPU mosaic is bound by the host work per tile: several processes feed it
         from .._device import resolve_device
@@ -158,12 +173,18 @@ def _accuracy_sigmas(o: SimpleNamespace) -> tuple[list[float], list[float]]:
     return frame, scene
 
 
-def _jobs(images: tuple[str, ...] | list[str], o: SimpleNamespace) -> list[tuple[str, Any]]:
-    """(image, sensor) of the frame IMAGES, then of the --scene scenes."""
+def _jobs(images: tuple[str, ...] | list[str], o: SimpleNamespace, *, quiet: bool = True) -> list[tuple[str, Any]]:
+    """(image, sensor) of the frame IMAGES (from their tags with --exif), then of the --scene
+    scenes."""
     from ..errors import RasterIOError
     from ..pipeline.formats.sensors import frame_sensors
 
-    jobs = frame_sensors(images, o.int_param, o.ext_param, crs=o.crs) if images else []
+    if o.exif:
+        from .exif import exif_jobs
+
+        jobs = exif_jobs(images, o, quiet=quiet).sensors
+    else:
+        jobs = frame_sensors(images, o.int_param, o.ext_param, crs=o.crs) if images else []
     if o.scenes:
         from ..pipeline.formats.dimap import read_scene
 
@@ -189,3 +210,28 @@ def _report_profile(r: Any, images: int, *, show: bool, path: str | None) -> Non
                               output_pixels=int(r.shape[0]) * int(r.shape[1]),
                               shape=list(r.shape), resolution=r.resolution, image_builds=r.image_builds,
                               images_held_peak=r.images_held_peak, images=images))
+
+
+def _adjusted(jobs: list[tuple[str, Any]], terrain: Any, o: SimpleNamespace, *, quiet: bool) -> list[tuple[str, Any]]:
+    """``--adjust``: the frames' orientation refined by the chain
+    (:func:`~orthowarp.pipeline.drone.adjust_exif`), its files in --adjust-dir; the scenes as
+    they are."""
+    from ..pipeline.drone import adjust_exif
+    from ..pipeline.raster.io import check_destination
+
+    folder = o.adjust_dir or os.path.splitext(o.out_path)[0] + "_adjust"
+    for name in ("block.json", "exterior.csv", "cameras.yaml", "pose_cov.json", "report.md", "chain.json",
+                 os.path.join("exif", "int_param.yaml"), os.path.join("exif", "ext_param.csv")):
+        check_destination(os.path.join(folder, name), overwrite=o.overwrite)
+    frames = [(img, s) for img, s in jobs if not s.line_timed]
+    chain = adjust_exif(frames, terrain, folder, device=o.device, refraction=not o.no_refraction)
+    if not quiet:
+        a, m = chain.report["adjust"], chain.report["match"]
+        cams = ", ".join(f"f {c['focal_px_after']:.1f} px, k1 {c['k1']:.4g}, k2 {c['k2']:.4g}"
+                         for c in a["cameras"].values())
+        click.echo(f"adjust: {m['ties']} tie points, {m['observations']} observations; sigma0 {a['sigma0']:.3f}; "
+                   f"{cams}; positions moved {a['position_change_m']['rms']:.2f} m RMS, attitudes "
+                   f"{a['attitude_change_deg']['rms']:.2f} deg RMS; tie points' median height "
+                   f"{a['tie_height_m']['median']:.2f} m; files in {folder}", err=True)
+    adjusted = dict(chain.sensors)
+    return [(img, adjusted.get(img, s)) for img, s in jobs]

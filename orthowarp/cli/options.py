@@ -63,6 +63,23 @@ odm_dataset = click.option("--odm-dataset", type=click.Path(file_okay=False),
                            help="An OpenDroneMap dataset folder: its opensfm/reconstruction.json for --int-param and "
                                 "--ext-param, its odm_dem/dsm.tif for --dem (unless --dem or --height is given) "
                                 "and, without IMAGES, its images/.")
+exif = click.option("--exif", is_flag=True,
+                    help="Cameras and poses from the IMAGES' own EXIF/XMP tags (drone JPEGs or TIFFs; IMAGES may be "
+                         "folders or wildcards): focal length and sensor size (or the 35 mm equivalent, or DJI's "
+                         "calibration), GPS position, DJI gimbal angles (else nadir, the image's top along the "
+                         "flight line); instead of --ext-param (--int-param replaces the tags' cameras).")
+exif_altitude = click.option("--exif-altitude", type=click.Choice(["auto", "ellipsoidal", "relative"]),
+                             default="auto", show_default=True,
+                             help="With --exif, the cameras' heights: auto, the GPS altitude, above the geoid (mean "
+                                  "sea level) unless the EXIF says the ellipsoid; ellipsoidal, the same taken as "
+                                  "ellipsoidal heights; relative, DJI's RelativeAltitude above the take-off point "
+                                  "(--height is then the terrain's height above that point).")
+exif_heading = click.option("--exif-heading", type=click.Choice(["tags", "content"]), default="tags", show_default=True,
+                            help="With --exif, the cameras' attitude: tags, DJI's gimbal angles (else nadir along "
+                                 "the flight line); content, nadir with the image's top where the image content moves "
+                                 "against the GPS track between neighbouring images (where that cannot be measured, "
+                                 "the tags' corrected as their strip's, else the tags').")
+exif_options = compose(exif, exif_altitude, exif_heading)
 attitude_model = click.option("--attitude-model", type=click.Choice(["full", "first_order"]), default=None,
                               help="Attitude matrix of pushbroom scenes read from DIMAP: full (the default) or "
                                    "first_order (its linearised form); a scene JSON from 'orthowarp spot-adjust' "

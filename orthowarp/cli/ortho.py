@@ -20,13 +20,27 @@ _DEFAULT_SOURCES = (None, click.core.ParameterSource.DEFAULT, click.core.Paramet
 
 
 @click.command()
-@click.argument("images", nargs=-1, type=click.Path(dir_okay=False))
+@click.argument("images", nargs=-1, type=click.Path())
 @options.odm_dataset
 @options.orientation
+@options.exif_options
 @click.option("--dimap", type=click.Path(dir_okay=False),
               help="SPOT level-1A DIMAP metadata of a pushbroom scene, or a scene JSON from 'orthowarp spot-adjust' "
                    "(instead of --int-param/--ext-param; one image).")
 @options.attitude_model
+@click.option("--rpc", "rpc", is_flag=False, flag_value="", default=None, type=click.Path(dir_okay=False),
+              metavar="[FILE]",
+              help="One RPC image (rational polynomial coefficients of a satellite image; instead of --int-param/"
+                   "--ext-param): its RPCs from its own metadata (GeoTIFF RPC tags, NITF, an .RPB or _RPC.TXT beside it) "
+                   "when FILE is omitted, else from FILE: .RPB, _RPC.TXT or orthority's RPC parameter file. Give the "
+                   "image before --rpc. Heights are ellipsoidal (a DEM of orthometric heights takes --geoid or "
+                   "--same-vertical-datum).")
+@click.option("--gcps", type=click.Path(dir_okay=False),
+              help="With --rpc: ground control points (orthority's GCP GeoJSON) that estimate a bias compensation of "
+                   "the RPCs in image space (--bias); the estimate and the points' leave-one-out check residuals "
+                   "with and without it are printed.")
+@click.option("--bias", type=click.Choice(["shift", "affine"]), default="shift", show_default=True,
+              help="With --gcps: the compensation's model: a shift of the image, or an affine map (3 points at least).")
 @options.terrain
 @options.crs
 @options.resolution
@@ -62,8 +76,8 @@ _DEFAULT_SOURCES = (None, click.core.ParameterSource.DEFAULT, click.core.Paramet
 @options.profiling
 @click.pass_context
 def ortho(ctx: click.Context, images: tuple[str, ...], **kwargs: Any) -> None:
-    """Orthorectify frame IMAGES, or one pushbroom scene (--dimap), into (cloud-optimized)
-    GeoTIFFs named <image>_ORTHO.tif."""
+    """Orthorectify frame IMAGES, one pushbroom scene (--dimap) or one RPC image (--rpc), into
+    (cloud-optimized) GeoTIFFs named <image>_ORTHO.tif."""
     t_command = time.perf_counter()
     _spare_final_collection()
     if not kwargs["export_params"]:
@@ -77,13 +91,23 @@ def ortho(ctx: click.Context, images: tuple[str, ...], **kwargs: Any) -> None:
     if o.odm_dataset is not None:
         images, o.int_param, o.ext_param, o.dem = odm_dataset(o.odm_dataset, images=images, int_param=o.int_param,
                                                               ext_param=o.ext_param, dem=o.dem, height=o.height)
+    from .exif import check_exif_options
+
+    check_exif_options(images, o)
     if not images:
         if o.dimap is not None:
             raise ParamError(f"--dimap '{o.dimap}' describes a scene: give its image as IMAGES")
+        if o.rpc:
+            raise ParamError(f"--rpc took '{o.rpc}' as its RPC file and no image is left: give the image before --rpc "
+                             "(orthowarp ortho IMAGE --rpc [FILE])")
         raise ParamError("Give IMAGES (or --odm-dataset DIR)")
     if o.export_params:
         _export_params(images, o, quiet=ctx.obj["quiet"])
         return
+    if o.rpc is not None and o.accuracy:
+        raise ParamError("--accuracy is not available for RPC images (--rpc): RPCs carry no orientation to propagate")
+    if o.gcps is not None and o.rpc is None:
+        raise ParamError("--gcps estimates an RPC image's bias compensation: give it with --rpc")
     pose_cov, orientation_cov = _covariances(ctx, o)
     if (o.dem is None) == (o.height is None):
         raise ParamError("Give exactly one of --dem FILE and --height METRES")
@@ -95,7 +119,8 @@ def ortho(ctx: click.Context, images: tuple[str, ...], **kwargs: Any) -> None:
                          compress_level=compress_level, quality=quality, block_codec=o.block_codec,
                          source_reads=o.source_reads, creation_options=creation_options, device=o.device,
                          tile_size=o.tile_size, geoid=o.geoid, same_vertical_datum=o.same_vertical_datum)
-    jobs = _jobs(images, o)
+    jobs = _jobs(images, o, quiet=ctx.obj["quiet"])
+    ortho_options["same_vertical_datum"] = o.same_vertical_datum  # (--exif may take the DEM in the GPS's datum)
     quiet, profiles = ctx.obj["quiet"], []
 
     def report(dst: str, r: Any) -> None:
@@ -130,9 +155,14 @@ def _export_params(images: tuple[str, ...] | list[str], o: SimpleNamespace, *, q
     from ..pipeline.formats.export import export_params
     from ..pipeline.formats.sensors import frame_orientations
 
-    if o.dimap or not o.ext_param:
+    if o.exif:
+        from .exif import exif_jobs
+
+        orients = exif_jobs(images, o, quiet=quiet).orientations
+    elif o.dimap or not o.ext_param:
         raise ParamError("--export-params writes frame images' orientations: give --ext-param (not --dimap)")
-    orients = frame_orientations(images, o.int_param, o.ext_param, crs=o.crs)
+    else:
+        orients = frame_orientations(images, o.int_param, o.ext_param, crs=o.crs)
     for path in export_params([(x.image, x.camera, x.pose) for x in orients], o.out_dir,
                               camera_ids={id(x.camera): x.camera_id for x in orients}, overwrite=o.overwrite):
         if not quiet:
@@ -172,10 +202,18 @@ def _covariances(ctx: click.Context, o: SimpleNamespace) -> tuple[Any, Any]:
     return None, np.diag(options.sigma_list(text, 8, name, options.SCENE_SIGMA_UNITS)) ** 2
 
 
-def _jobs(images: tuple[str, ...] | list[str], o: SimpleNamespace) -> list[tuple[str, Any, str]]:
-    """(image, sensor, destination) of each image: the --dimap scene, or the frames."""
+def _jobs(images: tuple[str, ...] | list[str], o: SimpleNamespace, *, quiet: bool = True) -> list[tuple[str, Any, str]]:
+    """(image, sensor, destination) of each image: the --dimap scene, or the frames (from
+    their tags with --exif)."""
     from ..errors import ParamError, RasterIOError
     from ..pipeline.ortho.batch import ortho_destinations
+
+    if o.rpc is not None:
+        return ortho_destinations([(images[0], _rpc_sensor(images, o, quiet=quiet))], o.out_dir)
+    if o.exif:
+        from .exif import exif_jobs
+
+        return ortho_destinations(exif_jobs(images, o, quiet=quiet).sensors, o.out_dir)
 
     if o.dimap is not None:
         from ..pipeline.formats.dimap import read_scene
@@ -192,6 +230,27 @@ def _jobs(images: tuple[str, ...] | list[str], o: SimpleNamespace) -> list[tuple
     from ..pipeline.formats.sensors import frame_sensors
 
     return ortho_destinations(frame_sensors(images, o.int_param, o.ext_param, crs=o.crs), o.out_dir)
+
+
+def _rpc_sensor(images: tuple[str, ...] | list[str], o: SimpleNamespace, *, quiet: bool) -> Any:
+    """The --rpc image's sensor, compensated with --gcps (the estimate and the check residuals
+    printed unless ``quiet``)."""
+    from ..errors import ParamError
+    from ..pipeline.rpc import rpc_image_sensor
+
+    if o.dimap is not None or o.int_param or o.ext_param or getattr(o, "exif", False):
+        raise ParamError("--rpc replaces --int-param, --ext-param, --exif and --dimap: give one or the other")
+    if len(images) != 1:
+        raise ParamError(f"--rpc orthorectifies one image, not {len(images)}")
+    item = rpc_image_sensor(images[0], rpc=o.rpc or None, gcps=o.gcps, bias=o.bias)
+    if item.bias is not None and not quiet:
+        s = item.summary()
+        terms = ", ".join(f"{k} {v:+.6g}" for k, v in s["estimates"].items() if v != 0.0)
+        sigma0 = f"{s['sigma0']:.3g}" if s["sigma0"] == s["sigma0"] else "- (no redundancy)"
+        click.echo(f"{images[0]}: {s['model']} bias from {s['points']} GCPs: {terms} (px); sigma0 {sigma0}; "
+                   f"leave-one-out check RMS {s['check_rms_before_px']:.3f} px without, "
+                   f"{s['check_rms_after_px']:.3f} px with the compensation")
+    return item.sensor
 
 
 _SPARED = []

@@ -12,7 +12,12 @@
 - :mod:`~orthowarp.pipeline.formats.dimap`: SPOT level-1A DIMAP metadata, and adjusted scenes
   as JSON;
 - :mod:`~orthowarp.pipeline.formats.sensors`: sensor objects from images and orientation files
-  (what a batch of orthos, a mosaic or a matching run takes).
+  (what a batch of orthos, a mosaic or a matching run takes);
+- :mod:`~orthowarp.pipeline.formats.rpc`: RPC00B coefficients (image metadata, ``.RPB``,
+  ``_RPC.TXT``, orthority's RPC parameter file; :func:`write_rpb`, :func:`write_rpc_txt`) and
+  orthority's GCP GeoJSON (:func:`read_gcps`);
+- :mod:`~orthowarp.pipeline.formats.exif`: cameras and poses from drone images' EXIF and XMP
+  tags (:func:`read_exif`, :func:`exif_orientations`).
 
 Every reader reports a file's unusable content as a one-line
 :class:`~orthowarp.errors.ParamError` naming the file, made by one helper
@@ -55,6 +60,26 @@ _LAZY = {
     "frame_sensors": ".sensors",
     "odm_dataset": ".sensors",
     "odm_sensors": ".sensors",
+    "RpcFile": ".rpc",
+    "GroundControl": ".rpc",
+    "read_rpc": ".rpc",
+    "read_rpb": ".rpc",
+    "read_rpc_txt": ".rpc",
+    "read_rpc_param": ".rpc",
+    "read_image_rpc": ".rpc",
+    "rpc_from_gdal": ".rpc",
+    "rpc_to_gdal": ".rpc",
+    "write_rpb": ".rpc",
+    "write_rpc_txt": ".rpc",
+    "read_gcps": ".rpc",
+    "rpc_sensor": ".rpc",
+    "ExifTags": ".exif",
+    "ExifOrientation": ".exif",
+    "read_exif": ".exif",
+    "exif_camera": ".exif",
+    "exif_orientations": ".exif",
+    "exif_images": ".exif",
+    "gimbal_attitude": ".exif",
 }
 
 __all__ = list(_LAZY)

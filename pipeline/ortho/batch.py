@@ -209,6 +209,10 @@ def orthorectify_many(jobs: Iterable[tuple[str | os.PathLike, SensorModel, str |
             check_destination(accuracy_path(dst), overwrite=overwrite)
     covs = [None] * len(jobs)
     if accuracy:
+        for src, sensor, _ in jobs:  # a sensor with neither line times nor a pose (RPCs) has nothing to propagate
+            if not sensor.line_timed and getattr(sensor, "pose", None) is None:
+                raise ParamError(f"Image '{src}': the accuracy of {sensor.kind} images is not supported (no orientation "
+                                 "to propagate)")
         covs = _frame_covariances(jobs, pose_cov)
         for src, sensor, _ in jobs:
             if not sensor.line_timed:

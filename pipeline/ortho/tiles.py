@@ -321,7 +321,7 @@ class ImageTiles:
             grid.times = wp.empty(grid.uv.shape, dtype=wp.float64, device=device)
             wp.launch(ortho_kernels.pb_node_times_kernel, dim=grid.uv.shape, device=device,
                       inputs=[*sensor, dem, grid, self.h_mid, grid.times])
-        else:
+        elif geom.sensor.pose is not None:  # a sensor without a pose (RPCs) takes nothing more
             if self.refraction_nodes and sensor[1].enabled:
                 # the refraction turn interpolated from the nodes (see CoarseGrid): on the CPU,
                 # where the per-pixel turn was a third of the kernel's time

@@ -1,0 +1,296 @@
+"""A drone folder to an orthomosaic from the images' EXIF/XMP tags alone (issue 38), on real data.
+
+Given a folder of drone JPEGs (GPS in EXIF, DJI gimbal angles in XMP; e.g. the 18 DJI Phantom 3
+frames of github.com/pierotofy/drone_dataset_brighton_beach, BSD-2-Clause), with no DEM (a
+constant terrain height):
+
+1. the EXIF orientation orthowarp reads (orthowarp.pipeline.formats.exif), and with ``--oty``
+   orthority's (``oty exif --export-params``), interior and exterior side by side: focal length
+   and principal point (px), the projection centre (UTM, m) and the camera's attitude as the
+   optical axis' angle from nadir and the azimuth of the image's top (deg from true north:
+   orthority's map angles carried to true north through the grid's meridian convergence at
+   the camera), with their differences;
+2. the mosaic of the folder in one command (``orthowarp mosaic FOLDER --exif --height H``);
+3. the orthos of every image with the EXIF orientation and the misregistration between
+   overlapping orthos (orthowarp.pipeline.registration.misregistration, 64-px tiles, as
+   bench/match_ngi.py measures it);
+4. with ``--adjust``, the chain: ``orthowarp mosaic FOLDER --exif --adjust`` (tie points by
+   matching, a bundle adjustment with the GPS positions and gimbal angles as observations and
+   the camera self-calibrated; each step's files in ``<mosaic>_adjust/``), then the orthos from
+   the adjusted orientation (``--int-param cameras.yaml --ext-param exterior.csv``) and their
+   misregistration: on the constant height given, and on the adjusted tie points' median
+   height (with the EXIF orientation's orthos on that height too, for a like comparison).
+
+The terrain height, unless ``--height`` gives one, is the take-off point's (DJI's
+``AbsoluteAltitude`` - ``RelativeAltitude``, median over the images), in the datum of the GPS
+altitudes. Relief (trees, buildings) is not modelled by a constant height: its parallax between
+overlapping orthos is part of every misregistration figure here.
+
+usage: python3 bench/exif_folder.py FOLDER [--height H] [--resolution 0.05] [--oty PATH/TO/oty] [--adjust]
+                                    [--heading tags|content] [--no-mosaic] [--work DIR] [--reuse]
+                                    [--device cpu] [--out FILE]
+Reads a folder outside the repository (which tests must not); CPU by default.
+"""
+
+import argparse
+import glob
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+
+from _report import save_report  # noqa: E402
+
+from orthowarp import geodesy  # noqa: E402
+from orthowarp.pipeline.formats.exif import exif_orientations  # noqa: E402
+
+
+def cli(*args, timed=True):
+    """Run ``orthowarp ARGS`` in a process of its own; (seconds, stderr's last lines)."""
+    t0 = time.perf_counter()
+    r = subprocess.run([sys.executable, "-m", "orthowarp.cli", *map(str, args)], capture_output=True, text=True)
+    if r.returncode:
+        raise SystemExit(f"orthowarp {' '.join(map(str, args))} failed:\n{r.stdout}\n{r.stderr}")
+    return time.perf_counter() - t0, (r.stderr.strip().splitlines() + r.stdout.strip().splitlines())
+
+
+def takeoff_height(orients):
+    """Median of AbsoluteAltitude - RelativeAltitude (m), or None."""
+    vals = [o.tags.xmp_number("AbsoluteAltitude") - o.tags.xmp_number("RelativeAltitude") for o in orients
+            if o.tags.xmp_number("AbsoluteAltitude") is not None and o.tags.xmp_number("RelativeAltitude") is not None]
+    return float(np.median(vals)) if vals else None
+
+
+def ned_rotation(pose):
+    """R_ned<-camera of a geocentric pose."""
+    lat, lon, _ = pose.center_geodetic
+    return geodesy.ned_to_ecef_matrix(lat, lon).T @ pose.rotation
+
+
+def map_to_ned(crs, lat, lon):
+    """R_ned<-map at (lat, lon) for a projected CRS: true north and east expressed in the map's
+    grid (numerically, 1 m steps), so R_map<-ned has columns north, east, down."""
+    from pyproj import Transformer
+
+    t = Transformer.from_crs("EPSG:4326", crs, always_xy=True)
+    x0, y0 = t.transform(lon, lat)
+    dlat = 1.0 / 111_132.0
+    dlon = dlat / np.cos(np.radians(lat))
+    n = np.subtract(t.transform(lon, lat + dlat), (x0, y0))
+    e = np.subtract(t.transform(lon + dlon, lat), (x0, y0))
+    n, e = n / np.linalg.norm(n), e / np.linalg.norm(e)
+    r_map_ned = np.array([[n[0], e[0], 0.0], [n[1], e[1], 0.0], [0.0, 0.0, -1.0]])
+    return r_map_ned.T
+
+
+def attitude_figures(r_ned_cam):
+    """(off-nadir angle of the optical axis, azimuth of the image's top) in degrees."""
+    axis = -r_ned_cam[:, 2]  # the camera looks along -z
+    top = r_ned_cam[:, 1]
+    return float(np.degrees(np.arccos(np.clip(axis[2], -1, 1)))), float(np.degrees(np.arctan2(top[1], top[0])) % 360)
+
+
+def compare_with_orthority(orients, oty, work):
+    """Side-by-side interior and exterior parameters of orthowarp's and orthority's EXIF reading."""
+    from pyproj import Transformer
+
+    from orthowarp.pipeline.formats import read_cameras, read_exterior
+
+    folder = os.path.join(work, "oty_exif")
+    os.makedirs(folder, exist_ok=True)
+    subprocess.run([oty, "exif", "--export-params", "--out-dir", folder, "--overwrite", *[o.image for o in orients]],
+                   check=True, capture_output=True)
+    cams = read_cameras(os.path.join(folder, "int_param.yaml"))
+    ext = read_exterior(os.path.join(folder, "ext_param.geojson"))
+    rows, interior = [], {}
+    for o in orients:
+        key = os.path.splitext(os.path.basename(o.image))[0]
+        theirs = ext[key]
+        cam_t = cams[theirs.camera_id] if theirs.camera_id in cams else next(iter(cams.values()))
+        for who, cam, cid in (("orthowarp", o.camera, o.camera_id), ("orthority", cam_t, theirs.camera_id)):
+            if (who, cid) not in interior:
+                f = cam.focal_length / np.array(cam.pixel_size)
+                pp = cam.normalized_to_pixel(np.zeros((1, 2)))[0]
+                interior[(who, cid)] = dict(who=who, camera=cid, image_size=list(cam.image_size),
+                                            focal_px=[float(f[0]), float(f[1])], principal_point_px=pp.tolist(),
+                                            distortion=[cam.k1, cam.k2, cam.k3, cam.p1, cam.p2],
+                                            source=o.camera_source if who == "orthowarp" else "oty exif")
+        crs = theirs.pose.crs
+        lat, lon, h = o.pose.center_geodetic
+        x, y = Transformer.from_crs("EPSG:4326", crs, always_xy=True).transform(lon, lat)
+        ours_xyz = np.array([x, y, h])
+        their_xyz = np.asarray(theirs.pose.center)
+        r_ours = ned_rotation(o.pose)
+        r_theirs = map_to_ned(crs, lat, lon) @ theirs.pose.rotation
+        d = r_ours.T @ r_theirs
+        turn = float(np.degrees(np.arccos(np.clip((np.trace(d) - 1) / 2, -1, 1))))
+        off_o, top_o = attitude_figures(r_ours)
+        off_t, top_t = attitude_figures(r_theirs)
+        gimbal = [o.tags.xmp.get(f"Gimbal{a}Degree") for a in ("Roll", "Pitch", "Yaw")]
+        rows.append(dict(image=key, orthowarp=dict(xyz=ours_xyz.tolist(), off_nadir_deg=off_o, top_azimuth_deg=top_o,
+                                                   gimbal=gimbal),
+                         orthority=dict(xyz=their_xyz.tolist(), off_nadir_deg=off_t, top_azimuth_deg=top_t,
+                                        opk_deg=[theirs.pose.params[k] for k in ("omega", "phi", "kappa")]),
+                         position_difference_m=float(np.linalg.norm(ours_xyz - their_xyz)),
+                         attitude_difference_deg=turn))
+    print("interior orientation (px):")
+    for v in interior.values():
+        print(f"  {v['who']:9s} {v['camera']:28s} {v['image_size'][0]} x {v['image_size'][1]}  f "
+              f"{v['focal_px'][0]:8.2f} {v['focal_px'][1]:8.2f}  pp ({v['principal_point_px'][0]:.2f}, "
+              f"{v['principal_point_px'][1]:.2f})  k1..p2 {v['distortion']}  [{v['source']}]")
+    print("exterior orientation: position (UTM m), optical axis from nadir and azimuth of the image top (deg)")
+    for r in rows:
+        a, b = r["orthowarp"], r["orthority"]
+        print(f"  {r['image']}: orthowarp ({a['xyz'][0]:.3f}, {a['xyz'][1]:.3f}, {a['xyz'][2]:.3f}) "
+              f"{a['off_nadir_deg']:.3f} {a['top_azimuth_deg']:8.3f} | orthority ({b['xyz'][0]:.3f}, "
+              f"{b['xyz'][1]:.3f}, {b['xyz'][2]:.3f}) {b['off_nadir_deg']:.3f} {b['top_azimuth_deg']:8.3f} | d "
+              f"{r['position_difference_m']:.1e} m, {r['attitude_difference_deg']:.1e} deg")
+    return dict(interior=list(interior.values()), exterior=rows,
+                max_position_difference_m=max(r["position_difference_m"] for r in rows),
+                max_attitude_difference_deg=max(r["attitude_difference_deg"] for r in rows))
+
+
+def pair_shifts(paths):
+    """Per overlapping pair of orthos: the 64-px tiles' shifts (px) in their common part (grey:
+    the bands' mean), by orthowarp.pipeline.registration.misregistration."""
+    import itertools
+
+    import rasterio
+    from rasterio.windows import from_bounds
+
+    from orthowarp.pipeline.registration import misregistration
+
+    out = {}
+    for a, b in itertools.combinations(paths, 2):
+        with rasterio.open(a) as da, rasterio.open(b) as db:
+            left, bottom = max(da.bounds.left, db.bounds.left), max(da.bounds.bottom, db.bounds.bottom)
+            right, top = min(da.bounds.right, db.bounds.right), min(da.bounds.top, db.bounds.top)
+            if right <= left or top <= bottom:
+                continue
+            wa = from_bounds(left, bottom, right, top, da.transform).round_offsets().round_lengths()
+            wb = from_bounds(left, bottom, right, top, db.transform).round_offsets().round_lengths()
+            h, w = min(wa.height, wb.height), min(wa.width, wb.width)
+            if min(h, w) < 64:
+                continue
+            ga = da.read(window=wa)[:, :h, :w].astype(np.float64).mean(0)
+            gb = db.read(window=wb)[:, :h, :w].astype(np.float64).mean(0)
+            valid = (da.read_masks(1, window=wa)[:h, :w] > 0) & (db.read_masks(1, window=wb)[:h, :w] > 0)
+        m = misregistration(ga, gb, valid=valid, tile=64)
+        if m["n_tiles"]:
+            key = f"{os.path.basename(a)[:-10]}~{os.path.basename(b)[:-10]}"
+            out[key] = m["shifts"]
+    return out
+
+
+def overlap_summary(folder, resolution, label):
+    """The misregistration between the overlapping orthos of a folder: per pair the tiles, the
+    RMS of their shift magnitudes and the length of their mean shift (its systematic part, as
+    bench/match_ngi.py reports them); over all tiles the quartiles of the magnitudes."""
+    paths = sorted(glob.glob(os.path.join(folder, "*_ORTHO.tif")))
+    shifts = pair_shifts(paths)
+    pairs = {k: dict(tiles=len(v), rms_px=round(float(np.sqrt(np.mean(np.sum(v * v, 1)))), 3),
+                     mean_shift_px=round(float(np.hypot(*v.mean(0))), 3)) for k, v in shifts.items()}
+    mags = np.concatenate([np.hypot(*v.T) for v in shifts.values()])
+    rms = np.array([p["rms_px"] for p in pairs.values()])
+    mean_shift = np.array([p["mean_shift_px"] for p in pairs.values()])
+    q = np.percentile(mags, [25, 50, 75])
+    out = dict(pairs=pairs, overlapping_pairs=len(pairs), tiles=int(len(mags)), resolution_m=resolution,
+               rms_px_median=float(np.median(rms)), mean_shift_px_median=float(np.median(mean_shift)),
+               tile_shift_px=dict(p25=float(q[0]), median=float(q[1]), p75=float(q[2]),
+                                  under_5px=float(np.mean(mags < 5))))
+    print(f"{label}: {len(pairs)} overlapping pairs, {len(mags)} tiles; per pair shift RMS median "
+          f"{out['rms_px_median']:.2f} px ({out['rms_px_median'] * resolution:.3f} m), mean shift median "
+          f"{out['mean_shift_px_median']:.2f} px ({out['mean_shift_px_median'] * resolution:.3f} m); tiles' shift "
+          f"quartiles {q[0]:.2f}, {q[1]:.2f}, {q[2]:.2f} px, {100 * out['tile_shift_px']['under_5px']:.0f} % under 5 px")
+    return out
+
+
+def orthos(folder, args, *more, reuse=False):
+    """``orthowarp ortho`` into ``folder`` (seconds, stderr's and stdout's lines); nothing where
+    ``reuse`` and the folder holds orthos already."""
+    if reuse and glob.glob(os.path.join(folder, "*_ORTHO.tif")):
+        return None, []
+    return cli("ortho", *more, "--out-dir", folder, *args)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("folder")
+    ap.add_argument("--height", type=float, default=None, help="terrain height (default: the take-off point's)")
+    ap.add_argument("--resolution", type=float, default=0.05)
+    ap.add_argument("--oty", default=None, help="orthority's oty executable (compares its EXIF reading)")
+    ap.add_argument("--adjust", action="store_true", help="also the chain: matching, adjustment, mosaic")
+    ap.add_argument("--heading", choices=["tags", "content"], default="tags",
+                    help="the images' headings (--exif-heading): the tags', or from the image content")
+    ap.add_argument("--no-mosaic", action="store_true", help="skip step 2 (the EXIF mosaic)")
+    ap.add_argument("--reuse", action="store_true", help="keep the orthos and the chain's files found in --work")
+    ap.add_argument("--work", default=None)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--out", default="bench/results/exif_folder.json")
+    args = ap.parse_args(argv)
+    work = args.work or tempfile.mkdtemp(prefix="orthowarp-exif-")
+    os.makedirs(work, exist_ok=True)
+    orients = exif_orientations([args.folder])
+    height = args.height if args.height is not None else takeoff_height(orients)
+    if height is None:
+        raise SystemExit("give --height: the images carry no AbsoluteAltitude and RelativeAltitude")
+    report = dict(folder=os.path.abspath(args.folder), images=len(orients), height_m=height,
+                  height_source="--height" if args.height is not None else "take-off point (AbsoluteAltitude - "
+                                                                            "RelativeAltitude, median)",
+                  resolution_m=args.resolution, device=args.device, work=work,
+                  cameras=sorted({o.camera_id for o in orients}), camera_source=orients[0].camera_source,
+                  attitude={a: sum(o.attitude == a for o in orients) for a in ("gimbal", "flight line")})
+    print(f"{len(orients)} images; terrain height {height:.2f} m ({report['height_source']})")
+    if args.oty:
+        report["orthority"] = compare_with_orthority(orients, args.oty, work)
+    common = ["--height", height, "--resolution", args.resolution, "--device", args.device, "--overwrite"]
+    exif = ["--exif", "--exif-heading", args.heading]
+    report["heading"] = args.heading
+    if not args.no_mosaic:
+        secs, lines = cli("mosaic", args.folder, *exif, "-o", os.path.join(work, "mosaic_exif.tif"), "--index",
+                          os.path.join(work, "mosaic_exif_index.tif"), *common)
+        report["mosaic_exif"] = dict(seconds=secs, output=lines)
+        print(f"mosaic from the folder in one command: {secs:.1f} s; {lines[-1][:160]}")
+    secs, lines = orthos(os.path.join(work, "orthos_exif"), common, args.folder, *exif, reuse=args.reuse)
+    report["orthos_exif"] = dict(seconds=secs, read=[ln for ln in lines if ln.startswith("EXIF")], **overlap_summary(
+        os.path.join(work, "orthos_exif"), args.resolution, f"overlaps, EXIF orientation (heading: {args.heading})"))
+    if args.adjust:
+        mosaic = os.path.join(work, "mosaic_adjusted.tif")
+        adj = os.path.splitext(mosaic)[0] + "_adjust"
+        secs, lines = (None, []) if args.reuse and os.path.exists(os.path.join(adj, "chain.json")) else \
+            cli("mosaic", args.folder, *exif, "--adjust", "-o", mosaic, *common)
+        with open(os.path.join(adj, "chain.json")) as f:
+            chain = json.load(f)
+        report["chain"] = dict(seconds=secs, folder=adj, report=chain, output=[ln for ln in lines if "adjust" in ln])
+        print("\n".join(ln for ln in lines if ln.startswith("adjust")))
+        unmatched = set(chain.get("unmatched", []))  # (kept their EXIF orientation: not in exterior.csv)
+        images = [o.image for o in orients if os.path.splitext(os.path.basename(o.image))[0] not in unmatched]
+        orient_args = ["--int-param", os.path.join(adj, "cameras.yaml"),
+                       "--ext-param", os.path.join(adj, "exterior.csv")]
+        secs, _ = orthos(os.path.join(work, "orthos_adjusted"), common, *images, *orient_args, reuse=args.reuse)
+        report["orthos_adjusted"] = dict(seconds=secs, **overlap_summary(
+            os.path.join(work, "orthos_adjusted"), args.resolution, "overlaps, adjusted orientation"))
+        tie_h = chain["adjust"]["tie_height_m"]["median"]
+        common_t = ["--height", tie_h, *common[2:]]
+        secs, _ = orthos(os.path.join(work, "orthos_adjusted_tieh"), common_t, *images, *orient_args,
+                         reuse=args.reuse)
+        common_e = ["--height", tie_h, *common[2:]]
+        secs_e, _ = orthos(os.path.join(work, "orthos_exif_tieh"), common_e, args.folder, *exif, reuse=args.reuse)
+        report["orthos_exif_tie_height"] = dict(seconds=secs_e, height_m=tie_h, **overlap_summary(
+            os.path.join(work, "orthos_exif_tieh"), args.resolution,
+            f"overlaps, EXIF orientation on the ties' median height {tie_h:.2f} m"))
+        report["orthos_adjusted_tie_height"] = dict(seconds=secs, height_m=tie_h, **overlap_summary(
+            os.path.join(work, "orthos_adjusted_tieh"), args.resolution,
+            f"overlaps, adjusted orientation on the ties' median height {tie_h:.2f} m"))
+    save_report(report, args.out)
+    print(f"report: {args.out}")
+
+
+if __name__ == "__main__":
+    main()
