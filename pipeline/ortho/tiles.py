@@ -395,9 +395,7 @@ class ImageTiles:
         with self._whole_lock:  # e.g. uint8 into float32: widened on the device, once
             if self._whole is None:
                 t = time.perf_counter()
-                wide = wp.empty(data.shape, dtype=wp.float32, device=self.device)
-                wp.launch(ortho_kernels.widen_kernel, dim=data.shape, inputs=[data], outputs=[wide], device=self.device)
-                self._whole = wide, valid
+                self._whole = widened(data), valid
                 self.timer.span("kernel", t)
             return self._whole
 
@@ -433,10 +431,8 @@ class ImageTiles:
         data = wp.empty((self.count, wr1 - wr0, wc1 - wc0), dtype=raw.dtype, device=device)
         wp.launch(ortho_kernels.untile_kernel, dim=data.shape, device=device,
                   inputs=[raw, layout.block_h, layout.block_w, across, row_off, col_off], outputs=[data])
-        if layout.dtype not in (self.out_dtype, "float32"):  # e.g. uint8 into float32: widen on the device
-            wide = wp.empty(data.shape, dtype=wp.float32, device=device)
-            wp.launch(ortho_kernels.widen_kernel, dim=data.shape, inputs=[data], outputs=[wide], device=device)
-            data = wide
+        if layout.dtype not in (self.out_dtype, "float32"):  # e.g. uint8 into float32
+            data = widened(data)
         self.timer.span("kernel", t)
         return self._window_struct(None, wc0, wr0, 1.0, 1.0), data
 
@@ -479,14 +475,12 @@ class ImageTiles:
         timer.span("read", t)
         t = time.perf_counter()
         arr = wp.array(data, dtype=WP_TYPES[data.dtype.name], device=device)
-        if data.dtype.name not in (self.out_dtype, "float32"):  # e.g. uint8 into float32: widen on the device
-            wide = wp.empty(data.shape, dtype=wp.float32, device=device)
+        if data.dtype.name not in (self.out_dtype, "float32"):  # e.g. uint8 into float32
             timer.span("h2d", t)
             t = time.perf_counter()
-            wp.launch(ortho_kernels.widen_kernel, dim=data.shape, inputs=[arr], outputs=[wide], device=device)
+            arr = widened(arr)
             timer.span("kernel", t)
             t = time.perf_counter()
-            arr = wide
         sw = self._window_struct(wp.array(valid, dtype=wp.uint8, device=device) if self.masked else None, wc0, wr0,
                                  shape[1] / (wc1 - wc0), shape[0] / (wr1 - wr0))  # window pixels per image pixel
         timer.span("h2d", t)
@@ -502,6 +496,14 @@ class ImageTiles:
         sw.col0, sw.row0 = col0, row0
         sw.inv_sx, sw.inv_sy = inv_sx, inv_sy
         return sw
+
+
+def widened(data: wp.array) -> wp.array:
+    """An integer source array (bands, rows, cols) as float32 on its device, for the
+    resampler (:func:`~orthowarp.kernels.ortho.widen_kernel`)."""
+    wide = wp.empty(data.shape, dtype=wp.float32, device=data.device)
+    wp.launch(ortho_kernels.widen_kernel, dim=data.shape, inputs=[data], outputs=[wide], device=data.device)
+    return wide
 
 
 def source_read_dtype(dtype: str) -> str:
@@ -640,11 +642,9 @@ def read_whole_source(src: str, device: wp.context.Device, *, masked: bool, dtyp
         n_threads = max(1, min(8, os.cpu_count() or 1, len(strips)))
         with ThreadPoolExecutor(max_workers=n_threads) as pool:
             list(pool.map(read, [strips[k::n_threads] for k in range(n_threads)]))
-    if read_dtype != dtype:  # e.g. uint8 into float32: widen on the device
+    if read_dtype != dtype:  # e.g. uint8 into float32
         t = time.perf_counter()
-        wide = wp.empty(data.shape, dtype=wp.float32, device=device)
-        wp.launch(ortho_kernels.widen_kernel, dim=data.shape, inputs=[data], outputs=[wide], device=device)
-        data = wide
+        data = widened(data)
         timer.span("kernel", t)
     return data, valid
 

@@ -119,6 +119,27 @@ def raw_layout(path: str | os.PathLike) -> RawLayout | None:
     return layout
 
 
+def _run_end(layout: RawLayout, t: int, stop: int) -> int:
+    """The end (excluded, at most ``stop``) of the run of blocks from block ``t`` that lie back
+    to back in the file."""
+    u = t + 1
+    while u < stop and layout.offsets[u] == layout.offsets[u - 1] + layout.sizes[u - 1]:
+        u += 1
+    return u
+
+
+def _read_exactly(fd: int, view: memoryview, offset: int, path: str | os.PathLike) -> None:
+    """Fill ``view`` from byte ``offset`` of the open file ``fd`` (a positioned read may
+    return less than asked); RasterIOError naming ``path`` where the file ends first."""
+    got = 0
+    while got < len(view):
+        n_read = os.preadv(fd, [view[got:]], offset + got)
+        if n_read <= 0:
+            raise RasterIOError(f"Could not read image '{os.fspath(path)}': {len(view)} bytes at {offset}, got {got} "
+                                f"(the file changed or is truncated)")
+        got += n_read
+
+
 def read_raw_blocks(path: str | os.PathLike, layout: RawLayout, device: Device, *, threads: int = 8,
                     chunk: int = 16 << 20, timer: Any = None) -> wp.array:
     """The blocks of ``path`` (its :class:`RawLayout` ``layout``) copied into device memory.
@@ -136,9 +157,7 @@ def read_raw_blocks(path: str | os.PathLike, layout: RawLayout, device: Device, 
     pieces, t, n = [], 0, len(layout.offsets)
     per = max(1, chunk // layout.block_bytes)
     while t < n:
-        u = t + 1
-        while (u < n and u - t < per and layout.offsets[u] == layout.offsets[u - 1] + layout.sizes[u - 1]):
-            u += 1
+        u = _run_end(layout, t, min(n, t + per))
         pieces.append((int(layout.offsets[t]), int(layout.offsets[u - 1] + layout.sizes[u - 1] - layout.offsets[t]),
                        t * layout.block_bytes))
         t = u
@@ -156,13 +175,7 @@ def read_raw_blocks(path: str | os.PathLike, layout: RawLayout, device: Device, 
                 if failed.is_set():
                     return
                 t0 = time.perf_counter()
-                got = 0
-                while got < nbytes:  # (a positioned read may return less than asked)
-                    n_read = os.preadv(fd, [memoryview(buf)[got:nbytes]], off + got)
-                    if n_read <= 0:
-                        raise RasterIOError(f"Could not read image '{os.fspath(path)}': {nbytes} bytes at {off}, "
-                                            f"got {got} (the file changed or is truncated)")
-                    got += n_read
+                _read_exactly(fd, memoryview(buf)[:nbytes], off, path)
                 if timer is not None:
                     timer.span("read", t0)
                 t0 = time.perf_counter()
@@ -213,23 +226,14 @@ def read_raw_window(path: str | os.PathLike, layout: RawLayout, device: Device, 
         fd = os.open(path, os.O_RDONLY)
         try:
             for i in range(bi0, bi1):
-                j = bj0
-                while j < bj1:  # runs of blocks back to back in the file
-                    t = i * across + j
-                    u = j + 1
-                    while u < bj1 and layout.offsets[t + u - j] == layout.offsets[t + u - j - 1] + layout.sizes[t + u - j - 1]:
-                        u += 1
+                t, stop = i * across + bj0, i * across + bj1
+                while t < stop:  # runs of blocks back to back in the file
+                    u = _run_end(layout, t, stop)
                     off = int(layout.offsets[t])
-                    nbytes = int(layout.offsets[t + u - j - 1] + layout.sizes[t + u - j - 1]) - off
-                    dest = ((i - bi0) * n_across + j - bj0) * size
-                    view, got = memoryview(buf)[dest:dest + nbytes], 0
-                    while got < nbytes:
-                        n_read = os.preadv(fd, [view[got:]], off + got)
-                        if n_read <= 0:
-                            raise RasterIOError(f"Could not read image '{os.fspath(path)}': {nbytes} bytes at {off}, "
-                                                f"got {got} (the file changed or is truncated)")
-                        got += n_read
-                    j = u
+                    nbytes = int(layout.offsets[u - 1] + layout.sizes[u - 1]) - off
+                    dest = ((i - bi0) * n_across + t - i * across - bj0) * size
+                    _read_exactly(fd, memoryview(buf)[dest:dest + nbytes], off, path)
+                    t = u
         finally:
             os.close(fd)
     except RasterIOError:
