@@ -48,9 +48,15 @@ from ..._validate import flag, integer
 from ...errors import ParamError
 from ...options import BlockCodec, Compress, choice
 from ..dem import Dem
-from ..ortho.sink import DEFAULT_QUALITY, LOSSY, check_block_codec, compress_level as level_of, parse_creation_options
+from ..ortho.sink import (
+    LOSSY,
+    check_block_codec,
+    check_level_and_quality,
+    check_lossy_bands,
+    compress_level as level_of,
+    parse_creation_options,
+)
 from ..ortho.tiles import source_facts
-from ..raster.cog import LEVELS
 from ..raster.io import check_cancel
 from ..tiles import Tile
 from .plan import (
@@ -209,7 +215,9 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
         raise ParamError(f"compress must be one of {', '.join(MOSAIC_COMPRESS)}; got {compress!r}")
     compress = Compress(compress).value
     stream = "deflate" if compress in LOSSY else compress  # what the tiles stream as
-    quality = _check_lossy(images, compress, dtype, compress_level, quality)
+    compress_level, quality = check_level_and_quality(compress, compress_level, quality)
+    if compress in LOSSY:
+        _check_lossy(images, compress, dtype)
     block_codec = choice("block_codec", block_codec, BlockCodec).value
     check_block_codec(block_codec, stream)
     parse_creation_options(creation_options)  # checked before any work
@@ -217,7 +225,6 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
         raise ParamError(f"tile_size must be a positive multiple of 16, got {tile_size}")
     if processes is not None and (not isinstance(processes, (int, np.integer)) or processes < 1):
         raise ParamError(f"processes must be a positive number of processes, got {processes!r}")
-    compress_level = integer("compress_level", compress_level, low=1, high=LEVELS[stream][1], none=True)
     workers = integer("workers", workers, low=1, none=True)
     flag("overwrite", overwrite)
     flag("seamlines_lonlat", seamlines_lonlat)
@@ -243,28 +250,14 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
             procs.close()
 
 
-def _check_lossy(images: list[tuple], compress: str, dtype: str | None, level: int | None,
-                 quality: int | None) -> int | None:
-    """The quality of a lossy mosaic (default :data:`DEFAULT_QUALITY`; None for a lossless
-    one), checked with the compression's other settings against the first image's bands and
-    data type (all images share them)."""
-    if compress not in LOSSY:
-        if quality is not None:
-            raise ParamError(f"quality applies to jpeg and webp compression, not {compress!r}")
-        return None
-    if level is not None:
-        raise ParamError(f"compress_level applies to deflate (1-12) and zstd (1-22), not {compress!r}")
-    if quality is not None and not (isinstance(quality, (int, np.integer)) and 1 <= int(quality) <= 100):
-        raise ParamError(f"quality must be an integer 1-100, got {quality!r}")
+def _check_lossy(images: list[tuple], compress: str, dtype: str | None) -> None:
+    """A lossy ``compress`` checked against the first image's bands and data type (all images
+    share them) and the mosaic's ``dtype``."""
     src, sensor = images[0]
     count, src_dtype, _ = source_facts(os.fspath(src), tuple(sensor.image_size), sensor.noun)
     if (dtype or src_dtype) != "uint8":
         raise ParamError(f"{compress} compression needs a uint8 mosaic; the images are {src_dtype} (see dtype)")
-    if compress == "jpeg" and count not in (1, 3):
-        raise ParamError(f"jpeg compression takes 1 or 3 bands; '{src}' has {count}")
-    if compress == "webp" and count not in (3, 4):
-        raise ParamError(f"webp compression takes 3 or 4 bands; '{src}' has {count}")
-    return int(quality) if quality is not None else DEFAULT_QUALITY
+    check_lossy_bands(compress, count, src)
 
 
 @dataclass(frozen=True)

@@ -65,6 +65,8 @@ from .sink import (
     LOSSY,
     OutputSettings,
     check_block_codec,
+    check_level_and_quality,
+    check_lossy_bands,
     device_codecs,
     finish,
     gdal_profile,
@@ -366,19 +368,7 @@ def _check_compression(driver: str, compress: str, level: int | None, quality: i
     if driver not in DRIVERS:
         raise ParamError(f"driver must be one of {DRIVERS}, got {driver!r}")
     compress = choice("compress", compress, Compress).value
-    if level is not None:
-        top = {"deflate": 12, "zstd": 22}.get(compress)
-        if top is None:
-            raise ParamError(f"compress_level applies to deflate (1-12) and zstd (1-22), not {compress!r}")
-        level = integer("compress_level", level, low=1, high=top)
-    if quality is not None:
-        if compress not in LOSSY:
-            raise ParamError(f"quality applies to jpeg and webp compression, not {compress!r}")
-        if not (isinstance(quality, (int, np.integer)) and 1 <= int(quality) <= 100):
-            raise ParamError(f"quality must be an integer 1-100, got {quality!r}")
-        quality = int(quality)
-    if compress in LOSSY and quality is None:
-        quality = DEFAULT_QUALITY
+    level, quality = check_level_and_quality(compress, level, quality)
     if dtype is not None and dtype not in DTYPES:
         raise ParamError(f"dtype must be one of {DTYPES}, got {dtype!r}")
     return compress, level, quality
@@ -419,10 +409,7 @@ def _output_dtype(dtype: str | None, source: _Source, compress: str) -> str:
     out_dtype = dtype or (source.dtype if source.dtype in DTYPES else "float32")
     if compress in LOSSY and out_dtype != "uint8":
         raise ParamError(f"{compress} compression needs uint8 output")
-    if compress == "jpeg" and source.count not in (1, 3):
-        raise ParamError(f"jpeg compression takes 1 or 3 bands; '{source.path}' has {source.count}")
-    if compress == "webp" and source.count not in (3, 4):
-        raise ParamError(f"webp compression takes 3 or 4 bands; '{source.path}' has {source.count}")
+    check_lossy_bands(compress, source.count, source.path)
     return out_dtype
 
 

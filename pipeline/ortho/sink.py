@@ -26,6 +26,7 @@ import rasterio
 import rasterio.shutil
 from rasterio.windows import Window
 
+from ..._validate import integer
 from ...errors import DeviceError, ParamError
 from ...options import BlockCodec, Compress, values
 from ..raster.cog import LEVELS, CogWriter, overview_count
@@ -41,7 +42,7 @@ if TYPE_CHECKING:
 
 __all__ = ["open_sink", "Sink", "OutputSettings", "finish", "gdal_profile", "gdal_creation_options",
            "parse_creation_options", "choose_block_codec", "check_block_codec", "device_codecs", "nvcomp_available",
-           "compress_level", "DRIVERS", "COMPRESS", "STREAMED", "DEVICE_COMPRESS", "LOSSY", "DEFAULT_QUALITY",
+           "compress_level", "check_level_and_quality", "check_lossy_bands", "DRIVERS", "COMPRESS", "STREAMED", "DEVICE_COMPRESS", "LOSSY", "DEFAULT_QUALITY",
            "BLOCK_CODECS", "CREATION_OPTIONS"]
 
 DRIVERS = ("COG", "GTiff")
@@ -172,6 +173,35 @@ def compress_level(compress: str, level: int | None) -> int | None:
     if compress not in LEVELS:
         return None
     return LEVELS[compress][2] if level is None else int(level)
+
+
+def check_level_and_quality(compress: str, level: int | None, quality: int | None) -> tuple[int | None, int | None]:
+    """``compress``'s level (deflate 1-12, zstd 1-22; refused for the others) and JPEG / WebP
+    quality (1-100, default :data:`DEFAULT_QUALITY`; refused for lossless compressions),
+    checked. Returns (level, quality)."""
+    if level is not None:
+        top = {"deflate": 12, "zstd": 22}.get(compress)
+        if top is None:
+            raise ParamError(f"compress_level applies to deflate (1-12) and zstd (1-22), not {compress!r}")
+        level = integer("compress_level", level, low=1, high=top)
+    if quality is not None:
+        if compress not in LOSSY:
+            raise ParamError(f"quality applies to jpeg and webp compression, not {compress!r}")
+        if not (isinstance(quality, (int, np.integer)) and 1 <= int(quality) <= 100):
+            raise ParamError(f"quality must be an integer 1-100, got {quality!r}")
+        quality = int(quality)
+    if compress in LOSSY and quality is None:
+        quality = DEFAULT_QUALITY
+    return level, quality
+
+
+def check_lossy_bands(compress: str, count: int, path: str) -> None:
+    """A ``count``-band image (``path``, named in the message) can be compressed ``compress``:
+    JPEG takes 1 or 3 bands, WebP 3 or 4."""
+    if compress == "jpeg" and count not in (1, 3):
+        raise ParamError(f"jpeg compression takes 1 or 3 bands; '{path}' has {count}")
+    if compress == "webp" and count not in (3, 4):
+        raise ParamError(f"webp compression takes 3 or 4 bands; '{path}' has {count}")
 
 
 def check_block_codec(block_codec: str, compress: str) -> None:
