@@ -38,6 +38,7 @@ import time
 from collections.abc import Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import warp as wp
@@ -69,9 +70,10 @@ from .plan import (
     mosaic_plan,
     output_paths,
 )
+from .cluster import TiledResult, TiledSettings, cluster_results, connect, write_tiled
 from .workers import ProcessTiles, TileDealer, tile_runs
 
-__all__ = ["mosaic", "mosaic_plan", "MosaicPlan", "MosaicResult", "NO_SOURCE", "MOSAIC_COMPRESS"]
+__all__ = ["mosaic", "mosaic_plan", "MosaicPlan", "MosaicResult", "TiledResult", "NO_SOURCE", "MOSAIC_COMPRESS"]
 
 #: A mosaic's compressions: lossless, streamed by orthowarp's COG writer, or lossy for uint8
 #: mosaics (streamed as deflate, then compressed by GDAL's COG driver; the index stays lossless).
@@ -89,9 +91,12 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
            block_codec: str = "auto",
            creation_options: dict | None = None, tile_size: int | None = None, overwrite: bool = False, device: str | None = None,
            workers: int | None = None, processes: int | None = None, geoid: str | os.PathLike | None = None,
-           same_vertical_datum: bool = False, cancel: threading.Event | None = None) -> MosaicResult:
+           same_vertical_datum: bool = False, cancel: threading.Event | None = None, cluster: Any = None,
+           gpus: int | None = None, tiled: bool = False, product_tile: int | None = None,
+           progress: Any = None) -> MosaicResult | TiledResult:
     """Mosaic frame images and pushbroom scenes into one cloud-optimized GeoTIFF (deflate or
-    zstd, internal mask, overviews).
+    zstd, internal mask, overviews), or into a tiled product (a folder of COG tiles with a VRT
+    and a GeoJSON index of them), on this process or on a Dask cluster.
 
     Parameters
     ----------
@@ -203,10 +208,36 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
     geoid, same_vertical_datum :
         As for :func:`~orthowarp.pipeline.ortho.orthorectify`.
     cancel : threading.Event, optional
+    cluster : distributed.Client or str, optional
+        Compute the tiles on a Dask cluster: a client, or a scheduler's address
+        (``tls://...`` with Dask's configured TLS certificates). The plan is made here and sent
+        to each worker once; the workers read the images themselves (local paths made
+        absolute: they must see the same files, e.g. on a shared file system; GDAL virtual file
+        system paths such as ``/vsis3/...`` as given). The single COG is written here from the
+        tiles they send back; a ``tiled`` product's tiles are written by the workers (see
+        :mod:`orthowarp.pipeline.mosaic.cluster`). A worker that dies costs only its tiles,
+        which Dask recomputes elsewhere (same bytes). Needs Dask's ``distributed``.
+    gpus : int, optional
+        Instead of ``cluster``: a cluster on this host of one worker per GPU (the first
+        ``gpus`` GPUs; listening on localhost only), closed at the end.
+    tiled : bool, optional
+        Write the tiled product into the folder ``dst``: ``tiles/RRRRR_CCCCC.tif`` (COGs of
+        ``product_tile`` pixels, with masks and overviews; none where no image meets the tile),
+        ``mosaic.vrt`` over them, ``index/`` and ``index.vrt`` where ``index`` is True,
+        ``tiles.geojson`` (each tile's bounds and source images) and ``manifest.json``. Its
+        work folder ``dst.partial`` keeps the tiles finished before a run was stopped or killed,
+        and the next run of the same job skips them. Deflate or zstd; no seamlines (use the GeoJSON
+        index).
+    product_tile : int, optional
+        With ``tiled``: the product tiles' edge in pixels, a multiple of ``tile_size``
+        (default 4 tiles: 8192 on a GPU, 2048 on the CPU).
+    progress : bool or callable, optional
+        With ``cluster``, ``gpus`` or ``tiled``: a progress bar of the tiles (True), or
+        ``progress(done, total, tiles_per_s)`` called as tiles finish.
 
     Returns
     -------
-    MosaicResult
+    MosaicResult, or TiledResult with ``tiled``
     """
     images = check_images(images, resampling, dtype, blend, feather, reference, seams, seam_width,
                            resolution=resolution, refraction=refraction, balance=balance, occlusion=occlusion,
@@ -228,11 +259,28 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
     workers = integer("workers", workers, low=1, none=True)
     flag("overwrite", overwrite)
     flag("seamlines_lonlat", seamlines_lonlat)
+    flag("tiled", tiled)
+    gpus = integer("gpus", gpus, low=1, none=True)
+    distributed_run = cluster is not None or gpus is not None
+    if distributed_run and processes is not None and processes > 1:
+        raise ParamError("processes is for a mosaic on this process's device; with cluster or gpus the workers "
+                         "compute the tiles")
     dst = os.fspath(dst)
-    outputs = output_paths(dst, index, seamlines, overwrite)
     on = resolve_device(device)
+    if tiled:
+        tiled_settings = _tiled_settings(dst, index, seamlines, compress, compress_level, creation_options, tile_size,
+                                         product_tile, block_codec, on)
+        outputs = []
+    else:
+        if product_tile is not None:
+            raise ParamError("product_tile is the tiles' size of a tiled mosaic (tiled=True)")
+        outputs = output_paths(dst, index, seamlines, overwrite)
+    several = processes is not None and processes > 1
+    # a tiled product on several processes: a Dask cluster of them on this host
+    local = int(processes) if tiled and several and not distributed_run else None
+    worker_device = "cuda:0" if gpus is not None else str(on)  # (each GPU worker sees only its GPU)
     # the tile processes start beside the plan (their imports and kernel loading overlap it)
-    procs = ProcessTiles(int(processes), str(on), threads=workers or 2) if processes and processes > 1 else None
+    procs = ProcessTiles(int(processes), str(on), threads=workers or 2) if several and local is None else None
     try:
         plan = mosaic_plan(images, dem=dem, crs=crs, resolution=resolution, resampling=resampling,
                            refraction=refraction, dtype=dtype, seams=seams, seam_width=seam_width, blend=blend,
@@ -244,10 +292,40 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
                              block_codec=block_codec,
                              creation_options=creation_options, tile_size=tile_size, overwrite=overwrite,
                              workers=workers)
-        return _write_mosaic(plan, procs, dst, on, out, cancel)
+        with connect(cluster, gpus=gpus, workers=local, threads=workers or 2) as client:
+            if tiled:
+                try:
+                    return write_tiled(plan, dst, tiled_settings, client=client, overwrite=overwrite, cancel=cancel,
+                                       progress=progress, threads=workers, worker_device=worker_device)
+                finally:
+                    plan.close()
+            return _write_mosaic(plan, procs, dst, on, out, cancel, client=client, progress=progress,
+                                 worker_device=worker_device)
     finally:
         if procs is not None:
             procs.close()
+
+
+def _tiled_settings(dst: str, index: Any, seamlines: Any, compress: str, compress_level: int | None,
+                    creation_options: dict | None, tile_size: int | None, product_tile: int | None,
+                    block_codec: str, on: wp.context.Device) -> TiledSettings:
+    """:func:`mosaic`'s tiled product settings, checked before any work."""
+    if seamlines is not None:
+        raise ParamError("A tiled mosaic has no seamlines file: its tiles.geojson names each tile's images")
+    if index not in (None, True, False):
+        raise ParamError(f"With tiled=True, index is True or False (index/ and index.vrt in '{dst}'), got {index!r}")
+    if compress not in ("deflate", "zstd"):
+        raise ParamError(f"A tiled mosaic is written deflate or zstd, not {compress}")
+    if os.path.exists(dst) and not os.path.isdir(dst):
+        raise ParamError(f"Output '{dst}' is a file; a tiled mosaic is a folder")
+    size = int(tile_size) if tile_size is not None else default_tile_size(on)
+    product = 4 * size if product_tile is None else integer("product_tile", product_tile, low=16)
+    settings = TiledSettings(product_tile=product, tile_size=size, compress=compress,
+                             compress_level=level_of(compress, compress_level),
+                             block_size=parse_creation_options(creation_options)["block"], index=bool(index),
+                             block_codec=block_codec)
+    settings.check()
+    return settings
 
 
 def _check_lossy(images: list[tuple], compress: str, dtype: str | None) -> None:
@@ -278,9 +356,11 @@ class _WriteSettings:
 
 
 def _write_mosaic(plan: MosaicPlan, procs: ProcessTiles | None, dst: str, on: wp.context.Device, out: _WriteSettings,
-                  cancel: threading.Event | None) -> MosaicResult:
+                  cancel: threading.Event | None, *, client: Any = None, progress: Any = None,
+                  worker_device: str | None = None) -> MosaicResult:
     """:func:`mosaic`'s tiles, on a thread pool of this process or, with ``procs`` (a started
-    :class:`~orthowarp.pipeline.mosaic.workers.ProcessTiles`), on worker processes, written."""
+    :class:`~orthowarp.pipeline.mosaic.workers.ProcessTiles`), on worker processes, or on the
+    workers of a Dask ``client``, written."""
     t0 = time.perf_counter()
     stream = "deflate" if out.compress in LOSSY else out.compress
     level = 1 if out.compress in LOSSY else level_of(out.compress, out.compress_level)  # (a lossy mosaic's intermediate)
@@ -288,7 +368,9 @@ def _write_mosaic(plan: MosaicPlan, procs: ProcessTiles | None, dst: str, on: wp
     size = int(out.tile_size) if out.tile_size is not None else default_tile_size(on)
     tiles = plan.tiles(size)
     host_source = out.index is not None or out.seamlines is not None  # else the pixels per image counted there
-    if procs is None:
+    if client is not None:
+        results = _cluster_results(plan, client, tiles, codec, on, cancel, dst, progress, worker_device)
+    elif procs is None:
         results = _thread_results(plan, tiles, codec, on, host_source, out.workers, cancel, dst)
     else:
         results = _process_results(plan, procs, tiles, size, codec, on, host_source, cancel, dst)
@@ -350,6 +432,24 @@ def _thread_results(plan: MosaicPlan, tiles: list[Tile], codec: str, on: wp.cont
             for _, f in pending:
                 f.cancel()
             raise
+
+
+def _cluster_results(plan: MosaicPlan, client: Any, tiles: list[Tile], codec: str, on: wp.context.Device,
+                     cancel: threading.Event | None, dst: str, progress: Any,
+                     worker_device: str | None) -> Iterator[tuple[Tile, tuple]]:
+    """Tile results for :meth:`MosaicPlan.write` from the workers of a Dask ``client``
+    (:func:`~orthowarp.pipeline.mosaic.cluster.cluster_results`), each uploaded to this
+    process's device for a device ``codec``'s encoder."""
+    plan._kept.clear()  # the reduced pass's geometries and sources: the workers build their own
+    plan._materialise()
+    for tile, (values, valid, source) in cluster_results(plan, client, tiles, cancel=cancel, name=dst,
+                                                         progress=progress, worker_device=worker_device):
+        if codec == "host":
+            yield tile, (values, valid, source)
+            continue
+        plan._encoder.write(tile.row, tile.col, wp.array(values, device=on),
+                            wp.array(valid.view(np.uint8), dtype=wp.uint8, device=on))
+        yield tile, (None, valid, source)
 
 
 def _process_results(plan: MosaicPlan, procs: ProcessTiles, tiles: list[Tile], size: int,

@@ -1,0 +1,838 @@
+"""A mosaic's tiles on a Dask cluster (the GPUs of one host, or many machines), and the tiled
+product: a grid of COG tiles written in parallel where they were computed.
+
+:func:`~orthowarp.pipeline.mosaic.mosaic` makes the plan once, in the calling process
+(footprints, reduced pass, seams, balance), then hands its tiles to this module:
+
+- :func:`cluster_results` runs :meth:`MosaicPlan.tile
+  <orthowarp.pipeline.mosaic.plan.MosaicPlan.tile>` (a pure function of the tile and the
+  plan) as Dask tasks. The plan is sent to every worker once (``scatter(broadcast=True)``); the
+  workers read the source images themselves (local paths made absolute, GDAL virtual file
+  system paths such as ``/vsis3/`` as given), so nothing large travels through the scheduler.
+  The tiles are dealt in the bands of :func:`~orthowarp.pipeline.mosaic.workers.tile_runs`,
+  one band per worker (loose restrictions: a band whose worker is gone runs elsewhere), at most
+  a few tiles per worker in flight, and come back to the caller, which writes the one COG.
+- :func:`write_tiled` writes the tiled product: the mosaic's grid cut into product tiles (a
+  whole number of compute tiles each), each computed and written as a COG (and its source index
+  where asked) by the worker that computed it, published under its own name when complete;
+  then a GDAL VRT of the tiles and a GeoJSON index of them (each tile's source images) are
+  written, and the folder is published by one rename. The work folder ``<dst>.partial`` keeps
+  the finished tiles of a run that was killed or failed, with a fingerprint of the plan and the
+  settings: a run of the same job skips them (checkpoint by tile); a different job starts
+  afresh. Each tile's bytes depend only on the plan and the tile, whatever the cluster.
+
+Faults: Dask recomputes the tiles of a worker that dies elsewhere (the tile function is pure,
+so the output is the same); a tile file is published by a rename when complete, so none is
+half-written, and a recomputed one has the same bytes.
+
+:func:`local_cluster` starts a cluster on this host (one worker per GPU, with
+``CUDA_VISIBLE_DEVICES`` set to its GPU, or CPU workers), listening on localhost only;
+:func:`connect` resolves the ``cluster=`` / ``gpus=`` / scheduler address of the API and
+CLI. Dask's ``distributed`` package is needed for clusters only (``pip install
+'orthowarp[cluster]'``).
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import copy
+import fcntl
+import hashlib
+import json
+import logging
+import os
+import pickle
+import shutil
+import threading
+import time
+import urllib.parse
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, dataclass
+from typing import Any
+from xml.sax.saxutils import escape
+
+import numpy as np
+
+from ...errors import Cancelled, OrthowarpError, ParamError, RasterIOError
+from ..raster.io import atomic_files, describe_os_error, ensure_folder, write_json, write_text
+from ..tiles import Tile
+from .workers import tile_runs
+
+__all__ = ["connect", "local_cluster", "cluster_results", "write_tiled", "TiledSettings", "redact",
+           "PRODUCT_FORMAT"]
+
+_log = logging.getLogger(__name__)
+
+PRODUCT_FORMAT = "orthowarp-tiled-mosaic/1"  # the manifest's "format": what a restart accepts
+_PER_WORKER = 3  # tiles in flight per worker thread for the one-COG path (bounded memory)
+_GDAL_TYPES = {"uint8": "Byte", "uint16": "UInt16", "float32": "Float32"}
+
+
+# -- clusters -----------------------------------------------------------------------------------
+
+def _distributed() -> Any:
+    """Dask's ``distributed``, or a clear error."""
+    try:
+        import distributed
+    except ImportError as e:
+        raise ParamError("Running on a Dask cluster needs Dask's 'distributed' package "
+                         "(pip install 'orthowarp[cluster]')") from e
+    return distributed
+
+
+def _dashboard() -> str:
+    """The dashboard (and HTTP) address of clusters started here: localhost, a free port."""
+    return "127.0.0.1:0"
+
+
+def _gpu_ids(gpus: int) -> list[str]:
+    """The ``CUDA_VISIBLE_DEVICES`` value of each of ``gpus`` workers: the first ``gpus`` GPUs
+    this process sees (in its own ``CUDA_VISIBLE_DEVICES`` order where that is set)."""
+    import warp as wp
+
+    wp.init()
+    have = wp.get_cuda_device_count()
+    if gpus > have:
+        raise ParamError(f"gpus={gpus}, but this host has {have} CUDA device(s)")
+    visible = os.environ.get("CUDA_VISIBLE_DEVICES")
+    ids = [v.strip() for v in visible.split(",")] if visible else [str(i) for i in range(have)]
+    return ids[:gpus]
+
+
+@contextlib.contextmanager
+def local_cluster(*, gpus: int | None = None, workers: int | None = None, threads: int = 2,
+                  processes_per_gpu: int = 1) -> Iterator[Any]:
+    """A Dask cluster on this host and a client of it, for the block; both closed after it.
+
+    Parameters
+    ----------
+    gpus : int, optional
+        One worker process per GPU (``processes_per_gpu`` of them), each seeing only its GPU
+        (``CUDA_VISIBLE_DEVICES``), so that its device ``cuda:0`` is that GPU.
+    workers : int, optional
+        Without ``gpus``: this many CPU worker processes.
+    threads : int, optional
+        Threads per worker (tiles each computes at once).
+    processes_per_gpu : int, optional
+
+    Yields
+    ------
+    distributed.Client
+
+    Notes
+    -----
+    The scheduler, the workers and the dashboard (served where Bokeh is installed) listen on
+    127.0.0.1 only: no other machine can reach the cluster.
+    """
+    distributed = _distributed()
+    if (gpus is None) == (workers is None):
+        raise ParamError("local_cluster takes gpus or workers")
+    n = gpus if gpus is not None else workers
+    if not isinstance(n, (int, np.integer)) or isinstance(n, bool) or n < 1:
+        raise ParamError(f"{'gpus' if gpus is not None else 'workers'} must be a positive number, got {n!r}")
+    if not isinstance(threads, (int, np.integer)) or threads < 1:
+        raise ParamError(f"threads must be a positive number, got {threads!r}")
+    if not isinstance(processes_per_gpu, (int, np.integer)) or processes_per_gpu < 1:
+        raise ParamError(f"processes_per_gpu must be a positive number, got {processes_per_gpu!r}")
+    silence = dict(silence_logs=logging.WARNING)
+    if gpus is None:
+        cluster = distributed.LocalCluster(n_workers=int(workers), threads_per_worker=int(threads), processes=True,
+                                           host="127.0.0.1", dashboard_address=_dashboard(), **silence)
+    else:
+        specs = {}
+        for i, gpu in enumerate(_gpu_ids(int(gpus))):
+            for p in range(int(processes_per_gpu)):
+                specs[f"gpu{i}-{p}"] = dict(cls=distributed.Nanny, options=dict(
+                    host="127.0.0.1", nthreads=int(threads), env={"CUDA_VISIBLE_DEVICES": gpu},
+                    memory_limit=0))
+        scheduler = dict(cls=distributed.Scheduler, options=dict(host="127.0.0.1", dashboard_address=_dashboard()))
+        cluster = distributed.SpecCluster(workers=specs, scheduler=scheduler, **silence)
+    try:
+        with distributed.Client(cluster, direct_to_workers=True) as client:
+            client.wait_for_workers(len(cluster.workers))
+            yield client
+    finally:
+        cluster.close()
+
+
+@contextlib.contextmanager
+def connect(cluster: Any = None, *, gpus: int | None = None, workers: int | None = None, security: Any = None,
+            threads: int = 2, processes_per_gpu: int = 1) -> Iterator[Any | None]:
+    """The Dask client a run uses, for the block.
+
+    Parameters
+    ----------
+    cluster : distributed.Client, str or None
+        A client (used as it is, not closed), or a scheduler's address (``tcp://host:8786``,
+        ``tls://host:8786``: connected with ``security``, or Dask's configured TLS settings
+        where None; closed after the block), or None.
+    gpus : int, optional
+        Without ``cluster``: a :func:`local_cluster` of one worker per GPU.
+    workers : int, optional
+        Without ``cluster`` or ``gpus``: a :func:`local_cluster` of this many worker processes.
+    security : distributed.Security, optional
+        TLS certificates for an address.
+
+    Yields
+    ------
+    distributed.Client or None
+        None where none of ``cluster``, ``gpus``, ``workers`` is given (the caller runs in
+        process).
+    """
+    if cluster is not None and gpus is not None:
+        raise ParamError("Give cluster (a Dask client or scheduler address) or gpus, not both")
+    if cluster is None and gpus is None and workers is None:
+        yield None
+        return
+    if cluster is None:
+        with local_cluster(gpus=gpus, workers=None if gpus is not None else workers, threads=threads,
+                           processes_per_gpu=processes_per_gpu) as client:
+            yield client
+        return
+    distributed = _distributed()
+    if isinstance(cluster, (str, os.PathLike)):
+        address = os.fspath(cluster)
+        try:
+            client = distributed.Client(address, security=security, direct_to_workers=True)
+        except (OSError, TimeoutError, ValueError) as e:
+            raise OrthowarpError(f"Could not connect to the Dask scheduler '{redact(address)}': "
+                                 f"{describe_os_error(e) if isinstance(e, OSError) else e}") from e
+        with client:
+            yield client
+        return
+    if not isinstance(cluster, distributed.Client):
+        raise ParamError(f"cluster must be a distributed.Client or a scheduler address, got {type(cluster).__name__}")
+    yield cluster
+
+
+def worker_names(client: Any) -> list[str]:
+    """The addresses of the client's workers, sorted."""
+    return sorted(client.scheduler_info()["workers"])
+
+
+def dashboard_link(client: Any) -> str | None:
+    """The cluster's dashboard address, where it has one."""
+    try:
+        return client.dashboard_link if client.scheduler_info().get("services", {}).get("dashboard") else None
+    except (AttributeError, KeyError):
+        return None
+
+
+# -- the plan on the workers --------------------------------------------------------------------
+
+def _is_url(path: str) -> bool:
+    """A path GDAL opens through a virtual file system or a URL (not made absolute)."""
+    return path.startswith("/vsi") or "://" in path
+
+
+def redact(path: str) -> str:
+    """``path`` without credentials: a URL's user and password and its query string (signed
+    URLs carry keys there) removed, as is the query of a GDAL ``/vsi...`` path."""
+    path = os.fspath(path)
+    i = path.find("://")
+    if i < 0:
+        return path.split("?", 1)[0] if path.startswith("/vsi") else path
+    start = path.rfind("/", 0, i) + 1  # the URL after a /vsicurl/-like prefix
+    parts = urllib.parse.urlsplit(path[start:])
+    netloc = parts.netloc.rsplit("@", 1)[-1]
+    return path[:start] + urllib.parse.urlunsplit((parts.scheme, netloc, parts.path, "", ""))
+
+
+def shipped_plan(plan: Any, device: str | None = None) -> Any:
+    """A copy of ``plan`` for workers: local source paths made absolute (the workers' working
+    folder may differ), each worker reading its own windows (no resident sources, at most 24
+    images cached), its tiles on ``device`` (default the plan's; ``"cuda:0"`` for the GPU
+    workers of :func:`local_cluster`, each of which sees only its own GPU)."""
+    out = copy.copy(plan)
+    out.__setstate__(plan.__getstate__())
+    out.sources = [(src if _is_url(src) else os.path.abspath(src), sensor, masked)
+                   for src, sensor, masked in plan.sources]
+    out.options = dict(plan.options, resident=False, cache_images=min(plan.options["cache_images"], 24))
+    if device is not None:
+        out.options["device"] = device
+    out.setup_s = {}
+    return out
+
+
+def _deal(client: Any, tiles: Sequence[Tile], images: Sequence[tuple[int, ...]]) -> list[tuple[int, str]]:
+    """(tile position, worker) in the order to submit: the tiles' bands
+    (:func:`~orthowarp.pipeline.mosaic.workers.tile_runs`) dealt to the workers in turn, each
+    worker's tiles in its bands' order."""
+    names = worker_names(client)
+    if not names:
+        raise OrthowarpError("The Dask cluster has no workers")
+    runs = [r for r in tile_runs(tiles, len(names), images) if r]
+    queues = collections.defaultdict(list)
+    for i, run in enumerate(runs):
+        queues[names[i % len(names)]].extend(run)
+    return [(k, w) for w in names for k in queues[w]]
+
+
+class _Submitter:
+    """Keeps at most ``per_worker`` tasks per worker in flight, each worker's in its order; a
+    worker's next task goes in when one of its tasks finishes (wherever it ran)."""
+
+    def __init__(self, client: Any, order: list[tuple[int, str]], submit: Callable[[int, str], Any],
+                 per_worker: int) -> None:
+        self.queues = collections.defaultdict(collections.deque)
+        for k, w in order:
+            self.queues[w].append(k)
+        self.submit, self.per_worker = submit, per_worker
+        self.owner = {}  # future -> (tile position, worker queue)
+        self.done = []
+
+    def start(self) -> list[Any]:
+        out = []
+        for w in list(self.queues):
+            for _ in range(self.per_worker):
+                out += self._next(w)
+        return out
+
+    def _next(self, w: str) -> list[Any]:
+        q = self.queues[w] if self.queues[w] else max(self.queues.values(), key=len)
+        if not q:
+            return []
+        k = q.popleft() if q is self.queues[w] else q.pop()  # another's: from the end of the longest
+        fut = self.submit(k, w)
+        self.owner[fut.key] = (k, w)
+        return [fut]
+
+    def finished(self, fut: Any) -> tuple[int, list[Any]]:
+        k, w = self.owner.pop(fut.key)
+        return k, self._next(w)
+
+
+class _Progress:
+    """Tiles done / total and their rate, to a tqdm bar (``progress=True``) or a callable
+    ``progress(done, total, rate)``; nothing where ``progress`` is None or False."""
+
+    def __init__(self, progress: Any, total: int, done: int = 0, desc: str = "tiles") -> None:
+        self.total, self.done, self.t0, self.bar, self.call = total, done, time.perf_counter(), None, None
+        if progress is True:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=total, initial=done, unit="tile", desc=desc, leave=False)
+        elif callable(progress):
+            self.call = progress
+        elif progress not in (None, False):
+            raise ParamError(f"progress must be True, False, None or a callable, got {progress!r}")
+
+    def step(self, n: int = 1) -> None:
+        self.done += n
+        if self.bar is not None:
+            self.bar.update(n)
+        if self.call is not None:
+            dt = time.perf_counter() - self.t0
+            self.call(self.done, self.total, self.done / dt if dt > 0 else 0.0)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+# -- one COG: the tiles back to the caller ------------------------------------------------------
+
+def _tile_task(plan: Any, tile: Tile) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A worker's tile: (block, valid, source) on the host."""
+    return plan.tile(*tile)
+
+
+def cluster_results(plan: Any, client: Any, tiles: Sequence[Tile], *, cancel: threading.Event | None = None,
+                    name: str | None = None, progress: Any = None, per_worker: int | None = None,
+                    worker_device: str | None = None) -> Iterator[tuple[Tile, tuple]]:
+    """Tile results for :meth:`MosaicPlan.write <orthowarp.pipeline.mosaic.plan.MosaicPlan.write>`
+    computed by the workers of ``client``, as they finish.
+
+    Parameters
+    ----------
+    plan : MosaicPlan
+    client : distributed.Client
+    tiles : sequence of Tile
+    cancel : threading.Event, optional
+        Checked as tiles come back: the tasks still queued are cancelled and
+        :class:`~orthowarp.errors.Cancelled` raised.
+    name : str, optional
+        The output, for messages.
+    progress : bool or callable, optional
+    per_worker : int, optional
+        Tiles in flight per worker (default 3 per worker thread): bounds the memory the
+        finished tiles take while they wait for the caller.
+    worker_device : str, optional
+        The workers' device (see :func:`shipped_plan`).
+
+    Yields
+    ------
+    (Tile, (block, valid, source))
+    """
+    distributed = _distributed()
+    shipped = shipped_plan(plan, worker_device)
+    remote = client.scatter(shipped, broadcast=True, hash=False)
+    images = plan._tile_images(tiles)
+    info = client.scheduler_info()["workers"]
+    threads = max(1, min(int(w.get("nthreads", 1)) for w in info.values())) if info else 1
+    tag = f"orthowarp-tile-{os.getpid()}-{id(plan):x}-{time.monotonic_ns():x}"
+
+    def submit(k: int, w: str) -> Any:
+        return client.submit(_tile_task, remote, tiles[k], workers=[w], allow_other_workers=True, pure=False,
+                             key=f"{tag}-{k}")
+
+    dealer = _Submitter(client, _deal(client, tiles, images), submit, per_worker or _PER_WORKER * threads)
+    bar = _Progress(progress, len(tiles))
+    pending = distributed.as_completed(dealer.start(), with_results=False)
+    try:
+        for fut in pending:
+            if cancel is not None and cancel.is_set():
+                raise Cancelled(f"The mosaic '{name}' was cancelled; nothing was written")
+            k, more = dealer.finished(fut)
+            for f in more:
+                pending.add(f)
+            result = fut.result()
+            fut.release()
+            bar.step()
+            yield tiles[k], result
+    except BaseException:
+        for fut in list(pending.futures):
+            fut.cancel()
+        raise
+    finally:
+        bar.close()
+        remote.release()
+
+
+# -- the tiled product --------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class TiledSettings:
+    """What the tiled product's files are (see :func:`write_tiled`)."""
+
+    product_tile: int  # product tile edge, pixels (a multiple of tile_size)
+    tile_size: int  # compute tiles: the grid the tile function runs on
+    compress: str  # "deflate" or "zstd"
+    compress_level: int | None
+    block_size: int
+    index: bool  # a source-index COG per tile too
+    block_codec: str  # as mosaic()'s, resolved on each worker for its device
+
+    def check(self) -> None:
+        if self.product_tile % self.tile_size:
+            raise ParamError(f"product_tile ({self.product_tile}) must be a multiple of tile_size ({self.tile_size})")
+        if self.compress not in ("deflate", "zstd"):
+            raise ParamError(f"A tiled mosaic is written deflate or zstd, not {self.compress}")
+
+
+def _tile_name(i: int, j: int) -> str:
+    return f"{i:05d}_{j:05d}"
+
+
+def _product_tiles(plan: Any, size: int) -> list[tuple[int, int, Tile]]:
+    """(row, col, Tile) of the product grid's tiles that some image meets."""
+    rows, cols = plan.shape
+    foot = np.asarray(plan.foot, np.int64).reshape(-1, 4)
+    out = []
+    for i, r0 in enumerate(range(0, rows, size)):
+        for j, c0 in enumerate(range(0, cols, size)):
+            t = Tile(r0, c0, min(size, rows - r0), min(size, cols - c0))
+            if plan._images_meeting(t, foot):
+                out.append((i, j, t))
+    return out
+
+
+def _fingerprint(plan: Any, settings: TiledSettings) -> str:
+    """A digest of what the tiles' bytes depend on: the plan (grid, sources and their files'
+    sizes and times, sensors, terrain, options, balance, seams), the settings and orthowarp's
+    version. A restart keeps the tiles of a work folder with the same digest."""
+    from ... import __version__
+
+    state = plan.__getstate__()
+    for k in ("setup_s", "_state", "_lock", "_encoder", "_kept", "_transformers"):
+        state.pop(k, None)
+    state["options"] = {k: v for k, v in state["options"].items() if k not in ("device", "resident", "cache_images",
+                                                                              "device_reduce")}
+    files = []
+    for src, *_ in plan.sources:
+        try:
+            st = os.stat(src)
+            files.append((src, st.st_size, st.st_mtime_ns))
+        except OSError:
+            files.append((src, None, None))
+    h = hashlib.sha256()
+    h.update(pickle.dumps((__version__, PRODUCT_FORMAT, files, asdict(settings)), protocol=4))
+    h.update(pickle.dumps(sorted(state.items()), protocol=4))
+    return h.hexdigest()
+
+
+def _write_product_tile(plan: Any, i: int, j: int, tile: Tile, folder: str, settings: TiledSettings) -> dict:
+    """Compute product tile (``i``, ``j``) from its compute tiles and publish its COG (and index
+    COG), with its statistics as JSON, under ``folder``; returns the statistics."""
+    import rasterio
+    from affine import Affine
+
+    from ..._device import to_host
+    from ..ortho.sink import device_codecs
+    from ..raster.cog import CogWriter
+    from ..raster.device import DeviceCogEncoder
+    from .plan import NO_SOURCE, mosaic_block_codec
+
+    name = _tile_name(i, j)
+    paths = [os.path.join(folder, "tiles", name + ".json"), os.path.join(folder, "tiles", name + ".tif")]
+    if settings.index:
+        paths.append(os.path.join(folder, "index", name + ".tif"))
+    n = len(plan.sources)
+    counts = np.zeros(n, np.int64)
+    dev = plan.warp_device
+    codec = mosaic_block_codec(settings.block_codec, dev, settings.compress_level, settings.compress)
+    crs = rasterio.crs.CRS.from_wkt(plan.crs_wkt)
+    transform = plan.transform @ Affine.translation(tile.col, tile.row)
+    kw = dict(width=tile.width, height=tile.height, crs=crs, transform=transform, compress=settings.compress,
+              level=settings.compress_level, block_size=settings.block_size, threads=2)
+    subs = [Tile(r, c, min(settings.tile_size, tile.row + tile.height - r), min(settings.tile_size, tile.col + tile.width - c))
+            for r in range(tile.row, tile.row + tile.height, settings.tile_size)
+            for c in range(tile.col, tile.col + tile.width, settings.tile_size)]
+    with atomic_files(paths, overwrite=True, durable=False) as tmps:
+        writers = [CogWriter(tmps[1], count=plan.count, dtype=plan.dtype, name=paths[1], **kw)]
+        if settings.index:
+            writers.append(CogWriter(tmps[2], count=1, dtype="uint16", name=paths[2], nodata=NO_SOURCE,
+                                     overview_resampling="nearest", **kw))
+        encoder = None
+        try:
+            if codec != "host":
+                encoder = DeviceCogEncoder(writers[0], dev, device_codecs(codec, settings.compress_level, dev,
+                                                                          settings.compress))
+            for s in subs:
+                r, c = s.row - tile.row, s.col - tile.col
+                if encoder is not None:
+                    out, has, source = plan._tile(*s, device=dev)
+                    encoder.write(r, c, out, has)
+                    source = to_host(source)
+                    valid = source != NO_SOURCE
+                else:
+                    block, valid, source = plan._tile(*s)
+                    writers[0].write(r, c, block, valid)
+                if settings.index:
+                    writers[1].write(r, c, source[..., None], valid)
+                counts += np.bincount(source[valid], minlength=n)[:n]
+            if encoder is not None:
+                encoder.flush()
+            for w in writers:
+                w.close()
+        except BaseException:
+            for w in writers:
+                w.abort()
+            raise
+        finally:
+            if encoder is not None:
+                encoder.close()
+        stats = dict(row=i, col=j, r0=tile.row, c0=tile.col, rows=tile.height, cols=tile.width,
+                     valid_pixels=int(counts.sum()),
+                     pixels_per_image={str(k): int(v) for k, v in enumerate(counts) if v})
+        try:
+            with open(tmps[0], "w", encoding="utf-8") as f:
+                json.dump(stats, f)
+        except OSError as e:
+            raise RasterIOError(f"Could not write '{paths[0]}': {describe_os_error(e)}") from e
+    if not stats["valid_pixels"]:  # nothing to show: the statistics alone say the tile is done
+        for path in paths[1:]:
+            with contextlib.suppress(FileNotFoundError):
+                os.remove(path)
+    return stats
+
+
+def _read_stats(folder: str, i: int, j: int, index: bool) -> dict | None:
+    """A finished tile's statistics, or None where the tile is not (wholly) there."""
+    name = _tile_name(i, j)
+    try:
+        with open(os.path.join(folder, "tiles", name + ".json")) as f:
+            stats = json.load(f)
+    except (OSError, ValueError):
+        return None
+    for sub in ("tiles",) + (("index",) if index else ()):
+        if stats.get("valid_pixels") and not os.path.isfile(os.path.join(folder, sub, name + ".tif")):
+            return None
+    return stats if (stats.get("row"), stats.get("col")) == (i, j) else None
+
+
+@contextlib.contextmanager
+def _work_folder(dst: str, fingerprint: str, overwrite: bool) -> Iterator[str]:
+    """The work folder ``<dst>.partial`` of a tiled product, locked for the block: kept (with
+    its finished tiles) where its manifest has this ``fingerprint``, else emptied first."""
+    work = dst + ".partial"
+    if os.path.lexists(dst) and not overwrite:
+        raise RasterIOError(f"Output '{dst}' exists (pass overwrite=True / --overwrite to replace it)")
+    if os.path.lexists(dst) and not os.path.isdir(dst):
+        raise RasterIOError(f"Output '{dst}' is a file; a tiled mosaic is a folder")
+    ensure_folder(work)
+    lock = os.open(work, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as e:
+            raise RasterIOError(f"Another run is writing '{dst}' (its work folder '{work}' is locked)") from e
+        manifest = os.path.join(work, "manifest.json")
+        try:
+            with open(manifest) as f:
+                kept = json.load(f).get("fingerprint") == fingerprint
+        except (OSError, ValueError):
+            kept = False
+        if not kept:
+            for sub in ("tiles", "index"):
+                shutil.rmtree(os.path.join(work, sub), ignore_errors=True)
+        for sub in ("tiles", "index"):
+            ensure_folder(os.path.join(work, sub))
+        yield work
+    finally:
+        os.close(lock)
+
+
+def _publish(work: str, dst: str) -> None:
+    """Rename the finished work folder onto ``dst`` (an earlier product there replaced)."""
+    old = None
+    if os.path.lexists(dst):
+        old = f"{dst}.old-{os.getpid()}"
+        os.rename(dst, old)
+    try:
+        os.rename(work, dst)
+    except OSError as e:
+        if old is not None:
+            os.rename(old, dst)
+        raise RasterIOError(f"Could not publish '{dst}': {describe_os_error(e)}") from e
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def _vrt(plan: Any, done: list[dict], sub: str, count: int, dtype: str, *, nodata: float | None,
+         mask: bool) -> str:
+    """A GDAL VRT of the product's tiles in ``sub``: one band per band of the tiles, a mask band
+    from the tiles' internal masks (integer mosaics), NaN as nodata for float ones."""
+    rows, cols = plan.shape
+    t = plan.transform
+    gdal_type = _GDAL_TYPES[dtype]
+
+    def sources(band: str, band_type: str) -> list[str]:
+        out = []
+        for s in done:
+            name = f"{sub}/{_tile_name(s['row'], s['col'])}.tif"
+            out.append(
+                f'      <SimpleSource>\n'
+                f'        <SourceFilename relativeToVRT="1">{escape(name)}</SourceFilename>\n'
+                f'        <SourceBand>{band}</SourceBand>\n'
+                f'        <SourceProperties RasterXSize="{s["cols"]}" RasterYSize="{s["rows"]}" '
+                f'DataType="{band_type}" BlockXSize="{min(512, s["cols"])}" BlockYSize="{min(512, s["rows"])}"/>\n'
+                f'        <SrcRect xOff="0" yOff="0" xSize="{s["cols"]}" ySize="{s["rows"]}"/>\n'
+                f'        <DstRect xOff="{s["c0"]}" yOff="{s["r0"]}" xSize="{s["cols"]}" ySize="{s["rows"]}"/>\n'
+                f'      </SimpleSource>\n')
+        return out
+
+    lines = [f'<VRTDataset rasterXSize="{cols}" rasterYSize="{rows}">\n',
+             f'  <SRS dataAxisToSRSAxisMapping="1,2">{escape(plan.crs_wkt)}</SRS>\n',
+             f'  <GeoTransform>{t.c!r}, {t.a!r}, {t.b!r}, {t.f!r}, {t.d!r}, {t.e!r}</GeoTransform>\n']
+    for b in range(1, count + 1):
+        lines.append(f'  <VRTRasterBand dataType="{gdal_type}" band="{b}">\n')
+        if nodata is not None:
+            lines.append(f'    <NoDataValue>{nodata}</NoDataValue>\n')
+        lines += sources(str(b), gdal_type)
+        lines.append('  </VRTRasterBand>\n')
+    if mask:
+        lines.append('  <MaskBand>\n    <VRTRasterBand dataType="Byte">\n')
+        lines += ["  " + s.replace("\n      ", "\n        ") for s in sources("mask,1", "Byte")]
+        lines.append('    </VRTRasterBand>\n  </MaskBand>\n')
+    lines.append('</VRTDataset>\n')
+    return "".join(lines)
+
+
+def _tiles_geojson(plan: Any, done: list[dict], dst: str, index: bool) -> dict:
+    """The GeoJSON index of the product's tiles: each tile's bounds (the mosaic's CRS, named in a
+    "crs" member), its files, valid pixels and source images (paths relative to the product's
+    folder, URLs without credentials), those with most pixels first."""
+    from .plan import seamlines_crs_member
+
+    names = [redact(src) if _is_url(src) else os.path.relpath(os.path.abspath(src), dst)
+             for src, *_ in plan.sources]
+    t = plan.transform
+    feats = []
+    for s in done:
+        x0, y0 = t @ (s["c0"], s["r0"])
+        x1, y1 = t @ (s["c0"] + s["cols"], s["r0"] + s["rows"])
+        ring = [[x0, y0], [x0, y1], [x1, y1], [x1, y0], [x0, y0]]
+        if (x1 - x0) * (y1 - y0) < 0:  # counter-clockwise exterior ring
+            ring = ring[::-1]
+        per = sorted(((int(k), v) for k, v in s["pixels_per_image"].items()), key=lambda kv: (-kv[1], kv[0]))
+        props = dict(tile=_tile_name(s["row"], s["col"]), row=s["row"], col=s["col"],
+                     path=f"tiles/{_tile_name(s['row'], s['col'])}.tif", valid_pixels=s["valid_pixels"],
+                     images=[names[k] for k, _ in per], pixels_per_image=[v for _, v in per],
+                     image_positions=[k for k, _ in per])
+        if index:
+            props["index_path"] = f"index/{_tile_name(s['row'], s['col'])}.tif"
+        feats.append(dict(type="Feature", geometry=dict(type="Polygon", coordinates=[ring]), properties=props))
+    return dict(type="FeatureCollection", crs=seamlines_crs_member(plan.crs), features=feats)
+
+
+@dataclass
+class TiledResult:
+    """What :func:`write_tiled` wrote: the product folder ``path`` with ``vrt`` (and
+    ``index_vrt``), ``tiles_geojson``; the tiles computed now and those kept from an earlier
+    run; pixels per image; wall time of the tiles and writing (s)."""
+
+    path: str
+    vrt: str
+    index_vrt: str | None
+    tiles_geojson: str
+    tiles: int
+    tiles_computed: int
+    tiles_kept: int
+    pixels_per_image: list[int]
+    wall_s: float
+
+
+def write_tiled(plan: Any, dst: str | os.PathLike, settings: TiledSettings, *, client: Any = None,
+                overwrite: bool = False, cancel: threading.Event | None = None, progress: Any = None,
+                threads: int | None = None, worker_device: str | None = None) -> TiledResult:
+    """Write the tiled product of ``plan`` into the folder ``dst``.
+
+    Parameters
+    ----------
+    plan : MosaicPlan
+    dst : str or os.PathLike
+        The product folder (published by a rename when complete): ``mosaic.vrt`` over
+        ``tiles/RRRRR_CCCCC.tif`` (COGs with internal masks and overviews; tiles no image meets
+        are left out), ``index.vrt`` over ``index/`` where ``settings.index``, ``tiles.geojson``
+        and ``manifest.json``.
+    settings : TiledSettings
+    client : distributed.Client, optional
+        Compute and write the tiles on its workers (each tile by one worker, published where it
+        was computed: the folder must be one all workers and the caller see); default: threads
+        of this process.
+    overwrite : bool, optional
+        Replace an existing product.
+    cancel : threading.Event, optional
+        Stops the run (the finished tiles stay in ``<dst>.partial`` for the next run).
+    progress : bool or callable, optional
+    threads : int, optional
+        Without ``client``: product tiles at once (default 2).
+    worker_device : str, optional
+        With ``client``: the workers' device (see :func:`shipped_plan`).
+
+    Returns
+    -------
+    TiledResult
+    """
+    t0 = time.perf_counter()
+    settings.check()
+    dst = os.path.abspath(os.fspath(dst))
+    fingerprint = _fingerprint(plan, settings)
+    ptiles = _product_tiles(plan, settings.product_tile)
+    with _work_folder(dst, fingerprint, overwrite) as work:
+        write_json(os.path.join(work, "manifest.json"), dict(
+            format=PRODUCT_FORMAT, fingerprint=fingerprint, crs=plan.crs_wkt, transform=list(plan.transform)[:6],
+            shape=list(plan.shape), count=plan.count, dtype=plan.dtype, product_tile=settings.product_tile,
+            tile_size=settings.tile_size, compress=settings.compress, index=settings.index))
+        done, todo = [], []
+        for i, j, t in ptiles:
+            stats = _read_stats(work, i, j, settings.index)
+            (done.append(stats) if stats is not None else todo.append((i, j, t)))
+        kept = len(done)
+        if kept:
+            _log.info("%s: %d of %d tiles kept from an earlier run", dst, kept, len(ptiles))
+        bar = _Progress(progress, len(ptiles), kept)
+        try:
+            if client is not None:
+                done += _tiles_on_cluster(plan, client, todo, work, settings, cancel, dst, bar, worker_device)
+            else:
+                done += _tiles_in_process(plan, todo, work, settings, cancel, dst, bar, threads or 2)
+        finally:
+            bar.close()
+        done.sort(key=lambda s: (s["row"], s["col"]))
+        nonempty = [s for s in done if s["valid_pixels"]]
+        mask = plan.dtype != "float32"
+        write_text(os.path.join(work, "mosaic.vrt"), _vrt(plan, nonempty, "tiles", plan.count, plan.dtype,
+                                                         nodata=None if mask else float("nan"), mask=mask))
+        if settings.index:
+            from .plan import NO_SOURCE
+
+            write_text(os.path.join(work, "index.vrt"), _vrt(plan, nonempty, "index", 1, "uint16", nodata=NO_SOURCE,
+                                                            mask=False))
+        write_json(os.path.join(work, "tiles.geojson"), _tiles_geojson(plan, nonempty, dst, settings.index))
+        used = np.zeros(len(plan.sources), np.int64)
+        for s in done:
+            for k, v in s["pixels_per_image"].items():
+                used[int(k)] += v
+        _remove_strays(work)
+    _publish(work, dst)
+    return TiledResult(path=dst, vrt=os.path.join(dst, "mosaic.vrt"),
+                       index_vrt=os.path.join(dst, "index.vrt") if settings.index else None,
+                       tiles_geojson=os.path.join(dst, "tiles.geojson"), tiles=len(ptiles),
+                       tiles_computed=len(ptiles) - kept, tiles_kept=kept, pixels_per_image=used.tolist(),
+                       wall_s=time.perf_counter() - t0)
+
+
+def _remove_strays(work: str) -> None:
+    """Temporaries that killed workers left in the work folder (their tiles were rewritten)."""
+    from ..raster.io import TMP_TAG
+
+    for sub in ("tiles", "index"):
+        folder = os.path.join(work, sub)
+        for name in os.listdir(folder):
+            if TMP_TAG in name:
+                with contextlib.suppress(OSError):
+                    os.remove(os.path.join(folder, name))
+
+
+def _tiles_in_process(plan: Any, todo: list, work: str, settings: TiledSettings, cancel: threading.Event | None,
+                      dst: str, bar: _Progress, threads: int) -> list[dict]:
+    """The product tiles on threads of this process."""
+    out = []
+    with ThreadPoolExecutor(max_workers=threads, thread_name_prefix="product-tile") as pool:
+        futures = collections.deque()
+        try:
+            for i, j, t in todo:
+                futures.append(pool.submit(_write_product_tile, plan, i, j, t, work, settings))
+                while len(futures) >= 2 * threads:
+                    out.append(futures.popleft().result())
+                    bar.step()
+                    _check(cancel, dst)
+            while futures:
+                out.append(futures.popleft().result())
+                bar.step()
+        except BaseException:
+            for f in futures:
+                f.cancel()
+            raise
+    return out
+
+
+def _check(cancel: threading.Event | None, dst: str) -> None:
+    if cancel is not None and cancel.is_set():
+        raise Cancelled(f"The tiled mosaic '{dst}' was cancelled; its finished tiles stay in '{dst}.partial' for "
+                        "the next run")
+
+
+def _tiles_on_cluster(plan: Any, client: Any, todo: list, work: str, settings: TiledSettings,
+                      cancel: threading.Event | None, dst: str, bar: _Progress, device: str | None) -> list[dict]:
+    """The product tiles on the workers of ``client``, dealt in bands."""
+    distributed = _distributed()
+    if not todo:
+        return []
+    shipped = shipped_plan(plan, device)
+    remote = client.scatter(shipped, broadcast=True, hash=False)
+    tiles = [t for _, _, t in todo]
+    images = plan._tile_images(tiles)
+    tag = f"orthowarp-product-{os.getpid()}-{time.monotonic_ns():x}"
+    futures = []
+    for k, w in _deal(client, tiles, images):
+        i, j, t = todo[k]
+        futures.append(client.submit(_write_product_tile, remote, i, j, t, work, settings, workers=[w],
+                                     allow_other_workers=True, pure=False, key=f"{tag}-{k}"))
+    out = []
+    try:
+        for fut in distributed.as_completed(futures):
+            _check(cancel, dst)
+            out.append(fut.result())
+            fut.release()
+            bar.step()
+    except BaseException:
+        client.cancel(futures)
+        raise
+    finally:
+        remote.release()
+    return out

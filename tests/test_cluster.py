@@ -1,0 +1,226 @@
+"""Mosaics on a Dask cluster (CPU workers of a LocalCluster) and the tiled product: the same
+bytes as in one process, a worker killed mid-run, a run stopped and restarted."""
+
+import json
+import os
+import signal
+import threading
+
+import numpy as np
+import pytest
+import rasterio
+
+from test_mosaic import FrameSensor, _second_view, scene, write_image
+
+from orthowarp.errors import Cancelled, OrthowarpError, ParamError, RasterIOError
+from orthowarp.pipeline.mosaic import mosaic, mosaic_plan
+from orthowarp.pipeline.mosaic.cluster import TiledSettings, redact, write_tiled
+
+distributed = pytest.importorskip("distributed")
+
+
+@pytest.fixture(scope="module")
+def block(tmp_path_factory):
+    """Two overlapping uint8 frames (an internal mask in the outputs)."""
+    sc = scene("opk")
+    pose2, _, img2 = _second_view(sc)
+    folder = tmp_path_factory.mktemp("cluster")
+    a = write_image(folder / "a.tif", (sc.image(False) - 600.0) / 3.0, "uint8")
+    b = write_image(folder / "b.tif", (img2 - 600.0) / 3.0, "uint8")
+    return sc, [(a, FrameSensor(sc.camera, sc.pose)), (b, FrameSensor(sc.camera, pose2))]
+
+
+@pytest.fixture(scope="module")
+def client():
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                  dashboard_address="127.0.0.1:0") as cluster, distributed.Client(cluster) as c:
+        c.wait_for_workers(2)
+        yield c
+
+
+def _kw(sc):
+    return dict(dem=sc.dem, refraction=False, device="cpu", tile_size=64)
+
+
+def _files(folder):
+    """{relative path: bytes} of a product folder's tile files."""
+    out = {}
+    for sub in ("tiles", "index"):
+        d = os.path.join(folder, sub)
+        for name in sorted(os.listdir(d)) if os.path.isdir(d) else ():
+            with open(os.path.join(d, name), "rb") as f:
+                out[f"{sub}/{name}"] = f.read()
+    return out
+
+
+@pytest.fixture(scope="module")
+def reference(block, tmp_path_factory):
+    """The single COG and index, and the tiled product, made in this process."""
+    sc, images = block
+    folder = tmp_path_factory.mktemp("reference")
+    cog = mosaic(images, folder / "m.tif", index=folder / "i.tif", **_kw(sc))
+    tiled = mosaic(images, folder / "tiled", tiled=True, index=True, product_tile=128, **_kw(sc))
+    return cog, tiled
+
+
+def test_the_tiled_product_has_the_single_cogs_pixels(block, reference):
+    """mosaic.vrt and index.vrt read (through GDAL) as the single COG and its index; the GeoJSON
+    index names each tile's images; no work folder is left."""
+    _, images = block
+    cog, tiled = reference
+    assert sorted(os.listdir(tiled.path)) == ["index", "index.vrt", "manifest.json", "mosaic.vrt", "tiles",
+                                              "tiles.geojson"]
+    assert not os.path.exists(tiled.path + ".partial")
+    with rasterio.open(cog.path) as a, rasterio.open(tiled.vrt) as b:
+        assert (a.crs, a.transform, a.shape, a.dtypes) == (b.crs, b.transform, b.shape, b.dtypes)
+        np.testing.assert_array_equal(a.read(), b.read())
+        np.testing.assert_array_equal(a.dataset_mask(), b.dataset_mask())
+    with rasterio.open(cog.index) as a, rasterio.open(tiled.index_vrt) as b:
+        np.testing.assert_array_equal(a.read(), b.read())
+        assert b.nodata == a.nodata
+    with rasterio.open(os.path.join(tiled.path, "tiles", "00001_00001.tif")) as ds:
+        assert ds.tags(ns="IMAGE_STRUCTURE")["LAYOUT"] == "COG" and ds.shape == (128, 128)
+    assert tiled.pixels_per_image == cog.pixels_per_image
+    with open(tiled.tiles_geojson) as f:
+        gj = json.load(f)
+    tifs = [n for n in os.listdir(os.path.join(tiled.path, "tiles")) if n.endswith(".tif")]
+    assert len(gj["features"]) == len(tifs) < tiled.tiles and "crs" in gj  # (tiles all empty: no file)
+    for feat in gj["features"]:
+        p = feat["properties"]
+        names = {os.path.relpath(src, tiled.path) for src, _ in images}  # relative to the product
+        assert set(p["images"]) <= names and sum(p["pixels_per_image"]) == p["valid_pixels"]
+        assert os.path.isfile(os.path.join(tiled.path, p["path"]))
+
+
+def test_a_cluster_gives_the_same_bytes(block, reference, client, tmp_path):
+    """The single COG from tiles computed on two worker processes, and the tiled product
+    written by them: byte for byte the in-process files."""
+    sc, images = block
+    cog, tiled = reference
+    seen = []
+    got = mosaic(images, tmp_path / "m.tif", index=tmp_path / "i.tif", cluster=client,
+                 progress=lambda done, total, rate: seen.append((done, total)), **_kw(sc))
+    assert (tmp_path / "m.tif").read_bytes() == open(cog.path, "rb").read()
+    assert (tmp_path / "i.tif").read_bytes() == open(cog.index, "rb").read()
+    assert got.pixels_per_image == cog.pixels_per_image
+    assert seen[-1] == (len(seen), len(seen)) and len(seen) == 10 * 8  # 577 x 492 px in 64 px tiles
+    product = mosaic(images, tmp_path / "tiled", tiled=True, index=True, product_tile=128, cluster=client, **_kw(sc))
+    assert _files(product.path) == _files(tiled.path)
+    for name in ("mosaic.vrt", "index.vrt", "tiles.geojson"):
+        assert (tmp_path / "tiled" / name).read_text() == open(os.path.join(tiled.path, name)).read()
+    # the tasks ran on both workers
+    assert len(client.run(os.getpid)) == 2
+
+
+@pytest.mark.slow
+def test_a_worker_killed_mid_run_costs_only_its_tiles(block, reference, tmp_path):
+    """SIGKILL to one of two workers while tiles are in flight: Dask recomputes its tiles on
+    the other (and the restarted one); the mosaic and the tiled product are the same bytes."""
+    sc, images = block
+    cog, tiled = reference
+    kw = dict(_kw(sc), tile_size=16)  # many small tiles: the kill lands mid-run
+    one = mosaic(images, tmp_path / "one.tif", index=tmp_path / "one_i.tif", **kw)
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                  dashboard_address="127.0.0.1:0") as cluster, distributed.Client(cluster) as c:
+        c.wait_for_workers(2)
+        pids = c.run(os.getpid)
+        victim = sorted(pids)[1]
+        killed = []
+
+        def kill(done, total, rate):
+            if not killed and done >= total // 5:
+                killed.append(done)
+                os.kill(pids[victim], signal.SIGKILL)
+
+        got = mosaic(images, tmp_path / "k.tif", index=tmp_path / "k_i.tif", cluster=c, progress=kill, **kw)
+        assert killed and killed[0] < got.shape[0] // 16 * (got.shape[1] // 16)
+        assert victim not in c.scheduler_info()["workers"]  # gone; its tiles done elsewhere
+        assert (tmp_path / "k.tif").read_bytes() == (tmp_path / "one.tif").read_bytes()
+        assert (tmp_path / "k_i.tif").read_bytes() == (tmp_path / "one_i.tif").read_bytes()
+        # the tiled product, a worker killed as it runs
+        c.wait_for_workers(2)
+        pids = c.run(os.getpid)
+        victim = sorted(pids)[0]
+        killed.clear()
+        product = mosaic(images, tmp_path / "tiled", tiled=True, index=True, product_tile=128, cluster=c,
+                         progress=kill, **_kw(sc))
+    assert killed
+    assert _files(product.path) == _files(tiled.path)
+    assert not [n for n in os.listdir(os.path.join(product.path, "tiles")) if n.startswith(".")]
+
+
+def test_a_stopped_run_publishes_nothing_and_its_restart_skips_finished_tiles(block, reference, tmp_path):
+    """A run cancelled after some tiles leaves no product, only its work folder; the next run
+    of the same job keeps the finished tiles and gives the same files; a different job (another
+    compression level) starts afresh."""
+    sc, images = block
+    _, tiled = reference
+    plan = mosaic_plan(images, **{k: v for k, v in _kw(sc).items() if k != "tile_size"})
+    settings = TiledSettings(product_tile=128, tile_size=64, compress="deflate", compress_level=6, block_size=512,
+                             index=True, block_codec="auto")
+    stop = threading.Event()
+
+    def stop_after_8(done, total, rate):
+        if done >= 8:
+            stop.set()
+
+    dst = tmp_path / "tiled"
+    with pytest.raises(Cancelled, match="partial"):
+        write_tiled(plan, dst, settings, cancel=stop, progress=stop_after_8, threads=1)
+    assert not dst.exists()
+    with open(tmp_path / "tiled.partial" / "manifest.json") as f:
+        assert json.load(f)["format"] == "orthowarp-tiled-mosaic/1"
+    finished = len([n for n in os.listdir(tmp_path / "tiled.partial" / "tiles") if n.endswith(".json")])
+    assert 8 <= finished < tiled.tiles
+    again = write_tiled(plan, dst, settings)
+    assert again.tiles_kept == finished and again.tiles_computed == tiled.tiles - finished
+    assert _files(dst) == _files(tiled.path)
+    assert not (tmp_path / "tiled.partial").exists()
+    # a stopped run of another job: its tiles are not kept by the next run of this one
+    other = TiledSettings(**{**settings.__dict__, "compress_level": 1})
+    stop.clear()
+    with pytest.raises(Cancelled):
+        write_tiled(plan, tmp_path / "t2", other, cancel=stop, progress=stop_after_8, threads=1)
+    fresh = write_tiled(plan, tmp_path / "t2", settings)
+    assert fresh.tiles_kept == 0 and _files(tmp_path / "t2") == _files(tiled.path)
+    with pytest.raises(RasterIOError, match="exists"):
+        write_tiled(plan, dst, settings)
+    assert write_tiled(plan, dst, settings, overwrite=True).tiles_computed == tiled.tiles
+
+
+def test_tiled_and_cluster_arguments_are_checked(block, tmp_path):
+    sc, images = block
+    kw = _kw(sc)
+    with pytest.raises(ParamError, match="multiple of tile_size"):
+        mosaic(images, tmp_path / "t", tiled=True, product_tile=100, **kw)
+    with pytest.raises(ParamError, match="seamlines"):
+        mosaic(images, tmp_path / "t", tiled=True, seamlines=tmp_path / "s.geojson", **kw)
+    with pytest.raises(ParamError, match="deflate or zstd"):
+        mosaic(images, tmp_path / "t", tiled=True, compress="jpeg", **kw)
+    with pytest.raises(ParamError, match="product_tile"):
+        mosaic(images, tmp_path / "m.tif", product_tile=128, **kw)
+    with pytest.raises(ParamError, match="not both"):
+        mosaic(images, tmp_path / "m.tif", cluster="tcp://127.0.0.1:1", gpus=1, **kw)
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(ParamError, match="is a file"):
+        mosaic(images, tmp_path / "file", tiled=True, **kw)
+    assert not [p for p in os.listdir(tmp_path) if p != "file"]
+
+
+def test_a_scheduler_that_cannot_be_reached_is_a_clear_error(block, tmp_path):
+    import dask
+
+    sc, images = block
+    with dask.config.set({"distributed.comm.timeouts.connect": "2s"}), \
+            pytest.raises(OrthowarpError, match="Dask scheduler 'tcp://127.0.0.1:9'"):
+        mosaic(images, tmp_path / "m.tif", cluster="tcp://user:secret@127.0.0.1:9", **_kw(sc))
+
+
+@pytest.mark.parametrize("path, want", [
+    ("/data/a.tif", "/data/a.tif"),
+    ("https://user:pw@example.com:8443/a.tif?X-Amz-Signature=abc", "https://example.com:8443/a.tif"),
+    ("/vsicurl/https://u:p@example.com/a.tif?token=1", "/vsicurl/https://example.com/a.tif"),
+    ("/vsis3/bucket/a.tif?AWS_SECRET=1", "/vsis3/bucket/a.tif"),
+])
+def test_credentials_are_redacted(path, want):
+    assert redact(path) == want
