@@ -224,3 +224,78 @@ def test_a_scheduler_that_cannot_be_reached_is_a_clear_error(block, tmp_path):
 ])
 def test_credentials_are_redacted(path, want):
     assert redact(path) == want
+
+
+@pytest.mark.filterwarnings("ignore::rasterio.errors.NotGeoreferencedWarning")
+def test_a_batch_of_orthos_on_a_cluster_writes_what_one_process_writes(client, tmp_path, monkeypatch):
+    """orthorectify_many on two workers (relative paths, as a user in the data folder gives
+    them): the same files, with their accuracy rasters, reported in order."""
+    from test_batch import SIGMAS, frames
+
+    from orthowarp.pipeline.ortho.batch import ortho_destinations, orthorectify_many
+    from orthowarp.pipeline.precision import accuracy_path
+
+    images, dem = frames(str(tmp_path))
+    monkeypatch.chdir(tmp_path)
+    images = [(os.path.basename(src), sensor) for src, sensor in images]
+    kw = dict(dem=dem, device="cpu", resolution=0.5, accuracy=True, pose_cov=np.diag(SIGMAS) ** 2)
+    here = orthorectify_many(ortho_destinations(images, "here"), **kw)
+    reported = []
+    there = orthorectify_many(ortho_destinations(images, "there"), cluster=client,
+                              on_result=lambda dst, r: reported.append(dst), **kw)
+    assert reported == [os.path.join("there", f"img{k}_ORTHO.tif") for k in range(2)]
+    for a, b in zip(here, there):
+        assert (a.shape, a.transform) == (b.shape, b.transform)
+        assert open(a.path, "rb").read() == open(b.path, "rb").read()
+        assert open(accuracy_path(a.path), "rb").read() == open(os.path.join("there", os.path.basename(
+            accuracy_path(a.path))), "rb").read()
+
+
+def test_cli_tiled_mosaic_and_runs_on_a_scheduler(client, tmp_path):
+    """``orthowarp mosaic --tiled`` (and its index), the same job with ``--scheduler`` (the
+    same tiles), a mosaic and an ortho batch on the scheduler (the same files as here), and
+    the clusters' option errors."""
+    import shutil
+
+    from click.testing import CliRunner
+    from test_faults import _frame_job
+
+    from orthowarp.cli import main
+
+    args = _frame_job(tmp_path, "a")
+    shutil.copy(tmp_path / "a.tif", tmp_path / "b.tif")
+    with open(tmp_path / "ext.csv", "a") as f:
+        f.write("b,500015,5200000,600,1,-2,30\n")
+    images = [args[0], str(tmp_path / "b.tif"), *args[1:], "--resolution", "0.5", "--tile-size", "32"]
+    address = client.scheduler.address
+    run = CliRunner().invoke
+    t1, t2 = tmp_path / "t1", tmp_path / "t2"
+    res = run(main, ["mosaic", *images, "--out", str(t1), "--tiled", "--index", str(t1 / "index.vrt"),
+                     "--product-tile", "64"])
+    assert res.exit_code == 0, res.output
+    assert "tiles (" in res.output and sorted(os.listdir(t1)) == ["index", "index.vrt", "manifest.json",
+                                                                    "mosaic.vrt", "tiles", "tiles.geojson"]
+    res = run(main, ["mosaic", *images, "--out", str(t2), "--tiled", "--index", str(t2 / "index.vrt"),
+                     "--product-tile", "64", "--scheduler", address])
+    assert res.exit_code == 0, res.output
+    assert "Dask cluster: 2 worker(s)" in res.output
+    assert _files(t1) == _files(t2)
+    res = run(main, ["mosaic", *images, "--out", str(t1), "--tiled", "--product-tile", "64"])
+    assert res.exit_code == 1 and "exists" in res.output
+    # one COG, and an ortho batch, on the scheduler: the files made here
+    for where, extra in (("here", []), ("there", ["--scheduler", address])):
+        res = run(main, ["mosaic", *images, "--out", str(tmp_path / where / "m.tif"), *extra])
+        assert res.exit_code == 0, res.output
+        res = run(main, ["ortho", *images[:2], *args[1:], "--resolution", "0.5", "--out-dir",
+                         str(tmp_path / where), *extra])
+        assert res.exit_code == 0, res.output
+    for name in ("m.tif", "a_ORTHO.tif", "b_ORTHO.tif"):
+        assert (tmp_path / "here" / name).read_bytes() == (tmp_path / "there" / name).read_bytes()
+    for bad, says in ((["--gpus", "1", "--scheduler", address], "not both"),
+                      (["--tls-cert", args[0]], "go with --scheduler tls://"),
+                      (["--scheduler", address, "--processes", "2"], "--processes"),
+                      (["--product-tile", "64"], "--tiled"),
+                      (["--tiled", "--index", str(tmp_path / "i.tif")], "index.vrt")):
+        res = run(main, ["mosaic", *images, "--out", str(tmp_path / "bad"), *bad])
+        assert res.exit_code != 0 and says in res.output, (bad, res.output)
+    assert not (tmp_path / "bad").exists()

@@ -3,7 +3,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
+import sys
 from types import SimpleNamespace
 from typing import Any
 
@@ -36,7 +38,8 @@ MOSAIC_GPU_PROCESSES = 4
                                           "(repeatable; numbered after IMAGES in the index).")
 @options.attitude_model
 @options.terrain
-@options.out_file("The mosaic (COG).")
+@click.option("-o", "--out", "out_path", type=click.Path(), required=True,
+              help="The mosaic (COG), or with --tiled its folder.")
 @click.option("--index", "index_path", type=click.Path(dir_okay=False),
               help="Also write the per-pixel source index (uint16 COG: the image's position in IMAGES; 65535 "
                    "where no image has a value).")
@@ -78,6 +81,13 @@ MOSAIC_GPU_PROCESSES = 4
               help="Worker processes computing the tiles on the same device (default: 4 on a GPU, 1 on the CPU, "
                    "where 1 is threads of this process).")
 @options.tile_size
+@options.cluster
+@click.option("--tiled", is_flag=True,
+              help="Write a tiled mosaic into the folder --out: COG tiles (tiles/), mosaic.vrt over them, with "
+                   "--index index/ and index.vrt, tiles.geojson naming each tile's images; written by the workers "
+                   "that computed them, and a run stopped or killed resumes where it ended (the same command).")
+@click.option("--product-tile", type=click.IntRange(min=16), default=None,
+              help="With --tiled: the tiles' edge in pixels, a multiple of --tile-size (default 4 x --tile-size).")
 @options.profiling
 @click.pass_context
 def mosaic(ctx: click.Context, images: tuple[str, ...], **kwargs: Any) -> None:
@@ -126,21 +136,40 @@ def mosaic(ctx: click.Context, images: tuple[str, ...], **kwargs: Any) -> None:
     terrain = Dem.from_file(o.dem) if o.dem is not None else o.height
     if o.adjust_chain:
         jobs = _adjusted(jobs, terrain, o, quiet=ctx.obj["quiet"])
+    if o.tiled and (o.seamlines_path or o.accuracy):
+        raise ParamError("--tiled writes tiles.geojson instead of --seamlines, and no --accuracy raster")
+    if o.product_tile is not None and not o.tiled:
+        raise ParamError("--product-tile is the tiles' size of a --tiled mosaic")
     processes = o.processes
-    if processes is None:  # a GPU mosaic is bound by the host work per tile: several processes feed it
+    on_cluster = o.gpus is not None or o.scheduler is not None
+    if on_cluster and processes not in (None, 1):
+        raise ParamError("--processes is for a mosaic on this host's device; with --gpus or --scheduler the cluster's "
+                         "workers compute the tiles")
+    if processes is None and not on_cluster:  # a GPU mosaic is bound by the host work per tile: several processes feed it
         from .._device import resolve_device
 
         processes = MOSAIC_GPU_PROCESSES if resolve_device(o.device).is_cuda else 1
-    with outputs_together(overwrite=o.overwrite):  # the mosaic, its sidecars and accuracy raster, or none
+    index = o.index_path
+    if o.tiled and index is not None:  # the index's tiles and VRT in the tiled mosaic's folder
+        want = os.path.join(o.out_path, "index.vrt")
+        if os.path.abspath(index) != os.path.abspath(want):
+            raise ParamError(f"With --tiled the index is written as {want} (over {os.path.join(o.out_path, 'index')}"
+                             f"/): give --index {want}")
+        index = True
+    progress = not ctx.obj["quiet"] and sys.stderr.isatty()
+    # the mosaic, its sidecars and accuracy raster, or none (a tiled mosaic: its folder, published whole)
+    together = contextlib.nullcontext() if o.tiled else outputs_together(overwrite=o.overwrite)
+    with options.cluster_client(o, quiet=ctx.obj["quiet"]) as client, together:
         r = make_mosaic(jobs, o.out_path, dem=terrain, crs=o.crs, resolution=o.resolution, resampling=o.resampling,
-                        refraction=not o.no_refraction, dtype=o.dtype, index=o.index_path, seamlines=o.seamlines_path,
+                        refraction=not o.no_refraction, dtype=o.dtype, index=index, seamlines=o.seamlines_path,
                         seamlines_lonlat=o.seamlines_lonlat, seams=o.seams, seam_width=o.seam_width, blend=o.blend, feather=o.feather,
                         balance=not o.no_balance, reference=o.reference, occlusion=not o.no_occlusion,
                         compress=compress, compress_level=compress_level, quality=quality, block_codec=o.block_codec,
                         creation_options=creation_options,
                         overwrite=o.overwrite, device=o.device, geoid=o.geoid,
                         same_vertical_datum=o.same_vertical_datum, workers=o.workers, processes=processes,
-                        tile_size=o.tile_size, cancel=ctx.meta.get("orthowarp.stop"))
+                        tile_size=o.tile_size, cancel=ctx.meta.get("orthowarp.stop"), cluster=client,
+                        tiled=o.tiled, product_tile=o.product_tile, progress=progress or None)
         if o.accuracy:
             from ..pipeline.precision import mosaic_accuracy_raster
 
@@ -151,6 +180,11 @@ def mosaic(ctx: click.Context, images: tuple[str, ...], **kwargs: Any) -> None:
                                    same_vertical_datum=o.same_vertical_datum, device=o.device)
     if o.show_profile or o.profile_json:
         _report_profile(r, len(jobs), show=o.show_profile, path=o.profile_json)
+    if o.tiled:
+        if not ctx.obj["quiet"]:
+            click.echo(f"{r.path}: {r.tiles} tiles ({r.tiles_computed} computed, {r.tiles_kept} kept from an earlier "
+                       f"run); {r.vrt}")
+        return
     if not ctx.obj["quiet"]:
         counts = ", ".join(f"{os.path.basename(img)} {n}" for (img, *_), n in zip(jobs, r.pixels_per_image))
         click.echo(f"{r.path}: {r.shape[1]} x {r.shape[0]} px at {r.resolution:.4g} ({crs_label(r.crs)}); pixels per "
@@ -235,3 +269,4 @@ def _adjusted(jobs: list[tuple[str, Any]], terrain: Any, o: SimpleNamespace, *, 
                    f"{a['tie_height_m']['median']:.2f} m; files in {folder}", err=True)
     adjusted = dict(chain.sensors)
     return [(img, adjusted.get(img, s)) for img, s in jobs]
+

@@ -10,8 +10,9 @@ Only click is imported here: ``orthowarp --help`` loads no numerical library.
 
 from __future__ import annotations
 
+import contextlib
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any, TypeVar
 
 import click
@@ -48,6 +49,55 @@ tile_size = click.option("--tile-size", type=int, default=None,
 workers = click.option("--workers", type=int, default=None,
                        help="Tiles in flight (default: CPU cores on the CPU, 8 on a GPU); with --processes, per "
                             "process (default 2).")
+
+
+def cluster(f: Callable) -> Callable:
+    """--gpus, --scheduler and the TLS files of a --scheduler (see :func:`cluster_client`)."""
+    for opt in reversed([
+        click.option("--gpus", type=click.IntRange(min=1), default=None,
+                     help="Run on this many GPUs of this host: a Dask cluster of one worker per GPU, started for "
+                          "the run and listening on localhost only."),
+        click.option("--scheduler", default=None, metavar="ADDRESS",
+                     help="Run on an existing Dask cluster (tcp://HOST:PORT, tls://HOST:PORT): its workers read the "
+                          "images and write their outputs themselves, so they must see the same files at the same "
+                          "(absolute) paths, e.g. on a shared file system or as /vsis3/ paths."),
+        click.option("--tls-ca-file", type=click.Path(exists=True, dir_okay=False), default=None,
+                     help="With --scheduler tls://...: the certificate authority (default: Dask's configuration)."),
+        click.option("--tls-cert", type=click.Path(exists=True, dir_okay=False), default=None,
+                     help="With --scheduler tls://...: this client's certificate."),
+        click.option("--tls-key", type=click.Path(exists=True, dir_okay=False), default=None,
+                     help="With --scheduler tls://...: this client's private key."),
+    ]):
+        f = opt(f)
+    return f
+
+
+@contextlib.contextmanager
+def cluster_client(o: Any, *, quiet: bool) -> Iterator[Any]:
+    """The Dask client of --gpus / --scheduler (None without them), for the block; the
+    dashboard's address echoed where there is one."""
+    from ..errors import ParamError
+    from ..pipeline.mosaic.cluster import connect, dashboard_link
+
+    if o.gpus is not None and o.scheduler is not None:
+        raise ParamError("Give --gpus (a cluster on this host) or --scheduler (an existing one), not both")
+    tls = (o.tls_ca_file, o.tls_cert, o.tls_key)
+    security = None
+    if any(tls):
+        if o.scheduler is None or not o.scheduler.startswith("tls://"):
+            raise ParamError("--tls-ca-file, --tls-cert and --tls-key go with --scheduler tls://HOST:PORT")
+        if not all(tls):
+            raise ParamError("Give --tls-ca-file, --tls-cert and --tls-key together")
+        from distributed.security import Security
+
+        security = Security(tls_ca_file=o.tls_ca_file, tls_client_cert=o.tls_cert, tls_client_key=o.tls_key,
+                            require_encryption=True)
+    with connect(o.scheduler, gpus=o.gpus, security=security) as client:
+        if client is not None and not quiet:
+            link = dashboard_link(client)
+            workers = len(client.scheduler_info()["workers"])
+            click.echo(f"Dask cluster: {workers} worker(s)" + (f", dashboard {link}" if link else ""), err=True)
+        yield client
 
 # -- inputs -----------------------------------------------------------------------------------
 

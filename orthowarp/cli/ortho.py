@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
 import time
@@ -66,6 +67,7 @@ _DEFAULT_SOURCES = (None, click.core.ParameterSource.DEFAULT, click.core.Paramet
 @options.vertical
 @options.device
 @options.tile_size
+@options.cluster
 @click.option("--export-params", is_flag=True,
               help="Write the frame IMAGES' orientation in orthority's formats (int_param.yaml, ext_param.csv "
                    "and .prj) into --out-dir, and stop (no orthos).")
@@ -136,14 +138,18 @@ def ortho(ctx: click.Context, images: tuple[str, ...], **kwargs: Any) -> None:
     from tqdm import tqdm
 
     # one bar for the batch (the tiles of every image, as each starts), on a terminal only
-    bar = tqdm(total=0, unit="tile", leave=False, disable=quiet or not sys.stderr.isatty())
+    show = not quiet and sys.stderr.isatty()
     t_first = time.perf_counter()
-    with bar:
-        orthorectify_many(jobs, dem=o.dem if o.dem is not None else o.height, accuracy=o.accuracy,
-                          pose_cov=pose_cov, orientation_cov=orientation_cov, pixel_sigma=o.pixel_sigma,
-                          dem_sigma=o.dem_sigma, accuracy_measure=o.accuracy_measure,
-                          accuracy_step=o.accuracy_step, overwrite=o.overwrite, progress=bar,
-                          cancel=ctx.meta.get("orthowarp.stop"), on_result=report, **ortho_options)
+    with options.cluster_client(o, quiet=quiet) as client:
+        # one bar for the batch: the tiles of every image as each starts, or on a cluster the images
+        bar = tqdm(total=0, unit="tile", leave=False, disable=not show) if client is None else show or None
+        with bar if client is None else contextlib.nullcontext():
+            orthorectify_many(jobs, dem=o.dem if o.dem is not None else o.height, accuracy=o.accuracy,
+                              pose_cov=pose_cov, orientation_cov=orientation_cov, pixel_sigma=o.pixel_sigma,
+                              dem_sigma=o.dem_sigma, accuracy_measure=o.accuracy_measure,
+                              accuracy_step=o.accuracy_step, overwrite=o.overwrite, progress=bar,
+                              cancel=ctx.meta.get("orthowarp.stop"), on_result=report, cluster=client,
+                              **ortho_options)
     if o.show_profile or o.profile_json:
         _report_profile(profiles, time.perf_counter() - t_first, (t_command, t_imported, t_first),
                         show=o.show_profile, path=o.profile_json)

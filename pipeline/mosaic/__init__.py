@@ -71,6 +71,7 @@ from .plan import (
     output_paths,
 )
 from .cluster import TiledResult, TiledSettings, cluster_results, connect, write_tiled
+from .cluster import worker_device as cluster_device
 from .workers import ProcessTiles, TileDealer, tile_runs
 
 __all__ = ["mosaic", "mosaic_plan", "MosaicPlan", "MosaicResult", "TiledResult", "NO_SOURCE", "MOSAIC_COMPRESS"]
@@ -278,7 +279,6 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
     several = processes is not None and processes > 1
     # a tiled product on several processes: a Dask cluster of them on this host
     local = int(processes) if tiled and several and not distributed_run else None
-    worker_device = "cuda:0" if gpus is not None else str(on)  # (each GPU worker sees only its GPU)
     # the tile processes start beside the plan (their imports and kernel loading overlap it)
     procs = ProcessTiles(int(processes), str(on), threads=workers or 2) if several and local is None else None
     try:
@@ -293,6 +293,7 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
                              creation_options=creation_options, tile_size=tile_size, overwrite=overwrite,
                              workers=workers)
         with connect(cluster, gpus=gpus, workers=local, threads=workers or 2) as client:
+            worker_device = cluster_device(client, str(on))
             if tiled:
                 try:
                     return write_tiled(plan, dst, tiled_settings, client=client, overwrite=overwrite, cancel=cancel,

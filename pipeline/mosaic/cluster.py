@@ -56,7 +56,7 @@ from xml.sax.saxutils import escape
 import numpy as np
 
 from ...errors import Cancelled, OrthowarpError, ParamError, RasterIOError
-from ..raster.io import atomic_files, describe_os_error, ensure_folder, write_json, write_text
+from ..raster.io import atomic_files, describe_os_error, ensure_folder
 from ..tiles import Tile
 from .workers import tile_runs
 
@@ -149,6 +149,7 @@ def local_cluster(*, gpus: int | None = None, workers: int | None = None, thread
                     memory_limit=0))
         scheduler = dict(cls=distributed.Scheduler, options=dict(host="127.0.0.1", dashboard_address=_dashboard()))
         cluster = distributed.SpecCluster(workers=specs, scheduler=scheduler, **silence)
+        cluster.orthowarp_gpu_workers = True  # (see worker_device)
     try:
         with distributed.Client(cluster, direct_to_workers=True) as client:
             client.wait_for_workers(len(cluster.workers))
@@ -207,6 +208,12 @@ def connect(cluster: Any = None, *, gpus: int | None = None, workers: int | None
     yield cluster
 
 
+def worker_device(client: Any, device: str | None) -> str | None:
+    """The device a client's workers compute on: ``cuda:0`` on the GPU workers of
+    :func:`local_cluster` (each sees only its own GPU), else ``device`` (the caller's)."""
+    return "cuda:0" if getattr(getattr(client, "cluster", None), "orthowarp_gpu_workers", False) else device
+
+
 def worker_names(client: Any) -> list[str]:
     """The addresses of the client's workers, sorted."""
     return sorted(client.scheduler_info()["workers"])
@@ -240,15 +247,27 @@ def redact(path: str) -> str:
     return path[:start] + urllib.parse.urlunsplit((parts.scheme, netloc, parts.path, "", ""))
 
 
+def shipped_terrain(terrain: Any) -> Any:
+    """``terrain`` for workers: a DEM read lazily from a local file names it by its absolute
+    path (the workers' working folder may differ); anything else as it is."""
+    file = getattr(terrain, "_file", None)
+    if file is None or _is_url(file.path) or os.path.isabs(file.path):
+        return terrain
+    out, out._file = copy.copy(terrain), copy.copy(file)
+    out._file.path = os.path.abspath(file.path)
+    return out
+
+
 def shipped_plan(plan: Any, device: str | None = None) -> Any:
-    """A copy of ``plan`` for workers: local source paths made absolute (the workers' working
-    folder may differ), each worker reading its own windows (no resident sources, at most 24
+    """A copy of ``plan`` for workers: local source and DEM paths made absolute (the workers'
+    working folder may differ), each worker reading its own windows (no resident sources, at most 24
     images cached), its tiles on ``device`` (default the plan's; ``"cuda:0"`` for the GPU
     workers of :func:`local_cluster`, each of which sees only its own GPU)."""
     out = copy.copy(plan)
     out.__setstate__(plan.__getstate__())
     out.sources = [(src if _is_url(src) else os.path.abspath(src), sensor, masked)
                    for src, sensor, masked in plan.sources]
+    out.terrain = shipped_terrain(plan.terrain)
     out.options = dict(plan.options, resident=False, cache_images=min(plan.options["cache_images"], 24))
     if device is not None:
         out.options["device"] = device
@@ -539,6 +558,10 @@ def _write_product_tile(plan: Any, i: int, j: int, tile: Tile, folder: str, sett
     return stats
 
 
+def _json(obj: Any) -> str:
+    return json.dumps(obj, indent=1) + "\n"
+
+
 def _read_stats(folder: str, i: int, j: int, index: bool) -> dict | None:
     """A finished tile's statistics, or None where the tile is not (wholly) there."""
     name = _tile_name(i, j)
@@ -723,10 +746,10 @@ def write_tiled(plan: Any, dst: str | os.PathLike, settings: TiledSettings, *, c
     fingerprint = _fingerprint(plan, settings)
     ptiles = _product_tiles(plan, settings.product_tile)
     with _work_folder(dst, fingerprint, overwrite) as work:
-        write_json(os.path.join(work, "manifest.json"), dict(
+        _put(os.path.join(work, "manifest.json"), _json(dict(
             format=PRODUCT_FORMAT, fingerprint=fingerprint, crs=plan.crs_wkt, transform=list(plan.transform)[:6],
             shape=list(plan.shape), count=plan.count, dtype=plan.dtype, product_tile=settings.product_tile,
-            tile_size=settings.tile_size, compress=settings.compress, index=settings.index))
+            tile_size=settings.tile_size, compress=settings.compress, index=settings.index)))
         done, todo = [], []
         for i, j, t in ptiles:
             stats = _read_stats(work, i, j, settings.index)
@@ -745,14 +768,14 @@ def write_tiled(plan: Any, dst: str | os.PathLike, settings: TiledSettings, *, c
         done.sort(key=lambda s: (s["row"], s["col"]))
         nonempty = [s for s in done if s["valid_pixels"]]
         mask = plan.dtype != "float32"
-        write_text(os.path.join(work, "mosaic.vrt"), _vrt(plan, nonempty, "tiles", plan.count, plan.dtype,
+        _put(os.path.join(work, "mosaic.vrt"), _vrt(plan, nonempty, "tiles", plan.count, plan.dtype,
                                                          nodata=None if mask else float("nan"), mask=mask))
         if settings.index:
             from .plan import NO_SOURCE
 
-            write_text(os.path.join(work, "index.vrt"), _vrt(plan, nonempty, "index", 1, "uint16", nodata=NO_SOURCE,
+            _put(os.path.join(work, "index.vrt"), _vrt(plan, nonempty, "index", 1, "uint16", nodata=NO_SOURCE,
                                                             mask=False))
-        write_json(os.path.join(work, "tiles.geojson"), _tiles_geojson(plan, nonempty, dst, settings.index))
+        _put(os.path.join(work, "tiles.geojson"), _json(_tiles_geojson(plan, nonempty, dst, settings.index)))
         used = np.zeros(len(plan.sources), np.int64)
         for s in done:
             for k, v in s["pixels_per_image"].items():
@@ -766,14 +789,30 @@ def write_tiled(plan: Any, dst: str | os.PathLike, settings: TiledSettings, *, c
                        wall_s=time.perf_counter() - t0)
 
 
+def _put(path: str, text: str) -> None:
+    """Write a text file of the work folder: under a temporary name, renamed when complete
+    (not through :func:`~orthowarp.pipeline.raster.io.outputs_together`: the folder is what
+    is published, by :func:`_publish`)."""
+    tmp = f"{path}.{os.getpid()}.tmp"
+    try:
+        with open(tmp, "w", encoding="utf-8") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except OSError as e:
+        with contextlib.suppress(OSError):
+            os.remove(tmp)
+        raise RasterIOError(f"Could not write '{path}': {describe_os_error(e)}") from e
+
+
 def _remove_strays(work: str) -> None:
-    """Temporaries that killed workers left in the work folder (their tiles were rewritten)."""
+    """Temporaries that killed workers (their tiles were rewritten) or an earlier run left in
+    the work folder."""
     from ..raster.io import TMP_TAG
 
-    for sub in ("tiles", "index"):
+    for sub in ("tiles", "index", ""):
         folder = os.path.join(work, sub)
         for name in os.listdir(folder):
-            if TMP_TAG in name:
+            if TMP_TAG in name or (not sub and name.endswith(".tmp")):
                 with contextlib.suppress(OSError):
                     os.remove(os.path.join(folder, name))
 

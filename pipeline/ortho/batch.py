@@ -126,8 +126,8 @@ def orthorectify_many(jobs: Iterable[tuple[str | os.PathLike, SensorModel, str |
                       orientation_cov: np.ndarray | None = None, pixel_sigma: float = 0.5, dem_sigma: float = 0.0,
                       accuracy_measure: str = "sigma", accuracy_step: int = 16, overwrite: bool = False,
                       progress: bool | Any = None, cancel: threading.Event | None = None,
-                      on_result: Callable[[str, OrthoResult], None] | None = None,
-                      **options: Any) -> list[OrthoResult]:
+                      on_result: Callable[[str, OrthoResult], None] | None = None, cluster: Any = None,
+                      gpus: int | None = None, **options: Any) -> list[OrthoResult]:
     """Orthorectify several images, two at a time, each with its accuracy raster where asked.
 
     Every destination (and accuracy raster) is checked, and every covariance matched with its
@@ -177,6 +177,15 @@ def orthorectify_many(jobs: Iterable[tuple[str | os.PathLike, SensorModel, str |
     on_result : callable(dst, OrthoResult), optional
         Called in the calling thread with each ortho as it is published, in the jobs' order;
         an exception it raises stops the batch as a failure would.
+    cluster : distributed.Client or str, optional
+        Write the orthos on the workers of a Dask cluster (a client, or a scheduler's address),
+        each ortho (and its accuracy raster) by one worker, published where it was written:
+        the workers must see the images, the terrain file and the output folder at the same
+        paths (local paths are made absolute). A worker that dies costs only its images, which
+        run again elsewhere. ``progress`` then counts images, not tiles.
+    gpus : int, optional
+        Instead of ``cluster``: a cluster on this host of one worker per GPU (listening on
+        localhost only), closed at the end.
     **options
         Any other argument of :func:`~orthowarp.pipeline.ortho.orthorectify` (``crs``,
         ``resolution``, ``resampling``, ``refraction``, ``geoid``, ``device``, ...), the same
@@ -225,6 +234,14 @@ def orthorectify_many(jobs: Iterable[tuple[str | os.PathLike, SensorModel, str |
     if not jobs:
         return []
     terrain = as_dem(dem)
+    if cluster is not None or gpus is not None:
+        from ..mosaic.cluster import connect, worker_device
+
+        with connect(cluster, gpus=gpus) as client:
+            return _on_cluster(client, jobs, terrain, covs, accuracy, overwrite, dict(
+                orientation_cov=orientation_cov, pixel_sigma=pixel_sigma, dem_sigma=dem_sigma,
+                measure=accuracy_measure, step=accuracy_step), options, progress, cancel, on_result,
+                worker_device=worker_device(client, options.get("device")))
     accuracy_options = dict(orientation_cov=orientation_cov, pixel_sigma=pixel_sigma, dem_sigma=dem_sigma,
                             measure=accuracy_measure, step=accuracy_step,
                             refraction=options.get("refraction", True), geoid=options.get("geoid"),
@@ -260,6 +277,64 @@ def orthorectify_many(jobs: Iterable[tuple[str | os.PathLike, SensorModel, str |
     finally:
         if own_bar:
             bar.close()
+
+
+def _remote_ortho(job: tuple[str, SensorModel, str], terrain: Dem | float, cov: Any, accuracy: bool,
+                  overwrite: bool, accuracy_args: dict, options: dict) -> OrthoResult:
+    """One job of :func:`orthorectify_many` on a cluster's worker: the ortho and its accuracy
+    raster, published together."""
+    src, sensor, dst = job
+    with outputs_together(overwrite=overwrite):
+        r = orthorectify(src, sensor, dst, dem=terrain, overwrite=overwrite, **options)
+        if accuracy:
+            sensor_accuracy_raster(accuracy_path(dst), sensor, terrain, r.crs, r.transform, r.shape, pose_cov=cov,
+                                   refraction=options.get("refraction", True), geoid=options.get("geoid"),
+                                   same_vertical_datum=options.get("same_vertical_datum", False),
+                                   device=options.get("device"), **accuracy_args)
+    return r
+
+
+def _on_cluster(client: Any, jobs: list[tuple[str, SensorModel, str]], terrain: Dem | float, covs: list,
+                accuracy: bool, overwrite: bool, accuracy_args: dict, options: dict, progress: Any,
+                cancel: threading.Event | None, on_result: Callable[[str, OrthoResult], None] | None,
+                worker_device: str | None) -> list[OrthoResult]:
+    """:func:`orthorectify_many` on the workers of a Dask ``client``: one task per image (paths
+    made absolute), results reported in the jobs' order; the first failure cancels the rest."""
+    import distributed
+
+    from ..mosaic.cluster import _Progress, _is_url, shipped_terrain
+
+    def absolute(path: str) -> str:
+        return path if _is_url(path) else os.path.abspath(path)
+
+    if worker_device is not None:
+        options = dict(options, device=worker_device)
+    terrain = shipped_terrain(terrain)  # a DEM file: the workers open it by its absolute path
+    tag = f"orthowarp-ortho-{os.getpid()}-{id(jobs):x}"
+    futures = [client.submit(_remote_ortho, (absolute(src), sensor, os.path.abspath(dst)), terrain, covs[k], accuracy,
+                             overwrite, accuracy_args, options, pure=False, key=f"{tag}-{k}", retries=0)
+               for k, (src, sensor, dst) in enumerate(jobs)]
+    index = {f.key: k for k, f in enumerate(futures)}
+    results: list = [None] * len(jobs)
+    bar = _Progress(progress if progress is True or callable(progress) else None, len(jobs), desc="images")
+    reported = 0
+    try:
+        for fut in distributed.as_completed(futures):
+            if cancel is not None and cancel.is_set():
+                raise Cancelled("The batch was cancelled; the orthos not yet finished were not written")
+            k = index[fut.key]
+            results[k] = fut.result()
+            bar.step()
+            while reported < len(jobs) and results[reported] is not None:
+                if on_result is not None:
+                    on_result(jobs[reported][2], results[reported])
+                reported += 1
+    except BaseException:
+        client.cancel(futures)
+        raise
+    finally:
+        bar.close()
+    return results
 
 
 def _two_at_a_time(one: Callable[[int], OrthoResult], n: int, failed: threading.Event,

@@ -26,6 +26,7 @@ import json
 import os
 import secrets
 import threading
+import time
 import warnings
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from typing import TYPE_CHECKING, Any
@@ -149,8 +150,10 @@ def remove_stale_temporaries(folder: str) -> list[str]:
             jobs.setdefault(parts[0], []).append(name)
     removed = []
     for job, members in jobs.items():
-        # the job's main file is the shortest name (the others add a suffix to it)
-        with abandoned(os.path.join(folder, min(members, key=len))) as gone:
+        main = os.path.join(folder, min(members, key=len))  # the job's main file: the others add a suffix
+        if _maybe_starting(job, main):
+            continue
+        with abandoned(main) as gone:
             if not gone:
                 continue  # a live run holds it
             for name in sorted(members, key=len, reverse=True):  # helpers first, the locked main last
@@ -158,6 +161,28 @@ def remove_stale_temporaries(folder: str) -> list[str]:
                     os.remove(os.path.join(folder, name))
                     removed.append(os.path.join(folder, name))
     return removed
+
+
+def _maybe_starting(job: str, main: str) -> bool:
+    """Whether a job's temporary may be one its run has just created and not yet locked (the
+    lock is taken right after the file is created): this process's own (never stale while it
+    lives), or a live process's on this host created in the last few seconds."""
+    try:
+        pid = int(job[job.index(TMP_TAG) + len(TMP_TAG):].split("-", 1)[0])
+    except ValueError:
+        return False
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:
+        pass  # (alive, another user's)
+    try:
+        return time.time() - os.stat(main).st_mtime < 10.0
+    except OSError:
+        return True
 
 
 @contextlib.contextmanager
