@@ -119,7 +119,7 @@ def test_a_worker_killed_mid_run_costs_only_its_tiles(block, reference, tmp_path
     sc, images = block
     cog, tiled = reference
     kw = dict(_kw(sc), tile_size=16)  # many small tiles: the kill lands mid-run
-    one = mosaic(images, tmp_path / "one.tif", index=tmp_path / "one_i.tif", **kw)
+    mosaic(images, tmp_path / "one.tif", index=tmp_path / "one_i.tif", **kw)
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
                                   dashboard_address="127.0.0.1:0") as cluster, distributed.Client(cluster) as c:
         c.wait_for_workers(2)

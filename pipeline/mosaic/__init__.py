@@ -282,18 +282,19 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
     # the tile processes start beside the plan (their imports and kernel loading overlap it)
     procs = ProcessTiles(int(processes), str(on), threads=workers or 2) if several and local is None else None
     try:
-        plan = mosaic_plan(images, dem=dem, crs=crs, resolution=resolution, resampling=resampling,
-                           refraction=refraction, dtype=dtype, seams=seams, seam_width=seam_width, blend=blend,
-                           feather=feather, balance=balance,
-                           reference=reference, occlusion=occlusion, device=device, geoid=geoid,
-                           same_vertical_datum=same_vertical_datum, cancel=cancel, _outputs=outputs)
-        out = _WriteSettings(index=index, seamlines=seamlines, seamlines_lonlat=seamlines_lonlat, compress=compress, compress_level=compress_level,
-                             quality=quality,
-                             block_codec=block_codec,
-                             creation_options=creation_options, tile_size=tile_size, overwrite=overwrite,
-                             workers=workers)
         with connect(cluster, gpus=gpus, workers=local, threads=workers or 2) as client:
+            # on a cluster, its workers render the images of the plan's reduced pass too
             worker_device = cluster_device(client, str(on))
+            plan = mosaic_plan(images, dem=dem, crs=crs, resolution=resolution, resampling=resampling,
+                               refraction=refraction, dtype=dtype, seams=seams, seam_width=seam_width, blend=blend,
+                               feather=feather, balance=balance,
+                               reference=reference, occlusion=occlusion, device=device, geoid=geoid,
+                               same_vertical_datum=same_vertical_datum, cancel=cancel, _outputs=outputs,
+                               _client=client, _worker_device=worker_device)
+            out = _WriteSettings(index=index, seamlines=seamlines, seamlines_lonlat=seamlines_lonlat, compress=compress,
+                                 compress_level=compress_level, quality=quality, block_codec=block_codec,
+                                 creation_options=creation_options, tile_size=tile_size, overwrite=overwrite,
+                                 workers=workers)
             if tiled:
                 try:
                     return write_tiled(plan, dst, tiled_settings, client=client, overwrite=overwrite, cancel=cancel,

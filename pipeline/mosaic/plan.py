@@ -484,11 +484,12 @@ def mosaic_plan(images: Sequence[tuple], *, dem: Dem | str | os.PathLike | float
                 feather: float = 32, balance: bool = True, reference: int | None = None, occlusion: bool = True,
                 device: str | None = None, geoid: str | os.PathLike | None = None, same_vertical_datum: bool = False,
                 cancel: threading.Event | None = None, _outputs: Sequence[str] = (),
-                _seam_pixels: int = SEAM_PIXELS) -> MosaicPlan:
+                _seam_pixels: int = SEAM_PIXELS, _client: Any = None, _worker_device: str | None = None) -> MosaicPlan:
     """The grid, sources and radiometric balance of a mosaic, without writing it: a
     :class:`MosaicPlan` whose :meth:`~MosaicPlan.tile` any scheduler can run (threads, a Dask
     cluster) and whose :meth:`~MosaicPlan.write` assembles the results. Parameters as
-    :func:`~orthowarp.pipeline.mosaic.mosaic`."""
+    :func:`~orthowarp.pipeline.mosaic.mosaic`. (Internally, with ``_client`` the reduced pass
+    runs on that Dask client's workers, on ``_worker_device``.)"""
     t_plan = time.perf_counter()
     images = check_images(images, resampling, dtype, blend, feather, reference, seams, seam_width,
                           resolution=resolution, refraction=refraction, balance=balance, occlusion=occlusion,
@@ -506,7 +507,7 @@ def mosaic_plan(images: Sequence[tuple], *, dem: Dem | str | os.PathLike | float
     options.update(_residency(facts, [sensor for _, sensor in images], resolve_device(device)))
     plan = MosaicPlan([(f[0], sensor, f[3]) for f, (_, sensor) in zip(facts, images)], terrain, options,
                       out_crs, transform, (rows, cols), res, foot, count, out_dtype, src_dtype)
-    _balance_and_seams(plan, cfg, cancel, _seam_pixels)
+    _balance_and_seams(plan, cfg, cancel, _seam_pixels, _client, _worker_device)
     plan.setup_s["total"] = time.perf_counter() - t_plan
     return plan
 
@@ -616,11 +617,12 @@ def _residency(facts: list[tuple[str, int, str, bool]], sensors: Sequence[Sensor
 
 
 def _balance_and_seams(plan: MosaicPlan, cfg: _PlanSettings, cancel: threading.Event | None,
-                       seam_pixels: int) -> None:
-    """One reduced pass (the images' overlaps), then the plan's radiometric balance and its
-    seams' labelling from it; each step's seconds in ``plan.setup_s``."""
+                       seam_pixels: int, client: Any = None, worker_device: str | None = None) -> None:
+    """One reduced pass (the images' overlaps; on a Dask ``client``'s workers where given), then
+    the plan's radiometric balance and its seams' labelling from it; each step's seconds in
+    ``plan.setup_s``."""
     t = time.perf_counter()
-    f, coarse, labels = reduced_pass(plan, cancel, seam_pixels)
+    f, coarse, labels = reduced_pass(plan, cancel, seam_pixels, client=client, worker_device=worker_device)
     plan.setup_s["reduced_pass"] = time.perf_counter() - t
     n_images = len(plan.sources)
     if cfg.balance and n_images > 1:
@@ -762,14 +764,17 @@ def _write_seamlines(path: str, index: np.ndarray, transform: Affine, crs: CRS, 
         raise RasterIOError(f"Could not write '{name}': {e.strerror or e}") from e
 
 
-def reduced_pass(plan: MosaicPlan, cancel: threading.Event | None,
-                 max_pixels: int) -> tuple[int, list[Coarse], np.ndarray]:
+def reduced_pass(plan: MosaicPlan, cancel: threading.Event | None, max_pixels: int, *, client: Any = None,
+                 worker_device: str | None = None) -> tuple[int, list[Coarse], np.ndarray]:
     """Each image rendered alone on a reduced grid of the mosaic (the mosaic's pixels
     ``f`` x ``f``, at most ``max_pixels`` pixels) and the most-nadir labelling of that grid.
     Up to f = 3 the images are read at full resolution and sampled at the reduced grid's
     points (reduced reads would smooth each image by its own factor, biasing the balance's
     standard deviations where the images' scales differ); from f = 4 they are read reduced
-    and area-averaged (each source pixel read once instead of one in f^2 used).
+    and area-averaged (each source pixel read once instead of one in f^2 used). With a Dask
+    ``client``, the images are rendered on its workers (on ``worker_device``; see
+    :func:`~orthowarp.pipeline.mosaic.cluster.shipped_plan`) and only their reduced windows
+    come back.
 
     Returns
     -------
@@ -782,42 +787,15 @@ def reduced_pass(plan: MosaicPlan, cancel: threading.Event | None,
         Per reduced pixel, the covering image with the smallest off-nadir angle (NO_SOURCE
         where none covers it).
     """
-    (rows, cols), count = plan.shape, plan.count
+    rows, cols = plan.shape
     f = max(1, int(np.ceil(np.sqrt(rows * cols / max_pixels))))
     crows, ccols = -(-rows // f), -(-cols // f)
-    ctr = plan.transform @ Affine.scale(f)
-    crs = plan.crs
     labels = np.full((crows, ccols), NO_SOURCE, np.uint16)
     best = np.full((crows, ccols), np.inf, np.float32)
 
     def one(k: int) -> tuple | None:
-        """Image k alone on its window of the reduced grid: (r0, c0, values, ok, angle) or None."""
         check_cancel(cancel, "the mosaic")
-        fr0, fr1, fc0, fc1 = plan.foot[k]
-        src, geom = plan.sources[k][0], plan.geometry(k)
-        r0, r1 = max(fr0 // f, 0), min(-(-fr1 // f), crows)
-        c0, c1 = max(fc0 // f, 0), min(-(-fc1 // f), ccols)
-        window = Tile(r0, c0, r1 - r0, c1 - c0)
-        # where the plan's sources are resident, each is read whole into device memory here
-        # and kept with the geometry for the tiles (reduced windows averaged from it there)
-        whole = plan._whole_source(k, geom.device) if plan.options.get("resident") else None
-        it = ImageTiles(src, geom, crs, ctr, count=count, out_dtype="float32", resampling=plan.options["resampling"],
-                        masked=True, src_dtype="float32", decimate=f >= 4,
-                        device_reduce=plan.options.get("device_reduce", False),
-                        **(dict(source_reads="whole", whole=whole) if whole is not None else {}))
-        try:
-            values, valid = it.render(*window)
-        finally:
-            it.close()
-        if values is None:
-            return None
-        to_frame = plan._to_frame(geom.horizontal_crs)
-        angle = angle_field(geom, ctr, to_frame, window).astype(np.float32)
-        v = to_host(values)
-        ok = to_host(valid).view(bool) & np.isfinite(angle) & np.isfinite(v).all(axis=-1)
-        v[~ok] = 0.0  # (no NaN: the overlaps' statistics are sums of values times a 0/1 mask)
-        plan._keep_geometry(k, geom, whole)  # for the image's tile functions
-        return r0, c0, v, ok, angle
+        return _reduced_image(plan, k, f, keep=True)
 
     # the images on threads (reads and kernels release the GIL), merged in their order; computed
     # in the reverse of the order in which the tiles (of the default size, in the order of
@@ -831,17 +809,81 @@ def reduced_pass(plan: MosaicPlan, cancel: threading.Event | None,
             first.setdefault(k, pos)
     order = sorted(range(len(plan.foot)), key=lambda k: first.get(k, -1), reverse=True)
     coarse = []
-    with ThreadPoolExecutor(max_workers=min(8, os.cpu_count() or 1, len(plan.foot))) as pool:
-        items = dict(zip(order, pool.map(one, order)))
-        for k in range(len(plan.foot)):
-            item = items.pop(k)
-            if item is None:
-                coarse.append(None)
-                continue
-            r0, c0, v, ok, angle = item
-            coarse.append((r0, c0, v, ok))
-            win_best, win_labels = best[r0:r0 + ok.shape[0], c0:c0 + ok.shape[1]], \
-                labels[r0:r0 + ok.shape[0], c0:c0 + ok.shape[1]]
-            better = ok & (angle < win_best)
-            win_best[better], win_labels[better] = angle[better], k
+    if client is not None:
+        items = _reduced_on_cluster(plan, client, f, order, cancel, worker_device)
+    else:
+        with ThreadPoolExecutor(max_workers=min(8, os.cpu_count() or 1, len(plan.foot))) as pool:
+            items = dict(zip(order, pool.map(one, order)))
+    for k in range(len(plan.foot)):
+        item = items.pop(k)
+        if item is None:
+            coarse.append(None)
+            continue
+        r0, c0, v, ok, angle = item
+        coarse.append((r0, c0, v, ok))
+        win_best, win_labels = best[r0:r0 + ok.shape[0], c0:c0 + ok.shape[1]], \
+            labels[r0:r0 + ok.shape[0], c0:c0 + ok.shape[1]]
+        better = ok & (angle < win_best)
+        win_best[better], win_labels[better] = angle[better], k
     return f, coarse, labels
+
+
+def _reduced_image(plan: MosaicPlan, k: int, f: int, *, keep: bool = False) -> tuple | None:
+    """Image ``k`` alone on its window of the reduced grid of ``f`` x ``f`` mosaic pixels (see
+    :func:`reduced_pass`): (r0, c0, values, ok, angle) or None where it has no pixel there.
+    ``keep``: keep its geometry (and whole source, where resident) for its tile functions."""
+    (rows, cols), count = plan.shape, plan.count
+    crows, ccols = -(-rows // f), -(-cols // f)
+    ctr = plan.transform @ Affine.scale(f)
+    fr0, fr1, fc0, fc1 = plan.foot[k]
+    src, geom = plan.sources[k][0], plan.geometry(k)
+    r0, r1 = max(fr0 // f, 0), min(-(-fr1 // f), crows)
+    c0, c1 = max(fc0 // f, 0), min(-(-fc1 // f), ccols)
+    window = Tile(r0, c0, r1 - r0, c1 - c0)
+    # where the plan's sources are resident, each is read whole into device memory here
+    # and kept with the geometry for the tiles (reduced windows averaged from it there)
+    whole = plan._whole_source(k, geom.device) if plan.options.get("resident") else None
+    it = ImageTiles(src, geom, plan.crs, ctr, count=count, out_dtype="float32", resampling=plan.options["resampling"],
+                    masked=True, src_dtype="float32", decimate=f >= 4,
+                    device_reduce=plan.options.get("device_reduce", False),
+                    **(dict(source_reads="whole", whole=whole) if whole is not None else {}))
+    try:
+        values, valid = it.render(*window)
+    finally:
+        it.close()
+    if values is None:
+        return None
+    to_frame = plan._to_frame(geom.horizontal_crs)
+    angle = angle_field(geom, ctr, to_frame, window).astype(np.float32)
+    v = to_host(values)
+    ok = to_host(valid).view(bool) & np.isfinite(angle) & np.isfinite(v).all(axis=-1)
+    v[~ok] = 0.0  # (no NaN: the overlaps' statistics are sums of values times a 0/1 mask)
+    if keep:
+        plan._keep_geometry(k, geom, whole)  # for the image's tile functions
+    return r0, c0, v, ok, angle
+
+
+def _reduced_on_cluster(plan: MosaicPlan, client: Any, f: int, order: Sequence[int],
+                        cancel: threading.Event | None, device: str | None) -> dict[int, tuple | None]:
+    """:func:`reduced_pass`'s images rendered on the workers of a Dask ``client``, in ``order``
+    (the plan sent to each worker once)."""
+    import distributed
+
+    from .cluster import shipped_plan
+
+    remote = client.scatter(shipped_plan(plan, device), broadcast=True, hash=False)
+    tag = f"orthowarp-reduced-{os.getpid()}-{time.monotonic_ns():x}"
+    futures = [client.submit(_reduced_image, remote, k, f, pure=False, key=f"{tag}-{k}") for k in order]
+    which = {fut.key: k for k, fut in zip(order, futures)}
+    items = {}
+    try:
+        for fut in distributed.as_completed(futures):
+            check_cancel(cancel, "the mosaic")
+            items[which[fut.key]] = fut.result()
+            fut.release()
+    except BaseException:
+        client.cancel(futures)
+        raise
+    finally:
+        remote.release()
+    return items
