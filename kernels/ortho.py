@@ -34,6 +34,7 @@ from .dem import DemData, dem_sample
 from .geodesy import geodetic_to_ecef
 from .pushbroom import PushbroomData, pb_line_time, pb_project
 from .ray import apparent_direction
+from .orthoimage import OrthoData, ortho_pixel
 from .rpc import RpcData, rpc_pixel
 from .refraction import RefractionTable
 from .ray import SearchParams
@@ -229,6 +230,15 @@ def source_pixel(arg: RpcData, refr: RefractionTable, dem: DemData, grid: Coarse
                  width: wp.float64, height: wp.float64):
     """Source pixel of output-tile pixel (i, j): an RPC image's."""
     return rpc_source_pixel(arg, dem, grid, i, j, width, height)
+
+
+@wp.func
+def source_pixel(arg: OrthoData, refr: RefractionTable, dem: DemData, grid: CoarseGrid, i: wp.int32, j: wp.int32,
+                 width: wp.float64, height: wp.float64):
+    """Source pixel of output-tile pixel (i, j): an orthoimage's, by the inverse geotransform
+    at the pixel's horizontal coordinates in the image's CRS (the grid's uv; no height)."""
+    uv = grid_bilinear(grid.uv, wp.float64(i) / grid.step, wp.float64(j) / grid.step)
+    return in_image(ortho_pixel(arg, uv[0], uv[1]), width, height)
 
 
 @wp.func

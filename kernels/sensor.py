@@ -4,7 +4,8 @@ struct (the pattern of warp.fem's geometries).
 
 A sensor's argument is one struct (:meth:`SensorModel.arg_value`): :class:`FrameArg` (camera
 and pose) for a frame image, :class:`~orthowarp.kernels.pushbroom.PushbroomData` for a
-pushbroom scene, :class:`~orthowarp.kernels.rpc.RpcData` for an RPC image. Each implements, by
+pushbroom scene, :class:`~orthowarp.kernels.rpc.RpcData` for an RPC image,
+:class:`~orthowarp.kernels.orthoimage.OrthoData` for an orthoimage. Each implements, by
 overloads of one name:
 
 - :func:`sensor_geolocate` ``(arg, refr, dem, search, pixel) -> geo triple``: the pixel's ray
@@ -28,7 +29,9 @@ wp.set_module_options({"enable_backward": False, "cuda_output": "cubin"})
 from .camera import FrameCameraData
 from .dem import DemData
 from .frame import FramePoseData, geolocate_pixel, project_point, project_xyz
+from .dem import dem_sample
 from .geodesy import DEG, geodetic_to_ecef
+from .orthoimage import OrthoData, ortho_ground, ortho_pixel
 from .pushbroom import PushbroomData, pb_geolocate, pb_project
 from .ray import SearchParams
 from .rpc import RpcData, rpc_geolocate, rpc_pixel, rpc_project_xyz
@@ -61,6 +64,14 @@ def sensor_geolocate(arg: RpcData, refr: RefractionTable, dem: DemData, search: 
 
 
 @wp.func
+def sensor_geolocate(arg: OrthoData, refr: RefractionTable, dem: DemData, search: SearchParams, pix: wp.vec2d):
+    """An orthoimage's pixel -> its ground point by the geotransform, at the DEM's height there
+    (0 over the constant DEM the geometry gives orthoimages; ``refr`` is not read)."""
+    g = ortho_ground(arg, pix)
+    return wp.vec3d(g[0], g[1], dem_sample(dem, g[0], g[1]))
+
+
+@wp.func
 def sensor_project_xyz(arg: FrameArg, refr: RefractionTable, x: wp.vec3d, h: wp.float64, t0: wp.float64):
     return project_xyz(arg.cam, arg.pose, refr, x, h)
 
@@ -73,6 +84,11 @@ def sensor_project_xyz(arg: PushbroomData, refr: RefractionTable, x: wp.vec3d, h
 @wp.func
 def sensor_project_xyz(arg: RpcData, refr: RefractionTable, x: wp.vec3d, h: wp.float64, t0: wp.float64):
     return rpc_project_xyz(arg, x, h)
+
+
+@wp.func
+def sensor_project_xyz(arg: OrthoData, refr: RefractionTable, x: wp.vec3d, h: wp.float64, t0: wp.float64):
+    return ortho_pixel(arg, x[0], x[1])
 
 
 @wp.func
@@ -92,6 +108,12 @@ def sensor_project_geo(arg: PushbroomData, refr: RefractionTable, geo: wp.vec3d)
 def sensor_project_geo(arg: RpcData, refr: RefractionTable, geo: wp.vec3d):
     """Geo triple (lon, lat deg, ellipsoidal h m) -> pixel by the RPCs' closed form."""
     return rpc_pixel(arg, geo[0], geo[1], geo[2])
+
+
+@wp.func
+def sensor_project_geo(arg: OrthoData, refr: RefractionTable, geo: wp.vec3d):
+    """Geo triple (x, y of the image's CRS, h) -> pixel by the inverse geotransform (h unused)."""
+    return ortho_pixel(arg, geo[0], geo[1])
 
 
 @wp.kernel
@@ -137,7 +159,7 @@ def project_kernel(
     out[i] = sensor_project_geo(arg, refr, points[i])
 
 
-SENSOR_ARGS = (FrameArg, PushbroomData, RpcData)  # the structs the generic kernels are built for
+SENSOR_ARGS = (FrameArg, PushbroomData, RpcData, OrthoData)  # the structs the generic kernels are built for
 
 for _arg in SENSOR_ARGS:
     for _kernel in (geolocate_kernel, geolocate_grid_kernel, project_kernel):

@@ -60,6 +60,9 @@ _LAZY = {
     "FrameSensor": ".sensor",
     "RationalSensor": ".rpc",
     "RpcCoefficients": ".rpc",
+    "OrthoImage": ".orthoimage",
+    "read_ortho": ".pipeline.formats.orthos",
+    "ortho_images": ".pipeline.formats.orthos",
 }
 _SUBPACKAGES = ("adjust", "kernels", "pipeline")  # ``ow.adjust.bundle_adjust`` etc. without an import
 
@@ -77,6 +80,9 @@ __all__ = [
     "FrameSensor",
     "RationalSensor",
     "RpcCoefficients",
+    "OrthoImage",
+    "read_ortho",
+    "ortho_images",
     "read_scene",
     "read_block",
     "write_block",

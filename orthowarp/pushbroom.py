@@ -292,6 +292,7 @@ class PushbroomScene(SensorModel):
     noun = "scene"
     forward_method = False
     line_timed = True
+    orthorectified = False
 
     def __init__(self, *, width: int, height: int, line_period: float, center_line: float, eph_time: ArrayLike,
                  eph_position: ArrayLike, eph_velocity: ArrayLike, att_time: ArrayLike, att_angles: ArrayLike,

@@ -431,6 +431,7 @@ class RationalSensor(SensorModel):
     noun = "image"
     forward_method = False
     line_timed = False
+    orthorectified = False
     #: An RPC image has no pose (no projection centre, no attitude).
     pose = None
     geocentric = True

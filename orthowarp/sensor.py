@@ -31,7 +31,8 @@ and never branch on the kind of sensor (after orthority's ``Camera``, Vision Wor
   by the forward, direct method, not only the backward one) and
   :attr:`SensorModel.line_timed` (each image line has its own time and orientation, as a
   pushbroom scene's orbit and attitude; False: one pose, ``sensor.pose``, for the whole
-  image, whose covariance ``pose_cov`` is, or none: ``sensor.pose`` None, an RPC image's).
+  image, whose covariance ``pose_cov`` is, or none: ``sensor.pose`` None, an RPC image's) and
+  :attr:`SensorModel.orthorectified` (an orthoimage: no terrain, no refraction, no viewpoint).
 
 A new sensor plugs in by subclassing :class:`SensorModel`: its struct and device functions in
 a kernels/ module, their overloads in :mod:`orthowarp.kernels.sensor` and
@@ -114,7 +115,7 @@ class SensorModel(abc.ABC):
     (:meth:`with_parameters`), so the device structs are cached safely.
     """
 
-    kind: str = ""  # "frame", "pushbroom", "rpc": for messages and summaries
+    kind: str = ""  # "frame", "pushbroom", "rpc", "ortho": for messages and summaries
 
     # -- capabilities (class attributes: what the layers above ask instead of ``kind``) -------
     #: What an image of this sensor is called in messages ("camera", "scene", "image").
@@ -126,6 +127,11 @@ class SensorModel(abc.ABC):
     #: accuracy propagates an ``orientation_cov``); False: one pose (``pose``) for the whole
     #: image, whose covariance is ``pose_cov``, or no pose at all (``pose`` None: RPCs).
     line_timed: bool = False
+    #: True when the image is orthorectified already (:class:`orthowarp.OrthoImage`): its
+    #: geometry takes no terrain (a constant height 0, whatever DEM it is given) and no
+    #: refraction, and a mosaic's seams rank it by the distance from its valid data's centre
+    #: (``centre``) instead of an off-nadir angle, which it has none of.
+    orthorectified: bool = False
 
     # -- geometry facts ------------------------------------------------------------------------
     @property
@@ -326,6 +332,7 @@ class FrameSensor(SensorModel):
     noun = "camera"
     forward_method = True
     line_timed = False
+    orthorectified = False
 
     def __init__(self, camera: FrameCamera, pose: Pose) -> None:
         from .camera import FrameCamera

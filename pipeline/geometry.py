@@ -200,9 +200,11 @@ class SensorGeometry:
         Terrain: a DEM, a DEM file or a constant height (m) in the vertical datum of the
         positions (ellipsoidal for geocentric poses and scenes, the map CRS's z for map poses). A
         DEM file not read whole (:meth:`Dem.from_file`) is read over the region's footprint only
-        (see ``_prepared_dem``).
+        (see ``_prepared_dem``). An orthorectified sensor (:class:`~orthowarp.OrthoImage`) takes
+        a constant height 0 instead, whatever is given.
     refraction : bool, optional
-        Model atmospheric refraction (layered standard atmosphere).
+        Model atmospheric refraction (layered standard atmosphere); off for an orthorectified
+        sensor.
     device : str, optional
         Warp device; None picks the first CUDA device, else the CPU.
     region : (col0, row0, col1, row1), optional
@@ -228,6 +230,8 @@ class SensorGeometry:
         if not isinstance(sensor, SensorModel):
             raise ParamError(f"sensor must be a FrameSensor or a PushbroomScene, got {type(sensor).__name__}")
         self.sensor = sensor
+        if sensor.orthorectified:  # an orthoimage lies on the ground already: no terrain, no refraction
+            dem, refraction, height_range = Dem.constant(0.0), False, None
         self.device = resolve_device(device)
         load_modules(self.device, sensor_kernels)  # compiled here on a first run, with a notice
         self._probe_base = None
@@ -320,7 +324,7 @@ class SensorGeometry:
             # (not checked against its nominal height; a sensor below the probe heights, under
             # ground, is probed without refraction: the check against the real terrain comes
             # after the probes and says what is wrong)
-            refraction = float(self.sensor.reference_height()) > PROBE_HEIGHTS[0]
+            refraction = float(self.sensor.reference_height()) > PROBE_HEIGHTS[0] and not self.sensor.orthorectified
             self._probe_base = SensorGeometry(self.sensor, Dem.constant(0.0), refraction=refraction,
                                               device=self.device, height_range=PROBE_HEIGHTS, _probe_only=True)
         return _at_constant(self._probe_base, h)

@@ -140,16 +140,18 @@ def test_pushbroom_scene_is_a_sensor_model(poly_scene):
 
 
 # The capabilities the layers above ask instead of ``kind`` (see SensorModel's doc), with the
-# values each sensor declares: (noun, forward_method, line_timed).
-CAPABILITIES = {"frame": ("camera", True, False), "pushbroom": ("scene", False, True), "rpc": ("image", False, False)}
+# values each sensor declares: (noun, forward_method, line_timed, orthorectified).
+CAPABILITIES = {"frame": ("camera", True, False, False), "pushbroom": ("scene", False, True, False),
+                "rpc": ("image", False, False, False), "ortho": ("orthoimage", False, False, True)}
 
 
-@pytest.mark.parametrize("cls", [FrameSensor, ow.PushbroomScene, ow.RationalSensor], ids=lambda c: c.__name__)
+@pytest.mark.parametrize("cls", [FrameSensor, ow.PushbroomScene, ow.RationalSensor, ow.OrthoImage],
+                         ids=lambda c: c.__name__)
 def test_sensors_declare_their_capabilities(cls):
     """Each sensor class declares every capability itself (not inherited from the protocol's
     blank defaults), with the protocol's types, and consistently with its ``kind``: a sensor
     with one pose is the one the forward method takes, a line-timed one is not."""
-    names = ("noun", "forward_method", "line_timed")
+    names = ("noun", "forward_method", "line_timed", "orthorectified")
     for name in names:
         assert name in vars(SensorModel), name  # documented on the protocol
         assert name in vars(cls), f"{cls.__name__} does not declare {name}"

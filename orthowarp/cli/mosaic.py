@@ -25,6 +25,7 @@ MOSAIC_GPU_PROCESSES = 4
 @options.orientation
 @options.odm_dataset
 @options.exif_options
+@options.orthos
 @click.option("--adjust", "adjust_chain", is_flag=True,
               help="With --exif: first refine the tags' orientation: tie points by matching, then a bundle "
                    "adjustment with the GPS positions and gimbal angles as observations and the camera's "
@@ -91,8 +92,8 @@ MOSAIC_GPU_PROCESSES = 4
 @options.profiling
 @click.pass_context
 def mosaic(ctx: click.Context, images: tuple[str, ...], **kwargs: Any) -> None:
-    """Mosaic frame IMAGES and pushbroom scenes (--scene) into one cloud-optimized GeoTIFF: each
-    pixel from the image that sees its ground most nearly from above (smallest off-nadir
+    """Mosaic frame IMAGES and pushbroom scenes (--scene), or orthoimages (--orthos), into one
+    cloud-optimized GeoTIFF: each pixel from the image that sees its ground most nearly from above (smallest off-nadir
     angle), the seams moved to where the images agree, feathered across the seams, the images'
     radiometry balanced by gains and offsets from their overlaps."""
     warm_up(kwargs["device"], accuracy=kwargs["accuracy"], more=("orthowarp.kernels.mosaic",))
@@ -111,14 +112,16 @@ def mosaic(ctx: click.Context, images: tuple[str, ...], **kwargs: Any) -> None:
     if o.adjust_chain and not o.exif:
         raise ParamError("--adjust refines the orientation read with --exif: give --exif too")
     check_exif_options(images, o)
+    if o.orthos:
+        _check_orthos(images, o)
     if o.odm_dataset is not None:
         images, o.int_param, o.ext_param, o.dem = odm_dataset(o.odm_dataset, images=images, int_param=o.int_param,
                                                               ext_param=o.ext_param, dem=o.dem, height=o.height)
-    if (o.dem is None) == (o.height is None):
+    if not o.orthos and (o.dem is None) == (o.height is None):
         raise ParamError("Give exactly one of --dem FILE and --height METRES")
     if not images and not o.scenes:
         raise ParamError("Give frame IMAGES (with --ext-param) or pushbroom scenes (--scene IMAGE DIMAP)")
-    if images and not o.ext_param and not o.exif:
+    if images and not o.ext_param and not o.exif and not o.orthos:
         raise ParamError("Frame IMAGES need --ext-param (their exterior orientation), or --exif (from their tags)")
     compress, compress_level, quality, creation_options = options.creation_args(o.creation, o.compress,
                                                                                 o.compress_level, o.quality)
@@ -213,6 +216,10 @@ def _jobs(images: tuple[str, ...] | list[str], o: SimpleNamespace, *, quiet: boo
     from ..errors import RasterIOError
     from ..pipeline.formats.sensors import frame_sensors
 
+    if o.orthos:
+        from ..pipeline.formats.orthos import ortho_images
+
+        return ortho_images(images)
     if o.exif:
         from .exif import exif_jobs
 
@@ -270,3 +277,18 @@ def _adjusted(jobs: list[tuple[str, Any]], terrain: Any, o: SimpleNamespace, *, 
     adjusted = dict(chain.sensors)
     return [(img, adjusted.get(img, s)) for img, s in jobs]
 
+
+def _check_orthos(images: tuple[str, ...], o: SimpleNamespace) -> None:
+    """ParamError for the options that ``--orthos`` has no use for (orientation, terrain, the
+    accuracy and adjustment of raw images), and for no IMAGES."""
+    from ..errors import ParamError
+
+    given = [name for name, v in (("--int-param", o.int_param), ("--ext-param", o.ext_param), ("--exif", o.exif),
+                                  ("--odm-dataset", o.odm_dataset), ("--scene", o.scenes), ("--dem", o.dem),
+                                  ("--height", o.height is not None), ("--geoid", o.geoid),
+                                  ("--accuracy", o.accuracy), ("--adjust", o.adjust_chain)) if v]
+    if given:
+        raise ParamError(f"--orthos mosaics orthoimages by their own georeferencing: give it without "
+                         f"{', '.join(given)}")
+    if not images:
+        raise ParamError("--orthos needs IMAGES: the orthoimages (files or wildcards)")

@@ -130,6 +130,12 @@ exif_heading = click.option("--exif-heading", type=click.Choice(["tags", "conten
                                  "against the GPS track between neighbouring images (where that cannot be measured, "
                                  "the tags' corrected as their strip's, else the tags').")
 exif_options = compose(exif, exif_altitude, exif_heading)
+orthos = click.option("--orthos", is_flag=True,
+                      help="IMAGES are orthoimages already (georeferenced rasters: orthority's orthos, GDAL's, "
+                           "orthowarp's), mosaicked by their CRS and geotransform, reprojected where their grids "
+                           "differ from the mosaic's; no orientation, no DEM (--dem and --height are refused). "
+                           "Default CRS: the first image's; default resolution: the finest image's, the grid "
+                           "aligned to that image's.")
 attitude_model = click.option("--attitude-model", type=click.Choice(["full", "first_order"]), default=None,
                               help="Attitude matrix of pushbroom scenes read from DIMAP: full (the default) or "
                                    "first_order (its linearised form); a scene JSON from 'orthowarp spot-adjust' "

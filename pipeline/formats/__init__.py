@@ -17,7 +17,9 @@
   ``_RPC.TXT``, orthority's RPC parameter file; :func:`write_rpb`, :func:`write_rpc_txt`) and
   orthority's GCP GeoJSON (:func:`read_gcps`);
 - :mod:`~orthowarp.pipeline.formats.exif`: cameras and poses from drone images' EXIF and XMP
-  tags (:func:`read_exif`, :func:`exif_orientations`).
+  tags (:func:`read_exif`, :func:`exif_orientations`);
+- :mod:`~orthowarp.pipeline.formats.orthos`: orthoimages as sensors from their georeferencing
+  (:func:`read_ortho`, :func:`ortho_images`).
 
 Every reader reports a file's unusable content as a one-line
 :class:`~orthowarp.errors.ParamError` naming the file, made by one helper
@@ -80,6 +82,8 @@ _LAZY = {
     "exif_orientations": ".exif",
     "exif_images": ".exif",
     "gimbal_attitude": ".exif",
+    "read_ortho": ".orthos",
+    "ortho_images": ".orthos",
 }
 
 __all__ = list(_LAZY)

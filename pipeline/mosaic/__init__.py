@@ -81,7 +81,7 @@ __all__ = ["mosaic", "mosaic_plan", "MosaicPlan", "MosaicResult", "TiledResult",
 MOSAIC_COMPRESS = ("deflate", "zstd", "jpeg", "webp")
 
 @quiet_warp()
-def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | os.PathLike | float,
+def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | os.PathLike | float | None = None,
            crs: str | int | CRS | None = None, resolution: float | None = None, resampling: str = "bilinear",
            refraction: bool = True, dtype: str | None = None, index: str | os.PathLike | None = None,
            seamlines: str | os.PathLike | None = None, seamlines_lonlat: bool = False, seams: str = "least-cost",
@@ -110,11 +110,14 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
     dem : Dem, str or float
         Terrain: a Dem, a DEM file, or a constant height (m) in the vertical datum of the
         positions: ellipsoidal for geocentric poses and pushbroom scenes, the z of the map CRS
-        for map-Cartesian poses.
+        for map-Cartesian poses. Orthoimages (:class:`~orthowarp.OrthoImage`) take none: None
+        (the default) where all images are orthoimages.
     crs : CRS-like, optional
-        Output CRS; default: that of the first image's ortho.
+        Output CRS; default: that of the first image's ortho (an orthoimage's own CRS).
     resolution : float, optional
-        Pixel size (CRS units); default: the mean of the images' ground sample distances.
+        Pixel size (CRS units); default: the mean of the images' ground sample distances (for
+        orthoimages alone the finest of their pixel sizes, the grid then aligned to that
+        image's).
     resampling : {"nearest", "bilinear", "bicubic", "lanczos"}, optional
     refraction : bool, optional
     dtype : {"uint8", "uint16", "float32"}, optional

@@ -189,7 +189,7 @@ class MosaicPlan(TileBlending):
         geom, whole = self._take_geometry(k)
         method = o["method"] if sensor.forward_method else "backward"  # pushbroom: the backward method only
         # occlusion for pushbroom scenes: the backward method with each pixel's visibility tested
-        hide = o["method"] == "forward" and method == "backward"
+        hide = o["method"] == "forward" and method == "backward" and not sensor.orthorectified
         crs = self.crs
         # the source read once into device memory where the plan's sources are resident,
         # shared by the image's tile functions (reduced windows averaged on the device either way)
@@ -478,7 +478,7 @@ class MosaicPlan(TileBlending):
 
 
 @quiet_warp()
-def mosaic_plan(images: Sequence[tuple], *, dem: Dem | str | os.PathLike | float, crs: str | int | CRS | None = None,
+def mosaic_plan(images: Sequence[tuple], *, dem: Dem | str | os.PathLike | float | None = None, crs: str | int | CRS | None = None,
                 resolution: float | None = None, resampling: str = "bilinear", refraction: bool = True,
                 dtype: str | None = None, seams: str = "least-cost", seam_width: float = 256, blend: str = "feather",
                 feather: float = 32, balance: bool = True, reference: int | None = None, occlusion: bool = True,
@@ -497,11 +497,14 @@ def mosaic_plan(images: Sequence[tuple], *, dem: Dem | str | os.PathLike | float
     cfg = _PlanSettings(crs=crs, resolution=resolution, resampling=resampling, refraction=refraction, seams=seams,
                         seam_width=seam_width, blend=blend, feather=feather, balance=balance, reference=reference,
                         occlusion=occlusion, device=device, geoid=geoid, same_vertical_datum=same_vertical_datum)
+    if dem is None and all(sensor.orthorectified for _, sensor in images):
+        dem = 0.0  # orthoimages take no terrain
     terrain = as_dem(dem)
     facts = _source_facts(images, _outputs)
     count, src_dtype = facts[0][1], facts[0][2]
     out_dtype = dtype or (src_dtype if src_dtype in DTYPES else "float32")
-    out_crs, res, transform, (rows, cols), foot = _union_grid(_image_grids(images, terrain, cfg), resolution)
+    out_crs, res, transform, (rows, cols), foot = _union_grid(_image_grids(images, terrain, cfg), resolution,
+                                                              orthos=all(s.orthorectified for _, s in images))
     log.info("mosaic of %d images: %d x %d pixels at %.4g", len(images), cols, rows, res)
     options = _plan_options(cfg)
     options.update(_residency(facts, [sensor for _, sensor in images], resolve_device(device)))
@@ -570,20 +573,25 @@ def _image_grids(images: list[tuple], terrain: Dem, cfg: _PlanSettings) -> list[
     return grids
 
 
-def _union_grid(grids: list[tuple], resolution: float | None) -> tuple:
+def _union_grid(grids: list[tuple], resolution: float | None, orthos: bool = False) -> tuple:
     """The mosaic's grid: the union of the images' ``grids`` at one resolution, aligned to it.
     Returns (crs, resolution, transform, (rows, cols), footprints), each image's footprint in
-    mosaic pixels (rows r0-r1, cols c0-c1) with one pixel of margin."""
+    mosaic pixels (rows r0-r1, cols c0-c1) with one pixel of margin. With ``orthos`` (all images
+    orthoimages) the default resolution is the finest, and the grid is aligned to the first
+    grid of that resolution (an orthoimage's own, where it keeps it) instead of the CRS's origin."""
     out_crs = grids[0][0]
-    res = float(resolution) if resolution is not None else float(np.mean([g[3] for g in grids]))
+    res = float(resolution) if resolution is not None else float(
+        np.min([g[3] for g in grids]) if orthos else np.mean([g[3] for g in grids]))
+    anchor = next((g[1] for g in grids if g[3] == res), None) if orthos else None
+    ax, ay = (anchor.c, anchor.f) if anchor is not None else (0.0, 0.0)
     boxes = []
     for _, tr, shape, _ in grids:
         x0, y1 = tr.c, tr.f
         boxes.append((x0, y1 + tr.e * shape[0], x0 + tr.a * shape[1], y1))
-    xmin = np.floor(min(b[0] for b in boxes) / res) * res
-    ymin = np.floor(min(b[1] for b in boxes) / res) * res
-    xmax = np.ceil(max(b[2] for b in boxes) / res) * res
-    ymax = np.ceil(max(b[3] for b in boxes) / res) * res
+    xmin = ax + np.floor((min(b[0] for b in boxes) - ax) / res) * res
+    ymin = ay + np.floor((min(b[1] for b in boxes) - ay) / res) * res
+    xmax = ax + np.ceil((max(b[2] for b in boxes) - ax) / res) * res
+    ymax = ay + np.ceil((max(b[3] for b in boxes) - ay) / res) * res
     transform = Affine(res, 0.0, xmin, 0.0, -res, ymax)
     rows, cols = int(round((ymax - ymin) / res)), int(round((xmax - xmin) / res))
     foot = [(int(np.floor((ymax - b[3]) / res)) - 1, int(np.ceil((ymax - b[1]) / res)) + 1,

@@ -65,9 +65,12 @@ def _node_angles(geom: SensorGeometry, transform: Affine, to_frame: Transformer,
     pushbroom scene's satellite position at the line that images the point, to the point on
     the DEM (NaN where the DEM has no height or the sensor does not see the point); for a
     sensor without a projection centre (an RPC image), from its line of sight
-    (:func:`_sight_angles`)."""
+    (:func:`_sight_angles`); for an orthoimage, from its valid data's centre
+    (:func:`_centre_angles`)."""
     uv = coarse_grid(transform, to_frame, *tile)
     u, v = uv[..., 0], uv[..., 1]
+    if geom.sensor.orthorectified:  # no viewpoint: the distance from the valid data's centre
+        return _centre_angles(geom, u, v)
     h = geom.dem.sample(u, v)
     if not geom.sensor.line_timed and getattr(geom.sensor, "pose", None) is None:
         return _sight_angles(geom, u, v, h)
@@ -92,6 +95,29 @@ def _node_angles(geom: SensorGeometry, transform: Affine, to_frame: Transformer,
     with np.errstate(invalid="ignore"):
         cos = np.einsum("...i,...i->...", ray, up) / np.linalg.norm(ray, axis=-1)
     return np.arccos(np.clip(cos, -1.0, 1.0))
+
+
+#: The height (m) of the vertical view an orthoimage's seam ranking assumes over its valid
+#: data's centre (:func:`_centre_angles`): among orthoimages only the order of the distances
+#: counts; beside frames or scenes, an orthoimage ranks as a vertical frame from this height.
+ORTHO_VIEW_HEIGHT = 1000.0
+
+
+def _centre_angles(geom: SensorGeometry, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """An orthoimage's stand-in for the off-nadir angle (radians) at points (u, v) of its CRS:
+    arctan(d / :data:`ORTHO_VIEW_HEIGHT`), d the ground distance (m) from its valid data's
+    centre (``sensor.centre``, the nadir of a near-vertical frame), so that each pixel goes to
+    the orthoimage whose centre is nearest (seams on the perpendicular bisectors, as most-nadir
+    seams of vertical frames lie)."""
+    crs = geom.sensor.horizontal_crs
+    cx, cy = geom.sensor.centre
+    if crs.is_geographic:
+        _, _, d = crs.get_geod().inv(np.full(u.shape, cx), np.full(v.shape, cy), u, v)
+        d = np.asarray(d, float)
+    else:
+        unit = crs.axis_info[0].unit_conversion_factor if crs.axis_info else None
+        d = np.hypot(u - cx, v - cy) * (unit or 1.0)
+    return np.arctan(d / ORTHO_VIEW_HEIGHT)
 
 
 def _sight_angles(geom: SensorGeometry, u: np.ndarray, v: np.ndarray, h: np.ndarray, step: float = 1.0) -> np.ndarray:

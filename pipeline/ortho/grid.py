@@ -3,7 +3,8 @@
 :func:`output_grid` takes a :class:`~orthowarp.pipeline.geometry.SensorGeometry` and returns
 the grid its orthoimage is written on: by default the map CRS of map-Cartesian poses, else the
 UTM zone of the image centre, at the mean ground sample distance, aligned to whole pixels from
-the CRS's origin, covering the image's footprint on the DEM. The grid is computed on the CPU
+the CRS's origin, covering the image's footprint on the DEM; an orthoimage in its own CRS at its
+own pixel size keeps its own grid. The grid is computed on the CPU
 whatever the geometry's device, so every device gets the same grid.
 """
 
@@ -120,6 +121,9 @@ def output_grid(geom: SensorGeometry, *, crs: str | int | CRS | None = None, res
         inner = geom.geolocate_frame(np.stack([gc.ravel(), gr.ravel()], 1))
         pts = np.concatenate([pts, inner[np.all(np.isfinite(inner), axis=1)]])
     x, y = to_out.transform(pts[:, 0], pts[:, 1])
+    native = _native_grid(geom, crs, resolution)
+    if native is not None:  # an orthoimage on its own grid
+        return native
     if resolution is None:
         resolution = _mean_gsd(geom, to_out)
     res = finite("resolution", resolution)
@@ -139,6 +143,25 @@ def output_grid(geom: SensorGeometry, *, crs: str | int | CRS | None = None, res
         raise ParamError(f"The orthoimage would have {shape[1]} x {shape[0]} pixels at resolution {res}: "
                          "check the resolution and the CRS units")
     return crs, Affine(res, 0.0, x0, 0.0, -res, y1), shape, res
+
+
+def _native_grid(geom: SensorGeometry, crs: CRS, resolution: float | None) -> tuple | None:
+    """An orthoimage's own grid (crs, transform, shape, resolution) where the output grid is
+    to be in its CRS at its pixel size (``resolution`` None or equal to it) and it is north-up
+    with square pixels: then its pixels are the output's, unresampled (not aligned to the
+    CRS's origin: a mosaic of orthoimages aligns to the first's grid). None otherwise."""
+    sensor = geom.sensor
+    if not sensor.orthorectified:
+        return None
+    t = sensor.transform
+    if t.b != 0.0 or t.d != 0.0 or not (t.a > 0.0 > t.e) or t.a != -t.e:
+        return None
+    if resolution is not None and float(resolution) != t.a:
+        return None
+    if not crs.equals(sensor.horizontal_crs):
+        return None
+    w, h = sensor.image_size
+    return crs, t, (h, w), float(t.a)
 
 
 def _not_covered(geom: SensorGeometry, feet: np.ndarray) -> str:
