@@ -80,7 +80,7 @@ MOSAIC_GPU_PROCESSES = 4
 @options.workers
 @click.option("--processes", type=click.IntRange(min=1), default=None,
               help="Worker processes computing the tiles on the same device (default: 4 on a GPU, 1 on the CPU, "
-                   "where 1 is threads of this process).")
+                   "where 1 is threads of this process); with --gpus, per GPU.")
 @options.tile_size
 @options.cluster
 @click.option("--tiled", is_flag=True,
@@ -144,14 +144,13 @@ def mosaic(ctx: click.Context, images: tuple[str, ...], **kwargs: Any) -> None:
     if o.product_tile is not None and not o.tiled:
         raise ParamError("--product-tile is the tiles' size of a --tiled mosaic")
     processes = o.processes
-    on_cluster = o.gpus is not None or o.scheduler is not None
-    if on_cluster and processes not in (None, 1):
-        raise ParamError("--processes is for a mosaic on this host's device; with --gpus or --scheduler the cluster's "
-                         "workers compute the tiles")
-    if processes is None and not on_cluster:  # a GPU mosaic is bound by the host work per tile: several processes feed it
+    if o.scheduler is not None and processes not in (None, 1):
+        raise ParamError("--processes is for a mosaic on this host (with --gpus: per GPU); with --scheduler the "
+                         "cluster's workers compute the tiles")
+    if processes is None and o.scheduler is None:  # a GPU mosaic is bound by the host work per tile: several processes feed it
         from .._device import resolve_device
 
-        processes = MOSAIC_GPU_PROCESSES if resolve_device(o.device).is_cuda else 1
+        processes = MOSAIC_GPU_PROCESSES if o.gpus is not None or resolve_device(o.device).is_cuda else 1
     index = o.index_path
     if o.tiled and index is not None:  # the index's tiles and VRT in the tiled mosaic's folder
         want = os.path.join(o.out_path, "index.vrt")

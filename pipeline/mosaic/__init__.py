@@ -208,7 +208,8 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
         device instead (see :mod:`orthowarp.pipeline.mosaic.workers`). They are started with the
         "spawn" method, so a script calling this must guard its top level with
         ``if __name__ == "__main__":``. Each process holds its own image cache
-        (``cache_images``) and CUDA context.
+        (``cache_images``) and CUDA context. With ``gpus``: worker processes per GPU; with
+        ``tiled`` alone: a Dask cluster of this many processes on this host.
     geoid, same_vertical_datum :
         As for :func:`~orthowarp.pipeline.ortho.orthorectify`.
     cancel : threading.Event, optional
@@ -266,9 +267,9 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
     flag("tiled", tiled)
     gpus = integer("gpus", gpus, low=1, none=True)
     distributed_run = cluster is not None or gpus is not None
-    if distributed_run and processes is not None and processes > 1:
-        raise ParamError("processes is for a mosaic on this process's device; with cluster or gpus the workers "
-                         "compute the tiles")
+    if cluster is not None and processes is not None and processes > 1:
+        raise ParamError("processes is for a mosaic on this host (with gpus: processes per GPU); on a cluster its "
+                         "workers compute the tiles")
     dst = os.fspath(dst)
     on = resolve_device(device)
     if tiled:
@@ -283,9 +284,11 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
     # a tiled product on several processes: a Dask cluster of them on this host
     local = int(processes) if tiled and several and not distributed_run else None
     # the tile processes start beside the plan (their imports and kernel loading overlap it)
-    procs = ProcessTiles(int(processes), str(on), threads=workers or 2) if several and local is None else None
+    procs = ProcessTiles(int(processes), str(on), threads=workers or 2) \
+        if several and local is None and not distributed_run else None
     try:
-        with connect(cluster, gpus=gpus, workers=local, threads=workers or 2) as client:
+        with connect(cluster, gpus=gpus, workers=local, threads=workers or 2,
+                     processes_per_gpu=int(processes) if gpus is not None and several else 1) as client:
             # on a cluster, its workers render the images of the plan's reduced pass too
             worker_device = cluster_device(client, str(on))
             plan = mosaic_plan(images, dem=dem, crs=crs, resolution=resolution, resampling=resampling,

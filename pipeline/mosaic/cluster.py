@@ -49,7 +49,7 @@ import time
 import urllib.parse
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from typing import Any
 from xml.sax.saxutils import escape
 
@@ -695,7 +695,8 @@ def _tiles_geojson(plan: Any, done: list[dict], dst: str, index: bool) -> dict:
 class TiledResult:
     """What :func:`write_tiled` wrote: the product folder ``path`` with ``vrt`` (and
     ``index_vrt``), ``tiles_geojson``; the tiles computed now and those kept from an earlier
-    run; pixels per image; wall time of the tiles and writing (s)."""
+    run; pixels per image; the mosaic's grid (``shape`` (rows, cols), ``transform``, ``crs``
+    WKT); seconds of the plan's steps (``setup_s``) and of the tiles and writing (``wall_s``)."""
 
     path: str
     vrt: str
@@ -706,6 +707,10 @@ class TiledResult:
     tiles_kept: int
     pixels_per_image: list[int]
     wall_s: float
+    shape: tuple[int, int] = (0, 0)
+    transform: Any = None
+    crs: str = ""
+    setup_s: dict = field(default_factory=dict)
 
 
 def write_tiled(plan: Any, dst: str | os.PathLike, settings: TiledSettings, *, client: Any = None,
@@ -786,7 +791,8 @@ def write_tiled(plan: Any, dst: str | os.PathLike, settings: TiledSettings, *, c
                        index_vrt=os.path.join(dst, "index.vrt") if settings.index else None,
                        tiles_geojson=os.path.join(dst, "tiles.geojson"), tiles=len(ptiles),
                        tiles_computed=len(ptiles) - kept, tiles_kept=kept, pixels_per_image=used.tolist(),
-                       wall_s=time.perf_counter() - t0)
+                       wall_s=time.perf_counter() - t0, shape=tuple(plan.shape), transform=plan.transform,
+                       crs=plan.crs_wkt, setup_s=dict(plan.setup_s))
 
 
 def _put(path: str, text: str) -> None:

@@ -1,0 +1,190 @@
+"""Scale-out over the GPUs of one host: a synthetic mosaic and a batch of orthos on 1, 2, ... GPUs
+(a Dask cluster of one or more worker processes per GPU, :func:`orthowarp.pipeline.mosaic.cluster.local_cluster`),
+in one run, with the output bytes compared across GPU counts.
+
+The block is bench/mosaic.py's speed block (``--frames`` frames of ``--frame`` W x H 3-band uint8
+pixels, 60 % / 30 % overlap, 8 cm GSD, a DEM). For each GPU count (largest first) a cluster is
+started and warmed up (a 2-frame mosaic: the workers' imports and kernel loading, not timed),
+then, timed:
+
+- ``tiled``: the mosaic as a tiled product (COG tiles written by the workers), the plan's
+  reduced pass on the workers too;
+- ``cog``: the mosaic as one COG written by this process from the tiles the workers send back;
+- ``orthos``: ``--orthos`` of the frames as a batch (one task per image, each ortho written by
+  its worker).
+
+Reported per run: wall time (and the plan's steps), output Gpix/s, the mean GPU utilisation of
+each GPU (nvidia-smi, sampled every 200 ms), and a digest of the output files; then per product
+the scaling efficiency t(1) / (n t(n)) and whether the digests agree.
+
+usage: python3 bench/scaleout.py [--gpus 4,2,1] [--frames 160] [--frame 4800x4000] [--orthos 40]
+                                 [--processes-per-gpu 4] [--products tiled,cog,orthos]
+                                 [--workdir DIR] [--out FILE]
+"""
+
+import argparse
+import hashlib
+import json
+import os
+import subprocess
+import sys
+import threading
+import time
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, HERE)
+sys.path.insert(0, os.path.join(HERE, "..", "tests"))
+
+from _report import save_report  # noqa: E402
+
+
+class GpuSampler:
+    """Mean utilisation (%) of each GPU while the block runs (nvidia-smi every 200 ms)."""
+
+    def __init__(self) -> None:
+        self.samples, self.proc, self.thread = {}, None, None
+
+    def __enter__(self):
+        try:
+            self.proc = subprocess.Popen(["nvidia-smi", "--query-gpu=index,utilization.gpu", "--format=csv,noheader,nounits",
+                                          "-lms", "200"], stdout=subprocess.PIPE, text=True)
+        except OSError:
+            return self
+        self.thread = threading.Thread(target=self._read, daemon=True)
+        self.thread.start()
+        return self
+
+    def _read(self):
+        for line in self.proc.stdout:
+            try:
+                i, u = (int(v) for v in line.strip().split(","))
+            except ValueError:
+                continue
+            self.samples.setdefault(i, []).append(u)
+
+    def __exit__(self, *exc):
+        if self.proc is not None:
+            self.proc.terminate()
+            self.proc.wait()
+        if self.thread is not None:
+            self.thread.join(timeout=2)
+
+    def means(self):
+        return {i: sum(v) / len(v) for i, v in sorted(self.samples.items()) if v}
+
+
+def digest(paths):
+    """sha256 of the files' contents, with their names where there are several."""
+    h = hashlib.sha256()
+    for p in sorted(paths):
+        if len(paths) > 1:
+            h.update(os.path.basename(p).encode())
+        with open(p, "rb") as f:
+            for chunk in iter(lambda: f.read(1 << 24), b""):
+                h.update(chunk)
+    return h.hexdigest()
+
+
+def product_files(folder):
+    out = []
+    for sub in ("tiles", "index"):
+        d = os.path.join(folder, sub)
+        if os.path.isdir(d):
+            out += [os.path.join(d, n) for n in os.listdir(d)]
+    return out
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--gpus", default="4,2,1", help="GPU counts, run in this order")
+    ap.add_argument("--frames", type=int, default=160)
+    ap.add_argument("--frame", default="4800x4000")
+    ap.add_argument("--strips", type=int, default=8)
+    ap.add_argument("--orthos", type=int, default=40, help="images in the ortho batch")
+    ap.add_argument("--processes-per-gpu", type=int, default=4)
+    ap.add_argument("--threads", type=int, default=2, help="tile threads per worker process")
+    ap.add_argument("--products", default="tiled,cog,orthos")
+    ap.add_argument("--workdir", default="/tmp/orthowarp-scaleout")
+    ap.add_argument("--out", default="bench/results/scaleout.json")
+    ap.add_argument("--device", default="cuda", help="cuda, or cpu (a CPU cluster of as many workers: a smoke test)")
+    args = ap.parse_args(argv)
+
+    import orthowarp as ow
+    from mosaic import build_speed
+    from orthowarp.pipeline.formats import read_cameras, read_exterior
+    from orthowarp.pipeline.mosaic import mosaic
+    from orthowarp.pipeline.mosaic.cluster import local_cluster
+    from orthowarp.pipeline.ortho.batch import ortho_destinations, orthorectify_many
+
+    width, height = (int(v) for v in args.frame.split("x"))
+    work = args.workdir
+    t = time.perf_counter()
+    frames, dem_path = build_speed(work, args.frames, args.strips, width, height)
+    camera = next(iter(read_cameras(os.path.join(work, "camera.yaml")).values()))
+    exterior = read_exterior(os.path.join(work, "ext.csv"))
+    images = [(p, ow.FrameSensor(camera, exterior[os.path.splitext(os.path.basename(p))[0]].pose)) for p in frames]
+    dem = ow.Dem.from_file(dem_path)
+    cpu = args.device == "cpu"
+    gpu_name = "cpu" if cpu else subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader", "-i", "0"],
+                                                capture_output=True, text=True).stdout.strip()
+    report = dict(benchmark="scaleout", device=gpu_name, gpu_counts=[int(g) for g in args.gpus.split(",")],
+                  frames=args.frames, frame=[width, height, 3], orthos=args.orthos,
+                  processes_per_gpu=args.processes_per_gpu, threads=args.threads, cpu_count=os.cpu_count(),
+                  build_s=time.perf_counter() - t, runs=[])
+    products = args.products.split(",")
+    print(f"block of {args.frames} frames {width} x {height} built in {report['build_s']:.1f} s on {gpu_name}", flush=True)
+    device = "cpu" if cpu else "cuda:0"
+    kw = dict(dem=dem, overwrite=True, device=device)
+    for n in report["gpu_counts"]:
+        t = time.perf_counter()
+        where = dict(workers=n * args.processes_per_gpu) if cpu else dict(gpus=n, processes_per_gpu=args.processes_per_gpu)
+        with local_cluster(threads=args.threads, **where) as client:
+            start_s = time.perf_counter() - t
+            t = time.perf_counter()
+            mosaic(images[:2], os.path.join(work, f"warm{n}.tif"), cluster=client, **kw)
+            warm_s = time.perf_counter() - t
+            print(f"{n} GPU(s): cluster of {n * args.processes_per_gpu} workers started in {start_s:.1f} s, "
+                  f"warm-up {warm_s:.1f} s", flush=True)
+            for product in products:
+                run = dict(gpus=n, product=product, cluster_start_s=start_s, warmup_s=warm_s)
+                with GpuSampler() as gs:
+                    t = time.perf_counter()
+                    if product == "tiled":
+                        r = mosaic(images, os.path.join(work, f"tiled{n}"), cluster=client, tiled=True, **kw)
+                        files = product_files(r.path)
+                    elif product == "cog":
+                        r = mosaic(images, os.path.join(work, f"mosaic{n}.tif"), cluster=client, **kw)
+                        files = [r.path]
+                    else:
+                        jobs = ortho_destinations(images[:args.orthos], os.path.join(work, f"orthos{n}"))
+                        rs = orthorectify_many(jobs, dem=dem, overwrite=True, device=device, cluster=client)
+                        files = [x.path for x in rs]
+                    run["wall_s"] = time.perf_counter() - t
+                run["gpu_busy_mean"] = gs.means()
+                if product == "orthos":
+                    px = sum(x.shape[0] * x.shape[1] for x in rs)
+                else:
+                    px = int(r.shape[0]) * int(r.shape[1])
+                    run.update(plan_s=r.setup_s, tiles_s=r.wall_s)
+                run.update(output_gpix=px / 1e9, output_gpix_s=px / 1e9 / run["wall_s"], files=len(files),
+                           digest=digest(files))
+                report["runs"].append(run)
+                save_report(report, args.out)
+                print(f"  {product}: {run['wall_s']:.1f} s, {run['output_gpix_s']:.3f} Gpix/s, GPU busy "
+                      f"{[round(v) for v in run['gpu_busy_mean'].values()]}, {run['files']} files, "
+                      f"{run['digest'][:12]}", flush=True)
+    summary = {}
+    for product in products:
+        runs = {r["gpus"]: r for r in report["runs"] if r["product"] == product}
+        if 1 in runs:
+            summary[product] = {str(n): dict(wall_s=r["wall_s"], speedup=runs[1]["wall_s"] / r["wall_s"],
+                                             efficiency=runs[1]["wall_s"] / (n * r["wall_s"]),
+                                             same_bytes=r["digest"] == runs[1]["digest"])
+                                for n, r in sorted(runs.items())}
+    report["scaling"] = summary
+    save_report(report, args.out)
+    print(json.dumps(summary, indent=1))
+
+
+if __name__ == "__main__":
+    main()
