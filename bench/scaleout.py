@@ -106,6 +106,7 @@ def main(argv=None):
     ap.add_argument("--products", default="tiled,cog,orthos")
     ap.add_argument("--workdir", default="/tmp/orthowarp-scaleout")
     ap.add_argument("--out", default="bench/results/scaleout.json")
+    ap.add_argument("--baseline", action="store_true", help="first, the mosaic on one GPU without a cluster")
     ap.add_argument("--device", default="cuda", help="cuda, or cpu (a CPU cluster of as many workers: a smoke test)")
     args = ap.parse_args(argv)
 
@@ -135,6 +136,19 @@ def main(argv=None):
     print(f"block of {args.frames} frames {width} x {height} built in {report['build_s']:.1f} s on {gpu_name}", flush=True)
     device = "cpu" if cpu else "cuda:0"
     kw = dict(dem=dem, overwrite=True, device=device)
+    if args.baseline:  # one GPU without a cluster: the tile processes of orthowarp mosaic
+        mosaic(images[:2], os.path.join(work, "warm.tif"), processes=args.processes_per_gpu, **kw)
+        with GpuSampler() as gs:
+            t = time.perf_counter()
+            r = mosaic(images, os.path.join(work, "baseline.tif"), processes=args.processes_per_gpu, **kw)
+            wall = time.perf_counter() - t
+        px = int(r.shape[0]) * int(r.shape[1])
+        report["baseline_one_gpu_processes"] = dict(wall_s=wall, plan_s=r.setup_s, tiles_s=r.wall_s,
+                                                    output_gpix=px / 1e9, output_gpix_s=px / 1e9 / wall,
+                                                    gpu_busy_mean=gs.means(), digest=digest([r.path]))
+        save_report(report, args.out)
+        print(f"baseline (1 GPU, {args.processes_per_gpu} tile processes, no cluster): {wall:.1f} s, "
+              f"{px / 1e9 / wall:.3f} Gpix/s, {digest([r.path])[:12]}", flush=True)
     for n in report["gpu_counts"]:
         t = time.perf_counter()
         where = dict(workers=n * args.processes_per_gpu) if cpu else dict(gpus=n, processes_per_gpu=args.processes_per_gpu)
