@@ -88,7 +88,8 @@ MOSAIC_GPU_PROCESSES = 4
                    "--index index/ and index.vrt, tiles.geojson naming each tile's images; written by the workers "
                    "that computed them, and a run stopped or killed resumes where it ended (the same command).")
 @click.option("--product-tile", type=click.IntRange(min=16), default=None,
-              help="With --tiled: the tiles' edge in pixels, a multiple of --tile-size (default 4 x --tile-size).")
+              help="With --tiled: the tiles' edge in pixels, a multiple of --tile-size (default: 4, 2 or 1 x "
+                   "--tile-size, the largest giving at least 64 tiles).")
 @options.profiling
 @click.pass_context
 def mosaic(ctx: click.Context, images: tuple[str, ...], **kwargs: Any) -> None:
@@ -161,7 +162,10 @@ def mosaic(ctx: click.Context, images: tuple[str, ...], **kwargs: Any) -> None:
     progress = not ctx.obj["quiet"] and sys.stderr.isatty()
     # the mosaic, its sidecars and accuracy raster, or none (a tiled mosaic: its folder, published whole)
     together = contextlib.nullcontext() if o.tiled else outputs_together(overwrite=o.overwrite)
-    with options.cluster_client(o, quiet=ctx.obj["quiet"]) as client, together:
+    per_gpu = processes if o.gpus is not None else 1
+    if o.gpus is not None:
+        processes = None  # (the cluster's workers, per_gpu per GPU)
+    with options.cluster_client(o, quiet=ctx.obj["quiet"], processes_per_gpu=per_gpu) as client, together:
         r = make_mosaic(jobs, o.out_path, dem=terrain, crs=o.crs, resolution=o.resolution, resampling=o.resampling,
                         refraction=not o.no_refraction, dtype=o.dtype, index=index, seamlines=o.seamlines_path,
                         seamlines_lonlat=o.seamlines_lonlat, seams=o.seams, seam_width=o.seam_width, blend=o.blend, feather=o.feather,

@@ -73,9 +73,9 @@ def cluster(f: Callable) -> Callable:
 
 
 @contextlib.contextmanager
-def cluster_client(o: Any, *, quiet: bool) -> Iterator[Any]:
-    """The Dask client of --gpus / --scheduler (None without them), for the block; the
-    dashboard's address echoed where there is one."""
+def cluster_client(o: Any, *, quiet: bool, processes_per_gpu: int = 1) -> Iterator[Any]:
+    """The Dask client of --gpus (``processes_per_gpu`` worker processes per GPU) / --scheduler
+    (None without them), for the block; the dashboard's address echoed where there is one."""
     from ..errors import ParamError
     from ..pipeline.mosaic.cluster import connect, dashboard_link
 
@@ -92,7 +92,7 @@ def cluster_client(o: Any, *, quiet: bool) -> Iterator[Any]:
 
         security = Security(tls_ca_file=o.tls_ca_file, tls_client_cert=o.tls_cert, tls_client_key=o.tls_key,
                             require_encryption=True)
-    with connect(o.scheduler, gpus=o.gpus, security=security) as client:
+    with connect(o.scheduler, gpus=o.gpus, security=security, processes_per_gpu=processes_per_gpu) as client:
         if client is not None and not quiet:
             link = dashboard_link(client)
             workers = len(client.scheduler_info()["workers"])

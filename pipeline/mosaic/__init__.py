@@ -234,8 +234,9 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
         and the next run of the same job skips them. Deflate or zstd; no seamlines (use the GeoJSON
         index).
     product_tile : int, optional
-        With ``tiled``: the product tiles' edge in pixels, a multiple of ``tile_size``
-        (default 4 tiles: 8192 on a GPU, 2048 on the CPU).
+        With ``tiled``: the product tiles' edge in pixels, a multiple of ``tile_size``;
+        default: 4, 2 or 1 tiles, the largest that cuts the mosaic into at least 64 product
+        tiles (8192, 4096 or 2048 pixels on a GPU).
     progress : bool or callable, optional
         With ``cluster``, ``gpus`` or ``tiled``: a progress bar of the tiles (True), or
         ``progress(done, total, tiles_per_s)`` called as tiles finish.
@@ -327,7 +328,7 @@ def _tiled_settings(dst: str, index: Any, seamlines: Any, compress: str, compres
     if os.path.exists(dst) and not os.path.isdir(dst):
         raise ParamError(f"Output '{dst}' is a file; a tiled mosaic is a folder")
     size = int(tile_size) if tile_size is not None else default_tile_size(on)
-    product = 4 * size if product_tile is None else integer("product_tile", product_tile, low=16)
+    product = 0 if product_tile is None else integer("product_tile", product_tile, low=16)  # (0: by the grid)
     settings = TiledSettings(product_tile=product, tile_size=size, compress=compress,
                              compress_level=level_of(compress, compress_level),
                              block_size=parse_creation_options(creation_options)["block"], index=bool(index),

@@ -37,12 +37,14 @@ from __future__ import annotations
 import collections
 import contextlib
 import copy
+import dataclasses
 import fcntl
 import hashlib
 import json
 import logging
 import os
 import pickle
+import re
 import shutil
 import threading
 import time
@@ -195,11 +197,18 @@ def connect(cluster: Any = None, *, gpus: int | None = None, workers: int | None
     distributed = _distributed()
     if isinstance(cluster, (str, os.PathLike)):
         address = os.fspath(cluster)
+        if address.startswith("tls://") and (security or distributed.security.Security()).get_connection_args(
+                "client").get("ssl_context") is None:  # (checked first: Dask's own error leaves a broken client)
+            raise ParamError(f"The Dask scheduler '{redact(address)}' speaks TLS: give its certificate authority and "
+                             "this client's certificate and key (--tls-ca-file, --tls-cert, --tls-key, or Dask's "
+                             "distributed.comm.tls configuration)")
         try:
             client = distributed.Client(address, security=security, direct_to_workers=True)
         except (OSError, TimeoutError, ValueError) as e:
-            raise OrthowarpError(f"Could not connect to the Dask scheduler '{redact(address)}': "
-                                 f"{describe_os_error(e) if isinstance(e, OSError) else e}") from e
+            reason = _scrub(describe_os_error(e) if isinstance(e, OSError) else str(e))
+            hint = " (does the scheduler speak tls://?)" if address.startswith("tcp://") and \
+                "reset by peer" in reason else ""
+            raise OrthowarpError(f"Could not connect to the Dask scheduler '{redact(address)}': {reason}{hint}") from e
         with client:
             yield client
         return
@@ -247,6 +256,21 @@ def redact(path: str) -> str:
     return path[:start] + urllib.parse.urlunsplit((parts.scheme, netloc, parts.path, "", ""))
 
 
+def _scrub(text: str) -> str:
+    """``text`` (e.g. a library's error message) without the credentials of the URLs it quotes
+    (``user:password@``)."""
+    return re.sub(r"[^\s'\"/@]+(:[^\s'\"/@]*)?@", "", text)
+
+
+def local_path(path: Any) -> Any:
+    """A local file path made absolute (for workers whose working folder may differ); URLs,
+    GDAL virtual file system paths and None as they are."""
+    if path is None:
+        return None
+    path = os.fspath(path)
+    return path if _is_url(path) else os.path.abspath(path)
+
+
 def shipped_terrain(terrain: Any) -> Any:
     """``terrain`` for workers: a DEM read lazily from a local file names it by its absolute
     path (the workers' working folder may differ); anything else as it is."""
@@ -259,8 +283,8 @@ def shipped_terrain(terrain: Any) -> Any:
 
 
 def shipped_plan(plan: Any, device: str | None = None) -> Any:
-    """A copy of ``plan`` for workers: local source and DEM paths made absolute (the workers'
-    working folder may differ), each worker reading its own windows (no resident sources, at most 24
+    """A copy of ``plan`` for workers: local source, DEM and geoid paths made absolute (the
+    workers' working folder may differ), each worker reading its own windows (no resident sources, at most 24
     images cached), its tiles on ``device`` (default the plan's; ``"cuda:0"`` for the GPU
     workers of :func:`local_cluster`, each of which sees only its own GPU)."""
     out = copy.copy(plan)
@@ -268,7 +292,8 @@ def shipped_plan(plan: Any, device: str | None = None) -> Any:
     out.sources = [(src if _is_url(src) else os.path.abspath(src), sensor, masked)
                    for src, sensor, masked in plan.sources]
     out.terrain = shipped_terrain(plan.terrain)
-    out.options = dict(plan.options, resident=False, cache_images=min(plan.options["cache_images"], 24))
+    out.options = dict(plan.options, resident=False, cache_images=min(plan.options["cache_images"], 24),
+                       geoid=local_path(plan.options.get("geoid")))
     if device is not None:
         out.options["device"] = device
     out.setup_s = {}
@@ -426,7 +451,7 @@ def cluster_results(plan: Any, client: Any, tiles: Sequence[Tile], *, cancel: th
 class TiledSettings:
     """What the tiled product's files are (see :func:`write_tiled`)."""
 
-    product_tile: int  # product tile edge, pixels (a multiple of tile_size)
+    product_tile: int  # product tile edge, pixels (a multiple of tile_size; 0: see auto_product_tile)
     tile_size: int  # compute tiles: the grid the tile function runs on
     compress: str  # "deflate" or "zstd"
     compress_level: int | None
@@ -435,10 +460,23 @@ class TiledSettings:
     block_codec: str  # as mosaic()'s, resolved on each worker for its device
 
     def check(self) -> None:
-        if self.product_tile % self.tile_size:
+        if self.product_tile < 0 or self.product_tile % self.tile_size:
             raise ParamError(f"product_tile ({self.product_tile}) must be a multiple of tile_size ({self.tile_size})")
         if self.compress not in ("deflate", "zstd"):
             raise ParamError(f"A tiled mosaic is written deflate or zstd, not {self.compress}")
+
+
+def auto_product_tile(shape: tuple[int, int], tile_size: int, *, at_least: int = 64) -> int:
+    """The default product tile edge of a mosaic of ``shape`` (rows, cols): 4, 2 or 1 compute
+    tiles of ``tile_size``, the largest that still cuts the mosaic into ``at_least`` product
+    tiles (so that a cluster's workers share the work evenly; large tiles for large mosaics,
+    fewer files). A function of the grid alone: a restarted run takes the same tiles."""
+    rows, cols = shape
+    for k in (4, 2):
+        edge = k * tile_size
+        if -(-rows // edge) * -(-cols // edge) >= at_least:
+            return edge
+    return tile_size
 
 
 def _tile_name(i: int, j: int) -> str:
@@ -482,9 +520,11 @@ def _fingerprint(plan: Any, settings: TiledSettings) -> str:
     return h.hexdigest()
 
 
-def _write_product_tile(plan: Any, i: int, j: int, tile: Tile, folder: str, settings: TiledSettings) -> dict:
-    """Compute product tile (``i``, ``j``) from its compute tiles and publish its COG (and index
-    COG), with its statistics as JSON, under ``folder``; returns the statistics."""
+def _write_product_tile(plan: Any, i: int, j: int, tile: Tile, folder: str, settings: TiledSettings,
+                        threads: int = 1) -> dict:
+    """Compute product tile (``i``, ``j``) from its compute tiles (on ``threads`` threads) and
+    publish its COG (and index COG), with its statistics as JSON, under ``folder``; returns the
+    statistics. (The bytes do not depend on the order the compute tiles finish in.)"""
     import rasterio
     from affine import Affine
 
@@ -519,7 +559,9 @@ def _write_product_tile(plan: Any, i: int, j: int, tile: Tile, folder: str, sett
             if codec != "host":
                 encoder = DeviceCogEncoder(writers[0], dev, device_codecs(codec, settings.compress_level, dev,
                                                                           settings.compress))
-            for s in subs:
+            lock = threading.Lock()
+
+            def one(s: Tile) -> None:
                 r, c = s.row - tile.row, s.col - tile.col
                 if encoder is not None:
                     out, has, source = plan._tile(*s, device=dev)
@@ -528,10 +570,20 @@ def _write_product_tile(plan: Any, i: int, j: int, tile: Tile, folder: str, sett
                     valid = source != NO_SOURCE
                 else:
                     block, valid, source = plan._tile(*s)
-                    writers[0].write(r, c, block, valid)
-                if settings.index:
-                    writers[1].write(r, c, source[..., None], valid)
-                counts += np.bincount(source[valid], minlength=n)[:n]
+                used = np.bincount(source[valid], minlength=n)[:n]
+                with lock:
+                    if encoder is None:
+                        writers[0].write(r, c, block, valid)
+                    if settings.index:
+                        writers[1].write(r, c, source[..., None], valid)
+                    counts[:] += used
+
+            if threads > 1 and len(subs) > 1:
+                with ThreadPoolExecutor(max_workers=min(threads, len(subs)), thread_name_prefix="product-sub") as pool:
+                    list(pool.map(one, subs))
+            else:
+                for s in subs:
+                    one(s)
             if encoder is not None:
                 encoder.flush()
             for w in writers:
@@ -747,6 +799,8 @@ def write_tiled(plan: Any, dst: str | os.PathLike, settings: TiledSettings, *, c
     """
     t0 = time.perf_counter()
     settings.check()
+    if not settings.product_tile:
+        settings = dataclasses.replace(settings, product_tile=auto_product_tile(plan.shape, settings.tile_size))
     dst = os.path.abspath(os.fspath(dst))
     fingerprint = _fingerprint(plan, settings)
     ptiles = _product_tiles(plan, settings.product_tile)
@@ -863,10 +917,12 @@ def _tiles_on_cluster(plan: Any, client: Any, todo: list, work: str, settings: T
     tiles = [t for _, _, t in todo]
     images = plan._tile_images(tiles)
     tag = f"orthowarp-product-{os.getpid()}-{time.monotonic_ns():x}"
+    threads = {w: int(info.get("nthreads", 1)) for w, info in client.scheduler_info()["workers"].items()}
     futures = []
     for k, w in _deal(client, tiles, images):
         i, j, t = todo[k]
-        futures.append(client.submit(_write_product_tile, remote, i, j, t, work, settings, workers=[w],
+        futures.append(client.submit(_write_product_tile, remote, i, j, t, work, settings, threads.get(w, 1),
+                                     workers=[w],
                                      allow_other_workers=True, pure=False, key=f"{tag}-{k}"))
     out = []
     try:

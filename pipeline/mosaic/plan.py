@@ -23,6 +23,7 @@ import threading
 import time
 from collections.abc import Iterable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
+import dataclasses
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -500,16 +501,22 @@ def mosaic_plan(images: Sequence[tuple], *, dem: Dem | str | os.PathLike | float
     if dem is None and all(sensor.orthorectified for _, sensor in images):
         dem = 0.0  # orthoimages take no terrain
     terrain = as_dem(dem)
+    t = time.perf_counter()
     facts = _source_facts(images, _outputs)
+    setup = {"sources": time.perf_counter() - t}
+    t = time.perf_counter()
+    grids = _image_grids(images, terrain, cfg, _client)
+    setup["grids"] = time.perf_counter() - t
     count, src_dtype = facts[0][1], facts[0][2]
     out_dtype = dtype or (src_dtype if src_dtype in DTYPES else "float32")
-    out_crs, res, transform, (rows, cols), foot = _union_grid(_image_grids(images, terrain, cfg), resolution,
+    out_crs, res, transform, (rows, cols), foot = _union_grid(grids, resolution,
                                                               orthos=all(s.orthorectified for _, s in images))
     log.info("mosaic of %d images: %d x %d pixels at %.4g", len(images), cols, rows, res)
     options = _plan_options(cfg)
     options.update(_residency(facts, [sensor for _, sensor in images], resolve_device(device)))
     plan = MosaicPlan([(f[0], sensor, f[3]) for f, (_, sensor) in zip(facts, images)], terrain, options,
                       out_crs, transform, (rows, cols), res, foot, count, out_dtype, src_dtype)
+    plan.setup_s.update(setup)
     _balance_and_seams(plan, cfg, cancel, _seam_pixels, _client, _worker_device)
     plan.setup_s["total"] = time.perf_counter() - t_plan
     return plan
@@ -553,24 +560,46 @@ def _source_facts(images: list[tuple], outputs: Sequence[str]) -> list[tuple[str
     return facts
 
 
-def _image_grids(images: list[tuple], terrain: Dem, cfg: _PlanSettings) -> list[tuple]:
-    """Each image's ortho grid (crs, transform, shape, resolution) in ``cfg.crs``, else in the
-    first image's CRS (the images' geometries built on a few threads, each dropped once its
-    grid is known: memory does not grow with their number)."""
-    def grid_of(item: tuple, grid_crs: CRS | None) -> tuple:
-        src, sensor = item
-        geom = SensorGeometry(sensor, terrain, refraction=cfg.refraction, device=cfg.device, geoid=cfg.geoid,
-                              same_vertical_datum=cfg.same_vertical_datum)
-        try:
-            return output_grid(geom, crs=grid_crs, resolution=cfg.resolution, name=src)
-        except GeometryError as e:
-            raise GeometryError(f"Image '{src}': {e}") from e
+def _grid_of(item: tuple, terrain: Dem, cfg: _PlanSettings, grid_crs: CRS | None) -> tuple:
+    """One image's ortho grid (see :func:`_image_grids`)."""
+    src, sensor = item
+    geom = SensorGeometry(sensor, terrain, refraction=cfg.refraction, device=cfg.device, geoid=cfg.geoid,
+                          same_vertical_datum=cfg.same_vertical_datum)
+    try:
+        return output_grid(geom, crs=grid_crs, resolution=cfg.resolution, name=src)
+    except GeometryError as e:
+        raise GeometryError(f"Image '{src}': {e}") from e
 
+
+def _image_grids(images: list[tuple], terrain: Dem, cfg: _PlanSettings, client: Any = None) -> list[tuple]:
+    """Each image's ortho grid (crs, transform, shape, resolution) in ``cfg.crs``, else in the
+    first image's CRS (the images' geometries built on a few threads, or on the workers of a
+    Dask ``client``, each dropped once its grid is known: memory does not grow with their
+    number)."""
     crs = cfg.crs
-    grids = [grid_of(images[0], crs)]  # (its CRS is the others' where none is given)
+    grids = [_grid_of(images[0], terrain, cfg, crs)]  # (its CRS is the others' where none is given)
+    crs = crs if crs is not None else grids[0][0]
+    if client is not None and len(images) > 1:
+        from .cluster import shipped_terrain
+
+        remote = client.scatter(shipped_terrain(terrain), broadcast=True, hash=False)
+        wcfg = dataclasses.replace(cfg, device=_cluster_worker_device(client, cfg.device))
+        try:
+            futures = client.map(_grid_of, images[1:], terrain=remote, cfg=wcfg, grid_crs=crs, pure=False)
+            grids += client.gather(futures)
+        finally:
+            remote.release()
+        return grids
     with ThreadPoolExecutor(max_workers=max(1, min(8, os.cpu_count() or 1, len(images) - 1))) as pool:
-        grids += pool.map(lambda item: grid_of(item, crs if crs is not None else grids[0][0]), images[1:])
+        grids += pool.map(lambda item: _grid_of(item, terrain, cfg, crs), images[1:])
     return grids
+
+
+def _cluster_worker_device(client: Any, device: str | None) -> str | None:
+    """The device of a Dask client's workers (see :func:`~orthowarp.pipeline.mosaic.cluster.worker_device`)."""
+    from .cluster import worker_device
+
+    return worker_device(client, device)
 
 
 def _union_grid(grids: list[tuple], resolution: float | None, orthos: bool = False) -> tuple:

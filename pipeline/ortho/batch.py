@@ -302,13 +302,15 @@ def _on_cluster(client: Any, jobs: list[tuple[str, SensorModel, str]], terrain: 
     made absolute), results reported in the jobs' order; the first failure cancels the rest."""
     import distributed
 
-    from ..mosaic.cluster import _Progress, _is_url, shipped_terrain
+    from ..mosaic.cluster import _is_url, _Progress, local_path, shipped_terrain
 
     def absolute(path: str) -> str:
         return path if _is_url(path) else os.path.abspath(path)
 
     if worker_device is not None:
         options = dict(options, device=worker_device)
+    if options.get("geoid") is not None:
+        options = dict(options, geoid=local_path(options["geoid"]))
     terrain = shipped_terrain(terrain)  # a DEM file: the workers open it by its absolute path
     tag = f"orthowarp-ortho-{os.getpid()}-{id(jobs):x}"
     futures = [client.submit(_remote_ortho, (absolute(src), sensor, os.path.abspath(dst)), terrain, covs[k], accuracy,
