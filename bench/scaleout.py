@@ -101,6 +101,9 @@ def main(argv=None):
     ap.add_argument("--frame", default="4800x4000")
     ap.add_argument("--strips", type=int, default=8)
     ap.add_argument("--orthos", type=int, default=40, help="images in the ortho batch")
+    ap.add_argument("--ortho-frame", default=None,
+                    help="W x H of the ortho batch's frames (a block of its own); default: the mosaic's frames")
+    ap.add_argument("--prepare-only", action="store_true", help="build the blocks and stop")
     ap.add_argument("--processes-per-gpu", type=int, default=4)
     ap.add_argument("--threads", type=int, default=2, help="tile threads per worker process")
     ap.add_argument("--products", default="tiled,cog,orthos")
@@ -125,11 +128,25 @@ def main(argv=None):
     exterior = read_exterior(os.path.join(work, "ext.csv"))
     images = [(p, ow.FrameSensor(camera, exterior[os.path.splitext(os.path.basename(p))[0]].pose)) for p in frames]
     dem = ow.Dem.from_file(dem_path)
+    ortho_images, ortho_dem = images[:args.orthos], dem
+    if args.ortho_frame:  # the batch's own block of larger frames
+        ow_, oh_ = (int(v) for v in args.ortho_frame.split("x"))
+        ofolder = os.path.join(work, f"orthos-block-{ow_}x{oh_}")
+        oframes, odem_path = build_speed(ofolder, args.orthos, max(1, args.strips // 4), ow_, oh_)
+        ocam = next(iter(read_cameras(os.path.join(ofolder, "camera.yaml")).values()))
+        oext = read_exterior(os.path.join(ofolder, "ext.csv"))
+        ortho_images = [(p, ow.FrameSensor(ocam, oext[os.path.splitext(os.path.basename(p))[0]].pose))
+                        for p in oframes]
+        ortho_dem = ow.Dem.from_file(odem_path)
+    if args.prepare_only:
+        print(f"blocks built in {time.perf_counter() - t:.1f} s", flush=True)
+        return
     cpu = args.device == "cpu"
     gpu_name = "cpu" if cpu else subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader", "-i", "0"],
                                                 capture_output=True, text=True).stdout.strip()
     report = dict(benchmark="scaleout", device=gpu_name, gpu_counts=[int(g) for g in args.gpus.split(",")],
                   frames=args.frames, frame=[width, height, 3], orthos=args.orthos,
+                  ortho_frame=args.ortho_frame or args.frame,
                   processes_per_gpu=args.processes_per_gpu, threads=args.threads, cpu_count=os.cpu_count(),
                   build_s=time.perf_counter() - t, runs=[])
     products = args.products.split(",")
@@ -170,8 +187,8 @@ def main(argv=None):
                         r = mosaic(images, os.path.join(work, f"mosaic{n}.tif"), cluster=client, **kw)
                         files = [r.path]
                     else:
-                        jobs = ortho_destinations(images[:args.orthos], os.path.join(work, f"orthos{n}"))
-                        rs = orthorectify_many(jobs, dem=dem, overwrite=True, device=device, cluster=client)
+                        jobs = ortho_destinations(ortho_images, os.path.join(work, f"orthos{n}"))
+                        rs = orthorectify_many(jobs, dem=ortho_dem, overwrite=True, device=device, cluster=client)
                         files = [x.path for x in rs]
                     run["wall_s"] = time.perf_counter() - t
                 run["gpu_busy_mean"] = gs.means()
