@@ -55,8 +55,8 @@ def cluster(f: Callable) -> Callable:
     """--gpus, --scheduler and the TLS files of a --scheduler (see :func:`cluster_client`)."""
     for opt in reversed([
         click.option("--gpus", type=click.IntRange(min=1), default=None,
-                     help="Run on this many GPUs of this host: a Dask cluster of one worker per GPU, started for "
-                          "the run and listening on localhost only."),
+                     help="Run on this many GPUs of this host: a Dask cluster of worker processes (4 per GPU), "
+                          "started for the run and listening on localhost only."),
         click.option("--scheduler", default=None, metavar="ADDRESS",
                      help="Run on an existing Dask cluster (tcp://HOST:PORT, tls://HOST:PORT): its workers read the "
                           "images and write their outputs themselves, so they must see the same files at the same "
@@ -73,7 +73,7 @@ def cluster(f: Callable) -> Callable:
 
 
 @contextlib.contextmanager
-def cluster_client(o: Any, *, quiet: bool, processes_per_gpu: int = 1) -> Iterator[Any]:
+def cluster_client(o: Any, *, quiet: bool, processes_per_gpu: int = 4) -> Iterator[Any]:
     """The Dask client of --gpus (``processes_per_gpu`` worker processes per GPU) / --scheduler
     (None without them), for the block; the dashboard's address echoed where there is one."""
     from ..errors import ParamError

@@ -70,7 +70,7 @@ from .plan import (
     mosaic_plan,
     output_paths,
 )
-from .cluster import TiledResult, TiledSettings, cluster_results, connect, write_tiled
+from .cluster import GPU_PROCESSES, TiledResult, TiledSettings, cluster_results, connect, write_tiled
 from .cluster import worker_device as cluster_device
 from .workers import ProcessTiles, TileDealer, tile_runs
 
@@ -223,8 +223,8 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
         :mod:`orthowarp.pipeline.mosaic.cluster`). A worker that dies costs only its tiles,
         which Dask recomputes elsewhere (same bytes). Needs Dask's ``distributed``.
     gpus : int, optional
-        Instead of ``cluster``: a cluster on this host of one worker per GPU (the first
-        ``gpus`` GPUs; listening on localhost only), closed at the end.
+        Instead of ``cluster``: a cluster on this host of ``processes`` worker processes per GPU
+        (default 4; the first ``gpus`` GPUs; listening on localhost only), closed at the end.
     tiled : bool, optional
         Write the tiled product into the folder ``dst``: ``tiles/RRRRR_CCCCC.tif`` (COGs of
         ``product_tile`` pixels, with masks and overviews; none where no image meets the tile),
@@ -289,7 +289,7 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
         if several and local is None and not distributed_run else None
     try:
         with connect(cluster, gpus=gpus, workers=local, threads=workers or 2,
-                     processes_per_gpu=int(processes) if gpus is not None and several else 1) as client:
+                     processes_per_gpu=int(processes) if gpus is not None and processes else GPU_PROCESSES) as client:
             # on a cluster, its workers render the images of the plan's reduced pass too
             worker_device = cluster_device(client, str(on))
             plan = mosaic_plan(images, dem=dem, crs=crs, resolution=resolution, resampling=resampling,

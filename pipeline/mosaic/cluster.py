@@ -67,6 +67,10 @@ __all__ = ["connect", "local_cluster", "cluster_results", "write_tiled", "TiledS
 
 _log = logging.getLogger(__name__)
 
+#: Worker processes per GPU of a cluster started with ``gpus=`` (a GPU's work is bound by the host
+#: work per tile or image, which the threads of one process share under its interpreter lock:
+#: bench/reference/scaleout-*-h200x4.json, 4 against 1 or 2 processes per GPU)
+GPU_PROCESSES = 4
 PRODUCT_FORMAT = "orthowarp-tiled-mosaic/1"  # the manifest's "format": what a restart accepts
 _PER_WORKER = 3  # tiles in flight per worker thread for the one-COG path (bounded memory)
 _GDAL_TYPES = {"uint8": "Byte", "uint16": "UInt16", "float32": "Float32"}
@@ -162,7 +166,7 @@ def local_cluster(*, gpus: int | None = None, workers: int | None = None, thread
 
 @contextlib.contextmanager
 def connect(cluster: Any = None, *, gpus: int | None = None, workers: int | None = None, security: Any = None,
-            threads: int = 2, processes_per_gpu: int = 1) -> Iterator[Any | None]:
+            threads: int = 2, processes_per_gpu: int = GPU_PROCESSES) -> Iterator[Any | None]:
     """The Dask client a run uses, for the block.
 
     Parameters
@@ -172,7 +176,8 @@ def connect(cluster: Any = None, *, gpus: int | None = None, workers: int | None
         ``tls://host:8786``: connected with ``security``, or Dask's configured TLS settings
         where None; closed after the block), or None.
     gpus : int, optional
-        Without ``cluster``: a :func:`local_cluster` of one worker per GPU.
+        Without ``cluster``: a :func:`local_cluster` of ``processes_per_gpu`` (default 4)
+        worker processes per GPU.
     workers : int, optional
         Without ``cluster`` or ``gpus``: a :func:`local_cluster` of this many worker processes.
     security : distributed.Security, optional

@@ -184,8 +184,8 @@ def orthorectify_many(jobs: Iterable[tuple[str | os.PathLike, SensorModel, str |
         paths (local paths are made absolute). A worker that dies costs only its images, which
         run again elsewhere. ``progress`` then counts images, not tiles.
     gpus : int, optional
-        Instead of ``cluster``: a cluster on this host of one worker per GPU (listening on
-        localhost only), closed at the end.
+        Instead of ``cluster``: a cluster on this host of 4 worker processes per GPU, each
+        writing 2 orthos at a time (listening on localhost only), closed at the end.
     **options
         Any other argument of :func:`~orthowarp.pipeline.ortho.orthorectify` (``crs``,
         ``resolution``, ``resampling``, ``refraction``, ``geoid``, ``device``, ...), the same
