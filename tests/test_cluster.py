@@ -300,3 +300,27 @@ def test_cli_tiled_mosaic_and_runs_on_a_scheduler(client, tmp_path):
         res = run(main, ["mosaic", *images, "--out", str(tmp_path / "bad"), *bad])
         assert res.exit_code != 0 and says in res.output, (bad, res.output)
     assert not (tmp_path / "bad").exists()
+
+
+def test_workers_read_images_through_gdals_virtual_file_systems(block, reference, client, tmp_path):
+    """Sources named by a GDAL virtual file system path (here /vsizip/: a zip of the images;
+    /vsis3/ and /vsicurl/ go the same way) are read by the workers through GDAL, kept as given
+    (not made absolute) in the plan and the tiled product's index: the same mosaic bytes."""
+    import zipfile
+
+    sc, images = block
+    cog, tiled = reference
+    archive = tmp_path / "images.zip"
+    with zipfile.ZipFile(archive, "w", compression=zipfile.ZIP_STORED) as z:
+        for src, _ in images:
+            z.write(src, os.path.basename(src))
+    virtual = [(f"/vsizip/{archive}/{os.path.basename(src)}", sensor) for src, sensor in images]
+    got = mosaic(virtual, tmp_path / "m.tif", index=tmp_path / "i.tif", cluster=client, **_kw(sc))
+    assert (tmp_path / "m.tif").read_bytes() == open(cog.path, "rb").read()
+    assert got.pixels_per_image == cog.pixels_per_image
+    product = mosaic(virtual, tmp_path / "tiled", tiled=True, product_tile=128, cluster=client, **_kw(sc))
+    with open(product.tiles_geojson) as f:
+        names = {n for feat in json.load(f)["features"] for n in feat["properties"]["images"]}
+    assert names == {src for src, _ in virtual}
+    with pytest.raises(RasterIOError, match="nothere.tif"):
+        mosaic([(f"/vsizip/{archive}/nothere.tif", images[0][1]), virtual[1]], tmp_path / "x.tif", **_kw(sc))

@@ -164,9 +164,11 @@ def frame_orientations(images: Iterable[str | os.PathLike], int_param: str | os.
             raise
         exterior = read_exterior(ext_param, crs=pose_crs)
     cameras = read_cameras(int_param) if int_param else read_cameras(ext_param)
+    from ..raster.io import source_exists
+
     out = []
     for image in images:
-        if not os.path.exists(image):
+        if not source_exists(image):
             raise RasterIOError(f"Image '{image}' does not exist")
         key = image_key(image)
         if key not in exterior:

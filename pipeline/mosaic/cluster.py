@@ -58,7 +58,7 @@ from xml.sax.saxutils import escape
 import numpy as np
 
 from ...errors import Cancelled, OrthowarpError, ParamError, RasterIOError
-from ..raster.io import atomic_files, describe_os_error, ensure_folder
+from ..raster.io import atomic_files, describe_os_error, ensure_folder, is_virtual
 from ..tiles import Tile
 from .workers import tile_runs
 
@@ -245,7 +245,7 @@ def dashboard_link(client: Any) -> str | None:
 
 def _is_url(path: str) -> bool:
     """A path GDAL opens through a virtual file system or a URL (not made absolute)."""
-    return path.startswith("/vsi") or "://" in path
+    return is_virtual(path)
 
 
 def redact(path: str) -> str:

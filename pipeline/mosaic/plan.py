@@ -46,7 +46,7 @@ from ..ortho.sink import LOSSY, choose_block_codec, device_codecs, finish, parse
 from ..ortho.tiles import ImageTiles, WholeSource, source_facts, source_read_dtype
 from ..raster.cog import DTYPES, CogWriter
 from ..raster.device import DeviceCogEncoder
-from ..raster.io import GDAL_ERRORS, atomic_files, check_cancel, check_destination, gdal_reason
+from ..raster.io import GDAL_ERRORS, atomic_files, check_cancel, check_destination, gdal_reason, source_exists
 from ..reports.profile import StageTimer
 from ..tiles import Tile
 from .balance import Coarse, radiometric_balance
@@ -548,7 +548,7 @@ def _source_facts(images: list[tuple], outputs: Sequence[str]) -> list[tuple[str
     taken = {os.path.abspath(p) for p in outputs}
     for src, _ in images:
         src = os.fspath(src)
-        if not os.path.exists(src):
+        if not source_exists(src):
             raise RasterIOError(f"Image '{src}' does not exist")
         if os.path.abspath(src) in taken:
             raise ParamError(f"Output '{src}' is one of the source images: choose another name")

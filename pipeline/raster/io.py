@@ -41,7 +41,7 @@ from .tiff import storage_facts, verify_tiff
 if TYPE_CHECKING:
     from affine import Affine
 
-__all__ = ["ensure_folder", "check_destination", "atomic_path", "atomic_files", "outputs_together", "pending_path",
+__all__ = ["ensure_folder", "check_destination", "is_virtual", "source_exists", "atomic_path", "atomic_files", "outputs_together", "pending_path",
            "remove_stale_temporaries", "remove_own_temporaries", "abandoned", "write_raster", "write_text",
            "write_files", "write_json", "describe_os_error", "gdal_reason", "write_error", "check_cancel",
            "GDAL_ERRORS", "TMP_TAG"]
@@ -74,6 +74,19 @@ def write_error(name: str, tmp: str, e: BaseException) -> RasterIOError:
     (OS or GDAL) and :func:`storage_facts`."""
     reason = gdal_reason(e) if isinstance(e, GDAL_ERRORS) else describe_os_error(e)
     return RasterIOError(f"Could not write '{name}': {reason}{storage_facts(tmp)}")
+
+
+def is_virtual(path: str | os.PathLike) -> bool:
+    """Whether ``path`` names a file through one of GDAL's virtual file systems (``/vsis3/``,
+    ``/vsicurl/``, ``/vsizip/``, ...) or as a URL, which GDAL opens and the OS does not."""
+    path = os.fspath(path)
+    return path.startswith("/vsi") or "://" in path
+
+
+def source_exists(path: str | os.PathLike) -> bool:
+    """Whether a source image ``path`` may be opened: an existing local file, or a virtual path
+    (:func:`is_virtual`; GDAL's open then says whether it exists)."""
+    return is_virtual(path) or os.path.exists(path)
 
 
 def check_cancel(cancel: threading.Event | None, name: str | None) -> None:
