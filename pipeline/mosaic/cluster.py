@@ -289,9 +289,9 @@ def shipped_terrain(terrain: Any) -> Any:
 
 def shipped_plan(plan: Any, device: str | None = None) -> Any:
     """A copy of ``plan`` for workers: local source, DEM and geoid paths made absolute (the
-    workers' working folder may differ), each worker reading its own windows (no resident sources, at most 24
-    images cached), its tiles on ``device`` (default the plan's; ``"cuda:0"`` for the GPU
-    workers of :func:`local_cluster`, each of which sees only its own GPU)."""
+    workers' working folder may differ), each worker reading its own windows (no resident
+    sources, at most 24 images cached), its tiles on ``device`` (default the plan's; ``"cuda:0"``
+    for the GPU workers of :func:`local_cluster`, each of which sees only its own GPU)."""
     out = copy.copy(plan)
     out.__setstate__(plan.__getstate__())
     out.sources = [(src if _is_url(src) else os.path.abspath(src), sensor, masked)
@@ -323,14 +323,12 @@ class _Submitter:
     """Keeps at most ``per_worker`` tasks per worker in flight, each worker's in its order; a
     worker's next task goes in when one of its tasks finishes (wherever it ran)."""
 
-    def __init__(self, client: Any, order: list[tuple[int, str]], submit: Callable[[int, str], Any],
-                 per_worker: int) -> None:
+    def __init__(self, order: list[tuple[int, str]], submit: Callable[[int, str], Any], per_worker: int) -> None:
         self.queues = collections.defaultdict(collections.deque)
         for k, w in order:
             self.queues[w].append(k)
         self.submit, self.per_worker = submit, per_worker
-        self.owner = {}  # future -> (tile position, worker queue)
-        self.done = []
+        self.owner = {}  # future's key -> (tile position, worker queue)
 
     def start(self) -> list[Any]:
         out = []
@@ -427,7 +425,7 @@ def cluster_results(plan: Any, client: Any, tiles: Sequence[Tile], *, cancel: th
         return client.submit(_tile_task, remote, tiles[k], workers=[w], allow_other_workers=True, pure=False,
                              key=f"{tag}-{k}")
 
-    dealer = _Submitter(client, _deal(client, tiles, images), submit, per_worker or _PER_WORKER * threads)
+    dealer = _Submitter(_deal(client, tiles, images), submit, per_worker or _PER_WORKER * threads)
     bar = _Progress(progress, len(tiles))
     pending = distributed.as_completed(dealer.start(), with_results=False)
     try:
