@@ -325,3 +325,36 @@ def test_plan_regions_chain():
     assert set(plan.seconds) == {"footprints", "overlaps", "balance", "seams", "tiles", "bands"}
     assert len(plan.seams.regions) > 1 and (plan.seams.cells > 0).all()
     assert sorted(np.concatenate(plan.runs).tolist()) == list(range(len(plan.tiles)))
+
+
+def test_the_mosaics_balance_takes_the_sparse_path_for_many_images():
+    """radiometric_balance on a reduced grid of 300 images (a 15 x 20 block of overlapping
+    windows, each a common texture seen through its own gain and offset): the grid-hashed pairs
+    equal every-pair's, and the sparse solve gives the dense solve's gains and offsets (and
+    recovers the true ones)."""
+    from orthowarp.pipeline.mosaic.balance import overlap_boxes, radiometric_balance
+
+    rng = np.random.default_rng(11)
+    yy, xx = np.mgrid[0:330, 0:420]
+    base = np.stack([80 + 40 * np.sin(xx / 7.0) * np.cos(yy / 5.0) + 10 * np.sin((xx + yy) / 3.0),
+                     120 + 30 * np.cos(xx / 4.0 - yy / 9.0)], -1).astype(np.float32)
+    coarse, gains, offsets = [], [], []
+    for r in range(15):
+        for c in range(20):
+            r0, c0 = r * 20 + int(rng.integers(0, 5)), c * 20 + int(rng.integers(0, 5))
+            g, o = rng.uniform(0.8, 1.2, 2), rng.uniform(-10, 10, 2)
+            v = (base[r0:r0 + 30, c0:c0 + 30] - o) / g  # so that g v + o is the base
+            ok = np.ones(v.shape[:2], bool)
+            coarse.append((r0, c0, v.astype(np.float32), ok))
+            gains.append(g)
+            offsets.append(o)
+    coarse[7] = None  # an image with nothing on the grid
+    assert list(overlap_boxes(coarse, sparse_from=10)) == list(overlap_boxes(coarse, sparse_from=10**6))
+    g_sparse, o_sparse = radiometric_balance(coarse, 2, 0, sparse_from=10)
+    g_dense, o_dense = radiometric_balance(coarse, 2, 0, sparse_from=10**6)
+    np.testing.assert_allclose(g_sparse, g_dense, rtol=1e-5)
+    np.testing.assert_allclose(o_sparse, o_dense, atol=1e-3)
+    truth = np.array(gains) / gains[0]  # the datum: image 0 keeps its radiometry
+    keep = np.arange(300) != 7
+    np.testing.assert_allclose(g_sparse[keep], truth[keep], rtol=1e-3)
+    assert np.all(g_sparse[7] == 1.0) and np.all(o_sparse[7] == 0.0)

@@ -5,7 +5,11 @@ Per pair of images whose reduced windows meet (:func:`overlap_boxes`, :func:`ove
 the mean and standard deviation of each band over the pixels both cover; then one weighted
 least-squares solve for the log gains (log s_i + log a_i = log s_j + log a_j) and one for the
 offsets (a_i m_i + b_i = a_j m_j + b_j), the datum fixed by a reference image or by zero means
-(:func:`radiometric_balance`). The least-cost seams compare the balanced images on the same
+(:func:`radiometric_balance`). From :data:`SPARSE_FROM` images on, the overlapping pairs come
+from a grid hash of the windows and the solve is sparse (one factorisation of the overlap
+graph's weighted Laplacian, :func:`~orthowarp.pipeline.mosaic.regions.solve_balance`), so that
+blocks of thousands of images cost time and memory in proportion to their overlaps, not to the
+square of their number. The least-cost seams compare the balanced images on the same
 overlaps (:mod:`~orthowarp.pipeline.mosaic.seams`).
 """
 
@@ -24,15 +28,20 @@ __all__ = ["radiometric_balance", "overlap_boxes", "overlap_arrays"]
 #: (rows, cols) bool) on the reduced grid, or None where the image has nothing there.
 Coarse = Optional[tuple[int, int, np.ndarray, np.ndarray]]
 
+#: Images from which the pairs are found by a grid hash and the solve is sparse (below, every
+#: pair is tried and the solve is dense: the same gains within 1e-6).
+SPARSE_FROM = 256
 
-def radiometric_balance(coarse: Sequence[Coarse], count: int,
-                        reference: int | None) -> tuple[np.ndarray, np.ndarray]:
+
+def radiometric_balance(coarse: Sequence[Coarse], count: int, reference: int | None, *,
+                        sparse_from: int = SPARSE_FROM) -> tuple[np.ndarray, np.ndarray]:
     """Per image and band, gain and offset (both (n_images, count)) that make the images agree
     in their overlaps on the reduced grid (``coarse`` from :func:`~orthowarp.pipeline.mosaic.plan.reduced_pass`): per
     overlapping pair and band the mean and standard deviation over the pixels both cover,
     then one weighted least-squares solve for log gains (log s_i + log a_i = log s_j +
     log a_j) and one for offsets (a_i m_i + b_i = a_j m_j + b_j), the datum fixed by
-    ``reference`` or by zero means; an image without overlaps keeps gain 1, offset 0."""
+    ``reference`` or by zero means; an image without overlaps keeps gain 1, offset 0. From
+    ``sparse_from`` images on, the pairs by a grid hash and the solve sparse."""
     n = len(coarse)
 
     def stats(box: tuple[int, ...]) -> tuple | None:
@@ -45,13 +54,20 @@ def radiometric_balance(coarse: Sequence[Coarse], count: int,
         (ma, sa), (mb, sb) = _moments(a, w, m), _moments(b, w, m)
         return box[0], box[1], np.sqrt(m), ma, mb, sa, sb
 
-    boxes = list(overlap_boxes(coarse))
+    boxes = list(overlap_boxes(coarse, sparse_from=sparse_from))
     # (i, j, weight, stats) per overlap, in order, on threads (einsum frees the GIL)
     with ThreadPoolExecutor(max_workers=max(1, min(8, os.cpu_count() or 1, len(boxes)))) as pool:
         eq_g = [e for e in pool.map(stats, boxes) if e is not None]
     gains, offsets = np.ones((n, count)), np.zeros((n, count))
     if not eq_g:
         return gains, offsets
+    if n >= sparse_from:
+        from .regions import solve_balance
+
+        cols = list(zip(*eq_g))
+        stats = dict(mean_i=np.array(cols[3]), mean_j=np.array(cols[4]), std_i=np.array(cols[5]),
+                     std_j=np.array(cols[6]))
+        return solve_balance(np.stack([cols[0], cols[1]], 1), np.array(cols[2], float), stats, n, reference)
     for band in range(count):
         rows_g, rhs_g = [], []
         for i, j, w, mi, mj, si, sj in eq_g:
@@ -101,9 +117,25 @@ def _solve(rows: Sequence[np.ndarray], rhs: Sequence[float], n: int, reference: 
     return np.linalg.lstsq(np.asarray(a), np.asarray(b), rcond=None)[0]
 
 
-def overlap_boxes(coarse: Sequence[Coarse]) -> Iterator[tuple[int, int, int, int, int, int]]:
+def overlap_boxes(coarse: Sequence[Coarse], *,
+                  sparse_from: int = SPARSE_FROM) -> Iterator[tuple[int, int, int, int, int, int]]:
     """Per pair of images (i < j) whose reduced windows meet: (i, j, r0, r1, c0, c1), the
-    intersection of their windows on the reduced grid."""
+    intersection of their windows on the reduced grid, in the order of (i, j). From
+    ``sparse_from`` images on, the pairs from a grid hash of the windows (in proportion to
+    the pairs, not to the square of the images)."""
+    if len(coarse) >= sparse_from:
+        from .regions import _box_pairs
+
+        have = [k for k, c in enumerate(coarse) if c is not None]
+        bounds = np.array([(coarse[k][1], coarse[k][0], coarse[k][1] + coarse[k][3].shape[1],
+                            coarse[k][0] + coarse[k][3].shape[0]) for k in have], float).reshape(-1, 4)
+        for a, b in _box_pairs(bounds):
+            i, j = have[a], have[b]
+            ri, ci, _, oki = coarse[i]
+            rj, cj, _, okj = coarse[j]
+            yield (i, j, max(ri, rj), min(ri + oki.shape[0], rj + okj.shape[0]), max(ci, cj),
+                   min(ci + oki.shape[1], cj + okj.shape[1]))
+        return
     for i in range(len(coarse)):
         for j in range(i + 1, len(coarse)):
             if coarse[i] is None or coarse[j] is None:
