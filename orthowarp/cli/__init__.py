@@ -137,6 +137,11 @@ def main(ctx: click.Context, verbose: int, quiet: bool) -> None:
     ctx.obj = {"quiet": quiet}
     level = logging.ERROR if quiet else (logging.DEBUG if verbose > 1 else logging.INFO if verbose else logging.WARNING)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    # Dask's own log (set up by Dask when it is imported, here and in the workers of a cluster
+    # this command starts): its warnings with -v, its messages with -vv, else nothing (a
+    # failure of the run is this command's error message)
+    os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "info" if verbose > 1 and not quiet else
+                          "warning" if verbose and not quiet else "critical")
     # Warp's banner, module-load lines and driver notices only with -v; the library keeps them
     # quiet during its calls, and this process is the CLI's own, so its Warp level is set too.
     show = bool(verbose) and not quiet

@@ -57,6 +57,7 @@ from xml.sax.saxutils import escape
 
 import numpy as np
 
+from ..._device import quiet_warp
 from ...errors import Cancelled, OrthowarpError, ParamError, RasterIOError
 from ..raster.io import atomic_files, describe_os_error, ensure_folder, is_virtual
 from ..tiles import Tile
@@ -381,6 +382,7 @@ class _Progress:
 
 # -- one COG: the tiles back to the caller ------------------------------------------------------
 
+@quiet_warp()
 def _tile_task(plan: Any, tile: Tile) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A worker's tile: (block, valid, source) on the host."""
     return plan.tile(*tile)
@@ -523,6 +525,7 @@ def _fingerprint(plan: Any, settings: TiledSettings) -> str:
     return h.hexdigest()
 
 
+@quiet_warp()
 def _write_product_tile(plan: Any, i: int, j: int, tile: Tile, folder: str, settings: TiledSettings,
                         threads: int = 1) -> dict:
     """Compute product tile (``i``, ``j``) from its compute tiles (on ``threads`` threads) and

@@ -566,6 +566,7 @@ def _source_facts(images: list[tuple], outputs: Sequence[str]) -> list[tuple[str
     return facts
 
 
+@quiet_warp()
 def _grid_of(item: tuple, terrain: Dem, cfg: _PlanSettings, grid_crs: CRS | None) -> tuple:
     """One image's ortho grid (see :func:`_image_grids`)."""
     src, sensor = item
@@ -871,6 +872,7 @@ def reduced_pass(plan: MosaicPlan, cancel: threading.Event | None, max_pixels: i
     return f, coarse, labels
 
 
+@quiet_warp()
 def _reduced_image(plan: MosaicPlan, k: int, f: int, *, keep: bool = False) -> tuple | None:
     """Image ``k`` alone on its window of the reduced grid of ``f`` x ``f`` mosaic pixels (see
     :func:`reduced_pass`): (r0, c0, values, ok, angle) or None where it has no pixel there.

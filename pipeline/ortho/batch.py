@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from ..._device import quiet_warp
 from ...errors import Cancelled, ParamError
 from ...sensor import SensorModel
 from ..dem import Dem, as_dem
@@ -279,6 +280,7 @@ def orthorectify_many(jobs: Iterable[tuple[str | os.PathLike, SensorModel, str |
             bar.close()
 
 
+@quiet_warp()
 def _remote_ortho(job: tuple[str, SensorModel, str], terrain: Dem | float, cov: Any, accuracy: bool,
                   overwrite: bool, accuracy_args: dict, options: dict) -> OrthoResult:
     """One job of :func:`orthorectify_many` on a cluster's worker: the ortho and its accuracy
