@@ -31,7 +31,7 @@ combined groups by them).
 pre-adjusted values, and the bundle's covariance ``sigma0^2 N^-1`` knows nothing of their
 errors. Where the control spans only part of the detector line, those errors are extrapolated
 and dominate: on a simulated pair with control in one half of the line (layout G-A) the check
-points' errors were 2-6 times the sigmas so reported (docs/paper-p1.md). Given the pre-adjustment
+points' errors were 2-10 times the sigmas so reported (docs/paper-p1.md). Given the pre-adjustment
 (``preadjustment=``), the covariance is instead propagated from the observations through both
 steps, first order: the bundle's unknowns are ``x = x(l, c)``, the pre-adjusted coefficients
 ``c = c(l)`` come from the same control observations, so

@@ -1,24 +1,26 @@
-"""Seed 002's questions asked of a synthetic block (not seed 002's experiment as published):
+"""[P2]'s questions asked of a synthetic block (not [P2]'s experiment as published):
 check-point RMSE for 6 vs 12 tie points per image and for control layouts A (well spread),
 B (corners), C (clustered) and D (no control, GNSS/INS-supported poses: a variant of this
-bench's own; seed 002's group D is four control points).
+bench's own; [P2]'s group D is four control points).
 
-Seed 002 itself used an RMK A 30/23 (f = 305 mm, photo scale 1:4000, 21 um scan), one strip of 4
-photos and control subsets of 4 of 7 points. ``--published`` runs that configuration: the
-camera (230 mm format scanned at 21 um: 10952 x 10952 pixels), 1220 m above the ground, one strip
-of 4 photos at 60 % overlap, 7 control points (the strip's four corners, the middles of its long
-sides and its centre: the paper's point positions are not available here), every subset of 4 of
-them as control (35), ties at 6 and at 12 positions per photo; per configuration sigma0 and
-each photo's pose standard deviations from the adjustment's covariance (Qxx; the layout of the
-paper's Tables 2-3), averaged over ``--runs`` noise realisations, and the check RMSE at the
-other 3 points plus 12 check points. The paper's own table values are not available here, so
-they are not printed beside these.
+[P2] itself used an RMK A 30/23 (f = 305 mm, photo scale 1:4000, 21 um scan), one strip of 4
+photos and control subsets of 4 of 7 points. ``--published`` runs that configuration with
+every subset: the camera (230 mm format scanned at 21 um: 10952 x 10952 pixels), 1220 m above
+the ground, one strip of 4 photos at 60 % overlap, 7 surveyed points at the strip's four
+corners, the middles of its long sides and its centre (not [P2]'s N.1000-N.1006, whose
+positions it only draws, in its Figure 4), every subset of 4 of them as control (35), ties at
+6 and at 12 positions per photo; per configuration sigma0 and each photo's pose standard
+deviations from the adjustment's covariance (Qxx; the layout of [P2]'s Table 3, X along the
+strip), averaged over ``--runs`` noise realisations, and the check RMSE at the other 3 points
+plus 12 check points. [P2]'s own four control groups A-D, with point positions read from its
+Figure 4, and its Tables 2-3 beside our values: ``bench/paper_p2.py`` (docs/paper-p2.md);
+this bench's 35 subsets have no published counterpart, so nothing published is printed here.
 
 Each configuration is adjusted on ``--runs`` noise realisations of one block geometry (3 strips
 x 8 images, 60/30 % overlap, 0.5 px image noise, 2 cm control sigma); the table gives the RMSE
 per axis over all check points and runs. Cameras (``--camera``):
 
-- ``film`` (default): a wide-angle film camera (not seed 002's RMK A 30/23), f = 153 mm, 230 mm
+- ``film`` (default): a wide-angle film camera (not [P2]'s RMK A 30/23), f = 153 mm, 230 mm
   format scanned at 20 um, photo scale 1:4000 (612 m above ground, 8 cm pixels on the ground,
   base-to-height ratio 0.6);
 - ``digital``: a 100 mm digital frame camera, 9 um pixels, 7000 x 10000, 1500 m above ground
@@ -41,7 +43,7 @@ SEVEN = [(0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (1.0, 1.0), (0.5, 0.0), (0.5, 1.0),
 
 
 def published(args):
-    """Seed 002's configuration (see the module doc)."""
+    """[P2]'s configuration with every control subset (see the module doc)."""
     import itertools
 
     cam = FrameCamera(305.0, 0.021, (10952, 10952))
@@ -70,20 +72,22 @@ def published(args):
         ck = np.array([x["check_rmse_m"] for x in sub])
         print(f"ties {ties:2d} per photo, 35 control subsets of 4 of 7, {args.runs} runs each: sigma0 "
               f"{np.mean([x['sigma0_mean'] for x in sub]):.3f}")
-        print("  photo   sX0 cm  sY0 cm  sZ0 cm   so mgon  sp mgon  sk mgon   (median over subsets)")
+        print("  photo   sX0 cm  sY0 cm  sZ0 cm   so mgon  sp mgon  sk mgon   (median over subsets; X along the strip)")
         for k in range(ps.shape[1]):
             med = np.median(ps[:, k], axis=0)
             print(f"  {k + 1:5d}  {med[0] * 100:7.2f} {med[1] * 100:7.2f} {med[2] * 100:7.2f}  "
                   f"{med[3] / 0.9 * 1000:8.2f} {med[4] / 0.9 * 1000:8.2f} {med[5] / 0.9 * 1000:8.2f}")
         best, worst = np.argmin(np.linalg.norm(ck, axis=1)), np.argmax(np.linalg.norm(ck, axis=1))
         for label, i in (("best", best), ("worst", worst)):
-            print(f"  check RMSE, {label} subset {sub[i]['control_subset']}: x {ck[i, 0] * 100:.2f}  "
+            print(f"  check RMSE, {label} subset {sub[i]['control_subset']} (by |x, y, z|): x {ck[i, 0] * 100:.2f}  "
                   f"y {ck[i, 1] * 100:.2f}  z {ck[i, 2] * 100:.2f} cm")
+        print("  check RMSE over the subsets, min-max: " + "  ".join(
+            f"{a} {ck[:, k].min() * 100:.2f}-{ck[:, k].max() * 100:.2f}" for k, a in enumerate("xyz")) + " cm")
     return dict(benchmark="adjust_findings_published", runs=args.runs,
                 camera=dict(focal_mm=305.0, pixel_mm=0.021, size=[10952, 10952]), flying_height_m=1220.0,
                 control_points=SEVEN, rows=rows,
-                note="seed 002's configuration; the paper's point positions and table values are not available "
-                     "here, so they are not compared")
+                note="[P2]'s configuration with every subset of 4 of 7 control points at assumed positions (not "
+                     "[P2]'s, which it only draws); its groups A-D and Tables 2-3 beside ours: bench/paper_p2.py")
 
 
 def main(argv=None):
@@ -91,7 +95,7 @@ def main(argv=None):
     ap.add_argument("--runs", type=int, default=None, help="noise realisations per configuration (20; 5 with "
                                                            "--published)")
     ap.add_argument("--camera", default="film", choices=["film", "digital"])
-    ap.add_argument("--published", action="store_true", help="seed 002's configuration as published")
+    ap.add_argument("--published", action="store_true", help="[P2]'s configuration, every control subset of 4 of 7")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     if args.published:

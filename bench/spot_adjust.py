@@ -14,8 +14,10 @@ corrections estimated in the bundle together with the attitude drifts (one adjus
 Table 2: per freed EO group or combination (after the pre-adjustment, layout H-20): check RMSE,
 sigma0 and the largest correlation between freed groups; combinations again with priors
 (position 10 m, velocity 0.01 m/s, attitude 5e-5 rad).
-Monte Carlo: reported check-point covariances against their errors from the truth over N draws,
-for the two steps and for the joint adjustment.
+Monte Carlo: reported check-point covariances against their errors from the truth over N draws
+(layout H-20), for the two steps with the pre-adjusted look angles taken as exact, for the two
+steps with the pre-adjustment's uncertainty carried into the bundle
+(``adjust_scenes(..., preadjustment=)``), and for the joint adjustment.
 
 usage: python3 bench/spot_adjust.py [--draws 50] [--out bench/results/spot_adjust.json]
 Runs on the CPU (SciPy/NumPy only).
@@ -84,19 +86,27 @@ def table2(nominal, truth, seed):
     return rows
 
 
-def monte_carlo(nominal, truth, draws, *, joint):
+METHODS = {"exact": "two steps, look angles as exact (pre-adjustment, then attitude0 + attitude1)",
+           "carried": "two steps, pre-adjustment carried (preadjustment=; then attitude0 + attitude1)",
+           "joint": "joint (look + attitude1)"}
+
+
+def monte_carlo(nominal, truth, draws, *, method):
     """Errors of the adjusted check points from the truth against their reported covariances
-    (a posteriori, sigma0^2 Q, and a priori, Q). ``joint``: look angles and attitude drifts in
-    one adjustment; else the seed's two steps (pre-adjustment, then attitude constants and
-    drifts with the look angles held at their pre-adjusted values)."""
+    (a posteriori, sigma0^2 Q, and a priori, Q). ``method`` "joint": look angles and attitude
+    drifts in one adjustment; else the seed's two steps (pre-adjustment, then attitude constants
+    and drifts with the look angles held at their pre-adjusted values), "exact": the bundle's
+    covariance taking the pre-adjusted look angles as exact, "carried": with the pre-adjustment's
+    uncertainty propagated through both steps."""
     err2, post, prior = [], [], []
     for s in range(draws):
         pts, true_llh = simulate_points(truth, layout="H-20", seed=1000 + s)
-        if joint:
+        if method == "joint":
             r = adjust_scenes(nominal, pts, groups=("look", "attitude1"))
         else:
-            pre = preadjust_look_angles(nominal, pts)
-            r = adjust_scenes(pre.scenes, pts, groups=("attitude0", "attitude1"))
+            pre = preadjust_look_angles(nominal, pts, extrapolation="ignore")
+            r = adjust_scenes(pre.scenes, pts, groups=("attitude0", "attitude1"),
+                              preadjustment=pre if method == "carried" else None)
         chk = pts.role_mask("check")
         x = geodesy.geodetic_to_ecef(r.llh[chk, 1], r.llh[chk, 0], r.llh[chk, 2])
         xt = geodesy.geodetic_to_ecef(true_llh[chk, 1], true_llh[chk, 0], true_llh[chk, 2])
@@ -106,7 +116,7 @@ def monte_carlo(nominal, truth, draws, *, joint):
         post.append(v)
         prior.append(v / r.sigma0 ** 2)
     e, p, q = (np.concatenate(a).mean(0) for a in (err2, post, prior))
-    return dict(method="joint (look + attitude1)" if joint else "two steps (pre-adjustment, then attitude0 + attitude1)",
+    return dict(method=METHODS[method],
                 draws=draws, points=int(len(np.concatenate(err2))), rms_error=np.sqrt(e).round(3).tolist(),
                 rms_predicted_a_posteriori=np.sqrt(p).round(3).tolist(),
                 rms_predicted_a_priori=np.sqrt(q).round(3).tolist(),
@@ -128,8 +138,7 @@ def main(argv=None):
                                                     pixel_sigma=0.25, ground_sigma_enu=[0.06, 0.06, 1.0], points=47,
                                                     look_errors_rad=LOOK.tolist(), attitude_errors=EO[2].tolist()),
                table1=table1(nominal, truth, args.seed), table2=table2(nominal, truth, args.seed),
-               monte_carlo=[monte_carlo(nominal, truth, args.draws, joint=False),
-                            monte_carlo(nominal, truth, args.draws, joint=True)])
+               monte_carlo=[monte_carlo(nominal, truth, args.draws, method=m) for m in METHODS])
     out["seconds"] = round(time.perf_counter() - t0, 1)
     print("Table 1: RMSE east / north / up (m)")
     print(f"{'layout':7s} {'ctl':>4s} {'chk':>4s}  {'uncorrected check':>26s}  {'pre-adjusted check':>26s}  "
