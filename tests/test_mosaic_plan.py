@@ -1,6 +1,7 @@
 """The mosaic's plan (orthowarp.pipeline.mosaic.plan): sources resident in device memory (as on a
 GPU, here on the CPU backend) read once each and giving the file of per-tile reads."""
 
+import numpy as np
 import pytest
 
 from test_mosaic import pair  # noqa: F401 (the fixture)
@@ -63,3 +64,31 @@ def test_residency_is_for_gpus_and_bounded_by_their_memory():
     assert plan_module._residency(facts, [Sensor()] * 3, Cuda())["cache_images"] == 24
     Cuda.free_memory = 6_000_000  # not two images in half of it
     assert plan_module._residency(facts, [Sensor()] * 40, Cuda()) == dict(device_reduce=True)
+
+
+@pytest.mark.parametrize("halo", [0, 37])
+def test_the_images_of_many_tiles_by_binary_search_equal_every_pair(halo):
+    """_images_meeting_tiles (the path for many tiles x images) gives each tile of a grid (and
+    of a subset of it) exactly the images whose footprint meets the tile grown by the halo."""
+    from orthowarp.pipeline.mosaic.plan import _images_meeting_tiles
+    from orthowarp.pipeline.tiles import Tile
+
+    rng = np.random.default_rng(4)
+    rows, cols, size = 3000, 4100, 256
+    tiles = [Tile(r, c, min(size, rows - r), min(size, cols - c))
+             for r in range(0, rows, size) for c in range(0, cols, size)]
+    r0, c0 = rng.integers(-100, rows, 400), rng.integers(-100, cols, 400)
+    foot = np.stack([r0, r0 + rng.integers(1, 900, 400), c0, c0 + rng.integers(1, 900, 400)], 1)
+
+    def brute(ts):
+        out = []
+        for t in ts:
+            g = t.grown(halo)
+            meets = (foot[:, 1] > g.row) & (foot[:, 0] < g.row + g.height) & (foot[:, 3] > g.col) & \
+                (foot[:, 2] < g.col + g.width)
+            out.append(tuple(int(k) for k in np.flatnonzero(meets)))
+        return out
+
+    assert _images_meeting_tiles(tiles, foot, halo) == brute(tiles)
+    some = tiles[::3]
+    assert _images_meeting_tiles(some, foot, halo) == brute(some)

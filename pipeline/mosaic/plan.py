@@ -275,7 +275,9 @@ class MosaicPlan(TileBlending):
         o = self.options
         halo = multiband_halo(o["feather"]) if o["blend"] == "multiband" else 0
         foot = np.asarray(self.foot, np.int64).reshape(-1, 4)
-        return [self._images_meeting(Tile(*tile).grown(halo), foot) for tile in tiles]
+        if len(tiles) * len(foot) <= 1 << 22:  # each tile against every footprint
+            return [self._images_meeting(Tile(*tile).grown(halo), foot) for tile in tiles]
+        return _images_meeting_tiles(tiles, foot, halo)
 
     def _note_dealt(self, ks: Iterable[int], final: Iterable[int] = ()) -> dict[int, int]:
         """A tile that uses images ``ks`` is on its way to this process's tile functions, after
@@ -476,6 +478,39 @@ class MosaicPlan(TileBlending):
                             image_builds=self._state["builds"] if self._state is not None else None,
                             images_held_peak=self._state["held_peak"] if self._state is not None else None,
                             profile=timer.profile() if timer is not None else None)
+
+
+def _images_meeting_tiles(tiles: Sequence[Tile], foot: np.ndarray, halo: int) -> list[tuple[int, ...]]:
+    """:meth:`MosaicPlan._tile_images` for many tiles and images, in proportion to the pairs
+    that meet rather than to tiles x images: each footprint (rows r0-r1, cols c0-c1) against the
+    rows and columns of tiles that its box can meet (binary searches over the tiles' distinct
+    first rows and columns), each candidate tested exactly. The same lists, images in order."""
+    tiles = [Tile(*t) for t in tiles]
+    out: list[list[int]] = [[] for _ in tiles]
+    at = {(t.row, t.col): k for k, t in enumerate(tiles)}
+    starts_r = np.array(sorted({t.row for t in tiles}), np.int64)
+    starts_c = np.array(sorted({t.col for t in tiles}), np.int64)
+    reach_r = np.zeros(len(starts_r), np.int64)  # the furthest a tile starting there reaches
+    reach_c = np.zeros(len(starts_c), np.int64)
+    for t in tiles:
+        i, j = np.searchsorted(starts_r, t.row), np.searchsorted(starts_c, t.col)
+        reach_r[i] = max(reach_r[i], t.row + t.height)
+        reach_c[j] = max(reach_c[j], t.col + t.width)
+    reach_r, reach_c = np.maximum.accumulate(reach_r), np.maximum.accumulate(reach_c)
+    for k, (r0, r1, c0, c1) in enumerate(foot.tolist()):
+        # tiles that start before the footprint's end and reach past its start (halo included)
+        rows = starts_r[np.searchsorted(reach_r, r0 - halo, side="right"):np.searchsorted(starts_r, r1 + halo)]
+        cols = starts_c[np.searchsorted(reach_c, c0 - halo, side="right"):np.searchsorted(starts_c, c1 + halo)]
+        for r in rows.tolist():
+            for c in cols.tolist():
+                pos = at.get((r, c))
+                if pos is None:
+                    continue
+                t = tiles[pos]
+                if r1 > t.row - halo and r0 < t.row + t.height + halo and c1 > t.col - halo and \
+                        c0 < t.col + t.width + halo:
+                    out[pos].append(k)
+    return [tuple(ks) for ks in out]
 
 
 @quiet_warp()
