@@ -26,9 +26,20 @@ The terrain height, unless ``--height`` gives one, is the take-off point's (DJI'
 altitudes. Relief (trees, buildings) is not modelled by a constant height: its parallax between
 overlapping orthos is part of every misregistration figure here.
 
+After the chain, where the misregistration comes from (``relief_at_ties``): every two
+observations of a tie point carried to the ground through the adjusted orientation on the
+point's own height, on ``--height`` and on the ties' median height, their distance in ortho
+pixels; and with ``--tie-dem L`` the adjusted orthos on a smooth surface from the adjusted tie
+points (Gaussian, L m; a GeoTIFF in the work folder).
+
+With ``--attitude gps`` the XMP attitude is withheld: the images are copied into
+``<work>/gps_only_images`` with their ``drone-dji:Gimbal*Degree`` keys renamed (the same number
+of bytes, so nothing else in the files moves), and every image is taken as nadir with its top
+along the flight line (GPS only), as for a consumer camera without gimbal tags.
+
 usage: python3 bench/exif_folder.py FOLDER [--height H] [--resolution 0.05] [--oty PATH/TO/oty] [--adjust]
-                                    [--heading tags|content] [--no-mosaic] [--work DIR] [--reuse]
-                                    [--device cpu] [--out FILE]
+                                    [--heading tags|content] [--attitude tags|gps] [--tie-dem L] [--no-mosaic]
+                                    [--work DIR] [--reuse] [--device cpu] [--out FILE]
 Reads a folder outside the repository (which tests must not); CPU by default.
 """
 
@@ -58,6 +69,25 @@ def cli(*args, timed=True):
     if r.returncode:
         raise SystemExit(f"orthowarp {' '.join(map(str, args))} failed:\n{r.stdout}\n{r.stderr}")
     return time.perf_counter() - t0, (r.stderr.strip().splitlines() + r.stdout.strip().splitlines())
+
+
+def without_attitude(folder, work):
+    """A copy of the folder's JPEGs in ``<work>/gps_only_images`` whose XMP gimbal angles are
+    withheld: ``drone-dji:GimbalRollDegree`` (and Pitch, Yaw) renamed ``drone-dji:NoGmblRollDegree``
+    (same length: the JPEG's segments keep their sizes). The folder's path."""
+    from orthowarp.pipeline.formats.exif import exif_images
+
+    out = os.path.join(work, "gps_only_images")
+    os.makedirs(out, exist_ok=True)
+    for path in exif_images([folder]):
+        with open(path, "rb") as f:
+            data = f.read()
+        stripped = data.replace(b"drone-dji:Gimbal", b"drone-dji:NoGmbl")
+        if stripped == data:
+            print(f"note: {os.path.basename(path)} holds no XMP gimbal angles")
+        with open(os.path.join(out, os.path.basename(path)), "wb") as f:
+            f.write(stripped)
+    return out
 
 
 def takeoff_height(orients):
@@ -211,6 +241,116 @@ def overlap_summary(folder, resolution, label):
     return out
 
 
+def _adjusted_sensors(adj):
+    """{image id: FrameSensor} of the chain's adjusted orientation (``cameras.yaml``, ``exterior.csv``)."""
+    from orthowarp.pipeline.formats import read_cameras, read_exterior
+    from orthowarp.sensor import FrameSensor
+
+    cams = read_cameras(os.path.join(adj, "cameras.yaml"))
+    ext = read_exterior(os.path.join(adj, "exterior.csv"))
+    only = next(iter(cams.values()))
+    return {k: FrameSensor(cams.get(v.camera_id, only) if v.camera_id else only, v.pose) for k, v in ext.items()}
+
+
+def _tie_points(adj):
+    """The adjusted tie points of ``points.csv``: {id: (lat, lon, h)}."""
+    import csv
+
+    with open(os.path.join(adj, "points.csv")) as f:
+        return {r["point"]: (float(r["x"]), float(r["y"]), float(r["z"])) for r in csv.DictReader(f)}
+
+
+def relief_parallax(adj, resolution, planes):
+    """Where the orthos' misregistration after the adjustment comes from, at the tie points: every
+    two observations of one tie point (the matched image positions, in the adjusted orientation)
+    carried to the ground on a constant height, and the distance between the two ground points
+    in ortho pixels: what a perfect shift estimator would measure between the two orthos there.
+    On the point's own adjusted height it is the orientation's own misfit (the adjustment's
+    residuals); on a constant height it adds the relief's parallax, baseline x (h - H) / (Z0 - h).
+    Quartiles per terrain, over the pairs of observations; and the same split by the pair's
+    baseline (same strip, <= 15 m; across strips)."""
+    import itertools
+
+    with open(os.path.join(adj, "block.json")) as f:
+        block = json.load(f)
+    sensors = _adjusted_sensors(adj)
+    points = _tie_points(adj)
+    lat0, lon0 = np.median([p[0] for p in points.values()]), np.median([p[1] for p in points.values()])
+    enu = geodesy.enu_to_ecef_matrix(lat0, lon0)
+    up = enu[:, 2]
+    rays = {}
+    for o in block["observations"]:
+        s = sensors.get(o["image"])
+        if s is None or o["point"] not in points:
+            continue
+        v = s.camera.pixel_to_camera(np.array([[o["col"], o["row"]]]), device="cpu")[0]
+        rays.setdefault(o["point"], []).append((o["image"], np.asarray(s.pose.center), s.pose.rotation @ v))
+    out = {}
+    for label, height in [("own height", None)] + list(planes):
+        d, base = [], []
+        for pid, obs in rays.items():
+            h = points[pid][2] if height is None else height
+            p0 = geodesy.geodetic_to_ecef(lat0, lon0, h)
+            ground = []
+            for img, c, r in obs:
+                t = (np.asarray(p0) - c) @ up / (r @ up)
+                ground.append(c + t * r)
+            for (a, ga), (b, gb) in itertools.combinations(zip(obs, ground), 2):
+                delta = enu.T @ (ga - gb)
+                d.append(np.hypot(delta[0], delta[1]) / resolution)
+                base.append(float(np.linalg.norm(enu.T @ (a[1] - b[1]))))
+        d, base = np.array(d), np.array(base)
+        row = dict(height_m=height, pairs=len(d))
+        for name, sel in (("all", np.ones(len(d), bool)), ("same strip", base <= 15.0), ("across strips", base > 15.0)):
+            if sel.any():
+                q = np.percentile(d[sel], [25, 50, 75])
+                row[name] = dict(pairs=int(sel.sum()), p25=float(q[0]), median=float(q[1]), p75=float(q[2]),
+                                 baseline_m_median=float(np.median(base[sel])))
+        out[label] = row
+        print(f"at the tie points, {label}{'' if height is None else f' {height:.2f} m'}: " + "; ".join(
+            f"{k} {v['pairs']} pairs, baseline {v['baseline_m_median']:.1f} m, |d| quartiles {v['p25']:.2f}, "
+            f"{v['median']:.2f}, {v['p75']:.2f} px" for k, v in row.items() if isinstance(v, dict)))
+    hs = np.array([p[2] for p in points.values()])
+    out["tie_heights_m"] = dict(p5=float(np.percentile(hs, 5)), p25=float(np.percentile(hs, 25)),
+                                median=float(np.median(hs)), p75=float(np.percentile(hs, 75)),
+                                p95=float(np.percentile(hs, 95)))
+    return out
+
+
+def tie_surface(adj, path, length, spacing=0.5, margin=40.0):
+    """A smooth terrain from the adjusted tie points (GeoTIFF, UTM, heights in the GPS altitudes'
+    datum): their median height plus the Gaussian-weighted (``length`` m) mean of the points'
+    departures from it, shrunk towards the median where points are few (weight + 1); over the
+    cameras' extent and ``margin`` m."""
+    import rasterio
+    from pyproj import CRS, Transformer
+    from rasterio.transform import from_origin
+
+    points = np.array(list(_tie_points(adj).values()))
+    cams = np.array([s.pose.center_geodetic for s in _adjusted_sensors(adj).values()])
+    zone = int((np.median(points[:, 1]) + 180) // 6) + 1
+    crs = CRS.from_epsg((32600 if np.median(points[:, 0]) >= 0 else 32700) + zone)
+    t = Transformer.from_crs("EPSG:4326", crs, always_xy=True)
+    px, py = t.transform(points[:, 1], points[:, 0])
+    cx, cy = t.transform(cams[:, 1], cams[:, 0])
+    x0, x1 = min(cx.min(), px.min()) - margin, max(cx.max(), px.max()) + margin
+    y0, y1 = min(cy.min(), py.min()) - margin, max(cy.max(), py.max()) + margin
+    cols, rows = int(np.ceil((x1 - x0) / spacing)), int(np.ceil((y1 - y0) / spacing))
+    gx, gy = np.meshgrid(x0 + (np.arange(cols) + 0.5) * spacing, y1 - (np.arange(rows) + 0.5) * spacing)
+    base = float(np.median(points[:, 2]))
+    num, den = np.zeros_like(gx), np.ones_like(gx)
+    for x, y, h in zip(px, py, points[:, 2]):
+        w = np.exp(-0.5 * ((gx - x) ** 2 + (gy - y) ** 2) / length ** 2)
+        num += w * (h - base)
+        den += w
+    z = (base + num / den).astype(np.float32)
+    with rasterio.open(path, "w", driver="GTiff", width=cols, height=rows, count=1, dtype="float32", crs=crs,
+                       transform=from_origin(x0, y1, spacing, spacing)) as ds:
+        ds.write(z, 1)
+    return dict(path=path, length_m=length, spacing_m=spacing, points=len(points), base_m=base,
+                min_m=float(z.min()), max_m=float(z.max()))
+
+
 def orthos(folder, args, *more, reuse=False):
     """``orthowarp ortho`` into ``folder`` (seconds, stderr's and stdout's lines); nothing where
     ``reuse`` and the folder holds orthos already."""
@@ -228,6 +368,10 @@ def main(argv=None):
     ap.add_argument("--adjust", action="store_true", help="also the chain: matching, adjustment, mosaic")
     ap.add_argument("--heading", choices=["tags", "content"], default="tags",
                     help="the images' headings (--exif-heading): the tags', or from the image content")
+    ap.add_argument("--attitude", choices=["tags", "gps"], default="tags",
+                    help="gps: withhold the XMP gimbal angles (nadir, heading from the flight line)")
+    ap.add_argument("--tie-dem", type=float, default=None, metavar="L",
+                    help="with --adjust: also orthos on a smooth surface from the adjusted tie points (Gaussian, L m)")
     ap.add_argument("--no-mosaic", action="store_true", help="skip step 2 (the EXIF mosaic)")
     ap.add_argument("--reuse", action="store_true", help="keep the orthos and the chain's files found in --work")
     ap.add_argument("--work", default=None)
@@ -236,11 +380,15 @@ def main(argv=None):
     args = ap.parse_args(argv)
     work = args.work or tempfile.mkdtemp(prefix="orthowarp-exif-")
     os.makedirs(work, exist_ok=True)
+    source_folder = args.folder
+    if args.attitude == "gps":
+        args.folder = without_attitude(args.folder, work)
     orients = exif_orientations([args.folder])
     height = args.height if args.height is not None else takeoff_height(orients)
     if height is None:
         raise SystemExit("give --height: the images carry no AbsoluteAltitude and RelativeAltitude")
-    report = dict(folder=os.path.abspath(args.folder), images=len(orients), height_m=height,
+    report = dict(folder=os.path.abspath(source_folder), images=len(orients), attitude_source=args.attitude,
+                  images_read=os.path.abspath(args.folder), height_m=height,
                   height_source="--height" if args.height is not None else "take-off point (AbsoluteAltitude - "
                                                                             "RelativeAltitude, median)",
                   resolution_m=args.resolution, device=args.device, work=work,
@@ -288,6 +436,17 @@ def main(argv=None):
         report["orthos_adjusted_tie_height"] = dict(seconds=secs, height_m=tie_h, **overlap_summary(
             os.path.join(work, "orthos_adjusted_tieh"), args.resolution,
             f"overlaps, adjusted orientation on the ties' median height {tie_h:.2f} m"))
+        report["relief_at_ties"] = relief_parallax(adj, args.resolution,
+                                                   [("--height", height), ("ties' median", tie_h)])
+        if args.tie_dem:
+            dem = os.path.join(work, f"tie_surface_{args.tie_dem:g}m.tif")
+            surface = tie_surface(adj, dem, args.tie_dem)
+            common_d = ["--dem", dem, *common[2:]]
+            folder = os.path.join(work, f"orthos_adjusted_tie_surface_{args.tie_dem:g}m")
+            secs, _ = orthos(folder, common_d, *images, *orient_args, reuse=args.reuse)
+            report["orthos_adjusted_tie_surface"] = dict(seconds=secs, surface=surface, **overlap_summary(
+                folder, args.resolution, f"overlaps, adjusted orientation on the ties' surface ({args.tie_dem:g} m, "
+                                         f"{surface['min_m']:.2f}..{surface['max_m']:.2f} m)"))
     save_report(report, args.out)
     print(f"report: {args.out}")
 
