@@ -92,6 +92,7 @@ def test_the_tiled_product_has_the_single_cogs_pixels(block, reference):
         assert os.path.isfile(os.path.join(tiled.path, p["path"]))
 
 
+@pytest.mark.slow  # (a LocalCluster of 2 processes: CI runs the slow tests too)
 def test_a_cluster_gives_the_same_bytes(block, reference, client, tmp_path):
     """The single COG from tiles computed on two worker processes, and the tiled product
     written by them: byte for byte the in-process files."""
@@ -228,6 +229,7 @@ def test_credentials_are_redacted(path, want):
 
 
 @pytest.mark.filterwarnings("ignore::rasterio.errors.NotGeoreferencedWarning")
+@pytest.mark.slow  # (a LocalCluster of 2 processes: CI runs the slow tests too)
 def test_a_batch_of_orthos_on_a_cluster_writes_what_one_process_writes(client, tmp_path, monkeypatch):
     """orthorectify_many on two workers (relative paths, as a user in the data folder gives
     them): the same files, with their accuracy rasters, reported in order."""
@@ -252,6 +254,7 @@ def test_a_batch_of_orthos_on_a_cluster_writes_what_one_process_writes(client, t
             accuracy_path(a.path))), "rb").read()
 
 
+@pytest.mark.slow  # (a LocalCluster of 2 processes: CI runs the slow tests too)
 def test_cli_tiled_mosaic_and_runs_on_a_scheduler(client, tmp_path):
     """``orthowarp mosaic --tiled`` (and its index), the same job with ``--scheduler`` (the
     same tiles), a mosaic and an ortho batch on the scheduler (the same files as here), and
@@ -302,6 +305,7 @@ def test_cli_tiled_mosaic_and_runs_on_a_scheduler(client, tmp_path):
     assert not (tmp_path / "bad").exists()
 
 
+@pytest.mark.slow  # (a LocalCluster of 2 processes: CI runs the slow tests too)
 def test_workers_read_images_through_gdals_virtual_file_systems(block, reference, client, tmp_path):
     """Sources named by a GDAL virtual file system path (here /vsizip/: a zip of the images;
     /vsis3/ and /vsicurl/ go the same way) are read by the workers through GDAL, kept as given

@@ -21,7 +21,8 @@ from test_faults import ROOT, _error_line, _frame_job
 from orthowarp.cli import main
 
 distributed = pytest.importorskip("distributed")
-pytestmark = pytest.mark.filterwarnings("ignore::rasterio.errors.NotGeoreferencedWarning")  # (the job's frames)
+# (the job's frames have no georeferencing; a TLS LocalCluster: slow, which CI runs too)
+pytestmark = [pytest.mark.filterwarnings("ignore::rasterio.errors.NotGeoreferencedWarning"), pytest.mark.slow]
 
 
 def _openssl(*args, cwd):
