@@ -110,14 +110,15 @@ def _gpu_ids(gpus: int) -> list[str]:
 
 @contextlib.contextmanager
 def local_cluster(*, gpus: int | None = None, workers: int | None = None, threads: int = 2,
-                  processes_per_gpu: int = 1) -> Iterator[Any]:
+                  processes_per_gpu: int = GPU_PROCESSES) -> Iterator[Any]:
     """A Dask cluster on this host and a client of it, for the block; both closed after it.
 
     Parameters
     ----------
     gpus : int, optional
-        One worker process per GPU (``processes_per_gpu`` of them), each seeing only its GPU
-        (``CUDA_VISIBLE_DEVICES``), so that its device ``cuda:0`` is that GPU.
+        Worker processes on the first ``gpus`` GPUs, ``processes_per_gpu`` (default 4) per GPU,
+        each seeing only its GPU (``CUDA_VISIBLE_DEVICES``), so that its device ``cuda:0`` is
+        that GPU.
     workers : int, optional
         Without ``gpus``: this many CPU worker processes.
     threads : int, optional
