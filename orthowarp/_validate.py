@@ -26,6 +26,18 @@ def finite(name: str, value: Any) -> float:
     return v
 
 
+def image_size(value: Any, name: str = "image_size") -> tuple[int, int]:
+    """``(width, height)`` as two whole numbers >= 1 (pixels), or ParamError naming ``name``."""
+    try:
+        w, h = (int(v) for v in value)
+        exact = all(float(v) == int(v) for v in value)
+    except (TypeError, ValueError) as e:
+        raise ParamError(f"{name} must be (width, height) in pixels, got {value!r}") from e
+    if not exact or w < 1 or h < 1:
+        raise ParamError(f"{name} must be two whole numbers >= 1, got {value!r}")
+    return w, h
+
+
 def finite_vector(name: str, value: ArrayLike, n: int) -> np.ndarray:
     """A finite float64 vector of length n, or ParamError naming ``name``."""
     try:

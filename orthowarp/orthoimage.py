@@ -27,6 +27,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ._validate import image_size as image_size_pair
 from .errors import CrsError, ParamError
 from .sensor import SensorKernels, SensorModel, generic_kernels
 
@@ -143,13 +144,7 @@ class OrthoImage(SensorModel):
                  centre: tuple[float, float] | None = None, source: str | None = None) -> None:
         self.crs = _horizontal(crs, "crs")
         self.transform = _affine(transform, "transform")
-        try:
-            w, h = (int(v) for v in image_size)
-            exact = all(float(v) == int(v) for v in image_size)
-        except (TypeError, ValueError) as e:
-            raise ParamError(f"image_size must be (width, height) in pixels, got {image_size!r}") from e
-        if not exact or w < 1 or h < 1:
-            raise ParamError(f"image_size must be two whole numbers >= 1, got {image_size!r}")
+        w, h = image_size_pair(image_size)
         self._size = (w, h)
         if centre is None:
             centre = self.transform @ (0.5 * w, 0.5 * h)

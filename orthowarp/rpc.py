@@ -52,6 +52,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from . import geodesy
+from ._validate import finite
+from ._validate import image_size as image_size_pair
 from .errors import ParamError
 from .sensor import GeocentricPositions, SensorKernels, SensorModel, generic_kernels
 
@@ -146,12 +148,7 @@ def _coefficients(name: str, value: ArrayLike) -> np.ndarray:
 
 
 def _number(name: str, value: Any, *, positive: bool = False, bound: float | None = None) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError) as e:
-        raise ParamError(f"{name} must be a number, got {value!r}") from e
-    if not math.isfinite(v):
-        raise ParamError(f"{name} must be finite, got {value!r}")
+    v = finite(name, value)
     if positive and not v > 0:
         raise ParamError(f"{name} must be > 0, got {v!r}")
     if bound is not None and abs(v) > bound:
@@ -443,13 +440,7 @@ class RationalSensor(SensorModel):
                  bias: Mapping[str, float] | ArrayLike | None = None, source: str | None = None) -> None:
         if not isinstance(rpc, RpcCoefficients):
             raise ParamError(f"rpc must be RpcCoefficients, got {type(rpc).__name__}")
-        try:
-            w, h = (int(v) for v in image_size)
-            exact = all(float(v) == int(v) for v in image_size)
-        except (TypeError, ValueError) as e:
-            raise ParamError(f"image_size must be (width, height) in pixels, got {image_size!r}") from e
-        if not exact or w < 1 or h < 1:
-            raise ParamError(f"image_size must be two whole numbers >= 1, got {image_size!r}")
+        w, h = image_size_pair(image_size)
         self.rpc, self.source = rpc, source
         self._size = (w, h)
         self.bias = _bias_vector(bias)

@@ -245,11 +245,6 @@ def dashboard_link(client: Any) -> str | None:
 
 # -- the plan on the workers --------------------------------------------------------------------
 
-def _is_url(path: str) -> bool:
-    """A path GDAL opens through a virtual file system or a URL (not made absolute)."""
-    return is_virtual(path)
-
-
 def redact(path: str) -> str:
     """``path`` without credentials: a URL's user and password and its query string (signed
     URLs carry keys there) removed, as is the query of a GDAL ``/vsi...`` path."""
@@ -275,14 +270,14 @@ def local_path(path: Any) -> Any:
     if path is None:
         return None
     path = os.fspath(path)
-    return path if _is_url(path) else os.path.abspath(path)
+    return path if is_virtual(path) else os.path.abspath(path)
 
 
 def shipped_terrain(terrain: Any) -> Any:
     """``terrain`` for workers: a DEM read lazily from a local file names it by its absolute
     path (the workers' working folder may differ); anything else as it is."""
     file = getattr(terrain, "_file", None)
-    if file is None or _is_url(file.path) or os.path.isabs(file.path):
+    if file is None or is_virtual(file.path) or os.path.isabs(file.path):
         return terrain
     out, out._file = copy.copy(terrain), copy.copy(file)
     out._file.path = os.path.abspath(file.path)
@@ -296,8 +291,7 @@ def shipped_plan(plan: Any, device: str | None = None) -> Any:
     for the GPU workers of :func:`local_cluster`, each of which sees only its own GPU)."""
     out = copy.copy(plan)
     out.__setstate__(plan.__getstate__())
-    out.sources = [(src if _is_url(src) else os.path.abspath(src), sensor, masked)
-                   for src, sensor, masked in plan.sources]
+    out.sources = [(local_path(src), sensor, masked) for src, sensor, masked in plan.sources]
     out.terrain = shipped_terrain(plan.terrain)
     out.options = dict(plan.options, resident=False, cache_images=min(plan.options["cache_images"], 24),
                        geoid=local_path(plan.options.get("geoid")))
@@ -729,7 +723,7 @@ def _tiles_geojson(plan: Any, done: list[dict], dst: str, index: bool) -> dict:
     folder, URLs without credentials), those with most pixels first."""
     from .plan import seamlines_crs_member
 
-    names = [redact(src) if _is_url(src) else os.path.relpath(os.path.abspath(src), dst)
+    names = [redact(src) if is_virtual(src) else os.path.relpath(os.path.abspath(src), dst)
              for src, *_ in plan.sources]
     t = plan.transform
     feats = []

@@ -540,7 +540,7 @@ def mosaic_plan(images: Sequence[tuple], *, dem: Dem | str | os.PathLike | float
     facts = _source_facts(images, _outputs)
     setup = {"sources": time.perf_counter() - t}
     t = time.perf_counter()
-    grids = _image_grids(images, terrain, cfg, _client)
+    grids = _image_grids(images, terrain, cfg, _client, _worker_device)
     setup["grids"] = time.perf_counter() - t
     count, src_dtype = facts[0][1], facts[0][2]
     out_dtype = dtype or (src_dtype if src_dtype in DTYPES else "float32")
@@ -613,7 +613,8 @@ def _grid_of(item: tuple, terrain: Dem, cfg: _PlanSettings, grid_crs: CRS | None
         raise GeometryError(f"Image '{src}': {e}") from e
 
 
-def _image_grids(images: list[tuple], terrain: Dem, cfg: _PlanSettings, client: Any = None) -> list[tuple]:
+def _image_grids(images: list[tuple], terrain: Dem, cfg: _PlanSettings, client: Any = None,
+                 worker_device: str | None = None) -> list[tuple]:
     """Each image's ortho grid (crs, transform, shape, resolution) in ``cfg.crs``, else in the
     first image's CRS (the images' geometries built on a few threads, or on the workers of a
     Dask ``client``, each dropped once its grid is known: memory does not grow with their
@@ -625,7 +626,7 @@ def _image_grids(images: list[tuple], terrain: Dem, cfg: _PlanSettings, client: 
         from .cluster import shipped_terrain
 
         remote = client.scatter(shipped_terrain(terrain), broadcast=True, hash=False)
-        wcfg = dataclasses.replace(cfg, device=_cluster_worker_device(client, cfg.device))
+        wcfg = dataclasses.replace(cfg, device=worker_device if worker_device is not None else cfg.device)
         try:
             futures = client.map(_grid_of, images[1:], terrain=remote, cfg=wcfg, grid_crs=crs, pure=False)
             grids += client.gather(futures)
@@ -635,13 +636,6 @@ def _image_grids(images: list[tuple], terrain: Dem, cfg: _PlanSettings, client: 
     with ThreadPoolExecutor(max_workers=max(1, min(8, os.cpu_count() or 1, len(images) - 1))) as pool:
         grids += pool.map(lambda item: _grid_of(item, terrain, cfg, crs), images[1:])
     return grids
-
-
-def _cluster_worker_device(client: Any, device: str | None) -> str | None:
-    """The device of a Dask client's workers (see :func:`~orthowarp.pipeline.mosaic.cluster.worker_device`)."""
-    from .cluster import worker_device
-
-    return worker_device(client, device)
 
 
 def _union_grid(grids: list[tuple], resolution: float | None, orthos: bool = False) -> tuple:

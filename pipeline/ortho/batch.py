@@ -304,10 +304,7 @@ def _on_cluster(client: Any, jobs: list[tuple[str, SensorModel, str]], terrain: 
     made absolute), results reported in the jobs' order; the first failure cancels the rest."""
     import distributed
 
-    from ..mosaic.cluster import _is_url, _Progress, local_path, shipped_terrain
-
-    def absolute(path: str) -> str:
-        return path if _is_url(path) else os.path.abspath(path)
+    from ..mosaic.cluster import _Progress, local_path, shipped_terrain
 
     if worker_device is not None:
         options = dict(options, device=worker_device)
@@ -315,7 +312,7 @@ def _on_cluster(client: Any, jobs: list[tuple[str, SensorModel, str]], terrain: 
         options = dict(options, geoid=local_path(options["geoid"]))
     terrain = shipped_terrain(terrain)  # a DEM file: the workers open it by its absolute path
     tag = f"orthowarp-ortho-{os.getpid()}-{id(jobs):x}"
-    futures = [client.submit(_remote_ortho, (absolute(src), sensor, os.path.abspath(dst)), terrain, covs[k], accuracy,
+    futures = [client.submit(_remote_ortho, (local_path(src), sensor, os.path.abspath(dst)), terrain, covs[k], accuracy,
                              overwrite, accuracy_args, options, pure=False, key=f"{tag}-{k}", retries=0)
                for k, (src, sensor, dst) in enumerate(jobs)]
     index = {f.key: k for k, f in enumerate(futures)}
