@@ -285,6 +285,26 @@ def mosaic_fill_kernel(
 
 
 @wp.kernel
+def fallback_need_kernel(
+    valid: wp.array2d(dtype=wp.uint8),
+    cover: wp.array2d(dtype=wp.uint8),
+    rows: wp.array(dtype=wp.int32),
+    cols: wp.array(dtype=wp.int32),
+    block: wp.int32,
+    marked: wp.array2d(dtype=wp.int32),
+):
+    """The ``block`` x ``block`` pixel blocks of a tile (``marked``, set to 1) that hold a
+    pixel without a value (``valid`` 0) where ``cover`` is set: the reduced labelling's cover,
+    grown by one reduced pixel, on the tile's window, at the window row and column of each
+    tile row and column (``rows``, ``cols``)."""
+    i, j = wp.tid()
+    if valid[i, j] != wp.uint8(0):
+        return
+    if cover[rows[i], cols[j]] != wp.uint8(0):
+        marked[i // block, j // block] = 1
+
+
+@wp.kernel
 def count_sources_kernel(source: wp.array2d(dtype=wp.uint16), counts: wp.array(dtype=wp.int64)):
     """Per row of a tile's source index (one thread each): its pixels of each image added to
     ``counts`` (images,), one atomic add per run of equal values along the row; NO_SOURCE

@@ -41,6 +41,7 @@ import tempfile
 import threading
 from typing import IO, TYPE_CHECKING, Any
 
+import numpy as np
 import warp as wp
 
 from .errors import DeviceError
@@ -49,9 +50,8 @@ if TYPE_CHECKING:  # annotations only
     import types
     from collections.abc import Iterator, Sequence
 
-    import numpy as np
-
-__all__ = ["resolve_device", "quiet_warp", "ensure_warp_initialized", "load_modules", "set_warp_messages", "warm_up"]
+__all__ = ["resolve_device", "quiet_warp", "ensure_warp_initialized", "load_modules", "set_warp_messages", "warm_up",
+           "to_host", "upload"]
 
 # What Warp's native library writes to fd 2 when no CUDA driver can be loaded (CPU-only
 # machines): an informational notice for orthowarp, whose CPU backend is a supported target.
@@ -389,3 +389,93 @@ def to_host(arr: wp.array) -> np.ndarray:
     wp.copy(host, arr)
     wp.synchronize_stream(wp.get_stream(arr.device))
     return host.numpy()
+
+
+
+#: The largest array :func:`upload` sends through its pinned staging ring (bytes); larger
+#: ones are copied as ``wp.array`` copies them.
+STAGED_UPLOAD_MAX = 1 << 20
+
+
+class _Staging:
+    """Pinned host memory through which small arrays reach one CUDA device without a wait.
+
+    A copy from pageable host memory waits for the device's stream to drain (CUDA stages it
+    through a pinned buffer of its own only after the work enqueued before it), so each small
+    upload of a tile's set-up stalled the one stream that all of a process's tile threads
+    share. A copy from pinned memory is only enqueued. The memory is a ring of ``SEGMENTS``
+    segments filled in turn: on leaving a segment an event is recorded after its last copy,
+    and a segment is written again only once its event has passed (a cycle of the ring
+    later, when its copies ran long ago).
+    """
+
+    SEGMENTS, SEGMENT = 8, 4 << 20
+
+    def __init__(self, device: wp.Device) -> None:
+        self.device = device
+        self.buf = wp.empty(self.SEGMENTS * self.SEGMENT, dtype=wp.uint8, device="cpu", pinned=True)
+        self.host = self.buf.numpy()
+        self.segment, self.offset = 0, 0
+        self.events: list = [None] * self.SEGMENTS
+        self.lock = threading.Lock()
+
+    def upload(self, data: np.ndarray, dtype: Any, shape: tuple[int, ...]) -> wp.array:
+        out = wp.empty(shape, dtype=dtype, device=self.device)
+        n = data.nbytes
+        with self.lock:  # one thread at a time writes the ring and enqueues its copy
+            stream = self.device.stream
+            at = -(-self.offset // 256) * 256
+            if at + n > self.SEGMENT:  # on to the next segment, once its last copies have run
+                self.events[self.segment] = stream.record_event()
+                self.segment = (self.segment + 1) % self.SEGMENTS
+                if self.events[self.segment] is not None:
+                    wp.synchronize_event(self.events[self.segment])
+                at = 0
+            self.offset = at + n
+            at += self.segment * self.SEGMENT
+            self.host[at:at + n] = data.reshape(-1).view(np.uint8)
+            wp.copy(out, wp.array(ptr=self.buf.ptr + at, dtype=dtype, shape=shape, device="cpu"), stream=stream)
+        return out
+
+
+_staging: dict[str, _Staging] = {}
+_staging_lock = threading.Lock()
+
+
+def upload(data: Any, *, dtype: Any, device: wp.DeviceLike) -> wp.array:
+    """``wp.array(data, dtype=dtype, device=device)``, without waiting for the device.
+
+    On a CUDA device an array of at most :data:`STAGED_UPLOAD_MAX` bytes goes through a pinned
+    staging ring (:class:`_Staging`): its copy is enqueued on the device's current stream and
+    the calling thread goes on, where a copy from pageable memory would wait for everything
+    enqueued before it. Larger arrays, and every array on the CPU, are copied by ``wp.array``.
+
+    Parameters
+    ----------
+    data : array_like
+        For a vector or matrix ``dtype`` its last axes are the element's (e.g. (rows, cols, 2)
+        for ``wp.vec2d``).
+    dtype : warp dtype
+    device : warp.context.Device or str
+
+    Returns
+    -------
+    warp array
+        On ``device``; its values are there for every kernel enqueued after this call.
+    """
+    device = wp.get_device(device)
+    scalar = getattr(dtype, "_wp_scalar_type_", dtype)
+    arr = np.ascontiguousarray(data, dtype=wp.dtype_to_numpy(scalar))
+    elem = getattr(dtype, "_shape_", ())
+    if not device.is_cuda or arr.nbytes > min(STAGED_UPLOAD_MAX, _Staging.SEGMENT) or arr.nbytes == 0 or \
+            tuple(arr.shape[arr.ndim - len(elem):]) != tuple(elem):
+        return wp.array(arr, dtype=dtype, device=device)
+    key = str(device)
+    ring = _staging.get(key)
+    if ring is None:
+        with _staging_lock:
+            ring = _staging.get(key)
+            if ring is None:
+                ring = _staging[key] = _Staging(device)
+    return ring.upload(arr, dtype, arr.shape[:arr.ndim - len(elem)])
+

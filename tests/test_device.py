@@ -302,3 +302,32 @@ def test_to_host_from_many_threads(device):
     with ThreadPoolExecutor(8) as pool:
         out = list(pool.map(lambda k: to_host(arrays[k % 16]), range(200)))
     assert all((o == k % 16).all() for k, o in enumerate(out))
+
+
+def test_upload_gives_each_arrays_values_from_many_threads(device, monkeypatch):
+    """upload (on a GPU small arrays go through a pinned ring whose segments are written
+    again once their copies have run) gives each array its values, from many threads at
+    once, with the ring coming round many times; vectors take their last axis."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from orthowarp import _device
+
+    monkeypatch.setattr(_device._Staging, "SEGMENT", 1 << 14)
+    monkeypatch.setattr(_device, "_staging", {})
+    kinds = [(wp.vec2d, np.float64, 2), (wp.int32, np.int32, 0), (wp.float32, np.float32, 0),
+             (wp.vec3d, np.float64, 3), (wp.uint8, np.uint8, 0)]
+
+    def work(seed):
+        rng = np.random.default_rng(seed)
+        sent = []
+        for i in range(120):
+            dtype, np_dtype, m = kinds[i % len(kinds)]
+            n = int(rng.integers(1, 600))
+            a = (rng.random((n, m) if m else n) * 200).astype(np_dtype)
+            sent.append((a, _device.upload(a, dtype=dtype, device=device)))
+        return all(np.array_equal(_device.to_host(x).reshape(a.shape), a) for a, x in sent)
+
+    with ThreadPoolExecutor(8) as pool:
+        assert all(pool.map(work, range(8)))
+    big = np.arange(1 << 15, dtype=np.int32)  # over a segment: copied as wp.array copies it
+    np.testing.assert_array_equal(_device.to_host(_device.upload(big, dtype=wp.int32, device=device)), big)

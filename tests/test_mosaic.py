@@ -508,11 +508,20 @@ def test_a_minimum_cut_takes_the_seam_round_a_disagreement(max_nodes):
     assert to_i[:, :30].all() and not to_i[:, 48:].any()  # the detour stays near the blob
 
 
-def test_the_backward_fallback_covers_only_blocks_with_coverable_gaps():
+@pytest.mark.parametrize("on_device", [False, True])
+def test_the_backward_fallback_covers_only_blocks_with_coverable_gaps(on_device):
     """Pixels the forward method leaves without a value are filled on the tile's blocks that
     hold them (each block row's consecutive blocks merged), and only where the reduced
-    labelling has cover within one reduced pixel: gaps beyond every image cost nothing."""
-    from orthowarp.pipeline.mosaic.blend import _fallback_blocks
+    labelling has cover within one reduced pixel: gaps beyond every image cost nothing. The
+    same blocks from a tile's validity on the device (marked by a kernel)."""
+    import warp as wp
+
+    from orthowarp.pipeline.mosaic.blend import _fallback_blocks as host_blocks
+
+    def _fallback_blocks(missing, *args, **kw):
+        if on_device:
+            missing = wp.array((~missing).astype(np.uint8), dtype=wp.uint8, device="cpu")
+        return host_blocks(missing, *args, **kw)
 
     f = 4
     labels = np.full((100, 100), NO_SOURCE, np.uint16)
@@ -725,6 +734,31 @@ def test_tiles_on_a_dask_cluster_give_the_same_mosaic_bytes(pair, tmp_path):
     assert (tmp_path / "dask.tif").read_bytes() == (tmp_path / "local.tif").read_bytes()
     assert (tmp_path / "dask_i.tif").read_bytes() == (tmp_path / "local_i.tif").read_bytes()
     assert remote.pixels_per_image == local.pixels_per_image
+
+
+@pytest.mark.parametrize("blend", ["feather", "none"])
+def test_fallback_blocks_computed_as_their_box_give_the_blocks_pixels(pair, tmp_path, monkeypatch, blend):
+    """On a GPU a tile's fallback blocks (the backward method where the forward one left
+    gaps) are computed as their bounding box in one go and copied block by block; with these
+    blends each pixel is a function of its position alone, so the file is the one the blocks
+    one by one give (here on the CPU, without refraction, whose turn the CPU interpolates
+    over each block's own heights)."""
+    import orthowarp.pipeline.mosaic.blend as blend_mod
+
+    sc, images, _, _ = pair
+    boxes = []
+    bounding = blend_mod._bounding_tile
+    monkeypatch.setattr(blend_mod, "_bounding_tile", lambda blocks: boxes.append(len(blocks)) or bounding(blocks))
+    got = {}
+    for in_one in (False, True):
+        monkeypatch.setattr(blend_mod, "_fallback_in_one", lambda device, b, in_one=in_one: in_one)
+        res = mosaic(images, tmp_path / f"m-{in_one}.tif", dem=sc.dem, refraction=False, device="cpu", tile_size=512,
+                     index=tmp_path / f"i-{in_one}.tif", occlusion=True, blend=blend, block_codec="hybrid")
+        with rasterio.open(res.path) as ds, rasterio.open(res.index) as ix:
+            got[in_one] = (ds.read(), ds.dataset_mask(), ix.read(1))
+    assert max(boxes) > 1  # tiles with several blocks, computed together
+    for a, b in zip(got[False], got[True]):
+        np.testing.assert_array_equal(a, b)
 
 
 def test_hidden_ground_comes_from_an_image_that_sees_it(tmp_path):

@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import warp as wp
 
-from ..._device import to_host
+from ..._device import to_host, upload
 from ...kernels import mosaic as mosaic_kernels
 from ..ortho.tiles import COARSE_STEP, TOP, WP_TYPES, coarse_grid, coarse_struct
 from ..tiles import Tile
@@ -53,12 +53,21 @@ class TileBlending:
         st = self._materialise()
         tile = Tile(r0, c0, th, tw)
         out, source, has = self._select(st, "renderer", tile, device=device)
-        missing = ~(to_host(has).view(bool) if device is not None else has)
-        if self.options["method"] == "forward" and missing.any() and any(s[1].forward_method for s in self.sources):
+        if self.options["method"] == "forward" and any(s[1].forward_method for s in self.sources):
             # ground no image sees by the forward method (hidden, where it drops folded quads on
             # a rough DSM, or the half pixel along a footprint's edge): the backward method's
             # value, from the same rule, on the blocks of the tile that have such pixels
-            for block in _fallback_blocks(missing, self.labels, self.seam_step, r0, c0):
+            blocks = _fallback_blocks(has if device is not None else ~has, self.labels, self.seam_step, r0, c0)
+            if blocks and _fallback_in_one(device, self.options["blend"]):
+                box = _bounding_tile(blocks)
+                out2, source2, has2 = self._select(st, "fallback", box, device=device)
+                for block in blocks:
+                    rows, cols = block.within(box)
+                    wp.launch(mosaic_kernels.mosaic_fill_kernel, dim=block.shape, device=device,
+                              inputs=[out, has, source, out2[rows, cols], has2[rows, cols], source2[rows, cols],
+                                      block.row - r0, block.col - c0])
+                blocks = []
+            for block in blocks:
                 out2, source2, has2 = self._select(st, "fallback", block, device=device)
                 if device is not None:
                     wp.launch(mosaic_kernels.mosaic_fill_kernel, dim=block.shape, device=device,
@@ -94,7 +103,7 @@ class TileBlending:
         out = wp.empty((th, tw, count), dtype=WP_TYPES[self.dtype], device=on)
         has = wp.empty((th, tw), dtype=wp.uint8, device=on)
         source = wp.empty((th, tw), dtype=wp.uint16, device=on)
-        images = wp.array(np.array(ks, np.int32), device=on)
+        images = upload(ks, dtype=wp.int32, device=on)
         if o["blend"] == "multiband":
             planes, mid, low, best = _multiband(stack, rank, feather, halo, on)
             wp.launch(mosaic_kernels.multiband_combine_kernel, dim=(th, tw), device=on,
@@ -149,7 +158,7 @@ class TileBlending:
         win = mosaic_kernels.ReducedWindow()
         win.f, win.r0, win.c0, win.wr0, win.wc0 = float(self.seam_step), r0, c0, wr0, wc0
         win.rows, win.cols = self.labels.shape
-        win.field = wp.array(np.stack([windows[k] for k in ks]), dtype=wp.float32, device=device)  # one copy each
+        win.field = upload(np.stack([windows[k] for k in ks]), dtype=wp.float32, device=device)  # one copy for all
         edges = wp.zeros((n, 2, 2), dtype=wp.float32, device=device)
         if fade:  # the edge distances (output pixels) at the nodes
             edges = wp.empty((n, *rendered[0][3].shape), dtype=wp.float32, device=device)
@@ -257,28 +266,30 @@ def _to_device(device: Device, out: np.ndarray, source: np.ndarray,
             wp.array(has.view(np.uint8), dtype=wp.uint8, device=device))
 
 
-def _fallback_blocks(missing: np.ndarray, labels: np.ndarray, f: int, r0: int, c0: int,
+def _fallback_blocks(missing: np.ndarray | wp.array, labels: np.ndarray, f: int, r0: int, c0: int,
                      block: int = FALLBACK_BLOCK) -> list[Tile]:
     """The parts of a tile (r0, c0) that the backward method must fill: the ``block`` x
-    ``block`` pixel blocks (from the tile's first pixel) holding pixels ``missing`` (bool (th,
-    tw)) where the reduced labelling (``f`` output pixels per reduced pixel) has cover within
-    one reduced pixel, each block row's consecutive blocks merged. Returns a list of tiles of
-    the mosaic grid."""
+    ``block`` pixel blocks (from the tile's first pixel) holding pixels without a value where
+    the reduced labelling (``f`` output pixels per reduced pixel) has cover within one reduced
+    pixel, each block row's consecutive blocks merged. ``missing``: bool (th, tw), True where
+    a pixel has no value; or the tile's device validity (warp uint8 (th, tw), 1 where it has
+    one), whose blocks are then marked on its device (a few bytes read back, not the tile).
+    Returns a list of tiles of the mosaic grid."""
     th, tw = missing.shape
-    crows, ccols = labels.shape
-    rr = np.clip(np.arange(r0, r0 + th) // f, 0, crows - 1)
-    cc = np.clip(np.arange(c0, c0 + tw) // f, 0, ccols - 1)
-    i0, i1, j0, j1 = rr[0], rr[-1] + 1, cc[0], cc[-1] + 1
-    # cover on the tile's reduced window, grown by one reduced pixel (its rim from the grid)
-    from scipy import ndimage
-
-    win = labels[max(i0 - 1, 0):i1 + 1, max(j0 - 1, 0):j1 + 1] != NO_SOURCE
-    grown = ndimage.binary_dilation(win, structure=np.ones((3, 3), bool))
-    need = missing & grown[np.ix_(rr - max(i0 - 1, 0), cc - max(j0 - 1, 0))]
+    rr, cc, cover = _grown_cover(labels, f, r0, c0, th, tw)
     nb_r, nb_c = -(-th // block), -(-tw // block)
-    pad = np.zeros((nb_r * block, nb_c * block), bool)
-    pad[:th, :tw] = need
-    marked = pad.reshape(nb_r, block, nb_c, block).any(axis=(1, 3))
+    if isinstance(missing, wp.array):
+        d = missing.device
+        marked = wp.zeros((nb_r, nb_c), dtype=wp.int32, device=d)
+        wp.launch(mosaic_kernels.fallback_need_kernel, dim=(th, tw), device=d,
+                  inputs=[missing, upload(cover.view(np.uint8), dtype=wp.uint8, device=d),
+                          upload(rr, dtype=wp.int32, device=d), upload(cc, dtype=wp.int32, device=d), block, marked])
+        marked = to_host(marked) != 0
+    else:
+        need = missing & cover[np.ix_(rr, cc)]
+        pad = np.zeros((nb_r * block, nb_c * block), bool)
+        pad[:th, :tw] = need
+        marked = pad.reshape(nb_r, block, nb_c, block).any(axis=(1, 3))
     out = []
     for i in range(nb_r):
         j = 0
@@ -293,6 +304,42 @@ def _fallback_blocks(missing: np.ndarray, labels: np.ndarray, f: int, r0: int, c
             out.append(Tile(r0 + br, c0 + bc, min(block, th - br), min(k * block, tw) - bc))
             j = k
     return out
+
+
+def _grown_cover(labels: np.ndarray, f: int, r0: int, c0: int, th: int,
+                 tw: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where a tile (r0, c0, th, tw) has cover in the reduced labelling (``f`` output pixels
+    per reduced pixel) grown by one reduced pixel: (window row of each tile row (th,), window
+    column of each tile column (tw,), int32; cover on the window, bool)."""
+    from scipy import ndimage
+
+    crows, ccols = labels.shape
+    rr = np.clip(np.arange(r0, r0 + th) // f, 0, crows - 1)
+    cc = np.clip(np.arange(c0, c0 + tw) // f, 0, ccols - 1)
+    i0, i1, j0, j1 = rr[0], rr[-1] + 1, cc[0], cc[-1] + 1
+    # cover on the tile's reduced window, grown by one reduced pixel (its rim from the grid)
+    win = labels[max(i0 - 1, 0):i1 + 1, max(j0 - 1, 0):j1 + 1] != NO_SOURCE
+    grown = ndimage.binary_dilation(win, structure=np.ones((3, 3), bool))
+    return (rr - max(i0 - 1, 0)).astype(np.int32), (cc - max(j0 - 1, 0)).astype(np.int32), grown
+
+
+def _fallback_in_one(device: Device | None, blend: str) -> bool:
+    """Whether a tile's fallback blocks are computed together, as their bounding box, and
+    then copied block by block: on a GPU, where a block's set-up (per image a coarse grid, a
+    source window and a read-back that waits for the device) costs more than its kernels.
+    With feathering or no blending each pixel's value is a function of its position alone
+    (coarse-grid nodes on the same lattice, distance fields exact to their clip), so the box
+    gives the blocks' pixels; with multi-band blending, whose pyramids span the block, it
+    would not. Not on the CPU, whose refraction turn is interpolated over each block's own
+    height range (see :class:`~orthowarp.kernels.ortho.CoarseGrid`)."""
+    return device is not None and device.is_cuda and blend != "multiband"
+
+
+def _bounding_tile(tiles: list[Tile]) -> Tile:
+    """The smallest tile holding all of ``tiles``."""
+    r0, c0 = min(t.row for t in tiles), min(t.col for t in tiles)
+    r1, c1 = max(t.row + t.height for t in tiles), max(t.col + t.width for t in tiles)
+    return Tile(r0, c0, r1 - r0, c1 - c0)
 
 
 def _distance_windows(labels: np.ndarray, f: int, tile: Tile, ks: list[int], clip: float) -> tuple[tuple[int, int], dict[int, np.ndarray]]:

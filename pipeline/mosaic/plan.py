@@ -425,7 +425,8 @@ class MosaicPlan(TileBlending):
                 if _block_codec != "host":
                     codecs = device_codecs(_block_codec, 1 if lossy else compress_level, self.warp_device,
                                            "deflate" if lossy else compress)
-                    encoder = self._encoder = DeviceCogEncoder(writers[0], self.warp_device, codecs)
+                    encoder = self._encoder = DeviceCogEncoder(writers[0], self.warp_device, codecs,
+                                                               timer=self._materialise()["timer"])
                 for (r0, c0, th, tw), (block, valid, source) in results:
                     if block is not None:
                         writers[0].write(r0, c0, block, valid, copy=False)

@@ -21,6 +21,7 @@ import numpy as np
 import warp as wp
 from pyproj import CRS, Transformer
 
+from ..._device import upload
 from ...kernels import ortho as ortho_kernels
 
 if TYPE_CHECKING:
@@ -164,7 +165,7 @@ def forward_coords(geom: SensorGeometry, transform: Affine, out_crs: CRS, frame_
         timer.span("prepare", t)
         t = time.perf_counter()
         f2o = ortho_kernels.FrameToOutput()
-        f2o.grid = wp.array(np.ascontiguousarray(np.stack([pc - c0, pr - r0], -1)), dtype=wp.vec2d, device=device)
+        f2o.grid = upload(np.stack([pc - c0, pr - r0], -1), dtype=wp.vec2d, device=device)
         f2o.x0, f2o.dx, f2o.y0, f2o.dy = float(gu[0]), float(gu[1] - gu[0]), float(gv[0]), float(gv[1] - gv[0])
         nodes = wp.empty((wr1 - wr0, wc1 - wc0), dtype=wp.vec2d, device=device)
         timer.span("h2d", t)

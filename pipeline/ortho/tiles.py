@@ -27,7 +27,7 @@ from pyproj import Transformer
 from rasterio.enums import MaskFlags, Resampling
 from rasterio.windows import Window
 
-from ..._device import load_modules, to_host
+from ..._device import load_modules, to_host, upload
 from ...errors import ParamError, RasterIOError
 from ...kernels import ortho as ortho_kernels
 from ...options import Resampling as Interpolation
@@ -100,7 +100,7 @@ def coarse_struct(uv: np.ndarray, geocentric: bool, device: wp.context.Device, s
     ECEF points on the ellipsoid and their normals, and given a frame ``pose``, the nodes'
     lines in its camera frame."""
     g = ortho_kernels.CoarseGrid()
-    g.uv = wp.array(uv, dtype=wp.vec2d, device=device)
+    g.uv = upload(uv, dtype=wp.vec2d, device=device)
     g.step = float(step)
     g.geocentric = int(bool(geocentric))
     shape = uv.shape[:2]

@@ -47,7 +47,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import warp as wp
 
-from ..._device import load_modules, to_host
+from ..._device import load_modules, to_host, upload
 from ...errors import DeviceError, ParamError
 from ...kernels import cog as kc
 
@@ -603,12 +603,16 @@ class DeviceCogEncoder:
         as GDAL does); default :class:`HostDeflate` at the writer's mask level (the masks are
         1/8 byte per pixel, and most are one byte, which no codec sees). With a deflate
         writer, the mask blocks go with the image blocks unless one is given.
+    timer : StageTimer, optional
+        Gets each device batch's compression as a ``"write"`` span, each tile's blocks and
+        overview levels made on the device as a ``"kernel"`` span and the tiles' waits for the
+        batch in flight (bounded device memory) as ``"queue"`` spans.
 
     Call :meth:`flush` after the last tile, before the writer's ``close``.
     """
 
     def __init__(self, writer: CogWriter, device: Device, codecs: Sequence[Any], *,
-                 batch_bytes: int = 512 << 20, mask_codec: Any = None) -> None:
+                 batch_bytes: int = 512 << 20, mask_codec: Any = None, timer: Any = None) -> None:
         if writer.compress not in ("deflate", "zstd"):
             raise ParamError(f"DeviceCogEncoder needs a deflate or zstd CogWriter, not {writer.compress!r}")
         gpu = [c for c in codecs if c.batched]
@@ -624,7 +628,7 @@ class DeviceCogEncoder:
                              f"{mask_codec.compression}")
         if mask_codec is None and writer.compress != "deflate" and writer.mask:
             mask_codec = HostDeflate(writer.mask_level)
-        self.writer, self.device = writer, device
+        self.writer, self.device, self.timer = writer, device, timer
         self.gpu, self.host = (gpu or [None])[0], (host or [None])[0]
         self.mask_codec = mask_codec  # None: the mask blocks go with the image blocks
         self.batch_bytes = int(batch_bytes)
@@ -675,7 +679,10 @@ class DeviceCogEncoder:
         self.writer.raise_pending()
         with self._lock:
             self._raise_failed()
+        t = time.perf_counter()
         job = self._encode(row, col, tile, valid)
+        if self.timer is not None:
+            self.timer.span("kernel", t)
         if job is None:
             return
         if self.gpu is None:
@@ -686,8 +693,11 @@ class DeviceCogEncoder:
             if self._gpu_busy and self.host is not None and self._batch_n >= self.batch_bytes:
                 pass  # the device is busy and its next batch is full: this tile goes to the host cores
             else:
+                t = time.perf_counter()
                 while self._gpu_busy and self._batch_n >= 2 * self.batch_bytes:
                     self._lock.wait()  # bounded device memory: wait for the batch in flight
+                if self.timer is not None:
+                    self.timer.span("queue", t)
                 self._raise_failed()
                 self._batch.append(job)
                 self._batch_n += job.nbytes
@@ -724,8 +734,11 @@ class DeviceCogEncoder:
         kept for :meth:`write` and :meth:`flush` to raise."""
         while jobs:
             try:
+                t = time.perf_counter()
                 with wp.ScopedDevice(self.device):  # the device's context current in this thread
                     self._compress(jobs, self.gpu)
+                if self.timer is not None:
+                    self.timer.span("write", t)
             except BaseException as e:  # noqa: BLE001 - raised by the next write or the flush
                 with self._lock:
                     self._failed = self._failed or e
@@ -778,7 +791,7 @@ class DeviceCogEncoder:
         the uint8 array ``buf``, and the byte that fills each whole (0 or 255, else -1; int32):
         one upload, two launches and one read-back for a whole batch."""
         n, d = len(offsets), self.device
-        bounds = wp.array(np.concatenate([offsets, sizes]), dtype=wp.int32, device=d)
+        bounds = upload(np.concatenate([offsets, sizes]), dtype=wp.int32, device=d)
         offs, size = bounds[:n], bounds[n:]
         nchunk = -(-int(sizes.max()) // _CHUNK)
         s1 = wp.empty((n, nchunk), dtype=wp.int64, device=d)
