@@ -30,7 +30,8 @@ After the chain, where the misregistration comes from (``relief_at_ties``): ever
 observations of a tie point carried to the ground through the adjusted orientation on the
 point's own height, on ``--height`` and on the ties' median height, their distance in ortho
 pixels; and with ``--tie-dem L`` the adjusted orthos on a smooth surface from the adjusted tie
-points (Gaussian, L m; a GeoTIFF in the work folder).
+points (orthowarp.pipeline.drone.tie_surface, smoothing length L m; a GeoTIFF in the work
+folder).
 
 With ``--attitude gps`` the XMP attitude is withheld: the images are copied into
 ``<work>/gps_only_images`` with their ``drone-dji:Gimbal*Degree`` keys renamed (the same number
@@ -317,38 +318,27 @@ def relief_parallax(adj, resolution, planes):
     return out
 
 
-def tie_surface(adj, path, length, spacing=0.5, margin=40.0):
-    """A smooth terrain from the adjusted tie points (GeoTIFF, UTM, heights in the GPS altitudes'
-    datum): their median height plus the Gaussian-weighted (``length`` m) mean of the points'
-    departures from it, shrunk towards the median where points are few (weight + 1); over the
-    cameras' extent and ``margin`` m."""
-    import rasterio
+def tie_surface(adj, path, length, margin=40.0):
+    """A smooth terrain from the adjusted tie points of ``points.csv`` (GeoTIFF, UTM, heights in the
+    GPS altitudes' datum) by the library's orthowarp.pipeline.drone.tie_surface (Gaussian
+    smoothing length ``length`` m, outliers left out), over the cameras' extent and ``margin`` m."""
     from pyproj import CRS, Transformer
-    from rasterio.transform import from_origin
 
-    points = np.array(list(_tie_points(adj).values()))
+    from orthowarp.pipeline.drone import tie_surface as surface_of
+
+    points = np.array(list(_tie_points(adj).values()))  # lat, lon, h
     cams = np.array([s.pose.center_geodetic for s in _adjusted_sensors(adj).values()])
-    zone = int((np.median(points[:, 1]) + 180) // 6) + 1
-    crs = CRS.from_epsg((32600 if np.median(points[:, 0]) >= 0 else 32700) + zone)
+    ok = np.all(np.isfinite(points), axis=1)
+    zone = int((np.median(points[ok, 1]) + 180) // 6) + 1
+    crs = CRS.from_epsg((32600 if np.median(points[ok, 0]) >= 0 else 32700) + zone)
     t = Transformer.from_crs("EPSG:4326", crs, always_xy=True)
     px, py = t.transform(points[:, 1], points[:, 0])
     cx, cy = t.transform(cams[:, 1], cams[:, 0])
-    x0, x1 = min(cx.min(), px.min()) - margin, max(cx.max(), px.max()) + margin
-    y0, y1 = min(cy.min(), py.min()) - margin, max(cy.max(), py.max()) + margin
-    cols, rows = int(np.ceil((x1 - x0) / spacing)), int(np.ceil((y1 - y0) / spacing))
-    gx, gy = np.meshgrid(x0 + (np.arange(cols) + 0.5) * spacing, y1 - (np.arange(rows) + 0.5) * spacing)
-    base = float(np.median(points[:, 2]))
-    num, den = np.zeros_like(gx), np.ones_like(gx)
-    for x, y, h in zip(px, py, points[:, 2]):
-        w = np.exp(-0.5 * ((gx - x) ** 2 + (gy - y) ** 2) / length ** 2)
-        num += w * (h - base)
-        den += w
-    z = (base + num / den).astype(np.float32)
-    with rasterio.open(path, "w", driver="GTiff", width=cols, height=rows, count=1, dtype="float32", crs=crs,
-                       transform=from_origin(x0, y1, spacing, spacing)) as ds:
-        ds.write(z, 1)
-    return dict(path=path, length_m=length, spacing_m=spacing, points=len(points), base_m=base,
-                min_m=float(z.min()), max_m=float(z.max()))
+    bounds = (min(cx.min(), np.nanmin(px)) - margin, min(cy.min(), np.nanmin(py)) - margin,
+              max(cx.max(), np.nanmax(px)) + margin, max(cy.max(), np.nanmax(py)) + margin)
+    s = surface_of(np.column_stack([px, py, points[:, 2]]), crs, path, length=length, bounds=bounds)
+    return dict(path=path, length_m=s.length, spacing_m=s.spacing, points=s.points, rejected=s.rejected,
+                fit_rms_m=s.fit_rms, min_m=s.height_range[0], max_m=s.height_range[1])
 
 
 def orthos(folder, args, *more, reuse=False):

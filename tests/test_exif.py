@@ -528,6 +528,18 @@ def test_exif_sensors_reconcile_the_dem(tmp_path):
 # folders, wildcards, the command line
 # =============================================================================================
 
+def test_takeoff_height_in_the_datum_of_the_poses(tmp_path):
+    from orthowarp.pipeline.drone import takeoff_height
+
+    a = drone_jpeg(tmp_path / "a.jpg", alt=160.0, xmp={"RelativeAltitude": "+60.00", "AbsoluteAltitude": "+160.0"})
+    b = drone_jpeg(tmp_path / "b.jpg", alt=161.0, lat=LAT0 + 1e-4, xmp={"RelativeAltitude": "+60.50"})
+    c = drone_jpeg(tmp_path / "c.jpg", alt=162.0, lat=LAT0 + 2e-4)  # (no RelativeAltitude: not counted)
+    assert takeoff_height(exif_orientations([a, b, c])) == pytest.approx(100.25)
+    assert takeoff_height(exif_orientations([a, b], altitude="ellipsoidal")) == pytest.approx(100.25)
+    assert takeoff_height(exif_orientations([a, b], altitude="relative")) == pytest.approx(0.0)
+    assert takeoff_height(exif_orientations([c])) is None
+
+
 def test_exif_images_expands_folders_and_wildcards(tmp_path):
     a = drone_jpeg(tmp_path / "B.JPG")
     b = write_tiff(tmp_path / "a.tif")
@@ -581,32 +593,46 @@ def test_cli_refuses_mixed_and_missing_options(tmp_path):
 # the chain: tie points and adjustment of the EXIF orientation (synthetic frames)
 # =============================================================================================
 
+def _rendered_block(folder, *, takeoff=None):
+    """Six 600 x 400 frames of the demo's scene (two strips, north then south, 1 m pixels) as
+    drone JPEGs in ``folder``, their tags' positions off by 0.5 m and gimbal angles by 1 degree
+    (with ``takeoff``, DJI's RelativeAltitude above that height): (paths, true sensors, DEM)."""
+    from orthowarp.camera import FrameCamera
+    from orthowarp.pipeline.demo import LAT0 as DLAT, LON0 as DLON, M_PER_DEG_LAT, M_PER_DEG_LON, render
+    from orthowarp.pipeline.demo import synthetic_scene
+
+    dem = synthetic_scene()[2]
+    camera = FrameCamera(50.0, 0.05, (600, 400))
+    rng = np.random.default_rng(7)
+    truth, paths = [], []
+    os.makedirs(folder, exist_ok=True)
+    for k, (east, north, yaw) in enumerate([(-180, -160, 0), (-180, 0, 0), (-180, 160, 0),
+                                            (180, 160, 180), (180, 0, 180), (180, -160, 180)]):
+        lat, lon = DLAT + north / M_PER_DEG_LAT, DLON + east / M_PER_DEG_LON
+        pose = Pose.from_ins(lat, lon, 1700.0, *gimbal_attitude(0.0, -90.0, yaw))
+        truth.append(FrameSensor(camera, pose))
+        image, _ = render(truth[-1], dem, os.path.join(folder, f"r{k}.tif"), device="cpu")
+        os.remove(os.path.join(folder, f"r{k}.tif"))
+        e, n, u = rng.normal(0, 0.5, 3)
+        g = np.array([0.0, -90.0, yaw]) + rng.normal(0, 1.0, 3)
+        xmp = {} if takeoff is None else {"RelativeAltitude": f"{1700.0 + u - takeoff:+.2f}"}
+        paths.append(drone_jpeg(os.path.join(folder, f"IMG_{k}.jpg"), gimbal=tuple(g), make="Acme", model="T",
+                                focal=50.0, f35=None, plane=(200, 200, 3), lat=lat + n / M_PER_DEG_LAT,
+                                lon=lon + e / M_PER_DEG_LON, alt=1700.0 + u, time=f"2020:01:01 10:00:{10 * k:02d}",
+                                pixels=image, xmp=xmp))
+    return paths, truth, dem
+
+
 @pytest.mark.slow
 def test_the_chain_refines_the_exif_orientation_of_rendered_frames(tmp_path):
     """Six 600 x 400 frames of the demo's scene (two strips, north then south, 1 m pixels),
     their tags' positions off by 0.5 m and gimbal angles by 1 degree: the chain's ties and
     adjustment bring the attitudes closer to the truth (to what the GPS positions, the block's
     datum, allow) and fit the ties to a fraction of a pixel."""
-    from orthowarp.camera import FrameCamera
-    from orthowarp.pipeline.demo import LAT0 as DLAT, LON0 as DLON, M_PER_DEG_LAT, M_PER_DEG_LON, render
-    from orthowarp.pipeline.demo import synthetic_scene
     from orthowarp.pipeline.drone import adjust_exif, exif_sensors
 
-    dem = synthetic_scene()[2]
-    camera = FrameCamera(50.0, 0.05, (600, 400))
-    rng = np.random.default_rng(7)
-    truth, paths = [], []
-    for k, (east, north, yaw) in enumerate([(-180, -160, 0), (-180, 0, 0), (-180, 160, 0),
-                                            (180, 160, 180), (180, 0, 180), (180, -160, 180)]):
-        lat, lon = DLAT + north / M_PER_DEG_LAT, DLON + east / M_PER_DEG_LON
-        pose = Pose.from_ins(lat, lon, 1700.0, *gimbal_attitude(0.0, -90.0, yaw))
-        truth.append(pose)
-        image, _ = render(FrameSensor(camera, pose), dem, str(tmp_path / f"r{k}.tif"), device="cpu")
-        e, n, u = rng.normal(0, 0.5, 3)
-        g = np.array([0.0, -90.0, yaw]) + rng.normal(0, 1.0, 3)
-        paths.append(drone_jpeg(tmp_path / f"IMG_{k}.jpg", gimbal=tuple(g), make="Acme", model="T", focal=50.0,
-                                f35=None, plane=(200, 200, 3), lat=lat + n / M_PER_DEG_LAT, lon=lon + e / M_PER_DEG_LON,
-                                alt=1700.0 + u, time=f"2020:01:01 10:00:{10 * k:02d}", pixels=image))
+    paths, sensors, dem = _rendered_block(tmp_path)
+    truth = [s.pose for s in sensors]
     job = exif_sensors(paths, dem=dem)
 
     def attitude_errors(sensors):
@@ -699,3 +725,85 @@ def test_fuzz_exif_tiff(tmp_path_factory, data):
     path = folder / "img.tif"
     path.write_bytes(data.draw(st.one_of(damaged_bytes(base), st.binary(max_size=100).map(lambda b: b"II*\x00" + b))))
     _check(path)
+
+
+def _gcp_list(path, sensors, dem, *, n=(4, 3)):
+    """A gcp_list.txt (UTM 32N) of ground points on the DEM spread over the block, each measured
+    where the true sensors see it (at least 20 px inside the image); the points' names and
+    (lat, lon, h)."""
+    from pyproj import Transformer
+
+    from orthowarp.pipeline.demo import LAT0 as DLAT, LON0 as DLON, M_PER_DEG_LAT, M_PER_DEG_LON
+
+    east, north = np.meshgrid(np.linspace(-300, 300, n[0]), np.linspace(-300, 300, n[1]))
+    lat = DLAT + north.ravel() / M_PER_DEG_LAT
+    lon = DLON + east.ravel() / M_PER_DEG_LON
+    h = dem.sample(lon, lat)
+    x, y = Transformer.from_crs("EPSG:4326", "EPSG:32632", always_xy=True).transform(lon, lat)
+    lines = ["+proj=utm +zone=32 +ellps=WGS84 +datum=WGS84 +units=m +no_defs"]
+    ecef = geodesy.geodetic_to_ecef(lat, lon, h)
+    for k, sensor in enumerate(sensors):
+        pix = sensor.project(ecef)
+        w, hh = sensor.camera.image_size
+        for p, (c, r) in enumerate(pix):
+            if 20 < c < w - 20 and 20 < r < hh - 20:
+                lines.append(f"{x[p]:.3f} {y[p]:.3f} {h[p]:.3f} {c - 0.5:.2f} {r - 0.5:.2f} IMG_{k}.JPG g{p}")
+    path.write_text("\n".join(lines) + "\n")
+    return [f"g{p}" for p in range(len(lat))], np.c_[lat, lon, h]
+
+
+def test_cli_chain_without_a_dem_takes_the_terrain_from_the_tie_points(tmp_path, monkeypatch):
+    """``mosaic FOLDER --exif --adjust`` with neither --dem nor --height: the matching on the
+    take-off point's height (RelativeAltitude), the mosaic on the surface of the adjusted tie
+    points, which follows the demo's hilly terrain; with --gcps (a gcp_list.txt, image names in
+    another case than the files') and --check-points 2, the check points' errors reported
+    within a pixel."""
+    import json
+
+    import rasterio
+
+    from orthowarp.pipeline.dem import Dem
+
+    from orthowarp.pipeline import drone
+
+    # these 600 x 400 frames take the matching of the direct test above (a 4-level pyramid's top,
+    # 75 x 50 px, is too small for them)
+    monkeypatch.setitem(drone.ADJUST_DEFAULTS, "zones", (6, 4))
+    monkeypatch.setitem(drone.ADJUST_DEFAULTS, "levels", 2)
+    paths, sensors, dem = _rendered_block(tmp_path / "images", takeoff=700.0)
+    names, _ = _gcp_list(tmp_path / "gcp_list.txt", sensors, dem)
+    out = tmp_path / "out" / "m.tif"
+    res = CliRunner().invoke(main, ["mosaic", str(tmp_path / "images"), "--exif", "--adjust", "-o", str(out),
+                                    "--resolution", "2", "--device", "cpu", "--gcps", str(tmp_path / "gcp_list.txt"),
+                                    "--check-points", "2"])
+    assert res.exit_code == 0, res.output
+    assert "take-off point's height 700.00 m" in res.output and "2 check points" in res.output, res.output
+    folder = tmp_path / "out" / "m_adjust"
+    chain = json.loads((folder / "chain.json").read_text())
+    assert chain["terrain"]["matching"] == {"height_m": pytest.approx(700.0, abs=0.01)}
+    s = chain["terrain"]["surface"]
+    assert s["points_used"] >= 30 and s["file"] == "tie_surface.tif" and s["smoothing_length_m"] > 0
+    assert s["height_range_m"][1] - s["height_range_m"][0] > 20  # (hills, not the take-off plane)
+    c = chain["control"]
+    assert c["check_points"] == 2 and c["control_points"] >= 4 and c["check_rms_m"]["horizontal"] < 1.0, c
+    assert "Ground control" in (folder / "report.md").read_text() and "## Terrain" in (folder / "report.md").read_text()
+    # the surface against the truth where the tie points are
+    ties = np.genfromtxt(folder / "tie_points.csv", delimiter=",", names=True, dtype=None, encoding="utf-8")
+    assert set(ties.dtype.names) == {"point", "role", "x", "y", "z", "observations", "used"}
+    from pyproj import Transformer
+
+    surface = Dem.from_file(folder / "tie_surface.tif")
+    with rasterio.open(folder / "tie_surface.tif") as ds:
+        assert ds.crs.to_epsg() == 32632 and ds.units[0] == "m"
+    lon, lat = Transformer.from_crs(surface.crs, "EPSG:4326", always_xy=True).transform(ties["x"], ties["y"])
+    err = surface.sample(ties["x"], ties["y"]) - dem.sample(lon, lat)
+    assert np.median(np.abs(err)) < 3.0, np.percentile(np.abs(err), [50, 90])
+    with rasterio.open(out) as ds:
+        assert ds.count == 3 or ds.count == 1
+    # without --adjust, --exif still needs a terrain; --surface-length without the tie terrain is refused
+    for args, words in [([], "--dem FILE or --height METRES"),
+                        (["--adjust", "--height", "700", "--surface-length", "5"], "--surface-length"),
+                        (["--gcps", str(tmp_path / "gcp_list.txt"), "--height", "700"], "with --exif --adjust")]:
+        r = CliRunner().invoke(main, ["mosaic", str(tmp_path / "images"), "--exif", "-o", str(tmp_path / "x.tif"),
+                                      *args])
+        assert r.exit_code != 0 and words in r.output, r.output

@@ -130,6 +130,30 @@ exif_heading = click.option("--exif-heading", type=click.Choice(["tags", "conten
                                  "against the GPS track between neighbouring images (where that cannot be measured, "
                                  "the tags' corrected as their strip's, else the tags').")
 exif_options = compose(exif, exif_altitude, exif_heading)
+gcps = click.option("--gcps", type=click.Path(dir_okay=False),
+                    help="Ground control points. With --rpc (ortho): orthority's GCP GeoJSON, estimating a bias "
+                         "compensation of the RPCs in image space (--bias); the estimate and the points' leave-one-out "
+                         "check residuals with and without it are printed. With --exif --adjust (mosaic): "
+                         "OpenDroneMap's gcp_list.txt, control points of the adjustment (--gcp-sigma), those of "
+                         "--check-points kept out as check points whose errors are reported.")
+check_points = click.option("--check-points", default=None, metavar="N|NAMES",
+                            help="With --gcps and --adjust: keep GCPs out of the adjustment as check points, their "
+                                 "intersected minus given positions (east, north, up, m) in the report: N of them, "
+                                 "spread over the file's order, or their names, comma-separated.")
+gcp_sigma = click.option("--gcp-sigma", type=click.FloatRange(min=0.0, min_open=True), default=0.05,
+                         show_default=True,
+                         help="With --gcps and --adjust: standard deviation (m) of each GCP coordinate (east, north, "
+                              "up) in the adjustment.")
+gcp_pixel_sigma = click.option("--gcp-pixel-sigma", type=click.FloatRange(min=0.0, min_open=True), default=1.0,
+                               show_default=True,
+                               help="With --gcps and --adjust: standard deviation (px) of each GCP's image "
+                                    "measurement.")
+chain_control = compose(gcps, check_points, gcp_sigma, gcp_pixel_sigma)
+surface_length = click.option("--surface-length", type=click.FloatRange(min=0.0, min_open=True), default=None,
+                              metavar="METRES",
+                              help="With --exif --adjust and neither --dem nor --height: the smoothing length of the "
+                                   "terrain made from the adjusted tie points (a Gaussian's standard deviation, m; "
+                                   "default the median distance from a point to its 6th nearest).")
 orthos = click.option("--orthos", is_flag=True,
                       help="IMAGES are orthoimages already (georeferenced rasters: orthority's orthos, GDAL's, "
                            "orthowarp's), mosaicked by their CRS and geotransform, reprojected where their grids "

@@ -36,10 +36,7 @@ _DEFAULT_SOURCES = (None, click.core.ParameterSource.DEFAULT, click.core.Paramet
                    "when FILE is omitted, else from FILE: .RPB, _RPC.TXT or orthority's RPC parameter file. Give the "
                    "image before --rpc. Heights are ellipsoidal (a DEM of orthometric heights takes --geoid or "
                    "--same-vertical-datum).")
-@click.option("--gcps", type=click.Path(dir_okay=False),
-              help="With --rpc: ground control points (orthority's GCP GeoJSON) that estimate a bias compensation of "
-                   "the RPCs in image space (--bias); the estimate and the points' leave-one-out check residuals "
-                   "with and without it are printed.")
+@options.gcps
 @click.option("--bias", type=click.Choice(["shift", "affine"]), default="shift", show_default=True,
               help="With --gcps: the compensation's model: a shift of the image, or an affine map (3 points at least).")
 @options.terrain

@@ -18,6 +18,8 @@
   orthority's GCP GeoJSON (:func:`read_gcps`);
 - :mod:`~orthowarp.pipeline.formats.exif`: cameras and poses from drone images' EXIF and XMP
   tags (:func:`read_exif`, :func:`exif_orientations`);
+- :mod:`~orthowarp.pipeline.formats.gcps`: ground control points of OpenDroneMap's
+  ``gcp_list.txt`` (:func:`read_gcp_list`, :func:`match_gcp_images`);
 - :mod:`~orthowarp.pipeline.formats.orthos`: orthoimages as sensors from their georeferencing
   (:func:`read_ortho`, :func:`ortho_images`).
 
@@ -82,6 +84,9 @@ _LAZY = {
     "exif_orientations": ".exif",
     "exif_images": ".exif",
     "gimbal_attitude": ".exif",
+    "GcpList": ".gcps",
+    "read_gcp_list": ".gcps",
+    "match_gcp_images": ".gcps",
     "read_ortho": ".orthos",
     "ortho_images": ".orthos",
 }
