@@ -60,6 +60,7 @@ import numpy as np
 from ..._device import quiet_warp
 from ...errors import Cancelled, OrthowarpError, ParamError, RasterIOError
 from ..raster.io import atomic_files, describe_os_error, ensure_folder, is_virtual
+from ..reports.progress import Progress
 from ..tiles import Tile
 from .workers import tile_runs
 
@@ -347,34 +348,6 @@ class _Submitter:
         return k, self._next(w)
 
 
-class _Progress:
-    """Tiles done / total and their rate, to a tqdm bar (``progress=True``) or a callable
-    ``progress(done, total, rate)``; nothing where ``progress`` is None or False."""
-
-    def __init__(self, progress: Any, total: int, done: int = 0, desc: str = "tiles") -> None:
-        self.total, self.done, self.t0, self.bar, self.call = total, done, time.perf_counter(), None, None
-        if progress is True:
-            from tqdm import tqdm
-
-            self.bar = tqdm(total=total, initial=done, unit="tile", desc=desc, leave=False)
-        elif callable(progress):
-            self.call = progress
-        elif progress not in (None, False):
-            raise ParamError(f"progress must be True, False, None or a callable, got {progress!r}")
-
-    def step(self, n: int = 1) -> None:
-        self.done += n
-        if self.bar is not None:
-            self.bar.update(n)
-        if self.call is not None:
-            dt = time.perf_counter() - self.t0
-            self.call(self.done, self.total, self.done / dt if dt > 0 else 0.0)
-
-    def close(self) -> None:
-        if self.bar is not None:
-            self.bar.close()
-
-
 # -- one COG: the tiles back to the caller ------------------------------------------------------
 
 @quiet_warp()
@@ -423,7 +396,7 @@ def cluster_results(plan: Any, client: Any, tiles: Sequence[Tile], *, cancel: th
                              key=f"{tag}-{k}")
 
     dealer = _Submitter(_deal(client, tiles, images), submit, per_worker or _PER_WORKER * threads)
-    bar = _Progress(progress, len(tiles))
+    bar = Progress(progress, len(tiles))
     pending = distributed.as_completed(dealer.start(), with_results=False)
     try:
         for fut in pending:
@@ -817,7 +790,7 @@ def write_tiled(plan: Any, dst: str | os.PathLike, settings: TiledSettings, *, c
         kept = len(done)
         if kept:
             _log.info("%s: %d of %d tiles kept from an earlier run", dst, kept, len(ptiles))
-        bar = _Progress(progress, len(ptiles), kept)
+        bar = Progress(progress, len(ptiles), kept)
         try:
             if client is not None:
                 done += _tiles_on_cluster(plan, client, todo, work, settings, cancel, dst, bar, worker_device)
@@ -879,7 +852,7 @@ def _remove_strays(work: str) -> None:
 
 
 def _tiles_in_process(plan: Any, todo: list, work: str, settings: TiledSettings, cancel: threading.Event | None,
-                      dst: str, bar: _Progress, threads: int) -> list[dict]:
+                      dst: str, bar: Progress, threads: int) -> list[dict]:
     """The product tiles on threads of this process."""
     out = []
     with ThreadPoolExecutor(max_workers=threads, thread_name_prefix="product-tile") as pool:
@@ -908,7 +881,7 @@ def _check(cancel: threading.Event | None, dst: str) -> None:
 
 
 def _tiles_on_cluster(plan: Any, client: Any, todo: list, work: str, settings: TiledSettings,
-                      cancel: threading.Event | None, dst: str, bar: _Progress, device: str | None) -> list[dict]:
+                      cancel: threading.Event | None, dst: str, bar: Progress, device: str | None) -> list[dict]:
     """The product tiles on the workers of ``client``, dealt in bands."""
     distributed = _distributed()
     if not todo:

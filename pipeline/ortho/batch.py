@@ -304,7 +304,8 @@ def _on_cluster(client: Any, jobs: list[tuple[str, SensorModel, str]], terrain: 
     made absolute), results reported in the jobs' order; the first failure cancels the rest."""
     import distributed
 
-    from ..mosaic.cluster import _Progress, local_path, shipped_terrain
+    from ..mosaic.cluster import local_path, shipped_terrain
+    from ..reports.progress import Progress
 
     if worker_device is not None:
         options = dict(options, device=worker_device)
@@ -317,7 +318,7 @@ def _on_cluster(client: Any, jobs: list[tuple[str, SensorModel, str]], terrain: 
                for k, (src, sensor, dst) in enumerate(jobs)]
     index = {f.key: k for k, f in enumerate(futures)}
     results: list = [None] * len(jobs)
-    bar = _Progress(progress if progress is True or callable(progress) else None, len(jobs), desc="images")
+    bar = Progress(progress if progress is True or callable(progress) else None, len(jobs), desc="images", unit="image")
     reported = 0
     try:
         for fut in distributed.as_completed(futures):
