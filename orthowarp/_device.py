@@ -391,7 +391,6 @@ def to_host(arr: wp.array) -> np.ndarray:
     return host.numpy()
 
 
-
 #: The largest array :func:`upload` sends through its pinned staging ring (bytes); larger
 #: ones are copied as ``wp.array`` copies them.
 STAGED_UPLOAD_MAX = 1 << 20
@@ -478,4 +477,3 @@ def upload(data: Any, *, dtype: Any, device: wp.DeviceLike) -> wp.array:
             if ring is None:
                 ring = _staging[key] = _Staging(device)
     return ring.upload(arr, dtype, arr.shape[:arr.ndim - len(elem)])
-

@@ -27,6 +27,8 @@ from ..tiles import Tile
 from .seams import NO_SOURCE
 
 if TYPE_CHECKING:
+    from collections.abc import Iterator
+
     from warp.context import Device
 
     from ..reports.profile import StageTimer
@@ -58,17 +60,7 @@ class TileBlending:
             # a rough DSM, or the half pixel along a footprint's edge): the backward method's
             # value, from the same rule, on the blocks of the tile that have such pixels
             blocks = _fallback_blocks(has if device is not None else ~has, self.labels, self.seam_step, r0, c0)
-            if blocks and _fallback_in_one(device, self.options["blend"]):
-                box = _bounding_tile(blocks)
-                out2, source2, has2 = self._select(st, "fallback", box, device=device)
-                for block in blocks:
-                    rows, cols = block.within(box)
-                    wp.launch(mosaic_kernels.mosaic_fill_kernel, dim=block.shape, device=device,
-                              inputs=[out, has, source, out2[rows, cols], has2[rows, cols], source2[rows, cols],
-                                      block.row - r0, block.col - c0])
-                blocks = []
-            for block in blocks:
-                out2, source2, has2 = self._select(st, "fallback", block, device=device)
+            for block, (out2, source2, has2) in self._fallback_parts(st, blocks, device):
                 if device is not None:
                     wp.launch(mosaic_kernels.mosaic_fill_kernel, dim=block.shape, device=device,
                               inputs=[out, has, source, out2, has2, source2, block.row - r0, block.col - c0])
@@ -78,6 +70,20 @@ class TileBlending:
                 out[sl][fill], source[sl][fill] = out2[fill], source2[fill]
                 has[sl] |= fill
         return out, has, source
+
+    def _fallback_parts(self, st: dict, blocks: list[Tile], device: Device | None) -> Iterator[tuple[Tile, tuple]]:
+        """Each fallback block with its backward method's (values, source, has) as
+        :meth:`_select` gives them: block by block, or where :func:`_fallback_in_one` says so,
+        views of one computation of their bounding box."""
+        if blocks and _fallback_in_one(device, self.options["blend"]):
+            box = _bounding_tile(blocks)
+            got = self._select(st, "fallback", box, device=device)
+            for block in blocks:
+                rows, cols = block.within(box)
+                yield block, tuple(a[rows, cols] for a in got)
+            return
+        for block in blocks:
+            yield block, self._select(st, "fallback", block, device=device)
 
     def _select(self, st: dict, which: str, tile: Tile, *, device: Device | None = None) -> tuple:
         """(values of the output dtype (th, tw, bands), source index (th, tw), has a value
@@ -276,6 +282,8 @@ def _fallback_blocks(missing: np.ndarray | wp.array, labels: np.ndarray, f: int,
     one), whose blocks are then marked on its device (a few bytes read back, not the tile).
     Returns a list of tiles of the mosaic grid."""
     th, tw = missing.shape
+    if not isinstance(missing, wp.array) and not missing.any():
+        return []
     rr, cc, cover = _grown_cover(labels, f, r0, c0, th, tw)
     nb_r, nb_c = -(-th // block), -(-tw // block)
     if isinstance(missing, wp.array):
