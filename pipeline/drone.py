@@ -28,6 +28,7 @@ from ..sensor import FrameSensor
 from .dem import Dem
 from .formats.exif import (ELLIPSOIDAL, GEOID, TAKE_OFF, ExifOrientation, capture_order, exif_orientations,
                            flight_legs)
+from .ortho.grid import utm_crs
 from .vertical import ELLIPSOIDAL as DEM_ELLIPSOIDAL
 from .vertical import as_geoid, height_kind
 
@@ -698,13 +699,6 @@ class TieSurface:
                     height_range_m=[float(v) for v in self.height_range], fit_rms_m=float(self.fit_rms))
 
 
-def _utm_crs(lon: float, lat: float) -> Any:
-    from pyproj import CRS
-
-    zone = int((lon + 180.0) // 6.0) % 60 + 1
-    return CRS.from_epsg((32600 if lat >= 0 else 32700) + zone)
-
-
 def _horizontal(crs: Any) -> Any:
     """The 2-D horizontal CRS of a CRS (compound: its first part; 3-D: made 2-D)."""
     h = crs.sub_crs_list[0] if crs.is_compound and crs.sub_crs_list else crs
@@ -903,7 +897,7 @@ def tie_surface(points: Any, crs: Any, path: str | os.PathLike, *, length: float
         lon0, lat0 = float(np.median(pts[ok, 0])), float(np.median(pts[ok, 1]))
         if not (abs(lat0) <= 90.0 and abs(lon0) <= 360.0):
             raise ParamError(f"points: ({lon0:g}, {lat0:g}) is not a longitude, latitude (deg)")
-        out_crs = _utm_crs(lon0, lat0)
+        out_crs = utm_crs(lon0, lat0)
         with np.errstate(all="ignore"):
             x, y = Transformer.from_crs(horizontal, out_crs, always_xy=True).transform(pts[:, 0], pts[:, 1],
                                                                                         errcheck=False)
@@ -1316,7 +1310,7 @@ def _chain_surface(res: Any, block: Any, sensors: list[tuple[str, FrameSensor]],
                          f"terrain surface (at least {SURFACE['min_points']}); give a DEM or a constant height "
                          "(--dem, --height)")
     lla = np.array([r[2:5] for r in rows])
-    crs = _utm_crs(float(np.median(lla[:, 1])), float(np.median(lla[:, 0])))
+    crs = utm_crs(float(np.median(lla[:, 1])), float(np.median(lla[:, 0])))
     from pyproj import Transformer
 
     x, y = Transformer.from_crs("EPSG:4326", crs, always_xy=True).transform(lla[:, 1], lla[:, 0])

@@ -48,6 +48,7 @@ from ...errors import GeometryError, ParamError
 from ...geodesy import WGS84_A, WGS84_B, ecef_to_geodetic, geodetic_up
 from ...sensor import FrameSensor, SensorModel
 from ..geometry import SensorGeometry
+from ..ortho.grid import utm_crs
 from ..tiles import Tile
 
 __all__ = ["Footprints", "PlanGrid", "Region", "RegionLabels", "TileAssignment", "RegionalPlan", "border_pixels",
@@ -57,12 +58,6 @@ __all__ = ["Footprints", "PlanGrid", "Region", "RegionLabels", "TileAssignment",
 
 NO_LABEL = -1  # a cell that no footprint covers (global labels)
 _LOCAL_NONE = np.uint16(65535)  # the same in a region's local labels
-
-
-def _utm_crs(lon: float, lat: float) -> CRS:
-    """The WGS84 UTM zone (north or south) of a point (deg)."""
-    zone = int(math.floor((lon + 180.0) / 6.0)) % 60 + 1
-    return CRS.from_epsg((32600 if lat >= 0 else 32700) + zone)
 
 
 # -- footprints -----------------------------------------------------------------------------------
@@ -297,7 +292,7 @@ def frame_footprints(sensors: Sequence[SensorModel], height: float = 0.0, *, crs
             lonlat = nadir_src[0]
             if not src.is_geographic:
                 lonlat = Transformer.from_crs(src, "EPSG:4326", always_xy=True).transform(*lonlat)
-            out = _utm_crs(float(lonlat[0]), float(lonlat[1]))
+            out = utm_crs(float(lonlat[0]), float(lonlat[1]))
     else:
         out = as_crs(crs)
     if out.is_geocentric or out.is_geographic:

@@ -26,14 +26,14 @@ if TYPE_CHECKING:
 
     from ..geometry import SensorGeometry
 
-__all__ = ["output_grid", "MIN_FOOTPRINT_PIXELS"]
+__all__ = ["output_grid", "utm_crs", "MIN_FOOTPRINT_PIXELS"]
 
 log = logging.getLogger(__name__)
 
 MIN_FOOTPRINT_PIXELS = 4  # output pixels the footprint's longer side must span at least (else: resolution)
 
 
-def _utm_crs(lon: float, lat: float) -> CRS:
+def utm_crs(lon: float, lat: float) -> CRS:
     """The WGS84 UTM zone (north or south) of a point (deg)."""
     zone = int(math.floor((lon + 180.0) / 6.0)) % 60 + 1
     return CRS.from_epsg((32600 if lat >= 0 else 32700) + zone)
@@ -104,7 +104,7 @@ def output_grid(geom: SensorGeometry, *, crs: str | int | CRS | None = None, res
             centre = geom.geolocate_frame([[size[0] / 2, size[1] / 2]])[0]
             if not np.all(np.isfinite(centre)):
                 centre = np.nanmean(feet, axis=0)
-            crs = _utm_crs(centre[0], centre[1])
+            crs = utm_crs(centre[0], centre[1])
         else:
             crs = geom.horizontal_crs  # the map poses' CRS
     crs = as_crs(crs)
