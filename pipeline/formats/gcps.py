@@ -44,7 +44,7 @@ from typing import Any
 import numpy as np
 
 from ...errors import OrthowarpWarning, ParamError, RasterIOError
-from ._parse import check_exists, fail, has_control, names, show
+from ._parse import check_exists, fail, has_control, names, read_utf8, show
 from .rpc import GroundControl
 
 __all__ = ["GcpList", "read_gcp_list", "match_gcp_images", "gcp_crs", "MAX_GCP_FILE"]
@@ -186,15 +186,11 @@ def _text(path: str) -> str:
     p = check_exists(path)
     try:
         size = p.stat().st_size
-        if size > MAX_GCP_FILE:
-            raise fail(path, f"{size} bytes is too large for a GCP list (at most {MAX_GCP_FILE})", kind=_KIND)
-        raw = p.read_bytes()
     except OSError as e:
         raise RasterIOError(f"Could not read GCP file '{path}': {e.strerror or e}") from e
-    try:
-        text = raw.decode("utf-8-sig")
-    except UnicodeDecodeError as e:
-        raise fail(path, f"not UTF-8 text ({e.reason} at byte {e.start})", e, kind=_KIND) from None
+    if size > MAX_GCP_FILE:
+        raise fail(path, f"{size} bytes is too large for a GCP list (at most {MAX_GCP_FILE})", kind=_KIND)
+    text = read_utf8(path, _KIND)
     if "\x00" in text:
         raise fail(path, "not a text file (it holds NUL characters)", kind=_KIND)
     return text
