@@ -4,6 +4,7 @@ actually wrong, and nothing silently accepted turns into a wrong output. Small s
 (64 x 48 px, constant terrain or a 1 km DEM), CPU device."""
 
 import json
+import sys
 
 import numpy as np
 import pytest
@@ -337,3 +338,15 @@ def test_adjust_without_check_points_says_so(tmp_path):
                                     "--no-plots"])
     assert res.exit_code == 0, res.output
     assert "no check points" in res.output and "nan" not in res.output, res.output
+
+
+def test_cli_crash_in_native_code_prints_where_it_was():
+    """The CLI turns on faulthandler: a segmentation fault (here a deliberate null read after a
+    command ran) prints the Python stack of every thread on stderr instead of dying silently."""
+    import subprocess
+
+    code = ("import ctypes; from orthowarp.cli import main; "
+            "main(['demo', '--help'], standalone_mode=False); ctypes.string_at(0)")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert p.returncode != 0
+    assert "Segmentation fault" in p.stderr and "most recent call first" in p.stderr, p.stderr[-2000:]

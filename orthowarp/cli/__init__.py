@@ -8,6 +8,7 @@ loads only click; the options several commands share are declared once, in
 
 from __future__ import annotations
 
+import faulthandler
 import logging
 import os
 import signal
@@ -121,6 +122,18 @@ def _exit_now(signum: int) -> NoReturn:
     os._exit(128 + signum)
 
 
+def _enable_faulthandler() -> None:
+    """A crash in native code (GDAL, the CUDA driver, Warp's kernels) prints every thread's
+    Python stack on stderr before the process dies, so that the report says where it was
+    (where stderr is a real file: not under click's test runner)."""
+    if faulthandler.is_enabled():
+        return
+    try:
+        faulthandler.enable(all_threads=True)
+    except (AttributeError, OSError, ValueError):  # no file descriptor behind sys.stderr
+        pass
+
+
 @click.group(cls=_Group)
 @click.version_option(package_name="orthowarp")
 @click.option("-v", "--verbose", count=True,
@@ -129,6 +142,7 @@ def _exit_now(signum: int) -> NoReturn:
 @click.pass_context
 def main(ctx: click.Context, verbose: int, quiet: bool) -> None:
     """orthowarp: rigorous orthorectification on the GPU with NVIDIA Warp."""
+    _enable_faulthandler()
     start_cuda_driver(ctx.invoked_subcommand)
     import warp as wp
 
