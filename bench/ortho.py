@@ -67,6 +67,13 @@ wp.load_module(frame, device=sys.argv[1])
 """
 
 
+def _stderr_tail(text: str) -> str:
+    """What a failed run's report keeps of its stderr: the last 1500 characters, or after a
+    native crash faulthandler's whole dump (every thread's stack, up to 30000 characters)."""
+    at = text.find("Fatal Python error")
+    return text[at:at + 30000] if at >= 0 else text[-1500:]
+
+
 def run_cli(python, entry, args, gpu_index=None, env=None):
     """Wall time (s), peak RSS (MB), return code and stderr tail of a CLI run; with
     ``gpu_index``, also the GPU's busy fraction over the run: the mean of nvidia-smi's
@@ -84,7 +91,7 @@ def run_cli(python, entry, args, gpu_index=None, env=None):
     wall = time.perf_counter() - t
     peak = [line for line in proc.stderr.splitlines() if line.startswith("PEAK_RSS_KB ")]
     out = dict(wall_s=wall, peak_rss_mb=int(peak[-1].split()[1]) / 1024 if peak else None,
-               returncode=proc.returncode, stderr=proc.stderr[-1500:] if proc.returncode else "")
+               returncode=proc.returncode, stderr=_stderr_tail(proc.stderr) if proc.returncode else "")
     if smi is not None:
         smi.terminate()
         util = [float(v) for v in smi.communicate()[0].split() if v.replace(".", "", 1).isdigit()]

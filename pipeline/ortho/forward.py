@@ -13,8 +13,7 @@ the camera stays without coordinates. The resampling is the backward method's
 from __future__ import annotations
 
 import time
-import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -37,31 +36,37 @@ __all__ = ["forward_coords"]
 class _NodeBlocks:
     """Bounds of the nodes of a grid that fall in a box, found by blocks.
 
-    ``fields`` (rows, cols, 2 + m): per node its position (x, y) and m more values, NaN
-    where the node has none. The grid is cut into ``block`` x ``block`` node blocks with the
-    bounding box of their positions and the range of their values (float64): a query tests the
-    blocks, takes whole the ones inside the box and tests node by node only those across its
-    edge. Each node is kept as its offset from its block's lower bounds in float32 (half the
-    grid in float64: an image's forward map is held while its tiles run), so a node's
-    values come back within 2**-24 of its block's spread (a block of the forward map spans
-    about 128 output pixels, so within 1e-5 px; values that are multiples of 0.5 below 2**23
-    of the lower bound, such as source pixel centres, exactly).
+    ``fields``: per node its position (x, y) and m more values, NaN where the node has none,
+    as an array (rows, cols, 2 + m) or as 2 + m arrays (rows, cols), one per value. The grid is
+    cut into ``block`` x ``block`` node blocks with the bounding box of their positions and
+    the range of their values (float64): a query tests the blocks, takes whole the ones inside
+    the box and tests node by node only those across its edge. Each node is kept as its offset
+    from its block's lower bounds in float32 (half the grid in float64: an image's forward map
+    is held while its tiles run), so a node's values come back within 2**-24 of its block's
+    spread (a block of the forward map spans about 128 output pixels, so within 1e-5 px;
+    values that are multiples of 0.5 below 2**23 of the lower bound, such as source pixel
+    centres, exactly). Built one value at a time, each in its blocks' order (a block's nodes
+    contiguous), whose bounds are then reductions along contiguous memory.
     """
 
-    def __init__(self, fields: np.ndarray, block: int = 8) -> None:
-        rows, cols, m = fields.shape
+    def __init__(self, fields: np.ndarray | Sequence[np.ndarray], block: int = 8) -> None:
+        values = [fields[..., c] for c in range(fields.shape[-1])] if isinstance(fields, np.ndarray) else list(fields)
+        rows, cols = values[0].shape
         self.block = block
         nb_r, nb_c = -(-rows // block), -(-cols // block)
-        pad = np.full((nb_r * block, nb_c * block, m), np.nan)
-        pad[:rows, :cols] = fields
-        blocks = pad.reshape(nb_r, block, nb_c, block, m).transpose(0, 2, 1, 3, 4).reshape(nb_r * nb_c, -1, m)
-        del pad
-        with warnings.catch_warnings():  # blocks with no node: NaN bounds, never selected
-            warnings.simplefilter("ignore", RuntimeWarning)
-            self.lo = np.nanmin(blocks, axis=1)
-            self.hi = np.nanmax(blocks, axis=1)
-        blocks -= self.lo[:, None, :]
-        self.offsets = blocks.astype(np.float32)
+        n, m = nb_r * nb_c, len(values)
+        self.lo, self.hi = np.empty((n, m)), np.empty((n, m))
+        self.offsets = np.empty((n, block * block, m), np.float32)
+        pad = np.full((nb_r * block, nb_c * block), np.nan)
+        for c, v in enumerate(values):
+            pad[:rows, :cols] = v
+            blocks = pad.reshape(nb_r, block, nb_c, block).transpose(0, 2, 1, 3).reshape(n, block * block)
+            # (fmin / fmax skip NaN, as nanmin / nanmax do; a block with no node: NaN bounds,
+            # never selected)
+            lo = self.lo[:, c] = np.fmin.reduce(blocks, axis=1)
+            self.hi[:, c] = np.fmax.reduce(blocks, axis=1)
+            blocks -= lo[:, None]
+            self.offsets[:, :, c] = blocks  # (float32, as astype rounds)
 
     def bounds(self, x0: float, y0: float, x1: float, y1: float) -> tuple[np.ndarray, np.ndarray] | None:
         """(lo, hi): the smallest and largest values (m each) of the nodes with x0 <= x <= x1
@@ -123,21 +128,30 @@ def forward_coords(geom: SensorGeometry, transform: Affine, out_crs: CRS, frame_
     sr = np.unique(np.append(np.arange(0, h_img, step), h_img - 1)) + 0.5
     cc, rr = np.meshgrid(sc, sr)
     g = geom.geolocate_frame(np.stack([cc.ravel(), rr.ravel()], 1))
-    ok = np.all(np.isfinite(g), axis=1)
+    ok = np.isfinite(g[:, 0]) & np.isfinite(g[:, 1]) & np.isfinite(g[:, 2])
+    all_ok = bool(ok.all())
     to_out = Transformer.from_crs(frame_crs, out_crs, always_xy=True)
     x, y = to_out.transform(g[ok, 0], g[ok, 1])
     oc, orow = ~transform @ (np.asarray(x), np.asarray(y))
-    node_out = np.stack([oc, orow], 1)
     # output pixels per source pixel, for rejecting quads that span occlusions
-    scale = float(np.median(np.hypot(*np.diff(node_out.reshape(-1, 2), axis=0).T))) / step if len(node_out) > 1 else 1.0
+    scale = float(np.median(np.hypot(np.diff(oc), np.diff(orow)))) / step if len(oc) > 1 else 1.0
     max_edge = 4.0 * max(scale, 1.0)
     factor = max(int(np.floor(1.0 / scale)), 1) if scale > 0 else 1  # reduced reads: see _decimation
-    # the nodes on their grid (NaN where not geolocated): per node, output column and row,
-    # source column and row, frame u and v
-    fields = np.full((*cc.shape, 6), np.nan)
-    fields.reshape(-1, 6)[ok] = np.concatenate([node_out, np.stack([cc.ravel()[ok], rr.ravel()[ok]], 1), g[ok, :2]],
-                                               1)
-    node_blocks = _NodeBlocks(fields)
+
+    def on_grid(v: np.ndarray, of_ok: bool) -> np.ndarray:
+        """Values of the geolocated nodes (``of_ok``) or of all nodes on the node grid, NaN
+        where a node was not geolocated."""
+        if all_ok:
+            return v.reshape(cc.shape)
+        if of_ok:
+            out = np.full(ok.size, np.nan)
+            out[ok] = v
+            return out.reshape(cc.shape)
+        return np.where(ok, v, np.nan).reshape(cc.shape)
+
+    # per node: output column and row, source column and row, frame u and v
+    node_blocks = _NodeBlocks([on_grid(oc, True), on_grid(orow, True), on_grid(cc.ravel(), False),
+                               on_grid(rr.ravel(), False), on_grid(g[:, 0], False), on_grid(g[:, 1], False)])
 
     def coords_for(tile: Tile) -> tuple[wp.array, tuple | None]:
         t = time.perf_counter()
