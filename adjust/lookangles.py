@@ -41,6 +41,17 @@ against 5 m elsewhere). Where the line extends beyond the control's span by more
 ``extrapolation_limit`` of its length at either end, the pre-adjustment warns
 (:class:`~orthowarp.errors.OrthowarpWarning`) or, on request, refuses.
 
+**The exterior orientation held.** Its errors are folded into the look angles: a constant
+rotation the polynomials represent, a drift along the lines (attitude drifts) they cannot, and
+they take of it what the control's rows and columns let them. Such a misfit shows in sigma0:
+each scene's ``sigma0^2 r`` is tested against the chi-square distribution of ``r`` degrees of
+freedom (``global_test``: the probability of a sigma0 this large were the model right), and a
+scene below ``test_level`` warns (:class:`~orthowarp.errors.OrthowarpWarning`) or, on
+request, refuses. The test sees the misfit only where it is not small against the
+observations' noise; :func:`~orthowarp.adjust.adjust_scenes` given the pre-adjustment
+(``preadjustment=``) redoes it with the bundle's drifts held, which removes the misfit whether
+seen or not (see :mod:`~orthowarp.adjust.spot_bundle`).
+
 Reference: [P1] (SPOT-5 HRG level 1A, look-angle pre-adjustment); W. Foerstner and B.
 Wrobel, Photogrammetric Computer Vision (2016), section 4.8 (Gauss-Helmert model).
 """
@@ -72,6 +83,15 @@ def _basis(scene: PushbroomScene, col: ArrayLike, degree: int) -> np.ndarray:
     return u[:, None] ** np.arange(degree + 1)
 
 
+def _enu_matrices(lat: np.ndarray, lon: np.ndarray) -> np.ndarray:
+    """R_ecef<-enu (n, 3, 3) at latitudes, longitudes (n,) (deg): columns east, north, up (as
+    :func:`~orthowarp.geodesy.enu_to_ecef_matrix`, for many points at once)."""
+    la, lo = np.radians(lat), np.radians(lon)
+    east = np.stack([-np.sin(lo), np.cos(lo), np.zeros_like(lo)], -1)
+    north = np.stack([-np.sin(la) * np.cos(lo), -np.sin(la) * np.sin(lo), np.cos(la)], -1)
+    return np.stack([east, north, geodesy.geodetic_up(lat, lon)], -1)
+
+
 def look_angle_conditions(scene: PushbroomScene, obs: np.ndarray, llh: np.ndarray,
                           coefficients: ArrayLike) -> np.ndarray:
     """The pre-adjustment's conditions g (n, 2) (rad) at observations ``obs`` (n, 5).
@@ -95,7 +115,7 @@ def look_angle_conditions(scene: PushbroomScene, obs: np.ndarray, llh: np.ndarra
     col, row = obs[:, 0], obs[:, 1]
     lon, lat, h = llh[:, 0], llh[:, 1], llh[:, 2]
     x = geodesy.geodetic_to_ecef(lat, lon, h)
-    enu = np.stack([geodesy.enu_to_ecef_matrix(a, b) for a, b in zip(lat, lon)]) if len(lat) else np.zeros((0, 3, 3))
+    enu = _enu_matrices(lat, lon)
     x = x + np.einsum("nij,nj->ni", enu, obs[:, 2:5])
     t = scene.line_time(row)
     p, v = scene.orbit(t)
@@ -173,6 +193,20 @@ class LookAngleResult:
         are extrapolated.
     extrapolated : dict of str -> list of str
         Check and tie points measured in the scene outside ``control_span``.
+    global_test : dict of str -> float
+        The global test of each scene's adjustment: the probability of a sigma0 at least this
+        large were the model and the observations' sigmas right (``sigma0^2 r`` against the
+        chi-square distribution of ``r`` degrees of freedom; NaN without redundancy). Small
+        values: the model misses something (see the module doc).
+    gain : dict of str -> ndarray, shape (2 (degree + 1), n, 2)
+        Derivatives of the coefficients (rad) by the control points' conditions (rad), at
+        convergence, ``-N^-1 A^T (B Q B^T)^-1``: what a change of the exterior orientation
+        held (through its change of the conditions) does to them.
+    given : dict of str -> PushbroomScene
+        The scenes as given: the look angles uncorrected, the exterior orientation the one held.
+    options : dict
+        ``degree``, ``max_iterations``, ``xtol``, ``test_level`` of the call (the later rounds
+        of the two steps use them: :func:`~orthowarp.adjust.adjust_scenes`).
     """
 
     success: bool
@@ -195,6 +229,10 @@ class LookAngleResult:
     control_span: dict = field(default_factory=dict)
     outside_fraction: dict = field(default_factory=dict)
     extrapolated: dict = field(default_factory=dict)
+    global_test: dict = field(default_factory=dict)
+    gain: dict = field(default_factory=dict)
+    given: dict = field(default_factory=dict)
+    options: dict = field(default_factory=dict)
 
     def coefficient_std(self, scene_id: str) -> np.ndarray:
         """Sigmas of a scene's coefficients.
@@ -251,7 +289,8 @@ EXTRAPOLATION = ("warn", "raise", "ignore")
 
 def preadjust_look_angles(scenes: dict[str, PushbroomScene], points: ScenePoints, *, degree: int = 2,
                           max_iterations: int = 20, xtol: float = 1e-13, extrapolation: str = "warn",
-                          extrapolation_limit: float = 0.2) -> LookAngleResult:
+                          extrapolation_limit: float = 0.2, misfit: str = "warn",
+                          test_level: float = 1e-3) -> LookAngleResult:
     """Correct the look angles of pushbroom scenes by ground control, EO held fixed ([P1]
     eqs. 19-20; see the module doc).
 
@@ -274,6 +313,13 @@ def preadjust_look_angles(scenes: dict[str, PushbroomScene], points: ScenePoints
         span and the points outside it are in the result whatever the choice.
     extrapolation_limit : float, optional
         Fraction of the line (0-1).
+    misfit : {"warn", "raise", "ignore"}, optional
+        What to do where a scene's sigma0 fails the global test (``global_test`` below
+        ``test_level``; see the module doc): warn (:class:`~orthowarp.errors.OrthowarpWarning`),
+        refuse (ParamError), or neither. The test's probabilities are in the result whatever
+        the choice.
+    test_level : float, optional
+        Significance level of the global test (0-1).
 
     Returns
     -------
@@ -284,13 +330,17 @@ def preadjust_look_angles(scenes: dict[str, PushbroomScene], points: ScenePoints
     ParamError
         A scene id without a scene, a point outside its scene, fewer control points in a scene
         than the polynomials have coefficients per angle (degree + 1), a degree out of range;
-        with ``extrapolation="raise"``, control that leaves too much of a line uncovered.
+        with ``extrapolation="raise"``, control that leaves too much of a line uncovered; with
+        ``misfit="raise"``, a scene whose sigma0 fails the global test.
 
     Warns
     -----
     OrthowarpWarning
-        With ``extrapolation="warn"``: control that leaves too much of a line uncovered.
+        With ``extrapolation="warn"``: control that leaves too much of a line uncovered. With
+        ``misfit="warn"``: a scene whose sigma0 fails the global test.
     """
+    from scipy.special import chdtrc  # the chi-square distribution's survival function
+
     check_scenes(scenes, points)
     if not (isinstance(degree, (int, np.integer)) and 0 <= degree <= 4):
         raise ParamError(f"degree must be an integer 0-4, got {degree!r}")
@@ -298,11 +348,17 @@ def preadjust_look_angles(scenes: dict[str, PushbroomScene], points: ScenePoints
         raise ParamError(f"extrapolation must be one of {EXTRAPOLATION}, got {extrapolation!r}")
     if not (isinstance(extrapolation_limit, (int, float)) and 0.0 <= extrapolation_limit <= 1.0):
         raise ParamError(f"extrapolation_limit must be a fraction of the line, 0-1, got {extrapolation_limit!r}")
+    if misfit not in EXTRAPOLATION:
+        raise ParamError(f"misfit must be one of {EXTRAPOLATION}, got {misfit!r}")
+    if not (isinstance(test_level, (int, float)) and 0.0 < test_level < 1.0):
+        raise ParamError(f"test_level must be a probability, 0-1, got {test_level!r}")
     q = degree + 1
     control, check = points.role_mask("control"), points.role_mask("check")
-    res = LookAngleResult(success=True, message="")
+    res = LookAngleResult(success=True, message="", given=dict(scenes),
+                          options=dict(degree=int(degree), max_iterations=max_iterations, xtol=xtol,
+                                       test_level=test_level))
     messages = []
-    uncovered = []
+    uncovered, failed_test = [], []
     for s_k, sid in enumerate(points.scene_ids):
         scene = scenes[sid]
         idx, xy, sig = points.observations_of(sid)
@@ -327,8 +383,8 @@ def preadjust_look_angles(scenes: dict[str, PushbroomScene], points: ScenePoints
                              "where the look-angle corrections are extrapolated; "
                              f"{len(res.extrapolated[sid])} check/tie point(s) lie there")
         try:
-            x, v, normal, status, it, jac = _gauss_helmert(scene, cxy, points.llh[ci], qll, degree, max_iterations,
-                                                           xtol)
+            x, v, normal, status, it, (jac, gain) = _gauss_helmert(scene, cxy, points.llh[ci], qll, degree,
+                                                                   max_iterations, xtol)
         except GeometryError as e:
             raise ParamError(f"{points.name}: scene '{sid}': {e}") from e
         res.status[sid], res.iterations[sid] = status, it
@@ -347,6 +403,11 @@ def preadjust_look_angles(scenes: dict[str, PushbroomScene], points: ScenePoints
         res.sigma0[sid] = s0
         res.coefficients[sid] = x
         res.covariance[sid] = (s0 ** 2 if r > 0 else 1.0) * np.linalg.inv(normal)
+        res.global_test[sid] = p_value = float(chdtrc(r, vpv)) if r > 0 else float("nan")
+        res.gain[sid] = gain
+        if p_value < test_level:
+            failed_test.append(f"scene '{sid}': sigma0 {s0:.3g} with redundancy {r} (probability {p_value:.2g} were "
+                               "the observations' sigmas right)")
         res.residuals[sid] = v
         res.jacobian[sid], res.control_obs[sid] = jac, np.flatnonzero(points.obs_scene == s_k)[sel]
         res.scenes[sid] = fixed = corrected_scene(scene, x)
@@ -358,6 +419,8 @@ def preadjust_look_angles(scenes: dict[str, PushbroomScene], points: ScenePoints
         res.check_rmse_before[sid] = _pixel_rmse(scene, points, idx[chk], xy[chk])
         if status == 1:
             messages.append(f"scene '{sid}': converged in {it} iterations, sigma0 {s0:.3g}, redundancy {r}")
+    if failed_test:
+        messages.append("the global test fails (" + "; ".join(failed_test) + ")")
     res.message = "; ".join(messages)
     if uncovered and extrapolation != "ignore":
         text = (f"{points.name}: " + "; ".join(uncovered) + ". Extrapolated look angles can be off by many times "
@@ -367,23 +430,35 @@ def preadjust_look_angles(scenes: dict[str, PushbroomScene], points: ScenePoints
         if extrapolation == "raise":
             raise ParamError(text + f" (extrapolation_limit {extrapolation_limit})")
         warnings.warn(text, OrthowarpWarning, stacklevel=2)
+    if failed_test and misfit != "ignore":
+        text = (f"{points.name}: the look-angle pre-adjustment fails its global test at level {test_level:g}: "
+                + "; ".join(failed_test) + ". Its model misses something the observations' sigmas cannot explain, "
+                "typically errors of the exterior orientation it holds fixed (attitude drifts), which its look-angle "
+                "corrections then absorb, and which a bundle after it keeps as a bias. Let adjust_scenes(..., "
+                "preadjustment=) repeat the two steps, the pre-adjustment holding the bundle's attitude drifts (its "
+                "default; max_rounds=1 is the single pass, which keeps the bias), or estimate the look angles in "
+                "the bundle (groups 'look', 'attitude1')")
+        if misfit == "raise":
+            raise ParamError(text)
+        warnings.warn(text, OrthowarpWarning, stacklevel=2)
     return res
 
 
 def _gauss_helmert(scene: PushbroomScene, cxy: np.ndarray, llh: np.ndarray, qll: np.ndarray, degree: int,
                    max_iterations: int,
-                   xtol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int, np.ndarray | None]:
+                   xtol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int, tuple]:
     """The pre-adjustment of one scene from its control points measured at ``cxy`` (n, 2; px),
     given at ``llh`` (n, 3; lon, lat deg, h m), with the a priori variances ``qll`` (n, 5) of
     col, row (px^2), east, north, up (m^2). Returns the coefficients (2, degree + 1; rad), the
     residuals v (n, 5), the last normal matrix (2 (degree + 1),) * 2, the status (1 converged,
-    0 iteration limit, -1 singular), the iterations, and the coefficients' derivatives
-    (2 (degree + 1), n, 5) by the observations, ``-N^-1 A^T M B`` of the last linearisation
-    (None when singular)."""
+    0 iteration limit, -1 singular), the iterations, and (None, None when singular) the
+    coefficients' derivatives (2 (degree + 1), n, 5) by the observations, ``-N^-1 A^T M B``,
+    and (2 (degree + 1), n, 2) by the conditions' misclosures, ``-N^-1 A^T M``, of the last
+    linearisation."""
     n, q = len(cxy), degree + 1
     v = np.zeros((n, 5))
     x = np.zeros((2, q))
-    status, it, jac = 0, 0, None
+    status, it, jac, gain = 0, 0, None, None
     for it in range(1, max_iterations + 1):  # (max_iterations < 1 leaves ``normal`` unbound, as it always did)
         obs = np.concatenate([cxy, np.zeros((n, 3))], 1) + v
         g = look_angle_conditions(scene, obs, llh, x)
@@ -403,7 +478,8 @@ def _gauss_helmert(scene: PushbroomScene, cxy: np.ndarray, llh: np.ndarray, qll:
         if np.linalg.cond(normal) > 1e14:
             status = -1
             break
-        jac = -np.linalg.solve(normal, np.einsum("nji,njk,nkl->inl", a, m, b).reshape(2 * q, -1)).reshape(2 * q, n, 5)
+        gain = -np.linalg.solve(normal, np.einsum("nji,njk->ink", a, m).reshape(2 * q, -1)).reshape(2 * q, n, 2)
+        jac = np.einsum("ink,nkl->inl", gain, b)
         dx = -np.linalg.solve(normal, rhs)
         k = -np.einsum("nij,nj->ni", m, np.einsum("nij,j->ni", a, dx) + w)
         v = qll * np.einsum("nji,nj->ni", b, k)
@@ -411,4 +487,4 @@ def _gauss_helmert(scene: PushbroomScene, cxy: np.ndarray, llh: np.ndarray, qll:
         if np.max(np.abs(dx)) < xtol:
             status = 1
             break
-    return x, v, normal, status, it, (None if status == -1 else jac)
+    return x, v, normal, status, it, (None, None) if status == -1 else (jac, gain)

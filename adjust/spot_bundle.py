@@ -27,25 +27,49 @@ groups that the control cannot separate well posed; without it the groups are fr
 seed, and the correlations between freed groups are reported ([P1] explains the failures of
 combined groups by them).
 
-**The two steps' uncertainty.** After [P1]'s pre-adjustment the look angles are held at their
-pre-adjusted values, and the bundle's covariance ``sigma0^2 N^-1`` knows nothing of their
-errors. Where the control spans only part of the detector line, those errors are extrapolated
-and dominate: on a simulated pair with control in one half of the line (layout G-A) the check
-points' errors were 2-10 times the sigmas so reported (docs/paper-p1.md). Given the pre-adjustment
-(``preadjustment=``), the covariance is instead propagated from the observations through both
-steps, first order: the bundle's unknowns are ``x = x(l, c)``, the pre-adjusted coefficients
-``c = c(l)`` come from the same control observations, so
+**The two steps.** [P1] pre-adjusts the look angles with the exterior orientation held, then
+holds the pre-adjusted look angles in the bundle. Done once, that has two defects. The bundle's
+covariance ``sigma0^2 N^-1`` knows nothing of the pre-adjustment's errors. And the
+pre-adjustment, holding an exterior orientation that has errors, folds them into the look
+angles: a constant rotation the look-angle polynomials represent (as the bundle's constant
+groups do: harmless), a drift along the lines they cannot, and they take of it what the
+control's rows and columns let them, extrapolated over the line where the control covers only
+part of it; the bundle, holding the look angles, cannot take it back. On a simulated pair
+with control in one half of the line (layout G-A) the single pass left metres of error without
+any noise, and its check points' errors were 2-10 times the sigmas it reported
+(docs/paper-p1.md).
 
-    dx/dl = -N^-1 (R + N_xc D),    C_x = sigma0^2 (dx/dl) Q_l (dx/dl)^T
+Given the pre-adjustment (``preadjustment=``), the two steps are therefore repeated: the
+pre-adjustment again from the given look angles, holding the bundle's estimates of the freed
+time-dependent groups (``position1`` ... ``attitude2``) and the given constants, then the
+bundle again with the new look angles, until no adjusted point moves by more than
+``round_tol`` of its a priori sigma (``max_rounds``). The freed constant groups are not
+handed back: the look-angle polynomials nearly duplicate them, the split between the two is
+barely determined (the points do not depend on it), and handing them back would pass it back
+and forth between the steps without end. With exact observations the rounds end on the truth;
+the last pre-adjustment fits the control to its noise.
 
-with ``R = sum A^T (B Q B^T)^-1 B`` (and the priors' weights) the normal equations' derivative
-by the observations l (image col/row, control coordinates, the priors' pseudo-observations),
-``N_xc = sum A^T (B Q B^T)^-1 A_c`` (``A_c``: the conditions' derivatives by the look-angle
-coefficients, ``-sec^2 psi`` times the polynomial basis) and ``D = dc/dl`` the pre-adjustment's
-own (:attr:`LookAngleResult.jacobian <orthowarp.adjust.LookAngleResult>`). Without a
-pre-adjustment this is ``sigma0^2 N^-1`` again. It carries the pre-adjustment's noise, not the
-errors its model makes by holding the exterior orientation: attitude drifts that the
-pre-adjustment folds into the look angles remain a bias (see docs/paper-p1.md).
+The covariance is propagated from the observations through all the rounds, first order: the
+bundle's unknowns are ``x = x(l, c)``, the pre-adjusted coefficients ``c = c(l, x')`` come
+from the same control observations and (after the first round) the previous bundle's ``x'``,
+so with
+
+    X_l = -N^-1 R,   X_c = -N^-1 N_xc,   D = dc/dl,   E = dc/dx
+
+(``R = sum A^T (B Q B^T)^-1 B`` and the priors' weights: the normal equations' derivative by
+the observations l, i.e. image col/row, control coordinates and the priors'
+pseudo-observations; ``N_xc = sum A^T (B Q B^T)^-1 A_c`` with ``A_c`` the conditions'
+derivatives by the look-angle coefficients, ``-sec^2 psi`` times the polynomial basis; ``D``
+the pre-adjustment's own :attr:`LookAngleResult.jacobian <orthowarp.adjust.LookAngleResult>`;
+``E`` its ``gain`` times its conditions' derivatives by the exterior orientation held)
+
+    T_1 = X_l + X_c D,   T_k = X_l + X_c (D + E T_(k-1)),   C_x = sigma0^2 T_K Q_l T_K^T
+
+after ``K`` rounds, every derivative taken at the last round. ``max_rounds=1`` is [P1]'s single
+pass, with ``T_1``: its covariance carries the pre-adjustment's noise, not what the
+pre-adjustment folded into the look angles of the exterior orientation's errors (its global
+test tells of that where it exceeds the noise, and the result's message says so). Without a
+pre-adjustment the covariance is ``sigma0^2 N^-1``.
 
 Reference: [P1] (SPOT-5 HRG level 1A stereo, Gauss-Helmert bundle adjustment with EO groups);
 W. Foerstner and B. Wrobel, Photogrammetric Computer Vision (2016), sections 2.7.6 (propagation
@@ -63,7 +87,8 @@ from numpy.typing import ArrayLike
 from .. import geodesy
 from ..errors import GeometryError, ParamError
 from ..pushbroom import PushbroomScene, attitude_matrix
-from .lookangles import LookAngleResult, _basis, check_scenes, corrected_scene
+from .lookangles import LookAngleResult, _basis, check_scenes, corrected_scene, look_angle_conditions, \
+    preadjust_look_angles
 from .scene_points import ScenePoints
 
 __all__ = ["EO_GROUPS", "SceneBundleResult", "adjust_scenes", "intersect_scene_points"]
@@ -188,6 +213,12 @@ class SceneBundleResult:
         The covariances (``covariance``, ``coefficient_std``, ``group_correlation``,
         ``point_cov``) include the uncertainty of a look-angle pre-adjustment (given as
         ``preadjustment``); False: the look angles were taken as exact, or estimated here.
+    rounds : int
+        With ``preadjustment``: the rounds of the two steps made (1: [P1]'s single pass, the
+        pre-adjustment given and one bundle); 0 without.
+    preadjustment : LookAngleResult or None
+        With ``preadjustment``: the last round's pre-adjustment, whose corrected look angles
+        ``scenes`` have (the one given after a single pass).
     """
 
     success: bool
@@ -213,6 +244,8 @@ class SceneBundleResult:
     look_coefficients: dict = field(default_factory=dict)
     look_std: dict = field(default_factory=dict)
     look_propagated: bool = False
+    rounds: int = 0
+    preadjustment: LookAngleResult | None = None
 
 
 def _check_args(scenes: dict[str, PushbroomScene], points: ScenePoints, groups: tuple[str, ...],
@@ -271,7 +304,8 @@ def _check_preadjustment(scenes: dict[str, PushbroomScene], points: ScenePoints,
 def adjust_scenes(scenes: dict[str, PushbroomScene], points: ScenePoints, *,
                   groups: Sequence[str] = ("attitude0",), eo_sigma: dict[str, float] | None = None,
                   look_degree: int = 2, max_iterations: int = 20, xtol: float = 1e-5,
-                  preadjustment: LookAngleResult | None = None) -> SceneBundleResult:
+                  preadjustment: LookAngleResult | None = None, max_rounds: int = 20,
+                  round_tol: float = 1e-3) -> SceneBundleResult:
     """Bundle-adjust pushbroom scenes' exterior orientation with ground control and tie points
     (see the module doc).
 
@@ -300,10 +334,24 @@ def adjust_scenes(scenes: dict[str, PushbroomScene], points: ScenePoints, *,
         central differences leave a noise of about 1e-7 there).
     preadjustment : LookAngleResult, optional
         The look-angle pre-adjustment (:func:`~orthowarp.adjust.preadjust_look_angles`) of
-        these points whose corrected scenes are ``scenes``: the covariances then carry its
-        uncertainty through both steps (see the module doc; ``look_propagated``). Without
-        it, the pre-adjusted look angles are taken as exact, which understates the sigmas,
-        grossly where the control leaves part of the detector line uncovered.
+        these points whose corrected scenes are ``scenes``: the two steps are then repeated,
+        the pre-adjustment holding the bundle's freed time-dependent groups (the attitude
+        drifts ...), the bundle with the new look angles, until the adjusted points no
+        longer move (``max_rounds``,
+        ``round_tol``), and the covariances carry the pre-adjustments' uncertainty through
+        all the rounds (see the module doc; ``look_propagated``, ``rounds``,
+        ``preadjustment``). Without it, the pre-adjusted look angles are taken as exact,
+        which understates the sigmas, grossly where the control leaves part of the detector
+        line uncovered, and keeps the exterior-orientation errors the pre-adjustment absorbed.
+    max_rounds : int, optional
+        With ``preadjustment``: the most rounds of the two steps (1 or more). 1 is [P1]'s
+        single pass (the pre-adjustment given, then one bundle): its estimates keep what the
+        pre-adjustment absorbed of the exterior-orientation errors it held (a bias its
+        sigmas do not cover; the pre-adjustment's global test tells, and the result's
+        message says so).
+    round_tol : float, optional
+        With ``preadjustment``: the rounds end when no adjusted point moves by more than this
+        fraction of its a priori sigma (the sigma before scaling by sigma0).
 
     Returns
     -------
@@ -314,42 +362,119 @@ def adjust_scenes(scenes: dict[str, PushbroomScene], points: ScenePoints, *,
     ParamError
         Fewer than two scenes, unknown groups, a point outside its scene, a tie or check point
         measured in fewer than two scenes, fewer control points than the freed groups need; a
-        ``preadjustment`` of other points or scenes, or together with the "look" group.
+        ``preadjustment`` of other points or scenes, or together with the "look" group;
+        ``max_rounds`` or ``round_tol`` out of range.
     """
     groups = tuple(groups)
     _check_args(scenes, points, groups, eo_sigma, look_degree)
-    if preadjustment is not None:
-        _check_preadjustment(scenes, points, groups, preadjustment)
+    if not (isinstance(max_rounds, (int, np.integer)) and max_rounds >= 1):
+        raise ParamError(f"max_rounds must be an integer of 1 or more, got {max_rounds!r}")
+    if not (isinstance(round_tol, (int, float)) and np.isfinite(round_tol) and round_tol > 0):
+        raise ParamError(f"round_tol must be a number > 0, got {round_tol!r}")
+    pre = preadjustment
+    if pre is not None:
+        _check_preadjustment(scenes, points, groups, pre)
     lay = _Layout(scenes, points, groups, look_degree, eo_sigma)
     prior_w = _prior_weights(lay, points, eo_sigma)
     qll = np.stack([points.obs_sigma ** 2] * 2, -1)
-    try:
-        x, v, normal, status, it = _iterate(lay, points, prior_w, qll, max_iterations, xtol)
-    except GeometryError as e:
-        raise ParamError(f"{points.name}: {e}") from e
+    x, v, normal, status, it = _solve(lay, points, prior_w, qll, max_iterations, xtol)
+    rounds, pre_message = (0 if pre is None else 1), ""
+    repeatable = bool(np.any(lay.fidx % 3 > 0))  # a later round holds the bundle's time-dependent groups
+    if pre is not None and max_rounds > 1 and repeatable and status != -1:
+        lay, pre, x, v, normal, status, it, rounds, pre_message = _rounds(
+            lay, points, pre, x, v, normal, status, it, prior_w, qll, max_iterations, xtol, max_rounds, round_tol)
     res = SceneBundleResult(success=status == 1, status=status, message="", iterations=it,
-                            freed={sid: groups for sid in lay.sids}, point_ids=list(points.point_ids))
+                            freed={sid: groups for sid in lay.sids}, point_ids=list(points.point_ids),
+                            rounds=rounds, preadjustment=pre)
     if status == -1:
-        res.message = (f"singular normal equations: the freed groups ({', '.join(groups) or 'none'}) are not "
-                       "determined by the control and tie points (more control, fewer groups, or eo_sigma priors)")
+        res.message = pre_message or (
+            f"singular normal equations: the freed groups ({', '.join(groups) or 'none'}) are not determined by the "
+            "control and tie points (more control, fewer groups, or eo_sigma priors)")
         return res
     r = 2 * len(points.obs_point) + int(np.count_nonzero(prior_w)) - lay.n_unk
     vpv = float(np.sum(v * v / qll) + np.sum(prior_w * x * x))
     res.redundancy = r
     res.sigma0 = s0 = float(np.sqrt(vpv / r)) if r > 0 else float("nan")
-    if preadjustment is None:
+    if pre is None:
         cov = (s0 ** 2 if r > 0 else 1.0) * np.linalg.inv(normal)
     else:
-        cov = (s0 ** 2 if r > 0 else 1.0) * _two_step_covariance(lay, points, x, v, prior_w, qll, preadjustment)
+        cov = (s0 ** 2 if r > 0 else 1.0) * _two_step_covariance(lay, points, x, v, prior_w, qll, pre, rounds)
         res.look_propagated = True
     res.covariance = cov
     _scene_results(res, lay, x, cov)
     _point_results(res, lay, points, x, cov)
     res.residuals = v
     res.message = (f"converged in {it} iterations" if status == 1 else f"no convergence in {max_iterations} "
-                   "iterations") + f", sigma0 {s0:.3g}, redundancy {r}" + (
-        "; covariances include the look-angle pre-adjustment's uncertainty" if res.look_propagated else "")
+                   "iterations") + f", sigma0 {s0:.3g}, redundancy {r}"
+    if pre is not None:
+        res.message += "; " + (pre_message or _single_pass_message(pre, max_rounds > 1))
+    if status == 1 and pre_message.startswith("the two steps did not settle"):
+        res.success, res.status = False, 0
     return res
+
+
+def _single_pass_message(pre: LookAngleResult, asked_more: bool) -> str:
+    """The result message's words on [P1]'s single pass after the pre-adjustment ``pre``
+    (``asked_more``: more rounds were allowed, but no time-dependent group is freed)."""
+    failed = [sid for sid, p in pre.global_test.items() if p < pre.options.get("test_level", 1e-3)]
+    text = "single pass ([P1]"
+    text += "; no time-dependent group freed for a later round): " if asked_more else "): "
+    text += "covariances include the look-angle pre-adjustment's uncertainty"
+    if failed:
+        text += (f"; the pre-adjustment fails its global test in scene(s) {failed}: its look angles hold errors of "
+                 "the exterior orientation it held, a bias the bundle keeps and these sigmas do not cover ("
+                 + ("free the attitude drifts, attitude1, for more rounds)" if asked_more else "more rounds: "
+                    "max_rounds)"))
+    return text
+
+
+def _solve(lay: _Layout, points: ScenePoints, prior_w: np.ndarray, qll: np.ndarray, max_iterations: int,
+           xtol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int]:
+    """:func:`_iterate`, a geometry failure raised as ParamError."""
+    try:
+        return _iterate(lay, points, prior_w, qll, max_iterations, xtol)
+    except GeometryError as e:
+        raise ParamError(f"{points.name}: {e}") from e
+
+
+def _rounds(lay: _Layout, points: ScenePoints, pre: LookAngleResult, x: np.ndarray, v: np.ndarray,
+            normal: np.ndarray, status: int, it: int, prior_w: np.ndarray, qll: np.ndarray, max_iterations: int,
+            xtol: float, max_rounds: int, round_tol: float) -> tuple:
+    """The two steps repeated after the first bundle (``x``, ``v``, ``normal``, ``status``,
+    ``it`` of layout ``lay``, after the pre-adjustment ``pre``): the pre-adjustment redone on
+    the given look angles holding the bundle's freed time-dependent groups (:meth:`_Layout.handed`)
+    and the given constants, then the bundle on the
+    scenes of ``lay`` with the new look angles, until no adjusted point moves by more than
+    ``round_tol`` of its a priori sigma or ``max_rounds`` rounds are made. Returns the last
+    round's layout, pre-adjustment, unknowns, residuals, normal matrix, status, iterations,
+    the rounds and the message on the rounds (the failure's where a step failed)."""
+    opts = pre.options
+    for rounds in range(2, max_rounds + 1):
+        ground, cof = lay.ground(x), np.diag(np.linalg.inv(normal))[lay.base:].reshape(-1, 3)
+        held = {sid: pre.given[sid].with_polynomials(lay.model(lay.handed(x), s_k)[0])
+                for s_k, sid in enumerate(lay.sids)}
+        pre = preadjust_look_angles(held, points, degree=opts["degree"], max_iterations=opts["max_iterations"],
+                                    xtol=opts["xtol"], extrapolation="ignore", misfit="ignore")
+        if not pre.success:
+            return (lay, pre, x, v, normal, -1, it, rounds,
+                    f"round {rounds} of the two steps: the look-angle pre-adjustment failed ({pre.message})")
+        scenes = {sid: lay.scn[sid].replace(psi_x=pre.scenes[sid].psi_x, psi_y=pre.scenes[sid].psi_y)
+                  for sid in lay.sids}
+        lay = _Layout(scenes, points, lay.groups, lay.look_degree, lay.eo_sigma)
+        x, v, normal, status, it = _solve(lay, points, prior_w, qll, max_iterations, xtol)
+        if status == -1:
+            return (lay, pre, x, v, normal, status, it, rounds,
+                    f"round {rounds} of the two steps: singular normal equations")
+        moved = np.einsum("nji,nj->ni", lay.enu, lay.ground(x) - ground) / np.sqrt(cof)
+        if status == 1 and np.max(np.abs(moved)) <= round_tol:
+            return (lay, pre, x, v, normal, status, it, rounds,
+                    f"two steps in {rounds} rounds (the look-angle pre-adjustment redone holding the bundle's "
+                    f"time-dependent groups), the last pre-adjustment's sigma0 "
+                    + ", ".join(f"{pre.sigma0[sid]:.3g}" for sid in lay.sids)
+                    + "; covariances include the pre-adjustments' uncertainty")
+    return (lay, pre, x, v, normal, status, it, max_rounds,
+            f"the two steps did not settle in {max_rounds} rounds (the adjusted points still moved by up to "
+            f"{np.max(np.abs(moved)):.3g} of their sigmas)")
 
 
 class _Layout:
@@ -363,6 +488,7 @@ class _Layout:
 
     def __init__(self, scenes: dict[str, PushbroomScene], points: ScenePoints, groups: tuple[str, ...],
                  look_degree: int, eo_sigma: dict[str, float] | None) -> None:
+        self.groups, self.look_degree, self.eo_sigma = groups, look_degree, eo_sigma
         self.eo_groups = tuple(g for g in groups if g != "look")
         self.nl = 2 * (look_degree + 1) if "look" in groups else 0
         self.sids = list(points.scene_ids)
@@ -399,6 +525,15 @@ class _Layout:
                                               np.full(self.nl, _UNIT["attitude"])])
         self.base = self.nb * len(self.sids)
         self.n_unk = self.base + 3 * self.n_pts
+
+    def handed(self, x: np.ndarray) -> np.ndarray:
+        """The unknowns ``x`` (n_unk,) with those of the freed constant groups (``position0``,
+        ``velocity0``, ``attitude0``) zeroed: what a later round's pre-adjustment holds of the
+        bundle's exterior orientation (see :func:`_rounds`)."""
+        out = x.copy()
+        for s_k in range(len(self.sids)):
+            out[s_k * self.nb + np.flatnonzero(self.fidx % 3 == 0)] = 0.0
+        return out
 
     def half_duration(self, sid: str) -> float:
         """Half the duration (s) of scene ``sid``: the unit of t in its polynomials."""
@@ -493,12 +628,13 @@ def _observation_terms(lay: _Layout, points: ScenePoints, x: np.ndarray, v: np.n
 
 
 def _two_step_covariance(lay: _Layout, points: ScenePoints, x: np.ndarray, v: np.ndarray, prior_w: np.ndarray,
-                         qll: np.ndarray, pre: LookAngleResult) -> np.ndarray:
+                         qll: np.ndarray, pre: LookAngleResult, rounds: int) -> np.ndarray:
     """The cofactor matrix (n_unk, n_unk) of the unknowns ``x`` propagated from the observations
-    through the pre-adjustment ``pre`` and the bundle (see the module doc; multiply by
-    sigma0^2). The observations l: each image observation's col and row, each control
-    point's east, north, up, each prior's pseudo-observation; their cofactors ``qll``, the
-    control sigmas, 1 / ``prior_w``."""
+    through ``rounds`` rounds of the pre-adjustment (``pre``: the last one) and the bundle
+    (see the module doc; multiply by sigma0^2). The observations l: each image observation's
+    col and row, each control point's east, north, up, each prior's pseudo-observation; their
+    cofactors ``qll``, the control sigmas, 1 / ``prior_w``. The derivatives are those of the
+    last round, at ``x``."""
     xg = lay.ground(x)
     n_obs = len(points.obs_point)
     ctrl = np.flatnonzero(points.role_mask("control"))
@@ -533,9 +669,36 @@ def _two_step_covariance(lay: _Layout, points: ScenePoints, x: np.ndarray, v: np
             at = ctrl_at[points.obs_point[k]]
             d[rows, at:at + 3] = jac[:, j, 2:]
     q_l = np.concatenate([qll.ravel(), points.llh_sigma[ctrl].ravel() ** 2, 1.0 / prior_w[eo_prior]])
-    t = -np.linalg.solve(normal, r_obs + n_xc @ d)
+    t_l, t_c = -np.linalg.solve(normal, r_obs), -np.linalg.solve(normal, n_xc)  # the bundle's x by l, by c
+    t = t_l + t_c @ d  # round 1: the pre-adjustment holds the given exterior orientation
+    if rounds > 1:
+        e = _preadjustment_by_eo(lay, points, x, pre, c_at)
+        for _ in range(rounds - 1):  # later rounds: it holds the last bundle's
+            t = t_l + t_c @ (d + e @ t)
     out = (t * q_l) @ t.T
     return 0.5 * (out + out.T)
+
+
+def _preadjustment_by_eo(lay: _Layout, points: ScenePoints, x: np.ndarray, pre: LookAngleResult,
+                         c_at: np.ndarray) -> np.ndarray:
+    """Derivatives (c_at[-1], n_unk) of the pre-adjusted look-angle coefficients (rad; scene
+    by scene, at ``c_at``) by the bundle's unknowns (non-zero by each scene's own freed
+    exterior-orientation coefficients, in their scaled units): the pre-adjustment's
+    ``gain`` times its conditions' derivatives by the exterior orientation it holds, at
+    ``x``, by central differences of one scaled unit."""
+    e = np.zeros((c_at[-1], lay.n_unk))
+    for s_k, sid in enumerate(lay.sids):
+        obs_k = np.asarray(pre.control_obs[sid])
+        obs = np.concatenate([points.obs_xy[obs_k], np.zeros((len(obs_k), 3))], 1) + pre.residuals[sid]
+        llh, coef = points.llh[points.obs_point[obs_k]], pre.coefficients[sid]
+        for j in np.flatnonzero(lay.fidx % 3 > 0):
+            g = []
+            for step in (1.0, -1.0):
+                xs = x.copy()
+                xs[s_k * lay.nb + j] += step
+                g.append(look_angle_conditions(pre.given[sid].with_polynomials(lay.model(xs, s_k)[0]), obs, llh, coef))
+            e[c_at[s_k]:c_at[s_k + 1], s_k * lay.nb + j] = np.einsum("ink,nk->i", pre.gain[sid], (g[0] - g[1]) / 2.0)
+    return e
 
 
 def _linearise(lay: _Layout, points: ScenePoints, x: np.ndarray, v: np.ndarray, xg: np.ndarray, s_k: int,

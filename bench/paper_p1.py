@@ -18,19 +18,23 @@ Per geometry:
    each point intersected from the scenes and compared with its given (surveyed) coordinates, as
    [P1] computes them: uncorrected (nominal scenes), look angles pre-adjusted (EO held), then
    bundle-adjusted (attitude constants and drifts freed: [P1] does not say which groups its
-   Table 1 freed), and the joint adjustment (look angles with the attitude drifts); pooled over
-   ``--table-draws`` noise draws.
+   Table 1 freed) in [P1]'s single pass, the two steps repeated until they settle
+   (``adjust_scenes(..., preadjustment=)``), and the joint adjustment (look angles with the
+   attitude drifts); pooled over ``--table-draws`` noise draws.
 2. ``table2`` ([P1]'s Table 2): the 19 exterior-orientation group sets of [P1] freed after the
    pre-adjustment, without priors (as [P1]), per layout, one draw: control and check RMSE, or
    the adjustment's failure (singular normal equations, no convergence).
 3. ``honesty``: over ``--draws`` noise draws, the errors of the adjusted points from the truth
-   against their reported (a posteriori) sigmas, for the two steps with the pre-adjusted look
-   angles taken as exact, the two steps with the pre-adjustment carried into the bundle
-   (``adjust_scenes(..., preadjustment=)``), and the joint adjustment: check points (control
-   points for H-0, which has no check points). Per axis: RMS error, RMS sigma, and the RMS of
-   each point's error over its sigma (1 when the sigmas are right).
+   against their reported (a posteriori) sigmas, for [P1]'s single pass of the two steps with
+   the pre-adjusted look angles taken as exact, the same single pass with the pre-adjustment's
+   uncertainty carried into the bundle (``adjust_scenes(..., preadjustment=, max_rounds=1)``),
+   the two steps repeated until they settle (``adjust_scenes(..., preadjustment=)``: the
+   pre-adjustment redone with the bundle's attitude drifts, the covariances propagated through
+   all the rounds), and the joint adjustment: check points (control points for H-0, which has
+   no check points). Per axis: RMS error, RMS sigma, and the RMS of each point's error over its
+   sigma (1 when the sigmas are right).
 4. ``bias``: the same errors without noise (one draw): what a method leaves when nothing is
-   random.
+   random; with the first and the last pre-adjustment's sigma0 and the rounds.
 
 Writes JSON (``--out``) and the tables as Markdown (``--markdown``). CPU only (NumPy/SciPy).
 
@@ -64,6 +68,7 @@ EO[2, :, 0] = [2e-5, -3e-5, 4e-5]  # attitude biases (rad)
 EO[2, :, 1] = [0.0, 1e-6, -2e-6]  # attitude drifts (rad/s)
 LOOK = np.array([[1e-5, 5e-6, -4e-6], [-8e-6, 3e-6, 2e-6]])  # look-angle corrections (rad per power of u)
 BUNDLE = ("attitude0", "attitude1")
+METHODS = ("single pass, look angles as exact", "single pass, pre-adjustment carried", "two steps repeated", "joint")
 JOINT = ("look", "attitude1")
 GEOMETRIES = {"small": dict(size=3000, gsd=10.0, heights=(0.0, 600.0)),
               "spot5": dict(size=12000, gsd=5.0, heights=(0.0, 1800.0))}
@@ -183,15 +188,18 @@ def table1(geometry, draws, seed):
     heights = GEOMETRIES[geometry]["heights"]
     rows, said = [], {}
     for layout in LAYOUTS:
-        acc = {m: {"control": [], "check": []} for m in ("uncorrected", "preadjusted", "bundle", "joint")}
-        failed = {"bundle": 0, "joint": 0}
+        acc = {m: {"control": [], "check": []} for m in ("uncorrected", "preadjusted", "bundle", "repeated",
+                                                          "joint")}
+        failed = {"bundle": 0, "repeated": 0, "joint": 0}
         for d in range(draws):
             pts, _ = simulate_points(truth, layout=layout, seed=seed + d, heights=heights)
             pre, msgs = preadjust(nominal, pts)
             said.setdefault(layout, msgs)
             runs = {"uncorrected": nominal, "preadjusted": pre.scenes}
-            for name, groups, scenes in (("bundle", BUNDLE, pre.scenes), ("joint", JOINT, nominal)):
-                r = adjust_scenes(scenes, pts, groups=groups)
+            for name, groups, scenes, kw in (("bundle", BUNDLE, pre.scenes, {}),
+                                             ("repeated", BUNDLE, pre.scenes, dict(preadjustment=pre)),
+                                             ("joint", JOINT, nominal, {})):
+                r = adjust_scenes(scenes, pts, groups=groups, **kw)
                 if r.success:
                     runs[name] = r.scenes
                 else:
@@ -252,12 +260,13 @@ def honesty(geometry, draws, seed):
     out = []
     for layout in LAYOUTS:
         role = "control" if layout == "H-0" else "check"
-        acc = {m: [[], []] for m in ("two steps, look angles as exact", "two steps, pre-adjustment carried", "joint")}
-        failed = dict.fromkeys(acc, 0)
+        acc = {m: [[], []] for m in METHODS}
+        failed, rounds = dict.fromkeys(acc, 0), dict.fromkeys(acc, 0)
         for d in range(draws):
             pts, true_llh = simulate_points(truth, layout=layout, seed=seed + d, heights=heights)
             pre, _ = preadjust(nominal, pts)
             runs = zip(acc, (adjust_scenes(pre.scenes, pts, groups=BUNDLE),
+                             adjust_scenes(pre.scenes, pts, groups=BUNDLE, preadjustment=pre, max_rounds=1),
                              adjust_scenes(pre.scenes, pts, groups=BUNDLE, preadjustment=pre),
                              adjust_scenes(nominal, pts, groups=JOINT)))
             sel = pts.role_mask(role)
@@ -265,11 +274,13 @@ def honesty(geometry, draws, seed):
                 if not r.success:
                     failed[name] += 1
                     continue
+                rounds[name] += r.rounds
                 acc[name][0].append(enu_errors(r.llh[sel], true_llh[sel]) ** 2)
                 acc[name][1].append(np.stack([np.diag(c) for c in r.point_cov[sel]]))
         for name, (e2, var) in acc.items():
             e2, var = np.concatenate(e2), np.concatenate(var)
             out.append(dict(layout=layout, points=role, method=name, draws=draws, failed=failed[name],
+                            mean_rounds=round(rounds[name] / max(draws - failed[name], 1), 2),
                             n=int(len(e2)), rms_error=r3(np.sqrt(e2.mean(0))), rms_sigma=r3(np.sqrt(var.mean(0))),
                             rms_error_over_rms_sigma=r3(np.sqrt(e2.mean(0) / var.mean(0))),
                             rms_of_error_over_sigma=r3(np.sqrt((e2 / var).mean(0)))))
@@ -286,9 +297,12 @@ def bias(geometry, seed):
         pre, _ = preadjust(nominal, pts)
         sel = pts.role_mask(role)
         row = dict(layout=layout, points=role, preadjustment_sigma0=r3(list(pre.sigma0.values())))
-        for name, r in (("two steps", adjust_scenes(pre.scenes, pts, groups=BUNDLE)),
+        repeated = adjust_scenes(pre.scenes, pts, groups=BUNDLE, preadjustment=pre)
+        for name, r in (("single pass", adjust_scenes(pre.scenes, pts, groups=BUNDLE)), ("repeated", repeated),
                         ("joint", adjust_scenes(nominal, pts, groups=JOINT))):
             row[name] = r3(np.sqrt(np.mean(enu_errors(r.llh[sel], true_llh[sel]) ** 2, 0))) if r.success else None
+        row["rounds"] = repeated.rounds
+        row["last_preadjustment_sigma0"] = r3([repeated.preadjustment.sigma0[k] for k in pts.scene_ids])
         out.append(row)
     return out
 
@@ -332,14 +346,14 @@ def markdown(report):
                             f"{report['table_draws']} draws) beside [P1]'s m_x / m_y / m_z"),):
             lines += [f"**{title}**", "",
                       "| layout | points | uncorrected | [P1] L | pre-adjusted | [P1] L-bar | bundle | [P1] B "
-                      "| joint |",
-                      "|---|---|---|---|---|---|---|---|---|"]
+                      "| two steps repeated | joint |",
+                      "|---|---|---|---|---|---|---|---|---|---|"]
             for r in res[key]:
                 p = r.get("p1", {})
                 pts = f"{r['role']} {r['points']}"
                 lines.append(f"| {r['layout']} | {pts} | {_f(r['uncorrected'])} | {_f(p.get('uncorrected'))} | "
                              f"{_f(r['preadjusted'], 2)} | {_f(p.get('preadjusted'), 2)} | {_f(r['bundle'], 2)} | "
-                             f"{_f(p.get('bundle'), 2)} | {_f(r['joint'], 2)} |")
+                             f"{_f(p.get('bundle'), 2)} | {_f(r['repeated'], 2)} | {_f(r['joint'], 2)} |")
             lines.append("")
         cols = [f"{lay} {role}" for lay, role in P1_TABLE2_COLUMNS]
         lines += ["**Table 2: groups freed after the pre-adjustment, no priors; RMSE sqrt(e^2 + n^2 + u^2) (m), "
@@ -350,17 +364,21 @@ def markdown(report):
             lines.append(f"| {r['row']} | {r['p1_name']} | " + " | ".join(cells) + " |")
         lines += ["", f"**Sigmas against errors** ({report['draws']} noise draws; errors from the truth; "
                   "check points, control points for H-0)", "",
-                  "| layout | method | RMS error (m) | RMS sigma (m) | RMS of error / sigma | failed |",
-                  "|---|---|---|---|---|---|"]
+                  "| layout | method | RMS error (m) | RMS sigma (m) | RMS of error / sigma | rounds | failed |",
+                  "|---|---|---|---|---|---|---|"]
         for r in res["honesty"]:
+            rounds = f"{r['mean_rounds']:.1f}" if r["mean_rounds"] else "-"
             lines.append(f"| {r['layout']} | {r['method']} | {_f(r['rms_error'], 2)} | {_f(r['rms_sigma'], 2)} | "
-                         f"{_f(r['rms_of_error_over_sigma'], 2)} | {r['failed']} |")
-        lines += ["", "**Without noise** (one draw): RMS error from the truth (m), east / north / up", "",
-                  "| layout | points | two steps | joint | pre-adjustment sigma0 (left, right) |",
-                  "|---|---|---|---|---|"]
+                         f"{_f(r['rms_of_error_over_sigma'], 2)} | {rounds} | {r['failed']} |")
+        lines += ["", "**Without noise** (one draw): RMS error from the truth (m), east / north / up; the "
+                  "pre-adjustment's sigma0 (left, right) in the first and the last round", "",
+                  "| layout | points | single pass | two steps repeated (rounds) | joint | first sigma0 "
+                  "| last sigma0 |",
+                  "|---|---|---|---|---|---|---|"]
         for r in res["bias"]:
-            lines.append(f"| {r['layout']} | {r['points']} | {_f(r['two steps'], 2)} | {_f(r['joint'], 2)} | "
-                         f"{_f(r['preadjustment_sigma0'], 2)} |")
+            lines.append(f"| {r['layout']} | {r['points']} | {_f(r['single pass'], 2)} | {_f(r['repeated'], 2)} "
+                         f"({r['rounds']}) | {_f(r['joint'], 2)} | {_f(r['preadjustment_sigma0'], 2)} | "
+                         f"{_f(r['last_preadjustment_sigma0'], 2)} |")
         lines.append("")
     return "\n".join(lines)
 

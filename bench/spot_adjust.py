@@ -15,9 +15,11 @@ Table 2: per freed EO group or combination (after the pre-adjustment, layout H-2
 sigma0 and the largest correlation between freed groups; combinations again with priors
 (position 10 m, velocity 0.01 m/s, attitude 5e-5 rad).
 Monte Carlo: reported check-point covariances against their errors from the truth over N draws
-(layout H-20), for the two steps with the pre-adjusted look angles taken as exact, for the two
-steps with the pre-adjustment's uncertainty carried into the bundle
-(``adjust_scenes(..., preadjustment=)``), and for the joint adjustment.
+(layout H-20), for the two steps once ([P1]'s single pass) with the pre-adjusted look angles
+taken as exact, the same with the pre-adjustment's uncertainty carried into the bundle
+(``adjust_scenes(..., preadjustment=, max_rounds=1)``), the two steps repeated until they settle
+(``adjust_scenes(..., preadjustment=)``: the pre-adjustment redone holding the bundle's attitude
+drifts, the covariances propagated through all the rounds), and the joint adjustment.
 
 usage: python3 bench/spot_adjust.py [--draws 50] [--out bench/results/spot_adjust.json]
 Runs on the CPU (SciPy/NumPy only).
@@ -87,7 +89,9 @@ def table2(nominal, truth, seed):
 
 
 METHODS = {"exact": "two steps, look angles as exact (pre-adjustment, then attitude0 + attitude1)",
-           "carried": "two steps, pre-adjustment carried (preadjustment=; then attitude0 + attitude1)",
+           "carried": "two steps, pre-adjustment carried, single pass (preadjustment=, max_rounds=1; then attitude0 "
+                      "+ attitude1)",
+           "repeated": "two steps repeated until they settle (preadjustment=; then attitude0 + attitude1)",
            "joint": "joint (look + attitude1)"}
 
 
@@ -97,7 +101,8 @@ def monte_carlo(nominal, truth, draws, *, method):
     drifts in one adjustment; else the seed's two steps (pre-adjustment, then attitude constants
     and drifts with the look angles held at their pre-adjusted values), "exact": the bundle's
     covariance taking the pre-adjusted look angles as exact, "carried": with the pre-adjustment's
-    uncertainty propagated through both steps."""
+    uncertainty propagated through both steps, "repeated": the two steps repeated until they
+    settle, the covariances propagated through all the rounds."""
     err2, post, prior = [], [], []
     for s in range(draws):
         pts, true_llh = simulate_points(truth, layout="H-20", seed=1000 + s)
@@ -106,7 +111,8 @@ def monte_carlo(nominal, truth, draws, *, method):
         else:
             pre = preadjust_look_angles(nominal, pts, extrapolation="ignore")
             r = adjust_scenes(pre.scenes, pts, groups=("attitude0", "attitude1"),
-                              preadjustment=pre if method == "carried" else None)
+                              preadjustment=None if method == "exact" else pre,
+                              max_rounds=1 if method == "carried" else 20)
         chk = pts.role_mask("check")
         x = geodesy.geodetic_to_ecef(r.llh[chk, 1], r.llh[chk, 0], r.llh[chk, 2])
         xt = geodesy.geodetic_to_ecef(true_llh[chk, 1], true_llh[chk, 0], true_llh[chk, 2])

@@ -33,6 +33,11 @@ EXAMPLE_SQUARE = 100  # px: the checkerboard squares of the example's synthetic 
 @click.option("--look-degree", type=click.IntRange(0, 4), default=2, show_default=True,
               help="Degree of the look-angle correction polynomials along the detector line.")
 @click.option("--no-preadjust", is_flag=True, help="Skip the look-angle pre-adjustment.")
+@click.option("--max-rounds", type=click.IntRange(1, 100), default=20, show_default=True,
+              help="Rounds of the two steps: the pre-adjustment is redone with the bundle's attitude drifts (the "
+                   "freed time-dependent groups), the bundle with the new look angles, until the points settle; 1 is "
+                   "[P1]'s single pass, which keeps what the pre-adjustment absorbed of the exterior orientation's "
+                   "errors.")
 @options.attitude_model
 @options.out_dir(required=True, legacy_out=True,
                  what="Output folder: the adjusted scenes (<id>_ADJUSTED.json), the points and the reports.")
@@ -45,8 +50,9 @@ EXAMPLE_SQUARE = 100  # px: the checkerboard squares of the example's synthetic 
 @click.pass_context
 def spot_adjust(ctx: click.Context, **kwargs: Any) -> None:
     """Adjust pushbroom (SPOT-5 level 1A) scenes with ground control: the look angles first
-    (EO fixed), then the chosen exterior-orientation groups of all scenes together, with check
-    points intersected from the adjusted scenes. Writes the adjusted scenes (for
+    (EO fixed), then the chosen exterior-orientation groups of all scenes together, the two
+    repeated until they settle (--max-rounds), with check points intersected from the adjusted
+    scenes. Writes the adjusted scenes (for
     'orthowarp ortho --dimap'), the points and reports into --out-dir; a failed adjustment
     writes nothing and exits with status 1. Try it:
     orthowarp spot-adjust --write-example spot-example --out-dir spot-adjusted"""
@@ -68,16 +74,16 @@ def spot_adjust(ctx: click.Context, **kwargs: Any) -> None:
             raise GeometryError(f"look-angle pre-adjustment of '{o.points_file}' failed: {pre.message}; nothing "
                                 f"written to '{o.out_dir}'")
         models = {**models, **pre.scenes}
-    # the pre-adjustment's own uncertainty carried into the bundle's sigmas (its look angles
-    # are estimates, not exact)
+    # the two steps repeated until they settle (--max-rounds), the pre-adjustments' own
+    # uncertainty carried into the bundle's sigmas (their look angles are estimates, not exact)
     result = adjust_scenes(models, points, groups=freed, eo_sigma=priors, look_degree=o.look_degree,
-                           preadjustment=pre)
+                           preadjustment=pre, max_rounds=o.max_rounds)
     if not result.success:
         raise GeometryError(f"adjustment of '{o.points_file}' failed (status {result.status}): {result.message}; "
                             f"nothing written to '{o.out_dir}'")
     if ctx.meta["orthowarp.stop"].is_set():
         raise Cancelled(f"adjustment of '{o.points_file}' cancelled; nothing written to '{o.out_dir}'")
-    paths = write_scene_adjustment(result, points, o.out_dir, preadjustment=pre, before=before,
+    paths = write_scene_adjustment(result, points, o.out_dir, preadjustment=result.preadjustment, before=before,
                                    plots=not o.no_plots)
     if not ctx.obj["quiet"]:
         click.echo(f"{result.message}; check RMSE east/north/up (m) {np.array2string(result.check_rmse, precision=3)} "

@@ -6,9 +6,9 @@
   exterior-orientation polynomials (:func:`~orthowarp.pipeline.formats.dimap.scene_json`), which
   ``orthowarp ortho --dimap`` and :func:`orthowarp.read_scene` take;
 - ``points.csv``: ``point,role,lon,lat,h,se,sn,su`` of the adjusted points (deg, m);
-- ``report.json``: sigma0, redundancy, RMSE east/north/up at control and check points before
-  and after, the freed groups' coefficients, sigmas and correlations, the pre-adjustment's
-  corrections;
+- ``report.json``: sigma0, redundancy, the rounds of the two steps, RMSE east/north/up at
+  control and check points before and after, the freed groups' coefficients, sigmas and
+  correlations, the (last) pre-adjustment's corrections, sigma0 and global test;
 - ``report.md``, ``residuals.png`` (image residual vectors over each scene, [P1]'s Figure 5)
   and ``errors.png`` (check-point errors).
 """
@@ -46,6 +46,8 @@ def write_scene_adjustment(result: SceneBundleResult, points: ScenePoints, out_d
     points : ScenePoints
     out_dir : str or os.PathLike
     preadjustment : LookAngleResult, optional
+        The pre-adjustment whose corrected look angles the adjusted scenes have (after
+        repeated rounds: ``result.preadjustment``).
     before : SceneBundleResult, optional
         The same points with nothing freed and the look angles as given (the "uncorrected"
         row of the report).
@@ -80,7 +82,7 @@ def write_scene_adjustment(result: SceneBundleResult, points: ScenePoints, out_d
     files[p] = "\n".join(rows) + "\n"
     report = dict(
         points=points.name, status=result.status, message=result.message, sigma0=result.sigma0,
-        redundancy=result.redundancy, iterations=result.iterations,
+        redundancy=result.redundancy, iterations=result.iterations, rounds=result.rounds,
         freed={k: list(v) for k, v in result.freed.items()},
         control_rmse_enu=result.control_rmse.tolist(), check_rmse_enu=result.check_rmse.tolist(),
         check_errors_enu={pid: e.tolist() for pid, e in zip(result.check_ids, result.check_errors)},
@@ -98,7 +100,8 @@ def write_scene_adjustment(result: SceneBundleResult, points: ScenePoints, out_d
             message=preadjustment.message,
             coefficients={k: v.tolist() for k, v in preadjustment.coefficients.items()},
             coefficient_std={k: preadjustment.coefficient_std(k).tolist() for k in preadjustment.coefficients},
-            sigma0=preadjustment.sigma0, check_rmse_px={k: v.tolist() for k, v in preadjustment.check_rmse.items()},
+            sigma0=preadjustment.sigma0, global_test=preadjustment.global_test,
+            check_rmse_px={k: v.tolist() for k, v in preadjustment.check_rmse.items()},
             check_rmse_px_before={k: v.tolist() for k, v in preadjustment.check_rmse_before.items()})
     report = finite_or_null(report)
     paths["report"] = p = os.path.join(out_dir, "report.json")
