@@ -33,13 +33,22 @@ pixels; and with ``--tie-dem L`` the adjusted orthos on a smooth surface from th
 points (orthowarp.pipeline.drone.tie_surface, smoothing length L m; a GeoTIFF in the work
 folder).
 
+With ``--dem FILE`` (with ``--adjust``) the orthos are also made on a given DSM: the EXIF
+orientation's and the adjusted ones, the latter also on the DSM moved up or down by the median
+difference between the adjusted tie points' heights and the DSM's at them (the block's vertical
+datum, set by the GPS altitudes, against the DSM's); the DSM's CRS and vertical datum as its file
+declares them, and those differences' quartiles, in the report. FILE may be a GeoTIFF or a LAS/LAZ
+point cloud (e.g. OpenDroneMap's model.laz; needs laspy, with lazrs for LAZ), gridded here into a
+DSM: the highest point of each 0.2 m cell, 3 x 3 median-filtered, empty cells from the nearest.
+
 With ``--attitude gps`` the XMP attitude is withheld: the images are copied into
 ``<work>/gps_only_images`` with their ``drone-dji:Gimbal*Degree`` keys renamed (the same number
 of bytes, so nothing else in the files moves), and every image is taken as nadir with its top
 along the flight line (GPS only), as for a consumer camera without gimbal tags.
 
 usage: python3 bench/exif_folder.py FOLDER [--height H] [--resolution 0.05] [--oty PATH/TO/oty] [--adjust]
-                                    [--heading tags|content] [--attitude tags|gps] [--tie-dem L] [--no-mosaic]
+                                    [--heading tags|content] [--attitude tags|gps] [--tie-dem L] [--dem FILE]
+                                    [--no-mosaic]
                                     [--work DIR] [--reuse] [--device cpu] [--out FILE]
 Reads a folder outside the repository (which tests must not); CPU by default.
 """
@@ -341,6 +350,79 @@ def tie_surface(adj, path, length, margin=40.0):
                 fit_rms_m=s.fit_rms, min_m=s.height_range[0], max_m=s.height_range[1])
 
 
+def laz_dsm(cloud, path, cell=0.2):
+    """A DSM GeoTIFF at ``path`` from a LAS/LAZ point cloud: the highest point of each ``cell`` m
+    cell, 3 x 3 median-filtered, cells without a point filled from the nearest; in the cloud's CRS
+    (its header's), heights as they are. Returns ``path``."""
+    import laspy
+    import rasterio
+    from affine import Affine
+    from scipy import ndimage
+
+    las = laspy.read(cloud)
+    x, y, z = np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)
+    x0, y1 = np.floor(x.min() / cell) * cell, np.ceil(y.max() / cell) * cell
+    cols = int(np.ceil((x.max() - x0) / cell)) + 1
+    rows = int(np.ceil((y1 - y.min()) / cell)) + 1
+    c = ((x - x0) / cell).astype(np.int64)
+    r = ((y1 - y) / cell).astype(np.int64)
+    grid = np.full(rows * cols, -np.inf)
+    np.maximum.at(grid, r * cols + c, z)
+    grid = grid.reshape(rows, cols)
+    empty = ~np.isfinite(grid)
+    idx = ndimage.distance_transform_edt(empty, return_distances=False, return_indices=True)
+    grid = ndimage.median_filter(grid[tuple(idx)], size=3).astype(np.float32)
+    with rasterio.open(path, "w", driver="GTiff", width=cols, height=rows, count=1, dtype="float32",
+                       crs=las.header.parse_crs().to_wkt(), transform=Affine(cell, 0, x0, 0, -cell, y1),
+                       compress="deflate", tiled=True) as ds:
+        ds.write(grid, 1)
+    return path
+
+
+def describe_dem(path):
+    """The DEM's file, size, CRS and the vertical datum its CRS declares (None: a 2-D CRS, heights
+    taken in the GPS altitudes' datum, nothing converted)."""
+    import rasterio
+    from pyproj import CRS
+
+    with rasterio.open(path) as ds:
+        crs = CRS.from_wkt(ds.crs.to_wkt())
+        band = ds.read(1, masked=True)
+        out = dict(path=path, size=[ds.width, ds.height], resolution_m=list(ds.res), crs=crs.name,
+                   epsg=crs.to_epsg(), vertical_crs=None, heights_m=[float(band.min()), float(band.max())])
+    vertical = [c for c in crs.sub_crs_list if c.is_vertical] if crs.is_compound else []
+    if vertical:
+        out["vertical_crs"] = vertical[0].name
+    return out
+
+
+def dem_at_ties(adj, dem):
+    """The adjusted tie points' heights minus the DEM's at them (m): quartiles and count."""
+    from pyproj import Transformer
+
+    from orthowarp.pipeline.dem import Dem
+
+    points = np.array(list(_tie_points(adj).values()))  # lat, lon, h
+    d = Dem.from_file(dem)
+    x, y = Transformer.from_crs("EPSG:4326", d.crs, always_xy=True).transform(points[:, 1], points[:, 0])
+    diff = points[:, 2] - d.sample(x, y)
+    diff = diff[np.isfinite(diff)]
+    q = np.percentile(diff, [10, 25, 50, 75, 90])
+    return dict(points=len(diff), p10=float(q[0]), p25=float(q[1]), median=float(q[2]), p75=float(q[3]),
+                p90=float(q[4]))
+
+
+def shifted_dem(dem, path, dz):
+    """A copy of the DEM with ``dz`` m added to its heights."""
+    import rasterio
+
+    with rasterio.open(dem) as ds:
+        profile, data = ds.profile, ds.read(1, masked=True)
+    with rasterio.open(path, "w", **profile) as ds:
+        ds.write((data + dz).filled(profile.get("nodata") or 0).astype(profile["dtype"]), 1)
+    return path
+
+
 def orthos(folder, args, *more, reuse=False):
     """``orthowarp ortho`` into ``folder`` (seconds, stderr's and stdout's lines); nothing where
     ``reuse`` and the folder holds orthos already."""
@@ -362,6 +444,8 @@ def main(argv=None):
                     help="gps: withhold the XMP gimbal angles (nadir, heading from the flight line)")
     ap.add_argument("--tie-dem", type=float, default=None, metavar="L",
                     help="with --adjust: also orthos on a smooth surface from the adjusted tie points (Gaussian, L m)")
+    ap.add_argument("--dem", default=None, metavar="FILE",
+                    help="with --adjust: also orthos on this DSM (GeoTIFF, or a LAS/LAZ point cloud gridded here)")
     ap.add_argument("--no-mosaic", action="store_true", help="skip step 2 (the EXIF mosaic)")
     ap.add_argument("--reuse", action="store_true", help="keep the orthos and the chain's files found in --work")
     ap.add_argument("--work", default=None)
@@ -437,6 +521,25 @@ def main(argv=None):
             report["orthos_adjusted_tie_surface"] = dict(seconds=secs, surface=surface, **overlap_summary(
                 folder, args.resolution, f"overlaps, adjusted orientation on the ties' surface ({args.tie_dem:g} m, "
                                          f"{surface['min_m']:.2f}..{surface['max_m']:.2f} m)"))
+        if args.dem:
+            dem = args.dem
+            if os.path.splitext(dem)[1].lower() in (".las", ".laz"):
+                dem = laz_dsm(dem, os.path.join(work, "dsm_from_cloud.tif"))
+            at_ties = dem_at_ties(adj, dem)
+            report["dem"] = dict(given=os.path.abspath(args.dem), **describe_dem(dem), ties_minus_dem_m=at_ties)
+            print(f"DEM {dem}: {report['dem']['crs']}, vertical {report['dem']['vertical_crs']}; adjusted tie points "
+                  f"minus the DEM: median {at_ties['median']:+.3f} m, quartiles {at_ties['p25']:+.3f}, "
+                  f"{at_ties['p75']:+.3f} m ({at_ties['points']} points)")
+            runs = [("orthos_exif_dem", "EXIF orientation", dem, [args.folder, *exif]),
+                    ("orthos_adjusted_dem", "adjusted orientation", dem, [*images, *orient_args])]
+            moved = shifted_dem(dem, os.path.join(work, "dem_at_ties.tif"), at_ties["median"])
+            runs.append(("orthos_adjusted_dem_at_ties", f"adjusted orientation, DEM {at_ties['median']:+.3f} m",
+                         moved, [*images, *orient_args]))
+            for key, label, path, inputs in runs:
+                folder = os.path.join(work, key)
+                secs, _ = orthos(folder, ["--dem", path, *common[2:]], *inputs, reuse=args.reuse)
+                report[key] = dict(seconds=secs, dem=path, **overlap_summary(folder, args.resolution,
+                                                                             f"overlaps, {label} on the DEM"))
     save_report(report, args.out)
     print(f"report: {args.out}")
 

@@ -4,7 +4,7 @@ chain that refines them before orthos or a mosaic (:func:`adjust_exif`: tie poin
 then a bundle adjustment supported by the GPS positions, with self-calibration and optional
 ground control from a ``gcp_list.txt``, :func:`gcp_control`; then, where no DEM is given, a
 terrain surface from the adjusted tie points, :func:`tie_surface`), as
-``orthowarp mosaic --exif --adjust`` runs it.
+``orthowarp ortho --exif --adjust`` and ``orthowarp mosaic --exif --adjust`` run it.
 
 The tags and what is assumed of them: :mod:`~orthowarp.pipeline.formats.exif`.
 """

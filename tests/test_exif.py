@@ -807,3 +807,108 @@ def test_cli_chain_without_a_dem_takes_the_terrain_from_the_tie_points(tmp_path,
         r = CliRunner().invoke(main, ["mosaic", str(tmp_path / "images"), "--exif", "-o", str(tmp_path / "x.tif"),
                                       *args])
         assert r.exit_code != 0 and words in r.output, r.output
+
+
+def _overlap_shifts(paths):
+    """Per overlapping pair of orthos (same grid spacing): the length of the mean of their 64-px
+    tiles' shifts (px; :func:`~orthowarp.pipeline.registration.misregistration`) in their common
+    part."""
+    import itertools
+
+    import rasterio
+    from rasterio.windows import from_bounds
+
+    from orthowarp.pipeline.registration import misregistration
+
+    out = {}
+    for a, b in itertools.combinations(paths, 2):
+        with rasterio.open(a) as da, rasterio.open(b) as db:
+            left, bottom = max(da.bounds.left, db.bounds.left), max(da.bounds.bottom, db.bounds.bottom)
+            right, top = min(da.bounds.right, db.bounds.right), min(da.bounds.top, db.bounds.top)
+            if right - left < 64 * da.res[0] or top - bottom < 64 * da.res[1]:
+                continue
+            wa = from_bounds(left, bottom, right, top, da.transform).round_offsets().round_lengths()
+            wb = from_bounds(left, bottom, right, top, db.transform).round_offsets().round_lengths()
+            h, w = min(wa.height, wb.height), min(wa.width, wb.width)
+            ga = da.read(1, window=wa)[:h, :w].astype(np.float64)
+            gb = db.read(1, window=wb)[:h, :w].astype(np.float64)
+            valid = (da.read_masks(1, window=wa)[:h, :w] > 0) & (db.read_masks(1, window=wb)[:h, :w] > 0)
+        m = misregistration(ga, gb, valid=valid, tile=64)
+        if m["n_tiles"]:
+            out[(os.path.basename(a), os.path.basename(b))] = float(np.hypot(*m["mean"]))
+    return out
+
+
+def test_cli_ortho_chain_writes_registered_orthos_and_the_report(tmp_path, monkeypatch):
+    """``ortho FOLDER --exif --adjust`` (with --gcps, neither --dem nor --height): one ortho per
+    image in --out-dir and the chain's files in its adjust/ folder; where the tags' orthos
+    (their 1-degree attitude errors, on the true terrain) are misregistered by pixels between
+    overlapping images, the adjusted ones (on the tie points' surface) agree within a fraction
+    of a pixel."""
+    import json
+
+    from orthowarp.pipeline import drone
+    from orthowarp.pipeline.raster.io import write_raster
+
+    monkeypatch.setitem(drone.ADJUST_DEFAULTS, "zones", (6, 4))  # (as the mosaic's chain test above)
+    monkeypatch.setitem(drone.ADJUST_DEFAULTS, "levels", 2)
+    paths, sensors, dem = _rendered_block(tmp_path / "images", takeoff=700.0)
+    _gcp_list(tmp_path / "gcp_list.txt", sensors, dem)
+    write_raster(tmp_path / "dem.tif", dem.array, transform=dem.transform, crs=dem.crs)
+    common = ["ortho", str(tmp_path / "images"), "--exif", "--resolution", "1", "--device", "cpu"]
+    res = CliRunner().invoke(main, [*common, "--dem", str(tmp_path / "dem.tif"), "--out-dir", str(tmp_path / "tags")])
+    assert res.exit_code == 0, res.output
+    res = CliRunner().invoke(main, [*common, "--adjust", "--gcps", str(tmp_path / "gcp_list.txt"), "--check-points",
+                                    "2", "--out-dir", str(tmp_path / "adjusted")])
+    assert res.exit_code == 0, res.output
+    assert "adjust: " in res.output and "take-off point's height 700.00 m" in res.output, res.output
+    assert "2 check points" in res.output, res.output
+    names = [f"IMG_{k}_ORTHO.tif" for k in range(6)]
+    assert sorted(p.name for p in (tmp_path / "adjusted").iterdir()) == sorted([*names, "adjust"])
+    folder = tmp_path / "adjusted" / "adjust"
+    assert {"block.json", "exterior.csv", "cameras.yaml", "points.csv", "pose_cov.json", "report.md", "report.json",
+            "chain.json", "tie_surface.tif", "tie_points.csv", "exif"} == {p.name for p in folder.iterdir()}
+    assert {p.name for p in (folder / "exif").iterdir()} == {"int_param.yaml", "ext_param.csv"}
+    chain = json.loads((folder / "chain.json").read_text())
+    assert chain["control"]["check_points"] == 2 and chain["terrain"]["surface"]["points_used"] >= 30
+    before = _overlap_shifts([tmp_path / "tags" / n for n in names])
+    after = _overlap_shifts([tmp_path / "adjusted" / n for n in names])
+    assert len(after) >= 8 and len(before) >= 8, (before, after)
+    assert np.median(list(before.values())) > 3.0, before
+    assert max(after.values()) < 0.5, after
+
+
+def test_cli_ortho_chain_refuses_bad_combinations_before_any_work(tmp_path):
+    """``ortho --exif --adjust``'s option errors and existing outputs: one line, exit 1, and
+    nothing written (the orthos' destinations and the chain's files are checked before the
+    chain)."""
+    folder = tmp_path / "images"
+    folder.mkdir()
+    drone_jpeg(folder / "IMG_1.jpg")
+    drone_jpeg(folder / "IMG_2.jpg", lat=LAT0 + 1e-4)  # (no RelativeAltitude: no take-off height)
+    (tmp_path / "gcp_list.txt").write_text("EPSG:32615\n")
+    gcps = str(tmp_path / "gcp_list.txt")
+    for args, words in [
+            (["--adjust", "--height", "0"], "give --exif too"),
+            (["--exif", "--gcps", gcps, "--height", "0"], "--gcps goes with --rpc"),
+            (["--exif", "--adjust", "--check-points", "2"], "give --gcps too"),
+            (["--exif", "--surface-length", "5", "--height", "0"], "--surface-length goes with --exif --adjust"),
+            (["--exif", "--adjust", "--height", "0", "--surface-length", "5"], "which --dem and --height replace"),
+            (["--exif", "--adjust", "--height", "0", "--dem", "d.tif"], "not both"),
+            (["--exif", "--adjust", "--export-params"], "give one or the other"),
+            (["--exif"], "or --adjust with neither"),
+            (["--exif", "--adjust"], "RelativeAltitude")]:
+        res = CliRunner().invoke(main, ["ortho", str(folder), *args, "--out-dir", str(tmp_path / "o"), "--device",
+                                        "cpu"])
+        lines = res.output.strip().splitlines()
+        assert res.exit_code == 1 and words in lines[-1] and "Error" in lines[-1], (args, res.output)
+    assert not (tmp_path / "o").exists() or not list((tmp_path / "o").rglob("*.*")), list((tmp_path / "o").rglob("*"))
+    # an ortho or a file of the chain's folder already there: refused before the chain, nothing else written
+    for existing in ("IMG_2_ORTHO.tif", os.path.join("adjust", "chain.json")):
+        out = tmp_path / existing.replace(os.sep, "_")
+        (out / existing).parent.mkdir(parents=True)
+        (out / existing).write_text("x")
+        res = CliRunner().invoke(main, ["-q", "ortho", str(folder), "--exif", "--adjust", "--height", "0", "--out-dir",
+                                        str(out), "--device", "cpu"])
+        assert res.exit_code == 1 and "exists" in res.output and existing.split(os.sep)[-1] in res.output, res.output
+        assert [p.relative_to(out) for p in out.rglob("*") if p.is_file()] == [type(out)(existing)]

@@ -1,6 +1,9 @@
-"""``--exif`` of ``orthowarp ortho`` and ``orthowarp mosaic``: frame sensors from the images'
-EXIF and XMP tags (:func:`~orthowarp.pipeline.drone.exif_sensors`), and a summary of what was
-read on stderr. Not a command: the helper the two commands share."""
+"""``--exif`` (and ``--exif --adjust``) of ``orthowarp ortho`` and ``orthowarp mosaic``: frame
+sensors from the images' EXIF and XMP tags (:func:`~orthowarp.pipeline.drone.exif_sensors`), a
+summary of what was read on stderr, and the chain that refines them
+(:func:`~orthowarp.pipeline.drone.adjust_exif`, with ground control and the terrain from the
+adjusted tie points), its figures on stderr. Not a command: the helpers the two commands
+share."""
 
 from __future__ import annotations
 
@@ -69,4 +72,176 @@ def summary(job: Any) -> str:
              + "; heights: " + ", ".join(f"{n} {_DATUM_WORDS.get(d, d)}" for d, n in datum.items())]
     if job.note:
         lines.append(f"EXIF heights: {job.note}")
+    return "\n".join(lines)
+
+
+# -- --adjust: the chain -----------------------------------------------------------------------------
+
+#: The files of the chain's folder (``--adjust-dir``), each checked before any work; with the
+#: terrain from the tie points also :data:`SURFACE_FILES`.
+CHAIN_FILES = ("block.json", "exterior.csv", "cameras.yaml", "points.csv", "pose_cov.json", "report.md", "report.json",
+               "chain.json", os.path.join("exif", "int_param.yaml"), os.path.join("exif", "ext_param.csv"))
+SURFACE_FILES = ("tie_surface.tif", "tie_points.csv")
+
+
+def check_chain_options(o: SimpleNamespace, *, chain_gcps: bool = True) -> None:
+    """ParamError unless the options of ``--adjust`` fit: ``--adjust`` only with ``--exif``; the
+    chain's own options (``--gcps``, ``--check-points``, ``--surface-length``) only with
+    ``--adjust``, ``--check-points`` only with ``--gcps``.
+
+    Parameters
+    ----------
+    o : SimpleNamespace
+        The command's options (``exif``, ``adjust_chain``, ``gcps``, ``check_points``,
+        ``surface_length``).
+    chain_gcps : bool, optional
+        ``--gcps`` is the chain's ground control (False where it has another use: ``ortho
+        --rpc``).
+    """
+    from ..errors import ParamError
+
+    if o.adjust_chain and not o.exif:
+        raise ParamError("--adjust refines the orientation read with --exif: give --exif too")
+    chain_only = [name for name, v in (("--gcps", o.gcps if chain_gcps else None), ("--check-points", o.check_points),
+                                       ("--surface-length", o.surface_length)) if v is not None]
+    if chain_only and not o.adjust_chain:
+        raise ParamError(f"{', '.join(chain_only)} go{'es' if len(chain_only) == 1 else ''} with --exif --adjust")
+    if o.check_points is not None and o.gcps is None:
+        raise ParamError("--check-points keeps some of the --gcps out as check points: give --gcps too")
+
+
+def chain_terrain(o: SimpleNamespace, *, scenes: bool = False) -> bool:
+    """ParamError unless the terrain options fit: exactly one of ``--dem`` and ``--height``, or
+    with ``--exif --adjust`` neither; ``--surface-length`` only for the tie points' terrain.
+
+    Parameters
+    ----------
+    o : SimpleNamespace
+        The command's options (``exif``, ``adjust_chain``, ``dem``, ``height``,
+        ``surface_length``).
+    scenes : bool, optional
+        Pushbroom scenes are among the inputs (the tie points' terrain does not cover them).
+
+    Returns
+    -------
+    bool
+        True where the terrain comes from the adjusted tie points (``--exif --adjust`` with
+        neither ``--dem`` nor ``--height``).
+    """
+    from ..errors import ParamError
+
+    if o.dem is not None and o.height is not None:
+        raise ParamError("Give one of --dem FILE and --height METRES, not both")
+    tie_terrain = bool(o.adjust_chain and o.dem is None and o.height is None)
+    if o.surface_length is not None and not tie_terrain:
+        raise ParamError("--surface-length shapes the terrain made from the adjusted tie points, which --dem and "
+                         "--height replace")
+    if tie_terrain and scenes:
+        raise ParamError("The terrain from the drone images' tie points does not cover --scene scenes: give --dem FILE "
+                         "or --height METRES")
+    if o.dem is None and o.height is None and not tie_terrain:
+        if o.exif:
+            raise ParamError("Give --dem FILE or --height METRES (the terrain in the datum of the GPS altitudes), or "
+                             "--adjust with neither: the terrain then comes from the adjusted tie points")
+        raise ParamError("Give exactly one of --dem FILE and --height METRES")
+    return tie_terrain
+
+
+def check_chain_folder(folder: str, *, surface: bool, overwrite: bool) -> None:
+    """ParamError (through :func:`~orthowarp.pipeline.raster.io.check_destination`) for a file
+    of the chain's ``folder`` that exists, unless ``overwrite``; before any work."""
+    from ..pipeline.raster.io import check_destination
+
+    for name in CHAIN_FILES + (SURFACE_FILES if surface else ()):
+        check_destination(os.path.join(folder, name), overwrite=overwrite)
+
+
+def exif_chain(jobs: list[tuple[str, Any]], orientations: list[Any], terrain: Any, o: SimpleNamespace, *,
+               folder: str, quiet: bool, same_vertical_datum: bool = False) -> tuple[list[tuple[str, Any]], Any]:
+    """``--exif --adjust``: the frames' orientation refined by the chain
+    (:func:`~orthowarp.pipeline.drone.adjust_exif`; with ``--gcps`` their control and check
+    points, :func:`~orthowarp.pipeline.drone.gcp_control`), its files in ``folder``, its figures
+    on stderr unless ``quiet``.
+
+    Parameters
+    ----------
+    jobs : list of (str, sensor)
+        The images (those with line times, pushbroom scenes, are passed through as they are).
+    orientations : list of ExifOrientation
+        What the frames were read from (:attr:`~orthowarp.pipeline.drone.ExifJob.orientations`).
+    terrain : Dem, float or None
+        The terrain given (``--dem``, ``--height``). None: the matching takes the take-off
+        point's height, and the terrain returned is the surface of the adjusted tie points.
+    o : SimpleNamespace
+        The command's options (``gcps``, ``check_points``, ``gcp_sigma``, ``gcp_pixel_sigma``,
+        ``surface_length``, ``device``, ``no_refraction``, ``overwrite``).
+    folder : str
+        The chain's folder (``--adjust-dir``); its files are checked before any work.
+    quiet : bool
+    same_vertical_datum : bool, optional
+        The user's ``--same-vertical-datum`` (for the GCPs' heights).
+
+    Returns
+    -------
+    jobs : list of (str, sensor)
+        In the order given, the frames with their adjusted sensors.
+    terrain : Dem, float or str
+        ``terrain`` as given, or the path of the tie points' surface (``tie_surface.tif``).
+
+    Raises
+    ------
+    ParamError
+        A file of ``folder`` exists (without ``--overwrite``); no take-off height where the
+        terrain comes from the tie points; as the chain's steps.
+    """
+    from ..errors import ParamError
+    from ..pipeline.drone import adjust_exif, gcp_control, takeoff_height
+
+    surface = terrain is None
+    check_chain_folder(folder, surface=surface, overwrite=o.overwrite)
+    frames = [(img, s) for img, s in jobs if not s.line_timed]
+    control = None
+    if o.gcps is not None:
+        control = gcp_control(o.gcps, frames, height_datum=orientations[0].height_datum, check=o.check_points,
+                              sigma=o.gcp_sigma, pixel_sigma=o.gcp_pixel_sigma, same_vertical_datum=same_vertical_datum)
+    matching = terrain
+    if surface:
+        matching = takeoff_height(orientations)
+        if matching is None:
+            raise ParamError("Without --dem or --height the chain matches on the take-off point's height, from DJI's "
+                             "XMP RelativeAltitude, which these images do not carry: give --height METRES (the "
+                             "terrain's height in the datum of the GPS altitudes) or --dem FILE")
+    chain = adjust_exif(frames, matching, folder, device=o.device, refraction=not o.no_refraction, control=control,
+                        surface=surface, surface_length=o.surface_length)
+    if not quiet:
+        click.echo(chain_summary(chain, matching if surface else None), err=True)
+    adjusted = dict(chain.sensors)
+    return [(img, adjusted.get(img, s)) for img, s in jobs], (chain.surface.path if surface else terrain)
+
+
+def chain_summary(chain: Any, takeoff: float | None = None) -> str:
+    """The chain's figures in a few lines: ties, sigma0, the cameras, how far the poses moved;
+    the ground control; with ``takeoff`` (the height the matching took) the tie points'
+    surface."""
+    a, m = chain.report["adjust"], chain.report["match"]
+    cams = ", ".join(f"f {c['focal_px_after']:.1f} px, k1 {c['k1']:.4g}, k2 {c['k2']:.4g}"
+                     for c in a["cameras"].values())
+    tie_height = a["tie_height_m"]
+    lines = [f"adjust: {m['ties']} tie points, {m['observations']} observations; sigma0 {a['sigma0']:.3f}; {cams}; "
+             f"positions moved {a['position_change_m']['rms']:.2f} m RMS, attitudes "
+             f"{a['attitude_change_deg']['rms']:.2f} deg RMS; tie points' median height "
+             + (f"{tie_height['median']:.2f} m" if tie_height else "-") + f"; files in {chain.folder}"]
+    c = chain.report.get("control")
+    if c is not None:
+        q = c.get("check_rms_m")
+        checks = (f"; check points' RMS east {q['east']:.3f}, north {q['north']:.3f}, up {q['up']:.3f} m"
+                  if q else "")
+        lines.append(f"control: {c['control_points']} control and {c['check_points']} check points of {c['file']}, "
+                     f"{c['observations']} measurements{checks}")
+    if takeoff is not None and chain.surface is not None:
+        s = chain.report["terrain"]["surface"]
+        lines.append(f"terrain: matched on the take-off point's height {takeoff:.2f} m; surface from "
+                     f"{s['points_used']} adjusted tie points ({s['points_rejected']} rejected), smoothing "
+                     f"{s['smoothing_length_m']:.1f} m, heights {s['height_range_m'][0]:.2f} .. "
+                     f"{s['height_range_m'][1]:.2f} m: {chain.surface.path}")
     return "\n".join(lines)

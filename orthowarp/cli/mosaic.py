@@ -26,17 +26,7 @@ MOSAIC_GPU_PROCESSES = 4
 @options.odm_dataset
 @options.exif_options
 @options.orthos
-@click.option("--adjust", "adjust_chain", is_flag=True,
-              help="With --exif: first refine the tags' orientation: tie points by matching, then a bundle "
-                   "adjustment with the GPS positions and gimbal angles as observations (and --gcps) and the "
-                   "camera's radial distortion (k1, k2) self-calibrated; without --dem and --height the matching "
-                   "takes the take-off point's height and the mosaic a smooth terrain from the adjusted tie points; "
-                   "each step's files and report in --adjust-dir.")
-@click.option("--adjust-dir", type=click.Path(file_okay=False), default=None,
-              help="Folder of --adjust's files (exif/ with the tags' orientation, block.json, exterior.csv, "
-                   "cameras.yaml, points.csv, pose_cov.json, report.md, chain.json; tie_surface.tif and "
-                   "tie_points.csv where the terrain comes from the tie points); default: <mosaic>_adjust beside "
-                   "the mosaic.")
+@options.adjust_options
 @options.chain_control
 @options.surface_length
 @click.option("--scene", "scenes", nargs=2, multiple=True,
@@ -113,18 +103,17 @@ def mosaic(ctx: click.Context, images: tuple[str, ...], **kwargs: Any) -> None:
     from ..pipeline.precision import accuracy_path
     from ..pipeline.raster.io import outputs_together
 
-    from .exif import check_exif_options
+    from .exif import chain_terrain, check_chain_options, check_exif_options
 
     o = SimpleNamespace(**kwargs)
-    if o.adjust_chain and not o.exif:
-        raise ParamError("--adjust refines the orientation read with --exif: give --exif too")
+    check_chain_options(o)
     check_exif_options(images, o)
     if o.orthos:
         _check_orthos(images, o)
     if o.odm_dataset is not None:
         images, o.int_param, o.ext_param, o.dem = odm_dataset(o.odm_dataset, images=images, int_param=o.int_param,
                                                               ext_param=o.ext_param, dem=o.dem, height=o.height)
-    tie_terrain = _check_terrain(o)
+    tie_terrain = False if o.orthos else chain_terrain(o, scenes=bool(o.scenes))
     if not images and not o.scenes:
         raise ParamError("Give frame IMAGES (with --ext-param) or pushbroom scenes (--scene IMAGE DIMAP)")
     if images and not o.ext_param and not o.exif and not o.orthos:
@@ -145,8 +134,13 @@ def mosaic(ctx: click.Context, images: tuple[str, ...], **kwargs: Any) -> None:
                 pose_inputs(sensor.pose, len(sigmas[0]))
     terrain = Dem.from_file(o.dem) if o.dem is not None else o.height
     if o.adjust_chain:
-        jobs, terrain = _adjusted(jobs, None if tie_terrain else terrain, o, quiet=ctx.obj["quiet"],
-                                  same_vertical_datum=same_datum_given)
+        from .exif import exif_chain
+
+        jobs, terrain = exif_chain(jobs, o.exif_job.orientations, None if tie_terrain else terrain, o,
+                                   folder=o.adjust_dir or os.path.splitext(o.out_path)[0] + "_adjust",
+                                   quiet=ctx.obj["quiet"], same_vertical_datum=same_datum_given)
+        if tie_terrain:
+            terrain = Dem.from_file(terrain)
     if o.tiled and (o.seamlines_path or o.accuracy):
         raise ParamError("--tiled writes tiles.geojson instead of --seamlines, and no --accuracy raster")
     if o.product_tile is not None and not o.tiled:
@@ -262,97 +256,6 @@ def _report_profile(r: Any, images: int, *, show: bool, path: str | None) -> Non
                               output_pixels=int(r.shape[0]) * int(r.shape[1]),
                               shape=list(r.shape), resolution=r.resolution, image_builds=r.image_builds,
                               images_held_peak=r.images_held_peak, images=images))
-
-
-def _check_terrain(o: SimpleNamespace) -> bool:
-    """ParamError unless the terrain options fit: exactly one of --dem and --height, or with
-    --exif --adjust neither (then True: the terrain comes from the adjusted tie points); the
-    chain's own options only with --adjust."""
-    from ..errors import ParamError
-
-    chain_only = [name for name, v in (("--gcps", o.gcps), ("--check-points", o.check_points),
-                                       ("--surface-length", o.surface_length)) if v is not None]
-    if chain_only and not o.adjust_chain:
-        raise ParamError(f"{', '.join(chain_only)} go{'es' if len(chain_only) == 1 else ''} with --exif --adjust")
-    if o.check_points is not None and o.gcps is None:
-        raise ParamError("--check-points keeps some of the --gcps out as check points: give --gcps too")
-    if o.orthos:
-        return False
-    if o.dem is not None and o.height is not None:
-        raise ParamError("Give one of --dem FILE and --height METRES, not both")
-    tie_terrain = bool(o.adjust_chain and o.dem is None and o.height is None)
-    if o.surface_length is not None and not tie_terrain:
-        raise ParamError("--surface-length shapes the terrain made from the adjusted tie points, which --dem and "
-                         "--height replace")
-    if tie_terrain and o.scenes:
-        raise ParamError("The terrain from the drone images' tie points does not cover --scene scenes: give --dem FILE "
-                         "or --height METRES")
-    if o.dem is None and o.height is None and not tie_terrain:
-        if o.exif:
-            raise ParamError("Give --dem FILE or --height METRES (the terrain in the datum of the GPS altitudes), or "
-                             "--adjust with neither: the terrain then comes from the adjusted tie points")
-        raise ParamError("Give exactly one of --dem FILE and --height METRES")
-    return tie_terrain
-
-
-def _adjusted(jobs: list[tuple[str, Any]], terrain: Any, o: SimpleNamespace, *, quiet: bool,
-              same_vertical_datum: bool = False) -> tuple[list[tuple[str, Any]], Any]:
-    """``--adjust``: the frames' orientation refined by the chain
-    (:func:`~orthowarp.pipeline.drone.adjust_exif`; with --gcps their control and check points,
-    :func:`~orthowarp.pipeline.drone.gcp_control`), its files in --adjust-dir; the scenes as
-    they are. ``terrain`` None: the matching takes the take-off point's height and the terrain
-    returned is the surface of the adjusted tie points (``tie_surface.tif``); else ``terrain``
-    is returned as it is."""
-    from ..errors import ParamError
-    from ..pipeline.dem import Dem
-    from ..pipeline.drone import adjust_exif, gcp_control, takeoff_height
-    from ..pipeline.raster.io import check_destination
-
-    folder = o.adjust_dir or os.path.splitext(o.out_path)[0] + "_adjust"
-    surface = terrain is None
-    for name in ("block.json", "exterior.csv", "cameras.yaml", "points.csv", "pose_cov.json", "report.md",
-                 "chain.json", os.path.join("exif", "int_param.yaml"), os.path.join("exif", "ext_param.csv"),
-                 *(("tie_surface.tif", "tie_points.csv") if surface else ())):
-        check_destination(os.path.join(folder, name), overwrite=o.overwrite)
-    frames = [(img, s) for img, s in jobs if not s.line_timed]
-    orients = o.exif_job.orientations
-    control = None
-    if o.gcps is not None:
-        control = gcp_control(o.gcps, frames, height_datum=orients[0].height_datum, check=o.check_points,
-                              sigma=o.gcp_sigma, pixel_sigma=o.gcp_pixel_sigma, same_vertical_datum=same_vertical_datum)
-    matching = terrain
-    if surface:
-        matching = takeoff_height(orients)
-        if matching is None:
-            raise ParamError("Without --dem or --height the chain matches on the take-off point's height, from DJI's "
-                             "XMP RelativeAltitude, which these images do not carry: give --height METRES (the "
-                             "terrain's height in the datum of the GPS altitudes) or --dem FILE")
-    chain = adjust_exif(frames, matching, folder, device=o.device, refraction=not o.no_refraction, control=control,
-                        surface=surface, surface_length=o.surface_length)
-    if not quiet:
-        a, m = chain.report["adjust"], chain.report["match"]
-        cams = ", ".join(f"f {c['focal_px_after']:.1f} px, k1 {c['k1']:.4g}, k2 {c['k2']:.4g}"
-                         for c in a["cameras"].values())
-        click.echo(f"adjust: {m['ties']} tie points, {m['observations']} observations; sigma0 {a['sigma0']:.3f}; "
-                   f"{cams}; positions moved {a['position_change_m']['rms']:.2f} m RMS, attitudes "
-                   f"{a['attitude_change_deg']['rms']:.2f} deg RMS; tie points' median height "
-                   f"{a['tie_height_m']['median']:.2f} m; files in {folder}", err=True)
-        c = chain.report.get("control")
-        if c is not None:
-            q = c.get("check_rms_m")
-            checks = (f"; check points' RMS east {q['east']:.3f}, north {q['north']:.3f}, up {q['up']:.3f} m"
-                      if q else "")
-            click.echo(f"control: {c['control_points']} control and {c['check_points']} check points of {c['file']}, "
-                       f"{c['observations']} measurements{checks}", err=True)
-        if surface:
-            s = chain.report["terrain"]["surface"]
-            click.echo(f"terrain: matched on the take-off point's height {matching:.2f} m; surface from "
-                       f"{s['points_used']} adjusted tie points ({s['points_rejected']} rejected), smoothing "
-                       f"{s['smoothing_length_m']:.1f} m, heights {s['height_range_m'][0]:.2f} .. "
-                       f"{s['height_range_m'][1]:.2f} m: {chain.surface.path}", err=True)
-    adjusted = dict(chain.sensors)
-    jobs = [(img, adjusted.get(img, s)) for img, s in jobs]
-    return jobs, (Dem.from_file(chain.surface.path) if surface else terrain)
 
 
 def _check_orthos(images: tuple[str, ...], o: SimpleNamespace) -> None:

@@ -133,7 +133,7 @@ exif_options = compose(exif, exif_altitude, exif_heading)
 gcps = click.option("--gcps", type=click.Path(dir_okay=False),
                     help="Ground control points. With --rpc (ortho): orthority's GCP GeoJSON, estimating a bias "
                          "compensation of the RPCs in image space (--bias); the estimate and the points' leave-one-out "
-                         "check residuals with and without it are printed. With --exif --adjust (mosaic): "
+                         "check residuals with and without it are printed. With --exif --adjust (ortho, mosaic): "
                          "OpenDroneMap's gcp_list.txt, control points of the adjustment (--gcp-sigma), those of "
                          "--check-points kept out as check points whose errors are reported.")
 check_points = click.option("--check-points", default=None, metavar="N|NAMES",
@@ -149,6 +149,21 @@ gcp_pixel_sigma = click.option("--gcp-pixel-sigma", type=click.FloatRange(min=0.
                                help="With --gcps and --adjust: standard deviation (px) of each GCP's image "
                                     "measurement.")
 chain_control = compose(gcps, check_points, gcp_sigma, gcp_pixel_sigma)
+
+
+adjust = click.option(
+    "--adjust", "adjust_chain", is_flag=True,
+    help="With --exif: first refine the tags' orientation: tie points by matching, then a bundle adjustment with the "
+         "GPS positions and gimbal angles as observations (and --gcps) and the camera's radial distortion (k1, k2) "
+         "self-calibrated; without --dem and --height the matching takes the take-off point's height and the orthos "
+         "or the mosaic a smooth terrain from the adjusted tie points; each step's files and report in --adjust-dir.")
+adjust_dir = click.option(
+    "--adjust-dir", type=click.Path(file_okay=False), default=None,
+    help="Folder of --adjust's files (exif/ with the tags' orientation, block.json, exterior.csv, cameras.yaml, "
+         "points.csv, pose_cov.json, report.md, report.json, chain.json; tie_surface.tif and tie_points.csv where the "
+         "terrain comes from the tie points); default: adjust/ in the orthos' --out-dir, <mosaic>_adjust beside a "
+         "mosaic.")
+adjust_options = compose(adjust, adjust_dir)
 surface_length = click.option("--surface-length", type=click.FloatRange(min=0.0, min_open=True), default=None,
                               metavar="METRES",
                               help="With --exif --adjust and neither --dem nor --height: the smoothing length of the "

@@ -25,6 +25,7 @@ _DEFAULT_SOURCES = (None, click.core.ParameterSource.DEFAULT, click.core.Paramet
 @options.odm_dataset
 @options.orientation
 @options.exif_options
+@options.adjust_options
 @click.option("--dimap", type=click.Path(dir_okay=False),
               help="SPOT level-1A DIMAP metadata of a pushbroom scene, or a scene JSON from 'orthowarp spot-adjust' "
                    "(instead of --int-param/--ext-param; one image).")
@@ -39,6 +40,10 @@ _DEFAULT_SOURCES = (None, click.core.ParameterSource.DEFAULT, click.core.Paramet
 @options.gcps
 @click.option("--bias", type=click.Choice(["shift", "affine"]), default="shift", show_default=True,
               help="With --gcps: the compensation's model: a shift of the image, or an affine map (3 points at least).")
+@options.check_points
+@options.gcp_sigma
+@options.gcp_pixel_sigma
+@options.surface_length
 @options.terrain
 @options.crs
 @options.resolution
@@ -76,7 +81,8 @@ _DEFAULT_SOURCES = (None, click.core.ParameterSource.DEFAULT, click.core.Paramet
 @click.pass_context
 def ortho(ctx: click.Context, images: tuple[str, ...], **kwargs: Any) -> None:
     """Orthorectify frame IMAGES, one pushbroom scene (--dimap) or one RPC image (--rpc), into
-    (cloud-optimized) GeoTIFFs named <image>_ORTHO.tif."""
+    (cloud-optimized) GeoTIFFs named <image>_ORTHO.tif; drone images' cameras and poses may come
+    from their tags (--exif), refined first by tie points and a bundle adjustment (--adjust)."""
     t_command = time.perf_counter()
     _spare_final_collection()
     if not kwargs["export_params"]:
@@ -90,8 +96,12 @@ def ortho(ctx: click.Context, images: tuple[str, ...], **kwargs: Any) -> None:
     if o.odm_dataset is not None:
         images, o.int_param, o.ext_param, o.dem = odm_dataset(o.odm_dataset, images=images, int_param=o.int_param,
                                                               ext_param=o.ext_param, dem=o.dem, height=o.height)
-    from .exif import check_exif_options
+    from .exif import chain_terrain, check_chain_options, check_exif_options
 
+    if o.gcps is not None and o.rpc is None and not o.adjust_chain:
+        raise ParamError("--gcps goes with --rpc (an RPC image's bias compensation) or with --exif --adjust (ground "
+                         "control of the drone chain)")
+    check_chain_options(o, chain_gcps=o.rpc is None)
     check_exif_options(images, o)
     if not images:
         if o.dimap is not None:
@@ -101,15 +111,15 @@ def ortho(ctx: click.Context, images: tuple[str, ...], **kwargs: Any) -> None:
                              "(orthowarp ortho IMAGE --rpc [FILE])")
         raise ParamError("Give IMAGES (or --odm-dataset DIR)")
     if o.export_params:
+        if o.adjust_chain:
+            raise ParamError("--export-params writes the tags' orientation and stops; --adjust writes the adjusted "
+                             "one (exterior.csv, cameras.yaml in --adjust-dir) with the orthos: give one or the other")
         _export_params(images, o, quiet=ctx.obj["quiet"])
         return
     if o.rpc is not None and o.accuracy:
         raise ParamError("--accuracy is not available for RPC images (--rpc): RPCs carry no orientation to propagate")
-    if o.gcps is not None and o.rpc is None:
-        raise ParamError("--gcps estimates an RPC image's bias compensation: give it with --rpc")
     pose_cov, orientation_cov = _covariances(ctx, o)
-    if (o.dem is None) == (o.height is None):
-        raise ParamError("Give exactly one of --dem FILE and --height METRES")
+    tie_terrain = chain_terrain(o)
     compress, compress_level, quality, creation_options = options.creation_args(o.creation, o.compress,
                                                                                 o.compress_level, o.quality)
     ortho_options = dict(crs=o.crs, resolution=o.resolution, resampling=o.resampling, method=o.method,
@@ -118,9 +128,14 @@ def ortho(ctx: click.Context, images: tuple[str, ...], **kwargs: Any) -> None:
                          compress_level=compress_level, quality=quality, block_codec=o.block_codec,
                          source_reads=o.source_reads, creation_options=creation_options, device=o.device,
                          tile_size=o.tile_size, geoid=o.geoid, same_vertical_datum=o.same_vertical_datum)
+    same_datum_given = o.same_vertical_datum  # (--exif may set it for the DEM)
     jobs = _jobs(images, o, quiet=ctx.obj["quiet"])
     ortho_options["same_vertical_datum"] = o.same_vertical_datum  # (--exif may take the DEM in the GPS's datum)
     quiet, profiles = ctx.obj["quiet"], []
+    terrain = o.dem if o.dem is not None else o.height
+    if o.adjust_chain:
+        jobs, terrain = _adjusted(jobs, None if tie_terrain else terrain, o, quiet=quiet,
+                                  same_vertical_datum=same_datum_given)
 
     def report(dst: str, r: Any) -> None:
         if not quiet:
@@ -141,7 +156,7 @@ def ortho(ctx: click.Context, images: tuple[str, ...], **kwargs: Any) -> None:
         # one bar for the batch: the tiles of every image as each starts, or on a cluster the images
         bar = tqdm(total=0, unit="tile", leave=False, disable=not show) if client is None else show or None
         with bar if client is None else contextlib.nullcontext():
-            orthorectify_many(jobs, dem=o.dem if o.dem is not None else o.height, accuracy=o.accuracy,
+            orthorectify_many(jobs, dem=terrain, accuracy=o.accuracy,
                               pose_cov=pose_cov, orientation_cov=orientation_cov, pixel_sigma=o.pixel_sigma,
                               dem_sigma=o.dem_sigma, accuracy_measure=o.accuracy_measure,
                               accuracy_step=o.accuracy_step, overwrite=o.overwrite, progress=bar,
@@ -216,7 +231,8 @@ def _jobs(images: tuple[str, ...] | list[str], o: SimpleNamespace, *, quiet: boo
     if o.exif:
         from .exif import exif_jobs
 
-        return ortho_destinations(exif_jobs(images, o, quiet=quiet).sensors, o.out_dir)
+        o.exif_job = exif_jobs(images, o, quiet=quiet)
+        return ortho_destinations(o.exif_job.sensors, o.out_dir)
 
     if o.dimap is not None:
         from ..pipeline.formats.dimap import read_scene
@@ -233,6 +249,26 @@ def _jobs(images: tuple[str, ...] | list[str], o: SimpleNamespace, *, quiet: boo
     from ..pipeline.formats.sensors import frame_sensors
 
     return ortho_destinations(frame_sensors(images, o.int_param, o.ext_param, crs=o.crs), o.out_dir)
+
+
+def _adjusted(jobs: list[tuple[str, Any, str]], terrain: Any, o: SimpleNamespace, *, quiet: bool,
+              same_vertical_datum: bool) -> tuple[list[tuple[str, Any, str]], Any]:
+    """``--exif --adjust``: the orthos' destinations (and accuracy rasters') checked, then the
+    frames' orientation refined by the chain (:func:`.exif.exif_chain`), its files in
+    --adjust-dir (default ``adjust/`` in --out-dir). ``terrain`` None: the terrain returned is
+    the adjusted tie points' surface (its path); else ``terrain`` as it is."""
+    from ..pipeline.precision import accuracy_path
+    from ..pipeline.raster.io import check_destination
+    from .exif import exif_chain
+
+    for *_, dst in jobs:  # before the chain's minutes
+        check_destination(dst, overwrite=o.overwrite)
+        if o.accuracy:
+            check_destination(accuracy_path(dst), overwrite=o.overwrite)
+    adjusted, terrain = exif_chain([(img, s) for img, s, _ in jobs], o.exif_job.orientations, terrain, o,
+                                   folder=o.adjust_dir or os.path.join(o.out_dir, "adjust"), quiet=quiet,
+                                   same_vertical_datum=same_vertical_datum)
+    return [(img, s, dst) for (img, s), (*_, dst) in zip(adjusted, jobs)], terrain
 
 
 def _rpc_sensor(images: tuple[str, ...] | list[str], o: SimpleNamespace, *, quiet: bool) -> Any:
