@@ -80,6 +80,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -377,12 +378,13 @@ def adjust_scenes(scenes: dict[str, PushbroomScene], points: ScenePoints, *,
     lay = _Layout(scenes, points, groups, look_degree, eo_sigma)
     prior_w = _prior_weights(lay, points, eo_sigma)
     qll = np.stack([points.obs_sigma ** 2] * 2, -1)
-    x, v, normal, status, it = _solve(lay, points, prior_w, qll, max_iterations, xtol)
+    sol = _solve(lay, points, prior_w, qll, max_iterations, xtol)
     rounds, pre_message = (0 if pre is None else 1), ""
     repeatable = bool(np.any(lay.fidx % 3 > 0))  # a later round holds the bundle's time-dependent groups
-    if pre is not None and max_rounds > 1 and repeatable and status != -1:
-        lay, pre, x, v, normal, status, it, rounds, pre_message = _rounds(
-            lay, points, pre, x, v, normal, status, it, prior_w, qll, max_iterations, xtol, max_rounds, round_tol)
+    if pre is not None and max_rounds > 1 and repeatable and sol.status != -1:
+        lay, pre, sol, rounds, pre_message = _rounds(lay, points, pre, sol, prior_w, qll, max_iterations, xtol,
+                                                     max_rounds, round_tol)
+    x, v, normal, status, it = sol
     res = SceneBundleResult(success=status == 1, status=status, message="", iterations=it,
                             freed={sid: groups for sid in lay.sids}, point_ids=list(points.point_ids),
                             rounds=rounds, preadjustment=pre)
@@ -428,51 +430,60 @@ def _single_pass_message(pre: LookAngleResult, asked_more: bool) -> str:
     return text
 
 
+class _Solved(NamedTuple):
+    """A bundle's solution (:func:`_iterate`): unknowns (n_unk,), residuals (n_obs, 2), normal
+    matrix (n_unk, n_unk), status (1 converged, 0 not, -1 singular) and iterations."""
+
+    x: np.ndarray
+    v: np.ndarray
+    normal: np.ndarray
+    status: int
+    it: int
+
+
 def _solve(lay: _Layout, points: ScenePoints, prior_w: np.ndarray, qll: np.ndarray, max_iterations: int,
-           xtol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int]:
+           xtol: float) -> _Solved:
     """:func:`_iterate`, a geometry failure raised as ParamError."""
     try:
-        return _iterate(lay, points, prior_w, qll, max_iterations, xtol)
+        return _Solved(*_iterate(lay, points, prior_w, qll, max_iterations, xtol))
     except GeometryError as e:
         raise ParamError(f"{points.name}: {e}") from e
 
 
-def _rounds(lay: _Layout, points: ScenePoints, pre: LookAngleResult, x: np.ndarray, v: np.ndarray,
-            normal: np.ndarray, status: int, it: int, prior_w: np.ndarray, qll: np.ndarray, max_iterations: int,
-            xtol: float, max_rounds: int, round_tol: float) -> tuple:
-    """The two steps repeated after the first bundle (``x``, ``v``, ``normal``, ``status``,
-    ``it`` of layout ``lay``, after the pre-adjustment ``pre``): the pre-adjustment redone on
-    the given look angles holding the bundle's freed time-dependent groups (:meth:`_Layout.handed`)
-    and the given constants, then the bundle on the
-    scenes of ``lay`` with the new look angles, until no adjusted point moves by more than
-    ``round_tol`` of its a priori sigma or ``max_rounds`` rounds are made. Returns the last
-    round's layout, pre-adjustment, unknowns, residuals, normal matrix, status, iterations,
-    the rounds and the message on the rounds (the failure's where a step failed)."""
+def _rounds(lay: _Layout, points: ScenePoints, pre: LookAngleResult, sol: _Solved, prior_w: np.ndarray,
+            qll: np.ndarray, max_iterations: int, xtol: float, max_rounds: int,
+            round_tol: float) -> tuple[_Layout, LookAngleResult, _Solved, int, str]:
+    """The two steps repeated after the first bundle (``sol`` on layout ``lay``, after the
+    pre-adjustment ``pre``): the pre-adjustment redone on the given look angles holding the
+    bundle's freed time-dependent groups (:meth:`_Layout.handed`) and the given constants, then
+    the bundle on the scenes of ``lay`` with the new look angles, until no adjusted point moves
+    by more than ``round_tol`` of its a priori sigma or ``max_rounds`` rounds are made. Returns
+    the last round's layout, pre-adjustment and solution, the rounds and the message on the
+    rounds (the failure's where a step failed: then the solution's status is -1)."""
     opts = pre.options
     for rounds in range(2, max_rounds + 1):
-        ground, cof = lay.ground(x), np.diag(np.linalg.inv(normal))[lay.base:].reshape(-1, 3)
-        held = {sid: pre.given[sid].with_polynomials(lay.model(lay.handed(x), s_k)[0])
+        ground, cof = lay.ground(sol.x), np.diag(np.linalg.inv(sol.normal))[lay.base:].reshape(-1, 3)
+        held = {sid: pre.given[sid].with_polynomials(lay.model(lay.handed(sol.x), s_k)[0])
                 for s_k, sid in enumerate(lay.sids)}
         pre = preadjust_look_angles(held, points, degree=opts["degree"], max_iterations=opts["max_iterations"],
                                     xtol=opts["xtol"], extrapolation="ignore", misfit="ignore")
         if not pre.success:
-            return (lay, pre, x, v, normal, -1, it, rounds,
+            return (lay, pre, sol._replace(status=-1), rounds,
                     f"round {rounds} of the two steps: the look-angle pre-adjustment failed ({pre.message})")
         scenes = {sid: lay.scn[sid].replace(psi_x=pre.scenes[sid].psi_x, psi_y=pre.scenes[sid].psi_y)
                   for sid in lay.sids}
         lay = _Layout(scenes, points, lay.groups, lay.look_degree, lay.eo_sigma)
-        x, v, normal, status, it = _solve(lay, points, prior_w, qll, max_iterations, xtol)
-        if status == -1:
-            return (lay, pre, x, v, normal, status, it, rounds,
-                    f"round {rounds} of the two steps: singular normal equations")
-        moved = np.einsum("nji,nj->ni", lay.enu, lay.ground(x) - ground) / np.sqrt(cof)
-        if status == 1 and np.max(np.abs(moved)) <= round_tol:
-            return (lay, pre, x, v, normal, status, it, rounds,
+        sol = _solve(lay, points, prior_w, qll, max_iterations, xtol)
+        if sol.status == -1:
+            return lay, pre, sol, rounds, f"round {rounds} of the two steps: singular normal equations"
+        moved = np.einsum("nji,nj->ni", lay.enu, lay.ground(sol.x) - ground) / np.sqrt(cof)
+        if sol.status == 1 and np.max(np.abs(moved)) <= round_tol:
+            return (lay, pre, sol, rounds,
                     f"two steps in {rounds} rounds (the look-angle pre-adjustment redone holding the bundle's "
                     f"time-dependent groups), the last pre-adjustment's sigma0 "
                     + ", ".join(f"{pre.sigma0[sid]:.3g}" for sid in lay.sids)
                     + "; covariances include the pre-adjustments' uncertainty")
-    return (lay, pre, x, v, normal, status, it, max_rounds,
+    return (lay, pre, sol, max_rounds,
             f"the two steps did not settle in {max_rounds} rounds (the adjusted points still moved by up to "
             f"{np.max(np.abs(moved)):.3g} of their sigmas)")
 
