@@ -15,6 +15,7 @@ from fractions import Fraction
 
 import numpy as np
 import pytest
+import rasterio
 from click.testing import CliRunner
 from hypothesis import given
 from hypothesis import strategies as st
@@ -871,6 +872,19 @@ def test_cli_ortho_chain_writes_registered_orthos_and_the_report(tmp_path, monke
     assert {p.name for p in (folder / "exif").iterdir()} == {"int_param.yaml", "ext_param.csv"}
     chain = json.loads((folder / "chain.json").read_text())
     assert chain["control"]["check_points"] == 2 and chain["terrain"]["surface"]["points_used"] >= 30
+    # points.csv's latitudes and longitudes keep the adjusted points' positions (to 0.01 mm;
+    # rounded to 4 decimals of a degree they were metres off): the same points as the surface's
+    # tie_points.csv (UTM, mm) after a transformation
+    from pyproj import CRS, Transformer
+
+    with rasterio.open(folder / "tie_surface.tif") as ds:
+        utm = CRS.from_wkt(ds.crs.to_wkt())
+    geo = {r[0]: (float(r[2]), float(r[3])) for r in (line.split(",") for line in
+                                                      (folder / "points.csv").read_text().splitlines()[1:])}
+    rows = [r.split(",") for r in (folder / "tie_points.csv").read_text().splitlines()[1:]]
+    lat, lon = np.array([geo[r[0]] for r in rows]).T
+    x, y = Transformer.from_crs("EPSG:4326", utm, always_xy=True).transform(lon, lat)
+    np.testing.assert_allclose(np.column_stack([x, y]), [[float(r[2]), float(r[3])] for r in rows], atol=0.002)
     before = _overlap_shifts([tmp_path / "tags" / n for n in names])
     after = _overlap_shifts([tmp_path / "adjusted" / n for n in names])
     assert len(after) >= 8 and len(before) >= 8, (before, after)

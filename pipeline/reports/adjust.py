@@ -147,7 +147,7 @@ def write_adjustment(result: AdjustResult, block: Block, out_dir: str | os.PathL
     for pid, role in zip(b.point_ids, b.roles):
         xyz = result.points.get(pid, (np.nan,) * 3)
         sd = result.point_std.get(pid, (np.nan,) * 3)
-        prow.append((pid, role, *(f"{v:.4f}" for v in xyz), *(f"{v:.4f}" for v in sd)))
+        prow.append((pid, role, *(f"{v:.{d}f}" for d, v in zip(digits[:3], xyz)), *(f"{v:.4f}" for v in sd)))
     paths["points"] = os.path.join(out_dir, "points.csv")
     files[paths["points"]] = _csv(prow)
     if result.pose_cov is not None:
