@@ -48,8 +48,11 @@ along the flight line (GPS only), as for a consumer camera without gimbal tags.
 
 usage: python3 bench/exif_folder.py FOLDER [--height H] [--resolution 0.05] [--oty PATH/TO/oty] [--adjust]
                                     [--heading tags|content] [--attitude tags|gps] [--tie-dem L] [--dem FILE]
-                                    [--no-mosaic]
+                                    [--setting KEY=VALUE ...] [--no-mosaic]
                                     [--work DIR] [--reuse] [--device cpu] [--out FILE]
+``--setting KEY=VALUE`` (repeatable; e.g. ``--setting zones=12,9 --setting per_zone=4``) overrides
+the chain's matching and adjustment settings (orthowarp.pipeline.drone.ADJUST_DEFAULTS) in the
+chain's process, which the ``orthowarp`` command does not expose.
 Reads a folder outside the repository (which tests must not); CPU by default.
 """
 
@@ -72,10 +75,20 @@ from orthowarp import geodesy  # noqa: E402
 from orthowarp.pipeline.formats.exif import exif_orientations  # noqa: E402
 
 
-def cli(*args, timed=True):
-    """Run ``orthowarp ARGS`` in a process of its own; (seconds, stderr's last lines)."""
+#: ``orthowarp ARGS`` with orthowarp.pipeline.drone.ADJUST_DEFAULTS updated from the JSON object
+#: in argv[1] first (``--setting``: the chain's matching and adjustment settings, which the
+#: command itself does not expose).
+_WITH_SETTINGS = ("import json, sys; import orthowarp.pipeline.drone as d; d.ADJUST_DEFAULTS.update(json.loads("
+                  "sys.argv[1])); from orthowarp.cli import main; sys.argv = ['orthowarp', *sys.argv[2:]]; main()")
+
+
+def cli(*args, timed=True, settings=None):
+    """Run ``orthowarp ARGS`` in a process of its own; (seconds, stderr's last lines). With
+    ``settings`` (a dict), the chain's ADJUST_DEFAULTS overridden by them in that process."""
     t0 = time.perf_counter()
-    r = subprocess.run([sys.executable, "-m", "orthowarp.cli", *map(str, args)], capture_output=True, text=True)
+    cmd = [sys.executable, "-m", "orthowarp.cli"] if not settings else \
+        [sys.executable, "-c", _WITH_SETTINGS, json.dumps(settings)]
+    r = subprocess.run([*cmd, *map(str, args)], capture_output=True, text=True)
     if r.returncode:
         raise SystemExit(f"orthowarp {' '.join(map(str, args))} failed:\n{r.stdout}\n{r.stderr}")
     return time.perf_counter() - t0, (r.stderr.strip().splitlines() + r.stdout.strip().splitlines())
@@ -263,11 +276,32 @@ def _adjusted_sensors(adj):
 
 
 def _tie_points(adj):
-    """The adjusted tie points of ``points.csv``: {id: (lat, lon, h)}."""
+    """The adjusted tie points of ``points.csv``: {id: (lat, lon, h)}, their latitude and longitude
+    refined by intersecting their observations' rays in the adjusted orientation (least squares;
+    ``points.csv`` gives degrees to 4 decimals, some 11 m by 8 m here, too coarse for a surface);
+    the heights ``points.csv``'s (to 0.1 mm)."""
     import csv
 
     with open(os.path.join(adj, "points.csv")) as f:
-        return {r["point"]: (float(r["x"]), float(r["y"]), float(r["z"])) for r in csv.DictReader(f)}
+        points = {r["point"]: (float(r["x"]), float(r["y"]), float(r["z"])) for r in csv.DictReader(f)}
+    with open(os.path.join(adj, "block.json")) as f:
+        block = json.load(f)
+    sensors = _adjusted_sensors(adj)
+    normal, rhs = {}, {}
+    for o in block["observations"]:
+        s = sensors.get(o["image"])
+        if s is None or o["point"] not in points or not np.all(np.isfinite(points[o["point"]])):
+            continue
+        r = s.pose.rotation @ s.camera.pixel_to_camera(np.array([[o["col"], o["row"]]]), device="cpu")[0]
+        r = r / np.linalg.norm(r)
+        m = np.eye(3) - np.outer(r, r)
+        normal[o["point"]] = normal.get(o["point"], 0) + m
+        rhs[o["point"]] = rhs.get(o["point"], 0) + m @ np.asarray(s.pose.center, np.float64)
+    for pid, n in normal.items():
+        if np.linalg.cond(n) < 1e8:
+            lat, lon, _ = geodesy.ecef_to_geodetic(np.linalg.solve(n, rhs[pid]))
+            points[pid] = (float(lat), float(lon), points[pid][2])
+    return points
 
 
 def relief_parallax(adj, resolution, planes):
@@ -285,14 +319,14 @@ def relief_parallax(adj, resolution, planes):
         block = json.load(f)
     sensors = _adjusted_sensors(adj)
     points = _tie_points(adj)
-    lat0, lon0 = np.median([p[0] for p in points.values()]), np.median([p[1] for p in points.values()])
+    lat0, lon0 = np.nanmedian([p[0] for p in points.values()]), np.nanmedian([p[1] for p in points.values()])
     enu = geodesy.enu_to_ecef_matrix(lat0, lon0)
     up = enu[:, 2]
     rays = {}
     for o in block["observations"]:
         s = sensors.get(o["image"])
-        if s is None or o["point"] not in points:
-            continue
+        if s is None or o["point"] not in points or not np.all(np.isfinite(points[o["point"]])):
+            continue  # (a point the adjustment left undetermined, NaN in points.csv)
         v = s.camera.pixel_to_camera(np.array([[o["col"], o["row"]]]), device="cpu")[0]
         rays.setdefault(o["point"], []).append((o["image"], np.asarray(s.pose.center), s.pose.rotation @ v))
     out = {}
@@ -321,6 +355,7 @@ def relief_parallax(adj, resolution, planes):
             f"{k} {v['pairs']} pairs, baseline {v['baseline_m_median']:.1f} m, |d| quartiles {v['p25']:.2f}, "
             f"{v['median']:.2f}, {v['p75']:.2f} px" for k, v in row.items() if isinstance(v, dict)))
     hs = np.array([p[2] for p in points.values()])
+    hs = hs[np.isfinite(hs)]
     out["tie_heights_m"] = dict(p5=float(np.percentile(hs, 5)), p25=float(np.percentile(hs, 25)),
                                 median=float(np.median(hs)), p75=float(np.percentile(hs, 75)),
                                 p95=float(np.percentile(hs, 95)))
@@ -446,12 +481,32 @@ def main(argv=None):
                     help="with --adjust: also orthos on a smooth surface from the adjusted tie points (Gaussian, L m)")
     ap.add_argument("--dem", default=None, metavar="FILE",
                     help="with --adjust: also orthos on this DSM (GeoTIFF, or a LAS/LAZ point cloud gridded here)")
+    ap.add_argument("--setting", action="append", default=[], metavar="KEY=VALUE",
+                    help="with --adjust: a setting of the chain (orthowarp.pipeline.drone.ADJUST_DEFAULTS, e.g. "
+                         "zones=12,9 or per_zone=4; VALUE as JSON, or comma-separated numbers); repeatable")
     ap.add_argument("--no-mosaic", action="store_true", help="skip step 2 (the EXIF mosaic)")
     ap.add_argument("--reuse", action="store_true", help="keep the orthos and the chain's files found in --work")
     ap.add_argument("--work", default=None)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--out", default="bench/results/exif_folder.json")
     args = ap.parse_args(argv)
+    settings = {}
+    for item in args.setting:
+        key, sep, value = item.partition("=")
+        if not sep:
+            ap.error(f"--setting {item}: give KEY=VALUE")
+        try:
+            settings[key] = json.loads(value)
+        except ValueError:
+            try:
+                settings[key] = [json.loads(v) for v in value.split(",")]
+            except ValueError:
+                settings[key] = value
+    from orthowarp.pipeline.drone import ADJUST_DEFAULTS
+
+    unknown = sorted(set(settings) - set(ADJUST_DEFAULTS))
+    if unknown:
+        ap.error(f"--setting: unknown {', '.join(unknown)} (known: {', '.join(ADJUST_DEFAULTS)})")
     work = args.work or tempfile.mkdtemp(prefix="orthowarp-exif-")
     os.makedirs(work, exist_ok=True)
     source_folder = args.folder
@@ -465,7 +520,7 @@ def main(argv=None):
                   images_read=os.path.abspath(args.folder), height_m=height,
                   height_source="--height" if args.height is not None else "take-off point (AbsoluteAltitude - "
                                                                             "RelativeAltitude, median)",
-                  resolution_m=args.resolution, device=args.device, work=work,
+                  resolution_m=args.resolution, device=args.device, work=work, chain_settings=settings,
                   cameras=sorted({o.camera_id for o in orients}), camera_source=orients[0].camera_source,
                   attitude={a: sum(o.attitude == a for o in orients) for a in ("gimbal", "flight line")})
     print(f"{len(orients)} images; terrain height {height:.2f} m ({report['height_source']})")
@@ -486,7 +541,7 @@ def main(argv=None):
         mosaic = os.path.join(work, "mosaic_adjusted.tif")
         adj = os.path.splitext(mosaic)[0] + "_adjust"
         secs, lines = (None, []) if args.reuse and os.path.exists(os.path.join(adj, "chain.json")) else \
-            cli("mosaic", args.folder, *exif, "--adjust", "-o", mosaic, *common)
+            cli("mosaic", args.folder, *exif, "--adjust", "-o", mosaic, *common, settings=settings)
         with open(os.path.join(adj, "chain.json")) as f:
             chain = json.load(f)
         report["chain"] = dict(seconds=secs, folder=adj, report=chain, output=[ln for ln in lines if "adjust" in ln])
