@@ -144,10 +144,11 @@ def write_adjustment(result: AdjustResult, block: Block, out_dir: str | os.PathL
     cams = result.cameras or b.cameras
     files[paths["cameras"]] = yaml.safe_dump({cid: camera_dict(c) for cid, c in cams.items()})
     prow = [("point", "role", "x", "y", "z", "sx", "sy", "sz")]
+    point_digits = (10, 10, 4) if geo else (4, 4, 4)  # deg / m: 0.1 mm either way (sigmas: m)
     for pid, role in zip(b.point_ids, b.roles):
         xyz = result.points.get(pid, (np.nan,) * 3)
         sd = result.point_std.get(pid, (np.nan,) * 3)
-        prow.append((pid, role, *(f"{v:.{d}f}" for d, v in zip(digits[:3], xyz)), *(f"{v:.4f}" for v in sd)))
+        prow.append((pid, role, *(f"{v:.{d}f}" for d, v in zip(point_digits, xyz)), *(f"{v:.4f}" for v in sd)))
     paths["points"] = os.path.join(out_dir, "points.csv")
     files[paths["points"]] = _csv(prow)
     if result.pose_cov is not None:
