@@ -83,15 +83,6 @@ def _basis(scene: PushbroomScene, col: ArrayLike, degree: int) -> np.ndarray:
     return u[:, None] ** np.arange(degree + 1)
 
 
-def _enu_matrices(lat: np.ndarray, lon: np.ndarray) -> np.ndarray:
-    """R_ecef<-enu (n, 3, 3) at latitudes, longitudes (n,) (deg): columns east, north, up (as
-    :func:`~orthowarp.geodesy.enu_to_ecef_matrix`, for many points at once)."""
-    la, lo = np.radians(lat), np.radians(lon)
-    east = np.stack([-np.sin(lo), np.cos(lo), np.zeros_like(lo)], -1)
-    north = np.stack([-np.sin(la) * np.cos(lo), -np.sin(la) * np.sin(lo), np.cos(la)], -1)
-    return np.stack([east, north, geodesy.geodetic_up(lat, lon)], -1)
-
-
 def look_angle_conditions(scene: PushbroomScene, obs: np.ndarray, llh: np.ndarray,
                           coefficients: ArrayLike) -> np.ndarray:
     """The pre-adjustment's conditions g (n, 2) (rad) at observations ``obs`` (n, 5).
@@ -115,7 +106,7 @@ def look_angle_conditions(scene: PushbroomScene, obs: np.ndarray, llh: np.ndarra
     col, row = obs[:, 0], obs[:, 1]
     lon, lat, h = llh[:, 0], llh[:, 1], llh[:, 2]
     x = geodesy.geodetic_to_ecef(lat, lon, h)
-    enu = _enu_matrices(lat, lon)
+    enu = geodesy.enu_to_ecef_matrix(lat, lon)
     x = x + np.einsum("nij,nj->ni", enu, obs[:, 2:5])
     t = scene.line_time(row)
     p, v = scene.orbit(t)

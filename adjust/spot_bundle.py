@@ -527,7 +527,7 @@ class _Layout:
         inter = intersect_scene_points(self.scn, points, which=np.flatnonzero(free_pts))
         llh0[free_pts] = inter[free_pts]
         self.xyz0 = geodesy.geodetic_to_ecef(llh0[:, 1], llh0[:, 0], llh0[:, 2])
-        self.enu = np.stack([geodesy.enu_to_ecef_matrix(la, lo) for la, lo in zip(llh0[:, 1], llh0[:, 0])])
+        self.enu = geodesy.enu_to_ecef_matrix(llh0[:, 1], llh0[:, 0])
         # unknowns: each scene's block (scaled units), then the points' east, north, up (m)
         self.scale = {}
         for sid in self.sids:

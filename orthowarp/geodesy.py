@@ -141,21 +141,24 @@ def geodetic_up(lat: ArrayLike, lon: ArrayLike) -> np.ndarray:
     return np.stack([np.cos(la) * np.cos(lo), np.cos(la) * np.sin(lo), np.sin(la) * np.ones_like(lo)], -1)
 
 
-def enu_to_ecef_matrix(lat: float, lon: float) -> np.ndarray:
-    """R_ecef<-enu (3, 3) at latitude, longitude (deg): columns east, north, up ([P3] eq. 9).
+def enu_to_ecef_matrix(lat: ArrayLike, lon: ArrayLike) -> np.ndarray:
+    """R_ecef<-enu (..., 3, 3) at latitude, longitude (deg): columns east, north, up ([P3] eq. 9).
 
     Parameters
     ----------
-    lat, lon : float
-        Geodetic latitude and longitude (deg).
+    lat, lon : array_like, shape (...,)
+        Geodetic latitude and longitude (deg), arrays of one shape or scalars.
 
     Returns
     -------
-    ndarray, shape (3, 3)
+    ndarray, shape (..., 3, 3)
         Maps ENU vectors at (lat, lon) to ECEF vectors.
     """
-    m = ned_to_ecef_matrix(lat, lon)
-    return np.stack([m[:, 1], m[:, 0], geodetic_up(lat, lon)], axis=1)
+    la, lo = np.radians(lat), np.radians(lon)
+    sl, cl, so, co = np.sin(la), np.cos(la), np.sin(lo), np.cos(lo)
+    east = np.stack([-so, co, np.zeros_like(co)], -1)
+    north = np.stack([-sl * co, -sl * so, cl * np.ones_like(co)], -1)
+    return np.stack([east, north, geodetic_up(lat, lon)], -1)
 
 
 def rx(angle: float) -> np.ndarray:

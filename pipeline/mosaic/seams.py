@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ...errors import GeometryError
-from ...geodesy import ecef_to_geodetic, geodetic_to_ecef, geodetic_up
+from ...geodesy import ecef_to_geodetic, enu_to_ecef_matrix, geodetic_to_ecef, geodetic_up
 from ..ortho.tiles import COARSE_STEP, coarse_grid
 from ..raster.io import check_cancel
 from ..tiles import Tile
@@ -128,10 +128,7 @@ def _sight_angles(geom: SensorGeometry, u: np.ndarray, v: np.ndarray, h: np.ndar
     sensor does not see the point."""
     pts = np.stack([u, v, h], -1).reshape(-1, 3)
     if geom.geocentric:  # (lon, lat, h): moved in ECEF along the local axes
-        lat, lon = np.radians(pts[:, 1]), np.radians(pts[:, 0])
-        east = np.stack([-np.sin(lon), np.cos(lon), np.zeros_like(lon)], -1)
-        north = np.stack([-np.sin(lat) * np.cos(lon), -np.sin(lat) * np.sin(lon), np.cos(lat)], -1)
-        axes = (east, north, geodetic_up(pts[:, 1], pts[:, 0]))
+        axes = tuple(np.moveaxis(enu_to_ecef_matrix(pts[:, 1], pts[:, 0]), -1, 0))  # east, north, up (n, 3)
         xyz = geodetic_to_ecef(pts[:, 1], pts[:, 0], pts[:, 2])
 
         def moved(d: np.ndarray) -> np.ndarray:
