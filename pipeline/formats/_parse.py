@@ -255,6 +255,32 @@ def read_utf8(path: str, what: str) -> str:
         raise fail(path, f"not UTF-8 text ({e.reason} at byte {e.start})", e, kind=what) from e
 
 
+def read_small_text(path: str | os.PathLike, limit: int, *, kind: str = "", noun: str = "this file") -> str:
+    """The text of a small UTF-8 text file (an RPC or GCP file): it must exist (:func:`check_exists`),
+    hold at most ``limit`` bytes (``noun`` names what it is in that message: "a GCP list"), be UTF-8
+    (:func:`read_utf8`; ``kind`` as there) and hold no NUL.
+
+    Raises
+    ------
+    RasterIOError
+        The file cannot be read.
+    ParamError
+        It does not exist, is too large, or is not UTF-8 text.
+    """
+    p = check_exists(path)
+    name = os.fspath(path)
+    try:
+        size = p.stat().st_size
+    except OSError as e:
+        raise RasterIOError(f"Cannot read {kind}'{name}': {e.strerror or e}") from e
+    if size > limit:
+        raise fail(name, f"{size} bytes is too large for {noun} (at most {limit})", kind=kind)
+    text = read_utf8(name, kind)
+    if "\x00" in text:
+        raise fail(name, "not a text file (it holds NUL characters)", kind=kind)
+    return text
+
+
 def load_json(path: str, what: str = "block file ") -> Any:
     """The parsed JSON document of ``path`` (duplicate keys refused); ``what`` names the kind
     of file in messages (:func:`read_utf8`'s errors, and :func:`fail`'s)."""

@@ -43,8 +43,8 @@ from typing import Any
 
 import numpy as np
 
-from ...errors import OrthowarpWarning, ParamError, RasterIOError
-from ._parse import check_exists, fail, has_control, names, read_utf8, show
+from ...errors import OrthowarpWarning, ParamError
+from ._parse import fail, has_control, names, read_small_text, show
 from .rpc import GroundControl
 
 __all__ = ["GcpList", "read_gcp_list", "match_gcp_images", "gcp_crs", "MAX_GCP_FILE"]
@@ -182,20 +182,6 @@ def _number(path: str, token: str, what: str, line: int, bound: float, low: floa
     return v
 
 
-def _text(path: str) -> str:
-    p = check_exists(path)
-    try:
-        size = p.stat().st_size
-    except OSError as e:
-        raise RasterIOError(f"Could not read GCP file '{path}': {e.strerror or e}") from e
-    if size > MAX_GCP_FILE:
-        raise fail(path, f"{size} bytes is too large for a GCP list (at most {MAX_GCP_FILE})", kind=_KIND)
-    text = read_utf8(path, _KIND)
-    if "\x00" in text:
-        raise fail(path, "not a text file (it holds NUL characters)", kind=_KIND)
-    return text
-
-
 def read_gcp_list(path: str | os.PathLike) -> GcpList:
     """Read OpenDroneMap's ``gcp_list.txt`` (the format: see the module's notes).
 
@@ -221,7 +207,7 @@ def read_gcp_list(path: str | os.PathLike) -> GcpList:
         The file cannot be read.
     """
     name = os.fspath(path)
-    text = _text(name)
+    text = read_small_text(name, MAX_GCP_FILE, kind=_KIND, noun="a GCP list")
     crs, crs_text = None, ""
     geographic = False
     names_: list[str] = []

@@ -37,7 +37,8 @@ import numpy as np
 from ...errors import ParamError, RasterIOError
 from ...rpc import RationalSensor, RpcCoefficients
 from ..raster.io import gdal_reason, write_text
-from ._parse import check_exists, fail, ident, jlist, load_json, load_structured, num, number, obj, show
+from ._parse import (check_exists, fail, ident, jlist, load_json, load_structured, num, number, obj, read_small_text,
+                     show)
 
 __all__ = ["RpcFile", "GroundControl", "read_rpc", "read_rpb", "read_rpc_txt", "read_rpc_param", "read_image_rpc",
            "rpc_from_gdal", "rpc_to_gdal", "write_rpb", "write_rpc_txt", "read_gcps", "rpc_sensor", "MAX_RPC_FILE"]
@@ -100,27 +101,6 @@ def _rpc(path: str, values: dict[str, Any]) -> RpcCoefficients:
         return RpcCoefficients(**values)
     except ParamError as e:
         raise fail(path, e, e) from e
-
-
-def _read(path: str | os.PathLike, what: str) -> tuple[str, str]:
-    """(path as str, its text) of an RPC file, checked: exists, at most MAX_RPC_FILE bytes,
-    UTF-8 (a byte-order mark allowed) without NUL."""
-    p = check_exists(path)
-    name = os.fspath(path)
-    try:
-        size = p.stat().st_size
-        if size > MAX_RPC_FILE:
-            raise fail(name, f"{size} bytes is too large for {what} (at most {MAX_RPC_FILE})")
-        raw = p.read_bytes()
-    except OSError as e:
-        raise RasterIOError(f"Could not read '{name}': {e.strerror or e}") from e
-    try:
-        text = raw.decode("utf-8-sig")
-    except UnicodeDecodeError as e:
-        raise fail(name, f"not a text file ({e.reason} at byte {e.start})", e) from e
-    if "\x00" in text:
-        raise fail(name, "not a text file (it holds NUL characters)")
-    return name, text
 
 
 # -- GDAL's RPC domain -----------------------------------------------------------------------------
@@ -267,7 +247,7 @@ def read_rpb(path: str | os.PathLike) -> RpcCoefficients:
     RasterIOError
         The file cannot be read.
     """
-    name, text = _read(path, "an .RPB file")
+    name, text = os.fspath(path), read_small_text(path, MAX_RPC_FILE, noun="an .RPB file")
     found: dict[str, tuple[str, int]] = {}
     group = None
     for m in _ASSIGNMENT.finditer(text):
@@ -360,7 +340,7 @@ def read_rpc_txt(path: str | os.PathLike) -> RpcCoefficients:
     RasterIOError
         The file cannot be read.
     """
-    name, text = _read(path, "an _RPC.TXT file")
+    name, text = os.fspath(path), read_small_text(path, MAX_RPC_FILE, noun="an _RPC.TXT file")
     found: dict[str, tuple[str, int]] = {}
     for k, raw in enumerate(text.splitlines(), 1):
         line = raw.strip()
@@ -441,7 +421,7 @@ def read_rpc_param(path: str | os.PathLike, *, image: str | os.PathLike | None =
     RasterIOError
         The file cannot be read.
     """
-    name, text = _read(path, "an RPC parameter file")
+    name, text = os.fspath(path), read_small_text(path, MAX_RPC_FILE, noun="an RPC parameter file")
     doc = load_structured(Path(name), text)
     if not isinstance(doc, dict) or not doc:
         raise fail(name, "not an orthority RPC parameter file: it must map image file names to {im_size, rpc}")
@@ -522,7 +502,7 @@ def read_rpc(path: str | os.PathLike, *, image: str | os.PathLike | None = None)
     if suffix in (".tif", ".tiff", ".ntf", ".nitf", ".jp2", ".img", ".vrt"):
         rpc, size = read_image_rpc(name)
         return RpcFile(rpc, size)
-    _, text = _read(name, "an RPC file")
+    text = read_small_text(name, MAX_RPC_FILE, noun="an RPC file")
     if re.search(r"BEGIN_GROUP\s*=\s*IMAGE", text, re.IGNORECASE):
         return RpcFile(read_rpb(name), None)
     if re.search(r"^\s*LINE_OFF\s*:", text, re.IGNORECASE | re.MULTILINE):
