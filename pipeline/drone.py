@@ -25,7 +25,7 @@ from .. import geodesy
 from ..errors import GeometryError, ParamError
 from ..pose import Pose
 from ..sensor import FrameSensor
-from .dem import Dem
+from .dem import Dem, horizontal_crs
 from .formats.exif import (ELLIPSOIDAL, GEOID, TAKE_OFF, ExifOrientation, capture_order, exif_orientations,
                            flight_legs)
 from .ortho.grid import utm_crs
@@ -700,8 +700,9 @@ class TieSurface:
 
 
 def _horizontal(crs: Any) -> Any:
-    """The 2-D horizontal CRS of a CRS (compound: its first part; 3-D: made 2-D)."""
-    h = crs.sub_crs_list[0] if crs.is_compound and crs.sub_crs_list else crs
+    """The 2-D horizontal CRS of a CRS (compound: its first part, :func:`~orthowarp.pipeline.dem.horizontal_crs`;
+    3-D: made 2-D)."""
+    h = horizontal_crs(crs)
     return h.to_2d() if len(h.axis_info) == 3 and not h.is_geocentric else h
 
 
@@ -1219,7 +1220,7 @@ def _with_control(block: Any, control: ControlPoints, ids: list[str]) -> tuple[A
 def _enu_offsets(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """(N, 3) east, north, up (m) of points ``a`` from points ``b``, both (N, 3) lat, lon, h."""
     d = geodesy.geodetic_to_ecef(a[:, 0], a[:, 1], a[:, 2]) - geodesy.geodetic_to_ecef(b[:, 0], b[:, 1], b[:, 2])
-    return np.array([geodesy.enu_to_ecef_matrix(lat, lon).T @ v for (lat, lon, _), v in zip(b, d)]).reshape(-1, 3)
+    return np.einsum("nji,nj->ni", geodesy.enu_to_ecef_matrix(b[:, 0], b[:, 1]), d)
 
 
 def _rms(v: np.ndarray) -> dict[str, float] | None:
