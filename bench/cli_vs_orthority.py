@@ -14,6 +14,12 @@ Both write deflate GeoTIFFs (orthowarp's default COG; orthority with ``--compres
 Wall time of each process, end to end; the report gives every run and the medians. The first
 round also warms the page cache and Warp's kernel cache, so it is left out of the medians.
 
+Each round also times the floor of any process that runs Warp kernels from Python with
+orthowarp's dependencies: ``python -c "import gc, numpy, rasterio, pyproj, warp; gc.freeze()"``
+(imports only, no work, no orthowarp; exiting without the final collection, as orthowarp's CLI
+does), reported beside each job as ``import_floor_median_s`` with the time a run
+would need to be 1.3x orthority's speed (``needed_for_1_3x_s``).
+
 usage: python3 bench/cli_vs_orthority.py --data DIR/orthority --oty PATH/TO/oty [--rounds 7]
        [--device cpu] [--jobs ngi1,ngi5,odm] [--resampling bilinear,cubic] [--out FILE]
 """
@@ -50,12 +56,20 @@ def jobs(data, resampling):
     }
 
 
+# the imports of any Python process that runs Warp kernels with orthowarp's dependencies, nothing else
+# (and the frozen final collection orthowarp's CLI makes too: see cli/ortho.py)
+FLOOR = [sys.executable, "-c", "import gc, numpy, rasterio, pyproj, warp; gc.freeze()"]
+
+
 def timed(cmd, out_dir):
-    """Wall seconds of one run into a fresh ``out_dir`` (None if it failed)."""
-    shutil.rmtree(out_dir, ignore_errors=True)
-    os.makedirs(out_dir)
+    """Wall seconds of one run into a fresh ``out_dir`` (none: ``cmd`` as it is; None if it
+    failed)."""
+    if out_dir is not None:
+        shutil.rmtree(out_dir, ignore_errors=True)
+        os.makedirs(out_dir)
+        cmd = [*cmd, "--out-dir", out_dir]
     t = time.perf_counter()
-    p = subprocess.run([*cmd, "--out-dir", out_dir], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    p = subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     dt = time.perf_counter() - t
     if p.returncode != 0:
         print(f"failed ({p.returncode}): {' '.join(cmd)}\n{p.stderr[-500:]}", file=sys.stderr)
@@ -82,16 +96,18 @@ def main():
         for resampling, name in [(r, n) for r in args.resampling.split(",") for n in args.jobs.split(",")]:
             ow_args, oty_args = jobs(args.data, resampling)[name]
             name = f"{name}-{resampling}"
-            runs = dict(orthowarp=[], orthority=[])
+            runs = dict(orthowarp=[], orthority=[], import_floor=[])
             for _ in range(args.rounds):
                 runs["orthowarp"].append(timed([*ow, "-q", *ow_args, "--device", args.device], os.path.join(work, "ow")))
                 runs["orthority"].append(timed([args.oty, *oty_args], os.path.join(work, "oty")))
+                runs["import_floor"].append(timed(FLOOR, None))
             row = dict(runs=runs)
             for k, v in runs.items():
                 kept = [x for x in v[1:] if x is not None]
                 row[f"{k}_median_s"] = statistics.median(kept) if kept else None
             if row["orthowarp_median_s"] and row["orthority_median_s"]:
                 row["orthowarp_vs_orthority"] = row["orthowarp_median_s"] / row["orthority_median_s"]
+                row["needed_for_1_3x_s"] = row["orthority_median_s"] / 1.3
             report["results"][name] = row
             print(name, {k: v for k, v in row.items() if k != "runs"}, flush=True)
     finally:
