@@ -63,6 +63,18 @@ def test_stage_timer_profile_numbers():
     assert json.loads(json.dumps(p)) == p  # plain JSON: floats, ints, strings, None
 
 
+def test_stage_timer_timeline():
+    """The timeline's bins hold each stage's summed time in them over the bin's length: a
+    span across bins is split at their edges; overlapping spans (threads) add up."""
+    t = StageTimer(start=100.0)
+    t.span("kernel", 100.5, 102.5)  # bins of 1 s: half of bin 0, all of bin 1, half of bin 2
+    t.span("kernel", 101.0, 102.0)  # a second thread in bin 1
+    t.span("write", 103.25, 104.5)  # past the end: cut there
+    tl = t.timeline(4, end=104.0)
+    assert tl["bin_s"] == pytest.approx(1.0)
+    assert tl["stages"] == {"kernel": [0.5, 2.0, 0.5, 0.0], "write": [0.0, 0.0, 0.0, 0.75]}
+
+
 def test_stage_timer_bound_by_kernels_and_no_kernel():
     p = _timer_with([("kernel", 0.0, 3.0), ("write", 1.0, 2.0)]).profile(end=104.0)
     assert p["bound_by"] == "kernel" and p["bound"] == "bound by kernels on the device"

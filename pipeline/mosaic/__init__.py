@@ -485,7 +485,10 @@ def _process_results(plan: MosaicPlan, procs: ProcessTiles, tiles: list[Tile], s
                 if codec == "host":  # (the slot is reused: copies)
                     yield tile, (values.copy(), ok.copy(), source.copy())
                     continue
-                plan._encoder.write(tile.row, tile.col, wp.array(values, device=on), wp.array(valid, dtype=wp.uint8, device=on))
+                t = time.perf_counter()
+                up = wp.array(values, device=on), wp.array(valid, dtype=wp.uint8, device=on)
+                st["timer"].span("h2d", t)  # (this process's upload of the worker's tile)
+                plan._encoder.write(tile.row, tile.col, *up)
                 yield tile, (None, ok.copy(), source.copy()) if source is not None else (None, None, None)
             finally:
                 release()

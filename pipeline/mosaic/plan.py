@@ -478,7 +478,15 @@ class MosaicPlan(TileBlending):
                             wall_s=time.perf_counter() - t_start, setup_s=dict(self.setup_s),
                             image_builds=self._state["builds"] if self._state is not None else None,
                             images_held_peak=self._state["held_peak"] if self._state is not None else None,
-                            profile=timer.profile() if timer is not None else None)
+                            profile=_profile_with_timeline(timer) if timer is not None else None)
+
+
+def _profile_with_timeline(timer: StageTimer) -> dict:
+    """The tiles' profile (:meth:`StageTimer.profile`) with their stages' ``timeline`` (40 bins)."""
+    end = time.perf_counter()
+    prof = timer.profile(end)
+    prof["timeline"] = timer.timeline(40, end)
+    return prof
 
 
 def _images_meeting_tiles(tiles: Sequence[Tile], foot: np.ndarray, halo: int) -> list[tuple[int, ...]]:

@@ -123,6 +123,35 @@ class StageTimer:
         with self.lock:
             return {k: float(sum(e - s for s, e in v)) for k, v in self.spans.items()}
 
+    def timeline(self, bins: int = 40, end: float | None = None) -> dict:
+        """How busy each stage was over time: the wall time up to ``end`` (default: now) cut
+        into ``bins`` equal bins, and per stage (those with intervals) the summed time of its
+        intervals within each bin over the bin's length, i.e. the mean number of threads (and
+        processes) in that stage then, rounded to 0.01.
+
+        Returns
+        -------
+        dict
+            ``bin_s`` (float) and ``stages``: {stage: list of ``bins`` floats}.
+        """
+        end = time.perf_counter() if end is None else end
+        bins = max(int(bins), 1)
+        width = max(end - self.start, 1e-9) / bins
+        with self.lock:
+            spans = {k: list(v) for k, v in self.spans.items() if v}
+        out = {}
+        for k, intervals in spans.items():
+            busy = [0.0] * bins
+            for s, e in intervals:
+                s, e = max(s, self.start), min(e, end)
+                b = int((s - self.start) // width)
+                while e > s and b < bins:
+                    edge = self.start + (b + 1) * width
+                    busy[b] += min(e, edge) - s
+                    s, b = edge, b + 1
+            out[k] = [round(x / width, 2) for x in busy]
+        return dict(bin_s=float(width), stages=out)
+
     def profile(self, end: float | None = None) -> dict:
         """The profile of the call up to ``end`` (default: now): a JSON-serialisable dict.
 
