@@ -439,3 +439,67 @@ def test_batches_over_tiles_and_the_hand_over_to_the_host(tmp_path, with_host):
     for (da, ma, _, _), (db, mb, _, _) in zip(_levels(ref, count), _levels(out, count)):
         np.testing.assert_array_equal(ma, mb)
         np.testing.assert_array_equal(da, db)
+
+
+class _OtherBatchedDeflate(HostDeflate):
+    """libdeflate at level 1 posing as a batched (GPU-like) codec: other bytes than the host
+    codec's level 6 for the same blocks, so a file shows which codec took each tile."""
+
+    name, batched = "batched", True
+
+    def __init__(self):
+        super().__init__(1, threads=2)
+
+
+def test_host_share_is_fixed_by_tile_positions(tmp_path):
+    """With ``host_share`` the host codec takes the tiles the positions' hash picks, whatever
+    the order and the threads they arrive in: the same file bytes every time, the pixels of
+    the host writer's file."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from orthowarp.pipeline.raster.device import _position_share
+
+    shape, count, tile = (1536, 2048), 3, 512
+    data, mask = scene(shape, count, "uint8")
+    ref = str(tmp_path / "ref.tif")
+    _write(ref, shape, count, "uint8", tile)
+    tiles = [(r, c) for r in range(0, shape[0], tile) for c in range(0, shape[1], tile)]
+    host_tiles = [rc for rc in tiles if _position_share(*rc) < 0.5]
+    assert 0 < len(host_tiles) < len(tiles)
+
+    def encode(path, order, threads):
+        w = CogWriter(path, width=shape[1], height=shape[0], count=count, dtype="uint8", crs=CRS,
+                      transform=TRANSFORM, block_size=256, overviews=3, threads=2)
+        enc = DeviceCogEncoder(w, wp.get_device("cpu"), [_OtherBatchedDeflate(), HostDeflate(6, threads=2)],
+                               batch_bytes=3 * 512 * 512 * 3, host_share=0.5, host_queue=2)
+        with w:
+            def one(k):
+                r, c = tiles[k]
+                enc.write(r, c, wp.array(np.ascontiguousarray(data[r:r + tile, c:c + tile]), dtype=wp.uint8,
+                                         device="cpu"),
+                          wp.array(mask[r:r + tile, c:c + tile].astype(np.uint8), dtype=wp.uint8, device="cpu"))
+            with ThreadPoolExecutor(threads) as pool:
+                list(pool.map(one, order))
+            enc.flush()
+        enc.close()
+        return enc
+
+    a, b = str(tmp_path / "a.tif"), str(tmp_path / "b.tif")
+    enc = encode(a, range(len(tiles)), 1)
+    encode(b, np.random.default_rng(3).permutation(len(tiles)), 4)
+    with open(a, "rb") as fa, open(b, "rb") as fb:
+        assert fa.read() == fb.read()
+    # the host took its tiles' level-0 blocks (4 of 256 px per tile; all-zero ones aside)
+    assert 0 < enc.blocks_by_codec["libdeflate"] <= 4 * len(host_tiles) + 4 * len(host_tiles) // 4 + 1
+    assert enc.blocks_by_codec["batched"] > 0
+    for (da, ma, _, _), (db, mb, _, _) in zip(_levels(ref, count), _levels(a, count)):
+        np.testing.assert_array_equal(ma, mb)
+        np.testing.assert_array_equal(da, db)
+
+
+def test_host_share_checked(tmp_path):
+    w = CogWriter(str(tmp_path / "x.tif"), width=64, height=64, count=1, dtype="uint8", crs=CRS, transform=TRANSFORM,
+                  block_size=256, overviews=0, threads=1)
+    with pytest.raises(ParamError, match="host_share"):
+        DeviceCogEncoder(w, wp.get_device("cpu"), [HostDeflate(6, threads=1)], host_share=1.5)
+    w.abort()
