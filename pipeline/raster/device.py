@@ -566,17 +566,6 @@ class WarpDeflate:
         self._own_stream = None
 
 
-def _position_share(row: int, col: int) -> float:
-    """A number in [0, 1) fixed by a tile's top-left pixel (row, col), spread evenly over
-    tiles: which tiles :class:`DeviceCogEncoder`'s host share takes (by position, not by
-    arrival, so the same file comes out however the tiles are scheduled)."""
-    h = (int(row) * 0x9E3779B1 + int(col) * 0x85EBCA77) & 0xFFFFFFFF
-    h ^= h >> 15
-    h = (h * 0x2C1B3C6D) & 0xFFFFFFFF
-    h ^= h >> 12
-    return h / 2.0 ** 32
-
-
 class _Tile:
     """A tile's encoded blocks on the device: their (level, bi, bj) keys and the block arrays,
     image blocks per level (``images``) and mask blocks per level (``masks``)."""
@@ -618,23 +607,12 @@ class DeviceCogEncoder:
         Gets each device batch's compression as a ``"write"`` span, each tile's blocks and
         overview levels made on the device as a ``"kernel"`` span and the tiles' waits for the
         batch in flight (bounded device memory) as ``"queue"`` spans.
-    host_share : float, optional
-        With a device and a host codec: the share of the tiles (0-1) whose blocks the host
-        codec compresses in any case, chosen by the tiles' positions alone (a hash of row
-        and column), so the file's bytes do not depend on timing; they are compressed on a
-        thread of their own (at most ``host_queue`` tiles waiting), beside the device's
-        batches. Default 0: the host codec only takes tiles that arrive while the device is
-        busy and its next batch is full.
-    host_queue : int, optional
-        Tiles of the host share waiting for the host codec at most (default 4); a tile's
-        :meth:`write` waits for room.
 
     Call :meth:`flush` after the last tile, before the writer's ``close``.
     """
 
     def __init__(self, writer: CogWriter, device: Device, codecs: Sequence[Any], *,
-                 batch_bytes: int = 512 << 20, mask_codec: Any = None, timer: Any = None,
-                 host_share: float = 0.0, host_queue: int = 4) -> None:
+                 batch_bytes: int = 512 << 20, mask_codec: Any = None, timer: Any = None) -> None:
         if writer.compress not in ("deflate", "zstd"):
             raise ParamError(f"DeviceCogEncoder needs a deflate or zstd CogWriter, not {writer.compress!r}")
         gpu = [c for c in codecs if c.batched]
@@ -662,13 +640,6 @@ class DeviceCogEncoder:
         self._failed = None  # a batch's error, raised by the next write or the flush
         # the device codec's batches run on a thread of their own, one after another
         self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="device-codec")
-        if not 0.0 <= float(host_share) <= 1.0 or int(host_queue) < 1:
-            raise ParamError(f"host_share must be 0-1 and host_queue >= 1, got {host_share}, {host_queue}")
-        self.host_share = float(host_share) if self.gpu is not None and self.host is not None else 0.0
-        # the host share's tiles, compressed one after another on a thread of their own
-        self._host_worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="host-codec") \
-            if self.host_share > 0 else None
-        self._host_slots = threading.BoundedSemaphore(int(host_queue))
         self._threshold = None
         if self.gpu is not None and wp.is_mempool_enabled(device):
             # nvCOMP allocates its scratch outside Warp's memory pool: have the pool give back
@@ -717,13 +688,6 @@ class DeviceCogEncoder:
         if self.gpu is None:
             self._compress([job], self.host)
             return
-        if self.host_share > 0 and _position_share(row, col) < self.host_share:
-            t = time.perf_counter()
-            self._host_slots.acquire()  # (released when the host codec is done with it)
-            if self.timer is not None:
-                self.timer.span("queue", t)
-            self._host_worker.submit(self._compress_host, job)
-            return
         take = None
         with self._lock:
             if self._gpu_busy and self.host is not None and self._batch_n >= self.batch_bytes:
@@ -745,26 +709,9 @@ class DeviceCogEncoder:
         if take:  # the codec's own thread deflates it: the tile's thread goes back to its tiles
             self._worker.submit(self._compress_gpu, take)
 
-    def _compress_host(self, job: _Tile) -> None:
-        """A tile of the host share, on the host codec's thread (timed as ``"write"``); an
-        error is kept for :meth:`write` and :meth:`flush` to raise."""
-        try:
-            t = time.perf_counter()
-            with wp.ScopedDevice(self.device):
-                self._compress([job], self.host)
-            if self.timer is not None:
-                self.timer.span("write", t)
-        except BaseException as e:  # noqa: BLE001 - raised by the next write or the flush
-            with self._lock:
-                self._failed = self._failed or e
-        finally:
-            self._host_slots.release()
-
     def flush(self) -> None:
-        """Compress the blocks still waiting for a batch (after the batches in flight and the
-        host share's tiles); raises the codec's error if a batch failed."""
-        if self._host_worker is not None:
-            self._host_worker.submit(lambda: None).result()  # (its tiles go one after another)
+        """Compress the blocks still waiting for a batch (after the batches in flight); raises
+        the codec's error if a batch failed."""
         with self._lock:
             while self._gpu_busy:
                 self._lock.wait()
@@ -951,8 +898,6 @@ class DeviceCogEncoder:
 
     def close(self) -> None:
         self._worker.shutdown(wait=True)
-        if self._host_worker is not None:
-            self._host_worker.shutdown(wait=True)
         for c in (self.gpu, self.host, self.mask_codec):
             if c is not None:
                 c.close()
