@@ -443,8 +443,11 @@ class MosaicPlan(TileBlending):
                 if encoder is not None:
                     encoder.flush()  # the last device batch
                 used += self._counted_sources()
+                t_close = time.perf_counter()
                 for w in writers:
                     w.close()
+                if self._state is not None:  # the files' layout, last overview levels, checks
+                    self._state["timer"].span("finish", t_close)
                 if lossy:
                     try:
                         finish(work, tmps[0], "COG", compress, True, self.dtype, quality=quality, co=co,
