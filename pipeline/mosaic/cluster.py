@@ -302,6 +302,35 @@ def shipped_plan(plan: Any, device: str | None = None) -> Any:
     return out
 
 
+@contextlib.contextmanager
+def broadcast_plan(client: Any, plan: Any, device: str | None = None) -> Iterator[Any]:
+    """The :func:`shipped_plan` copy of ``plan`` sent once to every worker of ``client``
+    (``scatter(broadcast=True)``), as a future for the tasks of the block; released after it."""
+    remote = client.scatter(shipped_plan(plan, device), broadcast=True, hash=False)
+    try:
+        yield remote
+    finally:
+        remote.release()
+
+
+def as_finished(client: Any, futures: Sequence[Any], check: Callable[[], None] | None = None) -> Iterator[tuple[int, Any]]:
+    """(position in ``futures``, result) of each task as it finishes, its future released once
+    its result is taken; ``check`` (e.g. a cancellation test that raises) runs before each.
+    Any error, the caller's included (the generator closed early), cancels the tasks left."""
+    distributed = _distributed()
+    where = {fut.key: k for k, fut in enumerate(futures)}
+    try:
+        for fut in distributed.as_completed(futures):
+            if check is not None:
+                check()
+            result = fut.result()
+            fut.release()
+            yield where[fut.key], result
+    except BaseException:
+        client.cancel(list(futures))
+        raise
+
+
 def _deal(client: Any, tiles: Sequence[Tile], images: Sequence[tuple[int, ...]]) -> list[tuple[int, str]]:
     """(tile position, worker) in the order to submit: the tiles' bands
     (:func:`~orthowarp.pipeline.mosaic.workers.tile_runs`) dealt to the workers in turn, each
@@ -384,38 +413,36 @@ def cluster_results(plan: Any, client: Any, tiles: Sequence[Tile], *, cancel: th
     (Tile, (block, valid, source))
     """
     distributed = _distributed()
-    shipped = shipped_plan(plan, worker_device)
-    remote = client.scatter(shipped, broadcast=True, hash=False)
     images = plan._tile_images(tiles)
     info = client.scheduler_info()["workers"]
     threads = max(1, min(int(w.get("nthreads", 1)) for w in info.values())) if info else 1
     tag = f"orthowarp-tile-{os.getpid()}-{id(plan):x}-{time.monotonic_ns():x}"
-
-    def submit(k: int, w: str) -> Any:
-        return client.submit(_tile_task, remote, tiles[k], workers=[w], allow_other_workers=True, pure=False,
-                             key=f"{tag}-{k}")
-
-    dealer = _Submitter(_deal(client, tiles, images), submit, per_worker or _PER_WORKER * threads)
     bar = Progress(progress, len(tiles))
-    pending = distributed.as_completed(dealer.start(), with_results=False)
-    try:
-        for fut in pending:
-            if cancel is not None and cancel.is_set():
-                raise Cancelled(f"The mosaic '{name}' was cancelled; nothing was written")
-            k, more = dealer.finished(fut)
-            for f in more:
-                pending.add(f)
-            result = fut.result()
-            fut.release()
-            bar.step()
-            yield tiles[k], result
-    except BaseException:
-        for fut in list(pending.futures):
-            fut.cancel()
-        raise
-    finally:
-        bar.close()
-        remote.release()
+    with broadcast_plan(client, plan, worker_device) as remote:
+        def submit(k: int, w: str) -> Any:
+            return client.submit(_tile_task, remote, tiles[k], workers=[w], allow_other_workers=True, pure=False,
+                                 key=f"{tag}-{k}")
+
+        # (not as_finished: each finished tile lets the dealer submit the next of its worker)
+        dealer = _Submitter(_deal(client, tiles, images), submit, per_worker or _PER_WORKER * threads)
+        pending = distributed.as_completed(dealer.start(), with_results=False)
+        try:
+            for fut in pending:
+                if cancel is not None and cancel.is_set():
+                    raise Cancelled(f"The mosaic '{name}' was cancelled; nothing was written")
+                k, more = dealer.finished(fut)
+                for f in more:
+                    pending.add(f)
+                result = fut.result()
+                fut.release()
+                bar.step()
+                yield tiles[k], result
+        except BaseException:
+            for fut in list(pending.futures):
+                fut.cancel()
+            raise
+        finally:
+            bar.close()
 
 
 # -- the tiled product --------------------------------------------------------------------------
@@ -883,31 +910,20 @@ def _check(cancel: threading.Event | None, dst: str) -> None:
 def _tiles_on_cluster(plan: Any, client: Any, todo: list, work: str, settings: TiledSettings,
                       cancel: threading.Event | None, dst: str, bar: Progress, device: str | None) -> list[dict]:
     """The product tiles on the workers of ``client``, dealt in bands."""
-    distributed = _distributed()
     if not todo:
         return []
-    shipped = shipped_plan(plan, device)
-    remote = client.scatter(shipped, broadcast=True, hash=False)
     tiles = [t for _, _, t in todo]
     images = plan._tile_images(tiles)
     tag = f"orthowarp-product-{os.getpid()}-{time.monotonic_ns():x}"
     threads = {w: int(info.get("nthreads", 1)) for w, info in client.scheduler_info()["workers"].items()}
-    futures = []
-    for k, w in _deal(client, tiles, images):
-        i, j, t = todo[k]
-        futures.append(client.submit(_write_product_tile, remote, i, j, t, work, settings, threads.get(w, 1),
-                                     workers=[w],
-                                     allow_other_workers=True, pure=False, key=f"{tag}-{k}"))
     out = []
-    try:
-        for fut in distributed.as_completed(futures):
-            _check(cancel, dst)
-            out.append(fut.result())
-            fut.release()
+    with broadcast_plan(client, plan, device) as remote:
+        futures = []
+        for k, w in _deal(client, tiles, images):
+            i, j, t = todo[k]
+            futures.append(client.submit(_write_product_tile, remote, i, j, t, work, settings, threads.get(w, 1),
+                                         workers=[w], allow_other_workers=True, pure=False, key=f"{tag}-{k}"))
+        for _, stats in as_finished(client, futures, lambda: _check(cancel, dst)):
+            out.append(stats)
             bar.step()
-    except BaseException:
-        client.cancel(futures)
-        raise
-    finally:
-        remote.release()
     return out

@@ -953,23 +953,10 @@ def _reduced_on_cluster(plan: MosaicPlan, client: Any, f: int, order: Sequence[i
                         cancel: threading.Event | None, device: str | None) -> dict[int, tuple | None]:
     """:func:`reduced_pass`'s images rendered on the workers of a Dask ``client``, in ``order``
     (the plan sent to each worker once)."""
-    import distributed
+    from .cluster import as_finished, broadcast_plan
 
-    from .cluster import shipped_plan
-
-    remote = client.scatter(shipped_plan(plan, device), broadcast=True, hash=False)
     tag = f"orthowarp-reduced-{os.getpid()}-{time.monotonic_ns():x}"
-    futures = [client.submit(_reduced_image, remote, k, f, pure=False, key=f"{tag}-{k}") for k in order]
-    which = {fut.key: k for k, fut in zip(order, futures)}
-    items = {}
-    try:
-        for fut in distributed.as_completed(futures):
-            check_cancel(cancel, "the mosaic")
-            items[which[fut.key]] = fut.result()
-            fut.release()
-    except BaseException:
-        client.cancel(futures)
-        raise
-    finally:
-        remote.release()
-    return items
+    with broadcast_plan(client, plan, device) as remote:
+        futures = [client.submit(_reduced_image, remote, k, f, pure=False, key=f"{tag}-{k}") for k in order]
+        return {order[pos]: item for pos, item in as_finished(client, futures,
+                                                              lambda: check_cancel(cancel, "the mosaic"))}
