@@ -161,7 +161,7 @@ def simulate_points(truth: dict[str, PushbroomScene], *, n: int = 47, layout: st
     if noise:
         enu = rng.normal(0.0, 1.0, (n, 3)) * ground_sigma
         x = geodesy.geodetic_to_ecef(llh[:, 1], llh[:, 0], llh[:, 2])
-        x = x + np.stack([geodesy.enu_to_ecef_matrix(la, lo) @ e for la, lo, e in zip(llh[:, 1], llh[:, 0], enu)])
+        x = x + np.matmul(geodesy.enu_to_ecef_matrix(llh[:, 1], llh[:, 0]), enu[:, :, None])[:, :, 0]
         lat, lon, h = geodesy.ecef_to_geodetic(x)
         given = np.stack([lon, lat, h], -1)
         obs_a = obs_a + rng.normal(0.0, pixel_sigma, obs_a.shape)
