@@ -1257,6 +1257,11 @@ def test_tiles_on_worker_processes_give_the_same_file(pair, tmp_path, codec):
     np.testing.assert_array_equal(ma, mb)
     np.testing.assert_array_equal(a, b)
     assert pa == pb and sum(pa) > 0 and n == 2
+    # the profile's timeline: the workers' kernels (merged into this process's stages) and the
+    # files' closing fall in its bins
+    tl = res.profile["timeline"]
+    assert tl["bin_s"] > 0 and len(tl["stages"]["kernel"]) == 40 and sum(tl["stages"]["kernel"]) > 0
+    assert res.profile["stages"]["finish"]["count"] == 1
     # each image built once per process whose run (or taken tiles) met it
     assert builds_a == 2 and 2 <= builds_b <= 4 and held_a == 2 and 1 <= held_b <= 2
 
