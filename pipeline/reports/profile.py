@@ -28,7 +28,9 @@ prepare
 read
     Per tile: reading the source window (and its mask) with GDAL.
 h2d
-    Per tile: host -> device copies of the window and the tile's small arrays.
+    Per tile: host -> device copies of the window and the tile's small arrays (and, for a
+    mosaic's tile processes, the calling process's upload of each finished tile for its
+    device encoder).
 kernel
     Per tile: kernel launches up to their completion.
 d2h
@@ -128,6 +130,13 @@ class StageTimer:
         into ``bins`` equal bins, and per stage (those with intervals) the summed time of its
         intervals within each bin over the bin's length, i.e. the mean number of threads (and
         processes) in that stage then, rounded to 0.01.
+
+        Parameters
+        ----------
+        bins : int, optional
+            Number of equal time bins (default 40).
+        end : float, optional
+            ``time.perf_counter()`` seconds at which the timeline ends (default: now).
 
         Returns
         -------
