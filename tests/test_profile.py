@@ -58,6 +58,9 @@ def test_stage_timer_profile_numbers():
     np.testing.assert_allclose(p["other_s"], 0.5)  # 5.5 .. 6.0 in no stage
     # the hand-off (waiting on the writer) is the longest but never the bound: the work is
     assert p["bound_by"] == "write" and p["bound"] == "bound by compress+write on the host"
+    # with a device encoder the write spans are its batches on the device
+    t.info["block_codec"] = "warp"
+    assert t.profile(end=106.0)["bound"] == "bound by compression on the device (the COG encoder's batches) and writing"
     np.testing.assert_allclose(p["first_kernel_s"], 1.0)
     assert p["device"] == "cpu" and p["tiles"] == 2 and p["threads"] == 2
     assert json.loads(json.dumps(p)) == p  # plain JSON: floats, ints, strings, None

@@ -190,18 +190,24 @@ class StageTimer:
         p0 = process_start()
         covered = min(union_length([iv for v in spans.values() for iv in v]), wall)
         prof = dict(wall_s=float(wall), stages=stages, other_s=float(wall - covered))
-        prof.update(_busy_and_bound(stages, wall))
+        prof.update(_busy_and_bound(stages, wall, info.get("block_codec")))
         prof["first_kernel_s"] = float(min(s for s, _ in kernels) - self.start) if kernels else None
         prof["call_start_s"] = float(self.start - p0) if p0 is not None else None
         prof.update(info)
         return prof
 
 
-def _busy_and_bound(stages: dict, wall: float) -> dict:
+_DEVICE_CODECS = ("nvcomp", "warp", "hybrid")  # block codecs whose "write" spans are device batches
+
+
+def _busy_and_bound(stages: dict, wall: float, block_codec: str | None = None) -> dict:
     busy = stages["kernel"]["union_s"]
     bound = max((k for k in STAGES if k != "queue"), key=lambda k: stages[k]["union_s"])
+    words = _BOUND[bound]
+    if bound == "write" and block_codec in _DEVICE_CODECS:
+        words = "compression on the device (the COG encoder's batches) and writing"
     return dict(device_busy_s=float(busy), device_busy_fraction=float(busy / wall) if wall > 0 else 0.0,
-                bound_by=bound, bound=f"bound by {_BOUND[bound]}")
+                bound_by=bound, bound=f"bound by {words}")
 
 
 def merge_profiles(profiles: Sequence[dict], *, wall: float | None = None) -> dict:
@@ -236,8 +242,8 @@ def merge_profiles(profiles: Sequence[dict], *, wall: float | None = None) -> di
                          count=int(sum(p["stages"][k]["count"] for p in profiles)))
     other = max(wall - sum(p["wall_s"] - p["other_s"] for p in profiles), 0.0)  # between the calls too
     out = dict(wall_s=float(wall), stages=stages, other_s=float(other), images=len(profiles))
-    out.update(_busy_and_bound(stages, wall))
     first = profiles[0] if profiles else {}
+    out.update(_busy_and_bound(stages, wall, first.get("block_codec")))
     out["first_kernel_s"] = first.get("first_kernel_s")
     out["call_start_s"] = first.get("call_start_s")
     for key in ("device", "threads", "block_codec"):
