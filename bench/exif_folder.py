@@ -41,6 +41,14 @@ declares them, and those differences' quartiles, in the report. FILE may be a Ge
 point cloud (e.g. OpenDroneMap's model.laz; needs laspy, with lazrs for LAZ), gridded here into a
 DSM: the highest point of each 0.2 m cell, 3 x 3 median-filtered, empty cells from the nearest.
 
+With ``--chain-surface`` (with ``--adjust``) the chain runs as ``orthowarp mosaic FOLDER --exif
+--adjust`` does without ``--height``: it matches on the take-off point's height and makes its own
+terrain from the adjusted tie points (with the dense points of every overlapping pair unless
+``--setting densify=false``; ``--setting dense_spacing=N`` sets their grid); the adjusted orthos are
+then made on that terrain (the chain's ``tie_surface.tif``) and measured, with the chain's steps'
+seconds (matching, adjustment, surfaces, densification) in the report; the orthos on constant
+heights after the adjustment and ``relief_at_ties`` are skipped.
+
 With ``--attitude gps`` the XMP attitude is withheld: the images are copied into
 ``<work>/gps_only_images`` with their ``drone-dji:Gimbal*Degree`` keys renamed (the same number
 of bytes, so nothing else in the files moves), and every image is taken as nadir with its top
@@ -48,7 +56,7 @@ along the flight line (GPS only), as for a consumer camera without gimbal tags.
 
 usage: python3 bench/exif_folder.py FOLDER [--height H] [--resolution 0.05] [--oty PATH/TO/oty] [--adjust]
                                     [--heading tags|content] [--attitude tags|gps] [--tie-dem L] [--dem FILE]
-                                    [--setting KEY=VALUE ...] [--no-mosaic]
+                                    [--setting KEY=VALUE ...] [--chain-surface] [--no-mosaic]
                                     [--work DIR] [--reuse] [--device cpu] [--out FILE]
 ``--setting KEY=VALUE`` (repeatable; e.g. ``--setting zones=12,9 --setting per_zone=4``) overrides
 the chain's matching and adjustment settings (orthowarp.pipeline.drone.ADJUST_DEFAULTS) in the
@@ -484,6 +492,9 @@ def main(argv=None):
     ap.add_argument("--setting", action="append", default=[], metavar="KEY=VALUE",
                     help="with --adjust: a setting of the chain (orthowarp.pipeline.drone.ADJUST_DEFAULTS, e.g. "
                          "zones=12,9 or per_zone=4; VALUE as JSON, or comma-separated numbers); repeatable")
+    ap.add_argument("--chain-surface", action="store_true",
+                    help="with --adjust: the chain without --height (its own terrain from the adjusted tie points "
+                         "and dense points), the adjusted orthos on that terrain")
     ap.add_argument("--no-mosaic", action="store_true", help="skip step 2 (the EXIF mosaic)")
     ap.add_argument("--reuse", action="store_true", help="keep the orthos and the chain's files found in --work")
     ap.add_argument("--work", default=None)
@@ -540,16 +551,40 @@ def main(argv=None):
     if args.adjust:
         mosaic = os.path.join(work, "mosaic_adjusted.tif")
         adj = os.path.splitext(mosaic)[0] + "_adjust"
+        chain_common = common[2:] if args.chain_surface else common  # (no --height: the chain's own terrain)
         secs, lines = (None, []) if args.reuse and os.path.exists(os.path.join(adj, "chain.json")) else \
-            cli("mosaic", args.folder, *exif, "--adjust", "-o", mosaic, *common, settings=settings)
+            cli("mosaic", args.folder, *exif, "--adjust", "-o", mosaic, *chain_common, settings=settings)
         with open(os.path.join(adj, "chain.json")) as f:
             chain = json.load(f)
-        report["chain"] = dict(seconds=secs, folder=adj, report=chain, output=[ln for ln in lines if "adjust" in ln])
-        print("\n".join(ln for ln in lines if ln.startswith("adjust")))
+        report["chain"] = dict(seconds=secs, folder=adj, report=chain,
+                               output=[ln for ln in lines if ln.startswith(("adjust", "densify", "terrain"))])
+        print("\n".join(ln for ln in lines if ln.startswith(("adjust", "densify", "terrain"))))
         unmatched = set(chain.get("unmatched", []))  # (kept their EXIF orientation: not in exterior.csv)
         images = [o.image for o in orients if os.path.splitext(os.path.basename(o.image))[0] not in unmatched]
         orient_args = ["--int-param", os.path.join(adj, "cameras.yaml"),
                        "--ext-param", os.path.join(adj, "exterior.csv")]
+        if args.chain_surface:
+            terrain = chain["terrain"]
+            steps = dict(matching=chain["match"]["seconds"], adjustment=chain["adjust"]["seconds"],
+                         ties_surface=terrain.get("ties_surface", terrain["surface"]).get("seconds"),
+                         densify=chain.get("densify", {}).get("seconds"),
+                         surface=terrain["surface"].get("seconds") if "ties_surface" in terrain else None,
+                         chain_and_mosaic_command=secs)
+            folder = os.path.join(work, "orthos_adjusted_chain_surface")
+            secs, _ = orthos(folder, ["--dem", os.path.join(adj, "tie_surface.tif"), *common[2:]], *images,
+                             *orient_args, reuse=args.reuse)
+            steps["orthos"] = secs
+            s = terrain["surface"]
+            d = chain.get("densify")
+            label = (f"overlaps, adjusted orientation on the chain's surface ({s['points_used']} points, "
+                     f"{s['smoothing_length_m']:.2f} m{', with dense points' if d else ''})")
+            report["orthos_adjusted_chain_surface"] = dict(seconds=secs, surface=s, dense=dict(
+                {k: v for k, v in d.items() if k != "per_pair"}) if d else None, step_seconds=steps,
+                **overlap_summary(folder, args.resolution, label))
+            print("step seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in steps.items() if v is not None))
+            save_report(report, args.out)
+            print(f"report: {args.out}")
+            return
         secs, _ = orthos(os.path.join(work, "orthos_adjusted"), common, *images, *orient_args, reuse=args.reuse)
         report["orthos_adjusted"] = dict(seconds=secs, **overlap_summary(
             os.path.join(work, "orthos_adjusted"), args.resolution, "overlaps, adjusted orientation"))

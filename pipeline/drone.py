@@ -201,9 +201,12 @@ def exif_sensors(images: Iterable[str | os.PathLike], *, dem: Dem | str | os.Pat
 #: 1 m, the gimbal angles at 2 degrees; the radial distortion k1, k2 self-calibrated; data
 #: snooping. The focal length is not estimated by default: in a block of nadir images over
 #: flat ground without control it trades with the tie points' heights, which are free (give
-#: ``self_calibration=("f", "k1", "k2")`` where relief or oblique images determine it).
+#: ``self_calibration=("f", "k1", "k2")`` where relief or oblique images determine it). Where
+#: the chain makes the terrain from the adjusted tie points, ``densify`` first adds dense
+#: points of every overlapping pair, matched on a grid of one point every ``dense_spacing``
+#: px with the adjusted orientation held (:func:`~orthowarp.pipeline.densify.densify`).
 ADJUST_DEFAULTS = dict(zones=(8, 6), per_zone=3, window=21, radius=12, levels=4, min_sigma=0.5, gnss_sigma=1.0,
-                       ins_sigma=2.0, self_calibration=("k1", "k2"), snooping=True)
+                       ins_sigma=2.0, self_calibration=("k1", "k2"), snooping=True, densify=True, dense_spacing=64)
 
 
 @dataclass
@@ -220,15 +223,19 @@ class ExifChain:
         points, ties, observations, seconds), ``adjust`` (sigma0, redundancy, rejected
         observations, the cameras before and after, the pose changes, the tie points' median
         height, seconds), ``terrain`` (what the matching took; ``surface``: the tie surface's
-        points used and rejected, smoothing length, extent, height range), and with ground
-        control ``control`` (the points used, left out, the control and check points'
-        residuals, m).
+        points used and rejected, smoothing length, extent, height range, seconds; with
+        densification ``ties_surface``, the surface of the tie points alone that predicted the
+        dense matches), with densification ``densify``
+        (:meth:`~orthowarp.pipeline.densify.DensePoints.report`: the points matched, used and
+        rejected, per pair too, seconds), and with ground control ``control`` (the points used,
+        left out, the control and check points' residuals, m).
     folder : str
         Where the steps' files are: ``exif/int_param.yaml`` and ``exif/ext_param.csv`` (the
         orientation given, in orthority's formats), ``block.json`` (the matched block), the
         adjustment's ``exterior.csv``, ``cameras.yaml``, ``points.csv``, ``pose_cov.json``,
         ``report.md`` (with the chain's own sections: the terrain, the ground control), and
-        ``chain.json``; with a surface ``tie_surface.tif`` and ``tie_points.csv``.
+        ``chain.json``; with a surface ``tie_surface.tif`` and ``tie_points.csv``, with
+        densification ``dense_points.csv``.
     surface : TieSurface or None
         The terrain from the adjusted tie points, where asked for.
     """
@@ -291,15 +298,21 @@ def adjust_exif(sensors: Sequence[tuple[str, FrameSensor]], dem: Dem | str | os.
     surface : bool, optional
         Also a terrain surface from the adjusted tie and control points (:func:`tie_surface`),
         ``tie_surface.tif`` in ``folder``, over the images' footprints; the points with their
-        observation counts in ``tie_points.csv``.
+        observation counts in ``tie_points.csv``. With the ``densify`` setting (the default)
+        the surface of the tie points alone predicts dense matches of every overlapping pair
+        (:func:`~orthowarp.pipeline.densify.densify`, one grid point every ``dense_spacing``
+        px; the adjusted orientation held), and the surface is made from the tie points and the
+        dense points together, following the tie points' surface where dense points are few;
+        the dense points in ``dense_points.csv``.
     surface_length : float, optional
-        Its smoothing length (m; default :func:`tie_surface`'s).
+        Its smoothing length (m; default :func:`tie_surface`'s, from the points' spacing).
     **settings
         Overrides of :data:`ADJUST_DEFAULTS`: ``zones``, ``per_zone``, ``window``, ``radius``,
         ``levels`` (:func:`~orthowarp.pipeline.matching.match_block`), ``min_sigma`` (px),
         ``gnss_sigma`` (m),
         ``ins_sigma`` (deg), ``self_calibration``, ``snooping``
-        (:func:`~orthowarp.adjust.bundle_adjust`).
+        (:func:`~orthowarp.adjust.bundle_adjust`), ``densify`` (bool), ``dense_spacing`` (px;
+        :func:`~orthowarp.pipeline.densify.densify`'s ``spacing``).
 
     Returns
     -------
@@ -313,6 +326,7 @@ def adjust_exif(sensors: Sequence[tuple[str, FrameSensor]], dem: Dem | str | os.
     GeometryError
         The adjustment failed (nothing of it is written).
     """
+    from .._validate import flag, integer
     from ..adjust import bundle_adjust
     from .formats.block import write_block
     from .formats.export import export_params
@@ -325,6 +339,8 @@ def adjust_exif(sensors: Sequence[tuple[str, FrameSensor]], dem: Dem | str | os.
     if unknown:
         raise ParamError(f"adjust_exif: unknown setting(s) {', '.join(unknown)} (known: {', '.join(ADJUST_DEFAULTS)})")
     cfg = {**ADJUST_DEFAULTS, **settings}
+    cfg["densify"] = flag("densify", cfg["densify"])
+    cfg["dense_spacing"] = integer("dense_spacing", cfg["dense_spacing"], low=4)
     sensors = list(sensors)
     if len(sensors) < 2:
         raise ParamError(f"The chain needs two or more images, got {len(sensors)}")
@@ -374,8 +390,21 @@ def adjust_exif(sensors: Sequence[tuple[str, FrameSensor]], dem: Dem | str | os.
         report["control"] = control_report
     tie = None
     if surface:
-        tie = _chain_surface(res, block, adjusted, folder, surface_length)
-        report["terrain"]["surface"] = tie.report()
+        t0 = time.perf_counter()
+        tie = _chain_surface(res, block, adjusted, folder, None if cfg["densify"] else surface_length)
+        report["terrain"]["surface"] = dict(tie.report(), seconds=time.perf_counter() - t0)
+        if cfg["densify"]:
+            dense = _chain_densify(res, block, sensors, adjusted, ids, tie, cfg, refraction=refraction, device=device)
+            report["densify"] = dense.report()
+            if dense.used.any():
+                report["terrain"]["ties_surface"] = report["terrain"]["surface"]
+                t0 = time.perf_counter()
+                tie = _chain_surface(res, block, adjusted, folder, surface_length, dense=dense,
+                                     base=_surface_dem(tie.path))
+                report["terrain"]["surface"] = dict(tie.report(), seconds=time.perf_counter() - t0)
+            else:
+                log.warning("densification matched no usable point: the terrain is the tie points' surface")
+                _write_dense(dense, block.image_ids, os.path.join(folder, "dense_points.csv"), None)
     write_json(os.path.join(folder, "chain.json"), report)
     _append_markdown(os.path.join(folder, "report.md"), report)
     return ExifChain(adjusted, report, folder, tie)
@@ -823,15 +852,17 @@ def _smooth_grid(xy: np.ndarray, r: np.ndarray, x0: float, y1: float, h: float, 
 
 def tie_surface(points: Any, crs: Any, path: str | os.PathLike, *, length: float | None = None,
                 spacing: float | None = None, bounds: Sequence[float] | None = None,
-                reject: float = SURFACE["reject"], min_points: int = SURFACE["min_points"]) -> TieSurface:
+                reject: float = SURFACE["reject"], min_points: int = SURFACE["min_points"],
+                base: Dem | None = None) -> TieSurface:
     """A smooth terrain surface from ground points (the adjusted tie points of a block), written
     as a GeoTIFF whose heights are in the datum of the points' heights.
 
     The surface is the points' overall plane (least squares, refitted without its gross
     outliers) plus a local-linear Gaussian smoothing (``length``) of the points' departures from
-    it, pulled towards the plane where points are few (so it extrapolates as the plane). Points
-    whose height departs from the plane of their 12 nearest neighbours by more than ``reject``
-    robust scales (median based) are left out first.
+    it, pulled towards the plane where points are few (so it extrapolates as the plane); with
+    ``base``, the smoothing is of the departures from that surface instead, and pulled towards
+    it. Points whose height departs from the plane of their 12 nearest neighbours by more than
+    ``reject`` robust scales (median based) are left out first.
 
     Parameters
     ----------
@@ -859,6 +890,10 @@ def tie_surface(points: Any, crs: Any, path: str | os.PathLike, *, length: float
         Outlier threshold, in robust scales (1.4826 times the median departure, at least 1 cm).
     min_points : int, optional
         The fewest usable points (10 by default).
+    base : Dem, optional
+        A coarser surface (heights in the points' datum; any CRS), e.g. one of sparser points
+        with a longer ``length``: where points are few the surface follows it instead of the
+        points' plane (the plane where ``base`` has no height).
 
     Returns
     -------
@@ -883,6 +918,8 @@ def tie_surface(points: Any, crs: Any, path: str | os.PathLike, *, length: float
     from .raster.io import write_raster
 
     pts = as_points(points, 3, "points")
+    if base is not None and not isinstance(base, Dem):
+        raise ParamError(f"base must be a Dem, got {type(base).__name__}")
     horizontal = _horizontal(as_crs(crs, "crs"))
     if horizontal.is_geocentric or not (horizontal.is_geographic or horizontal.is_projected):
         raise CrsError(f"crs must be geographic or projected, got {horizontal.name}")
@@ -951,11 +988,16 @@ def tie_surface(points: Any, crs: Any, path: str | os.PathLike, *, length: float
         raise ParamError(f"A {cols} x {rows} grid (spacing {spacing:g} m) exceeds {max_cells} cells: give a larger "
                          "spacing")
     coef = _plane(uxy - lo, uz)
-    trend = uz - (coef[0] + (uxy - lo) @ coef[1:])
-    smooth = _smooth_grid(uxy, trend, x0, y1, spacing, rows, cols, length)
     gx = x0 + (np.arange(cols) + 0.5) * spacing - lo[0]
     gy = y1 - (np.arange(rows) + 0.5) * spacing - lo[1]
-    z = (coef[0] + coef[1] * gx[None, :] + coef[2] * gy[:, None] + smooth).astype(np.float32)
+    trend_grid = coef[0] + coef[1] * gx[None, :] + coef[2] * gy[:, None]
+    trend_pts = coef[0] + (uxy - lo) @ coef[1:]
+    if base is not None:
+        trend_pts = _base_at(base, out_crs, uxy[:, 0], uxy[:, 1], trend_pts)
+        gxx, gyy = np.meshgrid(gx + lo[0], gy + lo[1])
+        trend_grid = _base_at(base, out_crs, gxx.ravel(), gyy.ravel(), trend_grid.ravel()).reshape(rows, cols)
+    smooth = _smooth_grid(uxy, uz - trend_pts, x0, y1, spacing, rows, cols, length)
+    z = (trend_grid + smooth).astype(np.float32)
     transform = Affine(spacing, 0.0, x0, 0.0, -spacing, y1)
     surface = Dem(z, transform, out_crs)
     fit = uz - surface.sample(uxy[:, 0], uxy[:, 1])
@@ -965,6 +1007,25 @@ def tie_surface(points: Any, crs: Any, path: str | os.PathLike, *, length: float
     return TieSurface(path, out_crs, transform, (rows, cols), float(length), float(spacing), n_used, n_ok - n_used,
                       len(pts) - n_ok, (float(x0), float(y1 - rows * spacing), float(x0 + cols * spacing), float(y1)),
                       (float(z.min()), float(z.max())), float(np.sqrt(np.nanmean(fit * fit))), xy, used)
+
+
+def _base_at(base: Dem, crs: Any, x: np.ndarray, y: np.ndarray, fallback: np.ndarray) -> np.ndarray:
+    """Heights (n,) of the surface ``base`` at x, y (n,) of ``crs``; ``fallback`` (n,) where it
+    has none."""
+    if not isinstance(base, Dem):
+        raise ParamError(f"base must be a Dem, got {type(base).__name__}")
+    if base.is_constant:
+        return np.full(len(x), float(base.value))
+    if base.crs.equals(crs):
+        bx, by = x, y
+    else:
+        from pyproj import Transformer
+
+        with np.errstate(all="ignore"):
+            bx, by = Transformer.from_crs(crs, base.crs, always_xy=True).transform(x, y, errcheck=False)
+    with np.errstate(all="ignore"):
+        z = base.sample(np.asarray(bx, np.float64), np.asarray(by, np.float64))
+    return np.where(np.isfinite(z), z, fallback)
 
 
 # -- ground control of the chain ------------------------------------------------------------------
@@ -1292,11 +1353,60 @@ def _footprints(sensors: Sequence[tuple[str, FrameSensor]], height: float, crs: 
     return np.array([x.min(), y.min(), x.max(), y.max()])
 
 
+def _surface_dem(path: str) -> Dem:
+    """The surface GeoTIFF ``path`` read into memory (so the file may be replaced)."""
+    import rasterio
+
+    from ..errors import RasterIOError
+
+    try:
+        with rasterio.open(path) as ds:
+            return Dem(ds.read(1), ds.transform, ds.crs.to_wkt())
+    except rasterio.errors.RasterioIOError as e:
+        raise RasterIOError(f"Could not read the surface '{path}': {e}") from e
+
+
+def _chain_densify(res: Any, block: Any, sensors: list[tuple[str, FrameSensor]],
+                   adjusted: list[tuple[str, FrameSensor]], ids: list[str], tie: TieSurface, cfg: dict[str, Any], *,
+                   refraction: bool, device: str | None) -> Any:
+    """Dense points of the block's overlapping pairs (those sharing a tie point in the final
+    adjustment), predicted through the adjusted orientation and the tie points' surface."""
+    from .densify import densify, overlapping_pairs
+
+    used = np.asarray(res.used, bool)
+    pairs = overlapping_pairs(block.obs_image[used], block.obs_point[used])
+    where = {iid: k for k, iid in enumerate(ids)}
+    paths = [sensors[where[iid]][0] for iid in block.image_ids]
+    frames = [adjusted[where[iid]][1] for iid in block.image_ids]
+    return densify(paths, frames, _surface_dem(tie.path), pairs, ids=list(block.image_ids), refraction=refraction,
+                   device=device, spacing=cfg["dense_spacing"])
+
+
+def _write_dense(dense: Any, image_ids: Sequence[str], path: str, in_surface: np.ndarray | None) -> None:
+    """``dense_points.csv``: every matched dense point, its two images and pixels, position (in
+    the surface's CRS where given, else latitude, longitude), height, NCC, residual, departure
+    from the tie points' surface, status and whether the surface used it."""
+    from .densify import STATUS
+    from .raster.io import write_text
+
+    lines = ["point,image_a,image_b,col_a,row_a,col_b,row_b,lat,lon,z,ncc,residual_px,departure_m,status,used"]
+    for k in range(len(dense.status)):
+        a, b = dense.pair[k]
+        lat, lon, z = dense.lla[k]
+        used = int(in_surface[k]) if in_surface is not None else 0
+        lines.append(f"d{k},{image_ids[a]},{image_ids[b]},{dense.left[k, 0]:.3f},{dense.left[k, 1]:.3f},"
+                     f"{dense.right[k, 0]:.3f},{dense.right[k, 1]:.3f},{lat:.9f},{lon:.9f},{z:.3f},"
+                     f"{dense.score[k]:.3f},{dense.residual[k]:.3f},{dense.departure[k]:.3f},"
+                     f"{STATUS[int(dense.status[k])]},{used}")
+    write_text(path, "\n".join(lines) + "\n")
+
+
 def _chain_surface(res: Any, block: Any, sensors: list[tuple[str, FrameSensor]], folder: str,
-                   length: float | None) -> TieSurface:
+                   length: float | None, *, dense: Any = None, base: Dem | None = None) -> TieSurface:
     """The terrain surface of the adjusted tie and control points (tie points with two or more
-    observations in the final adjustment) over the images' footprints on their lowest height
-    (the 1st percentile), grown by a tenth: ``tie_surface.tif``; and ``tie_points.csv``."""
+    observations in the final adjustment), with ``dense`` the dense points it kept too, over
+    the images' footprints on their lowest height (the 1st percentile), grown by a tenth:
+    ``tie_surface.tif``; and ``tie_points.csv`` (with ``dense`` also ``dense_points.csv``)."""
     from .raster.io import write_text
 
     counts = np.bincount(block.obs_point[res.used], minlength=block.n_points)
@@ -1314,19 +1424,27 @@ def _chain_surface(res: Any, block: Any, sensors: list[tuple[str, FrameSensor]],
     crs = utm_crs(float(np.median(lla[:, 1])), float(np.median(lla[:, 0])))
     from pyproj import Transformer
 
+    n_ties = len(lla)
+    kept = np.flatnonzero(dense.used) if dense is not None else np.zeros(0, np.int64)
+    if len(kept):
+        lla = np.concatenate([lla, dense.lla[kept]])
     x, y = Transformer.from_crs("EPSG:4326", crs, always_xy=True).transform(lla[:, 1], lla[:, 0])
     x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
-    foot = _footprints(sensors, float(np.percentile(lla[:, 2], 1)), crs)  # (the lowest ground: the widest)
-    lo = np.minimum(foot[:2], [x.min(), y.min()])
-    hi = np.maximum(foot[2:], [x.max(), y.max()])
+    foot = _footprints(sensors, float(np.percentile(lla[:n_ties, 2], 1)), crs)  # (the lowest ground: the widest)
+    lo = np.minimum(foot[:2], [x[:n_ties].min(), y[:n_ties].min()])
+    hi = np.maximum(foot[2:], [x[:n_ties].max(), y[:n_ties].max()])
     grow = 0.1 * float(np.max(hi - lo))
     bounds = (lo[0] - grow, lo[1] - grow, hi[0] + grow, hi[1] + grow)
     surface = tie_surface(np.column_stack([x, y, lla[:, 2]]), crs, os.path.join(folder, "tie_surface.tif"),
-                          length=length, bounds=bounds)
+                          length=length, bounds=bounds, base=base)
     lines = ["point,role,x,y,z,observations,used"]
     for (pid, role, *_rest, n), xi, yi, zi, u in zip(rows, x, y, lla[:, 2], surface.used):
         lines.append(f"{pid},{role},{xi:.3f},{yi:.3f},{zi:.3f},{n},{int(u)}")
     write_text(os.path.join(folder, "tie_points.csv"), "\n".join(lines) + "\n")
+    if dense is not None:
+        in_surface = np.zeros(len(dense.status), bool)
+        in_surface[kept] = surface.used[n_ties:]
+        _write_dense(dense, block.image_ids, os.path.join(folder, "dense_points.csv"), in_surface)
     return surface
 
 
@@ -1346,8 +1464,9 @@ def _append_markdown(path: str, report: dict[str, Any]) -> None:
     s = t.get("surface")
     if s:
         e = s["extent"]
-        lines += [f"- surface from the adjusted tie points: `{s['file']}` ({s['crs']}), heights in the datum of the "
-                  "camera positions",
+        dense = bool(report.get("densify", {}).get("used")) and "ties_surface" in t
+        lines += [f"- surface from the adjusted tie points{' and the dense points' if dense else ''}: `{s['file']}` "
+                  f"({s['crs']}), heights in the datum of the camera positions",
                   f"- {s['points_used']} points used, {s['points_rejected']} rejected as outliers"
                   + (f", {s['points_invalid']} without coordinates" if s["points_invalid"] else ""),
                   f"- smoothing length {s['smoothing_length_m']:.2f} m, grid spacing {s['spacing_m']:.2f} m, "
@@ -1355,6 +1474,18 @@ def _append_markdown(path: str, report: dict[str, Any]) -> None:
                   f"- extent x {e[0]:.1f} .. {e[2]:.1f}, y {e[1]:.1f} .. {e[3]:.1f} m",
                   f"- heights {s['height_range_m'][0]:.2f} .. {s['height_range_m'][1]:.2f} m; the points' RMS "
                   f"departure from the surface {s['fit_rms_m']:.3f} m"]
+    d = report.get("densify")
+    if d:
+        lines += ["", "## Dense points", "",
+                  f"- {d['pairs']} overlapping pairs matched on a grid of one point every {d['settings']['spacing']} px, "
+                  f"predicted through the adjusted orientation and the tie points' surface: `dense_points.csv`",
+                  f"- {d['matched']} matched, {d['used']} kept; rejected: {d['rejected']['residual']} for their "
+                  f"reprojection residual (robust scale {d['residual_px']['scale']:.3f} px), "
+                  f"{d['rejected']['departure']} for their height's departure from the tie points' surface, "
+                  f"{d['rejected']['geometry']} for their rays' geometry; {d['seconds']:.1f} s",
+                  "", "| pair | grid | predicted | matched | kept |", "|---|---|---|---|---|"]
+        lines += [f"| {p['images'][0]} ~ {p['images'][1]} | {p['grid']} | {p['predicted']} | {p['matched']} | "
+                  f"{p['used']} |" for p in d["per_pair"]]
     c = report.get("control")
     if c:
         lines += ["", "## Ground control", "",

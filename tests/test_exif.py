@@ -758,7 +758,7 @@ def test_cli_chain_without_a_dem_takes_the_terrain_from_the_tie_points(tmp_path,
     take-off point's height (RelativeAltitude), the mosaic on the surface of the adjusted tie
     points, which follows the demo's hilly terrain; with --gcps (a gcp_list.txt, image names in
     another case than the files') and --check-points 2, the check points' errors reported
-    within a pixel."""
+    within a pixel. With --no-densify the surface is the tie points' alone (no dense points)."""
     import json
 
     import rasterio
@@ -776,12 +776,14 @@ def test_cli_chain_without_a_dem_takes_the_terrain_from_the_tie_points(tmp_path,
     out = tmp_path / "out" / "m.tif"
     res = CliRunner().invoke(main, ["mosaic", str(tmp_path / "images"), "--exif", "--adjust", "-o", str(out),
                                     "--resolution", "2", "--device", "cpu", "--gcps", str(tmp_path / "gcp_list.txt"),
-                                    "--check-points", "2"])
+                                    "--check-points", "2", "--no-densify"])
     assert res.exit_code == 0, res.output
     assert "take-off point's height 700.00 m" in res.output and "2 check points" in res.output, res.output
     folder = tmp_path / "out" / "m_adjust"
     chain = json.loads((folder / "chain.json").read_text())
     assert chain["terrain"]["matching"] == {"height_m": pytest.approx(700.0, abs=0.01)}
+    assert "densify" not in chain and chain["settings"]["densify"] is False  # (--no-densify: the ties alone)
+    assert not (folder / "dense_points.csv").exists() and "densify: " not in res.output
     s = chain["terrain"]["surface"]
     assert s["points_used"] >= 30 and s["file"] == "tie_surface.tif" and s["smoothing_length_m"] > 0
     assert s["height_range_m"][1] - s["height_range_m"][0] > 20  # (hills, not the take-off plane)
@@ -804,6 +806,8 @@ def test_cli_chain_without_a_dem_takes_the_terrain_from_the_tie_points(tmp_path,
     # without --adjust, --exif still needs a terrain; --surface-length without the tie terrain is refused
     for args, words in [([], "--dem FILE or --height METRES"),
                         (["--adjust", "--height", "700", "--surface-length", "5"], "--surface-length"),
+                        (["--adjust", "--height", "700", "--no-densify"], "--no-densify"),
+                        (["--densify", "--height", "700"], "with --exif --adjust"),
                         (["--gcps", str(tmp_path / "gcp_list.txt"), "--height", "700"], "with --exif --adjust")]:
         r = CliRunner().invoke(main, ["mosaic", str(tmp_path / "images"), "--exif", "-o", str(tmp_path / "x.tif"),
                                       *args])
@@ -868,10 +872,18 @@ def test_cli_ortho_chain_writes_registered_orthos_and_the_report(tmp_path, monke
     assert sorted(p.name for p in (tmp_path / "adjusted").iterdir()) == sorted([*names, "adjust"])
     folder = tmp_path / "adjusted" / "adjust"
     assert {"block.json", "exterior.csv", "cameras.yaml", "points.csv", "pose_cov.json", "report.md", "report.json",
-            "chain.json", "tie_surface.tif", "tie_points.csv", "exif"} == {p.name for p in folder.iterdir()}
+            "chain.json", "tie_surface.tif", "tie_points.csv", "dense_points.csv", "exif"} == \
+        {p.name for p in folder.iterdir()}
     assert {p.name for p in (folder / "exif").iterdir()} == {"int_param.yaml", "ext_param.csv"}
     chain = json.loads((folder / "chain.json").read_text())
     assert chain["control"]["check_points"] == 2 and chain["terrain"]["surface"]["points_used"] >= 30
+    # the dense points (the default): counted per pair, in the surface with the ties
+    d = chain["densify"]
+    assert d["used"] >= 50 and d["pairs"] == len(d["per_pair"]) >= 5 and "densify: " in res.output, d
+    assert chain["terrain"]["surface"]["points_used"] > chain["terrain"]["ties_surface"]["points_used"] + 40
+    dense = (folder / "dense_points.csv").read_text().splitlines()
+    assert dense[0].startswith("point,image_a,image_b,") and len(dense) == d["matched"] + 1
+    assert "## Dense points" in (folder / "report.md").read_text()
     # points.csv's latitudes and longitudes keep the adjusted points' positions (to 0.01 mm;
     # rounded to 4 decimals of a degree they were metres off): the same points as the surface's
     # tie_points.csv (UTM, mm) after a transformation

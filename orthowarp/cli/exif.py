@@ -82,18 +82,29 @@ def summary(job: Any) -> str:
 CHAIN_FILES = ("block.json", "exterior.csv", "cameras.yaml", "points.csv", "pose_cov.json", "report.md", "report.json",
                "chain.json", os.path.join("exif", "int_param.yaml"), os.path.join("exif", "ext_param.csv"))
 SURFACE_FILES = ("tie_surface.tif", "tie_points.csv")
+#: The file of the dense points (``--densify``, the default, where the terrain comes from the
+#: tie points).
+DENSE_FILES = ("dense_points.csv",)
+
+#: ``--densify/--no-densify`` of ``ortho`` and ``mosaic`` (None where not given: on).
+densify_option = click.option(
+    "--densify/--no-densify", "densify", default=None,
+    help="With --exif --adjust and neither --dem nor --height: before the terrain is made, match every overlapping "
+         "pair of images on a dense grid (one point every 64 px) with the adjusted orientation held, intersect the "
+         "matches and make the terrain from the tie points and these points together (dense_points.csv in "
+         "--adjust-dir). Default: on.")
 
 
 def check_chain_options(o: SimpleNamespace, *, chain_gcps: bool = True) -> None:
     """ParamError unless the options of ``--adjust`` fit: ``--adjust`` only with ``--exif``; the
-    chain's own options (``--gcps``, ``--check-points``, ``--surface-length``) only with
-    ``--adjust``, ``--check-points`` only with ``--gcps``.
+    chain's own options (``--gcps``, ``--check-points``, ``--surface-length``,
+    ``--densify/--no-densify``) only with ``--adjust``, ``--check-points`` only with ``--gcps``.
 
     Parameters
     ----------
     o : SimpleNamespace
         The command's options (``exif``, ``adjust_chain``, ``gcps``, ``check_points``,
-        ``surface_length``).
+        ``surface_length``, ``densify``).
     chain_gcps : bool, optional
         ``--gcps`` is the chain's ground control (False where it has another use: ``ortho
         --rpc``).
@@ -103,7 +114,9 @@ def check_chain_options(o: SimpleNamespace, *, chain_gcps: bool = True) -> None:
     if o.adjust_chain and not o.exif:
         raise ParamError("--adjust refines the orientation read with --exif: give --exif too")
     chain_only = [name for name, v in (("--gcps", o.gcps if chain_gcps else None), ("--check-points", o.check_points),
-                                       ("--surface-length", o.surface_length)) if v is not None]
+                                       ("--surface-length", o.surface_length),
+                                       ("--densify" if getattr(o, "densify", None) else "--no-densify",
+                                        getattr(o, "densify", None))) if v is not None]
     if chain_only and not o.adjust_chain:
         raise ParamError(f"{', '.join(chain_only)} go{'es' if len(chain_only) == 1 else ''} with --exif --adjust")
     if o.check_points is not None and o.gcps is None:
@@ -112,7 +125,8 @@ def check_chain_options(o: SimpleNamespace, *, chain_gcps: bool = True) -> None:
 
 def chain_terrain(o: SimpleNamespace, *, scenes: bool = False) -> bool:
     """ParamError unless the terrain options fit: exactly one of ``--dem`` and ``--height``, or
-    with ``--exif --adjust`` neither; ``--surface-length`` only for the tie points' terrain.
+    with ``--exif --adjust`` neither; ``--surface-length`` and ``--densify/--no-densify`` only
+    for the tie points' terrain.
 
     Parameters
     ----------
@@ -136,6 +150,9 @@ def chain_terrain(o: SimpleNamespace, *, scenes: bool = False) -> bool:
     if o.surface_length is not None and not tie_terrain:
         raise ParamError("--surface-length shapes the terrain made from the adjusted tie points, which --dem and "
                          "--height replace")
+    if getattr(o, "densify", None) is not None and not tie_terrain:
+        raise ParamError(f"{'--densify' if o.densify else '--no-densify'} shapes the terrain made from the adjusted "
+                         "tie points, which --dem and --height replace")
     if tie_terrain and scenes:
         raise ParamError("The terrain from the drone images' tie points does not cover --scene scenes: give --dem FILE "
                          "or --height METRES")
@@ -147,12 +164,13 @@ def chain_terrain(o: SimpleNamespace, *, scenes: bool = False) -> bool:
     return tie_terrain
 
 
-def check_chain_folder(folder: str, *, surface: bool, overwrite: bool) -> None:
+def check_chain_folder(folder: str, *, surface: bool, overwrite: bool, dense: bool = False) -> None:
     """ParamError (through :func:`~orthowarp.pipeline.raster.io.check_destination`) for a file
-    of the chain's ``folder`` that exists, unless ``overwrite``; before any work."""
+    of the chain's ``folder`` that exists, unless ``overwrite``; before any work. ``dense``:
+    with the dense points' file (with ``surface`` only)."""
     from ..pipeline.raster.io import check_destination
 
-    for name in CHAIN_FILES + (SURFACE_FILES if surface else ()):
+    for name in CHAIN_FILES + (SURFACE_FILES if surface else ()) + (DENSE_FILES if surface and dense else ()):
         check_destination(os.path.join(folder, name), overwrite=overwrite)
 
 
@@ -174,7 +192,7 @@ def exif_chain(jobs: list[tuple[str, Any]], orientations: list[Any], terrain: An
         point's height, and the terrain returned is the surface of the adjusted tie points.
     o : SimpleNamespace
         The command's options (``gcps``, ``check_points``, ``gcp_sigma``, ``gcp_pixel_sigma``,
-        ``surface_length``, ``device``, ``no_refraction``, ``overwrite``).
+        ``surface_length``, ``densify``, ``device``, ``no_refraction``, ``overwrite``).
     folder : str
         The chain's folder (``--adjust-dir``); its files are checked before any work.
     quiet : bool
@@ -195,10 +213,13 @@ def exif_chain(jobs: list[tuple[str, Any]], orientations: list[Any], terrain: An
         terrain comes from the tie points; as the chain's steps.
     """
     from ..errors import ParamError
-    from ..pipeline.drone import adjust_exif, gcp_control, takeoff_height
+    from ..pipeline.drone import ADJUST_DEFAULTS, adjust_exif, gcp_control, takeoff_height
 
     surface = terrain is None
-    check_chain_folder(folder, surface=surface, overwrite=o.overwrite)
+    densify = getattr(o, "densify", None)
+    settings = {} if densify is None else dict(densify=bool(densify))
+    check_chain_folder(folder, surface=surface, overwrite=o.overwrite,
+                       dense=densify if densify is not None else ADJUST_DEFAULTS["densify"])
     frames = [(img, s) for img, s in jobs if not s.line_timed]
     control = None
     if o.gcps is not None:
@@ -212,7 +233,7 @@ def exif_chain(jobs: list[tuple[str, Any]], orientations: list[Any], terrain: An
                              "XMP RelativeAltitude, which these images do not carry: give --height METRES (the "
                              "terrain's height in the datum of the GPS altitudes) or --dem FILE")
     chain = adjust_exif(frames, matching, folder, device=o.device, refraction=not o.no_refraction, control=control,
-                        surface=surface, surface_length=o.surface_length)
+                        surface=surface, surface_length=o.surface_length, **settings)
     if not quiet:
         click.echo(chain_summary(chain, matching if surface else None), err=True)
     adjusted = dict(chain.sensors)
@@ -238,10 +259,17 @@ def chain_summary(chain: Any, takeoff: float | None = None) -> str:
                   if q else "")
         lines.append(f"control: {c['control_points']} control and {c['check_points']} check points of {c['file']}, "
                      f"{c['observations']} measurements{checks}")
+    d = chain.report.get("densify")
+    if d is not None:
+        lines.append(f"densify: {d['pairs']} overlapping pairs on a {d['settings']['spacing']}-px grid: {d['matched']} "
+                     f"points matched, {d['used']} kept ({d['rejected']['residual']} rejected for their residual, "
+                     f"{d['rejected']['departure']} for their height, {d['rejected']['geometry']} for their rays); "
+                     f"{d['seconds']:.1f} s")
     if takeoff is not None and chain.surface is not None:
         s = chain.report["terrain"]["surface"]
         lines.append(f"terrain: matched on the take-off point's height {takeoff:.2f} m; surface from "
-                     f"{s['points_used']} adjusted tie points ({s['points_rejected']} rejected), smoothing "
+                     f"{s['points_used']} adjusted tie{' and dense' if d is not None and d['used'] else ''} points "
+                     f"({s['points_rejected']} rejected), smoothing "
                      f"{s['smoothing_length_m']:.1f} m, heights {s['height_range_m'][0]:.2f} .. "
                      f"{s['height_range_m'][1]:.2f} m: {chain.surface.path}")
     return "\n".join(lines)

@@ -13,6 +13,7 @@ from typing import Any
 import click
 
 from ..options import Method, SourceReads, values
+from . import exif as exif_cli
 from . import options
 from .report import crs_label
 from .warm import warm_up
@@ -44,6 +45,7 @@ _DEFAULT_SOURCES = (None, click.core.ParameterSource.DEFAULT, click.core.Paramet
 @options.gcp_sigma
 @options.gcp_pixel_sigma
 @options.surface_length
+@exif_cli.densify_option
 @options.terrain
 @options.crs
 @options.resolution
