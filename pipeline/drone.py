@@ -1011,9 +1011,7 @@ def tie_surface(points: Any, crs: Any, path: str | os.PathLike, *, length: float
 
 def _base_at(base: Dem, crs: Any, x: np.ndarray, y: np.ndarray, fallback: np.ndarray) -> np.ndarray:
     """Heights (n,) of the surface ``base`` at x, y (n,) of ``crs``; ``fallback`` (n,) where it
-    has none."""
-    if not isinstance(base, Dem):
-        raise ParamError(f"base must be a Dem, got {type(base).__name__}")
+    has none (``base`` checked by :func:`tie_surface`)."""
     if base.is_constant:
         return np.full(len(x), float(base.value))
     if base.crs.equals(crs):
