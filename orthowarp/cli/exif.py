@@ -86,14 +86,6 @@ SURFACE_FILES = ("tie_surface.tif", "tie_points.csv")
 #: tie points).
 DENSE_FILES = ("dense_points.csv",)
 
-#: ``--densify/--no-densify`` of ``ortho`` and ``mosaic`` (None where not given: on).
-densify_option = click.option(
-    "--densify/--no-densify", "densify", default=None,
-    help="With --exif --adjust and neither --dem nor --height: before the terrain is made, match every overlapping "
-         "pair of images on a dense grid (one point every 64 px) with the adjusted orientation held, intersect the "
-         "matches and make the terrain from the tie points and these points together (dense_points.csv in "
-         "--adjust-dir). Default: on.")
-
 
 def check_chain_options(o: SimpleNamespace, *, chain_gcps: bool = True) -> None:
     """ParamError unless the options of ``--adjust`` fit: ``--adjust`` only with ``--exif``; the
@@ -115,8 +107,7 @@ def check_chain_options(o: SimpleNamespace, *, chain_gcps: bool = True) -> None:
         raise ParamError("--adjust refines the orientation read with --exif: give --exif too")
     chain_only = [name for name, v in (("--gcps", o.gcps if chain_gcps else None), ("--check-points", o.check_points),
                                        ("--surface-length", o.surface_length),
-                                       ("--densify" if getattr(o, "densify", None) else "--no-densify",
-                                        getattr(o, "densify", None))) if v is not None]
+                                       ("--densify" if o.densify else "--no-densify", o.densify)) if v is not None]
     if chain_only and not o.adjust_chain:
         raise ParamError(f"{', '.join(chain_only)} go{'es' if len(chain_only) == 1 else ''} with --exif --adjust")
     if o.check_points is not None and o.gcps is None:
@@ -132,7 +123,7 @@ def chain_terrain(o: SimpleNamespace, *, scenes: bool = False) -> bool:
     ----------
     o : SimpleNamespace
         The command's options (``exif``, ``adjust_chain``, ``dem``, ``height``,
-        ``surface_length``).
+        ``surface_length``, ``densify``).
     scenes : bool, optional
         Pushbroom scenes are among the inputs (the tie points' terrain does not cover them).
 
@@ -150,7 +141,7 @@ def chain_terrain(o: SimpleNamespace, *, scenes: bool = False) -> bool:
     if o.surface_length is not None and not tie_terrain:
         raise ParamError("--surface-length shapes the terrain made from the adjusted tie points, which --dem and "
                          "--height replace")
-    if getattr(o, "densify", None) is not None and not tie_terrain:
+    if o.densify is not None and not tie_terrain:
         raise ParamError(f"{'--densify' if o.densify else '--no-densify'} shapes the terrain made from the adjusted "
                          "tie points, which --dem and --height replace")
     if tie_terrain and scenes:
@@ -216,7 +207,7 @@ def exif_chain(jobs: list[tuple[str, Any]], orientations: list[Any], terrain: An
     from ..pipeline.drone import ADJUST_DEFAULTS, adjust_exif, gcp_control, takeoff_height
 
     surface = terrain is None
-    densify = getattr(o, "densify", None)
+    densify = o.densify
     settings = {} if densify is None else dict(densify=bool(densify))
     check_chain_folder(folder, surface=surface, overwrite=o.overwrite,
                        dense=densify if densify is not None else ADJUST_DEFAULTS["densify"])

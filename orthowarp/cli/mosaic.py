@@ -12,7 +12,6 @@ from typing import Any
 import click
 
 from ..options import Blend, Seams, values
-from . import exif as exif_cli
 from . import options
 from .report import crs_label
 from .warm import warm_up
@@ -30,7 +29,7 @@ MOSAIC_GPU_PROCESSES = 4
 @options.adjust_options
 @options.chain_control
 @options.surface_length
-@exif_cli.densify_option
+@options.densify
 @click.option("--scene", "scenes", nargs=2, multiple=True,
               type=(click.Path(dir_okay=False), click.Path(dir_okay=False)),
               metavar="IMAGE DIMAP", help="A pushbroom scene: its image and its SPOT level-1A DIMAP metadata "

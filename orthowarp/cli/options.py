@@ -160,12 +160,13 @@ adjust = click.option(
     help="With --exif: first refine the tags' orientation: tie points by matching, then a bundle adjustment with the "
          "GPS positions and gimbal angles as observations (and --gcps) and the camera's radial distortion (k1, k2) "
          "self-calibrated; without --dem and --height the matching takes the take-off point's height and the orthos "
-         "or the mosaic a smooth terrain from the adjusted tie points; each step's files and report in --adjust-dir.")
+         "or the mosaic a terrain from the adjusted tie points (and dense points: --densify); each step's files and "
+         "report in --adjust-dir.")
 adjust_dir = click.option(
     "--adjust-dir", type=click.Path(file_okay=False), default=None,
     help="Folder of --adjust's files (exif/ with the tags' orientation, block.json, exterior.csv, cameras.yaml, "
-         "points.csv, pose_cov.json, report.md, report.json, chain.json; tie_surface.tif and tie_points.csv where the "
-         "terrain comes from the tie points); default: adjust/ in the orthos' --out-dir, <mosaic>_adjust beside a "
+         "points.csv, pose_cov.json, report.md, report.json, chain.json; tie_surface.tif, tie_points.csv and, with "
+         "--densify, dense_points.csv where the terrain comes from the tie points); default: adjust/ in the orthos' --out-dir, <mosaic>_adjust beside a "
          "mosaic.")
 adjust_options = compose(adjust, adjust_dir)
 surface_length = click.option("--surface-length", type=click.FloatRange(min=0.0, min_open=True), default=None,
@@ -173,6 +174,13 @@ surface_length = click.option("--surface-length", type=click.FloatRange(min=0.0,
                               help="With --exif --adjust and neither --dem nor --height: the smoothing length of the "
                                    "terrain made from the adjusted tie points (a Gaussian's standard deviation, m; "
                                    "default the median distance from a point to its 6th nearest).")
+#: ``--densify/--no-densify`` of ``ortho`` and ``mosaic`` (None where not given: on).
+densify = click.option(
+    "--densify/--no-densify", "densify", default=None,
+    help="With --exif --adjust and neither --dem nor --height: before the terrain is made, match every overlapping "
+         "pair of images on a dense grid (one point every 64 px) with the adjusted orientation held, intersect the "
+         "matches and make the terrain from the tie points and these points together (dense_points.csv in "
+         "--adjust-dir). Default: on.")
 orthos = click.option("--orthos", is_flag=True,
                       help="IMAGES are orthoimages already (georeferenced rasters: orthority's orthos, GDAL's, "
                            "orthowarp's), mosaicked by their CRS and geotransform, reprojected where their grids "

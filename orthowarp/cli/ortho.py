@@ -13,7 +13,6 @@ from typing import Any
 import click
 
 from ..options import Method, SourceReads, values
-from . import exif as exif_cli
 from . import options
 from .report import crs_label
 from .warm import warm_up
@@ -45,7 +44,7 @@ _DEFAULT_SOURCES = (None, click.core.ParameterSource.DEFAULT, click.core.Paramet
 @options.gcp_sigma
 @options.gcp_pixel_sigma
 @options.surface_length
-@exif_cli.densify_option
+@options.densify
 @options.terrain
 @options.crs
 @options.resolution
