@@ -118,9 +118,8 @@ def ned_to_ecef_matrix(lat: float, lon: float) -> np.ndarray:
     ndarray, shape (3, 3)
         Maps NED vectors at (lat, lon) to ECEF vectors.
     """
-    la, lo = np.radians(lat), np.radians(lon)
-    sl, cl, so, co = np.sin(la), np.cos(la), np.sin(lo), np.cos(lo)
-    return np.array([[-sl * co, -so, -cl * co], [-sl * so, co, -cl * so], [cl, 0.0, -sl]])
+    m = enu_to_ecef_matrix(lat, lon)  # (the same axes: north, east and minus up)
+    return np.stack([m[..., 1], m[..., 0], -m[..., 2]], -1)
 
 
 def geodetic_up(lat: ArrayLike, lon: ArrayLike) -> np.ndarray:
