@@ -251,30 +251,17 @@ def _match_pair(left: np.ndarray, right: np.ndarray, s_left: FrameSensor, s_righ
     """The grid of ``left`` matched in ``right`` (both reduced 2**scale times): (grid count,
     predicted count, left (k, 2), right (k, 2), score (k,)) of the accepted matches, in
     full-resolution pixels."""
-    from ..adjust.matching import match_points
-    from .matching import _predict
+    from .matching import _match_into, _MatchSettings
 
     step, s, win = float(cfg["spacing"]), 2.0 ** cfg["scale"], int(cfg["window"])
     w, h = s_left.image_size
     g = np.mgrid[step / 2:h:step, step / 2:w:step]
     pts = np.column_stack([g[1].ravel(), g[0].ravel()])
-    pred, aff = _predict(s_left, s_right, pts, dem, refraction, device)
-    wr, hr = s_right.image_size
-    m = s * (win // 2 + 2)
-    sel = np.flatnonzero(np.all(np.isfinite(pred), axis=1) & (pred[:, 0] > m) & (pred[:, 0] < wr - m)
-                         & (pred[:, 1] > m) & (pred[:, 1] < hr - m) & (pts[:, 0] > m) & (pts[:, 0] < w - m)
-                         & (pts[:, 1] > m) & (pts[:, 1] < h - m))
-    empty = np.zeros((0, 2))
-    if not len(sel):
-        return len(pts), 0, empty, empty, np.zeros(0)
-    p, q, a = pts[sel] / s, pred[sel] / s, aff[sel]
-    fwd = match_points(left, right, p, q, affine=a, window=win, radius=int(cfg["radius"]), levels=int(cfg["levels"]),
-                       min_score=float(cfg["min_score"]), device=device)
-    back = match_points(right, left, np.nan_to_num(fwd.xy, nan=-1e3), p, affine=np.linalg.inv(a), window=win, radius=2,
-                        min_score=float(cfg["min_score"]), device=device)
-    with np.errstate(invalid="ignore"):
-        err = np.hypot(*(back.xy - p).T) * s
-        ok = fwd.ok & back.ok & (err <= float(cfg["max_back_error"]))
+    match = _MatchSettings(zones=(0, 0), per_zone=0, window=win, radius=int(cfg["radius"]), levels=int(cfg["levels"]),
+                           min_score=float(cfg["min_score"]), max_back_error=float(cfg["max_back_error"]),
+                           refraction=refraction, device=device)
+    sel, _, fwd, _, ok = _match_into(left, right, s_left, s_right, pts, dem, match, scale=s,
+                                     margin=s * (win // 2 + 2), inside_left=True)
     return len(pts), len(sel), pts[sel][ok], fwd.xy[ok] * s, fwd.score[ok]
 
 

@@ -74,20 +74,33 @@ class _MatchSettings:
 
 
 def _match_into(left: np.ndarray, right: np.ndarray, left_sensor: FrameSensor, right_sensor: FrameSensor,
-                pts: np.ndarray, dem: Dem | str | os.PathLike | float, cfg: _MatchSettings) -> tuple:
-    """Points ``pts`` (k, 2) of ``left`` predicted in ``right`` (those whose prediction lies a
-    window inside it: indices ``sel``), matched, and back-matched. Returns (sel, predicted (s, 2),
-    forward MatchResult (s rows), back-match distance (s,), accepted (s,) bool)."""
+                pts: np.ndarray, dem: Dem | str | os.PathLike | float, cfg: _MatchSettings, *, scale: float = 1.0,
+                margin: float | None = None, inside_left: bool = False) -> tuple:
+    """Points ``pts`` (k, 2; px of the sensors' images) of ``left`` predicted in ``right`` (those
+    whose prediction lies ``margin`` px inside it, default a window; with ``inside_left`` the
+    point too, in ``left``: indices ``sel``), matched, and back-matched. ``left`` and ``right``
+    may be the images reduced ``scale`` times (the points and predictions are then divided by
+    it for the matching; ``cfg.max_back_error`` stays in the sensors' px). Returns (sel,
+    predicted (s, 2), forward MatchResult (s rows, positions in ``right``'s px), back-match
+    distance (s,; the sensors' px), accepted (s,) bool)."""
     window, min_score, device = cfg.window, cfg.min_score, cfg.device
+    m = window if margin is None else margin
     pred, aff = _predict(left_sensor, right_sensor, pts, dem, cfg.refraction, device)
     w, h = right_sensor.image_size
-    sel = np.flatnonzero(np.all(np.isfinite(pred), axis=1) & (pred[:, 0] > window) & (pred[:, 0] < w - window) & (
-        pred[:, 1] > window) & (pred[:, 1] < h - window))
-    fwd = match_points(left, right, pts[sel], pred[sel], affine=aff[sel], window=window, radius=cfg.radius,
+    keep = np.all(np.isfinite(pred), axis=1) & (pred[:, 0] > m) & (pred[:, 0] < w - m) & (pred[:, 1] > m) & (
+        pred[:, 1] < h - m)
+    if inside_left:
+        wl, hl = left_sensor.image_size
+        keep &= (pts[:, 0] > m) & (pts[:, 0] < wl - m) & (pts[:, 1] > m) & (pts[:, 1] < hl - m)
+    sel = np.flatnonzero(keep)
+    p, q = (pts[sel], pred[sel]) if scale == 1.0 else (pts[sel] / scale, pred[sel] / scale)
+    fwd = match_points(left, right, p, q, affine=aff[sel], window=window, radius=cfg.radius,
                        levels=cfg.levels, min_score=min_score, device=device)
-    back = match_points(right, left, np.nan_to_num(fwd.xy, nan=-1e3), pts[sel], affine=np.linalg.inv(aff[sel]),
+    back = match_points(right, left, np.nan_to_num(fwd.xy, nan=-1e3), p, affine=np.linalg.inv(aff[sel]),
                         window=window, radius=2, min_score=min_score, device=device)
-    err = np.hypot(*(back.xy - pts[sel]).T)
+    err = np.hypot(*(back.xy - p).T)
+    if scale != 1.0:
+        err = err * scale
     with np.errstate(invalid="ignore"):
         ok = fwd.ok & back.ok & (err <= cfg.max_back_error)
     return sel, pred[sel], fwd, err, ok
