@@ -286,8 +286,9 @@ def _adjusted_sensors(adj):
 def _tie_points(adj):
     """The adjusted tie points of ``points.csv``: {id: (lat, lon, h)}, their latitude and longitude
     refined by intersecting their observations' rays in the adjusted orientation (least squares;
-    ``points.csv`` gives degrees to 4 decimals, some 11 m by 8 m here, too coarse for a surface);
-    the heights ``points.csv``'s (to 0.1 mm)."""
+    written when ``points.csv`` gave degrees to 4 decimals, some 11 m by 8 m here; it now gives
+    10, and the refinement is kept so that the figures measured with it stay reproducible); the
+    heights ``points.csv``'s (to 0.1 mm)."""
     import csv
 
     with open(os.path.join(adj, "points.csv")) as f:
