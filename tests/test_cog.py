@@ -1,5 +1,5 @@
-"""The streaming COG writer (deflate, zstd, none), read back by GDAL and compared with GDAL's own
-COG driver."""
+"""The streaming COG writer (deflate, zstd, jpeg, none), read back by GDAL and compared with
+GDAL's own COG driver."""
 
 import os
 
@@ -8,9 +8,12 @@ import pytest
 import rasterio
 import rasterio.shutil
 from affine import Affine
+from hypothesis import given
+from hypothesis import strategies as st
 
+import fuzz_strategies as fz
 from orthowarp.errors import ParamError
-from orthowarp.pipeline.raster.cog import CogWriter, overview_count
+from orthowarp.pipeline.raster.cog import CogWriter, overview_count, split_jpeg_tables
 from orthowarp.pipeline.raster.tiff import read_ifd, tiff_header
 
 CRS = "EPSG:32632"
@@ -340,3 +343,84 @@ def test_nodata_must_be_a_value_of_the_type(tmp_path):
         CogWriter(tmp_path / "b.tif", dtype="float32", nodata=0, **kw)
     with pytest.raises(ParamError, match="overview_resampling"):
         CogWriter(tmp_path / "c.tif", dtype="uint8", overview_resampling="mode", **kw)
+
+
+def jpeg_error(a, b, valid):
+    """Mean and 99th percentile of |a - b| (bands, rows, cols) over the ``valid`` pixels."""
+    d = np.abs(a.astype(float) - b.astype(float))[:, valid]
+    return d.mean(), np.percentile(d, 99)
+
+
+@pytest.mark.parametrize("count,quality", [(3, 90), (1, 75)])
+def test_jpeg_cog_decodes_near_the_deflate_cogs_pixels(tmp_path, count, quality):
+    """A JPEG COG (uint8, 3 bands as YCbCr 4:2:0, or grey): GDAL reads it as a COG of that
+    compression and quality, with the quantization tables in JPEGTables (mode 1, as GDAL
+    writes them); its masks are the deflate COG's at every level and its pixels within JPEG's
+    reach of them, as close as GDAL's own COG driver gets at that quality."""
+    shape = (1100, 1500)
+    data, mask = scene(shape, count, "uint8")
+    paths = {}
+    for compress in ("deflate", "jpeg"):
+        paths[compress] = str(tmp_path / f"{compress}.tif")
+        with CogWriter(paths[compress], width=shape[1], height=shape[0], count=count, dtype="uint8", crs=CRS,
+                       transform=TRANSFORM, compress=compress, block_size=256, overviews=3, threads=3,
+                       **({"quality": quality} if compress == "jpeg" else {})) as w:
+            write_tiles(w, data, mask, tile=300)
+    assert sorted(os.listdir(tmp_path)) == ["deflate.tif", "jpeg.tif"]  # the side files are gone
+    a, b = levels(paths["deflate"]), levels(paths["jpeg"])
+    assert len(a) == len(b) == 4
+    for (da, ma), (db, mb) in zip(a, b):
+        np.testing.assert_array_equal(ma, mb)
+        mean, p99 = jpeg_error(da, db, ma > 0)
+        assert mean < 3.0 and p99 <= 16, (mean, p99)  # (the scene has noise of 3 DN)
+    with rasterio.open(paths["jpeg"]) as ds:
+        structure = ds.tags(ns="IMAGE_STRUCTURE")
+        assert structure["LAYOUT"] == "COG" and structure["JPEG_QUALITY"] == str(quality)
+        assert structure["JPEGTABLESMODE"] == "1" and ds.overviews(1) == [2, 4, 8]
+        assert structure["COMPRESSION"] == ("YCbCr JPEG" if count == 3 else "JPEG")
+        assert structure.get("SOURCE_COLOR_SPACE") == ("YCbCr" if count == 3 else None)
+    tags = ifd_tags(paths["jpeg"])
+    assert [c for k, c, _ in tags if k in (0, 1)] == [7] * 4 and [c for k, c, _ in tags if k in (4, 5)] == [8] * 4
+    assert all(p is None for _, _, p in tags)  # no predictor
+    # GDAL's COG driver, the same pixels and quality: ours is as close to the lossless pixels
+    plain = str(tmp_path / "plain.tif")
+    with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True), rasterio.open(
+            plain, "w", driver="GTiff", width=shape[1], height=shape[0], count=count, dtype="uint8", crs=CRS,
+            transform=TRANSFORM, tiled=True, blockxsize=256, blockysize=256) as dst:
+        dst.write(np.moveaxis(np.where(mask[..., None], data, 0), 2, 0))
+        dst.write_mask(mask.astype(np.uint8) * 255)
+    gdal = str(tmp_path / "gdal.tif")
+    with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True):
+        rasterio.shutil.copy(plain, gdal, driver="COG", compress="JPEG", quality=quality, blocksize=256,
+                             overview_resampling="average")
+    truth = np.moveaxis(data, 2, 0)
+    with rasterio.open(gdal) as g:
+        ours, theirs = jpeg_error(a[0][0], b[0][0], mask)[0], jpeg_error(truth, g.read(), mask)[0]
+    assert ours <= 1.05 * theirs + 0.05, (ours, theirs)
+
+
+def test_jpeg_settings_are_checked(tmp_path):
+    kw = dict(width=64, height=64, transform=TRANSFORM, crs=CRS, compress="jpeg")
+    with pytest.raises(ParamError, match="uint8 rasters of 1 or 3 bands"):
+        CogWriter(tmp_path / "a.tif", count=3, dtype="uint16", **kw)
+    with pytest.raises(ParamError, match="uint8 rasters of 1 or 3 bands"):
+        CogWriter(tmp_path / "b.tif", count=4, dtype="uint8", **kw)
+    with pytest.raises(ParamError, match="quality"):
+        CogWriter(tmp_path / "c.tif", count=3, dtype="uint8", quality=0, **kw)
+    with pytest.raises(ParamError, match="level applies to deflate and zstd"):
+        CogWriter(tmp_path / "d.tif", count=3, dtype="uint8", level=6, **kw)
+    with pytest.raises(ParamError, match="quality applies to jpeg"):
+        CogWriter(tmp_path / "e.tif", count=3, dtype="uint8", transform=TRANSFORM, width=64, height=64, quality=80)
+    assert not list(tmp_path.iterdir())  # nothing left behind
+
+
+@fz.fuzz_settings()
+@given(body=st.binary(max_size=64))
+def test_split_jpeg_tables_refuses_broken_streams(body):
+    """Only ValueError escapes, and a stream it splits keeps SOI and everything from SOS on."""
+    stream = b"\xff\xd8" + body
+    try:
+        tables, rest = split_jpeg_tables(stream)
+    except ValueError:
+        return
+    assert rest.startswith(b"\xff\xd8") and b"\xff\xda" in rest and len(tables) + len(rest) <= len(stream)

@@ -170,10 +170,10 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
         is left to another image in the same way.
     compress : {"deflate", "zstd", "jpeg", "webp"}, optional
         The compression of the mosaic (default deflate), with predictor 2 for integer data;
-        jpeg (1 or 3 bands; 3 as YCbCr) and webp (3 or 4 bands) for uint8 mosaics, their
-        tiles streamed as deflate and then compressed by GDAL's COG driver (the overviews as
-        orthowarp reduced them). The index takes the mosaic's lossless compression, deflate
-        for a lossy mosaic.
+        jpeg (1 or 3 bands; 3 as YCbCr) and webp (3 or 4 bands) for uint8 mosaics: JPEG
+        streamed like deflate (libjpeg on the host cores), WebP's tiles streamed as deflate
+        and then compressed by GDAL's COG driver (the overviews as orthowarp reduced them).
+        The index takes the mosaic's lossless compression, deflate for a lossy mosaic.
     compress_level : int, optional
         Deflate level 1-12 (default 6), or zstd level 1-22 (default 9).
     quality : int, optional
@@ -192,7 +192,8 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
         measured for a mosaic, whose host cores are busy with the tiles), "host" on the CPU.
         With ``compress="zstd"``: "host" or "nvcomp" (nvCOMP's Zstd, which takes no level);
         "auto" is "host" (nvCOMP's Zstd on request); "warp" and
-        "hybrid" are refused. Every choice decodes to the same pixels.
+        "hybrid" are refused. JPEG and WebP blocks are encoded on the host ("auto" or
+        "host"; the others refused). Every choice decodes to the same pixels.
     tile_size : int, optional
         Output tile edge (pixels, multiple of 16); default 2048 on a GPU (fewer, larger
         launches: the per-tile work on the host is what bounds a mosaic), 512 on the CPU.
@@ -251,7 +252,7 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
     if not isinstance(compress, str) or compress not in MOSAIC_COMPRESS:
         raise ParamError(f"compress must be one of {', '.join(MOSAIC_COMPRESS)}; got {compress!r}")
     compress = Compress(compress).value
-    stream = "deflate" if compress in LOSSY else compress  # what the tiles stream as
+    stream = "deflate" if compress == "webp" else compress  # what the tiles stream as (WebP: GDAL's, below)
     compress_level, quality = check_level_and_quality(compress, compress_level, quality)
     if compress in LOSSY:
         _check_lossy(images, compress, dtype)
@@ -371,8 +372,8 @@ def _write_mosaic(plan: MosaicPlan, procs: ProcessTiles | None, dst: str, on: wp
     :class:`~orthowarp.pipeline.mosaic.workers.ProcessTiles`), on worker processes, or on the
     workers of a Dask ``client``, written."""
     t0 = time.perf_counter()
-    stream = "deflate" if out.compress in LOSSY else out.compress
-    level = 1 if out.compress in LOSSY else level_of(out.compress, out.compress_level)  # (a lossy mosaic's intermediate)
+    stream = "deflate" if out.compress == "webp" else out.compress
+    level = 1 if out.compress == "webp" else level_of(out.compress, out.compress_level)  # (a WebP mosaic's intermediate)
     codec = mosaic_block_codec(out.block_codec, on, level, stream)
     size = int(out.tile_size) if out.tile_size is not None else default_tile_size(on)
     tiles = plan.tiles(size)

@@ -380,9 +380,9 @@ class MosaicPlan(TileBlending):
         :meth:`tile` on a thread pool or a distributed engine). The outputs (mosaic, optional
         index COG and seamlines GeoJSON) are published together when all tiles are in; the
         mosaic and its index are ``compress`` COGs ("deflate" or "zstd", at ``compress_level``:
-        default 6 or 9; "jpeg" or "webp" at ``quality`` for the mosaic alone, its tiles
-        streamed into an intermediate deflate COG whose pixels and overviews GDAL's COG
-        driver then compresses, the index deflate); the seamlines in the mosaic's CRS, or in longitude/latitude with
+        default 6 or 9; "jpeg" or "webp" at ``quality`` for the mosaic alone, the index
+        deflate: JPEG streamed like the others, WebP's tiles streamed into an intermediate
+        deflate COG whose pixels and overviews GDAL's COG driver then compresses); the seamlines in the mosaic's CRS, or in longitude/latitude with
         ``seamlines_lonlat``, naming the images by their paths relative to the mosaic's
         folder. (Internally, with a ``_block_codec`` other than "host", the tiles' pixels go to
         the mosaic's file through ``self._encoder`` on the device and ``block`` is None.)
@@ -394,7 +394,7 @@ class MosaicPlan(TileBlending):
         if compress not in ("deflate", "zstd", *LOSSY):
             raise ParamError(f"compress must be one of deflate, zstd, {', '.join(LOSSY)}; got {compress!r}")
         compress = str(compress)  # (an option's member: its plain value)
-        lossy = compress in LOSSY
+        lossy, via_gdal = compress in LOSSY, compress == "webp"  # (WebP: compressed by GDAL's COG driver)
         if lossy and self.dtype != "uint8":
             raise ParamError(f"{compress} compression needs a uint8 mosaic, not {self.dtype}")
         dst = os.fspath(dst)
@@ -410,10 +410,11 @@ class MosaicPlan(TileBlending):
             co = parse_creation_options(creation_options)
             kw = dict(compress="deflate" if lossy else compress, level=None if lossy else compress_level,
                       block_size=co["block"], bigtiff=co["bigtiff"], threads=co["threads"])
-            # a lossy mosaic: an intermediate of deflate level 1 beside the temporary, then GDAL's COG
-            work = tmps[0] + ".work.tif" if lossy else tmps[0]
+            # a WebP mosaic: an intermediate of deflate level 1 beside the temporary, then GDAL's COG
+            work = tmps[0] + ".work.tif" if via_gdal else tmps[0]
+            own = dict(kw, level=1) if via_gdal else dict(kw, compress="jpeg", quality=quality) if lossy else kw
             writers = [CogWriter(work, width=cols, height=rows, count=self.count, dtype=self.dtype, crs=rio_crs,
-                                 transform=self.transform, name=dst, **(dict(kw, level=1) if lossy else kw))]
+                                 transform=self.transform, name=dst, **own)]
             if index is not None:
                 # the index: NO_SOURCE as its nodata (distinct from image 0 for readers that
                 # ignore masks), overviews taking an image's number, never a mean of numbers
@@ -423,8 +424,8 @@ class MosaicPlan(TileBlending):
             encoder = None
             try:
                 if _block_codec != "host":
-                    codecs = device_codecs(_block_codec, 1 if lossy else compress_level, self.warp_device,
-                                           "deflate" if lossy else compress)
+                    codecs = device_codecs(_block_codec, 1 if via_gdal else compress_level, self.warp_device,
+                                           "deflate" if via_gdal else compress)
                     encoder = self._encoder = DeviceCogEncoder(writers[0], self.warp_device, codecs,
                                                                timer=self._materialise()["timer"])
                 for (r0, c0, th, tw), (block, valid, source) in results:
@@ -448,7 +449,7 @@ class MosaicPlan(TileBlending):
                     w.close()
                 if self._state is not None:  # the files' layout, last overview levels, checks
                     self._state["timer"].span("finish", t_close)
-                if lossy:
+                if via_gdal:
                     try:
                         finish(work, tmps[0], "COG", compress, True, self.dtype, quality=quality, co=co,
                                overviews_built=True)
@@ -464,7 +465,7 @@ class MosaicPlan(TileBlending):
                     w.abort()
                 raise
             finally:
-                if lossy and os.path.exists(work):
+                if via_gdal and os.path.exists(work):
                     os.remove(work)
                 if encoder is not None:
                     encoder.close()

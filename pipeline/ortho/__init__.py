@@ -249,7 +249,9 @@ def orthorectify(src: str | os.PathLike, sensor: SensorModel, dst: str | os.Path
         threads) or "nvcomp" (the same device work, the blocks compressed by nvCOMP's Zstd,
         which takes no level: ``compress_level`` applies to the host codec; the mask blocks,
         deflate in a zstd COG as GDAL writes them, are deflated on the host, on request);
-        "auto" is "host"; "warp" and "hybrid" are deflate codecs, refused with zstd.
+        "auto" is "host"; "warp" and "hybrid" are deflate codecs, refused with zstd. Other
+        compressions are encoded on the host ("auto" or "host"; the device codecs refused
+        with jpeg and webp).
     source_reads : {"auto", "whole", "tiles"}, optional
         How the source reaches the device. "tiles": each output tile reads the source window
         it needs (reduced where the output is coarser) and uploads it. "whole": the source is

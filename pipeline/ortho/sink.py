@@ -29,7 +29,7 @@ from rasterio.windows import Window
 from ..._validate import integer
 from ...errors import DeviceError, ParamError
 from ...options import BlockCodec, Compress, values
-from ..raster.cog import LEVELS, CogWriter, overview_count
+from ..raster.cog import DEFAULT_QUALITY, LEVELS, CogWriter, overview_count
 from ..raster.io import GDAL_ERRORS, write_error
 
 if TYPE_CHECKING:
@@ -48,10 +48,10 @@ __all__ = ["open_sink", "Sink", "OutputSettings", "finish", "gdal_profile", "gda
 DRIVERS = ("COG", "GTiff")
 COMPRESS = values(Compress)
 LOSSY = ("jpeg", "webp")
-DEFAULT_QUALITY = 90  # JPEG / WebP quality of lossy outputs (orthority's JPEG default is 75)
+# (DEFAULT_QUALITY, the JPEG / WebP quality of lossy outputs, is the COG writer's; orthority's JPEG default is 75)
 BLOCK_CODECS = values(BlockCodec)
 #: The COG compressions orthowarp's writer streams (the others are copied by GDAL's COG driver).
-STREAMED = ("deflate", "zstd", "none")
+STREAMED = ("deflate", "zstd", "jpeg", "none")
 #: The compressions whose blocks a device block codec may compress.
 DEVICE_COMPRESS = ("deflate", "zstd")
 _DEFLATE_ONLY = ("warp", "hybrid")  # orthowarp's deflate kernels, and the deflate codecs shared with the host
@@ -216,6 +216,9 @@ def check_block_codec(block_codec: str, compress: str) -> None:
     if compress == "zstd" and block_codec in _DEFLATE_ONLY:
         raise ParamError(f"block_codec {block_codec!r} compresses deflate blocks only; for zstd use auto, host or "
                          "nvcomp")
+    if compress in LOSSY and block_codec not in ("auto", "host"):
+        raise ParamError(f"block_codec {block_codec!r} compresses deflate or zstd blocks; {compress} blocks are "
+                         "encoded on the host (use auto or host)")
 
 
 def choose_block_codec(choice: str, device: Device, device_cog: bool, level: int | None = None, *,
@@ -250,7 +253,7 @@ def choose_block_codec(choice: str, device: Device, device_cog: bool, level: int
     """
     check_block_codec(choice, compress)
     level = compress_level(compress, level)
-    if choice == "host" or not device_cog:
+    if choice == "host" or not device_cog or compress not in DEVICE_COMPRESS:
         return "host"
     if compress == "zstd":
         # the host writer's threads unless nvCOMP's Zstd is asked for: its frames are smaller
@@ -399,9 +402,9 @@ class OutputSettings:
     @property
     def streamed(self) -> bool:
         """Whether the file streams through :class:`~orthowarp.pipeline.raster.cog.CogWriter`
-        (blocks compressed and overviews reduced as tiles arrive): a deflate, zstd or
-        uncompressed COG. Other COGs (lzw, jpeg, webp) are written uncompressed and copied by
-        GDAL's COG driver, which compresses once."""
+        (blocks compressed and overviews reduced as tiles arrive): a deflate, zstd, jpeg or
+        uncompressed COG. Other COGs (lzw, webp) are written uncompressed and copied by GDAL's
+        COG driver, which compresses once."""
         return self.driver == "COG" and self.compress in STREAMED
 
     @property
@@ -417,7 +420,8 @@ class OutputSettings:
             return None
         co = self.co
         return dict(compress=self.compress, level=compress_level(self.compress, self.level), block_size=co["block"],
-                    bigtiff=co["bigtiff"], threads=co["threads"])
+                    bigtiff=co["bigtiff"], threads=co["threads"],
+                    quality=(self.quality or DEFAULT_QUALITY) if self.compress == "jpeg" else None)
 
     def for_device(self, device: Device) -> OutputSettings:
         """These settings with the block codec resolved for ``device`` (:func:`choose_block_codec`)."""

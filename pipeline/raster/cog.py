@@ -25,13 +25,19 @@ TIFF 6.0 and BigTIFF structures: Adobe, "TIFF Revision 6.0" (1992); the BigTIFF 
 
 Compression (TIFF tag 259): deflate (8) stores each block as a zlib stream (RFC 1950), zstd
 (50000, libtiff's code for it) as one Zstandard frame (RFC 8878); both with predictor 2 for
-integer data. The mask blocks of a zstd file are deflate streams, as GDAL's COG driver writes
-them with COMPRESS=ZSTD (its internal mask is deflate whatever the image's compression).
+integer data. JPEG (7; uint8, 1 or 3 bands) stores each block as a baseline JPEG stream
+(ISO 10918-1) encoded by Pillow's libjpeg, three bands as YCbCr with 2 x 2 chroma subsampling
+(Photometric 6, YCbCrSubSampling 2 2 and ReferenceBlackWhite 0 255 128 255 128 255); as libtiff
+does with GDAL's default JPEGTABLESMODE=1 (TIFF Technote 2), the quantization tables, the same
+for every block at one quality, are stored once in the JPEGTables tag and left out of the
+blocks, which keep their Huffman tables (a block whose tables differ keeps its own). The mask blocks of a zstd or JPEG file are deflate streams, as GDAL's COG driver writes
+them (its internal mask is deflate whatever the image's compression).
 """
 
 from __future__ import annotations
 
 import errno
+import io
 import os
 import struct
 import tempfile
@@ -51,12 +57,13 @@ except ImportError:  # pragma: no cover
 
 from ..._validate import integer
 from ...errors import ParamError, RasterIOError
-from .tiff import LONG, LONG8, SHORT, TYPE_SIZE, Tag, read_tiff_tags
+from .tiff import LONG, LONG8, RATIONAL, SHORT, TYPE_SIZE, Tag, read_tiff_tags
 
 if TYPE_CHECKING:
     from affine import Affine
 
-__all__ = ["CogWriter", "overview_count", "zstd_frame", "DTYPES", "COMPRESS", "LEVELS"]
+__all__ = ["CogWriter", "overview_count", "jpeg_stream", "zstd_frame", "DTYPES", "COMPRESS", "LEVELS",
+           "DEFAULT_QUALITY"]
 # tags the writer sets itself; everything else of the template's first IFD is copied
 _LAYOUT_TAGS = {254, 256, 257, 259, 273, 278, 279, 317, 322, 323, 324, 325}
 # tags an overview IFD shares with the full resolution
@@ -64,8 +71,11 @@ _OVERVIEW_TAGS = {258, 262, 277, 284, 338, 339, 42113}
 _GHOST_KEYS = ("LAYOUT=IFDS_BEFORE_DATA\nBLOCK_ORDER=ROW_MAJOR\nBLOCK_LEADER=SIZE_AS_UINT4\n"
                "BLOCK_TRAILER=LAST_4_BYTES_REPEATED\nKNOWN_INCOMPATIBLE_EDITION=NO\n ")
 DTYPES = ("uint8", "uint16", "float32")
-#: The writer's compressions and their TIFF Compression tag values (50000: libtiff's ZSTD).
-COMPRESS = {"deflate": 8, "zstd": 50000, "none": 1}
+#: The writer's compressions and their TIFF Compression tag values (50000: libtiff's ZSTD; 7: JPEG
+#: as TIFF Technote 2 defines it).
+COMPRESS = {"deflate": 8, "zstd": 50000, "jpeg": 7, "none": 1}
+#: JPEG quality when none is given (1-100, the IJG scale).
+DEFAULT_QUALITY = 90
 #: (lowest, highest, default) level of each compression: libdeflate's 1-12 (6: GDAL's default
 #: zlib level), zstd's 1-22 (9: GDAL's default ZSTD_LEVEL).
 LEVELS = {"deflate": (1, 12, 6), "zstd": (1, 22, 9)}
@@ -84,6 +94,47 @@ def zstd_frame(raw: Any, level: int) -> bytes:
 
         comp = comps[level] = zstandard.ZstdCompressor(level=level)
     return comp.compress(raw)
+
+
+def jpeg_stream(block: np.ndarray, quality: int) -> bytes:
+    """One baseline JPEG stream (ISO 10918-1, with its tables) of a uint8 block of shape
+    (rows, cols, 1 or 3) at IJG ``quality`` 1-100: three bands as YCbCr (JFIF's BT.601
+    full-range conversion) with the chroma subsampled 2 x 2, one band as grey. Encoded by
+    Pillow's libjpeg, which releases the interpreter lock while it encodes."""
+    from PIL import Image
+
+    grey = block.shape[2] == 1
+    img = Image.fromarray(block[..., 0] if grey else block, "L" if grey else "RGB")
+    buf = io.BytesIO()  # (one component: sampling 1 x 1, which libtiff requires of it)
+    img.save(buf, "JPEG", quality=int(quality), subsampling="4:4:4" if grey else "4:2:0", optimize=False)
+    return buf.getvalue()
+
+
+def split_jpeg_tables(stream: bytes) -> tuple[bytes, bytes]:
+    """(quantization tables, the rest) of a JPEG ``stream``: its DQT segments, and the stream
+    without them and without its APPn segments (JFIF's, which TIFF's JPEG blocks leave out).
+
+    Raises
+    ------
+    ValueError
+        Where the stream does not start with SOI or a marker segment before SOS is broken.
+    """
+    if stream[:2] != b"\xff\xd8":
+        raise ValueError("a JPEG stream starts with SOI (FF D8)")
+    pos, tables, kept = 2, [], [stream[:2]]
+    while True:
+        if pos + 4 > len(stream) or stream[pos] != 0xFF:
+            raise ValueError(f"broken JPEG marker segment at byte {pos}")
+        code = stream[pos + 1]
+        if code == 0xDA:  # start of scan: the entropy-coded data follow, to EOI
+            kept.append(stream[pos:])
+            return b"".join(tables), b"".join(kept)
+        end = pos + 2 + int.from_bytes(stream[pos + 2:pos + 4], "big")
+        if code == 0xDB:
+            tables.append(stream[pos:end])
+        elif not 0xE0 <= code <= 0xEF:
+            kept.append(stream[pos:end])
+        pos = end
 
 
 def overview_count(width: int, height: int, *, min_size: int = 256) -> int:
@@ -155,13 +206,16 @@ class CogWriter:
         How a 2 x 2 group of valid pixels becomes an overview pixel: their rounded mean
         (default; images), or the first valid one in row order (categories, such as a
         mosaic's source index, whose mean would name another category).
-    compress : {"deflate", "zstd", "none"}, optional
+    compress : {"deflate", "zstd", "jpeg", "none"}, optional
         Image blocks as zlib streams (libdeflate) or Zstandard frames (``zstandard``), with
-        predictor 2 for integer data, or uncompressed. Mask blocks are deflate streams with
-        either compression, as GDAL writes them.
+        predictor 2 for integer data, as JPEG streams (uint8, 1 or 3 bands; see the module
+        doc), or uncompressed. Mask blocks are deflate streams with any compression, as GDAL
+        writes them.
     level : int, optional
         Deflate level 1-12 (libdeflate's scale; default 6, as GDAL's) or zstd level 1-22
-        (default 9, as GDAL's); ignored without compression.
+        (default 9, as GDAL's); ignored without compression, refused with JPEG.
+    quality : int, optional
+        JPEG quality 1-100 (default :data:`DEFAULT_QUALITY`); refused with the others.
     block_size : int, optional
         Block edge in pixels (multiple of 16).
     overviews : int, optional
@@ -190,7 +244,7 @@ class CogWriter:
                  transform: Affine, mask: bool = True, compress: str = "deflate", level: int | None = None,
                  block_size: int = 512, overviews: int | None = None, threads: int | None = None,
                  bigtiff: bool | None = None, name: str | os.PathLike | None = None, timer: Any = None,
-                 nodata: int | None = None, overview_resampling: str = "average") -> None:
+                 nodata: int | None = None, overview_resampling: str = "average", quality: int | None = None) -> None:
         if dtype not in DTYPES:
             raise ParamError(f"CogWriter dtype must be one of {DTYPES}, got {dtype!r}")
         if compress not in COMPRESS:
@@ -198,6 +252,21 @@ class CogWriter:
         low, high, default = LEVELS.get(compress, (None, None, None))
         if low is not None:
             level = integer(f"CogWriter level ({compress})", level, low=low, high=high, none=True)
+        elif compress == "jpeg" and level is not None:
+            raise ParamError(f"CogWriter level applies to deflate and zstd, not jpeg (give quality); got {level!r}")
+        if compress == "jpeg":
+            if dtype != "uint8" or int(count) not in (1, 3):
+                raise ParamError(f"CogWriter jpeg compression takes uint8 rasters of 1 or 3 bands, got {count} "
+                                 f"band(s) of {dtype}")
+            quality = integer("CogWriter quality", quality, low=1, high=100, none=True)
+            self.quality = DEFAULT_QUALITY if quality is None else quality
+            # the quantization tables of this quality and band count (those of every block)
+            self._jpeg_tables = split_jpeg_tables(jpeg_stream(np.zeros((16, 16, int(count)), np.uint8),
+                                                              self.quality))[0]
+        elif quality is not None:
+            raise ParamError(f"CogWriter quality applies to jpeg compression, not {compress!r}")
+        else:
+            self.quality = None
         if block_size % 16 or block_size < 16:
             raise ParamError(f"block_size must be a positive multiple of 16, got {block_size}")
         self.path = os.fspath(path)
@@ -447,7 +516,7 @@ class CogWriter:
                 np.copyto(zeroed, data)
                 zeroed[~mask] = self.nodata
             data = zeroed
-        if self.compress != "none" and not self.is_float:
+        if self.compress in ("deflate", "zstd") and not self.is_float:
             diff = self._scratch("diff", data.shape, data.dtype)
             np.subtract(data[:, 1:], data[:, :-1], out=diff[:, 1:])
             diff[:, 0] = data[:, 0]
@@ -460,6 +529,10 @@ class CogWriter:
             return _zlib_compress(raw, self.compress_level)
         if self.compress == "zstd":
             return zstd_frame(raw, self.compress_level)
+        if self.compress == "jpeg":
+            stream = jpeg_stream(raw, self.quality)
+            tables, rest = split_jpeg_tables(stream)
+            return rest if tables == self._jpeg_tables else stream
         return bytes(raw)
 
     def _compress_mask(self, bits: np.ndarray) -> bytes:
@@ -527,8 +600,13 @@ class CogWriter:
                          257: (LONG, 1, _pack("I", [lvl.height])), 259: (SHORT, 1, _pack("H", [comp])),
                          284: (SHORT, 1, _pack("H", [1])),  # pixel-interleaved
                          322: (SHORT, 1, _pack("H", [b])), 323: (SHORT, 1, _pack("H", [b]))})
-            if comp != 1 and not self.is_float:
+            if self.compress in ("deflate", "zstd") and not self.is_float:
                 tags[317] = (SHORT, 1, _pack("H", [2]))
+            if self.compress == "jpeg":  # the tables (SOI, DQT..., EOI)
+                tags[347] = (7, len(self._jpeg_tables) + 4, b"\xff\xd8" + self._jpeg_tables + b"\xff\xd9")
+            if self.compress == "jpeg" and self.count == 3:  # YCbCr, chroma 2 x 2 (as GDAL writes them)
+                tags.update({262: (SHORT, 1, _pack("H", [6])), 530: (SHORT, 2, _pack("H", [2, 2])),
+                             532: (RATIONAL, 6, _pack("I", [0, 1, 255, 1, 128, 1, 255, 1, 128, 1, 255, 1]))})
             ifds.append((li, "image", tags, n))
             if self.mask:
                 mtags = {254: (LONG, 1, _pack("I", [5 if li else 4])), 256: tags[256], 257: tags[257],
