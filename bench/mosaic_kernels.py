@@ -14,6 +14,7 @@ the device's share of a serial run, and the floor the kernels set for the tiles'
 
 usage: python3 bench/mosaic_kernels.py [--sizes 40] [--frame 9600x8000] [--device cuda:0]
                                        [--tile-size PX] [--limit N] [--workdir DIR] [--out FILE]
+                                       [--cprofile N] [--sample-plan SECONDS]
 """
 
 import argparse
@@ -27,6 +28,40 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
 
 from _report import save_report  # noqa: E402
+
+
+#: A plan's steps, by a function on a thread's stack ("file:function", or a file's "file:"; the
+#: first step that matches, in this order).
+_PLAN_STEPS = (("grids", ("plan.py:_grid_of", "plan.py:_image_grids")),
+               ("reduced_pass", ("plan.py:_reduced_image", "plan.py:reduced_pass")),
+               ("seams", ("seams.py:",)), ("balance", ("balance.py:",)))
+
+
+def _sampled_plan(interval, plan_of, images, top=25):
+    """A plan made under the stack sampler: (the plan, per step its busy samples and its
+    ``top`` functions by own and by inclusive samples)."""
+    from stack_sampler import Sampler
+
+    sampler = Sampler(interval)
+    sampler.start()
+    t = time.perf_counter()
+    plan = plan_of(images)
+    wall = time.perf_counter() - t
+    sampler._stop.set()
+    steps = defaultdict(lambda: dict(busy=0, own=defaultdict(int), inclusive=defaultdict(int)))
+    for stack, n in list(sampler.stacks.items()):
+        step = next((name for name, marks in _PLAN_STEPS if any(f.startswith(marks) for f in stack)), "other")
+        entry = steps[step]
+        entry["busy"] += n
+        entry["own"][stack[-1]] += n
+        for name in set(stack):
+            entry["inclusive"][name] += n
+    out = dict(interval_s=interval, wall_s=wall, samples=sampler.samples, idle_samples=sampler.idle, steps={})
+    for step, entry in steps.items():
+        out["steps"][step] = dict(busy_samples=entry["busy"],
+                                  own=sorted(entry["own"].items(), key=lambda kv: -kv[1])[:top],
+                                  inclusive=sorted(entry["inclusive"].items(), key=lambda kv: -kv[1])[:top])
+    return plan, out
 
 
 def _summary(results) -> dict:
@@ -81,6 +116,9 @@ def main(argv=None):
     ap.add_argument("--cprofile", type=int, default=0, metavar="N",
                     help="also each stage under cProfile once more: its N costliest functions (own and cumulative "
                          "time) in the report")
+    ap.add_argument("--sample-plan", type=float, default=None, metavar="SECONDS",
+                    help="also a new plan under bench/stack_sampler.py's sampler (every SECONDS): per plan step "
+                         "(by the functions on each thread's stack) its busy samples and costliest functions")
     args = ap.parse_args(argv)
 
     import warp as wp
@@ -130,6 +168,9 @@ def main(argv=None):
     wp.timing_begin(cuda_filter=wp.TIMING_ALL)
     report["tiles"]["wall_s_timed"] = loop()
     report["tiles"]["device"] = _summary(wp.timing_end())
+    if args.sample_plan:  # where the plan's threads are, step by step
+        plan.close()
+        plan, report["plan_stacks"] = _sampled_plan(args.sample_plan, plan_of, images)
     if args.cprofile:  # where the host's time goes: a new plan, its tiles twice (first: the images' set-up)
         plan.close()
         report["cprofile"] = {}
