@@ -856,9 +856,10 @@ def test_images_are_dropped_after_their_last_tile(pair, tmp_path, monkeypatch):
 
 
 def test_the_reduced_pass_geometries_serve_the_tiles(pair, tmp_path, monkeypatch):
-    """Each image's geometry is built once: the reduced pass's is kept for its tile functions
-    (the file is the same as with a cache too small to keep any)."""
+    """Each image's geometry is built once: the grids' serves the reduced pass, which keeps it
+    for its tile functions (the file is the same as when each step builds its own)."""
     from orthowarp.pipeline import mosaic as mosaic_module
+    from orthowarp.pipeline.mosaic import plan as plan_module
 
     sc, images, _, _ = pair
     kw = dict(dem=sc.dem, refraction=False, device="cpu", tile_size=64, workers=1)  # no two tiles racing to build
@@ -866,12 +867,16 @@ def test_the_reduced_pass_geometries_serve_the_tiles(pair, tmp_path, monkeypatch
     geometry = mosaic_module.MosaicPlan.geometry
     monkeypatch.setattr(mosaic_module.MosaicPlan, "geometry", lambda self, k: builds.append(k) or geometry(self, k))
     mosaic(images, tmp_path / "kept.tif", **kw)
+    assert builds == []  # (the grids' geometries are built by _grid_of)
+    monkeypatch.setattr(plan_module, "FRESH_GEOMETRIES", 0)  # the reduced pass builds its own
+    mosaic(images, tmp_path / "rebuilt.tif", **kw)
     assert sorted(builds) == [0, 1]
-    builds.clear()  # nothing kept: the tile functions build their own
+    builds.clear()  # nothing kept: the tile functions build their own too
     monkeypatch.setattr(mosaic_module.MosaicPlan, "_keep_geometry", lambda self, k, geom, whole=None: None)
     mosaic(images, tmp_path / "built.tif", **kw)
     assert sorted(builds) == [0, 0, 1, 1]
-    assert (tmp_path / "kept.tif").read_bytes() == (tmp_path / "built.tif").read_bytes()
+    data = (tmp_path / "kept.tif").read_bytes()
+    assert data == (tmp_path / "rebuilt.tif").read_bytes() == (tmp_path / "built.tif").read_bytes()
 
 
 def test_mosaic_accuracy_raster_takes_each_cell_from_its_source_image(pair, tmp_path):

@@ -63,6 +63,9 @@ __all__ = ["mosaic_plan", "MosaicPlan", "MosaicResult", "NO_SOURCE", "SEAM_PIXEL
 log = logging.getLogger(__name__)
 
 SEAM_PIXELS = 4_000_000  # the largest reduced grid of the balance and the seams (pixels)
+#: The most images whose geometries (cropped DEM, refraction table, device structs) a plan keeps
+#: from its grids for its reduced pass, instead of building each twice (more: built twice, memory flat)
+FRESH_GEOMETRIES = 256
 
 
 class MosaicResult:
@@ -114,13 +117,14 @@ class MosaicPlan(TileBlending):
         self.setup_s = {}  # seconds of mosaic_plan's steps
         self._state, self._lock = None, threading.Lock()
         self._kept = collections.OrderedDict()  # geometries of the reduced pass, for the tiles
+        self._fresh = {}  # geometries built for the images' grids, for the reduced pass (each taken once)
         self._transformers = {}  # mosaic CRS -> a pose frame's horizontal CRS, by that CRS's WKT
         self._encoder = None  # while writing with a device block codec
 
     def __getstate__(self) -> dict[str, Any]:
         state = dict(self.__dict__)
         state["_state"], state["_lock"], state["_encoder"] = None, None, None
-        state["_kept"], state["_transformers"] = collections.OrderedDict(), {}
+        state["_kept"], state["_transformers"], state["_fresh"] = collections.OrderedDict(), {}, {}
         return state
 
     def __setstate__(self, state: dict[str, Any]) -> None:
@@ -148,6 +152,13 @@ class MosaicPlan(TileBlending):
         _, sensor, _ = self.sources[k]
         return SensorGeometry(sensor, self.terrain, refraction=o["refraction"], device=o["device"], geoid=o["geoid"],
                               same_vertical_datum=o["same_vertical_datum"])
+
+    def _first_geometry(self, k: int) -> SensorGeometry:
+        """Image ``k``'s geometry as built for its grid (taken out of the plan: it is used
+        once), else a new one."""
+        with self._lock:
+            geom = self._fresh.pop(k, None)
+        return geom if geom is not None else self.geometry(k)
 
     def _keep_geometry(self, k: int, geom: SensorGeometry, whole: WholeSource | None = None) -> None:
         """Keep image ``k``'s geometry (built by the reduced pass) and its source in device
@@ -553,7 +564,8 @@ def mosaic_plan(images: Sequence[tuple], *, dem: Dem | str | os.PathLike | float
     facts = _source_facts(images, _outputs)
     setup = {"sources": time.perf_counter() - t}
     t = time.perf_counter()
-    grids = _image_grids(images, terrain, cfg, _client, _worker_device)
+    fresh = {}  # the geometries the grids were made from, up to FRESH_GEOMETRIES, for the reduced pass
+    grids = _image_grids(images, terrain, cfg, _client, _worker_device, keep=fresh)
     setup["grids"] = time.perf_counter() - t
     count, src_dtype = facts[0][1], facts[0][2]
     out_dtype = dtype or (src_dtype if src_dtype in DTYPES else "float32")
@@ -565,6 +577,7 @@ def mosaic_plan(images: Sequence[tuple], *, dem: Dem | str | os.PathLike | float
     plan = MosaicPlan([(f[0], sensor, f[3]) for f, (_, sensor) in zip(facts, images)], terrain, options,
                       out_crs, transform, (rows, cols), res, foot, count, out_dtype, src_dtype)
     plan.setup_s.update(setup)
+    plan._fresh = fresh
     _balance_and_seams(plan, cfg, cancel, _seam_pixels, _client, _worker_device)
     plan.setup_s["total"] = time.perf_counter() - t_plan
     return plan
@@ -615,25 +628,35 @@ def _source_facts(images: list[tuple], outputs: Sequence[str]) -> list[tuple[str
 
 
 @quiet_warp()
-def _grid_of(item: tuple, terrain: Dem, cfg: _PlanSettings, grid_crs: CRS | None) -> tuple:
-    """One image's ortho grid (see :func:`_image_grids`)."""
+def _grid_of(item: tuple, terrain: Dem, cfg: _PlanSettings, grid_crs: CRS | None, *,
+             keep: tuple[dict, int] | None = None) -> tuple:
+    """One image's ortho grid (see :func:`_image_grids`); with ``keep`` = (dict, k) the
+    geometry it was made from goes into dict[k]."""
     src, sensor = item
     geom = SensorGeometry(sensor, terrain, refraction=cfg.refraction, device=cfg.device, geoid=cfg.geoid,
                           same_vertical_datum=cfg.same_vertical_datum)
     try:
-        return output_grid(geom, crs=grid_crs, resolution=cfg.resolution, name=src)
+        grid = output_grid(geom, crs=grid_crs, resolution=cfg.resolution, name=src)
     except GeometryError as e:
         raise GeometryError(f"Image '{src}': {e}") from e
+    if keep is not None:
+        keep[0][keep[1]] = geom
+    return grid
 
 
 def _image_grids(images: list[tuple], terrain: Dem, cfg: _PlanSettings, client: Any = None,
-                 worker_device: str | None = None) -> list[tuple]:
+                 worker_device: str | None = None, *, keep: dict | None = None) -> list[tuple]:
     """Each image's ortho grid (crs, transform, shape, resolution) in ``cfg.crs``, else in the
     first image's CRS (the images' geometries built on a few threads, or on the workers of a
-    Dask ``client``, each dropped once its grid is known: memory does not grow with their
-    number)."""
+    Dask ``client``). With ``keep`` (a dict) and at most :data:`FRESH_GEOMETRIES` images, the
+    geometries built here go into it by image (the plan's reduced pass uses them instead of
+    building each again); else each is dropped once its grid is known (memory does not grow
+    with the images)."""
     crs = cfg.crs
-    grids = [_grid_of(images[0], terrain, cfg, crs)]  # (its CRS is the others' where none is given)
+    if keep is not None and (client is not None or len(images) > FRESH_GEOMETRIES):
+        keep = None
+    grids = [_grid_of(images[0], terrain, cfg, crs, keep=None if keep is None else (keep, 0))]
+    # (its CRS is the others' where none is given)
     crs = crs if crs is not None else grids[0][0]
     if client is not None and len(images) > 1:
         from .cluster import shipped_terrain
@@ -647,7 +670,8 @@ def _image_grids(images: list[tuple], terrain: Dem, cfg: _PlanSettings, client: 
             remote.release()
         return grids
     with ThreadPoolExecutor(max_workers=max(1, min(8, os.cpu_count() or 1, len(images) - 1))) as pool:
-        grids += pool.map(lambda item: _grid_of(item, terrain, cfg, crs), images[1:])
+        grids += pool.map(lambda k: _grid_of(images[k], terrain, cfg, crs, keep=None if keep is None else (keep, k)),
+                          range(1, len(images)))
     return grids
 
 
@@ -900,6 +924,7 @@ def reduced_pass(plan: MosaicPlan, cancel: threading.Event | None, max_pixels: i
     else:
         with ThreadPoolExecutor(max_workers=min(8, os.cpu_count() or 1, len(plan.foot))) as pool:
             items = dict(zip(order, pool.map(one, order)))
+    plan._fresh.clear()  # (those of images without a pixel on the reduced grid)
     for k in range(len(plan.foot)):
         item = items.pop(k)
         if item is None:
@@ -923,7 +948,7 @@ def _reduced_image(plan: MosaicPlan, k: int, f: int, *, keep: bool = False) -> t
     crows, ccols = -(-rows // f), -(-cols // f)
     ctr = plan.transform @ Affine.scale(f)
     fr0, fr1, fc0, fc1 = plan.foot[k]
-    src, geom = plan.sources[k][0], plan.geometry(k)
+    src, geom = plan.sources[k][0], plan._first_geometry(k)
     r0, r1 = max(fr0 // f, 0), min(-(-fr1 // f), crows)
     c0, c1 = max(fc0 // f, 0), min(-(-fc1 // f), ccols)
     window = Tile(r0, c0, r1 - r0, c1 - c0)
