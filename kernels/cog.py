@@ -5,7 +5,8 @@ The COG writer's per-block work, for tiles that are already on the device (see
 
 - :func:`encode_blocks_kernel`: cut a level's piece (rows, cols, bands) into the file's
   B x B blocks, pixel-interleaved; integer pixels outside the mask set to 0 and TIFF
-  predictor 2 applied (horizontal differencing per sample, modulo the type's range); float
+  predictor 2 applied (horizontal differencing per sample, modulo the type's range; not for
+  JPEG blocks); float
   pixels copied (no predictor, NaN stays nodata); blocks past the raster's edge padded with
   0 / NaN;
 - :func:`mask_bits_kernel`: the blocks of the per-dataset mask, 1 bit per pixel, rows padded
@@ -62,11 +63,13 @@ def encode_blocks_kernel(
     piece: wp.array3d(dtype=Any),
     valid: wp.array2d(dtype=wp.uint8),
     nbx: wp.int32,
+    predict: wp.int32,
     out: wp.array4d(dtype=Any),
 ):
     """Blocks (nb, B, B, bands) of a piece (rows, cols, bands) whose top-left pixel is a block
     corner: block k covers rows (k // nbx) B ... and columns (k % nbx) B ... of the piece.
-    ``valid`` (rows, cols): 1 where the pixel is valid (integer types: others stored as 0)."""
+    ``valid`` (rows, cols): 1 where the pixel is valid (integer types: others stored as 0);
+    ``predict`` 1: integer samples with TIFF predictor 2, 0: as they are (JPEG blocks)."""
     k, y, x = wp.tid()
     bsize = out.shape[1]
     py = (k // nbx) * bsize + y
@@ -83,7 +86,7 @@ def encode_blocks_kernel(
         ok = wp.int32(valid[qy, qx] != wp.uint8(0))
     if prev_in != 0:
         prev_ok = wp.int32(valid[qy, rx] != wp.uint8(0))
-    first = wp.int32(x == 0)
+    first = wp.int32(x == 0 or predict == 0)  # (the first column is stored as it is)
     for c in range(out.shape[3]):
         out[k, y, x, c] = stored_value(piece[qy, qx, c], ok, piece[qy, rx, c], prev_ok, first, inside)
 

@@ -17,8 +17,9 @@ from test_cog import CRS, TRANSFORM, scene
 from orthowarp.errors import DeviceError, ParamError
 from orthowarp.kernels import cog as kc
 from orthowarp.pipeline.raster.cog import CogWriter
-from orthowarp.pipeline.raster.device import (DeviceCogEncoder, HostDeflate, HostZstd, NvcompDeflate, NvcompZstd,
-                                           _bytes_view, nvcomp_available, zlib_stream)
+from orthowarp.pipeline.raster.device import (DeviceCogEncoder, HostDeflate, HostJpeg, HostZstd, NvcompDeflate,
+                                           NvcompZstd, NvjpegCodec, _bytes_view, nvcomp_available, nvjpeg_available,
+                                           nvjpeg_runs, zlib_stream)
 
 needs_nvcomp = pytest.mark.skipif(not (nvcomp_available() and wp.get_cuda_device_count()),
                                   reason="needs nvCOMP and a CUDA device")
@@ -69,13 +70,14 @@ def test_bytes_view_shares_memory(device):
 
 
 def _write(path, shape, count, dtype, tile, *, device=None, overviews=3, block=256, codecs=None, compress="deflate",
-           batch_bytes=512 << 20):
+           batch_bytes=512 << 20, quality=None):
     """One file from the scene, through the device encoder (``device``; libdeflate or, for
     zstd, ``zstandard`` unless ``codecs`` are given) or the host writer."""
     data, mask = scene(shape, count, dtype)
     w = CogWriter(path, width=shape[1], height=shape[0], count=count, dtype=dtype, crs=CRS, transform=TRANSFORM,
-                  block_size=block, overviews=overviews, threads=2, compress=compress)
-    host_codec = HostDeflate(6, threads=2) if compress == "deflate" else HostZstd(9, threads=2)
+                  block_size=block, overviews=overviews, threads=2, compress=compress, quality=quality)
+    host_codec = HostDeflate(6, threads=2) if compress == "deflate" else HostZstd(9, threads=2) \
+        if compress == "zstd" else HostJpeg(quality or 90, threads=2)
     enc = DeviceCogEncoder(w, wp.get_device(device), codecs or [host_codec], batch_bytes=batch_bytes) if device \
         else None
     with w:
@@ -439,3 +441,60 @@ def test_batches_over_tiles_and_the_hand_over_to_the_host(tmp_path, with_host):
     for (da, ma, _, _), (db, mb, _, _) in zip(_levels(ref, count), _levels(out, count)):
         np.testing.assert_array_equal(ma, mb)
         np.testing.assert_array_equal(da, db)
+
+
+@pytest.mark.parametrize("count,tile,shape", [(3, 512, (1100, 1500)), (1, 1024, (1300, 1029))])
+def test_device_encoded_jpeg_file_is_the_host_writers(tmp_path, device, count, tile, shape):
+    """JPEG blocks made on the device (no predictor, masked pixels 0, overviews reduced there)
+    and encoded by the host writer's libjpeg: the same file, byte for byte, as the host writer
+    writes from the same tiles (one-byte blocks included: the writer's own stream of them)."""
+    host, dev = str(tmp_path / "host.tif"), str(tmp_path / "dev.tif")
+    _write(host, shape, count, "uint8", tile, compress="jpeg", quality=80)
+    enc = _write(dev, shape, count, "uint8", tile, device=device, compress="jpeg", quality=80)
+    assert enc.blocks_by_codec["libjpeg"] > 0 and enc.empty_blocks > 0
+    with open(host, "rb") as a, open(dev, "rb") as b:
+        assert a.read() == b.read()
+    with rasterio.open(dev) as ds:
+        assert ds.tags(ns="IMAGE_STRUCTURE")["JPEG_QUALITY"] == "80"
+
+
+needs_nvjpeg = pytest.mark.skipif(not (nvjpeg_available() and wp.get_cuda_device_count()
+                                       and nvjpeg_runs(wp.get_device("cuda:0"))),
+                                  reason="needs nvImageCodec's nvJPEG encoder running on a CUDA device")
+
+
+@needs_nvjpeg
+@pytest.mark.parametrize("count", [3, 1])
+def test_nvjpeg_file_decodes_near_the_host_writers(tmp_path, count):
+    """nvJPEG's blocks (its own rounding) decode within JPEG's error of the host writer's
+    libjpeg blocks at every level, with the same masks; the file keeps the writer's tables."""
+    shape = (1100, 1500)
+    host, dev = str(tmp_path / "host.tif"), str(tmp_path / "dev.tif")
+    _write(host, shape, count, "uint8", 512, compress="jpeg", quality=90)
+    device = wp.get_device("cuda:0")
+    enc = _write(dev, shape, count, "uint8", 512, device="cuda:0", compress="jpeg", quality=90,
+                 codecs=[NvjpegCodec(device, 90)], batch_bytes=1 << 20)
+    assert enc.blocks_by_codec["nvjpeg"] > 0
+    for (da, ma, _, _), (db, mb, _, _) in zip(_levels(host, count), _levels(dev, count)):
+        np.testing.assert_array_equal(ma, mb)
+        diff = np.abs(da.astype(int) - db.astype(int))[:, ma > 0]
+        assert diff.mean() < 1.5 and np.percentile(diff, 99) <= 8, (diff.mean(), np.percentile(diff, 99))
+
+
+def test_jpeg_codecs_need_their_packages_and_a_gpu(tmp_path):
+    with pytest.raises(ParamError, match="CUDA"):
+        NvjpegCodec(wp.get_device("cpu"), 90)
+
+
+def test_jpeg_block_codec_choices():
+    """A JPEG COG: the host writer on the CPU whatever the choice; "nvcomp" and "warp" refused
+    (deflate / zstd codecs); "hybrid" allowed (the device's blocks, libjpeg on the host cores)."""
+    from orthowarp.pipeline.ortho.sink import choose_block_codec
+
+    cpu = wp.get_device("cpu")
+    assert [choose_block_codec(c, cpu, True, compress="jpeg") for c in ("auto", "host", "hybrid")] == ["host"] * 3
+    for c in ("nvcomp", "warp"):
+        with pytest.raises(ParamError, match="jpeg"):
+            choose_block_codec(c, cpu, True, compress="jpeg")
+    with pytest.raises(ParamError, match="webp"):
+        choose_block_codec("hybrid", cpu, True, compress="webp")

@@ -424,8 +424,10 @@ class MosaicPlan(TileBlending):
             # a WebP mosaic: an intermediate of deflate level 1 beside the temporary, then GDAL's COG
             work = tmps[0] + ".work.tif" if via_gdal else tmps[0]
             own = dict(kw, level=1) if via_gdal else dict(kw, compress="jpeg", quality=quality) if lossy else kw
+            # (the host writer's blocks timed as "write" spans, as the device encoder's batches)
+            timer = self._state["timer"] if self._state is not None else None
             writers = [CogWriter(work, width=cols, height=rows, count=self.count, dtype=self.dtype, crs=rio_crs,
-                                 transform=self.transform, name=dst, **own)]
+                                 transform=self.transform, name=dst, timer=timer, **own)]
             if index is not None:
                 # the index: NO_SOURCE as its nodata (distinct from image 0 for readers that
                 # ignore masks), overviews taking an image's number, never a mean of numbers
@@ -436,7 +438,7 @@ class MosaicPlan(TileBlending):
             try:
                 if _block_codec != "host":
                     codecs = device_codecs(_block_codec, 1 if via_gdal else compress_level, self.warp_device,
-                                           "deflate" if via_gdal else compress)
+                                           "deflate" if via_gdal else compress, quality=quality)
                     encoder = self._encoder = DeviceCogEncoder(writers[0], self.warp_device, codecs,
                                                                timer=self._materialise()["timer"])
                 for (r0, c0, th, tw), (block, valid, source) in results:

@@ -249,9 +249,12 @@ def orthorectify(src: str | os.PathLike, sensor: SensorModel, dst: str | os.Path
         threads) or "nvcomp" (the same device work, the blocks compressed by nvCOMP's Zstd,
         which takes no level: ``compress_level`` applies to the host codec; the mask blocks,
         deflate in a zstd COG as GDAL writes them, are deflated on the host, on request);
-        "auto" is "host"; "warp" and "hybrid" are deflate codecs, refused with zstd. Other
-        compressions are encoded on the host ("auto" or "host"; the device codecs refused
-        with jpeg and webp).
+        "auto" is "host"; "warp" and "hybrid" are deflate codecs, refused with zstd. A JPEG
+        COG: "auto" makes its blocks and overviews on a GPU and encodes them there with
+        nvJPEG where nvImageCodec's encoder runs (``pip install 'orthowarp[gpu]'``; probed
+        once per device), else "host" (libjpeg on the host cores); "hybrid" makes the blocks
+        on a GPU and encodes them with libjpeg on the host cores (the host file, byte for
+        byte); "nvcomp" and "warp" are refused with jpeg, and "hybrid" too with webp.
     source_reads : {"auto", "whole", "tiles"}, optional
         How the source reaches the device. "tiles": each output tile reads the source window
         it needs (reduced where the output is coarser) and uploads it. "whole": the source is

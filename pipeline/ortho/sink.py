@@ -53,7 +53,7 @@ BLOCK_CODECS = values(BlockCodec)
 #: The COG compressions orthowarp's writer streams (the others are copied by GDAL's COG driver).
 STREAMED = ("deflate", "zstd", "jpeg", "none")
 #: The compressions whose blocks a device block codec may compress.
-DEVICE_COMPRESS = ("deflate", "zstd")
+DEVICE_COMPRESS = ("deflate", "zstd", "jpeg")
 _DEFLATE_ONLY = ("warp", "hybrid")  # orthowarp's deflate kernels, and the deflate codecs shared with the host
 
 
@@ -216,9 +216,10 @@ def check_block_codec(block_codec: str, compress: str) -> None:
     if compress == "zstd" and block_codec in _DEFLATE_ONLY:
         raise ParamError(f"block_codec {block_codec!r} compresses deflate blocks only; for zstd use auto, host or "
                          "nvcomp")
-    if compress in LOSSY and block_codec not in ("auto", "host"):
-        raise ParamError(f"block_codec {block_codec!r} compresses deflate or zstd blocks; {compress} blocks are "
-                         "encoded on the host (use auto or host)")
+    refused = ("nvcomp", "warp") if compress == "jpeg" else ("nvcomp", *_DEFLATE_ONLY) if compress in LOSSY else ()
+    if block_codec in refused:
+        raise ParamError(f"block_codec {block_codec!r} compresses deflate or zstd blocks; for {compress} use auto"
+                         + (", host or hybrid" if compress == "jpeg" else " or host"))
 
 
 def choose_block_codec(choice: str, device: Device, device_cog: bool, level: int | None = None, *,
@@ -240,9 +241,11 @@ def choose_block_codec(choice: str, device: Device, device_cog: bool, level: int
 
     Returns
     -------
-    {"host", "nvcomp", "warp", "hybrid", "device"}
+    {"host", "nvcomp", "warp", "hybrid", "device", "nvjpeg"}
         "hybrid": a device codec and libdeflate; "device": the block work on the device,
-        libdeflate only.
+        libdeflate only (for jpeg: libjpeg, "hybrid" on a GPU); "nvjpeg": a JPEG COG's blocks
+        made and encoded on the device ("auto" for jpeg on a GPU where nvImageCodec's nvJPEG
+        encoder runs).
 
     Raises
     ------
@@ -255,6 +258,12 @@ def choose_block_codec(choice: str, device: Device, device_cog: bool, level: int
     level = compress_level(compress, level)
     if choice == "host" or not device_cog or compress not in DEVICE_COMPRESS:
         return "host"
+    if compress == "jpeg":  # (bench/mosaic.py --compress jpeg [--block-codec host|hybrid])
+        if not device.is_cuda:
+            return "host"
+        if choice == "hybrid":  # the blocks and overviews made on the device, libjpeg on the host cores
+            return "device"
+        return "nvjpeg" if nvjpeg_runs(device) else "host"
     if compress == "zstd":
         # the host writer's threads unless nvCOMP's Zstd is asked for: its frames are smaller
         # than zstd 1-3's only on some blocks and its level is fixed, and a 40-frame mosaic
@@ -296,6 +305,14 @@ def nvcomp_available() -> bool:
     return available()
 
 
+def nvjpeg_runs(device: Device) -> bool:
+    """Whether nvImageCodec's nvJPEG encoder runs on ``device`` (a probe block encoded there,
+    once per device; see :func:`~orthowarp.pipeline.raster.device.nvjpeg_runs`)."""
+    from ..raster.device import nvjpeg_runs as runs
+
+    return runs(device)
+
+
 def _nvcomp_pays(level: int) -> bool:
     """Whether nvCOMP deflates faster than the alternatives at a libdeflate ``level``: its
     medium-ratio variant, at levels 1-4, beat every host level on an H100 with 16 cores
@@ -322,19 +339,22 @@ def _warp_deflate(level: int, device: Device) -> WarpDeflate:
     return WarpDeflate(device, depth=depth, nice=nice)
 
 
-def device_codecs(block_codec: str, level: int | None, device: Device, compress: str = "deflate") -> list:
+def device_codecs(block_codec: str, level: int | None, device: Device, compress: str = "deflate", *,
+                  quality: int | None = None) -> list:
     """The codecs of a :class:`~orthowarp.pipeline.raster.device.DeviceCogEncoder`.
 
     Parameters
     ----------
-    block_codec : {"nvcomp", "hybrid", "device", "warp"}
+    block_codec : {"nvcomp", "hybrid", "device", "warp", "nvjpeg"}
         A resolved block codec (:func:`choose_block_codec`).
     level : int or None
         The compression level (libdeflate 1-12, zstd 1-22); None: the writer's default.
     device : warp.context.Device
-    compress : {"deflate", "zstd"}, optional
-        The output's compression: raw-deflate codecs, or zstd ones (nvCOMP's Zstd, which has
-        no levels, or ``zstandard`` on the host).
+    compress : {"deflate", "zstd", "jpeg"}, optional
+        The output's compression: raw-deflate codecs, zstd ones (nvCOMP's Zstd, which has
+        no levels, or ``zstandard`` on the host), or nvJPEG.
+    quality : int, optional
+        JPEG quality (default :data:`DEFAULT_QUALITY`).
 
     Returns
     -------
@@ -343,9 +363,15 @@ def device_codecs(block_codec: str, level: int | None, device: Device, compress:
         :class:`~orthowarp.pipeline.raster.device.WarpDeflate` and/or
         :class:`~orthowarp.pipeline.raster.device.HostDeflate` objects, or for zstd
         :class:`~orthowarp.pipeline.raster.device.NvcompZstd` and/or
-        :class:`~orthowarp.pipeline.raster.device.HostZstd`, in the encoder's order.
+        :class:`~orthowarp.pipeline.raster.device.HostZstd`, or for jpeg
+        :class:`~orthowarp.pipeline.raster.device.NvjpegCodec`, in the encoder's order.
     """
     check_block_codec(block_codec, compress)
+    if compress == "jpeg":
+        from ..raster.device import HostJpeg, NvjpegCodec
+
+        q = quality or DEFAULT_QUALITY
+        return [NvjpegCodec(device, q)] if block_codec == "nvjpeg" else [HostJpeg(q)]
     level = compress_level(compress, level)
     if compress == "zstd":
         from ..raster.device import HostZstd, NvcompZstd
@@ -473,7 +499,7 @@ def open_sink(path: str, profile: dict[str, Any], cog: dict[str, Any] | None, fi
         encoder = None
         try:
             if block_codec != "host":
-                codecs = device_codecs(block_codec, cog["level"], device, cog["compress"])
+                codecs = device_codecs(block_codec, cog["level"], device, cog["compress"], quality=cog["quality"])
                 from ..raster.device import DeviceCogEncoder
 
                 encoder = DeviceCogEncoder(w, device, codecs)

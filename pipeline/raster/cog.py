@@ -530,10 +530,15 @@ class CogWriter:
         if self.compress == "zstd":
             return zstd_frame(raw, self.compress_level)
         if self.compress == "jpeg":
-            stream = jpeg_stream(raw, self.quality)
-            tables, rest = split_jpeg_tables(stream)
-            return rest if tables == self._jpeg_tables else stream
+            return self.jpeg_block(jpeg_stream(raw, self.quality))
         return bytes(raw)
+
+    def jpeg_block(self, stream: bytes) -> bytes:
+        """A JPEG file's stored block for the JPEG ``stream`` of its pixels: without its
+        quantization tables and APPn segments where its tables are the file's JPEGTables, else
+        the whole stream (see :func:`split_jpeg_tables`)."""
+        tables, rest = split_jpeg_tables(stream)
+        return rest if tables == self._jpeg_tables else stream
 
     def _compress_mask(self, bits: np.ndarray) -> bytes:
         """A mask block's stored bytes: a zlib stream (deflate and zstd files), or the bits."""

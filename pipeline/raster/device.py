@@ -26,12 +26,20 @@ blocks, and only compressed blocks cross to the host:
      stores as deflate (as GDAL does), go to a raw-deflate codec of their own
      (:class:`HostDeflate` by default) and are wrapped as above;
 
+   - jpeg: :class:`NvjpegCodec` (nvImageCodec's nvJPEG encoder on the GPU, packages
+     ``nvidia-nvimgcodec-cu13`` and ``nvidia-nvjpeg``), the blocks without the predictor; each
+     stream stored as the host writer stores its own (:func:`~orthowarp.pipeline.raster.cog.split_jpeg_tables`:
+     without its quantization tables where they are the file's JPEGTables); the mask blocks
+     deflate, as with zstd;
+
    a block of one byte gets the one stream (or frame) of its size and byte, made once per
    compression;
 4. the records handed to the writer, which lays the file out as before.
 
-Every path decodes to the same pixels as the host writer's (the block contents before
-compression are identical bit for bit; only the compressed streams differ).
+Every lossless path decodes to the same pixels as the host writer's (the block contents before
+compression are identical bit for bit; only the compressed streams differ); a JPEG file's
+blocks hold the same pixels before encoding, and nvJPEG's encoder rounds differently from
+libjpeg's, so its pixels are the host file's within JPEG's own error.
 """
 
 from __future__ import annotations
@@ -56,8 +64,8 @@ if TYPE_CHECKING:
 
     from .cog import CogWriter
 
-__all__ = ["DeviceCogEncoder", "HostDeflate", "HostZstd", "NvcompDeflate", "NvcompZstd", "WarpDeflate",
-           "nvcomp_available", "zlib_stream"]
+__all__ = ["DeviceCogEncoder", "HostDeflate", "HostJpeg", "HostZstd", "NvcompDeflate", "NvcompZstd", "NvjpegCodec", "WarpDeflate",
+           "nvcomp_available", "nvjpeg_available", "nvjpeg_runs", "zlib_stream"]
 
 _WP = {"uint8": wp.uint8, "uint16": wp.uint16, "float32": wp.float32}
 _ZLIB_HEADER = b"\x78\x9c"
@@ -77,6 +85,34 @@ def nvcomp_available() -> bool:
     except Exception:  # noqa: BLE001 - missing package, or its libraries failing to load
         return False
     return True
+
+
+def nvjpeg_available() -> bool:
+    """True where nvImageCodec's Python package can be imported (its nvJPEG encoder still needs
+    a CUDA device and the nvJPEG library, which :class:`NvjpegCodec` checks)."""
+    try:
+        from nvidia import nvimgcodec  # noqa: F401
+    except Exception:  # noqa: BLE001 - missing package, or its libraries failing to load
+        return False
+    return True
+
+
+_NVJPEG_RUNS: dict = {}  # device alias -> whether NvjpegCodec could be made there
+
+
+def nvjpeg_runs(device: Device) -> bool:
+    """Whether nvImageCodec's nvJPEG encoder runs on the CUDA ``device``: a :class:`NvjpegCodec`
+    made there (which encodes a probe block), once per device."""
+    if not device.is_cuda or not nvjpeg_available():
+        return False
+    if device.alias not in _NVJPEG_RUNS:
+        try:
+            NvjpegCodec(device, 90).close()
+            ok = True
+        except (DeviceError, ParamError):
+            ok = False
+        _NVJPEG_RUNS[device.alias] = ok
+    return _NVJPEG_RUNS[device.alias]
 
 
 def _bytes_view(arr: wp.array) -> wp.array:
@@ -157,6 +193,37 @@ class HostZstd(_HostCodec):
 
     def _one(self, raw: np.ndarray) -> bytes:
         return self._frame(raw, self.level)
+
+
+class HostJpeg(_HostCodec):
+    """JPEG streams of device-resident uint8 blocks on host threads (the host writer's
+    :func:`~orthowarp.pipeline.raster.cog.jpeg_stream`: Pillow's libjpeg, GIL-free while it
+    encodes): the blocks made on the device, encoded on the host cores.
+
+    Parameters
+    ----------
+    quality : int
+        1-100.
+    threads : int, optional
+        Default: CPU cores.
+    """
+
+    name, compression = "libjpeg", "jpeg"
+
+    def __init__(self, quality: int, *, threads: int | None = None) -> None:
+        from .cog import jpeg_stream
+
+        self._jpeg, self._shape = jpeg_stream, None
+        super().__init__(quality, threads, "jpeg")
+
+    def compress(self, buf: wp.array, offsets: Sequence[int], sizes: Sequence[int], *,
+                 shape: tuple[int, int, int]) -> list:
+        """The JPEG streams of the blocks of ``shape`` (B, B, bands) at ``offsets`` of ``buf``."""
+        self._shape = tuple(shape)
+        return super().compress(buf, offsets, sizes)
+
+    def _one(self, raw: np.ndarray) -> bytes:
+        return self._jpeg(raw.reshape(self._shape), self.level)
 
 
 class _NvcompCodec:
@@ -298,6 +365,84 @@ class NvcompZstd(_NvcompCodec):
     def _make_codec(self) -> Any:
         nv = self._nvcomp
         return nv.Codec(algorithm="Zstd", bitstream_kind=nv.BitstreamKind.RAW, device_id=self.device.ordinal)
+
+
+class NvjpegCodec:
+    """Baseline JPEG streams of device-resident uint8 blocks, encoded on the GPU by
+    nvImageCodec's nvJPEG encoder (one batch per call): three bands as YCbCr with the chroma
+    subsampled 2 x 2, one as grey, at IJG ``quality``, standard Huffman tables (as the host
+    writer's libjpeg).
+
+    Parameters
+    ----------
+    device : warp Device
+        A CUDA device.
+    quality : int
+        1-100.
+
+    Raises
+    ------
+    DeviceError
+        nvImageCodec is not installed, or its nvJPEG encoder does not run on ``device``
+        (checked by encoding one small block).
+    """
+
+    name, compression = "nvjpeg", "jpeg"
+    batched = True  # called with batches gathered over tiles (see DeviceCogEncoder)
+
+    def __init__(self, device: Device, quality: int) -> None:
+        if not device.is_cuda:
+            raise ParamError("nvJPEG encodes on CUDA devices only")
+        try:
+            from nvidia import nvimgcodec
+        except Exception as e:  # noqa: BLE001
+            raise DeviceError(f"nvImageCodec is not available ({e}); install orthowarp[gpu]") from e
+        self._nv, self.device, self.quality = nvimgcodec, device, int(quality)
+        self._lock = threading.Lock()
+        try:
+            self._encoder = nvimgcodec.Encoder(device_id=device.ordinal,
+                                               backends=[nvimgcodec.Backend(nvimgcodec.BackendKind.GPU_ONLY)])
+            probe = wp.zeros((16, 16, 3), dtype=wp.uint8, device=device)
+            if self._encode([probe], 3)[0] is None:
+                raise RuntimeError("the encoder returned nothing (is the nvJPEG library installed?)")
+        except Exception as e:  # noqa: BLE001 - nvImageCodec raises RuntimeError and others
+            raise DeviceError(f"nvImageCodec's nvJPEG encoder does not run on {device}: {e}") from e
+
+    def _encode(self, images: list[wp.array], count: int) -> list:
+        nv = self._nv
+        css = nv.ChromaSubsampling.CSS_420 if count == 3 else nv.ChromaSubsampling.CSS_GRAY
+        params = nv.EncodeParams(quality_type=nv.QualityType.QUALITY, quality_value=float(self.quality),
+                                 chroma_subsampling=css,
+                                 jpeg_encode_params=nv.JpegEncodeParams(progressive=False, optimized_huffman=False))
+        stream = int(self.device.stream.cuda_stream)  # the blocks were written on the device's stream
+        with self._lock:
+            return self._encoder.encode([nv.as_image(a, cuda_stream=stream) for a in images], "jpeg", params=params,
+                                        cuda_stream=stream)
+
+    def compress(self, buf: wp.array, offsets: Sequence[int], sizes: Sequence[int], *,
+                 shape: tuple[int, int, int]) -> list[bytes]:
+        """The JPEG streams (list of bytes) of the blocks of ``shape`` (B, B, bands) at
+        ``offsets`` of the uint8 Warp array ``buf`` (on this codec's device, written on its
+        current stream)."""
+        n = int(np.prod(shape))
+        if any(int(x) != n for x in sizes):
+            raise ParamError(f"NvjpegCodec: every buffer must be one block of {shape} ({n} bytes)")
+        views = []
+        for off in offsets:
+            v = wp.array(ptr=buf.ptr + int(off), shape=tuple(shape), dtype=wp.uint8, device=buf.device)
+            v._ref = buf  # noqa: SLF001 - the view does not own its memory
+            views.append(v)
+        try:
+            out = self._encode(views, shape[2])
+        except Exception as e:  # noqa: BLE001
+            raise DeviceError(f"nvJPEG could not encode a batch of {len(views)} blocks on {self.device}: {e}") from e
+        if any(c is None for c in out):
+            raise DeviceError(f"nvJPEG could not encode {sum(c is None for c in out)} of {len(views)} blocks on "
+                              f"{self.device}")
+        return [bytes(c) for c in out]
+
+    def close(self) -> None:
+        self._encoder = None
 
 
 def _length_tables() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -581,14 +726,15 @@ class DeviceCogEncoder:
     Parameters
     ----------
     writer : CogWriter
-        With ``compress="deflate"`` or ``"zstd"``; it receives compressed blocks
+        With ``compress="deflate"``, ``"zstd"`` or ``"jpeg"``; it receives compressed blocks
         (:meth:`CogWriter.put_block`) and the small pieces of the upper overview levels
         (:meth:`CogWriter.write`).
     device : warp Device
     codecs : list
         One or two codecs of the writer's compression: for deflate a batched device codec
         (:class:`NvcompDeflate`, :class:`WarpDeflate`) and/or :class:`HostDeflate`, for zstd
-        :class:`NvcompZstd` and/or :class:`HostZstd`. The device codec gets blocks in
+        :class:`NvcompZstd` and/or :class:`HostZstd`, for jpeg :class:`NvjpegCodec` and/or
+        :class:`HostJpeg`. The device codec gets blocks in
         batches of at least ``batch_bytes`` gathered over several tiles (a batch of a single
         tile's blocks would leave most of the GPU idle), on a thread of its own (the tiles'
         threads hand a full batch over and go on); while it compresses one batch the next one
@@ -599,8 +745,8 @@ class DeviceCogEncoder:
         Uncompressed bytes per nvCOMP batch (default 512 MiB: about 680 blocks of 512 x 512 x 3
         bytes; nvCOMP reserves about 2.3 times that for its output).
     mask_codec : object, optional
-        A raw-deflate codec for the mask blocks of a zstd writer (which stores them as deflate,
-        as GDAL does); default :class:`HostDeflate` at the writer's mask level (the masks are
+        A raw-deflate codec for the mask blocks of a zstd or jpeg writer (which stores them as
+        deflate, as GDAL does); default :class:`HostDeflate` at the writer's mask level (the masks are
         1/8 byte per pixel, and most are one byte, which no codec sees). With a deflate
         writer, the mask blocks go with the image blocks unless one is given.
     timer : StageTimer, optional
@@ -613,8 +759,8 @@ class DeviceCogEncoder:
 
     def __init__(self, writer: CogWriter, device: Device, codecs: Sequence[Any], *,
                  batch_bytes: int = 512 << 20, mask_codec: Any = None, timer: Any = None) -> None:
-        if writer.compress not in ("deflate", "zstd"):
-            raise ParamError(f"DeviceCogEncoder needs a deflate or zstd CogWriter, not {writer.compress!r}")
+        if writer.compress not in ("deflate", "zstd", "jpeg"):
+            raise ParamError(f"DeviceCogEncoder needs a deflate, zstd or jpeg CogWriter, not {writer.compress!r}")
         gpu = [c for c in codecs if c.batched]
         host = [c for c in codecs if not c.batched]
         if not codecs or len(gpu) > 1 or len(host) > 1:
@@ -686,7 +832,7 @@ class DeviceCogEncoder:
         if job is None:
             return
         if self.gpu is None:
-            self._compress([job], self.host)
+            self._compress_host(job)
             return
         take = None
         with self._lock:
@@ -705,7 +851,7 @@ class DeviceCogEncoder:
                 if self._batch_n >= self.batch_bytes and not self._gpu_busy:
                     take, self._batch, self._batch_n, self._gpu_busy = self._batch, [], 0, True
         if job is not None:
-            self._compress([job], self.host)
+            self._compress_host(job)
         if take:  # the codec's own thread deflates it: the tile's thread goes back to its tiles
             self._worker.submit(self._compress_gpu, take)
 
@@ -722,6 +868,14 @@ class DeviceCogEncoder:
             self._compress_gpu(take)
             with self._lock:
                 self._raise_failed()
+
+    def _compress_host(self, job: _Tile) -> None:
+        """Compress a tile's blocks with the host codec in the calling thread, timed as a
+        ``"write"`` span."""
+        t = time.perf_counter()
+        self._compress([job], self.host)
+        if self.timer is not None:
+            self.timer.span("write", t)
 
     def _raise_failed(self) -> None:
         """Raise the error of a failed batch (under the lock)."""
@@ -765,8 +919,9 @@ class DeviceCogEncoder:
                 break
             nby, nbx = -(-h // b), -(-w // b)
             blocks = wp.empty((nby * nbx, b, b, wr.count), dtype=_WP[wr.dtype], device=self.device)
-            wp.launch(kc.encode_blocks_kernel, dim=(nby * nbx, b, b), inputs=[piece, pvalid, nbx],
-                      outputs=[blocks], device=self.device)
+            wp.launch(kc.encode_blocks_kernel, dim=(nby * nbx, b, b),
+                      inputs=[piece, pvalid, nbx, wp.int32(wr.compress != "jpeg")], outputs=[blocks],
+                      device=self.device)
             images.append(blocks)
             if wr.mask:
                 bits = wp.empty((nby * nbx, b, b // 8), dtype=wp.uint8, device=self.device)
@@ -814,7 +969,10 @@ class DeviceCogEncoder:
             raw = self._constants.get(key)
         if raw is None:
             data = np.full(size, value, np.uint8)
-            if compression == "zstd":
+            if compression == "jpeg":  # an image block: the writer's own stream of it
+                wr = self.writer
+                raw = wr._compress(data.reshape(wr.block, wr.block, wr.count))  # noqa: SLF001
+            elif compression == "zstd":
                 from .cog import zstd_frame
 
                 raw = zstd_frame(data, self.writer.compress_level)
@@ -856,12 +1014,17 @@ class DeviceCogEncoder:
         adlers, fill = self._checksums(buf, offsets, sizes)
         live = np.flatnonzero(fill < 0)
         raws = [None] * len(offsets)
-        for k, r in zip(live, codec.compress(buf, offsets[live].tolist(), sizes[live].tolist()) if len(live) else []):
+        wr = self.writer
+        shape = dict(shape=(wr.block, wr.block, wr.count)) if codec.compression == "jpeg" else {}
+        for k, r in zip(live, codec.compress(buf, offsets[live].tolist(), sizes[live].tolist(), **shape)
+                        if len(live) else []):
             raws[k] = r
         for k in np.flatnonzero(fill >= 0):
             raws[k] = self._constant_stream(codec.compression, int(sizes[k]), int(fill[k]))
         if codec.compression == "deflate":
             streams = [zlib_stream(r, int(a)) for r, a in zip(raws, adlers)]
+        elif codec.compression == "jpeg":  # (one-byte blocks: the writer's stream already)
+            streams = [wr.jpeg_block(r) if fill[k] < 0 else bytes(r) for k, r in enumerate(raws)]
         else:
             streams = [bytes(r) for r in raws]
         bounds = np.concatenate([[0], np.cumsum(counts)])
