@@ -47,6 +47,7 @@ MODULES = {"camera": (), "geodesy": (), "sensor": (), "ortho": (128,), "mosaic":
 SHIPPED = os.path.join(os.path.dirname(os.path.abspath(__file__)), "_kernels")
 _PACKAGE_SHIPPED = SHIPPED
 _SEEDED = set()  # (device, shipped folder, kernel cache) already seeded in this process
+_SEEDED_DEFAULT = set()  # (device, kernel cache) seeded from the default folder (no search of sys.path again)
 
 
 def _default_shipped() -> str:
@@ -108,7 +109,13 @@ def seed(device: wp.Device, *, shipped: str | os.PathLike[str] | None = None) ->
     """
     import warp as wp
 
-    shipped = _default_shipped() if shipped is None else os.fspath(shipped)
+    if shipped is None:  # (every device resolution comes here: the folder is looked for once)
+        first = (str(device), wp.config.kernel_cache_dir)
+        if first in _SEEDED_DEFAULT:
+            return []
+        _SEEDED_DEFAULT.add(first)
+        shipped = _default_shipped()
+    shipped = os.fspath(shipped)
     key = (str(device), shipped, wp.config.kernel_cache_dir)
     if key in _SEEDED:
         return []
