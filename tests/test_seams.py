@@ -234,3 +234,33 @@ def test_line_of_sight_angles_are_the_projection_centres(name):
     ok = np.isfinite(centre)
     assert ok.mean() > 0.5 and np.array_equal(ok, np.isfinite(sight))
     np.testing.assert_allclose(sight[ok], centre[ok], atol=2e-5)  # radians
+
+
+def test_upsampled_angles_are_np_interps_bit_for_bit():
+    """_upsample (whole arrays at once) gives np.interp's values along the node rows, then along
+    the columns, bit for bit: NaN and infinite nodes, repeated values, pixels past the last
+    node, single rows or columns of nodes."""
+    from orthowarp.pipeline.ortho.tiles import COARSE_STEP
+
+    def reference(node, th, tw):
+        ki, kj = np.arange(node.shape[0]) * COARSE_STEP, np.arange(node.shape[1]) * COARSE_STEP
+        rows, cols = np.arange(th, dtype=float), np.arange(tw, dtype=float)
+        along = np.stack([np.interp(cols, kj, node[i]) for i in range(node.shape[0])])
+        return np.stack([np.interp(rows, ki, along[:, j]) for j in range(tw)], axis=1)
+
+    rng = np.random.default_rng(5)
+    for trial in range(300):
+        ni, nj = (int(v) for v in rng.integers(1, 10, 2))
+        th, tw = int(rng.integers(1, ni * COARSE_STEP + 5)), int(rng.integers(1, nj * COARSE_STEP + 5))
+        node = rng.normal(0.3, 0.1, (ni, nj))
+        kind = trial % 4
+        if kind == 1:
+            node[rng.random(node.shape) < 0.3] = np.nan
+        elif kind == 2:
+            node[rng.random(node.shape) < 0.3] = np.nan
+            node[rng.random(node.shape) < 0.2] = np.inf * rng.choice([-1.0, 1.0])
+        elif kind == 3:
+            node = np.round(node, 1)
+        got, want = seams._upsample(node, th, tw), reference(node, th, tw)
+        assert got.shape == want.shape == (th, tw)
+        np.testing.assert_array_equal(got.view(np.int64), want.view(np.int64))

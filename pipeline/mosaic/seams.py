@@ -50,12 +50,43 @@ _CUT_NODES = 40_000  # the largest minimum cut on single pixels (larger corridor
 
 def _upsample(node: np.ndarray, th: int, tw: int) -> np.ndarray:
     """Bilinear values (th, tw) between coarse-grid nodes (every COARSE_STEP pixels from the
-    tile's first pixel)."""
+    tile's first pixel): along the rows of nodes, then along the columns, each as ``np.interp``
+    (:func:`_interp_columns`)."""
     ki = np.arange(node.shape[0]) * COARSE_STEP
     kj = np.arange(node.shape[1]) * COARSE_STEP
     rows, cols = np.arange(th, dtype=float), np.arange(tw, dtype=float)
-    along = np.stack([np.interp(cols, kj, node[i]) for i in range(node.shape[0])])  # (nodes_i, tw)
-    return np.stack([np.interp(rows, ki, along[:, j]) for j in range(tw)], axis=1)
+    along = _interp_columns(cols, kj, np.asarray(node, np.float64).T).T  # (nodes_i, tw)
+    return _interp_columns(rows, ki, along)
+
+
+def _interp_columns(x: np.ndarray, xp: np.ndarray, fp: np.ndarray) -> np.ndarray:
+    """``np.interp(x, xp, fp[:, c])`` for every column c of ``fp`` (len(xp), m) at once, bit for
+    bit: the same slope (fp[j+1] - fp[j]) / (xp[j+1] - xp[j]) and sum slope (x - xp[j]) + fp[j]
+    in float64, fp[j] where x is node j, fp's ends beyond xp's, and np.interp's retries where
+    the sum is NaN (from the next node; then fp[j] where both nodes hold the same value).
+    ``xp`` increasing. Returns (len(x), m) float64."""
+    x, xp = np.asarray(x, np.float64), np.asarray(xp, np.float64)
+    if len(xp) == 1:
+        return np.repeat(fp[:1], len(x), axis=0)
+    j = np.searchsorted(xp, x, side="right") - 1  # xp[j] <= x < xp[j + 1]
+    jj = np.clip(j, 0, len(xp) - 2)
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        slopes = (fp[1:] - fp[:-1]) / (xp[1:] - xp[:-1])[:, None]  # (np.interp's, per interval)
+        f0 = fp[jj]
+        out = slopes[jj] * (x - xp[jj])[:, None]
+        out += f0
+        nan = np.isnan(out)
+        if nan.any():
+            rows = np.nonzero(nan)
+            k = jj[rows[0]]
+            out[rows] = slopes[k, rows[1]] * (x[rows[0]] - xp[k + 1]) + fp[k + 1, rows[1]]
+            same = np.isnan(out) & (f0 == fp[jj + 1])
+            out[same] = f0[same]
+    exact = (j >= 0) & (xp[jj] == x)  # (x on node jj)
+    out[exact] = f0[exact]
+    out[j < 0] = fp[0]
+    out[j >= len(xp) - 1] = fp[-1]  # (on the last node, or beyond it)
+    return out
 
 
 def _node_angles(geom: SensorGeometry, transform: Affine, to_frame: Transformer, tile: Tile) -> np.ndarray:
