@@ -15,6 +15,7 @@ import math
 import numbers
 import os
 import re
+import threading
 import warnings
 from typing import TYPE_CHECKING
 
@@ -704,6 +705,10 @@ def horizontal_crs(crs: CRS) -> CRS:
     return crs.sub_crs_list[0] if crs.is_compound else crs
 
 
+#: The largest DEM file (bytes of its float32 heights) read whole once and kept by its Dem.
+WHOLE_DEM_BYTES = 32 << 20
+
+
 class _DemFile:
     """What a lazy :class:`Dem` keeps of its file: path, band, size, georeferencing, nodata,
     mask, scale, offset and metres per height unit; :meth:`read` reads a window."""
@@ -732,8 +737,33 @@ class _DemFile:
         self.unit = src.units[band - 1] if src.units else None
         self.factor = height_unit_factor(self.crs, self.unit, name=f"DEM file '{path}'")
 
+    def __getstate__(self):
+        state = dict(self.__dict__)
+        state.pop("_whole", None)  # (read again where it is used)
+        state.pop("_lock", None)
+        return state
+
     def read(self, i0, i1, j0, j1):
-        """Heights (m, float32, NaN without data) of rows i0:i1, columns j0:j1."""
+        """Heights (m, float32, NaN without data) of rows i0:i1, columns j0:j1. A file of at
+        most :data:`WHOLE_DEM_BYTES` of float32 heights is read whole on the first call and
+        kept (the same values: each cell's conversion is its own), so that the many small
+        windows of a block's geometries do not each open it."""
+        if (self.width * self.height * 4 <= WHOLE_DEM_BYTES and 0 <= i0 <= i1 <= self.height
+                and 0 <= j0 <= j1 <= self.width):
+            return self._whole_heights()[i0:i1, j0:j1].copy()
+        return self._read(i0, i1, j0, j1)
+
+    def _whole_heights(self):
+        whole = self.__dict__.get("_whole")
+        if whole is None:
+            with self.__dict__.setdefault("_lock", threading.Lock()):
+                whole = self.__dict__.get("_whole")
+                if whole is None:
+                    whole = self._whole = self._read(0, self.height, 0, self.width)
+                    whole.flags.writeable = False
+        return whole
+
+    def _read(self, i0, i1, j0, j1):
         window = Window(j0, i0, j1 - j0, i1 - i0)
         try:
             with rasterio.open(self.path) as src:

@@ -725,3 +725,34 @@ def test_a_reprojection_for_a_frame_is_made_once_per_crs():
     other = dem.for_frame(CRS.from_epsg(32633))
     assert other is dem.for_frame(CRS.from_epsg(32633)) and other is not geo
     assert dem.for_frame(CRS.from_epsg(32632)) is dem
+
+
+def test_a_small_dem_file_is_read_once_with_each_windows_values(tmp_path, monkeypatch):
+    """A DEM file of at most WHOLE_DEM_BYTES is read whole on the first window and kept: every
+    window then holds the values a window read gives (nodata, scale and offset applied), the
+    file is opened once, and a pickled Dem (as sent to worker processes) leaves the heights out."""
+    import pickle
+
+    from orthowarp.pipeline import dem as dem_module
+
+    path = write_dem(str(tmp_path / "scaled.tif"), scaled_raw(), dtype="int16", nodata=0, scale=0.1, offset=-100.0)
+    d = ow.Dem.from_file(path)
+    f = d._file
+    opens = []
+    real_open = rasterio.open
+    monkeypatch.setattr(dem_module.rasterio, "open", lambda *a, **k: opens.append(a[0]) or real_open(*a, **k))
+    rng = np.random.default_rng(2)
+    for _ in range(20):
+        i0, j0 = (int(v) for v in rng.integers(0, 10, 2))
+        i1, j1 = i0 + int(rng.integers(0, f.height - i0 + 1)), j0 + int(rng.integers(0, f.width - j0 + 1))
+        got = f.read(i0, i1, j0, j1)
+        assert got.flags.writeable
+        np.testing.assert_array_equal(got, f._read(i0, i1, j0, j1))
+    assert len(opens) == 1 + 20  # the whole file once, then only the reference reads
+    assert "_whole" not in pickle.loads(pickle.dumps(d))._file.__dict__
+    np.testing.assert_array_equal(f.read(0, f.height, 0, f.width), metre_heights_of(scaled_raw()))
+    monkeypatch.setattr(dem_module, "WHOLE_DEM_BYTES", 0)  # larger files: each window read from the file
+    g = ow.Dem.from_file(path)._file
+    opens.clear()
+    g.read(1, 5, 2, 6)
+    assert len(opens) == 1
