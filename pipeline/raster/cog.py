@@ -30,8 +30,9 @@ integer data. JPEG (7; uint8, 1 or 3 bands) stores each block as a baseline JPEG
 (Photometric 6, YCbCrSubSampling 2 2 and ReferenceBlackWhite 0 255 128 255 128 255); as libtiff
 does with GDAL's default JPEGTABLESMODE=1 (TIFF Technote 2), the quantization tables, the same
 for every block at one quality, are stored once in the JPEGTables tag and left out of the
-blocks, which keep their Huffman tables (a block whose tables differ keeps its own). The mask blocks of a zstd or JPEG file are deflate streams, as GDAL's COG driver writes
-them (its internal mask is deflate whatever the image's compression).
+blocks, which keep their Huffman tables (a block whose tables differ keeps its own). The mask
+blocks of a zstd or JPEG file are deflate streams, as GDAL's COG driver writes them (its internal
+mask is deflate whatever the image's compression).
 """
 
 from __future__ import annotations

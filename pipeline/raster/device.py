@@ -64,8 +64,8 @@ if TYPE_CHECKING:
 
     from .cog import CogWriter
 
-__all__ = ["DeviceCogEncoder", "HostDeflate", "HostJpeg", "HostZstd", "NvcompDeflate", "NvcompZstd", "NvjpegCodec", "WarpDeflate",
-           "nvcomp_available", "nvjpeg_available", "nvjpeg_runs", "zlib_stream"]
+__all__ = ["DeviceCogEncoder", "HostDeflate", "HostJpeg", "HostZstd", "NvcompDeflate", "NvcompZstd", "NvjpegCodec",
+           "WarpDeflate", "nvcomp_available", "nvjpeg_available", "nvjpeg_runs", "zlib_stream"]
 
 _WP = {"uint8": wp.uint8, "uint16": wp.uint16, "float32": wp.float32}
 _ZLIB_HEADER = b"\x78\x9c"
@@ -213,17 +213,16 @@ class HostJpeg(_HostCodec):
     def __init__(self, quality: int, *, threads: int | None = None) -> None:
         from .cog import jpeg_stream
 
-        self._jpeg, self._shape = jpeg_stream, None
+        self._jpeg = jpeg_stream
         super().__init__(quality, threads, "jpeg")
 
     def compress(self, buf: wp.array, offsets: Sequence[int], sizes: Sequence[int], *,
                  shape: tuple[int, int, int]) -> list:
-        """The JPEG streams of the blocks of ``shape`` (B, B, bands) at ``offsets`` of ``buf``."""
-        self._shape = tuple(shape)
-        return super().compress(buf, offsets, sizes)
-
-    def _one(self, raw: np.ndarray) -> bytes:
-        return self._jpeg(raw.reshape(self._shape), self.level)
+        """The JPEG streams of the blocks of ``shape`` (B, B, bands) at ``offsets`` of the
+        uint8 Warp array ``buf`` (copied to the host once)."""
+        host, shape = to_host(buf), tuple(shape)
+        return list(self._pool.map(lambda k: self._jpeg(host[offsets[k]:offsets[k] + sizes[k]].reshape(shape),
+                                                        self.level), range(len(offsets))))
 
 
 class _NvcompCodec:

@@ -18,8 +18,8 @@ from typing import BinaryIO
 
 from ...errors import ParamError, RasterIOError
 
-__all__ = ["TYPE_SIZE", "SHORT", "LONG", "LONG8", "RATIONAL", "tiff_header", "read_ifd", "read_tiff_tags", "verify_tiff",
-           "storage_facts"]
+__all__ = ["TYPE_SIZE", "SHORT", "LONG", "LONG8", "RATIONAL", "tiff_header", "read_ifd", "read_tiff_tags",
+           "verify_tiff", "storage_facts"]
 
 #: Bytes per value of each TIFF field type (type code -> bytes).
 TYPE_SIZE = {1: 1, 2: 1, 3: 2, 4: 4, 5: 8, 6: 1, 7: 1, 8: 2, 9: 4, 10: 8, 11: 4, 12: 8, 13: 4, 16: 8, 17: 8, 18: 8}
