@@ -196,8 +196,8 @@ def test_tiled_and_cluster_arguments_are_checked(block, tmp_path):
         mosaic(images, tmp_path / "t", tiled=True, product_tile=100, **kw)
     with pytest.raises(ParamError, match="seamlines"):
         mosaic(images, tmp_path / "t", tiled=True, seamlines=tmp_path / "s.geojson", **kw)
-    with pytest.raises(ParamError, match="deflate or zstd"):
-        mosaic(images, tmp_path / "t", tiled=True, compress="jpeg", **kw)
+    with pytest.raises(ParamError, match="webp"):
+        mosaic(images, tmp_path / "t", tiled=True, compress="webp", **kw)
     with pytest.raises(ParamError, match="product_tile"):
         mosaic(images, tmp_path / "m.tif", product_tile=128, **kw)
     with pytest.raises(ParamError, match="not both"):
@@ -328,3 +328,27 @@ def test_workers_read_images_through_gdals_virtual_file_systems(block, reference
     assert names == {src for src, _ in virtual}
     with pytest.raises(RasterIOError, match="nothere.tif"):
         mosaic([(f"/vsizip/{archive}/nothere.tif", images[0][1]), virtual[1]], tmp_path / "x.tif", **_kw(sc))
+
+
+def test_a_jpeg_tiled_product_has_the_jpeg_cogs_pixels(block, tmp_path):
+    """A JPEG product (grey, from the block's uint8 frames): its tiles are JPEG COGs at the
+    quality asked, its index deflate, and mosaic.vrt reads as the single JPEG COG (the blocks'
+    8 x 8 cells on the same grid, each decoded alone)."""
+    sc, images = block
+    kw = dict(_kw(sc), compress="jpeg", quality=80)
+    cog = mosaic(images, tmp_path / "m.tif", **kw)
+    tiled = mosaic(images, tmp_path / "tiled", tiled=True, index=True, product_tile=128, **kw)
+    with rasterio.open(cog.path) as a, rasterio.open(tiled.vrt) as b:
+        np.testing.assert_array_equal(a.read(), b.read())
+        np.testing.assert_array_equal(a.dataset_mask(), b.dataset_mask())
+    names = sorted(os.listdir(os.path.join(tiled.path, "tiles")))
+    first = os.path.join(tiled.path, "tiles", next(n for n in names if n.endswith(".tif")))
+    with rasterio.open(first) as t:
+        structure = t.tags(ns="IMAGE_STRUCTURE")
+        assert structure["COMPRESSION"] == "JPEG" and structure["JPEG_QUALITY"] == "80"
+    with rasterio.open(tiled.index_vrt) as ix:
+        with rasterio.open(ix.files[1]) as t:
+            assert t.compression.value == "DEFLATE"
+    with open(os.path.join(tiled.path, "manifest.json")) as f:
+        manifest = json.load(f)
+    assert manifest["compress"] == "jpeg" and manifest["quality"] == 80

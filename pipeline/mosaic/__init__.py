@@ -70,7 +70,8 @@ from .plan import (
     mosaic_plan,
     output_paths,
 )
-from .cluster import GPU_PROCESSES, TiledResult, TiledSettings, cluster_results, connect, write_tiled
+from .cluster import (GPU_PROCESSES, TILED_COMPRESS, TiledResult, TiledSettings, cluster_results, connect,
+                      write_tiled)
 from .cluster import worker_device as cluster_device
 from .workers import ProcessTiles, TileDealer, tile_runs
 
@@ -237,8 +238,8 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
         ``mosaic.vrt`` over them, ``index/`` and ``index.vrt`` where ``index`` is True,
         ``tiles.geojson`` (each tile's bounds and source images) and ``manifest.json``. Its
         work folder ``dst.partial`` keeps the tiles finished before a run was stopped or killed,
-        and the next run of the same job skips them. Deflate or zstd; no seamlines (use the GeoJSON
-        index).
+        and the next run of the same job skips them. Deflate, zstd or jpeg (its index deflate);
+        no seamlines (use the GeoJSON index).
     product_tile : int, optional
         With ``tiled``: the product tiles' edge in pixels, a multiple of ``tile_size``;
         default: 4, 2 or 1 tiles, the largest that cuts the mosaic into at least 64 product
@@ -281,7 +282,7 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
     on = resolve_device(device)
     if tiled:
         tiled_settings = _tiled_settings(dst, index, seamlines, compress, compress_level, creation_options, tile_size,
-                                         product_tile, block_codec, on)
+                                         product_tile, block_codec, on, quality)
         outputs = []
     else:
         if product_tile is not None:
@@ -323,14 +324,14 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
 
 def _tiled_settings(dst: str, index: Any, seamlines: Any, compress: str, compress_level: int | None,
                     creation_options: dict | None, tile_size: int | None, product_tile: int | None,
-                    block_codec: str, on: wp.context.Device) -> TiledSettings:
+                    block_codec: str, on: wp.context.Device, quality: int | None = None) -> TiledSettings:
     """:func:`mosaic`'s tiled product settings, checked before any work."""
     if seamlines is not None:
         raise ParamError("A tiled mosaic has no seamlines file: its tiles.geojson names each tile's images")
     if index not in (None, True, False):
         raise ParamError(f"With tiled=True, index is True or False (index/ and index.vrt in '{dst}'), got {index!r}")
-    if compress not in ("deflate", "zstd"):
-        raise ParamError(f"A tiled mosaic is written deflate or zstd, not {compress}")
+    if compress not in TILED_COMPRESS:
+        raise ParamError(f"A tiled mosaic is written {', '.join(TILED_COMPRESS)}, not {compress}")
     if os.path.exists(dst) and not os.path.isdir(dst):
         raise ParamError(f"Output '{dst}' is a file; a tiled mosaic is a folder")
     size = int(tile_size) if tile_size is not None else default_tile_size(on)
@@ -338,7 +339,7 @@ def _tiled_settings(dst: str, index: Any, seamlines: Any, compress: str, compres
     settings = TiledSettings(product_tile=product, tile_size=size, compress=compress,
                              compress_level=level_of(compress, compress_level),
                              block_size=parse_creation_options(creation_options)["block"], index=bool(index),
-                             block_codec=block_codec)
+                             block_codec=block_codec, quality=quality if compress == "jpeg" else None)
     settings.check()
     return settings
 

@@ -447,23 +447,29 @@ def cluster_results(plan: Any, client: Any, tiles: Sequence[Tile], *, cancel: th
 
 # -- the tiled product --------------------------------------------------------------------------
 
+#: The compressions of a tiled product's tiles (WebP, compressed by GDAL's COG driver after the
+#: fact, is the single COG's only).
+TILED_COMPRESS = ("deflate", "zstd", "jpeg")
+
+
 @dataclass(frozen=True)
 class TiledSettings:
     """What the tiled product's files are (see :func:`write_tiled`)."""
 
     product_tile: int  # product tile edge, pixels (a multiple of tile_size; 0: see auto_product_tile)
     tile_size: int  # compute tiles: the grid the tile function runs on
-    compress: str  # "deflate" or "zstd"
+    compress: str  # "deflate", "zstd" or "jpeg" (the index: deflate with jpeg)
     compress_level: int | None
     block_size: int
     index: bool  # a source-index COG per tile too
     block_codec: str  # as mosaic()'s, resolved on each worker for its device
+    quality: int | None = None  # jpeg's
 
     def check(self) -> None:
         if self.product_tile < 0 or self.product_tile % self.tile_size:
             raise ParamError(f"product_tile ({self.product_tile}) must be a multiple of tile_size ({self.tile_size})")
-        if self.compress not in ("deflate", "zstd"):
-            raise ParamError(f"A tiled mosaic is written deflate or zstd, not {self.compress}")
+        if self.compress not in TILED_COMPRESS:
+            raise ParamError(f"A tiled mosaic is written {', '.join(TILED_COMPRESS)}, not {self.compress}")
 
 
 def auto_product_tile(shape: tuple[int, int], tile_size: int, *, at_least: int = 64) -> int:
@@ -545,21 +551,24 @@ def _write_product_tile(plan: Any, i: int, j: int, tile: Tile, folder: str, sett
     codec = mosaic_block_codec(settings.block_codec, dev, settings.compress_level, settings.compress)
     crs = rasterio.crs.CRS.from_wkt(plan.crs_wkt)
     transform = plan.transform @ Affine.translation(tile.col, tile.row)
+    jpeg = settings.compress == "jpeg"
     kw = dict(width=tile.width, height=tile.height, crs=crs, transform=transform, compress=settings.compress,
               level=settings.compress_level, block_size=settings.block_size, threads=2)
+    index_kw = dict(kw, compress="deflate", level=None) if jpeg else kw  # (the index lossless)
     subs = [Tile(r, c, min(settings.tile_size, tile.row + tile.height - r), min(settings.tile_size, tile.col + tile.width - c))
             for r in range(tile.row, tile.row + tile.height, settings.tile_size)
             for c in range(tile.col, tile.col + tile.width, settings.tile_size)]
     with atomic_files(paths, overwrite=True, durable=False) as tmps:
-        writers = [CogWriter(tmps[1], count=plan.count, dtype=plan.dtype, name=paths[1], **kw)]
+        writers = [CogWriter(tmps[1], count=plan.count, dtype=plan.dtype, name=paths[1],
+                             **(dict(kw, quality=settings.quality) if jpeg else kw))]
         if settings.index:
             writers.append(CogWriter(tmps[2], count=1, dtype="uint16", name=paths[2], nodata=NO_SOURCE,
-                                     overview_resampling="nearest", **kw))
+                                     overview_resampling="nearest", **index_kw))
         encoder = None
         try:
             if codec != "host":
                 encoder = DeviceCogEncoder(writers[0], dev, device_codecs(codec, settings.compress_level, dev,
-                                                                          settings.compress))
+                                                                          settings.compress, quality=settings.quality))
             lock = threading.Lock()
 
             def one(s: Tile) -> None:
@@ -809,7 +818,8 @@ def write_tiled(plan: Any, dst: str | os.PathLike, settings: TiledSettings, *, c
         _put(os.path.join(work, "manifest.json"), _json(dict(
             format=PRODUCT_FORMAT, fingerprint=fingerprint, crs=plan.crs_wkt, transform=list(plan.transform)[:6],
             shape=list(plan.shape), count=plan.count, dtype=plan.dtype, product_tile=settings.product_tile,
-            tile_size=settings.tile_size, compress=settings.compress, index=settings.index)))
+            tile_size=settings.tile_size, compress=settings.compress, quality=settings.quality,
+            index=settings.index)))
         done, todo = [], []
         for i, j, t in ptiles:
             stats = _read_stats(work, i, j, settings.index)
