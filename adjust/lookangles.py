@@ -275,7 +275,8 @@ def check_scenes(scenes: dict[str, PushbroomScene], points: ScenePoints) -> None
     points.validate(sizes={sid: scenes[sid].image_size for sid in points.scene_ids})
 
 
-EXTRAPOLATION = ("warn", "raise", "ignore")
+#: What a check that fails does (the extrapolation check, the global test of sigma0).
+ON_FAILED_CHECK = ("warn", "raise", "ignore")
 
 
 def preadjust_look_angles(scenes: dict[str, PushbroomScene], points: ScenePoints, *, degree: int = 2,
@@ -335,12 +336,12 @@ def preadjust_look_angles(scenes: dict[str, PushbroomScene], points: ScenePoints
     check_scenes(scenes, points)
     if not (isinstance(degree, (int, np.integer)) and 0 <= degree <= 4):
         raise ParamError(f"degree must be an integer 0-4, got {degree!r}")
-    if extrapolation not in EXTRAPOLATION:
-        raise ParamError(f"extrapolation must be one of {EXTRAPOLATION}, got {extrapolation!r}")
+    if extrapolation not in ON_FAILED_CHECK:
+        raise ParamError(f"extrapolation must be one of {ON_FAILED_CHECK}, got {extrapolation!r}")
     if not (isinstance(extrapolation_limit, (int, float)) and 0.0 <= extrapolation_limit <= 1.0):
         raise ParamError(f"extrapolation_limit must be a fraction of the line, 0-1, got {extrapolation_limit!r}")
-    if misfit not in EXTRAPOLATION:
-        raise ParamError(f"misfit must be one of {EXTRAPOLATION}, got {misfit!r}")
+    if misfit not in ON_FAILED_CHECK:
+        raise ParamError(f"misfit must be one of {ON_FAILED_CHECK}, got {misfit!r}")
     if not (isinstance(test_level, (int, float)) and 0.0 < test_level < 1.0):
         raise ParamError(f"test_level must be a probability, 0-1, got {test_level!r}")
     q = degree + 1
