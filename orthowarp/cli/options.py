@@ -243,7 +243,9 @@ block_codec = click.option("--block-codec", type=click.Choice(BLOCK_CODECS), def
                                 "--compress-level 1-4 where installed, else warp, and the host cores at once); warp "
                                 "and hybrid are deflate only. auto: host on the CPU and for zstd; on a GPU, "
                                 "for a deflate ortho nvcomp at --compress-level 1-4 where "
-                                "installed, else hybrid; for a deflate mosaic warp.")
+                                "installed, else hybrid; for a deflate mosaic warp. A jpeg COG: host (libjpeg on "
+                                "the cores), hybrid (on a GPU its blocks made there, libjpeg on the cores) or auto "
+                                "(nvJPEG on a GPU where nvImageCodec's encoder runs, else host).")
 creation = click.option("-co", "--co", "creation", multiple=True, metavar="KEY=VALUE",
                         help="GDAL-style creation option, repeatable: BLOCKSIZE (64-4096, multiple of 16; default "
                              "512), BIGTIFF (YES, NO, IF_NEEDED, IF_SAFER), NUM_THREADS (count or ALL_CPUS); "
