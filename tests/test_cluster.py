@@ -352,3 +352,24 @@ def test_a_jpeg_tiled_product_has_the_jpeg_cogs_pixels(block, tmp_path):
     with open(os.path.join(tiled.path, "manifest.json")) as f:
         manifest = json.load(f)
     assert manifest["compress"] == "jpeg" and manifest["quality"] == 80
+
+
+@pytest.mark.slow  # (the module's LocalCluster of 2 processes)
+def test_the_workers_encode_the_single_cogs_blocks(block, client, tmp_path):
+    """With tiles of whole blocks, the workers compress the single COG's blocks and overview
+    pieces themselves (EncodedTile results, the calling process only stores them): the same
+    bytes as the file made in one process."""
+    from orthowarp.pipeline.mosaic.cluster import cluster_results
+    from orthowarp.pipeline.raster.cog import EncodedTile
+
+    sc, images = block
+    kw = dict(_kw(sc), creation_options={"BLOCKSIZE": 64})
+    here = mosaic(images, tmp_path / "here.tif", **kw)
+    there = mosaic(images, tmp_path / "there.tif", cluster=client, **kw)
+    assert (tmp_path / "there.tif").read_bytes() == open(here.path, "rb").read()
+    plan = mosaic_plan(images, **{k: v for k, v in _kw(sc).items() if k != "tile_size"})
+    enc = plan.mosaic_encoder("deflate", creation_options={"BLOCKSIZE": 64})
+    tiles = plan.tiles(64)[:3]
+    got = [block for _, (block, _, _) in cluster_results(plan, client, tiles, encoder=enc)]
+    assert all(isinstance(b, EncodedTile) and b.blocks for b in got)
+    assert there.pixels_per_image == here.pixels_per_image

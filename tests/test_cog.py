@@ -424,3 +424,42 @@ def test_split_jpeg_tables_refuses_broken_streams(body):
     except ValueError:
         return
     assert rest.startswith(b"\xff\xd8") and b"\xff\xda" in rest and len(tables) + len(rest) <= len(stream)
+
+
+@pytest.mark.parametrize("count,dtype,compress,tile,extra", [
+    (3, "uint8", "deflate", 512, {}), (1, "uint16", "zstd", 512, {}), (2, "float32", "deflate", 1024, {}),
+    (3, "uint8", "jpeg", 512, {"quality": 80}), (1, "uint16", "deflate", 300, {}),  # (misaligned: all rest)
+    (1, "uint16", "deflate", 512, {"nodata": 7, "overview_resampling": "nearest", "mask": False}),
+])
+def test_tiles_encoded_elsewhere_give_the_writers_file(tmp_path, count, dtype, compress, tile, extra):
+    """A writer's encoder() sent to another process (pickled) encodes tiles there; the writer
+    stores them (put_encoded) and the file is byte for byte the one the writer makes from the
+    same tiles itself: blocks, masks and every overview level, raster edges included."""
+    import pickle
+
+    shape = (1100, 1500)
+    data, mask = scene(shape, count, dtype)
+    kw = dict(width=shape[1], height=shape[0], count=count, dtype=dtype, crs=CRS, transform=TRANSFORM,
+              compress=compress, block_size=256, overviews=3, threads=2, **extra)
+    own, remote = str(tmp_path / "own.tif"), str(tmp_path / "remote.tif")
+    tiles = [(r, c) for r in range(0, shape[0], tile) for c in range(0, shape[1], tile)]
+    order = np.random.default_rng(3).permutation(len(tiles))
+    with CogWriter(own, **kw) as w:
+        for k in order:
+            r, c = tiles[k]
+            w.write(r, c, data[r:r + tile, c:c + tile], mask[r:r + tile, c:c + tile])
+    with CogWriter(remote, **kw) as w:
+        enc = pickle.loads(pickle.dumps(w.encoder()))
+        for k in order:
+            r, c = tiles[k]
+            w.put_encoded(enc.encode(r, c, data[r:r + tile, c:c + tile], mask[r:r + tile, c:c + tile]))
+    with open(own, "rb") as a, open(remote, "rb") as b:
+        assert a.read() == b.read()
+    encoded = enc.encode(0, 0, data[:tile, :tile], mask[:tile, :tile])
+    assert (len(encoded.blocks) > 0) == (tile % 256 == 0)
+    w = CogWriter(str(tmp_path / "x.tif"), **kw)
+    try:
+        with pytest.raises(TypeError, match="encoder"):
+            pickle.dumps(w)
+    finally:
+        w.abort()

@@ -385,7 +385,9 @@ def _write_mosaic(plan: MosaicPlan, procs: ProcessTiles | None, dst: str, on: wp
     tiles = plan.tiles(size)
     host_source = out.index is not None or out.seamlines is not None  # else the pixels per image counted there
     if client is not None:
-        results = _cluster_results(plan, client, tiles, codec, on, cancel, dst, progress, worker_device)
+        encoder = plan.mosaic_encoder(out.compress, compress_level=out.compress_level, quality=out.quality,
+                                      creation_options=out.creation_options)
+        results = _cluster_results(plan, client, tiles, codec, on, cancel, dst, progress, worker_device, encoder)
     elif procs is None:
         results = _thread_results(plan, tiles, codec, on, host_source, out.workers, cancel, dst)
     else:
@@ -452,14 +454,16 @@ def _thread_results(plan: MosaicPlan, tiles: list[Tile], codec: str, on: wp.cont
 
 def _cluster_results(plan: MosaicPlan, client: Any, tiles: list[Tile], codec: str, on: wp.context.Device,
                      cancel: threading.Event | None, dst: str, progress: Any,
-                     worker_device: str | None) -> Iterator[tuple[Tile, tuple]]:
+                     worker_device: str | None, encoder: Any = None) -> Iterator[tuple[Tile, tuple]]:
     """Tile results for :meth:`MosaicPlan.write` from the workers of a Dask ``client``
-    (:func:`~orthowarp.pipeline.mosaic.cluster.cluster_results`), each uploaded to this
-    process's device for a device ``codec``'s encoder."""
+    (:func:`~orthowarp.pipeline.mosaic.cluster.cluster_results`): with the host ``codec``,
+    encoded there by the mosaic file's ``encoder`` (compressed blocks come back), else each
+    uploaded to this process's device for the device ``codec``'s encoder."""
     plan._kept.clear()  # the reduced pass's geometries and sources: the workers build their own
     plan._materialise()
     for tile, (values, valid, source) in cluster_results(plan, client, tiles, cancel=cancel, name=dst,
-                                                         progress=progress, worker_device=worker_device):
+                                                         progress=progress, worker_device=worker_device,
+                                                         encoder=encoder if codec == "host" else None):
         if codec == "host":
             yield tile, (values, valid, source)
             continue

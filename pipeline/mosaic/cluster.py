@@ -380,14 +380,19 @@ class _Submitter:
 # -- one COG: the tiles back to the caller ------------------------------------------------------
 
 @quiet_warp()
-def _tile_task(plan: Any, tile: Tile) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A worker's tile: (block, valid, source) on the host."""
-    return plan.tile(*tile)
+def _tile_task(plan: Any, tile: Tile, encoder: Any = None) -> tuple:
+    """A worker's tile: (block, valid, source) on the host; with a :class:`~orthowarp.pipeline.
+    raster.cog.TileEncoder` (the mosaic file's), the block encoded there (its compressed blocks
+    and overview pieces come back instead of its pixels)."""
+    block, valid, source = plan.tile(*tile)
+    if encoder is not None:
+        block = encoder.encode(tile.row, tile.col, block, valid)
+    return block, valid, source
 
 
 def cluster_results(plan: Any, client: Any, tiles: Sequence[Tile], *, cancel: threading.Event | None = None,
                     name: str | None = None, progress: Any = None, per_worker: int | None = None,
-                    worker_device: str | None = None) -> Iterator[tuple[Tile, tuple]]:
+                    worker_device: str | None = None, encoder: Any = None) -> Iterator[tuple[Tile, tuple]]:
     """Tile results for :meth:`MosaicPlan.write <orthowarp.pipeline.mosaic.plan.MosaicPlan.write>`
     computed by the workers of ``client``, as they finish.
 
@@ -407,6 +412,11 @@ def cluster_results(plan: Any, client: Any, tiles: Sequence[Tile], *, cancel: th
         finished tiles take while they wait for the caller.
     worker_device : str, optional
         The workers' device (see :func:`shipped_plan`).
+    encoder : TileEncoder, optional
+        The mosaic file's (:meth:`~orthowarp.pipeline.raster.cog.CogWriter.encoder`): each
+        worker compresses its tiles' blocks and overview pieces, and ``block`` is an
+        :class:`~orthowarp.pipeline.raster.cog.EncodedTile` (the calling process only stores
+        the blocks: it no longer compresses the whole file alone).
 
     Yields
     ------
@@ -419,9 +429,11 @@ def cluster_results(plan: Any, client: Any, tiles: Sequence[Tile], *, cancel: th
     tag = f"orthowarp-tile-{os.getpid()}-{id(plan):x}-{time.monotonic_ns():x}"
     bar = Progress(progress, len(tiles))
     with broadcast_plan(client, plan, worker_device) as remote:
+        remote_encoder = None if encoder is None else client.scatter(encoder, broadcast=True, hash=False)
+
         def submit(k: int, w: str) -> Any:
-            return client.submit(_tile_task, remote, tiles[k], workers=[w], allow_other_workers=True, pure=False,
-                                 key=f"{tag}-{k}")
+            return client.submit(_tile_task, remote, tiles[k], remote_encoder, workers=[w], allow_other_workers=True,
+                                 pure=False, key=f"{tag}-{k}")
 
         # (not as_finished: each finished tile lets the dealer submit the next of its worker)
         dealer = _Submitter(_deal(client, tiles, images), submit, per_worker or _PER_WORKER * threads)
@@ -443,6 +455,8 @@ def cluster_results(plan: Any, client: Any, tiles: Sequence[Tile], *, cancel: th
             raise
         finally:
             bar.close()
+            if remote_encoder is not None:
+                remote_encoder.release()
 
 
 # -- the tiled product --------------------------------------------------------------------------

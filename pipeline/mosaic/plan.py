@@ -44,7 +44,7 @@ from ..geometry import SensorGeometry
 from ..ortho.grid import output_grid
 from ..ortho.sink import LOSSY, choose_block_codec, device_codecs, finish, parse_creation_options
 from ..ortho.tiles import ImageTiles, WholeSource, source_facts, source_read_dtype
-from ..raster.cog import DTYPES, CogWriter
+from ..raster.cog import DTYPES, CogWriter, EncodedTile, TileEncoder
 from ..raster.device import DeviceCogEncoder
 from ..raster.io import GDAL_ERRORS, atomic_files, check_cancel, check_destination, gdal_reason, source_exists
 from ..reports.profile import StageTimer
@@ -380,6 +380,16 @@ class MosaicPlan(TileBlending):
             got += self._state.pop("counts_host", 0)
         return got
 
+    def mosaic_encoder(self, compress: str = "deflate", *, compress_level: int | None = None,
+                       quality: int | None = None, creation_options: dict | None = None) -> TileEncoder:
+        """The :class:`~orthowarp.pipeline.raster.cog.TileEncoder` of the mosaic file that
+        :meth:`write` makes with these settings: tiles encoded by it where they are computed
+        (their blocks compressed there) are results :meth:`write` stores as they are."""
+        co = parse_creation_options(creation_options)
+        rows, cols = self.shape
+        return TileEncoder(width=cols, height=rows, count=self.count, dtype=self.dtype, block_size=co["block"],
+                           **_mosaic_file_settings(str(compress), compress_level, quality))
+
     def write(self, dst: str | os.PathLike, results: Iterable[tuple[tuple[int, int, int, int], tuple]], *,
               index: str | os.PathLike | None = None, seamlines: str | os.PathLike | None = None,
               compress: str = "deflate", compress_level: int | None = None, overwrite: bool = False,
@@ -423,7 +433,7 @@ class MosaicPlan(TileBlending):
                       block_size=co["block"], bigtiff=co["bigtiff"], threads=co["threads"])
             # a WebP mosaic: an intermediate of deflate level 1 beside the temporary, then GDAL's COG
             work = tmps[0] + ".work.tif" if via_gdal else tmps[0]
-            own = dict(kw, level=1) if via_gdal else dict(kw, compress="jpeg", quality=quality) if lossy else kw
+            own = dict(kw, **_mosaic_file_settings(compress, compress_level, quality))
             # (the host writer's blocks timed as "write" spans, as the device encoder's batches)
             timer = self._state["timer"] if self._state is not None else None
             writers = [CogWriter(work, width=cols, height=rows, count=self.count, dtype=self.dtype, crs=rio_crs,
@@ -442,7 +452,9 @@ class MosaicPlan(TileBlending):
                     encoder = self._encoder = DeviceCogEncoder(writers[0], self.warp_device, codecs,
                                                                timer=self._materialise()["timer"])
                 for (r0, c0, th, tw), (block, valid, source) in results:
-                    if block is not None:
+                    if isinstance(block, EncodedTile):  # (encoded where it was computed)
+                        writers[0].put_encoded(block)
+                    elif block is not None:
                         writers[0].write(r0, c0, block, valid, copy=False)
                     if source is None:  # (a tile on the device, its pixels counted there)
                         continue
@@ -496,6 +508,16 @@ class MosaicPlan(TileBlending):
                             image_builds=self._state["builds"] if self._state is not None else None,
                             images_held_peak=self._state["held_peak"] if self._state is not None else None,
                             profile=_profile_with_timeline(timer) if timer is not None else None)
+
+
+def _mosaic_file_settings(compress: str, level: int | None, quality: int | None) -> dict[str, Any]:
+    """The compression of a mosaic's file (:meth:`MosaicPlan.write`): its own, or for a WebP
+    mosaic the deflate level 1 of the intermediate that GDAL's COG driver then compresses."""
+    if compress == "webp":
+        return dict(compress="deflate", level=1)
+    if compress == "jpeg":
+        return dict(compress="jpeg", level=None, quality=quality)
+    return dict(compress=compress, level=level)
 
 
 def _profile_with_timeline(timer: StageTimer) -> dict:

@@ -45,6 +45,7 @@ import tempfile
 import threading
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 from concurrent.futures import ThreadPoolExecutor
 from typing import TYPE_CHECKING, Any
 
@@ -63,7 +64,7 @@ from .tiff import LONG, LONG8, RATIONAL, SHORT, TYPE_SIZE, Tag, read_tiff_tags
 if TYPE_CHECKING:
     from affine import Affine
 
-__all__ = ["CogWriter", "overview_count", "jpeg_stream", "zstd_frame", "DTYPES", "COMPRESS", "LEVELS",
+__all__ = ["CogWriter", "TileEncoder", "EncodedTile", "overview_count", "jpeg_stream", "zstd_frame", "DTYPES", "COMPRESS", "LEVELS",
            "DEFAULT_QUALITY"]
 # tags the writer sets itself; everything else of the template's first IFD is copied
 _LAYOUT_TAGS = {254, 256, 257, 259, 273, 278, 279, 317, 322, 323, 324, 325}
@@ -184,68 +185,33 @@ class _Level:
         return min(b, self.height - bi * b), min(b, self.width - bj * b)
 
 
-class CogWriter:
-    """Write a cloud-optimized GeoTIFF from tiles given in any order (see the module doc).
+@dataclass
+class EncodedTile:
+    """A tile's blocks as a :class:`TileEncoder` made them: ``blocks`` a list of (level, block
+    row, block column, [image bytes] or [image bytes, mask bytes]), as the file stores them; and
+    ``rest``, None or (level, row, col, data (rows, cols, count), mask (rows, cols) bool): the
+    piece of the first level at which the tile no longer covers whole blocks, for the writer to
+    reduce with its neighbours' (:meth:`CogWriter.put_encoded`)."""
 
-    Parameters
-    ----------
-    path : str
-        The file to write (the caller makes it atomic: it is complete only after :meth:`close`).
-    width, height, count : int
-        Raster size (pixels) and band count.
-    dtype : {"uint8", "uint16", "float32"}
-    crs : rasterio CRS, optional
-    transform : affine.Affine
-    mask : bool, optional
-        Integer rasters: write an internal mask (0 / 255, GDAL's per-dataset mask). Float
-        rasters use NaN as nodata and no mask.
-    nodata : int, optional
-        Integer rasters: instead of a mask, the value of pixels without data (GDAL's nodata
-        tag): pixels equal to it (or outside the mask given to :meth:`write`) are stored as
-        it and left out of the overviews' reductions.
-    overview_resampling : {"average", "nearest"}, optional
-        How a 2 x 2 group of valid pixels becomes an overview pixel: their rounded mean
-        (default; images), or the first valid one in row order (categories, such as a
-        mosaic's source index, whose mean would name another category).
-    compress : {"deflate", "zstd", "jpeg", "none"}, optional
-        Image blocks as zlib streams (libdeflate) or Zstandard frames (``zstandard``), with
-        predictor 2 for integer data, as JPEG streams (uint8, 1 or 3 bands; see the module
-        doc), or uncompressed. Mask blocks are deflate streams with any compression, as GDAL
-        writes them.
-    level : int, optional
-        Deflate level 1-12 (libdeflate's scale; default 6, as GDAL's) or zstd level 1-22
-        (default 9, as GDAL's); ignored without compression, refused with JPEG.
-    quality : int, optional
-        JPEG quality 1-100 (default :data:`DEFAULT_QUALITY`); refused with the others.
-    block_size : int, optional
-        Block edge in pixels (multiple of 16).
-    overviews : int, optional
-        Number of 2x overview levels; default :func:`overview_count`.
-    threads : int, optional
-        Compression threads (default: CPU cores).
-    bigtiff : bool, optional
-        Force BigTIFF (True) or classic TIFF (False); default: BigTIFF only when the file could
-        pass 4 GiB.
-    name : str, optional
-        The file named in error messages (the destination, where ``path`` is its temporary);
-        default ``path``.
-    timer : object with ``span(stage, start)``, optional
-        Gets a ``"write"`` span (from its ``time.perf_counter()`` start) per full-resolution
-        block compressed and stored, the overview blocks it completes included, in the
-        writer's threads: e.g. a :class:`~orthowarp.pipeline.reports.profile.StageTimer`.
+    blocks: list
+    rest: tuple | None
 
-    Raises
-    ------
-    RasterIOError
-        From :meth:`write` or :meth:`close`, when a write of the block file or of the output
-        fails (full disk, file size limit, I/O error), naming ``name`` and the cause.
+
+class TileEncoder:
+    """The block work of a COG of given settings, apart from any file: cutting a tile into the
+    file's blocks, compressing them and reducing them into the overview levels while the tile
+    covers whole blocks (:meth:`encode`). Picklable, so that the processes or machines that
+    compute the tiles can encode them; :class:`CogWriter`, which is one, stores what it gives
+    (:meth:`CogWriter.put_encoded`) with the same bytes as it would have made itself.
+    Parameters as :class:`CogWriter`'s.
     """
 
-    def __init__(self, path: str | os.PathLike, *, width: int, height: int, count: int, dtype: str, crs: Any = None,
-                 transform: Affine, mask: bool = True, compress: str = "deflate", level: int | None = None,
-                 block_size: int = 512, overviews: int | None = None, threads: int | None = None,
-                 bigtiff: bool | None = None, name: str | os.PathLike | None = None, timer: Any = None,
+    def __init__(self, *, width: int, height: int, count: int, dtype: str, mask: bool = True, compress: str = "deflate",
+                 level: int | None = None, block_size: int = 512, overviews: int | None = None,
                  nodata: int | None = None, overview_resampling: str = "average", quality: int | None = None) -> None:
+        self._settings = dict(width=width, height=height, count=count, dtype=dtype, mask=mask, compress=compress,
+                              level=level, block_size=block_size, overviews=overviews, nodata=nodata,
+                              overview_resampling=overview_resampling, quality=quality)
         if dtype not in DTYPES:
             raise ParamError(f"CogWriter dtype must be one of {DTYPES}, got {dtype!r}")
         if compress not in COMPRESS:
@@ -270,8 +236,6 @@ class CogWriter:
             self.quality = None
         if block_size % 16 or block_size < 16:
             raise ParamError(f"block_size must be a positive multiple of 16, got {block_size}")
-        self.path = os.fspath(path)
-        self.name = self.path if name is None else os.fspath(name)
         self.width, self.height, self.count, self.dtype = int(width), int(height), int(count), dtype
         self.is_float = dtype == "float32"
         if nodata is not None and (self.is_float or not np.can_cast(np.min_scalar_type(nodata), dtype)
@@ -288,117 +252,21 @@ class CogWriter:
         self.mask_compress = "none" if compress == "none" else "deflate"
         self.mask_level = self.compress_level if compress == "deflate" else _MASK_LEVEL
         n_ovr = overview_count(width, height) if overviews is None else int(overviews)
-        self.levels = []
+        self.dims = []  # (width, height) of each level
         w, h = self.width, self.height
         for _ in range(n_ovr + 1):
-            self.levels.append(_Level(w, h, self.block))
+            self.dims.append((w, h))
             w, h = -(-w // 2), -(-h // 2)
-        self.tags = _template_tags(self.count, dtype, crs, transform,
-                                   float("nan") if self.is_float else self.nodata)
-        self._side_path = self.path + ".blocks"
-        try:
-            self._fd = os.open(self._side_path, os.O_RDWR | os.O_CREAT | os.O_TRUNC, 0o600)
-        except OSError as e:
-            raise RasterIOError(f"Cannot write '{self.name}': {e.strerror or e}") from e
-        self._end = 0
-        self._lock = threading.Lock()
-        threads = threads or os.cpu_count() or 1
-        self._pool = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="cog")
-        self._slots = threading.BoundedSemaphore(4 * threads)  # blocks queued or being compressed
         self._local = threading.local()
-        self._error = None
-        self._closed = False
-        self.bigtiff = bigtiff
-        self._timer = timer
 
-    # -- streaming -------------------------------------------------------------------------
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        state.pop("_local", None)  # (each process's scratch buffers its own)
+        return state
 
-    def write(self, row: int, col: int, data: np.ndarray, mask: np.ndarray | None = None, *, copy: bool = True,
-              level: int = 0) -> None:
-        """Add the tile whose top-left pixel is (``row``, ``col``) of resolution level ``level``
-        (0: full resolution; an overview level for pieces reduced elsewhere, see
-        :class:`~orthowarp.pipeline.raster.device.DeviceCogEncoder`).
-
-        Parameters
-        ----------
-        data : ndarray, shape (rows, cols, count), the writer's dtype
-            Pixel-interleaved values (NaN = nodata for float rasters).
-        mask : ndarray of bool, shape (rows, cols), optional
-            Valid pixels (integer rasters; default: all valid).
-        copy : bool, optional
-            True: the tile is copied, and the caller may reuse its arrays when the call returns.
-            False: the writer reads them until their blocks are compressed, and the caller
-            must leave them unchanged (they are not written to).
-        """
-        self.raise_pending()
-        h, w = data.shape[:2]
-        if not 0 <= level < len(self.levels):
-            raise ParamError(f"level {level} outside 0-{len(self.levels) - 1}")
-        lvl = self.levels[level]
-        if data.ndim != 3 or data.shape[2] != self.count or data.dtype != np.dtype(self.dtype):
-            raise ParamError(f"tile must be (rows, cols, {self.count}) {self.dtype}, got {data.shape} {data.dtype}")
-        if row < 0 or col < 0 or row + h > lvl.height or col + w > lvl.width:
-            raise ParamError(f"tile at ({row}, {col}) of {h} x {w} falls outside the {lvl.height} x {lvl.width} raster")
-        if mask is None:
-            mask = np.isfinite(data).any(axis=2) if self.is_float else \
-                (data != self.nodata).any(axis=2) if self.nodata is not None else np.ones((h, w), bool)
-        for bi, bj, blk in self._insert(level, row, col, data, mask, copy=copy):
-            self._slots.acquire()
-            fut = self._pool.submit(self._emit, level, bi, bj, *blk)
-            fut.add_done_callback(lambda f: self._slots.release())
-
-    def put_block(self, level: int, bi: int, bj: int, payloads: Sequence[bytes]) -> None:
-        """Store a block compressed elsewhere: ``payloads`` = [image bytes] or, with a mask,
-        [image bytes, mask bytes], each as the file stores it (see
-        :class:`~orthowarp.pipeline.raster.device.DeviceCogEncoder`). No overview is derived
-        from it: the caller gives the next levels too."""
-        self.raise_pending()
-        lvl = self.levels[level]
-        if not (0 <= bi < lvl.nby and 0 <= bj < lvl.nbx) or len(payloads) != 1 + self.mask:
-            raise ParamError(f"block ({bi}, {bj}) of level {level} with {len(payloads)} payload(s) does not fit")
-        try:
-            self._store(level, bi, bj, payloads)
-        except OSError as e:
-            raise RasterIOError(f"Could not write '{self.name}': {e.strerror or e}") from e
-
-    def _insert(self, li: int, row: int, col: int, data: np.ndarray, mask: np.ndarray,
-                copy: bool = True) -> list[tuple[int, int, tuple[np.ndarray, np.ndarray]]]:
-        """Copy a piece into the level's blocks; return the blocks it completes.
-
-        Blocks the piece covers whole are cut out directly (as views of it when ``copy`` is
-        False and they are full-size); only partly covered ones wait in the level's table
-        (under the level's lock) for their other pieces."""
-        lvl, b = self.levels[li], self.block
-        fill = np.nan if self.is_float else self.nodata or 0
-        done = []
-        for bi in range(row // b, (row + data.shape[0] - 1) // b + 1):
-            r0, r1 = max(row, bi * b), min(row + data.shape[0], (bi + 1) * b)
-            for bj in range(col // b, (col + data.shape[1] - 1) // b + 1):
-                c0, c1 = max(col, bj * b), min(col + data.shape[1], (bj + 1) * b)
-                bh, bw = lvl.block_shape(bi, bj)
-                piece = data[r0 - row:r1 - row, c0 - col:c1 - col]
-                piece_mask = mask[r0 - row:r1 - row, c0 - col:c1 - col]
-                if (r1 - r0, c1 - c0) == (bh, bw):  # the whole block
-                    if (bh, bw) == (b, b):
-                        done.append((bi, bj, (piece.copy(), piece_mask.copy()) if copy else (piece, piece_mask)))
-                    else:
-                        blk, blk_mask = np.full((b, b, self.count), fill, self.dtype), np.zeros((b, b), bool)
-                        blk[:bh, :bw], blk_mask[:bh, :bw] = piece, piece_mask
-                        done.append((bi, bj, (blk, blk_mask)))
-                    continue
-                key = bi * lvl.nbx + bj
-                with lvl.lock:
-                    entry = lvl.pending.get(key)
-                    if entry is None:
-                        entry = lvl.pending[key] = [np.full((b, b, self.count), fill, self.dtype),
-                                                    np.zeros((b, b), bool), bh * bw]
-                    entry[0][r0 - bi * b:r1 - bi * b, c0 - bj * b:c1 - bj * b] = piece
-                    entry[1][r0 - bi * b:r1 - bi * b, c0 - bj * b:c1 - bj * b] = piece_mask
-                    entry[2] -= (r1 - r0) * (c1 - c0)
-                    if entry[2] == 0:
-                        del lvl.pending[key]
-                        done.append((bi, bj, entry[:2]))
-        return done
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._local = threading.local()
 
     def _scratch(self, name: str, shape: tuple[int, ...], dtype: np.dtype) -> np.ndarray:
         """A buffer of this thread's, reused from block to block (no allocation, no page
@@ -408,51 +276,6 @@ class CogWriter:
         if buf is None or buf.shape != shape or buf.dtype != dtype:
             buf = bufs[name] = np.empty(shape, dtype)
         return buf
-
-    def _emit(self, li: int, bi: int, bj: int, data: np.ndarray, mask: np.ndarray) -> None:
-        """:meth:`_emit_block`, a full-resolution block's (with the overview blocks it
-        completes) timed as the ``timer``'s ``"write"`` stage."""
-        if li or self._timer is None:
-            return self._emit_block(li, bi, bj, data, mask)
-        t = time.perf_counter()
-        try:
-            return self._emit_block(li, bi, bj, data, mask)
-        finally:
-            self._timer.span("write", t)
-
-    def _emit_block(self, li: int, bi: int, bj: int, data: np.ndarray, mask: np.ndarray) -> None:
-        """Compress and store a complete block (B, B, C), then feed its reduction to the next
-        level. ``data`` and ``mask`` are only read."""
-        try:
-            lvl = self.levels[li]
-            bh, bw = lvl.block_shape(bi, bj)
-            full = bool(mask.all())
-            parts = [self._encode(data, None if full or self.is_float else mask)]
-            if self.mask:
-                bits = np.packbits(mask, axis=1)  # 1 bit per pixel, rows padded to bytes, MSB first
-                parts.append(self._compress_mask(bits))
-            self._store(li, bi, bj, parts)
-            if li + 1 < len(self.levels):
-                red, red_mask = self._reduce(data[:bh, :bw], mask[:bh, :bw], full and (bh, bw) == data.shape[:2])
-                half = self.block // 2
-                for ci, cj, blk in self._insert(li + 1, bi * half, bj * half, red, red_mask):
-                    self._emit(li + 1, ci, cj, *blk)
-        except BaseException as e:  # re-raised in the caller's thread
-            self._error = self._error or e
-            raise
-
-    def _store(self, li: int, bi: int, bj: int, parts: Sequence[bytes]) -> None:
-        """Append a block's record to the block file (GDAL's record per part: uint32 size, the
-        bytes, their last 4 repeated)."""
-        lvl = self.levels[li]
-        bufs = []
-        for payload in parts:
-            bufs += [struct.pack("<I", len(payload)), payload, bytes(payload[-4:]).rjust(4, b"\0")]
-        size = sum(len(x) for x in bufs)
-        with self._lock:
-            off, self._end = self._end, self._end + size
-        _pwrite_all(self._fd, bufs, off)
-        lvl.records[bi * lvl.nbx + bj] = (off, len(parts[0]), size)
 
     def _reduce(self, data: np.ndarray, mask: np.ndarray, full: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """2 x 2 mean of the valid pixels of a (h, w, C) block; odd edges use what exists.
@@ -544,6 +367,284 @@ class CogWriter:
     def _compress_mask(self, bits: np.ndarray) -> bytes:
         """A mask block's stored bytes: a zlib stream (deflate and zstd files), or the bits."""
         return _zlib_compress(bits, self.mask_level) if self.mask_compress == "deflate" else bytes(bits)
+
+    def encode(self, row: int, col: int, data: np.ndarray, mask: np.ndarray | None = None) -> EncodedTile:
+        """The blocks of the full-resolution tile whose top-left pixel is (``row``, ``col``)
+        (``data`` (rows, cols, count) of the writer's dtype, ``mask`` (rows, cols) bool, as for
+        :meth:`CogWriter.write`), level after level while the piece covers whole blocks of its
+        level: each block padded, compressed and reduced exactly as the writer does it."""
+        if data.ndim != 3 or data.shape[2] != self.count or data.dtype != np.dtype(self.dtype):
+            raise ParamError(f"tile must be (rows, cols, {self.count}) {self.dtype}, got {data.shape} {data.dtype}")
+        if mask is None:
+            mask = np.isfinite(data).any(axis=2) if self.is_float else \
+                (data != self.nodata).any(axis=2) if self.nodata is not None else np.ones(data.shape[:2], bool)
+        b, fill = self.block, np.nan if self.is_float else self.nodata or 0
+        blocks, li = [], 0
+        while True:
+            (lw, lh), (h, w) = self.dims[li], data.shape[:2]
+            if not (row % b == 0 and col % b == 0 and (h % b == 0 or row + h == lh) and (w % b == 0 or col + w == lw)):
+                return EncodedTile(blocks, (li, row, col, data, mask))
+            last = li + 1 >= len(self.dims)
+            if not last:
+                nxt = np.empty((-(-h // 2), -(-w // 2), self.count), data.dtype)
+                nxt_mask = np.empty(nxt.shape[:2], bool)
+            for r0 in range(0, h, b):
+                for c0 in range(0, w, b):
+                    bh, bw = min(b, h - r0), min(b, w - c0)
+                    blk, blk_mask = data[r0:r0 + bh, c0:c0 + bw], mask[r0:r0 + bh, c0:c0 + bw]
+                    if (bh, bw) != (b, b):  # a block at the raster's edge: padded as the writer pads it
+                        blk, blk_mask = np.full((b, b, self.count), fill, self.dtype), np.zeros((b, b), bool)
+                        blk[:bh, :bw], blk_mask[:bh, :bw] = data[r0:r0 + bh, c0:c0 + bw], mask[r0:r0 + bh, c0:c0 + bw]
+                    full = bool(blk_mask.all())
+                    parts = [self._encode(blk, None if full or self.is_float else blk_mask)]
+                    if self.mask:
+                        parts.append(self._compress_mask(np.packbits(blk_mask, axis=1)))
+                    blocks.append((li, (row + r0) // b, (col + c0) // b, parts))
+                    if not last:
+                        red, red_mask = self._reduce(blk[:bh, :bw], blk_mask[:bh, :bw],
+                                                     full and (bh, bw) == blk.shape[:2])
+                        nxt[r0 // 2:r0 // 2 + red.shape[0], c0 // 2:c0 // 2 + red.shape[1]] = red
+                        nxt_mask[r0 // 2:r0 // 2 + red.shape[0], c0 // 2:c0 // 2 + red.shape[1]] = red_mask
+            if last:
+                return EncodedTile(blocks, None)
+            li, row, col, data, mask = li + 1, row // 2, col // 2, nxt, nxt_mask
+
+class CogWriter(TileEncoder):
+    """Write a cloud-optimized GeoTIFF from tiles given in any order (see the module doc).
+
+    Parameters
+    ----------
+    path : str
+        The file to write (the caller makes it atomic: it is complete only after :meth:`close`).
+    width, height, count : int
+        Raster size (pixels) and band count.
+    dtype : {"uint8", "uint16", "float32"}
+    crs : rasterio CRS, optional
+    transform : affine.Affine
+    mask : bool, optional
+        Integer rasters: write an internal mask (0 / 255, GDAL's per-dataset mask). Float
+        rasters use NaN as nodata and no mask.
+    nodata : int, optional
+        Integer rasters: instead of a mask, the value of pixels without data (GDAL's nodata
+        tag): pixels equal to it (or outside the mask given to :meth:`write`) are stored as
+        it and left out of the overviews' reductions.
+    overview_resampling : {"average", "nearest"}, optional
+        How a 2 x 2 group of valid pixels becomes an overview pixel: their rounded mean
+        (default; images), or the first valid one in row order (categories, such as a
+        mosaic's source index, whose mean would name another category).
+    compress : {"deflate", "zstd", "jpeg", "none"}, optional
+        Image blocks as zlib streams (libdeflate) or Zstandard frames (``zstandard``), with
+        predictor 2 for integer data, as JPEG streams (uint8, 1 or 3 bands; see the module
+        doc), or uncompressed. Mask blocks are deflate streams with any compression, as GDAL
+        writes them.
+    level : int, optional
+        Deflate level 1-12 (libdeflate's scale; default 6, as GDAL's) or zstd level 1-22
+        (default 9, as GDAL's); ignored without compression, refused with JPEG.
+    quality : int, optional
+        JPEG quality 1-100 (default :data:`DEFAULT_QUALITY`); refused with the others.
+    block_size : int, optional
+        Block edge in pixels (multiple of 16).
+    overviews : int, optional
+        Number of 2x overview levels; default :func:`overview_count`.
+    threads : int, optional
+        Compression threads (default: CPU cores).
+    bigtiff : bool, optional
+        Force BigTIFF (True) or classic TIFF (False); default: BigTIFF only when the file could
+        pass 4 GiB.
+    name : str, optional
+        The file named in error messages (the destination, where ``path`` is its temporary);
+        default ``path``.
+    timer : object with ``span(stage, start)``, optional
+        Gets a ``"write"`` span (from its ``time.perf_counter()`` start) per full-resolution
+        block compressed and stored, the overview blocks it completes included, in the
+        writer's threads: e.g. a :class:`~orthowarp.pipeline.reports.profile.StageTimer`.
+
+    Raises
+    ------
+    RasterIOError
+        From :meth:`write` or :meth:`close`, when a write of the block file or of the output
+        fails (full disk, file size limit, I/O error), naming ``name`` and the cause.
+    """
+
+    def __init__(self, path: str | os.PathLike, *, width: int, height: int, count: int, dtype: str, crs: Any = None,
+                 transform: Affine, mask: bool = True, compress: str = "deflate", level: int | None = None,
+                 block_size: int = 512, overviews: int | None = None, threads: int | None = None,
+                 bigtiff: bool | None = None, name: str | os.PathLike | None = None, timer: Any = None,
+                 nodata: int | None = None, overview_resampling: str = "average", quality: int | None = None) -> None:
+        super().__init__(width=width, height=height, count=count, dtype=dtype, mask=mask, compress=compress,
+                         level=level, block_size=block_size, overviews=overviews, nodata=nodata,
+                         overview_resampling=overview_resampling, quality=quality)
+        self.path = os.fspath(path)
+        self.name = self.path if name is None else os.fspath(name)
+        self.levels = [_Level(w, h, self.block) for w, h in self.dims]
+        self.tags = _template_tags(self.count, dtype, crs, transform,
+                                   float("nan") if self.is_float else self.nodata)
+        self._side_path = self.path + ".blocks"
+        try:
+            self._fd = os.open(self._side_path, os.O_RDWR | os.O_CREAT | os.O_TRUNC, 0o600)
+        except OSError as e:
+            raise RasterIOError(f"Cannot write '{self.name}': {e.strerror or e}") from e
+        self._end = 0
+        self._lock = threading.Lock()
+        threads = threads or os.cpu_count() or 1
+        self._pool = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="cog")
+        self._slots = threading.BoundedSemaphore(4 * threads)  # blocks queued or being compressed
+        self._error = None
+        self._closed = False
+        self.bigtiff = bigtiff
+        self._timer = timer
+
+    def __getstate__(self) -> dict:
+        raise TypeError("a CogWriter (an open file) is not sent to other processes: send its encoder()")
+
+    def encoder(self) -> TileEncoder:
+        """A :class:`TileEncoder` of this writer's settings (picklable): tiles encoded by it,
+        e.g. in worker processes, go into this writer by :meth:`put_encoded`."""
+        return TileEncoder(**self._settings)
+
+    def put_encoded(self, tile: EncodedTile) -> None:
+        """Store a tile encoded by :meth:`encoder`'s :meth:`TileEncoder.encode`: its blocks as
+        they are, and its remaining piece (the level where it no longer covers whole blocks)
+        written at that level, which the writer reduces with its neighbours'."""
+        for li, bi, bj, payloads in tile.blocks:
+            self.put_block(li, bi, bj, payloads)
+        if tile.rest is not None:
+            li, row, col, data, mask = tile.rest
+            self.write(row, col, data, mask, level=li, copy=False)
+
+    # -- streaming -------------------------------------------------------------------------
+
+    def write(self, row: int, col: int, data: np.ndarray, mask: np.ndarray | None = None, *, copy: bool = True,
+              level: int = 0) -> None:
+        """Add the tile whose top-left pixel is (``row``, ``col``) of resolution level ``level``
+        (0: full resolution; an overview level for pieces reduced elsewhere, see
+        :class:`~orthowarp.pipeline.raster.device.DeviceCogEncoder`).
+
+        Parameters
+        ----------
+        data : ndarray, shape (rows, cols, count), the writer's dtype
+            Pixel-interleaved values (NaN = nodata for float rasters).
+        mask : ndarray of bool, shape (rows, cols), optional
+            Valid pixels (integer rasters; default: all valid).
+        copy : bool, optional
+            True: the tile is copied, and the caller may reuse its arrays when the call returns.
+            False: the writer reads them until their blocks are compressed, and the caller
+            must leave them unchanged (they are not written to).
+        """
+        self.raise_pending()
+        h, w = data.shape[:2]
+        if not 0 <= level < len(self.levels):
+            raise ParamError(f"level {level} outside 0-{len(self.levels) - 1}")
+        lvl = self.levels[level]
+        if data.ndim != 3 or data.shape[2] != self.count or data.dtype != np.dtype(self.dtype):
+            raise ParamError(f"tile must be (rows, cols, {self.count}) {self.dtype}, got {data.shape} {data.dtype}")
+        if row < 0 or col < 0 or row + h > lvl.height or col + w > lvl.width:
+            raise ParamError(f"tile at ({row}, {col}) of {h} x {w} falls outside the {lvl.height} x {lvl.width} raster")
+        if mask is None:
+            mask = np.isfinite(data).any(axis=2) if self.is_float else \
+                (data != self.nodata).any(axis=2) if self.nodata is not None else np.ones((h, w), bool)
+        for bi, bj, blk in self._insert(level, row, col, data, mask, copy=copy):
+            self._slots.acquire()
+            fut = self._pool.submit(self._emit, level, bi, bj, *blk)
+            fut.add_done_callback(lambda f: self._slots.release())
+
+    def put_block(self, level: int, bi: int, bj: int, payloads: Sequence[bytes]) -> None:
+        """Store a block compressed elsewhere: ``payloads`` = [image bytes] or, with a mask,
+        [image bytes, mask bytes], each as the file stores it (see
+        :class:`~orthowarp.pipeline.raster.device.DeviceCogEncoder`). No overview is derived
+        from it: the caller gives the next levels too."""
+        self.raise_pending()
+        lvl = self.levels[level]
+        if not (0 <= bi < lvl.nby and 0 <= bj < lvl.nbx) or len(payloads) != 1 + self.mask:
+            raise ParamError(f"block ({bi}, {bj}) of level {level} with {len(payloads)} payload(s) does not fit")
+        try:
+            self._store(level, bi, bj, payloads)
+        except OSError as e:
+            raise RasterIOError(f"Could not write '{self.name}': {e.strerror or e}") from e
+
+    def _insert(self, li: int, row: int, col: int, data: np.ndarray, mask: np.ndarray,
+                copy: bool = True) -> list[tuple[int, int, tuple[np.ndarray, np.ndarray]]]:
+        """Copy a piece into the level's blocks; return the blocks it completes.
+
+        Blocks the piece covers whole are cut out directly (as views of it when ``copy`` is
+        False and they are full-size); only partly covered ones wait in the level's table
+        (under the level's lock) for their other pieces."""
+        lvl, b = self.levels[li], self.block
+        fill = np.nan if self.is_float else self.nodata or 0
+        done = []
+        for bi in range(row // b, (row + data.shape[0] - 1) // b + 1):
+            r0, r1 = max(row, bi * b), min(row + data.shape[0], (bi + 1) * b)
+            for bj in range(col // b, (col + data.shape[1] - 1) // b + 1):
+                c0, c1 = max(col, bj * b), min(col + data.shape[1], (bj + 1) * b)
+                bh, bw = lvl.block_shape(bi, bj)
+                piece = data[r0 - row:r1 - row, c0 - col:c1 - col]
+                piece_mask = mask[r0 - row:r1 - row, c0 - col:c1 - col]
+                if (r1 - r0, c1 - c0) == (bh, bw):  # the whole block
+                    if (bh, bw) == (b, b):
+                        done.append((bi, bj, (piece.copy(), piece_mask.copy()) if copy else (piece, piece_mask)))
+                    else:
+                        blk, blk_mask = np.full((b, b, self.count), fill, self.dtype), np.zeros((b, b), bool)
+                        blk[:bh, :bw], blk_mask[:bh, :bw] = piece, piece_mask
+                        done.append((bi, bj, (blk, blk_mask)))
+                    continue
+                key = bi * lvl.nbx + bj
+                with lvl.lock:
+                    entry = lvl.pending.get(key)
+                    if entry is None:
+                        entry = lvl.pending[key] = [np.full((b, b, self.count), fill, self.dtype),
+                                                    np.zeros((b, b), bool), bh * bw]
+                    entry[0][r0 - bi * b:r1 - bi * b, c0 - bj * b:c1 - bj * b] = piece
+                    entry[1][r0 - bi * b:r1 - bi * b, c0 - bj * b:c1 - bj * b] = piece_mask
+                    entry[2] -= (r1 - r0) * (c1 - c0)
+                    if entry[2] == 0:
+                        del lvl.pending[key]
+                        done.append((bi, bj, entry[:2]))
+        return done
+
+    def _emit(self, li: int, bi: int, bj: int, data: np.ndarray, mask: np.ndarray) -> None:
+        """:meth:`_emit_block`, a full-resolution block's (with the overview blocks it
+        completes) timed as the ``timer``'s ``"write"`` stage."""
+        if li or self._timer is None:
+            return self._emit_block(li, bi, bj, data, mask)
+        t = time.perf_counter()
+        try:
+            return self._emit_block(li, bi, bj, data, mask)
+        finally:
+            self._timer.span("write", t)
+
+    def _emit_block(self, li: int, bi: int, bj: int, data: np.ndarray, mask: np.ndarray) -> None:
+        """Compress and store a complete block (B, B, C), then feed its reduction to the next
+        level. ``data`` and ``mask`` are only read."""
+        try:
+            lvl = self.levels[li]
+            bh, bw = lvl.block_shape(bi, bj)
+            full = bool(mask.all())
+            parts = [self._encode(data, None if full or self.is_float else mask)]
+            if self.mask:
+                bits = np.packbits(mask, axis=1)  # 1 bit per pixel, rows padded to bytes, MSB first
+                parts.append(self._compress_mask(bits))
+            self._store(li, bi, bj, parts)
+            if li + 1 < len(self.levels):
+                red, red_mask = self._reduce(data[:bh, :bw], mask[:bh, :bw], full and (bh, bw) == data.shape[:2])
+                half = self.block // 2
+                for ci, cj, blk in self._insert(li + 1, bi * half, bj * half, red, red_mask):
+                    self._emit(li + 1, ci, cj, *blk)
+        except BaseException as e:  # re-raised in the caller's thread
+            self._error = self._error or e
+            raise
+
+    def _store(self, li: int, bi: int, bj: int, parts: Sequence[bytes]) -> None:
+        """Append a block's record to the block file (GDAL's record per part: uint32 size, the
+        bytes, their last 4 repeated)."""
+        lvl = self.levels[li]
+        bufs = []
+        for payload in parts:
+            bufs += [struct.pack("<I", len(payload)), payload, bytes(payload[-4:]).rjust(4, b"\0")]
+        size = sum(len(x) for x in bufs)
+        with self._lock:
+            off, self._end = self._end, self._end + size
+        _pwrite_all(self._fd, bufs, off)
+        lvl.records[bi * lvl.nbx + bj] = (off, len(parts[0]), size)
 
     def raise_pending(self) -> None:
         """Raise, in the caller's thread, the first error of the writer's compression threads
