@@ -1271,6 +1271,27 @@ def test_tiles_on_worker_processes_give_the_same_file(pair, tmp_path, codec):
     assert builds_a == 2 and 2 <= builds_b <= 4 and held_a == 2 and 1 <= held_b <= 2
 
 
+@pytest.mark.parametrize("compress", ["deflate", "jpeg"])
+def test_worker_processes_encode_the_files_blocks(pair, tmp_path, compress, monkeypatch):
+    """processes=2 with the host codec and tiles of whole blocks: the workers compress the
+    blocks and the overview levels their tiles cover (the compression's time in the profile's
+    write stage), and the file is byte for byte the one the threads of one process write."""
+    sc, images, _, _ = pair
+    if compress == "jpeg":  # (a uint8 RGB block for JPEG)
+        images = _uint8_rgb(images, tmp_path)
+    kw = dict(dem=sc.dem, refraction=False, device="cpu", tile_size=128, compress=compress,
+              creation_options={"BLOCKSIZE": 128})
+    one = mosaic(images, tmp_path / "one.tif", **kw)
+    from orthowarp.pipeline.raster.cog import CogWriter
+
+    stored, put = [], CogWriter.put_encoded
+    monkeypatch.setattr(CogWriter, "put_encoded", lambda self, tile: stored.append(len(tile.blocks)) or put(self, tile))
+    two = mosaic(images, tmp_path / "two.tif", processes=2, **kw)
+    assert stored and min(stored) > 0  # every tile's blocks came encoded
+    assert (tmp_path / "one.tif").read_bytes() == (tmp_path / "two.tif").read_bytes()
+    assert two.pixels_per_image == one.pixels_per_image and two.profile["stages"]["write"]["count"] > 0
+
+
 def test_an_image_is_dropped_after_its_last_tile_unless_dealt_again():
     """The cache's bookkeeping: an image its run is done with goes once no dealt tile needs
     it; a tile dealt after that tile (of another run) keeps it."""
@@ -1308,23 +1329,29 @@ def test_an_image_is_dropped_after_its_last_tile_unless_dealt_again():
     assert 5 not in st["images"] and closed == [6, 5]
 
 
-def test_lossy_mosaics_decode_near_the_lossless_one(pair, tmp_path):
-    """A uint8 RGB mosaic with jpeg or webp: a COG of that compression (YCbCr for JPEG), its
-    mask and overviews those of the deflate mosaic, its pixels within the quality's reach; the
-    index stays lossless; bad settings refused before any work."""
-    sc, images, _, folder = pair
-    u8 = []
+def _uint8_rgb(images, folder):
+    """The pair's float32 frames as uint8 RGB files (for lossy compressions)."""
+    out = []
     for k, (src, sensor) in enumerate(images):
         with rasterio.open(src) as ds:
             band = ds.read(1)
         data = np.clip(np.nan_to_num(band) * 200.0 + 20.0, 0, 255).astype(np.uint8)
-        path = tmp_path / f"u8_{k}.tif"
+        path = folder / f"u8_{k}.tif"
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
             with rasterio.open(path, "w", driver="GTiff", width=data.shape[1], height=data.shape[0], count=3,
                                dtype="uint8") as dst:
                 dst.write(np.stack([data, data // 2 + 60, 255 - data]))
-        u8.append((path, sensor))
+        out.append((path, sensor))
+    return out
+
+
+def test_lossy_mosaics_decode_near_the_lossless_one(pair, tmp_path):
+    """A uint8 RGB mosaic with jpeg or webp: a COG of that compression (YCbCr for JPEG), its
+    mask and overviews those of the deflate mosaic, its pixels within the quality's reach; the
+    index stays lossless; bad settings refused before any work."""
+    sc, images, _, folder = pair
+    u8 = _uint8_rgb(images, tmp_path)
     kw = dict(dem=sc.dem, refraction=False, device="cpu", tile_size=128, seams="nadir")
     ref = mosaic(u8, tmp_path / "deflate.tif", **kw)
     for compress in ("jpeg", "webp"):

@@ -91,7 +91,8 @@ def test_every_tile_comes_back_once_with_the_workers_values(with_source):
     seen = []
     with ProcessTiles(2, "cpu", threads=2) as procs:
         procs.start_plan(StandInPlan(), (32, 32), with_source=with_source)
-        for (r0, c0, th, tw), values, valid, source, release in procs.run(tiles, 2, "float32"):
+        for (r0, c0, th, tw), values, valid, source, release, encoded in procs.run(tiles, 2, "float32"):
+            assert encoded is None  # (no encoder given)
             assert values.shape == (th, tw, 2) and valid.shape == (th, tw)
             np.testing.assert_array_equal(values[..., 1], r0 + c0 + 1.0)
             assert valid[0, 0] == 0 and valid.sum() == th * tw - 1
@@ -112,7 +113,7 @@ def test_a_workers_exception_reaches_the_caller():
     with ProcessTiles(1, "cpu", threads=1) as procs:
         procs.start_plan(StandInPlan(fail=64), (32, 32), with_source=False)
         with pytest.raises(ParamError, match="tile at row 64 failed"):
-            for *_, release in procs.run(_tiles(), 2, "float32"):
+            for *_, release, _ in procs.run(_tiles(), 2, "float32"):
                 release()
 
 
@@ -121,7 +122,7 @@ def test_a_worker_that_dies_is_an_error_naming_its_exit_code():
         procs.start_plan(StandInPlan(fail=32, die=True), (32, 32), with_source=False)
         shared = procs._file
         with pytest.raises(OrthowarpError, match="exit code 3"):
-            for *_, release in procs.run(_tiles(), 2, "float32"):
+            for *_, release, _ in procs.run(_tiles(), 2, "float32"):
                 release()
     assert os.path.exists(os.path.dirname(shared)) and not os.path.exists(shared)  # the shared file is gone
 
@@ -134,7 +135,7 @@ def test_a_worker_that_cannot_start_is_an_error_not_a_hang():
     with ProcessTiles(1, "no-such-device", threads=1) as procs:
         procs.start_plan(StandInPlan(), (32, 32), with_source=False)
         with pytest.raises(DeviceError, match="no-such-device"):
-            for *_, release in procs.run(_tiles(), 2, "float32"):
+            for *_, release, _ in procs.run(_tiles(), 2, "float32"):
                 release()
 
 
@@ -151,7 +152,7 @@ def test_a_stop_that_also_ends_the_workers_is_a_stop():
         procs.start_plan(StandInPlan(fail=0, die=True), (32, 32), with_source=False)
         timer.start()
         with pytest.raises(Cancelled):
-            for *_, release in procs.run(_tiles(), 2, "float32", cancel=cancel, name="m.tif"):
+            for *_, release, _ in procs.run(_tiles(), 2, "float32", cancel=cancel, name="m.tif"):
                 release()
     timer.cancel()
 
@@ -165,7 +166,7 @@ def test_a_process_drops_each_image_after_the_last_tile_of_its_run_that_uses_it(
     for given, held in ((images, 1), (None, 3)):
         with ProcessTiles(1, "cpu", threads=1) as procs:
             procs.start_plan(TrackingPlan(), (32, 32), with_source=False)
-            for *_, release in procs.run(tiles, 2, "float32", images=given):
+            for *_, release, _ in procs.run(tiles, 2, "float32", images=given):
                 release()
             (info,) = procs.finish()
         assert info["builds"] == 3 and info["held_peak"] == held

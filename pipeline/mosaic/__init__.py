@@ -384,14 +384,15 @@ def _write_mosaic(plan: MosaicPlan, procs: ProcessTiles | None, dst: str, on: wp
     size = int(out.tile_size) if out.tile_size is not None else default_tile_size(on)
     tiles = plan.tiles(size)
     host_source = out.index is not None or out.seamlines is not None  # else the pixels per image counted there
+    # the mosaic file's block work, for the workers (processes or a cluster) to do on their tiles
+    encoder = plan.mosaic_encoder(out.compress, compress_level=out.compress_level, quality=out.quality,
+                                  creation_options=out.creation_options)
     if client is not None:
-        encoder = plan.mosaic_encoder(out.compress, compress_level=out.compress_level, quality=out.quality,
-                                      creation_options=out.creation_options)
         results = _cluster_results(plan, client, tiles, codec, on, cancel, dst, progress, worker_device, encoder)
     elif procs is None:
         results = _thread_results(plan, tiles, codec, on, host_source, out.workers, cancel, dst)
     else:
-        results = _process_results(plan, procs, tiles, size, codec, on, host_source, cancel, dst)
+        results = _process_results(plan, procs, tiles, size, codec, on, host_source, cancel, dst, encoder)
     try:
         return plan.write(dst, results, index=out.index, seamlines=out.seamlines, compress=out.compress,
                           quality=out.quality,
@@ -474,27 +475,29 @@ def _cluster_results(plan: MosaicPlan, client: Any, tiles: list[Tile], codec: st
 
 def _process_results(plan: MosaicPlan, procs: ProcessTiles, tiles: list[Tile], size: int,
                      codec: str, on: wp.context.Device, host_source: bool, cancel: threading.Event | None,
-                     dst: str) -> Iterator[tuple[Tile, tuple]]:
+                     dst: str, encoder: Any = None) -> Iterator[tuple[Tile, tuple]]:
     """Tile results for :meth:`MosaicPlan.write` from worker processes, as they finish: the
     plan sent to them now, each finished tile uploaded to this process's device for the
-    device ``codec``'s encoder or copied for the host writer, and at the end the workers'
-    pixel counts, stage intervals and image builds merged into this process's state."""
+    device ``codec``'s encoder or, for the host writer, encoded by the workers with the mosaic
+    file's ``encoder`` (else copied), and at the end the workers' pixel counts, stage intervals
+    and image builds merged into this process's state."""
     plan._kept.clear()  # the reduced pass's geometries and sources: the workers build their own
     # each worker reads its images' windows (reduced ones still averaged on the device where
     # the plan says so: the same pixels) rather than holding every image it meets whole
     plan.options["resident"] = False
     plan.options["cache_images"] = min(plan.options["cache_images"], 24)
     st = plan._materialise()  # the stage timer starts with the tiles, as on threads
-    procs.start_plan(plan, (size, size), with_source=codec == "host" or host_source)
+    procs.start_plan(plan, (size, size), with_source=codec == "host" or host_source,
+                     encoder=encoder if codec == "host" else None)
 
     def results() -> Iterator[tuple[Tile, tuple]]:
         images = plan._tile_images(tiles)
-        for tile, values, valid, source, release in procs.run(tiles, plan.count, plan.dtype, images=images,
-                                                              cancel=cancel, name=dst):
+        for tile, values, valid, source, release, encoded in procs.run(tiles, plan.count, plan.dtype, images=images,
+                                                                       cancel=cancel, name=dst):
             try:
                 ok = valid.view(bool)
                 if codec == "host":  # (the slot is reused: copies)
-                    yield tile, (values.copy(), ok.copy(), source.copy())
+                    yield tile, (encoded if encoded is not None else values.copy(), ok.copy(), source.copy())
                     continue
                 t = time.perf_counter()
                 up = wp.array(values, device=on), wp.array(valid, dtype=wp.uint8, device=on)

@@ -134,12 +134,15 @@ class ProcessTiles:
     def __exit__(self, *exc: Any) -> None:
         self.close()
 
-    def start_plan(self, plan: Any, tile_shape: tuple[int, int], *, with_source: bool) -> None:
+    def start_plan(self, plan: Any, tile_shape: tuple[int, int], *, with_source: bool, encoder: Any = None) -> None:
         """Send ``plan`` to the workers and make the slots for tiles of at most ``tile_shape``
         (rows, cols): values (the plan's dtype and bands), validity (uint8) and, ``with_source``,
         the source index (uint16). The pickled plan lies at the start of the shared file (the
         workers' queues carry only small messages, so no put can block on a worker that is
-        gone)."""
+        gone). With ``encoder`` (the mosaic file's :class:`~orthowarp.pipeline.raster.cog.
+        TileEncoder`), each worker encodes its tiles and puts the pickled
+        :class:`~orthowarp.pipeline.raster.cog.EncodedTile` in the slot's values instead of the
+        pixels, where it fits (see :meth:`run`)."""
         th, tw = tile_shape
         self._with_source = bool(with_source)
         self._slot_bytes = _slot_size(th, tw, plan.count, plan.dtype, self._with_source)
@@ -154,7 +157,7 @@ class ProcessTiles:
         self._map[:len(blob)] = blob
         self._free = list(range(n_slots))
         for q in self._tasks:
-            q.put(("plan", path, len(blob), self._base, self._slot_bytes, self._with_source))
+            q.put(("plan", path, len(blob), self._base, self._slot_bytes, self._with_source, encoder))
 
     def _views(self, slot: int, th: int, tw: int, count: int,
                dtype: str) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
@@ -166,8 +169,10 @@ class ProcessTiles:
             images: Sequence[tuple[int, ...]] | None = None, cancel: threading.Event | None = None,
             name: str | None = None) -> Iterator[tuple]:
         """Compute ``tiles`` ((r0, c0, rows, cols) each) on the workers; yields
-        ((r0, c0, rows, cols), values, valid, source or None, release) in the order they finish,
-        the arrays views of a slot that ``release()`` gives back (call it once done with them).
+        ((r0, c0, rows, cols), values, valid, source or None, release, encoded) in the order they
+        finish, the arrays views of a slot that ``release()`` gives back (call it once done with
+        them); ``encoded`` is the tile's :class:`~orthowarp.pipeline.raster.cog.EncodedTile`
+        where the plan's encoder made one (``values`` then hold no pixels), else None.
 
         ``images`` (per tile, the indices of the images its tile function may use; see
         :func:`tile_runs`) lets each process drop an image once the tiles of its run are done
@@ -203,15 +208,17 @@ class ProcessTiles:
                 raise
             if msg[0] == "error":
                 raise _rebuild(msg[2], msg[3])
-            _, w, k, slot = msg
+            _, w, k, slot, n_encoded = msg
             busy[w] -= 1
             done_tiles += 1
             values, valid, source = self._views(slot, *Tile(*tiles[k]).shape, count, dtype)
+            at = self._base + slot * self._slot_bytes
+            encoded = pickle.loads(self._map[at:at + n_encoded]) if n_encoded else None
 
             def release(slot: int = slot) -> None:
                 released.append(slot)
 
-            yield tiles[k], values, valid, source, release
+            yield tiles[k], values, valid, source, release, encoded
             self._free.extend(released)
             released.clear()
             for v in range(self.n):
@@ -499,6 +506,7 @@ class _Worker:
     base: int = 0
     slot_bytes: int = 0
     with_source: bool = False
+    encoder: Any = None  # the mosaic file's TileEncoder, where the workers encode the tiles
     failed: list = field(default_factory=list)
 
     def report(self, exc: BaseException) -> None:
@@ -563,9 +571,10 @@ def _serve_tasks(ws: _Worker, tasks: SimpleQueue, threads: int) -> bool:
     return True
 
 
-def _load_plan(ws: _Worker, path: str, n_blob: int, base: int, slot_bytes: int, with_source: bool) -> None:
+def _load_plan(ws: _Worker, path: str, n_blob: int, base: int, slot_bytes: int, with_source: bool,
+               encoder: Any = None) -> None:
     """Map the shared file at ``path`` and unpickle the plan from its first ``n_blob`` bytes."""
-    ws.base, ws.slot_bytes, ws.with_source = base, slot_bytes, with_source
+    ws.base, ws.slot_bytes, ws.with_source, ws.encoder = base, slot_bytes, with_source, encoder
     fd = os.open(path, os.O_RDWR)
     try:
         ws.buf = mmap.mmap(fd, 0)
@@ -585,13 +594,26 @@ def _worker_tile(ws: _Worker, k: int, tile: Tile, slot: int, used: tuple[int, ..
             out, has, source = plan._tile(*tile, device=ws.dev)
             if not with_source:
                 plan._count_sources(source)
-            values, valid, src = _slot_views(ws.buf, ws.base + slot * ws.slot_bytes, th, tw, plan.count, plan.dtype,
-                                             with_source)
-            values[...] = to_host(out)
-            valid[...] = to_host(has)
+            at = ws.base + slot * ws.slot_bytes
+            values, valid, src = _slot_views(ws.buf, at, th, tw, plan.count, plan.dtype, with_source)
+            n_encoded = 0
+            if ws.encoder is None:
+                values[...] = to_host(out)
+                valid[...] = to_host(has)
+            else:  # the tile's blocks compressed here, in the values' place where they fit
+                pixels, valid[...] = to_host(out), to_host(has)
+                t = time.perf_counter()
+                blob = pickle.dumps(ws.encoder.encode(tile.row, tile.col, pixels, valid.view(bool)),
+                                    protocol=pickle.HIGHEST_PROTOCOL)
+                plan._materialise()["timer"].span("write", t)
+                if len(blob) <= values.nbytes:
+                    ws.buf[at:at + len(blob)] = blob
+                    n_encoded = len(blob)
+                else:
+                    values[...] = pixels
             if with_source:
                 src[...] = to_host(source)
-        ws.results.put(("done", ws.w, k, slot))
+        ws.results.put(("done", ws.w, k, slot, n_encoded))
         if used:
             plan._note_done(used, token)  # the images the run is done with are dropped
     except BaseException as e:  # noqa: BLE001 - reported to the caller
