@@ -373,3 +373,34 @@ def test_the_workers_encode_the_single_cogs_blocks(block, client, tmp_path):
     got = [block for _, (block, _, _) in cluster_results(plan, client, tiles, encoder=enc)]
     assert all(isinstance(b, EncodedTile) and b.blocks for b in got)
     assert there.pixels_per_image == here.pixels_per_image
+
+
+def test_a_webp_tiled_product_is_webp_with_a_deflate_index(block, tmp_path):
+    """WebP tiles (3-band uint8 frames made from the block's) at the quality asked, the index
+    deflate, and mosaic.vrt as close to the lossless mosaic as the single WebP COG (their blocks
+    differ: WebP's are not independent cells)."""
+    sc, images = block
+    rgb = []
+    for k, (src, sensor) in enumerate(images):
+        with rasterio.open(src) as ds:
+            band, profile = ds.read(1), ds.profile
+        profile.update(count=3)
+        path = tmp_path / f"rgb{k}.tif"
+        with rasterio.open(path, "w", **profile) as dst:
+            dst.write(np.stack([band, band // 2 + 60, 255 - band]))
+        rgb.append((path, sensor))
+    kw = dict(_kw(sc), compress="webp", quality=90)
+    lossless = mosaic(rgb, tmp_path / "d.tif", **_kw(sc))
+    cog = mosaic(rgb, tmp_path / "m.tif", **kw)
+    tiled = mosaic(rgb, tmp_path / "tiled", tiled=True, index=True, product_tile=128, **kw)
+    with rasterio.open(lossless.path) as r, rasterio.open(cog.path) as a, rasterio.open(tiled.vrt) as b:
+        np.testing.assert_array_equal(r.dataset_mask(), b.dataset_mask())
+        ok, truth = r.dataset_mask() > 0, r.read().astype(int)
+        single, product = (np.abs(truth - x.read().astype(int))[:, ok].mean() for x in (a, b))
+        assert single < 5.0 and product <= 1.2 * single + 0.2, (single, product)
+    first = next(p for p in sorted((tmp_path / "tiled" / "tiles").iterdir()) if p.suffix == ".tif")
+    with rasterio.open(first) as t:
+        structure = t.tags(ns="IMAGE_STRUCTURE")
+        assert structure["COMPRESSION"] == "WEBP" and structure["WEBP_LEVEL"] == "90"
+    with rasterio.open(tiled.index_vrt) as ix, rasterio.open(ix.files[1]) as t:
+        assert t.compression.value == "DEFLATE"

@@ -345,6 +345,43 @@ def test_nodata_must_be_a_value_of_the_type(tmp_path):
         CogWriter(tmp_path / "c.tif", dtype="uint8", overview_resampling="mode", **kw)
 
 
+def lossy_and_deflate(folder, shape, count, compress, quality, *, overviews):
+    """The scene (uint8) written by CogWriter as deflate and as ``compress`` at ``quality``
+    (256-px blocks, misaligned tiles), checked level by level: the masks equal, the lossy
+    pixels within its reach of the deflate ones. Returns (data, mask, {compress: path})."""
+    data, mask = scene(shape, count, "uint8")
+    paths = {}
+    for c in ("deflate", compress):
+        paths[c] = str(folder / f"{c}.tif")
+        with CogWriter(paths[c], width=shape[1], height=shape[0], count=count, dtype="uint8", crs=CRS,
+                       transform=TRANSFORM, compress=c, block_size=256, overviews=overviews, threads=2,
+                       **({"quality": quality} if c == compress else {})) as w:
+            write_tiles(w, data, mask, tile=300)
+    a, b = levels(paths["deflate"]), levels(paths[compress])
+    assert len(a) == len(b) == overviews + 1
+    for (da, ma), (db, mb) in zip(a, b):
+        np.testing.assert_array_equal(ma, mb)
+        mean, p99 = jpeg_error(da, db, ma > 0)
+        assert mean < 3.0 and p99 <= 16, (mean, p99)  # (the scene has noise of 3 DN)
+    return data, mask, paths
+
+
+def gdal_lossy_cog(folder, data, mask, compress, quality):
+    """GDAL's COG of ``data`` (rows, cols, bands) uint8 with ``mask`` as its internal mask, 256-px
+    blocks, ``compress`` (JPEG, WEBP) at ``quality``: its path."""
+    h, w, count = data.shape
+    plain, gdal = str(folder / "plain.tif"), str(folder / "gdal.tif")
+    with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True), rasterio.open(
+            plain, "w", driver="GTiff", width=w, height=h, count=count, dtype="uint8", crs=CRS,
+            transform=TRANSFORM, tiled=True, blockxsize=256, blockysize=256) as dst:
+        dst.write(np.moveaxis(np.where(mask[..., None], data, 0), 2, 0))
+        dst.write_mask(mask.astype(np.uint8) * 255)
+    with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True):
+        rasterio.shutil.copy(plain, gdal, driver="COG", compress=compress, quality=quality, blocksize=256,
+                             overview_resampling="average")
+    return gdal
+
+
 def jpeg_error(a, b, valid):
     """Mean and 99th percentile of |a - b| (bands, rows, cols) over the ``valid`` pixels."""
     d = np.abs(a.astype(float) - b.astype(float))[:, valid]
@@ -358,21 +395,8 @@ def test_jpeg_cog_decodes_near_the_deflate_cogs_pixels(tmp_path, count, quality)
     writes them); its masks are the deflate COG's at every level and its pixels within JPEG's
     reach of them, as close as GDAL's own COG driver gets at that quality."""
     shape = (1100, 1500)
-    data, mask = scene(shape, count, "uint8")
-    paths = {}
-    for compress in ("deflate", "jpeg"):
-        paths[compress] = str(tmp_path / f"{compress}.tif")
-        with CogWriter(paths[compress], width=shape[1], height=shape[0], count=count, dtype="uint8", crs=CRS,
-                       transform=TRANSFORM, compress=compress, block_size=256, overviews=3, threads=3,
-                       **({"quality": quality} if compress == "jpeg" else {})) as w:
-            write_tiles(w, data, mask, tile=300)
+    data, mask, paths = lossy_and_deflate(tmp_path, shape, count, "jpeg", quality, overviews=3)
     assert sorted(os.listdir(tmp_path)) == ["deflate.tif", "jpeg.tif"]  # the side files are gone
-    a, b = levels(paths["deflate"]), levels(paths["jpeg"])
-    assert len(a) == len(b) == 4
-    for (da, ma), (db, mb) in zip(a, b):
-        np.testing.assert_array_equal(ma, mb)
-        mean, p99 = jpeg_error(da, db, ma > 0)
-        assert mean < 3.0 and p99 <= 16, (mean, p99)  # (the scene has noise of 3 DN)
     with rasterio.open(paths["jpeg"]) as ds:
         structure = ds.tags(ns="IMAGE_STRUCTURE")
         assert structure["LAYOUT"] == "COG" and structure["JPEG_QUALITY"] == str(quality)
@@ -383,19 +407,10 @@ def test_jpeg_cog_decodes_near_the_deflate_cogs_pixels(tmp_path, count, quality)
     assert [c for k, c, _ in tags if k in (0, 1)] == [7] * 4 and [c for k, c, _ in tags if k in (4, 5)] == [8] * 4
     assert all(p is None for _, _, p in tags)  # no predictor
     # GDAL's COG driver, the same pixels and quality: ours is as close to the lossless pixels
-    plain = str(tmp_path / "plain.tif")
-    with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True), rasterio.open(
-            plain, "w", driver="GTiff", width=shape[1], height=shape[0], count=count, dtype="uint8", crs=CRS,
-            transform=TRANSFORM, tiled=True, blockxsize=256, blockysize=256) as dst:
-        dst.write(np.moveaxis(np.where(mask[..., None], data, 0), 2, 0))
-        dst.write_mask(mask.astype(np.uint8) * 255)
-    gdal = str(tmp_path / "gdal.tif")
-    with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True):
-        rasterio.shutil.copy(plain, gdal, driver="COG", compress="JPEG", quality=quality, blocksize=256,
-                             overview_resampling="average")
+    gdal = gdal_lossy_cog(tmp_path, data, mask, "JPEG", quality)
     truth = np.moveaxis(data, 2, 0)
-    with rasterio.open(gdal) as g:
-        ours, theirs = jpeg_error(a[0][0], b[0][0], mask)[0], jpeg_error(truth, g.read(), mask)[0]
+    with rasterio.open(paths["jpeg"]) as j, rasterio.open(gdal) as g:
+        ours, theirs = jpeg_error(truth, j.read(), mask)[0], jpeg_error(truth, g.read(), mask)[0]
     assert ours <= 1.05 * theirs + 0.05, (ours, theirs)
 
 
@@ -463,3 +478,24 @@ def test_tiles_encoded_elsewhere_give_the_writers_file(tmp_path, count, dtype, c
             pickle.dumps(w)
     finally:
         w.abort()
+
+
+@pytest.mark.parametrize("count", [3, 4])
+def test_webp_cog_decodes_near_the_deflate_cogs_pixels(tmp_path, count):
+    """A WebP COG (uint8 RGB, or RGBA with the fourth band as alpha): GDAL reads it as a WebP
+    COG with its WEBP_LEVEL; its masks are the deflate COG's at every level and its pixels
+    within WebP's reach, about as close as GDAL's own WebP COG at that quality."""
+    data, mask, paths = lossy_and_deflate(tmp_path, (900, 1100), count, "webp", 85, overviews=2)
+    with rasterio.open(paths["webp"]) as ds:
+        structure = ds.tags(ns="IMAGE_STRUCTURE")
+        assert structure["LAYOUT"] == "COG" and structure["COMPRESSION"] == "WEBP"
+        assert structure["WEBP_LEVEL"] == "85" and ds.overviews(1) == [2, 4]
+        if count == 4:
+            assert ds.colorinterp[3] == rasterio.enums.ColorInterp.alpha
+    tags = ifd_tags(paths["webp"])
+    assert [c for k, c, _ in tags if k in (0, 1)] == [50001] * 3 and [c for k, c, _ in tags if k in (4, 5)] == [8] * 3
+    gdal = gdal_lossy_cog(tmp_path, data, mask, "WEBP", 85)
+    truth = np.moveaxis(data, 2, 0)
+    with rasterio.open(paths["webp"]) as a, rasterio.open(gdal) as g:
+        ours, theirs = jpeg_error(truth, a.read(), mask)[0], jpeg_error(truth, g.read(), mask)[0]
+    assert ours <= 1.3 * theirs + 0.2, (ours, theirs)

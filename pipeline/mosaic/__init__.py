@@ -171,10 +171,9 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
         is left to another image in the same way.
     compress : {"deflate", "zstd", "jpeg", "webp"}, optional
         The compression of the mosaic (default deflate), with predictor 2 for integer data;
-        jpeg (1 or 3 bands; 3 as YCbCr) and webp (3 or 4 bands) for uint8 mosaics: JPEG
-        streamed like deflate (libjpeg on the host cores), WebP's tiles streamed as deflate
-        and then compressed by GDAL's COG driver (the overviews as orthowarp reduced them).
-        The index takes the mosaic's lossless compression, deflate for a lossy mosaic.
+        jpeg (1 or 3 bands; 3 as YCbCr) and webp (3 or 4 bands) for uint8 mosaics, streamed
+        like deflate (libjpeg and libwebp on the host cores). The index takes the mosaic's
+        lossless compression, deflate for a lossy mosaic.
     compress_level : int, optional
         Deflate level 1-12 (default 6), or zstd level 1-22 (default 9).
     quality : int, optional
@@ -197,7 +196,7 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
         nvImageCodec's encoder runs (blocks, overviews and their encoding on the device;
         probed once per device), else "host" (libjpeg on the host cores); "hybrid" the blocks
         made on a GPU, libjpeg on the host cores (the host file, byte for byte); WebP's blocks
-        are GDAL's. "nvcomp" and "warp" are refused with jpeg, and "hybrid" too with webp.
+        are the host's. "nvcomp" and "warp" are refused with jpeg, and "hybrid" too with webp.
         Every lossless choice decodes to the same pixels; nvJPEG's to the host's within
         JPEG's own error.
     tile_size : int, optional
@@ -238,8 +237,8 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
         ``mosaic.vrt`` over them, ``index/`` and ``index.vrt`` where ``index`` is True,
         ``tiles.geojson`` (each tile's bounds and source images) and ``manifest.json``. Its
         work folder ``dst.partial`` keeps the tiles finished before a run was stopped or killed,
-        and the next run of the same job skips them. Deflate, zstd or jpeg (its index deflate);
-        no seamlines (use the GeoJSON index).
+        and the next run of the same job skips them. Deflate, zstd, jpeg or webp (the index
+        deflate with those); no seamlines (use the GeoJSON index).
     product_tile : int, optional
         With ``tiled``: the product tiles' edge in pixels, a multiple of ``tile_size``;
         default: 4, 2 or 1 tiles, the largest that cuts the mosaic into at least 64 product
@@ -258,7 +257,7 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
     if not isinstance(compress, str) or compress not in MOSAIC_COMPRESS:
         raise ParamError(f"compress must be one of {', '.join(MOSAIC_COMPRESS)}; got {compress!r}")
     compress = Compress(compress).value
-    stream = "deflate" if compress == "webp" else compress  # what the tiles stream as (WebP: GDAL's, below)
+    stream = compress  # what the tiles stream as
     compress_level, quality = check_level_and_quality(compress, compress_level, quality)
     if compress in LOSSY:
         _check_lossy(images, compress, dtype)
@@ -339,7 +338,7 @@ def _tiled_settings(dst: str, index: Any, seamlines: Any, compress: str, compres
     settings = TiledSettings(product_tile=product, tile_size=size, compress=compress,
                              compress_level=level_of(compress, compress_level),
                              block_size=parse_creation_options(creation_options)["block"], index=bool(index),
-                             block_codec=block_codec, quality=quality if compress == "jpeg" else None)
+                             block_codec=block_codec, quality=quality if compress in LOSSY else None)
     settings.check()
     return settings
 
@@ -378,8 +377,7 @@ def _write_mosaic(plan: MosaicPlan, procs: ProcessTiles | None, dst: str, on: wp
     :class:`~orthowarp.pipeline.mosaic.workers.ProcessTiles`), on worker processes, or on the
     workers of a Dask ``client``, written."""
     t0 = time.perf_counter()
-    stream = "deflate" if out.compress == "webp" else out.compress
-    level = 1 if out.compress == "webp" else level_of(out.compress, out.compress_level)  # (a WebP mosaic's intermediate)
+    stream, level = out.compress, level_of(out.compress, out.compress_level)
     codec = mosaic_block_codec(out.block_codec, on, level, stream)
     size = int(out.tile_size) if out.tile_size is not None else default_tile_size(on)
     tiles = plan.tiles(size)

@@ -461,9 +461,8 @@ def cluster_results(plan: Any, client: Any, tiles: Sequence[Tile], *, cancel: th
 
 # -- the tiled product --------------------------------------------------------------------------
 
-#: The compressions of a tiled product's tiles (WebP, compressed by GDAL's COG driver after the
-#: fact, is the single COG's only).
-TILED_COMPRESS = ("deflate", "zstd", "jpeg")
+#: The compressions of a tiled product's tiles.
+TILED_COMPRESS = ("deflate", "zstd", "jpeg", "webp")
 
 
 @dataclass(frozen=True)
@@ -472,12 +471,12 @@ class TiledSettings:
 
     product_tile: int  # product tile edge, pixels (a multiple of tile_size; 0: see auto_product_tile)
     tile_size: int  # compute tiles: the grid the tile function runs on
-    compress: str  # "deflate", "zstd" or "jpeg" (the index: deflate with jpeg)
+    compress: str  # "deflate", "zstd", "jpeg" or "webp" (the index: deflate with the lossy ones)
     compress_level: int | None
     block_size: int
     index: bool  # a source-index COG per tile too
     block_codec: str  # as mosaic()'s, resolved on each worker for its device
-    quality: int | None = None  # jpeg's
+    quality: int | None = None  # jpeg's and webp's
 
     def check(self) -> None:
         if self.product_tile < 0 or self.product_tile % self.tile_size:
@@ -565,16 +564,16 @@ def _write_product_tile(plan: Any, i: int, j: int, tile: Tile, folder: str, sett
     codec = mosaic_block_codec(settings.block_codec, dev, settings.compress_level, settings.compress)
     crs = rasterio.crs.CRS.from_wkt(plan.crs_wkt)
     transform = plan.transform @ Affine.translation(tile.col, tile.row)
-    jpeg = settings.compress == "jpeg"
+    lossy = settings.compress in ("jpeg", "webp")
     kw = dict(width=tile.width, height=tile.height, crs=crs, transform=transform, compress=settings.compress,
               level=settings.compress_level, block_size=settings.block_size, threads=2)
-    index_kw = dict(kw, compress="deflate", level=None) if jpeg else kw  # (the index lossless)
+    index_kw = dict(kw, compress="deflate", level=None) if lossy else kw  # (the index lossless)
     subs = [Tile(r, c, min(settings.tile_size, tile.row + tile.height - r), min(settings.tile_size, tile.col + tile.width - c))
             for r in range(tile.row, tile.row + tile.height, settings.tile_size)
             for c in range(tile.col, tile.col + tile.width, settings.tile_size)]
     with atomic_files(paths, overwrite=True, durable=False) as tmps:
         writers = [CogWriter(tmps[1], count=plan.count, dtype=plan.dtype, name=paths[1],
-                             **(dict(kw, quality=settings.quality) if jpeg else kw))]
+                             **(dict(kw, quality=settings.quality) if lossy else kw))]
         if settings.index:
             writers.append(CogWriter(tmps[2], count=1, dtype="uint16", name=paths[2], nodata=NO_SOURCE,
                                      overview_resampling="nearest", **index_kw))

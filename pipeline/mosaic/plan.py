@@ -42,11 +42,11 @@ from ...sensor import SensorModel
 from ..dem import Dem, as_dem
 from ..geometry import SensorGeometry
 from ..ortho.grid import output_grid
-from ..ortho.sink import LOSSY, choose_block_codec, device_codecs, finish, parse_creation_options
+from ..ortho.sink import LOSSY, choose_block_codec, device_codecs, parse_creation_options
 from ..ortho.tiles import ImageTiles, WholeSource, source_facts, source_read_dtype
 from ..raster.cog import DTYPES, CogWriter, EncodedTile, TileEncoder
 from ..raster.device import DeviceCogEncoder
-from ..raster.io import GDAL_ERRORS, atomic_files, check_cancel, check_destination, gdal_reason, source_exists
+from ..raster.io import atomic_files, check_cancel, check_destination, source_exists
 from ..reports.profile import StageTimer
 from ..tiles import Tile
 from .balance import Coarse, radiometric_balance
@@ -402,8 +402,7 @@ class MosaicPlan(TileBlending):
         index COG and seamlines GeoJSON) are published together when all tiles are in; the
         mosaic and its index are ``compress`` COGs ("deflate" or "zstd", at ``compress_level``:
         default 6 or 9; "jpeg" or "webp" at ``quality`` for the mosaic alone, the index
-        deflate: JPEG streamed like the others, WebP's tiles streamed into an intermediate
-        deflate COG whose pixels and overviews GDAL's COG driver then compresses); the seamlines in the mosaic's CRS, or in longitude/latitude with
+        deflate); the seamlines in the mosaic's CRS, or in longitude/latitude with
         ``seamlines_lonlat``, naming the images by their paths relative to the mosaic's
         folder. (Internally, with a ``_block_codec`` other than "host", the tiles' pixels go to
         the mosaic's file through ``self._encoder`` on the device and ``block`` is None.)
@@ -415,7 +414,7 @@ class MosaicPlan(TileBlending):
         if compress not in ("deflate", "zstd", *LOSSY):
             raise ParamError(f"compress must be one of deflate, zstd, {', '.join(LOSSY)}; got {compress!r}")
         compress = str(compress)  # (an option's member: its plain value)
-        lossy, via_gdal = compress in LOSSY, compress == "webp"  # (WebP: compressed by GDAL's COG driver)
+        lossy = compress in LOSSY
         if lossy and self.dtype != "uint8":
             raise ParamError(f"{compress} compression needs a uint8 mosaic, not {self.dtype}")
         dst = os.fspath(dst)
@@ -431,12 +430,10 @@ class MosaicPlan(TileBlending):
             co = parse_creation_options(creation_options)
             kw = dict(compress="deflate" if lossy else compress, level=None if lossy else compress_level,
                       block_size=co["block"], bigtiff=co["bigtiff"], threads=co["threads"])
-            # a WebP mosaic: an intermediate of deflate level 1 beside the temporary, then GDAL's COG
-            work = tmps[0] + ".work.tif" if via_gdal else tmps[0]
             own = dict(kw, **_mosaic_file_settings(compress, compress_level, quality))
             # (the host writer's blocks timed as "write" spans, as the device encoder's batches)
             timer = self._state["timer"] if self._state is not None else None
-            writers = [CogWriter(work, width=cols, height=rows, count=self.count, dtype=self.dtype, crs=rio_crs,
+            writers = [CogWriter(tmps[0], width=cols, height=rows, count=self.count, dtype=self.dtype, crs=rio_crs,
                                  transform=self.transform, name=dst, timer=timer, **own)]
             if index is not None:
                 # the index: NO_SOURCE as its nodata (distinct from image 0 for readers that
@@ -447,8 +444,7 @@ class MosaicPlan(TileBlending):
             encoder = None
             try:
                 if _block_codec != "host":
-                    codecs = device_codecs(_block_codec, 1 if via_gdal else compress_level, self.warp_device,
-                                           "deflate" if via_gdal else compress, quality=quality)
+                    codecs = device_codecs(_block_codec, compress_level, self.warp_device, compress, quality=quality)
                     encoder = self._encoder = DeviceCogEncoder(writers[0], self.warp_device, codecs,
                                                                timer=self._materialise()["timer"])
                 for (r0, c0, th, tw), (block, valid, source) in results:
@@ -474,12 +470,6 @@ class MosaicPlan(TileBlending):
                     w.close()
                 if self._state is not None:  # the files' layout, last overview levels, checks
                     self._state["timer"].span("finish", t_close)
-                if via_gdal:
-                    try:
-                        finish(work, tmps[0], "COG", compress, True, self.dtype, quality=quality, co=co,
-                               overviews_built=True)
-                    except GDAL_ERRORS as e:
-                        raise RasterIOError(f"Could not write '{dst}': {gdal_reason(e)}") from e
                 if seamlines is not None:
                     here = os.path.dirname(os.path.abspath(dst))
                     _write_seamlines(tmps[-1], coarse_index, self.transform @ Affine.scale(step), self.crs,
@@ -490,8 +480,6 @@ class MosaicPlan(TileBlending):
                     w.abort()
                 raise
             finally:
-                if via_gdal and os.path.exists(work):
-                    os.remove(work)
                 if encoder is not None:
                     encoder.close()
                     self._encoder = None
@@ -511,12 +499,10 @@ class MosaicPlan(TileBlending):
 
 
 def _mosaic_file_settings(compress: str, level: int | None, quality: int | None) -> dict[str, Any]:
-    """The compression of a mosaic's file (:meth:`MosaicPlan.write`): its own, or for a WebP
-    mosaic the deflate level 1 of the intermediate that GDAL's COG driver then compresses."""
-    if compress == "webp":
-        return dict(compress="deflate", level=1)
-    if compress == "jpeg":
-        return dict(compress="jpeg", level=None, quality=quality)
+    """The compression of a mosaic's file (:meth:`MosaicPlan.write`): a level for deflate and
+    zstd, a quality for JPEG and WebP."""
+    if compress in LOSSY:
+        return dict(compress=compress, level=None, quality=quality)
     return dict(compress=compress, level=level)
 
 

@@ -51,7 +51,7 @@ LOSSY = ("jpeg", "webp")
 # (DEFAULT_QUALITY, the JPEG / WebP quality of lossy outputs, is the COG writer's; orthority's JPEG default is 75)
 BLOCK_CODECS = values(BlockCodec)
 #: The COG compressions orthowarp's writer streams (the others are copied by GDAL's COG driver).
-STREAMED = ("deflate", "zstd", "jpeg", "none")
+STREAMED = ("deflate", "zstd", "jpeg", "webp", "none")
 #: The compressions whose blocks a device block codec may compress.
 DEVICE_COMPRESS = ("deflate", "zstd", "jpeg")
 _DEFLATE_ONLY = ("warp", "hybrid")  # orthowarp's deflate kernels, and the deflate codecs shared with the host
@@ -428,9 +428,9 @@ class OutputSettings:
     @property
     def streamed(self) -> bool:
         """Whether the file streams through :class:`~orthowarp.pipeline.raster.cog.CogWriter`
-        (blocks compressed and overviews reduced as tiles arrive): a deflate, zstd, jpeg or
-        uncompressed COG. Other COGs (lzw, webp) are written uncompressed and copied by GDAL's
-        COG driver, which compresses once."""
+        (blocks compressed and overviews reduced as tiles arrive): a deflate, zstd, jpeg, webp
+        or uncompressed COG. An lzw COG is written uncompressed and copied by GDAL's COG
+        driver, which compresses once."""
         return self.driver == "COG" and self.compress in STREAMED
 
     @property
@@ -447,7 +447,7 @@ class OutputSettings:
         co = self.co
         return dict(compress=self.compress, level=compress_level(self.compress, self.level), block_size=co["block"],
                     bigtiff=co["bigtiff"], threads=co["threads"],
-                    quality=(self.quality or DEFAULT_QUALITY) if self.compress == "jpeg" else None)
+                    quality=(self.quality or DEFAULT_QUALITY) if self.compress in LOSSY else None)
 
     def for_device(self, device: Device) -> OutputSettings:
         """These settings with the block codec resolved for ``device`` (:func:`choose_block_codec`)."""

@@ -30,8 +30,10 @@ integer data. JPEG (7; uint8, 1 or 3 bands) stores each block as a baseline JPEG
 (Photometric 6, YCbCrSubSampling 2 2 and ReferenceBlackWhite 0 255 128 255 128 255); as libtiff
 does with GDAL's default JPEGTABLESMODE=1 (TIFF Technote 2), the quantization tables, the same
 for every block at one quality, are stored once in the JPEGTables tag and left out of the
-blocks, which keep their Huffman tables (a block whose tables differ keeps its own). The mask
-blocks of a zstd or JPEG file are deflate streams, as GDAL's COG driver writes them (its internal
+blocks, which keep their Huffman tables (a block whose tables differ keeps its own). WebP
+(50001, libtiff's code; uint8, 3 or 4 bands, the fourth as alpha) stores each block as a lossy
+WebP image in its RIFF container (Pillow's libwebp), its quality in GDAL's metadata tag as
+WEBP_LEVEL. The mask blocks of a zstd, JPEG or WebP file are deflate streams, as GDAL's COG driver writes them (its internal
 mask is deflate whatever the image's compression).
 """
 
@@ -64,8 +66,8 @@ from .tiff import LONG, LONG8, RATIONAL, SHORT, TYPE_SIZE, Tag, read_tiff_tags
 if TYPE_CHECKING:
     from affine import Affine
 
-__all__ = ["CogWriter", "TileEncoder", "EncodedTile", "overview_count", "jpeg_stream", "zstd_frame", "DTYPES", "COMPRESS", "LEVELS",
-           "DEFAULT_QUALITY"]
+__all__ = ["CogWriter", "TileEncoder", "EncodedTile", "overview_count", "jpeg_stream", "webp_stream", "zstd_frame",
+           "DTYPES", "COMPRESS", "LEVELS", "DEFAULT_QUALITY"]
 # tags the writer sets itself; everything else of the template's first IFD is copied
 _LAYOUT_TAGS = {254, 256, 257, 259, 273, 278, 279, 317, 322, 323, 324, 325}
 # tags an overview IFD shares with the full resolution
@@ -74,14 +76,15 @@ _GHOST_KEYS = ("LAYOUT=IFDS_BEFORE_DATA\nBLOCK_ORDER=ROW_MAJOR\nBLOCK_LEADER=SIZ
                "BLOCK_TRAILER=LAST_4_BYTES_REPEATED\nKNOWN_INCOMPATIBLE_EDITION=NO\n ")
 DTYPES = ("uint8", "uint16", "float32")
 #: The writer's compressions and their TIFF Compression tag values (50000: libtiff's ZSTD; 7: JPEG
-#: as TIFF Technote 2 defines it).
-COMPRESS = {"deflate": 8, "zstd": 50000, "jpeg": 7, "none": 1}
-#: JPEG quality when none is given (1-100, the IJG scale).
+#: as TIFF Technote 2 defines it; 50001: libtiff's WebP).
+COMPRESS = {"deflate": 8, "zstd": 50000, "jpeg": 7, "webp": 50001, "none": 1}
+#: JPEG / WebP quality when none is given (1-100).
 DEFAULT_QUALITY = 90
 #: (lowest, highest, default) level of each compression: libdeflate's 1-12 (6: GDAL's default
 #: zlib level), zstd's 1-22 (9: GDAL's default ZSTD_LEVEL).
 LEVELS = {"deflate": (1, 12, 6), "zstd": (1, 22, 9)}
 _MASK_LEVEL = 6  # a zstd file's deflate mask blocks: GDAL's (libtiff's) default zlib level
+LOSSY = ("jpeg", "webp")  # the compressions that take a quality
 _tls = threading.local()  # each thread's zstd compressors
 
 
@@ -109,6 +112,18 @@ def jpeg_stream(block: np.ndarray, quality: int) -> bytes:
     img = Image.fromarray(block[..., 0] if grey else block, "L" if grey else "RGB")
     buf = io.BytesIO()  # (one component: sampling 1 x 1, which libtiff requires of it)
     img.save(buf, "JPEG", quality=int(quality), subsampling="4:4:4" if grey else "4:2:0", optimize=False)
+    return buf.getvalue()
+
+
+def webp_stream(block: np.ndarray, quality: int) -> bytes:
+    """One lossy WebP image (RIFF container, as libtiff's WebP codec stores a block) of a uint8
+    block of shape (rows, cols, 3 or 4) at ``quality`` 1-100, the fourth band as alpha; encoded
+    by Pillow's libwebp."""
+    from PIL import Image
+
+    img = Image.fromarray(block, "RGB" if block.shape[2] == 3 else "RGBA")
+    buf = io.BytesIO()
+    img.save(buf, "WEBP", quality=int(quality), lossless=False)
     return buf.getvalue()
 
 
@@ -165,6 +180,15 @@ def _template_tags(count: int, dtype: str, crs: Any, transform: Affine, nodata: 
         os.remove(path)
 
 
+def _gdal_metadata(tag: Tag | None, name: str, domain: str, value: Any) -> Tag:
+    """GDAL's metadata tag (42112, an XML string) with one more item, ``name`` in ``domain``."""
+    item = f'  <Item name="{name}" domain="{domain}">{value}</Item>\n'
+    text = tag[2].rstrip(b"\0").decode("utf-8") if tag is not None else "<GDALMetadata>\n</GDALMetadata>\n"
+    at = text.rindex("</GDALMetadata>")
+    raw = (text[:at] + item + text[at:]).encode("utf-8") + b"\0"
+    return (2, len(raw), raw)
+
+
 def _pack(fmt: str, values: Sequence[int]) -> bytes:
     return struct.pack("<%d%s" % (len(values), fmt), *values)
 
@@ -219,21 +243,23 @@ class TileEncoder:
         low, high, default = LEVELS.get(compress, (None, None, None))
         if low is not None:
             level = integer(f"CogWriter level ({compress})", level, low=low, high=high, none=True)
-        elif compress == "jpeg" and level is not None:
-            raise ParamError(f"CogWriter level applies to deflate and zstd, not jpeg (give quality); got {level!r}")
-        if compress == "jpeg":
-            if dtype != "uint8" or int(count) not in (1, 3):
-                raise ParamError(f"CogWriter jpeg compression takes uint8 rasters of 1 or 3 bands, got {count} "
-                                 f"band(s) of {dtype}")
+        elif compress in LOSSY and level is not None:
+            raise ParamError(f"CogWriter level applies to deflate and zstd, not {compress} (give quality); got "
+                             f"{level!r}")
+        if compress in LOSSY:
+            bands = (1, 3) if compress == "jpeg" else (3, 4)
+            if dtype != "uint8" or int(count) not in bands:
+                raise ParamError(f"CogWriter {compress} compression takes uint8 rasters of {bands[0]} or {bands[1]} "
+                                 f"bands, got {count} band(s) of {dtype}")
             quality = integer("CogWriter quality", quality, low=1, high=100, none=True)
             self.quality = DEFAULT_QUALITY if quality is None else quality
-            # the quantization tables of this quality and band count (those of every block)
-            self._jpeg_tables = split_jpeg_tables(jpeg_stream(np.zeros((16, 16, int(count)), np.uint8),
-                                                              self.quality))[0]
         elif quality is not None:
-            raise ParamError(f"CogWriter quality applies to jpeg compression, not {compress!r}")
+            raise ParamError(f"CogWriter quality applies to jpeg and webp compression, not {compress!r}")
         else:
             self.quality = None
+        if compress == "jpeg":  # the quantization tables of this quality and band count (every block's)
+            self._jpeg_tables = split_jpeg_tables(jpeg_stream(np.zeros((16, 16, int(count)), np.uint8),
+                                                              self.quality))[0]
         if block_size % 16 or block_size < 16:
             raise ParamError(f"block_size must be a positive multiple of 16, got {block_size}")
         self.width, self.height, self.count, self.dtype = int(width), int(height), int(count), dtype
@@ -355,6 +381,8 @@ class TileEncoder:
             return zstd_frame(raw, self.compress_level)
         if self.compress == "jpeg":
             return self.jpeg_block(jpeg_stream(raw, self.quality))
+        if self.compress == "webp":
+            return webp_stream(raw, self.quality)
         return bytes(raw)
 
     def jpeg_block(self, stream: bytes) -> bytes:
@@ -432,16 +460,16 @@ class CogWriter(TileEncoder):
         How a 2 x 2 group of valid pixels becomes an overview pixel: their rounded mean
         (default; images), or the first valid one in row order (categories, such as a
         mosaic's source index, whose mean would name another category).
-    compress : {"deflate", "zstd", "jpeg", "none"}, optional
+    compress : {"deflate", "zstd", "jpeg", "webp", "none"}, optional
         Image blocks as zlib streams (libdeflate) or Zstandard frames (``zstandard``), with
-        predictor 2 for integer data, as JPEG streams (uint8, 1 or 3 bands; see the module
-        doc), or uncompressed. Mask blocks are deflate streams with any compression, as GDAL
-        writes them.
+        predictor 2 for integer data, as JPEG streams (uint8, 1 or 3 bands) or WebP images
+        (uint8, 3 or 4 bands; see the module doc), or uncompressed. Mask blocks are deflate
+        streams with any compression, as GDAL writes them.
     level : int, optional
         Deflate level 1-12 (libdeflate's scale; default 6, as GDAL's) or zstd level 1-22
-        (default 9, as GDAL's); ignored without compression, refused with JPEG.
+        (default 9, as GDAL's); ignored without compression, refused with JPEG and WebP.
     quality : int, optional
-        JPEG quality 1-100 (default :data:`DEFAULT_QUALITY`); refused with the others.
+        JPEG / WebP quality 1-100 (default :data:`DEFAULT_QUALITY`); refused with the others.
     block_size : int, optional
         Block edge in pixels (multiple of 16).
     overviews : int, optional
@@ -709,6 +737,8 @@ class CogWriter(TileEncoder):
                          322: (SHORT, 1, _pack("H", [b])), 323: (SHORT, 1, _pack("H", [b]))})
             if self.compress in ("deflate", "zstd") and not self.is_float:
                 tags[317] = (SHORT, 1, _pack("H", [2]))
+            if self.compress == "webp" and li == 0:  # the quality, where GDAL reads it (WEBP_LEVEL)
+                tags[42112] = _gdal_metadata(tags.get(42112), "WEBP_LEVEL", "IMAGE_STRUCTURE", self.quality)
             if self.compress == "jpeg":  # the tables (SOI, DQT..., EOI)
                 tags[347] = (7, len(self._jpeg_tables) + 4, b"\xff\xd8" + self._jpeg_tables + b"\xff\xd9")
             if self.compress == "jpeg" and self.count == 3:  # YCbCr, chroma 2 x 2 (as GDAL writes them)
