@@ -29,7 +29,7 @@ from rasterio.windows import Window
 from ..._validate import integer
 from ...errors import DeviceError, ParamError
 from ...options import BlockCodec, Compress, values
-from ..raster.cog import DEFAULT_QUALITY, LEVELS, CogWriter, overview_count
+from ..raster.cog import DEFAULT_QUALITY, LEVELS, LOSSY, CogWriter, overview_count
 from ..raster.io import GDAL_ERRORS, write_error
 
 if TYPE_CHECKING:
@@ -47,8 +47,8 @@ __all__ = ["open_sink", "Sink", "OutputSettings", "finish", "gdal_profile", "gda
 
 DRIVERS = ("COG", "GTiff")
 COMPRESS = values(Compress)
-LOSSY = ("jpeg", "webp")
-# (DEFAULT_QUALITY, the JPEG / WebP quality of lossy outputs, is the COG writer's; orthority's JPEG default is 75)
+# (LOSSY, the compressions that take a quality, and DEFAULT_QUALITY, theirs where none is given, are the COG
+# writer's; orthority's JPEG default is 75)
 BLOCK_CODECS = values(BlockCodec)
 #: The COG compressions orthowarp's writer streams (the others are copied by GDAL's COG driver).
 STREAMED = ("deflate", "zstd", "jpeg", "webp", "none")

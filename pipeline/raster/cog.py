@@ -33,8 +33,8 @@ for every block at one quality, are stored once in the JPEGTables tag and left o
 blocks, which keep their Huffman tables (a block whose tables differ keeps its own). WebP
 (50001, libtiff's code; uint8, 3 or 4 bands, the fourth as alpha) stores each block as a lossy
 WebP image in its RIFF container (Pillow's libwebp), its quality in GDAL's metadata tag as
-WEBP_LEVEL. The mask blocks of a zstd, JPEG or WebP file are deflate streams, as GDAL's COG driver writes them (its internal
-mask is deflate whatever the image's compression).
+WEBP_LEVEL. The mask blocks of a zstd, JPEG or WebP file are deflate streams, as GDAL's COG
+driver writes them (its internal mask is deflate whatever the image's compression).
 """
 
 from __future__ import annotations
@@ -47,8 +47,8 @@ import tempfile
 import threading
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -67,7 +67,7 @@ if TYPE_CHECKING:
     from affine import Affine
 
 __all__ = ["CogWriter", "TileEncoder", "EncodedTile", "overview_count", "jpeg_stream", "webp_stream", "zstd_frame",
-           "DTYPES", "COMPRESS", "LEVELS", "DEFAULT_QUALITY"]
+           "DTYPES", "COMPRESS", "LEVELS", "LOSSY", "DEFAULT_QUALITY"]
 # tags the writer sets itself; everything else of the template's first IFD is copied
 _LAYOUT_TAGS = {254, 256, 257, 259, 273, 278, 279, 317, 322, 323, 324, 325}
 # tags an overview IFD shares with the full resolution
@@ -273,6 +273,7 @@ class TileEncoder:
         self.nearest = overview_resampling == "nearest"
         self.mask = bool(mask) and not self.is_float and self.nodata is None
         self.compress, self.block = compress, int(block_size)
+        self.predictor = compress in ("deflate", "zstd") and not self.is_float  # TIFF predictor 2
         self.compress_level = None if default is None else level if level is not None else default
         # mask blocks: deflate unless the file is uncompressed (GDAL's mask is deflate with zstd too)
         self.mask_compress = "none" if compress == "none" else "deflate"
@@ -366,7 +367,7 @@ class TileEncoder:
                 np.copyto(zeroed, data)
                 zeroed[~mask] = self.nodata
             data = zeroed
-        if self.compress in ("deflate", "zstd") and not self.is_float:
+        if self.predictor:
             diff = self._scratch("diff", data.shape, data.dtype)
             np.subtract(data[:, 1:], data[:, :-1], out=diff[:, 1:])
             diff[:, 0] = data[:, 0]
@@ -393,8 +394,34 @@ class TileEncoder:
         return rest if tables == self._jpeg_tables else stream
 
     def _compress_mask(self, bits: np.ndarray) -> bytes:
-        """A mask block's stored bytes: a zlib stream (deflate and zstd files), or the bits."""
+        """A mask block's stored bytes: a zlib stream (compressed files), or the bits."""
         return _zlib_compress(bits, self.mask_level) if self.mask_compress == "deflate" else bytes(bits)
+
+    def _empty_block(self) -> tuple[np.ndarray, np.ndarray]:
+        """A block (B, B, C) of nodata (0, NaN, or the nodata value) and its mask, all invalid."""
+        b = self.block
+        return np.full((b, b, self.count), np.nan if self.is_float else self.nodata or 0, self.dtype), \
+            np.zeros((b, b), bool)
+
+    def _padded(self, piece: np.ndarray, piece_mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """A block and its mask from the top-left part (h, w) of it that a piece covers, the
+        rest as :meth:`_empty_block`."""
+        (h, w), (blk, blk_mask) = piece_mask.shape, self._empty_block()
+        blk[:h, :w], blk_mask[:h, :w] = piece, piece_mask
+        return blk, blk_mask
+
+    def _block_work(self, data: np.ndarray, mask: np.ndarray, bh: int, bw: int,
+                    reduce: bool) -> tuple[list[bytes], tuple[np.ndarray, np.ndarray] | None]:
+        """A complete block's (B, B, C; its raster part bh x bw) stored parts (image, mask
+        where the file has one) and, with ``reduce``, its 2 x 2 reduction for the next level
+        (in this thread's buffers where every pixel is valid: copy before the next block)."""
+        full = bool(mask.all())
+        parts = [self._encode(data, None if full or self.is_float else mask)]
+        if self.mask:  # 1 bit per pixel, rows padded to bytes, MSB first
+            parts.append(self._compress_mask(np.packbits(mask, axis=1)))
+        if not reduce:
+            return parts, None
+        return parts, self._reduce(data[:bh, :bw], mask[:bh, :bw], full and (bh, bw) == data.shape[:2])
 
     def encode(self, row: int, col: int, data: np.ndarray, mask: np.ndarray | None = None) -> EncodedTile:
         """The blocks of the full-resolution tile whose top-left pixel is (``row``, ``col``)
@@ -406,8 +433,7 @@ class TileEncoder:
         if mask is None:
             mask = np.isfinite(data).any(axis=2) if self.is_float else \
                 (data != self.nodata).any(axis=2) if self.nodata is not None else np.ones(data.shape[:2], bool)
-        b, fill = self.block, np.nan if self.is_float else self.nodata or 0
-        blocks, li = [], 0
+        b, blocks, li = self.block, [], 0
         while True:
             (lw, lh), (h, w) = self.dims[li], data.shape[:2]
             if not (row % b == 0 and col % b == 0 and (h % b == 0 or row + h == lh) and (w % b == 0 or col + w == lw)):
@@ -421,21 +447,17 @@ class TileEncoder:
                     bh, bw = min(b, h - r0), min(b, w - c0)
                     blk, blk_mask = data[r0:r0 + bh, c0:c0 + bw], mask[r0:r0 + bh, c0:c0 + bw]
                     if (bh, bw) != (b, b):  # a block at the raster's edge: padded as the writer pads it
-                        blk, blk_mask = np.full((b, b, self.count), fill, self.dtype), np.zeros((b, b), bool)
-                        blk[:bh, :bw], blk_mask[:bh, :bw] = data[r0:r0 + bh, c0:c0 + bw], mask[r0:r0 + bh, c0:c0 + bw]
-                    full = bool(blk_mask.all())
-                    parts = [self._encode(blk, None if full or self.is_float else blk_mask)]
-                    if self.mask:
-                        parts.append(self._compress_mask(np.packbits(blk_mask, axis=1)))
+                        blk, blk_mask = self._padded(blk, blk_mask)
+                    parts, reduced = self._block_work(blk, blk_mask, bh, bw, not last)
                     blocks.append((li, (row + r0) // b, (col + c0) // b, parts))
-                    if not last:
-                        red, red_mask = self._reduce(blk[:bh, :bw], blk_mask[:bh, :bw],
-                                                     full and (bh, bw) == blk.shape[:2])
+                    if reduced is not None:
+                        red, red_mask = reduced
                         nxt[r0 // 2:r0 // 2 + red.shape[0], c0 // 2:c0 // 2 + red.shape[1]] = red
                         nxt_mask[r0 // 2:r0 // 2 + red.shape[0], c0 // 2:c0 // 2 + red.shape[1]] = red_mask
             if last:
                 return EncodedTile(blocks, None)
             li, row, col, data, mask = li + 1, row // 2, col // 2, nxt, nxt_mask
+
 
 class CogWriter(TileEncoder):
     """Write a cloud-optimized GeoTIFF from tiles given in any order (see the module doc).
@@ -598,7 +620,6 @@ class CogWriter(TileEncoder):
         False and they are full-size); only partly covered ones wait in the level's table
         (under the level's lock) for their other pieces."""
         lvl, b = self.levels[li], self.block
-        fill = np.nan if self.is_float else self.nodata or 0
         done = []
         for bi in range(row // b, (row + data.shape[0] - 1) // b + 1):
             r0, r1 = max(row, bi * b), min(row + data.shape[0], (bi + 1) * b)
@@ -611,16 +632,13 @@ class CogWriter(TileEncoder):
                     if (bh, bw) == (b, b):
                         done.append((bi, bj, (piece.copy(), piece_mask.copy()) if copy else (piece, piece_mask)))
                     else:
-                        blk, blk_mask = np.full((b, b, self.count), fill, self.dtype), np.zeros((b, b), bool)
-                        blk[:bh, :bw], blk_mask[:bh, :bw] = piece, piece_mask
-                        done.append((bi, bj, (blk, blk_mask)))
+                        done.append((bi, bj, self._padded(piece, piece_mask)))
                     continue
                 key = bi * lvl.nbx + bj
                 with lvl.lock:
                     entry = lvl.pending.get(key)
                     if entry is None:
-                        entry = lvl.pending[key] = [np.full((b, b, self.count), fill, self.dtype),
-                                                    np.zeros((b, b), bool), bh * bw]
+                        entry = lvl.pending[key] = [*self._empty_block(), bh * bw]
                     entry[0][r0 - bi * b:r1 - bi * b, c0 - bj * b:c1 - bj * b] = piece
                     entry[1][r0 - bi * b:r1 - bi * b, c0 - bj * b:c1 - bj * b] = piece_mask
                     entry[2] -= (r1 - r0) * (c1 - c0)
@@ -644,16 +662,11 @@ class CogWriter(TileEncoder):
         """Compress and store a complete block (B, B, C), then feed its reduction to the next
         level. ``data`` and ``mask`` are only read."""
         try:
-            lvl = self.levels[li]
-            bh, bw = lvl.block_shape(bi, bj)
-            full = bool(mask.all())
-            parts = [self._encode(data, None if full or self.is_float else mask)]
-            if self.mask:
-                bits = np.packbits(mask, axis=1)  # 1 bit per pixel, rows padded to bytes, MSB first
-                parts.append(self._compress_mask(bits))
+            parts, reduced = self._block_work(data, mask, *self.levels[li].block_shape(bi, bj),
+                                              li + 1 < len(self.levels))
             self._store(li, bi, bj, parts)
-            if li + 1 < len(self.levels):
-                red, red_mask = self._reduce(data[:bh, :bw], mask[:bh, :bw], full and (bh, bw) == data.shape[:2])
+            if reduced is not None:
+                red, red_mask = reduced
                 half = self.block // 2
                 for ci, cj, blk in self._insert(li + 1, bi * half, bj * half, red, red_mask):
                     self._emit(li + 1, ci, cj, *blk)
@@ -735,7 +748,7 @@ class CogWriter(TileEncoder):
                          257: (LONG, 1, _pack("I", [lvl.height])), 259: (SHORT, 1, _pack("H", [comp])),
                          284: (SHORT, 1, _pack("H", [1])),  # pixel-interleaved
                          322: (SHORT, 1, _pack("H", [b])), 323: (SHORT, 1, _pack("H", [b]))})
-            if self.compress in ("deflate", "zstd") and not self.is_float:
+            if self.predictor:
                 tags[317] = (SHORT, 1, _pack("H", [2]))
             if self.compress == "webp" and li == 0:  # the quality, where GDAL reads it (WEBP_LEVEL)
                 tags[42112] = _gdal_metadata(tags.get(42112), "WEBP_LEVEL", "IMAGE_STRUCTURE", self.quality)

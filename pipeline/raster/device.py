@@ -919,7 +919,7 @@ class DeviceCogEncoder:
             nby, nbx = -(-h // b), -(-w // b)
             blocks = wp.empty((nby * nbx, b, b, wr.count), dtype=_WP[wr.dtype], device=self.device)
             wp.launch(kc.encode_blocks_kernel, dim=(nby * nbx, b, b),
-                      inputs=[piece, pvalid, nbx, wp.int32(wr.compress != "jpeg")], outputs=[blocks],
+                      inputs=[piece, pvalid, nbx, wp.int32(wr.predictor)], outputs=[blocks],
                       device=self.device)
             images.append(blocks)
             if wr.mask:
