@@ -432,7 +432,8 @@ class MosaicPlan(TileBlending):
                       block_size=co["block"], bigtiff=co["bigtiff"], threads=co["threads"])
             own = dict(kw, **_mosaic_file_settings(compress, compress_level, quality))
             # (the host writer's blocks timed as "write" spans, as the device encoder's batches)
-            timer = self._state["timer"] if self._state is not None else None
+            st = self._materialise()
+            timer = st["timer"]
             writers = [CogWriter(tmps[0], width=cols, height=rows, count=self.count, dtype=self.dtype, crs=rio_crs,
                                  transform=self.transform, name=dst, timer=timer, **own)]
             if index is not None:
@@ -445,8 +446,7 @@ class MosaicPlan(TileBlending):
             try:
                 if _block_codec != "host":
                     codecs = device_codecs(_block_codec, compress_level, self.warp_device, compress, quality=quality)
-                    encoder = self._encoder = DeviceCogEncoder(writers[0], self.warp_device, codecs,
-                                                               timer=self._materialise()["timer"])
+                    encoder = self._encoder = DeviceCogEncoder(writers[0], self.warp_device, codecs, timer=timer)
                 for (r0, c0, th, tw), (block, valid, source) in results:
                     if isinstance(block, EncodedTile):  # (encoded where it was computed)
                         writers[0].put_encoded(block)
@@ -468,8 +468,7 @@ class MosaicPlan(TileBlending):
                 t_close = time.perf_counter()
                 for w in writers:
                     w.close()
-                if self._state is not None:  # the files' layout, last overview levels, checks
-                    self._state["timer"].span("finish", t_close)
+                timer.span("finish", t_close)  # the files' layout, last overview levels, checks
                 if seamlines is not None:
                     here = os.path.dirname(os.path.abspath(dst))
                     _write_seamlines(tmps[-1], coarse_index, self.transform @ Affine.scale(step), self.crs,
@@ -483,19 +482,15 @@ class MosaicPlan(TileBlending):
                 if encoder is not None:
                     encoder.close()
                     self._encoder = None
-                    if self._state is not None:
-                        self._state["timer"].info["blocks_by_codec"] = dict(encoder.blocks_by_codec)
-                if self._state is not None:
-                    self._state["timer"].info["block_codec"] = _block_codec
-        timer = self._state["timer"] if self._state is not None else None
+                    timer.info["blocks_by_codec"] = dict(encoder.blocks_by_codec)
+                timer.info["block_codec"] = _block_codec
         return MosaicResult(path=dst, index=outputs[1] if index is not None else None,
                             seamlines=outputs[-1] if seamlines is not None else None, crs=self.crs,
                             transform=self.transform, shape=self.shape, resolution=self.resolution,
                             pixels_per_image=used.tolist(), gains=self.gains, offsets=self.offsets,
                             wall_s=time.perf_counter() - t_start, setup_s=dict(self.setup_s),
-                            image_builds=self._state["builds"] if self._state is not None else None,
-                            images_held_peak=self._state["held_peak"] if self._state is not None else None,
-                            profile=_profile_with_timeline(timer) if timer is not None else None)
+                            image_builds=st["builds"], images_held_peak=st["held_peak"],
+                            profile=_profile_with_timeline(timer))
 
 
 def _mosaic_file_settings(compress: str, level: int | None, quality: int | None) -> dict[str, Any]:
