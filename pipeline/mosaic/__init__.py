@@ -382,9 +382,9 @@ def _write_mosaic(plan: MosaicPlan, procs: ProcessTiles | None, dst: str, on: wp
     size = int(out.tile_size) if out.tile_size is not None else default_tile_size(on)
     tiles = plan.tiles(size)
     host_source = out.index is not None or out.seamlines is not None  # else the pixels per image counted there
-    # the mosaic file's block work, for the workers (processes or a cluster) to do on their tiles
+    # with the host codec, the mosaic file's block work for the workers (processes or a cluster)
     encoder = plan.mosaic_encoder(out.compress, compress_level=out.compress_level, quality=out.quality,
-                                  creation_options=out.creation_options)
+                                  creation_options=out.creation_options) if codec == "host" else None
     if client is not None:
         results = _cluster_results(plan, client, tiles, codec, on, cancel, dst, progress, worker_device, encoder)
     elif procs is None:
@@ -462,7 +462,7 @@ def _cluster_results(plan: MosaicPlan, client: Any, tiles: list[Tile], codec: st
     plan._materialise()
     for tile, (values, valid, source) in cluster_results(plan, client, tiles, cancel=cancel, name=dst,
                                                          progress=progress, worker_device=worker_device,
-                                                         encoder=encoder if codec == "host" else None):
+                                                         encoder=encoder):
         if codec == "host":
             yield tile, (values, valid, source)
             continue
@@ -485,8 +485,7 @@ def _process_results(plan: MosaicPlan, procs: ProcessTiles, tiles: list[Tile], s
     plan.options["resident"] = False
     plan.options["cache_images"] = min(plan.options["cache_images"], 24)
     st = plan._materialise()  # the stage timer starts with the tiles, as on threads
-    procs.start_plan(plan, (size, size), with_source=codec == "host" or host_source,
-                     encoder=encoder if codec == "host" else None)
+    procs.start_plan(plan, (size, size), with_source=codec == "host" or host_source, encoder=encoder)
 
     def results() -> Iterator[tuple[Tile, tuple]]:
         images = plan._tile_images(tiles)

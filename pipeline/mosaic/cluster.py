@@ -552,7 +552,7 @@ def _write_product_tile(plan: Any, i: int, j: int, tile: Tile, folder: str, sett
     from ..ortho.sink import device_codecs
     from ..raster.cog import CogWriter
     from ..raster.device import DeviceCogEncoder
-    from .plan import NO_SOURCE, mosaic_block_codec
+    from .plan import NO_SOURCE, index_file_settings, mosaic_block_codec, mosaic_file_settings
 
     name = _tile_name(i, j)
     paths = [os.path.join(folder, "tiles", name + ".json"), os.path.join(folder, "tiles", name + ".tif")]
@@ -564,19 +564,19 @@ def _write_product_tile(plan: Any, i: int, j: int, tile: Tile, folder: str, sett
     codec = mosaic_block_codec(settings.block_codec, dev, settings.compress_level, settings.compress)
     crs = rasterio.crs.CRS.from_wkt(plan.crs_wkt)
     transform = plan.transform @ Affine.translation(tile.col, tile.row)
-    lossy = settings.compress in ("jpeg", "webp")
-    kw = dict(width=tile.width, height=tile.height, crs=crs, transform=transform, compress=settings.compress,
-              level=settings.compress_level, block_size=settings.block_size, threads=2)
-    index_kw = dict(kw, compress="deflate", level=None) if lossy else kw  # (the index lossless)
+    kw = dict(width=tile.width, height=tile.height, crs=crs, transform=transform, block_size=settings.block_size,
+              threads=2)
     subs = [Tile(r, c, min(settings.tile_size, tile.row + tile.height - r), min(settings.tile_size, tile.col + tile.width - c))
             for r in range(tile.row, tile.row + tile.height, settings.tile_size)
             for c in range(tile.col, tile.col + tile.width, settings.tile_size)]
     with atomic_files(paths, overwrite=True, durable=False) as tmps:
         writers = [CogWriter(tmps[1], count=plan.count, dtype=plan.dtype, name=paths[1],
-                             **(dict(kw, quality=settings.quality) if lossy else kw))]
+                             **kw, **mosaic_file_settings(settings.compress, settings.compress_level,
+                                                          settings.quality))]
         if settings.index:
             writers.append(CogWriter(tmps[2], count=1, dtype="uint16", name=paths[2], nodata=NO_SOURCE,
-                                     overview_resampling="nearest", **index_kw))
+                                     overview_resampling="nearest", **kw,
+                                     **index_file_settings(settings.compress, settings.compress_level)))
         encoder = None
         try:
             if codec != "host":

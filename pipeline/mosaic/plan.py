@@ -388,7 +388,7 @@ class MosaicPlan(TileBlending):
         co = parse_creation_options(creation_options)
         rows, cols = self.shape
         return TileEncoder(width=cols, height=rows, count=self.count, dtype=self.dtype, block_size=co["block"],
-                           **_mosaic_file_settings(str(compress), compress_level, quality))
+                           **mosaic_file_settings(str(compress), compress_level, quality))
 
     def write(self, dst: str | os.PathLike, results: Iterable[tuple[tuple[int, int, int, int], tuple]], *,
               index: str | os.PathLike | None = None, seamlines: str | os.PathLike | None = None,
@@ -414,8 +414,7 @@ class MosaicPlan(TileBlending):
         if compress not in ("deflate", "zstd", *LOSSY):
             raise ParamError(f"compress must be one of deflate, zstd, {', '.join(LOSSY)}; got {compress!r}")
         compress = str(compress)  # (an option's member: its plain value)
-        lossy = compress in LOSSY
-        if lossy and self.dtype != "uint8":
+        if compress in LOSSY and self.dtype != "uint8":
             raise ParamError(f"{compress} compression needs a uint8 mosaic, not {self.dtype}")
         dst = os.fspath(dst)
         outputs = output_paths(dst, index, seamlines, overwrite)
@@ -428,20 +427,20 @@ class MosaicPlan(TileBlending):
         t_start = time.perf_counter() if t_start is None else t_start
         with rasterio.Env(GDAL_CACHEMAX=256), atomic_files(outputs, overwrite=overwrite) as tmps:
             co = parse_creation_options(creation_options)
-            kw = dict(compress="deflate" if lossy else compress, level=None if lossy else compress_level,
-                      block_size=co["block"], bigtiff=co["bigtiff"], threads=co["threads"])
-            own = dict(kw, **_mosaic_file_settings(compress, compress_level, quality))
+            kw = dict(block_size=co["block"], bigtiff=co["bigtiff"], threads=co["threads"])
             # (the host writer's blocks timed as "write" spans, as the device encoder's batches)
             st = self._materialise()
             timer = st["timer"]
             writers = [CogWriter(tmps[0], width=cols, height=rows, count=self.count, dtype=self.dtype, crs=rio_crs,
-                                 transform=self.transform, name=dst, timer=timer, **own)]
+                                 transform=self.transform, name=dst, timer=timer, **kw,
+                                 **mosaic_file_settings(compress, compress_level, quality))]
             if index is not None:
                 # the index: NO_SOURCE as its nodata (distinct from image 0 for readers that
                 # ignore masks), overviews taking an image's number, never a mean of numbers
                 writers.append(CogWriter(tmps[1], width=cols, height=rows, count=1, dtype="uint16", crs=rio_crs,
                                          transform=self.transform, name=outputs[1], nodata=NO_SOURCE,
-                                         overview_resampling="nearest", **kw))
+                                         overview_resampling="nearest", **kw,
+                                         **index_file_settings(compress, compress_level)))
             encoder = None
             try:
                 if _block_codec != "host":
@@ -493,12 +492,18 @@ class MosaicPlan(TileBlending):
                             profile=_profile_with_timeline(timer))
 
 
-def _mosaic_file_settings(compress: str, level: int | None, quality: int | None) -> dict[str, Any]:
-    """The compression of a mosaic's file (:meth:`MosaicPlan.write`): a level for deflate and
-    zstd, a quality for JPEG and WebP."""
+def mosaic_file_settings(compress: str, level: int | None, quality: int | None) -> dict[str, Any]:
+    """A mosaic's :class:`~orthowarp.pipeline.raster.cog.CogWriter` compression (its file, or a
+    tiled product's tiles): a level for deflate and zstd, a quality for JPEG and WebP."""
     if compress in LOSSY:
         return dict(compress=compress, level=None, quality=quality)
     return dict(compress=compress, level=level)
+
+
+def index_file_settings(compress: str, level: int | None) -> dict[str, Any]:
+    """The compression of a mosaic's index (source numbers: lossless): the mosaic's, deflate
+    at its default level where the mosaic is lossy."""
+    return dict(compress="deflate", level=None) if compress in LOSSY else dict(compress=compress, level=level)
 
 
 def _profile_with_timeline(timer: StageTimer) -> dict:
