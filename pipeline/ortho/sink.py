@@ -55,6 +55,8 @@ STREAMED = ("deflate", "zstd", "jpeg", "webp", "none")
 #: The compressions whose blocks a device block codec may compress.
 DEVICE_COMPRESS = ("deflate", "zstd", "jpeg")
 _DEFLATE_ONLY = ("warp", "hybrid")  # orthowarp's deflate kernels, and the deflate codecs shared with the host
+# the block codecs a lossy COG refuses (JPEG's "hybrid": its blocks made on the device, libjpeg on the host)
+_LOSSY_REFUSED = {"jpeg": ("nvcomp", "warp"), "webp": ("nvcomp", *_DEFLATE_ONLY)}
 
 
 CREATION_OPTIONS = ("BLOCKSIZE", "BIGTIFF", "NUM_THREADS")
@@ -216,10 +218,9 @@ def check_block_codec(block_codec: str, compress: str) -> None:
     if compress == "zstd" and block_codec in _DEFLATE_ONLY:
         raise ParamError(f"block_codec {block_codec!r} compresses deflate blocks only; for zstd use auto, host or "
                          "nvcomp")
-    refused = ("nvcomp", "warp") if compress == "jpeg" else ("nvcomp", *_DEFLATE_ONLY) if compress in LOSSY else ()
-    if block_codec in refused:
-        raise ParamError(f"block_codec {block_codec!r} compresses deflate or zstd blocks; for {compress} use auto"
-                         + (", host or hybrid" if compress == "jpeg" else " or host"))
+    if block_codec in _LOSSY_REFUSED.get(compress, ()):
+        usable = "auto, host or hybrid" if compress == "jpeg" else "auto or host"
+        raise ParamError(f"block_codec {block_codec!r} compresses deflate or zstd blocks; for {compress} use {usable}")
 
 
 def choose_block_codec(choice: str, device: Device, device_cog: bool, level: int | None = None, *,
