@@ -394,13 +394,15 @@ def adjust_exif(sensors: Sequence[tuple[str, FrameSensor]], dem: Dem | str | os.
         tie = _chain_surface(res, block, adjusted, folder, None if cfg["densify"] else surface_length)
         report["terrain"]["surface"] = dict(tie.report(), seconds=time.perf_counter() - t0)
         if cfg["densify"]:
-            dense = _chain_densify(res, block, sensors, adjusted, ids, tie, cfg, refraction=refraction, device=device)
+            ties_surface = _surface_dem(tie.path)  # (in memory: the file is replaced below)
+            dense = _chain_densify(res, block, sensors, adjusted, ids, ties_surface, cfg, refraction=refraction,
+                                   device=device)
             report["densify"] = dense.report()
             if dense.used.any():
                 report["terrain"]["ties_surface"] = report["terrain"]["surface"]
                 t0 = time.perf_counter()
                 tie = _chain_surface(res, block, adjusted, folder, surface_length, dense=dense,
-                                     base=_surface_dem(tie.path))
+                                     base=ties_surface)
                 report["terrain"]["surface"] = dict(tie.report(), seconds=time.perf_counter() - t0)
             else:
                 log.warning("densification matched no usable point: the terrain is the tie points' surface")
@@ -1365,7 +1367,7 @@ def _surface_dem(path: str) -> Dem:
 
 
 def _chain_densify(res: Any, block: Any, sensors: list[tuple[str, FrameSensor]],
-                   adjusted: list[tuple[str, FrameSensor]], ids: list[str], tie: TieSurface, cfg: dict[str, Any], *,
+                   adjusted: list[tuple[str, FrameSensor]], ids: list[str], surface: Dem, cfg: dict[str, Any], *,
                    refraction: bool, device: str | None) -> Any:
     """Dense points of the block's overlapping pairs (those sharing a tie point in the final
     adjustment), predicted through the adjusted orientation and the tie points' surface."""
@@ -1376,7 +1378,7 @@ def _chain_densify(res: Any, block: Any, sensors: list[tuple[str, FrameSensor]],
     where = {iid: k for k, iid in enumerate(ids)}
     paths = [sensors[where[iid]][0] for iid in block.image_ids]
     frames = [adjusted[where[iid]][1] for iid in block.image_ids]
-    return densify(paths, frames, _surface_dem(tie.path), pairs, ids=list(block.image_ids), refraction=refraction,
+    return densify(paths, frames, surface, pairs, ids=list(block.image_ids), refraction=refraction,
                    device=device, spacing=cfg["dense_spacing"])
 
 

@@ -166,8 +166,8 @@ adjust_dir = click.option(
     "--adjust-dir", type=click.Path(file_okay=False), default=None,
     help="Folder of --adjust's files (exif/ with the tags' orientation, block.json, exterior.csv, cameras.yaml, "
          "points.csv, pose_cov.json, report.md, report.json, chain.json; tie_surface.tif, tie_points.csv and, with "
-         "--densify, dense_points.csv where the terrain comes from the tie points); default: adjust/ in the orthos' --out-dir, <mosaic>_adjust beside a "
-         "mosaic.")
+         "--densify, dense_points.csv where the terrain comes from the tie points); default: adjust/ in the orthos' "
+         "--out-dir, <mosaic>_adjust beside a mosaic.")
 adjust_options = compose(adjust, adjust_dir)
 surface_length = click.option("--surface-length", type=click.FloatRange(min=0.0, min_open=True), default=None,
                               metavar="METRES",

@@ -197,7 +197,7 @@ class StageTimer:
         return prof
 
 
-_DEVICE_CODECS = ("nvcomp", "warp", "hybrid")  # block codecs whose "write" spans are device batches
+_DEVICE_CODECS = ("nvcomp", "warp", "hybrid", "nvjpeg")  # block codecs whose "write" spans are device batches
 
 
 def _busy_and_bound(stages: dict, wall: float, block_codec: str | None = None) -> dict:
