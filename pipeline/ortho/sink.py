@@ -234,10 +234,11 @@ def choose_block_codec(choice: str, device: Device, device_cog: bool, level: int
     device : warp.context.Device
         The run's device.
     device_cog : bool
-        The output is a deflate or zstd COG streamed through orthowarp's writer (else: "host").
+        The output is a COG of :data:`DEVICE_COMPRESS` streamed through orthowarp's writer
+        (else: "host").
     level : int, optional
         The compression level (libdeflate 1-12, zstd 1-22); default: the writer's.
-    compress : {"deflate", "zstd"}, optional
+    compress : {"deflate", "zstd", "jpeg", "webp"}, optional
         The output's compression.
 
     Returns

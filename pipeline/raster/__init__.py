@@ -7,9 +7,10 @@
   :func:`~orthowarp.pipeline.raster.tiff.verify_tiff`, the check that a written file holds
   every block;
 - :mod:`~orthowarp.pipeline.raster.cog`: :class:`~orthowarp.pipeline.raster.cog.CogWriter`,
-  cloud-optimized GeoTIFFs (deflate, zstd or uncompressed) streamed tile by tile;
+  cloud-optimized GeoTIFFs (deflate, zstd, JPEG, WebP or uncompressed) streamed tile by tile,
+  and its picklable block work, :class:`~orthowarp.pipeline.raster.cog.TileEncoder`;
 - :mod:`~orthowarp.pipeline.raster.device`: the COG's block work (predictor, masks,
-  overviews, deflate or zstd) on a Warp device.
+  overviews, deflate, zstd or JPEG) on a Warp device.
 
 Nothing here imports the rest of the pipeline; ``io`` and ``cog`` both read TIFFs through
 ``tiff``, which imports neither. The modules are imported where used (``device`` loads Warp).

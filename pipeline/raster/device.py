@@ -2,7 +2,7 @@
 
 The host writer (:mod:`orthowarp.pipeline.raster.cog`) takes each tile to host memory and does the
 per-block work there: mask zeroing, TIFF predictor 2, mask bits, the 2 x 2 overview
-reduction, deflate or zstd. :class:`DeviceCogEncoder` does all of it where the tile already is
+reduction, deflate, zstd or JPEG. :class:`DeviceCogEncoder` does all of it where the tile already is
 (:mod:`orthowarp.kernels.cog`), level after level while the reduced piece still covers whole
 blocks, and only compressed blocks cross to the host:
 
