@@ -106,7 +106,8 @@ def nvcomp_variant(pred, algorithm_type, chunk):
     return sum(sizes), dt, dt_copy, ok
 
 
-def warp_variant(pred, chunk, window, depth, nice, device="cuda:0", hash_bytes=4, good=0, run=16, chain_parts=4):
+def warp_variant(pred, chunk, window, depth, nice, device="cuda:0", hash_bytes=4, good=0, run=16, chain_parts=4,
+                 max_lazy=0):
     """(compressed bytes, seconds, blocks that inflate to their input) of orthowarp's device
     deflate (WarpDeflate) over the batch ``pred``, resident on the GPU, after a call on the same batch (the
     scratch and pinned buffers a COG encoder keeps); the time includes the streams' copy to
@@ -118,7 +119,7 @@ def warp_variant(pred, chunk, window, depth, nice, device="cuda:0", hash_bytes=4
     n, size = len(pred), pred[0].nbytes
     buf = wp.array(pred.reshape(-1), dtype=wp.uint8, device=device)
     kw = dict(chunk=chunk, window=window, depth=depth, nice=nice, hash_bytes=hash_bytes, good=good, run=run,
-              chain_parts=chain_parts)
+              chain_parts=chain_parts, max_lazy=max_lazy)
     codec = WarpDeflate(device, **kw)
     offs, sizes = [k * size for k in range(n)], [size] * n
     codec.compress(buf, offs, sizes)  # compile / load the kernels, scratch and pinned buffers for the batch
@@ -143,8 +144,8 @@ def main():
     ap.add_argument("--out", default=None)
     ap.add_argument("--warp", default="",
                     help="WarpDeflate variants, comma-separated: "
-                         "CHUNK:WINDOW:DEPTH:NICE[:HASH_BYTES[:GOOD[:RUN[:CHAIN_PARTS]]]] "
-                         "(e.g. 65535:8192:32:128:4:8)")
+                         "CHUNK:WINDOW:DEPTH:NICE[:HASH_BYTES[:GOOD[:RUN[:CHAIN_PARTS[:MAX_LAZY]]]]] "
+                         "(e.g. 65535:8192:32:128:4:8, 65535:8192:32:128:4:0:16:4:16)")
     ap.add_argument("--warp-device", default="cuda:0")
     a = ap.parse_args()
     report = {"blocks": a.blocks, "block": [B, B, 3], "content": {}}

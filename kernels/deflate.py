@@ -172,8 +172,8 @@ def chain_link_kernel(chunk_len: wp.array(dtype=wp.int32), prime: wp.array(dtype
 @wp.kernel
 def match_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.int32),
                  chunk_len: wp.array(dtype=wp.int32), prime: wp.array(dtype=wp.int32), hlen: wp.int32,
-                 depth: wp.int32, nice: wp.int32, good: wp.int32, run: wp.int32, prev: wp.array2d(dtype=wp.int32),
-                 best: wp.array2d(dtype=wp.int32), hist: wp.array2d(dtype=wp.int32)):
+                 depth: wp.int32, nice: wp.int32, good: wp.int32, max_lazy: wp.int32, run: wp.int32,
+                 prev: wp.array2d(dtype=wp.int32), best: wp.array2d(dtype=wp.int32), hist: wp.array2d(dtype=wp.int32)):
     """The longest match at each of ``run`` positions of chunk c, from g * run on (one
     thread per run of positions): best[c, i] = length << 16 | (distance - 1), 0 for none.
 
@@ -185,7 +185,11 @@ def match_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.int
     of a warp stay in step (walks differ in length; a thread per position left most lanes
     of a warp idle). A match of length L at position i, distance d, means L - 1 bytes at
     i + 1 match d back: those are not compared again (long runs cost a compare per byte,
-    not one per byte and candidate). Also the chunk's byte histogram."""
+    not one per byte and candidate). Where L >= ``max_lazy`` (> 0), position i + 1 is not
+    searched at all: its match is at the same distance, the L - 1 bytes known and any more up
+    to the cap (zlib's ``max_lazy_match``: after a match that long the parse takes it without
+    looking one byte further, so the positions it covers need no search). Also the chunk's
+    byte histogram."""
     c, g = wp.tid()
     n = chunk_len[c]
     i = g * run
@@ -233,6 +237,16 @@ def match_kernel(buf: wp.array(dtype=wp.uint8), chunk_off: wp.array(dtype=wp.int
             quartered = 0
             if i < iend:
                 cand, left, cap, tail = walk_start(buf, base, prev, c, i, n, pr, hlen, depth, nice)
+                if max_lazy > 0 and known_l + 1 >= max_lazy and left > 0:
+                    # no search: the same distance, its known bytes and any more up to the cap
+                    m = wp.min(known_l, cap)
+                    while m < cap:
+                        if buf[base + i - known_d + m] != buf[base + i + m]:
+                            break
+                        m = m + 1
+                    if m >= 3:  # (cap < 3 near a part's end: no match)
+                        found = (m << 16) | (known_d - 1)
+                    left = 0
 
 
 @wp.func

@@ -70,12 +70,13 @@ def _cases():
     }
 
 
-@pytest.mark.parametrize("chunk,window,lazy,hash_bytes", [(1024, 0, True, 4), (1024, 1024, True, 3),
-                                                        (2048, 512, False, 4), (2048, 512, True, 3),
-                                                        (16384, 8192, True, 4)])  # several parse parts
-def test_streams_inflate_to_their_input(device, chunk, window, lazy, hash_bytes):
+@pytest.mark.parametrize("chunk,window,lazy,hash_bytes,max_lazy", [
+    (1024, 0, True, 4, 0), (1024, 1024, True, 3, 4), (2048, 512, False, 4, 0), (2048, 512, True, 3, 0),
+    (16384, 8192, True, 4, 0), (16384, 8192, True, 4, 16)])  # several parse parts
+def test_streams_inflate_to_their_input(device, chunk, window, lazy, hash_bytes, max_lazy):
     cases = _cases()
-    codec = WarpDeflate(device, chunk=chunk, window=window, lazy=lazy, hash_bytes=hash_bytes, max_chunks=7)
+    codec = WarpDeflate(device, chunk=chunk, window=window, lazy=lazy, hash_bytes=hash_bytes, max_lazy=max_lazy,
+                        max_chunks=7)
     raws = _compress(codec, list(cases.values()))
     for (name, data), raw in zip(cases.items(), raws):
         assert zlib.decompress(raw, -15) == data, name
@@ -111,10 +112,11 @@ if st is not None:
         st.tuples(st.binary(min_size=1, max_size=40), st.integers(1, 1000)).map(lambda t: t[0] * t[1]),
     ), min_size=1, max_size=4), chunk=st.sampled_from([1024, 1536, 4096, 65535]),
         window=st.sampled_from([0, 700, 1024, 32768]),
-        depth=st.integers(1, 40), nice=st.integers(3, 258), hash_bytes=st.sampled_from([3, 4]))
-    def test_fuzz_any_bytes_round_trip(streams, chunk, window, depth, nice, hash_bytes):
+        depth=st.integers(1, 40), nice=st.integers(3, 258), hash_bytes=st.sampled_from([3, 4]),
+        max_lazy=st.sampled_from([0, 4, 16, 258]))
+    def test_fuzz_any_bytes_round_trip(streams, chunk, window, depth, nice, hash_bytes, max_lazy):
         codec = WarpDeflate("cpu", chunk=chunk, window=window, depth=depth, nice=nice, hash_bytes=hash_bytes,
-                            max_chunks=5)
+                            max_lazy=max_lazy, max_chunks=5)
         for data, raw in zip(streams, _compress(codec, streams, pad=1)):
             assert zlib.decompress(raw, -15) == data
 
@@ -128,6 +130,8 @@ def test_arguments_are_checked():
         WarpDeflate("cpu", nice=300)
     with pytest.raises(ParamError, match="hash_bytes"):
         WarpDeflate("cpu", hash_bytes=5)
+    with pytest.raises(ParamError, match="max_lazy"):
+        WarpDeflate("cpu", max_lazy=3)
     assert WarpDeflate("cpu").compress(wp.empty(1, dtype=wp.uint8, device="cpu"), [], []) == []
 
 

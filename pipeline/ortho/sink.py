@@ -336,9 +336,11 @@ def _warp_deflate(level: int, device: Device) -> WarpDeflate:
     and bench/deflate_codecs.py's blocks on the host)."""
     depth, nice = (4, 32) if level <= 2 else (8, 64) if level <= 4 else (16, 128) if level == 5 \
         else (32, 128) if level <= 6 else (64, 258) if level <= 8 else (128, 258)
+    # zlib's max_lazy_match per level (16 at levels 4-6, 32 at 7, 128 at 8, 258 at 9)
+    max_lazy = 16 if level <= 6 else 32 if level == 7 else 128 if level == 8 else 258
     from ..raster.device import WarpDeflate
 
-    return WarpDeflate(device, depth=depth, nice=nice)
+    return WarpDeflate(device, depth=depth, nice=nice, max_lazy=max_lazy)
 
 
 def device_codecs(block_codec: str, level: int | None, device: Device, compress: str = "deflate", *,
@@ -517,6 +519,7 @@ def open_sink(path: str, profile: dict[str, Any], cog: dict[str, Any] | None, fi
             if encoder is not None:
                 encoder.close()
                 timer.info["blocks_by_codec"] = dict(encoder.blocks_by_codec)
+                timer.info["encoder_steps_s"] = {k: round(v, 4) for k, v in encoder.steps.items()}
         w.close()  # the last blocks, then the file's IFDs and block copy
         timer.span("finish", t)
         return

@@ -492,6 +492,11 @@ class WarpDeflate:
         candidates left are tried (zlib's ``good_length``; default 0: off).
     lazy : bool, optional
         One-step lazy matching (default True).
+    max_lazy : int, optional
+        After a match of at least this many bytes, the next position is not searched: its
+        match is the same one, a byte shorter (zlib's ``max_lazy_match``: the parse takes a
+        match that long without looking one byte further, and skips the bytes it covers).
+        Default 0: every position searched.
     window : int, optional
         Bytes before a chunk (of the same stream) that its matches may reach (0-32768, default
         8192); each chunk hashes them first.
@@ -517,7 +522,7 @@ class WarpDeflate:
 
     def __init__(self, device: Device, *, chunk: int = 65535, depth: int = 32, nice: int = 128, good: int = 0,
                  lazy: bool = True, window: int = 8192, hash_bytes: int = 4, run: int = 16, chain_parts: int = 4,
-                 max_chunks: int | None = None, profile: bool = False) -> None:
+                 max_lazy: int = 0, max_chunks: int | None = None, profile: bool = False) -> None:
         from ...kernels import deflate as kd  # its kernels are built on first use only (14 ms at import)
 
         self._kd = kd
@@ -532,6 +537,9 @@ class WarpDeflate:
             raise ParamError(f"good must be >= 0, got {good}")
         self.chunk, self.depth, self.nice, self.lazy = int(chunk), int(depth), int(nice), bool(lazy)
         self.good = int(good)
+        if int(max_lazy) != 0 and not 4 <= int(max_lazy) <= 258:
+            raise ParamError(f"max_lazy must be 0 (off) or 4-258 bytes, got {max_lazy}")
+        self.max_lazy = int(max_lazy)
         if not 1 <= int(run) <= 4096:
             raise ParamError(f"run must be 1-4096 positions, got {run}")
         self.run = int(run)
@@ -670,7 +678,8 @@ class WarpDeflate:
                [s["prev"], s["hist"]])
         t = self._tick("chain", t, sync=True)
         launch(kd.match_kernel, (m, -(-int(lens.max(initial=0)) // self.run) or 1),
-               [buf, off, ln, pr, self.hash_bytes, self.depth, self.nice, self.good, self.run, s["prev"]],
+               [buf, off, ln, pr, self.hash_bytes, self.depth, self.nice, self.good, self.max_lazy, self.run,
+                s["prev"]],
                [s["best"], s["hist"]])
         t = self._tick("match", t, sync=True)
         launch(kd.parse_kernel, (m, s["ntok"].shape[1]),
@@ -779,6 +788,11 @@ class DeviceCogEncoder:
         self.batch_bytes = int(batch_bytes)
         self.blocks_by_codec = {c.name: 0 for c in codecs}  # image blocks each codec compressed
         self.empty_blocks = 0  # all-zero image blocks, given the one stream of their size
+        # seconds in each step of the blocks' compression, summed over the codecs' calls (which
+        # overlap where a host codec runs beside the device one): "gather and checksums" (the
+        # blocks in one buffer, their Adler-32 read back), "codec NAME", "streams" (framing),
+        # "store" (handed to the writer)
+        self.steps = {}
         self._constants = {}  # (compression, size, byte) -> stream of that many such bytes
         self._lock = threading.Condition()
         self._batch, self._batch_n, self._gpu_busy = [], 0, False
@@ -940,6 +954,13 @@ class DeviceCogEncoder:
             return None
         return _Tile(keys, images, masks)
 
+    def _step(self, name: str, t: float) -> float:
+        """Add the seconds since ``t`` to :attr:`steps` [name]; returns the time now."""
+        now = time.perf_counter()
+        with self._lock:
+            self.steps[name] = self.steps.get(name, 0.0) + now - t
+        return now
+
     def _checksums(self, buf: wp.array, offsets: np.ndarray, sizes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Adler-32 (int64) of the buffers (``offsets``, ``sizes``: int32 arrays of bytes) of
         the uint8 array ``buf``, and the byte that fills each whole (0 or 255, else -1; int32):
@@ -1002,6 +1023,7 @@ class DeviceCogEncoder:
             counts.append(n)
         if not offsets:
             return [[] for _ in arrays], [np.empty(0, np.int32) for _ in arrays]
+        t = time.perf_counter()
         if len(parts) == 1:
             buf = parts[0][0]
         else:  # one contiguous buffer for the codec (a copy on the device)
@@ -1011,6 +1033,7 @@ class DeviceCogEncoder:
         offsets, sizes = np.asarray(offsets, np.int32), np.asarray(sizes, np.int32)
         # one pass gives both the Adler-32 (used by deflate's zlib framing only) and the fill
         adlers, fill = self._checksums(buf, offsets, sizes)
+        t = self._step("gather and checksums", t)
         live = np.flatnonzero(fill < 0)
         raws = [None] * len(offsets)
         wr = self.writer
@@ -1018,6 +1041,7 @@ class DeviceCogEncoder:
         for k, r in zip(live, codec.compress(buf, offsets[live].tolist(), sizes[live].tolist(), **shape)
                         if len(live) else []):
             raws[k] = r
+        t = self._step(f"codec {codec.name}", t)
         for k in np.flatnonzero(fill >= 0):
             raws[k] = self._constant_stream(codec.compression, int(sizes[k]), int(fill[k]))
         if codec.compression == "deflate":
@@ -1026,6 +1050,7 @@ class DeviceCogEncoder:
             streams = [wr.jpeg_block(r) if fill[k] < 0 else bytes(r) for k, r in enumerate(raws)]
         else:
             streams = [bytes(r) for r in raws]
+        self._step("streams", t)
         bounds = np.concatenate([[0], np.cumsum(counts)])
         return ([streams[bounds[j]:bounds[j + 1]] for j in range(len(arrays))],
                 [fill[bounds[j]:bounds[j + 1]] for j in range(len(arrays))])
@@ -1047,6 +1072,7 @@ class DeviceCogEncoder:
                 streams[j] += got[j]
                 fills[j].append(fill[j])
         n_coded = n_empty = 0  # image blocks through the codec, and all-zero ones
+        t = time.perf_counter()
         for job, s, f in zip(jobs, streams, fills):
             n_img = len(job.keys)
             img_fill = np.concatenate(f)[:n_img]  # the image blocks come first
@@ -1054,6 +1080,7 @@ class DeviceCogEncoder:
             n_empty += int((img_fill == 0).sum())
             for i, key in enumerate(job.keys):
                 wr.put_block(*key, [s[i]] + ([s[n_img + i]] if wr.mask else []))
+        self._step("store", t)
         with self._lock:
             self.blocks_by_codec[codec.name] += n_coded
             self.empty_blocks += n_empty
