@@ -600,7 +600,8 @@ class CogWriter(TileEncoder):
 
     def put_block(self, level: int, bi: int, bj: int, payloads: Sequence[bytes]) -> None:
         """Store a block compressed elsewhere: ``payloads`` = [image bytes] or, with a mask,
-        [image bytes, mask bytes], each as the file stores it (see
+        [image bytes, mask bytes], each as the file stores it (bytes-like, or a tuple of
+        bytes-like pieces of it; see
         :class:`~orthowarp.pipeline.raster.device.DeviceCogEncoder`). No overview is derived
         from it: the caller gives the next levels too."""
         self.raise_pending()
@@ -674,18 +675,23 @@ class CogWriter(TileEncoder):
             self._error = self._error or e
             raise
 
-    def _store(self, li: int, bi: int, bj: int, parts: Sequence[bytes]) -> None:
+    def _store(self, li: int, bi: int, bj: int, parts: Sequence[bytes | tuple]) -> None:
         """Append a block's record to the block file (GDAL's record per part: uint32 size, the
-        bytes, their last 4 repeated)."""
+        bytes, their last 4 repeated). A part may be a tuple of buffers, its bytes back to back
+        (written as they are, not joined first)."""
         lvl = self.levels[li]
-        bufs = []
+        bufs, sizes = [], []
         for payload in parts:
-            bufs += [struct.pack("<I", len(payload)), payload, bytes(payload[-4:]).rjust(4, b"\0")]
+            pieces = payload if isinstance(payload, tuple) else (payload,)
+            n = sum(len(x) for x in pieces)
+            last = b"".join(bytes(x[-4:]) for x in pieces[-4:])[-4:]  # (the last 4 bytes, over pieces)
+            bufs += [struct.pack("<I", n), *pieces, last.rjust(4, b"\0")]
+            sizes.append(n)
         size = sum(len(x) for x in bufs)
         with self._lock:
             off, self._end = self._end, self._end + size
         _pwrite_all(self._fd, bufs, off)
-        lvl.records[bi * lvl.nbx + bj] = (off, len(parts[0]), size)
+        lvl.records[bi * lvl.nbx + bj] = (off, sizes[0], size)
 
     def raise_pending(self) -> None:
         """Raise, in the caller's thread, the first error of the writer's compression threads

@@ -65,7 +65,7 @@ if TYPE_CHECKING:
     from .cog import CogWriter
 
 __all__ = ["DeviceCogEncoder", "HostDeflate", "HostJpeg", "HostZstd", "NvcompDeflate", "NvcompZstd", "NvjpegCodec",
-           "WarpDeflate", "nvcomp_available", "nvjpeg_available", "nvjpeg_runs", "zlib_stream"]
+           "WarpDeflate", "nvcomp_available", "nvjpeg_available", "nvjpeg_runs", "zlib_parts", "zlib_stream"]
 
 _WP = {"uint8": wp.uint8, "uint16": wp.uint16, "float32": wp.float32}
 _ZLIB_HEADER = b"\x78\x9c"
@@ -75,7 +75,13 @@ _CHUNK = 1 << 14  # bytes per thread in the checksum and gather kernels
 def zlib_stream(raw: bytes, adler: int) -> bytes:
     """The zlib stream (RFC 1950) of a raw deflate stream ``raw`` of data whose Adler-32 is
     ``adler``: what TIFF's deflate compression stores per block."""
-    return b"".join((_ZLIB_HEADER, raw, struct.pack(">I", adler & 0xFFFFFFFF)))
+    return b"".join(zlib_parts(raw, adler))
+
+
+def zlib_parts(raw: bytes, adler: int) -> tuple[bytes, bytes, bytes]:
+    """:func:`zlib_stream` as its three pieces (header, ``raw`` itself, checksum), for a writer
+    that writes them back to back without joining them (:meth:`CogWriter.put_block`)."""
+    return _ZLIB_HEADER, raw, struct.pack(">I", adler & 0xFFFFFFFF)
 
 
 def nvcomp_available() -> bool:
@@ -799,6 +805,8 @@ class DeviceCogEncoder:
         self._failed = None  # a batch's error, raised by the next write or the flush
         # the device codec's batches run on a thread of their own, one after another
         self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="device-codec")
+        self._storer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="device-codec-store")
+        self._stored = None  # the last batch handed to the storing thread (a future)
         self._threshold = None
         if self.gpu is not None and wp.is_mempool_enabled(device):
             # nvCOMP allocates its scratch outside Warp's memory pool: have the pool give back
@@ -879,8 +887,11 @@ class DeviceCogEncoder:
             self._gpu_busy = bool(take)
         if take:
             self._compress_gpu(take)
-            with self._lock:
-                self._raise_failed()
+        if self._stored is not None:  # (its error, if any, kept for the check below)
+            self._stored.result()
+            self._stored = None
+        with self._lock:
+            self._raise_failed()
 
     def _compress_host(self, job: _Tile) -> None:
         """Compress a tile's blocks with the host codec in the calling thread, timed as a
@@ -903,9 +914,14 @@ class DeviceCogEncoder:
             try:
                 t = time.perf_counter()
                 with wp.ScopedDevice(self.device):  # the device's context current in this thread
-                    self._compress(jobs, self.gpu)
+                    got = self._compressed(jobs, self.gpu)
                 if self.timer is not None:
                     self.timer.span("write", t)
+                # the streams stored on a thread of their own, while this one takes the device
+                # to the next batch (at most one batch waits to be stored: bounded memory)
+                if self._stored is not None:
+                    self._stored.result()
+                self._stored = self._storer.submit(self._store_batch, jobs, got)
             except BaseException as e:  # noqa: BLE001 - raised by the next write or the flush
                 with self._lock:
                     self._failed = self._failed or e
@@ -917,6 +933,19 @@ class DeviceCogEncoder:
                     jobs, self._batch, self._batch_n = self._batch, [], 0
                 else:
                     jobs, self._gpu_busy = None, False
+                self._lock.notify_all()
+
+    def _store_batch(self, jobs: list[_Tile], got: tuple[list, list]) -> None:
+        """:meth:`_store` of a device batch on the storing thread, timed as a ``"write"`` span;
+        an error is kept for :meth:`write` and :meth:`flush` to raise."""
+        try:
+            t = time.perf_counter()
+            self._store(jobs, self.gpu, *got)
+            if self.timer is not None:
+                self.timer.span("write", t)
+        except BaseException as e:  # noqa: BLE001 - raised by the next write or the flush
+            with self._lock:
+                self._failed = self._failed or e
                 self._lock.notify_all()
 
     def _encode(self, row: int, col: int, tile: wp.array, valid: wp.array) -> _Tile | None:
@@ -1045,7 +1074,7 @@ class DeviceCogEncoder:
         for k in np.flatnonzero(fill >= 0):
             raws[k] = self._constant_stream(codec.compression, int(sizes[k]), int(fill[k]))
         if codec.compression == "deflate":
-            streams = [zlib_stream(r, int(a)) for r, a in zip(raws, adlers)]
+            streams = [zlib_parts(r, int(a)) for r, a in zip(raws, adlers)]
         elif codec.compression == "jpeg":  # (one-byte blocks: the writer's stream already)
             streams = [wr.jpeg_block(r) if fill[k] < 0 else bytes(r) for k, r in enumerate(raws)]
         else:
@@ -1058,6 +1087,12 @@ class DeviceCogEncoder:
     def _compress(self, jobs: list[_Tile], codec: Any) -> None:
         """Compress the blocks of ``jobs`` with ``codec`` in one call (the mask blocks with
         them, or with :attr:`mask_codec` in another) and store them."""
+        self._store(jobs, codec, *self._compressed(jobs, codec))
+
+    def _compressed(self, jobs: list[_Tile], codec: Any) -> tuple[list, list]:
+        """The streams of the blocks of ``jobs`` (per job, its image blocks' then its mask
+        blocks') compressed by ``codec`` (the mask blocks by :attr:`mask_codec` where there is
+        one), and per job the bytes that fill its blocks (see :meth:`_streams`)."""
         wr = self.writer
         if self.mask_codec is None:
             groups = [(codec, [job.images + job.masks for job in jobs])]
@@ -1071,6 +1106,12 @@ class DeviceCogEncoder:
             for j in range(len(jobs)):
                 streams[j] += got[j]
                 fills[j].append(fill[j])
+        return streams, fills
+
+    def _store(self, jobs: list[_Tile], codec: Any, streams: list, fills: list) -> None:
+        """Hand the blocks of ``jobs`` (their ``streams`` and ``fills`` from
+        :meth:`_compressed`) to the writer."""
+        wr = self.writer
         n_coded = n_empty = 0  # image blocks through the codec, and all-zero ones
         t = time.perf_counter()
         for job, s, f in zip(jobs, streams, fills):
@@ -1087,6 +1128,7 @@ class DeviceCogEncoder:
 
     def close(self) -> None:
         self._worker.shutdown(wait=True)
+        self._storer.shutdown(wait=True)
         for c in (self.gpu, self.host, self.mask_codec):
             if c is not None:
                 c.close()
