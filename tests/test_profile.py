@@ -115,6 +115,11 @@ def test_merge_profiles():
     np.testing.assert_allclose([m["stages"]["kernel"]["union_s"], m["stages"]["write"]["union_s"]], [4.0, 2.5])
     np.testing.assert_allclose(m["device_busy_fraction"], 0.4)
     assert m["images"] == 2 and m["bound_by"] == "kernel" and m["first_kernel_s"] == a["first_kernel_s"]
+    a.update(blocks_by_codec={"warp": 10}, encoder_steps_s={"codec warp": 1.0})
+    b.update(blocks_by_codec={"warp": 5, "libdeflate": 2}, encoder_steps_s={"codec warp": 0.5, "store": 0.25})
+    m = merge_profiles([a, b])  # the device encoder's blocks and step times summed over the images
+    assert m["blocks_by_codec"] == {"warp": 15, "libdeflate": 2}
+    assert m["encoder_steps_s"] == {"codec warp": 1.5, "store": 0.25}
     m = merge_profiles([a, b], wall=20.0)  # the batch's own wall-clock (time between the images too)
     np.testing.assert_allclose([m["wall_s"], m["device_busy_fraction"], m["other_s"]], [20.0, 0.2, 14.0])
     assert json.loads(json.dumps(m)) == m

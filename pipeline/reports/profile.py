@@ -256,6 +256,12 @@ def merge_profiles(profiles: Sequence[dict], *, wall: float | None = None) -> di
             blocks[name] = blocks.get(name, 0) + int(n)
     if blocks:
         out["blocks_by_codec"] = blocks
+    steps = {}  # the device COG encoder's seconds per step (see DeviceCogEncoder.steps), summed
+    for p in profiles:
+        for name, sec in p.get("encoder_steps_s", {}).items():
+            steps[name] = steps.get(name, 0.0) + float(sec)
+    if steps:
+        out["encoder_steps_s"] = {k: round(v, 4) for k, v in steps.items()}
     return out
 
 
