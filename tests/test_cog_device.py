@@ -409,6 +409,36 @@ def test_a_failed_batch_is_raised_to_the_tiles_or_the_flush(tmp_path):
     assert os.listdir(tmp_path) == []  # the writer aborted: nothing left
 
 
+def test_a_failed_store_is_raised_by_the_flush(tmp_path, monkeypatch):
+    """A device batch's streams are stored on a thread of their own: a write of the block file
+    failing there (a full disk) reaches the caller, named, and nothing is left."""
+    import errno
+
+    from orthowarp.errors import RasterIOError
+    from orthowarp.pipeline.raster import cog as cog_module
+
+    shape, count = (1024, 1024), 3
+    data, mask = scene(shape, count, "uint8")
+    w = CogWriter(str(tmp_path / "out.tif"), width=shape[1], height=shape[0], count=count, dtype="uint8", crs=CRS,
+                  transform=TRANSFORM, block_size=256, overviews=2, threads=2)
+    enc = DeviceCogEncoder(w, wp.get_device("cpu"), [_SlowBatchedDeflate()], batch_bytes=2 * 512 * 512 * 3)
+
+    def full(fd, bufs, offset):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(cog_module, "_pwrite_all", full)
+    with pytest.raises(RasterIOError, match="out.tif.*No space left"):
+        with w:
+            for r in range(0, shape[0], 512):
+                for c in range(0, shape[1], 512):
+                    enc.write(r, c, wp.array(np.ascontiguousarray(data[r:r + 512, c:c + 512]), dtype=wp.uint8,
+                                             device="cpu"),
+                              wp.array(mask[r:r + 512, c:c + 512].astype(np.uint8), dtype=wp.uint8, device="cpu"))
+            enc.flush()
+    enc.close()
+    assert os.listdir(tmp_path) == []
+
+
 @pytest.mark.parametrize("with_host", [False, True])
 def test_batches_over_tiles_and_the_hand_over_to_the_host(tmp_path, with_host):
     from concurrent.futures import ThreadPoolExecutor

@@ -500,9 +500,10 @@ class WarpDeflate:
         One-step lazy matching (default True).
     max_lazy : int, optional
         After a match of at least this many bytes, the next position is not searched: its
-        match is the same one, a byte shorter (zlib's ``max_lazy_match``: the parse takes a
-        match that long without looking one byte further, and skips the bytes it covers).
-        Default 0: every position searched.
+        match is at the same distance, the bytes known from the match and any more up to the
+        cap (zlib's ``max_lazy_match``: the parse takes a match that long without looking one
+        byte further, and skips the bytes it covers). Default 0: every position searched
+        (the level-6 codec of the COG encoder uses 16, zlib's).
     window : int, optional
         Bytes before a chunk (of the same stream) that its matches may reach (0-32768, default
         8192); each chunk hashes them first.
