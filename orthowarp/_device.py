@@ -51,7 +51,7 @@ if TYPE_CHECKING:  # annotations only
     from collections.abc import Iterator, Sequence
 
 __all__ = ["resolve_device", "quiet_warp", "ensure_warp_initialized", "load_modules", "set_warp_messages", "warm_up",
-           "to_host", "upload"]
+           "copy_stream", "to_host", "upload"]
 
 # What Warp's native library writes to fd 2 when no CUDA driver can be loaded (CPU-only
 # machines): an informational notice for orthowarp, whose CPU backend is a supported target.
@@ -361,6 +361,34 @@ def load_modules(device: wp.Device, *modules: types.ModuleType, block_dim: int |
                 wp.load_module(m, device=device)
             else:
                 wp.load_module(m, device=device, block_dim=block_dim)
+
+
+_STREAMS: dict[str, list] = {}  # per CUDA device: streams of copy_stream not in use
+_STREAMS_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def copy_stream(device: wp.Device) -> Iterator[wp.Stream | None]:
+    """A CUDA stream of this process's own for a thread's uploads to ``device``, made to wait
+    for the work already on the device's current stream (arrays allocated in its order); None
+    on the CPU. The streams are made one at a time and kept for the next caller, never
+    destroyed: Warp streams made and destroyed on many threads at once crashed a mosaic's
+    source reads (a segmentation fault in ``Stream.__del__`` beside another thread's
+    ``Stream()``, H200, 2026-11-28), and each make and destroy cost as much as the copy of a
+    piece."""
+    if not device.is_cuda:
+        yield None
+        return
+    with _STREAMS_LOCK:
+        free = _STREAMS.setdefault(device.alias, [])
+        stream = free.pop() if free else wp.Stream(device)
+    try:
+        with wp.ScopedDevice(device):  # the device's context current in this (maybe new) thread
+            stream.wait_stream(wp.get_stream(device))
+        yield stream
+    finally:
+        with _STREAMS_LOCK:
+            free.append(stream)
 
 
 def to_host(arr: wp.array) -> np.ndarray:

@@ -331,3 +331,32 @@ def test_upload_gives_each_arrays_values_from_many_threads(device, monkeypatch):
         assert all(pool.map(work, range(8)))
     big = np.arange(1 << 15, dtype=np.int32)  # over a segment: copied as wp.array copies it
     np.testing.assert_array_equal(_device.to_host(_device.upload(big, dtype=wp.int32, device=device)), big)
+
+
+def test_copy_streams_are_reused_across_threads(device, monkeypatch):
+    """copy_stream: on a GPU a stream per concurrent user, made once and handed out again
+    (never destroyed while threads come and go), each after the device stream's work; on the
+    CPU none. Copies on them from many threads land whole."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    monkeypatch.setattr(_device, "_STREAMS", {})
+    dev = wp.get_device(device)
+    dst = wp.zeros(64 * 1000, dtype=wp.int32, device=dev)
+    seen = []
+
+    def work(k):
+        src = wp.array(np.full(1000, k, np.int32), dtype=wp.int32, device="cpu")
+        with _device.copy_stream(dev) as stream:
+            seen.append(stream)
+            wp.copy(dst, src, dest_offset=k * 1000, count=1000, stream=stream)
+            if stream is not None:
+                wp.synchronize_stream(stream)
+
+    for _ in range(3):  # pools of threads that come and go
+        with ThreadPoolExecutor(4) as pool:
+            list(pool.map(work, range(64)))
+    np.testing.assert_array_equal(dst.numpy(), np.repeat(np.arange(64, dtype=np.int32), 1000))
+    if dev.is_cuda:
+        assert len({id(s) for s in seen}) <= 4 and len(_device._STREAMS[dev.alias]) <= 4
+    else:
+        assert all(s is None for s in seen)

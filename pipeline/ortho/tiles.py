@@ -27,7 +27,7 @@ from pyproj import Transformer
 from rasterio.enums import MaskFlags, Resampling
 from rasterio.windows import Window
 
-from ..._device import load_modules, to_host, upload
+from ..._device import copy_stream, load_modules, to_host, upload
 from ...errors import ParamError, RasterIOError
 from ...kernels import ortho as ortho_kernels
 from ...options import Resampling as Interpolation
@@ -595,12 +595,12 @@ def read_whole_source(src: str, device: wp.context.Device, *, masked: bool, dtyp
     valid = wp.empty((h, w), dtype=wp.uint8, device=device) if masked else None
 
     def read(part: list[tuple[int, int]]) -> None:
+        with copy_stream(device) as stream:  # (after the arrays' allocation on the device's stream)
+            read_part(part, stream)
+
+    def read_part(part: list[tuple[int, int]], stream: Any) -> None:
         t = time.perf_counter()
         handle = _open_source(src)
-        stream = wp.Stream(device) if device.is_cuda else None
-        if stream is not None:  # the arrays were allocated in the device stream's order
-            with wp.ScopedDevice(device):  # the device's context current in this new thread
-                stream.wait_stream(wp.get_stream(device))
         try:
             for r0, n in part:
                 win = Window(0, r0, w, n)

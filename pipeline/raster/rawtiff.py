@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import warp as wp
 
+from ..._device import copy_stream
 from ...errors import ParamError, RasterIOError
 from .tiff import SHORT, LONG, LONG8, read_ifd, tiff_header
 
@@ -164,10 +165,10 @@ def read_raw_blocks(path: str | os.PathLike, layout: RawLayout, device: Device, 
     failed = threading.Event()
 
     def copy(part: list[tuple[int, int, int]]) -> None:
-        stream = wp.Stream(device) if device.is_cuda else None
-        if stream is not None:  # the array was allocated in the device stream's order
-            with wp.ScopedDevice(device):
-                stream.wait_stream(wp.get_stream(device))
+        with copy_stream(device) as stream:  # (after the array's allocation on the device's stream)
+            _copy_part(part, stream)
+
+    def _copy_part(part: list[tuple[int, int, int]], stream: Any) -> None:
         buf = np.empty(max(p[1] for p in part), np.uint8)
         fd = os.open(path, os.O_RDONLY)
         try:
