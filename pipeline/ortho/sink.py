@@ -336,7 +336,8 @@ def _warp_deflate(level: int, device: Device) -> WarpDeflate:
     and bench/deflate_codecs.py's blocks on the host)."""
     depth, nice = (4, 32) if level <= 2 else (8, 64) if level <= 4 else (16, 128) if level == 5 \
         else (32, 128) if level <= 6 else (64, 258) if level <= 8 else (128, 258)
-    # zlib's max_lazy_match per level (16 at levels 4-6, 32 at 7, 128 at 8, 258 at 9)
+    # zlib's max_lazy_match per level (16 at its levels 4-6, 32 at 7, 128 at 8, 258 at 9; its levels
+    # 1-3 parse greedily, here lazily with 16 too)
     max_lazy = 16 if level <= 6 else 32 if level == 7 else 128 if level == 8 else 258
     from ..raster.device import WarpDeflate
 
