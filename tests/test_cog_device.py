@@ -100,6 +100,22 @@ def _write(path, shape, count, dtype, tile, *, device=None, overviews=3, block=2
 kc_types = {"uint8": wp.uint8, "uint16": wp.uint16, "float32": wp.float32}
 
 
+def _encode_tile(enc, data, mask, r, c, device, tile=512):
+    """Hand the ``tile``-pixel tile at (r, c) of the host ``data`` (rows, cols, bands, uint8)
+    and ``mask`` (bool) to the device encoder ``enc``, as arrays on ``device``."""
+    enc.write(r, c, wp.array(np.ascontiguousarray(data[r:r + tile, c:c + tile]), dtype=wp.uint8, device=device),
+              wp.array(mask[r:r + tile, c:c + tile].astype(np.uint8), dtype=wp.uint8, device=device))
+
+
+def _encode_tiles(enc, data, mask, device, tile=512):
+    """Every ``tile``-pixel tile of ``data`` to ``enc`` in row-major order (:func:`_encode_tile`),
+    then the encoder's flush."""
+    for r in range(0, data.shape[0], tile):
+        for c in range(0, data.shape[1], tile):
+            _encode_tile(enc, data, mask, r, c, device, tile)
+    enc.flush()
+
+
 def _levels(path, count):
     out = []
     with rasterio.open(path) as ds:
@@ -158,11 +174,7 @@ def test_nvcomp_file_has_the_host_writers_pixels(tmp_path, algorithm_type, batch
     device = wp.get_device("cuda:0")
     enc = DeviceCogEncoder(w, device, [NvcompDeflate(algorithm_type, device)], batch_bytes=batch_bytes)
     with w:
-        for r in range(0, shape[0], 512):
-            for c in range(0, shape[1], 512):
-                enc.write(r, c, wp.array(np.ascontiguousarray(data[r:r + 512, c:c + 512]), dtype=wp.uint8, device=device),
-                          wp.array(mask[r:r + 512, c:c + 512].astype(np.uint8), dtype=wp.uint8, device=device))
-        enc.flush()
+        _encode_tiles(enc, data, mask, device)
     assert enc.blocks_by_codec["nvcomp"] > 0
     for (da, ma, _, _), (db, mb, _, _) in zip(_levels(host, count), _levels(dev, count)):
         np.testing.assert_array_equal(ma, mb)
@@ -225,12 +237,7 @@ def test_zstd_codec_gets_image_blocks_and_the_mask_codec_mask_blocks(tmp_path, d
     w = CogWriter(out, **kw)
     enc = DeviceCogEncoder(w, wp.get_device(device), [codec], mask_codec=masks)
     with w:
-        for r in range(0, shape[0], 512):
-            for c in range(0, shape[1], 512):
-                enc.write(r, c, wp.array(np.ascontiguousarray(data[r:r + 512, c:c + 512]), dtype=wp.uint8,
-                                         device=device),
-                          wp.array(mask[r:r + 512, c:c + 512].astype(np.uint8), dtype=wp.uint8, device=device))
-        enc.flush()
+        _encode_tiles(enc, data, mask, device)
     enc.close()
     assert {g.size for g in codec.given} == {b * b * count} and {g.size for g in masks.given} == {b * b // 8}
     assert all(g.any() and not (g == 255).all() for g in codec.given + masks.given)
@@ -359,12 +366,7 @@ def test_blocks_of_one_byte_get_one_stream_and_skip_the_codec(tmp_path, device):
                   block_size=256, overviews=3, threads=2)
     enc = DeviceCogEncoder(w, wp.get_device(device), [codec])
     with w:
-        for r in range(0, shape[0], 512):
-            for c in range(0, shape[1], 512):
-                enc.write(r, c, wp.array(np.ascontiguousarray(data[r:r + 512, c:c + 512]), dtype=wp.uint8,
-                                         device=device),
-                          wp.array(mask[r:r + 512, c:c + 512].astype(np.uint8), dtype=wp.uint8, device=device))
-        enc.flush()
+        _encode_tiles(enc, data, mask, device)
     enc.close()
     # level 0: 4 x 6 blocks, the first two columns empty (8); level 1 (256 x 256 pieces of
     # 512-px tiles): 2 x 3 blocks, the first column empty (2)
@@ -399,12 +401,7 @@ def test_a_failed_batch_is_raised_to_the_tiles_or_the_flush(tmp_path):
     enc = DeviceCogEncoder(w, wp.get_device("cpu"), [_FailingBatchedDeflate()], batch_bytes=2 * 512 * 512 * 3)
     with pytest.raises(DeviceError, match="deflate kernels failed"):
         with w:
-            for r in range(0, shape[0], 512):
-                for c in range(0, shape[1], 512):
-                    enc.write(r, c, wp.array(np.ascontiguousarray(data[r:r + 512, c:c + 512]), dtype=wp.uint8,
-                                             device="cpu"),
-                              wp.array(mask[r:r + 512, c:c + 512].astype(np.uint8), dtype=wp.uint8, device="cpu"))
-            enc.flush()
+            _encode_tiles(enc, data, mask, "cpu")
     enc.close()
     assert os.listdir(tmp_path) == []  # the writer aborted: nothing left
 
@@ -429,12 +426,7 @@ def test_a_failed_store_is_raised_by_the_flush(tmp_path, monkeypatch):
     monkeypatch.setattr(cog_module, "_pwrite_all", full)
     with pytest.raises(RasterIOError, match="out.tif.*No space left"):
         with w:
-            for r in range(0, shape[0], 512):
-                for c in range(0, shape[1], 512):
-                    enc.write(r, c, wp.array(np.ascontiguousarray(data[r:r + 512, c:c + 512]), dtype=wp.uint8,
-                                             device="cpu"),
-                              wp.array(mask[r:r + 512, c:c + 512].astype(np.uint8), dtype=wp.uint8, device="cpu"))
-            enc.flush()
+            _encode_tiles(enc, data, mask, "cpu")
     enc.close()
     assert os.listdir(tmp_path) == []
 
@@ -453,12 +445,9 @@ def test_batches_over_tiles_and_the_hand_over_to_the_host(tmp_path, with_host):
                   block_size=256, overviews=3, threads=2)
     enc = DeviceCogEncoder(w, wp.get_device("cpu"), codecs, batch_bytes=3 * 512 * 512 * 3)
     with w:
-        def one(rc):
-            r, c = rc
-            enc.write(r, c, wp.array(np.ascontiguousarray(data[r:r + 512, c:c + 512]), dtype=wp.uint8, device="cpu"),
-                      wp.array(mask[r:r + 512, c:c + 512].astype(np.uint8), dtype=wp.uint8, device="cpu"))
         with ThreadPoolExecutor(4) as pool:
-            list(pool.map(one, [(r, c) for r in range(0, shape[0], 512) for c in range(0, shape[1], 512)]))
+            list(pool.map(lambda rc: _encode_tile(enc, data, mask, *rc, "cpu"),
+                          [(r, c) for r in range(0, shape[0], 512) for c in range(0, shape[1], 512)]))
         enc.flush()
     enc.close()
     n_blocks = sum(enc.blocks_by_codec.values()) + enc.empty_blocks
