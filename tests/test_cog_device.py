@@ -457,6 +457,9 @@ def test_batches_over_tiles_and_the_hand_over_to_the_host(tmp_path, with_host):
     assert len(batched.calls) >= 2 and max(batched.calls) > 5  # a batch holds more than one tile
     if with_host:
         assert enc.blocks_by_codec["libdeflate"] > 0  # tiles went to the host while the batch ran
+    info = enc.profile_info()  # (what the profiles report)
+    assert info["blocks_by_codec"] == enc.blocks_by_codec
+    assert {"gather and checksums", f"codec {batched.name}", "streams", "store"} <= set(info["encoder_steps_s"])
     for (da, ma, _, _), (db, mb, _, _) in zip(_levels(ref, count), _levels(out, count)):
         np.testing.assert_array_equal(ma, mb)
         np.testing.assert_array_equal(da, db)

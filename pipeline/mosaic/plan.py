@@ -481,8 +481,7 @@ class MosaicPlan(TileBlending):
                 if encoder is not None:
                     encoder.close()
                     self._encoder = None
-                    timer.info["blocks_by_codec"] = dict(encoder.blocks_by_codec)
-                    timer.info["encoder_steps_s"] = {k: round(v, 4) for k, v in encoder.steps.items()}
+                    timer.info.update(encoder.profile_info())
                 timer.info["block_codec"] = _block_codec
         return MosaicResult(path=dst, index=outputs[1] if index is not None else None,
                             seamlines=outputs[-1] if seamlines is not None else None, crs=self.crs,

@@ -519,8 +519,7 @@ def open_sink(path: str, profile: dict[str, Any], cog: dict[str, Any] | None, fi
         finally:
             if encoder is not None:
                 encoder.close()
-                timer.info["blocks_by_codec"] = dict(encoder.blocks_by_codec)
-                timer.info["encoder_steps_s"] = {k: round(v, 4) for k, v in encoder.steps.items()}
+                timer.info.update(encoder.profile_info())
         w.close()  # the last blocks, then the file's IFDs and block copy
         timer.span("finish", t)
         return

@@ -984,6 +984,13 @@ class DeviceCogEncoder:
             return None
         return _Tile(keys, images, masks)
 
+    def profile_info(self) -> dict[str, dict]:
+        """What a profile reports of this encoder: ``blocks_by_codec`` (image blocks per codec)
+        and ``encoder_steps_s`` (seconds per step, see :attr:`steps`)."""
+        with self._lock:
+            return dict(blocks_by_codec=dict(self.blocks_by_codec),
+                        encoder_steps_s={k: round(v, 4) for k, v in self.steps.items()})
+
     def _step(self, name: str, t: float) -> float:
         """Add the seconds since ``t`` to :attr:`steps` [name]; returns the time now."""
         now = time.perf_counter()
