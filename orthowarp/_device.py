@@ -51,7 +51,7 @@ if TYPE_CHECKING:  # annotations only
     from collections.abc import Iterator, Sequence
 
 __all__ = ["resolve_device", "quiet_warp", "ensure_warp_initialized", "load_modules", "set_warp_messages", "warm_up",
-           "copy_stream", "to_host", "upload"]
+           "copy_stream", "pinned_buffer", "to_host", "upload"]
 
 # What Warp's native library writes to fd 2 when no CUDA driver can be loaded (CPU-only
 # machines): an informational notice for orthowarp, whose CPU backend is a supported target.
@@ -391,6 +391,79 @@ def copy_stream(device: wp.Device) -> Iterator[wp.Stream | None]:
             free.append(stream)
 
 
+class PinnedBuffer:
+    """Page-locked host memory lent by :func:`pinned_buffer`: ``host`` (uint8 NumPy view of
+    ``nbytes`` or more bytes) to fill, then :meth:`upload` to enqueue its copy into a device
+    array; the buffer goes back to its pool once that copy has run."""
+
+    def __init__(self, array: wp.array) -> None:
+        self.array, self.host = array, array.numpy()
+        self.event: Any = None  # recorded after the buffer's last enqueued copy
+
+    def upload(self, dest: wp.array, nbytes: int, *, dest_offset: int = 0, src_offset: int = 0,
+               stream: wp.Stream | None = None) -> None:
+        """Enqueue the copy of ``nbytes`` of the buffer, from byte ``src_offset``, into the
+        contiguous ``dest`` from its element ``dest_offset`` on ``stream`` (default: the
+        device's current stream); nothing waits for it."""
+        stream = stream if stream is not None else dest.device.stream
+        item = wp.types.type_size_in_bytes(dest.dtype)
+        if nbytes % item or src_offset % item or src_offset + nbytes > self.host.nbytes:
+            raise ValueError(f"{nbytes} bytes from byte {src_offset} are not whole elements of {item} bytes "
+                             f"within the buffer's {self.host.nbytes}")
+        src = wp.array(ptr=self.array.ptr + src_offset, dtype=dest.dtype, shape=(nbytes // item,), device="cpu")
+        wp.copy(dest, src, dest_offset=dest_offset, count=nbytes // item, stream=stream)
+        self.event = stream.record_event()  # (after every copy enqueued before it on the stream)
+
+
+#: Page-locked memory :func:`pinned_buffer` makes per CUDA device (bytes) before it has callers
+#: wait for the buffers already made.
+PINNED_POOL_MAX = 512 << 20
+_PINNED: dict[str, dict[int, list[PinnedBuffer]]] = {}  # per device, per size: buffers not lent
+_PINNED_HELD: dict[str, int] = {}  # per device: bytes of page-locked memory made
+_PINNED_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def pinned_buffer(device: wp.Device, nbytes: int) -> Iterator[PinnedBuffer | None]:
+    """Page-locked host memory of at least ``nbytes`` bytes for uploads to the CUDA device
+    ``device`` (None on the CPU, or for more than :data:`PINNED_POOL_MAX` bytes: copy from
+    pageable memory then).
+
+    A copy from pageable memory waits for everything already enqueued on the device, and runs
+    at a fraction of the bus's speed; one from page-locked memory is only enqueued. The buffers
+    are made once (a power of two of at least 1 MiB each) and kept in a per-device pool, never
+    freed: a buffer is lent again only after the event recorded by its last
+    :meth:`PinnedBuffer.upload` has passed, so a copy still in flight never sees its bytes
+    change. Once :data:`PINNED_POOL_MAX` bytes are made for a device, a caller takes the
+    oldest buffer of its size that is not lent and waits for its copy; only where every such
+    buffer is lent is another made (at most one per thread that holds one).
+    """
+    if not device.is_cuda or nbytes > PINNED_POOL_MAX:
+        yield None
+        return
+    size = max(1 << 20, 1 << (max(int(nbytes), 1) - 1).bit_length())
+    key = device.alias
+    with _PINNED_LOCK:
+        free = _PINNED.setdefault(key, {}).setdefault(size, [])
+        ready = next((b for b in free if b.event is None or b.event.is_complete), None)
+        if ready is None and _PINNED_HELD.get(key, 0) + size > PINNED_POOL_MAX and free:
+            ready = free[0]  # the oldest: wait for its copy below
+        if ready is not None:
+            free.remove(ready)
+        else:
+            _PINNED_HELD[key] = _PINNED_HELD.get(key, 0) + size
+    if ready is None:
+        with wp.ScopedDevice(device):
+            ready = PinnedBuffer(wp.empty(size, dtype=wp.uint8, device="cpu", pinned=True))
+    elif ready.event is not None:
+        wp.synchronize_event(ready.event)
+    try:
+        yield ready
+    finally:
+        with _PINNED_LOCK:
+            _PINNED[key][size].append(ready)
+
+
 def to_host(arr: wp.array) -> np.ndarray:
     """A NumPy array of a Warp array's values, safe to call from several threads at once.
 
@@ -473,9 +546,11 @@ def upload(data: Any, *, dtype: Any, device: wp.DeviceLike) -> wp.array:
     """``wp.array(data, dtype=dtype, device=device)``, without waiting for the device.
 
     On a CUDA device an array of at most :data:`STAGED_UPLOAD_MAX` bytes goes through a pinned
-    staging ring (:class:`_Staging`): its copy is enqueued on the device's current stream and
-    the calling thread goes on, where a copy from pageable memory would wait for everything
-    enqueued before it. Larger arrays, and every array on the CPU, are copied by ``wp.array``.
+    staging ring (:class:`_Staging`), a larger one through a page-locked buffer of
+    :func:`pinned_buffer`: its copy is enqueued on the device's current stream and the calling
+    thread goes on, where a copy from pageable memory would wait for everything enqueued before
+    it. Every array on the CPU (and one over :data:`PINNED_POOL_MAX` bytes) is copied by
+    ``wp.array``.
 
     Parameters
     ----------
@@ -494,9 +569,17 @@ def upload(data: Any, *, dtype: Any, device: wp.DeviceLike) -> wp.array:
     scalar = getattr(dtype, "_wp_scalar_type_", dtype)
     arr = np.ascontiguousarray(data, dtype=wp.dtype_to_numpy(scalar))
     elem = getattr(dtype, "_shape_", ())
-    if not device.is_cuda or arr.nbytes > min(STAGED_UPLOAD_MAX, _Staging.SEGMENT) or arr.nbytes == 0 or \
-            tuple(arr.shape[arr.ndim - len(elem):]) != tuple(elem):
+    if not device.is_cuda or arr.nbytes == 0 or tuple(arr.shape[arr.ndim - len(elem):]) != tuple(elem):
         return wp.array(arr, dtype=dtype, device=device)
+    shape = arr.shape[:arr.ndim - len(elem)]
+    if arr.nbytes > min(STAGED_UPLOAD_MAX, _Staging.SEGMENT):
+        with pinned_buffer(device, arr.nbytes) as pin:
+            if pin is None:
+                return wp.array(arr, dtype=dtype, device=device)
+            out = wp.empty(shape, dtype=dtype, device=device)
+            pin.host[:arr.nbytes] = arr.reshape(-1).view(np.uint8)
+            pin.upload(out, arr.nbytes)
+            return out
     key = str(device)
     ring = _staging.get(key)
     if ring is None:
@@ -504,4 +587,4 @@ def upload(data: Any, *, dtype: Any, device: wp.DeviceLike) -> wp.array:
             ring = _staging.get(key)
             if ring is None:
                 ring = _staging[key] = _Staging(device)
-    return ring.upload(arr, dtype, arr.shape[:arr.ndim - len(elem)])
+    return ring.upload(arr, dtype, shape)

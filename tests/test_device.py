@@ -360,3 +360,43 @@ def test_copy_streams_are_reused_across_threads(device, monkeypatch):
         assert len({id(s) for s in seen}) <= 4 and len(_device._STREAMS[dev.alias]) <= 4
     else:
         assert all(s is None for s in seen)
+
+
+def test_pinned_buffers_are_lent_once_their_copies_ran(device, monkeypatch):
+    """pinned_buffer: on a GPU page-locked buffers (powers of two of at least 1 MiB) lent from
+    a per-device pool and lent again only after their enqueued copies ran, so that buffers
+    refilled at once from many threads still deliver each copy's own bytes; past the pool's
+    limit a caller reuses a buffer (waiting for its copy) instead of making one. None on the
+    CPU, and for more than the limit."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    monkeypatch.setattr(_device, "_PINNED", {})
+    monkeypatch.setattr(_device, "_PINNED_HELD", {})
+    dev = wp.get_device(device)
+    n = 300_000  # int32s: 1.2 MB, a 2 MiB buffer
+    dst = wp.zeros(48 * n, dtype=wp.int32, device=dev)
+
+    def work(k):
+        with _device.pinned_buffer(dev, n * 4) as pin:
+            if pin is None:
+                assert not dev.is_cuda
+                dst.numpy()[k * n:(k + 1) * n] = k
+                return None
+            assert pin.host.nbytes == 2 << 20
+            pin.host[:n * 4].view(np.int32)[:] = k  # every buffer refilled many times
+            pin.upload(dst, n * 4, dest_offset=k * n)
+            return id(pin)
+
+    with ThreadPoolExecutor(6) as pool:
+        lent = list(pool.map(work, range(48)))
+    np.testing.assert_array_equal(dst.numpy(), np.repeat(np.arange(48, dtype=np.int32), n))
+    with _device.pinned_buffer(dev, _device.PINNED_POOL_MAX + 1) as pin:
+        assert pin is None
+    if dev.is_cuda:
+        assert len(set(lent)) <= 6 < len(lent)
+        monkeypatch.setattr(_device, "PINNED_POOL_MAX", _device._PINNED_HELD[dev.alias])
+        made = len(_device._PINNED[dev.alias][2 << 20])
+        for k in range(8):  # at the limit: the pool's buffers again, one at a time
+            assert work(k) in lent
+        assert len(_device._PINNED[dev.alias][2 << 20]) == made
+        np.testing.assert_array_equal(dst.numpy()[:8 * n], np.repeat(np.arange(8, dtype=np.int32), n))

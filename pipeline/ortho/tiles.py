@@ -27,7 +27,7 @@ from pyproj import Transformer
 from rasterio.enums import MaskFlags, Resampling
 from rasterio.windows import Window
 
-from ..._device import copy_stream, load_modules, to_host, upload
+from ..._device import copy_stream, load_modules, pinned_buffer, to_host, upload
 from ...errors import ParamError, RasterIOError
 from ...kernels import ortho as ortho_kernels
 from ...options import Resampling as Interpolation
@@ -474,14 +474,14 @@ class ImageTiles:
             _count_clipped(self.clipped, data, top)
         timer.span("read", t)
         t = time.perf_counter()
-        arr = wp.array(data, dtype=WP_TYPES[data.dtype.name], device=device)
+        arr = upload(data, dtype=WP_TYPES[data.dtype.name], device=device)  # (enqueued, from page-locked memory)
         if data.dtype.name not in (self.out_dtype, "float32"):  # e.g. uint8 into float32
             timer.span("h2d", t)
             t = time.perf_counter()
             arr = widened(arr)
             timer.span("kernel", t)
             t = time.perf_counter()
-        sw = self._window_struct(wp.array(valid, dtype=wp.uint8, device=device) if self.masked else None, wc0, wr0,
+        sw = self._window_struct(upload(valid, dtype=wp.uint8, device=device) if self.masked else None, wc0, wr0,
                                  shape[1] / (wc1 - wc0), shape[0] / (wr1 - wr0))  # window pixels per image pixel
         timer.span("h2d", t)
         return sw, arr
@@ -613,6 +613,21 @@ def read_whole_source(src: str, device: wp.context.Device, *, masked: bool, dtyp
                     _count_clipped(clipped, strip, top)
                 t1 = time.perf_counter()
                 timer.span("read", t)
+                _upload_strip(strip, mask, r0, stream)
+                timer.span("h2d", t1)
+                t = time.perf_counter()
+            if stream is not None:
+                wp.synchronize_stream(stream)  # the arrays complete when the read returns
+                timer.span("h2d", t)
+        finally:
+            handle.close()
+
+    def _upload_strip(strip: np.ndarray, mask: np.ndarray | None, r0: int, stream: Any) -> None:
+        """A strip (bands, n, w) and its mask (n, w) copied into place: on a GPU through a
+        page-locked buffer, its copies enqueued on ``stream``; from the strip itself on the CPU."""
+        n, nbytes = strip.shape[1], strip.nbytes + (mask.nbytes if mask is not None else 0)
+        with pinned_buffer(device, nbytes) as pin:
+            if pin is None:
                 host = wp.array(strip, dtype=data.dtype, device="cpu", copy=False)
                 for b in range(bands):  # each band's rows are contiguous on both sides
                     wp.copy(data, host, dest_offset=(b * h + r0) * w, src_offset=b * n * w, count=n * w, stream=stream)
@@ -621,10 +636,14 @@ def read_whole_source(src: str, device: wp.context.Device, *, masked: bool, dtyp
                             count=n * w, stream=stream)
                 if stream is not None:
                     wp.synchronize_stream(stream)  # the host strip may go
-                timer.span("h2d", t1)
-                t = time.perf_counter()
-        finally:
-            handle.close()
+                return
+            pin.host[:strip.nbytes] = strip.reshape(-1).view(np.uint8)
+            band = n * w * strip.itemsize
+            for b in range(bands):
+                pin.upload(data, band, dest_offset=(b * h + r0) * w, src_offset=b * band, stream=stream)
+            if mask is not None:
+                pin.host[strip.nbytes:nbytes] = mask.reshape(-1).view(np.uint8)
+                pin.upload(valid, mask.nbytes, dest_offset=r0 * w, src_offset=strip.nbytes, stream=stream)
 
     # an uncompressed source without a mask: its blocks copied as stored and put in place on
     # the device (the same pixels, without GDAL's per-block work on the host)

@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import warp as wp
 
-from ..._device import copy_stream
+from ..._device import copy_stream, pinned_buffer
 from ...errors import ParamError, RasterIOError
 from .tiff import SHORT, LONG, LONG8, read_ifd, tiff_header
 
@@ -169,21 +169,36 @@ def read_raw_blocks(path: str | os.PathLike, layout: RawLayout, device: Device, 
             _copy_part(part, stream)
 
     def _copy_part(part: list[tuple[int, int, int]], stream: Any) -> None:
-        buf = np.empty(max(p[1] for p in part), np.uint8)
+        # on a GPU each piece is read into page-locked memory and its copy only enqueued
+        # (the next piece is read meanwhile); on the CPU straight into the array
         fd = os.open(path, os.O_RDONLY)
         try:
             for off, nbytes, dest in part:
                 if failed.is_set():
                     return
+                with pinned_buffer(device, nbytes) as pin:
+                    t0 = time.perf_counter()
+                    if pin is not None:
+                        _read_exactly(fd, memoryview(pin.host)[:nbytes], off, path)
+                    elif stream is None:
+                        _read_exactly(fd, memoryview(out.numpy().view(np.uint8))[dest:dest + nbytes], off, path)
+                    else:  # (no page-locked memory for a piece this large)
+                        buf = np.empty(nbytes, np.uint8)
+                        _read_exactly(fd, memoryview(buf), off, path)
+                    if timer is not None:
+                        timer.span("read", t0)
+                    t0 = time.perf_counter()
+                    if pin is not None:
+                        pin.upload(out, nbytes, dest_offset=dest // item, stream=stream)
+                    elif stream is not None:
+                        wp.copy(out, wp.array(buf.view(layout.dtype), dtype=out.dtype, device="cpu", copy=False),
+                                dest_offset=dest // item, count=nbytes // item, stream=stream)
+                        wp.synchronize_stream(stream)
+                    if timer is not None:
+                        timer.span("h2d", t0)
+            if stream is not None:
                 t0 = time.perf_counter()
-                _read_exactly(fd, memoryview(buf)[:nbytes], off, path)
-                if timer is not None:
-                    timer.span("read", t0)
-                t0 = time.perf_counter()
-                host = wp.array(buf[:nbytes].view(layout.dtype), dtype=out.dtype, device="cpu", copy=False)
-                wp.copy(out, host, dest_offset=dest // item, count=nbytes // item, stream=stream)
-                if stream is not None:
-                    wp.synchronize_stream(stream)  # the buffer is reused
+                wp.synchronize_stream(stream)  # the array complete when the read returns
                 if timer is not None:
                     timer.span("h2d", t0)
         except BaseException:
@@ -221,30 +236,38 @@ def read_raw_window(path: str | os.PathLike, layout: RawLayout, device: Device, 
     bi0, bi1 = row0 // bh, -(-row1 // bh)
     bj0, bj1 = col0 // bw, -(-col1 // bw)
     n_across, size = bj1 - bj0, layout.block_bytes
-    buf = np.empty((bi1 - bi0) * n_across * size, np.uint8)
-    t0 = time.perf_counter()
-    try:
-        fd = os.open(path, os.O_RDONLY)
+    nbytes = (bi1 - bi0) * n_across * size
+    # on a GPU the blocks are read into page-locked memory and their copy only enqueued on the
+    # device's stream (a copy from pageable memory waits for all work already on it)
+    with pinned_buffer(device, nbytes) as pin:
+        buf = pin.host[:nbytes] if pin is not None else np.empty(nbytes, np.uint8)
+        t0 = time.perf_counter()
         try:
-            for i in range(bi0, bi1):
-                t, stop = i * across + bj0, i * across + bj1
-                while t < stop:  # runs of blocks back to back in the file
-                    u = _run_end(layout, t, stop)
-                    off = int(layout.offsets[t])
-                    nbytes = int(layout.offsets[u - 1] + layout.sizes[u - 1]) - off
-                    dest = ((i - bi0) * n_across + t - i * across - bj0) * size
-                    _read_exactly(fd, memoryview(buf)[dest:dest + nbytes], off, path)
-                    t = u
-        finally:
-            os.close(fd)
-    except RasterIOError:
-        raise
-    except OSError as e:
-        raise RasterIOError(f"Could not read image '{os.fspath(path)}': {e.strerror or e}") from e
-    if timer is not None:
-        timer.span("read", t0)
-    t0 = time.perf_counter()
-    raw = wp.array(buf.view(layout.dtype), dtype=_WP[layout.dtype], device=device)
+            fd = os.open(path, os.O_RDONLY)
+            try:
+                for i in range(bi0, bi1):
+                    t, stop = i * across + bj0, i * across + bj1
+                    while t < stop:  # runs of blocks back to back in the file
+                        u = _run_end(layout, t, stop)
+                        off = int(layout.offsets[t])
+                        n = int(layout.offsets[u - 1] + layout.sizes[u - 1]) - off
+                        dest = ((i - bi0) * n_across + t - i * across - bj0) * size
+                        _read_exactly(fd, memoryview(buf)[dest:dest + n], off, path)
+                        t = u
+            finally:
+                os.close(fd)
+        except RasterIOError:
+            raise
+        except OSError as e:
+            raise RasterIOError(f"Could not read image '{os.fspath(path)}': {e.strerror or e}") from e
+        if timer is not None:
+            timer.span("read", t0)
+        t0 = time.perf_counter()
+        if pin is not None:
+            raw = wp.empty(nbytes // np.dtype(layout.dtype).itemsize, dtype=_WP[layout.dtype], device=device)
+            pin.upload(raw, nbytes)
+        else:
+            raw = wp.array(buf.view(layout.dtype), dtype=_WP[layout.dtype], device=device)
     if timer is not None:
         timer.span("h2d", t0)
     return raw, n_across, row0 - bi0 * bh, col0 - bj0 * bw
