@@ -1249,7 +1249,8 @@ def test_seams_on_threads_give_the_labels_of_the_order():
 def test_tiles_on_worker_processes_give_the_same_file(pair, tmp_path, codec):
     """processes=2: the tiles computed in two spawned processes (handed back through shared
     memory; with "hybrid" uploaded again for the device encoder, the pixels per image counted
-    by the workers) give the pixels, mask and counts of the threads of one process."""
+    by the workers; the images of their first tiles built while the plan was made) give the
+    pixels, mask and counts of the threads of one process."""
     sc, images, _, _ = pair
     got = {}
     for processes in (None, 2):
@@ -1267,8 +1268,10 @@ def test_tiles_on_worker_processes_give_the_same_file(pair, tmp_path, codec):
     tl = res.profile["timeline"]
     assert tl["bin_s"] > 0 and len(tl["stages"]["kernel"]) == 40 and sum(tl["stages"]["kernel"]) > 0
     assert res.profile["stages"]["finish"]["count"] == 1
-    # each image built once per process whose run (or taken tiles) met it
+    # each image built once per process whose run (or taken tiles) met it; each process
+    # started on those of its first tiles while the plan was being made
     assert builds_a == 2 and 2 <= builds_b <= 4 and held_a == 2 and 1 <= held_b <= 2
+    assert len(res.profile["worker_images_built_ahead"]) == 2 and 2 <= sum(res.profile["worker_images_built_ahead"]) <= 4
 
 
 @pytest.mark.parametrize("compress", ["deflate", "jpeg"])

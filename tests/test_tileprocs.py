@@ -80,6 +80,24 @@ class TrackingPlan(StandInPlan):
             self.held.discard(k)
 
 
+class AheadPlan(TrackingPlan):
+    """A stand-in that "builds" images ahead (build_ahead: each image's number, on the tile
+    threads) and reports those it adopted from the grid's plan in its counts."""
+
+    def __init__(self):
+        super().__init__()
+        self.ahead = None
+
+    def build_ahead(self, ks, pool):
+        self.ahead = [pool.submit(int, k) for k in ks]
+
+    def adopt_ahead(self, other):
+        self.ahead, other.ahead = other.ahead, None
+
+    def _counted_sources(self):
+        return np.array([self.counted, *sorted(f.result() for f in self.ahead or ())])
+
+
 def _tiles(rows=96, cols=80, size=32):
     return [(r0, c0, min(size, rows - r0), min(size, cols - c0)) for r0 in range(0, rows, size)
             for c0 in range(0, cols, size)]
@@ -328,3 +346,26 @@ def test_workers_and_shared_file_do_not_outlive_a_caller_killed_outright(tmp_pat
     finally:
         caller.kill()
         caller.wait()
+
+
+@pytest.mark.parametrize("per_process", [1, 2, 8])
+def test_processes_build_their_first_images_ahead(per_process):
+    """build_ahead: the grid's plan goes to each process before the whole plan, which builds
+    the first images its run (the one run() deals it first) uses, in their order, and hands
+    them to the whole plan when it comes; called twice it is an error."""
+    tiles = _tiles()
+    images = [(9, c0 // 32) if r0 else () for r0, c0, _, _ in tiles]  # (the first row of tiles meets none)
+    with ProcessTiles(2, "cpu", threads=1) as procs:
+        procs.build_ahead(AheadPlan(), tiles, images, per_process=per_process)
+        with pytest.raises(OrthowarpError, match="twice"):
+            procs.build_ahead(AheadPlan(), tiles, images)
+        procs.start_plan(AheadPlan(), (32, 32), with_source=False)
+        for *_, release, _ in procs.run(tiles, 2, "float32", images=images):
+            release()
+        info = procs.finish()
+    runs = tile_runs(tiles, 2, images)
+    for w in range(2):
+        used = list(dict.fromkeys(j for k in runs[w] for j in images[k]))
+        first = used[:per_process]
+        assert first[0] == 9 and len(used) >= 3 and len(first) == min(per_process, len(used))
+        assert info[w]["built_ahead"] == len(first) and list(info[w]["counts"][1:]) == sorted(first)

@@ -32,10 +32,11 @@ the radiometric balance (:mod:`~orthowarp.pipeline.mosaic.balance`), the blendin
 from __future__ import annotations
 
 import collections
+import copy
 import os
 import threading
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
@@ -303,7 +304,8 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
                                feather=feather, balance=balance,
                                reference=reference, occlusion=occlusion, device=device, geoid=geoid,
                                same_vertical_datum=same_vertical_datum, cancel=cancel, _outputs=outputs,
-                               _client=client, _worker_device=worker_device)
+                               _client=client, _worker_device=worker_device,
+                               _on_grid=_ahead_on(procs, tile_size, on) if procs is not None else None)
             out = _WriteSettings(index=index, seamlines=seamlines, seamlines_lonlat=seamlines_lonlat, compress=compress,
                                  compress_level=compress_level, quality=quality, block_codec=block_codec,
                                  creation_options=creation_options, tile_size=tile_size, overwrite=overwrite,
@@ -471,6 +473,27 @@ def _cluster_results(plan: MosaicPlan, client: Any, tiles: list[Tile], codec: st
         yield tile, (None, valid, source)
 
 
+def _for_processes(options: dict[str, Any]) -> dict[str, Any]:
+    """A plan's options for its tile processes: each reads its images' windows (reduced ones
+    still averaged on the device where the plan says so: the same pixels) rather than holding
+    every image it meets whole, and holds at most 24 images."""
+    return dict(options, resident=False, cache_images=min(options["cache_images"], 24))
+
+
+def _ahead_on(procs: ProcessTiles, tile_size: int | None, on: wp.context.Device) -> Callable[[MosaicPlan], None]:
+    """The hook :func:`mosaic_plan` calls once the plan's grid is made: the tile processes
+    start building the images of their first tiles (:meth:`ProcessTiles.build_ahead`) while
+    the plan's reduced pass, balance and seams are made here."""
+
+    def ahead(plan: MosaicPlan) -> None:
+        grid = copy.copy(plan)
+        grid.options = _for_processes(plan.options)
+        tiles = plan.tiles(int(tile_size) if tile_size is not None else default_tile_size(on))
+        procs.build_ahead(grid, tiles, plan._tile_images(tiles))
+
+    return ahead
+
+
 def _process_results(plan: MosaicPlan, procs: ProcessTiles, tiles: list[Tile], size: int,
                      codec: str, on: wp.context.Device, host_source: bool, cancel: threading.Event | None,
                      dst: str, encoder: Any = None) -> Iterator[tuple[Tile, tuple]]:
@@ -480,10 +503,7 @@ def _process_results(plan: MosaicPlan, procs: ProcessTiles, tiles: list[Tile], s
     file's ``encoder`` (else copied), and at the end the workers' pixel counts, stage intervals
     and image builds merged into this process's state."""
     plan._kept.clear()  # the reduced pass's geometries and sources: the workers build their own
-    # each worker reads its images' windows (reduced ones still averaged on the device where
-    # the plan says so: the same pixels) rather than holding every image it meets whole
-    plan.options["resident"] = False
-    plan.options["cache_images"] = min(plan.options["cache_images"], 24)
+    plan.options = _for_processes(plan.options)
     st = plan._materialise()  # the stage timer starts with the tiles, as on threads
     procs.start_plan(plan, (size, size), with_source=codec == "host" or host_source, encoder=encoder)
 
@@ -511,7 +531,8 @@ def _process_results(plan: MosaicPlan, procs: ProcessTiles, tiles: list[Tile], s
                 timer.spans[k].extend(spans)
         timer.info.update(processes=procs.n, worker_peak_rss_mb=[
             i["peak_rss_kb"] / 1024 if i["peak_rss_kb"] is not None else None for i in procs.worker_info],
-            worker_images_held_peak=[i["held_peak"] for i in procs.worker_info])
+            worker_images_held_peak=[i["held_peak"] for i in procs.worker_info],
+            worker_images_built_ahead=[i["built_ahead"] for i in procs.worker_info])
         st["held_peak"] = max(i["held_peak"] for i in procs.worker_info)
 
     return results()

@@ -21,8 +21,8 @@ import logging
 import os
 import threading
 import time
-from collections.abc import Iterable, Iterator, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from concurrent.futures import Executor, ThreadPoolExecutor
 import dataclasses
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -120,11 +120,13 @@ class MosaicPlan(TileBlending):
         self._fresh = {}  # geometries built for the images' grids, for the reduced pass (each taken once)
         self._transformers = {}  # mosaic CRS -> a pose frame's horizontal CRS, by that CRS's WKT
         self._encoder = None  # while writing with a device block codec
+        self._ahead = {}  # images built ahead of their tiles: futures of their cache entries (see _built_ahead)
 
     def __getstate__(self) -> dict[str, Any]:
         state = dict(self.__dict__)
         state["_state"], state["_lock"], state["_encoder"] = None, None, None
         state["_kept"], state["_transformers"], state["_fresh"] = collections.OrderedDict(), {}, {}
+        state["_ahead"] = {}
         return state
 
     def __setstate__(self, state: dict[str, Any]) -> None:
@@ -217,6 +219,40 @@ class MosaicPlan(TileBlending):
                                            src_dtype=self.src_dtype, timer=timer, **reads)
         return entry
 
+    def build_ahead(self, ks: Sequence[int], pool: Executor) -> None:
+        """Build the cache entries of images ``ks`` on ``pool`` now, ahead of the tiles that will
+        use them (a tile process does so while the caller's plan is still being made: see
+        :meth:`~orthowarp.pipeline.mosaic.workers.ProcessTiles.build_ahead`). The entries depend
+        only on the images, the grid and the options, not on the balance or the seams, so a plan
+        made later from the same grid takes them over (:meth:`adopt_ahead`)."""
+        timer = StageTimer(time.perf_counter())  # (their spans are not the tiles')
+        for k in ks:
+            if k not in self._ahead:
+                self._ahead[k] = pool.submit(self._build_quietly, k, timer)
+
+    @quiet_warp()
+    def _build_quietly(self, k: int, timer: StageTimer) -> dict[str, Any]:
+        return self._build(k, timer)
+
+    def adopt_ahead(self, other: MosaicPlan) -> None:
+        """Take over the images ``other`` (a plan of the same grid, images and options) builds
+        or built ahead (:meth:`build_ahead`)."""
+        self._ahead.update(other._ahead)
+        other._ahead = {}
+
+    def _built_ahead(self, k: int, timer: StageTimer) -> dict[str, Any] | None:
+        """Image ``k``'s entry built ahead (waited for where its build is still running), its
+        spans given to ``timer`` from now on; None where it was not built ahead."""
+        with self._lock:
+            built = self._ahead.pop(k, None)
+        if built is None:
+            return None
+        entry = built.result()
+        for name in ("renderer", "fallback"):
+            if name in entry:
+                entry[name].retime(timer)
+        return entry
+
     def _to_frame(self, frame_crs: CRS) -> Transformer:
         """The transformer from the mosaic's CRS to a pose frame's horizontal CRS, one per
         frame CRS in this process, for the reduced pass and the tiles (images in one frame
@@ -250,7 +286,7 @@ class MosaicPlan(TileBlending):
             st["users"][k] = st["users"].get(k, 0) + 1
         try:
             if entry is None:
-                built = self._build(k, st["timer"])  # outside the lock: slow
+                built = self._built_ahead(k, st["timer"]) or self._build(k, st["timer"])  # outside the lock: slow
                 to_close = []
                 with self._lock:
                     if k in st["images"]:  # another thread built it meanwhile
@@ -332,7 +368,13 @@ class MosaicPlan(TileBlending):
             self._close_entry(e)
 
     def close(self) -> None:
-        """Close this process's source handles."""
+        """Close this process's source handles (those of images built ahead and not used too,
+        once their builds are done)."""
+        with self._lock:
+            ahead, self._ahead = list(self._ahead.values()), {}
+        for built in ahead:
+            if built.exception() is None:  # (waits for the build)
+                self._close_entry(built.result())
         with self._lock:
             if self._state is not None:
                 for entry in self._state["images"].values():
@@ -554,12 +596,14 @@ def mosaic_plan(images: Sequence[tuple], *, dem: Dem | str | os.PathLike | float
                 feather: float = 32, balance: bool = True, reference: int | None = None, occlusion: bool = True,
                 device: str | None = None, geoid: str | os.PathLike | None = None, same_vertical_datum: bool = False,
                 cancel: threading.Event | None = None, _outputs: Sequence[str] = (),
-                _seam_pixels: int = SEAM_PIXELS, _client: Any = None, _worker_device: str | None = None) -> MosaicPlan:
+                _seam_pixels: int = SEAM_PIXELS, _client: Any = None, _worker_device: str | None = None,
+                _on_grid: Callable[[MosaicPlan], None] | None = None) -> MosaicPlan:
     """The grid, sources and radiometric balance of a mosaic, without writing it: a
     :class:`MosaicPlan` whose :meth:`~MosaicPlan.tile` any scheduler can run (threads, a Dask
     cluster) and whose :meth:`~MosaicPlan.write` assembles the results. Parameters as
     :func:`~orthowarp.pipeline.mosaic.mosaic`. (Internally, with ``_client`` the reduced pass
-    runs on that Dask client's workers, on ``_worker_device``.)"""
+    runs on that Dask client's workers, on ``_worker_device``; ``_on_grid(plan)`` is called once
+    the grid is made, before the reduced pass, balance and seams.)"""
     t_plan = time.perf_counter()
     images = check_images(images, resampling, dtype, blend, feather, reference, seams, seam_width,
                           resolution=resolution, refraction=refraction, balance=balance, occlusion=occlusion,
@@ -588,6 +632,8 @@ def mosaic_plan(images: Sequence[tuple], *, dem: Dem | str | os.PathLike | float
                       out_crs, transform, (rows, cols), res, foot, count, out_dtype, src_dtype)
     plan.setup_s.update(setup)
     plan._fresh = fresh
+    if _on_grid is not None:
+        _on_grid(plan)
     _balance_and_seams(plan, cfg, cancel, _seam_pixels, _client, _worker_device)
     plan.setup_s["total"] = time.perf_counter() - t_plan
     return plan

@@ -74,6 +74,14 @@ def _segment_folder() -> str:
     return "/dev/shm" if os.path.isdir("/dev/shm") else tempfile.gettempdir()
 
 
+def _locked_file() -> tuple[str, int]:
+    """A new shared file (path, open descriptor) whose ``flock`` this process holds for as long
+    as it lives (see :func:`remove_stale_segments`)."""
+    fd, path = tempfile.mkstemp(prefix=f"{SEGMENT_PREFIX}{os.getpid()}-", dir=_segment_folder())
+    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    return path, fd
+
+
 def remove_stale_segments(folder: str | None = None) -> list[str]:
     """Remove the shared files of :class:`ProcessTiles` whose caller is gone (no process holds
     their ``flock``); returns the paths removed. ``folder``: default /dev/shm (or the
@@ -123,6 +131,7 @@ class ProcessTiles:
                                          on_main))
                        for w in range(self.n)]
         self._file = self._map = self._fd = None
+        self._ahead_file = None  # (path, fd) of the plan of build_ahead
         remove_stale_segments()
         self.worker_info = []  # per worker at the end: pixels per image, stage spans, builds, peak RSS
         for p in self._procs:
@@ -149,15 +158,39 @@ class ProcessTiles:
         n_slots = (self.threads + 1) * self.n
         blob = pickle.dumps(plan, protocol=pickle.HIGHEST_PROTOCOL)
         self._base = -(-len(blob) // mmap.PAGESIZE) * mmap.PAGESIZE
-        fd, path = tempfile.mkstemp(prefix=f"{SEGMENT_PREFIX}{os.getpid()}-", dir=_segment_folder())
+        path, fd = _locked_file()
         self._file, self._fd = path, fd
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # held while this process lives (see remove_stale_segments)
         os.ftruncate(fd, self._base + self._slot_bytes * n_slots)
         self._map = mmap.mmap(fd, self._base + self._slot_bytes * n_slots)
         self._map[:len(blob)] = blob
         self._free = list(range(n_slots))
         for q in self._tasks:
             q.put(("plan", path, len(blob), self._base, self._slot_bytes, self._with_source, encoder))
+
+    def build_ahead(self, plan: Any, tiles: Sequence[Tile], images: Sequence[tuple[int, ...]], *,
+                    per_process: int = 8) -> None:
+        """Have each process build the images of its first tiles now, while the caller is still
+        making ``plan`` (its grid made; the reduced pass, balance and seams to come): ``plan`` as
+        it is now goes to the processes, which build each image's geometry, forward map and
+        tile functions on their tile threads and take them over when the whole plan comes
+        (:meth:`MosaicPlan.adopt_ahead <orthowarp.pipeline.mosaic.plan.MosaicPlan.adopt_ahead>`).
+        ``tiles`` and ``images`` as :meth:`run` will get them: process ``w`` builds the first
+        ``per_process`` images that run ``w`` (the one :meth:`run` deals it first) uses, in the
+        order its tiles first use them. (Only the images of its first few tiles would leave
+        it idle where a run starts in a corner of the mosaic that few images cover: on the
+        40-frame speed block, 0-2 images per process.)"""
+        if self._ahead_file is not None:
+            raise OrthowarpError("ProcessTiles.build_ahead: called twice")
+        runs = tile_runs(tiles, self.n, images)
+        blob = pickle.dumps(plan, protocol=pickle.HIGHEST_PROTOCOL)
+        path, fd = _locked_file()
+        self._ahead_file = path, fd
+        at = 0
+        while at < len(blob):
+            at += os.pwrite(fd, memoryview(blob)[at:], at)
+        for w, run in enumerate(runs[:self.n]):
+            ks = list(dict.fromkeys(j for k in run for j in images[k]))[:per_process]
+            self._tasks[w].put(("ahead", path, len(blob), ks))
 
     def _views(self, slot: int, th: int, tw: int, count: int,
                dtype: str) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
@@ -266,6 +299,11 @@ class ProcessTiles:
         if self._fd is not None:
             os.close(self._fd)
             self._fd = None
+        if self._ahead_file is not None:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(self._ahead_file[0])
+            os.close(self._ahead_file[1])
+            self._ahead_file = None
         self._results.close()
 
 
@@ -507,6 +545,8 @@ class _Worker:
     slot_bytes: int = 0
     with_source: bool = False
     encoder: Any = None  # the mosaic file's TileEncoder, where the workers encode the tiles
+    ahead: Any = None  # the plan of build_ahead (its grid only) until the whole plan comes
+    built_ahead: int = 0  # images this process was asked to build ahead
     failed: list = field(default_factory=list)
 
     def report(self, exc: BaseException) -> None:
@@ -555,10 +595,12 @@ def _serve_tasks(ws: _Worker, tasks: SimpleQueue, threads: int) -> bool:
             msg = tasks.get()
             if msg is None:
                 break
-            if msg[0] in ("plan", "drop"):
+            if msg[0] in ("plan", "drop", "ahead"):
                 try:
                     if msg[0] == "plan":
                         _load_plan(ws, *msg[1:])
+                    elif msg[0] == "ahead":
+                        _build_ahead(ws, *msg[1:], pool)
                     else:
                         ws.plan._note_drop(msg[1])
                 except BaseException as e:  # noqa: BLE001 - reported to the caller
@@ -581,6 +623,21 @@ def _load_plan(ws: _Worker, path: str, n_blob: int, base: int, slot_bytes: int, 
     finally:
         os.close(fd)
     ws.plan = pickle.loads(ws.buf[:n_blob])
+    if ws.ahead is not None:  # the images it started building: the plan's grid is theirs
+        ws.plan.adopt_ahead(ws.ahead)
+        ws.ahead = None
+
+
+def _build_ahead(ws: _Worker, path: str, n_blob: int, ks: list[int], pool: ThreadPoolExecutor) -> None:
+    """Unpickle the plan of :meth:`ProcessTiles.build_ahead` from the file at ``path`` and start
+    building images ``ks`` on the tile threads' ``pool``."""
+    with open(path, "rb") as f:
+        blob = f.read(n_blob)
+    if len(blob) != n_blob:
+        raise OrthowarpError(f"The mosaic's shared file '{path}' ended after {len(blob)} of {n_blob} bytes")
+    ws.ahead = pickle.loads(blob)
+    ws.ahead.build_ahead(ks, pool)
+    ws.built_ahead = len(ks)
 
 
 def _worker_tile(ws: _Worker, k: int, tile: Tile, slot: int, used: tuple[int, ...], token: Any) -> None:
@@ -631,10 +688,12 @@ def _worker_end(ws: _Worker) -> None:
         st = plan._state if plan is not None else None
         info = dict(counts=plan._counted_sources() if plan is not None else None,
                     spans={k: list(v) for k, v in st["timer"].spans.items()} if st else {},
-                    builds=st["builds"] if st else 0, held_peak=st["held_peak"] if st else 0,
+                    builds=st["builds"] if st else 0, held_peak=st["held_peak"] if st else 0, built_ahead=ws.built_ahead,
                     peak_rss_kb=_peak_rss_kb())
         if plan is not None:
             plan.close()
+        if ws.ahead is not None:  # (no plan came after it)
+            ws.ahead.close()
         wp.synchronize()
         ws.results.put(("end", ws.w, info))
     except BaseException as e:  # noqa: BLE001

@@ -107,7 +107,7 @@ def forward_coords(geom: SensorGeometry, transform: Affine, out_crs: CRS, frame_
         The output CRS and the poses' horizontal CRS.
     device : warp.context.Device
     timer : StageTimer
-        Gets the tiles' ``prepare``, ``h2d`` and ``kernel`` spans.
+        Gets the tiles' ``prepare``, ``h2d`` and ``kernel`` spans (unless a call gives its own).
     radius : int
         The resampling's reach (source pixels) beyond a coordinate.
     step : int, optional
@@ -118,7 +118,7 @@ def forward_coords(geom: SensorGeometry, transform: Affine, out_crs: CRS, frame_
     Returns
     -------
     callable
-        ``coords_for(tile)`` (a :class:`~orthowarp.pipeline.tiles.Tile`) -> (source (col, row)
+        ``coords_for(tile, timer=timer)`` (a :class:`~orthowarp.pipeline.tiles.Tile`) -> (source (col, row)
         per tile pixel: a warp array (th, tw) of vec2d, NaN where none; the source window (col0, row0, col1, row1, read
         reduction factor), or None where the tile sees nothing of the image).
     """
@@ -153,7 +153,7 @@ def forward_coords(geom: SensorGeometry, transform: Affine, out_crs: CRS, frame_
     node_blocks = _NodeBlocks([on_grid(oc, True), on_grid(orow, True), on_grid(cc.ravel(), False),
                                on_grid(rr.ravel(), False), on_grid(g[:, 0], False), on_grid(g[:, 1], False)])
 
-    def coords_for(tile: Tile) -> tuple[wp.array, tuple | None]:
+    def coords_for(tile: Tile, timer: StageTimer = timer) -> tuple[wp.array, tuple | None]:
         t = time.perf_counter()
         r0, c0, th, tw = tile
         coords = wp.full((th, tw), wp.vec2d(np.nan, np.nan), dtype=wp.vec2d, device=device)

@@ -251,6 +251,14 @@ class ImageTiles:
                 self._handles.append(ds)
         return ds
 
+    def retime(self, timer: StageTimer) -> None:
+        """Give this image's spans to ``timer`` from now on (an image built ahead of the tiles
+        that use it, under a timer of its own)."""
+        self.timer = timer
+        timer.info["source_reads"] = self.source_reads
+        if self.whole is not None:
+            self.whole._read["timer"] = timer
+
     def close(self) -> None:
         """Close the threads' source handles."""
         with self._lock:
@@ -378,7 +386,7 @@ class ImageTiles:
 
     def _forward(self, tile: Tile) -> tuple[Callable, tuple | None]:
         """The forward method's coordinates and window for a ``tile``, and the resampling launch."""
-        coords, window = self.forward_coords(tile)
+        coords, window = self.forward_coords(tile, timer=self.timer)
 
         def launch(sw: ortho_kernels.SourceWindow, data: wp.array, out: wp.array, out_valid: wp.array) -> None:
             wp.launch(ortho_kernels.ortho_resample_kernel, dim=tile.shape, device=self.device, block_dim=ORTHO_BLOCK_DIM,
