@@ -405,6 +405,9 @@ def run_speed(args, sizes):
             workers_mb = [m for m in r["profile"]["tiles"].get("worker_peak_rss_mb") or [] if m is not None]
             if r["peak_rss_mb"] is not None:
                 r["peak_rss_total_mb"] = r["peak_rss_mb"] + sum(workers_mb)
+            call = r["profile"].get("call_s")
+            if call and call.get("before_call_s") is not None:  # the child's exit: what the profile cannot see
+                r["call_s"] = dict(call, exit_s=round(r["wall_s"] - sum(call.values()), 4))
             r.update(image_builds=r["profile"].get("image_builds"),
                      images_held_peak=r["profile"].get("images_held_peak"))
             r.update(output_gpix=px / 1e9, output_gpix_s=px / 1e9 / r["wall_s"],

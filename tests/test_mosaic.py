@@ -2,6 +2,7 @@
 scene's truth, the source index against an independent off-nadir rule, and bad input."""
 
 import os
+import time
 import warnings
 
 import numpy as np
@@ -1254,8 +1255,17 @@ def test_tiles_on_worker_processes_give_the_same_file(pair, tmp_path, codec):
     sc, images, _, _ = pair
     got = {}
     for processes in (None, 2):
+        t0 = time.perf_counter()
         res = mosaic(images, tmp_path / f"m-{processes}.tif", dem=sc.dem, refraction=False, device="cpu",
                      tile_size=256, block_codec=codec, processes=processes)
+        took = time.perf_counter() - t0
+        # the call's time accounted for, step by step (the tile processes ended in the last)
+        call = dict(res.call_s)
+        assert list(call) == ["before_call_s", "set_up_s", "plan_s", "plan_to_tiles_s", "tiles_s", "after_tiles_s"]
+        before = call.pop("before_call_s")
+        assert before is None or before > 0
+        assert min(call.values()) >= 0 and abs(sum(call.values()) - took) < 0.05
+        assert call["plan_s"] == pytest.approx(res.setup_s["total"], abs=1e-3) and call["tiles_s"] > 0
         with rasterio.open(res.path) as ds:
             got[processes] = (ds.read(), ds.dataset_mask(), res.pixels_per_image, res.profile.get("processes"))
         got[processes] += (res.image_builds, res.images_held_peak)

@@ -310,3 +310,21 @@ def test_public_api_lazily():
     from orthowarp import Dem, FrameCamera  # noqa: F401  (from-imports go through __getattr__ too)
     with pytest.raises(AttributeError, match="no attribute 'nothing'"):
         ow.nothing  # noqa: B018
+
+
+def test_cli_mosaic_profile_says_where_the_call_went(tmp_path):
+    """mosaic --profile / --profile-json: the plan's steps, the tiles' stages and the call's
+    time from the process's start to the end of the tiles and after (call_s)."""
+    res = CliRunner().invoke(main, ["-q", "mosaic", *_cli_job(tmp_path), "--out", str(tmp_path / "m.tif"),
+                                    "--profile", "--profile-json", str(tmp_path / "profile.json")])
+    assert res.exit_code == 0, res.output
+    err = res.stderr.splitlines()
+    assert sum(line.startswith("plan: ") for line in err) == 1
+    call = [line for line in err if line.startswith("call: ")]
+    assert len(call) == 1 and "plan to tiles" in call[0] and "after tiles" in call[0]
+    doc = json.loads((tmp_path / "profile.json").read_text())
+    steps = doc["call_s"]
+    assert list(steps) == ["before_call_s", "set_up_s", "plan_s", "plan_to_tiles_s", "tiles_s", "after_tiles_s"]
+    assert all(v is None or v >= 0.0 for v in steps.values())
+    assert steps["plan_s"] == pytest.approx(doc["plan_s"]["total"], abs=1e-3)
+    assert steps["tiles_s"] == pytest.approx(doc["tiles"]["wall_s"], abs=1e-3)

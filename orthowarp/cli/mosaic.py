@@ -252,11 +252,16 @@ def _report_profile(r: Any, images: int, *, show: bool, path: str | None) -> Non
     if show:
         click.echo(f"plan: {r.setup_s.get('total', 0.0):.3f} s ({steps})", err=True)
         click.echo(format_profile(r.profile, f"{r.path} (tiles and writing)"), err=True)
+        call = getattr(r, "call_s", None)
+        if call:
+            click.echo("call: " + ", ".join(f"{k[:-2].replace('_', ' ')} {v:.3f} s" for k, v in call.items()
+                                            if v is not None), err=True)
     if path:
         write_json(path, dict(plan_s=r.setup_s, tiles=r.profile, wall_s=r.wall_s,
                               output_pixels=int(r.shape[0]) * int(r.shape[1]),
                               shape=list(r.shape), resolution=r.resolution, image_builds=r.image_builds,
-                              images_held_peak=r.images_held_peak, images=images))
+                              images_held_peak=r.images_held_peak, images=images,
+                              call_s=getattr(r, "call_s", None)))
 
 
 def _check_orthos(images: tuple[str, ...], o: SimpleNamespace) -> None:

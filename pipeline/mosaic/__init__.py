@@ -60,6 +60,7 @@ from ..ortho.sink import (
 )
 from ..ortho.tiles import source_facts
 from ..raster.io import check_cancel
+from ..reports.profile import process_start
 from ..tiles import Tile
 from .plan import (
     NO_SOURCE,
@@ -252,6 +253,7 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
     -------
     MosaicResult, or TiledResult with ``tiled``
     """
+    t_call = time.perf_counter()
     images = check_images(images, resampling, dtype, blend, feather, reference, seams, seam_width,
                            resolution=resolution, refraction=refraction, balance=balance, occlusion=occlusion,
                            same_vertical_datum=same_vertical_datum)
@@ -316,11 +318,31 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
                                        progress=progress, threads=workers, worker_device=worker_device)
                 finally:
                     plan.close()
-            return _write_mosaic(plan, procs, dst, on, out, cancel, client=client, progress=progress,
-                                 worker_device=worker_device)
+            t_planned = time.perf_counter()
+            result = _write_mosaic(plan, procs, dst, on, out, cancel, client=client, progress=progress,
+                                   worker_device=worker_device)
     finally:
         if procs is not None:
             procs.close()
+    result.call_s = _call_seconds(result, t_call, t_planned, time.perf_counter())
+    return result
+
+
+def _call_seconds(result: MosaicResult, t_call: float, t_planned: float, t_end: float) -> dict[str, float | None]:
+    """Where a :func:`mosaic` call's time went, in seconds: ``before_call_s`` (from the process's
+    start: imports, reading the inputs, Warp's start), ``set_up_s`` (the call's checks, the
+    tile processes started), ``plan_s``, ``plan_to_tiles_s`` (the writer and encoder made, the
+    plan sent to the tile processes), ``tiles_s`` (the tiles and the writing: ``profile``'s
+    wall time) and ``after_tiles_s`` (publishing the outputs, ending the tile processes)."""
+    p0 = process_start()
+    tiles_start = p0 + result.profile["call_start_s"] if p0 is not None and \
+        result.profile.get("call_start_s") is not None else t_planned
+    plan = float(result.setup_s.get("total", 0.0))
+    tiles = float(result.profile["wall_s"])
+    return dict(before_call_s=round(t_call - p0, 4) if p0 is not None else None,
+                set_up_s=round(t_planned - plan - t_call, 4), plan_s=round(plan, 4),
+                plan_to_tiles_s=round(tiles_start - t_planned, 4), tiles_s=round(tiles, 4),
+                after_tiles_s=round(t_end - tiles_start - tiles, 4))
 
 
 def _tiled_settings(dst: str, index: Any, seamlines: Any, compress: str, compress_level: int | None,

@@ -77,8 +77,9 @@ class MosaicResult:
     writing), ``image_builds`` (times an image's geometry and tile functions were built in
     this process or its tile processes: the number of images per process whose run meets
     them, unless the cache evicted some), ``images_held_peak`` (the most images whose geometry
-    and tile functions one process held at once) and ``profile`` (of the tiles and the
-    writing)."""
+    and tile functions one process held at once), ``profile`` (of the tiles and the
+    writing) and ``call_s`` (where the call's time went: before the call, its set-up, the
+    plan, between the plan and the tiles, the tiles, after them; see ``mosaic``)."""
 
     def __init__(self, **kw: Any) -> None:
         self.__dict__.update(kw)
