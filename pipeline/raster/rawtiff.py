@@ -163,35 +163,36 @@ def read_raw_blocks(path: str | os.PathLike, layout: RawLayout, device: Device, 
                        t * layout.block_bytes))
         t = u
     failed = threading.Event()
+    out_bytes = out.numpy().view(np.uint8) if not device.is_cuda else None  # (the CPU: read in place)
 
     def copy(part: list[tuple[int, int, int]]) -> None:
         with copy_stream(device) as stream:  # (after the array's allocation on the device's stream)
             _copy_part(part, stream)
 
     def _copy_part(part: list[tuple[int, int, int]], stream: Any) -> None:
-        # on a GPU each piece is read into page-locked memory and its copy only enqueued
-        # (the next piece is read meanwhile); on the CPU straight into the array
+        # on a GPU each piece is read into page-locked memory and its copy only enqueued (the
+        # next piece is read meanwhile); on the CPU each is read straight into the array
         fd = os.open(path, os.O_RDONLY)
         try:
             for off, nbytes, dest in part:
                 if failed.is_set():
                     return
+                t0 = time.perf_counter()
+                if stream is None:
+                    _read_exactly(fd, memoryview(out_bytes)[dest:dest + nbytes], off, path)
+                    if timer is not None:
+                        timer.span("read", t0)
+                    continue
                 with pinned_buffer(device, nbytes) as pin:
-                    t0 = time.perf_counter()
-                    if pin is not None:
-                        _read_exactly(fd, memoryview(pin.host)[:nbytes], off, path)
-                    elif stream is None:
-                        _read_exactly(fd, memoryview(out.numpy().view(np.uint8))[dest:dest + nbytes], off, path)
-                    else:  # (no page-locked memory for a piece this large)
-                        buf = np.empty(nbytes, np.uint8)
-                        _read_exactly(fd, memoryview(buf), off, path)
+                    host = pin.host[:nbytes] if pin is not None else np.empty(nbytes, np.uint8)
+                    _read_exactly(fd, memoryview(host), off, path)
                     if timer is not None:
                         timer.span("read", t0)
                     t0 = time.perf_counter()
                     if pin is not None:
                         pin.upload(out, nbytes, dest_offset=dest // item, stream=stream)
-                    elif stream is not None:
-                        wp.copy(out, wp.array(buf.view(layout.dtype), dtype=out.dtype, device="cpu", copy=False),
+                    else:  # (a piece too large for page-locked memory: a copy that waits)
+                        wp.copy(out, wp.array(host.view(layout.dtype), dtype=out.dtype, device="cpu", copy=False),
                                 dest_offset=dest // item, count=nbytes // item, stream=stream)
                         wp.synchronize_stream(stream)
                     if timer is not None:
