@@ -334,9 +334,8 @@ def _call_seconds(result: MosaicResult, t_call: float, t_planned: float, t_end: 
     tile processes started), ``plan_s``, ``plan_to_tiles_s`` (the writer and encoder made, the
     plan sent to the tile processes), ``tiles_s`` (the tiles and the writing: ``profile``'s
     wall time) and ``after_tiles_s`` (publishing the outputs, ending the tile processes)."""
-    p0 = process_start()
-    tiles_start = p0 + result.profile["call_start_s"] if p0 is not None and \
-        result.profile.get("call_start_s") is not None else t_planned
+    p0, start = process_start(), result.profile.get("call_start_s")
+    tiles_start = p0 + start if p0 is not None and start is not None else t_planned
     plan = float(result.setup_s.get("total", 0.0))
     tiles = float(result.profile["wall_s"])
     return dict(before_call_s=round(t_call - p0, 4) if p0 is not None else None,

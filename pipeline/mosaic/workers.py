@@ -636,6 +636,8 @@ def _build_ahead(ws: _Worker, path: str, n_blob: int, ks: list[int], pool: Threa
     if len(blob) != n_blob:
         raise OrthowarpError(f"The mosaic's shared file '{path}' ended after {len(blob)} of {n_blob} bytes")
     ws.ahead = pickle.loads(blob)
+    # (submitted before any tile, so a tile waiting on one of these builds finds it started or
+    # done: the pool runs its tasks in order, and no tile thread waits on a build still queued)
     ws.ahead.build_ahead(ks, pool)
     ws.built_ahead = len(ks)
 
@@ -688,8 +690,8 @@ def _worker_end(ws: _Worker) -> None:
         st = plan._state if plan is not None else None
         info = dict(counts=plan._counted_sources() if plan is not None else None,
                     spans={k: list(v) for k, v in st["timer"].spans.items()} if st else {},
-                    builds=st["builds"] if st else 0, held_peak=st["held_peak"] if st else 0, built_ahead=ws.built_ahead,
-                    peak_rss_kb=_peak_rss_kb())
+                    builds=st["builds"] if st else 0, held_peak=st["held_peak"] if st else 0,
+                    built_ahead=ws.built_ahead, peak_rss_kb=_peak_rss_kb())
         if plan is not None:
             plan.close()
         if ws.ahead is not None:  # (no plan came after it)
