@@ -206,7 +206,8 @@ def exif_sensors(images: Iterable[str | os.PathLike], *, dem: Dem | str | os.Pat
 #: points of every overlapping pair, matched on a grid of one point every ``dense_spacing``
 #: px with the adjusted orientation held (:func:`~orthowarp.pipeline.densify.densify`).
 ADJUST_DEFAULTS = dict(zones=(8, 6), per_zone=3, window=21, radius=12, levels=4, min_sigma=0.5, gnss_sigma=1.0,
-                       ins_sigma=2.0, self_calibration=("k1", "k2"), snooping=True, densify=True, dense_spacing=64)
+                       ins_sigma=2.0, self_calibration=("k1", "k2"), snooping=True, densify=True, dense_spacing=64,
+                       dense_pairs="footprints")
 
 
 @dataclass
@@ -312,7 +313,9 @@ def adjust_exif(sensors: Sequence[tuple[str, FrameSensor]], dem: Dem | str | os.
         ``gnss_sigma`` (m),
         ``ins_sigma`` (deg), ``self_calibration``, ``snooping``
         (:func:`~orthowarp.adjust.bundle_adjust`), ``densify`` (bool), ``dense_spacing`` (px;
-        :func:`~orthowarp.pipeline.densify.densify`'s ``spacing``).
+        :func:`~orthowarp.pipeline.densify.densify`'s ``spacing``), ``dense_pairs`` ("ties":
+        the pairs that share a tie point; "footprints": also those whose footprints on the tie
+        points' median height overlap by a twentieth of the smaller one or more).
 
     Returns
     -------
@@ -341,6 +344,8 @@ def adjust_exif(sensors: Sequence[tuple[str, FrameSensor]], dem: Dem | str | os.
     cfg = {**ADJUST_DEFAULTS, **settings}
     cfg["densify"] = flag("densify", cfg["densify"])
     cfg["dense_spacing"] = integer("dense_spacing", cfg["dense_spacing"], low=4)
+    if cfg["dense_pairs"] not in ("ties", "footprints"):
+        raise ParamError(f"dense_pairs must be 'ties' or 'footprints', got {cfg['dense_pairs']!r}")
     sensors = list(sensors)
     if len(sensors) < 2:
         raise ParamError(f"The chain needs two or more images, got {len(sensors)}")
@@ -1378,8 +1383,24 @@ def _chain_densify(res: Any, block: Any, sensors: list[tuple[str, FrameSensor]],
     where = {iid: k for k, iid in enumerate(ids)}
     paths = [sensors[where[iid]][0] for iid in block.image_ids]
     frames = [adjusted[where[iid]][1] for iid in block.image_ids]
+    if cfg["dense_pairs"] == "footprints":
+        pairs = sorted(set(pairs) | set(_footprint_pairs(frames, surface)))
     return densify(paths, frames, surface, pairs, ids=list(block.image_ids), refraction=refraction,
                    device=device, spacing=cfg["dense_spacing"])
+
+
+def _footprint_pairs(frames: Sequence[FrameSensor], surface: Dem, fraction: float = 0.05) -> list[tuple[int, int]]:
+    """The pairs of ``frames`` whose footprints on the surface's median height overlap by at
+    least ``fraction`` of the smaller footprint's area."""
+    from .mosaic.regions import frame_footprints, overlap_graph
+
+    height = float(surface.value) if surface.is_constant else float(np.nanmedian(surface.array))
+    fp = frame_footprints(frames, height)
+    pairs, area = overlap_graph(fp)
+    x, y = fp.polygons[..., 0], fp.polygons[..., 1]  # (shoelace: each footprint's own area)
+    own = 0.5 * np.abs(np.sum(x * np.roll(y, -1, axis=1) - np.roll(x, -1, axis=1) * y, axis=1))
+    keep = area >= fraction * np.minimum(own[pairs[:, 0]], own[pairs[:, 1]])
+    return [(int(i), int(j)) for i, j in pairs[keep]]
 
 
 def _write_dense(dense: Any, image_ids: Sequence[str], path: str, in_surface: np.ndarray | None) -> None:

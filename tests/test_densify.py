@@ -8,6 +8,7 @@ import os
 
 import numpy as np
 import pytest
+from affine import Affine
 
 from orthowarp import geodesy
 from orthowarp.camera import FrameCamera
@@ -179,7 +180,25 @@ def test_chain_densify_setting_is_checked(tmp_path):
     from orthowarp.pipeline.drone import adjust_exif
 
     a, b = _pair()
-    for settings, words in [(dict(densify="yes"), "densify"), (dict(dense_spacing=0), "dense_spacing")]:
+    for settings, words in [(dict(densify="yes"), "densify"), (dict(dense_spacing=0), "dense_spacing"),
+                            (dict(dense_pairs="all"), "dense_pairs")]:
         with pytest.raises(ParamError, match=words):
             adjust_exif([("a.jpg", a), ("b.jpg", b)], 0.0, tmp_path / "adj", **settings)
     assert not os.path.exists(tmp_path / "adj")
+
+
+def test_chain_densifies_the_pairs_whose_footprints_overlap():
+    """The chain's dense pairs ("footprints", the default): every two frames whose footprints on
+    the surface's median height overlap by a twentieth of the smaller one or more, whether or
+    not they share a tie point (three frames in a row: the outer two 3 % apart, left out)."""
+    from orthowarp.pipeline.drone import ADJUST_DEFAULTS, _footprint_pairs
+    from orthowarp.pipeline.mosaic.regions import frame_footprints
+
+    assert ADJUST_DEFAULTS["dense_pairs"] == "footprints"
+    one = _pair(east=(0.0, 0.0))[:1]
+    b = frame_footprints(one, 200.0).bounds[0]
+    width = b[2] - b[0]
+    frames = _pair(east=(0.0, 0.5 * width, 0.97 * width))
+    surface = Dem(np.full((4, 4), 200.0, np.float32), Affine(10.0, 0, 0, 0, -10.0, 40.0), "EPSG:32615")
+    assert _footprint_pairs(frames, surface) == [(0, 1), (1, 2)]
+    assert _footprint_pairs(frames, surface, fraction=0.01) == [(0, 1), (0, 2), (1, 2)]
