@@ -1392,13 +1392,12 @@ def _chain_densify(res: Any, block: Any, sensors: list[tuple[str, FrameSensor]],
 def _footprint_pairs(frames: Sequence[FrameSensor], surface: Dem, fraction: float = 0.05) -> list[tuple[int, int]]:
     """The pairs of ``frames`` whose footprints on the surface's median height overlap by at
     least ``fraction`` of the smaller footprint's area."""
-    from .mosaic.regions import frame_footprints, overlap_graph
+    from .mosaic.regions import frame_footprints, overlap_graph, signed_areas
 
     height = float(surface.value) if surface.is_constant else float(np.nanmedian(surface.array))
     fp = frame_footprints(frames, height)
     pairs, area = overlap_graph(fp)
-    x, y = fp.polygons[..., 0], fp.polygons[..., 1]  # (shoelace: each footprint's own area)
-    own = 0.5 * np.abs(np.sum(x * np.roll(y, -1, axis=1) - np.roll(x, -1, axis=1) * y, axis=1))
+    own = np.abs(signed_areas(fp.polygons))
     keep = area >= fraction * np.minimum(own[pairs[:, 0]], own[pairs[:, 1]])
     return [(int(i), int(j)) for i, j in pairs[keep]]
 

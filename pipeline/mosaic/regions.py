@@ -52,7 +52,7 @@ from ..ortho.grid import utm_crs
 from ..tiles import Tile
 
 __all__ = ["Footprints", "PlanGrid", "Region", "RegionLabels", "TileAssignment", "RegionalPlan", "border_pixels",
-           "frame_footprints", "overlap_graph", "polygon_overlap_areas", "simulate_pair_statistics",
+           "frame_footprints", "overlap_graph", "polygon_overlap_areas", "signed_areas", "simulate_pair_statistics",
            "solve_balance", "plan_grid", "nadir_rule", "regional_labels", "tile_assignment", "tile_bands",
            "plan_regions", "peak_rss_kb", "NO_LABEL"]
 
@@ -362,11 +362,16 @@ def _box_pairs(bounds: np.ndarray) -> np.ndarray:
     return pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
 
 
+def signed_areas(poly: np.ndarray) -> np.ndarray:
+    """Signed areas (p,) of polygons (p, m, 2) by the shoelace formula: positive where
+    counter-clockwise (x right, y up)."""
+    x, y = poly[..., 0], poly[..., 1]
+    return 0.5 * np.sum(x * np.roll(y, -1, axis=1) - np.roll(x, -1, axis=1) * y, axis=1)
+
+
 def _ccw(poly: np.ndarray) -> np.ndarray:
     """Polygons (p, m, 2) made counter-clockwise (reversed where their signed area is < 0)."""
-    x, y = poly[..., 0], poly[..., 1]
-    signed = 0.5 * np.sum(x * np.roll(y, -1, axis=1) - np.roll(x, -1, axis=1) * y, axis=1)
-    return np.where((signed < 0)[:, None, None], poly[:, ::-1], poly)
+    return np.where((signed_areas(poly) < 0)[:, None, None], poly[:, ::-1], poly)
 
 
 def polygon_overlap_areas(a: np.ndarray, b: np.ndarray, chunk: int = 16384) -> np.ndarray:

@@ -250,19 +250,22 @@ def merge_profiles(profiles: Sequence[dict], *, wall: float | None = None) -> di
         if key in first:
             out[key] = first[key]
     out["tiles"] = int(sum(p.get("tiles", 0) for p in profiles))
-    blocks = {}
-    for p in profiles:
-        for name, n in p.get("blocks_by_codec", {}).items():
-            blocks[name] = blocks.get(name, 0) + int(n)
+    blocks = _summed(profiles, "blocks_by_codec")
     if blocks:
-        out["blocks_by_codec"] = blocks
-    steps = {}  # the device COG encoder's seconds per step (see DeviceCogEncoder.steps), summed
-    for p in profiles:
-        for name, sec in p.get("encoder_steps_s", {}).items():
-            steps[name] = steps.get(name, 0.0) + float(sec)
+        out["blocks_by_codec"] = {k: int(v) for k, v in blocks.items()}
+    steps = _summed(profiles, "encoder_steps_s")  # the device COG encoder's seconds per step
     if steps:
-        out["encoder_steps_s"] = {k: round(v, 4) for k, v in steps.items()}
+        out["encoder_steps_s"] = {k: round(float(v), 4) for k, v in steps.items()}
     return out
+
+
+def _summed(profiles: Sequence[dict], key: str) -> dict:
+    """The dicts ``profile[key]`` of ``profiles`` (those that have one) summed name by name."""
+    total = {}
+    for p in profiles:
+        for name, v in p.get(key, {}).items():
+            total[name] = total.get(name, 0) + v
+    return total
 
 
 def format_profile(prof: dict, title: str) -> str:
