@@ -19,6 +19,7 @@ the scaling efficiency t(1) / (n t(n)) and whether the digests agree.
 
 usage: python3 bench/scaleout.py [--gpus 4,2,1] [--frames 160] [--frame 4800x4000] [--orthos 40]
                                  [--processes-per-gpu 4] [--products tiled,cog,orthos]
+                                 [--block-codec auto] [--product-tile 0]
                                  [--workdir DIR] [--out FILE]
 """
 
@@ -85,6 +86,33 @@ def digest(paths):
     return h.hexdigest()
 
 
+def task_summary(records, t0):
+    """What the workers did in a run, from Dask's task stream (``records``; ``t0`` the run's
+    start on the wall clock): per task kind (the key's prefix) the count and the seconds of
+    compute (sum, largest); per worker the seconds of compute, its first start and last end
+    after ``t0``; and the spread of the workers' busy seconds (how evenly the work was dealt)."""
+    import re
+
+    kinds, workers = {}, {}
+    for r in records:
+        spans = [(s["start"], s["stop"]) for s in r.get("startstops", ()) if s.get("action") == "compute"]
+        if not spans:
+            continue
+        kind = re.sub(r"(-[0-9a-f]+)+$", "", str(r.get("key", "?")).strip("()', "))
+        busy = sum(b - a for a, b in spans)
+        k = kinds.setdefault(kind, dict(n=0, compute_s=0.0, longest_s=0.0))
+        k["n"] += 1
+        k["compute_s"] += busy
+        k["longest_s"] = max(k["longest_s"], busy)
+        w = workers.setdefault(str(r.get("worker")), dict(compute_s=0.0, first_s=1e30, last_s=0.0))
+        w["compute_s"] += busy
+        w["first_s"] = min(w["first_s"], min(a for a, _ in spans) - t0)
+        w["last_s"] = max(w["last_s"], max(b for _, b in spans) - t0)
+    busy = sorted(w["compute_s"] for w in workers.values())
+    spread = dict(min_s=busy[0], median_s=busy[len(busy) // 2], max_s=busy[-1]) if busy else {}
+    return dict(kinds=kinds, workers=workers, worker_compute_spread=spread)
+
+
 def product_files(folder):
     out = []
     for sub in ("tiles", "index"):
@@ -110,11 +138,15 @@ def main(argv=None):
     ap.add_argument("--workdir", default="/tmp/orthowarp-scaleout")
     ap.add_argument("--out", default="bench/results/scaleout.json")
     ap.add_argument("--baseline", action="store_true", help="first, the mosaic on one GPU without a cluster")
+    ap.add_argument("--block-codec", default="auto", help="the mosaics' block codec (mosaic()'s block_codec)")
+    ap.add_argument("--product-tile", type=int, default=0, help="the tiled product's tile edge (0: the default)")
     ap.add_argument("--device", default="cuda", help="cuda, or cpu (a CPU cluster of as many workers: a smoke test)")
     args = ap.parse_args(argv)
 
-    import orthowarp as ow
+    from distributed import get_task_stream
     from mosaic import build_speed
+
+    import orthowarp as ow
     from orthowarp.pipeline.formats import read_cameras, read_exterior
     from orthowarp.pipeline.mosaic import mosaic
     from orthowarp.pipeline.mosaic.cluster import local_cluster
@@ -148,6 +180,7 @@ def main(argv=None):
                   frames=args.frames, frame=[width, height, 3], orthos=args.orthos,
                   ortho_frame=args.ortho_frame or args.frame,
                   processes_per_gpu=args.processes_per_gpu, threads=args.threads, cpu_count=os.cpu_count(),
+                  block_codec=args.block_codec, product_tile=args.product_tile or "auto",
                   build_s=time.perf_counter() - t, runs=[])
     products = args.products.split(",")
     print(f"block of {args.frames} frames {width} x {height} built in {report['build_s']:.1f} s on {gpu_name}", flush=True)
@@ -171,20 +204,22 @@ def main(argv=None):
         where = dict(workers=n * args.processes_per_gpu) if cpu else dict(gpus=n, processes_per_gpu=args.processes_per_gpu)
         with local_cluster(threads=args.threads, **where) as client:
             start_s = time.perf_counter() - t
-            t = time.perf_counter()
+            t = time.perf_counter()  # (the workers' devices and kernels are loaded by local_cluster)
             mosaic(images[:2], os.path.join(work, f"warm{n}.tif"), cluster=client, **kw)
             warm_s = time.perf_counter() - t
             print(f"{n} GPU(s): cluster of {n * args.processes_per_gpu} workers started in {start_s:.1f} s, "
                   f"warm-up {warm_s:.1f} s", flush=True)
             for product in products:
                 run = dict(gpus=n, product=product, cluster_start_s=start_s, warmup_s=warm_s)
-                with GpuSampler() as gs:
-                    t = time.perf_counter()
+                with GpuSampler() as gs, get_task_stream(client) as stream:
+                    t, t_wall = time.perf_counter(), time.time()
                     if product == "tiled":
-                        r = mosaic(images, os.path.join(work, f"tiled{n}"), cluster=client, tiled=True, **kw)
+                        r = mosaic(images, os.path.join(work, f"tiled{n}"), cluster=client, tiled=True,
+                                   product_tile=args.product_tile or None, block_codec=args.block_codec, **kw)
                         files = product_files(r.path)
                     elif product == "cog":
-                        r = mosaic(images, os.path.join(work, f"mosaic{n}.tif"), cluster=client, **kw)
+                        r = mosaic(images, os.path.join(work, f"mosaic{n}.tif"), cluster=client,
+                                   block_codec=args.block_codec, **kw)
                         files = [r.path]
                     else:
                         jobs = ortho_destinations(ortho_images, os.path.join(work, f"orthos{n}"))
@@ -192,6 +227,7 @@ def main(argv=None):
                         files = [x.path for x in rs]
                     run["wall_s"] = time.perf_counter() - t
                 run["gpu_busy_mean"] = gs.means()
+                run["tasks"] = task_summary(stream.data, t_wall)
                 if product == "orthos":
                     px = sum(x.shape[0] * x.shape[1] for x in rs)
                 else:

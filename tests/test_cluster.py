@@ -218,6 +218,28 @@ def test_a_scheduler_that_cannot_be_reached_is_a_clear_error(block, tmp_path):
     assert "secret" not in str(e.value) and "user" not in str(e.value)
 
 
+def _loaded_modules() -> list[str]:
+    """(On a worker) the orthowarp kernel modules Warp has loaded on the CPU."""
+    import warp as wp
+
+    from orthowarp.pipeline.mosaic.cluster import WORKER_MODULES
+
+    cpu = wp.get_device("cpu")
+    return sorted(name for name in WORKER_MODULES
+                  if any(key[0] == cpu.context for key in wp.get_module(name).execs))
+
+
+@pytest.mark.slow  # (a LocalCluster of 1 process)
+def test_the_clusters_orthowarp_starts_have_their_kernels_loaded():
+    from orthowarp.pipeline.mosaic.cluster import WORKER_MODULES, local_cluster, warm_workers, worker_names
+
+    with local_cluster(workers=1, threads=1) as c:
+        (loaded,) = c.run(_loaded_modules).values()  # before any job
+        assert loaded == sorted(WORKER_MODULES)
+        seconds = warm_workers(c, "cpu")  # again: nothing left to load
+        assert sorted(seconds) == worker_names(c) and all(0 <= s < 5 for s in seconds.values())
+
+
 @pytest.mark.parametrize("path, want", [
     ("/data/a.tif", "/data/a.tif"),
     ("https://user:pw@example.com:8443/a.tif?X-Amz-Signature=abc", "https://example.com:8443/a.tif"),

@@ -162,6 +162,7 @@ def local_cluster(*, gpus: int | None = None, workers: int | None = None, thread
     try:
         with distributed.Client(cluster, direct_to_workers=True) as client:
             client.wait_for_workers(len(cluster.workers))
+            warm_workers(client, "cuda:0" if gpus is not None else "cpu")
             yield client
     finally:
         cluster.close()
@@ -223,6 +224,37 @@ def connect(cluster: Any = None, *, gpus: int | None = None, workers: int | None
     if not isinstance(cluster, distributed.Client):
         raise ParamError(f"cluster must be a distributed.Client or a scheduler address, got {type(cluster).__name__}")
     yield cluster
+
+
+#: The kernel modules a worker's tiles and orthos use, loaded by :func:`warm_workers`; on a GPU
+#: also the device codecs' (:data:`GPU_WORKER_MODULES`).
+WORKER_MODULES = ("orthowarp.kernels.sensor", "orthowarp.kernels.ortho", "orthowarp.kernels.mosaic")
+GPU_WORKER_MODULES = ("orthowarp.kernels.cog", "orthowarp.kernels.deflate")
+
+
+def _warm_worker(device: str) -> float:
+    """On a worker: Warp, the ``device`` (its CUDA context) and the tiles' kernel modules on
+    it; the seconds taken."""
+    from ..._device import warm_up
+
+    t = time.perf_counter()
+    warm_up(device, WORKER_MODULES + (GPU_WORKER_MODULES if device.startswith("cuda") else ())).join()
+    return time.perf_counter() - t
+
+
+def warm_workers(client: Any, device: str) -> dict[str, float]:
+    """Start Warp, the ``device`` and the kernel modules the tiles use on every worker of
+    ``client`` at once, so that a job's first tasks do not each wait for them: a CUDA
+    context takes about 2 s to create on the lent H200 hosts, and a cluster's workers would
+    otherwise create theirs one by one as the job's first tasks reach them. An error is left
+    for the job to meet and report (:func:`orthowarp._device.warm_up`).
+
+    Returns
+    -------
+    dict
+        Seconds each worker took, by its address.
+    """
+    return client.run(_warm_worker, device)
 
 
 def worker_device(client: Any, device: str | None) -> str | None:
