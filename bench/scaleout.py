@@ -14,7 +14,9 @@ then, timed:
   its worker).
 
 Reported per run: wall time (and the plan's steps), output Gpix/s, the mean GPU utilisation of
-each GPU (nvidia-smi, sampled every 200 ms), and a digest of the output files; then per product
+each GPU (nvidia-smi, sampled every 200 ms) and of the host's CPU cores (/proc/stat), what the
+workers did (Dask's task stream: per task kind the count and compute seconds, per worker its
+compute seconds and span), and a digest of the output files; then per product
 the scaling efficiency t(1) / (n t(n)) and whether the digests agree.
 
 usage: python3 bench/scaleout.py [--gpus 4,2,1] [--frames 160] [--frame 4800x4000] [--orthos 40]
@@ -43,9 +45,27 @@ class GpuSampler:
     """Mean utilisation (%) of each GPU while the block runs (nvidia-smi every 200 ms)."""
 
     def __init__(self) -> None:
-        self.samples, self.proc, self.thread = {}, None, None
+        self.samples, self.proc, self.thread, self.cpu0, self.cpu1 = {}, None, None, None, None
+
+    @staticmethod
+    def _cpu_times():
+        """(busy, total) jiffies of all the host's cores (/proc/stat), or None."""
+        try:
+            with open("/proc/stat") as f:
+                v = [int(x) for x in f.readline().split()[1:]]
+        except (OSError, ValueError):
+            return None
+        idle = v[3] + (v[4] if len(v) > 4 else 0)  # idle + iowait
+        return sum(v) - idle, sum(v)
+
+    def cpu_busy(self):
+        """The host's CPU cores' mean utilisation (%) over the block, or None."""
+        if self.cpu0 is None or self.cpu1 is None or self.cpu1[1] == self.cpu0[1]:
+            return None
+        return 100.0 * (self.cpu1[0] - self.cpu0[0]) / (self.cpu1[1] - self.cpu0[1])
 
     def __enter__(self):
+        self.cpu0, self.cpu1 = self._cpu_times(), None
         try:
             self.proc = subprocess.Popen(["nvidia-smi", "--query-gpu=index,utilization.gpu", "--format=csv,noheader,nounits",
                                           "-lms", "200"], stdout=subprocess.PIPE, text=True)
@@ -64,6 +84,7 @@ class GpuSampler:
             self.samples.setdefault(i, []).append(u)
 
     def __exit__(self, *exc):
+        self.cpu1 = self._cpu_times()
         if self.proc is not None:
             self.proc.terminate()
             self.proc.wait()
@@ -227,6 +248,7 @@ def main(argv=None):
                         files = [x.path for x in rs]
                     run["wall_s"] = time.perf_counter() - t
                 run["gpu_busy_mean"] = gs.means()
+                run["host_cpu_busy"] = gs.cpu_busy()
                 run["tasks"] = task_summary(stream.data, t_wall)
                 if product == "orthos":
                     px = sum(x.shape[0] * x.shape[1] for x in rs)
@@ -237,7 +259,8 @@ def main(argv=None):
                            digest=digest(files))
                 report["runs"].append(run)
                 save_report(report, args.out)
-                print(f"  {product}: {run['wall_s']:.1f} s, {run['output_gpix_s']:.3f} Gpix/s, GPU busy "
+                print(f"  {product}: {run['wall_s']:.1f} s, {run['output_gpix_s']:.3f} Gpix/s, host CPU "
+                      f"{run['host_cpu_busy'] or 0:.0f} %, GPU busy "
                       f"{[round(v) for v in run['gpu_busy_mean'].values()]}, {run['files']} files, "
                       f"{run['digest'][:12]}", flush=True)
     summary = {}

@@ -213,6 +213,17 @@ def ensure_warp_initialized() -> None:
                 _replay(tmp)  # also when init failed: its native messages explain why
 
 
+def host_cores() -> int:
+    """The CPU cores this process may run on: its affinity set where the system has one (a
+    worker of :func:`~orthowarp.pipeline.mosaic.cluster.local_cluster` gets its share of the
+    host's cores that way), else all of them. Host thread pools are sized by it, so that the
+    processes sharing a host do not each start a thread per core of the whole host."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):  # (no affinity sets on this system)
+        return os.cpu_count() or 1
+
+
 def resolve_device(device: wp.DeviceLike = None) -> wp.Device:
     """Return a Warp device: ``None`` picks the first CUDA device if any, else the CPU.
 

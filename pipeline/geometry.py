@@ -14,7 +14,7 @@ import numpy as np
 import warp as wp
 from pyproj import CRS, Transformer
 
-from .._device import load_modules, quiet_warp, resolve_device, to_host
+from .._device import host_cores, load_modules, quiet_warp, resolve_device, to_host
 from .._validate import as_crs, no_infinite_rows
 from .._validate import points as _as_points
 from ..errors import GeometryError, ParamError
@@ -381,7 +381,7 @@ class SensorGeometry:
             out = wp.empty((rows, cols), dtype=wp.vec3d, device=self.device)
             return to_host(self.geolocate_grid(out, col0=c0, row0=r0, step=step))
         result = np.empty((rows, cols, 3))
-        workers = workers or os.cpu_count() or 1
+        workers = workers or host_cores()
         band_rows = band_rows or max(1, -(-rows // (4 * workers)))
         structs, kernel = self.structs(), self.sensor.kernels.geolocate_grid
 

@@ -240,6 +240,28 @@ def test_the_clusters_orthowarp_starts_have_their_kernels_loaded():
         assert sorted(seconds) == worker_names(c) and all(0 <= s < 5 for s in seconds.values())
 
 
+def _cores() -> tuple[list[int], int]:
+    """(On a worker) its CPU cores and what orthowarp sizes its thread pools by."""
+    from orthowarp._device import host_cores
+
+    return sorted(os.sched_getaffinity(0)), host_cores()
+
+
+@pytest.mark.slow  # (a LocalCluster of 2 processes)
+@pytest.mark.skipif(not hasattr(os, "sched_getaffinity") or len(os.sched_getaffinity(0)) < 2,
+                    reason="needs CPU affinity and 2 cores")
+def test_the_workers_of_a_local_cluster_share_the_cores():
+    from orthowarp.pipeline.mosaic.cluster import local_cluster
+
+    mine = sorted(os.sched_getaffinity(0))
+    with local_cluster(workers=2, threads=1) as c:
+        got = c.run(_cores)
+    shares = [cores for cores, _ in got.values()]
+    assert sorted(sum(shares, [])) == mine and all(cores for cores in shares)  # disjoint, all used
+    assert all(n == len(cores) for cores, n in got.values())
+    assert sorted(os.sched_getaffinity(0)) == mine  # (this process, where the nannies run, untouched)
+
+
 @pytest.mark.parametrize("path, want", [
     ("/data/a.tif", "/data/a.tif"),
     ("https://user:pw@example.com:8443/a.tif?X-Amz-Signature=abc", "https://example.com:8443/a.tif"),

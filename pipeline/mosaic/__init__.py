@@ -45,7 +45,7 @@ import numpy as np
 import warp as wp
 from pyproj import CRS
 
-from ..._device import quiet_warp, resolve_device, to_host
+from ..._device import host_cores, quiet_warp, resolve_device, to_host
 from ..._validate import flag, integer
 from ...errors import ParamError
 from ...options import BlockCodec, Compress, choice
@@ -430,7 +430,7 @@ def _thread_results(plan: MosaicPlan, tiles: list[Tile], codec: str, on: wp.cont
     order of :func:`~orthowarp.pipeline.mosaic.workers.tile_runs` (its runs in turn), at most 2 x workers
     tiles in flight (bounded memory); with a device ``codec`` each tile goes to the plan's
     encoder from its thread."""
-    n_workers = workers or (8 if on.is_cuda else (os.cpu_count() or 1))
+    n_workers = workers or (8 if on.is_cuda else host_cores())
 
     def tile(t: Tile) -> tuple:
         if codec == "host":

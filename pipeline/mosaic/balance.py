@@ -15,12 +15,13 @@ overlaps (:mod:`~orthowarp.pipeline.mosaic.seams`).
 
 from __future__ import annotations
 
-import os
 from collections.abc import Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from typing import Optional
 
 import numpy as np
+
+from ..._device import host_cores
 
 __all__ = ["radiometric_balance", "overlap_boxes", "overlap_arrays"]
 
@@ -56,7 +57,7 @@ def radiometric_balance(coarse: Sequence[Coarse], count: int, reference: int | N
 
     boxes = list(overlap_boxes(coarse, sparse_from=sparse_from))
     # (i, j, weight, stats) per overlap, in order, on threads (einsum frees the GIL)
-    with ThreadPoolExecutor(max_workers=max(1, min(8, os.cpu_count() or 1, len(boxes)))) as pool:
+    with ThreadPoolExecutor(max_workers=max(1, min(8, host_cores(), len(boxes)))) as pool:
         eq_g = [e for e in pool.map(stats, boxes) if e is not None]
     gains, offsets = np.ones((n, count)), np.zeros((n, count))
     if not eq_g:

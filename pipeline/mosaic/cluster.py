@@ -134,6 +134,11 @@ def local_cluster(*, gpus: int | None = None, workers: int | None = None, thread
     -----
     The scheduler, the workers and the dashboard (served where Bokeh is installed) listen on
     127.0.0.1 only: no other machine can reach the cluster.
+
+    Each worker process runs on a share of this process's CPU cores of its own
+    (:func:`share_cores`: neighbouring workers, those of one GPU, on neighbouring cores), and
+    has Warp, its device and the tiles' kernel modules loaded (:func:`warm_workers`) before
+    the client is handed out.
     """
     distributed = _distributed()
     if (gpus is None) == (workers is None):
@@ -162,6 +167,7 @@ def local_cluster(*, gpus: int | None = None, workers: int | None = None, thread
     try:
         with distributed.Client(cluster, direct_to_workers=True) as client:
             client.wait_for_workers(len(cluster.workers))
+            share_cores(client)
             warm_workers(client, "cuda:0" if gpus is not None else "cpu")
             yield client
     finally:
@@ -224,6 +230,54 @@ def connect(cluster: Any = None, *, gpus: int | None = None, workers: int | None
     if not isinstance(cluster, distributed.Client):
         raise ParamError(f"cluster must be a distributed.Client or a scheduler address, got {type(cluster).__name__}")
     yield cluster
+
+
+def _pin(cores: list[int]) -> list[int]:
+    """On a worker or its nanny: every thread of this process (and so the threads and
+    processes it starts later) onto ``cores``; returns the calling thread's cores."""
+    for tid in os.listdir("/proc/self/task"):
+        try:
+            os.sched_setaffinity(int(tid), cores)
+        except OSError:  # (a thread that ended meanwhile)
+            pass
+    return sorted(os.sched_getaffinity(0))
+
+
+def share_cores(client: Any) -> dict[str, list[int]]:
+    """Give each worker of a cluster on this host a share of this process's CPU cores of its
+    own: the cores split into as many runs of neighbouring cores as there are workers, taken
+    in the order of the workers' names (for :func:`local_cluster`'s GPU workers, GPU by GPU).
+    (A worker its nanny restarts runs on all the cores: the nannies of a local cluster run
+    in the calling process, whose cores are left as they are.)
+
+    Each worker's host thread pools are then sized by its share
+    (:func:`orthowarp._device.host_cores`) instead of each starting a thread per core of the
+    whole host (on a 4-GPU host of 64 cores, 16 worker processes would each start pools of
+    64 threads).
+
+    Returns
+    -------
+    dict
+        The cores of each worker, by its address; empty where this system has no CPU
+        affinity or fewer cores than workers (nothing set).
+    """
+    if not hasattr(os, "sched_setaffinity") or not os.path.isdir("/proc/self/task"):
+        return {}
+    cores = sorted(os.sched_getaffinity(0))
+    info = client.scheduler_info()["workers"]
+
+    def order(address: str) -> tuple:
+        name = str(info[address].get("name", address))
+        return tuple(int(v) for v in re.findall(r"\d+", name)), name
+
+    workers = sorted(info, key=order)
+    if not workers or len(cores) < len(workers):
+        return {}
+    shares = {}
+    for address, part in zip(workers, np.array_split(np.asarray(cores), len(workers))):
+        share = [int(c) for c in part]
+        shares[address] = client.run(_pin, share, workers=[address])[address]
+    return shares
 
 
 #: The kernel modules a worker's tiles and orthos use, loaded by :func:`warm_workers`; on a GPU

@@ -33,7 +33,7 @@ import warp as wp
 from affine import Affine
 from pyproj import CRS, Transformer
 
-from ..._device import quiet_warp, resolve_device, to_host
+from ..._device import host_cores, quiet_warp, resolve_device, to_host
 from ..._validate import flag, positive
 from ...errors import GeometryError, ParamError, RasterIOError
 from ...kernels import mosaic as mosaic_kernels
@@ -726,7 +726,7 @@ def _image_grids(images: list[tuple], terrain: Dem, cfg: _PlanSettings, client: 
         finally:
             remote.release()
         return grids
-    with ThreadPoolExecutor(max_workers=max(1, min(8, os.cpu_count() or 1, len(images) - 1))) as pool:
+    with ThreadPoolExecutor(max_workers=max(1, min(8, host_cores(), len(images) - 1))) as pool:
         grids += pool.map(lambda k: _grid_of(images[k], terrain, cfg, crs, keep=None if keep is None else (keep, k)),
                           range(1, len(images)))
     return grids
@@ -979,7 +979,7 @@ def reduced_pass(plan: MosaicPlan, cancel: threading.Event | None, max_pixels: i
     if client is not None:
         items = _reduced_on_cluster(plan, client, f, order, cancel, worker_device)
     else:
-        with ThreadPoolExecutor(max_workers=min(8, os.cpu_count() or 1, len(plan.foot))) as pool:
+        with ThreadPoolExecutor(max_workers=min(8, host_cores(), len(plan.foot))) as pool:
             items = dict(zip(order, pool.map(one, order)))
     plan._fresh.clear()  # (those of images without a pixel on the reduced grid)
     for k in range(len(plan.foot)):

@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import math
 import multiprocessing
-import os
 import threading
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
@@ -42,6 +41,7 @@ import numpy as np
 from affine import Affine
 from pyproj import CRS, Transformer
 
+from ..._device import host_cores
 from ..._validate import as_crs, integer, positive
 from ...brown import distort, pixel_to_normalized
 from ...errors import GeometryError, ParamError
@@ -894,7 +894,7 @@ def regional_labels(fp: Footprints, grid: PlanGrid, *, block: int | None = None,
         area = grid.rows * grid.cols / max(len(fp), 1)  # cells per image
         block = max(16, int(round(math.sqrt(integer("images_per_region", images_per_region, low=1) * area))))
     block = integer("block", block, low=1)
-    workers = integer("workers", workers if workers is not None else (os.cpu_count() or 1), low=1)
+    workers = integer("workers", workers if workers is not None else host_cores(), low=1)
     if mp_context == "auto":  # fork where safe: no other thread that a fork could leave holding a lock
         fork_ok = "fork" in multiprocessing.get_all_start_methods() and threading.active_count() == 1
         mp_context = "fork" if fork_ok else "spawn"

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import heapq
 import logging
-import os
 import threading
 from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
@@ -23,6 +22,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ..._device import host_cores
 from ...errors import GeometryError
 from ...geodesy import ecef_to_geodetic, enu_to_ecef_matrix, geodetic_to_ecef, geodetic_up
 from ..ortho.tiles import COARSE_STEP, coarse_grid
@@ -297,7 +297,7 @@ def _run_ordered(fn: Callable[[int], Any], after: Sequence[Sequence[int]], worke
     started dropped). On one worker: in order, on this thread."""
     n = len(after)
     results = [None] * n
-    limit = max(1, min(workers or os.cpu_count() or 1, n or 1))
+    limit = max(1, min(workers or host_cores(), n or 1))
     if limit == 1:
         for p in range(n):
             results[p] = fn(p)

@@ -36,7 +36,7 @@ import rasterio
 from affine import Affine
 from pyproj import CRS
 
-from ..._device import quiet_warp, to_host
+from ..._device import host_cores, quiet_warp, to_host
 from ..._validate import flag, integer, positive
 from ...errors import GeometryError, OrthowarpWarning, ParamError, RasterIOError
 from ...options import BlockCodec, Compress, Method, Resampling, SourceReads, choice
@@ -508,7 +508,7 @@ def _render(geom: SensorGeometry, grid: _Grid, source: _Source, output: OutputSe
         # the COG writer compresses in its own threads (timed there as "write"): here the hand-off
         timer.span("queue" if cog is not None else "write", t)
 
-    n_workers = settings.workers or (4 if device.is_cuda else (os.cpu_count() or 1))
+    n_workers = settings.workers or (4 if device.is_cuda else host_cores())
     progress, block_codec = settings.progress, output.block_codec
     try:
         # A bounded GDAL block cache for the source reads and GDAL-written outputs: the default

@@ -12,7 +12,6 @@ checks a source image against its sensor.
 
 from __future__ import annotations
 
-import os
 import threading
 import time
 import warnings
@@ -27,7 +26,7 @@ from pyproj import Transformer
 from rasterio.enums import MaskFlags, Resampling
 from rasterio.windows import Window
 
-from ..._device import copy_stream, load_modules, pinned_buffer, to_host, upload
+from ..._device import copy_stream, host_cores, load_modules, pinned_buffer, to_host, upload
 from ...errors import ParamError, RasterIOError
 from ...kernels import ortho as ortho_kernels
 from ...options import Resampling as Interpolation
@@ -659,14 +658,14 @@ def read_whole_source(src: str, device: wp.context.Device, *, masked: bool, dtyp
     if layout is not None and (layout.width, layout.height, layout.bands, layout.dtype) == (w, h, bands, read_dtype) \
             and len(layout.offsets) * layout.block_bytes < (1 << 31) * np.dtype(read_dtype).itemsize:
         timer.info["whole_source_reads"] = "raw"
-        raw = read_raw_blocks(src, layout, device, threads=min(8, os.cpu_count() or 1), timer=timer)
+        raw = read_raw_blocks(src, layout, device, threads=min(8, host_cores()), timer=timer)
         t = time.perf_counter()
         wp.launch(ortho_kernels.untile_kernel, dim=data.shape, device=device,
                   inputs=[raw, layout.block_h, layout.block_w, layout.blocks_across, 0, 0], outputs=[data])
         del raw
         timer.span("kernel", t)
     else:
-        n_threads = max(1, min(8, os.cpu_count() or 1, len(strips)))
+        n_threads = max(1, min(8, host_cores(), len(strips)))
         with ThreadPoolExecutor(max_workers=n_threads) as pool:
             list(pool.map(read, [strips[k::n_threads] for k in range(n_threads)]))
     if read_dtype != dtype:  # e.g. uint8 into float32

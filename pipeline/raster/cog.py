@@ -59,6 +59,7 @@ try:  # libdeflate: about 4x faster than zlib at the same level, same zlib strea
 except ImportError:  # pragma: no cover
     from zlib import compress as _zlib_compress
 
+from ..._device import host_cores
 from ..._validate import integer
 from ...errors import ParamError, RasterIOError
 from .tiff import LONG, LONG8, RATIONAL, SHORT, TYPE_SIZE, Tag, read_tiff_tags
@@ -536,7 +537,7 @@ class CogWriter(TileEncoder):
             raise RasterIOError(f"Cannot write '{self.name}': {e.strerror or e}") from e
         self._end = 0
         self._lock = threading.Lock()
-        threads = threads or os.cpu_count() or 1
+        threads = threads or host_cores()
         self._pool = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="cog")
         self._slots = threading.BoundedSemaphore(4 * threads)  # blocks queued or being compressed
         self._error = None

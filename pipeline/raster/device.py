@@ -44,7 +44,6 @@ libjpeg's, so its pixels are the host file's within JPEG's own error.
 
 from __future__ import annotations
 
-import os
 import struct
 import threading
 import time
@@ -55,7 +54,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import warp as wp
 
-from ..._device import load_modules, to_host, upload
+from ..._device import host_cores, load_modules, to_host, upload
 from ...errors import DeviceError, ParamError
 from ...kernels import cog as kc
 
@@ -139,7 +138,7 @@ class _HostCodec:
 
     def __init__(self, level: int, threads: int | None = None, prefix: str = "codec") -> None:
         self.level = int(level)
-        self._pool = ThreadPoolExecutor(max_workers=threads or os.cpu_count() or 1, thread_name_prefix=prefix)
+        self._pool = ThreadPoolExecutor(max_workers=threads or host_cores(), thread_name_prefix=prefix)
 
     def _one(self, raw: np.ndarray) -> bytes:
         raise NotImplementedError
