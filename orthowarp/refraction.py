@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import warp as wp
 
+from ._device import upload
 from .errors import GeometryError, ParamError
 from .kernels.refraction import RefractionTable
 
@@ -323,5 +324,5 @@ class RefractionModel:
         s.h0 = float(self.heights[0])
         s.dh = float(self.heights[1] - self.heights[0])
         s.inv_dtheta, s.inv_dh = 1.0 / s.dtheta, 1.0 / s.dh
-        s.q = wp.array(np.ascontiguousarray(self.q), dtype=wp.float64, device=device)
+        s.q = upload(self.q, dtype=wp.float64, device=device)  # (enqueued: see orthowarp._device.upload)
         return s

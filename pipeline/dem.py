@@ -30,6 +30,7 @@ from rasterio.enums import MaskFlags
 from rasterio.errors import RasterioIOError
 from rasterio.windows import Window
 
+from .._device import upload
 from .._validate import as_crs, finite, finite_vector, integer
 from ..errors import CrsError, ParamError, RasterIOError
 from ..kernels.dem import DemData
@@ -600,10 +601,11 @@ class Dem:
     def to_struct(self, device: wp.DeviceLike) -> DemData:
         """Pack into :class:`orthowarp.kernels.dem.DemData` on ``device``."""
         s = DemData()
-        s.data = wp.array(self.array, dtype=wp.float32, device=device)
+        # (from page-locked memory on a GPU: their copies enqueued, not waiting for the device)
+        s.data = upload(self.array, dtype=wp.float32, device=device)
         s.block = BLOCK
-        s.bmax = wp.array(self.block_bounds() if not self.is_constant else np.zeros((1, 1), np.float32),
-                          dtype=wp.float32, device=device)
+        s.bmax = upload(self.block_bounds() if not self.is_constant else np.zeros((1, 1), np.float32),
+                        dtype=wp.float32, device=device)
         t = self.transform
         s.x0, s.dx, s.y0, s.dy = float(t.c), float(t.a), float(t.f), float(t.e)
         s.inv_dx, s.inv_dy = 1.0 / s.dx, 1.0 / s.dy

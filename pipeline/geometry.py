@@ -14,7 +14,7 @@ import numpy as np
 import warp as wp
 from pyproj import CRS, Transformer
 
-from .._device import host_cores, load_modules, quiet_warp, resolve_device, to_host
+from .._device import host_cores, load_modules, quiet_warp, resolve_device, to_host, upload
 from .._validate import as_crs, no_infinite_rows
 from .._validate import points as _as_points
 from ..errors import GeometryError, ParamError
@@ -341,7 +341,7 @@ class SensorGeometry:
         out = wp.empty(len(pix), dtype=wp.vec3d, device=self.device)
         if len(pix):
             wp.launch(self.sensor.kernels.geolocate, dim=len(pix), device=self.device,
-                      inputs=[*self.structs(), wp.array(pix, dtype=wp.vec2d, device=self.device), out])
+                      inputs=[*self.structs(), upload(pix, dtype=wp.vec2d, device=self.device), out])
         return to_host(out).reshape(-1, 3)
 
     def geolocate_grid(self, out: wp.array, *, col0: float = 0.5, row0: float = 0.5, step: float = 1.0,
@@ -404,7 +404,7 @@ class SensorGeometry:
         out = wp.empty(len(geo), dtype=wp.vec2d, device=self.device)
         if len(geo):
             wp.launch(self.sensor.kernels.project, dim=len(geo), device=self.device,
-                      inputs=[*self.sensor_structs(), wp.array(geo, dtype=wp.vec3d, device=self.device), out])
+                      inputs=[*self.sensor_structs(), upload(geo, dtype=wp.vec3d, device=self.device), out])
         return to_host(out).reshape(-1, 2)
 
 

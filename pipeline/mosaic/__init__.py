@@ -45,7 +45,7 @@ import numpy as np
 import warp as wp
 from pyproj import CRS
 
-from ..._device import host_cores, quiet_warp, resolve_device, to_host
+from ..._device import host_cores, quiet_warp, resolve_device, to_host, upload
 from ..._validate import flag, integer
 from ...errors import ParamError
 from ...options import BlockCodec, Compress, choice
@@ -489,8 +489,8 @@ def _cluster_results(plan: MosaicPlan, client: Any, tiles: list[Tile], codec: st
         if codec == "host":
             yield tile, (values, valid, source)
             continue
-        plan._encoder.write(tile.row, tile.col, wp.array(values, device=on),
-                            wp.array(valid.view(np.uint8), dtype=wp.uint8, device=on))
+        plan._encoder.write(tile.row, tile.col, upload(values, dtype=wp.dtype_from_numpy(values.dtype), device=on),
+                            upload(valid.view(np.uint8), dtype=wp.uint8, device=on))
         yield tile, (None, valid, source)
 
 
@@ -538,7 +538,9 @@ def _process_results(plan: MosaicPlan, procs: ProcessTiles, tiles: list[Tile], s
                     yield tile, (encoded if encoded is not None else values.copy(), ok.copy(), source.copy())
                     continue
                 t = time.perf_counter()
-                up = wp.array(values, device=on), wp.array(valid, dtype=wp.uint8, device=on)
+                # (copied into page-locked memory before the slot is released; the copies enqueued)
+                up = upload(values, dtype=wp.dtype_from_numpy(values.dtype), device=on), \
+                    upload(valid, dtype=wp.uint8, device=on)
                 st["timer"].span("h2d", t)  # (this process's upload of the worker's tile)
                 plan._encoder.write(tile.row, tile.col, *up)
                 yield tile, (None, ok.copy(), source.copy()) if source is not None else (None, None, None)
