@@ -388,9 +388,9 @@ def capture(workdir, n_images, strips, width, height, reduce):
     got = {}
     reduced_pass, least_cost_seams = plan_mod.reduced_pass, plan_mod.least_cost_seams
 
-    def forced(plan, cancel, max_pixels):  # the reduced factor ``reduce``
+    def forced(plan, cancel, max_pixels, **kw):  # the reduced factor ``reduce``
         rows, cols = plan.shape
-        return reduced_pass(plan, cancel, math.ceil(rows * cols / reduce**2))
+        return reduced_pass(plan, cancel, math.ceil(rows * cols / reduce**2), **kw)
 
     def keep(labels, coarse, gains, offsets, width, reach, cancel=None, workers=None):
         got.update(labels=labels.copy(), coarse=coarse, gains=gains, offsets=offsets, natural=(width, reach))

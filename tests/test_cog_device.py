@@ -151,6 +151,45 @@ def test_device_encoded_file_has_the_host_writers_pixels(tmp_path, device, count
     assert enc.blocks_by_codec["libdeflate"] + enc.empty_blocks >= (nb0 if tile % 256 == 0 else 1)
 
 
+@pytest.mark.parametrize("count,dtype,tile,shape", [
+    (3, "uint8", 512, (1100, 1500)),    # device levels 0-1, the rest on the host
+    (1, "uint16", 1024, (1300, 1029)),  # odd edges
+    (2, "float32", 512, (900, 700)),
+    (4, "uint8", 384, (800, 800)),      # tiles that are not whole blocks: all of them the rest
+])
+def test_tiles_encoded_elsewhere_give_the_encoders_file(tmp_path, device, count, dtype, tile, shape):
+    """encode_tile on an encoder of the file's settings alone (a TileEncoder, no file), its
+    tiles stored by the file's writer (put_encoded): the file the encoder writes itself."""
+    from orthowarp.pipeline.raster.cog import EncodedTile, TileEncoder
+
+    here = str(tmp_path / "here.tif")
+    _write(here, shape, count, dtype, tile, device=device)
+    data, mask = scene(shape, count, dtype)
+    settings = dict(width=shape[1], height=shape[0], count=count, dtype=dtype, block_size=256, overviews=3)
+    enc = DeviceCogEncoder(TileEncoder(**settings), wp.get_device(device), [HostDeflate(6, threads=2)])
+    elsewhere = str(tmp_path / "elsewhere.tif")
+    n_blocks = 0
+    with CogWriter(elsewhere, crs=CRS, transform=TRANSFORM, threads=2, **settings) as w:
+        tiles = [(r, c) for r in range(0, shape[0], tile) for c in range(0, shape[1], tile)]
+        for k in np.random.default_rng(2).permutation(len(tiles)):
+            r, c = tiles[k]
+            got = enc.encode_tile(r, c, wp.array(np.ascontiguousarray(data[r:r + tile, c:c + tile]),
+                                                 dtype=kc_types[dtype], device=device),
+                                  wp.array(mask[r:r + tile, c:c + tile].astype(np.uint8), dtype=wp.uint8,
+                                           device=device))
+            assert isinstance(got, EncodedTile)
+            n_blocks += len(got.blocks)
+            if got.rest is not None:  # the first level the tile does not cover whole, on the host
+                li, rr, cc, piece, ok = got.rest
+                assert isinstance(piece, np.ndarray) and piece.dtype == np.dtype(dtype) and ok.dtype == bool
+            w.put_encoded(got)
+    enc.close()
+    with open(here, "rb") as a, open(elsewhere, "rb") as b:
+        assert a.read() == b.read()
+    nb0 = -(-shape[0] // 256) * -(-shape[1] // 256)  # (as the test above: some encoded here)
+    assert n_blocks >= (nb0 if tile % 256 == 0 else 1)
+
+
 def test_device_encoder_refuses_uncompressed_writers(tmp_path, device):
     w = CogWriter(str(tmp_path / "x.tif"), width=10, height=10, count=1, dtype="uint8", crs=CRS,
                   transform=Affine.identity(), compress="none")

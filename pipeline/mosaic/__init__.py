@@ -393,6 +393,11 @@ class _WriteSettings:
     workers: int | None
 
 
+#: The block codecs whose blocks the tile processes compress on the device themselves (deflate):
+#: their own tiles, each process on its device; the calling process only stores the blocks.
+WORKER_DEVICE_CODECS = ("warp", "nvcomp", "hybrid")
+
+
 def _write_mosaic(plan: MosaicPlan, procs: ProcessTiles | None, dst: str, on: wp.context.Device, out: _WriteSettings,
                   cancel: threading.Event | None, *, client: Any = None, progress: Any = None,
                   worker_device: str | None = None) -> MosaicResult:
@@ -405,20 +410,25 @@ def _write_mosaic(plan: MosaicPlan, procs: ProcessTiles | None, dst: str, on: wp
     size = int(out.tile_size) if out.tile_size is not None else default_tile_size(on)
     tiles = plan.tiles(size)
     host_source = out.index is not None or out.seamlines is not None  # else the pixels per image counted there
+    # the tile processes compress their tiles' blocks on the device themselves (this process
+    # only stores them) where the codec is a device deflate
+    workers_encode = procs is not None and codec in WORKER_DEVICE_CODECS and out.compress == "deflate"
     # with the host codec, the mosaic file's block work for the workers (processes or a cluster)
     encoder = plan.mosaic_encoder(out.compress, compress_level=out.compress_level, quality=out.quality,
-                                  creation_options=out.creation_options) if codec == "host" else None
+                                  creation_options=out.creation_options) if codec == "host" or workers_encode else None
     if client is not None:
         results = _cluster_results(plan, client, tiles, codec, on, cancel, dst, progress, worker_device, encoder)
     elif procs is None:
         results = _thread_results(plan, tiles, codec, on, host_source, out.workers, cancel, dst)
     else:
-        results = _process_results(plan, procs, tiles, size, codec, on, host_source, cancel, dst, encoder)
+        results = _process_results(plan, procs, tiles, size, codec, on, host_source, cancel, dst, encoder,
+                                   workers_encode)
     try:
         return plan.write(dst, results, index=out.index, seamlines=out.seamlines, compress=out.compress,
                           quality=out.quality,
                           compress_level=out.compress_level, overwrite=out.overwrite, t_start=t0, _block_codec=codec,
-                          creation_options=out.creation_options, seamlines_lonlat=out.seamlines_lonlat)
+                          creation_options=out.creation_options, seamlines_lonlat=out.seamlines_lonlat,
+                          _encoded_elsewhere=workers_encode)
     finally:
         plan.close()
 
@@ -517,16 +527,19 @@ def _ahead_on(procs: ProcessTiles, tile_size: int | None, on: wp.context.Device)
 
 def _process_results(plan: MosaicPlan, procs: ProcessTiles, tiles: list[Tile], size: int,
                      codec: str, on: wp.context.Device, host_source: bool, cancel: threading.Event | None,
-                     dst: str, encoder: Any = None) -> Iterator[tuple[Tile, tuple]]:
+                     dst: str, encoder: Any = None, workers_encode: bool = False) -> Iterator[tuple[Tile, tuple]]:
     """Tile results for :meth:`MosaicPlan.write` from worker processes, as they finish: the
-    plan sent to them now, each finished tile uploaded to this process's device for the
-    device ``codec``'s encoder or, for the host writer, encoded by the workers with the mosaic
-    file's ``encoder`` (else copied), and at the end the workers' pixel counts, stage intervals
-    and image builds merged into this process's state."""
+    plan sent to them now, each finished tile encoded by the workers with the mosaic file's
+    ``encoder`` (on their device with the device ``codec`` where ``workers_encode``, else with
+    the host writer's codec; a tile whose blocks do not fit its slot comes as pixels), or
+    uploaded to this process's device for the device ``codec``'s encoder, and at the end the
+    workers' pixel counts, stage intervals, image builds (and encoders' block counts) merged
+    into this process's state."""
     plan._kept.clear()  # the reduced pass's geometries and sources: the workers build their own
     plan.options = _for_processes(plan.options)
     st = plan._materialise()  # the stage timer starts with the tiles, as on threads
-    procs.start_plan(plan, (size, size), with_source=codec == "host" or host_source, encoder=encoder)
+    procs.start_plan(plan, (size, size), with_source=codec == "host" or host_source, encoder=encoder,
+                     device_codec=codec if workers_encode else None)
 
     def results() -> Iterator[tuple[Tile, tuple]]:
         images = plan._tile_images(tiles)
@@ -534,8 +547,9 @@ def _process_results(plan: MosaicPlan, procs: ProcessTiles, tiles: list[Tile], s
                                                                        cancel=cancel, name=dst):
             try:
                 ok = valid.view(bool)
-                if codec == "host":  # (the slot is reused: copies)
-                    yield tile, (encoded if encoded is not None else values.copy(), ok.copy(), source.copy())
+                if codec == "host" or workers_encode:  # (the slot is reused: copies)
+                    yield tile, (encoded if encoded is not None else values.copy(), ok.copy(),
+                                 source.copy() if source is not None else None)
                     continue
                 t = time.perf_counter()
                 # (copied into page-locked memory before the slot is released; the copies enqueued)
@@ -547,7 +561,10 @@ def _process_results(plan: MosaicPlan, procs: ProcessTiles, tiles: list[Tile], s
             finally:
                 release()
         timer = st["timer"]
+        encoders = []
         for info in procs.finish():
+            if "encoder" in info:
+                encoders.append(info["encoder"])
             st["counts_host"] = st.get("counts_host", 0) + np.asarray(info["counts"], np.int64)
             st["builds"] += info["builds"]
             for k, spans in info["spans"].items():
@@ -557,5 +574,12 @@ def _process_results(plan: MosaicPlan, procs: ProcessTiles, tiles: list[Tile], s
             worker_images_held_peak=[i["held_peak"] for i in procs.worker_info],
             worker_images_built_ahead=[i["built_ahead"] for i in procs.worker_info])
         st["held_peak"] = max(i["held_peak"] for i in procs.worker_info)
+        for key in ("blocks_by_codec", "encoder_steps_s"):  # (the workers' encoders, summed)
+            total = {}
+            for info in encoders:
+                for name, v in info.get(key, {}).items():
+                    total[name] = total.get(name, 0) + v
+            if encoders:
+                timer.info[key] = total
 
     return results()

@@ -438,7 +438,7 @@ class MosaicPlan(TileBlending):
               compress: str = "deflate", compress_level: int | None = None, overwrite: bool = False,
               t_start: float | None = None, _block_codec: str = "host",
               creation_options: dict | None = None, seamlines_lonlat: bool = False,
-              quality: int | None = None) -> MosaicResult:
+              quality: int | None = None, _encoded_elsewhere: bool = False) -> MosaicResult:
         """Write the mosaic from tile results, in any order: ``results`` yields
         ((r0, c0, rows, cols), (block, valid, source)) for every tile of the grid (e.g. from
         :meth:`tile` on a thread pool or a distributed engine). The outputs (mosaic, optional
@@ -448,7 +448,8 @@ class MosaicPlan(TileBlending):
         deflate); the seamlines in the mosaic's CRS, or in longitude/latitude with
         ``seamlines_lonlat``, naming the images by their paths relative to the mosaic's
         folder. (Internally, with a ``_block_codec`` other than "host", the tiles' pixels go to
-        the mosaic's file through ``self._encoder`` on the device and ``block`` is None.)
+        the mosaic's file through ``self._encoder`` on the device and ``block`` is None, unless
+        ``_encoded_elsewhere``: the tiles come encoded by that codec where they were computed.)
 
         Returns
         -------
@@ -486,7 +487,7 @@ class MosaicPlan(TileBlending):
                                          **index_file_settings(compress, compress_level)))
             encoder = None
             try:
-                if _block_codec != "host":
+                if _block_codec != "host" and not _encoded_elsewhere:
                     codecs = device_codecs(_block_codec, compress_level, self.warp_device, compress, quality=quality)
                     encoder = self._encoder = DeviceCogEncoder(writers[0], self.warp_device, codecs, timer=timer)
                 for (r0, c0, th, tw), (block, valid, source) in results:

@@ -61,7 +61,7 @@ from ...kernels import cog as kc
 if TYPE_CHECKING:
     from warp.context import Device, Stream
 
-    from .cog import CogWriter
+    from .cog import CogWriter, EncodedTile
 
 __all__ = ["DeviceCogEncoder", "HostDeflate", "HostJpeg", "HostZstd", "NvcompDeflate", "NvcompZstd", "NvjpegCodec",
            "WarpDeflate", "nvcomp_available", "nvjpeg_available", "nvjpeg_runs", "zlib_parts", "zlib_stream"]
@@ -81,6 +81,11 @@ def zlib_parts(raw: bytes, adler: int) -> tuple[bytes, bytes, bytes]:
     """:func:`zlib_stream` as its three pieces (header, ``raw`` itself, checksum), for a writer
     that writes them back to back without joining them (:meth:`CogWriter.put_block`)."""
     return _ZLIB_HEADER, raw, struct.pack(">I", adler & 0xFFFFFFFF)
+
+
+def _joined(stream: Any) -> bytes:
+    """A stored stream as one bytes object (a tuple of pieces, see :func:`zlib_parts`, joined)."""
+    return b"".join(stream) if isinstance(stream, tuple) else bytes(stream)
 
 
 def nvcomp_available() -> bool:
@@ -801,6 +806,7 @@ class DeviceCogEncoder:
         self.steps = {}
         self._constants = {}  # (compression, size, byte) -> stream of that many such bytes
         self._lock = threading.Condition()
+        self._codec_lock = threading.Lock()  # (encode_tile's codec calls, one at a time)
         self._batch, self._batch_n, self._gpu_busy = [], 0, False
         self._failed = None  # a batch's error, raised by the next write or the flush
         # the device codec's batches run on a thread of their own, one after another
@@ -824,9 +830,9 @@ class DeviceCogEncoder:
     def _device_level(self, li: int, row: int, col: int, h: int, w: int) -> bool:
         """Whether a piece at level ``li`` with top-left (row, col), h x w pixels, covers whole
         blocks of that level (its blocks can be encoded on the device)."""
-        lvl, b = self.writer.levels[li], self.writer.block
-        return (row % b == 0 and col % b == 0 and (h % b == 0 or row + h == lvl.height)
-                and (w % b == 0 or col + w == lvl.width))
+        (lw, lh), b = self.writer.dims[li], self.writer.block
+        return (row % b == 0 and col % b == 0 and (h % b == 0 or row + h == lh)
+                and (w % b == 0 or col + w == lw))
 
     def write(self, row: int, col: int, tile: wp.array, valid: wp.array) -> None:
         """Add a full-resolution tile.
@@ -948,16 +954,74 @@ class DeviceCogEncoder:
                 self._failed = self._failed or e
                 self._lock.notify_all()
 
+    def encode_tile(self, row: int, col: int, tile: wp.array, valid: wp.array) -> EncodedTile:
+        """A tile's blocks encoded here, for a writer elsewhere: the process or machine that
+        computed the tile compresses its blocks on its own device, and the writer stores them
+        (:meth:`CogWriter.put_encoded <orthowarp.pipeline.raster.cog.CogWriter.put_encoded>`)
+        with the bytes :meth:`write` would have given it. Works with a
+        :class:`~orthowarp.pipeline.raster.cog.TileEncoder` of the file's settings as the
+        encoder's writer (no file); synchronous, the device codec's calls one at a time.
+
+        Parameters
+        ----------
+        row, col : int
+            The tile's top-left pixel in the raster.
+        tile : warp array, shape (rows, cols, bands), the writer's dtype
+            On this encoder's device, written on its current stream.
+        valid : warp array of uint8, shape (rows, cols)
+
+        Returns
+        -------
+        EncodedTile
+            Its blocks at each level it covers whole (image, and mask where the file has
+            masks) and the piece of the first level it does not, on the host.
+        """
+        from .cog import EncodedTile
+
+        t = time.perf_counter()
+        job, rest = self._device_work(row, col, tile, valid)
+        if rest is not None:
+            li, r, c, piece, pvalid = rest
+            rest = (li, r, c, to_host(piece), to_host(pvalid).view(bool))
+        if self.timer is not None:
+            self.timer.span("kernel", t)
+        blocks = []
+        if job is not None:
+            t = time.perf_counter()
+            codec = self.gpu if self.gpu is not None else self.host
+            with self._codec_lock, wp.ScopedDevice(self.device):
+                (streams,), (fills,) = self._compressed([job], codec)
+            n_img, mask = len(job.keys), self.writer.mask
+            blocks = [(*key, [_joined(streams[i])] + ([_joined(streams[n_img + i])] if mask else []))
+                      for i, key in enumerate(job.keys)]  # (bytes: an EncodedTile travels pickled)
+            img_fill = np.concatenate(fills)[:n_img]
+            with self._lock:
+                self.blocks_by_codec[codec.name] += int((img_fill < 0).sum())
+                self.empty_blocks += int((img_fill == 0).sum())
+            if self.timer is not None:
+                self.timer.span("write", t)
+        return EncodedTile(blocks, rest)
+
     def _encode(self, row: int, col: int, tile: wp.array, valid: wp.array) -> _Tile | None:
+        """The device work of a tile (:meth:`_device_work`), the rest handed to the writer."""
+        job, rest = self._device_work(row, col, tile, valid)
+        if rest is not None:
+            li, r, c, piece, pvalid = rest
+            self.writer.write(r, c, to_host(piece), to_host(pvalid).view(bool), level=li, copy=False)
+        return job
+
+    def _device_work(self, row: int, col: int, tile: wp.array, valid: wp.array) -> tuple[_Tile | None, tuple | None]:
         """The device work of a tile: blocks, mask blocks and overview levels while they cover
-        whole blocks (the rest to the host writer), and the blocks' checksums."""
+        whole blocks; returns them (None: none) and the rest, (level, row, col, piece, valid)
+        of the first level the tile does not cover whole (None: none), on the device."""
         wr, b = self.writer, self.writer.block
         li, piece, pvalid = 0, tile, valid
         images, masks, keys = [], [], []
+        rest = None
         while True:
             h, w = piece.shape[0], piece.shape[1]
             if not self._device_level(li, row, col, h, w):
-                self.writer.write(row, col, to_host(piece), to_host(pvalid).view(bool), level=li, copy=False)
+                rest = (li, row, col, piece, pvalid)
                 break
             nby, nbx = -(-h // b), -(-w // b)
             blocks = wp.empty((nby * nbx, b, b, wr.count), dtype=_WP[wr.dtype], device=self.device)
@@ -971,7 +1035,7 @@ class DeviceCogEncoder:
                           device=self.device)
                 masks.append(bits)
             keys += [(li, row // b + k // nbx, col // b + k % nbx) for k in range(nby * nbx)]
-            if li + 1 >= len(wr.levels):
+            if li + 1 >= len(wr.dims):
                 break
             hh, ww = -(-h // 2), -(-w // 2)
             nxt = wp.empty((hh, ww, wr.count), dtype=_WP[wr.dtype], device=self.device)
@@ -979,9 +1043,7 @@ class DeviceCogEncoder:
             wp.launch(kc.reduce_kernel, dim=(hh, ww), inputs=[piece, pvalid], outputs=[nxt, nxt_valid],
                       device=self.device)
             li, row, col, piece, pvalid = li + 1, row // 2, col // 2, nxt, nxt_valid
-        if not images:
-            return None
-        return _Tile(keys, images, masks)
+        return (_Tile(keys, images, masks) if images else None), rest
 
     def profile_info(self) -> dict[str, dict]:
         """What a profile reports of this encoder: ``blocks_by_codec`` (image blocks per codec)
