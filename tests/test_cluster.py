@@ -419,6 +419,24 @@ def test_the_workers_encode_the_single_cogs_blocks(block, client, tmp_path):
     assert there.pixels_per_image == here.pixels_per_image
 
 
+@pytest.mark.slow  # (the module's LocalCluster of 2 processes)
+def test_the_workers_encode_the_single_cogs_blocks_on_their_devices(block, client, tmp_path, monkeypatch):
+    """With a device deflate ("warp", here on the CPU device), each worker compresses its
+    tiles' blocks on its own device and the calling process only stores them: the same bytes
+    as this process's device encoder writes."""
+    from orthowarp.pipeline.raster.cog import CogWriter
+
+    sc, images = block
+    kw = dict(_kw(sc), creation_options={"BLOCKSIZE": 64}, block_codec="warp")
+    here = mosaic(images, tmp_path / "here.tif", **kw)
+    stored, put = [], CogWriter.put_encoded
+    monkeypatch.setattr(CogWriter, "put_encoded", lambda self, tile: stored.append(len(tile.blocks)) or put(self, tile))
+    there = mosaic(images, tmp_path / "there.tif", cluster=client, **kw)
+    assert len(stored) == -(-here.shape[0] // 64) * -(-here.shape[1] // 64) and min(stored) > 0
+    assert (tmp_path / "there.tif").read_bytes() == open(here.path, "rb").read()
+    assert there.pixels_per_image == here.pixels_per_image
+
+
 def test_a_webp_tiled_product_is_webp_with_a_deflate_index(block, tmp_path):
     """WebP tiles (3-band uint8 frames made from the block's) at the quality asked, the index
     deflate, and mosaic.vrt as close to the lossless mosaic as the single WebP COG (their blocks

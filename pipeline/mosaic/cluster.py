@@ -465,11 +465,40 @@ class _Submitter:
 
 # -- one COG: the tiles back to the caller ------------------------------------------------------
 
+_DEVICE_ENCODERS: dict[tuple, Any] = {}  # a worker's device encoders, by device, codec and file settings
+_DEVICE_ENCODERS_LOCK = threading.Lock()
+
+
+def _device_encoder(encoder: Any, codec: str, device: Any) -> Any:
+    """The worker process's :class:`~orthowarp.pipeline.raster.device.DeviceCogEncoder` of a
+    mosaic file's ``encoder`` (a TileEncoder) with the device ``codec`` on ``device``: made
+    once and kept for the process's later tiles and mosaics (its codec's device buffers are
+    reused)."""
+    key = (str(device), codec, tuple(sorted(encoder._settings.items())))
+    with _DEVICE_ENCODERS_LOCK:
+        found = _DEVICE_ENCODERS.get(key)
+        if found is None:
+            from ..ortho.sink import device_codecs
+            from ..raster.device import DeviceCogEncoder
+
+            codecs = device_codecs(codec, encoder.compress_level, device, encoder.compress, quality=encoder.quality)
+            found = _DEVICE_ENCODERS[key] = DeviceCogEncoder(encoder, device, codecs)
+        return found
+
+
 @quiet_warp()
-def _tile_task(plan: Any, tile: Tile, encoder: Any = None) -> tuple:
+def _tile_task(plan: Any, tile: Tile, encoder: Any = None, device_codec: str | None = None) -> tuple:
     """A worker's tile: (block, valid, source) on the host; with a :class:`~orthowarp.pipeline.
     raster.cog.TileEncoder` (the mosaic file's), the block encoded there (its compressed blocks
-    and overview pieces come back instead of its pixels)."""
+    and overview pieces come back instead of its pixels), on the worker's device with
+    ``device_codec`` (a resolved device block codec) where one is given."""
+    if encoder is not None and device_codec is not None:
+        from ..._device import to_host
+
+        device = plan.warp_device
+        block, valid, source = plan._tile(*tile, device=device)
+        encoded = _device_encoder(encoder, device_codec, device).encode_tile(tile.row, tile.col, block, valid)
+        return encoded, to_host(valid).view(bool), to_host(source)
     block, valid, source = plan.tile(*tile)
     if encoder is not None:
         block = encoder.encode(tile.row, tile.col, block, valid)
@@ -478,7 +507,8 @@ def _tile_task(plan: Any, tile: Tile, encoder: Any = None) -> tuple:
 
 def cluster_results(plan: Any, client: Any, tiles: Sequence[Tile], *, cancel: threading.Event | None = None,
                     name: str | None = None, progress: Any = None, per_worker: int | None = None,
-                    worker_device: str | None = None, encoder: Any = None) -> Iterator[tuple[Tile, tuple]]:
+                    worker_device: str | None = None, encoder: Any = None,
+                    device_codec: str | None = None) -> Iterator[tuple[Tile, tuple]]:
     """Tile results for :meth:`MosaicPlan.write <orthowarp.pipeline.mosaic.plan.MosaicPlan.write>`
     computed by the workers of ``client``, as they finish.
 
@@ -503,6 +533,11 @@ def cluster_results(plan: Any, client: Any, tiles: Sequence[Tile], *, cancel: th
         worker compresses its tiles' blocks and overview pieces, and ``block`` is an
         :class:`~orthowarp.pipeline.raster.cog.EncodedTile` (the calling process only stores
         the blocks: it no longer compresses the whole file alone).
+    device_codec : str, optional
+        With ``encoder``: a device block codec (e.g. "warp") that each worker compresses its
+        tiles' blocks with on its own device
+        (:meth:`~orthowarp.pipeline.raster.device.DeviceCogEncoder.encode_tile`) instead of
+        the host's.
 
     Yields
     ------
@@ -518,7 +553,8 @@ def cluster_results(plan: Any, client: Any, tiles: Sequence[Tile], *, cancel: th
         remote_encoder = None if encoder is None else client.scatter(encoder, broadcast=True, hash=False)
 
         def submit(k: int, w: str) -> Any:
-            return client.submit(_tile_task, remote, tiles[k], remote_encoder, workers=[w], allow_other_workers=True,
+            return client.submit(_tile_task, remote, tiles[k], remote_encoder, device_codec, workers=[w],
+                                 allow_other_workers=True,
                                  pure=False, key=f"{tag}-{k}")
 
         # (not as_finished: each finished tile lets the dealer submit the next of its worker)

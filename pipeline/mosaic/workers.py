@@ -143,8 +143,7 @@ class ProcessTiles:
     def __exit__(self, *exc: Any) -> None:
         self.close()
 
-    def start_plan(self, plan: Any, tile_shape: tuple[int, int], *, with_source: bool, encoder: Any = None,
-                   device_codec: str | None = None) -> None:
+    def start_plan(self, plan: Any, tile_shape: tuple[int, int], *, with_source: bool, encoder: Any = None) -> None:
         """Send ``plan`` to the workers and make the slots for tiles of at most ``tile_shape``
         (rows, cols): values (the plan's dtype and bands), validity (uint8) and, ``with_source``,
         the source index (uint16). The pickled plan lies at the start of the shared file (the
@@ -152,9 +151,7 @@ class ProcessTiles:
         gone). With ``encoder`` (the mosaic file's :class:`~orthowarp.pipeline.raster.cog.
         TileEncoder`), each worker encodes its tiles and puts the pickled
         :class:`~orthowarp.pipeline.raster.cog.EncodedTile` in the slot's room for it instead
-        of the pixels, where it fits (see :meth:`run`): with the host codec, or with ``device_codec``
-        (a resolved block codec, e.g. "warp") on its own device
-        (:meth:`~orthowarp.pipeline.raster.device.DeviceCogEncoder.encode_tile`)."""
+        of the pixels, where it fits (see :meth:`run`)."""
         th, tw = tile_shape
         self._with_source = bool(with_source)
         # with an encoder, room for a tile's pickled blocks after its arrays (its compressed
@@ -172,8 +169,7 @@ class ProcessTiles:
         self._map[:len(blob)] = blob
         self._free = list(range(n_slots))
         for q in self._tasks:
-            q.put(("plan", path, len(blob), self._base, self._slot_bytes, self._with_source, encoder, device_codec,
-                   self._blob_at))
+            q.put(("plan", path, len(blob), self._base, self._slot_bytes, self._with_source, encoder, self._blob_at))
 
     def build_ahead(self, plan: Any, tiles: Sequence[Tile], images: Sequence[tuple[int, ...]], *,
                     per_process: int = 8) -> None:
@@ -562,9 +558,6 @@ class _Worker:
     with_source: bool = False
     blob_at: int = 0  # where in a slot a tile's encoded blocks go
     encoder: Any = None  # the mosaic file's TileEncoder, where the workers encode the tiles
-    device_codec: str | None = None  # their blocks compressed on this process's device by this codec
-    device_encoder: Any = None  # (its DeviceCogEncoder, made by the first tile that needs it)
-    lock: threading.Lock = field(default_factory=threading.Lock)
     ahead: Any = None  # the plan of build_ahead (its grid only) until the whole plan comes
     built_ahead: int = 0  # images this process was asked to build ahead
     failed: list = field(default_factory=list)
@@ -634,11 +627,10 @@ def _serve_tasks(ws: _Worker, tasks: SimpleQueue, threads: int) -> bool:
 
 
 def _load_plan(ws: _Worker, path: str, n_blob: int, base: int, slot_bytes: int, with_source: bool,
-               encoder: Any = None, device_codec: str | None = None, blob_at: int = 0) -> None:
+               encoder: Any = None, blob_at: int = 0) -> None:
     """Map the shared file at ``path`` and unpickle the plan from its first ``n_blob`` bytes."""
     ws.base, ws.slot_bytes, ws.with_source, ws.encoder = base, slot_bytes, with_source, encoder
     ws.blob_at = blob_at
-    ws.device_codec = device_codec if encoder is not None else None
     fd = os.open(path, os.O_RDWR)
     try:
         ws.buf = mmap.mmap(fd, 0)
@@ -682,20 +674,16 @@ def _worker_tile(ws: _Worker, k: int, tile: Tile, slot: int, used: tuple[int, ..
                 values[...] = to_host(out)
                 valid[...] = to_host(has)
             else:  # the tile's blocks compressed here, in the values' place where they fit
-                if ws.device_codec is not None:  # on this process's device (timed by the encoder)
-                    encoded = _device_encoder(ws).encode_tile(tile.row, tile.col, out, has)
-                    valid[...] = to_host(has)
-                else:
-                    pixels, valid[...] = to_host(out), to_host(has)
-                    t = time.perf_counter()
-                    encoded = ws.encoder.encode(tile.row, tile.col, pixels, valid.view(bool))
-                    plan._materialise()["timer"].span("write", t)
-                blob = pickle.dumps(encoded, protocol=pickle.HIGHEST_PROTOCOL)
+                pixels, valid[...] = to_host(out), to_host(has)
+                t = time.perf_counter()
+                blob = pickle.dumps(ws.encoder.encode(tile.row, tile.col, pixels, valid.view(bool)),
+                                    protocol=pickle.HIGHEST_PROTOCOL)
+                plan._materialise()["timer"].span("write", t)
                 if len(blob) <= ws.slot_bytes - ws.blob_at:
                     ws.buf[at + ws.blob_at:at + ws.blob_at + len(blob)] = blob
                     n_encoded = len(blob)
                 else:  # (the caller's host writer encodes it)
-                    values[...] = to_host(out)
+                    values[...] = pixels
             if with_source:
                 src[...] = to_host(source)
         ws.results.put(("done", ws.w, k, slot, n_encoded))
@@ -704,19 +692,6 @@ def _worker_tile(ws: _Worker, k: int, tile: Tile, slot: int, used: tuple[int, ..
     except BaseException as e:  # noqa: BLE001 - reported to the caller
         ws.failed.append(e)
         ws.report(e)
-
-
-def _device_encoder(ws: _Worker) -> Any:
-    """The process's encoder of the mosaic file's blocks on its device (made once)."""
-    with ws.lock:
-        if ws.device_encoder is None:
-            from ..ortho.sink import device_codecs
-            from ..raster.device import DeviceCogEncoder
-
-            enc = ws.encoder
-            codecs = device_codecs(ws.device_codec, enc.compress_level, ws.dev, enc.compress, quality=enc.quality)
-            ws.device_encoder = DeviceCogEncoder(enc, ws.dev, codecs, timer=ws.plan._materialise()["timer"])
-        return ws.device_encoder
 
 
 def _worker_end(ws: _Worker) -> None:
@@ -731,10 +706,6 @@ def _worker_end(ws: _Worker) -> None:
                     spans={k: list(v) for k, v in st["timer"].spans.items()} if st else {},
                     builds=st["builds"] if st else 0, held_peak=st["held_peak"] if st else 0,
                     built_ahead=ws.built_ahead, peak_rss_kb=_peak_rss_kb())
-        if ws.device_encoder is not None:
-            info["encoder"] = ws.device_encoder.profile_info()
-            ws.device_encoder.close()
-            ws.device_encoder = None
         if plan is not None:
             plan.close()
         if ws.ahead is not None:  # (no plan came after it)
