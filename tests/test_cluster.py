@@ -262,6 +262,26 @@ def test_the_workers_of_a_local_cluster_share_the_cores():
     assert sorted(os.sched_getaffinity(0)) == mine  # (this process, where the nannies run, untouched)
 
 
+def test_the_devices_of_a_clusters_workers_are_counted():
+    from orthowarp.pipeline.mosaic.cluster import worker_devices
+
+    class Client:  # (workers as a local cluster's and a shared host's GPU workers see them)
+        def __init__(self, ids):
+            self.ids = ids
+
+        def scheduler_info(self):
+            return {"workers": dict.fromkeys(self.ids)}
+
+        def run(self, fn):
+            return self.ids
+
+    one_gpu = Client({"a": ("h", "0"), "b": ("h", "0"), "c": ("h", "0")})
+    four = Client({f"w{i}": ("h", str(i % 4)) for i in range(16)})
+    hosts = Client({"a": ("h1", ""), "b": ("h1", ""), "c": ("h2", "")})
+    assert worker_devices(one_gpu, "cuda:0") == 1 and worker_devices(four, "cuda:0") == 4
+    assert worker_devices(hosts, "cuda:0") == 2 and worker_devices(one_gpu, "cpu") == 3
+
+
 @pytest.mark.parametrize("path, want", [
     ("/data/a.tif", "/data/a.tif"),
     ("https://user:pw@example.com:8443/a.tif?X-Amz-Signature=abc", "https://example.com:8443/a.tif"),

@@ -317,6 +317,23 @@ def worker_device(client: Any, device: str | None) -> str | None:
     return "cuda:0" if getattr(getattr(client, "cluster", None), "orthowarp_gpu_workers", False) else device
 
 
+def _device_identity() -> tuple[str, str]:
+    """(On a worker) its host and the GPUs it may use (``CUDA_VISIBLE_DEVICES``; "" for all)."""
+    import socket
+
+    return socket.gethostname(), os.environ.get("CUDA_VISIBLE_DEVICES", "")
+
+
+def worker_devices(client: Any, device: str | None) -> int:
+    """How many devices the workers of ``client`` compute on (their ``device``, see
+    :func:`worker_device`): each worker its own on the CPU; on a GPU, one per host and set of
+    visible GPUs (a :func:`local_cluster`'s workers see one GPU each; workers that see all of
+    a host's share its first)."""
+    if device is None or str(device).startswith("cpu"):
+        return len(client.scheduler_info()["workers"])
+    return len(set(client.run(_device_identity).values()))
+
+
 def worker_names(client: Any) -> list[str]:
     """The addresses of the client's workers, sorted."""
     return sorted(client.scheduler_info()["workers"])
