@@ -396,9 +396,10 @@ class _WriteSettings:
 
 #: The block codecs whose blocks a cluster's workers compress on their own devices (deflate),
 #: each its own tiles, where they have several devices between them; the calling process then
-#: only stores the blocks. (One H200 host, the 160-frame block of bench/scaleout.py as one COG:
-#: the caller's device encoder bounds the tiles at 16.0-17.4 s on 1, 2 and 4 GPUs; the workers'
-#: encoders, a tile per batch, took 21.6 s on one GPU, 68 % busy, against 16.0 s.)
+#: only stores the blocks. (The 160-frame block of bench/scaleout.py as one COG, its tiles: the
+#: caller's device encoder bounds them at 16.0-17.4 s on 1, 2 and 4 H200s; with the workers'
+#: encoders, a tile per batch, 21.6 s against 16.0 s on one H200 and 14.7 s against 18.3 s on a
+#: host of two.)
 WORKER_DEVICE_CODECS = ("warp", "nvcomp", "hybrid")
 
 
