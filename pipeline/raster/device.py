@@ -747,7 +747,8 @@ class DeviceCogEncoder:
     writer : CogWriter
         With ``compress="deflate"``, ``"zstd"`` or ``"jpeg"``; it receives compressed blocks
         (:meth:`CogWriter.put_block`) and the small pieces of the upper overview levels
-        (:meth:`CogWriter.write`).
+        (:meth:`CogWriter.write`). For :meth:`encode_tile` alone (tiles encoded for a writer
+        elsewhere), a :class:`~orthowarp.pipeline.raster.cog.TileEncoder` of its settings.
     device : warp Device
     codecs : list
         One or two codecs of the writer's compression: for deflate a batched device codec
