@@ -262,6 +262,22 @@ def test_the_workers_of_a_local_cluster_share_the_cores():
     assert sorted(os.sched_getaffinity(0)) == mine  # (this process, where the nannies run, untouched)
 
 
+def test_a_worker_holds_one_device_encoder_per_device_and_codec():
+    import warp as wp
+
+    from orthowarp.pipeline.mosaic import cluster
+    from orthowarp.pipeline.raster.cog import TileEncoder
+
+    cpu = wp.get_device("cpu")
+    a, b = (TileEncoder(width=w, height=300, count=1, dtype="uint8", block_size=64) for w in (400, 500))
+    first = cluster._device_encoder(a, "warp", cpu)
+    assert cluster._device_encoder(TileEncoder(**a._settings), "warp", cpu) is first  # the same file's settings
+    other = cluster._device_encoder(b, "warp", cpu)
+    assert other is not first and other.writer is b
+    assert [enc for _, enc in cluster._DEVICE_ENCODERS.values()].count(other) == 1
+    assert sum(k == (str(cpu), "warp") for k in cluster._DEVICE_ENCODERS) == 1
+
+
 def test_the_devices_of_a_clusters_workers_are_counted():
     from orthowarp.pipeline.mosaic.cluster import worker_devices
 

@@ -482,25 +482,27 @@ class _Submitter:
 
 # -- one COG: the tiles back to the caller ------------------------------------------------------
 
-_DEVICE_ENCODERS: dict[tuple, Any] = {}  # a worker's device encoders, by device, codec and file settings
+# a worker's device encoder per device and codec: (the file settings it encodes for, encoder)
+_DEVICE_ENCODERS: dict[tuple, tuple] = {}
 _DEVICE_ENCODERS_LOCK = threading.Lock()
 
 
 def _device_encoder(encoder: Any, codec: str, device: Any) -> Any:
     """The worker process's :class:`~orthowarp.pipeline.raster.device.DeviceCogEncoder` of a
-    mosaic file's ``encoder`` (a TileEncoder) with the device ``codec`` on ``device``: made
-    once and kept for the process's later tiles and mosaics (its codec's device buffers are
-    reused)."""
-    key = (str(device), codec, tuple(sorted(encoder._settings.items())))
+    mosaic file's ``encoder`` (a TileEncoder) with the device ``codec`` on ``device``: kept for
+    the process's later tiles of that file (its codec's device buffers reused), and replaced by
+    the first tile of a file of other settings (so a long-lived worker holds one per device and
+    codec, not one per mosaic it ever encoded)."""
+    key, settings = (str(device), codec), tuple(sorted(encoder._settings.items()))
     with _DEVICE_ENCODERS_LOCK:
-        found = _DEVICE_ENCODERS.get(key)
-        if found is None:
+        held = _DEVICE_ENCODERS.get(key)
+        if held is None or held[0] != settings:
             from ..ortho.sink import device_codecs
             from ..raster.device import DeviceCogEncoder
 
             codecs = device_codecs(codec, encoder.compress_level, device, encoder.compress, quality=encoder.quality)
-            found = _DEVICE_ENCODERS[key] = DeviceCogEncoder(encoder, device, codecs)
-        return found
+            held = _DEVICE_ENCODERS[key] = (settings, DeviceCogEncoder(encoder, device, codecs))
+        return held[1]
 
 
 @quiet_warp()
