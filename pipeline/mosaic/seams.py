@@ -41,10 +41,11 @@ __all__ = ["NO_SOURCE", "angle_field", "least_cost_seams"]
 log = logging.getLogger(__name__)
 
 NO_SOURCE = 65535  # the index raster's value where no image has a pixel
-# least_cost_seams' threads unless told: more do not help, its numpy calls being short and
+# least_cost_seams' threads unless told: one, more do not help, its numpy calls being short and
 # scipy's Dijkstra holding the interpreter lock (40-frame block on a 16-core host: 1, 2, 4 and 16
-# threads 0.54, 0.55, 0.58 and 0.61 s; docs/benchmarks.md, least-cost seams)
-_SEAM_THREADS = 2
+# threads 0.54, 0.55, 0.58 and 0.61 s; on 2 cores 1 and 2 threads 0.33 and 0.37 s, and for a
+# 160-frame block 0.73 and 0.96 s; docs/benchmarks.md, least-cost seams)
+_SEAM_THREADS = 1
 _CUT_NODES = 40_000  # the largest minimum cut on single pixels (larger corridors: on blocks)
 
 
@@ -233,7 +234,7 @@ def least_cost_seams(labels: np.ndarray, coarse: Sequence[Coarse], gains: np.nda
     (A seam refined within a buffer around an initial one by Dijkstra on a mismatch cost, as
     in Chon et al., ISPRS J. Photogramm. 2010, here on a reduced grid.)
 
-    Pairs run at once on up to ``workers`` threads (default 2: more do not help, the pairs'
+    Pairs run at once on up to ``workers`` threads (default 1: more do not help, the pairs'
     numpy calls being short and scipy's Dijkstra holding the interpreter lock), with the
     labels of the serial order. A pair (i, j) reads the labels only as the masks "is i" and
     "is j" in its window (its overlap grown by one pixel), and changes only pixels of its
