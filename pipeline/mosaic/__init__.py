@@ -357,7 +357,7 @@ def _tiled_settings(dst: str, index: Any, seamlines: Any, compress: str, compres
         raise ParamError(f"A tiled mosaic is written {', '.join(TILED_COMPRESS)}, not {compress}")
     if os.path.exists(dst) and not os.path.isdir(dst):
         raise ParamError(f"Output '{dst}' is a file; a tiled mosaic is a folder")
-    size = int(tile_size) if tile_size is not None else default_tile_size(on)
+    size = _compute_tile(tile_size, on)
     product = 0 if product_tile is None else integer("product_tile", product_tile, low=16)  # (0: by the grid)
     settings = TiledSettings(product_tile=product, tile_size=size, compress=compress,
                              compress_level=level_of(compress, compress_level),
@@ -412,7 +412,7 @@ def _write_mosaic(plan: MosaicPlan, procs: ProcessTiles | None, dst: str, on: wp
     t0 = time.perf_counter()
     stream, level = out.compress, level_of(out.compress, out.compress_level)
     codec = mosaic_block_codec(out.block_codec, on, level, stream)
-    size = int(out.tile_size) if out.tile_size is not None else default_tile_size(on)
+    size = _compute_tile(out.tile_size, on)
     tiles = plan.tiles(size)
     host_source = out.index is not None or out.seamlines is not None  # else the pixels per image counted there
     # a cluster's workers compress their tiles' blocks on their own devices (this process only
@@ -509,9 +509,21 @@ def _cluster_results(plan: MosaicPlan, client: Any, tiles: list[Tile], codec: st
         if codec == "host" or workers_encode:
             yield tile, (values, valid, source)
             continue
-        plan._encoder.write(tile.row, tile.col, upload(values, dtype=wp.dtype_from_numpy(values.dtype), device=on),
-                            upload(valid.view(np.uint8), dtype=wp.uint8, device=on))
+        plan._encoder.write(tile.row, tile.col, *_upload_tile(values, valid, on))
         yield tile, (None, valid, source)
+
+
+def _compute_tile(tile_size: int | None, on: wp.context.Device) -> int:
+    """The mosaic's compute tile edge (pixels): ``tile_size``, or the device's default."""
+    return int(tile_size) if tile_size is not None else default_tile_size(on)
+
+
+def _upload_tile(values: np.ndarray, valid: np.ndarray, on: wp.context.Device) -> tuple[wp.array, wp.array]:
+    """A tile computed elsewhere, (values, valid) on the host, as arrays on device ``on`` for
+    its encoder: copied into page-locked memory (the host arrays may be reused at once) and
+    the copies enqueued (:func:`orthowarp._device.upload`); valid as uint8."""
+    return (upload(values, dtype=wp.dtype_from_numpy(values.dtype), device=on),
+            upload(valid.view(np.uint8), dtype=wp.uint8, device=on))
 
 
 def _for_processes(options: dict[str, Any]) -> dict[str, Any]:
@@ -529,7 +541,7 @@ def _ahead_on(procs: ProcessTiles, tile_size: int | None, on: wp.context.Device)
     def ahead(plan: MosaicPlan) -> None:
         grid = copy.copy(plan)
         grid.options = _for_processes(plan.options)
-        tiles = plan.tiles(int(tile_size) if tile_size is not None else default_tile_size(on))
+        tiles = plan.tiles(_compute_tile(tile_size, on))  # (those _write_mosaic will deal)
         procs.build_ahead(grid, tiles, plan._tile_images(tiles))
 
     return ahead
@@ -564,8 +576,7 @@ def _process_results(plan: MosaicPlan, procs: ProcessTiles, tiles: list[Tile], s
                     continue
                 t = time.perf_counter()
                 # (copied into page-locked memory before the slot is released; the copies enqueued)
-                up = upload(values, dtype=wp.dtype_from_numpy(values.dtype), device=on), \
-                    upload(valid, dtype=wp.uint8, device=on)
+                up = _upload_tile(values, valid, on)
                 st["timer"].span("h2d", t)  # (this process's upload of the worker's tile)
                 plan._encoder.write(tile.row, tile.col, *up)
                 yield tile, (None, ok.copy(), source.copy()) if source is not None else (None, None, None)

@@ -233,8 +233,8 @@ def connect(cluster: Any = None, *, gpus: int | None = None, workers: int | None
 
 
 def _pin(cores: list[int]) -> list[int]:
-    """On a worker or its nanny: every thread of this process (and so the threads and
-    processes it starts later) onto ``cores``; returns the calling thread's cores."""
+    """On a worker: every thread of this process (and so the threads and processes it starts
+    later) onto ``cores``; returns the calling thread's cores."""
     for tid in os.listdir("/proc/self/task"):
         try:
             os.sched_setaffinity(int(tid), cores)
