@@ -13,15 +13,19 @@ then, timed:
 - ``orthos``: ``--orthos`` of the frames as a batch (one task per image, each ortho written by
   its worker).
 
+The built blocks are flushed to disk before the runs (``os.sync``; with ``--no-sync`` the kernel's
+write-back of the inputs overlaps the first runs instead).
+
 Reported per run: wall time (and the plan's steps), output Gpix/s, the mean GPU utilisation of
-each GPU (nvidia-smi, sampled every 200 ms) and of the host's CPU cores (/proc/stat), what the
+each GPU (nvidia-smi, sampled every 200 ms) and of the host's CPU cores and their I/O wait
+(/proc/stat), the page cache's data not yet on disk at its start (/proc/meminfo), what the
 workers did (Dask's task stream: per task kind the count and compute seconds, per worker its
 compute seconds and span), and a digest of the output files; then per product
 the scaling efficiency t(1) / (n t(n)) and whether the digests agree.
 
 usage: python3 bench/scaleout.py [--gpus 4,2,1] [--frames 160] [--frame 4800x4000] [--orthos 40]
                                  [--processes-per-gpu 4] [--products tiled,cog,orthos]
-                                 [--block-codec auto] [--product-tile 0]
+                                 [--block-codec auto] [--product-tile 0] [--no-sync]
                                  [--workdir DIR] [--out FILE]
 """
 
@@ -49,20 +53,26 @@ class GpuSampler:
 
     @staticmethod
     def _cpu_times():
-        """(busy, total) jiffies of all the host's cores (/proc/stat), or None."""
+        """(busy, total, iowait) jiffies of all the host's cores (/proc/stat), or None."""
         try:
             with open("/proc/stat") as f:
                 v = [int(x) for x in f.readline().split()[1:]]
         except (OSError, ValueError):
             return None
-        idle = v[3] + (v[4] if len(v) > 4 else 0)  # idle + iowait
-        return sum(v) - idle, sum(v)
+        iowait = v[4] if len(v) > 4 else 0
+        return sum(v) - v[3] - iowait, sum(v), iowait
 
     def cpu_busy(self):
         """The host's CPU cores' mean utilisation (%) over the block, or None."""
         if self.cpu0 is None or self.cpu1 is None or self.cpu1[1] == self.cpu0[1]:
             return None
         return 100.0 * (self.cpu1[0] - self.cpu0[0]) / (self.cpu1[1] - self.cpu0[1])
+
+    def io_wait(self):
+        """The host's cores' mean time waiting for I/O (%) over the block, or None."""
+        if self.cpu0 is None or self.cpu1 is None or self.cpu1[1] == self.cpu0[1]:
+            return None
+        return 100.0 * (self.cpu1[2] - self.cpu0[2]) / (self.cpu1[1] - self.cpu0[1])
 
     def __enter__(self):
         self.cpu0, self.cpu1 = self._cpu_times(), None
@@ -93,6 +103,16 @@ class GpuSampler:
 
     def means(self):
         return {i: sum(v) / len(v) for i, v in sorted(self.samples.items()) if v}
+
+
+def unwritten_mb():
+    """Page-cache data not yet on disk (/proc/meminfo Dirty + Writeback, MB), or None."""
+    try:
+        with open("/proc/meminfo") as f:
+            kb = {k: int(v.split()[0]) for k, v in (line.split(":", 1) for line in f) if k in ("Dirty", "Writeback")}
+    except (OSError, ValueError):
+        return None
+    return sum(kb.values()) / 1024
 
 
 def digest(paths):
@@ -161,6 +181,9 @@ def main(argv=None):
     ap.add_argument("--baseline", action="store_true", help="first, the mosaic on one GPU without a cluster")
     ap.add_argument("--block-codec", default="auto", help="the mosaics' block codec (mosaic()'s block_codec)")
     ap.add_argument("--product-tile", type=int, default=0, help="the tiled product's tile edge (0: the default)")
+    ap.add_argument("--no-sync", action="store_true",
+                    help="do not flush the built blocks to disk before the runs (by default os.sync(): the "
+                         "first runs would otherwise share the disk with the write-back of the inputs)")
     ap.add_argument("--device", default="cuda", help="cuda, or cpu (a CPU cluster of as many workers: a smoke test)")
     args = ap.parse_args(argv)
 
@@ -194,6 +217,11 @@ def main(argv=None):
     if args.prepare_only:
         print(f"blocks built in {time.perf_counter() - t:.1f} s", flush=True)
         return
+    build_s, unwritten_after_build = time.perf_counter() - t, unwritten_mb()
+    t = time.perf_counter()
+    if not args.no_sync:
+        os.sync()
+    sync_s = time.perf_counter() - t
     cpu = args.device == "cpu"
     gpu_name = "cpu" if cpu else subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader", "-i", "0"],
                                                 capture_output=True, text=True).stdout.strip()
@@ -202,7 +230,8 @@ def main(argv=None):
                   ortho_frame=args.ortho_frame or args.frame,
                   processes_per_gpu=args.processes_per_gpu, threads=args.threads, cpu_count=os.cpu_count(),
                   block_codec=args.block_codec, product_tile=args.product_tile or "auto",
-                  build_s=time.perf_counter() - t, runs=[])
+                  build_s=build_s, unwritten_mb_after_build=unwritten_after_build,
+                  sync_s=None if args.no_sync else sync_s, runs=[])
     products = args.products.split(",")
     print(f"block of {args.frames} frames {width} x {height} built in {report['build_s']:.1f} s on {gpu_name}", flush=True)
     device = "cpu" if cpu else "cuda:0"
@@ -231,7 +260,8 @@ def main(argv=None):
             print(f"{n} GPU(s): cluster of {n * args.processes_per_gpu} workers started in {start_s:.1f} s, "
                   f"warm-up {warm_s:.1f} s", flush=True)
             for product in products:
-                run = dict(gpus=n, product=product, cluster_start_s=start_s, warmup_s=warm_s)
+                run = dict(gpus=n, product=product, cluster_start_s=start_s, warmup_s=warm_s,
+                           unwritten_mb_at_start=unwritten_mb())
                 with GpuSampler() as gs, get_task_stream(client) as stream:
                     t, t_wall = time.perf_counter(), time.time()
                     if product == "tiled":
@@ -249,6 +279,7 @@ def main(argv=None):
                     run["wall_s"] = time.perf_counter() - t
                 run["gpu_busy_mean"] = gs.means()
                 run["host_cpu_busy"] = gs.cpu_busy()
+                run["host_io_wait"] = gs.io_wait()
                 run["tasks"] = task_summary(stream.data, t_wall)
                 if product == "orthos":
                     px = sum(x.shape[0] * x.shape[1] for x in rs)
@@ -260,7 +291,7 @@ def main(argv=None):
                 report["runs"].append(run)
                 save_report(report, args.out)
                 print(f"  {product}: {run['wall_s']:.1f} s, {run['output_gpix_s']:.3f} Gpix/s, host CPU "
-                      f"{run['host_cpu_busy'] or 0:.0f} %, GPU busy "
+                      f"{run['host_cpu_busy'] or 0:.0f} % (I/O wait {run['host_io_wait'] or 0:.0f} %), GPU busy "
                       f"{[round(v) for v in run['gpu_busy_mean'].values()]}, {run['files']} files, "
                       f"{run['digest'][:12]}", flush=True)
     summary = {}

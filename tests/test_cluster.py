@@ -278,6 +278,52 @@ def test_a_worker_holds_one_device_encoder_per_device_and_codec():
     assert sum(k == (str(cpu), "warp") for k in cluster._DEVICE_ENCODERS) == 1
 
 
+def test_product_tiles_reuse_their_device_codecs(block, reference, tmp_path, monkeypatch):
+    """A tiled product compressed by a device codec ("warp", here on the CPU device): the
+    tiles' pixels are the host codec's, and the codecs of a tile are reused by the next ones
+    (one set per tile encoded at once) and give the same bytes as new ones."""
+    from orthowarp.pipeline.mosaic import cluster
+
+    sc, images = block
+    _, tiled = reference
+    monkeypatch.setattr(cluster, "_PRODUCT_CODECS", {})
+    kw = dict(_kw(sc), tiled=True, index=True, product_tile=128, block_codec="warp", workers=1)
+    one = mosaic(images, tmp_path / "one", **kw)
+    (held,) = cluster._PRODUCT_CODECS.values()
+    assert len(held) == 1 and len(held[0]) == 1  # one set, given back after each of the tiles
+    first = held[0][0]
+    again = mosaic(images, tmp_path / "again", **kw)
+    assert list(cluster._PRODUCT_CODECS.values()) == [[[first]]]  # the same codec again
+    monkeypatch.setattr(cluster, "_PRODUCT_CODECS", {})
+    fresh = mosaic(images, tmp_path / "fresh", **kw)
+    assert _files(again.path) == _files(one.path) == _files(fresh.path)
+    with rasterio.open(one.vrt) as a, rasterio.open(tiled.vrt) as b:
+        np.testing.assert_array_equal(a.read(), b.read())
+        np.testing.assert_array_equal(a.dataset_mask(), b.dataset_mask())
+
+
+def test_a_failed_product_tile_closes_its_codecs_and_other_settings_replace_them(monkeypatch):
+    import warp as wp
+
+    from orthowarp.pipeline.mosaic import cluster
+
+    monkeypatch.setattr(cluster, "_PRODUCT_CODECS", {})
+    cpu = wp.get_device("cpu")
+    closed = []
+    with cluster._product_codecs("warp", 6, cpu, "deflate", None) as codecs:
+        monkeypatch.setattr(codecs[0], "close", lambda: closed.append("a"))
+    with pytest.raises(RuntimeError), cluster._product_codecs("warp", 6, cpu, "deflate", None) as again:
+        assert again is codecs  # the free set, reused
+        raise RuntimeError("a tile failed")
+    assert closed == ["a"] and cluster._PRODUCT_CODECS[(str(cpu), "warp", 6, "deflate", None)] == []
+    with cluster._product_codecs("warp", 6, cpu, "deflate", None) as fresh:
+        assert fresh is not codecs
+        monkeypatch.setattr(fresh[0], "close", lambda: closed.append("b"))
+    with cluster._product_codecs("warp", 9, cpu, "deflate", None):
+        assert closed == ["a", "b"]  # the sets of other settings, closed
+    assert list(cluster._PRODUCT_CODECS) == [(str(cpu), "warp", 9, "deflate", None)]
+
+
 def test_the_devices_of_a_clusters_workers_are_counted():
     from orthowarp.pipeline.mosaic.cluster import worker_devices
 

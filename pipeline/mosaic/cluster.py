@@ -505,6 +505,48 @@ def _device_encoder(encoder: Any, codec: str, device: Any) -> Any:
         return held[1]
 
 
+#: The device codecs of this worker process's product tiles, by settings: the sets not in use
+#: (each tile being encoded takes one, and gives it back after): their device buffers, sized
+#: for a product tile, are made once per process and tile at a time, not once per tile (on an
+#: H200, 4096-pixel tiles of the 40-frame 4800 x 4000 block took 0.34 s instead of 0.38 s each;
+#: docs/benchmarks.md, scale-out).
+_PRODUCT_CODECS: dict[tuple, list[list]] = {}
+_PRODUCT_CODECS_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def _product_codecs(codec: str, level: int | None, device: Any, compress: str,
+                    quality: int | None) -> Iterator[list]:
+    """A set of device codecs (:func:`~orthowarp.pipeline.ortho.sink.device_codecs`) for one
+    product tile: one this process used for an earlier tile of the same settings where one
+    is free, else new; given back to the process after the tile (closed instead where the
+    tile failed). Sets of other settings still held are closed when these are first made (a
+    long-lived worker keeps the codecs of one kind of product)."""
+    from ..ortho.sink import device_codecs
+
+    key = (str(device), codec, level, compress, quality)
+    stale = []
+    with _PRODUCT_CODECS_LOCK:
+        if key not in _PRODUCT_CODECS:
+            for other in list(_PRODUCT_CODECS):
+                stale += _PRODUCT_CODECS.pop(other)
+        free = _PRODUCT_CODECS.setdefault(key, [])
+        codecs = free.pop() if free else None
+    for old in stale:
+        for c in old:
+            c.close()
+    if codecs is None:
+        codecs = device_codecs(codec, level, device, compress, quality=quality)
+    try:
+        yield codecs
+    except BaseException:
+        for c in codecs:
+            c.close()
+        raise
+    with _PRODUCT_CODECS_LOCK:
+        _PRODUCT_CODECS.setdefault(key, []).append(codecs)
+
+
 @quiet_warp()
 def _tile_task(plan: Any, tile: Tile, encoder: Any = None, device_codec: str | None = None) -> tuple:
     """A worker's tile: (block, valid, source) on the host; with a :class:`~orthowarp.pipeline.
@@ -690,7 +732,6 @@ def _write_product_tile(plan: Any, i: int, j: int, tile: Tile, folder: str, sett
     from affine import Affine
 
     from ..._device import to_host
-    from ..ortho.sink import device_codecs
     from ..raster.cog import CogWriter
     from ..raster.device import DeviceCogEncoder
     from .plan import NO_SOURCE, index_file_settings, mosaic_block_codec, mosaic_file_settings
@@ -718,47 +759,52 @@ def _write_product_tile(plan: Any, i: int, j: int, tile: Tile, folder: str, sett
             writers.append(CogWriter(tmps[2], count=1, dtype="uint16", name=paths[2], nodata=NO_SOURCE,
                                      overview_resampling="nearest", **kw,
                                      **index_file_settings(settings.compress, settings.compress_level)))
-        encoder = None
-        try:
-            if codec != "host":
-                encoder = DeviceCogEncoder(writers[0], dev, device_codecs(codec, settings.compress_level, dev,
-                                                                          settings.compress, quality=settings.quality))
-            lock = threading.Lock()
+        device_codecs = _product_codecs(codec, settings.compress_level, dev, settings.compress, settings.quality) \
+            if codec != "host" else contextlib.nullcontext()
+        # (the codecs go back to the process for its next tile, or are closed where this one fails)
+        with device_codecs as codecs:
+            encoder = None
+            try:
+                if codecs is not None:  # (the tile's blocks in one batch, at its end: batches of
+                    # one compute tile, compressed while the next was computed, were no faster)
+                    encoder = DeviceCogEncoder(writers[0], dev, codecs, close_codecs=False)
+                lock = threading.Lock()
 
-            def one(s: Tile) -> None:
-                r, c = s.row - tile.row, s.col - tile.col
-                if encoder is not None:
-                    out, has, source = plan._tile(*s, device=dev)
-                    encoder.write(r, c, out, has)
-                    source = to_host(source)
-                    valid = source != NO_SOURCE
+                def one(s: Tile) -> None:
+                    r, c = s.row - tile.row, s.col - tile.col
+                    if encoder is not None:
+                        out, has, source = plan._tile(*s, device=dev)
+                        encoder.write(r, c, out, has)
+                        source = to_host(source)
+                        valid = source != NO_SOURCE
+                    else:
+                        block, valid, source = plan._tile(*s)
+                    used = np.bincount(source[valid], minlength=n)[:n]
+                    with lock:
+                        if encoder is None:
+                            writers[0].write(r, c, block, valid)
+                        if settings.index:
+                            writers[1].write(r, c, source[..., None], valid)
+                        counts[:] += used
+
+                if threads > 1 and len(subs) > 1:
+                    with ThreadPoolExecutor(max_workers=min(threads, len(subs)),
+                                            thread_name_prefix="product-sub") as pool:
+                        list(pool.map(one, subs))
                 else:
-                    block, valid, source = plan._tile(*s)
-                used = np.bincount(source[valid], minlength=n)[:n]
-                with lock:
-                    if encoder is None:
-                        writers[0].write(r, c, block, valid)
-                    if settings.index:
-                        writers[1].write(r, c, source[..., None], valid)
-                    counts[:] += used
-
-            if threads > 1 and len(subs) > 1:
-                with ThreadPoolExecutor(max_workers=min(threads, len(subs)), thread_name_prefix="product-sub") as pool:
-                    list(pool.map(one, subs))
-            else:
-                for s in subs:
-                    one(s)
-            if encoder is not None:
-                encoder.flush()
-            for w in writers:
-                w.close()
-        except BaseException:
-            for w in writers:
-                w.abort()
-            raise
-        finally:
-            if encoder is not None:
-                encoder.close()
+                    for s in subs:
+                        one(s)
+                if encoder is not None:
+                    encoder.flush()
+                for w in writers:
+                    w.close()
+            except BaseException:
+                for w in writers:
+                    w.abort()
+                raise
+            finally:
+                if encoder is not None:
+                    encoder.close()
         stats = dict(row=i, col=j, r0=tile.row, c0=tile.col, rows=tile.height, cols=tile.width,
                      valid_pixels=int(counts.sum()),
                      pixels_per_image={str(k): int(v) for k, v in enumerate(counts) if v})

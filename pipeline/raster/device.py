@@ -773,12 +773,16 @@ class DeviceCogEncoder:
         Gets each device batch's compression as a ``"write"`` span, each tile's blocks and
         overview levels made on the device as a ``"kernel"`` span and the tiles' waits for the
         batch in flight (bounded device memory) as ``"queue"`` spans.
+    close_codecs : bool, optional
+        :meth:`close` closes ``codecs`` (default True); False leaves them to the caller, who
+        may give them to another encoder (their device buffers kept).
 
     Call :meth:`flush` after the last tile, before the writer's ``close``.
     """
 
     def __init__(self, writer: CogWriter, device: Device, codecs: Sequence[Any], *,
-                 batch_bytes: int = 512 << 20, mask_codec: Any = None, timer: Any = None) -> None:
+                 batch_bytes: int = 512 << 20, mask_codec: Any = None, timer: Any = None,
+                 close_codecs: bool = True) -> None:
         if writer.compress not in ("deflate", "zstd", "jpeg"):
             raise ParamError(f"DeviceCogEncoder needs a deflate, zstd or jpeg CogWriter, not {writer.compress!r}")
         gpu = [c for c in codecs if c.batched]
@@ -798,6 +802,7 @@ class DeviceCogEncoder:
         self.gpu, self.host = (gpu or [None])[0], (host or [None])[0]
         self.mask_codec = mask_codec  # None: the mask blocks go with the image blocks
         self.batch_bytes = int(batch_bytes)
+        self._close_codecs = bool(close_codecs)
         self.blocks_by_codec = {c.name: 0 for c in codecs}  # image blocks each codec compressed
         self.empty_blocks = 0  # all-zero image blocks, given the one stream of their size
         # seconds in each step of the blocks' compression, summed over the codecs' calls (which
@@ -1199,9 +1204,11 @@ class DeviceCogEncoder:
     def close(self) -> None:
         self._worker.shutdown(wait=True)
         self._storer.shutdown(wait=True)
-        for c in (self.gpu, self.host, self.mask_codec):
+        for c in (self.gpu, self.host) if self._close_codecs else ():
             if c is not None:
                 c.close()
+        if self.mask_codec is not None:
+            self.mask_codec.close()
         if self._threshold is not None:
             wp.set_mempool_release_threshold(self.device, self._threshold)
             self._threshold = None
