@@ -508,8 +508,8 @@ def _device_encoder(encoder: Any, codec: str, device: Any) -> Any:
 #: The device codecs of this worker process's product tiles, by settings: the sets not in use
 #: (each tile being encoded takes one, and gives it back after): their device buffers, sized
 #: for a product tile, are made once per process and tile at a time, not once per tile (on an
-#: H200, 4096-pixel tiles of the 40-frame 4800 x 4000 block took 0.34 s instead of 0.38 s each;
-#: docs/benchmarks.md, scale-out).
+#: H200, 4096-pixel tiles one at a time 0.37-0.39 s each against 0.41-0.55 s, four at once 1.24 s
+#: against 1.36-1.38 s; on a 2-GPU cluster no gain; docs/cluster.md)
 _PRODUCT_CODECS: dict[tuple, list[list]] = {}
 _PRODUCT_CODECS_LOCK = threading.Lock()
 
