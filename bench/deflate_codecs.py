@@ -119,7 +119,7 @@ def warp_variant(pred, chunk, window, depth, nice, device="cuda:0", hash_bytes=4
     n, size = len(pred), pred[0].nbytes
     buf = wp.array(pred.reshape(-1), dtype=wp.uint8, device=device)
     kw = dict(chunk=chunk, window=window, depth=depth, nice=nice, hash_bytes=hash_bytes, good=good, run=run,
-              chain_parts=chain_parts, max_lazy=max_lazy)
+              chain_parts=chain_parts or None, max_lazy=max_lazy)  # (chain_parts 0: by the batch)
     codec = WarpDeflate(device, **kw)
     offs, sizes = [k * size for k in range(n)], [size] * n
     codec.compress(buf, offs, sizes)  # compile / load the kernels, scratch and pinned buffers for the batch
@@ -145,7 +145,8 @@ def main():
     ap.add_argument("--warp", default="",
                     help="WarpDeflate variants, comma-separated: "
                          "CHUNK:WINDOW:DEPTH:NICE[:HASH_BYTES[:GOOD[:RUN[:CHAIN_PARTS[:MAX_LAZY]]]]] "
-                         "(e.g. 65535:8192:32:128:4:8, 65535:8192:32:128:4:0:16:4:16)")
+                         "(e.g. 65535:8192:32:128:4:8, 65535:8192:32:128:4:0:16:4:16; CHAIN_PARTS 0: by the "
+                         "batch, WarpDeflate's default)")
     ap.add_argument("--warp-device", default="cuda:0")
     a = ap.parse_args()
     report = {"blocks": a.blocks, "block": [B, B, 3], "content": {}}

@@ -200,6 +200,26 @@ def test_hash_chains_built_in_parts_equal_one_pass(device, hash_bytes, parts):
     assert not hist.numpy().any()
 
 
+def test_chain_parts_by_the_batch_change_no_stream(device, monkeypatch):
+    """The hash-chain threads per chunk chosen by the batch (64 for a few chunks, 4 for many)
+    give the streams of a fixed count, call after call on one codec with counts that change
+    (its tables reused, left zero by each call)."""
+    from orthowarp.pipeline.raster import device as dev_mod
+
+    assert [dev_mod.chain_parts_for(m) for m in (1, 192, 768, 1536, 3072, 12000)] == [64, 64, 16, 8, 4, 4]
+    assert dev_mod.chain_parts_for(1, gpu=False) == 4
+    counts = iter([64, 4, 16, 64])
+    monkeypatch.setattr(dev_mod, "chain_parts_for", lambda m, gpu=True: next(counts))
+    small = [_predicted_texture(24, 300, seed=5)]
+    large = [_predicted_texture(24, 300, seed=k) for k in range(4)] + [bytes(9000) + bytes(range(256)) * 8]
+    auto, fixed = WarpDeflate(device, chunk=4096), WarpDeflate(device, chunk=4096, chain_parts=4)
+    for batch in (small, large, small, large):
+        got = [bytes(r) for r in _compress(auto, batch)]
+        assert got == [bytes(r) for r in _compress(fixed, batch)]
+        assert [zlib.decompress(r, -15) for r in got] == batch
+    assert not any(t.numpy().any() for t in auto._chains)
+
+
 def test_positions_per_thread_change_no_stream(device):
     """match_kernel's ``run`` (positions per thread) and its reuse of the previous
     position's match are bookkeeping: the streams are the same bytes for every run."""

@@ -471,6 +471,19 @@ def _length_tables() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 _CL_ORDER = np.array([16, 17, 18, 0, 8, 7, 9, 6, 10, 5, 11, 4, 12, 3, 13, 2, 14, 1, 15], np.int32)
 
 
+def chain_parts_for(chunks: int, *, gpu: bool = True) -> int:
+    """:class:`WarpDeflate`'s hash-chain threads per chunk for a launch of ``chunks`` chunks:
+    on a GPU about 12288 threads in all, a power of two from 4 to 64 (on an H200: 64 for 192
+    chunks, 16 for 768, 4 for 3072 and more were the fastest of 4, 16 and 64;
+    bench/deflate_codecs.py, bench/reference/deflate-chain-parts-small-batches-h200.json); 4
+    on the CPU, whose launches run their threads one after another (more parts only add
+    tables to clear and join)."""
+    if not gpu:
+        return 4
+    want = 12288 / max(int(chunks), 1)
+    return int(min(64, max(4, 2 ** round(np.log2(want)))))
+
+
 class WarpDeflate:
     """Raw deflate of device-resident buffers by orthowarp's own kernels
     (:mod:`orthowarp.kernels.deflate`): LZ77 with hash chains (matches found with a thread per
@@ -490,10 +503,13 @@ class WarpDeflate:
         A match this long ends the search (default 128); each position compares at most this
         many bytes, and the parse extends the matches it takes to their full length.
     chain_parts : int, optional
-        Threads per chunk that build its hash chains, each over a part of it (1-64, default
-        4; the parts' chains are then joined, the same chains for any count). On an H200
-        the chains of 786 MB took 0.08-0.09 s with 4 parts, 0.11-0.12 s with 8, 0.15 s with 16
-        (larger tables: the walk is bound by scattered memory accesses).
+        Threads per chunk that build its hash chains, each over a part of it (1-64; the
+        parts' chains are then joined, the same chains for any count). Default: on a GPU by
+        the launch's chunks (:func:`chain_parts_for`), 4 for large batches, up to 64 for small
+        ones; 4 on the CPU. On an H200 the chains of 786 MB (12000 chunks) took 0.08-0.09 s with 4 parts,
+        0.11-0.12 s with 8, 0.15 s with 16 (larger tables: the walk is bound by scattered
+        memory accesses); those of 12.6 MB (192 chunks) 17.3 ms with 4, 6.5 ms with 16 and 2.8
+        ms with 64 (a thread walks its part alone: few chunks leave most of the GPU idle).
     run : int, optional
         Positions whose matches one thread finds, one after the other (default 16): the
         threads of a warp then take about the same number of steps.
@@ -521,7 +537,8 @@ class WarpDeflate:
         "match", "parse", "huffman", "sizes", "emit", "copy", "split"; slows the codec a little).
     max_chunks : int, optional
         Chunks per launch, which bounds the scratch memory: about (13 x chunk + 4 x window +
-        chain_parts x 32 KiB + 60 KiB) bytes per chunk. Default on a GPU: what fits in a sixth
+        chain_parts x 32 KiB + 60 KiB) bytes per chunk (4 parts where they go by the batch,
+        whose hash tables for more parts take at most 400 MB). Default on a GPU: what fits in a sixth
         of its memory (an H100: about 12000 chunks of 64 KiB, more than a 512 MiB batch of the
         COG encoder), as the per-chunk steps need many chunks in flight to hide memory
         latency; 64 on the CPU. At most what keeps a launch's output under 2 GiB.
@@ -532,7 +549,8 @@ class WarpDeflate:
     batched = True  # many chunks per launch: fed batches gathered over tiles
 
     def __init__(self, device: Device, *, chunk: int = 65535, depth: int = 32, nice: int = 128, good: int = 0,
-                 lazy: bool = True, window: int = 8192, hash_bytes: int = 4, run: int = 16, chain_parts: int = 4,
+                 lazy: bool = True, window: int = 8192, hash_bytes: int = 4, run: int = 16,
+                 chain_parts: int | None = None,
                  max_lazy: int = 0, max_chunks: int | None = None, profile: bool = False) -> None:
         from ...kernels import deflate as kd  # its kernels are built on first use only (14 ms at import)
 
@@ -554,11 +572,12 @@ class WarpDeflate:
         if not 1 <= int(run) <= 4096:
             raise ParamError(f"run must be 1-4096 positions, got {run}")
         self.run = int(run)
-        if not 1 <= int(chain_parts) <= 64 or -(-(int(chunk) + int(window)) // int(chain_parts)) > 65535:
+        if chain_parts is not None and (not 1 <= int(chain_parts) <= 64
+                                        or -(-(int(chunk) + int(window)) // int(chain_parts)) > 65535):
             raise ParamError(f"chain_parts must be 1-64, with at most 65535 positions per part, got {chain_parts}")
-        self.chain_parts = int(chain_parts)
+        self.chain_parts = None if chain_parts is None else int(chain_parts)  # None: by the batch
         self.window = int(window)
-        per_chunk = 13 * self.chunk + 4 * self.window + 4 * self.chain_parts * kd.HASH_SIZE + 60 * 1024
+        per_chunk = 13 * self.chunk + 4 * self.window + 4 * (self.chain_parts or 4) * kd.HASH_SIZE + 60 * 1024
         self.max_chunks = min(int(max_chunks or (max(64, self.device.total_memory // 6 // per_chunk)
                                                  if self.device.is_cuda else 64)),
                               (2**31 - 1) // (self.chunk + 5))  # the pieces' int32 offsets
@@ -570,6 +589,7 @@ class WarpDeflate:
         self._lock = threading.Lock()
         self._tables = None
         self._scratch = None
+        self._chains = None  # the hash tables' flat buffers (first, last), zero between calls
         self._own_stream = None
 
     def _table_arrays(self) -> tuple[wp.array, ...]:
@@ -595,11 +615,8 @@ class WarpDeflate:
             pinned = d.is_cuda
             h = lambda n, dt=wp.int32: wp.empty(n, dtype=dt, device="cpu", pinned=pinned)  # noqa: E731
             parts = -(-c // kd.PARSE_PART)
-            tables = (m, self.chain_parts, kd.HASH_SIZE)
             self._scratch = dict(
-                m=m, first=wp.zeros(tables, dtype=wp.uint16, device=d),
-                last=wp.zeros(tables, dtype=wp.uint16, device=d),
-                prev=z((m, c + self.window)), best=z((m, c)), hist=z((m, 256)), tokens=z((m, c), wp.uint32),
+                m=m, prev=z((m, c + self.window)), best=z((m, c)), hist=z((m, 256)), tokens=z((m, c), wp.uint32),
                 ntok=z((m, parts)), part_freq=z((m, parts, kd.DIST0 + 30)), part_extra=z((m, parts)),
                 freq=z((m, kd.NSYM)), extra=z(m), entropy=z(m, wp.float32),
                 lens=z((m, kd.NSYM)), codes=z((m, kd.NSYM)), clsym=z((m, kd.CL_ROW)), lens_keep=z((m, kd.NSYM)),
@@ -610,6 +627,17 @@ class WarpDeflate:
             if pinned:  # allocated and zeroed in the device stream's order: done before the codec's stream uses them
                 wp.synchronize_device(d)
         return self._scratch
+
+    def _chain_tables(self, m: int, parts: int) -> tuple[wp.array, wp.array]:
+        """The hash chains' first and last tables (m, parts, HASH_SIZE) uint16, zero (views of
+        flat buffers kept for the next call, which :func:`~orthowarp.kernels.deflate.chain_link_kernel`
+        leaves zero)."""
+        need = m * parts * self._kd.HASH_SIZE
+        if self._chains is None or self._chains[0].shape[0] < need:
+            self._chains = tuple(wp.zeros(need, dtype=wp.uint16, device=self.device) for _ in range(2))
+            if self.device.is_cuda:  # zeroed in the device stream's order: done before the codec's stream uses them
+                wp.synchronize_device(self.device)
+        return tuple(t[:need].reshape((m, parts, self._kd.HASH_SIZE)) for t in self._chains)
 
     def compress(self, buf: wp.array, offsets: Sequence[int], sizes: Sequence[int]) -> list:
         """Raw deflate streams of the buffers (``offsets``, ``sizes``: byte lists) of the uint8
@@ -683,9 +711,10 @@ class WarpDeflate:
         t = self._tick("setup", time.perf_counter(), sync=True)
         launch = lambda kernel, dim, inputs, outputs: wp.launch(  # noqa: E731
             kernel, dim=dim, device=d, stream=stream, inputs=inputs, outputs=outputs)
-        launch(kd.chain_part_kernel, (m, self.chain_parts), [buf, off, ln, pr, self.hash_bytes],
-               [s["first"], s["last"], s["prev"]])
-        launch(kd.chain_link_kernel, (m, kd.HASH_SIZE), [ln, pr, self.hash_bytes, s["first"], s["last"]],
+        parts = self.chain_parts or chain_parts_for(m, gpu=d.is_cuda)
+        first, last = self._chain_tables(m, parts)
+        launch(kd.chain_part_kernel, (m, parts), [buf, off, ln, pr, self.hash_bytes], [first, last, s["prev"]])
+        launch(kd.chain_link_kernel, (m, kd.HASH_SIZE), [ln, pr, self.hash_bytes, first, last],
                [s["prev"], s["hist"]])
         t = self._tick("chain", t, sync=True)
         launch(kd.match_kernel, (m, -(-int(lens.max(initial=0)) // self.run) or 1),
@@ -727,6 +756,7 @@ class WarpDeflate:
         if self._own_stream is not None:
             wp.synchronize_stream(self._own_stream)
         self._scratch = None
+        self._chains = None
         self._own_stream = None
 
 
