@@ -506,10 +506,11 @@ class WarpDeflate:
         Threads per chunk that build its hash chains, each over a part of it (1-64; the
         parts' chains are then joined, the same chains for any count). Default: on a GPU by
         the launch's chunks (:func:`chain_parts_for`), 4 for large batches, up to 64 for small
-        ones; 4 on the CPU. On an H200 the chains of 786 MB (12000 chunks) took 0.08-0.09 s with 4 parts,
-        0.11-0.12 s with 8, 0.15 s with 16 (larger tables: the walk is bound by scattered
-        memory accesses); those of 12.6 MB (192 chunks) 17.3 ms with 4, 6.5 ms with 16 and 2.8
-        ms with 64 (a thread walks its part alone: few chunks leave most of the GPU idle).
+        ones; 4 on the CPU. On an H200 the chains of 786 MB (12000 chunks) took 0.08-0.09 s
+        with 4 parts, 0.11-0.12 s with 8, 0.15 s with 16 (larger tables: the walk is bound by
+        scattered memory accesses); those of 12.6 MB (192 chunks) 17.3 ms with 4, 6.5 ms with
+        16 and 2.8 ms with 64 (a thread walks its part alone: few chunks leave most of the GPU
+        idle).
     run : int, optional
         Positions whose matches one thread finds, one after the other (default 16): the
         threads of a warp then take about the same number of steps.
@@ -538,7 +539,7 @@ class WarpDeflate:
     max_chunks : int, optional
         Chunks per launch, which bounds the scratch memory: about (13 x chunk + 4 x window +
         chain_parts x 32 KiB + 60 KiB) bytes per chunk (4 parts where they go by the batch,
-        whose hash tables for more parts take at most 400 MB). Default on a GPU: what fits in a sixth
+        whose hash tables for more parts take at most 570 MB). Default on a GPU: what fits in a sixth
         of its memory (an H100: about 12000 chunks of 64 KiB, more than a 512 MiB batch of the
         COG encoder), as the per-chunk steps need many chunks in flight to hide memory
         latency; 64 on the CPU. At most what keeps a launch's output under 2 GiB.
