@@ -17,8 +17,8 @@ The built blocks are flushed to disk before the runs (``os.sync``; with ``--no-s
 write-back of the inputs overlaps the first runs instead).
 
 Reported per run: wall time (and the plan's steps), output Gpix/s, the mean GPU utilisation of
-each GPU (nvidia-smi, sampled every 200 ms) and of the host's CPU cores and their I/O wait
-(/proc/stat), the page cache's data not yet on disk at its start (/proc/meminfo), what the
+each GPU (nvidia-smi, sampled every 200 ms) and of the host's CPU cores, their I/O wait
+(/proc/stat) and clock (/proc/cpuinfo), the page cache's data not yet on disk at its start (/proc/meminfo), what the
 workers did (Dask's task stream: per task kind the count and compute seconds, per worker its
 compute seconds and span), and a digest of the output files; then per product
 the scaling efficiency t(1) / (n t(n)) and whether the digests agree.
@@ -46,10 +46,28 @@ from _report import save_report  # noqa: E402
 
 
 class GpuSampler:
-    """Mean utilisation (%) of each GPU while the block runs (nvidia-smi every 200 ms)."""
+    """Mean utilisation (%) of each GPU while the block runs (nvidia-smi every 200 ms), and the
+    host cores' mean clock (/proc/cpuinfo every 500 ms: a busier host may run its cores
+    slower)."""
 
     def __init__(self) -> None:
         self.samples, self.proc, self.thread, self.cpu0, self.cpu1 = {}, None, None, None, None
+        self.mhz, self._stop = [], threading.Event()
+        self._clock = threading.Thread(target=self._read_clock, daemon=True)
+
+    def _read_clock(self):
+        while not self._stop.wait(0.5):
+            try:
+                with open("/proc/cpuinfo") as f:
+                    v = [float(line.split(":")[1]) for line in f if line.startswith("cpu MHz")]
+            except (OSError, ValueError, IndexError):
+                return
+            if v:
+                self.mhz.append(sum(v) / len(v))
+
+    def cpu_mhz(self):
+        """The host cores' clock (MHz) averaged over the cores and the block, or None."""
+        return sum(self.mhz) / len(self.mhz) if self.mhz else None
 
     @staticmethod
     def _cpu_times():
@@ -76,6 +94,7 @@ class GpuSampler:
 
     def __enter__(self):
         self.cpu0, self.cpu1 = self._cpu_times(), None
+        self._clock.start()
         try:
             self.proc = subprocess.Popen(["nvidia-smi", "--query-gpu=index,utilization.gpu", "--format=csv,noheader,nounits",
                                           "-lms", "200"], stdout=subprocess.PIPE, text=True)
@@ -95,6 +114,7 @@ class GpuSampler:
 
     def __exit__(self, *exc):
         self.cpu1 = self._cpu_times()
+        self._stop.set()
         if self.proc is not None:
             self.proc.terminate()
             self.proc.wait()
@@ -280,6 +300,7 @@ def main(argv=None):
                 run["gpu_busy_mean"] = gs.means()
                 run["host_cpu_busy"] = gs.cpu_busy()
                 run["host_io_wait"] = gs.io_wait()
+                run["host_cpu_mhz"] = gs.cpu_mhz()
                 run["tasks"] = task_summary(stream.data, t_wall)
                 if product == "orthos":
                     px = sum(x.shape[0] * x.shape[1] for x in rs)
