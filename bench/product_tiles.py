@@ -9,11 +9,13 @@ and number of tiles at once (1: one after the other; 8: eight threads, as the ei
 slots of a GPU's four worker processes of two threads), the product tiles within the first
 8192 x 8192 pixels of the mosaic are written ``--repeat`` times (the first round of each
 variant warms it up). Reported: wall time, mean seconds per tile, and an MD5 of the tiles' files
-(the same for both variants).
+(the same for both variants); with ``--sample-stacks`` where the threads' Python stacks were
+(bench/stack_sampler.py: a thread waiting in ``synchronize_stream`` under the encoder's
+``flush`` waits for the device deflate at the tile's end).
 
 usage: python3 bench/product_tiles.py [--frames 40] [--frame 4800x4000] [--device cuda:0]
                                       [--edges 4096,2048] [--at-once 1,8] [--repeat 2]
-                                      [--workdir DIR] [--out FILE]
+                                      [--sample-stacks SECONDS] [--workdir DIR] [--out FILE]
 """
 
 import argparse
@@ -28,6 +30,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
 
 from _report import save_report  # noqa: E402
+from stack_sampler import Sampler  # noqa: E402
 
 
 def files_md5(folder):
@@ -48,6 +51,9 @@ def main(argv=None):
     ap.add_argument("--edges", default="4096,2048", help="product tile edges (multiples of the compute tile)")
     ap.add_argument("--at-once", default="1,8", help="product tiles written at once (threads)")
     ap.add_argument("--repeat", type=int, default=2)
+    ap.add_argument("--sample-stacks", type=float, default=0.0, metavar="SECONDS",
+                    help="sample the threads' Python stacks at this interval during each run (bench/stack_sampler.py; "
+                         "the run's 'stacks')")
     ap.add_argument("--workdir", default=os.path.join(os.environ.get("TMPDIR", "/tmp"), "orthowarp-product-tiles"))
     ap.add_argument("--out", default="bench/results/product-tiles.json")
     args = ap.parse_args(argv)
@@ -110,12 +116,17 @@ def main(argv=None):
                             cluster._write_product_tile(plan, *x, folder, settings, 2)
                             seconds.append(time.perf_counter() - t1)
 
+                        sampler = Sampler(args.sample_stacks) if args.sample_stacks > 0 else None
+                        if sampler is not None:
+                            sampler.start()
                         t = time.perf_counter()
                         with ThreadPoolExecutor(at_once) as pool:
                             list(pool.map(one, tiles))
                         run = dict(round=round_, variant=name, edge=edge, at_once=at_once, tiles=len(tiles),
                                    wall_s=time.perf_counter() - t, mean_tile_s=sum(seconds) / len(seconds),
                                    md5=files_md5(os.path.join(folder, "tiles")))
+                        if sampler is not None:
+                            run["stacks"] = sampler.report(40)
                         report["runs"].append(run)
                         print(f"round {round_} {name:14s} edge {edge} x{at_once}: {len(tiles)} tiles "
                               f"{run['wall_s']:.2f} s, {run['mean_tile_s']:.3f} s per tile, {run['md5'][:8]}",
