@@ -280,23 +280,29 @@ def test_a_worker_holds_one_device_encoder_per_device_and_codec():
 
 def test_product_tiles_reuse_their_device_codecs(block, reference, tmp_path, monkeypatch):
     """A tiled product compressed by a device codec ("warp", here on the CPU device): the
-    tiles' pixels are the host codec's, and the codecs of a tile are reused by the next ones
-    (one set per tile encoded at once) and give the same bytes as new ones."""
+    tiles' pixels are the host codec's; one set of codecs serves every tile of a run made one
+    tile at a time, and is closed when the run ends (no device memory held after the call);
+    a second run gives the same files."""
     from orthowarp.pipeline.mosaic import cluster
+    from orthowarp.pipeline.ortho import sink
 
     sc, images = block
     _, tiled = reference
+    made, real = [], sink.device_codecs
+
+    def counted(*args, **kw):
+        codecs = real(*args, **kw)
+        made.append(codecs)
+        return codecs
+
+    monkeypatch.setattr(sink, "device_codecs", counted)
     monkeypatch.setattr(cluster, "_PRODUCT_CODECS", {})
     kw = dict(_kw(sc), tiled=True, index=True, product_tile=128, block_codec="warp", workers=1)
     one = mosaic(images, tmp_path / "one", **kw)
-    (held,) = cluster._PRODUCT_CODECS.values()
-    assert len(held) == 1 and len(held[0]) == 1  # one set, given back after each of the tiles
-    first = held[0][0]
+    assert len(made) == 1 and one.tiles_computed > 1  # one set for all the tiles
+    assert cluster._PRODUCT_CODECS == {} and made[0][0]._scratch is None  # closed at the end
     again = mosaic(images, tmp_path / "again", **kw)
-    assert list(cluster._PRODUCT_CODECS.values()) == [[[first]]]  # the same codec again
-    monkeypatch.setattr(cluster, "_PRODUCT_CODECS", {})
-    fresh = mosaic(images, tmp_path / "fresh", **kw)
-    assert _files(again.path) == _files(one.path) == _files(fresh.path)
+    assert len(made) == 2 and _files(again.path) == _files(one.path)
     with rasterio.open(one.vrt) as a, rasterio.open(tiled.vrt) as b:
         np.testing.assert_array_equal(a.read(), b.read())
         np.testing.assert_array_equal(a.dataset_mask(), b.dataset_mask())
