@@ -18,8 +18,8 @@ write-back of the inputs overlaps the first runs instead).
 
 Reported per run: wall time (and the plan's steps), output Gpix/s, the mean GPU utilisation of
 each GPU (nvidia-smi, sampled every 200 ms) and of the host's CPU cores, their I/O wait
-(/proc/stat) and clock (/proc/cpuinfo), the page cache's data not yet on disk at its start (/proc/meminfo), what the
-workers did (Dask's task stream: per task kind the count and compute seconds, per worker its
+(/proc/stat) and clock (/proc/cpuinfo), the page cache's data not yet on disk at its start
+(/proc/meminfo), what the workers did (Dask's task stream: per task kind the count and compute seconds, per worker its
 compute seconds and span), and a digest of the output files; then per product
 the scaling efficiency t(1) / (n t(n)) and whether the digests agree.
 

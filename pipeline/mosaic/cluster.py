@@ -508,9 +508,9 @@ def _device_encoder(encoder: Any, codec: str, device: Any) -> Any:
 #: The device codecs of this worker process's product tiles, by settings: the sets not in use
 #: (each tile being encoded takes one, and gives it back after; all closed when the product's
 #: run ends): their device buffers, sized for a product tile, are made once per run, process and
-#: tile at a time, not once per tile (on an
-#: H200, 4096-pixel tiles one at a time 0.37-0.39 s each against 0.41-0.55 s, four at once 1.24 s
-#: against 1.36-1.38 s; on a 2-GPU cluster no gain; docs/cluster.md)
+#: tile at a time, not once per tile (on an H200, 4096-pixel tiles one at a time 0.37-0.39 s each
+#: against 0.41-0.55 s, four at once 1.24 s against 1.36-1.38 s; on a 2-GPU cluster no gain;
+#: docs/cluster.md)
 _PRODUCT_CODECS: dict[tuple, list[list]] = {}
 _PRODUCT_CODECS_LOCK = threading.Lock()
 
@@ -781,10 +781,10 @@ def _write_product_tile(plan: Any, i: int, j: int, tile: Tile, folder: str, sett
             writers.append(CogWriter(tmps[2], count=1, dtype="uint16", name=paths[2], nodata=NO_SOURCE,
                                      overview_resampling="nearest", **kw,
                                      **index_file_settings(settings.compress, settings.compress_level)))
-        device_codecs = _product_codecs(codec, settings.compress_level, dev, settings.compress, settings.quality) \
+        codec_set = _product_codecs(codec, settings.compress_level, dev, settings.compress, settings.quality) \
             if codec != "host" else contextlib.nullcontext()
         # (the codecs go back to the process for its next tile, or are closed where this one fails)
-        with device_codecs as codecs:
+        with codec_set as codecs:
             encoder = None
             try:
                 if codecs is not None:  # (the tile's blocks in one batch, at its end: batches of
