@@ -42,7 +42,7 @@ __all__ = ["MODULES", "SHIPPED", "seed", "build"]
 
 # orthowarp's kernel modules (under orthowarp.kernels) and the block sizes they are launched
 # with beyond the default (the CPU's 1, a GPU's module default of 256)
-MODULES = {"camera": (), "geodesy": (), "sensor": (), "ortho": (128,), "mosaic": (), "cog": (), "deflate": (),
+MODULES = {"camera": (), "geodesy": (), "sensor": (), "ortho": (128,), "mosaic": (), "cog": (), "deflate": (), "jpeg": (),
            "matching": (), "precision": (), "pushbroom": ()}
 SHIPPED = os.path.join(os.path.dirname(os.path.abspath(__file__)), "_kernels")
 _PACKAGE_SHIPPED = SHIPPED

@@ -49,9 +49,9 @@ class Compress(_Choice):
 
 
 class BlockCodec(_Choice):
-    """Who deflates a COG's blocks: chosen for the device (auto), the host's cores (host),
+    """Who compresses a COG's blocks: chosen for the device (auto), the host's cores (host),
     nvCOMP on the GPU (nvcomp), nvCOMP and the host together (hybrid), orthowarp's own Warp
-    kernels (warp)."""
+    kernels (warp: deflate or JPEG)."""
 
     AUTO = "auto"
     HOST = "host"

@@ -542,20 +542,61 @@ def test_nvjpeg_file_decodes_near_the_host_writers(tmp_path, count):
         assert diff.mean() < 1.5 and np.percentile(diff, 99) <= 8, (diff.mean(), np.percentile(diff, 99))
 
 
+@pytest.mark.parametrize("count,block", [(3, 256), (1, 128)])
+def test_warp_jpeg_file_decodes_near_the_host_writers(tmp_path, device, count, block):
+    """orthowarp's JPEG kernels (:class:`WarpJpeg`) on the device encoder: blocks at every
+    level within JPEG's error of the host writer's libjpeg blocks, the same masks; the blocks
+    leave their quantization tables to the file's JPEGTables (as the host writer's do), so the
+    two files differ in size by what the coefficients do."""
+    from orthowarp.pipeline.raster.jpeg import WarpJpeg
+
+    shape = (1100, 1500)
+    host, dev = str(tmp_path / "host.tif"), str(tmp_path / "dev.tif")
+    _write(host, shape, count, "uint8", 512, compress="jpeg", quality=90, block=block)
+    enc = _write(dev, shape, count, "uint8", 512, device=device, compress="jpeg", quality=90, block=block,
+                 codecs=[WarpJpeg(wp.get_device(device), 90)], batch_bytes=1 << 20)
+    assert enc.blocks_by_codec["warpjpeg"] > 0
+    assert abs(os.path.getsize(dev) / os.path.getsize(host) - 1) < 0.02
+    levels = 0
+    for (da, ma, sa, ca), (db, mb, sb, cb) in zip(_levels(host, count), _levels(dev, count)):
+        np.testing.assert_array_equal(ma, mb)
+        assert sa == sb and ca == cb
+        diff = np.abs(da.astype(int) - db.astype(int))[:, ma > 0]
+        assert diff.mean() < 0.5 and np.percentile(diff, 99) <= 4, (diff.mean(), np.percentile(diff, 99))
+        levels += 1
+    assert levels == 4
+    with rasterio.open(dev) as ds:
+        assert ds.tags(ns="IMAGE_STRUCTURE")["JPEG_QUALITY"] == "90"
+
+
 def test_jpeg_codecs_need_their_packages_and_a_gpu(tmp_path):
     with pytest.raises(ParamError, match="CUDA"):
         NvjpegCodec(wp.get_device("cpu"), 90)
 
 
-def test_jpeg_block_codec_choices():
-    """A JPEG COG: the host writer on the CPU whatever the choice; "nvcomp" and "warp" refused
-    (deflate / zstd codecs); "hybrid" allowed (the device's blocks, libjpeg on the host cores)."""
-    from orthowarp.pipeline.ortho.sink import choose_block_codec
+def test_jpeg_block_codec_choices(monkeypatch):
+    """A JPEG COG: on the CPU the host writer unless "warp" (orthowarp's JPEG kernels) is asked
+    for; on a GPU "auto" is nvJPEG where it runs, else "warp"; "nvcomp" refused (deflate / zstd
+    codecs); "hybrid" allowed (the device's blocks, libjpeg on the host cores); WebP refuses
+    "warp" and "hybrid"."""
+    from types import SimpleNamespace
+
+    import orthowarp.pipeline.ortho.sink as sink
+    from orthowarp.pipeline.raster.jpeg import WarpJpeg
 
     cpu = wp.get_device("cpu")
-    assert [choose_block_codec(c, cpu, True, compress="jpeg") for c in ("auto", "host", "hybrid")] == ["host"] * 3
-    for c in ("nvcomp", "warp"):
-        with pytest.raises(ParamError, match="jpeg"):
-            choose_block_codec(c, cpu, True, compress="jpeg")
-    with pytest.raises(ParamError, match="webp"):
-        choose_block_codec("hybrid", cpu, True, compress="webp")
+    assert [sink.choose_block_codec(c, cpu, True, compress="jpeg") for c in ("auto", "host", "hybrid")] == ["host"] * 3
+    assert sink.choose_block_codec("warp", cpu, True, compress="jpeg") == "warp"
+    (codec,) = sink.device_codecs("warp", None, cpu, "jpeg", quality=70)
+    assert isinstance(codec, WarpJpeg) and codec.quality == 70
+    codec.close()
+    gpu = SimpleNamespace(is_cuda=True)
+    for runs, want in ((True, "nvjpeg"), (False, "warp")):
+        monkeypatch.setattr(sink, "nvjpeg_runs", lambda device, runs=runs: runs)
+        assert sink.choose_block_codec("auto", gpu, True, compress="jpeg") == want
+    assert sink.choose_block_codec("hybrid", gpu, True, compress="jpeg") == "device"
+    with pytest.raises(ParamError, match="jpeg"):
+        sink.choose_block_codec("nvcomp", cpu, True, compress="jpeg")
+    for c in ("hybrid", "warp"):
+        with pytest.raises(ParamError, match="webp"):
+            sink.choose_block_codec(c, cpu, True, compress="webp")

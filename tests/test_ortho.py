@@ -1392,6 +1392,33 @@ def test_lossy_outputs_for_rgb(tmp_path, compress, quality):
         orthorectify(src, FrameSensor(cam, pose), tmp_path / "f.tif", compress=compress, dtype="float32", **kw)
 
 
+def test_jpeg_encoded_by_the_device_kernels(tmp_path):
+    """block_codec="warp" for a JPEG ortho: its blocks and overviews made on the device and
+    encoded by orthowarp's JPEG kernels: the masks of the host writer's file, its pixels
+    within JPEG's error of them, its JPEGTables and quality tag."""
+    cam = ow.FrameCamera(50.0, 0.01, (320, 240))
+    pose = ow.Pose.from_opk(500000.0, 5200000.0, 600.0, 1.0, -2.0, 30.0, crs="EPSG:32632")
+    src = tmp_path / "rgb.tif"
+    y, x = np.mgrid[0:240, 0:320]
+    rgb = np.stack([128 + 60 * np.sin(x / 9.0), 128 + 60 * np.cos(y / 7.0), 128 + 40 * np.sin((x + y) / 13.0)])
+    with rasterio.open(src, "w", driver="GTiff", width=320, height=240, count=3, dtype="uint8") as dst:
+        dst.write(rgb.astype(np.uint8))
+    kw = dict(dem=100.0, device="cpu", refraction=False, compress="jpeg", quality=85, resolution=0.04,
+              creation_options={"BLOCKSIZE": 128})
+    host = orthorectify(src, FrameSensor(cam, pose), tmp_path / "host.tif", block_codec="host", **kw)
+    dev = orthorectify(src, FrameSensor(cam, pose), tmp_path / "dev.tif", block_codec="warp", **kw)
+    assert dev.profile["block_codec"] == "warp" and dev.profile["blocks_by_codec"]["warpjpeg"] > 0
+    a, b = _levels(host.path), _levels(dev.path)
+    assert len(a) == len(b) >= 2
+    for (da, ma, sa), (db, mb, sb) in zip(a, b):
+        np.testing.assert_array_equal(ma, mb)
+        assert sa == sb and sb["COMPRESSION"] == "YCbCr JPEG" and sb["JPEG_QUALITY"] == "85"
+        diff = np.abs(da.astype(int) - db.astype(int))[:, ma > 0]
+        assert diff.mean() < 0.5 and np.percentile(diff, 99) <= 4, (diff.mean(), np.percentile(diff, 99))
+    with rasterio.open(host.path) as x, rasterio.open(dev.path) as y:
+        assert x.profile["compress"] == y.profile["compress"] == "jpeg"
+
+
 @pytest.mark.parametrize("geocentric,with_pose", [(True, True), (False, True), (True, False)])
 def test_coarse_fields_on_the_device_match_float64_numpy(device, geocentric, with_pose):
     """coarse_struct's fields, computed by coarse_fields_kernel from the uploaded uv, against

@@ -237,15 +237,16 @@ mosaic_compress = click.option("--compress", type=click.Choice(MOSAIC_COMPRESS),
 compress_level = click.option("--compress-level", type=int, default=None,
                               help="Deflate level 1-12 (default 6), or zstd level 1-22 (default 9).")
 block_codec = click.option("--block-codec", type=click.Choice(BLOCK_CODECS), default="auto", show_default=True,
-                           help="Who compresses the blocks of a deflate or zstd COG: host (libdeflate or zstd on all "
+                           help="Who compresses the blocks of a deflate, zstd or jpeg COG: host (libdeflate or zstd on all "
                                 "cores), nvcomp (the GPU; needs orthowarp[gpu]; its zstd takes no level), warp "
                                 "(orthowarp's own deflate kernels on the device), hybrid (the device, nvCOMP at "
                                 "--compress-level 1-4 where installed, else warp, and the host cores at once); warp "
-                                "and hybrid are deflate only. auto: host on the CPU and for zstd; on a GPU, "
+                                "and hybrid are deflate codecs. auto: host on the CPU and for zstd; on a GPU, "
                                 "for a deflate ortho nvcomp at --compress-level 1-4 where "
                                 "installed, else hybrid; for a deflate mosaic warp. A jpeg COG: host (libjpeg on "
-                                "the cores), hybrid (on a GPU its blocks made there, libjpeg on the cores) or auto "
-                                "(nvJPEG on a GPU where nvImageCodec's encoder runs, else host).")
+                                "the cores), hybrid (on a GPU its blocks made there, libjpeg on the cores), warp "
+                                "(orthowarp's own JPEG kernels on the device) or auto (on a GPU nvJPEG where "
+                                "nvImageCodec's encoder runs, else warp; host on the CPU).")
 creation = click.option("-co", "--co", "creation", multiple=True, metavar="KEY=VALUE",
                         help="GDAL-style creation option, repeatable: BLOCKSIZE (64-4096, multiple of 16; default "
                              "512), BIGTIFF (YES, NO, IF_NEEDED, IF_SAFER), NUM_THREADS (count or ALL_CPUS); "

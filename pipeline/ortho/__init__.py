@@ -228,7 +228,7 @@ def orthorectify(src: str | os.PathLike, sensor: SensorModel, dst: str | os.Path
         whichever writer makes the file (orthowarp's COG writer, GDAL's COG or GTiff driver).
         Compression, level and quality have their own arguments.
     block_codec : {"auto", "host", "nvcomp", "hybrid", "warp"}, optional
-        Who compresses a deflate or zstd COG's blocks. "host": each tile goes to host memory, where
+        Who compresses a deflate, zstd or JPEG COG's blocks. "host": each tile goes to host memory, where
         the writer applies the predictor, builds the overviews and deflates (libdeflate, all
         cores). "nvcomp" (CUDA, needs ``orthowarp[gpu]``): predictor, masks and the overview
         levels that cover whole blocks are computed on the device and nvCOMP deflates them
@@ -250,11 +250,14 @@ def orthorectify(src: str | os.PathLike, sensor: SensorModel, dst: str | os.Path
         which takes no level: ``compress_level`` applies to the host codec; the mask blocks,
         deflate in a zstd COG as GDAL writes them, are deflated on the host, on request);
         "auto" is "host"; "warp" and "hybrid" are deflate codecs, refused with zstd. A JPEG
-        COG: "auto" makes its blocks and overviews on a GPU and encodes them there with
-        nvJPEG where nvImageCodec's encoder runs (``pip install 'orthowarp[gpu]'``; probed
-        once per device), else "host" (libjpeg on the host cores); "hybrid" makes the blocks
-        on a GPU and encodes them with libjpeg on the host cores (the host file, byte for
-        byte); "nvcomp" and "warp" are refused with jpeg, and "hybrid" too with webp.
+        COG: "warp" makes its blocks and overviews on the device and encodes them there with
+        orthowarp's own JPEG kernels (:class:`~orthowarp.pipeline.raster.jpeg.WarpJpeg`, any
+        device: libjpeg's tables and headers, its pixels within JPEG's error of libjpeg's);
+        "auto" does the same on a GPU, with nvJPEG instead where nvImageCodec's encoder runs
+        (``pip install 'orthowarp[gpu]'``; probed once per device), and is "host" (libjpeg
+        on the host cores) on the CPU; "hybrid" makes the blocks on a GPU and encodes them
+        with libjpeg on the host cores (the host file, byte for byte); "nvcomp" is refused
+        with jpeg, and "warp" and "hybrid" too with webp.
     source_reads : {"auto", "whole", "tiles"}, optional
         How the source reaches the device. "tiles": each output tile reads the source window
         it needs (reduced where the output is coarser) and uploads it. "whole": the source is

@@ -56,7 +56,7 @@ STREAMED = ("deflate", "zstd", "jpeg", "webp", "none")
 DEVICE_COMPRESS = ("deflate", "zstd", "jpeg")
 _DEFLATE_ONLY = ("warp", "hybrid")  # orthowarp's deflate kernels, and the deflate codecs shared with the host
 # the block codecs a lossy COG refuses (JPEG's "hybrid": its blocks made on the device, libjpeg on the host)
-_LOSSY_REFUSED = {"jpeg": ("nvcomp", "warp"), "webp": ("nvcomp", *_DEFLATE_ONLY)}
+_LOSSY_REFUSED = {"jpeg": ("nvcomp",), "webp": ("nvcomp", *_DEFLATE_ONLY)}
 
 
 CREATION_OPTIONS = ("BLOCKSIZE", "BIGTIFF", "NUM_THREADS")
@@ -215,11 +215,11 @@ def check_block_codec(block_codec: str, compress: str) -> None:
     ParamError
         Naming ``block_codec`` and the codecs that do apply.
     """
-    if compress == "zstd" and block_codec in _DEFLATE_ONLY:
+    if compress == "zstd" and block_codec in _DEFLATE_ONLY:  # ("warp" of a JPEG COG: orthowarp's JPEG kernels)
         raise ParamError(f"block_codec {block_codec!r} compresses deflate blocks only; for zstd use auto, host or "
                          "nvcomp")
     if block_codec in _LOSSY_REFUSED.get(compress, ()):
-        usable = "auto, host or hybrid" if compress == "jpeg" else "auto or host"
+        usable = "auto, host, hybrid or warp" if compress == "jpeg" else "auto or host"
         raise ParamError(f"block_codec {block_codec!r} compresses deflate or zstd blocks; for {compress} use {usable}")
 
 
@@ -247,7 +247,8 @@ def choose_block_codec(choice: str, device: Device, device_cog: bool, level: int
         "hybrid": a device codec and libdeflate; "device": the block work on the device,
         libdeflate only (for jpeg: libjpeg, "hybrid" on a GPU); "nvjpeg": a JPEG COG's blocks
         made and encoded on the device ("auto" for jpeg on a GPU where nvImageCodec's nvJPEG
-        encoder runs).
+        encoder runs); "warp": orthowarp's deflate kernels, or for jpeg its JPEG kernels (any
+        device; "auto" for jpeg on a GPU where nvJPEG does not run).
 
     Raises
     ------
@@ -260,12 +261,14 @@ def choose_block_codec(choice: str, device: Device, device_cog: bool, level: int
     level = compress_level(compress, level)
     if choice == "host" or not device_cog or compress not in DEVICE_COMPRESS:
         return "host"
-    if compress == "jpeg":  # (bench/mosaic.py --compress jpeg [--block-codec host|hybrid])
+    if compress == "jpeg":  # (bench/mosaic.py --compress jpeg [--block-codec host|hybrid|warp])
+        if choice == "warp":  # orthowarp's JPEG kernels, on any device
+            return "warp"
         if not device.is_cuda:
             return "host"
         if choice == "hybrid":  # the blocks and overviews made on the device, libjpeg on the host cores
             return "device"
-        return "nvjpeg" if nvjpeg_runs(device) else "host"
+        return "nvjpeg" if nvjpeg_runs(device) else "warp"
     if compress == "zstd":
         # the host writer's threads unless nvCOMP's Zstd is asked for: its frames are smaller
         # than zstd 1-3's only on some blocks and its level is fixed, and a 40-frame mosaic
@@ -357,7 +360,8 @@ def device_codecs(block_codec: str, level: int | None, device: Device, compress:
     device : warp.context.Device
     compress : {"deflate", "zstd", "jpeg"}, optional
         The output's compression: raw-deflate codecs, zstd ones (nvCOMP's Zstd, which has
-        no levels, or ``zstandard`` on the host), or nvJPEG.
+        no levels, or ``zstandard`` on the host), or a JPEG encoder (orthowarp's kernels,
+        nvJPEG or libjpeg on the host cores).
     quality : int, optional
         JPEG quality (default :data:`DEFAULT_QUALITY`).
 
@@ -369,13 +373,19 @@ def device_codecs(block_codec: str, level: int | None, device: Device, compress:
         :class:`~orthowarp.pipeline.raster.device.HostDeflate` objects, or for zstd
         :class:`~orthowarp.pipeline.raster.device.NvcompZstd` and/or
         :class:`~orthowarp.pipeline.raster.device.HostZstd`, or for jpeg
-        :class:`~orthowarp.pipeline.raster.device.NvjpegCodec`, in the encoder's order.
+        :class:`~orthowarp.pipeline.raster.jpeg.WarpJpeg`,
+        :class:`~orthowarp.pipeline.raster.device.NvjpegCodec` or
+        :class:`~orthowarp.pipeline.raster.device.HostJpeg`, in the encoder's order.
     """
     check_block_codec(block_codec, compress)
     if compress == "jpeg":
         from ..raster.device import HostJpeg, NvjpegCodec
 
         q = quality or DEFAULT_QUALITY
+        if block_codec == "warp":
+            from ..raster.jpeg import WarpJpeg
+
+            return [WarpJpeg(device, q)]
         return [NvjpegCodec(device, q)] if block_codec == "nvjpeg" else [HostJpeg(q)]
     level = compress_level(compress, level)
     if compress == "zstd":
