@@ -10,7 +10,8 @@
   cloud-optimized GeoTIFFs (deflate, zstd, JPEG, WebP or uncompressed) streamed tile by tile,
   and its picklable block work, :class:`~orthowarp.pipeline.raster.cog.TileEncoder`;
 - :mod:`~orthowarp.pipeline.raster.device`: the COG's block work (predictor, masks,
-  overviews, deflate, zstd or JPEG) on a Warp device.
+  overviews, deflate, zstd or JPEG) on a Warp device;
+- :mod:`~orthowarp.pipeline.raster.jpeg`: orthowarp's JPEG encoder on a Warp device.
 
 Nothing here imports the rest of the pipeline; ``io`` and ``cog`` both read TIFFs through
 ``tiff``, which imports neither. The modules are imported where used (``device`` loads Warp).

@@ -26,8 +26,10 @@ blocks, and only compressed blocks cross to the host:
      stores as deflate (as GDAL does), go to a raw-deflate codec of their own
      (:class:`HostDeflate` by default) and are wrapped as above;
 
-   - jpeg: :class:`NvjpegCodec` (nvImageCodec's nvJPEG encoder on the GPU, packages
-     ``nvidia-nvimgcodec-cu13`` and ``nvidia-nvjpeg``), the blocks without the predictor; each
+   - jpeg: :class:`~orthowarp.pipeline.raster.jpeg.WarpJpeg` (orthowarp's JPEG kernels, any
+     device), :class:`NvjpegCodec` (nvImageCodec's nvJPEG encoder on the GPU, packages
+     ``nvidia-nvimgcodec-cu13`` and ``nvidia-nvjpeg``) or :class:`HostJpeg` (libjpeg on host
+     threads), the blocks without the predictor; each
      stream stored as the host writer stores its own (:func:`~orthowarp.pipeline.raster.cog.split_jpeg_tables`:
      without its quantization tables where they are the file's JPEGTables); the mask blocks
      deflate, as with zstd;
@@ -38,8 +40,8 @@ blocks, and only compressed blocks cross to the host:
 
 Every lossless path decodes to the same pixels as the host writer's (the block contents before
 compression are identical bit for bit; only the compressed streams differ); a JPEG file's
-blocks hold the same pixels before encoding, and nvJPEG's encoder rounds differently from
-libjpeg's, so its pixels are the host file's within JPEG's own error.
+blocks hold the same pixels before encoding, and orthowarp's and nvJPEG's encoders round
+differently from libjpeg's, so their pixels are the host file's within JPEG's own error.
 """
 
 from __future__ import annotations
