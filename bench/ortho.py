@@ -252,6 +252,8 @@ def main(argv=None):
     ap.add_argument("--batch-codecs", default="auto", help="block codecs of the batch runs, e.g. auto,warp")
     ap.add_argument("--source-reads", default="", help="also run the single frame with these --source-reads, e.g. tiles")
     ap.add_argument("--no-block-scan", action="store_true", help="no thread-block-size scan of the kernel (fewer compiles)")
+    ap.add_argument("--batch-compress", default="deflate",
+                    help="--compress of the batch runs, e.g. deflate,jpeg (jpeg: the default quality, no level)")
     ap.add_argument("--batch-source-reads", default="auto", help="--source-reads of the batch runs, e.g. auto,tiles")
     ap.add_argument("--batch", type=int, default=0, help="also run N copies of the frame in one CLI call (GPU)")
     ap.add_argument("--sample-stacks", type=float, default=None, metavar="SECONDS",
@@ -320,7 +322,8 @@ def main(argv=None):
         r["ortho_shape"] = list(res.shape)
         r["kernel_fraction_of_wall"] = res.timings["kernel"] / res.timings["wall"]
         if not args.skip_cli:
-            def cli_batch(n, device_name, resolution, gpu_index, level="6", codec="auto", reads="auto"):
+            def cli_batch(n, device_name, resolution, gpu_index, level="6", codec="auto", reads="auto",
+                          compress="deflate"):
                 """N copies of the frame (links) in one call: wall time, peak memory, GPU busy."""
                 bdir = os.path.join(work, "batch")
                 os.makedirs(bdir, exist_ok=True)
@@ -345,10 +348,12 @@ def main(argv=None):
                     "-q", "ortho", *names, "--int-param", os.path.join(work, "camera.yaml"), "--ext-param",
                     os.path.join(bdir, "ext.csv"), "--dem", dem_path, "--out-dir", bdir, "--overwrite",
                     "--resolution", repr(resolution), "--resampling", args.resampling, "--device", device_name,
-                    "--profile-json", prof_path, "--compress-level", level, "--block-codec", codec,
+                    "--profile-json", prof_path, "--compress", compress,
+                    *(["--compress-level", level] if compress in ("deflate", "zstd") else []), "--block-codec", codec,
                     "--source-reads", reads, *(["--no-refraction"] if args.no_refraction else [])],
                     gpu_index=gpu_index, env=env)
                 o["images"], o["compress_level"], o["block_codec"], o["source_reads"] = n, int(level), codec, reads
+                o["compress"] = compress
                 if args.sample_stacks and os.path.exists(stacks):
                     with open(stacks) as f:
                         o["stacks"] = json.load(f)
@@ -416,14 +421,17 @@ def main(argv=None):
             if args.oty_python and "orthority" not in report:  # before the batches, which may be cut off
                 run_orthority(res.resolution)
             if args.batch and (geom.device.is_cuda or args.variants):
-                for level in args.batch_levels.split(","):
-                    for codec in args.batch_codecs.split(","):
-                        for reads in args.batch_source_reads.split(","):
-                            key = ("cli_batch" if level == "6" else f"cli_batch_level{level}") + \
-                                ("" if codec == "auto" else f"_{codec}") + ("" if reads == "auto" else f"_{reads}")
-                            r[key] = cli_batch(args.batch, name, res.resolution,
-                                               geom.device.ordinal if geom.device.is_cuda else None, level, codec, reads)
-                            save_report(report, args.out)
+                for compress in args.batch_compress.split(","):
+                    for level in args.batch_levels.split(",") if compress in ("deflate", "zstd") else ["6"]:
+                        for codec in args.batch_codecs.split(","):
+                            for reads in args.batch_source_reads.split(","):
+                                key = ("cli_batch" if level == "6" else f"cli_batch_level{level}") + \
+                                    ("" if compress == "deflate" else f"_{compress}") + \
+                                    ("" if codec == "auto" else f"_{codec}") + ("" if reads == "auto" else f"_{reads}")
+                                r[key] = cli_batch(args.batch, name, res.resolution,
+                                                   geom.device.ordinal if geom.device.is_cuda else None, level, codec,
+                                                   reads, compress)
+                                save_report(report, args.out)
             # the floor of that start-up: interpreter, imports, Warp and device set-up, kernels loaded, no job
             t = time.perf_counter()
             subprocess.run([sys.executable, "-c", STARTUP, name], check=True)
