@@ -283,7 +283,7 @@ def share_cores(client: Any) -> dict[str, list[int]]:
 #: The kernel modules a worker's tiles and orthos use, loaded by :func:`warm_workers`; on a GPU
 #: also the device codecs' (:data:`GPU_WORKER_MODULES`).
 WORKER_MODULES = ("orthowarp.kernels.sensor", "orthowarp.kernels.ortho", "orthowarp.kernels.mosaic")
-GPU_WORKER_MODULES = ("orthowarp.kernels.cog", "orthowarp.kernels.deflate")
+GPU_WORKER_MODULES = ("orthowarp.kernels.cog", "orthowarp.kernels.deflate", "orthowarp.kernels.jpeg")
 
 
 def _warm_worker(device: str) -> float:
