@@ -225,12 +225,9 @@ class WarpJpeg:
         self._own_stream = None
         load_modules(self.device, kj)
 
-    def layout(self, shape: tuple[int, int, int]) -> JpegLayout:
-        """The marker segments and tables for blocks of ``shape`` (B, B, bands), from libjpeg's
-        stream of such a block (made once per shape)."""
-        return self._tables(shape)[0]
-
     def _tables(self, shape: tuple[int, int, int]) -> tuple[JpegLayout, Any]:
+        """The layout (marker segments, tables) for blocks of ``shape`` (B, B, bands), from
+        libjpeg's stream of such a block, and its tables on the device; made once per shape."""
         shape = tuple(int(x) for x in shape)
         if shape not in self._layouts:
             rows, cols, bands = shape
@@ -260,10 +257,10 @@ class WarpJpeg:
         return self._own_stream
 
     def _batch(self, shape: tuple[int, int, int]) -> int:
-        """Blocks per launch: :attr:`max_blocks`, else what keeps the scratch (the coefficients'
-        2 bytes per sample of a unit, the data's words and bytes: about 4 bytes per pixel and
-        band in all, for blocks that compress poorly) within a sixteenth of a GPU's memory; 64
-        on the CPU."""
+        """Blocks per launch: :attr:`max_blocks`, else what keeps the scratch (2 bytes per
+        coefficient, the data's words and stuffed bytes: under 4 bytes per byte of the blocks
+        but for blocks that hardly compress) within a sixteenth of a GPU's memory; 64 on the
+        CPU."""
         if self.max_blocks:
             return self.max_blocks
         if not self.device.is_cuda:
