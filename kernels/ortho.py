@@ -314,6 +314,62 @@ def node_pixels_kernel(
     pixels[k, i, j] = sensor_project_xyz(arg, refr, node_point(grid, i, j, h), h, wp.float64(0.0))
 
 
+@wp.func
+def node_step(a: wp.vec2d, b: wp.vec2d) -> wp.float64:
+    """The distance between two nodes' source pixels (NaN where either has none)."""
+    dx = b[0] - a[0]
+    dy = b[1] - a[1]
+    return wp.sqrt(dx * dx + dy * dy)
+
+
+@wp.kernel
+def node_window_rows_kernel(pixels: wp.array3d(dtype=wp.vec2d), part: wp.array3d(dtype=wp.float64)):
+    """What a tile's source window and read reduction take from its node pixels (2, rows,
+    cols), per height k and row i, over the row's nodes (``part[k, i]``): 0-3 the finite
+    nodes' smallest column and row and largest column and row (+inf / -inf where none), 4
+    their count, 5 the largest step from a node to its right or lower neighbour (both
+    finite; -1 where none), 6 and 7 the smallest step to the lower and to the right
+    neighbour (+inf where none). The host reduces the rows (see ``pipeline.ortho.tiles``)."""
+    k, i = wp.tid()
+    rows = pixels.shape[1]
+    cols = pixels.shape[2]
+    inf = wp.float64(wp.inf)
+    lo_c = inf
+    lo_r = inf
+    hi_c = -inf
+    hi_r = -inf
+    count = wp.float64(0.0)
+    big = wp.float64(-1.0)
+    down = inf
+    right = inf
+    for j in range(cols):
+        p = pixels[k, i, j]
+        if wp.isfinite(p[0]) and wp.isfinite(p[1]):
+            lo_c = wp.min(lo_c, p[0])
+            lo_r = wp.min(lo_r, p[1])
+            hi_c = wp.max(hi_c, p[0])
+            hi_r = wp.max(hi_r, p[1])
+            count += wp.float64(1.0)
+            if j + 1 < cols:
+                s = node_step(p, pixels[k, i, j + 1])
+                if wp.isfinite(s):
+                    big = wp.max(big, s)
+                    right = wp.min(right, s)
+            if i + 1 < rows:
+                s = node_step(p, pixels[k, i + 1, j])
+                if wp.isfinite(s):
+                    big = wp.max(big, s)
+                    down = wp.min(down, s)
+    part[k, i, 0] = lo_c
+    part[k, i, 1] = lo_r
+    part[k, i, 2] = hi_c
+    part[k, i, 3] = hi_r
+    part[k, i, 4] = count
+    part[k, i, 5] = big
+    part[k, i, 6] = down
+    part[k, i, 7] = right
+
+
 @wp.kernel
 def pb_node_times_kernel(
     pb: PushbroomData,

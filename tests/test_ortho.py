@@ -1419,6 +1419,38 @@ def test_jpeg_encoded_by_the_device_kernels(tmp_path):
         assert x.profile["compress"] == y.profile["compress"] == "jpeg"
 
 
+@pytest.mark.parametrize("case", ["all", "holes", "edge", "none", "one_row", "one_col", "uneven"])
+def test_node_window_reduced_on_the_device_is_the_hosts(device, case):
+    """A tile's source window and read reduction from its node pixels reduced per row on the
+    device (node_window_rows_kernel, then _rows_window / _rows_decimation) are those the host
+    functions give from the whole node array, with nodes missing in holes, at an edge, all of
+    them, and for grids of one row or column."""
+    import warp as wp
+    from orthowarp.kernels import ortho as ok
+    from orthowarp.pipeline.ortho.tiles import _decimation, _node_window, _rows_decimation, _rows_window
+
+    rng = np.random.default_rng(3)
+    rows, cols = {"one_row": (1, 9), "one_col": (9, 1)}.get(case, (17, 13))
+    jj, ii = np.meshgrid(np.arange(cols) * 37.3, np.arange(rows) * 41.9)
+    scale = np.array([1.0, 1.7])[:, None, None] if case == "uneven" else 1.0
+    nodes = np.stack([np.stack([jj + 5 * k, ii - 3 * k], -1) * (scale[k] if case == "uneven" else 1.0)
+                      + rng.normal(0, 2, (rows, cols, 2)) for k in range(2)])
+    if case == "holes":
+        nodes[rng.random(nodes.shape[:3]) < 0.3] = np.nan
+    elif case == "edge":
+        nodes[:, :, : cols // 2] = np.nan
+    elif case == "none":
+        nodes[:] = np.nan
+    d = wp.array(nodes, dtype=wp.vec2d, device=device)
+    part = wp.empty((2, rows, 8), dtype=wp.float64, device=device)
+    wp.launch(ok.node_window_rows_kernel, dim=(2, rows), device=device, inputs=[d, part])
+    part = part.numpy()
+    assert _rows_decimation(part[0], rows, cols) == _decimation(nodes[0])
+    for radius, factor, size in ((1, 1, (5000, 4000)), (3, 2, (200, 150)), (0, 4, (10, 10))):
+        assert _rows_window(part, nodes.shape[0] * rows * cols, radius, *size, factor=factor) == \
+            _node_window(nodes, radius, *size, factor=factor)
+
+
 @pytest.mark.parametrize("geocentric,with_pose", [(True, True), (False, True), (True, False)])
 def test_coarse_fields_on_the_device_match_float64_numpy(device, geocentric, with_pose):
     """coarse_struct's fields, computed by coarse_fields_kernel from the uploaded uv, against

@@ -304,11 +304,13 @@ class ImageTiles:
         timer.span("kernel", t)
         return values, valid
 
-    def _tile_grid(self, tile: Tile) -> tuple:
+    def _tile_grid(self, tile: Tile, *, pixels: bool = False) -> tuple:
         """A ``tile``'s coarse grid as the backward kernels take it, its nodes' source pixels at
-        the tile's lowest and highest DEM height (2, rows, cols, 2), those heights and its
-        source window (col0, row0, col1, row1, factor; None where empty); all None where no
-        DEM lies under the tile."""
+        the tile's lowest and highest DEM height (2, rows, cols, 2; with ``pixels``, else None),
+        those heights and its source window (col0, row0, col1, row1, factor; None where empty);
+        all None where no DEM lies under the tile. The window and the read reduction come from
+        the nodes' pixels reduced on the device (:func:`_node_window` and :func:`_decimation`
+        of them, read back per row of nodes)."""
         geom, device, timer, sensor, dem = self.geom, self.device, self.timer, self.sensor, self.dem
         t = time.perf_counter()
         uv = coarse_grid(self.transform, self.to_frame, *tile)
@@ -337,16 +339,19 @@ class ImageTiles:
                 wp.launch(ortho_kernels.frame_node_refraction_kernel, dim=uv.shape[:2], device=device,
                           inputs=[sensor[1], grid, wp.vec2d(*heights), grid.refr_a, grid.refr_b])
                 grid.refr_nodes = 1
-        pixels = to_host(nodes)  # waits for the kernels
+        rows = wp.empty((2, nodes.shape[1], 8), dtype=wp.float64, device=device)
+        wp.launch(ortho_kernels.node_window_rows_kernel, dim=rows.shape[:2], device=device, inputs=[nodes, rows])
+        rows = to_host(rows)  # waits for the kernels
+        host_pixels = to_host(nodes) if pixels else None
         timer.span("kernel", t)
         t = time.perf_counter()
         w_img, h_img = self.image_size
-        factor = _decimation(pixels[0]) if self.decimate else 1
-        window = _node_window(pixels, self.radius, w_img, h_img, factor=factor)
+        factor = _rows_decimation(rows[0], *nodes.shape[1:]) if self.decimate else 1
+        window = _rows_window(rows, nodes.size, self.radius, w_img, h_img, factor=factor)
         timer.span("prepare", t)
         if window is not None:
             window = (*window, factor)
-        return grid, pixels, heights, window
+        return grid, host_pixels, heights, window
 
     def source_coords(self, r0: int, c0: int, th: int, tw: int) -> tuple:
         """The source pixel (col, row) of every pixel of a tile as the backward kernel
@@ -354,7 +359,7 @@ class ImageTiles:
         host array (th, tw, 2), NaN where there is none; with the tile's node pixels, height
         range and source window (see :meth:`_tile_grid`). For checking devices against each
         other and against references."""
-        grid, pixels, heights, window = self._tile_grid(Tile(r0, c0, th, tw))
+        grid, pixels, heights, window = self._tile_grid(Tile(r0, c0, th, tw), pixels=True)
         if grid is None:
             return np.full((th, tw, 2), np.nan), None, None, None
         w_img, h_img = self.image_size
@@ -766,6 +771,37 @@ def _node_window(nodes: np.ndarray, radius: int, width: int, height: int, margin
         steps = [np.hypot(*np.diff(nodes, axis=ax).reshape(-1, 2).T) for ax in (1, 2)]
         steps = np.concatenate(steps)
         grow += float(np.nanmax(steps)) if np.isfinite(steps).any() else 0.0
+    c0, r0 = max(int(np.floor(lo[0] - grow)), 0), max(int(np.floor(lo[1] - grow)), 0)
+    c1, r1 = min(int(np.ceil(hi[0] + grow)), width), min(int(np.ceil(hi[1] + grow)), height)
+    if c0 >= c1 or r0 >= r1:
+        return None
+    return c0, r0, c1, r1
+
+
+def _rows_decimation(rows: np.ndarray, n_rows: int, n_cols: int, step: int = COARSE_STEP) -> int:
+    """:func:`_decimation` of one height's node pixels from their per-row reductions ``rows``
+    (n_rows, 8; :func:`~orthowarp.kernels.ortho.node_window_rows_kernel`) of a grid of
+    ``n_rows`` x ``n_cols`` nodes: the same factor."""
+    d = [rows[:, 6].min() if n_rows > 1 else np.inf, rows[:, 7].min() if n_cols > 1 else np.inf]
+    finite = [x for x in d if np.isfinite(x)]
+    ratio = min(finite) / step if finite else 1.0
+    return max(int(np.floor(ratio)), 1)
+
+
+def _rows_window(rows: np.ndarray, n_nodes: int, radius: int, width: int, height: int, margin: int = 2,
+                 factor: int = 1) -> tuple[int, int, int, int] | None:
+    """:func:`_node_window` from the per-row reductions ``rows`` (2, n_rows, 8;
+    :func:`~orthowarp.kernels.ortho.node_window_rows_kernel`) of the ``n_nodes`` node pixels:
+    the same window."""
+    count = rows[..., 4].sum()
+    if count == 0:
+        return None
+    lo = rows[..., 0].min(), rows[..., 1].min()
+    hi = rows[..., 2].max(), rows[..., 3].max()
+    grow = (radius + 1 + margin) * factor
+    if count < n_nodes:
+        big = rows[..., 5].max()
+        grow += float(big) if big >= 0 else 0.0
     c0, r0 = max(int(np.floor(lo[0] - grow)), 0), max(int(np.floor(lo[1] - grow)), 0)
     c1, r1 = min(int(np.ceil(hi[0] + grow)), width), min(int(np.ceil(hi[1] + grow)), height)
     if c0 >= c1 or r0 >= r1:
