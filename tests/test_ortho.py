@@ -1419,6 +1419,22 @@ def test_jpeg_encoded_by_the_device_kernels(tmp_path):
         assert x.profile["compress"] == y.profile["compress"] == "jpeg"
 
 
+def test_coarse_grid_is_the_transformed_pixel_centres():
+    """coarse_grid: the output pixel centres every step pixels (the last at or past the tile's
+    end), through the output transform (rotated here) and the transformer, bit for bit as
+    affine's own product and pyproj give them."""
+    from orthowarp.pipeline.ortho import coarse_grid
+
+    transform = Affine(0.1, 0.02, 500000.0, 0.015, -0.1, 5200000.0)
+    to_geo = Transformer.from_crs("EPSG:32632", "EPSG:4326", always_xy=True)
+    got = coarse_grid(transform, to_geo, 100, 37, 50, 33, step=16)
+    rows, cols = 100 + np.array([0, 16, 32, 48, 64]) + 0.5, 37 + np.array([0, 16, 32]) + 0.5
+    jj, ii = np.meshgrid(cols, rows)
+    want = np.stack(to_geo.transform(*(transform @ (jj, ii))), -1)
+    assert got.shape == (5, 3, 2) and got.flags.c_contiguous
+    np.testing.assert_array_equal(got, want)
+
+
 @pytest.mark.parametrize("case", ["all", "holes", "edge", "none", "one_row", "one_col", "uneven"])
 def test_node_window_reduced_on_the_device_is_the_hosts(device, case):
     """A tile's source window and read reduction from its node pixels reduced per row on the

@@ -85,10 +85,16 @@ def coarse_grid(transform: Affine, to_frame: Transformer, r0: int, c0: int, th: 
     """
     ki = np.arange(max(2, -(-(th - 1) // step) + 1)) * step
     kj = np.arange(max(2, -(-(tw - 1) // step) + 1)) * step
-    jj, ii = np.meshgrid(c0 + kj + 0.5, r0 + ki + 0.5)
-    x, y = transform @ (jj, ii)
+    cols, rows = c0 + kj + 0.5, r0 + ki + 0.5
+    a, b, c, d, e, f = transform[:6]
+    # transform @ (cols, rows) on the grid, each value computed as affine does (col a + row b + c)
+    # from the rows' and columns' products, without the grid's meshgrid
+    x = (cols * a)[None, :] + (rows * b)[:, None] + c
+    y = (cols * d)[None, :] + (rows * e)[:, None] + f
     u, v = to_frame.transform(x, y)
-    return np.ascontiguousarray(np.stack([u, v], -1))
+    out = np.empty((*x.shape, 2))
+    out[..., 0], out[..., 1] = u, v
+    return out
 
 
 def coarse_struct(uv: np.ndarray, geocentric: bool, device: wp.context.Device, step: int = COARSE_STEP,
