@@ -254,6 +254,9 @@ def main(argv=None):
     ap.add_argument("--no-block-scan", action="store_true", help="no thread-block-size scan of the kernel (fewer compiles)")
     ap.add_argument("--batch-compress", default="deflate",
                     help="--compress of the batch runs, e.g. deflate,jpeg (jpeg: the default quality, no level)")
+    ap.add_argument("--batch-gpus", default="0",
+                    help="--gpus of the batch runs, e.g. 0,1 (0: in the calling process; N: a local cluster, "
+                         "4 worker processes per GPU)")
     ap.add_argument("--batch-source-reads", default="auto", help="--source-reads of the batch runs, e.g. auto,tiles")
     ap.add_argument("--batch", type=int, default=0, help="also run N copies of the frame in one CLI call (GPU)")
     ap.add_argument("--sample-stacks", type=float, default=None, metavar="SECONDS",
@@ -323,7 +326,7 @@ def main(argv=None):
         r["kernel_fraction_of_wall"] = res.timings["kernel"] / res.timings["wall"]
         if not args.skip_cli:
             def cli_batch(n, device_name, resolution, gpu_index, level="6", codec="auto", reads="auto",
-                          compress="deflate"):
+                          compress="deflate", gpus=0):
                 """N copies of the frame (links) in one call: wall time, peak memory, GPU busy."""
                 bdir = os.path.join(work, "batch")
                 os.makedirs(bdir, exist_ok=True)
@@ -350,10 +353,11 @@ def main(argv=None):
                     "--resolution", repr(resolution), "--resampling", args.resampling, "--device", device_name,
                     "--profile-json", prof_path, "--compress", compress,
                     *(["--compress-level", level] if compress in ("deflate", "zstd") else []), "--block-codec", codec,
-                    "--source-reads", reads, *(["--no-refraction"] if args.no_refraction else [])],
+                    "--source-reads", reads, *(["--no-refraction"] if args.no_refraction else []),
+                    *(["--gpus", str(gpus)] if gpus else [])],
                     gpu_index=gpu_index, env=env)
                 o["images"], o["compress_level"], o["block_codec"], o["source_reads"] = n, int(level), codec, reads
-                o["compress"] = compress
+                o["compress"], o["gpus"] = compress, gpus
                 if args.sample_stacks and os.path.exists(stacks):
                     with open(stacks) as f:
                         o["stacks"] = json.load(f)
@@ -425,13 +429,15 @@ def main(argv=None):
                     for level in args.batch_levels.split(",") if compress in ("deflate", "zstd") else ["6"]:
                         for codec in args.batch_codecs.split(","):
                             for reads in args.batch_source_reads.split(","):
-                                key = ("cli_batch" if level == "6" else f"cli_batch_level{level}") + \
-                                    ("" if compress == "deflate" else f"_{compress}") + \
-                                    ("" if codec == "auto" else f"_{codec}") + ("" if reads == "auto" else f"_{reads}")
-                                r[key] = cli_batch(args.batch, name, res.resolution,
-                                                   geom.device.ordinal if geom.device.is_cuda else None, level, codec,
-                                                   reads, compress)
-                                save_report(report, args.out)
+                                for gpus in [int(g) for g in args.batch_gpus.split(",")]:
+                                    key = ("cli_batch" if level == "6" else f"cli_batch_level{level}") + \
+                                        ("" if compress == "deflate" else f"_{compress}") + \
+                                        ("" if codec == "auto" else f"_{codec}") + \
+                                        ("" if reads == "auto" else f"_{reads}") + (f"_gpus{gpus}" if gpus else "")
+                                    r[key] = cli_batch(args.batch, name, res.resolution,
+                                                       geom.device.ordinal if geom.device.is_cuda else None, level,
+                                                       codec, reads, compress, gpus)
+                                    save_report(report, args.out)
             # the floor of that start-up: interpreter, imports, Warp and device set-up, kernels loaded, no job
             t = time.perf_counter()
             subprocess.run([sys.executable, "-c", STARTUP, name], check=True)
