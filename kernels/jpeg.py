@@ -13,8 +13,12 @@ the entropy-coded data of one sequential-DCT scan without restart intervals:
 The steps, each over many threads (a *unit* is one component's 8 x 8 samples):
 
 - :func:`dct_kernel` (a thread per unit): the samples, level-shifted by 128, the 2-D DCT-II
-  of T.81 A.3.3 as two products with the 8 x 8 basis (float32), divided by the quantization
-  table and rounded half away from zero, stored in zigzag order (T.81 A.3.6);
+  of T.81 A.3.3 by the scaled integer algorithm of Loeffler, Ligtenberg and Moschytz ("Practical
+  fast 1-D DCT algorithms with 11 multiplications", ICASSP 1989) with the constants and
+  rounding of the IJG's "slow integer" method (13-bit cosines, 2 extra bits between the row
+  and column passes, coefficients 8 times the standard's), divided by 8 times the quantization
+  table and rounded half away from zero, stored in zigzag order (T.81 A.3.6): what libjpeg's
+  default path computes, so the streams are its own;
 - :func:`size_kernel` (a thread per unit): the bits of its Huffman codes and amplitudes (T.81
   F.1.2: the DC difference from the previous unit of its component, the AC coefficients as
   run/size symbols with ZRL and EOB);
@@ -37,22 +41,37 @@ wp.set_module_options({"enable_backward": False, "cuda_output": "cubin"})
 
 STUFF_CHUNK = wp.constant(1024)  # bytes per thread of the byte-stuffing kernels
 
-mat88 = wp.types.matrix(shape=(8, 8), dtype=wp.float32)
+mat88i = wp.types.matrix(shape=(8, 8), dtype=wp.int32)
+
+# The integer DCT's constants (Loeffler, Ligtenberg and Moschytz 1989, as the IJG's "slow
+# integer" method scales them): cosine products times 2**CONST_BITS, rounded
+CONST_BITS = wp.constant(13)
+PASS1_BITS = wp.constant(2)
+FIX_0_298631336 = wp.constant(2446)
+FIX_0_390180644 = wp.constant(3196)
+FIX_0_541196100 = wp.constant(4433)
+FIX_0_765366865 = wp.constant(6270)
+FIX_0_899976223 = wp.constant(7373)
+FIX_1_175875602 = wp.constant(9633)
+FIX_1_501321110 = wp.constant(12299)
+FIX_1_847759065 = wp.constant(15137)
+FIX_1_961570560 = wp.constant(16069)
+FIX_2_053119869 = wp.constant(16819)
+FIX_2_562915447 = wp.constant(20995)
+FIX_3_072711026 = wp.constant(25172)
 
 
 @wp.struct
 class JpegTables:
     """One file's coding tables (index 0: luminance / grey, 1: chroma).
 
-    basis : the DCT's basis, ``basis[u, x] = C(u) / 2 cos((2x + 1) u pi / 16)``, C(0) = 1/sqrt(2), else 1
-    quant : (2, 64) float32, the quantization tables in natural (row-major) order
+    quant : (2, 64) int32, the quantization tables in natural (row-major) order
     zigzag : (64,) int32, the natural index of the k-th coefficient in zigzag order
     dc_code, dc_size : (2, 16) int32, the DC tables' code and length per category (0 length: absent)
     ac_code, ac_size : (2, 256) int32, the AC tables' code and length per run/size symbol
     """
 
-    basis: mat88
-    quant: wp.array2d(dtype=wp.float32)
+    quant: wp.array2d(dtype=wp.int32)
     zigzag: wp.array(dtype=wp.int32)
     dc_code: wp.array2d(dtype=wp.int32)
     dc_size: wp.array2d(dtype=wp.int32)
@@ -120,6 +139,98 @@ def chroma(buf: wp.array(dtype=wp.uint8), base: wp.int32, block: wp.int32, r: wp
     return (32768 * red - 27439 * green - 5329 * blue + 8388608 + 32767) >> 16
 
 
+@wp.func
+def descale(x: wp.int32, n: wp.int32) -> wp.int32:
+    """x / 2**n rounded half up (an arithmetic shift)."""
+    return (x + (1 << (n - 1))) >> n
+
+
+@wp.func
+def fdct_pass(f: mat88i, second: wp.int32) -> mat88i:
+    """One pass of the scaled integer DCT over the rows of ``f`` (``second`` 0: the first,
+    whose outputs keep PASS1_BITS more bits) or its columns (1), as a new matrix. After both
+    passes the coefficients are 8 times T.81 A.3.3's."""
+    out = mat88i()
+    for k in range(8):
+        d0 = f[k, 0]
+        d1 = f[k, 1]
+        d2 = f[k, 2]
+        d3 = f[k, 3]
+        d4 = f[k, 4]
+        d5 = f[k, 5]
+        d6 = f[k, 6]
+        d7 = f[k, 7]
+        if second != 0:
+            d0 = f[0, k]
+            d1 = f[1, k]
+            d2 = f[2, k]
+            d3 = f[3, k]
+            d4 = f[4, k]
+            d5 = f[5, k]
+            d6 = f[6, k]
+            d7 = f[7, k]
+        tmp0 = d0 + d7
+        tmp7 = d0 - d7
+        tmp1 = d1 + d6
+        tmp6 = d1 - d6
+        tmp2 = d2 + d5
+        tmp5 = d2 - d5
+        tmp3 = d3 + d4
+        tmp4 = d3 - d4
+        # even part
+        tmp10 = tmp0 + tmp3
+        tmp13 = tmp0 - tmp3
+        tmp11 = tmp1 + tmp2
+        tmp12 = tmp1 - tmp2
+        z1 = (tmp12 + tmp13) * FIX_0_541196100
+        shift = CONST_BITS - PASS1_BITS
+        o0 = (tmp10 + tmp11) << PASS1_BITS
+        o4 = (tmp10 - tmp11) << PASS1_BITS
+        if second != 0:
+            shift = CONST_BITS + PASS1_BITS
+            o0 = descale(tmp10 + tmp11, PASS1_BITS)
+            o4 = descale(tmp10 - tmp11, PASS1_BITS)
+        o2 = descale(z1 + tmp13 * FIX_0_765366865, shift)
+        o6 = descale(z1 - tmp12 * FIX_1_847759065, shift)
+        # odd part
+        z1 = tmp4 + tmp7
+        z2 = tmp5 + tmp6
+        z3 = tmp4 + tmp6
+        z4 = tmp5 + tmp7
+        z5 = (z3 + z4) * FIX_1_175875602
+        tmp4 = tmp4 * FIX_0_298631336
+        tmp5 = tmp5 * FIX_2_053119869
+        tmp6 = tmp6 * FIX_3_072711026
+        tmp7 = tmp7 * FIX_1_501321110
+        z1 = -z1 * FIX_0_899976223
+        z2 = -z2 * FIX_2_562915447
+        z3 = -z3 * FIX_1_961570560 + z5
+        z4 = -z4 * FIX_0_390180644 + z5
+        o7 = descale(tmp4 + z1 + z3, shift)
+        o5 = descale(tmp5 + z2 + z4, shift)
+        o3 = descale(tmp6 + z2 + z3, shift)
+        o1 = descale(tmp7 + z1 + z4, shift)
+        if second != 0:
+            out[0, k] = o0
+            out[1, k] = o1
+            out[2, k] = o2
+            out[3, k] = o3
+            out[4, k] = o4
+            out[5, k] = o5
+            out[6, k] = o6
+            out[7, k] = o7
+        else:
+            out[k, 0] = o0
+            out[k, 1] = o1
+            out[k, 2] = o2
+            out[k, 3] = o3
+            out[k, 4] = o4
+            out[k, 5] = o5
+            out[k, 6] = o6
+            out[k, 7] = o7
+    return out
+
+
 @wp.kernel
 def dct_kernel(buf: wp.array(dtype=wp.uint8), offsets: wp.array(dtype=wp.int32), block: wp.int32,
                bands: wp.int32, units: wp.int32, tables: JpegTables, coef: wp.array2d(dtype=wp.int16)):
@@ -127,7 +238,7 @@ def dct_kernel(buf: wp.array(dtype=wp.uint8), offsets: wp.array(dtype=wp.int32),
     + u]``. dim = (blocks, units)."""
     s, u = wp.tid()
     base = offsets[s]
-    f = mat88()
+    f = mat88i()
     table = unit_table(u, bands)
     if bands == 3:
         per_row = block / 16
@@ -140,7 +251,7 @@ def dct_kernel(buf: wp.array(dtype=wp.uint8), offsets: wp.array(dtype=wp.int32),
             c0 += (j % 2) * 8
             for r in range(8):
                 for c in range(8):
-                    f[r, c] = float(luma(buf, base, block, r0 + r, c0 + c) - 128)
+                    f[r, c] = luma(buf, base, block, r0 + r, c0 + c) - 128
         else:
             cr = j - 4
             for r in range(8):
@@ -149,22 +260,22 @@ def dct_kernel(buf: wp.array(dtype=wp.uint8), offsets: wp.array(dtype=wp.int32),
                     cc = c0 + 2 * c
                     total = (chroma(buf, base, block, rr, cc, cr) + chroma(buf, base, block, rr, cc + 1, cr)
                              + chroma(buf, base, block, rr + 1, cc, cr) + chroma(buf, base, block, rr + 1, cc + 1, cr))
-                    f[r, c] = float(((total + 1 + (c % 2)) >> 2) - 128)
+                    f[r, c] = ((total + 1 + (c % 2)) >> 2) - 128
     else:
         per_row = block / 8
         r0 = (u / per_row) * 8
         c0 = (u % per_row) * 8
         for r in range(8):
             for c in range(8):
-                f[r, c] = float(pixel(buf, base, block, bands, r0 + r, c0 + c, 0) - 128)
-    m = tables.basis
-    d = m * f * wp.transpose(m)
+                f[r, c] = pixel(buf, base, block, bands, r0 + r, c0 + c, 0) - 128
+    d = fdct_pass(fdct_pass(f, 0), 1)
     t = s * units + u
     for k in range(64):
         nat = tables.zigzag[k]
-        v = d[nat / 8, nat % 8] / tables.quant[table, nat]
-        q = wp.floor(wp.abs(v) + 0.5)
-        if v < 0.0:
+        div = tables.quant[table, nat] * 8  # (the coefficients are 8 times the standard's)
+        v = d[nat / 8, nat % 8]
+        q = (wp.abs(v) + div / 2) / div  # rounded half away from zero
+        if v < 0:
             q = -q
         coef[t, k] = wp.int16(q)
 

@@ -543,11 +543,10 @@ def test_nvjpeg_file_decodes_near_the_host_writers(tmp_path, count):
 
 
 @pytest.mark.parametrize("count,block", [(3, 256), (1, 128)])
-def test_warp_jpeg_file_decodes_near_the_host_writers(tmp_path, device, count, block):
-    """orthowarp's JPEG kernels (:class:`WarpJpeg`) on the device encoder: blocks at every
-    level within JPEG's error of the host writer's libjpeg blocks, the same masks; the blocks
-    leave their quantization tables to the file's JPEGTables (as the host writer's do), so the
-    two files differ in size by what the coefficients do."""
+def test_warp_jpeg_file_is_the_host_writers(tmp_path, device, count, block):
+    """orthowarp's JPEG kernels (:class:`WarpJpeg`) on the device encoder: the host writer's
+    file byte for byte (libjpeg's streams, stored without the tables the file's JPEGTables
+    hold), at every level."""
     from orthowarp.pipeline.raster.jpeg import WarpJpeg
 
     shape = (1100, 1500)
@@ -555,18 +554,10 @@ def test_warp_jpeg_file_decodes_near_the_host_writers(tmp_path, device, count, b
     _write(host, shape, count, "uint8", 512, compress="jpeg", quality=90, block=block)
     enc = _write(dev, shape, count, "uint8", 512, device=device, compress="jpeg", quality=90, block=block,
                  codecs=[WarpJpeg(wp.get_device(device), 90)], batch_bytes=1 << 20)
-    assert enc.blocks_by_codec["warpjpeg"] > 0
-    assert abs(os.path.getsize(dev) / os.path.getsize(host) - 1) < 0.02
-    levels = 0
-    for (da, ma, sa, ca), (db, mb, sb, cb) in zip(_levels(host, count), _levels(dev, count)):
-        np.testing.assert_array_equal(ma, mb)
-        assert sa == sb and ca == cb
-        diff = np.abs(da.astype(int) - db.astype(int))[:, ma > 0]
-        assert diff.mean() < 0.5 and np.percentile(diff, 99) <= 4, (diff.mean(), np.percentile(diff, 99))
-        levels += 1
-    assert levels == 4
-    with rasterio.open(dev) as ds:
-        assert ds.tags(ns="IMAGE_STRUCTURE")["JPEG_QUALITY"] == "90"
+    assert enc.blocks_by_codec["warpjpeg"] > 0 and enc.empty_blocks > 0
+    with open(host, "rb") as a, open(dev, "rb") as b:
+        assert a.read() == b.read()
+    assert len(_levels(dev, count)) == 4
 
 
 def test_jpeg_codecs_need_their_packages_and_a_gpu(tmp_path):

@@ -1309,7 +1309,7 @@ def test_worker_processes_encode_the_files_blocks(pair, tmp_path, compress, monk
 
 def test_jpeg_mosaic_encoded_by_the_device_kernels(pair, tmp_path):
     """block_codec="warp" for a JPEG mosaic: orthowarp's JPEG kernels encode the blocks the
-    device made; the host writer's masks, its pixels within JPEG's error."""
+    device made: the host writer's file, byte for byte."""
     sc, images, _, _ = pair
     images = _uint8_rgb(images, tmp_path)
     kw = dict(dem=sc.dem, refraction=False, device="cpu", tile_size=128, compress="jpeg",
@@ -1317,12 +1317,9 @@ def test_jpeg_mosaic_encoded_by_the_device_kernels(pair, tmp_path):
     host = mosaic(images, tmp_path / "host.tif", block_codec="host", **kw)
     dev = mosaic(images, tmp_path / "dev.tif", block_codec="warp", **kw)
     assert dev.profile["block_codec"] == "warp"
-    with rasterio.open(host.path) as a, rasterio.open(dev.path) as b:
+    assert (tmp_path / "host.tif").read_bytes() == (tmp_path / "dev.tif").read_bytes()
+    with rasterio.open(dev.path) as b:
         assert b.profile["compress"] == "jpeg" and b.tags(ns="IMAGE_STRUCTURE")["JPEG_QUALITY"] == "90"
-        ma, mb = a.dataset_mask(), b.dataset_mask()
-        np.testing.assert_array_equal(ma, mb)
-        diff = np.abs(a.read().astype(int) - b.read().astype(int))[:, ma > 0]
-    assert diff.mean() < 0.5 and np.percentile(diff, 99) <= 4, (diff.mean(), np.percentile(diff, 99))
 
 
 def test_an_image_is_dropped_after_its_last_tile_unless_dealt_again():

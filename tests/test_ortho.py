@@ -1394,8 +1394,7 @@ def test_lossy_outputs_for_rgb(tmp_path, compress, quality):
 
 def test_jpeg_encoded_by_the_device_kernels(tmp_path):
     """block_codec="warp" for a JPEG ortho: its blocks and overviews made on the device and
-    encoded by orthowarp's JPEG kernels: the masks of the host writer's file, its pixels
-    within JPEG's error of them, its JPEGTables and quality tag."""
+    encoded by orthowarp's JPEG kernels: the host writer's file, byte for byte."""
     cam = ow.FrameCamera(50.0, 0.01, (320, 240))
     pose = ow.Pose.from_opk(500000.0, 5200000.0, 600.0, 1.0, -2.0, 30.0, crs="EPSG:32632")
     src = tmp_path / "rgb.tif"
@@ -1408,15 +1407,9 @@ def test_jpeg_encoded_by_the_device_kernels(tmp_path):
     host = orthorectify(src, FrameSensor(cam, pose), tmp_path / "host.tif", block_codec="host", **kw)
     dev = orthorectify(src, FrameSensor(cam, pose), tmp_path / "dev.tif", block_codec="warp", **kw)
     assert dev.profile["block_codec"] == "warp" and dev.profile["blocks_by_codec"]["warpjpeg"] > 0
-    a, b = _levels(host.path), _levels(dev.path)
-    assert len(a) == len(b) >= 2
-    for (da, ma, sa), (db, mb, sb) in zip(a, b):
-        np.testing.assert_array_equal(ma, mb)
-        assert sa == sb and sb["COMPRESSION"] == "YCbCr JPEG" and sb["JPEG_QUALITY"] == "85"
-        diff = np.abs(da.astype(int) - db.astype(int))[:, ma > 0]
-        assert diff.mean() < 0.5 and np.percentile(diff, 99) <= 4, (diff.mean(), np.percentile(diff, 99))
-    with rasterio.open(host.path) as x, rasterio.open(dev.path) as y:
-        assert x.profile["compress"] == y.profile["compress"] == "jpeg"
+    assert (tmp_path / "host.tif").read_bytes() == (tmp_path / "dev.tif").read_bytes()
+    levels = _levels(dev.path)
+    assert len(levels) >= 2 and levels[0][2]["COMPRESSION"] == "YCbCr JPEG" and levels[0][2]["JPEG_QUALITY"] == "85"
 
 
 def test_coarse_grid_is_the_transformed_pixel_centres():

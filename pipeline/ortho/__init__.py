@@ -252,7 +252,7 @@ def orthorectify(src: str | os.PathLike, sensor: SensorModel, dst: str | os.Path
         "auto" is "host"; "warp" and "hybrid" are deflate codecs, refused with zstd. A JPEG
         COG: "warp" makes its blocks and overviews on the device and encodes them there with
         orthowarp's own JPEG kernels (:class:`~orthowarp.pipeline.raster.jpeg.WarpJpeg`, any
-        device: libjpeg's tables and headers, its pixels within JPEG's error of libjpeg's);
+        device: libjpeg's streams, byte for byte, so the host writer's file);
         "auto" does the same on a GPU, with nvJPEG instead where nvImageCodec's encoder runs
         (``pip install 'orthowarp[gpu]'``; probed once per device), and is "host" (libjpeg
         on the host cores) on the CPU; "hybrid" makes the blocks on a GPU and encodes them

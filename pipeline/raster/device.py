@@ -40,8 +40,9 @@ blocks, and only compressed blocks cross to the host:
 
 Every lossless path decodes to the same pixels as the host writer's (the block contents before
 compression are identical bit for bit; only the compressed streams differ); a JPEG file's
-blocks hold the same pixels before encoding, and orthowarp's and nvJPEG's encoders round
-differently from libjpeg's, so their pixels are the host file's within JPEG's own error.
+blocks hold the same pixels before encoding: orthowarp's encoder writes libjpeg's streams (the
+host file, byte for byte), nvJPEG's rounds differently, so its pixels are the host file's
+within JPEG's own error.
 """
 
 from __future__ import annotations

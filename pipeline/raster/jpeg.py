@@ -2,17 +2,17 @@
 
 :class:`WarpJpeg` is the JPEG codec of the device COG encoder
 (:class:`~orthowarp.pipeline.raster.device.DeviceCogEncoder`) on any Warp device: the blocks'
-DCT, quantization and Huffman coding run in :mod:`orthowarp.kernels.jpeg`, and only the
-entropy-coded data cross to the host. The marker segments around them (SOI, the quantization
-and Huffman tables, the frame and scan headers) are those of libjpeg's own stream of a block of
-the same shape and quality (:func:`~orthowarp.pipeline.raster.cog.jpeg_stream`, through
-Pillow), and the kernels code with the tables read from that stream
-(:func:`jpeg_layout`): the same quantization tables as the host writer's (so a COG's
-JPEGTables tag holds for both), the standard Huffman tables of ITU-T T.81 Annex K.3, the same
-YCbCr conversion and 2 x 2 chroma averaging as libjpeg's. The DCT is computed in floating
-point, where libjpeg's default uses scaled integers (Loeffler, Ligtenberg and Moschytz 1989),
-so a few quantized coefficients differ by one step: the decoded pixels are libjpeg's within
-JPEG's own error (tests/test_jpeg.py measures it).
+colour conversion, DCT, quantization and Huffman coding run in :mod:`orthowarp.kernels.jpeg`,
+and only the entropy-coded data cross to the host. The marker segments around them (SOI, the
+quantization and Huffman tables, the frame and scan headers) are those of libjpeg's own stream
+of a block of the same shape and quality (:func:`~orthowarp.pipeline.raster.cog.jpeg_stream`,
+through Pillow), and the kernels code with the tables read from that stream
+(:func:`jpeg_layout`): the same quantization tables as the host writer's, the standard Huffman
+tables of ITU-T T.81 Annex K.3. The kernels compute what libjpeg's default ("slow integer")
+path computes: its YCbCr conversion in 16-bit fixed point, its 2 x 2 chroma averaging, the
+scaled integer DCT of Loeffler, Ligtenberg and Moschytz (1989) with the IJG's 13-bit constants,
+quantization rounded half away from zero. So each stream is libjpeg's, byte for byte (tested
+against Pillow at qualities 1-100), and a COG they encode is the host writer's file.
 """
 
 from __future__ import annotations
@@ -184,18 +184,11 @@ def jpeg_layout(stream: bytes) -> JpegLayout:
     return JpegLayout(bytes(head), (height, width), len(comps), q, dc, ac)
 
 
-def _basis() -> np.ndarray:
-    """The 8 x 8 DCT-II basis of T.81 A.3.3: ``[u, x] = C(u) / 2 cos((2x + 1) u pi / 16)``."""
-    u, x = np.meshgrid(np.arange(8), np.arange(8), indexing="ij")
-    c = np.where(u == 0, 1 / np.sqrt(2), 1.0)
-    return (c / 2 * np.cos((2 * x + 1) * u * np.pi / 16)).astype(np.float32)
-
-
 class WarpJpeg:
     """Baseline JPEG streams of device-resident uint8 blocks, encoded by orthowarp's kernels
     (:mod:`orthowarp.kernels.jpeg`) on any Warp device, many blocks per launch: three bands
     as YCbCr with the chroma averaged 2 x 2, one band as grey, at IJG ``quality`` with the
-    standard Huffman tables (the host writer's libjpeg streams' tables and headers).
+    standard Huffman tables; the streams libjpeg writes for the same blocks, byte for byte.
 
     Parameters
     ----------
@@ -242,8 +235,7 @@ class WarpJpeg:
                 raise DeviceError(f"libjpeg's stream of a {shape} block cannot be reproduced on the device: {e}") from e
             d, kj = self.device, self._kj
             t = kj.JpegTables()
-            t.basis = kj.mat88(*_basis().ravel())
-            t.quant = wp.array(lay.quant, dtype=wp.float32, device=d)
+            t.quant = wp.array(lay.quant.astype(np.int32), dtype=wp.int32, device=d)
             t.zigzag = wp.array(zigzag_order(), dtype=wp.int32, device=d)
             t.dc_code, t.dc_size = (wp.array(a, dtype=wp.int32, device=d) for a in (lay.dc_code, lay.dc_size))
             t.ac_code, t.ac_size = (wp.array(a, dtype=wp.int32, device=d) for a in (lay.ac_code, lay.ac_size))
