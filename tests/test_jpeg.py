@@ -153,3 +153,21 @@ def test_layout_parser_fuzzed(data):
     except ValueError:
         return
     assert lay.bands in (1, 3) and lay.quant.shape == (2, 64) and lay.head.startswith(b"\xff\xd8")
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.integers(1, 4).map(lambda k: 16 * k), st.sampled_from([1, 3]), st.integers(1, 100), st.integers(0, 2**32 - 1),
+       st.sampled_from(["noise", "smooth", "levels"]))
+def test_streams_are_libjpegs_for_any_block(size, bands, quality, seed, kind):
+    """Property: any block (random size, bands, quality and content) gets libjpeg's stream."""
+    rng = np.random.default_rng(seed)
+    if kind == "noise":
+        block = rng.integers(0, 256, (size, size, bands), dtype=np.uint8)
+    elif kind == "smooth":
+        yy, xx = np.mgrid[0:size, 0:size]
+        block = np.stack([(rng.uniform(0, 255) + rng.uniform(-3, 3) * xx + rng.uniform(-3, 3) * yy) % 256
+                          for _ in range(bands)], -1).astype(np.uint8)
+    else:  # a few levels only, hard edges
+        block = rng.choice(np.array([0, 1, 127, 128, 254, 255], np.uint8), (size, size, bands))
+    (stream,) = _encode([block], quality)
+    assert stream == jpeg_stream(block, quality)
