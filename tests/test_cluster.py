@@ -465,7 +465,8 @@ def test_workers_read_images_through_gdals_virtual_file_systems(block, reference
 def test_a_jpeg_tiled_product_has_the_jpeg_cogs_pixels(block, tmp_path):
     """A JPEG product (grey, from the block's uint8 frames): its tiles are JPEG COGs at the
     quality asked, its index deflate, and mosaic.vrt reads as the single JPEG COG (the blocks'
-    8 x 8 cells on the same grid, each decoded alone)."""
+    8 x 8 cells on the same grid, each decoded alone); the device's JPEG kernels write the
+    same files."""
     sc, images = block
     kw = dict(_kw(sc), compress="jpeg", quality=80)
     cog = mosaic(images, tmp_path / "m.tif", **kw)
@@ -484,6 +485,9 @@ def test_a_jpeg_tiled_product_has_the_jpeg_cogs_pixels(block, tmp_path):
     with open(os.path.join(tiled.path, "manifest.json")) as f:
         manifest = json.load(f)
     assert manifest["compress"] == "jpeg" and manifest["quality"] == 80
+    # the JPEG kernels ("warp", here on the CPU device) encode the same tiles, byte for byte
+    dev = mosaic(images, tmp_path / "dev", tiled=True, index=True, product_tile=128, block_codec="warp", **kw)
+    assert _files(dev.path) == _files(tiled.path)
 
 
 @pytest.mark.slow  # (the module's LocalCluster of 2 processes)
