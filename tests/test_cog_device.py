@@ -565,11 +565,11 @@ def test_jpeg_codecs_need_their_packages_and_a_gpu(tmp_path):
         NvjpegCodec(wp.get_device("cpu"), 90)
 
 
-def test_jpeg_block_codec_choices(monkeypatch):
+def test_jpeg_block_codec_choices():
     """A JPEG COG: on the CPU the host writer unless "warp" (orthowarp's JPEG kernels) is asked
-    for; on a GPU "auto" is nvJPEG where it runs, else "warp"; "nvcomp" refused (deflate / zstd
-    codecs); "hybrid" allowed (the device's blocks, libjpeg on the host cores); WebP refuses
-    "warp" and "hybrid"."""
+    for; on a GPU "auto" is "warp" (libjpeg's streams, where nvJPEG's would differ); "nvcomp"
+    refused (deflate / zstd codecs); "hybrid" allowed (the device's blocks, libjpeg on the host
+    cores); WebP refuses "warp" and "hybrid"."""
     from types import SimpleNamespace
 
     import orthowarp.pipeline.ortho.sink as sink
@@ -582,9 +582,7 @@ def test_jpeg_block_codec_choices(monkeypatch):
     assert isinstance(codec, WarpJpeg) and codec.quality == 70
     codec.close()
     gpu = SimpleNamespace(is_cuda=True)
-    for runs, want in ((True, "nvjpeg"), (False, "warp")):
-        monkeypatch.setattr(sink, "nvjpeg_runs", lambda device, runs=runs: runs)
-        assert sink.choose_block_codec("auto", gpu, True, compress="jpeg") == want
+    assert sink.choose_block_codec("auto", gpu, True, compress="jpeg") == "warp"
     assert sink.choose_block_codec("hybrid", gpu, True, compress="jpeg") == "device"
     with pytest.raises(ParamError, match="jpeg"):
         sink.choose_block_codec("nvcomp", cpu, True, compress="jpeg")

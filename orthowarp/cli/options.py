@@ -245,8 +245,8 @@ block_codec = click.option("--block-codec", type=click.Choice(BLOCK_CODECS), def
                                 "for a deflate ortho nvcomp at --compress-level 1-4 where "
                                 "installed, else hybrid; for a deflate mosaic warp. A jpeg COG: host (libjpeg on "
                                 "the cores), hybrid (on a GPU its blocks made there, libjpeg on the cores), warp "
-                                "(orthowarp's own JPEG kernels on the device) or auto (on a GPU nvJPEG where "
-                                "nvImageCodec's encoder runs, else warp; host on the CPU).")
+                                "(orthowarp's own JPEG kernels on the device: the host's file, byte for byte) or "
+                                "auto (warp on a GPU, host on the CPU).")
 creation = click.option("-co", "--co", "creation", multiple=True, metavar="KEY=VALUE",
                         help="GDAL-style creation option, repeatable: BLOCKSIZE (64-4096, multiple of 16; default "
                              "512), BIGTIFF (YES, NO, IF_NEEDED, IF_SAFER), NUM_THREADS (count or ALL_CPUS); "

@@ -197,12 +197,11 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
         "auto" is "host" (nvCOMP's Zstd on request); "warp" and
         "hybrid" are refused. With ``compress="jpeg"``, "warp" makes the blocks and overviews
         on the device and encodes them there with orthowarp's JPEG kernels (libjpeg's
-        streams: the host file, byte for byte); "auto" is nvJPEG on a GPU where
-        nvImageCodec's encoder runs (probed once per device), else "warp" on a GPU and "host"
-        (libjpeg on the host cores) on the CPU; "hybrid" the blocks made on a GPU, libjpeg on
+        streams: the host file, byte for byte); "auto" is "warp" on a GPU and "host" (libjpeg
+        on the host cores) on the CPU; "hybrid" the blocks made on a GPU, libjpeg on
         the host cores (the host file, byte for byte); WebP's blocks are the host's. "nvcomp"
         is refused with jpeg, and "warp" and "hybrid" with webp. Every lossless choice
-        decodes to the same pixels; nvJPEG's to the host's within JPEG's own error.
+        decodes to the same pixels, and so does every JPEG one.
     tile_size : int, optional
         Output tile edge (pixels, multiple of 16); default 2048 on a GPU (fewer, larger
         launches: the per-tile work on the host is what bounds a mosaic), 512 on the CPU.

@@ -252,10 +252,8 @@ def orthorectify(src: str | os.PathLike, sensor: SensorModel, dst: str | os.Path
         "auto" is "host"; "warp" and "hybrid" are deflate codecs, refused with zstd. A JPEG
         COG: "warp" makes its blocks and overviews on the device and encodes them there with
         orthowarp's own JPEG kernels (:class:`~orthowarp.pipeline.raster.jpeg.WarpJpeg`, any
-        device: libjpeg's streams, byte for byte, so the host writer's file);
-        "auto" does the same on a GPU, with nvJPEG instead where nvImageCodec's encoder runs
-        (``pip install 'orthowarp[gpu]'``; probed once per device), and is "host" (libjpeg
-        on the host cores) on the CPU; "hybrid" makes the blocks on a GPU and encodes them
+        device: libjpeg's streams, byte for byte, so the host writer's file); "auto" is "warp"
+        on a GPU and "host" (libjpeg on the host cores) on the CPU; "hybrid" makes the blocks on a GPU and encodes them
         with libjpeg on the host cores (the host file, byte for byte); "nvcomp" is refused
         with jpeg, and "warp" and "hybrid" too with webp.
     source_reads : {"auto", "whole", "tiles"}, optional

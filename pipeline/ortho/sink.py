@@ -245,10 +245,9 @@ def choose_block_codec(choice: str, device: Device, device_cog: bool, level: int
     -------
     {"host", "nvcomp", "warp", "hybrid", "device", "nvjpeg"}
         "hybrid": a device codec and libdeflate; "device": the block work on the device,
-        libdeflate only (for jpeg: libjpeg, "hybrid" on a GPU); "nvjpeg": a JPEG COG's blocks
-        made and encoded on the device ("auto" for jpeg on a GPU where nvImageCodec's nvJPEG
-        encoder runs); "warp": orthowarp's deflate kernels, or for jpeg its JPEG kernels (any
-        device; "auto" for jpeg on a GPU where nvJPEG does not run).
+        libdeflate only (for jpeg: libjpeg, "hybrid" on a GPU); "warp": orthowarp's deflate
+        kernels, or for jpeg its JPEG kernels (any device; "auto" for jpeg on a GPU: they write
+        libjpeg's streams, so the host writer's file, where nvJPEG's would differ).
 
     Raises
     ------
@@ -268,7 +267,7 @@ def choose_block_codec(choice: str, device: Device, device_cog: bool, level: int
             return "host"
         if choice == "hybrid":  # the blocks and overviews made on the device, libjpeg on the host cores
             return "device"
-        return "nvjpeg" if nvjpeg_runs(device) else "warp"
+        return "warp"
     if compress == "zstd":
         # the host writer's threads unless nvCOMP's Zstd is asked for: its frames are smaller
         # than zstd 1-3's only on some blocks and its level is fixed, and a 40-frame mosaic
@@ -310,14 +309,6 @@ def nvcomp_available() -> bool:
     return available()
 
 
-def nvjpeg_runs(device: Device) -> bool:
-    """Whether nvImageCodec's nvJPEG encoder runs on ``device`` (a probe block encoded there,
-    once per device; see :func:`~orthowarp.pipeline.raster.device.nvjpeg_runs`)."""
-    from ..raster.device import nvjpeg_runs as runs
-
-    return runs(device)
-
-
 def _nvcomp_pays(level: int) -> bool:
     """Whether nvCOMP deflates faster than the alternatives at a libdeflate ``level``: its
     medium-ratio variant, at levels 1-4, beat every host level on an H100 with 16 cores
@@ -354,7 +345,9 @@ def device_codecs(block_codec: str, level: int | None, device: Device, compress:
     Parameters
     ----------
     block_codec : {"nvcomp", "hybrid", "device", "warp", "nvjpeg"}
-        A resolved block codec (:func:`choose_block_codec`).
+        A resolved block codec (:func:`choose_block_codec`), or for jpeg "nvjpeg"
+        (nvImageCodec's nvJPEG encoder on a GPU, ``orthowarp[gpu]``; its own rounding, so its
+        pixels are the host file's within JPEG's error).
     level : int or None
         The compression level (libdeflate 1-12, zstd 1-22); None: the writer's default.
     device : warp.context.Device
