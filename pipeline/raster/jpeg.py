@@ -57,7 +57,7 @@ class JpegLayout:
     bands : int
         1 (grey) or 3 (YCbCr, luminance 2 x 2, chroma 1 x 1).
     quant : ndarray, shape (2, 64)
-        The luminance and chroma quantization tables in natural order (float32; the chroma row
+        The luminance and chroma quantization tables in natural order (int32; the chroma row
         repeats the luminance one for grey).
     dc_code, dc_size : ndarray, shape (2, 16)
         Code and length (0: none) per DC category, luminance then chroma (int32).
@@ -121,7 +121,7 @@ def jpeg_layout(stream: bytes) -> JpegLayout:
                     raise ValueError("16-bit quantization tables are not baseline")
                 if k + 65 > len(seg):
                     raise short
-                quant[seg[k] & 15] = np.frombuffer(seg[k + 1:k + 65], np.uint8).astype(np.float32)
+                quant[seg[k] & 15] = np.frombuffer(seg[k + 1:k + 65], np.uint8).astype(np.int32)
                 k += 65
         elif code == _DHT:
             k = 0
@@ -171,7 +171,7 @@ def jpeg_layout(stream: bytes) -> JpegLayout:
     if missing:
         raise ValueError(f"tables missing: {', '.join(missing)}")
     zz = zigzag_order()
-    q = np.zeros((2, 64), np.float32)
+    q = np.zeros((2, 64), np.int32)
     dc, ac = np.zeros((2, 2, 16), np.int32), np.zeros((2, 2, 256), np.int32)
     for row in (0, 1):
         t = tables[min(row, len(tables) - 1)]
@@ -235,7 +235,7 @@ class WarpJpeg:
                 raise DeviceError(f"libjpeg's stream of a {shape} block cannot be reproduced on the device: {e}") from e
             d, kj = self.device, self._kj
             t = kj.JpegTables()
-            t.quant = wp.array(lay.quant.astype(np.int32), dtype=wp.int32, device=d)
+            t.quant = wp.array(lay.quant, dtype=wp.int32, device=d)
             t.zigzag = wp.array(zigzag_order(), dtype=wp.int32, device=d)
             t.dc_code, t.dc_size = (wp.array(a, dtype=wp.int32, device=d) for a in (lay.dc_code, lay.dc_size))
             t.ac_code, t.ac_size = (wp.array(a, dtype=wp.int32, device=d) for a in (lay.ac_code, lay.ac_size))
