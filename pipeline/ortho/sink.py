@@ -54,7 +54,9 @@ BLOCK_CODECS = values(BlockCodec)
 STREAMED = ("deflate", "zstd", "jpeg", "webp", "none")
 #: The compressions whose blocks a device block codec may compress.
 DEVICE_COMPRESS = ("deflate", "zstd", "jpeg")
-_DEFLATE_ONLY = ("warp", "hybrid")  # orthowarp's deflate kernels, and the deflate codecs shared with the host
+# orthowarp's kernels (deflate, and JPEG for a JPEG COG) and the deflate codecs shared with the host:
+# neither compresses zstd or WebP blocks
+_DEFLATE_ONLY = ("warp", "hybrid")
 # the block codecs a lossy COG refuses (JPEG's "hybrid": its blocks made on the device, libjpeg on the host)
 _LOSSY_REFUSED = {"jpeg": ("nvcomp",), "webp": ("nvcomp", *_DEFLATE_ONLY)}
 
@@ -215,7 +217,7 @@ def check_block_codec(block_codec: str, compress: str) -> None:
     ParamError
         Naming ``block_codec`` and the codecs that do apply.
     """
-    if compress == "zstd" and block_codec in _DEFLATE_ONLY:  # ("warp" of a JPEG COG: orthowarp's JPEG kernels)
+    if compress == "zstd" and block_codec in _DEFLATE_ONLY:
         raise ParamError(f"block_codec {block_codec!r} compresses deflate blocks only; for zstd use auto, host or "
                          "nvcomp")
     if block_codec in _LOSSY_REFUSED.get(compress, ()):
