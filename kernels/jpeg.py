@@ -19,13 +19,14 @@ The steps, each over many threads (a *unit* is one component's 8 x 8 samples):
   and column passes, coefficients 8 times the standard's), divided by 8 times the quantization
   table and rounded half away from zero, stored in zigzag order (T.81 A.3.6): what libjpeg's
   default path computes, so the streams are its own;
-- :func:`size_kernel` (a thread per unit): the bits of its Huffman codes and amplitudes (T.81
-  F.1.2: the DC difference from the previous unit of its component, the AC coefficients as
-  run/size symbols with ZRL and EOB);
+- :func:`size_kernel` (a thread per unit): the bits of its Huffman codes and amplitudes
+  (:func:`code_unit` without emission; T.81 F.1.2: the DC difference from the previous unit of
+  its component, the AC coefficients as run/size symbols with ZRL and EOB);
 - :func:`offsets_kernel` (a thread per block): those sizes summed in the scan's order;
-- :func:`emit_kernel` (a thread per unit): its bits, most significant first, into 32-bit words
-  at its offset. Every bit is written by one unit only and the words start at zero, so the
-  words two units share are completed by adding their bit patterns atomically (no lock);
+- :func:`emit_kernel` (a thread per unit): the same walk (:func:`code_unit`) emitting its bits,
+  most significant first, into 32-bit words at its offset. Every bit is written by one unit
+  only and the words start at zero, so the words two units share are completed by adding their
+  bit patterns atomically (no lock);
 - :func:`pad_kernel`: the last byte filled with 1 bits (T.81 F.1.2.3);
 - :func:`ff_count_kernel`, :func:`ff_offsets_kernel` and :func:`stuff_kernel`: the bytes out
   of the words, each 0xFF followed by a stuffed 0x00 (T.81 B.1.1.5), by chunks of
@@ -146,52 +147,37 @@ def descale(x: wp.int32, n: wp.int32) -> wp.int32:
 
 
 @wp.func
-def fdct_pass(f: mat88i, second: wp.int32) -> mat88i:
-    """One pass of the scaled integer DCT over the rows of ``f`` (``second`` 0: the first,
-    whose outputs keep PASS1_BITS more bits) or its columns (1), as a new matrix. After both
-    passes the coefficients are 8 times T.81 A.3.3's."""
+def fdct_rows(f: mat88i, last: wp.int32) -> mat88i:
+    """One pass of the scaled integer DCT over the rows of ``f``, as a new matrix: the first
+    pass (``last`` 0), whose outputs keep PASS1_BITS more bits, or the second (1), run on the
+    transposed first pass's output. After both the coefficients are 8 times T.81 A.3.3's."""
     out = mat88i()
+    shift = CONST_BITS - PASS1_BITS
+    if last != 0:
+        shift = CONST_BITS + PASS1_BITS
     for k in range(8):
-        d0 = f[k, 0]
-        d1 = f[k, 1]
-        d2 = f[k, 2]
-        d3 = f[k, 3]
-        d4 = f[k, 4]
-        d5 = f[k, 5]
-        d6 = f[k, 6]
-        d7 = f[k, 7]
-        if second != 0:
-            d0 = f[0, k]
-            d1 = f[1, k]
-            d2 = f[2, k]
-            d3 = f[3, k]
-            d4 = f[4, k]
-            d5 = f[5, k]
-            d6 = f[6, k]
-            d7 = f[7, k]
-        tmp0 = d0 + d7
-        tmp7 = d0 - d7
-        tmp1 = d1 + d6
-        tmp6 = d1 - d6
-        tmp2 = d2 + d5
-        tmp5 = d2 - d5
-        tmp3 = d3 + d4
-        tmp4 = d3 - d4
+        tmp0 = f[k, 0] + f[k, 7]
+        tmp7 = f[k, 0] - f[k, 7]
+        tmp1 = f[k, 1] + f[k, 6]
+        tmp6 = f[k, 1] - f[k, 6]
+        tmp2 = f[k, 2] + f[k, 5]
+        tmp5 = f[k, 2] - f[k, 5]
+        tmp3 = f[k, 3] + f[k, 4]
+        tmp4 = f[k, 3] - f[k, 4]
         # even part
         tmp10 = tmp0 + tmp3
         tmp13 = tmp0 - tmp3
         tmp11 = tmp1 + tmp2
         tmp12 = tmp1 - tmp2
+        if last != 0:
+            out[k, 0] = descale(tmp10 + tmp11, PASS1_BITS)
+            out[k, 4] = descale(tmp10 - tmp11, PASS1_BITS)
+        else:
+            out[k, 0] = (tmp10 + tmp11) << PASS1_BITS
+            out[k, 4] = (tmp10 - tmp11) << PASS1_BITS
         z1 = (tmp12 + tmp13) * FIX_0_541196100
-        shift = CONST_BITS - PASS1_BITS
-        o0 = (tmp10 + tmp11) << PASS1_BITS
-        o4 = (tmp10 - tmp11) << PASS1_BITS
-        if second != 0:
-            shift = CONST_BITS + PASS1_BITS
-            o0 = descale(tmp10 + tmp11, PASS1_BITS)
-            o4 = descale(tmp10 - tmp11, PASS1_BITS)
-        o2 = descale(z1 + tmp13 * FIX_0_765366865, shift)
-        o6 = descale(z1 - tmp12 * FIX_1_847759065, shift)
+        out[k, 2] = descale(z1 + tmp13 * FIX_0_765366865, shift)
+        out[k, 6] = descale(z1 - tmp12 * FIX_1_847759065, shift)
         # odd part
         z1 = tmp4 + tmp7
         z2 = tmp5 + tmp6
@@ -206,28 +192,10 @@ def fdct_pass(f: mat88i, second: wp.int32) -> mat88i:
         z2 = -z2 * FIX_2_562915447
         z3 = -z3 * FIX_1_961570560 + z5
         z4 = -z4 * FIX_0_390180644 + z5
-        o7 = descale(tmp4 + z1 + z3, shift)
-        o5 = descale(tmp5 + z2 + z4, shift)
-        o3 = descale(tmp6 + z2 + z3, shift)
-        o1 = descale(tmp7 + z1 + z4, shift)
-        if second != 0:
-            out[0, k] = o0
-            out[1, k] = o1
-            out[2, k] = o2
-            out[3, k] = o3
-            out[4, k] = o4
-            out[5, k] = o5
-            out[6, k] = o6
-            out[7, k] = o7
-        else:
-            out[k, 0] = o0
-            out[k, 1] = o1
-            out[k, 2] = o2
-            out[k, 3] = o3
-            out[k, 4] = o4
-            out[k, 5] = o5
-            out[k, 6] = o6
-            out[k, 7] = o7
+        out[k, 7] = descale(tmp4 + z1 + z3, shift)
+        out[k, 5] = descale(tmp5 + z2 + z4, shift)
+        out[k, 3] = descale(tmp6 + z2 + z3, shift)
+        out[k, 1] = descale(tmp7 + z1 + z4, shift)
     return out
 
 
@@ -268,7 +236,7 @@ def dct_kernel(buf: wp.array(dtype=wp.uint8), offsets: wp.array(dtype=wp.int32),
         for r in range(8):
             for c in range(8):
                 f[r, c] = pixel(buf, base, block, bands, r0 + r, c0 + c, 0) - 128
-    d = fdct_pass(fdct_pass(f, 0), 1)
+    d = wp.transpose(fdct_rows(wp.transpose(fdct_rows(f, 0)), 1))
     t = s * units + u
     for k in range(64):
         nat = tables.zigzag[k]
@@ -280,58 +248,17 @@ def dct_kernel(buf: wp.array(dtype=wp.uint8), offsets: wp.array(dtype=wp.int32),
         coef[t, k] = wp.int16(q)
 
 
-@wp.kernel
-def size_kernel(coef: wp.array2d(dtype=wp.int16), bands: wp.int32, units: wp.int32, tables: JpegTables,
-                bits: wp.array(dtype=wp.int32)):
-    """The entropy-coded bits of each unit. dim = blocks * units."""
-    t = wp.tid()
-    u = t % units
-    table = unit_table(u, bands)
-    prev = previous_unit(u, bands)
-    pred = wp.int32(0)
-    if prev >= 0:
-        pred = wp.int32(coef[t - u + prev, 0])
-    n = magnitude_bits(wp.int32(coef[t, 0]) - pred)
-    total = tables.dc_size[table, n] + n
-    run = wp.int32(0)
-    for k in range(1, 64):
-        v = wp.int32(coef[t, k])
-        if v == 0:
-            run += 1
-        else:
-            while run > 15:
-                total += tables.ac_size[table, 0xF0]
-                run -= 16
-            n = magnitude_bits(v)
-            total += tables.ac_size[table, run * 16 + n] + n
-            run = 0
-    if run > 0:
-        total += tables.ac_size[table, 0]
-    bits[t] = total
-
-
-@wp.kernel
-def offsets_kernel(bits: wp.array(dtype=wp.int32), units: wp.int32, start: wp.array(dtype=wp.int32),
-                   total: wp.array(dtype=wp.int32)):
-    """Each unit's first bit in its block's data, and each block's bits. dim = blocks."""
-    s = wp.tid()
-    acc = wp.int32(0)
-    for u in range(units):
-        start[s * units + u] = acc
-        acc += bits[s * units + u]
-    total[s] = acc
-
-
 @wp.func
-def put(words: wp.array(dtype=wp.uint32), acc: wp.uint64, fill: wp.int32, w: wp.int32, code: wp.int32,
-        size: wp.int32):
+def put(words: wp.array(dtype=wp.uint32), emit: wp.int32, acc: wp.uint64, fill: wp.int32, w: wp.int32,
+        code: wp.int32, size: wp.int32):
     """``size`` bits of ``code`` appended to the bit buffer ``acc`` (``fill`` bits used, its
-    first bit word ``w``'s first); the words it completes added to ``words``."""
+    first bit word ``w``'s first); with ``emit``, the words it completes added to ``words``."""
     if size > 0:
         acc = acc | (wp.uint64(code) << wp.uint64(64 - fill - size))
         fill += size
     while fill >= 32:
-        wp.atomic_add(words, w, wp.uint32(acc >> wp.uint64(32)))
+        if emit != 0:
+            wp.atomic_add(words, w, wp.uint32(acc >> wp.uint64(32)))
         acc = acc << wp.uint64(32)
         fill -= 32
         w += 1
@@ -346,18 +273,16 @@ def amplitude(v: wp.int32, n: wp.int32) -> wp.int32:
     return v
 
 
-@wp.kernel
-def emit_kernel(coef: wp.array2d(dtype=wp.int16), bands: wp.int32, units: wp.int32, tables: JpegTables,
-                start: wp.array(dtype=wp.int32), word_base: wp.array(dtype=wp.int32),
-                words: wp.array(dtype=wp.uint32)):
-    """Each unit's codes into ``words`` (zeroed; block ``s``'s first word ``word_base[s]``,
-    bit 31 of a word first). dim = blocks * units."""
-    t = wp.tid()
-    s = t / units
-    u = t % units
+@wp.func
+def code_unit(coef: wp.array2d(dtype=wp.int16), t: wp.int32, u: wp.int32, bands: wp.int32, tables: JpegTables,
+              words: wp.array(dtype=wp.uint32), first: wp.int32, at: wp.int32, emit: wp.int32) -> wp.int32:
+    """Unit ``u`` (row ``t`` of ``coef``) Huffman-coded (T.81 F.1.2: the DC difference from the
+    previous unit of its component, the AC coefficients as run/size symbols with ZRL and EOB):
+    its bits; with ``emit``, also added into ``words`` from bit ``at`` of the data whose first
+    word is ``first`` (bit 31 of a word first). The size pass and the emission are this one
+    walk, so they cannot disagree."""
     table = unit_table(u, bands)
-    at = start[t]
-    w = word_base[s] + at / 32
+    w = first + at / 32
     fill = at % 32
     acc = wp.uint64(0)
     prev = previous_unit(u, bands)
@@ -366,8 +291,8 @@ def emit_kernel(coef: wp.array2d(dtype=wp.int16), bands: wp.int32, units: wp.int
         pred = wp.int32(coef[t - u + prev, 0])
     diff = wp.int32(coef[t, 0]) - pred
     n = magnitude_bits(diff)
-    acc, fill, w = put(words, acc, fill, w, tables.dc_code[table, n], tables.dc_size[table, n])
-    acc, fill, w = put(words, acc, fill, w, amplitude(diff, n), n)
+    acc, fill, w = put(words, emit, acc, fill, w, tables.dc_code[table, n], tables.dc_size[table, n])
+    acc, fill, w = put(words, emit, acc, fill, w, amplitude(diff, n), n)
     run = wp.int32(0)
     for k in range(1, 64):
         v = wp.int32(coef[t, k])
@@ -375,17 +300,49 @@ def emit_kernel(coef: wp.array2d(dtype=wp.int16), bands: wp.int32, units: wp.int
             run += 1
         else:
             while run > 15:
-                acc, fill, w = put(words, acc, fill, w, tables.ac_code[table, 0xF0], tables.ac_size[table, 0xF0])
+                acc, fill, w = put(words, emit, acc, fill, w, tables.ac_code[table, 0xF0], tables.ac_size[table, 0xF0])
                 run -= 16
             n = magnitude_bits(v)
             sym = run * 16 + n
-            acc, fill, w = put(words, acc, fill, w, tables.ac_code[table, sym], tables.ac_size[table, sym])
-            acc, fill, w = put(words, acc, fill, w, amplitude(v, n), n)
+            acc, fill, w = put(words, emit, acc, fill, w, tables.ac_code[table, sym], tables.ac_size[table, sym])
+            acc, fill, w = put(words, emit, acc, fill, w, amplitude(v, n), n)
             run = 0
     if run > 0:
-        acc, fill, w = put(words, acc, fill, w, tables.ac_code[table, 0], tables.ac_size[table, 0])
-    if fill > 0:
+        acc, fill, w = put(words, emit, acc, fill, w, tables.ac_code[table, 0], tables.ac_size[table, 0])
+    if emit != 0 and fill > 0:
         wp.atomic_add(words, w, wp.uint32(acc >> wp.uint64(32)))
+    return (w - first) * 32 + fill - at
+
+
+@wp.kernel
+def size_kernel(coef: wp.array2d(dtype=wp.int16), bands: wp.int32, units: wp.int32, tables: JpegTables,
+                no_words: wp.array(dtype=wp.uint32), bits: wp.array(dtype=wp.int32)):
+    """The entropy-coded bits of each unit (:func:`code_unit` without emission; ``no_words``
+    is not written). dim = blocks * units."""
+    t = wp.tid()
+    bits[t] = code_unit(coef, t, t % units, bands, tables, no_words, 0, 0, 0)
+
+
+@wp.kernel
+def offsets_kernel(bits: wp.array(dtype=wp.int32), units: wp.int32, start: wp.array(dtype=wp.int32),
+                   total: wp.array(dtype=wp.int32)):
+    """Each unit's first bit in its block's data, and each block's bits. dim = blocks."""
+    s = wp.tid()
+    acc = wp.int32(0)
+    for u in range(units):
+        start[s * units + u] = acc
+        acc += bits[s * units + u]
+    total[s] = acc
+
+
+@wp.kernel
+def emit_kernel(coef: wp.array2d(dtype=wp.int16), bands: wp.int32, units: wp.int32, tables: JpegTables,
+                start: wp.array(dtype=wp.int32), word_base: wp.array(dtype=wp.int32),
+                words: wp.array(dtype=wp.uint32)):
+    """Each unit's codes into ``words`` (zeroed; block ``s``'s first word ``word_base[s]``,
+    bit 31 of a word first; :func:`code_unit`). dim = blocks * units."""
+    t = wp.tid()
+    code_unit(coef, t, t % units, bands, tables, words, word_base[t / units], start[t], 1)
 
 
 @wp.kernel

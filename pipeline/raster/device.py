@@ -67,7 +67,8 @@ if TYPE_CHECKING:
     from .cog import CogWriter, EncodedTile
 
 __all__ = ["DeviceCogEncoder", "HostDeflate", "HostJpeg", "HostZstd", "NvcompDeflate", "NvcompZstd", "NvjpegCodec",
-           "WarpDeflate", "nvcomp_available", "nvjpeg_available", "nvjpeg_runs", "zlib_parts", "zlib_stream"]
+           "WarpDeflate", "nvcomp_available", "nvjpeg_available", "nvjpeg_runs", "read_back", "zlib_parts",
+           "zlib_stream"]
 
 _WP = {"uint8": wp.uint8, "uint16": wp.uint16, "float32": wp.float32}
 _ZLIB_HEADER = b"\x78\x9c"
@@ -126,6 +127,17 @@ def nvjpeg_runs(device: Device) -> bool:
             ok = False
         _NVJPEG_RUNS[device.alias] = ok
     return _NVJPEG_RUNS[device.alias]
+
+
+def read_back(host: wp.array, dev: wp.array, n: int, stream: Stream | None) -> np.ndarray:
+    """The first ``n`` items of the device array ``dev`` through the host buffer ``host``
+    (pinned on a GPU), after the work so far on a codec's own ``stream`` (None: the CPU,
+    whose launches have run); a NumPy view of ``host``."""
+    if n:
+        wp.copy(host, dev, count=n, stream=stream)
+    if stream is not None:
+        wp.synchronize_stream(stream)
+    return host.numpy()[:n]
 
 
 def _bytes_view(arr: wp.array) -> wp.array:
@@ -693,15 +705,6 @@ class WarpDeflate:
         self.timings[step] = self.timings.get(step, 0.0) + now - t
         return now
 
-    def _read_back(self, host: wp.array, dev: wp.array, n: int, stream: Stream | None) -> np.ndarray:
-        """The first ``n`` items of device array ``dev`` through the host buffer ``host`` (pinned
-        on a GPU), after the codec's work so far (a NumPy view of ``host``)."""
-        if n:
-            wp.copy(host, dev, count=n, stream=stream)
-        if stream is not None:
-            wp.synchronize_stream(stream)
-        return host.numpy()[:n]
-
     def _compress_chunks(self, buf: wp.array, starts: np.ndarray, lens: np.ndarray, last: np.ndarray,
                          prime: np.ndarray, stream: Stream | None) -> tuple[np.ndarray, np.ndarray]:
         """The pieces of ``len(starts)`` chunks: (their bytes back to back, size of each)."""
@@ -736,7 +739,7 @@ class WarpDeflate:
                [s["tokens"], s["ntok"], s["extra"], s["freq"], s["lens"], s["clsym"], s["srt"], s["node"],
                 s["pleaf"], s["pnode"], s["bits"], s["header"], s["size"], s["lens_keep"], s["clsym_keep"]])
         t = self._tick("huffman", t, sync=True)
-        size = self._read_back(s["size_host"], s["size"], m, stream).astype(np.int64)
+        size = read_back(s["size_host"], s["size"], m, stream).astype(np.int64)
         out_off = np.concatenate([[0], np.cumsum(size)[:-1]])
         total = int(size.sum())
         staged[4 * m:5 * m] = out_off
@@ -749,7 +752,7 @@ class WarpDeflate:
         t = self._tick("emit", t, sync=True)
         if total:
             wp.copy(s["out_host"], s["out"], count=total, stream=stream)
-        end = self._read_back(s["end_host"], s["end"], m, stream)
+        end = read_back(s["end_host"], s["end"], m, stream)
         if not np.array_equal(end, out_off + size):  # the size pass and the writer disagree
             raise DeviceError("deflate kernels wrote pieces of other sizes than they computed")
         host = s["out_host"].numpy()[:total].copy()  # the pinned buffer serves the next call

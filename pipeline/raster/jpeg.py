@@ -26,6 +26,7 @@ import warp as wp
 
 from ..._device import load_modules
 from ...errors import DeviceError, ParamError
+from .device import read_back
 
 if TYPE_CHECKING:
     from warp.context import Device, Stream
@@ -299,8 +300,8 @@ class WarpJpeg:
             self._scratch = s = dict(
                 m=m, units=units, coef=z((m * units, 64), wp.int16), bits=z(m * units), start=z(m * units),
                 total=z(m), offs=z(m), base=z(m), count=z((m, chunks)), chunk_at=z((m, chunks)), stuffed=z(m),
-                out_base=z(m, wp.int64), ints_host=h(2 * m), total_host=h(m), out_base_host=h(m, wp.int64),
-                words=None, data=None, data_host=None)
+                out_base=z(m, wp.int64), no_words=z(1, wp.uint32), ints_host=h(2 * m), total_host=h(m),
+                out_base_host=h(m, wp.int64), words=None, data=None, data_host=None)
             self._ordered()
         return s
 
@@ -323,18 +324,6 @@ class WarpJpeg:
             with wp.ScopedDevice(self.device):
                 self._stream().wait_stream(wp.get_stream(self.device))
 
-    def _copy(self, dst: wp.array, src: wp.array, n: int, stream: Stream | None) -> None:
-        if n:
-            wp.copy(dst, src, count=n, stream=stream)
-
-    def _read(self, host: wp.array, dev: wp.array, n: int, stream: Stream | None) -> np.ndarray:
-        """The first ``n`` items of ``dev`` through the host buffer ``host``, after the codec's
-        work so far (a view of ``host``)."""
-        self._copy(host, dev, n, stream)
-        if stream is not None:
-            wp.synchronize_stream(stream)
-        return host.numpy()[:n]
-
     def _encode(self, buf: wp.array, offsets: np.ndarray, lay: JpegLayout, tables: Any,
                 stream: Stream | None) -> list[bytes]:
         """The streams of the blocks at ``offsets`` of ``buf`` (at most a batch)."""
@@ -346,12 +335,12 @@ class WarpJpeg:
                                                        stream=stream)
         ints = s["ints_host"].numpy()
         ints[:m] = offsets
-        self._copy(s["offs"], s["ints_host"], m, stream)
+        wp.copy(s["offs"], s["ints_host"], count=m, stream=stream)
         offs, coef, bits, start, total = s["offs"][:m], s["coef"], s["bits"], s["start"], s["total"][:m]
         launch(kj.dct_kernel, (m, units), [buf, offs, block, bands, units, tables, coef])
-        launch(kj.size_kernel, m * units, [coef, bands, units, tables, bits])
+        launch(kj.size_kernel, m * units, [coef, bands, units, tables, s["no_words"], bits])
         launch(kj.offsets_kernel, m, [bits, units, start, total])
-        nbits = self._read(s["total_host"], total, m, stream).astype(np.int64)
+        nbits = read_back(s["total_host"], total, m, stream).astype(np.int64)
         nwords = (nbits + 31) // 32 + 1
         word_base = np.concatenate([[0], np.cumsum(nwords)[:-1]])
         ints[m:2 * m] = word_base
@@ -365,16 +354,16 @@ class WarpJpeg:
         count, chunk_at = s["count"][:m, :chunks], s["chunk_at"][:m, :chunks]
         launch(kj.ff_count_kernel, (m, chunks), [words, base, total, count])
         launch(kj.ff_offsets_kernel, m, [count, total, chunk_at, s["stuffed"][:m]])
-        lengths = self._read(s["total_host"], s["stuffed"], m, stream).astype(np.int64)
+        lengths = read_back(s["total_host"], s["stuffed"], m, stream).astype(np.int64)
         if (lengths < nbytes).any() or (lengths > 2 * nbytes).any():
             raise DeviceError("JPEG kernels stuffed more or fewer bytes than the data hold")
         out_base = np.concatenate([[0], np.cumsum(lengths)])
         s["out_base_host"].numpy()[:m] = out_base[:-1]
-        self._copy(s["out_base"], s["out_base_host"], m, stream)
+        wp.copy(s["out_base"], s["out_base_host"], count=m, stream=stream)
         size = int(out_base[-1])
         data, data_host = self._grown("data", size, wp.uint8), self._grown("data_host", size, wp.uint8, host=True)
         launch(kj.stuff_kernel, (m, chunks), [words, base, total, chunk_at, s["out_base"][:m], data])
-        host = self._read(data_host, data, size, stream)
+        host = read_back(data_host, data, size, stream)
         head, eoi = lay.head, b"\xff\xd9"
         return [head + host[out_base[k]:out_base[k + 1]].tobytes() + eoi for k in range(m)]
 
