@@ -19,11 +19,15 @@ usage: python3 bench/deflate_codecs.py [--blocks N] [--image TIF|NPY] [--out FIL
 import argparse
 import json
 import os
+import sys
 import time
 import zlib
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from _report import save_report  # noqa: E402
 
 B = 512
 
@@ -188,11 +192,9 @@ def main():
                 row["warp"][v] = {"error": f"{type(e).__name__}: {e}"[:300]}
             print(name, "warp", v, row["warp"][v], flush=True)
         report["content"][name] = row
-    text = json.dumps(report, indent=1)
     if a.out:
-        with open(a.out, "w") as f:
-            f.write(text)
-    print(text)
+        save_report(report, a.out)
+    print(json.dumps(report, indent=1))
 
 
 if __name__ == "__main__":

@@ -27,6 +27,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from _report import save_report  # noqa: E402
 from deflate_codecs import image_blocks, procedural_blocks  # noqa: E402
 
 
@@ -82,8 +83,7 @@ def main():
     wp.config.quiet = True
     wp.init()
     report = {"benchmark": "jpeg_codecs", "blocks": a.blocks, "block": [512, 512, 3], "quality": a.quality,
-              "device": wp.get_device(a.device).name, "host_threads": os.cpu_count(),
-              "command": "python3 " + " ".join(sys.argv), "date": time.strftime("%Y-%m-%d"), "content": {}}
+              "device": wp.get_device(a.device).name, "host_threads": os.cpu_count(), "content": {}}
     sets = {"procedural": procedural_blocks(a.blocks)}
     if a.image:
         sets["image"] = image_blocks(a.image, a.blocks)
@@ -105,11 +105,9 @@ def main():
                "mean_abs_diff_vs_libjpeg_decoded": float(diff)}
         report["content"][name] = row
         print(name, json.dumps(row), flush=True)
-    text = json.dumps(report, indent=1)
     if a.out:
-        with open(a.out, "w") as f:
-            f.write(text)
-    print(text)
+        save_report(report, a.out)
+    print(json.dumps(report, indent=1))
 
 
 if __name__ == "__main__":
