@@ -1359,10 +1359,9 @@ def test_partial_dem_cover_warning_names_the_image(tmp_path, caplog):
     assert msgs and "tiny.tif" in msgs[0], [r.getMessage() for r in caplog.records]
 
 
-@pytest.mark.parametrize("compress, quality", [("jpeg", None), ("jpeg", 75), ("webp", 60)])
-def test_lossy_outputs_for_rgb(tmp_path, compress, quality):
-    """JPEG / WebP in a COG for uint8 RGB: the quality stated (default 90), an internal mask,
-    the pixels close to the lossless ortho's, the file much smaller; refused for other data."""
+def _rgb_frame(tmp_path):
+    """A uint8 RGB frame of 320 x 240 (smooth stripes) and its camera and pose: (source path,
+    camera, pose)."""
     cam = ow.FrameCamera(50.0, 0.01, (320, 240))
     pose = ow.Pose.from_opk(500000.0, 5200000.0, 600.0, 1.0, -2.0, 30.0, crs="EPSG:32632")
     src = tmp_path / "rgb.tif"
@@ -1370,6 +1369,14 @@ def test_lossy_outputs_for_rgb(tmp_path, compress, quality):
     rgb = np.stack([128 + 60 * np.sin(x / 9.0), 128 + 60 * np.cos(y / 7.0), 128 + 40 * np.sin((x + y) / 13.0)])
     with rasterio.open(src, "w", driver="GTiff", width=320, height=240, count=3, dtype="uint8") as dst:
         dst.write(rgb.astype(np.uint8))
+    return src, cam, pose
+
+
+@pytest.mark.parametrize("compress, quality", [("jpeg", None), ("jpeg", 75), ("webp", 60)])
+def test_lossy_outputs_for_rgb(tmp_path, compress, quality):
+    """JPEG / WebP in a COG for uint8 RGB: the quality stated (default 90), an internal mask,
+    the pixels close to the lossless ortho's, the file much smaller; refused for other data."""
+    src, cam, pose = _rgb_frame(tmp_path)
     kw = dict(dem=100.0, device="cpu", refraction=False)
     ref = orthorectify(src, FrameSensor(cam, pose), tmp_path / "lossless.tif", **kw)
     lossy = orthorectify(src, FrameSensor(cam, pose), tmp_path / "lossy.tif", compress=compress, quality=quality, **kw)
@@ -1395,13 +1402,7 @@ def test_lossy_outputs_for_rgb(tmp_path, compress, quality):
 def test_jpeg_encoded_by_the_device_kernels(tmp_path):
     """block_codec="warp" for a JPEG ortho: its blocks and overviews made on the device and
     encoded by orthowarp's JPEG kernels: the host writer's file, byte for byte."""
-    cam = ow.FrameCamera(50.0, 0.01, (320, 240))
-    pose = ow.Pose.from_opk(500000.0, 5200000.0, 600.0, 1.0, -2.0, 30.0, crs="EPSG:32632")
-    src = tmp_path / "rgb.tif"
-    y, x = np.mgrid[0:240, 0:320]
-    rgb = np.stack([128 + 60 * np.sin(x / 9.0), 128 + 60 * np.cos(y / 7.0), 128 + 40 * np.sin((x + y) / 13.0)])
-    with rasterio.open(src, "w", driver="GTiff", width=320, height=240, count=3, dtype="uint8") as dst:
-        dst.write(rgb.astype(np.uint8))
+    src, cam, pose = _rgb_frame(tmp_path)
     kw = dict(dem=100.0, device="cpu", refraction=False, compress="jpeg", quality=85, resolution=0.04,
               creation_options={"BLOCKSIZE": 128})
     host = orthorectify(src, FrameSensor(cam, pose), tmp_path / "host.tif", block_codec="host", **kw)
