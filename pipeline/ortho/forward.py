@@ -136,7 +136,7 @@ def forward_coords(geom: SensorGeometry, transform: Affine, out_crs: CRS, frame_
     # output pixels per source pixel, for rejecting quads that span occlusions
     scale = float(np.median(np.hypot(np.diff(oc), np.diff(orow)))) / step if len(oc) > 1 else 1.0
     max_edge = 4.0 * max(scale, 1.0)
-    factor = max(int(np.floor(1.0 / scale)), 1) if scale > 0 else 1  # reduced reads: see _decimation
+    factor = max(int(np.floor(1.0 / scale)), 1) if scale > 0 else 1  # reduced reads: see tiles._rows_decimation
 
     def on_grid(v: np.ndarray, of_ok: bool) -> np.ndarray:
         """Values of the geolocated nodes (``of_ok``) or of all nodes on the node grid, NaN

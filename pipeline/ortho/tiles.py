@@ -315,8 +315,8 @@ class ImageTiles:
         the tile's lowest and highest DEM height (2, rows, cols, 2; with ``pixels``, else None),
         those heights and its source window (col0, row0, col1, row1, factor; None where empty);
         all None where no DEM lies under the tile. The window and the read reduction come from
-        the nodes' pixels reduced on the device (:func:`_node_window` and :func:`_decimation`
-        of them, read back per row of nodes)."""
+        the nodes' pixels reduced on the device, read back per row of nodes
+        (:func:`_rows_window`, :func:`_rows_decimation`)."""
         geom, device, timer, sensor, dem = self.geom, self.device, self.timer, self.sensor, self.dem
         t = time.perf_counter()
         uv = coarse_grid(self.transform, self.to_frame, *tile)
@@ -745,49 +745,13 @@ def _height_range(dem: Dem, blocks: tuple | None, uv: np.ndarray) -> tuple[float
     return float(np.nanmin(wlo)), float(np.nanmax(whi))
 
 
-def _decimation(pixels: np.ndarray, step: int = COARSE_STEP) -> int:
-    """Reduction factor of a tile's source reads: the whole number of source pixels per output
-    pixel (at least 1) along the coarse grid's rows and columns, from its nodes' source pixels
-    ``pixels`` (rows, cols, 2) every ``step`` output pixels; the smaller of the two, so that the
-    reduced source is never coarser than the output."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows or columns
-        d = [np.nanmin(np.hypot(*np.diff(pixels, axis=ax).reshape(-1, 2).T)) if pixels.shape[ax] > 1 else np.nan
-             for ax in (0, 1)]
-    ratio = np.nanmin(d) / step if np.isfinite(d).any() else 1.0
-    return max(int(np.floor(ratio)), 1)
-
-
-def _node_window(nodes: np.ndarray, radius: int, width: int, height: int, margin: int = 2,
-                 factor: int = 1) -> tuple[int, int, int, int] | None:
-    """The source window (col0, row0, col1, row1) a tile needs, from its coarse nodes' source
-    pixels at its lowest and highest DEM heights (``nodes`` (2, rows, cols, 2)): their
-    bounding box grown by the resampling ``radius`` + 1 and ``margin`` pixels (the
-    projection's curvature within a cell is far below a pixel), and by one cell's extent
-    where some nodes have no pixel (a tile pixel near them may still have one), clipped to
-    the image; None where that is empty. Read reduced by ``factor``, the resampling's reach
-    and the margin are in reduced pixels."""
-    pix = nodes.reshape(-1, 2)
-    ok = np.isfinite(pix).all(axis=1)
-    if not ok.any():
-        return None
-    lo, hi = pix[ok].min(axis=0), pix[ok].max(axis=0)
-    grow = (radius + 1 + margin) * factor
-    if not ok.all():
-        steps = [np.hypot(*np.diff(nodes, axis=ax).reshape(-1, 2).T) for ax in (1, 2)]
-        steps = np.concatenate(steps)
-        grow += float(np.nanmax(steps)) if np.isfinite(steps).any() else 0.0
-    c0, r0 = max(int(np.floor(lo[0] - grow)), 0), max(int(np.floor(lo[1] - grow)), 0)
-    c1, r1 = min(int(np.ceil(hi[0] + grow)), width), min(int(np.ceil(hi[1] + grow)), height)
-    if c0 >= c1 or r0 >= r1:
-        return None
-    return c0, r0, c1, r1
-
-
 def _rows_decimation(rows: np.ndarray, n_rows: int, n_cols: int, step: int = COARSE_STEP) -> int:
-    """:func:`_decimation` of one height's node pixels from their per-row reductions ``rows``
-    (n_rows, 8; :func:`~orthowarp.kernels.ortho.node_window_rows_kernel`) of a grid of
-    ``n_rows`` x ``n_cols`` nodes: the same factor."""
+    """Reduction factor of a tile's source reads: the whole number of source pixels per output
+    pixel (at least 1) along the coarse grid's rows and columns, the smaller of the two, so
+    that the reduced source is never coarser than the output; from the per-row reductions
+    ``rows`` (n_rows, 8; :func:`~orthowarp.kernels.ortho.node_window_rows_kernel`) of one
+    height's node pixels, a grid of ``n_rows`` x ``n_cols`` nodes every ``step`` output
+    pixels (the smallest step between finite neighbours along the rows and the columns)."""
     d = [rows[:, 6].min() if n_rows > 1 else np.inf, rows[:, 7].min() if n_cols > 1 else np.inf]
     finite = [x for x in d if np.isfinite(x)]
     ratio = min(finite) / step if finite else 1.0
@@ -796,9 +760,14 @@ def _rows_decimation(rows: np.ndarray, n_rows: int, n_cols: int, step: int = COA
 
 def _rows_window(rows: np.ndarray, n_nodes: int, radius: int, width: int, height: int, margin: int = 2,
                  factor: int = 1) -> tuple[int, int, int, int] | None:
-    """:func:`_node_window` from the per-row reductions ``rows`` (2, n_rows, 8;
-    :func:`~orthowarp.kernels.ortho.node_window_rows_kernel`) of the ``n_nodes`` node pixels:
-    the same window."""
+    """The source window (col0, row0, col1, row1) a tile needs, from the per-row reductions
+    ``rows`` (2, n_rows, 8; :func:`~orthowarp.kernels.ortho.node_window_rows_kernel`) of its
+    ``n_nodes`` coarse nodes' source pixels at its lowest and highest DEM heights: their
+    bounding box grown by the resampling ``radius`` + 1 and ``margin`` pixels (the
+    projection's curvature within a cell is far below a pixel), and by the largest step
+    between finite neighbours where some nodes have no pixel (a tile pixel near them may
+    still have one), clipped to the image; None where that is empty. Read reduced by
+    ``factor``, the resampling's reach and the margin are in reduced pixels."""
     count = rows[..., 4].sum()
     if count == 0:
         return None
