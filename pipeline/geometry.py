@@ -278,14 +278,14 @@ class SensorGeometry:
 
     def on_device(self, device: str | Device | None) -> SensorGeometry:
         """The same geometry (sensor, prepared DEM, refraction table) with its kernels on another
-        Warp device; this one where it is already there. Its device structs and footprint
-        probes are made on first use there."""
+        Warp device; this one where it is already there. Its device structs are made on first
+        use there (its footprint probes run on the CPU: shared)."""
         device = resolve_device(device)
         if device == self.device:
             return self
         load_modules(device, sensor_kernels)
         twin = copy.copy(self)
-        twin.device, twin._structs, twin._probe_base = device, None, None
+        twin.device, twin._structs = device, None  # (its footprint probes, on the CPU, are shared)
         return twin
 
     def dem_extent(self) -> tuple[float, float, float, float] | None:
@@ -319,14 +319,19 @@ class SensorGeometry:
         return self._structs
 
     def _probe(self, h: float) -> SensorGeometry:
-        """This sensor over a constant height h (m), with refraction, for footprints."""
+        """This sensor over a constant height h (m), with refraction, for footprints: on the
+        CPU whatever this geometry's device. A probe geolocates a few hundred border pixels,
+        which Warp's CPU backend does in microseconds where a GPU spends its time on uploads
+        and synchronizations (the 40 images of the mosaic speed block spent most of their grids'
+        second so on an H200); and every device then reads the same DEM window, as every
+        device gets the same output grid (:func:`~orthowarp.pipeline.ortho.grid.output_grid`)."""
         if self._probe_base is None:
             # (not checked against its nominal height; a sensor below the probe heights, under
             # ground, is probed without refraction: the check against the real terrain comes
             # after the probes and says what is wrong)
             refraction = float(self.sensor.reference_height()) > PROBE_HEIGHTS[0] and not self.sensor.orthorectified
             self._probe_base = SensorGeometry(self.sensor, Dem.constant(0.0), refraction=refraction,
-                                              device=self.device, height_range=PROBE_HEIGHTS, _probe_only=True)
+                                              device="cpu", height_range=PROBE_HEIGHTS, _probe_only=True)
         return _at_constant(self._probe_base, h)
 
     def _crop_to_footprint(self, dem: Dem, region: tuple[float, float, float, float]) -> Dem:

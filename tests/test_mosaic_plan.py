@@ -92,3 +92,33 @@ def test_the_images_of_many_tiles_by_binary_search_equal_every_pair(halo):
     assert _images_meeting_tiles(tiles, foot, halo) == brute(tiles)
     some = tiles[::3]
     assert _images_meeting_tiles(some, foot, halo) == brute(some)
+
+
+def test_sources_read_ahead_are_the_sources_and_a_failed_read_is_the_takers(pair, tmp_path):  # noqa: F811
+    """SourcePrefetch: each source read whole ahead equals a read of its own, is given once,
+    and a source that cannot be read fails where it is taken, named, not on the prefetch's
+    thread; closing drops what was not taken."""
+    import warp as wp
+
+    from orthowarp.errors import RasterIOError
+
+    _, images, _, _ = pair
+    bad = tmp_path / "bad.tif"
+    bad.write_bytes(b"II*\x00 not a TIFF")
+    srcs = [(str(src), False) for src, _ in images] + [(str(bad), False)]
+    prefetch = plan_module.SourcePrefetch(srcs, wp.get_device("cpu"), "float32")
+    try:
+        for k, (src, _) in enumerate(srcs[:2]):
+            whole = prefetch.take(k)
+            assert whole is not None and prefetch.take(k) is None
+            own, _ = tiles_module.read_whole_source(src, wp.get_device("cpu"), masked=False, dtype="float32")
+            np.testing.assert_array_equal(whole.get()[0].numpy(), own.numpy())
+        failed = prefetch.take(2)
+        with pytest.raises(RasterIOError, match="bad.tif"):
+            failed.get()
+    finally:
+        prefetch.close()
+    assert prefetch.take(0) is None
+    again = plan_module.SourcePrefetch(srcs[:1], wp.get_device("cpu"), "float32")
+    again.close()  # (read or dropped: nothing left to take)
+    assert again.take(0) is None

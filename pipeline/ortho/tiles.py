@@ -788,7 +788,11 @@ _OPEN_LOCK = threading.Lock()  # warnings.catch_warnings is not thread-safe
 
 
 def _open_source(path: str) -> rasterio.io.DatasetReader:
-    """Open a source image for reading; frame images are usually not georeferenced."""
-    with _OPEN_LOCK, warnings.catch_warnings():
-        warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
-        return rasterio.open(path)
+    """Open a source image for reading; frame images are usually not georeferenced.
+    :class:`RasterIOError` naming it (GDAL's reason) where it cannot be opened."""
+    try:
+        with _OPEN_LOCK, warnings.catch_warnings():
+            warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+            return rasterio.open(path)
+    except GDAL_ERRORS as e:
+        raise RasterIOError(f"Could not open image '{path}': {gdal_reason(e)}") from e
