@@ -16,7 +16,6 @@ import numbers
 import os
 import re
 import threading
-import warnings
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -594,9 +593,9 @@ class Dem:
         padded = np.full((nbi * block, nbj * block), np.nan, np.float32)
         padded[:rows, :cols] = self.array
         cells = padded.reshape(nbi, block, nbj, block)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)  # blocks without heights
-            return np.nanmin(cells, axis=(1, 3)), np.nanmax(cells, axis=(1, 3))
+        # (np.nanmin's and np.nanmax's reductions, without their warning for blocks without
+        # heights: a warnings filter is process-wide, and threads opening rasters use theirs)
+        return np.fmin.reduce(cells, axis=(1, 3)), np.fmax.reduce(cells, axis=(1, 3))
 
     def to_struct(self, device: wp.DeviceLike) -> DemData:
         """Pack into :class:`orthowarp.kernels.dem.DemData` on ``device``."""

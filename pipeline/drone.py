@@ -253,7 +253,9 @@ def _quiet_open(path: str) -> Any:
 
     import rasterio
 
-    with warnings.catch_warnings():
+    from .raster.io import WARNINGS_LOCK
+
+    with WARNINGS_LOCK, warnings.catch_warnings():
         warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
         return rasterio.open(path)
 

@@ -122,3 +122,16 @@ def test_sources_read_ahead_are_the_sources_and_a_failed_read_is_the_takers(pair
     again = plan_module.SourcePrefetch(srcs[:1], wp.get_device("cpu"), "float32")
     again.close()  # (read or dropped: nothing left to take)
     assert again.take(0) is None
+
+
+def test_seams_on_worker_processes_give_the_same_plan(pair):  # noqa: F811
+    """A plan whose least-cost seams run on two processes has the labels of one run in this
+    process, and leaves no process behind."""
+    import multiprocessing
+
+    sc, images, _, _ = pair
+    kw = dict(dem=sc.dem, refraction=False, device="cpu", _seam_pixels=20_000)
+    here = mosaic_plan(images, _seam_workers=1, **kw)
+    pooled = mosaic_plan(images, _seam_workers=2, **kw)
+    assert (here.labels != pooled.labels).sum() == 0 and here.labels.size
+    assert not multiprocessing.active_children()

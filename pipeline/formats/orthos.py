@@ -18,7 +18,7 @@ import numpy as np
 
 from ...errors import CrsError, ParamError, RasterIOError
 from ...orthoimage import OrthoImage
-from ..raster.io import GDAL_ERRORS, gdal_reason
+from ..raster.io import GDAL_ERRORS, WARNINGS_LOCK, gdal_reason
 from .sensors import expand_images
 
 __all__ = ["read_ortho", "ortho_images", "CENTRE_PIXELS"]
@@ -57,7 +57,7 @@ def read_ortho(path: str | os.PathLike) -> OrthoImage:
     if not os.path.exists(src):
         raise RasterIOError(f"Image '{src}' does not exist")
     try:
-        with warnings.catch_warnings():
+        with WARNINGS_LOCK, warnings.catch_warnings():
             warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
             with rasterio.open(src) as ds:
                 crs, transform, size = ds.crs, ds.transform, (ds.width, ds.height)

@@ -51,7 +51,7 @@ from ..reports.profile import StageTimer
 from ..tiles import Tile
 from .balance import Coarse, radiometric_balance
 from .blend import TileBlending, multiband_halo
-from .seams import NO_SOURCE, angle_field, least_cost_seams
+from .seams import NO_SOURCE, SeamPool, angle_field, least_cost_seams, seam_processes
 from .workers import tile_runs
 
 if TYPE_CHECKING:
@@ -605,13 +605,14 @@ def mosaic_plan(images: Sequence[tuple], *, dem: Dem | str | os.PathLike | float
                 device: str | None = None, geoid: str | os.PathLike | None = None, same_vertical_datum: bool = False,
                 cancel: threading.Event | None = None, _outputs: Sequence[str] = (),
                 _seam_pixels: int = SEAM_PIXELS, _client: Any = None, _worker_device: str | None = None,
-                _on_grid: Callable[[MosaicPlan], None] | None = None) -> MosaicPlan:
+                _on_grid: Callable[[MosaicPlan], None] | None = None, _seam_workers: int | None = None) -> MosaicPlan:
     """The grid, sources and radiometric balance of a mosaic, without writing it: a
     :class:`MosaicPlan` whose :meth:`~MosaicPlan.tile` any scheduler can run (threads, a Dask
     cluster) and whose :meth:`~MosaicPlan.write` assembles the results. Parameters as
     :func:`~orthowarp.pipeline.mosaic.mosaic`. (Internally, with ``_client`` the reduced pass
     runs on that Dask client's workers, on ``_worker_device``; ``_on_grid(plan)`` is called once
-    the grid is made, before the reduced pass, balance and seams.)"""
+    the grid is made, before the reduced pass, balance and seams; ``_seam_workers`` processes
+    compute the least-cost seams' pairs, default :func:`~orthowarp.pipeline.mosaic.seams.seam_processes`.)"""
     t_plan = time.perf_counter()
     images = check_images(images, resampling, dtype, blend, feather, reference, seams, seam_width,
                           resolution=resolution, refraction=refraction, balance=balance, occlusion=occlusion,
@@ -631,6 +632,9 @@ def mosaic_plan(images: Sequence[tuple], *, dem: Dem | str | os.PathLike | float
     # host cores' one interpreter), ready for the reduced pass
     prefetch = SourcePrefetch([(f[0], f[3]) for f in facts], resolve_device(device), source_read_dtype(src_dtype)) \
         if residency.get("resident") and residency["cache_images"] >= len(images) and _client is None else None
+    # the seams' processes start now: their imports overlap the grids and the reduced pass
+    n_seam = _seam_workers if _seam_workers is not None else seam_processes(len(images))
+    seam_pool = SeamPool(n_seam) if cfg.seams == "least-cost" and len(images) > 1 and n_seam > 1 else None
     try:
         t = time.perf_counter()
         fresh = {}  # the geometries the grids were made from, up to FRESH_GEOMETRIES, for the reduced pass
@@ -648,10 +652,12 @@ def mosaic_plan(images: Sequence[tuple], *, dem: Dem | str | os.PathLike | float
         plan._fresh, plan._prefetch = fresh, prefetch
         if _on_grid is not None:
             _on_grid(plan)
-        _balance_and_seams(plan, cfg, cancel, _seam_pixels, _client, _worker_device)
+        _balance_and_seams(plan, cfg, cancel, _seam_pixels, _client, _worker_device, seam_pool)
     finally:
         if prefetch is not None:
             prefetch.close()
+        if seam_pool is not None:
+            seam_pool.close()
     plan._prefetch = None
     plan.setup_s["total"] = time.perf_counter() - t_plan
     return plan
@@ -848,10 +854,11 @@ def _residency(facts: list[tuple[str, int, str, bool]], sensors: Sequence[Sensor
 
 
 def _balance_and_seams(plan: MosaicPlan, cfg: _PlanSettings, cancel: threading.Event | None,
-                       seam_pixels: int, client: Any = None, worker_device: str | None = None) -> None:
+                       seam_pixels: int, client: Any = None, worker_device: str | None = None,
+                       seam_pool: SeamPool | None = None) -> None:
     """One reduced pass (the images' overlaps; on a Dask ``client``'s workers where given), then
-    the plan's radiometric balance and its seams' labelling from it; each step's seconds in
-    ``plan.setup_s``."""
+    the plan's radiometric balance and its seams' labelling from it (the least-cost seams'
+    pairs on ``seam_pool``'s processes where given); each step's seconds in ``plan.setup_s``."""
     t = time.perf_counter()
     f, coarse, labels = reduced_pass(plan, cancel, seam_pixels, client=client, worker_device=worker_device)
     plan.setup_s["reduced_pass"] = time.perf_counter() - t
@@ -863,7 +870,8 @@ def _balance_and_seams(plan: MosaicPlan, cfg: _PlanSettings, cancel: threading.E
     if cfg.seams == "least-cost" and n_images > 1:
         t = time.perf_counter()
         moved = least_cost_seams(labels, coarse, plan.gains, plan.offsets, max(2.0, cfg.seam_width / f),
-                                  int(np.ceil(0.5 * cfg.feather / f)) if cfg.blend != "none" else 1, cancel)
+                                  int(np.ceil(0.5 * cfg.feather / f)) if cfg.blend != "none" else 1, cancel,
+                                  pool=seam_pool)
         plan.setup_s["seams"] = time.perf_counter() - t
         log.info("least-cost seams moved %d of %d reduced pixels (%d mosaic pixels each)", moved, labels.size, f * f)
     plan.labels, plan.seam_step = labels, f

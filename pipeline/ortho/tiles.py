@@ -32,7 +32,7 @@ from ...kernels import ortho as ortho_kernels
 from ...options import Resampling as Interpolation
 from ...options import SourceReads, values
 from ..raster.cog import DTYPES
-from ..raster.io import GDAL_ERRORS, gdal_reason
+from ..raster.io import GDAL_ERRORS, WARNINGS_LOCK, gdal_reason
 from ..raster.rawtiff import raw_layout, read_raw_blocks, read_raw_window
 from ..reports.profile import StageTimer
 from ..tiles import Tile
@@ -784,14 +784,13 @@ def _rows_window(rows: np.ndarray, n_nodes: int, radius: int, width: int, height
     return c0, r0, c1, r1
 
 
-_OPEN_LOCK = threading.Lock()  # warnings.catch_warnings is not thread-safe
 
 
 def _open_source(path: str) -> rasterio.io.DatasetReader:
     """Open a source image for reading; frame images are usually not georeferenced.
     :class:`RasterIOError` naming it (GDAL's reason) where it cannot be opened."""
     try:
-        with _OPEN_LOCK, warnings.catch_warnings():
+        with WARNINGS_LOCK, warnings.catch_warnings():
             warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
             return rasterio.open(path)
     except GDAL_ERRORS as e:

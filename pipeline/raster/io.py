@@ -50,6 +50,9 @@ TMP_TAG = ".orthowarp-tmp-"
 # what rasterio raises for GDAL's errors: its own classes, and GDAL's CPLE_* ones where it
 # passes them through (e.g. from rasterio.shutil.copy)
 GDAL_ERRORS = (rasterio.errors.RasterioError, CPLE_BaseError)
+#: Held around every ``warnings.catch_warnings`` of orthowarp's: the filters it saves and
+#: restores are the process's, so two at once on different threads lose one's filter
+WARNINGS_LOCK = threading.RLock()
 
 
 def describe_os_error(e: OSError) -> str:
@@ -552,7 +555,7 @@ def write_raster(path: str | os.PathLike, array: np.ndarray, *, transform: Affin
         profile["nodata"] = nodata
     with atomic_path(path) as tmp:
         try:
-            with warnings.catch_warnings():
+            with WARNINGS_LOCK, warnings.catch_warnings():
                 warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
                 with rasterio.open(tmp, "w", **profile) as dst:
                     dst.write(arr)
