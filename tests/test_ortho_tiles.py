@@ -111,3 +111,14 @@ def test_device_reduced_windows_are_the_same_whole_or_not(tmp_path, monkeypatch,
     print(f"\n{method}: device vs GDAL reduced reads: mask differs on {(va != vg).mean():.4f}, |diff| median "
           f"{np.median(diff)}, p99 {np.percentile(diff, 99)}, max {diff.max()}")
     assert np.median(diff) <= 1 and np.percentile(diff, 99) <= 12, (np.median(diff), np.percentile(diff, 99))
+
+
+def test_a_source_that_cannot_be_opened_is_named(tmp_path):
+    """A whole-source read of a file that is no raster: RasterIOError naming the file (GDAL's
+    reason), not rasterio's own error."""
+    from orthowarp.errors import RasterIOError
+
+    bad = tmp_path / "bad.tif"
+    bad.write_bytes(b"II*\x00 not a TIFF")
+    with pytest.raises(RasterIOError, match=r"Could not open image '.*bad\.tif'"):
+        WholeSource(str(bad), wp.get_device("cpu"), masked=False, dtype="float32").get()

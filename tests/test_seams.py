@@ -12,7 +12,7 @@ from scipy.sparse.csgraph import dijkstra
 
 from orthowarp.pipeline.mosaic import seams
 from orthowarp.pipeline.mosaic.balance import overlap_arrays, overlap_boxes
-from orthowarp.pipeline.mosaic.seams import NO_SOURCE, SeamPool, least_cost_seams, seam_processes
+from orthowarp.pipeline.mosaic.seams import NO_SOURCE, least_cost_seams
 
 
 def _plain_graph(corridor, cost):
@@ -148,21 +148,19 @@ def _ragged_block(seed, n=7, rows=150, cols=220):
 
 def test_least_cost_seams_equal_the_plain_reference(monkeypatch):
     """Random ragged blocks, two seam widths (at the wider one corridors above 300 pixels cut on
-    blocks), on one thread, three, and two worker processes: the labels and the moved count of
-    the plain reference, whose corridors here are split, cut on pixels and cut on blocks."""
+    blocks), on one thread and three: the labels and the moved count of the plain reference,
+    whose corridors here are split, cut on pixels and cut on blocks."""
     counts = dict(split=0, cut=0, cut_blocks=0)
-    with SeamPool(2) as pool:
-        for seed in range(8):
-            labels0, coarse, gains, offsets = _ragged_block(seed)
-            for width, reach, max_nodes in ((12.0, 2, 40_000), (30.0, 1, 300)):
-                want = labels0.copy()
-                moved = _plain_seams(want, coarse, gains, offsets, width, reach, max_nodes, counts)
-                monkeypatch.setattr(seams, "_CUT_NODES", max_nodes)
-                for workers, on in ((1, None), (3, None), (None, pool)):
-                    got = labels0.copy()
-                    assert least_cost_seams(got, coarse, gains, offsets, width, reach, workers=workers, pool=on) == moved
-                    np.testing.assert_array_equal(got, want, err_msg=f"seed {seed}, width {width}, {workers} workers, "
-                                                                     f"pool {on is not None}")
+    for seed in range(8):
+        labels0, coarse, gains, offsets = _ragged_block(seed)
+        for width, reach, max_nodes in ((12.0, 2, 40_000), (30.0, 1, 300)):
+            want = labels0.copy()
+            moved = _plain_seams(want, coarse, gains, offsets, width, reach, max_nodes, counts)
+            monkeypatch.setattr(seams, "_CUT_NODES", max_nodes)
+            for workers in (1, 3):
+                got = labels0.copy()
+                assert least_cost_seams(got, coarse, gains, offsets, width, reach, workers=workers) == moved
+                np.testing.assert_array_equal(got, want, err_msg=f"seed {seed}, width {width}, {workers} workers")
     print(f"\n[least-cost seams vs the plain reference] corridors {counts}")
     assert min(counts.values()) > 0
 
@@ -266,14 +264,3 @@ def test_upsampled_angles_are_np_interps_bit_for_bit():
         got, want = seams._upsample(node, th, tw), reference(node, th, tw)
         assert got.shape == want.shape == (th, tw)
         np.testing.assert_array_equal(got.view(np.int64), want.view(np.int64))
-
-
-def test_seam_processes_are_for_large_blocks_on_many_cores(monkeypatch):
-    """The plan's default seam processes: none (1, this process) for small blocks or few
-    cores, up to 4 otherwise."""
-    monkeypatch.setattr(seams, "host_cores", lambda: 16)
-    assert seam_processes(15) == 1 and seam_processes(16) == 4 and seam_processes(1000) == 4
-    monkeypatch.setattr(seams, "host_cores", lambda: 5)
-    assert seam_processes(40) == 3
-    monkeypatch.setattr(seams, "host_cores", lambda: 3)
-    assert seam_processes(40) == 1

@@ -51,14 +51,14 @@ from ..reports.profile import StageTimer
 from ..tiles import Tile
 from .balance import Coarse, radiometric_balance
 from .blend import TileBlending, multiband_halo
-from .seams import NO_SOURCE, SeamPool, angle_field, least_cost_seams, seam_processes
+from .seams import NO_SOURCE, angle_field, least_cost_seams
 from .workers import tile_runs
 
 if TYPE_CHECKING:
     from warp.context import Device
 
-__all__ = ["mosaic_plan", "MosaicPlan", "MosaicResult", "NO_SOURCE", "SEAM_PIXELS", "SourcePrefetch", "reduced_pass",
-           "check_images", "output_paths", "mosaic_block_codec", "default_tile_size"]
+__all__ = ["mosaic_plan", "MosaicPlan", "MosaicResult", "NO_SOURCE", "SEAM_PIXELS", "reduced_pass", "check_images",
+           "output_paths", "mosaic_block_codec", "default_tile_size"]
 
 log = logging.getLogger(__name__)
 
@@ -122,13 +122,12 @@ class MosaicPlan(TileBlending):
         self._transformers = {}  # mosaic CRS -> a pose frame's horizontal CRS, by that CRS's WKT
         self._encoder = None  # while writing with a device block codec
         self._ahead = {}  # images built ahead of their tiles: futures of their cache entries (see _built_ahead)
-        self._prefetch = None  # while the plan is made: its sources read ahead (a SourcePrefetch)
 
     def __getstate__(self) -> dict[str, Any]:
         state = dict(self.__dict__)
         state["_state"], state["_lock"], state["_encoder"] = None, None, None
         state["_kept"], state["_transformers"], state["_fresh"] = collections.OrderedDict(), {}, {}
-        state["_ahead"], state["_prefetch"] = {}, None
+        state["_ahead"] = {}
         return state
 
     def __setstate__(self, state: dict[str, Any]) -> None:
@@ -186,12 +185,7 @@ class MosaicPlan(TileBlending):
         return geom, whole
 
     def _whole_source(self, k: int, device: Device) -> WholeSource:
-        """Image ``k``'s source whole in device memory, read on first use (or read ahead by
-        the plan's :class:`SourcePrefetch` while it is made)."""
-        prefetch = self._prefetch
-        whole = prefetch.take(k) if prefetch is not None else None
-        if whole is not None and whole.device == device:
-            return whole
+        """Image ``k``'s source whole in device memory, read on first use."""
         src, _, masked = self.sources[k]
         return WholeSource(src, device, masked=masked, dtype=source_read_dtype(self.src_dtype))
 
@@ -605,14 +599,13 @@ def mosaic_plan(images: Sequence[tuple], *, dem: Dem | str | os.PathLike | float
                 device: str | None = None, geoid: str | os.PathLike | None = None, same_vertical_datum: bool = False,
                 cancel: threading.Event | None = None, _outputs: Sequence[str] = (),
                 _seam_pixels: int = SEAM_PIXELS, _client: Any = None, _worker_device: str | None = None,
-                _on_grid: Callable[[MosaicPlan], None] | None = None, _seam_workers: int | None = None) -> MosaicPlan:
+                _on_grid: Callable[[MosaicPlan], None] | None = None) -> MosaicPlan:
     """The grid, sources and radiometric balance of a mosaic, without writing it: a
     :class:`MosaicPlan` whose :meth:`~MosaicPlan.tile` any scheduler can run (threads, a Dask
     cluster) and whose :meth:`~MosaicPlan.write` assembles the results. Parameters as
     :func:`~orthowarp.pipeline.mosaic.mosaic`. (Internally, with ``_client`` the reduced pass
     runs on that Dask client's workers, on ``_worker_device``; ``_on_grid(plan)`` is called once
-    the grid is made, before the reduced pass, balance and seams; ``_seam_workers`` processes
-    compute the least-cost seams' pairs, default :func:`~orthowarp.pipeline.mosaic.seams.seam_processes`.)"""
+    the grid is made, before the reduced pass, balance and seams.)"""
     t_plan = time.perf_counter()
     images = check_images(images, resampling, dtype, blend, feather, reference, seams, seam_width,
                           resolution=resolution, refraction=refraction, balance=balance, occlusion=occlusion,
@@ -626,88 +619,26 @@ def mosaic_plan(images: Sequence[tuple], *, dem: Dem | str | os.PathLike | float
     t = time.perf_counter()
     facts = _source_facts(images, _outputs)
     setup = {"sources": time.perf_counter() - t}
+    t = time.perf_counter()
+    fresh = {}  # the geometries the grids were made from, up to FRESH_GEOMETRIES, for the reduced pass
+    grids = _image_grids(images, terrain, cfg, _client, _worker_device, keep=fresh)
+    setup["grids"] = time.perf_counter() - t
     count, src_dtype = facts[0][1], facts[0][2]
-    residency = _residency(facts, [sensor for _, sensor in images], resolve_device(device))
-    # resident sources are read whole into device memory while the grids are made (on the
-    # host cores' one interpreter), ready for the reduced pass
-    prefetch = SourcePrefetch([(f[0], f[3]) for f in facts], resolve_device(device), source_read_dtype(src_dtype)) \
-        if residency.get("resident") and residency["cache_images"] >= len(images) and _client is None else None
-    # the seams' processes start now: their imports overlap the grids and the reduced pass
-    n_seam = _seam_workers if _seam_workers is not None else seam_processes(len(images))
-    seam_pool = SeamPool(n_seam) if cfg.seams == "least-cost" and len(images) > 1 and n_seam > 1 else None
-    try:
-        t = time.perf_counter()
-        fresh = {}  # the geometries the grids were made from, up to FRESH_GEOMETRIES, for the reduced pass
-        grids = _image_grids(images, terrain, cfg, _client, _worker_device, keep=fresh)
-        setup["grids"] = time.perf_counter() - t
-        out_dtype = dtype or (src_dtype if src_dtype in DTYPES else "float32")
-        out_crs, res, transform, (rows, cols), foot = _union_grid(grids, resolution,
-                                                                  orthos=all(s.orthorectified for _, s in images))
-        log.info("mosaic of %d images: %d x %d pixels at %.4g", len(images), cols, rows, res)
-        options = _plan_options(cfg)
-        options.update(residency)
-        plan = MosaicPlan([(f[0], sensor, f[3]) for f, (_, sensor) in zip(facts, images)], terrain, options,
-                          out_crs, transform, (rows, cols), res, foot, count, out_dtype, src_dtype)
-        plan.setup_s.update(setup)
-        plan._fresh, plan._prefetch = fresh, prefetch
-        if _on_grid is not None:
-            _on_grid(plan)
-        _balance_and_seams(plan, cfg, cancel, _seam_pixels, _client, _worker_device, seam_pool)
-    finally:
-        if prefetch is not None:
-            prefetch.close()
-        if seam_pool is not None:
-            seam_pool.close()
-    plan._prefetch = None
+    out_dtype = dtype or (src_dtype if src_dtype in DTYPES else "float32")
+    out_crs, res, transform, (rows, cols), foot = _union_grid(grids, resolution,
+                                                              orthos=all(s.orthorectified for _, s in images))
+    log.info("mosaic of %d images: %d x %d pixels at %.4g", len(images), cols, rows, res)
+    options = _plan_options(cfg)
+    options.update(_residency(facts, [sensor for _, sensor in images], resolve_device(device)))
+    plan = MosaicPlan([(f[0], sensor, f[3]) for f, (_, sensor) in zip(facts, images)], terrain, options,
+                      out_crs, transform, (rows, cols), res, foot, count, out_dtype, src_dtype)
+    plan.setup_s.update(setup)
+    plan._fresh = fresh
+    if _on_grid is not None:
+        _on_grid(plan)
+    _balance_and_seams(plan, cfg, cancel, _seam_pixels, _client, _worker_device)
     plan.setup_s["total"] = time.perf_counter() - t_plan
     return plan
-
-
-class SourcePrefetch:
-    """Source images read whole into device memory ahead of their use, on a background thread
-    (each read itself spreads over up to 8 threads: :func:`~orthowarp.pipeline.ortho.tiles.read_whole_source`).
-
-    A plan whose sources are resident starts one before its grids, which keep the
-    interpreter busy while the reads wait on files and copies; its reduced pass then takes
-    each image's :class:`~orthowarp.pipeline.ortho.tiles.WholeSource` (:meth:`take`), read or
-    being read. A read that fails here is left unread: the taker's read repeats it and raises
-    its error, naming the file.
-
-    Parameters
-    ----------
-    sources : sequence of (str, bool)
-        Each image's path and whether its mask is read too, in the order they are read.
-    device : warp.context.Device
-    dtype : {"uint8", "uint16", "float32"}
-        The dtype the sources are read in.
-    """
-
-    def __init__(self, sources: Sequence[tuple[str, bool]], device: Device, dtype: str) -> None:
-        self._wholes = {k: WholeSource(src, device, masked=masked, dtype=dtype)
-                        for k, (src, masked) in enumerate(sources)}
-        self._lock = threading.Lock()
-        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="orthowarp-prefetch")
-        self._futures = [self._pool.submit(self._read, w) for w in self._wholes.values()]
-
-    @staticmethod
-    @quiet_warp()
-    def _read(whole: WholeSource) -> None:
-        with contextlib.suppress(Exception):  # (the taker's read raises it, named)
-            whole.get()
-
-    def take(self, k: int) -> WholeSource | None:
-        """Image ``k``'s whole source (loaded, being loaded or to be loaded on its first use),
-        given once; None where it was taken already or the prefetch is closed."""
-        with self._lock:
-            return self._wholes.pop(k, None)
-
-    def close(self) -> None:
-        """Drop the reads not started and those not taken, once the running one is done."""
-        for f in self._futures:
-            f.cancel()
-        self._pool.shutdown(wait=True)
-        with self._lock:
-            self._wholes.clear()
 
 
 @dataclass(frozen=True)
@@ -854,11 +785,10 @@ def _residency(facts: list[tuple[str, int, str, bool]], sensors: Sequence[Sensor
 
 
 def _balance_and_seams(plan: MosaicPlan, cfg: _PlanSettings, cancel: threading.Event | None,
-                       seam_pixels: int, client: Any = None, worker_device: str | None = None,
-                       seam_pool: SeamPool | None = None) -> None:
+                       seam_pixels: int, client: Any = None, worker_device: str | None = None) -> None:
     """One reduced pass (the images' overlaps; on a Dask ``client``'s workers where given), then
-    the plan's radiometric balance and its seams' labelling from it (the least-cost seams'
-    pairs on ``seam_pool``'s processes where given); each step's seconds in ``plan.setup_s``."""
+    the plan's radiometric balance and its seams' labelling from it; each step's seconds in
+    ``plan.setup_s``."""
     t = time.perf_counter()
     f, coarse, labels = reduced_pass(plan, cancel, seam_pixels, client=client, worker_device=worker_device)
     plan.setup_s["reduced_pass"] = time.perf_counter() - t
@@ -870,8 +800,7 @@ def _balance_and_seams(plan: MosaicPlan, cfg: _PlanSettings, cancel: threading.E
     if cfg.seams == "least-cost" and n_images > 1:
         t = time.perf_counter()
         moved = least_cost_seams(labels, coarse, plan.gains, plan.offsets, max(2.0, cfg.seam_width / f),
-                                  int(np.ceil(0.5 * cfg.feather / f)) if cfg.blend != "none" else 1, cancel,
-                                  pool=seam_pool)
+                                  int(np.ceil(0.5 * cfg.feather / f)) if cfg.blend != "none" else 1, cancel)
         plan.setup_s["seams"] = time.perf_counter() - t
         log.info("least-cost seams moved %d of %d reduced pixels (%d mosaic pixels each)", moved, labels.size, f * f)
     plan.labels, plan.seam_step = labels, f

@@ -15,10 +15,9 @@ from __future__ import annotations
 
 import heapq
 import logging
-import multiprocessing
 import threading
 from collections.abc import Callable, Sequence
-from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, ThreadPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -37,7 +36,7 @@ if TYPE_CHECKING:
 
     from ..geometry import SensorGeometry
 
-__all__ = ["NO_SOURCE", "SeamPool", "angle_field", "least_cost_seams", "seam_processes"]
+__all__ = ["NO_SOURCE", "angle_field", "least_cost_seams"]
 
 log = logging.getLogger(__name__)
 
@@ -213,7 +212,7 @@ def angle_field(geom: SensorGeometry, transform: Affine, to_frame: Transformer, 
 
 def least_cost_seams(labels: np.ndarray, coarse: Sequence[Coarse], gains: np.ndarray, offsets: np.ndarray,
                      width: float, reach: int, cancel: threading.Event | None = None,
-                     workers: int | None = None, pool: SeamPool | None = None) -> int:
+                     workers: int | None = None) -> int:
     """Move the seams of the reduced labelling ``labels`` (in place) onto least-cost paths
     where the images agree.
 
@@ -236,8 +235,8 @@ def least_cost_seams(labels: np.ndarray, coarse: Sequence[Coarse], gains: np.nda
     in Chon et al., ISPRS J. Photogramm. 2010, here on a reduced grid.)
 
     Pairs run at once on up to ``workers`` threads (default 1: more do not help, the pairs'
-    numpy calls being short and scipy's Dijkstra holding the interpreter lock), or with a
-    :class:`SeamPool` ``pool`` on its processes, with the labels of the serial order. A pair (i, j) reads the labels only as the masks "is i" and
+    numpy calls being short and scipy's Dijkstra holding the interpreter lock), with the
+    labels of the serial order. A pair (i, j) reads the labels only as the masks "is i" and
     "is j" in its window (its overlap grown by one pixel), and changes only pixels of its
     corridor, within its overlap, from i to j or back. So a pair that shares no image with an
     earlier one, or whose window does not meet the earlier one's, neither reads what that one
@@ -267,63 +266,11 @@ def least_cost_seams(labels: np.ndarray, coarse: Sequence[Coarse], gains: np.nda
 
     def pair(p: int) -> int:
         check_cancel(cancel, "the mosaic")
-        rows, cols, values = _seam_pair(shared, coarse, boxes[p], gains, offsets, width, reach, pool)
+        rows, cols, values = _seam_pair(shared, coarse, boxes[p], gains, offsets, width, reach)
         shared.write(rows, cols, values)
         return int(rows.size)
 
-    threads = pool.workers if pool is not None else _SEAM_THREADS if workers is None else workers
-    return sum(_run_ordered(pair, after, threads))
-
-
-def _ready() -> None:
-    """A task that only starts a :class:`SeamPool`'s process (and its imports)."""
-
-
-class SeamPool:
-    """Worker processes for :func:`least_cost_seams`' pairs, which the interpreter lock keeps
-    from running at once on threads: each pair's part is cut in the caller, its corridor,
-    costs and path computed on a process (:func:`_pair_changes`), the pairs in the order their
-    dependencies allow (as on threads; the same labels).
-
-    The processes are spawned when the pool is made (each imports orthowarp, about a second):
-    a plan makes it before its grids, so that the start overlaps them and the reduced pass.
-
-    Parameters
-    ----------
-    workers : int
-        Processes (>= 1).
-    """
-
-    def __init__(self, workers: int) -> None:
-        self.workers = max(1, int(workers))
-        self._pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=multiprocessing.get_context("spawn"))
-        for _ in range(self.workers):  # (each submit with no idle process starts one)
-            self._pool.submit(_ready)
-
-    def submit(self, fn: Callable[..., Any], *args: Any) -> Future:
-        """``fn(*args)`` on a process (``fn`` and ``args`` picklable)."""
-        return self._pool.submit(fn, *args)
-
-    def close(self) -> None:
-        """End the processes (tasks not started are dropped)."""
-        self._pool.shutdown(wait=True, cancel_futures=True)
-
-    def __enter__(self) -> SeamPool:
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        self.close()
-
-
-def seam_processes(images: int) -> int:
-    """How many :class:`SeamPool` processes a plan of ``images`` images starts by default: up to
-    4 (the pairs' dependencies leave about 2 at work at once: on the 40-frame speed block the
-    longest chain of dependent pairs takes 0.84 of their 1.80 s) where the block has at least
-    16 images, the host at least 4 cores, and this process may start processes (not a daemon,
-    such as a Dask worker's); else 1 (the seams in this process)."""
-    if images < 16 or host_cores() < 4 or multiprocessing.current_process().daemon:
-        return 1
-    return min(4, host_cores() - 2)
+    return sum(_run_ordered(pair, after, _SEAM_THREADS if workers is None else workers))
 
 
 class _Labels:
@@ -386,26 +333,10 @@ def _run_ordered(fn: Callable[[int], Any], after: Sequence[Sequence[int]], worke
 
 
 def _seam_pair(shared: _Labels, coarse: Sequence[Coarse], box: tuple[int, ...], gains: np.ndarray,
-               offsets: np.ndarray, width: float, reach: int,
-               pool: SeamPool | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+               offsets: np.ndarray, width: float, reach: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One pair's least-cost seam (see :func:`least_cost_seams`) on the labels of ``shared``
     as they are now, within the pair's overlap ``box`` (i, j, r0, r1, c0, c1) grown by one
     pixel: the pixels whose image changes, as (rows, columns of the grid, images); not written.
-    Its part (:func:`_pair_part`) is cut here; its corridor, costs and path
-    (:func:`_pair_changes`) are computed here, or on a process of ``pool``."""
-    part = _pair_part(shared, coarse, box, width, reach)
-    if part is None:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.uint16)
-    i, j = box[:2]
-    args = (part, gains[i], offsets[i], gains[j], offsets[j], width, reach, _CUT_NODES)
-    return pool.submit(_pair_changes, *args).result() if pool is not None else _pair_changes(*args)
-
-
-def _pair_part(shared: _Labels, coarse: Sequence[Coarse], box: tuple[int, ...], width: float,
-               reach: int) -> dict[str, Any] | None:
-    """The part of a pair's window (see :func:`_seam_pair`) that decides its seam, with the
-    arrays :func:`_pair_changes` reads (small: a copy to send to another process); None
-    where the two regions have no movable seam.
 
     The pair's window (the overlap grown by one pixel, invalid there) is cut to the part
     around its movable seams that decides the result: the corridor lies within floor(width)
@@ -417,6 +348,8 @@ def _pair_part(shared: _Labels, coarse: Sequence[Coarse], box: tuple[int, ...], 
     corridor's bounding box). Pixels keep their order (raster scan), so the graphs, components
     and their numbers are those of the whole window; costs outside the corridor, which
     nothing reads, are left 0."""
+    from scipy import ndimage
+
     crows, ccols = shared.labels.shape
     i, j, r0, r1, c0, c1 = box
     h, w = r1 - r0 + 2, c1 - c0 + 2
@@ -424,6 +357,7 @@ def _pair_part(shared: _Labels, coarse: Sequence[Coarse], box: tuple[int, ...], 
     gr0, gr1, gc0, gc1 = max(wr0, 0), min(wr0 + h, crows), max(wc0, 0), min(wc0 + w, ccols)
     lab = np.full((h, w), NO_SOURCE, np.uint16)  # beyond the grid: no image's
     lab[gr0 - wr0:gr1 - wr0, gc0 - wc0:gc1 - wc0] = shared.read(gr0, gr1, gc0, gc1)
+    none = np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.uint16)
     ri, ci, vi, oki = coarse[i]
     rj, cj, vj, okj = coarse[j]
     both = np.zeros((h, w), bool)
@@ -441,44 +375,25 @@ def _pair_part(shared: _Labels, coarse: Sequence[Coarse], box: tuple[int, ...], 
     border &= both
     rows, cols = np.flatnonzero(border.any(axis=1)), np.flatnonzero(border.any(axis=0))
     if not rows.size:
-        return None
+        return none
     grow = int(np.floor(width)) + max(int(reach), 0) + 1  # see above
     s0, s1 = max(int(rows[0]) - grow, 0), min(int(rows[-1]) + grow + 1, h)
     t0, t1 = max(int(cols[0]) - grow, 0), min(int(cols[-1]) + grow + 1, w)
-    # the images' values where both may see: the part within the overlap (beyond it both
-    # images do not see: no difference there, and no corridor)
-    q0, q1, u0, u1 = max(s0, 1), min(s1, h - 1), max(t0, 1), min(t1, w - 1)  # window rows and columns
-    return dict(i=i, j=j, lab=lab, both=both[s0:s1, t0:t1], border=border[s0:s1, t0:t1], part=(s0, s1, t0, t1),
-                inner=(q0 - s0, q1 - s0, u0 - t0, u1 - t0), origin=(wr0 + s0, wc0 + t0),
-                a=vi[wr0 + q0 - ri:wr0 + q1 - ri, wc0 + u0 - ci:wc0 + u1 - ci].copy(),
-                b=vj[wr0 + q0 - rj:wr0 + q1 - rj, wc0 + u0 - cj:wc0 + u1 - cj].copy())
-
-
-def _pair_changes(part: dict[str, Any], gain_i: np.ndarray, offset_i: np.ndarray, gain_j: np.ndarray,
-                  offset_j: np.ndarray, width: float, reach: int,
-                  cut_nodes: int = _CUT_NODES) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A pair's seam from its part (:func:`_pair_part`) and its images' balance (gains and
-    offsets, (bands,)): the corridor, its costs, the least-cost path or the minimum cut (on
-    single pixels up to ``cut_nodes`` corridor pixels); the pixels whose image changes as
-    (rows, columns of the grid, images). NumPy and SciPy only: runs on any process."""
-    from scipy import ndimage
-
-    none = np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.uint16)
-    i, j, lab_w = part["i"], part["j"], part["lab"]
-    s0, s1, t0, t1 = part["part"]
-    h, w = lab_w.shape
-    mi_w, mj_w = lab_w == i, lab_w == j
-    lab = lab_w[s0:s1, t0:t1]
-    mi, mj = mi_w[s0:s1, t0:t1], mj_w[s0:s1, t0:t1]
-    both, border, a, b = part["both"], part["border"], part["a"], part["b"]
+    part = (slice(s0, s1), slice(t0, t1))
+    mi_w, mj_w = mi, mj
+    border, both, mi, mj, lab = border[part], both[part], mi[part], mj[part], lab[part]
     away = ndimage.distance_transform_edt(~border)  # from the nadir seam, reduced pixels
     corridor = both & (mi | mj) & (away <= width)
     if not corridor.any():
         return none
-    n0, n1, m0, m1 = part["inner"]
-    inner = (slice(n0, n1), slice(m0, m1))
+    # the images' values where both may see: the part within the overlap (beyond it both
+    # images do not see: no difference there, and no corridor)
+    q0, q1, u0, u1 = max(s0, 1), min(s1, h - 1), max(t0, 1), min(t1, w - 1)  # window rows and columns
+    a = vi[wr0 + q0 - ri:wr0 + q1 - ri, wc0 + u0 - ci:wc0 + u1 - ci]
+    b = vj[wr0 + q0 - rj:wr0 + q1 - rj, wc0 + u0 - cj:wc0 + u1 - cj]
+    inner = (slice(q0 - s0, q1 - s0), slice(u0 - t0, u1 - t0))
     d = np.zeros(corridor.shape, np.float32)
-    d[inner] = _mean_difference(a, b, gain_i, offset_i, gain_j, offset_j)
+    d[inner] = _mean_difference(a, b, gains[i], offsets[i], gains[j], offsets[j])
     m = max(float(np.median(d[corridor])), 1e-6 * (float(np.abs(a[corridor[inner]]).max()) + 1.0))
     # the largest disagreement within the blend's reach: a seam keeps that far from objects
     d = _max_within(np.where(both, d, 0.0), reach)
@@ -486,24 +401,24 @@ def _pair_changes(part: dict[str, Any], gain_i: np.ndarray, offset_i: np.ndarray
     cost[corridor] = 1.0 + np.minimum((d[corridor] / (3.0 * m)) ** 2, 400.0) + 4.0 * (away[corridor] / width) ** 2
     to_i = _split_corridor(corridor, mi, mj, cost)
     if to_i is None:  # a rim no path splits (tangled footprints): a minimum cut instead
-        if int(corridor.sum()) <= cut_nodes:  # on single pixels: the part gives the same cut
-            to_i = _cut_corridor(corridor, mi, mj, cost, away, width, max_nodes=cut_nodes)
+        if int(corridor.sum()) <= _CUT_NODES:  # on single pixels: the part gives the same cut
+            to_i = _cut_corridor(corridor, mi, mj, cost, away, width, max_nodes=_CUT_NODES)
         else:  # on blocks aligned with the window's first pixel: on the whole window
             def whole(x: np.ndarray) -> np.ndarray:
                 out = np.zeros((h, w), x.dtype)
-                out[s0:s1, t0:t1] = x
+                out[part] = x
                 return out
 
             to_i = _cut_corridor(whole(corridor), mi_w, mj_w, whole(cost), whole(away), width,
-                                 max_nodes=cut_nodes)
+                                 max_nodes=_CUT_NODES)
             if to_i is not None:
-                to_i = to_i[s0:s1, t0:t1]
+                to_i = to_i[part]
     if to_i is None:
         return none
     new = np.where(to_i[corridor], i, j).astype(np.uint16)
     changed = new != lab[corridor]
     rr, cc = np.nonzero(corridor)
-    return rr[changed] + part["origin"][0], cc[changed] + part["origin"][1], new[changed]
+    return rr[changed] + (wr0 + s0), cc[changed] + (wc0 + t0), new[changed]
 
 
 _IN_ORDER: dict[tuple[int, str], bool] = {}  # bands, dtype -> whether np.mean adds them in order
