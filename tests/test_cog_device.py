@@ -589,3 +589,37 @@ def test_jpeg_block_codec_choices():
     for c in ("hybrid", "warp"):
         with pytest.raises(ParamError, match="webp"):
             sink.choose_block_codec(c, cpu, True, compress="webp")
+
+
+def test_cog_writing_aborts_the_writers_before_closing_the_encoder():
+    """cog_writing: where the block raises, every writer is aborted, then the encoder closed
+    and given to on_close; where it ends, only the encoder is closed (the block closed the
+    writers); without make_encoder, no encoder."""
+    from orthowarp.pipeline.raster.device import cog_writing
+
+    events = []
+
+    class Writer:
+        def __init__(self, name):
+            self.name = name
+
+        def abort(self):
+            events.append(("abort", self.name))
+
+    class Encoder:
+        def close(self):
+            events.append(("close", "encoder"))
+
+    writers = [Writer("mosaic"), Writer("index")]
+    with pytest.raises(KeyError):
+        with cog_writing(writers, Encoder, on_close=lambda e: events.append(("on_close", type(e).__name__))):
+            raise KeyError("a tile failed")
+    assert events == [("abort", "mosaic"), ("abort", "index"), ("close", "encoder"), ("on_close", "Encoder")]
+    events.clear()
+    with cog_writing(writers, Encoder) as encoder:
+        assert isinstance(encoder, Encoder)
+    assert events == [("close", "encoder")]
+    events.clear()
+    with cog_writing(writers) as encoder:
+        assert encoder is None
+    assert events == []

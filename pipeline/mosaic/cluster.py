@@ -755,7 +755,7 @@ def _write_product_tile(plan: Any, i: int, j: int, tile: Tile, folder: str, sett
 
     from ..._device import to_host
     from ..raster.cog import CogWriter
-    from ..raster.device import DeviceCogEncoder
+    from ..raster.device import DeviceCogEncoder, cog_writing
     from .plan import NO_SOURCE, index_file_settings, mosaic_block_codec, mosaic_file_settings
 
     name = _tile_name(i, j)
@@ -784,49 +784,40 @@ def _write_product_tile(plan: Any, i: int, j: int, tile: Tile, folder: str, sett
         codec_set = _product_codecs(codec, settings.compress_level, dev, settings.compress, settings.quality) \
             if codec != "host" else contextlib.nullcontext()
         # (the codecs go back to the process for its next tile, or are closed where this one fails)
-        with codec_set as codecs:
-            encoder = None
-            try:
-                if codecs is not None:  # (the tile's blocks in one batch, at its end: batches of
-                    # one compute tile, compressed while the next was computed, were no faster)
-                    encoder = DeviceCogEncoder(writers[0], dev, codecs, close_codecs=False)
-                lock = threading.Lock()
+        with codec_set as codecs, cog_writing(writers, None if codecs is None else (
+                # (the tile's blocks in one batch, at its end: batches of one compute tile,
+                # compressed while the next was computed, were no faster)
+                lambda: DeviceCogEncoder(writers[0], dev, codecs, close_codecs=False))) as encoder:
+            lock = threading.Lock()
 
-                def one(s: Tile) -> None:
-                    r, c = s.row - tile.row, s.col - tile.col
-                    if encoder is not None:
-                        out, has, source = plan._tile(*s, device=dev)
-                        encoder.write(r, c, out, has)
-                        source = to_host(source)
-                        valid = source != NO_SOURCE
-                    else:
-                        block, valid, source = plan._tile(*s)
-                    used = np.bincount(source[valid], minlength=n)[:n]
-                    with lock:
-                        if encoder is None:
-                            writers[0].write(r, c, block, valid)
-                        if settings.index:
-                            writers[1].write(r, c, source[..., None], valid)
-                        counts[:] += used
-
-                if threads > 1 and len(subs) > 1:
-                    with ThreadPoolExecutor(max_workers=min(threads, len(subs)),
-                                            thread_name_prefix="product-sub") as pool:
-                        list(pool.map(one, subs))
+            def one(s: Tile) -> None:
+                r, c = s.row - tile.row, s.col - tile.col
+                if encoder is not None:
+                    out, has, source = plan._tile(*s, device=dev)
+                    encoder.write(r, c, out, has)
+                    source = to_host(source)
+                    valid = source != NO_SOURCE
                 else:
-                    for s in subs:
-                        one(s)
-                if encoder is not None:
-                    encoder.flush()
-                for w in writers:
-                    w.close()
-            except BaseException:
-                for w in writers:
-                    w.abort()
-                raise
-            finally:
-                if encoder is not None:
-                    encoder.close()
+                    block, valid, source = plan._tile(*s)
+                used = np.bincount(source[valid], minlength=n)[:n]
+                with lock:
+                    if encoder is None:
+                        writers[0].write(r, c, block, valid)
+                    if settings.index:
+                        writers[1].write(r, c, source[..., None], valid)
+                    counts[:] += used
+
+            if threads > 1 and len(subs) > 1:
+                with ThreadPoolExecutor(max_workers=min(threads, len(subs)),
+                                        thread_name_prefix="product-sub") as pool:
+                    list(pool.map(one, subs))
+            else:
+                for s in subs:
+                    one(s)
+            if encoder is not None:
+                encoder.flush()
+            for w in writers:
+                w.close()
         stats = dict(row=i, col=j, r0=tile.row, c0=tile.col, rows=tile.height, cols=tile.width,
                      valid_pixels=int(counts.sum()),
                      pixels_per_image={str(k): int(v) for k, v in enumerate(counts) if v})

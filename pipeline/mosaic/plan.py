@@ -45,7 +45,7 @@ from ..ortho.grid import output_grid
 from ..ortho.sink import LOSSY, choose_block_codec, device_codecs, parse_creation_options
 from ..ortho.tiles import ImageTiles, WholeSource, source_facts, source_read_dtype
 from ..raster.cog import DTYPES, CogWriter, EncodedTile, TileEncoder
-from ..raster.device import DeviceCogEncoder
+from ..raster.device import DeviceCogEncoder, cog_writing
 from ..raster.io import atomic_files, check_cancel, check_destination, source_exists
 from ..reports.profile import StageTimer
 from ..tiles import Tile
@@ -485,11 +485,19 @@ class MosaicPlan(TileBlending):
                                          transform=self.transform, name=outputs[1], nodata=NO_SOURCE,
                                          overview_resampling="nearest", **kw,
                                          **index_file_settings(compress, compress_level)))
-            encoder = None
-            try:
-                if _block_codec != "host" and not _encoded_elsewhere:
-                    codecs = device_codecs(_block_codec, compress_level, self.warp_device, compress, quality=quality)
-                    encoder = self._encoder = DeviceCogEncoder(writers[0], self.warp_device, codecs, timer=timer)
+
+            def make_encoder() -> DeviceCogEncoder:
+                codecs = device_codecs(_block_codec, compress_level, self.warp_device, compress, quality=quality)
+                self._encoder = DeviceCogEncoder(writers[0], self.warp_device, codecs, timer=timer)
+                return self._encoder
+
+            def encoder_closed(encoder: DeviceCogEncoder) -> None:
+                self._encoder = None
+                timer.info.update(encoder.profile_info())
+
+            timer.info["block_codec"] = _block_codec
+            with cog_writing(writers, make_encoder if _block_codec != "host" and not _encoded_elsewhere else None,
+                             on_close=encoder_closed) as encoder:
                 for (r0, c0, th, tw), (block, valid, source) in results:
                     if isinstance(block, EncodedTile):  # (encoded where it was computed)
                         writers[0].put_encoded(block)
@@ -517,16 +525,6 @@ class MosaicPlan(TileBlending):
                     _write_seamlines(tmps[-1], coarse_index, self.transform @ Affine.scale(step), self.crs,
                                      [os.path.relpath(os.path.abspath(src), here) for src, *_ in self.sources], used,
                                      name=outputs[-1], lonlat=bool(seamlines_lonlat))
-            except BaseException:
-                for w in writers:
-                    w.abort()
-                raise
-            finally:
-                if encoder is not None:
-                    encoder.close()
-                    self._encoder = None
-                    timer.info.update(encoder.profile_info())
-                timer.info["block_codec"] = _block_codec
         return MosaicResult(path=dst, index=outputs[1] if index is not None else None,
                             seamlines=outputs[-1] if seamlines is not None else None, crs=self.crs,
                             transform=self.transform, shape=self.shape, resolution=self.resolution,

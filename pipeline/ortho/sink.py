@@ -506,25 +506,19 @@ def open_sink(path: str, profile: dict[str, Any], cog: dict[str, Any] | None, fi
         w = CogWriter(path, width=profile["width"], height=profile["height"], count=profile["count"],
                       dtype=profile["dtype"], crs=profile["crs"], transform=profile["transform"], name=final_name,
                       timer=timer, **cog)
-        encoder = None
-        try:
-            if block_codec != "host":
-                codecs = device_codecs(block_codec, cog["level"], device, cog["compress"], quality=cog["quality"])
-                from ..raster.device import DeviceCogEncoder
+        from ..raster.device import DeviceCogEncoder, cog_writing
 
-                encoder = DeviceCogEncoder(w, device, codecs)
+        def make_encoder() -> DeviceCogEncoder:
+            codecs = device_codecs(block_codec, cog["level"], device, cog["compress"], quality=cog["quality"])
+            return DeviceCogEncoder(w, device, codecs)
+
+        with cog_writing([w], make_encoder if block_codec != "host" else None,
+                         on_close=lambda e: timer.info.update(e.profile_info())) as encoder:
             # the tiles are fresh arrays the pipeline drops after the call: no copy
             yield Sink(functools.partial(w.write, copy=False), encoder.write if encoder is not None else None)
             t = time.perf_counter()
             if encoder is not None:
                 encoder.flush()  # the last device batch
-        except BaseException:
-            w.abort()
-            raise
-        finally:
-            if encoder is not None:
-                encoder.close()
-                timer.info.update(encoder.profile_info())
         w.close()  # the last blocks, then the file's IFDs and block copy
         timer.span("finish", t)
         return

@@ -47,10 +47,11 @@ within JPEG's own error.
 
 from __future__ import annotations
 
+import contextlib
 import struct
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from typing import TYPE_CHECKING, Any
 
@@ -66,7 +67,7 @@ if TYPE_CHECKING:
 
     from .cog import CogWriter, EncodedTile
 
-__all__ = ["DeviceCogEncoder", "HostDeflate", "HostJpeg", "HostZstd", "NvcompDeflate", "NvcompZstd", "NvjpegCodec",
+__all__ = ["DeviceCogEncoder", "cog_writing", "HostDeflate", "HostJpeg", "HostZstd", "NvcompDeflate", "NvcompZstd", "NvjpegCodec",
            "WarpDeflate", "nvcomp_available", "nvjpeg_available", "nvjpeg_runs", "read_back", "zlib_parts",
            "zlib_stream"]
 
@@ -1249,3 +1250,27 @@ class DeviceCogEncoder:
         if self._threshold is not None:
             wp.set_mempool_release_threshold(self.device, self._threshold)
             self._threshold = None
+
+
+@contextlib.contextmanager
+def cog_writing(writers: Sequence[Any], make_encoder: Callable[[], DeviceCogEncoder] | None = None, *,
+                on_close: Callable[[DeviceCogEncoder], None] | None = None) -> Iterator[DeviceCogEncoder | None]:
+    """Writing COGs with :class:`~orthowarp.pipeline.raster.cog.CogWriter` ``writers``, the first
+    encoded on the device where ``make_encoder`` is given: yields the encoder it makes (None
+    without), which is closed when the block ends, and then given to ``on_close`` (e.g. for its
+    profile). Where the block raises, every writer is aborted (its temporary file removed)
+    before the encoder is closed. The block flushes the encoder and closes the writers."""
+    encoder = None
+    try:
+        if make_encoder is not None:
+            encoder = make_encoder()
+        yield encoder
+    except BaseException:
+        for w in writers:
+            w.abort()
+        raise
+    finally:
+        if encoder is not None:
+            encoder.close()
+            if on_close is not None:
+                on_close(encoder)
