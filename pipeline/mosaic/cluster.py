@@ -39,6 +39,7 @@ import contextlib
 import copy
 import dataclasses
 import fcntl
+import functools
 import hashlib
 import json
 import logging
@@ -783,11 +784,11 @@ def _write_product_tile(plan: Any, i: int, j: int, tile: Tile, folder: str, sett
                                      **index_file_settings(settings.compress, settings.compress_level)))
         codec_set = _product_codecs(codec, settings.compress_level, dev, settings.compress, settings.quality) \
             if codec != "host" else contextlib.nullcontext()
-        # (the codecs go back to the process for its next tile, or are closed where this one fails)
-        with codec_set as codecs, cog_writing(writers, None if codecs is None else (
-                # (the tile's blocks in one batch, at its end: batches of one compute tile,
-                # compressed while the next was computed, were no faster)
-                lambda: DeviceCogEncoder(writers[0], dev, codecs, close_codecs=False))) as encoder:
+        # (the codecs go back to the process for its next tile, or are closed where this one
+        # fails; with them the tile's blocks go in one batch at its end: batches of one compute
+        # tile, compressed while the next was computed, were no faster)
+        with codec_set as codecs, cog_writing(writers, None if codecs is None else functools.partial(
+                DeviceCogEncoder, writers[0], dev, codecs, close_codecs=False)) as encoder:
             lock = threading.Lock()
 
             def one(s: Tile) -> None:

@@ -784,8 +784,6 @@ def _rows_window(rows: np.ndarray, n_nodes: int, radius: int, width: int, height
     return c0, r0, c1, r1
 
 
-
-
 def _open_source(path: str) -> rasterio.io.DatasetReader:
     """Open a source image for reading; frame images are usually not georeferenced.
     :class:`RasterIOError` naming it (GDAL's reason) where it cannot be opened."""

@@ -67,8 +67,8 @@ if TYPE_CHECKING:
 
     from .cog import CogWriter, EncodedTile
 
-__all__ = ["DeviceCogEncoder", "cog_writing", "HostDeflate", "HostJpeg", "HostZstd", "NvcompDeflate", "NvcompZstd", "NvjpegCodec",
-           "WarpDeflate", "nvcomp_available", "nvjpeg_available", "nvjpeg_runs", "read_back", "zlib_parts",
+__all__ = ["DeviceCogEncoder", "HostDeflate", "HostJpeg", "HostZstd", "NvcompDeflate", "NvcompZstd", "NvjpegCodec",
+           "WarpDeflate", "cog_writing", "nvcomp_available", "nvjpeg_available", "nvjpeg_runs", "read_back", "zlib_parts",
            "zlib_stream"]
 
 _WP = {"uint8": wp.uint8, "uint16": wp.uint16, "float32": wp.float32}
