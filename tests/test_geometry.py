@@ -913,3 +913,18 @@ def test_fuzz_geolocate_pixels(pix):
     assert np.all(np.isnan(got[~finite]))
     inside = finite & np.all((pix >= 0.0) & (pix <= [4000.0, 3000.0]), axis=1)
     np.testing.assert_allclose(got[inside, 2], 400.0, rtol=0, atol=1e-3)
+
+
+def test_footprint_probes_run_on_the_cpu_whatever_the_device(device):
+    """A geometry's footprint probes (which find its DEM window) are on the CPU on every
+    device, so every device reads the same window; a twin on another device shares them."""
+    from orthowarp.pipeline.geometry import SensorGeometry
+
+    sc = scene("opk")
+    sensor = FrameSensor(sc.camera, sc.pose)
+    geom = SensorGeometry(sensor, sc.dem, device=device)
+    assert geom._probe(400.0).device.is_cpu and geom.device == wp.get_device(device)
+    twin = geom.on_device("cpu")
+    assert twin._probe_base is geom._probe_base
+    on_cpu = SensorGeometry(sensor, sc.dem, device="cpu")
+    assert (geom.dem.shape, geom.dem.transform) == (on_cpu.dem.shape, on_cpu.dem.transform)
