@@ -343,6 +343,7 @@ def run_speed(args, sizes):
     report = dict(benchmark="mosaic_speed", frame=[width, height, 3], dtype="uint8", strips=args.strips,
                   device=args.device, tile_size=args.tile_size, workers=args.workers, processes=args.processes,
                   block_codec=args.block_codec, blend=args.blend, compress=args.compress,
+                  build_ahead=not args.no_build_ahead,
                   cpu_count=os.cpu_count(), build_s=time.perf_counter() - t, results=[])
     gpu = int(args.device.split(":")[1]) if args.device.startswith("cuda:") else (0 if args.device == "cuda" else None)
     try:
@@ -384,14 +385,19 @@ def run_speed(args, sizes):
             (["--compress", args.compress] if args.compress else [])
         cli = ["mosaic", *frames[:n], *orient, "--dem", dem_path, "--out", out, "--overwrite", "--device",
                args.device, "--profile-json", prof, *extra]
+        entry = "mosaic_variants:no_build_ahead" if args.no_build_ahead else "orthowarp.cli:main"
         if args.sample_stacks:  # the child under bench/stack_sampler.py (its own overhead included)
             stacks = os.path.join(work, f"mosaic{n}.stacks.json")
             here = os.path.dirname(os.path.abspath(__file__))
             env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (here, os.environ.get("PYTHONPATH")) if p))
-            r = run_cli(sys.executable, "stack_sampler:main", [stacks, str(args.sample_stacks), "orthowarp.cli:main",
-                                                               *cli], gpu_index=gpu, env=env)
+            r = run_cli(sys.executable, "stack_sampler:main", [stacks, str(args.sample_stacks), entry, *cli],
+                        gpu_index=gpu, env=env)
+        elif args.no_build_ahead:  # (bench/mosaic_variants.py, found through PYTHONPATH)
+            here = os.path.dirname(os.path.abspath(__file__))
+            env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (here, os.environ.get("PYTHONPATH")) if p))
+            r = run_cli(sys.executable, entry, cli, gpu_index=gpu, env=env)
         else:
-            r = run_cli(sys.executable, "orthowarp.cli:main", cli, gpu_index=gpu)
+            r = run_cli(sys.executable, entry, cli, gpu_index=gpu)
         r["images"] = n
         r["input_gpix"] = n * width * height / 1e9
         if r["returncode"] == 0:
@@ -491,6 +497,9 @@ def main(argv=None):
     ap.add_argument("--sample-stacks", type=float, default=None, metavar="SECONDS",
                     help="--speed: sample the mosaic child's Python stacks at this interval "
                          "(bench/stack_sampler.py; the report's 'stacks')")
+    ap.add_argument("--no-build-ahead", action="store_true",
+                    help="--speed: the tile processes do not build their first images during the plan "
+                         "(bench/mosaic_variants.py; a measurement, not a CLI option)")
     ap.add_argument("--oty-stage", choices=["all", "orthos", "cog"], default="all",
                     help="--speed with --oty-python: the whole chain, or its orthos and its VRT + COG in two runs "
                          "(same --workdir; each within a device call's time limit)")
