@@ -500,7 +500,38 @@ def chain_parts_for(chunks: int, *, gpu: bool = True) -> int:
     return int(min(64, max(4, 2 ** round(np.log2(want)))))
 
 
-class WarpDeflate:
+class _OwnStream:
+    """A device codec's own CUDA stream (None on the CPU): its kernels and copies overlap the
+    work the rest of the program puts on the device's stream (tiles, other encoders). The
+    codec sets ``device``; :class:`WarpDeflate` and
+    :class:`~orthowarp.pipeline.raster.jpeg.WarpJpeg` use it."""
+
+    device: Device
+    _own_stream: Stream | None = None
+
+    def _stream(self) -> Stream | None:
+        """The codec's stream, made on first use (None on the CPU)."""
+        if self.device.is_cuda and self._own_stream is None:
+            self._own_stream = wp.Stream(self.device)
+        return self._own_stream
+
+    def _after_device_stream(self) -> Stream | None:
+        """The codec's stream, made to wait for the work enqueued so far on the device's stream
+        (its input written there, or scratch allocated in its order); None on the CPU."""
+        stream = self._stream()
+        if stream is not None:
+            with wp.ScopedDevice(self.device):  # the device's context current in this thread
+                stream.wait_stream(wp.get_stream(self.device))
+        return stream
+
+    def _end_stream(self) -> None:
+        """Wait for the codec's stream, then drop it."""
+        if self._own_stream is not None:
+            wp.synchronize_stream(self._own_stream)
+        self._own_stream = None
+
+
+class WarpDeflate(_OwnStream):
     """Raw deflate of device-resident buffers by orthowarp's own kernels
     (:mod:`orthowarp.kernels.deflate`): LZ77 with hash chains (matches found with a thread per
     byte) and lazy matching, and a dynamic Huffman block per chunk of ``chunk`` bytes, on any
@@ -607,20 +638,12 @@ class WarpDeflate:
         self._tables = None
         self._scratch = None
         self._chains = None  # the hash tables' flat buffers (first, last), zero between calls
-        self._own_stream = None
 
     def _table_arrays(self) -> tuple[wp.array, ...]:
         if self._tables is None:
             d = self.device
             self._tables = tuple(wp.array(a, dtype=wp.int32, device=d) for a in (*_length_tables(), _CL_ORDER))
         return self._tables
-
-    def _stream(self) -> Stream | None:
-        """The codec's own CUDA stream (None on the CPU): its kernels and copies overlap the
-        work the rest of the program puts on the device's stream (tiles, other encoders)."""
-        if self.device.is_cuda and self._own_stream is None:
-            self._own_stream = wp.Stream(self.device)
-        return self._own_stream
 
     def _scratch_arrays(self, m: int) -> dict[str, wp.array]:
         """Scratch for ``m`` chunks (kept for the next call), the output buffer (each piece at
@@ -679,10 +702,7 @@ class WarpDeflate:
         self._tick("setup", t)
         pieces = []
         with self._lock:
-            stream = self._stream()
-            if stream is not None:  # the buffer is complete once the device's stream gets here
-                with wp.ScopedDevice(self.device):  # the device's context current in this thread
-                    stream.wait_stream(wp.get_stream(self.device))
+            stream = self._after_device_stream()  # (the buffer is complete once the device's stream gets here)
             for a in range(0, len(starts), self.max_chunks):
                 part = slice(a, a + self.max_chunks)
                 pieces.append(self._compress_chunks(buf, starts[part], lens[part], last[part], prime[part], stream))
@@ -761,11 +781,9 @@ class WarpDeflate:
         return host, size
 
     def close(self) -> None:
-        if self._own_stream is not None:
-            wp.synchronize_stream(self._own_stream)
+        self._end_stream()
         self._scratch = None
         self._chains = None
-        self._own_stream = None
 
 
 class _Tile:

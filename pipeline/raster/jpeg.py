@@ -26,7 +26,7 @@ import warp as wp
 
 from ..._device import load_modules
 from ...errors import DeviceError, ParamError
-from .device import read_back
+from .device import _OwnStream, read_back
 
 if TYPE_CHECKING:
     from warp.context import Device, Stream
@@ -185,7 +185,7 @@ def jpeg_layout(stream: bytes) -> JpegLayout:
     return JpegLayout(bytes(head), (height, width), len(comps), q, dc, ac)
 
 
-class WarpJpeg:
+class WarpJpeg(_OwnStream):
     """Baseline JPEG streams of device-resident uint8 blocks, encoded by orthowarp's kernels
     (:mod:`orthowarp.kernels.jpeg`) on any Warp device, many blocks per launch: three bands
     as YCbCr with the chroma averaged 2 x 2, one band as grey, at IJG ``quality`` with the
@@ -216,7 +216,6 @@ class WarpJpeg:
         self._layouts: dict[tuple[int, int, int], tuple[JpegLayout, Any]] = {}
         self._scratch = None
         self._lock = threading.Lock()
-        self._own_stream = None
         load_modules(self.device, kj)
 
     def _tables(self, shape: tuple[int, int, int]) -> tuple[JpegLayout, Any]:
@@ -242,12 +241,6 @@ class WarpJpeg:
             t.ac_code, t.ac_size = (wp.array(a, dtype=wp.int32, device=d) for a in (lay.ac_code, lay.ac_size))
             self._layouts[shape] = (lay, t)
         return self._layouts[shape]
-
-    def _stream(self) -> Stream | None:
-        """The codec's own CUDA stream (None on the CPU), as :class:`WarpDeflate`'s."""
-        if self.device.is_cuda and self._own_stream is None:
-            self._own_stream = wp.Stream(self.device)
-        return self._own_stream
 
     def _batch(self, shape: tuple[int, int, int]) -> int:
         """Blocks per launch: :attr:`max_blocks`, else what keeps the scratch (2 bytes per
@@ -276,10 +269,7 @@ class WarpJpeg:
         offsets = np.asarray(offsets, np.int32)
         out = []
         with self._lock:
-            stream = self._stream()
-            if stream is not None:  # the buffer is complete once the device's stream gets here
-                with wp.ScopedDevice(self.device):
-                    stream.wait_stream(wp.get_stream(self.device))
+            stream = self._after_device_stream()  # (the buffer is complete once the device's stream gets here)
             step = self._batch(shape)
             for a in range(0, len(offsets), step):
                 out += self._encode(buf, offsets[a:a + step], lay, tables, stream)
@@ -302,7 +292,7 @@ class WarpJpeg:
                 total=z(m), offs=z(m), base=z(m), count=z((m, chunks)), chunk_at=z((m, chunks)), stuffed=z(m),
                 out_base=z(m, wp.int64), no_words=z(1, wp.uint32), ints_host=h(2 * m), total_host=h(m),
                 out_base_host=h(m, wp.int64), words=None, data=None, data_host=None)
-            self._ordered()
+            self._after_device_stream()  # (new scratch, allocated in the device stream's order)
         return s
 
     def _grown(self, name: str, n: int, dtype: Any, *, host: bool = False) -> wp.array:
@@ -314,15 +304,8 @@ class WarpJpeg:
                 s[name] = wp.empty(size, dtype=dtype, device="cpu", pinned=self.device.is_cuda)
             else:
                 s[name] = wp.empty(size, dtype=dtype, device=self.device)
-                self._ordered()
+                self._after_device_stream()  # (new scratch, allocated in the device stream's order)
         return s[name]
-
-    def _ordered(self) -> None:
-        """The codec's stream made to wait for the device's, where new scratch was allocated
-        (Warp orders allocations on the device's stream)."""
-        if self.device.is_cuda:
-            with wp.ScopedDevice(self.device):
-                self._stream().wait_stream(wp.get_stream(self.device))
 
     def _encode(self, buf: wp.array, offsets: np.ndarray, lay: JpegLayout, tables: Any,
                 stream: Stream | None) -> list[bytes]:
@@ -368,8 +351,6 @@ class WarpJpeg:
         return [head + host[out_base[k]:out_base[k + 1]].tobytes() + eoi for k in range(m)]
 
     def close(self) -> None:
-        if self._own_stream is not None:
-            wp.synchronize_stream(self._own_stream)
-        self._own_stream = None
+        self._end_stream()
         self._layouts = {}
         self._scratch = None
