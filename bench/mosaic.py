@@ -386,18 +386,15 @@ def run_speed(args, sizes):
         cli = ["mosaic", *frames[:n], *orient, "--dem", dem_path, "--out", out, "--overwrite", "--device",
                args.device, "--profile-json", prof, *extra]
         entry = "mosaic_variants:no_build_ahead" if args.no_build_ahead else "orthowarp.cli:main"
+        # a child that runs one of bench/'s modules (stack_sampler, mosaic_variants) finds it on its path
+        here = os.path.dirname(os.path.abspath(__file__))
+        bench_env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (here, os.environ.get("PYTHONPATH")) if p))
         if args.sample_stacks:  # the child under bench/stack_sampler.py (its own overhead included)
             stacks = os.path.join(work, f"mosaic{n}.stacks.json")
-            here = os.path.dirname(os.path.abspath(__file__))
-            env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (here, os.environ.get("PYTHONPATH")) if p))
             r = run_cli(sys.executable, "stack_sampler:main", [stacks, str(args.sample_stacks), entry, *cli],
-                        gpu_index=gpu, env=env)
-        elif args.no_build_ahead:  # (bench/mosaic_variants.py, found through PYTHONPATH)
-            here = os.path.dirname(os.path.abspath(__file__))
-            env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (here, os.environ.get("PYTHONPATH")) if p))
-            r = run_cli(sys.executable, entry, cli, gpu_index=gpu, env=env)
+                        gpu_index=gpu, env=bench_env)
         else:
-            r = run_cli(sys.executable, entry, cli, gpu_index=gpu)
+            r = run_cli(sys.executable, entry, cli, gpu_index=gpu, env=bench_env if args.no_build_ahead else None)
         r["images"] = n
         r["input_gpix"] = n * width * height / 1e9
         if r["returncode"] == 0:

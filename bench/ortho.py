@@ -356,7 +356,8 @@ def main(argv=None):
                     "--source-reads", reads, *(["--no-refraction"] if args.no_refraction else []),
                     *(["--gpus", str(gpus)] if gpus else [])],
                     gpu_index=gpu_index, env=env)
-                o["images"], o["compress_level"], o["block_codec"], o["source_reads"] = n, int(level), codec, reads
+                o["images"], o["block_codec"], o["source_reads"] = n, codec, reads
+                o["compress_level"] = int(level) if compress in ("deflate", "zstd") else None  # (jpeg: none given)
                 o["compress"], o["gpus"] = compress, gpus
                 if args.sample_stacks and os.path.exists(stacks):
                     with open(stacks) as f:
