@@ -30,6 +30,37 @@ def block(tmp_path_factory):
     return sc, [(a, FrameSensor(sc.camera, sc.pose)), (b, FrameSensor(sc.camera, pose2))]
 
 
+class _Workers:
+    """A stand-in for a client: only the workers' addresses."""
+
+    def __init__(self, n):
+        self.n = n
+
+    def scheduler_info(self):
+        return {"workers": {f"tcp://127.0.0.1:{9000 + i}": {} for i in range(self.n)}}
+
+
+@pytest.mark.parametrize("rows,cols,workers", [(6, 11, 16), (11, 6, 16), (6, 11, 4), (8, 9, 8), (2, 2, 8), (1, 7, 3)])
+def test_the_deal_gives_every_worker_a_compact_share(rows, cols, workers):
+    """Tiles dealt to a cluster's workers: each tile once; no worker idle while another has
+    two tiles or more (a grid of 6 x 11 tiles has fewer rows and columns than 16 workers); the
+    shares within one tile of each other; each share a path of neighbouring tiles."""
+    from orthowarp.pipeline.mosaic.cluster import _deal, worker_names
+
+    tiles = [(r * 64, c * 64, 64, 64) for r in range(rows) for c in range(cols)]
+    client = _Workers(workers)
+    dealt = _deal(client, tiles, [()] * len(tiles))
+    assert sorted(k for k, _ in dealt) == list(range(len(tiles)))
+    shares = {w: [k for k, v in dealt if v == w] for w in worker_names(client)}
+    sizes = [len(s) for s in shares.values()]
+    assert min(len(tiles), workers) == sum(1 for n in sizes if n)
+    assert max(sizes) - min(n for n in sizes if n) <= 1
+    for share in shares.values():
+        for a, b in zip(share, share[1:]):  # a step of the serpentine: to a grid neighbour
+            (ra, ca), (rb, cb) = divmod(a, cols), divmod(b, cols)
+            assert abs(ra - rb) + abs(ca - cb) == 1
+
+
 @pytest.fixture(scope="module")
 def client():
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",

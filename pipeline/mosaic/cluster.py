@@ -436,17 +436,20 @@ def as_finished(client: Any, futures: Sequence[Any], check: Callable[[], None] |
 
 
 def _deal(client: Any, tiles: Sequence[Tile], images: Sequence[tuple[int, ...]]) -> list[tuple[int, str]]:
-    """(tile position, worker) in the order to submit: the tiles' bands
-    (:func:`~orthowarp.pipeline.mosaic.workers.tile_runs`) dealt to the workers in turn, each
-    worker's tiles in its bands' order."""
+    """(tile position, worker) in the order to submit: the tiles in the order one process would
+    take them (:func:`~orthowarp.pipeline.mosaic.workers.tile_runs`' bands, swept in turn: one
+    continuous serpentine) cut into one piece per worker, their tile counts within one of each
+    other. Each worker's tiles are then a compact stretch of the grid, and none is left without
+    tiles or with twice another's: one band per worker would leave workers idle where the grid
+    has fewer tile rows and columns than the cluster has workers (a grid of 6 x 11 product
+    tiles on 16), and give some twice the tiles of others where the bands' rows do not divide
+    evenly (6 rows on 4 workers)."""
     names = worker_names(client)
     if not names:
         raise OrthowarpError("The Dask cluster has no workers")
-    runs = [r for r in tile_runs(tiles, len(names), images) if r]
-    queues = collections.defaultdict(list)
-    for i, run in enumerate(runs):
-        queues[names[i % len(names)]].extend(run)
-    return [(k, w) for w in names for k in queues[w]]
+    order = np.array([k for run in tile_runs(tiles, 1, images) for k in run], np.int64)
+    pieces = np.array_split(order, min(len(names), len(order))) if len(order) else []
+    return [(int(k), names[i]) for i, piece in enumerate(pieces) for k in piece]
 
 
 class _Submitter:
