@@ -205,7 +205,15 @@ def main(argv=None):
                     help="do not flush the built blocks to disk before the runs (by default os.sync(): the "
                          "first runs would otherwise share the disk with the write-back of the inputs)")
     ap.add_argument("--device", default="cuda", help="cuda, or cpu (a CPU cluster of as many workers: a smoke test)")
+    ap.add_argument("--no-malloc-trim", action="store_true",
+                    help="Dask's nannies do not set MALLOC_TRIM_THRESHOLD_ in the workers (Dask's default sets it "
+                         "to 64 KiB, which also fixes glibc's mmap threshold: every allocation over 128 KiB is "
+                         "then mapped and unmapped anew)")
     args = ap.parse_args(argv)
+    if args.no_malloc_trim:
+        import dask
+
+        dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None})
 
     from distributed import get_task_stream
     from mosaic import build_speed
@@ -246,6 +254,7 @@ def main(argv=None):
     gpu_name = "cpu" if cpu else subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader", "-i", "0"],
                                                 capture_output=True, text=True).stdout.strip()
     report = dict(benchmark="scaleout", device=gpu_name, gpu_counts=[int(g) for g in args.gpus.split(",")],
+                  malloc_trim=not args.no_malloc_trim,
                   frames=args.frames, frame=[width, height, 3], orthos=args.orthos,
                   ortho_frame=args.ortho_frame or args.frame,
                   processes_per_gpu=args.processes_per_gpu, threads=args.threads, cpu_count=os.cpu_count(),

@@ -9,9 +9,10 @@ product: a grid of COG tiles written in parallel where they were computed.
   plan) as Dask tasks. The plan is sent to every worker once (``scatter(broadcast=True)``); the
   workers read the source images themselves (local paths made absolute, GDAL virtual file
   system paths such as ``/vsis3/`` as given), so nothing large travels through the scheduler.
-  The tiles are dealt in the bands of :func:`~orthowarp.pipeline.mosaic.workers.tile_runs`,
-  one band per worker (loose restrictions: a band whose worker is gone runs elsewhere), at most
-  a few tiles per worker in flight, and come back to the caller, which writes the one COG.
+  The tiles are dealt in compact pieces of :func:`~orthowarp.pipeline.mosaic.workers.tile_runs`'
+  serpentine, one piece per worker (loose restrictions: a piece whose worker is gone runs
+  elsewhere), at most a few tiles per worker in flight, and come back to the caller, which
+  writes the one COG.
 - :func:`write_tiled` writes the tiled product: the mosaic's grid cut into product tiles (a
   whole number of compute tiles each), each computed and written as a COG (and its source index
   where asked) by the worker that computed it, published under its own name when complete;
@@ -1137,7 +1138,7 @@ def _check(cancel: threading.Event | None, dst: str) -> None:
 
 def _tiles_on_cluster(plan: Any, client: Any, todo: list, work: str, settings: TiledSettings,
                       cancel: threading.Event | None, dst: str, bar: Progress, device: str | None) -> list[dict]:
-    """The product tiles on the workers of ``client``, dealt in bands."""
+    """The product tiles on the workers of ``client``, dealt in pieces (:func:`_deal`)."""
     if not todo:
         return []
     tiles = [t for _, _, t in todo]
