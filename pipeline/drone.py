@@ -207,7 +207,7 @@ def exif_sensors(images: Iterable[str | os.PathLike], *, dem: Dem | str | os.Pat
 #: px with the adjusted orientation held (:func:`~orthowarp.pipeline.densify.densify`).
 ADJUST_DEFAULTS = dict(zones=(8, 6), per_zone=3, window=21, radius=12, levels=4, min_sigma=0.5, gnss_sigma=1.0,
                        ins_sigma=2.0, self_calibration=("k1", "k2"), snooping=True, densify=True, dense_spacing=64,
-                       dense_pairs="footprints")
+                       dense_pairs="footprints", dense_scale=1)
 
 
 @dataclass
@@ -317,7 +317,9 @@ def adjust_exif(sensors: Sequence[tuple[str, FrameSensor]], dem: Dem | str | os.
         (:func:`~orthowarp.adjust.bundle_adjust`), ``densify`` (bool), ``dense_spacing`` (px;
         :func:`~orthowarp.pipeline.densify.densify`'s ``spacing``), ``dense_pairs`` ("ties":
         the pairs that share a tie point; "footprints": also those whose footprints on the tie
-        points' median height overlap by a twentieth of the smaller one or more).
+        points' median height overlap by a twentieth of the smaller one or more),
+        ``dense_scale`` (the dense points matched on the images reduced ``2**dense_scale``
+        times: ``densify``'s ``scale``).
 
     Returns
     -------
@@ -346,6 +348,7 @@ def adjust_exif(sensors: Sequence[tuple[str, FrameSensor]], dem: Dem | str | os.
     cfg = {**ADJUST_DEFAULTS, **settings}
     cfg["densify"] = flag("densify", cfg["densify"])
     cfg["dense_spacing"] = integer("dense_spacing", cfg["dense_spacing"], low=4)
+    cfg["dense_scale"] = integer("dense_scale", cfg["dense_scale"], low=0, high=4)
     if cfg["dense_pairs"] not in ("ties", "footprints"):
         raise ParamError(f"dense_pairs must be 'ties' or 'footprints', got {cfg['dense_pairs']!r}")
     sensors = list(sensors)
@@ -1388,7 +1391,7 @@ def _chain_densify(res: Any, block: Any, sensors: list[tuple[str, FrameSensor]],
     if cfg["dense_pairs"] == "footprints":
         pairs = sorted(set(pairs) | set(_footprint_pairs(frames, surface)))
     return densify(paths, frames, surface, pairs, ids=list(block.image_ids), refraction=refraction,
-                   device=device, spacing=cfg["dense_spacing"])
+                   device=device, spacing=cfg["dense_spacing"], scale=cfg["dense_scale"])
 
 
 def _footprint_pairs(frames: Sequence[FrameSensor], surface: Dem, fraction: float = 0.05) -> list[tuple[int, int]]:

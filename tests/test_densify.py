@@ -181,7 +181,8 @@ def test_chain_densify_setting_is_checked(tmp_path):
 
     a, b = _pair()
     for settings, words in [(dict(densify="yes"), "densify"), (dict(dense_spacing=0), "dense_spacing"),
-                            (dict(dense_pairs="all"), "dense_pairs")]:
+                            (dict(dense_pairs="all"), "dense_pairs"), (dict(dense_scale=5), "dense_scale"),
+                            (dict(dense_scale=-1), "dense_scale")]:
         with pytest.raises(ParamError, match=words):
             adjust_exif([("a.jpg", a), ("b.jpg", b)], 0.0, tmp_path / "adj", **settings)
     assert not os.path.exists(tmp_path / "adj")
