@@ -26,7 +26,7 @@ the scaling efficiency t(1) / (n t(n)) and whether the digests agree.
 usage: python3 bench/scaleout.py [--gpus 4,2,1] [--frames 160] [--frame 4800x4000] [--orthos 40]
                                  [--processes-per-gpu 4] [--products tiled,cog,orthos]
                                  [--block-codec auto] [--product-tile 0] [--no-sync]
-                                 [--workdir DIR] [--out FILE]
+                                 [--no-build-ahead] [--no-malloc-trim] [--workdir DIR] [--out FILE]
 """
 
 import argparse
@@ -209,7 +209,14 @@ def main(argv=None):
                     help="Dask's nannies do not set MALLOC_TRIM_THRESHOLD_ in the workers (Dask's default sets it "
                          "to 64 KiB, which also fixes glibc's mmap threshold: every allocation over 128 KiB is "
                          "then mapped and unmapped anew)")
+    ap.add_argument("--no-build-ahead", action="store_true",
+                    help="the workers do not build the images of their first tiles while the calling process "
+                         "balances and cuts the seams (the tiled product's BuildAhead made to send nothing)")
     args = ap.parse_args(argv)
+    if args.no_build_ahead:
+        from orthowarp.pipeline.mosaic import cluster as cluster_module
+
+        cluster_module.BuildAhead.__call__ = lambda self, plan: None
     if args.no_malloc_trim:
         import dask
 
@@ -254,7 +261,7 @@ def main(argv=None):
     gpu_name = "cpu" if cpu else subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader", "-i", "0"],
                                                 capture_output=True, text=True).stdout.strip()
     report = dict(benchmark="scaleout", device=gpu_name, gpu_counts=[int(g) for g in args.gpus.split(",")],
-                  malloc_trim=not args.no_malloc_trim,
+                  malloc_trim=not args.no_malloc_trim, build_ahead=not args.no_build_ahead,
                   frames=args.frames, frame=[width, height, 3], orthos=args.orthos,
                   ortho_frame=args.ortho_frame or args.frame,
                   processes_per_gpu=args.processes_per_gpu, threads=args.threads, cpu_count=os.cpu_count(),

@@ -144,6 +144,59 @@ def test_a_cluster_gives_the_same_bytes(block, reference, client, tmp_path):
     assert len(client.run(os.getpid)) == 2
 
 
+def test_a_worker_takes_over_the_images_built_ahead(block):
+    """The worker side of BuildAhead, in this process: an image built ahead once; the run's
+    first tile hands it to the final plan and stops further builds; the tile's pixels are the
+    plan's; the run's entry dropped after it, closing what no tile took."""
+    from orthowarp.pipeline.mosaic.cluster import (_AHEAD, _adopt_ahead, _build_ahead_task, _drop_ahead,
+                                                   shipped_plan)
+
+    sc, images = block
+    plan = mosaic_plan(images, dem=sc.dem, refraction=False, device="cpu")
+    now, final = shipped_plan(plan, "cpu"), shipped_plan(plan, "cpu")
+    assert _build_ahead_task(now, "run-a", 0) and not _build_ahead_task(now, "run-a", 0)
+    _adopt_ahead(final, "run-a")
+    assert set(final._ahead) == {0} and not now._ahead
+    assert not _build_ahead_task(now, "run-a", 1)  # (the tiles began)
+    tile = next(t for t in plan.tiles(64) if plan._images_meeting(t) == (0, 1))
+    for got, want in zip(final.tile(*tile), plan.tile(*tile)):
+        np.testing.assert_array_equal(got, want)
+    assert not final._ahead and final._state["builds"] == 2  # image 0 taken, image 1 built
+    assert _drop_ahead("run-a") == 0 and "run-a" not in _AHEAD
+    other = shipped_plan(plan, "cpu")
+    assert _build_ahead_task(other, "run-b", 1)
+    assert _drop_ahead("run-b") == 1 and not other._ahead  # (closed: no tile came)
+    final.close()
+    plan.close()
+
+
+@pytest.mark.slow
+def test_images_built_ahead_on_the_workers_give_the_same_tiles(block, reference, client, tmp_path):
+    """BuildAhead on a LocalCluster: each worker builds the images of its first product tiles
+    (sent once the reduced pass is done); the tiled product made with them is the in-process
+    one, byte for byte; after close() no worker holds the run."""
+    from orthowarp.pipeline.mosaic import cluster as cl
+
+    sc, images = block
+    _, tiled = reference
+    plan = mosaic_plan(images, dem=sc.dem, refraction=False, device="cpu")
+    import warp as wp
+
+    from orthowarp.pipeline.mosaic import _tiled_settings
+
+    settings = _tiled_settings(str(tmp_path / "tiled"), True, None, "deflate", None, None, 64, 128, "auto",
+                               wp.get_device("cpu"))  # (the reference's: mosaic()'s defaults)
+    with cl.BuildAhead(client, "cpu", cl.product_tile_grid(settings)) as ahead:
+        ahead(plan)
+        distributed.wait(ahead._futures[1:])
+        assert ahead.sent == 4  # (two images, two workers)
+        product = cl.write_tiled(plan, tmp_path / "tiled", settings, client=client, _ahead=ahead.token)
+    assert ahead.built == ahead.sent and ahead.not_taken <= ahead.built
+    assert _files(product.path) == _files(tiled.path)
+    assert client.run(lambda: len(cl._AHEAD)) == {w: 0 for w in client.scheduler_info()["workers"]}
+    plan.close()
+
+
 @pytest.mark.slow
 def test_a_worker_killed_mid_run_costs_only_its_tiles(block, reference, tmp_path):
     """SIGKILL to one of two workers while tiles are in flight: Dask recomputes its tiles on

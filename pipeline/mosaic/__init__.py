@@ -32,6 +32,7 @@ the radiometric balance (:mod:`~orthowarp.pipeline.mosaic.balance`), the blendin
 from __future__ import annotations
 
 import collections
+import contextlib
 import copy
 import os
 import threading
@@ -72,8 +73,8 @@ from .plan import (
     mosaic_plan,
     output_paths,
 )
-from .cluster import (GPU_PROCESSES, TILED_COMPRESS, TiledResult, TiledSettings, cluster_results, connect,
-                      write_tiled)
+from .cluster import (GPU_PROCESSES, TILED_COMPRESS, BuildAhead, TiledResult, TiledSettings, cluster_results,
+                      connect, product_tile_grid, write_tiled)
 from .cluster import worker_device as cluster_device
 from .cluster import worker_devices
 from .workers import ProcessTiles, TileDealer, tile_runs
@@ -298,17 +299,24 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
     procs = ProcessTiles(int(processes), str(on), threads=workers or 2) \
         if several and local is None and not distributed_run else None
     try:
-        with connect(cluster, gpus=gpus, workers=local, threads=workers or 2,
-                     processes_per_gpu=int(processes) if gpus is not None and processes else GPU_PROCESSES) as client:
-            # on a cluster, its workers render the images of the plan's reduced pass too
+        with contextlib.ExitStack() as stack:
+            client = stack.enter_context(connect(cluster, gpus=gpus, workers=local, threads=workers or 2,
+                                                 processes_per_gpu=int(processes) if gpus is not None and processes
+                                                 else GPU_PROCESSES))
+            # on a cluster, its workers render the images of the plan's reduced pass too, and
+            # for a tiled product build the images of their first tiles while the balance and
+            # seams are made here
             worker_device = cluster_device(client, str(on))
+            ahead = stack.enter_context(BuildAhead(client, worker_device, product_tile_grid(tiled_settings))) \
+                if tiled and client is not None else None
             plan = mosaic_plan(images, dem=dem, crs=crs, resolution=resolution, resampling=resampling,
                                refraction=refraction, dtype=dtype, seams=seams, seam_width=seam_width, blend=blend,
                                feather=feather, balance=balance,
                                reference=reference, occlusion=occlusion, device=device, geoid=geoid,
                                same_vertical_datum=same_vertical_datum, cancel=cancel, _outputs=outputs,
                                _client=client, _worker_device=worker_device,
-                               _on_grid=_ahead_on(procs, tile_size, on) if procs is not None else None)
+                               _on_grid=_ahead_on(procs, tile_size, on) if procs is not None else None,
+                               _on_reduced=ahead)
             out = _WriteSettings(index=index, seamlines=seamlines, seamlines_lonlat=seamlines_lonlat, compress=compress,
                                  compress_level=compress_level, quality=quality, block_codec=block_codec,
                                  creation_options=creation_options, tile_size=tile_size, overwrite=overwrite,
@@ -316,7 +324,8 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
             if tiled:
                 try:
                     return write_tiled(plan, dst, tiled_settings, client=client, overwrite=overwrite, cancel=cancel,
-                                       progress=progress, threads=workers, worker_device=worker_device)
+                                       progress=progress, threads=workers, worker_device=worker_device,
+                                       _ahead=None if ahead is None else ahead.token)
                 finally:
                     plan.close()
             t_planned = time.perf_counter()

@@ -52,7 +52,7 @@ import threading
 import time
 import urllib.parse
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from typing import Any
 from xml.sax.saxutils import escape
@@ -485,6 +485,132 @@ class _Submitter:
         return k, self._next(w)
 
 
+# -- images built ahead on the workers --------------------------------------------------------
+
+#: Per worker process, per run (its token): the plan whose images are built ahead there, and
+#: whether the run's tiles have begun there (then no further builds start).
+_AHEAD: dict[str, _HeldAhead] = {}
+_AHEAD_LOCK = threading.Lock()
+
+
+@dataclass
+class _HeldAhead:
+    plan: Any  # the plan as its grid was made (None: the tiles began before any build)
+    started: bool = False
+
+
+class BuildAhead:
+    """The images of each worker's first tiles built on the workers while the calling process
+    makes the plan's balance and seams, which leaves them idle (the cluster's counterpart of
+    :meth:`ProcessTiles.build_ahead <orthowarp.pipeline.mosaic.workers.ProcessTiles.build_ahead>`).
+
+    Called with the plan once its reduced pass is done (``mosaic_plan``'s ``_on_reduced``
+    hook), it deals the tiles ``tiles_of(plan)`` as the run will (:func:`_deal`) and sends each
+    worker one task of low priority per image among the first ``per_worker`` that its tiles
+    use: the image's geometry and tile functions, built there and kept under :attr:`token`.
+    Each worker's first tile of the run takes them over (:func:`_adopt_ahead`); once its tiles
+    have begun, builds not yet started are skipped. The entries depend only on the images, the
+    grid and the options (:meth:`MosaicPlan.build_ahead
+    <orthowarp.pipeline.mosaic.plan.MosaicPlan.build_ahead>`), so the tiles' bytes are the same
+    with or without them. :meth:`close` (or the context manager) cancels what is left and
+    drops the workers' entries not taken.
+    """
+
+    def __init__(self, client: Any, device: str | None, tiles_of: Callable[[Any], list[Tile]], *,
+                 per_worker: int = 8) -> None:
+        self.client, self.device, self.tiles_of, self.per_worker = client, device, tiles_of, int(per_worker)
+        self.token = f"orthowarp-ahead-{os.getpid()}-{time.monotonic_ns():x}"
+        self._futures: list[Any] = []
+        self.sent = self.built = self.not_taken = 0  # builds sent, done, and done but not taken (by close)
+
+    def __enter__(self) -> BuildAhead:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    def __call__(self, plan: Any) -> None:
+        tiles = self.tiles_of(plan)
+        if not tiles:
+            return
+        images = plan._tile_images(tiles)
+        firsts = collections.defaultdict(list)
+        for k, w in _deal(self.client, tiles, images):
+            firsts[w].extend(images[k])
+        remote = self.client.scatter(shipped_plan(plan, self.device), broadcast=True, hash=False)
+        self._futures.append(remote)
+        for n, (w, ks) in enumerate(firsts.items()):
+            for k in list(dict.fromkeys(ks))[:self.per_worker]:
+                self._futures.append(self.client.submit(
+                    _build_ahead_task, remote, self.token, k, workers=[w], allow_other_workers=False, priority=-10,
+                    pure=False, key=f"{self.token}-{n}-{k}"))
+                self.sent += 1
+
+    def close(self) -> None:
+        """Cancel the builds not yet run and drop the entries the workers did not take
+        (:attr:`built`: the builds done; :attr:`not_taken`: those no tile took)."""
+        futures, self._futures = self._futures, []
+        if not futures:
+            return
+        with contextlib.suppress(Exception):
+            self.built += sum(1 for f in futures[1:] if f.status == "finished" and f.result() is True)
+        with contextlib.suppress(Exception):  # (a cluster gone: nothing left to drop)
+            self.client.cancel(futures[1:])
+        for f in futures:
+            with contextlib.suppress(Exception):
+                f.release()
+        with contextlib.suppress(Exception):
+            left = self.client.run(_drop_ahead, self.token, on_error="ignore")
+            self.not_taken += sum(v for v in left.values() if isinstance(v, int))
+        _log.info("images built ahead on the workers: %d of %d sent, %d of them not used", self.built, self.sent,
+                  self.not_taken)
+
+
+def _build_ahead_task(plan: Any, token: str, k: int) -> bool:
+    """On a worker: build image ``k``'s cache entry of ``plan`` for run ``token`` (see
+    :class:`BuildAhead`), unless the run's tiles have begun here or it is built already;
+    returns whether it was built. A failed build is kept as the entry's error (the tile that
+    takes it raises it, as it would have building the image itself)."""
+    from ..reports.profile import StageTimer
+
+    with _AHEAD_LOCK:
+        held = _AHEAD.setdefault(token, _HeldAhead(plan))
+        if held.started or held.plan is None or k in held.plan._ahead:
+            return False
+        built = Future()
+        held.plan._ahead[k] = built
+    try:
+        built.set_result(held.plan._build_quietly(k, StageTimer(time.perf_counter())))
+    except Exception as e:  # noqa: BLE001 - kept for the tile that takes the entry
+        built.set_exception(e)
+        return False
+    return True
+
+
+def _adopt_ahead(plan: Any, token: str | None) -> None:
+    """On a worker, as a tile of run ``token`` begins: ``plan`` (the run's final plan) takes
+    over the images built ahead here, and no further builds start."""
+    if token is None:
+        return
+    with _AHEAD_LOCK:
+        held = _AHEAD.setdefault(token, _HeldAhead(None))
+        held.started = True
+        if held.plan is not None and held.plan is not plan:
+            plan.adopt_ahead(held.plan)
+
+
+def _drop_ahead(token: str) -> int:
+    """On a worker, after run ``token``: forget its entry, closing the images built ahead and
+    not taken (after their builds); returns how many were built ahead here and not taken."""
+    with _AHEAD_LOCK:
+        held = _AHEAD.pop(token, None)
+    if held is None or held.plan is None:
+        return 0
+    left = len(held.plan._ahead)
+    held.plan.close()
+    return left
+
+
 # -- one COG: the tiles back to the caller ------------------------------------------------------
 
 # a worker's device encoder per device and codec: (the file settings it encodes for, encoder)
@@ -712,6 +838,17 @@ def _tile_name(i: int, j: int) -> str:
     return f"{i:05d}_{j:05d}"
 
 
+def product_tile_grid(settings: TiledSettings) -> Callable[[Any], list[Tile]]:
+    """The tiles (:class:`~orthowarp.pipeline.tiles.Tile`) a tiled product of ``settings`` has
+    for a plan, as a function of the plan (its grid made), for :class:`BuildAhead`."""
+
+    def tiles(plan: Any) -> list[Tile]:
+        size = settings.product_tile or auto_product_tile(plan.shape, settings.tile_size)
+        return [t for _, _, t in _product_tiles(plan, size)]
+
+    return tiles
+
+
 def _product_tiles(plan: Any, size: int) -> list[tuple[int, int, Tile]]:
     """(row, col, Tile) of the product grid's tiles that some image meets."""
     rows, cols = plan.shape
@@ -751,10 +888,11 @@ def _fingerprint(plan: Any, settings: TiledSettings) -> str:
 
 @quiet_warp()
 def _write_product_tile(plan: Any, i: int, j: int, tile: Tile, folder: str, settings: TiledSettings,
-                        threads: int = 1) -> dict:
+                        threads: int = 1, ahead: str | None = None) -> dict:
     """Compute product tile (``i``, ``j``) from its compute tiles (on ``threads`` threads) and
     publish its COG (and index COG), with its statistics as JSON, under ``folder``; returns the
-    statistics. (The bytes do not depend on the order the compute tiles finish in.)"""
+    statistics. (The bytes do not depend on the order the compute tiles finish in.) ``ahead``:
+    the token of a :class:`BuildAhead` whose images built on this worker the plan takes over."""
     import rasterio
     from affine import Affine
 
@@ -763,6 +901,7 @@ def _write_product_tile(plan: Any, i: int, j: int, tile: Tile, folder: str, sett
     from ..raster.device import DeviceCogEncoder, cog_writing
     from .plan import NO_SOURCE, index_file_settings, mosaic_block_codec, mosaic_file_settings
 
+    _adopt_ahead(plan, ahead)
     name = _tile_name(i, j)
     paths = [os.path.join(folder, "tiles", name + ".json"), os.path.join(folder, "tiles", name + ".tif")]
     if settings.index:
@@ -995,7 +1134,8 @@ class TiledResult:
 
 def write_tiled(plan: Any, dst: str | os.PathLike, settings: TiledSettings, *, client: Any = None,
                 overwrite: bool = False, cancel: threading.Event | None = None, progress: Any = None,
-                threads: int | None = None, worker_device: str | None = None) -> TiledResult:
+                threads: int | None = None, worker_device: str | None = None,
+                _ahead: str | None = None) -> TiledResult:
     """Write the tiled product of ``plan`` into the folder ``dst``.
 
     Parameters
@@ -1024,6 +1164,9 @@ def write_tiled(plan: Any, dst: str | os.PathLike, settings: TiledSettings, *, c
     Returns
     -------
     TiledResult
+
+    (Internally, ``_ahead`` is the token of a :class:`BuildAhead` of the plan: the workers'
+    images built ahead of the tiles.)
     """
     t0 = time.perf_counter()
     settings.check()
@@ -1048,7 +1191,8 @@ def write_tiled(plan: Any, dst: str | os.PathLike, settings: TiledSettings, *, c
         bar = Progress(progress, len(ptiles), kept)
         try:
             if client is not None:
-                done += _tiles_on_cluster(plan, client, todo, work, settings, cancel, dst, bar, worker_device)
+                done += _tiles_on_cluster(plan, client, todo, work, settings, cancel, dst, bar, worker_device,
+                                          _ahead)
             else:
                 done += _tiles_in_process(plan, todo, work, settings, cancel, dst, bar, threads or 2)
         finally:
@@ -1137,7 +1281,8 @@ def _check(cancel: threading.Event | None, dst: str) -> None:
 
 
 def _tiles_on_cluster(plan: Any, client: Any, todo: list, work: str, settings: TiledSettings,
-                      cancel: threading.Event | None, dst: str, bar: Progress, device: str | None) -> list[dict]:
+                      cancel: threading.Event | None, dst: str, bar: Progress, device: str | None,
+                      ahead: str | None = None) -> list[dict]:
     """The product tiles on the workers of ``client``, dealt in pieces (:func:`_deal`)."""
     if not todo:
         return []
@@ -1151,7 +1296,7 @@ def _tiles_on_cluster(plan: Any, client: Any, todo: list, work: str, settings: T
         for k, w in _deal(client, tiles, images):
             i, j, t = todo[k]
             futures.append(client.submit(_write_product_tile, remote, i, j, t, work, settings, threads.get(w, 1),
-                                         workers=[w], allow_other_workers=True, pure=False, key=f"{tag}-{k}"))
+                                         ahead, workers=[w], allow_other_workers=True, pure=False, key=f"{tag}-{k}"))
         for _, stats in as_finished(client, futures, lambda: _check(cancel, dst)):
             out.append(stats)
             bar.step()

@@ -597,13 +597,15 @@ def mosaic_plan(images: Sequence[tuple], *, dem: Dem | str | os.PathLike | float
                 device: str | None = None, geoid: str | os.PathLike | None = None, same_vertical_datum: bool = False,
                 cancel: threading.Event | None = None, _outputs: Sequence[str] = (),
                 _seam_pixels: int = SEAM_PIXELS, _client: Any = None, _worker_device: str | None = None,
-                _on_grid: Callable[[MosaicPlan], None] | None = None) -> MosaicPlan:
+                _on_grid: Callable[[MosaicPlan], None] | None = None,
+                _on_reduced: Callable[[MosaicPlan], None] | None = None) -> MosaicPlan:
     """The grid, sources and radiometric balance of a mosaic, without writing it: a
     :class:`MosaicPlan` whose :meth:`~MosaicPlan.tile` any scheduler can run (threads, a Dask
     cluster) and whose :meth:`~MosaicPlan.write` assembles the results. Parameters as
     :func:`~orthowarp.pipeline.mosaic.mosaic`. (Internally, with ``_client`` the reduced pass
     runs on that Dask client's workers, on ``_worker_device``; ``_on_grid(plan)`` is called once
-    the grid is made, before the reduced pass, balance and seams.)"""
+    the grid is made, before the reduced pass, balance and seams; ``_on_reduced(plan)`` once
+    the reduced pass is done, before the balance and seams.)"""
     t_plan = time.perf_counter()
     images = check_images(images, resampling, dtype, blend, feather, reference, seams, seam_width,
                           resolution=resolution, refraction=refraction, balance=balance, occlusion=occlusion,
@@ -634,7 +636,7 @@ def mosaic_plan(images: Sequence[tuple], *, dem: Dem | str | os.PathLike | float
     plan._fresh = fresh
     if _on_grid is not None:
         _on_grid(plan)
-    _balance_and_seams(plan, cfg, cancel, _seam_pixels, _client, _worker_device)
+    _balance_and_seams(plan, cfg, cancel, _seam_pixels, _client, _worker_device, _on_reduced)
     plan.setup_s["total"] = time.perf_counter() - t_plan
     return plan
 
@@ -783,13 +785,16 @@ def _residency(facts: list[tuple[str, int, str, bool]], sensors: Sequence[Sensor
 
 
 def _balance_and_seams(plan: MosaicPlan, cfg: _PlanSettings, cancel: threading.Event | None,
-                       seam_pixels: int, client: Any = None, worker_device: str | None = None) -> None:
+                       seam_pixels: int, client: Any = None, worker_device: str | None = None,
+                       on_reduced: Callable[[MosaicPlan], None] | None = None) -> None:
     """One reduced pass (the images' overlaps; on a Dask ``client``'s workers where given), then
-    the plan's radiometric balance and its seams' labelling from it; each step's seconds in
-    ``plan.setup_s``."""
+    (after ``on_reduced(plan)``, where given) the plan's radiometric balance and its seams'
+    labelling from it; each step's seconds in ``plan.setup_s``."""
     t = time.perf_counter()
     f, coarse, labels = reduced_pass(plan, cancel, seam_pixels, client=client, worker_device=worker_device)
     plan.setup_s["reduced_pass"] = time.perf_counter() - t
+    if on_reduced is not None:
+        on_reduced(plan)
     n_images = len(plan.sources)
     if cfg.balance and n_images > 1:
         t = time.perf_counter()
