@@ -183,6 +183,17 @@ def product_files(folder):
     return out
 
 
+def summed_workers(workers):
+    """The workers' records of their product tiles (TiledResult.workers) summed over the workers."""
+    out = dict(tiles=0, tile_s=0.0, flush_s=0.0, image_builds=0, stage_sums_s={})
+    for rec in workers.values():
+        for k in ("tiles", "tile_s", "flush_s", "image_builds"):
+            out[k] += rec.get(k, 0)
+        for k, v in rec.get("stage_sums_s", {}).items():
+            out["stage_sums_s"][k] = out["stage_sums_s"].get(k, 0.0) + v
+    return out
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--gpus", default="4,2,1", help="GPU counts, run in this order")
@@ -323,6 +334,9 @@ def main(argv=None):
                 else:
                     px = int(r.shape[0]) * int(r.shape[1])
                     run.update(plan_s=r.setup_s, tiles_s=r.wall_s)
+                if product == "tiled":  # per worker: its product tiles' seconds, image builds and stages
+                    run["workers_tiles"] = r.workers
+                    run["workers_tiles_summed"] = summed_workers(r.workers)
                 run.update(output_gpix=px / 1e9, output_gpix_s=px / 1e9 / run["wall_s"], files=len(files),
                            digest=digest(files))
                 report["runs"].append(run)
@@ -331,6 +345,12 @@ def main(argv=None):
                       f"{run['host_cpu_busy'] or 0:.0f} % (I/O wait {run['host_io_wait'] or 0:.0f} %), GPU busy "
                       f"{[round(v) for v in run['gpu_busy_mean'].values()]}, {run['files']} files, "
                       f"{run['digest'][:12]}", flush=True)
+                if run.get("workers_tiles_summed"):
+                    w = run["workers_tiles_summed"]
+                    stages = w["stage_sums_s"]
+                    print(f"    workers' product tiles: {w['tiles']} tiles, {w['tile_s']:.1f} s, of them flushes "
+                          f"{w['flush_s']:.1f} s; image builds {w['image_builds']} ({stages.get('setup', 0):.1f} s); "
+                          f"stages {', '.join(f'{k} {v:.1f}' for k, v in stages.items() if v)}", flush=True)
     summary = {}
     for product in products:
         runs = {r["gpus"]: r for r in report["runs"] if r["product"] == product}

@@ -15,6 +15,7 @@ from test_mosaic import FrameSensor, _second_view, scene, write_image
 from orthowarp.errors import Cancelled, OrthowarpError, ParamError, RasterIOError
 from orthowarp.pipeline.mosaic import mosaic, mosaic_plan
 from orthowarp.pipeline.mosaic.cluster import TiledSettings, redact, write_tiled
+from orthowarp.pipeline.reports.profile import STAGES
 
 distributed = pytest.importorskip("distributed")
 
@@ -193,6 +194,13 @@ def test_images_built_ahead_on_the_workers_give_the_same_tiles(block, reference,
         product = cl.write_tiled(plan, tmp_path / "tiled", settings, client=client, _ahead=ahead.token)
     assert ahead.built == ahead.sent and ahead.not_taken <= ahead.built
     assert _files(product.path) == _files(tiled.path)
+    # what each worker's tiles took: every tile counted once, the builds and stages summed
+    took = product.workers
+    assert set(took) <= set(client.scheduler_info()["workers"])
+    assert sum(rec["tiles"] for rec in took.values()) == product.tiles_computed
+    for rec in took.values():
+        assert rec["tile_s"] >= rec["flush_s"] >= 0 and rec["image_builds"] >= 0
+        assert set(rec["stage_sums_s"]) == set(STAGES) and rec["stage_sums_s"]["kernel"] > 0
     assert client.run(lambda: len(cl._AHEAD)) == {w: 0 for w in client.scheduler_info()["workers"]}
     plan.close()
 

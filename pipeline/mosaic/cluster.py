@@ -888,11 +888,13 @@ def _fingerprint(plan: Any, settings: TiledSettings) -> str:
 
 @quiet_warp()
 def _write_product_tile(plan: Any, i: int, j: int, tile: Tile, folder: str, settings: TiledSettings,
-                        threads: int = 1, ahead: str | None = None) -> dict:
+                        threads: int = 1, run: str | None = None) -> dict:
     """Compute product tile (``i``, ``j``) from its compute tiles (on ``threads`` threads) and
     publish its COG (and index COG), with its statistics as JSON, under ``folder``; returns the
-    statistics. (The bytes do not depend on the order the compute tiles finish in.) ``ahead``:
-    the token of a :class:`BuildAhead` whose images built on this worker the plan takes over."""
+    statistics. (The bytes do not depend on the order the compute tiles finish in.) ``run``: on
+    a cluster's worker, the run's token: the plan takes over the images a :class:`BuildAhead`
+    of that token built here, and what the tile took is noted for :func:`_take_run_stats`."""
+    t_tile = time.perf_counter()
     import rasterio
     from affine import Affine
 
@@ -901,7 +903,7 @@ def _write_product_tile(plan: Any, i: int, j: int, tile: Tile, folder: str, sett
     from ..raster.device import DeviceCogEncoder, cog_writing
     from .plan import NO_SOURCE, index_file_settings, mosaic_block_codec, mosaic_file_settings
 
-    _adopt_ahead(plan, ahead)
+    _adopt_ahead(plan, run)
     name = _tile_name(i, j)
     paths = [os.path.join(folder, "tiles", name + ".json"), os.path.join(folder, "tiles", name + ".tif")]
     if settings.index:
@@ -958,10 +960,12 @@ def _write_product_tile(plan: Any, i: int, j: int, tile: Tile, folder: str, sett
             else:
                 for s in subs:
                     one(s)
+            t_flush = time.perf_counter()
             if encoder is not None:
                 encoder.flush()
             for w in writers:
                 w.close()
+            flush_s = time.perf_counter() - t_flush
         stats = dict(row=i, col=j, r0=tile.row, c0=tile.col, rows=tile.height, cols=tile.width,
                      valid_pixels=int(counts.sum()),
                      pixels_per_image={str(k): int(v) for k, v in enumerate(counts) if v})
@@ -974,7 +978,36 @@ def _write_product_tile(plan: Any, i: int, j: int, tile: Tile, folder: str, sett
         for path in paths[1:]:
             with contextlib.suppress(FileNotFoundError):
                 os.remove(path)
+    if run is not None:
+        _note_product_tile(run, plan, time.perf_counter() - t_tile, flush_s)
     return stats
+
+
+#: Per worker process, per run: what its product tiles took (:func:`_note_product_tile`).
+_RUN_STATS: dict[str, dict[str, Any]] = {}
+_RUN_STATS_LOCK = threading.Lock()
+
+
+def _note_product_tile(run: str, plan: Any, seconds: float, flush_s: float) -> None:
+    """Add a finished product tile of ``run`` to this worker's record: tiles, their seconds
+    (summed over the worker's threads), the seconds of their encoders' flushes and files'
+    closing, and the plan's image builds and stage seconds so far (its tiles' profile in this
+    process: see :data:`~orthowarp.pipeline.reports.profile.STAGES`)."""
+    state = plan._state
+    with _RUN_STATS_LOCK:
+        rec = _RUN_STATS.setdefault(run, dict(tiles=0, tile_s=0.0, flush_s=0.0))
+        rec["tiles"] += 1
+        rec["tile_s"] += seconds
+        rec["flush_s"] += flush_s
+        if state is not None:
+            rec["image_builds"] = int(state["builds"])
+            rec["stage_sums_s"] = {k: round(v, 4) for k, v in state["timer"].sums.items()}
+
+
+def _take_run_stats(run: str) -> dict[str, Any] | None:
+    """This worker's record of ``run`` (taken out), or None where it computed none of its tiles."""
+    with _RUN_STATS_LOCK:
+        return _RUN_STATS.pop(run, None)
 
 
 def _json(obj: Any) -> str:
@@ -1115,7 +1148,11 @@ class TiledResult:
     """What :func:`write_tiled` wrote: the product folder ``path`` with ``vrt`` (and
     ``index_vrt``), ``tiles_geojson``; the tiles computed now and those kept from an earlier
     run; pixels per image; the mosaic's grid (``shape`` (rows, cols), ``transform``, ``crs``
-    WKT); seconds of the plan's steps (``setup_s``) and of the tiles and writing (``wall_s``)."""
+    WKT); seconds of the plan's steps (``setup_s``) and of the tiles and writing (``wall_s``);
+    on a cluster, per worker (address) what its tiles took (``workers``: ``tiles``, ``tile_s``
+    their seconds summed over its threads, ``flush_s`` of those in their encoders' flushes and
+    files' closing, ``image_builds`` and ``stage_sums_s``, the profile's stage seconds summed
+    over its threads, ``setup`` being the images built for the tiles)."""
 
     path: str
     vrt: str
@@ -1130,6 +1167,7 @@ class TiledResult:
     transform: Any = None
     crs: str = ""
     setup_s: dict = field(default_factory=dict)
+    workers: dict = field(default_factory=dict)
 
 
 def write_tiled(plan: Any, dst: str | os.PathLike, settings: TiledSettings, *, client: Any = None,
@@ -1189,10 +1227,12 @@ def write_tiled(plan: Any, dst: str | os.PathLike, settings: TiledSettings, *, c
         if kept:
             _log.info("%s: %d of %d tiles kept from an earlier run", dst, kept, len(ptiles))
         bar = Progress(progress, len(ptiles), kept)
+        workers = {}
         try:
             if client is not None:
-                done += _tiles_on_cluster(plan, client, todo, work, settings, cancel, dst, bar, worker_device,
-                                          _ahead)
+                computed, workers = _tiles_on_cluster(plan, client, todo, work, settings, cancel, dst, bar,
+                                                      worker_device, _ahead)
+                done += computed
             else:
                 done += _tiles_in_process(plan, todo, work, settings, cancel, dst, bar, threads or 2)
         finally:
@@ -1220,7 +1260,7 @@ def write_tiled(plan: Any, dst: str | os.PathLike, settings: TiledSettings, *, c
                        tiles_geojson=os.path.join(dst, "tiles.geojson"), tiles=len(ptiles),
                        tiles_computed=len(ptiles) - kept, tiles_kept=kept, pixels_per_image=used.tolist(),
                        wall_s=time.perf_counter() - t0, shape=tuple(plan.shape), transform=plan.transform,
-                       crs=plan.crs_wkt, setup_s=dict(plan.setup_s))
+                       crs=plan.crs_wkt, setup_s=dict(plan.setup_s), workers=workers)
 
 
 def _put(path: str, text: str) -> None:
@@ -1282,13 +1322,16 @@ def _check(cancel: threading.Event | None, dst: str) -> None:
 
 def _tiles_on_cluster(plan: Any, client: Any, todo: list, work: str, settings: TiledSettings,
                       cancel: threading.Event | None, dst: str, bar: Progress, device: str | None,
-                      ahead: str | None = None) -> list[dict]:
-    """The product tiles on the workers of ``client``, dealt in pieces (:func:`_deal`)."""
+                      ahead: str | None = None) -> tuple[list[dict], dict[str, dict]]:
+    """The product tiles on the workers of ``client``, dealt in pieces (:func:`_deal`): their
+    statistics, and per worker what its tiles took (:func:`_note_product_tile`). ``ahead``: the
+    token of the plan's :class:`BuildAhead`, if any."""
     if not todo:
-        return []
+        return [], {}
     tiles = [t for _, _, t in todo]
     images = plan._tile_images(tiles)
     tag = f"orthowarp-product-{os.getpid()}-{time.monotonic_ns():x}"
+    run = ahead or tag
     threads = {w: int(info.get("nthreads", 1)) for w, info in client.scheduler_info()["workers"].items()}
     out = []
     with broadcast_plan(client, plan, device) as remote:
@@ -1296,8 +1339,12 @@ def _tiles_on_cluster(plan: Any, client: Any, todo: list, work: str, settings: T
         for k, w in _deal(client, tiles, images):
             i, j, t = todo[k]
             futures.append(client.submit(_write_product_tile, remote, i, j, t, work, settings, threads.get(w, 1),
-                                         ahead, workers=[w], allow_other_workers=True, pure=False, key=f"{tag}-{k}"))
+                                         run, workers=[w], allow_other_workers=True, pure=False, key=f"{tag}-{k}"))
         for _, stats in as_finished(client, futures, lambda: _check(cancel, dst)):
             out.append(stats)
             bar.step()
-    return out
+    took = {}
+    with contextlib.suppress(Exception):  # (a record lost with a worker is only a record)
+        took = {w: rec for w, rec in client.run(_take_run_stats, run, on_error="ignore").items()
+                if isinstance(rec, dict)}
+    return out, took

@@ -287,7 +287,11 @@ class MosaicPlan(TileBlending):
             st["users"][k] = st["users"].get(k, 0) + 1
         try:
             if entry is None:
-                built = self._built_ahead(k, st["timer"]) or self._build(k, st["timer"])  # outside the lock: slow
+                built = self._built_ahead(k, st["timer"])
+                if built is None:  # (outside the lock: slow; the profile's "setup" stage)
+                    t = time.perf_counter()
+                    built = self._build(k, st["timer"])
+                    st["timer"].span("setup", t)
                 to_close = []
                 with self._lock:
                     if k in st["images"]:  # another thread built it meanwhile

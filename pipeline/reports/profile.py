@@ -21,7 +21,9 @@ Stages (keys of ``profile["stages"]``, in order)
 ------------------------------------------------
 setup
     From the call to the first tile: parameter checks, the camera geometry on the device
-    (Warp's initialisation the first time), the output grid, loading the kernel module.
+    (Warp's initialisation the first time), the output grid, loading the kernel module. In a
+    mosaic, also each image's geometry and tile functions, built when a tile first needs them
+    (those built ahead of the tiles are not counted).
 prepare
     Per tile on the host: the coarse grid of output pixels through PROJ, the DEM's height range
     under it, the source window the tile needs.
@@ -60,7 +62,7 @@ _LABELS = {"setup": "set-up", "prepare": "tile set-up", "read": "read", "h2d": "
            "d2h": "device->host", "queue": "hand-off to writer", "write": "compress+write", "finish": "finish"}
 
 _BOUND = {
-    "setup": "set-up before the tiles (geometry, output grid, kernel modules)",
+    "setup": "set-up (geometry, output grid, kernel modules; a mosaic's images built for their tiles)",
     "prepare": "per-tile set-up on the host (coarse grids through PROJ, source windows)",
     "read": "source reads on the host",
     "h2d": "host->device transfers",
