@@ -149,8 +149,8 @@ def test_a_worker_takes_over_the_images_built_ahead(block):
     """The worker side of BuildAhead, in this process: an image built ahead once; the run's
     first tile hands it to the final plan and stops further builds; the tile's pixels are the
     plan's; the run's entry dropped after it, closing what no tile took."""
-    from orthowarp.pipeline.mosaic.cluster import (_AHEAD, _adopt_ahead, _build_ahead_task, _drop_ahead,
-                                                   shipped_plan)
+    from orthowarp.pipeline.mosaic.cluster import (_AHEAD, _AHEAD_RUNS, _adopt_ahead, _build_ahead_task,
+                                                   _drop_ahead, shipped_plan)
 
     sc, images = block
     plan = mosaic_plan(images, dem=sc.dem, refraction=False, device="cpu")
@@ -167,6 +167,13 @@ def test_a_worker_takes_over_the_images_built_ahead(block):
     other = shipped_plan(plan, "cpu")
     assert _build_ahead_task(other, "run-b", 1)
     assert _drop_ahead("run-b") == 1 and not other._ahead  # (closed: no tile came)
+    # runs never dropped (their caller gone): the oldest go once _AHEAD_RUNS are held, closed
+    runs = [shipped_plan(plan, "cpu") for _ in range(_AHEAD_RUNS + 1)]
+    for n, p in enumerate(runs):
+        assert _build_ahead_task(p, f"lost-{n}", 1)
+    assert list(_AHEAD) == [f"lost-{n}" for n in range(1, _AHEAD_RUNS + 1)] and not runs[0]._ahead
+    for n in range(1, _AHEAD_RUNS + 1):
+        assert _drop_ahead(f"lost-{n}") == 1
     final.close()
     plan.close()
 

@@ -488,9 +488,12 @@ class _Submitter:
 # -- images built ahead on the workers --------------------------------------------------------
 
 #: Per worker process, per run (its token): the plan whose images are built ahead there, and
-#: whether the run's tiles have begun there (then no further builds start).
+#: whether the run's tiles have begun there (then no further builds start). At most
+#: _AHEAD_RUNS runs, the oldest dropped first: a run whose caller died before dropping its
+#: entries does not hold a long-lived worker's memory for ever.
 _AHEAD: dict[str, _HeldAhead] = {}
 _AHEAD_LOCK = threading.Lock()
+_AHEAD_RUNS = 4
 
 
 @dataclass
@@ -574,11 +577,15 @@ def _build_ahead_task(plan: Any, token: str, k: int) -> bool:
     from ..reports.profile import StageTimer
 
     with _AHEAD_LOCK:
-        held = _AHEAD.setdefault(token, _HeldAhead(plan))
+        held, stale = _held_ahead(token, plan)
         if held.started or held.plan is None or k in held.plan._ahead:
-            return False
-        built = Future()
-        held.plan._ahead[k] = built
+            built = None
+        else:
+            built = Future()
+            held.plan._ahead[k] = built
+    _close_held(stale)
+    if built is None:
+        return False
     try:
         built.set_result(held.plan._build_quietly(k, StageTimer(time.perf_counter())))
     except Exception as e:  # noqa: BLE001 - kept for the tile that takes the entry
@@ -593,10 +600,29 @@ def _adopt_ahead(plan: Any, token: str | None) -> None:
     if token is None:
         return
     with _AHEAD_LOCK:
-        held = _AHEAD.setdefault(token, _HeldAhead(None))
+        held, stale = _held_ahead(token, None)  # (no build here yet: none will start)
         held.started = True
         if held.plan is not None and held.plan is not plan:
             plan.adopt_ahead(held.plan)
+    _close_held(stale)
+
+
+def _held_ahead(token: str, plan: Any) -> tuple[_HeldAhead, list[_HeldAhead]]:
+    """Run ``token``'s entry (made for ``plan`` where there is none) and the entries of the
+    oldest runs it displaces (:data:`_AHEAD_RUNS`), to be closed; call holding _AHEAD_LOCK."""
+    held, stale = _AHEAD.get(token), []
+    if held is None:
+        while len(_AHEAD) >= _AHEAD_RUNS:
+            stale.append(_AHEAD.pop(next(iter(_AHEAD))))
+        held = _AHEAD[token] = _HeldAhead(plan)
+    return held, stale
+
+
+def _close_held(entries: Sequence[_HeldAhead]) -> None:
+    """Close the images built ahead for displaced runs (after their builds)."""
+    for held in entries:
+        if held.plan is not None:
+            held.plan.close()
 
 
 def _drop_ahead(token: str) -> int:
@@ -986,6 +1012,7 @@ def _write_product_tile(plan: Any, i: int, j: int, tile: Tile, folder: str, sett
 #: Per worker process, per run: what its product tiles took (:func:`_note_product_tile`).
 _RUN_STATS: dict[str, dict[str, Any]] = {}
 _RUN_STATS_LOCK = threading.Lock()
+_RUN_STATS_MAX = 16
 
 
 def _note_product_tile(run: str, plan: Any, seconds: float, flush_s: float) -> None:
@@ -995,6 +1022,9 @@ def _note_product_tile(run: str, plan: Any, seconds: float, flush_s: float) -> N
     process: see :data:`~orthowarp.pipeline.reports.profile.STAGES`)."""
     state = plan._state
     with _RUN_STATS_LOCK:
+        if run not in _RUN_STATS:
+            while len(_RUN_STATS) >= _RUN_STATS_MAX:  # (runs whose caller never took them)
+                _RUN_STATS.pop(next(iter(_RUN_STATS)))
         rec = _RUN_STATS.setdefault(run, dict(tiles=0, tile_s=0.0, flush_s=0.0))
         rec["tiles"] += 1
         rec["tile_s"] += seconds
