@@ -209,6 +209,10 @@ def test_images_built_ahead_on_the_workers_give_the_same_tiles(block, reference,
         assert rec["tile_s"] >= rec["flush_s"] >= 0 and rec["image_builds"] >= 0
         assert set(rec["stage_sums_s"]) == set(STAGES) and rec["stage_sums_s"]["kernel"] > 0
     assert client.run(lambda: len(cl._AHEAD)) == {w: 0 for w in client.scheduler_info()["workers"]}
+    again = cl.write_tiled(plan, tmp_path / "again", settings, client=client)  # (no build-ahead: nothing held)
+    assert _files(again.path) == _files(tiled.path) and sum(r["tiles"] for r in again.workers.values()) == again.tiles
+    assert client.run(lambda: (len(cl._AHEAD), len(cl._RUN_STATS))) == {
+        w: (0, 0) for w in client.scheduler_info()["workers"]}
     plan.close()
 
 

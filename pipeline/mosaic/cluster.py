@@ -498,7 +498,7 @@ _AHEAD_RUNS = 4
 
 @dataclass
 class _HeldAhead:
-    plan: Any  # the plan as its grid was made (None: the tiles began before any build)
+    plan: Any  # the plan as its reduced pass left it (None: the tiles began before any build)
     started: bool = False
 
 
@@ -556,7 +556,8 @@ class BuildAhead:
         if not futures:
             return
         with contextlib.suppress(Exception):
-            self.built += sum(1 for f in futures[1:] if f.status == "finished" and f.result() is True)
+            done = [f for f in futures[1:] if f.status == "finished"]
+            self.built += sum(1 for v in self.client.gather(done, errors="skip") if v is True)
         with contextlib.suppress(Exception):  # (a cluster gone: nothing left to drop)
             self.client.cancel(futures[1:])
         for f in futures:
@@ -914,12 +915,13 @@ def _fingerprint(plan: Any, settings: TiledSettings) -> str:
 
 @quiet_warp()
 def _write_product_tile(plan: Any, i: int, j: int, tile: Tile, folder: str, settings: TiledSettings,
-                        threads: int = 1, run: str | None = None) -> dict:
+                        threads: int = 1, run: str | None = None, ahead: str | None = None) -> dict:
     """Compute product tile (``i``, ``j``) from its compute tiles (on ``threads`` threads) and
     publish its COG (and index COG), with its statistics as JSON, under ``folder``; returns the
-    statistics. (The bytes do not depend on the order the compute tiles finish in.) ``run``: on
-    a cluster's worker, the run's token: the plan takes over the images a :class:`BuildAhead`
-    of that token built here, and what the tile took is noted for :func:`_take_run_stats`."""
+    statistics. (The bytes do not depend on the order the compute tiles finish in.) On a
+    cluster's worker: ``run``, the run's tag, under which what the tile took is noted for
+    :func:`_take_run_stats`; ``ahead``, the token of a :class:`BuildAhead` whose images built
+    here the plan takes over."""
     t_tile = time.perf_counter()
     import rasterio
     from affine import Affine
@@ -929,7 +931,7 @@ def _write_product_tile(plan: Any, i: int, j: int, tile: Tile, folder: str, sett
     from ..raster.device import DeviceCogEncoder, cog_writing
     from .plan import NO_SOURCE, index_file_settings, mosaic_block_codec, mosaic_file_settings
 
-    _adopt_ahead(plan, run)
+    _adopt_ahead(plan, ahead)
     name = _tile_name(i, j)
     paths = [os.path.join(folder, "tiles", name + ".json"), os.path.join(folder, "tiles", name + ".tif")]
     if settings.index:
@@ -1361,7 +1363,6 @@ def _tiles_on_cluster(plan: Any, client: Any, todo: list, work: str, settings: T
     tiles = [t for _, _, t in todo]
     images = plan._tile_images(tiles)
     tag = f"orthowarp-product-{os.getpid()}-{time.monotonic_ns():x}"
-    run = ahead or tag
     threads = {w: int(info.get("nthreads", 1)) for w, info in client.scheduler_info()["workers"].items()}
     out = []
     with broadcast_plan(client, plan, device) as remote:
@@ -1369,12 +1370,13 @@ def _tiles_on_cluster(plan: Any, client: Any, todo: list, work: str, settings: T
         for k, w in _deal(client, tiles, images):
             i, j, t = todo[k]
             futures.append(client.submit(_write_product_tile, remote, i, j, t, work, settings, threads.get(w, 1),
-                                         run, workers=[w], allow_other_workers=True, pure=False, key=f"{tag}-{k}"))
+                                         tag, ahead, workers=[w], allow_other_workers=True, pure=False,
+                                         key=f"{tag}-{k}"))
         for _, stats in as_finished(client, futures, lambda: _check(cancel, dst)):
             out.append(stats)
             bar.step()
     took = {}
     with contextlib.suppress(Exception):  # (a record lost with a worker is only a record)
-        took = {w: rec for w, rec in client.run(_take_run_stats, run, on_error="ignore").items()
+        took = {w: rec for w, rec in client.run(_take_run_stats, tag, on_error="ignore").items()
                 if isinstance(rec, dict)}
     return out, took
