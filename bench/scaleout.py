@@ -331,6 +331,9 @@ def main(argv=None):
                 run["tasks"] = task_summary(stream.data, t_wall)
                 if product == "orthos":
                     px = sum(x.shape[0] * x.shape[1] for x in rs)
+                    # per stage, the orthos' seconds summed over the batch (each ortho's threads)
+                    run["orthos_timings_summed"] = {k: round(sum(x.timings.get(k, 0.0) for x in rs), 3)
+                                                    for k in sorted({k for x in rs for k in x.timings})}
                 else:
                     px = int(r.shape[0]) * int(r.shape[1])
                     run.update(plan_s=r.setup_s, tiles_s=r.wall_s)
@@ -345,6 +348,9 @@ def main(argv=None):
                       f"{run['host_cpu_busy'] or 0:.0f} % (I/O wait {run['host_io_wait'] or 0:.0f} %), GPU busy "
                       f"{[round(v) for v in run['gpu_busy_mean'].values()]}, {run['files']} files, "
                       f"{run['digest'][:12]}", flush=True)
+                if run.get("orthos_timings_summed"):
+                    print("    orthos' stages summed: " + ", ".join(
+                        f"{k} {v:.1f}" for k, v in run["orthos_timings_summed"].items() if v), flush=True)
                 if run.get("workers_tiles_summed"):
                     w = run["workers_tiles_summed"]
                     stages = w["stage_sums_s"]
