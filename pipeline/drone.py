@@ -249,14 +249,11 @@ class ExifChain:
 
 def _quiet_open(path: str) -> Any:
     """``rasterio.open(path)`` without the warning that a drone image has no georeferencing."""
-    import warnings
-
     import rasterio
 
-    from .raster.io import WARNINGS_LOCK
+    from .raster.io import not_georeferenced_quiet
 
-    with WARNINGS_LOCK, warnings.catch_warnings():
-        warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+    with not_georeferenced_quiet():
         return rasterio.open(path)
 
 

@@ -11,14 +11,13 @@ Each error names the file.
 from __future__ import annotations
 
 import os
-import warnings
 from collections.abc import Iterable
 
 import numpy as np
 
 from ...errors import CrsError, ParamError, RasterIOError
 from ...orthoimage import OrthoImage
-from ..raster.io import GDAL_ERRORS, WARNINGS_LOCK, gdal_reason
+from ..raster.io import GDAL_ERRORS, gdal_reason, not_georeferenced_quiet
 from .sensors import expand_images
 
 __all__ = ["read_ortho", "ortho_images", "CENTRE_PIXELS"]
@@ -57,8 +56,7 @@ def read_ortho(path: str | os.PathLike) -> OrthoImage:
     if not os.path.exists(src):
         raise RasterIOError(f"Image '{src}' does not exist")
     try:
-        with WARNINGS_LOCK, warnings.catch_warnings():
-            warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+        with not_georeferenced_quiet():
             with rasterio.open(src) as ds:
                 crs, transform, size = ds.crs, ds.transform, (ds.width, ds.height)
                 gcps = ds.gcps[0]

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import threading
 import time
-import warnings
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from typing import TYPE_CHECKING, Any
@@ -32,7 +31,7 @@ from ...kernels import ortho as ortho_kernels
 from ...options import Resampling as Interpolation
 from ...options import SourceReads, values
 from ..raster.cog import DTYPES
-from ..raster.io import GDAL_ERRORS, WARNINGS_LOCK, gdal_reason
+from ..raster.io import GDAL_ERRORS, gdal_reason, not_georeferenced_quiet
 from ..raster.rawtiff import raw_layout, read_raw_blocks, read_raw_window
 from ..reports.profile import StageTimer
 from ..tiles import Tile
@@ -788,8 +787,7 @@ def _open_source(path: str) -> rasterio.io.DatasetReader:
     """Open a source image for reading; frame images are usually not georeferenced.
     :class:`RasterIOError` naming it (GDAL's reason) where it cannot be opened."""
     try:
-        with WARNINGS_LOCK, warnings.catch_warnings():
-            warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+        with not_georeferenced_quiet():
             return rasterio.open(path)
     except GDAL_ERRORS as e:
         raise RasterIOError(f"Could not open image '{path}': {gdal_reason(e)}") from e

@@ -44,7 +44,7 @@ if TYPE_CHECKING:
 __all__ = ["ensure_folder", "check_destination", "is_virtual", "source_exists", "atomic_path", "atomic_files", "outputs_together", "pending_path",
            "remove_stale_temporaries", "remove_own_temporaries", "abandoned", "write_raster", "write_text",
            "write_files", "write_json", "describe_os_error", "gdal_reason", "write_error", "check_cancel",
-           "GDAL_ERRORS", "TMP_TAG"]
+           "not_georeferenced_quiet", "GDAL_ERRORS", "TMP_TAG"]
 
 TMP_TAG = ".orthowarp-tmp-"
 # what rasterio raises for GDAL's errors: its own classes, and GDAL's CPLE_* ones where it
@@ -53,6 +53,16 @@ GDAL_ERRORS = (rasterio.errors.RasterioError, CPLE_BaseError)
 #: Held around every ``warnings.catch_warnings`` of orthowarp's: the filters it saves and
 #: restores are the process's, so two at once on different threads lose one's filter
 WARNINGS_LOCK = threading.RLock()
+
+
+@contextlib.contextmanager
+def not_georeferenced_quiet() -> Iterator[None]:
+    """rasterio's ``NotGeoreferencedWarning`` ignored within the block (frame images and their
+    temporaries have no georeferencing), the process-wide filters held under
+    :data:`WARNINGS_LOCK` meanwhile."""
+    with WARNINGS_LOCK, warnings.catch_warnings():
+        warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+        yield
 
 
 def describe_os_error(e: OSError) -> str:
@@ -555,8 +565,7 @@ def write_raster(path: str | os.PathLike, array: np.ndarray, *, transform: Affin
         profile["nodata"] = nodata
     with atomic_path(path) as tmp:
         try:
-            with WARNINGS_LOCK, warnings.catch_warnings():
-                warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+            with not_georeferenced_quiet():
                 with rasterio.open(tmp, "w", **profile) as dst:
                     dst.write(arr)
                     if descriptions is not None:
