@@ -64,7 +64,7 @@ from ...errors import Cancelled, OrthowarpError, ParamError, RasterIOError
 from ..raster.io import atomic_files, describe_os_error, ensure_folder, is_virtual
 from ..reports.progress import Progress
 from ..tiles import Tile
-from .workers import tile_runs
+from .workers import first_images, tile_runs
 
 __all__ = ["connect", "local_cluster", "cluster_results", "write_tiled", "TiledSettings", "redact",
            "PRODUCT_FORMAT"]
@@ -537,13 +537,13 @@ class BuildAhead:
         if not tiles:
             return
         images = plan._tile_images(tiles)
-        firsts = collections.defaultdict(list)
-        for k, w in _deal(self.client, tiles, images):
-            firsts[w].extend(images[k])
+        dealt = collections.defaultdict(list)
+        for t, w in _deal(self.client, tiles, images):
+            dealt[w].append(t)
         remote = self.client.scatter(shipped_plan(plan, self.device), broadcast=True, hash=False)
         self._futures.append(remote)
-        for n, (w, ks) in enumerate(firsts.items()):
-            for k in list(dict.fromkeys(ks))[:self.per_worker]:
+        for n, (w, ts) in enumerate(dealt.items()):
+            for k in first_images(ts, images, self.per_worker):
                 self._futures.append(self.client.submit(
                     _build_ahead_task, remote, self.token, k, workers=[w], allow_other_workers=False, priority=-10,
                     pure=False, key=f"{self.token}-{n}-{k}"))
@@ -613,10 +613,18 @@ def _held_ahead(token: str, plan: Any) -> tuple[_HeldAhead, list[_HeldAhead]]:
     oldest runs it displaces (:data:`_AHEAD_RUNS`), to be closed; call holding _AHEAD_LOCK."""
     held, stale = _AHEAD.get(token), []
     if held is None:
-        while len(_AHEAD) >= _AHEAD_RUNS:
-            stale.append(_AHEAD.pop(next(iter(_AHEAD))))
+        stale = _make_room(_AHEAD, _AHEAD_RUNS)
         held = _AHEAD[token] = _HeldAhead(plan)
     return held, stale
+
+
+def _make_room(runs: dict[str, Any], most: int) -> list[Any]:
+    """Drop the oldest entries of a worker's per-run registry ``runs`` until one more fits in
+    ``most``; returns them (runs whose caller never came back for them)."""
+    dropped = []
+    while len(runs) >= most:
+        dropped.append(runs.pop(next(iter(runs))))
+    return dropped
 
 
 def _close_held(entries: Sequence[_HeldAhead]) -> None:
@@ -1025,8 +1033,7 @@ def _note_product_tile(run: str, plan: Any, seconds: float, flush_s: float) -> N
     state = plan._state
     with _RUN_STATS_LOCK:
         if run not in _RUN_STATS:
-            while len(_RUN_STATS) >= _RUN_STATS_MAX:  # (runs whose caller never took them)
-                _RUN_STATS.pop(next(iter(_RUN_STATS)))
+            _make_room(_RUN_STATS, _RUN_STATS_MAX)
         rec = _RUN_STATS.setdefault(run, dict(tiles=0, tile_s=0.0, flush_s=0.0))
         rec["tiles"] += 1
         rec["tile_s"] += seconds

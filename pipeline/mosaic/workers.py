@@ -46,7 +46,7 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -193,7 +193,7 @@ class ProcessTiles:
         while at < len(blob):
             at += os.pwrite(fd, memoryview(blob)[at:], at)
         for w, run in enumerate(runs[:self.n]):
-            ks = list(dict.fromkeys(j for k in run for j in images[k]))[:per_process]
+            ks = first_images(run, images, per_process)
             self._tasks[w].put(("ahead", path, len(blob), ks))
 
     def _views(self, slot: int, th: int, tw: int, count: int,
@@ -309,6 +309,12 @@ class ProcessTiles:
             os.close(self._ahead_file[1])
             self._ahead_file = None
         self._results.close()
+
+
+def first_images(tiles: Iterable[int], images: Sequence[tuple[int, ...]], n: int) -> list[int]:
+    """The first ``n`` images (indices) that ``tiles`` (tile indices, in the order they run)
+    use, each once, in the order of their first use; ``images``: per tile, its images."""
+    return list(dict.fromkeys(j for k in tiles for j in images[k]))[:n]
 
 
 def tile_runs(tiles: Sequence[Tile], n: int, images: Sequence[tuple[int, ...]], *,
