@@ -3,8 +3,9 @@
 
 - ``zlib``: inflating 16 MB of level-6 deflate six times (compute-bound, little memory traffic);
 - ``python``: a loop of 3 million interpreted steps (compute-bound, in the interpreter);
-- ``memory``: 20 passes of two NumPy operations over 160 MB float32 arrays (about 13 GB of memory
-  traffic per process: bound by the memory's bandwidth).
+- ``memory``: 20 passes of two NumPy operations over 160 MB float32 arrays (about 22 GB of memory
+  traffic per process, counting each written array's read for ownership: bound by the memory's
+  bandwidth).
 
 A job whose time stays flat as processes are added scales with the cores; one whose time grows
 shares something (for ``memory``: the host's memory bandwidth, reported as GB/s summed over the
