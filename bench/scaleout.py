@@ -26,7 +26,7 @@ the scaling efficiency t(1) / (n t(n)) and whether the digests agree.
 usage: python3 bench/scaleout.py [--gpus 4,2,1] [--frames 160] [--frame 4800x4000] [--orthos 40]
                                  [--processes-per-gpu 4] [--products tiled,cog,orthos]
                                  [--block-codec auto] [--product-tile 0] [--no-sync]
-                                 [--no-build-ahead] [--no-malloc-trim] [--workdir DIR] [--out FILE]
+                                 [--no-build-ahead] [--no-malloc-trim] [--no-pin] [--workdir DIR] [--out FILE]
 """
 
 import argparse
@@ -223,7 +223,14 @@ def main(argv=None):
     ap.add_argument("--no-build-ahead", action="store_true",
                     help="the workers do not build the images of their first tiles while the calling process "
                          "balances and cuts the seams (the tiled product's BuildAhead made to send nothing)")
+    ap.add_argument("--no-pin", action="store_true",
+                    help="the local cluster's workers are not given shares of the host's cores of their own "
+                         "(share_cores made to do nothing): each runs on every core")
     args = ap.parse_args(argv)
+    if args.no_pin:
+        from orthowarp.pipeline.mosaic import cluster as cluster_module
+
+        cluster_module.share_cores = lambda client: {}
     if args.no_build_ahead:
         from orthowarp.pipeline.mosaic import cluster as cluster_module
 
@@ -272,7 +279,7 @@ def main(argv=None):
     gpu_name = "cpu" if cpu else subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader", "-i", "0"],
                                                 capture_output=True, text=True).stdout.strip()
     report = dict(benchmark="scaleout", device=gpu_name, gpu_counts=[int(g) for g in args.gpus.split(",")],
-                  malloc_trim=not args.no_malloc_trim, build_ahead=not args.no_build_ahead,
+                  malloc_trim=not args.no_malloc_trim, build_ahead=not args.no_build_ahead, pinned=not args.no_pin,
                   frames=args.frames, frame=[width, height, 3], orthos=args.orthos,
                   ortho_frame=args.ortho_frame or args.frame,
                   processes_per_gpu=args.processes_per_gpu, threads=args.threads, cpu_count=os.cpu_count(),

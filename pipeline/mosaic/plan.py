@@ -1020,8 +1020,10 @@ def _reduced_image(plan: MosaicPlan, k: int, f: int, *, keep: bool = False) -> t
     # where the plan's sources are resident, each is read whole into device memory here
     # and kept with the geometry for the tiles (reduced windows averaged from it there)
     whole = plan._whole_source(k, geom.device) if plan.options.get("resident") else None
+    # (the source's own mask flag and dtype: an uncompressed source without a mask is then
+    # read as stored, without GDAL, as its tiles are; the same values)
     it = ImageTiles(src, geom, plan.crs, ctr, count=count, out_dtype="float32", resampling=plan.options["resampling"],
-                    masked=True, src_dtype="float32", decimate=f >= 4,
+                    masked=plan.sources[k][2], src_dtype=plan.src_dtype, decimate=f >= 4,
                     device_reduce=plan.options.get("device_reduce", False),
                     **(dict(source_reads="whole", whole=whole) if whole is not None else {}))
     try:
