@@ -25,7 +25,7 @@ the scaling efficiency t(1) / (n t(n)) and whether the digests agree.
 
 usage: python3 bench/scaleout.py [--gpus 4,2,1] [--frames 160] [--frame 4800x4000] [--orthos 40]
                                  [--processes-per-gpu 4] [--products tiled,cog,orthos]
-                                 [--block-codec auto] [--product-tile 0] [--no-sync]
+                                 [--block-codec auto] [--product-tile 0] [--tile-size 0] [--no-sync]
                                  [--no-build-ahead] [--no-malloc-trim] [--no-pin] [--workdir DIR] [--out FILE]
 """
 
@@ -212,6 +212,7 @@ def main(argv=None):
     ap.add_argument("--baseline", action="store_true", help="first, the mosaic on one GPU without a cluster")
     ap.add_argument("--block-codec", default="auto", help="the mosaics' block codec (mosaic()'s block_codec)")
     ap.add_argument("--product-tile", type=int, default=0, help="the tiled product's tile edge (0: the default)")
+    ap.add_argument("--tile-size", type=int, default=0, help="the mosaics' compute tile edge (0: the default)")
     ap.add_argument("--no-sync", action="store_true",
                     help="do not flush the built blocks to disk before the runs (by default os.sync(): the "
                          "first runs would otherwise share the disk with the write-back of the inputs)")
@@ -284,12 +285,13 @@ def main(argv=None):
                   ortho_frame=args.ortho_frame or args.frame,
                   processes_per_gpu=args.processes_per_gpu, threads=args.threads, cpu_count=os.cpu_count(),
                   block_codec=args.block_codec, product_tile=args.product_tile or "auto",
+                  tile_size=args.tile_size or "auto",
                   build_s=build_s, unwritten_mb_after_build=unwritten_after_build,
                   sync_s=None if args.no_sync else sync_s, runs=[])
     products = args.products.split(",")
     print(f"block of {args.frames} frames {width} x {height} built in {report['build_s']:.1f} s on {gpu_name}", flush=True)
     device = "cpu" if cpu else "cuda:0"
-    kw = dict(dem=dem, overwrite=True, device=device)
+    kw = dict(dem=dem, overwrite=True, device=device, tile_size=args.tile_size or None)
     if args.baseline:  # one GPU without a cluster: the tile processes of orthowarp mosaic
         mosaic(images[:2], os.path.join(work, "warm.tif"), processes=args.processes_per_gpu, **kw)
         with GpuSampler() as gs:

@@ -41,11 +41,15 @@ class _Workers:
         return {"workers": {f"tcp://127.0.0.1:{9000 + i}": {} for i in range(self.n)}}
 
 
-@pytest.mark.parametrize("rows,cols,workers", [(6, 11, 16), (11, 6, 16), (6, 11, 4), (8, 9, 8), (2, 2, 8), (1, 7, 3)])
+@pytest.mark.parametrize("rows,cols,workers", [(6, 11, 16), (11, 6, 16), (6, 11, 4), (8, 9, 8), (2, 2, 8), (1, 7, 3),
+                                               (4, 17, 4), (4, 17, 16), (5, 5, 7), (13, 13, 32), (13, 12, 30),
+                                               (5, 8, 13), (9, 4, 11)])
 def test_the_deal_gives_every_worker_a_compact_share(rows, cols, workers):
     """Tiles dealt to a cluster's workers: each tile once; no worker idle while another has
     two tiles or more (a grid of 6 x 11 tiles has fewer rows and columns than 16 workers); the
-    shares within one tile of each other; each share a path of neighbouring tiles."""
+    shares within one tile of each other; each share compact (its bounding box at most 2.5
+    times its tiles, 3 times for three tiles or fewer: a cut's partial line can leave a small
+    piece on a diagonal), taken in a serpentine where it is a rectangle."""
     from orthowarp.pipeline.mosaic.cluster import _deal, worker_names
 
     tiles = [(r * 64, c * 64, 64, 64) for r in range(rows) for c in range(cols)]
@@ -57,9 +61,34 @@ def test_the_deal_gives_every_worker_a_compact_share(rows, cols, workers):
     assert min(len(tiles), workers) == sum(1 for n in sizes if n)
     assert max(sizes) - min(n for n in sizes if n) <= 1
     for share in shares.values():
-        for a, b in zip(share, share[1:]):  # a step of the serpentine: to a grid neighbour
-            (ra, ca), (rb, cb) = divmod(a, cols), divmod(b, cols)
-            assert abs(ra - rb) + abs(ca - cb) == 1
+        if not share:
+            continue
+        cells = [divmod(k, cols) for k in share]
+        box = (max(r for r, _ in cells) - min(r for r, _ in cells) + 1) * \
+            (max(c for _, c in cells) - min(c for _, c in cells) + 1)
+        assert box <= (2.5 if len(cells) > 3 else 3) * len(cells)
+        if box == len(cells):  # a rectangle: a step of the serpentine goes to a grid neighbour
+            for (ra, ca), (rb, cb) in zip(cells, cells[1:]):
+                assert abs(ra - rb) + abs(ca - cb) == 1
+
+
+def test_the_deal_cuts_a_long_block_across():
+    """On a long block (4 x 17 tiles, each image meeting a 2 x 2 block of them) the workers'
+    shares are cut across its length, not along it: 4 workers meet far fewer images than one
+    strip of tiles each would."""
+    from orthowarp.pipeline.mosaic.cluster import _deal
+
+    rows, cols = 4, 17
+    tiles = [(r * 64, c * 64, 64, 64) for r in range(rows) for c in range(cols)]
+    # image (i, j) covers tiles (i..i+1, j..j+1): tile (r, c) is met by up to 4 images
+    images = [tuple(i * cols + j for i in (r - 1, r) for j in (c - 1, c) if 0 <= i < rows - 1 and 0 <= j < cols - 1)
+              for r in range(rows) for c in range(cols)]
+    dealt = _deal(_Workers(4), tiles, images)
+    met = {}
+    for k, w in dealt:
+        met.setdefault(w, set()).update(images[k])
+    strips = sum(len({m for c in range(cols) for m in images[r * cols + c]}) for r in range(rows))  # one row each
+    assert sum(len(v) for v in met.values()) < 0.75 * strips
 
 
 @pytest.fixture(scope="module")

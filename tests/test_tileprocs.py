@@ -11,7 +11,7 @@ import warp as wp
 
 from orthowarp.errors import OrthowarpError, ParamError
 from orthowarp.pipeline.reports.profile import StageTimer
-from orthowarp.pipeline.mosaic.workers import ProcessTiles, TileDealer, _live_peak, tile_runs
+from orthowarp.pipeline.mosaic.workers import ProcessTiles, TileDealer, _live_peak, compact_runs, tile_runs
 
 
 class StandInPlan:
@@ -208,6 +208,40 @@ def test_tile_runs_cover_every_tile_once_in_serpentine_bands(rows, cols, n):
     assert max(sizes) - min(sizes) <= cols
 
 
+@pytest.mark.parametrize("rows,cols,n", [(3, 3, 1), (5, 4, 2), (7, 9, 4), (2, 6, 4), (1, 1, 3), (4, 17, 4),
+                                         (4, 17, 16), (13, 13, 32)])
+def test_compact_runs_cut_the_grid_into_blocks(rows, cols, n):
+    """One run per process (as many as tiles where fewer), each tile once, counts within one,
+    each run a compact block (its bounding box at most 2.5 times its tiles, 3 times for three
+    or fewer); a rectangular block swept in the serpentine of tile_runs."""
+    tiles = _tiles(rows * 32 - 5, cols * 32 - 7)
+    runs = compact_runs(tiles, n, [()] * len(tiles))
+    assert len(runs) == min(n, len(tiles))
+    assert sorted(k for run in runs for k in run) == list(range(len(tiles)))
+    sizes = [len(r) for r in runs]
+    assert max(sizes) - min(sizes) <= 1
+    for run in runs:
+        pos = [(tiles[k][0] // 32, tiles[k][1] // 32) for k in run]
+        box = (max(i for i, _ in pos) - min(i for i, _ in pos) + 1) * (max(j for _, j in pos) - min(j for _, j in pos) + 1)
+        assert box <= (2.5 if len(pos) > 3 else 3) * len(pos)
+        if box == len(pos):
+            assert all(abs(a - c) + abs(b - d) == 1 for (a, b), (c, d) in zip(pos, pos[1:]))
+
+
+def test_compact_runs_meet_fewer_images_than_bands_on_a_long_block():
+    """A long block (4 x 17 tiles, each image meeting a 2 x 2 block of tiles) on 4 processes:
+    the blocks meet far fewer images than one band of tiles per process would, and each run
+    still needs at most 16 images at once."""
+    rows, cols = 4, 17
+    tiles = _tiles(rows * 32, cols * 32)
+    images = [tuple(i * cols + j for i in (t[0] // 32 - 1, t[0] // 32) for j in (t[1] // 32 - 1, t[1] // 32)
+                    if 0 <= i < rows - 1 and 0 <= j < cols - 1) for t in tiles]
+    met = sum(len({j for k in run for j in images[k]}) for run in compact_runs(tiles, 4, images))
+    bands = sum(len({j for k in run for j in images[k]}) for run in tile_runs(tiles, 4, images))
+    assert met < 0.75 * bands
+    assert max(_live_peak(run, images) for run in compact_runs(tiles, 4, images)) <= 16
+
+
 @pytest.mark.parametrize("stripes", ["columns", "rows"])
 def test_tile_runs_need_one_stripe_at_a_time(stripes):
     """Images one tile wide and the grid's length (stripes), either way round: the runs need
@@ -363,9 +397,9 @@ def test_processes_build_their_first_images_ahead(per_process):
         for *_, release, _ in procs.run(tiles, 2, "float32", images=images):
             release()
         info = procs.finish()
-    runs = tile_runs(tiles, 2, images)
+    runs = compact_runs(tiles, 2, images)
     for w in range(2):
         used = list(dict.fromkeys(j for k in runs[w] for j in images[k]))
         first = used[:per_process]
-        assert first[0] == 9 and len(used) >= 3 and len(first) == min(per_process, len(used))
+        assert 9 in first and len(used) >= 3 and len(first) == min(per_process, len(used))
         assert info[w]["built_ahead"] == len(first) and list(info[w]["counts"][1:]) == sorted(first)
