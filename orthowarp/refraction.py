@@ -17,6 +17,7 @@ cross-check.
 
 from __future__ import annotations
 
+import functools
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -225,6 +226,19 @@ def saastamoinen_delta(theta: ArrayLike, sensor_height: ArrayLike, ground_height
     return 13e-6 * (big_h - h) * (1.0 - 0.02 * (2.0 * big_h + h)) * np.tan(theta)
 
 
+@functools.lru_cache(maxsize=256)
+def _q_table(sensor_height: float, lo: float, hi: float, theta_max: float) -> np.ndarray:
+    """:class:`RefractionModel`'s table q (N_THETA, N_H), read-only, made once per process for
+    each set of its arguments (a mosaic builds an image's geometry several times: for its
+    grid, its reduced window and each worker's tiles; its probes' table too)."""
+    theta = np.radians(np.linspace(0.0, theta_max, RefractionModel.N_THETA))
+    heights = np.linspace(lo, hi, RefractionModel.N_H)
+    th = np.maximum(theta, 1e-3)[:, None]
+    q = trace_delta(th, sensor_height, heights[None, :]) / np.tan(th)
+    q.setflags(write=False)
+    return q
+
+
 class RefractionModel:
     """Per-image refraction table for the kernels.
 
@@ -273,8 +287,7 @@ class RefractionModel:
         self.theta = np.radians(np.linspace(0.0, theta_max, self.N_THETA))
         self.heights = np.linspace(lo, hi, self.N_H)
         if self.enabled:
-            th = np.maximum(self.theta, 1e-3)[:, None]
-            self.q = trace_delta(th, self.sensor_height, self.heights[None, :]) / np.tan(th)
+            self.q = _q_table(self.sensor_height, lo, hi, float(theta_max))
         else:
             self.q = np.zeros((self.N_THETA, self.N_H))
 

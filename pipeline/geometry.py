@@ -23,6 +23,7 @@ from ..kernels.ray import SearchParams
 from ..refraction import RefractionModel
 from ..sensor import SensorModel, check_centre_above_terrain
 from .dem import MAX_GROUND_HEIGHT, Dem, as_dem, horizontal_crs, memory_budget
+from .transforms import transformer
 from .vertical import as_geoid, reconcile_dem
 
 if TYPE_CHECKING:
@@ -67,9 +68,12 @@ PROBE_HEIGHTS = (-1000.0, 9000.0)  # m: the refraction table of footprint probes
 
 def _at_constant(base: SensorGeometry, h: float) -> SensorGeometry:
     """A copy of a geometry over a constant DEM, over the constant height h (m) instead: its
-    refraction table (built once, over PROBE_HEIGHTS) shared, its device structs rebuilt."""
+    refraction table (built once, over PROBE_HEIGHTS) and its sensor's and table's device
+    structs shared (read-only kernel arguments), the DEM's struct its own."""
+    sensor, refraction, _, search = base.structs()
     probe = copy.copy(base)
-    probe.dem, probe._structs = Dem.constant(h), None
+    probe.dem = Dem.constant(h)
+    probe._structs = (sensor, refraction, probe.dem.to_struct(probe.device), search)
     return probe
 
 
@@ -101,7 +105,7 @@ def _prepared_dem(dem: Dem, prepare: Callable[[Dem], Dem], probe: Callable[[floa
     if dem.is_constant or dem.loaded:
         return prepare(dem)
     border = _region_border(region)
-    to_dem = Transformer.from_crs(horizontal_crs(frame_crs), horizontal_crs(dem.crs), always_xy=True)
+    to_dem = transformer(horizontal_crs(frame_crs), horizontal_crs(dem.crs))
 
     def whole(why: str) -> Dem:
         try:

@@ -238,3 +238,15 @@ def test_kernel_lookup_matches_host(device, enabled):
         np.testing.assert_allclose(got, trace_delta(theta, 3000.0, h), rtol=5e-3, atol=1e-8)
     else:
         np.testing.assert_array_equal(got, 0.0)
+
+
+def test_the_model_table_is_made_once_and_read_only():
+    """Two models of the same sensor height and heights share one table, read-only, equal to
+    the one traced for them (a mosaic builds an image's geometry several times)."""
+    a = RefractionModel(1450.0, 400.0, 520.0)
+    b = RefractionModel(1450.0, 400.0, 520.0)
+    assert a.q is b.q and not a.q.flags.writeable
+    th = np.maximum(a.theta, 1e-3)[:, None]
+    np.testing.assert_array_equal(a.q, trace_delta(th, 1450.0, a.heights[None, :]) / np.tan(th))
+    assert RefractionModel(1450.5, 400.0, 520.0).q is not a.q
+    assert not RefractionModel(1450.0, 400.0, 520.0, enabled=False).q.any()

@@ -18,10 +18,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 import warp as wp
-from pyproj import CRS, Transformer
+from pyproj import CRS
 
 from ..._device import upload
 from ...kernels import ortho as ortho_kernels
+from ..transforms import transformer
 
 if TYPE_CHECKING:
     from affine import Affine
@@ -130,7 +131,7 @@ def forward_coords(geom: SensorGeometry, transform: Affine, out_crs: CRS, frame_
     g = geom.geolocate_frame(np.stack([cc.ravel(), rr.ravel()], 1))
     ok = np.isfinite(g[:, 0]) & np.isfinite(g[:, 1]) & np.isfinite(g[:, 2])
     all_ok = bool(ok.all())
-    to_out = Transformer.from_crs(frame_crs, out_crs, always_xy=True)
+    to_out = transformer(frame_crs, out_crs)
     x, y = to_out.transform(g[ok, 0], g[ok, 1])
     oc, orow = ~transform @ (np.asarray(x), np.asarray(y))
     # output pixels per source pixel, for rejecting quads that span occlusions

@@ -16,10 +16,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from affine import Affine
-from pyproj import CRS, Transformer
+from pyproj import CRS
 
 from ..._validate import as_crs, finite
 from ...errors import GeometryError, ParamError
+from ..transforms import transformer
 
 if TYPE_CHECKING:
     from pyproj.transformer import Transformer as TransformerType
@@ -110,7 +111,7 @@ def output_grid(geom: SensorGeometry, *, crs: str | int | CRS | None = None, res
     crs = as_crs(crs)
     if crs.is_geocentric:
         raise ParamError("crs must be a projected or geographic CRS for orthoimages")
-    to_out = Transformer.from_crs(frame_crs, crs, always_xy=True)
+    to_out = transformer(frame_crs, crs)
     # The extent is the footprint on the DEM. Where the DEM covers it only partly, the border
     # alone does not bound the ground seen, so every ray of a 65 x 65 grid over the image that
     # meets the DEM counts; ground beyond them would only be hidden or outside the DEM.

@@ -35,6 +35,7 @@ from ..raster.io import GDAL_ERRORS, gdal_reason, not_georeferenced_quiet
 from ..raster.rawtiff import raw_layout, read_raw_blocks, read_raw_window
 from ..reports.profile import StageTimer
 from ..tiles import Tile
+from ..transforms import transformer
 from .forward import forward_coords
 
 if TYPE_CHECKING:
@@ -198,7 +199,7 @@ class ImageTiles:
         self.sensor, self.dem = geom.sensor_structs(), geom.dem_struct()
         self.h_mid = 0.5 * (geom.dem.hmin + geom.dem.hmax)
         self.resampling_code, self.radius = RESAMPLING[resampling], _RADIUS[resampling]
-        self.to_frame = Transformer.from_crs(out_crs, geom.horizontal_crs, always_xy=True)
+        self.to_frame = transformer(out_crs, geom.horizontal_crs)
         self.image_size = geom.image_size
         self.top = TOP[out_dtype]
         # source values outside an integer output's range are clipped: count them
