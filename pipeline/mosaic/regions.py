@@ -19,8 +19,10 @@ images, and splits the pixel work into regions computed independently on a proce
    it most nearly from above (:func:`nadir_rule`), is a pure function of position, so regions
    agree wherever their windows overlap and their union equals one global labelling.
 5. :func:`tile_assignment` and :func:`tile_bands`: the output tiles with the images meeting
-   each (compressed rows), dealt into bands for worker processes as
-   :func:`~orthowarp.pipeline.mosaic.workers.tile_runs` deals them, in arrays.
+   each (compressed rows), dealt into bands as
+   :func:`~orthowarp.pipeline.mosaic.workers.tile_runs` deals them, in arrays (the mosaic's
+   worker processes now take compact blocks of the grid instead,
+   :func:`~orthowarp.pipeline.mosaic.workers.compact_runs`).
 
 :func:`plan_regions` chains them. Nothing here reads or writes a file. The mosaic does not
 call this module yet: it is the plan of blocks too large for the reduced pass, whose labels
