@@ -15,15 +15,16 @@ overlaps (:mod:`~orthowarp.pipeline.mosaic.seams`).
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Iterator, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Optional
 
 import numpy as np
 
 from ..._device import host_cores
 
-__all__ = ["radiometric_balance", "overlap_boxes", "overlap_arrays"]
+__all__ = ["radiometric_balance", "overlap_boxes", "overlap_arrays", "OverlapStats"]
 
 #: A reduced pass's image: (first row, first column, values (rows, cols, bands) float32, valid
 #: (rows, cols) bool) on the reduced grid, or None where the image has nothing there.
@@ -35,25 +36,23 @@ SPARSE_FROM = 256
 
 
 def radiometric_balance(coarse: Sequence[Coarse], count: int, reference: int | None, *,
-                        sparse_from: int = SPARSE_FROM) -> tuple[np.ndarray, np.ndarray]:
+                        sparse_from: int = SPARSE_FROM,
+                        pair_stats: dict[tuple[int, int], tuple] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Per image and band, gain and offset (both (n_images, count)) that make the images agree
     in their overlaps on the reduced grid (``coarse`` from :func:`~orthowarp.pipeline.mosaic.plan.reduced_pass`): per
     overlapping pair and band the mean and standard deviation over the pixels both cover,
     then one weighted least-squares solve for log gains (log s_i + log a_i = log s_j +
     log a_j) and one for offsets (a_i m_i + b_i = a_j m_j + b_j), the datum fixed by
     ``reference`` or by zero means; an image without overlaps keeps gain 1, offset 0. From
-    ``sparse_from`` images on, the pairs by a grid hash and the solve sparse."""
+    ``sparse_from`` images on, the pairs by a grid hash and the solve sparse. ``pair_stats``:
+    the pairs' statistics made already (:meth:`OverlapStats.result`; the others are made here)."""
     n = len(coarse)
 
     def stats(box: tuple[int, ...]) -> tuple | None:
-        """(i, j, weight, means, standard deviations) of an overlap, None if under 50 pixels."""
-        a, b, both = overlap_arrays(coarse, box)
-        m = int(both.sum())
-        if m < 50:
-            return None
-        w = both.astype(np.float32)
-        (ma, sa), (mb, sb) = _moments(a, w, m), _moments(b, w, m)
-        return box[0], box[1], np.sqrt(m), ma, mb, sa, sb
+        got = pair_stats.get(box[:2]) if pair_stats is not None else None
+        if got is not None and got[0] == tuple(box):
+            return got[1]
+        return _pair_stats(coarse, box)
 
     boxes = list(overlap_boxes(coarse, sparse_from=sparse_from))
     # (i, j, weight, stats) per overlap, in order, on threads (einsum frees the GIL)
@@ -87,6 +86,72 @@ def radiometric_balance(coarse: Sequence[Coarse], count: int, reference: int | N
             rhs_b.append(w * (a[j] * mj[band] - a[i] * mi[band]))
         gains[:, band], offsets[:, band] = a, _solve(rows_b, rhs_b, n, reference)
     return gains, offsets
+
+
+def _pair_stats(coarse: Sequence[Coarse], box: tuple[int, ...]) -> tuple | None:
+    """(i, j, weight, means, standard deviations) of an overlap ``box`` (:func:`overlap_boxes`),
+    None if under 50 pixels."""
+    a, b, both = overlap_arrays(coarse, box)
+    m = int(both.sum())
+    if m < 50:
+        return None
+    w = both.astype(np.float32)
+    (ma, sa), (mb, sb) = _moments(a, w, m), _moments(b, w, m)
+    return box[0], box[1], np.sqrt(m), ma, mb, sa, sb
+
+
+class OverlapStats:
+    """The balance's overlap statistics made as the reduced pass's images come in (on a few
+    threads: NumPy's sums free the interpreter), so that :func:`radiometric_balance` after the
+    pass has only its solves left: :meth:`add` each image's reduced window as it arrives, then
+    :meth:`result` for ``pair_stats``. A pair's statistics are those :func:`radiometric_balance`
+    makes (the same function of the same arrays), whatever order the images come in.
+
+    Parameters
+    ----------
+    n : int
+        Images.
+    """
+
+    def __init__(self, n: int) -> None:
+        self.coarse: list[Coarse] = [None] * int(n)
+        self._bounds = np.zeros((int(n), 4), np.int64)  # (r0, r1, c0, c1) of each window
+        self._have: list[int] = []
+        self._made: dict[tuple[int, int], tuple[tuple, Future]] = {}
+        self._lock = threading.Lock()
+        self._pool = ThreadPoolExecutor(max_workers=max(1, min(8, host_cores())), thread_name_prefix="overlaps")
+
+    def add(self, k: int, item: Coarse) -> None:
+        """Image ``k``'s reduced window (r0, c0, values, ok), or None where it has none: its
+        overlaps with the images added before it go to the threads."""
+        if item is None:
+            return
+        r0, c0, _, ok = item
+        window = (r0, r0 + ok.shape[0], c0, c0 + ok.shape[1])
+        with self._lock:
+            self.coarse[k] = item
+            have = np.asarray(self._have, np.int64)
+            self._have.append(k)
+            self._bounds[k] = window
+            if not len(have):
+                return
+            other = self._bounds[have]
+            rr0, rr1 = np.maximum(other[:, 0], window[0]), np.minimum(other[:, 1], window[1])
+            cc0, cc1 = np.maximum(other[:, 2], window[2]), np.minimum(other[:, 3], window[3])
+            for p in np.flatnonzero((rr0 < rr1) & (cc0 < cc1)):
+                i, j = sorted((int(have[p]), k))
+                box = (i, j, int(rr0[p]), int(rr1[p]), int(cc0[p]), int(cc1[p]))
+                self._made[i, j] = box, self._pool.submit(_pair_stats, self.coarse, box)
+
+    def result(self) -> dict[tuple[int, int], tuple]:
+        """{(i, j): (box, statistics or None)} of every overlapping pair added (waits for them)."""
+        with self._lock:
+            made = dict(self._made)
+        return {key: (box, fut.result()) for key, (box, fut) in made.items()}
+
+    def close(self) -> None:
+        """Stop the threads (the statistics not yet made are dropped)."""
+        self._pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _moments(values: np.ndarray, w: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:

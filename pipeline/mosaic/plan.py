@@ -22,7 +22,7 @@ import os
 import threading
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from concurrent.futures import Executor, ThreadPoolExecutor
+from concurrent.futures import Executor, ThreadPoolExecutor, as_completed
 import dataclasses
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -49,7 +49,7 @@ from ..raster.device import DeviceCogEncoder, cog_writing
 from ..raster.io import atomic_files, check_cancel, check_destination, source_exists
 from ..reports.profile import StageTimer
 from ..tiles import Tile
-from .balance import Coarse, radiometric_balance
+from .balance import Coarse, OverlapStats, radiometric_balance
 from .blend import TileBlending, multiband_halo
 from .seams import NO_SOURCE, angle_field, least_cost_seams
 from .workers import tile_runs
@@ -794,16 +794,26 @@ def _balance_and_seams(plan: MosaicPlan, cfg: _PlanSettings, cancel: threading.E
     """One reduced pass (the images' overlaps; on a Dask ``client``'s workers where given), then
     (after ``on_reduced(plan)``, where given) the plan's radiometric balance and its seams'
     labelling from it; each step's seconds in ``plan.setup_s``."""
-    t = time.perf_counter()
-    f, coarse, labels = reduced_pass(plan, cancel, seam_pixels, client=client, worker_device=worker_device)
-    plan.setup_s["reduced_pass"] = time.perf_counter() - t
-    if on_reduced is not None:
-        on_reduced(plan)
     n_images = len(plan.sources)
-    if cfg.balance and n_images > 1:
+    balancing = cfg.balance and n_images > 1
+    # on a cluster, the balance's overlap statistics made here as the images come in (this
+    # process waits for the workers meanwhile); its solves after the pass
+    stats = OverlapStats(n_images) if balancing and client is not None else None
+    try:
         t = time.perf_counter()
-        plan.gains, plan.offsets = radiometric_balance(coarse, plan.count, cfg.reference)
-        plan.setup_s["balance"] = time.perf_counter() - t
+        f, coarse, labels = reduced_pass(plan, cancel, seam_pixels, client=client, worker_device=worker_device,
+                                         on_image=None if stats is None else stats.add)
+        plan.setup_s["reduced_pass"] = time.perf_counter() - t
+        if on_reduced is not None:
+            on_reduced(plan)
+        if balancing:
+            t = time.perf_counter()
+            plan.gains, plan.offsets = radiometric_balance(coarse, plan.count, cfg.reference,
+                                                           pair_stats=None if stats is None else stats.result())
+            plan.setup_s["balance"] = time.perf_counter() - t
+    finally:
+        if stats is not None:
+            stats.close()
     if cfg.seams == "least-cost" and n_images > 1:
         t = time.perf_counter()
         moved = least_cost_seams(labels, coarse, plan.gains, plan.offsets, max(2.0, cfg.seam_width / f),
@@ -940,7 +950,8 @@ def _write_seamlines(path: str, index: np.ndarray, transform: Affine, crs: CRS, 
 
 
 def reduced_pass(plan: MosaicPlan, cancel: threading.Event | None, max_pixels: int, *, client: Any = None,
-                 worker_device: str | None = None) -> tuple[int, list[Coarse], np.ndarray]:
+                 worker_device: str | None = None,
+                 on_image: Callable[[int, Coarse], None] | None = None) -> tuple[int, list[Coarse], np.ndarray]:
     """Each image rendered alone on a reduced grid of the mosaic (the mosaic's pixels
     ``f`` x ``f``, at most ``max_pixels`` pixels) and the most-nadir labelling of that grid.
     Up to f = 3 the images are read at full resolution and sampled at the reduced grid's
@@ -949,7 +960,9 @@ def reduced_pass(plan: MosaicPlan, cancel: threading.Event | None, max_pixels: i
     and area-averaged (each source pixel read once instead of one in f^2 used). With a Dask
     ``client``, the images are rendered on its workers (on ``worker_device``; see
     :func:`~orthowarp.pipeline.mosaic.cluster.shipped_plan`) and only their reduced windows
-    come back.
+    come back. ``on_image(k, window)`` is called with each image's window (r0, c0, values, ok;
+    or None) as it comes in, in this thread (e.g. :meth:`OverlapStats.add
+    <orthowarp.pipeline.mosaic.balance.OverlapStats.add>`).
 
     Returns
     -------
@@ -984,11 +997,26 @@ def reduced_pass(plan: MosaicPlan, cancel: threading.Event | None, max_pixels: i
             first.setdefault(k, pos)
     order = sorted(range(len(plan.foot)), key=lambda k: first.get(k, -1), reverse=True)
     coarse = []
+
+    def arrived(k: int, item: tuple | None) -> None:
+        if on_image is not None:
+            on_image(k, None if item is None else item[:4])
+
     if client is not None:
-        items = _reduced_on_cluster(plan, client, f, order, cancel, worker_device)
+        items = _reduced_on_cluster(plan, client, f, order, cancel, worker_device, arrived)
     else:
+        items = {}
         with ThreadPoolExecutor(max_workers=min(8, host_cores(), len(plan.foot))) as pool:
-            items = dict(zip(order, pool.map(one, order)))
+            futures = {pool.submit(one, k): k for k in order}
+            try:
+                for fut in as_completed(futures):
+                    k = futures[fut]
+                    items[k] = fut.result()
+                    arrived(k, items[k])
+            except BaseException:
+                for fut in futures:
+                    fut.cancel()
+                raise
     plan._fresh.clear()  # (those of images without a pixel on the reduced grid)
     for k in range(len(plan.foot)):
         item = items.pop(k)
@@ -1043,13 +1071,17 @@ def _reduced_image(plan: MosaicPlan, k: int, f: int, *, keep: bool = False) -> t
 
 
 def _reduced_on_cluster(plan: MosaicPlan, client: Any, f: int, order: Sequence[int],
-                        cancel: threading.Event | None, device: str | None) -> dict[int, tuple | None]:
+                        cancel: threading.Event | None, device: str | None,
+                        arrived: Callable[[int, tuple | None], None]) -> dict[int, tuple | None]:
     """:func:`reduced_pass`'s images rendered on the workers of a Dask ``client``, in ``order``
-    (the plan sent to each worker once)."""
+    (the plan sent to each worker once); ``arrived(k, item)`` as each comes in."""
     from .cluster import as_finished, broadcast_plan
 
     tag = f"orthowarp-reduced-{os.getpid()}-{time.monotonic_ns():x}"
+    items = {}
     with broadcast_plan(client, plan, device) as remote:
         futures = [client.submit(_reduced_image, remote, k, f, pure=False, key=f"{tag}-{k}") for k in order]
-        return {order[pos]: item for pos, item in as_finished(client, futures,
-                                                              lambda: check_cancel(cancel, "the mosaic"))}
+        for pos, item in as_finished(client, futures, lambda: check_cancel(cancel, "the mosaic")):
+            items[order[pos]] = item
+            arrived(order[pos], item)
+    return items
