@@ -208,6 +208,45 @@ def test_a_worker_takes_over_the_images_built_ahead(block):
 
 
 @pytest.mark.slow
+def _slow_double(x):
+    import time
+
+    time.sleep(0.3)
+    return 2 * x
+
+
+def test_a_task_the_scheduler_cancels_is_submitted_again(client):
+    """as_finished: a task whose future comes back cancelled (not by the run) is submitted
+    again under a new key and its result still comes; without a way to resubmit, or past the
+    retries, the cancellation is raised."""
+    from distributed.client import FutureCancelledError
+
+    from orthowarp.pipeline.mosaic.cluster import as_finished
+
+    def submit(pos, attempt=0):
+        return client.submit(_slow_double, pos, pure=False, key=f"orthowarp-test-again-{pos}-{attempt}-{os.getpid()}")
+
+    futures = [submit(pos) for pos in range(6)]
+    client.cancel([futures[2]])  # (as the scheduler forgetting the task would leave it)
+    got = dict(as_finished(client, futures, resubmit=submit))
+    assert got == {pos: 2 * pos for pos in range(6)}
+
+    futures = [submit(pos, 10) for pos in range(3)]
+    client.cancel([futures[1]])
+    with pytest.raises(FutureCancelledError):
+        dict(as_finished(client, futures))
+
+    def cancelled_again(pos, attempt):
+        fut = submit(pos, 20 + attempt)
+        client.cancel([fut])
+        return fut
+
+    futures = [submit(pos, 30) for pos in range(3)]
+    client.cancel([futures[0]])
+    with pytest.raises(FutureCancelledError):
+        dict(as_finished(client, futures, resubmit=cancelled_again))
+
+
 def test_images_built_ahead_on_the_workers_give_the_same_tiles(block, reference, client, tmp_path):
     """BuildAhead on a LocalCluster: each worker builds the images of its first product tiles
     (sent once the reduced pass is done); the tiled product made with them is the in-process

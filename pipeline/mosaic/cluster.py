@@ -78,6 +78,7 @@ GPU_PROCESSES = 4
 PRODUCT_FORMAT = "orthowarp-tiled-mosaic/1"  # the manifest's "format": what a restart accepts
 _PER_WORKER = 3  # tiles in flight per worker thread for the one-COG path (bounded memory)
 _WORKER_CACHE = 24  # images a worker's plan keeps built at most (see shipped_plan)
+_RESUBMITS = 2  # times a task the scheduler cancelled is submitted again (see as_finished)
 _GDAL_TYPES = {"uint8": "Byte", "uint16": "UInt16", "float32": "Float32"}
 
 
@@ -419,19 +420,43 @@ def broadcast_plan(client: Any, plan: Any, device: str | None = None) -> Iterato
         remote.release()
 
 
-def as_finished(client: Any, futures: Sequence[Any], check: Callable[[], None] | None = None) -> Iterator[tuple[int, Any]]:
+def as_finished(client: Any, futures: Sequence[Any], check: Callable[[], None] | None = None,
+                resubmit: Callable[[int, int], Any] | None = None, *,
+                retries: int = _RESUBMITS) -> Iterator[tuple[int, Any]]:
     """(position in ``futures``, result) of each task as it finishes, its future released once
     its result is taken; ``check`` (e.g. a cancellation test that raises) runs before each.
-    Any error, the caller's included (the generator closed early), cancels the tasks left."""
+    Any error, the caller's included (the generator closed early), cancels the tasks left.
+
+    A task whose future comes back cancelled although this run did not cancel it (the
+    scheduler forgot it: seen once in a CPU cluster's run of 160 frames) is submitted again
+    where ``resubmit(position, attempt)`` gives a new future for it (a new key), at most
+    ``retries`` times; without ``resubmit``, or after that, its FutureCancelledError is raised.
+    For pure tasks whose outputs are published whole (a tile's files, a reduced window)."""
     distributed = _distributed()
+    futures = list(futures)
     where = {fut.key: k for k, fut in enumerate(futures)}
+    attempts = collections.Counter()
+    pending = distributed.as_completed(futures)
     try:
-        for fut in distributed.as_completed(futures):
+        for fut in pending:
             if check is not None:
                 check()
-            result = fut.result()
+            pos = where.pop(fut.key)
+            try:
+                result = fut.result()
+            except distributed.client.FutureCancelledError as e:
+                if resubmit is None or attempts[pos] >= retries:
+                    raise
+                attempts[pos] += 1
+                _log.warning("task %s came back cancelled (%s); submitting it again (attempt %d of %d)",
+                             fut.key, e.reason, attempts[pos], retries)
+                fut.release()
+                futures[pos] = again = resubmit(pos, attempts[pos])
+                where[again.key] = pos
+                pending.add(again)
+                continue
             fut.release()
-            yield where[fut.key], result
+            yield pos, result
     except BaseException:
         client.cancel(list(futures))
         raise
@@ -1371,14 +1396,18 @@ def _tiles_on_cluster(plan: Any, client: Any, todo: list, work: str, settings: T
     tag = f"orthowarp-product-{os.getpid()}-{time.monotonic_ns():x}"
     threads = {w: int(info.get("nthreads", 1)) for w, info in client.scheduler_info()["workers"].items()}
     out = []
+    dealt = _deal(client, tiles, images)
     with broadcast_plan(client, plan, device) as remote:
-        futures = []
-        for k, w in _deal(client, tiles, images):
+
+        def submit(pos: int, attempt: int = 0) -> Any:
+            k, w = dealt[pos]
             i, j, t = todo[k]
-            futures.append(client.submit(_write_product_tile, remote, i, j, t, work, settings, threads.get(w, 1),
-                                         tag, ahead, workers=[w], allow_other_workers=True, pure=False,
-                                         key=f"{tag}-{k}"))
-        for _, stats in as_finished(client, futures, lambda: _check(cancel, dst)):
+            return client.submit(_write_product_tile, remote, i, j, t, work, settings, threads.get(w, 1), tag, ahead,
+                                 workers=[w], allow_other_workers=True, pure=False,
+                                 key=f"{tag}-{k}" + (f"-again{attempt}" if attempt else ""))
+
+        futures = [submit(pos) for pos in range(len(dealt))]
+        for _, stats in as_finished(client, futures, lambda: _check(cancel, dst), submit):
             out.append(stats)
             bar.step()
     took = {}

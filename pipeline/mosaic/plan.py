@@ -1080,8 +1080,14 @@ def _reduced_on_cluster(plan: MosaicPlan, client: Any, f: int, order: Sequence[i
     tag = f"orthowarp-reduced-{os.getpid()}-{time.monotonic_ns():x}"
     items = {}
     with broadcast_plan(client, plan, device) as remote:
-        futures = [client.submit(_reduced_image, remote, k, f, pure=False, key=f"{tag}-{k}") for k in order]
-        for pos, item in as_finished(client, futures, lambda: check_cancel(cancel, "the mosaic")):
+
+        def submit(pos: int, attempt: int = 0) -> Any:
+            k = order[pos]
+            return client.submit(_reduced_image, remote, k, f, pure=False,
+                                 key=f"{tag}-{k}" + (f"-again{attempt}" if attempt else ""))
+
+        futures = [submit(pos) for pos in range(len(order))]
+        for pos, item in as_finished(client, futures, lambda: check_cancel(cancel, "the mosaic"), submit):
             items[order[pos]] = item
             arrived(order[pos], item)
     return items
