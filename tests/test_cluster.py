@@ -207,7 +207,6 @@ def test_a_worker_takes_over_the_images_built_ahead(block):
     plan.close()
 
 
-@pytest.mark.slow
 def _slow_double(x):
     import time
 
@@ -247,6 +246,7 @@ def test_a_task_the_scheduler_cancels_is_submitted_again(client):
         dict(as_finished(client, futures, resubmit=cancelled_again))
 
 
+@pytest.mark.slow
 def test_images_built_ahead_on_the_workers_give_the_same_tiles(block, reference, client, tmp_path):
     """BuildAhead on a LocalCluster: each worker builds the images of its first product tiles
     (sent once the reduced pass is done); the tiled product made with them is the in-process
