@@ -246,6 +246,28 @@ def test_a_task_the_scheduler_cancels_is_submitted_again(client):
         dict(as_finished(client, futures, resubmit=cancelled_again))
 
 
+def test_a_cog_tile_the_scheduler_cancels_is_computed_again(block, reference, client, tmp_path, monkeypatch, caplog):
+    """The single COG on a cluster whose first tile task comes back cancelled (as when the
+    scheduler forgets it): the tile is submitted again and the file is the in-process one."""
+    from orthowarp.pipeline.mosaic import cluster as cluster_module
+
+    sc, images = block
+    cog, _ = reference
+    start = cluster_module._Submitter.start
+
+    def cancelling_start(self):
+        futures = start(self)
+        client.cancel(futures[:1])
+        return futures
+
+    monkeypatch.setattr(cluster_module._Submitter, "start", cancelling_start)
+    with caplog.at_level("WARNING", logger="orthowarp.pipeline.mosaic.cluster"):
+        mosaic(images, tmp_path / "m.tif", index=tmp_path / "i.tif", cluster=client, **_kw(sc))
+    assert "came back cancelled" in caplog.text
+    assert (tmp_path / "m.tif").read_bytes() == open(cog.path, "rb").read()
+    assert (tmp_path / "i.tif").read_bytes() == open(cog.index, "rb").read()
+
+
 @pytest.mark.slow
 def test_images_built_ahead_on_the_workers_give_the_same_tiles(block, reference, client, tmp_path):
     """BuildAhead on a LocalCluster: each worker builds the images of its first product tiles

@@ -825,22 +825,36 @@ def cluster_results(plan: Any, client: Any, tiles: Sequence[Tile], *, cancel: th
     with broadcast_plan(client, plan, worker_device) as remote:
         remote_encoder = None if encoder is None else client.scatter(encoder, broadcast=True, hash=False)
 
-        def submit(k: int, w: str) -> Any:
+        def submit(k: int, w: str, attempt: int = 0) -> Any:
             return client.submit(_tile_task, remote, tiles[k], remote_encoder, device_codec, workers=[w],
-                                 allow_other_workers=True,
-                                 pure=False, key=f"{tag}-{k}")
+                                 allow_other_workers=True, pure=False,
+                                 key=f"{tag}-{k}" + (f"-again{attempt}" if attempt else ""))
 
         # (not as_finished: each finished tile lets the dealer submit the next of its worker)
         dealer = _Submitter(_deal(client, tiles, images), submit, per_worker or _PER_WORKER * threads)
         pending = distributed.as_completed(dealer.start(), with_results=False)
+        attempts = collections.Counter()
         try:
             for fut in pending:
                 if cancel is not None and cancel.is_set():
                     raise Cancelled(f"The mosaic '{name}' was cancelled; nothing was written")
+                w = dealer.owner[fut.key][1]
                 k, more = dealer.finished(fut)
                 for f in more:
                     pending.add(f)
-                result = fut.result()
+                try:
+                    result = fut.result()
+                except distributed.client.FutureCancelledError as e:  # (not by this run: see as_finished)
+                    if attempts[k] >= _RESUBMITS:
+                        raise
+                    attempts[k] += 1
+                    _log.warning("task %s came back cancelled (%s); submitting it again (attempt %d of %d)",
+                                 fut.key, e.reason, attempts[k], _RESUBMITS)
+                    fut.release()
+                    again = submit(k, w, attempts[k])
+                    dealer.owner[again.key] = (k, w)
+                    pending.add(again)
+                    continue
                 fut.release()
                 bar.step()
                 yield tiles[k], result
