@@ -226,13 +226,19 @@ def saastamoinen_delta(theta: ArrayLike, sensor_height: ArrayLike, ground_height
     return 13e-6 * (big_h - h) * (1.0 - 0.02 * (2.0 * big_h + h)) * np.tan(theta)
 
 
+def _table_nodes(lo: float, hi: float, theta_max: float) -> tuple[np.ndarray, np.ndarray]:
+    """:class:`RefractionModel`'s nodes: apparent nadir angles (N_THETA,) from 0 to
+    ``theta_max`` degrees, in rad, and ground heights (N_H,) from ``lo`` to ``hi`` m."""
+    return (np.radians(np.linspace(0.0, theta_max, RefractionModel.N_THETA)),
+            np.linspace(lo, hi, RefractionModel.N_H))
+
+
 @functools.lru_cache(maxsize=256)
 def _q_table(sensor_height: float, lo: float, hi: float, theta_max: float) -> np.ndarray:
     """:class:`RefractionModel`'s table q (N_THETA, N_H), read-only, made once per process for
     each set of its arguments (a mosaic builds an image's geometry several times: for its
     grid, its reduced window and each worker's tiles; its probes' table too)."""
-    theta = np.radians(np.linspace(0.0, theta_max, RefractionModel.N_THETA))
-    heights = np.linspace(lo, hi, RefractionModel.N_H)
+    theta, heights = _table_nodes(lo, hi, theta_max)
     th = np.maximum(theta, 1e-3)[:, None]
     q = trace_delta(th, sensor_height, heights[None, :]) / np.tan(th)
     q.setflags(write=False)
@@ -284,8 +290,7 @@ class RefractionModel:
         hi = min(float(h_max) + 10.0, self.sensor_height - 1.0)
         if hi <= lo:
             lo = hi - 20.0
-        self.theta = np.radians(np.linspace(0.0, theta_max, self.N_THETA))
-        self.heights = np.linspace(lo, hi, self.N_H)
+        self.theta, self.heights = _table_nodes(lo, hi, float(theta_max))
         if self.enabled:
             self.q = _q_table(self.sensor_height, lo, hi, float(theta_max))
         else:

@@ -77,7 +77,7 @@ from .cluster import (GPU_PROCESSES, TILED_COMPRESS, BuildAhead, TiledResult, Ti
                       connect, product_tile_grid, write_tiled)
 from .cluster import worker_device as cluster_device
 from .cluster import worker_devices
-from .workers import ProcessTiles, TileDealer, tile_runs
+from .workers import WORKER_CACHE_IMAGES, ProcessTiles, TileDealer, tile_runs
 
 __all__ = ["mosaic", "mosaic_plan", "MosaicPlan", "MosaicResult", "TiledResult", "NO_SOURCE", "MOSAIC_COMPRESS"]
 
@@ -538,8 +538,8 @@ def _upload_tile(values: np.ndarray, valid: np.ndarray, on: wp.context.Device) -
 def _for_processes(options: dict[str, Any]) -> dict[str, Any]:
     """A plan's options for its tile processes: each reads its images' windows (reduced ones
     still averaged on the device where the plan says so: the same pixels) rather than holding
-    every image it meets whole, and holds at most 24 images."""
-    return dict(options, resident=False, cache_images=min(options["cache_images"], 24))
+    every image it meets whole, and holds at most WORKER_CACHE_IMAGES images."""
+    return dict(options, resident=False, cache_images=min(options["cache_images"], WORKER_CACHE_IMAGES))
 
 
 def _ahead_on(procs: ProcessTiles, tile_size: int | None, on: wp.context.Device) -> Callable[[MosaicPlan], None]:

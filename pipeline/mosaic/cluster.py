@@ -64,7 +64,7 @@ from ...errors import Cancelled, OrthowarpError, ParamError, RasterIOError
 from ..raster.io import atomic_files, describe_os_error, ensure_folder, is_virtual
 from ..reports.progress import Progress
 from ..tiles import Tile
-from .workers import compact_runs, first_images
+from .workers import WORKER_CACHE_IMAGES, compact_runs, first_images
 
 __all__ = ["connect", "local_cluster", "cluster_results", "write_tiled", "TiledSettings", "redact",
            "PRODUCT_FORMAT"]
@@ -77,7 +77,6 @@ _log = logging.getLogger(__name__)
 GPU_PROCESSES = 4
 PRODUCT_FORMAT = "orthowarp-tiled-mosaic/1"  # the manifest's "format": what a restart accepts
 _PER_WORKER = 3  # tiles in flight per worker thread for the one-COG path (bounded memory)
-_WORKER_CACHE = 24  # images a worker's plan keeps built at most (see shipped_plan)
 _RESUBMITS = 2  # times a task the scheduler cancelled is submitted again (see as_finished)
 _GDAL_TYPES = {"uint8": "Byte", "uint16": "UInt16", "float32": "Float32"}
 
@@ -401,7 +400,7 @@ def shipped_plan(plan: Any, device: str | None = None) -> Any:
     out.__setstate__(plan.__getstate__())
     out.sources = [(local_path(src), sensor, masked) for src, sensor, masked in plan.sources]
     out.terrain = shipped_terrain(plan.terrain)
-    out.options = dict(plan.options, resident=False, cache_images=min(plan.options["cache_images"], _WORKER_CACHE),
+    out.options = dict(plan.options, resident=False, cache_images=min(plan.options["cache_images"], WORKER_CACHE_IMAGES),
                        geoid=local_path(plan.options.get("geoid")))
     if device is not None:
         out.options["device"] = device
@@ -445,13 +444,7 @@ def as_finished(client: Any, futures: Sequence[Any], check: Callable[[], None] |
             try:
                 result = fut.result()
             except distributed.client.FutureCancelledError as e:
-                if resubmit is None or attempts[pos] >= retries:
-                    raise
-                attempts[pos] += 1
-                _log.warning("task %s came back cancelled (%s); submitting it again (attempt %d of %d)",
-                             fut.key, e.reason, attempts[pos], retries)
-                fut.release()
-                futures[pos] = again = resubmit(pos, attempts[pos])
+                futures[pos] = again = _submit_again(fut, e, attempts, pos, resubmit, retries)
                 where[again.key] = pos
                 pending.add(again)
                 continue
@@ -462,26 +455,43 @@ def as_finished(client: Any, futures: Sequence[Any], check: Callable[[], None] |
         raise
 
 
+def _submit_again(fut: Any, error: BaseException, attempts: collections.Counter, pos: int,
+                  resubmit: Callable[[int, int], Any] | None, retries: int) -> Any:
+    """Task ``pos``, whose future ``fut`` came back cancelled (``error``) although its run did
+    not cancel it, submitted again (:func:`as_finished`, :func:`cluster_results`): its new
+    future ``resubmit(pos, attempt)``, the attempts counted in ``attempts``; ``error`` raised
+    where there is no ``resubmit`` or ``retries`` attempts are spent."""
+    if resubmit is None or attempts[pos] >= retries:
+        raise error
+    attempts[pos] += 1
+    _log.warning("task %s came back cancelled (%s); submitting it again (attempt %d of %d)", fut.key,
+                 getattr(error, "reason", error), attempts[pos], retries)
+    fut.release()
+    return resubmit(pos, attempts[pos])
+
+
 def _deal(client: Any, tiles: Sequence[Tile], images: Sequence[tuple[int, ...]]) -> list[tuple[int, str]]:
     """(tile position, worker) in the order to submit: the grid cut into one compact block per
     worker, their tile counts within one of each other, each block in the order one process
     with the workers' image cache would take it (:func:`~orthowarp.pipeline.mosaic.workers.compact_runs`,
-    at most :data:`_WORKER_CACHE` images in use at once). A worker builds each image that
+    at most :data:`~orthowarp.pipeline.mosaic.workers.WORKER_CACHE_IMAGES` images in use at once). A worker builds each image that
     meets its block, so the blocks' compactness sets the cluster's image builds: on a
     160-frame block's 4 x 17 product tiles, 227 builds on 4 workers and 370 on 16 (with the
     workers' cache), against 367 and 434 for pieces of the one-process serpentine."""
     names = worker_names(client)
     if not names:
         raise OrthowarpError("The Dask cluster has no workers")
-    runs = compact_runs(tiles, len(names), images, limit=_WORKER_CACHE)
+    runs = compact_runs(tiles, len(names), images, limit=WORKER_CACHE_IMAGES)
     return [(k, name) for name, run in zip(names, runs) for k in run]
 
 
 class _Submitter:
     """Keeps at most ``per_worker`` tasks per worker in flight, each worker's in its order; a
-    worker's next task goes in when one of its tasks finishes (wherever it ran)."""
+    worker's next task goes in when one of its tasks finishes (wherever it ran).
+    ``submit(k, w)`` makes tile ``k``'s future for worker queue ``w`` (``submit(k, w, attempt)``
+    a new one after a cancellation: :meth:`again`)."""
 
-    def __init__(self, order: list[tuple[int, str]], submit: Callable[[int, str], Any], per_worker: int) -> None:
+    def __init__(self, order: list[tuple[int, str]], submit: Callable[..., Any], per_worker: int) -> None:
         self.queues = collections.defaultdict(collections.deque)
         for k, w in order:
             self.queues[w].append(k)
@@ -504,9 +514,18 @@ class _Submitter:
         self.owner[fut.key] = (k, w)
         return [fut]
 
-    def finished(self, fut: Any) -> tuple[int, list[Any]]:
+    def finished(self, fut: Any) -> tuple[int, str, list[Any]]:
+        """(tile position, its worker queue, the futures submitted in its place) of a finished
+        future."""
         k, w = self.owner.pop(fut.key)
-        return k, self._next(w)
+        return k, w, self._next(w)
+
+    def again(self, k: int, w: str, attempt: int) -> Any:
+        """Tile ``k`` of worker queue ``w`` submitted again (``submit(k, w, attempt)``; see
+        :func:`_submit_again`): its new future."""
+        fut = self.submit(k, w, attempt)
+        self.owner[fut.key] = (k, w)
+        return fut
 
 
 # -- images built ahead on the workers --------------------------------------------------------
@@ -838,22 +857,13 @@ def cluster_results(plan: Any, client: Any, tiles: Sequence[Tile], *, cancel: th
             for fut in pending:
                 if cancel is not None and cancel.is_set():
                     raise Cancelled(f"The mosaic '{name}' was cancelled; nothing was written")
-                w = dealer.owner[fut.key][1]
-                k, more = dealer.finished(fut)
+                k, w, more = dealer.finished(fut)
                 for f in more:
                     pending.add(f)
                 try:
                     result = fut.result()
                 except distributed.client.FutureCancelledError as e:  # (not by this run: see as_finished)
-                    if attempts[k] >= _RESUBMITS:
-                        raise
-                    attempts[k] += 1
-                    _log.warning("task %s came back cancelled (%s); submitting it again (attempt %d of %d)",
-                                 fut.key, e.reason, attempts[k], _RESUBMITS)
-                    fut.release()
-                    again = submit(k, w, attempts[k])
-                    dealer.owner[again.key] = (k, w)
-                    pending.add(again)
+                    pending.add(_submit_again(fut, e, attempts, k, lambda k, a: dealer.again(k, w, a), _RESUBMITS))
                     continue
                 fut.release()
                 bar.step()
@@ -942,7 +952,7 @@ def _fingerprint(plan: Any, settings: TiledSettings) -> str:
     from ... import __version__
 
     state = plan.__getstate__()
-    for k in ("setup_s", "_state", "_lock", "_encoder", "_kept", "_transformers"):
+    for k in ("setup_s", "_state", "_lock", "_encoder", "_kept"):
         state.pop(k, None)
     state["options"] = {k: v for k, v in state["options"].items() if k not in ("device", "resident", "cache_images",
                                                                               "device_reduce")}

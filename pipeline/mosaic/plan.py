@@ -49,6 +49,7 @@ from ..raster.device import DeviceCogEncoder, cog_writing
 from ..raster.io import atomic_files, check_cancel, check_destination, source_exists
 from ..reports.profile import StageTimer
 from ..tiles import Tile
+from ..transforms import transformer
 from .balance import Coarse, OverlapStats, radiometric_balance
 from .blend import TileBlending, multiband_halo
 from .seams import NO_SOURCE, angle_field, least_cost_seams
@@ -119,14 +120,13 @@ class MosaicPlan(TileBlending):
         self._state, self._lock = None, threading.Lock()
         self._kept = collections.OrderedDict()  # geometries of the reduced pass, for the tiles
         self._fresh = {}  # geometries built for the images' grids, for the reduced pass (each taken once)
-        self._transformers = {}  # mosaic CRS -> a pose frame's horizontal CRS, by that CRS's WKT
         self._encoder = None  # while writing with a device block codec
         self._ahead = {}  # images built ahead of their tiles: futures of their cache entries (see _built_ahead)
 
     def __getstate__(self) -> dict[str, Any]:
         state = dict(self.__dict__)
         state["_state"], state["_lock"], state["_encoder"] = None, None, None
-        state["_kept"], state["_transformers"], state["_fresh"] = collections.OrderedDict(), {}, {}
+        state["_kept"], state["_fresh"] = collections.OrderedDict(), {}
         state["_ahead"] = {}
         return state
 
@@ -256,16 +256,9 @@ class MosaicPlan(TileBlending):
 
     def _to_frame(self, frame_crs: CRS) -> Transformer:
         """The transformer from the mosaic's CRS to a pose frame's horizontal CRS, one per
-        frame CRS in this process, for the reduced pass and the tiles (images in one frame
-        share the tiles' coarse grids)."""
-        key = frame_crs.to_wkt()
-        with self._lock:
-            got = self._transformers.get(key)
-        if got is None:
-            got = Transformer.from_crs(self.crs, frame_crs, always_xy=True)
-            with self._lock:
-                got = self._transformers.setdefault(key, got)
-        return got
+        frame CRS in this process (:func:`~orthowarp.pipeline.transforms.transformer`), for the
+        reduced pass and the tiles (images in one frame share the tiles' coarse grids)."""
+        return transformer(self.crs, frame_crs)
 
     @staticmethod
     def _close_entry(entry: dict[str, Any]) -> None:

@@ -63,6 +63,9 @@ if TYPE_CHECKING:
 
 __all__ = ["ProcessTiles", "TileDealer", "tile_runs", "compact_runs", "remove_stale_segments"]
 
+#: Images a worker process's plan keeps built at most (the tile processes' and a cluster's
+#: workers', which read their images' windows rather than hold the images whole)
+WORKER_CACHE_IMAGES = 24
 _POLL_S = 0.5  # how often a wait for results checks that the workers live
 _PARENT_POLL_S = 0.2  # how often a worker checks that its parent lives
 SEGMENT_PREFIX = "orthowarp-tiles-"  # the shared files: <prefix><pid>-<random>
