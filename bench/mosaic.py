@@ -33,6 +33,7 @@ import argparse
 import json
 import os
 import resource
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -391,8 +392,16 @@ def run_speed(args, sizes):
         bench_env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (here, os.environ.get("PYTHONPATH")) if p))
         if args.sample_stacks:  # the child under bench/stack_sampler.py (its own overhead included)
             stacks = os.path.join(work, f"mosaic{n}.stacks.json")
+            # its tile processes sampled too (bench/_worker_sampling/sitecustomize.py)
+            worker_stacks = os.path.join(work, f"mosaic{n}.worker-stacks")
+            shutil.rmtree(worker_stacks, ignore_errors=True)
+            os.makedirs(worker_stacks)
+            sampled_env = dict(bench_env, ORTHOWARP_BENCH_WORKER_STACKS=worker_stacks,
+                               ORTHOWARP_BENCH_WORKER_INTERVAL=str(args.sample_stacks),
+                               PYTHONPATH=os.pathsep.join([os.path.join(here, "_worker_sampling"),
+                                                           bench_env["PYTHONPATH"]]))
             r = run_cli(sys.executable, "stack_sampler:main", [stacks, str(args.sample_stacks), entry, *cli],
-                        gpu_index=gpu, env=bench_env)
+                        gpu_index=gpu, env=sampled_env)
         else:
             r = run_cli(sys.executable, entry, cli, gpu_index=gpu, env=bench_env if args.no_build_ahead else None)
         r["images"] = n
@@ -404,6 +413,14 @@ def run_speed(args, sizes):
             if args.sample_stacks and os.path.exists(stacks):
                 with open(stacks) as f:
                     r["stacks"] = json.load(f)
+                reports = []
+                for name in sorted(os.listdir(worker_stacks)):
+                    if name.endswith(".json"):
+                        with open(os.path.join(worker_stacks, name)) as f:
+                            reports.append(json.load(f))
+                if reports:
+                    from stack_sampler import merge
+                    r["worker_stacks"] = merge(reports)
             # tile processes: their peaks added to the main one's (an upper bound of the whole)
             workers_mb = [m for m in r["profile"]["tiles"].get("worker_peak_rss_mb") or [] if m is not None]
             if r["peak_rss_mb"] is not None:

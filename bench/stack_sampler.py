@@ -25,7 +25,9 @@ import threading
 import time
 
 IDLE = {("threading.py", "wait"), ("threading.py", "_wait_for_tstate_lock"), ("queue.py", "get"),
-        ("thread.py", "_worker"), ("threading.py", "join"), ("selectors.py", "select")}
+        ("thread.py", "_worker"), ("threading.py", "join"), ("selectors.py", "select"),
+        # sleepers and a worker waiting for its next task (the tile processes' pipe, their parent watch)
+        ("stack_sampler.py", "write"), ("workers.py", "watch"), ("connection.py", "_recv")}
 
 
 def _name(code):
@@ -64,10 +66,11 @@ class Sampler:
                     continue
                 self.stacks[tuple(stack)] += 1
 
-    def report(self, top=60):
-        self._stop.set()
+    def report(self, top=60, stop=True):
+        if stop:
+            self._stop.set()
         inclusive, own = collections.Counter(), collections.Counter()
-        for stack, n in self.stacks.items():
+        for stack, n in list(self.stacks.items()):
             for name in set(stack):
                 inclusive[name] += n
             own[stack[-1]] += n
@@ -76,6 +79,36 @@ class Sampler:
                     busy_samples=busy, idle_samples=self.idle, threads=len(self.threads),
                     inclusive=inclusive.most_common(top), self=own.most_common(top),
                     stacks=[[";".join(s), n] for s, n in self.stacks.most_common(top)])
+
+
+def start_periodic(out, interval, every=1.0):
+    """Sample this process (a spawned worker, see _worker_sampling/sitecustomize.py) and rewrite
+    ``out`` every ``every`` seconds (a worker may be ended without running its exit hooks)."""
+    sampler = Sampler(interval)
+
+    def write():
+        while True:
+            time.sleep(every)
+            report = sampler.report(stop=False)
+            with open(out + ".part", "w") as f:
+                json.dump(report, f)
+            os.replace(out + ".part", out)
+
+    sampler.start()
+    threading.Thread(target=write, daemon=True, name="stack-sampler-writer").start()
+
+
+def merge(reports, top=60):
+    """The reports of several processes as one (counts summed)."""
+    inclusive, own, stacks = collections.Counter(), collections.Counter(), collections.Counter()
+    for r in reports:
+        inclusive.update(dict(r["inclusive"]))
+        own.update(dict(r["self"]))
+        stacks.update(dict(r["stacks"]))
+    return dict(processes=len(reports), interval_s=reports[0]["interval_s"] if reports else None,
+                samples=sum(r["samples"] for r in reports), busy_samples=sum(r["busy_samples"] for r in reports),
+                idle_samples=sum(r["idle_samples"] for r in reports),
+                inclusive=inclusive.most_common(top), self=own.most_common(top), stacks=stacks.most_common(top))
 
 
 def main():

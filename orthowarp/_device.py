@@ -434,6 +434,32 @@ _PINNED_HELD: dict[str, int] = {}  # per device: bytes of page-locked memory mad
 _PINNED_LOCK = threading.Lock()
 
 
+def _take_pinned(key: str, size: int) -> PinnedBuffer | None:
+    """A buffer of ``size`` bytes from the pool of device ``key`` whose copies have run, else
+    the oldest one (its copy to be waited for) once the pool is at its limit, else None (the
+    caller makes one; counted here).
+
+    No driver call is made with the pool's lock held: each releases the interpreter lock, and
+    a thread waiting to take it back while holding the pool's lock stalled every other
+    thread's uploads (the reduced pass's read threads spent more time waiting for this lock
+    than reading)."""
+    while True:
+        with _PINNED_LOCK:
+            free = _PINNED.setdefault(key, {}).setdefault(size, [])
+            candidates = list(free)
+        done = next((b for b in candidates if b.event is None or b.event.is_complete), None)
+        with _PINNED_LOCK:
+            if done is not None:
+                if any(b is done for b in free):
+                    free.remove(done)
+                    return done
+                continue  # another thread took it meanwhile: look again
+            if _PINNED_HELD.get(key, 0) + size > PINNED_POOL_MAX and free:
+                return free.pop(0)  # the oldest: its copy waited for by the caller
+            _PINNED_HELD[key] = _PINNED_HELD.get(key, 0) + size
+            return None
+
+
 @contextlib.contextmanager
 def pinned_buffer(device: wp.Device, nbytes: int) -> Iterator[PinnedBuffer | None]:
     """Page-locked host memory of at least ``nbytes`` bytes for uploads to the CUDA device
@@ -454,15 +480,7 @@ def pinned_buffer(device: wp.Device, nbytes: int) -> Iterator[PinnedBuffer | Non
         return
     size = max(1 << 20, 1 << (max(int(nbytes), 1) - 1).bit_length())
     key = device.alias
-    with _PINNED_LOCK:
-        free = _PINNED.setdefault(key, {}).setdefault(size, [])
-        ready = next((b for b in free if b.event is None or b.event.is_complete), None)
-        if ready is None and _PINNED_HELD.get(key, 0) + size > PINNED_POOL_MAX and free:
-            ready = free[0]  # the oldest: wait for its copy below
-        if ready is not None:
-            free.remove(ready)
-        else:
-            _PINNED_HELD[key] = _PINNED_HELD.get(key, 0) + size
+    ready = _take_pinned(key, size)
     if ready is None:
         with wp.ScopedDevice(device):
             ready = PinnedBuffer(wp.empty(size, dtype=wp.uint8, device="cpu", pinned=True))
