@@ -92,22 +92,3 @@ def test_the_images_of_many_tiles_by_binary_search_equal_every_pair(halo):
     assert _images_meeting_tiles(tiles, foot, halo) == brute(tiles)
     some = tiles[::3]
     assert _images_meeting_tiles(some, foot, halo) == brute(some)
-
-
-def test_tile_processes_keep_the_images_they_render_whole(pair, tmp_path, monkeypatch):  # noqa: F811
-    """Resident sources with tile processes: each process reads the images it renders in the
-    reduced pass whole and keeps them for its tiles, within its share of the images the plan
-    let fit; the file is the one of per-tile reads on threads."""
-    from orthowarp.pipeline.mosaic import _for_processes, mosaic
-
-    opts = _for_processes(dict(resident=True, cache_images=40, device_reduce=True), 4)
-    assert opts["reduced_whole"] and not opts["resident"] and opts["cache_images"] == 5
-    assert _for_processes(dict(resident=True, cache_images=4), 4)["cache_images"] == 2
-    assert _for_processes(dict(cache_images=200), 4) == dict(cache_images=24, resident=False, reduced_whole=False)
-    sc, images, _, _ = pair
-    kw = dict(dem=sc.dem, refraction=False, device="cpu", tile_size=64)
-    mosaic(images, tmp_path / "threads.tif", **kw)
-    monkeypatch.setattr(plan_module, "_residency",
-                        lambda facts, sensors, device: dict(device_reduce=True, resident=True, cache_images=24))
-    mosaic(images, tmp_path / "processes.tif", processes=2, **kw)
-    assert (tmp_path / "processes.tif").read_bytes() == (tmp_path / "threads.tif").read_bytes()

@@ -535,18 +535,11 @@ def _upload_tile(values: np.ndarray, valid: np.ndarray, on: wp.context.Device) -
             upload(valid.view(np.uint8), dtype=wp.uint8, device=on))
 
 
-def _for_processes(options: dict[str, Any], n: int) -> dict[str, Any]:
-    """A plan's options for its ``n`` tile processes: each reads the windows of the images it
-    meets (reduced ones still averaged on the device where the plan says so: the same pixels)
-    rather than holding every one whole, and holds at most WORKER_CACHE_IMAGES images. Where
-    the plan's sources are resident, the images a process renders in the reduced pass are
-    read whole and kept in its device memory for its tiles (``reduced_whole``; the same
-    pixels), each process holding at most its share of the images the plan let fit there."""
-    cache = min(options["cache_images"], WORKER_CACHE_IMAGES)
-    whole = bool(options.get("resident"))
-    if whole:
-        cache = max(2, min(cache, options["cache_images"] // (2 * max(1, n))))  # (kept and in use)
-    return dict(options, resident=False, reduced_whole=whole, cache_images=cache)
+def _for_processes(options: dict[str, Any]) -> dict[str, Any]:
+    """A plan's options for its tile processes: each reads its images' windows (reduced ones
+    still averaged on the device where the plan says so: the same pixels) rather than holding
+    every image it meets whole, and holds at most WORKER_CACHE_IMAGES images."""
+    return dict(options, resident=False, cache_images=min(options["cache_images"], WORKER_CACHE_IMAGES))
 
 
 def _ahead_on(procs: ProcessTiles, tile_size: int | None, on: wp.context.Device) -> Callable[[MosaicPlan], None]:
@@ -558,7 +551,7 @@ def _ahead_on(procs: ProcessTiles, tile_size: int | None, on: wp.context.Device)
 
     def ahead(plan: MosaicPlan) -> None:
         grid = copy.copy(plan)
-        grid.options = _for_processes(plan.options, procs.n)
+        grid.options = _for_processes(plan.options)
         tiles = plan.tiles(_compute_tile(tile_size, on))  # (those _write_mosaic will deal)
         procs.build_ahead(grid, tiles, plan._tile_images(tiles), reduced=(plan.seam_step, len(plan.sources)))
 
@@ -579,7 +572,7 @@ def _process_results(plan: MosaicPlan, procs: ProcessTiles, tiles: list[Tile], s
     tiles' blocks on the one GPU, the 40-frame speed block took 29.7 and 30.0 s against 15.7
     and 17.2 s on an H200, its deflate batches a tile each.)"""
     plan._kept.clear()  # the reduced pass's geometries and sources: the workers build their own
-    plan.options = _for_processes(plan.options, procs.n)
+    plan.options = _for_processes(plan.options)
     st = plan._materialise()  # the stage timer starts with the tiles, as on threads
     procs.start_plan(plan, (size, size), with_source=codec == "host" or host_source, encoder=encoder)
 

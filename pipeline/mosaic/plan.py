@@ -1069,11 +1069,9 @@ def _reduced_image(plan: MosaicPlan, k: int, f: int, *, keep: bool = False) -> t
     r0, r1 = max(fr0 // f, 0), min(-(-fr1 // f), crows)
     c0, c1 = max(fc0 // f, 0), min(-(-fc1 // f), ccols)
     window = Tile(r0, c0, r1 - r0, c1 - c0)
-    # where the plan's sources are resident (or, in a tile process, those whose reduced windows
-    # it renders: ``reduced_whole``), each is read whole into device memory here and kept with
-    # the geometry for the tiles (reduced windows averaged from it there)
-    o = plan.options
-    whole = plan._whole_source(k, geom.device) if o.get("resident") or (keep and o.get("reduced_whole")) else None
+    # where the plan's sources are resident, each is read whole into device memory here
+    # and kept with the geometry for the tiles (reduced windows averaged from it there)
+    whole = plan._whole_source(k, geom.device) if plan.options.get("resident") else None
     # (the source's own mask flag and dtype: an uncompressed source without a mask is then
     # read as stored, without GDAL, as its tiles are; the same values)
     it = ImageTiles(src, geom, plan.crs, ctr, count=count, out_dtype="float32", resampling=plan.options["resampling"],
