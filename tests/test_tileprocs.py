@@ -11,8 +11,7 @@ import warp as wp
 
 from orthowarp.errors import OrthowarpError, ParamError
 from orthowarp.pipeline.reports.profile import StageTimer
-from orthowarp.pipeline.mosaic.workers import (ProcessTiles, TileDealer, _live_peak, compact_runs, reduced_owners,
-                                              tile_runs)
+from orthowarp.pipeline.mosaic.workers import ProcessTiles, TileDealer, _live_peak, compact_runs, tile_runs
 
 
 class StandInPlan:
@@ -404,27 +403,3 @@ def test_processes_build_their_first_images_ahead(per_process):
         first = used[:per_process]
         assert 9 in first and len(used) >= 3 and len(first) == min(per_process, len(used))
         assert info[w]["built_ahead"] == len(first) and list(info[w]["counts"][1:]) == sorted(first)
-
-
-def test_reduced_owners_give_each_image_to_the_run_that_uses_it_most():
-    """reduced_owners: one process per image, the one whose run uses it in the most tiles
-    (the first on a tie); images no tile uses go to the processes with the fewest."""
-    tiles = _tiles()
-    images = [(c0 // 32, 3 + r0 // 32) for r0, c0, _, _ in tiles]  # columns 0-2, rows 3-5
-    runs = compact_runs(tiles, 2, images)
-    owners = reduced_owners(runs, images, 9, 2)
-    assert len(owners) == 9
-    for k in range(6):
-        uses = [sum(k in images[t] for t in run) for run in runs]
-        assert uses[owners[k]] == max(uses) and owners[k] == uses.index(max(uses))
-    load = [owners[:6].count(w) for w in range(2)]
-    for k in range(6, 9):  # (used by no tile)
-        assert owners[k] == load.index(min(load))
-        load[owners[k]] += 1
-
-
-def test_a_reduced_pass_not_sent_is_an_error():
-    """ProcessTiles.reduced without build_ahead's reduced pass (or at another factor) is an error."""
-    with ProcessTiles(1, "cpu", threads=1) as procs:
-        with pytest.raises(OrthowarpError, match="no reduced pass at factor 3"):
-            next(procs.reduced(3))

@@ -316,7 +316,7 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
                                same_vertical_datum=same_vertical_datum, cancel=cancel, _outputs=outputs,
                                _client=client, _worker_device=worker_device,
                                _on_grid=_ahead_on(procs, tile_size, on) if procs is not None else None,
-                               _on_reduced=ahead, _reduced_by=procs.reduced if procs is not None else None)
+                               _on_reduced=ahead)
             out = _WriteSettings(index=index, seamlines=seamlines, seamlines_lonlat=seamlines_lonlat, compress=compress,
                                  compress_level=compress_level, quality=quality, block_codec=block_codec,
                                  creation_options=creation_options, tile_size=tile_size, overwrite=overwrite,
@@ -544,16 +544,14 @@ def _for_processes(options: dict[str, Any]) -> dict[str, Any]:
 
 def _ahead_on(procs: ProcessTiles, tile_size: int | None, on: wp.context.Device) -> Callable[[MosaicPlan], None]:
     """The hook :func:`mosaic_plan` calls once the plan's grid is made: the tile processes
-    render the plan's reduced pass (each image in the process whose tiles use it most, which
-    keeps its geometry; collected by :meth:`ProcessTiles.reduced`), then start building the
-    images of their first tiles (:meth:`ProcessTiles.build_ahead`) while the balance and seams
-    are made here."""
+    start building the images of their first tiles (:meth:`ProcessTiles.build_ahead`) while
+    the plan's reduced pass, balance and seams are made here."""
 
     def ahead(plan: MosaicPlan) -> None:
         grid = copy.copy(plan)
         grid.options = _for_processes(plan.options)
         tiles = plan.tiles(_compute_tile(tile_size, on))  # (those _write_mosaic will deal)
-        procs.build_ahead(grid, tiles, plan._tile_images(tiles), reduced=(plan.seam_step, len(plan.sources)))
+        procs.build_ahead(grid, tiles, plan._tile_images(tiles))
 
     return ahead
 

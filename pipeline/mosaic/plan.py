@@ -58,8 +58,8 @@ from .workers import tile_runs
 if TYPE_CHECKING:
     from warp.context import Device
 
-__all__ = ["mosaic_plan", "MosaicPlan", "MosaicResult", "NO_SOURCE", "SEAM_PIXELS", "reduced_pass", "reduced_factor",
-           "check_images", "output_paths", "mosaic_block_codec", "default_tile_size"]
+__all__ = ["mosaic_plan", "MosaicPlan", "MosaicResult", "NO_SOURCE", "SEAM_PIXELS", "reduced_pass", "check_images",
+           "output_paths", "mosaic_block_codec", "default_tile_size"]
 
 log = logging.getLogger(__name__)
 
@@ -237,13 +237,9 @@ class MosaicPlan(TileBlending):
 
     def adopt_ahead(self, other: MosaicPlan) -> None:
         """Take over the images ``other`` (a plan of the same grid, images and options) builds
-        or built ahead (:meth:`build_ahead`), and the geometries its reduced pass kept."""
+        or built ahead (:meth:`build_ahead`)."""
         self._ahead.update(other._ahead)
         other._ahead = {}
-        with other._lock:
-            kept, other._kept = other._kept, collections.OrderedDict()
-        for k, (geom, whole) in kept.items():
-            self._keep_geometry(k, geom, whole)
 
     def _built_ahead(self, k: int, timer: StageTimer) -> dict[str, Any] | None:
         """Image ``k``'s entry built ahead (waited for where its build is still running), its
@@ -599,18 +595,14 @@ def mosaic_plan(images: Sequence[tuple], *, dem: Dem | str | os.PathLike | float
                 cancel: threading.Event | None = None, _outputs: Sequence[str] = (),
                 _seam_pixels: int = SEAM_PIXELS, _client: Any = None, _worker_device: str | None = None,
                 _on_grid: Callable[[MosaicPlan], None] | None = None,
-                _on_reduced: Callable[[MosaicPlan], None] | None = None,
-                _reduced_by: Callable[[int, threading.Event | None], Iterable[tuple[int, tuple | None]]] | None = None
-                ) -> MosaicPlan:
+                _on_reduced: Callable[[MosaicPlan], None] | None = None) -> MosaicPlan:
     """The grid, sources and radiometric balance of a mosaic, without writing it: a
     :class:`MosaicPlan` whose :meth:`~MosaicPlan.tile` any scheduler can run (threads, a Dask
     cluster) and whose :meth:`~MosaicPlan.write` assembles the results. Parameters as
     :func:`~orthowarp.pipeline.mosaic.mosaic`. (Internally, with ``_client`` the reduced pass
     runs on that Dask client's workers, on ``_worker_device``; ``_on_grid(plan)`` is called once
-    the grid is made, before the reduced pass, balance and seams (``plan.seam_step`` then
-    already the reduced pass's factor); ``_on_reduced(plan)`` once the reduced pass is done,
-    before the balance and seams; ``_reduced_by``: the reduced pass's images rendered
-    elsewhere, see :func:`reduced_pass`'s ``rendered``.)"""
+    the grid is made, before the reduced pass, balance and seams; ``_on_reduced(plan)`` once
+    the reduced pass is done, before the balance and seams.)"""
     t_plan = time.perf_counter()
     images = check_images(images, resampling, dtype, blend, feather, reference, seams, seam_width,
                           resolution=resolution, refraction=refraction, balance=balance, occlusion=occlusion,
@@ -639,10 +631,9 @@ def mosaic_plan(images: Sequence[tuple], *, dem: Dem | str | os.PathLike | float
                       out_crs, transform, (rows, cols), res, foot, count, out_dtype, src_dtype)
     plan.setup_s.update(setup)
     plan._fresh = fresh
-    plan.seam_step = reduced_factor(plan.shape, _seam_pixels)  # (the reduced pass's, known to _on_grid)
     if _on_grid is not None:
         _on_grid(plan)
-    _balance_and_seams(plan, cfg, cancel, _seam_pixels, _client, _worker_device, _on_reduced, _reduced_by)
+    _balance_and_seams(plan, cfg, cancel, _seam_pixels, _client, _worker_device, _on_reduced)
     plan.setup_s["total"] = time.perf_counter() - t_plan
     return plan
 
@@ -792,24 +783,19 @@ def _residency(facts: list[tuple[str, int, str, bool]], sensors: Sequence[Sensor
 
 def _balance_and_seams(plan: MosaicPlan, cfg: _PlanSettings, cancel: threading.Event | None,
                        seam_pixels: int, client: Any = None, worker_device: str | None = None,
-                       on_reduced: Callable[[MosaicPlan], None] | None = None,
-                       reduced_by: Callable[[int, threading.Event | None], Iterable[tuple[int, tuple | None]]]
-                       | None = None) -> None:
-    """One reduced pass (the images' overlaps; on a Dask ``client``'s workers, or by
-    ``reduced_by``, where given), then
+                       on_reduced: Callable[[MosaicPlan], None] | None = None) -> None:
+    """One reduced pass (the images' overlaps; on a Dask ``client``'s workers where given), then
     (after ``on_reduced(plan)``, where given) the plan's radiometric balance and its seams'
     labelling from it; each step's seconds in ``plan.setup_s``."""
     n_images = len(plan.sources)
     balancing = cfg.balance and n_images > 1
-    # with the images rendered elsewhere (a cluster, the tile processes), the balance's overlap
-    # statistics made here as they come in (this process waits for them meanwhile); its solves
-    # after the pass
-    elsewhere = client is not None or reduced_by is not None
-    stats = OverlapStats(n_images) if balancing and elsewhere else None
+    # on a cluster, the balance's overlap statistics made here as the images come in (this
+    # process waits for the workers meanwhile); its solves after the pass
+    stats = OverlapStats(n_images) if balancing and client is not None else None
     try:
         t = time.perf_counter()
         f, coarse, labels = reduced_pass(plan, cancel, seam_pixels, client=client, worker_device=worker_device,
-                                         on_image=None if stats is None else stats.add, rendered=reduced_by)
+                                         on_image=None if stats is None else stats.add)
         plan.setup_s["reduced_pass"] = time.perf_counter() - t
         if on_reduced is not None:
             on_reduced(plan)
@@ -956,18 +942,9 @@ def _write_seamlines(path: str, index: np.ndarray, transform: Affine, crs: CRS, 
         raise RasterIOError(f"Could not write '{name}': {e.strerror or e}") from e
 
 
-def reduced_factor(shape: tuple[int, int], max_pixels: int) -> int:
-    """Mosaic pixels per pixel (each way) of the reduced grid of a mosaic of ``shape`` (rows,
-    cols): the smallest that keeps it within ``max_pixels`` pixels."""
-    rows, cols = shape
-    return max(1, int(np.ceil(np.sqrt(rows * cols / max_pixels))))
-
-
 def reduced_pass(plan: MosaicPlan, cancel: threading.Event | None, max_pixels: int, *, client: Any = None,
                  worker_device: str | None = None,
-                 on_image: Callable[[int, Coarse], None] | None = None,
-                 rendered: Callable[[int, threading.Event | None], Iterable[tuple[int, tuple | None]]] | None = None
-                 ) -> tuple[int, list[Coarse], np.ndarray]:
+                 on_image: Callable[[int, Coarse], None] | None = None) -> tuple[int, list[Coarse], np.ndarray]:
     """Each image rendered alone on a reduced grid of the mosaic (the mosaic's pixels
     ``f`` x ``f``, at most ``max_pixels`` pixels) and the most-nadir labelling of that grid.
     Up to f = 3 the images are read at full resolution and sampled at the reduced grid's
@@ -976,10 +953,7 @@ def reduced_pass(plan: MosaicPlan, cancel: threading.Event | None, max_pixels: i
     and area-averaged (each source pixel read once instead of one in f^2 used). With a Dask
     ``client``, the images are rendered on its workers (on ``worker_device``; see
     :func:`~orthowarp.pipeline.mosaic.cluster.shipped_plan`) and only their reduced windows
-    come back. ``rendered(f, cancel)``, where given, yields (k, item) for every image, each
-    rendered elsewhere by :func:`_reduced_image` at this pass's ``f`` (the mosaic's tile
-    processes: :meth:`~orthowarp.pipeline.mosaic.workers.ProcessTiles.reduced`).
-    ``on_image(k, window)`` is called with each image's window (r0, c0, values, ok;
+    come back. ``on_image(k, window)`` is called with each image's window (r0, c0, values, ok;
     or None) as it comes in, in this thread (e.g. :meth:`OverlapStats.add
     <orthowarp.pipeline.mosaic.balance.OverlapStats.add>`).
 
@@ -995,7 +969,7 @@ def reduced_pass(plan: MosaicPlan, cancel: threading.Event | None, max_pixels: i
         where none covers it).
     """
     rows, cols = plan.shape
-    f = reduced_factor(plan.shape, max_pixels)
+    f = max(1, int(np.ceil(np.sqrt(rows * cols / max_pixels))))
     crows, ccols = -(-rows // f), -(-cols // f)
     labels = np.full((crows, ccols), NO_SOURCE, np.uint16)
     best = np.full((crows, ccols), np.inf, np.float32)
@@ -1023,11 +997,6 @@ def reduced_pass(plan: MosaicPlan, cancel: threading.Event | None, max_pixels: i
 
     if client is not None:
         items = _reduced_on_cluster(plan, client, f, order, cancel, worker_device, arrived)
-    elif rendered is not None:
-        items = {}
-        for k, item in rendered(f, cancel):
-            items[k] = item
-            arrived(k, item)
     else:
         items = {}
         with ThreadPoolExecutor(max_workers=min(8, host_cores(), len(plan.foot))) as pool:

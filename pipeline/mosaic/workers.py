@@ -61,7 +61,7 @@ if TYPE_CHECKING:
 
     from warp.context import Device
 
-__all__ = ["ProcessTiles", "TileDealer", "tile_runs", "compact_runs", "reduced_owners", "remove_stale_segments"]
+__all__ = ["ProcessTiles", "TileDealer", "tile_runs", "compact_runs", "remove_stale_segments"]
 
 #: Images a worker process's plan keeps built at most (the tile processes' and a cluster's
 #: workers', which read their images' windows rather than hold the images whole)
@@ -134,7 +134,6 @@ class ProcessTiles:
                        for w in range(self.n)]
         self._file = self._map = self._fd = None
         self._ahead_file = None  # (path, fd) of the plan of build_ahead
-        self._reduced_images = self._reduced_f = None  # the reduced pass sent with it: images, factor
         remove_stale_segments()
         self.worker_info = []  # per worker at the end: pixels per image, stage spans, builds, peak RSS
         for p in self._procs:
@@ -175,7 +174,7 @@ class ProcessTiles:
             q.put(("plan", path, len(blob), self._base, self._slot_bytes, self._with_source, encoder, self._blob_at))
 
     def build_ahead(self, plan: Any, tiles: Sequence[Tile], images: Sequence[tuple[int, ...]], *,
-                    per_process: int = 8, reduced: tuple[int, int] | None = None) -> None:
+                    per_process: int = 8) -> None:
         """Have each process build the images of its first tiles now, while the caller is still
         making ``plan`` (its grid made; the reduced pass, balance and seams to come): ``plan`` as
         it is now goes to the processes, which build each image's geometry, forward map and
@@ -185,52 +184,19 @@ class ProcessTiles:
         ``per_process`` images that run ``w`` (the one :meth:`run` deals it first) uses, in the
         order its tiles first use them. (Only the images of its first few tiles would leave
         it idle where a run starts in a corner of the mosaic that few images cover: on the
-        40-frame speed block, 0-2 images per process.)
-
-        ``reduced`` = (f, number of images): before those builds, the processes render the
-        plan's reduced pass (:func:`~orthowarp.pipeline.mosaic.plan._reduced_image` at factor
-        f, keeping each image's geometry for its tiles), each image in the process whose run
-        uses it in the most tiles (:func:`reduced_owners`); :meth:`reduced` collects them."""
+        40-frame speed block, 0-2 images per process.)"""
         if self._ahead_file is not None:
             raise OrthowarpError("ProcessTiles.build_ahead: called twice")
         runs = compact_runs(tiles, self.n, images)
-        owned: list[list[int]] = [[] for _ in range(self.n)]
-        f = None
-        if reduced is not None:
-            f, n_images = reduced
-            for k, w in enumerate(reduced_owners(runs, images, n_images, self.n)):
-                owned[w].append(k)
-            # each process's in the reverse of its run's first use (images its run does not use
-            # first), so that the geometries its bounded cache keeps last are those of its first tiles
-            for w in range(min(self.n, len(runs))):
-                first = {k: pos for pos, k in enumerate(first_images(runs[w], images, n_images))}
-                owned[w].sort(key=lambda k: first.get(k, -1), reverse=True)
-                owned[w].sort(key=lambda k: k in first)
-            self._reduced_images, self._reduced_f = n_images, f
         blob = pickle.dumps(plan, protocol=pickle.HIGHEST_PROTOCOL)
         path, fd = _locked_file()
         self._ahead_file = path, fd
         at = 0
         while at < len(blob):
             at += os.pwrite(fd, memoryview(blob)[at:], at)
-        for w in range(self.n):
-            ks = first_images(runs[w], images, per_process) if w < len(runs) else []
-            self._tasks[w].put(("ahead", path, len(blob), ks, owned[w], f))
-
-    def reduced(self, f: int, cancel: threading.Event | None = None) -> Iterator[tuple[int, tuple | None]]:
-        """The reduced pass the processes render (:meth:`build_ahead` with ``reduced``): yields
-        (k, item) for every image as it comes in (item as
-        :func:`~orthowarp.pipeline.mosaic.plan._reduced_image` returns it)."""
-        n_images = self._reduced_images
-        if n_images is None or self._reduced_f != f:
-            raise OrthowarpError(f"ProcessTiles.reduced: no reduced pass at factor {f} was sent to the processes")
-        for _ in range(n_images):
-            msg = self._get(cancel)
-            if msg[0] == "error":
-                raise _rebuild(msg[2], msg[3])
-            if msg[0] != "reduced":
-                raise OrthowarpError(f"ProcessTiles.reduced: unexpected message {msg[0]!r} from a tile process")
-            yield msg[2], msg[3]
+        for w, run in enumerate(runs[:self.n]):
+            ks = first_images(run, images, per_process)
+            self._tasks[w].put(("ahead", path, len(blob), ks))
 
     def _views(self, slot: int, th: int, tw: int, count: int,
                dtype: str) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
@@ -312,14 +278,12 @@ class ProcessTiles:
         self.worker_info = [info[w] for w in range(self.n)]
         return self.worker_info
 
-    def _get(self, cancel: threading.Event | None = None) -> tuple:
-        """The next worker message; an error if a worker died (or a stop where ``cancel`` is
-        set)."""
+    def _get(self) -> tuple:
+        """The next worker message; an error if a worker died."""
         while True:
             try:
                 return self._results.get(timeout=_POLL_S)
             except queue.Empty:
-                check_cancel(cancel, "the mosaic")
                 for p in self._procs:
                     if p.exitcode is not None and p.exitcode != 0:
                         raise OrthowarpError(f"A mosaic tile process ended with exit code {p.exitcode}")
@@ -353,25 +317,6 @@ def first_images(tiles: Iterable[int], images: Sequence[tuple[int, ...]], n: int
     """The first ``n`` images (indices) that ``tiles`` (tile indices, in the order they run)
     use, each once, in the order of their first use; ``images``: per tile, its images."""
     return list(dict.fromkeys(j for k in tiles for j in images[k]))[:n]
-
-
-def reduced_owners(runs: Sequence[Sequence[int]], images: Sequence[tuple[int, ...]], n_images: int,
-                   n: int) -> list[int]:
-    """Per image (``n_images``), the process (of ``n``) that renders it in the reduced pass:
-    the one whose run (``runs``, tile indices per process) uses it in the most tiles (the
-    first such), so that the geometry it keeps serves its tiles; an image no tile uses goes to
-    the process with the fewest so far."""
-    uses = np.zeros((n_images, n), np.int64)
-    for w, run in enumerate(runs[:n]):
-        for t in run:
-            for k in images[t]:
-                uses[k, w] += 1
-    owner = np.argmax(uses, axis=1)
-    load = np.bincount(owner[uses.max(axis=1) > 0], minlength=n)
-    for k in np.flatnonzero(uses.max(axis=1) == 0):
-        owner[k] = int(np.argmin(load))
-        load[owner[k]] += 1
-    return [int(w) for w in owner]
 
 
 def tile_runs(tiles: Sequence[Tile], n: int, images: Sequence[tuple[int, ...]], *,
@@ -762,35 +707,18 @@ def _load_plan(ws: _Worker, path: str, n_blob: int, base: int, slot_bytes: int, 
         ws.ahead = None
 
 
-def _build_ahead(ws: _Worker, path: str, n_blob: int, ks: list[int], owned: list[int], f: int | None,
-                 pool: ThreadPoolExecutor) -> None:
-    """Unpickle the plan of :meth:`ProcessTiles.build_ahead` from the file at ``path``, render
-    the reduced pass's images ``owned`` (at factor ``f``) on the tile threads' ``pool``, then
-    start building images ``ks`` there."""
-    with open(path, "rb") as fh:
-        blob = fh.read(n_blob)
+def _build_ahead(ws: _Worker, path: str, n_blob: int, ks: list[int], pool: ThreadPoolExecutor) -> None:
+    """Unpickle the plan of :meth:`ProcessTiles.build_ahead` from the file at ``path`` and start
+    building images ``ks`` on the tile threads' ``pool``."""
+    with open(path, "rb") as f:
+        blob = f.read(n_blob)
     if len(blob) != n_blob:
         raise OrthowarpError(f"The mosaic's shared file '{path}' ended after {len(blob)} of {n_blob} bytes")
     ws.ahead = pickle.loads(blob)
-    for k in owned:
-        pool.submit(_worker_reduced, ws, k, f)
     # (submitted before any tile, so a tile waiting on one of these builds finds it started or
     # done: the pool runs its tasks in order, and no tile thread waits on a build still queued)
     ws.ahead.build_ahead(ks, pool)
     ws.built_ahead = len(ks)
-
-
-def _worker_reduced(ws: _Worker, k: int, f: int) -> None:
-    """Image ``k`` of the reduced pass at factor ``f``, its geometry kept for its tiles; sent to
-    the caller (or its failure reported)."""
-    from .plan import _reduced_image
-
-    try:
-        item = _reduced_image(ws.ahead, k, f, keep=True)
-        ws.results.put(("reduced", ws.w, k, item))
-    except BaseException as e:  # noqa: BLE001 - reported to the caller
-        ws.failed.append(e)
-        ws.report(e)
 
 
 def _worker_tile(ws: _Worker, k: int, tile: Tile, slot: int, used: tuple[int, ...], token: Any) -> None:
