@@ -36,6 +36,7 @@ from __future__ import annotations
 import collections
 import contextlib
 import fcntl
+import importlib
 import mmap
 import multiprocessing
 import os
@@ -658,6 +659,10 @@ def _worker_device(device: str) -> Device:
     with quiet_warp():
         dev = resolve_device(device)
         load_modules(dev, ortho_kernels, mosaic_kernels)
+    # what the tiles import on first use, imported now while the process waits for its plan: on an
+    # H200 every tile thread of the 40-frame speed block's processes waited about half a second
+    # in the first tile for one thread's import of SciPy's ndimage (the seams' distance windows)
+    importlib.import_module("scipy.ndimage")
     return dev
 
 
