@@ -154,23 +154,42 @@ def trace_delta(theta: ArrayLike, sensor_height: float, ground_height: ArrayLike
     rc = radius + hs
     p = (refractive_index(hs) * rc * np.sin(theta)).ravel()  # Bouguer invariant n r sin z
     flat_hg = hg.ravel()
-    phi = np.zeros_like(p)
     bnd = _boundaries(hs)
     bnd = bnd[: max(int(np.count_nonzero(bnd > flat_hg.min())) + 1, 2)] if flat_hg.size else bnd[:2]
     top, bot = bnd[:-1], bnd[1:]
+    n_layers = len(top)
     # the index of a layer the ray crosses whole is the layer's; of the layer where it stops,
     # that of the part above the stop: one value per layer and one per ray
     n_whole = refractive_index(0.5 * (top + bot))
-    stop = np.clip(np.searchsorted(-bnd, -flat_hg, side="left") - 1, 0, len(top) - 1)
+    stop = np.clip(np.searchsorted(-bnd, -flat_hg, side="left") - 1, 0, n_layers - 1)
     n_stop = refractive_index(0.5 * (top[stop] + flat_hg))
-    chunk = max(1, (1 << 20) // max(p.size, 1))  # layers x rays arrays of bounded size
+    # per ray: the layers it crosses whole (those from the top whose bottom is at or above its
+    # stop), then the part of the next one above its stop, if that layer's top is above it
+    whole = np.searchsorted(-bot, -flat_hg, side="right")
+    part = np.minimum(whole, n_layers - 1)
+    has_part = (whole < n_layers) & (top[part] > flat_hg)
+    # a whole layer's angle depends on the ray's invariant only: computed once per distinct
+    # invariant (a table's rays share theirs across its heights), each ray's sum of its whole
+    # layers then a running sum's entry. The sums run layer by layer within chunks of layers,
+    # chunk by chunk, as a sum over layers x rays arrays of bounded size would, so that each
+    # value is that sum's to the last bit.
+    pu, ray_p = np.unique(p, return_inverse=True)
+    ray_p = ray_p.ravel()
+    chunk = max(1, (1 << 20) // max(p.size, 1))
+    phi = np.zeros_like(p)
+    rays = np.arange(p.size)
     with np.errstate(invalid="ignore"):
-        for i in range(0, len(top), chunk):
+        b_part = p / n_stop
+        seg_part = np.arccos(b_part / (radius + top[part])) - np.arccos(b_part / (radius + flat_hg))
+        for i in range(0, n_layers, chunk):
             t, b0 = top[i:i + chunk, None], bot[i:i + chunk, None]
-            whole = b0 >= flat_hg
-            b = p / np.where(whole, n_whole[i:i + chunk, None], n_stop)
-            seg = np.arccos(b / (radius + t)) - np.arccos(b / (radius + np.where(whole, b0, flat_hg)))
-            phi += np.where(t > flat_hg, seg, 0.0).sum(axis=0)
+            b = pu / n_whole[i:i + chunk, None]
+            running = np.cumsum(np.arccos(b / (radius + t)) - np.arccos(b / (radius + b0)), axis=0)
+            k = np.clip(whole - i, 0, len(t))  # the ray's whole layers in this chunk
+            add = np.where(k > 0, running[np.maximum(k - 1, 0), ray_p[rays]], 0.0)
+            here = has_part & (whole >= i) & (whole < i + chunk)
+            add = np.where(here, np.where(k > 0, add + seg_part, seg_part), add)
+            phi += add
         rg = radius + flat_hg
         chord = np.arctan2(rg * np.sin(phi), rc - rg * np.cos(phi))
     return theta - chord.reshape(theta.shape)

@@ -250,3 +250,44 @@ def test_the_model_table_is_made_once_and_read_only():
     np.testing.assert_array_equal(a.q, trace_delta(th, 1450.0, a.heights[None, :]) / np.tan(th))
     assert RefractionModel(1450.5, 400.0, 520.0).q is not a.q
     assert not RefractionModel(1450.0, 400.0, 520.0, enabled=False).q.any()
+
+
+def _trace_by_layers_and_rays(theta, sensor_height, ground_height, radius=refraction.EARTH_RADIUS):
+    """The trace as one sum over a layers x rays array per chunk of layers (each ray's
+    segment in every layer: whole, partial at its stop, or zero below it), as trace_delta
+    first computed it."""
+    theta, hg = np.broadcast_arrays(np.asarray(theta, float), np.asarray(ground_height, float))
+    rc = radius + sensor_height
+    p = (refraction.refractive_index(sensor_height) * rc * np.sin(theta)).ravel()
+    flat_hg, phi = hg.ravel(), np.zeros(theta.size)
+    bnd = refraction._boundaries(sensor_height)
+    bnd = bnd[: max(int(np.count_nonzero(bnd > flat_hg.min())) + 1, 2)]
+    top, bot = bnd[:-1], bnd[1:]
+    n_whole = refraction.refractive_index(0.5 * (top + bot))
+    stop = np.clip(np.searchsorted(-bnd, -flat_hg, side="left") - 1, 0, len(top) - 1)
+    n_stop = refraction.refractive_index(0.5 * (top[stop] + flat_hg))
+    chunk = max(1, (1 << 20) // p.size)
+    with np.errstate(invalid="ignore"):
+        for i in range(0, len(top), chunk):
+            t, b0 = top[i:i + chunk, None], bot[i:i + chunk, None]
+            whole = b0 >= flat_hg
+            b = p / np.where(whole, n_whole[i:i + chunk, None], n_stop)
+            seg = np.arccos(b / (radius + t)) - np.arccos(b / (radius + np.where(whole, b0, flat_hg)))
+            phi += np.where(t > flat_hg, seg, 0.0).sum(axis=0)
+        rg = radius + flat_hg
+        chord = np.arctan2(rg * np.sin(phi), rc - rg * np.cos(phi))
+    return theta - chord.reshape(theta.shape)
+
+
+@pytest.mark.parametrize("sensor", [1000.0, 2500.0, 12000.0, 832000.0])
+def test_trace_equals_the_sum_over_layers_and_rays_to_the_last_bit(sensor):
+    """trace_delta's running sums per distinct ray invariant give the layers x rays sum's
+    values bit for bit: a table's rays, random rays (some missing the ground: NaN), stops on
+    layer boundaries, and a satellite's several chunks of layers."""
+    rng = np.random.default_rng(int(sensor))
+    theta, heights = refraction._table_nodes(-50.0, min(sensor - 1.0, 900.0), 89.0)
+    cases = [(np.maximum(theta, 1e-3)[:, None], heights[None, :]),
+             (rng.uniform(0.0, 1.57, 400), rng.uniform(-100.0, min(sensor - 1.0, 3000.0), 400)),
+             (rng.uniform(0.0, 1.5, (9, 1)), np.array([[0.0, 50.0, 100.0, 100.0, 950.0]]))]
+    for th, h in cases:
+        np.testing.assert_array_equal(trace_delta(th, sensor, h), _trace_by_layers_and_rays(th, sensor, h))
