@@ -612,10 +612,6 @@ def read_whole_source(src: str, device: wp.context.Device, *, masked: bool, dtyp
     data = wp.empty((bands, h, w), dtype=WP_TYPES[read_dtype], device=device)
     valid = wp.empty((h, w), dtype=wp.uint8, device=device) if masked else None
 
-    def read(part: list[tuple[int, int]]) -> None:
-        with copy_stream(device) as stream:  # (after the arrays' allocation on the device's stream)
-            read_part(part, stream)
-
     def read_part(part: list[tuple[int, int]], stream: Any) -> None:
         t = time.perf_counter()
         handle = _open_source(src)
@@ -677,8 +673,9 @@ def read_whole_source(src: str, device: wp.context.Device, *, masked: bool, dtyp
         timer.span("kernel", t)
     else:
         n_threads = max(1, min(8, host_cores(), len(strips)))
-        with ThreadPoolExecutor(max_workers=n_threads) as pool:
-            list(pool.map(read, [strips[k::n_threads] for k in range(n_threads)]))
+        # one copy stream for the read, shared by its threads (see read_raw_blocks)
+        with copy_stream(device) as stream, ThreadPoolExecutor(max_workers=n_threads) as pool:  # (after the arrays)
+            list(pool.map(lambda part: read_part(part, stream), [strips[k::n_threads] for k in range(n_threads)]))
     if read_dtype != dtype:  # e.g. uint8 into float32
         t = time.perf_counter()
         data = widened(data)

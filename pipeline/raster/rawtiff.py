@@ -165,10 +165,6 @@ def read_raw_blocks(path: str | os.PathLike, layout: RawLayout, device: Device, 
     failed = threading.Event()
     out_bytes = out.numpy().view(np.uint8) if not device.is_cuda else None  # (the CPU: read in place)
 
-    def copy(part: list[tuple[int, int, int]]) -> None:
-        with copy_stream(device) as stream:  # (after the array's allocation on the device's stream)
-            _copy_part(part, stream)
-
     def _copy_part(part: list[tuple[int, int, int]], stream: Any) -> None:
         # on a GPU each piece is read into page-locked memory and its copy only enqueued (the
         # next piece is read meanwhile); on the CPU each is read straight into the array
@@ -209,8 +205,10 @@ def read_raw_blocks(path: str | os.PathLike, layout: RawLayout, device: Device, 
             os.close(fd)
 
     k = max(1, min(threads, len(pieces)))
-    with ThreadPoolExecutor(max_workers=k) as pool:
-        for f in [pool.submit(copy, pieces[j::k]) for j in range(k)]:
+    # one copy stream for the read, its threads' copies enqueued on it (a stream per thread
+    # made the plan's reads wait in turn for new streams: 8 images at once, 8 threads each)
+    with copy_stream(device) as stream, ThreadPoolExecutor(max_workers=k) as pool:  # (after out's allocation)
+        for f in [pool.submit(_copy_part, pieces[j::k], stream) for j in range(k)]:
             try:
                 f.result()
             except OSError as e:
