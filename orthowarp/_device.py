@@ -51,7 +51,7 @@ if TYPE_CHECKING:  # annotations only
     from collections.abc import Iterator, Sequence
 
 __all__ = ["resolve_device", "quiet_warp", "ensure_warp_initialized", "load_modules", "set_warp_messages", "warm_up",
-           "copy_stream", "pinned_buffer", "to_host", "upload"]
+           "copy_stream", "pinned_buffer", "prefill_pinned", "to_host", "upload"]
 
 # What Warp's native library writes to fd 2 when no CUDA driver can be loaded (CPU-only
 # machines): an informational notice for orthowarp, whose CPU backend is a supported target.
@@ -423,7 +423,12 @@ class PinnedBuffer:
                              f"within the buffer's {self.host.nbytes}")
         src = wp.array(ptr=self.array.ptr + src_offset, dtype=dest.dtype, shape=(nbytes // item,), device="cpu")
         wp.copy(dest, src, dest_offset=dest_offset, count=nbytes // item, stream=stream)
-        self.event = stream.record_event()  # (after every copy enqueued before it on the stream)
+        # (after every copy enqueued before it on the stream; the buffer's one event recorded again:
+        # it is lent again only once that event has passed, and making one per copy cost as much
+        # as the copy's enqueueing)
+        if self.event is None or self.event.device != stream.device:
+            self.event = wp.Event(stream.device)
+        stream.record_event(self.event)
 
 
 #: Page-locked memory :func:`pinned_buffer` makes per CUDA device (bytes) before it has callers
@@ -460,6 +465,33 @@ def _take_pinned(key: str, size: int) -> PinnedBuffer | None:
             return None
 
 
+def _pinned_size(nbytes: int) -> int:
+    """The pool's buffer size for ``nbytes``: a power of two of at least 1 MiB."""
+    return max(1 << 20, 1 << (max(int(nbytes), 1) - 1).bit_length())
+
+
+def prefill_pinned(device: wp.Device, nbytes: int, count: int) -> int:
+    """Make ``count`` page-locked buffers for uploads of ``nbytes`` bytes to the CUDA device
+    ``device`` now, into :func:`pinned_buffer`'s pool, as far as its limit allows (nothing on
+    the CPU): page-locking memory is slow and serialised by the driver, so a caller that will
+    upload from many threads at once (a mosaic's reduced pass) makes them beforehand, e.g. on a
+    thread of their own beside other work. Returns the number made."""
+    if not device.is_cuda:
+        return 0
+    size, key, made = _pinned_size(nbytes), device.alias, 0
+    for _ in range(count):
+        with _PINNED_LOCK:
+            if _PINNED_HELD.get(key, 0) + size > PINNED_POOL_MAX:
+                break
+            _PINNED_HELD[key] = _PINNED_HELD.get(key, 0) + size
+        with wp.ScopedDevice(device):
+            buf = PinnedBuffer(wp.empty(size, dtype=wp.uint8, device="cpu", pinned=True))
+        with _PINNED_LOCK:
+            _PINNED.setdefault(key, {}).setdefault(size, []).append(buf)
+        made += 1
+    return made
+
+
 @contextlib.contextmanager
 def pinned_buffer(device: wp.Device, nbytes: int) -> Iterator[PinnedBuffer | None]:
     """Page-locked host memory of at least ``nbytes`` bytes for uploads to the CUDA device
@@ -478,7 +510,7 @@ def pinned_buffer(device: wp.Device, nbytes: int) -> Iterator[PinnedBuffer | Non
     if not device.is_cuda or nbytes > PINNED_POOL_MAX:
         yield None
         return
-    size = max(1 << 20, 1 << (max(int(nbytes), 1) - 1).bit_length())
+    size = _pinned_size(nbytes)
     key = device.alias
     ready = _take_pinned(key, size)
     if ready is None:

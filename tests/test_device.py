@@ -400,3 +400,22 @@ def test_pinned_buffers_are_lent_once_their_copies_ran(device, monkeypatch):
             assert work(k) in lent
         assert len(_device._PINNED[dev.alias][2 << 20]) == made
         np.testing.assert_array_equal(dst.numpy()[:8 * n], np.repeat(np.arange(8, dtype=np.int32), n))
+
+
+def test_the_pinned_pool_is_prefilled_within_its_limit(device, monkeypatch):
+    """prefill_pinned: page-locked buffers made ahead into pinned_buffer's pool (as many as
+    asked, up to the pool's limit), then lent by it; nothing on the CPU."""
+    monkeypatch.setattr(_device, "_PINNED", {})
+    monkeypatch.setattr(_device, "_PINNED_HELD", {})
+    dev = wp.get_device(device)
+    made = _device.prefill_pinned(dev, 3 << 20, 4)  # 4 MiB buffers
+    if not dev.is_cuda:
+        assert made == 0 and _device._PINNED == {}
+        return
+    pool = _device._PINNED[dev.alias][4 << 20]
+    assert made == 4 and len(pool) == 4 and _device._PINNED_HELD[dev.alias] == 16 << 20
+    made_ahead = [id(b) for b in pool]
+    monkeypatch.setattr(_device, "PINNED_POOL_MAX", (20 << 20))
+    assert _device.prefill_pinned(dev, 3 << 20, 5) == 1
+    with _device.pinned_buffer(dev, 3 << 20) as pin:
+        assert id(pin) in made_ahead

@@ -33,7 +33,7 @@ import warp as wp
 from affine import Affine
 from pyproj import CRS, Transformer
 
-from ..._device import host_cores, quiet_warp, resolve_device, to_host
+from ..._device import PINNED_POOL_MAX, host_cores, prefill_pinned, quiet_warp, resolve_device, to_host
 from ..._validate import flag, positive
 from ...errors import GeometryError, ParamError, RasterIOError
 from ...kernels import mosaic as mosaic_kernels
@@ -47,6 +47,7 @@ from ..ortho.tiles import ImageTiles, WholeSource, source_facts, source_read_dty
 from ..raster.cog import DTYPES, CogWriter, EncodedTile, TileEncoder
 from ..raster.device import DeviceCogEncoder, cog_writing
 from ..raster.io import atomic_files, check_cancel, check_destination, source_exists
+from ..raster.rawtiff import READ_PIECE
 from ..reports.profile import StageTimer
 from ..tiles import Tile
 from ..transforms import transformer
@@ -613,6 +614,13 @@ def mosaic_plan(images: Sequence[tuple], *, dem: Dem | str | os.PathLike | float
     if dem is None and all(sensor.orthorectified for _, sensor in images):
         dem = 0.0  # orthoimages take no terrain
     terrain = as_dem(dem)
+    on = resolve_device(device)
+    if on.is_cuda and _client is None:
+        # the reduced pass's whole-source reads upload from many threads at once, each piece from
+        # a page-locked buffer: half the pool's buffers made beside the grids (page-locking is
+        # slow and serialised; made during the pass, they held its read threads)
+        threading.Thread(target=prefill_pinned, args=(on, READ_PIECE, PINNED_POOL_MAX // READ_PIECE // 2),
+                         name="orthowarp-pinned-prefill", daemon=True).start()
     t = time.perf_counter()
     facts = _source_facts(images, _outputs)
     setup = {"sources": time.perf_counter() - t}

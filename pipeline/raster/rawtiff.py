@@ -32,7 +32,7 @@ from .tiff import SHORT, LONG, LONG8, read_ifd, tiff_header
 if TYPE_CHECKING:
     from warp.context import Device
 
-__all__ = ["RawLayout", "raw_layout", "read_raw_blocks", "read_raw_window"]
+__all__ = ["RawLayout", "raw_layout", "read_raw_blocks", "read_raw_window", "READ_PIECE"]
 
 _WIDTH, _HEIGHT, _BITS, _COMPRESSION, _PHOTOMETRIC = 256, 257, 258, 259, 262
 _STRIP_OFFSETS, _ORIENTATION, _SPP, _ROWS_PER_STRIP, _STRIP_SIZES = 273, 274, 277, 278, 279
@@ -40,6 +40,8 @@ _PLANAR, _PREDICTOR, _TILE_W, _TILE_H, _TILE_OFFSETS, _TILE_SIZES = 284, 317, 32
 _EXTRA_SAMPLES, _SAMPLE_FORMAT = 338, 339
 _DTYPES = {(1, 8): "uint8", (1, 16): "uint16", (3, 32): "float32"}  # (SampleFormat, bits) -> dtype
 _WP = {"uint8": wp.uint8, "uint16": wp.uint16, "float32": wp.float32}
+#: The largest piece of a whole read (bytes): each read into its own page-locked buffer on a GPU
+READ_PIECE = 16 << 20
 
 
 @dataclass(frozen=True)
@@ -142,7 +144,7 @@ def _read_exactly(fd: int, view: memoryview, offset: int, path: str | os.PathLik
 
 
 def read_raw_blocks(path: str | os.PathLike, layout: RawLayout, device: Device, *, threads: int = 8,
-                    chunk: int = 16 << 20, timer: Any = None) -> wp.array:
+                    chunk: int = READ_PIECE, timer: Any = None) -> wp.array:
     """The blocks of ``path`` (its :class:`RawLayout` ``layout``) copied into device memory.
 
     Returns
