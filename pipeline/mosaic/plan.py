@@ -614,6 +614,9 @@ def mosaic_plan(images: Sequence[tuple], *, dem: Dem | str | os.PathLike | float
     if dem is None and all(sensor.orthorectified for _, sensor in images):
         dem = 0.0  # orthoimages take no terrain
     terrain = as_dem(dem)
+    t = time.perf_counter()
+    facts = _source_facts(images, _outputs)
+    setup = {"sources": time.perf_counter() - t}
     on = resolve_device(device)
     if on.is_cuda and _client is None:
         # the reduced pass's whole-source reads upload from many threads at once, each piece from
@@ -621,9 +624,6 @@ def mosaic_plan(images: Sequence[tuple], *, dem: Dem | str | os.PathLike | float
         # slow and serialised; made during the pass, they held its read threads)
         threading.Thread(target=prefill_pinned, args=(on, READ_PIECE, PINNED_POOL_MAX // READ_PIECE // 2),
                          name="orthowarp-pinned-prefill", daemon=True).start()
-    t = time.perf_counter()
-    facts = _source_facts(images, _outputs)
-    setup = {"sources": time.perf_counter() - t}
     t = time.perf_counter()
     fresh = {}  # the geometries the grids were made from, up to FRESH_GEOMETRIES, for the reduced pass
     grids = _image_grids(images, terrain, cfg, _client, _worker_device, keep=fresh)
