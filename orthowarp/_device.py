@@ -380,7 +380,8 @@ _STREAMS_LOCK = threading.Lock()
 
 @contextlib.contextmanager
 def copy_stream(device: wp.Device) -> Iterator[wp.Stream | None]:
-    """A CUDA stream of this process's own for a thread's uploads to ``device``, made to wait
+    """A CUDA stream of this process's own for uploads to ``device`` (a thread's, or those of
+    one read's threads, which may enqueue on it together), made to wait
     for the work already on the device's current stream (arrays allocated in its order); None
     on the CPU. The streams are made one at a time and kept for the next caller, never
     destroyed: Warp streams made and destroyed on many threads at once crashed a mosaic's

@@ -177,7 +177,6 @@ def trace_delta(theta: ArrayLike, sensor_height: float, ground_height: ArrayLike
     ray_p = ray_p.ravel()
     chunk = max(1, (1 << 20) // max(p.size, 1))
     phi = np.zeros_like(p)
-    rays = np.arange(p.size)
     with np.errstate(invalid="ignore"):
         b_part = p / n_stop
         seg_part = np.arccos(b_part / (radius + top[part])) - np.arccos(b_part / (radius + flat_hg))
@@ -186,7 +185,7 @@ def trace_delta(theta: ArrayLike, sensor_height: float, ground_height: ArrayLike
             b = pu / n_whole[i:i + chunk, None]
             running = np.cumsum(np.arccos(b / (radius + t)) - np.arccos(b / (radius + b0)), axis=0)
             k = np.clip(whole - i, 0, len(t))  # the ray's whole layers in this chunk
-            add = np.where(k > 0, running[np.maximum(k - 1, 0), ray_p[rays]], 0.0)
+            add = np.where(k > 0, running[np.maximum(k - 1, 0), ray_p], 0.0)
             here = has_part & (whole >= i) & (whole < i + chunk)
             add = np.where(here, np.where(k > 0, add + seg_part, seg_part), add)
             phi += add
