@@ -471,6 +471,13 @@ def _pinned_size(nbytes: int) -> int:
     return max(1 << 20, 1 << (max(int(nbytes), 1) - 1).bit_length())
 
 
+def _new_pinned(device: wp.Device, size: int) -> PinnedBuffer:
+    """A new page-locked buffer of ``size`` bytes for uploads to ``device`` (counted in the
+    pool's bytes by the caller)."""
+    with wp.ScopedDevice(device):
+        return PinnedBuffer(wp.empty(size, dtype=wp.uint8, device="cpu", pinned=True))
+
+
 def prefill_pinned(device: wp.Device, nbytes: int, count: int) -> int:
     """Make ``count`` page-locked buffers for uploads of ``nbytes`` bytes to the CUDA device
     ``device`` now, into :func:`pinned_buffer`'s pool, as far as its limit allows (nothing on
@@ -485,8 +492,7 @@ def prefill_pinned(device: wp.Device, nbytes: int, count: int) -> int:
             if _PINNED_HELD.get(key, 0) + size > PINNED_POOL_MAX:
                 break
             _PINNED_HELD[key] = _PINNED_HELD.get(key, 0) + size
-        with wp.ScopedDevice(device):
-            buf = PinnedBuffer(wp.empty(size, dtype=wp.uint8, device="cpu", pinned=True))
+        buf = _new_pinned(device, size)
         with _PINNED_LOCK:
             _PINNED.setdefault(key, {}).setdefault(size, []).append(buf)
         made += 1
@@ -515,8 +521,7 @@ def pinned_buffer(device: wp.Device, nbytes: int) -> Iterator[PinnedBuffer | Non
     key = device.alias
     ready = _take_pinned(key, size)
     if ready is None:
-        with wp.ScopedDevice(device):
-            ready = PinnedBuffer(wp.empty(size, dtype=wp.uint8, device="cpu", pinned=True))
+        ready = _new_pinned(device, size)
     elif ready.event is not None:
         wp.synchronize_event(ready.event)
     try:

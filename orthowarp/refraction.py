@@ -158,16 +158,15 @@ def trace_delta(theta: ArrayLike, sensor_height: float, ground_height: ArrayLike
     bnd = bnd[: max(int(np.count_nonzero(bnd > flat_hg.min())) + 1, 2)] if flat_hg.size else bnd[:2]
     top, bot = bnd[:-1], bnd[1:]
     n_layers = len(top)
-    # the index of a layer the ray crosses whole is the layer's; of the layer where it stops,
-    # that of the part above the stop: one value per layer and one per ray
-    n_whole = refractive_index(0.5 * (top + bot))
-    stop = np.clip(np.searchsorted(-bnd, -flat_hg, side="left") - 1, 0, n_layers - 1)
-    n_stop = refractive_index(0.5 * (top[stop] + flat_hg))
     # per ray: the layers it crosses whole (those from the top whose bottom is at or above its
     # stop), then the part of the next one above its stop, if that layer's top is above it
     whole = np.searchsorted(-bot, -flat_hg, side="right")
     part = np.minimum(whole, n_layers - 1)
     has_part = (whole < n_layers) & (top[part] > flat_hg)
+    # the index of a layer the ray crosses whole is the layer's; of the layer where it stops,
+    # that of the part above the stop: one value per layer and one per ray
+    n_whole = refractive_index(0.5 * (top + bot))
+    n_stop = refractive_index(0.5 * (top[part] + flat_hg))  # (used where the ray has that part)
     # a whole layer's angle depends on the ray's invariant only: computed once per distinct
     # invariant (a table's rays share theirs across its heights), each ray's sum of its whole
     # layers then a running sum's entry. The sums run layer by layer within chunks of layers,

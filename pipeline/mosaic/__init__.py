@@ -77,7 +77,7 @@ from .cluster import (GPU_PROCESSES, TILED_COMPRESS, BuildAhead, TiledResult, Ti
                       connect, product_tile_grid, write_tiled)
 from .cluster import worker_device as cluster_device
 from .cluster import worker_devices
-from .workers import WORKER_CACHE_IMAGES, ProcessTiles, TileDealer, tile_runs
+from .workers import ProcessTiles, TileDealer, tile_runs, worker_options
 
 __all__ = ["mosaic", "mosaic_plan", "MosaicPlan", "MosaicResult", "TiledResult", "NO_SOURCE", "MOSAIC_COMPRESS"]
 
@@ -535,13 +535,6 @@ def _upload_tile(values: np.ndarray, valid: np.ndarray, on: wp.context.Device) -
             upload(valid.view(np.uint8), dtype=wp.uint8, device=on))
 
 
-def _for_processes(options: dict[str, Any]) -> dict[str, Any]:
-    """A plan's options for its tile processes: each reads its images' windows (reduced ones
-    still averaged on the device where the plan says so: the same pixels) rather than holding
-    every image it meets whole, and holds at most WORKER_CACHE_IMAGES images."""
-    return dict(options, resident=False, cache_images=min(options["cache_images"], WORKER_CACHE_IMAGES))
-
-
 def _ahead_on(procs: ProcessTiles, tile_size: int | None, on: wp.context.Device) -> Callable[[MosaicPlan], None]:
     """The hook :func:`mosaic_plan` calls once the plan's grid is made: the tile processes
     start building the images of their first tiles (:meth:`ProcessTiles.build_ahead`) while
@@ -549,7 +542,7 @@ def _ahead_on(procs: ProcessTiles, tile_size: int | None, on: wp.context.Device)
 
     def ahead(plan: MosaicPlan) -> None:
         grid = copy.copy(plan)
-        grid.options = _for_processes(plan.options)
+        grid.options = worker_options(plan.options)
         tiles = plan.tiles(_compute_tile(tile_size, on))  # (those _write_mosaic will deal)
         procs.build_ahead(grid, tiles, plan._tile_images(tiles))
 
@@ -570,7 +563,7 @@ def _process_results(plan: MosaicPlan, procs: ProcessTiles, tiles: list[Tile], s
     tiles' blocks on the one GPU, the 40-frame speed block took 29.7 and 30.0 s against 15.7
     and 17.2 s on an H200, its deflate batches a tile each.)"""
     plan._kept.clear()  # the reduced pass's geometries and sources: the workers build their own
-    plan.options = _for_processes(plan.options)
+    plan.options = worker_options(plan.options)
     st = plan._materialise()  # the stage timer starts with the tiles, as on threads
     procs.start_plan(plan, (size, size), with_source=codec == "host" or host_source, encoder=encoder)
 

@@ -64,7 +64,7 @@ from ...errors import Cancelled, OrthowarpError, ParamError, RasterIOError
 from ..raster.io import atomic_files, describe_os_error, ensure_folder, is_virtual
 from ..reports.progress import Progress
 from ..tiles import Tile
-from .workers import WORKER_CACHE_IMAGES, compact_runs, first_images
+from .workers import WORKER_CACHE_IMAGES, compact_runs, first_images, worker_options
 
 __all__ = ["connect", "local_cluster", "cluster_results", "write_tiled", "TiledSettings", "redact",
            "PRODUCT_FORMAT"]
@@ -394,14 +394,14 @@ def shipped_terrain(terrain: Any) -> Any:
 def shipped_plan(plan: Any, device: str | None = None) -> Any:
     """A copy of ``plan`` for workers: local source, DEM and geoid paths made absolute (the
     workers' working folder may differ), each worker reading its own windows (no resident
-    sources, at most 24 images cached), its tiles on ``device`` (default the plan's; ``"cuda:0"``
-    for the GPU workers of :func:`local_cluster`, each of which sees only its own GPU)."""
+    sources, a bounded image cache: :func:`~orthowarp.pipeline.mosaic.workers.worker_options`),
+    its tiles on ``device`` (default the plan's; ``"cuda:0"`` for the GPU workers of
+    :func:`local_cluster`, each of which sees only its own GPU)."""
     out = copy.copy(plan)
     out.__setstate__(plan.__getstate__())
     out.sources = [(local_path(src), sensor, masked) for src, sensor, masked in plan.sources]
     out.terrain = shipped_terrain(plan.terrain)
-    out.options = dict(plan.options, resident=False, cache_images=min(plan.options["cache_images"], WORKER_CACHE_IMAGES),
-                       geoid=local_path(plan.options.get("geoid")))
+    out.options = dict(worker_options(plan.options), geoid=local_path(plan.options.get("geoid")))
     if device is not None:
         out.options["device"] = device
     out.setup_s = {}
@@ -453,6 +453,12 @@ def as_finished(client: Any, futures: Sequence[Any], check: Callable[[], None] |
     except BaseException:
         client.cancel(list(futures))
         raise
+
+
+def task_key(tag: str, k: int, attempt: int = 0) -> str:
+    """The Dask key of task ``k`` of a run tagged ``tag``; a new one for each ``attempt`` after a
+    cancellation (see :func:`as_finished`)."""
+    return f"{tag}-{k}" + (f"-again{attempt}" if attempt else "")
 
 
 def _submit_again(fut: Any, error: BaseException, attempts: collections.Counter, pos: int,
@@ -847,7 +853,7 @@ def cluster_results(plan: Any, client: Any, tiles: Sequence[Tile], *, cancel: th
         def submit(k: int, w: str, attempt: int = 0) -> Any:
             return client.submit(_tile_task, remote, tiles[k], remote_encoder, device_codec, workers=[w],
                                  allow_other_workers=True, pure=False,
-                                 key=f"{tag}-{k}" + (f"-again{attempt}" if attempt else ""))
+                                 key=task_key(tag, k, attempt))
 
         # (not as_finished: each finished tile lets the dealer submit the next of its worker)
         dealer = _Submitter(_deal(client, tiles, images), submit, per_worker or _PER_WORKER * threads)
@@ -1428,7 +1434,7 @@ def _tiles_on_cluster(plan: Any, client: Any, todo: list, work: str, settings: T
             i, j, t = todo[k]
             return client.submit(_write_product_tile, remote, i, j, t, work, settings, threads.get(w, 1), tag, ahead,
                                  workers=[w], allow_other_workers=True, pure=False,
-                                 key=f"{tag}-{k}" + (f"-again{attempt}" if attempt else ""))
+                                 key=task_key(tag, k, attempt))
 
         futures = [submit(pos) for pos in range(len(dealt))]
         for _, stats in as_finished(client, futures, lambda: _check(cancel, dst), submit):

@@ -1076,7 +1076,7 @@ def _reduced_on_cluster(plan: MosaicPlan, client: Any, f: int, order: Sequence[i
                         arrived: Callable[[int, tuple | None], None]) -> dict[int, tuple | None]:
     """:func:`reduced_pass`'s images rendered on the workers of a Dask ``client``, in ``order``
     (the plan sent to each worker once); ``arrived(k, item)`` as each comes in."""
-    from .cluster import as_finished, broadcast_plan
+    from .cluster import as_finished, broadcast_plan, task_key
 
     tag = f"orthowarp-reduced-{os.getpid()}-{time.monotonic_ns():x}"
     items = {}
@@ -1084,8 +1084,7 @@ def _reduced_on_cluster(plan: MosaicPlan, client: Any, f: int, order: Sequence[i
 
         def submit(pos: int, attempt: int = 0) -> Any:
             k = order[pos]
-            return client.submit(_reduced_image, remote, k, f, pure=False,
-                                 key=f"{tag}-{k}" + (f"-again{attempt}" if attempt else ""))
+            return client.submit(_reduced_image, remote, k, f, pure=False, key=task_key(tag, k, attempt))
 
         futures = [submit(pos) for pos in range(len(order))]
         for pos, item in as_finished(client, futures, lambda: check_cancel(cancel, "the mosaic"), submit):

@@ -62,7 +62,7 @@ if TYPE_CHECKING:
 
     from warp.context import Device
 
-__all__ = ["ProcessTiles", "TileDealer", "tile_runs", "compact_runs", "remove_stale_segments"]
+__all__ = ["ProcessTiles", "TileDealer", "tile_runs", "compact_runs", "worker_options", "remove_stale_segments"]
 
 #: Images a worker process's plan keeps built at most (the tile processes' and a cluster's
 #: workers', which read their images' windows rather than hold the images whole)
@@ -70,6 +70,14 @@ WORKER_CACHE_IMAGES = 24
 _POLL_S = 0.5  # how often a wait for results checks that the workers live
 _PARENT_POLL_S = 0.2  # how often a worker checks that its parent lives
 SEGMENT_PREFIX = "orthowarp-tiles-"  # the shared files: <prefix><pid>-<random>
+
+
+def worker_options(options: dict[str, Any]) -> dict[str, Any]:
+    """A mosaic plan's options for worker processes (the tile processes of one host, a cluster's
+    workers): each reads the windows of the images it meets (reduced ones still averaged on the
+    device where the plan says so: the same pixels) rather than holding every one whole, and
+    holds at most WORKER_CACHE_IMAGES images."""
+    return dict(options, resident=False, cache_images=min(options["cache_images"], WORKER_CACHE_IMAGES))
 
 
 def _segment_folder() -> str:
