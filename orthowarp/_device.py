@@ -346,6 +346,7 @@ def compile_notice(device: wp.Device, what: str) -> Iterator[None]:
 
 
 _LOAD_LOCK = threading.RLock()
+_LOADED: set[tuple[str, str, int | None]] = set()  # (device, module, block size) loaded in this process
 
 
 def load_modules(device: wp.Device, *modules: types.ModuleType, block_dim: int | None = None) -> None:
@@ -363,15 +364,22 @@ def load_modules(device: wp.Device, *modules: types.ModuleType, block_dim: int |
     block_dim : int, optional
         The block size the launches will use (a module is loaded per block size).
     """
+    # a module once loaded stays loaded (kernels/ defines its kernels at import time): a
+    # geometry built again for each image and tile does not start the notice's timer thread
+    # and take the lock each time
+    keys = [(str(device), m.__name__, block_dim) for m in modules]
+    if all(k in _LOADED for k in keys):
+        return
     names = ", ".join(m.__name__.rsplit(".", 1)[-1] for m in modules)
     # one loader at a time: two image threads loading the same module at once both load it
     # (each reports a cached load; the work is done twice)
     with _LOAD_LOCK, quiet_warp(), compile_notice(device, f"Warp kernels ({names})"):
-        for m in modules:
+        for m, key in zip(modules, keys):
             if block_dim is None:
                 wp.load_module(m, device=device)
             else:
                 wp.load_module(m, device=device, block_dim=block_dim)
+            _LOADED.add(key)
 
 
 _STREAMS: dict[str, list] = {}  # per CUDA device: streams of copy_stream not in use

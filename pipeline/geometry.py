@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import collections
 import copy
 import math
 import numbers
 import os
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
@@ -69,12 +71,37 @@ PROBE_HEIGHTS = (-1000.0, 9000.0)  # m: the refraction table of footprint probes
 def _at_constant(base: SensorGeometry, h: float) -> SensorGeometry:
     """A copy of a geometry over a constant DEM, over the constant height h (m) instead: its
     refraction table (built once, over PROBE_HEIGHTS) and its sensor's and table's device
-    structs shared (read-only kernel arguments), the DEM's struct its own."""
+    structs shared (read-only kernel arguments), the DEM's struct that of the height on the
+    device (:func:`_constant_struct`)."""
     sensor, refraction, _, search = base.structs()
     probe = copy.copy(base)
     probe.dem = Dem.constant(h)
-    probe._structs = (sensor, refraction, probe.dem.to_struct(probe.device), search)
+    probe._structs = (sensor, refraction, _constant_struct(float(h), probe.device), search)
     return probe
+
+
+_CONSTANT_STRUCTS: collections.OrderedDict = collections.OrderedDict()  # (device, height) -> DemData
+_CONSTANT_STRUCTS_MOST = 256
+_CONSTANT_STRUCTS_LOCK = threading.Lock()
+
+
+def _constant_struct(h: float, device: Device) -> Any:
+    """The device struct of a constant DEM of height ``h`` (m) on ``device``, made once per
+    process for the last :data:`_CONSTANT_STRUCTS_MOST` such pairs and shared, read-only (the
+    footprint probes of every image and tile ask for a few heights each, and a struct's uploads
+    were a fifth of an image's ortho grid on the CPU)."""
+    key = (str(device), h)
+    with _CONSTANT_STRUCTS_LOCK:
+        found = _CONSTANT_STRUCTS.get(key)
+        if found is not None:
+            _CONSTANT_STRUCTS.move_to_end(key)
+            return found
+    made = Dem.constant(h).to_struct(device)
+    with _CONSTANT_STRUCTS_LOCK:
+        found = _CONSTANT_STRUCTS.setdefault(key, made)
+        while len(_CONSTANT_STRUCTS) > _CONSTANT_STRUCTS_MOST:
+            _CONSTANT_STRUCTS.popitem(last=False)
+    return found
 
 
 def _dem_name(dem: Dem) -> str:

@@ -258,6 +258,7 @@ def test_a_slow_module_load_is_announced_as_compiling(monkeypatch, caplog):
 
     monkeypatch.setattr(_device, "COMPILE_NOTICE_S", 0.05)
     monkeypatch.setattr(_device, "_NOTICED", set())
+    monkeypatch.setattr(_device, "_LOADED", set())
     fake = types.ModuleType("orthowarp.kernels.fake")
     delay = {"s": 0.3}
     monkeypatch.setattr(wp, "load_module", lambda m, device=None, block_dim=None: time.sleep(delay["s"]))
@@ -267,12 +268,52 @@ def test_a_slow_module_load_is_announced_as_compiling(monkeypatch, caplog):
             f"Compiling Warp kernels (fake) for cpu, once (about 10-30 s): this install holds no kernels built for "
             f"this device and Warp; later runs load them from {wp.config.kernel_cache_dir}"]
         caplog.clear()
+        _device._LOADED.clear()  # (as if another module of the same device loaded slowly)
         _device.load_modules("cpu", fake)  # slow again: said once per device and process
         assert not [r for r in caplog.records if "Compiling" in r.getMessage()]
         delay["s"] = 0.0
+        _device._LOADED.clear()
         _device.load_modules("cpu", fake)
         time.sleep(0.1)  # past the notice's delay: a cancelled timer stays silent
         assert not [r for r in caplog.records if "Compiling" in r.getMessage()]
+
+
+def test_a_module_is_loaded_once_per_device_and_block_size(monkeypatch):
+    """load_modules asks Warp to load a module once per device and block size in a process;
+    later calls (a geometry per image and tile) return without loading, starting the compile
+    notice's timer or taking the loaders' lock; a module not yet loaded among loaded ones is."""
+    import types
+
+    import warp as wp
+
+    from orthowarp import _device
+
+    monkeypatch.setattr(_device, "_LOADED", set())
+    loads = []
+    monkeypatch.setattr(wp, "load_module", lambda m, device=None, block_dim=None: loads.append((m.__name__, device,
+                                                                                                  block_dim)))
+    a, b = types.ModuleType("orthowarp.kernels.fake_a"), types.ModuleType("orthowarp.kernels.fake_b")
+    started = []
+    monkeypatch.setattr(_device.threading, "Timer", lambda *args: started.append(args) or _Timer())
+    _device.load_modules("cpu", a)
+    _device.load_modules("cpu", a)
+    assert loads == [("orthowarp.kernels.fake_a", "cpu", None)] and len(started) == 1
+    _device.load_modules("cpu", a, block_dim=64)  # another block size: loaded
+    _device.load_modules("cpu", a, b)  # b not yet: both asked for, each loaded once in all
+    _device.load_modules("cpu", a, b)
+    assert loads == [("orthowarp.kernels.fake_a", "cpu", None), ("orthowarp.kernels.fake_a", "cpu", 64),
+                     ("orthowarp.kernels.fake_a", "cpu", None), ("orthowarp.kernels.fake_b", "cpu", None)]
+    assert len(started) == 3
+
+
+class _Timer:
+    daemon = False
+
+    def start(self):
+        pass
+
+    def cancel(self):
+        pass
 
 
 

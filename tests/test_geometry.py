@@ -928,3 +928,26 @@ def test_footprint_probes_run_on_the_cpu_whatever_the_device(device):
     assert twin._probe_base is geom._probe_base
     on_cpu = SensorGeometry(sensor, sc.dem, device="cpu")
     assert (geom.dem.shape, geom.dem.transform) == (on_cpu.dem.shape, on_cpu.dem.transform)
+
+
+def test_probes_share_one_constant_dem_struct_per_height_and_give_a_fresh_geometrys_points():
+    """Footprint probes over the same height, of any geometry, share one device struct of that
+    constant DEM (made once per process and device, the least recently used dropped past
+    their limit) and geolocate as a geometry made afresh over that height does, to the bit."""
+    from orthowarp.pipeline import geometry as G
+
+    sc = scene("opk")
+    sensor = FrameSensor(sc.camera, sc.pose)
+    a = G.SensorGeometry(sensor, sc.dem, device="cpu")
+    b = G.SensorGeometry(FrameSensor(sc.camera, sc.pose), 300.0, device="cpu")
+    assert a._probe(412.5).dem_struct() is b._probe(412.5).dem_struct()
+    assert a._probe(412.5).dem_struct() is not a._probe(412.25).dem_struct()
+    border = np.array([[0.0, 0.0], [4000.0, 0.0], [2000.0, 1500.0], [4000.0, 3000.0]])
+    fresh = G.SensorGeometry(sensor, G.Dem.constant(412.5), device="cpu",
+                             height_range=G.PROBE_HEIGHTS, _probe_only=True)
+    np.testing.assert_array_equal(a._probe(412.5).geolocate_frame(border), fresh.geolocate_frame(border))
+    first = G._constant_struct(-77.0, a.device)
+    for h in range(G._CONSTANT_STRUCTS_MOST):
+        G._constant_struct(float(h) + 0.5, a.device)
+    assert G._constant_struct(-77.0, a.device) is not first  # dropped, made again
+    assert len(G._CONSTANT_STRUCTS) <= G._CONSTANT_STRUCTS_MOST
