@@ -264,3 +264,20 @@ def test_upsampled_angles_are_np_interps_bit_for_bit():
         got, want = seams._upsample(node, th, tw), reference(node, th, tw)
         assert got.shape == want.shape == (th, tw)
         np.testing.assert_array_equal(got.view(np.int64), want.view(np.int64))
+
+
+def test_the_seams_scipy_modules_are_imported_ahead_on_a_thread():
+    """import_ahead imports the SciPy modules the seams use on a daemon thread: in a fresh
+    process the seams' graph module is not imported by orthowarp's own imports, and all of
+    them are once the thread ends."""
+    import json
+    import subprocess
+    import sys
+
+    code = ("import json, sys; from orthowarp.pipeline.mosaic import seams; "
+            "before = [m in sys.modules for m in seams.SCIPY_MODULES]; t = seams.import_ahead(); t.join(); "
+            "print(json.dumps(dict(daemon=t.daemon, before=before, after=[m in sys.modules for m in "
+            "seams.SCIPY_MODULES])))")
+    got = json.loads(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                                    check=True).stdout.splitlines()[-1])
+    assert got["daemon"] and got["after"] == [True, True, True] and got["before"][-1] is False

@@ -53,7 +53,7 @@ from ..tiles import Tile
 from ..transforms import transformer
 from .balance import Coarse, OverlapStats, radiometric_balance
 from .blend import TileBlending, multiband_halo
-from .seams import NO_SOURCE, angle_field, least_cost_seams
+from .seams import NO_SOURCE, angle_field, import_ahead, least_cost_seams
 from .workers import tile_runs
 
 if TYPE_CHECKING:
@@ -802,6 +802,8 @@ def _balance_and_seams(plan: MosaicPlan, cfg: _PlanSettings, cancel: threading.E
     # on a cluster, the balance's overlap statistics made here as the images come in (this
     # process waits for the workers meanwhile); its solves after the pass
     stats = OverlapStats(n_images) if balancing and client is not None else None
+    if cfg.seams == "least-cost" and n_images > 1:
+        import_ahead()  # (beside the reduced pass, which waits for reads and kernels)
     try:
         t = time.perf_counter()
         f, coarse, labels = reduced_pass(plan, cancel, seam_pixels, client=client, worker_device=worker_device,
