@@ -711,13 +711,13 @@ def _image_grids(images: list[tuple], terrain: Dem, cfg: _PlanSettings, client: 
                  worker_device: str | None = None, *, keep: dict | None = None) -> list[tuple]:
     """Each image's ortho grid (crs, transform, shape, resolution) in ``cfg.crs``, else in the
     first image's CRS (the images' geometries built one after another, or on the workers of a
-    Dask ``client``: a build holds the interpreter lock for nearly all its time, its probes' many
-    small NumPy and Warp calls releasing it only briefly, so threads of this process wait for
-    one another at each; on the 2-core machine the 40 images of the speed block took 0.22 s on
-    one thread, 0.29 s on two and 0.47 s on eight). With ``keep`` (a dict) and at most :data:`FRESH_GEOMETRIES` images, the
-    geometries built here go into it by image (the plan's reduced pass uses them instead of
-    building each again); else each is dropped once its grid is known (memory does not grow
-    with the images)."""
+    Dask ``client``: a build holds the interpreter lock for nearly all its time, its probes'
+    many small NumPy and Warp calls releasing it only briefly, so threads of this process wait
+    for one another at each; on the 2-core machine the 40 images of the speed block took 0.22 s
+    on one thread, 0.29 s on two and 0.47 s on eight). With ``keep`` (a dict) and at most
+    :data:`FRESH_GEOMETRIES` images, the geometries built here go into it by image (the plan's
+    reduced pass uses them instead of building each again); else each is dropped once its grid
+    is known (memory does not grow with the images)."""
     crs = cfg.crs
     if keep is not None and (client is not None or len(images) > FRESH_GEOMETRIES):
         keep = None
