@@ -3,6 +3,7 @@
 import threading
 
 import numpy as np
+import pytest
 from pyproj import CRS, Transformer
 
 from orthowarp.pipeline import transforms
@@ -49,3 +50,19 @@ def test_the_least_recently_used_goes_first(monkeypatch):
     transformer(CRS.from_epsg(32634), lonlat)  # drops 32633's
     assert len(transforms._KEPT) == 2
     assert transformer(CRS.from_epsg(32632), lonlat) is first
+
+
+@pytest.mark.parametrize("code", [32632, 32615, 2056, 3857, 4326])
+def test_a_transformer_between_one_crs_is_the_identity_to_the_bit(code):
+    """is_identity says a transformer between one CRS and itself is PROJ's no-op, which gives
+    back its input to the bit (so the forward maps skip it); not one between two CRSs."""
+    from orthowarp.pipeline.transforms import is_identity
+
+    crs = CRS.from_epsg(code)
+    t = transformer(crs, crs)
+    rng = np.random.default_rng(code)
+    x, y = (rng.uniform(5, 10, 1000), rng.uniform(40, 50, 1000)) if code == 4326 else \
+        (rng.uniform(4e5, 6e5, 1000), rng.uniform(4e6, 6e6, 1000))
+    u, v = t.transform(x, y)
+    assert is_identity(t) and np.array_equal(u, x) and np.array_equal(v, y)
+    assert not is_identity(transformer(crs, CRS.from_epsg(32633 if code != 32633 else 32632)))

@@ -22,7 +22,7 @@ from pyproj import CRS
 
 from ..._device import upload
 from ...kernels import ortho as ortho_kernels
-from ..transforms import transformer
+from ..transforms import is_identity, transformer
 
 if TYPE_CHECKING:
     from affine import Affine
@@ -132,7 +132,8 @@ def forward_coords(geom: SensorGeometry, transform: Affine, out_crs: CRS, frame_
     ok = np.isfinite(g[:, 0]) & np.isfinite(g[:, 1]) & np.isfinite(g[:, 2])
     all_ok = bool(ok.all())
     to_out = transformer(frame_crs, out_crs)
-    x, y = to_out.transform(g[ok, 0], g[ok, 1])
+    same = is_identity(to_out)  # (the poses' CRS the output's: no transformation)
+    x, y = (g[ok, 0], g[ok, 1]) if same else to_out.transform(g[ok, 0], g[ok, 1])
     oc, orow = ~transform @ (np.asarray(x), np.asarray(y))
     # output pixels per source pixel, for rejecting quads that span occlusions
     scale = float(np.median(np.hypot(np.diff(oc), np.diff(orow)))) / step if len(oc) > 1 else 1.0
@@ -175,7 +176,7 @@ def forward_coords(geom: SensorGeometry, transform: Affine, out_crs: CRS, frame_
         gu = np.linspace(lo[0] - pad[0], hi[0] + pad[0], 33)
         gv = np.linspace(lo[1] - pad[1], hi[1] + pad[1], 33)
         uu, vv = np.meshgrid(gu, gv)
-        x, y = to_out.transform(uu, vv)
+        x, y = (uu, vv) if same else to_out.transform(uu, vv)
         pc, pr = ~transform @ (np.asarray(x), np.asarray(y))
         timer.span("prepare", t)
         t = time.perf_counter()
