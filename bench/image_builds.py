@@ -51,21 +51,17 @@ def main(argv=None):
     ap.add_argument("--out", default="bench/results/image-builds.json")
     args = ap.parse_args(argv)
 
-    from mosaic import build_speed
+    from mosaic import speed_images
 
     import numpy as np
 
     import orthowarp as ow
-    from orthowarp.pipeline.formats import read_cameras, read_exterior
     from orthowarp.pipeline.mosaic.cluster import shipped_plan
     from orthowarp.pipeline.mosaic.plan import SEAM_PIXELS, _reduced_image, mosaic_plan
     from orthowarp.pipeline.reports.profile import StageTimer
 
     width, height = (int(v) for v in args.frame.split("x"))
-    frames, dem_path = build_speed(args.workdir, args.frames, args.strips, width, height)
-    camera = next(iter(read_cameras(os.path.join(args.workdir, "camera.yaml")).values()))
-    exterior = read_exterior(os.path.join(args.workdir, "ext.csv"))
-    images = [(p, ow.FrameSensor(camera, exterior[os.path.splitext(os.path.basename(p))[0]].pose)) for p in frames]
+    images, dem_path = speed_images(args.workdir, args.frames, args.strips, width, height)
     dem = ow.Dem.from_file(dem_path)
     plan = mosaic_plan(images, dem=dem, device=args.device)
     plan._kept.clear()  # (each build makes its geometry, as a worker's does)

@@ -195,6 +195,17 @@ def speed_terrain(e, n):
     return 450.0 + 25.0 * np.sin(e / 400.0) * np.cos(n / 300.0) + 10.0 * np.sin((e + n) / 150.0)
 
 
+def speed_images(folder, n_images, strips, width, height):
+    """The speed block (:func:`build_speed`) as a mosaic's images: ([(frame path, FrameSensor)],
+    the DEM's path)."""
+    from orthowarp.pipeline.formats import read_cameras, read_exterior
+
+    frames, dem_path = build_speed(folder, n_images, strips, width, height)
+    camera = next(iter(read_cameras(os.path.join(folder, "camera.yaml")).values()))
+    exterior = read_exterior(os.path.join(folder, "ext.csv"))
+    return [(p, FrameSensor(camera, exterior[os.path.splitext(os.path.basename(p))[0]].pose)) for p in frames], dem_path
+
+
 def build_speed(folder, n_images, strips, width, height):
     """The speed block's frames, orientation files (orthority's formats) and DEM in ``folder``
     (kept: a second run reuses them). Returns the frame paths."""

@@ -123,17 +123,12 @@ def main(argv=None):
 
     import warp as wp
 
-    from mosaic import build_speed
-    from orthowarp.pipeline.formats import read_cameras, read_exterior
+    from mosaic import speed_images
     from orthowarp.pipeline.mosaic.plan import default_tile_size, mosaic_plan
-    from orthowarp.sensor import FrameSensor
 
     width, height = (int(v) for v in args.frame.split("x"))
     work = args.workdir or tempfile.mkdtemp(prefix="orthowarp-mosaic-speed-")
-    frames, dem_path = build_speed(work, args.sizes, args.strips, width, height)
-    camera = next(iter(read_cameras(os.path.join(work, "camera.yaml")).values()))
-    exterior = read_exterior(os.path.join(work, "ext.csv"))
-    images = [(p, FrameSensor(camera, exterior[os.path.splitext(os.path.basename(p))[0]].pose)) for p in frames]
+    images, dem_path = speed_images(work, args.sizes, args.strips, width, height)
     device = wp.get_device(args.device)
     report = dict(benchmark="mosaic_kernels", device=args.device, gpu=device.name, images=len(images),
                   frame=[width, height, 3], cpu_count=os.cpu_count())

@@ -22,7 +22,7 @@ import numpy as np
 here = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, here)
 from _report import save_report  # noqa: E402
-from mosaic import build_speed  # noqa: E402
+from mosaic import speed_images  # noqa: E402
 
 
 def main():
@@ -36,17 +36,12 @@ def main():
     import rasterio
 
     from orthowarp.pipeline.dem import Dem
-    from orthowarp.pipeline.formats import read_cameras, read_exterior
     from orthowarp.pipeline.mosaic import mosaic
     from orthowarp.pipeline.mosaic import plan as plan_module
-    from orthowarp.sensor import FrameSensor
 
     width, height = (int(v) for v in args.frame.split("x"))
     work = args.workdir or tempfile.mkdtemp(prefix="orthowarp-residency-")
-    frames, dem_path = build_speed(work, args.frames, 2, width, height)
-    camera = next(iter(read_cameras(os.path.join(work, "camera.yaml")).values()))
-    ext = read_exterior(os.path.join(work, "ext.csv"))
-    images = [(f, FrameSensor(camera, ext[os.path.splitext(os.path.basename(f))[0]].pose)) for f in frames]
+    images, dem_path = speed_images(work, args.frames, 2, width, height)
     dem = Dem.from_file(dem_path)
     report = dict(benchmark="mosaic_residency", device=args.device, frames=args.frames, frame=[width, height], runs={})
     real = plan_module._residency

@@ -32,17 +32,13 @@ def main(argv=None):
     ap.add_argument("--out", default="bench/results/plan-steps.json")
     args = ap.parse_args(argv)
 
-    from mosaic import build_speed
+    from mosaic import speed_images
 
     import orthowarp as ow
-    from orthowarp.pipeline.formats import read_cameras, read_exterior
     from orthowarp.pipeline.mosaic.plan import mosaic_plan
 
     width, height = (int(v) for v in args.frame.split("x"))
-    frames, dem_path = build_speed(args.workdir, args.frames, args.strips, width, height)
-    camera = next(iter(read_cameras(os.path.join(args.workdir, "camera.yaml")).values()))
-    exterior = read_exterior(os.path.join(args.workdir, "ext.csv"))
-    images = [(p, ow.FrameSensor(camera, exterior[os.path.splitext(os.path.basename(p))[0]].pose)) for p in frames]
+    images, dem_path = speed_images(args.workdir, args.frames, args.strips, width, height)
     dem = ow.Dem.from_file(dem_path)
     plans = []
     for k in range(args.repeat):
