@@ -217,17 +217,15 @@ def compare_with_orthority(orients, oty, work):
                 max_attitude_difference_deg=max(r["attitude_difference_deg"] for r in rows))
 
 
-def pair_shifts(paths):
-    """Per overlapping pair of orthos: the 64-px tiles' shifts (px) in their common part (grey:
-    the bands' mean), by orthowarp.pipeline.registration.misregistration."""
+def pair_overlaps(paths, tile=64):
+    """Per overlapping pair (a, b) of orthos, in ``paths``' order, their common part at least
+    ``tile`` px each way: (a, b, grey of a, grey of b (the bands' mean, float64), valid in both,
+    the part's transform in a's grid, a's pixel size)."""
     import itertools
 
     import rasterio
     from rasterio.windows import from_bounds
 
-    from orthowarp.pipeline.registration import misregistration
-
-    out = {}
     for a, b in itertools.combinations(paths, 2):
         with rasterio.open(a) as da, rasterio.open(b) as db:
             left, bottom = max(da.bounds.left, db.bounds.left), max(da.bounds.bottom, db.bounds.bottom)
@@ -237,11 +235,22 @@ def pair_shifts(paths):
             wa = from_bounds(left, bottom, right, top, da.transform).round_offsets().round_lengths()
             wb = from_bounds(left, bottom, right, top, db.transform).round_offsets().round_lengths()
             h, w = min(wa.height, wb.height), min(wa.width, wb.width)
-            if min(h, w) < 64:
+            if min(h, w) < tile:
                 continue
             ga = da.read(window=wa)[:, :h, :w].astype(np.float64).mean(0)
             gb = db.read(window=wb)[:, :h, :w].astype(np.float64).mean(0)
             valid = (da.read_masks(1, window=wa)[:h, :w] > 0) & (db.read_masks(1, window=wb)[:h, :w] > 0)
+            transform, res = da.window_transform(wa), float(da.res[0])
+        yield a, b, ga, gb, valid, transform, res
+
+
+def pair_shifts(paths):
+    """Per overlapping pair of orthos: the 64-px tiles' shifts (px) in their common part (grey:
+    the bands' mean), by orthowarp.pipeline.registration.misregistration."""
+    from orthowarp.pipeline.registration import misregistration
+
+    out = {}
+    for a, b, ga, gb, valid, _, _ in pair_overlaps(paths):
         m = misregistration(ga, gb, valid=valid, tile=64)
         if m["n_tiles"]:
             key = f"{os.path.basename(a)[:-10]}~{os.path.basename(b)[:-10]}"

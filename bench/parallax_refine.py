@@ -38,7 +38,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
 
 from _report import save_report  # noqa: E402
-from exif_folder import cli  # noqa: E402
+from exif_folder import cli, pair_overlaps  # noqa: E402
 
 
 def centres(adjust, crs):
@@ -62,29 +62,10 @@ def pair_tiles(folder, tile=64):
     """{(a, b): (xy, m, peaks, res)} per overlapping pair of the folder's orthos: the used tiles'
     centres (n, 2; x, y of the orthos' CRS), the shift of b's content relative to a's (n, 2; m,
     east and north), the correlation peaks (n,) and the orthos' pixel size (m)."""
-    import itertools
-
-    import rasterio
-    from rasterio.windows import from_bounds
-
     from orthowarp.pipeline.registration import misregistration
 
     out = {}
-    for a, b in itertools.combinations(sorted(glob.glob(os.path.join(folder, "*_ORTHO.tif"))), 2):
-        with rasterio.open(a) as da, rasterio.open(b) as db:
-            left, bottom = max(da.bounds.left, db.bounds.left), max(da.bounds.bottom, db.bounds.bottom)
-            right, top = min(da.bounds.right, db.bounds.right), min(da.bounds.top, db.bounds.top)
-            if right <= left or top <= bottom:
-                continue
-            wa = from_bounds(left, bottom, right, top, da.transform).round_offsets().round_lengths()
-            wb = from_bounds(left, bottom, right, top, db.transform).round_offsets().round_lengths()
-            h, w = min(wa.height, wb.height), min(wa.width, wb.width)
-            if min(h, w) < tile:
-                continue
-            ga = da.read(window=wa)[:, :h, :w].astype(np.float64).mean(0)
-            gb = db.read(window=wb)[:, :h, :w].astype(np.float64).mean(0)
-            valid = (da.read_masks(1, window=wa)[:h, :w] > 0) & (db.read_masks(1, window=wb)[:h, :w] > 0)
-            tr, res = da.window_transform(wa), float(da.res[0])
+    for a, b, ga, gb, valid, tr, res in pair_overlaps(sorted(glob.glob(os.path.join(folder, "*_ORTHO.tif"))), tile):
         m = misregistration(ga, gb, valid=valid, tile=tile)
         if not m["n_tiles"]:
             continue
