@@ -663,3 +663,49 @@ def upload(data: Any, *, dtype: Any, device: wp.DeviceLike) -> wp.array:
             if ring is None:
                 ring = _staging[key] = _Staging(device)
     return ring.upload(arr, dtype, shape)
+
+
+# -- device arrays shared with other processes (CUDA IPC) ------------------------------------
+
+_ALLOCATOR_LOCK = threading.Lock()
+
+
+def shareable_empty(shape: tuple[int, ...], dtype: Any, device: wp.Device) -> wp.array:
+    """``wp.empty(shape, dtype, device)`` that other processes can map (:func:`export_array`):
+    on a CUDA device that supports IPC, allocated with CUDA's default allocator rather than
+    Warp's memory pool (whose allocations cannot be exported); elsewhere a plain ``wp.empty``.
+
+    Warp chooses the allocator per device, not per call: the device's choice is switched
+    under a lock for this one allocation and put back. Another thread allocating meanwhile may
+    get the default allocator too (slower to allocate, otherwise the same)."""
+    if not device.is_cuda or device.is_ipc_supported is False or not device.is_mempool_enabled:
+        return wp.empty(shape, dtype=dtype, device=device)
+    with _ALLOCATOR_LOCK:
+        wp.set_mempool_enabled(device, False)
+        try:
+            return wp.empty(shape, dtype=dtype, device=device)
+        finally:
+            wp.set_mempool_enabled(device, True)
+
+
+def export_array(arr: wp.array) -> tuple[bytes, str, tuple[int, ...]] | None:
+    """What another process needs to map ``arr`` (:func:`import_array`): (IPC handle, the
+    dtype's NumPy name, shape); None where ``arr`` cannot be shared (on the CPU, a view, an
+    allocation of Warp's memory pool: see :func:`shareable_empty`). The exporting process
+    keeps ``arr`` alive for as long as others use it, and its values complete on the device
+    (e.g. ``wp.synchronize_device``) before they read it."""
+    if not arr.device.is_cuda:
+        return None
+    try:
+        handle = arr.ipc_handle()
+    except RuntimeError:
+        return None
+    return handle, np.dtype(wp.dtype_to_numpy(arr.dtype)).name, tuple(arr.shape)
+
+
+def import_array(shared: tuple[bytes, str, tuple[int, ...]], device: wp.Device) -> wp.array:
+    """The device array another process exported (:func:`export_array`), mapped into this
+    one (no copy; unmapped when the array is deleted). Each process maps an export once
+    (CUDA refuses a second mapping of one handle in a process): keep the array."""
+    handle, dtype, shape = shared
+    return wp.from_ipc_handle(handle, wp.dtype_from_numpy(np.dtype(dtype)), tuple(shape), device=device)

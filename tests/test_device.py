@@ -460,3 +460,40 @@ def test_the_pinned_pool_is_prefilled_within_its_limit(device, monkeypatch):
     assert _device.prefill_pinned(dev, 3 << 20, 5) == 1
     with _device.pinned_buffer(dev, 3 << 20) as pin:
         assert id(pin) in made_ahead
+
+
+def _map_and_sum(shared):
+    """(A spawned process) map an exported device array and sum it on the host."""
+    import warp as wp
+
+    from orthowarp import _device
+
+    arr = _device.import_array(shared, wp.get_device("cuda:0"))
+    total = float(arr.numpy().astype(np.float64).sum())
+    del arr  # (unmapped)
+    return total
+
+
+def test_shareable_arrays(device):
+    """shareable_empty gives an array of the shape and dtype asked for; on the CPU it cannot be
+    shared (export_array: None), on a GPU another process maps it and sees its values, and
+    the device goes back to Warp's memory pool afterwards."""
+    dev = wp.get_device(device)
+    pooled = dev.is_cuda and dev.is_mempool_enabled
+    arr = _device.shareable_empty((3, 5, 7), wp.uint16, dev)
+    assert arr.shape == (3, 5, 7) and arr.dtype == wp.uint16 and arr.device == dev
+    if not dev.is_cuda:
+        assert _device.export_array(arr) is None
+        return
+    assert dev.is_mempool_enabled == pooled
+    values = np.arange(3 * 5 * 7, dtype=np.uint16).reshape(3, 5, 7)
+    arr.assign(values)
+    wp.synchronize_device(dev)
+    shared = _device.export_array(arr)
+    assert shared is not None and len(shared[0]) == 64 and shared[1:] == ("uint16", (3, 5, 7))
+    if pooled:  # a pool's allocation cannot be shared
+        assert _device.export_array(wp.zeros(4, dtype=wp.float32, device=dev)) is None
+    import multiprocessing
+
+    with multiprocessing.get_context("spawn").Pool(1) as pool:
+        assert pool.apply(_map_and_sum, (shared,)) == float(values.astype(np.float64).sum())

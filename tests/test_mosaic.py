@@ -11,7 +11,7 @@ import rasterio
 
 import render
 import scenes
-from test_ortho import OPK_X, OPK_Y, RMS_MAX, SUPERSAMPLE, UTM32, describe, measure, pixel_centres, scene, \
+from test_ortho import DEVICES, OPK_X, OPK_Y, RMS_MAX, SUPERSAMPLE, UTM32, describe, measure, pixel_centres, scene, \
     write_image
 
 from orthowarp.errors import ParamError, RasterIOError
@@ -1283,6 +1283,50 @@ def test_tiles_on_worker_processes_give_the_same_file(pair, tmp_path, codec):
     assert builds_a == 2 and 2 <= builds_b <= 4 and held_a == 2 and 1 <= held_b <= 2
     ahead = res.profile["worker_images_built_ahead"]
     assert len(ahead) == 2 and 2 <= sum(ahead) <= 4
+
+
+def test_a_plans_shared_sources_travel_with_it_and_only_on_a_gpu(pair):
+    """A plan made for tile processes (``_share_sources``) shares its sources only where they
+    are resident (a GPU): on the CPU it exports nothing. The exports travel with the pickled
+    plan, and an unpickled plan's images map them (SharedWholeSource), the grid's plan of
+    images built ahead taking them on when the whole plan comes."""
+    import pickle
+
+    from orthowarp.pipeline.mosaic.plan import mosaic_plan
+    from orthowarp.pipeline.ortho.tiles import SharedWholeSource
+
+    sc, images, _, _ = pair
+    plan = mosaic_plan(images, dem=sc.dem, refraction=False, device="cpu", _share_sources=True)
+    try:
+        assert "share_sources" not in plan.options and plan.export_sources() == ({}, [])
+    finally:
+        plan.close()
+    plan.options = dict(plan.options, share_sources=True)
+    ahead = pickle.loads(pickle.dumps(plan))  # (as the tile processes get the grid's plan)
+    _, whole = ahead._take_geometry(1)
+    assert isinstance(whole, SharedWholeSource) and ahead._shared.get(1, whole.device) is None
+    plan.shared_exports = {1: ("values of image 1", None)}
+    whole_plan = pickle.loads(pickle.dumps(plan))
+    assert whole_plan._shared._exports == {1: ("values of image 1", None)}
+    whole_plan.adopt_ahead(ahead)
+    assert whole_plan._shared is ahead._shared and ahead._shared._exports == {1: ("values of image 1", None)}
+
+
+@pytest.mark.skipif("cuda:0" not in DEVICES, reason="needs a CUDA device")
+def test_tile_processes_map_the_sources_the_plan_read_on_a_gpu(pair, tmp_path):
+    """processes=2 on a GPU: the plan's reduced pass reads each source whole into device
+    memory once and the tile processes map those arrays instead of reading the sources
+    again (no tile reads a source window); the same file as the threads of one process."""
+    sc, images, _, _ = pair
+    got = {}
+    for processes in (None, 2):
+        res = mosaic(images, tmp_path / f"m-{processes}.tif", dem=sc.dem, refraction=False, device="cuda:0",
+                     tile_size=256, processes=processes)
+        with rasterio.open(res.path) as ds:
+            got[processes] = ds.read(), ds.dataset_mask()
+        assert res.profile["stages"]["read"]["count"] == 0, processes
+    np.testing.assert_array_equal(got[None][1], got[2][1])
+    np.testing.assert_array_equal(got[None][0], got[2][0])
 
 
 @pytest.mark.parametrize("compress", ["deflate", "jpeg"])

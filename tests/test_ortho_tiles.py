@@ -1,6 +1,7 @@
 """The tile functions' source reads (orthowarp.pipeline.ortho.tiles): reduced windows averaged
 on the device (``device_reduce``) against float64 NumPy block means, and the same pixels
-whether the source is whole in device memory or read window by window."""
+whether the source is whole in device memory or read window by window, or mapped from
+another process's device memory."""
 
 import warnings
 
@@ -12,7 +13,9 @@ import warp as wp
 from orthowarp.kernels import ortho as ortho_kernels
 from orthowarp.pipeline.geometry import SensorGeometry
 from orthowarp.pipeline.ortho import output_grid
-from orthowarp.pipeline.ortho.tiles import ImageTiles, WholeSource
+from orthowarp.errors import RasterIOError
+from orthowarp.pipeline.ortho import tiles as tiles_module
+from orthowarp.pipeline.ortho.tiles import ImageTiles, SharedSources, SharedWholeSource, WholeSource
 from orthowarp.sensor import FrameSensor
 from test_ortho import scene, write_image
 
@@ -122,3 +125,36 @@ def test_a_source_that_cannot_be_opened_is_named(tmp_path):
     bad.write_bytes(b"II*\x00 not a TIFF")
     with pytest.raises(RasterIOError, match=r"Could not open image '.*bad\.tif'"):
         WholeSource(str(bad), wp.get_device("cpu"), masked=False, dtype="float32").get()
+
+
+def test_a_shared_source_is_mapped_once_per_process_else_read_here(tmp_path, monkeypatch):
+    """A SharedWholeSource: before any export came (an image built ahead of them), or for an
+    image not exported, the source is read here, the same pixels as a WholeSource's; once
+    exported it is mapped, once per process (CUDA maps a handle once), for every tile function
+    of the image; one that is not the source as read here (dtype, mask) is refused."""
+    sc = scene("ins")
+    src = write_image(tmp_path / "src.tif", sc.image(False) * 200.0 + 1.0, "uint8")
+    dev = wp.get_device("cpu")
+    own, no_mask = WholeSource(src, dev, masked=False, dtype="uint8").get()
+    shared = SharedSources()
+    early = SharedWholeSource(src, dev, masked=False, dtype="uint8", shared=shared, k=3)
+    data, valid = early.get()
+    assert data is not own and valid is None and no_mask is None
+    np.testing.assert_array_equal(data.numpy(), own.numpy())
+
+    exported = {"values 3": own}
+    mapped = []
+    monkeypatch.setattr(tiles_module, "import_array", lambda e, device: mapped.append(e) or exported[e])
+    shared.set({3: ("values 3", None)})
+    other = SharedWholeSource(src, dev, masked=False, dtype="uint8", shared=shared, k=5)  # (not exported)
+    assert other.get()[0] is not own and mapped == []
+    late = SharedWholeSource(src, dev, masked=False, dtype="uint8", shared=shared, k=3)
+    assert late.get() == (own, None) and early.get() == (own, None)
+    assert mapped == ["values 3"]  # (early's own read is dropped for the mapping)
+    with pytest.raises(RasterIOError, match=r"'.*src\.tif' shared by another process is not the source"):
+        SharedWholeSource(src, dev, masked=True, dtype="uint8", shared=shared, k=3).get()
+    with pytest.raises(RasterIOError, match="uint16"):
+        SharedWholeSource(src, dev, masked=False, dtype="uint16", shared=shared, k=3).get()
+    shared.close()  # unmapped: a later use maps it again
+    late.get()
+    assert mapped == ["values 3"] * 2

@@ -316,7 +316,7 @@ def mosaic(images: Sequence[tuple], dst: str | os.PathLike, *, dem: Dem | str | 
                                same_vertical_datum=same_vertical_datum, cancel=cancel, _outputs=outputs,
                                _client=client, _worker_device=worker_device,
                                _on_grid=_ahead_on(procs, tile_size, on) if procs is not None else None,
-                               _on_reduced=ahead)
+                               _on_reduced=ahead, _share_sources=procs is not None)
             out = _WriteSettings(index=index, seamlines=seamlines, seamlines_lonlat=seamlines_lonlat, compress=compress,
                                  compress_level=compress_level, quality=quality, block_codec=block_codec,
                                  creation_options=creation_options, tile_size=tile_size, overwrite=overwrite,
@@ -562,10 +562,15 @@ def _process_results(plan: MosaicPlan, procs: ProcessTiles, tiles: list[Tile], s
     (The device codec stays in this process: in the tile processes, each compressing its own
     tiles' blocks on the one GPU, the 40-frame speed block took 29.7 and 30.0 s against 15.7
     and 17.2 s on an H200, its deflate batches a tile each.)"""
-    plan._kept.clear()  # the reduced pass's geometries and sources: the workers build their own
+    # the sources the reduced pass read whole, mapped by the workers where the plan shares them
+    # (the arrays held by procs until the workers are gone); its geometries: the workers build their own
+    exports, held = plan.export_sources() if plan.options.get("share_sources") else ({}, [])
+    plan._kept.clear()
     plan.options = worker_options(plan.options)
+    plan.shared_exports = exports or None
     st = plan._materialise()  # the stage timer starts with the tiles, as on threads
-    procs.start_plan(plan, (size, size), with_source=codec == "host" or host_source, encoder=encoder)
+    procs.start_plan(plan, (size, size), with_source=codec == "host" or host_source, encoder=encoder,
+                     keep_alive=held)
 
     def results() -> Iterator[tuple[Tile, tuple]]:
         images = plan._tile_images(tiles)

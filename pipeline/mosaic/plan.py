@@ -43,7 +43,7 @@ from ..dem import Dem, as_dem
 from ..geometry import SensorGeometry
 from ..ortho.grid import output_grid
 from ..ortho.sink import LOSSY, choose_block_codec, device_codecs, parse_creation_options
-from ..ortho.tiles import ImageTiles, WholeSource, source_facts, source_read_dtype
+from ..ortho.tiles import ImageTiles, SharedSources, SharedWholeSource, WholeSource, source_facts, source_read_dtype
 from ..raster.cog import DTYPES, CogWriter, EncodedTile, TileEncoder
 from ..raster.device import DeviceCogEncoder, cog_writing
 from ..raster.io import atomic_files, check_cancel, check_destination, source_exists
@@ -123,17 +123,23 @@ class MosaicPlan(TileBlending):
         self._fresh = {}  # geometries built for the images' grids, for the reduced pass (each taken once)
         self._encoder = None  # while writing with a device block codec
         self._ahead = {}  # images built ahead of their tiles: futures of their cache entries (see _built_ahead)
+        # with options["share_sources"]: the sources whole in the device memory of the process that
+        # made the plan, exported to its tile processes (see export_sources) and mapped there
+        self.shared_exports, self._shared = None, SharedSources()
 
     def __getstate__(self) -> dict[str, Any]:
         state = dict(self.__dict__)
         state["_state"], state["_lock"], state["_encoder"] = None, None, None
         state["_kept"], state["_fresh"] = collections.OrderedDict(), {}
-        state["_ahead"] = {}
+        state["_ahead"], state["_shared"] = {}, None
         return state
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         self.__dict__.update(state)
         self._lock = threading.Lock()
+        self._shared = SharedSources()
+        if self.shared_exports is not None:
+            self._shared.set(self.shared_exports)
 
     @property
     def crs(self) -> CRS:
@@ -183,12 +189,36 @@ class MosaicPlan(TileBlending):
             geom = self.geometry(k)
         if whole is None and self.options.get("resident"):
             whole = self._whole_source(k, geom.device)
+        elif whole is None and self.options.get("share_sources"):
+            src, _, masked = self.sources[k]
+            whole = SharedWholeSource(src, geom.device, masked=masked, dtype=source_read_dtype(self.src_dtype),
+                                      shared=self._shared, k=k)
         return geom, whole
 
     def _whole_source(self, k: int, device: Device) -> WholeSource:
-        """Image ``k``'s source whole in device memory, read on first use."""
+        """Image ``k``'s source whole in device memory, read on first use (so that other
+        processes can map it, where the plan shares its sources)."""
         src, _, masked = self.sources[k]
-        return WholeSource(src, device, masked=masked, dtype=source_read_dtype(self.src_dtype))
+        return WholeSource(src, device, masked=masked, dtype=source_read_dtype(self.src_dtype),
+                           shareable=bool(self.options.get("share_sources")))
+
+    def export_sources(self) -> tuple[dict[int, tuple], list[tuple]]:
+        """The sources the reduced pass read whole and kept (where the plan is resident),
+        exported for the tile processes (:class:`~orthowarp.pipeline.ortho.tiles.SharedSources`):
+        ``({image: exports}, arrays)``; the caller keeps ``arrays`` (the device arrays) alive
+        until those processes are done with them. Images not exported (not kept, or not
+        shareable) are read by the processes themselves. Waits for the device."""
+        exports, arrays = {}, []
+        with self._lock:
+            kept = [(k, whole) for k, (_, whole) in self._kept.items() if whole is not None]
+        if kept:
+            wp.synchronize_device(kept[0][1].device)  # (the reads complete before another process maps them)
+        for k, whole in kept:
+            got = whole.export()
+            if got is not None:
+                exports[k], held = got
+                arrays.append(held)
+        return exports, arrays
 
     def _materialise(self) -> dict[str, Any]:
         """This process's state: the stage timer and the cache of images in use."""
@@ -241,6 +271,9 @@ class MosaicPlan(TileBlending):
         or built ahead (:meth:`build_ahead`)."""
         self._ahead.update(other._ahead)
         other._ahead = {}
+        self._shared = other._shared  # (the images built ahead map their sources from it)
+        if self.shared_exports is not None:
+            self._shared.set(self.shared_exports)
 
     def _built_ahead(self, k: int, timer: StageTimer) -> dict[str, Any] | None:
         """Image ``k``'s entry built ahead (waited for where its build is still running), its
@@ -380,6 +413,7 @@ class MosaicPlan(TileBlending):
                     self._close_entry(entry)
                 self._state = None
             self._kept.clear()
+        self._shared.close()
 
     def tiles(self, tile_size: int = 512) -> list[Tile]:
         """The grid's tiles (:class:`~orthowarp.pipeline.tiles.Tile`: tuples (r0, c0, rows,
@@ -596,14 +630,16 @@ def mosaic_plan(images: Sequence[tuple], *, dem: Dem | str | os.PathLike | float
                 cancel: threading.Event | None = None, _outputs: Sequence[str] = (),
                 _seam_pixels: int = SEAM_PIXELS, _client: Any = None, _worker_device: str | None = None,
                 _on_grid: Callable[[MosaicPlan], None] | None = None,
-                _on_reduced: Callable[[MosaicPlan], None] | None = None) -> MosaicPlan:
+                _on_reduced: Callable[[MosaicPlan], None] | None = None, _share_sources: bool = False) -> MosaicPlan:
     """The grid, sources and radiometric balance of a mosaic, without writing it: a
     :class:`MosaicPlan` whose :meth:`~MosaicPlan.tile` any scheduler can run (threads, a Dask
     cluster) and whose :meth:`~MosaicPlan.write` assembles the results. Parameters as
     :func:`~orthowarp.pipeline.mosaic.mosaic`. (Internally, with ``_client`` the reduced pass
     runs on that Dask client's workers, on ``_worker_device``; ``_on_grid(plan)`` is called once
     the grid is made, before the reduced pass, balance and seams; ``_on_reduced(plan)`` once
-    the reduced pass is done, before the balance and seams.)"""
+    the reduced pass is done, before the balance and seams; ``_share_sources``: the tiles will
+    be computed by other processes on this host's device, which map the sources this process
+    read whole rather than read them again, where the plan holds them all.)"""
     t_plan = time.perf_counter()
     images = check_images(images, resampling, dtype, blend, feather, reference, seams, seam_width,
                           resolution=resolution, refraction=refraction, balance=balance, occlusion=occlusion,
@@ -634,7 +670,10 @@ def mosaic_plan(images: Sequence[tuple], *, dem: Dem | str | os.PathLike | float
                                                               orthos=all(s.orthorectified for _, s in images))
     log.info("mosaic of %d images: %d x %d pixels at %.4g", len(images), cols, rows, res)
     options = _plan_options(cfg)
-    options.update(_residency(facts, [sensor for _, sensor in images], resolve_device(device)))
+    options.update(_residency(facts, [sensor for _, sensor in images], on))
+    if _share_sources and options.get("resident") and options["cache_images"] >= len(images) \
+            and on.is_ipc_supported is not False:
+        options["share_sources"] = True
     plan = MosaicPlan([(f[0], sensor, f[3]) for f, (_, sensor) in zip(facts, images)], terrain, options,
                       out_crs, transform, (rows, cols), res, foot, count, out_dtype, src_dtype)
     plan.setup_s.update(setup)

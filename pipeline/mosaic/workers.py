@@ -143,6 +143,7 @@ class ProcessTiles:
                        for w in range(self.n)]
         self._file = self._map = self._fd = None
         self._ahead_file = None  # (path, fd) of the plan of build_ahead
+        self._keep_alive = []  # what the workers map (start_plan's keep_alive)
         remove_stale_segments()
         self.worker_info = []  # per worker at the end: pixels per image, stage spans, builds, peak RSS
         for p in self._procs:
@@ -154,7 +155,8 @@ class ProcessTiles:
     def __exit__(self, *exc: Any) -> None:
         self.close()
 
-    def start_plan(self, plan: Any, tile_shape: tuple[int, int], *, with_source: bool, encoder: Any = None) -> None:
+    def start_plan(self, plan: Any, tile_shape: tuple[int, int], *, with_source: bool, encoder: Any = None,
+                   keep_alive: Sequence[Any] = ()) -> None:
         """Send ``plan`` to the workers and make the slots for tiles of at most ``tile_shape``
         (rows, cols): values (the plan's dtype and bands), validity (uint8) and, ``with_source``,
         the source index (uint16). The pickled plan lies at the start of the shared file (the
@@ -162,7 +164,9 @@ class ProcessTiles:
         gone). With ``encoder`` (the mosaic file's :class:`~orthowarp.pipeline.raster.cog.
         TileEncoder`), each worker encodes its tiles and puts the pickled
         :class:`~orthowarp.pipeline.raster.cog.EncodedTile` in the slot's room for it instead
-        of the pixels, where it fits (see :meth:`run`)."""
+        of the pixels, where it fits (see :meth:`run`). ``keep_alive``: what the workers map
+        (the device arrays of the plan's shared sources), held until the workers are gone."""
+        self._keep_alive = list(keep_alive)
         th, tw = tile_shape
         self._with_source = bool(with_source)
         # with an encoder, room for a tile's pickled blocks after its arrays (its compressed
@@ -304,6 +308,8 @@ class ProcessTiles:
                 p.terminate()
         for p in self._procs:
             p.join(timeout=5)
+        if not any(p.is_alive() for p in self._procs):  # (never freed under a process that may map it)
+            self._keep_alive = []
         if self._map is not None:
             self._map.close()
             self._map = None

@@ -25,7 +25,8 @@ from pyproj import Transformer
 from rasterio.enums import MaskFlags, Resampling
 from rasterio.windows import Window
 
-from ..._device import copy_stream, host_cores, load_modules, pinned_buffer, to_host, upload
+from ..._device import (copy_stream, export_array, host_cores, import_array, load_modules, pinned_buffer,
+                         shareable_empty, to_host, upload)
 from ...errors import ParamError, RasterIOError
 from ...kernels import ortho as ortho_kernels
 from ...options import Resampling as Interpolation
@@ -46,8 +47,8 @@ if TYPE_CHECKING:
     from ..dem import Dem
     from ..geometry import SensorGeometry
 
-__all__ = ["ImageTiles", "WholeSource", "read_whole_source", "source_facts", "source_read_dtype", "coarse_grid",
-           "coarse_struct", "RESAMPLING", "SOURCE_READS", "ORTHO_BLOCK_DIM", "COARSE_STEP", "WP_TYPES", "TOP"]
+__all__ = ["ImageTiles", "WholeSource", "SharedSources", "SharedWholeSource", "read_whole_source", "source_facts",
+           "source_read_dtype", "coarse_grid", "coarse_struct", "RESAMPLING", "SOURCE_READS", "ORTHO_BLOCK_DIM", "COARSE_STEP", "WP_TYPES", "TOP"]
 
 # the kernels' codes (kernels/ortho.py: NEAREST, BILINEAR, BICUBIC, LANCZOS)
 RESAMPLING = {Interpolation.NEAREST.value: 0, Interpolation.BILINEAR.value: 1, Interpolation.BICUBIC.value: 2,
@@ -549,14 +550,15 @@ class WholeSource:
         Also hold its mask.
     dtype : {"uint8", "uint16", "float32"}
         The dtype it is read in (the source's own where the kernels take it).
-    timer, clipped, top :
+    timer, clipped, top, shareable :
         As for :func:`read_whole_source` (the reader's).
     """
 
     def __init__(self, src: str, device: wp.context.Device, *, masked: bool, dtype: str,
-                 timer: StageTimer | None = None, clipped: Any = None, top: float = 0.0) -> None:
+                 timer: StageTimer | None = None, clipped: Any = None, top: float = 0.0,
+                 shareable: bool = False) -> None:
         self.src, self.device, self.masked, self.dtype = src, device, masked, dtype
-        self._read = dict(timer=timer, clipped=clipped, top=top)
+        self._read = dict(timer=timer, clipped=clipped, top=top, shareable=shareable)
         self._arrays, self._lock = None, threading.Lock()
 
     def get(self) -> tuple[wp.array, wp.array | None]:
@@ -573,9 +575,82 @@ class WholeSource:
         """Whether the source is in device memory."""
         return self._arrays is not None
 
+    def export(self) -> tuple | None:
+        """What another process needs to map this source (see :class:`SharedSources`): the
+        exports (:func:`~orthowarp._device.export_array`) of its values and mask (None where
+        unmasked), and the device arrays themselves, which the exporting process keeps alive
+        for as long as others map them; None where it is not loaded or cannot be shared (read
+        without ``shareable``, or on the CPU)."""
+        if self._arrays is None:
+            return None
+        data, valid = self._arrays
+        shared = export_array(data), export_array(valid) if valid is not None else None
+        if shared[0] is None or (valid is not None and shared[1] is None):
+            return None
+        return shared, self._arrays
+
+
+class SharedSources:
+    """Sources another process holds whole in device memory (:meth:`WholeSource.export`),
+    mapped into this one on first use and kept until :meth:`close` (a process maps an export
+    once). Made empty; :meth:`set` gives it the exports, by image, once they exist: a
+    :class:`SharedWholeSource` made before then (an image built ahead of the exports) maps
+    its source when its first tile asks for it."""
+
+    def __init__(self) -> None:
+        self._exports, self._arrays, self._lock = None, {}, threading.Lock()
+
+    def set(self, exports: dict[int, tuple]) -> None:
+        """The exports ``{image: (values' export, mask's export or None)}``."""
+        with self._lock:
+            self._exports = dict(exports)
+
+    def get(self, k: int, device: wp.context.Device) -> tuple[wp.array, wp.array | None] | None:
+        """Image ``k``'s (values, valid or None), mapped now if not yet; None where no export
+        of it came (:meth:`set` not called yet, or it was not shared)."""
+        with self._lock:
+            if k not in self._arrays:
+                shared = (self._exports or {}).get(k)
+                if shared is None:
+                    return None
+                data, valid = shared
+                self._arrays[k] = import_array(data, device), \
+                    import_array(valid, device) if valid is not None else None
+            return self._arrays[k]
+
+    def close(self) -> None:
+        """Unmap the sources mapped here (their tile functions must be done with them)."""
+        with self._lock:
+            self._arrays.clear()
+
+
+class SharedWholeSource(WholeSource):
+    """A :class:`WholeSource` that another process holds (``shared``, a
+    :class:`SharedSources`, image ``k``): mapped rather than read. Where no export of the
+    image came, the source is read here whole on first use, as a :class:`WholeSource` is:
+    the same pixels either way."""
+
+    def __init__(self, src: str, device: wp.context.Device, *, masked: bool, dtype: str, shared: SharedSources,
+                 k: int, timer: StageTimer | None = None) -> None:
+        super().__init__(src, device, masked=masked, dtype=dtype, timer=timer)
+        self.shared, self.k = shared, k
+
+    def get(self) -> tuple[wp.array, wp.array | None]:
+        """As :meth:`WholeSource.get`: the other process's arrays where it shared them."""
+        arrays = self.shared.get(self.k, self.device)
+        if arrays is not None:
+            data, valid = arrays
+            if data.dtype != WP_TYPES[self.dtype] or (valid is None) == self.masked:
+                raise RasterIOError(f"The device copy of '{self.src}' shared by another process is not the source "
+                                    f"as read here ({data.dtype.__name__}, masked {valid is not None} there; "
+                                    f"{self.dtype}, masked {self.masked} here)")
+            return arrays
+        return super().get()
+
 
 def read_whole_source(src: str, device: wp.context.Device, *, masked: bool, dtype: str, timer: StageTimer | None = None,
-                      clipped: Any = None, top: float = 0.0) -> tuple[wp.array, wp.array | None]:
+                      clipped: Any = None, top: float = 0.0,
+                      shareable: bool = False) -> tuple[wp.array, wp.array | None]:
     """Read a source image whole into device memory: by strips of whole source blocks (about
     16 MB each) on up to 8 threads, each with its own handle and (on a GPU) its own stream, so
     that GDAL's decoding on the host cores and the uploads overlap. An uncompressed TIFF
@@ -596,6 +671,9 @@ def read_whole_source(src: str, device: wp.context.Device, *, masked: bool, dtyp
         Gets "read" (GDAL), "h2d" (uploads) and "kernel" (widening) spans and the strip count.
     clipped : object with ``add(n, total)``, optional
         Counts source values outside [0, ``top``] (an integer output narrower than the source).
+    shareable : bool, optional
+        Allocate the arrays so that other processes can map them
+        (:func:`~orthowarp._device.shareable_empty`; not where ``dtype`` widens the source).
 
     Returns
     -------
@@ -609,8 +687,9 @@ def read_whole_source(src: str, device: wp.context.Device, *, masked: bool, dtyp
     rows = max(block_rows, (16 << 20) // max(1, w * bands * np.dtype(read_dtype).itemsize) // block_rows * block_rows)
     strips = [(r0, min(rows, h - r0)) for r0 in range(0, h, rows)]
     timer.info["whole_source_strips"] = len(strips)
-    data = wp.empty((bands, h, w), dtype=WP_TYPES[read_dtype], device=device)
-    valid = wp.empty((h, w), dtype=wp.uint8, device=device) if masked else None
+    empty = shareable_empty if shareable else (lambda shape, dtype, device: wp.empty(shape, dtype=dtype, device=device))
+    data = empty((bands, h, w), WP_TYPES[read_dtype], device)
+    valid = empty((h, w), wp.uint8, device) if masked else None
 
     def read_part(part: list[tuple[int, int]], stream: Any) -> None:
         t = time.perf_counter()
