@@ -1313,20 +1313,28 @@ def test_a_plans_shared_sources_travel_with_it_and_only_on_a_gpu(pair):
 
 
 @pytest.mark.skipif("cuda:0" not in DEVICES, reason="needs a CUDA device")
-def test_tile_processes_map_the_sources_the_plan_read_on_a_gpu(pair, tmp_path):
+@pytest.mark.parametrize("with_index", [False, True])
+def test_tile_processes_share_the_gpus_memory_with_the_caller(pair, tmp_path, with_index):
     """processes=2 on a GPU: the plan's reduced pass reads each source whole into device
     memory once and the tile processes map those arrays instead of reading the sources
-    again (no tile reads a source window); the same file as the threads of one process."""
+    again (no tile reads a source window), and put their tiles in the caller's device slots
+    for its encoder (no tile uploaded by the caller); the same file (and index) as the
+    threads of one process."""
     sc, images, _, _ = pair
     got = {}
     for processes in (None, 2):
+        index = tmp_path / f"m-{processes}.index.tif" if with_index else None
         res = mosaic(images, tmp_path / f"m-{processes}.tif", dem=sc.dem, refraction=False, device="cuda:0",
-                     tile_size=256, processes=processes)
+                     tile_size=256, processes=processes, index=index)
         with rasterio.open(res.path) as ds:
-            got[processes] = ds.read(), ds.dataset_mask()
+            got[processes] = [ds.read(), ds.dataset_mask()]
+        if with_index:
+            with rasterio.open(index) as ds:
+                got[processes].append(ds.read())
         assert res.profile["stages"]["read"]["count"] == 0, processes
-    np.testing.assert_array_equal(got[None][1], got[2][1])
-    np.testing.assert_array_equal(got[None][0], got[2][0])
+        assert processes is None or res.profile["tile_slots"] == "device"
+    for a, b in zip(got[None], got[2]):
+        np.testing.assert_array_equal(a, b)
 
 
 @pytest.mark.parametrize("compress", ["deflate", "jpeg"])

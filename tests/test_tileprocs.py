@@ -127,6 +127,39 @@ def test_every_tile_comes_back_once_with_the_workers_values(with_source):
     assert counted == (0 if with_source else 96 * 80)
 
 
+@pytest.mark.parametrize("with_source", [False, True])
+def test_device_slots_bring_each_tile_on_the_callers_device(device, with_source):
+    """device_slots: on a GPU each tile's values and validity come as arrays of the caller's
+    device (a slot of its buffer, mapped by the workers), each slot reused only after the
+    work that read it (release(stream)); the validity also on the host where the source index
+    comes. On the CPU there are none: the tiles come through the host as before."""
+    tiles = _tiles(160, 96)  # (15 tiles through 6 slots: each slot reused)
+    dev = wp.get_device(device)
+    seen = []
+    with ProcessTiles(2, device, threads=2) as procs:
+        procs.start_plan(StandInPlan(), (32, 32), with_source=with_source, device_slots=True)
+        assert procs.device_slots == dev.is_cuda
+        for (r0, c0, th, tw), values, valid, source, release, encoded in procs.run(tiles, 2, "float32"):
+            if not dev.is_cuda:
+                assert isinstance(values, np.ndarray)
+                release()
+                continue
+            dvalues, dvalid = values
+            assert dvalues.device == dev and dvalues.shape == (th, tw, 2) and dvalid.shape == (th, tw)
+            got = wp.empty_like(dvalues)  # (read on the stream the slot's release waits for)
+            wp.copy(got, dvalues)
+            ok = dvalid.numpy()
+            np.testing.assert_array_equal(got.numpy()[..., 1], r0 + c0 + 1.0)
+            assert ok[0, 0] == 0 and ok.sum() == th * tw - 1
+            if with_source:
+                np.testing.assert_array_equal(valid, ok)
+                assert (source == 7).all()
+            seen.append((r0, c0, th, tw))
+            release(dev.stream)
+        procs.finish()
+    assert sorted(seen) == (sorted(tiles) if dev.is_cuda else [])
+
+
 def test_a_workers_exception_reaches_the_caller():
     with ProcessTiles(1, "cpu", threads=1) as procs:
         procs.start_plan(StandInPlan(fail=64), (32, 32), with_source=False)

@@ -569,34 +569,42 @@ def _process_results(plan: MosaicPlan, procs: ProcessTiles, tiles: list[Tile], s
     plan.options = worker_options(plan.options)
     plan.shared_exports = exports or None
     st = plan._materialise()  # the stage timer starts with the tiles, as on threads
+    # a device codec here: on a GPU the tiles come in device slots of this process's (not through the host)
     procs.start_plan(plan, (size, size), with_source=codec == "host" or host_source, encoder=encoder,
-                     keep_alive=held)
+                     keep_alive=held, device_slots=codec != "host" and on.is_cuda)
 
     def results() -> Iterator[tuple[Tile, tuple]]:
         images = plan._tile_images(tiles)
         for tile, values, valid, source, release, encoded in procs.run(tiles, plan.count, plan.dtype, images=images,
                                                                        cancel=cancel, name=dst):
+            after = None  # with device slots: the stream whose work so far reads the slot
             try:
                 ok = valid.view(bool)
                 if codec == "host":  # (the slot is reused: copies)
                     yield tile, (encoded if encoded is not None else values.copy(), ok.copy(), source.copy())
                     continue
-                t = time.perf_counter()
-                # (copied into page-locked memory before the slot is released; the copies enqueued)
-                up = _upload_tile(values, valid, on)
-                st["timer"].span("h2d", t)  # (this process's upload of the worker's tile)
-                plan._encoder.write(tile.row, tile.col, *up)
+                if procs.device_slots:  # the tile on this device already: the encoder reads it there
+                    plan._encoder.write(tile.row, tile.col, *values)
+                    after = on.stream
+                else:
+                    t = time.perf_counter()
+                    # (copied into page-locked memory before the slot is released; the copies enqueued)
+                    up = _upload_tile(values, valid, on)
+                    st["timer"].span("h2d", t)  # (this process's upload of the worker's tile)
+                    plan._encoder.write(tile.row, tile.col, *up)
                 yield tile, (None, ok.copy(), source.copy()) if source is not None else (None, None, None)
             finally:
-                release()
+                release(after)
         timer = st["timer"]
         for info in procs.finish():
             st["counts_host"] = st.get("counts_host", 0) + np.asarray(info["counts"], np.int64)
             st["builds"] += info["builds"]
             for k, spans in info["spans"].items():
                 timer.spans[k].extend(spans)
-        timer.info.update(processes=procs.n, worker_peak_rss_mb=[
-            i["peak_rss_kb"] / 1024 if i["peak_rss_kb"] is not None else None for i in procs.worker_info],
+        timer.info.update(
+            processes=procs.n, tile_slots="device" if procs.device_slots else "host",
+            worker_peak_rss_mb=[i["peak_rss_kb"] / 1024 if i["peak_rss_kb"] is not None else None
+                                for i in procs.worker_info],
             worker_images_held_peak=[i["held_peak"] for i in procs.worker_info],
             worker_images_built_ahead=[i["built_ahead"] for i in procs.worker_info])
         st["held_peak"] = max(i["held_peak"] for i in procs.worker_info)

@@ -9,6 +9,11 @@ tile and the plan) in spawned processes, each with its own interpreter, CUDA con
 handles, on the same device. Each finished tile comes back through a slot of a shared memory
 file (values and validity, and the source index where the caller wants it); the caller uploads
 it to its own device context and hands it to the COG encoder, so one process writes the file.
+On a GPU the processes share device memory with the caller (CUDA IPC): they map the sources the
+plan read whole (see :meth:`MosaicPlan.export_sources
+<orthowarp.pipeline.mosaic.plan.MosaicPlan.export_sources>`), and, for a device encoder, put
+each tile's values and validity in a slot of a device buffer of the caller's
+(``device_slots``), so that no tile goes through host memory on its way to the encoder.
 
 - Processes start before the plan is made (their imports, Warp's initialisation and kernel
   loading overlap it) and get the plan once, pickled at the start of the shared file.
@@ -144,6 +149,9 @@ class ProcessTiles:
         self._file = self._map = self._fd = None
         self._ahead_file = None  # (path, fd) of the plan of build_ahead
         self._keep_alive = []  # what the workers map (start_plan's keep_alive)
+        self.device_slots = False  # tiles' values and validity in the caller's device memory (start_plan)
+        self._dev = self._events = None  # the device slots' buffer; an event per slot (its last reader)
+        self._pending = []  # (slot, event) released, their readers on the device maybe not done (run)
         remove_stale_segments()
         self.worker_info = []  # per worker at the end: pixels per image, stage spans, builds, peak RSS
         for p in self._procs:
@@ -156,7 +164,7 @@ class ProcessTiles:
         self.close()
 
     def start_plan(self, plan: Any, tile_shape: tuple[int, int], *, with_source: bool, encoder: Any = None,
-                   keep_alive: Sequence[Any] = ()) -> None:
+                   keep_alive: Sequence[Any] = (), device_slots: bool = False) -> None:
         """Send ``plan`` to the workers and make the slots for tiles of at most ``tile_shape``
         (rows, cols): values (the plan's dtype and bands), validity (uint8) and, ``with_source``,
         the source index (uint16). The pickled plan lies at the start of the shared file (the
@@ -165,7 +173,10 @@ class ProcessTiles:
         TileEncoder`), each worker encodes its tiles and puts the pickled
         :class:`~orthowarp.pipeline.raster.cog.EncodedTile` in the slot's room for it instead
         of the pixels, where it fits (see :meth:`run`). ``keep_alive``: what the workers map
-        (the device arrays of the plan's shared sources), held until the workers are gone."""
+        (the device arrays of the plan's shared sources), held until the workers are gone.
+        ``device_slots`` (a CUDA device that can share memory between processes; not with an
+        ``encoder``): each tile's values and validity come in a slot of a device buffer of
+        this process's instead (:attr:`device_slots` says whether they do)."""
         self._keep_alive = list(keep_alive)
         th, tw = tile_shape
         self._with_source = bool(with_source)
@@ -183,8 +194,32 @@ class ProcessTiles:
         self._map = mmap.mmap(fd, self._base + self._slot_bytes * n_slots)
         self._map[:len(blob)] = blob
         self._free = list(range(n_slots))
+        dev = None
+        if device_slots and encoder is None:
+            dev = self._device_slots(n_slots, th, tw, plan.count, plan.dtype)
         for q in self._tasks:
-            q.put(("plan", path, len(blob), self._base, self._slot_bytes, self._with_source, encoder, self._blob_at))
+            q.put(("plan", path, len(blob), self._base, self._slot_bytes, self._with_source, encoder, self._blob_at,
+                   dev))
+
+    def _device_slots(self, n_slots: int, th: int, tw: int, count: int, dtype: str) -> tuple | None:
+        """Make the device slots' buffer on this process's device: (its export, bytes per slot)
+        for the workers, or None where it cannot be shared."""
+        import warp as wp
+
+        from ..._device import export_array, resolve_device, shareable_empty
+
+        device = resolve_device(self.device)
+        if not device.is_cuda:
+            return None
+        per_slot = -(-sum(_parts(th, tw, count, dtype, False)) // 256) * 256
+        buf = shareable_empty((n_slots * per_slot,), wp.uint8, device)
+        shared = export_array(buf)
+        if shared is None:
+            return None
+        self._dev, self._dev_slot_bytes = buf, per_slot
+        self._events = [None] * n_slots
+        self.device_slots = True
+        return shared, per_slot
 
     def build_ahead(self, plan: Any, tiles: Sequence[Tile], images: Sequence[tuple[int, ...]], *,
                     per_process: int = 8) -> None:
@@ -217,6 +252,22 @@ class ProcessTiles:
         source (th, tw) uint16 or None."""
         return _slot_views(self._map, self._base + slot * self._slot_bytes, th, tw, count, dtype, self._with_source)
 
+    def _take_free(self) -> int | None:
+        """A free slot: one released without an event, else one whose last reader on the
+        device is done (waiting for the oldest where every released slot's still reads);
+        None where all are in flight."""
+        if self._free:
+            return self._free.pop()
+        if self._pending:
+            import warp as wp
+
+            done = next((i for i, (_, ev) in enumerate(self._pending) if ev.is_complete), None)
+            slot, ev = self._pending.pop(0 if done is None else done)
+            if done is None:
+                wp.synchronize_event(ev)
+            return slot
+        return None
+
     def run(self, tiles: Sequence[Tile], count: int, dtype: str, *,
             images: Sequence[tuple[int, ...]] | None = None, cancel: threading.Event | None = None,
             name: str | None = None) -> Iterator[tuple]:
@@ -224,7 +275,11 @@ class ProcessTiles:
         ((r0, c0, rows, cols), values, valid, source or None, release, encoded) in the order they
         finish, the arrays views of a slot that ``release()`` gives back (call it once done with
         them); ``encoded`` is the tile's :class:`~orthowarp.pipeline.raster.cog.EncodedTile`
-        where the plan's encoder made one (``values`` then hold no pixels), else None.
+        where the plan's encoder made one (``values`` then hold no pixels), else None. With
+        :attr:`device_slots`, ``values`` is the pair (values, valid) of Warp arrays on this
+        process's device, complete when yielded (``valid`` on the host then holds the validity
+        only where the plan's tiles bring their source index), and ``release(stream)`` gives
+        the slot back once the work enqueued on ``stream`` so far (its readers) has run.
 
         ``images`` (per tile, the indices of the images its tile function may use; see
         :func:`compact_runs`) lets each process drop an image once the tiles of its run are done
@@ -235,14 +290,15 @@ class ProcessTiles:
         busy = [0] * self.n
         done_tiles = 0
         released = []
+        self._pending = []  # (slot, event): released slots whose readers on the device may not be done
 
         def deal(w: int) -> None:
-            while busy[w] <= self.threads and self._free:
+            while busy[w] <= self.threads and (self._free or self._pending):
                 got = dealer.next(w)
                 if got is None:
                     return
                 k, used, final, drop = got
-                slot = self._free.pop()
+                slot = self._take_free()
                 # the tile as a plain tuple to the process (rebuilt there as a Tile)
                 self._tasks[w].put(("tile", k, tuple(tiles[k]), slot, used, final))
                 busy[w] += 1
@@ -264,14 +320,22 @@ class ProcessTiles:
             busy[w] -= 1
             done_tiles += 1
             values, valid, source = self._views(slot, *Tile(*tiles[k]).shape, count, dtype)
+            if self.device_slots:
+                values = _device_slot_views(self._dev, slot * self._dev_slot_bytes, *Tile(*tiles[k]).shape, count,
+                                            dtype)
             at = self._base + slot * self._slot_bytes + self._blob_at
             encoded = pickle.loads(self._map[at:at + n_encoded]) if n_encoded else None
 
-            def release(slot: int = slot) -> None:
-                released.append(slot)
+            def release(stream: Any = None, slot: int = slot) -> None:
+                released.append((slot, stream))
 
             yield tiles[k], values, valid, source, release, encoded
-            self._free.extend(released)
+            for slot, stream in released:
+                if stream is None:
+                    self._free.append(slot)
+                else:  # (an event per slot, made once)
+                    ev = self._events[slot] = stream.record_event(self._events[slot])
+                    self._pending.append((slot, ev))
             released.clear()
             for v in range(self.n):
                 deal(v)
@@ -555,6 +619,20 @@ def _parts(th: int, tw: int, count: int, dtype: str, with_source: bool) -> tuple
     return up(th * tw * count * np.dtype(dtype).itemsize), up(th * tw), up(2 * th * tw) if with_source else 0
 
 
+def _device_slot_views(buf: Any, base: int, th: int, tw: int, count: int, dtype: str) -> tuple[Any, Any]:
+    """Views of the device slot at byte ``base`` of the Warp uint8 array ``buf`` for a tile
+    (th, tw): values (th, tw, count) of ``dtype``, validity (th, tw) uint8 (packed as
+    :func:`_slot_views` packs a host slot's)."""
+    import warp as wp
+
+    n_values = _parts(th, tw, count, dtype, False)[0]
+    values = wp.array(ptr=buf.ptr + base, shape=(th, tw, count), dtype=wp.dtype_from_numpy(np.dtype(dtype)),
+                      device=buf.device)
+    valid = wp.array(ptr=buf.ptr + base + n_values, shape=(th, tw), dtype=wp.uint8, device=buf.device)
+    values._ref = valid._ref = buf  # noqa: SLF001 - the views do not own their memory
+    return values, valid
+
+
 def _slot_views(buf: Any, base: int, th: int, tw: int, count: int, dtype: str,
                 with_source: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """Views of the slot at byte ``base`` of ``buf`` for a tile (th, tw): values (th, tw,
@@ -638,6 +716,8 @@ class _Worker:
     with_source: bool = False
     blob_at: int = 0  # where in a slot a tile's encoded blocks go
     encoder: Any = None  # the mosaic file's TileEncoder, where the workers encode the tiles
+    dev_buf: Any = None  # the caller's device slots, mapped (ProcessTiles.start_plan's device_slots)
+    dev_slot_bytes: int = 0
     ahead: Any = None  # the plan of build_ahead (its grid only) until the whole plan comes
     built_ahead: int = 0  # images this process was asked to build ahead
     failed: list = field(default_factory=list)
@@ -711,10 +791,15 @@ def _serve_tasks(ws: _Worker, tasks: SimpleQueue, threads: int) -> bool:
 
 
 def _load_plan(ws: _Worker, path: str, n_blob: int, base: int, slot_bytes: int, with_source: bool,
-               encoder: Any = None, blob_at: int = 0) -> None:
-    """Map the shared file at ``path`` and unpickle the plan from its first ``n_blob`` bytes."""
+               encoder: Any = None, blob_at: int = 0, dev: tuple | None = None) -> None:
+    """Map the shared file at ``path`` and unpickle the plan from its first ``n_blob`` bytes;
+    map the caller's device slots (``dev``: their buffer's export and bytes per slot)."""
     ws.base, ws.slot_bytes, ws.with_source, ws.encoder = base, slot_bytes, with_source, encoder
     ws.blob_at = blob_at
+    if dev is not None:
+        from ..._device import import_array
+
+        ws.dev_buf, ws.dev_slot_bytes = import_array(dev[0], ws.dev), dev[1]
     fd = os.open(path, os.O_RDWR)
     try:
         ws.buf = mmap.mmap(fd, 0)
@@ -754,7 +839,17 @@ def _worker_tile(ws: _Worker, k: int, tile: Tile, slot: int, used: tuple[int, ..
             at = ws.base + slot * ws.slot_bytes
             values, valid, src = _slot_views(ws.buf, at, th, tw, plan.count, plan.dtype, with_source)
             n_encoded = 0
-            if ws.encoder is None:
+            if ws.dev_buf is not None:  # into the caller's device slot, complete before it hears of it
+                import warp as wp
+
+                dvalues, dvalid = _device_slot_views(ws.dev_buf, slot * ws.dev_slot_bytes, th, tw, plan.count,
+                                                     plan.dtype)
+                wp.copy(dvalues, out)
+                wp.copy(dvalid, has)
+                if with_source:  # (the caller's index and seamlines need the validity on the host)
+                    valid[...] = to_host(has)
+                wp.synchronize_stream(ws.dev.stream)
+            elif ws.encoder is None:
                 values[...] = to_host(out)
                 valid[...] = to_host(has)
             else:  # the tile's blocks compressed here, in the values' place where they fit
@@ -795,6 +890,7 @@ def _worker_end(ws: _Worker) -> None:
         if ws.ahead is not None:  # (no plan came after it)
             ws.ahead.close()
         wp.synchronize()
+        ws.dev_buf = None  # (unmapped)
         ws.results.put(("end", ws.w, info))
     except BaseException as e:  # noqa: BLE001
         ws.report(e)
