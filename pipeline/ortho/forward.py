@@ -57,17 +57,19 @@ class _NodeBlocks:
         nb_r, nb_c = -(-rows // block), -(-cols // block)
         n, m = nb_r * nb_c, len(values)
         self.lo, self.hi = np.empty((n, m)), np.empty((n, m))
-        self.offsets = np.empty((n, block * block, m), np.float32)
+        self.offsets = np.empty((m, n, block * block), np.float32)  # (each value's contiguous)
         pad = np.full((nb_r * block, nb_c * block), np.nan)
+        blocks = np.empty((nb_r, nb_c, block, block))
+        flat = blocks.reshape(n, block * block)
         for c, v in enumerate(values):
             pad[:rows, :cols] = v
-            blocks = pad.reshape(nb_r, block, nb_c, block).transpose(0, 2, 1, 3).reshape(n, block * block)
+            blocks[...] = pad.reshape(nb_r, block, nb_c, block).transpose(0, 2, 1, 3)
             # (fmin / fmax skip NaN, as nanmin / nanmax do; a block with no node: NaN bounds,
             # never selected)
-            lo = self.lo[:, c] = np.fmin.reduce(blocks, axis=1)
-            self.hi[:, c] = np.fmax.reduce(blocks, axis=1)
-            blocks -= lo[:, None]
-            self.offsets[:, :, c] = blocks  # (float32, as astype rounds)
+            lo = self.lo[:, c] = np.fmin.reduce(flat, axis=1)
+            self.hi[:, c] = np.fmax.reduce(flat, axis=1)
+            # (the difference in float64, rounded to float32 as astype rounds)
+            np.subtract(flat, lo[:, None], out=self.offsets[c], casting="same_kind")
 
     def bounds(self, x0: float, y0: float, x1: float, y1: float) -> tuple[np.ndarray, np.ndarray] | None:
         """(lo, hi): the smallest and largest values (m each) of the nodes with x0 <= x <= x1
@@ -78,7 +80,7 @@ class _NodeBlocks:
         parts_lo, parts_hi = [lo[inside, 2:]], [hi[inside, 2:]]
         across = meets & ~inside
         if across.any():
-            edge = (lo[across][:, None, :] + self.offsets[across]).reshape(-1, lo.shape[1])
+            edge = (lo[across][:, None, :] + self.offsets[:, across].transpose(1, 2, 0)).reshape(-1, lo.shape[1])
             sel = (edge[:, 0] >= x0) & (edge[:, 0] <= x1) & (edge[:, 1] >= y0) & (edge[:, 1] <= y1)
             parts_lo.append(edge[sel, 2:])
             parts_hi.append(edge[sel, 2:])
