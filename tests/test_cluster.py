@@ -751,3 +751,25 @@ def test_a_webp_tiled_product_is_webp_with_a_deflate_index(block, tmp_path):
         assert structure["COMPRESSION"] == "WEBP" and structure["WEBP_LEVEL"] == "90"
     with rasterio.open(tiled.index_vrt) as ix, rasterio.open(ix.files[1]) as t:
         assert t.compression.value == "DEFLATE"
+
+
+def test_a_failed_connection_leaves_no_half_made_client_behind():
+    """A scheduler that does not answer: the error names it, and the half-made Dask client is
+    closed at once, not left (held by the error's tracebacks) for a later garbage collection,
+    which closes it under Dask's loop lock and deadlocks where that collection runs inside
+    another cluster's or client's start."""
+    import gc
+
+    import dask
+
+    from orthowarp.pipeline.mosaic.cluster import connect
+
+    def clients():
+        return [o for o in gc.get_objects() if isinstance(o, distributed.Client)]
+
+    before = {id(c) for c in clients()}
+    with dask.config.set({"distributed.comm.timeouts.connect": "1s"}), \
+            pytest.raises(OrthowarpError, match=r"Could not connect to the Dask scheduler 'tcp://127\.0\.0\.1:9'"):
+        with connect("tcp://127.0.0.1:9"):
+            pass
+    assert [c for c in clients() if id(c) not in before] == []  # (while the error is still held)

@@ -41,6 +41,7 @@ import copy
 import dataclasses
 import fcntl
 import functools
+import gc
 import hashlib
 import json
 import logging
@@ -226,6 +227,7 @@ def connect(cluster: Any = None, *, gpus: int | None = None, workers: int | None
             reason = _scrub(describe_os_error(e) if isinstance(e, OSError) else str(e))
             hint = " (does the scheduler speak tls://?)" if address.startswith("tcp://") and \
                 "reset by peer" in reason else ""
+            _close_half_made_client(e)
             raise OrthowarpError(f"Could not connect to the Dask scheduler '{redact(address)}': {reason}{hint}") from e
         with client:
             yield client
@@ -233,6 +235,22 @@ def connect(cluster: Any = None, *, gpus: int | None = None, workers: int | None
     if not isinstance(cluster, distributed.Client):
         raise ParamError(f"cluster must be a distributed.Client or a scheduler address, got {type(cluster).__name__}")
     yield cluster
+
+
+def _close_half_made_client(exc: BaseException) -> None:
+    """After a ``distributed.Client`` failed to connect (``exc``): close the half-made client now.
+    Only the frames of ``exc``'s tracebacks (and of the exceptions it was raised from) hold it;
+    left to the garbage collector, it would be closed whenever a collection next runs, and one
+    that runs inside a later Dask loop's start (another cluster, another client) deadlocks: the
+    client's ``__del__`` closes its loop under the lock that start holds (``LoopRunner``'s,
+    one for the whole process). The tracebacks are dropped (the error's message says why) and
+    the client collected here."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        exc.__traceback__ = None
+        exc = exc.__cause__ or exc.__context__
+    gc.collect()
 
 
 def _pin(cores: list[int]) -> list[int]:
