@@ -373,7 +373,7 @@ class ProcessTiles:
         for p in self._procs:
             p.join(timeout=5)
         if not any(p.is_alive() for p in self._procs):  # (never freed under a process that may map it)
-            self._keep_alive = []
+            self._keep_alive, self._dev = [], None
         if self._map is not None:
             self._map.close()
             self._map = None
