@@ -187,20 +187,19 @@ class MosaicPlan(TileBlending):
             geom, whole = self._kept.pop(k, (None, None))
         if geom is None:
             geom = self.geometry(k)
-        if whole is None and self.options.get("resident"):
+        if whole is None and (self.options.get("resident") or self.options.get("share_sources")):
             whole = self._whole_source(k, geom.device)
-        elif whole is None and self.options.get("share_sources"):
-            src, _, masked = self.sources[k]
-            whole = SharedWholeSource(src, geom.device, masked=masked, dtype=source_read_dtype(self.src_dtype),
-                                      shared=self._shared, k=k)
         return geom, whole
 
     def _whole_source(self, k: int, device: Device) -> WholeSource:
         """Image ``k``'s source whole in device memory, read on first use (so that other
-        processes can map it, where the plan shares its sources)."""
+        processes can map it, where the plan shares its sources); in a process that does not
+        hold the plan's sources (not resident) but shares them, the one the plan's maker holds."""
         src, _, masked = self.sources[k]
-        return WholeSource(src, device, masked=masked, dtype=source_read_dtype(self.src_dtype),
-                           shareable=bool(self.options.get("share_sources")))
+        dtype, shared = source_read_dtype(self.src_dtype), bool(self.options.get("share_sources"))
+        if shared and not self.options.get("resident"):
+            return SharedWholeSource(src, device, masked=masked, dtype=dtype, shared=self._shared, k=k)
+        return WholeSource(src, device, masked=masked, dtype=dtype, shareable=shared)
 
     def export_sources(self) -> tuple[dict[int, tuple], list[tuple]]:
         """The sources the reduced pass read whole and kept (where the plan is resident),
